@@ -1,0 +1,377 @@
+"""File contracts that outside tools rely on (see docs/formats.md): posed scans, pose distributions,
+maps and truth rasters, all NumPy ``.npz``.
+
+Every loader validates the whole file and raises :class:`FormatError` with one sentence naming the file,
+the key and the problem. Every saver writes exactly the documented keys, so a file written here loads in
+any tool that follows the contract.
+
+Frames and units: poses are (x, y, yaw) of the robot in the map frame, metres and radians; ranges are
+metres along the beam from the laser; angles are radians in the laser frame, counter-clockwise from +x.
+"""
+from __future__ import annotations
+
+import io
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from schemas.errors import FormatError
+
+#: weights must sum to 1 within this absolute tolerance (float32 writers lose ~1e-7 per element)
+WEIGHT_SUM_TOLERANCE = 1e-4
+
+
+@dataclass(frozen=True)
+class PoseSet:
+    """Pose distributions for T steps, in one of two forms.
+
+    Either ``samples`` (T, M, 3) float64 with ``weights`` (T, M) summing to 1 per row, or ``mean`` (T, 3)
+    with ``cov`` (T, 3, 3). Exactly one form is set; the other pair is None.
+    """
+
+    samples: np.ndarray | None = None
+    weights: np.ndarray | None = None
+    mean: np.ndarray | None = None
+    cov: np.ndarray | None = None
+
+    @property
+    def is_gaussian(self) -> bool:
+        return self.mean is not None
+
+    def __len__(self) -> int:
+        return len(self.mean) if self.is_gaussian else len(self.samples)
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The keys this form writes to a file."""
+        if self.is_gaussian:
+            return {"mean": self.mean, "cov": self.cov}
+        return {"samples": self.samples, "weights": self.weights}
+
+
+@dataclass(frozen=True)
+class PosedScans:
+    """A posed-scan file: T laser scans of B beams, each with the robot's pose distribution."""
+
+    ranges: np.ndarray  # float32 (T, B) m; NaN, inf or > range_max: no return
+    angle_min: float  # rad, laser frame
+    angle_increment: float  # rad
+    range_min: float  # m
+    range_max: float  # m
+    stamps: np.ndarray  # float64 (T,) s
+    sensor_offset: np.ndarray  # float64 (3,): laser (x, y, yaw) in the robot frame, m and rad
+    poses: PoseSet
+
+    @property
+    def beam_angles(self) -> np.ndarray:
+        """Beam angles (B,) in rad, laser frame."""
+        return self.angle_min + self.angle_increment * np.arange(self.ranges.shape[1])
+
+
+@dataclass(frozen=True)
+class PoseDistributionFile:
+    """SLAM output without scans: per step a stamp and a pose distribution."""
+
+    stamps: np.ndarray  # float64 (T,) s
+    poses: PoseSet
+
+
+@dataclass(frozen=True)
+class MapFile:
+    """An occupancy map raster. Row i covers y in [origin_y + i*res, origin_y + (i+1)*res)."""
+
+    logodds: np.ndarray  # float32 (H, W)
+    probability: np.ndarray  # float32 (H, W)
+    observed: np.ndarray  # bool (H, W)
+    origin: np.ndarray  # float64 (2,): map-frame (x, y) of the lower-left corner of cell [0, 0], m
+    resolution: float  # m
+    variance: np.ndarray | None = None  # float32 (H, W)
+    level: np.ndarray | None = None  # int8 (H, W), adaptive maps only
+
+
+@dataclass(frozen=True)
+class TruthRaster:
+    """What maps are scored against; same row order and frame as :class:`MapFile`."""
+
+    occupied: np.ndarray  # bool (H, W)
+    visible: np.ndarray  # bool (H, W)
+    origin: np.ndarray  # float64 (2,)
+    resolution: float  # m
+
+
+# --------------------------------------------------------------------------------------------- reading
+
+
+def _open_npz(path: str | Path, what: str) -> dict[str, np.ndarray]:
+    path = Path(path)
+    if not path.is_file():
+        raise FormatError(f"{path}: no such file (expected a {what} .npz)")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {key: data[key] for key in data.files}
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
+        raise FormatError(f"{path}: not a readable .npz {what} ({exc})") from None
+
+
+def _require(data: dict, key: str, path, what: str) -> np.ndarray:
+    if key not in data:
+        raise FormatError(f"{path}: missing key '{key}' (a {what} needs {_KEYS_HELP[what]})")
+    return data[key]
+
+
+_KEYS_HELP = {
+    "posed-scan file": "ranges, angle_min, angle_increment, range_min, range_max, stamps and either "
+    "samples+weights or mean+cov",
+    "pose-distribution file": "stamps and either samples+weights or mean+cov",
+    "map file": "logodds, probability, observed, origin, resolution",
+    "truth raster": "occupied, visible, origin, resolution",
+}
+
+
+def _scalar(data: dict, key: str, path, what: str) -> float:
+    value = np.asarray(_require(data, key, path, what))
+    if value.size != 1 or not np.issubdtype(value.dtype, np.number):
+        raise FormatError(f"{path}: '{key}' must be a number, got shape {value.shape} dtype {value.dtype}")
+    value = float(value.reshape(()))
+    if not np.isfinite(value):
+        raise FormatError(f"{path}: '{key}' must be finite, got {value}")
+    return value
+
+
+def _numeric(array: np.ndarray, key: str, path) -> np.ndarray:
+    if not np.issubdtype(np.asarray(array).dtype, np.number):
+        raise FormatError(f"{path}: '{key}' must be numeric, got dtype {np.asarray(array).dtype}")
+    return np.asarray(array)
+
+
+def validate_pose_set(poses: PoseSet, steps: int, where: str) -> None:
+    """Check shapes, finiteness, weight sums and covariance symmetry of ``poses`` for ``steps`` steps."""
+    if poses.is_gaussian:
+        mean, cov = poses.mean, poses.cov
+        if mean.shape != (steps, 3):
+            raise FormatError(f"{where}: 'mean' must have shape ({steps}, 3), got {mean.shape}")
+        if cov.shape != (steps, 3, 3):
+            raise FormatError(f"{where}: 'cov' must have shape ({steps}, 3, 3), got {cov.shape}")
+        for key, arr in (("mean", mean), ("cov", cov)):
+            bad = ~np.isfinite(arr).reshape(steps, -1).all(axis=1)
+            if bad.any():
+                raise FormatError(f"{where}: '{key}' has NaN or inf at step {int(np.argmax(bad))}")
+        asym = np.abs(cov - cov.transpose(0, 2, 1)).max(axis=(1, 2)) > 1e-9 * (1 + np.abs(cov).max())
+        if asym.any():
+            raise FormatError(f"{where}: 'cov' is not symmetric at step {int(np.argmax(asym))}")
+        eig_min = np.linalg.eigvalsh(cov).min(axis=1) if steps else np.zeros(0)
+        neg = eig_min < -1e-12
+        if neg.any():
+            step = int(np.argmax(neg))
+            raise FormatError(
+                f"{where}: 'cov' is not positive semi-definite at step {step} "
+                f"(smallest eigenvalue {eig_min[step]:.3g})"
+            )
+        return
+    samples, weights = poses.samples, poses.weights
+    if samples.ndim != 3 or samples.shape[0] != steps or samples.shape[2] != 3 or samples.shape[1] < 1:
+        raise FormatError(f"{where}: 'samples' must have shape ({steps}, M, 3) with M >= 1, got {samples.shape}")
+    if weights.shape != samples.shape[:2]:
+        raise FormatError(f"{where}: 'weights' must have shape {samples.shape[:2]}, got {weights.shape}")
+    bad = ~np.isfinite(samples).all(axis=(1, 2))
+    if bad.any():
+        raise FormatError(f"{where}: 'samples' has NaN or inf at step {int(np.argmax(bad))}")
+    bad = ~np.isfinite(weights).all(axis=1) | (weights < 0).any(axis=1)
+    if bad.any():
+        raise FormatError(f"{where}: 'weights' has a negative, NaN or inf value at step {int(np.argmax(bad))}")
+    sums = weights.sum(axis=1)
+    off = np.abs(sums - 1.0) > WEIGHT_SUM_TOLERANCE
+    if off.any():
+        step = int(np.argmax(off))
+        raise FormatError(f"{where}: 'weights' at step {step} sum to {sums[step]:.6g}, not 1")
+
+
+def _read_pose_set(data: dict, steps: int, path, what: str) -> PoseSet:
+    has_samples = "samples" in data or "weights" in data
+    has_gauss = "mean" in data or "cov" in data
+    if has_samples and has_gauss:
+        raise FormatError(f"{path}: holds both samples/weights and mean/cov; keep one pose form")
+    if has_gauss:
+        poses = PoseSet(
+            mean=_numeric(_require(data, "mean", path, what), "mean", path).astype(np.float64),
+            cov=_numeric(_require(data, "cov", path, what), "cov", path).astype(np.float64),
+        )
+    elif has_samples:
+        poses = PoseSet(
+            samples=_numeric(_require(data, "samples", path, what), "samples", path).astype(np.float64),
+            weights=_numeric(_require(data, "weights", path, what), "weights", path).astype(np.float64),
+        )
+    else:
+        raise FormatError(f"{path}: has no poses (a {what} needs samples+weights or mean+cov)")
+    validate_pose_set(poses, steps, str(path))
+    return poses
+
+
+def _read_stamps(data: dict, path, what: str, steps: int | None = None) -> np.ndarray:
+    stamps = _numeric(_require(data, "stamps", path, what), "stamps", path).astype(np.float64)
+    if stamps.ndim != 1 or (steps is not None and stamps.shape[0] != steps):
+        raise FormatError(f"{path}: 'stamps' must have shape ({steps if steps is not None else 'T'},), got {stamps.shape}")
+    if not np.isfinite(stamps).all():
+        raise FormatError(f"{path}: 'stamps' has NaN or inf at step {int(np.argmax(~np.isfinite(stamps)))}")
+    return stamps
+
+
+def load_posed_scans(path: str | Path) -> PosedScans:
+    """Read and validate a posed-scan file (contract in docs/formats.md)."""
+    what = "posed-scan file"
+    data = _open_npz(path, what)
+    ranges = _numeric(_require(data, "ranges", path, what), "ranges", path)
+    if ranges.ndim != 2 or ranges.shape[1] < 1:
+        raise FormatError(f"{path}: 'ranges' must have shape (T, B) with B >= 1, got {ranges.shape}")
+    steps = ranges.shape[0]
+    range_min = _scalar(data, "range_min", path, what)
+    range_max = _scalar(data, "range_max", path, what)
+    angle_increment = _scalar(data, "angle_increment", path, what)
+    if not 0 <= range_min < range_max:
+        raise FormatError(f"{path}: need 0 <= range_min < range_max, got {range_min} and {range_max}")
+    if angle_increment == 0 and ranges.shape[1] > 1:
+        raise FormatError(f"{path}: 'angle_increment' is 0 but the scans have {ranges.shape[1]} beams")
+    offset = np.zeros(3)
+    if "sensor_offset" in data:
+        offset = _numeric(data["sensor_offset"], "sensor_offset", path).astype(np.float64)
+        if offset.shape != (3,) or not np.isfinite(offset).all():
+            raise FormatError(f"{path}: 'sensor_offset' must be 3 finite numbers (x m, y m, yaw rad), got {offset}")
+    return PosedScans(
+        ranges=ranges.astype(np.float32),
+        angle_min=_scalar(data, "angle_min", path, what),
+        angle_increment=angle_increment,
+        range_min=range_min,
+        range_max=range_max,
+        stamps=_read_stamps(data, path, what, steps),
+        sensor_offset=offset,
+        poses=_read_pose_set(data, steps, path, what),
+    )
+
+
+def load_pose_distribution(path: str | Path) -> PoseDistributionFile:
+    """Read and validate a pose-distribution file (SLAM output without scans)."""
+    what = "pose-distribution file"
+    data = _open_npz(path, what)
+    stamps = _read_stamps(data, path, what)
+    return PoseDistributionFile(stamps=stamps, poses=_read_pose_set(data, len(stamps), path, what))
+
+
+def load_map(path: str | Path) -> MapFile:
+    """Read and validate a map file."""
+    what = "map file"
+    data = _open_npz(path, what)
+    logodds = _numeric(_require(data, "logodds", path, what), "logodds", path)
+    if logodds.ndim != 2:
+        raise FormatError(f"{path}: 'logodds' must be 2-D (H, W), got shape {logodds.shape}")
+    shape = logodds.shape
+    layers = {}
+    for key in ("probability", "observed", "variance", "level"):
+        if key in data:
+            if data[key].shape != shape:
+                raise FormatError(f"{path}: '{key}' has shape {data[key].shape}, 'logodds' has {shape}")
+            layers[key] = data[key]
+    _require(data, "probability", path, what)
+    _require(data, "observed", path, what)
+    origin = _numeric(_require(data, "origin", path, what), "origin", path).astype(np.float64)
+    if origin.shape != (2,) or not np.isfinite(origin).all():
+        raise FormatError(f"{path}: 'origin' must be 2 finite numbers (x, y) in m, got {origin}")
+    resolution = _scalar(data, "resolution", path, what)
+    if resolution <= 0:
+        raise FormatError(f"{path}: 'resolution' must be > 0 m, got {resolution}")
+    return MapFile(
+        logodds=logodds.astype(np.float32),
+        probability=layers["probability"].astype(np.float32),
+        observed=layers["observed"].astype(bool),
+        origin=origin,
+        resolution=resolution,
+        variance=layers["variance"].astype(np.float32) if "variance" in layers else None,
+        level=layers["level"].astype(np.int8) if "level" in layers else None,
+    )
+
+
+def load_truth(path: str | Path) -> TruthRaster:
+    """Read and validate a truth raster."""
+    what = "truth raster"
+    data = _open_npz(path, what)
+    occupied = _require(data, "occupied", path, what)
+    visible = _require(data, "visible", path, what)
+    if occupied.ndim != 2 or visible.shape != occupied.shape:
+        raise FormatError(
+            f"{path}: 'occupied' and 'visible' must be 2-D of one shape, got {occupied.shape} and {visible.shape}"
+        )
+    origin = _numeric(_require(data, "origin", path, what), "origin", path).astype(np.float64)
+    if origin.shape != (2,):
+        raise FormatError(f"{path}: 'origin' must be 2 numbers (x, y) in m, got shape {origin.shape}")
+    resolution = _scalar(data, "resolution", path, what)
+    if resolution <= 0:
+        raise FormatError(f"{path}: 'resolution' must be > 0 m, got {resolution}")
+    return TruthRaster(occupied.astype(bool), visible.astype(bool), origin, resolution)
+
+
+# --------------------------------------------------------------------------------------------- writing
+
+
+def save_posed_scans(path: str | Path, scans: PosedScans) -> None:
+    """Write a posed-scan file with exactly the contract's keys."""
+    np.savez_compressed(
+        path,
+        ranges=np.asarray(scans.ranges, np.float32),
+        angle_min=np.float64(scans.angle_min),
+        angle_increment=np.float64(scans.angle_increment),
+        range_min=np.float64(scans.range_min),
+        range_max=np.float64(scans.range_max),
+        stamps=np.asarray(scans.stamps, np.float64),
+        sensor_offset=np.asarray(scans.sensor_offset, np.float64),
+        **{k: np.asarray(v, np.float64) for k, v in scans.poses.arrays().items()},
+    )
+
+
+def save_pose_distribution(path: str | Path, dist: PoseDistributionFile) -> None:
+    """Write a pose-distribution file."""
+    np.savez_compressed(
+        path,
+        stamps=np.asarray(dist.stamps, np.float64),
+        **{k: np.asarray(v, np.float64) for k, v in dist.poses.arrays().items()},
+    )
+
+
+def write_npz_deterministic(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
+    """Write an uncompressed ``.npz`` whose bytes depend only on ``arrays`` (fixed zip timestamps).
+
+    ``np.savez`` stamps each member with the wall-clock time, so two saves of one map differ; this
+    writer gives byte-identical files for identical maps, which the reproducibility tests rely on.
+    """
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_STORED) as archive:
+        for key, value in arrays.items():
+            buffer = io.BytesIO()
+            np.lib.format.write_array(buffer, np.asanyarray(value), allow_pickle=False)
+            info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            archive.writestr(info, buffer.getvalue())
+
+
+def save_map(path: str | Path, map_file: MapFile) -> None:
+    """Write a map file. Deterministic: the same map gives the same bytes."""
+    arrays = {
+        "logodds": np.asarray(map_file.logodds, np.float32),
+        "probability": np.asarray(map_file.probability, np.float32),
+        "observed": np.asarray(map_file.observed, bool),
+        "origin": np.asarray(map_file.origin, np.float64),
+        "resolution": np.float64(map_file.resolution),
+    }
+    if map_file.variance is not None:
+        arrays["variance"] = np.asarray(map_file.variance, np.float32)
+    if map_file.level is not None:
+        arrays["level"] = np.asarray(map_file.level, np.int8)
+    write_npz_deterministic(path, arrays)
+
+
+def save_truth(path: str | Path, truth: TruthRaster) -> None:
+    """Write a truth raster."""
+    np.savez_compressed(
+        path,
+        occupied=np.asarray(truth.occupied, bool),
+        visible=np.asarray(truth.visible, bool),
+        origin=np.asarray(truth.origin, np.float64),
+        resolution=np.float64(truth.resolution),
+    )

@@ -1,0 +1,69 @@
+"""The ``posegrid`` console script: one argparse parser, one module per group of subcommands.
+
+Each module in :data:`COMMAND_MODULES` has ``register(subparsers)``, which adds its subcommands and sets
+``func`` (taking the parsed args, returning an exit code). Heavy imports (numba, zenoh, fastapi) happen
+inside the handlers, so ``posegrid --help`` is instant.
+
+Exit codes: 0 success, 1 runtime failure, 2 bad input or usage (one sentence on stderr, no traceback),
+130 interrupted.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+#: modules that register subcommands, in the order ``--help`` lists them
+COMMAND_MODULES = (
+    "services.commands.mapping",
+    "services.commands.slam",
+    "services.commands.pipeline",
+)
+
+
+class UsageError(Exception):
+    """A command-line argument is wrong; the message says what and how to fix it (exit 2)."""
+
+
+def input_errors() -> tuple[type[BaseException], ...]:
+    """Exception types that mean 'the user's input is wrong' rather than 'posegrid has a bug'."""
+    from mapping.errors import InputError
+    from schemas.errors import FormatError
+    from slam.errors import LogFormatError
+
+    return (UsageError, FormatError, InputError, LogFormatError)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="posegrid",
+        description="Occupancy maps that carry SLAM pose uncertainty (Monte Carlo fusion of pose samples). "
+        "Units: metres, radians, seconds; poses are (x, y, yaw) in the map frame.",
+    )
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(subparsers)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("posegrid: interrupted", file=sys.stderr)
+        return 130
+    except input_errors() as exc:
+        print(f"posegrid {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        print(f"posegrid {args.command}: error: {exc.strerror or exc} ({exc.filename or ''})", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
