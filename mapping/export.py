@@ -1,0 +1,94 @@
+"""Rendering a map raster for people (PNG) and for ROS map_server (PGM + YAML).
+
+Input is a dict with the map file's keys (``probability``, ``observed``, ``variance``, ``origin``,
+``resolution``); row 0 of the raster is the southern-most row (y grows with the row index), so images are
+flipped vertically to put north up, as map_server expects.
+"""
+from __future__ import annotations
+
+import io
+
+import numpy as np
+from PIL import Image
+
+from mapping.errors import InputError
+
+LAYERS = ("probability", "variance")
+
+#: map_server's conventional thresholds and pixel values (negate: 0)
+OCCUPIED_THRESH = 0.65
+FREE_THRESH = 0.196
+PGM_OCCUPIED, PGM_FREE, PGM_UNKNOWN = 0, 254, 205
+
+UNOBSERVED_RGB = (180, 190, 205)
+
+
+def occupancy_pixels(probability: np.ndarray, observed: np.ndarray) -> np.ndarray:
+    """map_server trinary pixels (uint8, raster row order): occupied 0, free 254, unknown 205."""
+    pixels = np.full(probability.shape, PGM_UNKNOWN, np.uint8)
+    pixels[observed & (probability >= OCCUPIED_THRESH)] = PGM_OCCUPIED
+    pixels[observed & (probability <= FREE_THRESH)] = PGM_FREE
+    return pixels
+
+
+def render_pgm(map_arrays: dict, image_name: str = "map.pgm") -> tuple[bytes, str]:
+    """A binary PGM (P5) and its map_server YAML; the YAML names the image file ``image_name``."""
+    pixels = np.flipud(occupancy_pixels(np.asarray(map_arrays["probability"]), np.asarray(map_arrays["observed"])))
+    height, width = pixels.shape
+    pgm = f"P5\n{width} {height}\n255\n".encode("ascii") + pixels.tobytes()
+    ox, oy = (float(v) for v in map_arrays["origin"])
+    yaml = (
+        f"image: {image_name}\n"
+        f"resolution: {float(map_arrays['resolution']):.6f}\n"
+        f"origin: [{ox:.6f}, {oy:.6f}, 0.0]\n"
+        "negate: 0\n"
+        f"occupied_thresh: {OCCUPIED_THRESH}\n"
+        f"free_thresh: {FREE_THRESH}\n"
+        "mode: trinary\n"
+    )
+    return pgm, yaml
+
+
+def _heat(values: np.ndarray) -> np.ndarray:
+    """A black-red-yellow-white colour ramp for values in [0, 1] -> uint8 RGB."""
+    v = np.clip(values, 0.0, 1.0)[..., None]
+    stops = np.array([[0, 0, 0], [170, 20, 30], [250, 170, 20], [255, 255, 230]], float)
+    pos = v * (len(stops) - 1)
+    low = np.clip(np.floor(pos).astype(int), 0, len(stops) - 2)
+    frac = pos - low
+    rgb = stops[low[..., 0]] * (1 - frac) + stops[low[..., 0] + 1] * frac
+    return rgb.astype(np.uint8)
+
+
+def render_rgb(map_arrays: dict, layer: str = "probability", variance_scale: float | None = None) -> np.ndarray:
+    """An RGB image (H, W, 3) uint8 in raster row order (not flipped).
+
+    probability: white = free, black = occupied; variance: the heat ramp over variance / variance_scale
+    (default: the 99th percentile of observed cells). Unobserved cells are a pale blue-grey.
+    """
+    if layer not in LAYERS:
+        raise InputError(f"layer must be one of {', '.join(LAYERS)}, got {layer!r}")
+    observed = np.asarray(map_arrays["observed"], bool)
+    if layer == "probability":
+        grey = np.round(255 * (1.0 - np.asarray(map_arrays["probability"], float))).astype(np.uint8)
+        rgb = np.repeat(grey[..., None], 3, axis=2)
+    else:
+        if map_arrays.get("variance") is None:
+            raise InputError("this map has no variance layer")
+        variance = np.asarray(map_arrays["variance"], float)
+        if variance_scale is None:
+            seen = variance[observed]
+            variance_scale = float(np.percentile(seen, 99)) if seen.size else 1.0
+        rgb = _heat(variance / max(variance_scale, 1e-12))
+    rgb[~observed] = UNOBSERVED_RGB
+    return rgb
+
+
+def render_png(map_arrays: dict, layer: str = "probability", variance_scale: float | None = None) -> bytes:
+    """PNG bytes of :func:`render_rgb`, north up."""
+    rgb = render_rgb(map_arrays, layer, variance_scale)
+    if rgb.size == 0:
+        raise InputError("the map is empty (no observed cells); nothing to render")
+    buffer = io.BytesIO()
+    Image.fromarray(np.flipud(rgb)).save(buffer, format="PNG")
+    return buffer.getvalue()

@@ -1,0 +1,150 @@
+"""Unbounded occupancy map stored as fixed-size square tiles created on demand.
+
+Global cell (ix, iy) covers map-frame x in [ix*res, (ix+1)*res) and y in [iy*res, (iy+1)*res); the
+grid's origin is the map frame's origin. Tile (tx, ty) holds cells ix in [tx*T, (tx+1)*T) and iy in
+[ty*T, (ty+1)*T); its arrays are indexed [iy - ty*T, ix - tx*T] (row = y), the row order of the map file.
+
+Per cell the grid keeps
+- ``logodds`` (float32): the occupancy log-odds, clamped to the sensor model's range; 0 = unknown,
+- ``variance`` (float32): the sum over scans of the per-scan spread of the sample log-odds
+  (E_w[y^2] - E_w[y]^2): how much pose uncertainty blurred the cell,
+- ``observed`` (bool): whether any scan touched it.
+
+Tiles live in three stacked arrays (slot, T, T) that grow by doubling, so compiled kernels can write
+into any tile through a slot index; memory follows the observed area.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from mapping.errors import InputError
+
+TILE_SIZE = 256
+
+TileKey = tuple[int, int]
+
+
+class TiledGrid:
+    """A tiled log-odds map with a variance layer; see the module docstring for frames and layout."""
+
+    def __init__(self, resolution: float = 0.05, tile_size: int = TILE_SIZE) -> None:
+        if not resolution > 0:
+            raise InputError(f"resolution must be > 0 m, got {resolution}")
+        if tile_size < 1 or tile_size & (tile_size - 1):
+            raise InputError(f"tile_size must be a power of two (cells), got {tile_size}")
+        self.resolution = float(resolution)
+        self.tile_size = int(tile_size)
+        self.tile_shift = self.tile_size.bit_length() - 1  # tile_size == 1 << tile_shift
+        self._slot_of: dict[TileKey, int] = {}
+        self.logodds = np.zeros((0, tile_size, tile_size), np.float32)
+        self.variance = np.zeros((0, tile_size, tile_size), np.float32)
+        self.observed = np.zeros((0, tile_size, tile_size), np.bool_)
+
+    # ----------------------------------------------------------------------------------- tiles
+    def keys(self) -> list[TileKey]:
+        """Keys (tx, ty) of the tiles that exist, in creation order."""
+        return list(self._slot_of)
+
+    def __contains__(self, key: TileKey) -> bool:
+        return key in self._slot_of
+
+    def slot(self, key: TileKey) -> int:
+        """The slot of tile ``key``, creating the tile (all unknown) if it does not exist."""
+        slot = self._slot_of.get(key)
+        if slot is None:
+            slot = len(self._slot_of)
+            if slot == self.logodds.shape[0]:
+                self._grow(max(4, 2 * slot))
+            self._slot_of[key] = slot
+        return slot
+
+    def _grow(self, capacity: int) -> None:
+        extra = capacity - self.logodds.shape[0]
+        shape = (extra, self.tile_size, self.tile_size)
+        self.logodds = np.concatenate([self.logodds, np.zeros(shape, np.float32)])
+        self.variance = np.concatenate([self.variance, np.zeros(shape, np.float32)])
+        self.observed = np.concatenate([self.observed, np.zeros(shape, np.bool_)])
+
+    def tile_arrays(self, key: TileKey) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(logodds, variance, observed) views of tile ``key``, each (T, T), row = y."""
+        if key not in self._slot_of:
+            raise KeyError(f"tile {key} does not exist")
+        slot = self._slot_of[key]
+        return self.logodds[slot], self.variance[slot], self.observed[slot]
+
+    def set_tile(self, key: TileKey, logodds: np.ndarray, variance: np.ndarray, observed: np.ndarray) -> None:
+        """Replace tile ``key``'s layers (used when assembling a map from shards)."""
+        shape = (self.tile_size, self.tile_size)
+        for name, layer in (("logodds", logodds), ("variance", variance), ("observed", observed)):
+            if np.shape(layer) != shape:
+                raise InputError(f"tile {key}: '{name}' must have shape {shape}, got {np.shape(layer)}")
+        slot = self.slot(key)
+        self.logodds[slot] = logodds
+        self.variance[slot] = variance
+        self.observed[slot] = observed
+
+    def tile_origin(self, key: TileKey) -> tuple[float, float]:
+        """Map-frame (x, y) in m of the lower-left corner of tile ``key``."""
+        span = self.tile_size * self.resolution
+        return key[0] * span, key[1] * span
+
+    # ----------------------------------------------------------------------------------- summaries
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the tiles that exist (the slot arrays' unused capacity excluded)."""
+        per_tile = self.tile_size * self.tile_size * (4 + 4 + 1)
+        return per_tile * len(self._slot_of)
+
+    def observed_cells(self) -> int:
+        n = len(self._slot_of)
+        return int(self.observed[:n].sum())
+
+    def rasterize(self) -> dict[str, np.ndarray]:
+        """The map as one raster with the map file's keys, cropped to the observed cells.
+
+        Returns logodds, probability, observed, variance, origin (m, lower-left of cell [0, 0]) and
+        resolution (m). An empty grid gives a 0 x 0 raster at the origin.
+        """
+        keys = self.keys()
+        size = self.tile_size
+        if not keys:
+            empty = np.zeros((0, 0), np.float32)
+            return {
+                "logodds": empty, "probability": empty.copy(), "observed": np.zeros((0, 0), bool),
+                "variance": empty.copy(), "origin": np.zeros(2), "resolution": np.float64(self.resolution),
+            }
+        tx = np.array([k[0] for k in keys])
+        ty = np.array([k[1] for k in keys])
+        tx0, ty0 = tx.min(), ty.min()
+        shape = ((ty.max() - ty0 + 1) * size, (tx.max() - tx0 + 1) * size)
+        logodds = np.zeros(shape, np.float32)
+        variance = np.zeros(shape, np.float32)
+        observed = np.zeros(shape, bool)
+        for key, slot in self._slot_of.items():
+            rows = slice((key[1] - ty0) * size, (key[1] - ty0 + 1) * size)
+            cols = slice((key[0] - tx0) * size, (key[0] - tx0 + 1) * size)
+            logodds[rows, cols] = self.logodds[slot]
+            variance[rows, cols] = self.variance[slot]
+            observed[rows, cols] = self.observed[slot]
+        rows = np.flatnonzero(observed.any(axis=1))
+        cols = np.flatnonzero(observed.any(axis=0))
+        if rows.size == 0:
+            rows = cols = np.array([0])
+            crop = (slice(0, 0), slice(0, 0))
+        else:
+            crop = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+        logodds = logodds[crop]
+        origin = np.array([(tx0 * size + cols[0]) * self.resolution, (ty0 * size + rows[0]) * self.resolution])
+        return {
+            "logodds": logodds,
+            "probability": probability_of(logodds),
+            "observed": observed[crop],
+            "variance": variance[crop],
+            "origin": origin,
+            "resolution": np.float64(self.resolution),
+        }
+
+
+def probability_of(logodds: np.ndarray) -> np.ndarray:
+    """Occupancy probability from log-odds (float32), 0.5 where the log-odds is 0."""
+    return (1.0 / (1.0 + np.exp(-logodds.astype(np.float64)))).astype(np.float32)

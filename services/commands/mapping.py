@@ -1,0 +1,118 @@
+"""Subcommands on maps: fuse, export, eval."""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+
+def add_sensor_model_arguments(parser: argparse.ArgumentParser) -> None:
+    """The inverse sensor model's options (shared with the mapper shards)."""
+    group = parser.add_argument_group("inverse sensor model (docs/sensor_model.md)")
+    group.add_argument("--resolution", type=float, default=0.05, help="cell size in m (default 0.05)")
+    group.add_argument("--sigma-model", choices=("constant", "linear", "stereo"), default="constant",
+                       help="how range noise sigma grows with range z: constant sigma0, linear sigma0 + slope*z, "
+                       "or stereo z^2/(b*f) (default constant)")
+    group.add_argument("--sigma0", type=float, default=0.03, help="range noise sigma in m, or the linear model's "
+                       "intercept (default 0.03)")
+    group.add_argument("--sigma-slope", type=float, default=0.0, help="linear model: sigma grows by this many m per m")
+    group.add_argument("--baseline-focal", type=float, default=0.0,
+                       help="stereo model: baseline (m) times focal length (px), so sigma = z^2/(b*f)")
+    group.add_argument("--peak-width", type=float, default=None,
+                       help="width l of the occupied peak in m (default: the cell diagonal)")
+
+
+def sensor_model_from_args(args: argparse.Namespace):
+    from mapping.sensor_model import SensorModel
+
+    return SensorModel(resolution=args.resolution, sigma=args.sigma_model, sigma0=args.sigma0,
+                       sigma_slope=args.sigma_slope, baseline_focal=args.baseline_focal, peak_width=args.peak_width)
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    fuse = subparsers.add_parser(
+        "fuse", help="fuse a posed-scan file into an occupancy map",
+        description="Build an occupancy map from a posed-scan file (scans + per-scan pose distributions). "
+        "mode mc integrates every pose sample (Monte Carlo, the paper's method) and keeps a variance layer "
+        "that shows where pose uncertainty blurred the map; mode ml uses the most likely pose only.",
+    )
+    fuse.add_argument("posed", type=Path, help="posed-scan .npz (docs/formats.md)")
+    fuse.add_argument("-o", "--output", type=Path, required=True, help="map .npz to write")
+    fuse.add_argument("--mode", choices=("mc", "ml"), default="mc", help="mc: all samples (default); ml: most likely")
+    fuse.add_argument("--samples", type=int, default=None,
+                      help="pose samples drawn per scan for Gaussian poses (default: derived from the covariance "
+                      "and --accuracy)")
+    fuse.add_argument("--accuracy", type=float, default=None,
+                      help="required accuracy in m of the Monte Carlo mean beam end point, for the derived sample "
+                      "count (default: one cell)")
+    fuse.add_argument("--seed", type=int, default=0, help="seed of the Gaussian pose sampling (default 0)")
+    add_sensor_model_arguments(fuse)
+    fuse.set_defaults(func=run_fuse)
+
+    export = subparsers.add_parser(
+        "export", help="export a map as PGM+YAML (ROS map_server) or PNG",
+        description="Export a map file. pgm writes PATH (.pgm) and a map_server YAML beside it; png writes an "
+        "image for people (white free, black occupied, pale blue unobserved), or the variance layer with "
+        "--layer variance.",
+    )
+    export.add_argument("map", type=Path, help="map .npz")
+    export.add_argument("--format", choices=("pgm", "png"), required=True)
+    export.add_argument("-o", "--output", type=Path, required=True, help="image path (.pgm or .png)")
+    export.add_argument("--layer", choices=("probability", "variance"), default="probability",
+                        help="png only: which layer to draw (default probability)")
+    export.set_defaults(func=run_export)
+
+    evaluate = subparsers.add_parser(
+        "eval", help="score a map against a truth raster (AUC, Brier, NLL)",
+        description="Score MAP against TRUTH over the truth's visible cells; prints one JSON line with "
+        "auc, brier, nll (natural log, per cell) and n (cells scored).",
+    )
+    evaluate.add_argument("map", type=Path, help="map .npz")
+    evaluate.add_argument("truth", type=Path, help="truth raster .npz")
+    evaluate.set_defaults(func=run_eval)
+
+
+def run_fuse(args: argparse.Namespace) -> int:
+    from schemas.files import MapFile, load_posed_scans, save_map
+    from services.cli import UsageError
+    from services.fusion_runner import fuse_posed_scans
+
+    if args.samples is not None and args.samples < 1:
+        raise UsageError(f"--samples must be >= 1, got {args.samples}")
+    model = sensor_model_from_args(args)
+    posed = load_posed_scans(args.posed)
+    grid = fuse_posed_scans(posed, mode=args.mode, model=model, n_samples=args.samples, seed=args.seed,
+                            accuracy=args.accuracy, progress=True)
+    raster = grid.rasterize()
+    save_map(args.output, MapFile(**raster))
+    height, width = raster["logodds"].shape
+    print(f"wrote {args.output}: {width} x {height} cells at {args.resolution} m, "
+          f"{int(raster['observed'].sum())} observed, {len(posed.stamps)} scans fused ({args.mode})")
+    return 0
+
+
+def run_export(args: argparse.Namespace) -> int:
+    from mapping.export import render_pgm, render_png
+    from schemas.files import load_map
+
+    map_file = load_map(args.map)
+    arrays = vars(map_file)
+    if args.format == "pgm":
+        pgm, yaml = render_pgm(arrays, image_name=args.output.name)
+        args.output.write_bytes(pgm)
+        yaml_path = args.output.with_suffix(".yaml")
+        yaml_path.write_text(yaml)
+        print(f"wrote {args.output} and {yaml_path}")
+    else:
+        args.output.write_bytes(render_png(arrays, layer=args.layer))
+        print(f"wrote {args.output} ({args.layer})")
+    return 0
+
+
+def run_eval(args: argparse.Namespace) -> int:
+    from mapping.evaluation import score_map
+    from schemas.files import load_map, load_truth
+
+    scores = score_map(vars(load_map(args.map)), vars(load_truth(args.truth)))
+    print(json.dumps(scores))
+    return 0

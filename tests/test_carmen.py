@@ -1,0 +1,221 @@
+"""CARMEN reader on hand-written lines (good and broken), the writer's round trip, and the real logs."""
+from __future__ import annotations
+
+import gzip
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from slam.carmen import read_carmen, write_carmen
+from slam.errors import LogFormatError
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+GOOD_FLASER = "FLASER 3 1.0 2.5 81.91 0.1 0.2 0.3 1.1 1.2 1.3 100.5 host 0.5"
+
+
+def write(tmp_path: Path, lines: list[str], name: str = "log.clf") -> Path:
+    path = tmp_path / name
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def test_flaser_fields_geometry_and_no_return(tmp_path):
+    log = read_carmen(write(tmp_path, ["# comment", GOOD_FLASER]))
+    assert len(log) == 1 and log.skipped == ()
+    # 3 beams (odd): both ends of the default 180 deg are included, so the step is 90 deg
+    assert log.angle_min == pytest.approx(-math.pi / 2)
+    assert log.angle_increment == pytest.approx(math.pi / 2)
+    assert log.range_max == 80.0
+    np.testing.assert_array_equal(log.ranges[0], np.array([1.0, 2.5, np.inf], np.float32))
+    np.testing.assert_allclose(log.poses[0], [0.1, 0.2, 0.3])
+    np.testing.assert_allclose(log.odometry[0], [1.1, 1.2, 1.3])
+    assert log.stamps[0] == 100.5
+    assert log.where.tolist() == [2]
+    np.testing.assert_array_equal(log.sensor_offset, [0.0, 0.0, 0.0])
+
+
+def test_even_beam_count_drops_one_end(tmp_path):
+    log = read_carmen(write(tmp_path, ["FLASER 4 1 1 1 1 0 0 0 0 0 0 5.0 h 5.0"]))
+    assert log.angle_increment == pytest.approx(math.pi / 4)
+    np.testing.assert_allclose(log.beam_angles, [-math.pi / 2, -math.pi / 4, 0.0, math.pi / 4])
+
+
+def test_params_set_geometry_offset_and_range_max(tmp_path):
+    lines = [
+        "PARAM laser_front_laser_fov 90 1.0 h 1.0",
+        "PARAM laser_front_laser_resolution 45 1.0 h 1.0",
+        "PARAM robot_front_laser_max 2.0 1.0 h 1.0",
+        "PARAM robot_frontlaser_offset 0.25 1.0 h 1.0",
+        GOOD_FLASER,
+    ]
+    log = read_carmen(write(tmp_path, lines))
+    assert log.angle_min == pytest.approx(-math.pi / 4)
+    assert log.angle_increment == pytest.approx(math.pi / 4)
+    assert log.range_max == 2.0
+    # 2.5 >= 2.0 is a max reading now
+    np.testing.assert_array_equal(log.ranges[0], np.array([1.0, np.inf, np.inf], np.float32))
+    np.testing.assert_allclose(log.sensor_offset, [0.25, 0.0, 0.0])
+    assert log.params["robot_frontlaser_offset"] == "0.25"
+
+
+def test_broken_lines_are_skipped_with_line_numbers_and_never_shift(tmp_path):
+    lines = [
+        GOOD_FLASER,  # 1
+        "FLASER 3 1.0 2.5 0.1 0.2 0.3 1.1 1.2 1.3 101.0 host 1.0",  # 2: a range is missing
+        "FLASER 3 1.0 abc 3.0 0.1 0.2 0.3 1.1 1.2 1.3 102.0 host 2.0",  # 3: not a number
+        "FLASER 3 1.0 nan 3.0 0.1 0.2 0.3 1.1 1.2 1.3 103.0 host 3.0",  # 4: NaN range
+        "FLASER 3 1.0 -2 3.0 0.1 0.2 0.3 1.1 1.2 1.3 104.0 host 4.0",  # 5: negative range
+        "FLASER x 1.0 2.0 3.0 0.1 0.2 0.3 1.1 1.2 1.3 105.0 host 5.0",  # 6: beam count not an integer
+        "FLASER 4 1.0 2.0 3.0 4.0 0.1 0.2 0.3 1.1 1.2 1.3 106.0 host 6.0",  # 7: other beam count
+        "FLASER 3 1.0 2.0 3.0 0.1 0.2 inf 1.1 1.2 1.3 107.0 host 7.0",  # 8: pose not finite
+        "ODOM 1 2 3 0 0 0 108.0 host",  # 9: ODOM one field short
+        "PARAM lonely",  # 10: PARAM without a value
+        "FLASER 3 4.0 5.0 6.0 7.1 7.2 7.3 8.1 8.2 8.3 109.0 host 9.0",  # 11: good
+        "FLASER",  # 12: nothing
+        "",
+        "NEFF 12",  # another record type: passed over
+    ]
+    log = read_carmen(write(tmp_path, lines))
+    assert log.where.tolist() == [1, 11]
+    assert [s.where for s in log.skipped] == [2, 3, 4, 5, 6, 7, 8, 9, 10, 12]
+    reasons = {s.where: s.reason for s in log.skipped}
+    assert "needs 14 fields, has 13" in reasons[2]
+    assert "'abc' is not a number" in reasons[3]
+    assert "range 2 is nan" in reasons[4]
+    assert "range 2 is -2.0" in reasons[5]
+    assert "has 4 beams, the log's first scan 3" in reasons[7]
+    assert reasons[9].startswith("ODOM")
+    np.testing.assert_array_equal(log.ranges[1], [4.0, 5.0, 6.0])
+    np.testing.assert_allclose(log.poses[1], [7.1, 7.2, 7.3])
+    np.testing.assert_allclose(log.odometry[1], [8.1, 8.2, 8.3])
+    assert log.stamps.tolist() == [100.5, 109.0]
+    summary = log.skipped_summary(limit=2)
+    assert "skipped 10 lines" in summary and "line 2:" in summary and "and 8 more" in summary
+
+
+def robotlaser(start=-1.0, res=1.0, max_range=10.0, ranges=(1.0, 2.0, 12.0), remissions=(),
+               laser=(1.0, 2.3, math.pi / 2), robot=(1.0, 2.0, math.pi / 2), stamp=50.25) -> str:
+    fields = ["ROBOTLASER1", "0", start, 2.0, res, max_range, 0.01, 0, len(ranges), *ranges,
+              len(remissions), *remissions, *laser, *robot, 0, 0, 0, 0, 0, stamp, "host", 0.5]
+    return " ".join(str(f) for f in fields)
+
+
+def test_robotlaser_fields_and_offset(tmp_path):
+    log = read_carmen(write(tmp_path, [robotlaser(remissions=(0.5, 0.7, 0.9))]))
+    assert log.skipped == ()
+    assert log.angle_min == -1.0 and log.angle_increment == 1.0 and log.range_max == 10.0
+    np.testing.assert_array_equal(log.ranges[0], np.array([1.0, 2.0, np.inf], np.float32))
+    np.testing.assert_allclose(log.odometry[0], [1.0, 2.0, math.pi / 2])
+    # the laser is 0.3 m along world +y from a robot facing +y: 0.3 m ahead in the robot frame
+    np.testing.assert_allclose(log.sensor_offset, [0.3, 0.0, 0.0], atol=1e-12)
+    assert log.stamps[0] == 50.25
+
+
+def test_robotlaser_preferred_over_flaser_and_geometry_checked(tmp_path):
+    lines = [GOOD_FLASER, robotlaser(), robotlaser(res=0.5), robotlaser(ranges=(1.0, 2.0)),
+             robotlaser(remissions=(1.0,))[:-4]]
+    log = read_carmen(write(tmp_path, lines))
+    assert log.where.tolist() == [2]
+    reasons = {s.where: s.reason for s in log.skipped}
+    assert set(reasons) == {3, 4, 5}
+    assert "laser parameters differ" in reasons[3]
+    assert "has 2 beams" in reasons[4]
+    assert "needs 28 fields, has 27" in reasons[5]
+
+
+def test_gzip_and_truncated_gzip(tmp_path):
+    lines = [GOOD_FLASER.replace("100.5", f"{100 + i}") for i in range(2000)]
+    text = ("\n".join(lines) + "\n").encode()
+    full = tmp_path / "log.gz"
+    full.write_bytes(gzip.compress(text))
+    log = read_carmen(full)
+    assert len(log) == 2000 and log.skipped == ()
+    cut = tmp_path / "cut.gz"
+    blob = gzip.compress(text)
+    cut.write_bytes(blob[: len(blob) // 2])
+    log = read_carmen(cut)
+    assert 0 < len(log) < 2000
+    assert len(log.skipped) == 1 and "truncated or corrupt" in log.skipped[0].reason
+    # every scan that was read is whole and in order
+    np.testing.assert_array_equal(log.stamps, 100 + np.arange(len(log)))
+
+
+def test_unusable_inputs_raise_log_format_error(tmp_path):
+    with pytest.raises(LogFormatError, match="no such file"):
+        read_carmen(tmp_path / "missing.clf")
+    with pytest.raises(LogFormatError, match="no usable front laser scan.*line 1"):
+        read_carmen(write(tmp_path, ["FLASER 3 1 2", "ODOM 0 0 0 0 0 0 1 h 1"]))
+    with pytest.raises(LogFormatError, match="not a number"):
+        read_carmen(write(tmp_path, ["PARAM robot_front_laser_max big 0 h 0", GOOD_FLASER]))
+    (tmp_path / "binary.clf").write_bytes(bytes(range(256)) * 10)
+    with pytest.raises(LogFormatError):
+        read_carmen(tmp_path / "binary.clf")
+
+
+def test_odom_stream_kept_in_file_order(tmp_path):
+    lines = ["ODOM 1 2 0.5 0 0 0 10.0 h 10.0", GOOD_FLASER, "ODOM 3 4 0.6 0 0 0 0 h 0"]
+    log = read_carmen(write(tmp_path, lines))
+    assert log.odom_stamps.tolist() == [10.0, 0.0]
+    np.testing.assert_allclose(log.odom_poses, [[1, 2, 0.5], [3, 4, 0.6]])
+
+
+@pytest.mark.parametrize("record,suffix", [("ROBOTLASER1", ".clf"), ("FLASER", ".gz")])
+def test_writer_round_trip(tmp_path, record, suffix):
+    rng = np.random.default_rng(4)
+    steps, beams = 7, 9
+    ranges = rng.uniform(0.2, 7.9, (steps, beams))
+    ranges[0, 3] = np.inf
+    ranges[2, 0] = np.nan
+    ranges[4, 8] = 9.5  # beyond range_max
+    odometry = np.column_stack([rng.normal(size=(steps, 2)) * 10, rng.uniform(-3, 3, steps)])
+    stamps = 1000.0 + np.cumsum(rng.uniform(0.1, 0.3, steps))
+    offset = np.array([0.2, 0.0, 0.0]) if record == "FLASER" else np.array([0.2, -0.1, 0.05])
+    angle_min, step = -math.radians(60.0), math.radians(15.0)
+    path = tmp_path / f"sim{suffix}"
+    write_carmen(path, stamps, ranges, odometry, angle_min, step, 8.0, offset, record=record)
+    log = read_carmen(path)
+    assert len(log) == steps and log.skipped == ()
+    assert log.angle_min == pytest.approx(angle_min) and log.angle_increment == pytest.approx(step)
+    assert log.range_max == 8.0
+    np.testing.assert_allclose(log.stamps, stamps, atol=1e-6)
+    np.testing.assert_allclose(log.odometry, odometry, atol=1e-6)
+    np.testing.assert_allclose(log.sensor_offset, offset, atol=1e-5)
+    expected = np.where(np.isfinite(ranges) & (ranges < 8.0), ranges, np.inf)
+    np.testing.assert_allclose(log.ranges, expected, atol=1e-5)
+
+
+def test_writer_rejects_flaser_with_sideways_laser(tmp_path):
+    with pytest.raises(ValueError, match="x axis"):
+        write_carmen(tmp_path / "x.clf", np.zeros(1), np.ones((1, 3)), np.zeros((1, 3)), -1.0, 1.0, 5.0,
+                     np.array([0.0, 0.1, 0.0]), record="FLASER")
+
+
+def need(path: Path) -> Path:
+    if not path.is_file():
+        pytest.skip(f"real log {path} is absent (shared/data is not part of a fresh clone)")
+    return path
+
+
+def test_real_mit_csail_clf():
+    log = read_carmen(need(DATA / "mit-csail" / "mit-csail.clf"))
+    assert log.ranges.shape == (1988, 361) and log.skipped == ()
+    assert log.angle_increment == pytest.approx(math.pi / 360)
+    np.testing.assert_allclose(log.poses[0], [576.536523, 0.106594, -2.255213])
+    assert log.stamps[0] == pytest.approx(1134864629.895182, abs=1e-6)
+    assert np.isinf(log.ranges).any() and np.nanmin(log.ranges) == pytest.approx(0.27, abs=1e-6)
+
+
+@pytest.mark.parametrize("name,scans,beams,odom,offset", [
+    ("intel-lab/intel-corrected.log.gz", 910, 180, 14541, 0.0),
+    ("fr079/freiburg-079-corrected.log.gz", 4791, 360, 9725, -0.04),
+])
+def test_real_corrected_logs(name, scans, beams, odom, offset):
+    log = read_carmen(need(DATA / name))
+    assert log.ranges.shape == (scans, beams) and log.skipped == ()
+    assert len(log.odom_stamps) == odom
+    assert log.sensor_offset[0] == pytest.approx(offset)
+    # corrected logs repeat the pose: x y theta equals odom_*
+    np.testing.assert_array_equal(log.poses, log.odometry)

@@ -1,0 +1,208 @@
+"""Monte Carlo fusion: hand-computed cells, a slow reference, ml equivalence, reproducibility, sharding."""
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mapping.errors import InputError
+from mapping.fusion import MonteCarloFusion, merge_duplicates
+from mapping.grid import TiledGrid
+from mapping.sensor_model import SensorModel
+from reference import reference_fuse
+
+RES = 0.05
+
+
+def fused_cells(grid: TiledGrid) -> dict:
+    """{(ix, iy): (logodds, variance)} of every observed cell."""
+    out = {}
+    for key in grid.keys():
+        lo, var, obs = grid.tile_arrays(key)
+        rows, cols = np.nonzero(obs)
+        for r, c in zip(rows, cols):
+            out[(key[0] * grid.tile_size + c, key[1] * grid.tile_size + r)] = (float(lo[r, c]), float(var[r, c]))
+    return out
+
+
+def erf_model(r, z, sigma, l):
+    """The closed form written out by hand, independent of mapping.sensor_model."""
+    s = math.sqrt(2) * sigma
+    return 0.25 + 0.25 * math.erf((z + l / 2 - r) / s) - 0.5 * math.erf((z - l / 2 - r) / s)
+
+
+def test_single_beam_hand_computed():
+    """One beam along +x from the centre of cell (0, 0); return at 0.5 m, sigma 0.03 m, 0.05 m cells.
+
+    Cell k >= 1 spans r in [0.05k - 0.025, 0.05k + 0.025]. The return lies in cell 10; the model's peak
+    gives that cell logit(0.7). Cells ending more than 5 sigma before the peak's start (r < 0.3146) get
+    logit(0.4). Cells starting beyond z + 3 sigma = 0.59 m are untouched: cells 0..12 are updated.
+    """
+    model = SensorModel(resolution=RES, sigma0=0.03)
+    grid = TiledGrid(RES)
+    fusion = MonteCarloFusion(grid, model, np.array([0.0]), 0.05, 10.0)
+    fusion.fuse(np.array([0.5]), np.array([[0.025, 0.025, 0.0]]), np.array([1.0]))
+    cells = fused_cells(grid)
+    assert sorted(cells) == [(k, 0) for k in range(13)]
+    l_free, l_hit = math.log(0.4 / 0.6), math.log(0.7 / 0.3)
+    for k in range(6):
+        assert cells[(k, 0)][0] == pytest.approx(l_free, abs=1e-6)
+    assert cells[(10, 0)][0] == pytest.approx(l_hit, abs=1e-6)
+    g_peak = max(erf_model(r, 0.5, 0.03, model.l) for r in np.linspace(0.49, 0.52, 30001))
+    for k in (6, 7, 8, 9):  # rising side: the maximum is at the cell's far edge
+        g = erf_model(0.05 * k + 0.025, 0.5, 0.03, model.l)
+        p = 0.5 - 0.1 * (1 - 2 * g) if g < 0.5 else 0.5 + 0.2 * (g - 0.5) / (g_peak - 0.5)
+        assert cells[(k, 0)][0] == pytest.approx(math.log(p / (1 - p)), abs=2e-4)
+    for k in (11, 12):  # falling side: the maximum is at the cell's near edge
+        g = erf_model(0.05 * k - 0.025, 0.5, 0.03, model.l)
+        p = 0.5 + 0.2 * (g - 0.5) / (g_peak - 0.5)
+        assert cells[(k, 0)][0] == pytest.approx(math.log(p / (1 - p)), abs=2e-4)
+    assert all(v == 0.0 for _, v in cells.values()), "one sample has no spread"
+
+
+def test_no_return_marks_free_space_to_range_max_and_no_hit():
+    model = SensorModel(resolution=RES)
+    grid = TiledGrid(RES)
+    fusion = MonteCarloFusion(grid, model, np.array([0.0, 0.0, 0.0]), 0.05, 0.5)
+    fusion.fuse(np.array([np.nan, np.inf, 0.7]), np.array([[0.025, 0.025, 0.0]]), np.array([1.0]))
+    cells = fused_cells(grid)
+    assert sorted(cells) == [(k, 0) for k in range(11)]  # r < 0.5 m: cells 0..10 (cell 10 starts at 0.475)
+    assert all(v[0] == pytest.approx(model.l_free) for v in cells.values())
+
+
+def test_too_short_ranges_are_skipped():
+    grid = TiledGrid(RES)
+    fusion = MonteCarloFusion(grid, SensorModel(resolution=RES), np.array([0.0]), 0.2, 5.0)
+    result = fusion.fuse(np.array([0.1]), np.zeros((1, 3)), np.ones(1))
+    assert result.cells_updated == 0 and grid.keys() == []
+
+
+def test_occupied_wins_within_one_sample():
+    """A beam ending in a cell beats another beam passing through it in the same scan and sample."""
+    model = SensorModel(resolution=RES)
+    grid = TiledGrid(RES)
+    angles = np.array([0.0, 0.0])
+    fusion = MonteCarloFusion(grid, model, angles, 0.05, 10.0)
+    fusion.fuse(np.array([0.5, 2.0]), np.array([[0.025, 0.025, 0.0]]), np.array([1.0]))
+    assert fused_cells(grid)[(10, 0)][0] == pytest.approx(model.l_hit, abs=1e-6)
+
+
+def random_scan(rng, n_beams, n_samples, spread):
+    angles = np.sort(rng.uniform(-math.pi, math.pi, n_beams))
+    ranges = rng.uniform(0.1, 1.2, n_beams)
+    ranges[rng.random(n_beams) < 0.15] = np.nan
+    samples = np.column_stack([rng.normal(0.3, spread, n_samples), rng.normal(-0.2, spread, n_samples),
+                               rng.normal(0.4, 3 * spread, n_samples)])
+    weights = rng.random(n_samples)
+    return angles, ranges, samples, weights / weights.sum()
+
+
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 10_000), n_beams=st.integers(1, 12), n_samples=st.integers(1, 5),
+       sigma_kind=st.sampled_from(["constant", "linear"]))
+def test_compiled_fusion_matches_slow_reference(seed, n_beams, n_samples, sigma_kind):
+    rng = np.random.default_rng(seed)
+    model = SensorModel(resolution=0.1, sigma=sigma_kind, sigma0=0.04, sigma_slope=0.02 if sigma_kind == "linear" else 0.0)
+    angles, ranges, samples, weights = random_scan(rng, n_beams, n_samples, 0.08)
+    offset = (0.1, -0.05, 0.2)
+    grid = TiledGrid(0.1, tile_size=8)  # small tiles: scans cross tile borders
+    MonteCarloFusion(grid, model, angles, 0.15, 1.0, offset).fuse(ranges, samples, weights)
+    mean, spread = reference_fuse(model, angles, 0.15, 1.0, ranges, samples, weights, offset)
+    got = fused_cells(grid)
+    assert set(got) == set(mean)
+    for cell, (lo, var) in got.items():
+        expected = min(max(mean[cell], model.l_min), model.l_max)
+        assert lo == pytest.approx(expected, abs=3e-4), cell
+        assert var == pytest.approx(max(spread[cell], 0.0), abs=3e-4), cell
+
+
+def test_variance_layer_sums_per_scan_spread_over_scans():
+    rng = np.random.default_rng(3)
+    model = SensorModel(resolution=0.1)
+    angles, ranges, samples, weights = random_scan(rng, 8, 4, 0.1)
+    grid = TiledGrid(0.1)
+    fusion = MonteCarloFusion(grid, model, angles, 0.15, 1.0)
+    fusion.fuse(ranges, samples, weights)
+    fusion.fuse(ranges, samples, weights)
+    _, spread = reference_fuse(model, angles, 0.15, 1.0, ranges, samples, weights)
+    for cell, (_, var) in fused_cells(grid).items():
+        assert var == pytest.approx(2 * max(spread[cell], 0.0), abs=5e-4)
+
+
+def test_all_weight_on_one_sample_equals_ml():
+    rng = np.random.default_rng(7)
+    model = SensorModel(resolution=RES)
+    angles, ranges, samples, _ = random_scan(rng, 50, 6, 0.1)
+    one_hot = np.zeros(6)
+    one_hot[2] = 1.0
+    a, b = TiledGrid(RES), TiledGrid(RES)
+    MonteCarloFusion(a, model, angles, 0.15, 1.0).fuse(ranges, samples, one_hot)
+    MonteCarloFusion(b, model, angles, 0.15, 1.0).fuse(ranges, samples[2:3], np.ones(1))
+    ra, rb = a.rasterize(), b.rasterize()
+    for key in ra:
+        np.testing.assert_array_equal(ra[key], rb[key])
+
+
+def test_clamping():
+    model = SensorModel(resolution=RES)
+    grid = TiledGrid(RES)
+    fusion = MonteCarloFusion(grid, model, np.array([0.0]), 0.05, 10.0)
+    for _ in range(20):
+        fusion.fuse(np.array([0.5]), np.array([[0.025, 0.025, 0.0]]), np.ones(1))
+    cells = fused_cells(grid)
+    assert cells[(10, 0)][0] == pytest.approx(model.l_max, abs=1e-6)
+    assert cells[(2, 0)][0] == pytest.approx(model.l_min, abs=1e-6)
+
+
+def test_shards_partition_the_map():
+    """Fusing only owned tiles in three shards and joining them gives the single-process map."""
+    rng = np.random.default_rng(11)
+    model = SensorModel(resolution=RES)
+    angles = np.linspace(-math.pi, math.pi, 90, endpoint=False)
+    scans = [(rng.uniform(1, 6, 90), np.column_stack([rng.normal(0, 0.1, 5), rng.normal(0, 0.1, 5),
+                                                       rng.normal(0, 0.05, 5)])) for _ in range(3)]
+    whole = TiledGrid(RES, tile_size=32)
+    fusion = MonteCarloFusion(whole, model, angles, 0.1, 8.0)
+    for ranges, samples in scans:
+        fusion.fuse(ranges, samples, np.full(5, 0.2))
+    joined = TiledGrid(RES, tile_size=32)
+    for shard in range(3):
+        part = TiledGrid(RES, tile_size=32)
+        owner = lambda tx, ty, shard=shard: (tx * 7 + ty * 13) % 3 == shard  # noqa: E731
+        fusion = MonteCarloFusion(part, model, angles, 0.1, 8.0, owns_tile=owner)
+        for ranges, samples in scans:
+            fusion.fuse(ranges, samples, np.full(5, 0.2))
+        for key in part.keys():
+            assert owner(*key)
+            joined.set_tile(key, *part.tile_arrays(key))
+    a, b = whole.rasterize(), joined.rasterize()
+    for key in a:
+        np.testing.assert_array_equal(a[key], b[key])
+
+
+def test_merge_duplicates():
+    samples = np.array([[1.0, 2.0, 0.1], [0.0, 0.0, 0.0], [1.0, 2.0, 0.1], [5.0, 5.0, 5.0]])
+    merged, weights = merge_duplicates(samples, np.array([0.25, 0.25, 0.5, 0.0]))
+    np.testing.assert_array_equal(merged, samples[:2])
+    np.testing.assert_allclose(weights, [0.75, 0.25])
+
+
+def test_unbounded_map_grows_tiles_on_demand():
+    grid = TiledGrid(RES, tile_size=16)
+    fusion = MonteCarloFusion(grid, SensorModel(resolution=RES), np.array([0.0]), 0.05, 5.0)
+    fusion.fuse(np.array([1.0]), np.array([[-100.0, 250.0, math.pi]]), np.ones(1))
+    assert all(key[0] < 0 and key[1] > 0 for key in grid.keys())
+    raster = grid.rasterize()
+    assert raster["origin"][0] < -100.9 and raster["origin"][1] == pytest.approx(250.0)
+
+
+@pytest.mark.parametrize("samples, weights, message", [
+    (np.zeros((2, 3)), np.array([0.5, 0.6]), "sum to 1"),
+    (np.full((1, 3), np.nan), np.ones(1), "finite"),
+    (np.zeros((0, 3)), np.zeros(0), "M >= 1"),
+])
+def test_bad_poses_are_rejected(samples, weights, message):
+    fusion = MonteCarloFusion(TiledGrid(RES), SensorModel(resolution=RES), np.array([0.0]), 0.05, 5.0)
+    with pytest.raises(InputError, match=message):
+        fusion.fuse(np.array([1.0]), samples, weights)

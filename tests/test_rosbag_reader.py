@@ -1,0 +1,200 @@
+"""ROS bag reader on small bags written here with rosbags' writers, and on the real bags."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+from slam.carmen import read_carmen
+from slam.errors import LogFormatError
+from slam.rosbag_reader import read_rosbag
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+NS = 1_000_000_000
+
+
+class BagBuilder:
+    """Messages for one bag, written as ROS 1 or ROS 2; times in s."""
+
+    def __init__(self, ros2: bool = False) -> None:
+        self.ros2 = ros2
+        self.store = get_typestore(Stores.ROS2_HUMBLE if ros2 else Stores.ROS1_NOETIC)
+        if "tf2_msgs/msg/TFMessage" not in self.store.types:  # the ROS 1 store lacks tf2_msgs
+            self.store.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage"))
+        self.items: list[tuple[str, str, float, object]] = []  # topic, msgtype, time, msg or raw bytes
+
+    def _t(self, name):
+        return self.store.types[name]
+
+    def header(self, stamp: float, frame: str):
+        sec = int(math.floor(stamp))
+        time = self._t("builtin_interfaces/msg/Time")(sec=sec, nanosec=int(round((stamp - sec) * NS)))
+        if self.ros2:
+            return self._t("std_msgs/msg/Header")(stamp=time, frame_id=frame)
+        return self._t("std_msgs/msg/Header")(seq=0, stamp=time, frame_id=frame)
+
+    def quat(self, yaw: float):
+        return self._t("geometry_msgs/msg/Quaternion")(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
+
+    def scan(self, stamp, ranges, topic="/scan", angle_min=-1.0, increment=0.5, range_max=10.0, frame="laser"):
+        ranges = np.asarray(ranges, np.float32)
+        msg = self._t("sensor_msgs/msg/LaserScan")(
+            header=self.header(stamp, frame), angle_min=angle_min, angle_max=angle_min + increment * (len(ranges) - 1),
+            angle_increment=increment, time_increment=0.0, scan_time=0.0, range_min=0.1, range_max=range_max,
+            ranges=ranges, intensities=np.zeros(0, np.float32))
+        self.items.append((topic, "sensor_msgs/msg/LaserScan", stamp, msg))
+
+    def odom(self, stamp, x, y, yaw, topic="/odom"):
+        t = self._t
+        pose = t("geometry_msgs/msg/Pose")(position=t("geometry_msgs/msg/Point")(x=x, y=y, z=0.0), orientation=self.quat(yaw))
+        zero3 = t("geometry_msgs/msg/Vector3")(x=0.0, y=0.0, z=0.0)
+        msg = t("nav_msgs/msg/Odometry")(
+            header=self.header(stamp, "odom"), child_frame_id="base_link",
+            pose=t("geometry_msgs/msg/PoseWithCovariance")(pose=pose, covariance=np.zeros(36)),
+            twist=t("geometry_msgs/msg/TwistWithCovariance")(
+                twist=t("geometry_msgs/msg/Twist")(linear=zero3, angular=zero3), covariance=np.zeros(36)))
+        self.items.append((topic, "nav_msgs/msg/Odometry", stamp, msg))
+
+    def tf(self, stamp, parent, child, x, y, yaw, topic="/tf"):
+        t = self._t
+        transform = t("geometry_msgs/msg/Transform")(
+            translation=t("geometry_msgs/msg/Vector3")(x=x, y=y, z=0.0), rotation=self.quat(yaw))
+        stamped = t("geometry_msgs/msg/TransformStamped")(
+            header=self.header(stamp, parent), child_frame_id=child, transform=transform)
+        self.items.append((topic, "tf2_msgs/msg/TFMessage", stamp, t("tf2_msgs/msg/TFMessage")(transforms=[stamped])))
+
+    def raw(self, stamp, topic, msgtype, data: bytes):
+        self.items.append((topic, msgtype, stamp, data))
+
+    def write(self, path: Path) -> Path:
+        from rosbags.rosbag1 import Writer as Writer1
+        from rosbags.rosbag2 import Writer as Writer2
+
+        writer = Writer2(path, version=9) if self.ros2 else Writer1(path)
+        serialize = self.store.serialize_cdr if self.ros2 else self.store.serialize_ros1
+        with writer:
+            conns = {}
+            for topic, msgtype, stamp, msg in sorted(self.items, key=lambda i: i[2]):
+                if topic not in conns:
+                    conns[topic] = writer.add_connection(topic, msgtype, typestore=self.store)
+                data = msg if isinstance(msg, bytes) else serialize(msg, msgtype)
+                writer.write(conns[topic], int(round(stamp * NS)), data)
+        return path
+
+
+def standard_bag(ros2: bool = False, odometry_on_tf: bool = False) -> BagBuilder:
+    bag = BagBuilder(ros2)
+    bag.tf(0.0, "base_link", "laser", 0.1, 0.0, math.pi / 2, topic="/tf_static")  # message 1
+    poses = [(0.0, 0.0, 0.0, 0.0), (1.0, 1.0, 0.0, math.pi / 2), (2.0, 1.0, 2.0, -3.0)]
+    for stamp, x, y, yaw in poses:  # messages 2, 4, 7 (odometry at t = 0, 1, 2)
+        if odometry_on_tf:
+            bag.tf(stamp, "odom", "base_link", x, y, yaw)
+        else:
+            bag.odom(stamp, x, y, yaw)
+    bag.scan(0.5, [1.0, 2.0, 3.0])  # message 3
+    bag.scan(1.5, [4.0, 12.0, np.nan])  # message 5
+    bag.scan(1.6, [4.0, 5.0])  # message 6: two beams instead of three
+    bag.scan(2.3, [7.0, 8.0, 9.0])  # message 8: 0.3 s after the last odometry, end pose held
+    bag.scan(3.0, [7.0, 8.0, 9.0])  # message 9: 1.0 s after: skipped
+    return bag
+
+
+def check_standard(log):
+    assert log.where.tolist() == [3, 5, 8]
+    assert [s.where for s in log.skipped] == [6, 9]
+    assert "has 2 beams" in log.skipped[0].reason and "outside the odometry" in log.skipped[1].reason
+    np.testing.assert_allclose(log.stamps, [0.5, 1.5, 2.3])
+    assert log.angle_min == pytest.approx(-1.0) and log.angle_increment == pytest.approx(0.5)
+    assert log.range_min == pytest.approx(0.1) and log.range_max == pytest.approx(10.0)
+    np.testing.assert_allclose(log.sensor_offset, [0.1, 0.0, math.pi / 2], atol=1e-12)
+    # halfway between (0,0,0) and (1,0,pi/2); then between (1,0,pi/2) and (1,2,-3) the short way over pi
+    yaw = 0.5 * (math.pi / 2 + (-3.0 + 2 * math.pi))  # 2.427 rad, below pi
+    np.testing.assert_allclose(log.odometry, [[0.5, 0.0, math.pi / 4], [1.0, 1.0, yaw], [1.0, 2.0, -3.0]], atol=1e-9)
+    np.testing.assert_array_equal(log.ranges[1, :2], [4.0, np.inf])
+    assert np.isnan(log.ranges[1, 2])
+
+
+def test_ros1_bag_with_odometry(tmp_path):
+    check_standard(read_rosbag(standard_bag().write(tmp_path / "a.bag")))
+
+
+def test_ros1_bag_with_tf_odometry(tmp_path):
+    check_standard(read_rosbag(standard_bag(odometry_on_tf=True).write(tmp_path / "a.bag")))
+
+
+def test_ros2_bag(tmp_path):
+    check_standard(read_rosbag(standard_bag(ros2=True).write(tmp_path / "bag2")))
+
+
+def test_undecodable_message_is_skipped(tmp_path):
+    bag = standard_bag()
+    bag.raw(1.7, "/scan", "sensor_msgs/msg/LaserScan", b"\x01\x02\x03")
+    log = read_rosbag(bag.write(tmp_path / "a.bag"))
+    assert log.where.tolist() == [3, 5, 9]
+    bad = {s.where: s.reason for s in log.skipped}
+    assert set(bad) == {6, 7, 10} and "does not decode" in bad[7]
+
+
+def test_odometry_gap_limit(tmp_path):
+    bag = BagBuilder()
+    bag.odom(0.0, 0.0, 0.0, 0.0)
+    bag.odom(6.0, 6.0, 0.0, 0.0)
+    bag.scan(3.0, [1.0, 1.0, 1.0])
+    path = bag.write(tmp_path / "a.bag")
+    with pytest.raises(LogFormatError, match="6 s apart"):
+        read_rosbag(path)
+    log = read_rosbag(path, max_odom_gap=7.0)
+    np.testing.assert_allclose(log.odometry, [[3.0, 0.0, 0.0]])
+    # no /tf_static: the laser frame is the base frame
+    assert np.all(log.sensor_offset == 0)
+
+
+def test_topic_choice_and_unusable_bags(tmp_path):
+    bag = BagBuilder()
+    bag.odom(0.0, 0.0, 0.0, 0.0)
+    bag.scan(0.0, [1.0, 2.0, 3.0], topic="/front")
+    bag.scan(0.0, [5.0, 6.0, 7.0], topic="/rear")
+    path = bag.write(tmp_path / "two.bag")
+    with pytest.raises(LogFormatError, match="several LaserScan topics"):
+        read_rosbag(path)
+    np.testing.assert_array_equal(read_rosbag(path, scan_topic="/rear").ranges[0], [5.0, 6.0, 7.0])
+    with pytest.raises(LogFormatError, match="no sensor_msgs/msg/LaserScan topic '/nope'"):
+        read_rosbag(path, scan_topic="/nope")
+    only_odom = BagBuilder()
+    only_odom.odom(0.0, 0.0, 0.0, 0.0)
+    with pytest.raises(LogFormatError, match="no sensor_msgs/LaserScan"):
+        read_rosbag(only_odom.write(tmp_path / "odom.bag"))
+    (tmp_path / "junk.bag").write_bytes(b"#ROSBAG V2.0\n" + bytes(500))
+    with pytest.raises(LogFormatError, match="not a readable ROS bag"):
+        read_rosbag(tmp_path / "junk.bag")
+    with pytest.raises(LogFormatError, match="no such file"):
+        read_rosbag(tmp_path / "missing.bag")
+
+
+def need(path: Path) -> Path:
+    if not path.is_file():
+        pytest.skip(f"real bag {path} is absent (shared/data is not part of a fresh clone)")
+    return path
+
+
+def test_real_mit_csail_bag_matches_the_clf():
+    bag = read_rosbag(need(DATA / "mit-csail" / "mit-csail.orig.bag"))
+    clf = read_carmen(need(DATA / "mit-csail" / "mit-csail.clf"))
+    assert len(bag) == len(clf) == 1988 and bag.skipped == ()
+    np.testing.assert_allclose(bag.stamps, clf.stamps, atol=1e-5)
+    np.testing.assert_allclose(bag.odometry, clf.odometry, atol=1e-9)
+    np.testing.assert_array_equal(bag.ranges, clf.ranges)
+    assert bag.angle_increment == pytest.approx(clf.angle_increment, rel=1e-6)
+
+
+@pytest.mark.parametrize("name,scans,beams,offset", [
+    ("fr079/fr079.orig.bag", 4934, 360, 0.04),
+])
+def test_real_bag(name, scans, beams, offset):
+    log = read_rosbag(need(DATA / name))
+    assert log.ranges.shape == (scans, beams) and log.skipped == ()
+    assert log.sensor_offset[0] == pytest.approx(offset)
+    assert np.all(np.diff(log.stamps) > 0)

@@ -1,0 +1,95 @@
+"""The inverse sensor model against a numerical convolution and the OctoMap increments."""
+import math
+
+import numpy as np
+import pytest
+from scipy.special import logit as sp_logit
+
+from mapping.errors import InputError
+from mapping.fusion import TABLE_DU, TABLE_U0, logodds_table
+from mapping.sensor_model import SensorModel
+
+
+def ideal(s: np.ndarray, z: float, l: float) -> np.ndarray:
+    """The ideal model: 0 before the peak, 1 over [z - l/2, z + l/2), 1/2 beyond."""
+    return np.where(s < z - l / 2, 0.0, np.where(s < z + l / 2, 1.0, 0.5))
+
+
+@pytest.mark.parametrize("sigma0, z", [(0.03, 2.0), (0.3, 2.0), (0.01, 5.0), (0.1, 0.7)])
+def test_closed_form_matches_numerical_convolution(sigma0, z):
+    model = SensorModel(sigma0=sigma0)
+    step = sigma0 / 400
+    s = np.arange(-12 * sigma0, 12 * sigma0 + step / 2, step)
+    kernel = np.exp(-0.5 * (s / sigma0) ** 2)
+    kernel /= kernel.sum()
+    r = np.arange(z - 1.5, z + 1.5, step)
+    padded = np.concatenate([np.zeros(len(s) // 2), ideal(r, z, model.l), np.full(len(s) // 2, 0.5)])
+    numeric = np.convolve(padded, kernel[::-1], mode="valid")[: len(r)]
+    # the zero/0.5 padding is exact because the ideal model is constant beyond the plotted range
+    closed = model.probability(r, z)
+    assert np.max(np.abs(numeric - closed)) < 2e-3
+
+
+def test_printed_equation_4_is_wrong_and_ours_is_not():
+    """At r = z the paper's eq. (4) gives 0 (A = erf(-z/..) = -1, B = erf(-z + l/2) ~ -1); ours is high."""
+    model = SensorModel(sigma0=0.3, peak_width=0.5)
+    z, l, s = 2.0, model.l, math.sqrt(2) * 0.3
+    a_term, b_term = math.erf(-z / s), math.erf((z - 2 * z + l / 2) / s)
+    printed = -0.5 * a_term + 0.5 * b_term
+    assert printed == pytest.approx(0.0, abs=0.02)
+    assert model.probability(z, z) > 0.5
+
+
+def test_octomap_increments_and_zero_at_half():
+    model = SensorModel()
+    assert model.l_free == pytest.approx(sp_logit(0.4))
+    assert model.l_hit == pytest.approx(sp_logit(0.7))
+    assert model.l_min == pytest.approx(sp_logit(0.12))
+    assert model.l_max == pytest.approx(sp_logit(0.97))
+    z = 4.0
+    # far in free space: the miss increment; at the model's peak: the hit increment
+    assert float(model.logodds(1.0, z)) == pytest.approx(sp_logit(0.4), abs=1e-9)
+    assert float(model.logodds(model.peak_range(z), z)) == pytest.approx(sp_logit(0.7), abs=1e-12)
+    # p = 1/2 maps to exactly 0 log-odds
+    assert float(model.squashed(0.5, model.peak(z))) == 0.5
+    # far beyond the return the model tends to unknown
+    assert abs(float(model.logodds(z + 1.0, z))) < 1e-9
+
+
+def test_peak_range_is_the_maximum():
+    model = SensorModel(sigma0=0.05)
+    z = 3.0
+    r = np.linspace(z - 0.3, z + 0.3, 200001)
+    g = model.probability(r, z)
+    assert r[np.argmax(g)] == pytest.approx(float(model.peak_range(z)), abs=1e-5)
+
+
+@pytest.mark.parametrize("kind, kwargs, z, expected", [
+    ("constant", {"sigma0": 0.02}, 7.0, 0.02),
+    ("linear", {"sigma0": 0.01, "sigma_slope": 0.01}, 4.0, 0.05),
+    ("stereo", {"baseline_focal": 100.0}, 5.0, 0.25),
+])
+def test_sigma_models(kind, kwargs, z, expected):
+    assert float(SensorModel(sigma=kind, **kwargs).sigma_at(z)) == pytest.approx(expected)
+
+
+def test_constant_sigma_table_matches_the_closed_form():
+    model = SensorModel(sigma0=0.02)
+    table = logodds_table(model)
+    u = TABLE_U0 + TABLE_DU * np.arange(len(table))
+    z = 3.3
+    # interpolate halfway between table nodes: the worst case for linear interpolation; the squashing
+    # has a kink at g = 1/2 where the error peaks, elsewhere it is far smaller
+    mid = 0.5 * (table[:-1] + table[1:])
+    exact = model.logodds(z + (u[:-1] + TABLE_DU / 2) * model.sigma0, z)
+    assert np.max(np.abs(mid - exact)) < 2e-4
+    assert np.median(np.abs(mid - exact)) < 1e-6
+
+
+@pytest.mark.parametrize("kwargs", [
+    {"resolution": 0.0}, {"sigma": "cubic"}, {"sigma0": -1.0}, {"sigma": "stereo"},
+    {"p_hit": 0.4}, {"p_min": 0.5}, {"peak_width": 0.0},
+])
+def test_bad_parameters_are_rejected(kwargs):
+    with pytest.raises(InputError):
+        SensorModel(**kwargs)
