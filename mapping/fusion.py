@@ -27,8 +27,11 @@ import numpy as np
 
 from mapping.errors import InputError
 from mapping.grid import TiledGrid
-from mapping.raytrace import max_cells, trace_ray
+from mapping.raytrace import dda_start, dda_step
 from mapping.sensor_model import PEAK_EPS, TAIL_SIGMAS, SensorModel
+
+#: per-sample stamps are stored as float64 (exact below 2**53); the scratch is cleared and stamps restart here
+STAMP_LIMIT = 2**52
 
 #: beam kinds in the compiled kernel
 BEAM_SKIP, BEAM_HIT, BEAM_NO_RETURN = 0, 1, 2
@@ -147,13 +150,14 @@ def _table_logodds(r, z, sigma, table, u0, du):  # pragma: no cover - compiled
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop, r_peak, a, b, s, g_peak,
                      table, u0, du, res, p_miss, p_hit, l_free, win_ix0, win_iy0, win_w, win_h, tile_shift,
-                     tx0, ty0, owned, all_owned, cells, scan_cells, tile_touched, stamp_base,
-                     buf_ix, buf_iy, buf_rin, buf_rout):  # pragma: no cover - compiled
+                     tx0, ty0, owned, all_owned, rec, blocks_w, scan_cells, tile_touched,
+                     stamp_base):  # pragma: no cover - compiled
     """One pass over all (sample, beam, cell) triples; returns the number of distinct cells touched.
 
-    Window cell (gx, gy) is global cell (win_ix0 + gx, win_iy0 + gy); its record is cells[gy * win_w + gx]:
-    [0] the stamp of the last sample that touched it (stamp_base + j for sample j; smaller stamps are
-    from earlier scans), [1] that sample's value so far (the max over its beams), [2] and [3] the scan's
+    Window cell (gx, gy) is global cell (win_ix0 + gx, win_iy0 + gy); its record is rec[c] with c the
+    cell's place in 8 x 8 blocks (so a ray's neighbouring cells share cache lines), as 16 bytes:
+    rec[c, 0] the stamp of the last sample that touched it (stamp_base + j for sample j; smaller stamps are
+    from earlier scans), rec[c, 1] that sample's value so far (the max over its beams), rec[c, 2:4] the scan's
     weighted first and second moments sum_j w_j y_ij and sum_j w_j y_ij^2. When a later beam of the same
     sample raises the cell's value, the moments are corrected by the difference, so each (sample, cell)
     contributes exactly once. scan_cells lists the touched cells.
@@ -170,61 +174,70 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
             if beam_kind == BEAM_SKIP:
                 continue
             theta = laser_yaw[j] + angles[k]
-            n = trace_ray(laser_x[j], laser_y[j], math.cos(theta), math.sin(theta), r_stop[k], res,
-                          buf_ix, buf_iy, buf_rin, buf_rout)
-            free_until = a[k] - free_gap * s[k]
-            for q in range(n):
-                gx = buf_ix[q] - win_ix0
-                gy = buf_iy[q] - win_iy0
+            ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y = dda_start(
+                laser_x[j], laser_y[j], math.cos(theta), math.sin(theta), res)
+            stop = r_stop[k]
+            free_until = stop if beam_kind == BEAM_NO_RETURN else a[k] - free_gap * s[k]
+            r_in = 0.0
+            while True:
+                r_out = min(t_max_x, t_max_y, stop)
+                gx = ix - win_ix0
+                gy = iy - win_iy0
                 if gx < 0 or gy < 0 or gx >= win_w or gy >= win_h:
-                    continue
-                if not all_owned and not owned[(buf_iy[q] >> tile_shift) - ty0, (buf_ix[q] >> tile_shift) - tx0]:
-                    continue
-                if beam_kind == BEAM_NO_RETURN or buf_rout[q] < free_until:
-                    y = l_free
-                elif use_table:
-                    if buf_rout[q] <= r_peak[k]:
-                        y = _table_logodds(buf_rout[q], z[k], s[k] / SQRT2, table, u0, du)
-                    elif buf_rin[q] >= r_peak[k]:
-                        y = _table_logodds(buf_rin[q], z[k], s[k] / SQRT2, table, u0, du)
+                    break  # cannot happen: the window covers every ray's reach; guards the scratch memory
+                if r_out > r_in and (all_owned or owned[(iy >> tile_shift) - ty0, (ix >> tile_shift) - tx0]):
+                    if r_out < free_until or beam_kind == BEAM_NO_RETURN:
+                        y = l_free
+                    elif use_table:
+                        if r_out <= r_peak[k]:
+                            y = _table_logodds(r_out, z[k], s[k] / SQRT2, table, u0, du)
+                        elif r_in >= r_peak[k]:
+                            y = _table_logodds(r_in, z[k], s[k] / SQRT2, table, u0, du)
+                        else:
+                            y = y_peak
                     else:
-                        y = y_peak
-                else:
-                    y = cell_logodds(buf_rin[q], buf_rout[q], r_peak[k], a[k], b[k], s[k], g_peak[k], p_miss, p_hit)
-                c = gy * win_w + gx
-                if cells[c, 0] != sid:
-                    if cells[c, 0] < stamp_base:
-                        cells[c, 2] = 0.0
-                        cells[c, 3] = 0.0
-                        scan_cells[n_scan] = c
-                        n_scan += 1
-                        tile_touched[(buf_iy[q] >> tile_shift) - ty0, (buf_ix[q] >> tile_shift) - tx0] = True
-                    cells[c, 0] = sid
-                    cells[c, 1] = y
-                    cells[c, 2] += w * y
-                    cells[c, 3] += w * y * y
-                elif y > cells[c, 1]:
-                    old = cells[c, 1]
-                    cells[c, 1] = y
-                    cells[c, 2] += w * (y - old)
-                    cells[c, 3] += w * (y * y - old * old)
+                        y = cell_logodds(r_in, r_out, r_peak[k], a[k], b[k], s[k], g_peak[k], p_miss, p_hit)
+                    c = ((gy >> 3) * blocks_w + (gx >> 3)) * 64 + ((gy & 7) << 3) + (gx & 7)
+                    if rec[c, 0] != sid:
+                        if rec[c, 0] < stamp_base:
+                            rec[c, 2] = 0.0
+                            rec[c, 3] = 0.0
+                            scan_cells[n_scan, 0] = gx
+                            scan_cells[n_scan, 1] = gy
+                            n_scan += 1
+                            tile_touched[(iy >> tile_shift) - ty0, (ix >> tile_shift) - tx0] = True
+                        rec[c, 0] = sid
+                        rec[c, 1] = y
+                        rec[c, 2] += w * y
+                        rec[c, 3] += w * y * y
+                    elif y > rec[c, 1]:
+                        old = rec[c, 1]
+                        rec[c, 1] = y
+                        rec[c, 2] += w * (y - old)
+                        rec[c, 3] += w * (y * y - old * old)
+                if r_out >= stop:
+                    break
+                ix, iy, r_in, t_max_x, t_max_y = dda_step(ix, iy, r_in, step_x, step_y, t_max_x, t_max_y,
+                                                          t_delta_x, t_delta_y)
     return n_scan
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _apply_scan(scan_cells, n_scan, cells, win_ix0, win_iy0, win_w, tile_shift, tx0, ty0, slot_map, logodds,
+def _apply_scan(scan_cells, n_scan, rec, blocks_w, win_ix0, win_iy0, tile_shift, tx0, ty0, slot_map, logodds,
                 variance, observed, l_min, l_max):  # pragma: no cover - compiled
     """Add the scan's weighted mean to each touched cell (clamped) and its spread to the variance layer."""
     for q in range(n_scan):
-        c = scan_cells[q]
-        iy = c // win_w + win_iy0
-        ix = c % win_w + win_ix0
+        gx = scan_cells[q, 0]
+        gy = scan_cells[q, 1]
+        c = ((gy >> 3) * blocks_w + (gx >> 3)) * 64 + ((gy & 7) << 3) + (gx & 7)
+        ix = gx + win_ix0
+        iy = gy + win_iy0
         slot = slot_map[(iy >> tile_shift) - ty0, (ix >> tile_shift) - tx0]
         mask = (1 << tile_shift) - 1
         ly = iy & mask
         lx = ix & mask
-        mean = cells[c, 2]
-        spread = cells[c, 3] - mean * mean
+        mean = rec[c, 2]
+        spread = rec[c, 3] - mean * mean
         if spread < 0.0:
             spread = 0.0
         updated = logodds[slot, ly, lx] + mean
@@ -266,7 +279,8 @@ class MonteCarloFusion:
 
     beam_angles: (B,) rad in the laser frame; range_min, range_max: m; sensor_offset: the laser's
     (x m, y m, yaw rad) in the robot frame; owns_tile: optional (tx, ty) -> bool, for a shard that fuses
-    only its own tiles (the cells of other tiles are skipped).
+    only its own tiles (the cells of other tiles are skipped); merge_identical: merge identical pose
+    samples before ray casting (on by default; off only to measure what merging saves).
     """
 
     def __init__(
@@ -278,6 +292,7 @@ class MonteCarloFusion:
         range_max: float,
         sensor_offset: tuple[float, float, float] | np.ndarray = (0.0, 0.0, 0.0),
         owns_tile: Callable[[int, int], bool] | None = None,
+        merge_identical: bool = True,
     ) -> None:
         if not np.isclose(grid.resolution, model.resolution):
             raise InputError(f"grid resolution {grid.resolution} m differs from the sensor model's {model.resolution} m")
@@ -290,23 +305,19 @@ class MonteCarloFusion:
         self.range_max = float(range_max)
         self.sensor_offset = np.asarray(sensor_offset, dtype=np.float64)
         self.owns_tile = owns_tile
+        self.merge_identical = merge_identical
         self._owned_cache: dict[tuple[int, int], bool] = {}
         self._stamp_next = 1
         self._scratch_size = 0
-        self._ray_buffers = self._make_ray_buffers()
         self._table = logodds_table(model) if model.sigma == "constant" else np.zeros(0)
-
-    def _make_ray_buffers(self) -> tuple[np.ndarray, ...]:
-        longest = self.range_max + TAIL_SIGMAS * float(self.model.sigma_at(self.range_max)) + self.model.l
-        size = max_cells(longest, self.grid.resolution)
-        return (np.empty(size, np.int64), np.empty(size, np.int64), np.empty(size), np.empty(size))
 
     def _scratch(self, cells: int) -> None:
         if cells <= self._scratch_size:
             return
         self._scratch_size = cells
-        self._cells = np.zeros((cells, 4), np.float64)  # stamp, value, first and second moment
-        self._scan_cells = np.zeros(cells, np.int64)
+        # one record per cell: stamp, value, first and second moment
+        self._rec = np.zeros((cells, 4), np.float64)
+        self._scan_cells = np.zeros((cells, 2), np.int32)
 
     def _owned_mask(self, tx0: int, ty0: int, ntx: int, nty: int) -> np.ndarray:
         owned = np.ones((nty, ntx), np.bool_)
@@ -333,7 +344,8 @@ class MonteCarloFusion:
             raise InputError("pose samples and weights must be finite and the weights non-negative")
         if abs(weights.sum() - 1.0) > 1e-4:
             raise InputError(f"weights must sum to 1, got {weights.sum():.6g}")
-        samples, weights = merge_duplicates(samples, weights)
+        if self.merge_identical:
+            samples, weights = merge_duplicates(samples, weights)
         beams = beam_table(ranges, self.model, self.range_min, self.range_max)
         if not (beams.kind != BEAM_SKIP).any():
             return FuseResult(0, [])
@@ -350,7 +362,11 @@ class MonteCarloFusion:
         tx0, ty0 = win_ix0 >> shift, win_iy0 >> shift
         ntx = ((win_ix0 + win_w - 1) >> shift) - tx0 + 1
         nty = ((win_iy0 + win_h - 1) >> shift) - ty0 + 1
-        self._scratch(win_w * win_h)
+        blocks_w, blocks_h = -(-win_w // 8), -(-win_h // 8)
+        self._scratch(blocks_w * blocks_h * 64)
+        if self._stamp_next + len(samples) >= STAMP_LIMIT:
+            self._rec[:] = 0
+            self._stamp_next = 1
         owned = self._owned_mask(tx0, ty0, ntx, nty)
         touched = np.zeros((nty, ntx), np.bool_)
         stamp_base = self._stamp_next
@@ -361,7 +377,7 @@ class MonteCarloFusion:
             beams.kind, beams.z, beams.r_stop, beams.r_peak, beams.a, beams.b, beams.s, beams.g_peak,
             self._table, TABLE_U0, TABLE_DU, res, model.p_miss, model.p_hit, model.l_free,
             win_ix0, win_iy0, win_w, win_h, shift, tx0, ty0, owned, bool(owned.all()),
-            self._cells, self._scan_cells, touched, stamp_base, *self._ray_buffers,
+            self._rec, blocks_w, self._scan_cells, touched, stamp_base,
         )
         slot_map = np.full((nty, ntx), -1, np.int64)
         changed = []
@@ -369,6 +385,6 @@ class MonteCarloFusion:
             key = (tx0 + int(i), ty0 + int(j))
             slot_map[j, i] = grid.slot(key)
             changed.append(key)
-        _apply_scan(self._scan_cells, n_scan, self._cells, win_ix0, win_iy0, win_w, shift, tx0, ty0, slot_map,
+        _apply_scan(self._scan_cells, n_scan, self._rec, blocks_w, win_ix0, win_iy0, shift, tx0, ty0, slot_map,
                     grid.logodds, grid.variance, grid.observed, model.l_min, model.l_max)
         return FuseResult(int(n_scan), changed)

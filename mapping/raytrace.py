@@ -4,8 +4,11 @@ The global grid has its origin at map-frame (0, 0): cell (ix, iy) covers x in [i
 y in [iy*res, (iy+1)*res). A ray from (x0, y0) along the unit direction (dx, dy) visits every cell it
 crosses with positive length, in order, each once, together with the ranges r_in < r_out (m from the
 ray origin) over which it lies inside that cell. Rays passing exactly through a cell corner do not visit
-the cells they only touch in a point
-(crossings closer than CORNER_EPS count as one corner).
+the cells they only touch in a point (crossings closer than CORNER_EPS count as one corner).
+
+The stepping is branch-free (selects instead of an if per cell): which grid line comes next is
+unpredictable, and a mispredicted branch per cell costs more than the arithmetic. The compiled fusion
+kernel inlines :func:`dda_start` and :func:`dda_step` so there is one traversal in the code base.
 """
 from __future__ import annotations
 
@@ -14,14 +17,51 @@ import math
 import numba as nb
 import numpy as np
 
-
 #: crossings of the two grid-line families closer than this (relative, m) are one corner crossing
 CORNER_EPS = 1e-12
+
+#: stands for "never" in the stepping arithmetic (inf would give 0 * inf = NaN in the branch-free steps)
+FAR = 1e300
 
 
 def max_cells(r_stop: float, resolution: float) -> int:
     """An upper bound on the cells one ray of length r_stop can visit (|dx| + |dy| <= sqrt(2))."""
     return int(math.ceil(r_stop * math.sqrt(2.0) / resolution)) + 3
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def dda_start(x0, y0, dx, dy, res):  # pragma: no cover - compiled
+    """Start cell and stepping state of a ray: (ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y).
+
+    t_max_*: range at which the ray crosses the next vertical / horizontal grid line; t_delta_*: range
+    between two such crossings.
+    """
+    ix = int(math.floor(x0 / res))
+    iy = int(math.floor(y0 / res))
+    if dx > 0.0:
+        step_x, t_max_x, t_delta_x = 1, ((ix + 1) * res - x0) / dx, res / dx
+    elif dx < 0.0:
+        step_x, t_max_x, t_delta_x = -1, (ix * res - x0) / dx, -res / dx
+    else:
+        step_x, t_max_x, t_delta_x = 0, FAR, FAR
+    if dy > 0.0:
+        step_y, t_max_y, t_delta_y = 1, ((iy + 1) * res - y0) / dy, res / dy
+    elif dy < 0.0:
+        step_y, t_max_y, t_delta_y = -1, (iy * res - y0) / dy, -res / dy
+    else:
+        step_y, t_max_y, t_delta_y = 0, FAR, FAR
+    return ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def dda_step(ix, iy, r, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y):  # pragma: no cover - compiled
+    """Move to the next cell: returns (ix, iy, r_in of the new cell, t_max_x, t_max_y)."""
+    nearest = min(t_max_x, t_max_y)
+    tol = CORNER_EPS * (1.0 + r)
+    cross_x = 1 if t_max_x <= nearest + tol else 0  # both at a corner: step diagonally
+    cross_y = 1 if t_max_y <= nearest + tol else 0
+    return (ix + cross_x * step_x, iy + cross_y * step_y, nearest,
+            t_max_x + cross_x * t_delta_x, t_max_y + cross_y * t_delta_y)
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
@@ -31,37 +71,10 @@ def trace_ray(x0, y0, dx, dy, r_stop, res, out_ix, out_iy, out_rin, out_rout):  
     x0, y0: ray origin (m, map frame); dx, dy: unit direction; r_stop: ray length (m); res: cell size (m).
     The buffers must hold max_cells(r_stop, res) entries.
     """
-    ix = int(math.floor(x0 / res))
-    iy = int(math.floor(y0 / res))
-    inf = math.inf
-    if dx > 0.0:
-        step_x = 1
-        t_max_x = ((ix + 1) * res - x0) / dx
-        t_delta_x = res / dx
-    elif dx < 0.0:
-        step_x = -1
-        t_max_x = (ix * res - x0) / dx
-        t_delta_x = -res / dx
-    else:
-        step_x = 0
-        t_max_x = inf
-        t_delta_x = inf
-    if dy > 0.0:
-        step_y = 1
-        t_max_y = ((iy + 1) * res - y0) / dy
-        t_delta_y = res / dy
-    elif dy < 0.0:
-        step_y = -1
-        t_max_y = (iy * res - y0) / dy
-        t_delta_y = -res / dy
-    else:
-        step_y = 0
-        t_max_y = inf
-        t_delta_y = inf
+    ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y = dda_start(x0, y0, dx, dy, res)
     n = 0
     r = 0.0
-    capacity = out_ix.shape[0]
-    while n < capacity:
+    while n < out_ix.shape[0]:
         r_out = min(t_max_x, t_max_y, r_stop)
         if r_out > r:
             out_ix[n] = ix
@@ -71,21 +84,7 @@ def trace_ray(x0, y0, dx, dy, r_stop, res, out_ix, out_iy, out_rin, out_rout):  
             n += 1
         if r_out >= r_stop:
             break
-        if abs(t_max_x - t_max_y) <= CORNER_EPS * (1.0 + r):
-            # through a corner: step diagonally, the two side cells are touched only in a point
-            ix += step_x
-            iy += step_y
-            r = min(t_max_x, t_max_y)
-            t_max_x += t_delta_x
-            t_max_y += t_delta_y
-        elif t_max_x < t_max_y:
-            ix += step_x
-            r = t_max_x
-            t_max_x += t_delta_x
-        else:
-            iy += step_y
-            r = t_max_y
-            t_max_y += t_delta_y
+        ix, iy, r, t_max_x, t_max_y = dda_step(ix, iy, r, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y)
     return n
 
 

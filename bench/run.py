@@ -1,0 +1,38 @@
+"""`make bench`: run every benchmark, write JSON under bench/results/, print a table."""
+from __future__ import annotations
+
+import importlib
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+RESULTS = Path(__file__).resolve().parent / "results"
+#: benchmark modules, each with run() -> dict of figures
+SUITES = ("bench.fusion",)
+
+
+def main(argv: list[str]) -> int:
+    names = [f"bench.{name}" for name in argv] or list(SUITES)
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    for name in names:
+        module = importlib.import_module(name)
+        print(f"== {name}: running ...", flush=True)
+        started = time.perf_counter()
+        figures = module.run()
+        figures["wall_s"] = time.perf_counter() - started
+        record = {"suite": name, "machine": platform.machine(), "python": platform.python_version(),
+                  "time": time.strftime("%Y-%m-%dT%H:%M:%S"), "figures": figures}
+        path = RESULTS / f"{name.split('.')[-1]}.json"
+        path.write_text(json.dumps(record, indent=2))
+        width = max(len(k) for k in figures)
+        for key, value in figures.items():
+            shown = f"{value:.4g}" if isinstance(value, float) else str(value)
+            print(f"  {key:<{width}}  {shown}")
+        print(f"  -> {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
