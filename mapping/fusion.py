@@ -169,15 +169,25 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
     for j in range(laser_x.shape[0]):
         sid = float(stamp_base + j)
         w = weights[j]
+        w_free = w * l_free
+        w_free2 = w * l_free * l_free
         for k in range(angles.shape[0]):
             beam_kind = kind[k]
             if beam_kind == BEAM_SKIP:
                 continue
+            # per-beam constants in locals: the compiler cannot hoist loads past the scratch writes
+            stop = r_stop[k]
+            peak_at = r_peak[k]
+            z_k = z[k]
+            sigma_k = s[k] / SQRT2
+            a_k = a[k]
+            b_k = b[k]
+            s_k = s[k]
+            g_peak_k = g_peak[k]
+            free_until = math.inf if beam_kind == BEAM_NO_RETURN else a_k - free_gap * s_k
             theta = laser_yaw[j] + angles[k]
             ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y = dda_start(
                 laser_x[j], laser_y[j], math.cos(theta), math.sin(theta), res)
-            stop = r_stop[k]
-            free_until = stop if beam_kind == BEAM_NO_RETURN else a[k] - free_gap * s[k]
             r_in = 0.0
             while True:
                 r_out = min(t_max_x, t_max_y, stop)
@@ -186,35 +196,48 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
                 if gx < 0 or gy < 0 or gx >= win_w or gy >= win_h:
                     break  # cannot happen: the window covers every ray's reach; guards the scratch memory
                 if r_out > r_in and (all_owned or owned[(iy >> tile_shift) - ty0, (ix >> tile_shift) - tx0]):
-                    if r_out < free_until or beam_kind == BEAM_NO_RETURN:
-                        y = l_free
-                    elif use_table:
-                        if r_out <= r_peak[k]:
-                            y = _table_logodds(r_out, z[k], s[k] / SQRT2, table, u0, du)
-                        elif r_in >= r_peak[k]:
-                            y = _table_logodds(r_in, z[k], s[k] / SQRT2, table, u0, du)
-                        else:
-                            y = y_peak
-                    else:
-                        y = cell_logodds(r_in, r_out, r_peak[k], a[k], b[k], s[k], g_peak[k], p_miss, p_hit)
                     c = ((gy >> 3) * blocks_w + (gx >> 3)) * 64 + ((gy & 7) << 3) + (gx & 7)
-                    if rec[c, 0] != sid:
-                        if rec[c, 0] < stamp_base:
-                            rec[c, 2] = 0.0
-                            rec[c, 3] = 0.0
-                            scan_cells[n_scan, 0] = gx
-                            scan_cells[n_scan, 1] = gy
-                            n_scan += 1
-                            tile_touched[(iy >> tile_shift) - ty0, (ix >> tile_shift) - tx0] = True
-                        rec[c, 0] = sid
-                        rec[c, 1] = y
-                        rec[c, 2] += w * y
-                        rec[c, 3] += w * y * y
-                    elif y > rec[c, 1]:
-                        old = rec[c, 1]
-                        rec[c, 1] = y
-                        rec[c, 2] += w * (y - old)
-                        rec[c, 3] += w * (y * y - old * old)
+                    if r_out < free_until:
+                        # free space: the smallest value, so a cell this sample already holds keeps its value
+                        if rec[c, 0] != sid:
+                            if rec[c, 0] < stamp_base:
+                                rec[c, 2] = 0.0
+                                rec[c, 3] = 0.0
+                                scan_cells[n_scan, 0] = gx
+                                scan_cells[n_scan, 1] = gy
+                                n_scan += 1
+                                tile_touched[(iy >> tile_shift) - ty0, (ix >> tile_shift) - tx0] = True
+                            rec[c, 0] = sid
+                            rec[c, 1] = l_free
+                            rec[c, 2] += w_free
+                            rec[c, 3] += w_free2
+                    else:
+                        if use_table:
+                            if r_out <= peak_at:
+                                y = _table_logodds(r_out, z_k, sigma_k, table, u0, du)
+                            elif r_in >= peak_at:
+                                y = _table_logodds(r_in, z_k, sigma_k, table, u0, du)
+                            else:
+                                y = y_peak
+                        else:
+                            y = cell_logodds(r_in, r_out, peak_at, a_k, b_k, s_k, g_peak_k, p_miss, p_hit)
+                        if rec[c, 0] != sid:
+                            if rec[c, 0] < stamp_base:
+                                rec[c, 2] = 0.0
+                                rec[c, 3] = 0.0
+                                scan_cells[n_scan, 0] = gx
+                                scan_cells[n_scan, 1] = gy
+                                n_scan += 1
+                                tile_touched[(iy >> tile_shift) - ty0, (ix >> tile_shift) - tx0] = True
+                            rec[c, 0] = sid
+                            rec[c, 1] = y
+                            rec[c, 2] += w * y
+                            rec[c, 3] += w * y * y
+                        elif y > rec[c, 1]:
+                            old = rec[c, 1]
+                            rec[c, 1] = y
+                            rec[c, 2] += w * (y - old)
+                            rec[c, 3] += w * (y * y - old * old)
                 if r_out >= stop:
                     break
                 ix, iy, r_in, t_max_x, t_max_y = dda_step(ix, iy, r_in, step_x, step_y, t_max_x, t_max_y,
