@@ -32,7 +32,7 @@ SIGMA_KINDS = ("constant", "linear", "stereo")
 #: below this margin over 1/2 the model has no occupied peak
 PEAK_EPS = 1e-9
 
-#: the traversal stops this many sigma beyond the return; the model is within 0.0007 of 1/2 there
+#: the traversal stops this many sigma beyond the return; the model is close to 1/2 there
 TAIL_SIGMAS = 3.0
 
 
