@@ -27,11 +27,14 @@ import numpy as np
 
 from mapping.errors import InputError
 from mapping.grid import TiledGrid
-from mapping.raytrace import dda_start, dda_step
+from mapping.raytrace import FAR, dda_start, dda_step
 from mapping.sensor_model import PEAK_EPS, TAIL_SIGMAS, SensorModel
 
 #: per-sample stamps are stored as float64 (exact below 2**53); the scratch is cleared and stamps restart here
 STAMP_LIMIT = 2**52
+
+#: a shard jumps over another shard's tile to this far (relative, m) before the tile's exit, then steps
+JUMP_MARGIN = 1e-9
 
 #: beam kinds in the compiled kernel
 BEAM_SKIP, BEAM_HIT, BEAM_NO_RETURN = 0, 1, 2
@@ -147,6 +150,27 @@ def _table_logodds(r, z, sigma, table, u0, du):  # pragma: no cover - compiled
     return table[i] + t * (table[i + 1] - table[i])
 
 
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _tile_exit(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tile_shift):  # pragma: no cover
+    """Range at which a ray in cell (ix, iy) leaves that cell's tile (tiles of 2**tile_shift cells)."""
+    first_x = (ix >> tile_shift) << tile_shift
+    first_y = (iy >> tile_shift) << tile_shift
+    last = (1 << tile_shift) - 1
+    if step_x > 0:
+        exit_x = t_max_x + (first_x + last - ix) * t_delta_x
+    elif step_x < 0:
+        exit_x = t_max_x + (ix - first_x) * t_delta_x
+    else:
+        exit_x = FAR
+    if step_y > 0:
+        exit_y = t_max_y + (first_y + last - iy) * t_delta_y
+    elif step_y < 0:
+        exit_y = t_max_y + (iy - first_y) * t_delta_y
+    else:
+        exit_y = FAR
+    return min(exit_x, exit_y)
+
+
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop, r_peak, a, b, s, g_peak,
                      table, u0, du, res, p_miss, p_hit, l_free, win_ix0, win_iy0, win_w, win_h, tile_shift,
@@ -190,12 +214,30 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
                 laser_x[j], laser_y[j], math.cos(theta), math.sin(theta), res)
             r_in = 0.0
             while True:
+                mine = all_owned or owned[(iy >> tile_shift) - ty0, (ix >> tile_shift) - tx0]
+                if not mine:
+                    # another shard's tile: jump to just before the ray leaves it (the work divides
+                    # among shards); the normal steps below then cross into the next tile exactly
+                    t_exit = _tile_exit(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tile_shift)
+                    if t_exit >= stop:
+                        break
+                    t_jump = t_exit - JUMP_MARGIN * (1.0 + t_exit)
+                    if t_jump > r_in:
+                        if t_max_x <= t_jump:
+                            crossings = int((t_jump - t_max_x) / t_delta_x) + 1
+                            ix += crossings * step_x
+                            t_max_x += crossings * t_delta_x
+                        if t_max_y <= t_jump:
+                            crossings = int((t_jump - t_max_y) / t_delta_y) + 1
+                            iy += crossings * step_y
+                            t_max_y += crossings * t_delta_y
+                        r_in = t_jump
                 r_out = min(t_max_x, t_max_y, stop)
                 gx = ix - win_ix0
                 gy = iy - win_iy0
                 if gx < 0 or gy < 0 or gx >= win_w or gy >= win_h:
                     break  # cannot happen: the window covers every ray's reach; guards the scratch memory
-                if r_out > r_in and (all_owned or owned[(iy >> tile_shift) - ty0, (ix >> tile_shift) - tx0]):
+                if r_out > r_in and mine:
                     c = ((gy >> 3) * blocks_w + (gx >> 3)) * 64 + ((gy & 7) << 3) + (gx & 7)
                     if r_out < free_until:
                         # free space: the smallest value, so a cell this sample already holds keeps its value

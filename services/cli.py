@@ -18,6 +18,8 @@ COMMAND_MODULES = (
     "services.commands.mapping",
     "services.commands.slam",
     "services.commands.pipeline",
+    "services.commands.logs",
+    "services.commands.api",
 )
 
 
@@ -66,4 +68,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    # run the imported module's main, not this __main__ copy: the subcommands raise services.cli.UsageError,
+    # which must be the class main() catches
+    from services.cli import main as imported_main
+
+    sys.exit(imported_main())

@@ -1,0 +1,167 @@
+"""End-to-end figures of the distributed pipeline over Zenoh (issue 8), on the simulated office with 60 pose
+samples per scan.
+
+- throughput: scans per second from the first publication until every shard has fused every scan, with
+  1 and 2 mapper shards (processes) behind a router (a process), the source publishing "as fast as the
+  shards take" from this process; as a ratio to the in-process `posegrid fuse` rate on the same scans;
+- latency at a 10 Hz laser: per scan, from its publication to the arrival (here) of the last tile update
+  that the shards sent right after fusing it (updates carry the seq of the last scan fused into the tile);
+  median and p99 over the scans;
+- bytes per scan: msgpack payloads of the scan and pose messages (in) and of the tile updates (out);
+  Zenoh framing and TCP headers are not counted.
+
+All processes share this machine's cores, so the figures bound what separate machines would give.
+"""
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import zenoh
+
+from bench.scenarios import honest_posed_scans, office_run
+from schemas.messages import ShardStats, TileUpdate, decode_message
+from services import keys
+from services.launcher import Children, free_port
+from services.map_client import MapReader
+from services.process import get_logger
+from services.source import Source, SourceOptions
+from services.streams import posed_stream
+from services.fusion_runner import fuse_posed_scans
+from services.zenoh_config import build_config
+
+SAMPLES = 60
+STEPS = 200  # scans in the throughput runs
+LATENCY_SCANS = 100  # scans in the 10 Hz latency runs
+LASER_HZ = 10.0
+ROBOT = "bench"
+
+
+class Cluster:
+    """A router and ``shards`` mapper processes on loopback, and a client session of this process."""
+
+    def __init__(self, shards: int, map_name: str):
+        self.shards = shards
+        self.map_name = map_name
+        self.endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.children = Children(get_logger("bench"))
+        self.session: zenoh.Session | None = None
+        self.tile_bytes = 0
+        self.tile_updates: list[tuple[float, int]] = []  # (arrival s, seq tag)
+        self._lock = threading.Lock()
+
+    def __enter__(self) -> Cluster:
+        connect = ["--connect", self.endpoint]
+        self.children.start("router", ["router", "--listen", self.endpoint])
+        for shard in range(self.shards):
+            self.children.start(f"mapper[{shard}]", ["mapper", "--shard", str(shard), "--shards", str(self.shards),
+                                                     "--map", self.map_name, *connect])
+        self.session = zenoh.open(build_config("client", connect=[self.endpoint]))
+        self.session.declare_subscriber(keys.tiles_key(self.map_name), self._on_tile)
+        deadline = time.monotonic() + 120
+        while sum(r.ok is not None for r in self.session.liveliness().get(
+                keys.shard_alive_key(self.map_name, "*"), timeout=2.0)) < self.shards:
+            if time.monotonic() > deadline or self.children.failed():
+                raise RuntimeError("the bench's mapper shards did not come up")
+            time.sleep(0.1)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.session.close()
+        self.children.stop_all()
+
+    def _on_tile(self, sample: zenoh.Sample) -> None:
+        payload = sample.payload.to_bytes()
+        arrival = time.perf_counter()
+        update = decode_message(payload, TileUpdate)
+        with self._lock:
+            self.tile_bytes += len(payload)
+            self.tile_updates.append((arrival, update.seq))
+
+    def fused(self) -> int:
+        stats: dict[int, ShardStats] = MapReader(self.session, self.map_name).stats()
+        if len(stats) < self.shards:
+            return 0
+        return min(s.fused.get(ROBOT, 0) for s in stats.values())
+
+    def wait_fused(self, scans: int, timeout: float = 600.0) -> None:
+        deadline = time.monotonic() + timeout
+        while self.fused() < scans:
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"the shards did not fuse {scans} scans in {timeout:.0f} s")
+            time.sleep(0.01)
+
+
+def _in_process_rate(posed) -> float:
+    """Scans per second of `posegrid fuse`'s loop (after one warm-up scan that compiles the kernels)."""
+    fuse_posed_scans(_first(posed, 1))
+    started = time.perf_counter()
+    fuse_posed_scans(posed)
+    return len(posed.stamps) / (time.perf_counter() - started)
+
+
+def _first(posed, count: int):
+    from dataclasses import replace
+
+    from schemas.files import PoseSet
+
+    poses = PoseSet(samples=posed.poses.samples[:count], weights=posed.poses.weights[:count])
+    return replace(posed, ranges=posed.ranges[:count], stamps=posed.stamps[:count], poses=poses)
+
+
+def _throughput(posed, shards: int) -> dict:
+    stream = posed_stream(posed, ROBOT)
+    in_bytes = sum(len(m.encode()) for step in stream.steps for m in step.messages)
+    with Cluster(shards, f"tp{shards}") as cluster:
+        source = Source(cluster.session, stream, SourceOptions(rate=None, wait_mappers=shards,
+                                                                map_name=cluster.map_name))
+        started = time.perf_counter()
+        source.run(threading.Event())
+        cluster.wait_fused(len(stream.steps))
+        elapsed = time.perf_counter() - started
+        time.sleep(0.5)  # the last tile updates
+        out_bytes = cluster.tile_bytes
+    scans = len(stream.steps)
+    return {"scans_per_s": scans / elapsed, "bytes_in_per_scan": in_bytes / scans,
+            "bytes_out_per_scan": out_bytes / scans}
+
+
+def _latency(posed, shards: int) -> dict:
+    stream = posed_stream(_first(posed, LATENCY_SCANS), ROBOT)
+    published: dict[int, float] = {}
+    with Cluster(shards, f"lat{shards}") as cluster:
+        publishers = {name: cluster.session.declare_publisher(keys.robot_key(ROBOT, name),
+                                                              congestion_control=zenoh.CongestionControl.BLOCK)
+                      for name in (keys.SCAN, keys.POSE)}
+        t0 = time.perf_counter()
+        for seq, step in enumerate(stream.steps):
+            delay = t0 + seq / LASER_HZ - time.perf_counter()
+            if delay > 0:
+                time.sleep(delay)
+            scan, pose = step.messages
+            payloads = scan.encode(), pose.encode()
+            published[seq] = time.perf_counter()
+            publishers[keys.SCAN].put(payloads[0])
+            publishers[keys.POSE].put(payloads[1])
+        cluster.wait_fused(len(stream.steps))
+        time.sleep(0.5)
+        updates = list(cluster.tile_updates)
+    last: dict[int, float] = {}
+    for arrival, seq in updates:
+        last[seq] = max(last.get(seq, 0.0), arrival)
+    latency_ms = np.array([1e3 * (arrival - published[seq]) for seq, arrival in last.items()])
+    return {"latency_ms_median": float(np.median(latency_ms)), "latency_ms_p99": float(np.percentile(latency_ms, 99)),
+            "latency_scans_without_own_update": len(stream.steps) - len(last)}
+
+
+def run() -> dict:
+    posed = honest_posed_scans(office_run(seed=0, steps=STEPS), seed=1, particles=SAMPLES)
+    out: dict = {"samples": SAMPLES, "scans": STEPS, "in_process_scans_per_s": _in_process_rate(posed)}
+    for shards in (1, 2):
+        for key, value in _throughput(posed, shards).items():
+            out[f"shards{shards}_{key}"] = value
+        out[f"shards{shards}_ratio_to_in_process"] = out[f"shards{shards}_scans_per_s"] / out["in_process_scans_per_s"]
+        for key, value in _latency(posed, shards).items():
+            out[f"shards{shards}_{key}_at_{LASER_HZ:g}hz"] = value
+    return out

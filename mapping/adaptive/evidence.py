@@ -1,0 +1,263 @@
+"""One scan's evidence for the adaptive grid, gathered in one compiled pass over (sample, beam, finest cell).
+
+Each ray under each pose sample is traversed at the finest resolution with the shared Amanatides-Woo helpers
+(:func:`mapping.raytrace.dda_start`, :func:`mapping.raytrace.dda_step`). The pass records
+
+* per finest cell, the regular grid's Monte Carlo evidence (paper, eq. 9), computed exactly as
+  :mod:`mapping.fusion`'s kernel does: a beam gives the cell the model's largest value over its segment
+  inside the cell, one sample gives the cell the largest value any of its beams proposes, and the cell
+  gets the weighted moments sum_j w_j y_ij and sum_j w_j y_ij^2;
+* per cell of every level, one weighted count of each ray's outcome (paper, section VI.A): a
+  *hit* if the ray's return lies in the cell, a *miss* if the ray leaves the cell before its return, an
+  *unknown* if the ray's return lies before the cell (the cell is behind an obstacle along that beam).
+  The finest cells a ray crosses form, at level k, consecutive *runs* inside one level-k cell (a ray crosses
+  a square once); each run of a ray of sample j adds w_j to one of the three counts of its cell. A beam
+  without a return is a miss everywhere up to range_max.
+
+Nothing here depends on which cells are active, so after the pass the split test can descend through any
+level and the update can aggregate the finest evidence into whatever cells are active.
+
+Evidence lives in scratch windows that cover the scan's reach: the finest window for the log-odds records,
+and per level k the level-k cells over it for the counts, flattened into one array with per-level offsets. Records carry stamps, as in the regular kernel, so the scratch is reused without clearing.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba as nb
+import numpy as np
+
+from mapping.fusion import (BEAM_HIT, BEAM_NO_RETURN, BEAM_SKIP, FREE_SHORTCUT_SIGMAS, SQRT2, STAMP_LIMIT,
+                            TABLE_DU, TABLE_U0, BeamTable, _table_logodds, cell_logodds)
+from mapping.raytrace import FAR, dda_start, dda_step
+
+#: columns of a count record: [stamp, hits, misses, unknowns]
+HIT, MISS, UNKNOWN = 1, 2, 3
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _segment_logodds(r_in, r_out, beam_kind, free_until, z, r_peak, a, b, s, g_peak, table, u0, du, p_miss, p_hit,
+                     l_free, y_peak):  # pragma: no cover - compiled
+    """The value a beam gives a finest cell it crosses over [r_in, r_out], as mapping.fusion's kernel computes it."""
+    if r_out < free_until or beam_kind == BEAM_NO_RETURN:
+        return l_free
+    if table.shape[0] > 0:
+        if r_out <= r_peak:
+            return _table_logodds(r_out, z, s / SQRT2, table, u0, du)
+        if r_in >= r_peak:
+            return _table_logodds(r_in, z, s / SQRT2, table, u0, du)
+        return y_peak
+    return cell_logodds(r_in, r_out, r_peak, a, b, s, g_peak, p_miss, p_hit)
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _bit_length(v):  # pragma: no cover - compiled
+    n = 0
+    while v > 0:
+        v >>= 1
+        n += 1
+    return n
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _scan_evidence(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop, r_count, r_peak, a, b, s, g_peak,
+                   table, u0, du, res, p_miss, p_hit, l_free, lv_x0, lv_y0, lv_w, lv_h, lv_off, rec, cnt, touched,
+                   stamp_base, count_unknowns):  # pragma: no cover - compiled
+    """The pass; returns how many finest cells got log-odds evidence (listed in ``touched``).
+
+    Finest window cell (gx, gy) = global (lv_x0[0] + gx, lv_y0[0] + gy) has record rec[gy * lv_w[0] + gx] =
+    [stamp of the last sample that touched it, that sample's value, sum_j w_j y, sum_j w_j y^2]; the stamps
+    are stamp_base + j, smaller ones are from earlier scans. Level-k cell (ax, ay) has count record
+    cnt[lv_off[k] + (ay - lv_y0[k]) * lv_w[k] + ax - lv_x0[k]] = [stamp_base, hits, misses, unknowns].
+    Values are taken up to r_stop (as in the regular grid), counts up to r_count >= r_stop.
+    """
+    n_levels = lv_x0.shape[0]
+    run_hit = np.zeros(n_levels, np.bool_)  # per level, the open run holds the return
+    run_after = np.zeros(n_levels, np.bool_)  # the open run began beyond the return
+    run_len = np.zeros(n_levels, np.bool_)  # the open run has positive length
+    n_touched = 0
+    free_gap = FREE_SHORTCUT_SIGMAS / SQRT2  # in units of s = sqrt(2) sigma
+    y_peak = math.log(p_hit) - math.log1p(-p_hit)
+    for j in range(laser_x.shape[0]):
+        sid = float(stamp_base + j)
+        w = weights[j]
+        for k in range(angles.shape[0]):
+            beam_kind = kind[k]
+            if beam_kind == BEAM_SKIP:
+                continue
+            theta = laser_yaw[j] + angles[k]
+            ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y = dda_start(
+                laser_x[j], laser_y[j], math.cos(theta), math.sin(theta), res)
+            stop_value = r_stop[k]
+            stop = r_count[k]
+            z_hit = z[k] if beam_kind == BEAM_HIT else FAR
+            free_until = stop_value if beam_kind == BEAM_NO_RETURN else a[k] - free_gap * s[k]
+            for lvl in range(n_levels):
+                run_hit[lvl] = False
+                run_after[lvl] = False
+                run_len[lvl] = False
+            hit_passed = False
+            r_in = 0.0
+            while True:
+                r_out = min(t_max_x, t_max_y, stop)
+                gx = ix - lv_x0[0]
+                gy = iy - lv_y0[0]
+                # the window covers every ray's reach, so the guard never fires; it protects the scratch memory
+                finished = gx < 0 or gy < 0 or gx >= lv_w[0] or gy >= lv_h[0]
+                if not finished and r_out > r_in:
+                    run_len[0] = True
+                    if not hit_passed and z_hit < r_out:
+                        run_hit[0] = True
+                        hit_passed = True
+                    if r_in < stop_value:
+                        y = _segment_logodds(r_in, min(r_out, stop_value), beam_kind, free_until, z[k], r_peak[k],
+                                             a[k], b[k], s[k], g_peak[k], table, u0, du, p_miss, p_hit, l_free,
+                                             y_peak)
+                        c = gy * lv_w[0] + gx
+                        if rec[c, 0] != sid:
+                            if rec[c, 0] < stamp_base:
+                                rec[c, 2] = 0.0
+                                rec[c, 3] = 0.0
+                                touched[n_touched] = c
+                                n_touched += 1
+                            rec[c, 0] = sid
+                            rec[c, 1] = y
+                            rec[c, 2] += w * y
+                            rec[c, 3] += w * y * y
+                        elif y > rec[c, 1]:
+                            old = rec[c, 1]
+                            rec[c, 1] = y
+                            rec[c, 2] += w * (y - old)
+                            rec[c, 3] += w * (y * y - old * old)
+                next_ix, next_iy = ix, iy
+                if finished or r_out >= stop:
+                    finished = True
+                    changed = n_levels
+                else:
+                    next_ix, next_iy, r_in, t_max_x, t_max_y = dda_step(ix, iy, r_in, step_x, step_y, t_max_x,
+                                                                       t_max_y, t_delta_x, t_delta_y)
+                    moved = (next_ix ^ ix) | (next_iy ^ iy)
+                    changed = n_levels if moved < 0 else min(_bit_length(moved), n_levels)
+                # close the runs that end here (levels 0..changed-1, finest first): fold each into its parent
+                # run, count its outcome, and open the next run
+                for lvl in range(changed):
+                    if run_len[lvl]:
+                        if lvl + 1 < n_levels:
+                            run_len[lvl + 1] = True
+                            if run_hit[lvl]:
+                                run_hit[lvl + 1] = True
+                        outcome = HIT if run_hit[lvl] else (UNKNOWN if run_after[lvl] else MISS)
+                        if outcome != UNKNOWN or count_unknowns:
+                            q = lv_off[lvl] + ((iy >> lvl) - lv_y0[lvl]) * lv_w[lvl] + ((ix >> lvl) - lv_x0[lvl])
+                            if cnt[q, 0] != stamp_base:
+                                cnt[q, 0] = stamp_base
+                                cnt[q, 1] = 0.0
+                                cnt[q, 2] = 0.0
+                                cnt[q, 3] = 0.0
+                            cnt[q, outcome] += w
+                    run_hit[lvl] = False
+                    run_after[lvl] = hit_passed
+                    run_len[lvl] = False
+                if finished:
+                    break
+                ix = next_ix
+                iy = next_iy
+    return n_touched
+
+
+@dataclass(frozen=True)
+class ScanEvidence:
+    """What one scan says: log-odds moments of the finest cells it touched, outcome counts at every level.
+
+    Level k's window covers the level-k cells ax in [x0[k], x0[k] + w[k]), ay in [y0[k], y0[k] + h[k]).
+    """
+
+    x0: np.ndarray
+    y0: np.ndarray
+    w: np.ndarray
+    h: np.ndarray
+    off: np.ndarray
+    rec: np.ndarray
+    cnt: np.ndarray
+    touched_index: np.ndarray
+    stamp_base: int
+
+    @property
+    def levels(self) -> int:
+        return int(self.x0.size)
+
+    def fine(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(ix, iy, sum_j w_j y, sum_j w_j y^2 - (sum_j w_j y)^2 clipped at 0) of the touched finest cells."""
+        index = self.touched_index
+        record = self.rec[index]
+        first = record[:, 2]
+        return (index % self.w[0] + self.x0[0], index // self.w[0] + self.y0[0], first,
+                np.maximum(record[:, 3] - first * first, 0.0))
+
+    def counts(self, level: np.ndarray, ax: np.ndarray, ay: np.ndarray) -> np.ndarray:
+        """(N, 3) weighted hits, misses and unknowns of cells (level, ax, ay); zeros where the scan has none."""
+        level = np.asarray(level, np.int64)
+        lv = np.clip(level, 0, self.levels - 1)
+        gx = np.asarray(ax, np.int64) - self.x0[lv]
+        gy = np.asarray(ay, np.int64) - self.y0[lv]
+        inside = (level >= 0) & (level < self.levels) & (gx >= 0) & (gy >= 0) & (gx < self.w[lv]) & (gy < self.h[lv])
+        record = self.cnt[np.where(inside, self.off[lv] + gy * self.w[lv] + gx, 0)]
+        fresh = inside & (record[:, 0] == self.stamp_base)
+        return np.where(fresh[:, None], record[:, HIT:UNKNOWN + 1], 0.0)
+
+
+class EvidenceScanner:
+    """Runs the compiled pass for one laser and keeps its scratch between scans.
+
+    levels: count outcomes at levels 0..levels-1; count_unknowns: count unknowns (else only hits and misses).
+    """
+
+    def __init__(self, levels: int, count_unknowns: bool) -> None:
+        self.levels = int(levels)
+        self.count_unknowns = bool(count_unknowns)
+        self._stamp_next = 1
+        self._rec = np.zeros((0, 4))
+        self._cnt = np.zeros((0, 4))
+        self._touched = np.zeros(0, np.int64)
+
+    def scan(self, lasers: np.ndarray, weights: np.ndarray, angles: np.ndarray, beams: BeamTable,
+             r_count: np.ndarray, table: np.ndarray, resolution: float, p_miss: float, p_hit: float,
+             l_free: float) -> ScanEvidence:
+        """Gather the evidence of one scan.
+
+        lasers: (M, 3) laser poses (x m, y m, yaw rad) in the map frame; weights: (M,) summing to 1;
+        angles: (B,) beam angles in rad, laser frame; beams: the scan's beam table; r_count: (B,) m, how far
+        each ray is followed for counting (>= beams.r_stop); table: the constant-sigma log-odds table or empty;
+        resolution: the finest cell size in m; p_miss, p_hit, l_free: the sensor model's.
+        """
+        res = resolution
+        reach = float(r_count.max()) + res
+        ix0 = math.floor((lasers[:, 0].min() - reach) / res)
+        iy0 = math.floor((lasers[:, 1].min() - reach) / res)
+        ix1 = math.floor((lasers[:, 0].max() + reach) / res)
+        iy1 = math.floor((lasers[:, 1].max() + reach) / res)
+        shifts = np.arange(self.levels)
+        x0, y0 = np.int64(ix0) >> shifts, np.int64(iy0) >> shifts
+        w = (np.int64(ix1) >> shifts) - x0 + 1
+        h = (np.int64(iy1) >> shifts) - y0 + 1
+        sizes = w * h
+        off = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+        fine, counted = int(sizes[0]), int(sizes.sum())
+        if fine > self._rec.shape[0]:
+            self._rec = np.zeros((fine, 4))
+            self._touched = np.zeros(fine, np.int64)
+        if counted > self._cnt.shape[0]:
+            self._cnt = np.zeros((counted, 4))
+        if self._stamp_next + len(lasers) >= STAMP_LIMIT:
+            self._rec[:] = 0
+            self._cnt[:] = 0
+            self._stamp_next = 1
+        stamp_base = self._stamp_next
+        self._stamp_next += len(lasers)
+        n = _scan_evidence(
+            lasers[:, 0].copy(), lasers[:, 1].copy(), lasers[:, 2].copy(), weights, angles, beams.kind, beams.z,
+            beams.r_stop, r_count, beams.r_peak, beams.a, beams.b, beams.s, beams.g_peak, table, TABLE_U0, TABLE_DU,
+            res, p_miss, p_hit, l_free, x0, y0, w, h, off, self._rec, self._cnt, self._touched, stamp_base,
+            self.count_unknowns)
+        return ScanEvidence(x0, y0, w, h, off, self._rec, self._cnt, self._touched[:n].copy(), stamp_base)

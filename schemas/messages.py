@@ -1,0 +1,278 @@
+"""Every wire message posegrid sends over Zenoh, each defined once (fields, specs, cross-field rules).
+
+Encoding, validating decoding and the JSON Schema docs (docs/messages/) all derive from these
+definitions (:mod:`schemas.wire`, :mod:`schemas.jsonschema`). Keys are listed in docs/keys.md.
+
+Frames and units: poses are (x, y, yaw) of the robot in the map frame, metres and radians; ranges are
+metres along the beam; beam angles are radians in the laser frame, counter-clockwise from +x; stamps are
+seconds (sensor time for sensor data, Unix time for ``published``). ``seq`` numbers a robot's scans
+0, 1, 2, ... in publication order; pose, odometry and landmark messages carry the seq of the scan
+they belong to, and mappers join scans and poses by (robot, seq).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from schemas.files import WEIGHT_SUM_TOLERANCE
+from schemas.wire import Array, Counts, Float, Int, Message, MessageError, Name, Rule, decode, spec
+
+#: robot names that would collide with other key-space roots (``pg/map/...``)
+RESERVED_ROBOT_NAMES = ("map",)
+
+ROBOT = Name("robot name, one key chunk", forbidden=RESERVED_ROBOT_NAMES)
+SEQ = Int("index of the scan this message belongs to, 0, 1, 2 ... per robot", minimum=0)
+STAMP = Float("sensor time of the scan, s")
+
+
+def _range_limits(v, fail):
+    if not 0 <= v["range_min"] < v["range_max"]:
+        fail("range", f"need 0 <= range_min < range_max, got {v['range_min']} and {v['range_max']}")
+
+
+def _beams(v, fail):
+    if v["ranges"].shape[0] < 1:
+        fail("shape", "'ranges' needs at least one beam")
+    if v["angle_increment"] == 0 and v["ranges"].shape[0] > 1:
+        fail("range", f"'angle_increment' is 0 but the scan has {v['ranges'].shape[0]} beams")
+
+
+def _weights(v, fail):
+    weights = v["weights"]
+    if weights.shape[0] < 1:
+        fail("shape", "'samples' needs at least one pose")
+    if (weights < 0).any():
+        fail("weights", f"'weights' has a negative value {weights[weights < 0][0]}")
+    total = float(weights.sum())
+    if abs(total - 1.0) > WEIGHT_SUM_TOLERANCE:
+        fail("weights", f"'weights' sum to {total:.6g}, not 1")
+
+
+def _covariance(v, fail):
+    cov = v["cov"]
+    scale = 1.0 + float(np.abs(cov).max())
+    if np.abs(cov - cov.T).max() > 1e-9 * scale:
+        fail("covariance", "'cov' is not symmetric")
+    smallest = float(np.linalg.eigvalsh(cov).min())
+    if smallest < -1e-12 * scale:
+        fail("covariance", f"'cov' is not positive semi-definite (smallest eigenvalue {smallest:.3g})")
+
+
+def _one_pose_at_most(v, fail):
+    if v["pose"].shape[0] > 1:
+        fail("shape", f"'pose' holds {v['pose'].shape[0]} rows; at most one is allowed")
+    if (v["commands"][:, 2] < 0).any():
+        fail("range", "'commands' has a negative dt")
+
+
+def _window(v, fail):
+    rows, cols = v["logodds"].shape
+    size = v["tile_size"]
+    if v["row0"] + rows > size or v["col0"] + cols > size:
+        fail("range", f"window at ({v['row0']}, {v['col0']}) of shape ({rows}, {cols}) exceeds the {size}x{size} tile")
+
+
+def _shard_index(v, fail):
+    if v["shard"] >= v["shards"]:
+        fail("range", f"'shard' = {v['shard']} must be below 'shards' = {v['shards']}")
+
+
+@dataclass(frozen=True, eq=False)
+class LaserScan(Message):
+    """One 2D laser scan. Published on pg/<robot>/scan."""
+
+    TYPE = "LaserScan"
+    VERSION = 1
+    RULES = (
+        Rule("range", "0 <= range_min < range_max", _range_limits),
+        Rule("range", "at least one beam; angle_increment != 0 when there are several", _beams),
+    )
+
+    robot: str = spec(ROBOT)
+    seq: int = spec(SEQ)
+    stamp: float = spec(STAMP)
+    angle_min: float = spec(Float("angle of beam 0 in the laser frame, rad"))
+    angle_increment: float = spec(Float("angle between consecutive beams, rad"))
+    range_min: float = spec(Float("shortest valid range, m", minimum=0.0))
+    range_max: float = spec(Float("longest range; longer readings mean no return, m", exclusive_minimum=0.0))
+    sensor_offset: np.ndarray = spec(Array("laser (x m, y m, yaw rad) in the robot frame", "<f8", (3,)))
+    ranges: np.ndarray = spec(Array("range per beam, m", "<f4", ("B",), values="ranges", minimum=0.0))
+
+
+@dataclass(frozen=True, eq=False)
+class Odometry(Message):
+    """What the robot's wheels report between the previous scan and scan ``seq``: the velocity commands
+    applied (for velocity motion models) and, when the robot reports one, its dead-reckoned pose (for
+    odometry motion models). Published on pg/<robot>/odom."""
+
+    TYPE = "Odometry"
+    VERSION = 1
+    RULES = (Rule("shape", "at most one pose row; command dt >= 0", _one_pose_at_most),)
+
+    robot: str = spec(ROBOT)
+    seq: int = spec(SEQ)
+    stamp: float = spec(STAMP)
+    pose: np.ndarray = spec(Array("the dead-reckoned (x m, y m, yaw rad) in the odometry frame; no row when the "
+                                  "robot reports none", "<f8", ("P", 3)))
+    commands: np.ndarray = spec(Array("velocity commands since the previous seq, in order: (v m/s, w rad/s, held "
+                                      "for dt s)", "<f8", ("K", 3)))
+
+
+@dataclass(frozen=True, eq=False)
+class LandmarkObservations(Message):
+    """Landmarks seen at the time of scan ``seq``, as range and bearing from the robot.
+    Published on pg/<robot>/landmarks."""
+
+    TYPE = "LandmarkObservations"
+    VERSION = 1
+
+    robot: str = spec(ROBOT)
+    seq: int = spec(SEQ)
+    stamp: float = spec(STAMP)
+    ids: np.ndarray = spec(Array("landmark id per observation, -1 when the correspondence is unknown", "<i8", ("K",)))
+    ranges: np.ndarray = spec(Array("distance from the robot per observation, m", "<f8", ("K",), minimum=0.0))
+    bearings: np.ndarray = spec(Array("bearing in the robot frame per observation, rad", "<f8", ("K",)))
+
+
+@dataclass(frozen=True, eq=False)
+class PoseSamples(Message):
+    """The robot's pose distribution at scan ``seq`` as weighted samples (particles).
+    Published on pg/<robot>/pose."""
+
+    TYPE = "PoseSamples"
+    VERSION = 1
+    RULES = (Rule("weights", f"at least one sample; weights >= 0 and sum to 1 within {WEIGHT_SUM_TOLERANCE}", _weights),)
+
+    robot: str = spec(ROBOT)
+    seq: int = spec(SEQ)
+    stamp: float = spec(STAMP)
+    samples: np.ndarray = spec(Array("pose samples (x m, y m, yaw rad) in the map frame", "<f8", ("M", 3)))
+    weights: np.ndarray = spec(Array("weight per sample", "<f8", ("M",)))
+
+
+@dataclass(frozen=True, eq=False)
+class PoseGaussian(Message):
+    """The robot's pose distribution at scan ``seq`` as a Gaussian. Published on pg/<robot>/pose."""
+
+    TYPE = "PoseGaussian"
+    VERSION = 1
+    RULES = (Rule("covariance", "cov symmetric positive semi-definite", _covariance),)
+
+    robot: str = spec(ROBOT)
+    seq: int = spec(SEQ)
+    stamp: float = spec(STAMP)
+    mean: np.ndarray = spec(Array("mean pose (x m, y m, yaw rad) in the map frame", "<f8", (3,)))
+    cov: np.ndarray = spec(Array("covariance of (x, y, yaw), m^2, m*rad, rad^2", "<f8", (3, 3)))
+
+
+@dataclass(frozen=True, eq=False)
+class StreamEnd(Message):
+    """The source has published all of this robot's scans: seqs 0 .. scans-1. Published on pg/<robot>/end."""
+
+    TYPE = "StreamEnd"
+    VERSION = 1
+
+    robot: str = spec(ROBOT)
+    scans: int = spec(Int("number of scans published (and poses, when the source publishes poses)", minimum=0))
+
+
+@dataclass(frozen=True, eq=False)
+class TileUpdate(Message):
+    """A window of one map tile as its owning shard holds it now (absolute values, not increments).
+
+    Published on pg/map/<map>/tile/<z>/<tx>/<ty> after fusion (the window covers the cells changed since
+    the tile was last published) and sent as the reply to a tile query (the window is the whole tile).
+    Tile (tx, ty) holds the global cells ix in [tx*T, (tx+1)*T), iy in [ty*T, (ty+1)*T); window row r,
+    column c is the cell iy = ty*T + row0 + r, ix = tx*T + col0 + c, covering
+    x in [ix*resolution, (ix+1)*resolution) of the map frame.
+    """
+
+    TYPE = "TileUpdate"
+    VERSION = 1
+    RULES = (Rule("range", "row0 + H <= tile_size and col0 + W <= tile_size", _window),)
+
+    map: str = spec(Name("map name, one key chunk"))
+    shard: int = spec(Int("index of the shard that owns the tile", minimum=0))
+    z: int = spec(Int("zoom level; 0 is the full-resolution grid", minimum=0))
+    tx: int = spec(Int("tile column index"))
+    ty: int = spec(Int("tile row index"))
+    tile_size: int = spec(Int("cells per tile side", minimum=1))
+    resolution: float = spec(Float("cell side, m", exclusive_minimum=0.0))
+    row0: int = spec(Int("first window row inside the tile", minimum=0))
+    col0: int = spec(Int("first window column inside the tile", minimum=0))
+    robot: str = spec(ROBOT)
+    seq: int = spec(Int("seq of the last scan fused into this tile (by robot)", minimum=0))
+    published: float = spec(Float("Unix time the shard sent this update, s"))
+    logodds: np.ndarray = spec(Array("occupancy log-odds per cell", "<f4", ("H", "W")))
+    variance: np.ndarray = spec(Array("spread of the per-sample log-odds that pose uncertainty adds", "<f4", ("H", "W"),
+                                      minimum=0.0))
+    observed: np.ndarray = spec(Array("whether any beam has touched the cell", "|b1", ("H", "W"), values="any"))
+
+
+@dataclass(frozen=True, eq=False)
+class ShardStats(Message):
+    """What one mapper shard has done. The reply to a query on pg/map/<map>/stats/<shard>."""
+
+    TYPE = "ShardStats"
+    VERSION = 1
+    RULES = (Rule("range", "shard < shards", _shard_index),)
+
+    map: str = spec(Name("map name"))
+    shard: int = spec(Int("this shard's index", minimum=0))
+    shards: int = spec(Int("number of shards the tiles are split among", minimum=1))
+    tiles_owned: int = spec(Int("tiles this shard holds", minimum=0))
+    cells_updated: int = spec(Int("cell updates fused so far (a cell counts once per scan)", minimum=0))
+    tile_updates: int = spec(Int("tile updates published", minimum=0))
+    join_pending: int = spec(Int("scans or poses waiting for their partner", minimum=0))
+    uptime: float = spec(Float("seconds since the shard started", minimum=0.0))
+    fused: dict = spec(Counts("scans fused, by robot"))
+    discarded: dict = spec(Counts("scans given up on (join buffer overflow, no pose), by robot"))
+    ended: dict = spec(Counts("scans announced by the source's StreamEnd, by robot"))
+    received: dict = spec(Counts("messages received, by key"))
+    rejected: dict = spec(Counts("messages dropped as malformed or of an unknown version, by key"))
+    overflow: dict = spec(Counts("messages dropped because a bounded buffer was full, by buffer"))
+
+
+@dataclass(frozen=True, eq=False)
+class NodeStats(Message):
+    """What a SLAM node has done. The reply to a query on pg/<robot>/slam/stats."""
+
+    TYPE = "NodeStats"
+    VERSION = 1
+
+    robot: str = spec(ROBOT)
+    algorithm: str = spec(Name("SLAM algorithm the node runs"))
+    poses_published: int = spec(Int("pose distributions published", minimum=0))
+    steps_done: int = spec(Int("steps taken, failed or skipped: every seq below this one is dealt with", minimum=0))
+    uptime: float = spec(Float("seconds since the node started", minimum=0.0))
+    received: dict = spec(Counts("messages received, by key"))
+    rejected: dict = spec(Counts("messages dropped as malformed or of an unknown version, by key"))
+    out_of_order: dict = spec(Counts("scans that arrived with a seq at or below one already processed, by key"))
+
+
+#: every message type, by wire name
+MESSAGE_TYPES: dict[str, type[Message]] = {
+    cls.TYPE: cls
+    for cls in (LaserScan, Odometry, LandmarkObservations, PoseSamples, PoseGaussian, StreamEnd, TileUpdate,
+                ShardStats, NodeStats)
+}
+
+#: the two forms a pose distribution takes on pg/<robot>/pose
+PoseDistribution = PoseSamples | PoseGaussian
+POSE_TYPES = (PoseSamples, PoseGaussian)
+
+
+def decode_message(payload: bytes, *expected: type[Message]) -> Message:
+    """Decode and validate ``payload``; with ``expected`` types given, any other type is rejected.
+
+    Raises :class:`MessageError` (reason in :data:`schemas.wire.REASONS`) on any defect.
+    """
+    return decode(payload, MESSAGE_TYPES, expected)
+
+
+__all__ = [
+    "LaserScan", "Odometry", "LandmarkObservations", "PoseSamples", "PoseGaussian", "PoseDistribution",
+    "POSE_TYPES", "StreamEnd", "TileUpdate", "ShardStats", "NodeStats", "MESSAGE_TYPES", "MessageError",
+    "decode_message", "RESERVED_ROBOT_NAMES",
+]

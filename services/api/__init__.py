@@ -1,0 +1,13 @@
+"""`posegrid api`: the HTTP API and the browser viewer, a Zenoh client of the mapper shards (docs/api.md).
+
+Modules, one job each:
+- ``registry``: what the API knows about each map (shards alive, level-0 tiles and their versions),
+- ``mappers``: the Zenoh side: subscriptions (tile updates, poses, liveliness) and queries to the shards,
+- ``tiles``: tiles at every zoom level, fetched from the shards, combined (mapping.pyramid), cached,
+- ``render``: a tile's layers as PNG or .npz bytes,
+- ``robots``: the latest pose distribution and the trajectory of each robot,
+- ``events``: the server-sent event stream of tile changes and poses,
+- ``models``: the JSON response schemas (the OpenAPI document derives from them),
+- ``app``: the FastAPI routes; ``fastpath``: answers repeated tile requests from the cache before them,
+- ``server``: runs it all under uvicorn; ``static/``: the viewer (one HTML, one JS, one CSS file).
+"""

@@ -1,0 +1,383 @@
+"""The HTTP routes of `posegrid api` (docs/api.md): maps, tiles, export, stats, health, robots, events and
+the viewer. Every failure the client can cause or fix is a 4xx with ``{"detail": one sentence}``; a shard
+that does not answer is a 503 with the same form.
+
+Handlers that ask the shards over Zenoh are plain functions (FastAPI runs them in its thread pool); the tile
+handlers are coroutines that answer from the cache at once and only hand a miss to the thread pool.
+"""
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import io
+import secrets
+import time
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path as FilePath
+from typing import Annotated, Literal
+
+import zenoh
+from fastapi import FastAPI, HTTPException, Path, Query, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
+from fastapi.staticfiles import StaticFiles
+from starlette.concurrency import run_in_threadpool
+
+from mapping.export import render_pgm, render_png
+from schemas.files import MapFile, save_map
+from schemas.messages import ShardStats
+from services.api import models
+from services.api.events import EventHub
+from services.api.fastpath import tile_response
+from services.api.mappers import MapperLink
+from services.api.registry import MAX_LEVEL, MapInfo, MapRegistry
+from services.api.robots import RobotTracker, reduce_samples
+from services.api.tiles import TileService, TileUnavailable, render_key
+from services.map_client import IncompleteMap
+
+STATIC = FilePath(__file__).resolve().parent / "static"
+
+DESCRIPTION = """\
+Occupancy maps built by posegrid's mapper shards, read over Zenoh: map summaries, tiles at every zoom level,
+whole-map exports, shard statistics, robot poses and a live event stream, plus a browser viewer at `/`.
+
+Units: metres, radians, seconds. Poses are (x, y, yaw) of the robot in the map frame. Tiles: tile_size x
+tile_size cells; at zoom level z a cell is 2^z level-0 cells wide and tile (x, y) covers map-frame
+x in [x * tile_size * 2^z * resolution, (x + 1) * ...) m, likewise y. A level-z cell combines its four
+level-(z-1) cells: observed = any observed; log-odds and variance = the mean over the observed ones.
+
+Errors: `{"detail": "one sentence"}` with 404 (unknown map or robot, tile outside the map), 409 (nothing
+to export yet), 422 (a malformed or out-of-range parameter) or 503 (a shard holding the data did not answer).
+"""
+
+ERRORS = {
+    404: "unknown map or robot, or a tile outside the map's range",
+    409: "the map has nothing to export yet",
+    422: "a parameter is malformed or out of its range (layer, format, z < 0, vmax <= 0, ...)",
+    503: "a shard holding the data did not answer",
+}
+
+
+def errors(*codes: int) -> dict:
+    return {code: {"model": models.Problem, "description": ERRORS[code]} for code in codes}
+
+
+MapName = Annotated[str, Path(description="map name, e.g. main (GET /maps lists them)")]
+Robot = Annotated[str, Path(description="robot name, e.g. robot0 (GET /robots lists them)")]
+Z = Annotated[int, Path(ge=0, le=MAX_LEVEL, description="zoom level: 0 = the finest (cells of the map's "
+                        "resolution); each level doubles the cell side; at most the map's max_zoom")]
+TileX = Annotated[int, Path(description="tile column at level z: map-frame x in [x*T*2^z*r, (x+1)*T*2^z*r) m "
+                            "(T = tile_size, r = resolution); may be negative")]
+TileY = Annotated[int, Path(description="tile row at level z: map-frame y in [y*T*2^z*r, (y+1)*T*2^z*r) m; "
+                            "may be negative")]
+Vmax = Annotated[float | None, Query(gt=0, allow_inf_nan=False,
+                                     description="variance layer: the variance (log-odds squared) drawn at the top "
+                                     "of the colour ramp; default the map's variance_scale")]
+
+TILE_CONTENT = {
+    200: {"description": "the tile", "headers": {"ETag": {"description": "changes when the tile changes",
+                                                          "schema": {"type": "string"}}}},
+    304: {"description": "the tile has not changed since the ETag given in If-None-Match"},
+}
+
+
+@dataclass
+class Backend:
+    """Everything the routes use."""
+
+    registry: MapRegistry
+    tiles: TileService
+    robots: RobotTracker
+    hub: EventHub
+    link: MapperLink
+    started: float
+
+    @classmethod
+    def open(cls, session: zenoh.Session, cache_bytes: int, query_timeout: float) -> "Backend":
+        """Wire the parts on an open Zenoh session and start listening."""
+        epoch = secrets.token_hex(4)
+        registry, robots, hub = MapRegistry(), RobotTracker(), EventHub(epoch)
+        link = MapperLink(session, registry, robots, hub, query_timeout)
+        tiles = TileService(registry, link, epoch, cache_bytes, on_change=hub.tile_changed)
+        link.start()
+        return cls(registry, tiles, robots, hub, link, time.monotonic())
+
+    def close(self) -> None:
+        self.link.close()
+
+
+def _extent(x0: float, y0: float, x1: float, y1: float) -> models.Extent:
+    return models.Extent(x_min=x0, y_min=y0, x_max=x1, y_max=y1)
+
+
+def create_app(backend: Backend) -> FastAPI:
+    """The FastAPI application over ``backend``."""
+    registry, tiles, robots, hub, link = backend.registry, backend.tiles, backend.robots, backend.hub, backend.link
+
+    @contextlib.asynccontextmanager
+    async def lifespan(app: FastAPI):
+        flusher = asyncio.create_task(hub.run())
+        yield
+        hub.close()
+        flusher.cancel()
+
+    app = FastAPI(title="posegrid API", version="1", description=DESCRIPTION, lifespan=lifespan)
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
+        parts = [f"{error['loc'][0]} parameter {'.'.join(map(str, error['loc'][1:]))!r}: {error['msg']}"
+                 for error in exc.errors()]
+        return JSONResponse({"detail": "; ".join(parts)}, status_code=422)
+
+    @app.exception_handler(TileUnavailable)
+    @app.exception_handler(IncompleteMap)
+    async def unavailable(request: Request, exc: Exception) -> JSONResponse:
+        return JSONResponse({"detail": str(exc)}, status_code=503)
+
+    def known_map(name: str) -> MapInfo:
+        info = registry.get(name)
+        if info is None:
+            raise HTTPException(404, f"unknown map {name!r}; known maps: {', '.join(registry.names()) or 'none'}")
+        return info
+
+    def synced_map(name: str) -> MapInfo:
+        info = known_map(name)
+        tiles.sync(name)
+        return info
+
+    def check_tile(info: MapInfo, z: int, x: int, y: int) -> None:
+        if info.x_range is None:
+            raise HTTPException(404, f"map {info.name!r} has no tiles yet")
+        if z > info.top_level:
+            raise HTTPException(404, f"zoom level {z} is beyond the coarsest level of map {info.name!r}, "
+                                f"{info.top_level}")
+        (x0, x1), (y0, y1) = info.level_range(z)
+        if not (x0 <= x <= x1 and y0 <= y <= y1):
+            raise HTTPException(404, f"tile ({x}, {y}) is outside map {info.name!r} at zoom level {z}: x must be "
+                                f"in {x0}..{x1} and y in {y0}..{y1}")
+
+    def summary(info: MapInfo) -> models.MapSummary:
+        content = tiles.content(info.name)
+        size, res = info.tile_size, info.resolution
+        bounds = extent = observed = None
+        if info.x_range is not None:
+            (x0, x1), (y0, y1) = info.x_range, info.y_range
+            span = size * res
+            bounds = models.TileBounds(x_min=x0, x_max=x1, y_min=y0, y_max=y1)
+            extent = _extent(x0 * span, y0 * span, (x1 + 1) * span, (y1 + 1) * span)
+        if content.bounds is not None:
+            ix0, iy0, ix1, iy1 = content.bounds
+            observed = _extent(ix0 * res, iy0 * res, (ix1 + 1) * res, (iy1 + 1) * res)
+        per_tile = (size or 0) ** 2
+        return models.MapSummary(
+            name=info.name, resolution=res, tile_size=size, shards=info.shards, shards_alive=sorted(info.alive),
+            tiles=len(info.tiles), tile_bounds=bounds, extent=extent, observed_extent=observed,
+            max_zoom=info.top_level,
+            cells=models.CellCounts(per_tile=per_tile, total=per_tile * len(info.tiles), observed=content.observed),
+            variance_scale=content.variance_scale)
+
+    # ------------------------------------------------------------------------------- maps
+    @app.get("/maps", response_model=list[models.MapSummary], tags=["maps"], responses=errors(503))
+    def list_maps() -> list[models.MapSummary]:
+        """Every map a shard has announced (by its liveliness token), with extent and cell counts."""
+        out = []
+        for name in registry.names():
+            link.stats(name)
+            out.append(summary(synced_map(name)))
+        return out
+
+    @app.get("/maps/{map}", response_model=models.MapSummary, tags=["maps"], responses=errors(404, 422, 503))
+    def get_map(map: MapName) -> models.MapSummary:
+        """One map: resolution, tile size, extent (m), zoom levels, cell counts, shards."""
+        info = synced_map(map)
+        link.stats(map)
+        return summary(info)
+
+    async def tile(request: Request, name: str, z: int, x: int, y: int, fmt: str, layer: str | None,
+                   vmax: float | None) -> Response:
+        info = known_map(name)
+        if not info.synced:
+            await run_in_threadpool(tiles.sync, name)
+        check_tile(info, z, x, y)
+        if fmt == "png" and layer == "variance" and vmax is None:
+            vmax = (await run_in_threadpool(tiles.content, name)).variance_scale
+        key = render_key(name, z, x, y, fmt, layer, vmax)
+        rendered = tiles.cached(key) or await run_in_threadpool(tiles.rendered, key)
+        status, headers, body = tile_response(rendered, request.headers.get("if-none-match"))
+        return Response(body, status_code=status, headers=dict(headers))
+
+    @app.get("/maps/{map}/tiles/{z}/{x}/{y}.png", tags=["tiles"], response_class=Response,
+             responses={**TILE_CONTENT, 200: {**TILE_CONTENT[200], "content": {"image/png": {}}},
+                        **errors(404, 422, 503)})
+    async def tile_png(request: Request, map: MapName, z: Z, x: TileX, y: TileY,
+                       layer: Annotated[Literal["probability", "logodds", "variance"], Query(
+                           description="probability: white free, black occupied; logodds: grey, linear over the "
+                           "clamping range; variance: black-red-yellow over variance / vmax, where pose "
+                           "uncertainty blurred the map. Unobserved cells are pale blue-grey.")] = "probability",
+                       vmax: Vmax = None) -> Response:
+        """One tile as a PNG, north up, one pixel per cell. Send If-None-Match with the ETag to get 304
+        while the tile is unchanged."""
+        return await tile(request, map, z, x, y, "png", layer, vmax)
+
+    @app.get("/maps/{map}/tiles/{z}/{x}/{y}.npz", tags=["tiles"], response_class=Response,
+             responses={**TILE_CONTENT, 200: {**TILE_CONTENT[200], "content": {"application/octet-stream": {}}},
+                        **errors(404, 422, 503)})
+    async def tile_npz(request: Request, map: MapName, z: Z, x: TileX, y: TileY,
+                       layer: Annotated[Literal["probability", "logodds", "variance"] | None, Query(
+                           description="omit for a complete map file (docs/formats.md: logodds, probability, "
+                           "observed, variance, origin, resolution); give one to get only that layer with "
+                           "observed, origin (m) and resolution (m)")] = None) -> Response:
+        """One tile as NumPy .npz in the map-file format, its origin the tile's lower-left corner (m) and its
+        resolution 2^z times the map's."""
+        return await tile(request, map, z, x, y, "npz", layer, None)
+
+    @app.get("/maps/{map}/tiles/{z}/{x}/{name}", include_in_schema=False)
+    def tile_bad_format(map: str, z: str, x: str, name: str) -> None:
+        raise HTTPException(404, f"tiles are served as .png or .npz, not {name!r}")
+
+    @app.get("/maps/{map}/export", tags=["maps"], response_class=Response, responses={
+        200: {"description": "npz: a map file (docs/formats.md); pgm: a zip of MAP.pgm and MAP.yaml for ROS "
+              "map_server; png: an image, north up", "content": {"application/octet-stream": {},
+                                                                 "application/zip": {}, "image/png": {}}},
+        **errors(404, 409, 422, 503)})
+    def export(map: MapName,
+               format: Annotated[Literal["npz", "pgm", "png"], Query(
+                   description="npz (a map file), pgm (with its YAML, zipped) or png")],
+               layer: Annotated[Literal["probability", "variance"], Query(
+                   description="png only: probability, or variance scaled to its 99th percentile")] = "probability",
+               ) -> Response:
+        """The whole map assembled from every shard's tiles now, cropped to the observed cells."""
+        info = known_map(map)
+        stats = link.stats(map)
+        if not stats:
+            raise HTTPException(503, f"no shard of map {map!r} answered")
+        if info.resolution is None:
+            raise HTTPException(409, f"map {map!r} has no tiles yet")
+        raster = link.assemble(map, max(s.shards for s in stats.values()), info.resolution).rasterize()
+        if not raster["observed"].any():
+            raise HTTPException(409, f"map {map!r} has no observed cells yet")
+        buffer = io.BytesIO()
+        if format == "npz":
+            save_map(buffer, MapFile(**raster))
+            media, filename = "application/octet-stream", f"{map}.npz"
+        elif format == "pgm":
+            pgm, yaml = render_pgm(raster, image_name=f"{map}.pgm")
+            with zipfile.ZipFile(buffer, "w") as archive:
+                archive.writestr(zipfile.ZipInfo(f"{map}.pgm", date_time=(1980, 1, 1, 0, 0, 0)), pgm)
+                archive.writestr(zipfile.ZipInfo(f"{map}.yaml", date_time=(1980, 1, 1, 0, 0, 0)), yaml)
+            media, filename = "application/zip", f"{map}.zip"
+        else:
+            buffer.write(render_png(raster, layer))
+            media, filename = "image/png", f"{map}.png"
+        return Response(buffer.getvalue(), media_type=media,
+                        headers={"Content-Disposition": f'attachment; filename="{filename}"'})
+
+    # ------------------------------------------------------------------------------- stats
+    def map_stats(name: str) -> models.MapStats:
+        info = known_map(name)
+        stats = link.stats(name)
+        latest = robots.latest_seqs()
+        now = time.monotonic()
+        shard_ids = sorted(set(range(info.shards or 0)) | info.alive | set(stats))
+        per_shard, rejected = [], dict(link.rejects.snapshot())
+        for shard in shard_ids:
+            s = stats.get(shard)
+            age = info.last_update.get(shard)
+            status = models.ShardStatus(shard=shard, alive=shard in info.alive, answered=s is not None,
+                                        tile_updates_received=info.updates_received.get(shard, 0),
+                                        last_tile_update_age_s=None if age is None else now - age,
+                                        **({} if s is None else _shard_fields(s, latest)))
+            per_shard.append(status)
+            for key, count in (s.rejected.items() if s else ()):
+                rejected[key] = rejected.get(key, 0) + count
+        answered = [s for s in per_shard if s.answered]
+        robots_seen = sorted({r for s in answered for r in s.scans_fused} | set(latest))
+        fused = {r: min(s.scans_fused.get(r, 0) for s in answered) for r in robots_seen} if answered else {}
+        lag = {r: max(s.lag_scans.get(r, 0) for s in answered) for r in robots_seen if r in latest} if answered else {}
+        return models.MapStats(map=name, shards=info.shards, shards_alive=sorted(info.alive), scans_fused=fused,
+                               lag_scans=lag, rejected=rejected, per_shard=per_shard)
+
+    @app.get("/maps/{map}/stats", response_model=models.MapStats, tags=["status"], responses=errors(404, 422))
+    def get_stats(map: MapName) -> models.MapStats:
+        """Per shard: liveliness, scans fused, messages received and rejected by key, lag behind SLAM."""
+        return map_stats(map)
+
+    @app.get("/health", response_model=models.Health, tags=["status"])
+    def health() -> models.Health:
+        """Shards alive and answering, scans fused and lag per map, the API's own rejected messages."""
+        maps, ok = {}, bool(registry.names())
+        for name in registry.names():
+            s = map_stats(name)
+            maps[name] = models.MapHealth(shards=s.shards, shards_alive=s.shards_alive, scans_fused=s.scans_fused,
+                                          lag_scans=s.lag_scans)
+            ok = ok and s.shards is not None and all(p.alive and p.answered for p in s.per_shard) and \
+                len(s.per_shard) >= s.shards
+        return models.Health(status="ok" if ok else "degraded", uptime_s=time.monotonic() - backend.started,
+                             maps=maps, robots=robots.robots(), processes_alive=sorted(link.processes),
+                             rejected=link.rejects.snapshot(), event_clients=hub.clients)
+
+    # ------------------------------------------------------------------------------- robots
+    def latest(robot: str):
+        summary = robots.latest(robot)
+        if summary is None:
+            raise HTTPException(404, f"no pose of robot {robot!r} has arrived; robots: "
+                                f"{', '.join(robots.robots()) or 'none'}")
+        return summary
+
+    @app.get("/robots", response_model=list[models.RobotSummary], tags=["robots"])
+    def list_robots() -> list[models.RobotSummary]:
+        """Robots whose poses the API has received."""
+        out = []
+        for robot in robots.robots():
+            s = robots.latest(robot)
+            out.append(models.RobotSummary(robot=robot, seq=s.seq, stamp=s.stamp, form=s.form, processes_alive=sorted(
+                p.split("/", 1)[1] for p in link.processes if p.split("/", 1)[0] == robot)))
+        return out
+
+    @app.get("/robots/{robot}/pose", response_model=models.Pose, tags=["robots"], responses=errors(404, 422))
+    def pose(robot: Robot, max_samples: Annotated[int | None, Query(
+            ge=1, description="return at most this many samples, reduced by systematic resampling "
+            "(equal weights); default all")] = None) -> models.Pose:
+        """The latest pose distribution: samples with weights, and their mean and covariance."""
+        s = latest(robot)
+        samples, weights = (s.samples, s.weights) if max_samples is None else \
+            reduce_samples(s.samples, s.weights, max_samples)
+        return models.Pose(robot=robot, seq=s.seq, stamp=s.stamp, received=s.received, form=s.form,
+                           samples=samples.tolist(), weights=weights.tolist(), samples_total=len(s.weights),
+                           mean=s.mean.tolist(), covariance=s.cov.tolist())
+
+    @app.get("/robots/{robot}/trajectory", response_model=models.Trajectory, tags=["robots"],
+             responses=errors(404, 422))
+    def trajectory(robot: Robot) -> models.Trajectory:
+        """The robot's mean poses since the API started, oldest first."""
+        latest(robot)
+        rows = robots.trajectory(robot)
+        return models.Trajectory(robot=robot, seq=rows[:, 0].astype(int).tolist(), stamp=rows[:, 1].tolist(),
+                                 x=rows[:, 2].tolist(), y=rows[:, 3].tolist(), yaw=rows[:, 4].tolist())
+
+    # ------------------------------------------------------------------------------- events, viewer
+    @app.get("/events", tags=["status"], response_class=StreamingResponse, responses={200: {
+        "description": "server-sent events: hello, tiles ({map, tiles: [[tx, ty, version], ...]}, level-0 "
+        "tiles that changed), pose ({robot, seq, stamp, mean, covariance, samples, weights}), resync",
+        "content": {"text/event-stream": {}}}})
+    async def events() -> StreamingResponse:
+        """A stream of tile-changed and pose events, batched every 0.25 s (docs/api.md)."""
+        return StreamingResponse(hub.stream(), media_type="text/event-stream",
+                                 headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+
+    @app.get("/", include_in_schema=False)
+    async def viewer() -> FileResponse:
+        return FileResponse(STATIC / "index.html")
+
+    app.mount("/static", StaticFiles(directory=STATIC), name="static")
+    return app
+
+
+def _shard_fields(s: ShardStats, latest: dict[str, int]) -> dict:
+    """ShardStatus fields from a shard's stats; lag against the latest pose seq of each robot."""
+    lag = {r: max(0, seq + 1 - s.fused.get(r, 0) - s.discarded.get(r, 0)) for r, seq in latest.items()}
+    return dict(scans_fused=s.fused, scans_discarded=s.discarded, scans_announced=s.ended, tiles_owned=s.tiles_owned,
+                cells_updated=s.cells_updated, tile_updates=s.tile_updates, join_pending=s.join_pending,
+                uptime_s=s.uptime, received=s.received, rejected=s.rejected, overflow=s.overflow, lag_scans=lag)
+

@@ -1,0 +1,219 @@
+"""The API's Zenoh side: what it subscribes to and what it asks the mapper shards (docs/keys.md).
+
+Subscriptions (callbacks run on Zenoh's threads and only record; they never query):
+- liveliness pg/map/*/alive/*: which shards of which maps are up (a map is known once a shard of it is);
+- liveliness pg/*/alive/*: which robot processes (source, SLAM node) are up;
+- pg/map/*/tile/0/*/*: tile updates; each gives its level-0 tile a new version (services.api.registry)
+  and a ``tiles`` event; the window's values are not kept (the tile is asked for when someone wants it);
+- pg/*/pose: pose distributions, for /robots and ``pose`` events.
+
+Queries (from HTTP handler threads): one level-0 tile (pg/map/<map>/tile/0/<tx>/<ty>; only the owning
+shard answers), all tiles of a map (pg/map/<map>/tile/0/*/*), the shards' stats, the whole map for export
+(services.map_client.MapReader).
+
+Whatever arrives is decoded and validated (schemas.messages); a message that does not decode, or whose
+contents contradict its key, is dropped and counted by key in :attr:`MapperLink.rejects`, never trusted.
+"""
+from __future__ import annotations
+
+import zenoh
+
+from mapping.grid import TiledGrid
+from schemas.messages import POSE_TYPES, MessageError, ShardStats, TileUpdate, decode_message
+from schemas.wire import is_valid_name
+from services import keys
+from services.api.events import EventHub
+from services.api.registry import MapRegistry, TileKey
+from services.api.robots import RobotTracker
+from services.map_client import MapReader
+from services.process import RejectCounter, get_logger
+
+
+def _parse_int(text: str) -> int | None:
+    try:
+        return int(text)
+    except ValueError:
+        return None
+
+
+class MapperLink:
+    """Subscriptions and queries on an open Zenoh session. Call :meth:`start`, later :meth:`close`."""
+
+    def __init__(self, session: zenoh.Session, registry: MapRegistry, robots: RobotTracker, hub: EventHub,
+                 query_timeout: float = 10.0) -> None:
+        self.session = session
+        self.registry = registry
+        self.robots = robots
+        self.hub = hub
+        self.query_timeout = query_timeout
+        self.log = get_logger("api")
+        self.rejects = RejectCounter(self.log)
+        self.processes: set[str] = set()  # "<robot>/<process>" whose liveliness token is up
+        self._declared: list = []
+
+    # ---------------------------------------------------------------------------- subscriptions
+    def start(self) -> None:
+        """Declare the subscriptions, then read the liveliness tokens already up (so the maps and shards
+        alive are known before the first request)."""
+        liveliness = self.session.liveliness()
+        shard_tokens, process_tokens = keys.shard_alive_key("*", "*"), keys.robot_alive_key("*", "*")
+        self._declared += [
+            liveliness.declare_subscriber(shard_tokens, self._guard(self._on_shard_token)),
+            liveliness.declare_subscriber(process_tokens, self._guard(self._on_process_token)),
+            self.session.declare_subscriber(keys.tile_key("*", 0, "*", "*"), self._guard(self._on_tile_update)),
+            self.session.declare_subscriber(keys.robot_key("*", keys.POSE), self._guard(self._on_pose)),
+        ]
+        for key, callback in ((shard_tokens, self._on_shard_token), (process_tokens, self._on_process_token)):
+            for reply in liveliness.get(key, timeout=self.query_timeout):
+                if reply.ok is not None:
+                    self._guard(callback)(reply.ok)
+
+    def close(self) -> None:
+        for entity in reversed(self._declared):
+            entity.undeclare()
+        self._declared.clear()
+
+    def _guard(self, callback):
+        """``callback`` with any exception counted as a rejected message instead of escaping into Zenoh."""
+        def guarded(sample: zenoh.Sample) -> None:
+            try:
+                callback(sample)
+            except Exception as exc:  # noqa: BLE001 - a bad message must never stop the subscription
+                self.rejects.count(str(sample.key_expr), "error", f"{type(exc).__name__}: {exc}")
+        return guarded
+
+    def _on_shard_token(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        _, _, name, _, shard_text = key.split("/")
+        shard = _parse_int(shard_text)
+        if not is_valid_name(name) or shard is None or shard < 0:
+            self.rejects.count(key, "key", "a shard liveliness token whose key is not pg/map/<map>/alive/<shard>")
+            return
+        self.registry.shard_alive(name, shard, sample.kind == zenoh.SampleKind.PUT)
+
+    def _on_process_token(self, sample: zenoh.Sample) -> None:
+        _, robot, _, process = str(sample.key_expr).split("/")
+        name = f"{robot}/{process}"
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.processes.add(name)
+        else:
+            self.processes.discard(name)
+
+    def _on_tile_update(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        try:
+            update = decode_message(sample.payload.to_bytes(), TileUpdate)
+        except MessageError as exc:
+            self.rejects.count(key, exc.reason, str(exc))
+            return
+        problem = self._tile_problem(key, update) or self.registry.check_geometry(
+            update.map, update.resolution, update.tile_size)
+        if problem:
+            self.rejects.count(key, "key", problem)
+            return
+        tile = (update.tx, update.ty)
+        self.registry.update_received(update.map, update.shard)
+        version = self.registry.tile_changed(update.map, tile, update.resolution, update.tile_size)
+        self.hub.tile_changed(update.map, tile, version)
+
+    def _on_pose(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        try:
+            message = decode_message(sample.payload.to_bytes(), *POSE_TYPES)
+        except MessageError as exc:
+            self.rejects.count(key, exc.reason, str(exc))
+            return
+        if message.robot != keys.robot_of(key):
+            self.rejects.count(key, "robot", f"a pose of robot {message.robot!r} arrived on {key}")
+            return
+        self.hub.pose(self.robots.update(message))
+
+    @staticmethod
+    def _tile_problem(key: str, update: TileUpdate) -> str | None:
+        """Why ``update`` does not belong on ``key`` (None when it does)."""
+        expected = keys.tile_key(update.map, update.z, update.tx, update.ty)
+        if key != expected or update.z != 0:
+            return f"a TileUpdate for {expected} arrived on {key}"
+        return None
+
+    # ---------------------------------------------------------------------------- queries
+    def _get(self, selector: str):
+        """Send a query to every matching queryable; returns the reply handler (iterating it waits)."""
+        return self.session.get(selector, target=zenoh.QueryTarget.ALL,
+                                consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE),
+                                congestion_control=zenoh.CongestionControl.BLOCK, timeout=self.query_timeout)
+
+    def _query(self, selector: str) -> list[tuple[str, bytes]]:
+        return self._collect(selector, self._get(selector))
+
+    def _collect(self, selector: str, handler) -> list[tuple[str, bytes]]:
+        replies = []
+        for reply in handler:
+            if reply.ok is None:
+                self.rejects.count(selector, "error_reply", "a queryable answered with an error")
+            else:
+                replies.append((str(reply.ok.key_expr), reply.ok.payload.to_bytes()))
+        return replies
+
+    def _whole_tiles(self, map_name: str, replies: list[tuple[str, bytes]]) -> list[TileUpdate]:
+        tiles = []
+        for key, payload in replies:
+            try:
+                update = decode_message(payload, TileUpdate)
+            except MessageError as exc:
+                self.rejects.count(key, exc.reason, str(exc))
+                continue
+            problem = self._tile_problem(key, update)
+            if not problem and update.map != map_name:
+                problem = f"a tile of map {update.map!r} answered a query about map {map_name!r}"
+            if not problem and (update.row0, update.col0, update.logodds.shape) != (0, 0, (update.tile_size,) * 2):
+                problem = "a tile query was answered with a partial window"
+            if problem:
+                self.rejects.count(key, "key", problem)
+                continue
+            tiles.append(update)
+        return tiles
+
+    def fetch_tiles(self, map_name: str, tiles: list[TileKey]) -> dict[TileKey, TileUpdate]:
+        """Whole level-0 tiles from their shards, asked all at once; tiles that did not come back are absent."""
+        selectors = [keys.tile_key(map_name, 0, tx, ty) for tx, ty in tiles]
+        pending = [(selector, self._get(selector)) for selector in selectors]
+        wanted = set(tiles)
+        found = {}
+        for selector, handler in pending:
+            for update in self._whole_tiles(map_name, self._collect(selector, handler)):
+                if (update.tx, update.ty) in wanted:
+                    found[(update.tx, update.ty)] = update
+        return found
+
+    def fetch_all(self, map_name: str) -> list[TileUpdate]:
+        """Every whole level-0 tile of the map, from every shard."""
+        return self._whole_tiles(map_name, self._query(keys.tile_key(map_name, 0, "*", "*")))
+
+    def stats(self, map_name: str) -> dict[int, ShardStats]:
+        """The stats of every shard of the map that answers, by shard index (records the shard count)."""
+        stats = {}
+        for key, payload in self._query(keys.stats_key(map_name, "*")):
+            try:
+                message = decode_message(payload, ShardStats)
+            except MessageError as exc:
+                self.rejects.count(key, exc.reason, str(exc))
+                continue
+            if key != keys.stats_key(message.map, message.shard) or message.map != map_name:
+                self.rejects.count(key, "key", f"stats of shard {message.shard} of map {message.map!r} on {key}")
+                continue
+            stats[message.shard] = message
+        if stats:
+            self.registry.set_shards(map_name, max(s.shards for s in stats.values()))
+        return stats
+
+    def assemble(self, map_name: str, shards: int, resolution: float) -> TiledGrid:
+        """The whole map from all shards, checked against their tile counts (services.map_client);
+        raises services.map_client.IncompleteMap when a shard is missing or a tile is missing or doubled."""
+        reader = MapReader(self.session, map_name)
+        try:
+            return reader.assemble(shards, resolution, timeout=self.query_timeout)
+        finally:
+            for _ in range(reader.rejected):
+                self.rejects.count(keys.tile_key(map_name, 0, "*", "*"), "export", "a reply to the export query "
+                                   "did not decode")

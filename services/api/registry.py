@@ -1,0 +1,140 @@
+"""What the API knows about each map: its shards (alive or not), its level-0 tiles and their versions.
+
+Versions: every change of a level-0 tile (a tile update from its shard, or a tile first seen) takes the
+next value of one counter shared by all maps, so a larger version is always a later change. The version of
+a level-z tile (x, y) is the largest version among the level-0 tiles it covers (0 when it covers none that
+exist): any change below it gives it a new, larger version. Versions of all levels are kept up to date on
+every change, so reading one is a dictionary look-up.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+
+from mapping.pyramid import tile_range, top_level
+
+TileKey = tuple[int, int]
+
+#: levels whose versions are kept (a level-32 tile spans 2^32 level-0 tiles per side)
+MAX_LEVEL = 32
+
+
+@dataclass
+class MapInfo:
+    """One map as seen from the API. Mutated only under :attr:`MapRegistry.lock`."""
+
+    name: str
+    resolution: float | None = None  # m per level-0 cell; None until the first tile is seen
+    tile_size: int | None = None  # cells per tile side
+    shards: int | None = None  # shard count the shards report in their stats
+    alive: set[int] = field(default_factory=set)  # shards whose liveliness token is up
+    last_update: dict[int, float] = field(default_factory=dict)  # shard -> time.monotonic() of its last tile update
+    updates_received: dict[int, int] = field(default_factory=dict)  # shard -> tile updates received from it
+    levels: list[dict[TileKey, int]] = field(default_factory=lambda: [{} for _ in range(MAX_LEVEL + 1)])
+    x_range: tuple[int, int] | None = None  # level-0 tile columns spanned (inclusive)
+    y_range: tuple[int, int] | None = None
+    synced: bool = False  # whether the tiles the shards hold have been asked for since they came up
+
+    @property
+    def tiles(self) -> dict[TileKey, int]:
+        """Level-0 tiles that exist, with their versions."""
+        return self.levels[0]
+
+    @property
+    def top_level(self) -> int | None:
+        """The coarsest zoom level served (mapping.pyramid.top_level); None while the map has no tiles."""
+        if self.x_range is None:
+            return None
+        return top_level(self.x_range, self.y_range)
+
+    def level_range(self, z: int) -> tuple[tuple[int, int], tuple[int, int]] | None:
+        """(x range, y range), inclusive, of the level-z tiles that cover the map; None without tiles."""
+        if self.x_range is None:
+            return None
+        return tile_range(*self.x_range, z), tile_range(*self.y_range, z)
+
+
+class MapRegistry:
+    """Every map the API has heard of, thread-safe (Zenoh callbacks write, HTTP handlers read)."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self._maps: dict[str, MapInfo] = {}
+        self._counter = 0
+
+    def names(self) -> list[str]:
+        with self.lock:
+            return sorted(self._maps)
+
+    def get(self, name: str) -> MapInfo | None:
+        return self._maps.get(name)
+
+    def _info(self, name: str) -> MapInfo:
+        info = self._maps.get(name)
+        if info is None:
+            info = self._maps[name] = MapInfo(name)
+        return info
+
+    def tiles(self, name: str) -> dict[TileKey, int]:
+        """A copy of map ``name``'s level-0 tiles and their versions (empty for an unknown map)."""
+        with self.lock:
+            info = self._maps.get(name)
+            return dict(info.tiles) if info else {}
+
+    def shard_alive(self, name: str, shard: int, alive: bool) -> None:
+        """Record a shard's liveliness token appearing or going away; a shard that appears asks for a sync."""
+        with self.lock:
+            info = self._info(name)
+            if alive:
+                info.alive.add(shard)
+                info.synced = False
+            else:
+                info.alive.discard(shard)
+
+    def set_shards(self, name: str, shards: int) -> None:
+        with self.lock:
+            self._info(name).shards = shards
+
+    def mark_synced(self, name: str) -> None:
+        with self.lock:
+            self._info(name).synced = True
+
+    def check_geometry(self, name: str, resolution: float, tile_size: int) -> str | None:
+        """Why a tile of this geometry does not belong to map ``name`` (None when it does)."""
+        info = self._maps.get(name)
+        if info is None or info.resolution is None:
+            return None
+        if (info.resolution, info.tile_size) != (resolution, tile_size):
+            return (f"map {name!r} has {info.tile_size}-cell tiles of {info.resolution} m cells, "
+                    f"not {tile_size} of {resolution} m")
+        return None
+
+    def tile_changed(self, name: str, tile: TileKey, resolution: float, tile_size: int) -> int:
+        """Record a change (or the discovery) of level-0 tile ``tile`` of map ``name``; returns its new version."""
+        with self.lock:
+            info = self._info(name)
+            if info.resolution is None:
+                info.resolution, info.tile_size = resolution, tile_size
+            self._counter += 1
+            version = self._counter
+            tx, ty = tile
+            for z, level in enumerate(info.levels):
+                level[(tx >> z, ty >> z)] = version
+            info.x_range = (tx, tx) if info.x_range is None else (min(info.x_range[0], tx), max(info.x_range[1], tx))
+            info.y_range = (ty, ty) if info.y_range is None else (min(info.y_range[0], ty), max(info.y_range[1], ty))
+            return version
+
+    def update_received(self, name: str, shard: int) -> None:
+        """Count a tile update published by ``shard`` (before its :meth:`tile_changed`)."""
+        with self.lock:
+            info = self._info(name)
+            info.last_update[shard] = time.monotonic()
+            info.updates_received[shard] = info.updates_received.get(shard, 0) + 1
+
+    def version(self, name: str, z: int, x: int, y: int) -> int:
+        """The version of level-z tile (x, y) of map ``name`` (0: no level-0 tile below it exists)."""
+        info = self._maps.get(name)
+        if info is None or not 0 <= z <= MAX_LEVEL:
+            return 0
+        return info.levels[z].get((x, y), 0)

@@ -1,0 +1,111 @@
+"""The latest pose distribution and the trajectory of every robot, from its pg/<robot>/pose messages.
+
+Poses are (x m, y m, yaw rad) in the map frame. A weighted-sample message is summarised by its weighted
+mean (yaw: the circular mean atan2(sum w sin, sum w cos)) and weighted covariance (yaw residuals wrapped
+to [-pi, pi)); a Gaussian message keeps its mean and covariance and gets :data:`DRAWN_SAMPLES` samples
+drawn from it (seeded by the scan's seq, so the same message always gives the same cloud) for display.
+The trajectory is the sequence of mean poses.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from schemas.messages import PoseGaussian, PoseSamples
+from slam.angles import wrap_angle
+
+#: samples drawn from a Gaussian pose for display
+DRAWN_SAMPLES = 100
+#: mean poses kept per robot
+TRAJECTORY_LENGTH = 100_000
+
+
+@dataclass(frozen=True)
+class PoseSummary:
+    """One pose distribution, both as samples and as mean + covariance."""
+
+    robot: str
+    seq: int
+    stamp: float  # sensor time of the scan, s
+    received: float  # Unix time the API received it, s
+    form: str  # "samples" (particles from SLAM) or "gaussian" (mean + covariance from SLAM)
+    samples: np.ndarray  # (M, 3)
+    weights: np.ndarray  # (M,), sums to 1
+    mean: np.ndarray  # (3,)
+    cov: np.ndarray  # (3, 3)
+
+
+def weighted_mean_cov(samples: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted mean (3,) and covariance (3, 3) of poses (M, 3); yaw averaged on the circle."""
+    weights = np.asarray(weights, float) / np.sum(weights)
+    yaw = np.arctan2(weights @ np.sin(samples[:, 2]), weights @ np.cos(samples[:, 2]))
+    mean = np.array([weights @ samples[:, 0], weights @ samples[:, 1], yaw])
+    residual = samples - mean
+    residual[:, 2] = wrap_angle(residual[:, 2])
+    cov = (residual * weights[:, None]).T @ residual
+    return mean, 0.5 * (cov + cov.T)
+
+
+def reduce_samples(samples: np.ndarray, weights: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """At most ``count`` samples: systematic resampling (pointers (k + 1/2) / count on the cumulative
+    weights) when there are more, giving equal weights; the input unchanged otherwise."""
+    if len(weights) <= count:
+        return samples, weights
+    cumulative = np.cumsum(weights)
+    cumulative[-1] = 1.0
+    picks = np.minimum(np.searchsorted(cumulative, (np.arange(count) + 0.5) / count, side="right"), len(weights) - 1)
+    return samples[picks], np.full(count, 1.0 / count)
+
+
+def summarize(message: PoseSamples | PoseGaussian, received: float) -> PoseSummary:
+    """The :class:`PoseSummary` of a decoded pose message."""
+    if isinstance(message, PoseGaussian):
+        rng = np.random.default_rng(message.seq)
+        samples = rng.multivariate_normal(message.mean, message.cov, DRAWN_SAMPLES, method="eigh")
+        weights = np.full(DRAWN_SAMPLES, 1.0 / DRAWN_SAMPLES)
+        return PoseSummary(message.robot, message.seq, message.stamp, received, "gaussian", samples, weights,
+                           np.asarray(message.mean, float), np.asarray(message.cov, float))
+    mean, cov = weighted_mean_cov(message.samples, message.weights)
+    return PoseSummary(message.robot, message.seq, message.stamp, received, "samples",
+                       np.asarray(message.samples, float), np.asarray(message.weights, float), mean, cov)
+
+
+class RobotTracker:
+    """Thread-safe: Zenoh callbacks call :meth:`update`, HTTP handlers read."""
+
+    def __init__(self, trajectory_length: int = TRAJECTORY_LENGTH) -> None:
+        self._lock = threading.Lock()
+        self._latest: dict[str, PoseSummary] = {}
+        self._trajectory: dict[str, deque[tuple[int, float, float, float, float]]] = {}
+        self._length = trajectory_length
+
+    def update(self, message: PoseSamples | PoseGaussian) -> PoseSummary:
+        """Take a new pose message; returns its summary."""
+        summary = summarize(message, time.time())
+        with self._lock:
+            self._latest[summary.robot] = summary
+            track = self._trajectory.setdefault(summary.robot, deque(maxlen=self._length))
+            track.append((summary.seq, summary.stamp, *(float(v) for v in summary.mean)))
+        return summary
+
+    def robots(self) -> list[str]:
+        with self._lock:
+            return sorted(self._latest)
+
+    def latest(self, robot: str) -> PoseSummary | None:
+        return self._latest.get(robot)
+
+    def latest_seqs(self) -> dict[str, int]:
+        """The seq of the latest pose of every robot."""
+        with self._lock:
+            return {robot: summary.seq for robot, summary in self._latest.items()}
+
+    def trajectory(self, robot: str) -> np.ndarray:
+        """Rows (seq, stamp s, x m, y m, yaw rad) of the robot's mean poses, oldest first; (0, 5) if unknown."""
+        with self._lock:
+            rows = list(self._trajectory.get(robot, ()))
+        return np.array(rows, float).reshape(-1, 5)

@@ -1,0 +1,253 @@
+"""Tiles of every zoom level: level-0 tiles fetched from their shards, coarser ones combined from their
+children (mapping.pyramid), rendered to PNG or .npz, and cached until they change.
+
+Two caches, both keyed by the tile's version (services.api.registry), so nothing stale is ever served:
+- layers (logodds, variance, observed) per (map, z, x, y): level-0 tiles as their shard sent them, coarser
+  levels as combined, so a change below a tile recomputes only the path from that change up;
+- encoded bytes per (map, z, x, y, format, layer, vmax), with their ETag: a repeated request costs a
+  dictionary look-up (services.api.fastpath answers it before FastAPI is even involved).
+
+A level-0 tile that the registry does not list is empty (nobody has mapped there); one it lists is asked
+from its shard, and a shard that does not answer makes the request fail with :class:`TileUnavailable`.
+"""
+from __future__ import annotations
+
+import hashlib
+import math
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from mapping.pyramid import TileLayers, children_of, combine_children
+from schemas.messages import TileUpdate
+from services.api.cache import ByteLRU
+from services.api.registry import MapInfo, MapRegistry, TileKey
+from services.api.render import empty_layers, npz_bytes, png_bytes
+
+MEDIA_TYPES = {"png": "image/png", "npz": "application/octet-stream"}
+
+#: (map, z, x, y, format, layer or None, vmax or None): what identifies one encoded tile
+RenderKey = tuple[str, int, int, int, str, "str | None", "float | None"]
+
+
+class TileUnavailable(RuntimeError):
+    """A level-0 tile the map has could not be fetched from its shard (the message says which)."""
+
+
+class TileSource(Protocol):
+    """Where level-0 tiles come from (services.api.mappers.MapperLink over Zenoh)."""
+
+    def fetch_tiles(self, map_name: str, tiles: list[TileKey]) -> dict[TileKey, TileUpdate]:
+        """Whole level-0 tiles, by key; a tile that did not come back is absent."""
+
+    def fetch_all(self, map_name: str) -> list[TileUpdate]:
+        """Every whole level-0 tile every shard of the map holds."""
+
+
+@dataclass(frozen=True)
+class TileFacts:
+    """What a level-0 tile contributes to its map's summary."""
+
+    observed: int  # observed cells
+    variance_p99: float  # 99th percentile of the variance of its observed cells (0 when none)
+    bounds: tuple[int, int, int, int] | None  # global cells (ix_min, iy_min, ix_max, iy_max) observed, inclusive
+
+
+@dataclass(frozen=True)
+class MapContent:
+    """A map's cells as of the versions it was computed for."""
+
+    observed: int
+    variance_scale: float  # the default top of the variance ramp: see variance_scale()
+    bounds: tuple[int, int, int, int] | None  # global cells observed (inclusive), None when none
+
+
+@dataclass(frozen=True)
+class Rendered:
+    """An encoded tile."""
+
+    version: int
+    etag: str
+    body: bytes
+    media_type: str
+
+
+def variance_scale(p99: float) -> float:
+    """The default top of the variance ramp: the largest per-tile 99th percentile of observed variance,
+    rounded up to a power of two (so it changes rarely while a map grows); 1 when there is no variance."""
+    return 2.0 ** math.ceil(math.log2(p99)) if p99 > 0 else 1.0
+
+
+def render_key(name: str, z: int, x: int, y: int, fmt: str, layer: str | None, vmax: float | None) -> RenderKey:
+    """The canonical cache key of a tile request (layer and vmax dropped where they do not matter)."""
+    if fmt == "png":
+        layer = layer or "probability"
+        vmax = float(vmax) if layer == "variance" else None
+    else:
+        vmax = None
+    return name, z, x, y, fmt, layer, vmax
+
+
+def tile_facts(tile: TileKey, layers: TileLayers) -> TileFacts:
+    _, variance, observed = layers
+    seen = variance[observed]
+    if not seen.size:
+        return TileFacts(0, 0.0, None)
+    size = observed.shape[0]
+    rows = np.flatnonzero(observed.any(axis=1))
+    cols = np.flatnonzero(observed.any(axis=0))
+    x0, y0 = tile[0] * size, tile[1] * size
+    return TileFacts(int(seen.size), float(np.percentile(seen, 99)),
+                     (x0 + int(cols[0]), y0 + int(rows[0]), x0 + int(cols[-1]), y0 + int(rows[-1])))
+
+
+class TileService:
+    """Tiles of every level of every map. Thread-safe."""
+
+    def __init__(self, registry: MapRegistry, source: TileSource, epoch: str, cache_bytes: int,
+                 on_change: Callable[[str, TileKey, int], None] = lambda name, tile, version: None) -> None:
+        self.registry = registry
+        self.source = source
+        self.epoch = epoch
+        self.on_change = on_change
+        self._layers: ByteLRU[tuple[TileLayers, TileFacts | None]] = ByteLRU(cache_bytes * 3 // 4)
+        self._rendered: ByteLRU[Rendered] = ByteLRU(cache_bytes // 4)
+        self._content: dict[str, tuple[int, MapContent]] = {}
+        self._sync_lock = threading.Lock()
+
+    # ---------------------------------------------------------------------------- level 0
+    def _store(self, name: str, tile: TileKey, version: int, update: TileUpdate) -> tuple[TileLayers, TileFacts]:
+        layers = (update.logodds, update.variance, update.observed)
+        entry = (layers, tile_facts(tile, layers))
+        self._layers.put((name, 0, *tile), version, entry, _nbytes(layers))
+        return entry
+
+    def sync(self, name: str) -> None:
+        """Ask every shard of map ``name`` for all its tiles, unless done since the shards came up.
+
+        Tiles new to the registry, or that differ from what is cached, get a new version (and an event)."""
+        with self._sync_lock:
+            info = self.registry.get(name)
+            if info is None or info.synced:
+                return
+            self.registry.mark_synced(name)  # a shard appearing during the fetch asks for another sync
+            before = self.registry.tiles(name)
+            for update in self.source.fetch_all(name):
+                tile = (update.tx, update.ty)
+                if self.registry.check_geometry(name, update.resolution, update.tile_size) is not None:
+                    continue
+                known = before.get(tile, 0)
+                if self.registry.version(name, 0, *tile) != known:
+                    continue  # an update arrived meanwhile; it is at least as new as this reply
+                cached = self._layers.get((name, 0, *tile), known) if known else None
+                if cached is not None and _same(cached[0], (update.logodds, update.variance, update.observed)):
+                    continue
+                version = self.registry.tile_changed(name, tile, update.resolution, update.tile_size)
+                self._store(name, tile, version, update)
+                self.on_change(name, tile, version)
+
+    def _fetch(self, name: str, wanted: dict[TileKey, int]) -> dict[TileKey, tuple[TileLayers, TileFacts]]:
+        """Fetch level-0 tiles ``wanted`` (key -> the version read before asking), cache and return them."""
+        got = self.source.fetch_tiles(name, sorted(wanted))
+        missing = sorted(set(wanted) - set(got))
+        if missing:
+            info = self.registry.get(name)
+            raise TileUnavailable(f"map {name!r}: level-0 tile(s) {', '.join(map(str, missing[:4]))} did not come "
+                                  f"back from their shard (shards alive: {sorted(info.alive) if info else []})")
+        return {tile: self._store(name, tile, wanted[tile], update) for tile, update in got.items()}
+
+    def _stale_below(self, name: str, z: int, x: int, y: int, out: dict[TileKey, int]) -> None:
+        version = self.registry.version(name, z, x, y)
+        if version == 0 or self._layers.get((name, z, x, y), version) is not None:
+            return
+        if z == 0:
+            out[(x, y)] = version
+            return
+        for child in children_of(x, y):
+            self._stale_below(name, z - 1, *child, out)
+
+    # ---------------------------------------------------------------------------- any level
+    def layers(self, name: str, z: int, x: int, y: int) -> TileLayers | None:
+        """Level-z tile (x, y) of map ``name``; None when no level-0 tile below it exists."""
+        stale: dict[TileKey, int] = {}
+        self._stale_below(name, z, x, y, stale)
+        if stale:
+            self._fetch(name, stale)
+        return self._build(name, self.registry.get(name), z, x, y)
+
+    def _build(self, name: str, info: MapInfo, z: int, x: int, y: int) -> TileLayers | None:
+        version = self.registry.version(name, z, x, y)
+        if version == 0:
+            return None
+        entry = self._layers.get((name, z, x, y), version)
+        if entry is None and z == 0:  # changed since it was fetched a moment ago: fetch it again
+            entry = self._fetch(name, {(x, y): version})[(x, y)]
+        if entry is not None:
+            return entry[0]
+        children = [self._build(name, info, z - 1, *child) for child in children_of(x, y)]
+        layers = combine_children(children, info.tile_size)
+        self._layers.put((name, z, x, y), version, (layers, None), _nbytes(layers))
+        return layers
+
+    def content(self, name: str) -> MapContent:
+        """Observed cells, default variance scale and observed bounds of the whole map (fetches every
+        level-0 tile not cached at its current version)."""
+        tiles = self.registry.tiles(name)
+        latest = max(tiles.values(), default=0)
+        known = self._content.get(name)
+        if known is not None and known[0] == latest:
+            return known[1]
+        by_tile: dict[TileKey, TileFacts] = {}
+        stale: dict[TileKey, int] = {}
+        for tile, version in tiles.items():
+            entry = self._layers.get((name, 0, *tile), version)
+            if entry is None:
+                stale[tile] = version
+            else:
+                by_tile[tile] = entry[1]
+        if stale:
+            by_tile.update((tile, entry[1]) for tile, entry in self._fetch(name, stale).items())
+        facts = list(by_tile.values())
+        boxes = np.array([f.bounds for f in facts if f.bounds is not None]).reshape(-1, 4)
+        bounds = None if not len(boxes) else (*(int(v) for v in boxes[:, :2].min(axis=0)),
+                                               *(int(v) for v in boxes[:, 2:].max(axis=0)))
+        result = MapContent(sum(f.observed for f in facts), variance_scale(max((f.variance_p99 for f in facts),
+                                                                                 default=0.0)), bounds)
+        self._content[name] = (latest, result)
+        return result
+
+    # ---------------------------------------------------------------------------- encoded tiles
+    def cached(self, key: RenderKey) -> Rendered | None:
+        """The encoded tile for ``key`` if it is cached at the tile's current version."""
+        return self._rendered.get(key, self.registry.version(*key[:4]))
+
+    def rendered(self, key: RenderKey) -> Rendered:
+        """The encoded tile for ``key`` (a canonical :func:`render_key`), from the cache or made now."""
+        name, z, x, y, fmt, layer, vmax = key
+        version = self.registry.version(name, z, x, y)
+        hit = self._rendered.get(key, version)
+        if hit is not None:
+            return hit
+        info = self.registry.get(name)
+        layers = self.layers(name, z, x, y) or empty_layers(info.tile_size)
+        if fmt == "png":
+            body = png_bytes(layers, layer, vmax if vmax is not None else 1.0)
+        else:
+            cell = info.resolution * 2 ** z
+            span = cell * info.tile_size
+            body = npz_bytes(layers, layer, (x * span, y * span), cell)
+        digest = hashlib.blake2b(repr(key).encode(), digest_size=6).hexdigest()
+        rendered = Rendered(version, f'"{self.epoch}-{version}-{digest}"', body, MEDIA_TYPES[fmt])
+        self._rendered.put(key, version, rendered, len(body))
+        return rendered
+
+
+def _nbytes(layers: TileLayers) -> int:
+    return sum(layer.nbytes for layer in layers)
+
+
+def _same(a: TileLayers, b: TileLayers) -> bool:
+    return all(np.array_equal(p, q) for p, q in zip(a, b))

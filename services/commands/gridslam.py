@@ -1,0 +1,126 @@
+"""`posegrid slam --algo gridslam LOG -o POSED.npz`: grid FastSLAM over a CARMEN log or a ROS bag.
+
+The slam command (services/commands/slam.py) adds these options to its parser and hands over to
+:func:`run_gridslam_command` when --algo is gridslam.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+#: grid FastSLAM particles when --particles is not given
+DEFAULT_GRID_PARTICLES = 30
+
+
+def add_gridslam_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of --algo gridslam (INPUT is then a CARMEN log .clf/.log/.gz or a ROS 1/2 bag)."""
+    group = parser.add_argument_group(
+        "grid FastSLAM (--algo gridslam: INPUT is a CARMEN log .clf/.log/.gz or a ROS bag; --particles "
+        f"defaults to {DEFAULT_GRID_PARTICLES}; docs/gridslam.md)")
+    group.add_argument("--poses-output", type=Path, default=None, metavar="POSES.npz",
+                       help="pose-distribution file with every scan's particles (default: OUTPUT with the "
+                       "suffix .poses.npz)")
+    group.add_argument("--max-range", type=float, default=None,
+                       help="m: beams are used up to here, longer ones only clear space (default 30)")
+    group.add_argument("--linear-update", type=float, default=None,
+                       help="m of odometry between scans integrated into the maps (default 0.25)")
+    group.add_argument("--angular-update", type=float, default=None,
+                       help="rad of odometry turn between integrated scans (default 0.15)")
+    group.add_argument("--grid-resolution", type=float, default=None, help="m, cell size of the particles' grids "
+                       "(default 0.05)")
+    group.add_argument("--scan-topic", type=str, default=None, help="ROS bag: the LaserScan topic (default: the "
+                       "only one, or /scan)")
+    group.add_argument("--stats", type=Path, default=None, metavar="OUT.json",
+                       help="write timing and effective-sample-size figures as JSON")
+
+
+def _config(args: argparse.Namespace):
+    from dataclasses import replace
+
+    from services.cli import UsageError
+    from slam.gridslam import GridSlamConfig
+
+    overrides = {"particles": DEFAULT_GRID_PARTICLES if args.particles is None else args.particles,
+                 "resample_threshold": args.resample_threshold}
+    for option, field in (("max_range", "max_range"), ("linear_update", "linear_update"),
+                          ("angular_update", "angular_update"), ("grid_resolution", "resolution")):
+        value = getattr(args, option)
+        if value is not None:
+            overrides[field] = value
+    config = replace(GridSlamConfig(), **overrides)
+    try:
+        config.validate()
+    except ValueError as exc:
+        raise UsageError(f"grid FastSLAM option out of range: {exc}") from None
+    if config.linear_update < 0 or config.angular_update < 0:
+        raise UsageError("--linear-update and --angular-update must be >= 0")
+    return config
+
+
+def _read_input(args: argparse.Namespace):
+    from slam.carmen import read_carmen
+    from slam.rosbag_reader import read_rosbag
+
+    if args.input.is_dir() or args.input.suffix == ".bag":
+        return read_rosbag(args.input, scan_topic=args.scan_topic)
+    return read_carmen(args.input)
+
+
+def run_gridslam_command(args: argparse.Namespace) -> int:
+    """Run grid FastSLAM over args.input; write the posed-scan file (integrated scans) and the
+    pose-distribution file (every scan)."""
+    import numpy as np
+    from tqdm import tqdm
+
+    from schemas.files import PoseDistributionFile, PosedScans, PoseSet, save_pose_distribution, save_posed_scans
+    from services.cli import UsageError
+    from slam.gridslam import run_gridslam
+
+    for option in ("robot", "initial", "alphas", "sigma_range", "sigma_bearing", "outlier_gate"):
+        if getattr(args, option, None) is not None:
+            raise UsageError(f"--{option.replace('_', '-')} does not apply to --algo gridslam")
+    config = _config(args)
+    log = _read_input(args)
+    if log.skipped:
+        print(f"posegrid slam: note: {log.skipped_summary()}", file=sys.stderr)
+    started = time.perf_counter()
+    with tqdm(total=len(log), desc="slam gridslam", unit="scan", file=sys.stderr, mininterval=0.5) as bar:
+        def progress(done: int, ess: float) -> None:
+            bar.update(done)
+            bar.set_postfix(ess=f"{ess:.1f}", refresh=False)
+
+        result = run_gridslam(log, config, seed=args.seed, progress=progress)
+    elapsed = time.perf_counter() - started
+
+    chosen = result.integrated
+    weights = np.tile(result.weights, (len(log), 1))
+    range_max = min(config.max_range, log.range_max)
+    save_posed_scans(args.output, PosedScans(
+        ranges=log.ranges[chosen], angle_min=log.angle_min, angle_increment=log.angle_increment,
+        range_min=max(log.range_min, config.min_range), range_max=range_max, stamps=log.stamps[chosen],
+        sensor_offset=log.sensor_offset, poses=PoseSet(samples=result.samples[chosen], weights=weights[chosen])))
+    poses_path = args.poses_output or args.output.with_suffix(".poses.npz")
+    save_pose_distribution(poses_path, PoseDistributionFile(
+        stamps=result.stamps, poses=PoseSet(samples=result.samples, weights=weights)))
+
+    duration = float(log.stamps[-1] - log.stamps[0])
+    stats = {
+        "scans": len(log), "integrated": int(chosen.sum()), "particles": config.particles,
+        "seconds_total": elapsed, "seconds_per_scan": elapsed / len(log),
+        "seconds_per_integrated_scan": float(result.seconds.mean()) if len(result.seconds) else 0.0,
+        "log_duration_s": duration, "real_time_factor": duration / max(elapsed, 1e-9),
+        "final_ess": float(result.ess[-1]) if len(result.ess) else float(config.particles),
+        "mean_ess": float(result.ess.mean()) if len(result.ess) else float(config.particles),
+        "resamplings": int(result.resampled.sum()), "motion_fallbacks": result.fallbacks,
+        "tiles_in_use": result.maps.tiles_in_use, "tiles_copied": result.maps.copies,
+    }
+    if args.stats is not None:
+        args.stats.write_text(json.dumps(stats, indent=1) + "\n")
+    print(f"wrote {args.output} (posed-scan file, {stats['integrated']} integrated scans) and {poses_path} "
+          f"(pose-distribution file, {len(log)} scans): {1e3 * stats['seconds_per_integrated_scan']:.1f} ms per "
+          f"integrated scan, {duration:.0f} s of log in {elapsed:.1f} s ({stats['real_time_factor']:.1f}x real "
+          f"time), final N_eff {stats['final_ess']:.1f} of {config.particles}, {stats['resamplings']} resamplings")
+    return 0

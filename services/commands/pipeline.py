@@ -1,0 +1,465 @@
+"""Subcommands of the distributed pipeline over Zenoh: router, mapper, source, run (docs/keys.md).
+
+Every process connects to the router as a Zenoh client on tcp/127.0.0.1:7447 unless --connect,
+--listen or --zenoh-config say otherwise (services/zenoh_config.py).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from services.commands.mapping import add_sensor_model_arguments
+
+DEFAULT_MAP = "main"
+DEFAULT_ROBOT = "robot0"
+SLAM_ALGORITHMS = ("odometry", "ekf", "fastslam1", "fastslam2", "gridslam")
+#: particles of `run`'s SLAM node unless --particles says otherwise: each becomes a pose sample per scan
+RUN_PARTICLES = 30
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    from services.zenoh_config import add_zenoh_arguments
+
+    router = subparsers.add_parser(
+        "router", help="a Zenoh router in a Python process (for machines without zenohd)",
+        description="Route Zenoh traffic between posegrid processes. Listens on tcp/127.0.0.1:7447 unless "
+        "--listen or --zenoh-config say otherwise; multicast scouting is off. Stops on Ctrl-C or SIGTERM.",
+    )
+    add_zenoh_arguments(router)
+    router.set_defaults(func=run_router)
+
+    mapper = subparsers.add_parser(
+        "mapper", help="one map shard: fuses the scans into the tiles it owns, serves them over Zenoh",
+        description="A mapper shard. Owns the tiles that rendezvous hashing of (tile, shards 0..N-1) gives "
+        "shard I, fuses every robot's scans (pg/*/scan) with their poses (pg/*/pose, joined by seq) into "
+        "those tiles only, publishes tile updates on pg/map/MAP/tile/0/TX/TY at most every "
+        "--publish-interval s per tile, answers tile and stats queries, and declares the liveliness token "
+        "pg/map/MAP/alive/I. Fusion options mean what they mean for `posegrid fuse`.",
+    )
+    mapper.add_argument("--shard", type=int, required=True, help="this shard's index I, 0 <= I < N")
+    mapper.add_argument("--shards", type=int, required=True, help="number of shards N")
+    mapper.add_argument("--map", default=DEFAULT_MAP, help=f"map name (default {DEFAULT_MAP})")
+    add_fusion_arguments(mapper)
+    shard = mapper.add_argument_group("shard")
+    shard.add_argument("--tile-size", type=int, default=256, help="cells per tile side, a power of 2 (default 256)")
+    shard.add_argument("--publish-interval", type=float, default=0.05,
+                       help="shortest time between two updates of one tile, s (default 0.05)")
+    shard.add_argument("--join-buffer", type=int, default=512,
+                       help="scans and poses that may wait for their partner (default 512; overflow is counted)")
+    shard.add_argument("--intake-buffer", type=int, default=4096,
+                       help="messages that may wait for the fusion thread (default 4096; overflow is counted)")
+    add_zenoh_arguments(mapper)
+    mapper.set_defaults(func=run_mapper)
+
+    source = subparsers.add_parser(
+        "source", help="publish a simulated world live, or replay a dataset, over Zenoh",
+        description="Publish one robot's scans (pg/ROBOT/scan), odometry, landmarks and, for a posed-scan "
+        "file, poses (pg/ROBOT/pose), each tagged with the scan's seq, then an end-of-stream mark "
+        "(pg/ROBOT/end). --rate max publishes as fast as the mapper shards and the SLAM node take (never more "
+        "than --window scans or steps ahead of the slowest of those it waits for).",
+    )
+    add_input_arguments(source, default_sim=False)
+    source.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot name (default {DEFAULT_ROBOT})")
+    add_rate_argument(source, "realtime")
+    source.add_argument("--wait-mappers", type=int, default=0, metavar="N",
+                        help="wait for N mapper shards of --map before publishing (default 0: do not wait)")
+    source.add_argument("--map", default=DEFAULT_MAP, help=f"map whose shards to wait for (default {DEFAULT_MAP})")
+    source.add_argument("--wait-slam", action="store_true", help="wait for the robot's SLAM node before publishing")
+    source.add_argument("--window", type=int, default=32,
+                        help="--rate max: scans the source may run ahead of the slowest shard, and steps ahead "
+                        "of the SLAM node with --wait-slam (default 32)")
+    add_zenoh_arguments(source)
+    source.set_defaults(func=run_source)
+
+    node = subparsers.add_parser(
+        "slam-node", help="run a SLAM filter on a robot's streams and publish its pose distribution per scan",
+        description="Follow robot ROBOT's odometry and landmarks (EKF-SLAM, FastSLAM, dead reckoning) or scans "
+        "and odometry (grid FastSLAM), take the steps in seq order (a message for a seq already processed is "
+        "reported as out of order), and publish per scan the pose distribution on pg/ROBOT/pose: mean and "
+        "covariance, or particles and weights. The filter starts at --initial or at the prior the source "
+        "publishes. Stats on pg/ROBOT/slam/stats.",
+    )
+    node.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot name (default {DEFAULT_ROBOT})")
+    add_slam_arguments(node)
+    node.add_argument("--seed", type=int, default=0, help="seed of the particle filter (default 0)")
+    node.add_argument("--initial", default=None, metavar="X,Y,YAW",
+                      help="start pose in m, m, rad (default: the prior the source publishes)")
+    add_zenoh_arguments(node)
+    node.set_defaults(func=run_slam_node)
+
+    run = subparsers.add_parser(
+        "run", help="run the whole pipeline: router, source, SLAM node, mapper shards, HTTP API",
+        description="Start a Zenoh router, N mapper shards, the HTTP API and map viewer, a SLAM node (unless "
+        "the input has poses) and a source, print where to look and show progress. Input: the built-in simulated office (default), "
+        "a posed-scan file (--posed: scans and poses, no SLAM node), a simulator folder, an MRCLAM folder "
+        "or a CARMEN log. When the replay ends the shards keep serving the map until Ctrl-C; with --export "
+        "the map assembled from all shards is written and run exits 0. Ctrl-C stops every child cleanly.",
+    )
+    add_input_arguments(run, default_sim=True)
+    run.add_argument("--shards", type=int, default=1, help="mapper shards (default 1)")
+    run.add_argument("--export", type=Path, default=None, metavar="MAP.npz",
+                     help="write the map when the replay ends, then stop everything and exit")
+    run.add_argument("--map", default=DEFAULT_MAP, help=f"map name (default {DEFAULT_MAP})")
+    run.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot name (default {DEFAULT_ROBOT})")
+    add_rate_argument(run, None)
+    run.add_argument("--router-port", type=int, default=None,
+                     help="port of the router on 127.0.0.1 (default: a free one)")
+    run.add_argument("--api-port", type=int, default=8000, help="port of the HTTP API on 127.0.0.1 (default 8000)")
+    run.add_argument("--no-api", action="store_true", help="do not start the HTTP API")
+    add_fusion_arguments(run)
+    add_slam_arguments(run, particles=RUN_PARTICLES)
+    run.set_defaults(func=run_pipeline)
+
+
+# ------------------------------------------------------------------------------------------ shared options
+
+
+def add_fusion_arguments(parser: argparse.ArgumentParser) -> None:
+    """`posegrid fuse`'s fusion options, for the shards (and `run`, which passes them on)."""
+    group = parser.add_argument_group("fusion (as for posegrid fuse)")
+    group.add_argument("--mode", choices=("mc", "ml"), default="mc", help="mc: all samples (default); ml: most likely")
+    group.add_argument("--samples", type=int, default=None,
+                       help="pose samples per scan for Gaussian poses (default: derived from the covariance)")
+    group.add_argument("--accuracy", type=float, default=None,
+                       help="accuracy in m for the derived sample count (default: one cell)")
+    group.add_argument("--seed", type=int, default=0,
+                       help="seed of every random draw (Gaussian pose sampling; for run also the simulated "
+                       "world and the SLAM filter) (default 0)")
+    add_sensor_model_arguments(parser)
+
+
+def fusion_argv(args: argparse.Namespace) -> list[str]:
+    """The fusion and sensor-model options of ``args`` as command-line arguments for a shard."""
+    argv = ["--mode", args.mode, "--seed", str(args.seed), "--resolution", repr(args.resolution),
+            "--sigma-model", args.sigma_model, "--sigma0", repr(args.sigma0), "--sigma-slope", repr(args.sigma_slope),
+            "--baseline-focal", repr(args.baseline_focal)]
+    for option, value in (("--samples", args.samples), ("--accuracy", args.accuracy),
+                          ("--peak-width", args.peak_width)):
+        if value is not None:
+            argv += [option, repr(value)]
+    return argv
+
+
+def add_input_arguments(parser: argparse.ArgumentParser, default_sim: bool) -> None:
+    group = parser.add_argument_group("input (one of)")
+    inputs = group.add_mutually_exclusive_group(required=not default_sim)
+    inputs.add_argument("--sim", action="store_true",
+                        help="simulate the office world live (slam.simulator)" + (" (default)" if default_sim else ""))
+    inputs.add_argument("--posed", type=Path, metavar="FILE.npz", help="posed-scan file: scans with their poses")
+    inputs.add_argument("--sim-dir", type=Path, metavar="DIR", help="folder written by `posegrid simulate`")
+    inputs.add_argument("--mrclam", type=Path, metavar="DIR", help="UTIAS MRCLAM dataset folder (no laser)")
+    inputs.add_argument("--carmen", type=Path, metavar="FILE", help="CARMEN log (.clf/.log, plain or gzip)")
+    group.add_argument("--mrclam-robot", type=int, default=1, metavar="K", help="MRCLAM robot number (default 1)")
+    group.add_argument("--raw-ranges", action="store_true",
+                       help="MRCLAM: publish the ranges as logged, without the bearing-dependent range calibration")
+    group.add_argument("--steps", type=int, default=400, help="--sim: steps of 0.1 s to simulate (default 400)")
+    if not default_sim:  # `run` has --seed among its fusion options and passes it on
+        group.add_argument("--seed", type=int, default=0, help="--sim: seed of the simulated world (default 0)")
+
+
+def add_rate_argument(parser: argparse.ArgumentParser, default: str | None) -> None:
+    parser.add_argument("--rate", default=default,
+                        help="'realtime', a factor of real time (e.g. 2) or 'max' (as fast as the shards take); "
+                        "default " + (default or "max with --export, else realtime"))
+
+
+def add_slam_arguments(parser: argparse.ArgumentParser, particles: int | None = None) -> None:
+    """The SLAM node's filter options (the same names and meanings as `posegrid slam`)."""
+    group = parser.add_argument_group("SLAM node (as for posegrid slam)")
+    group.add_argument("--algo", choices=SLAM_ALGORITHMS, default=None,
+                       help="odometry, ekf, fastslam1, fastslam2 (landmarks) or gridslam (laser and odometry); "
+                       "default gridslam for a CARMEN log, else fastslam2")
+    group.add_argument("--particles", type=int, default=particles,
+                       help="FastSLAM / grid FastSLAM particles (default %s)"
+                       % (particles or "500 for FastSLAM, 30 for grid FastSLAM"))
+    group.add_argument("--associate", choices=("known", "unknown"), default="known",
+                       help="landmark correspondences: known ids (default) or estimated")
+    group.add_argument("--motion", choices=("velocity", "odometry"), default="velocity",
+                       help="landmark filters: velocity commands (default) or odometry readings as controls")
+    group.add_argument("--models", choices=("sim", "mrclam"), default=None,
+                       help="noise-model defaults: the simulator's or the ones fitted for MRCLAM (default: "
+                       "what the input is)")
+    group.add_argument("--alphas", default=None, metavar="A1,...",
+                       help="motion noise: 6 numbers (velocity model) or 4 (odometry model)")
+    group.add_argument("--sigma-range", type=float, default=None, help="landmark range noise std in m")
+    group.add_argument("--sigma-bearing", type=float, default=None, help="landmark bearing noise std in rad")
+    group.add_argument("--range-fraction", type=float, default=None,
+                       help="landmark range noise std grows by this many m per m of range")
+    group.add_argument("--outlier-gate", type=float, default=None, metavar="D2",
+                       help="known ids: ignore a measurement beyond this squared Mahalanobis distance")
+    group.add_argument("--resample-threshold", type=float, default=0.5,
+                       help="FastSLAM: resample when N_eff < this fraction of the particles (default 0.5)")
+    group.add_argument("--max-range", type=float, default=None,
+                       help="grid FastSLAM: m, beams are used up to here (default 30, at most the laser's)")
+    group.add_argument("--linear-update", type=float, default=None,
+                       help="grid FastSLAM: m of odometry between integrated scans (default 0.25)")
+    group.add_argument("--angular-update", type=float, default=None,
+                       help="grid FastSLAM: rad of odometry turn between integrated scans (default 0.15)")
+    group.add_argument("--grid-resolution", type=float, default=None,
+                       help="grid FastSLAM: m, cell size of the particles' grids (default 0.05)")
+
+
+def slam_argv(args: argparse.Namespace, models: str) -> list[str]:
+    """The SLAM options of ``args`` as arguments for a slam-node child."""
+    argv = ["--algo", args.algo or "fastslam2", "--associate", args.associate, "--motion", args.motion, "--seed", str(args.seed),
+            "--models", args.models or models, "--resample-threshold", repr(args.resample_threshold)]
+    for option, value in (("--particles", args.particles), ("--alphas", args.alphas),
+                          ("--sigma-range", args.sigma_range), ("--sigma-bearing", args.sigma_bearing),
+                          ("--range-fraction", args.range_fraction), ("--outlier-gate", args.outlier_gate),
+                          ("--max-range", args.max_range), ("--linear-update", args.linear_update),
+                          ("--angular-update", args.angular_update), ("--grid-resolution", args.grid_resolution)):
+        if value is not None:
+            argv += [option, value if isinstance(value, str) else repr(value)]
+    return argv
+
+
+def _rate(text: str) -> float | None:
+    from services.cli import UsageError
+    from services.source import parse_rate
+
+    try:
+        return parse_rate(text)
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+
+
+def _check_name(value: str, option: str) -> None:
+    from schemas.messages import RESERVED_ROBOT_NAMES
+    from schemas.wire import is_valid_name
+    from services.cli import UsageError
+
+    if not is_valid_name(value) or (option == "--robot" and value in RESERVED_ROBOT_NAMES):
+        raise UsageError(f"{option} {value!r} is not a valid name (letters, digits, '_', '.', '-', at most 64"
+                         f"{'; not map' if option == '--robot' else ''})")
+
+
+def _check_positive(args: argparse.Namespace, *names: str) -> None:
+    from services.cli import UsageError
+
+    for name in names:
+        value = getattr(args, name)
+        if value is not None and not value > 0:
+            raise UsageError(f"--{name.replace('_', '-')} must be > 0, got {value}")
+
+
+def _stream(args: argparse.Namespace):
+    """The services.streams.Stream the input options describe."""
+    from services import streams
+
+    if args.posed is not None:
+        from schemas.files import load_posed_scans
+
+        return streams.posed_stream(load_posed_scans(args.posed), args.robot)
+    if args.sim_dir is not None:
+        return streams.sim_folder_stream(args.sim_dir, args.robot)
+    if args.mrclam is not None:
+        return streams.mrclam_stream(args.mrclam, args.mrclam_robot, args.robot, raw_ranges=args.raw_ranges)
+    if args.carmen is not None:
+        return streams.carmen_stream(args.carmen, args.robot)
+    from slam.simulator import simulate_office
+
+    return streams.sim_stream(simulate_office(seed=args.seed, steps=args.steps), args.robot)
+
+
+# ------------------------------------------------------------------------------------------ handlers
+
+
+def run_router(args: argparse.Namespace) -> int:
+    from services.process import install_stop_event
+    from services.router import run_router as route
+    from services.zenoh_config import config_from_args
+
+    config = config_from_args(args, "router")
+    return route(config, install_stop_event())
+
+
+def run_mapper(args: argparse.Namespace) -> int:
+    from services.cli import UsageError
+
+    if args.shards < 1 or not 0 <= args.shard < args.shards:
+        raise UsageError(f"need --shards >= 1 and 0 <= --shard < --shards, got shard {args.shard} of {args.shards}")
+    if args.tile_size < 1 or args.tile_size & (args.tile_size - 1):
+        raise UsageError(f"--tile-size must be a power of 2, got {args.tile_size}")
+    if args.publish_interval < 0:
+        raise UsageError(f"--publish-interval must be >= 0 s, got {args.publish_interval}")
+    if args.join_buffer < 1 or args.intake_buffer < 1:
+        raise UsageError("--join-buffer and --intake-buffer must be >= 1")
+    if args.samples is not None and args.samples < 1:
+        raise UsageError(f"--samples must be >= 1, got {args.samples}")
+    _check_positive(args, "accuracy")
+    _check_name(args.map, "--map")
+    from services.commands.mapping import sensor_model_from_args
+    from services.mapper import run_mapper as serve
+    from services.process import install_stop_event
+    from services.shard import ShardConfig
+    from services.zenoh_config import config_from_args
+
+    config = ShardConfig(map_name=args.map, shard=args.shard, shards=args.shards, model=sensor_model_from_args(args),
+                         mode=args.mode, n_samples=args.samples, seed=args.seed, accuracy=args.accuracy,
+                         tile_size=args.tile_size, publish_interval=args.publish_interval,
+                         join_capacity=args.join_buffer)
+    zenoh_config = config_from_args(args, "client")
+    return serve(config, zenoh_config, install_stop_event(), args.intake_buffer)
+
+
+def run_source(args: argparse.Namespace) -> int:
+    from services.cli import UsageError
+
+    _check_name(args.robot, "--robot")
+    _check_name(args.map, "--map")
+    if args.wait_mappers < 0 or args.window < 1:
+        raise UsageError("--wait-mappers must be >= 0 and --window >= 1")
+    if args.steps < 1:
+        raise UsageError(f"--steps must be >= 1, got {args.steps}")
+    rate = _rate(args.rate)
+    from services.process import install_stop_event
+    from services.source import Source, SourceOptions, SourceStalled
+    from services.zenoh_config import config_from_args, open_session
+
+    stop = install_stop_event()
+    zenoh_config = config_from_args(args, "client")
+    stream = _stream(args)
+    options = SourceOptions(rate=rate, wait_mappers=args.wait_mappers, map_name=args.map, wait_slam=args.wait_slam,
+                            window=args.window)
+    session = open_session(zenoh_config, "the source")
+    try:
+        return Source(session, stream, options).run(stop)
+    except SourceStalled as exc:
+        print(f"posegrid source: error: {exc}", file=sys.stderr, flush=True)
+        return 1
+    finally:
+        session.close()
+
+
+def run_pipeline(args: argparse.Namespace) -> int:
+    from services.cli import UsageError
+
+    _check_name(args.robot, "--robot")
+    _check_name(args.map, "--map")
+    if args.shards < 1:
+        raise UsageError(f"--shards must be >= 1, got {args.shards}")
+    if args.router_port is not None and not 0 < args.router_port < 65536:
+        raise UsageError(f"--router-port must be a TCP port, got {args.router_port}")
+    if args.samples is not None and args.samples < 1:
+        raise UsageError(f"--samples must be >= 1, got {args.samples}")
+    _check_positive(args, "accuracy", "resolution")
+    rate_text = args.rate or ("max" if args.export is not None else "realtime")
+    _rate(rate_text)
+    if args.export is not None and not args.export.parent.is_dir():
+        raise UsageError(f"--export {args.export}: folder {args.export.parent} does not exist")
+    if not args.no_api:
+        from services.commands.api import check_port_free
+
+        if not 0 < args.api_port < 65536:
+            raise UsageError(f"--api-port must be a TCP port (1..65535), got {args.api_port}")
+        check_port_free("127.0.0.1", args.api_port)
+    from services.launcher import Plan
+    from services.launcher import run_pipeline as launch
+    from services.process import install_stop_event
+
+    plan = Plan(map_name=args.map, robot=args.robot, shards=args.shards, resolution=args.resolution,
+                mapper_argv=fusion_argv(args), source_argv=["--rate", rate_text], export=args.export,
+                router_port=args.router_port, api_port=None if args.no_api else args.api_port)
+    if args.posed is not None:
+        from schemas.files import load_posed_scans
+
+        plan.scans = len(load_posed_scans(args.posed).stamps)  # validates the file before anything starts
+        plan.source_argv += ["--posed", str(args.posed)]
+        plan.description = f"replaying {args.posed} (scans and poses) into {args.shards} shard(s)"
+    elif args.mrclam is not None:
+        raise UsageError("an MRCLAM folder holds no laser scans, so there is no map to build; publish its poses "
+                         "with `posegrid source --mrclam` and `posegrid slam-node` instead")
+    elif args.carmen is not None:
+        if args.algo not in (None, "gridslam"):
+            raise UsageError("a CARMEN log has no landmarks: its SLAM node must be --algo gridslam")
+        args.algo = "gridslam"
+        plan.source_argv += ["--carmen", str(args.carmen)]
+        plan.slam_argv = slam_argv(args, "sim")
+        plan.description = f"replaying {args.carmen} through grid FastSLAM into {args.shards} shard(s)"
+    elif args.sim_dir is not None:
+        from schemas.files import load_posed_scans
+        from slam.simlog import load_sim_log
+
+        scans_path = args.sim_dir / "scans.npz"
+        if not scans_path.is_file():
+            raise UsageError(f"{args.sim_dir} has no scans.npz: there is no laser to map with")
+        log = load_sim_log(args.sim_dir)
+        plan.scans = len(load_posed_scans(scans_path).stamps)
+        _use_sim_models(args, log.velocity_model if args.motion == "velocity" else log.odometry_model, log.sensor)
+        plan.source_argv += ["--sim-dir", str(args.sim_dir)]
+        plan.slam_argv = slam_argv(args, "sim")
+        plan.description = (f"replaying {args.sim_dir} through {args.algo or 'fastslam2'} into {args.shards} "
+                            "shard(s)")
+    else:
+        if args.steps < 1:
+            raise UsageError(f"--steps must be >= 1, got {args.steps}")
+        plan.scans = args.steps
+        plan.source_argv += ["--sim", "--seed", str(args.seed), "--steps", str(args.steps)]
+        plan.slam_argv = slam_argv(args, "sim")
+        plan.description = (f"simulating the office world (seed {args.seed}, {args.steps} steps of 0.1 s) through "
+                            f"{args.algo or 'fastslam2'} into {args.shards} shard(s)")
+    return launch(plan, install_stop_event())
+
+
+def _use_sim_models(args: argparse.Namespace, motion, sensor) -> None:
+    """Fill the noise options the user left unset with the simulator folder's own models."""
+    if args.alphas is None:
+        args.alphas = ",".join(repr(float(a)) for a in motion.alphas)
+    if args.sigma_range is None:
+        args.sigma_range = float(sensor.sigma_range)
+    if args.sigma_bearing is None:
+        args.sigma_bearing = float(sensor.sigma_bearing)
+    if args.range_fraction is None:
+        args.range_fraction = float(sensor.range_fraction)
+
+
+def _slam_models(args: argparse.Namespace):
+    """(motion model, landmark sensor model, outlier gate) of --models and the noise overrides."""
+    import inspect
+
+    from services.commands.slam import _noise_overrides
+    from slam import mrclam
+    from slam.motion import OdometryMotionModel, VelocityMotionModel
+    from slam.simulator import simulate_office
+
+    if (args.models or "sim") == "mrclam":
+        motion, sensor, gate = (VelocityMotionModel(mrclam.MRCLAM_VELOCITY_ALPHAS), mrclam.MRCLAM_SENSOR,
+                                mrclam.MRCLAM_OUTLIER_GATE)
+    else:
+        defaults = inspect.signature(simulate_office).parameters
+        motion = defaults["velocity_model" if args.motion == "velocity" else "odometry_model"].default
+        sensor, gate = defaults["sensor"].default, None
+    if args.motion == "odometry" and not isinstance(motion, OdometryMotionModel):
+        motion = OdometryMotionModel()
+    return _noise_overrides(args, motion, sensor, gate)
+
+
+def run_slam_node(args: argparse.Namespace) -> int:
+    from services.cli import UsageError
+
+    _check_name(args.robot, "--robot")
+    if args.particles is not None and args.particles < 1:
+        raise UsageError(f"--particles must be >= 1, got {args.particles}")
+    if not 0 <= args.resample_threshold <= 1:
+        raise UsageError(f"--resample-threshold must be in [0, 1], got {args.resample_threshold}")
+    from services.commands.gridslam import _config as gridslam_config
+    from services.commands.slam import _floats, _make_filter
+
+    algo = args.algo or "fastslam2"
+    args.algo = algo
+    motion, sensor, gate = _slam_models(args)
+    initial = _floats(args.initial, (3,), "--initial") if args.initial is not None else None
+    grid_config = gridslam_config(args) if algo == "gridslam" else None
+    import numpy as np
+
+    from services.process import install_stop_event
+    from services.slam_node import NodeConfig
+    from services.slam_node import run_slam_node as serve
+    from services.zenoh_config import config_from_args
+
+    config = NodeConfig(robot=args.robot, algorithm=algo,
+                        make_filter=lambda start: _make_filter(args, motion, sensor, gate, start),
+                        motion=args.motion, initial=None if initial is None else np.array(initial),
+                        grid_config=grid_config, seed=args.seed)
+    return serve(config, config_from_args(args, "client"), install_stop_event())

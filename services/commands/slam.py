@@ -1,0 +1,330 @@
+"""Subcommands on the SLAM side: simulate, slam, eval-traj (docs/slam.md).
+
+Units everywhere: metres, radians, seconds; poses are (x, y, yaw) in the map frame.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+ALGORITHMS = ("odometry", "ekf", "fastslam1", "fastslam2", "gridslam")
+#: FastSLAM particles when --particles is not given
+DEFAULT_PARTICLES = 500
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    simulate = subparsers.add_parser(
+        "simulate", help="simulate a robot in an office: odometry, landmarks, laser scans, ground truth",
+        description="Simulate a robot driving through a 20 m x 12 m office (corridor, six rooms with doors, "
+        "furniture, 38 point landmarks) and write OUTDIR/scans.npz (posed scans at the TRUE poses), "
+        "truth.npz (truth raster), groundtruth.npz (true poses as a pose-distribution file), controls.npz "
+        "(velocity commands and odometry readings) and landmarks.npz (range-bearing measurements); "
+        "docs/slam.md describes the last two. The same --seed gives the same files.",
+    )
+    simulate.add_argument("outdir", type=Path, help="folder to write (created if missing)")
+    simulate.add_argument("--seed", type=int, default=0, help="seed of every noise source (default 0)")
+    simulate.add_argument("--steps", type=int, default=400, help="number of steps (default 400)")
+    simulate.add_argument("--dt", type=float, default=0.1, help="step length in s (default 0.1)")
+    simulate.add_argument("--beams", type=int, default=361, help="laser beams per scan (default 361)")
+    simulate.add_argument("--fov", type=float, default=math.pi, help="laser field of view in rad (default pi)")
+    simulate.add_argument("--range-max", type=float, default=12.0, help="laser maximum range in m (default 12)")
+    simulate.add_argument("--laser-sigma", type=float, default=0.01, help="laser range noise std in m (default 0.01)")
+    simulate.add_argument("--resolution", type=float, default=0.05, help="truth raster cell size in m (default 0.05)")
+    simulate.set_defaults(func=run_simulate)
+
+    slam = subparsers.add_parser(
+        "slam", help="estimate the pose distribution with EKF-SLAM or FastSLAM 1.0/2.0",
+        description="Run a SLAM filter over INPUT, a simulator folder (from 'posegrid simulate') or a UTIAS "
+        "MRCLAM dataset folder (with --robot). Output: with a simulator folder that holds scans.npz, a "
+        "posed-scan file (its scans with the filter's pose distribution at every scan); otherwise a "
+        "pose-distribution file. EKF and odometry give mean+cov per step; FastSLAM gives particles and "
+        "their weights before resampling. The filter starts at the true first pose (simulator; MRCLAM "
+        "ground truth) or at --initial. Landmark positions are estimated, never read from the input's truth.",
+    )
+    slam.add_argument("input", type=Path, help="simulator folder or MRCLAM folder (gridslam: a CARMEN log or ROS bag)")
+    slam.add_argument("-o", "--output", type=Path, required=True, help=".npz to write")
+    slam.add_argument("--algo", choices=ALGORITHMS, required=True,
+                      help="odometry: dead reckoning (baseline); ekf: EKF-SLAM; fastslam1 / fastslam2: FastSLAM; "
+                      "gridslam: grid FastSLAM on a laser log")
+    slam.add_argument("--particles", type=int, default=None,
+                      help="FastSLAM particles (default %d)" % DEFAULT_PARTICLES)
+    slam.add_argument("--seed", type=int, default=0, help="seed of the particle filter (default 0)")
+    slam.add_argument("--associate", choices=("known", "unknown"), default="known",
+                      help="landmark correspondences: known ids (default) or estimated (EKF: nearest in "
+                      "Mahalanobis distance with gating; FastSLAM: per-particle maximum likelihood)")
+    slam.add_argument("--robot", type=int, default=None, help="MRCLAM: robot number K (RobotK_*.dat)")
+    slam.add_argument("--initial", type=str, default=None, metavar="X,Y,YAW",
+                      help="MRCLAM: start pose in m, m, rad (default: the first ground-truth pose)")
+    slam.add_argument("--period", type=float, default=0.2,
+                      help="MRCLAM: output a pose at least every PERIOD s besides every landmark-measurement "
+                      "stamp (default 0.2)")
+    slam.add_argument("--raw-ranges", action="store_true",
+                      help="MRCLAM: use the ranges as logged, without the bearing-dependent range calibration")
+    slam.add_argument("--motion", choices=("velocity", "odometry"), default="velocity",
+                      help="simulator: the velocity commands (default) or the odometry readings as controls")
+    noise = slam.add_argument_group("noise models (defaults: the simulator's own; for MRCLAM the values "
+                                    "fitted in docs/slam.md)")
+    noise.add_argument("--alphas", type=str, default=None, metavar="A1,...",
+                       help="motion noise: 6 numbers for the velocity model (PR table 5.3, variances per "
+                       "0.1 s), 4 for the odometry model (PR table 5.6)")
+    noise.add_argument("--sigma-range", type=float, default=None, help="landmark range noise std in m")
+    noise.add_argument("--sigma-bearing", type=float, default=None, help="landmark bearing noise std in rad")
+    noise.add_argument("--range-fraction", type=float, default=None,
+                       help="landmark range noise std grows by this many m per m of range (on top of --sigma-range)")
+    noise.add_argument("--outlier-gate", type=float, default=None, metavar="D2",
+                       help="known ids: ignore a measurement whose squared Mahalanobis distance exceeds D2 "
+                       "(FastSLAM: per particle, likelihood capped at D2); 'inf' turns it off")
+    noise.add_argument("--resample-threshold", type=float, default=0.5,
+                       help="FastSLAM: resample when N_eff < this fraction of the particles (default 0.5)")
+    slam.set_defaults(func=run_slam)
+    from services.commands.gridslam import add_gridslam_arguments  # grid FastSLAM (--algo gridslam)
+
+    add_gridslam_arguments(slam)
+
+    evaluate = subparsers.add_parser(
+        "eval-traj", help="score a SLAM trajectory against ground truth (ATE, NEES, 95%% coverage)",
+        description="Score the pose distributions in POSES (a pose-distribution or posed-scan .npz) against "
+        "GROUNDTRUTH: a pose-distribution .npz (its mean or weighted mean), a simulator folder (its "
+        "groundtruth.npz) or an MRCLAM RobotK_Groundtruth.dat; ground truth is interpolated to the estimate's "
+        "stamps. No alignment: the filters start at the true first pose in the map frame. Prints one JSON "
+        "line: ate_rmse_m (RMS position error, m), heading_mae_rad (mean absolute yaw error, rad), nees_mean "
+        "(mean normalised estimation error squared, 3 DOF; about 3 when honest), inside95 (fraction of steps "
+        "whose true pose is inside the estimate's 95%% region, particles via a fitted Gaussian; about 0.95 "
+        "when honest) and steps.",
+    )
+    evaluate.add_argument("poses", type=Path, help="pose-distribution or posed-scan .npz")
+    evaluate.add_argument("groundtruth", type=Path, help="pose .npz, simulator folder or RobotK_Groundtruth.dat")
+    evaluate.set_defaults(func=run_eval_traj)
+
+
+# ------------------------------------------------------------------------------------------------ simulate
+
+
+def run_simulate(args: argparse.Namespace) -> int:
+    from services.cli import UsageError
+
+    if args.steps < 1 or args.beams < 1:
+        raise UsageError("--steps and --beams must be >= 1")
+    if args.dt <= 0 or args.resolution <= 0 or args.laser_sigma < 0:
+        raise UsageError("--dt and --resolution must be > 0 and --laser-sigma >= 0")
+    if not 0 < args.fov <= 2 * math.pi or args.range_max <= 0.05:
+        raise UsageError("--fov must be in (0, 2 pi] rad and --range-max > 0.05 m")
+    import numpy as np
+
+    from schemas.files import PoseDistributionFile, PosedScans, PoseSet, TruthRaster
+    from schemas.files import save_pose_distribution, save_posed_scans, save_truth
+    from slam.simlog import save_sim_log
+    from slam.simulator import simulate_office
+
+    run = simulate_office(seed=args.seed, steps=args.steps, n_beams=args.beams, range_max=args.range_max,
+                          fov=args.fov, laser_sigma=args.laser_sigma, dt=args.dt, truth_resolution=args.resolution)
+    args.outdir.mkdir(parents=True, exist_ok=True)
+    truth_poses = PoseSet(samples=run.true_poses[:, None, :], weights=np.ones((len(run.stamps), 1)))
+    save_posed_scans(args.outdir / "scans.npz", PosedScans(
+        ranges=run.ranges, angle_min=run.angle_min, angle_increment=run.angle_increment, range_min=run.range_min,
+        range_max=run.range_max, stamps=run.stamps, sensor_offset=run.sensor_offset, poses=truth_poses))
+    save_truth(args.outdir / "truth.npz", TruthRaster(run.truth_occupied, run.truth_visible, run.truth_origin,
+                                                      run.truth_resolution))
+    save_pose_distribution(args.outdir / "groundtruth.npz", PoseDistributionFile(stamps=run.stamps, poses=truth_poses))
+    save_sim_log(args.outdir, run.log())
+    print(f"wrote {args.outdir}: {len(run.stamps)} steps of {args.dt} s, {run.ranges.shape[1]} beams, "
+          f"{len(run.landmarks)} landmarks, {len(run.landmark_step)} landmark measurements, "
+          f"truth raster {run.truth_occupied.shape[1]} x {run.truth_occupied.shape[0]} cells")
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------ slam
+
+
+def _floats(text: str, count: tuple[int, ...], option: str) -> list[float]:
+    from services.cli import UsageError
+
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise UsageError(f"{option} takes comma-separated numbers, got '{text}'") from None
+    if len(values) not in count or not all(math.isfinite(v) for v in values):
+        raise UsageError(f"{option} takes {' or '.join(map(str, count))} finite numbers, got '{text}'")
+    return values
+
+
+def _load_input(args: argparse.Namespace):
+    """(sequence, motion model, sensor model, default outlier gate, posed-scans path or None, notes)."""
+    from services.cli import UsageError
+    from slam import mrclam
+    from slam.motion import OdometryMotionModel, VelocityMotionModel
+    from slam.simlog import CONTROLS_FILE, load_sim_log
+
+    if (args.input / CONTROLS_FILE).is_file():
+        if args.robot is not None or args.initial is not None:
+            raise UsageError("--robot and --initial are for MRCLAM folders; a simulator folder starts at its true pose")
+        log = load_sim_log(args.input)
+        sequence = log.sequence(args.motion)
+        motion = log.velocity_model if args.motion == "velocity" else log.odometry_model
+        scans = args.input / "scans.npz"
+        return sequence, motion, log.sensor, None, scans if scans.is_file() else None, ""
+    if mrclam.is_mrclam_folder(args.input):
+        robots = mrclam.find_robots(args.input)
+        if args.robot is None:
+            raise UsageError(f"{args.input} is an MRCLAM folder: pick a robot with --robot K (here: {robots})")
+        if args.motion != "velocity":
+            raise UsageError("MRCLAM logs hold velocity commands only: drop --motion odometry")
+        if args.period <= 0:
+            raise UsageError(f"--period must be > 0 s, got {args.period}")
+        initial = _floats(args.initial, (3,), "--initial") if args.initial is not None else None
+        run = mrclam.read_mrclam(args.input, args.robot)
+        sequence = mrclam.mrclam_sequence(run, initial_pose=initial, period=args.period,
+                                          range_calibration=None if args.raw_ranges else mrclam.MRCLAM_RANGE_CALIBRATION)
+        notes = (f"skipped {run.skipped_robots} measurements of robots and {run.skipped_unknown} of barcodes "
+                 f"in no table")
+        return (sequence, VelocityMotionModel(mrclam.MRCLAM_VELOCITY_ALPHAS), mrclam.MRCLAM_SENSOR,
+                mrclam.MRCLAM_OUTLIER_GATE, None, notes)
+    if not args.input.exists():
+        raise UsageError(f"{args.input}: no such folder")
+    raise UsageError(f"{args.input}: neither a simulator folder (no {CONTROLS_FILE}) nor an MRCLAM folder "
+                     "(no Barcodes.dat and RobotK_Odometry.dat)")
+
+
+def _noise_overrides(args: argparse.Namespace, motion, sensor, gate):
+    from dataclasses import replace
+
+    from services.cli import UsageError
+    from slam.motion import VelocityMotionModel
+
+    if args.alphas is not None:
+        count = 6 if isinstance(motion, VelocityMotionModel) else 4
+        alphas = _floats(args.alphas, (count,), "--alphas")
+        if min(alphas) < 0:
+            raise UsageError("--alphas must be >= 0")
+        motion = replace(motion, alphas=tuple(alphas))
+    for name in ("sigma_range", "sigma_bearing"):
+        value = getattr(args, name)
+        if value is not None:
+            if not value > 0:
+                raise UsageError(f"--{name.replace('_', '-')} must be > 0, got {value}")
+            sensor = replace(sensor, **{name: value})
+    if args.range_fraction is not None:
+        if not args.range_fraction >= 0:
+            raise UsageError(f"--range-fraction must be >= 0, got {args.range_fraction}")
+        sensor = replace(sensor, range_fraction=args.range_fraction)
+    if args.outlier_gate is not None:
+        if not args.outlier_gate > 0:
+            raise UsageError(f"--outlier-gate must be > 0 (or inf), got {args.outlier_gate}")
+        gate = None if math.isinf(args.outlier_gate) else args.outlier_gate
+    return motion, sensor, gate
+
+
+def _make_filter(args: argparse.Namespace, motion, sensor, gate, initial):
+    from services.cli import UsageError
+    from slam.dead_reckoning import DeadReckoning
+    from slam.ekf import EKFSLAM
+    from slam.fastslam import FastSLAM
+
+    known = args.associate == "known"
+    if args.algo == "odometry":
+        return DeadReckoning(motion, initial)
+    if args.algo == "ekf":
+        return EKFSLAM(motion, sensor, initial, known_correspondences=known, outlier_gate=gate)
+    particles = DEFAULT_PARTICLES if args.particles is None else args.particles
+    if particles < 1:
+        raise UsageError(f"--particles must be >= 1, got {particles}")
+    if not 0 <= args.resample_threshold <= 1:
+        raise UsageError(f"--resample-threshold must be in [0, 1], got {args.resample_threshold}")
+    return FastSLAM(motion, sensor, initial, n_particles=particles, version=1 if args.algo == "fastslam1" else 2,
+                    known_correspondences=known, seed=args.seed, resample_threshold=args.resample_threshold,
+                    outlier_gate=gate)
+
+
+def run_slam(args: argparse.Namespace) -> int:
+    if args.algo == "gridslam":  # laser logs: services/commands/gridslam.py
+        from services.commands.gridslam import run_gridslam_command
+
+        return run_gridslam_command(args)
+    from tqdm import tqdm
+
+    from schemas.errors import FormatError
+    from schemas.files import PoseDistributionFile, PosedScans, PoseSet
+    from schemas.files import load_posed_scans, save_pose_distribution, save_posed_scans
+    from slam.sequence import run_filter
+
+    sequence, motion, sensor, gate, scans_path, notes = _load_input(args)
+    motion, sensor, gate = _noise_overrides(args, motion, sensor, gate)
+    sequence.validate(str(args.input))
+    scans = load_posed_scans(scans_path) if scans_path is not None else None
+    if scans is not None and len(scans.stamps) != len(sequence):
+        raise FormatError(f"{scans_path}: holds {len(scans.stamps)} scans but the controls have {len(sequence)} steps")
+    slam_filter = _make_filter(args, motion, sensor, gate, sequence.initial_pose)
+
+    started = time.perf_counter()
+    with tqdm(total=len(sequence), desc=f"slam {args.algo}", unit="step", disable=None, file=sys.stderr) as bar:
+        track = run_filter(slam_filter, sequence, progress=bar.update)
+    elapsed = time.perf_counter() - started
+
+    if track.is_gaussian:
+        poses = PoseSet(mean=track.mean, cov=track.cov)
+    else:
+        poses = PoseSet(samples=track.samples, weights=track.weights)
+    if scans is not None:
+        save_posed_scans(args.output, PosedScans(
+            ranges=scans.ranges, angle_min=scans.angle_min, angle_increment=scans.angle_increment,
+            range_min=scans.range_min, range_max=scans.range_max, stamps=scans.stamps,
+            sensor_offset=scans.sensor_offset, poses=poses))
+        kind = "posed-scan file"
+    else:
+        save_pose_distribution(args.output, PoseDistributionFile(stamps=track.stamps, poses=poses))
+        kind = "pose-distribution file"
+    duration = float(track.stamps[-1] - track.stamps[0])
+    rejected = getattr(slam_filter, "rejected", None)
+    extras = [notes] if notes else []
+    if rejected is not None:
+        extras.append(f"{rejected} measurements dropped by the gates")
+    if hasattr(slam_filter, "resamplings"):
+        extras.append(f"{slam_filter.resamplings} resamplings")
+    print(f"wrote {args.output} ({kind}): {len(sequence)} steps over {duration:.1f} s of data in {elapsed:.2f} s, "
+          f"{1e3 * elapsed / len(sequence):.2f} ms per step, {duration / max(elapsed, 1e-9):.0f}x real time"
+          + "".join(f"; {e}" for e in extras))
+    return 0
+
+
+# ------------------------------------------------------------------------------------------------ eval-traj
+
+
+def _truth_at(path: Path, stamps):
+    """Ground-truth poses (T, 3) at ``stamps`` from a pose .npz, a simulator folder or a RobotK_Groundtruth.dat."""
+    from schemas.files import load_pose_distribution
+    from slam.mrclam import read_groundtruth
+    from slam.scoring import fit_gaussian, interpolate_poses
+
+    if path.is_dir():
+        path = path / "groundtruth.npz"
+    if path.suffix == ".npz":
+        dist = load_pose_distribution(path)
+        poses = dist.poses
+        mean = poses.mean if poses.is_gaussian else fit_gaussian(poses.samples, poses.weights)[0]
+        truth_stamps = dist.stamps
+    else:
+        table = read_groundtruth(path)
+        truth_stamps, mean = table[:, 0], table[:, 1:4]
+    if len(truth_stamps) == 1:
+        return mean[[0] * len(stamps)]
+    order = truth_stamps.argsort(kind="stable")
+    return interpolate_poses(stamps, truth_stamps[order], mean[order])
+
+
+def run_eval_traj(args: argparse.Namespace) -> int:
+    from schemas.files import load_pose_distribution
+    from slam.scoring import fit_gaussian, score_trajectory
+
+    dist = load_pose_distribution(args.poses)
+    poses = dist.poses
+    mean, cov = (poses.mean, poses.cov) if poses.is_gaussian else fit_gaussian(poses.samples, poses.weights)
+    truth = _truth_at(args.groundtruth, dist.stamps)
+    score = score_trajectory(mean, cov, truth)
+    print(json.dumps({"ate_rmse_m": round(score.ate_rmse_m, 6), "heading_mae_rad": round(score.heading_mae_rad, 6),
+                      "nees_mean": round(score.nees_mean, 4), "inside95": round(score.inside95, 4),
+                      "steps": score.steps}))
+    return 0

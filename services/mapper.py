@@ -1,0 +1,113 @@
+"""`posegrid mapper --shard I --shards N`: one map shard as a Zenoh process.
+
+Subscribes to every robot's scans, poses and end-of-stream marks (pg/*/scan, pg/*/pose, pg/*/end), fuses
+the cells of the tiles it owns (services.shard), publishes tile updates at a bounded rate on
+pg/map/<map>/tile/0/<tx>/<ty>, answers tile queries (pg/map/<map>/tile/**, whole tiles) and stats queries
+(pg/map/<map>/stats/<I>), and holds the liveliness token pg/map/<map>/alive/<I> while it is up.
+
+Threads: Zenoh callbacks only copy payloads into a bounded intake queue (a full queue drops the message
+and counts it, never silently) or answer queries; one main thread decodes, fuses and publishes. A lock
+serialises the main thread and the query callbacks around the shard's state.
+"""
+from __future__ import annotations
+
+import queue
+import threading
+import time
+
+import zenoh
+
+from services import keys
+from services.process import RejectCounter, get_logger
+from services.shard import MapShard, ShardConfig
+from services.zenoh_config import open_session
+
+#: messages that may wait in the intake queue between the network and the fusion thread
+DEFAULT_INTAKE_CAPACITY = 4096
+
+
+class Mapper:
+    """A running shard: Zenoh declarations around a :class:`MapShard`. Use :meth:`run`."""
+
+    def __init__(self, config: ShardConfig, session: zenoh.Session, intake_capacity: int = DEFAULT_INTAKE_CAPACITY):
+        self.config = config
+        self.session = session
+        self.log = get_logger(f"mapper[{config.shard}]")
+        self.rejects = RejectCounter(self.log)
+        self.shard = MapShard(config, self.rejects)
+        self.lock = threading.Lock()
+        self.intake: queue.Queue[tuple[str, bytes]] = queue.Queue(intake_capacity)
+        self.intake_overflow = 0
+        self._overflow_lock = threading.Lock()
+        self._declared = []
+
+    # ---------------------------------------------------------------------------- zenoh callbacks
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        try:
+            self.intake.put_nowait((key, sample.payload.to_bytes()))
+        except queue.Full:
+            with self._overflow_lock:
+                self.intake_overflow += 1
+            self.rejects.count(key, "overflow", f"the intake queue ({self.intake.maxsize}) was full")
+
+    def _on_tile_query(self, query: zenoh.Query) -> None:
+        wanted = query.key_expr
+        with self.lock:
+            messages = [self.shard.tile_message(tile) for tile in self.shard.tiles()
+                        if wanted.intersects(keys.tile_key(self.config.map_name, 0, *tile))]
+        for message in messages:
+            query.reply(keys.tile_key(self.config.map_name, 0, message.tx, message.ty), message.encode())
+
+    def _on_stats_query(self, query: zenoh.Query) -> None:
+        with self.lock:
+            stats = self.shard.stats({"intake": self.intake_overflow})
+        query.reply(keys.stats_key(self.config.map_name, self.config.shard), stats.encode())
+
+    # ---------------------------------------------------------------------------- lifecycle
+    def declare(self) -> None:
+        """Subscribers and queryables first, the liveliness token last: once a source sees the token,
+        this shard already receives what it publishes."""
+        session, name = self.session, self.config.map_name
+        for stream in (keys.SCAN, keys.POSE, keys.END):
+            self._declared.append(session.declare_subscriber(keys.robot_key("*", stream), self._on_sample))
+        self._declared.append(session.declare_queryable(keys.tiles_key(name), self._on_tile_query))
+        self._declared.append(session.declare_queryable(keys.stats_key(name, self.config.shard), self._on_stats_query))
+        self._declared.append(session.liveliness().declare_token(keys.shard_alive_key(name, self.config.shard)))
+
+    def run(self, stop: threading.Event) -> int:
+        """Fuse and publish until ``stop`` is set; returns the exit code (0)."""
+        self.declare()
+        cfg = self.config
+        self.log.info("shard %d of %d of map %r up; tiles on %s", cfg.shard, cfg.shards, cfg.map_name,
+                      keys.tile_key(cfg.map_name, 0, "*", "*"))
+        next_due = None
+        while not stop.is_set():
+            timeout = 0.2 if next_due is None else min(0.2, max(0.0, next_due - time.monotonic()))
+            try:
+                key, payload = self.intake.get(timeout=timeout)
+            except queue.Empty:
+                pass
+            else:
+                with self.lock:
+                    self.shard.handle(key, payload)
+            with self.lock:
+                flush = self.shard.caught_up() and self.intake.empty()
+                updates, next_due = self.shard.due_updates(time.monotonic(), flush=flush)
+            for update in updates:
+                self.session.put(keys.tile_key(cfg.map_name, 0, update.tx, update.ty), update.encode(),
+                                 congestion_control=zenoh.CongestionControl.BLOCK)
+        for entity in reversed(self._declared):
+            entity.undeclare()
+        self.log.info("stopped after fusing %d scans", sum(self.shard.fused.values()))
+        return 0
+
+
+def run_mapper(config: ShardConfig, zenoh_config: zenoh.Config, stop: threading.Event,
+               intake_capacity: int = DEFAULT_INTAKE_CAPACITY) -> int:
+    """Open a session and run one shard until ``stop`` is set."""
+    session = open_session(zenoh_config, f"mapper shard {config.shard}")
+    try:
+        return Mapper(config, session, intake_capacity).run(stop)
+    finally:
+        session.close()

@@ -1,0 +1,79 @@
+"""What every long-running posegrid process shares: a stop flag set by SIGINT/SIGTERM (or by the death of
+the launcher that started it), stderr logging, and counting of rejected messages with one log line per kind.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import sys
+import threading
+from collections import Counter
+
+#: set by the launcher in its children: the child stops when this process is no longer its parent
+PARENT_PID_ENV = "POSEGRID_PARENT_PID"
+
+
+def install_stop_event() -> threading.Event:
+    """An event set on SIGINT or SIGTERM, or when the launcher named in $POSEGRID_PARENT_PID goes away.
+
+    Installs handlers explicitly, so a child started with SIGINT ignored (a background job) still stops.
+    Call from the main thread.
+    """
+    stop = threading.Event()
+
+    def handler(signum, frame):
+        stop.set()
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+    parent = os.environ.get(PARENT_PID_ENV)
+    if parent and parent.isdigit():
+        threading.Thread(target=_watch_parent, args=(int(parent), stop), daemon=True, name="parent-watch").start()
+    return stop
+
+
+def _watch_parent(parent_pid: int, stop: threading.Event) -> None:
+    while not stop.wait(0.5):
+        if os.getppid() != parent_pid:
+            logging.getLogger("posegrid").warning("the launcher (pid %d) is gone; stopping", parent_pid)
+            stop.set()
+
+
+def get_logger(name: str) -> logging.Logger:
+    """A logger writing one line per record to stderr, prefixed with ``name`` (e.g. "mapper[0]")."""
+    logger = logging.getLogger(f"posegrid.{name}")
+    if not logger.handlers:
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter(f"posegrid {name}: %(message)s"))
+        logger.addHandler(handler)
+        logger.setLevel(logging.INFO)
+        logger.propagate = False
+    return logger
+
+
+class RejectCounter:
+    """Counts dropped messages by key and logs the first one of each (key pattern, kind).
+
+    Thread-safe: zenoh callbacks and the main loop may both count.
+    """
+
+    def __init__(self, logger: logging.Logger):
+        self._logger = logger
+        self._lock = threading.Lock()
+        self._logged: set[tuple[str, str]] = set()
+        self.by_key: Counter[str] = Counter()
+
+    def count(self, key: str, kind: str, detail: str) -> None:
+        """Count one message on ``key`` dropped for ``kind``; log ``detail`` the first time per (key, kind)."""
+        with self._lock:
+            self.by_key[key] += 1
+            first = (key, kind) not in self._logged
+            self._logged.add((key, kind))
+        if first:
+            self._logger.warning("dropped a message on %s (%s): %s; further ones of this kind are only counted",
+                                 key, kind, detail)
+
+    def snapshot(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self.by_key)

@@ -1,0 +1,27 @@
+"""`posegrid router`: a Zenoh router inside a Python process, for machines without a zenohd binary.
+
+The router holds no posegrid state; it routes publications, queries and liveliness between the other
+processes, which connect to it as Zenoh clients (services/zenoh_config.py).
+"""
+from __future__ import annotations
+
+import threading
+
+import zenoh
+
+from services.process import get_logger
+from services.zenoh_config import open_session, read_key
+
+
+def run_router(config: zenoh.Config, stop: threading.Event) -> int:
+    """Route until ``stop`` is set, then close the session. Returns the exit code (0)."""
+    log = get_logger("router")
+    session = open_session(config, "the router")
+    log.info("routing; listening on %s", ", ".join(read_key(config, "listen/endpoints") or []))
+    try:
+        while not stop.wait(0.5):
+            pass
+    finally:
+        session.close()
+    log.info("stopped")
+    return 0

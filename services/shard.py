@@ -1,0 +1,210 @@
+"""The state of one mapper shard, without any networking: it decodes what arrives, joins scans with their
+poses, fuses the cells of its own tiles, and says which tile windows to publish and when.
+
+Fusion is exactly `posegrid fuse`'s per-scan path (services.fusion_runner): the same sensor model, the
+same :class:`mapping.fusion.MonteCarloFusion`, and the pose samples of :func:`mapping.poses.scan_samples`
+with Gaussian draws seeded by (seed, seq); so the union of all shards' tiles equals the in-process map
+when the scans arrive in seq order (log-odds clamping makes fusion order matter; a shard fuses each scan
+as soon as its pose is there).
+"""
+from __future__ import annotations
+
+import time
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+
+from mapping.errors import InputError
+from mapping.fusion import MonteCarloFusion
+from mapping.grid import TILE_SIZE, TiledGrid
+from mapping.poses import scan_samples
+from mapping.sensor_model import SensorModel
+from schemas.messages import POSE_TYPES, LaserScan, MessageError, PoseGaussian, ShardStats, StreamEnd, TileUpdate, \
+    decode_message
+from services import keys
+from services.join import JoinBuffer
+from services.ownership import owns_tile
+from services.process import RejectCounter
+
+TileKey = tuple[int, int]
+
+
+@dataclass(frozen=True)
+class ShardConfig:
+    """What a shard needs to know. mode/n_samples/seed/accuracy mean what they mean for `posegrid fuse`;
+    publish_interval (s) is the shortest time between two updates of one tile; join_capacity bounds the
+    scans and poses waiting for their partner."""
+
+    map_name: str
+    shard: int
+    shards: int
+    model: SensorModel
+    mode: str = "mc"
+    n_samples: int | None = None
+    seed: int = 0
+    accuracy: float | None = None
+    tile_size: int = TILE_SIZE
+    publish_interval: float = 0.05
+    join_capacity: int = 512
+
+
+class MapShard:
+    """One shard's grid and bookkeeping. Not thread-safe: callers serialise access (services.mapper)."""
+
+    def __init__(self, config: ShardConfig, rejects: RejectCounter):
+        self.config = config
+        self.grid = TiledGrid(config.model.resolution, config.tile_size)
+        self.owns = owns_tile(config.shard, config.shards)
+        self.rejects = rejects
+        self.accuracy = config.accuracy if config.accuracy is not None else config.model.resolution
+        self._fusions: dict[tuple, MonteCarloFusion] = {}
+        self._join: JoinBuffer[LaserScan, object] = JoinBuffer(config.join_capacity)
+        self.received: Counter[str] = Counter()
+        self.fused: Counter[str] = Counter()
+        self.discarded: Counter[str] = Counter()
+        self.ended: dict[str, int] = {}
+        self.join_overflow = 0
+        self.cells_updated = 0
+        self.tile_updates = 0
+        self.started = time.monotonic()
+        self._dirty: set[TileKey] = set()
+        self._last_sent: dict[TileKey, float] = {}
+        self._last_scan: dict[TileKey, tuple[str, int]] = {}
+        self._snapshots: dict[TileKey, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    # ------------------------------------------------------------------------------- intake
+    def handle(self, key: str, payload: bytes) -> None:
+        """Decode one message received on ``key`` and act on it; a bad one is counted and dropped."""
+        self.received[key] += 1
+        stream = key.rsplit("/", 1)[-1]
+        expected = {keys.SCAN: (LaserScan,), keys.POSE: POSE_TYPES, keys.END: (StreamEnd,)}[stream]
+        try:
+            message = decode_message(payload, *expected)
+        except MessageError as exc:
+            self.rejects.count(key, exc.reason, str(exc))
+            return
+        if message.robot != keys.robot_of(key):
+            self.rejects.count(key, "robot", f"a {message.TYPE} of robot {message.robot!r} arrived on {key}")
+            return
+        if isinstance(message, StreamEnd):
+            self.ended[message.robot] = message.scans
+            return
+        join_key = (message.robot, message.seq)
+        if isinstance(message, LaserScan):
+            pair, evicted = self._join.add_scan(join_key, message)
+        else:
+            pair, evicted = self._join.add_pose(join_key, message)
+        for gone in evicted:
+            self.join_overflow += 1
+            if gone.was_scan:
+                self.discarded[gone.key[0]] += 1
+            self.rejects.count(f"join/{gone.key[0]}", "overflow",
+                               f"the join buffer ({self.config.join_capacity}) was full; gave up on seq {gone.key[1]} "
+                               f"({'scan' if gone.was_scan else 'pose'} without its partner)")
+        if pair is not None:
+            self._fuse(*pair)
+
+    # ------------------------------------------------------------------------------- fusion
+    def _fusion_for(self, scan: LaserScan) -> MonteCarloFusion:
+        geometry = (scan.angle_min, scan.angle_increment, scan.ranges.shape[0], scan.range_min, scan.range_max,
+                    tuple(scan.sensor_offset.tolist()))
+        fusion = self._fusions.get(geometry)
+        if fusion is None:
+            beam_angles = scan.angle_min + scan.angle_increment * np.arange(scan.ranges.shape[0])
+            fusion = MonteCarloFusion(self.grid, self.config.model, beam_angles, scan.range_min, scan.range_max,
+                                      scan.sensor_offset, self.owns)
+            self._fusions[geometry] = fusion
+        return fusion
+
+    def pose_samples(self, scan: LaserScan, pose) -> tuple[np.ndarray, np.ndarray]:
+        """(samples (M, 3), weights (M,)) to fuse ``scan`` with, as `posegrid fuse` draws them."""
+        cfg = self.config
+        if isinstance(pose, PoseGaussian):
+            return scan_samples(cfg.mode, mean=pose.mean, cov=pose.cov, n_samples=cfg.n_samples, seed=cfg.seed,
+                                seq=scan.seq, accuracy=self.accuracy, range_max=scan.range_max)
+        return scan_samples(cfg.mode, samples=pose.samples, weights=pose.weights)
+
+    def _fuse(self, scan: LaserScan, pose) -> None:
+        try:
+            samples, weights = self.pose_samples(scan, pose)
+            result = self._fusion_for(scan).fuse(scan.ranges, samples, weights)
+        except InputError as exc:
+            self.discarded[scan.robot] += 1
+            self.rejects.count(f"fuse/{scan.robot}", "input", f"scan seq {scan.seq} could not be fused: {exc}")
+            return
+        self.fused[scan.robot] += 1
+        self.cells_updated += result.cells_updated
+        for tile in result.tiles_changed:
+            self._dirty.add(tile)
+            self._last_scan[tile] = (scan.robot, scan.seq)
+
+    # ------------------------------------------------------------------------------- progress
+    def caught_up(self) -> bool:
+        """Whether every ended stream has all its scans fused or discarded."""
+        return bool(self.ended) and all(self.fused[r] + self.discarded[r] >= n for r, n in self.ended.items())
+
+    def stats(self, overflow: dict[str, int]) -> ShardStats:
+        """This shard's statistics; ``overflow`` counts the intake queue's drops (kept by the caller)."""
+        cfg = self.config
+        return ShardStats(
+            map=cfg.map_name, shard=cfg.shard, shards=cfg.shards, tiles_owned=len(self.grid.keys()),
+            cells_updated=self.cells_updated, tile_updates=self.tile_updates, join_pending=len(self._join),
+            uptime=time.monotonic() - self.started, fused=dict(self.fused), discarded=dict(self.discarded),
+            ended=dict(self.ended), received=dict(self.received), rejected=self.rejects.snapshot(),
+            overflow={**overflow, "join": self.join_overflow},
+        )
+
+    # ------------------------------------------------------------------------------- tiles
+    def tiles(self) -> list[TileKey]:
+        return self.grid.keys()
+
+    def tile_message(self, tile: TileKey, window: tuple[int, int, int, int] | None = None) -> TileUpdate:
+        """The tile's current values over ``window`` (row0, col0, rows, cols), default the whole tile."""
+        size = self.grid.tile_size
+        row0, col0, rows, cols = window or (0, 0, size, size)
+        logodds, variance, observed = self.grid.tile_arrays(tile)
+        region = (slice(row0, row0 + rows), slice(col0, col0 + cols))
+        robot, seq = self._last_scan[tile]
+        return TileUpdate(
+            map=self.config.map_name, shard=self.config.shard, z=0, tx=tile[0], ty=tile[1], tile_size=size,
+            resolution=self.grid.resolution, row0=row0, col0=col0, robot=robot, seq=seq, published=time.time(),
+            logodds=logodds[region].copy(), variance=variance[region].copy(), observed=observed[region].copy(),
+        )
+
+    def due_updates(self, now: float, flush: bool = False) -> tuple[list[TileUpdate], float | None]:
+        """Updates for the dirty tiles whose last update is at least publish_interval old (all with ``flush``).
+
+        Each covers the bounding box of the cells changed since the tile was last published. Returns the
+        updates and the monotonic time the next held-back tile falls due (None when none is held back).
+        """
+        updates, next_due = [], None
+        for tile in list(self._dirty):
+            due = self._last_sent.get(tile, -np.inf) + self.config.publish_interval
+            if not flush and now < due:
+                next_due = due if next_due is None else min(next_due, due)
+                continue
+            self._dirty.discard(tile)
+            window = self._changed_window(tile)
+            if window is not None:
+                updates.append(self.tile_message(tile, window))
+                self._last_sent[tile] = now
+        self.tile_updates += len(updates)
+        return updates, next_due
+
+    def _changed_window(self, tile: TileKey) -> tuple[int, int, int, int] | None:
+        """Bounding box of the cells that differ from what was last published, and remember the new values."""
+        current = self.grid.tile_arrays(tile)
+        snapshot = self._snapshots.get(tile)
+        if snapshot is None:
+            snapshot = tuple(np.zeros_like(layer) for layer in current)
+            self._snapshots[tile] = snapshot
+        diff = (current[0] != snapshot[0]) | (current[1] != snapshot[1]) | (current[2] != snapshot[2])
+        rows = np.flatnonzero(diff.any(axis=1))
+        if rows.size == 0:
+            return None
+        cols = np.flatnonzero(diff.any(axis=0))
+        region = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+        for layer, snap in zip(current, snapshot):
+            snap[region] = layer[region]
+        return int(rows[0]), int(cols[0]), int(rows[-1] + 1 - rows[0]), int(cols[-1] + 1 - cols[0])

@@ -1,0 +1,300 @@
+"""`posegrid slam-node`: runs a SLAM filter on what a source publishes and publishes a pose distribution per
+scan (pg/<robot>/pose, tagged with the scan's seq).
+
+Landmark filters (odometry dead reckoning, EKF-SLAM, FastSLAM 1.0/2.0, slam/) take step ``seq`` when its
+Odometry and LandmarkObservations are in; grid FastSLAM (slam/gridslam) when its LaserScan and Odometry
+(with the odometry pose) are in. Steps are taken strictly in seq order (services.steps). A message whose
+seq is not above every seq seen on its key arrived out of order: the node says so (logged once per key,
+counted per key) and uses it if its step is still to come, else drops it. The filter starts at ``--initial`` or at
+the prior the source publishes on pg/<robot>/prior. Per step, the node publishes what the offline
+`posegrid slam` writes for that step: mean and covariance (Gaussian filters) or particles and their
+weights before resampling; grid FastSLAM publishes the filtered particles (the offline run smooths them
+by ancestry, which a live node cannot do).
+
+Threads and bad input as in services.mapper: callbacks feed a bounded intake queue, one thread decodes
+and filters; malformed messages are counted per key in the NodeStats (pg/<robot>/slam/stats) and logged
+once per kind.
+"""
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+import zenoh
+
+from schemas.messages import (
+    LandmarkObservations,
+    LaserScan,
+    MessageError,
+    NodeStats,
+    Odometry,
+    PoseGaussian,
+    PoseSamples,
+    StreamEnd,
+    decode_message,
+)
+from services import keys
+from services.process import RejectCounter, get_logger
+from services.steps import OutOfOrder, Released, StepAssembler
+from services.zenoh_config import open_session
+from slam.gridslam import GridFastSLAM, GridSlamConfig
+
+EXPECTED = {keys.SCAN: (LaserScan,), keys.ODOM: (Odometry,), keys.LANDMARKS: (LandmarkObservations,),
+            keys.END: (StreamEnd,), keys.PRIOR: (PoseGaussian,)}
+
+
+class StepError(ValueError):
+    """A step the filter cannot take (e.g. odometry motion without an odometry pose)."""
+
+
+@dataclass(frozen=True)
+class NodeConfig:
+    """robot: whose streams to follow; algorithm: odometry, ekf, fastslam1, fastslam2 or gridslam;
+    make_filter(initial_pose) builds a landmark filter (None for gridslam); motion: "velocity" or
+    "odometry" (which Odometry field the landmark filters read); initial: start pose or None to wait
+    for the source's prior; grid_config, seed: grid FastSLAM's (max_range is capped at the laser's);
+    intake_capacity: bounded queue size."""
+
+    robot: str
+    algorithm: str
+    make_filter: Callable[[np.ndarray], object] | None
+    motion: str = "velocity"
+    initial: np.ndarray | None = None
+    grid_config: GridSlamConfig | None = None
+    seed: int = 0
+    intake_capacity: int = 4096
+
+
+class LandmarkDriver:
+    """Feeds an EKF / FastSLAM / dead-reckoning filter one step at a time, as slam.sequence.run_filter does."""
+
+    needs = {keys.ODOM, keys.LANDMARKS}
+
+    def __init__(self, slam_filter, motion: str):
+        self.filter = slam_filter
+        self.motion = motion
+        self._last_pose: np.ndarray | None = None
+
+    def step(self, parts: dict) -> tuple[np.ndarray, np.ndarray]:
+        from slam.motion import odometry_controls
+
+        odom: Odometry = parts[keys.ODOM]
+        seen: LandmarkObservations = parts[keys.LANDMARKS]
+        if self.motion == "velocity":
+            controls = odom.commands
+        else:
+            if odom.pose.shape[0] == 0:
+                raise StepError(f"seq {odom.seq}: odometry motion needs the odometry pose, the message has none")
+            pose = odom.pose[0]
+            controls = np.zeros((0, 3)) if self._last_pose is None else odometry_controls(
+                np.stack([self._last_pose, pose]))
+            self._last_pose = pose
+        measurements = np.column_stack([seen.ranges, seen.bearings])
+        return self.filter.step(controls, measurements, seen.ids)
+
+
+class GridDriver:
+    """Feeds grid FastSLAM one scan at a time: integrate when due, else follow the odometry."""
+
+    needs = {keys.SCAN, keys.ODOM}
+
+    def __init__(self, initial: np.ndarray, config: GridSlamConfig, seed: int):
+        self.initial = initial
+        self.config = config
+        self.seed = seed
+        self.filter = None
+
+    def step(self, parts: dict) -> tuple[np.ndarray, np.ndarray]:
+        scan: LaserScan = parts[keys.SCAN]
+        odom: Odometry = parts[keys.ODOM]
+        if odom.pose.shape[0] == 0:
+            raise StepError(f"seq {odom.seq}: grid FastSLAM needs the odometry pose, the message has none")
+        if self.filter is None:  # as slam.gridslam.run_gridslam sets it up
+            config = replace(self.config, max_range=min(self.config.max_range, scan.range_max))
+            angles = scan.angle_min + scan.angle_increment * np.arange(scan.ranges.shape[0])
+            self.filter = GridFastSLAM(config, angles, scan.sensor_offset, scan.range_min, self.initial, self.seed)
+        if self.filter.due(odom.pose[0]):
+            poses, weights, _, _ = self.filter.integrate(odom.pose[0], scan.ranges)
+            return poses, weights
+        return self.filter.follow(odom.pose[0]), self.filter.weights
+
+
+class SlamNode:
+    """A running node. Use :meth:`run`."""
+
+    def __init__(self, config: NodeConfig, session: zenoh.Session):
+        self.config = config
+        self.session = session
+        self.log = get_logger(f"slam-node[{config.robot}]")
+        self.rejects = RejectCounter(self.log)
+        self.intake: queue.Queue[tuple[str, bytes]] = queue.Queue(config.intake_capacity)
+        self.lock = threading.Lock()
+        self.received: Counter[str] = Counter()
+        self.out_of_order: Counter[str] = Counter()
+        self.published = 0
+        self.steps_done = 0  # seqs taken, failed or skipped
+        self.started = time.monotonic()
+        self.initial = config.initial
+        self.driver = None
+        needs = GridDriver.needs if config.algorithm == "gridslam" else LandmarkDriver.needs
+        self.steps = StepAssembler(needs)
+        self._ready: list[tuple[int, dict]] = []
+        self._highest_seq: dict[str, int] = {}
+        self._declared = []
+        self._pose_publisher = None
+
+    # ---------------------------------------------------------------------------- zenoh callbacks
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        try:
+            self.intake.put_nowait((key, sample.payload.to_bytes()))
+        except queue.Full:
+            self.rejects.count(key, "overflow", f"the intake queue ({self.intake.maxsize}) was full")
+
+    def _on_stats_query(self, query: zenoh.Query) -> None:
+        with self.lock:
+            stats = NodeStats(robot=self.config.robot, algorithm=self.config.algorithm,
+                              poses_published=self.published, steps_done=self.steps_done,
+                              uptime=time.monotonic() - self.started,
+                              received=dict(self.received), rejected=self.rejects.snapshot(),
+                              out_of_order=dict(self.out_of_order))
+        query.reply(keys.slam_stats_key(self.config.robot), stats.encode())
+
+    # ---------------------------------------------------------------------------- messages
+    def handle(self, key: str, payload: bytes) -> None:
+        """Decode one message, file it with its step, and take every step that is now complete."""
+        self.received[key] += 1
+        stream = key.rsplit("/", 1)[-1]
+        try:
+            message = decode_message(payload, *EXPECTED[stream])
+        except MessageError as exc:
+            self.rejects.count(key, exc.reason, str(exc))
+            return
+        if message.robot != self.config.robot:
+            self.rejects.count(key, "robot", f"a {message.TYPE} of robot {message.robot!r} arrived on {key}")
+            return
+        if stream == keys.PRIOR:
+            if self.initial is None:
+                self.initial = message.mean
+                self.log.info("starting at the source's prior (%.3f m, %.3f m, %.3f rad)", *message.mean)
+            self._take_ready()
+        elif stream == keys.END:
+            self._file(self.steps.flush())
+        else:
+            late = self._check_order(key, message.seq)
+            if stream not in self.steps.needs:
+                return
+            try:
+                released = self.steps.add(stream, message.seq, message)
+            except OutOfOrder as exc:
+                if not late:
+                    self._report_order(key, str(exc))
+                return
+            self._file(released)
+
+    def _check_order(self, key: str, seq: int) -> bool:
+        """Report (log once per key, count always) a message whose seq is not above every seq seen on its key."""
+        highest = self._highest_seq.get(key, -1)
+        if seq > highest:
+            self._highest_seq[key] = seq
+            return False
+        used = "; it is dropped" if seq < self.steps.next_seq else "; its step is still to come, so it is used"
+        self._report_order(key, f"seq {seq} arrived after seq {highest}{used}")
+        return True
+
+    def _report_order(self, key: str, detail: str) -> None:
+        self.out_of_order[key] += 1
+        if self.out_of_order[key] == 1:
+            self.log.warning("out of order on %s: %s; further ones on this key are only counted", key, detail)
+
+    def _file(self, released: Released) -> None:
+        if released.skipped:
+            self.log.warning("skipped seq %s of robot %s: parts of them never arrived",
+                             _spans(released.skipped), self.config.robot)
+            self.steps_done += len(released.skipped)
+        lost = released.evicted
+        self._ready.extend(released.steps)
+        while len(self._ready) > self.steps.capacity:  # no start pose yet: keep only the newest steps
+            self._ready.pop(0)
+            self.steps_done += 1
+            lost += 1
+        if lost:
+            self.rejects.count(keys.robot_key(self.config.robot, "steps"), "overflow",
+                               f"dropped {lost} step(s) to bound the buffers")
+        self._take_ready()
+
+    def _take_ready(self) -> None:
+        if self.initial is None:
+            return
+        for seq, parts in self._ready:
+            self._take(seq, parts)
+        self._ready.clear()
+
+    def _take(self, seq: int, parts: dict) -> None:
+        cfg = self.config
+        if self.driver is None:
+            initial = np.asarray(self.initial, np.float64)
+            self.driver = (GridDriver(initial, cfg.grid_config, cfg.seed) if cfg.algorithm == "gridslam"
+                           else LandmarkDriver(cfg.make_filter(initial), cfg.motion))
+        stamp = next(iter(parts.values())).stamp
+        self.steps_done += 1
+        try:
+            first, second = self.driver.step(parts)
+        except (StepError, ValueError, IndexError, KeyError, np.linalg.LinAlgError) as exc:
+            # valid messages the filter still cannot use (e.g. an unknown landmark id): skip the step, go on
+            self.rejects.count(keys.robot_key(cfg.robot, "steps"), "step", f"seq {seq} skipped: {exc}")
+            return
+        if cfg.algorithm == "gridslam" or not self.driver.filter.gaussian:
+            message = PoseSamples(robot=cfg.robot, seq=seq, stamp=stamp, samples=first, weights=second)
+        else:
+            message = PoseGaussian(robot=cfg.robot, seq=seq, stamp=stamp, mean=first, cov=second)
+        self._pose_publisher.put(message.encode())
+        self.published += 1
+
+    # ---------------------------------------------------------------------------- lifecycle
+    def run(self, stop: threading.Event) -> int:
+        """Filter and publish until ``stop`` is set; returns the exit code (0)."""
+        robot, session = self.config.robot, self.session
+        self._pose_publisher = session.declare_publisher(keys.robot_key(robot, keys.POSE),
+                                                         congestion_control=zenoh.CongestionControl.BLOCK)
+        for stream in EXPECTED:
+            self._declared.append(session.declare_subscriber(keys.robot_key(robot, stream), self._on_sample))
+        self._declared.append(session.declare_queryable(keys.slam_stats_key(robot), self._on_stats_query))
+        self._declared.append(session.liveliness().declare_token(keys.robot_alive_key(robot, "slam")))
+        self.log.info("%s up for robot %r; poses on %s", self.config.algorithm, robot, keys.robot_key(robot, keys.POSE))
+        while not stop.is_set():
+            try:
+                key, payload = self.intake.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            with self.lock:
+                self.handle(key, payload)
+        for entity in reversed(self._declared):
+            entity.undeclare()
+        self._pose_publisher.undeclare()
+        self.log.info("stopped after publishing %d poses", self.published)
+        return 0
+
+
+def _spans(seqs: list[int]) -> str:
+    """Sorted seqs as "3, 7-12, 15"."""
+    spans, start = [], seqs[0]
+    for previous, seq in zip(seqs, seqs[1:] + [None]):
+        if seq != previous + 1:
+            spans.append(str(start) if start == previous else f"{start}-{previous}")
+            start = seq
+    return ", ".join(spans)
+
+
+def run_slam_node(config: NodeConfig, zenoh_config: zenoh.Config, stop: threading.Event) -> int:
+    """Open a session and run the node until ``stop`` is set."""
+    session = open_session(zenoh_config, f"the SLAM node of robot {config.robot}")
+    try:
+        return SlamNode(config, session).run(stop)
+    finally:
+        session.close()

@@ -1,0 +1,232 @@
+"""`posegrid source`: publishes one robot's run (services.streams) over Zenoh at a chosen rate.
+
+Rate: a factor of real time (1 = as recorded, 2 = twice as fast) or "max": as fast as the subscribers
+take it. In "max" mode the source never runs more than ``window`` scans ahead of the slowest mapper shard
+it waits for, nor ``window`` steps ahead of the SLAM node it waits for (it reads their progress from their
+stats queryables), so no buffer downstream overflows; every message goes out reliably with congestion
+control BLOCK.
+
+Before the first message the source waits for the liveliness tokens of ``wait_mappers`` mapper shards (and
+of the robot's SLAM node with ``wait_slam``), so nothing is published before its subscribers are up. After
+the last step it publishes a StreamEnd with the number of scans, and, when it waited for mappers, waits
+until every shard has acknowledged that end in its stats.
+"""
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass
+
+import zenoh
+
+from schemas.messages import (
+    LandmarkObservations,
+    LaserScan,
+    MessageError,
+    NodeStats,
+    Odometry,
+    PoseGaussian,
+    PoseSamples,
+    ShardStats,
+    StreamEnd,
+    decode_message,
+)
+from services import keys
+from services.map_client import MapReader
+from services.process import get_logger
+from services.streams import Stream
+
+#: publication key chunk per message type
+STREAM_OF = {LaserScan: keys.SCAN, Odometry: keys.ODOM, LandmarkObservations: keys.LANDMARKS,
+             PoseSamples: keys.POSE, PoseGaussian: keys.POSE, StreamEnd: keys.END}
+
+#: how long the source waits for subscribers to appear, or for a stalled mapper to make progress, s
+WAIT_TIMEOUT = 60.0
+
+
+class SourceStalled(RuntimeError):
+    """The subscribers the source waits for did not appear, or stopped making progress."""
+
+
+@dataclass(frozen=True)
+class SourceOptions:
+    """rate: factor of real time, or None for "as fast as the subscribers take"; window: scans the source
+    may run ahead of the slowest mapper in that mode; map_name: the map whose shards it waits for."""
+
+    rate: float | None = 1.0
+    wait_mappers: int = 0
+    map_name: str = "main"
+    wait_slam: bool = False
+    window: int = 32
+
+
+def parse_rate(text: str) -> float | None:
+    """"max" -> None (as fast as subscribers take), "realtime" -> 1.0, a positive number -> that factor."""
+    if text == "max":
+        return None
+    if text == "realtime":
+        return 1.0
+    try:
+        factor = float(text)
+    except ValueError:
+        factor = math.nan
+    if not factor > 0 or math.isinf(factor):
+        raise ValueError(f"rate must be 'max', 'realtime' or a positive factor of real time, got {text!r}")
+    return factor
+
+
+class Source:
+    """Publishes a :class:`Stream` on an open session. Use :meth:`run`."""
+
+    def __init__(self, session: zenoh.Session, stream: Stream, options: SourceOptions):
+        self.session = session
+        self.stream = stream
+        self.options = options
+        self.log = get_logger(f"source[{stream.robot}]")
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._scans_done = 0  # scans every waited-for shard has fused or given up on
+        self._steps_done = 0  # steps the SLAM node has taken or given up on
+        self._reader = MapReader(session, options.map_name)
+
+    def _publisher(self, stream: str) -> zenoh.Publisher:
+        if stream not in self._publishers:
+            self._publishers[stream] = self.session.declare_publisher(
+                keys.robot_key(self.stream.robot, stream), congestion_control=zenoh.CongestionControl.BLOCK)
+        return self._publishers[stream]
+
+    def _publish(self, message, stream: str | None = None) -> None:
+        self._publisher(stream or STREAM_OF[type(message)]).put(message.encode())
+
+    # ------------------------------------------------------------------------------- waiting
+    def _shard_stats(self) -> list[ShardStats]:
+        return list(self._reader.stats().values())
+
+    def _wait_for(self, what: str, ready, stop: threading.Event) -> bool:
+        """Poll ``ready()`` until it is true (returns True) or ``stop`` is set (False); raise after WAIT_TIMEOUT."""
+        deadline = time.monotonic() + WAIT_TIMEOUT
+        while not ready():
+            if stop.wait(0.05):
+                return False
+            if time.monotonic() > deadline:
+                raise SourceStalled(f"gave up after {WAIT_TIMEOUT:.0f} s waiting for {what}")
+        return True
+
+    def _tokens(self, key: str) -> int:
+        return sum(reply.ok is not None for reply in self.session.liveliness().get(key, timeout=2.0))
+
+    def _wait_for_subscribers(self, stop: threading.Event) -> bool:
+        opts = self.options
+        if opts.wait_mappers and not self._wait_for(
+                f"{opts.wait_mappers} mapper shard(s) of map {opts.map_name!r}",
+                lambda: self._tokens(keys.shard_alive_key(opts.map_name, "*")) >= opts.wait_mappers, stop):
+            return False
+        if opts.wait_slam and not self._wait_for(
+                f"the SLAM node of robot {self.stream.robot!r}",
+                lambda: self._tokens(keys.robot_alive_key(self.stream.robot, "slam")) >= 1, stop):
+            return False
+        if opts.wait_mappers and self.stream.scans:
+            scans = self._publisher(keys.SCAN)
+            return self._wait_for("a subscriber of the scans", lambda: scans.matching_status, stop)
+        return True
+
+    def _shards_done(self) -> int:
+        """Scans the slowest of the waited-for shards has fused or given up on."""
+        stats = self._shard_stats()
+        if len(stats) < self.options.wait_mappers:
+            return self._scans_done
+        robot = self.stream.robot
+        return min(s.fused.get(robot, 0) + s.discarded.get(robot, 0) for s in stats)
+
+    def _slam_done(self) -> int:
+        """Steps the robot's SLAM node has taken or given up on."""
+        for reply in self.session.get(keys.slam_stats_key(self.stream.robot), timeout=5.0):
+            if reply.ok is not None:
+                try:
+                    return decode_message(reply.ok.payload.to_bytes(), NodeStats).steps_done
+                except MessageError as exc:
+                    self.log.warning("ignored a bad SLAM node stats reply: %s", exc)
+        return self._steps_done
+
+    def _backlog(self, scans_sent: int, steps_sent: int) -> int:
+        """The larger of the scans the shards and the steps the SLAM node still have to take."""
+        backlog = 0
+        if self.options.wait_mappers:
+            backlog = scans_sent - self._scans_done
+        if self.options.wait_slam:
+            backlog = max(backlog, steps_sent - self._steps_done)
+        return backlog
+
+    def _wait_for_window(self, scans_sent: int, steps_sent: int, stop: threading.Event) -> bool:
+        """With ``window`` scans (or steps) in flight, wait until the slowest subscriber has taken half of them.
+
+        Returns False when ``stop`` is set; raises :class:`SourceStalled` after WAIT_TIMEOUT without progress.
+        """
+        if self._backlog(scans_sent, steps_sent) < self.options.window:
+            return True
+        deadline = time.monotonic() + WAIT_TIMEOUT
+        while True:
+            progress = (self._shards_done() if self.options.wait_mappers else 0,
+                        self._slam_done() if self.options.wait_slam else 0)
+            if progress[0] > self._scans_done or progress[1] > self._steps_done:
+                self._scans_done = max(self._scans_done, progress[0])
+                self._steps_done = max(self._steps_done, progress[1])
+                deadline = time.monotonic() + WAIT_TIMEOUT
+            if self._backlog(scans_sent, steps_sent) <= self.options.window // 2:
+                return True
+            if stop.wait(0.01):
+                return False
+            if time.monotonic() > deadline:
+                raise SourceStalled(f"the subscribers took nothing for {WAIT_TIMEOUT:.0f} s (shards: {self._scans_done} "
+                                    f"of {scans_sent} scans, SLAM node: {self._steps_done} of {steps_sent} steps)")
+
+    def _ended_everywhere(self, count: int) -> bool:
+        stats = self._shard_stats()
+        return len(stats) >= self.options.wait_mappers and all(
+            s.ended.get(self.stream.robot) == count for s in stats)
+
+    # ------------------------------------------------------------------------------- run
+    def _stopped(self) -> int:
+        self.log.info("stopped on request before the end of the stream")
+        return 0
+
+    def run(self, stop: threading.Event) -> int:
+        """Publish every step, then the StreamEnd, unless ``stop`` is set first; returns the exit code (0)."""
+        opts, stream = self.options, self.stream
+        token = self.session.liveliness().declare_token(keys.robot_alive_key(stream.robot, "source"))
+        try:
+            if not self._wait_for_subscribers(stop):
+                return self._stopped()
+            if stream.prior is not None:
+                self._publish(stream.prior, keys.PRIOR)
+            self.log.info("publishing %d steps (%d scans) of robot %r %s", len(stream.steps), stream.scans,
+                          stream.robot, "as fast as the subscribers take" if opts.rate is None
+                          else f"at {opts.rate:g}x real time")
+            started = time.monotonic()
+            t0 = stream.steps[0].stamp if stream.steps else 0.0
+            scans_sent = 0
+            flow_control = opts.rate is None and (opts.wait_mappers > 0 or opts.wait_slam)
+            for steps_sent, step in enumerate(stream.steps):
+                if opts.rate is not None:
+                    delay = started + (step.stamp - t0) / opts.rate - time.monotonic()
+                    if delay > 0 and stop.wait(delay):
+                        return self._stopped()
+                elif flow_control and not self._wait_for_window(scans_sent, steps_sent, stop):
+                    return self._stopped()
+                if stop.is_set():
+                    return self._stopped()
+                for message in step.messages:
+                    self._publish(message)
+                    scans_sent += isinstance(message, LaserScan)
+            self._publish(StreamEnd(robot=stream.robot, scans=scans_sent))
+            elapsed = time.monotonic() - started
+            self.log.info("published %d scans in %.2f s (%.1f scans/s)", scans_sent, elapsed,
+                          scans_sent / max(elapsed, 1e-9))
+            if opts.wait_mappers and not self._wait_for("every shard to acknowledge the end of the stream",
+                                                        lambda: self._ended_everywhere(scans_sent), stop):
+                return self._stopped()
+            return 0
+        finally:
+            for publisher in self._publishers.values():
+                publisher.undeclare()
+            token.undeclare()

@@ -1,0 +1,71 @@
+"""Gathers the messages of each seq (scan, odometry, landmarks) and hands whole steps out in seq order.
+
+A SLAM filter must see its steps in order. Parts may arrive in any order across keys; a step is complete
+when every part the filter needs is there. Complete steps are released strictly in seq order; a seq that
+never completes is skipped (and reported) once ``reorder`` later steps are complete and waiting, or when
+the stream has ended. A part whose seq was already released or skipped arrives *out of order*: it is
+reported and dropped. At most ``capacity`` incomplete steps are held; the oldest is evicted beyond that.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+class OutOfOrder(Exception):
+    """A part of a step whose seq is at or below one already processed."""
+
+
+@dataclass
+class Released:
+    """Complete steps in order, seqs skipped on the way, and incomplete steps evicted for space."""
+
+    steps: list[tuple[int, dict]] = field(default_factory=list)
+    skipped: list[int] = field(default_factory=list)
+    evicted: int = 0
+
+
+class StepAssembler:
+    """See the module docstring. ``needs``: the parts a step must have, e.g. {"odom", "landmarks"}."""
+
+    def __init__(self, needs: set[str], capacity: int = 256, reorder: int = 16):
+        self.needs = frozenset(needs)
+        self.capacity = capacity
+        self.reorder = reorder
+        self.next_seq = 0
+        self._pending: dict[int, dict] = {}
+
+    def add(self, part: str, seq: int, message) -> Released:
+        """Store one part; returns what it releases. Raises :class:`OutOfOrder` for a seq already passed."""
+        if seq < self.next_seq:
+            raise OutOfOrder(f"{part} seq {seq} arrived after seq {self.next_seq - 1} was processed")
+        self._pending.setdefault(seq, {})[part] = message
+        released = Released()
+        while len(self._pending) > self.capacity:
+            oldest = min(self._pending)
+            del self._pending[oldest]
+            released.evicted += 1
+        self._release(released, flush=False)
+        return released
+
+    def flush(self) -> Released:
+        """At the end of the stream: release every complete step, skipping the gaps."""
+        released = Released()
+        self._release(released, flush=True)
+        return released
+
+    def _complete(self, seq: int) -> bool:
+        return seq in self._pending and self.needs <= self._pending[seq].keys()
+
+    def _release(self, released: Released, flush: bool) -> None:
+        while True:
+            if self._complete(self.next_seq):
+                released.steps.append((self.next_seq, self._pending.pop(self.next_seq)))
+                self.next_seq += 1
+                continue
+            waiting = sorted(s for s in self._pending if self._complete(s))
+            if not waiting or (not flush and len(waiting) < self.reorder):
+                return
+            for seq in range(self.next_seq, waiting[0]):
+                self._pending.pop(seq, None)
+                released.skipped.append(seq)
+            self.next_seq = waiting[0]

@@ -1,0 +1,127 @@
+"""The one place that builds Zenoh configurations for every posegrid process.
+
+Defaults (DESIGN.md): multicast scouting off; a router listens on tcp/127.0.0.1:7447; every other
+process is a Zenoh *client* that connects to that router and listens nowhere, so nothing leaves the
+loopback interface and all traffic follows one path through the router. A user's JSON5 config file
+overrides any of these keys it sets; ``--listen`` / ``--connect`` endpoints on the command line
+override both.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import re
+from pathlib import Path
+
+import zenoh
+
+from services.cli import UsageError
+
+#: where the router listens and everyone else connects unless configured otherwise
+DEFAULT_ROUTER_ENDPOINT = "tcp/127.0.0.1:7447"
+
+#: the listen endpoints zenoh itself defaults to (any interface): a user file that leaves them unset
+#: reads back as this, and posegrid replaces it with loopback-only endpoints
+_ZENOH_DEFAULT_LISTEN = {"router": ["tcp/[::]:7447"], "peer": ["tcp/[::]:0"]}
+
+MODES = ("router", "peer", "client")
+
+#: how long a client keeps trying to reach its router before giving up (a router started alongside it,
+#: e.g. by docker compose, may come up a little later), ms
+CLIENT_CONNECT_TIMEOUT_MS = 10_000
+
+
+def build_config(
+    mode: str,
+    *,
+    listen: list[str] | None = None,
+    connect: list[str] | None = None,
+    config_file: str | Path | None = None,
+) -> zenoh.Config:
+    """A Zenoh config for a process of ``mode`` ("router", "peer" or "client").
+
+    Starts from ``config_file`` (JSON5) when given and fills every key the file leaves unset with
+    posegrid's loopback-only defaults; non-empty ``listen`` / ``connect`` endpoint lists replace the
+    corresponding keys. Raises :class:`services.cli.UsageError` for an unknown mode, a missing or invalid
+    file, or an endpoint zenoh rejects.
+    """
+    if mode not in MODES:
+        raise UsageError(f"zenoh mode must be one of {', '.join(MODES)}, got {mode!r}")
+    if config_file is not None:
+        path = Path(config_file)
+        if not path.is_file():
+            raise UsageError(f"zenoh config file {path} does not exist")
+        try:
+            config = zenoh.Config.from_file(str(path))
+        except zenoh.ZError as exc:
+            raise UsageError(f"zenoh config file {path} is not valid: {_first_line(exc)}") from None
+    else:
+        config = zenoh.Config()
+    _default(config, "mode", None, mode)
+    _default(config, "scouting/multicast/enabled", None, False)
+    effective_mode = read_key(config, "mode")
+    if effective_mode == "router":
+        _default(config, "listen/endpoints", _ZENOH_DEFAULT_LISTEN, [DEFAULT_ROUTER_ENDPOINT])
+    elif effective_mode == "peer":
+        _default(config, "listen/endpoints", _ZENOH_DEFAULT_LISTEN, ["tcp/127.0.0.1:0"])
+        _default(config, "connect/endpoints", [], [DEFAULT_ROUTER_ENDPOINT])
+    else:
+        _default(config, "listen/endpoints", _ZENOH_DEFAULT_LISTEN, [])
+        _default(config, "connect/endpoints", [], [DEFAULT_ROUTER_ENDPOINT])
+        _default(config, "connect/timeout_ms", None, CLIENT_CONNECT_TIMEOUT_MS)
+    if listen:
+        _insert(config, "listen/endpoints", list(listen))
+    if connect:
+        _insert(config, "connect/endpoints", list(connect))
+    return config
+
+
+def _default(config: zenoh.Config, key: str, unset_value, value) -> None:
+    """Set ``key`` to ``value`` when it still holds ``unset_value`` (zenoh's reading of "not set")."""
+    if read_key(config, key) == unset_value:
+        _insert(config, key, value)
+
+
+def read_key(config: zenoh.Config, key: str):
+    """The value of ``key`` in ``config`` as a Python object (None when unset)."""
+    return json.loads(config.get_json(key))
+
+
+def _insert(config: zenoh.Config, key: str, value) -> None:
+    try:
+        config.insert_json5(key, json.dumps(value))
+    except zenoh.ZError as exc:
+        raise UsageError(f"zenoh rejects {key} = {json.dumps(value)}: {_first_line(exc)}") from None
+
+
+def _first_line(exc: BaseException) -> str:
+    """The first line of a zenoh error without the Rust source location it appends."""
+    lines = str(exc).strip().splitlines()
+    text = re.sub(r"\s+at \S+\.rs:\d+\.?", "", lines[0]) if lines else type(exc).__name__
+    return text.rstrip(". ")
+
+
+def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add --zenoh-config, --listen and --connect (every posegrid process takes them)."""
+    group = parser.add_argument_group("zenoh")
+    group.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE",
+                       help="zenoh JSON5 config file; keys it sets override posegrid's loopback-only defaults")
+    group.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
+                       help="endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable; overrides the file)")
+    group.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                       help=f"endpoint to connect to (repeatable; default {DEFAULT_ROUTER_ENDPOINT}, the router)")
+
+
+def config_from_args(args: argparse.Namespace, mode: str) -> zenoh.Config:
+    """The config for a process of ``mode`` from the arguments :func:`add_zenoh_arguments` added."""
+    return build_config(mode, listen=args.listen, connect=args.connect, config_file=args.zenoh_config)
+
+
+def open_session(config: zenoh.Config, what: str) -> zenoh.Session:
+    """Open a Zenoh session; an unreachable router becomes a one-sentence :class:`UsageError`."""
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as exc:
+        endpoints = read_key(config, "connect/endpoints") or read_key(config, "listen/endpoints")
+        raise UsageError(f"{what} could not open its zenoh session ({_first_line(exc)}); is `posegrid router` "
+                         f"running at {json.dumps(endpoints)}?") from None

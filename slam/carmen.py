@@ -1,0 +1,378 @@
+"""CARMEN log files (``.clf``/``.log``, plain or gzip): read laser scans with odometry, write simulated runs.
+
+Record types read (one record per line, fields separated by white space, ``#`` starts a comment line):
+
+``PARAM name value [ipc_ts host logger_ts]``
+``ODOM x y theta tv rv accel ipc_ts host logger_ts``
+``FLASER|RLASER n r_1..r_n x y theta odom_x odom_y odom_theta ipc_ts host logger_ts``
+``ROBOTLASER1|ROBOTLASER2 laser_type start_angle fov angular_resolution max_range accuracy remission_mode
+n r_1..r_n m e_1..e_m laser_x laser_y laser_theta robot_x robot_y robot_theta tv rv forward_safety
+side_safety turn_axis ipc_ts host logger_ts``
+
+Units are metres, radians and seconds. The stamp of a record is its ``ipc_ts`` field. Other record types
+(NEFF, TRUEPOS, SYNC, RAWLASER ...) are valid CARMEN and are passed over without comment.
+
+Conventions this reader fixes (the old FLASER/RLASER lines carry no laser geometry):
+- a FLASER/RLASER scan spans the PARAM ``laser_<front|rear>_laser_fov`` (degrees, default 180) starting at
+  -fov/2; its step is PARAM ``laser_<front|rear>_laser_resolution`` (degrees) when given, else fov/(n-1)
+  for an odd beam count n (both ends included: 181, 361) and fov/n for an even one (180, 360);
+- its maximum range is PARAM ``robot_<front|rear>_laser_max`` when given, else 80 m (a SICK LMS); the
+  laser sits at x = PARAM ``robot_<front|rear>laser_offset`` metres in the robot frame, the rear one facing
+  backwards;
+- readings at or beyond the maximum range (81.91 in many logs) mean "no return" and become ``+inf``;
+- FLASER ``x y theta`` is the pose the log states (raw logs: odometry, corrected logs: the SLAM pose) and
+  ``odom_*`` the odometry; ROBOTLASER lines carry the robot pose, used as both, and the laser pose, from
+  which the sensor offset follows (median over the scans).
+
+One laser is read (``laser="front"``: ROBOTLASER1 lines when the log has any, else FLASER; ``"rear"``:
+ROBOTLASER2, else RLASER). Every scan must have the first scan's beam count and laser parameters. A line
+that does not parse, declares a beam count its fields do not match, holds a NaN or negative range or a
+non-finite pose or stamp, or disagrees with the first scan's geometry is skipped and recorded with its
+line number in :attr:`LaserLog.skipped`; nothing is ever shifted into a neighbouring field.
+"""
+from __future__ import annotations
+
+import gzip
+import math
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from slam.angles import wrap_angle
+from slam.errors import LogFormatError
+from slam.laserlog import LaserLog, Skipped
+
+#: maximum range assumed for FLASER/RLASER lines when no PARAM gives one (m)
+DEFAULT_RANGE_MAX = 80.0
+#: field of view assumed for FLASER/RLASER lines when no PARAM gives one (deg)
+DEFAULT_FOV_DEG = 180.0
+
+_FRONT = {"old": "FLASER", "new": "ROBOTLASER1", "param": "front"}
+_REAR = {"old": "RLASER", "new": "ROBOTLASER2", "param": "rear"}
+
+
+@dataclass
+class _Scan:
+    line: int
+    stamp: float
+    ranges: list[float]
+    pose: tuple[float, float, float]
+    odometry: tuple[float, float, float]
+    geometry: tuple[float, ...]  # ROBOTLASER: (start_angle, angular_resolution, max_range); FLASER: ()
+    laser_pose: tuple[float, float, float] | None  # ROBOTLASER only
+
+
+class _BadLine(ValueError):
+    """A line that cannot be used; the message is the reason recorded in LaserLog.skipped."""
+
+
+def _floats(tokens: list[str], what: str) -> list[float]:
+    try:
+        values = [float(t) for t in tokens]
+    except ValueError:
+        bad = next(t for t in tokens if not _is_float(t))
+        raise _BadLine(f"{what} field '{bad[:20]}' is not a number") from None
+    return values
+
+
+def _is_float(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
+def _pose(values: list[float], what: str) -> tuple[float, float, float]:
+    if not all(math.isfinite(v) for v in values):
+        raise _BadLine(f"{what} is not finite")
+    return (values[0], values[1], values[2])
+
+
+def _stamp(token: str) -> float:
+    stamp = _floats([token], "timestamp")[0]
+    if not math.isfinite(stamp):
+        raise _BadLine("timestamp is not finite")
+    return stamp
+
+
+def _count(token: str, what: str, minimum: int = 1) -> int:
+    try:
+        n = int(token)
+    except ValueError:
+        raise _BadLine(f"{what} '{token[:20]}' is not an integer") from None
+    if n < minimum:
+        raise _BadLine(f"{what} is {n}, expected at least {minimum}")
+    return n
+
+
+def _ranges(tokens: list[str]) -> list[float]:
+    values = _floats(tokens, "range")
+    for i, value in enumerate(values):
+        if math.isnan(value) or value < 0:
+            raise _BadLine(f"range {i + 1} is {value}, expected a number >= 0")
+    return values
+
+
+def _parse_flaser(tokens: list[str], line: int) -> _Scan:
+    if len(tokens) < 2:
+        raise _BadLine("no beam count")
+    n = _count(tokens[1], "beam count")
+    if len(tokens) != n + 11:
+        raise _BadLine(f"declares {n} beams so needs {n + 11} fields, has {len(tokens)}")
+    ranges = _ranges(tokens[2 : 2 + n])
+    numbers = _floats(tokens[2 + n : 8 + n], "pose")
+    return _Scan(
+        line=line,
+        stamp=_stamp(tokens[8 + n]),
+        ranges=ranges,
+        pose=_pose(numbers[0:3], "pose"),
+        odometry=_pose(numbers[3:6], "odometry pose"),
+        geometry=(),
+        laser_pose=None,
+    )
+
+
+def _parse_robotlaser(tokens: list[str], line: int) -> _Scan:
+    if len(tokens) < 10:
+        raise _BadLine(f"has {len(tokens)} fields, a ROBOTLASER line needs at least 24")
+    header = _floats(tokens[2:8], "laser parameter")
+    start_angle, _fov, resolution, max_range = header[0], header[1], header[2], header[3]
+    if not all(math.isfinite(v) for v in header[:4]) or max_range <= 0:
+        raise _BadLine("laser parameters (start angle, fov, resolution, max range) are not finite and positive")
+    n = _count(tokens[8], "beam count")
+    if len(tokens) < n + 24:
+        raise _BadLine(f"declares {n} beams so needs at least {n + 24} fields, has {len(tokens)}")
+    m = _count(tokens[9 + n], "remission count", minimum=0)
+    if len(tokens) != n + m + 24:
+        raise _BadLine(f"declares {n} beams and {m} remissions so needs {n + m + 24} fields, has {len(tokens)}")
+    at = 10 + n + m
+    numbers = _floats(tokens[at : at + 6], "pose")
+    robot = _pose(numbers[3:6], "robot pose")
+    return _Scan(
+        line=line,
+        stamp=_stamp(tokens[at + 11]),
+        ranges=_ranges(tokens[9 : 9 + n]),
+        pose=robot,
+        odometry=robot,
+        geometry=(start_angle, resolution, max_range),
+        laser_pose=_pose(numbers[0:3], "laser pose"),
+    )
+
+
+def _parse_odom(tokens: list[str]) -> tuple[float, tuple[float, float, float]]:
+    if len(tokens) != 10:
+        raise _BadLine(f"has {len(tokens)} fields, an ODOM line needs 10")
+    return _stamp(tokens[7]), _pose(_floats(tokens[1:4], "pose"), "pose")
+
+
+def _open_text(path: Path):
+    with path.open("rb") as probe:
+        magic = probe.read(2)
+    if magic == b"\x1f\x8b":
+        return gzip.open(path, "rt", encoding="ascii", errors="replace")
+    return path.open("rt", encoding="ascii", errors="replace")
+
+
+def _scan_lines(path: Path, kinds: dict[str, str]):
+    """Parse the file; return (scans by record type, odometry records, params, skipped records)."""
+    scans: dict[str, list[_Scan]] = {kinds["old"]: [], kinds["new"]: []}
+    odom: list[tuple[float, tuple[float, float, float]]] = []
+    params: dict[str, str] = {}
+    skipped: list[Skipped] = []
+    line_no = 0
+    try:
+        with _open_text(path) as stream:
+            for line_no, text in enumerate(stream, start=1):
+                tokens = text.split()
+                if not tokens or tokens[0].startswith("#"):
+                    continue
+                kind = tokens[0]
+                try:
+                    if kind == kinds["old"]:
+                        scans[kind].append(_parse_flaser(tokens, line_no))
+                    elif kind == kinds["new"]:
+                        scans[kind].append(_parse_robotlaser(tokens, line_no))
+                    elif kind == "ODOM":
+                        odom.append(_parse_odom(tokens))
+                    elif kind == "PARAM":
+                        if len(tokens) < 3:
+                            raise _BadLine("a PARAM line needs a name and a value")
+                        params[tokens[1]] = tokens[2]
+                except _BadLine as exc:
+                    skipped.append(Skipped(line_no, f"{kind}: {exc}"))
+    except (EOFError, OSError, zlib.error) as exc:
+        if isinstance(exc, FileNotFoundError | IsADirectoryError | PermissionError):
+            raise LogFormatError(f"{path}: cannot open the log ({exc.strerror})") from None
+        skipped.append(Skipped(line_no + 1, f"the compressed stream is truncated or corrupt ({exc}); reading stopped"))
+    return scans, odom, params, skipped
+
+
+def _param_float(params: dict[str, str], name: str, default: float, path: Path) -> float:
+    if name not in params:
+        return default
+    try:
+        value = float(params[name])
+    except ValueError:
+        raise LogFormatError(f"{path}: PARAM {name} is '{params[name]}', not a number") from None
+    if not math.isfinite(value):
+        raise LogFormatError(f"{path}: PARAM {name} is {value}, not a finite number")
+    return value
+
+
+def _flaser_geometry(params: dict[str, str], side: str, beams: int, path: Path) -> tuple[float, float, float]:
+    """(angle_min rad, angle_increment rad, range_max m) for FLASER/RLASER lines of ``beams`` beams."""
+    fov = math.radians(_param_float(params, f"laser_{side}_laser_fov", DEFAULT_FOV_DEG, path))
+    default_step = fov / (beams - 1) if beams % 2 == 1 and beams > 1 else fov / beams
+    step = math.radians(_param_float(params, f"laser_{side}_laser_resolution", math.degrees(default_step), path))
+    range_max = _param_float(params, f"robot_{side}_laser_max", DEFAULT_RANGE_MAX, path)
+    if step <= 0 or range_max <= 0:
+        raise LogFormatError(f"{path}: the {side} laser's resolution and maximum range must be positive")
+    return -0.5 * fov, step, range_max
+
+
+def _robot_to_laser_offsets(scans: list[_Scan]) -> np.ndarray:
+    """Per scan, the laser pose in the robot frame: robot^-1 (+) laser, (N, 3)."""
+    robot = np.array([s.pose for s in scans])
+    laser = np.array([s.laser_pose for s in scans])
+    dx, dy = laser[:, 0] - robot[:, 0], laser[:, 1] - robot[:, 1]
+    c, s = np.cos(robot[:, 2]), np.sin(robot[:, 2])
+    return np.stack([c * dx + s * dy, -s * dx + c * dy, wrap_angle(laser[:, 2] - robot[:, 2])], axis=1)
+
+
+def read_carmen(path: str | Path, laser: str = "front") -> LaserLog:
+    """Read one laser's scans (with odometry), the ODOM stream and the PARAMs of a CARMEN log.
+
+    ``path``: a CARMEN log, plain text or gzip (detected from the content). ``laser``: "front" or "rear".
+    Raises :class:`LogFormatError` when the file cannot be opened or holds no usable scan of that laser;
+    everything else that is wrong is skipped and listed in the result's ``skipped``.
+    """
+    if laser not in ("front", "rear"):
+        raise LogFormatError(f"laser must be 'front' or 'rear', got '{laser}'")
+    path = Path(path)
+    if not path.is_file():
+        raise LogFormatError(f"{path}: no such file (expected a CARMEN log)")
+    kinds = _FRONT if laser == "front" else _REAR
+    scans_by_kind, odom, params, skipped = _scan_lines(path, kinds)
+    kind = kinds["new"] if scans_by_kind[kinds["new"]] else kinds["old"]
+    scans = scans_by_kind[kind]
+    if not scans:
+        raise LogFormatError(
+            f"{path}: holds no usable {laser} laser scan ({kinds['old']} or {kinds['new']} line)"
+            + (f"; first problem at line {skipped[0].where}: {skipped[0].reason}" if skipped else "")
+        )
+    first = scans[0]
+    beams = len(first.ranges)
+    kept: list[_Scan] = []
+    for scan in scans:
+        if len(scan.ranges) != beams:
+            skipped.append(Skipped(scan.line, f"{kind}: has {len(scan.ranges)} beams, the log's first scan {beams}"))
+        elif scan.geometry and not np.allclose(scan.geometry, first.geometry, rtol=1e-6, atol=1e-9):
+            skipped.append(Skipped(scan.line, f"{kind}: laser parameters differ from the first scan's"))
+        else:
+            kept.append(scan)
+    skipped.sort(key=lambda s: s.where)
+    side = kinds["param"]
+    if first.geometry:
+        angle_min, angle_increment, range_max = first.geometry
+        offset = np.median(_robot_to_laser_offsets(kept), axis=0)
+    else:
+        angle_min, angle_increment, range_max = _flaser_geometry(params, side, beams, path)
+        forward = _param_float(params, f"robot_{side}laser_offset", 0.0, path)
+        offset = np.array([forward, 0.0, 0.0 if side == "front" else math.pi])
+    ranges = np.array([s.ranges for s in kept], dtype=np.float32)
+    ranges[ranges >= range_max] = np.inf
+    return LaserLog(
+        source=str(path),
+        stamps=np.array([s.stamp for s in kept], dtype=np.float64),
+        ranges=ranges,
+        angle_min=float(angle_min),
+        angle_increment=float(angle_increment),
+        range_min=0.0,
+        range_max=float(range_max),
+        sensor_offset=np.asarray(offset, dtype=np.float64),
+        odometry=np.array([s.odometry for s in kept], dtype=np.float64),
+        poses=np.array([s.pose for s in kept], dtype=np.float64),
+        where=np.array([s.line for s in kept], dtype=np.int64),
+        odom_stamps=np.array([o[0] for o in odom], dtype=np.float64),
+        odom_poses=np.array([o[1] for o in odom], dtype=np.float64).reshape(-1, 3),
+        params=params,
+        skipped=tuple(skipped),
+        unit="line",
+    )
+
+
+def _laser_poses(robot: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """Laser poses (T, 3) in the odometry frame: robot (+) offset."""
+    c, s = np.cos(robot[:, 2]), np.sin(robot[:, 2])
+    return np.stack(
+        [robot[:, 0] + c * offset[0] - s * offset[1], robot[:, 1] + s * offset[0] + c * offset[1],
+         wrap_angle(robot[:, 2] + offset[2])],
+        axis=1,
+    )
+
+
+def write_carmen(
+    path: str | Path,
+    stamps: np.ndarray,
+    ranges: np.ndarray,
+    odometry: np.ndarray,
+    angle_min: float,
+    angle_increment: float,
+    range_max: float,
+    sensor_offset: np.ndarray | None = None,
+    poses: np.ndarray | None = None,
+    record: str = "ROBOTLASER1",
+    host: str = "posegrid",
+) -> None:
+    """Write scans with odometry as a CARMEN log that :func:`read_carmen` reads back (gzip for a .gz path).
+
+    ``stamps`` (T,) s; ``ranges`` (T, B) m, NaN/inf/above ``range_max`` written as the max-range reading;
+    ``odometry`` (T, 3) robot odometry poses; beam i points at ``angle_min + i*angle_increment`` (rad, laser
+    frame); ``sensor_offset`` (3,) laser pose in the robot frame. ``record`` "ROBOTLASER1" stores the
+    geometry in every line; "FLASER" stores it in PARAM lines, needs a laser facing forwards on the robot's
+    x axis and ``angle_min`` = -fov/2, and also stores ``poses`` (T, 3) (default: the odometry) as the
+    line's pose. Numbers are written with 6 decimals.
+    """
+    stamps = np.asarray(stamps, dtype=np.float64)
+    ranges = np.asarray(ranges, dtype=np.float64)
+    odometry = np.asarray(odometry, dtype=np.float64)
+    offset = np.zeros(3) if sensor_offset is None else np.asarray(sensor_offset, dtype=np.float64)
+    poses = odometry if poses is None else np.asarray(poses, dtype=np.float64)
+    steps, beams = ranges.shape
+    if stamps.shape != (steps,) or odometry.shape != (steps, 3) or poses.shape != (steps, 3):
+        raise ValueError("stamps (T,), ranges (T, B), odometry (T, 3) and poses (T, 3) must agree on T")
+    if record not in ("ROBOTLASER1", "FLASER"):
+        raise ValueError(f"record must be 'ROBOTLASER1' or 'FLASER', got '{record}'")
+    if record == "FLASER" and (offset[1] != 0 or offset[2] != 0):
+        raise ValueError("a FLASER log can only hold a laser on the robot's x axis facing forwards")
+    clean = np.where(np.isfinite(ranges) & (ranges <= range_max), ranges, range_max)
+    fov = angle_increment * (beams - 1)
+    lines = ["# written by posegrid (slam.carmen.write_carmen)"]
+    if record == "FLASER":
+        lines += [
+            f"PARAM laser_front_laser_fov {math.degrees(-2.0 * angle_min):.17g} 0 {host} 0",
+            f"PARAM laser_front_laser_resolution {math.degrees(angle_increment):.17g} 0 {host} 0",
+            f"PARAM robot_front_laser_max {range_max:.17g} 0 {host} 0",
+            f"PARAM robot_frontlaser_offset {offset[0]:.17g} 0 {host} 0",
+        ]
+    laser = _laser_poses(odometry, offset)
+    for t in range(steps):
+        values = " ".join(f"{r:.6f}" for r in clean[t])
+        stamp = f"{stamps[t]:.6f}"
+        if record == "FLASER":
+            pose = " ".join(f"{v:.6f}" for v in (*poses[t], *odometry[t]))
+            lines.append(f"FLASER {beams} {values} {pose} {stamp} {host} {stamp}")
+        else:
+            head = f"ROBOTLASER1 0 {angle_min:.17g} {fov:.17g} {angle_increment:.17g} {range_max:.17g} 0.01 0"
+            pose = " ".join(f"{v:.6f}" for v in (*laser[t], *odometry[t]))
+            lines.append(f"{head} {beams} {values} 0 {pose} 0 0 0 0 0 {stamp} {host} {stamp}")
+    text = "\n".join(lines) + "\n"
+    path = Path(path)
+    if path.suffix == ".gz":
+        with gzip.open(path, "wt", encoding="ascii") as stream:
+            stream.write(text)
+    else:
+        path.write_text(text, encoding="ascii")

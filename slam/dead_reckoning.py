@@ -1,0 +1,28 @@
+"""Odometry-only dead reckoning: the motion model's mean and linearised covariance, measurements ignored.
+
+The baseline every SLAM filter must beat; its covariance grows without bound, as it should.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from slam.motion import MotionModel
+
+
+class DeadReckoning:
+    """Gaussian pose (mean (3,), cov (3, 3)) propagated through the controls alone (the EKF prediction step)."""
+
+    gaussian = True
+
+    def __init__(self, motion: MotionModel, initial_pose: np.ndarray) -> None:
+        self.motion = motion
+        self.mean = np.asarray(initial_pose, dtype=np.float64).copy()
+        self.cov = np.zeros((3, 3))
+
+    def step(self, controls: np.ndarray, measurements: np.ndarray, landmark_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Propagate through controls (K, 3); measurements are ignored. Returns (mean (3,), cov (3, 3))."""
+        for control in controls:
+            mean, jac_g, q = self.motion.linearize(self.mean[None, :], control)
+            self.mean = mean[0]
+            self.cov = jac_g[0] @ self.cov @ jac_g[0].T + q[0]
+        return self.mean.copy(), self.cov.copy()

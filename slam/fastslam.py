@@ -1,0 +1,219 @@
+"""FastSLAM 1.0 and 2.0 (Montemerlo, Thrun, Koller, Wegbreit 2002/2003; PR chapter 13), vectorised over particles.
+
+Each of N particles holds a pose (x, y, theta) in the map frame and one 2-D EKF per landmark. The landmark
+EKFs of all particles live in arrays: means ``mu`` (N, L, 2) in m, covariances ``sigma`` (N, L, 2, 2) in m^2
+and ``seen`` (N, L); every per-step operation works on all particles at once (no loop over particles).
+
+- Version 1: the pose is drawn from the motion model alone; the weight is the measurement likelihood
+  N(z; z_hat, H_m Sigma H_m^T + R).
+- Version 2: the pose is drawn from the proposal that also conditions on the measurements. The controls since
+  the last step are linearised into a Gaussian N(x_hat, P) per particle; each measurement of a known landmark
+  refines it by a Kalman update (the gain P H_x^T S^-1, which stays finite when P = 0) and multiplies the
+  weight by N(z; z_hat, H_x P H_x^T + H_m Sigma H_m^T + R); then one pose is sampled per particle.
+After the pose, each landmark EKF is updated with the measurement (or initialised on first sight).
+
+Correspondences: known (one landmark slot per id, shared by all particles) or unknown (per-particle
+maximum-likelihood association, each landmark taking at most one measurement per step; a measurement whose
+best likelihood is below p0 starts a new landmark in that particle, and the weight takes p0). With known ids, ``outlier_gate`` (a squared Mahalanobis distance)
+makes a measurement beyond it update nothing in that particle and caps its likelihood at the gate's value,
+so one wild measurement cannot wipe out the particles that explain the rest.
+
+Output per step: the poses (N, 3) and normalised importance weights (N,) before resampling; then, when the
+effective sample size falls under ``resample_threshold * N``, low-variance resampling.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from slam.angles import wrap_angle
+from slam.motion import MotionModel
+from slam.range_bearing import RangeBearingModel, inverse_measurement, predict_measurement
+from slam.resampling import effective_sample_size, low_variance_resample, normalize_log_weights
+from slam.stats import inv2, sample_gaussian
+
+#: chi-square(2) quantile 0.9999: with unknown correspondences, the default p0 is the likelihood at this
+#: squared Mahalanobis distance under the measurement noise alone
+CHI2_2_9999 = 18.4207
+
+
+def _t(mat: np.ndarray) -> np.ndarray:
+    return np.swapaxes(mat, -1, -2)
+
+
+class FastSLAM:
+    """A Rao-Blackwellised particle filter over poses with per-particle landmark EKFs."""
+
+    gaussian = False
+
+    def __init__(
+        self,
+        motion: MotionModel,
+        sensor: RangeBearingModel,
+        initial_pose: np.ndarray,
+        n_particles: int = 100,
+        version: int = 2,
+        known_correspondences: bool = True,
+        seed: int = 0,
+        resample_threshold: float = 0.5,
+        outlier_gate: float | None = None,
+        new_landmark_loglik: float | None = None,
+    ) -> None:
+        if version not in (1, 2):
+            raise ValueError(f"FastSLAM version must be 1 or 2, got {version}")
+        if n_particles < 1:
+            raise ValueError(f"need at least one particle, got {n_particles}")
+        self.motion = motion
+        self.sensor = sensor
+        self.version = version
+        self.known = known_correspondences
+        self.rng = np.random.default_rng(seed)
+        self.resample_threshold = resample_threshold
+        self.outlier_gate = outlier_gate
+        if new_landmark_loglik is None:
+            new_landmark_loglik = -0.5 * CHI2_2_9999 - 0.5 * np.log(np.linalg.det(sensor.covariance(np.zeros(2)))) - np.log(2 * np.pi)
+        self.log_p0 = float(new_landmark_loglik)
+        n = n_particles
+        self.rows = np.arange(n)
+        self.poses = np.tile(np.asarray(initial_pose, dtype=np.float64), (n, 1))
+        self.pose_cov = np.zeros((n, 3, 3))  # version 2: covariance P of the motion prior since the last sample
+        self.log_w = np.zeros(n)
+        self.mu = np.zeros((n, 4, 2))
+        self.sigma = np.zeros((n, 4, 2, 2))
+        self.seen = np.zeros((n, 4), dtype=bool)
+        self.taken = np.zeros((n, 4), dtype=bool)  # unknown correspondences: slots matched in this step
+        self.count = np.zeros(n, dtype=np.int64)  # landmark slots in use per particle
+        self.slot_of: dict[int, int] = {}  # known correspondences: landmark id -> slot
+        self.resamplings = 0
+
+    # ------------------------------------------------------------------------------------------- state
+
+    def _ensure_capacity(self, needed: int) -> None:
+        capacity = self.mu.shape[1]
+        if needed <= capacity:
+            return
+        extra = max(needed, 2 * capacity) - capacity
+        self.mu = np.concatenate([self.mu, np.zeros((len(self.rows), extra, 2))], axis=1)
+        self.sigma = np.concatenate([self.sigma, np.zeros((len(self.rows), extra, 2, 2))], axis=1)
+        self.seen = np.concatenate([self.seen, np.zeros((len(self.rows), extra), dtype=bool)], axis=1)
+        self.taken = np.concatenate([self.taken, np.zeros((len(self.rows), extra), dtype=bool)], axis=1)
+
+    def landmarks(self, particle: int) -> tuple[np.ndarray, np.ndarray]:
+        """Slots (L,) and landmark means (L, 2) in m of one particle (known ids: slot k holds the k-th id seen)."""
+        slots = np.flatnonzero(self.seen[particle])
+        return slots, self.mu[particle, slots].copy()
+
+    # ------------------------------------------------------------------------------------------- models
+
+    def _innovation(self, poses, pose_cov, mu, sigma, z, noise):
+        """Innovation nu, its covariance S = H_x P H_x^T + H_m Sigma H_m^T + R and H_x, for broadcast stacks."""
+        z_hat, h_x, h_m = predict_measurement(poses, mu)
+        s = h_x @ pose_cov @ _t(h_x) + h_m @ sigma @ _t(h_m) + noise
+        nu = z - z_hat
+        nu[..., 1] = wrap_angle(nu[..., 1])
+        return nu, s, h_x
+
+    def _associate(self, z: np.ndarray, noise: np.ndarray, landmark_id: int):
+        """Slot (N,) and is-new (N,) of measurement z in each particle, with nu, S (inverse), H_x, d^2."""
+        if self.known:
+            if landmark_id not in self.slot_of:
+                self.slot_of[landmark_id] = len(self.slot_of)
+                self._ensure_capacity(len(self.slot_of))
+            slot = np.full(len(self.rows), self.slot_of[landmark_id])
+            is_new = ~self.seen[self.rows, slot]
+        else:
+            nu, s, _ = self._innovation(self.poses[:, None, :], self.pose_cov[:, None], self.mu, self.sigma, z, noise)
+            s_inv, det = inv2(s)
+            d2 = np.einsum("nli,nlij,nlj->nl", nu, s_inv, nu)
+            loglik = np.where(self.seen & ~self.taken, -0.5 * d2 - 0.5 * np.log(np.abs(det)) - np.log(2 * np.pi), -np.inf)
+            best = np.argmax(loglik, axis=1)
+            is_new = loglik[self.rows, best] < self.log_p0
+            slot = np.where(is_new, self.count, best)
+            self.count = self.count + is_new
+            self._ensure_capacity(int(self.count.max()))
+            self.taken[self.rows, slot] = True
+        nu, s, h_x = self._innovation(self.poses, self.pose_cov, self.mu[self.rows, slot], self.sigma[self.rows, slot], z, noise)
+        s_inv, det = inv2(s)
+        d2 = np.einsum("ni,nij,nj->n", nu, s_inv, nu)
+        return slot, is_new, nu, s_inv, det, h_x, d2
+
+    def predict(self, control: np.ndarray) -> None:
+        """Move every particle by one control: a sample (version 1) or the linearised Gaussian (version 2)."""
+        if self.version == 1:
+            self.poses = self.motion.sample(self.poses, control, self.rng)
+            return
+        mean, jac_g, q = self.motion.linearize(self.poses, control)
+        self.poses = mean
+        self.pose_cov = jac_g @ self.pose_cov @ _t(jac_g) + q
+
+    def update(self, measurements: np.ndarray, landmark_ids: np.ndarray) -> None:
+        """Weight by, sample with (version 2) and fuse the measurements (O, 2) of one step."""
+        pending = []
+        self.taken[:] = False
+        for z, landmark_id in zip(measurements, landmark_ids):
+            z = np.asarray(z, dtype=np.float64)
+            noise = self.sensor.covariance(z)
+            slot, is_new, nu, s_inv, det, h_x, d2 = self._associate(z, noise, int(landmark_id))
+            gate = np.inf if (self.outlier_gate is None or not self.known) else self.outlier_gate
+            inlier = ~is_new & (d2 <= gate)
+            loglik = -0.5 * np.minimum(d2, gate) - 0.5 * np.log(np.abs(det)) - np.log(2 * np.pi)
+            self.log_w += np.where(is_new, self.log_p0, loglik)
+            if self.version == 2:
+                gain = self.pose_cov @ _t(h_x) @ s_inv  # (N, 3, 2)
+                step = np.einsum("nij,nj->ni", gain, nu)
+                self.poses = np.where(inlier[:, None], self.poses + step, self.poses)
+                self.poses[:, 2] = wrap_angle(self.poses[:, 2])
+                shrink = gain @ h_x @ self.pose_cov
+                self.pose_cov = np.where(inlier[:, None, None], self.pose_cov - shrink, self.pose_cov)
+            pending.append((z, noise, slot, is_new, inlier))
+        if self.version == 2:
+            cov = 0.5 * (self.pose_cov + _t(self.pose_cov))
+            self.poses = sample_gaussian(self.poses, cov, self.rng)
+            self.poses[:, 2] = wrap_angle(self.poses[:, 2])
+            self.pose_cov = np.zeros_like(self.pose_cov)
+        for z, noise, slot, is_new, inlier in pending:
+            self._fuse_landmark(z, noise, slot, is_new, inlier)
+
+    def _fuse_landmark(self, z: np.ndarray, noise: np.ndarray, slot: np.ndarray, is_new: np.ndarray,
+                       inlier: np.ndarray) -> None:
+        """EKF update of each particle's landmark at ``slot`` from its pose, or its initialisation when new."""
+        mu = self.mu[self.rows, slot]
+        sigma = self.sigma[self.rows, slot]
+        z_hat, _, h_m = predict_measurement(self.poses, mu)
+        nu = z - z_hat
+        nu[:, 1] = wrap_angle(nu[:, 1])
+        q_inv, _ = inv2(h_m @ sigma @ _t(h_m) + noise)
+        gain = sigma @ _t(h_m) @ q_inv
+        updated_mu = mu + np.einsum("nij,nj->ni", gain, nu)
+        updated_sigma = sigma - gain @ h_m @ sigma
+        init_mu, j_z, _ = inverse_measurement(self.poses, z)
+        init_sigma = j_z @ noise @ _t(j_z)
+        new_mu = np.where(is_new[:, None], init_mu, np.where(inlier[:, None], updated_mu, mu))
+        new_sigma = np.where(is_new[:, None, None], init_sigma, np.where(inlier[:, None, None], updated_sigma, sigma))
+        self.mu[self.rows, slot] = new_mu
+        self.sigma[self.rows, slot] = 0.5 * (new_sigma + _t(new_sigma))
+        self.seen[self.rows, slot] |= is_new
+
+    def resample_if_degenerate(self, weights: np.ndarray) -> None:
+        """Low-variance resampling when N_eff < resample_threshold * N; else keep the weights."""
+        if effective_sample_size(weights) >= self.resample_threshold * len(weights):
+            self.log_w = np.log(np.maximum(weights, 1e-300))
+            return
+        keep = low_variance_resample(weights, self.rng)
+        self.poses = self.poses[keep]
+        self.pose_cov = self.pose_cov[keep]
+        self.mu = self.mu[keep]
+        self.sigma = self.sigma[keep]
+        self.seen = self.seen[keep]
+        self.count = self.count[keep]
+        self.log_w = np.zeros(len(weights))
+        self.resamplings += 1
+
+    def step(self, controls: np.ndarray, measurements: np.ndarray, landmark_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Predict through controls (K, 3), update with measurements (O, 2); return poses (N, 3) and weights (N,)."""
+        for control in controls:
+            self.predict(control)
+        self.update(measurements, landmark_ids)
+        weights = normalize_log_weights(self.log_w)
+        samples = self.poses.copy()
+        self.resample_if_degenerate(weights)
+        return samples, weights

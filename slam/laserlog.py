@@ -1,0 +1,74 @@
+"""What a 2D laser log reader returns: scans with odometry, in arrays, plus what it had to skip.
+
+Frames and units: ``odometry`` and ``poses`` are robot poses (x m, y m, yaw rad) in the log's odometry
+frame (``poses``: the frame of whatever produced them, e.g. a SLAM-corrected map frame); ``sensor_offset`` is
+the laser's (x m, y m, yaw rad) in the robot frame; ranges are metres along each beam from the laser,
+``+inf`` where the log records no return (a reading at or beyond the log's maximum range).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from slam.angles import wrap_angle
+
+
+@dataclass(frozen=True)
+class Skipped:
+    """One input record a reader could not use: where it is (1-based line or message number) and why."""
+
+    where: int
+    reason: str
+
+
+@dataclass(frozen=True)
+class LaserLog:
+    """T laser scans of B beams in file order, each with the robot's odometry pose at the scan's time."""
+
+    source: str  # file the log came from, for messages
+    stamps: np.ndarray  # float64 (T,) s
+    ranges: np.ndarray  # float32 (T, B) m; +inf = no return
+    angle_min: float  # rad, laser frame
+    angle_increment: float  # rad
+    range_min: float  # m
+    range_max: float  # m
+    sensor_offset: np.ndarray  # float64 (3,): laser pose in the robot frame
+    odometry: np.ndarray  # float64 (T, 3): robot odometry pose at each scan
+    poses: np.ndarray  # float64 (T, 3): the robot pose the log states for each scan (corrected logs: SLAM pose)
+    where: np.ndarray  # int64 (T,): the 1-based line or message number of each scan
+    odom_stamps: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (K,) s: separate odometry stream
+    odom_poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (K, 3)
+    params: dict[str, str] = field(default_factory=dict)
+    skipped: tuple[Skipped, ...] = ()
+    unit: str = "line"  # what `where` counts: "line" or "message"
+
+    def __len__(self) -> int:
+        return len(self.stamps)
+
+    @property
+    def beam_angles(self) -> np.ndarray:
+        """Beam angles (B,) in rad, laser frame."""
+        return self.angle_min + self.angle_increment * np.arange(self.ranges.shape[1])
+
+    def skipped_summary(self, limit: int = 5) -> str:
+        """One sentence naming how many records were skipped, the first few places and their reasons."""
+        if not self.skipped:
+            return f"{self.source}: read {len(self)} scans, skipped nothing"
+        shown = "; ".join(f"{self.unit} {s.where}: {s.reason}" for s in self.skipped[:limit])
+        more = f"; and {len(self.skipped) - limit} more" if len(self.skipped) > limit else ""
+        return f"{self.source}: read {len(self)} scans, skipped {len(self.skipped)} {self.unit}s ({shown}{more})"
+
+
+def interpolate_poses(stamps: np.ndarray, poses: np.ndarray, query: np.ndarray) -> np.ndarray:
+    """Poses (Q, 3) at the ``query`` stamps (s), linear in x, y and in unwrapped yaw between neighbours.
+
+    ``stamps`` (K,) must be non-decreasing; queries outside [stamps[0], stamps[-1]] take the end pose.
+    Yaw is unwrapped along the sequence first, so interpolation across +-pi takes the short way.
+    """
+    yaw = np.unwrap(poses[:, 2])
+    out = np.empty((len(query), 3))
+    out[:, 0] = np.interp(query, stamps, poses[:, 0])
+    out[:, 1] = np.interp(query, stamps, poses[:, 1])
+    out[:, 2] = wrap_angle(np.interp(query, stamps, yaw))
+    return out

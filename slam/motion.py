@@ -1,0 +1,194 @@
+"""Motion models of Probabilistic Robotics (Thrun, Burgard, Fox), chapter 5, vectorised over poses.
+
+Poses are rows (x, y, theta) in the map frame (m, m, rad). A control is one row of three numbers whose
+meaning depends on the model:
+
+- :class:`VelocityMotionModel`: ``(v, w, dt)``, translational velocity (m/s), rotational velocity (rad/s)
+  and the time (s) the command is held (section 5.3);
+- :class:`OdometryMotionModel`: ``(delta_rot1, delta_trans, delta_rot2)`` (rad, m, rad), the relative motion
+  between two odometry readings (section 5.4), as :func:`odometry_controls` computes it.
+
+Every model offers the same three operations, each taking poses (N, 3) and one control (3,):
+``predict`` (noise-free motion), ``sample`` (one draw of the noisy motion per pose, for particle filters)
+and ``linearize`` (noise-free motion with the Jacobian G = dg/dx and the process-noise covariance
+Q = V M V^T in pose space, for EKFs).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from slam.angles import wrap_angle
+
+#: below this odometry translation (m) a motion counts as a turn on the spot and delta_rot1 is taken as 0
+MIN_TRANSLATION = 1e-6
+
+
+def _sinc(a: np.ndarray) -> np.ndarray:
+    """sin(a)/a, exact at a = 0."""
+    return np.sinc(a / np.pi)
+
+
+def _dsinc(a: np.ndarray) -> np.ndarray:
+    """d/da of sin(a)/a, with its Taylor series near 0 where the closed form cancels."""
+    small = np.abs(a) < 1e-3
+    safe = np.where(small, 1.0, a)
+    closed = (safe * np.cos(safe) - np.sin(safe)) / safe**2
+    return np.where(small, -a / 3.0 + a**3 / 30.0, closed)
+
+
+@dataclass(frozen=True)
+class VelocityMotionModel:
+    """The velocity motion model (PR table 5.3) with rate-independent noise.
+
+    The executed velocities are v^ = v + e1, w^ = w + e2 and a final rotation rate g^ = e3, with zero-mean
+    Gaussian e_i of variances (a1 v^2 + a2 w^2, a3 v^2 + a4 w^2, a5 v^2 + a6 w^2) * (dt_ref / dt).
+    At dt = dt_ref this is exactly PR's model; the factor dt_ref/dt keeps the pose-error variance growing
+    linearly in time whatever the control rate (PR's per-step noise would shrink as the rate rises).
+
+    alphas: (a1..a6) dimensionless (a2 in (m/rad)^2, a3 in (rad/m)^2 as PR uses them); dt_ref: s.
+    """
+
+    alphas: tuple[float, float, float, float, float, float] = (0.01, 0.0025, 0.01, 0.01, 0.001, 0.001)
+    dt_ref: float = 0.1
+
+    def velocity_variances(self, v: float, w: float, dt: float) -> np.ndarray:
+        """Variances (3,) of the (v, w, gamma) errors, (m/s)^2 and (rad/s)^2, for a command held dt s."""
+        a = self.alphas
+        scale = self.dt_ref / dt if dt > 0 else 0.0
+        return np.array([a[0] * v * v + a[1] * w * w, a[2] * v * v + a[3] * w * w, a[4] * v * v + a[5] * w * w]) * scale
+
+    @staticmethod
+    def _move(poses: np.ndarray, v: np.ndarray, w: np.ndarray, gamma: np.ndarray, dt: float) -> np.ndarray:
+        half = w * dt / 2.0
+        dist = v * dt * _sinc(half)
+        heading = poses[:, 2] + half
+        return np.stack(
+            [
+                poses[:, 0] + dist * np.cos(heading),
+                poses[:, 1] + dist * np.sin(heading),
+                wrap_angle(poses[:, 2] + (w + gamma) * dt),
+            ],
+            axis=1,
+        )
+
+    def predict(self, poses: np.ndarray, control: np.ndarray) -> np.ndarray:
+        """Noise-free motion of poses (N, 3) under control (v, w, dt); exact circular arcs."""
+        v, w, dt = control
+        zeros = np.zeros(len(poses))
+        return self._move(poses, zeros + v, zeros + w, zeros, dt)
+
+    def sample(self, poses: np.ndarray, control: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """One noisy motion per pose (PR table 5.3, sample_motion_model_velocity)."""
+        v, w, dt = control
+        std = np.sqrt(self.velocity_variances(v, w, dt))
+        noise = rng.standard_normal((len(poses), 3)) * std
+        return self._move(poses, v + noise[:, 0], w + noise[:, 1], noise[:, 2], dt)
+
+    def linearize(self, poses: np.ndarray, control: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Noise-free motion (N, 3), G = dg/dpose (N, 3, 3) and Q = V M V^T (N, 3, 3) in pose space.
+
+        V = dg/d(v, w, gamma) is taken at the commanded control; M is the diagonal of
+        :meth:`velocity_variances`.
+        """
+        v, w, dt = control
+        n = len(poses)
+        half = w * dt / 2.0
+        s = _sinc(np.float64(half))
+        ds = _dsinc(np.float64(half))
+        heading = poses[:, 2] + half
+        cos_h, sin_h = np.cos(heading), np.sin(heading)
+        dist = v * dt * s
+        mean = self.predict(poses, control)
+        jac_g = np.zeros((n, 3, 3))
+        jac_g[:, 0, 0] = jac_g[:, 1, 1] = jac_g[:, 2, 2] = 1.0
+        jac_g[:, 0, 2] = -dist * sin_h
+        jac_g[:, 1, 2] = dist * cos_h
+        jac_v = np.zeros((n, 3, 3))
+        jac_v[:, 0, 0] = dt * s * cos_h
+        jac_v[:, 1, 0] = dt * s * sin_h
+        jac_v[:, 0, 1] = v * dt * ds * (dt / 2.0) * cos_h - dist * sin_h * (dt / 2.0)
+        jac_v[:, 1, 1] = v * dt * ds * (dt / 2.0) * sin_h + dist * cos_h * (dt / 2.0)
+        jac_v[:, 2, 1] = dt
+        jac_v[:, 2, 2] = dt
+        variances = self.velocity_variances(v, w, dt)
+        q = np.einsum("nij,j,nkj->nik", jac_v, variances, jac_v)
+        return mean, jac_g, q
+
+
+def odometry_controls(odometry: np.ndarray) -> np.ndarray:
+    """Relative motions (T-1, 3) (delta_rot1 rad, delta_trans m, delta_rot2 rad) between consecutive
+    odometry readings (T, 3) (x, y, theta in the robot's odometry frame), PR table 5.6 lines 2-4.
+
+    A translation under :data:`MIN_TRANSLATION` is a turn on the spot: delta_rot1 = 0 and delta_rot2 holds
+    the whole rotation.
+    """
+    odometry = np.asarray(odometry, dtype=np.float64)
+    dxy = np.diff(odometry[:, :2], axis=0)
+    trans = np.hypot(dxy[:, 0], dxy[:, 1])
+    rot1 = np.where(trans < MIN_TRANSLATION, 0.0, wrap_angle(np.arctan2(dxy[:, 1], dxy[:, 0]) - odometry[:-1, 2]))
+    rot2 = wrap_angle(np.diff(odometry[:, 2]) - rot1)
+    return np.stack([rot1, trans, rot2], axis=1)
+
+
+@dataclass(frozen=True)
+class OdometryMotionModel:
+    """The odometry motion model (PR table 5.6): noise on (delta_rot1, delta_trans, delta_rot2).
+
+    Variances: rot1: a1 rot1^2 + a2 trans^2; trans: a3 trans^2 + a4 (rot1^2 + rot2^2); rot2: a1 rot2^2 + a2 trans^2.
+    """
+
+    alphas: tuple[float, float, float, float] = (0.005, 0.005, 0.005, 0.005)
+
+    def motion_variances(self, control: np.ndarray) -> np.ndarray:
+        """Variances (..., 3) of the errors of (delta_rot1 rad, delta_trans m, delta_rot2 rad) for controls (..., 3)."""
+        control = np.asarray(control, dtype=np.float64)
+        rot1, trans, rot2 = control[..., 0], control[..., 1], control[..., 2]
+        a = self.alphas
+        return np.stack(
+            [a[0] * rot1**2 + a[1] * trans**2, a[2] * trans**2 + a[3] * (rot1**2 + rot2**2), a[0] * rot2**2 + a[1] * trans**2],
+            axis=-1,
+        )
+
+    @staticmethod
+    def _move(poses: np.ndarray, rot1: np.ndarray, trans: np.ndarray, rot2: np.ndarray) -> np.ndarray:
+        heading = poses[:, 2] + rot1
+        return np.stack(
+            [poses[:, 0] + trans * np.cos(heading), poses[:, 1] + trans * np.sin(heading), wrap_angle(heading + rot2)],
+            axis=1,
+        )
+
+    def predict(self, poses: np.ndarray, control: np.ndarray) -> np.ndarray:
+        """Noise-free motion of poses (N, 3) by the relative motion control (rot1, trans, rot2)."""
+        zeros = np.zeros(len(poses))
+        return self._move(poses, zeros + control[0], zeros + control[1], zeros + control[2])
+
+    def sample(self, poses: np.ndarray, control: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """One noisy motion per pose (PR table 5.6, sample_motion_model_odometry)."""
+        std = np.sqrt(self.motion_variances(control))
+        noisy = np.asarray(control) - rng.standard_normal((len(poses), 3)) * std
+        return self._move(poses, noisy[:, 0], noisy[:, 1], noisy[:, 2])
+
+    def linearize(self, poses: np.ndarray, control: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Noise-free motion (N, 3), G = dg/dpose (N, 3, 3) and Q = V M V^T (N, 3, 3)."""
+        rot1, trans, _ = control
+        n = len(poses)
+        heading = poses[:, 2] + rot1
+        cos_h, sin_h = np.cos(heading), np.sin(heading)
+        jac_g = np.zeros((n, 3, 3))
+        jac_g[:, 0, 0] = jac_g[:, 1, 1] = jac_g[:, 2, 2] = 1.0
+        jac_g[:, 0, 2] = -trans * sin_h
+        jac_g[:, 1, 2] = trans * cos_h
+        jac_v = np.zeros((n, 3, 3))
+        jac_v[:, 0, 0] = -trans * sin_h
+        jac_v[:, 1, 0] = trans * cos_h
+        jac_v[:, 0, 1] = cos_h
+        jac_v[:, 1, 1] = sin_h
+        jac_v[:, 2, 0] = jac_v[:, 2, 2] = 1.0
+        q = np.einsum("nij,j,nkj->nik", jac_v, self.motion_variances(control), jac_v)
+        return self.predict(poses, control), jac_g, q
+
+
+#: either motion model; both offer predict, sample and linearize over poses (N, 3) and one control (3,)
+MotionModel = VelocityMotionModel | OdometryMotionModel

@@ -1,0 +1,247 @@
+"""ROS 1 and ROS 2 bags (through the ``rosbags`` library, no ROS needed): laser scans with odometry.
+
+What is read:
+- scans: ``sensor_msgs/LaserScan`` on the scan topic (``scan_topic``, default: the bag's only LaserScan
+  topic, or ``/scan`` when it has several); every scan must have the first one's beam count and geometry;
+- odometry: ``nav_msgs/Odometry`` on the odometry topic (default: the only Odometry topic, or ``/odom``);
+  without one, the ``tf2_msgs/TFMessage`` transforms on ``/tf`` whose child is the robot's base frame;
+- the laser's pose on the robot: the chain of ``/tf_static`` transforms from the scan's frame up to the
+  base frame (the Odometry child frame, else the root of that chain), projected to (x, y, yaw).
+
+Each scan's odometry pose is interpolated at the scan's header stamp between the two odometry poses around
+it (linear in x, y and unwrapped yaw; real bags publish odometry irregularly, the Intel lab's with gaps of
+up to 3 s). A scan is skipped when those two are more than ``max_odom_gap`` seconds apart, or when it lies
+outside the odometry's time span by more than ``max_odom_hold`` seconds (within that, the end pose is
+held); likewise one that does not decode or differs from the first scan's geometry. Each skip records the
+scan's 1-based message number (counting all messages of the topics read, in bag order) and the reason.
+Readings at or above the scan's range_max become ``+inf`` (no return); NaN readings stay NaN (invalid).
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from slam.errors import LogFormatError
+from slam.laserlog import LaserLog, Skipped, interpolate_poses
+
+LASER_SCAN = "sensor_msgs/msg/LaserScan"
+ODOMETRY = "nav_msgs/msg/Odometry"
+TF_MESSAGE = "tf2_msgs/msg/TFMessage"
+
+#: a scan between two odometry messages further apart than this (s) is skipped
+DEFAULT_MAX_ODOM_GAP = 5.0
+#: a scan before the first or after the last odometry message by more than this (s) is skipped
+DEFAULT_MAX_ODOM_HOLD = 0.5
+
+
+def _stamp(header) -> float:
+    return header.stamp.sec + 1e-9 * header.stamp.nanosec
+
+
+def _yaw(q) -> float:
+    """Yaw (rad) of a quaternion: rotation about z of its projection onto the plane."""
+    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+
+
+def _compose(a: tuple[float, float, float], b: tuple[float, float, float]) -> tuple[float, float, float]:
+    c, s = math.cos(a[2]), math.sin(a[2])
+    yaw = (a[2] + b[2] + math.pi) % (2.0 * math.pi) - math.pi
+    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], yaw)
+
+
+def _pick_topic(connections, msgtype: str, wanted: str | None, usual: str, path: Path, what: str) -> str | None:
+    topics = sorted({c.topic for c in connections if c.msgtype == msgtype})
+    if wanted is not None:
+        if wanted not in topics:
+            raise LogFormatError(f"{path}: has no {msgtype} topic '{wanted}' (its {what} topics: {topics or 'none'})")
+        return wanted
+    if len(topics) == 1:
+        return topics[0]
+    if usual in topics:
+        return usual
+    if topics:
+        raise LogFormatError(f"{path}: has several {what} topics {topics}; name one")
+    return None
+
+
+def _open(path: Path):
+    from rosbags.highlevel import AnyReader, AnyReaderError
+    from rosbags.typesys import Stores, get_typestore
+
+    if not path.exists():
+        raise LogFormatError(f"{path}: no such file or bag folder (expected a ROS 1 .bag or a ROS 2 bag)")
+    reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+    try:
+        reader.open()
+    except (AnyReaderError, OSError, ValueError, KeyError) as exc:
+        raise LogFormatError(f"{path}: not a readable ROS bag ({exc})") from None
+    return reader
+
+
+def read_rosbag(
+    path: str | Path,
+    scan_topic: str | None = None,
+    odom_topic: str | None = None,
+    max_odom_gap: float = DEFAULT_MAX_ODOM_GAP,
+    max_odom_hold: float = DEFAULT_MAX_ODOM_HOLD,
+) -> LaserLog:
+    """Read a bag's laser scans with the robot's odometry pose at each scan (see the module docstring).
+
+    ``path``: a ROS 1 ``.bag`` file or a ROS 2 bag folder; ``max_odom_gap`` and ``max_odom_hold`` in s. Raises
+    :class:`LogFormatError` when the bag cannot be opened or yields no scan with odometry.
+    """
+    path = Path(path)
+    reader = _open(path)
+    try:
+        return _read(reader, path, scan_topic, odom_topic, max_odom_gap, max_odom_hold)
+    finally:
+        reader.close()
+
+
+def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hold) -> LaserLog:
+    conns = reader.connections
+    scan_topic = _pick_topic(conns, LASER_SCAN, scan_topic, "/scan", path, "LaserScan")
+    if scan_topic is None:
+        raise LogFormatError(f"{path}: has no sensor_msgs/LaserScan topic")
+    odom_topic = _pick_topic(conns, ODOMETRY, odom_topic, "/odom", path, "Odometry")
+    tf_topics = {c.topic for c in conns if c.msgtype == TF_MESSAGE}
+    wanted = {scan_topic, odom_topic, "/tf_static"} | ({"/tf"} if odom_topic is None else set())
+    selected = [c for c in conns if c.topic in wanted and (c.topic not in tf_topics or c.msgtype == TF_MESSAGE)]
+    if odom_topic is None and "/tf" not in tf_topics:
+        raise LogFormatError(f"{path}: has neither a nav_msgs/Odometry topic nor /tf transforms for odometry")
+
+    skipped: list[Skipped] = []
+    scans: list[tuple[int, float, np.ndarray, tuple]] = []
+    odom: list[tuple[float, tuple[float, float, float], str]] = []  # stamp, pose, child frame
+    tf_dynamic: list[tuple[float, str, str, tuple[float, float, float]]] = []
+    tf_static: dict[str, tuple[str, tuple[float, float, float]]] = {}
+    for number, (conn, _time, raw) in enumerate(reader.messages(connections=selected), start=1):
+        try:
+            msg = reader.deserialize(raw, conn.msgtype)
+        except Exception as exc:  # the decoder raises many types on corrupt bytes; a bad message is skipped
+            skipped.append(Skipped(number, f"{conn.topic}: does not decode as {conn.msgtype} ({type(exc).__name__})"))
+            continue
+        if conn.topic == scan_topic:
+            geometry = (float(msg.angle_min), float(msg.angle_increment), float(msg.range_min), float(msg.range_max))
+            ranges = np.asarray(msg.ranges, dtype=np.float32)
+            stamp = _stamp(msg.header)
+            if not (all(math.isfinite(g) for g in geometry) and math.isfinite(stamp)) or ranges.size == 0:
+                skipped.append(Skipped(number, f"{scan_topic}: no ranges, or a non-finite stamp or geometry"))
+                continue
+            scans.append((number, stamp, ranges, geometry + (msg.header.frame_id,)))
+        elif conn.topic == odom_topic:
+            p, q = msg.pose.pose.position, msg.pose.pose.orientation
+            pose = (float(p.x), float(p.y), _yaw(q))
+            stamp = _stamp(msg.header)
+            if not (all(math.isfinite(v) for v in pose) and math.isfinite(stamp)):
+                skipped.append(Skipped(number, f"{odom_topic}: non-finite pose or stamp"))
+                continue
+            odom.append((stamp, pose, msg.child_frame_id))
+        else:
+            for tf in msg.transforms:
+                t, q = tf.transform.translation, tf.transform.rotation
+                pose = (float(t.x), float(t.y), _yaw(q))
+                if not all(math.isfinite(v) for v in pose):
+                    skipped.append(Skipped(number, f"{conn.topic}: non-finite transform {tf.header.frame_id}->{tf.child_frame_id}"))
+                elif conn.topic == "/tf_static":
+                    tf_static[tf.child_frame_id] = (tf.header.frame_id, pose)
+                else:
+                    tf_dynamic.append((_stamp(tf.header), tf.header.frame_id, tf.child_frame_id, pose))
+    if not scans:
+        raise LogFormatError(f"{path}: no decodable scan on {scan_topic}")
+
+    laser_frame = scans[0][3][4]
+    base_frame = odom[0][2] if odom else None
+    offset, base_frame = _static_chain(tf_static, laser_frame, base_frame)
+    if odom_topic is None:
+        odom = [(s, pose, child) for s, parent, child, pose in tf_dynamic if child == base_frame]
+        if not odom:
+            raise LogFormatError(f"{path}: /tf holds no transform to the base frame '{base_frame}'")
+    odom.sort(key=lambda o: o[0])
+    odom_stamps = np.array([o[0] for o in odom])
+    odom_poses = np.array([o[1] for o in odom]).reshape(-1, 3)
+    if not len(odom_stamps):
+        raise LogFormatError(f"{path}: {odom_topic} holds no decodable odometry")
+
+    first = scans[0]
+    kept = []
+    for number, stamp, ranges, geometry in scans:
+        if ranges.size != first[2].size:
+            skipped.append(Skipped(number, f"{scan_topic}: has {ranges.size} beams, the first scan {first[2].size}"))
+        elif not np.allclose(geometry[:4], first[3][:4], rtol=1e-6, atol=1e-9) or geometry[4] != first[3][4]:
+            skipped.append(Skipped(number, f"{scan_topic}: geometry or frame differs from the first scan's"))
+        else:
+            problem = _odometry_problem(odom_stamps, stamp, max_odom_gap, max_odom_hold)
+            if problem:
+                skipped.append(Skipped(number, f"{scan_topic}: {problem}"))
+            else:
+                kept.append((number, stamp, ranges))
+    if not kept:
+        raise LogFormatError(f"{path}: no scan on {scan_topic} has odometry around its stamp ({skipped[-1].reason})")
+    skipped.sort(key=lambda s: s.where)
+    angle_min, angle_increment, range_min, range_max = first[3][:4]
+    stamps = np.array([k[1] for k in kept])
+    ranges = np.stack([k[2] for k in kept]).astype(np.float32)
+    ranges[ranges >= range_max] = np.inf
+    ranges[np.isneginf(ranges)] = np.nan
+    odometry = interpolate_poses(odom_stamps, odom_poses, stamps)
+    return LaserLog(
+        source=str(path),
+        stamps=stamps,
+        ranges=ranges,
+        angle_min=angle_min,
+        angle_increment=angle_increment,
+        range_min=range_min,
+        range_max=range_max,
+        sensor_offset=np.array(offset),
+        odometry=odometry,
+        poses=odometry.copy(),
+        where=np.array([k[0] for k in kept], dtype=np.int64),
+        odom_stamps=odom_stamps,
+        odom_poses=odom_poses,
+        skipped=tuple(skipped),
+        unit="message",
+    )
+
+
+def _odometry_problem(odom_stamps: np.ndarray, stamp: float, max_gap: float, max_hold: float) -> str:
+    """Why the odometry (sorted stamps, s) cannot give a pose at ``stamp``, or "" when it can."""
+    after = int(np.searchsorted(odom_stamps, stamp, side="left"))
+    if after < len(odom_stamps) and odom_stamps[after] == stamp:
+        return ""
+    if after == 0 or after == len(odom_stamps):
+        end = odom_stamps[0] if after == 0 else odom_stamps[-1]
+        if abs(end - stamp) > max_hold:
+            return f"{abs(end - stamp):.3g} s outside the odometry's time span (at most {max_hold} s)"
+        return ""
+    gap = odom_stamps[after] - odom_stamps[after - 1]
+    if gap > max_gap:
+        return f"the odometry messages around it are {gap:.3g} s apart (at most {max_gap} s)"
+    return ""
+
+
+def _static_chain(tf_static: dict, laser_frame: str, base_frame: str | None) -> tuple[tuple[float, float, float], str]:
+    """The laser's pose in the base frame from the static transforms, and the base frame's name.
+
+    Walks parent links from ``laser_frame`` until ``base_frame`` (or, when that is None, the chain's root).
+    A laser frame with no static parent is taken to be the base frame itself (zero offset).
+    """
+    pose = (0.0, 0.0, 0.0)
+    if laser_frame not in tf_static:
+        return pose, laser_frame if base_frame is None else base_frame
+    frame = laser_frame
+    seen = {frame}
+    while frame != base_frame and frame in tf_static:
+        parent, link = tf_static[frame]
+        pose = _compose(link, pose)
+        frame = parent
+        if frame in seen:
+            break
+        seen.add(frame)
+    if base_frame is not None and frame != base_frame:
+        raise LogFormatError(
+            f"no /tf_static chain links the laser frame '{laser_frame}' to the odometry frame '{base_frame}'"
+        )
+    return pose, frame

@@ -1,0 +1,67 @@
+"""Put a log's stamps into another log's time base by finding the scans the two share.
+
+SLAM-corrected logs are often re-stamped copies of a raw log (the Freiburg 079 corrected log runs
+1211.0 to 1211.5 s behind its raw bag, by an offset that drifts). A scan's ranges identify it: scans
+whose range vectors (rounded to 1 cm, readings beyond ``cap`` treated alike) occur exactly once in each
+log are pairs. Pairs out of time order are dropped; between pairs the offset is interpolated linearly,
+beyond the first and last pair it is held.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from slam.errors import LogFormatError
+from slam.laserlog import LaserLog
+
+#: readings at or beyond this (m) count as "no return" when comparing scans (raw and corrected logs may
+#: disagree on the maximum range, e.g. 80 m in a bag and 80.99 m in the CARMEN PARAMs)
+DEFAULT_CAP = 79.0
+
+
+def _keys(ranges: np.ndarray, cap: float) -> list[bytes]:
+    finite = np.isfinite(ranges) & (ranges < cap)
+    centi = np.where(finite, np.round(np.where(finite, ranges, 0.0) * 100.0), -1).astype(np.int32)
+    return [row.tobytes() for row in centi]
+
+
+def matching_scans(log: LaserLog, reference: LaserLog, cap: float = DEFAULT_CAP) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (P,), (P,) of the scans of ``log`` and ``reference`` with the same ranges, each unique in
+    both logs, in time order in both."""
+    if log.ranges.shape[1] != reference.ranges.shape[1]:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    ref_index: dict[bytes, int] = {}
+    ref_dupes: set[bytes] = set()
+    for i, key in enumerate(_keys(reference.ranges, cap)):
+        if key in ref_index:
+            ref_dupes.add(key)
+        ref_index[key] = i
+    own_keys = _keys(log.ranges, cap)
+    counts: dict[bytes, int] = {}
+    for key in own_keys:
+        counts[key] = counts.get(key, 0) + 1
+    pairs = [(i, ref_index[k]) for i, k in enumerate(own_keys) if counts[k] == 1 and k in ref_index and k not in ref_dupes]
+    pairs.sort(key=lambda p: log.stamps[p[0]])
+    kept: list[tuple[int, int]] = []
+    for i, j in pairs:
+        if not kept or reference.stamps[j] > reference.stamps[kept[-1][1]]:
+            kept.append((i, j))
+    arr = np.array(kept, dtype=np.int64).reshape(-1, 2)
+    return arr[:, 0], arr[:, 1]
+
+
+def time_map(log: LaserLog, reference: LaserLog, cap: float = DEFAULT_CAP) -> tuple[np.ndarray, np.ndarray]:
+    """(log stamps, offsets) (P,) at the shared scans: a stamp t of ``log`` is t + interp(t, stamps, offsets)
+    in ``reference``'s time base. Raises :class:`LogFormatError` with fewer than two shared scans."""
+    own, ref = matching_scans(log, reference, cap)
+    if len(own) < 2:
+        raise LogFormatError(
+            f"{log.source} and {reference.source} share {len(own)} scans with identical ranges; "
+            "need at least 2 to align their clocks"
+        )
+    stamps = log.stamps[own]
+    return stamps, reference.stamps[ref] - stamps
+
+
+def to_reference_time(stamps: np.ndarray, map_stamps: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """``stamps`` (s, the log's clock) in the reference clock, by the offsets of :func:`time_map`."""
+    return np.asarray(stamps, np.float64) + np.interp(stamps, map_stamps, offsets)

@@ -1,0 +1,444 @@
+"""`posegrid api` over HTTP (a real uvicorn process) against real mapper shards on a real Zenoh router.
+
+One stack for the module: a router, two shards mapping the test room moved to straddle the map frame's
+origin (so tile indices go negative) at 2 cm with 32-cell tiles (so there are four zoom levels), the API,
+and a source replaying 20 scans with weighted pose samples. The last test stops a shard.
+"""
+from __future__ import annotations
+
+import io
+import json
+import signal
+import socket
+import subprocess
+import threading
+import warnings
+import zipfile
+
+import httpx
+import numpy as np
+import pytest
+from PIL import Image
+
+from api_stack import POSEGRID, ROOT, Stack, wait_until, write_room
+from mapping.export import render_pgm
+from schemas.files import load_map, load_posed_scans
+from schemas.messages import TileUpdate
+from services import keys
+from services.map_client import MapReader
+from services.zenoh_config import build_config, open_session
+
+pytestmark = pytest.mark.slow
+
+MAP, SHARDS, RESOLUTION, TILE, SCANS = "lab", 2, 0.02, 32, 20
+SHIFT = (-1.0, -1.0)
+
+
+def settled(api: str, robot: str, scans: int):
+    """Stats once every shard fused ``scans`` of ``robot`` and the API has every tile update they published."""
+    stats = httpx.get(f"{api}/maps/{MAP}/stats", timeout=30).json()
+    shards = stats["per_shard"]
+    done = len(shards) == SHARDS and all(
+        s["answered"] and s["scans_fused"].get(robot) == scans and s["tile_updates_received"] == s["tile_updates"]
+        for s in shards)
+    return stats if done else None
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("api")
+    processes = Stack(folder)
+    try:
+        processes.router()
+        processes.mappers(SHARDS, MAP, "--resolution", str(RESOLUTION), "--tile-size", str(TILE))
+        processes.api()
+        processes.source(write_room(folder / "room.npz", SHIFT), MAP, SHARDS)
+        wait_until(lambda: settled(processes.api_url, "robot0", SCANS), 120, "the shards to fuse the replay")
+        yield processes
+    finally:
+        processes.stop()
+
+
+@pytest.fixture(scope="module")
+def api(stack) -> str:
+    return stack.api_url
+
+
+@pytest.fixture(scope="module")
+def session(stack):
+    zenoh_session = open_session(build_config("client", connect=[stack.endpoint]), "the test")
+    yield zenoh_session
+    zenoh_session.close()
+
+
+def shards_grid(session):
+    """The map as the shards hold it, asked over Zenoh without the API."""
+    return MapReader(session, MAP).assemble(SHARDS, RESOLUTION)
+
+
+def npz(response: httpx.Response) -> dict[str, np.ndarray]:
+    assert response.status_code == 200, response.text
+    with np.load(io.BytesIO(response.content)) as data:
+        return {key: data[key] for key in data.files}
+
+
+def problem(response: httpx.Response, status: int) -> str:
+    assert response.status_code == status, response.text
+    assert response.headers["content-type"] == "application/json"
+    detail = response.json()["detail"]
+    assert isinstance(detail, str) and detail
+    return detail
+
+
+# ------------------------------------------------------------------------------------------ maps
+
+
+def test_maps_report_extent_resolution_cells_and_shards(api, session):
+    grid = shards_grid(session)
+    tiles = grid.keys()
+    listed = httpx.get(f"{api}/maps", timeout=30).json()
+    assert [m["name"] for m in listed] == [MAP]
+    summary = httpx.get(f"{api}/maps/{MAP}", timeout=30).json()
+    assert summary == listed[0]
+    assert (summary["resolution"], summary["tile_size"], summary["shards"]) == (RESOLUTION, TILE, SHARDS)
+    assert summary["shards_alive"] == [0, 1]
+    assert summary["tiles"] == len(tiles)
+    bounds = summary["tile_bounds"]
+    assert (bounds["x_min"], bounds["x_max"]) == (min(t[0] for t in tiles), max(t[0] for t in tiles))
+    assert (bounds["y_min"], bounds["y_max"]) == (min(t[1] for t in tiles), max(t[1] for t in tiles))
+    assert bounds["x_min"] < 0 and bounds["y_min"] < 0
+    assert summary["extent"]["x_min"] == pytest.approx(bounds["x_min"] * TILE * RESOLUTION)
+    raster = grid.rasterize()
+    assert summary["cells"] == {"per_tile": TILE * TILE, "total": len(tiles) * TILE * TILE,
+                                "observed": int(raster["observed"].sum())}
+    height, width = raster["observed"].shape
+    observed = summary["observed_extent"]
+    assert observed["x_min"] == pytest.approx(raster["origin"][0])
+    assert observed["y_max"] == pytest.approx(raster["origin"][1] + height * RESOLUTION)
+    assert observed["x_max"] - observed["x_min"] == pytest.approx(width * RESOLUTION)
+    assert summary["max_zoom"] == 3  # x tiles -2..5 -> -1..2 -> -1..1 -> -1..0 (at most 2 x 2)
+
+
+def test_unknown_map_is_404_everywhere(api):
+    for path in ("/maps/nowhere", "/maps/nowhere/tiles/0/0/0.png", "/maps/nowhere/tiles/0/0/0.npz",
+                 "/maps/nowhere/stats", "/maps/nowhere/export?format=npz"):
+        detail = problem(httpx.get(api + path, timeout=30), 404)
+        assert "nowhere" in detail and MAP in detail, path
+
+
+# ------------------------------------------------------------------------------------------ tiles
+
+
+def test_level0_tiles_equal_the_shards_tiles(api, session):
+    grid = shards_grid(session)
+    for tile in grid.keys():
+        data = npz(httpx.get(f"{api}/maps/{MAP}/tiles/0/{tile[0]}/{tile[1]}.npz", timeout=30))
+        logodds, variance, observed = grid.tile_arrays(tile)
+        np.testing.assert_array_equal(data["logodds"], logodds)
+        np.testing.assert_array_equal(data["variance"], variance)
+        np.testing.assert_array_equal(data["observed"], observed)
+        np.testing.assert_allclose(data["origin"], grid.tile_origin(tile))
+        assert float(data["resolution"]) == RESOLUTION
+
+
+def reference_parent(children: list[dict | None]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The documented rule, written independently: NaN-mean over the observed cells of each 2 x 2 block."""
+    size = 2 * TILE
+    logodds, variance = np.full((size, size), np.nan), np.full((size, size), np.nan)
+    for (dx, dy), child in zip(((0, 0), (1, 0), (0, 1), (1, 1)), children):
+        if child is not None:
+            block = (slice(dy * TILE, (dy + 1) * TILE), slice(dx * TILE, (dx + 1) * TILE))
+            logodds[block] = np.where(child["observed"], child["logodds"], np.nan)
+            variance[block] = np.where(child["observed"], child["variance"], np.nan)
+    blocks = [layer.reshape(TILE, 2, TILE, 2).transpose(0, 2, 1, 3).reshape(TILE, TILE, 4)
+              for layer in (logodds, variance)]
+    seen = ~np.isnan(blocks[0]).all(axis=2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # "mean of empty slice" for unobserved blocks
+        means = [np.nan_to_num(np.nanmean(b, axis=2)) for b in blocks]
+    return means[0], means[1], seen
+
+
+def test_coarse_tiles_are_the_combination_of_their_four_children(api):
+    summary = httpx.get(f"{api}/maps/{MAP}", timeout=30).json()
+    bounds = summary["tile_bounds"]
+    tiles: dict[tuple[int, int, int], dict | None] = {}
+    with httpx.Client(base_url=api, timeout=30) as client:
+        for z in range(summary["max_zoom"] + 1):
+            for x in range(bounds["x_min"] >> z, (bounds["x_max"] >> z) + 1):
+                for y in range(bounds["y_min"] >> z, (bounds["y_max"] >> z) + 1):
+                    tiles[(z, x, y)] = npz(client.get(f"/maps/{MAP}/tiles/{z}/{x}/{y}.npz"))
+    checked = 0
+    for (z, x, y), parent in tiles.items():
+        if z == 0:
+            continue
+        children = [tiles.get((z - 1, 2 * x + dx, 2 * y + dy)) for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1))]
+        logodds, variance, observed = reference_parent(children)
+        np.testing.assert_array_equal(parent["observed"], observed)
+        np.testing.assert_allclose(parent["logodds"], logodds, rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose(parent["variance"], variance, rtol=1e-6, atol=1e-6)
+        cell = RESOLUTION * 2 ** z
+        assert float(parent["resolution"]) == pytest.approx(cell)
+        np.testing.assert_allclose(parent["origin"], [x * TILE * cell, y * TILE * cell])
+        checked += int(parent["observed"].any())
+    assert checked >= 3 + 2 + 1  # observed tiles at levels 1, 2 and 3
+
+
+def test_png_tiles_and_layers(api):
+    summary = httpx.get(f"{api}/maps/{MAP}", timeout=30).json()
+    base = f"{api}/maps/{MAP}/tiles/0/0/0.png"
+    images = {}
+    for layer in ("probability", "logodds", "variance"):
+        response = httpx.get(base, params={"layer": layer}, timeout=30)
+        assert response.status_code == 200 and response.headers["content-type"] == "image/png"
+        images[layer] = np.asarray(Image.open(io.BytesIO(response.content)).convert("RGB"))
+        assert images[layer].shape == (TILE, TILE, 3)
+    assert not np.array_equal(images["probability"], images["variance"])
+    red = images["variance"][..., 0].astype(int) - images["variance"][..., 2]
+    assert (red > 60).any(), "the variance ramp shows no red or yellow cell"
+    default = httpx.get(base, params={"layer": "variance"}, timeout=30)
+    explicit = httpx.get(base, params={"layer": "variance", "vmax": summary["variance_scale"]}, timeout=30)
+    assert default.headers["etag"] == explicit.headers["etag"] and default.content == explicit.content
+    other = httpx.get(base, params={"layer": "variance", "vmax": summary["variance_scale"] / 4}, timeout=30)
+    assert other.headers["etag"] != explicit.headers["etag"]
+
+
+def test_npz_tile_is_a_map_file_or_one_layer(api, tmp_path):
+    response = httpx.get(f"{api}/maps/{MAP}/tiles/1/0/0.npz", timeout=30)
+    path = tmp_path / "tile.npz"
+    path.write_bytes(response.content)
+    tile = load_map(path)  # the map-file loader validates every key
+    assert tile.logodds.shape == (TILE, TILE) and tile.resolution == pytest.approx(2 * RESOLUTION)
+    one = npz(httpx.get(f"{api}/maps/{MAP}/tiles/1/0/0.npz", params={"layer": "variance"}, timeout=30))
+    assert set(one) == {"variance", "observed", "origin", "resolution"}
+    np.testing.assert_array_equal(one["variance"], tile.variance)
+
+
+def test_cached_answer_matches_the_first_and_etag_round_trip(api):
+    url = f"{api}/maps/{MAP}/tiles/2/0/0.png?layer=logodds"
+    first, second = httpx.get(url, timeout=30), httpx.get(url, timeout=30)
+    assert first.status_code == second.status_code == 200
+    drop = {"date"}
+    assert {k: v for k, v in first.headers.items() if k not in drop} == \
+        {k: v for k, v in second.headers.items() if k not in drop}
+    assert first.content == second.content
+    etag = first.headers["etag"]
+    assert first.headers["cache-control"] == "no-cache"
+    not_modified = httpx.get(url, headers={"If-None-Match": etag}, timeout=30)
+    assert not_modified.status_code == 304 and not_modified.content == b""
+    assert not_modified.headers["etag"] == etag
+    assert httpx.get(url, headers={"If-None-Match": '"something-else"'}, timeout=30).status_code == 200
+    assert httpx.get(url, headers={"If-None-Match": f'"x", {etag}'}, timeout=30).status_code == 304
+
+
+def test_bad_tile_requests_are_4xx_with_a_reason(api):
+    summary = httpx.get(f"{api}/maps/{MAP}", timeout=30).json()
+    b, top = summary["tile_bounds"], summary["max_zoom"]
+    tiles = f"{api}/maps/{MAP}/tiles"
+    assert "coarsest" in problem(httpx.get(f"{tiles}/{top + 1}/0/0.png", timeout=30), 404)
+    assert "outside" in problem(httpx.get(f"{tiles}/0/{b['x_max'] + 1}/0.png", timeout=30), 404)
+    assert "outside" in problem(httpx.get(f"{tiles}/1/0/{(b['y_min'] >> 1) - 1}.npz", timeout=30), 404)
+    assert "'z'" in problem(httpx.get(f"{tiles}/-1/0/0.png", timeout=30), 422)
+    assert "'y'" in problem(httpx.get(f"{tiles}/0/0/north.png", timeout=30), 422)
+    assert "'layer'" in problem(httpx.get(f"{tiles}/0/0/0.png", params={"layer": "colour"}, timeout=30), 422)
+    assert "'vmax'" in problem(httpx.get(f"{tiles}/0/0/0.png", params={"layer": "variance", "vmax": 0},
+                                         timeout=30), 422)
+    assert "'vmax'" in problem(httpx.get(f"{tiles}/0/0/0.png", params={"layer": "variance", "vmax": "inf"},
+                                         timeout=30), 422)
+    assert ".png" in problem(httpx.get(f"{tiles}/0/0/0.jpg", timeout=30), 404)
+    assert "'format'" in problem(httpx.get(f"{api}/maps/{MAP}/export", params={"format": "tiff"}, timeout=30), 422)
+    assert "'format'" in problem(httpx.get(f"{api}/maps/{MAP}/export", timeout=30), 422)
+
+
+# ------------------------------------------------------------------------------------------ export
+
+
+def test_export_equals_the_shards_state(api, session, tmp_path):
+    raster = shards_grid(session).rasterize()
+    response = httpx.get(f"{api}/maps/{MAP}/export", params={"format": "npz"}, timeout=60)
+    assert response.headers["content-disposition"] == f'attachment; filename="{MAP}.npz"'
+    path = tmp_path / "export.npz"
+    path.write_bytes(response.content)
+    exported = load_map(path)
+    for key in ("logodds", "probability", "observed", "variance"):
+        np.testing.assert_array_equal(getattr(exported, key), raster[key], err_msg=key)
+    np.testing.assert_allclose(exported.origin, raster["origin"])
+    assert exported.resolution == RESOLUTION
+
+    archive = zipfile.ZipFile(io.BytesIO(httpx.get(f"{api}/maps/{MAP}/export", params={"format": "pgm"},
+                                                   timeout=60).content))
+    assert sorted(archive.namelist()) == [f"{MAP}.pgm", f"{MAP}.yaml"]
+    pgm, yaml = render_pgm(raster, image_name=f"{MAP}.pgm")
+    assert archive.read(f"{MAP}.pgm") == pgm and archive.read(f"{MAP}.yaml").decode() == yaml
+
+    png = httpx.get(f"{api}/maps/{MAP}/export", params={"format": "png", "layer": "variance"}, timeout=60)
+    assert png.headers["content-type"] == "image/png"
+    assert Image.open(io.BytesIO(png.content)).size == raster["observed"].shape[::-1]
+
+
+# ------------------------------------------------------------------------------------------ robots
+
+
+def test_robot_pose_and_trajectory(api, stack):
+    posed = load_posed_scans(stack.logs / "room.npz")
+    samples, weights = posed.poses.samples[-1], posed.poses.weights[-1]
+    assert [r["robot"] for r in httpx.get(f"{api}/robots", timeout=30).json()] == ["robot0"]
+    pose = httpx.get(f"{api}/robots/robot0/pose", timeout=30).json()
+    assert (pose["seq"], pose["form"], pose["samples_total"]) == (SCANS - 1, "samples", len(weights))
+    np.testing.assert_allclose(pose["samples"], samples)
+    np.testing.assert_allclose(pose["weights"], weights)
+    np.testing.assert_allclose(pose["mean"][:2], np.average(samples[:, :2], axis=0, weights=weights))
+    np.testing.assert_allclose(pose["covariance"][0][0], np.average((samples[:, 0] - pose["mean"][0]) ** 2,
+                                                                    weights=weights))
+    fewer = httpx.get(f"{api}/robots/robot0/pose", params={"max_samples": 3}, timeout=30).json()
+    assert len(fewer["samples"]) == 3 and sum(fewer["weights"]) == pytest.approx(1.0)
+    track = httpx.get(f"{api}/robots/robot0/trajectory", timeout=30).json()
+    assert track["seq"] == list(range(SCANS))
+    assert track["x"][-1] == pytest.approx(pose["mean"][0])
+    assert "robot9" in problem(httpx.get(f"{api}/robots/robot9/pose", timeout=30), 404)
+    assert "robot9" in problem(httpx.get(f"{api}/robots/robot9/trajectory", timeout=30), 404)
+    problem(httpx.get(f"{api}/robots/robot0/pose", params={"max_samples": 0}, timeout=30), 422)
+
+
+# ------------------------------------------------------------------------------------------ stats, health
+
+
+def test_stats_and_health(api):
+    stats = httpx.get(f"{api}/maps/{MAP}/stats", timeout=30).json()
+    assert (stats["shards"], stats["shards_alive"]) == (SHARDS, [0, 1])
+    assert stats["scans_fused"] == {"robot0": SCANS} and stats["lag_scans"] == {"robot0": 0}
+    for shard in stats["per_shard"]:
+        assert shard["alive"] and shard["answered"]
+        assert shard["received"]["pg/robot0/scan"] == SCANS and shard["tiles_owned"] > 0
+        assert shard["last_tile_update_age_s"] >= 0
+    health = httpx.get(f"{api}/health", timeout=30).json()
+    assert health["status"] == "ok"
+    assert health["maps"][MAP]["shards_alive"] == [0, 1] and "robot0" in health["robots"]
+
+
+def test_bad_zenoh_data_is_counted_by_key_never_trusted(api, session):
+    """Garbage, and a valid tile on the wrong key, are rejected per key; the API keeps serving."""
+    garbage_key = keys.tile_key(MAP, 0, 0, 0)
+    session.put(garbage_key, b"\x93not msgpack")
+    session.put(keys.robot_key("robot0", keys.POSE), b"\x81\xa4type\xa9PoseNoise")
+    tile = TileUpdate(map=MAP, shard=0, z=0, tx=0, ty=0, tile_size=TILE, resolution=RESOLUTION, row0=0, col0=0,
+                      robot="robot0", seq=0, published=0.0, logodds=np.zeros((1, 1), np.float32),
+                      variance=np.zeros((1, 1), np.float32), observed=np.ones((1, 1), bool))
+    wrong_key = keys.tile_key(MAP, 0, 7, 7)
+    session.put(wrong_key, tile.encode())
+
+    def counted():
+        rejected = httpx.get(f"{api}/health", timeout=30).json()["rejected"]
+        return all(rejected.get(k, 0) >= 1 for k in (garbage_key, wrong_key, "pg/robot0/pose")) and rejected
+    wait_until(counted, 30, "the API to count the bad messages")
+    shards = wait_until(lambda: [s for s in httpx.get(f"{api}/maps/{MAP}/stats", timeout=30).json()["per_shard"]
+                                 if s["rejected"].get("pg/robot0/pose")], 30, "the shards to count the bad pose")
+    assert len(shards) == SHARDS
+    stats = httpx.get(f"{api}/maps/{MAP}/stats", timeout=30).json()
+    assert stats["rejected"]["pg/robot0/pose"] >= SHARDS + 1  # both shards and the API
+    summary = httpx.get(f"{api}/maps/{MAP}", timeout=30).json()
+    assert summary["tile_bounds"]["x_max"] < 7  # the misplaced tile was not taken
+    assert httpx.get(f"{api}/maps/{MAP}/tiles/0/0/0.png", timeout=30).status_code == 200
+
+
+# ------------------------------------------------------------------------------------------ live changes
+
+
+def read_events(url: str, events: list, stop: threading.Event) -> None:
+    """Collect (event, data) pairs from a server-sent event stream until ``stop`` is set."""
+    with httpx.stream("GET", url, timeout=httpx.Timeout(30, read=None)) as response:
+        name = None
+        for line in response.iter_lines():
+            if line.startswith("event: "):
+                name = line[7:]
+            elif line.startswith("data: "):
+                events.append((name, json.loads(line[6:])))
+            if stop.is_set():
+                return
+
+
+def test_tiles_change_etags_change_and_events_flow(api, stack, tmp_path):
+    """A second robot maps the same room: the tiles it touches get new ETags and the stream says so."""
+    events: list = []
+    stop = threading.Event()
+    reader = threading.Thread(target=read_events, args=(f"{api}/events", events, stop), daemon=True)
+    reader.start()
+    wait_until(lambda: any(name == "hello" for name, _ in events), 30, "the event stream to open")
+    url = f"{api}/maps/{MAP}/tiles/0/1/0.npz"
+    before = httpx.get(url, timeout=30)
+    etag = before.headers["etag"]
+
+    stack.source(write_room(tmp_path / "second.npz", SHIFT, seed=1), MAP, SHARDS, robot="robot1")
+    wait_until(lambda: settled(api, "robot1", SCANS), 120, "the shards to fuse the second robot's scans")
+    after = httpx.get(url, headers={"If-None-Match": etag}, timeout=30)
+    assert after.status_code == 200 and after.headers["etag"] != etag
+    assert not np.array_equal(npz(after)["variance"], npz(before)["variance"])
+    assert httpx.get(url, headers={"If-None-Match": after.headers["etag"]}, timeout=30).status_code == 304
+
+    def seen():
+        tiles = {(tx, ty) for name, data in events if name == "tiles" and data["map"] == MAP
+                 for tx, ty, _ in data["tiles"]}
+        poses = [data for name, data in events if name == "pose" and data["robot"] == "robot1"]
+        return (1, 0) in tiles and poses and poses
+    poses = wait_until(seen, 30, "tiles and pose events of the second robot")
+    stop.set()
+    assert poses[-1]["seq"] == SCANS - 1 and len(poses[-1]["samples"]) == 10
+    assert sorted(r["robot"] for r in httpx.get(f"{api}/robots", timeout=30).json()) == ["robot0", "robot1"]
+
+
+# ------------------------------------------------------------------------------------------ docs, viewer, CLI
+
+
+def test_openapi_describes_every_parameter_and_error(api):
+    spec = httpx.get(f"{api}/openapi.json", timeout=30).json()
+    assert {"/maps", "/maps/{map}", "/maps/{map}/tiles/{z}/{x}/{y}.png", "/maps/{map}/tiles/{z}/{x}/{y}.npz",
+            "/maps/{map}/export", "/maps/{map}/stats", "/health", "/robots/{robot}/pose",
+            "/robots/{robot}/trajectory", "/events"} <= set(spec["paths"])
+    for path, operations in spec["paths"].items():
+        for method, operation in operations.items():
+            for parameter in operation.get("parameters", []):
+                assert parameter.get("description"), f"{method} {path}: {parameter['name']} has no description"
+            if "{" in path:
+                assert "404" in operation["responses"], f"{method} {path} documents no 404"
+            if operation.get("parameters"):
+                schema = operation["responses"]["422"]["content"]["application/json"]["schema"]
+                assert schema == {"$ref": "#/components/schemas/Problem"}, f"{method} {path}"
+    assert "m" in spec["components"]["schemas"]["Extent"]["properties"]["x_min"]["description"]
+
+
+def test_viewer_page_and_assets_are_served(api):
+    page = httpx.get(f"{api}/", timeout=30)
+    assert page.status_code == 200 and "text/html" in page.headers["content-type"]
+    assert "static/viewer.js" in page.text
+    for asset, kind in (("", "text/html"), ("static/viewer.js", "javascript"), ("static/viewer.css", "text/css")):
+        response = httpx.get(f"{api}/{asset}", timeout=30)
+        assert response.status_code == 200 and kind in response.headers["content-type"]
+        assert "https://" not in response.text and "http://" not in response.text, f"{asset} loads an outside asset"
+
+
+def test_api_command_rejects_a_taken_port():
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        result = subprocess.run([*POSEGRID, "api", "--port", str(port)], cwd=ROOT,
+                                capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and "pick another --port" in result.stderr
+    result = subprocess.run([*POSEGRID, "api", "--port", "70000"], cwd=ROOT,
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and "--port" in result.stderr
+
+
+# ------------------------------------------------------------------------------------------ last: a shard stops
+
+
+def test_a_stopped_shard_shows_in_health_and_stops_the_export(api, stack):
+    stack.processes["mapper1"].send_signal(signal.SIGINT)
+    stack.processes["mapper1"].wait(30)
+    health = wait_until(lambda: (h := httpx.get(f"{api}/health", timeout=30).json())["status"] == "degraded" and h,
+                        30, "health to report the stopped shard")
+    assert health["maps"][MAP]["shards_alive"] == [0]
+    stats = httpx.get(f"{api}/maps/{MAP}/stats", timeout=30).json()
+    assert [(s["shard"], s["alive"], s["answered"]) for s in stats["per_shard"]] == [(0, True, True), (1, False, False)]
+    detail = problem(httpx.get(f"{api}/maps/{MAP}/export", params={"format": "npz"}, timeout=60), 503)
+    assert "shard" in detail

@@ -1,0 +1,128 @@
+"""The API's parts that need no process: versions, caches, ETags, pose summaries, event batching."""
+from __future__ import annotations
+
+import asyncio
+import json
+
+import numpy as np
+import pytest
+
+from mapping.sensor_model import SensorModel, logit
+from schemas.messages import PoseGaussian, PoseSamples
+from services.api.cache import ByteLRU
+from services.api.events import EventHub
+from services.api.fastpath import etag_matches
+from services.api.registry import MapRegistry
+from services.api.render import LOGODDS_RANGE
+from services.api.robots import RobotTracker, reduce_samples, summarize, weighted_mean_cov
+from services.api.tiles import render_key, variance_scale
+
+
+def test_versions_propagate_to_every_level_and_only_grow():
+    registry = MapRegistry()
+    first = registry.tile_changed("m", (-1, 2), 0.05, 256)
+    assert registry.version("m", 0, -1, 2) == first
+    assert registry.version("m", 1, -1, 1) == first and registry.version("m", 2, -1, 0) == first
+    assert registry.version("m", 1, 0, 1) == 0  # nothing below
+    second = registry.tile_changed("m", (-2, 3), 0.05, 256)  # the same level-1 parent (-1, 1)
+    assert second > first
+    assert registry.version("m", 1, -1, 1) == second and registry.version("m", 0, -1, 2) == first
+    info = registry.get("m")
+    assert (info.x_range, info.y_range, info.top_level) == ((-2, -1), (2, 3), 0)
+    assert registry.check_geometry("m", 0.05, 256) is None
+    assert "0.1" in registry.check_geometry("m", 0.1, 256)
+    assert registry.version("unknown", 0, 0, 0) == 0
+
+
+def test_shard_appearing_asks_for_a_sync():
+    registry = MapRegistry()
+    registry.shard_alive("m", 1, True)
+    registry.mark_synced("m")
+    registry.shard_alive("m", 0, True)
+    assert not registry.get("m").synced and registry.get("m").alive == {0, 1}
+    registry.shard_alive("m", 1, False)
+    assert registry.get("m").alive == {0}
+
+
+def test_byte_lru_serves_only_the_stored_version_and_evicts_by_bytes():
+    cache: ByteLRU[str] = ByteLRU(max_bytes=10)
+    cache.put("a", 1, "A", 4)
+    cache.put("b", 1, "B", 4)
+    assert cache.get("a", 1) == "A" and cache.get("a", 2) is None
+    cache.put("c", 1, "C", 4)  # over 10 bytes: "b" is the least recently used
+    assert cache.get("b", 1) is None and cache.get("a", 1) == "A" and cache.nbytes == 8
+
+
+def test_etag_matching_and_render_keys():
+    assert etag_matches('"x"', '"x"') and etag_matches('"y", "x"', '"x"') and etag_matches("*", '"x"')
+    assert etag_matches('W/"x"', '"x"') and not etag_matches('"xy"', '"x"') and not etag_matches(None, '"x"')
+    assert render_key("m", 0, 1, 2, "png", None, 3.0) == ("m", 0, 1, 2, "png", "probability", None)
+    assert render_key("m", 0, 1, 2, "png", "variance", 2) == ("m", 0, 1, 2, "png", "variance", 2.0)
+    assert render_key("m", 0, 1, 2, "npz", None, 2.0) == ("m", 0, 1, 2, "npz", None, None)
+    assert (variance_scale(0.0), variance_scale(0.3), variance_scale(4.0), variance_scale(4.1)) == (1.0, 0.5, 4.0, 8.0)
+
+
+def test_weighted_mean_averages_yaw_on_the_circle():
+    samples = np.array([[0.0, 0.0, np.pi - 0.1], [2.0, 0.0, -np.pi + 0.1], [1.0, 3.0, np.pi]])
+    weights = np.array([0.25, 0.25, 0.5])
+    mean, cov = weighted_mean_cov(samples, weights)
+    assert mean[0] == pytest.approx(1.0) and mean[1] == pytest.approx(1.5)
+    assert abs(abs(mean[2]) - np.pi) < 1e-9  # not 0, the arithmetic mean of the angles
+    assert cov[2, 2] == pytest.approx(0.5 * 0.1 ** 2, rel=1e-6)
+    assert cov[0, 0] == pytest.approx(0.5) and np.allclose(cov, cov.T)
+
+
+def test_reduce_samples_follows_the_weights():
+    samples = np.arange(30, dtype=float).reshape(10, 3)
+    weights = np.array([0.5, 0.5] + [0.0] * 8)
+    fewer, equal = reduce_samples(samples, weights, 4)
+    assert sorted(fewer[:, 0].tolist()) == [0.0, 0.0, 3.0, 3.0] and equal.tolist() == [0.25] * 4
+    same, _ = reduce_samples(samples, weights, 10)
+    assert same is samples
+
+
+def test_gaussian_pose_is_summarised_with_drawn_samples():
+    message = PoseGaussian(robot="r", seq=7, stamp=0.7, mean=np.array([1.0, 2.0, 0.5]),
+                           cov=np.diag([0.04, 0.01, 0.0]))
+    one, two = summarize(message, 0.0), summarize(message, 1.0)
+    assert one.form == "gaussian" and one.samples.shape == (100, 3)
+    np.testing.assert_array_equal(one.samples, two.samples)  # seeded by seq
+    assert np.all(one.samples[:, 2] == 0.5) and abs(one.samples[:, 0].std() - 0.2) < 0.06
+    np.testing.assert_array_equal(one.cov, message.cov)
+
+
+def test_tracker_keeps_latest_and_trajectory():
+    tracker = RobotTracker()
+    for seq in range(3):
+        tracker.update(PoseSamples(robot="r", seq=seq, stamp=seq * 0.1, samples=np.array([[seq, 0.0, 0.0]]),
+                                   weights=np.array([1.0])))
+    assert tracker.robots() == ["r"] and tracker.latest("r").seq == 2 and tracker.latest_seqs() == {"r": 2}
+    np.testing.assert_allclose(tracker.trajectory("r")[:, [0, 2]], [[0, 0], [1, 1], [2, 2]])
+    assert tracker.trajectory("nobody").shape == (0, 5)
+
+
+def test_event_hub_batches_changes_per_flush():
+    async def scenario():
+        hub = EventHub("e", interval=0.01, backlog=2)
+        stream = hub.stream()
+        assert "hello" in await stream.__anext__()
+        for version in (1, 2, 3):
+            hub.tile_changed("m", (0, -1), version)
+        hub.tile_changed("m", (4, 4), 4)
+        hub.flush()
+        batch = await stream.__anext__()
+        events = [block for block in batch.split("\n\n") if block]
+        assert len(events) == 1 and events[0].startswith("event: tiles")
+        assert json.loads(events[0].split("data: ")[1]) == {"map": "m", "tiles": [[0, -1, 3], [4, 4, 4]]}
+        for version in range(4):  # a client that does not read falls behind the backlog: it is told to resync
+            hub.tile_changed("m", (0, 0), version)
+            hub.flush()
+        assert "resync" in await stream.__anext__()
+        await stream.aclose()
+        assert hub.clients == 0
+    asyncio.run(scenario())
+
+
+def test_logodds_png_spans_the_sensor_models_clamping_range():
+    model = SensorModel()
+    assert LOGODDS_RANGE == pytest.approx((logit(model.p_min), logit(model.p_max)), rel=1e-12)

@@ -1,0 +1,219 @@
+"""Grid FastSLAM: copy-on-write tiles, scan insertion, likelihood and matcher, and a simulated run
+exported as a CARMEN log (ATE against odometry's, Monte Carlo map against the best particle's map)."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mapping.evaluation import score_map
+from schemas.files import load_pose_distribution, load_posed_scans
+from services.cli import main
+from services.fusion_runner import fuse_posed_scans
+from slam.angles import wrap_angle
+from slam.carmen import read_carmen, write_carmen
+from slam.gridslam import GridFastSLAM, GridSlamConfig, run_gridslam
+from slam.gridslam.filter import odometry_step
+from slam.gridslam.kernels import insert_scan, log_likelihoods, match_and_propose, touched_tiles
+from slam.gridslam.tiles import TileMaps
+from slam.raycast import cast_rays
+from slam.simulator import simulate_office
+
+RES = 0.05
+
+
+def insert(maps: TileMaps, poses, angles, ranges, max_range=10.0, l_occ=0.85, l_free=-0.4):
+    """Insert one scan per particle pose through the same path the filter uses."""
+    poses = np.asarray(poses, float)
+    ranges = np.asarray(ranges, float)
+    maps.cover(poses[:, 0].min() - max_range, poses[:, 1].min() - max_range,
+               poses[:, 0].max() + max_range, poses[:, 1].max() + max_range)
+    r_stop = np.minimum(ranges, max_range)
+    hit = ranges <= max_range
+    args = (maps.tx0, maps.ty0, maps.shift, RES, poses, np.zeros(3), np.cos(angles), np.sin(angles), r_stop)
+    maps.own(touched_tiles(maps.table, *args))
+    insert_scan(maps.pool, maps.table, *args, hit, l_occ, l_free, -5.0, 5.0)
+
+
+def cell(maps: TileMaps, particle: int, ix: int, iy: int) -> float:
+    raster, origin = maps.raster(particle)
+    return float(raster[iy - int(round(origin[1] / RES)), ix - int(round(origin[0] / RES))])
+
+
+def test_one_beam_marks_free_cells_then_the_end_cell():
+    maps = TileMaps(1, RES, tile_cells=8)
+    # from the centre of cell (0, 0) along +x for 0.5 m: cells 0..9 crossed, the end (x = 0.525) in cell 10
+    insert(maps, [[0.025, 0.025, 0.0]], np.array([0.0]), np.array([0.5]))
+    assert [cell(maps, 0, ix, 0) for ix in range(11)] == pytest.approx([-0.4] * 10 + [0.85])
+    raster, _ = maps.raster(0)
+    assert np.count_nonzero(raster) == 11
+    # a beam with no return clears up to the range cap and marks nothing occupied
+    maps2 = TileMaps(1, RES, tile_cells=8)
+    insert(maps2, [[0.025, 0.025, 0.0]], np.array([0.0]), np.array([np.inf]), max_range=0.3)
+    raster, _ = maps2.raster(0)
+    assert np.count_nonzero(raster) == 7 and raster[raster != 0].max() < 0  # x 0.025 .. 0.325: cells 0..6
+
+
+def test_copy_on_write_keeps_maps_apart_and_resampling_shares_tiles():
+    maps = TileMaps(2, RES, tile_cells=8, capacity=2)
+    beam = np.array([0.0])
+    # both particles: a 0.3 m beam along +x from cell (0, 0): cells 0..5 free, cell 6 occupied, one tile each
+    insert(maps, [[0.025, 0.025, 0.0], [0.025, 0.025, 0.0]], beam, np.array([0.3]))
+    assert maps.tiles_in_use == 2
+    maps.resample(np.array([0, 0]))  # both now hold particle 0's map: shared, nothing copied, one tile freed
+    assert maps.tiles_in_use == 1 and maps.copies == 0
+    # particle 0 writes far away (fresh tiles), particle 1 into the shared tile: exactly one copy
+    insert(maps, [[10.025, 10.025, 0.0], [0.025, 0.025, 0.0]], beam, np.array([0.15]))
+    assert maps.copies == 1
+    assert cell(maps, 0, 3, 0) == pytest.approx(-0.4)  # particle 0 does not see particle 1's wall
+    assert cell(maps, 1, 3, 0) == pytest.approx(-0.4 + 0.85)
+    assert cell(maps, 0, 6, 0) == pytest.approx(0.85) and cell(maps, 1, 6, 0) == pytest.approx(0.85)
+    assert cell(maps, 1, 1, 0) == pytest.approx(-0.8)
+    maps.resample(np.array([1, 1]))  # particle 0's tiles lose every reference and return to the free list
+    assert maps.tiles_in_use == 1 and int(maps.n_free[0]) == len(maps.pool) - 1
+
+
+def test_cover_grows_the_table_and_keeps_content():
+    maps = TileMaps(1, RES, tile_cells=8)
+    insert(maps, [[0.025, 0.025, 0.0]], np.array([0.0]), np.array([0.5]), max_range=1.0)
+    shape = maps.table.shape
+    maps.cover(-50.0, -50.0, 60.0, 1.0)
+    assert maps.table.shape[1] > shape[1] and maps.table.shape[2] > shape[2]
+    assert cell(maps, 0, 10, 0) == pytest.approx(0.85)
+
+
+def room(width=6.0, height=4.0) -> np.ndarray:
+    """A rectangular room with a pillar, as segments (S, 4)."""
+    walls = [(0, 0, width, 0), (width, 0, width, height), (width, height, 0, height), (0, height, 0, 0)]
+    pillar = [(2.0, 1.0, 2.4, 1.0), (2.4, 1.0, 2.4, 1.6), (2.4, 1.6, 2.0, 1.6), (2.0, 1.6, 2.0, 1.0)]
+    return np.array(walls + pillar, float)
+
+
+def scan_from(pose, angles, segments, max_range=10.0):
+    origins = np.repeat(np.asarray(pose, float)[None, :2], len(angles), axis=0)
+    return cast_rays(origins, pose[2] + angles, segments, max_range)
+
+
+def test_matcher_recovers_a_displaced_pose_and_likelihood_peaks_at_truth():
+    segments = room()
+    angles = np.linspace(-math.pi, math.pi, 360, endpoint=False)
+    truth = np.array([4.0, 2.5, 0.3])
+    maps = TileMaps(1, RES)
+    for pose in (truth, truth + [0.3, -0.2, 0.1], truth + [-0.5, 0.3, -0.2]):
+        insert(maps, [pose], angles, scan_from(pose, angles, segments))
+    ranges = scan_from(truth, angles, segments)
+    cos_b, sin_b = np.cos(angles), np.sin(angles)
+    grid = (maps.pool, maps.table, maps.tx0, maps.ty0, maps.shift, RES)
+    predicted = np.array([truth + [0.12, -0.09, 0.05]])
+    q = np.diag([0.1, 0.1, 0.05]) ** 2
+    matched, score, mean, cov, _ = match_and_propose(
+        *grid, predicted, np.linalg.inv(q)[None], np.array([np.linalg.slogdet(q)[1]]), np.zeros(3), cos_b, sin_b,
+        ranges, 1, 0.05, 0.075, 0.05, 3.0, 0.05, 0.05, 5, np.zeros((1, 3)))
+    assert np.hypot(*(matched[0, :2] - truth[:2])) < 0.02
+    assert abs(wrap_angle(matched[0, 2] - truth[2])) < 0.01
+    assert score[0] > 0.5 * len(angles)
+    offsets = np.array([[0, 0, 0], [0.05, 0, 0], [0, -0.05, 0], [0, 0, 0.03], [0.1, 0.1, -0.05]], float)
+    five = (maps.pool, np.repeat(maps.table, len(offsets), axis=0), maps.tx0, maps.ty0, maps.shift, RES)  # one map
+    loglik, _ = log_likelihoods(*five, truth + offsets, np.zeros(3), cos_b, sin_b, ranges, 1, 0.05, 0.075, 0.05)
+    with pytest.raises(ValueError, match="one row per particle"):
+        log_likelihoods(*grid, truth + offsets, np.zeros(3), cos_b, sin_b, ranges, 1, 0.05, 0.075, 0.05)
+    assert np.argmax(loglik) == 0 and np.all(loglik[1:] < loglik[0] - 1.0)
+
+
+def test_backward_odometry_is_a_negative_translation():
+    before = np.array([1.0, 2.0, 0.5])
+    after = before + [-0.1 * math.cos(0.5), -0.1 * math.sin(0.5), 0.02]
+    rot1, trans, rot2 = odometry_step(before, after)
+    assert trans == pytest.approx(-0.1) and rot1 == pytest.approx(0.0, abs=1e-12) and rot2 == pytest.approx(0.02)
+
+
+def drifting_odometry(true_poses: np.ndarray, seed: int) -> np.ndarray:
+    """Odometry from the true motion with 5 % scale noise, lateral slip and a heading drift of 0.03 rad per m
+    (a miscalibrated wheel base), integrated from (0, 0, 0)."""
+    rng = np.random.default_rng(seed)
+    c, s = np.cos(true_poses[:-1, 2]), np.sin(true_poses[:-1, 2])
+    d = np.diff(true_poses[:, :2], axis=0)
+    forward, lateral = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
+    turn = wrap_angle(np.diff(true_poses[:, 2]))
+    noise = rng.standard_normal((len(forward), 3))
+    forward = forward * (1 + 0.05 * noise[:, 0])
+    lateral = lateral + 0.02 * np.abs(forward) * noise[:, 1]
+    turn = turn + 0.05 * np.abs(turn) * noise[:, 2] + 0.03 * forward
+    odometry = np.zeros_like(true_poses)
+    for t in range(len(forward)):  # integration of a few hundred steps (test input, not a hot path)
+        cc, ss = math.cos(odometry[t, 2]), math.sin(odometry[t, 2])
+        odometry[t + 1] = (odometry[t, 0] + cc * forward[t] - ss * lateral[t],
+                           odometry[t, 1] + ss * forward[t] + cc * lateral[t], wrap_angle(odometry[t, 2] + turn[t]))
+    return odometry
+
+
+def to_map_frame(start: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    c, s = math.cos(start[2]), math.sin(start[2])
+    return np.stack([start[0] + c * poses[..., 0] - s * poses[..., 1], start[1] + s * poses[..., 0] + c * poses[..., 1],
+                     wrap_angle(poses[..., 2] + start[2])], axis=-1)
+
+
+def ate(estimate: np.ndarray, truth: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum((estimate[:, :2] - truth[:, :2]) ** 2, axis=1))))
+
+
+@pytest.fixture(scope="module")
+def simulated_log(tmp_path_factory) -> tuple[Path, object]:
+    run = simulate_office(seed=3, steps=420, n_beams=181, range_max=10.0)
+    path = tmp_path_factory.mktemp("sim") / "office.clf"
+    write_carmen(path, run.stamps, run.ranges, drifting_odometry(run.true_poses, seed=5), run.angle_min,
+                 run.angle_increment, run.range_max, run.sensor_offset)
+    return path, run
+
+
+def test_simulated_carmen_log_beats_odometry_and_monte_carlo_map_beats_best_particle(simulated_log, tmp_path):
+    path, run = simulated_log
+    log = read_carmen(path)
+    start = run.true_poses[0]
+    odometry_ate = ate(to_map_frame(start, log.odometry - log.odometry[0]), run.true_poses)
+    result = run_gridslam(log, GridSlamConfig(particles=16), seed=2, initial_pose=start)
+    best_ate = ate(result.samples[:, result.best], run.true_poses)
+    assert odometry_ate > 1.0
+    assert best_ate < 0.15 and best_ate < 0.1 * odometry_ate
+    assert result.integrated.sum() < len(log) and np.isclose(result.weights.sum(), 1.0)
+
+    out = tmp_path / "posed.npz"
+    assert main(["slam", "--algo", "gridslam", str(path), "-o", str(out), "--particles", "16", "--seed", "2"]) == 0
+    posed = load_posed_scans(out)
+    dist = load_pose_distribution(tmp_path / "posed.poses.npz")
+    assert posed.poses.samples.shape[1] == 16 and len(dist.stamps) == len(log)
+    assert posed.range_max == pytest.approx(10.0)
+    truth = {"occupied": run.truth_occupied, "visible": run.truth_visible, "origin": run.truth_origin,
+             "resolution": run.truth_resolution}
+    # the CLI starts in the odometry frame: score in it, moving the truth raster's frame is not needed when
+    # the maps are built from poses expressed in the true frame
+    samples = to_map_frame(start, posed.poses.samples)
+    moved = type(posed)(**{**vars(posed), "poses": type(posed.poses)(samples=samples, weights=posed.poses.weights)})
+    mc = score_map(fuse_posed_scans(moved, mode="mc").rasterize(), truth)
+    ml = score_map(fuse_posed_scans(moved, mode="ml").rasterize(), truth)
+    assert mc["nll"] <= ml["nll"] + 1e-9
+    assert mc["auc"] > 0.9
+
+
+def test_same_seed_same_result_and_bad_input_exits_2(simulated_log, tmp_path, capsys):
+    path, _ = simulated_log
+    short = read_carmen(path)
+    cut = tmp_path / "short.clf"
+    write_carmen(cut, short.stamps[:60], short.ranges[:60], short.odometry[:60], short.angle_min,
+                 short.angle_increment, short.range_max, short.sensor_offset)
+    first = run_gridslam(read_carmen(cut), GridSlamConfig(particles=4), seed=9)
+    again = run_gridslam(read_carmen(cut), GridSlamConfig(particles=4), seed=9)
+    np.testing.assert_array_equal(first.samples, again.samples)
+    assert main(["slam", "--algo", "gridslam", str(tmp_path / "missing.clf"), "-o", str(tmp_path / "o.npz")]) == 2
+    assert "no such file" in capsys.readouterr().err
+    assert main(["slam", "--algo", "gridslam", str(cut), "-o", str(tmp_path / "o.npz"), "--particles", "0"]) == 2
+    assert "particles" in capsys.readouterr().err
+
+
+def test_filter_rejects_bad_config():
+    with pytest.raises(ValueError, match="sigma_like"):
+        GridFastSLAM(GridSlamConfig(sigma_like=0.0), np.zeros(3), np.zeros(3), 0.0, np.zeros(3), 0)
+    with pytest.raises(ValueError, match="power of two"):
+        TileMaps(2, 0.05, tile_cells=24)

@@ -1,0 +1,401 @@
+"""Wire messages: every type round-trips bit for bit, and every kind of corruption is rejected with
+the reason that names it. The expected values are built here by hand, not by the codec."""
+from __future__ import annotations
+
+import json
+import math
+
+import msgpack
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from schemas.errors import FormatError
+from schemas.jsonschema import render_schemas
+from schemas.messages import (
+    MESSAGE_TYPES,
+    LandmarkObservations,
+    LaserScan,
+    MessageError,
+    NodeStats,
+    Odometry,
+    PoseGaussian,
+    PoseSamples,
+    ShardStats,
+    StreamEnd,
+    TileUpdate,
+    decode_message,
+)
+from conftest import ROOT
+
+SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+names = st.from_regex(r"\A[A-Za-z0-9][A-Za-z0-9_.-]{0,15}\Z").filter(lambda s: s != "map")
+seqs = st.integers(0, 2**40)
+finite = st.floats(-1e6, 1e6, allow_nan=False, allow_infinity=False)
+counts = st.dictionaries(st.text(min_size=1, max_size=12), st.integers(0, 2**31), max_size=4)
+
+
+def f64(shape):
+    return hnp.arrays(np.float64, shape, elements=finite)
+
+
+@st.composite
+def laser_scans(draw):
+    beams = draw(st.integers(1, 50))
+    ranges = draw(hnp.arrays(np.float32, beams, elements=st.one_of(
+        st.floats(0, 50, width=32), st.just(float("nan")), st.just(float("inf")))))
+    range_min = draw(st.floats(0, 1))
+    return LaserScan(robot=draw(names), seq=draw(seqs), stamp=draw(finite), angle_min=draw(finite),
+                     angle_increment=draw(st.floats(0.001, 0.1)), range_min=range_min,
+                     range_max=range_min + draw(st.floats(0.5, 80)), sensor_offset=draw(f64(3)), ranges=ranges)
+
+
+@st.composite
+def pose_samples(draw):
+    m = draw(st.integers(1, 30))
+    raw = draw(hnp.arrays(np.float64, m, elements=st.floats(0.01, 1)))
+    return PoseSamples(robot=draw(names), seq=draw(seqs), stamp=draw(finite), samples=draw(f64((m, 3))),
+                       weights=raw / raw.sum())
+
+
+@st.composite
+def pose_gaussians(draw):
+    a = draw(hnp.arrays(np.float64, (3, 3), elements=st.floats(-2, 2)))
+    return PoseGaussian(robot=draw(names), seq=draw(seqs), stamp=draw(finite), mean=draw(f64(3)), cov=a @ a.T)
+
+
+@st.composite
+def odometries(draw):
+    k = draw(st.integers(0, 5))
+    commands = draw(f64((k, 3)))
+    commands[:, 2] = np.abs(commands[:, 2])
+    return Odometry(robot=draw(names), seq=draw(seqs), stamp=draw(finite), pose=draw(f64((draw(st.integers(0, 1)), 3))),
+                    commands=commands)
+
+
+@st.composite
+def landmarks(draw):
+    k = draw(st.integers(0, 10))
+    return LandmarkObservations(
+        robot=draw(names), seq=draw(seqs), stamp=draw(finite),
+        ids=draw(hnp.arrays(np.int64, k, elements=st.integers(-1, 1000))),
+        ranges=draw(hnp.arrays(np.float64, k, elements=st.floats(0, 100))), bearings=draw(f64(k)))
+
+
+@st.composite
+def tile_updates(draw):
+    size = draw(st.integers(1, 32))
+    h, w = draw(st.integers(0, size)), draw(st.integers(0, size))
+    return TileUpdate(
+        map=draw(names), shard=draw(st.integers(0, 9)), z=0, tx=draw(st.integers(-1000, 1000)),
+        ty=draw(st.integers(-1000, 1000)), tile_size=size, resolution=draw(st.floats(0.001, 1)),
+        row0=draw(st.integers(0, size - h)), col0=draw(st.integers(0, size - w)), robot=draw(names),
+        seq=draw(seqs), published=draw(finite),
+        logodds=draw(hnp.arrays(np.float32, (h, w), elements=st.floats(-20, 20, width=32))),
+        variance=draw(hnp.arrays(np.float32, (h, w), elements=st.floats(0, 50, width=32))),
+        observed=draw(hnp.arrays(np.bool_, (h, w))))
+
+
+@st.composite
+def shard_stats(draw):
+    shards = draw(st.integers(1, 8))
+    return ShardStats(
+        map=draw(names), shard=draw(st.integers(0, shards - 1)), shards=shards,
+        tiles_owned=draw(st.integers(0, 10**6)), cells_updated=draw(st.integers(0, 10**12)),
+        tile_updates=draw(st.integers(0, 10**6)), join_pending=draw(st.integers(0, 100)),
+        uptime=draw(st.floats(0, 1e6)), fused=draw(counts), discarded=draw(counts), ended=draw(counts),
+        received=draw(counts), rejected=draw(counts), overflow=draw(counts))
+
+
+MESSAGES = {
+    "LaserScan": laser_scans(),
+    "Odometry": odometries(),
+    "LandmarkObservations": landmarks(),
+    "PoseSamples": pose_samples(),
+    "PoseGaussian": pose_gaussians(),
+    "StreamEnd": st.builds(StreamEnd, robot=names, scans=st.integers(0, 10**9)),
+    "TileUpdate": tile_updates(),
+    "ShardStats": shard_stats(),
+    "NodeStats": st.builds(NodeStats, robot=names, algorithm=st.sampled_from(["ekf", "fastslam", "gridslam"]),
+                           poses_published=st.integers(0, 10**6), steps_done=st.integers(0, 10**6), uptime=st.floats(0, 1e6), received=counts,
+                           rejected=counts, out_of_order=counts),
+}
+any_message = st.sampled_from(sorted(MESSAGES)).flatmap(lambda name: MESSAGES[name])
+
+
+def fields(message) -> dict:
+    return {name: getattr(message, name) for name in type(message).__dataclass_fields__}
+
+
+def assert_same(a, b):
+    assert type(a) is type(b)
+    for name, value in fields(a).items():
+        other = getattr(b, name)
+        if isinstance(value, np.ndarray):
+            assert other.dtype == value.dtype and other.shape == value.shape, name
+            assert value.tobytes() == other.tobytes(), name  # bit-exact, NaN payloads included
+        else:
+            assert other == value, name
+
+
+def test_every_type_has_a_strategy():
+    assert set(MESSAGES) == set(MESSAGE_TYPES)
+
+
+@SETTINGS
+@given(any_message)
+def test_round_trip_is_bit_exact(message):
+    payload = message.encode()
+    assert_same(decode_message(payload), message)
+    assert_same(decode_message(payload, type(message)), message)
+
+
+def test_arrays_travel_as_raw_bytes_not_lists():
+    ranges = np.arange(1, 361, dtype=np.float32) / 10
+    scan = LaserScan(robot="r", seq=0, stamp=0.0, angle_min=0.0, angle_increment=0.01, range_min=0.0,
+                     range_max=40.0, sensor_offset=np.zeros(3), ranges=ranges)
+    wire = msgpack.unpackb(scan.encode())
+    assert wire["ranges"] == {"dtype": "<f4", "shape": [360], "data": ranges.tobytes()}
+    assert len(scan.encode()) < 360 * 4 + 300
+
+
+# ------------------------------------------------------------------------------------- corruptions
+
+
+def wire_of(message) -> dict:
+    return msgpack.unpackb(message.encode())
+
+
+def reason_of(wire_or_bytes, *expected) -> str:
+    payload = wire_or_bytes if isinstance(wire_or_bytes, bytes) else msgpack.packb(wire_or_bytes, use_bin_type=True)
+    with pytest.raises(MessageError) as info:
+        decode_message(payload, *expected)
+    assert isinstance(info.value, FormatError) and str(info.value)
+    return info.value.reason
+
+
+@SETTINGS
+@given(st.binary(max_size=200))
+def test_random_bytes_are_malformed_or_rejected(data):
+    try:
+        wire = msgpack.unpackb(data)
+    except Exception:
+        assert reason_of(data) == "malformed"
+        return
+    if not isinstance(wire, dict) or not isinstance(wire.get("type"), str):
+        assert reason_of(data) == "malformed"
+    else:
+        with pytest.raises(MessageError):
+            decode_message(data)
+
+
+@SETTINGS
+@given(any_message, st.data())
+def test_truncated_payload_is_malformed(message, data):
+    payload = message.encode()
+    cut = data.draw(st.integers(0, len(payload) - 1))
+    assert reason_of(payload[:cut]) == "malformed"
+
+
+@SETTINGS
+@given(any_message, st.integers(2, 1000) | st.integers(-5, 0))
+def test_unknown_version_is_rejected(message, version):
+    wire = wire_of(message)
+    wire["v"] = version
+    assert reason_of(wire) == "version"
+
+
+@SETTINGS
+@given(any_message)
+def test_unknown_type_and_unexpected_type(message):
+    wire = wire_of(message)
+    wire["type"] = "NoSuchMessage"
+    assert reason_of(wire) == "type"
+    other = StreamEnd if not isinstance(message, StreamEnd) else LaserScan
+    assert reason_of(message.encode(), other) == "type"
+
+
+@SETTINGS
+@given(any_message, st.data())
+def test_missing_and_unknown_fields(message, data):
+    wire = wire_of(message)
+    name = data.draw(st.sampled_from(sorted(fields(message))))
+    del wire[name]
+    assert reason_of(wire) == "missing"
+    wire = wire_of(message)
+    wire["colour"] = 1
+    assert reason_of(wire) == "unknown_field"
+
+
+@SETTINGS
+@given(any_message, st.data())
+def test_field_of_the_wrong_kind(message, data):
+    wire = wire_of(message)
+    name = data.draw(st.sampled_from(sorted(fields(message))))
+    wire[name] = [1.0, 2.0] if isinstance(wire[name], (str, int, float, bytes, dict)) else "text"
+    assert reason_of(wire) == "field_type"
+
+
+def array_fields(message):
+    return sorted(name for name, value in fields(message).items() if isinstance(value, np.ndarray))
+
+
+with_arrays = any_message.filter(lambda m: array_fields(m))
+
+
+@SETTINGS
+@given(with_arrays, st.data())
+def test_wrong_dtype(message, data):
+    wire = wire_of(message)
+    name = data.draw(st.sampled_from(array_fields(message)))
+    wire[name]["dtype"] = {"<f4": "<f8", "<f8": ">f8", "<i8": "<i4", "|b1": "|u1"}[wire[name]["dtype"]]
+    assert reason_of(wire) == "dtype"
+
+
+@SETTINGS
+@given(with_arrays, st.data())
+def test_wrong_shape_and_size(message, data):
+    name = data.draw(st.sampled_from(array_fields(message)))
+    wire = wire_of(message)
+    wire[name]["shape"] = wire[name]["shape"] + [1]
+    assert reason_of(wire) == "shape"
+    wire = wire_of(message)
+    wire[name]["data"] = wire[name]["data"] + b"\x00"
+    assert reason_of(wire) == "size"
+
+
+def test_inconsistent_lengths_across_fields():
+    wire = wire_of(PoseSamples(robot="r", seq=0, stamp=0.0, samples=np.zeros((4, 3)), weights=np.full(4, 0.25)))
+    wire["weights"] = {"dtype": "<f8", "shape": [2], "data": np.full(2, 0.5).tobytes()}
+    assert reason_of(wire) == "shape"
+
+
+@SETTINGS
+@given(any_message, st.data())
+def test_nonfinite_values(message, data):
+    wire = wire_of(message)
+    finite_fields = [n for n, v in fields(message).items()
+                     if isinstance(v, float) or (isinstance(v, np.ndarray) and v.dtype.kind == "f" and v.size
+                                                 and n != "ranges")]
+    if not finite_fields:
+        return
+    name = data.draw(st.sampled_from(sorted(finite_fields)))
+    bad = data.draw(st.sampled_from([math.nan, math.inf, -math.inf]))
+    if isinstance(wire[name], float):
+        wire[name] = bad
+    else:
+        array = np.frombuffer(wire[name]["data"], wire[name]["dtype"]).copy()
+        array[data.draw(st.integers(0, array.size - 1))] = bad
+        wire[name]["data"] = array.tobytes()
+    assert reason_of(wire) == "nonfinite"
+
+
+def scan(**overrides):
+    values = dict(robot="r", seq=0, stamp=0.0, angle_min=-1.0, angle_increment=0.5, range_min=0.1, range_max=5.0,
+                  sensor_offset=np.zeros(3), ranges=np.array([1.0, 2.0, 3.0], np.float32))
+    values.update(overrides)
+    return LaserScan(**values)
+
+
+@pytest.mark.parametrize("overrides", [
+    {"ranges": np.array([1.0, -np.inf, 2.0], np.float32)},
+    {"ranges": np.array([1.0, -0.5, 2.0], np.float32)},
+    {"range_min": 6.0},
+    {"range_min": -0.1},
+    {"angle_increment": 0.0},
+    {"robot": "a/b"},
+    {"robot": "*"},
+    {"robot": "map"},
+    {"robot": ""},
+    {"seq": -1},
+])
+def test_out_of_range_values(overrides):
+    with pytest.raises(MessageError) as info:
+        scan(**overrides).encode()
+    assert info.value.reason == "range"
+
+
+def test_odometry_with_two_poses_or_negative_dt_is_rejected():
+    wire = wire_of(Odometry(robot="r", seq=1, stamp=0.1, pose=np.zeros((1, 3)), commands=np.array([[0.5, 0.1, 0.1]])))
+    wire["pose"] = {"dtype": "<f8", "shape": [2, 3], "data": np.zeros((2, 3)).tobytes()}
+    assert reason_of(wire) == "shape"
+    wire = wire_of(Odometry(robot="r", seq=1, stamp=0.1, pose=np.zeros((1, 3)), commands=np.array([[0.5, 0.1, 0.1]])))
+    wire["commands"]["data"] = np.array([0.5, 0.1, -0.1]).tobytes()
+    assert reason_of(wire) == "range"
+
+
+def test_scan_without_beams_is_rejected():
+    with pytest.raises(MessageError) as info:
+        scan(ranges=np.zeros(0, np.float32)).encode()
+    assert info.value.reason == "shape"
+
+
+@pytest.mark.parametrize("weights, reason", [
+    (np.array([0.5, 0.6]), "weights"),
+    (np.array([1.5, -0.5]), "weights"),
+    (np.array([0.0, 0.0]), "weights"),
+])
+def test_bad_weights(weights, reason):
+    wire = wire_of(PoseSamples(robot="r", seq=0, stamp=0.0, samples=np.zeros((2, 3)), weights=np.full(2, 0.5)))
+    wire["weights"]["data"] = weights.astype("<f8").tobytes()
+    assert reason_of(wire) == reason
+
+
+@pytest.mark.parametrize("cov", [
+    np.array([[1.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]),  # not symmetric
+    np.diag([1.0, -0.1, 1.0]),  # not positive semi-definite
+])
+def test_bad_covariance(cov):
+    wire = wire_of(PoseGaussian(robot="r", seq=0, stamp=0.0, mean=np.zeros(3), cov=np.eye(3)))
+    wire["cov"]["data"] = cov.astype("<f8").tobytes()
+    assert reason_of(wire) == "covariance"
+
+
+def test_boolean_bytes_other_than_0_and_1_are_rejected():
+    tile = TileUpdate(map="m", shard=0, z=0, tx=0, ty=0, tile_size=2, resolution=0.1, row0=0, col0=0, robot="r",
+                      seq=0, published=0.0, logodds=np.zeros((2, 2), np.float32),
+                      variance=np.zeros((2, 2), np.float32), observed=np.ones((2, 2), bool))
+    wire = wire_of(tile)
+    wire["observed"]["data"] = bytes([1, 0, 2, 1])
+    assert reason_of(wire) == "range"
+    wire = wire_of(tile)
+    wire["row0"] = 1  # a 2x2 window at row 1 leaves a 2x2 tile
+    assert reason_of(wire) == "range"
+
+
+def test_error_message_is_one_sentence_naming_the_field():
+    wire = wire_of(scan())
+    wire["sensor_offset"]["shape"] = [4]
+    with pytest.raises(MessageError) as info:
+        decode_message(msgpack.packb(wire))
+    text = str(info.value)
+    assert "LaserScan" in text and "sensor_offset" in text and "\n" not in text
+
+
+# ------------------------------------------------------------------------------------- JSON Schema
+
+
+def test_committed_json_schemas_are_the_generated_ones():
+    folder = ROOT / "docs" / "messages"
+    rendered = render_schemas()
+    assert sorted(p.name for p in folder.glob("*.json")) == sorted(rendered)
+    for name, text in rendered.items():
+        assert (folder / name).read_text() == text, f"docs/messages/{name} is stale: run python -m schemas.jsonschema"
+
+
+@SETTINGS
+@given(any_message)
+def test_schema_describes_the_wire_keys_and_constants(message):
+    schema = json.loads(render_schemas()[f"{message.TYPE}.json"])
+    wire = wire_of(message)
+    assert set(schema["required"]) == set(wire) == set(schema["properties"])
+    assert schema["properties"]["type"]["const"] == wire["type"]
+    assert schema["properties"]["v"]["const"] == wire["v"]
+    for name, value in wire.items():
+        if isinstance(value, dict) and set(value) == {"dtype", "shape", "data"}:
+            prop = schema["properties"][name]["properties"]
+            assert prop["dtype"]["const"] == value["dtype"]
+            assert len(prop["shape"]["prefixItems"]) == len(value["shape"])

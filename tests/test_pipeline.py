@@ -1,0 +1,416 @@
+"""The distributed pipeline with real processes and real Zenoh sessions on loopback.
+
+- `posegrid run --posed F --shards N --export M` writes the map `posegrid fuse F` builds, N = 1, 2, 3;
+- garbage on every key the processes listen to is dropped, counted per key, logged once, and the
+  processes keep working;
+- Ctrl-C (SIGINT) on the launcher stops every child, mid-replay, with their exit codes reported.
+
+Every process is started here or by the launcher started here, and ended by PID in a finalizer.
+"""
+from __future__ import annotations
+
+import os
+import queue
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import msgpack
+import numpy as np
+import pytest
+import zenoh
+
+from schemas.files import PosedScans, PoseSet, load_map, save_posed_scans
+from schemas.messages import LandmarkObservations, LaserScan, NodeStats, Odometry, PoseGaussian, PoseSamples, \
+    ShardStats, StreamEnd, decode_message
+from services.cli import main
+from services.launcher import free_port
+from services.ownership import tile_owner
+from services.zenoh_config import build_config
+
+pytestmark = pytest.mark.slow
+
+ROOM = (-14.0, 14.0, -6.0, 6.0)  # x0, x1, y0, y1 of the walls, m: spans tiles tx -3..2, ty -1..0 at 12.8 m
+RANGE_MAX = 8.0
+CLI = [sys.executable, "-m", "services"]
+
+
+# ------------------------------------------------------------------------------------------------ world
+
+
+def room_ranges(poses: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """Exact ranges from laser poses (T, 3) to the walls of ROOM along beam angles (B,); inf beyond RANGE_MAX."""
+    x0, x1, y0, y1 = ROOM
+    heading = poses[:, 2:3] + angles[None, :]
+    c, s = np.cos(heading), np.sin(heading)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tx = np.where(c > 0, (x1 - poses[:, :1]) / c, np.where(c < 0, (x0 - poses[:, :1]) / c, np.inf))
+        ty = np.where(s > 0, (y1 - poses[:, 1:2]) / s, np.where(s < 0, (y0 - poses[:, 1:2]) / s, np.inf))
+    ranges = np.minimum(tx, ty)
+    return np.where(ranges <= RANGE_MAX, ranges, np.inf).astype(np.float32)
+
+
+def make_posed(path: Path, form: str, steps: int = 36, beams: int = 120, particles: int = 6, seed: int = 3) -> Path:
+    """A robot driving along the room's long axis, with noisy pose samples or a Gaussian per scan."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(steps)
+    true = np.column_stack([-11.0 + 22.0 * t / (steps - 1), 1.5 * np.sin(t / 5.0), 0.3 * np.cos(t / 7.0)])
+    angles = -np.pi + 2 * np.pi * np.arange(beams) / beams
+    ranges = room_ranges(true, angles) + rng.normal(0, 0.01, (steps, beams)).astype(np.float32)
+    if form == "gaussian":
+        cov = np.tile(np.diag([0.02, 0.02, 0.005]) ** 2, (steps, 1, 1))
+        poses = PoseSet(mean=true + rng.normal(0, 0.01, true.shape), cov=cov)
+    else:
+        samples = true[:, None, :] + rng.normal(0, [0.03, 0.03, 0.01], (steps, particles, 3))
+        weights = rng.random((steps, particles))
+        poses = PoseSet(samples=samples, weights=weights / weights.sum(axis=1, keepdims=True))
+    save_posed_scans(path, PosedScans(ranges=ranges, angle_min=float(angles[0]), angle_increment=float(angles[1] - angles[0]),
+                                      range_min=0.05, range_max=RANGE_MAX, stamps=0.1 * t, sensor_offset=np.zeros(3),
+                                      poses=poses))
+    return path
+
+
+def touched_tiles(resolution: float = 0.05, tile: int = 256) -> set[tuple[int, int]]:
+    span = resolution * tile
+    x0, x1, y0, y1 = ROOM
+    return {(tx, ty) for tx in range(int(np.floor(x0 / span)), int(np.floor(x1 / span)) + 1)
+            for ty in range(int(np.floor(y0 / span)), int(np.floor(y1 / span)) + 1)}
+
+
+# ------------------------------------------------------------------------------------------------ processes
+
+
+class Proc:
+    """A child process whose merged output is read line by line on a thread."""
+
+    def __init__(self, argv: list[str], **kwargs):
+        self.process = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, **kwargs)
+        self.lines: list[str] = []
+        self._queue: queue.Queue[str] = queue.Queue()
+        threading.Thread(target=self._pump, daemon=True).start()
+
+    def _pump(self):
+        for line in self.process.stdout:
+            self.lines.append(line.rstrip("\n"))
+            self._queue.put(line)
+
+    def wait_for(self, pattern: str, timeout: float = 60.0) -> re.Match:
+        deadline = time.monotonic() + timeout
+        for line in list(self.lines):
+            if (match := re.search(pattern, line)):
+                return match
+        while time.monotonic() < deadline:
+            try:
+                line = self._queue.get(timeout=0.2)
+            except queue.Empty:
+                if self.process.poll() is not None and self._queue.empty():
+                    break
+                continue
+            if (match := re.search(pattern, line)):
+                return match
+        raise AssertionError(f"no line matching {pattern!r}; output:\n" + "\n".join(self.lines[-40:]))
+
+    def output(self) -> str:
+        return "\n".join(self.lines)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as stat:
+            return stat.read().split(")")[-1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+def _http_status(url: str, timeout: float = 20.0) -> int:
+    """The status of GET url, retried while the server is still binding its port."""
+    deadline = time.monotonic() + timeout
+    while True:
+        try:
+            with urllib.request.urlopen(url, timeout=5) as response:
+                return response.status
+        except urllib.error.URLError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.1)
+
+
+@pytest.fixture
+def procs():
+    """Starts processes; the finalizer ends every one still running (and the children they reported) by PID."""
+    started: list[Proc] = []
+    reported: list[int] = []
+
+    def start(argv, **kwargs) -> Proc:
+        proc = Proc(argv, **kwargs)
+        started.append(proc)
+        return proc
+
+    start.reported = reported
+    yield start
+    for proc in started:
+        reported += [int(pid) for pid in re.findall(r"\(pid (\d+)\)", proc.output())]
+    for proc in reversed(started):
+        if proc.process.poll() is None:
+            proc.process.send_signal(signal.SIGINT)
+            try:
+                proc.process.wait(20)
+            except subprocess.TimeoutExpired:
+                proc.process.kill()
+                proc.process.wait()
+    for pid in reported:
+        if _alive(pid):
+            os.kill(pid, signal.SIGKILL)
+
+
+# ------------------------------------------------------------------------------------------------ tests
+
+
+@pytest.mark.parametrize("shards, form", [(1, "gaussian"), (2, "samples"), (3, "gaussian")])
+def test_run_posed_export_equals_fuse(tmp_path, procs, shards, form):
+    owners = {tile_owner(tile, range(shards)) for tile in touched_tiles()}
+    assert owners == set(range(shards)), "the test world must give every shard tiles"
+    posed = make_posed(tmp_path / "posed.npz", form)
+    fused = tmp_path / "fused.npz"
+    assert main(["fuse", str(posed), "-o", str(fused), "--samples", "12"]) == 0
+    exported = tmp_path / "run.npz"
+    run = procs([*CLI, "run", "--posed", str(posed), "--shards", str(shards), "--export", str(exported),
+                 "--samples", "12", "--no-api"])
+    assert run.process.wait(120) == 0, run.output()
+    output = run.output()
+    assert re.search(r"stopped: router exited 0, (mapper\[\d\] exited 0, ){%d}source exited 0" % shards, output), output
+    expected, got = load_map(fused), load_map(exported)
+    assert got.logodds.shape == expected.logodds.shape
+    np.testing.assert_array_equal(got.observed, expected.observed)
+    np.testing.assert_allclose(got.logodds, expected.logodds, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(got.variance, expected.variance, rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(got.origin, expected.origin)
+    assert got.resolution == expected.resolution
+    assert expected.observed.sum() > 10_000  # the map is not trivially empty
+
+
+def test_launcher_stops_every_child_on_sigint_mid_replay(tmp_path, procs):
+    posed = make_posed(tmp_path / "posed.npz", "samples", steps=300)
+    api_port = free_port()
+    run = procs([*CLI, "run", "--posed", str(posed), "--shards", "2", "--rate", "realtime", "--api-port",
+                 str(api_port)])
+    url = run.wait_for(r"HTTP API and map viewer: (http://\S+)").group(1)
+    assert url == f"http://127.0.0.1:{api_port}/"
+    banner = run.wait_for(r"running: (.*)")
+    pids = {name: int(pid) for name, pid in re.findall(r"(\S+) \(pid (\d+)\)", banner.group(1))}
+    assert set(pids) == {"router", "mapper[0]", "mapper[1]", "api", "source"}
+    run.wait_for(r"publishing 300 steps")
+    run.wait_for(r"api: serving on")
+    assert _http_status(url) == 200
+    assert all(_alive(pid) for pid in pids.values())
+    run.process.send_signal(signal.SIGINT)
+    assert run.process.wait(60) == 0, run.output()
+    stopped = run.wait_for(r"stopped: (.*)").group(1)
+    assert stopped == "router exited 0, mapper[0] exited 0, mapper[1] exited 0, api exited 0, source exited 0"
+    assert not any(_alive(pid) for pid in pids.values())
+
+
+# ------------------------------------------------------------------------------------------------ garbage
+
+
+def _scan(seq: int) -> LaserScan:
+    angles = np.linspace(-np.pi, np.pi, 60, endpoint=False)
+    ranges = room_ranges(np.array([[0.5, 0.2, 0.0]]), angles)[0]
+    return LaserScan(robot="r1", seq=seq, stamp=0.1 * seq, angle_min=float(angles[0]),
+                     angle_increment=float(angles[1] - angles[0]), range_min=0.05, range_max=RANGE_MAX,
+                     sensor_offset=np.zeros(3), ranges=ranges)
+
+
+def _pose(seq: int) -> PoseSamples:
+    return PoseSamples(robot="r1", seq=seq, stamp=0.1 * seq, samples=np.array([[0.5, 0.2, 0.0], [0.52, 0.2, 0.01]]),
+                       weights=np.array([0.5, 0.5]))
+
+
+GARBAGE = {
+    "malformed": b"\xc1\x00garbage",
+    "truncated": _scan(0).encode()[:-7],
+    "version": msgpack.packb({**msgpack.unpackb(_scan(0).encode()), "v": 99}),
+    "unknown type": msgpack.packb({"type": "Telemetry", "v": 1}),
+}
+
+
+def test_garbage_on_every_key_is_counted_and_processes_keep_working(tmp_path, procs):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = procs([*CLI, "router", "--listen", endpoint])
+    router.wait_for("routing")
+    mappers = [procs([*CLI, "mapper", "--shard", "0", "--shards", "1", "--map", "m", "--connect", endpoint])]
+    node = procs([*CLI, "slam-node", "--robot", "r1", "--algo", "ekf", "--initial", "0,0,0", "--connect", endpoint])
+    for mapper in mappers:
+        mapper.wait_for("up; tiles on")
+    node.wait_for("up for robot")
+    session = zenoh.open(build_config("client", connect=[endpoint]))
+    try:
+        keys = ["pg/r1/scan", "pg/r1/pose", "pg/r1/end", "pg/r1/odom", "pg/r1/landmarks", "pg/r1/prior"]
+        for key in keys:
+            for payload in GARBAGE.values():
+                session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+        session.put("pg/r1/scan", _pose(0).encode())  # a valid message of the wrong type for its key
+        session.put("pg/r2/scan", _scan(0).encode())  # a valid scan claiming another robot than its key
+        for selector in ("pg/map/m/tile/0/*/*", "pg/map/m/stats/*"):
+            list(session.get(selector, payload=b"\xff garbage query", timeout=5))
+        # the shards still work: a valid scan and pose are joined and fused, in reverse order
+        session.put("pg/r1/pose", _pose(1).encode())
+        session.put("pg/r1/scan", _scan(1).encode())
+        session.put("pg/r1/end", StreamEnd(robot="r1", scans=1).encode())
+        deadline = time.monotonic() + 30
+        while True:
+            stats = [decode_message(r.ok.payload.to_bytes(), ShardStats)
+                     for r in session.get("pg/map/m/stats/*", timeout=5) if r.ok is not None]
+            if len(stats) == 1 and stats[0].fused.get("r1") == 1 or time.monotonic() > deadline:
+                break
+            time.sleep(0.1)
+        tiles = [r.ok for r in session.get("pg/map/m/tile/0/*/*", timeout=10) if r.ok is not None]
+        node_stats = [decode_message(r.ok.payload.to_bytes(), NodeStats)
+                      for r in session.get("pg/r1/slam/stats", timeout=5) if r.ok is not None]
+    finally:
+        session.close()
+    assert len(stats) == 1 and stats[0].fused == {"r1": 1}, stats
+    for s in stats:
+        # the mappers subscribe to scan, pose and end; every garbage payload there is counted on its key
+        assert s.rejected == {"pg/r1/scan": len(GARBAGE) + 1, "pg/r1/pose": len(GARBAGE), "pg/r1/end": len(GARBAGE),
+                              "pg/r2/scan": 1}, s.rejected
+        assert s.received["pg/r1/scan"] == len(GARBAGE) + 2
+    assert tiles and sum(s.tiles_owned for s in stats) == len(tiles)
+    # the SLAM node subscribes to scan, odom, landmarks, end and prior of its robot
+    assert len(node_stats) == 1
+    assert node_stats[0].rejected == {"pg/r1/scan": len(GARBAGE) + 1, **{f"pg/r1/{k}": len(GARBAGE) for k in
+                                      ("odom", "landmarks", "end", "prior")}}, node_stats[0].rejected
+    assert router.process.poll() is None and node.process.poll() is None
+    assert all(m.process.poll() is None for m in mappers)
+    for mapper in mappers:
+        mapper.process.send_signal(signal.SIGINT)
+        assert mapper.process.wait(30) == 0
+        log = mapper.output()
+        # logged once per (key, kind): 3 kinds of MessageError on pg/r1/scan (malformed x2, version, type x2)
+        assert len(re.findall(r"dropped a message on pg/r1/scan \(malformed\)", log)) == 1, log
+        assert len(re.findall(r"dropped a message on pg/r1/scan \(type\)", log)) == 1, log
+        assert len(re.findall(r"dropped a message on pg/r1/scan \(version\)", log)) == 1, log
+
+
+# ------------------------------------------------------------------------------------------------ SLAM node
+
+
+def test_run_through_the_slam_node_equals_offline_slam_then_fuse(tmp_path, procs):
+    """simulate -> (slam-node over zenoh -> shard) must give what `posegrid slam` then `posegrid fuse` give."""
+    sim = tmp_path / "sim"
+    assert main(["simulate", str(sim), "--steps", "40", "--beams", "121", "--seed", "5"]) == 0
+    offline = tmp_path / "ekf.npz"
+    assert main(["slam", str(sim), "--algo", "ekf", "-o", str(offline)]) == 0
+    fused = tmp_path / "fused.npz"
+    assert main(["fuse", str(offline), "-o", str(fused), "--samples", "8"]) == 0
+    exported = tmp_path / "run.npz"
+    run = procs([*CLI, "run", "--sim-dir", str(sim), "--algo", "ekf", "--samples", "8", "--no-api",
+                 "--export", str(exported)])
+    assert run.process.wait(120) == 0, run.output()
+    assert "slam-node exited 0" in run.output()
+    expected, got = load_map(fused), load_map(exported)
+    np.testing.assert_array_equal(got.observed, expected.observed)
+    np.testing.assert_allclose(got.logodds, expected.logodds, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(got.variance, expected.variance, rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(got.origin, expected.origin)
+
+
+def test_slam_node_takes_steps_in_order_and_reports_late_ones(procs):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
+    node = procs([*CLI, "slam-node", "--robot", "r1", "--algo", "odometry", "--connect", endpoint])
+    node.wait_for("up for robot")
+    poses = queue.Queue()
+    session = zenoh.open(build_config("client", connect=[endpoint]))
+    try:
+        subscriber = session.declare_subscriber("pg/r1/pose", lambda s: poses.put(s.payload.to_bytes()))
+
+        def step(seq: int, parts=("odom", "landmarks")):
+            if "odom" in parts:
+                session.put("pg/r1/odom", Odometry(robot="r1", seq=seq, stamp=0.1 * seq, pose=np.zeros((0, 3)),
+                                                   commands=np.array([[1.0, 0.0, 0.1]] if seq else np.zeros((0, 3))))
+                            .encode())
+            if "landmarks" in parts:
+                session.put("pg/r1/landmarks", LandmarkObservations(
+                    robot="r1", seq=seq, stamp=0.1 * seq, ids=np.zeros(0, np.int64), ranges=np.zeros(0),
+                    bearings=np.zeros(0)).encode())
+
+        step(1, ("landmarks",))  # parts of seq 1 before seq 0 and before the prior: held back
+        step(0)
+        session.put("pg/r1/prior", PoseGaussian(robot="r1", seq=0, stamp=0.0, mean=np.array([2.0, 3.0, 0.0]),
+                                                cov=np.zeros((3, 3))).encode())
+        step(1, ("odom",))
+        step(2)
+        received = [decode_message(poses.get(timeout=20), PoseGaussian) for _ in range(3)]
+        step(1)  # late: seq 1 was processed already
+        deadline = time.monotonic() + 20
+        while True:
+            stats = [decode_message(r.ok.payload.to_bytes(), NodeStats)
+                     for r in session.get("pg/r1/slam/stats", timeout=5) if r.ok is not None]
+            if stats and sum(stats[0].out_of_order.values()) == 3 or time.monotonic() > deadline:
+                break
+            time.sleep(0.1)
+        subscriber.undeclare()
+    finally:
+        session.close()
+    assert [p.seq for p in received] == [0, 1, 2]
+    # dead reckoning from the prior (2, 3, 0) at 1 m/s along x for 0.1 s per step
+    np.testing.assert_allclose([p.mean for p in received], [[2.0, 3.0, 0.0], [2.1, 3.0, 0.0], [2.2, 3.0, 0.0]],
+                               atol=1e-9)
+    # landmarks: seq 0 after seq 1 (reordered and used), then seq 1 again after 2; odom: seq 1 again after 2
+    assert stats[0].out_of_order == {"pg/r1/odom": 1, "pg/r1/landmarks": 2} and stats[0].poses_published == 3
+    node.wait_for(r"out of order on pg/r1/landmarks: seq 0 arrived after seq 1; its step is still to come, so it "
+                  r"is used")
+    node.wait_for(r"out of order on pg/r1/odom: seq 1 arrived after seq 2; it is dropped")
+
+
+def _mrclam_excerpt(source: Path, target: Path, seconds: float) -> Path:
+    """Robot 1's first ``seconds`` of an MRCLAM folder, in the dataset's own format (headers kept)."""
+    target.mkdir()
+    for name in ("Barcodes.dat", "Landmark_Groundtruth.dat"):
+        (target / name).write_text((source / name).read_text())
+    start = None
+    for kind in ("Groundtruth", "Odometry", "Measurement"):
+        lines = (source / f"Robot1_{kind}.dat").read_text().splitlines()
+        header = [line for line in lines if line.startswith("#")]
+        rows = [line for line in lines if line.strip() and not line.startswith("#")]
+        start = float(rows[0].split()[0]) if start is None else start
+        kept = [line for line in rows if float(line.split()[0]) < start + seconds]
+        (target / f"Robot1_{kind}.dat").write_text("\n".join(header + kept) + "\n")
+    return target
+
+
+def test_slam_node_on_real_mrclam_data_publishes_what_offline_slam_writes(tmp_path, procs, data_dir):
+    """Real data: source --mrclam -> slam-node (EKF) over zenoh gives `posegrid slam`'s poses, bit for bit."""
+    folder = _mrclam_excerpt(data_dir / "mrclam7", tmp_path / "mrclam", seconds=60.0)
+    offline = tmp_path / "ekf.npz"
+    assert main(["slam", str(folder), "--robot", "1", "--algo", "ekf", "-o", str(offline)]) == 0
+    expected = np.load(offline)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
+    node = procs([*CLI, "slam-node", "--algo", "ekf", "--models", "mrclam", "--connect", endpoint])
+    node.wait_for("up for robot")
+    got: dict[int, PoseGaussian] = {}
+    session = zenoh.open(build_config("client", connect=[endpoint]))
+    try:
+        subscriber = session.declare_subscriber(
+            "pg/robot0/pose", lambda s: (lambda m: got.__setitem__(m.seq, m))(decode_message(s.payload.to_bytes())))
+        source = procs([*CLI, "source", "--mrclam", str(folder), "--mrclam-robot", "1", "--rate", "max",
+                        "--wait-slam", "--connect", endpoint])
+        assert source.process.wait(120) == 0, source.output()
+        deadline = time.monotonic() + 30
+        while len(got) < len(expected["stamps"]) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        subscriber.undeclare()
+    finally:
+        session.close()
+    assert sorted(got) == list(range(len(expected["stamps"])))
+    np.testing.assert_array_equal([got[t].stamp for t in sorted(got)], expected["stamps"])
+    np.testing.assert_array_equal([got[t].mean for t in sorted(got)], expected["mean"])
+    np.testing.assert_array_equal([got[t].cov for t in sorted(got)], expected["cov"])

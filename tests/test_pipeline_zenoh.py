@@ -1,0 +1,138 @@
+"""Zenoh configuration (one builder, loopback-only defaults, user overrides), the router process, and the
+pipeline commands' command-line behaviour."""
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import zenoh
+
+from services.cli import UsageError, main
+from services.launcher import free_port
+from services.zenoh_config import build_config, read_key
+
+CLI = [sys.executable, "-m", "services"]
+
+
+def test_defaults_are_loopback_only_without_multicast():
+    router, peer, client = (build_config(mode) for mode in ("router", "peer", "client"))
+    for config, mode in ((router, "router"), (peer, "peer"), (client, "client")):
+        assert read_key(config, "mode") == mode
+        assert read_key(config, "scouting/multicast/enabled") is False
+    assert read_key(router, "listen/endpoints") == ["tcp/127.0.0.1:7447"]
+    assert read_key(router, "connect/endpoints") == []
+    assert read_key(peer, "listen/endpoints") == ["tcp/127.0.0.1:0"]
+    assert read_key(peer, "connect/endpoints") == ["tcp/127.0.0.1:7447"]
+    assert read_key(client, "listen/endpoints") == []
+    assert read_key(client, "connect/endpoints") == ["tcp/127.0.0.1:7447"]
+
+
+def test_user_file_overrides_what_it_sets_and_defaults_fill_the_rest(tmp_path):
+    path = tmp_path / "zenoh.json5"
+    path.write_text('{ // a user config\n mode: "peer", listen: { endpoints: ["tcp/127.0.0.1:17999"] },\n'
+                    ' scouting: { multicast: { enabled: true } } }\n')
+    config = build_config("client", config_file=path)
+    assert read_key(config, "mode") == "peer"
+    assert read_key(config, "listen/endpoints") == ["tcp/127.0.0.1:17999"]
+    assert read_key(config, "scouting/multicast/enabled") is True  # the user's explicit choice stands
+    assert read_key(config, "connect/endpoints") == ["tcp/127.0.0.1:7447"]  # unset in the file: default
+
+
+def test_command_line_endpoints_override_the_file(tmp_path):
+    path = tmp_path / "zenoh.json5"
+    path.write_text(json.dumps({"connect": {"endpoints": ["tcp/127.0.0.1:1111"]}}))
+    config = build_config("client", config_file=path, connect=["tcp/127.0.0.1:2222"], listen=["tcp/127.0.0.1:0"])
+    assert read_key(config, "connect/endpoints") == ["tcp/127.0.0.1:2222"]
+    assert read_key(config, "listen/endpoints") == ["tcp/127.0.0.1:0"]
+    assert read_key(config, "scouting/multicast/enabled") is False
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"connect": ["not-an-endpoint"]}, "connect/endpoints"),
+    ({"config_file": "/nonexistent/zenoh.json5"}, "does not exist"),
+])
+def test_bad_configuration_is_one_sentence(kwargs, message):
+    with pytest.raises(UsageError) as info:
+        build_config("client", **kwargs)
+    assert message in str(info.value) and "\n" not in str(info.value)
+
+
+def test_invalid_config_file_is_one_sentence(tmp_path):
+    path = tmp_path / "bad.json5"
+    path.write_text("{ mode: ")
+    with pytest.raises(UsageError, match="not valid"):
+        build_config("client", config_file=path)
+
+
+@pytest.fixture
+def started():
+    processes: list[subprocess.Popen] = []
+    yield processes
+    for process in processes:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+
+
+def test_router_process_routes_between_two_clients_and_stops_on_sigint(started):
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = subprocess.Popen([*CLI, "router", "--listen", endpoint], stderr=subprocess.PIPE, text=True)
+    started.append(router)
+    assert "routing; listening on " + endpoint in router.stderr.readline()
+    config = build_config("client", connect=[endpoint])
+    received = []
+    with zenoh.open(config) as a, zenoh.open(config) as b:
+        subscriber = b.declare_subscriber("pg/test/ping", lambda sample: received.append(sample.payload.to_bytes()))
+        deadline = time.monotonic() + 10
+        while not received and time.monotonic() < deadline:
+            a.put("pg/test/ping", b"hello", congestion_control=zenoh.CongestionControl.BLOCK)
+            time.sleep(0.05)
+        subscriber.undeclare()
+    assert received and received[0] == b"hello"
+    router.send_signal(signal.SIGINT)
+    assert router.wait(20) == 0
+
+
+def test_mapper_without_a_router_says_so_in_one_sentence(tmp_path, capsys):
+    port = free_port()
+    base = ["mapper", "--shard", "0", "--shards", "1", "--connect", f"tcp/127.0.0.1:{port}"]
+    assert main([*base, "--zenoh-config", str(tmp_path / "none.json5")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "does not exist" in err
+    base = [*CLI, *base]
+    quick = tmp_path / "quick.json5"
+    quick.write_text(json.dumps({"connect": {"timeout_ms": 500}}))  # do not wait 10 s for a router
+    result = subprocess.run([*base, "--zenoh-config", str(quick)], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    assert result.stderr.count("\n") == 1, result.stderr
+    assert "could not open its zenoh session" in result.stderr and f"tcp/127.0.0.1:{port}" in result.stderr
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["mapper", "--shard", "2", "--shards", "2"], "--shard"),
+    (["mapper", "--shard", "0", "--shards", "1", "--tile-size", "100"], "power of 2"),
+    (["mapper", "--shard", "0", "--shards", "1", "--map", "a/b"], "--map"),
+    (["source", "--posed", "x.npz", "--rate", "fast"], "rate"),
+    (["source", "--posed", "x.npz", "--robot", "map"], "--robot"),
+    (["run", "--posed", "/nonexistent.npz"], "no such file"),
+    (["run", "--posed", "x.npz", "--shards", "0"], "--shards"),
+    (["run", "--mrclam", "/tmp"], "no laser"),
+    (["run", "--carmen", "x.clf", "--algo", "ekf"], "gridslam"),
+    (["slam-node", "--particles", "0"], "--particles"),
+    (["slam-node", "--initial", "1,2"], "--initial"),
+])
+def test_bad_arguments_exit_2_with_one_sentence(argv, message, capsys):
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err and err.count("\n") == 1, err
+
+
+@pytest.mark.parametrize("command", ["router", "mapper", "source", "run", "slam-node"])
+def test_every_process_has_help(command, capsys):
+    with pytest.raises(SystemExit) as info:
+        main([command, "--help"])
+    assert info.value.code == 0 and "usage: posegrid " + command in capsys.readouterr().out
