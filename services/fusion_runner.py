@@ -7,6 +7,7 @@ from collections.abc import Callable
 import numpy as np
 from tqdm import tqdm
 
+from mapping.adaptive import AdaptiveFusion, AdaptiveGrid, AdaptiveParams
 from mapping.fusion import MonteCarloFusion
 from mapping.grid import TiledGrid
 from mapping.poses import scan_samples
@@ -44,11 +45,41 @@ def fuse_posed_scans(
     """
     model = model or SensorModel(resolution=resolution)
     grid = grid or TiledGrid(model.resolution)
-    accuracy = accuracy if accuracy is not None else model.resolution
     fusion = MonteCarloFusion(grid, model, posed.beam_angles, posed.range_min, posed.range_max,
                               posed.sensor_offset, owns_tile)
+    _fuse_each_scan(posed, fusion.fuse, mode, n_samples, seed, accuracy, model, progress)
+    return grid
+
+
+def fuse_posed_scans_adaptive(
+    posed: PosedScans,
+    *,
+    mode: str = "mc",
+    model: SensorModel | None = None,
+    resolution: float = 0.05,
+    n_samples: int | None = None,
+    seed: int = 0,
+    accuracy: float | None = None,
+    params: AdaptiveParams | None = None,
+    grid: AdaptiveGrid | None = None,
+    progress: bool = False,
+) -> AdaptiveGrid:
+    """As :func:`fuse_posed_scans`, into an adaptive grid (docs/adaptive.md) whose finest cells are the model's
+    resolution; ``params`` sets its start level, split test and merge rules."""
+    model = model or SensorModel(resolution=resolution)
+    grid = grid or AdaptiveGrid(model.resolution)
+    fusion = AdaptiveFusion(grid, model, posed.beam_angles, posed.range_min, posed.range_max, posed.sensor_offset,
+                            params)
+    _fuse_each_scan(posed, fusion.fuse, mode, n_samples, seed, accuracy, model, progress)
+    return grid
+
+
+def _fuse_each_scan(posed: PosedScans, fuse: Callable[[np.ndarray, np.ndarray, np.ndarray], object], mode: str,
+                    n_samples: int | None, seed: int, accuracy: float | None, model: SensorModel,
+                    progress: bool) -> None:
+    """Call ``fuse(ranges, samples, weights)`` for every scan, in order."""
+    accuracy = accuracy if accuracy is not None else model.resolution
     steps = range(len(posed.stamps))
     for t in tqdm(steps, desc="fusing", unit="scan", disable=not progress, mininterval=0.5):
         samples, weights = scan_pose_samples(posed.poses, t, mode, n_samples, seed, posed.range_max, accuracy)
-        fusion.fuse(posed.ranges[t], samples, weights)
-    return grid
+        fuse(posed.ranges[t], samples, weights)

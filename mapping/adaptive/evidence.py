@@ -7,18 +7,24 @@ Each ray under each pose sample is traversed at the finest resolution with the s
   :mod:`mapping.fusion`'s kernel does: a beam gives the cell the model's largest value over its segment
   inside the cell, one sample gives the cell the largest value any of its beams proposes, and the cell
   gets the weighted moments sum_j w_j y_ij and sum_j w_j y_ij^2;
-* per cell of every level, one weighted count of each ray's outcome (paper, section VI.A): a
-  *hit* if the ray's return lies in the cell, a *miss* if the ray leaves the cell before its return, an
-  *unknown* if the ray's return lies before the cell (the cell is behind an obstacle along that beam).
-  The finest cells a ray crosses form, at level k, consecutive *runs* inside one level-k cell (a ray crosses
-  a square once); each run of a ray of sample j adds w_j to one of the three counts of its cell. A beam
-  without a return is a miss everywhere up to range_max.
+* per cell of every level, one weighted count of each ray's outcome (paper, section VI.A): a *hit* if the
+  ray's return lies in the cell, a *miss* if the ray leaves the cell before its return, an *unknown* if the
+  ray's return lies before the cell (the cell is behind an obstacle along that beam). The finest cells a
+  ray crosses form, at level k, consecutive *runs* inside one level-k cell (a ray crosses a square once);
+  each run of a ray of sample j adds w_j to one of the three counts of its cell. A beam without a return is
+  a miss everywhere up to range_max.
+
+Unknowns are counted only where the split test reads them: at levels >= 1 (the finest cells are never
+split) and in cells that the scan also gives hits or misses (a cell is tested only when the scan sees it).
+They are counted in a second loop that follows each ray from its return through level-1 cells, so the long
+stretches behind the returns cost little.
 
 Nothing here depends on which cells are active, so after the pass the split test can descend through any
 level and the update can aggregate the finest evidence into whatever cells are active.
 
 Evidence lives in scratch windows that cover the scan's reach: the finest window for the log-odds records,
-and per level k the level-k cells over it for the counts, flattened into one array with per-level offsets. Records carry stamps, as in the regular kernel, so the scratch is reused without clearing.
+and per level k the level-k cells over it for the counts, flattened into one array with per-level offsets.
+Records carry stamps, as in the regular kernel, so the scratch is reused without clearing.
 """
 from __future__ import annotations
 
@@ -62,19 +68,23 @@ def _bit_length(v):  # pragma: no cover - compiled
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _scan_evidence(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop, r_count, r_peak, a, b, s, g_peak,
-                   table, u0, du, res, p_miss, p_hit, l_free, lv_x0, lv_y0, lv_w, lv_h, lv_off, rec, cnt, touched,
-                   stamp_base, count_unknowns):  # pragma: no cover - compiled
+                   table, u0, du, res, p_miss, p_hit, l_free, lv_x0, lv_y0, lv_w, lv_h, lv_off, rec, cnt, seen,
+                   touched, stamp_base, count_unknowns):  # pragma: no cover - compiled
     """The pass; returns how many finest cells got log-odds evidence (listed in ``touched``).
 
     Finest window cell (gx, gy) = global (lv_x0[0] + gx, lv_y0[0] + gy) has record rec[gy * lv_w[0] + gx] =
-    [stamp of the last sample that touched it, that sample's value, sum_j w_j y, sum_j w_j y^2]; the stamps
-    are stamp_base + j, smaller ones are from earlier scans. Level-k cell (ax, ay) has count record
-    cnt[lv_off[k] + (ay - lv_y0[k]) * lv_w[k] + ax - lv_x0[k]] = [stamp_base, hits, misses, unknowns].
-    Values are taken up to r_stop (as in the regular grid), counts up to r_count >= r_stop.
+    [stamp of the last sample that touched it, that sample's value, sum_j w_j y, sum_j w_j y^2, hits,
+    misses]; the stamps are stamp_base + j, smaller ones are from earlier scans. Level-k cell (ax, ay), k >= 1,
+    has count record q = lv_off[k] + (ay - lv_y0[k]) * lv_w[k] + ax - lv_x0[k], cnt[q] = [stamp_base, hits,
+    misses, unknowns], and seen[q] = 1 once the scan gave it a hit or a miss (``seen`` must be all 0 on entry).
+
+    First every ray is followed up to r_stop for the values, hits and misses. Then, with ``count_unknowns``,
+    every ray with a return is followed from its return up to r_count through level-1 cells, and each cell of
+    level >= 1 it enters adds an unknown, if the scan has seen that cell: the split test reads unknowns only
+    in cells with hits or misses, and skipping the others keeps the long stretches behind the returns cheap.
     """
     n_levels = lv_x0.shape[0]
     run_hit = np.zeros(n_levels, np.bool_)  # per level, the open run holds the return
-    run_after = np.zeros(n_levels, np.bool_)  # the open run began beyond the return
     run_len = np.zeros(n_levels, np.bool_)  # the open run has positive length
     n_touched = 0
     free_gap = FREE_SHORTCUT_SIGMAS / SQRT2  # in units of s = sqrt(2) sigma
@@ -89,13 +99,11 @@ def _scan_evidence(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop
             theta = laser_yaw[j] + angles[k]
             ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y = dda_start(
                 laser_x[j], laser_y[j], math.cos(theta), math.sin(theta), res)
-            stop_value = r_stop[k]
-            stop = r_count[k]
+            stop = r_stop[k]
             z_hit = z[k] if beam_kind == BEAM_HIT else FAR
-            free_until = stop_value if beam_kind == BEAM_NO_RETURN else a[k] - free_gap * s[k]
+            free_until = stop if beam_kind == BEAM_NO_RETURN else a[k] - free_gap * s[k]
             for lvl in range(n_levels):
                 run_hit[lvl] = False
-                run_after[lvl] = False
                 run_len[lvl] = False
             hit_passed = False
             r_in = 0.0
@@ -110,57 +118,90 @@ def _scan_evidence(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop
                     if not hit_passed and z_hit < r_out:
                         run_hit[0] = True
                         hit_passed = True
-                    if r_in < stop_value:
-                        y = _segment_logodds(r_in, min(r_out, stop_value), beam_kind, free_until, z[k], r_peak[k],
-                                             a[k], b[k], s[k], g_peak[k], table, u0, du, p_miss, p_hit, l_free,
-                                             y_peak)
-                        c = gy * lv_w[0] + gx
-                        if rec[c, 0] != sid:
-                            if rec[c, 0] < stamp_base:
-                                rec[c, 2] = 0.0
-                                rec[c, 3] = 0.0
-                                touched[n_touched] = c
-                                n_touched += 1
-                            rec[c, 0] = sid
-                            rec[c, 1] = y
-                            rec[c, 2] += w * y
-                            rec[c, 3] += w * y * y
-                        elif y > rec[c, 1]:
-                            old = rec[c, 1]
-                            rec[c, 1] = y
-                            rec[c, 2] += w * (y - old)
-                            rec[c, 3] += w * (y * y - old * old)
+                    y = _segment_logodds(r_in, r_out, beam_kind, free_until, z[k], r_peak[k], a[k], b[k], s[k],
+                                         g_peak[k], table, u0, du, p_miss, p_hit, l_free, y_peak)
+                    c = gy * lv_w[0] + gx
+                    if rec[c, 0] != sid:
+                        if rec[c, 0] < stamp_base:
+                            rec[c, 2] = 0.0
+                            rec[c, 3] = 0.0
+                            rec[c, 4] = 0.0
+                            rec[c, 5] = 0.0
+                            touched[n_touched] = c
+                            n_touched += 1
+                        rec[c, 0] = sid
+                        rec[c, 1] = y
+                        rec[c, 2] += w * y
+                        rec[c, 3] += w * y * y
+                    elif y > rec[c, 1]:
+                        old = rec[c, 1]
+                        rec[c, 1] = y
+                        rec[c, 2] += w * (y - old)
+                        rec[c, 3] += w * (y * y - old * old)
                 next_ix, next_iy = ix, iy
                 if finished or r_out >= stop:
                     finished = True
-                    changed = n_levels
+                    top = n_levels
                 else:
                     next_ix, next_iy, r_in, t_max_x, t_max_y = dda_step(ix, iy, r_in, step_x, step_y, t_max_x,
                                                                        t_max_y, t_delta_x, t_delta_y)
                     moved = (next_ix ^ ix) | (next_iy ^ iy)
-                    changed = n_levels if moved < 0 else min(_bit_length(moved), n_levels)
-                # close the runs that end here (levels 0..changed-1, finest first): fold each into its parent
-                # run, count its outcome, and open the next run
-                for lvl in range(changed):
-                    if run_len[lvl]:
+                    top = n_levels if moved < 0 else min(_bit_length(moved), n_levels)
+                # close the runs that end here (levels 0..top-1, finest first): fold each into its parent run,
+                # count a hit or a miss (a run that began beyond the return is left to the unknowns' pass),
+                # and open the next run
+                for lvl in range(top):
+                    if run_len[lvl] and (run_hit[lvl] or not hit_passed):
                         if lvl + 1 < n_levels:
                             run_len[lvl + 1] = True
                             if run_hit[lvl]:
                                 run_hit[lvl + 1] = True
-                        outcome = HIT if run_hit[lvl] else (UNKNOWN if run_after[lvl] else MISS)
-                        if outcome != UNKNOWN or count_unknowns:
+                        if lvl == 0:  # a finest run is the cell just recorded: its counts share the record
+                            rec[gy * lv_w[0] + gx, 4 if run_hit[0] else 5] += w
+                        else:
                             q = lv_off[lvl] + ((iy >> lvl) - lv_y0[lvl]) * lv_w[lvl] + ((ix >> lvl) - lv_x0[lvl])
                             if cnt[q, 0] != stamp_base:
                                 cnt[q, 0] = stamp_base
                                 cnt[q, 1] = 0.0
                                 cnt[q, 2] = 0.0
                                 cnt[q, 3] = 0.0
-                            cnt[q, outcome] += w
+                            cnt[q, HIT if run_hit[lvl] else MISS] += w
+                            seen[q] = 1
                     run_hit[lvl] = False
-                    run_after[lvl] = hit_passed
                     run_len[lvl] = False
                 if finished:
                     break
+                ix = next_ix
+                iy = next_iy
+    if not count_unknowns or n_levels < 2:
+        return n_touched
+    for j in range(laser_x.shape[0]):
+        w = weights[j]
+        for k in range(angles.shape[0]):
+            if kind[k] != BEAM_HIT or r_count[k] <= z[k]:
+                continue
+            theta = laser_yaw[j] + angles[k]
+            dx = math.cos(theta)
+            dy = math.sin(theta)
+            # ranges from the return; its level-1 cell holds the hit, every cell entered after it is unknown
+            ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y = dda_start(
+                laser_x[j] + z[k] * dx, laser_y[j] + z[k] * dy, dx, dy, 2.0 * res)
+            stop = r_count[k] - z[k]
+            r_in = 0.0
+            while min(t_max_x, t_max_y) < stop:
+                next_ix, next_iy, r_in, t_max_x, t_max_y = dda_step(ix, iy, r_in, step_x, step_y, t_max_x, t_max_y,
+                                                                   t_delta_x, t_delta_y)
+                gx = next_ix - lv_x0[1]
+                gy = next_iy - lv_y0[1]
+                if gx < 0 or gy < 0 or gx >= lv_w[1] or gy >= lv_h[1]:
+                    break  # cannot happen, as above
+                moved = (next_ix ^ ix) | (next_iy ^ iy)
+                top = n_levels if moved < 0 else min(1 + _bit_length(moved), n_levels)
+                for lvl in range(1, top):
+                    q = (lv_off[lvl] + ((next_iy >> (lvl - 1)) - lv_y0[lvl]) * lv_w[lvl]
+                         + ((next_ix >> (lvl - 1)) - lv_x0[lvl]))
+                    if seen[q]:
+                        cnt[q, UNKNOWN] += w
                 ix = next_ix
                 iy = next_iy
     return n_touched
@@ -196,15 +237,23 @@ class ScanEvidence:
                 np.maximum(record[:, 3] - first * first, 0.0))
 
     def counts(self, level: np.ndarray, ax: np.ndarray, ay: np.ndarray) -> np.ndarray:
-        """(N, 3) weighted hits, misses and unknowns of cells (level, ax, ay); zeros where the scan has none."""
+        """(N, 3) weighted hits, misses and unknowns of cells (level, ax, ay); zeros where the scan has none
+        (unknowns only in cells of level >= 1 with hits or misses, see the module docstring)."""
         level = np.asarray(level, np.int64)
         lv = np.clip(level, 0, self.levels - 1)
         gx = np.asarray(ax, np.int64) - self.x0[lv]
         gy = np.asarray(ay, np.int64) - self.y0[lv]
         inside = (level >= 0) & (level < self.levels) & (gx >= 0) & (gy >= 0) & (gx < self.w[lv]) & (gy < self.h[lv])
-        record = self.cnt[np.where(inside, self.off[lv] + gy * self.w[lv] + gx, 0)]
-        fresh = inside & (record[:, 0] == self.stamp_base)
-        return np.where(fresh[:, None], record[:, HIT:UNKNOWN + 1], 0.0)
+        out = np.zeros((level.size, 3))
+        finest = inside & (level == 0)
+        record = self.rec[np.where(finest, gy * self.w[0] + gx, 0)]
+        fresh = finest & (record[:, 0] >= self.stamp_base)
+        out[fresh, :2] = record[fresh, 4:6]
+        coarse = inside & (level > 0)
+        record = self.cnt[np.where(coarse, self.off[lv] + gy * self.w[lv] + gx, 0)]
+        fresh = coarse & (record[:, 0] == self.stamp_base)
+        out[fresh] = record[fresh, HIT:UNKNOWN + 1]
+        return out
 
 
 class EvidenceScanner:
@@ -217,8 +266,9 @@ class EvidenceScanner:
         self.levels = int(levels)
         self.count_unknowns = bool(count_unknowns)
         self._stamp_next = 1
-        self._rec = np.zeros((0, 4))
-        self._cnt = np.zeros((0, 4))
+        self._rec = np.zeros((0, 6))
+        self._cnt = np.zeros((1, 4))
+        self._seen = np.zeros(0, np.uint8)
         self._touched = np.zeros(0, np.int64)
 
     def scan(self, lasers: np.ndarray, weights: np.ndarray, angles: np.ndarray, beams: BeamTable,
@@ -242,13 +292,17 @@ class EvidenceScanner:
         w = (np.int64(ix1) >> shifts) - x0 + 1
         h = (np.int64(iy1) >> shifts) - y0 + 1
         sizes = w * h
+        fine = int(sizes[0])
+        sizes[0] = 0  # the finest cells' counts live in their log-odds records
         off = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
-        fine, counted = int(sizes[0]), int(sizes.sum())
+        counted = int(sizes.sum())
         if fine > self._rec.shape[0]:
-            self._rec = np.zeros((fine, 4))
+            self._rec = np.zeros((fine, 6))
             self._touched = np.zeros(fine, np.int64)
         if counted > self._cnt.shape[0]:
             self._cnt = np.zeros((counted, 4))
+            self._seen = np.zeros(counted, np.uint8)
+        self._seen[:counted] = 0
         if self._stamp_next + len(lasers) >= STAMP_LIMIT:
             self._rec[:] = 0
             self._cnt[:] = 0
@@ -258,6 +312,6 @@ class EvidenceScanner:
         n = _scan_evidence(
             lasers[:, 0].copy(), lasers[:, 1].copy(), lasers[:, 2].copy(), weights, angles, beams.kind, beams.z,
             beams.r_stop, r_count, beams.r_peak, beams.a, beams.b, beams.s, beams.g_peak, table, TABLE_U0, TABLE_DU,
-            res, p_miss, p_hit, l_free, x0, y0, w, h, off, self._rec, self._cnt, self._touched, stamp_base,
-            self.count_unknowns)
+            res, p_miss, p_hit, l_free, x0, y0, w, h, off, self._rec, self._cnt, self._seen, self._touched,
+            stamp_base, self.count_unknowns)
         return ScanEvidence(x0, y0, w, h, off, self._rec, self._cnt, self._touched[:n].copy(), stamp_base)

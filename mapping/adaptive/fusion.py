@@ -35,9 +35,10 @@ import numpy as np
 from mapping.adaptive.evidence import EvidenceScanner, ScanEvidence
 from mapping.adaptive.merging import MergeRules, merge_siblings
 from mapping.adaptive.splitting import SplitTest
-from mapping.adaptive.tree import AdaptiveGrid, children
+from mapping.adaptive.tree import AdaptiveGrid, children, unique_cells
 from mapping.errors import InputError
-from mapping.fusion import BEAM_HIT, BEAM_SKIP, beam_table, laser_poses, logodds_table, merge_duplicates
+from mapping.fusion import (BEAM_HIT, BEAM_SKIP, BeamTable, beam_table, laser_poses, logodds_table,
+                            merge_duplicates)
 from mapping.sensor_model import SensorModel
 
 
@@ -102,7 +103,8 @@ class AdaptiveFusion:
     ) -> None:
         params = params or AdaptiveParams()
         if not np.isclose(grid.resolution, model.resolution):
-            raise InputError(f"grid resolution {grid.resolution} m differs from the sensor model's {model.resolution} m")
+            raise InputError(f"grid resolution {grid.resolution} m differs from the sensor model's "
+                             f"{model.resolution} m")
         if not 0 <= range_min < range_max or not np.isfinite(range_max):
             raise InputError(f"need 0 <= range_min < range_max < inf, got {range_min} and {range_max}")
         max_level = grid.max_level if params.max_level is None else params.max_level
@@ -152,7 +154,7 @@ class AdaptiveFusion:
         merges = self._merge(evidence, updated)
         return AdaptiveFuseResult(len(updated[0]), created, splits, merges)
 
-    def _count_ranges(self, beams) -> np.ndarray:
+    def _count_ranges(self, beams: BeamTable) -> np.ndarray:
         """How far each ray is followed (m): the value range, and with unknowns beyond the return."""
         r_count = beams.r_stop.copy()
         if self.params.unknowns:
@@ -165,8 +167,7 @@ class AdaptiveFusion:
     def _activate(self, ix: np.ndarray, iy: np.ndarray) -> int:
         """Activate the start-level cells over the touched finest cells (ix, iy) that no active cell covers."""
         start = self.params.start_level
-        blocks = np.unique(np.stack([ix >> start, iy >> start], axis=1), axis=0)
-        bx, by = blocks[:, 0], blocks[:, 1]
+        bx, by = unique_cells(ix >> start, iy >> start)
         new = self.grid.find(bx << start, by << start) < 0
         if new.any():
             zeros = np.zeros(int(new.sum()))
@@ -197,7 +198,8 @@ class AdaptiveFusion:
             counts = evidence.counts(np.full(cx.shape, k), cx, cy)
             totals = np.concatenate([carried + counts[:, :2], counts[:, 2:]], axis=1)
             # a cell is tested when the scan sees it; the finest cells are never split
-            split = (k > 0) & (counts[:, 0] + counts[:, 1] > 0) & self.test.reject(np.full(cx.shape, k), totals)
+            split = (counts[:, 0] + counts[:, 1] > 0) & (k > 0)
+            split[split] = self.test.reject(np.full(int(split.sum()), k), totals[split])
             old = np.arange(cx.size) < here.size
             grid.hits[here] = totals[old, 0]
             grid.misses[here] = totals[old, 1]

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mapping.adaptive.tree import AdaptiveGrid, children
+from mapping.adaptive.tree import AdaptiveGrid, children, unique_cells
 from mapping.errors import InputError
 
 
@@ -61,8 +61,7 @@ def merge_siblings(grid: AdaptiveGrid, level: np.ndarray, ax: np.ndarray, ay: np
     frontier_x, frontier_y = ax[level == 0], ay[level == 0]
     merges = 0
     for k in range(max_level):
-        parents = np.unique(np.stack([frontier_x >> 1, frontier_y >> 1], axis=1), axis=0)
-        px, py = parents[:, 0], parents[:, 1]
+        px, py = unique_cells(frontier_x >> 1, frontier_y >> 1)
         kx, ky = children(px, py)
         kids = grid.find_exact(np.full(kx.shape, k), kx, ky).reshape(-1, 4)
         safe = np.maximum(kids, 0)

@@ -7,13 +7,15 @@ carries across one boundary of a level-k cell (:func:`spill`) and f a floor for 
 leaves out:
 
 with unknowns (three outcomes, two degrees of freedom)
-    free   misses dominate; hits <= e_k + f (returns of a surface just beyond the cell that fall short),
-           unknowns <= f
-    solid  unknowns dominate; hits <= 1/2 + f (a surface at or before the cell's entry: at most the half of
-           its returns that the noise carries into the cell), misses <= f
+    free      misses dominate; hits <= e_k + f (returns of a surface just beyond the cell that fall short),
+              unknowns <= f
+    occupied  hits dominate; misses <= e_k + f and unknowns <= e_k + f (returns inside the cell that the
+              noise carries beyond it or before it)
+    hidden    unknowns dominate; hits <= e_k + f (returns of an occluder just before the cell that overshoot
+              into it), misses <= f
 without unknowns (Einhorn et al.'s rule: hits and misses, one degree of freedom)
     free      misses dominate; hits <= e_k + f
-    occupied  hits dominate; misses <= e_k + f (returns inside the cell that the noise carries beyond it)
+    occupied  hits dominate; misses <= e_k + f
 
 Each hypothesis is a family of distributions (bounds on the non-dominant shares), so the statistic is the
 smallest Pearson X^2 = sum (O - n p)^2 / (n p) over the family (:func:`min_chi_square`); the cell splits when
@@ -23,11 +25,11 @@ probability at most alpha.
 """
 from __future__ import annotations
 
-import itertools
 import math
 from dataclasses import dataclass
 from functools import cached_property, lru_cache
 
+import numba as nb
 import numpy as np
 from scipy.special import erfc
 from scipy.stats import chi2
@@ -91,26 +93,47 @@ def min_chi_square(counts: np.ndarray, dominant: int, bounds: np.ndarray) -> np.
     S = sum_{not B} q_i), giving X^2 = n [(S - P)^2 / P + sum_B (q_i - b_i)^2 / b_i]. Every feasible face
     is tried and the smallest value kept.
     """
-    counts = np.asarray(counts, dtype=float)
-    bounds = np.broadcast_to(np.asarray(bounds, dtype=float), counts.shape)
-    n = counts.sum(axis=1)
-    q = counts / np.where(n > 0, n, 1.0)[:, None]
-    foreign = [i for i in range(counts.shape[1]) if i != dominant]
-    best = np.full(n.shape, np.inf)
-    for size in range(len(foreign) + 1):
-        for active in itertools.combinations(foreign, size):
-            free = [i for i in range(counts.shape[1]) if i not in active]
-            p_free = 1.0 - sum(bounds[:, i] for i in active)
-            s_free = q[:, free].sum(axis=1)
-            value = (s_free - p_free) ** 2 / p_free
-            for i in active:
-                value = value + (q[:, i] - bounds[:, i]) ** 2 / bounds[:, i]
-            feasible = np.ones(n.shape, bool)
-            for i in free:
-                if i != dominant:
-                    feasible &= q[:, i] * p_free <= bounds[:, i] * s_free * (1 + 1e-12) + 1e-15
-            best = np.where(feasible, np.minimum(best, n * value), best)
-    return np.where(n > 0, best, 0.0)
+    counts = np.ascontiguousarray(counts, dtype=np.float64)
+    bounds = np.ascontiguousarray(np.broadcast_to(np.asarray(bounds, dtype=np.float64), counts.shape))
+    out = np.empty(counts.shape[0])
+    _min_chi_square(counts, int(dominant), bounds, out)
+    return out
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _min_chi_square(counts, dominant, bounds, out):  # pragma: no cover - compiled
+    n_rows, n_cols = counts.shape
+    q = np.empty(n_cols)
+    for r in range(n_rows):
+        n = 0.0
+        for i in range(n_cols):
+            n += counts[r, i]
+        if n <= 0.0:
+            out[r] = 0.0
+            continue
+        for i in range(n_cols):
+            q[i] = counts[r, i] / n
+        best = np.inf
+        for active in range(1 << n_cols):  # the set B of active bounds, as bits; never the dominant column
+            if (active >> dominant) & 1:
+                continue
+            p_free = 1.0
+            s_free = 0.0
+            value = 0.0
+            for i in range(n_cols):
+                if (active >> i) & 1:
+                    p_free -= bounds[r, i]
+                    value += (q[i] - bounds[r, i]) ** 2 / bounds[r, i]
+                else:
+                    s_free += q[i]
+            feasible = True
+            for i in range(n_cols):
+                if not (active >> i) & 1 and i != dominant:
+                    if q[i] * p_free > bounds[r, i] * s_free * (1.0 + 1e-12) + 1e-15:
+                        feasible = False
+            if feasible:
+                best = min(best, n * (value + (s_free - p_free) ** 2 / p_free))
+        out[r] = best
 
 
 @dataclass(frozen=True)
@@ -160,9 +183,11 @@ class SplitTest:
     def statistic(self, level: np.ndarray, counts: np.ndarray) -> np.ndarray:
         """The smallest X^2 over the homogeneous families; counts (N, 3) hits, misses, unknowns (the unknowns
         column is ignored without unknowns)."""
-        counts = np.asarray(counts, dtype=float)
+        counts = np.asarray(counts, dtype=float).reshape(-1, 3)
         if not self.unknowns:
             counts = counts[:, :2]
+        if counts.shape[0] == 0:
+            return np.zeros(0)
         return np.min([min_chi_square(counts, dominant, bounds) for dominant, bounds in self.families(level)], axis=0)
 
     def reject(self, level: np.ndarray, counts: np.ndarray) -> np.ndarray:

@@ -66,6 +66,18 @@ def morton(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return _spread_bits(x) | (_spread_bits(y) << 1)
 
 
+def unique_cells(ax: np.ndarray, ay: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct pairs (ax, ay) of two integer arrays, sorted by (ax, ay)."""
+    ax = np.asarray(ax, np.int64)
+    ay = np.asarray(ay, np.int64)
+    if ax.size == 0:
+        return ax, ay
+    x0, y0 = ax.min(), ay.min()
+    span = int(ay.max() - y0) + 1
+    code = np.unique((ax - x0) * span + (ay - y0))
+    return code // span + x0, code % span + y0
+
+
 def children(ax: np.ndarray, ay: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Coordinates (4N,) of the children of cells (ax, ay), four consecutive per cell (CHILD_DX, CHILD_DY order)."""
     return (2 * np.asarray(ax)[:, None] + CHILD_DX).ravel(), (2 * np.asarray(ay)[:, None] + CHILD_DY).ravel()
@@ -87,8 +99,9 @@ class AdaptiveGrid:
         self.tile_size = int(tile_size)
         self.tile_shift = self.tile_size.bit_length() - 1
         self._key_shift = 2 * self.tile_shift
-        self._slot_of: dict[tuple[int, int], int] = {}
-        self._tile_xy = np.zeros((0, 2), np.int64)
+        self._tile_xy = np.zeros((0, 2), np.int64)  # (tx, ty) of each slot, in creation order
+        self._tile_code = np.zeros(0, np.int64)  # sorted tile codes ...
+        self._tile_slot = np.zeros(0, np.int64)  # ... and their slots
         self.key = np.zeros(0, np.int64)
         for name, dtype in CELL_COLUMNS:
             setattr(self, name, np.zeros(0, dtype))
@@ -105,32 +118,31 @@ class AdaptiveGrid:
 
     @property
     def nbytes(self) -> int:
-        """Bytes held by the active cells' arrays (key and columns) and the tile table."""
+        """Bytes held by the active cells' arrays (key and columns) and the tile tables."""
         return int(self.key.nbytes + sum(getattr(self, name).nbytes for name, _ in CELL_COLUMNS)
-                   + self._tile_xy.nbytes)
-
-    def cell_size(self, level: int) -> float:
-        """Side in m of a cell of ``level``."""
-        return self.resolution * (1 << level)
+                   + self._tile_xy.nbytes + self._tile_code.nbytes + self._tile_slot.nbytes)
 
     # ----------------------------------------------------------------------------------- keys
     def _slots(self, tx: np.ndarray, ty: np.ndarray, create: bool) -> np.ndarray:
-        """Slot of each tile (tx, ty), -1 where the tile does not exist (created instead if ``create``)."""
-        shape = np.shape(tx)
-        tx = np.asarray(tx, np.int64).ravel()
-        ty = np.asarray(ty, np.int64).ravel()
-        span_y = int(ty.max() - ty.min()) + 1
-        tiles, first, inverse = np.unique((tx - tx.min()) * span_y + (ty - ty.min()), return_index=True,
-                                          return_inverse=True)
-        slots = np.empty(len(tiles), np.int64)
-        for i, (x, y) in enumerate(zip(tx[first].tolist(), ty[first].tolist())):  # one pass per distinct tile
-            slot = self._slot_of.get((x, y), -1)
-            if slot < 0 and create:
-                slot = len(self._slot_of)
-                self._slot_of[(x, y)] = slot
-                self._tile_xy = np.concatenate([self._tile_xy, np.array([[x, y]], np.int64)])
-            slots[i] = slot
-        return slots[inverse.reshape(-1)].reshape(shape)
+        """Slot of each tile (tx, ty), -1 where the tile does not exist (created instead if ``create``).
+
+        Tiles are found by binary search in their codes (tx << 32 | ty), kept sorted beside their slots.
+        """
+        tx = np.asarray(tx, np.int64)
+        ty = np.asarray(ty, np.int64)
+        code = (tx << 32) | (ty & 0xFFFFFFFF)
+        where = np.minimum(np.searchsorted(self._tile_code, code), max(self._tile_code.size - 1, 0))
+        found = (self._tile_code[where] == code) if self._tile_code.size else np.zeros(code.shape, bool)
+        if create and not found.all():
+            new, first = np.unique(code[~found], return_index=True)
+            self._tile_xy = np.concatenate([self._tile_xy, np.stack([tx[~found][first], ty[~found][first]], axis=1)])
+            codes = np.concatenate([self._tile_code, new])
+            order = np.argsort(codes)
+            self._tile_code = codes[order]
+            self._tile_slot = np.concatenate([self._tile_slot, np.arange(len(self._tile_xy) - new.size,
+                                                                         len(self._tile_xy))])[order]
+            return self._slots(tx, ty, create=False)
+        return np.where(found, self._tile_slot[where] if self._tile_code.size else -1, -1)
 
     def _finest_keys(self, ix: np.ndarray, iy: np.ndarray, create: bool = False) -> np.ndarray:
         """Key of finest cells (ix, iy); -1 where their tile does not exist."""

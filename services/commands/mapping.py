@@ -46,7 +46,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       help="required accuracy in m of the Monte Carlo mean beam end point, for the derived sample "
                       "count (default: one cell)")
     fuse.add_argument("--seed", type=int, default=0, help="seed of the Gaussian pose sampling (default 0)")
+    fuse.add_argument("--grid", choices=("regular", "adaptive"), default="regular",
+                      help="regular: one cell size everywhere (default); adaptive: a quadtree that keeps fine cells "
+                      "only where the scans show structure (docs/adaptive.md); both write the same map file, the "
+                      "adaptive one with a 'level' layer")
     add_sensor_model_arguments(fuse)
+    adaptive = fuse.add_argument_group("adaptive grid (--grid adaptive, docs/adaptive.md)")
+    adaptive.add_argument("--unknowns", action=argparse.BooleanOptionalAction, default=True,
+                          help="count unknowns (rays that ended before reaching a cell) in the split test, the "
+                          "paper's rule; --no-unknowns: only hits and misses, Einhorn et al.'s (default: unknowns)")
+    adaptive.add_argument("--coarse-cell", type=float, default=0.8,
+                          help="cell size in m where a scan first observes something: --resolution times a power "
+                          "of two (default 0.8)")
+    adaptive.add_argument("--significance", type=float, default=0.01,
+                          help="significance of the chi-square split test; larger splits more (default 0.01)")
     fuse.set_defaults(func=run_fuse)
 
     export = subparsers.add_parser(
@@ -75,19 +88,32 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run_fuse(args: argparse.Namespace) -> int:
     from schemas.files import MapFile, load_posed_scans, save_map
     from services.cli import UsageError
-    from services.fusion_runner import fuse_posed_scans
 
     if args.samples is not None and args.samples < 1:
         raise UsageError(f"--samples must be >= 1, got {args.samples}")
     model = sensor_model_from_args(args)
     posed = load_posed_scans(args.posed)
-    grid = fuse_posed_scans(posed, mode=args.mode, model=model, n_samples=args.samples, seed=args.seed,
-                            accuracy=args.accuracy, progress=True)
+    options = dict(mode=args.mode, model=model, n_samples=args.samples, seed=args.seed, accuracy=args.accuracy,
+                   progress=True)
+    if args.grid == "adaptive":
+        from mapping.adaptive import AdaptiveParams, level_for_cell_size
+        from services.fusion_runner import fuse_posed_scans_adaptive
+
+        params = AdaptiveParams(start_level=level_for_cell_size(args.coarse_cell, args.resolution),
+                                unknowns=args.unknowns, significance=args.significance)
+        grid = fuse_posed_scans_adaptive(posed, params=params, **options)
+        summary = f"{grid.active_cells} active cells ({'with' if args.unknowns else 'without'} unknowns)"
+    else:
+        from services.fusion_runner import fuse_posed_scans
+
+        grid = fuse_posed_scans(posed, **options)
+        summary = None
     raster = grid.rasterize()
+    summary = summary or f"{int(raster['observed'].sum())} observed"
     save_map(args.output, MapFile(**raster))
     height, width = raster["logodds"].shape
-    print(f"wrote {args.output}: {width} x {height} cells at {args.resolution} m, "
-          f"{int(raster['observed'].sum())} observed, {len(posed.stamps)} scans fused ({args.mode})")
+    print(f"wrote {args.output}: {width} x {height} cells at {args.resolution} m, {summary}, "
+          f"{len(posed.stamps)} scans fused ({args.mode})")
     return 0
 
 

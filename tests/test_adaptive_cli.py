@@ -1,0 +1,50 @@
+"""`posegrid fuse --grid adaptive` writes the same map file contract, with the `level` layer."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mapping.evaluation import score_map
+from mapping.export import render_pgm
+from schemas.files import load_map, save_posed_scans
+from services.cli import main
+from worlds import room_posed_scans
+
+
+@pytest.fixture(scope="module")
+def posed_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("posed") / "room.npz"
+    save_posed_scans(path, room_posed_scans(steps=6, beams=120))
+    return path
+
+
+def test_adaptive_map_file_holds_levels_and_works_with_the_tools(posed_file, tmp_path, capsys):
+    regular, adaptive, einhorn = tmp_path / "regular.npz", tmp_path / "adaptive.npz", tmp_path / "einhorn.npz"
+    assert main(["fuse", str(posed_file), "-o", str(regular), "--samples", "8"]) == 0
+    assert main(["fuse", str(posed_file), "-o", str(adaptive), "--samples", "8", "--grid", "adaptive"]) == 0
+    out = capsys.readouterr().out
+    assert main(["fuse", str(posed_file), "-o", str(einhorn), "--samples", "8", "--grid", "adaptive",
+                 "--no-unknowns", "--coarse-cell", "0.4"]) == 0
+    fine, tree, other = load_map(regular), load_map(adaptive), load_map(einhorn)
+    assert fine.level is None and tree.level is not None and tree.level.dtype == np.int8
+    # the raster is the finest resolution; every observed cell belongs to one active cell
+    assert float(tree.resolution) == pytest.approx(0.05)
+    assert ((tree.level >= 0) == tree.observed).all() and (tree.level == 4).any()
+    active = (4.0 ** -tree.level[tree.observed].astype(float)).sum()
+    assert f"{int(round(active))} active cells (with unknowns)" in out
+    assert active < 0.5 * fine.observed.sum()
+    assert (other.level == 3).any() and not np.array_equal(other.level, tree.level)
+    # the tools read it unchanged: scoring against the regular map's occupancy, and the PGM export
+    truth = {"occupied": fine.probability > 0.5, "visible": fine.observed, "origin": fine.origin,
+             "resolution": fine.resolution}
+    assert score_map(vars(tree), truth)["auc"] > 0.9
+    pgm, _ = render_pgm(vars(tree))
+    assert pgm.startswith(b"P5")
+
+
+def test_bad_adaptive_options_are_usage_errors(posed_file, tmp_path, capsys):
+    out = str(tmp_path / "m.npz")
+    assert main(["fuse", str(posed_file), "-o", out, "--grid", "adaptive", "--coarse-cell", "0.3"]) == 2
+    assert "power of two" in capsys.readouterr().err
+    assert main(["fuse", str(posed_file), "-o", out, "--grid", "adaptive", "--significance", "2"]) == 2
+    assert "significance" in capsys.readouterr().err
