@@ -7,7 +7,8 @@ and ``seen`` (N, L); every per-step operation works on all particles at once (no
 - Version 1: the pose is drawn from the motion model alone; the weight is the measurement likelihood
   N(z; z_hat, H_m Sigma H_m^T + R).
 - Version 2: the pose is drawn from the proposal that also conditions on the measurements. The controls since
-  the last step are linearised into a Gaussian N(x_hat, P) per particle; each measurement of a known landmark
+  the last step are linearised into a Gaussian N(x_hat, P) per particle (one linearisation in the robot frame,
+  rotated to each particle's heading); each measurement of a known landmark
   refines it by a Kalman update (the gain P H_x^T S^-1, which stays finite when P = 0) and multiplies the
   weight by N(z; z_hat, H_x P H_x^T + H_m Sigma H_m^T + R); then one pose is sampled per particle.
 After the pose, each landmark EKF is updated with the measurement (or initialised on first sight).
@@ -18,6 +19,10 @@ best likelihood is below p0 starts a new landmark in that particle, and the weig
 makes a measurement beyond it update nothing in that particle and caps its likelihood at the gate's value,
 so one wild measurement cannot wipe out the particles that explain the rest.
 
+Measurements taken while the robot has not moved since the last update are skipped (unless
+``update_while_stationary``): a standing robot has no motion noise to renew the particles, so repeated
+measurements with correlated errors would resample the set down to one particle (PR section 4.3.4).
+
 Output per step: the poses (N, 3) and normalised importance weights (N,) before resampling; then, when the
 effective sample size falls under ``resample_threshold * N``, low-variance resampling.
 """
@@ -26,7 +31,7 @@ from __future__ import annotations
 import numpy as np
 
 from slam.angles import wrap_angle
-from slam.motion import MotionModel
+from slam.motion import MotionModel, compose, local_motion, rotate_covariance
 from slam.range_bearing import RangeBearingModel, inverse_measurement, predict_measurement
 from slam.resampling import effective_sample_size, low_variance_resample, normalize_log_weights
 from slam.stats import inv2, sample_gaussian
@@ -57,6 +62,7 @@ class FastSLAM:
         resample_threshold: float = 0.5,
         outlier_gate: float | None = None,
         new_landmark_loglik: float | None = None,
+        update_while_stationary: bool = False,
     ) -> None:
         if version not in (1, 2):
             raise ValueError(f"FastSLAM version must be 1 or 2, got {version}")
@@ -84,6 +90,9 @@ class FastSLAM:
         self.count = np.zeros(n, dtype=np.int64)  # landmark slots in use per particle
         self.slot_of: dict[int, int] = {}  # known correspondences: landmark id -> slot
         self.resamplings = 0
+        self.update_while_stationary = update_while_stationary
+        self.moved = True  # since the last measurement update (the first measurements are always used)
+        self.stationary_skipped = 0  # measurements not used because the robot had not moved
 
     # ------------------------------------------------------------------------------------------- state
 
@@ -136,14 +145,18 @@ class FastSLAM:
         d2 = np.einsum("ni,nij,nj->n", nu, s_inv, nu)
         return slot, is_new, nu, s_inv, det, h_x, d2
 
-    def predict(self, control: np.ndarray) -> None:
-        """Move every particle by one control: a sample (version 1) or the linearised Gaussian (version 2)."""
+    def predict(self, controls: np.ndarray) -> None:
+        """Move every particle by the controls (K, 3) of one step: one sample per control (version 1), or the
+        Gaussian prior N(x (+) delta, R P_local R^T) of the whole step (version 2; see slam.motion.local_motion)."""
         if self.version == 1:
-            self.poses = self.motion.sample(self.poses, control, self.rng)
+            for control in controls:
+                self.poses = self.motion.sample(self.poses, control, self.rng)
             return
-        mean, jac_g, q = self.motion.linearize(self.poses, control)
-        self.poses = mean
-        self.pose_cov = jac_g @ self.pose_cov @ _t(jac_g) + q
+        if len(controls) == 0:
+            return
+        delta, cov_local = local_motion(self.motion, controls)
+        self.pose_cov = rotate_covariance(cov_local, self.poses[:, 2])
+        self.poses = compose(self.poses, delta)
 
     def update(self, measurements: np.ndarray, landmark_ids: np.ndarray) -> None:
         """Weight by, sample with (version 2) and fuse the measurements (O, 2) of one step."""
@@ -210,8 +223,13 @@ class FastSLAM:
 
     def step(self, controls: np.ndarray, measurements: np.ndarray, landmark_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Predict through controls (K, 3), update with measurements (O, 2); return poses (N, 3) and weights (N,)."""
-        for control in controls:
-            self.predict(control)
+        self.predict(controls)
+        self.moved = self.moved or any(self.motion.moves(control) for control in controls)
+        if len(measurements) and not (self.moved or self.update_while_stationary):
+            self.stationary_skipped += len(measurements)
+            measurements, landmark_ids = measurements[:0], landmark_ids[:0]
+        elif len(measurements):
+            self.moved = False
         self.update(measurements, landmark_ids)
         weights = normalize_log_weights(self.log_w)
         samples = self.poses.copy()

@@ -8,13 +8,15 @@ meaning depends on the model:
 - :class:`OdometryMotionModel`: ``(delta_rot1, delta_trans, delta_rot2)`` (rad, m, rad), the relative motion
   between two odometry readings (section 5.4), as :func:`odometry_controls` computes it.
 
-Every model offers the same three operations, each taking poses (N, 3) and one control (3,):
+Every model offers the same three operations, each taking poses (N, 3) and one control (3,) (and ``moves``,
+whether a control moves the robot at all):
 ``predict`` (noise-free motion), ``sample`` (one draw of the noisy motion per pose, for particle filters)
 and ``linearize`` (noise-free motion with the Jacobian G = dg/dx and the process-noise covariance
 Q = V M V^T in pose space, for EKFs).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,38 +48,43 @@ class VelocityMotionModel:
     Gaussian e_i of variances (a1 v^2 + a2 w^2, a3 v^2 + a4 w^2, a5 v^2 + a6 w^2) * (dt_ref / dt).
     At dt = dt_ref this is exactly PR's model; the factor dt_ref/dt keeps the pose-error variance growing
     linearly in time whatever the control rate (PR's per-step noise would shrink as the rate rises).
+    ``floor`` adds constant variances ((m/s)^2, (rad/s)^2, also times dt_ref/dt) to the v and w errors of
+    every command that moves the robot, so that a slow creep is not taken as exact.
 
     alphas: (a1..a6) dimensionless (a2 in (m/rad)^2, a3 in (rad/m)^2 as PR uses them); dt_ref: s.
     """
 
     alphas: tuple[float, float, float, float, float, float] = (0.01, 0.0025, 0.01, 0.01, 0.001, 0.001)
     dt_ref: float = 0.1
+    floor: tuple[float, float] = (0.0, 0.0)
+
+    @staticmethod
+    def moves(control: np.ndarray) -> bool:
+        """Whether the control (v, w, dt) commands any motion."""
+        return bool(control[0] != 0.0 or control[1] != 0.0)
 
     def velocity_variances(self, v: float, w: float, dt: float) -> np.ndarray:
         """Variances (3,) of the (v, w, gamma) errors, (m/s)^2 and (rad/s)^2, for a command held dt s."""
         a = self.alphas
         scale = self.dt_ref / dt if dt > 0 else 0.0
-        return np.array([a[0] * v * v + a[1] * w * w, a[2] * v * v + a[3] * w * w, a[4] * v * v + a[5] * w * w]) * scale
+        floor_v, floor_w = self.floor if (v != 0.0 or w != 0.0) else (0.0, 0.0)
+        return np.array([a[0] * v * v + a[1] * w * w + floor_v, a[2] * v * v + a[3] * w * w + floor_w,
+                         a[4] * v * v + a[5] * w * w]) * scale
 
     @staticmethod
     def _move(poses: np.ndarray, v: np.ndarray, w: np.ndarray, gamma: np.ndarray, dt: float) -> np.ndarray:
         half = w * dt / 2.0
         dist = v * dt * _sinc(half)
         heading = poses[:, 2] + half
-        return np.stack(
-            [
-                poses[:, 0] + dist * np.cos(heading),
-                poses[:, 1] + dist * np.sin(heading),
-                wrap_angle(poses[:, 2] + (w + gamma) * dt),
-            ],
-            axis=1,
-        )
+        out = np.empty_like(poses, dtype=np.float64)
+        out[:, 0] = poses[:, 0] + dist * np.cos(heading)
+        out[:, 1] = poses[:, 1] + dist * np.sin(heading)
+        out[:, 2] = wrap_angle(poses[:, 2] + (w + gamma) * dt)
+        return out
 
     def predict(self, poses: np.ndarray, control: np.ndarray) -> np.ndarray:
         """Noise-free motion of poses (N, 3) under control (v, w, dt); exact circular arcs."""
-        v, w, dt = control
-        zeros = np.zeros(len(poses))
-        return self._move(poses, zeros + v, zeros + w, zeros, dt)
+        return self.linearize(poses, control)[0]
 
     def sample(self, poses: np.ndarray, control: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """One noisy motion per pose (PR table 5.3, sample_motion_model_velocity)."""
@@ -89,18 +96,22 @@ class VelocityMotionModel:
     def linearize(self, poses: np.ndarray, control: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Noise-free motion (N, 3), G = dg/dpose (N, 3, 3) and Q = V M V^T (N, 3, 3) in pose space.
 
-        V = dg/d(v, w, gamma) is taken at the commanded control; M is the diagonal of
-        :meth:`velocity_variances`.
+        With a = w dt / 2 the motion is a chord of length v dt sin(a)/a at heading theta + a, exact for every w
+        (no special case at w = 0). V = dg/d(v, w, gamma) is taken at the commanded control; M is the diagonal
+        of :meth:`velocity_variances`.
         """
-        v, w, dt = control
-        n = len(poses)
+        v, w, dt = (float(c) for c in control)
         half = w * dt / 2.0
-        s = _sinc(np.float64(half))
-        ds = _dsinc(np.float64(half))
+        s = math.sin(half) / half if half != 0.0 else 1.0
+        ds = float(_dsinc(np.float64(half)))
+        dist = v * dt * s
         heading = poses[:, 2] + half
         cos_h, sin_h = np.cos(heading), np.sin(heading)
-        dist = v * dt * s
-        mean = self.predict(poses, control)
+        mean = np.empty_like(poses, dtype=np.float64)
+        mean[:, 0] = poses[:, 0] + dist * cos_h
+        mean[:, 1] = poses[:, 1] + dist * sin_h
+        mean[:, 2] = wrap_angle(poses[:, 2] + w * dt)
+        n = len(poses)
         jac_g = np.zeros((n, 3, 3))
         jac_g[:, 0, 0] = jac_g[:, 1, 1] = jac_g[:, 2, 2] = 1.0
         jac_g[:, 0, 2] = -dist * sin_h
@@ -108,12 +119,11 @@ class VelocityMotionModel:
         jac_v = np.zeros((n, 3, 3))
         jac_v[:, 0, 0] = dt * s * cos_h
         jac_v[:, 1, 0] = dt * s * sin_h
-        jac_v[:, 0, 1] = v * dt * ds * (dt / 2.0) * cos_h - dist * sin_h * (dt / 2.0)
-        jac_v[:, 1, 1] = v * dt * ds * (dt / 2.0) * sin_h + dist * cos_h * (dt / 2.0)
+        jac_v[:, 0, 1] = (v * dt * ds * cos_h - dist * sin_h) * (dt / 2.0)
+        jac_v[:, 1, 1] = (v * dt * ds * sin_h + dist * cos_h) * (dt / 2.0)
         jac_v[:, 2, 1] = dt
         jac_v[:, 2, 2] = dt
-        variances = self.velocity_variances(v, w, dt)
-        q = np.einsum("nij,j,nkj->nik", jac_v, variances, jac_v)
+        q = (jac_v * self.velocity_variances(v, w, dt)) @ np.swapaxes(jac_v, 1, 2)
         return mean, jac_g, q
 
 
@@ -140,6 +150,11 @@ class OdometryMotionModel:
     """
 
     alphas: tuple[float, float, float, float] = (0.005, 0.005, 0.005, 0.005)
+
+    @staticmethod
+    def moves(control: np.ndarray) -> bool:
+        """Whether the relative motion (rot1, trans, rot2) is not zero."""
+        return bool(np.any(np.asarray(control) != 0.0))
 
     def motion_variances(self, control: np.ndarray) -> np.ndarray:
         """Variances (..., 3) of the errors of (delta_rot1 rad, delta_trans m, delta_rot2 rad) for controls (..., 3)."""
@@ -192,3 +207,39 @@ class OdometryMotionModel:
 
 #: either motion model; both offer predict, sample and linearize over poses (N, 3) and one control (3,)
 MotionModel = VelocityMotionModel | OdometryMotionModel
+
+
+def compose(poses: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """poses (N, 3) moved by the relative motion delta (3,) given in each pose's own frame (x (+) delta)."""
+    c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
+    return np.stack(
+        [poses[:, 0] + c * delta[0] - s * delta[1], poses[:, 1] + s * delta[0] + c * delta[1], wrap_angle(poses[:, 2] + delta[2])],
+        axis=1,
+    )
+
+
+def local_motion(motion: MotionModel, controls: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The noise-free relative motion delta (3,) over controls (K, 3) and its linearised covariance (3, 3),
+    both in the frame of the start pose.
+
+    Every pose moves by the same delta in its own frame, and its linearised motion noise is this covariance
+    rotated by its heading (:func:`rotate_covariance`): one linearisation serves all particles.
+    """
+    pose = np.zeros((1, 3))
+    cov = np.zeros((3, 3))
+    for control in controls:
+        pose, jac_g, q = motion.linearize(pose, control)
+        cov = jac_g[0] @ cov @ jac_g[0].T + q[0]
+    return pose[0], cov
+
+
+def rotate_covariance(cov: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """A pose covariance (3, 3) given in a frame of heading 0, expressed in frames of heading theta (N,) rad:
+    R cov R^T with R the rotation by theta in the (x, y) block, (N, 3, 3)."""
+    c, s = np.cos(theta), np.sin(theta)
+    rot = np.zeros((len(theta), 3, 3))
+    rot[:, 0, 0] = rot[:, 1, 1] = c
+    rot[:, 0, 1] = -s
+    rot[:, 1, 0] = s
+    rot[:, 2, 2] = 1.0
+    return rot @ cov @ np.swapaxes(rot, 1, 2)

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from slam.errors import LogFormatError
+from slam.motion import VelocityMotionModel
 from slam.range_bearing import RangeBearingModel
 from slam.sequence import SlamSequence
 
@@ -200,9 +201,15 @@ def mrclam_sequence(
 MRCLAM_COMMAND_DELAY = 0.2
 #: range correction (c0, c2) of :func:`calibrate_ranges`: measured / true range = c0 + c2 bearing^2
 MRCLAM_RANGE_CALIBRATION = (1.033, -0.46)
-#: velocity-model noise for MRCLAM's commanded velocities (alphas of slam.motion.VelocityMotionModel)
-MRCLAM_VELOCITY_ALPHAS = (0.01, 0.0025, 0.01, 0.01, 0.001, 0.001)
-#: landmark measurement noise for MRCLAM's camera: range (m) and bearing (rad) std
-MRCLAM_SENSOR = RangeBearingModel(sigma_range=0.15, sigma_bearing=0.03)
+#: velocity-model noise for MRCLAM's commanded velocities (alphas and floor of slam.motion.VelocityMotionModel),
+#: fitted to ground-truth increments (docs/slam.md): translation and the floor from 4 s windows, the rotation
+#: term from 16 s windows (rotation errors persist over whole manoeuvres)
+MRCLAM_VELOCITY_ALPHAS = (0.32, 0.086, 0.0, 0.5, 0.0, 0.0)
+MRCLAM_VELOCITY_FLOOR = (0.0, 0.0035)
+#: the motion model `posegrid slam` uses for MRCLAM
+MRCLAM_MOTION = VelocityMotionModel(MRCLAM_VELOCITY_ALPHAS, floor=MRCLAM_VELOCITY_FLOOR)
+#: landmark measurement noise for MRCLAM's cameras after the range calibration: the scatter fitted to ground
+#: truth, inflated for the measurement errors' correlation in time (docs/slam.md)
+MRCLAM_SENSOR = RangeBearingModel(sigma_range=0.05, sigma_bearing=0.02, range_fraction=0.07)
 #: known ids: measurements beyond this squared Mahalanobis distance are outliers (chi-square(2) 0.9999)
 MRCLAM_OUTLIER_GATE = 18.42

@@ -100,6 +100,23 @@ def read_rosbag(
         reader.close()
 
 
+def _records(reader, connections, skipped: list[Skipped]):
+    """(connection, raw bytes) of the bag's messages in order; a bag that breaks off mid-way (a corrupt or
+    truncated chunk) ends the iteration with one entry in ``skipped`` instead of an exception."""
+    stream = reader.messages(connections=connections)
+    count = 0
+    while True:
+        try:
+            conn, _time, raw = next(stream)
+        except StopIteration:
+            return
+        except Exception as exc:  # rosbags raises reader, decompression and struct errors on broken chunks
+            skipped.append(Skipped(count + 1, f"the bag breaks off here ({type(exc).__name__}: {exc}); reading stopped"))
+            return
+        count += 1
+        yield conn, raw
+
+
 def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hold) -> LaserLog:
     conns = reader.connections
     scan_topic = _pick_topic(conns, LASER_SCAN, scan_topic, "/scan", path, "LaserScan")
@@ -117,7 +134,7 @@ def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hol
     odom: list[tuple[float, tuple[float, float, float], str]] = []  # stamp, pose, child frame
     tf_dynamic: list[tuple[float, str, str, tuple[float, float, float]]] = []
     tf_static: dict[str, tuple[str, tuple[float, float, float]]] = {}
-    for number, (conn, _time, raw) in enumerate(reader.messages(connections=selected), start=1):
+    for number, (conn, raw) in enumerate(_records(reader, selected, skipped), start=1):
         try:
             msg = reader.deserialize(raw, conn.msgtype)
         except Exception as exc:  # the decoder raises many types on corrupt bytes; a bad message is skipped

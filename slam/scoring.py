@@ -18,7 +18,7 @@ from slam.angles import wrap_angle
 CHI2_3_95 = 7.8147
 #: added to every covariance's diagonal (m^2, m^2, rad^2) before inversion, so a zero covariance (the known
 #: start, or a single particle) gives a finite NEES: 0 for a zero error, enormous otherwise
-COVARIANCE_JITTER = 1e-12
+COVARIANCE_JITTER = 1e-6
 
 
 @dataclass(frozen=True)

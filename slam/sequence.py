@@ -16,10 +16,6 @@ import numpy as np
 
 from slam.errors import LogFormatError
 
-#: landmark id of a measurement whose landmark is unknown (for data association by the filter)
-UNKNOWN_ID = -1
-
-
 @dataclass(frozen=True)
 class SlamSequence:
     """Controls and landmark measurements for T steps (see the module docstring for the layout)."""
@@ -28,7 +24,7 @@ class SlamSequence:
     controls: np.ndarray  # float64 (K, 3), meaning set by `motion`
     control_ptr: np.ndarray  # int64 (T + 1,)
     measurements: np.ndarray  # float64 (O, 2): range m, bearing rad (robot frame)
-    landmark_ids: np.ndarray  # int64 (O,): landmark id, or UNKNOWN_ID
+    landmark_ids: np.ndarray  # int64 (O,): landmark id (ignored by filters that associate on their own)
     measurement_ptr: np.ndarray  # int64 (T + 1,)
     initial_pose: np.ndarray  # float64 (3,): x m, y m, yaw rad in the map frame at stamps[0]
     motion: str  # "velocity" (controls are v m/s, w rad/s, dt s) or "odometry" (rot1 rad, trans m, rot2 rad)

@@ -4,20 +4,30 @@ from __future__ import annotations
 import numpy as np
 
 
-def sqrtm_psd(cov: np.ndarray) -> np.ndarray:
-    """A square root A with A A^T = cov for a stack (..., d, d) of symmetric positive semi-definite matrices.
+def psd_cholesky(cov: np.ndarray) -> np.ndarray:
+    """Lower-triangular L with L L^T = cov for a stack (..., d, d) of symmetric positive semi-definite matrices.
 
-    Uses the eigendecomposition so that a zero (or singular) covariance gives an exact zero (singular) root,
-    where a Cholesky factorisation would fail.
+    The Cholesky recursion, vectorised over the stack (the loop runs over the d columns only), with a zero
+    pivot giving a zero column instead of a failure, so that a zero or singular covariance gives an exact
+    zero or singular root; negative pivots from rounding are clipped to 0.
     """
-    eigval, eigvec = np.linalg.eigh(cov)
-    return eigvec * np.sqrt(np.clip(eigval, 0.0, None))[..., None, :]
+    d = cov.shape[-1]
+    root = np.zeros_like(cov, dtype=np.float64)
+    for j in range(d):
+        pivot = cov[..., j, j] - np.sum(root[..., j, :j] ** 2, axis=-1)
+        diag = np.sqrt(np.clip(pivot, 0.0, None))
+        root[..., j, j] = diag
+        safe = np.where(diag > 1e-150, diag, 1.0)
+        for i in range(j + 1, d):
+            below = cov[..., i, j] - np.sum(root[..., i, :j] * root[..., j, :j], axis=-1)
+            root[..., i, j] = np.where(diag > 1e-150, below / safe, 0.0)
+    return root
 
 
 def sample_gaussian(mean: np.ndarray, cov: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """One draw from N(mean[k], cov[k]) for every k; mean (N, d), cov (N, d, d) -> (N, d)."""
+    """One draw from N(mean[k], cov[k]) for every k; mean (N, d), cov (N, d, d) positive semi-definite -> (N, d)."""
     noise = rng.standard_normal(mean.shape)
-    return mean + np.einsum("nij,nj->ni", sqrtm_psd(cov), noise)
+    return mean + np.einsum("nij,nj->ni", psd_cholesky(cov), noise)
 
 
 def inv2(mat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -26,16 +36,3 @@ def inv2(mat: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     det = a * d - b * c
     inv = np.stack([np.stack([d, -b], -1), np.stack([-c, a], -1)], -2) / det[..., None, None]
     return inv, det
-
-
-def gaussian_logpdf2(innovation: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    """log N(innovation; 0, cov) for stacks of 2-vectors (..., 2) and 2x2 covariances (..., 2, 2)."""
-    inv, det = inv2(cov)
-    maha = np.einsum("...i,...ij,...j->...", innovation, inv, innovation)
-    return -0.5 * maha - 0.5 * np.log(det) - np.log(2.0 * np.pi)
-
-
-def mahalanobis2(innovation: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    """Squared Mahalanobis distance innovation^T cov^-1 innovation for stacks of 2-vectors."""
-    inv, _ = inv2(cov)
-    return np.einsum("...i,...ij,...j->...", innovation, inv, innovation)

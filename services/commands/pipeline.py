@@ -420,12 +420,11 @@ def _slam_models(args: argparse.Namespace):
 
     from services.commands.slam import _noise_overrides
     from slam import mrclam
-    from slam.motion import OdometryMotionModel, VelocityMotionModel
+    from slam.motion import OdometryMotionModel
     from slam.simulator import simulate_office
 
     if (args.models or "sim") == "mrclam":
-        motion, sensor, gate = (VelocityMotionModel(mrclam.MRCLAM_VELOCITY_ALPHAS), mrclam.MRCLAM_SENSOR,
-                                mrclam.MRCLAM_OUTLIER_GATE)
+        motion, sensor, gate = mrclam.MRCLAM_MOTION, mrclam.MRCLAM_SENSOR, mrclam.MRCLAM_OUTLIER_GATE
     else:
         defaults = inspect.signature(simulate_office).parameters
         motion = defaults["velocity_model" if args.motion == "velocity" else "odometry_model"].default

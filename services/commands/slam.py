@@ -156,7 +156,6 @@ def _load_input(args: argparse.Namespace):
     """(sequence, motion model, sensor model, default outlier gate, posed-scans path or None, notes)."""
     from services.cli import UsageError
     from slam import mrclam
-    from slam.motion import OdometryMotionModel, VelocityMotionModel
     from slam.simlog import CONTROLS_FILE, load_sim_log
 
     if (args.input / CONTROLS_FILE).is_file():
@@ -181,7 +180,7 @@ def _load_input(args: argparse.Namespace):
                                           range_calibration=None if args.raw_ranges else mrclam.MRCLAM_RANGE_CALIBRATION)
         notes = (f"skipped {run.skipped_robots} measurements of robots and {run.skipped_unknown} of barcodes "
                  f"in no table")
-        return (sequence, VelocityMotionModel(mrclam.MRCLAM_VELOCITY_ALPHAS), mrclam.MRCLAM_SENSOR,
+        return (sequence, mrclam.MRCLAM_MOTION, mrclam.MRCLAM_SENSOR,
                 mrclam.MRCLAM_OUTLIER_GATE, None, notes)
     if not args.input.exists():
         raise UsageError(f"{args.input}: no such folder")
@@ -283,7 +282,8 @@ def run_slam(args: argparse.Namespace) -> int:
     if rejected is not None:
         extras.append(f"{rejected} measurements dropped by the gates")
     if hasattr(slam_filter, "resamplings"):
-        extras.append(f"{slam_filter.resamplings} resamplings")
+        extras.append(f"{slam_filter.stationary_skipped} measurements skipped while standing still, "
+                      f"{slam_filter.resamplings} resamplings")
     print(f"wrote {args.output} ({kind}): {len(sequence)} steps over {duration:.1f} s of data in {elapsed:.2f} s, "
           f"{1e3 * elapsed / len(sequence):.2f} ms per step, {duration / max(elapsed, 1e-9):.0f}x real time"
           + "".join(f"; {e}" for e in extras))

@@ -4,11 +4,12 @@ Per integrated scan (Grisetti, Stachniss, Burgard 2007, 'Improved techniques for
 Rao-Blackwellized particle filters'):
 1. every particle's pose moves by the odometry since the last integrated scan (slam.motion's odometry
    model gives the predicted pose x'_j and its covariance Q_j);
-2. improved proposal: the scan is matched against the particle's own grid starting from x'_j; around the
-   match, K stencil poses x_k get tau_k = p(z | m_j, x_k)^(1/gain) N(x_k; x'_j, Q_j); the new pose is drawn
-   from the Gaussian with the tau-weighted mean and covariance, and the weight is multiplied by
-   eta_j = sum_k tau_k. A particle whose match scores too low falls back to sampling the motion model and
-   is weighted by its scan likelihood;
+2. improved proposal: the scan is matched against the particle's own grid starting from x'_j; the
+   product p(z | m_j, x)^(1/gain) N(x; x'_j, Q_j) is approximated by a Gaussian around the match (a
+   quadratic fitted to the log-likelihood on a 3 x 3 x 3 stencil gives its curvature: the Laplace
+   approximation, see kernels.match_and_propose), the new pose is drawn from it and the weight is
+   multiplied by its integral eta_j. A particle whose match scores too low falls back to sampling the
+   motion model and is weighted by its scan likelihood;
 3. the scan is inserted into every particle's grid (log-odds, copy-on-write tiles, slam.gridslam.tiles);
 4. selective resampling: only when the effective sample size N_eff = 1 / sum w^2 falls below
    ``resample_threshold`` * M (low-variance resampling); maps are shared, not copied.
@@ -28,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slam.angles import wrap_angle
-from slam.gridslam.kernels import insert_scan, log_likelihoods, match_and_propose, touched_tiles
+from slam.gridslam.kernels import log_likelihoods, match_and_propose
 from slam.gridslam.tiles import TileMaps
 from slam.motion import OdometryMotionModel, odometry_controls
 from slam.resampling import effective_sample_size, low_variance_resample, normalize_log_weights
@@ -53,7 +54,8 @@ class GridSlamConfig:
     lin_step: float = 0.05  # m, first hill-climbing step
     ang_step: float = 0.05  # rad
     refinements: int = 5  # step halvings
-    stencil_xy: float = 0.025  # m, spacing of the proposal stencil
+    yaw_search: float = 0.25  # rad: yaws tried around the odometry's before hill climbing
+    stencil_xy: float = 0.02  # m, spacing of the stencil the likelihood's curvature is fitted on
     stencil_yaw: float = 0.01  # rad
     min_match: float = 0.15  # match score per beam below which the motion model is sampled instead
     proposal_floor_xy: float = 0.005  # m, std added to the proposal Gaussian
@@ -64,8 +66,8 @@ class GridSlamConfig:
     l_occ: float = 0.85  # log-odds added at a beam's end
     l_free: float = -0.4  # log-odds added along a beam
     l_clamp: float = 5.0  # |log-odds| cap
-    linear_update: float = 0.25  # m of odometry between integrated scans
-    angular_update: float = 0.15  # rad
+    linear_update: float = 0.1  # m of odometry between integrated scans
+    angular_update: float = 0.05  # rad
     resample_threshold: float = 0.5  # resample when N_eff < this * particles
 
     def validate(self) -> None:
@@ -108,11 +110,15 @@ def odometry_step(before: np.ndarray, after: np.ndarray) -> np.ndarray:
     return np.array([rot1, trans, rot2])
 
 
-def _stencil(xy: float, yaw: float) -> np.ndarray:
-    """The 27 offsets (dx m, dy m, dyaw rad) of a 3 x 3 x 3 grid around a pose."""
+def _stencil(xy: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
+    """The 27 offsets (dx m, dy m, dyaw rad) of a 3 x 3 x 3 grid around a pose, and the (10, 27) matrix
+    giving the least-squares quadratic [c, g0, g1, g2, a00, a11, a22, a01, a02, a12] through values there
+    (see kernels.match_and_propose)."""
     steps = np.array([-1.0, 0.0, 1.0])
     gx, gy, gt = np.meshgrid(steps * xy, steps * xy, steps * yaw, indexing="ij")
-    return np.column_stack([gx.ravel(), gy.ravel(), gt.ravel()])
+    d = np.column_stack([gx.ravel(), gy.ravel(), gt.ravel()])
+    design = np.column_stack([np.ones(len(d)), d, 0.5 * d**2, d[:, 0] * d[:, 1], d[:, 0] * d[:, 2], d[:, 1] * d[:, 2]])
+    return d, np.linalg.pinv(design)
 
 
 class GridFastSLAM:
@@ -134,7 +140,7 @@ class GridFastSLAM:
         self.log_w = np.zeros(m)
         self.maps = TileMaps(m, config.resolution, config.tile_cells)
         self.motion = OdometryMotionModel(alphas=config.motion_alphas)
-        self.stencil = _stencil(config.stencil_xy, config.stencil_yaw)
+        self.stencil, self.fit = _stencil(config.stencil_xy, config.stencil_yaw)
         self.odometry_ref: np.ndarray | None = None  # odometry at the last integrated scan
         self.reach = config.max_range + float(np.hypot(self.offset[0], self.offset[1]))
 
@@ -175,10 +181,8 @@ class GridFastSLAM:
         self.maps.cover(lo[0], lo[1], hi[0], hi[1])
 
     def _insert(self, poses: np.ndarray, r_stop: np.ndarray, hit: np.ndarray) -> None:
-        cfg, maps = self.config, self.maps
-        args = (maps.tx0, maps.ty0, maps.shift, cfg.resolution, poses, self.offset, self.cos_b, self.sin_b, r_stop)
-        maps.own(touched_tiles(maps.table, *args))
-        insert_scan(maps.pool, maps.table, *args, hit, cfg.l_occ, cfg.l_free, -cfg.l_clamp, cfg.l_clamp)
+        cfg = self.config
+        self.maps.insert(poses, self.offset, self.cos_b, self.sin_b, r_stop, hit, cfg.l_occ, cfg.l_free, cfg.l_clamp)
 
     def _propose(self, control: np.ndarray, r_stop: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
         """New poses (M, 3), log weight factors (M,) and the number of motion-model fallbacks."""
@@ -192,7 +196,7 @@ class GridFastSLAM:
         grid = (maps.pool, maps.table, maps.tx0, maps.ty0, maps.shift, cfg.resolution)
         _, score, mean, cov, log_eta = match_and_propose(
             *grid, predicted, q_inv, q_logdet, self.offset, *beams, cfg.kernel, cfg.sigma_match, cfg.sigma_like,
-            cfg.p_rand, cfg.gain, cfg.lin_step, cfg.ang_step, cfg.refinements, self.stencil)
+            cfg.p_rand, cfg.gain, cfg.lin_step, cfg.ang_step, cfg.refinements, cfg.yaw_search, self.stencil, self.fit)
         good = score >= cfg.min_match * max(len(idx), 1)
         poses = np.empty_like(predicted)
         floor = np.diag([cfg.proposal_floor_xy**2, cfg.proposal_floor_xy**2, cfg.proposal_floor_yaw**2])

@@ -5,42 +5,27 @@ and y in [iy*res, (iy+1)*res) of the map frame (m); a cell holds a log-odds valu
 (tx, ty) holds cells ix in [tx*S, (tx+1)*S), iy likewise, S = ``tile_cells`` (a power of two, so the
 compiled kernels split cell indices into tile and offset with shifts).
 
-Storage: a pool of tiles ``pool`` (C, S, S) float32 with a reference count each, and a table
+Storage: a pool of tiles ``pool`` (C, S, S, 4) float32 with a reference count each, and a table
 ``table`` (M, NY, NX) int32 per particle naming the pool tile at each tile coordinate
 (tx0 + u, ty0 + v), or -1 where the particle has never written. Resampling copies table rows only (a few
 kB per particle) and recounts references; a particle that writes into a tile it shares gets its own copy
-first (:meth:`TileMaps.own`), so a particle's map never changes through another's writes.
+first (slam.gridslam.kernels.own_tile, called by the writing kernel), so a particle's map never changes through
+another's writes.
+
+A cell holds four numbers (the last axis): its log-odds (:data:`LOGODDS`), the sums of the x and y offsets
+(m) of the beam ends that fell into it from the cell's lower-left corner (:data:`SUM_X`, :data:`SUM_Y`) and
+their count (:data:`HITS`), so the scan matcher measures distances to the mean end point, not to the cell
+centre (sub-cell precision).
 """
 from __future__ import annotations
 
-import numba as nb
 import numpy as np
 
+from slam.gridslam.kernels import insert_scan
 
-@nb.njit(cache=True, nogil=True)
-def _own_tiles(pool, refcount, free_stack, n_free, table, touched):  # pragma: no cover - compiled
-    """Give each (particle, v, u) row of ``touched`` a tile only that particle references.
-
-    Absent tiles get a fresh zero tile, shared ones (refcount > 1) a copy. Pops tiles off
-    ``free_stack[:n_free[0]]``; the caller reserved enough. Returns the number of tiles copied.
-    """
-    copies = 0
-    for k in range(touched.shape[0]):
-        j, v, u = touched[k, 0], touched[k, 1], touched[k, 2]
-        tid = table[j, v, u]
-        if tid >= 0 and refcount[tid] == 1:
-            continue
-        n_free[0] -= 1
-        new = free_stack[n_free[0]]
-        if tid < 0:
-            pool[new, :, :] = 0.0
-        else:
-            pool[new, :, :] = pool[tid, :, :]
-            refcount[tid] -= 1
-            copies += 1
-        refcount[new] = 1
-        table[j, v, u] = new
-    return copies
+#: channels of a cell (the pool's last axis)
+LOGODDS, SUM_X, SUM_Y, HITS = 0, 1, 2, 3
+CHANNELS = 4
 
 
 class TileMaps:
@@ -52,7 +37,7 @@ class TileMaps:
         self.resolution = float(resolution)
         self.tile_cells = int(tile_cells)
         self.shift = self.tile_cells.bit_length() - 1  # tile_cells == 1 << shift
-        self.pool = np.zeros((capacity, tile_cells, tile_cells), np.float32)
+        self.pool = np.zeros((capacity, tile_cells, tile_cells, CHANNELS), np.float32)
         self.refcount = np.zeros(capacity, np.int32)
         self.free_stack = np.arange(capacity - 1, -1, -1, dtype=np.int32)
         self.n_free = np.array([capacity], np.int64)
@@ -97,7 +82,7 @@ class TileMaps:
             return
         old = len(self.pool)
         new = max(2 * old, old + count - int(self.n_free[0]))
-        pool = np.zeros((new, self.tile_cells, self.tile_cells), np.float32)
+        pool = np.zeros((new, self.tile_cells, self.tile_cells, CHANNELS), np.float32)
         pool[:old] = self.pool
         refcount = np.zeros(new, np.int32)
         refcount[:old] = self.refcount
@@ -108,16 +93,20 @@ class TileMaps:
         self.pool, self.refcount, self.free_stack = pool, refcount, stack
         self.n_free[0] = n + new - old
 
-    def own(self, touched: np.ndarray) -> None:
-        """Before writing: give each (particle, v, u) row of ``touched`` (int64 (K, 3), table indices) a tile
-        of its own (copy-on-write), allocating absent ones."""
-        if not len(touched):
-            return
-        tids = self.table[touched[:, 0], touched[:, 1], touched[:, 2]]
-        present = tids[tids >= 0]
-        needed = int(np.count_nonzero(tids < 0)) + int(np.count_nonzero(self.refcount[present] > 1))
-        self.reserve(needed)
-        self.copies += _own_tiles(self.pool, self.refcount, self.free_stack, self.n_free, self.table, touched)
+    def insert(self, poses: np.ndarray, offset: np.ndarray, cos_b: np.ndarray, sin_b: np.ndarray,
+               r_stop: np.ndarray, hit: np.ndarray, l_occ: float, l_free: float, l_clamp: float) -> int:
+        """Insert one scan into every particle's grid (slam.gridslam.kernels.insert_scan), growing the pool
+        as the kernel asks. poses (M, 3) robot poses (m, rad, map frame); offset (3,) laser pose in the
+        robot frame; beams by direction (cos_b, sin_b) in the laser frame, length r_stop (m, NaN: unused)
+        and hit flags. The table must already span the beams (:meth:`cover`). Returns the cell updates."""
+        resume = np.zeros(3, np.int64)
+        counters = np.zeros(2, np.int64)
+        args = (self.tx0, self.ty0, self.shift, self.resolution, np.ascontiguousarray(poses, np.float64), offset,
+                cos_b, sin_b, r_stop, hit, l_occ, l_free, -l_clamp, l_clamp, resume, counters)
+        while not insert_scan(self.pool, self.refcount, self.free_stack, self.n_free, self.table, *args):
+            self.reserve(len(self.pool))
+        self.copies += int(counters[1])
+        return int(counters[0])
 
     def resample(self, parents: np.ndarray) -> None:
         """Particle j takes particle parents[j]'s map (shared, no tile is copied); unreferenced tiles are freed."""
@@ -139,11 +128,11 @@ class TileMaps:
         v0, u0 = vs.min(), us.min()
         out = np.zeros(((vs.max() - v0 + 1) * side, (us.max() - u0 + 1) * side), np.float32)
         for v, u in zip(vs, us):  # one block copy per tile (not per cell): a few hundred per map
-            out[(v - v0) * side:(v - v0 + 1) * side, (u - u0) * side:(u - u0 + 1) * side] = self.pool[rows[v, u]]
+            out[(v - v0) * side:(v - v0 + 1) * side, (u - u0) * side:(u - u0 + 1) * side] = self.pool[rows[v, u], :, :, LOGODDS]
         origin = np.array([(self.tx0 + u0) * side, (self.ty0 + v0) * side], np.float64) * self.resolution
         return out, origin
 
     def memory_bytes(self) -> int:
         """Bytes held by tiles in use."""
-        return self.tiles_in_use * self.tile_cells * self.tile_cells * 4
+        return self.tiles_in_use * self.pool[0].nbytes
 

@@ -1,0 +1,172 @@
+"""EKF-SLAM, FastSLAM 1.0/2.0 and dead reckoning on short simulated runs (slam.ekf, slam.fastslam)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from slam.dead_reckoning import DeadReckoning
+from slam.ekf import EKFSLAM
+from slam.fastslam import FastSLAM
+from slam.motion import OdometryMotionModel, VelocityMotionModel
+from slam.range_bearing import RangeBearingModel, predict_measurement
+from slam.scoring import fit_gaussian, score_trajectory
+from slam.sequence import SlamSequence, run_filter
+from slam.simulator import simulate_office
+
+
+@pytest.fixture(scope="module")
+def sim():
+    # seed 0 is not hand-picked to pass: over seeds 0-4 the EKF bounds below hold on all five, FastSLAM's on
+    # four (seed 3: FastSLAM 2.0 inside95 0.69, and its dead reckoning drifts only 0.2 m); docs/slam.md
+    run = simulate_office(seed=0, steps=150, n_beams=3)
+    return run, run.log()
+
+
+def _score(track, truth):
+    mean, cov = (track.mean, track.cov) if track.is_gaussian else fit_gaussian(track.samples, track.weights)
+    return score_trajectory(mean, cov, truth)
+
+
+@pytest.fixture(scope="module")
+def dead_reckoning(sim):
+    run, log = sim
+    return _score(run_filter(DeadReckoning(log.velocity_model, log.initial_pose), log.sequence()), run.true_poses)
+
+
+def test_dead_reckoning_drifts_but_stays_honest(dead_reckoning):
+    # the baseline the filters must beat: metres of drift over 15 m, with a covariance that covers it
+    assert dead_reckoning.ate_rmse_m > 0.4
+    assert dead_reckoning.inside95 > 0.8
+
+
+@pytest.mark.parametrize("known", [True, False])
+def test_ekf_beats_dead_reckoning_and_is_honest(sim, dead_reckoning, known):
+    run, log = sim
+    ekf = EKFSLAM(log.velocity_model, log.sensor, log.initial_pose, known_correspondences=known)
+    score = _score(run_filter(ekf, log.sequence()), run.true_poses)
+    assert score.ate_rmse_m < 0.3 * dead_reckoning.ate_rmse_m
+    assert 0.8 <= score.inside95 <= 1.0
+    assert ekf.n_landmarks == len(np.unique(log.landmark_id))
+    if known:
+        ids, positions = ekf.landmarks()
+        np.testing.assert_allclose(positions, run.landmarks[ids], atol=0.3)
+
+
+def test_ekf_with_odometry_motion_model(sim, dead_reckoning):
+    run, log = sim
+    ekf = EKFSLAM(log.odometry_model, log.sensor, log.initial_pose)
+    score = _score(run_filter(ekf, log.sequence("odometry")), run.true_poses)
+    assert score.ate_rmse_m < 0.3 * dead_reckoning.ate_rmse_m
+    assert 0.8 <= score.inside95 <= 1.0
+
+
+def test_ekf_with_zero_noise_follows_the_truth_exactly():
+    run = simulate_office(seed=5, steps=100, n_beams=3, velocity_model=VelocityMotionModel(alphas=(0.0,) * 6),
+                          sensor=RangeBearingModel(sigma_range=0.0, sigma_bearing=0.0))
+    log = run.log()
+    # the filter's own noise model must be positive for its gains to exist; the data are exact
+    ekf = EKFSLAM(VelocityMotionModel(alphas=(1e-4,) * 6), RangeBearingModel(0.01, 0.001), log.initial_pose)
+    track = run_filter(ekf, log.sequence())
+    np.testing.assert_allclose(track.mean[:, :2], run.true_poses[:, :2], atol=1e-9)
+    np.testing.assert_allclose(np.angle(np.exp(1j * (track.mean[:, 2] - run.true_poses[:, 2]))), 0.0, atol=1e-9)
+    ids, positions = ekf.landmarks()
+    np.testing.assert_allclose(positions, run.landmarks[ids], atol=1e-9)
+
+
+def test_ekf_outlier_gate_drops_a_wild_measurement():
+    model = VelocityMotionModel(alphas=(0.01,) * 6)
+    sensor = RangeBearingModel(0.1, 0.02)
+    measurements = np.array([[2.0, 0.0], [2.0, 0.0], [5.0, 1.0]])  # the last is 3 m and 1 rad off
+    sequence = SlamSequence(
+        stamps=np.array([0.0, 0.1, 0.2]), controls=np.array([[0.0, 0.0, 0.1], [0.0, 0.0, 0.1]]),
+        control_ptr=np.array([0, 0, 1, 2]), measurements=measurements, landmark_ids=np.array([4, 4, 4]),
+        measurement_ptr=np.array([0, 1, 2, 3]), initial_pose=np.zeros(3), motion="velocity")
+    gated = EKFSLAM(model, sensor, np.zeros(3), outlier_gate=18.42)
+    run_filter(gated, sequence)
+    assert gated.rejected == 1
+    # the robot stands still, so only the landmark could move: it stays where the two good measurements put it
+    np.testing.assert_allclose(gated.landmarks()[1], [[2.0, 0.0]], atol=1e-12)
+    ungated = EKFSLAM(model, sensor, np.zeros(3))
+    run_filter(ungated, sequence)
+    assert np.abs(ungated.landmarks()[1] - [[2.0, 0.0]]).max() > 0.1
+
+
+@pytest.mark.parametrize(("version", "particles"), [(1, 2000), (2, 1000)])
+def test_fastslam_beats_dead_reckoning_and_is_honest(sim, dead_reckoning, version, particles):
+    run, log = sim
+    slam = FastSLAM(log.velocity_model, log.sensor, log.initial_pose, n_particles=particles, version=version, seed=1)
+    track = run_filter(slam, log.sequence())
+    np.testing.assert_allclose(track.weights.sum(axis=1), 1.0)
+    assert track.samples.shape == (150, particles, 3)
+    score = _score(track, run.true_poses)
+    assert score.ate_rmse_m < 0.3 * dead_reckoning.ate_rmse_m
+    assert 0.8 <= score.inside95 <= 1.0
+
+
+def test_fastslam_unknown_correspondences(sim, dead_reckoning):
+    run, log = sim
+    slam = FastSLAM(log.velocity_model, log.sensor, log.initial_pose, n_particles=200, version=2, seed=2,
+                    known_correspondences=False)
+    score = _score(run_filter(slam, log.sequence()), run.true_poses)
+    assert score.ate_rmse_m < 0.3 * dead_reckoning.ate_rmse_m
+    best = int(np.argmax(slam.log_w))
+    assert len(slam.landmarks(best)[0]) == pytest.approx(len(np.unique(log.landmark_id)), abs=2)
+
+
+@pytest.mark.parametrize("version", [1, 2])
+@pytest.mark.parametrize("motion", ["velocity", "odometry"])
+def test_one_noiseless_particle_is_dead_reckoning(sim, version, motion):
+    _, log = sim
+    model = VelocityMotionModel(alphas=(0.0,) * 6) if motion == "velocity" else OdometryMotionModel(alphas=(0.0,) * 4)
+    sequence = log.sequence(motion)
+    slam = FastSLAM(model, log.sensor, log.initial_pose, n_particles=1, version=version, seed=3)
+    track = run_filter(slam, sequence)
+    reckoned = run_filter(DeadReckoning(model, log.initial_pose), sequence)
+    np.testing.assert_allclose(track.samples[:, 0, :2], reckoned.mean[:, :2], atol=1e-9)
+    np.testing.assert_allclose(np.angle(np.exp(1j * (track.samples[:, 0, 2] - reckoned.mean[:, 2]))), 0.0, atol=1e-9)
+    np.testing.assert_array_equal(track.weights, 1.0)
+    np.testing.assert_array_equal(reckoned.cov, 0.0)
+
+
+def test_fastslam_skips_measurements_while_standing_still():
+    # two landmarks seen from the known start, five steps of driving, then thirty steps standing still while
+    # both are seen again and again (PR 4.3.4: with no motion noise to renew them, fusing every repeat wears
+    # the particles down); only the first stop is fused
+    model = VelocityMotionModel(alphas=(0.05, 0.01, 0.05, 0.05, 0.0, 0.0))
+    landmarks = np.array([[2.0, 1.0], [3.0, -1.5]])
+    stop = model.predict(np.zeros((1, 3)), np.array([0.5, 0.1, 0.5]))
+    z_start = predict_measurement(np.zeros((2, 3)), landmarks)[0]
+    z_stop = predict_measurement(np.repeat(stop, 2, axis=0), landmarks)[0]
+    steps = 36
+    rng = np.random.default_rng(6)
+    controls = np.array([[0.5, 0.1, 0.1]] * 5 + [[0.0, 0.0, 0.1]] * 30)
+    sequence = SlamSequence(
+        stamps=0.1 * np.arange(steps), controls=controls, control_ptr=np.concatenate([[0], np.arange(steps)]),
+        measurements=np.vstack([z_start] + [z_stop + noise for noise in rng.normal(0, [0.05, 0.02], (30, 2, 2))]),
+        landmark_ids=np.tile([0, 1], 31),
+        measurement_ptr=np.concatenate([[0, 2], [2] * 5, 2 + 2 * np.arange(1, 31)]), initial_pose=np.zeros(3),
+        motion="velocity")
+    sensor = RangeBearingModel(0.05, 0.02)
+    slam = FastSLAM(model, sensor, np.zeros(3), n_particles=300, version=2, seed=4)
+    track = run_filter(slam, sequence)
+    assert slam.stationary_skipped == 58  # the first stop is fused, the 29 after it are not
+    np.testing.assert_array_equal(track.samples[-1], track.samples[7])
+    np.testing.assert_array_equal(track.weights[-1], track.weights[7])
+    eager = FastSLAM(model, sensor, np.zeros(3), n_particles=300, version=2, seed=4, update_while_stationary=True)
+    collapsed = run_filter(eager, sequence)
+    assert eager.stationary_skipped == 0
+    assert np.abs(collapsed.weights[-1] - collapsed.weights[7]).max() > 1e-4
+
+
+def test_fastslam_is_reproducible(sim):
+    _, log = sim
+    sequence = log.sequence()
+
+    def go(seed):
+        slam = FastSLAM(log.velocity_model, log.sensor, log.initial_pose, n_particles=20, version=2, seed=seed)
+        return run_filter(slam, sequence)
+
+    a, b, c = go(11), go(11), go(12)
+    np.testing.assert_array_equal(a.samples, b.samples)
+    np.testing.assert_array_equal(a.weights, b.weights)
+    assert not np.array_equal(a.samples, c.samples)

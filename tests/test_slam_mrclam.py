@@ -1,0 +1,143 @@
+"""The UTIAS MRCLAM reader (slam.mrclam) on hand-written samples and, when present, on dataset 7."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from slam.errors import LogFormatError
+from slam.mrclam import (
+    calibrate_ranges,
+    find_robots,
+    is_mrclam_folder,
+    mrclam_sequence,
+    read_mrclam,
+    read_table,
+)
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mrclam7"
+
+HEADER = (
+    "# UTIAS Multi-Robot Cooperative Localization and Mapping Dataset\r\n"
+    "# produced by Keith Leung (keith.leung@robotics.utias.utoronto.ca) 2009\r\n"
+    "# {what} Data Fomat:\r\n"
+    "# {columns} \r\n"
+)
+
+
+def _write(folder: Path, name: str, what: str, columns: str, rows: list[tuple]) -> None:
+    lines = [" \t ".join(str(v) for v in row) + " \r\n" for row in rows]
+    (folder / name).write_text(HEADER.format(what=what, columns=columns) + "".join(lines), newline="")
+
+
+@pytest.fixture()
+def sample(tmp_path: Path) -> Path:
+    _write(tmp_path, "Barcodes.dat", "Barcode", "Subject #    Barcode #",
+           [(1, 5), (2, 14), (6, 63), (7, 81)])
+    _write(tmp_path, "Landmark_Groundtruth.dat", "Landmark Groundtruth", "Subject #    x [m]    y [m]    x std-dev [m]    y std-dev [m]",
+           [(6, 1.0, 2.0, 0.001, 0.001), (7, -1.0, 0.5, 0.001, 0.001)])
+    _write(tmp_path, "Robot1_Odometry.dat", "Odometry", "Time [s]    forward velocity [m/s]    angular velocity[rad/s]",
+           [(100.05, 0.5, 0.0), (100.25, 0.0, 0.2), (100.45, 0.1, -0.1)])
+    _write(tmp_path, "Robot1_Measurement.dat", "Measurement", "Time [s]    Subject #    range [m]    bearing [rad]",
+           [(100.1, 63, 2.0, 0.1), (100.1, 14, 3.0, 0.0), (100.3, 81, 1.5, -0.2), (100.3, 34, 1.0, 0.0)])
+    _write(tmp_path, "Robot1_Groundtruth.dat", "Robot Groundtruth", "Time [s]    x [m]    y [m]    orientation [rad]",
+           [(100.0, 0.5, 0.25, 0.1), (100.5, 0.7, 0.25, 0.15)])
+    return tmp_path
+
+
+def test_reader_maps_barcodes_and_counts_skipped(sample):
+    assert is_mrclam_folder(sample) and find_robots(sample) == [1]
+    run = read_mrclam(sample, 1)
+    # barcode 63 -> subject 6, 81 -> 7; barcode 14 is robot 2; barcode 34 is in no table
+    np.testing.assert_array_equal(run.subjects, [6, 7])
+    np.testing.assert_allclose(run.measurements, [[100.1, 2.0, 0.1], [100.3, 1.5, -0.2]])
+    assert run.skipped_robots == 1 and run.skipped_unknown == 1
+    np.testing.assert_allclose(run.odometry[:, 1], [0.5, 0.0, 0.1])
+    np.testing.assert_allclose(run.groundtruth[0], [100.0, 0.5, 0.25, 0.1])
+    np.testing.assert_allclose(run.landmark_truth, [[6, 1.0, 2.0], [7, -1.0, 0.5]])
+
+
+def test_sequence_steps_controls_and_measurements_by_hand(sample):
+    run = read_mrclam(sample, 1)
+    seq = mrclam_sequence(run, period=0.2, command_delay=0.0)
+    seq.validate("sample")
+    # start at the first ground truth (100.0, pose 0.5, 0.25, 0.1); steps: the 0.2 s grid and the two measurement stamps
+    np.testing.assert_allclose(seq.initial_pose, [0.5, 0.25, 0.1])
+    np.testing.assert_allclose(seq.stamps, [100.0, 100.1, 100.2, 100.3, 100.4])
+    # the commands, held from their stamps, cut at every step: zero before 100.05, then 0.5 m/s until 100.25 ...
+    expected = [
+        [], [[0.0, 0.0, 0.05], [0.5, 0.0, 0.05]], [[0.5, 0.0, 0.1]], [[0.5, 0.0, 0.05], [0.0, 0.2, 0.05]],
+        [[0.0, 0.2, 0.1]],
+    ]
+    for t, rows in enumerate(expected):
+        got = seq.controls[seq.control_ptr[t]:seq.control_ptr[t + 1]]
+        np.testing.assert_allclose(got.reshape(-1, 3), np.array(rows).reshape(-1, 3), atol=1e-9)
+    np.testing.assert_array_equal(np.diff(seq.measurement_ptr), [0, 1, 0, 1, 0])
+    np.testing.assert_array_equal(seq.landmark_ids, [6, 7])
+
+
+def test_command_delay_and_initial_pose(sample):
+    run = read_mrclam(sample, 1)
+    seq = mrclam_sequence(run, initial_pose=np.array([1.0, 2.0, 0.5]), period=0.2, command_delay=0.1)
+    np.testing.assert_allclose(seq.initial_pose, [1.0, 2.0, 0.5])
+    assert seq.stamps[0] == pytest.approx(100.05)  # the first odometry stamp
+    total = seq.controls[:, 2].sum()
+    assert total == pytest.approx(seq.stamps[-1] - seq.stamps[0])
+    # the 0.5 m/s command now runs from 100.15 to 100.35
+    moving = seq.controls[seq.controls[:, 0] == 0.5]
+    assert moving[:, 2].sum() == pytest.approx(0.2)
+
+
+def test_range_calibration_by_hand():
+    z = calibrate_ranges(np.array([[2.0, 0.0], [2.0, 0.5]]), (1.0, -0.4))
+    np.testing.assert_allclose(z, [[2.0, 0.0], [2.0 / 0.9, 0.5]])
+
+
+@pytest.mark.parametrize(
+    ("line", "message"),
+    [
+        ("100.5 \t 0.1\r\n", "line 8: expected 3 numbers"),
+        ("100.5 \t abc \t 0.1\r\n", "line 8: expected 3 numbers"),
+        ("100.5 \t nan \t 0.1\r\n", "line 8: a value is NaN or inf"),
+        ("99.0 \t 0.1 \t 0.1\r\n", "line 8: time 99.0 s is earlier"),
+    ],
+)
+def test_bad_lines_name_file_and_line(sample, line, message):
+    path = sample / "Robot1_Odometry.dat"
+    path.write_bytes(path.read_bytes() + line.encode("ascii"))
+    with pytest.raises(LogFormatError, match=message) as info:
+        read_mrclam(sample, 1)
+    assert "Robot1_Odometry.dat" in str(info.value) and "\n" not in str(info.value)
+
+
+def test_missing_robot_and_files(sample):
+    with pytest.raises(LogFormatError, match="no Robot3_Odometry.dat"):
+        read_mrclam(sample, 3)
+    (sample / "Robot1_Measurement.dat").unlink()
+    with pytest.raises(LogFormatError, match="Robot1_Measurement.dat: no such file"):
+        read_mrclam(sample, 1)
+    with pytest.raises(LogFormatError, match="holds no data lines"):
+        (sample / "empty.dat").write_text("# nothing\n")
+        read_table(sample / "empty.dat", "Odometry")
+
+
+def test_no_ground_truth_needs_an_initial_pose(sample):
+    (sample / "Robot1_Groundtruth.dat").unlink()
+    run = read_mrclam(sample, 1)
+    assert run.groundtruth is None
+    with pytest.raises(LogFormatError, match="initial pose"):
+        mrclam_sequence(run)
+
+
+@pytest.mark.skipif(not DATA.is_dir(), reason="MRCLAM dataset 7 not present (../shared/data/mrclam7)")
+def test_dataset7_counts():
+    run = read_mrclam(DATA, 1)
+    assert len(run.odometry) == 58_598 and len(run.measurements) + run.skipped_robots == 3_228
+    assert run.skipped_robots == 650 and run.skipped_unknown == 0
+    assert set(np.unique(run.subjects)) <= set(range(6, 21))
+    assert read_mrclam(DATA, 3).skipped_unknown == 9  # barcodes 34 and 52 are in no table
+    seq = mrclam_sequence(run)
+    seq.validate(str(DATA))
+    assert seq.controls[:, 2].sum() == pytest.approx(seq.stamps[-1] - seq.stamps[0])
+    assert np.diff(seq.stamps).max() <= 0.2 + 1e-6  # stamps near 1.2e9 s carry about 1e-7 s of rounding
