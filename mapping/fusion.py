@@ -151,6 +151,22 @@ def _table_logodds(r, z, sigma, table, u0, du):  # pragma: no cover - compiled
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def segment_logodds(r_in, r_out, beam_kind, free_until, z, r_peak, a, b, s, g_peak, table, u0, du, p_miss, p_hit,
+                    l_free, y_peak):  # pragma: no cover - compiled
+    """The value one beam gives a cell it crosses over [r_in, r_out] (m): free before free_until (and for
+    beams with no return), else the model's largest value over the segment, from the table when there is one."""
+    if r_out < free_until or beam_kind == BEAM_NO_RETURN:
+        return l_free
+    if table.shape[0] > 0:
+        if r_out <= r_peak:
+            return _table_logodds(r_out, z, s / SQRT2, table, u0, du)
+        if r_in >= r_peak:
+            return _table_logodds(r_in, z, s / SQRT2, table, u0, du)
+        return y_peak
+    return cell_logodds(r_in, r_out, r_peak, a, b, s, g_peak, p_miss, p_hit)
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _tile_exit(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tile_shift):  # pragma: no cover
     """Range at which a ray in cell (ix, iy) leaves that cell's tile (tiles of 2**tile_shift cells)."""
     first_x = (ix >> tile_shift) << tile_shift
@@ -189,12 +205,9 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
     n_scan = 0
     free_gap = FREE_SHORTCUT_SIGMAS / SQRT2  # in units of s = sqrt(2) sigma
     y_peak = math.log(p_hit) - math.log1p(-p_hit)
-    use_table = table.shape[0] > 0
     for j in range(laser_x.shape[0]):
         sid = float(stamp_base + j)
         w = weights[j]
-        w_free = w * l_free
-        w_free2 = w * l_free * l_free
         for k in range(angles.shape[0]):
             beam_kind = kind[k]
             if beam_kind == BEAM_SKIP:
@@ -203,7 +216,6 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
             stop = r_stop[k]
             peak_at = r_peak[k]
             z_k = z[k]
-            sigma_k = s[k] / SQRT2
             a_k = a[k]
             b_k = b[k]
             s_k = s[k]
@@ -238,48 +250,26 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
                 if gx < 0 or gy < 0 or gx >= win_w or gy >= win_h:
                     break  # cannot happen: the window covers every ray's reach; guards the scratch memory
                 if r_out > r_in and mine:
+                    y = segment_logodds(r_in, r_out, beam_kind, free_until, z_k, peak_at, a_k, b_k, s_k, g_peak_k,
+                                        table, u0, du, p_miss, p_hit, l_free, y_peak)
                     c = ((gy >> 3) * blocks_w + (gx >> 3)) * 64 + ((gy & 7) << 3) + (gx & 7)
-                    if r_out < free_until:
-                        # free space: the smallest value, so a cell this sample already holds keeps its value
-                        if rec[c, 0] != sid:
-                            if rec[c, 0] < stamp_base:
-                                rec[c, 2] = 0.0
-                                rec[c, 3] = 0.0
-                                scan_cells[n_scan, 0] = gx
-                                scan_cells[n_scan, 1] = gy
-                                n_scan += 1
-                                tile_touched[(iy >> tile_shift) - ty0, (ix >> tile_shift) - tx0] = True
-                            rec[c, 0] = sid
-                            rec[c, 1] = l_free
-                            rec[c, 2] += w_free
-                            rec[c, 3] += w_free2
-                    else:
-                        if use_table:
-                            if r_out <= peak_at:
-                                y = _table_logodds(r_out, z_k, sigma_k, table, u0, du)
-                            elif r_in >= peak_at:
-                                y = _table_logodds(r_in, z_k, sigma_k, table, u0, du)
-                            else:
-                                y = y_peak
-                        else:
-                            y = cell_logodds(r_in, r_out, peak_at, a_k, b_k, s_k, g_peak_k, p_miss, p_hit)
-                        if rec[c, 0] != sid:
-                            if rec[c, 0] < stamp_base:
-                                rec[c, 2] = 0.0
-                                rec[c, 3] = 0.0
-                                scan_cells[n_scan, 0] = gx
-                                scan_cells[n_scan, 1] = gy
-                                n_scan += 1
-                                tile_touched[(iy >> tile_shift) - ty0, (ix >> tile_shift) - tx0] = True
-                            rec[c, 0] = sid
-                            rec[c, 1] = y
-                            rec[c, 2] += w * y
-                            rec[c, 3] += w * y * y
-                        elif y > rec[c, 1]:
-                            old = rec[c, 1]
-                            rec[c, 1] = y
-                            rec[c, 2] += w * (y - old)
-                            rec[c, 3] += w * (y * y - old * old)
+                    if rec[c, 0] != sid:
+                        if rec[c, 0] < stamp_base:
+                            rec[c, 2] = 0.0
+                            rec[c, 3] = 0.0
+                            scan_cells[n_scan, 0] = gx
+                            scan_cells[n_scan, 1] = gy
+                            n_scan += 1
+                            tile_touched[(iy >> tile_shift) - ty0, (ix >> tile_shift) - tx0] = True
+                        rec[c, 0] = sid
+                        rec[c, 1] = y
+                        rec[c, 2] += w * y
+                        rec[c, 3] += w * y * y
+                    elif y > rec[c, 1]:
+                        old = rec[c, 1]
+                        rec[c, 1] = y
+                        rec[c, 2] += w * (y - old)
+                        rec[c, 3] += w * (y * y - old * old)
                 if r_out >= stop:
                     break
                 ix, iy, r_in, t_max_x, t_max_y = dda_step(ix, iy, r_in, step_x, step_y, t_max_x, t_max_y,
@@ -313,6 +303,23 @@ def _apply_scan(scan_cells, n_scan, rec, blocks_w, win_ix0, win_iy0, tile_shift,
         logodds[slot, ly, lx] = updated
         variance[slot, ly, lx] += spread
         observed[slot, ly, lx] = True
+
+
+def check_scan(ranges: np.ndarray, samples: np.ndarray, weights: np.ndarray,
+               beams: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Validate one scan's inputs and return them as arrays: ranges (B,), samples (M, 3), weights (M,)."""
+    ranges = np.asarray(ranges)
+    samples = np.asarray(samples, dtype=np.float64).reshape(-1, 3)
+    weights = np.asarray(weights, dtype=np.float64).reshape(-1)
+    if ranges.shape != (beams,):
+        raise InputError(f"scan has {ranges.shape} ranges but the laser has {beams} beams")
+    if weights.shape[0] != samples.shape[0] or samples.shape[0] == 0:
+        raise InputError(f"need M >= 1 samples (M, 3) and weights (M,), got {samples.shape} and {weights.shape}")
+    if not (np.isfinite(samples).all() and np.isfinite(weights).all()) or (weights < 0).any():
+        raise InputError("pose samples and weights must be finite and the weights non-negative")
+    if abs(weights.sum() - 1.0) > 1e-4:
+        raise InputError(f"weights must sum to 1, got {weights.sum():.6g}")
+    return ranges, samples, weights
 
 
 def laser_poses(samples: np.ndarray, sensor_offset: np.ndarray) -> np.ndarray:
@@ -398,17 +405,7 @@ class MonteCarloFusion:
 
     def fuse(self, ranges: np.ndarray, samples: np.ndarray, weights: np.ndarray) -> FuseResult:
         """Fuse one scan: ranges (B,) m, robot pose samples (M, 3) map frame, weights (M,) summing to 1."""
-        ranges = np.asarray(ranges)
-        samples = np.asarray(samples, dtype=np.float64).reshape(-1, 3)
-        weights = np.asarray(weights, dtype=np.float64).reshape(-1)
-        if ranges.shape != self.angles.shape:
-            raise InputError(f"scan has {ranges.shape} ranges but the laser has {self.angles.shape[0]} beams")
-        if weights.shape[0] != samples.shape[0] or samples.shape[0] == 0:
-            raise InputError(f"need M >= 1 samples (M, 3) and weights (M,), got {samples.shape} and {weights.shape}")
-        if not (np.isfinite(samples).all() and np.isfinite(weights).all()) or (weights < 0).any():
-            raise InputError("pose samples and weights must be finite and the weights non-negative")
-        if abs(weights.sum() - 1.0) > 1e-4:
-            raise InputError(f"weights must sum to 1, got {weights.sum():.6g}")
+        ranges, samples, weights = check_scan(ranges, samples, weights, self.angles.shape[0])
         if self.merge_identical:
             samples, weights = merge_duplicates(samples, weights)
         beams = beam_table(ranges, self.model, self.range_min, self.range_max)

@@ -35,26 +35,11 @@ import numba as nb
 import numpy as np
 
 from mapping.fusion import (BEAM_HIT, BEAM_NO_RETURN, BEAM_SKIP, FREE_SHORTCUT_SIGMAS, SQRT2, STAMP_LIMIT,
-                            TABLE_DU, TABLE_U0, BeamTable, _table_logodds, cell_logodds)
+                            TABLE_DU, TABLE_U0, BeamTable, segment_logodds)
 from mapping.raytrace import FAR, dda_start, dda_step
 
 #: columns of a count record: [stamp, hits, misses, unknowns]
 HIT, MISS, UNKNOWN = 1, 2, 3
-
-
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _segment_logodds(r_in, r_out, beam_kind, free_until, z, r_peak, a, b, s, g_peak, table, u0, du, p_miss, p_hit,
-                     l_free, y_peak):  # pragma: no cover - compiled
-    """The value a beam gives a finest cell it crosses over [r_in, r_out], as mapping.fusion's kernel computes it."""
-    if r_out < free_until or beam_kind == BEAM_NO_RETURN:
-        return l_free
-    if table.shape[0] > 0:
-        if r_out <= r_peak:
-            return _table_logodds(r_out, z, s / SQRT2, table, u0, du)
-        if r_in >= r_peak:
-            return _table_logodds(r_in, z, s / SQRT2, table, u0, du)
-        return y_peak
-    return cell_logodds(r_in, r_out, r_peak, a, b, s, g_peak, p_miss, p_hit)
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -118,7 +103,7 @@ def _scan_evidence(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop
                     if not hit_passed and z_hit < r_out:
                         run_hit[0] = True
                         hit_passed = True
-                    y = _segment_logodds(r_in, r_out, beam_kind, free_until, z[k], r_peak[k], a[k], b[k], s[k],
+                    y = segment_logodds(r_in, r_out, beam_kind, free_until, z[k], r_peak[k], a[k], b[k], s[k],
                                          g_peak[k], table, u0, du, p_miss, p_hit, l_free, y_peak)
                     c = gy * lv_w[0] + gx
                     if rec[c, 0] != sid:

@@ -37,7 +37,7 @@ from mapping.adaptive.merging import MergeRules, merge_siblings
 from mapping.adaptive.splitting import SplitTest
 from mapping.adaptive.tree import AdaptiveGrid, children, unique_cells
 from mapping.errors import InputError
-from mapping.fusion import (BEAM_HIT, BEAM_SKIP, BeamTable, beam_table, laser_poses, logodds_table,
+from mapping.fusion import (BEAM_HIT, BEAM_SKIP, BeamTable, beam_table, check_scan, laser_poses, logodds_table,
                             merge_duplicates)
 from mapping.sensor_model import SensorModel
 
@@ -129,17 +129,7 @@ class AdaptiveFusion:
     # ----------------------------------------------------------------------------------- one scan
     def fuse(self, ranges: np.ndarray, samples: np.ndarray, weights: np.ndarray) -> AdaptiveFuseResult:
         """Fuse one scan: ranges (B,) m, robot pose samples (M, 3) map frame, weights (M,) summing to 1."""
-        ranges = np.asarray(ranges)
-        samples = np.asarray(samples, dtype=np.float64).reshape(-1, 3)
-        weights = np.asarray(weights, dtype=np.float64).reshape(-1)
-        if ranges.shape != self.angles.shape:
-            raise InputError(f"scan has {ranges.shape} ranges but the laser has {self.angles.shape[0]} beams")
-        if weights.shape[0] != samples.shape[0] or samples.shape[0] == 0:
-            raise InputError(f"need M >= 1 samples (M, 3) and weights (M,), got {samples.shape} and {weights.shape}")
-        if not (np.isfinite(samples).all() and np.isfinite(weights).all()) or (weights < 0).any():
-            raise InputError("pose samples and weights must be finite and the weights non-negative")
-        if abs(weights.sum() - 1.0) > 1e-4:
-            raise InputError(f"weights must sum to 1, got {weights.sum():.6g}")
+        ranges, samples, weights = check_scan(ranges, samples, weights, self.angles.shape[0])
         samples, weights = merge_duplicates(samples, weights)
         beams = beam_table(ranges, self.model, self.range_min, self.range_max)
         if not (beams.kind != BEAM_SKIP).any():
