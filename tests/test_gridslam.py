@@ -15,8 +15,8 @@ from services.fusion_runner import fuse_posed_scans
 from slam.angles import wrap_angle
 from slam.carmen import read_carmen, write_carmen
 from slam.gridslam import GridFastSLAM, GridSlamConfig, run_gridslam
-from slam.gridslam.filter import odometry_step
-from slam.gridslam.kernels import insert_scan, log_likelihoods, match_and_propose, touched_tiles
+from slam.gridslam.filter import _stencil, odometry_step
+from slam.gridslam.kernels import log_likelihoods, match_and_propose
 from slam.gridslam.tiles import TileMaps
 from slam.raycast import cast_rays
 from slam.simulator import simulate_office
@@ -30,11 +30,8 @@ def insert(maps: TileMaps, poses, angles, ranges, max_range=10.0, l_occ=0.85, l_
     ranges = np.asarray(ranges, float)
     maps.cover(poses[:, 0].min() - max_range, poses[:, 1].min() - max_range,
                poses[:, 0].max() + max_range, poses[:, 1].max() + max_range)
-    r_stop = np.minimum(ranges, max_range)
-    hit = ranges <= max_range
-    args = (maps.tx0, maps.ty0, maps.shift, RES, poses, np.zeros(3), np.cos(angles), np.sin(angles), r_stop)
-    maps.own(touched_tiles(maps.table, *args))
-    insert_scan(maps.pool, maps.table, *args, hit, l_occ, l_free, -5.0, 5.0)
+    maps.insert(poses, np.zeros(3), np.cos(angles), np.sin(angles), np.minimum(ranges, max_range),
+                ranges <= max_range, l_occ, l_free, 5.0)
 
 
 def cell(maps: TileMaps, particle: int, ix: int, iy: int) -> float:
@@ -75,6 +72,21 @@ def test_copy_on_write_keeps_maps_apart_and_resampling_shares_tiles():
     assert maps.tiles_in_use == 1 and int(maps.n_free[0]) == len(maps.pool) - 1
 
 
+def test_insertion_resumes_where_the_pool_ran_out():
+    """A pool of one tile makes the kernel stop and resume many times; the grids must equal those built
+    with a pool that never runs out, and every cell must be updated exactly once per crossing beam."""
+    angles = np.linspace(-math.pi, math.pi, 90, endpoint=False)
+    poses = [[0.3, 0.2, 0.1], [-0.4, 1.0, 2.0], [2.0, -1.0, -1.0]]
+    ranges = np.where(np.arange(90) % 7 == 0, np.inf, 1.0 + (np.arange(90) % 5) * 0.4)
+    small, large = TileMaps(3, RES, tile_cells=8, capacity=1), TileMaps(3, RES, tile_cells=8, capacity=4096)
+    insert(small, poses, angles, ranges, max_range=2.5)
+    insert(large, poses, angles, ranges, max_range=2.5)
+    assert len(small.pool) > 1 and len(large.pool) == 4096
+    for j in range(3):
+        np.testing.assert_array_equal(small.raster(j)[0], large.raster(j)[0])
+        np.testing.assert_array_equal(small.raster(j)[1], large.raster(j)[1])
+
+
 def test_cover_grows_the_table_and_keeps_content():
     maps = TileMaps(1, RES, tile_cells=8)
     insert(maps, [[0.025, 0.025, 0.0]], np.array([0.0]), np.array([0.5]), max_range=1.0)
@@ -110,10 +122,11 @@ def test_matcher_recovers_a_displaced_pose_and_likelihood_peaks_at_truth():
     q = np.diag([0.1, 0.1, 0.05]) ** 2
     matched, score, mean, cov, _ = match_and_propose(
         *grid, predicted, np.linalg.inv(q)[None], np.array([np.linalg.slogdet(q)[1]]), np.zeros(3), cos_b, sin_b,
-        ranges, 1, 0.05, 0.075, 0.05, 3.0, 0.05, 0.05, 5, np.zeros((1, 3)))
-    assert np.hypot(*(matched[0, :2] - truth[:2])) < 0.02
-    assert abs(wrap_angle(matched[0, 2] - truth[2])) < 0.01
-    assert score[0] > 0.5 * len(angles)
+        ranges, 1, 0.05, 0.075, 0.05, 3.0, 0.05, 0.05, 5, 0.25, *_stencil(0.02, 0.01))
+    # mean end points per cell give sub-cell precision: well under the 5 cm cells and under 0.3 degrees
+    assert np.hypot(*(matched[0, :2] - truth[:2])) < 0.01
+    assert abs(wrap_angle(matched[0, 2] - truth[2])) < 0.005
+    assert score[0] > 0.3 * len(angles)
     offsets = np.array([[0, 0, 0], [0.05, 0, 0], [0, -0.05, 0], [0, 0, 0.03], [0.1, 0.1, -0.05]], float)
     five = (maps.pool, np.repeat(maps.table, len(offsets), axis=0), maps.tx0, maps.ty0, maps.shift, RES)  # one map
     loglik, _ = log_likelihoods(*five, truth + offsets, np.zeros(3), cos_b, sin_b, ranges, 1, 0.05, 0.075, 0.05)

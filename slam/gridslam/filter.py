@@ -51,6 +51,7 @@ class GridSlamConfig:
     sigma_like: float = 0.075  # m, likelihood width
     p_rand: float = 0.05  # per-beam probability of an unexplained reading
     gain: float = 3.0  # likelihood temper (beams are correlated)
+    weight_temper: float = 1.0  # the weight factor eta enters as eta^(1/weight_temper)
     lin_step: float = 0.05  # m, first hill-climbing step
     ang_step: float = 0.05  # rad
     refinements: int = 5  # step halvings
@@ -72,8 +73,8 @@ class GridSlamConfig:
 
     def validate(self) -> None:
         """Raise ValueError naming the first parameter out of range."""
-        positive = ("resolution", "max_range", "sigma_match", "sigma_like", "gain", "lin_step", "ang_step",
-                    "l_occ", "l_clamp")
+        positive = ("resolution", "max_range", "sigma_match", "sigma_like", "gain", "weight_temper", "lin_step",
+                    "ang_step", "l_occ", "l_clamp")
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
@@ -223,7 +224,7 @@ class GridFastSLAM:
         if self.odometry_ref is not None:
             control = odometry_step(self.odometry_ref, odometry)
             self.poses, log_eta, fallbacks = self._propose(control, r_stop, idx)
-            self.log_w = self.log_w + log_eta
+            self.log_w = self.log_w + log_eta / self.config.weight_temper
             self.log_w -= self.log_w.max()
         else:
             self._cover(self.poses)
