@@ -24,7 +24,7 @@ import numpy as np
 
 from slam.angles import wrap_angle
 from slam.errors import LogFormatError
-from slam.laserlog import LaserLog, Skipped, interpolate_poses
+from slam.laserlog import LaserLog, Skipped
 
 #: a relation stamp and a trajectory stamp closer than this (s) are the same instant
 DEFAULT_TOLERANCE = 1e-3
