@@ -49,6 +49,25 @@ def render_pgm(map_arrays: dict, image_name: str = "map.pgm") -> tuple[bytes, st
     return pgm, yaml
 
 
+def crop_to_occupied(map_arrays: dict, margin: float) -> dict:
+    """The map cut to the bounding box of its occupied cells (observed, p >= OCCUPIED_THRESH) grown by
+    ``margin`` m on every side, origin moved to match; every (H, W) layer is cut alike. Rays that found no
+    return clear space far beyond any wall; this keeps an image to the mapped structure."""
+    if margin < 0:
+        raise InputError(f"the crop margin must be >= 0 m, got {margin}")
+    occupied = np.asarray(map_arrays["observed"], bool) & (np.asarray(map_arrays["probability"]) >= OCCUPIED_THRESH)
+    if not occupied.any():
+        raise InputError("the map has no occupied cells to crop to")
+    rows, cols = np.flatnonzero(occupied.any(axis=1)), np.flatnonzero(occupied.any(axis=0))
+    pad = int(np.ceil(margin / float(map_arrays["resolution"])))
+    r0, r1 = max(rows[0] - pad, 0), min(rows[-1] + pad + 1, occupied.shape[0])
+    c0, c1 = max(cols[0] - pad, 0), min(cols[-1] + pad + 1, occupied.shape[1])
+    cropped = {key: (value[r0:r1, c0:c1] if isinstance(value, np.ndarray) and value.shape == occupied.shape else value)
+               for key, value in map_arrays.items()}
+    cropped["origin"] = np.asarray(map_arrays["origin"], float) + float(map_arrays["resolution"]) * np.array([c0, r0])
+    return cropped
+
+
 def _heat(values: np.ndarray) -> np.ndarray:
     """A black-red-yellow-white colour ramp for values in [0, 1] -> uint8 RGB."""
     v = np.clip(values, 0.0, 1.0)[..., None]

@@ -139,7 +139,7 @@ def _parse_robotlaser(tokens: list[str], line: int) -> _Scan:
     if len(tokens) < 10:
         raise _BadLine(f"has {len(tokens)} fields, a ROBOTLASER line needs at least 24")
     header = _floats(tokens[2:8], "laser parameter")
-    start_angle, _fov, resolution, max_range = header[0], header[1], header[2], header[3]
+    start_angle, resolution, max_range = header[0], header[2], header[3]  # header[1], the fov, follows from n
     if not all(math.isfinite(v) for v in header[:4]) or max_range <= 0:
         raise _BadLine("laser parameters (start angle, fov, resolution, max range) are not finite and positive")
     n = _count(tokens[8], "beam count")

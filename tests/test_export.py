@@ -2,9 +2,11 @@
 import io
 
 import numpy as np
+import pytest
 from PIL import Image
 
-from mapping.export import render_pgm, render_png
+from mapping.errors import InputError
+from mapping.export import crop_to_occupied, render_pgm, render_png
 
 
 def small_map():
@@ -32,3 +34,19 @@ def test_png_layers():
     assert np.abs(rgb[1, 0].astype(int) - 25.5).max() <= 1
     assert np.abs(rgb[1, 1].astype(int) - 229.5).max() <= 1
     assert rgb[0, 0].tolist() == [180, 190, 205]  # unobserved
+
+
+def test_crop_keeps_the_occupied_cells_plus_margin_and_moves_the_origin():
+    probability = np.full((10, 12), 0.1, np.float32)
+    probability[4, 5] = probability[6, 7] = 0.9  # occupied: rows 4..6, columns 5..7
+    observed = np.ones((10, 12), bool)
+    arrays = {"probability": probability, "observed": observed, "variance": np.zeros((10, 12), np.float32),
+              "origin": np.array([-1.0, 2.0]), "resolution": 0.5}
+    cropped = crop_to_occupied(arrays, margin=1.0)  # two cells
+    assert cropped["probability"].shape == (7, 7) and cropped["variance"].shape == (7, 7)
+    np.testing.assert_allclose(cropped["origin"], [-1.0 + 3 * 0.5, 2.0 + 2 * 0.5])
+    assert cropped["probability"][2, 2] == np.float32(0.9) and cropped["probability"][4, 4] == np.float32(0.9)
+    # the margin stops at the raster's edge
+    assert crop_to_occupied(arrays, margin=100.0)["probability"].shape == (10, 12)
+    with pytest.raises(InputError, match="no occupied cells"):
+        crop_to_occupied({**arrays, "probability": np.full((10, 12), 0.1, np.float32)}, margin=1.0)

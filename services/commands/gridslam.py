@@ -21,8 +21,11 @@ def add_gridslam_arguments(parser: argparse.ArgumentParser) -> None:
         "grid FastSLAM (--algo gridslam: INPUT is a CARMEN log .clf/.log/.gz or a ROS bag; --particles "
         f"defaults to {DEFAULT_GRID_PARTICLES}; docs/gridslam.md)")
     group.add_argument("--poses-output", type=Path, default=None, metavar="POSES.npz",
-                       help="pose-distribution file with every scan's particles (default: OUTPUT with the "
-                       "suffix .poses.npz)")
+                       help="pose-distribution file: every scan, the final particles' trajectories with the final "
+                       "weights (default: OUTPUT with the suffix .poses.npz)")
+    group.add_argument("--best-output", type=Path, default=None, metavar="BEST.npz",
+                       help="posed-scan file: the integrated scans at the final best particle's poses, one sample "
+                       "each, for its map (default: OUTPUT with the suffix .best.npz)")
     group.add_argument("--max-range", type=float, default=None,
                        help="m: beams are used up to here, longer ones only clear space (default 30)")
     group.add_argument("--linear-update", type=float, default=None,
@@ -70,8 +73,12 @@ def _read_input(args: argparse.Namespace):
 
 
 def run_gridslam_command(args: argparse.Namespace) -> int:
-    """Run grid FastSLAM over args.input; write the posed-scan file (integrated scans) and the
-    pose-distribution file (every scan)."""
+    """Run grid FastSLAM over args.input and write three files (docs/gridslam.md, "Output"):
+    OUTPUT, a posed-scan file of the integrated scans with every final particle's trajectory and the final
+    weights (`posegrid fuse` makes the Monte Carlo map);
+    the .best.npz posed-scan file with the final best particle's poses (its map); and the .poses.npz
+    pose-distribution file with every scan's pose on each final particle's trajectory (for the relation
+    error)."""
     import numpy as np
     from tqdm import tqdm
 
@@ -98,12 +105,19 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
     cpu = time.process_time() - cpu_started
 
     chosen = result.integrated
-    weights = np.tile(result.weights, (len(log), 1))
     range_max = min(config.max_range, log.range_max)
-    save_posed_scans(args.output, PosedScans(
-        ranges=log.ranges[chosen], angle_min=log.angle_min, angle_increment=log.angle_increment,
-        range_min=max(log.range_min, config.min_range), range_max=range_max, stamps=log.stamps[chosen],
-        sensor_offset=log.sensor_offset, poses=PoseSet(samples=result.samples[chosen], weights=weights[chosen])))
+
+    def posed(samples, weights) -> PosedScans:
+        return PosedScans(ranges=log.ranges[chosen], angle_min=log.angle_min, angle_increment=log.angle_increment,
+                          range_min=max(log.range_min, config.min_range), range_max=range_max,
+                          stamps=log.stamps[chosen], sensor_offset=log.sensor_offset,
+                          poses=PoseSet(samples=samples, weights=weights))
+
+    weights = np.tile(result.weights, (len(log), 1))
+    save_posed_scans(args.output, posed(result.samples[chosen], weights[chosen]))
+    best_path = args.best_output or args.output.with_suffix(".best.npz")
+    best = result.samples[chosen][:, [result.best]]
+    save_posed_scans(best_path, posed(best, np.ones((int(chosen.sum()), 1))))
     poses_path = args.poses_output or args.output.with_suffix(".poses.npz")
     save_pose_distribution(poses_path, PoseDistributionFile(
         stamps=result.stamps, poses=PoseSet(samples=result.samples, weights=weights)))
@@ -121,8 +135,9 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
     }
     if args.stats is not None:
         args.stats.write_text(json.dumps(stats, indent=1) + "\n")
-    print(f"wrote {args.output} (posed-scan file, {stats['integrated']} integrated scans) and {poses_path} "
-          f"(pose-distribution file, {len(log)} scans): {1e3 * stats['seconds_per_integrated_scan']:.1f} ms per "
+    print(f"wrote {args.output} (posed-scan file, {stats['integrated']} integrated scans), {best_path} (the best "
+          f"particle's poses) and {poses_path} (pose-distribution file, {len(log)} scans): "
+          f"{1e3 * stats['seconds_per_integrated_scan']:.1f} ms per "
           f"integrated scan, {duration:.0f} s of log in {elapsed:.1f} s ({stats['real_time_factor']:.1f}x real "
           f"time), final N_eff {stats['final_ess']:.1f} of {config.particles}, {stats['resamplings']} resamplings")
     return 0

@@ -73,6 +73,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     export.add_argument("-o", "--output", type=Path, required=True, help="image path (.pgm or .png)")
     export.add_argument("--layer", choices=("probability", "variance"), default="probability",
                         help="png only: which layer to draw (default probability)")
+    export.add_argument("--crop", type=float, default=None, metavar="MARGIN",
+                        help="m: cut the map to its occupied cells plus MARGIN on every side (rays with no return "
+                        "clear space far beyond the walls; default: the whole map)")
     export.set_defaults(func=run_export)
 
     evaluate = subparsers.add_parser(
@@ -118,11 +121,13 @@ def run_fuse(args: argparse.Namespace) -> int:
 
 
 def run_export(args: argparse.Namespace) -> int:
-    from mapping.export import render_pgm, render_png
+    from mapping.export import crop_to_occupied, render_pgm, render_png
     from schemas.files import load_map
 
     map_file = load_map(args.map)
     arrays = vars(map_file)
+    if args.crop is not None:
+        arrays = crop_to_occupied(arrays, args.crop)
     if args.format == "pgm":
         pgm, yaml = render_pgm(arrays, image_name=args.output.name)
         args.output.write_bytes(pgm)

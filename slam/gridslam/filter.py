@@ -51,11 +51,12 @@ class GridSlamConfig:
     sigma_like: float = 0.075  # m, likelihood width
     p_rand: float = 0.05  # per-beam probability of an unexplained reading
     gain: float = 3.0  # likelihood temper (beams are correlated)
-    weight_temper: float = 1.0  # the weight factor eta enters as eta^(1/weight_temper)
+    weight_temper: float = 30.0  # the weight factor eta enters as eta^(1/weight_temper) (GMapping divides by 3N)
     lin_step: float = 0.05  # m, first hill-climbing step
     ang_step: float = 0.05  # rad
     refinements: int = 5  # step halvings
     yaw_search: float = 0.25  # rad: yaws tried around the odometry's before hill climbing
+    prior_cap: float = 9.0  # squared Mahalanobis distance beyond which the matcher ignores the odometry
     stencil_xy: float = 0.02  # m, spacing of the stencil the likelihood's curvature is fitted on
     stencil_yaw: float = 0.01  # rad
     min_match: float = 0.15  # match score per beam below which the motion model is sampled instead
@@ -111,7 +112,7 @@ def odometry_step(before: np.ndarray, after: np.ndarray) -> np.ndarray:
     return np.array([rot1, trans, rot2])
 
 
-def _stencil(xy: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
+def proposal_stencil(xy: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
     """The 27 offsets (dx m, dy m, dyaw rad) of a 3 x 3 x 3 grid around a pose, and the (10, 27) matrix
     giving the least-squares quadratic [c, g0, g1, g2, a00, a11, a22, a01, a02, a12] through values there
     (see kernels.match_and_propose)."""
@@ -141,7 +142,7 @@ class GridFastSLAM:
         self.log_w = np.zeros(m)
         self.maps = TileMaps(m, config.resolution, config.tile_cells)
         self.motion = OdometryMotionModel(alphas=config.motion_alphas)
-        self.stencil, self.fit = _stencil(config.stencil_xy, config.stencil_yaw)
+        self.stencil, self.fit = proposal_stencil(config.stencil_xy, config.stencil_yaw)
         self.odometry_ref: np.ndarray | None = None  # odometry at the last integrated scan
         self.reach = config.max_range + float(np.hypot(self.offset[0], self.offset[1]))
 
@@ -197,7 +198,7 @@ class GridFastSLAM:
         grid = (maps.pool, maps.table, maps.tx0, maps.ty0, maps.shift, cfg.resolution)
         _, score, mean, cov, log_eta = match_and_propose(
             *grid, predicted, q_inv, q_logdet, self.offset, *beams, cfg.kernel, cfg.sigma_match, cfg.sigma_like,
-            cfg.p_rand, cfg.gain, cfg.lin_step, cfg.ang_step, cfg.refinements, cfg.yaw_search, self.stencil, self.fit)
+            cfg.p_rand, cfg.gain, cfg.lin_step, cfg.ang_step, cfg.refinements, cfg.yaw_search, cfg.prior_cap, self.stencil, self.fit)
         good = score >= cfg.min_match * max(len(idx), 1)
         poses = np.empty_like(predicted)
         floor = np.diag([cfg.proposal_floor_xy**2, cfg.proposal_floor_xy**2, cfg.proposal_floor_yaw**2])

@@ -16,6 +16,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from slam.gridslam.filter import GridFastSLAM, GridSlamConfig
+from slam.gridslam.tiles import TileMaps
 from slam.laserlog import LaserLog
 
 
@@ -34,7 +35,7 @@ class GridSlamResult:
     resampled: np.ndarray
     seconds: np.ndarray
     fallbacks: int
-    maps: object
+    maps: TileMaps
 
     @property
     def best(self) -> int:

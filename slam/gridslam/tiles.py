@@ -131,8 +131,3 @@ class TileMaps:
             out[(v - v0) * side:(v - v0 + 1) * side, (u - u0) * side:(u - u0 + 1) * side] = self.pool[rows[v, u], :, :, LOGODDS]
         origin = np.array([(self.tx0 + u0) * side, (self.ty0 + v0) * side], np.float64) * self.resolution
         return out, origin
-
-    def memory_bytes(self) -> int:
-        """Bytes held by tiles in use."""
-        return self.tiles_in_use * self.pool[0].nbytes
-
