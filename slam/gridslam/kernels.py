@@ -267,10 +267,11 @@ def match_and_propose(pool, table, tx0, ty0, shift, res, predicted, q_inv, q_log
     log-likelihood at the stencil points (K, 3) around the match x^ is fitted by a quadratic (``fit``
     (10, K) maps the K values to [c, g (3), a00, a11, a22, a01, a02, a12], the least-squares coefficients
     of c + g.d + a00 d0^2/2 + a11 d1^2/2 + a22 d2^2/2 + a01 d0 d1 + a02 d0 d2 + a12 d1 d2); H = -A/gain,
-    clipped to be positive semi-definite, is the likelihood's information. With the motion model's
-    information Q^-1 (``q_inv`` (M, 3, 3), log det Q ``q_logdet`` (M,)) the proposal is
-    N(x^ + P^-1 Q^-1 (x' - x^), P^-1), P = H + Q^-1, and the weight factor eta is the Gaussian integral
-    of likelihood times motion model: log eta = c/gain - log|Q|/2 - log|P|/2 - (d'Q^-1 d - d'Q^-1 P^-1 Q^-1 d)/2,
+    clipped to be positive semi-definite, is the likelihood's information and g/gain its slope at x^ (not
+    zero: x^ maximises the likelihood times the capped prior). With the motion model's information Q^-1
+    (``q_inv`` (M, 3, 3), log det Q ``q_logdet`` (M,)) and b = g/gain + Q^-1 d the proposal is
+    N(x^ + P^-1 b, P^-1), P = H + Q^-1, and the weight factor eta is the Gaussian integral of likelihood
+    times motion model: log eta = c/gain - log|Q|/2 - log|P|/2 - (d'Q^-1 d - b'P^-1 b)/2,
     d = x' - x^. Along a direction the scan does not fix (a corridor's axis) H vanishes and the particles
     spread as the odometry says; across it they follow the scan.
 
@@ -357,11 +358,15 @@ def match_and_propose(pool, table, tx0, ty0, shift, res, predicted, q_inv, q_log
         d[1] = predicted[j, 1] - by
         d[2] = (predicted[j, 2] - bt + math.pi) % (2.0 * math.pi) - math.pi
         qd = q_inv[j] @ d
+        # the match maximises likelihood times (capped) prior, so the likelihood's own slope there is not
+        # zero: keep the fitted gradient, or the prior would be counted twice
+        pull = np.empty(3)
+        pull[0], pull[1], pull[2] = coef[1] / gain + qd[0], coef[2] / gain + qd[1], coef[3] / gain + qd[2]
         precision = hess + q_inv[j]
         covariance = np.linalg.inv(precision)
-        shift_local = covariance @ qd
+        shift_local = covariance @ pull
         mean[j, 0], mean[j, 1], mean[j, 2] = bx + shift_local[0], by + shift_local[1], bt + shift_local[2]
         cov[j] = covariance
         sign, logdet_p = np.linalg.slogdet(precision)
-        log_eta[j] = coef[0] / gain - 0.5 * q_logdet[j] - 0.5 * logdet_p - 0.5 * (d @ qd - qd @ shift_local)
+        log_eta[j] = coef[0] / gain - 0.5 * q_logdet[j] - 0.5 * logdet_p - 0.5 * (d @ qd - pull @ shift_local)
     return matched, scores, mean, cov, log_eta
