@@ -268,7 +268,7 @@ def match_and_propose(pool, table, tx0, ty0, shift, res, predicted, q_inv, q_log
     (10, K) maps the K values to [c, g (3), a00, a11, a22, a01, a02, a12], the least-squares coefficients
     of c + g.d + a00 d0^2/2 + a11 d1^2/2 + a22 d2^2/2 + a01 d0 d1 + a02 d0 d2 + a12 d1 d2); H = -A/gain,
     clipped to be positive semi-definite, is the likelihood's information and g/gain its slope at x^ (not
-    zero: x^ maximises the likelihood times the capped prior). With the motion model's information Q^-1
+    zero: x^ maximises the likelihood times the capped prior; kept only along H's positive eigenvectors). With the motion model's information Q^-1
     (``q_inv`` (M, 3, 3), log det Q ``q_logdet`` (M,)) and b = g/gain + Q^-1 d the proposal is
     N(x^ + P^-1 b, P^-1), P = H + Q^-1, and the weight factor eta is the Gaussian integral of likelihood
     times motion model: log eta = c/gain - log|Q|/2 - log|P|/2 - (d'Q^-1 d - b'P^-1 b)/2,
@@ -360,8 +360,14 @@ def match_and_propose(pool, table, tx0, ty0, shift, res, predicted, q_inv, q_log
         qd = q_inv[j] @ d
         # the match maximises likelihood times (capped) prior, so the likelihood's own slope there is not
         # zero: keep the fitted gradient, or the prior would be counted twice
-        pull = np.empty(3)
-        pull[0], pull[1], pull[2] = coef[1] / gain + qd[0], coef[2] / gain + qd[1], coef[3] / gain + qd[2]
+        # (only where the fit curves down: along a direction it does not, the quadratic says nothing)
+        slope = np.empty(3)
+        slope[0], slope[1], slope[2] = coef[1] / gain, coef[2] / gain, coef[3] / gain
+        along = eigvec.T @ slope
+        for e in range(3):
+            if eigval[e] <= 0.0:
+                along[e] = 0.0
+        pull = eigvec @ along + qd
         precision = hess + q_inv[j]
         covariance = np.linalg.inv(precision)
         shift_local = covariance @ pull
