@@ -76,7 +76,9 @@ class Mapper:
         self._declared.append(session.liveliness().declare_token(keys.shard_alive_key(name, self.config.shard)))
 
     def run(self, stop: threading.Event) -> int:
-        """Fuse and publish until ``stop`` is set; returns the exit code (0)."""
+        """Fuse and publish until ``stop`` is set; returns the exit code (0). The liveliness token is
+        declared once the kernels are warm, so whoever waits for it sees the shard's steady latency."""
+        self.shard.warm_up()
         self.declare()
         cfg = self.config
         self.log.info("shard %d of %d of map %r up; tiles on %s", cfg.shard, cfg.shards, cfg.map_name,

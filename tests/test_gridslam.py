@@ -189,8 +189,8 @@ def test_simulated_carmen_log_beats_odometry_and_monte_carlo_map_beats_best_part
 
     Not "at least as well", as the issue asks: with the weights tempered for the filter's sake (docs/
     gridslam.md, "Weights") the final weights are nearly uniform, and the Monte Carlo map mixes in
-    trajectories a few centimetres worse than the best. Over seeds 2 to 6 it scored 0.004 to 0.008 nats
-    per cell worse (0.0001 to 0.0006 with untempered weights, which lose loop closures on real logs)."""
+    trajectories a few centimetres worse than the best. Over seeds 2 to 6 it scored from 0.0012 nats per
+    cell better to 0.0035 worse."""
     path, run = simulated_log
     out = tmp_path / "posed.npz"
     assert main(["slam", "--algo", "gridslam", str(path), "-o", str(out), "--particles", "16", "--seed", "2"]) == 0
@@ -219,7 +219,7 @@ def test_simulated_carmen_log_beats_odometry_and_monte_carlo_map_beats_best_part
              "resolution": run.truth_resolution}
     mc = score_map(fuse_posed_scans(in_truth_frame(posed)).rasterize(), truth)
     best_map = score_map(fuse_posed_scans(in_truth_frame(best_posed)).rasterize(), truth)
-    assert mc["nll"] <= best_map["nll"] + 0.015
+    assert mc["nll"] <= best_map["nll"] + 0.005
     assert mc["auc"] > 0.9
 
 

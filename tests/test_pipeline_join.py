@@ -112,3 +112,10 @@ def test_tile_updates_carry_only_the_changed_window():
         outside[window] = False
         assert not outside.any()  # every observed cell of the tile is inside the window
         assert update.logodds.shape[0] < shard.grid.tile_size  # a window, not the whole tile
+
+
+def test_warm_up_leaves_the_shard_empty():
+    shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), publish_interval=0.0), RejectCounter(logging.getLogger("t")))
+    shard.warm_up()
+    assert shard.tiles() == [] and shard.cells_updated == 0 and sum(shard.fused.values()) == 0
+    assert shard.due_updates(now=0.0, flush=True) == ([], None)
