@@ -2,7 +2,7 @@
 samples per scan.
 
 - throughput: scans per second from the first publication until every shard has fused every scan, with
-  1 and 2 mapper shards (processes) behind a router (a process), the source publishing "as fast as the
+  1 and 2 mapper shards (processes; 2 also with 32-cell tiles, see CONFIGURATIONS) behind a router (a process), the source publishing "as fast as the
   shards take" from this process; as a ratio to the in-process `posegrid fuse` rate on the same scans;
 - latency at a 10 Hz laser: per scan, from its publication to the arrival (here) of the last tile update
   that the shards sent right after fusing it (updates carry the seq of the last scan fused into the tile);
@@ -23,6 +23,7 @@ import numpy as np
 import zenoh
 
 from bench.scenarios import honest_posed_scans, office_run
+from mapping.grid import TILE_SIZE
 from schemas.messages import ShardStats, TileUpdate, decode_message
 from services import keys
 from services.launcher import Children, free_port
@@ -39,13 +40,18 @@ LATENCY_SCANS = 100  # scans measured in the 10 Hz latency runs
 WARMUP = 10  # scans published before them, at the same rate
 LASER_HZ = 10.0
 ROBOT = "bench"
+#: (mapper shards, tile side in cells). The office spans about 2 x 2 default tiles, most of its cells in
+#: one of them, so with the default tiles one of two shards does nearly all the work; 32-cell tiles show
+#: the work dividing (docs/architecture.md, "Sharding").
+CONFIGURATIONS = ((1, TILE_SIZE), (2, TILE_SIZE), (2, 32))
 
 
 class Cluster:
     """A router and ``shards`` mapper processes on loopback, and a client session of this process."""
 
-    def __init__(self, shards: int, map_name: str):
+    def __init__(self, shards: int, map_name: str, tile_size: int = TILE_SIZE):
         self.shards = shards
+        self.tile_size = tile_size
         self.map_name = map_name
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.children = Children(get_logger("bench"))
@@ -59,7 +65,8 @@ class Cluster:
         self.children.start("router", ["router", "--listen", self.endpoint])
         for shard in range(self.shards):
             self.children.start(f"mapper[{shard}]", ["mapper", "--shard", str(shard), "--shards", str(self.shards),
-                                                     "--map", self.map_name, *connect])
+                                                     "--map", self.map_name, "--tile-size", str(self.tile_size),
+                                                     *connect])
         self.session = zenoh.open(build_config("client", connect=[self.endpoint]))
         self.session.declare_subscriber(keys.tiles_key(self.map_name), self._on_tile)
         deadline = time.monotonic() + 120
@@ -113,10 +120,10 @@ def _first(posed, count: int):
     return replace(posed, ranges=posed.ranges[:count], stamps=posed.stamps[:count], poses=poses)
 
 
-def _throughput(posed, shards: int) -> dict:
+def _throughput(posed, shards: int, tile_size: int) -> dict:
     stream = posed_stream(posed, ROBOT)
     in_bytes = sum(len(m.encode()) for step in stream.steps for m in step.messages)
-    with Cluster(shards, f"tp{shards}") as cluster:
+    with Cluster(shards, f"tp{shards}", tile_size) as cluster:
         source = Source(cluster.session, stream, SourceOptions(rate=None, wait_mappers=shards,
                                                                 map_name=cluster.map_name))
         started = time.perf_counter()
@@ -130,10 +137,10 @@ def _throughput(posed, shards: int) -> dict:
             "bytes_out_per_scan": out_bytes / scans}
 
 
-def _latency(posed, shards: int) -> dict:
+def _latency(posed, shards: int, tile_size: int) -> dict:
     stream = posed_stream(_first(posed, WARMUP + LATENCY_SCANS), ROBOT)
     published: dict[int, float] = {}
-    with Cluster(shards, f"lat{shards}") as cluster:
+    with Cluster(shards, f"lat{shards}", tile_size) as cluster:
         publishers = {name: cluster.session.declare_publisher(keys.robot_key(ROBOT, name),
                                                               congestion_control=zenoh.CongestionControl.BLOCK)
                       for name in (keys.SCAN, keys.POSE)}
@@ -164,10 +171,11 @@ def _latency(posed, shards: int) -> dict:
 def run() -> dict:
     posed = honest_posed_scans(office_run(seed=0, steps=STEPS), seed=1, particles=SAMPLES)
     out: dict = {"samples": SAMPLES, "scans": STEPS, "in_process_scans_per_s": _in_process_rate(posed)}
-    for shards in (1, 2):
-        for key, value in _throughput(posed, shards).items():
-            out[f"shards{shards}_{key}"] = value
-        out[f"shards{shards}_ratio_to_in_process"] = out[f"shards{shards}_scans_per_s"] / out["in_process_scans_per_s"]
-        for key, value in _latency(posed, shards).items():
-            out[f"shards{shards}_{key}_at_{LASER_HZ:g}hz"] = value
+    for shards, tile_size in CONFIGURATIONS:
+        name = f"shards{shards}" + ("" if tile_size == TILE_SIZE else f"_tile{tile_size}")
+        for key, value in _throughput(posed, shards, tile_size).items():
+            out[f"{name}_{key}"] = value
+        out[f"{name}_ratio_to_in_process"] = out[f"{name}_scans_per_s"] / out["in_process_scans_per_s"]
+        for key, value in _latency(posed, shards, tile_size).items():
+            out[f"{name}_{key}_at_{LASER_HZ:g}hz"] = value
     return out
