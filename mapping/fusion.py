@@ -225,8 +225,14 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
             ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y = dda_start(
                 laser_x[j], laser_y[j], math.cos(theta), math.sin(theta), res)
             r_in = 0.0
+            mine = True
+            cell_tx = tx0 - 1  # the tile whose ownership ``mine`` holds; none yet (no ray leaves the window)
+            cell_ty = ty0 - 1
             while True:
-                mine = all_owned or owned[(iy >> tile_shift) - ty0, (ix >> tile_shift) - tx0]
+                if not all_owned and ((ix >> tile_shift) != cell_tx or (iy >> tile_shift) != cell_ty):
+                    cell_tx = ix >> tile_shift
+                    cell_ty = iy >> tile_shift
+                    mine = owned[cell_ty - ty0, cell_tx - tx0]
                 if not mine:
                     # another shard's tile: jump to just before the ray leaves it (the work divides
                     # among shards); the normal steps below then cross into the next tile exactly
