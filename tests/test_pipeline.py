@@ -321,6 +321,50 @@ def test_run_through_the_slam_node_equals_offline_slam_then_fuse(tmp_path, procs
     np.testing.assert_array_equal(got.origin, expected.origin)
 
 
+def test_grid_fastslam_node_over_zenoh_gives_the_map_of_its_filter_in_process(tmp_path, procs):
+    """run --carmen (source -> grid FastSLAM slam-node -> shard, over Zenoh) must give the map that the
+    same filter, fed the same scans in this process, and `posegrid fuse` give."""
+    from services.fusion_runner import fuse_posed_scans
+    from services.keys import ODOM, SCAN
+    from services.slam_node import GridDriver
+    from services.streams import carmen_stream
+    from slam.carmen import write_carmen
+    from slam.gridslam import GridSlamConfig
+    from slam.simulator import simulate_office
+
+    sim = simulate_office(seed=4, steps=60, n_beams=91, range_max=8.0)
+    log = tmp_path / "office.clf"
+    write_carmen(log, sim.stamps, sim.ranges, sim.true_poses, sim.angle_min, sim.angle_increment, sim.range_max,
+                 sim.sensor_offset)
+    stream = carmen_stream(log, "robot0")
+    driver = GridDriver(stream.prior.mean, GridSlamConfig(particles=5, resample_threshold=0.5), seed=7)
+    scans, samples, weights = [], [], []
+    for step in stream.steps:
+        parts = {SCAN if isinstance(m, LaserScan) else ODOM: m for m in step.messages
+                 if isinstance(m, (LaserScan, Odometry))}
+        poses, w = driver.step(parts)
+        scans.append(parts[SCAN])
+        samples.append(poses)
+        weights.append(w)
+    first = scans[0]
+    posed = PosedScans(ranges=np.array([m.ranges for m in scans]), angle_min=first.angle_min,
+                       angle_increment=first.angle_increment, range_min=first.range_min, range_max=first.range_max,
+                       stamps=np.array([m.stamp for m in scans]),
+                       sensor_offset=first.sensor_offset, poses=PoseSet(samples=np.array(samples), weights=np.array(weights)))
+    expected = fuse_posed_scans(posed).rasterize()
+    assert len({tuple(np.round(s[:, :2].ravel(), 9)) for s in samples}) > 1  # the particles do spread
+
+    exported = tmp_path / "run.npz"
+    run = procs([*CLI, "run", "--carmen", str(log), "--particles", "5", "--seed", "7", "--resample-threshold", "0.5",
+                 "--no-api", "--export", str(exported)])
+    assert run.process.wait(180) == 0, run.output()
+    assert "slam-node exited 0" in run.output()
+    got = load_map(exported)
+    np.testing.assert_array_equal(got.observed, expected["observed"])
+    np.testing.assert_allclose(got.logodds, expected["logodds"], rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(got.variance, expected["variance"], rtol=1e-6, atol=1e-6)
+
+
 def test_slam_node_takes_steps_in_order_and_reports_late_ones(procs):
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
