@@ -36,7 +36,10 @@ SHIFT = (-1.0, -1.0)
 
 def settled(api: str, robot: str, scans: int):
     """Stats once every shard fused ``scans`` of ``robot`` and the API has every tile update they published."""
-    stats = httpx.get(f"{api}/maps/{MAP}/stats", timeout=30).json()
+    response = httpx.get(f"{api}/maps/{MAP}/stats", timeout=30)
+    if response.status_code == 404:  # no shard of the map is up yet (they warm their kernels first)
+        return None
+    stats = response.json()
     shards = stats["per_shard"]
     done = len(shards) == SHARDS and all(
         s["answered"] and s["scans_fused"].get(robot) == scans and s["tile_updates_received"] == s["tile_updates"]
