@@ -187,6 +187,25 @@ def _tile_exit(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, t
     return min(exit_x, exit_y)
 
 
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def add_sample_value(rec, c, sid, w, y):  # pragma: no cover - compiled
+    """Give cell record rec[c] the value y from sample ``sid`` (weight w) under the one-value-per-sample
+    rule: rec[c, 0] the stamp of the last sample that touched the cell, rec[c, 1] that sample's value so
+    far (the max over its beams), rec[c, 2:4] the weighted moments sum_j w_j y_ij and sum_j w_j y_ij^2.
+    When a later beam of the same sample raises the value, the moments are corrected by the difference,
+    so each (sample, cell) contributes exactly once. A record from an earlier scan must be cleared first."""
+    if rec[c, 0] != sid:
+        rec[c, 0] = sid
+        rec[c, 1] = y
+        rec[c, 2] += w * y
+        rec[c, 3] += w * y * y
+    elif y > rec[c, 1]:
+        old = rec[c, 1]
+        rec[c, 1] = y
+        rec[c, 2] += w * (y - old)
+        rec[c, 3] += w * (y * y - old * old)
+
+
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop, r_peak, a, b, s, g_peak,
                      table, u0, du, res, p_miss, p_hit, l_free, win_ix0, win_iy0, win_w, win_h, tile_shift,
@@ -195,12 +214,9 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
     """One pass over all (sample, beam, cell) triples; returns the number of distinct cells touched.
 
     Window cell (gx, gy) is global cell (win_ix0 + gx, win_iy0 + gy); its record is rec[c] with c the
-    cell's place in 8 x 8 blocks (so a ray's neighbouring cells share cache lines), as 16 bytes:
-    rec[c, 0] the stamp of the last sample that touched it (stamp_base + j for sample j; smaller stamps are
-    from earlier scans), rec[c, 1] that sample's value so far (the max over its beams), rec[c, 2:4] the scan's
-    weighted first and second moments sum_j w_j y_ij and sum_j w_j y_ij^2. When a later beam of the same
-    sample raises the cell's value, the moments are corrected by the difference, so each (sample, cell)
-    contributes exactly once. scan_cells lists the touched cells.
+    cell's place in 8 x 8 blocks (so a ray's neighbouring cells share cache lines), four float64 kept by
+    :func:`add_sample_value`; sample j's stamp is stamp_base + j, so smaller stamps are from earlier scans.
+    scan_cells lists the touched cells.
     """
     n_scan = 0
     free_gap = FREE_SHORTCUT_SIGMAS / SQRT2  # in units of s = sqrt(2) sigma
@@ -259,23 +275,14 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
                     y = segment_logodds(r_in, r_out, beam_kind, free_until, z_k, peak_at, a_k, b_k, s_k, g_peak_k,
                                         table, u0, du, p_miss, p_hit, l_free, y_peak)
                     c = ((gy >> 3) * blocks_w + (gx >> 3)) * 64 + ((gy & 7) << 3) + (gx & 7)
-                    if rec[c, 0] != sid:
-                        if rec[c, 0] < stamp_base:
-                            rec[c, 2] = 0.0
-                            rec[c, 3] = 0.0
-                            scan_cells[n_scan, 0] = gx
-                            scan_cells[n_scan, 1] = gy
-                            n_scan += 1
-                            tile_touched[(iy >> tile_shift) - ty0, (ix >> tile_shift) - tx0] = True
-                        rec[c, 0] = sid
-                        rec[c, 1] = y
-                        rec[c, 2] += w * y
-                        rec[c, 3] += w * y * y
-                    elif y > rec[c, 1]:
-                        old = rec[c, 1]
-                        rec[c, 1] = y
-                        rec[c, 2] += w * (y - old)
-                        rec[c, 3] += w * (y * y - old * old)
+                    if rec[c, 0] < stamp_base:  # first touch in this scan
+                        rec[c, 2] = 0.0
+                        rec[c, 3] = 0.0
+                        scan_cells[n_scan, 0] = gx
+                        scan_cells[n_scan, 1] = gy
+                        n_scan += 1
+                        tile_touched[(iy >> tile_shift) - ty0, (ix >> tile_shift) - tx0] = True
+                    add_sample_value(rec, c, sid, w, y)
                 if r_out >= stop:
                     break
                 ix, iy, r_in, t_max_x, t_max_y = dda_step(ix, iy, r_in, step_x, step_y, t_max_x, t_max_y,

@@ -35,7 +35,7 @@ import numba as nb
 import numpy as np
 
 from mapping.fusion import (BEAM_HIT, BEAM_NO_RETURN, BEAM_SKIP, FREE_SHORTCUT_SIGMAS, SQRT2, STAMP_LIMIT,
-                            TABLE_DU, TABLE_U0, BeamTable, segment_logodds)
+                            TABLE_DU, TABLE_U0, BeamTable, add_sample_value, segment_logodds)
 from mapping.raytrace import FAR, dda_start, dda_step
 
 #: columns of a count record: [stamp, hits, misses, unknowns]
@@ -106,23 +106,14 @@ def _scan_evidence(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop
                     y = segment_logodds(r_in, r_out, beam_kind, free_until, z[k], r_peak[k], a[k], b[k], s[k],
                                          g_peak[k], table, u0, du, p_miss, p_hit, l_free, y_peak)
                     c = gy * lv_w[0] + gx
-                    if rec[c, 0] != sid:
-                        if rec[c, 0] < stamp_base:
-                            rec[c, 2] = 0.0
-                            rec[c, 3] = 0.0
-                            rec[c, 4] = 0.0
-                            rec[c, 5] = 0.0
-                            touched[n_touched] = c
-                            n_touched += 1
-                        rec[c, 0] = sid
-                        rec[c, 1] = y
-                        rec[c, 2] += w * y
-                        rec[c, 3] += w * y * y
-                    elif y > rec[c, 1]:
-                        old = rec[c, 1]
-                        rec[c, 1] = y
-                        rec[c, 2] += w * (y - old)
-                        rec[c, 3] += w * (y * y - old * old)
+                    if rec[c, 0] < stamp_base:  # first touch in this scan
+                        rec[c, 2] = 0.0
+                        rec[c, 3] = 0.0
+                        rec[c, 4] = 0.0
+                        rec[c, 5] = 0.0
+                        touched[n_touched] = c
+                        n_touched += 1
+                    add_sample_value(rec, c, sid, w, y)
                 next_ix, next_iy = ix, iy
                 if finished or r_out >= stop:
                     finished = True
