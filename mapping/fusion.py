@@ -27,7 +27,7 @@ import numpy as np
 
 from mapping.errors import InputError
 from mapping.grid import TiledGrid
-from mapping.raytrace import FAR, dda_start, dda_step
+from mapping.raytrace import FAR, corner_tol, dda_start, dda_step
 from mapping.sensor_model import PEAK_EPS, TAIL_SIGMAS, SensorModel
 
 #: per-sample stamps are stored as float64 (exact below 2**53); the scratch is cleared and stamps restart here
@@ -206,6 +206,53 @@ def add_sample_value(rec, c, sid, w, y):  # pragma: no cover - compiled
         rec[c, 3] += w * (y * y - old * old)
 
 
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _record_index(gx, gy, blocks_w):  # pragma: no cover - compiled
+    """Place of window cell (gx, gy) in the scratch records: 8 x 8 blocks, so a ray's neighbouring cells
+    share cache lines."""
+    return ((gy >> 3) * blocks_w + (gx >> 3)) * 64 + ((gy & 7) << 3) + (gx & 7)
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _add_free_value(rec, c, sid, stamp_base, w_free, w_free2, l_free):  # pragma: no cover - compiled
+    """:func:`add_sample_value` for y = l_free, the smallest value a cell can take (so a cell this sample
+    already touched keeps its value); w_free = w l_free, w_free2 = w l_free^2. Returns True when this is the
+    cell's first touch in the scan (its moments start here)."""
+    stamp = rec[c, 0]
+    if stamp == sid:
+        return False
+    rec[c, 0] = sid
+    rec[c, 1] = l_free
+    if stamp < stamp_base:
+        rec[c, 2] = w_free
+        rec[c, 3] = w_free2
+        return True
+    rec[c, 2] += w_free
+    rec[c, 3] += w_free2
+    return False
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _jump_over_tile(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in,
+                    tile_shift):  # pragma: no cover - compiled
+    """Move a ray in another shard's tile to just before it leaves the tile (the work divides among
+    shards); the normal steps then cross into the next tile exactly. Returns (ix, iy, t_max_x, t_max_y,
+    r_in, t_exit) with t_exit the range (m) at which the ray leaves the tile."""
+    t_exit = _tile_exit(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tile_shift)
+    t_jump = t_exit - JUMP_MARGIN * (1.0 + t_exit)
+    if t_jump > r_in:
+        if t_max_x <= t_jump:
+            crossings = int((t_jump - t_max_x) / t_delta_x) + 1
+            ix += crossings * step_x
+            t_max_x += crossings * t_delta_x
+        if t_max_y <= t_jump:
+            crossings = int((t_jump - t_max_y) / t_delta_y) + 1
+            iy += crossings * step_y
+            t_max_y += crossings * t_delta_y
+        r_in = t_jump
+    return ix, iy, t_max_x, t_max_y, r_in, t_exit
+
+
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop, r_peak, a, b, s, g_peak,
                      table, u0, du, res, p_miss, p_hit, l_free, win_ix0, win_iy0, win_w, win_h, tile_shift,
@@ -213,10 +260,13 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
                      stamp_base):  # pragma: no cover - compiled
     """One pass over all (sample, beam, cell) triples; returns the number of distinct cells touched.
 
-    Window cell (gx, gy) is global cell (win_ix0 + gx, win_iy0 + gy); its record is rec[c] with c the
-    cell's place in 8 x 8 blocks (so a ray's neighbouring cells share cache lines), four float64 kept by
-    :func:`add_sample_value`; sample j's stamp is stamp_base + j, so smaller stamps are from earlier scans.
-    scan_cells lists the touched cells.
+    Window cell (gx, gy) is global cell (win_ix0 + gx, win_iy0 + gy); its record is rec[c] with c from
+    :func:`_record_index`, four float64 kept by :func:`add_sample_value`; sample j's stamp is
+    stamp_base + j, so smaller stamps are from earlier scans. scan_cells lists the touched cells.
+
+    Each ray runs in two phases: the free phase, cells that end before the beam's free_until (most of
+    them), which take l_free without evaluating the model; then the cells up to the ray's end, valued by
+    :func:`segment_logodds`. In another shard's tile the ray jumps to the tile's exit.
     """
     n_scan = 0
     free_gap = FREE_SHORTCUT_SIGMAS / SQRT2  # in units of s = sqrt(2) sigma
@@ -224,6 +274,8 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
     for j in range(laser_x.shape[0]):
         sid = float(stamp_base + j)
         w = weights[j]
+        w_free = w * l_free
+        w_free2 = w_free * l_free
         for k in range(angles.shape[0]):
             beam_kind = kind[k]
             if beam_kind == BEAM_SKIP:
@@ -238,43 +290,69 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
             g_peak_k = g_peak[k]
             free_until = math.inf if beam_kind == BEAM_NO_RETURN else a_k - free_gap * s_k
             theta = laser_yaw[j] + angles[k]
+            dx = math.cos(theta)
+            dy = math.sin(theta)
             ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y = dda_start(
-                laser_x[j], laser_y[j], math.cos(theta), math.sin(theta), res)
+                laser_x[j], laser_y[j], dx, dy, res)
+            # the window covers every ray's reach with a cell to spare, so this never skips; it guards the
+            # scratch memory once per ray (a segment's cells lie between its end cells, give or take a rounding)
+            end_gx = math.floor((laser_x[j] + stop * dx) / res) - win_ix0
+            end_gy = math.floor((laser_y[j] + stop * dy) / res) - win_iy0
+            if (min(ix - win_ix0, iy - win_iy0, end_gx, end_gy) < 1 or max(ix - win_ix0, end_gx) >= win_w - 1
+                    or max(iy - win_iy0, end_gy) >= win_h - 1):
+                continue
+            tol = corner_tol(stop)
             r_in = 0.0
             mine = True
             cell_tx = tx0 - 1  # the tile whose ownership ``mine`` holds; none yet (no ray leaves the window)
             cell_ty = ty0 - 1
-            while True:
+            ray_done = False
+            free_limit = min(free_until, stop)
+            while True:  # the free phase
+                r_out = min(t_max_x, t_max_y)
+                if r_out >= free_limit:
+                    break
                 if not all_owned and ((ix >> tile_shift) != cell_tx or (iy >> tile_shift) != cell_ty):
                     cell_tx = ix >> tile_shift
                     cell_ty = iy >> tile_shift
                     mine = owned[cell_ty - ty0, cell_tx - tx0]
                 if not mine:
-                    # another shard's tile: jump to just before the ray leaves it (the work divides
-                    # among shards); the normal steps below then cross into the next tile exactly
-                    t_exit = _tile_exit(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tile_shift)
+                    jumped_from = r_in
+                    ix, iy, t_max_x, t_max_y, r_in, t_exit = _jump_over_tile(
+                        ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tile_shift)
+                    if t_exit >= stop:
+                        ray_done = True
+                        break
+                    if r_in > jumped_from:
+                        continue  # look at the cell the jump landed in
+                elif r_out > r_in:
+                    gx = ix - win_ix0
+                    gy = iy - win_iy0
+                    if _add_free_value(rec, _record_index(gx, gy, blocks_w), sid, stamp_base, w_free, w_free2, l_free):
+                        scan_cells[n_scan, 0] = gx
+                        scan_cells[n_scan, 1] = gy
+                        n_scan += 1
+                        tile_touched[(iy >> tile_shift) - ty0, (ix >> tile_shift) - tx0] = True
+                r_in = r_out
+                ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y,
+                                                    tol)
+            while not ray_done:  # the cells from free_until to the ray's end
+                if not all_owned and ((ix >> tile_shift) != cell_tx or (iy >> tile_shift) != cell_ty):
+                    cell_tx = ix >> tile_shift
+                    cell_ty = iy >> tile_shift
+                    mine = owned[cell_ty - ty0, cell_tx - tx0]
+                if not mine:
+                    ix, iy, t_max_x, t_max_y, r_in, t_exit = _jump_over_tile(
+                        ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tile_shift)
                     if t_exit >= stop:
                         break
-                    t_jump = t_exit - JUMP_MARGIN * (1.0 + t_exit)
-                    if t_jump > r_in:
-                        if t_max_x <= t_jump:
-                            crossings = int((t_jump - t_max_x) / t_delta_x) + 1
-                            ix += crossings * step_x
-                            t_max_x += crossings * t_delta_x
-                        if t_max_y <= t_jump:
-                            crossings = int((t_jump - t_max_y) / t_delta_y) + 1
-                            iy += crossings * step_y
-                            t_max_y += crossings * t_delta_y
-                        r_in = t_jump
                 r_out = min(t_max_x, t_max_y, stop)
-                gx = ix - win_ix0
-                gy = iy - win_iy0
-                if gx < 0 or gy < 0 or gx >= win_w or gy >= win_h:
-                    break  # cannot happen: the window covers every ray's reach; guards the scratch memory
                 if r_out > r_in and mine:
                     y = segment_logodds(r_in, r_out, beam_kind, free_until, z_k, peak_at, a_k, b_k, s_k, g_peak_k,
                                         table, u0, du, p_miss, p_hit, l_free, y_peak)
-                    c = ((gy >> 3) * blocks_w + (gx >> 3)) * 64 + ((gy & 7) << 3) + (gx & 7)
+                    gx = ix - win_ix0
+                    gy = iy - win_iy0
+                    c = _record_index(gx, gy, blocks_w)
                     if rec[c, 0] < stamp_base:  # first touch in this scan
                         rec[c, 2] = 0.0
                         rec[c, 3] = 0.0
@@ -285,8 +363,9 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
                     add_sample_value(rec, c, sid, w, y)
                 if r_out >= stop:
                     break
-                ix, iy, r_in, t_max_x, t_max_y = dda_step(ix, iy, r_in, step_x, step_y, t_max_x, t_max_y,
-                                                          t_delta_x, t_delta_y)
+                r_in = r_out
+                ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y,
+                                                    tol)
     return n_scan
 
 
@@ -297,7 +376,7 @@ def _apply_scan(scan_cells, n_scan, rec, blocks_w, win_ix0, win_iy0, tile_shift,
     for q in range(n_scan):
         gx = scan_cells[q, 0]
         gy = scan_cells[q, 1]
-        c = ((gy >> 3) * blocks_w + (gx >> 3)) * 64 + ((gy & 7) << 3) + (gx & 7)
+        c = _record_index(gx, gy, blocks_w)
         ix = gx + win_ix0
         iy = gy + win_iy0
         slot = slot_map[(iy >> tile_shift) - ty0, (ix >> tile_shift) - tx0]
@@ -351,6 +430,8 @@ def merge_duplicates(samples: np.ndarray, weights: np.ndarray) -> tuple[np.ndarr
     """
     keep = weights > 0
     samples, weights = samples[keep], weights[keep]
+    if len(samples) == 1:
+        return samples, weights
     unique, first, inverse = np.unique(samples, axis=0, return_index=True, return_inverse=True)
     if len(unique) == len(samples):
         return samples, weights

@@ -6,9 +6,9 @@ crosses with positive length, in order, each once, together with the ranges r_in
 ray origin) over which it lies inside that cell. Rays passing exactly through a cell corner do not visit
 the cells they only touch in a point (crossings closer than CORNER_EPS count as one corner).
 
-The stepping is branch-free (selects instead of an if per cell): which grid line comes next is
-unpredictable, and a mispredicted branch per cell costs more than the arithmetic. The compiled fusion
-kernel inlines :func:`dda_start` and :func:`dda_step` so there is one traversal in the code base.
+The corner tolerance is fixed per ray (it scales with the ray's length), which keeps it off the chain of
+dependent operations from one cell to the next. The compiled fusion kernels inline :func:`dda_start` and
+:func:`dda_step` so there is one traversal in the code base.
 """
 from __future__ import annotations
 
@@ -54,14 +54,24 @@ def dda_start(x0, y0, dx, dy, res):  # pragma: no cover - compiled
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def dda_step(ix, iy, r, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y):  # pragma: no cover - compiled
-    """Move to the next cell: returns (ix, iy, r_in of the new cell, t_max_x, t_max_y)."""
-    nearest = min(t_max_x, t_max_y)
-    tol = CORNER_EPS * (1.0 + r)
-    cross_x = 1 if t_max_x <= nearest + tol else 0  # both at a corner: step diagonally
-    cross_y = 1 if t_max_y <= nearest + tol else 0
-    return (ix + cross_x * step_x, iy + cross_y * step_y, nearest,
-            t_max_x + cross_x * t_delta_x, t_max_y + cross_y * t_delta_y)
+def corner_tol(r_stop):  # pragma: no cover - compiled
+    """The corner tolerance (m) of a ray of length r_stop: crossings closer than this are one corner."""
+    return CORNER_EPS * (1.0 + r_stop)
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol):  # pragma: no cover - compiled
+    """Move to the next cell: returns (ix, iy, t_max_x, t_max_y). The new cell's r_in is the old
+    min(t_max_x, t_max_y); tol is the ray's :func:`corner_tol`."""
+    cross_x = t_max_x <= t_max_y + tol  # both at a corner: step diagonally
+    cross_y = t_max_y <= t_max_x + tol
+    if cross_x:
+        ix += step_x
+        t_max_x += t_delta_x
+    if cross_y:
+        iy += step_y
+        t_max_y += t_delta_y
+    return ix, iy, t_max_x, t_max_y
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
@@ -74,6 +84,7 @@ def trace_ray(x0, y0, dx, dy, r_stop, res, out_ix, out_iy, out_rin, out_rout):  
     ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y = dda_start(x0, y0, dx, dy, res)
     n = 0
     r = 0.0
+    tol = corner_tol(r_stop)
     while n < out_ix.shape[0]:
         r_out = min(t_max_x, t_max_y, r_stop)
         if r_out > r:
@@ -84,7 +95,8 @@ def trace_ray(x0, y0, dx, dy, r_stop, res, out_ix, out_iy, out_rin, out_rout):  
             n += 1
         if r_out >= r_stop:
             break
-        ix, iy, r, t_max_x, t_max_y = dda_step(ix, iy, r, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y)
+        r = r_out
+        ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol)
     return n
 
 

@@ -156,12 +156,14 @@ def test_clamping():
 
 
 def test_shards_partition_the_map():
-    """Fusing only owned tiles in three shards and joining them gives the single-process map."""
+    """Fusing only owned tiles in three shards and joining them gives the single-process map (rays that
+    cross other shards' tiles in their free part, at their return, and with no return at all)."""
     rng = np.random.default_rng(11)
     model = SensorModel(resolution=RES)
     angles = np.linspace(-math.pi, math.pi, 90, endpoint=False)
-    scans = [(rng.uniform(1, 6, 90), np.column_stack([rng.normal(0, 0.1, 5), rng.normal(0, 0.1, 5),
-                                                       rng.normal(0, 0.05, 5)])) for _ in range(3)]
+    scans = [(np.where(np.arange(90) % 7 == 0, np.inf, rng.uniform(1, 6, 90)),
+              np.column_stack([rng.normal(0, 0.1, 5), rng.normal(0, 0.1, 5), rng.normal(0, 0.05, 5)]))
+             for _ in range(3)]
     whole = TiledGrid(RES, tile_size=32)
     fusion = MonteCarloFusion(whole, model, angles, 0.1, 8.0)
     for ranges, samples in scans:

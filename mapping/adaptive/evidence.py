@@ -36,7 +36,7 @@ import numpy as np
 
 from mapping.fusion import (BEAM_HIT, BEAM_NO_RETURN, BEAM_SKIP, FREE_SHORTCUT_SIGMAS, SQRT2, STAMP_LIMIT,
                             TABLE_DU, TABLE_U0, BeamTable, add_sample_value, segment_logodds)
-from mapping.raytrace import FAR, dda_start, dda_step
+from mapping.raytrace import FAR, corner_tol, dda_start, dda_step
 
 #: columns of a count record: [stamp, hits, misses, unknowns]
 HIT, MISS, UNKNOWN = 1, 2, 3
@@ -92,6 +92,7 @@ def _scan_evidence(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop
                 run_len[lvl] = False
             hit_passed = False
             r_in = 0.0
+            tol = corner_tol(stop)
             while True:
                 r_out = min(t_max_x, t_max_y, stop)
                 gx = ix - lv_x0[0]
@@ -119,8 +120,9 @@ def _scan_evidence(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop
                     finished = True
                     top = n_levels
                 else:
-                    next_ix, next_iy, r_in, t_max_x, t_max_y = dda_step(ix, iy, r_in, step_x, step_y, t_max_x,
-                                                                       t_max_y, t_delta_x, t_delta_y)
+                    r_in = r_out
+                    next_ix, next_iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y,
+                                                                  t_delta_x, t_delta_y, tol)
                     moved = (next_ix ^ ix) | (next_iy ^ iy)
                     top = n_levels if moved < 0 else min(_bit_length(moved), n_levels)
                 # close the runs that end here (levels 0..top-1, finest first): fold each into its parent run,
@@ -163,10 +165,10 @@ def _scan_evidence(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop
             ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y = dda_start(
                 laser_x[j] + z[k] * dx, laser_y[j] + z[k] * dy, dx, dy, 2.0 * res)
             stop = r_count[k] - z[k]
-            r_in = 0.0
+            tol = corner_tol(stop)
             while min(t_max_x, t_max_y) < stop:
-                next_ix, next_iy, r_in, t_max_x, t_max_y = dda_step(ix, iy, r_in, step_x, step_y, t_max_x, t_max_y,
-                                                                   t_delta_x, t_delta_y)
+                next_ix, next_iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y,
+                                                              t_delta_x, t_delta_y, tol)
                 gx = next_ix - lv_x0[1]
                 gy = next_iy - lv_y0[1]
                 if gx < 0 or gy < 0 or gx >= lv_w[1] or gy >= lv_h[1]:
