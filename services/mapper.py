@@ -7,7 +7,9 @@ pg/map/<map>/tile/0/<tx>/<ty>, answers tile queries (pg/map/<map>/tile/**, whole
 
 Threads: Zenoh callbacks only copy payloads into a bounded intake queue (a full queue drops the message
 and counts it, never silently) or answer queries; one main thread decodes, fuses and publishes. A lock
-serialises the main thread and the query callbacks around the shard's state.
+serialises the main thread and the tile queries around the shard's state. Stats queries are answered from a
+snapshot the main thread refreshes after every message (and at least every 0.2 s), so they never wait
+for a scan's fusion: the source's flow control reads them, and a late answer would leave the shard idle.
 """
 from __future__ import annotations
 
@@ -40,6 +42,8 @@ class Mapper:
         self.intake_overflow = 0
         self._overflow_lock = threading.Lock()
         self._declared = []
+        self._stats_lock = threading.Lock()  # guards _stats_payload only
+        self._stats_payload = b""
 
     # ---------------------------------------------------------------------------- zenoh callbacks
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -60,9 +64,15 @@ class Mapper:
             query.reply(keys.tile_key(self.config.map_name, 0, message.tx, message.ty), message.encode())
 
     def _on_stats_query(self, query: zenoh.Query) -> None:
-        with self.lock:
-            stats = self.shard.stats({"intake": self.intake_overflow})
-        query.reply(keys.stats_key(self.config.map_name, self.config.shard), stats.encode())
+        with self._stats_lock:
+            payload = self._stats_payload
+        query.reply(keys.stats_key(self.config.map_name, self.config.shard), payload)
+
+    def _refresh_stats(self) -> None:
+        """Snapshot the shard's stats for the stats queries (main thread, holding ``lock``)."""
+        payload = self.shard.stats({"intake": self.intake_overflow}).encode()
+        with self._stats_lock:
+            self._stats_payload = payload
 
     # ---------------------------------------------------------------------------- lifecycle
     def declare(self) -> None:
@@ -79,6 +89,8 @@ class Mapper:
         """Fuse and publish until ``stop`` is set; returns the exit code (0). The liveliness token is
         declared once the kernels are warm, so whoever waits for it sees the shard's steady latency."""
         self.shard.warm_up()
+        with self.lock:
+            self._refresh_stats()
         self.declare()
         cfg = self.config
         self.log.info("shard %d of %d of map %r up; tiles on %s", cfg.shard, cfg.shards, cfg.map_name,
@@ -94,6 +106,7 @@ class Mapper:
                 with self.lock:
                     self.shard.handle(key, payload)
             with self.lock:
+                self._refresh_stats()
                 flush = self.shard.caught_up() and self.intake.empty()
                 updates, next_due = self.shard.due_updates(time.monotonic(), flush=flush)
             for update in updates:
