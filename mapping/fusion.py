@@ -15,6 +15,17 @@ free, as in OctoMap's per-scan update.
 The whole scan is one compiled pass over all (sample, beam, cell) triples, written into a scratch window
 that covers the scan (tile-aligned), followed by one compiled pass that adds the window's touched cells
 into the tiles. No Python loop runs per sample, beam or cell.
+
+How the pass keeps the per-sample rule cheap: every value is l_free (the smallest a cell can take) plus an
+excess d >= 0, and only cells near a return have d > 0. So y_ij = l_free + d_ij for the samples j that
+touch cell i, and with W_i = sum of their weights, D1_i = sum_j w_j d_ij, D2_i = sum_j w_j d_ij^2:
+
+    sum_j w_j y_ij = l_free W_i + D1_i        sum_j w_j y_ij^2 = l_free^2 W_i + 2 l_free D1_i + D2_i
+
+A cell in free space (most visits) only sets sample j's bit in a 64-bit mask (which samples touched it:
+idempotent, no per-sample record); W_i is summed from the mask's bits once per scan. The few cells with an
+excess keep a per-sample record (the largest excess of the sample's beams, by stamp) for D1 and D2.
+Samples go through in chunks of MASK_SAMPLES; the mask's top bit marks a cell listed in this scan.
 """
 from __future__ import annotations
 
@@ -32,6 +43,10 @@ from mapping.sensor_model import PEAK_EPS, TAIL_SIGMAS, SensorModel
 
 #: per-sample stamps are stored as float64 (exact below 2**53); the scratch is cleared and stamps restart here
 STAMP_LIMIT = 2**52
+
+#: samples per chunk: one bit each in a cell's 64-bit mask; the top bit marks a cell already listed
+MASK_SAMPLES = 63
+LISTED = np.uint64(1) << np.uint64(63)
 
 #: a shard jumps over another shard's tile to this far (relative, m) before the tile's exit, then steps
 JUMP_MARGIN = 1e-9
@@ -214,22 +229,42 @@ def _record_index(gx, gy, blocks_w):  # pragma: no cover - compiled
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _add_free_value(rec, c, sid, stamp_base, w_free, w_free2, l_free):  # pragma: no cover - compiled
-    """:func:`add_sample_value` for y = l_free, the smallest value a cell can take (so a cell this sample
-    already touched keeps its value); w_free = w l_free, w_free2 = w l_free^2. Returns True when this is the
-    cell's first touch in the scan (its moments start here)."""
-    stamp = rec[c, 0]
-    if stamp == sid:
-        return False
-    rec[c, 0] = sid
-    rec[c, 1] = l_free
-    if stamp < stamp_base:
-        rec[c, 2] = w_free
-        rec[c, 3] = w_free2
-        return True
-    rec[c, 2] += w_free
-    rec[c, 3] += w_free2
-    return False
+def _mark(mask, c, bit, gx, gy, ix, iy, scan_cells, n_scan, weight_sum, tile_touched, tile_shift, tx0,
+          ty0):  # pragma: no cover - compiled
+    """Set a sample's bit in cell c's mask; a cell touched for the first time in this scan is listed in
+    scan_cells (its weight sum starts at 0, its tile is marked touched). Returns the new list length."""
+    seen = mask[c]
+    mask[c] = seen | bit
+    if seen == 0:
+        scan_cells[n_scan, 0] = gx
+        scan_cells[n_scan, 1] = gy
+        weight_sum[c] = 0.0
+        tile_touched[(iy >> tile_shift) - ty0, (ix >> tile_shift) - tx0] = True
+        return n_scan + 1
+    return n_scan
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _fold_masks(mask, weight_sum, scan_cells, n_scan, blocks_w, weights, first):  # pragma: no cover - compiled
+    """Add to each listed cell's weight sum the weights of the chunk's samples (first, first + 1, ...)
+    whose bits its mask holds, and leave only the LISTED bit. The sum is taken a byte at a time from
+    tables of every byte's weight sums (8 lookups per cell)."""
+    sums = np.zeros((8, 256))
+    for byte in range(8):
+        for value in range(1, 256):
+            low = value & -value
+            bit = 8 * byte + int(math.log2(low))
+            j = first + bit
+            sums[byte, value] = sums[byte, value ^ low] + (
+                weights[j] if bit < MASK_SAMPLES and j < weights.shape[0] else 0.0)
+    for q in range(n_scan):
+        c = _record_index(scan_cells[q, 0], scan_cells[q, 1], blocks_w)
+        bits = mask[c]
+        total = 0.0
+        for byte in range(8):
+            total += sums[byte, (bits >> np.uint64(8 * byte)) & np.uint64(255)]
+        weight_sum[c] += total
+        mask[c] = LISTED
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -256,13 +291,15 @@ def _jump_over_tile(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop, r_peak, a, b, s, g_peak,
                      table, u0, du, res, p_miss, p_hit, l_free, win_ix0, win_iy0, win_w, win_h, tile_shift,
-                     tx0, ty0, owned, all_owned, rec, blocks_w, scan_cells, tile_touched,
+                     tx0, ty0, owned, all_owned, mask, weight_sum, excess, blocks_w, scan_cells, tile_touched,
                      stamp_base):  # pragma: no cover - compiled
     """One pass over all (sample, beam, cell) triples; returns the number of distinct cells touched.
 
-    Window cell (gx, gy) is global cell (win_ix0 + gx, win_iy0 + gy); its record is rec[c] with c from
-    :func:`_record_index`, four float64 kept by :func:`add_sample_value`; sample j's stamp is
-    stamp_base + j, so smaller stamps are from earlier scans. scan_cells lists the touched cells.
+    Window cell (gx, gy) is global cell (win_ix0 + gx, win_iy0 + gy); its scratch entries are at c from
+    :func:`_record_index`: mask[c] (uint64, the chunk's samples that touched it; zero between scans),
+    weight_sum[c] (W), excess[c] (four float64 kept by :func:`add_sample_value` for d: the stamp, the
+    current sample's largest d, D1, D2; sample j's stamp is stamp_base + j, so smaller stamps are from
+    earlier scans). scan_cells lists the touched cells. See the module docstring.
 
     Each ray runs in two phases: the free phase, cells that end before the beam's free_until (most of
     them), which take l_free without evaluating the model; then the cells up to the ray's end, valued by
@@ -271,108 +308,107 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
     n_scan = 0
     free_gap = FREE_SHORTCUT_SIGMAS / SQRT2  # in units of s = sqrt(2) sigma
     y_peak = math.log(p_hit) - math.log1p(-p_hit)
-    for j in range(laser_x.shape[0]):
-        sid = float(stamp_base + j)
-        w = weights[j]
-        w_free = w * l_free
-        w_free2 = w_free * l_free
-        for k in range(angles.shape[0]):
-            beam_kind = kind[k]
-            if beam_kind == BEAM_SKIP:
-                continue
-            # per-beam constants in locals: the compiler cannot hoist loads past the scratch writes
-            stop = r_stop[k]
-            peak_at = r_peak[k]
-            z_k = z[k]
-            a_k = a[k]
-            b_k = b[k]
-            s_k = s[k]
-            g_peak_k = g_peak[k]
-            free_until = math.inf if beam_kind == BEAM_NO_RETURN else a_k - free_gap * s_k
-            theta = laser_yaw[j] + angles[k]
-            dx = math.cos(theta)
-            dy = math.sin(theta)
-            ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y = dda_start(
-                laser_x[j], laser_y[j], dx, dy, res)
-            # the window covers every ray's reach with a cell to spare, so this never skips; it guards the
-            # scratch memory once per ray (a segment's cells lie between its end cells, give or take a rounding)
-            end_gx = math.floor((laser_x[j] + stop * dx) / res) - win_ix0
-            end_gy = math.floor((laser_y[j] + stop * dy) / res) - win_iy0
-            if (min(ix - win_ix0, iy - win_iy0, end_gx, end_gy) < 1 or max(ix - win_ix0, end_gx) >= win_w - 1
-                    or max(iy - win_iy0, end_gy) >= win_h - 1):
-                continue
-            tol = corner_tol(stop)
-            r_in = 0.0
-            mine = True
-            cell_tx = tx0 - 1  # the tile whose ownership ``mine`` holds; none yet (no ray leaves the window)
-            cell_ty = ty0 - 1
-            ray_done = False
-            free_limit = min(free_until, stop)
-            while True:  # the free phase
-                r_out = min(t_max_x, t_max_y)
-                if r_out >= free_limit:
-                    break
-                if not all_owned and ((ix >> tile_shift) != cell_tx or (iy >> tile_shift) != cell_ty):
-                    cell_tx = ix >> tile_shift
-                    cell_ty = iy >> tile_shift
-                    mine = owned[cell_ty - ty0, cell_tx - tx0]
-                if not mine:
-                    jumped_from = r_in
-                    ix, iy, t_max_x, t_max_y, r_in, t_exit = _jump_over_tile(
-                        ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tile_shift)
-                    if t_exit >= stop:
-                        ray_done = True
+    for first in range(0, laser_x.shape[0], MASK_SAMPLES):
+        for j in range(first, min(first + MASK_SAMPLES, laser_x.shape[0])):
+            bit = np.uint64(1) << np.uint64(j - first)
+            sid = float(stamp_base + j)
+            w = weights[j]
+            for k in range(angles.shape[0]):
+                beam_kind = kind[k]
+                if beam_kind == BEAM_SKIP:
+                    continue
+                # per-beam constants in locals: the compiler cannot hoist loads past the scratch writes
+                stop = r_stop[k]
+                peak_at = r_peak[k]
+                z_k = z[k]
+                a_k = a[k]
+                b_k = b[k]
+                s_k = s[k]
+                g_peak_k = g_peak[k]
+                free_until = math.inf if beam_kind == BEAM_NO_RETURN else a_k - free_gap * s_k
+                theta = laser_yaw[j] + angles[k]
+                dx = math.cos(theta)
+                dy = math.sin(theta)
+                ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y = dda_start(
+                    laser_x[j], laser_y[j], dx, dy, res)
+                # the window covers every ray's reach with a cell to spare, so this never skips; it guards the
+                # scratch memory once per ray (a segment's cells lie between its end cells, give or take a
+                # rounding)
+                end_gx = math.floor((laser_x[j] + stop * dx) / res) - win_ix0
+                end_gy = math.floor((laser_y[j] + stop * dy) / res) - win_iy0
+                if (min(ix - win_ix0, iy - win_iy0, end_gx, end_gy) < 1 or max(ix - win_ix0, end_gx) >= win_w - 1
+                        or max(iy - win_iy0, end_gy) >= win_h - 1):
+                    continue
+                tol = corner_tol(stop)
+                r_in = 0.0
+                mine = True
+                cell_tx = tx0 - 1  # the tile whose ownership ``mine`` holds; none yet (no ray leaves the window)
+                cell_ty = ty0 - 1
+                ray_done = False
+                free_limit = min(free_until, stop)
+                while True:  # the free phase
+                    r_out = min(t_max_x, t_max_y)
+                    if r_out >= free_limit:
                         break
-                    if r_in > jumped_from:
-                        continue  # look at the cell the jump landed in
-                elif r_out > r_in:
-                    gx = ix - win_ix0
-                    gy = iy - win_iy0
-                    if _add_free_value(rec, _record_index(gx, gy, blocks_w), sid, stamp_base, w_free, w_free2, l_free):
-                        scan_cells[n_scan, 0] = gx
-                        scan_cells[n_scan, 1] = gy
-                        n_scan += 1
-                        tile_touched[(iy >> tile_shift) - ty0, (ix >> tile_shift) - tx0] = True
-                r_in = r_out
-                ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y,
-                                                    tol)
-            while not ray_done:  # the cells from free_until to the ray's end
-                if not all_owned and ((ix >> tile_shift) != cell_tx or (iy >> tile_shift) != cell_ty):
-                    cell_tx = ix >> tile_shift
-                    cell_ty = iy >> tile_shift
-                    mine = owned[cell_ty - ty0, cell_tx - tx0]
-                if not mine:
-                    ix, iy, t_max_x, t_max_y, r_in, t_exit = _jump_over_tile(
-                        ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tile_shift)
-                    if t_exit >= stop:
+                    if not all_owned and ((ix >> tile_shift) != cell_tx or (iy >> tile_shift) != cell_ty):
+                        cell_tx = ix >> tile_shift
+                        cell_ty = iy >> tile_shift
+                        mine = owned[cell_ty - ty0, cell_tx - tx0]
+                    if not mine:
+                        jumped_from = r_in
+                        ix, iy, t_max_x, t_max_y, r_in, t_exit = _jump_over_tile(
+                            ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tile_shift)
+                        if t_exit >= stop:
+                            ray_done = True
+                            break
+                        if r_in > jumped_from:
+                            continue  # look at the cell the jump landed in
+                    elif r_out > r_in:
+                        gx = ix - win_ix0
+                        gy = iy - win_iy0
+                        n_scan = _mark(mask, _record_index(gx, gy, blocks_w), bit, gx, gy, ix, iy, scan_cells, n_scan,
+                                       weight_sum, tile_touched, tile_shift, tx0, ty0)
+                    r_in = r_out
+                    ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x,
+                                                        t_delta_y, tol)
+                while not ray_done:  # the cells from free_until to the ray's end
+                    if not all_owned and ((ix >> tile_shift) != cell_tx or (iy >> tile_shift) != cell_ty):
+                        cell_tx = ix >> tile_shift
+                        cell_ty = iy >> tile_shift
+                        mine = owned[cell_ty - ty0, cell_tx - tx0]
+                    if not mine:
+                        ix, iy, t_max_x, t_max_y, r_in, t_exit = _jump_over_tile(
+                            ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tile_shift)
+                        if t_exit >= stop:
+                            break
+                    r_out = min(t_max_x, t_max_y, stop)
+                    if r_out > r_in and mine:
+                        d = segment_logodds(r_in, r_out, beam_kind, free_until, z_k, peak_at, a_k, b_k, s_k, g_peak_k,
+                                            table, u0, du, p_miss, p_hit, l_free, y_peak) - l_free
+                        gx = ix - win_ix0
+                        gy = iy - win_iy0
+                        c = _record_index(gx, gy, blocks_w)
+                        n_scan = _mark(mask, c, bit, gx, gy, ix, iy, scan_cells, n_scan, weight_sum, tile_touched,
+                                       tile_shift, tx0, ty0)
+                        if d > 0.0:
+                            if excess[c, 0] < stamp_base:  # first excess in this scan
+                                excess[c, 2] = 0.0
+                                excess[c, 3] = 0.0
+                            add_sample_value(excess, c, sid, w, d)
+                    if r_out >= stop:
                         break
-                r_out = min(t_max_x, t_max_y, stop)
-                if r_out > r_in and mine:
-                    y = segment_logodds(r_in, r_out, beam_kind, free_until, z_k, peak_at, a_k, b_k, s_k, g_peak_k,
-                                        table, u0, du, p_miss, p_hit, l_free, y_peak)
-                    gx = ix - win_ix0
-                    gy = iy - win_iy0
-                    c = _record_index(gx, gy, blocks_w)
-                    if rec[c, 0] < stamp_base:  # first touch in this scan
-                        rec[c, 2] = 0.0
-                        rec[c, 3] = 0.0
-                        scan_cells[n_scan, 0] = gx
-                        scan_cells[n_scan, 1] = gy
-                        n_scan += 1
-                        tile_touched[(iy >> tile_shift) - ty0, (ix >> tile_shift) - tx0] = True
-                    add_sample_value(rec, c, sid, w, y)
-                if r_out >= stop:
-                    break
-                r_in = r_out
-                ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y,
-                                                    tol)
+                    r_in = r_out
+                    ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x,
+                                                        t_delta_y, tol)
+        _fold_masks(mask, weight_sum, scan_cells, n_scan, blocks_w, weights, first)
     return n_scan
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _apply_scan(scan_cells, n_scan, rec, blocks_w, win_ix0, win_iy0, tile_shift, tx0, ty0, slot_map, logodds,
-                variance, observed, l_min, l_max):  # pragma: no cover - compiled
-    """Add the scan's weighted mean to each touched cell (clamped) and its spread to the variance layer."""
+def _apply_scan(scan_cells, n_scan, mask, weight_sum, excess, stamp_base, l_free, blocks_w, win_ix0, win_iy0,
+                tile_shift, tx0, ty0, slot_map, logodds, variance, observed, l_min, l_max):  # pragma: no cover
+    """Add the scan's weighted mean to each touched cell (clamped) and its spread to the variance layer, from
+    the moments l_free W + D1 and l_free^2 W + 2 l_free D1 + D2; clear the cells' masks for the next scan."""
     for q in range(n_scan):
         gx = scan_cells[q, 0]
         gy = scan_cells[q, 1]
@@ -380,11 +416,17 @@ def _apply_scan(scan_cells, n_scan, rec, blocks_w, win_ix0, win_iy0, tile_shift,
         ix = gx + win_ix0
         iy = gy + win_iy0
         slot = slot_map[(iy >> tile_shift) - ty0, (ix >> tile_shift) - tx0]
-        mask = (1 << tile_shift) - 1
-        ly = iy & mask
-        lx = ix & mask
-        mean = rec[c, 2]
-        spread = rec[c, 3] - mean * mean
+        in_tile = (1 << tile_shift) - 1
+        ly = iy & in_tile
+        lx = ix & in_tile
+        mask[c] = 0
+        moment1 = l_free * weight_sum[c]
+        moment2 = l_free * moment1
+        if excess[c, 0] >= stamp_base:
+            moment1 += excess[c, 2]
+            moment2 += 2.0 * l_free * excess[c, 2] + excess[c, 3]
+        mean = moment1
+        spread = moment2 - mean * mean
         if spread < 0.0:
             spread = 0.0
         updated = logodds[slot, ly, lx] + mean
@@ -481,8 +523,10 @@ class MonteCarloFusion:
         if cells <= self._scratch_size:
             return
         self._scratch_size = cells
-        # one record per cell: stamp, value, first and second moment
-        self._rec = np.zeros((cells, 4), np.float64)
+        # per cell (see _accumulate_scan): the samples' mask, the weight sum, the excess record
+        self._mask = np.zeros(cells, np.uint64)
+        self._weight_sum = np.zeros(cells, np.float64)
+        self._excess = np.zeros((cells, 4), np.float64)
         self._scan_cells = np.zeros((cells, 2), np.int32)
 
     def _owned_mask(self, tx0: int, ty0: int, ntx: int, nty: int) -> np.ndarray:
@@ -521,7 +565,7 @@ class MonteCarloFusion:
         blocks_w, blocks_h = -(-win_w // 8), -(-win_h // 8)
         self._scratch(blocks_w * blocks_h * 64)
         if self._stamp_next + len(samples) >= STAMP_LIMIT:
-            self._rec[:] = 0
+            self._excess[:] = 0
             self._stamp_next = 1
         owned = self._owned_mask(tx0, ty0, ntx, nty)
         touched = np.zeros((nty, ntx), np.bool_)
@@ -533,7 +577,7 @@ class MonteCarloFusion:
             beams.kind, beams.z, beams.r_stop, beams.r_peak, beams.a, beams.b, beams.s, beams.g_peak,
             self._table, TABLE_U0, TABLE_DU, res, model.p_miss, model.p_hit, model.l_free,
             win_ix0, win_iy0, win_w, win_h, shift, tx0, ty0, owned, bool(owned.all()),
-            self._rec, blocks_w, self._scan_cells, touched, stamp_base,
+            self._mask, self._weight_sum, self._excess, blocks_w, self._scan_cells, touched, stamp_base,
         )
         slot_map = np.full((nty, ntx), -1, np.int64)
         changed = []
@@ -541,6 +585,7 @@ class MonteCarloFusion:
             key = (tx0 + int(i), ty0 + int(j))
             slot_map[j, i] = grid.slot(key)
             changed.append(key)
-        _apply_scan(self._scan_cells, n_scan, self._rec, blocks_w, win_ix0, win_iy0, shift, tx0, ty0, slot_map,
-                    grid.logodds, grid.variance, grid.observed, model.l_min, model.l_max)
+        _apply_scan(self._scan_cells, n_scan, self._mask, self._weight_sum, self._excess, stamp_base, model.l_free,
+                    blocks_w, win_ix0, win_iy0, shift, tx0, ty0, slot_map, grid.logodds, grid.variance, grid.observed,
+                    model.l_min, model.l_max)
         return FuseResult(int(n_scan), changed)

@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapping.errors import InputError
-from mapping.fusion import MonteCarloFusion, merge_duplicates
+from mapping.fusion import MASK_SAMPLES, MonteCarloFusion, merge_duplicates
 from mapping.grid import TiledGrid
 from mapping.sensor_model import SensorModel
 from reference import reference_fuse
@@ -114,6 +114,22 @@ def test_compiled_fusion_matches_slow_reference(seed, n_beams, n_samples, sigma_
     for cell, (lo, var) in got.items():
         expected = min(max(mean[cell], model.l_min), model.l_max)
         assert lo == pytest.approx(expected, abs=3e-4), cell
+        assert var == pytest.approx(max(spread[cell], 0.0), abs=3e-4), cell
+
+
+def test_samples_in_several_mask_chunks_match_slow_reference():
+    """More samples than one chunk of the kernel's sample masks (the weight sums are folded per chunk)."""
+    rng = np.random.default_rng(5)
+    model = SensorModel(resolution=0.1, sigma0=0.04)
+    n_samples = 2 * MASK_SAMPLES + 4
+    angles, ranges, samples, weights = random_scan(rng, 6, n_samples, 0.08)
+    grid = TiledGrid(0.1, tile_size=8)
+    MonteCarloFusion(grid, model, angles, 0.15, 1.0, merge_identical=False).fuse(ranges, samples, weights)
+    mean, spread = reference_fuse(model, angles, 0.15, 1.0, ranges, samples, weights, (0.0, 0.0, 0.0))
+    got = fused_cells(grid)
+    assert set(got) == set(mean)
+    for cell, (lo, var) in got.items():
+        assert lo == pytest.approx(min(max(mean[cell], model.l_min), model.l_max), abs=3e-4), cell
         assert var == pytest.approx(max(spread[cell], 0.0), abs=3e-4), cell
 
 
