@@ -4,7 +4,8 @@ samples per scan.
 - throughput: scans per second from the first publication until every shard has fused every scan, with
   1 and 2 mapper shards (processes; 2 also with 32-cell tiles, see CONFIGURATIONS) behind a router (a process), the source publishing "as fast as the
   shards take" from this process; as a ratio to the in-process `posegrid fuse` rate on the same scans,
-  measured right before each pipeline run (the figure without a prefix is the median of those);
+  measured right before and right after each pipeline run (their mean; the figure without a prefix is the
+  median over the runs);
 - latency at a 10 Hz laser: per scan, from its publication to the arrival (here) of the last tile update
   that the shards sent right after fusing it (updates carry the seq of the last scan fused into the tile);
   median and p99 over the scans after the first WARMUP ones, which a mapper takes while it loads its
@@ -175,10 +176,12 @@ def run() -> dict:
     in_process = []
     for shards, tile_size in CONFIGURATIONS:
         name = f"shards{shards}" + ("" if tile_size == TILE_SIZE else f"_tile{tile_size}")
-        # the baseline right before each pipeline run: this machine's speed drifts by tens of percent
-        in_process.append(_in_process_rate(posed))
+        # the baseline right before and right after each pipeline run (their mean): this shared machine's
+        # speed drifts by tens of percent within a minute
+        before = _in_process_rate(posed)
         for key, value in _throughput(posed, shards, tile_size).items():
             out[f"{name}_{key}"] = value
+        in_process.append((before + _in_process_rate(posed)) / 2)
         out[f"{name}_in_process_scans_per_s"] = in_process[-1]
         out[f"{name}_ratio_to_in_process"] = out[f"{name}_scans_per_s"] / in_process[-1]
         for key, value in _latency(posed, shards, tile_size).items():
