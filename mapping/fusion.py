@@ -250,20 +250,22 @@ def _mark(mask, c, bit, gx, gy, ix, iy, scan_cells, n_scan, weight_sum, tile_tou
 def _fold_masks(mask, weight_sum, scan_cells, n_scan, blocks_w, weights, first):  # pragma: no cover - compiled
     """Add to each listed cell's weight sum the weights of the chunk's samples (first, first + 1, ...)
     whose bits its mask holds, and leave only the LISTED bit. The sum is taken a byte at a time from
-    tables of every byte's weight sums (8 lookups per cell)."""
-    sums = np.zeros((8, 256))
-    for byte in range(8):
-        for value in range(1, 256):
-            low = value & -value
-            bit = 8 * byte + int(math.log2(low))
-            j = first + bit
-            sums[byte, value] = sums[byte, value ^ low] + (
-                weights[j] if bit < MASK_SAMPLES and j < weights.shape[0] else 0.0)
+    tables of every byte's weight sums (one lookup per byte that holds samples)."""
+    samples = min(MASK_SAMPLES, weights.shape[0] - first)
+    n_bytes = (samples + 7) // 8
+    sums = np.zeros((n_bytes, 256))
+    for byte in range(n_bytes):
+        for bit in range(8):
+            j = 8 * byte + bit
+            w = weights[first + j] if j < samples else 0.0
+            top = 1 << bit  # the values whose highest bit is this one: the sum without it, plus w
+            for value in range(top, 2 * top):
+                sums[byte, value] = sums[byte, value - top] + w
     for q in range(n_scan):
         c = _record_index(scan_cells[q, 0], scan_cells[q, 1], blocks_w)
         bits = mask[c]
         total = 0.0
-        for byte in range(8):
+        for byte in range(n_bytes):
             total += sums[byte, (bits >> np.uint64(8 * byte)) & np.uint64(255)]
         weight_sum[c] += total
         mask[c] = LISTED
