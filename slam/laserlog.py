@@ -7,11 +7,12 @@ the laser's (x m, y m, yaw rad) in the robot frame; ranges are metres along each
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from slam.angles import wrap_angle
+from slam.errors import LogFormatError
 
 
 @dataclass(frozen=True)
@@ -51,6 +52,11 @@ class LaserLog:
         """Beam angles (B,) in rad, laser frame."""
         return self.angle_min + self.angle_increment * np.arange(self.ranges.shape[1])
 
+    def first(self, count: int) -> LaserLog:
+        """The log's first ``count`` scans (the odometry stream, parameters and skipped records kept)."""
+        return replace(self, stamps=self.stamps[:count], ranges=self.ranges[:count],
+                       odometry=self.odometry[:count], poses=self.poses[:count], where=self.where[:count])
+
     def skipped_summary(self, limit: int = 5) -> str:
         """One sentence naming how many records were skipped, the first few places and their reasons."""
         if not self.skipped:
@@ -72,3 +78,18 @@ def interpolate_poses(stamps: np.ndarray, poses: np.ndarray, query: np.ndarray) 
     out[:, 1] = np.interp(query, stamps, poses[:, 1])
     out[:, 2] = wrap_angle(np.interp(query, stamps, yaw))
     return out
+
+
+def with_odometry_delay(log: LaserLog, delay: float) -> LaserLog:
+    """The log with each scan's odometry read from the log's separate odometry stream at stamp + ``delay``
+    (s; negative: earlier). For a laser whose stamps run late against its odometry's (Freiburg 079's bag:
+    about 0.13 s), so that a scan is paired with the pose the robot had when it was taken. ``poses``, what
+    the log states, is left as it is. Raises :class:`LogFormatError` when the log has no separate
+    odometry stream (a CARMEN log whose odometry comes only inside the laser lines)."""
+    if delay == 0.0:
+        return log
+    if not len(log.odom_stamps):
+        raise LogFormatError(f"{log.source}: its odometry comes only with the scans, so it cannot be read at "
+                             "other times (an odometry delay needs a separate odometry stream: ODOM lines or a "
+                             "bag's odometry topic)")
+    return replace(log, odometry=interpolate_poses(log.odom_stamps, log.odom_poses, log.stamps + delay))

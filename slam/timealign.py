@@ -1,4 +1,5 @@
-"""Put a log's stamps into another log's time base by finding the scans the two share.
+"""Put a log's stamps into another log's time base by finding the scans the two share; estimate how late a
+log's scan stamps run against its odometry's.
 
 SLAM-corrected logs are often re-stamped copies of a raw log (the Freiburg 079 corrected log runs
 1211.0 to 1211.5 s behind its raw bag, by an offset that drifts). A scan's ranges identify it: scans
@@ -12,6 +13,12 @@ import numpy as np
 
 from slam.errors import LogFormatError
 from slam.laserlog import LaserLog
+
+#: odometry delays searched (s, either way) and the step of the search
+MAX_ODOMETRY_DELAY = 0.3
+ODOMETRY_DELAY_STEP = 0.01
+#: the estimate compares heading changes over windows of this length (s) around each stamp
+ODOMETRY_DELAY_WINDOW = 0.5
 
 #: readings at or beyond this (m) count as "no return" when comparing scans (raw and corrected logs may
 #: disagree on the maximum range, e.g. 80 m in a bag and 80.99 m in the CARMEN PARAMs)
@@ -65,3 +72,36 @@ def time_map(log: LaserLog, reference: LaserLog, cap: float = DEFAULT_CAP) -> tu
 def to_reference_time(stamps: np.ndarray, map_stamps: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     """``stamps`` (s, the log's clock) in the reference clock, by the offsets of :func:`time_map`."""
     return np.asarray(stamps, np.float64) + np.interp(stamps, map_stamps, offsets)
+
+
+def odometry_delay(stamps: np.ndarray, yaw: np.ndarray, odom_stamps: np.ndarray, odom_yaw: np.ndarray,
+                   max_delay: float = MAX_ODOMETRY_DELAY, step: float = ODOMETRY_DELAY_STEP,
+                   window: float = ODOMETRY_DELAY_WINDOW) -> tuple[float, float]:
+    """The delay d (s) for which the odometry's heading changes, read at scan stamp + d, best match the
+    heading changes of a scan-matched trajectory (``yaw`` (T,) rad at ``stamps`` (T,) s, e.g. a grid
+    FastSLAM particle's), with ``odom_yaw`` (K,) rad at ``odom_stamps`` (K,) s.
+
+    Scan matching fixes each scan's heading to what the scan saw; if the scan stamps run late against the
+    odometry, the odometry turns early against that trajectory. Over windows of ``window`` s centred on
+    every stamp (away from the ends), the mean absolute difference of the two heading changes is taken
+    for every d in [-max_delay, max_delay] by ``step``; returns (best d, its mean difference in rad).
+    Raises ValueError when the trajectory is too short to compare.
+    """
+    stamps = np.asarray(stamps, np.float64)
+    yaw = np.unwrap(np.asarray(yaw, np.float64))
+    odom_stamps = np.asarray(odom_stamps, np.float64)
+    odom_yaw = np.unwrap(np.asarray(odom_yaw, np.float64))
+    margin = max_delay + window
+    centres = stamps[(stamps > stamps[0] + margin) & (stamps < stamps[-1] - margin)]
+    if len(centres) < 2:
+        raise ValueError(f"need a trajectory longer than {2 * margin:.1f} s to estimate the odometry delay")
+    half = window / 2
+    turned = np.interp(centres + half, stamps, yaw) - np.interp(centres - half, stamps, yaw)
+    best = (np.inf, 0.0)
+    for delay in np.arange(-max_delay, max_delay + step / 2, step):
+        odom_turned = (np.interp(centres + delay + half, odom_stamps, odom_yaw)
+                       - np.interp(centres + delay - half, odom_stamps, odom_yaw))
+        mismatch = float(np.mean(np.abs(turned - odom_turned)))
+        if mismatch < best[0]:
+            best = (mismatch, float(delay))
+    return round(best[1], 6), best[0]

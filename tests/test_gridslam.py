@@ -245,3 +245,27 @@ def test_filter_rejects_bad_config():
         GridFastSLAM(GridSlamConfig(sigma_like=0.0), np.zeros(3), np.zeros(3), 0.0, np.zeros(3), 0)
     with pytest.raises(ValueError, match="power of two"):
         TileMaps(2, 0.05, tile_cells=24)
+
+
+def test_odometry_delay_auto_finds_a_late_laser_clock(simulated_log, tmp_path, capsys):
+    """A log whose laser stamps run 0.1 s late against its ODOM stream (the Freiburg 079 bag's fault, about
+    0.13 s there): `--odom-delay auto` runs the filter over the log's start, compares its scan-matched
+    turns with the odometry's and reads the odometry 0.1 s earlier; a log without a separate odometry
+    stream is refused with exit 2."""
+    path, run = simulated_log
+    log = read_carmen(path)
+    late = tmp_path / "late.clf"
+    write_carmen(late, log.stamps + 0.1, log.ranges, log.odometry, log.angle_min, log.angle_increment,
+                 log.range_max, log.sensor_offset)
+    with late.open("a") as out:  # the odometry stream on the true clock
+        for t, (x, y, yaw) in zip(log.stamps, log.odometry):
+            out.write(f"ODOM {x:.6f} {y:.6f} {yaw:.6f} 0 0 0 {t:.6f} sim {t:.6f}\n")
+    out_npz = tmp_path / "late.npz"
+    stats = tmp_path / "stats.json"
+    assert main(["slam", "--algo", "gridslam", str(late), "-o", str(out_npz), "--particles", "8", "--seed", "1",
+                 "--odom-delay", "auto", "--stats", str(stats)]) == 0
+    assert "odometry delay -0.1" in capsys.readouterr().err
+    import json
+    assert json.loads(stats.read_text())["odometry_delay_s"] == pytest.approx(-0.1, abs=0.015)
+    assert main(["slam", "--algo", "gridslam", str(path), "-o", str(out_npz), "--odom-delay", "0.1"]) == 2
+    assert "separate odometry stream" in capsys.readouterr().err

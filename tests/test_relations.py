@@ -12,9 +12,9 @@ from schemas.files import PoseDistributionFile, PoseSet, save_pose_distribution
 from services.cli import main
 from slam.carmen import write_carmen
 from slam.errors import LogFormatError
-from slam.laserlog import LaserLog
+from slam.laserlog import LaserLog, with_odometry_delay
 from slam.relations import Trajectory, poses_at, read_relations, score_relations, trajectory_from_log
-from slam.timealign import time_map, to_reference_time
+from slam.timealign import odometry_delay, time_map, to_reference_time
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
@@ -161,3 +161,33 @@ def test_real_relations_corrected_fr079_aligned_to_its_bag(tmp_path):
     assert 0.03 < s["trans_mean_m"] < 0.09
     assert main(["eval-relations", str(bag), str(rel), "--json", str(out)]) == 0
     assert json.loads(out.read_text())["trans_mean_m"] > 1.0
+
+
+def test_odometry_read_later_or_earlier_than_the_scans():
+    """with_odometry_delay reads the ODOM stream at stamp + delay (yaw unwrapped across +-pi)."""
+    stream_t = np.arange(0.0, 10.0, 0.5)
+    stream = np.column_stack([stream_t, 2 * stream_t, 3.0 + 0.1 * stream_t])  # yaw crosses pi at t = 1.42
+    log = small_log([2.0, 4.0], np.ones((2, 3)), odom_stamps=stream_t, odom_poses=stream)
+    shifted = with_odometry_delay(log, -0.25)
+    np.testing.assert_allclose(shifted.odometry[:, :2], [[1.75, 3.5], [3.75, 7.5]])
+    np.testing.assert_allclose(np.cos(shifted.odometry[:, 2]), np.cos([3.175, 3.375]))
+    np.testing.assert_array_equal(shifted.poses, log.poses)
+    assert with_odometry_delay(log, 0.0) is log
+    with pytest.raises(LogFormatError, match="separate odometry stream"):
+        with_odometry_delay(small_log([1.0], np.ones((1, 3))), 0.1)
+
+
+@pytest.mark.parametrize("true_delay", [-0.13, 0.0, 0.07])
+def test_odometry_delay_is_recovered_from_turns(true_delay):
+    """A trajectory that turns back and forth, seen through a laser clock that runs late (or early): the
+    scan-matched heading at stamp t is the odometry's at t + true_delay."""
+    rng = np.random.default_rng(4)
+    odom_t = np.arange(0.0, 60.0, 0.02)
+    heading = lambda t: 0.8 * np.sin(1.3 * t) + 0.4 * np.sin(3.1 * t + 1.0) + 0.05 * t  # noqa: E731
+    scan_t = np.arange(1.0, 59.0, 0.2)
+    matched = heading(scan_t + true_delay) + rng.normal(0, 0.005, scan_t.size)
+    delay, mismatch = odometry_delay(scan_t, matched, odom_t, heading(odom_t))
+    assert delay == pytest.approx(true_delay, abs=0.011)
+    assert mismatch < 0.03  # rad per 0.5 s: the noise and the 0.2 s sampling
+    with pytest.raises(ValueError, match="longer"):
+        odometry_delay(scan_t[:3], matched[:3], odom_t, heading(odom_t))

@@ -14,6 +14,22 @@ from pathlib import Path
 #: grid FastSLAM particles when --particles is not given
 DEFAULT_GRID_PARTICLES = 30
 
+#: --odom-delay auto runs the filter over this much of the log's start (s) to estimate the delay
+AUTO_DELAY_SECONDS = 120.0
+
+
+def _odom_delay(text: str) -> str | float:
+    """--odom-delay: "auto" or seconds."""
+    if text == "auto":
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds or 'auto', got {text!r}") from None
+    if not abs(value) <= 5.0:
+        raise argparse.ArgumentTypeError(f"expected a delay within +-5 s, got {text}")
+    return value
+
 
 def add_gridslam_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of --algo gridslam (INPUT is then a CARMEN log .clf/.log/.gz or a ROS 1/2 bag)."""
@@ -28,12 +44,20 @@ def add_gridslam_arguments(parser: argparse.ArgumentParser) -> None:
                        "each, for its map (default: OUTPUT with the suffix .best.npz)")
     group.add_argument("--max-range", type=float, default=None,
                        help="m: beams are used up to here, longer ones only clear space (default 30)")
+    from slam.gridslam.config import GridSlamConfig
+
+    defaults = GridSlamConfig()
     group.add_argument("--linear-update", type=float, default=None,
-                       help="m of odometry between scans integrated into the maps (default 0.25)")
+                       help=f"m of odometry between scans integrated into the maps (default {defaults.linear_update:g})")
     group.add_argument("--angular-update", type=float, default=None,
-                       help="rad of odometry turn between integrated scans (default 0.15)")
+                       help=f"rad of odometry turn between integrated scans (default {defaults.angular_update:g})")
     group.add_argument("--grid-resolution", type=float, default=None, help="m, cell size of the particles' grids "
-                       "(default 0.05)")
+                       f"(default {defaults.resolution:g})")
+    group.add_argument("--odom-delay", type=_odom_delay, default=0.0, metavar="SECONDS|auto",
+                       help="read each scan's odometry this many seconds after its stamp (negative: before), for a "
+                       "laser whose stamps run late against the odometry's; 'auto' estimates it by running the "
+                       f"filter over the first {AUTO_DELAY_SECONDS:.0f} s and comparing its scan-matched turns with "
+                       "the odometry's (needs a separate odometry stream; default 0)")
     group.add_argument("--scan-topic", type=str, default=None, help="ROS bag: the LaserScan topic (default: the "
                        "only one, or /scan)")
     group.add_argument("--stats", type=Path, default=None, metavar="OUT.json",
@@ -72,6 +96,38 @@ def _read_input(args: argparse.Namespace):
     return read_carmen(args.input)
 
 
+def _apply_odometry_delay(args: argparse.Namespace, log, config):
+    """The log with its odometry read at --odom-delay (estimated first for 'auto'), and the delay in s."""
+    import numpy as np
+    from tqdm import tqdm
+
+    from services.cli import UsageError
+    from slam.errors import LogFormatError
+    from slam.gridslam import run_gridslam
+    from slam.laserlog import with_odometry_delay
+    from slam.timealign import odometry_delay
+
+    delay = args.odom_delay
+    if delay == "auto":
+        if not len(log.odom_stamps):
+            raise UsageError(f"--odom-delay auto: {log.source} has no separate odometry stream to compare with")
+        count = int(np.searchsorted(log.stamps, log.stamps[0] + AUTO_DELAY_SECONDS))
+        head = log.first(max(count, 2))
+        with tqdm(total=len(head), desc="odometry delay", unit="scan", file=sys.stderr, mininterval=0.5) as bar:
+            trial = run_gridslam(head, config, seed=args.seed, progress=lambda done, ess: bar.update(done))
+        try:
+            delay, mismatch = odometry_delay(trial.stamps, trial.samples[:, trial.best, 2], log.odom_stamps,
+                                             log.odom_poses[:, 2])
+        except ValueError as exc:
+            raise UsageError(f"--odom-delay auto: {exc}") from None
+        print(f"posegrid slam: odometry delay {delay:+.2f} s, estimated over the first {len(head)} scans "
+              f"(mean heading mismatch {np.degrees(mismatch):.2f} deg per 0.5 s)", file=sys.stderr)
+    try:
+        return with_odometry_delay(log, delay), delay
+    except LogFormatError as exc:
+        raise UsageError(f"--odom-delay: {exc}") from None
+
+
 def run_gridslam_command(args: argparse.Namespace) -> int:
     """Run grid FastSLAM over args.input and write three files (docs/gridslam.md, "Output"):
     OUTPUT, a posed-scan file of the integrated scans with every final particle's trajectory and the final
@@ -93,6 +149,7 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
     log = _read_input(args)
     if log.skipped:
         print(f"posegrid slam: note: {log.skipped_summary()}", file=sys.stderr)
+    log, delay = _apply_odometry_delay(args, log, config)
     started = time.perf_counter()
     cpu_started = time.process_time()
     with tqdm(total=len(log), desc="slam gridslam", unit="scan", file=sys.stderr, mininterval=0.5) as bar:
@@ -131,7 +188,7 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
         "final_ess": float(result.ess[-1]) if len(result.ess) else float(config.particles),
         "mean_ess": float(result.ess.mean()) if len(result.ess) else float(config.particles),
         "resamplings": int(result.resampled.sum()), "motion_fallbacks": result.fallbacks,
-        "tiles_in_use": result.maps.tiles_in_use, "tiles_copied": result.maps.copies,
+        "tiles_in_use": result.maps.tiles_in_use, "tiles_copied": result.maps.copies, "odometry_delay_s": delay,
     }
     if args.stats is not None:
         args.stats.write_text(json.dumps(stats, indent=1) + "\n")

@@ -29,60 +29,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from slam.angles import wrap_angle
+from slam.gridslam.config import GridSlamConfig
 from slam.gridslam.kernels import log_likelihoods, match_and_propose
 from slam.gridslam.tiles import TileMaps
 from slam.motion import OdometryMotionModel, odometry_controls
 from slam.resampling import effective_sample_size, low_variance_resample, normalize_log_weights
 from slam.stats import sample_gaussian
-
-
-@dataclass(frozen=True)
-class GridSlamConfig:
-    """Parameters of grid FastSLAM (m, rad; log-odds are natural-log odds)."""
-
-    particles: int = 30
-    resolution: float = 0.05  # cell size, m
-    tile_cells: int = 32  # tile edge in cells (copy-on-write unit; a power of two)
-    max_range: float = 30.0  # m: beams are used up to here; longer or no return: free space up to here
-    min_range: float = 0.05  # m: shorter readings are ignored
-    match_beams: int = 180  # at most this many beams (evenly spread) for matching and likelihood
-    kernel: int = 1  # cells searched around a beam's end for the nearest occupied cell
-    sigma_match: float = 0.05  # m, match score width
-    sigma_like: float = 0.075  # m, likelihood width
-    p_rand: float = 0.05  # per-beam probability of an unexplained reading
-    gain: float = 3.0  # likelihood temper (beams are correlated)
-    weight_temper: float = 30.0  # the weight factor eta enters as eta^(1/weight_temper) (GMapping divides by 3N)
-    lin_step: float = 0.05  # m, first hill-climbing step
-    ang_step: float = 0.05  # rad
-    refinements: int = 5  # step halvings
-    yaw_search: float = 0.25  # rad: yaws tried around the odometry's before hill climbing
-    prior_cap: float = 9.0  # squared Mahalanobis distance beyond which the matcher ignores the odometry
-    stencil_xy: float = 0.02  # m, spacing of the stencil the likelihood's curvature is fitted on
-    stencil_yaw: float = 0.01  # rad
-    min_match: float = 0.15  # match score per beam below which the motion model is sampled instead
-    proposal_floor_xy: float = 0.005  # m, std added to the proposal Gaussian
-    proposal_floor_yaw: float = 0.002  # rad
-    motion_alphas: tuple[float, float, float, float] = (0.05, 0.05, 0.05, 0.05)  # slam.motion odometry model
-    motion_floor_xy: float = 0.01  # m, std added to the motion model's covariance
-    motion_floor_yaw: float = 0.005  # rad
-    l_occ: float = 0.85  # log-odds added at a beam's end
-    l_free: float = -0.4  # log-odds added along a beam
-    l_clamp: float = 5.0  # |log-odds| cap
-    linear_update: float = 0.1  # m of odometry between integrated scans
-    angular_update: float = 0.05  # rad
-    resample_threshold: float = 0.5  # resample when N_eff < this * particles
-
-    def validate(self) -> None:
-        """Raise ValueError naming the first parameter out of range."""
-        positive = ("resolution", "max_range", "sigma_match", "sigma_like", "gain", "weight_temper", "lin_step",
-                    "ang_step", "l_occ", "l_clamp")
-        for name in positive:
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        if self.particles < 1 or self.match_beams < 1 or self.tile_cells < 1 or self.kernel < 0:
-            raise ValueError("particles, match_beams and tile_cells must be >= 1, kernel >= 0")
-        if not 0 < self.p_rand < 1 or not 0 <= self.resample_threshold <= 1 or self.l_free >= 0:
-            raise ValueError("need 0 < p_rand < 1, 0 <= resample_threshold <= 1 and l_free < 0")
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from slam.gridslam.filter import GridFastSLAM, GridSlamConfig
+from slam.gridslam.config import GridSlamConfig
+from slam.gridslam.filter import GridFastSLAM
 from slam.gridslam.tiles import TileMaps
 from slam.laserlog import LaserLog
 
