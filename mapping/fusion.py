@@ -272,17 +272,6 @@ def _fold_masks(mask, weight_sum, scan_cells, n_scan, blocks_w, weights, first):
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _box_owned(owned, ix_a, iy_a, ix_b, iy_b, tile_shift, tx0, ty0):  # pragma: no cover - compiled
-    """Whether every tile that meets the box of cells (ix_a, iy_a) to (ix_b, iy_b), grown by a cell on each
-    side (for the rounding at a ray's end), is this shard's."""
-    for ty in range((min(iy_a, iy_b) - 1) >> tile_shift, ((max(iy_a, iy_b) + 1) >> tile_shift) + 1):
-        for tx in range((min(ix_a, ix_b) - 1) >> tile_shift, ((max(ix_a, ix_b) + 1) >> tile_shift) + 1):
-            if not owned[ty - ty0, tx - tx0]:
-                return False
-    return True
-
-
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _jump_over_tile(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in,
                     tile_shift):  # pragma: no cover - compiled
     """Move a ray in another shard's tile to just before it leaves the tile (the work divides among
@@ -354,10 +343,6 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
                 if (min(ix - win_ix0, iy - win_iy0, end_gx, end_gy) < 1 or max(ix - win_ix0, end_gx) >= win_w - 1
                         or max(iy - win_iy0, end_gy) >= win_h - 1):
                     continue
-                # a ray whose cells all lie in this shard's tiles needs no ownership checks (most rays are
-                # shorter than a tile)
-                ray_owned = all_owned or _box_owned(owned, ix, iy, end_gx + win_ix0, end_gy + win_iy0, tile_shift,
-                                                    tx0, ty0)
                 tol = corner_tol(stop)
                 r_in = 0.0
                 mine = True
@@ -369,7 +354,7 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
                     r_out = min(t_max_x, t_max_y)
                     if r_out >= free_limit:
                         break
-                    if not ray_owned and ((ix >> tile_shift) != cell_tx or (iy >> tile_shift) != cell_ty):
+                    if not all_owned and ((ix >> tile_shift) != cell_tx or (iy >> tile_shift) != cell_ty):
                         cell_tx = ix >> tile_shift
                         cell_ty = iy >> tile_shift
                         mine = owned[cell_ty - ty0, cell_tx - tx0]
@@ -391,7 +376,7 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
                     ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x,
                                                         t_delta_y, tol)
                 while not ray_done:  # the cells from free_until to the ray's end
-                    if not ray_owned and ((ix >> tile_shift) != cell_tx or (iy >> tile_shift) != cell_ty):
+                    if not all_owned and ((ix >> tile_shift) != cell_tx or (iy >> tile_shift) != cell_ty):
                         cell_tx = ix >> tile_shift
                         cell_ty = iy >> tile_shift
                         mine = owned[cell_ty - ty0, cell_tx - tx0]
