@@ -238,6 +238,10 @@ def test_same_seed_same_result_and_bad_input_exits_2(simulated_log, tmp_path, ca
     assert "no such file" in capsys.readouterr().err
     assert main(["slam", "--algo", "gridslam", str(cut), "-o", str(tmp_path / "o.npz"), "--particles", "0"]) == 2
     assert "particles" in capsys.readouterr().err
+    assert main(["slam", "--algo", "gridslam", str(cut), "-o", str(tmp_path / "o.npz"), "--prior-cap", "-1"]) == 2
+    assert "prior_cap -1" in capsys.readouterr().err
+    assert main(["slam", "--algo", "gridslam", str(cut), "-o", str(tmp_path / "o.npz"), "--min-range", "50"]) == 2
+    assert "min_range 50" in capsys.readouterr().err
 
 
 def test_filter_rejects_bad_config():

@@ -53,6 +53,12 @@ def add_gridslam_arguments(parser: argparse.ArgumentParser) -> None:
                        help=f"rad of odometry turn between integrated scans (default {defaults.angular_update:g})")
     group.add_argument("--grid-resolution", type=float, default=None, help="m, cell size of the particles' grids "
                        f"(default {defaults.resolution:g})")
+    group.add_argument("--min-range", type=float, default=None,
+                       help=f"m: shorter readings are ignored, e.g. people right beside the robot (default "
+                       f"{defaults.min_range:g}, or the sensor's if larger)")
+    group.add_argument("--prior-cap", type=float, default=None, metavar="D2",
+                       help="squared Mahalanobis distance from the odometry beyond which the scan matcher stops "
+                       f"weighing the odometry (default {defaults.prior_cap:g}; larger trusts the odometry more)")
     group.add_argument("--odom-delay", type=_odom_delay, default=0.0, metavar="SECONDS|auto",
                        help="read each scan's odometry this many seconds after its stamp (negative: before), for a "
                        "laser whose stamps run late against the odometry's; 'auto' estimates it by running the "
@@ -73,7 +79,8 @@ def _config(args: argparse.Namespace):
     overrides = {"particles": DEFAULT_GRID_PARTICLES if args.particles is None else args.particles,
                  "resample_threshold": args.resample_threshold}
     for option, field in (("max_range", "max_range"), ("linear_update", "linear_update"),
-                          ("angular_update", "angular_update"), ("grid_resolution", "resolution")):
+                          ("angular_update", "angular_update"), ("grid_resolution", "resolution"),
+                          ("min_range", "min_range"), ("prior_cap", "prior_cap")):
         value = getattr(args, option)
         if value is not None:
             overrides[field] = value

@@ -2,6 +2,7 @@
 without loading the compiled kernels."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 
@@ -52,3 +53,6 @@ class GridSlamConfig:
             raise ValueError("particles, match_beams and tile_cells must be >= 1, kernel >= 0")
         if not 0 < self.p_rand < 1 or not 0 <= self.resample_threshold <= 1 or self.l_free >= 0:
             raise ValueError("need 0 < p_rand < 1, 0 <= resample_threshold <= 1 and l_free < 0")
+        if not (0 <= self.min_range < self.max_range and 0 <= self.prior_cap < math.inf):
+            raise ValueError(f"need 0 <= min_range < max_range and a finite prior_cap >= 0, got min_range "
+                             f"{self.min_range}, prior_cap {self.prior_cap}")
