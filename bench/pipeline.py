@@ -2,10 +2,10 @@
 samples per scan.
 
 - throughput: scans per second from the first publication until every shard has fused every scan, with
-  1 and 2 mapper shards (processes; 2 also with 32-cell tiles, see CONFIGURATIONS) behind a router (a process), the source publishing "as fast as the
-  shards take" from this process; as a ratio to the in-process `posegrid fuse` rate on the same scans,
-  measured right before and right after each pipeline run (their mean; the figure without a prefix is the
-  median over the runs);
+  1 and 2 mapper shards (processes; 2 also with 32-cell tiles, see CONFIGURATIONS) behind a router (a
+  process), the source publishing "as fast as the shards take" from this process; as a ratio to the
+  in-process `posegrid fuse` rate on the same scans, measured right before and right after each pipeline
+  run (their mean; the figure without a prefix is the median over the runs);
 - latency at a 10 Hz laser: per scan, from its publication to the arrival (here) of the last tile update
   that the shards sent right after fusing it (updates carry the seq of the last scan fused into the tile);
   median and p99 over the scans after the first WARMUP ones, which a mapper takes while it loads its

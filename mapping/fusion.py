@@ -99,6 +99,8 @@ class BeamTable:
     b: np.ndarray  # float64 (B,): end of the occupied peak, z + l/2
     s: np.ndarray  # float64 (B,): sqrt(2) * sigma(z)
     g_peak: np.ndarray  # float64 (B,): the model at the return
+    free_until: np.ndarray  # float64 (B,): cells that end before this take l_free (FREE_SHORTCUT_SIGMAS before
+    # the peak for hits; r_stop for beams with no return, which are free throughout)
 
 
 def beam_table(ranges: np.ndarray, model: SensorModel, range_min: float, range_max: float) -> BeamTable:
@@ -118,7 +120,8 @@ def beam_table(ranges: np.ndarray, model: SensorModel, range_min: float, range_m
     z_safe = np.where(hit, z, 1.0)
     r_peak = np.where(hit, model.peak_range(z_safe), 0.0)
     g_peak = np.where(hit, model.peak(z_safe), 1.0)
-    return BeamTable(kind, z, r_stop, r_peak, z - half, z + half, SQRT2 * sigma, g_peak)
+    free_until = np.where(hit, z - half - FREE_SHORTCUT_SIGMAS * sigma, r_stop)
+    return BeamTable(kind, z, r_stop, r_peak, z - half, z + half, SQRT2 * sigma, g_peak, free_until)
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
@@ -294,7 +297,7 @@ def _jump_over_tile(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop, r_peak, a, b, s, g_peak,
-                     table, u0, du, res, p_miss, p_hit, l_free, win_ix0, win_iy0, win_w, win_h, tile_shift,
+                     free_until, table, u0, du, res, p_miss, p_hit, l_free, win_ix0, win_iy0, win_w, win_h, tile_shift,
                      tx0, ty0, owned, all_owned, mask, weight_sum, excess, blocks_w, scan_cells, tile_touched,
                      stamp_base):  # pragma: no cover - compiled
     """One pass over all (sample, beam, cell) triples; returns the number of distinct cells touched.
@@ -310,7 +313,6 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
     :func:`segment_logodds`. In another shard's tile the ray jumps to the tile's exit.
     """
     n_scan = 0
-    free_gap = FREE_SHORTCUT_SIGMAS / SQRT2  # in units of s = sqrt(2) sigma
     y_peak = math.log(p_hit) - math.log1p(-p_hit)
     for first in range(0, laser_x.shape[0], MASK_SAMPLES):
         for j in range(first, min(first + MASK_SAMPLES, laser_x.shape[0])):
@@ -329,7 +331,7 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
                 b_k = b[k]
                 s_k = s[k]
                 g_peak_k = g_peak[k]
-                free_until = math.inf if beam_kind == BEAM_NO_RETURN else a_k - free_gap * s_k
+                free_until_k = free_until[k]
                 theta = laser_yaw[j] + angles[k]
                 dx = math.cos(theta)
                 dy = math.sin(theta)
@@ -349,7 +351,7 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
                 cell_tx = tx0 - 1  # the tile whose ownership ``mine`` holds; none yet (no ray leaves the window)
                 cell_ty = ty0 - 1
                 ray_done = False
-                free_limit = min(free_until, stop)
+                free_limit = min(free_until_k, stop)
                 while True:  # the free phase
                     r_out = min(t_max_x, t_max_y)
                     if r_out >= free_limit:
@@ -387,7 +389,7 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
                             break
                     r_out = min(t_max_x, t_max_y, stop)
                     if r_out > r_in and mine:
-                        d = segment_logodds(r_in, r_out, beam_kind, free_until, z_k, peak_at, a_k, b_k, s_k, g_peak_k,
+                        d = segment_logodds(r_in, r_out, beam_kind, free_until_k, z_k, peak_at, a_k, b_k, s_k, g_peak_k,
                                             table, u0, du, p_miss, p_hit, l_free, y_peak) - l_free
                         gx = ix - win_ix0
                         gy = iy - win_iy0
@@ -579,7 +581,7 @@ class MonteCarloFusion:
         n_scan = _accumulate_scan(
             lasers[:, 0].copy(), lasers[:, 1].copy(), lasers[:, 2].copy(), weights, self.angles,
             beams.kind, beams.z, beams.r_stop, beams.r_peak, beams.a, beams.b, beams.s, beams.g_peak,
-            self._table, TABLE_U0, TABLE_DU, res, model.p_miss, model.p_hit, model.l_free,
+            beams.free_until, self._table, TABLE_U0, TABLE_DU, res, model.p_miss, model.p_hit, model.l_free,
             win_ix0, win_iy0, win_w, win_h, shift, tx0, ty0, owned, bool(owned.all()),
             self._mask, self._weight_sum, self._excess, blocks_w, self._scan_cells, touched, stamp_base,
         )

@@ -34,8 +34,8 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from mapping.fusion import (BEAM_HIT, BEAM_NO_RETURN, BEAM_SKIP, FREE_SHORTCUT_SIGMAS, SQRT2, STAMP_LIMIT,
-                            TABLE_DU, TABLE_U0, BeamTable, add_sample_value, segment_logodds)
+from mapping.fusion import (BEAM_HIT, BEAM_SKIP, STAMP_LIMIT, TABLE_DU, TABLE_U0, BeamTable, add_sample_value,
+                            segment_logodds)
 from mapping.raytrace import FAR, corner_tol, dda_start, dda_step
 
 #: columns of a count record: [stamp, hits, misses, unknowns]
@@ -53,8 +53,8 @@ def _bit_length(v):  # pragma: no cover - compiled
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _scan_evidence(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop, r_count, r_peak, a, b, s, g_peak,
-                   table, u0, du, res, p_miss, p_hit, l_free, lv_x0, lv_y0, lv_w, lv_h, lv_off, rec, cnt, seen,
-                   touched, stamp_base, count_unknowns):  # pragma: no cover - compiled
+                   free_until, table, u0, du, res, p_miss, p_hit, l_free, lv_x0, lv_y0, lv_w, lv_h, lv_off, rec, cnt,
+                   seen, touched, stamp_base, count_unknowns):  # pragma: no cover - compiled
     """The pass; returns how many finest cells got log-odds evidence (listed in ``touched``).
 
     Finest window cell (gx, gy) = global (lv_x0[0] + gx, lv_y0[0] + gy) has record rec[gy * lv_w[0] + gx] =
@@ -72,7 +72,6 @@ def _scan_evidence(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop
     run_hit = np.zeros(n_levels, np.bool_)  # per level, the open run holds the return
     run_len = np.zeros(n_levels, np.bool_)  # the open run has positive length
     n_touched = 0
-    free_gap = FREE_SHORTCUT_SIGMAS / SQRT2  # in units of s = sqrt(2) sigma
     y_peak = math.log(p_hit) - math.log1p(-p_hit)
     for j in range(laser_x.shape[0]):
         sid = float(stamp_base + j)
@@ -86,7 +85,6 @@ def _scan_evidence(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop
                 laser_x[j], laser_y[j], math.cos(theta), math.sin(theta), res)
             stop = r_stop[k]
             z_hit = z[k] if beam_kind == BEAM_HIT else FAR
-            free_until = stop if beam_kind == BEAM_NO_RETURN else a[k] - free_gap * s[k]
             for lvl in range(n_levels):
                 run_hit[lvl] = False
                 run_len[lvl] = False
@@ -104,7 +102,7 @@ def _scan_evidence(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop
                     if not hit_passed and z_hit < r_out:
                         run_hit[0] = True
                         hit_passed = True
-                    y = segment_logodds(r_in, r_out, beam_kind, free_until, z[k], r_peak[k], a[k], b[k], s[k],
+                    y = segment_logodds(r_in, r_out, beam_kind, free_until[k], z[k], r_peak[k], a[k], b[k], s[k],
                                          g_peak[k], table, u0, du, p_miss, p_hit, l_free, y_peak)
                     c = gy * lv_w[0] + gx
                     if rec[c, 0] < stamp_base:  # first touch in this scan
@@ -289,7 +287,8 @@ class EvidenceScanner:
         self._stamp_next += len(lasers)
         n = _scan_evidence(
             lasers[:, 0].copy(), lasers[:, 1].copy(), lasers[:, 2].copy(), weights, angles, beams.kind, beams.z,
-            beams.r_stop, r_count, beams.r_peak, beams.a, beams.b, beams.s, beams.g_peak, table, TABLE_U0, TABLE_DU,
+            beams.r_stop, r_count, beams.r_peak, beams.a, beams.b, beams.s, beams.g_peak, beams.free_until, table,
+            TABLE_U0, TABLE_DU,
             res, p_miss, p_hit, l_free, x0, y0, w, h, off, self._rec, self._cnt, self._seen, self._touched,
             stamp_base, self.count_unknowns)
         return ScanEvidence(x0, y0, w, h, off, self._rec, self._cnt, self._touched[:n].copy(), stamp_base)
