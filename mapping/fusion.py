@@ -13,8 +13,8 @@ proposals. A beam ending in the cell therefore always beats a beam passing throu
 free, as in OctoMap's per-scan update.
 
 The whole scan is one compiled pass over all (sample, beam, cell) triples, written into a scratch window
-that covers the scan (tile-aligned), followed by one compiled pass that adds the window's touched cells
-into the tiles. No Python loop runs per sample, beam or cell.
+that covers the scan (its origin a multiple of 8 cells), followed by one compiled pass that adds the
+window's touched cells into the tiles. No Python loop runs per sample, beam or cell.
 
 How the pass keeps the per-sample rule cheap: every value is l_free (the smallest a cell can take) plus an
 excess d >= 0, and only cells near a return have d > 0. So y_ij = l_free + d_ij for the samples j that
@@ -26,9 +26,20 @@ A cell in free space (most visits) only sets sample j's bit in a 64-bit mask (wh
 idempotent, no per-sample record); W_i is summed from the mask's bits once per scan. The few cells with an
 excess keep a per-sample record (the largest excess of the sample's beams, by stamp) for D1 and D2.
 Samples go through in chunks of MASK_SAMPLES; the mask's top bit marks a cell listed in this scan.
+
+One distinct sample (M = 1 after merging identical samples: a single pose, or a particle set whose particles
+are all the same) has its own pass, :func:`_accumulate_single`, which gives the same map for about half the
+time. With one sample of weight w a cell's update is w l_free + w d (d its largest excess, 0 in free space;
+the same sum l_free W + D1 as above) and its spread is 0, so the pass keeps no masks, weight sums or
+per-sample records: per 8 x 8 block of the window one 64-bit set of the touched cells (a free-space visit sets
+one bit in a small array) and one of the cells with an excess, whose largest excess is kept per cell. The
+second pass (:func:`_apply_single`) walks the touched blocks, adds w (l_free + d) to each touched cell,
+leaves the variance layer alone (spread 0) and clears the bits. The rays are walked exactly as in the samples
+pass (same helpers, window, free phase and shards' tiles).
 """
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -103,6 +114,16 @@ class BeamTable:
     # the peak for hits; r_stop for beams with no return, which are free throughout)
 
 
+@functools.lru_cache(maxsize=16)
+def _constant_sigma_peak(model: SensorModel) -> tuple[float, float]:
+    """For a constant-sigma model: r* - z (m), the same for every return, and g(r*), the model's maximum.
+
+    r* - z is computed by the model itself (at z = 0), so z + (r* - z) rounds exactly as
+    :meth:`SensorModel.peak_range` does per beam; g(r*) does not depend on z either (up to rounding), and
+    the kernels read log-odds from the table for these models, not from g_peak."""
+    return float(model.peak_range(np.zeros(1))[0]), float(model.peak(np.ones(1))[0])
+
+
 def beam_table(ranges: np.ndarray, model: SensorModel, range_min: float, range_max: float) -> BeamTable:
     """Classify the beams of one scan and precompute their model parameters.
 
@@ -114,12 +135,18 @@ def beam_table(ranges: np.ndarray, model: SensorModel, range_min: float, range_m
     hit = ~no_return & (ranges >= range_min)
     kind = np.where(hit, BEAM_HIT, np.where(no_return, BEAM_NO_RETURN, BEAM_SKIP)).astype(np.int8)
     z = np.where(hit, ranges, 0.0)
-    sigma = np.where(hit, model.sigma_at(np.where(hit, z, 1.0)), 1.0)
+    z_safe = np.where(hit, z, 1.0)
+    if model.sigma == "constant":  # the same sigma, peak offset and peak value for every beam (cheaper)
+        peak_offset, peak = _constant_sigma_peak(model)
+        sigma = np.where(hit, model.sigma0, 1.0)
+        r_peak = np.where(hit, z_safe + peak_offset, 0.0)
+        g_peak = np.where(hit, peak, 1.0)
+    else:
+        sigma = np.where(hit, model.sigma_at(z_safe), 1.0)
+        r_peak = np.where(hit, model.peak_range(z_safe), 0.0)
+        g_peak = np.where(hit, model.peak(z_safe), 1.0)
     half = model.l / 2
     r_stop = np.where(hit, z + TAIL_SIGMAS * sigma, np.where(no_return, range_max, 0.0))
-    z_safe = np.where(hit, z, 1.0)
-    r_peak = np.where(hit, model.peak_range(z_safe), 0.0)
-    g_peak = np.where(hit, model.peak(z_safe), 1.0)
     free_until = np.where(hit, z - half - FREE_SHORTCUT_SIGMAS * sigma, r_stop)
     return BeamTable(kind, z, r_stop, r_peak, z - half, z + half, SQRT2 * sigma, g_peak, free_until)
 
@@ -295,6 +322,26 @@ def _jump_over_tile(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta
     return ix, iy, t_max_x, t_max_y, r_in, t_exit
 
 
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _ray_start(x0, y0, theta, stop, res, win_ix0, win_iy0, win_w, win_h):  # pragma: no cover - compiled
+    """Start a ray of length stop (m) from (x0, y0) (m, map frame) at theta (rad): returns (inside, ix, iy,
+    step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol), the traversal state of
+    :func:`mapping.raytrace.dda_start` and the ray's :func:`mapping.raytrace.corner_tol`.
+
+    inside is false when an end cell of the ray is not inside the window (win_ix0, win_iy0, win_w, win_h)
+    with a cell to spare. The window covers every ray's reach with a cell to spare, so this never skips; it
+    guards the scratch memory once per ray (a segment's cells lie between its end cells, give or take a
+    rounding)."""
+    dx = math.cos(theta)
+    dy = math.sin(theta)
+    ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y = dda_start(x0, y0, dx, dy, res)
+    end_gx = math.floor((x0 + stop * dx) / res) - win_ix0
+    end_gy = math.floor((y0 + stop * dy) / res) - win_iy0
+    inside = not (min(ix - win_ix0, iy - win_iy0, end_gx, end_gy) < 1 or max(ix - win_ix0, end_gx) >= win_w - 1
+                  or max(iy - win_iy0, end_gy) >= win_h - 1)
+    return inside, ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, corner_tol(stop)
+
+
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop, r_peak, a, b, s, g_peak,
                      free_until, table, u0, du, res, p_miss, p_hit, l_free, win_ix0, win_iy0, win_w, win_h, tile_shift,
@@ -332,20 +379,10 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
                 s_k = s[k]
                 g_peak_k = g_peak[k]
                 free_until_k = free_until[k]
-                theta = laser_yaw[j] + angles[k]
-                dx = math.cos(theta)
-                dy = math.sin(theta)
-                ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y = dda_start(
-                    laser_x[j], laser_y[j], dx, dy, res)
-                # the window covers every ray's reach with a cell to spare, so this never skips; it guards the
-                # scratch memory once per ray (a segment's cells lie between its end cells, give or take a
-                # rounding)
-                end_gx = math.floor((laser_x[j] + stop * dx) / res) - win_ix0
-                end_gy = math.floor((laser_y[j] + stop * dy) / res) - win_iy0
-                if (min(ix - win_ix0, iy - win_iy0, end_gx, end_gy) < 1 or max(ix - win_ix0, end_gx) >= win_w - 1
-                        or max(iy - win_iy0, end_gy) >= win_h - 1):
+                inside, ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol = _ray_start(
+                    laser_x[j], laser_y[j], laser_yaw[j] + angles[k], stop, res, win_ix0, win_iy0, win_w, win_h)
+                if not inside:
                     continue
-                tol = corner_tol(stop)
                 r_in = 0.0
                 mine = True
                 cell_tx = tx0 - 1  # the tile whose ownership ``mine`` holds; none yet (no ray leaves the window)
@@ -410,6 +447,130 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
     return n_scan
 
 
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _raise_excess(touched, raised, excess, gx, gy, d, blocks_w):  # pragma: no cover - compiled
+    """One-sample pass: mark window cell (gx, gy) touched and keep its largest excess d > 0 (see
+    :func:`_accumulate_single` for the arrays)."""
+    block = (gy >> 3) * blocks_w + (gx >> 3)
+    bit = np.int64(1) << (((gy & 7) << 3) | (gx & 7))
+    touched[block] |= bit
+    if d > 0.0:
+        c = _record_index(gx, gy, blocks_w)
+        seen = raised[block]
+        if seen & bit == 0:
+            raised[block] = seen | bit
+            excess[c] = d
+        elif d > excess[c]:
+            excess[c] = d
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _bit_count(bits):  # pragma: no cover - compiled
+    """The number of set bits of an int64 (one loop iteration per set bit)."""
+    n = 0
+    while bits != 0:
+        bits &= bits - 1
+        n += 1
+    return n
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _accumulate_single(laser_x, laser_y, laser_yaw, angles, kind, z, r_stop, r_peak, a, b, s, g_peak, free_until, table,
+                       u0, du, res, p_miss, p_hit, l_free, win_ix0, win_iy0, win_w, win_h, tile_shift, tx0, ty0, owned,
+                       all_owned, touched, raised, excess, blocks_w, blocks_h,
+                       tile_touched):  # pragma: no cover - compiled
+    """The pass for one pose sample (laser at laser_x, laser_y m, heading laser_yaw rad): every (beam, cell)
+    pair; returns the number of distinct cells touched and marks their tiles in tile_touched.
+
+    Same walk as :func:`_accumulate_scan` (window, two phases, shards' tiles), but with one sample the cell
+    just keeps the largest excess d of the beams that touch it. The window's origin is a multiple of 8 cells,
+    so its 8 x 8 blocks are blocks of the global grid. Per block (index (gy >> 3) * blocks_w + (gx >> 3)),
+    touched[block] and raised[block] (int64) hold bit (gy & 7) * 8 + (gx & 7) for the cells touched in this
+    scan and for those with an excess d > 0, whose largest d is excess[c] (c from :func:`_record_index`, valid
+    only where the raised bit is set). Free-phase visits only set a bit: no write to the large excess array.
+    The bits are zero between scans (:func:`_apply_single` clears them)."""
+    y_peak = math.log(p_hit) - math.log1p(-p_hit)
+    for k in range(angles.shape[0]):
+        beam_kind = kind[k]
+        if beam_kind == BEAM_SKIP:
+            continue
+        stop = r_stop[k]
+        peak_at = r_peak[k]
+        z_k = z[k]
+        a_k = a[k]
+        b_k = b[k]
+        s_k = s[k]
+        g_peak_k = g_peak[k]
+        free_until_k = free_until[k]
+        inside, ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol = _ray_start(
+            laser_x, laser_y, laser_yaw + angles[k], stop, res, win_ix0, win_iy0, win_w, win_h)
+        if not inside:
+            continue
+        r_in = 0.0
+        mine = True
+        cell_tx = tx0 - 1  # the tile whose ownership ``mine`` holds; none yet (no ray leaves the window)
+        cell_ty = ty0 - 1
+        ray_done = False
+        free_limit = min(free_until_k, stop)
+        while True:  # the free phase
+            r_out = min(t_max_x, t_max_y)
+            if r_out >= free_limit:
+                break
+            if not all_owned and ((ix >> tile_shift) != cell_tx or (iy >> tile_shift) != cell_ty):
+                cell_tx = ix >> tile_shift
+                cell_ty = iy >> tile_shift
+                mine = owned[cell_ty - ty0, cell_tx - tx0]
+            if not mine:
+                jumped_from = r_in
+                ix, iy, t_max_x, t_max_y, r_in, t_exit = _jump_over_tile(
+                    ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tile_shift)
+                if t_exit >= stop:
+                    ray_done = True
+                    break
+                if r_in > jumped_from:
+                    continue  # look at the cell the jump landed in
+            elif r_out > r_in:
+                gx = ix - win_ix0
+                gy = iy - win_iy0
+                touched[(gy >> 3) * blocks_w + (gx >> 3)] |= np.int64(1) << (((gy & 7) << 3) | (gx & 7))
+            r_in = r_out
+            ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol)
+        while not ray_done:  # the cells from free_until to the ray's end
+            if not all_owned and ((ix >> tile_shift) != cell_tx or (iy >> tile_shift) != cell_ty):
+                cell_tx = ix >> tile_shift
+                cell_ty = iy >> tile_shift
+                mine = owned[cell_ty - ty0, cell_tx - tx0]
+            if not mine:
+                ix, iy, t_max_x, t_max_y, r_in, t_exit = _jump_over_tile(
+                    ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tile_shift)
+                if t_exit >= stop:
+                    break
+            r_out = min(t_max_x, t_max_y, stop)
+            if r_out > r_in and mine:
+                d = segment_logodds(r_in, r_out, beam_kind, free_until_k, z_k, peak_at, a_k, b_k, s_k, g_peak_k, table,
+                                    u0, du, p_miss, p_hit, l_free, y_peak) - l_free
+                _raise_excess(touched, raised, excess, ix - win_ix0, iy - win_iy0, d, blocks_w)
+            if r_out >= stop:
+                break
+            r_in = r_out
+            ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol)
+    n_cells = 0
+    for block in range(blocks_w * blocks_h):
+        bits = touched[block]
+        if bits == 0:
+            continue
+        n_cells += _bit_count(bits)
+        bx = (block % blocks_w) * 8 + win_ix0
+        by = (block // blocks_w) * 8 + win_iy0
+        if tile_shift >= 3:  # the block lies in one tile
+            tile_touched[(by >> tile_shift) - ty0, (bx >> tile_shift) - tx0] = True
+        else:
+            for bit in range(64):
+                if (bits >> bit) & 1:
+                    tile_touched[((by + (bit >> 3)) >> tile_shift) - ty0, ((bx + (bit & 7)) >> tile_shift) - tx0] = True
+    return n_cells
+
+
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _apply_scan(scan_cells, n_scan, mask, weight_sum, excess, stamp_base, l_free, blocks_w, win_ix0, win_iy0,
                 tile_shift, tx0, ty0, slot_map, logodds, variance, observed, l_min, l_max):  # pragma: no cover
@@ -445,6 +606,46 @@ def _apply_scan(scan_cells, n_scan, mask, weight_sum, excess, stamp_base, l_free
         observed[slot, ly, lx] = True
 
 
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _apply_single(touched, raised, excess, blocks_w, blocks_h, w, l_free, win_ix0, win_iy0, tile_shift, tx0, ty0,
+                  slot_map, logodds, observed, l_min, l_max):  # pragma: no cover - compiled
+    """Add the one-sample scan to each touched cell: w (l_free + d) as the multi-sample moments give it,
+    l_free W + D1 with W = w and D1 = w d (d the cell's largest excess, 0 where none), clamped to [l_min,
+    l_max]; mark the cell observed. The spread of one sample is 0, so the variance layer is left as it is.
+    Block by block, so neighbouring cells are written together; clears the blocks' bits for the next scan."""
+    in_tile = (1 << tile_shift) - 1
+    base = l_free * w
+    for block in range(blocks_w * blocks_h):
+        bits = touched[block]
+        if bits == 0:
+            continue
+        up = raised[block]
+        touched[block] = 0
+        raised[block] = 0
+        bx = (block % blocks_w) * 8 + win_ix0
+        by = (block // blocks_w) * 8 + win_iy0
+        for row in range(8):
+            if (bits >> (8 * row)) & 255 == 0:
+                continue
+            iy = by + row
+            for col in range(8):
+                bit = 8 * row + col
+                if (bits >> bit) & 1 == 0:
+                    continue
+                ix = bx + col
+                slot = slot_map[(iy >> tile_shift) - ty0, (ix >> tile_shift) - tx0]
+                mean = base
+                if (up >> bit) & 1:
+                    mean = base + w * excess[block * 64 + bit]
+                updated = logodds[slot, iy & in_tile, ix & in_tile] + mean
+                if updated < l_min:
+                    updated = l_min
+                elif updated > l_max:
+                    updated = l_max
+                logodds[slot, iy & in_tile, ix & in_tile] = updated
+                observed[slot, iy & in_tile, ix & in_tile] = True
+
+
 def check_scan(ranges: np.ndarray, samples: np.ndarray, weights: np.ndarray,
                beams: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Validate one scan's inputs and return them as arrays: ranges (B,), samples (M, 3), weights (M,)."""
@@ -465,9 +666,13 @@ def check_scan(ranges: np.ndarray, samples: np.ndarray, weights: np.ndarray,
 def laser_poses(samples: np.ndarray, sensor_offset: np.ndarray) -> np.ndarray:
     """Laser poses (M, 3) in the map frame from robot poses (M, 3) and the laser's (x, y, yaw) in the robot frame."""
     x, y, yaw = samples[:, 0], samples[:, 1], samples[:, 2]
-    ox, oy, oyaw = sensor_offset
+    ox, oy, oyaw = np.asarray(sensor_offset, dtype=np.float64).tolist()
     c, s = np.cos(yaw), np.sin(yaw)
-    return np.stack([x + c * ox - s * oy, y + s * ox + c * oy, yaw + oyaw], axis=1)
+    poses = np.empty((len(samples), 3))
+    poses[:, 0] = x + c * ox - s * oy
+    poses[:, 1] = y + s * ox + c * oy
+    poses[:, 2] = yaw + oyaw
+    return poses
 
 
 def merge_duplicates(samples: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -476,6 +681,8 @@ def merge_duplicates(samples: np.ndarray, weights: np.ndarray) -> tuple[np.ndarr
     Resampled particle filters repeat many particles; merging them before ray casting gives the same map
     for less work. Order: first occurrence of each distinct pose.
     """
+    if len(weights) == 1 and weights[0] > 0:
+        return samples, weights
     keep = weights > 0
     samples, weights = samples[keep], weights[keep]
     if len(samples) == 1:
@@ -521,9 +728,12 @@ class MonteCarloFusion:
         self.owns_tile = owns_tile
         self.merge_identical = merge_identical
         self._owned_cache: dict[tuple[int, int], bool] = {}
+        self._owned_windows: dict[tuple[int, int, int, int], tuple[np.ndarray, bool]] = {}
         self._stamp_next = 1
         self._scratch_size = 0
+        self._single_blocks = 0
         self._table = logodds_table(model) if model.sigma == "constant" else np.zeros(0)
+        self._l_free, self._l_min, self._l_max = model.l_free, model.l_min, model.l_max  # (properties: computed)
 
     def _scratch(self, cells: int) -> None:
         if cells <= self._scratch_size:
@@ -535,20 +745,48 @@ class MonteCarloFusion:
         self._excess = np.zeros((cells, 4), np.float64)
         self._scan_cells = np.zeros((cells, 2), np.int32)
 
-    def _owned_mask(self, tx0: int, ty0: int, ntx: int, nty: int) -> np.ndarray:
-        owned = np.ones((nty, ntx), np.bool_)
-        if self.owns_tile is None:
-            return owned
-        for j in range(nty):
-            for i in range(ntx):
-                key = (tx0 + i, ty0 + j)
-                if key not in self._owned_cache:
-                    self._owned_cache[key] = bool(self.owns_tile(*key))
-                owned[j, i] = self._owned_cache[key]
-        return owned
+    def _single_scratch(self, blocks: int) -> None:
+        if blocks <= self._single_blocks:
+            return
+        self._single_blocks = blocks
+        # per 8 x 8 block and per cell (see _accumulate_single): touched and raised bits, the largest excess
+        self._touched_bits = np.zeros(blocks, np.int64)
+        self._raised_bits = np.zeros(blocks, np.int64)
+        self._largest = np.zeros(blocks * 64, np.float64)
+
+    def _owned_mask(self, tx0: int, ty0: int, ntx: int, nty: int) -> tuple[np.ndarray, bool]:
+        """Which tiles of the window's ntx x nty tiles from (tx0, ty0) the shard owns, and whether all; kept
+        per window (the kernels only read it)."""
+        key = (tx0, ty0, ntx, nty)
+        window = self._owned_windows.get(key)
+        if window is None:
+            owned = np.ones((nty, ntx), np.bool_)
+            if self.owns_tile is not None:
+                for j in range(nty):
+                    for i in range(ntx):
+                        tile = (tx0 + i, ty0 + j)
+                        if tile not in self._owned_cache:
+                            self._owned_cache[tile] = bool(self.owns_tile(*tile))
+                        owned[j, i] = self._owned_cache[tile]
+            window = self._owned_windows[key] = (owned, bool(owned.all()))
+        return window
+
+    def _tile_slots(self, touched: np.ndarray, tx0: int, ty0: int) -> tuple[np.ndarray, list[tuple[int, int]]]:
+        """The grid slot of each touched tile of the window (tiles created as needed; -1 elsewhere), and the
+        touched tiles' keys in row order."""
+        slot_map = np.full(touched.shape, -1, np.int64)
+        changed = []
+        for j, i in zip(*(index.tolist() for index in np.nonzero(touched))):
+            key = (tx0 + i, ty0 + j)
+            slot_map[j, i] = self.grid.slot(key)
+            changed.append(key)
+        return slot_map, changed
 
     def fuse(self, ranges: np.ndarray, samples: np.ndarray, weights: np.ndarray) -> FuseResult:
-        """Fuse one scan: ranges (B,) m, robot pose samples (M, 3) map frame, weights (M,) summing to 1."""
+        """Fuse one scan: ranges (B,) m, robot pose samples (M, 3) map frame, weights (M,) summing to 1.
+
+        One distinct sample (after merging) takes the one-sample pass (:func:`_accumulate_single`), which gives
+        the same map as the samples pass for less work."""
         ranges, samples, weights = check_scan(ranges, samples, weights, self.angles.shape[0])
         if self.merge_identical:
             samples, weights = merge_duplicates(samples, weights)
@@ -560,38 +798,49 @@ class MonteCarloFusion:
         grid = self.grid
         res = grid.resolution
         reach = float(beams.r_stop.max()) + res
-        win_ix0 = math.floor((lasers[:, 0].min() - reach) / res)
-        win_iy0 = math.floor((lasers[:, 1].min() - reach) / res)
-        win_w = math.floor((lasers[:, 0].max() + reach) / res) - win_ix0 + 1
-        win_h = math.floor((lasers[:, 1].max() + reach) / res) - win_iy0 + 1
+        (x_lo, y_lo), (x_hi, y_hi) = lasers[:, :2].min(axis=0).tolist(), lasers[:, :2].max(axis=0).tolist()
+        win_ix0 = math.floor((x_lo - reach) / res) & ~7  # a multiple of 8: the scratch's 8 x 8 blocks are the grid's
+        win_iy0 = math.floor((y_lo - reach) / res) & ~7
+        win_w = math.floor((x_hi + reach) / res) - win_ix0 + 1
+        win_h = math.floor((y_hi + reach) / res) - win_iy0 + 1
         shift = grid.tile_shift
         tx0, ty0 = win_ix0 >> shift, win_iy0 >> shift
         ntx = ((win_ix0 + win_w - 1) >> shift) - tx0 + 1
         nty = ((win_iy0 + win_h - 1) >> shift) - ty0 + 1
         blocks_w, blocks_h = -(-win_w // 8), -(-win_h // 8)
+        owned, all_owned = self._owned_mask(tx0, ty0, ntx, nty)
+        touched = np.zeros((nty, ntx), np.bool_)
+        model = self.model
+        if len(samples) == 1:
+            self._single_scratch(blocks_w * blocks_h)
+            x, y, yaw = lasers[0].tolist()
+            n_scan = _accumulate_single(
+                x, y, yaw, self.angles, beams.kind, beams.z, beams.r_stop, beams.r_peak, beams.a, beams.b, beams.s,
+                beams.g_peak, beams.free_until, self._table, TABLE_U0, TABLE_DU, res, model.p_miss, model.p_hit,
+                self._l_free, win_ix0, win_iy0, win_w, win_h, shift, tx0, ty0, owned, all_owned, self._touched_bits,
+                self._raised_bits, self._largest, blocks_w, blocks_h, touched,
+            )
+            slot_map, changed = self._tile_slots(touched, tx0, ty0)
+            _apply_single(self._touched_bits, self._raised_bits, self._largest, blocks_w, blocks_h, float(weights[0]),
+                          self._l_free, win_ix0, win_iy0, shift, tx0, ty0, slot_map, grid.logodds, grid.observed,
+                          self._l_min, self._l_max)
+            return FuseResult(int(n_scan), changed)
+
         self._scratch(blocks_w * blocks_h * 64)
         if self._stamp_next + len(samples) >= STAMP_LIMIT:
             self._excess[:] = 0
             self._stamp_next = 1
-        owned = self._owned_mask(tx0, ty0, ntx, nty)
-        touched = np.zeros((nty, ntx), np.bool_)
         stamp_base = self._stamp_next
         self._stamp_next += len(samples)
-        model = self.model
         n_scan = _accumulate_scan(
             lasers[:, 0].copy(), lasers[:, 1].copy(), lasers[:, 2].copy(), weights, self.angles,
             beams.kind, beams.z, beams.r_stop, beams.r_peak, beams.a, beams.b, beams.s, beams.g_peak,
-            beams.free_until, self._table, TABLE_U0, TABLE_DU, res, model.p_miss, model.p_hit, model.l_free,
-            win_ix0, win_iy0, win_w, win_h, shift, tx0, ty0, owned, bool(owned.all()),
+            beams.free_until, self._table, TABLE_U0, TABLE_DU, res, model.p_miss, model.p_hit, self._l_free,
+            win_ix0, win_iy0, win_w, win_h, shift, tx0, ty0, owned, all_owned,
             self._mask, self._weight_sum, self._excess, blocks_w, self._scan_cells, touched, stamp_base,
         )
-        slot_map = np.full((nty, ntx), -1, np.int64)
-        changed = []
-        for j, i in zip(*np.nonzero(touched)):
-            key = (tx0 + int(i), ty0 + int(j))
-            slot_map[j, i] = grid.slot(key)
-            changed.append(key)
-        _apply_scan(self._scan_cells, n_scan, self._mask, self._weight_sum, self._excess, stamp_base, model.l_free,
+        slot_map, changed = self._tile_slots(touched, tx0, ty0)
+        _apply_scan(self._scan_cells, n_scan, self._mask, self._weight_sum, self._excess, stamp_base, self._l_free,
                     blocks_w, win_ix0, win_iy0, shift, tx0, ty0, slot_map, grid.logodds, grid.variance, grid.observed,
-                    model.l_min, model.l_max)
+                    self._l_min, self._l_max)
         return FuseResult(int(n_scan), changed)

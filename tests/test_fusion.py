@@ -117,6 +117,37 @@ def test_compiled_fusion_matches_slow_reference(seed, n_beams, n_samples, sigma_
         assert var == pytest.approx(max(spread[cell], 0.0), abs=3e-4), cell
 
 
+@settings(max_examples=16, deadline=None)
+@given(seed=st.integers(0, 10_000), n_beams=st.integers(1, 12), copies=st.integers(1, 3),
+       sigma_kind=st.sampled_from(["constant", "linear"]), shard=st.sampled_from([None, 0, 1]),
+       tile_size=st.sampled_from([4, 8]))
+def test_one_sample_pass_matches_slow_reference(seed, n_beams, copies, sigma_kind, shard, tile_size):
+    """One distinct pose (also a particle set whose particles are all that pose) takes the one-sample pass:
+    it must agree with the slow reference, with beams that have no return, for a shard that fuses only its
+    own tiles, and with tiles smaller than the pass's 8 x 8 blocks."""
+    rng = np.random.default_rng(seed)
+    slope = 0.02 if sigma_kind == "linear" else 0.0
+    model = SensorModel(resolution=0.1, sigma=sigma_kind, sigma0=0.04, sigma_slope=slope)
+    angles, ranges, sample, _ = random_scan(rng, n_beams, 1, 0.08)
+    ranges[rng.integers(n_beams)] = np.inf  # at least one beam with no return
+    offset = (0.1, -0.05, 0.2)
+    shift = tile_size.bit_length() - 1
+    owner = None if shard is None else (lambda tx, ty: (tx * 7 + ty * 13) % 2 == shard)
+    grid = TiledGrid(0.1, tile_size=tile_size)
+    fusion = MonteCarloFusion(grid, model, angles, 0.15, 1.0, offset, owns_tile=owner)
+    result = fusion.fuse(ranges, np.repeat(sample, copies, axis=0), np.full(copies, 1.0 / copies))
+    mean, _ = reference_fuse(model, angles, 0.15, 1.0, ranges, sample, np.ones(1), offset)
+    if owner is not None:
+        mean = {cell: value for cell, value in mean.items() if owner(cell[0] >> shift, cell[1] >> shift)}
+    got = fused_cells(grid)
+    assert set(got) == set(mean)
+    assert result.cells_updated == len(mean)
+    assert sorted(result.tiles_changed) == sorted(grid.keys())
+    for cell, (lo, var) in got.items():
+        assert lo == pytest.approx(min(max(mean[cell], model.l_min), model.l_max), abs=3e-4), cell
+        assert var == 0.0, "one sample has no spread"
+
+
 def test_samples_in_several_mask_chunks_match_slow_reference():
     """More samples than one chunk of the kernel's sample masks (the weight sums are folded per chunk)."""
     rng = np.random.default_rng(5)
