@@ -122,7 +122,7 @@ def test_matcher_recovers_a_displaced_pose_and_likelihood_peaks_at_truth():
     predicted = np.array([truth + [0.12, -0.09, 0.05]])
     q = np.diag([1.0, 1.0, 0.5]) ** 2  # a broad motion prior: the match is the likelihood's mode
     matched, score, mean, cov, _ = match_and_propose(
-        *grid, predicted, np.linalg.inv(q)[None], np.array([np.linalg.slogdet(q)[1]]), np.zeros(3), cos_b, sin_b,
+        *grid, predicted, np.zeros((1, 0, 2)), np.linalg.inv(q)[None], np.array([np.linalg.slogdet(q)[1]]), np.zeros(3), cos_b, sin_b,
         ranges, 1, 0.05, 0.075, 0.05, 3.0, 0.05, 0.05, 5, 0.25, 9.0, *proposal_stencil(0.02, 0.01))
     # mean end points per cell give sub-cell precision: well under the 5 cm cells and under 0.3 degrees
     assert np.hypot(*(matched[0, :2] - truth[:2])) < 0.01
@@ -134,6 +134,31 @@ def test_matcher_recovers_a_displaced_pose_and_likelihood_peaks_at_truth():
     with pytest.raises(ValueError, match="one row per particle"):
         log_likelihoods(*grid, truth + offsets, np.zeros(3), cos_b, sin_b, ranges, 1, 0.05, 0.075, 0.05)
     assert np.argmax(loglik) == 0 and np.all(loglik[1:] < loglik[0] - 1.0)
+
+
+def test_matcher_starts_where_the_robot_stood_and_behind_it():
+    """Odometry that reports a backward move as forward (the Freiburg 079 log does) or a move the wheels
+    slipped through puts the prediction 0.9 m or 0.45 m from the truth, beyond hill climbing's reach; the
+    extra starts (the particle's last pose, and the move mirrored) find the truth, and without them the
+    match stays near the wrong prediction."""
+    segments = room()
+    angles = np.linspace(-math.pi / 2, math.pi / 2, 181)
+    before = np.array([3.4, 2.6, 0.1])
+    maps = TileMaps(1, RES)
+    insert(maps, [before], angles, scan_from(before, angles, segments))
+    cos_b, sin_b = np.cos(angles), np.sin(angles)
+    grid = (maps.pool, maps.table, maps.tx0, maps.ty0, maps.shift, RES)
+    step = 0.45 * np.array([math.cos(0.1), math.sin(0.1), 0.0])
+    q = np.diag([0.05, 0.05, 0.05]) ** 2
+    args = (np.linalg.inv(q)[None], np.array([np.linalg.slogdet(q)[1]]), np.zeros(3), cos_b, sin_b)
+    for truth in (before - step, before):  # backed up; stood still
+        ranges = scan_from(truth, angles, segments)
+        predicted = (before + step)[None]
+        starts = np.stack([before[None, :2], (before - step)[None, :2]], axis=1)
+        for extra, found in ((starts, True), (np.zeros((1, 0, 2)), False)):
+            matched, *_ = match_and_propose(*grid, predicted, extra, *args, ranges, 1, 0.05, 0.075, 0.05, 3.0, 0.05,
+                                            0.05, 5, 0.25, 9.0, *proposal_stencil(0.02, 0.01))
+            assert (np.hypot(*(matched[0, :2] - truth[:2])) < 0.02) == found
 
 
 def test_backward_odometry_is_a_negative_translation():

@@ -26,6 +26,7 @@ class GridSlamConfig:
     ang_step: float = 0.05  # rad
     refinements: int = 5  # step halvings
     yaw_search: float = 0.25  # rad: yaws tried around the odometry's before hill climbing
+    slip_starts: bool = True  # also start the match where the robot stood and as far backwards as the odometry went
     prior_cap: float = 9.0  # squared Mahalanobis distance beyond which the matcher ignores the odometry
     stencil_xy: float = 0.02  # m, spacing of the stencil the likelihood's curvature is fitted on
     stencil_yaw: float = 0.01  # rad

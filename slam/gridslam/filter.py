@@ -148,8 +148,13 @@ class GridFastSLAM:
         q_logdet = np.linalg.slogdet(q)[1]
         beams = (self.cos_b[idx], self.sin_b[idx], r_stop[idx])
         grid = (maps.pool, maps.table, maps.tx0, maps.ty0, maps.shift, cfg.resolution)
+        # other places to start the match from: where the particle stood (the wheels slipped) and as far
+        # backwards as the odometry says forwards (a log that drops the sign of a backward move)
+        moved = predicted[:, :2] - self.poses[:, :2]
+        starts = np.stack([self.poses[:, :2], self.poses[:, :2] - moved], axis=1) if cfg.slip_starts \
+            else np.zeros((len(predicted), 0, 2))
         _, score, mean, cov, log_eta = match_and_propose(
-            *grid, predicted, q_inv, q_logdet, self.offset, *beams, cfg.kernel, cfg.sigma_match, cfg.sigma_like,
+            *grid, predicted, starts, q_inv, q_logdet, self.offset, *beams, cfg.kernel, cfg.sigma_match, cfg.sigma_like,
             cfg.p_rand, cfg.gain, cfg.lin_step, cfg.ang_step, cfg.refinements, cfg.yaw_search, cfg.prior_cap, self.stencil, self.fit)
         good = score >= cfg.min_match * max(len(idx), 1)
         poses = np.empty_like(predicted)

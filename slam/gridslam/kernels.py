@@ -248,8 +248,8 @@ def log_likelihoods(pool, table, tx0, ty0, shift, res, poses, offset, cos_b, sin
 
 
 @nb.njit(cache=True, nogil=True)
-def match_and_propose(pool, table, tx0, ty0, shift, res, predicted, q_inv, q_logdet, offset, cos_b, sin_b, rng,
-                      kernel, sigma_match, sigma_like, p_rand, gain, lin_step, ang_step, refinements,
+def match_and_propose(pool, table, tx0, ty0, shift, res, predicted, starts, q_inv, q_logdet, offset, cos_b, sin_b,
+                      rng, kernel, sigma_match, sigma_like, p_rand, gain, lin_step, ang_step, refinements,
                       yaw_search, prior_cap, stencil, fit):  # pragma: no cover - compiled
     """Scan-match every particle on its own grid, then fit the improved proposal around the match.
 
@@ -257,9 +257,12 @@ def match_and_propose(pool, table, tx0, ty0, shift, res, predicted, q_inv, q_log
     distance of x from the prediction under Q_j and the score standing in for the log-likelihood (see
     _objective): near the prediction a scan's fit must outweigh the odometry to pull the pose away, but
     the prior stops growing at prior_cap, because real odometry is sometimes simply wrong (the Freiburg
-    079 odometry reports 10 cm forward per scan where the robot backs up): first the best of the yaws predicted[j] + k ang_step,
-    |k ang_step| <= ``yaw_search`` rad (odometry can misjudge a fast turn by tens of degrees, more than hill
-    climbing recovers), then hill climbing (moves of +-lin_step m in x and y and +-ang_step rad in yaw,
+    079 odometry reports 10 cm forward per scan where the robot backs up): first the best of the yaws
+    predicted[j] + k ang_step, |k ang_step| <= ``yaw_search`` rad (odometry can misjudge a fast turn by tens
+    of degrees, more than hill climbing recovers), each tried at the predicted position and at the
+    positions ``starts`` (M, S, 2) m (S >= 0; the filter passes the particle's last position and the
+    odometry's move mirrored behind it: wheel slip and a lost sign put the truth there, beyond hill
+    climbing's reach from the prediction), then hill climbing (moves of +-lin_step m in x and y and +-ang_step rad in yaw,
     halved ``refinements`` times). The yaw search and all but the last :data:`FINE_REFINEMENTS` refinements use
     every second beam (half the cost; the coarse steps need no more).
 
@@ -299,13 +302,16 @@ def match_and_propose(pool, table, tx0, ty0, shift, res, predicted, q_inv, q_log
                                  inv_m, inv_l, log_pr, p_rand, stride, gain, predicted, q_inv, prior_cap)
         turns = int(yaw_search / ang_step)
         start_t = bt
-        for k in range(-turns, turns + 1):
-            if k == 0:
-                continue
-            f, s = _objective(pool, table, j, tx0, ty0, shift, res, bx, by, start_t + k * ang_step, offset, cos_b,
-                              sin_b, rng, kernel, inv_m, inv_l, log_pr, p_rand, stride, gain, predicted, q_inv, prior_cap)
-            if f > best:
-                best, score, bt = f, s, start_t + k * ang_step
+        for st in range(starts.shape[1] + 1):
+            sx, sy = (predicted[j, 0], predicted[j, 1]) if st == 0 else (starts[j, st - 1, 0], starts[j, st - 1, 1])
+            for k in range(-turns, turns + 1):
+                if k == 0 and st == 0:
+                    continue
+                f, s = _objective(pool, table, j, tx0, ty0, shift, res, sx, sy, start_t + k * ang_step, offset, cos_b,
+                                  sin_b, rng, kernel, inv_m, inv_l, log_pr, p_rand, stride, gain, predicted, q_inv,
+                                  prior_cap)
+                if f > best:
+                    best, score, bx, by, bt = f, s, sx, sy, start_t + k * ang_step
         lin, ang = lin_step, ang_step
         for r in range(refinements):
             if stride == 2 and r >= refinements - FINE_REFINEMENTS:
