@@ -124,6 +124,32 @@ def _constant_sigma_peak(model: SensorModel) -> tuple[float, float]:
     return float(model.peak_range(np.zeros(1))[0]), float(model.peak(np.ones(1))[0])
 
 
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _constant_sigma_beams(ranges, range_min, range_max, sigma0, half, peak_offset, peak):  # pragma: no cover
+    """The fields of :class:`BeamTable` for a constant-sigma model, one pass over the beams (the same
+    arithmetic as :func:`beam_table`'s array expressions, so the same bits)."""
+    n = ranges.shape[0]
+    kind = np.empty(n, np.int8)
+    fields = np.empty((8, n))  # z, r_stop, r_peak, a, b, s, g_peak, free_until
+    for k in range(n):
+        r = ranges[k]
+        no_return = not math.isfinite(r) or r > range_max
+        hit = not no_return and r >= range_min
+        kind[k] = BEAM_HIT if hit else (BEAM_NO_RETURN if no_return else BEAM_SKIP)
+        z = r if hit else 0.0
+        sigma = sigma0 if hit else 1.0
+        r_stop = z + TAIL_SIGMAS * sigma if hit else (range_max if no_return else 0.0)
+        fields[0, k] = z
+        fields[1, k] = r_stop
+        fields[2, k] = z + peak_offset if hit else 0.0
+        fields[3, k] = z - half
+        fields[4, k] = z + half
+        fields[5, k] = SQRT2 * sigma
+        fields[6, k] = peak if hit else 1.0
+        fields[7, k] = z - half - FREE_SHORTCUT_SIGMAS * sigma if hit else r_stop
+    return kind, fields
+
+
 def beam_table(ranges: np.ndarray, model: SensorModel, range_min: float, range_max: float) -> BeamTable:
     """Classify the beams of one scan and precompute their model parameters.
 
@@ -131,21 +157,19 @@ def beam_table(ranges: np.ndarray, model: SensorModel, range_min: float, range_m
     A range below range_min is not trusted and the beam is skipped.
     """
     ranges = np.asarray(ranges, dtype=np.float64)
+    half = model.l / 2
+    if model.sigma == "constant":  # the same sigma, peak offset and peak value for every beam: one compiled pass
+        kind, fields = _constant_sigma_beams(ranges, float(range_min), float(range_max), float(model.sigma0), half,
+                                             *_constant_sigma_peak(model))
+        return BeamTable(kind, *fields)
     no_return = ~np.isfinite(ranges) | (ranges > range_max)
     hit = ~no_return & (ranges >= range_min)
     kind = np.where(hit, BEAM_HIT, np.where(no_return, BEAM_NO_RETURN, BEAM_SKIP)).astype(np.int8)
     z = np.where(hit, ranges, 0.0)
     z_safe = np.where(hit, z, 1.0)
-    if model.sigma == "constant":  # the same sigma, peak offset and peak value for every beam (cheaper)
-        peak_offset, peak = _constant_sigma_peak(model)
-        sigma = np.where(hit, model.sigma0, 1.0)
-        r_peak = np.where(hit, z_safe + peak_offset, 0.0)
-        g_peak = np.where(hit, peak, 1.0)
-    else:
-        sigma = np.where(hit, model.sigma_at(z_safe), 1.0)
-        r_peak = np.where(hit, model.peak_range(z_safe), 0.0)
-        g_peak = np.where(hit, model.peak(z_safe), 1.0)
-    half = model.l / 2
+    sigma = np.where(hit, model.sigma_at(z_safe), 1.0)
+    r_peak = np.where(hit, model.peak_range(z_safe), 0.0)
+    g_peak = np.where(hit, model.peak(z_safe), 1.0)
     r_stop = np.where(hit, z + TAIL_SIGMAS * sigma, np.where(no_return, range_max, 0.0))
     free_until = np.where(hit, z - half - FREE_SHORTCUT_SIGMAS * sigma, r_stop)
     return BeamTable(kind, z, r_stop, r_peak, z - half, z + half, SQRT2 * sigma, g_peak, free_until)

@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapping.errors import InputError
-from mapping.fusion import MASK_SAMPLES, MonteCarloFusion, merge_duplicates
+from mapping.fusion import BEAM_HIT, BEAM_NO_RETURN, BEAM_SKIP, MASK_SAMPLES, MonteCarloFusion, beam_table, merge_duplicates
 from mapping.grid import TiledGrid
 from mapping.sensor_model import SensorModel
 from reference import reference_fuse
@@ -146,6 +146,20 @@ def test_one_sample_pass_matches_slow_reference(seed, n_beams, copies, sigma_kin
     for cell, (lo, var) in got.items():
         assert lo == pytest.approx(min(max(mean[cell], model.l_min), model.l_max), abs=3e-4), cell
         assert var == 0.0, "one sample has no spread"
+
+
+def test_constant_sigma_beam_table_matches_the_general_one():
+    """The compiled beam table of constant-sigma models against the array expressions every other model
+    takes (a linear model with slope 0 is the same model): kinds exactly, every field to rounding."""
+    ranges = np.array([0.05, 0.2, 1.0, 3.7, 12.0, 12.5, np.inf, -np.inf, np.nan, 0.1])
+    constant = beam_table(ranges, SensorModel(resolution=0.05, sigma0=0.04), 0.1, 12.0)
+    linear = beam_table(ranges, SensorModel(resolution=0.05, sigma="linear", sigma0=0.04), 0.1, 12.0)
+    expected_kinds = [BEAM_SKIP] + [BEAM_HIT] * 4 + [BEAM_NO_RETURN] * 4 + [BEAM_HIT]
+    assert constant.kind.tolist() == linear.kind.tolist() == expected_kinds
+    for field in ("z", "r_stop", "r_peak", "a", "b", "s", "g_peak", "free_until"):
+        np.testing.assert_allclose(getattr(constant, field), getattr(linear, field), rtol=1e-12, atol=1e-12,
+                                   err_msg=field)
+    assert constant.r_stop[5:9].tolist() == [12.0] * 4  # no return: free up to range_max
 
 
 def test_samples_in_several_mask_chunks_match_slow_reference():
