@@ -31,6 +31,39 @@ def _odom_delay(text: str) -> str | float:
     return value
 
 
+#: grid FastSLAM's filter options, shared by `posegrid slam`, `slam-node` and `run`: (option, GridSlamConfig field)
+FILTER_OPTIONS = (("--max-range", "max_range"), ("--linear-update", "linear_update"),
+                  ("--angular-update", "angular_update"), ("--grid-resolution", "resolution"),
+                  ("--min-range", "min_range"), ("--prior-cap", "prior_cap"))
+
+
+def filter_option_values(args: argparse.Namespace) -> list[tuple[str, str, float | None]]:
+    """(option, GridSlamConfig field, the value given or None) for each of :data:`FILTER_OPTIONS`."""
+    return [(option, field, getattr(args, option[2:].replace("-", "_"))) for option, field in FILTER_OPTIONS]
+
+
+def add_filter_options(group: argparse._ArgumentGroup, label: str = "") -> None:
+    """Add :data:`FILTER_OPTIONS` to ``group`` (default None: GridSlamConfig's, shown in the help), each
+    help text starting with ``label``."""
+    from slam.gridslam.config import GridSlamConfig
+
+    defaults = GridSlamConfig()
+    helps = {
+        "--max-range": f"m: beams are used up to here, longer ones only clear space (default {defaults.max_range:g}, "
+                       "at most the laser's)",
+        "--linear-update": f"m of odometry between scans integrated into the maps (default {defaults.linear_update:g})",
+        "--angular-update": f"rad of odometry turn between integrated scans (default {defaults.angular_update:g})",
+        "--grid-resolution": f"m, cell size of the particles' grids (default {defaults.resolution:g})",
+        "--min-range": f"m: shorter readings are ignored, e.g. people right beside the robot (default "
+                       f"{defaults.min_range:g}, or the sensor's if larger)",
+        "--prior-cap": "squared Mahalanobis distance from the odometry beyond which the scan matcher stops weighing "
+                       f"the odometry (default {defaults.prior_cap:g}; larger trusts the odometry more)",
+    }
+    for option, _ in FILTER_OPTIONS:
+        group.add_argument(option, type=float, default=None, metavar="D2" if option == "--prior-cap" else None,
+                           help=label + helps[option])
+
+
 def add_gridslam_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of --algo gridslam (INPUT is then a CARMEN log .clf/.log/.gz or a ROS 1/2 bag)."""
     group = parser.add_argument_group(
@@ -42,23 +75,7 @@ def add_gridslam_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--best-output", type=Path, default=None, metavar="BEST.npz",
                        help="posed-scan file: the integrated scans at the final best particle's poses, one sample "
                        "each, for its map (default: OUTPUT with the suffix .best.npz)")
-    group.add_argument("--max-range", type=float, default=None,
-                       help="m: beams are used up to here, longer ones only clear space (default 30)")
-    from slam.gridslam.config import GridSlamConfig
-
-    defaults = GridSlamConfig()
-    group.add_argument("--linear-update", type=float, default=None,
-                       help=f"m of odometry between scans integrated into the maps (default {defaults.linear_update:g})")
-    group.add_argument("--angular-update", type=float, default=None,
-                       help=f"rad of odometry turn between integrated scans (default {defaults.angular_update:g})")
-    group.add_argument("--grid-resolution", type=float, default=None, help="m, cell size of the particles' grids "
-                       f"(default {defaults.resolution:g})")
-    group.add_argument("--min-range", type=float, default=None,
-                       help=f"m: shorter readings are ignored, e.g. people right beside the robot (default "
-                       f"{defaults.min_range:g}, or the sensor's if larger)")
-    group.add_argument("--prior-cap", type=float, default=None, metavar="D2",
-                       help="squared Mahalanobis distance from the odometry beyond which the scan matcher stops "
-                       f"weighing the odometry (default {defaults.prior_cap:g}; larger trusts the odometry more)")
+    add_filter_options(group)
     group.add_argument("--odom-delay", type=_odom_delay, default=0.0, metavar="SECONDS|auto",
                        help="read each scan's odometry this many seconds after its stamp (negative: before), for a "
                        "laser whose stamps run late against the odometry's; 'auto' estimates it by running the "
@@ -78,10 +95,7 @@ def _config(args: argparse.Namespace):
 
     overrides = {"particles": DEFAULT_GRID_PARTICLES if args.particles is None else args.particles,
                  "resample_threshold": args.resample_threshold}
-    for option, field in (("max_range", "max_range"), ("linear_update", "linear_update"),
-                          ("angular_update", "angular_update"), ("grid_resolution", "resolution"),
-                          ("min_range", "min_range"), ("prior_cap", "prior_cap")):
-        value = getattr(args, option)
+    for _, field, value in filter_option_values(args):
         if value is not None:
             overrides[field] = value
     config = replace(GridSlamConfig(), **overrides)

@@ -9,6 +9,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from services.commands.gridslam import add_filter_options, filter_option_values
 from services.commands.mapping import add_sensor_model_arguments
 
 DEFAULT_MAP = "main"
@@ -190,25 +191,7 @@ def add_slam_arguments(parser: argparse.ArgumentParser, particles: int | None = 
                        help="known ids: ignore a measurement beyond this squared Mahalanobis distance")
     group.add_argument("--resample-threshold", type=float, default=0.5,
                        help="FastSLAM: resample when N_eff < this fraction of the particles (default 0.5)")
-    from slam.gridslam.config import GridSlamConfig
-
-    grid = GridSlamConfig()
-    group.add_argument("--max-range", type=float, default=None,
-                       help=f"grid FastSLAM: m, beams are used up to here (default {grid.max_range:g}, at most the "
-                       "laser's)")
-    group.add_argument("--linear-update", type=float, default=None,
-                       help=f"grid FastSLAM: m of odometry between integrated scans (default {grid.linear_update:g})")
-    group.add_argument("--angular-update", type=float, default=None,
-                       help=f"grid FastSLAM: rad of odometry turn between integrated scans (default "
-                       f"{grid.angular_update:g})")
-    group.add_argument("--grid-resolution", type=float, default=None,
-                       help=f"grid FastSLAM: m, cell size of the particles' grids (default {grid.resolution:g})")
-    group.add_argument("--min-range", type=float, default=None,
-                       help=f"grid FastSLAM: m, shorter readings are ignored (default {grid.min_range:g})")
-    group.add_argument("--prior-cap", type=float, default=None, metavar="D2",
-                       help="grid FastSLAM: squared Mahalanobis distance from the odometry beyond which the scan "
-                       f"matcher stops weighing it (default {grid.prior_cap:g})")
-
+    add_filter_options(group, label="grid FastSLAM: ")
 
 def slam_argv(args: argparse.Namespace, models: str) -> list[str]:
     """The SLAM options of ``args`` as arguments for a slam-node child."""
@@ -217,9 +200,7 @@ def slam_argv(args: argparse.Namespace, models: str) -> list[str]:
     for option, value in (("--particles", args.particles), ("--alphas", args.alphas),
                           ("--sigma-range", args.sigma_range), ("--sigma-bearing", args.sigma_bearing),
                           ("--range-fraction", args.range_fraction), ("--outlier-gate", args.outlier_gate),
-                          ("--max-range", args.max_range), ("--linear-update", args.linear_update),
-                          ("--angular-update", args.angular_update), ("--grid-resolution", args.grid_resolution),
-                          ("--min-range", args.min_range), ("--prior-cap", args.prior_cap)):
+                          *((option, value) for option, _, value in filter_option_values(args))):
         if value is not None:
             argv += [option, value if isinstance(value, str) else repr(value)]
     return argv
