@@ -110,6 +110,10 @@ def test_bad_inputs_give_one_line_and_exit_2(simdir, tmp_path, capsys):
     _one_line_exit_2(["slam", "--algo", "ekf", str(tmp_path), "-o", out], capsys, "neither a simulator folder")
     _one_line_exit_2(["slam", "--algo", "fastslam1", str(simdir), "-o", out, "--particles", "0"], capsys, "--particles")
     _one_line_exit_2(["slam", "--algo", "ekf", str(simdir), "-o", out, "--alphas", "1,2"], capsys, "--alphas")
+    # grid FastSLAM's options given to another filter would be ignored: refused, here and for the pipeline
+    _one_line_exit_2(["slam", "--algo", "ekf", str(simdir), "-o", out, "--prior-cap", "36"], capsys, "--prior-cap",
+                     "--algo gridslam")
+    _one_line_exit_2(["run", "--sim-dir", str(simdir), "--min-range", "1"], capsys, "--min-range", "fastslam2")
 
     broken = tmp_path / "broken"
     broken.mkdir()

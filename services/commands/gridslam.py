@@ -42,6 +42,16 @@ def filter_option_values(args: argparse.Namespace) -> list[tuple[str, str, float
     return [(option, field, getattr(args, option[2:].replace("-", "_"))) for option, field in FILTER_OPTIONS]
 
 
+def reject_filter_options(args: argparse.Namespace, algo: str) -> None:
+    """Raise UsageError when a grid FastSLAM filter option is given to another algorithm (it would be ignored)."""
+    from services.cli import UsageError
+
+    given = [option for option, _, value in filter_option_values(args) if value is not None]
+    if given and algo != "gridslam":
+        raise UsageError(f"{', '.join(given)} only apply to grid FastSLAM, but the SLAM algorithm is {algo}; add "
+                         "--algo gridslam or drop them")
+
+
 def add_filter_options(group: argparse._ArgumentGroup, label: str = "") -> None:
     """Add :data:`FILTER_OPTIONS` to ``group`` (default None: GridSlamConfig's, shown in the help), each
     help text starting with ``label``."""

@@ -9,7 +9,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from services.commands.gridslam import add_filter_options, filter_option_values
+from services.commands.gridslam import add_filter_options, filter_option_values, reject_filter_options
 from services.commands.mapping import add_sensor_model_arguments
 
 DEFAULT_MAP = "main"
@@ -195,6 +195,7 @@ def add_slam_arguments(parser: argparse.ArgumentParser, particles: int | None = 
 
 def slam_argv(args: argparse.Namespace, models: str) -> list[str]:
     """The SLAM options of ``args`` as arguments for a slam-node child."""
+    reject_filter_options(args, args.algo or "fastslam2")
     argv = ["--algo", args.algo or "fastslam2", "--associate", args.associate, "--motion", args.motion, "--seed", str(args.seed),
             "--models", args.models or models, "--resample-threshold", repr(args.resample_threshold)]
     for option, value in (("--particles", args.particles), ("--alphas", args.alphas),
@@ -439,6 +440,7 @@ def run_slam_node(args: argparse.Namespace) -> int:
 
     algo = args.algo or "fastslam2"
     args.algo = algo
+    reject_filter_options(args, algo)
     motion, sensor, gate = _slam_models(args)
     initial = _floats(args.initial, (3,), "--initial") if args.initial is not None else None
     grid_config = gridslam_config(args) if algo == "gridslam" else None

@@ -243,6 +243,9 @@ def run_slam(args: argparse.Namespace) -> int:
         from services.commands.gridslam import run_gridslam_command
 
         return run_gridslam_command(args)
+    from services.commands.gridslam import reject_filter_options
+
+    reject_filter_options(args, args.algo)
     from tqdm import tqdm
 
     from schemas.errors import FormatError
