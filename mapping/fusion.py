@@ -264,17 +264,15 @@ def add_sample_value(rec, c, sid, w, y):  # pragma: no cover - compiled
     rule: rec[c, 0] the stamp of the last sample that touched the cell, rec[c, 1] that sample's value so
     far (the max over its beams), rec[c, 2:4] the weighted moments sum_j w_j y_ij and sum_j w_j y_ij^2.
     When a later beam of the same sample raises the value, the moments are corrected by the difference,
-    so each (sample, cell) contributes exactly once. A record from an earlier scan must be cleared first."""
-    if rec[c, 0] != sid:
-        rec[c, 0] = sid
-        rec[c, 1] = y
-        rec[c, 2] += w * y
-        rec[c, 3] += w * y * y
-    elif y > rec[c, 1]:
-        old = rec[c, 1]
-        rec[c, 1] = y
-        rec[c, 2] += w * (y - old)
-        rec[c, 3] += w * (y * y - old * old)
+    so each (sample, cell) contributes exactly once. A record from an earlier scan must be cleared first.
+    Written with selects, not branches: whether a beam of the same sample came first is unpredictable."""
+    first = rec[c, 0] != sid
+    old = rec[c, 1]
+    new = y if first else max(old, y)
+    rec[c, 0] = sid
+    rec[c, 1] = new
+    rec[c, 2] += w * y if first else w * (new - old)
+    rec[c, 3] += w * y * y if first else w * (new * new - old * old)
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -285,26 +283,28 @@ def _record_index(gx, gy, blocks_w):  # pragma: no cover - compiled
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _mark(mask, c, bit, gx, gy, ix, iy, scan_cells, n_scan, weight_sum, tile_touched, tile_shift, tx0,
-          ty0):  # pragma: no cover - compiled
-    """Set a sample's bit in cell c's mask; a cell touched for the first time in this scan is listed in
-    scan_cells (its weight sum starts at 0, its tile is marked touched). Returns the new list length."""
+def _mark(mask, c, bit, scan_cells, n_scan):  # pragma: no cover - compiled
+    """Set a sample's bit in cell c's mask (c = gy * win_w + gx, row-major in the window); a cell touched for
+    the first time in this scan is listed in scan_cells. Returns the new list length. As little as possible
+    happens here (it runs once per free-space visit): tiles are marked when the masks are folded."""
     seen = mask[c]
     mask[c] = seen | bit
     if seen == 0:
-        scan_cells[n_scan, 0] = gx
-        scan_cells[n_scan, 1] = gy
-        weight_sum[c] = 0.0
-        tile_touched[(iy >> tile_shift) - ty0, (ix >> tile_shift) - tx0] = True
+        scan_cells[n_scan] = c
         return n_scan + 1
     return n_scan
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _fold_masks(mask, weight_sum, scan_cells, n_scan, blocks_w, weights, first):  # pragma: no cover - compiled
+def _fold_masks(mask, weight_sum, scan_cells, n_scan, weights, first, n_marked, win_w, win_ix0, win_iy0,
+                tile_touched, tile_shift, tx0, ty0):  # pragma: no cover - compiled
     """Add to each listed cell's weight sum the weights of the chunk's samples (first, first + 1, ...)
     whose bits its mask holds, and leave only the LISTED bit. The sum is taken a byte at a time from
-    tables of every byte's weight sums (one lookup per byte that holds samples)."""
+    tables of every byte's weight sums (one lookup per byte that holds samples). Marks the tiles of the
+    cells listed since the last fold (scan_cells[n_marked:n_scan]) in tile_touched."""
+    for q in range(n_marked, n_scan):
+        c = scan_cells[q]
+        tile_touched[((c // win_w + win_iy0) >> tile_shift) - ty0, ((c % win_w + win_ix0) >> tile_shift) - tx0] = True
     samples = min(MASK_SAMPLES, weights.shape[0] - first)
     n_bytes = (samples + 7) // 8
     sums = np.zeros((n_bytes, 256))
@@ -316,7 +316,7 @@ def _fold_masks(mask, weight_sum, scan_cells, n_scan, blocks_w, weights, first):
             for value in range(top, 2 * top):
                 sums[byte, value] = sums[byte, value - top] + w
     for q in range(n_scan):
-        c = _record_index(scan_cells[q, 0], scan_cells[q, 1], blocks_w)
+        c = scan_cells[q]
         bits = mask[c]
         total = 0.0
         for byte in range(n_bytes):
@@ -369,21 +369,22 @@ def _ray_start(x0, y0, theta, stop, res, win_ix0, win_iy0, win_w, win_h):  # pra
 @nb.njit(cache=True, nogil=True, error_model="numpy")
 def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop, r_peak, a, b, s, g_peak,
                      free_until, table, u0, du, res, p_miss, p_hit, l_free, win_ix0, win_iy0, win_w, win_h, tile_shift,
-                     tx0, ty0, owned, all_owned, mask, weight_sum, excess, blocks_w, scan_cells, tile_touched,
+                     tx0, ty0, owned, all_owned, mask, weight_sum, excess, scan_cells, tile_touched,
                      stamp_base):  # pragma: no cover - compiled
     """One pass over all (sample, beam, cell) triples; returns the number of distinct cells touched.
 
-    Window cell (gx, gy) is global cell (win_ix0 + gx, win_iy0 + gy); its scratch entries are at c from
-    :func:`_record_index`: mask[c] (uint64, the chunk's samples that touched it; zero between scans),
-    weight_sum[c] (W), excess[c] (four float64 kept by :func:`add_sample_value` for d: the stamp, the
-    current sample's largest d, D1, D2; sample j's stamp is stamp_base + j, so smaller stamps are from
-    earlier scans). scan_cells lists the touched cells. See the module docstring.
+    Window cell (gx, gy) is global cell (win_ix0 + gx, win_iy0 + gy); its scratch entries are at
+    c = gy * win_w + gx: mask[c] (uint64, the chunk's samples that touched it; zero between scans),
+    weight_sum[c] (W; zero between scans), excess[c] (four float64 kept by :func:`add_sample_value` for d: the
+    stamp, the current sample's largest d, D1, D2 (D1 and D2 zero between scans); sample j's stamp is
+    stamp_base + j, so smaller stamps are from earlier scans). scan_cells lists the touched cells' c. See the module docstring.
 
     Each ray runs in two phases: the free phase, cells that end before the beam's free_until (most of
     them), which take l_free without evaluating the model; then the cells up to the ray's end, valued by
     :func:`segment_logodds`. In another shard's tile the ray jumps to the tile's exit.
     """
     n_scan = 0
+    n_marked = 0  # scan_cells[:n_marked] have their tiles marked
     y_peak = math.log(p_hit) - math.log1p(-p_hit)
     for first in range(0, laser_x.shape[0], MASK_SAMPLES):
         for j in range(first, min(first + MASK_SAMPLES, laser_x.shape[0])):
@@ -413,11 +414,20 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
                 cell_ty = ty0 - 1
                 ray_done = False
                 free_limit = min(free_until_k, stop)
-                while True:  # the free phase
+                while all_owned:  # the free phase, every tile owned (the same walk without the ownership checks)
                     r_out = min(t_max_x, t_max_y)
                     if r_out >= free_limit:
                         break
-                    if not all_owned and ((ix >> tile_shift) != cell_tx or (iy >> tile_shift) != cell_ty):
+                    if r_out > r_in:
+                        n_scan = _mark(mask, (iy - win_iy0) * win_w + ix - win_ix0, bit, scan_cells, n_scan)
+                    r_in = r_out
+                    ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x,
+                                                        t_delta_y, tol)
+                while not all_owned:  # the free phase, some tiles another shard's
+                    r_out = min(t_max_x, t_max_y)
+                    if r_out >= free_limit:
+                        break
+                    if (ix >> tile_shift) != cell_tx or (iy >> tile_shift) != cell_ty:
                         cell_tx = ix >> tile_shift
                         cell_ty = iy >> tile_shift
                         mine = owned[cell_ty - ty0, cell_tx - tx0]
@@ -431,10 +441,7 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
                         if r_in > jumped_from:
                             continue  # look at the cell the jump landed in
                     elif r_out > r_in:
-                        gx = ix - win_ix0
-                        gy = iy - win_iy0
-                        n_scan = _mark(mask, _record_index(gx, gy, blocks_w), bit, gx, gy, ix, iy, scan_cells, n_scan,
-                                       weight_sum, tile_touched, tile_shift, tx0, ty0)
+                        n_scan = _mark(mask, (iy - win_iy0) * win_w + ix - win_ix0, bit, scan_cells, n_scan)
                     r_in = r_out
                     ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x,
                                                         t_delta_y, tol)
@@ -452,22 +459,18 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
                     if r_out > r_in and mine:
                         d = segment_logodds(r_in, r_out, beam_kind, free_until_k, z_k, peak_at, a_k, b_k, s_k, g_peak_k,
                                             table, u0, du, p_miss, p_hit, l_free, y_peak) - l_free
-                        gx = ix - win_ix0
-                        gy = iy - win_iy0
-                        c = _record_index(gx, gy, blocks_w)
-                        n_scan = _mark(mask, c, bit, gx, gy, ix, iy, scan_cells, n_scan, weight_sum, tile_touched,
-                                       tile_shift, tx0, ty0)
+                        c = (iy - win_iy0) * win_w + ix - win_ix0
+                        n_scan = _mark(mask, c, bit, scan_cells, n_scan)
                         if d > 0.0:
-                            if excess[c, 0] < stamp_base:  # first excess in this scan
-                                excess[c, 2] = 0.0
-                                excess[c, 3] = 0.0
                             add_sample_value(excess, c, sid, w, d)
                     if r_out >= stop:
                         break
                     r_in = r_out
                     ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x,
                                                         t_delta_y, tol)
-        _fold_masks(mask, weight_sum, scan_cells, n_scan, blocks_w, weights, first)
+        _fold_masks(mask, weight_sum, scan_cells, n_scan, weights, first, n_marked, win_w, win_ix0, win_iy0,
+                    tile_touched, tile_shift, tx0, ty0)
+        n_marked = n_scan
     return n_scan
 
 
@@ -596,26 +599,28 @@ def _accumulate_single(laser_x, laser_y, laser_yaw, angles, kind, z, r_stop, r_p
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _apply_scan(scan_cells, n_scan, mask, weight_sum, excess, stamp_base, l_free, blocks_w, win_ix0, win_iy0,
+def _apply_scan(scan_cells, n_scan, mask, weight_sum, excess, stamp_base, l_free, win_w, win_ix0, win_iy0,
                 tile_shift, tx0, ty0, slot_map, logodds, variance, observed, l_min, l_max):  # pragma: no cover
     """Add the scan's weighted mean to each touched cell (clamped) and its spread to the variance layer, from
-    the moments l_free W + D1 and l_free^2 W + 2 l_free D1 + D2; clear the cells' masks for the next scan."""
+    the moments l_free W + D1 and l_free^2 W + 2 l_free D1 + D2; clear the cells' masks and weight sums for
+    the next scan."""
     for q in range(n_scan):
-        gx = scan_cells[q, 0]
-        gy = scan_cells[q, 1]
-        c = _record_index(gx, gy, blocks_w)
-        ix = gx + win_ix0
-        iy = gy + win_iy0
+        c = scan_cells[q]
+        ix = c % win_w + win_ix0
+        iy = c // win_w + win_iy0
         slot = slot_map[(iy >> tile_shift) - ty0, (ix >> tile_shift) - tx0]
         in_tile = (1 << tile_shift) - 1
         ly = iy & in_tile
         lx = ix & in_tile
         mask[c] = 0
         moment1 = l_free * weight_sum[c]
+        weight_sum[c] = 0.0
         moment2 = l_free * moment1
         if excess[c, 0] >= stamp_base:
             moment1 += excess[c, 2]
             moment2 += 2.0 * l_free * excess[c, 2] + excess[c, 3]
+            excess[c, 2] = 0.0
+            excess[c, 3] = 0.0
         mean = moment1
         spread = moment2 - mean * mean
         if spread < 0.0:
@@ -709,7 +714,7 @@ def merge_duplicates(samples: np.ndarray, weights: np.ndarray) -> tuple[np.ndarr
         return samples, weights
     keep = weights > 0
     samples, weights = samples[keep], weights[keep]
-    if len(samples) == 1:
+    if len(samples) == 1 or np.unique(samples[:, 0]).size == len(samples):  # distinct x: distinct poses (fast)
         return samples, weights
     unique, first, inverse = np.unique(samples, axis=0, return_index=True, return_inverse=True)
     if len(unique) == len(samples):
@@ -767,7 +772,7 @@ class MonteCarloFusion:
         self._mask = np.zeros(cells, np.uint64)
         self._weight_sum = np.zeros(cells, np.float64)
         self._excess = np.zeros((cells, 4), np.float64)
-        self._scan_cells = np.zeros((cells, 2), np.int32)
+        self._scan_cells = np.zeros(cells, np.int64)
 
     def _single_scratch(self, blocks: int) -> None:
         if blocks <= self._single_blocks:
@@ -850,7 +855,7 @@ class MonteCarloFusion:
                           self._l_min, self._l_max)
             return FuseResult(int(n_scan), changed)
 
-        self._scratch(blocks_w * blocks_h * 64)
+        self._scratch(win_w * win_h)
         if self._stamp_next + len(samples) >= STAMP_LIMIT:
             self._excess[:] = 0
             self._stamp_next = 1
@@ -861,10 +866,10 @@ class MonteCarloFusion:
             beams.kind, beams.z, beams.r_stop, beams.r_peak, beams.a, beams.b, beams.s, beams.g_peak,
             beams.free_until, self._table, TABLE_U0, TABLE_DU, res, model.p_miss, model.p_hit, self._l_free,
             win_ix0, win_iy0, win_w, win_h, shift, tx0, ty0, owned, all_owned,
-            self._mask, self._weight_sum, self._excess, blocks_w, self._scan_cells, touched, stamp_base,
+            self._mask, self._weight_sum, self._excess, self._scan_cells, touched, stamp_base,
         )
         slot_map, changed = self._tile_slots(touched, tx0, ty0)
         _apply_scan(self._scan_cells, n_scan, self._mask, self._weight_sum, self._excess, stamp_base, self._l_free,
-                    blocks_w, win_ix0, win_iy0, shift, tx0, ty0, slot_map, grid.logodds, grid.variance, grid.observed,
+                    win_w, win_ix0, win_iy0, shift, tx0, ty0, slot_map, grid.logodds, grid.variance, grid.observed,
                     self._l_min, self._l_max)
         return FuseResult(int(n_scan), changed)
