@@ -5,9 +5,13 @@ against OctoMap 1.10 through pyoctomap fed the same scans (the OctoMap columns a
 a bench-only extra, is not installed), and against a plain compiled ray loop with a simple sensor model on
 the same sample rays (the yardstick the issue's 150 scans/s target was set against: about 5 million
 sample-rays per second on the machine it was measured on). All single-threaded.
+
+Each comparison runs in turns of a few scans (posegrid's, then the baseline's same scans, ...), so the
+machine's drift, tens of percent within a minute on a shared machine, falls on both sides of a ratio alike.
 """
 from __future__ import annotations
 
+import functools
 import math
 import time
 
@@ -26,16 +30,16 @@ SAMPLES = 60
 RESOLUTION = 0.05
 
 
-def _time_fusion(posed, mode: str, merge_identical: bool = True, scans: int | None = None) -> tuple[float, TiledGrid]:
-    """Seconds to fuse the first ``scans`` scans (after a warm-up scan that compiles the kernels)."""
+def _fusion_steps(posed, mode: str, merge_identical: bool = True) -> tuple[list, TiledGrid]:
+    """One callable per scan that fuses it ("mc": all samples; "ml": the most likely one) into a fresh grid,
+    after a warm-up scan into another grid that compiles the kernels; and that grid."""
     model = SensorModel(resolution=RESOLUTION)
     grid = TiledGrid(RESOLUTION)
     fusion = MonteCarloFusion(grid, model, posed.beam_angles, posed.range_min, posed.range_max, posed.sensor_offset,
                               merge_identical=merge_identical)
-    count = scans or len(posed.stamps)
     poses = posed.poses
     picks = []
-    for t in range(count):
+    for t in range(len(posed.stamps)):
         if mode == "ml":
             best = int(np.argmax(poses.weights[t]))
             picks.append((poses.samples[t, best:best + 1], np.ones(1)))
@@ -43,10 +47,24 @@ def _time_fusion(posed, mode: str, merge_identical: bool = True, scans: int | No
             picks.append((poses.samples[t], poses.weights[t]))
     MonteCarloFusion(TiledGrid(RESOLUTION), model, posed.beam_angles, posed.range_min, posed.range_max).fuse(
         posed.ranges[0], *picks[0])
-    start = time.perf_counter()
-    for t in range(count):
-        fusion.fuse(posed.ranges[t], *picks[t])
-    return time.perf_counter() - start, grid
+    steps = [functools.partial(fusion.fuse, posed.ranges[t], *picks[t]) for t in range(len(posed.stamps))]
+    return steps, grid
+
+
+def _interleaved_seconds(*step_lists: list, chunk: int) -> list[np.ndarray]:
+    """Seconds per scan of each list of per-scan callables (None: a scan that list skips), run in turns of
+    ``chunk`` scans (list 0's scans t..t+chunk-1, then list 1's, ...), so that the machine's drift falls on
+    all of them alike while each side keeps its caches warm within a turn (scan-by-scan turns made a 0.4 ms
+    ml scan 40 % slower after every OctoMap insertion)."""
+    seconds = [np.zeros(len(steps)) for steps in step_lists]
+    for first in range(0, len(step_lists[0]), chunk):
+        for steps, spent in zip(step_lists, seconds):
+            for t in range(first, min(first + chunk, len(steps))):
+                if steps[t] is not None:
+                    start = time.perf_counter()
+                    steps[t]()
+                    spent[t] = time.perf_counter() - start
+    return seconds
 
 
 @nb.njit(cache=True, nogil=True)
@@ -75,8 +93,9 @@ def _plain_ray_loop(laser_x, laser_y, laser_yaw, angles, ranges, range_max, res,
     return visits
 
 
-def _plain_loop_seconds(posed) -> tuple[float, int]:
-    """Seconds for :func:`_plain_ray_loop` over every scan's sample rays, and the cells it visited."""
+def _plain_loop_steps(posed) -> tuple[list, list[int]]:
+    """One callable per scan running :func:`_plain_ray_loop` over the scan's sample rays (compiled first),
+    and a one-element list that counts the cells they visit."""
     model = SensorModel(resolution=RESOLUTION)
     lasers = [laser_poses(posed.poses.samples[t], posed.sensor_offset) for t in range(len(posed.stamps))]
     ranges = np.where(np.isfinite(posed.ranges), posed.ranges, np.inf).astype(np.float64)
@@ -88,16 +107,19 @@ def _plain_loop_seconds(posed) -> tuple[float, int]:
     args = (posed.beam_angles, posed.range_max, RESOLUTION, model.l_free, model.l_hit)
     _plain_ray_loop(lasers[0][:1, 0].copy(), lasers[0][:1, 1].copy(), lasers[0][:1, 2].copy(), args[0], ranges[0],
                     *args[1:], grid, ix0, iy0)  # compile
-    visits = 0
-    start = time.perf_counter()
-    for t, laser in enumerate(lasers):
-        visits += _plain_ray_loop(laser[:, 0].copy(), laser[:, 1].copy(), laser[:, 2].copy(), args[0], ranges[t],
-                                  *args[1:], grid, ix0, iy0)
-    return time.perf_counter() - start, visits
+    visits = [0]
+
+    def step(t: int) -> None:
+        laser = lasers[t]
+        visits[0] += _plain_ray_loop(laser[:, 0].copy(), laser[:, 1].copy(), laser[:, 2].copy(), args[0], ranges[t],
+                                     *args[1:], grid, ix0, iy0)
+    return [functools.partial(step, t) for t in range(len(lasers))], visits
 
 
-def _octomap_seconds(posed, mode: str, scans: int) -> tuple[float, int] | None:
-    """Seconds for OctoMap to insert ``scans`` scans (one point cloud per pose sample), and its memoryUsage()."""
+def _octomap_steps(posed, mode: str, every: int = 1) -> tuple[list, object] | None:
+    """Per scan a callable inserting it into an OctoMap tree, one point cloud per pose sample, for every
+    ``every``-th scan (None for the others); and the tree (for its memoryUsage()). None when pyoctomap is not
+    installed."""
     try:
         import pyoctomap
     except ImportError:
@@ -107,23 +129,22 @@ def _octomap_seconds(posed, mode: str, scans: int) -> tuple[float, int] | None:
     ranges = posed.ranges.astype(np.float64)
     # no return: a point beyond max_range, so OctoMap marks free space up to max_range and no hit
     ranges = np.where(np.isfinite(ranges) & (ranges <= posed.range_max), ranges, posed.range_max + 1.0)
-    clouds = []
-    for t in range(scans):
+    clouds = {}
+    for t in range(0, len(posed.stamps), every):
         samples = posed.poses.samples[t]
         if mode == "ml":
             samples = samples[int(np.argmax(posed.poses.weights[t]))][None]
         lasers = laser_poses(samples, posed.sensor_offset)
-        for x, y, yaw in lasers:
-            points = np.column_stack([x + ranges[t] * np.cos(yaw + angles), y + ranges[t] * np.sin(yaw + angles),
-                                      np.zeros_like(angles)])
-            clouds.append((points, np.array([x, y, 0.0])))
-    start = time.perf_counter()
-    for points, origin in clouds:
-        tree.insertPointCloud(points, origin, max_range=posed.range_max)
-    return time.perf_counter() - start, int(tree.memoryUsage())
+        clouds[t] = [(np.column_stack([x + ranges[t] * np.cos(yaw + angles), y + ranges[t] * np.sin(yaw + angles),
+                                       np.zeros_like(angles)]), np.array([x, y, 0.0])) for x, y, yaw in lasers]
+
+    def step(t: int) -> None:
+        for points, origin in clouds[t]:
+            tree.insertPointCloud(points, origin, max_range=posed.range_max)
+    return [functools.partial(step, t) if t in clouds else None for t in range(len(posed.stamps))], tree
 
 
-def run(steps: int = 400, octomap_mc_scans: int = 20) -> dict:
+def run(steps: int = 400, octomap_mc_every: int = 20) -> dict:
     """Measure; returns a flat dict of figures (also printed by bench.run)."""
     sim = office_run(seed=0, steps=steps)
     posed = honest_posed_scans(sim, seed=1, particles=SAMPLES)
@@ -132,34 +153,41 @@ def run(steps: int = 400, octomap_mc_scans: int = 20) -> dict:
     out: dict = {"scans": scans, "beams": int(posed.ranges.shape[1]), "samples": SAMPLES,
                  "resolution_m": RESOLUTION, "range_max_m": float(posed.range_max)}
 
-    seconds_mc, grid_mc = _time_fusion(posed, "mc")
-    seconds_ml, grid_ml = _time_fusion(posed, "ml")
-    out["mc_scans_per_s"] = scans / seconds_mc
-    out["mc_sample_rays_per_s"] = scans * rays_per_scan / seconds_mc
-    out["ml_scans_per_s"] = scans / seconds_ml
-    seconds_plain, visits = _plain_loop_seconds(posed)
-    out["plain_loop_sample_rays_per_s"] = scans * rays_per_scan / seconds_plain
-    out["plain_loop_cells_per_sample_ray"] = visits / (scans * rays_per_scan)
-    out["mc_vs_plain_loop"] = seconds_plain / seconds_mc
+    # each baseline runs in turns with posegrid on the same scans (_interleaved_seconds); OctoMap fed 60
+    # samples takes a quarter of a second a scan, so it is fed every octomap_mc_every-th scan only
+    mc_steps, grid_mc = _fusion_steps(posed, "mc")
+    plain_steps, visits = _plain_loop_steps(posed)
+    octo_mc = _octomap_steps(posed, "mc", every=octomap_mc_every)
+    seconds = _interleaved_seconds(mc_steps, plain_steps, *([octo_mc[0]] if octo_mc else []), chunk=5)
+    mc_s, plain_s = seconds[0].sum(), seconds[1].sum()
+    out["mc_scans_per_s"] = scans / mc_s
+    out["mc_sample_rays_per_s"] = scans * rays_per_scan / mc_s
+    out["plain_loop_sample_rays_per_s"] = scans * rays_per_scan / plain_s
+    out["plain_loop_cells_per_sample_ray"] = visits[0] / (scans * rays_per_scan)
+    out["mc_vs_plain_loop"] = plain_s / mc_s
     observed = grid_mc.observed_cells()
     out["observed_cells"] = observed
     out["bytes_per_observed_cell"] = grid_mc.nbytes / observed
 
+    ml_steps, grid_ml = _fusion_steps(posed, "ml")
+    octo_ml = _octomap_steps(posed, "ml")
+    seconds_ml = _interleaved_seconds(ml_steps, *([octo_ml[0]] if octo_ml else []), chunk=50)
+    out["ml_scans_per_s"] = scans / seconds_ml[0].sum()
+
     resampled = resampled_particles(posed, seed=2)
     distinct = np.mean([len(np.unique(s, axis=0)) for s in resampled.poses.samples])
-    merged_s, _ = _time_fusion(resampled, "mc", merge_identical=True)
-    unmerged_s, _ = _time_fusion(resampled, "mc", merge_identical=False)
+    merged_s, unmerged_s = _interleaved_seconds(_fusion_steps(resampled, "mc", merge_identical=True)[0],
+                                                _fusion_steps(resampled, "mc", merge_identical=False)[0], chunk=5)
     out["resampled_distinct_particles_mean"] = float(distinct)
-    out["merge_speedup"] = unmerged_s / merged_s
+    out["merge_speedup"] = unmerged_s.sum() / merged_s.sum()
 
-    octo_ml = _octomap_seconds(posed, "ml", scans)
-    if octo_ml is not None:
-        octo_mc = _octomap_seconds(posed, "mc", octomap_mc_scans)
-        out["octomap_ml_scans_per_s"] = scans / octo_ml[0]
-        out["octomap_mc_scans_per_s"] = octomap_mc_scans / octo_mc[0]
-        out["mc_vs_octomap_same_samples"] = out["mc_scans_per_s"] / out["octomap_mc_scans_per_s"]
-        out["ml_vs_octomap_single_pose"] = out["ml_scans_per_s"] / out["octomap_ml_scans_per_s"]
-        out["octomap_bytes_per_observed_cell"] = octo_ml[1] / grid_ml.observed_cells()
+    if octo_mc is not None:
+        fed = np.arange(0, scans, octomap_mc_every)  # mc's time on the very scans OctoMap was fed
+        out["octomap_ml_scans_per_s"] = scans / seconds_ml[1].sum()
+        out["octomap_mc_scans_per_s"] = len(fed) / seconds[2].sum()
+        out["mc_vs_octomap_same_samples"] = seconds[2].sum() / seconds[0][fed].sum()
+        out["ml_vs_octomap_single_pose"] = seconds_ml[1].sum() / seconds_ml[0].sum()
+        out["octomap_bytes_per_observed_cell"] = int(octo_ml[1].memoryUsage()) / grid_ml.observed_cells()
     else:
         out["octomap"] = "skipped: pyoctomap (the bench extra) is not installed"
 
