@@ -186,6 +186,7 @@ def run(steps: int = 400, octomap_mc_every: int = 20) -> dict:
         out["octomap_ml_scans_per_s"] = scans / seconds_ml[1].sum()
         out["octomap_mc_scans_per_s"] = len(fed) / seconds[2].sum()
         out["mc_vs_octomap_same_samples"] = seconds[2].sum() / seconds[0][fed].sum()
+        out["plain_loop_vs_octomap_same_samples"] = seconds[2].sum() / seconds[1][fed].sum()
         out["ml_vs_octomap_single_pose"] = seconds_ml[1].sum() / seconds_ml[0].sum()
         out["octomap_bytes_per_observed_cell"] = int(octo_ml[1].memoryUsage()) / grid_ml.observed_cells()
     else:

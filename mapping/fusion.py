@@ -539,11 +539,29 @@ def _accumulate_single(laser_x, laser_y, laser_yaw, angles, kind, z, r_stop, r_p
         cell_ty = ty0 - 1
         ray_done = False
         free_limit = min(free_until_k, stop)
-        while True:  # the free phase
+        held_block = 0  # the block whose bits held_bits gathers (a store per block, not one per cell)
+        held_bits = np.int64(0)
+        while all_owned:  # the free phase, every tile owned (the same walk without the ownership checks)
             r_out = min(t_max_x, t_max_y)
             if r_out >= free_limit:
                 break
-            if not all_owned and ((ix >> tile_shift) != cell_tx or (iy >> tile_shift) != cell_ty):
+            if r_out > r_in:
+                gx = ix - win_ix0
+                gy = iy - win_iy0
+                block = (gy >> 3) * blocks_w + (gx >> 3)
+                if block != held_block:
+                    touched[held_block] |= held_bits
+                    held_block = block
+                    held_bits = np.int64(0)
+                held_bits |= np.int64(1) << (((gy & 7) << 3) | (gx & 7))
+            r_in = r_out
+            ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol)
+        touched[held_block] |= held_bits
+        while not all_owned:  # the free phase, some tiles another shard's
+            r_out = min(t_max_x, t_max_y)
+            if r_out >= free_limit:
+                break
+            if (ix >> tile_shift) != cell_tx or (iy >> tile_shift) != cell_ty:
                 cell_tx = ix >> tile_shift
                 cell_ty = iy >> tile_shift
                 mine = owned[cell_ty - ty0, cell_tx - tx0]
@@ -653,6 +671,23 @@ def _apply_single(touched, raised, excess, blocks_w, blocks_h, w, l_free, win_ix
         raised[block] = 0
         bx = (block % blocks_w) * 8 + win_ix0
         by = (block // blocks_w) * 8 + win_iy0
+        if tile_shift >= 3:  # the block lies in one tile: its rows are 8 cells of a tile row, taken without branches
+            slot = slot_map[(by >> tile_shift) - ty0, (bx >> tile_shift) - tx0]
+            lx = bx & in_tile
+            for row in range(8):
+                row_bits = (bits >> (8 * row)) & 255
+                if row_bits == 0:
+                    continue
+                row_up = (up >> (8 * row)) & 255
+                ly = (by + row) & in_tile
+                for col in range(8):
+                    on = (row_bits >> col) & 1 == 1
+                    mean = base + w * excess[block * 64 + 8 * row + col] if (row_up >> col) & 1 == 1 else base
+                    old = logodds[slot, ly, lx + col]
+                    updated = min(max(old + mean, l_min), l_max)
+                    logodds[slot, ly, lx + col] = updated if on else old
+                    observed[slot, ly, lx + col] |= on
+            continue
         for row in range(8):
             if (bits >> (8 * row)) & 255 == 0:
                 continue
