@@ -377,7 +377,8 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
     c = gy * win_w + gx: mask[c] (uint64, the chunk's samples that touched it; zero between scans),
     weight_sum[c] (W; zero between scans), excess[c] (four float64 kept by :func:`add_sample_value` for d: the
     stamp, the current sample's largest d, D1, D2 (D1 and D2 zero between scans); sample j's stamp is
-    stamp_base + j, so smaller stamps are from earlier scans). scan_cells lists the touched cells' c. See the module docstring.
+    stamp_base + j, so smaller stamps are from earlier scans). scan_cells lists the touched cells' c. See the
+    module docstring.
 
     Each ray runs in two phases: the free phase, cells that end before the beam's free_until (most of
     them), which take l_free without evaluating the model; then the cells up to the ray's end, valued by
