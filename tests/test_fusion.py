@@ -264,6 +264,9 @@ def test_unbounded_map_grows_tiles_on_demand():
     (np.zeros((2, 3)), np.array([0.5, 0.6]), "sum to 1"),
     (np.full((1, 3), np.nan), np.ones(1), "finite"),
     (np.zeros((0, 3)), np.zeros(0), "M >= 1"),
+    (np.zeros((2, 2)), np.full(2, 0.5), "M >= 1"),  # not (M, 3): one sentence, not numpy's reshape error
+    (np.array([[0.0, 0.0, 0.0], [1.0, 0.0, np.inf]]), np.full(2, 0.5), "finite"),
+    (np.zeros((2, 3)), np.array([1.5, -0.5]), "non-negative"),
 ])
 def test_bad_poses_are_rejected(samples, weights, message):
     fusion = MonteCarloFusion(TiledGrid(RES), SensorModel(resolution=RES), np.array([0.0]), 0.05, 5.0)
