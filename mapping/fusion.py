@@ -415,15 +415,22 @@ def _accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_st
                 cell_ty = ty0 - 1
                 ray_done = False
                 free_limit = min(free_until_k, stop)
-                while all_owned:  # the free phase, every tile owned (the same walk without the ownership checks)
-                    r_out = min(t_max_x, t_max_y)
-                    if r_out >= free_limit:
-                        break
-                    if r_out > r_in:
-                        n_scan = _mark(mask, (iy - win_iy0) * win_w + ix - win_ix0, bit, scan_cells, n_scan)
-                    r_in = r_out
-                    ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x,
-                                                        t_delta_y, tol)
+                if all_owned:  # the free phase, every tile owned: the walk steps the scratch index c itself
+                    c = (iy - win_iy0) * win_w + ix - win_ix0
+                    while True:
+                        r_out = min(t_max_x, t_max_y)
+                        if r_out >= free_limit:
+                            break
+                        if r_out > r_in:
+                            n_scan = _mark(mask, c, bit, scan_cells, n_scan)
+                        r_in = r_out
+                        # dda_step moves (ix, iy) by step_x and step_y; handed (c, 0) and (step_x, step_y * win_w)
+                        # it returns c's move along the row and across rows, which add up to the next cell's c
+                        c, row_step, t_max_x, t_max_y = dda_step(c, 0, step_x, step_y * win_w, t_max_x, t_max_y,
+                                                                 t_delta_x, t_delta_y, tol)
+                        c += row_step
+                    ix = c % win_w + win_ix0
+                    iy = c // win_w + win_iy0
                 while not all_owned:  # the free phase, some tiles another shard's
                     r_out = min(t_max_x, t_max_y)
                     if r_out >= free_limit:

@@ -63,15 +63,11 @@ def corner_tol(r_stop):  # pragma: no cover - compiled
 def dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol):  # pragma: no cover - compiled
     """Move to the next cell: returns (ix, iy, t_max_x, t_max_y). The new cell's r_in is the old
     min(t_max_x, t_max_y); tol is the ray's :func:`corner_tol`."""
-    cross_x = t_max_x <= t_max_y + tol  # both at a corner: step diagonally
-    cross_y = t_max_y <= t_max_x + tol
-    if cross_x:
-        ix += step_x
-        t_max_x += t_delta_x
-    if cross_y:
-        iy += step_y
-        t_max_y += t_delta_y
-    return ix, iy, t_max_x, t_max_y
+    if t_max_y > t_max_x + tol:  # the vertical grid line first
+        return ix + step_x, iy, t_max_x + t_delta_x, t_max_y
+    if t_max_x > t_max_y + tol:  # the horizontal one first
+        return ix, iy + step_y, t_max_x, t_max_y + t_delta_y
+    return ix + step_x, iy + step_y, t_max_x + t_delta_x, t_max_y + t_delta_y  # both at a corner: diagonally
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
