@@ -277,8 +277,9 @@ def add_sample_value(rec, c, sid, w, y):  # pragma: no cover - compiled
 
 @nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _record_index(gx, gy, blocks_w):  # pragma: no cover - compiled
-    """Place of window cell (gx, gy) in the scratch records: 8 x 8 blocks, so a ray's neighbouring cells
-    share cache lines."""
+    """Place of window cell (gx, gy) in the one-sample pass's per-cell excess: 8 x 8 blocks, so a ray's
+    neighbouring cells share cache lines; block index * 64 + the cell's bit in the block's bit sets (the
+    samples pass's scratch is row-major instead, c = gy * win_w + gx)."""
     return ((gy >> 3) * blocks_w + (gx >> 3)) * 64 + ((gy & 7) << 3) + (gx & 7)
 
 
@@ -589,6 +590,8 @@ def _accumulate_single(laser_x, laser_y, laser_yaw, angles, kind, z, r_stop, r_p
             r_in = r_out
             ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol)
         touched[held_block] |= held_bits
+        # the shard's walk below is written out as in _accumulate_scan: helpers for the ownership look-up and
+        # the jump, returning tuples, slowed the passes (docs/performance.md, "Tried and dropped")
         while not all_owned:  # the free phase, some tiles another shard's
             r_out = min(t_max_x, t_max_y)
             if r_out >= free_limit:

@@ -193,6 +193,7 @@ def add_slam_arguments(parser: argparse.ArgumentParser, particles: int | None = 
                        help="FastSLAM: resample when N_eff < this fraction of the particles (default 0.5)")
     add_filter_options(group, label="grid FastSLAM: ")
 
+
 def slam_argv(args: argparse.Namespace, models: str) -> list[str]:
     """The SLAM options of ``args`` as arguments for a slam-node child."""
     reject_filter_options(args, args.algo or "fastslam2")
