@@ -118,14 +118,17 @@ def sim_folder_stream(folder: Path, robot: str) -> Stream:
         landmark_z=sequence.measurements, measurement_ptr=sequence.measurement_ptr, initial_pose=log.initial_pose)
 
 
-def mrclam_stream(folder: Path, robot_number: int, robot: str, period: float = 0.2, raw_ranges: bool = False) -> Stream:
+def mrclam_stream(folder: Path, robot_number: int, robot: str, period: float = 0.2, raw_ranges: bool = False,
+                  raw_commands: bool = False) -> Stream:
     """One robot of an MRCLAM folder: velocity commands and landmark measurements (no laser), stepped every
     ``period`` s and at every measurement, as `posegrid slam` reads them (ranges calibrated unless
-    ``raw_ranges``); the prior is the first ground-truth pose."""
-    from slam.mrclam import MRCLAM_RANGE_CALIBRATION, mrclam_sequence, read_mrclam
+    ``raw_ranges``, commands scaled to the executed speeds unless ``raw_commands``); the prior is the first
+    ground-truth pose."""
+    from slam.mrclam import MRCLAM_RANGE_CALIBRATION, MRCLAM_VELOCITY_SCALE, mrclam_sequence, read_mrclam
 
     sequence = mrclam_sequence(read_mrclam(folder, robot_number), period=period,
-                               range_calibration=None if raw_ranges else MRCLAM_RANGE_CALIBRATION)
+                               range_calibration=None if raw_ranges else MRCLAM_RANGE_CALIBRATION,
+                               velocity_scale=None if raw_commands else MRCLAM_VELOCITY_SCALE)
     return slam_input_stream(
         robot, sequence.stamps, ranges=None, geometry=None, odometry=None, commands=sequence.controls,
         control_ptr=sequence.control_ptr, landmark_ids=sequence.landmark_ids, landmark_z=sequence.measurements,

@@ -17,7 +17,8 @@ together: exactly the motions that landmarks cannot observe. In these coordinate
 * a measurement depends on the pose and landmark only through xi_m - xi_p, so its Jacobian has no
   heading column and no component along the unobservable motions: an update adds no information about
   them. The textbook EKF (PR chapter 10) gains such spurious information through its linearisation and
-  becomes overconfident about the heading (on MRCLAM robot 1: inside95 0.04; here 0.75; docs/slam.md);
+  becomes overconfident about the heading (MRCLAM robot 1, commands as logged: inside95 0.04, here
+  0.75; docs/slam.md);
 * a correction xi^ = K nu is applied on the group, X^ <- exp(-xi^) X^.
 
 Landmarks are added the first time they are seen at m = p + Rot(theta) (r cos phi, r sin phi); their error

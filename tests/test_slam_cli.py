@@ -95,6 +95,19 @@ def test_slam_and_eval_on_an_mrclam_folder(tmp_path, capsys):
     assert json.loads(capsys.readouterr().out)["steps"] == len(dist.stamps)
 
 
+def test_mrclam_commands_are_scaled_to_the_executed_speeds_unless_raw(tmp_path):
+    # dead reckoning's heading change is the sum of w dt: 0.1 rad/s held until the last step, times 0.958
+    _mrclam_sample(tmp_path)
+    yaw_change = {}
+    for flags in ([], ["--raw-commands"]):
+        out = tmp_path / f"odometry{len(flags)}.npz"
+        assert main(["slam", "--algo", "odometry", str(tmp_path), "--robot", "1", "-o", str(out), *flags]) == 0
+        mean = load_pose_distribution(out).poses.mean
+        yaw_change[bool(flags)] = mean[-1, 2] - mean[0, 2]
+    assert yaw_change[True] > 0.2
+    assert yaw_change[False] == pytest.approx(0.958 * yaw_change[True], rel=1e-9)
+
+
 def _one_line_exit_2(argv, capsys, *fragments):
     assert main(argv) == 2
     err = capsys.readouterr().err.strip()

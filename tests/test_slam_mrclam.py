@@ -77,6 +77,14 @@ def test_sequence_steps_controls_and_measurements_by_hand(sample):
     np.testing.assert_array_equal(seq.landmark_ids, [6, 7])
 
 
+def test_velocity_scale_multiplies_v_and_w_only(sample):
+    run = read_mrclam(sample, 1)
+    raw = mrclam_sequence(run, period=0.2, command_delay=0.0)
+    scaled = mrclam_sequence(run, period=0.2, command_delay=0.0, velocity_scale=(0.5, 2.0))
+    np.testing.assert_allclose(scaled.controls, raw.controls * [0.5, 2.0, 1.0])
+    np.testing.assert_array_equal(scaled.control_ptr, raw.control_ptr)
+
+
 def test_command_delay_and_initial_pose(sample):
     run = read_mrclam(sample, 1)
     seq = mrclam_sequence(run, initial_pose=np.array([1.0, 2.0, 0.5]), period=0.2, command_delay=0.1)

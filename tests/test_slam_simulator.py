@@ -61,7 +61,8 @@ def _cells_crossed_reference(start, end, origin, resolution, shape):
                     if not low[k] < start[k] < high[k]:
                         t0, t1 = 1.0, 0.0
                     continue
-                a, b = (low[k] - start[k]) / d[k], (high[k] - start[k]) / d[k]
+                with np.errstate(over="ignore"):  # a subnormal d gives +-inf, which the clipping handles
+                    a, b = (low[k] - start[k]) / d[k], (high[k] - start[k]) / d[k]
                 t0, t1 = max(t0, min(a, b)), min(t1, max(a, b))
             out[i, j] = t1 > t0
     return out

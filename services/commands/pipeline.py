@@ -154,6 +154,9 @@ def add_input_arguments(parser: argparse.ArgumentParser, default_sim: bool) -> N
     group.add_argument("--mrclam-robot", type=int, default=1, metavar="K", help="MRCLAM robot number (default 1)")
     group.add_argument("--raw-ranges", action="store_true",
                        help="MRCLAM: publish the ranges as logged, without the bearing-dependent range calibration")
+    group.add_argument("--raw-commands", action="store_true",
+                       help="MRCLAM: publish the velocity commands as logged, without the calibration of the speeds "
+                       "the robots executed")
     group.add_argument("--steps", type=int, default=400, help="--sim: steps of 0.1 s to simulate (default 400)")
     if not default_sim:  # `run` has --seed among its fusion options and passes it on
         group.add_argument("--seed", type=int, default=0, help="--sim: seed of the simulated world (default 0)")
@@ -248,7 +251,8 @@ def _stream(args: argparse.Namespace):
     if args.sim_dir is not None:
         return streams.sim_folder_stream(args.sim_dir, args.robot)
     if args.mrclam is not None:
-        return streams.mrclam_stream(args.mrclam, args.mrclam_robot, args.robot, raw_ranges=args.raw_ranges)
+        return streams.mrclam_stream(args.mrclam, args.mrclam_robot, args.robot, raw_ranges=args.raw_ranges,
+                                     raw_commands=args.raw_commands)
     if args.carmen is not None:
         return streams.carmen_stream(args.carmen, args.robot)
     from slam.simulator import simulate_office

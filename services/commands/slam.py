@@ -64,6 +64,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       "stamp (default 0.2)")
     slam.add_argument("--raw-ranges", action="store_true",
                       help="MRCLAM: use the ranges as logged, without the bearing-dependent range calibration")
+    slam.add_argument("--raw-commands", action="store_true",
+                      help="MRCLAM: use the velocity commands as logged, without the calibration of the speeds the "
+                      "robots executed (v x 0.918, w x 0.958)")
     slam.add_argument("--motion", choices=("velocity", "odometry"), default="velocity",
                       help="simulator: the velocity commands (default) or the odometry readings as controls")
     noise = slam.add_argument_group("noise models (defaults: the simulator's own; for MRCLAM the values "
@@ -177,7 +180,8 @@ def _load_input(args: argparse.Namespace):
         initial = _floats(args.initial, (3,), "--initial") if args.initial is not None else None
         run = mrclam.read_mrclam(args.input, args.robot)
         sequence = mrclam.mrclam_sequence(run, initial_pose=initial, period=args.period,
-                                          range_calibration=None if args.raw_ranges else mrclam.MRCLAM_RANGE_CALIBRATION)
+                                          range_calibration=None if args.raw_ranges else mrclam.MRCLAM_RANGE_CALIBRATION,
+                                          velocity_scale=None if args.raw_commands else mrclam.MRCLAM_VELOCITY_SCALE)
         notes = (f"skipped {run.skipped_robots} measurements of robots and {run.skipped_unknown} of barcodes "
                  f"in no table")
         return (sequence, mrclam.MRCLAM_MOTION, mrclam.MRCLAM_SENSOR,
