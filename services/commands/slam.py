@@ -65,8 +65,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     slam.add_argument("--raw-ranges", action="store_true",
                       help="MRCLAM: use the ranges as logged, without the bearing-dependent range calibration")
     slam.add_argument("--raw-commands", action="store_true",
-                      help="MRCLAM: use the velocity commands as logged, without the calibration of the speeds the "
-                      "robots executed (v x 0.918, w x 0.958)")
+                      help="MRCLAM: use the velocity commands as logged, without scaling them to the speeds the "
+                      "robots executed (slam.mrclam.MRCLAM_VELOCITY_SCALE, docs/slam.md)")
     slam.add_argument("--motion", choices=("velocity", "odometry"), default="velocity",
                       help="simulator: the velocity commands (default) or the odometry readings as controls")
     noise = slam.add_argument_group("noise models (defaults: the simulator's own; for MRCLAM the values "
