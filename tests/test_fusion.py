@@ -265,6 +265,7 @@ def test_unbounded_map_grows_tiles_on_demand():
     (np.full((1, 3), np.nan), np.ones(1), "finite"),
     (np.zeros((0, 3)), np.zeros(0), "M >= 1"),
     (np.zeros((2, 2)), np.full(2, 0.5), "M >= 1"),  # not (M, 3): one sentence, not numpy's reshape error
+    (np.zeros((1, 6)), np.full(2, 0.5), "M >= 1"),  # two poses in one row: refused, not read as (2, 3)
     (np.array([[0.0, 0.0, 0.0], [1.0, 0.0, np.inf]]), np.full(2, 0.5), "finite"),
     (np.zeros((2, 3)), np.array([1.5, -0.5]), "non-negative"),
 ])
