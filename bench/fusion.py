@@ -6,7 +6,7 @@ a bench-only extra, is not installed), and against a plain compiled ray loop wit
 the same sample rays (the yardstick the issue's 150 scans/s target was set against: about 5 million
 sample-rays per second on the machine it was measured on). The plain loop walks the exact traversal
 posegrid uses; a second one walks Bresenham's line, which skips the cells a ray crosses near a corner (about
-60 cells a ray against 78) and reaches about 5 million here too. All single-threaded.
+60 cells a ray against 82) and reaches 3.6 to 4.1 million here. All single-threaded.
 
 Each comparison runs in turns of a few scans (posegrid's, then the baseline's same scans, ...), so the
 machine's drift, tens of percent within a minute on a shared machine, falls on both sides of a ratio alike.

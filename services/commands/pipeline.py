@@ -15,6 +15,8 @@ from services.commands.mapping import add_sensor_model_arguments
 DEFAULT_MAP = "main"
 DEFAULT_ROBOT = "robot0"
 SLAM_ALGORITHMS = ("odometry", "ekf", "fastslam1", "fastslam2", "gridslam")
+#: the SLAM node's filter when --algo is not given (a CARMEN log sets gridslam)
+DEFAULT_ALGORITHM = "fastslam2"
 #: particles of `run`'s SLAM node unless --particles says otherwise: each becomes a pose sample per scan
 RUN_PARTICLES = 30
 
@@ -173,7 +175,7 @@ def add_slam_arguments(parser: argparse.ArgumentParser, particles: int | None = 
     group = parser.add_argument_group("SLAM node (as for posegrid slam)")
     group.add_argument("--algo", choices=SLAM_ALGORITHMS, default=None,
                        help="odometry, ekf, fastslam1, fastslam2 (landmarks) or gridslam (laser and odometry); "
-                       "default gridslam for a CARMEN log, else fastslam2")
+                       f"default gridslam for a CARMEN log, else {DEFAULT_ALGORITHM}")
     group.add_argument("--particles", type=int, default=particles,
                        help="FastSLAM / grid FastSLAM particles (default %s)"
                        % (particles or "500 for FastSLAM, 30 for grid FastSLAM"))
@@ -199,8 +201,9 @@ def add_slam_arguments(parser: argparse.ArgumentParser, particles: int | None = 
 
 def slam_argv(args: argparse.Namespace, models: str) -> list[str]:
     """The SLAM options of ``args`` as arguments for a slam-node child."""
-    reject_filter_options(args, args.algo or "fastslam2")
-    argv = ["--algo", args.algo or "fastslam2", "--associate", args.associate, "--motion", args.motion, "--seed", str(args.seed),
+    algo = args.algo or DEFAULT_ALGORITHM
+    reject_filter_options(args, algo)
+    argv = ["--algo", algo, "--associate", args.associate, "--motion", args.motion, "--seed", str(args.seed),
             "--models", args.models or models, "--resample-threshold", repr(args.resample_threshold)]
     for option, value in (("--particles", args.particles), ("--alphas", args.alphas),
                           ("--sigma-range", args.sigma_range), ("--sigma-bearing", args.sigma_bearing),
@@ -387,7 +390,7 @@ def run_pipeline(args: argparse.Namespace) -> int:
         _use_sim_models(args, log.velocity_model if args.motion == "velocity" else log.odometry_model, log.sensor)
         plan.source_argv += ["--sim-dir", str(args.sim_dir)]
         plan.slam_argv = slam_argv(args, "sim")
-        plan.description = (f"replaying {args.sim_dir} through {args.algo or 'fastslam2'} into {args.shards} "
+        plan.description = (f"replaying {args.sim_dir} through {args.algo or DEFAULT_ALGORITHM} into {args.shards} "
                             "shard(s)")
     else:
         if args.steps < 1:
@@ -396,7 +399,7 @@ def run_pipeline(args: argparse.Namespace) -> int:
         plan.source_argv += ["--sim", "--seed", str(args.seed), "--steps", str(args.steps)]
         plan.slam_argv = slam_argv(args, "sim")
         plan.description = (f"simulating the office world (seed {args.seed}, {args.steps} steps of 0.1 s) through "
-                            f"{args.algo or 'fastslam2'} into {args.shards} shard(s)")
+                            f"{args.algo or DEFAULT_ALGORITHM} into {args.shards} shard(s)")
     return launch(plan, install_stop_event())
 
 
@@ -443,7 +446,7 @@ def run_slam_node(args: argparse.Namespace) -> int:
     from services.commands.gridslam import _config as gridslam_config
     from services.commands.slam import _floats, _make_filter
 
-    algo = args.algo or "fastslam2"
+    algo = args.algo or DEFAULT_ALGORITHM
     args.algo = algo
     reject_filter_options(args, algo)
     motion, sensor, gate = _slam_models(args)
