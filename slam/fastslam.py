@@ -25,12 +25,24 @@ measurements with correlated errors would resample the set down to one particle 
 
 Output per step: the poses (N, 3) and normalised importance weights (N,) before resampling; then, when the
 effective sample size falls under ``resample_threshold * N``, low-variance resampling.
+
+Gauge-preserving resampling (known correspondences, ``preserve_gauge``; docs/slam.md, "FastSLAM's gauge").
+Moving a particle's pose and map together by one rigid motion (its gauge: where its map sits in the world)
+changes none of its future weights, as measurements and robot-frame motion do not see it. Plain resampling
+is then neutral drift on the gauge: copying particles with replacement loses gauge diversity at every
+resampling until all particles share one gauge, the map's uncertainty in the world frame is gone and the
+cloud measures only the pose relative to that map (FastSLAM's long-run overconfidence, Bailey et al. 2006).
+So the gauge is resampled without replacement: each particle's gauge is its map's least-squares rigid
+alignment to the weighted mean map, the shapes (pose relative to map) are resampled by weight as usual, and
+the offspring take the parents' gauges in a random permutation, so the set of gauges survives unchanged. This
+is exact when gauge and shape are independent in the posterior, and an approximation otherwise.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from slam.angles import wrap_angle
+from slam.gauge import map_gauges, regauge_points, rotations
 from slam.motion import MotionModel, compose, local_motion, rotate_covariance
 from slam.range_bearing import RangeBearingModel, inverse_measurement, predict_measurement
 from slam.resampling import effective_sample_size, low_variance_resample, normalize_log_weights
@@ -63,6 +75,7 @@ class FastSLAM:
         outlier_gate: float | None = None,
         new_landmark_loglik: float | None = None,
         update_while_stationary: bool = False,
+        preserve_gauge: bool = True,
     ) -> None:
         if version not in (1, 2):
             raise ValueError(f"FastSLAM version must be 1 or 2, got {version}")
@@ -90,6 +103,7 @@ class FastSLAM:
         self.count = np.zeros(n, dtype=np.int64)  # landmark slots in use per particle
         self.slot_of: dict[int, int] = {}  # known correspondences: landmark id -> slot
         self.resamplings = 0
+        self.preserve_gauge = preserve_gauge and known_correspondences  # unknown ids: slots differ per particle
         self.update_while_stationary = update_while_stationary
         self.moved = True  # since the last measurement update (the first measurements are always used)
         self.stationary_skipped = 0  # measurements not used because the robot had not moved
@@ -212,14 +226,37 @@ class FastSLAM:
             self.log_w = np.log(np.maximum(weights, 1e-300))
             return
         keep = low_variance_resample(weights, self.rng)
+        gauges = self._gauges(weights)
         self.poses = self.poses[keep]
         self.pose_cov = self.pose_cov[keep]
         self.mu = self.mu[keep]
         self.sigma = self.sigma[keep]
         self.seen = self.seen[keep]
         self.count = self.count[keep]
+        if gauges is not None:  # offspring n takes the gauge of particle donor[n], each gauge once
+            turn, centre = gauges
+            donor = self.rng.permutation(len(weights))
+            self._regauge(turn[donor] - turn[keep], centre[keep], centre[donor])
         self.log_w = np.zeros(len(weights))
         self.resamplings += 1
+
+    def _gauges(self, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """Each particle's gauge (slam.gauge.map_gauges: turn (N,) rad, centroid (N, 2) m of its mapped landmarks);
+        None when the gauge is not preserved or fewer than two landmarks are mapped."""
+        if not self.preserve_gauge:
+            return None
+        slots = np.flatnonzero(self.seen.all(axis=0))
+        if len(slots) < 2:
+            return None
+        return map_gauges(self.mu[:, slots], weights)
+
+    def _regauge(self, turn: np.ndarray, centre_from: np.ndarray, centre_to: np.ndarray) -> None:
+        """Move each particle's pose and map by x -> R(turn) (x - centre_from) + centre_to (one motion each)."""
+        self.poses[:, :2] = regauge_points(self.poses[:, :2], turn, centre_from, centre_to)
+        self.poses[:, 2] = wrap_angle(self.poses[:, 2] + turn)
+        self.mu = regauge_points(self.mu, turn, centre_from, centre_to)
+        rot = rotations(turn)[:, None]
+        self.sigma = rot @ self.sigma @ _t(rot)
 
     def step(self, controls: np.ndarray, measurements: np.ndarray, landmark_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Predict through controls (K, 3), update with measurements (O, 2); return poses (N, 3) and weights (N,)."""

@@ -91,10 +91,14 @@ def test_ekf_outlier_gate_drops_a_wild_measurement():
     assert np.abs(ungated.landmarks()[1] - [[2.0, 0.0]]).max() > 0.1
 
 
-@pytest.mark.parametrize(("version", "particles"), [(1, 2000), (2, 1000)])
-def test_fastslam_beats_dead_reckoning_and_is_honest(sim, dead_reckoning, version, particles):
+# FastSLAM 1.0 with plain resampling: with gauge-preserving resampling (the default) its mean on this short run
+# drifts towards dead reckoning's, ATE about 0.30 m against 0.04-0.12 m plain over filter seeds 1-6 (its proposal
+# ignores the measurements, so the weights also select map shape that the gauge carries; docs/slam.md)
+@pytest.mark.parametrize(("version", "particles", "preserve_gauge"), [(1, 2000, False), (2, 1000, True)])
+def test_fastslam_beats_dead_reckoning_and_is_honest(sim, dead_reckoning, version, particles, preserve_gauge):
     run, log = sim
-    slam = FastSLAM(log.velocity_model, log.sensor, log.initial_pose, n_particles=particles, version=version, seed=1)
+    slam = FastSLAM(log.velocity_model, log.sensor, log.initial_pose, n_particles=particles, version=version, seed=1,
+                    preserve_gauge=preserve_gauge)
     track = run_filter(slam, log.sequence())
     np.testing.assert_allclose(track.weights.sum(axis=1), 1.0)
     assert track.samples.shape == (150, particles, 3)

@@ -196,6 +196,9 @@ def add_slam_arguments(parser: argparse.ArgumentParser, particles: int | None = 
                        help="known ids: ignore a measurement beyond this squared Mahalanobis distance")
     group.add_argument("--resample-threshold", type=float, default=0.5,
                        help="FastSLAM: resample when N_eff < this fraction of the particles (default 0.5)")
+    group.add_argument("--plain-resampling", action="store_true",
+                       help="FastSLAM: resample the particles' map frames with them, as the textbook does "
+                       "(default: keep every frame, known ids only; docs/slam.md)")
     add_filter_options(group, label="grid FastSLAM: ")
 
 
@@ -205,6 +208,8 @@ def slam_argv(args: argparse.Namespace, models: str) -> list[str]:
     reject_filter_options(args, algo)
     argv = ["--algo", algo, "--associate", args.associate, "--motion", args.motion, "--seed", str(args.seed),
             "--models", args.models or models, "--resample-threshold", repr(args.resample_threshold)]
+    if args.plain_resampling:
+        argv.append("--plain-resampling")
     for option, value in (("--particles", args.particles), ("--alphas", args.alphas),
                           ("--sigma-range", args.sigma_range), ("--sigma-bearing", args.sigma_bearing),
                           ("--range-fraction", args.range_fraction), ("--outlier-gate", args.outlier_gate),

@@ -83,6 +83,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                        "(FastSLAM: per particle, likelihood capped at D2); 'inf' turns it off")
     noise.add_argument("--resample-threshold", type=float, default=0.5,
                        help="FastSLAM: resample when N_eff < this fraction of the particles (default 0.5)")
+    noise.add_argument("--plain-resampling", action="store_true",
+                       help="FastSLAM: resample the particles' map frames with them, as the textbook does "
+                       "(default: keep every frame, known ids only; docs/slam.md)")
     slam.set_defaults(func=run_slam)
     from services.commands.gridslam import add_gridslam_arguments  # grid FastSLAM (--algo gridslam)
 
@@ -239,7 +242,7 @@ def _make_filter(args: argparse.Namespace, motion, sensor, gate, initial):
         raise UsageError(f"--resample-threshold must be in [0, 1], got {args.resample_threshold}")
     return FastSLAM(motion, sensor, initial, n_particles=particles, version=1 if args.algo == "fastslam1" else 2,
                     known_correspondences=known, seed=args.seed, resample_threshold=args.resample_threshold,
-                    outlier_gate=gate)
+                    outlier_gate=gate, preserve_gauge=not args.plain_resampling)
 
 
 def run_slam(args: argparse.Namespace) -> int:

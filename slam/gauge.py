@@ -1,0 +1,41 @@
+"""The gauge of a landmark map: where a map sits and how it is turned in the world frame (2-D rigid motions).
+
+Range-bearing measurements and robot-frame motion are unchanged when a robot pose and its map are moved
+together by one rigid motion, so a SLAM filter learns a map's gauge only from where it started. These
+helpers measure the gauge of many maps against one reference and move maps between gauges, all vectorised
+over the maps. Angles in rad, positions in m, all in the world frame.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+
+def rotations(theta: np.ndarray) -> np.ndarray:
+    """Rotation matrices (N, 2, 2) by the angles theta (N,) rad."""
+    c, s = np.cos(theta), np.sin(theta)
+    return np.stack([np.stack([c, -s], axis=-1), np.stack([s, c], axis=-1)], axis=-2)
+
+
+def map_gauges(maps: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The gauge of each of ``maps`` (N, L, 2), L >= 2 distinct points: its turn (N,) rad against the
+    ``weights``-weighted (N,) mean map and its centroid (N, 2) m.
+
+    The turn is the least-squares rotation about the centroids (2-D Procrustes): with a_l, b_l the points of the
+    mean map and of a map less their centroids, the angle of (sum_l a_l . b_l, sum_l a_l x b_l). So
+    maps[n] ~ R(turn[n]) (mean map - its centroid) + centroid[n].
+    """
+    mean_map = np.einsum("n,nli->li", weights, maps)
+    centroids = maps.mean(axis=1)
+    a = mean_map - mean_map.mean(axis=0)
+    b = maps - centroids[:, None, :]
+    dot = np.einsum("li,nli->n", a, b)
+    cross = np.einsum("l,nl->n", a[:, 0], b[:, :, 1]) - np.einsum("l,nl->n", a[:, 1], b[:, :, 0])
+    return np.arctan2(cross, dot), centroids
+
+
+def regauge_points(points: np.ndarray, turn: np.ndarray, centre_from: np.ndarray, centre_to: np.ndarray) -> np.ndarray:
+    """Points (N, ..., 2) moved by p -> R(turn) (p - centre_from) + centre_to: turned by turn (N,) rad about
+    centre_from (N, 2) m, which goes to centre_to (N, 2) m; one motion per leading index n."""
+    flat = points.reshape(len(points), -1, 2) - centre_from[:, None, :]
+    moved = np.einsum("nij,nlj->nli", rotations(turn), flat) + centre_to[:, None, :]
+    return moved.reshape(points.shape)
