@@ -251,7 +251,8 @@ class FastSLAM:
         return map_gauges(self.mu[:, slots], weights)
 
     def _regauge(self, turn: np.ndarray, centre_from: np.ndarray, centre_to: np.ndarray) -> None:
-        """Move each particle's pose and map by x -> R(turn) (x - centre_from) + centre_to (one motion each)."""
+        """Move each particle's pose and map by x -> R(turn) (x - centre_from) + centre_to (one motion each).
+        ``pose_cov`` is zero between steps, so there is nothing of it to turn."""
         self.poses[:, :2] = regauge_points(self.poses[:, :2], turn, centre_from, centre_to)
         self.poses[:, 2] = wrap_angle(self.poses[:, 2] + turn)
         self.mu = regauge_points(self.mu, turn, centre_from, centre_to)

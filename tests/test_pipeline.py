@@ -430,6 +430,19 @@ def _mrclam_excerpt(source: Path, target: Path, seconds: float) -> Path:
     return target
 
 
+def test_run_hands_the_resampling_choice_to_the_slam_node():
+    # `posegrid run --plain-resampling` must reach the slam-node child, which must accept it
+    from services.cli import build_parser
+    from services.commands.pipeline import slam_argv
+
+    parser = build_parser()
+    for flags, expected in (([], False), (["--plain-resampling"], True)):
+        argv = slam_argv(parser.parse_args(["run", *flags]), "sim")
+        assert ("--plain-resampling" in argv) is expected
+        node = parser.parse_args(["slam-node", *argv])
+        assert node.plain_resampling is expected
+
+
 def test_slam_node_on_real_mrclam_data_publishes_what_offline_slam_writes(tmp_path, procs, data_dir):
     """Real data: source --mrclam -> slam-node (EKF) over zenoh gives `posegrid slam`'s poses, bit for bit."""
     folder = _mrclam_excerpt(data_dir / "mrclam7", tmp_path / "mrclam", seconds=60.0)

@@ -12,6 +12,7 @@ from services.cli import main
 
 MRCLAM7 = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mrclam7"
 
+
 @pytest.fixture(scope="module")
 def simdir(tmp_path_factory) -> Path:
     folder = tmp_path_factory.mktemp("sim")
@@ -114,7 +115,7 @@ def test_mrclam_commands_are_scaled_to_the_executed_speeds_unless_raw(tmp_path):
 def test_dataset7_robot3_is_accurate_and_honest_with_the_defaults(tmp_path, capsys, algo):
     # issue 4's target on real data, 900 s of robot 3: ATE well under dead reckoning's 2.13 m and the true pose
     # inside the 95 % region at >= 85 % of the steps (docs/slam.md: EKF 0.12 m / 0.99; FastSLAM 2.0 with
-    # gauge-preserving resampling about 0.2 m / 0.99, with plain resampling 0.20 m / 0.20)
+    # gauge-preserving resampling 0.20 m / 0.97, with plain resampling 0.20 m / 0.20)
     out = tmp_path / f"{algo}.npz"
     assert main(["slam", "--algo", algo, str(MRCLAM7), "--robot", "3", "-o", str(out)]) == 0
     capsys.readouterr()
