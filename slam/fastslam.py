@@ -42,7 +42,7 @@ from __future__ import annotations
 import numpy as np
 
 from slam.angles import wrap_angle
-from slam.gauge import map_gauges, regauge_points, rotations
+from slam.gauge import map_gauges, regauge_points, turn_covariances
 from slam.motion import MotionModel, compose, local_motion, rotate_covariance
 from slam.range_bearing import RangeBearingModel, inverse_measurement, predict_measurement
 from slam.resampling import effective_sample_size, low_variance_resample, normalize_log_weights
@@ -256,8 +256,7 @@ class FastSLAM:
         self.poses[:, :2] = regauge_points(self.poses[:, :2], turn, centre_from, centre_to)
         self.poses[:, 2] = wrap_angle(self.poses[:, 2] + turn)
         self.mu = regauge_points(self.mu, turn, centre_from, centre_to)
-        rot = rotations(turn)[:, None]
-        self.sigma = rot @ self.sigma @ _t(rot)
+        self.sigma = turn_covariances(self.sigma, turn)
 
     def step(self, controls: np.ndarray, measurements: np.ndarray, landmark_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Predict through controls (K, 3), update with measurements (O, 2); return poses (N, 3) and weights (N,)."""

@@ -39,3 +39,19 @@ def regauge_points(points: np.ndarray, turn: np.ndarray, centre_from: np.ndarray
     flat = points.reshape(len(points), -1, 2) - centre_from[:, None, :]
     moved = np.einsum("nij,nlj->nli", rotations(turn), flat) + centre_to[:, None, :]
     return moved.reshape(points.shape)
+
+
+def turn_covariances(cov: np.ndarray, turn: np.ndarray) -> np.ndarray:
+    """Symmetric 2x2 covariances (N, ..., 2, 2) in m^2 turned by turn (N,) rad: R cov R^T, one turn per
+    leading index n, written out element by element (a broadcast matmul of 2x2 blocks is several times slower)."""
+    shape = (len(turn),) + (1,) * (cov.ndim - 3)
+    c, s = np.cos(turn).reshape(shape), np.sin(turn).reshape(shape)
+    a, b, d = cov[..., 0, 0], cov[..., 0, 1], cov[..., 1, 1]
+    cs, cc, ss = c * s, c * c, s * s
+    off = cs * (a - d) + (cc - ss) * b
+    out = np.empty_like(cov)
+    out[..., 0, 0] = cc * a - 2.0 * cs * b + ss * d
+    out[..., 1, 1] = ss * a + 2.0 * cs * b + cc * d
+    out[..., 0, 1] = off
+    out[..., 1, 0] = off
+    return out
