@@ -10,8 +10,6 @@ import pytest
 from schemas.files import load_pose_distribution, load_posed_scans, load_truth
 from services.cli import main
 
-MRCLAM7 = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mrclam7"
-
 
 @pytest.fixture(scope="module")
 def simdir(tmp_path_factory) -> Path:
@@ -110,16 +108,15 @@ def test_mrclam_commands_are_scaled_to_the_executed_speeds_unless_raw(tmp_path):
     assert yaw_change[False] == pytest.approx(0.958 * yaw_change[True], rel=1e-9)
 
 
-@pytest.mark.skipif(not MRCLAM7.is_dir(), reason="MRCLAM dataset 7 not present (../shared/data/mrclam7)")
 @pytest.mark.parametrize("algo", ["ekf", "fastslam2"])
-def test_dataset7_robot3_is_accurate_and_honest_with_the_defaults(tmp_path, capsys, algo):
+def test_dataset7_robot3_is_accurate_and_honest_with_the_defaults(tmp_path, capsys, data_dir, algo):
     # issue 4's target on real data, 900 s of robot 3: ATE well under dead reckoning's 2.13 m and the true pose
     # inside the 95 % region at >= 85 % of the steps (docs/slam.md: EKF 0.12 m / 0.99; FastSLAM 2.0 with
     # gauge-preserving resampling 0.20 m / 0.97, with plain resampling 0.20 m / 0.20)
-    out = tmp_path / f"{algo}.npz"
-    assert main(["slam", "--algo", algo, str(MRCLAM7), "--robot", "3", "-o", str(out)]) == 0
+    folder, out = data_dir / "mrclam7", tmp_path / f"{algo}.npz"
+    assert main(["slam", "--algo", algo, str(folder), "--robot", "3", "-o", str(out)]) == 0
     capsys.readouterr()
-    assert main(["eval-traj", str(out), str(MRCLAM7 / "Robot3_Groundtruth.dat")]) == 0
+    assert main(["eval-traj", str(out), str(folder / "Robot3_Groundtruth.dat")]) == 0
     score = json.loads(capsys.readouterr().out)
     assert score["ate_rmse_m"] < 0.3 * 2.13
     assert score["inside95"] >= 0.85
