@@ -8,6 +8,9 @@ observed cells and bytes. A sweep over the split test's significance traces AUC 
 both rules, so they can be compared at the same budget (linear interpolation along the rule without
 unknowns). ``claimed_free_m2`` is the paper's Fig. 3 error made measurable: area that the regular grid never
 observed but that the adaptive map shows as free to a planner (p <= map_server's free threshold).
+``tree_oracle_auc`` scores the same tree with each active cell given the regular grid's mean log-odds under it:
+what the tree's cell sizes allow, so the gap to ``auc`` is what the cells' history costs.
+`compare_rules` does all of this for any posed scans; bench/adaptive_real.py runs it on a real laser log.
 Speeds are scans per second, single-threaded, after a warm-up scan that compiles the kernels: wall-clock, and
 per second of this process's CPU time (steadier when other work shares the machine).
 """
@@ -63,14 +66,50 @@ def free_space_labels(regular: dict) -> dict:
             "resolution": regular["resolution"]}
 
 
-def run(steps: int = 400) -> dict:
-    """Measure; returns a flat dict of figures (also printed by bench.run)."""
-    sim = office_run(seed=0, steps=steps)
-    posed = honest_posed_scans(sim, seed=1, particles=SAMPLES)
-    model = SensorModel(resolution=RESOLUTION)
+def regular_labels(raster: dict) -> dict:
+    """The paper's Fig. 4(b) labels: the regular grid's thresholded occupancy (p > 1/2) over its observed cells."""
+    return {"occupied": raster["probability"] > 0.5, "visible": raster["observed"], "origin": raster["origin"],
+            "resolution": raster["resolution"]}
+
+
+def tree_oracle_logodds(tree: dict, regular: dict) -> np.ndarray:
+    """Log-odds on the raster of ``tree`` (an adaptive raster with ``level``): each active cell given the mean
+    log-odds of the ``regular`` raster's observed cells under it (0 where none), the best values the tree's
+    cell sizes allow. Both rasters share the finest resolution and the world frame's cell boundaries."""
+    res = float(tree["resolution"])
+    rows, cols = np.nonzero(tree["level"] >= 0)
+    level = tree["level"][rows, cols].astype(np.int64)
+    gx = (int(round(tree["origin"][0] / res)) + cols) >> level  # the active cell's index at its level
+    gy = (int(round(tree["origin"][1] / res)) + rows) >> level
+    gx, gy = gx - gx.min(), gy - gy.min()
+    cell = (gx * (gy.max() + 1) + gy) * 16 + level  # one key per active cell
+    x, y = tree["origin"][0] + (cols + 0.5) * res, tree["origin"][1] + (rows + 0.5) * res
+    where = (regular["origin"], float(regular["resolution"]), x, y)
+    fine = sample_map(regular["logodds"], *where)
+    seen = sample_map(regular["observed"].astype(float), *where) == 1.0  # 0.5 off the raster
+    keys, index = np.unique(cell, return_inverse=True)
+    total = np.bincount(index[seen], fine[seen], len(keys))
+    count = np.bincount(index[seen], None, len(keys))
+    logodds = np.zeros(tree["level"].shape)
+    logodds[rows, cols] = (total / np.maximum(count, 1))[index]
+    return logodds
+
+
+def tree_oracle_auc(tree: dict, regular: dict, labels: dict) -> float:
+    """AUC against ``labels`` of the tree with `tree_oracle_logodds`' values. Its gap to the adaptive map's
+    own AUC is what the cells' history costs (a child inherits its parent's log-odds), not their size."""
+    logodds = tree_oracle_logodds(tree, regular)
+    return score_map(dict(tree, logodds=logodds, probability=1.0 / (1.0 + np.exp(-logodds))), labels)["auc"]
+
+
+def compare_rules(posed, model: SensorModel, sweep: dict[str, AdaptiveParams]) -> dict:
+    """Fuse ``posed`` into the fine regular grid and into one adaptive grid per entry of ``sweep`` (figure
+    prefix -> parameters); score each against the regular grid. Per prefix: ``cells_fraction`` (active cells
+    over the regular grid's observed cells), ``bytes_fraction``, ``auc``, ``tree_oracle_auc``,
+    ``free_space_auc``, ``claimed_free_m2``, ``scans_per_s`` and ``scans_per_cpu_s``. Then, for every prefix
+    that counts unknowns, the AUCs of the rule without unknowns interpolated to its cell budget
+    (``no_unknowns_auc_at_PREFIX_cells``, NaN outside the sweep without unknowns)."""
     scans = len(posed.stamps)
-    out: dict = {"scans": scans, "beams": int(posed.ranges.shape[1]), "samples": SAMPLES,
-                 "resolution_m": RESOLUTION, "start_cell_m": RESOLUTION * (1 << AdaptiveParams().start_level)}
 
     def regular():
         return MonteCarloFusion(TiledGrid(RESOLUTION), model, posed.beam_angles, posed.range_min, posed.range_max,
@@ -78,44 +117,50 @@ def run(steps: int = 400) -> dict:
 
     seconds, cpu, fine = _fuse(posed, regular)
     raster = fine.rasterize()
-    labels = {"occupied": raster["probability"] > 0.5, "visible": raster["observed"], "origin": raster["origin"],
-              "resolution": raster["resolution"]}
+    labels = regular_labels(raster)
     free_labels = free_space_labels(raster)
     observed = fine.observed_cells()
-    out.update(regular_scans_per_s=scans / seconds, regular_scans_per_cpu_s=scans / cpu,
-               regular_observed_cells=observed, regular_bytes_per_observed_cell=fine.nbytes / observed)
+    out: dict = {"regular_scans_per_s": scans / seconds, "regular_scans_per_cpu_s": scans / cpu,
+                 "regular_observed_cells": observed, "regular_bytes_per_observed_cell": fine.nbytes / observed}
+    curves: dict[bool, list[tuple[float, float, float]]] = {True: [], False: []}
+    for prefix, params in sweep.items():
+        def adaptive(params=params):
+            return AdaptiveFusion(AdaptiveGrid(RESOLUTION), model, posed.beam_angles, posed.range_min,
+                                  posed.range_max, posed.sensor_offset, params)
 
-    sweeps: dict[str, list[tuple[float, float]]] = {}
-    free_sweeps: dict[str, list[tuple[float, float]]] = {}
+        seconds, cpu, grid = _fuse(posed, adaptive)
+        tree = grid.rasterize()
+        cells = grid.active_cells / observed
+        auc, free_auc = score_map(tree, labels)["auc"], score_map(tree, free_labels)["auc"]
+        curves[params.unknowns].append((cells, auc, free_auc))
+        out.update({f"{prefix}_cells_fraction": cells, f"{prefix}_active_cells": grid.active_cells,
+                    f"{prefix}_bytes_fraction": grid.nbytes / fine.nbytes,
+                    f"{prefix}_bytes_per_observed_cell": grid.nbytes / observed, f"{prefix}_auc": auc,
+                    f"{prefix}_tree_oracle_auc": tree_oracle_auc(tree, raster, labels),
+                    f"{prefix}_free_space_auc": free_auc, f"{prefix}_claimed_free_m2": claimed_free_m2(tree, raster),
+                    f"{prefix}_scans_per_s": scans / seconds, f"{prefix}_scans_per_cpu_s": scans / cpu})
+    without = sorted(curves[False])
+    for prefix, params in sweep.items():
+        if not params.unknowns or not without:
+            continue
+        cells = out[f"{prefix}_cells_fraction"]
+        inside = without[0][0] <= cells <= without[-1][0]
+        for column, score in ((1, "auc"), (2, "free_space_auc")):
+            value = np.interp(cells, [c[0] for c in without], [c[column] for c in without]) if inside else np.nan
+            out[f"no_unknowns_{score}_at_{prefix}_cells"] = float(value)
+    return out
+
+
+def run(steps: int = 400) -> dict:
+    """Measure; returns a flat dict of figures (also printed by bench.run)."""
+    sim = office_run(seed=0, steps=steps)
+    posed = honest_posed_scans(sim, seed=1, particles=SAMPLES)
+    out: dict = {"scans": len(posed.stamps), "beams": int(posed.ranges.shape[1]), "samples": SAMPLES,
+                 "resolution_m": RESOLUTION, "start_cell_m": RESOLUTION * (1 << AdaptiveParams().start_level)}
+    sweep = {}
     for name, unknowns in (("unknowns", True), ("no_unknowns", False)):
-        sweeps[name] = []
-        free_sweeps[name] = []
         for alpha in SIGNIFICANCES:
-            params = AdaptiveParams(unknowns=unknowns, significance=alpha)
-
-            def adaptive(params=params):
-                return AdaptiveFusion(AdaptiveGrid(RESOLUTION), model, posed.beam_angles, posed.range_min,
-                                      posed.range_max, posed.sensor_offset, params)
-
-            seconds, cpu, grid = _fuse(posed, adaptive)
-            tree = grid.rasterize()
-            cells = grid.active_cells / observed
-            sweeps[name].append((cells, score_map(tree, labels)["auc"]))
-            free_sweeps[name].append((cells, score_map(tree, free_labels)["auc"]))
-            key = name if alpha == SIGNIFICANCES[0] else f"{name}_alpha_{alpha:g}"
-            out.update({f"{key}_auc": sweeps[name][-1][1], f"{key}_free_space_auc": free_sweeps[name][-1][1],
-                        f"{key}_cells_fraction": cells, f"{key}_claimed_free_m2": claimed_free_m2(tree, raster)})
-            if alpha == SIGNIFICANCES[0]:
-                out.update({f"{name}_active_cells": grid.active_cells,
-                            f"{name}_bytes_fraction": grid.nbytes / fine.nbytes,
-                            f"{name}_bytes_per_observed_cell": grid.nbytes / observed,
-                            f"{name}_scans_per_s": scans / seconds, f"{name}_scans_per_cpu_s": scans / cpu})
-    # the rule without unknowns at the budgets the rule with unknowns used (NaN outside its sweep)
-    for score, curves in (("auc", sweeps), ("free_space_auc", free_sweeps)):
-        cells_without, auc_without = zip(*sorted(curves["no_unknowns"]))
-        for alpha, (cells, _) in zip(SIGNIFICANCES, curves["unknowns"]):
-            key = "unknowns" if alpha == SIGNIFICANCES[0] else f"unknowns_alpha_{alpha:g}"
-            inside = cells_without[0] <= cells <= cells_without[-1]
-            auc = float(np.interp(cells, cells_without, auc_without)) if inside else float("nan")
-            out[f"no_unknowns_{score}_at_{key}_cells"] = auc
+            prefix = name if alpha == SIGNIFICANCES[0] else f"{name}_alpha_{alpha:g}"
+            sweep[prefix] = AdaptiveParams(unknowns=unknowns, significance=alpha)
+    out.update(compare_rules(posed, SensorModel(resolution=RESOLUTION), sweep))
     return out

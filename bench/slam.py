@@ -32,7 +32,7 @@ ESTIMATORS = {
 }
 
 
-def _cli(argv: list[str]) -> str:
+def run_cli(argv: list[str]) -> str:
     """Run `posegrid ARGV` in this process; its stdout (a non-zero exit raises)."""
     out = io.StringIO()
     with contextlib.redirect_stdout(out):
@@ -50,8 +50,8 @@ def run() -> dict:
         for name, args in ESTIMATORS.items():
             for robot in ROBOTS:
                 out = Path(tmp) / f"{name}_{robot}.npz"
-                printed = _cli(["slam", str(DATA), "--robot", str(robot), *args, "-o", str(out)])
-                score = json.loads(_cli(["eval-traj", str(out), str(DATA / f"Robot{robot}_Groundtruth.dat")]))
+                printed = run_cli(["slam", str(DATA), "--robot", str(robot), *args, "-o", str(out)])
+                score = json.loads(run_cli(["eval-traj", str(out), str(DATA / f"Robot{robot}_Groundtruth.dat")]))
                 figures[f"r{robot}_{name}_ate_m"] = score["ate_rmse_m"]
                 figures[f"r{robot}_{name}_inside95"] = score["inside95"]
                 figures[f"r{robot}_{name}_nees"] = score["nees_mean"]

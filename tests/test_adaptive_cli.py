@@ -48,3 +48,27 @@ def test_bad_adaptive_options_are_usage_errors(posed_file, tmp_path, capsys):
     assert "power of two" in capsys.readouterr().err
     assert main(["fuse", str(posed_file), "-o", out, "--grid", "adaptive", "--significance", "2"]) == 2
     assert "significance" in capsys.readouterr().err
+
+
+def test_unknown_range_reaches_the_split_test(posed_file, tmp_path):
+    from mapping.adaptive import AdaptiveParams
+    from schemas.files import load_posed_scans
+    from services.fusion_runner import fuse_posed_scans_adaptive
+
+    out = tmp_path / "short.npz"
+    assert main(["fuse", str(posed_file), "-o", str(out), "--samples", "8", "--grid", "adaptive",
+                 "--unknown-range", "0.3"]) == 0
+    expected = fuse_posed_scans_adaptive(load_posed_scans(posed_file), n_samples=8,
+                                         params=AdaptiveParams(unknown_range=0.3)).rasterize()
+    default = fuse_posed_scans_adaptive(load_posed_scans(posed_file), n_samples=8).rasterize()
+    assert not np.array_equal(expected["level"], default["level"])  # the option changes the tree here
+    np.testing.assert_array_equal(load_map(out).level, expected["level"])
+
+
+def test_bad_unknown_range_is_a_usage_error(posed_file, tmp_path, capsys):
+    out = str(tmp_path / "m.npz")
+    assert main(["fuse", str(posed_file), "-o", out, "--grid", "adaptive", "--unknown-range", "-1"]) == 2
+    assert "unknown_range must be >= 0" in capsys.readouterr().err
+    assert main(["fuse", str(posed_file), "-o", out, "--grid", "adaptive", "--no-unknowns",
+                 "--unknown-range", "1"]) == 2
+    assert "drop one of them" in capsys.readouterr().err

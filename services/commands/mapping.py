@@ -60,6 +60,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                           "of two (default 0.8)")
     adaptive.add_argument("--significance", type=float, default=0.01,
                           help="significance of the chi-square split test; larger splits more (default 0.01)")
+    adaptive.add_argument("--unknown-range", type=float, default=None, metavar="M",
+                          help="count a ray's unknowns only up to M m beyond its return (default: up to the "
+                          "range limit, the paper's rule). With a long-range laser among chairs and people, the "
+                          "shadow of every small object splits cells out to the range limit; 1.6 keeps the "
+                          "splits near the returns (docs/adaptive.md, real data)")
     fuse.set_defaults(func=run_fuse)
 
     export = subparsers.add_parser(
@@ -102,8 +107,11 @@ def run_fuse(args: argparse.Namespace) -> int:
         from mapping.adaptive import AdaptiveParams, level_for_cell_size
         from services.fusion_runner import fuse_posed_scans_adaptive
 
+        if args.unknown_range is not None and not args.unknowns:
+            raise UsageError("--unknown-range limits the unknowns that --no-unknowns turns off; drop one of them")
         params = AdaptiveParams(start_level=level_for_cell_size(args.coarse_cell, args.resolution),
-                                unknowns=args.unknowns, significance=args.significance)
+                                unknowns=args.unknowns, significance=args.significance,
+                                unknown_range=args.unknown_range)
         grid = fuse_posed_scans_adaptive(posed, params=params, **options)
         summary = f"{grid.active_cells} active cells ({'with' if args.unknowns else 'without'} unknowns)"
     else:
