@@ -1,11 +1,12 @@
-"""The adaptive grid on a real laser log: MIT CSAIL (1988 scans, 361 beams, 30 m range), paper Fig. 4(b) style.
+"""The adaptive grid on real laser logs: MIT CSAIL and Freiburg 079 (30 m lasers), paper Fig. 4(b) style.
 
-The pose distribution is grid FastSLAM's, run through the command line as a user would (`posegrid slam --algo
-gridslam mit-csail.clf --seed 0`, 30 particles, about 4 minutes). Every SCAN_STEP-th scan of the whole log is
-then fused into the fine regular grid and into adaptive grids over the sweep below, and each is scored against
-the regular grid as `bench/adaptive.py` scores the simulated office (`compare_rules`). The sweep adds
-`unknown_range` 1.6 m, because on this log the unknowns behind small objects reach to 30 m (docs/adaptive.md).
-Skipped, with the reason, when ../shared/data/mit-csail is absent. About 10 minutes on one core.
+Each log's pose distribution is grid FastSLAM's, run through the command line as a user would (`posegrid slam
+--algo gridslam LOG --seed 0`, 30 particles; about 4 and 7 minutes). Every SCAN_STEP-th scan of the posed-scan
+file is then fused into the fine regular grid and into adaptive grids over the sweep below, and each is scored
+against the regular grid as `bench/adaptive.py` scores the simulated office (`compare_rules`); figures carry the
+log's name as a prefix. The sweep adds `unknown_range` 1.6 m, because on these logs the unknowns behind small
+objects reach to 30 m (docs/adaptive.md). A log that is absent from ../shared/data is skipped, with the reason.
+About 16 minutes on one core.
 """
 from __future__ import annotations
 
@@ -19,7 +20,9 @@ from mapping.adaptive import AdaptiveParams
 from mapping.sensor_model import SensorModel
 from schemas.files import PosedScans, PoseSet, load_posed_scans
 
-LOG = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mit-csail" / "mit-csail.clf"
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+#: figure prefix -> laser log
+LOGS = {"mit_csail": DATA / "mit-csail" / "mit-csail.clf", "fr079": DATA / "fr079" / "fr079.orig.bag"}
 #: fuse every SCAN_STEP-th scan (the map still covers the whole building)
 SCAN_STEP = 4
 #: how far behind a return the extra sweep entry counts unknowns, m
@@ -32,21 +35,34 @@ def every_nth_scan(posed: PosedScans, step: int) -> PosedScans:
     return replace(posed, ranges=posed.ranges[::step], stamps=posed.stamps[::step], poses=poses)
 
 
-def run() -> dict:
-    if not LOG.is_file():
-        return {"skipped": f"the MIT CSAIL log is not present ({LOG})"}
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "mit-csail.npz"
-        run_cli(["slam", "--algo", "gridslam", str(LOG), "--seed", "0", "-o", str(path)])
-        posed = every_nth_scan(load_posed_scans(path), SCAN_STEP)
-    sweep = {}
+def sweep() -> dict[str, AdaptiveParams]:
+    """Figure prefix -> parameters: both split rules at every significance, and unknowns up to 1.6 m."""
+    out = {}
     for name, unknowns in (("unknowns", True), ("no_unknowns", False)):
         for alpha in SIGNIFICANCES:
-            prefix = name if alpha == SIGNIFICANCES[0] else f"{name}_alpha_{alpha:g}"
-            sweep[prefix] = AdaptiveParams(unknowns=unknowns, significance=alpha)
-    sweep[f"unknowns_range_{SHORT_UNKNOWN_RANGE:g}m"] = AdaptiveParams(unknown_range=SHORT_UNKNOWN_RANGE)
-    out: dict = {"log": LOG.name, "scans": len(posed.stamps), "scan_step": SCAN_STEP,
-                 "beams": int(posed.ranges.shape[1]), "range_max_m": float(posed.range_max),
-                 "particles": int(posed.poses.samples.shape[1]), "resolution_m": RESOLUTION}
-    out.update(compare_rules(posed, SensorModel(resolution=RESOLUTION), sweep))
+            out[name if alpha == SIGNIFICANCES[0] else f"{name}_alpha_{alpha:g}"] = AdaptiveParams(
+                unknowns=unknowns, significance=alpha)
+    out[f"unknowns_range_{SHORT_UNKNOWN_RANGE:g}m"] = AdaptiveParams(unknown_range=SHORT_UNKNOWN_RANGE)
     return out
+
+
+def measure_log(log: Path) -> dict:
+    """Grid FastSLAM on ``log``, then `compare_rules` on every SCAN_STEP-th scan of its posed-scan file."""
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "posed.npz"
+        run_cli(["slam", "--algo", "gridslam", str(log), "--seed", "0", "-o", str(path)])
+        posed = every_nth_scan(load_posed_scans(path), SCAN_STEP)
+    out: dict = {"scans": len(posed.stamps), "beams": int(posed.ranges.shape[1]),
+                 "range_max_m": float(posed.range_max), "particles": int(posed.poses.samples.shape[1])}
+    out.update(compare_rules(posed, SensorModel(resolution=RESOLUTION), sweep()))
+    return out
+
+
+def run() -> dict:
+    figures: dict = {"scan_step": SCAN_STEP, "resolution_m": RESOLUTION}
+    for name, log in LOGS.items():
+        if not log.is_file():
+            figures[f"{name}_skipped"] = f"the log is not present ({log})"
+            continue
+        figures.update({f"{name}_{key}": value for key, value in measure_log(log).items()})
+    return figures
