@@ -10,7 +10,7 @@ unknowns). ``claimed_free_m2`` is the paper's Fig. 3 error made measurable: area
 observed but that the adaptive map shows as free to a planner (p <= map_server's free threshold).
 ``tree_oracle_auc`` scores the same tree with each active cell given the regular grid's mean log-odds under it:
 what the tree's cell sizes allow, so the gap to ``auc`` is what the cells' history costs.
-`compare_rules` does all of this for any posed scans; bench/adaptive_real.py runs it on a real laser log.
+`compare_rules` does all of this for any posed scans; bench/adaptive_real.py runs it on real laser logs.
 Speeds are scans per second, single-threaded, after a warm-up scan that compiles the kernels: wall-clock, and
 per second of this process's CPU time (steadier when other work shares the machine).
 """
@@ -151,16 +151,22 @@ def compare_rules(posed, model: SensorModel, sweep: dict[str, AdaptiveParams]) -
     return out
 
 
+def significance_sweep() -> dict[str, AdaptiveParams]:
+    """Figure prefix -> parameters: both split rules at every significance of SIGNIFICANCES (the default's
+    prefix is the rule's name alone)."""
+    sweep = {}
+    for name, unknowns in (("unknowns", True), ("no_unknowns", False)):
+        for alpha in SIGNIFICANCES:
+            prefix = name if alpha == SIGNIFICANCES[0] else f"{name}_alpha_{alpha:g}"
+            sweep[prefix] = AdaptiveParams(unknowns=unknowns, significance=alpha)
+    return sweep
+
+
 def run(steps: int = 400) -> dict:
     """Measure; returns a flat dict of figures (also printed by bench.run)."""
     sim = office_run(seed=0, steps=steps)
     posed = honest_posed_scans(sim, seed=1, particles=SAMPLES)
     out: dict = {"scans": len(posed.stamps), "beams": int(posed.ranges.shape[1]), "samples": SAMPLES,
                  "resolution_m": RESOLUTION, "start_cell_m": RESOLUTION * (1 << AdaptiveParams().start_level)}
-    sweep = {}
-    for name, unknowns in (("unknowns", True), ("no_unknowns", False)):
-        for alpha in SIGNIFICANCES:
-            prefix = name if alpha == SIGNIFICANCES[0] else f"{name}_alpha_{alpha:g}"
-            sweep[prefix] = AdaptiveParams(unknowns=unknowns, significance=alpha)
-    out.update(compare_rules(posed, SensorModel(resolution=RESOLUTION), sweep))
+    out.update(compare_rules(posed, SensorModel(resolution=RESOLUTION), significance_sweep()))
     return out

@@ -14,7 +14,7 @@ import tempfile
 from dataclasses import replace
 from pathlib import Path
 
-from bench.adaptive import RESOLUTION, SIGNIFICANCES, compare_rules
+from bench.adaptive import RESOLUTION, compare_rules, significance_sweep
 from bench.slam import run_cli
 from mapping.adaptive import AdaptiveParams
 from mapping.sensor_model import SensorModel
@@ -36,14 +36,9 @@ def every_nth_scan(posed: PosedScans, step: int) -> PosedScans:
 
 
 def sweep() -> dict[str, AdaptiveParams]:
-    """Figure prefix -> parameters: both split rules at every significance, and unknowns up to 1.6 m."""
-    out = {}
-    for name, unknowns in (("unknowns", True), ("no_unknowns", False)):
-        for alpha in SIGNIFICANCES:
-            out[name if alpha == SIGNIFICANCES[0] else f"{name}_alpha_{alpha:g}"] = AdaptiveParams(
-                unknowns=unknowns, significance=alpha)
-    out[f"unknowns_range_{SHORT_UNKNOWN_RANGE:g}m"] = AdaptiveParams(unknown_range=SHORT_UNKNOWN_RANGE)
-    return out
+    """Figure prefix -> parameters: the office's significance sweep, and unknowns up to SHORT_UNKNOWN_RANGE."""
+    return {**significance_sweep(),
+            f"unknowns_range_{SHORT_UNKNOWN_RANGE:g}m": AdaptiveParams(unknown_range=SHORT_UNKNOWN_RANGE)}
 
 
 def measure_log(log: Path) -> dict:
