@@ -27,6 +27,7 @@ from mapping.export import FREE_THRESH
 from mapping.fusion import MonteCarloFusion
 from mapping.grid import TiledGrid
 from mapping.sensor_model import SensorModel
+from schemas.files import PosedScans
 
 SAMPLES = 30
 RESOLUTION = 0.05
@@ -102,7 +103,7 @@ def tree_oracle_auc(tree: dict, regular: dict, labels: dict) -> float:
     return score_map(dict(tree, logodds=logodds, probability=1.0 / (1.0 + np.exp(-logodds))), labels)["auc"]
 
 
-def compare_rules(posed, model: SensorModel, sweep: dict[str, AdaptiveParams]) -> dict:
+def compare_rules(posed: PosedScans, model: SensorModel, sweep: dict[str, AdaptiveParams]) -> dict:
     """Fuse ``posed`` into the fine regular grid and into one adaptive grid per entry of ``sweep`` (figure
     prefix -> parameters); score each against the regular grid. Per prefix: ``cells_fraction`` (active cells
     over the regular grid's observed cells), ``bytes_fraction``, ``auc``, ``tree_oracle_auc``,

@@ -11,14 +11,14 @@ About 16 minutes on one core.
 from __future__ import annotations
 
 import tempfile
-from dataclasses import replace
 from pathlib import Path
 
 from bench.adaptive import RESOLUTION, compare_rules, significance_sweep
-from bench.slam import run_cli
+from bench.run import run_cli
+from bench.scenarios import select_scans
 from mapping.adaptive import AdaptiveParams
 from mapping.sensor_model import SensorModel
-from schemas.files import PosedScans, PoseSet, load_posed_scans
+from schemas.files import load_posed_scans
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 #: figure prefix -> laser log
@@ -27,12 +27,6 @@ LOGS = {"mit_csail": DATA / "mit-csail" / "mit-csail.clf", "fr079": DATA / "fr07
 SCAN_STEP = 4
 #: how far behind a return the extra sweep entry counts unknowns, m
 SHORT_UNKNOWN_RANGE = 1.6
-
-
-def every_nth_scan(posed: PosedScans, step: int) -> PosedScans:
-    """Every ``step``-th scan of ``posed`` with its pose distribution (samples and weights)."""
-    poses = PoseSet(samples=posed.poses.samples[::step], weights=posed.poses.weights[::step])
-    return replace(posed, ranges=posed.ranges[::step], stamps=posed.stamps[::step], poses=poses)
 
 
 def sweep() -> dict[str, AdaptiveParams]:
@@ -46,7 +40,7 @@ def measure_log(log: Path) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "posed.npz"
         run_cli(["slam", "--algo", "gridslam", str(log), "--seed", "0", "-o", str(path)])
-        posed = every_nth_scan(load_posed_scans(path), SCAN_STEP)
+        posed = select_scans(load_posed_scans(path), slice(None, None, SCAN_STEP))
     out: dict = {"scans": len(posed.stamps), "beams": int(posed.ranges.shape[1]),
                  "range_max_m": float(posed.range_max), "particles": int(posed.poses.samples.shape[1])}
     out.update(compare_rules(posed, SensorModel(resolution=RESOLUTION), sweep()))

@@ -24,7 +24,7 @@ import time
 import numpy as np
 import zenoh
 
-from bench.scenarios import honest_posed_scans, office_run
+from bench.scenarios import honest_posed_scans, office_run, select_scans
 from mapping.grid import TILE_SIZE
 from schemas.messages import ShardStats, TileUpdate, decode_message
 from services import keys
@@ -107,19 +107,10 @@ class Cluster:
 
 def _in_process_rate(posed) -> float:
     """Scans per second of `posegrid fuse`'s loop (after one warm-up scan that compiles the kernels)."""
-    fuse_posed_scans(_first(posed, 1))
+    fuse_posed_scans(select_scans(posed, slice(0, 1)))
     started = time.perf_counter()
     fuse_posed_scans(posed)
     return len(posed.stamps) / (time.perf_counter() - started)
-
-
-def _first(posed, count: int):
-    from dataclasses import replace
-
-    from schemas.files import PoseSet
-
-    poses = PoseSet(samples=posed.poses.samples[:count], weights=posed.poses.weights[:count])
-    return replace(posed, ranges=posed.ranges[:count], stamps=posed.stamps[:count], poses=poses)
 
 
 def _throughput(posed, shards: int, tile_size: int) -> dict:
@@ -140,7 +131,7 @@ def _throughput(posed, shards: int, tile_size: int) -> dict:
 
 
 def _latency(posed, shards: int, tile_size: int) -> dict:
-    stream = posed_stream(_first(posed, WARMUP + LATENCY_SCANS), ROBOT)
+    stream = posed_stream(select_scans(posed, slice(0, WARMUP + LATENCY_SCANS)), ROBOT)
     published: dict[int, float] = {}
     with Cluster(shards, f"lat{shards}", tile_size) as cluster:
         publishers = {name: cluster.session.declare_publisher(keys.robot_key(ROBOT, name),

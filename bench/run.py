@@ -1,7 +1,9 @@
 """`make bench`: run every benchmark, write JSON under bench/results/, print a table."""
 from __future__ import annotations
 
+import contextlib
 import importlib
+import io
 import json
 import platform
 import sys
@@ -10,7 +12,20 @@ from pathlib import Path
 
 RESULTS = Path(__file__).resolve().parent / "results"
 #: benchmark modules, each with run() -> dict of figures
-SUITES = ("bench.fusion", "bench.quality", "bench.adaptive", "bench.adaptive_real", "bench.pipeline", "bench.api", "bench.slam")
+SUITES = ("bench.fusion", "bench.quality", "bench.adaptive", "bench.adaptive_real", "bench.pipeline", "bench.api",
+          "bench.slam")
+
+
+def run_cli(argv: list[str]) -> str:
+    """Run `posegrid ARGV` in this process, as a suite's user would; its stdout (a non-zero exit raises)."""
+    from services.cli import main
+
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        code = main(argv)
+    if code != 0:
+        raise RuntimeError(f"posegrid {' '.join(argv)} exited {code}: {out.getvalue()}")
+    return out.getvalue()
 
 
 def main(argv: list[str]) -> int:

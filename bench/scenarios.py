@@ -4,8 +4,11 @@
 inside the estimate's 95 % region about 95 % of the time: mean_t = truth_t + L_t eps_t, eps_t ~ N(0, I),
 with covariance Sigma_t whose position sigma varies smoothly between 0.03 and 0.15 m and yaw sigma between
 0.005 and 0.03 rad along the run (uncertainty grows while exploring and shrinks at loop closures).
+`select_scans` cuts any posed scans, real logs included, down to the scans a suite needs.
 """
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 
@@ -67,3 +70,10 @@ def resampled_particles(posed: PosedScans, seed: int = 0) -> PosedScans:
         range_min=posed.range_min, range_max=posed.range_max, stamps=posed.stamps, sensor_offset=posed.sensor_offset,
         poses=PoseSet(samples=resampled, weights=posed.poses.weights),
     )
+
+
+def select_scans(posed: PosedScans, index: slice) -> PosedScans:
+    """The scans of ``posed`` that ``index`` picks (slice(0, 10): the first ten; slice(None, None, 4): every
+    4th), each with its pose distribution in whichever form it has."""
+    poses = PoseSet(**{key: value[index] for key, value in posed.poses.arrays().items()})
+    return replace(posed, ranges=posed.ranges[index], stamps=posed.stamps[index], poses=poses)

@@ -10,14 +10,12 @@ is absent. About 8 minutes on one core.
 """
 from __future__ import annotations
 
-import contextlib
-import io
 import json
 import re
 import tempfile
 from pathlib import Path
 
-from services.cli import main
+from bench.run import run_cli
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mrclam7"
 ROBOTS = (1, 2, 3, 4, 5)
@@ -30,16 +28,6 @@ ESTIMATORS = {
     "fastslam1_plain": ["--algo", "fastslam1", "--plain-resampling"],
     "fastslam2_plain": ["--algo", "fastslam2", "--plain-resampling"],
 }
-
-
-def run_cli(argv: list[str]) -> str:
-    """Run `posegrid ARGV` in this process; its stdout (a non-zero exit raises)."""
-    out = io.StringIO()
-    with contextlib.redirect_stdout(out):
-        code = main(argv)
-    if code != 0:
-        raise RuntimeError(f"posegrid {' '.join(argv)} exited {code}: {out.getvalue()}")
-    return out.getvalue()
 
 
 def run() -> dict:

@@ -1,9 +1,12 @@
-"""The adaptive benchmark's tree oracle (bench/adaptive.py): hand-computed cell means on a tiny raster."""
+"""Benchmark helpers the figures rest on: the adaptive benchmark's tree oracle (hand-computed cell means on a tiny
+raster) and the scan selection every suite cuts its inputs with."""
 from __future__ import annotations
 
 import numpy as np
 
 from bench.adaptive import tree_oracle_logodds
+from bench.scenarios import select_scans
+from schemas.files import PosedScans, PoseSet
 
 
 def test_tree_oracle_gives_each_active_cell_the_mean_of_the_observed_fine_cells_under_it():
@@ -34,3 +37,22 @@ def test_tree_oracle_keeps_cells_of_the_same_size_apart_across_a_level_boundary(
                "origin": np.array([0.0, 0.0]), "resolution": 0.5}
     tree = {"level": np.ones((2, 4), np.int8), "origin": np.array([0.0, 0.0]), "resolution": 0.5}
     np.testing.assert_allclose(tree_oracle_logodds(tree, regular), regular["logodds"])
+
+
+def _posed(poses: PoseSet, scans: int) -> PosedScans:
+    return PosedScans(ranges=np.arange(scans * 2, dtype=np.float32).reshape(scans, 2), angle_min=0.0,
+                      angle_increment=0.1, range_min=0.1, range_max=5.0, stamps=np.arange(scans) * 0.5,
+                      sensor_offset=np.zeros(3), poses=poses)
+
+
+def test_select_scans_keeps_each_scan_with_its_own_pose_distribution_in_either_form():
+    scans = 9
+    particles = PoseSet(samples=np.arange(scans * 2 * 3.0).reshape(scans, 2, 3), weights=np.full((scans, 2), 0.5))
+    gaussian = PoseSet(mean=np.arange(scans * 3.0).reshape(scans, 3), cov=np.tile(np.eye(3), (scans, 1, 1)))
+    for poses in (particles, gaussian):
+        picked = select_scans(_posed(poses, scans), slice(None, None, 4))  # scans 0, 4 and 8
+        np.testing.assert_array_equal(picked.stamps, [0.0, 2.0, 4.0])
+        np.testing.assert_array_equal(picked.ranges[:, 0], [0.0, 8.0, 16.0])
+        for key, value in picked.poses.arrays().items():
+            np.testing.assert_array_equal(value, poses.arrays()[key][[0, 4, 8]])
+        assert picked.poses.is_gaussian == poses.is_gaussian and picked.range_max == 5.0
