@@ -72,8 +72,11 @@ def _open(path: Path):
 
     if not path.exists():
         raise LogFormatError(f"{path}: no such file or bag folder (expected a ROS 1 .bag or a ROS 2 bag)")
-    reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+    if path.is_dir() and not (path / "metadata.yaml").exists():
+        raise LogFormatError(f"{path}: a folder without metadata.yaml, so not a ROS 2 bag (expected a ROS 1 .bag "
+                             "file or a ROS 2 bag folder)")
     try:
+        reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
         reader.open()
     except (AnyReaderError, OSError, ValueError, KeyError) as exc:
         raise LogFormatError(f"{path}: not a readable ROS bag ({exc})") from None

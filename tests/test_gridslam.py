@@ -255,12 +255,22 @@ def test_same_seed_same_result_and_bad_input_exits_2(simulated_log, tmp_path, ca
     write_carmen(cut, short.stamps[:60], short.ranges[:60], short.odometry[:60], short.angle_min,
                  short.angle_increment, short.range_max, short.sensor_offset)
     first = run_gridslam(read_carmen(cut), GridSlamConfig(particles=4), seed=9)
+    head = tmp_path / "head.npz"  # --scans 30: the first 30 scans' filter, the same as a log cut there
+    assert main(["slam", "--algo", "gridslam", str(cut), "-o", str(head), "--particles", "4", "--seed", "9",
+                 "--scans", "30"]) == 0
+    expected = run_gridslam(read_carmen(cut).first(30), GridSlamConfig(particles=4), seed=9)
+    np.testing.assert_array_equal(load_pose_distribution(tmp_path / "head.poses.npz").poses.samples, expected.samples)
     again = run_gridslam(read_carmen(cut), GridSlamConfig(particles=4), seed=9)
     np.testing.assert_array_equal(first.samples, again.samples)
     other = run_gridslam(read_carmen(cut), GridSlamConfig(particles=4), seed=10)
     assert not np.array_equal(first.samples, other.samples)
     assert main(["slam", "--algo", "gridslam", str(tmp_path / "missing.clf"), "-o", str(tmp_path / "o.npz")]) == 2
     assert "no such file" in capsys.readouterr().err
+    (tmp_path / "not_a_bag").mkdir()  # e.g. a simulator folder: one sentence, not rosbags' own message
+    assert main(["slam", "--algo", "gridslam", str(tmp_path / "not_a_bag"), "-o", str(tmp_path / "o.npz")]) == 2
+    assert "folder without metadata.yaml, so not a ROS 2 bag" in capsys.readouterr().err
+    assert main(["slam", "--algo", "gridslam", str(cut), "-o", str(tmp_path / "o.npz"), "--scans", "1"]) == 2
+    assert "--scans must be >= 2" in capsys.readouterr().err
     assert main(["slam", "--algo", "gridslam", str(cut), "-o", str(tmp_path / "o.npz"), "--particles", "0"]) == 2
     assert "particles" in capsys.readouterr().err
     assert main(["slam", "--algo", "gridslam", str(cut), "-o", str(tmp_path / "o.npz"), "--prior-cap", "-1"]) == 2

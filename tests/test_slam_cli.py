@@ -140,6 +140,8 @@ def test_bad_inputs_give_one_line_and_exit_2(simdir, tmp_path, capsys):
     # grid FastSLAM's options given to another filter would be ignored: refused, here and for the pipeline
     _one_line_exit_2(["slam", "--algo", "ekf", str(simdir), "-o", out, "--prior-cap", "36"], capsys, "--prior-cap",
                      "--algo gridslam")
+    _one_line_exit_2(["slam", "--algo", "fastslam2", str(simdir), "-o", out, "--scans", "50"], capsys, "--scans",
+                     "--algo gridslam")
     _one_line_exit_2(["run", "--sim-dir", str(simdir), "--min-range", "1"], capsys, "--min-range", "fastslam2")
 
     broken = tmp_path / "broken"

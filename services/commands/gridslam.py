@@ -47,6 +47,7 @@ def reject_filter_options(args: argparse.Namespace, algo: str) -> None:
     from services.cli import UsageError
 
     given = [option for option, _, value in filter_option_values(args) if value is not None]
+    given += ["--scans"] if getattr(args, "scans", None) is not None else []
     if given and algo != "gridslam":
         raise UsageError(f"{', '.join(given)} only apply to grid FastSLAM, but the SLAM algorithm is {algo}; add "
                          "--algo gridslam or drop them")
@@ -91,6 +92,9 @@ def add_gridslam_arguments(parser: argparse.ArgumentParser) -> None:
                        "laser whose stamps run late against the odometry's; 'auto' estimates it by running the "
                        f"filter over the first {AUTO_DELAY_SECONDS:.0f} s and comparing its scan-matched turns with "
                        "the odometry's (needs a separate odometry stream; default 0)")
+    group.add_argument("--scans", type=int, default=None, metavar="N",
+                       help="use only the log's first N scans, e.g. to try options quickly on a long log "
+                       "(default: all)")
     group.add_argument("--scan-topic", type=str, default=None, help="ROS bag: the LaserScan topic (default: the "
                        "only one, or /scan)")
     group.add_argument("--stats", type=Path, default=None, metavar="OUT.json",
@@ -177,7 +181,11 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
         if getattr(args, option, None) is not None:
             raise UsageError(f"--{option.replace('_', '-')} does not apply to --algo gridslam")
     config = _config(args)
+    if args.scans is not None and args.scans < 2:
+        raise UsageError(f"--scans must be >= 2 (a scan to start from and one to integrate), got {args.scans}")
     log = _read_input(args)
+    if args.scans is not None:
+        log = log.first(args.scans)
     if log.skipped:
         print(f"posegrid slam: note: {log.skipped_summary()}", file=sys.stderr)
     log, delay = _apply_odometry_delay(args, log, config)
