@@ -15,14 +15,13 @@ from pathlib import Path
 
 from bench.adaptive import RESOLUTION, compare_rules, significance_sweep
 from bench.run import run_cli
-from bench.scenarios import select_scans
+from bench.scenarios import FR079, MIT_CSAIL, select_scans
 from mapping.adaptive import AdaptiveParams
 from mapping.sensor_model import SensorModel
 from schemas.files import load_posed_scans
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 #: figure prefix -> laser log
-LOGS = {"mit_csail": DATA / "mit-csail" / "mit-csail.clf", "fr079": DATA / "fr079" / "fr079.orig.bag"}
+LOGS = {"mit_csail": MIT_CSAIL, "fr079": FR079}
 #: fuse every SCAN_STEP-th scan (the map still covers the whole building)
 SCAN_STEP = 4
 #: how far behind a return the extra sweep entry counts unknowns, m

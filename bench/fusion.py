@@ -8,6 +8,10 @@ sample-rays per second on the machine it was measured on). The plain loop walks 
 posegrid uses; a second one walks Bresenham's line, which skips the cells a ray crosses near a corner (about
 60 cells a ray against 82) and reaches 3.6 to 4.1 million here. All single-threaded.
 
+Merging identical particles before ray casting is measured on three particle sets: a resampled copy of the
+office's samples (as a filter that reports its particles after resampling gives them), and the outputs of
+the project's two FastSLAMs (`_fastslam_outputs`). Each is fused with merging and without, in turns.
+
 Each comparison runs in turns of a few scans (posegrid's, then the baseline's same scans, ...), so the
 machine's drift, tens of percent within a minute on a shared machine, falls on both sides of a ratio alike.
 """
@@ -15,20 +19,25 @@ from __future__ import annotations
 
 import functools
 import math
+import tempfile
 import time
 
 import numba as nb
 import numpy as np
 
-from bench.scenarios import honest_posed_scans, office_run, resampled_particles, truth_arrays
+from bench.run import run_cli
+from bench.scenarios import MIT_CSAIL, honest_posed_scans, office_run, resampled_particles, truth_arrays
 from mapping.evaluation import score_map
 from mapping.fusion import MonteCarloFusion, laser_poses
 from mapping.grid import TiledGrid
 from mapping.raytrace import corner_tol, dda_start, dda_step
 from mapping.sensor_model import SensorModel
+from schemas.files import load_posed_scans
 from services.fusion_runner import fuse_posed_scans
 
 SAMPLES = 60
+#: grid FastSLAM's output for the merging figures: the first this many scans of the MIT CSAIL log
+GRIDSLAM_SCANS = 600
 RESOLUTION = 0.05
 
 
@@ -51,6 +60,25 @@ def _fusion_steps(posed, mode: str, merge_identical: bool = True) -> tuple[list,
         posed.ranges[0], *picks[0])
     steps = [functools.partial(fusion.fuse, posed.ranges[t], *picks[t]) for t in range(len(posed.stamps))]
     return steps, grid
+
+
+def _fastslam_outputs() -> dict:
+    """Figure prefix -> the posed-scan file of a FastSLAM, made through the command line as a user would:
+    landmark FastSLAM 2.0 on the simulated office (SAMPLES particles, seed 0; it reports each scan's particles
+    after the motion step, before any resampling) and grid FastSLAM on the first GRIDSLAM_SCANS scans of the MIT
+    CSAIL log (30 particles, seed 0; it reports the final particles' trajectories, whose ancestries
+    coalesce). The log is skipped when ../shared/data lacks it."""
+    outputs = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        run_cli(["simulate", f"{tmp}/sim", "--seed", "0"])
+        run_cli(["slam", "--algo", "fastslam2", f"{tmp}/sim", "--particles", str(SAMPLES), "--seed", "0",
+                 "-o", f"{tmp}/fastslam2.npz"])
+        outputs["fastslam2_office"] = load_posed_scans(f"{tmp}/fastslam2.npz")
+        if MIT_CSAIL.is_file():
+            run_cli(["slam", "--algo", "gridslam", str(MIT_CSAIL), "--seed", "0", "--scans", str(GRIDSLAM_SCANS),
+                     "-o", f"{tmp}/gridslam.npz"])
+            outputs["gridslam_mit_csail"] = load_posed_scans(f"{tmp}/gridslam.npz")
+    return outputs
 
 
 def _interleaved_seconds(*step_lists: list, chunk: int) -> list[np.ndarray]:
@@ -219,12 +247,16 @@ def run(steps: int = 400, octomap_mc_every: int = 20) -> dict:
     seconds_ml = _interleaved_seconds(ml_steps, *([octo_ml[0]] if octo_ml else []), chunk=50)
     out["ml_scans_per_s"] = scans / seconds_ml[0].sum()
 
-    resampled = resampled_particles(posed, seed=2)
-    distinct = np.mean([len(np.unique(s, axis=0)) for s in resampled.poses.samples])
-    merged_s, unmerged_s = _interleaved_seconds(_fusion_steps(resampled, "mc", merge_identical=True)[0],
-                                                _fusion_steps(resampled, "mc", merge_identical=False)[0], chunk=5)
-    out["resampled_distinct_particles_mean"] = float(distinct)
-    out["merge_speedup"] = unmerged_s.sum() / merged_s.sum()
+    particle_sets = {"resampled": resampled_particles(posed, seed=2), **_fastslam_outputs()}
+    if "gridslam_mit_csail" not in particle_sets:
+        out["gridslam_mit_csail"] = f"skipped: the log is not present ({MIT_CSAIL})"
+    for label, particles in particle_sets.items():
+        distinct = [len(np.unique(s, axis=0)) for s in particles.poses.samples]
+        merged_s, unmerged_s = _interleaved_seconds(_fusion_steps(particles, "mc", merge_identical=True)[0],
+                                                    _fusion_steps(particles, "mc", merge_identical=False)[0], chunk=5)
+        out[f"{label}_distinct_particles_mean"] = float(np.mean(distinct))
+        out[f"{label}_scans_with_repeats"] = int(np.sum(np.array(distinct) < particles.poses.samples.shape[1]))
+        out[f"{label}_merge_speedup"] = unmerged_s.sum() / merged_s.sum()
 
     if octo_mc is not None:
         fed = np.arange(0, scans, octomap_mc_every)  # mc's time on the very scans OctoMap was fed

@@ -4,16 +4,22 @@
 inside the estimate's 95 % region about 95 % of the time: mean_t = truth_t + L_t eps_t, eps_t ~ N(0, I),
 with covariance Sigma_t whose position sigma varies smoothly between 0.03 and 0.15 m and yaw sigma between
 0.005 and 0.03 rad along the run (uncertainty grows while exploring and shrinks at loop closures).
-`select_scans` cuts any posed scans, real logs included, down to the scans a suite needs.
+`select_scans` cuts any posed scans, real logs included, down to the scans a suite needs. The real laser logs
+live in ../shared/data, beside the repository, not in it; a suite skips a log that is absent, with the reason.
 """
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 
 from schemas.files import PosedScans, PoseSet
 from slam.simulator import SimRun, simulate_office
+
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+MIT_CSAIL = SHARED_DATA / "mit-csail" / "mit-csail.clf"
+FR079 = SHARED_DATA / "fr079" / "fr079.orig.bag"
 
 
 def honest_covariances(steps: int) -> np.ndarray:
