@@ -10,6 +10,8 @@ unknowns). ``claimed_free_m2`` is the paper's Fig. 3 error made measurable: area
 observed but that the adaptive map shows as free to a planner (p <= map_server's free threshold).
 ``tree_oracle_auc`` scores the same tree with each active cell given the regular grid's mean log-odds under it:
 what the tree's cell sizes allow, so the gap to ``auc`` is what the cells' history costs.
+``label_pure_cells_fraction`` is the fewest cells any quadtree from the same start cells needs to hold the
+labels exactly (`label_pure_cells`): what the quadtree itself allows, whatever its split rule.
 `compare_rules` does all of this for any posed scans; bench/adaptive_real.py runs it on real laser logs.
 Speeds are scans per second, single-threaded, after a warm-up scan that compiles the kernels: wall-clock, and
 per second of this process's CPU time (steadier when other work shares the machine).
@@ -96,6 +98,34 @@ def tree_oracle_logodds(tree: dict, regular: dict) -> np.ndarray:
     return logodds
 
 
+def label_pure_cells(raster: dict, start_level: int) -> int:
+    """Cells of the coarsest world-aligned quadtree, cells at most 2**start_level fine cells wide, in which every
+    cell is label-pure: the fine cells under it that the regular ``raster`` observed are all occupied (p > 1/2)
+    or all free. Only cells over at least one observed fine cell are counted. With each cell given the mean
+    log-odds under it (as the tree oracle does), such a tree ranks the labels perfectly (AUC 1). So this is the
+    fewest cells in which a quadtree can hold the fine grid's labels, whatever evidence its splits see.
+    Blocks merge bottom-up: a block is one cell when its four children each are and it is pure."""
+    res = float(raster["resolution"])
+    side = 1 << start_level
+    pad_x, pad_y = (int(round(value / res)) % side for value in raster["origin"])  # fine cells to the block edge
+    h, w = raster["observed"].shape
+    observed = np.zeros((-(-(h + pad_y) // side) * side, -(-(w + pad_x) // side) * side), bool)
+    occupied = np.zeros_like(observed)
+    observed[pad_y:pad_y + h, pad_x:pad_x + w] = raster["observed"]
+    occupied[pad_y:pad_y + h, pad_x:pad_x + w] = raster["observed"] & (raster["probability"] > 0.5)
+    free = observed & ~occupied
+    count = observed.astype(np.int64)  # per block of the current level: its cells over observed fine cells
+    merged = np.ones_like(observed)  # per block: it is one cell
+    for _ in range(start_level):
+        def quads(a):
+            return a.reshape(a.shape[0] // 2, 2, a.shape[1] // 2, 2)
+
+        occupied, free = quads(occupied).any(axis=(1, 3)), quads(free).any(axis=(1, 3))
+        merged = quads(merged).all(axis=(1, 3)) & ~(occupied & free)
+        count = np.where(merged, occupied | free, quads(count).sum(axis=(1, 3)))
+    return int(count.sum())
+
+
 def tree_oracle_auc(tree: dict, regular: dict, labels: dict) -> float:
     """AUC against ``labels`` of the tree with `tree_oracle_logodds`' values. Its gap to the adaptive map's
     own AUC is what the cells' history costs (a child inherits its parent's log-odds), not their size."""
@@ -122,7 +152,8 @@ def compare_rules(posed: PosedScans, model: SensorModel, sweep: dict[str, Adapti
     free_labels = free_space_labels(raster)
     observed = fine.observed_cells()
     out: dict = {"regular_scans_per_s": scans / seconds, "regular_scans_per_cpu_s": scans / cpu,
-                 "regular_observed_cells": observed, "regular_bytes_per_observed_cell": fine.nbytes / observed}
+                 "regular_observed_cells": observed, "regular_bytes_per_observed_cell": fine.nbytes / observed,
+                 "label_pure_cells_fraction": label_pure_cells(raster, AdaptiveParams().start_level) / observed}
     curves: dict[bool, list[tuple[float, float, float]]] = {True: [], False: []}
     for prefix, params in sweep.items():
         def adaptive(params=params):

@@ -1,10 +1,10 @@
 """Benchmark helpers the figures rest on: the adaptive benchmark's tree oracle (hand-computed cell means on a tiny
-raster) and the scan selection every suite cuts its inputs with."""
+raster), its label-pure quadtree (cells counted by hand) and the scan selection every suite cuts its inputs with."""
 from __future__ import annotations
 
 import numpy as np
 
-from bench.adaptive import tree_oracle_logodds
+from bench.adaptive import label_pure_cells, tree_oracle_logodds
 from bench.scenarios import select_scans
 from schemas.files import PosedScans, PoseSet
 
@@ -37,6 +37,38 @@ def test_tree_oracle_keeps_cells_of_the_same_size_apart_across_a_level_boundary(
                "origin": np.array([0.0, 0.0]), "resolution": 0.5}
     tree = {"level": np.ones((2, 4), np.int8), "origin": np.array([0.0, 0.0]), "resolution": 0.5}
     np.testing.assert_allclose(tree_oracle_logodds(tree, regular), regular["logodds"])
+
+
+def _labels(occupied: np.ndarray, observed: np.ndarray, origin: tuple[float, float]) -> dict:
+    return {"probability": np.where(occupied, 0.9, 0.1), "observed": observed, "origin": np.array(origin),
+            "resolution": 1.0}
+
+
+def test_label_pure_quadtree_keeps_fine_cells_only_where_the_labels_mix():
+    occupied = np.zeros((4, 4), bool)
+    occupied[0, 0] = True
+    observed = np.ones((4, 4), bool)
+    # start cells of 4 x 4: the 2 x 2 block holding the occupied cell mixes labels and stays 4 fine cells, its
+    # three siblings are pure (one cell each), and the start cell cannot merge: 4 + 3
+    assert label_pure_cells(_labels(occupied, observed, (0.0, 0.0)), 2) == 7
+    # the same cell unobserved instead: every observed cell is free, so the start cell is one cell
+    observed[0, 0] = False
+    assert label_pure_cells(_labels(np.zeros((4, 4), bool), observed, (0.0, 0.0)), 2) == 1
+    # nothing observed under a block: it is not counted
+    assert label_pure_cells(_labels(np.zeros((4, 4), bool), np.zeros((4, 4), bool), (0.0, 0.0)), 2) == 0
+
+
+def test_label_pure_quadtree_blocks_follow_the_world_frame_not_the_raster():
+    # 2 rows x 4 columns, column 0 occupied, the rest free; start cells 2 fine cells wide
+    occupied = np.zeros((2, 4), bool)
+    occupied[:, 0] = True
+    observed = np.ones((2, 4), bool)
+    # raster column 0 is world column 1 (origin x = 1 m): world blocks [0, 1], [2, 3], [4, 5] are pure: 3 cells
+    assert label_pure_cells(_labels(occupied, observed, (1.0, 0.0)), 1) == 3
+    # world column -1 (origin x = -1 m) lies in block [-2, -1]: the same split
+    assert label_pure_cells(_labels(occupied, observed, (-1.0, 0.0)), 1) == 3
+    # aligned at 0: block [0, 1] mixes labels (4 fine cells), block [2, 3] is pure (1)
+    assert label_pure_cells(_labels(occupied, observed, (0.0, 0.0)), 1) == 5
 
 
 def _posed(poses: PoseSet, scans: int) -> PosedScans:
