@@ -10,8 +10,8 @@ unknowns). ``claimed_free_m2`` is the paper's Fig. 3 error made measurable: area
 observed but that the adaptive map shows as free to a planner (p <= map_server's free threshold).
 ``tree_oracle_auc`` scores the same tree with each active cell given the regular grid's mean log-odds under it:
 what the tree's cell sizes allow, so the gap to ``auc`` is what the cells' history costs.
-``label_pure_cells_fraction`` is the fewest cells any quadtree from the same start cells needs to hold the
-labels exactly (`label_pure_cells`): what the quadtree itself allows, whatever its split rule.
+``label_pure_cells_fraction`` is the fewest cells, none coarser than the start cells, that any quadtree needs to
+hold the labels exactly (`label_pure_cells`): what the quadtree itself allows, whatever its split rule.
 `compare_rules` does all of this for any posed scans; bench/adaptive_real.py runs it on real laser logs.
 Speeds are scans per second, single-threaded, after a warm-up scan that compiles the kernels: wall-clock, and
 per second of this process's CPU time (steadier when other work shares the machine).
@@ -103,7 +103,8 @@ def label_pure_cells(raster: dict, start_level: int) -> int:
     cell is label-pure: the fine cells under it that the regular ``raster`` observed are all occupied (p > 1/2)
     or all free. Only cells over at least one observed fine cell are counted. With each cell given the mean
     log-odds under it (as the tree oracle does), such a tree ranks the labels perfectly (AUC 1). So this is the
-    fewest cells in which a quadtree can hold the fine grid's labels, whatever evidence its splits see.
+    fewest cells, none coarser than a start cell, in which a quadtree can hold the fine grid's labels, whatever
+    evidence its splits see (merging past the start cells, as the adaptive grid may, could only use fewer).
     Blocks merge bottom-up: a block is one cell when its four children each are and it is pure."""
     res = float(raster["resolution"])
     side = 1 << start_level
@@ -116,10 +117,11 @@ def label_pure_cells(raster: dict, start_level: int) -> int:
     free = observed & ~occupied
     count = observed.astype(np.int64)  # per block of the current level: its cells over observed fine cells
     merged = np.ones_like(observed)  # per block: it is one cell
-    for _ in range(start_level):
-        def quads(a):
-            return a.reshape(a.shape[0] // 2, 2, a.shape[1] // 2, 2)
 
+    def quads(a):  # the four children of each block of the next level
+        return a.reshape(a.shape[0] // 2, 2, a.shape[1] // 2, 2)
+
+    for _ in range(start_level):
         occupied, free = quads(occupied).any(axis=(1, 3)), quads(free).any(axis=(1, 3))
         merged = quads(merged).all(axis=(1, 3)) & ~(occupied & free)
         count = np.where(merged, occupied | free, quads(count).sum(axis=(1, 3)))
