@@ -16,8 +16,9 @@ import tempfile
 from pathlib import Path
 
 from bench.run import run_cli
+from bench.scenarios import SHARED_DATA
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mrclam7"
+DATA = SHARED_DATA / "mrclam7"
 ROBOTS = (1, 2, 3, 4, 5)
 #: figure name -> `posegrid slam` arguments
 ESTIMATORS = {

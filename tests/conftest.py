@@ -17,3 +17,12 @@ def data_dir() -> Path:
     if not DATA.is_dir():
         pytest.skip(f"real data folder {DATA} is absent (it sits beside the checkout in CI as ../shared/data)")
     return DATA
+
+
+def shared_file(*parts: str) -> Path:
+    """A file of the shared real-data folder (parts joined below it); skips the calling test, with the reason,
+    when the file is absent."""
+    path = DATA.joinpath(*parts)
+    if not path.is_file():
+        pytest.skip(f"real data {path} is absent (../shared/data sits beside the checkout in CI, not in a fresh clone)")
+    return path

@@ -11,7 +11,8 @@ import pytest
 from slam.carmen import read_carmen, write_carmen
 from slam.errors import LogFormatError
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+from conftest import shared_file
+
 
 GOOD_FLASER = "FLASER 3 1.0 2.5 81.91 0.1 0.2 0.3 1.1 1.2 1.3 100.5 host 0.5"
 
@@ -193,14 +194,8 @@ def test_writer_rejects_flaser_with_sideways_laser(tmp_path):
                      np.array([0.0, 0.1, 0.0]), record="FLASER")
 
 
-def need(path: Path) -> Path:
-    if not path.is_file():
-        pytest.skip(f"real log {path} is absent (shared/data is not part of a fresh clone)")
-    return path
-
-
 def test_real_mit_csail_clf():
-    log = read_carmen(need(DATA / "mit-csail" / "mit-csail.clf"))
+    log = read_carmen(shared_file("mit-csail", "mit-csail.clf"))
     assert log.ranges.shape == (1988, 361) and log.skipped == ()
     assert log.angle_increment == pytest.approx(math.pi / 360)
     np.testing.assert_allclose(log.poses[0], [576.536523, 0.106594, -2.255213])
@@ -213,7 +208,7 @@ def test_real_mit_csail_clf():
     ("fr079/freiburg-079-corrected.log.gz", 4791, 360, 9725, -0.04),
 ])
 def test_real_corrected_logs(name, scans, beams, odom, offset):
-    log = read_carmen(need(DATA / name))
+    log = read_carmen(shared_file(name))
     assert log.ranges.shape == (scans, beams) and log.skipped == ()
     assert len(log.odom_stamps) == odom
     assert log.sensor_offset[0] == pytest.approx(offset)

@@ -16,7 +16,8 @@ from slam.laserlog import LaserLog, with_odometry_delay
 from slam.relations import Trajectory, poses_at, read_relations, score_relations, trajectory_from_log
 from slam.timealign import odometry_delay, time_map, to_reference_time
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+from conftest import shared_file
+
 
 # x(0) = (0, 0, 0), x(1) = (1, 0, pi/2), x(2) = (1, 1, pi/2)
 TRAJ = Trajectory(np.array([0.0, 1.0, 2.0]), np.array([[0, 0, 0], [1, 0, math.pi / 2], [1, 1, math.pi / 2]], float))
@@ -141,19 +142,12 @@ def test_cli_eval_relations_bad_input(tmp_path, capsys):
     assert "holds no relation" in capsys.readouterr().err
 
 
-def need(*parts: str) -> Path:
-    path = DATA.joinpath(*parts)
-    if not path.is_file():
-        pytest.skip(f"real data {path} is absent (shared/data is not part of a fresh clone)")
-    return path
-
-
 def test_real_relations_corrected_fr079_aligned_to_its_bag(tmp_path):
     """The GMapping-corrected Freiburg 079 log, put on the bag's clock, scores like the paper's RBPF
     (Kuemmerle et al. 2009 report 0.06 +- 0.044 m); its raw odometry is two orders of magnitude worse."""
-    rel = need("fr079", "fr079.relations")
-    corrected = need("fr079", "freiburg-079-corrected.log.gz")
-    bag = need("fr079", "fr079.orig.bag")
+    rel = shared_file("fr079", "fr079.relations")
+    corrected = shared_file("fr079", "freiburg-079-corrected.log.gz")
+    bag = shared_file("fr079", "fr079.orig.bag")
     out = tmp_path / "s.json"
     assert main(["eval-relations", str(corrected), str(rel), "--align-to", str(bag), "--json", str(out)]) == 0
     s = json.loads(out.read_text())

@@ -12,7 +12,8 @@ from slam.carmen import read_carmen
 from slam.errors import LogFormatError
 from slam.rosbag_reader import read_rosbag
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+from conftest import shared_file
+
 NS = 1_000_000_000
 
 
@@ -174,15 +175,9 @@ def test_topic_choice_and_unusable_bags(tmp_path):
         read_rosbag(tmp_path / "missing.bag")
 
 
-def need(path: Path) -> Path:
-    if not path.is_file():
-        pytest.skip(f"real bag {path} is absent (shared/data is not part of a fresh clone)")
-    return path
-
-
 def test_real_mit_csail_bag_matches_the_clf():
-    bag = read_rosbag(need(DATA / "mit-csail" / "mit-csail.orig.bag"))
-    clf = read_carmen(need(DATA / "mit-csail" / "mit-csail.clf"))
+    bag = read_rosbag(shared_file("mit-csail", "mit-csail.orig.bag"))
+    clf = read_carmen(shared_file("mit-csail", "mit-csail.clf"))
     assert len(bag) == len(clf) == 1988 and bag.skipped == ()
     np.testing.assert_allclose(bag.stamps, clf.stamps, atol=1e-5)
     np.testing.assert_allclose(bag.odometry, clf.odometry, atol=1e-9)
@@ -194,7 +189,7 @@ def test_real_mit_csail_bag_matches_the_clf():
     ("fr079/fr079.orig.bag", 4934, 360, 0.04),
 ])
 def test_real_bag(name, scans, beams, offset):
-    log = read_rosbag(need(DATA / name))
+    log = read_rosbag(shared_file(name))
     assert log.ranges.shape == (scans, beams) and log.skipped == ()
     assert log.sensor_offset[0] == pytest.approx(offset)
     assert np.all(np.diff(log.stamps) > 0)

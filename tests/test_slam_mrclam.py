@@ -16,7 +16,9 @@ from slam.mrclam import (
     read_table,
 )
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mrclam7"
+from conftest import DATA as SHARED_DATA
+
+DATA = SHARED_DATA / "mrclam7"
 
 HEADER = (
     "# UTIAS Multi-Robot Cooperative Localization and Mapping Dataset\r\n"
