@@ -49,10 +49,11 @@ def run() -> dict:
     if not DATA.is_dir():
         return {"skipped": f"MRCLAM dataset 7 not present ({DATA})"}
     figures: dict = {}
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as folder:
+        tmp = Path(folder)
         for name, args in ESTIMATORS.items():
             for robot in ROBOTS:
-                score, ms = _score(Path(tmp), robot, args, seed=0)
+                score, ms = _score(tmp, robot, args, seed=0)
                 figures[f"r{robot}_{name}_ate_m"] = score["ate_rmse_m"]
                 figures[f"r{robot}_{name}_inside95"] = score["inside95"]
                 figures[f"r{robot}_{name}_nees"] = score["nees_mean"]
@@ -64,7 +65,7 @@ def run() -> dict:
             inside = [figures[f"r{r}_{name}_inside95"] for r in ROBOTS]
             for seed in EXTRA_SEEDS:
                 for robot in ROBOTS:
-                    score, _ = _score(Path(tmp), robot, ESTIMATORS[name], seed)
+                    score, _ = _score(tmp, robot, ESTIMATORS[name], seed)
                     figures[f"r{robot}_{name}_seed{seed}_ate_m"] = score["ate_rmse_m"]
                     figures[f"r{robot}_{name}_seed{seed}_inside95"] = score["inside95"]
                     inside.append(score["inside95"])
