@@ -65,6 +65,13 @@ JUMP_MARGIN = 1e-9
 #: beam kinds in the compiled kernel
 BEAM_SKIP, BEAM_HIT, BEAM_NO_RETURN = 0, 1, 2
 
+#: the most cells one scan's scratch window may span. The samples pass keeps 56 bytes a cell, so this is about
+#: 0.9 GB; it holds a 100 m laser's reach at 0.05 m cells. Pose samples spread wider than that (a diverged
+#: estimate) are refused, not allocated.
+MAX_WINDOW_CELLS = 1 << 24
+#: window cell indices stay within this many cells of the map origin (the kernels take them as int64)
+MAX_CELL_INDEX = 1 << 40
+
 #: cells whose segment ends this many sigma before the peak take the free value without evaluating erf
 #: (the model differs from 0 by < 3e-7 there)
 FREE_SHORTCUT_SIGMAS = 5.0
@@ -793,6 +800,23 @@ def _laser_poses(samples, ox, oy, oyaw):  # pragma: no cover - compiled
     return poses
 
 
+def check_window(ix0: int, iy0: int, width: int, height: int, lasers: np.ndarray, reach: float,
+                 resolution: float) -> None:
+    """Refuse a scan whose scratch window (width x height cells from cell (ix0, iy0)) lies beyond
+    MAX_CELL_INDEX cells from the origin or spans more than MAX_WINDOW_CELLS cells; ``lasers`` (M, 3) are the
+    laser poses it covers and ``reach`` (m) the rays' longest reach, for the message."""
+    if max(abs(ix0), abs(iy0), abs(ix0 + width), abs(iy0 + height)) > MAX_CELL_INDEX:
+        far = lasers[np.argmax(np.abs(lasers[:, :2]).max(axis=1))]
+        raise InputError(f"a pose sample at ({far[0]:.6g}, {far[1]:.6g}) m is beyond the "
+                         f"{MAX_CELL_INDEX * resolution:.3g} m from the map origin that {resolution} m cells reach")
+    if width * height > MAX_WINDOW_CELLS:
+        spread_x, spread_y = np.ptp(lasers[:, 0]), np.ptp(lasers[:, 1])
+        raise InputError(f"one scan would span {width} x {height} cells of {resolution} m, more than the "
+                         f"{MAX_WINDOW_CELLS} a scan may: its pose samples spread over {spread_x:.4g} m x "
+                         f"{spread_y:.4g} m and its rays reach {reach:.4g} m (a diverged pose estimate, or a range "
+                         f"limit too long for this resolution?)")
+
+
 def laser_poses(samples: np.ndarray, sensor_offset: np.ndarray) -> np.ndarray:
     """Laser poses (M, 3) in the map frame from robot poses (M, 3) and the laser's (x, y, yaw) in the robot frame
     (compiled: the dozen array operations this takes in numpy cost a tenth of a one-pose scan)."""
@@ -932,6 +956,7 @@ class MonteCarloFusion:
         win_iy0 = math.floor((y_lo - reach) / res) & ~7
         win_w = math.floor((x_hi + reach) / res) - win_ix0 + 1
         win_h = math.floor((y_hi + reach) / res) - win_iy0 + 1
+        check_window(win_ix0, win_iy0, win_w, win_h, lasers, reach, res)
         shift = grid.tile_shift
         tx0, ty0 = win_ix0 >> shift, win_iy0 >> shift
         ntx = ((win_ix0 + win_w - 1) >> shift) - tx0 + 1

@@ -20,6 +20,10 @@ import numpy as np
 from mapping.errors import InputError
 
 TILE_SIZE = 256
+#: the most cells a raster of the whole map may span before it is cropped (9 bytes a cell while it is built, so
+#: about 2.4 GB): 16 384 x 16 384 cells, 819 m square at 0.05 m. A map whose tiles lie farther apart than that
+#: is refused, not allocated.
+MAX_RASTER_CELLS = 1 << 28
 
 TileKey = tuple[int, int]
 
@@ -103,7 +107,8 @@ class TiledGrid:
         """The map as one raster with the map file's keys, cropped to the observed cells.
 
         Returns logodds, probability, observed, variance, origin (m, lower-left of cell [0, 0]) and
-        resolution (m). An empty grid gives a 0 x 0 raster at the origin.
+        resolution (m). An empty grid gives a 0 x 0 raster at the origin. Raises InputError when the tiles span
+        more than MAX_RASTER_CELLS cells.
         """
         keys = self.keys()
         size = self.tile_size
@@ -116,7 +121,11 @@ class TiledGrid:
         tx = np.array([k[0] for k in keys])
         ty = np.array([k[1] for k in keys])
         tx0, ty0 = tx.min(), ty.min()
-        shape = ((ty.max() - ty0 + 1) * size, (tx.max() - tx0 + 1) * size)
+        shape = (int(ty.max() - ty0 + 1) * size, int(tx.max() - tx0 + 1) * size)  # Python ints: no overflow
+        if shape[0] * shape[1] > MAX_RASTER_CELLS:
+            raise InputError(f"the map's tiles span {shape[1]} x {shape[0]} cells ({shape[1] * self.resolution:.6g} m x "
+                             f"{shape[0] * self.resolution:.6g} m), more than the {MAX_RASTER_CELLS} cells one raster "
+                             "may hold; read it tile by tile instead")
         logodds = np.zeros(shape, np.float32)
         variance = np.zeros(shape, np.float32)
         observed = np.zeros(shape, bool)

@@ -8,6 +8,7 @@ import pytest
 from mapping.adaptive import AdaptiveFusion, AdaptiveGrid, AdaptiveParams, MergeRules
 from mapping.adaptive.evidence import EvidenceScanner
 from mapping.adaptive.merging import merge_siblings
+from mapping.errors import InputError
 from mapping.fusion import BEAM_HIT, BEAM_NO_RETURN, MonteCarloFusion, beam_table, laser_poses, logodds_table
 from mapping.grid import TiledGrid
 from mapping.sensor_model import TAIL_SIGMAS, SensorModel
@@ -297,3 +298,10 @@ def test_laser_poses_are_used_with_the_sensor_offset():
     np.testing.assert_array_equal(a.key, b.key)
     np.testing.assert_allclose(a.logodds, b.logodds, atol=1e-6)
     assert np.allclose(laser_poses(scans[0][1], np.array([0.2, 0.0, 0.0])), shifted[0][1])
+
+
+def test_a_diverged_pose_spread_is_refused_not_allocated():
+    """Two samples 300 m apart would need a window of 12 000 x 12 000 finest cells: refused with the spread."""
+    spread = (np.full(3, 2.0), np.array([[0.0, 0.0, 0.0], [300.0, 300.0, 0.0]]), np.full(2, 0.5))
+    with pytest.raises(InputError, match="spread over 300 m x 300 m"):
+        fused(AdaptiveParams(), [spread], np.array([-0.1, 0.0, 0.1]), 5.0)

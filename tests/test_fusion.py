@@ -268,8 +268,24 @@ def test_unbounded_map_grows_tiles_on_demand():
     (np.zeros((1, 6)), np.full(2, 0.5), "M >= 1"),  # two poses in one row: refused, not read as (2, 3)
     (np.array([[0.0, 0.0, 0.0], [1.0, 0.0, np.inf]]), np.full(2, 0.5), "finite"),
     (np.zeros((2, 3)), np.array([1.5, -0.5]), "non-negative"),
+    (np.array([[1e300, 0.0, 0.0]]), np.ones(1), "beyond"),  # finite, but no cell index reaches it
+    (np.array([[0.0, -1e16, 0.0]]), np.ones(1), "beyond"),
+    (np.array([[0.0, 0.0, 0.0], [300.0, 300.0, 0.0]]), np.full(2, 0.5), "spread over 300 m x 300 m"),  # diverged
 ])
 def test_bad_poses_are_rejected(samples, weights, message):
-    fusion = MonteCarloFusion(TiledGrid(RES), SensorModel(resolution=RES), np.array([0.0]), 0.05, 5.0)
+    grid = TiledGrid(RES)
+    fusion = MonteCarloFusion(grid, SensorModel(resolution=RES), np.array([0.0]), 0.05, 5.0)
     with pytest.raises(InputError, match=message):
         fusion.fuse(np.array([1.0]), samples, weights)
+    assert grid.keys() == []  # refused before anything was written
+
+
+def test_a_map_too_wide_for_one_raster_is_refused_not_allocated():
+    """Two scans 2 000 km apart: each fuses, but one raster of both would hold 4e15 cells."""
+    grid = TiledGrid(RES, tile_size=16)
+    fusion = MonteCarloFusion(grid, SensorModel(resolution=RES), np.array([0.0]), 0.05, 5.0)
+    for x in (0.0, 2e6):
+        fusion.fuse(np.array([1.0]), np.array([[x, 0.0, 0.0]]), np.ones(1))
+    assert {tx for tx, _ in grid.keys()} == {0, 1, 2_500_000, 2_500_001}  # 16 cells of 0.05 m a tile
+    with pytest.raises(InputError, match="more than the .* cells one raster may hold"):
+        grid.rasterize()

@@ -35,7 +35,7 @@ import numba as nb
 import numpy as np
 
 from mapping.fusion import (BEAM_HIT, BEAM_SKIP, STAMP_LIMIT, TABLE_DU, TABLE_U0, BeamTable, add_sample_value,
-                            segment_logodds)
+                            check_window, segment_logodds)
 from mapping.raytrace import FAR, corner_tol, dda_start, dda_step
 
 #: columns of a count record: [stamp, hits, misses, unknowns]
@@ -263,6 +263,7 @@ class EvidenceScanner:
         iy0 = math.floor((lasers[:, 1].min() - reach) / res)
         ix1 = math.floor((lasers[:, 0].max() + reach) / res)
         iy1 = math.floor((lasers[:, 1].max() + reach) / res)
+        check_window(ix0, iy0, ix1 - ix0 + 1, iy1 - iy0 + 1, lasers, reach, res)
         shifts = np.arange(self.levels)
         x0, y0 = np.int64(ix0) >> shifts, np.int64(iy0) >> shifts
         w = (np.int64(ix1) >> shifts) - x0 + 1
