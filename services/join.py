@@ -2,6 +2,8 @@
 
 The buffer holds the halves still waiting for their partner, at most ``capacity`` of them; when it is full
 the oldest waiting half is evicted and returned, so the caller counts it (overflow is never silent).
+:class:`SeqLedger` remembers which (robot, seq) pairs were already fused, so that a re-sent pair is refused
+instead of fused twice.
 """
 from __future__ import annotations
 
@@ -66,3 +68,32 @@ class JoinBuffer(Generic[ScanT, PoseT]):
             del self._pending[key]
             return (entry.scan, entry.pose), evicted
         return None, evicted
+
+
+class SeqLedger:
+    """The seqs of each robot already fused (or given up on at fusion).
+
+    Only the seqs within ``horizon`` of a robot's highest are kept; an older seq counts as done, so the memory
+    stays bounded on runs of any length. A robot that starts again from seq 0 under the same name therefore
+    finds its seqs done: streams are numbered once per robot name (schemas.messages).
+    """
+
+    def __init__(self, horizon: int):
+        if horizon < 1:
+            raise ValueError(f"seq ledger horizon must be >= 1, got {horizon}")
+        self.horizon = horizon
+        self._seqs: dict[str, set[int]] = {}
+        self._highest: dict[str, int] = {}
+
+    def done(self, robot: str, seq: int) -> bool:
+        """Whether ``robot``'s ``seq`` was fused already (or lies more than ``horizon`` below its highest)."""
+        highest = self._highest.get(robot)
+        return highest is not None and (seq <= highest - self.horizon or seq in self._seqs[robot])
+
+    def mark(self, robot: str, seq: int) -> None:
+        """Record ``robot``'s ``seq`` as done."""
+        seqs = self._seqs.setdefault(robot, set())
+        seqs.add(seq)
+        highest = self._highest[robot] = max(self._highest.get(robot, seq), seq)
+        if len(seqs) > 2 * self.horizon:  # drop the seqs that ``done`` no longer reads (amortised)
+            self._seqs[robot] = {s for s in seqs if s > highest - self.horizon}

@@ -10,7 +10,7 @@ as soon as its pose is there).
 from __future__ import annotations
 
 import time
-from collections import Counter
+from collections import Counter, OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,11 +23,17 @@ from mapping.sensor_model import SensorModel
 from schemas.messages import POSE_TYPES, LaserScan, MessageError, PoseGaussian, ShardStats, StreamEnd, TileUpdate, \
     decode_message
 from services import keys
-from services.join import JoinBuffer
+from services.join import JoinBuffer, SeqLedger
 from services.ownership import owns_tile
-from services.process import RejectCounter
+from services.process import RejectCounter, get_logger
 
 TileKey = tuple[int, int]
+
+#: laser geometries (beam angles, range limits, offset) whose fusion a shard keeps, most recently used first;
+#: each holds its own scratch window, so a laser whose geometry changes scan by scan must not grow memory
+FUSIONS_KEPT = 4
+#: a fused seq more than this many times the join capacity below a robot's highest counts as done
+SEQ_HORIZON_JOINS = 8
 
 
 @dataclass(frozen=True)
@@ -58,8 +64,10 @@ class MapShard:
         self.owns = owns_tile(config.shard, config.shards)
         self.rejects = rejects
         self.accuracy = config.accuracy if config.accuracy is not None else config.model.resolution
-        self._fusions: dict[tuple, MonteCarloFusion] = {}
+        self._fusions: OrderedDict[tuple, MonteCarloFusion] = OrderedDict()
         self._join: JoinBuffer[LaserScan, object] = JoinBuffer(config.join_capacity)
+        self._fused_seqs = SeqLedger(SEQ_HORIZON_JOINS * config.join_capacity)
+        self.log = get_logger(f"mapper[{config.shard}]")  # the logger services.mapper.Mapper writes to
         self.received: Counter[str] = Counter()
         self.fused: Counter[str] = Counter()
         self.discarded: Counter[str] = Counter()
@@ -89,6 +97,10 @@ class MapShard:
             return
         if isinstance(message, StreamEnd):
             self.ended[message.robot] = message.scans
+            return
+        if self._fused_seqs.done(message.robot, message.seq):
+            self.rejects.count(key, "duplicate", f"a {message.TYPE} of robot {message.robot!r} for seq {message.seq}, "
+                               "which this shard has fused already (a re-sent or out-of-date message)")
             return
         join_key = (message.robot, message.seq)
         if isinstance(message, LaserScan):
@@ -124,6 +136,10 @@ class MapShard:
             fusion = MonteCarloFusion(self.grid, self.config.model, beam_angles, scan.range_min, scan.range_max,
                                       scan.sensor_offset, self.owns)
             self._fusions[geometry] = fusion
+            while len(self._fusions) > FUSIONS_KEPT:
+                self._fusions.popitem(last=False)
+        else:
+            self._fusions.move_to_end(geometry)
         return fusion
 
     def pose_samples(self, scan: LaserScan, pose) -> tuple[np.ndarray, np.ndarray]:
@@ -135,12 +151,18 @@ class MapShard:
         return scan_samples(cfg.mode, samples=pose.samples, weights=pose.weights)
 
     def _fuse(self, scan: LaserScan, pose) -> None:
+        self._fused_seqs.mark(scan.robot, scan.seq)
         try:
             samples, weights = self.pose_samples(scan, pose)
             result = self._fusion_for(scan).fuse(scan.ranges, samples, weights)
         except InputError as exc:
             self.discarded[scan.robot] += 1
             self.rejects.count(f"fuse/{scan.robot}", "input", f"scan seq {scan.seq} could not be fused: {exc}")
+            return
+        except Exception as exc:  # noqa: BLE001 - a defect met by one scan must not stop the shard: counted, logged
+            self.discarded[scan.robot] += 1
+            self.log.exception("scan seq %d of robot %r failed to fuse; the shard goes on", scan.seq, scan.robot)
+            self.rejects.count(f"fuse/{scan.robot}", "error", f"scan seq {scan.seq} failed: {type(exc).__name__}: {exc}")
             return
         self.fused[scan.robot] += 1
         self.cells_updated += result.cells_updated

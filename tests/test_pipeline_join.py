@@ -10,10 +10,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapping.sensor_model import SensorModel
-from schemas.messages import LaserScan, PoseSamples, StreamEnd
-from services.join import JoinBuffer
+from schemas.messages import LaserScan, PoseGaussian, PoseSamples, StreamEnd
+from services.join import JoinBuffer, SeqLedger
 from services.process import RejectCounter
-from services.shard import MapShard, ShardConfig
+from services.shard import FUSIONS_KEPT, MapShard, ShardConfig
 from services.steps import OutOfOrder, StepAssembler
 
 
@@ -92,6 +92,62 @@ def test_shard_counts_join_overflow_and_bad_input_per_key():
     assert stats.received == {"pg/r/scan": 6, "pg/r/pose": 2, "pg/r/end": 1}
     assert stats.ended == {"r": 6} and not shard.caught_up()
     assert stats.tiles_owned == 1 and stats.cells_updated > 0
+
+
+def test_seq_ledger_remembers_done_seqs_within_its_horizon():
+    ledger = SeqLedger(horizon=10)
+    assert not ledger.done("r", 0)
+    for seq in (0, 1, 2, 5):
+        ledger.mark("r", seq)
+    assert ledger.done("r", 1) and ledger.done("r", 5) and not ledger.done("r", 3) and not ledger.done("r", 6)
+    assert not ledger.done("other", 1)  # per robot
+    for seq in range(6, 100):
+        ledger.mark("r", seq)
+    assert ledger.done("r", 3) and ledger.done("r", 89) and not ledger.done("r", 100)  # 3 lies below the horizon
+
+
+def test_shard_refuses_a_pair_it_has_fused_already():
+    """A re-sent scan and pose (a source restarted, a replay run twice) would be fused twice: counted, refused."""
+    shard = MapShard(ShardConfig("m", 0, 1, SensorModel()), RejectCounter(logging.getLogger("test-shard")))
+    shard.handle("pg/r/scan", _scan(0).encode())
+    shard.handle("pg/r/pose", _pose(0).encode())
+    before = [a.copy() for a in shard.grid.tile_arrays((0, 0))]
+    shard.handle("pg/r/pose", _pose(0).encode())
+    shard.handle("pg/r/scan", _scan(0).encode())
+    for now, then in zip(shard.grid.tile_arrays((0, 0)), before):
+        np.testing.assert_array_equal(now, then)
+    shard.handle("pg/r/pose", _pose(1).encode())
+    shard.handle("pg/r/scan", _scan(1).encode())
+    stats = shard.stats({"intake": 0})
+    assert stats.fused == {"r": 2} and stats.join_pending == 0
+    assert stats.rejected == {"pg/r/scan": 1, "pg/r/pose": 1}
+
+
+def test_shard_counts_poses_no_fusion_can_take_and_goes_on():
+    """A Gaussian of 100 m sd (a diverged EKF) or samples 1 km apart would need a window of gigabytes: each is
+    counted and dropped, and the next scan is fused."""
+    shard = MapShard(ShardConfig("m", 0, 1, SensorModel()), RejectCounter(logging.getLogger("test-shard")))
+    diverged = PoseGaussian(robot="r", seq=0, stamp=0.0, mean=np.array([3.0, 3.0, 0.0]), cov=np.diag([1e4, 1e4, 0.01]))
+    apart = PoseSamples(robot="r", seq=1, stamp=0.1, samples=np.array([[3.0, 3.0, 0.0], [1003.0, 1003.0, 0.0]]),
+                        weights=np.full(2, 0.5))
+    for seq, pose in enumerate((diverged, apart, _pose(2))):
+        shard.handle("pg/r/scan", _scan(seq).encode())
+        shard.handle("pg/r/pose", pose.encode())
+    stats = shard.stats({"intake": 0})
+    assert stats.fused == {"r": 1} and stats.discarded == {"r": 2} and stats.rejected == {"fuse/r": 2}
+    assert stats.tiles_owned == 1
+
+
+def test_shard_keeps_a_bounded_number_of_laser_geometries():
+    """A laser whose beam angles change scan by scan must not grow the shard's memory (each geometry's fusion
+    holds a scratch window)."""
+    shard = MapShard(ShardConfig("m", 0, 1, SensorModel()), RejectCounter(logging.getLogger("test-shard")))
+    for seq in range(FUSIONS_KEPT + 3):
+        scan = _scan(seq)
+        shard.handle("pg/r/scan", LaserScan(**{**scan.__dict__, "angle_min": -1.0 + 1e-6 * seq}).encode())
+        shard.handle("pg/r/pose", _pose(seq).encode())
+    assert shard.stats({"intake": 0}).fused == {"r": FUSIONS_KEPT + 3}
+    assert len(shard._fusions) == FUSIONS_KEPT
 
 
 def test_tile_updates_carry_only_the_changed_window():
