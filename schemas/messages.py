@@ -21,6 +21,14 @@ from schemas.wire import Array, Counts, Float, Int, Message, MessageError, Name,
 #: robot names that would collide with other key-space roots (``pg/map/...``)
 RESERVED_ROBOT_NAMES = ("map",)
 
+#: pose coordinates on the wire stay within +-this (m, and rad for yaw): 10 000 km, more than any UTM or
+#: earth-centred frame needs, and small enough that a pose's spread, its cells and its JSON stay finite
+POSE_LIMIT = 1e7
+
+#: the most samples a PoseSamples may carry: every mapper shard ray-casts all of them, and 10 000 already takes
+#: it seconds a scan (FastSLAM's default is 500 particles, grid FastSLAM's 30)
+MAX_POSE_SAMPLES = 10_000
+
 ROBOT = Name("robot name, one key chunk", forbidden=RESERVED_ROBOT_NAMES)
 SEQ = Int("index of the scan this message belongs to, 0, 1, 2 ... per robot", minimum=0)
 STAMP = Float("sensor time of the scan, s")
@@ -42,6 +50,8 @@ def _weights(v, fail):
     weights = v["weights"]
     if weights.shape[0] < 1:
         fail("shape", "'samples' needs at least one pose")
+    if weights.shape[0] > MAX_POSE_SAMPLES:
+        fail("size", f"'samples' holds {weights.shape[0]} poses, more than the {MAX_POSE_SAMPLES} a message may")
     if (weights < 0).any():
         fail("weights", f"'weights' has a negative value {weights[weights < 0][0]}")
     total = float(weights.sum())
@@ -114,7 +124,7 @@ class Odometry(Message):
     seq: int = spec(SEQ)
     stamp: float = spec(STAMP)
     pose: np.ndarray = spec(Array("the dead-reckoned (x m, y m, yaw rad) in the odometry frame; no row when the "
-                                  "robot reports none", "<f8", ("P", 3)))
+                                  "robot reports none", "<f8", ("P", 3), magnitude=POSE_LIMIT))
     commands: np.ndarray = spec(Array("velocity commands since the previous seq, in order: (v m/s, w rad/s, held "
                                       "for dt s)", "<f8", ("K", 3)))
 
@@ -142,12 +152,14 @@ class PoseSamples(Message):
 
     TYPE = "PoseSamples"
     VERSION = 1
-    RULES = (Rule("weights", f"at least one sample; weights >= 0 and sum to 1 within {WEIGHT_SUM_TOLERANCE}", _weights),)
+    RULES = (Rule("weights", f"1 to {MAX_POSE_SAMPLES} samples; weights >= 0 and sum to 1 within {WEIGHT_SUM_TOLERANCE}",
+                  _weights),)
 
     robot: str = spec(ROBOT)
     seq: int = spec(SEQ)
     stamp: float = spec(STAMP)
-    samples: np.ndarray = spec(Array("pose samples (x m, y m, yaw rad) in the map frame", "<f8", ("M", 3)))
+    samples: np.ndarray = spec(Array("pose samples (x m, y m, yaw rad) in the map frame", "<f8", ("M", 3),
+                                     magnitude=POSE_LIMIT))
     weights: np.ndarray = spec(Array("weight per sample", "<f8", ("M",)))
 
 
@@ -162,8 +174,9 @@ class PoseGaussian(Message):
     robot: str = spec(ROBOT)
     seq: int = spec(SEQ)
     stamp: float = spec(STAMP)
-    mean: np.ndarray = spec(Array("mean pose (x m, y m, yaw rad) in the map frame", "<f8", (3,)))
-    cov: np.ndarray = spec(Array("covariance of (x, y, yaw), m^2, m*rad, rad^2", "<f8", (3, 3)))
+    mean: np.ndarray = spec(Array("mean pose (x m, y m, yaw rad) in the map frame", "<f8", (3,), magnitude=POSE_LIMIT))
+    cov: np.ndarray = spec(Array("covariance of (x, y, yaw), m^2, m*rad, rad^2", "<f8", (3, 3),
+                                 magnitude=POSE_LIMIT ** 2))
 
 
 @dataclass(frozen=True, eq=False)
@@ -274,5 +287,5 @@ def decode_message(payload: bytes, *expected: type[Message]) -> Message:
 __all__ = [
     "LaserScan", "Odometry", "LandmarkObservations", "PoseSamples", "PoseGaussian", "PoseDistribution",
     "POSE_TYPES", "StreamEnd", "TileUpdate", "ShardStats", "NodeStats", "MESSAGE_TYPES", "MessageError",
-    "decode_message", "RESERVED_ROBOT_NAMES",
+    "decode_message", "RESERVED_ROBOT_NAMES", "POSE_LIMIT", "MAX_POSE_SAMPLES",
 ]

@@ -192,13 +192,14 @@ class Array(Spec):
     ``shape`` holds an int for a fixed length or a letter for a length that must agree across the
     message's fields (e.g. ``("M", 3)`` for samples and ``("M",)`` for their weights). ``values`` is
     "finite" (every value finite), "ranges" (finite values >= 0, or NaN / +inf meaning no return) or
-    "any" (booleans). ``minimum`` bounds the finite values from below.
+    "any" (booleans). ``minimum`` bounds the finite values from below, ``magnitude`` their absolute values.
     """
 
     dtype: str = "<f8"
     shape: tuple[int | str, ...] = ()
     values: str = "finite"
     minimum: float | None = None
+    magnitude: float | None = None
 
     def to_wire(self, value):
         array = np.ascontiguousarray(value, dtype=np.dtype(self.dtype))
@@ -248,6 +249,11 @@ class Array(Spec):
             below = finite & (array < self.minimum)
             if below.any():
                 ctx.fail("range", f"'{name}' has {array[below][0]} at index {_first(below)}, below {self.minimum}")
+        if self.magnitude is not None:
+            beyond = finite & (np.abs(array) > self.magnitude)
+            if beyond.any():
+                ctx.fail("range", f"'{name}' has {array[beyond][0]:.6g} at index {_first(beyond)}, beyond "
+                         f"+-{self.magnitude:g}")
 
     def json_schema(self):
         dims = [{"const": d} if isinstance(d, int) else {"type": "integer", "minimum": 0, "description": f"length {d}"}
@@ -259,6 +265,8 @@ class Array(Spec):
         }[self.values]
         if self.minimum is not None:
             values += f", finite values >= {self.minimum}"
+        if self.magnitude is not None:
+            values += f", absolute values <= {self.magnitude:g}"
         return {
             "type": "object",
             "description": f"{self.doc}. NumPy array, dtype {self.dtype}, shape {list(self.shape)}; {values}",

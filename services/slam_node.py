@@ -245,15 +245,21 @@ class SlamNode:
         self.steps_done += 1
         try:
             first, second = self.driver.step(parts)
+            if cfg.algorithm == "gridslam" or not self.driver.filter.gaussian:
+                message = PoseSamples(robot=cfg.robot, seq=seq, stamp=stamp, samples=first, weights=second)
+            else:
+                message = PoseGaussian(robot=cfg.robot, seq=seq, stamp=stamp, mean=first, cov=second)
+            payload = message.encode()  # validates: a filter driven out of range by its input gives no pose
         except (StepError, ValueError, IndexError, KeyError, np.linalg.LinAlgError) as exc:
-            # valid messages the filter still cannot use (e.g. an unknown landmark id): skip the step, go on
+            # valid messages the filter still cannot use (e.g. an unknown landmark id), or a pose outside what a
+            # PoseSamples/PoseGaussian may carry: skip the step, go on
             self.rejects.count(keys.robot_key(cfg.robot, "steps"), "step", f"seq {seq} skipped: {exc}")
             return
-        if cfg.algorithm == "gridslam" or not self.driver.filter.gaussian:
-            message = PoseSamples(robot=cfg.robot, seq=seq, stamp=stamp, samples=first, weights=second)
-        else:
-            message = PoseGaussian(robot=cfg.robot, seq=seq, stamp=stamp, mean=first, cov=second)
-        self._pose_publisher.put(message.encode())
+        except Exception as exc:  # noqa: BLE001 - a defect met by one step must not stop the node: counted, logged
+            self.log.exception("seq %d failed; the node goes on", seq)
+            self.rejects.count(keys.robot_key(cfg.robot, "steps"), "error", f"seq {seq} failed: {type(exc).__name__}")
+            return
+        self._pose_publisher.put(payload)
         self.published += 1
 
     # ---------------------------------------------------------------------------- lifecycle

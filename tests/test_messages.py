@@ -15,7 +15,9 @@ from hypothesis.extra import numpy as hnp
 from schemas.errors import FormatError
 from schemas.jsonschema import render_schemas
 from schemas.messages import (
+    MAX_POSE_SAMPLES,
     MESSAGE_TYPES,
+    POSE_LIMIT,
     LandmarkObservations,
     LaserScan,
     MessageError,
@@ -352,6 +354,33 @@ def test_bad_covariance(cov):
     wire = wire_of(PoseGaussian(robot="r", seq=0, stamp=0.0, mean=np.zeros(3), cov=np.eye(3)))
     wire["cov"]["data"] = cov.astype("<f8").tobytes()
     assert reason_of(wire) == "covariance"
+
+
+def test_poses_beyond_the_pose_limit_are_rejected():
+    """A sample or mean 1e300 m out, or a covariance of 1e308, is finite but no pose: it would overflow the
+    mapper's cell indices and the API's JSON. The limit itself still passes."""
+    edge = np.array([[POSE_LIMIT, -POSE_LIMIT, 0.0]])
+    assert decode_message(PoseSamples(robot="r", seq=0, stamp=0.0, samples=edge, weights=np.ones(1)).encode())
+    for samples in (np.array([[1e300, 0.0, 0.0]]), np.array([[0.0, -2 * POSE_LIMIT, 0.0]])):
+        with pytest.raises(MessageError) as info:
+            PoseSamples(robot="r", seq=0, stamp=0.0, samples=samples, weights=np.ones(1)).encode()
+        assert info.value.reason == "range" and "'samples'" in str(info.value)
+    with pytest.raises(MessageError) as info:
+        PoseGaussian(robot="r", seq=0, stamp=0.0, mean=np.array([0.0, 1e8, 0.0]), cov=np.eye(3)).encode()
+    assert info.value.reason == "range" and "'mean'" in str(info.value)
+    with pytest.raises(MessageError) as info:
+        PoseGaussian(robot="r", seq=0, stamp=0.0, mean=np.zeros(3), cov=np.full((3, 3), 1e308)).encode()
+    assert info.value.reason == "range" and "'cov'" in str(info.value)
+
+
+def test_more_samples_than_a_message_may_carry_are_rejected():
+    def samples(m):
+        return PoseSamples(robot="r", seq=0, stamp=0.0, samples=np.zeros((m, 3)), weights=np.full(m, 1.0 / m))
+
+    assert decode_message(samples(MAX_POSE_SAMPLES).encode()).samples.shape == (MAX_POSE_SAMPLES, 3)
+    with pytest.raises(MessageError) as info:
+        samples(MAX_POSE_SAMPLES + 1).encode()
+    assert info.value.reason == "size"
 
 
 def test_boolean_bytes_other_than_0_and_1_are_rejected():

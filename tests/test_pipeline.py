@@ -257,6 +257,11 @@ def test_garbage_on_every_key_is_counted_and_processes_keep_working(tmp_path, pr
                 session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
         session.put("pg/r1/scan", _pose(0).encode())  # a valid message of the wrong type for its key
         session.put("pg/r2/scan", _scan(0).encode())  # a valid scan claiming another robot than its key
+        # valid messages that drive the EKF 1e14 m away: its pose is no PoseGaussian; the step is skipped
+        session.put("pg/r1/odom", Odometry(robot="r1", seq=0, stamp=0.0, pose=np.zeros((0, 3)),
+                                           commands=np.array([[1e7, 0.0, 1e7]])).encode())
+        session.put("pg/r1/landmarks", LandmarkObservations(robot="r1", seq=0, stamp=0.0, ids=np.zeros(0, np.int64),
+                                                            ranges=np.zeros(0), bearings=np.zeros(0)).encode())
         for selector in ("pg/map/m/tile/0/*/*", "pg/map/m/stats/*"):
             list(session.get(selector, payload=b"\xff garbage query", timeout=5))
         # the shards still work: a valid scan and pose are joined and fused, in reverse order
@@ -284,8 +289,9 @@ def test_garbage_on_every_key_is_counted_and_processes_keep_working(tmp_path, pr
     assert tiles and sum(s.tiles_owned for s in stats) == len(tiles)
     # the SLAM node subscribes to scan, odom, landmarks, end and prior of its robot
     assert len(node_stats) == 1
-    assert node_stats[0].rejected == {"pg/r1/scan": len(GARBAGE) + 1, **{f"pg/r1/{k}": len(GARBAGE) for k in
-                                      ("odom", "landmarks", "end", "prior")}}, node_stats[0].rejected
+    assert node_stats[0].rejected == {"pg/r1/scan": len(GARBAGE) + 1, "pg/r1/steps": 1, **{
+        f"pg/r1/{k}": len(GARBAGE) for k in ("odom", "landmarks", "end", "prior")}}, node_stats[0].rejected
+    assert node_stats[0].steps_done == 1 and node_stats[0].poses_published == 0
     assert router.process.poll() is None and node.process.poll() is None
     assert all(m.process.poll() is None for m in mappers)
     for mapper in mappers:

@@ -123,6 +123,9 @@ def test_mapper_without_a_router_says_so_in_one_sentence(tmp_path, capsys):
     (["run", "--mrclam", "/tmp"], "no laser"),
     (["run", "--carmen", "x.clf", "--algo", "ekf"], "gridslam"),
     (["slam-node", "--particles", "0"], "--particles"),
+    (["slam-node", "--particles", "10001"], "--particles"),  # more than a PoseSamples may carry
+    (["run", "--particles", "20000"], "--particles"),
+    (["mapper", "--shard", "0", "--shards", "1", "--map", "m", "--samples", "10001"], "--samples"),
     (["slam-node", "--initial", "1,2"], "--initial"),
 ])
 def test_bad_arguments_exit_2_with_one_sentence(argv, message, capsys):

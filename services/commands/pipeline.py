@@ -239,6 +239,18 @@ def _check_name(value: str, option: str) -> None:
                          f"{'; not map' if option == '--robot' else ''})")
 
 
+def _check_sample_counts(args: argparse.Namespace) -> None:
+    """--particles and --samples (where the command has them) within 1 .. the most a PoseSamples may carry."""
+    from schemas.messages import MAX_POSE_SAMPLES
+    from services.cli import UsageError
+
+    for name in ("particles", "samples"):
+        value = getattr(args, name, None)
+        if value is not None and not 1 <= value <= MAX_POSE_SAMPLES:
+            raise UsageError(f"--{name} must be in 1 .. {MAX_POSE_SAMPLES} (the most pose samples a message "
+                             f"carries), got {value}")
+
+
 def _check_positive(args: argparse.Namespace, *names: str) -> None:
     from services.cli import UsageError
 
@@ -291,8 +303,7 @@ def run_mapper(args: argparse.Namespace) -> int:
         raise UsageError(f"--publish-interval must be >= 0 s, got {args.publish_interval}")
     if args.join_buffer < 1 or args.intake_buffer < 1:
         raise UsageError("--join-buffer and --intake-buffer must be >= 1")
-    if args.samples is not None and args.samples < 1:
-        raise UsageError(f"--samples must be >= 1, got {args.samples}")
+    _check_sample_counts(args)
     _check_positive(args, "accuracy")
     _check_name(args.map, "--map")
     from services.commands.mapping import sensor_model_from_args
@@ -347,8 +358,7 @@ def run_pipeline(args: argparse.Namespace) -> int:
         raise UsageError(f"--shards must be >= 1, got {args.shards}")
     if args.router_port is not None and not 0 < args.router_port < 65536:
         raise UsageError(f"--router-port must be a TCP port, got {args.router_port}")
-    if args.samples is not None and args.samples < 1:
-        raise UsageError(f"--samples must be >= 1, got {args.samples}")
+    _check_sample_counts(args)
     _check_positive(args, "accuracy", "resolution")
     rate_text = args.rate or ("max" if args.export is not None else "realtime")
     _rate(rate_text)
@@ -444,8 +454,7 @@ def run_slam_node(args: argparse.Namespace) -> int:
     from services.cli import UsageError
 
     _check_name(args.robot, "--robot")
-    if args.particles is not None and args.particles < 1:
-        raise UsageError(f"--particles must be >= 1, got {args.particles}")
+    _check_sample_counts(args)
     if not 0 <= args.resample_threshold <= 1:
         raise UsageError(f"--resample-threshold must be in [0, 1], got {args.resample_threshold}")
     from services.commands.gridslam import _config as gridslam_config
