@@ -435,6 +435,31 @@ def test_api_command_rejects_a_taken_port():
 # ------------------------------------------------------------------------------------------ last: a shard stops
 
 
+def test_tile_updates_no_shard_stands_behind_do_not_break_the_map(api, session):
+    """Well-formed updates on the right keys, for a tile no shard holds (7, 7), from each shard in turn, and for
+    a map no shard serves: the non-owner's and the unknown map's are refused; the owner's is taken, and the
+    first request that asks the owner for that tile finds it does not hold it and drops it. (Late in the module:
+    the owner's update counts as received, which `settled` would see.)"""
+    def forged(map_name: str, shard: int) -> bytes:
+        return TileUpdate(map=map_name, shard=shard, z=0, tx=7, ty=7, tile_size=TILE, resolution=RESOLUTION, row0=0,
+                          col0=0, robot="robot0", seq=0, published=0.0, logodds=np.full((TILE, TILE), 3.0, np.float32),
+                          variance=np.zeros((TILE, TILE), np.float32),
+                          observed=np.ones((TILE, TILE), bool)).encode()
+    httpx.get(f"{api}/maps/{MAP}/stats", timeout=30).raise_for_status()  # the API knows the shard count
+    for shard in range(SHARDS):
+        session.put(keys.tile_key(MAP, 0, 7, 7), forged(MAP, shard))
+    session.put(keys.tile_key("ghost", 0, 7, 7), forged("ghost", 0))
+    wait_until(lambda: httpx.get(f"{api}/health", timeout=30).json()["rejected"].get(keys.tile_key("ghost", 0, 7, 7)),
+               30, "the API to refuse the update of a map no shard serves")
+    maps = httpx.get(f"{api}/maps", timeout=30)
+    assert maps.status_code == 200 and [m["name"] for m in maps.json()] == [MAP]
+    summary = httpx.get(f"{api}/maps/{MAP}", timeout=30)
+    assert summary.status_code == 200 and summary.json()["tile_bounds"]["x_max"] < 7
+    assert problem(httpx.get(f"{api}/maps/{MAP}/tiles/0/7/7.png", timeout=30), 404)
+    assert httpx.get(f"{api}/maps/{MAP}/tiles/0/0/0.png", timeout=30).status_code == 200
+    assert httpx.get(f"{api}/health", timeout=30).json()["status"] == "ok"
+
+
 def test_a_stopped_shard_shows_in_health_and_stops_the_export(api, stack):
     stack.processes["mapper1"].send_signal(signal.SIGINT)
     stack.processes["mapper1"].wait(30)

@@ -16,6 +16,7 @@ from services.api.registry import MapRegistry
 from services.api.render import LOGODDS_RANGE
 from services.api.robots import RobotTracker, reduce_samples, summarize, weighted_mean_cov
 from services.api.tiles import render_key, variance_scale
+from services.ownership import tile_owner
 
 
 def test_versions_propagate_to_every_level_and_only_grow():
@@ -42,6 +43,39 @@ def test_shard_appearing_asks_for_a_sync():
     assert not registry.get("m").synced and registry.get("m").alive == {0, 1}
     registry.shard_alive("m", 1, False)
     assert registry.get("m").alive == {0}
+
+
+def test_tile_updates_are_trusted_only_from_the_live_shard_that_owns_the_tile():
+    registry = MapRegistry()
+    assert "no live shard" in registry.check_sender("m", 0, (0, 0))  # a map no shard has announced
+    registry.shard_alive("m", 0, True)
+    registry.shard_alive("m", 1, True)
+    assert registry.check_sender("m", 1, (5, 5)) is None  # shard count unknown yet: any live shard
+    assert "not alive" in registry.check_sender("m", 2, (5, 5))
+    registry.set_shards("m", 2)
+    owner = tile_owner((5, 5), [0, 1])
+    assert registry.check_sender("m", owner, (5, 5)) is None and registry.owner_alive("m", (5, 5))
+    assert f"belongs to shard {owner}" in registry.check_sender("m", 1 - owner, (5, 5))
+    registry.shard_alive("m", owner, False)
+    assert not registry.owner_alive("m", (5, 5))
+
+
+def test_forgotten_tiles_leave_every_level_and_give_their_parents_new_versions():
+    registry = MapRegistry()
+    kept = registry.tile_changed("m", (0, 0), 0.05, 256)
+    gone = registry.tile_changed("m", (1, 0), 0.05, 256)  # same level-1 parent (0, 0) as the kept tile
+    far = registry.tile_changed("m", (7, 7), 0.05, 256)  # alone up to level 3
+    assert registry.version("m", 1, 0, 0) == gone and registry.version("m", 2, 1, 1) == far
+    registry.forget_tiles("m", {(1, 0), (7, 7)})
+    assert registry.version("m", 0, 1, 0) == 0 and registry.version("m", 0, 7, 7) == 0
+    assert registry.version("m", 0, 0, 0) == kept
+    assert registry.version("m", 1, 0, 0) > far  # changed: a new, larger version
+    assert registry.version("m", 1, 3, 3) == 0 and registry.version("m", 2, 1, 1) == 0
+    assert registry.version("m", 3, 0, 0) == registry.version("m", 1, 0, 0)  # (7, 7) was under it too
+    info = registry.get("m")
+    assert (info.x_range, info.y_range, sorted(info.tiles)) == ((0, 0), (0, 0), [(0, 0)])
+    registry.forget_tiles("m", {(0, 0)})
+    assert info.x_range is None and info.top_level is None and registry.version("m", 5, 0, 0) == 0
 
 
 def test_byte_lru_serves_only_the_stored_version_and_evicts_by_bytes():

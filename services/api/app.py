@@ -24,6 +24,7 @@ from fastapi.responses import FileResponse, JSONResponse, Response, StreamingRes
 from fastapi.staticfiles import StaticFiles
 from starlette.concurrency import run_in_threadpool
 
+from mapping.errors import InputError
 from mapping.export import render_pgm, render_png
 from schemas.files import MapFile, save_map
 from schemas.messages import ShardStats
@@ -48,12 +49,14 @@ x in [x * tile_size * 2^z * resolution, (x + 1) * ...) m, likewise y. A level-z 
 level-(z-1) cells: observed = any observed; log-odds and variance = the mean over the observed ones.
 
 Errors: `{"detail": "one sentence"}` with 404 (unknown map or robot, tile outside the map), 409 (nothing
-to export yet), 422 (a malformed or out-of-range parameter) or 503 (a shard holding the data did not answer).
+to export yet), 413 (a map too large to export whole), 422 (a malformed or out-of-range parameter) or 503 (a
+shard holding the data did not answer).
 """
 
 ERRORS = {
     404: "unknown map or robot, or a tile outside the map's range",
     409: "the map has nothing to export yet",
+    413: "the map's tiles span more cells than one raster may hold (mapping.grid.MAX_RASTER_CELLS)",
     422: "a parameter is malformed or out of its range (layer, format, z < 0, vmax <= 0, ...)",
     503: "a shard holding the data did not answer",
 }
@@ -240,7 +243,7 @@ def create_app(backend: Backend) -> FastAPI:
         200: {"description": "npz: a map file (docs/formats.md); pgm: a zip of MAP.pgm and MAP.yaml for ROS "
               "map_server; png: an image, north up", "content": {"application/octet-stream": {},
                                                                  "application/zip": {}, "image/png": {}}},
-        **errors(404, 409, 422, 503)})
+        **errors(404, 409, 413, 422, 503)})
     def export(map: MapName,
                format: Annotated[Literal["npz", "pgm", "png"], Query(
                    description="npz (a map file), pgm (with its YAML, zipped) or png")],
@@ -254,7 +257,10 @@ def create_app(backend: Backend) -> FastAPI:
             raise HTTPException(503, f"no shard of map {map!r} answered")
         if info.resolution is None:
             raise HTTPException(409, f"map {map!r} has no tiles yet")
-        raster = link.assemble(map, max(s.shards for s in stats.values()), info.resolution).rasterize()
+        try:
+            raster = link.assemble(map, max(s.shards for s in stats.values()), info.resolution).rasterize()
+        except InputError as exc:
+            raise HTTPException(413, f"map {map!r} is too large to export whole: {exc}") from None
         if not raster["observed"].any():
             raise HTTPException(409, f"map {map!r} has no observed cells yet")
         buffer = io.BytesIO()

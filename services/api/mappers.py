@@ -16,6 +16,8 @@ contents contradict its key, is dropped and counted by key in :attr:`MapperLink.
 """
 from __future__ import annotations
 
+from collections import Counter
+
 import zenoh
 
 from mapping.grid import TiledGrid
@@ -106,8 +108,9 @@ class MapperLink:
         except MessageError as exc:
             self.rejects.count(key, exc.reason, str(exc))
             return
-        problem = self._tile_problem(key, update) or self.registry.check_geometry(
-            update.map, update.resolution, update.tile_size)
+        problem = (self._tile_problem(key, update)
+                   or self.registry.check_sender(update.map, update.shard, (update.tx, update.ty))
+                   or self.registry.check_geometry(update.map, update.resolution, update.tile_size))
         if problem:
             self.rejects.count(key, "key", problem)
             return
@@ -186,9 +189,17 @@ class MapperLink:
                     found[(update.tx, update.ty)] = update
         return found
 
-    def fetch_all(self, map_name: str) -> list[TileUpdate]:
-        """Every whole level-0 tile of the map, from every shard."""
-        return self._whole_tiles(map_name, self._query(keys.tile_key(map_name, 0, "*", "*")))
+    def fetch_all(self, map_name: str) -> tuple[list[TileUpdate], bool]:
+        """Every whole level-0 tile of the map, from every shard, and whether they are all the map has: every
+        shard answered its stats and sent as many tiles as its stats count. Only then is a tile that did not
+        come back one that no shard holds."""
+        stats = self.stats(map_name)
+        tiles = self._whole_tiles(map_name, self._query(keys.tile_key(map_name, 0, "*", "*")))
+        shards = max((s.shards for s in stats.values()), default=0)
+        sent = Counter(tile.shard for tile in tiles)
+        complete = (bool(stats) and sorted(stats) == list(range(shards))
+                    and all(sent[shard] == s.tiles_owned for shard, s in stats.items()) and set(sent) <= set(stats))
+        return tiles, complete
 
     def stats(self, map_name: str) -> dict[int, ShardStats]:
         """The stats of every shard of the map that answers, by shard index (records the shard count)."""

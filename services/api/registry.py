@@ -12,7 +12,8 @@ import threading
 import time
 from dataclasses import dataclass, field
 
-from mapping.pyramid import tile_range, top_level
+from mapping.pyramid import children_of, tile_range, top_level
+from services.ownership import tile_owner
 
 TileKey = tuple[int, int]
 
@@ -100,6 +101,25 @@ class MapRegistry:
         with self.lock:
             self._info(name).synced = True
 
+    def check_sender(self, name: str, shard: int, tile: TileKey) -> str | None:
+        """Why a tile update that says it comes from ``shard`` for level-0 ``tile`` of map ``name`` is not to be
+        trusted (None when it is): no live shard serves the map, that shard is not alive, or, once the shard
+        count is known, the tile is another shard's (services.ownership)."""
+        with self.lock:
+            info = self._maps.get(name)
+            if info is None or not info.alive:
+                return f"no live shard serves map {name!r}"
+            if shard not in info.alive:
+                return f"shard {shard} of map {name!r} is not alive (alive: {sorted(info.alive)})"
+            shards = info.shards
+        if shards is not None:
+            if shard >= shards:
+                return f"map {name!r} has {shards} shard(s), so no shard {shard}"
+            owner = tile_owner(tile, range(shards))
+            if owner != shard:
+                return f"tile {tile} of map {name!r} belongs to shard {owner}, not to shard {shard}"
+        return None
+
     def check_geometry(self, name: str, resolution: float, tile_size: int) -> str | None:
         """Why a tile of this geometry does not belong to map ``name`` (None when it does)."""
         info = self._maps.get(name)
@@ -124,6 +144,49 @@ class MapRegistry:
             info.x_range = (tx, tx) if info.x_range is None else (min(info.x_range[0], tx), max(info.x_range[1], tx))
             info.y_range = (ty, ty) if info.y_range is None else (min(info.y_range[0], ty), max(info.y_range[1], ty))
             return version
+
+    def forget_tiles(self, name: str, tiles: set[TileKey]) -> None:
+        """Drop level-0 ``tiles`` of map ``name`` that no shard holds (lost with a restarted shard, or announced by
+        an update no shard stands behind). Every coarser tile above them takes a new version, or goes when no
+        level-0 tile is left below it, so no cached tile that showed them is served again."""
+        with self.lock:
+            info = self._maps.get(name)
+            if info is None or not tiles:
+                return
+            self._counter += 1
+            for tile in tiles:
+                info.levels[0].pop(tile, None)
+            below = set(tiles)
+            for z in range(1, MAX_LEVEL + 1):
+                above = {(tx >> 1, ty >> 1) for tx, ty in below}
+                for parent in above:
+                    if any(child in info.levels[z - 1] for child in children_of(*parent)):
+                        info.levels[z][parent] = self._counter
+                    else:
+                        info.levels[z].pop(parent, None)
+                below = above
+            if info.tiles:
+                columns, rows = zip(*info.tiles)
+                info.x_range, info.y_range = (min(columns), max(columns)), (min(rows), max(rows))
+            else:
+                info.x_range = info.y_range = None
+
+    def request_sync(self, name: str) -> None:
+        """Have the tiles of map ``name`` asked from its shards again before they are next served."""
+        with self.lock:
+            info = self._maps.get(name)
+            if info is not None:
+                info.synced = False
+
+    def owner_alive(self, name: str, tile: TileKey) -> bool:
+        """Whether the shard that owns level-0 ``tile`` of map ``name`` is alive (False while the shard count
+        is unknown)."""
+        with self.lock:
+            info = self._maps.get(name)
+            if info is None or info.shards is None:
+                return False
+            shards, alive = info.shards, set(info.alive)
+        return tile_owner(tile, range(shards)) in alive
 
     def update_received(self, name: str, shard: int) -> None:
         """Count a tile update published by ``shard`` (before its :meth:`tile_changed`)."""

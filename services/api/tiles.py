@@ -8,7 +8,9 @@ Two caches, both keyed by the tile's version (services.api.registry), so nothing
   dictionary look-up (services.api.fastpath answers it before FastAPI is even involved).
 
 A level-0 tile that the registry does not list is empty (nobody has mapped there); one it lists is asked
-from its shard, and a shard that does not answer makes the request fail with :class:`TileUnavailable`.
+from its shard, and a shard that does not answer makes the request fail with :class:`TileUnavailable`. When
+the owning shard is up but does not hold the tile (it restarted, or the update that announced the tile came from
+no shard), every shard is asked what it holds, and listed tiles that none holds are dropped.
 """
 from __future__ import annotations
 
@@ -26,6 +28,7 @@ from schemas.messages import TileUpdate
 from services.api.cache import ByteLRU
 from services.api.registry import MapInfo, MapRegistry, TileKey
 from services.api.render import empty_layers, npz_bytes, png_bytes
+from services.process import get_logger
 
 MEDIA_TYPES = {"png": "image/png", "npz": "application/octet-stream"}
 
@@ -43,8 +46,8 @@ class TileSource(Protocol):
     def fetch_tiles(self, map_name: str, tiles: list[TileKey]) -> dict[TileKey, TileUpdate]:
         """Whole level-0 tiles, by key; a tile that did not come back is absent."""
 
-    def fetch_all(self, map_name: str) -> list[TileUpdate]:
-        """Every whole level-0 tile every shard of the map holds."""
+    def fetch_all(self, map_name: str) -> tuple[list[TileUpdate], bool]:
+        """Every whole level-0 tile every shard of the map holds, and whether that is known to be all of them."""
 
 
 @dataclass(frozen=True)
@@ -117,6 +120,7 @@ class TileService:
         self._rendered: ByteLRU[Rendered] = ByteLRU(cache_bytes // 4)
         self._content: dict[str, tuple[int, MapContent]] = {}
         self._sync_lock = threading.Lock()
+        self.log = get_logger("api")
 
     # ---------------------------------------------------------------------------- level 0
     def _store(self, name: str, tile: TileKey, version: int, update: TileUpdate) -> tuple[TileLayers, TileFacts]:
@@ -135,7 +139,8 @@ class TileService:
                 return
             self.registry.mark_synced(name)  # a shard appearing during the fetch asks for another sync
             before = self.registry.tiles(name)
-            for update in self.source.fetch_all(name):
+            updates, complete = self.source.fetch_all(name)
+            for update in updates:
                 tile = (update.tx, update.ty)
                 if self.registry.check_geometry(name, update.resolution, update.tile_size) is not None:
                     continue
@@ -148,11 +153,26 @@ class TileService:
                 version = self.registry.tile_changed(name, tile, update.resolution, update.tile_size)
                 self._store(name, tile, version, update)
                 self.on_change(name, tile, version)
+            if complete:  # tiles listed before the sync that no shard holds: lost with a restarted shard, or bogus
+                held = {(update.tx, update.ty) for update in updates}
+                gone = {tile for tile, version in before.items()
+                        if tile not in held and self.registry.version(name, 0, *tile) == version}
+                if gone:
+                    self.log.warning("map %r: %d tile(s) listed that no shard holds, now dropped: %s", name,
+                                     len(gone), ", ".join(map(str, sorted(gone)[:4])))
+                    self.registry.forget_tiles(name, gone)
+                    self._content.pop(name, None)
 
     def _fetch(self, name: str, wanted: dict[TileKey, int]) -> dict[TileKey, tuple[TileLayers, TileFacts]]:
         """Fetch level-0 tiles ``wanted`` (key -> the version read before asking), cache and return them."""
         got = self.source.fetch_tiles(name, sorted(wanted))
         missing = sorted(set(wanted) - set(got))
+        if missing and all(self.registry.owner_alive(name, tile) for tile in missing):
+            # their shards are up but did not send them: ask every shard what it holds, which drops the tiles
+            # that none holds (lost with a restarted shard, or announced by an update no shard stands behind)
+            self.registry.request_sync(name)
+            self.sync(name)
+            missing = [tile for tile in missing if self.registry.version(name, 0, *tile)]
         if missing:
             info = self.registry.get(name)
             raise TileUnavailable(f"map {name!r}: level-0 tile(s) {', '.join(map(str, missing[:4]))} did not come "
@@ -184,7 +204,9 @@ class TileService:
             return None
         entry = self._layers.get((name, z, x, y), version)
         if entry is None and z == 0:  # changed since it was fetched a moment ago: fetch it again
-            entry = self._fetch(name, {(x, y): version})[(x, y)]
+            entry = self._fetch(name, {(x, y): version}).get((x, y))
+            if entry is None:  # no shard holds it: dropped from the map meanwhile
+                return None
         if entry is not None:
             return entry[0]
         children = [self._build(name, info, z - 1, *child) for child in children_of(x, y)]
