@@ -59,7 +59,7 @@ def crop_to_occupied(map_arrays: dict, margin: float) -> dict:
     if not occupied.any():
         raise InputError("the map has no occupied cells to crop to")
     rows, cols = np.flatnonzero(occupied.any(axis=1)), np.flatnonzero(occupied.any(axis=0))
-    pad = int(np.ceil(margin / float(map_arrays["resolution"])))
+    pad = int(np.ceil(min(margin / float(map_arrays["resolution"]), max(occupied.shape))))  # no wider than the map
     r0, r1 = max(rows[0] - pad, 0), min(rows[-1] + pad + 1, occupied.shape[0])
     c0, c1 = max(cols[0] - pad, 0), min(cols[-1] + pad + 1, occupied.shape[1])
     cropped = {key: (value[r0:r1, c0:c1] if isinstance(value, np.ndarray) and value.shape == occupied.shape else value)

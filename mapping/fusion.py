@@ -800,20 +800,20 @@ def _laser_poses(samples, ox, oy, oyaw):  # pragma: no cover - compiled
     return poses
 
 
-def check_window(ix0: int, iy0: int, width: int, height: int, lasers: np.ndarray, reach: float,
-                 resolution: float) -> None:
-    """Refuse a scan whose scratch window (width x height cells from cell (ix0, iy0)) lies beyond
-    MAX_CELL_INDEX cells from the origin or spans more than MAX_WINDOW_CELLS cells; ``lasers`` (M, 3) are the
-    laser poses it covers and ``reach`` (m) the rays' longest reach, for the message."""
-    if max(abs(ix0), abs(iy0), abs(ix0 + width), abs(iy0 + height)) > MAX_CELL_INDEX:
-        far = lasers[np.argmax(np.abs(lasers[:, :2]).max(axis=1))]
-        raise InputError(f"a pose sample at ({far[0]:.6g}, {far[1]:.6g}) m is beyond the "
-                         f"{MAX_CELL_INDEX * resolution:.3g} m from the map origin that {resolution} m cells reach")
+def check_window(x_lo: float, y_lo: float, x_hi: float, y_hi: float, reach: float, resolution: float) -> None:
+    """Refuse a scan whose scratch window cannot be held, before any cell index is computed from it: one that
+    reaches beyond MAX_CELL_INDEX cells from the origin, or spans more than MAX_WINDOW_CELLS cells. The laser
+    poses lie in [x_lo, x_hi] x [y_lo, y_hi] (m) and ``reach`` (m) is the rays' longest reach."""
+    farthest = max(abs(x_lo), abs(x_hi), abs(y_lo), abs(y_hi))
+    if not (farthest + reach) / resolution <= MAX_CELL_INDEX:  # also NaN and inf
+        raise InputError(f"a scan {farthest:.6g} m from the map origin with rays {reach:.6g} m long reaches beyond "
+                         f"the {MAX_CELL_INDEX * resolution:.3g} m that {resolution} m cells cover")
+    width = (x_hi - x_lo + 2 * reach) / resolution + 9  # + the 8-cell alignment and a cell to spare
+    height = (y_hi - y_lo + 2 * reach) / resolution + 9
     if width * height > MAX_WINDOW_CELLS:
-        spread_x, spread_y = np.ptp(lasers[:, 0]), np.ptp(lasers[:, 1])
-        raise InputError(f"one scan would span {width} x {height} cells of {resolution} m, more than the "
-                         f"{MAX_WINDOW_CELLS} a scan may: its pose samples spread over {spread_x:.4g} m x "
-                         f"{spread_y:.4g} m and its rays reach {reach:.4g} m (a diverged pose estimate, or a range "
+        raise InputError(f"one scan would span about {width:.0f} x {height:.0f} cells of {resolution} m, more than the "
+                         f"{MAX_WINDOW_CELLS} a scan may: its pose samples spread over {x_hi - x_lo:.4g} m x "
+                         f"{y_hi - y_lo:.4g} m and its rays reach {reach:.4g} m (a diverged pose estimate, or a range "
                          f"limit too long for this resolution?)")
 
 
@@ -952,11 +952,11 @@ class MonteCarloFusion:
             x_hi, y_hi = x_lo, y_lo
         else:
             (x_lo, y_lo), (x_hi, y_hi) = lasers[:, :2].min(axis=0).tolist(), lasers[:, :2].max(axis=0).tolist()
+        check_window(x_lo, y_lo, x_hi, y_hi, reach, res)
         win_ix0 = math.floor((x_lo - reach) / res) & ~7  # a multiple of 8: the scratch's 8 x 8 blocks are the grid's
         win_iy0 = math.floor((y_lo - reach) / res) & ~7
         win_w = math.floor((x_hi + reach) / res) - win_ix0 + 1
         win_h = math.floor((y_hi + reach) / res) - win_iy0 + 1
-        check_window(win_ix0, win_iy0, win_w, win_h, lasers, reach, res)
         shift = grid.tile_shift
         tx0, ty0 = win_ix0 >> shift, win_iy0 >> shift
         ntx = ((win_ix0 + win_w - 1) >> shift) - tx0 + 1

@@ -123,9 +123,10 @@ class TiledGrid:
         tx0, ty0 = tx.min(), ty.min()
         shape = (int(ty.max() - ty0 + 1) * size, int(tx.max() - tx0 + 1) * size)  # Python ints: no overflow
         if shape[0] * shape[1] > MAX_RASTER_CELLS:
-            raise InputError(f"the map's tiles span {shape[1]} x {shape[0]} cells ({shape[1] * self.resolution:.6g} m x "
-                             f"{shape[0] * self.resolution:.6g} m), more than the {MAX_RASTER_CELLS} cells one raster "
-                             "may hold; read it tile by tile instead")
+            width_m, height_m = shape[1] * self.resolution, shape[0] * self.resolution
+            raise InputError(f"the map's tiles span {shape[1]} x {shape[0]} cells ({width_m:.6g} m x "
+                             f"{height_m:.6g} m), more than the {MAX_RASTER_CELLS} cells one raster may hold; read "
+                             "it tile by tile instead")
         logodds = np.zeros(shape, np.float32)
         variance = np.zeros(shape, np.float32)
         observed = np.zeros(shape, bool)

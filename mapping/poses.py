@@ -29,9 +29,12 @@ def samples_for_accuracy(cov: np.ndarray, range_max: float, accuracy: float,
     if not accuracy > 0:
         raise InputError(f"accuracy must be > 0 m, got {accuracy}")
     cov = np.asarray(cov, dtype=float)
-    spread = float(np.linalg.eigvalsh(cov[:2, :2]).max()) + (range_max ** 2) * float(cov[2, 2])
-    needed = math.ceil(Z95 ** 2 * max(spread, 0.0) / accuracy ** 2)
-    return int(min(max(needed, 1), max_samples))
+    # products, not ** 2: a float product past the float range is inf, a power raises OverflowError
+    spread = float(np.linalg.eigvalsh(cov[:2, :2]).max()) + range_max * range_max * float(cov[2, 2])
+    needed = (Z95 / accuracy) * (Z95 / accuracy) * max(spread, 0.0)
+    if not needed < max_samples:  # also inf and NaN, from a spread past what floats hold
+        return max_samples
+    return max(math.ceil(needed), 1)
 
 
 def gaussian_samples(mean: np.ndarray, cov: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:

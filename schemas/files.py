@@ -11,9 +11,13 @@ metres along the beam from the laser; angles are radians in the laser frame, cou
 from __future__ import annotations
 
 import io
+import os
 import zipfile
+import zlib
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
@@ -103,14 +107,22 @@ class TruthRaster:
 # --------------------------------------------------------------------------------------------- reading
 
 
-def _open_npz(path: str | Path, what: str) -> dict[str, np.ndarray]:
+def read_npz(path: str | Path, what: str) -> dict[str, np.ndarray]:
+    """Every array of the .npz file ``path`` (a ``what``, for messages), read in full; FormatError with one
+    sentence when the file is missing, not a .npz archive (a bare .npy array, say) or damaged."""
     path = Path(path)
     if not path.is_file():
         raise FormatError(f"{path}: no such file (expected a {what} .npz)")
     try:
-        with np.load(path, allow_pickle=False) as data:
-            return {key: data[key] for key in data.files}
+        loaded = np.load(path, allow_pickle=False)
     except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
+        raise FormatError(f"{path}: not a readable .npz {what} ({exc})") from None
+    if not isinstance(loaded, np.lib.npyio.NpzFile):
+        raise FormatError(f"{path}: holds one bare array (a .npy file), not the named arrays of a .npz {what}")
+    try:
+        with loaded as data:  # members are read (and inflated) here
+            return {key: data[key] for key in data.files}
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, zlib.error) as exc:
         raise FormatError(f"{path}: not a readable .npz {what} ({exc})") from None
 
 
@@ -131,7 +143,7 @@ _KEYS_HELP = {
 
 def _scalar(data: dict, key: str, path, what: str) -> float:
     value = np.asarray(_require(data, key, path, what))
-    if value.size != 1 or not np.issubdtype(value.dtype, np.number):
+    if value.size != 1 or value.dtype.kind not in "iuf":
         raise FormatError(f"{path}: '{key}' must be a number, got shape {value.shape} dtype {value.dtype}")
     value = float(value.reshape(()))
     if not np.isfinite(value):
@@ -140,9 +152,30 @@ def _scalar(data: dict, key: str, path, what: str) -> float:
 
 
 def _numeric(array: np.ndarray, key: str, path) -> np.ndarray:
-    if not np.issubdtype(np.asarray(array).dtype, np.number):
-        raise FormatError(f"{path}: '{key}' must be numeric, got dtype {np.asarray(array).dtype}")
-    return np.asarray(array)
+    """``array`` if it holds real numbers (integers or floats; not text, objects or complex numbers)."""
+    array = np.asarray(array)
+    if array.dtype.kind not in "iuf":
+        raise FormatError(f"{path}: '{key}' must hold real numbers, got dtype {array.dtype}")
+    return array
+
+
+def _flags(array: np.ndarray, key: str, path) -> np.ndarray:
+    """``array`` as booleans, if it holds booleans or the integers 0 and 1 only."""
+    array = np.asarray(array)
+    if array.dtype.kind not in "biu" or (array.dtype.kind != "b" and not np.isin(array, (0, 1)).all()):
+        raise FormatError(f"{path}: '{key}' must be boolean (or 0/1), got dtype {array.dtype}")
+    return array.astype(bool)
+
+
+def _within(array: np.ndarray, key: str, path, low: float, high: float) -> np.ndarray:
+    """``array`` (real numbers) if every value is finite and in [low, high]."""
+    array = _numeric(array, key, path)
+    bad = ~(np.isfinite(array) & (array >= low) & (array <= high))
+    if bad.any():
+        index = tuple(int(i) for i in np.argwhere(bad)[0])
+        raise FormatError(f"{path}: '{key}' holds {array[index]} at {index}; its values must be finite and in "
+                          f"[{low:g}, {high:g}]")
+    return array
 
 
 def validate_pose_set(poses: PoseSet, steps: int, where: str) -> None:
@@ -154,7 +187,7 @@ def validate_pose_set(poses: PoseSet, steps: int, where: str) -> None:
         if cov.shape != (steps, 3, 3):
             raise FormatError(f"{where}: 'cov' must have shape ({steps}, 3, 3), got {cov.shape}")
         for key, arr in (("mean", mean), ("cov", cov)):
-            bad = ~np.isfinite(arr).reshape(steps, -1).all(axis=1)
+            bad = ~np.isfinite(arr).all(axis=tuple(range(1, arr.ndim)))
             if bad.any():
                 raise FormatError(f"{where}: '{key}' has NaN or inf at step {int(np.argmax(bad))}")
         asym = np.abs(cov - cov.transpose(0, 2, 1)).max(axis=(1, 2)) > 1e-9 * (1 + np.abs(cov).max())
@@ -214,13 +247,15 @@ def _read_stamps(data: dict, path, what: str, steps: int | None = None) -> np.nd
         raise FormatError(f"{path}: 'stamps' must have shape ({steps if steps is not None else 'T'},), got {stamps.shape}")
     if not np.isfinite(stamps).all():
         raise FormatError(f"{path}: 'stamps' has NaN or inf at step {int(np.argmax(~np.isfinite(stamps)))}")
+    if stamps.shape[0] == 0:
+        raise FormatError(f"{path}: holds no steps (T = 0); a {what} needs at least one")
     return stamps
 
 
 def load_posed_scans(path: str | Path) -> PosedScans:
     """Read and validate a posed-scan file (contract in docs/formats.md)."""
     what = "posed-scan file"
-    data = _open_npz(path, what)
+    data = read_npz(path, what)
     ranges = _numeric(_require(data, "ranges", path, what), "ranges", path)
     if ranges.ndim != 2 or ranges.shape[1] < 1:
         raise FormatError(f"{path}: 'ranges' must have shape (T, B) with B >= 1, got {ranges.shape}")
@@ -252,7 +287,7 @@ def load_posed_scans(path: str | Path) -> PosedScans:
 def load_pose_distribution(path: str | Path) -> PoseDistributionFile:
     """Read and validate a pose-distribution file (SLAM output without scans)."""
     what = "pose-distribution file"
-    data = _open_npz(path, what)
+    data = read_npz(path, what)
     stamps = _read_stamps(data, path, what)
     return PoseDistributionFile(stamps=stamps, poses=_read_pose_set(data, len(stamps), path, what))
 
@@ -260,19 +295,27 @@ def load_pose_distribution(path: str | Path) -> PoseDistributionFile:
 def load_map(path: str | Path) -> MapFile:
     """Read and validate a map file."""
     what = "map file"
-    data = _open_npz(path, what)
-    logodds = _numeric(_require(data, "logodds", path, what), "logodds", path)
+    data = read_npz(path, what)
+    logodds = _within(_require(data, "logodds", path, what), "logodds", path, -np.inf, np.inf)
     if logodds.ndim != 2:
         raise FormatError(f"{path}: 'logodds' must be 2-D (H, W), got shape {logodds.shape}")
     shape = logodds.shape
+    _require(data, "probability", path, what)
+    _require(data, "observed", path, what)
     layers = {}
     for key in ("probability", "observed", "variance", "level"):
         if key in data:
             if data[key].shape != shape:
                 raise FormatError(f"{path}: '{key}' has shape {data[key].shape}, 'logodds' has {shape}")
             layers[key] = data[key]
-    _require(data, "probability", path, what)
-    _require(data, "observed", path, what)
+    layers["probability"] = _within(layers["probability"], "probability", path, 0.0, 1.0)
+    layers["observed"] = _flags(layers["observed"], "observed", path)
+    if "variance" in layers:
+        layers["variance"] = _within(layers["variance"], "variance", path, 0.0, np.inf)
+    if "level" in layers:
+        if np.asarray(layers["level"]).dtype.kind not in "iu":
+            raise FormatError(f"{path}: 'level' must hold integers, got dtype {np.asarray(layers['level']).dtype}")
+        layers["level"] = _within(layers["level"], "level", path, -1, np.iinfo(np.int8).max)
     origin = _numeric(_require(data, "origin", path, what), "origin", path).astype(np.float64)
     if origin.shape != (2,) or not np.isfinite(origin).all():
         raise FormatError(f"{path}: 'origin' must be 2 finite numbers (x, y) in m, got {origin}")
@@ -282,7 +325,7 @@ def load_map(path: str | Path) -> MapFile:
     return MapFile(
         logodds=logodds.astype(np.float32),
         probability=layers["probability"].astype(np.float32),
-        observed=layers["observed"].astype(bool),
+        observed=layers["observed"],
         origin=origin,
         resolution=resolution,
         variance=layers["variance"].astype(np.float32) if "variance" in layers else None,
@@ -293,29 +336,48 @@ def load_map(path: str | Path) -> MapFile:
 def load_truth(path: str | Path) -> TruthRaster:
     """Read and validate a truth raster."""
     what = "truth raster"
-    data = _open_npz(path, what)
-    occupied = _require(data, "occupied", path, what)
-    visible = _require(data, "visible", path, what)
+    data = read_npz(path, what)
+    occupied = _flags(_require(data, "occupied", path, what), "occupied", path)
+    visible = _flags(_require(data, "visible", path, what), "visible", path)
     if occupied.ndim != 2 or visible.shape != occupied.shape:
         raise FormatError(
             f"{path}: 'occupied' and 'visible' must be 2-D of one shape, got {occupied.shape} and {visible.shape}"
         )
     origin = _numeric(_require(data, "origin", path, what), "origin", path).astype(np.float64)
-    if origin.shape != (2,):
-        raise FormatError(f"{path}: 'origin' must be 2 numbers (x, y) in m, got shape {origin.shape}")
+    if origin.shape != (2,) or not np.isfinite(origin).all():
+        raise FormatError(f"{path}: 'origin' must be 2 finite numbers (x, y) in m, got {origin}")
     resolution = _scalar(data, "resolution", path, what)
     if resolution <= 0:
         raise FormatError(f"{path}: 'resolution' must be > 0 m, got {resolution}")
-    return TruthRaster(occupied.astype(bool), visible.astype(bool), origin, resolution)
+    return TruthRaster(occupied, visible, origin, resolution)
 
 
 # --------------------------------------------------------------------------------------------- writing
 
 
+def write_atomically(path: str | Path, write: Callable[[BinaryIO], None]) -> None:
+    """Call ``write`` on a new file beside ``path`` and move it onto ``path`` once complete, so a failed write (a
+    full disk, an error while writing) leaves no partial file, and ``path`` is written as given (``np.savez``
+    would add ".npz" to a name without it). An OSError names ``path``."""
+    path = Path(path)
+    partial = path.with_name(f".{path.name}.partial")
+    try:
+        with open(partial, "wb") as handle:
+            write(handle)
+        os.replace(partial, path)
+    except OSError as exc:
+        partial.unlink(missing_ok=True)
+        raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from None
+    except BaseException:
+        partial.unlink(missing_ok=True)
+        raise
+
+
 def save_posed_scans(path: str | Path, scans: PosedScans) -> None:
-    """Write a posed-scan file with exactly the contract's keys."""
-    np.savez_compressed(
-        path,
+    """Write a posed-scan file with exactly the contract's keys; refuses poses its loader would refuse."""
+    validate_pose_set(scans.poses, len(scans.stamps), f"the poses to write to {path}")
+    write_atomically(path, lambda handle: np.savez_compressed(
+        handle,
         ranges=np.asarray(scans.ranges, np.float32),
         angle_min=np.float64(scans.angle_min),
         angle_increment=np.float64(scans.angle_increment),
@@ -324,19 +386,20 @@ def save_posed_scans(path: str | Path, scans: PosedScans) -> None:
         stamps=np.asarray(scans.stamps, np.float64),
         sensor_offset=np.asarray(scans.sensor_offset, np.float64),
         **{k: np.asarray(v, np.float64) for k, v in scans.poses.arrays().items()},
-    )
+    ))
 
 
 def save_pose_distribution(path: str | Path, dist: PoseDistributionFile) -> None:
-    """Write a pose-distribution file."""
-    np.savez_compressed(
-        path,
+    """Write a pose-distribution file; refuses poses its loader would refuse (a filter that diverged to NaN)."""
+    validate_pose_set(dist.poses, len(dist.stamps), f"the poses to write to {path}")
+    write_atomically(path, lambda handle: np.savez_compressed(
+        handle,
         stamps=np.asarray(dist.stamps, np.float64),
         **{k: np.asarray(v, np.float64) for k, v in dist.poses.arrays().items()},
-    )
+    ))
 
 
-def write_npz_deterministic(path: str | Path, arrays: dict[str, np.ndarray]) -> None:
+def write_npz_deterministic(path: str | Path | BinaryIO, arrays: dict[str, np.ndarray]) -> None:
     """Write an uncompressed ``.npz`` whose bytes depend only on ``arrays`` (fixed zip timestamps).
 
     ``np.savez`` stamps each member with the wall-clock time, so two saves of one map differ; this
@@ -350,7 +413,7 @@ def write_npz_deterministic(path: str | Path, arrays: dict[str, np.ndarray]) -> 
             archive.writestr(info, buffer.getvalue())
 
 
-def save_map(path: str | Path, map_file: MapFile) -> None:
+def save_map(path: str | Path | BinaryIO, map_file: MapFile) -> None:
     """Write a map file. Deterministic: the same map gives the same bytes."""
     arrays = {
         "logodds": np.asarray(map_file.logodds, np.float32),
@@ -363,15 +426,18 @@ def save_map(path: str | Path, map_file: MapFile) -> None:
         arrays["variance"] = np.asarray(map_file.variance, np.float32)
     if map_file.level is not None:
         arrays["level"] = np.asarray(map_file.level, np.int8)
-    write_npz_deterministic(path, arrays)
+    if isinstance(path, (str, Path)):
+        write_atomically(path, lambda handle: write_npz_deterministic(handle, arrays))
+    else:  # an open binary file (the API writes into a buffer)
+        write_npz_deterministic(path, arrays)
 
 
 def save_truth(path: str | Path, truth: TruthRaster) -> None:
     """Write a truth raster."""
-    np.savez_compressed(
-        path,
+    write_atomically(path, lambda handle: np.savez_compressed(
+        handle,
         occupied=np.asarray(truth.occupied, bool),
         visible=np.asarray(truth.visible, bool),
         origin=np.asarray(truth.origin, np.float64),
         resolution=np.float64(truth.resolution),
-    )
+    ))

@@ -152,8 +152,8 @@ class PoseSamples(Message):
 
     TYPE = "PoseSamples"
     VERSION = 1
-    RULES = (Rule("weights", f"1 to {MAX_POSE_SAMPLES} samples; weights >= 0 and sum to 1 within {WEIGHT_SUM_TOLERANCE}",
-                  _weights),)
+    RULES = (Rule("weights", f"1 to {MAX_POSE_SAMPLES} samples; weights >= 0 and sum to 1 within "
+                  f"{WEIGHT_SUM_TOLERANCE}", _weights),)
 
     robot: str = spec(ROBOT)
     seq: int = spec(SEQ)

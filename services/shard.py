@@ -162,7 +162,8 @@ class MapShard:
         except Exception as exc:  # noqa: BLE001 - a defect met by one scan must not stop the shard: counted, logged
             self.discarded[scan.robot] += 1
             self.log.exception("scan seq %d of robot %r failed to fuse; the shard goes on", scan.seq, scan.robot)
-            self.rejects.count(f"fuse/{scan.robot}", "error", f"scan seq {scan.seq} failed: {type(exc).__name__}: {exc}")
+            self.rejects.count(f"fuse/{scan.robot}", "error",
+                               f"scan seq {scan.seq} failed: {type(exc).__name__}: {exc}")
             return
         self.fused[scan.robot] += 1
         self.cells_updated += result.cells_updated

@@ -48,6 +48,10 @@ def test_bad_adaptive_options_are_usage_errors(posed_file, tmp_path, capsys):
     assert "power of two" in capsys.readouterr().err
     assert main(["fuse", str(posed_file), "-o", out, "--grid", "adaptive", "--significance", "2"]) == 2
     assert "significance" in capsys.readouterr().err
+    for option in (["--no-unknowns"], ["--coarse-cell", "0.4"], ["--significance", "0.1"], ["--unknown-range", "1"]):
+        assert main(["fuse", str(posed_file), "-o", out, *option]) == 2  # a regular grid would ignore it
+        assert "shape the adaptive grid only; add --grid adaptive" in capsys.readouterr().err
+    assert not (tmp_path / "m.npz").exists()
 
 
 def test_unknown_range_reaches_the_split_test(posed_file, tmp_path):

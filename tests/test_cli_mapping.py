@@ -9,7 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from schemas.files import TruthRaster, load_map, save_posed_scans, save_truth
+from schemas.errors import FormatError
+from schemas.files import (PoseDistributionFile, PoseSet, TruthRaster, load_map, save_pose_distribution,
+                           save_posed_scans, save_truth, write_atomically)
 from worlds import room_posed_scans
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -85,6 +87,10 @@ def good_arrays(**override):
     (good_arrays(stamps=None), "missing key 'stamps'"),
     (good_arrays(samples=np.zeros((2, 1, 2))), "'samples' must have shape"),
     (good_arrays(range_max=0.05), "range_min < range_max"),
+    (good_arrays(ranges=np.ones((0, 3), np.float32), stamps=np.zeros(0), samples=np.zeros((0, 1, 3)),
+                 weights=np.zeros((0, 1))), "holds no steps"),
+    (good_arrays(ranges=np.ones((2, 3), np.complex64)), "must hold real numbers"),
+    (good_arrays(samples=np.full((2, 1, 3), "x")), "must hold real numbers"),
 ])
 def test_malformed_posed_files_exit_2_with_one_line(tmp_path, arrays, phrase):
     result = posegrid("fuse", str(_bad(tmp_path, "bad.npz", **arrays)), "-o", str(tmp_path / "m.npz"))
@@ -104,3 +110,113 @@ def test_not_an_npz_and_missing_file(tmp_path):
 def test_bad_option_value_exit_2(posed_file, tmp_path):
     result = posegrid("fuse", str(posed_file), "-o", str(tmp_path / "m.npz"), "--sigma0", "-1")
     assert result.returncode == 2 and "sigma0" in result.stderr
+
+
+@pytest.mark.parametrize("options, phrase", [
+    (["--mode", "ml", "--samples", "20"], "ml uses the mean pose only"),
+    (["--sigma-slope", "0.01"], "--sigma-slope does nothing with --sigma-model constant"),
+    (["--sigma-model", "linear", "--baseline-focal", "300"], "--baseline-focal does nothing with --sigma-model linear"),
+])
+def test_options_the_fusion_would_ignore_are_refused(posed_file, tmp_path, options, phrase):
+    _one_line_exit_2(posegrid("fuse", str(posed_file), "-o", str(tmp_path / "m.npz"), *options), phrase)
+    assert not (tmp_path / "m.npz").exists()
+
+
+def _one_line_exit_2(result: subprocess.CompletedProcess, phrase: str) -> None:
+    lines = result.stderr.strip().splitlines()
+    assert result.returncode == 2 and len(lines) == 1 and phrase in lines[0] and "Traceback" not in result.stderr, \
+        result.stderr
+
+
+def test_an_npy_or_a_damaged_archive_is_one_line(tmp_path):
+    bare = tmp_path / "bare.npz"
+    with open(bare, "wb") as handle:  # np.save on a handle keeps the name: a .npy under a .npz name
+        np.save(handle, np.zeros(3))
+    _one_line_exit_2(posegrid("fuse", str(bare), "-o", str(tmp_path / "m.npz")), "one bare array")
+    damaged = tmp_path / "damaged.npz"
+    np.savez_compressed(damaged, **good_arrays(ranges=np.random.default_rng(0).random((200, 300), np.float32)))
+    data = bytearray(damaged.read_bytes())
+    data[len(data) // 3: len(data) // 3 + 64] = bytes(64)  # inside the compressed ranges
+    damaged.write_bytes(bytes(data))
+    _one_line_exit_2(posegrid("fuse", str(damaged), "-o", str(tmp_path / "m.npz")), "not a readable")
+    assert not (tmp_path / "m.npz").exists()
+
+
+@pytest.fixture(scope="module")
+def map_arrays(posed_file, tmp_path_factory) -> dict:
+    path = tmp_path_factory.mktemp("map") / "map.npz"
+    assert posegrid("fuse", str(posed_file), "-o", str(path)).returncode == 0
+    with np.load(path) as data:
+        return dict(data)
+
+
+@pytest.mark.parametrize("key, value, phrase", [
+    ("probability", "text", "'probability' must hold real numbers"),
+    ("probability", np.nan, "'probability' holds nan"),
+    ("probability", 1.5, "in [0, 1]"),
+    ("variance", -1.0, "'variance' holds -1"),
+    ("observed", "text", "'observed' must be boolean"),
+    ("observed", 2, "'observed' must be boolean"),
+    ("level", 1000, "'level' holds 1000"),
+    ("level", 0.5, "'level' must hold integers"),
+])
+def test_map_layers_out_of_their_range_are_one_line(map_arrays, tmp_path, key, value, phrase):
+    arrays = dict(map_arrays)
+    shape = arrays["logodds"].shape
+    if isinstance(value, str):
+        arrays[key] = np.full(shape, value)
+    else:  # the layer as written (a zero level where the map has none), one cell set to ``value``
+        arrays[key] = np.array(arrays.get(key, np.zeros(shape)), dtype=np.asarray(value).dtype)
+        arrays[key][0, 0] = value
+    path = _bad(tmp_path, "bad-map.npz", **arrays)
+    _one_line_exit_2(posegrid("export", str(path), "--format", "png", "-o", str(tmp_path / "m.png")), phrase)
+    assert not (tmp_path / "m.png").exists()
+
+
+def test_truth_of_one_class_scores_auc_null_and_a_nan_origin_is_one_line(tmp_path, posed_file):
+    map_path = tmp_path / "map.npz"
+    assert posegrid("fuse", str(posed_file), "-o", str(map_path)).returncode == 0
+    walls = np.ones((60, 80), bool)
+    save_truth(tmp_path / "walls.npz", TruthRaster(walls, walls, np.zeros(2), 0.05))
+    one_class = posegrid("eval", str(map_path), str(tmp_path / "walls.npz"))
+    scores = json.loads(one_class.stdout)  # valid JSON: no NaN
+    assert one_class.returncode == 0 and scores["auc"] is None and scores["n"] == walls.size
+    assert 0 < scores["brier"] < 1 and "one class only" in one_class.stderr
+    np.savez(tmp_path / "nan.npz", occupied=walls, visible=walls, origin=np.array([np.nan, 0.0]), resolution=0.05)
+    _one_line_exit_2(posegrid("eval", str(map_path), str(tmp_path / "nan.npz")), "'origin' must be 2 finite")
+
+
+def test_export_names_must_fit_the_format(posed_file, tmp_path):
+    """A pgm's YAML goes beside it as NAME.yaml: -o map.yaml would have been overwritten by it."""
+    map_path = tmp_path / "map.npz"
+    assert posegrid("fuse", str(posed_file), "-o", str(map_path)).returncode == 0
+    _one_line_exit_2(posegrid("export", str(map_path), "--format", "pgm", "-o", str(tmp_path / "same.yaml")),
+                     "needs a name ending in .pgm")
+    _one_line_exit_2(posegrid("export", str(map_path), "--format", "png", "-o", str(tmp_path / "m.pgm")),
+                     "needs a name ending in .png")
+    _one_line_exit_2(posegrid("export", str(map_path), "--format", "pgm", "-o", str(tmp_path / "m.pgm"), "--layer",
+                              "variance"), "--layer variance draws a png")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["map.npz"]
+
+
+def test_outputs_are_written_at_the_given_name_and_never_in_part(posed_file, tmp_path):
+    plain = tmp_path / "map-without-suffix"
+    assert posegrid("fuse", str(posed_file), "-o", str(plain)).returncode == 0
+    assert load_map(plain).logodds.size and not Path(f"{plain}.npz").exists()
+
+    def fails_halfway(handle):
+        handle.write(b"half a map")
+        raise OSError(28, "No space left on device")
+    with pytest.raises(OSError, match="No space left on device") as failure:
+        write_atomically(tmp_path / "out.npz", fails_halfway)
+    assert failure.value.filename == str(tmp_path / "out.npz")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["map-without-suffix"]
+
+
+def test_poses_a_loader_would_refuse_are_not_written(tmp_path):
+    """A filter that diverged to NaN must not leave a file that every reader then refuses."""
+    bad = PoseDistributionFile(stamps=np.arange(2.0), poses=PoseSet(mean=np.array([[0.0, 0.0, 0.0], [np.nan, 0, 0]]),
+                                                                   cov=np.stack([np.eye(3)] * 2)))
+    with pytest.raises(FormatError, match="the poses to write to .*'mean' has NaN or inf at step 1"):
+        save_pose_distribution(tmp_path / "poses.npz", bad)
+    assert not (tmp_path / "poses.npz").exists()

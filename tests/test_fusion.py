@@ -280,6 +280,18 @@ def test_bad_poses_are_rejected(samples, weights, message):
     assert grid.keys() == []  # refused before anything was written
 
 
+@pytest.mark.parametrize("range_max, message", [
+    (1e308, "reaches beyond"),  # finite, but its reach over a cell overflows to inf
+    (1000.0, "spread over 0 m x 0 m and its rays reach 1000"),  # 40 000 x 40 000 cells of 0.05 m
+])
+def test_a_range_limit_no_window_can_hold_is_refused(range_max, message):
+    grid = TiledGrid(RES)
+    fusion = MonteCarloFusion(grid, SensorModel(resolution=RES), np.array([0.0]), 0.05, range_max)
+    with pytest.raises(InputError, match=message):
+        fusion.fuse(np.array([np.inf]), np.zeros((1, 3)), np.ones(1))  # no return: free up to range_max
+    assert grid.keys() == []
+
+
 def test_a_map_too_wide_for_one_raster_is_refused_not_allocated():
     """Two scans 2 000 km apart: each fuses, but one raster of both would hold 4e15 cells."""
     grid = TiledGrid(RES, tile_size=16)

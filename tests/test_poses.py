@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from mapping.errors import InputError
-from mapping.poses import Z95, gaussian_samples, samples_for_accuracy, scan_samples
+from mapping.poses import DEFAULT_MAX_SAMPLES, Z95, gaussian_samples, samples_for_accuracy, scan_samples
 
 
 def test_gaussian_samples_have_the_requested_moments():
@@ -53,3 +53,9 @@ def test_ml_picks_the_most_likely_particle_or_the_mean():
 def test_mode_is_checked():
     with pytest.raises(InputError, match="mode"):
         scan_samples("best", samples=np.zeros((1, 3)), weights=np.ones(1))
+
+
+def test_sample_count_rule_holds_at_the_ends_of_the_float_range():
+    """A huge accuracy needs one sample; a spread past what floats hold needs the most (no OverflowError)."""
+    assert samples_for_accuracy(np.eye(3), 12.0, 1e300) == 1
+    assert samples_for_accuracy(np.eye(3) * 1e300, 1e200, 0.05) == DEFAULT_MAX_SAMPLES

@@ -259,11 +259,12 @@ class EvidenceScanner:
         """
         res = resolution
         reach = float(r_count.max()) + res
-        ix0 = math.floor((lasers[:, 0].min() - reach) / res)
-        iy0 = math.floor((lasers[:, 1].min() - reach) / res)
-        ix1 = math.floor((lasers[:, 0].max() + reach) / res)
-        iy1 = math.floor((lasers[:, 1].max() + reach) / res)
-        check_window(ix0, iy0, ix1 - ix0 + 1, iy1 - iy0 + 1, lasers, reach, res)
+        (x_lo, y_lo), (x_hi, y_hi) = lasers[:, :2].min(axis=0).tolist(), lasers[:, :2].max(axis=0).tolist()
+        check_window(x_lo, y_lo, x_hi, y_hi, reach, res)
+        ix0 = math.floor((x_lo - reach) / res)
+        iy0 = math.floor((y_lo - reach) / res)
+        ix1 = math.floor((x_hi + reach) / res)
+        iy1 = math.floor((y_hi + reach) / res)
         shifts = np.arange(self.levels)
         x0, y0 = np.int64(ix0) >> shifts, np.int64(iy0) >> shifts
         w = (np.int64(ix1) >> shifts) - x0 + 1

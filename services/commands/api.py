@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import argparse
 
+from services.commands.argtypes import finite_float
+
 DEFAULT_PORT = 8000
 
 
@@ -19,9 +21,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     api.add_argument("--host", default="127.0.0.1",
                      help="address to listen on (default 127.0.0.1; 0.0.0.0 exposes the API to the network)")
     api.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"TCP port (default {DEFAULT_PORT})")
-    api.add_argument("--cache-mb", type=float, default=256.0,
+    api.add_argument("--cache-mb", type=finite_float, default=256.0,
                      help="memory for cached tiles, MiB (default 256; least recently used tiles go first)")
-    api.add_argument("--query-timeout", type=float, default=10.0,
+    api.add_argument("--query-timeout", type=finite_float, default=10.0,
                      help="how long a query to the shards may take, s (default 10)")
     add_zenoh_arguments(api)
     api.set_defaults(func=run_api)

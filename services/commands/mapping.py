@@ -3,27 +3,46 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
+import sys
 from pathlib import Path
+
+from services.commands.argtypes import finite_float, pose_sample_count, random_seed
+
+#: --coarse-cell when not given, m
+DEFAULT_COARSE_CELL = 0.8
 
 
 def add_sensor_model_arguments(parser: argparse.ArgumentParser) -> None:
     """The inverse sensor model's options (shared with the mapper shards)."""
     group = parser.add_argument_group("inverse sensor model (docs/sensor_model.md)")
-    group.add_argument("--resolution", type=float, default=0.05, help="cell size in m (default 0.05)")
+    group.add_argument("--resolution", type=finite_float, default=0.05, help="cell size in m (default 0.05)")
     group.add_argument("--sigma-model", choices=("constant", "linear", "stereo"), default="constant",
                        help="how range noise sigma grows with range z: constant sigma0, linear sigma0 + slope*z, "
                        "or stereo z^2/(b*f) (default constant)")
-    group.add_argument("--sigma0", type=float, default=0.03, help="range noise sigma in m, or the linear model's "
+    group.add_argument("--sigma0", type=finite_float, default=0.03,
+                       help="range noise sigma in m, or the linear model's "
                        "intercept (default 0.03)")
-    group.add_argument("--sigma-slope", type=float, default=0.0, help="linear model: sigma grows by this many m per m")
-    group.add_argument("--baseline-focal", type=float, default=0.0,
+    group.add_argument("--sigma-slope", type=finite_float, default=0.0,
+                       help="linear model: sigma grows by this many m per m")
+    group.add_argument("--baseline-focal", type=finite_float, default=0.0,
                        help="stereo model: baseline (m) times focal length (px), so sigma = z^2/(b*f)")
-    group.add_argument("--peak-width", type=float, default=None,
+    group.add_argument("--peak-width", type=finite_float, default=None,
                        help="width l of the occupied peak in m (default: the cell diagonal)")
 
 
 def sensor_model_from_args(args: argparse.Namespace):
+    """The sensor model the options describe; a sigma option that the chosen --sigma-model does not read is
+    refused rather than ignored."""
     from mapping.sensor_model import SensorModel
+    from services.cli import UsageError
+
+    unread = {"constant": ("sigma_slope", "baseline_focal"), "linear": ("baseline_focal",),
+              "stereo": ("sigma_slope",)}[args.sigma_model]
+    for name in unread:
+        if getattr(args, name) != 0.0:
+            raise UsageError(f"--{name.replace('_', '-')} does nothing with --sigma-model {args.sigma_model}; drop it "
+                             "or choose the model that reads it")
 
     return SensorModel(resolution=args.resolution, sigma=args.sigma_model, sigma0=args.sigma0,
                        sigma_slope=args.sigma_slope, baseline_focal=args.baseline_focal, peak_width=args.peak_width)
@@ -39,28 +58,28 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     fuse.add_argument("posed", type=Path, help="posed-scan .npz (docs/formats.md)")
     fuse.add_argument("-o", "--output", type=Path, required=True, help="map .npz to write")
     fuse.add_argument("--mode", choices=("mc", "ml"), default="mc", help="mc: all samples (default); ml: most likely")
-    fuse.add_argument("--samples", type=int, default=None,
+    fuse.add_argument("--samples", type=pose_sample_count, default=None,
                       help="pose samples drawn per scan for Gaussian poses (default: derived from the covariance "
                       "and --accuracy)")
-    fuse.add_argument("--accuracy", type=float, default=None,
+    fuse.add_argument("--accuracy", type=finite_float, default=None,
                       help="required accuracy in m of the Monte Carlo mean beam end point, for the derived sample "
                       "count (default: one cell)")
-    fuse.add_argument("--seed", type=int, default=0, help="seed of the Gaussian pose sampling (default 0)")
+    fuse.add_argument("--seed", type=random_seed, default=0, help="seed of the Gaussian pose sampling (default 0)")
     fuse.add_argument("--grid", choices=("regular", "adaptive"), default="regular",
                       help="regular: one cell size everywhere (default); adaptive: a quadtree that keeps fine cells "
                       "only where the scans show structure (docs/adaptive.md); both write the same map file, the "
                       "adaptive one with a 'level' layer")
     add_sensor_model_arguments(fuse)
     adaptive = fuse.add_argument_group("adaptive grid (--grid adaptive, docs/adaptive.md)")
-    adaptive.add_argument("--unknowns", action=argparse.BooleanOptionalAction, default=True,
+    adaptive.add_argument("--unknowns", action=argparse.BooleanOptionalAction, default=None,
                           help="count unknowns (rays that ended before reaching a cell) in the split test, the "
                           "paper's rule; --no-unknowns: only hits and misses, Einhorn et al.'s (default: unknowns)")
-    adaptive.add_argument("--coarse-cell", type=float, default=0.8,
+    adaptive.add_argument("--coarse-cell", type=finite_float, default=None,
                           help="cell size in m where a scan first observes something: --resolution times a power "
-                          "of two (default 0.8)")
-    adaptive.add_argument("--significance", type=float, default=0.01,
+                          f"of two (default {DEFAULT_COARSE_CELL:g})")
+    adaptive.add_argument("--significance", type=finite_float, default=None,
                           help="significance of the chi-square split test; larger splits more (default 0.01)")
-    adaptive.add_argument("--unknown-range", type=float, default=None, metavar="M",
+    adaptive.add_argument("--unknown-range", type=finite_float, default=None, metavar="M",
                           help="count a ray's unknowns only up to M m beyond its return (default: up to the "
                           "range limit, the paper's rule). With a long-range laser among chairs and people, the "
                           "shadow of every small object splits cells out to the range limit; 1.6 keeps the "
@@ -78,7 +97,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     export.add_argument("-o", "--output", type=Path, required=True, help="image path (.pgm or .png)")
     export.add_argument("--layer", choices=("probability", "variance"), default="probability",
                         help="png only: which layer to draw (default probability)")
-    export.add_argument("--crop", type=float, default=None, metavar="MARGIN",
+    export.add_argument("--crop", type=finite_float, default=None, metavar="MARGIN",
                         help="m: cut the map to its occupied cells plus MARGIN on every side (rays with no return "
                         "clear space far beyond the walls; default: the whole map)")
     export.set_defaults(func=run_export)
@@ -86,7 +105,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     evaluate = subparsers.add_parser(
         "eval", help="score a map against a truth raster (AUC, Brier, NLL)",
         description="Score MAP against TRUTH over the truth's visible cells; prints one JSON line with "
-        "auc, brier, nll (natural log, per cell) and n (cells scored).",
+        "auc (null when those cells hold one class only), brier, nll (natural log, per cell) and n (cells scored).",
     )
     evaluate.add_argument("map", type=Path, help="map .npz")
     evaluate.add_argument("truth", type=Path, help="truth raster .npz")
@@ -97,8 +116,14 @@ def run_fuse(args: argparse.Namespace) -> int:
     from schemas.files import MapFile, load_posed_scans, save_map
     from services.cli import UsageError
 
-    if args.samples is not None and args.samples < 1:
-        raise UsageError(f"--samples must be >= 1, got {args.samples}")
+    adaptive_options = {"--unknowns/--no-unknowns": args.unknowns, "--coarse-cell": args.coarse_cell,
+                        "--significance": args.significance, "--unknown-range": args.unknown_range}
+    given = [option for option, value in adaptive_options.items() if value is not None]
+    if args.grid == "regular" and given:
+        raise UsageError(f"{', '.join(given)} shape the adaptive grid only; add --grid adaptive or drop them")
+    if args.mode == "ml" and (args.samples is not None or args.accuracy is not None):
+        raise UsageError("--samples and --accuracy set how many Gaussian pose samples mc draws; ml uses the mean "
+                         "pose only")
     model = sensor_model_from_args(args)
     posed = load_posed_scans(args.posed)
     options = dict(mode=args.mode, model=model, n_samples=args.samples, seed=args.seed, accuracy=args.accuracy,
@@ -107,13 +132,16 @@ def run_fuse(args: argparse.Namespace) -> int:
         from mapping.adaptive import AdaptiveParams, level_for_cell_size
         from services.fusion_runner import fuse_posed_scans_adaptive
 
-        if args.unknown_range is not None and not args.unknowns:
+        defaults = AdaptiveParams()
+        unknowns = defaults.unknowns if args.unknowns is None else args.unknowns
+        if args.unknown_range is not None and not unknowns:
             raise UsageError("--unknown-range limits the unknowns that --no-unknowns turns off; drop one of them")
-        params = AdaptiveParams(start_level=level_for_cell_size(args.coarse_cell, args.resolution),
-                                unknowns=args.unknowns, significance=args.significance,
+        coarse_cell = args.coarse_cell if args.coarse_cell is not None else DEFAULT_COARSE_CELL
+        params = AdaptiveParams(start_level=level_for_cell_size(coarse_cell, args.resolution), unknowns=unknowns,
+                                significance=defaults.significance if args.significance is None else args.significance,
                                 unknown_range=args.unknown_range)
         grid = fuse_posed_scans_adaptive(posed, params=params, **options)
-        summary = f"{grid.active_cells} active cells ({'with' if args.unknowns else 'without'} unknowns)"
+        summary = f"{grid.active_cells} active cells ({'with' if unknowns else 'without'} unknowns)"
     else:
         from services.fusion_runner import fuse_posed_scans
 
@@ -130,20 +158,29 @@ def run_fuse(args: argparse.Namespace) -> int:
 
 def run_export(args: argparse.Namespace) -> int:
     from mapping.export import crop_to_occupied, render_pgm, render_png
-    from schemas.files import load_map
+    from schemas.files import load_map, write_atomically
+    from services.cli import UsageError
 
+    if args.output.suffix.lower() != f".{args.format}":
+        raise UsageError(f"-o {args.output}: a {args.format} export needs a name ending in .{args.format}"
+                         + (" (the map_server YAML is written beside it as NAME.yaml)" if args.format == "pgm" else ""))
+    if args.format == "pgm" and args.layer != "probability":
+        raise UsageError("--layer variance draws a png; a pgm for map_server holds the occupancy only")
     map_file = load_map(args.map)
     arrays = vars(map_file)
     if args.crop is not None:
         arrays = crop_to_occupied(arrays, args.crop)
     if args.format == "pgm":
         pgm, yaml = render_pgm(arrays, image_name=args.output.name)
-        args.output.write_bytes(pgm)
         yaml_path = args.output.with_suffix(".yaml")
-        yaml_path.write_text(yaml)
+        if yaml_path.is_dir():
+            raise UsageError(f"{yaml_path}, where the map_server YAML goes, is a folder")
+        write_atomically(args.output, lambda handle: handle.write(pgm))
+        write_atomically(yaml_path, lambda handle: handle.write(yaml.encode()))
         print(f"wrote {args.output} and {yaml_path}")
     else:
-        args.output.write_bytes(render_png(arrays, layer=args.layer))
+        png = render_png(arrays, layer=args.layer)
+        write_atomically(args.output, lambda handle: handle.write(png))
         print(f"wrote {args.output} ({args.layer})")
     return 0
 
@@ -153,5 +190,9 @@ def run_eval(args: argparse.Namespace) -> int:
     from schemas.files import load_map, load_truth
 
     scores = score_map(vars(load_map(args.map)), vars(load_truth(args.truth)))
-    print(json.dumps(scores))
+    if math.isnan(scores["auc"]):  # one class only: Brier and NLL still say something, AUC nothing
+        print(f"posegrid eval: the truth's {scores['n']} visible cells hold one class only, so the ROC AUC is undefined "
+              "(null)", file=sys.stderr)
+        scores["auc"] = None
+    print(json.dumps(scores, allow_nan=False))  # the rest is finite: the map and the truth are validated
     return 0

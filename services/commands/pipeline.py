@@ -9,6 +9,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from services.commands.argtypes import finite_float, pose_sample_count, random_seed
 from services.commands.gridslam import add_filter_options, filter_option_values, reject_filter_options
 from services.commands.mapping import add_sensor_model_arguments
 
@@ -46,7 +47,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_fusion_arguments(mapper)
     shard = mapper.add_argument_group("shard")
     shard.add_argument("--tile-size", type=int, default=256, help="cells per tile side, a power of 2 (default 256)")
-    shard.add_argument("--publish-interval", type=float, default=0.05,
+    shard.add_argument("--publish-interval", type=finite_float, default=0.05,
                        help="shortest time between two updates of one tile, s (default 0.05)")
     shard.add_argument("--join-buffer", type=int, default=512,
                        help="scans and poses that may wait for their partner (default 512; overflow is counted)")
@@ -85,7 +86,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     node.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot name (default {DEFAULT_ROBOT})")
     add_slam_arguments(node)
-    node.add_argument("--seed", type=int, default=0, help="seed of the particle filter (default 0)")
+    node.add_argument("--seed", type=random_seed, default=0, help="seed of the particle filter (default 0)")
     node.add_argument("--initial", default=None, metavar="X,Y,YAW",
                       help="start pose in m, m, rad (default: the prior the source publishes)")
     add_zenoh_arguments(node)
@@ -122,11 +123,11 @@ def add_fusion_arguments(parser: argparse.ArgumentParser) -> None:
     """`posegrid fuse`'s fusion options, for the shards (and `run`, which passes them on)."""
     group = parser.add_argument_group("fusion (as for posegrid fuse)")
     group.add_argument("--mode", choices=("mc", "ml"), default="mc", help="mc: all samples (default); ml: most likely")
-    group.add_argument("--samples", type=int, default=None,
+    group.add_argument("--samples", type=pose_sample_count, default=None,
                        help="pose samples per scan for Gaussian poses (default: derived from the covariance)")
-    group.add_argument("--accuracy", type=float, default=None,
+    group.add_argument("--accuracy", type=finite_float, default=None,
                        help="accuracy in m for the derived sample count (default: one cell)")
-    group.add_argument("--seed", type=int, default=0,
+    group.add_argument("--seed", type=random_seed, default=0,
                        help="seed of every random draw (Gaussian pose sampling; for run also the simulated "
                        "world and the SLAM filter) (default 0)")
     add_sensor_model_arguments(parser)
@@ -161,7 +162,7 @@ def add_input_arguments(parser: argparse.ArgumentParser, default_sim: bool) -> N
                        "the robots executed")
     group.add_argument("--steps", type=int, default=400, help="--sim: steps of 0.1 s to simulate (default 400)")
     if not default_sim:  # `run` has --seed among its fusion options and passes it on
-        group.add_argument("--seed", type=int, default=0, help="--sim: seed of the simulated world (default 0)")
+        group.add_argument("--seed", type=random_seed, default=0, help="--sim: seed of the simulated world (default 0)")
 
 
 def add_rate_argument(parser: argparse.ArgumentParser, default: str | None) -> None:
@@ -176,7 +177,7 @@ def add_slam_arguments(parser: argparse.ArgumentParser, particles: int | None = 
     group.add_argument("--algo", choices=SLAM_ALGORITHMS, default=None,
                        help="odometry, ekf, fastslam1, fastslam2 (landmarks) or gridslam (laser and odometry); "
                        f"default gridslam for a CARMEN log, else {DEFAULT_ALGORITHM}")
-    group.add_argument("--particles", type=int, default=particles,
+    group.add_argument("--particles", type=pose_sample_count, default=particles,
                        help="FastSLAM / grid FastSLAM particles (default %s)"
                        % (particles or "500 for FastSLAM, 30 for grid FastSLAM"))
     group.add_argument("--associate", choices=("known", "unknown"), default="known",
@@ -188,13 +189,13 @@ def add_slam_arguments(parser: argparse.ArgumentParser, particles: int | None = 
                        "what the input is)")
     group.add_argument("--alphas", default=None, metavar="A1,...",
                        help="motion noise: 6 numbers (velocity model) or 4 (odometry model)")
-    group.add_argument("--sigma-range", type=float, default=None, help="landmark range noise std in m")
-    group.add_argument("--sigma-bearing", type=float, default=None, help="landmark bearing noise std in rad")
-    group.add_argument("--range-fraction", type=float, default=None,
+    group.add_argument("--sigma-range", type=finite_float, default=None, help="landmark range noise std in m")
+    group.add_argument("--sigma-bearing", type=finite_float, default=None, help="landmark bearing noise std in rad")
+    group.add_argument("--range-fraction", type=finite_float, default=None,
                        help="landmark range noise std grows by this many m per m of range")
-    group.add_argument("--outlier-gate", type=float, default=None, metavar="D2",
+    group.add_argument("--outlier-gate", type=finite_float, default=None, metavar="D2",
                        help="known ids: ignore a measurement beyond this squared Mahalanobis distance")
-    group.add_argument("--resample-threshold", type=float, default=0.5,
+    group.add_argument("--resample-threshold", type=finite_float, default=0.5,
                        help="FastSLAM: resample when N_eff < this fraction of the particles (default 0.5)")
     group.add_argument("--plain-resampling", action="store_true",
                        help="FastSLAM: resample the particles' map frames with them, as the textbook does "
@@ -237,18 +238,6 @@ def _check_name(value: str, option: str) -> None:
     if not is_valid_name(value) or (option == "--robot" and value in RESERVED_ROBOT_NAMES):
         raise UsageError(f"{option} {value!r} is not a valid name (letters, digits, '_', '.', '-', at most 64"
                          f"{'; not map' if option == '--robot' else ''})")
-
-
-def _check_sample_counts(args: argparse.Namespace) -> None:
-    """--particles and --samples (where the command has them) within 1 .. the most a PoseSamples may carry."""
-    from schemas.messages import MAX_POSE_SAMPLES
-    from services.cli import UsageError
-
-    for name in ("particles", "samples"):
-        value = getattr(args, name, None)
-        if value is not None and not 1 <= value <= MAX_POSE_SAMPLES:
-            raise UsageError(f"--{name} must be in 1 .. {MAX_POSE_SAMPLES} (the most pose samples a message "
-                             f"carries), got {value}")
 
 
 def _check_positive(args: argparse.Namespace, *names: str) -> None:
@@ -303,7 +292,6 @@ def run_mapper(args: argparse.Namespace) -> int:
         raise UsageError(f"--publish-interval must be >= 0 s, got {args.publish_interval}")
     if args.join_buffer < 1 or args.intake_buffer < 1:
         raise UsageError("--join-buffer and --intake-buffer must be >= 1")
-    _check_sample_counts(args)
     _check_positive(args, "accuracy")
     _check_name(args.map, "--map")
     from services.commands.mapping import sensor_model_from_args
@@ -358,7 +346,6 @@ def run_pipeline(args: argparse.Namespace) -> int:
         raise UsageError(f"--shards must be >= 1, got {args.shards}")
     if args.router_port is not None and not 0 < args.router_port < 65536:
         raise UsageError(f"--router-port must be a TCP port, got {args.router_port}")
-    _check_sample_counts(args)
     _check_positive(args, "accuracy", "resolution")
     rate_text = args.rate or ("max" if args.export is not None else "realtime")
     _rate(rate_text)
@@ -454,7 +441,6 @@ def run_slam_node(args: argparse.Namespace) -> int:
     from services.cli import UsageError
 
     _check_name(args.robot, "--robot")
-    _check_sample_counts(args)
     if not 0 <= args.resample_threshold <= 1:
         raise UsageError(f"--resample-threshold must be in [0, 1], got {args.resample_threshold}")
     from services.commands.gridslam import _config as gridslam_config

@@ -1,0 +1,42 @@
+"""argparse types the subcommands share. A bad value stops at parsing: argparse prints the usage line and one
+sentence naming the option, and exits 2."""
+from __future__ import annotations
+
+import argparse
+import math
+
+
+def finite_float(text: str) -> float:
+    """A number that is neither NaN nor infinite (every float option is a size, a noise or a time)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"must be a finite number, got {text!r}")
+    return value
+
+
+def random_seed(text: str) -> int:
+    """A random seed: an integer >= 0 (numpy's generators take no negative seeds)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"a seed is an integer >= 0, got {value}")
+    return value
+
+
+def pose_sample_count(text: str) -> int:
+    """How many pose samples to take or publish per scan: 1 .. the most a PoseSamples message carries (every
+    sample is ray-cast; a count past that stalls a mapper for minutes a scan)."""
+    from schemas.messages import MAX_POSE_SAMPLES
+
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if not 1 <= value <= MAX_POSE_SAMPLES:
+        raise argparse.ArgumentTypeError(f"must be in 1 .. {MAX_POSE_SAMPLES}, got {value}")
+    return value
