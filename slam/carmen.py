@@ -26,9 +26,10 @@ Conventions this reader fixes (the old FLASER/RLASER lines carry no laser geomet
 
 One laser is read (``laser="front"``: ROBOTLASER1 lines when the log has any, else FLASER; ``"rear"``:
 ROBOTLASER2, else RLASER). Every scan must have the first scan's beam count and laser parameters. A line
-that does not parse, declares a beam count its fields do not match, holds a NaN or negative range or a
-non-finite pose or stamp, or disagrees with the first scan's geometry is skipped and recorded with its
-line number in :attr:`LaserLog.skipped`; nothing is ever shifted into a neighbouring field.
+that does not parse, declares a beam count its fields do not match, holds a range that is NaN, negative or
+finite beyond POSE_LIMIT (1e7 m; slam.laserlog), a non-finite stamp, a pose not finite or beyond
++-POSE_LIMIT, or disagrees with the first scan's geometry is skipped and recorded with its line number in
+:attr:`LaserLog.skipped`; nothing is ever shifted into a neighbouring field.
 """
 from __future__ import annotations
 
@@ -42,7 +43,7 @@ import numpy as np
 
 from slam.angles import wrap_angle
 from slam.errors import LogFormatError
-from slam.laserlog import LaserLog, Skipped
+from slam.laserlog import POSE_LIMIT, LaserLog, Skipped, plausible_pose
 
 #: maximum range assumed for FLASER/RLASER lines when no PARAM gives one (m)
 DEFAULT_RANGE_MAX = 80.0
@@ -86,9 +87,10 @@ def _is_float(token: str) -> bool:
 
 
 def _pose(values: list[float], what: str) -> tuple[float, float, float]:
-    if not all(math.isfinite(v) for v in values):
-        raise _BadLine(f"{what} is not finite")
-    return (values[0], values[1], values[2])
+    pose = (values[0], values[1], values[2])
+    if not plausible_pose(pose):
+        raise _BadLine(f"{what} is not finite or beyond +-{POSE_LIMIT:g} m (rad)")
+    return pose
 
 
 def _stamp(token: str) -> float:
@@ -111,8 +113,8 @@ def _count(token: str, what: str, minimum: int = 1) -> int:
 def _ranges(tokens: list[str]) -> list[float]:
     values = _floats(tokens, "range")
     for i, value in enumerate(values):
-        if math.isnan(value) or value < 0:
-            raise _BadLine(f"range {i + 1} is {value}, expected a number >= 0")
+        if not (0 <= value <= POSE_LIMIT or value == math.inf):
+            raise _BadLine(f"range {i + 1} is {value}, expected a number in [0, {POSE_LIMIT:g}] m or inf")
     return values
 
 
@@ -371,7 +373,7 @@ def write_carmen(
             lines.append(f"{head} {beams} {values} 0 {pose} 0 0 0 0 0 {stamp} {host} {stamp}")
     text = "\n".join(lines) + "\n"
     path = Path(path)
-    if path.suffix == ".gz":
+    if path.suffix.lower() == ".gz":
         with gzip.open(path, "wt", encoding="ascii") as stream:
             stream.write(text)
     else:

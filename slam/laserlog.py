@@ -7,12 +7,23 @@ the laser's (x m, y m, yaw rad) in the robot frame; ranges are metres along each
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from slam.angles import wrap_angle
 from slam.errors import LogFormatError
+
+#: the farthest a pose coordinate (m, and rad for yaw) may lie from the origin: 10 000 km. The same bound as the
+#: wire's (schemas.messages.POSE_LIMIT), stated again here because slam/ does not import schemas/
+POSE_LIMIT = 1e7
+
+
+def plausible_pose(pose: tuple[float, float, float]) -> bool:
+    """Whether a pose (x m, y m, yaw rad) is finite and within +-POSE_LIMIT (10 000 km) in
+    every coordinate: the readers skip records beyond it, whose maps and covariances would overflow."""
+    return all(math.isfinite(v) and abs(v) <= POSE_LIMIT for v in pose)
 
 
 @dataclass(frozen=True)
@@ -80,16 +91,28 @@ def interpolate_poses(stamps: np.ndarray, poses: np.ndarray, query: np.ndarray) 
     return out
 
 
+def check_odometry_stream(log: LaserLog) -> None:
+    """Raise :class:`LogFormatError` unless the log has a separate odometry stream in time order, which reading
+    the odometry at other times than the scans' needs."""
+    if not len(log.odom_stamps):
+        raise LogFormatError(f"{log.source}: its odometry comes only with the scans, so it cannot be read at "
+                             "other times (an odometry delay needs a separate odometry stream: ODOM lines or a "
+                             "bag's odometry topic)")
+    back = np.flatnonzero(np.diff(log.odom_stamps) < 0)
+    if len(back):
+        raise LogFormatError(f"{log.source}: its odometry stream goes back in time after its record {back[0] + 1} "
+                             f"({log.odom_stamps[back[0]]:.6f} s, then {log.odom_stamps[back[0] + 1]:.6f} s), so it "
+                             "cannot be read at other times than the scans'")
+
+
 def with_odometry_delay(log: LaserLog, delay: float) -> LaserLog:
     """The log with each scan's odometry read from the log's separate odometry stream at stamp + ``delay``
     (s; negative: earlier). For a laser whose stamps run late against its odometry's (Freiburg 079's bag:
     about 0.13 s), so that a scan is paired with the pose the robot had when it was taken. ``poses``, what
     the log states, is left as it is. Raises :class:`LogFormatError` when the log has no separate
-    odometry stream (a CARMEN log whose odometry comes only inside the laser lines)."""
+    odometry stream in time order (:func:`check_odometry_stream`; e.g. a CARMEN log whose odometry comes only
+    inside the laser lines)."""
     if delay == 0.0:
         return log
-    if not len(log.odom_stamps):
-        raise LogFormatError(f"{log.source}: its odometry comes only with the scans, so it cannot be read at "
-                             "other times (an odometry delay needs a separate odometry stream: ODOM lines or a "
-                             "bag's odometry topic)")
+    check_odometry_stream(log)
     return replace(log, odometry=interpolate_poses(log.odom_stamps, log.odom_poses, log.stamps + delay))

@@ -25,6 +25,9 @@ from slam.angles import wrap_angle
 
 #: below this odometry translation (m) a motion counts as a turn on the spot and delta_rot1 is taken as 0
 MIN_TRANSLATION = 1e-6
+#: accepted (low, high) of every motion-noise alpha: a variance of 1000 times the squared motion (per 0.1 s)
+#: already makes the motion uninformative, and far larger ones overflow into NaN poses
+ALPHA_LIMITS = (0.0, 1e3)
 
 
 def _sinc(a: np.ndarray) -> np.ndarray:

@@ -5,7 +5,8 @@ rad/s: the commanded velocities, about 67 Hz), ``RobotK_Measurement.dat`` (time 
 rad; the column headed "Subject #" holds barcode numbers), optionally ``RobotK_Groundtruth.dat`` (time s, x m,
 y m, yaw rad), and ``Barcodes.dat`` (subject, barcode) and ``Landmark_Groundtruth.dat`` (subject, x m, y m,
 std x m, std y m). Subjects 1-5 are robots, the others landmarks. All files have '#' header lines and
-whitespace-separated numbers. Measurements of robots and of barcodes in no table are skipped and counted.
+whitespace-separated numbers. Measurements of robots, of barcodes in no table and those stamped outside the
+odometry's time span (no command to move the robot there) are skipped and counted.
 Landmark positions are never used by the filters; Landmark_Groundtruth.dat is read for scoring only.
 """
 from __future__ import annotations
@@ -83,6 +84,7 @@ class MrclamRobot:
     landmark_truth: np.ndarray | None  # (L, 3): subject, x m, y m (scoring only)
     skipped_robots: int  # measurements of other robots
     skipped_unknown: int  # measurements of barcodes in no table
+    skipped_outside: int  # landmark measurements stamped before the first or after the last odometry row
 
 
 def find_robots(folder: str | Path) -> list[int]:
@@ -110,19 +112,22 @@ def read_mrclam(folder: str | Path, robot: int) -> MrclamRobot:
     subject_of = {int(barcode): int(subject) for subject, barcode in barcodes}
     raw = read_table(folder / f"Robot{robot}_Measurement.dat", "Measurement")
     subjects = np.array([subject_of.get(int(b), -1) for b in raw[:, 1]], dtype=np.int64)
+    odometry = read_table(folder / f"Robot{robot}_Odometry.dat", "Odometry")
     is_landmark = subjects > ROBOT_SUBJECTS
+    inside = (raw[:, 0] >= odometry[0, 0]) & (raw[:, 0] <= odometry[-1, 0])
     gt_path = folder / f"Robot{robot}_Groundtruth.dat"
     lm_path = folder / "Landmark_Groundtruth.dat"
     landmark_truth = read_table(lm_path, "Landmark_Groundtruth", timed=False)[:, :3] if lm_path.is_file() else None
     return MrclamRobot(
         robot=robot,
-        odometry=read_table(folder / f"Robot{robot}_Odometry.dat", "Odometry"),
-        measurements=raw[is_landmark][:, [0, 2, 3]],
-        subjects=subjects[is_landmark],
+        odometry=odometry,
+        measurements=raw[is_landmark & inside][:, [0, 2, 3]],
+        subjects=subjects[is_landmark & inside],
         groundtruth=read_groundtruth(gt_path) if gt_path.is_file() else None,
         landmark_truth=landmark_truth,
         skipped_robots=int(np.sum((subjects >= 1) & (subjects <= ROBOT_SUBJECTS))),
         skipped_unknown=int(np.sum(subjects < 0)),
+        skipped_outside=int(np.sum(is_landmark & ~inside)),
     )
 
 
@@ -154,8 +159,9 @@ def mrclam_sequence(
     """The filters' input for one MRCLAM robot.
 
     Start: at the first ground-truth pose and stamp (the dataset's custom), or at ``initial_pose`` (x m, y m,
-    yaw rad) at the first odometry or measurement stamp. Steps: every distinct landmark-measurement stamp and a
-    regular grid every ``period`` s, up to the last odometry or measurement stamp. Controls: the velocity
+    yaw rad) at the first odometry stamp. Steps: every distinct landmark-measurement stamp and a regular grid
+    every ``period`` s, up to the last odometry stamp (:func:`read_mrclam` skips measurements outside the
+    odometry's span). Controls: the velocity
     commands as (v, w, dt) pieces, each odometry row held until the next one (zero before the first), cut at
     the step stamps, each command taking effect ``command_delay`` s after its stamp (default
     :data:`MRCLAM_COMMAND_DELAY`), its (v, w) multiplied by ``velocity_scale`` (executed / commanded, e.g.
@@ -169,9 +175,9 @@ def mrclam_sequence(
             raise LogFormatError(f"robot {run.robot}: no ground truth to start from; give an initial pose (x,y,yaw)")
         start, initial = run.groundtruth[0, 0], run.groundtruth[0, 1:4]
     else:
-        start = min(run.odometry[0, 0], run.measurements[0, 0] if len(run.measurements) else np.inf)
+        start = run.odometry[0, 0]
         initial = np.asarray(initial_pose, dtype=np.float64)
-    end = max(run.odometry[-1, 0], run.measurements[-1, 0] if len(run.measurements) else -np.inf)
+    end = run.odometry[-1, 0]
     keep = run.measurements[:, 0] >= start
     meas, subjects = run.measurements[keep], run.subjects[keep]
     grid = start + period * np.arange(int(np.floor((end - start) / period)) + 1)

@@ -7,11 +7,20 @@ the range (see :class:`RangeBearingModel`).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from slam.angles import wrap_angle
+
+#: accepted (low, high) of :class:`RangeBearingModel`'s parameters. Below 1 mm / 1 mrad (better than any
+#: landmark sensor) the EKF's covariance stops being positive definite in double precision; above 1 km / pi rad
+#: a measurement says nothing, and far beyond, its squared noise overflows.
+SIGMA_RANGE_LIMITS = (1e-3, 1e3)
+SIGMA_BEARING_LIMITS = (1e-3, math.pi)
+#: range std growth in m per m of range: at most 1 (a std as large as the range itself)
+RANGE_FRACTION_LIMITS = (0.0, 1.0)
 
 
 @dataclass(frozen=True)

@@ -15,6 +15,8 @@ outside the odometry's time span by more than ``max_odom_hold`` seconds (within 
 held); likewise one that does not decode or differs from the first scan's geometry. Each skip records the
 scan's 1-based message number (counting all messages of the topics read, in bag order) and the reason.
 Readings at or above the scan's range_max become ``+inf`` (no return); NaN readings stay NaN (invalid).
+Odometry poses and transforms that are not finite or lie beyond +-POSE_LIMIT (1e7 m; slam.laserlog) are
+skipped.
 """
 from __future__ import annotations
 
@@ -24,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from slam.errors import LogFormatError
-from slam.laserlog import LaserLog, Skipped, interpolate_poses
+from slam.laserlog import POSE_LIMIT, LaserLog, Skipped, interpolate_poses, plausible_pose
 
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
 ODOMETRY = "nav_msgs/msg/Odometry"
@@ -155,16 +157,18 @@ def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hol
             p, q = msg.pose.pose.position, msg.pose.pose.orientation
             pose = (float(p.x), float(p.y), _yaw(q))
             stamp = _stamp(msg.header)
-            if not (all(math.isfinite(v) for v in pose) and math.isfinite(stamp)):
-                skipped.append(Skipped(number, f"{odom_topic}: non-finite pose or stamp"))
+            if not (plausible_pose(pose) and math.isfinite(stamp)):
+                skipped.append(Skipped(number, f"{odom_topic}: non-finite stamp, or a pose not finite or beyond "
+                                               f"+-{POSE_LIMIT:g} m"))
                 continue
             odom.append((stamp, pose, msg.child_frame_id))
         else:
             for tf in msg.transforms:
                 t, q = tf.transform.translation, tf.transform.rotation
                 pose = (float(t.x), float(t.y), _yaw(q))
-                if not all(math.isfinite(v) for v in pose):
-                    skipped.append(Skipped(number, f"{conn.topic}: non-finite transform {tf.header.frame_id}->{tf.child_frame_id}"))
+                if not plausible_pose(pose):
+                    skipped.append(Skipped(number, f"{conn.topic}: transform {tf.header.frame_id}->{tf.child_frame_id} "
+                                                   f"not finite or beyond +-{POSE_LIMIT:g} m"))
                 elif conn.topic == "/tf_static":
                     tf_static[tf.child_frame_id] = (tf.header.frame_id, pose)
                 else:

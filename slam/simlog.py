@@ -6,27 +6,35 @@ odometry frame, which starts at (0, 0, 0); ``initial_pose`` (3,) the true pose a
 (where the filters start); ``velocity_alphas`` (6,) and ``velocity_dt_ref`` (s) of the velocity motion model
 and ``odometry_alphas`` (4,) of the odometry motion model the simulator drew its noise from.
 
-``landmarks.npz``: ``step`` (O,) int, the step of each measurement; ``id`` (O,) int landmark id;
-``range`` (O,) m and ``bearing`` (O,) rad (robot frame, counter-clockwise); ``sigma_range`` (m) and
-``sigma_bearing`` (rad) of the noise added; ``truth`` (L, 2) true landmark positions in m (for scoring only).
+``landmarks.npz``: ``step`` (O,) int, the step of each measurement; ``id`` (O,) int landmark id (any
+integer: the filters use ids as names only); ``range`` (O,) m and ``bearing`` (O,) rad (robot frame,
+counter-clockwise); ``sigma_range`` (m) and ``sigma_bearing`` (rad) of the noise added; ``truth`` (L, 2) true
+landmark positions in m (for scoring only).
 
-Frames and ordering follow slam.sequence: measurements are sorted by step.
+Frames and ordering follow slam.sequence: measurements are sorted by step. The loader refuses values the
+filters cannot use: alphas outside slam.motion.ALPHA_LIMITS, noise outside slam.range_bearing's limits,
+``velocity_dt_ref`` outside :data:`DT_REF_LIMITS`, negative ranges, and poses, commands or positions beyond
++-POSE_LIMIT (1e7 m; slam.laserlog).
 """
 from __future__ import annotations
 
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
-import zipfile
 
 import numpy as np
 
 from slam.errors import LogFormatError
-from slam.motion import OdometryMotionModel, VelocityMotionModel, odometry_controls
-from slam.range_bearing import RangeBearingModel
+from slam.laserlog import POSE_LIMIT
+from slam.motion import ALPHA_LIMITS, OdometryMotionModel, VelocityMotionModel, odometry_controls
+from slam.range_bearing import SIGMA_BEARING_LIMITS, SIGMA_RANGE_LIMITS, RangeBearingModel
 from slam.sequence import SlamSequence
 
 CONTROLS_FILE = "controls.npz"
 LANDMARKS_FILE = "landmarks.npz"
+#: accepted velocity_dt_ref (s): the time the velocity model's noise is stated for (the simulator's: 0.1 s)
+DT_REF_LIMITS = (1e-3, 1e3)
 
 
 @dataclass(frozen=True)
@@ -90,23 +98,37 @@ def _load(path: Path, shapes: dict[str, tuple]) -> dict[str, np.ndarray]:
     if not path.is_file():
         raise LogFormatError(f"{path}: no such file (a simulator folder holds {CONTROLS_FILE} and {LANDMARKS_FILE})")
     try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {key: data[key] for key in data.files}
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
+        loaded = np.load(path, allow_pickle=False)
+        if isinstance(loaded, np.lib.npyio.NpzFile):
+            with loaded as data:  # members are read (and inflated) here
+                arrays = {key: data[key] for key in data.files}
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, zlib.error) as exc:
         raise LogFormatError(f"{path}: not a readable .npz file ({exc})") from None
+    if not isinstance(loaded, np.lib.npyio.NpzFile):
+        raise LogFormatError(f"{path}: holds one bare array (a .npy file), not the named arrays of a .npz file")
     sizes: dict[str, int] = {}
     for key, shape in shapes.items():
         if key not in arrays:
             raise LogFormatError(f"{path}: missing array '{key}'")
         value = arrays[key]
-        if not np.issubdtype(value.dtype, np.number) or not np.all(np.isfinite(value)):
-            raise LogFormatError(f"{path}: '{key}' must hold finite numbers")
+        if value.dtype.kind not in "iuf" or not np.all(np.isfinite(value)):
+            raise LogFormatError(f"{path}: '{key}' must hold finite real numbers")
         if value.ndim != len(shape) or any(
             actual != (sizes.setdefault(dim, actual) if isinstance(dim, str) else dim)
             for dim, actual in zip(shape, value.shape)
         ):
             raise LogFormatError(f"{path}: '{key}' has shape {value.shape}, expected {shape} (letters: lengths shared by arrays)")
     return arrays
+
+
+def _check_within(path: Path, arrays: dict[str, np.ndarray], limits: dict[str, tuple[float, float]]) -> None:
+    """Raise LogFormatError naming the file and key unless every value of arrays[key] lies in limits[key]
+    (low, high), in the key's units."""
+    for key, (low, high) in limits.items():
+        value = arrays[key]
+        if value.size and not np.all((value >= low) & (value <= high)):
+            raise LogFormatError(f"{path}: '{key}' must lie in [{low:g}, {high:g}], but holds values from "
+                                 f"{value.min():g} to {value.max():g}")
 
 
 def load_sim_log(folder: str | Path) -> SimLog:
@@ -123,8 +145,16 @@ def load_sim_log(folder: str | Path) -> SimLog:
         raise LogFormatError(f"{folder / CONTROLS_FILE}: 'stamps' must be non-empty and strictly increasing")
     if len(step) and (np.any(np.diff(step) < 0) or step[0] < 0 or step[-1] >= steps):
         raise LogFormatError(f"{folder / LANDMARKS_FILE}: 'step' must be sorted and index the {steps} steps")
-    if m["sigma_range"] <= 0 or m["sigma_bearing"] <= 0:
-        raise LogFormatError(f"{folder / LANDMARKS_FILE}: 'sigma_range' and 'sigma_bearing' must be > 0")
+    for key in ("step", "id"):
+        if np.any(m[key] != np.round(m[key])):
+            raise LogFormatError(f"{folder / LANDMARKS_FILE}: '{key}' must hold whole numbers")
+    pose_range = (-POSE_LIMIT, POSE_LIMIT)
+    _check_within(folder / CONTROLS_FILE, c, {
+        "commands": pose_range, "odometry": pose_range, "initial_pose": pose_range, "velocity_alphas": ALPHA_LIMITS,
+        "velocity_dt_ref": DT_REF_LIMITS, "odometry_alphas": ALPHA_LIMITS})
+    _check_within(folder / LANDMARKS_FILE, m, {
+        "range": (0.0, POSE_LIMIT), "sigma_range": SIGMA_RANGE_LIMITS, "sigma_bearing": SIGMA_BEARING_LIMITS,
+        "truth": pose_range})
     return SimLog(
         stamps=c["stamps"].astype(np.float64),
         commands=c["commands"].astype(np.float64),

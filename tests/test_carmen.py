@@ -214,3 +214,20 @@ def test_real_corrected_logs(name, scans, beams, odom, offset):
     assert log.sensor_offset[0] == pytest.approx(offset)
     # corrected logs repeat the pose: x y theta equals odom_*
     np.testing.assert_array_equal(log.poses, log.odometry)
+
+
+def test_poses_and_ranges_beyond_the_pose_limit_are_skipped(tmp_path):
+    # finite but absurd values (1e300 m) once made grid FastSLAM overflow and hang (schemas.messages.POSE_LIMIT)
+    lines = [
+        GOOD_FLASER,
+        "FLASER 3 1.0 2.5 3.0 0.1 0.2 0.3 1e300 1.2 1.3 101.0 host 1.0",  # odometry x
+        "FLASER 3 1.0 2e7 3.0 0.1 0.2 0.3 1.1 1.2 1.3 102.0 host 2.0",  # a range
+        "ODOM 1 2e300 0.5 0 0 0 103.0 h 103.0",
+        "FLASER 3 1.0 2.5 inf 0.1 0.2 0.3 1.1 1.2 1.3 104.0 host 4.0",  # inf: no return, kept
+    ]
+    log = read_carmen(write(tmp_path, lines))
+    assert log.where.tolist() == [1, 5] and len(log.odom_stamps) == 0
+    reasons = {s.where: s.reason for s in log.skipped}
+    assert "odometry pose is not finite or beyond +-1e+07" in reasons[2]
+    assert "range 2 is 20000000.0, expected a number in [0, 1e+07] m or inf" in reasons[3]
+    assert reasons[4].startswith("ODOM") and "beyond +-1e+07" in reasons[4]

@@ -308,3 +308,91 @@ def test_odometry_delay_auto_finds_a_late_laser_clock(simulated_log, tmp_path, c
     assert json.loads(stats.read_text())["odometry_delay_s"] == pytest.approx(-0.1, abs=0.015)
     assert main(["slam", "--algo", "gridslam", str(path), "-o", str(out_npz), "--odom-delay", "0.1"]) == 2
     assert "separate odometry stream" in capsys.readouterr().err
+
+
+def test_a_scan_without_usable_beams_inserts_nothing():
+    # every beam unused (NaN: shorter than the minimum range) once crashed the kernel sizing its ray buffer
+    maps = TileMaps(1, RES, tile_cells=8)
+    insert(maps, [[0.025, 0.025, 0.0]], np.array([0.0, 0.5]), np.array([np.nan, np.nan]))
+    assert maps.tiles_in_use == 0
+
+
+def small_log(path: Path, scans: int = 6, stamps=None, first_ranges=None) -> Path:
+    """A FLASER log of ``scans`` scans in ``room()``, the robot moving 0.15 m along +x per scan (0.2 s apart
+    unless ``stamps`` are given); ``first_ranges`` replaces the first scan's ranges."""
+    angles = np.linspace(-np.pi / 2, np.pi / 2, 91)
+    poses = np.column_stack([1.0 + 0.15 * np.arange(scans), np.full(scans, 2.0), np.zeros(scans)])
+    ranges = np.stack([scan_from(p, angles, room()) for p in poses])
+    if first_ranges is not None:
+        ranges[0] = first_ranges
+    stamps = 100.0 + 0.2 * np.arange(scans) if stamps is None else np.asarray(stamps, float)
+    write_carmen(path, stamps, ranges, poses, angles[0], angles[1] - angles[0], 10.0, record="FLASER")
+    return path
+
+
+def test_first_scan_with_every_range_below_min_range_starts_an_empty_map(tmp_path):
+    log = small_log(tmp_path / "short_first.clf", first_ranges=np.full(91, 0.01))
+    out = tmp_path / "o.npz"
+    assert main(["slam", "--algo", "gridslam", str(log), "-o", str(out), "--particles", "2"]) == 0
+    assert load_pose_distribution(tmp_path / "o.poses.npz").poses.samples.shape == (6, 2, 3)
+
+
+@pytest.mark.parametrize(("log_kwargs", "message"), [
+    ({"scans": 1}, "holds 1 usable scan; grid FastSLAM needs at least 2"),
+    ({"stamps": [100.0, 100.2, 100.4, 100.3, 100.6, 100.8]}, "line 9 (100.300000 s) is not later"),
+    ({"stamps": [100.0, 100.2, 100.2, 100.4, 100.6, 100.8]}, "scan stamps must increase"),
+    ({"scans": 2, "first_ranges": np.full(91, 0.01)}, "only 1 of its 2 scans have a reading of at least 0.05 m"),
+])
+def test_unusable_laser_logs_exit_2_without_output(tmp_path, capsys, log_kwargs, message):
+    log = small_log(tmp_path / "bad.clf", **log_kwargs)
+    out = tmp_path / "o.npz"
+    assert main(["slam", "--algo", "gridslam", str(log), "-o", str(out), "--particles", "2"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "bad.clf" in err and message in err and "\n" not in err and "Traceback" not in err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(("option", "value", "message"), [
+    ("--grid-resolution", "1e-5", "--grid-resolution must be in [0.01, 1] m"),
+    ("--grid-resolution", "5", "--grid-resolution must be in [0.01, 1] m"),
+    ("--linear-update", "-0.1", "--linear-update and --angular-update must be >= 0"),
+    ("--angular-update", "-0.1", "--linear-update and --angular-update must be >= 0"),
+])
+def test_filter_options_out_of_range_exit_2(tmp_path, capsys, option, value, message):
+    out = tmp_path / "o.npz"
+    assert main(["slam", "--algo", "gridslam", str(small_log(tmp_path / "ok.clf")), "-o", str(out),
+                 f"{option}={value}"]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+    assert not out.exists()
+
+
+def test_odometry_delay_needs_an_odometry_stream_in_time_order(tmp_path, capsys):
+    log = small_log(tmp_path / "odom.clf")
+    with log.open("a") as handle:  # a corrected log's ODOM stream may jump back; interpolating it would be wrong
+        handle.write("ODOM 1 2 0 0 0 0 100.5 h 100.5\nODOM 1 2 0 0 0 0 99.0 h 99.0\n")
+    assert main(["slam", "--algo", "gridslam", str(log), "-o", str(tmp_path / "o.npz"), "--odom-delay", "0.1"]) == 2
+    assert "odometry stream goes back in time after its record 1" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("flags", "message"), [
+    (["--best-output", "{out}"], "-o and --best-output both name"),
+    (["--poses-output", "{out}"], "-o and --poses-output both name"),
+    (["--stats", "{out}"], "-o and --stats both name"),
+    (["--poses-output", "{dir}/o.best.npz"], "--best-output's default and --poses-output both name"),
+    (["--best-output", "{dir}/b.npz", "--stats", "{dir}/./b.npz"], "--best-output and --stats both name"),
+])
+def test_outputs_that_would_overwrite_each_other_exit_2(tmp_path, capsys, flags, message):
+    out = tmp_path / "o.npz"
+    flags = [f.format(out=out, dir=tmp_path) for f in flags]
+    assert main(["slam", "--algo", "gridslam", str(small_log(tmp_path / "ok.clf")), "-o", str(out), *flags]) == 2
+    err = capsys.readouterr().err
+    assert message in err and "own file" in err
+    assert not out.exists() and not list(tmp_path.glob("*.npz"))
+
+
+def test_a_pose_file_is_no_laser_log_whatever_the_case_of_its_suffix(tmp_path, capsys):
+    posed = tmp_path / "POSED.NPZ"
+    posed.write_bytes(b"PK")  # never opened: the suffix decides
+    assert main(["slam", "--algo", "gridslam", str(posed), "-o", str(tmp_path / "o.npz")]) == 2
+    assert "POSED.NPZ: a .npz file, not a laser log" in capsys.readouterr().err

@@ -122,16 +122,35 @@ def test_mapper_without_a_router_says_so_in_one_sentence(tmp_path, capsys):
     (["run", "--posed", "x.npz", "--shards", "0"], "--shards"),
     (["run", "--mrclam", "/tmp"], "no laser"),
     (["run", "--carmen", "x.clf", "--algo", "ekf"], "gridslam"),
-    (["slam-node", "--particles", "0"], "--particles"),
-    (["slam-node", "--particles", "10001"], "--particles"),  # more than a PoseSamples may carry
-    (["run", "--particles", "20000"], "--particles"),
-    (["mapper", "--shard", "0", "--shards", "1", "--map", "m", "--samples", "10001"], "--samples"),
     (["slam-node", "--initial", "1,2"], "--initial"),
+    (["simulate", "out", "--resolution", "1e-5"], "--resolution must be in [0.005, 1]"),  # a 2.8 TiB raster
+    (["simulate", "out", "--dt", "1e6"], "--dt must be in [0.001, 1]"),
 ])
 def test_bad_arguments_exit_2_with_one_sentence(argv, message, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err and err.count("\n") == 1, err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["slam-node", "--particles", "0"], "argument --particles: must be in 1 .. 10000, got 0"),
+    (["slam-node", "--particles", "10001"], "argument --particles: must be in 1 .. 10000"),  # past a PoseSamples
+    (["run", "--particles", "20000"], "argument --particles: must be in 1 .. 10000"),
+    (["mapper", "--shard", "0", "--shards", "1", "--map", "m", "--samples", "10001"], "argument --samples"),
+    (["fuse", "x.npz", "-o", "y.npz", "--samples", "100000000"], "argument --samples: must be in 1 .. 10000"),
+    (["fuse", "x.npz", "-o", "y.npz", "--resolution", "inf"], "argument --resolution: must be a finite number"),
+    (["fuse", "x.npz", "-o", "y.npz", "--sigma-slope", "nan"], "argument --sigma-slope: must be a finite number"),
+    (["fuse", "x.npz", "-o", "y.npz", "--seed", "-1"], "argument --seed: a seed is an integer >= 0, got -1"),
+    (["simulate", "out", "--dt", "nan"], "argument --dt: must be a finite number"),
+    (["slam", "sim", "-o", "p.npz", "--algo", "ekf", "--seed", "-2"], "argument --seed"),
+    (["export", "m.npz", "--format", "png", "-o", "m.png", "--crop", "inf"], "argument --crop"),
+])
+def test_bad_values_stop_at_parsing_with_the_option_named(argv, message, capsys):
+    """argparse's own error: the usage, then one line naming the option and what it must be; exit 2."""
+    with pytest.raises(SystemExit) as stop:
+        main(argv)
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and message in err.splitlines()[-1] and "Traceback" not in err, err
 
 
 @pytest.mark.parametrize("command", ["router", "mapper", "source", "run", "slam-node"])

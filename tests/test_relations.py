@@ -185,3 +185,18 @@ def test_odometry_delay_is_recovered_from_turns(true_delay):
     assert mismatch < 0.03  # rad per 0.5 s: the noise and the 0.2 s sampling
     with pytest.raises(ValueError, match="longer"):
         odometry_delay(scan_t[:3], matched[:3], odom_t, heading(odom_t))
+
+
+def test_cli_eval_relations_reads_an_uppercase_npz_as_a_pose_file(tmp_path, capsys):
+    rel = write(tmp_path, "r.relations", RELATION_LINES)
+    npz = tmp_path / "POSES.NPZ"
+    save_pose_distribution(npz, PoseDistributionFile(TRAJ.stamps, PoseSet(mean=TRAJ.poses,
+                                                                          cov=np.zeros((3, 3, 3)))))
+    assert main(["eval-relations", str(npz), str(rel)]) == 0
+    assert "4 of 5 relations" in capsys.readouterr().out
+    # a pose file is no log to align: refused in one sentence, not read as a CARMEN log without scans
+    clf = tmp_path / "t.clf"
+    write_carmen(clf, TRAJ.stamps, np.ones((3, 5)), TRAJ.poses, -1.0, 0.5, 10.0)
+    assert main(["eval-relations", str(clf), str(rel), "--align-to", str(npz)]) == 2
+    err = capsys.readouterr().err
+    assert "POSES.NPZ: a .npz file, not a laser log" in err and err.count("\n") == 1

@@ -219,3 +219,15 @@ def test_bag_that_breaks_off_midway_keeps_what_came_before(tmp_path):
     np.testing.assert_allclose(log.stamps[0], 0.25)
     np.testing.assert_allclose((log.stamps - 0.25) / 0.5 % 1.0, 0.0, atol=1e-6)
     np.testing.assert_allclose(log.odometry[:, 0], 0.02 * log.stamps, atol=1e-6)
+
+
+def test_odometry_and_transforms_beyond_the_pose_limit_are_skipped(tmp_path):
+    # a pose of 1e300 m is finite but would overflow the filters' maps and covariances (schemas.messages.POSE_LIMIT)
+    bag = standard_bag()
+    bag.odom(1.2, 1e300, 0.0, 0.0)  # message 5, between the odometry at 1.0 and the scan at 1.5
+    bag.tf(1.8, "base_link", "laser", 2e7, 0.0, 0.0, topic="/tf_static")  # message 8
+    log = read_rosbag(bag.write(tmp_path / "a.bag"))
+    reasons = {s.where: s.reason for s in log.skipped}
+    assert "beyond +-1e+07 m" in reasons[5] and "beyond +-1e+07 m" in reasons[8]
+    assert np.abs(log.odometry[:, :2]).max() <= 2.0
+    np.testing.assert_allclose(log.sensor_offset, [0.1, 0.0, math.pi / 2], atol=1e-12)

@@ -59,6 +59,10 @@ def test_slam_on_a_simulator_folder_writes_posed_scans(simdir, tmp_path, capsys)
     assert from_folder["steps"] == 60 and from_folder["ate_rmse_m"] < 0.3
     assert main(["eval-traj", str(out), str(simdir / "groundtruth.npz")]) == 0
     assert json.loads(capsys.readouterr().out) == from_folder
+    upper = tmp_path / "GROUNDTRUTH.NPZ"  # a pose file whatever the case of its suffix
+    upper.write_bytes((simdir / "groundtruth.npz").read_bytes())
+    assert main(["eval-traj", str(out), str(upper)]) == 0
+    assert json.loads(capsys.readouterr().out) == from_folder
 
 
 def test_slam_without_scans_writes_a_pose_distribution(simdir, tmp_path):
@@ -124,8 +128,9 @@ def test_dataset7_robot3_is_accurate_and_honest_with_the_defaults(tmp_path, caps
 
 def _one_line_exit_2(argv, capsys, *fragments):
     assert main(argv) == 2
-    err = capsys.readouterr().err.strip()
-    assert "\n" not in err and "Traceback" not in err
+    captured = capsys.readouterr()
+    err = captured.err.strip()
+    assert "\n" not in err and "Traceback" not in err and captured.out == ""
     for fragment in fragments:
         assert fragment in err
     return err
@@ -160,3 +165,130 @@ def test_bad_inputs_give_one_line_and_exit_2(simdir, tmp_path, capsys):
                      "Robot1_Odometry.dat line 35")
     _one_line_exit_2(["eval-traj", str(simdir / "scans.npz"), str(tmp_path / "missing.dat")], capsys, "missing.dat")
     _one_line_exit_2(["eval-traj", str(tmp_path / "nope.npz"), str(simdir)], capsys, "nope.npz")
+
+
+@pytest.mark.parametrize(("option", "value"), [
+    ("--sigma-bearing", "1e-300"), ("--sigma-bearing", "4"), ("--sigma-range", "1e300"), ("--sigma-range", "1e-4"),
+    ("--range-fraction", "1e300"), ("--range-fraction", "-0.1"), ("--alphas", "1e300,0,0,0,0,0"),
+    ("--alphas", "0,0,0,0,0,1001"),
+])
+def test_noise_options_outside_their_range_are_refused(simdir, tmp_path, capsys, option, value):
+    # values that overflowed, made the EKF's innovation covariance singular or wrote NaN poses before
+    out = tmp_path / "x.npz"
+    _one_line_exit_2(["slam", "--algo", "ekf", str(simdir), "-o", str(out), f"{option}={value}"], capsys,
+                     option, "must be in [")
+    assert not out.exists()
+
+
+def test_noise_options_at_their_limits_give_finite_poses(simdir, tmp_path):
+    out = tmp_path / "x.npz"
+    assert main(["slam", "--algo", "ekf", str(simdir), "-o", str(out), "--sigma-range", "1e-3",
+                 "--sigma-bearing", "1e-3", "--range-fraction", "1", "--alphas", "1000,1000,1000,1000,1000,1000"]) == 0
+    poses = load_posed_scans(out).poses
+    assert np.isfinite(poses.mean).all() and np.isfinite(poses.cov).all()
+    assert (np.linalg.eigvalsh(poses.cov) >= 0).all()
+
+
+def test_mrclam_period_has_a_lower_bound(tmp_path, capsys):
+    _mrclam_sample(tmp_path)
+    out = tmp_path / "x.npz"
+    _one_line_exit_2(["slam", "--algo", "ekf", str(tmp_path), "--robot", "1", "-o", str(out), "--period", "1e-9"],
+                     capsys, "--period", "at least 0.01 s")
+    assert not out.exists()
+
+
+def test_mrclam_measurements_after_the_odometry_are_skipped_and_counted(tmp_path, capsys):
+    # odometry 10.0-12.9 s; a measurement at 400 s used to stretch the run to 400 s of made-up zero commands
+    _mrclam_sample(tmp_path)
+    with open(tmp_path / "Robot1_Measurement.dat", "a", newline="") as handle:
+        handle.write("400.0 \t 63 \t 2.0 \t 0.1 \r\n")
+    out = tmp_path / "ekf.npz"
+    assert main(["slam", "--algo", "ekf", str(tmp_path), "--robot", "1", "-o", str(out)]) == 0
+    assert "1 stamped outside the odometry's time span" in capsys.readouterr().out
+    assert 12.7 < load_pose_distribution(out).stamps[-1] <= 12.9
+
+
+def test_eval_traj_refuses_ground_truth_from_another_time_base(simdir, tmp_path, capsys):
+    # the simulator's estimate spans 0-5.9 s, the MRCLAM ground truth 10-13.45 s: scoring would compare every
+    # step with the ground truth's first pose
+    _mrclam_sample(tmp_path)
+    err = _one_line_exit_2(["eval-traj", str(simdir / "scans.npz"), str(tmp_path / "Robot1_Groundtruth.dat")],
+                           capsys, "0.000000 .. 5.900000 s", "10.000000 .. 13.450000 s", "Robot1_Groundtruth.dat")
+    assert "same time base" in err
+    _one_line_exit_2(["eval-traj", str(simdir / "scans.npz"), str(tmp_path / "nonexistent")], capsys,
+                     "nonexistent: no such file or folder")
+
+
+def test_eval_traj_refuses_scores_that_are_not_finite(simdir, tmp_path, capsys):
+    # a mean 1e200 m off squares to inf: printed, it would be 'Infinity', which is not JSON
+    from schemas.files import PoseDistributionFile, PoseSet, save_pose_distribution
+
+    mean = np.zeros((60, 3))
+    mean[:, 0] = 1e200
+    save_pose_distribution(tmp_path / "far.npz", PoseDistributionFile(
+        stamps=0.1 * np.arange(60), poses=PoseSet(mean=mean, cov=np.tile(np.eye(3), (60, 1, 1)))))
+    _one_line_exit_2(["eval-traj", str(tmp_path / "far.npz"), str(simdir)], capsys, "far.npz")
+
+
+def _altered_copy(simdir: Path, folder: Path, name: str, **arrays) -> Path:
+    """A copy of the simulator folder with ``arrays`` replaced in its file ``name``."""
+    folder.mkdir()
+    for path in simdir.iterdir():
+        (folder / path.name).write_bytes(path.read_bytes())
+    with np.load(simdir / name) as data:
+        np.savez_compressed(folder / name, **{**{key: data[key] for key in data.files}, **arrays})
+    return folder
+
+
+@pytest.mark.parametrize(("name", "key", "value", "message"), [
+    ("controls.npz", "velocity_alphas", [-0.01, 0, 0, 0, 0, 0], "'velocity_alphas' must lie in [0, 1000]"),
+    ("controls.npz", "odometry_alphas", [0, 0, 2e3, 0], "'odometry_alphas' must lie in [0, 1000]"),
+    ("controls.npz", "velocity_dt_ref", 0.0, "'velocity_dt_ref' must lie in [0.001, 1000]"),
+    ("controls.npz", "odometry", "1e300", "'odometry' must lie in [-1e+07, 1e+07]"),
+    ("landmarks.npz", "range", "-1", "'range' must lie in [0, 1e+07]"),
+    ("landmarks.npz", "sigma_bearing", 1e-300, "'sigma_bearing' must lie in [0.001, 3.14159]"),
+    ("landmarks.npz", "id", "0.5", "'id' must hold whole numbers"),
+])
+def test_simulator_folder_values_the_filters_cannot_use_exit_2(simdir, tmp_path, capsys, name, key, value, message):
+    if isinstance(value, str):  # the file's own array with its first entry replaced
+        with np.load(simdir / name) as data:
+            array = data[key].astype(np.float64)
+        array.flat[0] = float(value)
+        value = array
+    folder = _altered_copy(simdir, tmp_path / "bad", name, **{key: np.asarray(value, np.float64)})
+    out = tmp_path / "x.npz"
+    _one_line_exit_2(["slam", "--algo", "ekf", str(folder), "-o", str(out)], capsys, f"{name}: {message}")
+    assert not out.exists()
+
+
+def test_simulator_scans_must_carry_the_controls_stamps(simdir, tmp_path, capsys):
+    with np.load(simdir / "controls.npz") as data:
+        stamps = data["stamps"] * 2.0
+    folder = _altered_copy(simdir, tmp_path / "bad", "controls.npz", stamps=stamps)
+    out = tmp_path / "x.npz"
+    _one_line_exit_2(["slam", "--algo", "ekf", str(folder), "-o", str(out)], capsys,
+                     "scans.npz: scan 1 is stamped 0.100000 s but the controls' step 1 0.200000 s")
+    assert not out.exists()
+
+
+def test_simulator_file_that_is_a_npy_or_corrupt_exits_2(simdir, tmp_path, capsys):
+    import struct
+    import zipfile
+
+    folder = _altered_copy(simdir, tmp_path / "npy", "controls.npz")
+    with open(folder / "controls.npz", "wb") as handle:
+        np.save(handle, np.zeros(3))
+    out = tmp_path / "x.npz"
+    _one_line_exit_2(["slam", "--algo", "ekf", str(folder), "-o", str(out)], capsys,
+                     "controls.npz: holds one bare array (a .npy file)")
+    # the first member's compressed data broken: zlib's own error, not the zip file's CRC check
+    folder = _altered_copy(simdir, tmp_path / "zlib", "controls.npz")
+    data = bytearray((folder / "controls.npz").read_bytes())
+    with zipfile.ZipFile(folder / "controls.npz") as archive:
+        start = archive.infolist()[0].header_offset
+    name_length, extra_length = struct.unpack("<HH", data[start + 26:start + 30])
+    data[start + 30 + name_length + extra_length] ^= 0xFF
+    (folder / "controls.npz").write_bytes(bytes(data))
+    _one_line_exit_2(["slam", "--algo", "ekf", str(folder), "-o", str(out)], capsys,
+                     "controls.npz: not a readable .npz file (Error -3 while decompressing")
+    assert not out.exists()

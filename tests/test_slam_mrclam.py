@@ -151,3 +151,17 @@ def test_dataset7_counts():
     seq.validate(str(DATA))
     assert seq.controls[:, 2].sum() == pytest.approx(seq.stamps[-1] - seq.stamps[0])
     assert np.diff(seq.stamps).max() <= 0.2 + 1e-6  # stamps near 1.2e9 s carry about 1e-7 s of rounding
+
+
+def test_measurements_outside_the_odometry_are_skipped_and_counted(sample):
+    # odometry 100.05-100.45 s: a landmark seen at 100.0 or 101.0 has no command to move the robot there
+    path = sample / "Robot1_Measurement.dat"
+    text = path.read_text()
+    lines = text.splitlines(keepends=True)
+    lines.insert(4, "100.0 \t 63 \t 2.0 \t 0.1\r\n")
+    path.write_text("".join(lines) + "101.0 \t 81 \t 1.5 \t -0.2\r\n", newline="")
+    run = read_mrclam(sample, 1)
+    assert run.skipped_outside == 2
+    np.testing.assert_allclose(run.measurements[:, 0], [100.1, 100.3])
+    seq = mrclam_sequence(run, initial_pose=np.zeros(3), period=0.2, command_delay=0.0)
+    assert seq.stamps[0] == pytest.approx(100.05) and seq.stamps[-1] <= 100.45

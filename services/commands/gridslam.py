@@ -11,11 +11,16 @@ import sys
 import time
 from pathlib import Path
 
+from services.commands.argtypes import finite_float
+
 #: grid FastSLAM particles when --particles is not given
 DEFAULT_GRID_PARTICLES = 30
 
 #: --odom-delay auto runs the filter over this much of the log's start (s) to estimate the delay
 AUTO_DELAY_SECONDS = 120.0
+#: accepted --grid-resolution (m): finer than 1 cm is below a laser scanner's accuracy and, as each halving
+#: quadruples the cells, soon needs more memory than a machine has; coarser than 1 m cannot hold a room's walls
+GRID_RESOLUTION_LIMITS = (0.01, 1.0)
 
 
 def _odom_delay(text: str) -> str | float:
@@ -64,14 +69,15 @@ def add_filter_options(group: argparse._ArgumentGroup, label: str = "") -> None:
                        "at most the laser's)",
         "--linear-update": f"m of odometry between scans integrated into the maps (default {defaults.linear_update:g})",
         "--angular-update": f"rad of odometry turn between integrated scans (default {defaults.angular_update:g})",
-        "--grid-resolution": f"m, cell size of the particles' grids (default {defaults.resolution:g})",
+        "--grid-resolution": f"m, cell size of the particles' grids, in [{GRID_RESOLUTION_LIMITS[0]:g}, "
+                             f"{GRID_RESOLUTION_LIMITS[1]:g}] (default {defaults.resolution:g})",
         "--min-range": f"m: shorter readings are ignored, e.g. people right beside the robot (default "
                        f"{defaults.min_range:g}, or the sensor's if larger)",
         "--prior-cap": "squared Mahalanobis distance from the odometry beyond which the scan matcher stops weighing "
                        f"the odometry (default {defaults.prior_cap:g}; larger trusts the odometry more)",
     }
     for option, _ in FILTER_OPTIONS:
-        group.add_argument(option, type=float, default=None, metavar="D2" if option == "--prior-cap" else None,
+        group.add_argument(option, type=finite_float, default=None, metavar="D2" if option == "--prior-cap" else None,
                            help=label + helps[option])
 
 
@@ -113,6 +119,9 @@ def _config(args: argparse.Namespace):
         if value is not None:
             overrides[field] = value
     config = replace(GridSlamConfig(), **overrides)
+    low, high = GRID_RESOLUTION_LIMITS
+    if not low <= config.resolution <= high:
+        raise UsageError(f"--grid-resolution must be in [{low:g}, {high:g}] m, got {config.resolution:g}")
     try:
         config.validate()
     except ValueError as exc:
@@ -122,13 +131,46 @@ def _config(args: argparse.Namespace):
     return config
 
 
-def _read_input(args: argparse.Namespace):
-    from slam.carmen import read_carmen
-    from slam.rosbag_reader import read_rosbag
+def _output_paths(args: argparse.Namespace) -> tuple[Path, Path]:
+    """The best-particle and pose-distribution paths (--best-output, --poses-output or their defaults beside
+    OUTPUT); raise UsageError when two of OUTPUT, those two and --stats name one file (one would overwrite the
+    other)."""
+    from services.cli import UsageError
 
-    if args.input.is_dir() or args.input.suffix == ".bag":
-        return read_rosbag(args.input, scan_topic=args.scan_topic)
-    return read_carmen(args.input)
+    best = args.best_output or args.output.with_suffix(".best.npz")
+    poses = args.poses_output or args.output.with_suffix(".poses.npz")
+    named = [("-o", args.output),
+             ("--best-output" if args.best_output else "--best-output's default", best),
+             ("--poses-output" if args.poses_output else "--poses-output's default", poses)]
+    named += [("--stats", args.stats)] if args.stats is not None else []
+    seen: dict[Path, str] = {}
+    for option, path in named:
+        if path.resolve() in seen:
+            raise UsageError(f"{seen[path.resolve()]} and {option} both name {path}: give each output its own file")
+        seen[path.resolve()] = option
+    return best, poses
+
+
+def _check_log(log, config) -> None:
+    """Raise LogFormatError unless the log holds at least 2 scans, in increasing time order, of which at least 2
+    have a beam at or beyond the minimum range (the first scan starts the maps, the next is matched to them)."""
+    import numpy as np
+
+    from slam.errors import LogFormatError
+
+    if len(log) < 2:
+        raise LogFormatError(f"{log.source}: holds {len(log)} usable scan; grid FastSLAM needs at least 2 (a scan to "
+                             "start from and one to integrate)")
+    back = np.flatnonzero(np.diff(log.stamps) <= 0)
+    if len(back):
+        i = int(back[0])
+        raise LogFormatError(f"{log.source}: scan stamps must increase, but the scan at {log.unit} {log.where[i + 1]} "
+                             f"({log.stamps[i + 1]:.6f} s) is not later than the one before ({log.stamps[i]:.6f} s)")
+    range_min = max(log.range_min, config.min_range)
+    usable = int(np.count_nonzero((log.ranges >= range_min).any(axis=1)))
+    if usable < 2:
+        raise LogFormatError(f"{log.source}: only {usable} of its {len(log)} scans have a reading of at least "
+                             f"{range_min:g} m (--min-range); grid FastSLAM needs at least 2")
 
 
 def _apply_odometry_delay(args: argparse.Namespace, log, config):
@@ -139,13 +181,15 @@ def _apply_odometry_delay(args: argparse.Namespace, log, config):
     from services.cli import UsageError
     from slam.errors import LogFormatError
     from slam.gridslam import run_gridslam
-    from slam.laserlog import with_odometry_delay
+    from slam.laserlog import check_odometry_stream, with_odometry_delay
     from slam.timealign import odometry_delay
 
     delay = args.odom_delay
     if delay == "auto":
-        if not len(log.odom_stamps):
-            raise UsageError(f"--odom-delay auto: {log.source} has no separate odometry stream to compare with")
+        try:
+            check_odometry_stream(log)
+        except LogFormatError as exc:
+            raise UsageError(f"--odom-delay auto: {exc}") from None
         count = int(np.searchsorted(log.stamps, log.stamps[0] + AUTO_DELAY_SECONDS))
         head = log.first(max(count, 2))
         with tqdm(total=len(head), desc="odometry delay", unit="scan", file=sys.stderr, mininterval=0.5) as bar:
@@ -175,19 +219,22 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
 
     from schemas.files import PoseDistributionFile, PosedScans, PoseSet, save_pose_distribution, save_posed_scans
     from services.cli import UsageError
+    from services.commands.logs import read_log
     from slam.gridslam import run_gridslam
 
     for option in ("robot", "initial", "alphas", "sigma_range", "sigma_bearing", "outlier_gate"):
         if getattr(args, option, None) is not None:
             raise UsageError(f"--{option.replace('_', '-')} does not apply to --algo gridslam")
     config = _config(args)
+    best_path, poses_path = _output_paths(args)
     if args.scans is not None and args.scans < 2:
         raise UsageError(f"--scans must be >= 2 (a scan to start from and one to integrate), got {args.scans}")
-    log = _read_input(args)
+    log = read_log(args.input, scan_topic=args.scan_topic)
     if args.scans is not None:
         log = log.first(args.scans)
     if log.skipped:
         print(f"posegrid slam: note: {log.skipped_summary()}", file=sys.stderr)
+    _check_log(log, config)
     log, delay = _apply_odometry_delay(args, log, config)
     started = time.perf_counter()
     cpu_started = time.process_time()
@@ -211,10 +258,8 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
 
     weights = np.tile(result.weights, (len(log), 1))
     save_posed_scans(args.output, posed(result.samples[chosen], weights[chosen]))
-    best_path = args.best_output or args.output.with_suffix(".best.npz")
     best = result.samples[chosen][:, [result.best]]
     save_posed_scans(best_path, posed(best, np.ones((int(chosen.sum()), 1))))
-    poses_path = args.poses_output or args.output.with_suffix(".poses.npz")
     save_pose_distribution(poses_path, PoseDistributionFile(
         stamps=result.stamps, poses=PoseSet(samples=result.samples, weights=weights)))
 

@@ -8,7 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
-#: file suffixes read as pose .npz files; a .bag file or a folder is a ROS bag; anything else a CARMEN log
+from services.commands.argtypes import finite_float
+
+#: file suffixes (in any case) read as pose .npz files; a .bag file or a folder is a ROS bag; anything else a
+#: CARMEN log
 NPZ_SUFFIXES = (".npz",)
 
 
@@ -31,21 +34,26 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                           "re-stamped corrected logs such as freiburg-079-corrected.log.gz)")
     evaluate.add_argument("--estimate", choices=("best", "mean"), default="best",
                           help="pose files with samples: the highest-weight sample (default) or the weighted mean")
-    evaluate.add_argument("--tolerance", type=float, default=None,
+    evaluate.add_argument("--tolerance", type=finite_float, default=None,
                           help="s within which a stamp matches a pose exactly (default 0.001)")
-    evaluate.add_argument("--max-gap", type=float, default=None,
+    evaluate.add_argument("--max-gap", type=finite_float, default=None,
                           help="s: interpolate only between poses at most this far apart (default 5)")
     evaluate.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write the scores as JSON")
     evaluate.set_defaults(func=run_eval_relations)
 
 
-def read_log(path: Path):
-    """A laser log from a ROS bag (a .bag file or a bag folder) or a CARMEN log (anything else)."""
+def read_log(path: Path, scan_topic: str | None = None):
+    """A laser log from a ROS bag (a .bag file or a bag folder; ``scan_topic``: its LaserScan topic, default
+    the only one or /scan) or a CARMEN log (anything else but a .npz file); suffixes in any case."""
     from slam.carmen import read_carmen
+    from slam.errors import LogFormatError
     from slam.rosbag_reader import read_rosbag
 
-    if path.is_dir() or path.suffix == ".bag":
-        return read_rosbag(path)
+    suffix = path.suffix.lower()
+    if suffix in NPZ_SUFFIXES:
+        raise LogFormatError(f"{path}: a .npz file, not a laser log (expected a CARMEN log .clf/.log/.gz or a ROS bag)")
+    if path.is_dir() or suffix == ".bag":
+        return read_rosbag(path, scan_topic=scan_topic)
     return read_carmen(path)
 
 
@@ -88,7 +96,7 @@ def run_eval_relations(args: argparse.Namespace) -> int:
         shown = ", ".join(str(s.where) for s in relations.skipped[:10])
         _note(f"{args.relations}: skipped {len(relations.skipped)} malformed lines (lines {shown}"
               f"{' ...' if len(relations.skipped) > 10 else ''})")
-    if args.poses.suffix in NPZ_SUFFIXES:
+    if args.poses.suffix.lower() in NPZ_SUFFIXES:
         if args.align_to is not None:
             raise UsageError("--align-to needs a log (with scans) as POSES, not a pose .npz")
         trajectory = _pose_file_trajectory(args.poses, args.estimate)

@@ -11,12 +11,22 @@ import sys
 import time
 from pathlib import Path
 
+from services.commands.argtypes import finite_float, random_seed
+
 ALGORITHMS = ("odometry", "ekf", "fastslam1", "fastslam2", "gridslam")
 #: FastSLAM particles when --particles is not given
 DEFAULT_PARTICLES = 500
+#: s within which a simulator folder's scan stamps must equal its controls' step stamps
+STAMP_TOLERANCE = 1e-6
+#: MRCLAM: the shortest --period in s; the commands come at about 67 Hz, so a finer grid adds steps (and memory:
+#: steps x particles x 3 floats) without information
+MIN_PERIOD = 0.01
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    from slam.motion import ALPHA_LIMITS
+    from slam.range_bearing import RANGE_FRACTION_LIMITS, SIGMA_BEARING_LIMITS, SIGMA_RANGE_LIMITS
+
     simulate = subparsers.add_parser(
         "simulate", help="simulate a robot in an office: odometry, landmarks, laser scans, ground truth",
         description="Simulate a robot driving through a 20 m x 12 m office (corridor, six rooms with doors, "
@@ -26,14 +36,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "docs/slam.md describes the last two. The same --seed gives the same files.",
     )
     simulate.add_argument("outdir", type=Path, help="folder to write (created if missing)")
-    simulate.add_argument("--seed", type=int, default=0, help="seed of every noise source (default 0)")
+    simulate.add_argument("--seed", type=random_seed, default=0, help="seed of every noise source (default 0)")
     simulate.add_argument("--steps", type=int, default=400, help="number of steps (default 400)")
-    simulate.add_argument("--dt", type=float, default=0.1, help="step length in s (default 0.1)")
+    simulate.add_argument("--dt", type=finite_float, default=0.1, help="step length in s (default 0.1)")
     simulate.add_argument("--beams", type=int, default=361, help="laser beams per scan (default 361)")
-    simulate.add_argument("--fov", type=float, default=math.pi, help="laser field of view in rad (default pi)")
-    simulate.add_argument("--range-max", type=float, default=12.0, help="laser maximum range in m (default 12)")
-    simulate.add_argument("--laser-sigma", type=float, default=0.01, help="laser range noise std in m (default 0.01)")
-    simulate.add_argument("--resolution", type=float, default=0.05, help="truth raster cell size in m (default 0.05)")
+    simulate.add_argument("--fov", type=finite_float, default=math.pi, help="laser field of view in rad (default pi)")
+    simulate.add_argument("--range-max", type=finite_float, default=12.0, help="laser maximum range in m (default 12)")
+    simulate.add_argument("--laser-sigma", type=finite_float, default=0.01,
+                          help="laser range noise std in m (default 0.01)")
+    simulate.add_argument("--resolution", type=finite_float, default=0.05,
+                          help="truth raster cell size in m (default 0.05)")
     simulate.set_defaults(func=run_simulate)
 
     slam = subparsers.add_parser(
@@ -52,16 +64,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       "gridslam: grid FastSLAM on a laser log")
     slam.add_argument("--particles", type=int, default=None,
                       help="FastSLAM particles (default %d)" % DEFAULT_PARTICLES)
-    slam.add_argument("--seed", type=int, default=0, help="seed of the particle filter (default 0)")
+    slam.add_argument("--seed", type=random_seed, default=0, help="seed of the particle filter (default 0)")
     slam.add_argument("--associate", choices=("known", "unknown"), default="known",
                       help="landmark correspondences: known ids (default) or estimated (EKF: nearest in "
                       "Mahalanobis distance with gating; FastSLAM: per-particle maximum likelihood)")
     slam.add_argument("--robot", type=int, default=None, help="MRCLAM: robot number K (RobotK_*.dat)")
     slam.add_argument("--initial", type=str, default=None, metavar="X,Y,YAW",
                       help="MRCLAM: start pose in m, m, rad (default: the first ground-truth pose)")
-    slam.add_argument("--period", type=float, default=0.2,
+    slam.add_argument("--period", type=finite_float, default=0.2,
                       help="MRCLAM: output a pose at least every PERIOD s besides every landmark-measurement "
-                      "stamp (default 0.2)")
+                      "stamp (default 0.2, at least %g)" % MIN_PERIOD)
     slam.add_argument("--raw-ranges", action="store_true",
                       help="MRCLAM: use the ranges as logged, without the bearing-dependent range calibration")
     slam.add_argument("--raw-commands", action="store_true",
@@ -73,15 +85,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                                     "fitted in docs/slam.md)")
     noise.add_argument("--alphas", type=str, default=None, metavar="A1,...",
                        help="motion noise: 6 numbers for the velocity model (PR table 5.3, variances per "
-                       "0.1 s), 4 for the odometry model (PR table 5.6)")
-    noise.add_argument("--sigma-range", type=float, default=None, help="landmark range noise std in m")
-    noise.add_argument("--sigma-bearing", type=float, default=None, help="landmark bearing noise std in rad")
-    noise.add_argument("--range-fraction", type=float, default=None,
-                       help="landmark range noise std grows by this many m per m of range (on top of --sigma-range)")
-    noise.add_argument("--outlier-gate", type=float, default=None, metavar="D2",
+                       "0.1 s), 4 for the odometry model (PR table 5.6); each in [%g, %g]" % ALPHA_LIMITS)
+    noise.add_argument("--sigma-range", type=finite_float, default=None,
+                       help="landmark range noise std in m, in [%g, %g]" % SIGMA_RANGE_LIMITS)
+    noise.add_argument("--sigma-bearing", type=finite_float, default=None,
+                       help="landmark bearing noise std in rad, in [%g, pi]" % SIGMA_BEARING_LIMITS[0])
+    noise.add_argument("--range-fraction", type=finite_float, default=None,
+                       help="landmark range noise std grows by this many m per m of range (on top of --sigma-range), "
+                       "in [%g, %g]" % RANGE_FRACTION_LIMITS)
+    noise.add_argument("--outlier-gate", type=finite_float, default=None, metavar="D2",
                        help="known ids: ignore a measurement whose squared Mahalanobis distance exceeds D2 "
                        "(FastSLAM: per particle, likelihood capped at D2); 'inf' turns it off")
-    noise.add_argument("--resample-threshold", type=float, default=0.5,
+    noise.add_argument("--resample-threshold", type=finite_float, default=0.5,
                        help="FastSLAM: resample when N_eff < this fraction of the particles (default 0.5)")
     noise.add_argument("--plain-resampling", action="store_true",
                        help="FastSLAM: resample the particles' map frames with them, as the textbook does "
@@ -113,12 +128,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run_simulate(args: argparse.Namespace) -> int:
     from services.cli import UsageError
 
-    if args.steps < 1 or args.beams < 1:
-        raise UsageError("--steps and --beams must be >= 1")
-    if args.dt <= 0 or args.resolution <= 0 or args.laser_sigma < 0:
-        raise UsageError("--dt and --resolution must be > 0 and --laser-sigma >= 0")
-    if not 0 < args.fov <= 2 * math.pi or args.range_max <= 0.05:
-        raise UsageError("--fov must be in (0, 2 pi] rad and --range-max > 0.05 m")
+    limits = {"--steps": (args.steps, 1, 100_000), "--beams": (args.beams, 1, 100_000), "--dt": (args.dt, 1e-3, 1.0),
+              "--resolution": (args.resolution, 5e-3, 1.0), "--laser-sigma": (args.laser_sigma, 0.0, 1.0),
+              "--fov": (args.fov, 1e-3, 2 * math.pi), "--range-max": (args.range_max, 0.1, 1000.0)}
+    for option, (value, low, high) in limits.items():  # the office is 20 m x 12 m, its robot drives at 0.5 m/s
+        if not low <= value <= high:
+            raise UsageError(f"{option} must be in [{low:g}, {high:g}], got {value:g}")
     import numpy as np
 
     from schemas.files import PoseDistributionFile, PosedScans, PoseSet, TruthRaster
@@ -178,15 +193,16 @@ def _load_input(args: argparse.Namespace):
             raise UsageError(f"{args.input} is an MRCLAM folder: pick a robot with --robot K (here: {robots})")
         if args.motion != "velocity":
             raise UsageError("MRCLAM logs hold velocity commands only: drop --motion odometry")
-        if args.period <= 0:
-            raise UsageError(f"--period must be > 0 s, got {args.period}")
+        if not args.period >= MIN_PERIOD:
+            raise UsageError(f"--period must be at least {MIN_PERIOD:g} s (the commands come about every "
+                             f"0.015 s), got {args.period:g}")
         initial = _floats(args.initial, (3,), "--initial") if args.initial is not None else None
         run = mrclam.read_mrclam(args.input, args.robot)
         sequence = mrclam.mrclam_sequence(run, initial_pose=initial, period=args.period,
                                           range_calibration=None if args.raw_ranges else mrclam.MRCLAM_RANGE_CALIBRATION,
                                           velocity_scale=None if args.raw_commands else mrclam.MRCLAM_VELOCITY_SCALE)
-        notes = (f"skipped {run.skipped_robots} measurements of robots and {run.skipped_unknown} of barcodes "
-                 f"in no table")
+        notes = (f"skipped {run.skipped_robots} measurements of robots, {run.skipped_unknown} of barcodes "
+                 f"in no table and {run.skipped_outside} stamped outside the odometry's time span")
         return (sequence, mrclam.MRCLAM_MOTION, mrclam.MRCLAM_SENSOR,
                 mrclam.MRCLAM_OUTLIER_GATE, None, notes)
     if not args.input.exists():
@@ -195,28 +211,35 @@ def _load_input(args: argparse.Namespace):
                      "(no Barcodes.dat and RobotK_Odometry.dat)")
 
 
+def _check_limits(option: str, value: float, limits: tuple[float, float]) -> None:
+    """Raise UsageError unless low <= value <= high for ``limits`` = (low, high) (the option's units)."""
+    from services.cli import UsageError
+
+    low, high = limits
+    if not low <= value <= high:
+        raise UsageError(f"{option} must be in [{low:g}, {high:g}], got {value:g}")
+
+
 def _noise_overrides(args: argparse.Namespace, motion, sensor, gate):
     from dataclasses import replace
 
     from services.cli import UsageError
-    from slam.motion import VelocityMotionModel
+    from slam.motion import ALPHA_LIMITS, VelocityMotionModel
+    from slam.range_bearing import RANGE_FRACTION_LIMITS, SIGMA_BEARING_LIMITS, SIGMA_RANGE_LIMITS
 
     if args.alphas is not None:
         count = 6 if isinstance(motion, VelocityMotionModel) else 4
         alphas = _floats(args.alphas, (count,), "--alphas")
-        if min(alphas) < 0:
-            raise UsageError("--alphas must be >= 0")
+        for alpha in alphas:
+            _check_limits("--alphas", alpha, ALPHA_LIMITS)
         motion = replace(motion, alphas=tuple(alphas))
-    for name in ("sigma_range", "sigma_bearing"):
+    limits = {"sigma_range": SIGMA_RANGE_LIMITS, "sigma_bearing": SIGMA_BEARING_LIMITS,
+              "range_fraction": RANGE_FRACTION_LIMITS}
+    for name, name_limits in limits.items():
         value = getattr(args, name)
         if value is not None:
-            if not value > 0:
-                raise UsageError(f"--{name.replace('_', '-')} must be > 0, got {value}")
+            _check_limits(f"--{name.replace('_', '-')}", value, name_limits)
             sensor = replace(sensor, **{name: value})
-    if args.range_fraction is not None:
-        if not args.range_fraction >= 0:
-            raise UsageError(f"--range-fraction must be >= 0, got {args.range_fraction}")
-        sensor = replace(sensor, range_fraction=args.range_fraction)
     if args.outlier_gate is not None:
         if not args.outlier_gate > 0:
             raise UsageError(f"--outlier-gate must be > 0 (or inf), got {args.outlier_gate}")
@@ -253,6 +276,7 @@ def run_slam(args: argparse.Namespace) -> int:
     from services.commands.gridslam import reject_filter_options
 
     reject_filter_options(args, args.algo)
+    import numpy as np
     from tqdm import tqdm
 
     from schemas.errors import FormatError
@@ -266,6 +290,10 @@ def run_slam(args: argparse.Namespace) -> int:
     scans = load_posed_scans(scans_path) if scans_path is not None else None
     if scans is not None and len(scans.stamps) != len(sequence):
         raise FormatError(f"{scans_path}: holds {len(scans.stamps)} scans but the controls have {len(sequence)} steps")
+    if scans is not None and not np.allclose(scans.stamps, sequence.stamps, rtol=0.0, atol=STAMP_TOLERANCE):
+        step = int(np.argmax(np.abs(scans.stamps - sequence.stamps) > STAMP_TOLERANCE))
+        raise FormatError(f"{scans_path}: scan {step} is stamped {scans.stamps[step]:.6f} s but the controls' step "
+                          f"{step} {sequence.stamps[step]:.6f} s; the scans must be those of the controls' steps")
     slam_filter = _make_filter(args, motion, sensor, gate, sequence.initial_pose)
 
     started = time.perf_counter()
@@ -304,14 +332,22 @@ def run_slam(args: argparse.Namespace) -> int:
 
 
 def _truth_at(path: Path, stamps):
-    """Ground-truth poses (T, 3) at ``stamps`` from a pose .npz, a simulator folder or a RobotK_Groundtruth.dat."""
+    """Ground-truth poses (T, 3) at ``stamps`` (s) from a pose .npz, a simulator folder or a
+    RobotK_Groundtruth.dat; UsageError when the path does not exist or no stamp lies inside the ground truth's
+    time span (the scores would compare against its end poses only)."""
+    import numpy as np
+
     from schemas.files import load_pose_distribution
+    from services.cli import UsageError
     from slam.mrclam import read_groundtruth
     from slam.scoring import fit_gaussian, interpolate_poses
 
+    if not path.exists():
+        raise UsageError(f"{path}: no such file or folder (GROUNDTRUTH is a pose .npz, a simulator folder or a "
+                         "RobotK_Groundtruth.dat)")
     if path.is_dir():
         path = path / "groundtruth.npz"
-    if path.suffix == ".npz":
+    if path.suffix.lower() == ".npz":
         dist = load_pose_distribution(path)
         poses = dist.poses
         mean = poses.mean if poses.is_gaussian else fit_gaussian(poses.samples, poses.weights)[0]
@@ -321,19 +357,30 @@ def _truth_at(path: Path, stamps):
         truth_stamps, mean = table[:, 0], table[:, 1:4]
     if len(truth_stamps) == 1:
         return mean[[0] * len(stamps)]
+    first, last = truth_stamps.min(), truth_stamps.max()
+    if not np.any((stamps >= first) & (stamps <= last)):
+        raise UsageError(f"no stamp of the estimate ({stamps.min():.6f} .. {stamps.max():.6f} s) lies inside the "
+                         f"time span of {path} ({first:.6f} .. {last:.6f} s); are they in the same time base?")
     order = truth_stamps.argsort(kind="stable")
     return interpolate_poses(stamps, truth_stamps[order], mean[order])
 
 
 def run_eval_traj(args: argparse.Namespace) -> int:
+    import numpy as np
+
     from schemas.files import load_pose_distribution
+    from services.cli import UsageError
     from slam.scoring import fit_gaussian, score_trajectory
 
     dist = load_pose_distribution(args.poses)
     poses = dist.poses
     mean, cov = (poses.mean, poses.cov) if poses.is_gaussian else fit_gaussian(poses.samples, poses.weights)
     truth = _truth_at(args.groundtruth, dist.stamps)
-    score = score_trajectory(mean, cov, truth)
+    with np.errstate(over="ignore", invalid="ignore"):  # a score that overflows is refused below
+        score = score_trajectory(mean, cov, truth)
+    if not all(math.isfinite(value) for value in (score.ate_rmse_m, score.heading_mae_rad, score.nees_mean)):
+        raise UsageError(f"the scores of {args.poses} against {args.groundtruth} are not finite (ATE "
+                         f"{score.ate_rmse_m}, NEES {score.nees_mean}): a pose or covariance is too large to score")
     print(json.dumps({"ate_rmse_m": round(score.ate_rmse_m, 6), "heading_mae_rad": round(score.heading_mae_rad, 6),
                       "nees_mean": round(score.nees_mean, 4), "inside95": round(score.inside95, 4),
                       "steps": score.steps}))

@@ -94,7 +94,8 @@ def insert_scan(pool, refcount, free_stack, n_free, table, tx0, ty0, shift, res,
     if hit.shape[0] != cos_b.shape[0]:
         raise ValueError("hit must have one entry per beam")
     m, ny, nx = table.shape
-    cap = int(math.ceil(np.nanmax(r_stop) * math.sqrt(2.0) / res)) + 3 if r_stop.shape[0] else 3
+    longest = np.nanmax(r_stop) if r_stop.shape[0] else 0.0  # NaN when no beam is used
+    cap = int(math.ceil(longest * math.sqrt(2.0) / res)) + 3 if longest > 0.0 else 3
     bix = np.empty(cap, np.int64)
     biy = np.empty(cap, np.int64)
     brin = np.empty(cap, np.float64)
