@@ -34,6 +34,8 @@ def occupancy_pixels(probability: np.ndarray, observed: np.ndarray) -> np.ndarra
 def render_pgm(map_arrays: dict, image_name: str = "map.pgm") -> tuple[bytes, str]:
     """A binary PGM (P5) and its map_server YAML; the YAML names the image file ``image_name``."""
     pixels = np.flipud(occupancy_pixels(np.asarray(map_arrays["probability"]), np.asarray(map_arrays["observed"])))
+    if pixels.size == 0:
+        raise InputError("the map is empty (no cells); a 0 x 0 image is no map for map_server")
     height, width = pixels.shape
     pgm = f"P5\n{width} {height}\n255\n".encode("ascii") + pixels.tobytes()
     ox, oy = (float(v) for v in map_arrays["origin"])

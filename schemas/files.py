@@ -25,6 +25,9 @@ from schemas.errors import FormatError
 
 #: weights must sum to 1 within this absolute tolerance (float32 writers lose ~1e-7 per element)
 WEIGHT_SUM_TOLERANCE = 1e-4
+#: a raster's origin lies within this many m of the map frame's origin, and its cells are this many m wide
+RASTER_ORIGIN_LIMIT = 1e9
+RASTER_RESOLUTION_LIMITS = (1e-6, 1e3)
 
 
 @dataclass(frozen=True)
@@ -173,9 +176,23 @@ def _within(array: np.ndarray, key: str, path, low: float, high: float) -> np.nd
     bad = ~(np.isfinite(array) & (array >= low) & (array <= high))
     if bad.any():
         index = tuple(int(i) for i in np.argwhere(bad)[0])
-        raise FormatError(f"{path}: '{key}' holds {array[index]} at {index}; its values must be finite and in "
-                          f"[{low:g}, {high:g}]")
+        bounds = "" if (low, high) == (-np.inf, np.inf) else f" and in [{low:g}, {high:g}]"
+        raise FormatError(f"{path}: '{key}' holds {array[index]} at {index}; its values must be finite{bounds}")
     return array
+
+
+def _raster_frame(data: dict, path, what: str) -> tuple[np.ndarray, float]:
+    """A raster's ``origin`` (2,) and ``resolution``: within RASTER_ORIGIN_LIMIT m of the map frame's origin and
+    RASTER_RESOLUTION_LIMITS m, so every cell index computed from them is exact."""
+    origin = _numeric(_require(data, "origin", path, what), "origin", path).astype(np.float64)
+    if origin.shape != (2,) or not (np.abs(origin) <= RASTER_ORIGIN_LIMIT).all():
+        raise FormatError(f"{path}: 'origin' must be 2 finite numbers (x, y) in m within +-{RASTER_ORIGIN_LIMIT:g}, "
+                          f"got {origin}")
+    resolution = _scalar(data, "resolution", path, what)
+    low, high = RASTER_RESOLUTION_LIMITS
+    if not low <= resolution <= high:
+        raise FormatError(f"{path}: 'resolution' must be in [{low:g}, {high:g}] m, got {resolution:g}")
+    return origin, resolution
 
 
 def validate_pose_set(poses: PoseSet, steps: int, where: str) -> None:
@@ -316,12 +333,7 @@ def load_map(path: str | Path) -> MapFile:
         if np.asarray(layers["level"]).dtype.kind not in "iu":
             raise FormatError(f"{path}: 'level' must hold integers, got dtype {np.asarray(layers['level']).dtype}")
         layers["level"] = _within(layers["level"], "level", path, -1, np.iinfo(np.int8).max)
-    origin = _numeric(_require(data, "origin", path, what), "origin", path).astype(np.float64)
-    if origin.shape != (2,) or not np.isfinite(origin).all():
-        raise FormatError(f"{path}: 'origin' must be 2 finite numbers (x, y) in m, got {origin}")
-    resolution = _scalar(data, "resolution", path, what)
-    if resolution <= 0:
-        raise FormatError(f"{path}: 'resolution' must be > 0 m, got {resolution}")
+    origin, resolution = _raster_frame(data, path, what)
     return MapFile(
         logodds=logodds.astype(np.float32),
         probability=layers["probability"].astype(np.float32),
@@ -343,12 +355,7 @@ def load_truth(path: str | Path) -> TruthRaster:
         raise FormatError(
             f"{path}: 'occupied' and 'visible' must be 2-D of one shape, got {occupied.shape} and {visible.shape}"
         )
-    origin = _numeric(_require(data, "origin", path, what), "origin", path).astype(np.float64)
-    if origin.shape != (2,) or not np.isfinite(origin).all():
-        raise FormatError(f"{path}: 'origin' must be 2 finite numbers (x, y) in m, got {origin}")
-    resolution = _scalar(data, "resolution", path, what)
-    if resolution <= 0:
-        raise FormatError(f"{path}: 'resolution' must be > 0 m, got {resolution}")
+    origin, resolution = _raster_frame(data, path, what)
     return TruthRaster(occupied, visible, origin, resolution)
 
 

@@ -65,6 +65,10 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:
         print(f"posegrid {args.command}: error: {exc.strerror or exc} ({exc.filename or ''})", file=sys.stderr)
         return 2
+    except MemoryError as exc:  # numpy's names the size it could not allocate
+        print(f"posegrid {args.command}: error: out of memory ({exc}); fewer particles or samples, fewer scans or "
+              "beams, a coarser resolution or a shorter range need less", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

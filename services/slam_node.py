@@ -17,6 +17,7 @@ once per kind.
 """
 from __future__ import annotations
 
+import copy
 import queue
 import threading
 import time
@@ -97,11 +98,27 @@ class LandmarkDriver:
         measurements = np.column_stack([seen.ranges, seen.bearings])
         return self.filter.step(controls, measurements, seen.ids)
 
+    def save(self) -> object:
+        """The filter's state before a step (a copy: a landmark filter's arrays are small)."""
+        return copy.deepcopy((self.filter, self._last_pose))
+
+    def restore(self, saved: object) -> None:
+        """Go back to the state :meth:`save` returned, undoing a step whose pose could not be published."""
+        self.filter, self._last_pose = saved
+
 
 class GridDriver:
-    """Feeds grid FastSLAM one scan at a time: integrate when due, else follow the odometry."""
+    """Feeds grid FastSLAM one scan at a time: integrate when due, else follow the odometry. A failed step is
+    not undone (:meth:`save` keeps nothing): a copy of every particle's map per scan would cost more than the
+    step. Odometry beyond the wire's pose limit never reaches it."""
 
     needs = {keys.SCAN, keys.ODOM}
+
+    def save(self) -> object:
+        return None
+
+    def restore(self, saved: object) -> None:
+        pass
 
     def __init__(self, initial: np.ndarray, config: GridSlamConfig, seed: int):
         self.initial = initial
@@ -243,6 +260,7 @@ class SlamNode:
                            else LandmarkDriver(cfg.make_filter(initial), cfg.motion))
         stamp = next(iter(parts.values())).stamp
         self.steps_done += 1
+        saved = self.driver.save()
         try:
             first, second = self.driver.step(parts)
             if cfg.algorithm == "gridslam" or not self.driver.filter.gaussian:
@@ -252,10 +270,12 @@ class SlamNode:
             payload = message.encode()  # validates: a filter driven out of range by its input gives no pose
         except (StepError, ValueError, IndexError, KeyError, np.linalg.LinAlgError) as exc:
             # valid messages the filter still cannot use (e.g. an unknown landmark id), or a pose outside what a
-            # PoseSamples/PoseGaussian may carry: skip the step, go on
+            # PoseSamples/PoseGaussian may carry: skip the step, as if it had not come, and go on
+            self.driver.restore(saved)
             self.rejects.count(keys.robot_key(cfg.robot, "steps"), "step", f"seq {seq} skipped: {exc}")
             return
         except Exception as exc:  # noqa: BLE001 - a defect met by one step must not stop the node: counted, logged
+            self.driver.restore(saved)
             self.log.exception("seq %d failed; the node goes on", seq)
             self.rejects.count(keys.robot_key(cfg.robot, "steps"), "error", f"seq {seq} failed: {type(exc).__name__}")
             return

@@ -173,6 +173,31 @@ def test_map_layers_out_of_their_range_are_one_line(map_arrays, tmp_path, key, v
     assert not (tmp_path / "m.png").exists()
 
 
+@pytest.mark.parametrize("key, value, phrase", [
+    ("resolution", 1e-300, "'resolution' must be in [1e-06, 1000] m"),  # map_server would read 0.000000
+    ("origin", np.array([1e12, 0.0]), "'origin' must be 2 finite numbers (x, y) in m within +-1e+09"),
+])
+def test_a_map_frame_no_cell_index_can_follow_is_one_line(map_arrays, tmp_path, key, value, phrase):
+    path = _bad(tmp_path, "bad-frame.npz", **{**map_arrays, key: value})
+    _one_line_exit_2(posegrid("export", str(path), "--format", "pgm", "-o", str(tmp_path / "m.pgm")), phrase)
+
+
+def test_an_empty_map_exports_no_image(map_arrays, tmp_path):
+    empty = {**map_arrays, **{key: map_arrays[key][:0, :0] for key in ("logodds", "probability", "observed",
+                                                                      "variance") if key in map_arrays}}
+    path = _bad(tmp_path, "empty.npz", **empty)
+    for fmt in ("pgm", "png"):
+        _one_line_exit_2(posegrid("export", str(path), "--format", fmt, "-o", str(tmp_path / f"m.{fmt}")), "empty")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty.npz"]
+
+
+def test_sample_counts_for_a_file_of_samples_are_refused(tmp_path):
+    """Samples are fused as they are; --samples and --accuracy only size the draws from Gaussian poses."""
+    path = _bad(tmp_path, "samples.npz", **good_arrays())
+    for option in (["--samples", "5"], ["--accuracy", "0.1"]):
+        _one_line_exit_2(posegrid("fuse", str(path), "-o", str(tmp_path / "m.npz"), *option), "holds pose samples")
+
+
 def test_truth_of_one_class_scores_auc_null_and_a_nan_origin_is_one_line(tmp_path, posed_file):
     map_path = tmp_path / "map.npz"
     assert posegrid("fuse", str(posed_file), "-o", str(map_path)).returncode == 0

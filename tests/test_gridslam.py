@@ -271,7 +271,9 @@ def test_same_seed_same_result_and_bad_input_exits_2(simulated_log, tmp_path, ca
     assert "folder without metadata.yaml, so not a ROS 2 bag" in capsys.readouterr().err
     assert main(["slam", "--algo", "gridslam", str(cut), "-o", str(tmp_path / "o.npz"), "--scans", "1"]) == 2
     assert "--scans must be >= 2" in capsys.readouterr().err
-    assert main(["slam", "--algo", "gridslam", str(cut), "-o", str(tmp_path / "o.npz"), "--particles", "0"]) == 2
+    with pytest.raises(SystemExit) as stop:  # argparse's own error for --particles
+        main(["slam", "--algo", "gridslam", str(cut), "-o", str(tmp_path / "o.npz"), "--particles", "0"])
+    assert stop.value.code == 2
     assert "particles" in capsys.readouterr().err
     assert main(["slam", "--algo", "gridslam", str(cut), "-o", str(tmp_path / "o.npz"), "--prior-cap", "-1"]) == 2
     assert "prior_cap -1" in capsys.readouterr().err
@@ -357,6 +359,7 @@ def test_unusable_laser_logs_exit_2_without_output(tmp_path, capsys, log_kwargs,
     ("--grid-resolution", "5", "--grid-resolution must be in [0.01, 1] m"),
     ("--linear-update", "-0.1", "--linear-update and --angular-update must be >= 0"),
     ("--angular-update", "-0.1", "--linear-update and --angular-update must be >= 0"),
+    ("--particles", "1001", "--particles for grid FastSLAM must be at most 1000"),  # 10 000 asked for 32 GiB
 ])
 def test_filter_options_out_of_range_exit_2(tmp_path, capsys, option, value, message):
     out = tmp_path / "o.npz"

@@ -125,6 +125,7 @@ def test_mapper_without_a_router_says_so_in_one_sentence(tmp_path, capsys):
     (["slam-node", "--initial", "1,2"], "--initial"),
     (["simulate", "out", "--resolution", "1e-5"], "--resolution must be in [0.005, 1]"),  # a 2.8 TiB raster
     (["simulate", "out", "--dt", "1e6"], "--dt must be in [0.001, 1]"),
+    (["simulate", "out", "--steps", "100000", "--beams", "100000"], "--steps x --beams is 10000000000"),
 ])
 def test_bad_arguments_exit_2_with_one_sentence(argv, message, capsys):
     assert main(argv) == 2

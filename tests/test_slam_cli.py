@@ -140,7 +140,10 @@ def test_bad_inputs_give_one_line_and_exit_2(simdir, tmp_path, capsys):
     out = str(tmp_path / "x.npz")
     _one_line_exit_2(["slam", "--algo", "ekf", str(tmp_path / "nothing"), "-o", out], capsys, "no such folder")
     _one_line_exit_2(["slam", "--algo", "ekf", str(tmp_path), "-o", out], capsys, "neither a simulator folder")
-    _one_line_exit_2(["slam", "--algo", "fastslam1", str(simdir), "-o", out, "--particles", "0"], capsys, "--particles")
+    for particles in ("0", "10001"):  # argparse's own error: the usage, then the option and its range
+        with pytest.raises(SystemExit) as stop:
+            main(["slam", "--algo", "fastslam1", str(simdir), "-o", out, "--particles", particles])
+        assert stop.value.code == 2 and "argument --particles: must be in 1 .. 10000" in capsys.readouterr().err
     _one_line_exit_2(["slam", "--algo", "ekf", str(simdir), "-o", out, "--alphas", "1,2"], capsys, "--alphas")
     # grid FastSLAM's options given to another filter would be ignored: refused, here and for the pipeline
     _one_line_exit_2(["slam", "--algo", "ekf", str(simdir), "-o", out, "--prior-cap", "36"], capsys, "--prior-cap",
@@ -189,11 +192,13 @@ def test_noise_options_at_their_limits_give_finite_poses(simdir, tmp_path):
     assert (np.linalg.eigvalsh(poses.cov) >= 0).all()
 
 
-def test_mrclam_period_has_a_lower_bound(tmp_path, capsys):
+def test_mrclam_period_and_initial_pose_are_bounded(tmp_path, capsys):
     _mrclam_sample(tmp_path)
     out = tmp_path / "x.npz"
     _one_line_exit_2(["slam", "--algo", "ekf", str(tmp_path), "--robot", "1", "-o", str(out), "--period", "1e-9"],
                      capsys, "--period", "at least 0.01 s")
+    _one_line_exit_2(["slam", "--algo", "ekf", str(tmp_path), "--robot", "1", "-o", str(out), "--initial",
+                      "1e300,0,0"], capsys, "--initial takes a pose within +-1e+07")  # else NaN steps later
     assert not out.exists()
 
 
@@ -217,6 +222,24 @@ def test_eval_traj_refuses_ground_truth_from_another_time_base(simdir, tmp_path,
     assert "same time base" in err
     _one_line_exit_2(["eval-traj", str(simdir / "scans.npz"), str(tmp_path / "nonexistent")], capsys,
                      "nonexistent: no such file or folder")
+
+
+def test_eval_traj_scores_only_the_steps_its_ground_truth_covers(simdir, tmp_path, capsys):
+    """Ground truth of the first 2 s of a 6 s estimate: the steps after it are left out and counted, not scored
+    against the last true pose; a ground truth of one pose covers only the steps within 0.05 s of it."""
+    from schemas.files import PoseDistributionFile, PoseSet, load_pose_distribution, save_pose_distribution
+
+    truth = load_pose_distribution(simdir / "groundtruth.npz")
+    for name, keep in (("short.npz", truth.stamps <= 2.0), ("one.npz", truth.stamps == truth.stamps[10])):
+        save_pose_distribution(tmp_path / name, PoseDistributionFile(stamps=truth.stamps[keep], poses=PoseSet(
+            samples=truth.poses.samples[keep], weights=truth.poses.weights[keep])))
+    estimate = simdir / "scans.npz"  # the true poses, 0 .. 5.9 s every 0.1 s
+    assert main(["eval-traj", str(estimate), str(tmp_path / "short.npz")]) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["steps"] == 21 and json.loads(captured.out)["ate_rmse_m"] == 0.0  # 0 .. 2 s
+    assert "scored 21 of 60 steps" in captured.err
+    assert main(["eval-traj", str(estimate), str(tmp_path / "one.npz")]) == 0  # the step at 1.0 s only
+    assert json.loads(capsys.readouterr().out)["steps"] == 1
 
 
 def test_eval_traj_refuses_scores_that_are_not_finite(simdir, tmp_path, capsys):

@@ -21,6 +21,8 @@ AUTO_DELAY_SECONDS = 120.0
 #: accepted --grid-resolution (m): finer than 1 cm is below a laser scanner's accuracy and, as each halving
 #: quadruples the cells, soon needs more memory than a machine has; coarser than 1 m cannot hold a room's walls
 GRID_RESOLUTION_LIMITS = (0.01, 1.0)
+#: the most grid FastSLAM particles: each keeps a map (shared tiles, copied on write); 10 000 asked for 32 GiB
+MAX_GRID_PARTICLES = 1000
 
 
 def _odom_delay(text: str) -> str | float:
@@ -119,6 +121,9 @@ def _config(args: argparse.Namespace):
         if value is not None:
             overrides[field] = value
     config = replace(GridSlamConfig(), **overrides)
+    if config.particles > MAX_GRID_PARTICLES:
+        raise UsageError(f"--particles for grid FastSLAM must be at most {MAX_GRID_PARTICLES} (each particle keeps a "
+                         f"map), got {config.particles}")
     low, high = GRID_RESOLUTION_LIMITS
     if not low <= config.resolution <= high:
         raise UsageError(f"--grid-resolution must be in [{low:g}, {high:g}] m, got {config.resolution:g}")
@@ -217,7 +222,8 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
     import numpy as np
     from tqdm import tqdm
 
-    from schemas.files import PoseDistributionFile, PosedScans, PoseSet, save_pose_distribution, save_posed_scans
+    from schemas.files import (PoseDistributionFile, PosedScans, PoseSet, save_pose_distribution, save_posed_scans,
+                               write_atomically)
     from services.cli import UsageError
     from services.commands.logs import read_log
     from slam.gridslam import run_gridslam
@@ -275,7 +281,8 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
         "tiles_in_use": result.maps.tiles_in_use, "tiles_copied": result.maps.copies, "odometry_delay_s": delay,
     }
     if args.stats is not None:
-        args.stats.write_text(json.dumps(stats, indent=1) + "\n")
+        text = json.dumps(stats, indent=1) + "\n"
+        write_atomically(args.stats, lambda handle: handle.write(text.encode()))
     print(f"wrote {args.output} (posed-scan file, {stats['integrated']} integrated scans), {best_path} (the best "
           f"particle's poses) and {poses_path} (pose-distribution file, {len(log)} scans): "
           f"{1e3 * stats['seconds_per_integrated_scan']:.1f} ms per "

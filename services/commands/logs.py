@@ -82,6 +82,7 @@ def _note(message: str) -> None:
 
 
 def run_eval_relations(args: argparse.Namespace) -> int:
+    from schemas.files import write_atomically
     from services.cli import UsageError
     from slam.relations import (DEFAULT_MAX_GAP, DEFAULT_TOLERANCE, Trajectory, read_relations, score_relations,
                                 trajectory_from_log)
@@ -113,12 +114,13 @@ def run_eval_relations(args: argparse.Namespace) -> int:
             trajectory = Trajectory.sorted(to_reference_time(trajectory.stamps, stamps, offsets), trajectory.poses)
     score = score_relations(trajectory, relations, tolerance, max_gap)
     summary = score.summary()
+    if args.json is not None:  # first: a file that cannot be written stops the command before it reports
+        text = json.dumps(summary, indent=1) + "\n"
+        write_atomically(args.json, lambda handle: handle.write(text.encode()))
     print(f"{args.poses}: {summary['relations_used']} of {summary['relations_total']} relations matched "
           f"(tolerance {tolerance} s, max gap {max_gap} s)")
     print(f"  translational error: mean {summary['trans_mean_m']:.4f} m, std {summary['trans_std_m']:.4f} m; "
           f"squared: mean {summary['trans_sq_mean_m2']:.5f} m^2, std {summary['trans_sq_std_m2']:.5f} m^2")
     print(f"  rotational error:    mean {summary['rot_mean_deg']:.3f} deg, std {summary['rot_std_deg']:.3f} deg; "
           f"squared: mean {summary['rot_sq_mean_deg2']:.3f} deg^2, std {summary['rot_sq_std_deg2']:.3f} deg^2")
-    if args.json is not None:
-        args.json.write_text(json.dumps(summary, indent=1) + "\n")
     return 0

@@ -126,6 +126,9 @@ def run_fuse(args: argparse.Namespace) -> int:
                          "pose only")
     model = sensor_model_from_args(args)
     posed = load_posed_scans(args.posed)
+    if not posed.poses.is_gaussian and (args.samples is not None or args.accuracy is not None):
+        raise UsageError(f"{args.posed} holds pose samples, which are fused as they are; --samples and --accuracy "
+                         "set how many to draw from Gaussian poses")
     options = dict(mode=args.mode, model=model, n_samples=args.samples, seed=args.seed, accuracy=args.accuracy,
                    progress=True)
     if args.grid == "adaptive":

@@ -444,13 +444,13 @@ def run_slam_node(args: argparse.Namespace) -> int:
     if not 0 <= args.resample_threshold <= 1:
         raise UsageError(f"--resample-threshold must be in [0, 1], got {args.resample_threshold}")
     from services.commands.gridslam import _config as gridslam_config
-    from services.commands.slam import _floats, _make_filter
+    from services.commands.slam import _initial_pose, _make_filter
 
     algo = args.algo or DEFAULT_ALGORITHM
     args.algo = algo
     reject_filter_options(args, algo)
     motion, sensor, gate = _slam_models(args)
-    initial = _floats(args.initial, (3,), "--initial") if args.initial is not None else None
+    initial = _initial_pose(args.initial) if args.initial is not None else None
     grid_config = gridslam_config(args) if algo == "gridslam" else None
     import numpy as np
 

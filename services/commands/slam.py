@@ -11,13 +11,18 @@ import sys
 import time
 from pathlib import Path
 
-from services.commands.argtypes import finite_float, random_seed
+from services.commands.argtypes import finite_float, pose_sample_count, random_seed
 
 ALGORITHMS = ("odometry", "ekf", "fastslam1", "fastslam2", "gridslam")
 #: FastSLAM particles when --particles is not given
 DEFAULT_PARTICLES = 500
 #: s within which a simulator folder's scan stamps must equal its controls' step stamps
 STAMP_TOLERANCE = 1e-6
+#: eval-traj: an estimate's step is scored when its stamp lies within this many s of the ground truth's span
+#: (MRCLAM estimates end about 7 ms after their ground truth; farther out, the held end pose is no truth)
+TRUTH_MARGIN = 0.05
+#: simulate: the most ranges (steps x beams) one run holds, 400 MB of float32
+MAX_SIMULATED_RANGES = 10 ** 8
 #: MRCLAM: the shortest --period in s; the commands come at about 67 Hz, so a finer grid adds steps (and memory:
 #: steps x particles x 3 floats) without information
 MIN_PERIOD = 0.01
@@ -62,7 +67,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     slam.add_argument("--algo", choices=ALGORITHMS, required=True,
                       help="odometry: dead reckoning (baseline); ekf: EKF-SLAM; fastslam1 / fastslam2: FastSLAM; "
                       "gridslam: grid FastSLAM on a laser log")
-    slam.add_argument("--particles", type=int, default=None,
+    slam.add_argument("--particles", type=pose_sample_count, default=None,
                       help="FastSLAM particles (default %d)" % DEFAULT_PARTICLES)
     slam.add_argument("--seed", type=random_seed, default=0, help="seed of the particle filter (default 0)")
     slam.add_argument("--associate", choices=("known", "unknown"), default="known",
@@ -134,6 +139,9 @@ def run_simulate(args: argparse.Namespace) -> int:
     for option, (value, low, high) in limits.items():  # the office is 20 m x 12 m, its robot drives at 0.5 m/s
         if not low <= value <= high:
             raise UsageError(f"{option} must be in [{low:g}, {high:g}], got {value:g}")
+    if args.steps * args.beams > MAX_SIMULATED_RANGES:
+        raise UsageError(f"--steps x --beams is {args.steps * args.beams}, more than the {MAX_SIMULATED_RANGES:.0e} "
+                         "ranges a run may hold (each scan's beams are kept in memory)")
     import numpy as np
 
     from schemas.files import PoseDistributionFile, PosedScans, PoseSet, TruthRaster
@@ -173,6 +181,17 @@ def _floats(text: str, count: tuple[int, ...], option: str) -> list[float]:
     return values
 
 
+def _initial_pose(text: str) -> list[float]:
+    """--initial X,Y,YAW (m, m, rad), each within +-POSE_LIMIT (the bound every pose message keeps to)."""
+    from schemas.messages import POSE_LIMIT
+    from services.cli import UsageError
+
+    pose = _floats(text, (3,), "--initial")
+    if max(abs(v) for v in pose) > POSE_LIMIT:
+        raise UsageError(f"--initial takes a pose within +-{POSE_LIMIT:g} m (rad), got '{text}'")
+    return pose
+
+
 def _load_input(args: argparse.Namespace):
     """(sequence, motion model, sensor model, default outlier gate, posed-scans path or None, notes)."""
     from services.cli import UsageError
@@ -196,7 +215,7 @@ def _load_input(args: argparse.Namespace):
         if not args.period >= MIN_PERIOD:
             raise UsageError(f"--period must be at least {MIN_PERIOD:g} s (the commands come about every "
                              f"0.015 s), got {args.period:g}")
-        initial = _floats(args.initial, (3,), "--initial") if args.initial is not None else None
+        initial = _initial_pose(args.initial) if args.initial is not None else None
         run = mrclam.read_mrclam(args.input, args.robot)
         sequence = mrclam.mrclam_sequence(run, initial_pose=initial, period=args.period,
                                           range_calibration=None if args.raw_ranges else mrclam.MRCLAM_RANGE_CALIBRATION,
@@ -259,8 +278,6 @@ def _make_filter(args: argparse.Namespace, motion, sensor, gate, initial):
     if args.algo == "ekf":
         return EKFSLAM(motion, sensor, initial, known_correspondences=known, outlier_gate=gate)
     particles = DEFAULT_PARTICLES if args.particles is None else args.particles
-    if particles < 1:
-        raise UsageError(f"--particles must be >= 1, got {particles}")
     if not 0 <= args.resample_threshold <= 1:
         raise UsageError(f"--resample-threshold must be in [0, 1], got {args.resample_threshold}")
     return FastSLAM(motion, sensor, initial, n_particles=particles, version=1 if args.algo == "fastslam1" else 2,
@@ -333,9 +350,9 @@ def run_slam(args: argparse.Namespace) -> int:
 
 def _truth_at(path: Path, stamps):
     """Ground-truth poses (T, 3) at ``stamps`` (s) from a pose .npz, a simulator folder or a
-    RobotK_Groundtruth.dat; UsageError when the path does not exist or no stamp lies inside the ground truth's
-    time span (the scores would compare against its end poses only)."""
-    import numpy as np
+    RobotK_Groundtruth.dat, and which stamps the ground truth covers: within TRUTH_MARGIN of its time span
+    (past it, interpolation would only repeat its end poses). UsageError when the path does not exist or the
+    ground truth covers no stamp."""
 
     from schemas.files import load_pose_distribution
     from services.cli import UsageError
@@ -355,14 +372,14 @@ def _truth_at(path: Path, stamps):
     else:
         table = read_groundtruth(path)
         truth_stamps, mean = table[:, 0], table[:, 1:4]
-    if len(truth_stamps) == 1:
-        return mean[[0] * len(stamps)]
     first, last = truth_stamps.min(), truth_stamps.max()
-    if not np.any((stamps >= first) & (stamps <= last)):
-        raise UsageError(f"no stamp of the estimate ({stamps.min():.6f} .. {stamps.max():.6f} s) lies inside the "
-                         f"time span of {path} ({first:.6f} .. {last:.6f} s); are they in the same time base?")
+    covered = (stamps >= first - TRUTH_MARGIN) & (stamps <= last + TRUTH_MARGIN)
+    if not covered.any():
+        raise UsageError(f"no stamp of the estimate ({stamps.min():.6f} .. {stamps.max():.6f} s) lies within "
+                         f"{TRUTH_MARGIN:g} s of the time span of {path} ({first:.6f} .. {last:.6f} s); are they in "
+                         "the same time base?")
     order = truth_stamps.argsort(kind="stable")
-    return interpolate_poses(stamps, truth_stamps[order], mean[order])
+    return interpolate_poses(stamps, truth_stamps[order], mean[order]), covered
 
 
 def run_eval_traj(args: argparse.Namespace) -> int:
@@ -375,9 +392,12 @@ def run_eval_traj(args: argparse.Namespace) -> int:
     dist = load_pose_distribution(args.poses)
     poses = dist.poses
     mean, cov = (poses.mean, poses.cov) if poses.is_gaussian else fit_gaussian(poses.samples, poses.weights)
-    truth = _truth_at(args.groundtruth, dist.stamps)
+    truth, covered = _truth_at(args.groundtruth, dist.stamps)
+    if not covered.all():
+        print(f"posegrid eval-traj: note: scored {int(covered.sum())} of {len(covered)} steps; the others lie more "
+              f"than {TRUTH_MARGIN:g} s outside the ground truth's time span", file=sys.stderr)
     with np.errstate(over="ignore", invalid="ignore"):  # a score that overflows is refused below
-        score = score_trajectory(mean, cov, truth)
+        score = score_trajectory(mean[covered], cov[covered], truth[covered])
     if not all(math.isfinite(value) for value in (score.ate_rmse_m, score.heading_mae_rad, score.nees_mean)):
         raise UsageError(f"the scores of {args.poses} against {args.groundtruth} are not finite (ATE "
                          f"{score.ate_rmse_m}, NEES {score.nees_mean}): a pose or covariance is too large to score")
