@@ -224,6 +224,17 @@ def test_eval_traj_refuses_ground_truth_from_another_time_base(simdir, tmp_path,
                      "nonexistent: no such file or folder")
 
 
+@pytest.mark.parametrize("algo, options, phrase", [
+    ("ekf", ["--particles", "100"], "--particles only apply to FastSLAM"),
+    ("odometry", ["--plain-resampling"], "--plain-resampling only apply to FastSLAM"),
+    ("ekf", ["--raw-commands"], "a simulator folder has none"),
+])
+def test_options_the_filter_would_ignore_are_refused(simdir, tmp_path, capsys, algo, options, phrase):
+    out = tmp_path / "x.npz"
+    _one_line_exit_2(["slam", "--algo", algo, str(simdir), "-o", str(out), *options], capsys, phrase)
+    assert not out.exists()
+
+
 def test_eval_traj_scores_only_the_steps_its_ground_truth_covers(simdir, tmp_path, capsys):
     """Ground truth of the first 2 s of a 6 s estimate: the steps after it are left out and counted, not scored
     against the last true pose; a ground truth of one pose covers only the steps within 0.05 s of it."""

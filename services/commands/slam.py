@@ -201,6 +201,8 @@ def _load_input(args: argparse.Namespace):
     if (args.input / CONTROLS_FILE).is_file():
         if args.robot is not None or args.initial is not None:
             raise UsageError("--robot and --initial are for MRCLAM folders; a simulator folder starts at its true pose")
+        if args.raw_ranges or args.raw_commands:
+            raise UsageError("--raw-ranges and --raw-commands undo MRCLAM's calibrations; a simulator folder has none")
         log = load_sim_log(args.input)
         sequence = log.sequence(args.motion)
         motion = log.velocity_model if args.motion == "velocity" else log.odometry_model
@@ -290,9 +292,17 @@ def run_slam(args: argparse.Namespace) -> int:
         from services.commands.gridslam import run_gridslam_command
 
         return run_gridslam_command(args)
+    from services.cli import UsageError
     from services.commands.gridslam import reject_filter_options
 
     reject_filter_options(args, args.algo)
+    if args.algo in ("odometry", "ekf"):
+        given = [option for option, value in (("--particles", args.particles), ("--plain-resampling",
+                                                                              args.plain_resampling or None))
+                 if value is not None]
+        if given:
+            raise UsageError(f"{', '.join(given)} only apply to FastSLAM, but the SLAM algorithm is {args.algo}; "
+                             "add --algo fastslam1 or fastslam2, or drop them")
     import numpy as np
     from tqdm import tqdm
 
