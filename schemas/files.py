@@ -284,6 +284,10 @@ def load_posed_scans(path: str | Path) -> PosedScans:
         raise FormatError(f"{path}: need 0 <= range_min < range_max, got {range_min} and {range_max}")
     if angle_increment == 0 and ranges.shape[1] > 1:
         raise FormatError(f"{path}: 'angle_increment' is 0 but the scans have {ranges.shape[1]} beams")
+    angle_min = _scalar(data, "angle_min", path, what)
+    for key, value in (("angle_min", angle_min), ("angle_increment", angle_increment)):
+        if abs(value) > 2 * np.pi:  # beyond a turn, the angles lose the precision that tells beams apart
+            raise FormatError(f"{path}: '{key}' = {value} rad is more than a full turn")
     offset = np.zeros(3)
     if "sensor_offset" in data:
         offset = _numeric(data["sensor_offset"], "sensor_offset", path).astype(np.float64)
@@ -291,7 +295,7 @@ def load_posed_scans(path: str | Path) -> PosedScans:
             raise FormatError(f"{path}: 'sensor_offset' must be 3 finite numbers (x m, y m, yaw rad), got {offset}")
     return PosedScans(
         ranges=ranges.astype(np.float32),
-        angle_min=_scalar(data, "angle_min", path, what),
+        angle_min=angle_min,
         angle_increment=angle_increment,
         range_min=range_min,
         range_max=range_max,

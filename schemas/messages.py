@@ -44,6 +44,9 @@ def _beams(v, fail):
         fail("shape", "'ranges' needs at least one beam")
     if v["angle_increment"] == 0 and v["ranges"].shape[0] > 1:
         fail("range", f"'angle_increment' is 0 but the scan has {v['ranges'].shape[0]} beams")
+    for key in ("angle_min", "angle_increment"):
+        if abs(v[key]) > 2 * np.pi:  # beyond a turn, the angles lose the precision that tells beams apart
+            fail("range", f"'{key}' = {v[key]} rad is more than a full turn")
 
 
 def _weights(v, fail):
@@ -96,7 +99,8 @@ class LaserScan(Message):
     VERSION = 1
     RULES = (
         Rule("range", "0 <= range_min < range_max", _range_limits),
-        Rule("range", "at least one beam; angle_increment != 0 when there are several", _beams),
+        Rule("range", "at least one beam; angle_increment != 0 when there are several; |angle_min| and "
+             "|angle_increment| <= 2 pi", _beams),
     )
 
     robot: str = spec(ROBOT)

@@ -91,6 +91,7 @@ def good_arrays(**override):
                  weights=np.zeros((0, 1))), "holds no steps"),
     (good_arrays(ranges=np.ones((2, 3), np.complex64)), "must hold real numbers"),
     (good_arrays(samples=np.full((2, 1, 3), "x")), "must hold real numbers"),
+    (good_arrays(angle_min=1e30), "'angle_min' = 1e+30 rad is more than a full turn"),
 ])
 def test_malformed_posed_files_exit_2_with_one_line(tmp_path, arrays, phrase):
     result = posegrid("fuse", str(_bad(tmp_path, "bad.npz", **arrays)), "-o", str(tmp_path / "m.npz"))

@@ -50,7 +50,7 @@ def laser_scans(draw):
     ranges = draw(hnp.arrays(np.float32, beams, elements=st.one_of(
         st.floats(0, 50, width=32), st.just(float("nan")), st.just(float("inf")))))
     range_min = draw(st.floats(0, 1))
-    return LaserScan(robot=draw(names), seq=draw(seqs), stamp=draw(finite), angle_min=draw(finite),
+    return LaserScan(robot=draw(names), seq=draw(seqs), stamp=draw(finite), angle_min=draw(st.floats(-6.28, 6.28)),
                      angle_increment=draw(st.floats(0.001, 0.1)), range_min=range_min,
                      range_max=range_min + draw(st.floats(0.5, 80)), sensor_offset=draw(f64(3)), ranges=ranges)
 
@@ -313,6 +313,8 @@ def scan(**overrides):
     {"robot": "map"},
     {"robot": ""},
     {"seq": -1},
+    {"angle_min": 1e30},  # every beam on one ray, once the angles are rounded
+    {"angle_increment": -7.0},
 ])
 def test_out_of_range_values(overrides):
     with pytest.raises(MessageError) as info:
