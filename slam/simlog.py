@@ -97,7 +97,7 @@ def _load(path: Path, shapes: dict[str, tuple]) -> dict[str, np.ndarray]:
     every array that names it, () a scalar."""
     if not path.is_file():
         raise LogFormatError(f"{path}: no such file (a simulator folder holds {CONTROLS_FILE} and {LANDMARKS_FILE})")
-    try:
+    try:  # as schemas.files.read_npz does, for LogFormatError: slam/ does not import schemas/ (tests/test_layers.py)
         loaded = np.load(path, allow_pickle=False)
         if isinstance(loaded, np.lib.npyio.NpzFile):
             with loaded as data:  # members are read (and inflated) here

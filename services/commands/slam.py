@@ -137,8 +137,7 @@ def run_simulate(args: argparse.Namespace) -> int:
               "--resolution": (args.resolution, 5e-3, 1.0), "--laser-sigma": (args.laser_sigma, 0.0, 1.0),
               "--fov": (args.fov, 1e-3, 2 * math.pi), "--range-max": (args.range_max, 0.1, 1000.0)}
     for option, (value, low, high) in limits.items():  # the office is 20 m x 12 m, its robot drives at 0.5 m/s
-        if not low <= value <= high:
-            raise UsageError(f"{option} must be in [{low:g}, {high:g}], got {value:g}")
+        _check_limits(option, value, (low, high))
     if args.steps * args.beams > MAX_SIMULATED_RANGES:
         raise UsageError(f"--steps x --beams is {args.steps * args.beams}, more than the {MAX_SIMULATED_RANGES:.0e} "
                          "ranges a run may hold (each scan's beams are kept in memory)")
