@@ -19,6 +19,7 @@ from pathlib import Path
 
 from bench.run import run_cli
 from bench.scenarios import SHARED_DATA
+from services.commands.slam import OPTION_ALGORITHMS
 
 DATA = SHARED_DATA / "mrclam7"
 ROBOTS = (1, 2, 3, 4, 5)
@@ -37,10 +38,12 @@ EXTRA_SEEDS = (1, 2)
 TARGET_INSIDE95 = 0.85
 
 
-def _score(tmp: Path, robot: int, args: list[str], seed: int) -> tuple[dict, float]:
-    """`posegrid slam ... --robot ROBOT --seed SEED` then `posegrid eval-traj`: the score's JSON and ms per step."""
+def _score(tmp: Path, robot: int, args: list[str], seed: int | None) -> tuple[dict, float]:
+    """`posegrid slam ... --robot ROBOT [--seed SEED]` then `posegrid eval-traj`: the score's JSON and ms per step
+    (seed None for the deterministic estimators, which refuse --seed)."""
     out = tmp / "poses.npz"
-    printed = run_cli(["slam", str(DATA), "--robot", str(robot), *args, "--seed", str(seed), "-o", str(out)])
+    seeded = [] if seed is None else ["--seed", str(seed)]
+    printed = run_cli(["slam", str(DATA), "--robot", str(robot), *args, *seeded, "-o", str(out)])
     score = json.loads(run_cli(["eval-traj", str(out), str(DATA / f"Robot{robot}_Groundtruth.dat")]))
     return score, float(re.search(r"([0-9.]+) ms per step", printed).group(1))
 
@@ -53,7 +56,7 @@ def run() -> dict:
         tmp = Path(folder)
         for name, args in ESTIMATORS.items():
             for robot in ROBOTS:
-                score, ms = _score(tmp, robot, args, seed=0)
+                score, ms = _score(tmp, robot, args, seed=0 if args[1] in OPTION_ALGORITHMS["--seed"] else None)
                 figures[f"r{robot}_{name}_ate_m"] = score["ate_rmse_m"]
                 figures[f"r{robot}_{name}_inside95"] = score["inside95"]
                 figures[f"r{robot}_{name}_nees"] = score["nees_mean"]

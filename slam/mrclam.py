@@ -18,7 +18,7 @@ import numpy as np
 
 from slam.errors import LogFormatError
 from slam.motion import VelocityMotionModel
-from slam.range_bearing import RangeBearingModel
+from slam.range_bearing import BEARING_LIMIT, RangeBearingModel
 from slam.sequence import SlamSequence
 
 #: subjects 1..ROBOT_SUBJECTS are robots; larger subjects are landmarks
@@ -85,6 +85,7 @@ class MrclamRobot:
     skipped_robots: int  # measurements of other robots
     skipped_unknown: int  # measurements of barcodes in no table
     skipped_outside: int  # landmark measurements stamped before the first or after the last odometry row
+    skipped_invalid: int  # landmark measurements with a range <= 0 m or |bearing| > BEARING_LIMIT rad
 
 
 def find_robots(folder: str | Path) -> list[int]:
@@ -115,19 +116,22 @@ def read_mrclam(folder: str | Path, robot: int) -> MrclamRobot:
     odometry = read_table(folder / f"Robot{robot}_Odometry.dat", "Odometry")
     is_landmark = subjects > ROBOT_SUBJECTS
     inside = (raw[:, 0] >= odometry[0, 0]) & (raw[:, 0] <= odometry[-1, 0])
+    valid = (raw[:, 2] > 0.0) & (np.abs(raw[:, 3]) <= BEARING_LIMIT)
+    kept = is_landmark & inside & valid
     gt_path = folder / f"Robot{robot}_Groundtruth.dat"
     lm_path = folder / "Landmark_Groundtruth.dat"
     landmark_truth = read_table(lm_path, "Landmark_Groundtruth", timed=False)[:, :3] if lm_path.is_file() else None
     return MrclamRobot(
         robot=robot,
         odometry=odometry,
-        measurements=raw[is_landmark & inside][:, [0, 2, 3]],
-        subjects=subjects[is_landmark & inside],
+        measurements=raw[kept][:, [0, 2, 3]],
+        subjects=subjects[kept],
         groundtruth=read_groundtruth(gt_path) if gt_path.is_file() else None,
         landmark_truth=landmark_truth,
         skipped_robots=int(np.sum((subjects >= 1) & (subjects <= ROBOT_SUBJECTS))),
         skipped_unknown=int(np.sum(subjects < 0)),
         skipped_outside=int(np.sum(is_landmark & ~inside)),
+        skipped_invalid=int(np.sum(is_landmark & inside & ~valid)),
     )
 
 

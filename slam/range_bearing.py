@@ -21,6 +21,8 @@ SIGMA_RANGE_LIMITS = (1e-3, 1e3)
 SIGMA_BEARING_LIMITS = (1e-3, math.pi)
 #: range std growth in m per m of range: at most 1 (a std as large as the range itself)
 RANGE_FRACTION_LIMITS = (0.0, 1.0)
+#: rad: a measured bearing beyond a full turn either way is no bearing (the logs' readers refuse or skip it)
+BEARING_LIMIT = 2.0 * math.pi
 
 
 @dataclass(frozen=True)

@@ -28,7 +28,7 @@ import numpy as np
 from slam.errors import LogFormatError
 from slam.laserlog import POSE_LIMIT
 from slam.motion import ALPHA_LIMITS, OdometryMotionModel, VelocityMotionModel, odometry_controls
-from slam.range_bearing import SIGMA_BEARING_LIMITS, SIGMA_RANGE_LIMITS, RangeBearingModel
+from slam.range_bearing import BEARING_LIMIT, SIGMA_BEARING_LIMITS, SIGMA_RANGE_LIMITS, RangeBearingModel
 from slam.sequence import SlamSequence
 
 CONTROLS_FILE = "controls.npz"
@@ -153,8 +153,8 @@ def load_sim_log(folder: str | Path) -> SimLog:
         "commands": pose_range, "odometry": pose_range, "initial_pose": pose_range, "velocity_alphas": ALPHA_LIMITS,
         "velocity_dt_ref": DT_REF_LIMITS, "odometry_alphas": ALPHA_LIMITS})
     _check_within(folder / LANDMARKS_FILE, m, {
-        "range": (0.0, POSE_LIMIT), "sigma_range": SIGMA_RANGE_LIMITS, "sigma_bearing": SIGMA_BEARING_LIMITS,
-        "truth": pose_range})
+        "range": (0.0, POSE_LIMIT), "bearing": (-BEARING_LIMIT, BEARING_LIMIT), "sigma_range": SIGMA_RANGE_LIMITS,
+        "sigma_bearing": SIGMA_BEARING_LIMITS, "truth": pose_range})
     return SimLog(
         stamps=c["stamps"].astype(np.float64),
         commands=c["commands"].astype(np.float64),

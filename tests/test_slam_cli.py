@@ -225,9 +225,16 @@ def test_eval_traj_refuses_ground_truth_from_another_time_base(simdir, tmp_path,
 
 
 @pytest.mark.parametrize("algo, options, phrase", [
-    ("ekf", ["--particles", "100"], "--particles only apply to FastSLAM"),
-    ("odometry", ["--plain-resampling"], "--plain-resampling only apply to FastSLAM"),
+    ("ekf", ["--particles", "100"],
+     "--particles does not apply to --algo ekf (only to fastslam1, fastslam2, gridslam)"),
+    ("odometry", ["--plain-resampling"], "--plain-resampling does not apply to --algo odometry"),
+    ("ekf", ["--seed", "3", "--resample-threshold", "0.3"], "--seed, --resample-threshold do not apply to --algo ekf"),
+    ("odometry", ["--associate", "unknown", "--sigma-range", "0.2"],
+     "--associate, --sigma-range do not apply to --algo odometry (only to ekf, fastslam1, fastslam2)"),
+    ("gridslam", ["--associate", "known"], "--associate does not apply to --algo gridslam"),
+    ("gridslam", ["--motion", "velocity", "--raw-ranges"], "--raw-ranges, --motion do not apply to --algo gridslam"),
     ("ekf", ["--raw-commands"], "a simulator folder has none"),
+    ("fastslam1", ["--period", "0.5"], "--period is for MRCLAM folders"),
 ])
 def test_options_the_filter_would_ignore_are_refused(simdir, tmp_path, capsys, algo, options, phrase):
     out = tmp_path / "x.npz"
@@ -280,6 +287,7 @@ def _altered_copy(simdir: Path, folder: Path, name: str, **arrays) -> Path:
     ("controls.npz", "velocity_dt_ref", 0.0, "'velocity_dt_ref' must lie in [0.001, 1000]"),
     ("controls.npz", "odometry", "1e300", "'odometry' must lie in [-1e+07, 1e+07]"),
     ("landmarks.npz", "range", "-1", "'range' must lie in [0, 1e+07]"),
+    ("landmarks.npz", "bearing", "1e20", "'bearing' must lie in [-6.28319, 6.28319]"),
     ("landmarks.npz", "sigma_bearing", 1e-300, "'sigma_bearing' must lie in [0.001, 3.14159]"),
     ("landmarks.npz", "id", "0.5", "'id' must hold whole numbers"),
 ])

@@ -153,6 +153,16 @@ def test_dataset7_counts():
     assert np.diff(seq.stamps).max() <= 0.2 + 1e-6  # stamps near 1.2e9 s carry about 1e-7 s of rounding
 
 
+def test_measurements_with_no_range_or_no_bearing_are_skipped_and_counted(sample):
+    """A landmark seen at a range <= 0 m or a bearing beyond a full turn is no measurement: skipped, counted."""
+    path = sample / "Robot1_Measurement.dat"
+    path.write_text(path.read_text() + "100.35 \t 63 \t -2.0 \t 0.1\r\n100.4 \t 81 \t 0.0 \t 0.0\r\n"
+                    "100.4 \t 63 \t 1.0 \t 7.0\r\n100.4 \t 81 \t 1.2 \t -6.0\r\n", newline="")
+    run = read_mrclam(sample, 1)
+    assert run.skipped_invalid == 3
+    np.testing.assert_allclose(run.measurements, [[100.1, 2.0, 0.1], [100.3, 1.5, -0.2], [100.4, 1.2, -6.0]])
+
+
 def test_measurements_outside_the_odometry_are_skipped_and_counted(sample):
     # odometry 100.05-100.45 s: a landmark seen at 100.0 or 101.0 has no command to move the robot there
     path = sample / "Robot1_Measurement.dat"

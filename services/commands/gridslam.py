@@ -228,9 +228,6 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
     from services.commands.logs import read_log
     from slam.gridslam import run_gridslam
 
-    for option in ("robot", "initial", "alphas", "sigma_range", "sigma_bearing", "outlier_gate"):
-        if getattr(args, option, None) is not None:
-            raise UsageError(f"--{option.replace('_', '-')} does not apply to --algo gridslam")
     config = _config(args)
     best_path, poses_path = _output_paths(args)
     if args.scans is not None and args.scans < 2:

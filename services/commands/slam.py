@@ -26,6 +26,23 @@ MAX_SIMULATED_RANGES = 10 ** 8
 #: MRCLAM: the shortest --period in s; the commands come at about 67 Hz, so a finer grid adds steps (and memory:
 #: steps x particles x 3 floats) without information
 MIN_PERIOD = 0.01
+#: defaults of the options whose default is None in the parser, so that an option given to an algorithm that
+#: would ignore it can be told from one left alone (:func:`_refuse_ignored_options`)
+SLAM_DEFAULTS = {"seed": 0, "associate": "known", "motion": "velocity", "resample_threshold": 0.5}
+#: MRCLAM: the default --period in s (a simulator folder has a pose at every step and refuses --period)
+DEFAULT_PERIOD = 0.2
+
+_LANDMARK_FILTERS = ("ekf", "fastslam1", "fastslam2")
+_FASTSLAMS = ("fastslam1", "fastslam2")
+#: the algorithms each option of `posegrid slam` applies to (grid FastSLAM's own options: gridslam.py)
+OPTION_ALGORITHMS = {
+    "--particles": _FASTSLAMS + ("gridslam",), "--seed": _FASTSLAMS + ("gridslam",),
+    "--resample-threshold": _FASTSLAMS + ("gridslam",), "--plain-resampling": _FASTSLAMS,
+    "--associate": _LANDMARK_FILTERS, "--sigma-range": _LANDMARK_FILTERS, "--sigma-bearing": _LANDMARK_FILTERS,
+    "--range-fraction": _LANDMARK_FILTERS, "--outlier-gate": _LANDMARK_FILTERS,
+    **{option: ("odometry",) + _LANDMARK_FILTERS
+       for option in ("--alphas", "--robot", "--initial", "--period", "--raw-ranges", "--raw-commands", "--motion")},
+}
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -69,22 +86,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       "gridslam: grid FastSLAM on a laser log")
     slam.add_argument("--particles", type=pose_sample_count, default=None,
                       help="FastSLAM particles (default %d)" % DEFAULT_PARTICLES)
-    slam.add_argument("--seed", type=random_seed, default=0, help="seed of the particle filter (default 0)")
-    slam.add_argument("--associate", choices=("known", "unknown"), default="known",
+    slam.add_argument("--seed", type=random_seed, default=None,
+                      help="seed of the particle filter (default %d)" % SLAM_DEFAULTS["seed"])
+    slam.add_argument("--associate", choices=("known", "unknown"), default=None,
                       help="landmark correspondences: known ids (default) or estimated (EKF: nearest in "
                       "Mahalanobis distance with gating; FastSLAM: per-particle maximum likelihood)")
     slam.add_argument("--robot", type=int, default=None, help="MRCLAM: robot number K (RobotK_*.dat)")
     slam.add_argument("--initial", type=str, default=None, metavar="X,Y,YAW",
                       help="MRCLAM: start pose in m, m, rad (default: the first ground-truth pose)")
-    slam.add_argument("--period", type=finite_float, default=0.2,
+    slam.add_argument("--period", type=finite_float, default=None,
                       help="MRCLAM: output a pose at least every PERIOD s besides every landmark-measurement "
-                      "stamp (default 0.2, at least %g)" % MIN_PERIOD)
+                      "stamp (default %g, at least %g)" % (DEFAULT_PERIOD, MIN_PERIOD))
     slam.add_argument("--raw-ranges", action="store_true",
                       help="MRCLAM: use the ranges as logged, without the bearing-dependent range calibration")
     slam.add_argument("--raw-commands", action="store_true",
                       help="MRCLAM: use the velocity commands as logged, without scaling them to the speeds the "
                       "robots executed (slam.mrclam.MRCLAM_VELOCITY_SCALE, docs/slam.md)")
-    slam.add_argument("--motion", choices=("velocity", "odometry"), default="velocity",
+    slam.add_argument("--motion", choices=("velocity", "odometry"), default=None,
                       help="simulator: the velocity commands (default) or the odometry readings as controls")
     noise = slam.add_argument_group("noise models (defaults: the simulator's own; for MRCLAM the values "
                                     "fitted in docs/slam.md)")
@@ -101,8 +119,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     noise.add_argument("--outlier-gate", type=finite_float, default=None, metavar="D2",
                        help="known ids: ignore a measurement whose squared Mahalanobis distance exceeds D2 "
                        "(FastSLAM: per particle, likelihood capped at D2); 'inf' turns it off")
-    noise.add_argument("--resample-threshold", type=finite_float, default=0.5,
-                       help="FastSLAM: resample when N_eff < this fraction of the particles (default 0.5)")
+    noise.add_argument("--resample-threshold", type=finite_float, default=None,
+                       help="FastSLAM: resample when N_eff < this fraction of the particles (default %g)"
+                       % SLAM_DEFAULTS["resample_threshold"])
     noise.add_argument("--plain-resampling", action="store_true",
                        help="FastSLAM: resample the particles' map frames with them, as the textbook does "
                        "(default: keep every frame, known ids only; docs/slam.md)")
@@ -202,6 +221,8 @@ def _load_input(args: argparse.Namespace):
             raise UsageError("--robot and --initial are for MRCLAM folders; a simulator folder starts at its true pose")
         if args.raw_ranges or args.raw_commands:
             raise UsageError("--raw-ranges and --raw-commands undo MRCLAM's calibrations; a simulator folder has none")
+        if args.period is not None:
+            raise UsageError("--period is for MRCLAM folders; a simulator folder has a pose at every step")
         log = load_sim_log(args.input)
         sequence = log.sequence(args.motion)
         motion = log.velocity_model if args.motion == "velocity" else log.odometry_model
@@ -213,16 +234,18 @@ def _load_input(args: argparse.Namespace):
             raise UsageError(f"{args.input} is an MRCLAM folder: pick a robot with --robot K (here: {robots})")
         if args.motion != "velocity":
             raise UsageError("MRCLAM logs hold velocity commands only: drop --motion odometry")
-        if not args.period >= MIN_PERIOD:
+        period = DEFAULT_PERIOD if args.period is None else args.period
+        if not period >= MIN_PERIOD:
             raise UsageError(f"--period must be at least {MIN_PERIOD:g} s (the commands come about every "
-                             f"0.015 s), got {args.period:g}")
+                             f"0.015 s), got {period:g}")
         initial = _initial_pose(args.initial) if args.initial is not None else None
         run = mrclam.read_mrclam(args.input, args.robot)
-        sequence = mrclam.mrclam_sequence(run, initial_pose=initial, period=args.period,
+        sequence = mrclam.mrclam_sequence(run, initial_pose=initial, period=period,
                                           range_calibration=None if args.raw_ranges else mrclam.MRCLAM_RANGE_CALIBRATION,
                                           velocity_scale=None if args.raw_commands else mrclam.MRCLAM_VELOCITY_SCALE)
         notes = (f"skipped {run.skipped_robots} measurements of robots, {run.skipped_unknown} of barcodes "
-                 f"in no table and {run.skipped_outside} stamped outside the odometry's time span")
+                 f"in no table, {run.skipped_outside} stamped outside the odometry's time span and "
+                 f"{run.skipped_invalid} with a range <= 0 m or a bearing beyond a full turn")
         return (sequence, mrclam.MRCLAM_MOTION, mrclam.MRCLAM_SENSOR,
                 mrclam.MRCLAM_OUTLIER_GATE, None, notes)
     if not args.input.exists():
@@ -286,22 +309,32 @@ def _make_filter(args: argparse.Namespace, motion, sensor, gate, initial):
                     outlier_gate=gate, preserve_gauge=not args.plain_resampling)
 
 
-def run_slam(args: argparse.Namespace) -> int:
-    if args.algo == "gridslam":  # laser logs: services/commands/gridslam.py
-        from services.commands.gridslam import run_gridslam_command
-
-        return run_gridslam_command(args)
+def _refuse_ignored_options(args: argparse.Namespace) -> None:
+    """Raise UsageError when an option is given to an algorithm that would ignore it (:data:`OPTION_ALGORITHMS`;
+    grid FastSLAM's own options: :func:`services.commands.gridslam.reject_filter_options`), then put the
+    defaults of :data:`SLAM_DEFAULTS` in place of the options left alone."""
     from services.cli import UsageError
     from services.commands.gridslam import reject_filter_options
 
     reject_filter_options(args, args.algo)
-    if args.algo in ("odometry", "ekf"):
-        given = [option for option, value in (("--particles", args.particles), ("--plain-resampling",
-                                                                              args.plain_resampling or None))
-                 if value is not None]
-        if given:
-            raise UsageError(f"{', '.join(given)} only apply to FastSLAM, but the SLAM algorithm is {args.algo}; "
-                             "add --algo fastslam1 or fastslam2, or drop them")
+    ignored = [option for option, algorithms in OPTION_ALGORITHMS.items()
+               if args.algo not in algorithms and getattr(args, option[2:].replace("-", "_")) not in (None, False)]
+    if ignored:
+        users = sorted({algo for option in ignored for algo in OPTION_ALGORITHMS[option]}, key=ALGORITHMS.index)
+        raise UsageError(f"{', '.join(ignored)} {'does' if len(ignored) == 1 else 'do'} not apply to --algo "
+                         f"{args.algo} (only to {', '.join(users)}): drop {'it' if len(ignored) == 1 else 'them'} "
+                         "or pick another --algo")
+    for name, value in SLAM_DEFAULTS.items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
+
+
+def run_slam(args: argparse.Namespace) -> int:
+    _refuse_ignored_options(args)
+    if args.algo == "gridslam":  # laser logs: services/commands/gridslam.py
+        from services.commands.gridslam import run_gridslam_command
+
+        return run_gridslam_command(args)
     import numpy as np
     from tqdm import tqdm
 
