@@ -253,6 +253,19 @@ def test_bad_tile_requests_are_4xx_with_a_reason(api):
     assert "'format'" in problem(httpx.get(f"{api}/maps/{MAP}/export", timeout=30), 422)
 
 
+def test_the_tile_cache_takes_only_what_fastapi_would_answer_alike(api):
+    """Arabic-Indic and fullwidth digits are no integers or numbers to FastAPI (422), and the cache in front of
+    it must not answer them with the ASCII tile it holds (it did: \\d matches them and int() reads them)."""
+    b = httpx.get(f"{api}/maps/{MAP}", timeout=30).json()["tile_bounds"]
+    x, y = b["x_min"], b["y_min"]
+    tile = f"{api}/maps/{MAP}/tiles/0/{x}/{y}.png"
+    for params in ({}, {"layer": "variance", "vmax": "4"}):
+        assert httpx.get(tile, params=params, timeout=30).status_code == 200  # now cached
+    arabic = "".join(chr(0x660 + int(d)) if d.isdigit() else d for d in str(x))  # U+0660.. are 0-9
+    assert "'x'" in problem(httpx.get(f"{api}/maps/{MAP}/tiles/0/{arabic}/{y}.png", timeout=30), 422)
+    assert "'vmax'" in problem(httpx.get(tile, params={"layer": "variance", "vmax": "\uff14"}, timeout=30), 422)
+
+
 # ------------------------------------------------------------------------------------------ export
 
 
@@ -470,3 +483,13 @@ def test_a_stopped_shard_shows_in_health_and_stops_the_export(api, stack):
     assert [(s["shard"], s["alive"], s["answered"]) for s in stats["per_shard"]] == [(0, True, True), (1, False, False)]
     detail = problem(httpx.get(f"{api}/maps/{MAP}/export", params={"format": "npz"}, timeout=60), 503)
     assert "shard" in detail
+
+
+def test_a_map_whose_only_tiles_may_lie_on_a_down_shard_is_503_not_empty(api, stack):
+    """Shard 0 of 2 of a new map runs and holds nothing; shard 1 never started. A tile and an export are 503 (the
+    data may be on shard 1), not 404 / 409 "no tiles yet" (they were)."""
+    stack.start("half0", "mapper", "--shard", "0", "--shards", "2", "--map", "half")
+    wait_until(lambda: httpx.get(f"{api}/maps/half", timeout=30).status_code == 200
+               and httpx.get(f"{api}/maps/half", timeout=30).json()["shards_alive"] == [0], 60, "map 'half' to show")
+    assert "shard(s) [1]" in problem(httpx.get(f"{api}/maps/half/tiles/0/0/0.png", timeout=30), 503)
+    assert "shard(s) [1]" in problem(httpx.get(f"{api}/maps/half/export", params={"format": "npz"}, timeout=60), 503)

@@ -157,6 +157,24 @@ def test_event_hub_batches_changes_per_flush():
     asyncio.run(scenario())
 
 
+def test_a_client_gone_while_its_stream_waits_leaves_no_task_behind():
+    """uvicorn cancels a disconnected client's stream inside asyncio.wait: the queue getter must go with it
+    (it used to stay pending: "Task was destroyed but it is pending!" in the log, once per client)."""
+    async def scenario():
+        hub = EventHub("e", interval=0.01, backlog=2)
+        stream = hub.stream()
+        assert "hello" in await stream.__anext__()
+        waiting = asyncio.ensure_future(stream.__anext__())
+        await asyncio.sleep(0.05)  # inside asyncio.wait now (the keep-alive is seconds away)
+        waiting.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await waiting
+        await asyncio.sleep(0)  # let the cancelled getter finish
+        assert [task for task in asyncio.all_tasks() if task is not asyncio.current_task()] == []
+        assert hub.clients == 0
+    asyncio.run(scenario())
+
+
 def test_logodds_png_spans_the_sensor_models_clamping_range():
     model = SensorModel()
     assert LOGODDS_RANGE == pytest.approx((logit(model.p_min), logit(model.p_max)), rel=1e-12)

@@ -149,8 +149,15 @@ def create_app(backend: Backend) -> FastAPI:
         tiles.sync(name)
         return info
 
+    def down_shards(info: MapInfo) -> list[int]:
+        """The shards of the map that hold no liveliness token now (none while their count is unknown)."""
+        return sorted(set(range(info.shards or 0)) - set(info.alive))
+
     def check_tile(info: MapInfo, z: int, x: int, y: int) -> None:
         if info.x_range is None:
+            if down_shards(info):  # its tiles may all lie on a shard that is down
+                raise HTTPException(503, f"map {info.name!r} has no tiles from its live shards, and shard(s) "
+                                    f"{down_shards(info)} are down")
             raise HTTPException(404, f"map {info.name!r} has no tiles yet")
         if z > info.top_level:
             raise HTTPException(404, f"zoom level {z} is beyond the coarsest level of map {info.name!r}, "
@@ -255,6 +262,10 @@ def create_app(backend: Backend) -> FastAPI:
         stats = link.stats(map)
         if not stats:
             raise HTTPException(503, f"no shard of map {map!r} answered")
+        silent = sorted(set(range(max(s.shards for s in stats.values()))) - set(stats))
+        if silent:  # checked before "no tiles yet": the tiles may all lie on them
+            raise HTTPException(503, f"shard(s) {silent} of map {map!r} did not answer; the export would miss "
+                                "their tiles")
         if info.resolution is None:
             raise HTTPException(409, f"map {map!r} has no tiles yet")
         try:

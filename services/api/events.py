@@ -100,6 +100,7 @@ class EventHub:
         queue: asyncio.Queue[str] = asyncio.Queue(self.backlog)
         self._clients.add(queue)
         closed = asyncio.ensure_future(self._closed.wait())
+        getter: asyncio.Future | None = None
         try:
             yield "retry: 2000\n\n" + sse("hello", {"epoch": self.epoch})
             while not self._closed.is_set():
@@ -111,8 +112,10 @@ class EventHub:
                     getter.cancel()
                     if not done:
                         yield ": keep-alive\n\n"
-        finally:
+        finally:  # a client gone inside asyncio.wait leaves its getter pending: cancel it with the rest
             closed.cancel()
+            if getter is not None:
+                getter.cancel()
             self._clients.discard(queue)
 
     @property
