@@ -106,6 +106,7 @@ class Mapper:
                 with self.lock:
                     self.shard.handle(key, payload)
             with self.lock:
+                self.shard.settle()
                 self._refresh_stats()
                 flush = self.shard.caught_up() and self.intake.empty()
                 updates, next_due = self.shard.due_updates(time.monotonic(), flush=flush)

@@ -64,10 +64,10 @@ class RejectCounter:
         self._logged: set[tuple[str, str]] = set()
         self.by_key: Counter[str] = Counter()
 
-    def count(self, key: str, kind: str, detail: str) -> None:
-        """Count one message on ``key`` dropped for ``kind``; log ``detail`` the first time per (key, kind)."""
+    def count(self, key: str, kind: str, detail: str, times: int = 1) -> None:
+        """Count ``times`` messages on ``key`` dropped for ``kind``; log ``detail`` the first time per (key, kind)."""
         with self._lock:
-            self.by_key[key] += 1
+            self.by_key[key] += times
             first = (key, kind) not in self._logged
             self._logged.add((key, kind))
         if first:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter, OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,7 +24,7 @@ from mapping.sensor_model import SensorModel
 from schemas.messages import POSE_TYPES, LaserScan, MessageError, PoseGaussian, ShardStats, StreamEnd, TileUpdate, \
     decode_message
 from services import keys
-from services.join import JoinBuffer, SeqLedger
+from services.join import GIVEN_UP_BECAUSE, MISSING, ORPHANED, OVERFLOW, GivenUp, JoinBuffer, SeqLedger
 from services.ownership import owns_tile
 from services.process import RejectCounter, get_logger
 
@@ -34,6 +35,9 @@ TileKey = tuple[int, int]
 FUSIONS_KEPT = 4
 #: a fused seq more than this many times the join capacity below a robot's highest counts as done
 SEQ_HORIZON_JOINS = 8
+#: s of silence from a robot whose scan stream has ended after which the scans still waiting for a pose are
+#: given up (:meth:`MapShard.settle`)
+SETTLE_AFTER = 15.0
 
 
 @dataclass(frozen=True)
@@ -58,7 +62,7 @@ class ShardConfig:
 class MapShard:
     """One shard's grid and bookkeeping. Not thread-safe: callers serialise access (services.mapper)."""
 
-    def __init__(self, config: ShardConfig, rejects: RejectCounter):
+    def __init__(self, config: ShardConfig, rejects: RejectCounter, clock: Callable[[], float] = time.monotonic):
         self.config = config
         self.grid = TiledGrid(config.model.resolution, config.tile_size)
         self.owns = owns_tile(config.shard, config.shards)
@@ -72,6 +76,8 @@ class MapShard:
         self.fused: Counter[str] = Counter()
         self.discarded: Counter[str] = Counter()
         self.ended: dict[str, int] = {}
+        self._clock = clock
+        self._heard: dict[str, float] = {}  # robot -> when a message on its keys last came (clock s)
         self.join_overflow = 0
         self.cells_updated = 0
         self.tile_updates = 0
@@ -85,6 +91,7 @@ class MapShard:
     def handle(self, key: str, payload: bytes) -> None:
         """Decode one message received on ``key`` and act on it; a bad one is counted and dropped."""
         self.received[key] += 1
+        self._heard[keys.robot_of(key)] = self._clock()
         stream = key.rsplit("/", 1)[-1]
         expected = {keys.SCAN: (LaserScan,), keys.POSE: POSE_TYPES, keys.END: (StreamEnd,)}[stream]
         try:
@@ -95,7 +102,7 @@ class MapShard:
         if message.robot != keys.robot_of(key):
             self.rejects.count(key, "robot", f"a {message.TYPE} of robot {message.robot!r} arrived on {key}")
             return
-        if isinstance(message, StreamEnd):
+        if isinstance(message, StreamEnd):  # (it may overtake the last scans: each key has its own callback thread)
             self.ended[message.robot] = message.scans
             return
         if self._fused_seqs.done(message.robot, message.seq):
@@ -104,18 +111,23 @@ class MapShard:
             return
         join_key = (message.robot, message.seq)
         if isinstance(message, LaserScan):
-            pair, evicted = self._join.add_scan(join_key, message)
+            pair, gone = self._join.add_scan(join_key, message)
         else:
-            pair, evicted = self._join.add_pose(join_key, message)
-        for gone in evicted:
-            self.join_overflow += 1
-            if gone.was_scan:
-                self.discarded[gone.key[0]] += 1
-            self.rejects.count(f"join/{gone.key[0]}", "overflow",
-                               f"the join buffer ({self.config.join_capacity}) was full; gave up on seq {gone.key[1]} "
-                               f"({'scan' if gone.was_scan else 'pose'} without its partner)")
+            pair, gone = self._join.add_pose(join_key, message)
+        self._give_up(gone)
         if pair is not None:
             self._fuse(*pair)
+
+    def _give_up(self, gone: list[GivenUp]) -> None:
+        """Count the halves the join gave up on (services.join): scans that never came or whose pose never
+        comes are discarded scans; every half is counted under join/<robot> by reason, the first logged."""
+        for half in gone:
+            if half.scans and half.reason in (OVERFLOW, MISSING, ORPHANED):
+                self.discarded[half.robot] += half.count
+            if half.reason == OVERFLOW:
+                self.join_overflow += half.count
+            self.rejects.count(f"join/{half.robot}", half.reason,
+                               f"{half.describe()}: {GIVEN_UP_BECAUSE[half.reason]}", times=half.count)
 
     # ------------------------------------------------------------------------------- fusion
     def warm_up(self) -> None:
@@ -172,6 +184,17 @@ class MapShard:
             self._last_scan[tile] = (scan.robot, scan.seq)
 
     # ------------------------------------------------------------------------------- progress
+    def settle(self) -> None:
+        """Once a robot's stream has ended and nothing of the robot has come for SETTLE_AFTER s, give up on the
+        scans after the last one seen (lost in transit with the end of the stream, say while this shard was cut
+        off) and on the scans still waiting for a pose (lost too, or the SLAM node gave up on the last steps: a
+        pose stream has no end mark). Counted as discarded, so the shard catches up. (The end of a stream can
+        overtake its last scans on the way in, so it is not taken as proof that they are lost.)"""
+        now = self._clock()
+        for robot, scans in self.ended.items():
+            if self.fused[robot] + self.discarded[robot] < scans and now - self._heard.get(robot, now) > SETTLE_AFTER:
+                self._give_up(self._join.end(robot, scans) + self._join.give_up(robot))
+
     def caught_up(self) -> bool:
         """Whether every ended stream has all its scans fused or discarded."""
         return bool(self.ended) and all(self.fused[r] + self.discarded[r] >= n for r, n in self.ended.items())

@@ -9,7 +9,7 @@ control BLOCK.
 Before the first message the source waits for the liveliness tokens of ``wait_mappers`` mapper shards (and
 of the robot's SLAM node with ``wait_slam``), so nothing is published before its subscribers are up. After
 the last step it publishes a StreamEnd with the number of scans, and, when it waited for mappers, waits
-until every shard has acknowledged that end in its stats.
+until every shard has acknowledged that end in its stats, publishing it again every END_REPEAT s meanwhile.
 """
 from __future__ import annotations
 
@@ -43,6 +43,8 @@ STREAM_OF = {LaserScan: keys.SCAN, Odometry: keys.ODOM, LandmarkObservations: ke
 
 #: how long the source waits for subscribers to appear, or for a stalled mapper to make progress, s
 WAIT_TIMEOUT = 60.0
+#: s between two publications of the end of the stream while a shard has not acknowledged it
+END_REPEAT = 1.0
 
 
 class SourceStalled(RuntimeError):
@@ -88,6 +90,7 @@ class Source:
         self._scans_done = 0  # scans every waited-for shard has fused or given up on
         self._steps_done = 0  # steps the SLAM node has taken or given up on
         self._reader = MapReader(session, options.map_name)
+        self._end_sent = 0.0  # time.monotonic() of the last StreamEnd published
 
     def _publisher(self, stream: str) -> zenoh.Publisher:
         if stream not in self._publishers:
@@ -180,10 +183,17 @@ class Source:
                 raise SourceStalled(f"the subscribers took nothing for {WAIT_TIMEOUT:.0f} s (shards: {self._scans_done} "
                                     f"of {scans_sent} scans, SLAM node: {self._steps_done} of {steps_sent} steps)")
 
-    def _ended_everywhere(self, count: int) -> bool:
+    def _ended_everywhere(self, end: StreamEnd) -> bool:
+        """Whether every shard waited for knows the end of the stream; if not, the end is published again (at
+        most every END_REPEAT s): a shard that missed it, say while its Zenoh session was closed, would wait
+        for it for ever."""
         stats = self._shard_stats()
-        return len(stats) >= self.options.wait_mappers and all(
-            s.ended.get(self.stream.robot) == count for s in stats)
+        if len(stats) >= self.options.wait_mappers and all(s.ended.get(end.robot) == end.scans for s in stats):
+            return True
+        if time.monotonic() - self._end_sent >= END_REPEAT:
+            self._publish(end)
+            self._end_sent = time.monotonic()
+        return False
 
     # ------------------------------------------------------------------------------- run
     def _stopped(self) -> int:
@@ -218,12 +228,14 @@ class Source:
                 for message in step.messages:
                     self._publish(message)
                     scans_sent += isinstance(message, LaserScan)
-            self._publish(StreamEnd(robot=stream.robot, scans=scans_sent))
+            end = StreamEnd(robot=stream.robot, scans=scans_sent)
+            self._publish(end)
+            self._end_sent = time.monotonic()
             elapsed = time.monotonic() - started
             self.log.info("published %d scans in %.2f s (%.1f scans/s)", scans_sent, elapsed,
                           scans_sent / max(elapsed, 1e-9))
             if opts.wait_mappers and not self._wait_for("every shard to acknowledge the end of the stream",
-                                                        lambda: self._ended_everywhere(scans_sent), stop):
+                                                        lambda: self._ended_everywhere(end), stop):
                 return self._stopped()
             return 0
         finally:

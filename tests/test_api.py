@@ -323,6 +323,7 @@ def test_stats_and_health(api):
     stats = httpx.get(f"{api}/maps/{MAP}/stats", timeout=30).json()
     assert (stats["shards"], stats["shards_alive"]) == (SHARDS, [0, 1])
     assert stats["scans_fused"] == {"robot0": SCANS} and stats["lag_scans"] == {"robot0": 0}
+    assert stats["scans_discarded"] == {"robot0": 0}
     for shard in stats["per_shard"]:
         assert shard["alive"] and shard["answered"]
         assert shard["received"]["pg/robot0/scan"] == SCANS and shard["tiles_owned"] > 0

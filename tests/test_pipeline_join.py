@@ -11,35 +11,64 @@ from hypothesis import strategies as st
 
 from mapping.sensor_model import SensorModel
 from schemas.messages import LaserScan, PoseGaussian, PoseSamples, StreamEnd
-from services.join import JoinBuffer, SeqLedger
+from services.join import MAX_GAP, JoinBuffer, SeqLedger
 from services.process import RejectCounter
-from services.shard import FUSIONS_KEPT, MapShard, ShardConfig
+from services.shard import FUSIONS_KEPT, SETTLE_AFTER, MapShard, ShardConfig
 from services.steps import OutOfOrder, StepAssembler
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.permutations([(kind, seq) for seq in range(8) for kind in ("scan", "pose")]))
-def test_join_pairs_every_scan_with_its_pose_in_any_order(arrivals):
+@given(st.permutations(["scan"] * 8 + ["pose"] * 8))
+def test_join_pairs_every_scan_with_its_pose_however_the_streams_interleave(kinds):
+    """Each stream comes in seq order (one publisher each); any interleaving of the two pairs every seq."""
     buffer = JoinBuffer(capacity=16)
-    pairs = []
-    for kind, seq in arrivals:
+    pairs, next_seq = [], {"scan": 0, "pose": 0}
+    for kind in kinds:
+        seq = next_seq[kind]
+        next_seq[kind] += 1
         add = buffer.add_scan if kind == "scan" else buffer.add_pose
-        pair, evicted = add(("r", seq), f"{kind}{seq}")
-        assert evicted == []
+        pair, gone = add(("r", seq), f"{kind}{seq}")
+        assert gone == []
         if pair is not None:
             pairs.append(pair)
     assert sorted(pairs) == [(f"scan{seq}", f"pose{seq}") for seq in range(8)]
-    assert len(buffer) == 0
+    assert len(buffer) == 0 and buffer.end("r", 8) == []
+
+
+def _given_up(gone) -> list[tuple]:
+    return [(g.robot, g.first, g.count, "scan" if g.scans else "pose", g.reason) for g in gone]
 
 
 def test_join_overflow_evicts_the_oldest_and_says_so():
     buffer = JoinBuffer(capacity=3)
     for seq in range(3):
         assert buffer.add_scan(("r", seq), seq) == (None, [])
-    pair, evicted = buffer.add_pose(("r", 7), "p7")
-    assert pair is None and [(e.key, e.was_scan) for e in evicted] == [(("r", 0), True)]
-    assert buffer.add_pose(("r", 0), "p0")[0] is None  # its scan is gone: it waits in turn
-    assert buffer.add_pose(("r", 2), "p2")[0] == (2, "p2")
+    pair, gone = buffer.add_scan(("r", 3), 3)
+    assert pair is None and _given_up(gone) == [("r", 0, 1, "scan", "overflow")]
+    pair, gone = buffer.add_pose(("r", 0), "p0")  # its scan is gone and the scans are past seq 0: never comes
+    assert pair is None and _given_up(gone) == [("r", 0, 1, "pose", "orphaned")]
+    assert buffer.add_pose(("r", 1), "p1") == ((1, "p1"), [])
+
+
+def test_join_gives_up_at_once_on_what_a_gap_in_either_stream_leaves_behind():
+    """A seq a stream skips never comes (per-stream order): the scans that never arrived are counted, and the
+    halves waiting for a partner that skipped their seq are given up, not held for ever."""
+    buffer = JoinBuffer(capacity=16)
+    for seq in (0, 1, 2):
+        assert buffer.add_scan(("r", seq), f"s{seq}") == (None, [])
+    assert _given_up(buffer.add_scan(("r", 5), "s5")[1]) == [("r", 3, 2, "scan", "missing")]  # scans 3, 4 lost
+    assert buffer.add_pose(("r", 0), "p0") == (("s0", "p0"), [])
+    pair, gone = buffer.add_pose(("r", 3), "p3")  # poses 1, 2 skipped (the SLAM node gave up on them)
+    assert pair is None
+    assert _given_up(gone) == [("r", 1, 1, "scan", "orphaned"), ("r", 2, 1, "scan", "orphaned"),
+                               ("r", 3, 1, "pose", "orphaned")]  # and pose 3's scan was lost above
+    assert buffer.add_pose(("r", 5), "p5") == (("s5", "p5"), [])
+    assert _given_up(buffer.end("r", 8)) == [("r", 6, 2, "scan", "missing")]  # the stream's tail never came
+    assert buffer.end("r", 8) == [] and len(buffer) == 0
+    assert _given_up(buffer.add_scan(("r", 2), "again")[1]) == [("r", 2, 1, "scan", "late")]
+    assert _given_up(buffer.add_pose(("r", 7 + MAX_GAP), "p")[1]) == [("r", 7 + MAX_GAP, 1, "pose", "jump")]
+    assert buffer.add_scan(("q", 2 * MAX_GAP), "sq") == (None, [])  # a stream first seen far in starts there
+    assert buffer.add_pose(("q", 2 * MAX_GAP), "pq") == (("sq", "pq"), [])
 
 
 @settings(max_examples=60, deadline=None)
@@ -82,16 +111,61 @@ def test_shard_counts_join_overflow_and_bad_input_per_key():
     shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), join_capacity=4), RejectCounter(log))
     for seq in range(6):  # six scans, no poses: two are given up on
         shard.handle("pg/r/scan", _scan(seq).encode())
-    shard.handle("pg/r/pose", _pose(5).encode())  # completes seq 5
+    shard.handle("pg/r/pose", _pose(5).encode())  # completes seq 5; poses 0-4 never come: scans 2-4 orphaned
     shard.handle("pg/r/pose", b"\x00 not msgpack")
     shard.handle("pg/r/end", StreamEnd(robot="r", scans=6).encode())
     stats = shard.stats({"intake": 0})
-    assert stats.fused == {"r": 1} and stats.discarded == {"r": 2}
-    assert stats.overflow == {"intake": 0, "join": 2} and stats.join_pending == 3
-    assert stats.rejected == {"join/r": 2, "pg/r/pose": 1}
+    assert stats.fused == {"r": 1} and stats.discarded == {"r": 5}
+    assert stats.overflow == {"intake": 0, "join": 2} and stats.join_pending == 0
+    assert stats.rejected == {"join/r": 5, "pg/r/pose": 1}
     assert stats.received == {"pg/r/scan": 6, "pg/r/pose": 2, "pg/r/end": 1}
-    assert stats.ended == {"r": 6} and not shard.caught_up()
+    assert stats.ended == {"r": 6} and shard.caught_up()
     assert stats.tiles_owned == 1 and stats.cells_updated > 0
+
+
+def test_shard_accounts_for_scans_lost_in_transit_and_catches_up():
+    """Scans and poses 3-6 never reach the shard (its Zenoh session was closed while it stalled): it counts the
+    four scans as discarded, logs them, and so acknowledges the end of the stream; it used to wait for them, and
+    the source gave up after 60 s."""
+    records: list[str] = []
+    log = logging.getLogger("test-shard-gap")
+    log.addHandler(handler := logging.Handler())
+    handler.emit = lambda record: records.append(record.getMessage())
+    shard = MapShard(ShardConfig("m", 0, 1, SensorModel()), RejectCounter(log))
+    for seq in (0, 1, 2, 7, 8, 9):
+        shard.handle("pg/r/scan", _scan(seq).encode())
+        shard.handle("pg/r/pose", _pose(seq).encode())
+    shard.handle("pg/r/end", StreamEnd(robot="r", scans=10).encode())
+    stats = shard.stats({"intake": 0})
+    assert stats.fused == {"r": 6} and stats.discarded == {"r": 4} and shard.caught_up()
+    assert stats.rejected == {"join/r": 4} and stats.join_pending == 0
+    assert any("scans 3-6 of robot 'r'" in message and "never reached this shard" in message for message in records)
+
+
+def test_shard_settles_an_ended_stream_only_after_the_robot_goes_quiet():
+    """Scans 8-9 never come and the poses of 6-7 neither. The end of the stream alone settles nothing (it can
+    overtake the last scans); 15 s after the robot's last message the four are given up and the shard catches
+    up."""
+    now = [100.0]
+    shard = MapShard(ShardConfig("m", 0, 1, SensorModel()), RejectCounter(logging.getLogger("test-shard")),
+                     clock=lambda: now[0])
+    for seq in range(8):
+        shard.handle("pg/r/scan", _scan(seq).encode())
+        if seq < 6:
+            shard.handle("pg/r/pose", _pose(seq).encode())
+    shard.handle("pg/r/end", StreamEnd(robot="r", scans=10).encode())
+    now[0] += SETTLE_AFTER - 1.0
+    shard.settle()
+    assert not shard.caught_up() and shard.stats({"intake": 0}).join_pending == 2
+    shard.handle("pg/r/end", StreamEnd(robot="r", scans=10).encode())  # the source repeats it: still talking
+    now[0] += 2.0
+    shard.settle()
+    assert not shard.caught_up()
+    now[0] += SETTLE_AFTER
+    shard.settle()
+    stats = shard.stats({"intake": 0})
+    assert shard.caught_up() and stats.fused == {"r": 6} and stats.discarded == {"r": 4} and stats.join_pending == 0
+    assert stats.rejected == {"join/r": 4}
 
 
 def test_seq_ledger_remembers_done_seqs_within_its_horizon():

@@ -311,9 +311,10 @@ def create_app(backend: Backend) -> FastAPI:
         answered = [s for s in per_shard if s.answered]
         robots_seen = sorted({r for s in answered for r in s.scans_fused} | set(latest))
         fused = {r: min(s.scans_fused.get(r, 0) for s in answered) for r in robots_seen} if answered else {}
+        discarded = {r: max(s.scans_discarded.get(r, 0) for s in answered) for r in robots_seen} if answered else {}
         lag = {r: max(s.lag_scans.get(r, 0) for s in answered) for r in robots_seen if r in latest} if answered else {}
         return models.MapStats(map=name, shards=info.shards, shards_alive=sorted(info.alive), scans_fused=fused,
-                               lag_scans=lag, rejected=rejected, per_shard=per_shard)
+                               scans_discarded=discarded, lag_scans=lag, rejected=rejected, per_shard=per_shard)
 
     @app.get("/maps/{map}/stats", response_model=models.MapStats, tags=["status"], responses=errors(404, 422))
     def get_stats(map: MapName) -> models.MapStats:
@@ -327,7 +328,7 @@ def create_app(backend: Backend) -> FastAPI:
         for name in registry.names():
             s = map_stats(name)
             maps[name] = models.MapHealth(shards=s.shards, shards_alive=s.shards_alive, scans_fused=s.scans_fused,
-                                          lag_scans=s.lag_scans)
+                                          scans_discarded=s.scans_discarded, lag_scans=s.lag_scans)
             ok = ok and s.shards is not None and all(p.alive and p.answered for p in s.per_shard) and \
                 len(s.per_shard) >= s.shards
         return models.Health(status="ok" if ok else "degraded", uptime_s=time.monotonic() - backend.started,

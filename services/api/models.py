@@ -96,6 +96,8 @@ class MapStats(BaseModel):
     shards: int | None = Field(description="number of shards (null when none answered)")
     shards_alive: list[int]
     scans_fused: dict[str, int] = Field(description="by robot: scans fused by every answering shard (the minimum)")
+    scans_discarded: dict[str, int] = Field(description="by robot: the most scans a shard gave up on (lost in "
+                                            "transit, no pose, could not be fused; see its rejected keys)")
     lag_scans: dict[str, int] = Field(description="by robot: the largest lag over the shards (see ShardStatus)")
     rejected: dict[str, int] = Field(description="messages dropped as malformed, by key: the shards' counts "
                                      "plus the API's own")
@@ -106,6 +108,7 @@ class MapHealth(BaseModel):
     shards: int | None
     shards_alive: list[int]
     scans_fused: dict[str, int] = Field(description="by robot, the minimum over the shards")
+    scans_discarded: dict[str, int] = Field(description="by robot, the maximum over the shards: scans the map lacks")
     lag_scans: dict[str, int] = Field(description="by robot, the maximum over the shards")
 
 
