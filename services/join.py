@@ -3,11 +3,14 @@
 A robot's scans come from one publisher (the source) and its poses from one (the SLAM node, or the source for
 a posed-scan file), each in seq order over a reliable channel (schemas.messages: scans are numbered 0, 1,
 2, ...). So a seq that a stream skips never comes: the scan was lost in transit (a network gap, a shard stalled
-past its Zenoh lease, a full intake queue), or the SLAM node gave up on the step. The buffer then gives up on the
-seq's other half at once, and counts the scans that never arrived, instead of holding halves whose partner cannot
-come (a source waiting for every scan to be accounted for would wait for ever). The end of the scan stream
-(:meth:`JoinBuffer.end`) says how many scans there were, which shows a gap at its tail; the caller decides when
-the stream is over (the end mark itself may overtake the last scans: services.shard waits for quiet).
+past its Zenoh lease, a full intake queue), or the SLAM node gave up on the step. Such a gap is believed once
+a later message of the stream lies beyond it; until then the message past the gap is held, and if the stream
+goes on below it instead, the held one was a stray (another process on the robot's keys) and is refused as a
+jump. Once a gap is believed, the scans that never came are counted as given up and so are the
+halves waiting for a partner the gap skipped, at once, instead of holding halves whose partner cannot come (a
+source waiting for every scan to be accounted for would wait for ever). :meth:`JoinBuffer.settle` ends a
+robot's streams after the source's count of scans; the caller decides when (the end mark itself can overtake
+the last scans: services.shard waits for quiet).
 
 The buffer holds the halves still waiting for their partner, at most ``capacity`` of them; when it is full
 the oldest waiting half is evicted. Every half given up on is returned as :class:`GivenUp`, so the caller
@@ -35,8 +38,8 @@ class _Pending(Generic[ScanT, PoseT]):
 OVERFLOW = "overflow"  # evicted from a full buffer
 MISSING = "missing"  # scans that never came: their stream went past their seqs
 ORPHANED = "orphaned"  # its partner never comes: the partner's stream went past its seq without it
-LATE = "late"  # it came after its own stream had passed its seq (a re-sent message): refused
-JUMP = "jump"  # its seq lies more than MAX_GAP past its stream's last: refused as implausible
+LATE = "late"  # it came after its own stream had passed its seq (a re-sent message not fused yet): refused
+JUMP = "jump"  # it jumped past a gap that its stream's next message did not confirm (a stray): refused
 
 #: what each reason means, for the logs
 GIVEN_UP_BECAUSE = {
@@ -45,12 +48,8 @@ GIVEN_UP_BECAUSE = {
              "full intake queue); the map lacks them",
     ORPHANED: "given up on: its partner never comes (the partner's stream went past its seq)",
     LATE: "came after its stream had gone past its seq (a re-sent message); refused",
-    JUMP: "its seq jumps implausibly far past its stream's last; refused",
+    JUMP: "jumped past a gap that the next message of its stream did not confirm (a stray message); refused",
 }
-
-#: the largest gap in a stream taken as scans lost in transit (about 12 days of a 10 Hz laser); a larger jump
-#: is refused (a stream cannot have lost that much), except on a stream's first message, where it starts there
-MAX_GAP = 10 ** 7
 
 
 @dataclass(frozen=True)
@@ -80,61 +79,74 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         self.capacity = capacity
         self._pending: OrderedDict[JoinKey, _Pending] = OrderedDict()
         self._last: dict[tuple[str, bool], int] = {}  # (robot, scans?) -> the last seq its stream has passed
+        self._held: dict[tuple[str, bool], tuple[int, object]] = {}  # (robot, scans?) -> (seq, item) past a gap
 
     def __len__(self) -> int:
-        return len(self._pending)
+        return len(self._pending) + len(self._held)
 
-    def add_scan(self, key: JoinKey, scan: ScanT) -> tuple[tuple[ScanT, PoseT] | None, list[GivenUp]]:
-        """Offer a scan; returns the completed (scan, pose) pair or None, and the halves given up on."""
+    def add_scan(self, key: JoinKey, scan: ScanT) -> tuple[list[tuple[ScanT, PoseT]], list[GivenUp]]:
+        """Offer a scan; returns the completed (scan, pose) pairs (none, one, or two when it confirms a gap) and
+        the halves given up on."""
         return self._add(key, scan, is_scan=True)
 
-    def add_pose(self, key: JoinKey, pose: PoseT) -> tuple[tuple[ScanT, PoseT] | None, list[GivenUp]]:
-        """Offer a pose; returns the completed (scan, pose) pair or None, and the halves given up on."""
+    def add_pose(self, key: JoinKey, pose: PoseT) -> tuple[list[tuple[ScanT, PoseT]], list[GivenUp]]:
+        """Offer a pose; returns what :meth:`add_scan` returns."""
         return self._add(key, pose, is_scan=False)
 
-    def end(self, robot: str, scans: int) -> list[GivenUp]:
-        """The robot's scan stream has ended after ``scans`` scans (seqs 0 .. scans-1): the scans after the last
-        one seen never come. Returns the halves given up on."""
+    def settle(self, robot: str, scans: int) -> tuple[list[tuple[ScanT, PoseT]], list[GivenUp]]:
+        """End the robot's streams after ``scans`` scans (seqs 0 .. scans-1): a held message within them is taken
+        (nothing more will confirm its gap), one beyond them refused; the scans after the last one seen never
+        come; every half still waiting is given up. Returns the pairs completed and the halves given up on."""
+        pairs, gone = [], []
+        for is_scan in (True, False):
+            held = self._held.pop((robot, is_scan), None)
+            if held is None:
+                continue
+            if held[0] < scans:
+                pair, more = self._take(robot, held[0], held[1], is_scan)
+                pairs += pair
+                gone += more
+            else:
+                gone.append(GivenUp(robot, held[0], 1, is_scan, JUMP))
         last = self._last.get((robot, True), -1)
-        if scans - last - 1 > MAX_GAP:  # implausible: the stream stays open (and the end unacknowledged)
-            return []
-        return self._pass(robot, True, last + 1, scans, max(last, scans - 1))
-
-    def give_up(self, robot: str) -> list[GivenUp]:
-        """Give up on every half of ``robot`` still waiting (its streams have gone quiet after their end)."""
-        keys = [key for key in self._pending if key[0] == robot]
-        gone = [GivenUp(robot, seq, 1, self._pending[(robot, seq)].scan is not None, ORPHANED) for _, seq in keys]
-        for key in keys:
-            del self._pending[key]
-        return gone
-
-    def _pass(self, robot: str, is_scan: bool, skipped_from: int, skipped_to: int, new_last: int) -> list[GivenUp]:
-        """Move the robot's scan (or pose) stream on to ``new_last``; seqs skipped_from .. skipped_to-1 never
-        came: counted when they are scans, and the partners waiting for them are given up."""
-        self._last[(robot, is_scan)] = new_last
-        if skipped_to <= skipped_from:
-            return []
-        gone = [GivenUp(robot, skipped_from, skipped_to - skipped_from, True, MISSING)] if is_scan else []
-        for key in [k for k in self._pending if k[0] == robot and skipped_from <= k[1] < skipped_to]:
-            gone.append(GivenUp(robot, key[1], 1, not is_scan, ORPHANED))
-            del self._pending[key]
-        return gone
+        gone += self._pass(robot, True, last + 1, scans)
+        waiting = [key for key in self._pending if key[0] == robot]
+        gone += [GivenUp(robot, seq, 1, self._pending.pop((robot, seq)).scan is not None, ORPHANED)
+                 for _, seq in waiting]
+        return pairs, gone
 
     def _add(self, key: JoinKey, item, is_scan: bool):
         robot, seq = key
-        last = self._last.get((robot, is_scan))
-        if last is not None and seq <= last:
-            return None, [GivenUp(robot, seq, 1, is_scan, LATE)]
-        start = -1 if last is None else last
-        if seq - start - 1 > MAX_GAP:
-            if last is not None:
-                return None, [GivenUp(robot, seq, 1, is_scan, JUMP)]
-            start = seq - 1  # a stream first seen far in: it starts here
-        gone = self._pass(robot, is_scan, start + 1, seq, seq)
+        stream = (robot, is_scan)
+        last = self._last.get(stream, -1)
+        if seq <= last:
+            return [], [GivenUp(robot, seq, 1, is_scan, LATE)]
+        held = self._held.pop(stream, None)
+        if seq == last + 1:  # the stream goes on: a message held past a gap was a stray
+            stray = [] if held is None else [GivenUp(robot, held[0], 1, is_scan, JUMP)]
+            pairs, gone = self._take(robot, seq, item, is_scan)
+            return pairs, stray + gone
+        if held is not None and seq == held[0] + 1:  # the stream goes on from the held message: the gap is real
+            pairs, gone = self._take(robot, held[0], held[1], is_scan)
+            more_pairs, more = self._take(robot, seq, item, is_scan)
+            return pairs + more_pairs, gone + more
+        pairs, gone = [], []
+        if held is not None and seq > held[0]:  # past the held message, after another gap: both gaps are real
+            pairs, gone = self._take(robot, held[0], held[1], is_scan)
+        elif held is not None:  # below the held message: the stream never went there, the held one was a stray
+            gone = [GivenUp(robot, held[0], 1, is_scan, JUMP)]
+        self._held[stream] = (seq, item)  # past a gap: wait for the next message to confirm it
+        return pairs, gone
+
+    def _take(self, robot: str, seq: int, item, is_scan: bool):
+        """Accept ``item`` as its stream's next message, after any gap since the stream's last seq."""
+        gone = self._pass(robot, is_scan, self._last.get((robot, is_scan), -1) + 1, seq)
+        self._last[(robot, is_scan)] = seq
+        key = (robot, seq)
         entry = self._pending.get(key)
         if entry is None:
             if seq <= self._last.get((robot, not is_scan), -1):  # the partner's stream passed it: never comes
-                return None, gone + [GivenUp(robot, seq, 1, is_scan, ORPHANED)]
+                return [], gone + [GivenUp(robot, seq, 1, is_scan, ORPHANED)]
             while len(self._pending) >= self.capacity:
                 (old_robot, old_seq), old = self._pending.popitem(last=False)
                 gone.append(GivenUp(old_robot, old_seq, 1, old.scan is not None, OVERFLOW))
@@ -145,8 +157,20 @@ class JoinBuffer(Generic[ScanT, PoseT]):
             entry.pose = item
         if entry.scan is not None and entry.pose is not None:
             del self._pending[key]
-            return (entry.scan, entry.pose), gone
-        return None, gone
+            return [(entry.scan, entry.pose)], gone
+        return [], gone
+
+    def _pass(self, robot: str, is_scan: bool, skipped_from: int, skipped_to: int) -> list[GivenUp]:
+        """Seqs skipped_from .. skipped_to-1 of the robot's scan (or pose) stream never came: counted when they are
+        scans, and the partners waiting for them are given up."""
+        if skipped_to <= skipped_from:
+            return []
+        self._last[(robot, is_scan)] = max(self._last.get((robot, is_scan), -1), skipped_to - 1)
+        gone = [GivenUp(robot, skipped_from, skipped_to - skipped_from, True, MISSING)] if is_scan else []
+        for key in [k for k in self._pending if k[0] == robot and skipped_from <= k[1] < skipped_to]:
+            gone.append(GivenUp(robot, key[1], 1, not is_scan, ORPHANED))
+            del self._pending[key]
+        return gone
 
 
 class SeqLedger:

@@ -77,7 +77,8 @@ class MapShard:
         self.discarded: Counter[str] = Counter()
         self.ended: dict[str, int] = {}
         self._clock = clock
-        self._heard: dict[str, float] = {}  # robot -> when a message on its keys last came (clock s)
+        self._heard: dict[str, float] = {}  # robot -> when its last scan or pose was taken, or its end came (clock s)
+        self._unsettled: set[str] = set()  # robots whose stream has ended and that have had news since
         self.join_overflow = 0
         self.cells_updated = 0
         self.tile_updates = 0
@@ -91,7 +92,6 @@ class MapShard:
     def handle(self, key: str, payload: bytes) -> None:
         """Decode one message received on ``key`` and act on it; a bad one is counted and dropped."""
         self.received[key] += 1
-        self._heard[keys.robot_of(key)] = self._clock()
         stream = key.rsplit("/", 1)[-1]
         expected = {keys.SCAN: (LaserScan,), keys.POSE: POSE_TYPES, keys.END: (StreamEnd,)}[stream]
         try:
@@ -104,18 +104,23 @@ class MapShard:
             return
         if isinstance(message, StreamEnd):  # (it may overtake the last scans: each key has its own callback thread)
             self.ended[message.robot] = message.scans
+            self._heard.setdefault(message.robot, self._clock())  # (the source repeats it: a repeat is no news)
+            self._unsettled.add(message.robot)
             return
         if self._fused_seqs.done(message.robot, message.seq):
             self.rejects.count(key, "duplicate", f"a {message.TYPE} of robot {message.robot!r} for seq {message.seq}, "
                                "which this shard has fused already (a re-sent or out-of-date message)")
             return
+        self._heard[message.robot] = self._clock()
+        if message.robot in self.ended:  # (a late pose after the end: settle again once it is quiet)
+            self._unsettled.add(message.robot)
         join_key = (message.robot, message.seq)
         if isinstance(message, LaserScan):
-            pair, gone = self._join.add_scan(join_key, message)
+            pairs, gone = self._join.add_scan(join_key, message)
         else:
-            pair, gone = self._join.add_pose(join_key, message)
+            pairs, gone = self._join.add_pose(join_key, message)
         self._give_up(gone)
-        if pair is not None:
+        for pair in pairs:
             self._fuse(*pair)
 
     def _give_up(self, gone: list[GivenUp]) -> None:
@@ -185,15 +190,19 @@ class MapShard:
 
     # ------------------------------------------------------------------------------- progress
     def settle(self) -> None:
-        """Once a robot's stream has ended and nothing of the robot has come for SETTLE_AFTER s, give up on the
-        scans after the last one seen (lost in transit with the end of the stream, say while this shard was cut
-        off) and on the scans still waiting for a pose (lost too, or the SLAM node gave up on the last steps: a
-        pose stream has no end mark). Counted as discarded, so the shard catches up. (The end of a stream can
-        overtake its last scans on the way in, so it is not taken as proof that they are lost.)"""
+        """Once a robot's stream has ended and no scan or pose of it has been taken for SETTLE_AFTER s, settle it
+        (:meth:`services.join.JoinBuffer.settle`): a message held past a gap is taken, the scans after the last one
+        seen (lost in transit with the end of the stream, say while this shard was cut off) and the scans still
+        waiting for a pose (lost too, or the SLAM node gave up on the last steps: a pose stream has no end mark)
+        are given up. Counted as discarded, so the shard catches up. (The end of a stream can overtake its last
+        scans on the way in, so it is not taken as proof that they are lost.)"""
         now = self._clock()
-        for robot, scans in self.ended.items():
-            if self.fused[robot] + self.discarded[robot] < scans and now - self._heard.get(robot, now) > SETTLE_AFTER:
-                self._give_up(self._join.end(robot, scans) + self._join.give_up(robot))
+        for robot in [r for r in self._unsettled if now - self._heard[r] > SETTLE_AFTER]:
+            self._unsettled.discard(robot)
+            pairs, gone = self._join.settle(robot, self.ended[robot])
+            self._give_up(gone)
+            for pair in pairs:
+                self._fuse(*pair)
 
     def caught_up(self) -> bool:
         """Whether every ended stream has all its scans fused or discarded."""

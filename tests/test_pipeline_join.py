@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from mapping.sensor_model import SensorModel
 from schemas.messages import LaserScan, PoseGaussian, PoseSamples, StreamEnd
-from services.join import MAX_GAP, JoinBuffer, SeqLedger
+from services.join import JoinBuffer, SeqLedger
 from services.process import RejectCounter
 from services.shard import FUSIONS_KEPT, SETTLE_AFTER, MapShard, ShardConfig
 from services.steps import OutOfOrder, StepAssembler
@@ -27,12 +27,11 @@ def test_join_pairs_every_scan_with_its_pose_however_the_streams_interleave(kind
         seq = next_seq[kind]
         next_seq[kind] += 1
         add = buffer.add_scan if kind == "scan" else buffer.add_pose
-        pair, gone = add(("r", seq), f"{kind}{seq}")
+        done, gone = add(("r", seq), f"{kind}{seq}")
         assert gone == []
-        if pair is not None:
-            pairs.append(pair)
+        pairs += done
     assert sorted(pairs) == [(f"scan{seq}", f"pose{seq}") for seq in range(8)]
-    assert len(buffer) == 0 and buffer.end("r", 8) == []
+    assert len(buffer) == 0 and buffer.settle("r", 8) == ([], [])
 
 
 def _given_up(gone) -> list[tuple]:
@@ -42,33 +41,67 @@ def _given_up(gone) -> list[tuple]:
 def test_join_overflow_evicts_the_oldest_and_says_so():
     buffer = JoinBuffer(capacity=3)
     for seq in range(3):
-        assert buffer.add_scan(("r", seq), seq) == (None, [])
-    pair, gone = buffer.add_scan(("r", 3), 3)
-    assert pair is None and _given_up(gone) == [("r", 0, 1, "scan", "overflow")]
-    pair, gone = buffer.add_pose(("r", 0), "p0")  # its scan is gone and the scans are past seq 0: never comes
-    assert pair is None and _given_up(gone) == [("r", 0, 1, "pose", "orphaned")]
-    assert buffer.add_pose(("r", 1), "p1") == ((1, "p1"), [])
+        assert buffer.add_scan(("r", seq), seq) == ([], [])
+    pairs, gone = buffer.add_scan(("r", 3), 3)
+    assert pairs == [] and _given_up(gone) == [("r", 0, 1, "scan", "overflow")]
+    pairs, gone = buffer.add_pose(("r", 0), "p0")  # its scan is gone and the scans are past seq 0: never comes
+    assert pairs == [] and _given_up(gone) == [("r", 0, 1, "pose", "orphaned")]
+    assert buffer.add_pose(("r", 1), "p1") == ([(1, "p1")], [])
 
 
-def test_join_gives_up_at_once_on_what_a_gap_in_either_stream_leaves_behind():
-    """A seq a stream skips never comes (per-stream order): the scans that never arrived are counted, and the
-    halves waiting for a partner that skipped their seq are given up, not held for ever."""
+def test_join_gives_up_at_once_on_what_a_confirmed_gap_leaves_behind():
+    """A seq a stream skips never comes (per-stream order), once the next message confirms the jump: the scans
+    that never arrived are counted, and the halves waiting for a partner the gap skipped are given up, not held
+    for ever."""
     buffer = JoinBuffer(capacity=16)
     for seq in (0, 1, 2):
-        assert buffer.add_scan(("r", seq), f"s{seq}") == (None, [])
-    assert _given_up(buffer.add_scan(("r", 5), "s5")[1]) == [("r", 3, 2, "scan", "missing")]  # scans 3, 4 lost
-    assert buffer.add_pose(("r", 0), "p0") == (("s0", "p0"), [])
-    pair, gone = buffer.add_pose(("r", 3), "p3")  # poses 1, 2 skipped (the SLAM node gave up on them)
-    assert pair is None
+        assert buffer.add_scan(("r", seq), f"s{seq}") == ([], [])
+    assert buffer.add_scan(("r", 5), "s5") == ([], [])  # held: a gap, or a stray?
+    pairs, gone = buffer.add_scan(("r", 6), "s6")  # the stream goes on from 5: scans 3 and 4 were lost
+    assert pairs == [] and _given_up(gone) == [("r", 3, 2, "scan", "missing")]
+    assert buffer.add_pose(("r", 0), "p0") == ([("s0", "p0")], [])
+    assert buffer.add_pose(("r", 3), "p3") == ([], [])
+    pairs, gone = buffer.add_pose(("r", 4), "p4")  # poses 1 and 2 skipped (the SLAM node gave up on them)
+    assert pairs == []
     assert _given_up(gone) == [("r", 1, 1, "scan", "orphaned"), ("r", 2, 1, "scan", "orphaned"),
-                               ("r", 3, 1, "pose", "orphaned")]  # and pose 3's scan was lost above
-    assert buffer.add_pose(("r", 5), "p5") == (("s5", "p5"), [])
-    assert _given_up(buffer.end("r", 8)) == [("r", 6, 2, "scan", "missing")]  # the stream's tail never came
-    assert buffer.end("r", 8) == [] and len(buffer) == 0
+                               ("r", 3, 1, "pose", "orphaned"), ("r", 4, 1, "pose", "orphaned")]  # scans 3, 4 lost
+    assert buffer.add_pose(("r", 5), "p5") == ([("s5", "p5")], [])
+    assert buffer.add_pose(("r", 1000), "stray") == ([], [])  # another process on the robot's keys ...
+    pairs, gone = buffer.add_pose(("r", 6), "p6")  # ... is found out when the stream goes on where it was
+    assert pairs == [("s6", "p6")] and _given_up(gone) == [("r", 1000, 1, "pose", "jump")]
+    pairs, gone = buffer.settle("r", 9)  # the end: scans 7 and 8 never came
+    assert pairs == [] and _given_up(gone) == [("r", 7, 2, "scan", "missing")]
     assert _given_up(buffer.add_scan(("r", 2), "again")[1]) == [("r", 2, 1, "scan", "late")]
-    assert _given_up(buffer.add_pose(("r", 7 + MAX_GAP), "p")[1]) == [("r", 7 + MAX_GAP, 1, "pose", "jump")]
-    assert buffer.add_scan(("q", 2 * MAX_GAP), "sq") == (None, [])  # a stream first seen far in starts there
-    assert buffer.add_pose(("q", 2 * MAX_GAP), "pq") == (("sq", "pq"), [])
+    assert buffer.add_scan(("q", 50), "q50") == ([], [])  # a stream first seen far in: 0-49 never came here
+    assert _given_up(buffer.add_scan(("q", 51), "q51")[1]) == [("q", 0, 50, "scan", "missing")]
+
+
+def test_join_takes_a_held_message_when_its_stream_goes_past_it_after_another_gap():
+    """Losses on both sides of a held message (scans 0 and 2 lost): the stream went past it, so it was real."""
+    buffer = JoinBuffer(capacity=16)
+    assert buffer.add_scan(("r", 1), "s1") == ([], [])
+    pairs, gone = buffer.add_scan(("r", 3), "s3")
+    assert pairs == [] and _given_up(gone) == [("r", 0, 1, "scan", "missing")]  # 1 taken, 3 held
+    pairs, gone = buffer.add_pose(("r", 0), "p0")  # scan 0 is known lost now
+    assert pairs == [] and _given_up(gone) == [("r", 0, 1, "pose", "orphaned")]
+    assert buffer.add_pose(("r", 1), "p1") == ([("s1", "p1")], [])
+    pairs, gone = buffer.add_scan(("r", 4), "s4")  # confirms 3: scan 2 lost
+    assert pairs == [] and _given_up(gone) == [("r", 2, 1, "scan", "missing")] and len(buffer) == 2
+
+
+def test_join_settle_takes_what_is_held_and_gives_up_the_rest():
+    buffer = JoinBuffer(capacity=16)
+    assert buffer.add_scan(("r", 0), "s0") == ([], []) and buffer.add_pose(("r", 0), "p0") == ([("s0", "p0")], [])
+    assert buffer.add_scan(("r", 3), "s3") == ([], [])  # held past a gap; nothing comes after it
+    assert buffer.add_pose(("r", 3), "p3") == ([], [])
+    pairs, gone = buffer.settle("r", 6)
+    assert pairs == [("s3", "p3")]
+    assert _given_up(gone) == [("r", 1, 2, "scan", "missing"), ("r", 4, 2, "scan", "missing")]
+    assert len(buffer) == 0
+    assert buffer.add_scan(("x", 0), "x0") == ([], []) and buffer.add_scan(("x", 7), "x7") == ([], [])
+    pairs, gone = buffer.settle("x", 3)  # a held scan beyond the end: a stray
+    assert pairs == [] and _given_up(gone) == [("x", 7, 1, "scan", "jump"), ("x", 1, 2, "scan", "missing"),
+                                               ("x", 0, 1, "scan", "orphaned")]
 
 
 @settings(max_examples=60, deadline=None)
@@ -108,12 +141,17 @@ def _pose(seq: int, robot: str = "r") -> PoseSamples:
 
 def test_shard_counts_join_overflow_and_bad_input_per_key():
     log = logging.getLogger("test-shard")
-    shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), join_capacity=4), RejectCounter(log))
+    now = [0.0]
+    shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), join_capacity=4), RejectCounter(log),
+                     clock=lambda: now[0])
     for seq in range(6):  # six scans, no poses: two are given up on
         shard.handle("pg/r/scan", _scan(seq).encode())
-    shard.handle("pg/r/pose", _pose(5).encode())  # completes seq 5; poses 0-4 never come: scans 2-4 orphaned
+    shard.handle("pg/r/pose", _pose(5).encode())  # held: nothing follows to confirm that poses 0-4 were skipped
     shard.handle("pg/r/pose", b"\x00 not msgpack")
     shard.handle("pg/r/end", StreamEnd(robot="r", scans=6).encode())
+    assert shard.stats({"intake": 0}).fused == {} and not shard.caught_up()
+    now[0] += SETTLE_AFTER + 1.0
+    shard.settle()  # the stream is over: pose 5 completes seq 5, scans 2-4 never get a pose
     stats = shard.stats({"intake": 0})
     assert stats.fused == {"r": 1} and stats.discarded == {"r": 5}
     assert stats.overflow == {"intake": 0, "join": 2} and stats.join_pending == 0
@@ -144,8 +182,8 @@ def test_shard_accounts_for_scans_lost_in_transit_and_catches_up():
 
 def test_shard_settles_an_ended_stream_only_after_the_robot_goes_quiet():
     """Scans 8-9 never come and the poses of 6-7 neither. The end of the stream alone settles nothing (it can
-    overtake the last scans); 15 s after the robot's last message the four are given up and the shard catches
-    up."""
+    overtake the last scans); 15 s after the robot's last scan or pose the four are given up and the shard
+    catches up; a repeated end or junk on the robot's keys does not put that off."""
     now = [100.0]
     shard = MapShard(ShardConfig("m", 0, 1, SensorModel()), RejectCounter(logging.getLogger("test-shard")),
                      clock=lambda: now[0])
@@ -157,15 +195,13 @@ def test_shard_settles_an_ended_stream_only_after_the_robot_goes_quiet():
     now[0] += SETTLE_AFTER - 1.0
     shard.settle()
     assert not shard.caught_up() and shard.stats({"intake": 0}).join_pending == 2
-    shard.handle("pg/r/end", StreamEnd(robot="r", scans=10).encode())  # the source repeats it: still talking
+    shard.handle("pg/r/end", StreamEnd(robot="r", scans=10).encode())  # the source repeats it: no news
+    shard.handle("pg/r/scan", b"\x00 not msgpack")  # nor is junk on the robot's keys
     now[0] += 2.0
-    shard.settle()
-    assert not shard.caught_up()
-    now[0] += SETTLE_AFTER
     shard.settle()
     stats = shard.stats({"intake": 0})
     assert shard.caught_up() and stats.fused == {"r": 6} and stats.discarded == {"r": 4} and stats.join_pending == 0
-    assert stats.rejected == {"join/r": 4}
+    assert stats.rejected == {"join/r": 4, "pg/r/scan": 1}
 
 
 def test_seq_ledger_remembers_done_seqs_within_its_horizon():
