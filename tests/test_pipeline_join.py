@@ -204,6 +204,51 @@ def test_shard_settles_an_ended_stream_only_after_the_robot_goes_quiet():
     assert stats.rejected == {"join/r": 4, "pg/r/scan": 1}
 
 
+@st.composite
+def _arrivals(draw):
+    """A stream of n scans and its poses as a shard may see them: each stream in seq order with any losses, the
+    two interleaved anyhow, re-sends of earlier messages, the end mark anywhere (it can overtake scans), maybe
+    one stray message far ahead, and pauses of up to 14.9 s between messages."""
+    n = draw(st.integers(1, 12))
+    kept = {kind: [seq for seq in range(n) if draw(st.booleans())] for kind in ("scan", "pose")}
+    order = draw(st.permutations(["scan"] * len(kept["scan"]) + ["pose"] * len(kept["pose"])))
+    streams = {kind: iter(seqs) for kind, seqs in kept.items()}
+    events = [(kind, next(streams[kind])) for kind in order]
+    events.insert(draw(st.integers(0, len(events))), ("end", n))
+    for _ in range(draw(st.integers(0, 3))):
+        i = draw(st.integers(0, len(events) - 1))
+        if events[i][0] != "end":
+            events.insert(draw(st.integers(i + 1, len(events))), events[i])
+    if draw(st.booleans()):  # a stray message far ahead, from another process on the robot's keys
+        events.insert(draw(st.integers(0, len(events))), (draw(st.sampled_from(["scan", "pose"])), n + 1000))
+    pauses = [draw(st.floats(0.0, SETTLE_AFTER - 0.1)) for _ in events]
+    return n, draw(st.integers(1, 24)), kept, events, pauses
+
+
+@settings(max_examples=150, deadline=None)
+@given(_arrivals())
+def test_every_scan_is_fused_or_given_up_exactly_once(arrival):
+    """Whatever a shard sees of a stream, once it has settled every scan counts once, as fused or as given up;
+    never more along the way; nothing is left waiting; and with room enough every pair that arrived is fused."""
+    n, capacity, kept, events, pauses = arrival
+    now = [0.0]
+    shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), join_capacity=capacity),
+                     RejectCounter(logging.getLogger("test-shard-property")), clock=lambda: now[0])
+    encoded = {"scan": lambda seq: _scan(seq).encode(), "pose": lambda seq: _pose(seq).encode(),
+               "end": lambda scans: StreamEnd(robot="r", scans=scans).encode()}
+    for (kind, seq), pause in zip(events, pauses):
+        now[0] += pause
+        shard.handle(f"pg/r/{kind}", encoded[kind](seq))
+        shard.settle()
+        assert shard.fused["r"] + shard.discarded["r"] <= n
+    now[0] += SETTLE_AFTER + 1.0
+    shard.settle()
+    assert shard.fused["r"] + shard.discarded["r"] == n and shard.caught_up()
+    assert shard.stats({"intake": 0}).join_pending == 0
+    if capacity >= 2 * n:
+        assert shard.fused["r"] == len(set(kept["scan"]) & set(kept["pose"]))
+
+
 def test_seq_ledger_remembers_done_seqs_within_its_horizon():
     ledger = SeqLedger(horizon=10)
     assert not ledger.done("r", 0)
