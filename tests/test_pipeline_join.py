@@ -208,7 +208,7 @@ def test_shard_settles_an_ended_stream_only_after_the_robot_goes_quiet():
 def _arrivals(draw):
     """A stream of n scans and its poses as a shard may see them: each stream in seq order with any losses, the
     two interleaved anyhow, re-sends of earlier messages, the end mark anywhere (it can overtake scans), maybe
-    one stray message far ahead, and pauses of up to 14.9 s between messages."""
+    one stray message far ahead, and pauses between messages."""
     n = draw(st.integers(1, 12))
     kept = {kind: [seq for seq in range(n) if draw(st.booleans())] for kind in ("scan", "pose")}
     order = draw(st.permutations(["scan"] * len(kept["scan"]) + ["pose"] * len(kept["pose"])))
@@ -221,16 +221,21 @@ def _arrivals(draw):
             events.insert(draw(st.integers(i + 1, len(events))), events[i])
     if draw(st.booleans()):  # a stray message far ahead, from another process on the robot's keys
         events.insert(draw(st.integers(0, len(events))), (draw(st.sampled_from(["scan", "pose"])), n + 1000))
-    pauses = [draw(st.floats(0.0, SETTLE_AFTER - 0.1)) for _ in events]
-    return n, draw(st.integers(1, 24)), kept, events, pauses
+    # patient: at most 6 events (3 re-sends, the end, a stray) lie between two taken messages, so pauses of
+    # SETTLE_AFTER / 7 never let the shard settle before the stream is over; otherwise up to 2 x SETTLE_AFTER
+    patient = draw(st.booleans())
+    longest = SETTLE_AFTER / 7 if patient else 2 * SETTLE_AFTER
+    pauses = [draw(st.floats(0.0, longest)) for _ in events]
+    return n, draw(st.integers(1, 24)), kept, events, pauses, patient
 
 
 @settings(max_examples=150, deadline=None)
 @given(_arrivals())
 def test_every_scan_is_fused_or_given_up_exactly_once(arrival):
     """Whatever a shard sees of a stream, once it has settled every scan counts once, as fused or as given up;
-    never more along the way; nothing is left waiting; and with room enough every pair that arrived is fused."""
-    n, capacity, kept, events, pauses = arrival
+    never more along the way; nothing is left waiting; and with room enough every pair that arrived is fused,
+    unless the stream went quiet long enough to be settled before it was over."""
+    n, capacity, kept, events, pauses, patient = arrival
     now = [0.0]
     shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), join_capacity=capacity),
                      RejectCounter(logging.getLogger("test-shard-property")), clock=lambda: now[0])
@@ -245,7 +250,7 @@ def test_every_scan_is_fused_or_given_up_exactly_once(arrival):
     shard.settle()
     assert shard.fused["r"] + shard.discarded["r"] == n and shard.caught_up()
     assert shard.stats({"intake": 0}).join_pending == 0
-    if capacity >= 2 * n:
+    if capacity >= 2 * n and patient:
         assert shard.fused["r"] == len(set(kept["scan"]) & set(kept["pose"]))
 
 
