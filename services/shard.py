@@ -35,8 +35,8 @@ TileKey = tuple[int, int]
 FUSIONS_KEPT = 4
 #: a fused seq more than this many times the join capacity below a robot's highest counts as done
 SEQ_HORIZON_JOINS = 8
-#: s of silence from a robot whose scan stream has ended after which the scans still waiting for a pose are
-#: given up (:meth:`MapShard.settle`)
+#: s after an ended robot's last taken scan or pose at which its streams are settled: what is still missing or
+#: waiting is given up (:meth:`MapShard.settle`)
 SETTLE_AFTER = 15.0
 
 
