@@ -126,16 +126,15 @@ class JoinBuffer(Generic[ScanT, PoseT]):
             stray = [] if held is None else [GivenUp(robot, held[0], 1, is_scan, JUMP)]
             pairs, gone = self._take(robot, seq, item, is_scan)
             return pairs, stray + gone
-        if held is not None and seq == held[0] + 1:  # the stream goes on from the held message: the gap is real
-            pairs, gone = self._take(robot, held[0], held[1], is_scan)
-            more_pairs, more = self._take(robot, seq, item, is_scan)
-            return pairs + more_pairs, gone + more
         pairs, gone = [], []
-        if held is not None and seq > held[0]:  # past the held message, after another gap: both gaps are real
+        if held is not None and seq > held[0]:  # the stream went past the held message: its gap is real
             pairs, gone = self._take(robot, held[0], held[1], is_scan)
+            if seq == held[0] + 1:  # ... and goes on from it
+                more_pairs, more = self._take(robot, seq, item, is_scan)
+                return pairs + more_pairs, gone + more
         elif held is not None:  # below the held message: the stream never went there, the held one was a stray
             gone = [GivenUp(robot, held[0], 1, is_scan, JUMP)]
-        self._held[stream] = (seq, item)  # past a gap: wait for the next message to confirm it
+        self._held[stream] = (seq, item)  # past a gap (another one): wait for the next message to confirm it
         return pairs, gone
 
     def _take(self, robot: str, seq: int, item, is_scan: bool):

@@ -155,9 +155,10 @@ def create_app(backend: Backend) -> FastAPI:
 
     def check_tile(info: MapInfo, z: int, x: int, y: int) -> None:
         if info.x_range is None:
-            if down_shards(info):  # its tiles may all lie on a shard that is down
+            down = down_shards(info)
+            if down:  # its tiles may all lie on a shard that is down
                 raise HTTPException(503, f"map {info.name!r} has no tiles from its live shards, and shard(s) "
-                                    f"{down_shards(info)} are down")
+                                    f"{down} are down")
             raise HTTPException(404, f"map {info.name!r} has no tiles yet")
         if z > info.top_level:
             raise HTTPException(404, f"zoom level {z} is beyond the coarsest level of map {info.name!r}, "
