@@ -12,6 +12,7 @@ import signal
 import socket
 import subprocess
 import threading
+import time
 import warnings
 import zipfile
 
@@ -20,12 +21,13 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from api_stack import POSEGRID, ROOT, Stack, wait_until, write_room
+from api_stack import POSEGRID, ROOT, Stack, free_port, wait_until, write_room
 from mapping.export import render_pgm
 from schemas.files import load_map, load_posed_scans
 from schemas.messages import TileUpdate
 from services import keys
 from services.map_client import MapReader
+from services.ownership import tile_owner
 from services.zenoh_config import build_config, open_session
 
 pytestmark = pytest.mark.slow
@@ -472,6 +474,62 @@ def test_tile_updates_no_shard_stands_behind_do_not_break_the_map(api, session):
     assert problem(httpx.get(f"{api}/maps/{MAP}/tiles/0/7/7.png", timeout=30), 404)
     assert httpx.get(f"{api}/maps/{MAP}/tiles/0/0/0.png", timeout=30).status_code == 200
     assert httpx.get(f"{api}/health", timeout=30).json()["status"] == "ok"
+
+
+def test_a_stalled_shard_holds_up_only_its_own_tiles(api, stack, session):
+    """A stopped shard (SIGSTOP) stays alive to the router until its Zenoh lease (10 s) runs out, and a query it
+    should answer waits for it. Its own tiles wait; a tile of the other shard, the robot routes and /health must
+    not. They did: every tile query waited for every shard's queryable, 40 tile requests waiting took FastAPI's
+    whole thread pool, /robots included, and /health waited out the query timeout. A second API with a 60 s
+    query timeout is used, so that nothing ends before the lease does; updates announced while the shard is
+    stopped make it ask for the two tiles again."""
+    port = free_port()
+    stack.start("api-stall", "api", "--port", str(port), "--query-timeout", "60")
+    url = f"http://127.0.0.1:{port}"
+    owned = {0: [], 1: []}
+    for tile in sorted(shards_grid(session).keys()):
+        owned[tile_owner(tile, range(SHARDS))].append(tile)
+    (x, y), (sx, sy) = owned[0][0], owned[1][0]
+
+    def etag() -> str | None:
+        try:
+            response = httpx.get(f"{url}/maps/{MAP}/tiles/0/{x}/{y}.png", timeout=8)  # under the lease
+        except httpx.ConnectError:  # not listening yet
+            return None
+        return response.headers["etag"] if response.status_code == 200 else None
+    before = wait_until(etag, 60, "the second API to serve a tile")
+    stalled, waiting, threads = stack.processes["mapper1"], [], []
+    stalled.send_signal(signal.SIGSTOP)
+    try:
+        for (tx, ty), shard in (((sx, sy), 1), ((x, y), 0)):  # in this order: one subscriber, one session
+            session.put(keys.tile_key(MAP, 0, tx, ty), TileUpdate(
+                map=MAP, shard=shard, z=0, tx=tx, ty=ty, tile_size=TILE, resolution=RESOLUTION, row0=0, col0=0,
+                robot="robot0", seq=0, published=0.0, logodds=np.zeros((TILE, TILE), np.float32),
+                variance=np.zeros((TILE, TILE), np.float32), observed=np.zeros((TILE, TILE), bool)).encode())
+        # shard 0's tile is asked for again and comes back while shard 1 is stopped (a request that waited for
+        # shard 1 would raise ReadTimeout here)
+        wait_until(lambda: etag() not in (None, before), 30, "shard 0's tile under its new version")
+
+        def ask_stalled(vmax: int) -> None:
+            try:
+                waiting.append(httpx.get(f"{url}/maps/{MAP}/tiles/0/{sx}/{sy}.png",
+                                         params={"layer": "variance", "vmax": vmax}, timeout=90).status_code)
+            except httpx.HTTPError as exc:
+                waiting.append(type(exc).__name__)
+        threads += [threading.Thread(target=ask_stalled, args=(vmax,), daemon=True) for vmax in range(1, 61)]
+        for thread in threads:
+            thread.start()
+        time.sleep(3.0)  # for the requests to be in (nothing outside the API shows where they are)
+        assert not waiting, waiting  # they wait for shard 1
+        assert httpx.get(f"{url}/robots", timeout=5).status_code == 200
+        assert httpx.get(f"{url}/robots/robot9/pose", timeout=5).status_code == 404
+        health = httpx.get(f"{url}/health", timeout=5).json()  # the shards' stats are asked for 2 s at most
+        assert health["status"] == "degraded" and health["maps"][MAP]["shards_alive"] == [0, 1]
+    finally:
+        stalled.send_signal(signal.SIGCONT)
+    for thread in threads:
+        thread.join(120)
+    assert waiting == [200] * 60  # shard 1 answers once it runs again
 
 
 def test_a_stopped_shard_shows_in_health_and_stops_the_export(api, stack):

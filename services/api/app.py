@@ -3,7 +3,9 @@ the viewer. Every failure the client can cause or fix is a 4xx with ``{"detail":
 that does not answer is a 503 with the same form.
 
 Handlers that ask the shards over Zenoh are plain functions (FastAPI runs them in its thread pool); the tile
-handlers are coroutines that answer from the cache at once and only hand a miss to the thread pool.
+handlers are coroutines that answer from the cache at once and hand a miss to worker threads of their own, at
+most TILE_THREADS at a time, so a flood of tile requests waiting on a stalled shard leaves the thread pool to
+the other routes. The robot routes read only what the API holds and are coroutines: they never wait.
 """
 from __future__ import annotations
 
@@ -17,12 +19,12 @@ from dataclasses import dataclass
 from pathlib import Path as FilePath
 from typing import Annotated, Literal
 
+import anyio.to_thread
 import zenoh
 from fastapi import FastAPI, HTTPException, Path, Query, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
-from starlette.concurrency import run_in_threadpool
 
 from mapping.errors import InputError
 from mapping.export import render_pgm, render_png
@@ -38,6 +40,8 @@ from services.api.tiles import TileService, TileUnavailable, render_key
 from services.map_client import IncompleteMap
 
 STATIC = FilePath(__file__).resolve().parent / "static"
+#: tile requests that may fetch or render at once (their own worker threads; FastAPI's pool keeps its 40)
+TILE_THREADS = 16
 
 DESCRIPTION = """\
 Occupancy maps built by posegrid's mapper shards, read over Zenoh: map summaries, tiles at every zoom level,
@@ -117,6 +121,10 @@ def _extent(x0: float, y0: float, x1: float, y1: float) -> models.Extent:
 def create_app(backend: Backend) -> FastAPI:
     """The FastAPI application over ``backend``."""
     registry, tiles, robots, hub, link = backend.registry, backend.tiles, backend.robots, backend.hub, backend.link
+    tile_limiter = anyio.CapacityLimiter(TILE_THREADS)
+
+    async def tile_work(function, *args):
+        return await anyio.to_thread.run_sync(function, *args, limiter=tile_limiter)
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI):
@@ -209,12 +217,12 @@ def create_app(backend: Backend) -> FastAPI:
                    vmax: float | None) -> Response:
         info = known_map(name)
         if not info.synced:
-            await run_in_threadpool(tiles.sync, name)
+            await tile_work(tiles.sync, name)
         check_tile(info, z, x, y)
         if fmt == "png" and layer == "variance" and vmax is None:
-            vmax = (await run_in_threadpool(tiles.content, name)).variance_scale
+            vmax = (await tile_work(tiles.content, name)).variance_scale
         key = render_key(name, z, x, y, fmt, layer, vmax)
-        rendered = tiles.cached(key) or await run_in_threadpool(tiles.rendered, key)
+        rendered = tiles.cached(key) or await tile_work(tiles.rendered, key)
         status, headers, body = tile_response(rendered, request.headers.get("if-none-match"))
         return Response(body, status_code=status, headers=dict(headers))
 
@@ -345,17 +353,18 @@ def create_app(backend: Backend) -> FastAPI:
         return summary
 
     @app.get("/robots", response_model=list[models.RobotSummary], tags=["robots"])
-    def list_robots() -> list[models.RobotSummary]:
+    async def list_robots() -> list[models.RobotSummary]:
         """Robots whose poses the API has received."""
+        processes = [p.split("/", 1) for p in sorted(link.processes)]  # a copy: Zenoh's threads change the set
         out = []
         for robot in robots.robots():
             s = robots.latest(robot)
-            out.append(models.RobotSummary(robot=robot, seq=s.seq, stamp=s.stamp, form=s.form, processes_alive=sorted(
-                p.split("/", 1)[1] for p in link.processes if p.split("/", 1)[0] == robot)))
+            out.append(models.RobotSummary(robot=robot, seq=s.seq, stamp=s.stamp, form=s.form, processes_alive=[
+                process for owner, process in processes if owner == robot]))
         return out
 
     @app.get("/robots/{robot}/pose", response_model=models.Pose, tags=["robots"], responses=errors(404, 422))
-    def pose(robot: Robot, max_samples: Annotated[int | None, Query(
+    async def pose(robot: Robot, max_samples: Annotated[int | None, Query(
             ge=1, description="return at most this many samples, reduced by systematic resampling "
             "(equal weights); default all")] = None) -> models.Pose:
         """The latest pose distribution: samples with weights, and their mean and covariance."""
@@ -368,7 +377,7 @@ def create_app(backend: Backend) -> FastAPI:
 
     @app.get("/robots/{robot}/trajectory", response_model=models.Trajectory, tags=["robots"],
              responses=errors(404, 422))
-    def trajectory(robot: Robot) -> models.Trajectory:
+    async def trajectory(robot: Robot) -> models.Trajectory:
         """The robot's mean poses since the API started, oldest first."""
         latest(robot)
         rows = robots.trajectory(robot)

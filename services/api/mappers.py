@@ -17,6 +17,7 @@ contents contradict its key, is dropped and counted by key in :attr:`MapperLink.
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Iterator
 
 import zenoh
 
@@ -29,6 +30,11 @@ from services.api.registry import MapRegistry, TileKey
 from services.api.robots import RobotTracker
 from services.map_client import MapReader
 from services.process import RejectCounter, get_logger
+
+
+#: s to wait for the shards' stats: a shard answers them from its Zenoh thread in milliseconds, and /health, which
+#: asks for them, must answer while a stalled shard is still alive to the router (up to its Zenoh lease)
+STATS_TIMEOUT = 2.0
 
 
 def _parse_int(text: str) -> int | None:
@@ -140,23 +146,25 @@ class MapperLink:
         return None
 
     # ---------------------------------------------------------------------------- queries
-    def _get(self, selector: str):
-        """Send a query to every matching queryable; returns the reply handler (iterating it waits)."""
+    def _get(self, selector: str, timeout: float | None = None):
+        """Send a query to every matching queryable; returns the reply handler (iterating it waits, at most
+        ``timeout`` s, by default the query timeout)."""
         return self.session.get(selector, target=zenoh.QueryTarget.ALL,
                                 consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE),
-                                congestion_control=zenoh.CongestionControl.BLOCK, timeout=self.query_timeout)
+                                congestion_control=zenoh.CongestionControl.BLOCK,
+                                timeout=self.query_timeout if timeout is None else timeout)
 
-    def _query(self, selector: str) -> list[tuple[str, bytes]]:
-        return self._collect(selector, self._get(selector))
+    def _query(self, selector: str, timeout: float | None = None) -> list[tuple[str, bytes]]:
+        return list(self._replies(selector, self._get(selector, timeout)))
 
-    def _collect(self, selector: str, handler) -> list[tuple[str, bytes]]:
-        replies = []
+    def _replies(self, selector: str, handler) -> Iterator[tuple[str, bytes]]:
+        """(key, payload) of each good reply as it arrives; the handler ends when every queryable has answered
+        or the query timed out."""
         for reply in handler:
             if reply.ok is None:
                 self.rejects.count(selector, "error_reply", "a queryable answered with an error")
             else:
-                replies.append((str(reply.ok.key_expr), reply.ok.payload.to_bytes()))
-        return replies
+                yield str(reply.ok.key_expr), reply.ok.payload.to_bytes()
 
     def _whole_tiles(self, map_name: str, replies: list[tuple[str, bytes]]) -> list[TileUpdate]:
         tiles = []
@@ -178,15 +186,23 @@ class MapperLink:
         return tiles
 
     def fetch_tiles(self, map_name: str, tiles: list[TileKey]) -> dict[TileKey, TileUpdate]:
-        """Whole level-0 tiles from their shards, asked all at once; tiles that did not come back are absent."""
-        selectors = [keys.tile_key(map_name, 0, tx, ty) for tx, ty in tiles]
-        pending = [(selector, self._get(selector)) for selector in selectors]
+        """Whole level-0 tiles from their shards, asked all at once; tiles that did not come back are absent.
+
+        A tile's query reaches every shard's tile queryable and ends only when all of them have answered, though
+        only the owner replies. So each query is left as soon as its tile is in: a shard that is stalled (alive
+        to the router until its Zenoh lease runs out) holds up only the tiles it owns, not every tile request
+        until the query timeout."""
         wanted = set(tiles)
+        selectors = {tile: keys.tile_key(map_name, 0, *tile) for tile in tiles}
+        handlers = [(tile, selector, self._get(selector)) for tile, selector in selectors.items()]
         found = {}
-        for selector, handler in pending:
-            for update in self._whole_tiles(map_name, self._collect(selector, handler)):
-                if (update.tx, update.ty) in wanted:
-                    found[(update.tx, update.ty)] = update
+        for tile, selector, handler in handlers:
+            for reply in self._replies(selector, handler):
+                for update in self._whole_tiles(map_name, [reply]):
+                    if (update.tx, update.ty) in wanted:
+                        found[(update.tx, update.ty)] = update
+                if tile in found:
+                    break
         return found
 
     def fetch_all(self, map_name: str) -> tuple[list[TileUpdate], bool]:
@@ -202,9 +218,10 @@ class MapperLink:
         return tiles, complete
 
     def stats(self, map_name: str) -> dict[int, ShardStats]:
-        """The stats of every shard of the map that answers, by shard index (records the shard count)."""
+        """The stats of every shard of the map that answers within STATS_TIMEOUT, by shard index (records the
+        shard count)."""
         stats = {}
-        for key, payload in self._query(keys.stats_key(map_name, "*")):
+        for key, payload in self._query(keys.stats_key(map_name, "*"), min(self.query_timeout, STATS_TIMEOUT)):
             try:
                 message = decode_message(payload, ShardStats)
             except MessageError as exc:
