@@ -44,6 +44,7 @@ from services.process import RejectCounter, get_logger
 from services.steps import OutOfOrder, Released, StepAssembler
 from services.zenoh_config import open_session
 from slam.gridslam import GridFastSLAM, GridSlamConfig
+from slam.motion import OdometryMotionModel, odometry_controls, split_odometry_motion
 
 EXPECTED = {keys.SCAN: (LaserScan,), keys.ODOM: (Odometry,), keys.LANDMARKS: (LandmarkObservations,),
             keys.END: (StreamEnd,), keys.PRIOR: (PoseGaussian,)}
@@ -59,7 +60,8 @@ class NodeConfig:
     make_filter(initial_pose) builds a landmark filter (None for gridslam); motion: "velocity" or
     "odometry" (which Odometry field the landmark filters read); initial: start pose or None to wait
     for the source's prior; grid_config, seed: grid FastSLAM's (max_range is capped at the laser's);
-    intake_capacity: bounded queue size."""
+    intake_capacity: bounded queue size; bridge: the odometry motion model that moves a velocity-motion filter
+    over steps that never arrived, by the odometry poses around them (:class:`LandmarkDriver`)."""
 
     robot: str
     algorithm: str
@@ -69,42 +71,77 @@ class NodeConfig:
     grid_config: GridSlamConfig | None = None
     seed: int = 0
     intake_capacity: int = 4096
+    bridge: OdometryMotionModel | None = OdometryMotionModel()
+
+
+@dataclass(frozen=True)
+class Gap:
+    """Seqs first..last never arrived before the step just taken; bridged: whether its motion covers theirs."""
+
+    first: int
+    last: int
+    bridged: bool
 
 
 class LandmarkDriver:
-    """Feeds an EKF / FastSLAM / dead-reckoning filter one step at a time, as slam.sequence.run_filter does."""
+    """Feeds an EKF / FastSLAM / dead-reckoning filter one step at a time, as slam.sequence.run_filter does.
+
+    Steps that never arrived (lost in transit: a router restart, a network gap) take their motion with them. With
+    odometry motion the next step's controls come from the last odometry pose taken, so they cover the gap. With
+    velocity motion the gap's commands are gone; when the odometry messages carry the dead-reckoned pose, the
+    step after the gap is moved by the odometry poses around it instead, split into one piece per step it spans
+    (slam.motion.split_odometry_motion), under ``bridge`` (an odometry motion model), and its own commands, which
+    that motion includes, are not used. :attr:`last_gap` says what the step just taken did about a gap before
+    it."""
 
     needs = {keys.ODOM, keys.LANDMARKS}
 
-    def __init__(self, slam_filter, motion: str):
+    def __init__(self, slam_filter, motion: str, bridge: OdometryMotionModel | None = None):
         self.filter = slam_filter
         self.motion = motion
-        self._last_pose: np.ndarray | None = None
+        self.bridge = bridge
+        self._last_pose: np.ndarray | None = None  # odometry pose of the last step taken (None: it had none)
+        self._last_seq: int | None = None
+        self.last_gap: Gap | None = None
 
     def step(self, parts: dict) -> tuple[np.ndarray, np.ndarray]:
-        from slam.motion import odometry_controls
-
         odom: Odometry = parts[keys.ODOM]
         seen: LandmarkObservations = parts[keys.LANDMARKS]
-        if self.motion == "velocity":
-            controls = odom.commands
-        else:
-            if odom.pose.shape[0] == 0:
+        pose = odom.pose[0] if odom.pose.shape[0] else None
+        gap = None if self._last_seq is None or odom.seq == self._last_seq + 1 else (self._last_seq + 1, odom.seq - 1)
+        model = None
+        if self.motion == "odometry":
+            if pose is None:
                 raise StepError(f"seq {odom.seq}: odometry motion needs the odometry pose, the message has none")
-            pose = odom.pose[0]
             controls = np.zeros((0, 3)) if self._last_pose is None else odometry_controls(
                 np.stack([self._last_pose, pose]))
-            self._last_pose = pose
+        elif gap is not None and pose is not None and self._last_pose is not None and self.bridge is not None:
+            motion = odometry_controls(np.stack([self._last_pose, pose]))[0]
+            controls, model = split_odometry_motion(motion, odom.seq - self._last_seq), self.bridge
+        else:
+            controls = odom.commands
         measurements = np.column_stack([seen.ranges, seen.bearings])
-        return self.filter.step(controls, measurements, seen.ids)
+        if model is None:
+            result = self.filter.step(controls, measurements, seen.ids)
+        else:
+            velocity, self.filter.motion = self.filter.motion, model
+            try:
+                result = self.filter.step(controls, measurements, seen.ids)
+            finally:
+                self.filter.motion = velocity
+        self.last_gap = None if gap is None else Gap(*gap, bridged=self.motion == "odometry" or model is not None)
+        self._last_pose = pose
+        self._last_seq = odom.seq
+        return result
 
     def save(self) -> object:
         """The filter's state before a step (a copy: a landmark filter's arrays are small)."""
-        return copy.deepcopy((self.filter, self._last_pose))
+        return copy.deepcopy((self.filter, self._last_pose, self._last_seq))
 
     def restore(self, saved: object) -> None:
         """Go back to the state :meth:`save` returned, undoing a step whose pose could not be published."""
-        self.filter, self._last_pose = saved
+        self.filter, self._last_pose, self._last_seq = saved
+        self.last_gap = None
 
 
 class GridDriver:
@@ -257,7 +294,7 @@ class SlamNode:
         if self.driver is None:
             initial = np.asarray(self.initial, np.float64)
             self.driver = (GridDriver(initial, cfg.grid_config, cfg.seed) if cfg.algorithm == "gridslam"
-                           else LandmarkDriver(cfg.make_filter(initial), cfg.motion))
+                           else LandmarkDriver(cfg.make_filter(initial), cfg.motion, cfg.bridge))
         stamp = next(iter(parts.values())).stamp
         self.steps_done += 1
         saved = self.driver.save()
@@ -281,6 +318,14 @@ class SlamNode:
             return
         self._pose_publisher.put(payload)
         self.published += 1
+        gap = getattr(self.driver, "last_gap", None)
+        if gap is not None and gap.bridged:
+            self.log.info("seq %d: moved over seq %d-%d, which never arrived, by the odometry poses around them", seq,
+                          gap.first, gap.last)
+        elif gap is not None:
+            self.log.warning("seq %d: the velocity commands of seq %d-%d never arrived and the odometry messages "
+                             "carry no pose to bridge them; the poses from here on miss that motion", seq, gap.first,
+                             gap.last)
 
     # ---------------------------------------------------------------------------- lifecycle
     def run(self, stop: threading.Event) -> int:

@@ -14,9 +14,10 @@ from schemas.files import load_pose_distribution, load_posed_scans
 from services.cli import main
 from services.fusion_runner import fuse_posed_scans
 from slam.angles import wrap_angle
+from slam.motion import odometry_controls
 from slam.carmen import read_carmen, write_carmen
 from slam.gridslam import GridFastSLAM, GridSlamConfig, run_gridslam
-from slam.gridslam.filter import proposal_stencil, odometry_step
+from slam.gridslam.filter import proposal_stencil
 from slam.gridslam.kernels import log_likelihoods, match_and_propose
 from slam.gridslam.tiles import TileMaps
 from slam.raycast import cast_rays
@@ -164,7 +165,7 @@ def test_matcher_starts_where_the_robot_stood_and_behind_it():
 def test_backward_odometry_is_a_negative_translation():
     before = np.array([1.0, 2.0, 0.5])
     after = before + [-0.1 * math.cos(0.5), -0.1 * math.sin(0.5), 0.02]
-    rot1, trans, rot2 = odometry_step(before, after)
+    rot1, trans, rot2 = odometry_controls(np.stack([before, after]))[0]
     assert trans == pytest.approx(-0.1) and rot1 == pytest.approx(0.0, abs=1e-12) and rot2 == pytest.approx(0.02)
 
 

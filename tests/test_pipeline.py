@@ -482,6 +482,52 @@ def test_slam_node_takes_steps_in_order_and_reports_late_ones(procs):
     node.wait_for(r"out of order on pg/r1/odom: seq 1 arrived after seq 2; it is dropped")
 
 
+def test_slam_node_moves_over_lost_steps_by_the_odometry_poses(procs):
+    """Steps 3-12 never arrive (as in a router restart). Robot r1's odometry carries the dead-reckoned pose: its
+    dead reckoning (velocity commands) moves over the gap by the odometry poses around it and stays on the path.
+    Robot r2's carries none: the gap's motion is lost, which the node says. The path is an exact arc (1 m/s,
+    0.5 rad/s), so both expectations are hand-computed: on the arc, and for r2, one arc step after seq 2."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
+    nodes = {robot: procs([*CLI, "slam-node", "--robot", robot, "--algo", "odometry", "--initial", "0,0,0",
+                           "--connect", endpoint]) for robot in ("r1", "r2")}
+    for node in nodes.values():
+        node.wait_for("up for robot")
+    v, w, dt = 1.0, 0.5, 0.1
+
+    def on_arc(seq: int) -> list[float]:
+        theta = w * dt * seq
+        return [v / w * np.sin(theta), v / w * (1.0 - np.cos(theta)), theta]
+    poses = {robot: queue.Queue() for robot in nodes}
+    sent = [0, 1, 2, *range(13, 31)]
+    session = zenoh.open(build_config("client", connect=[endpoint]))
+    try:
+        subscribers = [session.declare_subscriber(f"pg/{robot}/pose", lambda s, q=poses[robot]: q.put(
+            s.payload.to_bytes())) for robot in nodes]
+        for seq in sent:
+            for robot, pose in (("r1", np.array([on_arc(seq)])), ("r2", np.zeros((0, 3)))):
+                commands = np.array([[v, w, dt]]) if seq else np.zeros((0, 3))
+                session.put(f"pg/{robot}/odom", Odometry(robot=robot, seq=seq, stamp=dt * seq, pose=pose,
+                                                         commands=commands).encode())
+                session.put(f"pg/{robot}/landmarks", LandmarkObservations(
+                    robot=robot, seq=seq, stamp=dt * seq, ids=np.zeros(0, np.int64), ranges=np.zeros(0),
+                    bearings=np.zeros(0)).encode())
+        received = {robot: [decode_message(poses[robot].get(timeout=20), PoseGaussian) for _ in sent]
+                    for robot in nodes}
+        for subscriber in subscribers:
+            subscriber.undeclare()
+    finally:
+        session.close()
+    assert [p.seq for p in received["r1"]] == [p.seq for p in received["r2"]] == sent
+    np.testing.assert_allclose([p.mean for p in received["r1"]], [on_arc(seq) for seq in sent], atol=1e-9)
+    # r2 takes seq 13's own command only: one arc step after seq 2, then on an arc turned and moved with it
+    np.testing.assert_allclose(received["r2"][3].mean, on_arc(3), atol=1e-9)
+    assert np.linalg.norm(received["r2"][3].mean[:2] - on_arc(13)[:2]) > 0.9
+    nodes["r1"].wait_for(r"seq 13: moved over seq 3-12, which never arrived, by the odometry poses around them")
+    nodes["r2"].wait_for(r"seq 13: the velocity commands of seq 3-12 never arrived and the odometry messages carry "
+                         r"no pose to bridge them")
+
+
 def _mrclam_excerpt(source: Path, target: Path, seconds: float) -> Path:
     """Robot 1's first ``seconds`` of an MRCLAM folder, in the dataset's own format (headers kept)."""
     target.mkdir()

@@ -17,6 +17,7 @@ from slam.motion import (
     local_motion,
     odometry_controls,
     rotate_covariance,
+    split_odometry_motion,
 )
 from slam.range_bearing import RangeBearingModel, inverse_measurement, predict_measurement
 from slam.resampling import effective_sample_size, low_variance_resample, normalize_log_weights
@@ -108,6 +109,11 @@ def test_odometry_controls_by_hand():
     np.testing.assert_allclose(controls[0], [math.pi / 4, math.sqrt(2), math.pi / 4], atol=1e-12)
     # a turn on the spot: no translation, the whole rotation in delta_rot2
     np.testing.assert_allclose(controls[1], [0.0, 0.0, -math.pi / 2], atol=1e-12)
+    # 2 mm backwards, heading pi/2, slightly to the left of straight back: a small turn and a negative translation
+    back = odometry_controls(np.array([[1.0, 1.0, math.pi / 2], [1.001, 1.0 - math.sqrt(3) / 1000, math.pi / 2]]))
+    np.testing.assert_allclose(back[0], [math.pi / 6, -0.002, -math.pi / 6], atol=1e-9)
+    # rotation noise a1 (pi / 6)^2 = 0.0014 rad^2, not a1 (5 pi / 6)^2 = 0.034
+    assert OdometryMotionModel().motion_variances(back[0])[0] == pytest.approx(0.005 * (math.pi / 6) ** 2 + 0.005 * 4e-6)
 
 
 def test_odometry_model_step_by_hand():
@@ -121,11 +127,37 @@ def test_odometry_variances_by_hand():
     np.testing.assert_allclose(variances, [0.1 * 0.25 + 0.2 * 4, 0.3 * 4 + 0.4 * 1.25, 0.1 * 1 + 0.2 * 4])
 
 
+def test_split_odometry_motion_by_hand():
+    pieces = split_odometry_motion(np.array([0.3, 2.0, -0.1]), 4)
+    np.testing.assert_allclose(pieces, [[0.3, 0.5, 0.0], [0.0, 0.5, 0.0], [0.0, 0.5, 0.0], [0.0, 0.5, -0.1]])
+    np.testing.assert_allclose(split_odometry_motion(np.array([0.3, 2.0, -0.1]), 1), [[0.3, 2.0, -0.1]])
+    # a straight motion: translation variance a3 (2/4)^2 per piece, 4 a3 / 4 in all, a quarter of a3 2^2
+    variances = OdometryMotionModel(alphas=(0.1, 0.2, 0.3, 0.4)).motion_variances(
+        split_odometry_motion(np.array([0.0, 2.0, 0.0]), 4))
+    assert variances[:, 1].sum() == pytest.approx(0.3 * 4 / 4)
+    with pytest.raises(ValueError):
+        split_odometry_motion(np.array([0.0, 1.0, 0.0]), 0)
+
+
 @settings(max_examples=40, deadline=None)
-@given(x=coords, y=coords, theta=angles, rot1=st.floats(-1.5, 1.5),
-       trans=st.one_of(st.just(0.0), st.floats(1e-4, 2)), rot2=st.floats(-1.5, 1.5))
+@given(x=coords, y=coords, theta=angles, rot1=angles, trans=st.floats(-2, 2), rot2=angles,
+       pieces=st.integers(1, 50))
+def test_split_odometry_motion_composes_to_the_motion(x, y, theta, rot1, trans, rot2, pieces):
+    model = OdometryMotionModel()
+    pose = np.array([[x, y, theta]])
+    whole = model.predict(pose, np.array([rot1, trans, rot2]))
+    for piece in split_odometry_motion(np.array([rot1, trans, rot2]), pieces):
+        pose = model.predict(pose, piece)
+    np.testing.assert_allclose(pose[0, :2], whole[0, :2], atol=1e-9)
+    assert abs(wrap_angle(pose[0, 2] - whole[0, 2])) < 1e-9
+
+
+@settings(max_examples=40, deadline=None)
+@given(x=coords, y=coords, theta=angles, rot1=st.floats(-math.pi, math.pi),
+       trans=st.one_of(st.just(0.0), st.floats(1e-4, 2), st.floats(-2, -1e-4)), rot2=st.floats(-1.5, 1.5))
 def test_odometry_controls_invert_the_motion(x, y, theta, rot1, trans, rot2):
-    # (translations under MIN_TRANSLATION = 1e-6 m count as turns on the spot, so none are drawn)
+    # (translations under MIN_TRANSLATION = 1e-6 m count as turns on the spot, so none are drawn; forwards or
+    # backwards in any direction)
     start = np.array([[x, y, theta]])
     end = OdometryMotionModel().predict(start, np.array([rot1, trans, rot2]))
     recovered = OdometryMotionModel().predict(start, odometry_controls(np.vstack([start, end]))[0])

@@ -47,23 +47,6 @@ class StepReport:
     fallbacks: int
 
 
-def odometry_step(before: np.ndarray, after: np.ndarray) -> np.ndarray:
-    """The odometry motion model's control (rot1 rad, trans m, rot2 rad) from odometry pose ``before`` (3,)
-    to ``after`` (3,), with a backward motion as a negative translation.
-
-    slam.motion.odometry_controls writes a small backward step as rot1 near +-pi, which the model's
-    rot1-proportional noise turns into a spin of several radians; here rot1 is folded into [-pi/2, pi/2]
-    and the translation made negative instead (the model's motion is the same, its noise sensible).
-    """
-    rot1, trans, rot2 = odometry_controls(np.stack([before, after]))[0]
-    if abs(rot1) > np.pi / 2:
-        turn = rot1 + rot2
-        rot1 = float(wrap_angle(rot1 - np.pi))
-        trans = -trans
-        rot2 = float(wrap_angle(turn - rot1))
-    return np.array([rot1, trans, rot2])
-
-
 def proposal_stencil(xy: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
     """The 27 offsets (dx m, dy m, dyaw rad) of a 3 x 3 x 3 grid around a pose, and the (10, 27) matrix
     giving the least-squares quadratic [c, g0, g1, g2, a00, a11, a22, a01, a02, a12] through values there
@@ -127,7 +110,7 @@ class GridFastSLAM:
         """Particle poses (M, 3) at a scan that is not integrated: the last poses moved by the odometry."""
         if self.odometry_ref is None:
             return self.poses.copy()
-        return self.motion.predict(self.poses, odometry_step(self.odometry_ref, odometry))
+        return self.motion.predict(self.poses, odometry_controls(np.stack([self.odometry_ref, odometry]))[0])
 
     def _cover(self, poses: np.ndarray) -> None:
         lo = poses[:, :2].min(axis=0) - self.reach
@@ -180,7 +163,7 @@ class GridFastSLAM:
         odometry = np.asarray(odometry, np.float64)
         fallbacks = 0
         if self.odometry_ref is not None:
-            control = odometry_step(self.odometry_ref, odometry)
+            control = odometry_controls(np.stack([self.odometry_ref, odometry]))[0]
             self.poses, log_eta, fallbacks = self._propose(control, r_stop, idx)
             self.log_w = self.log_w + log_eta / self.config.weight_temper
             self.log_w -= self.log_w.max()
