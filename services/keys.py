@@ -7,6 +7,7 @@
     pg/<robot>/end                       StreamEnd
     pg/<robot>/prior                     PoseGaussian: where a SLAM filter starts (seq 0, zero covariance)
     pg/<robot>/slam/stats                queryable: NodeStats
+    pg/<robot>/history/<stream>          queryable (source): the messages it has published, for late joiners
     pg/<robot>/alive/<process>           liveliness token of the robot's source or SLAM node
     pg/map/<map>/tile/<z>/<tx>/<ty>      TileUpdate publications; queryable (the owning shard answers)
     pg/map/<map>/stats/<shard>           queryable: ShardStats
@@ -28,6 +29,11 @@ def robot_key(robot: str, stream: str) -> str:
 def robot_of(key: str) -> str:
     """The robot chunk of a pg/<robot>/... key."""
     return key.split("/")[1]
+
+
+def history_key(robot: str, stream: str = "**") -> str:
+    """pg/<robot>/history/<stream>: the source's queryable of what it has published (``stream`` "**": all)."""
+    return f"{ROOT}/{robot}/history/{stream}"
 
 
 def slam_stats_key(robot: str) -> str:

@@ -48,6 +48,10 @@ from slam.motion import OdometryMotionModel, odometry_controls, split_odometry_m
 
 EXPECTED = {keys.SCAN: (LaserScan,), keys.ODOM: (Odometry,), keys.LANDMARKS: (LandmarkObservations,),
             keys.END: (StreamEnd,), keys.PRIOR: (PoseGaussian,)}
+#: s to wait for the source's history of the run (what it published before this node was up)
+HISTORY_TIMEOUT = 60.0
+#: s to wait for the source's history of steps that did not all arrive (the node waits meanwhile)
+RECOVER_TIMEOUT = 5.0
 
 
 class StepError(ValueError):
@@ -196,9 +200,10 @@ class SlamNode:
         self.initial = config.initial
         self.driver = None
         needs = GridDriver.needs if config.algorithm == "gridslam" else LandmarkDriver.needs
-        self.steps = StepAssembler(needs)
+        self.steps = StepAssembler(needs, recover=self._recover)
         self._ready: list[tuple[int, dict]] = []
         self._highest_seq: dict[str, int] = {}
+        self._history_high: dict[str, int] = {}  # per stream, the highest seq the source's history gave
         self._declared = []
         self._pose_publisher = None
 
@@ -220,8 +225,9 @@ class SlamNode:
         query.reply(keys.slam_stats_key(self.config.robot), stats.encode())
 
     # ---------------------------------------------------------------------------- messages
-    def handle(self, key: str, payload: bytes) -> None:
-        """Decode one message, file it with its step, and take every step that is now complete."""
+    def handle(self, key: str, payload: bytes, from_history: bool = False) -> None:
+        """Decode one message, file it with its step, and take every step that is now complete. A live message
+        that the source's history gave already (:meth:`catch_up`) is dropped without a word."""
         self.received[key] += 1
         stream = key.rsplit("/", 1)[-1]
         try:
@@ -231,6 +237,10 @@ class SlamNode:
             return
         if message.robot != self.config.robot:
             self.rejects.count(key, "robot", f"a {message.TYPE} of robot {message.robot!r} arrived on {key}")
+            return
+        if stream in self.steps.needs and from_history:
+            self._history_high[stream] = max(self._history_high.get(stream, -1), message.seq)
+        elif stream in self.steps.needs and message.seq <= self._history_high.get(stream, -1):
             return
         if stream == keys.PRIOR:
             if self.initial is None:
@@ -327,6 +337,52 @@ class SlamNode:
                              "carry no pose to bridge them; the poses from here on miss that motion", seq, gap.first,
                              gap.last)
 
+    def _history(self, parameters: dict[str, str], timeout: float) -> list[tuple[str, bytes]]:
+        """(pg/<robot>/<stream>, payload) of the messages the source's history answers with (services.source:
+        pg/<robot>/history/** with ``parameters``), in the order it sent them; none when no source answers."""
+        robot = self.config.robot
+        replies = []
+        for reply in self.session.get(zenoh.Selector(keys.history_key(robot), parameters), timeout=timeout,
+                                      consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE)):
+            if reply.ok is None:
+                self.rejects.count(keys.history_key(robot), "error_reply", reply.err.payload.to_string())
+            else:
+                replies.append((keys.robot_key(robot, str(reply.ok.key_expr).rsplit("/", 1)[-1]),
+                                reply.ok.payload.to_bytes()))
+        return replies
+
+    def catch_up(self) -> None:
+        """Take what the source published before this node subscribed: the prior and every step so far, in the
+        order they went out, as if they had arrived live. A node that starts late or restarts so resumes where
+        the run is, in the state of a node that saw all of it (its poses so far are published again; shards
+        refuse the ones they have fused). Nothing happens when no source answers."""
+        replies = self._history({"streams": ",".join(sorted(self.steps.needs | {keys.PRIOR}))}, HISTORY_TIMEOUT)
+        if not replies:
+            return
+        with self.lock:
+            for key, payload in replies:
+                self.handle(key, payload, from_history=True)
+        self.log.info("took %d message(s) the source published before this node was up (steps up to seq %d)",
+                      len(replies), max(self._history_high.values(), default=-1))
+
+    def _recover(self, first: int, last: int) -> dict[int, dict]:
+        """The parts of steps first..last, which did not all arrive (lost in transit), from the source's history
+        ({seq: {stream: message}}; what it lacks is skipped as before). Called by the step assembler."""
+        parts: dict[int, dict] = {}
+        for key, payload in self._history({"streams": ",".join(sorted(self.steps.needs)), "from": str(first),
+                                           "to": str(last + 1)}, RECOVER_TIMEOUT):
+            stream = key.rsplit("/", 1)[-1]
+            try:
+                message = decode_message(payload, *EXPECTED[stream])
+            except MessageError as exc:
+                self.rejects.count(keys.history_key(self.config.robot), exc.reason, str(exc))
+                continue
+            if message.robot == self.config.robot and first <= message.seq <= last:
+                parts.setdefault(message.seq, {})[stream] = message
+        if parts:
+            self.log.info("took seq %s, which did not all arrive, from the source's history", _spans(sorted(parts)))
+        return parts
+
     # ---------------------------------------------------------------------------- lifecycle
     def run(self, stop: threading.Event) -> int:
         """Filter and publish until ``stop`` is set; returns the exit code (0)."""
@@ -338,6 +394,7 @@ class SlamNode:
         self._declared.append(session.declare_queryable(keys.slam_stats_key(robot), self._on_stats_query))
         self._declared.append(session.liveliness().declare_token(keys.robot_alive_key(robot, "slam")))
         self.log.info("%s up for robot %r; poses on %s", self.config.algorithm, robot, keys.robot_key(robot, keys.POSE))
+        self.catch_up()
         while not stop.is_set():
             try:
                 key, payload = self.intake.get(timeout=0.2)

@@ -10,6 +10,9 @@ Before the first message the source waits for the liveliness tokens of ``wait_ma
 of the robot's SLAM node with ``wait_slam``), so nothing is published before its subscribers are up. After
 the last step it publishes a StreamEnd with the number of scans, and, when it waited for mappers, waits
 until every shard has acknowledged that end in its stats, publishing it again every END_REPEAT s meanwhile.
+
+While it runs, the source answers queries on pg/<robot>/history/<stream> with what it has published so far
+(:meth:`Source.history`), so a SLAM node that starts late or restarts can take the run from its start.
 """
 from __future__ import annotations
 
@@ -91,6 +94,9 @@ class Source:
         self._steps_done = 0  # steps the SLAM node has taken or given up on
         self._reader = MapReader(session, options.map_name)
         self._end_sent = 0.0  # time.monotonic() of the last StreamEnd published
+        self._prior_out = False  # whether the prior is out (what the history may answer with, with ...)
+        self._steps_published = 0  # ... the steps whose messages are all out
+        self._history_lock = threading.Lock()
 
     def _publisher(self, stream: str) -> zenoh.Publisher:
         if stream not in self._publishers:
@@ -100,6 +106,39 @@ class Source:
 
     def _publish(self, message, stream: str | None = None) -> None:
         self._publisher(stream or STREAM_OF[type(message)]).put(message.encode())
+
+    # ------------------------------------------------------------------------------- history
+    def history(self, streams: set[str], first: int, stop: int | None = None) -> list[tuple[str, bytes]]:
+        """(stream, encoded message) of what was published on ``streams`` (key chunks; PRIOR for the prior), in
+        the order it went out: the prior, then the messages of steps ``first`` .. ``stop`` - 1 (default: up to
+        the last step published)."""
+        with self._history_lock:
+            prior_out, published = self._prior_out, self._steps_published
+        out = []
+        if keys.PRIOR in streams and prior_out:
+            out.append((keys.PRIOR, self.stream.prior.encode()))
+        for step in self.stream.steps[first:published if stop is None else min(stop, published)]:
+            out += [(STREAM_OF[type(m)], m.encode()) for m in step.messages if STREAM_OF[type(m)] in streams]
+        return out
+
+    def _on_history_query(self, query: zenoh.Query) -> None:
+        """pg/<robot>/history/** with parameters ``streams`` (comma-separated key chunks, default every one; "prior"
+        for the prior), ``from`` (the first step, default 0) and ``to`` (the step after the last, default all
+        published): one reply per message, in the order they were published, on pg/<robot>/history/<its stream>.
+        Bad parameters get an error reply that says which."""
+        known = {*STREAM_OF.values(), keys.PRIOR}
+        asked = query.parameters.get("streams")
+        streams = known if asked is None else set(asked.split(","))
+        first, stop = query.parameters.get("from", "0"), query.parameters.get("to")
+        problem = (f"unknown stream(s) {sorted(streams - known)}; known: {sorted(known)}" if streams - known else
+                   None if first.isdigit() and (stop is None or stop.isdigit()) else
+                   f"'from' and 'to' must be step numbers >= 0, got {first!r} and {stop!r}")
+        if problem:
+            query.reply_err(f"history query {query.selector}: {problem}".encode())
+            return
+        for stream, payload in self.history(streams, int(first), None if stop is None else int(stop)):
+            query.reply(keys.history_key(self.stream.robot, stream), payload,
+                        congestion_control=zenoh.CongestionControl.BLOCK)
 
     # ------------------------------------------------------------------------------- waiting
     def _shard_stats(self) -> list[ShardStats]:
@@ -204,11 +243,14 @@ class Source:
         """Publish every step, then the StreamEnd, unless ``stop`` is set first; returns the exit code (0)."""
         opts, stream = self.options, self.stream
         token = self.session.liveliness().declare_token(keys.robot_alive_key(stream.robot, "source"))
+        history = self.session.declare_queryable(keys.history_key(stream.robot), self._on_history_query)
         try:
             if not self._wait_for_subscribers(stop):
                 return self._stopped()
             if stream.prior is not None:
                 self._publish(stream.prior, keys.PRIOR)
+                with self._history_lock:
+                    self._prior_out = True
             self.log.info("publishing %d steps (%d scans) of robot %r %s", len(stream.steps), stream.scans,
                           stream.robot, "as fast as the subscribers take" if opts.rate is None
                           else f"at {opts.rate:g}x real time")
@@ -228,6 +270,8 @@ class Source:
                 for message in step.messages:
                     self._publish(message)
                     scans_sent += isinstance(message, LaserScan)
+                with self._history_lock:
+                    self._steps_published = steps_sent + 1
             end = StreamEnd(robot=stream.robot, scans=scans_sent)
             self._publish(end)
             self._end_sent = time.monotonic()
@@ -241,4 +285,5 @@ class Source:
         finally:
             for publisher in self._publishers.values():
                 publisher.undeclare()
+            history.undeclare()
             token.undeclare()

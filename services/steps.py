@@ -3,11 +3,13 @@
 A SLAM filter must see its steps in order. Parts may arrive in any order across keys; a step is complete
 when every part the filter needs is there. Complete steps are released strictly in seq order; a seq that
 never completes is skipped (and reported) once ``reorder`` later steps are complete and waiting, or when
-the stream has ended. A part whose seq was already released or skipped arrives *out of order*: it is
+the stream has ended; before that, the assembler's ``recover`` (if given) may supply the missing parts (the SLAM
+node asks the source's history for them). A part whose seq was already released or skipped arrives *out of order*: it is
 reported and dropped. At most ``capacity`` incomplete steps are held; the oldest is evicted beyond that.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 
@@ -27,10 +29,15 @@ class Released:
 class StepAssembler:
     """See the module docstring. ``needs``: the parts a step must have, e.g. {"odom", "landmarks"}."""
 
-    def __init__(self, needs: set[str], capacity: int = 256, reorder: int = 16):
+    def __init__(self, needs: set[str], capacity: int = 256, reorder: int = 16,
+                 recover: Callable[[int, int], dict[int, dict]] | None = None):
+        """``recover(first, last)``: the parts {seq: {part: message}} it can find of seqs first..last (inclusive),
+        which are about to be skipped; what it returns fills them in."""
         self.needs = frozenset(needs)
         self.capacity = capacity
         self.reorder = reorder
+        self.recover = recover
+        self._asked_through = -1  # the last seq recover was asked for
         self.next_seq = 0
         self._pending: dict[int, dict] = {}
 
@@ -65,6 +72,12 @@ class StepAssembler:
             waiting = sorted(s for s in self._pending if self._complete(s))
             if not waiting or (not flush and len(waiting) < self.reorder):
                 return
+            if self.recover is not None and self.next_seq > self._asked_through:  # each seq is asked for once
+                for seq, parts in self.recover(self.next_seq, waiting[0] - 1).items():
+                    if self.next_seq <= seq < waiting[0]:
+                        self._pending.setdefault(seq, {}).update(parts)
+                self._asked_through = waiting[0] - 1
+                waiting = sorted(s for s in self._pending if self._complete(s))  # now from the first recovered
             for seq in range(self.next_seq, waiting[0]):
                 self._pending.pop(seq, None)
                 released.skipped.append(seq)

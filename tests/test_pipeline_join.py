@@ -128,6 +128,25 @@ def test_late_parts_are_out_of_order_and_gaps_are_skipped():
         steps.add("odom", 1, "too late")
 
 
+def test_steps_about_to_be_skipped_are_asked_for_and_what_comes_back_is_used():
+    """recover(first, last) is asked for the seqs about to be skipped; the parts it returns complete them (a
+    seq it cannot complete is skipped alone), and seqs outside the range it was asked for are ignored."""
+    asked = []
+
+    def recover(first: int, last: int) -> dict[int, dict]:
+        asked.append((first, last))
+        return {1: {"odom": "b", "landmarks": "B"}, 2: {"odom": "c"}, 9: {"odom": "x", "landmarks": "X"}}
+    steps = StepAssembler({"odom", "landmarks"}, reorder=2, recover=recover)
+    for seq in (0, 4, 5):
+        out = steps.add("odom", seq, f"o{seq}")
+        out = steps.add("landmarks", seq, f"l{seq}")
+    assert asked == [(1, 3)]
+    assert [(seq, parts) for seq, parts in out.steps] == [(1, {"odom": "b", "landmarks": "B"}),
+                                                          (4, {"odom": "o4", "landmarks": "l4"}),
+                                                          (5, {"odom": "o5", "landmarks": "l5"})]
+    assert out.skipped == [2, 3]
+
+
 def _scan(seq: int, robot: str = "r") -> LaserScan:
     return LaserScan(robot=robot, seq=seq, stamp=0.1 * seq, angle_min=-1.0, angle_increment=0.5, range_min=0.05,
                      range_max=5.0, sensor_offset=np.zeros(3), ranges=np.array([1.0, 2.0, np.inf, 1.5, 3.0], np.float32))
