@@ -6,9 +6,11 @@ a posed-scan file), each in seq order over a reliable channel (schemas.messages:
 past its Zenoh lease, a full intake queue), or the SLAM node gave up on the step. Such a gap is believed once
 a later message of the stream lies beyond it; until then the message past the gap is held, and if the stream
 goes on below it instead, the held one was a stray (another process on the robot's keys) and is refused as a
-jump. Once a gap is believed, the scans that never came are counted as given up and so are the
-halves waiting for a partner the gap skipped, at once, instead of holding halves whose partner cannot come (a
-source waiting for every scan to be accounted for would wait for ever). :meth:`JoinBuffer.settle` ends a
+jump. Once a gap is believed, the buffer's ``recover`` (if given) is asked for the messages the gap skipped
+(services.shard asks the source's and the SLAM node's histories); what it returns is taken as if it had come.
+The scans that still never came are counted as given up and so are the halves waiting for a partner the gap
+skipped, at once, instead of holding halves whose partner cannot come (a source waiting for every scan to be
+accounted for would wait for ever). :meth:`JoinBuffer.settle` ends a
 robot's streams after the source's count of scans; the caller decides when (the end mark itself can overtake
 the last scans: services.shard waits for quiet).
 
@@ -20,6 +22,7 @@ fused, so that a re-sent pair is refused instead of fused twice.
 from __future__ import annotations
 
 from collections import OrderedDict
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Generic, TypeVar
 
@@ -45,7 +48,7 @@ JUMP = "jump"  # it jumped past a gap that its stream's next message did not con
 GIVEN_UP_BECAUSE = {
     OVERFLOW: "the join buffer was full; given up on without its partner",
     MISSING: "never reached this shard (lost in transit: a network gap, a shard stalled past its Zenoh lease or a "
-             "full intake queue); the map lacks them",
+             "full intake queue) and no history holds them; the map lacks them",
     ORPHANED: "given up on: its partner never comes (the partner's stream went past its seq)",
     LATE: "came after its stream had gone past its seq (a re-sent message); refused",
     JUMP: "jumped past a gap that the next message of its stream did not confirm (a stray message); refused",
@@ -73,10 +76,13 @@ class GivenUp:
 class JoinBuffer(Generic[ScanT, PoseT]):
     """A bounded scan/pose join; see the module docstring."""
 
-    def __init__(self, capacity: int):
+    def __init__(self, capacity: int, recover: Callable[[str, bool, int, int], dict[int, object]] | None = None):
+        """``recover(robot, scans, first, last)``: what it can find of the robot's scans (else poses) with seqs
+        first..last (inclusive), which its stream skipped, as {seq: scan or pose}."""
         if capacity < 1:
             raise ValueError(f"join buffer capacity must be >= 1, got {capacity}")
         self.capacity = capacity
+        self.recover = recover
         self._pending: OrderedDict[JoinKey, _Pending] = OrderedDict()
         self._last: dict[tuple[str, bool], int] = {}  # (robot, scans?) -> the last seq its stream has passed
         self._held: dict[tuple[str, bool], tuple[int, object]] = {}  # (robot, scans?) -> (seq, item) past a gap
@@ -108,8 +114,10 @@ class JoinBuffer(Generic[ScanT, PoseT]):
                 gone += more
             else:
                 gone.append(GivenUp(robot, held[0], 1, is_scan, JUMP))
-        last = self._last.get((robot, True), -1)
-        gone += self._pass(robot, True, last + 1, scans)
+        for is_scan in (True, False):  # the tails after the last message seen: what the histories still hold
+            more_pairs, more = self._pass(robot, is_scan, self._last.get((robot, is_scan), -1) + 1, scans)
+            pairs += more_pairs
+            gone += more
         waiting = [key for key in self._pending if key[0] == robot]
         gone += [GivenUp(robot, seq, 1, self._pending.pop((robot, seq)).scan is not None, ORPHANED)
                  for _, seq in waiting]
@@ -139,13 +147,19 @@ class JoinBuffer(Generic[ScanT, PoseT]):
 
     def _take(self, robot: str, seq: int, item, is_scan: bool):
         """Accept ``item`` as its stream's next message, after any gap since the stream's last seq."""
-        gone = self._pass(robot, is_scan, self._last.get((robot, is_scan), -1) + 1, seq)
+        pairs, gone = self._pass(robot, is_scan, self._last.get((robot, is_scan), -1) + 1, seq)
         self._last[(robot, is_scan)] = seq
+        more_pairs, more = self._place(robot, seq, item, is_scan)
+        return pairs + more_pairs, gone + more
+
+    def _place(self, robot: str, seq: int, item, is_scan: bool):
+        """File ``item``, a message its stream has passed, with its partner, or wait for the partner."""
         key = (robot, seq)
         entry = self._pending.get(key)
+        gone = []
         if entry is None:
             if seq <= self._last.get((robot, not is_scan), -1):  # the partner's stream passed it: never comes
-                return [], gone + [GivenUp(robot, seq, 1, is_scan, ORPHANED)]
+                return [], [GivenUp(robot, seq, 1, is_scan, ORPHANED)]
             while len(self._pending) >= self.capacity:
                 (old_robot, old_seq), old = self._pending.popitem(last=False)
                 gone.append(GivenUp(old_robot, old_seq, 1, old.scan is not None, OVERFLOW))
@@ -159,17 +173,40 @@ class JoinBuffer(Generic[ScanT, PoseT]):
             return [(entry.scan, entry.pose)], gone
         return [], gone
 
-    def _pass(self, robot: str, is_scan: bool, skipped_from: int, skipped_to: int) -> list[GivenUp]:
-        """Seqs skipped_from .. skipped_to-1 of the robot's scan (or pose) stream never came: counted when they are
-        scans, and the partners waiting for them are given up."""
+    def _pass(self, robot: str, is_scan: bool, skipped_from: int, skipped_to: int):
+        """Seqs skipped_from .. skipped_to-1 of the robot's scan (or pose) stream did not come: what ``recover``
+        finds of them is taken; the rest are counted when they are scans, and the partners waiting for them are
+        given up. Returns the pairs completed and the halves given up on."""
         if skipped_to <= skipped_from:
-            return []
+            return [], []
         self._last[(robot, is_scan)] = max(self._last.get((robot, is_scan), -1), skipped_to - 1)
-        gone = [GivenUp(robot, skipped_from, skipped_to - skipped_from, True, MISSING)] if is_scan else []
-        for key in [k for k in self._pending if k[0] == robot and skipped_from <= k[1] < skipped_to]:
+        found = {} if self.recover is None else {
+            seq: item for seq, item in self.recover(robot, is_scan, skipped_from, skipped_to - 1).items()
+            if skipped_from <= seq < skipped_to}
+        gone = [GivenUp(robot, first, count, True, MISSING)
+                for first, count in _runs(seq for seq in range(skipped_from, skipped_to) if seq not in found)
+                ] if is_scan else []
+        for key in [k for k in self._pending if k[0] == robot and skipped_from <= k[1] < skipped_to
+                    and k[1] not in found]:
             gone.append(GivenUp(robot, key[1], 1, not is_scan, ORPHANED))
             del self._pending[key]
-        return gone
+        pairs = []
+        for seq in sorted(found):
+            more_pairs, more = self._place(robot, seq, found[seq], is_scan)
+            pairs += more_pairs
+            gone += more
+        return pairs, gone
+
+
+def _runs(seqs: Iterable[int]) -> list[tuple[int, int]]:
+    """Ascending seqs as runs (first, count) of consecutive ones."""
+    runs: list[list[int]] = []
+    for seq in seqs:
+        if runs and seq == runs[-1][0] + runs[-1][1]:
+            runs[-1][1] += 1
+        else:
+            runs.append([seq, 1])
+    return [(first, count) for first, count in runs]
 
 
 class SeqLedger:

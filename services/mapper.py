@@ -19,13 +19,15 @@ import time
 
 import zenoh
 
-from services import keys
+from services import history, keys
 from services.process import RejectCounter, get_logger
 from services.shard import MapShard, ShardConfig
 from services.zenoh_config import open_session
 
 #: messages that may wait in the intake queue between the network and the fusion thread
 DEFAULT_INTAKE_CAPACITY = 4096
+#: s to wait for the histories of scans and poses that never reached the shard (it waits meanwhile)
+HISTORY_TIMEOUT = 5.0
 
 
 class Mapper:
@@ -36,7 +38,7 @@ class Mapper:
         self.session = session
         self.log = get_logger(f"mapper[{config.shard}]")
         self.rejects = RejectCounter(self.log)
-        self.shard = MapShard(config, self.rejects)
+        self.shard = MapShard(config, self.rejects, history=self._history)
         self.lock = threading.Lock()
         self.intake: queue.Queue[tuple[str, bytes]] = queue.Queue(intake_capacity)
         self.intake_overflow = 0
@@ -73,6 +75,15 @@ class Mapper:
         payload = self.shard.stats({"intake": self.intake_overflow}).encode()
         with self._stats_lock:
             self._stats_payload = payload
+
+    def _history(self, robot: str, stream: str, first: int, last: int) -> list[bytes]:
+        """The robot's ``stream`` messages first..last from the histories (services.history): the source's for
+        scans (and poses of a posed-scan file), the SLAM node's for poses."""
+        messages, errors = history.ask(self.session, robot, {"streams": stream, "from": str(first),
+                                                             "to": str(last + 1)}, HISTORY_TIMEOUT)
+        for error in errors:
+            self.rejects.count(keys.history_key(robot), "error_reply", error)
+        return [payload for got, payload in messages if got == stream]
 
     # ---------------------------------------------------------------------------- lifecycle
     def declare(self) -> None:

@@ -62,14 +62,20 @@ class ShardConfig:
 class MapShard:
     """One shard's grid and bookkeeping. Not thread-safe: callers serialise access (services.mapper)."""
 
-    def __init__(self, config: ShardConfig, rejects: RejectCounter, clock: Callable[[], float] = time.monotonic):
+    def __init__(self, config: ShardConfig, rejects: RejectCounter, clock: Callable[[], float] = time.monotonic,
+                 history: Callable[[str, str, int, int], list[bytes]] | None = None):
+        """``history(robot, stream, first, last)``: the encoded messages of the robot's ``stream`` (keys.SCAN or
+        keys.POSE) with seqs first..last that the processes which published them still hold (services.mapper
+        asks pg/<robot>/history/**); the join takes them for messages lost in transit."""
         self.config = config
         self.grid = TiledGrid(config.model.resolution, config.tile_size)
         self.owns = owns_tile(config.shard, config.shards)
         self.rejects = rejects
         self.accuracy = config.accuracy if config.accuracy is not None else config.model.resolution
         self._fusions: OrderedDict[tuple, MonteCarloFusion] = OrderedDict()
-        self._join: JoinBuffer[LaserScan, object] = JoinBuffer(config.join_capacity)
+        self._history = history
+        self._join: JoinBuffer[LaserScan, object] = JoinBuffer(config.join_capacity,
+                                                                None if history is None else self._recover)
         self._fused_seqs = SeqLedger(SEQ_HORIZON_JOINS * config.join_capacity)
         self.log = get_logger(f"mapper[{config.shard}]")  # the logger services.mapper.Mapper writes to
         self.received: Counter[str] = Counter()
@@ -122,6 +128,28 @@ class MapShard:
         self._give_up(gone)
         for pair in pairs:
             self._fuse(*pair)
+
+    def _recover(self, robot: str, is_scan: bool, first: int, last: int) -> dict[int, object]:
+        """Scans (else poses) first..last of ``robot`` that its stream skipped, from the history; each checked as
+        a received message is (a bad one counted under the history's key)."""
+        stream = keys.SCAN if is_scan else keys.POSE
+        key = keys.history_key(robot, stream)
+        found = {}
+        for payload in self._history(robot, stream, first, last):
+            try:
+                message = decode_message(payload, *((LaserScan,) if is_scan else POSE_TYPES))
+            except MessageError as exc:
+                self.rejects.count(key, exc.reason, str(exc))
+                continue
+            if message.robot != robot or not first <= message.seq <= last:
+                self.rejects.count(key, "key", f"a {message.TYPE} of robot {message.robot!r}, seq {message.seq}, "
+                                   f"answered a question about seqs {first}-{last} of robot {robot!r}")
+            elif not self._fused_seqs.done(robot, message.seq):
+                found[message.seq] = message
+        if found:
+            self.log.info("took %d %s(s) of robot %r in seqs %d-%d, which never reached this shard, from the "
+                          "history", len(found), stream, robot, first, last)
+        return found
 
     def _give_up(self, gone: list[GivenUp]) -> None:
         """Count the halves the join gave up on (services.join): scans that never came or whose pose never

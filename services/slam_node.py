@@ -21,7 +21,7 @@ import copy
 import queue
 import threading
 import time
-from collections import Counter
+from collections import Counter, OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
@@ -39,7 +39,7 @@ from schemas.messages import (
     StreamEnd,
     decode_message,
 )
-from services import keys
+from services import history, keys
 from services.process import RejectCounter, get_logger
 from services.steps import OutOfOrder, Released, StepAssembler
 from services.zenoh_config import open_session
@@ -52,6 +52,8 @@ EXPECTED = {keys.SCAN: (LaserScan,), keys.ODOM: (Odometry,), keys.LANDMARKS: (La
 HISTORY_TIMEOUT = 60.0
 #: s to wait for the source's history of steps that did not all arrive (the node waits meanwhile)
 RECOVER_TIMEOUT = 5.0
+#: bytes of published poses the node keeps for its history (the oldest go first): 1 KB a pose of 30 particles
+POSE_HISTORY_BYTES = 64 * 2**20
 
 
 class StepError(ValueError):
@@ -204,6 +206,8 @@ class SlamNode:
         self._ready: list[tuple[int, dict]] = []
         self._highest_seq: dict[str, int] = {}
         self._history_high: dict[str, int] = {}  # per stream, the highest seq the source's history gave
+        self._poses_sent: OrderedDict[int, bytes] = OrderedDict()  # seq -> published pose, for the history
+        self._poses_bytes = 0
         self._declared = []
         self._pose_publisher = None
 
@@ -328,6 +332,7 @@ class SlamNode:
             return
         self._pose_publisher.put(payload)
         self.published += 1
+        self._keep_pose(seq, payload)
         gap = getattr(self.driver, "last_gap", None)
         if gap is not None and gap.bridged:
             self.log.info("seq %d: moved over seq %d-%d, which never arrived, by the odometry poses around them", seq,
@@ -338,18 +343,32 @@ class SlamNode:
                              gap.last)
 
     def _history(self, parameters: dict[str, str], timeout: float) -> list[tuple[str, bytes]]:
-        """(pg/<robot>/<stream>, payload) of the messages the source's history answers with (services.source:
-        pg/<robot>/history/** with ``parameters``), in the order it sent them; none when no source answers."""
+        """(pg/<robot>/<stream>, payload) of the messages the histories answer with (services.history), in the
+        order they were sent; none when nobody answers."""
         robot = self.config.robot
-        replies = []
-        for reply in self.session.get(zenoh.Selector(keys.history_key(robot), parameters), timeout=timeout,
-                                      consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE)):
-            if reply.ok is None:
-                self.rejects.count(keys.history_key(robot), "error_reply", reply.err.payload.to_string())
-            else:
-                replies.append((keys.robot_key(robot, str(reply.ok.key_expr).rsplit("/", 1)[-1]),
-                                reply.ok.payload.to_bytes()))
-        return replies
+        messages, errors = history.ask(self.session, robot, parameters, timeout)
+        for error in errors:
+            self.rejects.count(keys.history_key(robot), "error_reply", error)
+        return [(keys.robot_key(robot, stream), payload) for stream, payload in messages if stream in EXPECTED]
+
+    def _keep_pose(self, seq: int, payload: bytes) -> None:
+        """Keep a published pose for the history, within POSE_HISTORY_BYTES (called holding ``lock``)."""
+        old = self._poses_sent.pop(seq, None)
+        self._poses_bytes += len(payload) - (0 if old is None else len(old))
+        self._poses_sent[seq] = payload
+        while self._poses_bytes > POSE_HISTORY_BYTES:
+            self._poses_bytes -= len(self._poses_sent.popitem(last=False)[1])
+
+    def _on_history_query(self, query: zenoh.Query) -> None:
+        """pg/<robot>/history/** (services.history): the poses this node has published, of the seqs asked for
+        (the other streams are the source's to answer)."""
+        request = history.parse_request(query, {keys.POSE, *EXPECTED})
+        if request is None or keys.POSE not in request.streams:  # before the lock: the node's own history
+            return  # queries, which it makes holding the lock, never ask for poses
+        with self.lock:
+            poses = [payload for seq, payload in self._poses_sent.items() if request.wants(seq)]
+        for payload in poses:
+            history.reply(query, self.config.robot, keys.POSE, payload)
 
     def catch_up(self) -> None:
         """Take what the source published before this node subscribed: the prior and every step so far, in the
@@ -392,6 +411,7 @@ class SlamNode:
         for stream in EXPECTED:
             self._declared.append(session.declare_subscriber(keys.robot_key(robot, stream), self._on_sample))
         self._declared.append(session.declare_queryable(keys.slam_stats_key(robot), self._on_stats_query))
+        self._declared.append(session.declare_queryable(keys.history_key(robot), self._on_history_query))
         self._declared.append(session.liveliness().declare_token(keys.robot_alive_key(robot, "slam")))
         self.log.info("%s up for robot %r; poses on %s", self.config.algorithm, robot, keys.robot_key(robot, keys.POSE))
         self.catch_up()

@@ -35,7 +35,7 @@ from schemas.messages import (
     StreamEnd,
     decode_message,
 )
-from services import keys
+from services import history, keys
 from services.map_client import MapReader
 from services.process import get_logger
 from services.streams import Stream
@@ -122,23 +122,12 @@ class Source:
         return out
 
     def _on_history_query(self, query: zenoh.Query) -> None:
-        """pg/<robot>/history/** with parameters ``streams`` (comma-separated key chunks, default every one; "prior"
-        for the prior), ``from`` (the first step, default 0) and ``to`` (the step after the last, default all
-        published): one reply per message, in the order they were published, on pg/<robot>/history/<its stream>.
-        Bad parameters get an error reply that says which."""
-        known = {*STREAM_OF.values(), keys.PRIOR}
-        asked = query.parameters.get("streams")
-        streams = known if asked is None else set(asked.split(","))
-        first, stop = query.parameters.get("from", "0"), query.parameters.get("to")
-        problem = (f"unknown stream(s) {sorted(streams - known)}; known: {sorted(known)}" if streams - known else
-                   None if first.isdigit() and (stop is None or stop.isdigit()) else
-                   f"'from' and 'to' must be step numbers >= 0, got {first!r} and {stop!r}")
-        if problem:
-            query.reply_err(f"history query {query.selector}: {problem}".encode())
+        """pg/<robot>/history/** (services.history): the prior and the messages of the steps asked for."""
+        request = history.parse_request(query, {*STREAM_OF.values(), keys.PRIOR})
+        if request is None:
             return
-        for stream, payload in self.history(streams, int(first), None if stop is None else int(stop)):
-            query.reply(keys.history_key(self.stream.robot, stream), payload,
-                        congestion_control=zenoh.CongestionControl.BLOCK)
+        for stream, payload in self.history(set(request.streams), request.first, request.stop):
+            history.reply(query, self.stream.robot, stream, payload)
 
     # ------------------------------------------------------------------------------- waiting
     def _shard_stats(self) -> list[ShardStats]:
@@ -243,7 +232,7 @@ class Source:
         """Publish every step, then the StreamEnd, unless ``stop`` is set first; returns the exit code (0)."""
         opts, stream = self.options, self.stream
         token = self.session.liveliness().declare_token(keys.robot_alive_key(stream.robot, "source"))
-        history = self.session.declare_queryable(keys.history_key(stream.robot), self._on_history_query)
+        answers = self.session.declare_queryable(keys.history_key(stream.robot), self._on_history_query)
         try:
             if not self._wait_for_subscribers(stop):
                 return self._stopped()
@@ -285,5 +274,5 @@ class Source:
         finally:
             for publisher in self._publishers.values():
                 publisher.undeclare()
-            history.undeclare()
+            answers.undeclare()
             token.undeclare()

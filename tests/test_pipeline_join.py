@@ -273,6 +273,41 @@ def test_every_scan_is_fused_or_given_up_exactly_once(arrival):
         assert shard.fused["r"] == len(set(kept["scan"]) & set(kept["pose"]))
 
 
+@settings(max_examples=150, deadline=None)
+@given(_arrivals(), st.data())
+def test_what_the_histories_hold_of_lost_messages_is_fused_and_nothing_counts_twice(arrival, data):
+    """The same arrivals, with histories that hold some of the messages the shard never received (a source and a
+    SLAM node still up after a router restart): every scan still counts exactly once, and when the histories
+    hold every message, every scan is fused (with room enough and a stream that does not go quiet too early)."""
+    n, capacity, kept, events, pauses, patient = arrival
+    everything = data.draw(st.booleans())
+    held = {kind: set(range(n)) if everything else data.draw(st.sets(st.integers(0, n - 1)))
+            for kind in ("scan", "pose")}
+    asked = []
+
+    def history(robot: str, stream: str, first: int, last: int) -> list[bytes]:
+        asked.append((stream, first, last))
+        make = _scan if stream == "scan" else _pose
+        return [make(seq).encode() for seq in range(first, last + 1) if seq in held[stream]]
+    now = [0.0]
+    shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), join_capacity=capacity),
+                     RejectCounter(logging.getLogger("test-shard-history")), clock=lambda: now[0], history=history)
+    encoded = {"scan": lambda seq: _scan(seq).encode(), "pose": lambda seq: _pose(seq).encode(),
+               "end": lambda scans: StreamEnd(robot="r", scans=scans).encode()}
+    for (kind, seq), pause in zip(events, pauses):
+        now[0] += pause
+        shard.handle(f"pg/r/{kind}", encoded[kind](seq))
+        shard.settle()
+        assert shard.fused["r"] + shard.discarded["r"] <= n
+    now[0] += SETTLE_AFTER + 1.0
+    shard.settle()
+    assert shard.fused["r"] + shard.discarded["r"] == n and shard.caught_up()
+    assert shard.stats({"intake": 0}).join_pending == 0
+    assert all(0 <= first <= last < n + 1000 for _, first, last in asked)
+    if everything and capacity >= 2 * n and patient:
+        assert shard.fused["r"] == n
+
+
 def test_seq_ledger_remembers_done_seqs_within_its_horizon():
     ledger = SeqLedger(horizon=10)
     assert not ledger.done("r", 0)
