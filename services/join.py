@@ -7,7 +7,9 @@ past its Zenoh lease, a full intake queue), or the SLAM node gave up on the step
 a later message of the stream lies beyond it; until then the message past the gap is held, and if the stream
 goes on below it instead, the held one was a stray (another process on the robot's keys) and is refused as a
 jump. Once a gap is believed, the buffer's ``recover`` (if given) is asked for the messages the gap skipped
-(services.shard asks the source's and the SLAM node's histories); what it returns is taken as if it had come.
+(services.shard asks the source's and the SLAM node's histories); what it returns is taken as if it had come,
+and so are the partners ``recover`` finds for it where their own stream has not got there yet (a gap larger
+than the buffer is then paired at once, not evicted; the partner's stream later passes them as taken).
 The scans that still never came are counted as given up and so are the halves waiting for a partner the gap
 skipped, at once, instead of holding halves whose partner cannot come (a source waiting for every scan to be
 accounted for would wait for ever). :meth:`JoinBuffer.settle` ends a
@@ -86,6 +88,7 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         self._pending: OrderedDict[JoinKey, _Pending] = OrderedDict()
         self._last: dict[tuple[str, bool], int] = {}  # (robot, scans?) -> the last seq its stream has passed
         self._held: dict[tuple[str, bool], tuple[int, object]] = {}  # (robot, scans?) -> (seq, item) past a gap
+        self._ahead: dict[tuple[str, bool], set[int]] = {}  # (robot, scans?) -> seqs recovered before it got there
 
     def __len__(self) -> int:
         return len(self._pending) + len(self._held)
@@ -149,6 +152,10 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         """Accept ``item`` as its stream's next message, after any gap since the stream's last seq."""
         pairs, gone = self._pass(robot, is_scan, self._last.get((robot, is_scan), -1) + 1, seq)
         self._last[(robot, is_scan)] = seq
+        ahead = self._ahead.get((robot, is_scan), set())
+        if seq in ahead:  # recovered with its partner while this copy was held: taken already
+            ahead.discard(seq)
+            return pairs, gone
         more_pairs, more = self._place(robot, seq, item, is_scan)
         return pairs + more_pairs, gone + more
 
@@ -179,23 +186,42 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         given up. Returns the pairs completed and the halves given up on."""
         if skipped_to <= skipped_from:
             return [], []
-        self._last[(robot, is_scan)] = max(self._last.get((robot, is_scan), -1), skipped_to - 1)
-        found = {} if self.recover is None else {
-            seq: item for seq, item in self.recover(robot, is_scan, skipped_from, skipped_to - 1).items()
-            if skipped_from <= seq < skipped_to}
+        stream, partner = (robot, is_scan), (robot, not is_scan)
+        self._last[stream] = max(self._last.get(stream, -1), skipped_to - 1)
+        ahead = self._ahead.get(stream, set())
+        taken = {seq for seq in ahead if seq < skipped_to}  # recovered with their partners already
+        ahead -= taken
+        found = self._recovered(robot, is_scan, skipped_from, skipped_to, taken)
         gone = [GivenUp(robot, first, count, True, MISSING)
-                for first, count in _runs(seq for seq in range(skipped_from, skipped_to) if seq not in found)
-                ] if is_scan else []
+                for first, count in _runs(seq for seq in range(skipped_from, skipped_to)
+                                          if seq not in found and seq not in taken)] if is_scan else []
         for key in [k for k in self._pending if k[0] == robot and skipped_from <= k[1] < skipped_to
                     and k[1] not in found]:
             gone.append(GivenUp(robot, key[1], 1, not is_scan, ORPHANED))
             del self._pending[key]
+        # their partners too, where the partner's stream has not got there yet: paired at once, a gap larger than
+        # the buffer does not overflow it (a shard restarted late in a run)
+        held = self._held.get(partner, (None,))[0]
+        lacking = [seq for seq in found if (robot, seq) not in self._pending and seq > self._last.get(partner, -1)
+                   and seq != held]
+        partners = self._recovered(robot, not is_scan, min(lacking), max(lacking) + 1, set()) if lacking else {}
         pairs = []
         for seq in sorted(found):
             more_pairs, more = self._place(robot, seq, found[seq], is_scan)
+            if seq in partners:
+                self._ahead.setdefault(partner, set()).add(seq)
+                more_pairs, also = self._place(robot, seq, partners[seq], not is_scan)
+                more += also
             pairs += more_pairs
             gone += more
         return pairs, gone
+
+    def _recovered(self, robot: str, is_scan: bool, first: int, stop: int, taken: set[int]) -> dict[int, object]:
+        """What ``recover`` finds of the robot's scans (else poses) first .. stop-1, less ``taken``."""
+        if self.recover is None:
+            return {}
+        return {seq: item for seq, item in self.recover(robot, is_scan, first, stop - 1).items()
+                if first <= seq < stop and seq not in taken}
 
 
 def _runs(seqs: Iterable[int]) -> list[tuple[int, int]]:

@@ -308,6 +308,22 @@ def test_what_the_histories_hold_of_lost_messages_is_fused_and_nothing_counts_tw
         assert shard.fused["r"] == n
 
 
+def test_a_gap_larger_than_the_join_buffer_comes_back_from_the_histories_whole():
+    """A shard that starts (or restarts) 20 steps into a run, with room for 4 halves: the scans of the gap come
+    back with their poses and are fused at once, so none is evicted before its pose (it was: 16 of 20 evicted)."""
+    def history(robot: str, stream: str, first: int, last: int) -> list[bytes]:
+        make = _scan if stream == "scan" else _pose
+        return [make(seq).encode() for seq in range(first, last + 1)]
+    shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), join_capacity=4),
+                     RejectCounter(logging.getLogger("test-shard-restart")), history=history)
+    for seq in (20, 21, 22):
+        shard.handle("pg/r/scan", _scan(seq).encode())
+        shard.handle("pg/r/pose", _pose(seq).encode())
+    shard.handle("pg/r/end", StreamEnd(robot="r", scans=23).encode())
+    stats = shard.stats({"intake": 0})
+    assert stats.fused == {"r": 23} and not stats.discarded and stats.overflow["join"] == 0 and shard.caught_up()
+
+
 def test_seq_ledger_remembers_done_seqs_within_its_horizon():
     ledger = SeqLedger(horizon=10)
     assert not ledger.done("r", 0)
