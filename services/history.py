@@ -8,11 +8,18 @@ for no consolidation.
 """
 from __future__ import annotations
 
+import re
+from collections.abc import Callable
 from dataclasses import dataclass
 
+import msgpack
 import zenoh
 
 from services import keys
+
+
+#: a seq in a query's parameters
+_SEQ = re.compile(r"[0-9]{1,18}")
 
 
 @dataclass(frozen=True)
@@ -27,33 +34,74 @@ class HistoryRequest:
         return self.first <= seq and (self.stop is None or seq < self.stop)
 
 
-def parse_request(query: zenoh.Query, known: set[str]) -> HistoryRequest | None:
-    """The request of ``query``; None after answering it with an error reply that says what was wrong."""
+def parse_request(query: zenoh.Query, robot: str, known: set[str]) -> HistoryRequest | None:
+    """The request of ``query`` to ``robot``'s history: the streams asked for, narrowed to those whose
+    pg/<robot>/history/<stream> key its key expression takes in; None after answering it with an error reply that
+    says what was wrong."""
     asked = query.parameters.get("streams")
     streams = set(known) if asked is None else set(asked.split(","))
     first, stop = query.parameters.get("from", "0"), query.parameters.get("to")
     problem = (f"unknown stream(s) {sorted(streams - known)}; known: {sorted(known)}" if streams - known else
-               None if first.isdigit() and (stop is None or stop.isdigit()) else
-               f"'from' and 'to' must be seqs >= 0, got {first!r} and {stop!r}")
+               None if _SEQ.fullmatch(first) and (stop is None or _SEQ.fullmatch(stop)) else
+               f"'from' and 'to' must be seqs 0 .. 10^18 in ASCII digits, got {first!r} and {stop!r}")
     if problem:
         query.reply_err(f"history query {query.selector}: {problem}".encode())
         return None
+    streams = {stream for stream in streams if query.key_expr.intersects(keys.history_key(robot, stream))}
     return HistoryRequest(frozenset(streams), int(first), None if stop is None else int(stop))
 
 
-def reply(query: zenoh.Query, robot: str, stream: str, payload: bytes) -> None:
-    """One message of the history, on pg/<robot>/history/<stream>."""
-    query.reply(keys.history_key(robot, stream), payload, congestion_control=zenoh.CongestionControl.BLOCK)
+@dataclass(frozen=True)
+class Answerer:
+    """Who answers a history, attached to each reply: its Zenoh session's id; the map it publishes for (a source's
+    ``--map``; None for a SLAM node, which serves any map); whether it has published the end of its stream."""
+
+    id: str
+    map: str | None
+    ended: bool
+
+    def encode(self) -> bytes:
+        return msgpack.packb([self.id, self.map, self.ended])
+
+    @staticmethod
+    def decode(data: bytes) -> Answerer | None:
+        """The answerer ``data`` describes; None when it does not describe one."""
+        try:
+            ident, map_name, ended = msgpack.unpackb(data)
+        except (ValueError, TypeError, msgpack.UnpackException):
+            return None
+        ok = isinstance(ident, str) and (map_name is None or isinstance(map_name, str)) and isinstance(ended, bool)
+        return Answerer(ident, map_name, ended) if ok else None
 
 
-def ask(session: zenoh.Session, robot: str, parameters: dict[str, str], timeout: float) \
-        -> tuple[list[tuple[str, bytes]], list[str]]:
-    """Ask every history of ``robot``: ((stream, payload) of each message in the order sent, error replies)."""
-    messages, errors = [], []
+def reply(query: zenoh.Query, answerer: Answerer, robot: str, stream: str, payload: bytes) -> None:
+    """One message of the history, on pg/<robot>/history/<stream>, with ``answerer`` attached."""
+    query.reply(keys.history_key(robot, stream), payload, attachment=answerer.encode())
+
+
+def ask(session: zenoh.Session, robot: str, parameters: dict[str, str], timeout: float,
+        accept: Callable[[Answerer], bool] = lambda answerer: True) -> tuple[list[tuple[str, str, bytes]], list[str]]:
+    """Ask the histories of ``robot`` ("*": every robot): ((robot, stream, payload) of each message in the order
+    sent, problems). Only answerers that ``accept`` takes count (a shard takes its own map's sources; a SLAM node
+    catching up, sources still publishing). When two of them answer for one robot's stream (a robot name that
+    two runs use at once), neither is taken: that stream's messages are left out and a problem says so, since the
+    live stream cannot say which run it belongs to."""
+    messages, problems, answerers = [], [], {}
     for answer in session.get(zenoh.Selector(keys.history_key(robot), parameters), timeout=timeout,
-                              consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE)):
+                              consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE),
+                              congestion_control=zenoh.CongestionControl.BLOCK):  # (replies go out under it)
         if answer.ok is None:
-            errors.append(answer.err.payload.to_string())
-        else:
-            messages.append((str(answer.ok.key_expr).rsplit("/", 1)[-1], answer.ok.payload.to_bytes()))
-    return messages, errors
+            problems.append(answer.err.payload.to_string())
+            continue
+        parts = str(answer.ok.key_expr).split("/")  # pg/<robot>/history/<stream>
+        attachment = answer.ok.attachment
+        answerer = None if attachment is None else Answerer.decode(attachment.to_bytes())
+        if answerer is None:
+            problems.append(f"a reply on {answer.ok.key_expr} does not say who answers it; not taken")
+        elif accept(answerer):
+            answerers.setdefault((parts[1], parts[-1]), set()).add(answerer.id)
+            messages.append((parts[1], parts[-1], answer.ok.payload.to_bytes()))
+    clashes = {key for key, ids in answerers.items() if len(ids) > 1}
+    problems += [f"{len(answerers[key])} processes answer the {key[1]} history of robot {key[0]!r} (is a robot name "
+                 "used by two runs at once?); none of them is taken" for key in sorted(clashes)]
+    return [m for m in messages if (m[0], m[1]) not in clashes], problems

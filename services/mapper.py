@@ -28,6 +28,8 @@ from services.zenoh_config import open_session
 DEFAULT_INTAKE_CAPACITY = 4096
 #: s to wait for the histories of scans and poses that never reached the shard (it waits meanwhile)
 HISTORY_TIMEOUT = 5.0
+#: s to wait at startup for the histories of every robot's run so far
+CATCH_UP_TIMEOUT = 60.0
 
 
 class Mapper:
@@ -76,14 +78,36 @@ class Mapper:
         with self._stats_lock:
             self._stats_payload = payload
 
+    def _ours(self, answerer: history.Answerer) -> bool:
+        """Whether a history's answerer publishes for this shard's map (a SLAM node publishes for any)."""
+        return answerer.map in (None, self.config.map_name)
+
     def _history(self, robot: str, stream: str, first: int, last: int) -> list[bytes]:
         """The robot's ``stream`` messages first..last from the histories (services.history): the source's for
         scans (and poses of a posed-scan file), the SLAM node's for poses."""
-        messages, errors = history.ask(self.session, robot, {"streams": stream, "from": str(first),
-                                                             "to": str(last + 1)}, HISTORY_TIMEOUT)
-        for error in errors:
-            self.rejects.count(keys.history_key(robot), "error_reply", error)
-        return [payload for got, payload in messages if got == stream]
+        messages, problems = history.ask(self.session, robot, {"streams": stream, "from": str(first),
+                                                               "to": str(last + 1)}, HISTORY_TIMEOUT, self._ours)
+        for problem in problems:
+            self.rejects.count(keys.history_key(robot), "history", problem)
+        return [payload for _, got, payload in messages if got == stream]
+
+    def catch_up(self) -> None:
+        """Take every robot's scans and poses published before this shard subscribed, from the histories
+        (services.history), as if they had arrived live: a shard that starts late or restarts builds the map of
+        the run so far. It otherwise waits for a gap to show, and none shows while a source holds back for the
+        shards (``--rate max``) or has ended. Stats are refreshed as it goes (the source's flow control reads
+        them). Nothing happens when nobody answers."""
+        replies, problems = history.ask(self.session, "*", {"streams": f"{keys.SCAN},{keys.POSE}"}, CATCH_UP_TIMEOUT,
+                                        self._ours)
+        for problem in problems:
+            self.rejects.count(keys.history_key("*"), "history", problem)
+        for robot, stream, payload in replies:
+            with self.lock:
+                self.shard.handle(keys.robot_key(robot, stream), payload, from_history=True)
+                self._refresh_stats()
+        if replies:
+            self.log.info("took %d scan(s) and pose(s) published before this shard was up from the histories",
+                          len(replies))
 
     # ---------------------------------------------------------------------------- lifecycle
     def declare(self) -> None:
@@ -106,6 +130,7 @@ class Mapper:
         cfg = self.config
         self.log.info("shard %d of %d of map %r up; tiles on %s", cfg.shard, cfg.shards, cfg.map_name,
                       keys.tile_key(cfg.map_name, 0, "*", "*"))
+        self.catch_up()
         next_due = None
         while not stop.is_set():
             timeout = 0.2 if next_due is None else min(0.2, max(0.0, next_due - time.monotonic()))

@@ -74,6 +74,7 @@ class MapShard:
         self.accuracy = config.accuracy if config.accuracy is not None else config.model.resolution
         self._fusions: OrderedDict[tuple, MonteCarloFusion] = OrderedDict()
         self._history = history
+        self._history_high: dict[tuple[str, str], int] = {}  # (robot, stream) -> highest seq a history gave
         self._join: JoinBuffer[LaserScan, object] = JoinBuffer(config.join_capacity,
                                                                 None if history is None else self._recover)
         self._fused_seqs = SeqLedger(SEQ_HORIZON_JOINS * config.join_capacity)
@@ -95,8 +96,10 @@ class MapShard:
         self._snapshots: dict[TileKey, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     # ------------------------------------------------------------------------------- intake
-    def handle(self, key: str, payload: bytes) -> None:
-        """Decode one message received on ``key`` and act on it; a bad one is counted and dropped."""
+    def handle(self, key: str, payload: bytes, from_history: bool = False) -> None:
+        """Decode one message received on ``key`` (pg/<robot>/<stream>) and act on it; a bad one is counted and
+        dropped. ``from_history``: it came from a history at startup (:meth:`services.mapper.Mapper.catch_up`),
+        and a live copy of it, or of an earlier message of its stream, is then dropped without a word."""
         self.received[key] += 1
         stream = key.rsplit("/", 1)[-1]
         expected = {keys.SCAN: (LaserScan,), keys.POSE: POSE_TYPES, keys.END: (StreamEnd,)}[stream]
@@ -112,6 +115,11 @@ class MapShard:
             self.ended[message.robot] = message.scans
             self._heard.setdefault(message.robot, self._clock())  # (the source repeats it: a repeat is no news)
             self._unsettled.add(message.robot)
+            return
+        caught_up_to = self._history_high.get((message.robot, stream), -1)
+        if from_history:
+            self._history_high[(message.robot, stream)] = max(caught_up_to, message.seq)
+        elif message.seq <= caught_up_to:
             return
         if self._fused_seqs.done(message.robot, message.seq):
             self.rejects.count(key, "duplicate", f"a {message.TYPE} of robot {message.robot!r} for seq {message.seq}, "

@@ -342,14 +342,15 @@ class SlamNode:
                              "carry no pose to bridge them; the poses from here on miss that motion", seq, gap.first,
                              gap.last)
 
-    def _history(self, parameters: dict[str, str], timeout: float) -> list[tuple[str, bytes]]:
-        """(pg/<robot>/<stream>, payload) of the messages the histories answer with (services.history), in the
-        order they were sent; none when nobody answers."""
+    def _history(self, parameters: dict[str, str], timeout: float,
+                 accept: Callable[[history.Answerer], bool] = lambda answerer: True) -> list[tuple[str, bytes]]:
+        """(pg/<robot>/<stream>, payload) of the messages the histories ``accept`` answers with (services.history),
+        in the order they were sent; none when nobody answers."""
         robot = self.config.robot
-        messages, errors = history.ask(self.session, robot, parameters, timeout)
-        for error in errors:
-            self.rejects.count(keys.history_key(robot), "error_reply", error)
-        return [(keys.robot_key(robot, stream), payload) for stream, payload in messages if stream in EXPECTED]
+        messages, problems = history.ask(self.session, robot, parameters, timeout, accept)
+        for problem in problems:
+            self.rejects.count(keys.history_key(robot), "history", problem)
+        return [(keys.robot_key(robot, stream), payload) for _, stream, payload in messages if stream in EXPECTED]
 
     def _keep_pose(self, seq: int, payload: bytes) -> None:
         """Keep a published pose for the history, within POSE_HISTORY_BYTES (called holding ``lock``)."""
@@ -362,20 +363,22 @@ class SlamNode:
     def _on_history_query(self, query: zenoh.Query) -> None:
         """pg/<robot>/history/** (services.history): the poses this node has published, of the seqs asked for
         (the other streams are the source's to answer)."""
-        request = history.parse_request(query, {keys.POSE, *EXPECTED})
+        request = history.parse_request(query, self.config.robot, {keys.POSE, *EXPECTED})
         if request is None or keys.POSE not in request.streams:  # before the lock: the node's own history
             return  # queries, which it makes holding the lock, never ask for poses
         with self.lock:
             poses = [payload for seq, payload in self._poses_sent.items() if request.wants(seq)]
+        answerer = history.Answerer(str(self.session.info.zid()), None, False)
         for payload in poses:
-            history.reply(query, self.config.robot, keys.POSE, payload)
+            history.reply(query, answerer, self.config.robot, keys.POSE, payload)
 
     def catch_up(self) -> None:
         """Take what the source published before this node subscribed: the prior and every step so far, in the
         order they went out, as if they had arrived live. A node that starts late or restarts so resumes where
         the run is, in the state of a node that saw all of it (its poses so far are published again; shards
         refuse the ones they have fused). Nothing happens when no source answers."""
-        replies = self._history({"streams": ",".join(sorted(self.steps.needs | {keys.PRIOR}))}, HISTORY_TIMEOUT)
+        replies = self._history({"streams": ",".join(sorted(self.steps.needs | {keys.PRIOR}))}, HISTORY_TIMEOUT,
+                                accept=lambda answerer: not answerer.ended)  # a run that has ended is not this one
         if not replies:
             return
         with self.lock:
@@ -396,7 +399,11 @@ class SlamNode:
             except MessageError as exc:
                 self.rejects.count(keys.history_key(self.config.robot), exc.reason, str(exc))
                 continue
-            if message.robot == self.config.robot and first <= message.seq <= last:
+            if message.robot != self.config.robot or not first <= message.seq <= last:
+                self.rejects.count(keys.history_key(self.config.robot), "key", f"a {message.TYPE} of robot "
+                                   f"{message.robot!r}, seq {message.seq}, answered a question about seqs "
+                                   f"{first}-{last} of robot {self.config.robot!r}")
+            else:
                 parts.setdefault(message.seq, {})[stream] = message
         if parts:
             self.log.info("took seq %s, which did not all arrive, from the source's history", _spans(sorted(parts)))

@@ -96,6 +96,7 @@ class Source:
         self._end_sent = 0.0  # time.monotonic() of the last StreamEnd published
         self._prior_out = False  # whether the prior is out (what the history may answer with, with ...)
         self._steps_published = 0  # ... the steps whose messages are all out
+        self._end_out = False  # whether the end of the stream is out
         self._history_lock = threading.Lock()
 
     def _publisher(self, stream: str) -> zenoh.Publisher:
@@ -123,11 +124,14 @@ class Source:
 
     def _on_history_query(self, query: zenoh.Query) -> None:
         """pg/<robot>/history/** (services.history): the prior and the messages of the steps asked for."""
-        request = history.parse_request(query, {*STREAM_OF.values(), keys.PRIOR})
+        request = history.parse_request(query, self.stream.robot, {*STREAM_OF.values(), keys.PRIOR})
         if request is None:
             return
+        with self._history_lock:
+            ended = self._end_out
+        answerer = history.Answerer(str(self.session.info.zid()), self.options.map_name, ended)
         for stream, payload in self.history(set(request.streams), request.first, request.stop):
-            history.reply(query, self.stream.robot, stream, payload)
+            history.reply(query, answerer, self.stream.robot, stream, payload)
 
     # ------------------------------------------------------------------------------- waiting
     def _shard_stats(self) -> list[ShardStats]:
@@ -212,11 +216,14 @@ class Source:
                                     f"of {scans_sent} scans, SLAM node: {self._steps_done} of {steps_sent} steps)")
 
     def _ended_everywhere(self, end: StreamEnd) -> bool:
-        """Whether every shard waited for knows the end of the stream; if not, the end is published again (at
-        most every END_REPEAT s): a shard that missed it, say while its Zenoh session was closed, would wait
-        for it for ever."""
+        """Whether every shard waited for knows the end of the stream and has fused or given up on every scan;
+        if not, the end is published again (at most every END_REPEAT s): a shard that missed it, say while its
+        Zenoh session was closed, would wait for it for ever. Until then the source answers its history."""
         stats = self._shard_stats()
-        if len(stats) >= self.options.wait_mappers and all(s.ended.get(end.robot) == end.scans for s in stats):
+        robot, scans = end.robot, end.scans
+        if len(stats) >= self.options.wait_mappers and all(
+                s.ended.get(robot) == scans and s.fused.get(robot, 0) + s.discarded.get(robot, 0) >= scans
+                for s in stats):  # every scan accounted for: a shard that restarted may still ask the history
             return True
         if time.monotonic() - self._end_sent >= END_REPEAT:
             self._publish(end)
@@ -263,6 +270,8 @@ class Source:
                     self._steps_published = steps_sent + 1
             end = StreamEnd(robot=stream.robot, scans=scans_sent)
             self._publish(end)
+            with self._history_lock:
+                self._end_out = True
             self._end_sent = time.monotonic()
             elapsed = time.monotonic() - started
             self.log.info("published %d scans in %.2f s (%.1f scans/s)", scans_sent, elapsed,

@@ -282,6 +282,35 @@ def test_a_shard_cut_off_mid_stream_takes_what_it_missed_from_the_history(tmp_pa
                     r"from the history")
 
 
+def test_a_mapper_restarted_while_the_source_holds_back_takes_the_run_from_the_history(tmp_path, procs):
+    """With --rate max the source holds back until the shards take what it sent, so a restarted mapper sees no
+    live message and no gap to recover from: the source gave up after 60 s and the map was empty. Now the
+    mapper takes the run so far from the histories at startup, and the source waits for every scan to be
+    accounted for before it goes (while it goes on answering its history)."""
+    posed = make_posed(tmp_path / "posed.npz", "samples", steps=120)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
+    mapper_argv = [*CLI, "mapper", "--shard", "0", "--shards", "1", "--map", "again", "--connect", endpoint]
+    first = procs(mapper_argv)
+    first.wait_for("up; tiles on")
+    source = procs([*CLI, "source", "--posed", str(posed), "--map", "again", "--wait-mappers", "1", "--rate", "max",
+                    "--window", "4", "--connect", endpoint])
+    source.wait_for("publishing")
+    first.process.kill()
+    first.process.wait(10)
+    second = procs(mapper_argv)
+    assert source.process.wait(90) == 0, source.output()
+    second.wait_for(r"took \d+ scan\(s\) and pose\(s\) published before this shard was up from the histories")
+    session = zenoh.open(build_config("client", connect=[endpoint]))
+    try:
+        from services.map_client import MapReader
+
+        stats = MapReader(session, "again").stats()[0]
+    finally:
+        session.close()
+    assert stats.fused == {"robot0": 120} and not stats.discarded.get("robot0"), stats
+
+
 def test_garbage_on_every_key_is_counted_and_processes_keep_working(tmp_path, procs):
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = procs([*CLI, "router", "--listen", endpoint])
