@@ -559,17 +559,23 @@ def test_slam_node_moves_over_lost_steps_by_the_odometry_poses(procs):
                          r"no pose to bridge them")
 
 
+def _simulated_run_and_offline_poses(tmp_path: Path, steps: int) -> tuple[Path, list[str], PoseSet]:
+    """A simulated run of ``steps`` steps, the SLAM node's options, and offline `posegrid slam`'s poses for it
+    with those options: what a SLAM node over Zenoh must publish, bit for bit."""
+    sim = tmp_path / "sim"
+    assert main(["simulate", str(sim), "--steps", str(steps), "--beams", "31", "--seed", "3"]) == 0
+    offline = tmp_path / "fs2.npz"
+    node_args = ["--algo", "fastslam2", "--particles", "20", "--seed", "4"]
+    assert main(["slam", str(sim), *node_args, "-o", str(offline)]) == 0
+    return sim, node_args, load_posed_scans(offline).poses
+
+
 def test_a_restarted_slam_node_takes_the_run_from_the_sources_history(tmp_path, procs):
     """A SLAM node killed mid-run and started again takes what the source published before it was up from the
     source's history (pg/<robot>/history/**) and goes on as if it had never stopped: every pose either node
     publishes is offline `posegrid slam`'s for that step, same seed, bit for bit. Before, the new node never got
     the prior (published once, at the start) and published nothing."""
-    sim = tmp_path / "sim"
-    assert main(["simulate", str(sim), "--steps", "120", "--beams", "31", "--seed", "3"]) == 0
-    offline = tmp_path / "fs2.npz"
-    node_args = ["--algo", "fastslam2", "--particles", "20", "--seed", "4"]
-    assert main(["slam", str(sim), *node_args, "-o", str(offline)]) == 0
-    expected = load_posed_scans(offline).poses
+    sim, node_args, expected = _simulated_run_and_offline_poses(tmp_path, 120)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
     node = [*CLI, "slam-node", "--robot", "r1", *node_args, "--connect", endpoint]
@@ -610,12 +616,7 @@ def test_what_the_router_loses_is_taken_from_the_histories(tmp_path, procs):
     SLAM node or the mapper shard. The node takes those steps from the source's history instead of skipping
     them, so every step gets its pose, and each is offline `posegrid slam`'s for that step, same seed, bit for
     bit; the shard takes the scans from it too, and fuses every scan of the run."""
-    sim = tmp_path / "sim"
-    assert main(["simulate", str(sim), "--steps", "150", "--beams", "31", "--seed", "3"]) == 0
-    offline = tmp_path / "fs2.npz"
-    node_args = ["--algo", "fastslam2", "--particles", "20", "--seed", "4"]
-    assert main(["slam", str(sim), *node_args, "-o", str(offline)]) == 0
-    expected = load_posed_scans(offline).poses
+    sim, node_args, expected = _simulated_run_and_offline_poses(tmp_path, 150)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = procs([*CLI, "router", "--listen", endpoint])
     router.wait_for("routing")

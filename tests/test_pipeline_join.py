@@ -248,16 +248,9 @@ def _arrivals(draw):
     return n, draw(st.integers(1, 24)), kept, events, pauses, patient
 
 
-@settings(max_examples=150, deadline=None)
-@given(_arrivals())
-def test_every_scan_is_fused_or_given_up_exactly_once(arrival):
-    """Whatever a shard sees of a stream, once it has settled every scan counts once, as fused or as given up;
-    never more along the way; nothing is left waiting; and with room enough every pair that arrived is fused,
-    unless the stream went quiet long enough to be settled before it was over."""
-    n, capacity, kept, events, pauses, patient = arrival
-    now = [0.0]
-    shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), join_capacity=capacity),
-                     RejectCounter(logging.getLogger("test-shard-property")), clock=lambda: now[0])
+def _play_and_settle(shard: MapShard, now: list[float], n: int, events, pauses) -> None:
+    """Hand the shard the arrivals, advancing its clock by the pauses, then settle it: every scan of the n counts
+    once, as fused or given up, never more along the way, and nothing is left waiting."""
     encoded = {"scan": lambda seq: _scan(seq).encode(), "pose": lambda seq: _pose(seq).encode(),
                "end": lambda scans: StreamEnd(robot="r", scans=scans).encode()}
     for (kind, seq), pause in zip(events, pauses):
@@ -269,6 +262,19 @@ def test_every_scan_is_fused_or_given_up_exactly_once(arrival):
     shard.settle()
     assert shard.fused["r"] + shard.discarded["r"] == n and shard.caught_up()
     assert shard.stats({"intake": 0}).join_pending == 0
+
+
+@settings(max_examples=150, deadline=None)
+@given(_arrivals())
+def test_every_scan_is_fused_or_given_up_exactly_once(arrival):
+    """Whatever a shard sees of a stream, once it has settled every scan counts once, as fused or as given up;
+    never more along the way; nothing is left waiting; and with room enough every pair that arrived is fused,
+    unless the stream went quiet long enough to be settled before it was over."""
+    n, capacity, kept, events, pauses, patient = arrival
+    now = [0.0]
+    shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), join_capacity=capacity),
+                     RejectCounter(logging.getLogger("test-shard-property")), clock=lambda: now[0])
+    _play_and_settle(shard, now, n, events, pauses)
     if capacity >= 2 * n and patient:
         assert shard.fused["r"] == len(set(kept["scan"]) & set(kept["pose"]))
 
@@ -292,17 +298,7 @@ def test_what_the_histories_hold_of_lost_messages_is_fused_and_nothing_counts_tw
     now = [0.0]
     shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), join_capacity=capacity),
                      RejectCounter(logging.getLogger("test-shard-history")), clock=lambda: now[0], history=history)
-    encoded = {"scan": lambda seq: _scan(seq).encode(), "pose": lambda seq: _pose(seq).encode(),
-               "end": lambda scans: StreamEnd(robot="r", scans=scans).encode()}
-    for (kind, seq), pause in zip(events, pauses):
-        now[0] += pause
-        shard.handle(f"pg/r/{kind}", encoded[kind](seq))
-        shard.settle()
-        assert shard.fused["r"] + shard.discarded["r"] <= n
-    now[0] += SETTLE_AFTER + 1.0
-    shard.settle()
-    assert shard.fused["r"] + shard.discarded["r"] == n and shard.caught_up()
-    assert shard.stats({"intake": 0}).join_pending == 0
+    _play_and_settle(shard, now, n, events, pauses)
     assert all(0 <= first <= last < n + 1000 for _, first, last in asked)
     if everything and capacity >= 2 * n and patient:
         assert shard.fused["r"] == n
