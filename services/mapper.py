@@ -93,17 +93,20 @@ class Mapper:
 
     def catch_up(self) -> None:
         """Take every robot's scans and poses published before this shard subscribed, from the histories
-        (services.history), as if they had arrived live: a shard that starts late or restarts builds the map of
-        the run so far. It otherwise waits for a gap to show, and none shows while a source holds back for the
-        shards (``--rate max``) or has ended. Stats are refreshed as it goes (the source's flow control reads
-        them). Nothing happens when nobody answers."""
+        (services.history), in seq order (:meth:`MapShard.in_seq_order`), as if they had arrived live: a shard
+        that starts late or restarts builds the map of the run so far. It otherwise waits for a gap to show, and
+        none shows while a source holds back for the shards (``--rate max``) or has ended. Stats are refreshed as
+        it goes (the source's flow control reads them). Nothing happens when nobody answers."""
         replies, problems = history.ask(self.session, "*", {"streams": f"{keys.SCAN},{keys.POSE}"}, CATCH_UP_TIMEOUT,
                                         self._ours)
         for problem in problems:
             self.rejects.count(keys.history_key("*"), "history", problem)
-        for robot, stream, payload in replies:
+        with self.lock:
+            taken = self.shard.in_seq_order((keys.robot_key(robot, stream), payload)
+                                            for robot, stream, payload in replies)
+        for key, message in taken:
             with self.lock:
-                self.shard.handle(keys.robot_key(robot, stream), payload, from_history=True)
+                self.shard.take(key, message, from_history=True)
                 self._refresh_stats()
         if replies:
             self.log.info("took %d scan(s) and pose(s) published before this shard was up from the histories",

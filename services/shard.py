@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter, OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,6 +23,7 @@ from mapping.poses import scan_samples
 from mapping.sensor_model import SensorModel
 from schemas.messages import POSE_TYPES, LaserScan, MessageError, PoseGaussian, ShardStats, StreamEnd, TileUpdate, \
     decode_message
+from schemas.wire import Message
 from services import keys
 from services.join import GIVEN_UP_BECAUSE, MISSING, ORPHANED, OVERFLOW, GivenUp, JoinBuffer, SeqLedger
 from services.ownership import owns_tile
@@ -96,10 +97,16 @@ class MapShard:
         self._snapshots: dict[TileKey, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     # ------------------------------------------------------------------------------- intake
-    def handle(self, key: str, payload: bytes, from_history: bool = False) -> None:
+    def handle(self, key: str, payload: bytes) -> None:
         """Decode one message received on ``key`` (pg/<robot>/<stream>) and act on it; a bad one is counted and
-        dropped. ``from_history``: it came from a history at startup (:meth:`services.mapper.Mapper.catch_up`),
-        and a live copy of it, or of an earlier message of its stream, is then dropped without a word."""
+        dropped."""
+        message = self.decode(key, payload)
+        if message is not None:
+            self.take(key, message)
+
+    def decode(self, key: str, payload: bytes) -> Message | None:
+        """The message ``payload`` received on ``key`` (pg/<robot>/<stream>) holds; None after counting why it
+        is refused (malformed, the wrong type for the key, another robot's)."""
         self.received[key] += 1
         stream = key.rsplit("/", 1)[-1]
         expected = {keys.SCAN: (LaserScan,), keys.POSE: POSE_TYPES, keys.END: (StreamEnd,)}[stream]
@@ -107,10 +114,34 @@ class MapShard:
             message = decode_message(payload, *expected)
         except MessageError as exc:
             self.rejects.count(key, exc.reason, str(exc))
-            return
+            return None
         if message.robot != keys.robot_of(key):
             self.rejects.count(key, "robot", f"a {message.TYPE} of robot {message.robot!r} arrived on {key}")
-            return
+            return None
+        return message
+
+    def in_seq_order(self, replies: Iterable[tuple[str, bytes]]) -> list[tuple[str, Message]]:
+        """The scans and poses that histories gave, as (key, payload) pairs with key pg/<robot>/scan or
+        pg/<robot>/pose, decoded (a bad one counted) and put in seq order for :meth:`take`. Each history
+        answers in the order it published, one after the other (the source's scans, then the SLAM node's
+        poses): taken in that order, the scans of a run longer than the join buffer would overflow it while
+        their poses waited further down the list. In seq order, a scan and its pose come together."""
+        taken = []
+        for key, payload in replies:
+            if key.rsplit("/", 1)[-1] not in (keys.SCAN, keys.POSE):
+                self.rejects.count(key, "history", f"a history answered on {key}: only scans and poses are asked for")
+                continue
+            message = self.decode(key, payload)
+            if message is not None:
+                taken.append((key, message))
+        taken.sort(key=lambda item: item[1].seq)  # (stable: a seq's scan and pose keep the order they came in)
+        return taken
+
+    def take(self, key: str, message: Message, from_history: bool = False) -> None:
+        """Act on a decoded ``message`` received on ``key``: note an end, or join a scan or pose and fuse what
+        pairs up. ``from_history``: it came from a history at startup (:meth:`services.mapper.Mapper.catch_up`),
+        and a live copy of it, or of an earlier message of its stream, is then dropped without a word."""
+        stream = key.rsplit("/", 1)[-1]
         if isinstance(message, StreamEnd):  # (it may overtake the last scans: each key has its own callback thread)
             self.ended[message.robot] = message.scans
             self._heard.setdefault(message.robot, self._clock())  # (the source repeats it: a repeat is no news)

@@ -282,33 +282,43 @@ def test_a_shard_cut_off_mid_stream_takes_what_it_missed_from_the_history(tmp_pa
                     r"from the history")
 
 
-def test_a_mapper_restarted_while_the_source_holds_back_takes_the_run_from_the_history(tmp_path, procs):
+def test_a_mapper_restarted_while_the_source_holds_back_takes_the_run_from_the_histories(tmp_path, procs):
     """With --rate max the source holds back until the shards take what it sent, so a restarted mapper sees no
     live message and no gap to recover from: the source gave up after 60 s and the map was empty. Now the
-    mapper takes the run so far from the histories at startup, and the source waits for every scan to be
-    accounted for before it goes (while it goes on answering its history)."""
-    posed = make_posed(tmp_path / "posed.npz", "samples", steps=120)
+    mapper takes the run so far from the histories at startup (the source's scans, the SLAM node's poses), and
+    the source waits for every scan to be accounted for before it goes (while it goes on answering its history).
+    The two histories answer one after the other; taken in that order, a run longer than the join buffer (4
+    halves here, 512 by default) overflowed it, and most scans were given up (1 640 of 3 000 in a run
+    restarted at step 2 000)."""
+    sim = tmp_path / "sim"
+    assert main(["simulate", str(sim), "--steps", "60", "--beams", "31", "--seed", "3"]) == 0
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
-    mapper_argv = [*CLI, "mapper", "--shard", "0", "--shards", "1", "--map", "again", "--connect", endpoint]
+    procs([*CLI, "slam-node", "--robot", "r1", "--algo", "ekf", "--connect", endpoint]).wait_for("up for robot")
+    mapper_argv = [*CLI, "mapper", "--shard", "0", "--shards", "1", "--map", "again", "--join-buffer", "4",
+                   "--connect", endpoint]
     first = procs(mapper_argv)
     first.wait_for("up; tiles on")
-    source = procs([*CLI, "source", "--posed", str(posed), "--map", "again", "--wait-mappers", "1", "--rate", "max",
-                    "--window", "4", "--connect", endpoint])
-    source.wait_for("publishing")
-    first.process.kill()
-    first.process.wait(10)
-    second = procs(mapper_argv)
-    assert source.process.wait(90) == 0, source.output()
-    second.wait_for(r"took \d+ scan\(s\) and pose\(s\) published before this shard was up from the histories")
+    source = procs([*CLI, "source", "--sim-dir", str(sim), "--robot", "r1", "--map", "again", "--wait-mappers", "1",
+                    "--wait-slam", "--rate", "max", "--window", "4", "--connect", endpoint])
     session = zenoh.open(build_config("client", connect=[endpoint]))
     try:
         from services.map_client import MapReader
 
-        stats = MapReader(session, "again").stats()[0]
+        reader = MapReader(session, "again")
+        deadline = time.monotonic() + 60
+        while (progress := reader.stats().get(0)) is None or progress.fused.get("r1", 0) < 30:
+            assert time.monotonic() < deadline, "the first mapper fused fewer than 30 scans in 60 s"
+            time.sleep(0.05)
+        first.process.kill()
+        first.process.wait(10)
+        second = procs(mapper_argv)
+        assert source.process.wait(90) == 0, source.output()
+        second.wait_for(r"took \d+ scan\(s\) and pose\(s\) published before this shard was up from the histories")
+        stats = reader.stats()[0]
     finally:
         session.close()
-    assert stats.fused == {"robot0": 120} and not stats.discarded.get("robot0"), stats
+    assert stats.fused == {"r1": 60} and not stats.discarded.get("r1") and stats.overflow["join"] == 0, stats
 
 
 def test_garbage_on_every_key_is_counted_and_processes_keep_working(tmp_path, procs):

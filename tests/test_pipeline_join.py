@@ -320,6 +320,27 @@ def test_a_gap_larger_than_the_join_buffer_comes_back_from_the_histories_whole()
     assert stats.fused == {"r": 23} and not stats.discarded and stats.overflow["join"] == 0 and shard.caught_up()
 
 
+def test_histories_taken_at_startup_pair_up_however_long_the_run():
+    """A shard that starts 20 steps into a run, with room for 4 halves, takes the run so far from two histories,
+    which answer one after the other: the source's scans, then the SLAM node's poses. Taken in that order, 16 of
+    the 20 scans were evicted before their poses came (a mapper restarted 2 000 steps into a run lost 1 640 of
+    them); in seq order every scan meets its pose. A reply on another stream, or a bad one, is counted."""
+    shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), join_capacity=4),
+                     RejectCounter(logging.getLogger("test-shard-catch-up")))
+    replies = [("pg/r/scan", _scan(seq).encode()) for seq in range(20)] + [
+        ("pg/r/pose", _pose(seq).encode()) for seq in range(20)] + [
+        ("pg/r/end", StreamEnd(robot="r", scans=20).encode()), ("pg/r/pose", b"\x00 not msgpack")]
+    taken = shard.in_seq_order(replies)
+    assert [(key, message.seq) for key, message in taken] == [
+        (key, seq) for seq in range(20) for key in ("pg/r/scan", "pg/r/pose")]
+    for key, message in taken:
+        shard.take(key, message, from_history=True)
+    shard.handle("pg/r/end", StreamEnd(robot="r", scans=20).encode())
+    stats = shard.stats({"intake": 0})
+    assert stats.fused == {"r": 20} and not stats.discarded and stats.overflow["join"] == 0 and shard.caught_up()
+    assert stats.rejected == {"pg/r/end": 1, "pg/r/pose": 1}
+
+
 def test_seq_ledger_remembers_done_seqs_within_its_horizon():
     ledger = SeqLedger(horizon=10)
     assert not ledger.done("r", 0)
