@@ -17,9 +17,12 @@ robot's streams after the source's count of scans; the caller decides when (the 
 the last scans: services.shard waits for quiet).
 
 The buffer holds the halves still waiting for their partner, at most ``capacity`` of them; when it is full
-the oldest waiting half is evicted. Every half given up on is returned as :class:`GivenUp`, so the caller
-counts it (nothing is dropped silently). :class:`SeqLedger` remembers which (robot, seq) pairs were already
-fused, so that a re-sent pair is refused instead of fused twice.
+the oldest waiting half is evicted. With ``recover``, an evicted half is only remembered by its seq (at most
+:data:`EVICTED_LIMIT` per buffer capacity) and asked for again when its partner comes: a SLAM node down for
+longer than the buffer lasts then costs no scan, as the source's history still holds them. Without
+``recover``, or when the history no longer holds it, it is given up. Every half given up on is returned as
+:class:`GivenUp`, so the caller counts it (nothing is dropped silently). :class:`SeqLedger` remembers which
+(robot, seq) pairs were already fused, so that a re-sent pair is refused instead of fused twice.
 """
 from __future__ import annotations
 
@@ -46,9 +49,14 @@ ORPHANED = "orphaned"  # its partner never comes: the partner's stream went past
 LATE = "late"  # it came after its own stream had passed its seq (a re-sent message not fused yet): refused
 JUMP = "jump"  # it jumped past a gap that its stream's next message did not confirm (a stray): refused
 
+#: evicted halves remembered (to be asked for again when their partner comes), per unit of buffer capacity
+EVICTED_LIMIT = 16
+#: evicted halves of one stream asked for at once: the partners of the ones after the first come next
+REFETCH_BATCH = 32
+
 #: what each reason means, for the logs
 GIVEN_UP_BECAUSE = {
-    OVERFLOW: "the join buffer was full; given up on without its partner",
+    OVERFLOW: "the join buffer was full and no history holds it any more; given up on without its partner",
     MISSING: "never reached this shard (lost in transit: a network gap, a shard stalled past its Zenoh lease or a "
              "full intake queue) and no history holds them; the map lacks them",
     ORPHANED: "given up on: its partner never comes (the partner's stream went past its seq)",
@@ -89,6 +97,8 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         self._last: dict[tuple[str, bool], int] = {}  # (robot, scans?) -> the last seq its stream has passed
         self._held: dict[tuple[str, bool], tuple[int, object]] = {}  # (robot, scans?) -> (seq, item) past a gap
         self._ahead: dict[tuple[str, bool], set[int]] = {}  # (robot, scans?) -> seqs recovered before it got there
+        self._evicted: OrderedDict[tuple[str, int, bool], None] = OrderedDict()  # (robot, seq, scan?), oldest first
+        self._fetched: dict[tuple[str, int, bool], object] = {}  # evicted halves asked for again ahead of need
 
     def __len__(self) -> int:
         return len(self._pending) + len(self._held)
@@ -124,6 +134,7 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         waiting = [key for key in self._pending if key[0] == robot]
         gone += [GivenUp(robot, seq, 1, self._pending.pop((robot, seq)).scan is not None, ORPHANED)
                  for _, seq in waiting]
+        gone += self._forget_evicted(lambda key: key[0] == robot)
         return pairs, gone
 
     def _add(self, key: JoinKey, item, is_scan: bool):
@@ -165,11 +176,18 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         entry = self._pending.get(key)
         gone = []
         if entry is None:
+            if (robot, seq, not is_scan) in self._evicted:  # the partner came and was evicted: ask for it again
+                del self._evicted[(robot, seq, not is_scan)]
+                partner = self._refetch(robot, seq, not is_scan)
+                if partner is None:
+                    return [], [GivenUp(robot, seq, 1, not is_scan, OVERFLOW),
+                                GivenUp(robot, seq, 1, is_scan, ORPHANED)]
+                return [(item, partner) if is_scan else (partner, item)], []
             if seq <= self._last.get((robot, not is_scan), -1):  # the partner's stream passed it: never comes
                 return [], [GivenUp(robot, seq, 1, is_scan, ORPHANED)]
             while len(self._pending) >= self.capacity:
                 (old_robot, old_seq), old = self._pending.popitem(last=False)
-                gone.append(GivenUp(old_robot, old_seq, 1, old.scan is not None, OVERFLOW))
+                gone += self._evict(old_robot, old_seq, old.scan is not None)
             entry = self._pending[key] = _Pending()
         if is_scan:
             entry.scan = item
@@ -199,6 +217,8 @@ class JoinBuffer(Generic[ScanT, PoseT]):
                     and k[1] not in found]:
             gone.append(GivenUp(robot, key[1], 1, not is_scan, ORPHANED))
             del self._pending[key]
+        gone += self._forget_evicted(lambda key: key[0] == robot and key[2] != is_scan
+                                     and skipped_from <= key[1] < skipped_to and key[1] not in found)
         # their partners too, where the partner's stream has not got there yet: paired at once, a gap larger than
         # the buffer does not overflow it (a shard restarted late in a run)
         held = self._held.get(partner, (None,))[0]
@@ -215,6 +235,38 @@ class JoinBuffer(Generic[ScanT, PoseT]):
             pairs += more_pairs
             gone += more
         return pairs, gone
+
+    def _evict(self, robot: str, seq: int, is_scan: bool) -> list[GivenUp]:
+        """Make room: the half (robot, seq) leaves the buffer. With ``recover`` only its seq is kept, to ask for it
+        again when its partner comes (the oldest such seq beyond the limit is given up); without, it is given up."""
+        if self.recover is None:
+            return [GivenUp(robot, seq, 1, is_scan, OVERFLOW)]
+        self._evicted[(robot, seq, is_scan)] = None
+        if len(self._evicted) <= EVICTED_LIMIT * self.capacity:
+            return []
+        (old_robot, old_seq, old_is_scan), _ = self._evicted.popitem(last=False)
+        return [GivenUp(old_robot, old_seq, 1, old_is_scan, OVERFLOW)]
+
+    def _refetch(self, robot: str, seq: int, is_scan: bool):
+        """The evicted half (robot, seq) from ``recover``, or None when it no longer has it. The evicted seqs right
+        after it are asked for in the same request and kept for when their partners come."""
+        item = self._fetched.pop((robot, seq, is_scan), None)
+        if item is not None:
+            return item
+        stop = seq + 1
+        while stop - seq < REFETCH_BATCH and (robot, stop, is_scan) in self._evicted:
+            stop += 1
+        found = self._recovered(robot, is_scan, seq, stop, set())
+        self._fetched = {(robot, other, is_scan): got for other, got in found.items() if other != seq}
+        return found.get(seq)
+
+    def _forget_evicted(self, which: Callable[[tuple[str, int, bool]], bool]) -> list[GivenUp]:
+        """Give up the evicted halves ``which`` picks: their partners never come."""
+        keys = [key for key in self._evicted if which(key)]
+        for key in keys:
+            del self._evicted[key]
+            self._fetched.pop(key, None)
+        return [GivenUp(robot, seq, 1, is_scan, OVERFLOW) for robot, seq, is_scan in keys]
 
     def _recovered(self, robot: str, is_scan: bool, first: int, stop: int, taken: set[int]) -> dict[int, object]:
         """What ``recover`` finds of the robot's scans (else poses) first .. stop-1, less ``taken``."""

@@ -25,7 +25,8 @@ from schemas.messages import POSE_TYPES, LaserScan, MessageError, PoseGaussian, 
     decode_message
 from schemas.wire import Message
 from services import keys
-from services.join import GIVEN_UP_BECAUSE, MISSING, ORPHANED, OVERFLOW, GivenUp, JoinBuffer, SeqLedger
+from services.join import EVICTED_LIMIT, GIVEN_UP_BECAUSE, MISSING, ORPHANED, OVERFLOW, GivenUp, JoinBuffer, \
+    SeqLedger
 from services.ownership import owns_tile
 from services.process import RejectCounter, get_logger
 
@@ -34,8 +35,9 @@ TileKey = tuple[int, int]
 #: laser geometries (beam angles, range limits, offset) whose fusion a shard keeps, most recently used first;
 #: each holds its own scratch window, so a laser whose geometry changes scan by scan must not grow memory
 FUSIONS_KEPT = 4
-#: a fused seq more than this many times the join capacity below a robot's highest counts as done
-SEQ_HORIZON_JOINS = 8
+#: a fused seq more than this many times the join capacity below a robot's highest counts as done: twice the
+#: seqs the join may still pair (its evicted halves, which it asks the histories for again when their partner comes)
+SEQ_HORIZON_JOINS = 2 * EVICTED_LIMIT
 #: s after an ended robot's last taken scan or pose at which its streams are settled: what is still missing or
 #: waiting is given up (:meth:`MapShard.settle`)
 SETTLE_AFTER = 15.0
@@ -186,8 +188,8 @@ class MapShard:
             elif not self._fused_seqs.done(robot, message.seq):
                 found[message.seq] = message
         if found:
-            self.log.info("took %d %s(s) of robot %r in seqs %d-%d, which never reached this shard, from the "
-                          "history", len(found), stream, robot, first, last)
+            self.log.info("took %d %s(s) of robot %r in seqs %d-%d from the history (lost in transit, or dropped "
+                          "from a full join buffer)", len(found), stream, robot, first, last)
         return found
 
     def _give_up(self, gone: list[GivenUp]) -> None:
