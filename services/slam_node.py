@@ -287,7 +287,7 @@ class SlamNode:
             self.steps_done += len(released.skipped)
         lost = released.evicted
         self._ready.extend(released.steps)
-        while len(self._ready) > self.steps.capacity:  # no start pose yet: keep only the newest steps
+        while self.initial is None and len(self._ready) > self.steps.capacity:  # no start pose yet: the newest
             self._ready.pop(0)
             self.steps_done += 1
             lost += 1
@@ -387,24 +387,27 @@ class SlamNode:
         self.log.info("took %d message(s) the source published before this node was up (steps up to seq %d)",
                       len(replies), max(self._history_high.values(), default=-1))
 
-    def _recover(self, first: int, last: int) -> dict[int, dict]:
-        """The parts of steps first..last, which did not all arrive (lost in transit), from the source's history
-        ({seq: {stream: message}}; what it lacks is skipped as before). Called by the step assembler."""
+    def _recover(self, first: int, last: int | None) -> dict[int, dict]:
+        """The parts of steps first..last (None: every step the source has published from ``first``), which did
+        not all arrive (lost in transit), from the source's history ({seq: {stream: message}}; what it lacks is
+        skipped as before). Called by the step assembler. A live copy of a part taken here that comes later is
+        dropped without a word, as after :meth:`catch_up`."""
         parts: dict[int, dict] = {}
-        for key, payload in self._history({"streams": ",".join(sorted(self.steps.needs)), "from": str(first),
-                                           "to": str(last + 1)}, RECOVER_TIMEOUT):
+        span = {"from": str(first)} if last is None else {"from": str(first), "to": str(last + 1)}
+        for key, payload in self._history({"streams": ",".join(sorted(self.steps.needs)), **span}, RECOVER_TIMEOUT):
             stream = key.rsplit("/", 1)[-1]
             try:
                 message = decode_message(payload, *EXPECTED[stream])
             except MessageError as exc:
                 self.rejects.count(keys.history_key(self.config.robot), exc.reason, str(exc))
                 continue
-            if message.robot != self.config.robot or not first <= message.seq <= last:
+            if message.robot != self.config.robot or message.seq < first or (last is not None and message.seq > last):
                 self.rejects.count(keys.history_key(self.config.robot), "key", f"a {message.TYPE} of robot "
                                    f"{message.robot!r}, seq {message.seq}, answered a question about seqs "
-                                   f"{first}-{last} of robot {self.config.robot!r}")
+                                   f"{first}-{'' if last is None else last} of robot {self.config.robot!r}")
             else:
                 parts.setdefault(message.seq, {})[stream] = message
+                self._history_high[stream] = max(self._history_high.get(stream, -1), message.seq)
         if parts:
             self.log.info("took seq %s, which did not all arrive, from the source's history", _spans(sorted(parts)))
         return parts

@@ -4,8 +4,10 @@ A SLAM filter must see its steps in order. Parts may arrive in any order across 
 when every part the filter needs is there. Complete steps are released strictly in seq order; a seq that
 never completes is skipped (and reported) once ``reorder`` later steps are complete and waiting, or when
 the stream has ended; before that, the assembler's ``recover`` (if given) may supply the missing parts (the SLAM
-node asks the source's history for them). A part whose seq was already released or skipped arrives *out of order*: it is
-reported and dropped. At most ``capacity`` incomplete steps are held; the oldest is evicted beyond that.
+node asks the source's history for them), and at the end it is asked for every step from the first not yet
+released (the last steps may have been lost, e.g. while the router was down). A part whose seq was already
+released or skipped arrives *out of order*: it is reported and dropped. At most ``capacity`` incomplete steps
+are held; the oldest is evicted beyond that.
 """
 from __future__ import annotations
 
@@ -30,9 +32,10 @@ class StepAssembler:
     """See the module docstring. ``needs``: the parts a step must have, e.g. {"odom", "landmarks"}."""
 
     def __init__(self, needs: set[str], capacity: int = 256, reorder: int = 16,
-                 recover: Callable[[int, int], dict[int, dict]] | None = None):
-        """``recover(first, last)``: the parts {seq: {part: message}} it can find of seqs first..last (inclusive),
-        which are about to be skipped; what it returns fills them in."""
+                 recover: Callable[[int, int | None], dict[int, dict]] | None = None):
+        """``recover(first, last)``: the parts {seq: {part: message}} it can find of seqs first..last (inclusive;
+        last None: every seq from first on, at the end of the stream), which are about to be skipped; what it
+        returns fills them in."""
         self.needs = frozenset(needs)
         self.capacity = capacity
         self.reorder = reorder
@@ -55,7 +58,10 @@ class StepAssembler:
         return released
 
     def flush(self) -> Released:
-        """At the end of the stream: release every complete step, skipping the gaps."""
+        """At the end of the stream: take what ``recover`` finds from the first step not yet released on, then
+        release every complete step, skipping the gaps."""
+        if self.recover is not None:
+            self._fill(self.recover(self.next_seq, None), self.next_seq, None)
         released = Released()
         self._release(released, flush=True)
         return released
@@ -73,12 +79,16 @@ class StepAssembler:
             if not waiting or (not flush and len(waiting) < self.reorder):
                 return
             if self.recover is not None and self.next_seq > self._asked_through:  # each seq is asked for once
-                for seq, parts in self.recover(self.next_seq, waiting[0] - 1).items():
-                    if self.next_seq <= seq < waiting[0]:
-                        self._pending.setdefault(seq, {}).update(parts)
+                self._fill(self.recover(self.next_seq, waiting[0] - 1), self.next_seq, waiting[0])
                 self._asked_through = waiting[0] - 1
                 waiting = sorted(s for s in self._pending if self._complete(s))  # now from the first recovered
             for seq in range(self.next_seq, waiting[0]):
                 self._pending.pop(seq, None)
                 released.skipped.append(seq)
             self.next_seq = waiting[0]
+
+    def _fill(self, found: dict[int, dict], first: int, stop: int | None) -> None:
+        """File the parts ``recover`` found of seqs first .. stop-1 (stop None: no end)."""
+        for seq, parts in found.items():
+            if first <= seq and (stop is None or seq < stop):
+                self._pending.setdefault(seq, {}).update(parts)
