@@ -18,7 +18,7 @@ the last scans: services.shard waits for quiet).
 
 The buffer holds the halves still waiting for their partner, at most ``capacity`` of them; when it is full
 the oldest waiting half is evicted. With ``recover``, an evicted half is only remembered by its seq (at most
-:data:`EVICTED_LIMIT` per buffer capacity) and asked for again when its partner comes: a SLAM node down for
+:data:`EVICTED_LIMIT` of them) and asked for again when its partner comes: a SLAM node down for
 longer than the buffer lasts then costs no scan, as the source's history still holds them. Without
 ``recover``, or when the history no longer holds it, it is given up. Every half given up on is returned as
 :class:`GivenUp`, so the caller counts it (nothing is dropped silently). :class:`SeqLedger` remembers which
@@ -49,14 +49,16 @@ ORPHANED = "orphaned"  # its partner never comes: the partner's stream went past
 LATE = "late"  # it came after its own stream had passed its seq (a re-sent message not fused yet): refused
 JUMP = "jump"  # it jumped past a gap that its stream's next message did not confirm (a stray): refused
 
-#: evicted halves remembered (to be asked for again when their partner comes), per unit of buffer capacity
-EVICTED_LIMIT = 16
+#: evicted halves remembered, to be asked for again when their partner comes (only their seqs: about 200 bytes
+#: each); 13.6 min of a 10 Hz robot's scans
+EVICTED_LIMIT = 8192
 #: evicted halves of one stream asked for at once: the partners of the ones after the first come next
 REFETCH_BATCH = 32
 
 #: what each reason means, for the logs
 GIVEN_UP_BECAUSE = {
-    OVERFLOW: "the join buffer was full and no history holds it any more; given up on without its partner",
+    OVERFLOW: "the join buffer was full, and it was past what the buffer remembers to ask the histories for again "
+              "or they no longer hold it; given up on without its partner",
     MISSING: "never reached this shard (lost in transit: a network gap, a shard stalled past its Zenoh lease or a "
              "full intake queue) and no history holds them; the map lacks them",
     ORPHANED: "given up on: its partner never comes (the partner's stream went past its seq)",
@@ -98,7 +100,8 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         self._held: dict[tuple[str, bool], tuple[int, object]] = {}  # (robot, scans?) -> (seq, item) past a gap
         self._ahead: dict[tuple[str, bool], set[int]] = {}  # (robot, scans?) -> seqs recovered before it got there
         self._evicted: OrderedDict[tuple[str, int, bool], None] = OrderedDict()  # (robot, seq, scan?), oldest first
-        self._fetched: dict[tuple[str, int, bool], object] = {}  # evicted halves asked for again ahead of need
+        self._fetched: dict[tuple[str, bool], dict[int, object]] = {}  # (robot, scans?) -> evicted halves asked
+        # for again ahead of need, by seq (the last batch of that stream)
 
     def __len__(self) -> int:
         return len(self._pending) + len(self._held)
@@ -220,18 +223,20 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         gone += self._forget_evicted(lambda key: key[0] == robot and key[2] != is_scan
                                      and skipped_from <= key[1] < skipped_to and key[1] not in found)
         # their partners too, where the partner's stream has not got there yet: paired at once, a gap larger than
-        # the buffer does not overflow it (a shard restarted late in a run)
-        held = self._held.get(partner, (None,))[0]
-        lacking = [seq for seq in found if (robot, seq) not in self._pending and seq > self._last.get(partner, -1)
-                   and seq != held]
+        # the buffer does not overflow it (a shard restarted late in a run); and the partners of the halves
+        # waiting below the gap, so that the pairs come out in seq order
+        held, partner_last = self._held.get(partner, (None,))[0], self._last.get(partner, -1)
+        waiting = [k[1] for k in self._pending if k[0] == robot and partner_last < k[1] < skipped_from and k[1] != held]
+        lacking = waiting + [seq for seq in found if (robot, seq) not in self._pending and seq > partner_last
+                             and seq != held]
         partners = self._recovered(robot, not is_scan, min(lacking), max(lacking) + 1, set()) if lacking else {}
         pairs = []
-        for seq in sorted(found):
-            more_pairs, more = self._place(robot, seq, found[seq], is_scan)
+        for seq in sorted({*found, *waiting}):
+            more_pairs, more = self._place(robot, seq, found[seq], is_scan) if seq in found else ([], [])
             if seq in partners:
                 self._ahead.setdefault(partner, set()).add(seq)
-                more_pairs, also = self._place(robot, seq, partners[seq], not is_scan)
-                more += also
+                also_pairs, also = self._place(robot, seq, partners[seq], not is_scan)
+                more_pairs, more = more_pairs + also_pairs, more + also
             pairs += more_pairs
             gone += more
         return pairs, gone
@@ -242,7 +247,7 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         if self.recover is None:
             return [GivenUp(robot, seq, 1, is_scan, OVERFLOW)]
         self._evicted[(robot, seq, is_scan)] = None
-        if len(self._evicted) <= EVICTED_LIMIT * self.capacity:
+        if len(self._evicted) <= EVICTED_LIMIT:
             return []
         (old_robot, old_seq, old_is_scan), _ = self._evicted.popitem(last=False)
         return [GivenUp(old_robot, old_seq, 1, old_is_scan, OVERFLOW)]
@@ -250,27 +255,31 @@ class JoinBuffer(Generic[ScanT, PoseT]):
     def _refetch(self, robot: str, seq: int, is_scan: bool):
         """The evicted half (robot, seq) from ``recover``, or None when it no longer has it. The evicted seqs right
         after it are asked for in the same request and kept for when their partners come."""
-        item = self._fetched.pop((robot, seq, is_scan), None)
+        item = self._fetched.get((robot, is_scan), {}).pop(seq, None)
         if item is not None:
             return item
         stop = seq + 1
         while stop - seq < REFETCH_BATCH and (robot, stop, is_scan) in self._evicted:
             stop += 1
         found = self._recovered(robot, is_scan, seq, stop, set())
-        self._fetched = {(robot, other, is_scan): got for other, got in found.items() if other != seq}
+        self._fetched[(robot, is_scan)] = {other: got for other, got in found.items() if other != seq}
         return found.get(seq)
 
     def _forget_evicted(self, which: Callable[[tuple[str, int, bool]], bool]) -> list[GivenUp]:
         """Give up the evicted halves ``which`` picks: their partners never come."""
         keys = [key for key in self._evicted if which(key)]
-        for key in keys:
-            del self._evicted[key]
-            self._fetched.pop(key, None)
-        return [GivenUp(robot, seq, 1, is_scan, OVERFLOW) for robot, seq, is_scan in keys]
+        for robot, seq, is_scan in keys:
+            del self._evicted[(robot, seq, is_scan)]
+            self._fetched.get((robot, is_scan), {}).pop(seq, None)
+        return [GivenUp(robot, seq, 1, is_scan, ORPHANED) for robot, seq, is_scan in keys]
 
     def _recovered(self, robot: str, is_scan: bool, first: int, stop: int, taken: set[int]) -> dict[int, object]:
         """What ``recover`` finds of the robot's scans (else poses) first .. stop-1, less ``taken``."""
-        if self.recover is None:
+        while first < stop and first in taken:
+            first += 1
+        while stop > first and stop - 1 in taken:
+            stop -= 1
+        if self.recover is None or first >= stop:
             return {}
         return {seq: item for seq, item in self.recover(robot, is_scan, first, stop - 1).items()
                 if first <= seq < stop and seq not in taken}

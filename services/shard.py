@@ -35,9 +35,9 @@ TileKey = tuple[int, int]
 #: laser geometries (beam angles, range limits, offset) whose fusion a shard keeps, most recently used first;
 #: each holds its own scratch window, so a laser whose geometry changes scan by scan must not grow memory
 FUSIONS_KEPT = 4
-#: a fused seq more than this many times the join capacity below a robot's highest counts as done: twice the
-#: seqs the join may still pair (its evicted halves, which it asks the histories for again when their partner comes)
-SEQ_HORIZON_JOINS = 2 * EVICTED_LIMIT
+#: a fused seq more than this many times the join capacity (and twice the evicted halves the join may still ask
+#: the histories for: services.join.EVICTED_LIMIT) below a robot's highest counts as done
+SEQ_HORIZON_JOINS = 8
 #: s after an ended robot's last taken scan or pose at which its streams are settled: what is still missing or
 #: waiting is given up (:meth:`MapShard.settle`)
 SETTLE_AFTER = 15.0
@@ -80,7 +80,7 @@ class MapShard:
         self._history_high: dict[tuple[str, str], int] = {}  # (robot, stream) -> highest seq a history gave
         self._join: JoinBuffer[LaserScan, object] = JoinBuffer(config.join_capacity,
                                                                 None if history is None else self._recover)
-        self._fused_seqs = SeqLedger(SEQ_HORIZON_JOINS * config.join_capacity)
+        self._fused_seqs = SeqLedger(max(SEQ_HORIZON_JOINS * config.join_capacity, 2 * EVICTED_LIMIT))
         self.log = get_logger(f"mapper[{config.shard}]")  # the logger services.mapper.Mapper writes to
         self.received: Counter[str] = Counter()
         self.fused: Counter[str] = Counter()
@@ -145,8 +145,9 @@ class MapShard:
         and a live copy of it, or of an earlier message of its stream, is then dropped without a word."""
         stream = key.rsplit("/", 1)[-1]
         if isinstance(message, StreamEnd):  # (it may overtake the last scans: each key has its own callback thread)
+            if message.robot not in self.ended:  # the first end is news: the last poses may still come (the source
+                self._heard[message.robot] = self._clock()  # repeats it, and a repeat is no news)
             self.ended[message.robot] = message.scans
-            self._heard.setdefault(message.robot, self._clock())  # (the source repeats it: a repeat is no news)
             self._unsettled.add(message.robot)
             return
         caught_up_to = self._history_high.get((message.robot, stream), -1)

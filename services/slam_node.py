@@ -252,7 +252,10 @@ class SlamNode:
                 self.log.info("starting at the source's prior (%.3f m, %.3f m, %.3f rad)", *message.mean)
             self._take_ready()
         elif stream == keys.END:
-            self._file(self.steps.flush())
+            # the steps lost at the end are taken back only for a run this node has followed (it has taken steps
+            # of it): a node that starts after the end would take an ended source's history, which catch_up refuses
+            # (it may be a stale run's)
+            self._file(self.steps.flush(tail=self.steps.next_seq > 0))
         else:
             late = self._check_order(key, message.seq)
             if stream not in self.steps.needs:

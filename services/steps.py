@@ -57,10 +57,10 @@ class StepAssembler:
         self._release(released, flush=False)
         return released
 
-    def flush(self) -> Released:
-        """At the end of the stream: take what ``recover`` finds from the first step not yet released on, then
-        release every complete step, skipping the gaps."""
-        if self.recover is not None:
+    def flush(self, tail: bool = True) -> Released:
+        """At the end of the stream: take what ``recover`` finds from the first step not yet released on (unless
+        not ``tail``), then release every complete step, skipping the gaps."""
+        if self.recover is not None and tail:
             self._fill(self.recover(self.next_seq, None), self.next_seq, None)
         released = Released()
         self._release(released, flush=True)

@@ -70,6 +70,53 @@ def test_join_asks_a_history_again_for_what_it_evicted_when_the_partner_comes():
     assert paired == [(seq, f"p{seq}") for seq in range(10) if seq != 5]
     assert _given_up(gone) == [("r", 5, 1, "scan", "overflow"), ("r", 5, 1, "pose", "orphaned")]
     assert asked == [(True, 0, 7), (True, 5, 7)] and len(buffer) == 0
+    for seq in range(10, 14):  # 10 and 11 evicted; their poses, and 12's, never come (nor does the history hold them)
+        buffer.add_scan(("r", seq), seq)
+    assert buffer.add_pose(("r", 13), "p13") == ([], [])  # held past the gap until the pose stream goes on
+    pairs, gone = buffer.add_pose(("r", 14), "p14")
+    assert pairs == [(13, "p13")] and _given_up(gone) == [
+        ("r", 12, 1, "scan", "orphaned"), ("r", 10, 1, "scan", "orphaned"), ("r", 11, 1, "scan", "orphaned")]
+
+
+def test_join_pairs_a_half_waiting_below_a_gap_before_the_gap():
+    """Scan 4 waits for pose 4 when scans 5-9 and poses 4-9 are lost: the pose of scan 4 is asked for with those of
+    the gap, so the pairs come out in seq order (scan 4 was fused after 5-9, and the map differed)."""
+    asked = []
+
+    def recover(robot: str, scans: bool, first: int, last: int) -> dict[int, object]:
+        asked.append((scans, first, last))
+        return {seq: f"{'s' if scans else 'p'}{seq}" for seq in range(first, last + 1)}
+    buffer = JoinBuffer(capacity=512, recover=recover)
+    fused = []
+    for seq in range(5):
+        fused += buffer.add_scan(("r", seq), f"s{seq}")[0]
+        if seq < 4:
+            fused += buffer.add_pose(("r", seq), f"p{seq}")[0]
+    for seq in (10, 11):
+        fused += buffer.add_scan(("r", seq), f"s{seq}")[0]
+    for seq in (10, 11):
+        fused += buffer.add_pose(("r", seq), f"p{seq}")[0]
+    assert fused == [(f"s{seq}", f"p{seq}") for seq in (0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11)]
+    assert asked == [(True, 5, 9), (False, 4, 9)]  # poses 4-9 once: the pose stream's own gap asks for nothing
+
+
+def test_join_keeps_each_streams_batch_of_evicted_halves_asked_for_again():
+    """Two robots whose SLAM nodes were down: their evicted scans are asked for again in batches per robot, and
+    one robot's batch does not throw the other's away (it did: a query per scan)."""
+    asked = []
+
+    def recover(robot: str, scans: bool, first: int, last: int) -> dict[int, object]:
+        asked.append((robot, first, last))
+        return {seq: f"{robot}{seq}" for seq in range(first, last + 1)}
+    buffer = JoinBuffer(capacity=8, recover=recover)
+    for seq in range(64):
+        for robot in "ab":
+            buffer.add_scan((robot, seq), f"{robot}{seq}")
+    fused = []
+    for seq in range(64):
+        for robot in "ab":
+            fused += buffer.add_pose((robot, seq), seq)[0]
+    assert len(fused) == 128 and len(asked) == 4, asked  # 60 evicted scans a robot: two batches of 32 each
 
 
 def test_join_gives_up_at_once_on_what_a_confirmed_gap_leaves_behind():
@@ -184,6 +231,7 @@ def test_the_end_of_the_stream_asks_for_every_step_not_released_yet():
     for seq in (0, 1, 2):
         steps.add("odom", seq, f"o{seq}")
         steps.add("landmarks", seq, f"l{seq}")
+    assert StepAssembler({"odom"}, recover=recover).flush(tail=False).steps == [] and asked == []
     out = steps.flush()
     assert asked == [(3, None)]
     assert [seq for seq, _ in out.steps] == [3, 4, 5] and out.steps[0][1] == {"odom": "o3", "landmarks": "l3"}
@@ -244,8 +292,10 @@ def test_shard_accounts_for_scans_lost_in_transit_and_catches_up():
 
 def test_shard_settles_an_ended_stream_only_after_the_robot_goes_quiet():
     """Scans 8-9 never come and the poses of 6-7 neither. The end of the stream alone settles nothing (it can
-    overtake the last scans); 15 s after the robot's last scan or pose the four are given up and the shard
-    catches up; a repeated end or junk on the robot's keys does not put that off."""
+    overtake the last scans, and the SLAM node may still publish the last poses); 15 s after the robot's last
+    scan or pose, or after the first end when that came later, the four are given up and the shard catches up; a
+    repeated end or junk on the robot's keys does not put that off. (An end after a long silence, the router
+    down at the end of a run, used to settle the robot at once, before the SLAM node published the last poses.)"""
     now = [100.0]
     shard = MapShard(ShardConfig("m", 0, 1, SensorModel()), RejectCounter(logging.getLogger("test-shard")),
                      clock=lambda: now[0])
@@ -253,6 +303,7 @@ def test_shard_settles_an_ended_stream_only_after_the_robot_goes_quiet():
         shard.handle("pg/r/scan", _scan(seq).encode())
         if seq < 6:
             shard.handle("pg/r/pose", _pose(seq).encode())
+    now[0] += 60.0  # the router is down for a minute; then the end comes
     shard.handle("pg/r/end", StreamEnd(robot="r", scans=10).encode())
     now[0] += SETTLE_AFTER - 1.0
     shard.settle()
