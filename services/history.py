@@ -9,6 +9,7 @@ for no consolidation.
 from __future__ import annotations
 
 import re
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -20,6 +21,13 @@ from services import keys
 
 #: a seq in a query's parameters
 _SEQ = re.compile(r"[0-9]{1,18}")
+
+#: s a question waits for its session to reach a router or peer again (a router restart takes about 5 s here)
+RECONNECT_WAIT = 30.0
+#: s after such a wait during which a question that nobody answered is asked again, every RETRY_PERIOD s: the
+#: processes that answer reconnect on their own schedule
+RECONNECT_GRACE = 5.0
+RETRY_PERIOD = 0.5
 
 
 @dataclass(frozen=True)
@@ -79,17 +87,44 @@ def reply(query: zenoh.Query, answerer: Answerer, robot: str, stream: str, paylo
     query.reply(keys.history_key(robot, stream), payload, attachment=answerer.encode())
 
 
+def _reachable(session: zenoh.Session) -> bool:
+    """Whether the session is connected to a router or a peer: a question can reach a history."""
+    return bool(list(session.info.routers_zid())) or bool(list(session.info.peers_zid()))
+
+
+def _answers(session: zenoh.Session, robot: str, parameters: dict[str, str], timeout: float) -> list[zenoh.Reply]:
+    """The replies to one question, asked once the session reaches a router or peer. While it reaches none (the
+    router restarting), a question would come back empty at once, and what it asked for would be given up as lost
+    though a history holds it: it waits for the connection instead, up to RECONNECT_WAIT s. A question nobody
+    answers is asked again while the connection is down, and for RECONNECT_GRACE s after it came back."""
+    deadline = time.monotonic() + RECONNECT_WAIT
+    grace_until = None  # set once the session had to wait for its connection
+    while True:
+        while not _reachable(session) and time.monotonic() < deadline:
+            time.sleep(0.1)
+            grace_until = time.monotonic() + RECONNECT_GRACE
+        replies = list(session.get(zenoh.Selector(keys.history_key(robot), parameters), timeout=timeout,
+                                   consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE),
+                                   congestion_control=zenoh.CongestionControl.BLOCK))  # (replies go out under it)
+        now = time.monotonic()
+        if replies or now >= deadline:
+            return replies
+        if _reachable(session):
+            if grace_until is None or now >= grace_until:
+                return replies
+            time.sleep(RETRY_PERIOD)
+
+
 def ask(session: zenoh.Session, robot: str, parameters: dict[str, str], timeout: float,
         accept: Callable[[Answerer], bool] = lambda answerer: True) -> tuple[list[tuple[str, str, bytes]], list[str]]:
     """Ask the histories of ``robot`` ("*": every robot): ((robot, stream, payload) of each message in the order
     sent, problems). Only answerers that ``accept`` takes count (a shard takes its own map's sources; a SLAM node
     catching up, sources still publishing). When two of them answer for one robot's stream (a robot name that
     two runs use at once), neither is taken: that stream's messages are left out and a problem says so, since the
-    live stream cannot say which run it belongs to."""
+    live stream cannot say which run it belongs to. A session cut off from the router waits for it to come back
+    (:func:`_answers`)."""
     messages, problems, answerers = [], [], {}
-    for answer in session.get(zenoh.Selector(keys.history_key(robot), parameters), timeout=timeout,
-                              consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE),
-                              congestion_control=zenoh.CongestionControl.BLOCK):  # (replies go out under it)
+    for answer in _answers(session, robot, parameters, timeout):
         if answer.ok is None:
             problems.append(answer.err.payload.to_string())
             continue

@@ -224,11 +224,14 @@ class JoinBuffer(Generic[ScanT, PoseT]):
                                      and skipped_from <= key[1] < skipped_to and key[1] not in found)
         # their partners too, where the partner's stream has not got there yet: paired at once, a gap larger than
         # the buffer does not overflow it (a shard restarted late in a run); and the partners of the halves
-        # waiting below the gap, so that the pairs come out in seq order
+        # waiting below the gap (evicted ones included), so that the pairs come out in seq order; none at or past
+        # the partner stream's held message, which is taken first
         held, partner_last = self._held.get(partner, (None,))[0], self._last.get(partner, -1)
-        waiting = [k[1] for k in self._pending if k[0] == robot and partner_last < k[1] < skipped_from and k[1] != held]
+        below = skipped_from if held is None else min(skipped_from, held)
+        waiting = [k[1] for k in self._pending if k[0] == robot and partner_last < k[1] < below]
+        waiting += [k[1] for k in self._evicted if k[0] == robot and k[2] == is_scan and partner_last < k[1] < below]
         lacking = waiting + [seq for seq in found if (robot, seq) not in self._pending and seq > partner_last
-                             and seq != held]
+                             and (held is None or seq < held)]
         partners = self._recovered(robot, not is_scan, min(lacking), max(lacking) + 1, set()) if lacking else {}
         pairs = []
         for seq in sorted({*found, *waiting}):

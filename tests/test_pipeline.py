@@ -632,6 +632,38 @@ def test_a_restarted_slam_node_takes_the_run_from_the_sources_history(tmp_path, 
         np.testing.assert_array_equal(pose.weights, expected.weights[pose.seq])
 
 
+def test_a_history_question_asked_while_the_router_restarts_waits_for_it(procs):
+    """A question asked while the router was down came back empty at once, and the shard gave up what it asked
+    for as lost though the history held it (scans evicted from its join while the SLAM node was down, asked for
+    again during a 3 s router restart: 125 of 3 000 given up). Now it waits for the session to reach the router
+    again, and asks again while the answerer is not back yet."""
+    from services import history, keys
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = [*CLI, "router", "--listen", endpoint]
+    first = procs(router)
+    first.wait_for("routing")
+    answerer, asker = (zenoh.open(build_config("client", connect=[endpoint])) for _ in range(2))
+    try:
+        who = history.Answerer("a source", "m", False)
+        answerer.declare_queryable(keys.history_key("r"), lambda query: history.reply(query, who, "r", keys.SCAN,
+                                                                                     b"scan 7"))
+        assert history.ask(asker, "r", {}, 5.0) == ([("r", keys.SCAN, b"scan 7")], [])
+        first.process.kill()
+        first.process.wait(10)
+        time.sleep(0.5)
+        answers: list = []
+        asking = threading.Thread(target=lambda: answers.append(history.ask(asker, "r", {}, 5.0)))
+        asking.start()
+        time.sleep(1.0)
+        procs(router).wait_for("routing")
+        asking.join(60)
+    finally:
+        answerer.close()
+        asker.close()
+    assert answers == [([("r", keys.SCAN, b"scan 7")], [])]
+
+
 def test_what_the_router_loses_is_taken_from_the_histories(tmp_path, procs):
     """The router dies mid-run and comes back on its port: what the source published meanwhile never reaches the
     SLAM node or the mapper shard. The node takes those steps from the source's history instead of skipping

@@ -100,6 +100,47 @@ def test_join_pairs_a_half_waiting_below_a_gap_before_the_gap():
     assert asked == [(True, 5, 9), (False, 4, 9)]  # poses 4-9 once: the pose stream's own gap asks for nothing
 
 
+def _ordered_join(capacity: int):
+    """A join whose recover hook holds every scan and pose, and the seqs of the pairs it completes, in order."""
+    def recover(robot: str, scans: bool, first: int, last: int) -> dict[int, object]:
+        return {seq: seq for seq in range(first, last + 1)}
+    buffer, fused = JoinBuffer(capacity=capacity, recover=recover), []
+
+    def add(kind: str, seq: int) -> None:
+        pairs, _ = (buffer.add_scan if kind == "scan" else buffer.add_pose)(("r", seq), seq)
+        fused.extend(scan for scan, _ in pairs)
+    return add, fused
+
+
+def test_join_fuses_evicted_halves_below_a_gap_before_it():
+    """Scans 2-5 evicted (the SLAM node behind), then scans 10-13 and poses 2-9 lost: the evicted scans' poses are
+    fetched with the gap's, so all 16 pairs come out in seq order (2-5 came after 6-13)."""
+    add, fused = _ordered_join(capacity=4)
+    for seq in range(2):
+        add("scan", seq)
+        add("pose", seq)
+    for seq in range(2, 10):
+        add("scan", seq)
+    for kind, seq in [("scan", 14), ("scan", 15), ("pose", 10), ("pose", 11), ("pose", 12), ("pose", 13),
+                      ("pose", 14), ("pose", 15)]:
+        add(kind, seq)
+    assert fused == list(range(16))
+
+
+def test_join_fetches_no_partner_past_the_partner_streams_held_message():
+    """Pose 8 is held past a gap (pose 7 lost) while scan 8 waits for it, when the scan stream's gap 9-11 is
+    confirmed: the poses fetched with it stop below pose 8, so pair 8 comes before 9-11 (they came first)."""
+    add, fused = _ordered_join(capacity=32)
+    for seq in range(7):
+        add("scan", seq)
+        add("pose", seq)
+    for kind, seq in [("scan", 7), ("scan", 8), ("pose", 8), ("scan", 12), ("scan", 13)]:
+        add(kind, seq)
+    for seq in range(9, 14):
+        add("pose", seq)
+    assert fused == list(range(14))
+
+
 def test_join_keeps_each_streams_batch_of_evicted_halves_asked_for_again():
     """Two robots whose SLAM nodes were down: their evicted scans are asked for again in batches per robot, and
     one robot's batch does not throw the other's away (it did: a query per scan)."""
