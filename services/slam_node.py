@@ -411,7 +411,10 @@ class SlamNode:
             else:
                 parts.setdefault(message.seq, {})[stream] = message
                 self._history_high[stream] = max(self._history_high.get(stream, -1), message.seq)
-        if parts:
+        if parts and last is None:  # the end mark can overtake the last steps: they may still be on their way
+            self.log.info("at the end of the stream, took seq %s, which had not all arrived (lost, or still on their "
+                          "way), from the source's history", _spans(sorted(parts)))
+        elif parts:
             self.log.info("took seq %s, which did not all arrive, from the source's history", _spans(sorted(parts)))
         return parts
 
