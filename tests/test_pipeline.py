@@ -19,6 +19,7 @@ import threading
 import time
 import urllib.error
 import urllib.request
+from collections.abc import Callable
 from pathlib import Path
 
 import msgpack
@@ -579,6 +580,40 @@ def _simulated_run_and_offline_poses(tmp_path: Path, steps: int) -> tuple[Path, 
     return sim, node_args, load_posed_scans(offline).poses
 
 
+class _Poses:
+    """Robot r1's poses as a client of the router receives them."""
+
+    def __init__(self, session: zenoh.Session):
+        self._queue: queue.Queue = queue.Queue()
+        self.received: list[PoseSamples] = []
+        self._subscriber = session.declare_subscriber("pg/r1/pose", lambda s: self._queue.put(s.payload.to_bytes()))
+
+    def take(self, n: int, timeout: float) -> None:
+        """Wait for ``n`` more poses, each within ``timeout`` s."""
+        self.received += [decode_message(self._queue.get(timeout=timeout), PoseSamples) for _ in range(n)]
+
+    def until(self, done: Callable[[set[int]], bool], seconds: float = 30.0) -> None:
+        """Take poses until ``done`` holds for the seqs received so far, or ``seconds`` pass."""
+        deadline = time.monotonic() + seconds
+        while not done(self.seqs()) and time.monotonic() < deadline:
+            try:
+                self.received.append(decode_message(self._queue.get(timeout=1), PoseSamples))
+            except queue.Empty:
+                pass
+
+    def seqs(self) -> set[int]:
+        return {pose.seq for pose in self.received}
+
+    def close(self) -> None:
+        self._subscriber.undeclare()
+
+
+def _replay(procs, sim: Path, endpoint: str, rate: str):
+    """Replay the simulated run ``sim`` as robot r1 into map m at ``rate``, waiting for one mapper shard."""
+    return procs([*CLI, "source", "--sim-dir", str(sim), "--robot", "r1", "--rate", rate, "--map", "m",
+                  "--wait-mappers", "1", "--connect", endpoint])
+
+
 def test_a_restarted_slam_node_takes_the_run_from_the_sources_history(tmp_path, procs):
     """A SLAM node killed mid-run and started again takes what the source published before it was up from the
     source's history (pg/<robot>/history/**) and goes on as if it had never stopped: every pose either node
@@ -595,13 +630,11 @@ def test_a_restarted_slam_node_takes_the_run_from_the_sources_history(tmp_path, 
     first = procs(node)
     first.wait_for("up for robot")
     mapper.wait_for("up; tiles on")
-    poses: queue.Queue = queue.Queue()
     session = zenoh.open(build_config("client", connect=[endpoint]))
     try:
-        subscriber = session.declare_subscriber("pg/r1/pose", lambda s: poses.put(s.payload.to_bytes()))
-        source = procs([*CLI, "source", "--sim-dir", str(sim), "--robot", "r1", "--rate", "1", "--map", "m",
-                        "--wait-mappers", "1", "--connect", endpoint])
-        received = [decode_message(poses.get(timeout=30), PoseSamples) for _ in range(20)]
+        poses = _Poses(session)
+        source = _replay(procs, sim, endpoint, "1")
+        poses.take(20, timeout=30)
         first.process.kill()
         first.process.wait(10)
         time.sleep(2.0)  # scans pile up in the mapper's join meanwhile, waiting for their poses
@@ -614,20 +647,15 @@ def test_a_restarted_slam_node_takes_the_run_from_the_sources_history(tmp_path, 
         from services.map_client import MapReader
 
         stats = MapReader(session, "m").stats()[0]
-        deadline = time.monotonic() + 30
-        while {p.seq for p in received} != set(range(120)) and time.monotonic() < deadline:
-            try:
-                received.append(decode_message(poses.get(timeout=1), PoseSamples))
-            except queue.Empty:
-                pass
-        subscriber.undeclare()
+        poses.until(lambda seqs: seqs == set(range(120)))
+        poses.close()
     finally:
         session.close()
-    assert {p.seq for p in received} == set(range(120)), (sorted({p.seq for p in received}), second.output())
-    assert len(received) > 120  # the second node published again what the first had
+    assert poses.seqs() == set(range(120)), (sorted(poses.seqs()), second.output())
+    assert len(poses.received) > 120  # the second node published again what the first had
     assert stats.fused == {"r1": 120} and not stats.discarded.get("r1") and stats.overflow["join"] == 0, stats
     mapper.wait_for(r"took \d+ scan\(s\) of robot 'r1' in seqs \d+-\d+ from the history")
-    for pose in received:
+    for pose in poses.received:
         np.testing.assert_array_equal(pose.samples, expected.samples[pose.seq])
         np.testing.assert_array_equal(pose.weights, expected.weights[pose.seq])
 
@@ -678,13 +706,11 @@ def test_what_the_router_loses_is_taken_from_the_histories(tmp_path, procs):
     node = procs([*CLI, "slam-node", "--robot", "r1", *node_args, "--connect", endpoint])
     mapper = procs([*CLI, "mapper", "--shard", "0", "--shards", "1", "--map", "m", "--connect", endpoint])
     node.wait_for("up for robot")
-    poses: queue.Queue = queue.Queue()
     session = zenoh.open(build_config("client", connect=[endpoint]))
     try:
-        subscriber = session.declare_subscriber("pg/r1/pose", lambda s: poses.put(s.payload.to_bytes()))
-        source = procs([*CLI, "source", "--sim-dir", str(sim), "--robot", "r1", "--rate", "10", "--map", "m",
-                        "--wait-mappers", "1", "--connect", endpoint])
-        received = [decode_message(poses.get(timeout=60), PoseSamples) for _ in range(20)]
+        poses = _Poses(session)
+        source = _replay(procs, sim, endpoint, "10")
+        poses.take(20, timeout=60)
         router.process.kill()
         router.process.wait(10)
         time.sleep(3.0)  # 300 steps of the run go out meanwhile, to no one
@@ -693,13 +719,8 @@ def test_what_the_router_loses_is_taken_from_the_histories(tmp_path, procs):
         spans = node.wait_for(r"took seq (.+?), which (?:did not all arrive|had not all arrived)").group(1)
         recovered = {seq for span in spans.split(", ") for seq in range(int(span.split("-")[0]),
                                                                          int(span.split("-")[-1]) + 1)}
-        deadline = time.monotonic() + 30
-        while not recovered <= {p.seq for p in received} and time.monotonic() < deadline:
-            try:
-                received.append(decode_message(poses.get(timeout=1), PoseSamples))
-            except queue.Empty:
-                pass
-        subscriber.undeclare()
+        poses.until(lambda seqs: recovered <= seqs)
+        poses.close()
         shard = [decode_message(r.ok.payload.to_bytes(), ShardStats) for r in session.get("pg/map/m/stats/0", timeout=10)
                  if r.ok is not None]
     finally:
@@ -707,9 +728,9 @@ def test_what_the_router_loses_is_taken_from_the_histories(tmp_path, procs):
     assert "skipped" not in node.output()
     # the lost steps' poses went out after the router was back; a pose published just as it died may be lost
     # to this subscriber (the node took that step normally), so the rest are checked where they arrived
-    seqs = {p.seq for p in received}
+    seqs = poses.seqs()
     assert len(recovered) > 256 and recovered <= seqs and len(set(range(400)) - seqs) <= 1, (sorted(seqs), spans)
-    for pose in received:
+    for pose in poses.received:
         np.testing.assert_array_equal(pose.samples, expected.samples[pose.seq])
         np.testing.assert_array_equal(pose.weights, expected.weights[pose.seq])
     mapper.wait_for(r"took \d+ scan\(s\) of robot 'r1' in seqs \d+-\d+ from the history \(lost in transit")
