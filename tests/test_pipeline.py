@@ -676,7 +676,10 @@ def test_a_history_question_asked_while_the_router_restarts_waits_for_it(procs):
         who = history.Answerer("a source", "m", False)
         answerer.declare_queryable(keys.history_key("r"), lambda query: history.reply(query, who, "r", keys.SCAN,
                                                                                      b"scan 7"))
-        assert history.ask(asker, "r", {}, 5.0) == ([("r", keys.SCAN, b"scan 7")], [])
+        deadline = time.monotonic() + 10  # until the queryable's declaration has reached the asker through the router
+        while history.ask(asker, "r", {}, 5.0) != ([("r", keys.SCAN, b"scan 7")], []):
+            assert time.monotonic() < deadline, "the answerer never answered with the router up"
+            time.sleep(0.1)
         first.process.kill()
         first.process.wait(10)
         time.sleep(0.5)
