@@ -236,6 +236,24 @@ def test_cached_answer_matches_the_first_and_etag_round_trip(api):
     assert httpx.get(url, headers={"If-None-Match": f'"x", {etag}'}, timeout=30).status_code == 304
 
 
+def test_head_answers_as_get_without_the_body(api):
+    """HEAD (curl -I, uptime monitors) gets GET's status and headers, Content-Length included, and no body; the
+    event stream answers HEAD at once instead of streaming."""
+    drop = {"date"}
+    for path in (f"/maps/{MAP}/tiles/3/0/0.png", f"/maps/{MAP}/tiles/3/0/0.png",  # FastAPI, then the tile cache
+                 f"/maps/{MAP}/tiles/0/0/0.npz?layer=logodds", f"/maps/{MAP}/export?format=pgm", "/maps", "/",
+                 "/maps/nope", f"/maps/{MAP}/tiles/0/0/0.png?layer=nope"):
+        get, head = httpx.get(f"{api}{path}", timeout=30), httpx.head(f"{api}{path}", timeout=30)
+        assert head.status_code == get.status_code, path
+        assert head.content == b"" and get.content, path
+        assert {k: v for k, v in head.headers.items() if k not in drop} == \
+            {k: v for k, v in get.headers.items() if k not in drop}, path
+        assert int(head.headers["content-length"]) == len(get.content), path
+    events = httpx.head(f"{api}/events", timeout=10)
+    assert events.status_code == 200 and events.headers["content-type"].startswith("text/event-stream")
+    assert httpx.get(f"{api}/health", timeout=30).status_code == 200  # the server goes on after it
+
+
 def test_bad_tile_requests_are_4xx_with_a_reason(api):
     summary = httpx.get(f"{api}/maps/{MAP}", timeout=30).json()
     b, top = summary["tile_bounds"], summary["max_zoom"]

@@ -8,6 +8,7 @@ import zenoh
 
 from services.api.app import Backend, create_app
 from services.api.fastpath import CachedTiles
+from services.api.head import HeadAsGet
 from services.process import get_logger, install_stop_event
 from services.zenoh_config import open_session
 
@@ -35,7 +36,7 @@ def serve(host: str, port: int, zenoh_config: zenoh.Config, cache_bytes: int, qu
     try:
         backend = Backend.open(session, cache_bytes, query_timeout)
         try:
-            config = uvicorn.Config(CachedTiles(create_app(backend), backend.tiles), host=host, port=port,
+            config = uvicorn.Config(HeadAsGet(CachedTiles(create_app(backend), backend.tiles)), host=host, port=port,
                                     log_level="warning", access_log=False, lifespan="on",
                                     timeout_graceful_shutdown=GRACEFUL_SHUTDOWN)
             server = _Server(config, backend)
