@@ -232,7 +232,7 @@ class ShardStats(Message):
     """What one mapper shard has done. The reply to a query on pg/map/<map>/stats/<shard>."""
 
     TYPE = "ShardStats"
-    VERSION = 1
+    VERSION = 2  # 2: resent
     RULES = (Rule("range", "shard < shards", _shard_index),)
 
     map: str = spec(Name("map name"))
@@ -247,6 +247,8 @@ class ShardStats(Message):
     discarded: dict = spec(Counts("scans given up on (join buffer overflow, no pose), by robot"))
     ended: dict = spec(Counts("scans announced by the source's StreamEnd, by robot"))
     received: dict = spec(Counts("messages received, by key"))
+    resent: dict = spec(Counts("messages of seqs this shard has fused, the same as the ones fused (a restarted SLAM "
+                               "node or source catching up), dropped, by key"))
     rejected: dict = spec(Counts("messages dropped as malformed or of an unknown version, by key"))
     overflow: dict = spec(Counts("messages dropped because a bounded buffer was full, by buffer"))
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import abc
 import dataclasses
+import hashlib
 import math
 import re
 from dataclasses import dataclass
@@ -326,11 +327,20 @@ class Message:
 
     def encode(self) -> bytes:
         """The msgpack bytes of this message. Validates first: what encodes, decodes."""
+        wire = self._wire()
+        _validate(type(self), wire)
+        return msgpack.packb(wire, use_bin_type=True)
+
+    def digest(self) -> bytes:
+        """16 bytes that stand for the message's type and fields (BLAKE2b of its wire form): messages with equal
+        fields have equal digests, in any process, and different ones differ but by chance (2**-128)."""
+        return hashlib.blake2b(msgpack.packb(self._wire(), use_bin_type=True), digest_size=16).digest()
+
+    def _wire(self) -> dict[str, Any]:
         wire = {"type": self.TYPE, "v": self.VERSION}
         for name, field_spec in self.specs().items():
             wire[name] = field_spec.to_wire(getattr(self, name))
-        _validate(type(self), wire)
-        return msgpack.packb(wire, use_bin_type=True)
+        return wire
 
 
 class _DecodeContext:

@@ -300,18 +300,19 @@ def _runs(seqs: Iterable[int]) -> list[tuple[int, int]]:
 
 
 class SeqLedger:
-    """The seqs of each robot already fused (or given up on at fusion).
+    """The seqs of each robot already fused (or given up on at fusion), each with a note of what was fused
+    (e.g. digests of the scan and the pose, so that a message sent again can be told from a conflicting one).
 
-    Only the seqs within ``horizon`` of a robot's highest are kept; an older seq counts as done, so the memory
-    stays bounded on runs of any length. A robot that starts again from seq 0 under the same name therefore
-    finds its seqs done: streams are numbered once per robot name (schemas.messages).
+    Only the seqs within ``horizon`` of a robot's highest are kept; an older seq counts as done, with no note,
+    so the memory stays bounded on runs of any length. A robot that starts again from seq 0 under the same
+    name therefore finds its seqs done: streams are numbered once per robot name (schemas.messages).
     """
 
     def __init__(self, horizon: int):
         if horizon < 1:
             raise ValueError(f"seq ledger horizon must be >= 1, got {horizon}")
         self.horizon = horizon
-        self._seqs: dict[str, set[int]] = {}
+        self._seqs: dict[str, dict[int, object]] = {}
         self._highest: dict[str, int] = {}
 
     def done(self, robot: str, seq: int) -> bool:
@@ -319,10 +320,16 @@ class SeqLedger:
         highest = self._highest.get(robot)
         return highest is not None and (seq <= highest - self.horizon or seq in self._seqs[robot])
 
-    def mark(self, robot: str, seq: int) -> None:
-        """Record ``robot``'s ``seq`` as done."""
-        seqs = self._seqs.setdefault(robot, set())
-        seqs.add(seq)
+    def note(self, robot: str, seq: int) -> object | None:
+        """What :meth:`mark` recorded with ``robot``'s ``seq``; None when it is not kept (not done, or older than
+        the horizon)."""
+        highest = self._highest.get(robot)
+        return None if highest is None or seq <= highest - self.horizon else self._seqs[robot].get(seq)
+
+    def mark(self, robot: str, seq: int, note: object = None) -> None:
+        """Record ``robot``'s ``seq`` as done, with ``note``."""
+        seqs = self._seqs.setdefault(robot, {})
+        seqs[seq] = note
         highest = self._highest[robot] = max(self._highest.get(robot, seq), seq)
         if len(seqs) > 2 * self.horizon:  # drop the seqs that ``done`` no longer reads (amortised)
-            self._seqs[robot] = {s for s in seqs if s > highest - self.horizon}
+            self._seqs[robot] = {s: n for s, n in seqs.items() if s > highest - self.horizon}

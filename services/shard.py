@@ -83,6 +83,7 @@ class MapShard:
         self._fused_seqs = SeqLedger(max(SEQ_HORIZON_JOINS * config.join_capacity, 2 * EVICTED_LIMIT))
         self.log = get_logger(f"mapper[{config.shard}]")  # the logger services.mapper.Mapper writes to
         self.received: Counter[str] = Counter()
+        self.resent: Counter[str] = Counter()  # by key: messages of fused seqs, the same as those fused
         self.fused: Counter[str] = Counter()
         self.discarded: Counter[str] = Counter()
         self.ended: dict[str, int] = {}
@@ -156,8 +157,7 @@ class MapShard:
         elif message.seq <= caught_up_to:
             return
         if self._fused_seqs.done(message.robot, message.seq):
-            self.rejects.count(key, "duplicate", f"a {message.TYPE} of robot {message.robot!r} for seq {message.seq}, "
-                               "which this shard has fused already (a re-sent or out-of-date message)")
+            self._refuse_fused(key, stream, message)
             return
         self._heard[message.robot] = self._clock()
         if message.robot in self.ended:  # (a late pose after the end: settle again once it is quiet)
@@ -170,6 +170,24 @@ class MapShard:
         self._give_up(gone)
         for pair in pairs:
             self._fuse(*pair)
+
+    def _refuse_fused(self, key: str, stream: str, message: Message) -> None:
+        """Drop a scan or pose of a seq this shard has fused. One identical to the message fused is sent again (a
+        restarted SLAM node publishes the run's poses again as it catches up; a seeded filter gives the same ones):
+        counted under ``resent``, logged once per key. One that differs (two SLAM nodes for one robot, a stale
+        run under the robot's name) is a rejection, ``duplicate``. Seqs older than the ledger's horizon keep no
+        digest and count as resent: a conflicting publisher shows at the head of the stream."""
+        fused = self._fused_seqs.note(message.robot, message.seq)
+        if fused is None or fused[stream == keys.POSE] == message.digest():
+            self.resent[key] += 1
+            if self.resent[key] == 1:
+                self.log.info("a %s of robot %r for seq %d, which this shard has fused, came again, the same as the "
+                              "one fused (a restarted SLAM node or source catching up): ignored; further ones on %s "
+                              "are only counted (resent)", message.TYPE, message.robot, message.seq, key)
+            return
+        self.rejects.count(key, "duplicate", f"a {message.TYPE} of robot {message.robot!r} for seq {message.seq}, "
+                           "which this shard has fused already, differs from the one fused (two publishers for one "
+                           "robot, or a stale run under its name); the first one stands")
 
     def _recover(self, robot: str, is_scan: bool, first: int, last: int) -> dict[int, object]:
         """Scans (else poses) first..last of ``robot`` that its stream skipped, from the history; each checked as
@@ -238,7 +256,7 @@ class MapShard:
         return scan_samples(cfg.mode, samples=pose.samples, weights=pose.weights)
 
     def _fuse(self, scan: LaserScan, pose) -> None:
-        self._fused_seqs.mark(scan.robot, scan.seq)
+        self._fused_seqs.mark(scan.robot, scan.seq, (scan.digest(), pose.digest()))
         try:
             samples, weights = self.pose_samples(scan, pose)
             result = self._fusion_for(scan).fuse(scan.ranges, samples, weights)
@@ -285,7 +303,8 @@ class MapShard:
             map=cfg.map_name, shard=cfg.shard, shards=cfg.shards, tiles_owned=len(self.grid.keys()),
             cells_updated=self.cells_updated, tile_updates=self.tile_updates, join_pending=len(self._join),
             uptime=time.monotonic() - self.started, fused=dict(self.fused), discarded=dict(self.discarded),
-            ended=dict(self.ended), received=dict(self.received), rejected=self.rejects.snapshot(),
+            ended=dict(self.ended), received=dict(self.received), resent=dict(self.resent),
+            rejected=self.rejects.snapshot(),
             overflow={**overflow, "join": self.join_overflow},
         )
 

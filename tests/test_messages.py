@@ -8,7 +8,7 @@ import math
 import msgpack
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
@@ -109,7 +109,7 @@ def shard_stats(draw):
         tiles_owned=draw(st.integers(0, 10**6)), cells_updated=draw(st.integers(0, 10**12)),
         tile_updates=draw(st.integers(0, 10**6)), join_pending=draw(st.integers(0, 100)),
         uptime=draw(st.floats(0, 1e6)), fused=draw(counts), discarded=draw(counts), ended=draw(counts),
-        received=draw(counts), rejected=draw(counts), overflow=draw(counts))
+        received=draw(counts), resent=draw(counts), rejected=draw(counts), overflow=draw(counts))
 
 
 MESSAGES = {
@@ -203,8 +203,9 @@ def test_truncated_payload_is_malformed(message, data):
 
 
 @SETTINGS
-@given(any_message, st.integers(2, 1000) | st.integers(-5, 0))
+@given(any_message, st.integers(-5, 1000))
 def test_unknown_version_is_rejected(message, version):
+    assume(version != message.VERSION)
     wire = wire_of(message)
     wire["v"] = version
     assert reason_of(wire) == "version"

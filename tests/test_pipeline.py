@@ -654,6 +654,8 @@ def test_a_restarted_slam_node_takes_the_run_from_the_sources_history(tmp_path, 
     assert poses.seqs() == set(range(120)), (sorted(poses.seqs()), second.output())
     assert len(poses.received) > 120  # the second node published again what the first had
     assert stats.fused == {"r1": 120} and not stats.discarded.get("r1") and stats.overflow["join"] == 0, stats
+    # the poses published again are the fused ones: resent, not rejected (they were counted as duplicates)
+    assert stats.resent.get("pg/r1/pose", 0) > 0 and "pg/r1/pose" not in stats.rejected, stats
     mapper.wait_for(r"took \d+ scan\(s\) of robot 'r1' in seqs \d+-\d+ from the history")
     for pose in poses.received:
         np.testing.assert_array_equal(pose.samples, expected.samples[pose.seq])

@@ -3,6 +3,7 @@ bounded, counted buffer; the SLAM node's in-order step release; a shard's counti
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -484,26 +485,54 @@ def test_seq_ledger_remembers_done_seqs_within_its_horizon():
         ledger.mark("r", seq)
     assert ledger.done("r", 1) and ledger.done("r", 5) and not ledger.done("r", 3) and not ledger.done("r", 6)
     assert not ledger.done("other", 1)  # per robot
-    for seq in range(6, 100):
+    ledger.mark("r", 7, note="seven")
+    assert ledger.note("r", 7) == "seven" and ledger.note("r", 1) is None and ledger.note("r", 6) is None
+    for seq in range(8, 100):
         ledger.mark("r", seq)
     assert ledger.done("r", 3) and ledger.done("r", 89) and not ledger.done("r", 100)  # 3 lies below the horizon
+    assert ledger.note("r", 7) is None  # below the horizon too: done, with nothing kept
 
 
 def test_shard_refuses_a_pair_it_has_fused_already():
-    """A re-sent scan and pose (a source restarted, a replay run twice) would be fused twice: counted, refused."""
+    """A scan or pose of a fused seq would be fused twice. Sent again as it was (a restarted SLAM node catching up,
+    a replay run twice), it is counted as resent, not as a rejection; one that differs from what was fused (two
+    publishers for one robot) is a rejection. Neither changes the map."""
     shard = MapShard(ShardConfig("m", 0, 1, SensorModel()), RejectCounter(logging.getLogger("test-shard")))
     shard.handle("pg/r/scan", _scan(0).encode())
     shard.handle("pg/r/pose", _pose(0).encode())
     before = [a.copy() for a in shard.grid.tile_arrays((0, 0))]
     shard.handle("pg/r/pose", _pose(0).encode())
     shard.handle("pg/r/scan", _scan(0).encode())
+    shard.handle("pg/r/pose", _pose(0).encode())
+    other = PoseSamples(robot="r", seq=0, stamp=0.0, samples=np.array([[3.0, 3.5, 0.0]]), weights=np.ones(1))
+    shard.handle("pg/r/pose", other.encode())
+    shard.handle("pg/r/scan", replace(_scan(0), ranges=np.array([1.0, 2.0, np.inf, 1.5, 2.5], np.float32)).encode())
     for now, then in zip(shard.grid.tile_arrays((0, 0)), before):
         np.testing.assert_array_equal(now, then)
     shard.handle("pg/r/pose", _pose(1).encode())
     shard.handle("pg/r/scan", _scan(1).encode())
     stats = shard.stats({"intake": 0})
     assert stats.fused == {"r": 2} and stats.join_pending == 0
+    assert stats.resent == {"pg/r/scan": 1, "pg/r/pose": 2}
     assert stats.rejected == {"pg/r/scan": 1, "pg/r/pose": 1}
+
+
+def test_seqs_past_the_ledger_horizon_count_as_resent():
+    """The ledger keeps what was fused only within its horizon; an older seq's message cannot be compared, and a
+    restarted SLAM node republishes the whole run: counted as resent."""
+    now = [0.0]
+    shard = MapShard(ShardConfig("m", 0, 1, SensorModel()), RejectCounter(logging.getLogger("t")), clock=lambda: now[0])
+    horizon = shard._fused_seqs.horizon
+    for seq in (0, horizon + 5):
+        shard.handle("pg/r/scan", _scan(seq).encode())
+        shard.handle("pg/r/pose", _pose(seq).encode())
+    shard.handle("pg/r/end", StreamEnd(robot="r", scans=horizon + 6).encode())
+    now[0] = 100.0
+    shard.settle()  # the pair held past the gap is fused, the gap given up
+    other = PoseSamples(robot="r", seq=0, stamp=0.0, samples=np.array([[3.0, 3.5, 0.0]]), weights=np.ones(1))
+    shard.handle("pg/r/pose", other.encode())
+    stats = shard.stats({"intake": 0})
+    assert stats.fused == {"r": 2} and stats.resent == {"pg/r/pose": 1} and set(stats.rejected) == {"join/r"}
 
 
 def test_shard_counts_poses_no_fusion_can_take_and_goes_on():

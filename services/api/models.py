@@ -77,6 +77,8 @@ class ShardStatus(BaseModel):
     join_pending: int | None = Field(default=None, description="scans or poses waiting for their partner")
     uptime_s: float | None = Field(default=None, description="s")
     received: dict[str, int] | None = Field(default=None, description="messages received, by key")
+    resent: dict[str, int] | None = Field(default=None, description="messages of seqs the shard has fused, the same "
+                                          "as the ones fused (a restarted SLAM node or source catching up), by key")
     rejected: dict[str, int] | None = Field(default=None, description="messages dropped as malformed, by key")
     overflow: dict[str, int] | None = Field(default=None,
                                             description="messages dropped because a buffer was full, by buffer")
