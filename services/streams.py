@@ -135,12 +135,10 @@ def mrclam_stream(folder: Path, robot_number: int, robot: str, period: float = 0
         measurement_ptr=sequence.measurement_ptr, initial_pose=sequence.initial_pose)
 
 
-def carmen_stream(path: Path, robot: str) -> Stream:
-    """A CARMEN log: scans with the odometry pose at each scan (for grid FastSLAM); no landmarks. The
-    prior is the first odometry pose (the map frame is the odometry frame)."""
-    from slam.carmen import read_carmen
-
-    log = read_carmen(path)
+def laser_log_stream(log, robot: str) -> Stream:
+    """A laser log (slam.laserlog.LaserLog, read from a CARMEN log or a ROS bag): scans with the odometry pose at
+    each scan (for grid FastSLAM); no landmarks. The prior is the first odometry pose (the map frame is the
+    odometry frame)."""
     steps = len(log.stamps)
     return slam_input_stream(
         robot, log.stamps, ranges=log.ranges, geometry=_geometry(log), odometry=log.odometry, commands=None,

@@ -430,22 +430,40 @@ def test_run_through_the_slam_node_equals_offline_slam_then_fuse(tmp_path, procs
     np.testing.assert_array_equal(got.origin, expected.origin)
 
 
-def test_grid_fastslam_node_over_zenoh_gives_the_map_of_its_filter_in_process(tmp_path, procs):
-    """run --carmen (source -> grid FastSLAM slam-node -> shard, over Zenoh) must give the map that the
+def _write_log(sim, path: Path, fmt: str) -> Path:
+    """A simulated run as a CARMEN log or a ROS 1 bag: its scans with the true poses as odometry."""
+    if fmt == "carmen":
+        from slam.carmen import write_carmen
+
+        write_carmen(path, sim.stamps, sim.ranges, sim.true_poses, sim.angle_min, sim.angle_increment, sim.range_max,
+                     sim.sensor_offset)
+        return path
+    from bags import BagBuilder
+
+    bag = BagBuilder()
+    bag.tf(0.0, "base_link", "laser", *sim.sensor_offset, topic="/tf_static")
+    for stamp, ranges, (x, y, yaw) in zip(sim.stamps, sim.ranges, sim.true_poses):
+        bag.odom(stamp, x, y, yaw)
+        bag.scan(stamp, ranges, angle_min=sim.angle_min, increment=sim.angle_increment, range_max=sim.range_max)
+    return bag.write(path)
+
+
+@pytest.mark.parametrize("fmt", ["carmen", "bag"])
+def test_grid_fastslam_node_over_zenoh_gives_the_map_of_its_filter_in_process(tmp_path, procs, fmt):
+    """run --carmen / --bag (source -> grid FastSLAM slam-node -> shard, over Zenoh) must give the map that the
     same filter, fed the same scans in this process, and `posegrid fuse` give."""
+    from services.commands.logs import read_log
     from services.fusion_runner import fuse_posed_scans
     from services.keys import ODOM, SCAN
     from services.slam_node import GridDriver
-    from services.streams import carmen_stream
-    from slam.carmen import write_carmen
+    from services.streams import laser_log_stream
     from slam.gridslam import GridSlamConfig
     from slam.simulator import simulate_office
 
     sim = simulate_office(seed=4, steps=60, n_beams=91, range_max=8.0)
-    log = tmp_path / "office.clf"
-    write_carmen(log, sim.stamps, sim.ranges, sim.true_poses, sim.angle_min, sim.angle_increment, sim.range_max,
-                 sim.sensor_offset)
-    stream = carmen_stream(log, "robot0")
+    log = _write_log(sim, tmp_path / ("office.clf" if fmt == "carmen" else "office.bag"), fmt)
+    stream = laser_log_stream(read_log(log), "robot0")
+    assert len(stream.steps) == 60
     driver = GridDriver(stream.prior.mean, GridSlamConfig(particles=5, resample_threshold=0.5), seed=7)
     scans, samples, weights = [], [], []
     for step in stream.steps:
@@ -464,7 +482,7 @@ def test_grid_fastslam_node_over_zenoh_gives_the_map_of_its_filter_in_process(tm
     assert len({tuple(np.round(s[:, :2].ravel(), 9)) for s in samples}) > 1  # the particles do spread
 
     exported = tmp_path / "run.npz"
-    run = procs([*CLI, "run", "--carmen", str(log), "--particles", "5", "--seed", "7", "--resample-threshold", "0.5",
+    run = procs([*CLI, "run", f"--{fmt}", str(log), "--particles", "5", "--seed", "7", "--resample-threshold", "0.5",
                  "--no-api", "--export", str(exported)])
     assert run.process.wait(180) == 0, run.output()
     assert "slam-node exited 0" in run.output()

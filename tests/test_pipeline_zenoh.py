@@ -122,6 +122,10 @@ def test_mapper_without_a_router_says_so_in_one_sentence(tmp_path, capsys):
     (["run", "--posed", "x.npz", "--shards", "0"], "--shards"),
     (["run", "--mrclam", "/tmp"], "no laser"),
     (["run", "--carmen", "x.clf", "--algo", "ekf"], "gridslam"),
+    (["run", "--bag", "x.bag", "--algo", "fastslam2"], "a ROS bag has no landmarks"),
+    (["run", "--carmen", "x.clf", "--scan-topic", "/scan"], "give it with --bag"),
+    (["source", "--carmen", "x.clf", "--scan-topic", "/scan"], "give it with --bag"),
+    (["source", "--bag", "/nonexistent.bag"], "/nonexistent.bag"),
     (["slam-node", "--initial", "1,2"], "--initial"),
     (["simulate", "out", "--resolution", "1e-5"], "--resolution must be in [0.005, 1]"),  # a 2.8 TiB raster
     (["simulate", "out", "--dt", "1e6"], "--dt must be in [0.001, 1]"),

@@ -154,7 +154,11 @@ def add_input_arguments(parser: argparse.ArgumentParser, default_sim: bool) -> N
     inputs.add_argument("--sim-dir", type=Path, metavar="DIR", help="folder written by `posegrid simulate`")
     inputs.add_argument("--mrclam", type=Path, metavar="DIR", help="UTIAS MRCLAM dataset folder (no laser)")
     inputs.add_argument("--carmen", type=Path, metavar="FILE", help="CARMEN log (.clf/.log, plain or gzip)")
+    inputs.add_argument("--bag", type=Path, metavar="BAG", help="ROS bag with LaserScan and odometry (Odometry "
+                        "messages or /tf): a ROS 1 .bag file or a ROS 2 bag folder")
     group.add_argument("--mrclam-robot", type=int, default=1, metavar="K", help="MRCLAM robot number (default 1)")
+    group.add_argument("--scan-topic", type=str, default=None, metavar="TOPIC",
+                       help="--bag: the LaserScan topic (default: the only one, or /scan)")
     group.add_argument("--raw-ranges", action="store_true",
                        help="MRCLAM: publish the ranges as logged, without the bearing-dependent range calibration")
     group.add_argument("--raw-commands", action="store_true",
@@ -249,9 +253,18 @@ def _check_positive(args: argparse.Namespace, *names: str) -> None:
             raise UsageError(f"--{name.replace('_', '-')} must be > 0, got {value}")
 
 
+def _check_scan_topic(args: argparse.Namespace) -> None:
+    from services.cli import UsageError
+
+    if args.scan_topic is not None and args.bag is None:
+        raise UsageError("--scan-topic names a topic of a ROS bag: give it with --bag")
+
+
 def _stream(args: argparse.Namespace):
     """The services.streams.Stream the input options describe."""
     from services import streams
+
+    _check_scan_topic(args)
 
     if args.posed is not None:
         from schemas.files import load_posed_scans
@@ -262,8 +275,13 @@ def _stream(args: argparse.Namespace):
     if args.mrclam is not None:
         return streams.mrclam_stream(args.mrclam, args.mrclam_robot, args.robot, raw_ranges=args.raw_ranges,
                                      raw_commands=args.raw_commands)
-    if args.carmen is not None:
-        return streams.carmen_stream(args.carmen, args.robot)
+    if args.carmen is not None or args.bag is not None:
+        from services.commands.logs import read_log
+
+        log = read_log(args.carmen or args.bag, scan_topic=args.scan_topic)
+        if log.skipped:
+            print(f"posegrid source: note: {log.skipped_summary()}", file=sys.stderr, flush=True)
+        return streams.laser_log_stream(log, args.robot)
     from slam.simulator import simulate_office
 
     return streams.sim_stream(simulate_office(seed=args.seed, steps=args.steps), args.robot)
@@ -347,6 +365,7 @@ def run_pipeline(args: argparse.Namespace) -> int:
     if args.router_port is not None and not 0 < args.router_port < 65536:
         raise UsageError(f"--router-port must be a TCP port, got {args.router_port}")
     _check_positive(args, "accuracy", "resolution")
+    _check_scan_topic(args)
     rate_text = args.rate or ("max" if args.export is not None else "realtime")
     _rate(rate_text)
     if args.export is not None and not args.export.parent.is_dir():
@@ -373,13 +392,16 @@ def run_pipeline(args: argparse.Namespace) -> int:
     elif args.mrclam is not None:
         raise UsageError("an MRCLAM folder holds no laser scans, so there is no map to build; publish its poses "
                          "with `posegrid source --mrclam` and `posegrid slam-node` instead")
-    elif args.carmen is not None:
+    elif args.carmen is not None or args.bag is not None:
+        what, log = ("a CARMEN log", args.carmen) if args.carmen is not None else ("a ROS bag", args.bag)
         if args.algo not in (None, "gridslam"):
-            raise UsageError("a CARMEN log has no landmarks: its SLAM node must be --algo gridslam")
+            raise UsageError(f"{what} has no landmarks: its SLAM node must be --algo gridslam")
         args.algo = "gridslam"
-        plan.source_argv += ["--carmen", str(args.carmen)]
+        plan.source_argv += ["--carmen", str(log)] if args.carmen is not None else ["--bag", str(log)]
+        if args.scan_topic is not None:
+            plan.source_argv += ["--scan-topic", args.scan_topic]
         plan.slam_argv = slam_argv(args, "sim")
-        plan.description = f"replaying {args.carmen} through grid FastSLAM into {args.shards} shard(s)"
+        plan.description = f"replaying {log} through grid FastSLAM into {args.shards} shard(s)"
     elif args.sim_dir is not None:
         from schemas.files import load_posed_scans
         from slam.simlog import load_sim_log
