@@ -445,24 +445,28 @@ def _write_log(sim, path: Path, fmt: str) -> Path:
     for stamp, ranges, (x, y, yaw) in zip(sim.stamps, sim.ranges, sim.true_poses):
         bag.odom(stamp, x, y, yaw)
         bag.scan(stamp, ranges, angle_min=sim.angle_min, increment=sim.angle_increment, range_max=sim.range_max)
+    bag.odom(sim.stamps[-1] + 0.1, *sim.true_poses[-1])  # odometry past the last scan, for --odom-delay
     return bag.write(path)
 
 
 @pytest.mark.parametrize("fmt", ["carmen", "bag"])
 def test_grid_fastslam_node_over_zenoh_gives_the_map_of_its_filter_in_process(tmp_path, procs, fmt):
     """run --carmen / --bag (source -> grid FastSLAM slam-node -> shard, over Zenoh) must give the map that the
-    same filter, fed the same scans in this process, and `posegrid fuse` give."""
+    same filter, fed the same scans in this process, and `posegrid fuse` give. The bag's odometry is read
+    0.04 s after each scan (--odom-delay), between its odometry messages."""
     from services.commands.logs import read_log
     from services.fusion_runner import fuse_posed_scans
     from services.keys import ODOM, SCAN
     from services.slam_node import GridDriver
     from services.streams import laser_log_stream
     from slam.gridslam import GridSlamConfig
+    from slam.laserlog import with_odometry_delay
     from slam.simulator import simulate_office
 
     sim = simulate_office(seed=4, steps=60, n_beams=91, range_max=8.0)
     log = _write_log(sim, tmp_path / ("office.clf" if fmt == "carmen" else "office.bag"), fmt)
-    stream = laser_log_stream(read_log(log), "robot0")
+    delay = 0.0 if fmt == "carmen" else 0.04
+    stream = laser_log_stream(with_odometry_delay(read_log(log), delay), "robot0")
     assert len(stream.steps) == 60
     driver = GridDriver(stream.prior.mean, GridSlamConfig(particles=5, resample_threshold=0.5), seed=7)
     scans, samples, weights = [], [], []
@@ -482,8 +486,8 @@ def test_grid_fastslam_node_over_zenoh_gives_the_map_of_its_filter_in_process(tm
     assert len({tuple(np.round(s[:, :2].ravel(), 9)) for s in samples}) > 1  # the particles do spread
 
     exported = tmp_path / "run.npz"
-    run = procs([*CLI, "run", f"--{fmt}", str(log), "--particles", "5", "--seed", "7", "--resample-threshold", "0.5",
-                 "--no-api", "--export", str(exported)])
+    run = procs([*CLI, "run", f"--{fmt}", str(log), "--odom-delay", str(delay), "--particles", "5", "--seed", "7",
+                 "--resample-threshold", "0.5", "--no-api", "--export", str(exported)])
     assert run.process.wait(180) == 0, run.output()
     assert "slam-node exited 0" in run.output()
     got = load_map(exported)

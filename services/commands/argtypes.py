@@ -40,3 +40,18 @@ def pose_sample_count(text: str) -> int:
     if not 1 <= value <= MAX_POSE_SAMPLES:
         raise argparse.ArgumentTypeError(f"must be in 1 .. {MAX_POSE_SAMPLES}, got {value}")
     return value
+
+
+#: the largest odometry delay (s) --odom-delay accepts: a laser and odometry clock further apart is a wrong log
+MAX_ODOM_DELAY = 5.0
+
+
+def odom_delay_seconds(text: str) -> float:
+    """--odom-delay in seconds: a finite number within +-MAX_ODOM_DELAY."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r}") from None
+    if not abs(value) <= MAX_ODOM_DELAY:
+        raise argparse.ArgumentTypeError(f"expected a delay within +-{MAX_ODOM_DELAY:g} s, got {text}")
+    return value

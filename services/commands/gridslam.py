@@ -11,7 +11,7 @@ import sys
 import time
 from pathlib import Path
 
-from services.commands.argtypes import finite_float
+from services.commands.argtypes import finite_float, odom_delay_seconds
 
 #: grid FastSLAM particles when --particles is not given
 DEFAULT_GRID_PARTICLES = 30
@@ -30,12 +30,10 @@ def _odom_delay(text: str) -> str | float:
     if text == "auto":
         return text
     try:
-        value = float(text)
+        float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected seconds or 'auto', got {text!r}") from None
-    if not abs(value) <= 5.0:
-        raise argparse.ArgumentTypeError(f"expected a delay within +-5 s, got {text}")
-    return value
+    return odom_delay_seconds(text)
 
 
 #: grid FastSLAM's filter options, shared by `posegrid slam`, `slam-node` and `run`: (option, GridSlamConfig field)

@@ -9,7 +9,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from services.commands.argtypes import finite_float, pose_sample_count, random_seed
+from services.commands.argtypes import finite_float, odom_delay_seconds, pose_sample_count, random_seed
 from services.commands.gridslam import add_filter_options, filter_option_values, reject_filter_options
 from services.commands.mapping import add_sensor_model_arguments
 
@@ -159,6 +159,11 @@ def add_input_arguments(parser: argparse.ArgumentParser, default_sim: bool) -> N
     group.add_argument("--mrclam-robot", type=int, default=1, metavar="K", help="MRCLAM robot number (default 1)")
     group.add_argument("--scan-topic", type=str, default=None, metavar="TOPIC",
                        help="--bag: the LaserScan topic (default: the only one, or /scan)")
+    group.add_argument("--odom-delay", type=odom_delay_seconds, default=0.0, metavar="SECONDS",
+                       help="--carmen, --bag: read each scan's odometry this many seconds after its stamp (negative: "
+                       "before), from the log's separate odometry stream, for a laser whose stamps run late against "
+                       "the odometry's (Freiburg 079's bag: -0.10; `posegrid slam --algo gridslam LOG --odom-delay "
+                       "auto` estimates it; default 0)")
     group.add_argument("--raw-ranges", action="store_true",
                        help="MRCLAM: publish the ranges as logged, without the bearing-dependent range calibration")
     group.add_argument("--raw-commands", action="store_true",
@@ -253,18 +258,21 @@ def _check_positive(args: argparse.Namespace, *names: str) -> None:
             raise UsageError(f"--{name.replace('_', '-')} must be > 0, got {value}")
 
 
-def _check_scan_topic(args: argparse.Namespace) -> None:
+def _check_log_options(args: argparse.Namespace) -> None:
+    """--scan-topic is for a bag, --odom-delay for a laser log."""
     from services.cli import UsageError
 
     if args.scan_topic is not None and args.bag is None:
         raise UsageError("--scan-topic names a topic of a ROS bag: give it with --bag")
+    if args.odom_delay != 0.0 and args.carmen is None and args.bag is None:
+        raise UsageError("--odom-delay shifts a laser log's odometry: give it with --carmen or --bag")
 
 
 def _stream(args: argparse.Namespace):
     """The services.streams.Stream the input options describe."""
     from services import streams
 
-    _check_scan_topic(args)
+    _check_log_options(args)
 
     if args.posed is not None:
         from schemas.files import load_posed_scans
@@ -278,9 +286,17 @@ def _stream(args: argparse.Namespace):
     if args.carmen is not None or args.bag is not None:
         from services.commands.logs import read_log
 
+        from services.cli import UsageError
+        from slam.errors import LogFormatError
+        from slam.laserlog import with_odometry_delay
+
         log = read_log(args.carmen or args.bag, scan_topic=args.scan_topic)
         if log.skipped:
             print(f"posegrid source: note: {log.skipped_summary()}", file=sys.stderr, flush=True)
+        try:
+            log = with_odometry_delay(log, args.odom_delay)
+        except LogFormatError as exc:
+            raise UsageError(f"--odom-delay: {exc}") from None
         return streams.laser_log_stream(log, args.robot)
     from slam.simulator import simulate_office
 
@@ -365,7 +381,7 @@ def run_pipeline(args: argparse.Namespace) -> int:
     if args.router_port is not None and not 0 < args.router_port < 65536:
         raise UsageError(f"--router-port must be a TCP port, got {args.router_port}")
     _check_positive(args, "accuracy", "resolution")
-    _check_scan_topic(args)
+    _check_log_options(args)
     rate_text = args.rate or ("max" if args.export is not None else "realtime")
     _rate(rate_text)
     if args.export is not None and not args.export.parent.is_dir():
@@ -400,6 +416,8 @@ def run_pipeline(args: argparse.Namespace) -> int:
         plan.source_argv += ["--carmen", str(log)] if args.carmen is not None else ["--bag", str(log)]
         if args.scan_topic is not None:
             plan.source_argv += ["--scan-topic", args.scan_topic]
+        if args.odom_delay != 0.0:
+            plan.source_argv += ["--odom-delay", repr(args.odom_delay)]
         plan.slam_argv = slam_argv(args, "sim")
         plan.description = f"replaying {log} through grid FastSLAM into {args.shards} shard(s)"
     elif args.sim_dir is not None:
