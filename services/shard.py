@@ -177,8 +177,8 @@ class MapShard:
         counted under ``resent``, logged once per key. One that differs (two SLAM nodes for one robot, a stale
         run under the robot's name) is a rejection, ``duplicate``. Seqs older than the ledger's horizon keep no
         digest and count as resent: a conflicting publisher shows at the head of the stream."""
-        fused = self._fused_seqs.note(message.robot, message.seq)
-        if fused is None or fused[stream == keys.POSE] == message.digest():
+        fused = self._fused_seqs.note(message.robot, message.seq)  # (scan digest, pose digest) or None
+        if fused is None or fused[1 if stream == keys.POSE else 0] == message.digest():
             self.resent[key] += 1
             if self.resent[key] == 1:
                 self.log.info("a %s of robot %r for seq %d, which this shard has fused, came again, the same as the "
