@@ -175,19 +175,23 @@ class MapShard:
         """Drop a scan or pose of a seq this shard has fused. One identical to the message fused is sent again (a
         restarted SLAM node publishes the run's poses again as it catches up; a seeded filter gives the same ones):
         counted under ``resent``, logged once per key. One that differs (two SLAM nodes for one robot, a stale
-        run under the robot's name) is a rejection, ``duplicate``. Seqs older than the ledger's horizon keep no
-        digest and count as resent: a conflicting publisher shows at the head of the stream."""
+        run under the robot's name) is a rejection, ``duplicate``; so is one older than the seqs the ledger keeps
+        digests for, which cannot be compared (``old``)."""
         fused = self._fused_seqs.note(message.robot, message.seq)  # (scan digest, pose digest) or None
-        if fused is None or fused[1 if stream == keys.POSE else 0] == message.digest():
+        if fused is None:
+            self.rejects.count(key, "old", f"a {message.TYPE} of robot {message.robot!r} for seq {message.seq}, which "
+                               f"this shard has fused already, more than {self._fused_seqs.horizon} seqs ago: too old "
+                               "to be compared with the one fused (a re-sent or out-of-date message)")
+        elif fused[1 if stream == keys.POSE else 0] == message.digest():
             self.resent[key] += 1
             if self.resent[key] == 1:
                 self.log.info("a %s of robot %r for seq %d, which this shard has fused, came again, the same as the "
                               "one fused (a restarted SLAM node or source catching up): ignored; further ones on %s "
                               "are only counted (resent)", message.TYPE, message.robot, message.seq, key)
-            return
-        self.rejects.count(key, "duplicate", f"a {message.TYPE} of robot {message.robot!r} for seq {message.seq}, "
-                           "which this shard has fused already, differs from the one fused (two publishers for one "
-                           "robot, or a stale run under its name); the first one stands")
+        else:
+            self.rejects.count(key, "duplicate", f"a {message.TYPE} of robot {message.robot!r} for seq {message.seq}, "
+                               "which this shard has fused already, differs from the one fused (two publishers for "
+                               "one robot, or a stale run under its name); the first one stands")
 
     def _recover(self, robot: str, is_scan: bool, first: int, last: int) -> dict[int, object]:
         """Scans (else poses) first..last of ``robot`` that its stream skipped, from the history; each checked as

@@ -15,6 +15,11 @@ import numpy as np
 from slam.angles import wrap_angle
 from slam.errors import LogFormatError
 
+#: a scan between two odometry records further apart than this (s) has no odometry pose (it is skipped)
+MAX_ODOM_GAP = 5.0
+#: a scan before the first or after the last odometry record by more than this (s) has no odometry pose
+MAX_ODOM_HOLD = 0.5
+
 #: the farthest a pose coordinate (m, and rad for yaw) may lie from the origin: 10 000 km. The same bound as the
 #: wire's (schemas.messages.POSE_LIMIT), stated again here because slam/ does not import schemas/
 POSE_LIMIT = 1e7
@@ -91,6 +96,16 @@ def interpolate_poses(stamps: np.ndarray, poses: np.ndarray, query: np.ndarray) 
     return out
 
 
+def check_scan_order(log: LaserLog) -> None:
+    """Raise :class:`LogFormatError` unless the log's scan stamps increase (a filter takes the scans in order, and a
+    replay paces them by their stamps)."""
+    back = np.flatnonzero(np.diff(log.stamps) <= 0)
+    if len(back):
+        i = int(back[0])
+        raise LogFormatError(f"{log.source}: scan stamps must increase, but the scan at {log.unit} {log.where[i + 1]} "
+                             f"({log.stamps[i + 1]:.6f} s) is not later than the one before ({log.stamps[i]:.6f} s)")
+
+
 def check_odometry_stream(log: LaserLog) -> None:
     """Raise :class:`LogFormatError` unless the log has a separate odometry stream in time order, which reading
     the odometry at other times than the scans' needs."""
@@ -105,14 +120,45 @@ def check_odometry_stream(log: LaserLog) -> None:
                              "cannot be read at other times than the scans'")
 
 
+def odometry_problem(odom_stamps: np.ndarray, stamp: float, max_gap: float = MAX_ODOM_GAP,
+                     max_hold: float = MAX_ODOM_HOLD) -> str:
+    """Why the odometry (sorted stamps, s) cannot give a pose at ``stamp``, or "" when it can: the stamp lies
+    more than ``max_hold`` s outside the odometry's span, or between two odometry records more than ``max_gap``
+    s apart."""
+    after = int(np.searchsorted(odom_stamps, stamp, side="left"))
+    if after < len(odom_stamps) and odom_stamps[after] == stamp:
+        return ""
+    if after == 0 or after == len(odom_stamps):
+        end = odom_stamps[0] if after == 0 else odom_stamps[-1]
+        if abs(end - stamp) > max_hold:
+            return f"{abs(end - stamp):.3g} s outside the odometry's time span (at most {max_hold} s)"
+        return ""
+    gap = odom_stamps[after] - odom_stamps[after - 1]
+    if gap > max_gap:
+        return f"the odometry messages around it are {gap:.3g} s apart (at most {max_gap} s)"
+    return ""
+
+
 def with_odometry_delay(log: LaserLog, delay: float) -> LaserLog:
     """The log with each scan's odometry read from the log's separate odometry stream at stamp + ``delay``
     (s; negative: earlier). For a laser whose stamps run late against its odometry's (Freiburg 079's bag:
     about 0.13 s), so that a scan is paired with the pose the robot had when it was taken. ``poses``, what
-    the log states, is left as it is. Raises :class:`LogFormatError` when the log has no separate
+    the log states, is left as it is. A scan whose stamp + ``delay`` has no odometry around it
+    (:func:`odometry_problem`: past the stream's ends, or in a long gap) is skipped, and listed in ``skipped``,
+    as the readers do with the scans' own stamps. Raises :class:`LogFormatError` when the log has no separate
     odometry stream in time order (:func:`check_odometry_stream`; e.g. a CARMEN log whose odometry comes only
-    inside the laser lines)."""
+    inside the laser lines) or no scan keeps its odometry."""
     if delay == 0.0:
         return log
     check_odometry_stream(log)
-    return replace(log, odometry=interpolate_poses(log.odom_stamps, log.odom_poses, log.stamps + delay))
+    problems = [odometry_problem(log.odom_stamps, stamp + delay) for stamp in log.stamps.tolist()]
+    kept = np.array([not problem for problem in problems], dtype=bool)
+    if not kept.any():
+        raise LogFormatError(f"{log.source}: with the odometry read {delay:+g} s from the scans' stamps, no scan "
+                             f"has odometry around it ({problems[-1]})")
+    dropped = [Skipped(int(where), f"with the odometry read {delay:+g} s from its stamp: {problem}")
+               for where, problem in zip(log.where.tolist(), problems) if problem]
+    stamps = log.stamps[kept]
+    return replace(log, stamps=stamps, ranges=log.ranges[kept], poses=log.poses[kept], where=log.where[kept],
+                   odometry=interpolate_poses(log.odom_stamps, log.odom_poses, stamps + delay),
+                   skipped=tuple(sorted(log.skipped + tuple(dropped), key=lambda s: s.where)))

@@ -26,16 +26,13 @@ from pathlib import Path
 import numpy as np
 
 from slam.errors import LogFormatError
-from slam.laserlog import POSE_LIMIT, LaserLog, Skipped, interpolate_poses, plausible_pose
+from slam.laserlog import (MAX_ODOM_GAP, MAX_ODOM_HOLD, POSE_LIMIT, LaserLog, Skipped, interpolate_poses,
+                           odometry_problem, plausible_pose)
 
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
 ODOMETRY = "nav_msgs/msg/Odometry"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 
-#: a scan between two odometry messages further apart than this (s) is skipped
-DEFAULT_MAX_ODOM_GAP = 5.0
-#: a scan before the first or after the last odometry message by more than this (s) is skipped
-DEFAULT_MAX_ODOM_HOLD = 0.5
 
 
 def _stamp(header) -> float:
@@ -89,8 +86,8 @@ def read_rosbag(
     path: str | Path,
     scan_topic: str | None = None,
     odom_topic: str | None = None,
-    max_odom_gap: float = DEFAULT_MAX_ODOM_GAP,
-    max_odom_hold: float = DEFAULT_MAX_ODOM_HOLD,
+    max_odom_gap: float = MAX_ODOM_GAP,
+    max_odom_hold: float = MAX_ODOM_HOLD,
 ) -> LaserLog:
     """Read a bag's laser scans with the robot's odometry pose at each scan (see the module docstring).
 
@@ -152,6 +149,10 @@ def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hol
             if not (all(math.isfinite(g) for g in geometry) and math.isfinite(stamp)) or ranges.size == 0:
                 skipped.append(Skipped(number, f"{scan_topic}: no ranges, or a non-finite stamp or geometry"))
                 continue
+            problem = _scan_problem(ranges, *geometry)
+            if problem:
+                skipped.append(Skipped(number, f"{scan_topic}: {problem}"))
+                continue
             scans.append((number, stamp, ranges, geometry + (msg.header.frame_id,)))
         elif conn.topic == odom_topic:
             p, q = msg.pose.pose.position, msg.pose.pose.orientation
@@ -197,7 +198,7 @@ def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hol
         elif not np.allclose(geometry[:4], first[3][:4], rtol=1e-6, atol=1e-9) or geometry[4] != first[3][4]:
             skipped.append(Skipped(number, f"{scan_topic}: geometry or frame differs from the first scan's"))
         else:
-            problem = _odometry_problem(odom_stamps, stamp, max_odom_gap, max_odom_hold)
+            problem = odometry_problem(odom_stamps, stamp, max_odom_gap, max_odom_hold)
             if problem:
                 skipped.append(Skipped(number, f"{scan_topic}: {problem}"))
             else:
@@ -230,19 +231,21 @@ def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hol
     )
 
 
-def _odometry_problem(odom_stamps: np.ndarray, stamp: float, max_gap: float, max_hold: float) -> str:
-    """Why the odometry (sorted stamps, s) cannot give a pose at ``stamp``, or "" when it can."""
-    after = int(np.searchsorted(odom_stamps, stamp, side="left"))
-    if after < len(odom_stamps) and odom_stamps[after] == stamp:
-        return ""
-    if after == 0 or after == len(odom_stamps):
-        end = odom_stamps[0] if after == 0 else odom_stamps[-1]
-        if abs(end - stamp) > max_hold:
-            return f"{abs(end - stamp):.3g} s outside the odometry's time span (at most {max_hold} s)"
-        return ""
-    gap = odom_stamps[after] - odom_stamps[after - 1]
-    if gap > max_gap:
-        return f"the odometry messages around it are {gap:.3g} s apart (at most {max_gap} s)"
+def _scan_problem(ranges: np.ndarray, angle_min: float, angle_increment: float, range_min: float,
+                  range_max: float) -> str:
+    """Why a LaserScan (finite geometry; ranges m, angles rad) is not a scan the mapper can take, or "": the
+    rules of the wire's LaserScan (schemas.messages), which the source would otherwise meet only when it
+    publishes the scan, in the middle of a replay."""
+    if not 0.0 <= range_min < range_max:
+        return f"range_min {range_min:g} m and range_max {range_max:g} m: need 0 <= range_min < range_max"
+    if angle_increment == 0.0 and ranges.size > 1:
+        return f"angle_increment is 0 for {ranges.size} beams"
+    if max(abs(angle_min), abs(angle_increment)) > 2 * math.pi:
+        return "angle_min or angle_increment beyond a full turn"
+    negative = np.flatnonzero(ranges < 0)  # (-inf, "too close" in REP 117, is read as no return, as before)
+    negative = negative[np.isfinite(ranges[negative])]
+    if negative.size:
+        return f"range {negative[0]} is {ranges[negative[0]]:g} m, below 0"
     return ""
 
 

@@ -178,3 +178,44 @@ def test_a_client_gone_while_its_stream_waits_leaves_no_task_behind():
 def test_logodds_png_spans_the_sensor_models_clamping_range():
     model = SensorModel()
     assert LOGODDS_RANGE == pytest.approx((logit(model.p_min), logit(model.p_max)), rel=1e-12)
+
+
+@pytest.mark.parametrize("spec_version", ["2.3", "2.4"])
+def test_head_stops_a_streaming_response_under_either_asgi_spec(spec_version):
+    """HEAD of an endless event stream sends the headers and an empty end, then stops the stream. Under ASGI 2.4
+    Starlette waits for a send to raise OSError rather than for a disconnect, so a middleware that only dropped
+    the body would stream forever (found by an audit); a plain response's one body message is dropped."""
+    from starlette.responses import Response, StreamingResponse
+
+    from services.api.head import HeadAsGet
+
+    yielded = []
+
+    async def endless():
+        while True:
+            yielded.append(1)
+            yield b"event: hello\n\n"
+            await asyncio.sleep(0.01)
+
+    async def serve(app) -> list[dict]:
+        sent, complete = [], asyncio.Event()
+
+        async def receive():  # as uvicorn: a disconnect once the response is complete
+            await complete.wait()
+            return {"type": "http.disconnect"}
+
+        async def send(message):
+            sent.append(message)
+            if message["type"] == "http.response.body" and not message.get("more_body", False):
+                complete.set()
+        scope = {"type": "http", "method": "HEAD", "path": "/", "headers": [], "query_string": b"",
+                 "asgi": {"version": "3.0", "spec_version": spec_version}}
+        await asyncio.wait_for(HeadAsGet(app)(scope, receive, send), 5)
+        return sent
+
+    sent = asyncio.run(serve(StreamingResponse(endless(), media_type="text/event-stream")))
+    assert [m["type"] for m in sent] == ["http.response.start", "http.response.body"] and sent[1]["body"] == b""
+    assert dict(sent[0]["headers"])[b"content-type"].startswith(b"text/event-stream") and len(yielded) <= 2
+    sent = asyncio.run(serve(Response(b"twelve bytes", media_type="text/plain")))
+    assert [m["type"] for m in sent] == ["http.response.start", "http.response.body"] and sent[1]["body"] == b""
+    assert dict(sent[0]["headers"])[b"content-length"] == b"12"

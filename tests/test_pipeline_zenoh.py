@@ -126,6 +126,7 @@ def test_mapper_without_a_router_says_so_in_one_sentence(tmp_path, capsys):
     (["run", "--carmen", "x.clf", "--scan-topic", "/scan"], "give it with --bag"),
     (["source", "--carmen", "x.clf", "--scan-topic", "/scan"], "give it with --bag"),
     (["source", "--bag", "/nonexistent.bag"], "/nonexistent.bag"),
+    (["run", "--bag", "/nonexistent.bag", "--no-api"], "/nonexistent.bag"),  # before anything is started
     (["run", "--posed", "x.npz", "--odom-delay", "0.1"], "give it with --carmen or --bag"),
     (["slam-node", "--initial", "1,2"], "--initial"),
     (["simulate", "out", "--resolution", "1e-5"], "--resolution must be in [0.005, 1]"),  # a 2.8 TiB raster

@@ -171,6 +171,22 @@ def test_odometry_read_later_or_earlier_than_the_scans():
         with_odometry_delay(small_log([1.0], np.ones((1, 3))), 0.1)
 
 
+def test_a_delay_past_the_odometry_skips_the_scans_it_leaves_without_odometry():
+    """A scan whose stamp + delay lies more than 0.5 s past the odometry's ends, or between odometry records more
+    than 5 s apart, is skipped and listed as the readers list their own (it used to take the end pose: an
+    --odom-delay of 5 s gave every scan of a 4 s bag the same pose)."""
+    stream_t = np.array([0.0, 0.5, 1.0, 7.0, 7.5, 8.0])
+    stream = np.column_stack([stream_t, stream_t, np.zeros(6)])
+    log = small_log([0.2, 0.6, 3.0, 7.9, 8.4], np.ones((5, 3)), odom_stamps=stream_t, odom_poses=stream)
+    shifted = with_odometry_delay(log, 0.3)  # 0.5, 0.9, 3.3 (in a 6 s gap), 8.2, 8.7 (0.7 s past the end)
+    np.testing.assert_array_equal(shifted.where, [1, 2, 4])
+    np.testing.assert_allclose(shifted.odometry[:, 0], [0.5, 0.9, 8.0])
+    assert [s.where for s in shifted.skipped] == [3, 5]
+    assert "6 s apart" in shifted.skipped[0].reason and "0.7 s outside" in shifted.skipped[1].reason
+    with pytest.raises(LogFormatError, match="no scan has odometry around it"):
+        with_odometry_delay(log, -5.0)
+
+
 @pytest.mark.parametrize("true_delay", [-0.13, 0.0, 0.07])
 def test_odometry_delay_is_recovered_from_turns(true_delay):
     """A trajectory that turns back and forth, seen through a laser clock that runs late (or early): the

@@ -67,6 +67,31 @@ def test_undecodable_message_is_skipped(tmp_path):
     assert set(bad) == {6, 7, 10} and "does not decode" in bad[7]
 
 
+def test_scans_the_wire_refuses_are_skipped_by_the_reader(tmp_path):
+    """A scan with a negative range, range_min >= range_max or a zero angle increment would stop a replay when the
+    source publishes it (the wire's LaserScan refuses it): the reader skips and lists it instead, and every scan it
+    keeps encodes."""
+    from services.streams import laser_log_stream
+
+    bag = BagBuilder()
+    bag.tf(0.0, "base_link", "laser", 0.0, 0.0, 0.0, topic="/tf_static")
+    for t in range(6):
+        bag.odom(float(t), float(t), 0.0, 0.0)
+    bag.scan(0.5, [1.0, 2.0, 3.0])
+    bag.scan(1.5, [1.0, -0.5, 3.0])
+    bag.scan(2.5, [1.0, 2.0, 3.0], range_max=0.05)  # below the builder's range_min, 0.1 m
+    bag.scan(3.5, [1.0, 2.0, 3.0], increment=0.0)
+    bag.scan(4.5, [1.0, -np.inf, 3.0])  # -inf: too close to tell (REP 117), read as no return
+    log = read_rosbag(bag.write(tmp_path / "a.bag"))
+    np.testing.assert_allclose(log.stamps, [0.5, 4.5])
+    reasons = [s.reason for s in log.skipped]
+    assert len(reasons) == 3 and "range 1 is -0.5 m, below 0" in reasons[0]
+    assert "need 0 <= range_min < range_max" in reasons[1] and "angle_increment is 0" in reasons[2]
+    for step in laser_log_stream(log, "r").steps:
+        for message in step.messages:
+            message.encode()
+
+
 def test_odometry_gap_limit(tmp_path):
     bag = BagBuilder()
     bag.odom(0.0, 0.0, 0.0, 0.0)

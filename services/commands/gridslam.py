@@ -160,15 +160,12 @@ def _check_log(log, config) -> None:
     import numpy as np
 
     from slam.errors import LogFormatError
+    from slam.laserlog import check_scan_order
 
     if len(log) < 2:
         raise LogFormatError(f"{log.source}: holds {len(log)} usable scan; grid FastSLAM needs at least 2 (a scan to "
                              "start from and one to integrate)")
-    back = np.flatnonzero(np.diff(log.stamps) <= 0)
-    if len(back):
-        i = int(back[0])
-        raise LogFormatError(f"{log.source}: scan stamps must increase, but the scan at {log.unit} {log.where[i + 1]} "
-                             f"({log.stamps[i + 1]:.6f} s) is not later than the one before ({log.stamps[i]:.6f} s)")
+    check_scan_order(log)
     range_min = max(log.range_min, config.min_range)
     usable = int(np.count_nonzero((log.ranges >= range_min).any(axis=1)))
     if usable < 2:

@@ -268,6 +268,27 @@ def _check_log_options(args: argparse.Namespace) -> None:
         raise UsageError("--odom-delay shifts a laser log's odometry: give it with --carmen or --bag")
 
 
+def _laser_log(args: argparse.Namespace, command: str):
+    """The laser log of --carmen or --bag (read by that format's reader, whatever the file's suffix), with its
+    odometry read at --odom-delay; what the reader skipped is noted on stderr. Raises LogFormatError (exit 2)
+    for a log that cannot be replayed."""
+    from services.cli import UsageError
+    from slam.carmen import read_carmen
+    from slam.errors import LogFormatError
+    from slam.laserlog import check_scan_order, with_odometry_delay
+    from slam.rosbag_reader import read_rosbag
+
+    log = read_carmen(args.carmen) if args.carmen is not None else read_rosbag(args.bag, scan_topic=args.scan_topic)
+    try:
+        log = with_odometry_delay(log, args.odom_delay)
+    except LogFormatError as exc:
+        raise UsageError(f"--odom-delay: {exc}") from None
+    if log.skipped:
+        print(f"posegrid {command}: note: {log.skipped_summary()}", file=sys.stderr, flush=True)
+    check_scan_order(log)
+    return log
+
+
 def _stream(args: argparse.Namespace):
     """The services.streams.Stream the input options describe."""
     from services import streams
@@ -284,20 +305,7 @@ def _stream(args: argparse.Namespace):
         return streams.mrclam_stream(args.mrclam, args.mrclam_robot, args.robot, raw_ranges=args.raw_ranges,
                                      raw_commands=args.raw_commands)
     if args.carmen is not None or args.bag is not None:
-        from services.commands.logs import read_log
-
-        from services.cli import UsageError
-        from slam.errors import LogFormatError
-        from slam.laserlog import with_odometry_delay
-
-        log = read_log(args.carmen or args.bag, scan_topic=args.scan_topic)
-        if log.skipped:
-            print(f"posegrid source: note: {log.skipped_summary()}", file=sys.stderr, flush=True)
-        try:
-            log = with_odometry_delay(log, args.odom_delay)
-        except LogFormatError as exc:
-            raise UsageError(f"--odom-delay: {exc}") from None
-        return streams.laser_log_stream(log, args.robot)
+        return streams.laser_log_stream(_laser_log(args, "source"), args.robot)
     from slam.simulator import simulate_office
 
     return streams.sim_stream(simulate_office(seed=args.seed, steps=args.steps), args.robot)
@@ -409,13 +417,15 @@ def run_pipeline(args: argparse.Namespace) -> int:
         raise UsageError("an MRCLAM folder holds no laser scans, so there is no map to build; publish its poses "
                          "with `posegrid source --mrclam` and `posegrid slam-node` instead")
     elif args.carmen is not None or args.bag is not None:
-        what, log = ("a CARMEN log", args.carmen) if args.carmen is not None else ("a ROS bag", args.bag)
+        option, log = ("--carmen", args.carmen) if args.carmen is not None else ("--bag", args.bag)
         if args.algo not in (None, "gridslam"):
-            raise UsageError(f"{what} has no landmarks: its SLAM node must be --algo gridslam")
+            raise UsageError(f"{'a CARMEN log' if option == '--carmen' else 'a ROS bag'} has no landmarks: its SLAM "
+                             "node must be --algo gridslam")
         args.algo = "gridslam"
-        plan.source_argv += ["--carmen", str(log)] if args.carmen is not None else ["--bag", str(log)]
+        plan.scans = len(_laser_log(args, "run"))  # read here too: a log that cannot be replayed stops run at once
+        plan.source_argv += [f"{option}={log}"]  # (with "=": a file named "-x.bag" is no option)
         if args.scan_topic is not None:
-            plan.source_argv += ["--scan-topic", args.scan_topic]
+            plan.source_argv += [f"--scan-topic={args.scan_topic}"]
         if args.odom_delay != 0.0:
             plan.source_argv += ["--odom-delay", repr(args.odom_delay)]
         plan.slam_argv = slam_argv(args, "sim")
