@@ -78,7 +78,8 @@ def _open(path: Path):
         reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
         reader.open()
     except (AnyReaderError, OSError, ValueError, KeyError) as exc:
-        raise LogFormatError(f"{path}: not a readable ROS bag ({exc})") from None
+        reason = " ".join(str(exc).split())  # (a broken metadata.yaml's error spans lines)
+        raise LogFormatError(f"{path}: not a readable ROS bag ({reason})") from None
     return reader
 
 
@@ -179,7 +180,10 @@ def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hol
 
     laser_frame = scans[0][3][4]
     base_frame = odom[0][2] if odom else None
-    offset, base_frame = _static_chain(tf_static, laser_frame, base_frame)
+    try:
+        offset, base_frame = _static_chain(tf_static, laser_frame, base_frame)
+    except LogFormatError as exc:
+        raise LogFormatError(f"{path}: {exc}") from None
     if odom_topic is None:
         odom = [(s, pose, child) for s, parent, child, pose in tf_dynamic if child == base_frame]
         if not odom:

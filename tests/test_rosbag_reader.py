@@ -92,6 +92,17 @@ def test_scans_the_wire_refuses_are_skipped_by_the_reader(tmp_path):
             message.encode()
 
 
+def test_a_laser_frame_not_linked_to_the_odometry_is_an_error_naming_the_bag(tmp_path):
+    bag = BagBuilder()
+    bag.tf(0.0, "mast", "laser", 0.1, 0.0, 0.0, topic="/tf_static")  # mast -> laser; nothing links mast to base_link
+    bag.odom(0.0, 0.0, 0.0, 0.0)
+    bag.odom(1.0, 1.0, 0.0, 0.0)
+    bag.scan(0.5, [1.0, 2.0, 3.0])
+    path = bag.write(tmp_path / "a.bag")
+    with pytest.raises(LogFormatError, match=f"^{path}: no /tf_static chain links the laser frame 'laser'"):
+        read_rosbag(path)
+
+
 def test_odometry_gap_limit(tmp_path):
     bag = BagBuilder()
     bag.odom(0.0, 0.0, 0.0, 0.0)
