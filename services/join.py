@@ -106,6 +106,11 @@ class JoinBuffer(Generic[ScanT, PoseT]):
     def __len__(self) -> int:
         return len(self._pending) + len(self._held)
 
+    def waiting(self, key: JoinKey, is_scan: bool):
+        """The scan (else pose) of ``key`` that waits here for its partner, or None."""
+        entry = self._pending.get(key)
+        return None if entry is None else (entry.scan if is_scan else entry.pose)
+
     def add_scan(self, key: JoinKey, scan: ScanT) -> tuple[list[tuple[ScanT, PoseT]], list[GivenUp]]:
         """Offer a scan; returns the completed (scan, pose) pairs (none, one, or two when it confirms a gap) and
         the halves given up on."""

@@ -163,6 +163,10 @@ class MapShard:
         if message.robot in self.ended:  # (a late pose after the end: settle again once it is quiet)
             self._unsettled.add(message.robot)
         join_key = (message.robot, message.seq)
+        waiting = self._join.waiting(join_key, isinstance(message, LaserScan))
+        if waiting is not None and waiting.digest() == message.digest():  # sent again before its pair was fused
+            self._count_resent(key, message)
+            return
         if isinstance(message, LaserScan):
             pairs, gone = self._join.add_scan(join_key, message)
         else:
@@ -183,15 +187,20 @@ class MapShard:
                                f"this shard has fused already, more than {self._fused_seqs.horizon} seqs ago: too old "
                                "to be compared with the one fused (a re-sent or out-of-date message)")
         elif fused[1 if stream == keys.POSE else 0] == message.digest():
-            self.resent[key] += 1
-            if self.resent[key] == 1:
-                self.log.info("a %s of robot %r for seq %d, which this shard has fused, came again, the same as the "
-                              "one fused (a restarted SLAM node or source catching up): ignored; further ones on %s "
-                              "are only counted (resent)", message.TYPE, message.robot, message.seq, key)
+            self._count_resent(key, message)
         else:
             self.rejects.count(key, "duplicate", f"a {message.TYPE} of robot {message.robot!r} for seq {message.seq}, "
                                "which this shard has fused already, differs from the one fused (two publishers for "
                                "one robot, or a stale run under its name); the first one stands")
+
+    def _count_resent(self, key: str, message: Message) -> None:
+        """Count a scan or pose that came again, the same as the copy fused or waiting for its pair; log the first
+        per key."""
+        self.resent[key] += 1
+        if self.resent[key] == 1:
+            self.log.info("a %s of robot %r for seq %d came again, the same as the copy this shard has (a restarted "
+                          "SLAM node or source catching up): ignored; further ones on %s are only counted (resent)",
+                          message.TYPE, message.robot, message.seq, key)
 
     def _recover(self, robot: str, is_scan: bool, first: int, last: int) -> dict[int, object]:
         """Scans (else poses) first..last of ``robot`` that its stream skipped, from the history; each checked as

@@ -510,10 +510,11 @@ def test_shard_refuses_a_pair_it_has_fused_already():
     for now, then in zip(shard.grid.tile_arrays((0, 0)), before):
         np.testing.assert_array_equal(now, then)
     shard.handle("pg/r/pose", _pose(1).encode())
+    shard.handle("pg/r/pose", _pose(1).encode())  # again while it waits for its scan: resent too
     shard.handle("pg/r/scan", _scan(1).encode())
     stats = shard.stats({"intake": 0})
     assert stats.fused == {"r": 2} and stats.join_pending == 0
-    assert stats.resent == {"pg/r/scan": 1, "pg/r/pose": 2}
+    assert stats.resent == {"pg/r/scan": 1, "pg/r/pose": 3}
     assert stats.rejected == {"pg/r/scan": 1, "pg/r/pose": 1}
 
 
