@@ -146,6 +146,12 @@ class MapShard:
         and a live copy of it, or of an earlier message of its stream, is then dropped without a word."""
         stream = key.rsplit("/", 1)[-1]
         if isinstance(message, StreamEnd):  # (it may overtake the last scans: each key has its own callback thread)
+            accounted = self.fused[message.robot] + self.discarded[message.robot]
+            if message.scans < accounted:
+                self.rejects.count(key, "end", f"an end of robot {message.robot!r}'s stream announcing {message.scans} "
+                                   f"scans, where this shard has fused or given up {accounted}: another run's end (a "
+                                   "robot name belongs to one run at a time)")
+                return
             if message.robot not in self.ended:  # the first end is news: the last poses may still come (the source
                 self._heard[message.robot] = self._clock()  # repeats it, and a repeat is no news)
             self.ended[message.robot] = message.scans

@@ -518,6 +518,23 @@ def test_shard_refuses_a_pair_it_has_fused_already():
     assert stats.rejected == {"pg/r/scan": 1, "pg/r/pose": 1}
 
 
+def test_an_end_that_contradicts_the_stream_is_refused():
+    """An end announcing fewer scans than the shard has fused is another run's (a source of 50 steps started under
+    a robot name whose 400 scans were fused set the shard's count to 50: an audit): counted, refused; the end of
+    the stream stands. (A larger count replaces a smaller one, as before: the shard cannot tell which end is its
+    run's, and refusing the later one could keep a source waiting for its end to be heard.)"""
+    shard = MapShard(ShardConfig("m", 0, 1, SensorModel()), RejectCounter(logging.getLogger("test-shard-end")))
+    for seq in range(3):
+        shard.handle("pg/r/scan", _scan(seq).encode())
+        shard.handle("pg/r/pose", _pose(seq).encode())
+    shard.handle("pg/r/end", StreamEnd(robot="r", scans=2).encode())
+    shard.handle("pg/r/end", StreamEnd(robot="r", scans=3).encode())
+    shard.handle("pg/r/end", StreamEnd(robot="r", scans=3).encode())  # the source repeats its end
+    shard.handle("pg/r/end", StreamEnd(robot="r", scans=1).encode())
+    stats = shard.stats({"intake": 0})
+    assert stats.ended == {"r": 3} and stats.rejected == {"pg/r/end": 2} and shard.caught_up()
+
+
 def test_seqs_past_the_ledger_horizon_are_rejected_as_they_cannot_be_compared():
     """The ledger keeps what was fused only within its horizon: a message of an older seq cannot be compared with
     the one fused, so it is rejected (as "old"), whether it is the same or not (counted as resent, a new run under
