@@ -12,7 +12,7 @@ Each scan's odometry pose is interpolated at the scan's header stamp between the
 it (linear in x, y and unwrapped yaw; real bags publish odometry irregularly, the Intel lab's with gaps of
 up to 3 s). A scan is skipped when those two are more than ``max_odom_gap`` seconds apart, or when it lies
 outside the odometry's time span by more than ``max_odom_hold`` seconds (within that, the end pose is
-held); likewise one that does not decode or differs from the first scan's geometry. Each skip records the
+held); likewise one that does not decode or differs from the geometry most scans have. Each skip records the
 scan's 1-based message number (counting all messages of the topics read, in bag order) and the reason.
 Readings at or above the scan's range_max become ``+inf`` (no return); NaN readings stay NaN (invalid).
 Odometry poses and transforms that are not finite or lie beyond +-POSE_LIMIT (1e7 m; slam.laserlog) are
@@ -21,6 +21,7 @@ skipped.
 from __future__ import annotations
 
 import math
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -178,7 +179,12 @@ def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hol
     if not scans:
         raise LogFormatError(f"{path}: no decodable scan on {scan_topic}")
 
-    laser_frame = scans[0][3][4]
+    # the log's laser: the beam count, geometry and frame most of its scans have (the first of those scans), so that
+    # one odd scan, even the first, costs only itself
+    shapes = Counter(_shape(scan) for scan in scans)
+    most = max(shapes.values())
+    first = next(scan for scan in scans if shapes[_shape(scan)] == most)
+    laser_frame = first[3][4]
     base_frame = odom[0][2] if odom else None
     try:
         offset, base_frame = _static_chain(tf_static, laser_frame, base_frame)
@@ -194,13 +200,12 @@ def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hol
     if not len(odom_stamps):
         raise LogFormatError(f"{path}: {odom_topic} holds no decodable odometry")
 
-    first = scans[0]
     kept = []
     for number, stamp, ranges, geometry in scans:
         if ranges.size != first[2].size:
-            skipped.append(Skipped(number, f"{scan_topic}: has {ranges.size} beams, the first scan {first[2].size}"))
+            skipped.append(Skipped(number, f"{scan_topic}: has {ranges.size} beams, most scans {first[2].size}"))
         elif not np.allclose(geometry[:4], first[3][:4], rtol=1e-6, atol=1e-9) or geometry[4] != first[3][4]:
-            skipped.append(Skipped(number, f"{scan_topic}: geometry or frame differs from the first scan's"))
+            skipped.append(Skipped(number, f"{scan_topic}: geometry or frame differs from most scans'"))
         else:
             problem = odometry_problem(odom_stamps, stamp, max_odom_gap, max_odom_hold)
             if problem:
@@ -233,6 +238,12 @@ def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hol
         skipped=tuple(skipped),
         unit="message",
     )
+
+
+def _shape(scan: tuple) -> tuple:
+    """What a decoded scan's laser is: (beams, frame, geometry to 9 decimals)."""
+    _, _, ranges, geometry = scan
+    return ranges.size, geometry[4], tuple(round(g, 9) for g in geometry[:4])
 
 
 def _scan_problem(ranges: np.ndarray, angle_min: float, angle_increment: float, range_min: float,

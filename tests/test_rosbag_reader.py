@@ -103,6 +103,15 @@ def test_a_laser_frame_not_linked_to_the_odometry_is_an_error_naming_the_bag(tmp
         read_rosbag(path)
 
 
+def test_one_odd_first_scan_costs_only_itself(tmp_path):
+    """The laser is what most scans have: a first scan of 2 beams among scans of 3 is skipped, not the rest."""
+    bag = standard_bag()
+    bag.scan(0.2, [1.0, 2.0])
+    log = read_rosbag(bag.write(tmp_path / "a.bag"))
+    assert len(log) == 3 and log.ranges.shape[1] == 3
+    assert [s.reason for s in log.skipped if "beams" in s.reason] == ["/scan: has 2 beams, most scans 3"] * 2
+
+
 def test_odometry_gap_limit(tmp_path):
     bag = BagBuilder()
     bag.odom(0.0, 0.0, 0.0, 0.0)
