@@ -75,6 +75,9 @@ def _open(path: Path):
     if path.is_dir() and not (path / "metadata.yaml").exists():
         raise LogFormatError(f"{path}: a folder without metadata.yaml, so not a ROS 2 bag (expected a ROS 1 .bag "
                              "file or a ROS 2 bag folder)")
+    if path.is_file() and path.suffix != ".bag":  # rosbags tells the formats apart by the suffix alone
+        raise LogFormatError(f"{path}: a ROS 1 bag file must be named *.bag (rosbags reads a file by its suffix); "
+                             "rename or link it")
     try:
         reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
         reader.open()

@@ -103,6 +103,13 @@ def test_a_laser_frame_not_linked_to_the_odometry_is_an_error_naming_the_bag(tmp
         read_rosbag(path)
 
 
+@pytest.mark.parametrize("name", ["a.BAG", "a", "a.bag.active"])
+def test_a_bag_file_not_named_dot_bag_is_refused_with_what_to_do(tmp_path, name):
+    path = standard_bag().write(tmp_path / "a.bag").rename(tmp_path / name)
+    with pytest.raises(LogFormatError, match="must be named \\*.bag .*rename or link it"):
+        read_rosbag(path)
+
+
 def test_one_odd_first_scan_costs_only_itself(tmp_path):
     """The laser is what most scans have: a first scan of 2 beams among scans of 3 is skipped, not the rest."""
     bag = standard_bag()
