@@ -148,9 +148,9 @@ class MapShard:
         if isinstance(message, StreamEnd):  # (it may overtake the last scans: each key has its own callback thread)
             accounted = self.fused[message.robot] + self.discarded[message.robot]
             if message.scans < accounted:
-                self.rejects.count(key, "end", f"an end of robot {message.robot!r}'s stream announcing {message.scans} "
-                                   f"scans, where this shard has fused or given up {accounted}: another run's end (a "
-                                   "robot name belongs to one run at a time)")
+                self.rejects.count(key, "end", f"an end of the stream of robot {message.robot!r} announcing "
+                                   f"{message.scans} scans, where this shard has fused or given up {accounted}: "
+                                   "another run's end (a robot name belongs to one run at a time)")
                 return
             if message.robot not in self.ended:  # the first end is news: the last poses may still come (the source
                 self._heard[message.robot] = self._clock()  # repeats it, and a repeat is no news)

@@ -94,6 +94,7 @@ class Source:
         self._steps_done = 0  # steps the SLAM node has taken or given up on
         self._reader = MapReader(session, options.map_name)
         self._end_sent = 0.0  # time.monotonic() of the last StreamEnd published
+        self._warned_beyond = False  # whether a shard holding more scans than this run published was reported
         self._prior_out = False  # whether the prior is out (what the history may answer with, with ...)
         self._steps_published = 0  # ... the steps whose messages are all out
         self._end_out = False  # whether the end of the stream is out
@@ -221,6 +222,12 @@ class Source:
         Zenoh session was closed, would wait for it for ever. Until then the source answers its history."""
         stats = self._shard_stats()
         robot, scans = end.robot, end.scans
+        beyond = [s.shard for s in stats if s.fused.get(robot, 0) + s.discarded.get(robot, 0) > scans]
+        if beyond and not self._warned_beyond:  # (the shards refuse such an end: services.shard)
+            self._warned_beyond = True
+            self.log.warning("shard(s) %s of map %r hold more scans of robot %r than the %d this run published: another "
+                             "run under this robot name reached them, and they refuse this end; use another --robot",
+                             ", ".join(map(str, beyond)), self.options.map_name, robot, scans)
         if len(stats) >= self.options.wait_mappers and all(
                 s.ended.get(robot) == scans and s.fused.get(robot, 0) + s.discarded.get(robot, 0) >= scans
                 for s in stats):  # every scan accounted for: a shard that restarted may still ask the history

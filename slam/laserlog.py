@@ -131,11 +131,11 @@ def odometry_problem(odom_stamps: np.ndarray, stamp: float, max_gap: float = MAX
     if after == 0 or after == len(odom_stamps):
         end = odom_stamps[0] if after == 0 else odom_stamps[-1]
         if abs(end - stamp) > max_hold:
-            return f"{abs(end - stamp):.3g} s outside the odometry's time span (at most {max_hold} s)"
+            return f"{abs(end - stamp):.6g} s outside the odometry's time span (at most {max_hold} s)"
         return ""
     gap = odom_stamps[after] - odom_stamps[after - 1]
     if gap > max_gap:
-        return f"the odometry messages around it are {gap:.3g} s apart (at most {max_gap} s)"
+        return f"the odometry messages around it are {gap:.6g} s apart (at most {max_gap} s)"
     return ""
 
 

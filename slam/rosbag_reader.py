@@ -21,7 +21,6 @@ skipped.
 from __future__ import annotations
 
 import math
-from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +28,9 @@ import numpy as np
 from slam.errors import LogFormatError
 from slam.laserlog import (MAX_ODOM_GAP, MAX_ODOM_HOLD, POSE_LIMIT, LaserLog, Skipped, interpolate_poses,
                            odometry_problem, plausible_pose)
+
+#: the file suffixes rosbags reads a bag file by: ROS 1, and ROS 2's two storage formats
+BAG_SUFFIXES = (".bag", ".mcap", ".db3")
 
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
 ODOMETRY = "nav_msgs/msg/Odometry"
@@ -75,9 +77,9 @@ def _open(path: Path):
     if path.is_dir() and not (path / "metadata.yaml").exists():
         raise LogFormatError(f"{path}: a folder without metadata.yaml, so not a ROS 2 bag (expected a ROS 1 .bag "
                              "file or a ROS 2 bag folder)")
-    if path.is_file() and path.suffix != ".bag":  # rosbags tells the formats apart by the suffix alone
-        raise LogFormatError(f"{path}: a ROS 1 bag file must be named *.bag (rosbags reads a file by its suffix); "
-                             "rename or link it")
+    if path.is_file() and path.suffix not in BAG_SUFFIXES:  # rosbags tells the formats apart by the suffix alone
+        raise LogFormatError(f"{path}: not named as a bag: rosbags reads a ROS 1 bag named *.bag and a ROS 2 storage "
+                             "file named *.mcap or *.db3 (or give the ROS 2 bag's folder); rename or link it")
     try:
         reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
         reader.open()
@@ -180,13 +182,19 @@ def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hol
                 else:
                     tf_dynamic.append((_stamp(tf.header), tf.header.frame_id, tf.child_frame_id, pose))
     if not scans:
-        raise LogFormatError(f"{path}: no decodable scan on {scan_topic}")
+        refused = [s.reason for s in skipped if s.reason.startswith(f"{scan_topic}:")]
+        raise LogFormatError(f"{path}: no usable scan on {scan_topic}" + (f" (the first: {refused[0]})" if refused else ""))
 
     # the log's laser: the beam count, geometry and frame most of its scans have (the first of those scans), so that
     # one odd scan, even the first, costs only itself
-    shapes = Counter(_shape(scan) for scan in scans)
-    most = max(shapes.values())
-    first = next(scan for scan in scans if shapes[_shape(scan)] == most)
+    lasers: list[list] = []  # [a scan of the laser, how many scans have it], in order of first appearance
+    for scan in scans:
+        laser = next((laser for laser in lasers if _same_laser(scan, laser[0])), None)
+        if laser is None:
+            lasers.append([scan, 1])
+        else:
+            laser[1] += 1
+    first = max(lasers, key=lambda laser: laser[1])[0]  # (a tie: the laser seen first)
     laser_frame = first[3][4]
     base_frame = odom[0][2] if odom else None
     try:
@@ -207,7 +215,7 @@ def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hol
     for number, stamp, ranges, geometry in scans:
         if ranges.size != first[2].size:
             skipped.append(Skipped(number, f"{scan_topic}: has {ranges.size} beams, most scans {first[2].size}"))
-        elif not np.allclose(geometry[:4], first[3][:4], rtol=1e-6, atol=1e-9) or geometry[4] != first[3][4]:
+        elif not _same_laser((number, stamp, ranges, geometry), first):
             skipped.append(Skipped(number, f"{scan_topic}: geometry or frame differs from most scans'"))
         else:
             problem = odometry_problem(odom_stamps, stamp, max_odom_gap, max_odom_hold)
@@ -243,10 +251,12 @@ def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hol
     )
 
 
-def _shape(scan: tuple) -> tuple:
-    """What a decoded scan's laser is: (beams, frame, geometry to 9 decimals)."""
-    _, _, ranges, geometry = scan
-    return ranges.size, geometry[4], tuple(round(g, 9) for g in geometry[:4])
+def _same_laser(scan: tuple, other: tuple) -> bool:
+    """Whether two decoded scans (number, stamp, ranges, (angle_min, angle_increment, range_min, range_max, frame))
+    come from one laser: the same beam count and frame, the geometry within 1e-6 relative (float32 fields jitter)."""
+    (_, _, ranges, geometry), (_, _, other_ranges, other_geometry) = scan, other
+    return (ranges.size == other_ranges.size and geometry[4] == other_geometry[4]
+            and all(abs(a - b) <= 1e-9 + 1e-6 * abs(b) for a, b in zip(geometry[:4], other_geometry[:4])))
 
 
 def _scan_problem(ranges: np.ndarray, angle_min: float, angle_increment: float, range_min: float,

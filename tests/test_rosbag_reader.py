@@ -106,8 +106,39 @@ def test_a_laser_frame_not_linked_to_the_odometry_is_an_error_naming_the_bag(tmp
 @pytest.mark.parametrize("name", ["a.BAG", "a", "a.bag.active"])
 def test_a_bag_file_not_named_dot_bag_is_refused_with_what_to_do(tmp_path, name):
     path = standard_bag().write(tmp_path / "a.bag").rename(tmp_path / name)
-    with pytest.raises(LogFormatError, match="must be named \\*.bag .*rename or link it"):
+    with pytest.raises(LogFormatError, match="not named as a bag: .*rename or link it"):
         read_rosbag(path)
+
+
+def test_a_ros2_storage_file_alone_is_read(tmp_path):
+    folder = standard_bag(ros2=True).write(tmp_path / "bag2")
+    storage, = [p for p in folder.iterdir() if p.suffix in (".db3", ".mcap")]
+    check_standard(read_rosbag(storage))
+
+
+def test_a_bag_whose_scans_are_all_refused_says_why(tmp_path):
+    bag = BagBuilder()
+    bag.odom(0.0, 0.0, 0.0, 0.0)
+    bag.odom(1.0, 1.0, 0.0, 0.0)
+    bag.scan(0.5, [1.0, -2.0, 3.0])
+    with pytest.raises(LogFormatError, match="no usable scan on /scan \\(the first: /scan: range 1 is -2 m, below 0\\)"):
+        read_rosbag(bag.write(tmp_path / "a.bag"))
+
+
+def test_float32_jitter_in_the_geometry_is_one_laser(tmp_path):
+    """Scans whose increments differ by a float32 ulp are one laser (within 1e-6), counted together when the reader
+    picks the laser most scans have: 3 x 4 jittered scans of 3 beams outnumber 5 of 2 beams."""
+    bag = BagBuilder()
+    for t in range(20):
+        bag.odom(float(t), float(t), 0.0, 0.0)
+    half = np.float32(0.5)
+    increments = [0.5, float(np.nextafter(half, np.float32(1))), float(np.nextafter(half, np.float32(0)))]
+    for i in range(12):
+        bag.scan(0.5 + i, [1.0, 2.0, 3.0], increment=increments[i % 3])
+    for i in range(5):
+        bag.scan(13.5 + i, [1.0, 2.0])
+    log = read_rosbag(bag.write(tmp_path / "a.bag"))
+    assert len(log) == 12 and log.ranges.shape[1] == 3 and len(log.skipped) == 5
 
 
 def test_one_odd_first_scan_costs_only_itself(tmp_path):

@@ -230,10 +230,11 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
     log = read_log(args.input, scan_topic=args.scan_topic)
     if args.scans is not None:
         log = log.first(args.scans)
-    if log.skipped:
-        print(f"posegrid slam: note: {log.skipped_summary()}", file=sys.stderr)
     _check_log(log, config)
     log, delay = _apply_odometry_delay(args, log, config)
+    if log.skipped:  # (after the delay, which skips the scans it leaves without odometry)
+        print(f"posegrid slam: note: {log.skipped_summary()}", file=sys.stderr)
+    _check_log(log, config)
     started = time.perf_counter()
     cpu_started = time.process_time()
     with tqdm(total=len(log), desc="slam gridslam", unit="scan", file=sys.stderr, mininterval=0.5) as bar:
