@@ -225,8 +225,9 @@ class Source:
         beyond = [s.shard for s in stats if s.fused.get(robot, 0) + s.discarded.get(robot, 0) > scans]
         if beyond and not self._warned_beyond:  # (the shards refuse such an end: services.shard)
             self._warned_beyond = True
-            self.log.warning("shard(s) %s of map %r hold more scans of robot %r than the %d this run published: another "
-                             "run under this robot name reached them, and they refuse this end; use another --robot",
+            self.log.warning("shard(s) %s of map %r hold more scans of robot %r than the %d this run published: "
+                             "another run under this robot name reached them, and they refuse this end; use another "
+                             "--robot",
                              ", ".join(map(str, beyond)), self.options.map_name, robot, scans)
         if len(stats) >= self.options.wait_mappers and all(
                 s.ended.get(robot) == scans and s.fused.get(robot, 0) + s.discarded.get(robot, 0) >= scans

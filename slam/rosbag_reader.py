@@ -183,7 +183,8 @@ def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hol
                     tf_dynamic.append((_stamp(tf.header), tf.header.frame_id, tf.child_frame_id, pose))
     if not scans:
         refused = [s.reason for s in skipped if s.reason.startswith(f"{scan_topic}:")]
-        raise LogFormatError(f"{path}: no usable scan on {scan_topic}" + (f" (the first: {refused[0]})" if refused else ""))
+        why = f" (the first: {refused[0]})" if refused else ""
+        raise LogFormatError(f"{path}: no usable scan on {scan_topic}{why}")
 
     # the log's laser: the beam count, geometry and frame most of its scans have (the first of those scans), so that
     # one odd scan, even the first, costs only itself

@@ -407,5 +407,6 @@ def _shard_fields(s: ShardStats, latest: dict[str, int]) -> dict:
     lag = {r: max(0, seq + 1 - s.fused.get(r, 0) - s.discarded.get(r, 0)) for r, seq in latest.items()}
     return dict(scans_fused=s.fused, scans_discarded=s.discarded, scans_announced=s.ended, tiles_owned=s.tiles_owned,
                 cells_updated=s.cells_updated, tile_updates=s.tile_updates, join_pending=s.join_pending,
-                uptime_s=s.uptime, received=s.received, resent=s.resent, rejected=s.rejected, overflow=s.overflow, lag_scans=lag)
+                uptime_s=s.uptime, received=s.received, resent=s.resent, rejected=s.rejected, overflow=s.overflow,
+                lag_scans=lag)
 
