@@ -14,7 +14,11 @@ up to 3 s). A scan is skipped when those two are more than ``max_odom_gap`` seco
 outside the odometry's time span by more than ``max_odom_hold`` seconds (within that, the end pose is
 held); likewise one that does not decode or differs from the geometry most scans have. Each skip records the
 scan's 1-based message number (counting all messages of the topics read, in bag order) and the reason.
-Readings at or above the scan's range_max become ``+inf`` (no return); NaN readings stay NaN (invalid).
+Readings at or above the scan's range_max become ``+inf`` (no return). NaN (an invalid reading) and -inf (too
+close to measure) say nothing about free space (REP 117), so they become 0, below range_min, which every consumer
+skips; range_min is raised to MIN_RANGE_FLOOR (1 mm) when the bag gives 0, so that 0 lies below it. (Left as NaN,
+an invalid reading was skipped by grid FastSLAM but, as a beam with no return, cleared free space up to
+range_max through whatever the laser could not measure in the mapper's fusion.)
 Odometry poses and transforms that are not finite or lie beyond +-POSE_LIMIT (1e7 m; slam.laserlog) are
 skipped.
 """
@@ -31,6 +35,9 @@ from slam.laserlog import (MAX_ODOM_GAP, MAX_ODOM_HOLD, POSE_LIMIT, LaserLog, Sk
 
 #: the file suffixes rosbags reads a bag file by: ROS 1, and ROS 2's two storage formats
 BAG_SUFFIXES = (".bag", ".mcap", ".db3")
+
+#: the least range_min (m) a bag's laser gets: invalid readings are stored as 0, which must lie below it
+MIN_RANGE_FLOOR = 1e-3
 
 LASER_SCAN = "sensor_msgs/msg/LaserScan"
 ODOMETRY = "nav_msgs/msg/Odometry"
@@ -230,8 +237,9 @@ def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hol
     angle_min, angle_increment, range_min, range_max = first[3][:4]
     stamps = np.array([k[1] for k in kept])
     ranges = np.stack([k[2] for k in kept]).astype(np.float32)
+    range_min = max(range_min, MIN_RANGE_FLOOR)
     ranges[ranges >= range_max] = np.inf
-    ranges[np.isneginf(ranges)] = np.nan
+    ranges[np.isnan(ranges) | np.isneginf(ranges)] = 0.0  # invalid, or too close: below range_min, skipped
     odometry = interpolate_poses(odom_stamps, odom_poses, stamps)
     return LaserLog(
         source=str(path),
@@ -265,7 +273,7 @@ def _scan_problem(ranges: np.ndarray, angle_min: float, angle_increment: float, 
     """Why a LaserScan (finite geometry; ranges m, angles rad) is not a scan the mapper can take, or "": the
     rules of the wire's LaserScan (schemas.messages), which the source would otherwise meet only when it
     publishes the scan, in the middle of a replay."""
-    if not 0.0 <= range_min < range_max:
+    if not 0.0 <= range_min < range_max or range_max <= MIN_RANGE_FLOOR:
         return f"range_min {range_min:g} m and range_max {range_max:g} m: need 0 <= range_min < range_max"
     if angle_increment == 0.0 and ranges.size > 1:
         return f"angle_increment is 0 for {ranges.size} beams"

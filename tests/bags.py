@@ -33,11 +33,12 @@ class BagBuilder:
     def quat(self, yaw: float):
         return self._t("geometry_msgs/msg/Quaternion")(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
 
-    def scan(self, stamp, ranges, topic="/scan", angle_min=-1.0, increment=0.5, range_max=10.0, frame="laser"):
+    def scan(self, stamp, ranges, topic="/scan", angle_min=-1.0, increment=0.5, range_max=10.0, frame="laser",
+             range_min=0.1):
         ranges = np.asarray(ranges, np.float32)
         msg = self._t("sensor_msgs/msg/LaserScan")(
             header=self.header(stamp, frame), angle_min=angle_min, angle_max=angle_min + increment * (len(ranges) - 1),
-            angle_increment=increment, time_increment=0.0, scan_time=0.0, range_min=0.1, range_max=range_max,
+            angle_increment=increment, time_increment=0.0, scan_time=0.0, range_min=range_min, range_max=range_max,
             ranges=ranges, intensities=np.zeros(0, np.float32))
         self.items.append((topic, "sensor_msgs/msg/LaserScan", stamp, msg))
 

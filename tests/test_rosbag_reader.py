@@ -43,7 +43,7 @@ def check_standard(log):
     yaw = 0.5 * (math.pi / 2 + (-3.0 + 2 * math.pi))  # 2.427 rad, below pi
     np.testing.assert_allclose(log.odometry, [[0.5, 0.0, math.pi / 4], [1.0, 1.0, yaw], [1.0, 2.0, -3.0]], atol=1e-9)
     np.testing.assert_array_equal(log.ranges[1, :2], [4.0, np.inf])
-    assert np.isnan(log.ranges[1, 2])
+    assert log.ranges[1, 2] == 0.0  # NaN, invalid: below range_min, skipped (REP 117)
 
 
 def test_ros1_bag_with_odometry(tmp_path):
@@ -81,7 +81,7 @@ def test_scans_the_wire_refuses_are_skipped_by_the_reader(tmp_path):
     bag.scan(1.5, [1.0, -0.5, 3.0])
     bag.scan(2.5, [1.0, 2.0, 3.0], range_max=0.05)  # below the builder's range_min, 0.1 m
     bag.scan(3.5, [1.0, 2.0, 3.0], increment=0.0)
-    bag.scan(4.5, [1.0, -np.inf, 3.0])  # -inf: too close to tell (REP 117), read as no return
+    bag.scan(4.5, [1.0, -np.inf, 3.0])  # -inf: too close to tell (REP 117), skipped like an invalid reading
     log = read_rosbag(bag.write(tmp_path / "a.bag"))
     np.testing.assert_allclose(log.stamps, [0.5, 4.5])
     reasons = [s.reason for s in log.skipped]
@@ -90,6 +90,23 @@ def test_scans_the_wire_refuses_are_skipped_by_the_reader(tmp_path):
     for step in laser_log_stream(log, "r").steps:
         for message in step.messages:
             message.encode()
+
+
+def test_invalid_and_too_close_readings_clear_no_free_space(tmp_path):
+    """REP 117: NaN is an invalid reading and -inf one too close to measure; neither says the beam went far. They
+    become 0, below range_min (raised to 1 mm from a bag's 0), so the fusion skips those beams, as grid FastSLAM
+    does; +inf and readings at range_max are no return (free space up to range_max)."""
+    from mapping.fusion import BEAM_HIT, BEAM_NO_RETURN, BEAM_SKIP, beam_table
+    from mapping.sensor_model import SensorModel
+
+    bag = BagBuilder()
+    bag.odom(0.0, 0.0, 0.0, 0.0)
+    bag.odom(1.0, 1.0, 0.0, 0.0)
+    bag.scan(0.5, [np.nan, -np.inf, np.inf, 10.0, 2.0], range_min=0.0)
+    log = read_rosbag(bag.write(tmp_path / "a.bag"))
+    assert log.range_min == 1e-3 and log.ranges[0].tolist() == [0.0, 0.0, np.inf, np.inf, 2.0]
+    kinds = beam_table(log.ranges[0], SensorModel(), log.range_min, log.range_max).kind
+    assert kinds.tolist() == [BEAM_SKIP, BEAM_SKIP, BEAM_NO_RETURN, BEAM_NO_RETURN, BEAM_HIT]
 
 
 def test_a_laser_frame_not_linked_to_the_odometry_is_an_error_naming_the_bag(tmp_path):
