@@ -44,7 +44,6 @@ ODOMETRY = "nav_msgs/msg/Odometry"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 
 
-
 def _stamp(header) -> float:
     return header.stamp.sec + 1e-9 * header.stamp.nanosec
 
@@ -274,12 +273,13 @@ def _scan_problem(ranges: np.ndarray, angle_min: float, angle_increment: float, 
     rules of the wire's LaserScan (schemas.messages), which the source would otherwise meet only when it
     publishes the scan, in the middle of a replay."""
     if not 0.0 <= range_min < range_max or range_max <= MIN_RANGE_FLOOR:
-        return f"range_min {range_min:g} m and range_max {range_max:g} m: need 0 <= range_min < range_max"
+        return (f"range_min {range_min:g} m and range_max {range_max:g} m: need 0 <= range_min < range_max and "
+                f"range_max > {MIN_RANGE_FLOOR:g} m")
     if angle_increment == 0.0 and ranges.size > 1:
         return f"angle_increment is 0 for {ranges.size} beams"
     if max(abs(angle_min), abs(angle_increment)) > 2 * math.pi:
         return "angle_min or angle_increment beyond a full turn"
-    negative = np.flatnonzero(ranges < 0)  # (-inf, "too close" in REP 117, is read as no return, as before)
+    negative = np.flatnonzero(ranges < 0)  # (-inf, "too close" in REP 117, is kept: it becomes 0, skipped)
     negative = negative[np.isfinite(ranges[negative])]
     if negative.size:
         return f"range {negative[0]} is {ranges[negative[0]]:g} m, below 0"
