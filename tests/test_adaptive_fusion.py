@@ -8,8 +8,9 @@ import pytest
 from mapping.adaptive import AdaptiveFusion, AdaptiveGrid, AdaptiveParams, MergeRules
 from mapping.adaptive.evidence import EvidenceScanner
 from mapping.adaptive.merging import merge_siblings
+from mapping.beam_model import BEAM_HIT, BEAM_NO_RETURN, beam_table, logodds_table
 from mapping.errors import InputError
-from mapping.fusion import BEAM_HIT, BEAM_NO_RETURN, MonteCarloFusion, beam_table, laser_poses, logodds_table
+from mapping.fusion import MonteCarloFusion, laser_poses
 from mapping.grid import TiledGrid
 from mapping.sensor_model import TAIL_SIGMAS, SensorModel
 from reference import cells_on_ray

@@ -6,9 +6,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from mapping.beam_model import BEAM_HIT, BEAM_NO_RETURN, BEAM_SKIP, beam_table
 from mapping.errors import InputError
-from mapping.fusion import BEAM_HIT, BEAM_NO_RETURN, BEAM_SKIP, MASK_SAMPLES, MonteCarloFusion, beam_table, merge_duplicates
+from mapping.fusion import MonteCarloFusion, merge_duplicates
 from mapping.grid import TiledGrid
+from mapping.samples_pass import MASK_SAMPLES
 from mapping.sensor_model import SensorModel
 from reference import reference_fuse
 

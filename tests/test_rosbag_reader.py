@@ -96,7 +96,7 @@ def test_invalid_and_too_close_readings_clear_no_free_space(tmp_path):
     """REP 117: NaN is an invalid reading and -inf one too close to measure; neither says the beam went far. They
     become 0, below range_min (raised to 1 mm from a bag's 0), so the fusion skips those beams, as grid FastSLAM
     does; +inf and readings at range_max are no return (free space up to range_max)."""
-    from mapping.fusion import BEAM_HIT, BEAM_NO_RETURN, BEAM_SKIP, beam_table
+    from mapping.beam_model import BEAM_HIT, BEAM_NO_RETURN, BEAM_SKIP, beam_table
     from mapping.sensor_model import SensorModel
 
     bag = BagBuilder()

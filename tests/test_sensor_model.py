@@ -6,7 +6,7 @@ import pytest
 from scipy.special import logit as sp_logit
 
 from mapping.errors import InputError
-from mapping.fusion import TABLE_DU, TABLE_U0, logodds_table
+from mapping.beam_model import TABLE_DU, TABLE_U0, logodds_table
 from mapping.sensor_model import SensorModel
 
 

@@ -34,9 +34,10 @@ from dataclasses import dataclass
 import numba as nb
 import numpy as np
 
-from mapping.fusion import (BEAM_HIT, BEAM_SKIP, STAMP_LIMIT, TABLE_DU, TABLE_U0, BeamTable, add_sample_value,
-                            check_window, segment_logodds)
+from mapping.beam_model import BEAM_HIT, BEAM_SKIP, TABLE_DU, TABLE_U0, BeamTable, segment_logodds
+from mapping.fusion import check_window
 from mapping.raytrace import FAR, corner_tol, dda_start, dda_step
+from mapping.samples_pass import STAMP_LIMIT, add_sample_value
 
 #: columns of a count record: [stamp, hits, misses, unknowns]
 HIT, MISS, UNKNOWN = 1, 2, 3

@@ -36,9 +36,9 @@ from mapping.adaptive.evidence import EvidenceScanner, ScanEvidence
 from mapping.adaptive.merging import MergeRules, merge_siblings
 from mapping.adaptive.splitting import SplitTest
 from mapping.adaptive.tree import AdaptiveGrid, children, unique_cells
+from mapping.beam_model import BEAM_HIT, BEAM_SKIP, BeamTable, beam_table, logodds_table
 from mapping.errors import InputError
-from mapping.fusion import (BEAM_HIT, BEAM_SKIP, BeamTable, beam_table, check_scan, laser_poses, logodds_table,
-                            merge_duplicates)
+from mapping.fusion import check_scan, laser_poses, merge_duplicates
 from mapping.sensor_model import SensorModel
 
 
