@@ -82,7 +82,7 @@ def _constant_sigma_beams(ranges, range_min, range_max, sigma0, half, peak_offse
     fields = np.empty((8, n))  # z, r_stop, r_peak, a, b, s, g_peak, free_until
     for k in range(n):
         r = ranges[k]
-        no_return = not math.isfinite(r) or r > range_max
+        no_return = r != r or r > range_max  # NaN, +inf or beyond; -inf (too close) is below range_min
         hit = not no_return and r >= range_min
         kind[k] = BEAM_HIT if hit else (BEAM_NO_RETURN if no_return else BEAM_SKIP)
         z = r if hit else 0.0
@@ -102,8 +102,9 @@ def _constant_sigma_beams(ranges, range_min, range_max, sigma0, half, peak_offse
 def beam_table(ranges: np.ndarray, model: SensorModel, range_min: float, range_max: float) -> BeamTable:
     """Classify the beams of one scan and precompute their model parameters.
 
-    A range that is NaN, inf or > range_max is "no return": free space up to range_max, no hit.
-    A range below range_min is not trusted and the beam is skipped.
+    A range that is NaN, +inf or > range_max is "no return": free space up to range_max, no hit.
+    A range below range_min is not trusted and the beam is skipped; so is -inf, a reading too close to measure
+    (REP 117), which says nothing of the space along the beam.
     """
     ranges = np.asarray(ranges, dtype=np.float64)
     half = model.l / 2
@@ -111,7 +112,7 @@ def beam_table(ranges: np.ndarray, model: SensorModel, range_min: float, range_m
         kind, fields = _constant_sigma_beams(ranges, float(range_min), float(range_max), float(model.sigma0), half,
                                              *_constant_sigma_peak(model))
         return BeamTable(kind, *fields)
-    no_return = ~np.isfinite(ranges) | (ranges > range_max)
+    no_return = np.isnan(ranges) | (ranges > range_max)
     hit = ~no_return & (ranges >= range_min)
     kind = np.where(hit, BEAM_HIT, np.where(no_return, BEAM_NO_RETURN, BEAM_SKIP)).astype(np.int8)
     z = np.where(hit, ranges, 0.0)

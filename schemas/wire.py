@@ -192,7 +192,7 @@ class Array(Spec):
 
     ``shape`` holds an int for a fixed length or a letter for a length that must agree across the
     message's fields (e.g. ``("M", 3)`` for samples and ``("M",)`` for their weights). ``values`` is
-    "finite" (every value finite), "ranges" (finite values >= 0, or NaN / +inf meaning no return) or
+    "finite" (every value finite), "ranges" (finite values >= 0, NaN or +inf meaning no return, -inf a reading too close to measure) or
     "any" (booleans). ``minimum`` bounds the finite values from below, ``magnitude`` their absolute values.
     """
 
@@ -242,10 +242,6 @@ class Array(Spec):
         finite = np.isfinite(array)
         if self.values == "finite" and not finite.all():
             ctx.fail("nonfinite", f"'{name}' has NaN or infinity at index {_first(~finite)}")
-        if self.values == "ranges":
-            bad = np.isneginf(array)
-            if bad.any():
-                ctx.fail("range", f"'{name}' has -inf at index {_first(bad)} (use NaN or +inf for no return)")
         if self.minimum is not None:
             below = finite & (array < self.minimum)
             if below.any():
@@ -261,7 +257,7 @@ class Array(Spec):
                 for d in self.shape]
         values = {
             "finite": "every value finite",
-            "ranges": "finite values >= 0, NaN or +inf for no return",
+            "ranges": "finite values >= 0, NaN or +inf for no return, -inf for too close to measure (REP 117)",
             "any": "0 or 1 per byte",
         }[self.values]
         if self.minimum is not None:

@@ -54,7 +54,7 @@ def reference_fuse(model: SensorModel, angles: np.ndarray, range_min: float, ran
         ly = y + math.sin(yaw) * offset[0] + math.cos(yaw) * offset[1]
         values: dict[tuple[int, int], float] = {}
         for angle, z in zip(angles, ranges):
-            no_return = not np.isfinite(z) or z > range_max
+            no_return = np.isnan(z) or z > range_max  # -inf (too close) falls below range_min
             if not no_return and z < range_min:
                 continue
             length = range_max if no_return else z + TAIL_SIGMAS * float(model.sigma_at(z))

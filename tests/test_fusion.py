@@ -73,10 +73,15 @@ def test_no_return_marks_free_space_to_range_max_and_no_hit():
     assert all(v[0] == pytest.approx(model.l_free) for v in cells.values())
 
 
-def test_too_short_ranges_are_skipped():
+@pytest.mark.parametrize("too_close", [0.1, -np.inf])
+@pytest.mark.parametrize("samples", [1, 3])
+def test_too_short_ranges_are_skipped(too_close, samples):
+    """A range below range_min, or -inf (a reading too close to measure, REP 117), touches no cell: before,
+    -inf cleared free space to range_max, through whatever stood in front of the laser."""
     grid = TiledGrid(RES)
     fusion = MonteCarloFusion(grid, SensorModel(resolution=RES), np.array([0.0]), 0.2, 5.0)
-    result = fusion.fuse(np.array([0.1]), np.zeros((1, 3)), np.ones(1))
+    poses = np.zeros((samples, 3)) + np.arange(samples)[:, None] * 0.01
+    result = fusion.fuse(np.array([too_close]), poses, np.full(samples, 1 / samples))
     assert result.cells_updated == 0 and grid.keys() == []
 
 
@@ -156,12 +161,14 @@ def test_constant_sigma_beam_table_matches_the_general_one():
     ranges = np.array([0.05, 0.2, 1.0, 3.7, 12.0, 12.5, np.inf, -np.inf, np.nan, 0.1])
     constant = beam_table(ranges, SensorModel(resolution=0.05, sigma0=0.04), 0.1, 12.0)
     linear = beam_table(ranges, SensorModel(resolution=0.05, sigma="linear", sigma0=0.04), 0.1, 12.0)
-    expected_kinds = [BEAM_SKIP] + [BEAM_HIT] * 4 + [BEAM_NO_RETURN] * 4 + [BEAM_HIT]
+    # 12.5, +inf and NaN: no return; -inf (too close to measure, REP 117) is skipped like a range below range_min
+    expected_kinds = [BEAM_SKIP] + [BEAM_HIT] * 4 + [BEAM_NO_RETURN] * 2 + [BEAM_SKIP, BEAM_NO_RETURN, BEAM_HIT]
     assert constant.kind.tolist() == linear.kind.tolist() == expected_kinds
     for field in ("z", "r_stop", "r_peak", "a", "b", "s", "g_peak", "free_until"):
         np.testing.assert_allclose(getattr(constant, field), getattr(linear, field), rtol=1e-12, atol=1e-12,
                                    err_msg=field)
-    assert constant.r_stop[5:9].tolist() == [12.0] * 4  # no return: free up to range_max
+    assert constant.r_stop[[5, 6, 8]].tolist() == [12.0] * 3  # no return: free up to range_max
+    assert constant.r_stop[7] == 0.0
 
 
 def test_samples_in_several_mask_chunks_match_slow_reference():

@@ -303,8 +303,14 @@ def scan(**overrides):
     return LaserScan(**values)
 
 
+def test_ranges_may_say_no_return_or_too_close():
+    """NaN and +inf are no return; -inf a reading too close to measure (REP 117), which the mapper skips."""
+    ranges = np.array([1.0, np.nan, np.inf, -np.inf], np.float32)
+    decoded = decode_message(scan(ranges=ranges).encode(), LaserScan)
+    np.testing.assert_array_equal(decoded.ranges, ranges)
+
+
 @pytest.mark.parametrize("overrides", [
-    {"ranges": np.array([1.0, -np.inf, 2.0], np.float32)},
     {"ranges": np.array([1.0, -0.5, 2.0], np.float32)},
     {"range_min": 6.0},
     {"range_min": -0.1},
