@@ -29,8 +29,11 @@ POSE_LIMIT = 1e7
 #: it seconds a scan (FastSLAM's default is 500 particles, grid FastSLAM's 30)
 MAX_POSE_SAMPLES = 10_000
 
+#: the largest seq: exact as a JSON number (JavaScript clients read /health's counts as doubles) and in float64
+MAX_SEQ = 2**53 - 1
+
 ROBOT = Name("robot name, one key chunk", forbidden=RESERVED_ROBOT_NAMES)
-SEQ = Int("index of the scan this message belongs to, 0, 1, 2 ... per robot", minimum=0)
+SEQ = Int("index of the scan this message belongs to, 0, 1, 2 ... per robot", minimum=0, maximum=MAX_SEQ)
 STAMP = Float("sensor time of the scan, s")
 
 
@@ -191,7 +194,8 @@ class StreamEnd(Message):
     VERSION = 1
 
     robot: str = spec(ROBOT)
-    scans: int = spec(Int("number of scans published (and poses, when the source publishes poses)", minimum=0))
+    scans: int = spec(Int("number of scans published (and poses, when the source publishes poses)", minimum=0,
+                          maximum=MAX_SEQ + 1))
 
 
 @dataclass(frozen=True, eq=False)
@@ -219,7 +223,7 @@ class TileUpdate(Message):
     row0: int = spec(Int("first window row inside the tile", minimum=0))
     col0: int = spec(Int("first window column inside the tile", minimum=0))
     robot: str = spec(ROBOT)
-    seq: int = spec(Int("seq of the last scan fused into this tile (by robot)", minimum=0))
+    seq: int = spec(Int("seq of the last scan fused into this tile (by robot)", minimum=0, maximum=MAX_SEQ))
     published: float = spec(Float("Unix time the shard sent this update, s"))
     logodds: np.ndarray = spec(Array("occupancy log-odds per cell", "<f4", ("H", "W")))
     variance: np.ndarray = spec(Array("spread of the per-sample log-odds that pose uncertainty adds", "<f4", ("H", "W"),

@@ -3,6 +3,7 @@ bounded, counted buffer; the SLAM node's in-order step release; a shard's counti
 from __future__ import annotations
 
 import logging
+import threading
 from dataclasses import replace
 
 import numpy as np
@@ -186,6 +187,30 @@ def test_join_gives_up_at_once_on_what_a_confirmed_gap_leaves_behind():
     assert _given_up(buffer.add_scan(("r", 2), "again")[1]) == [("r", 2, 1, "scan", "late")]
     assert buffer.add_scan(("q", 50), "q50") == ([], [])  # a stream first seen far in: 0-49 never came here
     assert _given_up(buffer.add_scan(("q", 51), "q51")[1]) == [("q", 0, 50, "scan", "missing")]
+
+
+def test_join_counts_a_gap_of_a_trillion_seqs_as_one_run_without_walking_it():
+    """A schema-valid stream that jumps 10^12 seqs ahead (a counter gone wrong, stamps used as seqs) is counted at
+    once. The buffer walked every skipped seq in Python: the shard sat at 100 % CPU and fused nothing more, for
+    every robot, while /health said ok. Run in a thread so that a regression fails here instead of hanging."""
+    big = 10**12
+    buffer = JoinBuffer(capacity=16)
+    results = []
+
+    def feed():
+        assert buffer.add_scan(("w", 0), "s0") == ([], []) and buffer.add_pose(("w", 0), "p0") == ([("s0", "p0")], [])
+        for seq in (big, big + 1, big + 2):
+            results.append(buffer.add_scan(("w", seq), f"s{seq}"))
+            results.append(buffer.add_pose(("w", seq), f"p{seq}"))
+
+    worker = threading.Thread(target=feed, daemon=True)
+    worker.start()
+    worker.join(timeout=60)
+    assert not worker.is_alive(), "the join buffer walks the seqs a gap skips"
+    pairs = [pair for got, _ in results for pair in got]
+    gone = [g for _, given_up in results for g in _given_up(given_up)]
+    assert pairs == [(f"s{seq}", f"p{seq}") for seq in (big, big + 1, big + 2)]
+    assert gone == [("w", 1, big - 1, "scan", "missing")]
 
 
 def test_join_takes_a_held_message_when_its_stream_goes_past_it_after_another_gap():
