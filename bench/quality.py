@@ -10,7 +10,7 @@ import numpy as np
 from scipy.ndimage import distance_transform_edt
 
 from bench.scenarios import honest_covariances, honest_posed_scans, office_run, truth_arrays
-from mapping.evaluation import roc_auc, sample_map, score_map
+from mapping.evaluation import probability_on_raster, roc_auc, score_map
 from services.fusion_runner import fuse_posed_scans
 
 SAMPLES = 60
@@ -24,9 +24,8 @@ def run(steps: int = 400) -> dict:
             for mode in ("mc", "ml")}
     visible, occupied = truth["visible"], truth["occupied"]
     rows, cols = np.nonzero(visible)
-    x = truth["origin"][0] + (cols + 0.5) * truth["resolution"]
-    y = truth["origin"][1] + (rows + 0.5) * truth["resolution"]
-    p = {mode: sample_map(m["probability"], m["origin"], float(m["resolution"]), x, y) for mode, m in maps.items()}
+    p = {mode: probability_on_raster(m, truth["origin"], float(truth["resolution"]), visible.shape)[rows, cols]
+         for mode, m in maps.items()}
     labels = occupied[rows, cols]
     distance = distance_transform_edt(~occupied)[rows, cols]  # in cells, 0 on walls
     out: dict = {}

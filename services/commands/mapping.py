@@ -105,7 +105,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     evaluate = subparsers.add_parser(
         "eval", help="score a map against a truth raster (AUC, Brier, NLL)",
         description="Score MAP against TRUTH over the truth's visible cells; prints one JSON line with "
-        "auc (null when those cells hold one class only), brier, nll (natural log, per cell) and n (cells scored).",
+        "auc (null when those cells hold one class only), brier, nll (natural log, per cell) and n (cells scored). "
+        "Each truth cell takes the map's probability averaged over its area; parts the map does not cover or has "
+        "not observed count as 0.5, so the two rasters may differ in origin, extent and resolution.",
     )
     evaluate.add_argument("map", type=Path, help="map .npz")
     evaluate.add_argument("truth", type=Path, help="truth raster .npz")
