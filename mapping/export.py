@@ -7,6 +7,7 @@ flipped vertically to put north up, as map_server expects.
 from __future__ import annotations
 
 import io
+import json
 
 import numpy as np
 from PIL import Image
@@ -40,7 +41,7 @@ def render_pgm(map_arrays: dict, image_name: str = "map.pgm") -> tuple[bytes, st
     pgm = f"P5\n{width} {height}\n255\n".encode("ascii") + pixels.tobytes()
     ox, oy = (float(v) for v in map_arrays["origin"])
     yaml = (
-        f"image: {image_name}\n"
+        f"image: {json.dumps(image_name)}\n"  # double-quoted: a name with '#', ': ' or '[' stays the name
         f"resolution: {float(map_arrays['resolution']):.6f}\n"
         f"origin: [{ox:.6f}, {oy:.6f}, 0.0]\n"
         "negate: 0\n"

@@ -52,7 +52,7 @@ def test_fuse_export_eval_round_trip(posed_file, tmp_path):
     # export
     assert posegrid("export", str(map_path), "--format", "pgm", "-o", str(tmp_path / "m.pgm")).returncode == 0
     assert (tmp_path / "m.pgm").read_bytes().startswith(f"P5\n{width} {height}\n255\n".encode())
-    assert "image: m.pgm" in (tmp_path / "m.yaml").read_text()
+    assert 'image: "m.pgm"' in (tmp_path / "m.yaml").read_text()
     for layer in ("probability", "variance"):
         result = posegrid("export", str(map_path), "--format", "png", "-o", str(tmp_path / f"{layer}.png"),
                           "--layer", layer)

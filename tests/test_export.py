@@ -1,5 +1,6 @@
 """PGM + YAML for map_server and PNG rendering."""
 import io
+import json
 
 import numpy as np
 import pytest
@@ -16,13 +17,23 @@ def small_map():
             "origin": np.array([-1.0, 2.0]), "resolution": 0.5}
 
 
+@pytest.mark.parametrize("name", ["a #b.pgm", "c: d.pgm", "[e].pgm", "%f.pgm", "'g.pgm", "@h.pgm", 'q"uote.pgm',
+                                  "karte-\u00fc.pgm"])
+def test_yaml_names_any_image_file_as_it_is(name):
+    """A plain YAML scalar cut 'a #b.pgm' to 'a' (the rest a comment) and made 'c: d.pgm' a parse error; map_server
+    loaded the wrong file or none. The name is a double-quoted scalar, whose escapes YAML shares with JSON."""
+    _, yaml = render_pgm(small_map(), image_name=name)
+    line = next(line for line in yaml.splitlines() if line.startswith("image: "))
+    assert line.startswith('image: "') and json.loads(line[len("image: "):]) == name
+
+
 def test_pgm_is_flipped_trinary_and_yaml_has_origin():
     pgm, yaml = render_pgm(small_map(), image_name="m.pgm")
     header, pixels = pgm[:11], np.frombuffer(pgm[11:], np.uint8).reshape(2, 3)
     assert header == b"P5\n3 2\n255\n"
     # the top image row is the raster's last row (north up): unknown, unknown(0.5), free
     assert pixels.tolist() == [[205, 205, 254], [0, 254, 205]]
-    assert "image: m.pgm" in yaml and "origin: [-1.000000, 2.000000, 0.0]" in yaml and "resolution: 0.500000" in yaml
+    assert 'image: "m.pgm"' in yaml and "origin: [-1.000000, 2.000000, 0.0]" in yaml and "resolution: 0.500000" in yaml
 
 
 def test_png_layers():

@@ -267,6 +267,9 @@ def create_app(backend: Backend) -> FastAPI:
                    description="png only: probability, or variance scaled to its 99th percentile")] = "probability",
                ) -> Response:
         """The whole map assembled from every shard's tiles now, cropped to the observed cells."""
+        if format != "png" and layer != "probability":
+            raise HTTPException(422, f"layer={layer} draws a png; an npz export carries every layer and a pgm the "
+                                "occupancy only")
         info = known_map(map)
         stats = link.stats(map)
         if not stats:
