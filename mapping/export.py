@@ -85,8 +85,9 @@ def _heat(values: np.ndarray) -> np.ndarray:
 def render_rgb(map_arrays: dict, layer: str = "probability", variance_scale: float | None = None) -> np.ndarray:
     """An RGB image (H, W, 3) uint8 in raster row order (not flipped).
 
-    probability: white = free, black = occupied; variance: the heat ramp over variance / variance_scale
-    (default: the 99th percentile of observed cells). Unobserved cells are a pale blue-grey.
+    probability: grey level 1 - p, so free cells are light (224 at the 0.12 clamp) and occupied ones black;
+    variance: the heat ramp over variance / variance_scale (default: the 99th percentile of observed cells).
+    Unobserved cells are a pale blue-grey.
     """
     if layer not in LAYERS:
         raise InputError(f"layer must be one of {', '.join(LAYERS)}, got {layer!r}")

@@ -116,6 +116,11 @@ def read_npz(path: str | Path, what: str) -> dict[str, np.ndarray]:
     path = Path(path)
     if not path.is_file():
         raise FormatError(f"{path}: no such file (expected a {what} .npz)")
+    with open(path, "rb") as handle:
+        magic = handle.read(6)
+    if magic[:2] != b"PK" and magic != b"\x93NUMPY":  # numpy would call anything else pickled data
+        raise FormatError(f"{path}: not a .npz archive (a zip of .npy arrays, as numpy.savez writes); expected a "
+                          f"{what}")
     try:
         loaded = np.load(path, allow_pickle=False)
     except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
@@ -179,6 +184,21 @@ def _within(array: np.ndarray, key: str, path, low: float, high: float) -> np.nd
         bounds = "" if (low, high) == (-np.inf, np.inf) else f" and in [{low:g}, {high:g}]"
         raise FormatError(f"{path}: '{key}' holds {array[index]} at {index}; its values must be finite{bounds}")
     return array
+
+
+#: how far a map file's ``probability`` may lie from the logistic of its ``logodds`` (float32 writers: about 3e-8)
+PROBABILITY_TOLERANCE = 1e-4
+
+
+def _agrees_with_logodds(probability: np.ndarray, logodds: np.ndarray, path) -> None:
+    """Refuse a map whose two occupancy layers disagree (say, a tool that wrote 1 - p): eval scores
+    ``probability``, the tiles and exports draw it, and fusion reads ``logodds``."""
+    expected = 1.0 / (1.0 + np.exp(-np.asarray(logodds, np.float64)))
+    off = np.abs(np.asarray(probability, np.float64) - expected) > PROBABILITY_TOLERANCE
+    if off.any():
+        index = tuple(int(i) for i in np.argwhere(off)[0])
+        raise FormatError(f"{path}: 'probability' is not the logistic of 'logodds': at {index} it holds "
+                          f"{probability[index]:.6g} where logodds {logodds[index]:.6g} gives {expected[index]:.6g}")
 
 
 def _raster_frame(data: dict, path, what: str) -> tuple[np.ndarray, float]:
@@ -259,7 +279,11 @@ def _read_pose_set(data: dict, steps: int, path, what: str) -> PoseSet:
 
 
 def _read_stamps(data: dict, path, what: str, steps: int | None = None) -> np.ndarray:
-    stamps = _numeric(_require(data, "stamps", path, what), "stamps", path).astype(np.float64)
+    stamps = _numeric(_require(data, "stamps", path, what), "stamps", path)
+    if stamps.dtype.kind == "f" and stamps.dtype.itemsize < 8:
+        raise FormatError(f"{path}: 'stamps' must be float64 seconds, got {stamps.dtype} (a float32 holds a Unix time "
+                          "only to about 2 minutes)")
+    stamps = stamps.astype(np.float64)
     if stamps.ndim != 1 or (steps is not None and stamps.shape[0] != steps):
         raise FormatError(f"{path}: 'stamps' must have shape ({steps if steps is not None else 'T'},), got {stamps.shape}")
     if not np.isfinite(stamps).all():
@@ -330,6 +354,7 @@ def load_map(path: str | Path) -> MapFile:
                 raise FormatError(f"{path}: '{key}' has shape {data[key].shape}, 'logodds' has {shape}")
             layers[key] = data[key]
     layers["probability"] = _within(layers["probability"], "probability", path, 0.0, 1.0)
+    _agrees_with_logodds(layers["probability"], logodds, path)
     layers["observed"] = _flags(layers["observed"], "observed", path)
     if "variance" in layers:
         layers["variance"] = _within(layers["variance"], "variance", path, 0.0, np.inf)

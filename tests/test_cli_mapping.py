@@ -92,6 +92,7 @@ def good_arrays(**override):
     (good_arrays(ranges=np.ones((2, 3), np.complex64)), "must hold real numbers"),
     (good_arrays(samples=np.full((2, 1, 3), "x")), "must hold real numbers"),
     (good_arrays(angle_min=1e30), "'angle_min' = 1e+30 rad is more than a full turn"),
+    (good_arrays(stamps=np.arange(2.0, dtype=np.float32)), "'stamps' must be float64 seconds, got float32"),
 ])
 def test_malformed_posed_files_exit_2_with_one_line(tmp_path, arrays, phrase):
     result = posegrid("fuse", str(_bad(tmp_path, "bad.npz", **arrays)), "-o", str(tmp_path / "m.npz"))
@@ -103,9 +104,9 @@ def test_malformed_posed_files_exit_2_with_one_line(tmp_path, arrays, phrase):
 def test_not_an_npz_and_missing_file(tmp_path):
     junk = tmp_path / "junk.npz"
     junk.write_text("hello")
-    for path in (junk, tmp_path / "absent.npz"):
+    for path, phrase in ((junk, "not a .npz archive"), (tmp_path / "absent.npz", "no such file")):
         result = posegrid("fuse", str(path), "-o", str(tmp_path / "m.npz"))
-        assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1
+        assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1 and phrase in result.stderr
 
 
 def test_bad_option_value_exit_2(posed_file, tmp_path):
@@ -155,6 +156,7 @@ def map_arrays(posed_file, tmp_path_factory) -> dict:
     ("probability", "text", "'probability' must hold real numbers"),
     ("probability", np.nan, "'probability' holds nan"),
     ("probability", 1.5, "in [0, 1]"),
+    ("probability", 0.97, "'probability' is not the logistic of 'logodds': at (0, 0) it holds 0.97"),
     ("variance", -1.0, "'variance' holds -1"),
     ("observed", "text", "'observed' must be boolean"),
     ("observed", 2, "'observed' must be boolean"),

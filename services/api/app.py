@@ -231,9 +231,10 @@ def create_app(backend: Backend) -> FastAPI:
                         **errors(404, 422, 503)})
     async def tile_png(request: Request, map: MapName, z: Z, x: TileX, y: TileY,
                        layer: Annotated[Literal["probability", "logodds", "variance"], Query(
-                           description="probability: white free, black occupied; logodds: grey, linear over the "
-                           "clamping range; variance: black-red-yellow over variance / vmax, where pose "
-                           "uncertainty blurred the map. Unobserved cells are pale blue-grey.")] = "probability",
+                           description="probability: grey level 1 - p (free light, occupied black); logodds: "
+                           "grey, linear over the clamping range; variance: black-red-yellow over variance / vmax, "
+                           "where pose uncertainty blurred the map. Unobserved cells are pale blue-grey.")
+                       ] = "probability",
                        vmax: Vmax = None) -> Response:
         """One tile as a PNG, north up, one pixel per cell. Send If-None-Match with the ETag to get 304
         while the tile is unchanged."""

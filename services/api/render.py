@@ -1,7 +1,7 @@
 """A tile's layers as bytes: PNG for people (mapping.export's colours), .npz in the map-file format.
 
 PNG tiles are north up (row 0 of the raster, the southern-most, is the image's bottom row), one pixel per
-cell. Layers: probability (white free, black occupied), variance (the black-red-yellow ramp over
+cell. Layers: probability (grey level 1 - p: free light, occupied black), variance (the black-red-yellow ramp over
 variance / vmax) and logodds (grey, linear from the map's lower clamp, white, to its upper clamp, black);
 unobserved cells are pale blue-grey in all three.
 """

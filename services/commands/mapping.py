@@ -89,8 +89,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     export = subparsers.add_parser(
         "export", help="export a map as PGM+YAML (ROS map_server) or PNG",
         description="Export a map file. pgm writes PATH (.pgm) and a map_server YAML beside it; png writes an "
-        "image for people (white free, black occupied, pale blue unobserved), or the variance layer with "
-        "--layer variance.",
+        "image for people (grey level 1 - p: free light, occupied black; unobserved pale blue), or the variance "
+        "layer with --layer variance.",
     )
     export.add_argument("map", type=Path, help="map .npz")
     export.add_argument("--format", choices=("pgm", "png"), required=True)

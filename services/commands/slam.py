@@ -52,7 +52,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     simulate = subparsers.add_parser(
         "simulate", help="simulate a robot in an office: odometry, landmarks, laser scans, ground truth",
         description="Simulate a robot driving through a 20 m x 12 m office (corridor, six rooms with doors, "
-        "furniture, 38 point landmarks) and write OUTDIR/scans.npz (posed scans at the TRUE poses), "
+        "furniture, 37 point landmarks) and write OUTDIR/scans.npz (posed scans at the TRUE poses), "
         "truth.npz (truth raster), groundtruth.npz (true poses as a pose-distribution file), controls.npz "
         "(velocity commands and odometry readings) and landmarks.npz (range-bearing measurements); "
         "docs/slam.md describes the last two. The same --seed gives the same files.",
