@@ -22,6 +22,9 @@ from services import keys
 #: a seq in a query's parameters
 _SEQ = re.compile(r"[0-9]{1,18}")
 
+#: the streams a history holds (docs/keys.md): the source answers for all but the poses of a SLAM node
+STREAMS = frozenset({keys.PRIOR, keys.ODOM, keys.LANDMARKS, keys.SCAN, keys.POSE})
+
 #: s a question waits for its session to reach a router or peer again (a router restart takes about 5 s here)
 RECONNECT_WAIT = 30.0
 #: s after such a wait during which a question that nobody answered is asked again, every RETRY_PERIOD s: the
@@ -42,14 +45,14 @@ class HistoryRequest:
         return self.first <= seq and (self.stop is None or seq < self.stop)
 
 
-def parse_request(query: zenoh.Query, robot: str, known: set[str]) -> HistoryRequest | None:
+def parse_request(query: zenoh.Query, robot: str) -> HistoryRequest | None:
     """The request of ``query`` to ``robot``'s history: the streams asked for, narrowed to those whose
     pg/<robot>/history/<stream> key its key expression takes in; None after answering it with an error reply that
     says what was wrong."""
     asked = query.parameters.get("streams")
-    streams = set(known) if asked is None else set(asked.split(","))
+    streams = set(STREAMS) if asked is None else set(asked.split(","))
     first, stop = query.parameters.get("from", "0"), query.parameters.get("to")
-    problem = (f"unknown stream(s) {sorted(streams - known)}; known: {sorted(known)}" if streams - known else
+    problem = (f"unknown stream(s) {sorted(streams - STREAMS)}; known: {sorted(STREAMS)}" if streams - STREAMS else
                None if _SEQ.fullmatch(first) and (stop is None or _SEQ.fullmatch(stop)) else
                f"'from' and 'to' must be seqs 0 .. 10^18 in ASCII digits, got {first!r} and {stop!r}")
     if problem:

@@ -366,7 +366,7 @@ class SlamNode:
     def _on_history_query(self, query: zenoh.Query) -> None:
         """pg/<robot>/history/** (services.history): the poses this node has published, of the seqs asked for
         (the other streams are the source's to answer)."""
-        request = history.parse_request(query, self.config.robot, {keys.POSE, *EXPECTED})
+        request = history.parse_request(query, self.config.robot)
         if request is None or keys.POSE not in request.streams:  # before the lock: the node's own history
             return  # queries, which it makes holding the lock, never ask for poses
         with self.lock:

@@ -125,7 +125,7 @@ class Source:
 
     def _on_history_query(self, query: zenoh.Query) -> None:
         """pg/<robot>/history/** (services.history): the prior and the messages of the steps asked for."""
-        request = history.parse_request(query, self.stream.robot, {*STREAM_OF.values(), keys.PRIOR})
+        request = history.parse_request(query, self.stream.robot)
         if request is None:
             return
         with self._history_lock:

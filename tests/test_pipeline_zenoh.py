@@ -182,7 +182,7 @@ def test_two_processes_answering_one_robots_history_are_both_refused(started):
     with zenoh.open(config) as old, zenoh.open(config) as new, zenoh.open(config) as reader:
         def answering(session, run: bytes, streams: set[str]):
             def answer(query):
-                request = history.parse_request(query, "r1", {"scan", "pose"})
+                request = history.parse_request(query, "r1")
                 for stream in sorted(streams & (request.streams if request else set())):
                     for seq in range(request.first, 3 if request.stop is None else min(request.stop, 3)):
                         history.reply(query, history.Answerer(str(session.info.zid()), "m", False), "r1", stream,
