@@ -7,7 +7,6 @@ flipped vertically to put north up, as map_server expects.
 from __future__ import annotations
 
 import io
-import json
 
 import numpy as np
 from PIL import Image
@@ -32,6 +31,23 @@ def occupancy_pixels(probability: np.ndarray, observed: np.ndarray) -> np.ndarra
     return pixels
 
 
+def _yaml_printable(code: int) -> bool:
+    """Whether a code point may stand as itself in a YAML double-quoted scalar (YAML 1.2's printable set, less
+    the line and paragraph separators and the byte order mark, which readers treat specially)."""
+    return 0x20 <= code <= 0x7E or (0xA0 <= code <= 0xFFFD and code not in (0x2028, 0x2029, 0xFEFF)) \
+        or code >= 0x10000
+
+
+def _yaml_quoted(text: str) -> str:
+    """``text`` as a YAML double-quoted scalar (YAML 1.2, section 5.7), others escaped, so that a file name with
+    '#', ': ' or '[' stays the name: as a plain scalar, 'a #b.pgm' read as 'a' and 'c: d.pgm' did not parse."""
+    if any(0xD800 <= ord(char) <= 0xDFFF for char in text):  # an undecodable byte of the file system's name
+        raise InputError(f"the image name {text!r} is not valid UTF-8; a YAML file cannot name it")
+    escaped = ("\\" + char if char in '"\\' else char if _yaml_printable(ord(char))
+               else f"\\x{ord(char):02x}" if ord(char) < 0x100 else f"\\u{ord(char):04x}" for char in text)
+    return '"' + "".join(escaped) + '"'
+
+
 def render_pgm(map_arrays: dict, image_name: str = "map.pgm") -> tuple[bytes, str]:
     """A binary PGM (P5) and its map_server YAML; the YAML names the image file ``image_name``."""
     pixels = np.flipud(occupancy_pixels(np.asarray(map_arrays["probability"]), np.asarray(map_arrays["observed"])))
@@ -41,7 +57,7 @@ def render_pgm(map_arrays: dict, image_name: str = "map.pgm") -> tuple[bytes, st
     pgm = f"P5\n{width} {height}\n255\n".encode("ascii") + pixels.tobytes()
     ox, oy = (float(v) for v in map_arrays["origin"])
     yaml = (
-        f"image: {json.dumps(image_name)}\n"  # double-quoted: a name with '#', ': ' or '[' stays the name
+        f"image: {_yaml_quoted(image_name)}\n"
         f"resolution: {float(map_arrays['resolution']):.6f}\n"
         f"origin: [{ox:.6f}, {oy:.6f}, 0.0]\n"
         "negate: 0\n"

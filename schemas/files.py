@@ -281,8 +281,8 @@ def _read_pose_set(data: dict, steps: int, path, what: str) -> PoseSet:
 def _read_stamps(data: dict, path, what: str, steps: int | None = None) -> np.ndarray:
     stamps = _numeric(_require(data, "stamps", path, what), "stamps", path)
     if stamps.dtype.kind == "f" and stamps.dtype.itemsize < 8:
-        raise FormatError(f"{path}: 'stamps' must be float64 seconds, got {stamps.dtype} (a float32 holds a Unix time "
-                          "only to about 2 minutes)")
+        raise FormatError(f"{path}: 'stamps' must be float64 seconds, got {stamps.dtype} (a float32 or "
+                          "smaller holds a Unix time only to about 2 minutes)")
     stamps = stamps.astype(np.float64)
     if stamps.ndim != 1 or (steps is not None and stamps.shape[0] != steps):
         raise FormatError(f"{path}: 'stamps' must have shape ({steps if steps is not None else 'T'},), got {stamps.shape}")

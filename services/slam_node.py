@@ -287,7 +287,7 @@ class SlamNode:
         if released.skipped:
             self.log.warning("skipped seq %s of robot %s: parts of them never arrived",
                              _spans(released.skipped), self.config.robot)
-            self.steps_done += len(released.skipped)
+            self.steps_done += sum(count for _, count in released.skipped)
         lost = released.evicted
         self._ready.extend(released.steps)
         while self.initial is None and len(self._ready) > self.steps.capacity:  # no start pose yet: the newest
@@ -445,14 +445,9 @@ class SlamNode:
         return 0
 
 
-def _spans(seqs: list[int]) -> str:
-    """Sorted seqs as "3, 7-12, 15"."""
-    spans, start = [], seqs[0]
-    for previous, seq in zip(seqs, seqs[1:] + [None]):
-        if seq != previous + 1:
-            spans.append(str(start) if start == previous else f"{start}-{previous}")
-            start = seq
-    return ", ".join(spans)
+def _spans(runs: list[tuple[int, int]]) -> str:
+    """Runs (first seq, count) as "3, 7-12, 15"."""
+    return ", ".join(str(first) if count == 1 else f"{first}-{first + count - 1}" for first, count in runs)
 
 
 def run_slam_node(config: NodeConfig, zenoh_config: zenoh.Config, stop: threading.Event) -> int:

@@ -21,10 +21,11 @@ class OutOfOrder(Exception):
 
 @dataclass
 class Released:
-    """Complete steps in order, seqs skipped on the way, and incomplete steps evicted for space."""
+    """Complete steps in order, seqs skipped on the way (runs (first seq, count)), and incomplete steps evicted
+    for space."""
 
     steps: list[tuple[int, dict]] = field(default_factory=list)
-    skipped: list[int] = field(default_factory=list)
+    skipped: list[tuple[int, int]] = field(default_factory=list)
     evicted: int = 0
 
 
@@ -82,9 +83,10 @@ class StepAssembler:
                 self._fill(self.recover(self.next_seq, waiting[0] - 1), self.next_seq, waiting[0])
                 self._asked_through = waiting[0] - 1
                 waiting = sorted(s for s in self._pending if self._complete(s))  # now from the first recovered
-            for seq in range(self.next_seq, waiting[0]):
-                self._pending.pop(seq, None)
-                released.skipped.append(seq)
+            for seq in [seq for seq in self._pending if seq < waiting[0]]:  # not per skipped seq: a stream that
+                del self._pending[seq]  # jumps 10^12 ahead took that many steps (and a list of them) before
+            if waiting[0] > self.next_seq:
+                released.skipped.append((self.next_seq, waiting[0] - self.next_seq))
             self.next_seq = waiting[0]
 
     def _fill(self, found: dict[int, dict], first: int, stop: int | None) -> None:

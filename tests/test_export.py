@@ -1,9 +1,9 @@
 """PGM + YAML for map_server and PNG rendering."""
 import io
-import json
 
 import numpy as np
 import pytest
+import yaml
 from PIL import Image
 
 from mapping.errors import InputError
@@ -17,14 +17,19 @@ def small_map():
             "origin": np.array([-1.0, 2.0]), "resolution": 0.5}
 
 
-@pytest.mark.parametrize("name", ["a #b.pgm", "c: d.pgm", "[e].pgm", "%f.pgm", "'g.pgm", "@h.pgm", 'q"uote.pgm',
-                                  "karte-\u00fc.pgm"])
+@pytest.mark.parametrize("name", ["a #b.pgm", "c: d.pgm", "[e].pgm", "%f.pgm", "'g.pgm", "@h.pgm", 'q"uo\\te.pgm',
+                                  "karte-\u00fc.pgm", "tab\there.pgm", "line\nbreak.pgm", "sep\u2028.pgm",
+                                  "\ufeffbom.pgm", "smile-\U0001f600.pgm", "del\x7f\x85.pgm"])
 def test_yaml_names_any_image_file_as_it_is(name):
-    """A plain YAML scalar cut 'a #b.pgm' to 'a' (the rest a comment) and made 'c: d.pgm' a parse error; map_server
-    loaded the wrong file or none. The name is a double-quoted scalar, whose escapes YAML shares with JSON."""
-    _, yaml = render_pgm(small_map(), image_name=name)
-    line = next(line for line in yaml.splitlines() if line.startswith("image: "))
-    assert line.startswith('image: "') and json.loads(line[len("image: "):]) == name
+    """As a plain YAML scalar 'a #b.pgm' read as 'a' (the rest a comment) and 'c: d.pgm' did not parse; map_server
+    loaded the wrong file or none. Read back by a YAML parser, the YAML names the file exactly."""
+    _, text = render_pgm(small_map(), image_name=name)
+    assert yaml.safe_load(text.encode("utf-8"))["image"] == name
+
+
+def test_a_file_name_that_is_not_utf8_is_refused_not_garbled():
+    with pytest.raises(InputError, match="not valid UTF-8"):
+        render_pgm(small_map(), image_name=b"map-\xff.pgm".decode("utf-8", "surrogateescape"))
 
 
 def test_pgm_is_flipped_trinary_and_yaml_has_origin():

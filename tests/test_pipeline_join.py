@@ -260,9 +260,29 @@ def test_late_parts_are_out_of_order_and_gaps_are_skipped():
         steps.add("odom", 0, "again")
     assert steps.add("odom", 2, "c").steps == []  # seq 1 missing: wait
     out = steps.add("odom", 3, "d")  # two complete steps wait: give up on seq 1
-    assert out.skipped == [1] and [s for s, _ in out.steps] == [2, 3]
+    assert out.skipped == [(1, 1)] and [s for s, _ in out.steps] == [2, 3]
     with pytest.raises(OutOfOrder):
         steps.add("odom", 1, "too late")
+
+
+def test_a_step_stream_that_jumps_a_trillion_seqs_ahead_is_skipped_as_one_run():
+    """Valid odometry and landmarks 10^12 seqs ahead: the assembler took every skipped seq one at a time and listed
+    it (the SLAM node went from 116 MB to 3.3 GB in 6 s and stopped publishing poses). Run in a thread so that a
+    regression fails here instead of hanging."""
+    big = 10**12
+    steps = StepAssembler({"odom"}, reorder=2)
+    outs = []
+
+    def feed():
+        outs.extend(steps.add("odom", seq, f"o{seq}") for seq in (0, big, big + 1))
+        outs.append(steps.flush(tail=False))
+
+    worker = threading.Thread(target=feed, daemon=True)
+    worker.start()
+    worker.join(timeout=60)
+    assert not worker.is_alive(), "the step assembler walks the seqs a gap skips"
+    assert [seq for out in outs for seq, _ in out.steps] == [0, big, big + 1]
+    assert [run for out in outs for run in out.skipped] == [(1, big - 1)]
 
 
 def test_steps_about_to_be_skipped_are_asked_for_and_what_comes_back_is_used():
@@ -281,7 +301,7 @@ def test_steps_about_to_be_skipped_are_asked_for_and_what_comes_back_is_used():
     assert [(seq, parts) for seq, parts in out.steps] == [(1, {"odom": "b", "landmarks": "B"}),
                                                           (4, {"odom": "o4", "landmarks": "l4"}),
                                                           (5, {"odom": "o5", "landmarks": "l5"})]
-    assert out.skipped == [2, 3]
+    assert out.skipped == [(2, 2)]
 
 
 def test_the_end_of_the_stream_asks_for_every_step_not_released_yet():
