@@ -413,9 +413,10 @@ class SlamNode:
                 self._history_high[stream] = max(self._history_high.get(stream, -1), message.seq)
         if parts and last is None:  # the end mark can overtake the last steps: they may still be on their way
             self.log.info("at the end of the stream, took seq %s, which had not all arrived (lost, or still on their "
-                          "way), from the source's history", _spans(sorted(parts)))
+                          "way), from the source's history", _spans(_runs(sorted(parts))))
         elif parts:
-            self.log.info("took seq %s, which did not all arrive, from the source's history", _spans(sorted(parts)))
+            self.log.info("took seq %s, which did not all arrive, from the source's history",
+                          _spans(_runs(sorted(parts))))
         return parts
 
     # ---------------------------------------------------------------------------- lifecycle
@@ -443,6 +444,17 @@ class SlamNode:
         self._pose_publisher.undeclare()
         self.log.info("stopped after publishing %d poses", self.published)
         return 0
+
+
+def _runs(seqs: list[int]) -> list[tuple[int, int]]:
+    """Ascending seqs as runs (first seq, count) of consecutive ones."""
+    runs: list[tuple[int, int]] = []
+    for seq in seqs:
+        if runs and seq == runs[-1][0] + runs[-1][1]:
+            runs[-1] = (runs[-1][0], runs[-1][1] + 1)
+        else:
+            runs.append((seq, 1))
+    return runs
 
 
 def _spans(runs: list[tuple[int, int]]) -> str:
