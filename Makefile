@@ -14,9 +14,10 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
-## make run: the whole pipeline on the built-in simulated world; prints where to look
+## make run: the whole pipeline on the built-in simulated world; prints where to look. Options of posegrid run
+## go in RUN_ARGS, e.g. make run RUN_ARGS="--api-port 8001"
 run: $(STAMP)
-	$(VENV)/bin/posegrid run
+	$(VENV)/bin/posegrid run $(RUN_ARGS)
 
 ## make test: the test suite (pytest's exit 5, "no tests collected", fails the target)
 test: $(STAMP)

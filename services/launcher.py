@@ -181,7 +181,7 @@ def _banner(plan: Plan, endpoint: str, children: Children) -> None:
              f"  zenoh router: {endpoint}  (connect with --connect {endpoint})",
              f"  map {plan.map_name!r}: tiles on {keys.tile_key(plan.map_name, 0, '*', '*')}, "
              f"stats on {keys.stats_key(plan.map_name, '*')}",
-             (f"  HTTP API and map viewer: http://127.0.0.1:{plan.api_port}/  (OpenAPI: /docs)"
+             (f"  HTTP API and map viewer: http://127.0.0.1:{plan.api_port}/  (OpenAPI: /openapi.json)"
               if plan.api_port is not None else "  HTTP API: not started (--no-api)"),
              "  running: " + ", ".join(f"{c.name} (pid {c.process.pid})" for c in children.children),
              "  Ctrl-C stops everything"]

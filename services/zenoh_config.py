@@ -122,6 +122,10 @@ def open_session(config: zenoh.Config, what: str) -> zenoh.Session:
     try:
         return zenoh.open(config)
     except zenoh.ZError as exc:
-        endpoints = read_key(config, "connect/endpoints") or read_key(config, "listen/endpoints")
+        connect = read_key(config, "connect/endpoints")
+        if not connect:  # a router (or a peer that only listens): its own endpoint is what failed
+            raise UsageError(f"{what} could not open its zenoh session ({_first_line(exc)}); is another process "
+                             f"listening on {json.dumps(read_key(config, 'listen/endpoints'))}? pick another "
+                             "--listen (`posegrid run`: --router-port)") from None
         raise UsageError(f"{what} could not open its zenoh session ({_first_line(exc)}); is `posegrid router` "
-                         f"running at {json.dumps(endpoints)}?") from None
+                         f"running at {json.dumps(connect)}?") from None

@@ -565,6 +565,20 @@ def test_a_stopped_shard_shows_in_health_and_stops_the_export(api, stack):
     assert [(s["shard"], s["alive"], s["answered"]) for s in stats["per_shard"]] == [(0, True, True), (1, False, False)]
     detail = problem(httpx.get(f"{api}/maps/{MAP}/export", params={"format": "npz"}, timeout=60), 503)
     assert "shard" in detail
+    # the map list and the map's summary still answer (they were 503 for every map while one shard was down); what
+    # needs every tile is null unless the API holds them all already
+    listed = httpx.get(f"{api}/maps", timeout=30)
+    assert listed.status_code == 200 and [m["shards_alive"] for m in listed.json() if m["name"] == MAP] == [[0]]
+    one = httpx.get(f"{api}/maps/{MAP}", timeout=30)
+    assert one.status_code == 200 and one.json()["tiles"] > 0
+    # started again after the sources ended: every shard answers, but shard 1's scans cannot come back (no source
+    # holds a history any more); the lag says so and the status stays degraded (it said ok)
+    stack.start("mapper1", "mapper", "--shard", "1", "--shards", str(SHARDS), "--map", MAP, "--resolution",
+                str(RESOLUTION), "--tile-size", str(TILE))
+    health = wait_until(lambda: (h := httpx.get(f"{api}/health", timeout=30).json())["maps"][MAP]["shards_alive"]
+                        == [0, 1] and h["maps"][MAP]["lag_scans"].get("robot0", 0) > 0 and h, 60,
+                        "the restarted shard to answer with its lag")
+    assert health["status"] == "degraded" and "robot0/source" not in health["processes_alive"]
 
 
 def test_a_map_whose_only_tiles_may_lie_on_a_down_shard_is_503_not_empty(api, stack):

@@ -280,6 +280,8 @@ def test_same_seed_same_result_and_bad_input_exits_2(simulated_log, tmp_path, ca
     assert "prior_cap -1" in capsys.readouterr().err
     assert main(["slam", "--algo", "gridslam", str(cut), "-o", str(tmp_path / "o.npz"), "--min-range", "50"]) == 2
     assert "min_range 50" in capsys.readouterr().err
+    assert main(["slam", "--algo", "gridslam", str(cut), "-o", str(tmp_path / "o.npz"), "--scan-topic", "/scan"]) == 2
+    assert "--scan-topic names a topic of a ROS bag, but" in capsys.readouterr().err  # was ignored
 
 
 def test_filter_rejects_bad_config():

@@ -235,6 +235,9 @@ def test_eval_traj_refuses_ground_truth_from_another_time_base(simdir, tmp_path,
     ("gridslam", ["--motion", "velocity", "--raw-ranges"], "--raw-ranges, --motion do not apply to --algo gridslam"),
     ("ekf", ["--raw-commands"], "a simulator folder has none"),
     ("fastslam1", ["--period", "0.5"], "--period is for MRCLAM folders"),
+    ("ekf", ["--stats", "s.json", "--odom-delay", "0.1"],
+     "--stats, --odom-delay do not apply to --algo ekf (only to gridslam)"),
+    ("fastslam2", ["--scan-topic", "/scan"], "--scan-topic does not apply to --algo fastslam2"),
 ])
 def test_options_the_filter_would_ignore_are_refused(simdir, tmp_path, capsys, algo, options, phrase):
     out = tmp_path / "x.npz"

@@ -177,7 +177,12 @@ def create_app(backend: Backend) -> FastAPI:
                                 f"in {x0}..{x1} and y in {y0}..{y1}")
 
     def summary(info: MapInfo) -> models.MapSummary:
-        content = tiles.content(info.name)
+        """The map's summary; what needs every tile (observed cells, the variance scale) is null while a shard
+        that holds some does not answer, so that one shard down does not take the list of maps down with it."""
+        try:
+            content = tiles.content(info.name)
+        except TileUnavailable:
+            content = None
         size, res = info.tile_size, info.resolution
         bounds = extent = observed = None
         if info.x_range is not None:
@@ -185,7 +190,7 @@ def create_app(backend: Backend) -> FastAPI:
             span = size * res
             bounds = models.TileBounds(x_min=x0, x_max=x1, y_min=y0, y_max=y1)
             extent = _extent(x0 * span, y0 * span, (x1 + 1) * span, (y1 + 1) * span)
-        if content.bounds is not None:
+        if content is not None and content.bounds is not None:
             ix0, iy0, ix1, iy1 = content.bounds
             observed = _extent(ix0 * res, iy0 * res, (ix1 + 1) * res, (iy1 + 1) * res)
         per_tile = (size or 0) ** 2
@@ -193,8 +198,9 @@ def create_app(backend: Backend) -> FastAPI:
             name=info.name, resolution=res, tile_size=size, shards=info.shards, shards_alive=sorted(info.alive),
             tiles=len(info.tiles), tile_bounds=bounds, extent=extent, observed_extent=observed,
             max_zoom=info.top_level,
-            cells=models.CellCounts(per_tile=per_tile, total=per_tile * len(info.tiles), observed=content.observed),
-            variance_scale=content.variance_scale)
+            cells=models.CellCounts(per_tile=per_tile, total=per_tile * len(info.tiles),
+                                    observed=None if content is None else content.observed),
+            variance_scale=None if content is None else content.variance_scale)
 
     # ------------------------------------------------------------------------------- maps
     @app.get("/maps", response_model=list[models.MapSummary], tags=["maps"], responses=errors(503))
@@ -336,14 +342,18 @@ def create_app(backend: Backend) -> FastAPI:
 
     @app.get("/health", response_model=models.Health, tags=["status"])
     def health() -> models.Health:
-        """Shards alive and answering, scans fused and lag per map, the API's own rejected messages."""
+        """Shards alive and answering, scans fused and lag per map, the API's own rejected messages. Degraded too
+        while a robot's scans lag and its source is gone: they cannot come any more (a shard restarted after the
+        source ended finds no history to take them from), and nothing else would say so."""
         maps, ok = {}, bool(registry.names())
+        sources = {process.split("/", 1)[0] for process in list(link.processes) if process.endswith("/source")}
         for name in registry.names():
             s = map_stats(name)
             maps[name] = models.MapHealth(shards=s.shards, shards_alive=s.shards_alive, scans_fused=s.scans_fused,
                                           scans_discarded=s.scans_discarded, lag_scans=s.lag_scans)
+            stranded = any(lag > 0 and robot not in sources for robot, lag in s.lag_scans.items())
             ok = ok and s.shards is not None and all(p.alive and p.answered for p in s.per_shard) and \
-                len(s.per_shard) >= s.shards
+                len(s.per_shard) >= s.shards and not stranded
         return models.Health(status="ok" if ok else "degraded", uptime_s=time.monotonic() - backend.started,
                              maps=maps, robots=robots.robots(), processes_alive=sorted(link.processes),
                              rejected=link.rejects.snapshot(), event_clients=hub.clients)

@@ -38,7 +38,8 @@ class CellCounts(BaseModel):
 
     per_tile: int = Field(description="cells per tile (tile_size squared)")
     total: int = Field(description="cells in the tiles that exist")
-    observed: int = Field(description="cells any scan has touched")
+    observed: int | None = Field(description="cells any scan has touched (null while a shard that holds tiles of "
+                                 "the map does not answer)")
 
 
 class MapSummary(BaseModel):
@@ -53,12 +54,14 @@ class MapSummary(BaseModel):
     tiles: int = Field(description="level-0 tiles that exist")
     tile_bounds: TileBounds | None = Field(description="level-0 tiles spanned (null without tiles)")
     extent: Extent | None = Field(description="area the level-0 tiles span, m (tile aligned; null without tiles)")
-    observed_extent: Extent | None = Field(description="area of the observed cells, m (null when none)")
+    observed_extent: Extent | None = Field(description="area of the observed cells, m (null when none, or while a "
+                                           "shard that holds tiles of the map does not answer)")
     max_zoom: int | None = Field(description="coarsest zoom level served: z ranges over 0..max_zoom "
                                  "(null without tiles)")
     cells: CellCounts
-    variance_scale: float = Field(description="variance (log-odds squared) at the top of the variance colour "
-                                  "ramp when a tile request gives no vmax")
+    variance_scale: float | None = Field(description="variance (log-odds squared) at the top of the variance "
+                                         "colour ramp when a tile request gives no vmax (null while a shard that "
+                                         "holds tiles of the map does not answer)")
 
 
 class ShardStatus(BaseModel):

@@ -54,6 +54,8 @@ def read_log(path: Path, scan_topic: str | None = None):
         raise LogFormatError(f"{path}: a .npz file, not a laser log (expected a CARMEN log .clf/.log/.gz or a ROS bag)")
     if path.is_dir() or suffix == ".bag":
         return read_rosbag(path, scan_topic=scan_topic)
+    if scan_topic is not None:
+        raise LogFormatError(f"--scan-topic names a topic of a ROS bag, but {path} is read as a CARMEN log")
     return read_carmen(path)
 
 

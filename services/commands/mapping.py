@@ -24,7 +24,7 @@ def add_sensor_model_arguments(parser: argparse.ArgumentParser) -> None:
                        help="range noise sigma in m, or the linear model's "
                        "intercept (default 0.03)")
     group.add_argument("--sigma-slope", type=finite_float, default=0.0,
-                       help="linear model: sigma grows by this many m per m")
+                       help="linear model: sigma grows by this many m per m (default 0: as constant)")
     group.add_argument("--baseline-focal", type=finite_float, default=0.0,
                        help="stereo model: baseline (m) times focal length (px), so sigma = z^2/(b*f)")
     group.add_argument("--peak-width", type=finite_float, default=None,
@@ -93,7 +93,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "layer with --layer variance.",
     )
     export.add_argument("map", type=Path, help="map .npz")
-    export.add_argument("--format", choices=("pgm", "png"), required=True)
+    export.add_argument("--format", choices=("pgm", "png"), required=True,
+                        help="pgm: PATH.pgm and a map_server YAML beside it; png: an image for people")
     export.add_argument("-o", "--output", type=Path, required=True, help="image path (.pgm or .png)")
     export.add_argument("--layer", choices=("probability", "variance"), default="probability",
                         help="png only: which layer to draw (default probability)")

@@ -95,9 +95,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     run = subparsers.add_parser(
         "run", help="run the whole pipeline: router, source, SLAM node, mapper shards, HTTP API",
         description="Start a Zenoh router, N mapper shards, the HTTP API and map viewer, a SLAM node (unless "
-        "the input has poses) and a source, print where to look and show progress. Input: the built-in simulated office (default), "
-        "a posed-scan file (--posed: scans and poses, no SLAM node), a simulator folder, an MRCLAM folder "
-        "or a CARMEN log. When the replay ends the shards keep serving the map until Ctrl-C; with --export "
+        "the input has poses) and a source, print where to look and show progress. Input: the built-in simulated "
+        "office (default), a posed-scan file (--posed: scans and poses, no SLAM node), a simulator folder, a CARMEN "
+        "log or a ROS bag (both with grid FastSLAM). An MRCLAM folder has no laser, so no map: replay it with "
+        "`posegrid source --mrclam` and `posegrid slam-node`. When the replay ends the shards keep serving the map until Ctrl-C; with --export "
         "the map assembled from all shards is written and run exits 0. Ctrl-C stops every child cleanly.",
     )
     add_input_arguments(run, default_sim=True)
@@ -128,8 +129,8 @@ def add_fusion_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument("--accuracy", type=finite_float, default=None,
                        help="accuracy in m for the derived sample count (default: one cell)")
     group.add_argument("--seed", type=random_seed, default=0,
-                       help="seed of every random draw (Gaussian pose sampling; for run also the simulated "
-                       "world and the SLAM filter) (default 0)")
+                       help="seed of the Gaussian pose sampling (`posegrid run`: also of the simulated world and "
+                       "the SLAM filter) (default 0)")
     add_sensor_model_arguments(parser)
 
 
@@ -146,17 +147,21 @@ def fusion_argv(args: argparse.Namespace) -> list[str]:
 
 
 def add_input_arguments(parser: argparse.ArgumentParser, default_sim: bool) -> None:
+    """The inputs of `source` and (``default_sim``: the simulation unless another is given) of `run`. `run` builds
+    a map, so its help offers no MRCLAM folder (no laser); it takes the options only to say where to go."""
     group = parser.add_argument_group("input (one of)")
+    mrclam_help = (lambda text: argparse.SUPPRESS) if default_sim else (lambda text: text)
     inputs = group.add_mutually_exclusive_group(required=not default_sim)
     inputs.add_argument("--sim", action="store_true",
                         help="simulate the office world live (slam.simulator)" + (" (default)" if default_sim else ""))
     inputs.add_argument("--posed", type=Path, metavar="FILE.npz", help="posed-scan file: scans with their poses")
     inputs.add_argument("--sim-dir", type=Path, metavar="DIR", help="folder written by `posegrid simulate`")
-    inputs.add_argument("--mrclam", type=Path, metavar="DIR", help="UTIAS MRCLAM dataset folder (no laser)")
+    inputs.add_argument("--mrclam", type=Path, metavar="DIR", help=mrclam_help("UTIAS MRCLAM dataset folder (no laser)"))
     inputs.add_argument("--carmen", type=Path, metavar="FILE", help="CARMEN log (.clf/.log, plain or gzip)")
     inputs.add_argument("--bag", type=Path, metavar="BAG", help="ROS bag with LaserScan and odometry (Odometry "
                         "messages or /tf): a ROS 1 .bag file or a ROS 2 bag folder")
-    group.add_argument("--mrclam-robot", type=int, default=1, metavar="K", help="MRCLAM robot number (default 1)")
+    group.add_argument("--mrclam-robot", type=int, default=1, metavar="K",
+                       help=mrclam_help("MRCLAM robot number (default 1)"))
     group.add_argument("--scan-topic", type=str, default=None, metavar="TOPIC",
                        help="--bag: the LaserScan topic (default: the only one, or /scan)")
     group.add_argument("--odom-delay", type=odom_delay_seconds, default=0.0, metavar="SECONDS",
@@ -164,11 +169,11 @@ def add_input_arguments(parser: argparse.ArgumentParser, default_sim: bool) -> N
                        "before), from the log's separate odometry stream, for a laser whose stamps run late against "
                        "the odometry's (Freiburg 079's bag: -0.10; `posegrid slam --algo gridslam LOG --odom-delay "
                        "auto` estimates it; default 0)")
-    group.add_argument("--raw-ranges", action="store_true",
-                       help="MRCLAM: publish the ranges as logged, without the bearing-dependent range calibration")
-    group.add_argument("--raw-commands", action="store_true",
-                       help="MRCLAM: publish the velocity commands as logged, without the calibration of the speeds "
-                       "the robots executed")
+    group.add_argument("--raw-ranges", action="store_true", help=mrclam_help(
+                       "MRCLAM: publish the ranges as logged, without the bearing-dependent range calibration"))
+    group.add_argument("--raw-commands", action="store_true", help=mrclam_help(
+                       "MRCLAM: publish the velocity commands as logged, without the calibration of the speeds the "
+                       "robots executed"))
     group.add_argument("--steps", type=int, default=400, help="--sim: steps of 0.1 s to simulate (default 400)")
     if not default_sim:  # `run` has --seed among its fusion options and passes it on
         group.add_argument("--seed", type=random_seed, default=0, help="--sim: seed of the simulated world (default 0)")
@@ -185,7 +190,7 @@ def add_slam_arguments(parser: argparse.ArgumentParser, particles: int | None = 
     group = parser.add_argument_group("SLAM node (as for posegrid slam)")
     group.add_argument("--algo", choices=SLAM_ALGORITHMS, default=None,
                        help="odometry, ekf, fastslam1, fastslam2 (landmarks) or gridslam (laser and odometry); "
-                       f"default gridslam for a CARMEN log, else {DEFAULT_ALGORITHM}")
+                       f"default {DEFAULT_ALGORITHM}, and for `posegrid run` gridslam with --carmen or --bag")
     group.add_argument("--particles", type=pose_sample_count, default=particles,
                        help="FastSLAM / grid FastSLAM particles (default %s)"
                        % (particles or "500 for FastSLAM, 30 for grid FastSLAM"))

@@ -42,6 +42,8 @@ OPTION_ALGORITHMS = {
     "--range-fraction": _LANDMARK_FILTERS, "--outlier-gate": _LANDMARK_FILTERS,
     **{option: ("odometry",) + _LANDMARK_FILTERS
        for option in ("--alphas", "--robot", "--initial", "--period", "--raw-ranges", "--raw-commands", "--motion")},
+    **{option: ("gridslam",)  # (a delay of 0, the default, counts as not given)
+       for option in ("--stats", "--scan-topic", "--best-output", "--poses-output", "--odom-delay")},
 }
 
 
@@ -71,9 +73,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     simulate.set_defaults(func=run_simulate)
 
     slam = subparsers.add_parser(
-        "slam", help="estimate the pose distribution with EKF-SLAM or FastSLAM 1.0/2.0",
+        "slam", help="estimate the pose distribution: dead reckoning, EKF-SLAM, FastSLAM 1.0/2.0 or grid FastSLAM",
         description="Run a SLAM filter over INPUT, a simulator folder (from 'posegrid simulate') or a UTIAS "
-        "MRCLAM dataset folder (with --robot). Output: with a simulator folder that holds scans.npz, a "
+        "MRCLAM dataset folder (with --robot), or grid FastSLAM (--algo gridslam) over a laser log: a CARMEN log or "
+        "a ROS bag. Output: with a simulator folder that holds scans.npz, a "
         "posed-scan file (its scans with the filter's pose distribution at every scan); otherwise a "
         "pose-distribution file. EKF and odometry give mean+cov per step; FastSLAM gives particles and "
         "their weights before resampling. The filter starts at the true first pose (simulator; MRCLAM "
@@ -138,7 +141,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "stamps. No alignment: the filters start at the true first pose in the map frame. Prints one JSON "
         "line: ate_rmse_m (RMS position error, m), heading_mae_rad (mean absolute yaw error, rad), nees_mean "
         "(mean normalised estimation error squared, 3 DOF; about 3 when honest), inside95 (fraction of steps "
-        "whose true pose is inside the estimate's 95%% region, particles via a fitted Gaussian; about 0.95 "
+        "whose true pose is inside the estimate's 95% region, particles via a fitted Gaussian; about 0.95 "
         "when honest) and steps.",
     )
     evaluate.add_argument("poses", type=Path, help="pose-distribution or posed-scan .npz")

@@ -66,7 +66,7 @@
   }
 
   function vmaxParam() {
-    return state.layer === "variance" ? `&vmax=${state.info.variance_scale}` : "";
+    return state.layer === "variance" && state.info.variance_scale != null ? `&vmax=${state.info.variance_scale}` : "";
   }
 
   function tileKey(z, x, y) {
