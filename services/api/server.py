@@ -47,7 +47,7 @@ def serve(host: str, port: int, zenoh_config: zenoh.Config, cache_bytes: int, qu
                 server.should_exit = True
 
             threading.Thread(target=exit_when_stopped, daemon=True, name="api-stop").start()
-            log.info("serving on http://%s:%d/ (viewer), http://%s:%d/docs (OpenAPI); maps known: %s",
+            log.info("serving on http://%s:%d/ (viewer), http://%s:%d/openapi.json (OpenAPI); maps known: %s",
                      host, port, host, port, ", ".join(backend.registry.names()) or "none yet")
             server.run()
             return 0 if server.started else 1
