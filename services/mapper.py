@@ -109,8 +109,9 @@ class Mapper:
                 self.shard.take(key, message, from_history=True)
                 self._refresh_stats()
         if replies:
-            self.log.info("took %d scan(s) and pose(s) published before this shard was up from the histories",
-                          len(replies))
+            scans = sum(stream == keys.SCAN for _, stream, _ in replies)
+            self.log.info("took %d scan(s) and %d pose(s) published before this shard was up from the histories",
+                          scans, len(replies) - scans)
 
     # ---------------------------------------------------------------------------- lifecycle
     def declare(self) -> None:

@@ -40,6 +40,8 @@ from services.api.tiles import TileService, TileUnavailable, render_key
 from services.map_client import IncompleteMap
 
 STATIC = FilePath(__file__).resolve().parent / "static"
+#: s without progress on a robot's lagging scans, its source gone, before /health calls them stranded
+STRANDED_AFTER = 5.0
 #: tile requests that may fetch or render at once (their own worker threads; FastAPI's pool keeps its 40)
 TILE_THREADS = 16
 
@@ -146,6 +148,8 @@ def create_app(backend: Backend) -> FastAPI:
     async def unavailable(request: Request, exc: Exception) -> JSONResponse:
         return JSONResponse({"detail": str(exc)}, status_code=503)
 
+    progress: dict[tuple[str, str], tuple[int, float]] = {}  # (map, robot) -> (scans done, when that last changed)
+
     def known_map(name: str) -> MapInfo:
         info = registry.get(name)
         if info is None:
@@ -203,7 +207,7 @@ def create_app(backend: Backend) -> FastAPI:
             variance_scale=None if content is None else content.variance_scale)
 
     # ------------------------------------------------------------------------------- maps
-    @app.get("/maps", response_model=list[models.MapSummary], tags=["maps"], responses=errors(503))
+    @app.get("/maps", response_model=list[models.MapSummary], tags=["maps"])
     def list_maps() -> list[models.MapSummary]:
         """Every map a shard has announced (by its liveliness token), with extent and cell counts."""
         out = []
@@ -212,7 +216,7 @@ def create_app(backend: Backend) -> FastAPI:
             out.append(summary(synced_map(name)))
         return out
 
-    @app.get("/maps/{map}", response_model=models.MapSummary, tags=["maps"], responses=errors(404, 422, 503))
+    @app.get("/maps/{map}", response_model=models.MapSummary, tags=["maps"], responses=errors(404, 422))
     def get_map(map: MapName) -> models.MapSummary:
         """One map: resolution, tile size, extent (m), zoom levels, cell counts, shards."""
         info = synced_map(map)
@@ -343,15 +347,22 @@ def create_app(backend: Backend) -> FastAPI:
     @app.get("/health", response_model=models.Health, tags=["status"])
     def health() -> models.Health:
         """Shards alive and answering, scans fused and lag per map, the API's own rejected messages. Degraded too
-        while a robot's scans lag and its source is gone: they cannot come any more (a shard restarted after the
-        source ended finds no history to take them from), and nothing else would say so."""
+        while a robot's scans lag, its source is gone and the shards have made no progress on them for
+        STRANDED_AFTER s: they cannot come any more (a shard restarted after the source ended finds no history to
+        take them from), and nothing else would say so."""
         maps, ok = {}, bool(registry.names())
         sources = {process.split("/", 1)[0] for process in list(link.processes) if process.endswith("/source")}
+        now = time.monotonic()
         for name in registry.names():
             s = map_stats(name)
             maps[name] = models.MapHealth(shards=s.shards, shards_alive=s.shards_alive, scans_fused=s.scans_fused,
                                           scans_discarded=s.scans_discarded, lag_scans=s.lag_scans)
-            stranded = any(lag > 0 and robot not in sources for robot, lag in s.lag_scans.items())
+            stranded = False
+            for robot, lag in s.lag_scans.items():
+                done = s.scans_fused.get(robot, 0) + s.scans_discarded.get(robot, 0)
+                if progress.get((name, robot), (None,))[0] != done:  # still moving (a source that did not wait
+                    progress[(name, robot)] = (done, now)  # for the shards exits while they catch up)
+                stranded |= lag > 0 and robot not in sources and now - progress[(name, robot)][1] >= STRANDED_AFTER
             ok = ok and s.shards is not None and all(p.alive and p.answered for p in s.per_shard) and \
                 len(s.per_shard) >= s.shards and not stranded
         return models.Health(status="ok" if ok else "degraded", uptime_s=time.monotonic() - backend.started,

@@ -280,6 +280,9 @@
   async function refreshInfo() {
     try {
       const info = await getJSON(`maps/${encodeURIComponent(state.map)}`);
+      if (info.variance_scale === null && state.info && state.info.name === info.name) {
+        info.variance_scale = state.info.variance_scale;  // null while a shard is down: keep the scale known
+      }
       state.info = info;
       showMessage(info.max_zoom === null ? `map ${info.name}: waiting for the first tile…` : "");
       if (!state.fitted) fit();
@@ -383,7 +386,7 @@
       ? '<span class="swatch" style="background:#fff"></span> free · ' +
         `<span class="swatch" style="background:#000"></span> occupied · ${unobserved}`
       : '<span class="swatch" style="background:linear-gradient(90deg,#000,#aa141e,#faaa14,#ffffe6)"></span>' +
-        ` variance of the log-odds from pose uncertainty, 0 → ${state.info ? state.info.variance_scale : "?"} · ` +
+        ` variance of the log-odds from pose uncertainty, 0 → ${state.info && state.info.variance_scale !== null ? state.info.variance_scale : "?"} · ` +
         unobserved;
     legend.innerHTML += " · dots: pose samples · dashed: 95 % of the pose · line: trajectory" +
       " · drag to pan, wheel to zoom";
