@@ -123,7 +123,7 @@ def open_session(config: zenoh.Config, what: str) -> zenoh.Session:
         return zenoh.open(config)
     except zenoh.ZError as exc:
         connect = read_key(config, "connect/endpoints")
-        if not connect:  # a router (or a peer that only listens): its own endpoint is what failed
+        if not connect or "listener" in _first_line(exc):  # its own listening endpoint is what failed
             raise UsageError(f"{what} could not open its zenoh session ({_first_line(exc)}); is another process "
                              f"listening on {json.dumps(read_key(config, 'listen/endpoints'))}? pick another "
                              "--listen (`posegrid run`: --router-port)") from None

@@ -112,6 +112,21 @@ def test_mapper_without_a_router_says_so_in_one_sentence(tmp_path, capsys):
     assert "could not open its zenoh session" in result.stderr and f"tcp/127.0.0.1:{port}" in result.stderr
 
 
+def test_a_router_port_in_use_names_the_option_to_change():
+    """A busy listening port said "is `posegrid router` running at ...?", which sends the user to the router that
+    could not start; it now names the port's option."""
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        result = subprocess.run([*CLI, "router", "--listen", f"tcp/127.0.0.1:{port}"], capture_output=True,
+                                text=True, timeout=60)
+    assert result.returncode == 2 and result.stderr.count("\n") == 1, result.stderr
+    assert "is another process listening on" in result.stderr and "pick another --listen" in result.stderr
+
+
 @pytest.mark.parametrize("argv, message", [
     (["mapper", "--shard", "2", "--shards", "2"], "--shard"),
     (["mapper", "--shard", "0", "--shards", "1", "--tile-size", "100"], "power of 2"),
