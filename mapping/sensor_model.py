@@ -90,15 +90,6 @@ class SensorModel:
         return self.peak_width if self.peak_width is not None else self.resolution * math.sqrt(2.0)
 
     @property
-    def sigma_code(self) -> int:
-        """The sigma kind as an integer for the compiled kernels (index into SIGMA_KINDS)."""
-        return SIGMA_KINDS.index(self.sigma)
-
-    @property
-    def sigma_params(self) -> tuple[float, float, float]:
-        return (self.sigma0, self.sigma_slope, self.baseline_focal)
-
-    @property
     def l_free(self) -> float:
         return float(logit(self.p_miss))
 

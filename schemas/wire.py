@@ -217,7 +217,7 @@ class Array(Spec):
             ctx.fail("shape", f"'{name}' shape must be a list of non-negative integers, got {shape!r}")
         if len(shape) != len(self.shape):
             ctx.fail("shape", f"'{name}' must have {len(self.shape)} dimensions {self.shape}, got {shape}")
-        for axis, (want, got) in enumerate(zip(self.shape, shape)):
+        for want, got in zip(self.shape, shape):
             if isinstance(want, int) and got != want:
                 ctx.fail("shape", f"'{name}' must have shape {self.shape}, got {shape}")
             if isinstance(want, str):
