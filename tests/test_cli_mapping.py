@@ -29,6 +29,16 @@ def posed_file(tmp_path_factory) -> Path:
     return path
 
 
+def test_fuse_says_when_the_sensor_model_draws_walls_behind_the_returns(posed_file, tmp_path):
+    """sigma^2 ln 2 / l behind the return: 0.009 m with the defaults (no note); with a stereo sigma of 0.18 m at 3 m
+    (b f = 50) against l = 0.071 m, about 0.3 m, six cells, which the map would show without a word."""
+    quiet = posegrid("fuse", str(posed_file), "-o", str(tmp_path / "a.npz"))
+    assert quiet.returncode == 0 and "behind the return" not in quiet.stderr, quiet.stderr
+    noisy = posegrid("fuse", str(posed_file), "-o", str(tmp_path / "b.npz"), "--sigma-model", "stereo",
+                     "--baseline-focal", "50")
+    assert noisy.returncode == 0 and "behind its return" in noisy.stderr and "--peak-width" in noisy.stderr
+
+
 def test_fuse_is_reproducible_byte_for_byte(posed_file, tmp_path):
     outputs = []
     for name in ("a.npz", "b.npz"):

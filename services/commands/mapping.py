@@ -115,6 +115,28 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     evaluate.set_defaults(func=run_eval)
 
 
+def _note_peak_behind_returns(model, posed) -> None:
+    """Say so when the sensor model puts its occupied peak more than half a cell behind the farthest return
+    (r* - z = sigma^2 ln 2 / l, docs/sensor_model.md): the walls of the map then stand that far behind the
+    surfaces the laser saw."""
+    import numpy as np
+
+    from mapping.sensor_model import TAIL_SIGMAS
+
+    ranges = posed.ranges[np.isfinite(posed.ranges)]
+    hits = ranges[(ranges >= posed.range_min) & (ranges <= posed.range_max)]
+    if not hits.size:
+        return
+    z = float(hits.max())
+    sigma = float(model.sigma_at(z))
+    behind = min(float(model.peak_range(np.array([z]))[0]) - z, TAIL_SIGMAS * sigma)  # beams stop at z + 3 sigma
+    if behind > model.resolution / 2:
+        print(f"posegrid fuse: note: at {z:.3g} m the range noise sigma is {sigma:.3g} m against a peak width l of "
+              f"{model.l:.3g} m, so the strongest occupied evidence of a beam lies {behind:.3g} m behind its return, "
+              "and walls are drawn behind the surfaces; raise --peak-width towards sigma (docs/sensor_model.md, "
+              "section 1)", file=sys.stderr, flush=True)
+
+
 def run_fuse(args: argparse.Namespace) -> int:
     from schemas.files import MapFile, load_posed_scans, save_map
     from services.cli import UsageError
@@ -129,6 +151,7 @@ def run_fuse(args: argparse.Namespace) -> int:
                          "pose only")
     model = sensor_model_from_args(args)
     posed = load_posed_scans(args.posed)
+    _note_peak_behind_returns(model, posed)
     if not posed.poses.is_gaussian and (args.samples is not None or args.accuracy is not None):
         raise UsageError(f"{args.posed} holds pose samples, which are fused as they are; --samples and --accuracy "
                          "set how many to draw from Gaussian poses")
