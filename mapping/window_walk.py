@@ -18,24 +18,22 @@ JUMP_MARGIN = 1e-9
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _axis_exit(i, step, t_max, t_delta, tile_shift):  # pragma: no cover - compiled
+    """Along one axis: the range at which a ray in cell index i, stepping by ``step`` (-1, 0, 1), crosses the
+    last grid line of i's tile (tiles of 2**tile_shift cells); FAR when it does not move along the axis."""
+    first = (i >> tile_shift) << tile_shift
+    if step > 0:
+        return t_max + (first + (1 << tile_shift) - 1 - i) * t_delta
+    if step < 0:
+        return t_max + (i - first) * t_delta
+    return FAR
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def tile_exit(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tile_shift):  # pragma: no cover
     """Range at which a ray in cell (ix, iy) leaves that cell's tile (tiles of 2**tile_shift cells)."""
-    first_x = (ix >> tile_shift) << tile_shift
-    first_y = (iy >> tile_shift) << tile_shift
-    last = (1 << tile_shift) - 1
-    if step_x > 0:
-        exit_x = t_max_x + (first_x + last - ix) * t_delta_x
-    elif step_x < 0:
-        exit_x = t_max_x + (ix - first_x) * t_delta_x
-    else:
-        exit_x = FAR
-    if step_y > 0:
-        exit_y = t_max_y + (first_y + last - iy) * t_delta_y
-    elif step_y < 0:
-        exit_y = t_max_y + (iy - first_y) * t_delta_y
-    else:
-        exit_y = FAR
-    return min(exit_x, exit_y)
+    return min(_axis_exit(ix, step_x, t_max_x, t_delta_x, tile_shift),
+               _axis_exit(iy, step_y, t_max_y, t_delta_y, tile_shift))
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
