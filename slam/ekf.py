@@ -25,9 +25,10 @@ Landmarks are added the first time they are seen at m = p + Rot(theta) (r cos ph
 is xi_p + (dm/dz) n, correlated with the pose through xi_p only.
 
 Known correspondences: every measurement carries the landmark's id. Unknown correspondences: each
-measurement goes to the landmark of smallest Mahalanobis distance d^2 when d^2 is under
-``association_gate``; it starts a new landmark when every d^2 exceeds ``new_landmark_gate``; in between it
-is ambiguous and dropped. With known ids, ``outlier_gate`` (if set) drops a measurement whose d^2 exceeds it.
+measurement goes to the landmark of smallest Mahalanobis distance d^2 among those no earlier measurement of
+the step went to, when that d^2 is under ``association_gate``; it starts a new landmark when every landmark's
+d^2 (those already matched in the step included) exceeds ``new_landmark_gate``; otherwise it is ambiguous and
+dropped. With known ids, ``outlier_gate`` (if set) drops a measurement whose d^2 exceeds it.
 
 Output per step: the robot pose mean (3,) and its covariance (3, 3) in plain (x, y, theta) coordinates,
 A Sigma_pose A^T with A = d(x, y, theta)/d(xi_p, xi_theta); the landmarks are marginalised out.
@@ -156,12 +157,14 @@ class EKFSLAM:
         self.slot_of[landmark_id] = len(self.ids)
         self.ids.append(landmark_id)
 
-    def _associate(self, z: np.ndarray, noise: np.ndarray, taken: set[int]) -> tuple[int | None, float]:
-        """Slot of the nearest landmark in Mahalanobis distance (vectorised over landmarks) and its d^2;
-        landmarks in ``taken`` (already matched to a measurement of this step) are not candidates."""
+    def _associate(self, z: np.ndarray, noise: np.ndarray, taken: set[int]) -> tuple[int | None, float, float]:
+        """Slot of the nearest landmark in Mahalanobis distance (vectorised over landmarks) and its d^2, and the
+        smallest d^2 over every landmark. Landmarks in ``taken`` (already matched to a measurement of this step)
+        are not candidates for the match, but they count for the smallest d^2: a measurement that falls in
+        their gate is not a new landmark."""
         count = self.n_landmarks
         if count == 0:
-            return None, np.inf
+            return None, np.inf, np.inf
         poses = np.broadcast_to(self.mu[:3], (count, 3))
         z_hat, _, h_m = predict_measurement(poses, self.mu[3:].reshape(count, 2))
         s_pp = self.sigma[0:2, 0:2]
@@ -173,9 +176,10 @@ class EKFSLAM:
         nu = z - z_hat
         nu[:, 1] = wrap_angle(nu[:, 1])
         d2 = np.einsum("li,lij,lj->l", nu, np.linalg.inv(s), nu)
+        nearest_any = float(d2.min())
         d2[list(taken)] = np.inf
         best = int(np.argmin(d2))
-        return best, float(d2[best])
+        return best, float(d2[best]), nearest_any
 
     def update(self, z: np.ndarray, landmark_id: int, taken: set[int]) -> None:
         """Fuse one measurement z = (range m, bearing rad); ``landmark_id`` is used with known correspondences
@@ -192,11 +196,11 @@ class EKFSLAM:
                 return
             self._correct(nu, h_sigma, s)
             return
-        slot, d2 = self._associate(z, noise, taken)
+        slot, d2, nearest_any = self._associate(z, noise, taken)
         if slot is not None and d2 < self.association_gate:
             self._correct(*self._innovation(slot, z, noise))
             taken.add(slot)
-        elif d2 > self.new_landmark_gate:
+        elif nearest_any > self.new_landmark_gate:
             taken.add(self.n_landmarks)
             self._add_landmark(z, noise, self.n_landmarks)
         else:

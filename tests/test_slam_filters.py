@@ -91,6 +91,37 @@ def test_ekf_outlier_gate_drops_a_wild_measurement():
     assert np.abs(ungated.landmarks()[1] - [[2.0, 0.0]]).max() > 0.1
 
 
+def _standing_still(measurements_per_step: list[list[list[float]]]) -> SlamSequence:
+    """A robot standing at the origin (no motion, so no motion noise) that sees the given (range, bearing)
+    measurements, one list per step after the first, with unknown correspondences (ids -1)."""
+    steps = len(measurements_per_step)
+    counts = [len(step) for step in measurements_per_step]
+    return SlamSequence(
+        stamps=0.1 * np.arange(steps), controls=np.tile([0.0, 0.0, 0.1], (steps - 1, 1)),
+        control_ptr=np.concatenate([[0], np.arange(steps)]),
+        measurements=np.array([z for step in measurements_per_step for z in step]),
+        landmark_ids=np.full(sum(counts), -1), measurement_ptr=np.concatenate([[0], np.cumsum(counts)]),
+        initial_pose=np.zeros(3), motion="velocity")
+
+
+@pytest.mark.parametrize(("seen_again", "rejected", "landmarks"), [
+    # the pose is exact, so a re-sighting of a landmark made from one sighting has S = 2 R and
+    # d^2 = dr^2 / (2 * 0.1^2): 2 (matched), 12.5 (between the gates: dropped), 50 (a new landmark)
+    ([[2.2, 0.0]], 0, [[2.1, 0.0]]),
+    ([[2.5, 0.0]], 1, [[2.0, 0.0]]),
+    ([[3.0, 0.0]], 0, [[2.0, 0.0], [3.0, 0.0]]),
+    # the same landmark twice in one step: the second may not match it again, and lies in its gate, so it is
+    # dropped, not made a second landmark on top of the first
+    ([[2.0, 0.0], [2.0, 0.0]], 1, [[2.0, 0.0]]),
+])
+def test_ekf_unknown_correspondence_gates(seen_again, rejected, landmarks):
+    ekf = EKFSLAM(VelocityMotionModel(alphas=(0.01,) * 6), RangeBearingModel(0.1, 0.02), np.zeros(3),
+                  known_correspondences=False)
+    run_filter(ekf, _standing_still([[[2.0, 0.0]], seen_again]))
+    assert ekf.rejected == rejected
+    np.testing.assert_allclose(ekf.landmarks()[1], landmarks, atol=1e-12)
+
+
 # FastSLAM 1.0 with plain resampling: with gauge-preserving resampling (the default) its mean on this short run
 # drifts towards dead reckoning's, ATE about 0.30 m against 0.04-0.12 m plain over filter seeds 1-6 (its proposal
 # ignores the measurements, so the weights also select map shape that the gauge carries; docs/slam.md)
