@@ -165,7 +165,7 @@ def mrclam_sequence(
     Start: at the first ground-truth pose and stamp (the dataset's custom), or at ``initial_pose`` (x m, y m,
     yaw rad) at the first odometry stamp. Steps: every distinct landmark-measurement stamp and a regular grid
     every ``period`` s, up to the last odometry stamp (:func:`read_mrclam` skips measurements outside the
-    odometry's span). Controls: the velocity
+    odometry's span; measurements stamped before the start are left out here). Controls: the velocity
     commands as (v, w, dt) pieces, each odometry row held until the next one (zero before the first), cut at
     the step stamps, each command taking effect ``command_delay`` s after its stamp (default
     :data:`MRCLAM_COMMAND_DELAY`), its (v, w) multiplied by ``velocity_scale`` (executed / commanded, e.g.

@@ -213,6 +213,18 @@ def test_mrclam_measurements_after_the_odometry_are_skipped_and_counted(tmp_path
     assert 12.7 < load_pose_distribution(out).stamps[-1] <= 12.9
 
 
+def test_mrclam_measurements_before_the_start_are_counted(tmp_path, capsys):
+    # the filter starts at the first ground-truth pose: with ground truth from 10.6 s, the measurement at 10.5 s
+    # has no filter yet to take it
+    _mrclam_sample(tmp_path)
+    (tmp_path / "Robot1_Groundtruth.dat").write_text(
+        "# header\r\n" * 4 + "".join(f"{10.6 + 0.05 * k} \t 0.0 \t 0.0 \t 0.0 \r\n" for k in range(40)), newline="")
+    out = tmp_path / "ekf.npz"
+    assert main(["slam", "--algo", "ekf", str(tmp_path), "--robot", "1", "-o", str(out)]) == 0
+    assert "1 before the filter's start" in capsys.readouterr().out
+    assert load_pose_distribution(out).stamps[0] == pytest.approx(10.6)
+
+
 def test_eval_traj_refuses_ground_truth_from_another_time_base(simdir, tmp_path, capsys):
     # the simulator's estimate spans 0-5.9 s, the MRCLAM ground truth 10-13.45 s: scoring would compare every
     # step with the ground truth's first pose

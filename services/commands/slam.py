@@ -246,8 +246,10 @@ def _load_input(args: argparse.Namespace):
         sequence = mrclam.mrclam_sequence(run, initial_pose=initial, period=period,
                                           range_calibration=None if args.raw_ranges else mrclam.MRCLAM_RANGE_CALIBRATION,
                                           velocity_scale=None if args.raw_commands else mrclam.MRCLAM_VELOCITY_SCALE)
+        before_start = len(run.measurements) - len(sequence.measurements)  # the sequence starts at the start
         notes = (f"skipped {run.skipped_robots} measurements of robots, {run.skipped_unknown} of barcodes "
-                 f"in no table, {run.skipped_outside} stamped outside the odometry's time span and "
+                 f"in no table, {run.skipped_outside} stamped outside the odometry's time span, "
+                 f"{before_start} before the filter's start and "
                  f"{run.skipped_invalid} with a range <= 0 m or a bearing beyond a full turn")
         return (sequence, mrclam.MRCLAM_MOTION, mrclam.MRCLAM_SENSOR,
                 mrclam.MRCLAM_OUTLIER_GATE, None, notes)
