@@ -3,11 +3,11 @@
 Each estimator runs through the command line as a user would (`posegrid slam ... --robot K`, defaults, seed 0)
 and is scored as `posegrid eval-traj` scores it against RobotK_Groundtruth.dat: ATE (m), inside95 and mean
 NEES per robot and estimator, and milliseconds per step (the filter's own timing, as `posegrid slam` prints
-it). Estimators: dead reckoning, EKF-SLAM, FastSLAM 1.0 and 2.0 (500 particles, gauge-preserving resampling)
+it). Estimators: dead reckoning, EKF-SLAM, FastSLAM 1.0 and 2.0 (2 000 particles, gauge-preserving resampling)
 and both FastSLAMs with ``--plain-resampling``. The ``worst_inside95_*`` figures are the minimum over the five
 robots, the figure issue 4's target (>= 0.85) is about. FastSLAM's inside95 moves by up to 0.2 from one filter seed to
 the next on these runs, so both FastSLAMs also run at seeds 1 and 2, and ``runs_meeting_target_*`` counts their
-15 runs that reach the target. Skipped, with the reason, when ../shared/data/mrclam7 is absent. About 17 minutes
+15 runs that reach the target. Skipped, with the reason, when ../shared/data/mrclam7 is absent. About 30 minutes
 on one core.
 """
 from __future__ import annotations

@@ -26,7 +26,7 @@ RESERVED_ROBOT_NAMES = ("map",)
 POSE_LIMIT = 1e7
 
 #: the most samples a PoseSamples may carry: every mapper shard ray-casts all of them, and 10 000 already takes
-#: it seconds a scan (FastSLAM's default is 500 particles, grid FastSLAM's 30)
+#: it seconds a scan (a slam-node's FastSLAM publishes 500 particles by default, grid FastSLAM 30)
 MAX_POSE_SAMPLES = 10_000
 
 #: the largest seq: exact as a JSON number (JavaScript clients read /health's counts as doubles) and in float64

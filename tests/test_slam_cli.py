@@ -65,6 +65,13 @@ def test_slam_on_a_simulator_folder_writes_posed_scans(simdir, tmp_path, capsys)
     assert json.loads(capsys.readouterr().out) == from_folder
 
 
+def test_fastslam_defaults_to_2000_particles_offline(simdir, tmp_path):
+    # docs/slam.md: with 500, several MRCLAM runs fall under inside95 0.85; a slam-node keeps 500 (NODE_PARTICLES)
+    out = tmp_path / "fs.npz"
+    assert main(["slam", "--algo", "fastslam1", str(simdir), "-o", str(out)]) == 0
+    assert load_posed_scans(out).poses.samples.shape == (60, 2000, 3)
+
+
 def test_slam_without_scans_writes_a_pose_distribution(simdir, tmp_path):
     folder = tmp_path / "noscans"
     folder.mkdir()

@@ -27,6 +27,20 @@ angles = st.floats(-math.pi, math.pi)
 coords = st.floats(-10.0, 10.0)
 
 
+@given(st.floats(-1e4, 1e4))
+def test_wrap_angle_lands_in_half_open_range_and_keeps_the_direction(angle):
+    wrapped = float(wrap_angle(angle))
+    assert -math.pi <= wrapped < math.pi
+    assert math.cos(wrapped) == pytest.approx(math.cos(angle), abs=1e-9)
+    assert math.sin(wrapped) == pytest.approx(math.sin(angle), abs=1e-9)
+
+
+def test_wrap_angle_folds_the_rounded_up_end_to_minus_pi():
+    # (-4e-16 + pi) - pi: the remainder of -4e-16 by 2 pi rounds to 2 pi, which gave +pi
+    np.testing.assert_array_equal(wrap_angle(np.array([-math.pi - 4e-16, math.pi, -math.pi, 3 * math.pi])),
+                                  [-math.pi, -math.pi, -math.pi, -math.pi])
+
+
 # ------------------------------------------------------------------------------------------- velocity model
 
 

@@ -20,6 +20,9 @@ SLAM_ALGORITHMS = ("odometry", "ekf", "fastslam1", "fastslam2", "gridslam")
 DEFAULT_ALGORITHM = "fastslam2"
 #: particles of `run`'s SLAM node unless --particles says otherwise: each becomes a pose sample per scan
 RUN_PARTICLES = 30
+#: landmark FastSLAM particles of a `slam-node` unless --particles says otherwise: fewer than `posegrid slam`'s
+#: offline default, since every mapper shard ray-casts each of them in every scan
+NODE_PARTICLES = 500
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -193,7 +196,7 @@ def add_slam_arguments(parser: argparse.ArgumentParser, particles: int | None = 
                        f"default {DEFAULT_ALGORITHM}, and for `posegrid run` gridslam with --carmen or --bag")
     group.add_argument("--particles", type=pose_sample_count, default=particles,
                        help="FastSLAM / grid FastSLAM particles (default %s)"
-                       % (particles or "500 for FastSLAM, 30 for grid FastSLAM"))
+                       % (particles or f"{NODE_PARTICLES} for FastSLAM, 30 for grid FastSLAM"))
     group.add_argument("--associate", choices=("known", "unknown"), default="known",
                        help="landmark correspondences: known ids (default) or estimated")
     group.add_argument("--motion", choices=("velocity", "odometry"), default="velocity",
@@ -515,7 +518,7 @@ def run_slam_node(args: argparse.Namespace) -> int:
     from services.zenoh_config import config_from_args
 
     config = NodeConfig(robot=args.robot, algorithm=algo,
-                        make_filter=lambda start: _make_filter(args, motion, sensor, gate, start),
+                        make_filter=lambda start: _make_filter(args, motion, sensor, gate, start, NODE_PARTICLES),
                         motion=args.motion, initial=None if initial is None else np.array(initial),
                         grid_config=grid_config, seed=args.seed)
     return serve(config, config_from_args(args, "client"), install_stop_event())
