@@ -4,7 +4,8 @@ import math
 import numpy as np
 import pytest
 
-from mapping.evaluation import probability_on_raster, roc_auc, score_map, score_probabilities
+from mapping.errors import InputError
+from mapping.evaluation import probability_on_raster, roc_auc, sample_map, score_map, score_probabilities
 
 
 def test_auc_by_hand():
@@ -87,3 +88,63 @@ def test_cells_outside_the_map_count_as_unknown():
              "resolution": 0.1}
     scores = score_map({"probability": np.ones((2, 2), np.float32), "origin": np.zeros(2), "resolution": 0.1}, truth)
     assert scores["brier"] == pytest.approx(0.25)
+
+
+def test_a_confident_mistake_costs_a_finite_nll_of_minus_log_1e6():
+    """p is clipped to [1e-6, 1 - 1e-6] for the NLL: p = 0 on an occupied cell and p = 1 on a free one each cost
+    -ln(1e-6) = 13.8155... (kills: clip dropped -> inf; NLL_EPS changed -> another value)."""
+    scores = score_probabilities(np.array([0.0, 1.0]), np.array([True, False]))
+    assert scores["nll"] == pytest.approx(-math.log(1e-6), rel=1e-9)
+    assert scores["brier"] == pytest.approx(1.0)
+
+
+def test_visible_cells_away_from_the_raster_corner_score_their_own_map_cells():
+    """The visible box starts at column 2, row 0 of the truth raster: its corner is origin + (2, 0) cells, not
+    (0, 2) (kills: rows and columns swapped in the corner)."""
+    visible = np.array([[False, False, True, True], [False, False, True, True]])
+    occupied = np.array([[False, False, False, True], [False, False, False, True]])
+    probability = np.array([[0.5, 0.5, 0.2, 0.9], [0.5, 0.5, 0.1, 0.8]], np.float32)  # same grid as the truth
+    scores = score_map({"probability": probability, "origin": np.zeros(2), "resolution": 0.1},
+                       {"occupied": occupied, "visible": visible, "origin": np.zeros(2), "resolution": 0.1})
+    assert scores["auc"] == 1.0
+    assert scores["brier"] == pytest.approx((0.2 ** 2 + 0.1 ** 2 + 0.1 ** 2 + 0.2 ** 2) / 4, rel=1e-6)
+    assert scores["n"] == 4
+
+
+def test_a_truth_raster_a_fifth_of_a_cell_off_takes_area_weighted_fractions():
+    """Truth cell k starts 0.2 map cells into map cell k: 0.8 of it lies there and 0.2 in cell k + 1 (kills: an
+    edge snap that treats 0.2 cells as aligned)."""
+    probability = np.array([[0.1, 0.6, 0.9]], np.float32)
+    averaged = probability_on_raster({"probability": probability, "origin": np.zeros(2), "resolution": 0.1},
+                                     np.array([0.02, 0.0]), 0.1, (1, 2))
+    np.testing.assert_allclose(averaged, [[0.8 * 0.1 + 0.2 * 0.6, 0.8 * 0.6 + 0.2 * 0.9]], atol=1e-6)
+
+
+def test_a_raster_beside_the_map_on_one_axis_only_is_all_unknown():
+    """The truth overlaps the map's x range but lies 5 m north of it: no overlap, 0.5 everywhere (kills: the
+    no-overlap shortcut taken only when both axes miss, which then indexes an empty overlap)."""
+    probability = np.full((2, 2), 0.9, np.float32)
+    averaged = probability_on_raster({"probability": probability, "origin": np.zeros(2), "resolution": 0.1},
+                                     np.array([0.0, 5.0]), 0.1, (2, 2))
+    np.testing.assert_array_equal(averaged, np.full((2, 2), 0.5))
+
+
+def test_a_truth_with_no_visible_cell_is_refused():
+    truth = {"occupied": np.zeros((2, 2), bool), "visible": np.zeros((2, 2), bool), "origin": np.zeros(2),
+             "resolution": 0.1}
+    with pytest.raises(InputError, match="no visible cells"):
+        score_map({"probability": np.full((2, 2), 0.5, np.float32), "origin": np.zeros(2), "resolution": 0.1}, truth)
+
+
+def test_truth_cells_too_small_for_the_map_cells_are_refused():
+    """1e-5 m truth cells against 0.1 m map cells: every edge snaps onto one map edge (zero length)."""
+    with pytest.raises(InputError, match="too small to score"):
+        probability_on_raster({"probability": np.full((2, 2), 0.5, np.float32), "origin": np.zeros(2),
+                               "resolution": 0.1}, np.zeros(2), 1e-5, (3, 3))
+
+
+def test_sample_map_reads_the_last_column_of_a_wide_raster_and_half_outside():
+    """sample_map (used by bench/adaptive.py) on a 1 x 3 raster: column 2 is inside, x = 0.35 is not."""
+    probability = np.array([[0.1, 0.2, 0.3]])
+    got = sample_map(probability, np.zeros(2), 0.1, np.array([0.05, 0.25, 0.35, 0.25]), np.array([0.05, 0.05, 0.05, -0.05]))
+    np.testing.assert_array_equal(got, [0.1, 0.3, 0.5, 0.5])

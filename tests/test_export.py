@@ -7,7 +7,7 @@ import yaml
 from PIL import Image
 
 from mapping.errors import InputError
-from mapping.export import crop_to_occupied, render_pgm, render_png
+from mapping.export import crop_to_occupied, render_pgm, render_png, render_rgb
 
 
 def small_map():
@@ -66,3 +66,55 @@ def test_crop_keeps_the_occupied_cells_plus_margin_and_moves_the_origin():
     assert crop_to_occupied(arrays, margin=100.0)["probability"].shape == (10, 12)
     with pytest.raises(InputError, match="no occupied cells"):
         crop_to_occupied({**arrays, "probability": np.full((10, 12), 0.1, np.float32)}, margin=1.0)
+
+
+def _arrays(probability, observed=None, variance=None, resolution=0.5):
+    probability = np.asarray(probability, np.float32)
+    return {"probability": probability,
+            "observed": np.ones(probability.shape, bool) if observed is None else np.asarray(observed, bool),
+            "variance": None if variance is None else np.asarray(variance, np.float32),
+            "origin": np.array([-1.0, 2.0]), "resolution": resolution}
+
+
+def test_unobserved_cells_are_unknown_in_the_pgm_whatever_their_probability():
+    """A map file from another tool may carry a probability for a cell it marks unobserved."""
+    arrays = _arrays([[0.9, 0.1, 0.9, 0.1]], observed=[[False, False, True, True]])
+    pgm, _ = render_pgm(arrays)
+    assert pgm.endswith(bytes([205, 205, 0, 254]))
+
+
+def test_crop_margin_rounds_up_to_whole_cells():
+    """0.6 m at 0.5 m cells is two cells on each side (one would leave less than the margin)."""
+    probability = np.full((9, 9), 0.1, np.float32)
+    probability[4, 4] = 0.9
+    cropped = crop_to_occupied(_arrays(probability), margin=0.6)
+    assert cropped["probability"].shape == (5, 5)
+    np.testing.assert_allclose(cropped["origin"], [-1.0 + 2 * 0.5, 2.0 + 2 * 0.5])
+
+
+def test_crop_ignores_unobserved_cells_and_refuses_a_negative_margin():
+    probability = np.full((6, 6), 0.1, np.float32)
+    probability[1, 1] = probability[5, 5] = 0.9
+    observed = np.ones((6, 6), bool)
+    observed[5, 5] = False  # its probability says occupied, but nothing saw it
+    cropped = crop_to_occupied(_arrays(probability, observed), margin=0.0)
+    assert cropped["probability"].shape == (1, 1)
+    np.testing.assert_allclose(cropped["origin"], [-1.0 + 0.5, 2.0 + 0.5])
+    with pytest.raises(InputError, match="margin must be >= 0"):
+        crop_to_occupied(_arrays(probability, observed), margin=-0.5)
+
+
+def test_variance_colours_follow_the_ramp_and_the_99th_percentile_scale():
+    """Variances 0 .. 100 in one row: the default scale is their 99th percentile, 99. A cell of 66 is at 2/3 of the
+    ramp (its third stop, 250 170 20), 0 is black, and 99 and 100 reach the last stop (255 255 230)."""
+    variance = np.arange(101, dtype=np.float32)[None, :]
+    rgb = render_rgb(_arrays(np.full((1, 101), 0.5), variance=variance), layer="variance").astype(int)
+    assert rgb[0, 0].tolist() == [0, 0, 0]
+    assert np.abs(rgb[0, 66] - [250, 170, 20]).max() <= 1
+    assert np.abs(rgb[0, 33] - [170, 20, 30]).max() <= 1
+    assert rgb[0, 100].tolist() == [255, 255, 230] and np.abs(rgb[0, 99] - [255, 255, 230]).max() <= 1
+
+
+def test_an_all_zero_variance_layer_renders_black_not_garbage():
+    rgb = render_rgb(_arrays(np.full((2, 2), 0.5), variance=np.zeros((2, 2))), layer="variance")
+    assert rgb.tolist() == [[[0, 0, 0]] * 2] * 2

@@ -63,3 +63,18 @@ def test_chi2_quantile():
     from scipy.stats import chi2
 
     assert CHI2_3_95 == pytest.approx(chi2.ppf(0.95, 3), abs=1e-4)
+
+
+def test_fit_gaussian_normalises_the_weights():
+    """Weights 1 and 3 are weights 0.25 and 0.75: mean x = 0.25 * 1 + 0.75 * (-1) = -0.5, var x = 0.75."""
+    samples = np.array([[[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]]])
+    mean, cov = fit_gaussian(samples, np.array([[1.0, 3.0]]))
+    np.testing.assert_allclose(mean[0], [-0.5, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(cov[0, 0, 0], 0.25 * 1.5 ** 2 + 0.75 * 0.5 ** 2)
+
+
+def test_interpolated_yaw_is_wrapped_into_minus_pi_pi():
+    """Unwrapped, the yaw after pi - 0.1 that reads -pi + 0.1 is pi + 0.1; the result is wrapped back."""
+    poses = np.array([[0.0, 0.0, math.pi - 0.1], [2.0, -2.0, -math.pi + 0.1]])
+    got = interpolate_poses(np.array([0.75, 3.0]), np.array([0.0, 1.0]), poses)
+    np.testing.assert_allclose(got[:, 2], [-math.pi + 0.05, -math.pi + 0.1], atol=1e-12)
