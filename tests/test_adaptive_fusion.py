@@ -306,3 +306,47 @@ def test_a_diverged_pose_spread_is_refused_not_allocated():
     spread = (np.full(3, 2.0), np.array([[0.0, 0.0, 0.0], [300.0, 300.0, 0.0]]), np.full(2, 0.5))
     with pytest.raises(InputError, match="spread over 300 m x 300 m"):
         fused(AdaptiveParams(), [spread], np.array([-0.1, 0.0, 0.1]), 5.0)
+
+
+def _siblings(probabilities, variance, hits, misses):
+    """Four level-0 siblings under parent (1, 0, 0)."""
+    grid = AdaptiveGrid(0.05, tile_size=16)
+    lo = np.array([math.log(p / (1 - p)) for p in probabilities])
+    grid.edit(np.zeros(0, np.int64), np.zeros(4, np.int64), np.array([0, 1, 0, 1]), np.array([0, 0, 1, 1]), lo,
+              np.array(variance, float), np.array(hits, float), np.array(misses, float))
+    return grid, lo
+
+
+def test_a_merge_the_split_test_would_undo_is_not_made_and_the_veto_sees_the_parent():
+    """undone(parent_level, px, py, carried) is asked about the parent (level 1, cell (0, 0)) with the children's
+    summed hits and misses, and a True answer keeps the four children."""
+    grid, _ = _siblings([0.1] * 4, [0.0] * 4, [1, 2, 3, 4], [10, 20, 30, 40])
+    calls = []
+
+    def undone(level, px, py, carried):
+        calls.append((level, px.tolist(), py.tolist(), carried.tolist()))
+        return np.ones(px.shape, bool)
+
+    level, ax, ay = grid.cells()
+    assert merge_siblings(grid, level, ax, ay, MergeRules(), max_level=1, undone=undone) == 0
+    assert calls == [(1, [0], [0], [[10.0, 100.0]])]
+    assert grid.find_exact(np.array([1]), np.array([0]), np.array([0]))[0] == -1
+    assert grid.active_cells == 4
+
+
+def test_a_merged_cell_takes_the_mean_variance_and_the_summed_hits_and_misses():
+    grid, lo = _siblings([0.1, 0.12, 0.08, 0.1], [1.0, 2.0, 3.0, 4.0], [1, 2, 3, 4], [10, 20, 30, 40])
+    level, ax, ay = grid.cells()
+    assert merge_siblings(grid, level, ax, ay, MergeRules(), max_level=1,
+                          undone=lambda lv, px, py, carried: np.zeros(px.shape, bool)) == 1
+    parent = grid.find_exact(np.array([1]), np.array([0]), np.array([0]))[0]
+    assert parent >= 0
+    assert grid.logodds[parent] == pytest.approx(lo.mean(), rel=1e-6)
+    assert grid.variance[parent] == pytest.approx(2.5)
+    assert grid.hits[parent] == pytest.approx(10.0) and grid.misses[parent] == pytest.approx(100.0)
+
+
+@pytest.mark.parametrize("kwargs", [dict(std_max=1.5), dict(margin=-0.1), dict(above=2.0), dict(below=float("nan"))])
+def test_merge_thresholds_outside_0_1_are_refused(kwargs):
+    with pytest.raises(InputError, match="merge threshold"):
+        MergeRules(**kwargs)

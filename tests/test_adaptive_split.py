@@ -106,3 +106,10 @@ def test_families_and_degrees_of_freedom():
     with pytest.raises(InputError):
         SplitTest(resolution=0.05, sigma=0.03, significance=1.5)
     assert UNKNOWN == 2
+
+
+@pytest.mark.parametrize("kwargs", [dict(sigma=0.0), dict(sigma=-0.03), dict(floor=0.0), dict(floor=0.25),
+                                    dict(resolution=0.0)])
+def test_split_test_parameters_are_checked(kwargs):
+    with pytest.raises(InputError):
+        SplitTest(**{"resolution": 0.05, "sigma": 0.03, **kwargs})

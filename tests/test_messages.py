@@ -31,6 +31,8 @@ from schemas.messages import (
     TileUpdate,
     decode_message,
 )
+from schemas.wire import MAX_ARRAY_ELEMENTS
+
 from conftest import ROOT
 
 SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -328,6 +330,8 @@ def test_ranges_may_say_no_return_or_too_close():
     {"seq": MAX_SEQ + 1},  # not exact as a JSON number: /health's lag would lie to JavaScript clients
     {"angle_min": 1e30},  # every beam on one ray, once the angles are rounded
     {"angle_increment": -7.0},
+    {"range_min": 2.0, "range_max": 2.0},  # range_min < range_max, strictly
+    {"angle_increment": 0.0, "ranges": np.array([1.0, 2.0], np.float32)},  # two beams on one ray
 ])
 def test_out_of_range_values(overrides):
     with pytest.raises(MessageError) as info:
@@ -354,6 +358,7 @@ def test_scan_without_beams_is_rejected():
     (np.array([0.5, 0.6]), "weights"),
     (np.array([1.5, -0.5]), "weights"),
     (np.array([0.0, 0.0]), "weights"),
+    (np.array([0.5, 0.501]), "weights"),  # sums to 1.001: past the 1e-4 tolerance
 ])
 def test_bad_weights(weights, reason):
     wire = wire_of(PoseSamples(robot="r", seq=0, stamp=0.0, samples=np.zeros((2, 3)), weights=np.full(2, 0.5)))
@@ -361,9 +366,17 @@ def test_bad_weights(weights, reason):
     assert reason_of(wire) == reason
 
 
+def test_weights_within_the_tolerance_of_one_are_taken():
+    wire = wire_of(PoseSamples(robot="r", seq=0, stamp=0.0, samples=np.zeros((2, 3)), weights=np.full(2, 0.5)))
+    wire["weights"]["data"] = np.array([0.5, 0.50001]).astype("<f8").tobytes()
+    assert decode_message(msgpack.packb(wire, use_bin_type=True)).weights[1] == 0.50001
+
+
 @pytest.mark.parametrize("cov", [
     np.array([[1.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]),  # not symmetric
     np.diag([1.0, -0.1, 1.0]),  # not positive semi-definite
+    np.array([[1.0, 1e-6, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]),  # asymmetric by 1e-6 (tolerance 2e-9)
+    np.diag([1.0, -1e-6, 1.0]),  # eigenvalue -1e-6 (tolerance -2e-12)
 ])
 def test_bad_covariance(cov):
     wire = wire_of(PoseGaussian(robot="r", seq=0, stamp=0.0, mean=np.zeros(3), cov=np.eye(3)))
@@ -443,3 +456,56 @@ def test_schema_describes_the_wire_keys_and_constants(message):
             prop = schema["properties"][name]["properties"]
             assert prop["dtype"]["const"] == value["dtype"]
             assert len(prop["shape"]["prefixItems"]) == len(value["shape"])
+
+
+def tile(**overrides):
+    values = dict(map="m", shard=0, z=0, tx=0, ty=0, tile_size=4, resolution=0.1, row0=0, col0=0, robot="r", seq=0,
+                  published=0.0, logodds=np.zeros((2, 2), np.float32), variance=np.zeros((2, 2), np.float32),
+                  observed=np.ones((2, 2), bool))
+    values.update(overrides)
+    return TileUpdate(**values)
+
+
+def stats(**overrides):
+    values = dict(map="m", shard=0, shards=2, tiles_owned=0, cells_updated=0, tile_updates=0, join_pending=0,
+                  uptime=0.0, fused={}, discarded={}, ended={}, received={}, resent={}, rejected={}, overflow={})
+    values.update(overrides)
+    return ShardStats(**values)
+
+
+@pytest.mark.parametrize("message", [
+    tile(resolution=0.0),  # exclusive minimum
+    tile(col0=3),  # a 2-wide window from column 3 leaves a 4-wide tile
+    stats(shard=2, shards=2),  # shard indices are 0 .. shards - 1
+    stats(fused={"r": -1}),  # counts are >= 0
+])
+def test_tile_and_stats_boundary_values_are_out_of_range(message):
+    with pytest.raises(MessageError) as info:
+        message.encode()
+    assert info.value.reason == "range"
+
+
+def test_a_tile_window_may_end_exactly_at_the_tile_edge():
+    assert decode_message(tile(row0=2, col0=2).encode()).col0 == 2
+
+
+@pytest.mark.parametrize(("field", "value"), [("seq", True), ("stamp", False), ("tile_updates", True)])
+def test_booleans_are_not_numbers(field, value):
+    wire = wire_of(stats() if field == "tile_updates" else scan())
+    wire[field] = value
+    assert reason_of(wire) == "field_type"
+
+
+def test_array_data_that_is_text_is_a_field_type_error_not_a_crash():
+    wire = wire_of(scan())
+    wire["ranges"]["data"] = "abcdefghijkl"  # 12 characters: the byte count a (3,) <f4 array needs
+    assert reason_of(wire) == "field_type"
+
+
+def test_an_array_past_the_element_limit_is_refused_by_its_declared_shape():
+    """The limit is checked on the declared shape, before the data is looked at."""
+    wire = wire_of(scan())
+    wire["ranges"]["shape"] = [MAX_ARRAY_ELEMENTS + 1]
+    with pytest.raises(MessageError) as info:
+        decode_message(msgpack.packb(wire, use_bin_type=True))
+    assert info.value.reason == "size" and "more than the limit" in str(info.value)

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from mapping.sensor_model import SensorModel
 from schemas.messages import LaserScan, PoseGaussian, PoseSamples, StreamEnd
-from services.join import JoinBuffer, SeqLedger
+from services.join import EVICTED_LIMIT, JUMP, MISSING, ORPHANED, OVERFLOW, REFETCH_BATCH, GivenUp, JoinBuffer, SeqLedger
 from services.process import RejectCounter
 from services.shard import FUSIONS_KEPT, SETTLE_AFTER, MapShard, ShardConfig
 from services.steps import OutOfOrder, StepAssembler
@@ -652,3 +652,69 @@ def test_warm_up_leaves_the_shard_empty():
     shard.warm_up()
     assert shard.tiles() == [] and shard.cells_updated == 0 and sum(shard.fused.values()) == 0
     assert shard.due_updates(now=0.0, flush=True) == ([], None)
+
+
+def test_settle_refuses_a_held_scan_at_the_announced_count():
+    """The source announced 2 scans (seqs 0 and 1): a scan 2 held past the gap at 1 is a stray, not taken."""
+    buf = JoinBuffer(capacity=8)
+    buf.add_scan(("r", 0), "s0")
+    assert buf.add_pose(("r", 0), "p0") == ([("s0", "p0")], [])
+    assert buf.add_scan(("r", 2), "s2") == ([], [])  # held: nothing has confirmed the gap at 1 yet
+    pairs, gone = buf.settle("r", 2)
+    assert pairs == []
+    assert sorted(gone, key=lambda g: g.first) == [GivenUp("r", 1, 1, True, MISSING), GivenUp("r", 2, 1, True, JUMP)]
+    assert len(buf) == 0
+
+
+def test_a_half_whose_partner_was_evicted_without_a_history_is_orphaned_at_once():
+    """Without recover an evicted scan is given up; its pose, arriving later at the scan stream's last seq, can
+    never pair: it is given up at once instead of taking a place (and evicting another robot's scan)."""
+    buf = JoinBuffer(capacity=1)
+    assert buf.add_scan(("a", 0), "sa0") == ([], [])
+    assert buf.add_scan(("b", 0), "sb0") == ([], [GivenUp("a", 0, 1, True, OVERFLOW)])
+    assert buf.add_pose(("a", 0), "pa0") == ([], [GivenUp("a", 0, 1, False, ORPHANED)])
+    assert buf.waiting(("b", 0), True) == "sb0"
+
+
+def test_exactly_evicted_limit_halves_are_remembered():
+    asked = []
+
+    def recover(robot, scans, first, last):
+        asked.append((robot, scans, first, last))
+        return {}
+
+    buf = JoinBuffer(capacity=1, recover=recover)
+    gone = []
+    for seq in range(EVICTED_LIMIT + 1):  # each scan evicts the one before: EVICTED_LIMIT evictions
+        gone += buf.add_scan(("r", seq), f"s{seq}")[1]
+    assert gone == []
+    assert buf.add_scan(("r", EVICTED_LIMIT + 1), "next")[1] == [GivenUp("r", 0, 1, True, OVERFLOW)]
+
+
+def test_an_evicted_half_is_asked_for_again_with_at_most_a_batch_of_its_successors():
+    asked = []
+
+    def recover(robot, scans, first, last):
+        asked.append((robot, scans, first, last))
+        return {seq: f"s{seq}" for seq in range(first, last + 1)}
+
+    buf = JoinBuffer(capacity=1, recover=recover)
+    for seq in range(REFETCH_BATCH + 10):
+        buf.add_scan(("r", seq), f"s{seq}")
+    pairs, gone = buf.add_pose(("r", 0), "p0")
+    assert pairs == [("s0", "p0")] and gone == []
+    assert asked == [("r", True, 0, REFETCH_BATCH - 1)]
+
+
+def test_join_buffer_needs_room_for_one_half():
+    with pytest.raises(ValueError, match="capacity must be >= 1"):
+        JoinBuffer(capacity=0)
+
+
+def test_seq_ledger_horizon_boundary_and_a_lower_seq_marked_late():
+    ledger = SeqLedger(horizon=10)
+    ledger.mark("r", 20)
+    assert ledger.done("r", 10)  # exactly horizon below the highest: counted as done
+    assert not ledger.done("r", 11)
+    ledger.mark("r", 5)  # a late, lower seq does not lower the highest
+    assert ledger.done("r", 9) and not ledger.done("r", 12)
