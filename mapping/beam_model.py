@@ -31,16 +31,23 @@ SQRT2 = math.sqrt(2.0)
 #: constant-sigma models read the log-odds from a table over u = (r - z) / sigma, from the free shortcut to
 #: the traversal's end, with linear interpolation (error < 2e-4 in log-odds at the squashing's kink, far less elsewhere; tested)
 TABLE_DU = 0.002
-TABLE_U0 = -(FREE_SHORTCUT_SIGMAS + 1.0) - 8.0  # covers l/2 up to 8 sigma before the return
+#: the widest peak the table covers: l/2 up to this many sigma (the free shortcut then starts above TABLE_U0)
+TABLE_PEAK_SIGMAS = 8.0
+TABLE_U0 = -(FREE_SHORTCUT_SIGMAS + 1.0) - TABLE_PEAK_SIGMAS
 TABLE_U1 = 3.5  # past the traversal's end at 3 sigma
 
 
 def logodds_table(model: SensorModel) -> np.ndarray:
-    """y(u) on u = TABLE_U0 + i * TABLE_DU up to TABLE_U1 for a constant-sigma model.
+    """y(u) on u = TABLE_U0 + i * TABLE_DU up to TABLE_U1 for a constant-sigma model whose peak half-width l/2 is
+    at most TABLE_PEAK_SIGMAS sigma; an empty table otherwise, and the kernels evaluate the closed form (sigma
+    that varies with the range, or a peak so wide against sigma, e.g. 0.2 m cells and sigma 0.01 m, that the
+    cells before it would read the table below its start and get a value from inside the peak).
 
     Before the peak only the rising side is read and after it only the falling side, as in
     :func:`cell_logodds`; values at u are the model's log-odds at r = z + u * sigma.
     """
+    if model.sigma != "constant" or model.l / 2 > TABLE_PEAK_SIGMAS * model.sigma0:
+        return np.zeros(0)
     u = np.arange(TABLE_U0, TABLE_U1 + TABLE_DU, TABLE_DU)
     z = 10.0  # any range: with constant sigma the model depends on r - z only
     r = z + u * model.sigma0

@@ -182,7 +182,7 @@ class MonteCarloFusion:
         self._stamp_next = 1
         self._scratch_size = 0
         self._single_blocks = 0
-        self._table = logodds_table(model) if model.sigma == "constant" else np.zeros(0)
+        self._table = logodds_table(model)
         self._l_free, self._l_min, self._l_max = model.l_free, model.l_min, model.l_max  # (properties: computed)
 
     def _scratch(self, cells: int) -> None:

@@ -310,3 +310,31 @@ def test_a_map_too_wide_for_one_raster_is_refused_not_allocated():
     assert {tx for tx, _ in grid.keys()} == {0, 1, 2_500_000, 2_500_001}  # 16 cells of 0.05 m a tile
     with pytest.raises(InputError, match="more than the .* cells one raster may hold"):
         grid.rasterize()
+
+
+def _model_g(r, z, sigma, l):
+    """The convolved ideal model g(r) for a return at z (docs/sensor_model.md, section 2), written out again."""
+    s = math.sqrt(2) * sigma
+    return 0.25 + 0.25 * math.erf((z + l / 2 - r) / s) - 0.5 * math.erf((z - l / 2 - r) / s)
+
+
+@pytest.mark.parametrize("sigma", ["constant", "linear"])  # linear with slope 0: the same model, in closed form
+@pytest.mark.parametrize(("resolution", "sigma0"), [(0.2, 0.01), (0.05, 0.002)])
+def test_a_narrow_noise_model_keeps_the_cell_before_the_peak_free(resolution, sigma0, sigma):
+    """A peak much wider than sigma (l/2 = 14 and 18 sigma): the cell before the return's is on the model's rising
+    side, at the value of its far edge. (The constant-sigma table covers l/2 up to 8 sigma; past that, cells
+    before the peak had read the table's first entry, a value from inside the peak: +0.09 instead of -0.405 at
+    0.2 m cells, a wall drawn one cell early.) One beam along +x from x0 = resolution - 0.01 in cell 0, return at
+    2.0 m: cell k >= 1 spans r in [k res - x0, (k + 1) res - x0]."""
+    model = SensorModel(resolution=resolution, sigma=sigma, sigma0=sigma0)
+    x0 = resolution - 0.01
+    grid = TiledGrid(resolution)
+    MonteCarloFusion(grid, model, np.array([0.0]), 0.05, 10.0).fuse(
+        np.array([2.0]), np.array([[x0, resolution / 2, 0.0]]), np.ones(1))
+    k = int(math.floor(2.0 / resolution + 1e-9)) - 1  # the cell just before the one holding x = 2.0
+    g = _model_g((k + 1) * resolution - x0, 2.0, sigma0, model.l)
+    assert g < 0.5  # before the peak: the free branch of the squashing
+    p = 0.5 - (0.5 - model.p_miss) * (1 - 2 * g)
+    logodds, _, observed = grid.tile_arrays((0, 0))
+    assert observed[0, k]
+    assert float(logodds[0, k]) == pytest.approx(math.log(p / (1 - p)), abs=2e-4)

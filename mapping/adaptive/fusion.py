@@ -124,7 +124,7 @@ class AdaptiveFusion:
         sigma = params.sigma if params.sigma is not None else float(model.sigma_at(range_max / 2))
         self.test = SplitTest(model.resolution, sigma, params.significance, params.unknowns, params.floor)
         self.scanner = EvidenceScanner(max_level + 1, params.unknowns)
-        self._table = logodds_table(model) if model.sigma == "constant" else np.zeros(0)
+        self._table = logodds_table(model)
 
     # ----------------------------------------------------------------------------------- one scan
     def fuse(self, ranges: np.ndarray, samples: np.ndarray, weights: np.ndarray) -> AdaptiveFuseResult:
