@@ -591,3 +591,8 @@ def test_a_map_whose_only_tiles_may_lie_on_a_down_shard_is_503_not_empty(api, st
                and httpx.get(f"{api}/maps/half", timeout=30).json()["shards_alive"] == [0], 60, "map 'half' to show")
     assert "shard(s) [1]" in problem(httpx.get(f"{api}/maps/half/tiles/0/0/0.png", timeout=30), 503)
     assert "shard(s) [1]" in problem(httpx.get(f"{api}/maps/half/export", params={"format": "npz"}, timeout=60), 503)
+
+
+def test_zoom_beyond_max_level_is_refused_by_validation(api):
+    # z is declared 0 .. MAX_LEVEL (32); 33 must be a 422 naming 'z', not a 404 from the map's own range check
+    assert "'z'" in problem(httpx.get(f"{api}/maps/{MAP}/tiles/33/0/0.png", timeout=30), 422)

@@ -3,10 +3,12 @@ from __future__ import annotations
 
 import asyncio
 import json
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
+from mapping.pyramid import TileLayers
 from mapping.sensor_model import SensorModel, logit
 from schemas.messages import PoseGaussian, PoseSamples
 from services.api.cache import ByteLRU
@@ -15,7 +17,7 @@ from services.api.fastpath import etag_matches
 from services.api.registry import MapRegistry
 from services.api.render import LOGODDS_RANGE
 from services.api.robots import RobotTracker, reduce_samples, summarize, weighted_mean_cov
-from services.api.tiles import render_key, variance_scale
+from services.api.tiles import TileService, render_key, tile_facts, variance_scale
 from services.ownership import tile_owner
 
 
@@ -219,3 +221,56 @@ def test_head_stops_a_streaming_response_under_either_asgi_spec(spec_version):
     sent = asyncio.run(serve(Response(b"twelve bytes", media_type="text/plain")))
     assert [m["type"] for m in sent] == ["http.response.start", "http.response.body"] and sent[1]["body"] == b""
     assert dict(sent[0]["headers"])[b"content-length"] == b"12"
+
+
+def update(tx: int, ty: int, fill: float) -> SimpleNamespace:
+    """A whole 2 x 2 level-0 tile as a shard sends it (only the fields TileService reads)."""
+    return SimpleNamespace(tx=tx, ty=ty, resolution=0.05, tile_size=2,
+                           logodds=np.full((2, 2), fill, np.float32), variance=np.ones((2, 2), np.float32),
+                           observed=np.ones((2, 2), bool))
+
+
+class Source:
+    def __init__(self, tiles):
+        self.tiles = tiles
+
+    def fetch_tiles(self, map_name, tiles):
+        return {key: self.tiles[key] for key in tiles if key in self.tiles}
+
+    def fetch_all(self, map_name):
+        return list(self.tiles.values()), True
+
+
+def test_tile_facts_hand_computed():
+    size = 10
+    observed = np.zeros((size, size), bool)
+    observed[2:7, 1:9] = False
+    observed[3, 2:10] = True  # 8 cells
+    observed[5, 4:6] = True  # 2 cells
+    variance = np.zeros((size, size), np.float32)
+    variance[observed] = np.arange(1, 11)  # 1 .. 10
+    layers: TileLayers = (np.zeros((size, size), np.float32), variance, observed)
+    facts = tile_facts((1, -2), layers)
+    assert facts.observed == 10
+    # numpy's linear percentile of 1..10 at 99 %: index 0.99 * 9 = 8.91 -> 9 + 0.91 * (10 - 9)
+    assert facts.variance_p99 == pytest.approx(9.91)
+    # global cells: x = 1*10 + col, y = -2*10 + row
+    assert facts.bounds == (12, -17, 19, -15)
+
+
+def test_a_sync_that_finds_the_cached_tile_unchanged_keeps_its_version():
+    registry = MapRegistry()
+    registry.shard_alive("m", 0, True)
+    version = registry.tile_changed("m", (0, 0), 0.05, 2)
+    source = Source({(0, 0): update(0, 0, 1.0)})
+    changes = []
+    service = TileService(registry, source, "e", 1 << 20,
+                          on_change=lambda name, tile, v: changes.append((name, tile, v)))
+    assert service.layers("m", 0, 0, 0)[0][0, 0] == 1.0  # fetched and cached at `version`
+    service.sync("m")  # the shard holds exactly what is cached: nothing changed
+    assert registry.version("m", 0, 0, 0) == version and changes == []
+    source.tiles[(0, 0)] = update(0, 0, 2.0)
+    registry.request_sync("m")
+    service.sync("m")  # now it differs: a new version and one event
+    assert registry.version("m", 0, 0, 0) > version
+    assert changes == [("m", (0, 0), registry.version("m", 0, 0, 0))]

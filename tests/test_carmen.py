@@ -231,3 +231,52 @@ def test_poses_and_ranges_beyond_the_pose_limit_are_skipped(tmp_path):
     assert "odometry pose is not finite or beyond +-1e+07" in reasons[2]
     assert "range 2 is 20000000.0, expected a number in [0, 1e+07] m or inf" in reasons[3]
     assert reasons[4].startswith("ODOM") and "beyond +-1e+07" in reasons[4]
+
+
+def test_a_flaser_line_with_a_field_too_many_is_skipped_not_shifted(tmp_path):
+    lines = [
+        "FLASER 3 1.0 2.5 3.0 0.1 0.2 0.3 1.1 1.2 1.3 100.5 host 0.5",  # 1: good
+        "FLASER 3 1.0 2.5 3.0 4.0 0.1 0.2 0.3 1.1 1.2 1.3 101.5 host 1.5",  # 2: four ranges under "3"
+    ]
+    log = read_carmen(write(tmp_path, lines))
+    assert log.where.tolist() == [1]
+    assert [s.where for s in log.skipped] == [2]
+    assert "needs 14 fields, has 15" in log.skipped[0].reason
+
+
+def test_the_rear_laser_faces_backwards(tmp_path):
+    lines = [
+        "PARAM robot_rearlaser_offset -0.2 0 host 0",
+        "RLASER 3 1.0 2.0 3.0 0.1 0.2 0.3 1.1 1.2 1.3 100.5 host 0.5",
+        "FLASER 3 9.0 9.0 9.0 0.1 0.2 0.3 1.1 1.2 1.3 100.5 host 0.5",  # the front laser: not read
+    ]
+    log = read_carmen(write(tmp_path, lines), laser="rear")
+    assert log.where.tolist() == [2]
+    np.testing.assert_allclose(log.sensor_offset, [-0.2, 0.0, math.pi])
+    np.testing.assert_array_equal(log.ranges[0], [1.0, 2.0, 3.0])
+
+
+def test_robotlaser_offset_is_the_median_over_the_scans(tmp_path):
+    # laser 0.9 m ahead in the first scan (an outlier), 0.3 m in the two others: the median is 0.3
+    lines = [robotlaser(ranges=(1.0, 2.0, 3.0), laser=(0.9, 0.0, 0.0), robot=(0.0, 0.0, 0.0), stamp=1.0),
+             robotlaser(ranges=(1.0, 2.0, 3.0), laser=(1.3, 0.0, 0.0), robot=(1.0, 0.0, 0.0), stamp=2.0),
+             robotlaser(ranges=(1.0, 2.0, 3.0), laser=(2.3, 0.0, 0.0), robot=(2.0, 0.0, 0.0), stamp=3.0)]
+    log = read_carmen(write(tmp_path, lines))
+    assert len(log) == 3
+    np.testing.assert_allclose(log.sensor_offset, [0.3, 0.0, 0.0], atol=1e-12)
+
+
+def test_a_non_positive_flaser_resolution_is_a_log_format_error(tmp_path):
+    lines = ["PARAM laser_front_laser_resolution 0 0 host 0",
+             "FLASER 3 1.0 2.5 3.0 0.1 0.2 0.3 1.1 1.2 1.3 100.5 host 0.5"]
+    with pytest.raises(LogFormatError, match="resolution and maximum range must be positive"):
+        read_carmen(write(tmp_path, lines))
+
+
+def test_a_scan_with_a_non_finite_stamp_is_skipped(tmp_path):
+    lines = ["FLASER 3 1.0 2.5 3.0 0.1 0.2 0.3 1.1 1.2 1.3 100.5 host 0.5",
+             "FLASER 3 1.0 2.5 3.0 0.1 0.2 0.3 1.1 1.2 1.3 nan host 1.5",
+             "FLASER 3 1.0 2.5 3.0 0.1 0.2 0.3 1.1 1.2 1.3 inf host 2.5"]
+    log = read_carmen(write(tmp_path, lines))
+    assert log.where.tolist() == [1]
+    assert [(s.where, "timestamp is not finite" in s.reason) for s in log.skipped] == [(2, True), (3, True)]

@@ -54,3 +54,21 @@ def test_bad_shapes_are_input_errors():
         downsample(np.zeros((3, 4)), np.zeros((3, 4)), np.zeros((3, 4), bool))
     with pytest.raises(InputError):
         combine_children([None] * 3, 2)
+
+
+def test_odd_column_count_is_an_input_error():
+    with pytest.raises(InputError):
+        downsample(np.zeros((4, 3)), np.zeros((4, 3)), np.zeros((4, 3), bool))
+
+
+def test_observed_of_another_shape_is_an_input_error():
+    with pytest.raises(InputError):
+        downsample(np.zeros((4, 4)), np.zeros((4, 4)), np.zeros((2, 8), bool))
+
+
+def test_child_of_the_wrong_shape_is_an_input_error():
+    # a (1, 2) row would broadcast silently into the (2, 2) quarter
+    good = (np.zeros((2, 2), np.float32), np.zeros((2, 2), np.float32), np.ones((2, 2), bool))
+    bad = (np.ones((1, 2), np.float32), np.ones((1, 2), np.float32), np.ones((1, 2), bool))
+    with pytest.raises(InputError):
+        combine_children([good, bad, None, None], 2)

@@ -42,3 +42,29 @@ def test_traversal_matches_reference(x0, y0, angle, length, res):
     ref_cells = [(c[0], c[1]) for c in ref if c[3] - c[2] > long_enough]
     got_cells = [c for c, a, b in zip(got, r_in, r_out) if b - a > long_enough]
     assert got_cells == ref_cells
+
+
+def test_origin_on_a_grid_line_going_back_skips_the_point_contact_cell():
+    # the origin lies on x = 0.1 and the ray goes along -x: cell 1 is touched only at r = 0 and is not visited
+    ix, iy, r_in, r_out = traverse(0.1, 0.05, math.pi, 0.25, 0.1)
+    assert list(zip(ix, iy)) == [(0, 0), (-1, 0), (-2, 0)]
+    assert [round(v, 12) for v in r_in] == [0.0, 0.1, 0.2]
+    assert [round(v, 12) for v in r_out] == [0.1, 0.2, 0.25]
+
+
+def test_a_near_corner_miss_still_visits_the_cell_it_clips():
+    # 1e-8 m above the corner (0.1, 0.1): the ray crosses y = 0.1 about 1e-8 m before x = 0.1, so it clips
+    # cell (0, 1) over ~1.4e-8 m; that is far above the corner tolerance of 1e-12 (1 + r)
+    ix, iy, r_in, r_out = traverse(0.05, 0.05 + 1e-8, math.pi / 4, 0.1, 0.1)
+    assert list(zip(ix, iy)) == [(0, 0), (0, 1), (1, 1)]
+    assert 0 < r_out[1] - r_in[1] < 2e-8
+
+
+def test_a_long_ray_through_corners_keeps_the_corner_tolerance_relative():
+    # y = 2 (x - 0.05) from (0.05, 0) with 0.1 m cells: every vertical grid line is crossed at a corner, so the
+    # ray visits 1 + (horizontal lines crossed) cells: y ends at 300 * 2/sqrt(5) = 268.33 m -> 2683 lines.
+    # Over 300 m the two crossing families drift apart by more than 1e-12 m absolute, so a fixed tolerance
+    # would add point-contact cells (~1e-12 m long).
+    ix, iy, r_in, r_out = traverse(0.05, 0.0, math.atan2(2.0, 1.0), 300.0, 0.1)
+    assert len(ix) == 2684
+    assert (r_out - r_in).min() > 1e-6

@@ -216,3 +216,20 @@ def test_cli_eval_relations_reads_an_uppercase_npz_as_a_pose_file(tmp_path, caps
     assert main(["eval-relations", str(clf), str(rel), "--align-to", str(npz)]) == 2
     err = capsys.readouterr().err
     assert "POSES.NPZ: a .npz file, not a laser log" in err and err.count("\n") == 1
+
+
+def test_a_stamp_exactly_tolerance_away_still_matches():
+    # |-0.001 - 0.0| == 1e-3 exactly; the next stamp is 10 s away, too far to interpolate, so only the
+    # inclusive tolerance ("within tolerance") can match it
+    traj = Trajectory(np.array([0.0, 10.0]), np.array([[1.0, 2.0, 0.5], [9.0, 9.0, 0.0]]))
+    poses, ok = poses_at(traj, np.array([-0.001]), tolerance=1e-3, max_gap=5.0)
+    assert ok.tolist() == [True]
+    np.testing.assert_array_equal(poses[0], [1.0, 2.0, 0.5])
+
+
+def test_poses_exactly_max_gap_apart_are_interpolated():
+    # "at most max_gap seconds apart": a 5 s gap with max_gap = 5 is bridged
+    traj = Trajectory(np.array([0.0, 5.0]), np.array([[0.0, 0.0, 0.0], [2.0, 4.0, 1.0]]))
+    poses, ok = poses_at(traj, np.array([2.5]), tolerance=1e-3, max_gap=5.0)
+    assert ok.tolist() == [True]
+    np.testing.assert_allclose(poses[0], [1.0, 2.0, 0.5])

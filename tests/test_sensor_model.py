@@ -93,3 +93,34 @@ def test_constant_sigma_table_matches_the_closed_form():
 def test_bad_parameters_are_rejected(kwargs):
     with pytest.raises(InputError):
         SensorModel(**kwargs)
+
+
+@pytest.mark.parametrize("kwargs", [
+    {"sigma": "linear", "sigma_slope": -0.01},  # a noise that shrinks with range
+    {"p_hit": 0.8, "p_max": 0.75},  # the clamp below the hit increment
+])
+def test_more_bad_parameters_are_rejected(kwargs):
+    with pytest.raises(InputError):
+        SensorModel(**kwargs)
+
+
+def test_default_peak_width_is_the_cell_diagonal():
+    assert SensorModel(resolution=0.1).l == pytest.approx(0.1 * math.sqrt(2))
+    assert SensorModel(resolution=0.1, peak_width=0.3).l == 0.3
+
+
+def test_stereo_sigma_is_floored_at_a_micrometre():
+    # z = 0 would give sigma 0 and a 0/0 model; the floor keeps it finite
+    model = SensorModel(sigma="stereo", baseline_focal=100.0)
+    assert float(model.sigma_at(0.0)) == 1e-6
+    assert float(model.sigma_at(0.001)) == 1e-6  # 1e-6 / 100 = 1e-8, below the floor
+
+
+def test_squashing_is_capped_at_the_hit_probability():
+    # g above the beam's peak (only numerically possible) still gives p_hit, never more
+    assert float(SensorModel().squashed(0.9, 0.8)) == pytest.approx(0.7)
+
+
+def test_a_peak_within_peak_eps_of_one_half_gives_no_occupied_evidence():
+    # g_peak - 1/2 = 5e-10 <= PEAK_EPS: the beam's noise swamps its peak, so p is exactly 1/2 at g >= 1/2
+    assert float(SensorModel().squashed(0.5 + 4e-10, 0.5 + 5e-10)) == 0.5

@@ -191,3 +191,27 @@ def test_office_layout():
     assert segments[:, [1, 3]].min() == 0 and segments[:, [1, 3]].max() == 12
     gaps = np.linalg.norm(landmarks[:, None] - landmarks[None], axis=2) + 100 * np.eye(len(landmarks))
     assert gaps.min() > 1.0
+
+
+def test_a_ray_through_a_segments_end_point_hits_it():
+    # the ray along +x from (0, 0) meets the segment (1, -1)-(1, 0) exactly at its end b: u = 1, t = 1
+    segments = np.array([[1.0, -1.0, 1.0, 0.0]])
+    assert cast_rays(np.zeros((1, 2)), np.array([0.0]), segments, 5.0).tolist() == [1.0]
+    # and at its start a: u = 0
+    segments = np.array([[1.0, 0.0, 1.0, 1.0]])
+    assert cast_rays(np.zeros((1, 2)), np.array([0.0]), segments, 5.0).tolist() == [1.0]
+
+
+def test_a_hit_exactly_at_max_range_counts_and_one_beyond_does_not():
+    segments = np.array([[2.0, -1.0, 2.0, 1.0]])
+    origins = np.zeros((2, 2))
+    assert cast_rays(origins, np.array([0.0, 0.0]), segments, 2.0).tolist() == [2.0, 2.0]
+    assert cast_rays(origins, np.array([0.0, math.pi]), segments, 1.5).tolist() == [math.inf, math.inf]
+
+
+def test_sight_lines_touching_a_wall_at_an_end_are_not_blocked():
+    wall = np.array([[1.0, -1.0, 1.0, 1.0]])
+    starts = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 0.0], [0.0, 0.0]])
+    ends = np.array([[1.0, 0.0], [2.0, 0.0], [2.0, 0.0], [2.0, 2.0]])
+    # ends on the wall; starts on the wall; crosses it mid-wall; crosses the wall's end point (1, 1)
+    assert segments_block(starts, ends, wall).tolist() == [False, False, True, True]
