@@ -3,14 +3,13 @@ from __future__ import annotations
 
 import asyncio
 import json
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from mapping.pyramid import TileLayers
 from mapping.sensor_model import SensorModel, logit
-from schemas.messages import PoseGaussian, PoseSamples
+from schemas.messages import PoseGaussian, PoseSamples, TileUpdate
 from services.api.cache import ByteLRU
 from services.api.events import EventHub
 from services.api.fastpath import etag_matches
@@ -223,14 +222,16 @@ def test_head_stops_a_streaming_response_under_either_asgi_spec(spec_version):
     assert dict(sent[0]["headers"])[b"content-length"] == b"12"
 
 
-def update(tx: int, ty: int, fill: float) -> SimpleNamespace:
-    """A whole 2 x 2 level-0 tile as a shard sends it (only the fields TileService reads)."""
-    return SimpleNamespace(tx=tx, ty=ty, resolution=0.05, tile_size=2,
-                           logodds=np.full((2, 2), fill, np.float32), variance=np.ones((2, 2), np.float32),
-                           observed=np.ones((2, 2), bool))
+def update(tx: int, ty: int, fill: float) -> TileUpdate:
+    """A whole 2 x 2 level-0 tile as a shard sends it."""
+    return TileUpdate(map="m", shard=0, z=0, tx=tx, ty=ty, tile_size=2, resolution=0.05, row0=0, col0=0, robot="r",
+                      seq=0, published=0.0, logodds=np.full((2, 2), fill, np.float32),
+                      variance=np.ones((2, 2), np.float32), observed=np.ones((2, 2), bool))
 
 
 class Source:
+    """The shards as TileService asks them (services.map_client over Zenoh in the API): tiles held in memory."""
+
     def __init__(self, tiles):
         self.tiles = tiles
 
@@ -244,7 +245,6 @@ class Source:
 def test_tile_facts_hand_computed():
     size = 10
     observed = np.zeros((size, size), bool)
-    observed[2:7, 1:9] = False
     observed[3, 2:10] = True  # 8 cells
     observed[5, 4:6] = True  # 2 cells
     variance = np.zeros((size, size), np.float32)

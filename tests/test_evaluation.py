@@ -146,5 +146,6 @@ def test_truth_cells_too_small_for_the_map_cells_are_refused():
 def test_sample_map_reads_the_last_column_of_a_wide_raster_and_half_outside():
     """sample_map (used by bench/adaptive.py) on a 1 x 3 raster: column 2 is inside, x = 0.35 is not."""
     probability = np.array([[0.1, 0.2, 0.3]])
-    got = sample_map(probability, np.zeros(2), 0.1, np.array([0.05, 0.25, 0.35, 0.25]), np.array([0.05, 0.05, 0.05, -0.05]))
+    got = sample_map(probability, np.zeros(2), 0.1, np.array([0.05, 0.25, 0.35, 0.25]),
+                     np.array([0.05, 0.05, 0.05, -0.05]))
     np.testing.assert_array_equal(got, [0.1, 0.3, 0.5, 0.5])

@@ -24,7 +24,7 @@ def test_rasterize_crops_to_the_observed_cells_by_hand():
     grid = TiledGrid(0.5, tile_size=4)
     grid.set_tile((1, -1), *_tile(4, {(1, 2): 1.5, (3, 3): -2.0}))
     raster = grid.rasterize()
-    assert raster["logodds"].shape == (3, 2) and raster["observed"].shape == (3, 2) and raster["variance"].shape == (3, 2)
+    assert raster["logodds"].shape == raster["observed"].shape == raster["variance"].shape == (3, 2)
     np.testing.assert_array_equal(raster["observed"], [[True, False], [False, False], [False, True]])
     np.testing.assert_array_equal(raster["logodds"], np.array([[1.5, 0.0], [0.0, 0.0], [0.0, -2.0]], np.float32))
     np.testing.assert_allclose(raster["origin"], [3.0, -1.5])

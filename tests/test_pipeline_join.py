@@ -13,7 +13,17 @@ from hypothesis import strategies as st
 
 from mapping.sensor_model import SensorModel
 from schemas.messages import LaserScan, PoseGaussian, PoseSamples, StreamEnd
-from services.join import EVICTED_LIMIT, JUMP, MISSING, ORPHANED, OVERFLOW, REFETCH_BATCH, GivenUp, JoinBuffer, SeqLedger
+from services.join import (
+    EVICTED_LIMIT,
+    JUMP,
+    MISSING,
+    ORPHANED,
+    OVERFLOW,
+    REFETCH_BATCH,
+    GivenUp,
+    JoinBuffer,
+    SeqLedger,
+)
 from services.process import RejectCounter
 from services.shard import FUSIONS_KEPT, SETTLE_AFTER, MapShard, ShardConfig
 from services.steps import OutOfOrder, StepAssembler

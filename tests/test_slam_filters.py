@@ -73,14 +73,23 @@ def test_ekf_with_zero_noise_follows_the_truth_exactly():
     np.testing.assert_allclose(positions, run.landmarks[ids], atol=1e-9)
 
 
+def _standing_still(measurements_per_step: list[list[list[float]]], landmark_id: int = -1) -> SlamSequence:
+    """A robot standing at the origin (no motion, so no motion noise) that sees the given (range, bearing)
+    measurements, one list per step (the first at the start), all with id ``landmark_id`` (-1: for unknown ids)."""
+    steps = len(measurements_per_step)
+    counts = [len(step) for step in measurements_per_step]
+    return SlamSequence(
+        stamps=0.1 * np.arange(steps), controls=np.tile([0.0, 0.0, 0.1], (steps - 1, 1)),
+        control_ptr=np.concatenate([[0], np.arange(steps)]),
+        measurements=np.array([z for step in measurements_per_step for z in step]),
+        landmark_ids=np.full(sum(counts), landmark_id), measurement_ptr=np.concatenate([[0], np.cumsum(counts)]),
+        initial_pose=np.zeros(3), motion="velocity")
+
+
 def test_ekf_outlier_gate_drops_a_wild_measurement():
     model = VelocityMotionModel(alphas=(0.01,) * 6)
     sensor = RangeBearingModel(0.1, 0.02)
-    measurements = np.array([[2.0, 0.0], [2.0, 0.0], [5.0, 1.0]])  # the last is 3 m and 1 rad off
-    sequence = SlamSequence(
-        stamps=np.array([0.0, 0.1, 0.2]), controls=np.array([[0.0, 0.0, 0.1], [0.0, 0.0, 0.1]]),
-        control_ptr=np.array([0, 0, 1, 2]), measurements=measurements, landmark_ids=np.array([4, 4, 4]),
-        measurement_ptr=np.array([0, 1, 2, 3]), initial_pose=np.zeros(3), motion="velocity")
+    sequence = _standing_still([[[2.0, 0.0]], [[2.0, 0.0]], [[5.0, 1.0]]], landmark_id=4)  # the last 3 m, 1 rad off
     gated = EKFSLAM(model, sensor, np.zeros(3), outlier_gate=18.42)
     run_filter(gated, sequence)
     assert gated.rejected == 1
@@ -89,19 +98,6 @@ def test_ekf_outlier_gate_drops_a_wild_measurement():
     ungated = EKFSLAM(model, sensor, np.zeros(3))
     run_filter(ungated, sequence)
     assert np.abs(ungated.landmarks()[1] - [[2.0, 0.0]]).max() > 0.1
-
-
-def _standing_still(measurements_per_step: list[list[list[float]]]) -> SlamSequence:
-    """A robot standing at the origin (no motion, so no motion noise) that sees the given (range, bearing)
-    measurements, one list per step after the first, with unknown correspondences (ids -1)."""
-    steps = len(measurements_per_step)
-    counts = [len(step) for step in measurements_per_step]
-    return SlamSequence(
-        stamps=0.1 * np.arange(steps), controls=np.tile([0.0, 0.0, 0.1], (steps - 1, 1)),
-        control_ptr=np.concatenate([[0], np.arange(steps)]),
-        measurements=np.array([z for step in measurements_per_step for z in step]),
-        landmark_ids=np.full(sum(counts), -1), measurement_ptr=np.concatenate([[0], np.cumsum(counts)]),
-        initial_pose=np.zeros(3), motion="velocity")
 
 
 @pytest.mark.parametrize(("seen_again", "rejected", "landmarks"), [

@@ -15,8 +15,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "api", help="HTTP API and browser viewer of the maps (a Zenoh client of the mapper shards)",
         description="Serve the maps the mapper shards hold over HTTP: map summaries, PNG and .npz tiles at every "
         "zoom level (cached, with ETags), whole-map exports (npz, pgm+yaml, png), shard statistics, health, robot "
-        "poses, a server-sent event stream, and the viewer at / (OpenAPI document at /openapi.json; /docs loads Swagger UI from a CDN). Connects to the "
-        "Zenoh router as a client. Stops on Ctrl-C or SIGTERM.",
+        "poses, a server-sent event stream, and the viewer at / (OpenAPI document at /openapi.json; /docs loads "
+        "Swagger UI from a CDN). Connects to the Zenoh router as a client. Stops on Ctrl-C or SIGTERM.",
     )
     api.add_argument("--host", default="127.0.0.1",
                      help="address to listen on (default 127.0.0.1; 0.0.0.0 exposes the API to the network)")
@@ -40,7 +40,8 @@ def check_port_free(host: str, port: int) -> None:
         try:
             probe.bind((host, port))
         except OSError as exc:
-            raise UsageError(f"cannot listen on {host}:{port} ({exc.strerror}); pick another --port (`posegrid run`: --api-port)") from None
+            raise UsageError(f"cannot listen on {host}:{port} ({exc.strerror}); pick another --port "
+                             "(`posegrid run`: --api-port)") from None
 
 
 def run_api(args: argparse.Namespace) -> int:

@@ -101,8 +101,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "the input has poses) and a source, print where to look and show progress. Input: the built-in simulated "
         "office (default), a posed-scan file (--posed: scans and poses, no SLAM node), a simulator folder, a CARMEN "
         "log or a ROS bag (both with grid FastSLAM). An MRCLAM folder has no laser, so no map: replay it with "
-        "`posegrid source --mrclam` and `posegrid slam-node`. When the replay ends the shards keep serving the map until Ctrl-C; with --export "
-        "the map assembled from all shards is written and run exits 0. Ctrl-C stops every child cleanly.",
+        "`posegrid source --mrclam` and `posegrid slam-node`. When the replay ends the shards keep serving the map "
+        "until Ctrl-C; with --export the map assembled from all shards is written and run exits 0. Ctrl-C stops "
+        "every child cleanly.",
     )
     add_input_arguments(run, default_sim=True)
     run.add_argument("--shards", type=int, default=1, help="mapper shards (default 1)")
@@ -159,7 +160,8 @@ def add_input_arguments(parser: argparse.ArgumentParser, default_sim: bool) -> N
                         help="simulate the office world live (slam.simulator)" + (" (default)" if default_sim else ""))
     inputs.add_argument("--posed", type=Path, metavar="FILE.npz", help="posed-scan file: scans with their poses")
     inputs.add_argument("--sim-dir", type=Path, metavar="DIR", help="folder written by `posegrid simulate`")
-    inputs.add_argument("--mrclam", type=Path, metavar="DIR", help=mrclam_help("UTIAS MRCLAM dataset folder (no laser)"))
+    inputs.add_argument("--mrclam", type=Path, metavar="DIR",
+                        help=mrclam_help("UTIAS MRCLAM dataset folder (no laser)"))
     inputs.add_argument("--carmen", type=Path, metavar="FILE", help="CARMEN log (.clf/.log, plain or gzip)")
     inputs.add_argument("--bag", type=Path, metavar="BAG", help="ROS bag with LaserScan and odometry (Odometry "
                         "messages or /tf): a ROS 1 .bag file or a ROS 2 bag folder")

@@ -16,7 +16,7 @@ from services.commands.argtypes import finite_float, pose_sample_count, random_s
 ALGORITHMS = ("odometry", "ekf", "fastslam1", "fastslam2", "gridslam")
 #: FastSLAM particles of `posegrid slam` when --particles is not given: on MRCLAM dataset 7, 29 of 30 runs (robots
 #: 1-5, both FastSLAMs, seeds 0-2) keep the truth inside the 95 % region at >= 85 % of the steps with 2 000, far
-#: fewer with 500, at 20x real time or faster (docs/slam.md)
+#: fewer with 500, at 16x real time or faster (docs/slam.md)
 DEFAULT_PARTICLES = 2000
 #: s within which a simulator folder's scan stamps must equal its controls' step stamps
 STAMP_TOLERANCE = 1e-6
@@ -248,7 +248,7 @@ def _load_input(args: argparse.Namespace):
         sequence = mrclam.mrclam_sequence(run, initial_pose=initial, period=period,
                                           range_calibration=None if args.raw_ranges else mrclam.MRCLAM_RANGE_CALIBRATION,
                                           velocity_scale=None if args.raw_commands else mrclam.MRCLAM_VELOCITY_SCALE)
-        before_start = len(run.measurements) - len(sequence.measurements)  # the sequence starts at the start
+        before_start = len(run.measurements) - len(sequence.measurements)  # mrclam_sequence leaves them out
         notes = (f"skipped {run.skipped_robots} measurements of robots, {run.skipped_unknown} of barcodes "
                  f"in no table, {run.skipped_outside} stamped outside the odometry's time span, "
                  f"{before_start} before the filter's start and "
