@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: install run test bench clean
+.PHONY: install run test bench clean clean-cache
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -28,5 +28,11 @@ bench: $(STAMP)
 	$(PY) -m pip install --quiet -e '.[bench]' || echo 'pyoctomap not installed: the OctoMap columns will be skipped'
 	$(PY) -m bench.run
 
-clean:
+## make clean-cache: numba's compiled kernels (mapping/, slam/). Needed after editing a helper that kernels in other
+## files inline (raytrace, window_walk, free_runs, beam_model): numba's cache notices a change in a kernel's own
+## file only, and would go on running the old helper
+clean-cache:
+	find mapping slam -name __pycache__ -prune -exec rm -rf {} +
+
+clean: clean-cache
 	rm -rf $(VENV) build *.egg-info bench/results .pytest_cache

@@ -16,10 +16,11 @@ The whole scan is one compiled pass over all (sample, beam, cell) triples, writt
 that covers the scan (its origin a multiple of 8 cells), followed by one compiled pass that adds the
 window's touched cells into the tiles. No Python loop runs per sample, beam or cell.
 
-A scan with M > 1 distinct samples takes the samples pass (:mod:`mapping.samples_pass`: per-sample masks
-in free space, per-sample records near the returns); one distinct sample takes the one-sample pass
-(:mod:`mapping.single_pass`), which gives the same map for about half the time. Both walk the rays with
-:mod:`mapping.window_walk` and value the cells with :mod:`mapping.beam_model`.
+A scan with M > 1 distinct samples takes the samples pass (:mod:`mapping.samples_pass`: a bit plane per
+sample, most of each ray's free space marked in it as runs of cells per grid line (:mod:`mapping.free_runs`),
+per-sample records near the returns); one distinct sample takes the one-sample pass (:mod:`mapping.single_pass`),
+which gives the same map for about half the time. Both walk the rays with :mod:`mapping.window_walk` and value
+the cells with :mod:`mapping.beam_model`.
 """
 from __future__ import annotations
 
@@ -172,6 +173,7 @@ class MonteCarloFusion:
         self.grid = grid
         self.model = model
         self.angles = np.ascontiguousarray(beam_angles, dtype=np.float64)
+        self._cos_angles, self._sin_angles = np.cos(self.angles), np.sin(self.angles)  # (the kernels' beam directions)
         self.range_min = float(range_min)
         self.range_max = float(range_max)
         self.sensor_offset = np.asarray(sensor_offset, dtype=np.float64)
@@ -181,16 +183,21 @@ class MonteCarloFusion:
         self._owned_windows: dict[tuple[int, int, int, int], tuple[np.ndarray, bool]] = {}
         self._stamp_next = 1
         self._scratch_size = 0
+        self._columns = np.zeros(0, np.uint64)
         self._single_blocks = 0
         self._table = logodds_table(model)
         self._l_free, self._l_min, self._l_max = model.l_free, model.l_min, model.l_max  # (properties: computed)
 
-    def _scratch(self, cells: int) -> None:
+    def _scratch(self, cells: int, column_bits: int) -> None:
+        if column_bits > self._columns.shape[0] * 64:
+            self._columns = np.zeros(column_bits // 64, np.uint64)  # the column-major plane (mapping.free_runs)
         if cells <= self._scratch_size:
             return
         self._scratch_size = cells
-        # per cell (see accumulate_scan): the samples' mask, the weight sum, the excess record
-        self._mask = np.zeros(cells, np.uint64)
+        # per cell (see accumulate_scan): a bit in the sample's plane and in the listed plane, the weight sum,
+        # the excess record
+        self._plane = np.zeros((cells + 63) // 64, np.uint64)
+        self._listed = np.zeros((cells + 63) // 64, np.uint64)
         self._weight_sum = np.zeros(cells, np.float64)
         self._excess = np.zeros((cells, 4), np.float64)
         self._scan_cells = np.zeros(cells, np.int64)
@@ -270,10 +277,10 @@ class MonteCarloFusion:
             self._single_scratch(blocks_w * blocks_h)
             x, y, yaw = lasers[0].tolist()
             n_scan = accumulate_single(
-                x, y, yaw, self.angles, beams.kind, beams.z, beams.r_stop, beams.r_peak, beams.a, beams.b, beams.s,
-                beams.g_peak, beams.free_until, self._table, TABLE_U0, TABLE_DU, res, model.p_miss, model.p_hit,
-                self._l_free, win_ix0, win_iy0, win_w, win_h, shift, tx0, ty0, owned, all_owned, self._touched_bits,
-                self._raised_bits, self._largest, blocks_w, blocks_h, touched,
+                x, y, yaw, self._cos_angles, self._sin_angles, beams.kind, beams.z, beams.r_stop, beams.r_peak,
+                beams.a, beams.b, beams.s, beams.g_peak, beams.free_until, self._table, TABLE_U0, TABLE_DU, res,
+                model.p_miss, model.p_hit, self._l_free, win_ix0, win_iy0, win_w, win_h, shift, tx0, ty0, owned,
+                all_owned, self._touched_bits, self._raised_bits, self._largest, blocks_w, blocks_h, touched,
             )
             slot_map, changed = self._tile_slots(touched, tx0, ty0)
             apply_single(self._touched_bits, self._raised_bits, self._largest, blocks_w, blocks_h, float(weights[0]),
@@ -281,21 +288,23 @@ class MonteCarloFusion:
                           self._l_min, self._l_max)
             return FuseResult(int(n_scan), changed)
 
-        self._scratch(win_w * win_h)
+        col_stride = -(-win_h // 64) * 64
+        self._scratch(win_w * win_h, win_w * col_stride)
         if self._stamp_next + len(samples) >= STAMP_LIMIT:
             self._excess[:] = 0
             self._stamp_next = 1
         stamp_base = self._stamp_next
         self._stamp_next += len(samples)
         n_scan = accumulate_scan(
-            lasers[:, 0].copy(), lasers[:, 1].copy(), lasers[:, 2].copy(), weights, self.angles,
+            lasers[:, 0].copy(), lasers[:, 1].copy(), lasers[:, 2].copy(), weights, self._cos_angles, self._sin_angles,
             beams.kind, beams.z, beams.r_stop, beams.r_peak, beams.a, beams.b, beams.s, beams.g_peak,
             beams.free_until, self._table, TABLE_U0, TABLE_DU, res, model.p_miss, model.p_hit, self._l_free,
             win_ix0, win_iy0, win_w, win_h, shift, tx0, ty0, owned, all_owned,
-            self._mask, self._weight_sum, self._excess, self._scan_cells, touched, stamp_base,
+            self._plane, self._columns, col_stride, self._listed, self._weight_sum, self._excess, self._scan_cells,
+            touched, stamp_base,
         )
         slot_map, changed = self._tile_slots(touched, tx0, ty0)
-        apply_scan(self._scan_cells, n_scan, self._mask, self._weight_sum, self._excess, stamp_base, self._l_free,
+        apply_scan(self._scan_cells, n_scan, self._listed, self._weight_sum, self._excess, stamp_base, self._l_free,
                     win_w, win_ix0, win_iy0, shift, tx0, ty0, slot_map, grid.logodds, grid.variance, grid.observed,
                     self._l_min, self._l_max)
         return FuseResult(int(n_scan), changed)

@@ -7,10 +7,11 @@ touch cell i, and with W_i = sum of their weights, D1_i = sum_j w_j d_ij, D2_i =
 
     sum_j w_j y_ij = l_free W_i + D1_i        sum_j w_j y_ij^2 = l_free^2 W_i + 2 l_free D1_i + D2_i
 
-A cell in free space (most visits) only sets sample j's bit in a 64-bit mask (which samples touched it:
-idempotent, no per-sample record); W_i is summed from the mask's bits once per scan. The few cells with an
-excess keep a per-sample record (the largest excess of the sample's beams, by stamp) for D1 and D2.
-Samples go through in chunks of MASK_SAMPLES; the mask's top bit marks a cell listed in this scan.
+A sample's touched cells are marked in a plane of one bit per window cell (idempotent, so a cell crossed by
+several of the sample's beams is marked once; most of a beam's free stretch is marked as runs per grid row or column,
+:mod:`mapping.free_runs`), and after the sample's beams the plane's set bits add its weight to W_i. The few
+cells with an excess keep a per-sample record (the largest excess of the sample's beams, by stamp) for D1 and
+D2. A second bit plane marks the cells listed in this scan.
 """
 from __future__ import annotations
 
@@ -18,17 +19,15 @@ import math
 
 import numba as nb
 import numpy as np
+from numba.cpython.unsafe.numbers import trailing_zeros  # LLVM's cttz: the set bits of a word, one by one
 
 from mapping.beam_model import BEAM_SKIP, segment_logodds
+from mapping.free_runs import fold_columns, mark_free_runs, set_bit
 from mapping.raytrace import dda_step
-from mapping.window_walk import jump_over_tile, ray_start, step_index
+from mapping.window_walk import JUMP_MARGIN, beam_direction, jump_over_tile, ray_start, step_index
 
 #: per-sample stamps are stored as float64 (exact below 2**53); the scratch is cleared and stamps restart here
 STAMP_LIMIT = 2**52
-
-#: samples per chunk: one bit each in a cell's 64-bit mask; the top bit marks a cell already listed
-MASK_SAMPLES = 63
-LISTED = np.uint64(1) << np.uint64(63)
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -48,186 +47,191 @@ def add_sample_value(rec, c, sid, w, y):  # pragma: no cover - compiled
     rec[c, 3] += w * y * y if first else w * (new * new - old * old)
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _mark(mask, c, bit, scan_cells, n_scan):  # pragma: no cover - compiled
-    """Set a sample's bit in cell c's mask (c = gy * win_w + gx, row-major in the window); a cell touched for
-    the first time in this scan is listed in scan_cells. Returns the new list length. As little as possible
-    happens here (it runs once per free-space visit): tiles are marked when the masks are folded."""
-    seen = mask[c]
-    mask[c] = seen | bit
-    if seen == 0:
-        scan_cells[n_scan] = c
-        return n_scan + 1
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def _sweep_plane(plane, n_words, listed, weight_sum, w, scan_cells, n_scan, win_w, win_ix0, win_iy0, tile_touched,
+                 tile_shift, tx0, ty0):  # pragma: no cover - compiled
+    """Add one sample's weight w to the weight sum of every cell its plane marks, and clear the plane. A cell
+    not yet listed in this scan (its bit clear in ``listed``) is listed in scan_cells and its tile marked in
+    tile_touched. Returns the new list length."""
+    for i in range(n_words):
+        bits = plane[i]
+        if bits == 0:
+            continue
+        plane[i] = 0
+        base = i << 6
+        new = bits & ~listed[i]
+        if new != 0:
+            listed[i] |= new
+            while new != 0:
+                c = base + trailing_zeros(new)
+                scan_cells[n_scan] = c
+                n_scan += 1
+                tile_touched[((c // win_w + win_iy0) >> tile_shift) - ty0,
+                             ((c % win_w + win_ix0) >> tile_shift) - tx0] = True
+                new &= new - np.uint64(1)
+        while bits != 0:
+            weight_sum[base + trailing_zeros(bits)] += w
+            bits &= bits - np.uint64(1)
     return n_scan
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def _fold_masks(mask, weight_sum, scan_cells, n_scan, weights, first, n_marked, win_w, win_ix0, win_iy0,
-                tile_touched, tile_shift, tx0, ty0):  # pragma: no cover - compiled
-    """Add to each listed cell's weight sum the weights of the chunk's samples (first, first + 1, ...)
-    whose bits its mask holds, and leave only the LISTED bit. The sum is taken a byte at a time from
-    tables of every byte's weight sums (one lookup per byte that holds samples). Marks the tiles of the
-    cells listed since the last fold (scan_cells[n_marked:n_scan]) in tile_touched."""
-    for q in range(n_marked, n_scan):
-        c = scan_cells[q]
-        tile_touched[((c // win_w + win_iy0) >> tile_shift) - ty0, ((c % win_w + win_ix0) >> tile_shift) - tx0] = True
-    samples = min(MASK_SAMPLES, weights.shape[0] - first)
-    n_bytes = (samples + 7) // 8
-    sums = np.zeros((n_bytes, 256))
-    for byte in range(n_bytes):
-        for bit in range(8):
-            j = 8 * byte + bit
-            w = weights[first + j] if j < samples else 0.0
-            top = 1 << bit  # the values whose highest bit is this one: the sum without it, plus w
-            for value in range(top, 2 * top):
-                sums[byte, value] = sums[byte, value - top] + w
-    for q in range(n_scan):
-        c = scan_cells[q]
-        bits = mask[c]
-        total = 0.0
-        for byte in range(n_bytes):
-            total += sums[byte, (bits >> np.uint64(8 * byte)) & np.uint64(255)]
-        weight_sum[c] += total
-        mask[c] = LISTED
-
-
-@nb.njit(cache=True, nogil=True, error_model="numpy")
-def accumulate_scan(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop, r_peak, a, b, s, g_peak,
-                     free_until, table, u0, du, res, p_miss, p_hit, l_free, win_ix0, win_iy0, win_w, win_h, tile_shift,
-                     tx0, ty0, owned, all_owned, mask, weight_sum, excess, scan_cells, tile_touched,
-                     stamp_base):  # pragma: no cover - compiled
+def accumulate_scan(laser_x, laser_y, laser_yaw, weights, cos_angles, sin_angles, kind, z, r_stop, r_peak, a, b, s,
+                     g_peak, free_until, table, u0, du, res, p_miss, p_hit, l_free, win_ix0, win_iy0, win_w, win_h,
+                     tile_shift, tx0, ty0, owned, all_owned, plane, columns, col_stride, listed, weight_sum, excess,
+                     scan_cells, tile_touched, stamp_base):  # pragma: no cover - compiled
     """One pass over all (sample, beam, cell) triples; returns the number of distinct cells touched.
 
     Window cell (gx, gy) is global cell (win_ix0 + gx, win_iy0 + gy); its scratch entries are at
-    c = gy * win_w + gx: mask[c] (uint64, the chunk's samples that touched it; zero between scans),
-    weight_sum[c] (W; zero between scans), excess[c] (four float64 kept by :func:`add_sample_value` for d: the
-    stamp, the current sample's largest d, D1, D2 (D1 and D2 zero between scans); sample j's stamp is
-    stamp_base + j, so smaller stamps are from earlier scans). scan_cells lists the touched cells' c. See the
-    module docstring.
+    c = gy * win_w + gx: bit c of plane (the cells the current sample touched) and of listed (the cells
+    listed in this scan), both one bit per cell and zero between scans; weight_sum[c] (W; zero between
+    scans), excess[c] (four float64 kept by :func:`add_sample_value` for d: the stamp, the current sample's
+    largest d, D1, D2 (D1 and D2 zero between scans); sample j's stamp is stamp_base + j, so smaller stamps
+    are from earlier scans). scan_cells lists the touched cells' c. See the module docstring.
 
     Each ray runs in two phases: the free phase, cells that end before the beam's free_until (most of
     them), which take l_free without evaluating the model; then the cells up to the ray's end, valued by
-    :func:`segment_logodds`. When the shard owns every tile of the window both phases step the scratch
-    index itself (:func:`mapping.window_walk.step_index`); otherwise the walk keeps the cell's (ix, iy), looks ownership up per
-    tile, and in another shard's tile jumps to the tile's exit.
+    :func:`segment_logodds`. When the shard owns every tile of the window, the free phase is marked as runs
+    of cells per grid row or column (:func:`mapping.free_runs.mark_free_runs`; a steep ray's go into the
+    column-major plane ``columns``, columns col_stride bits long) up to just before its end, and the walk
+    resumes at the runs' last cell, stepping the scratch index itself (:func:`mapping.window_walk.step_index`);
+    otherwise the walk keeps the cell's (ix, iy), looks ownership up per tile, and in another shard's tile jumps
+    to the tile's exit. After a sample's beams its column plane is folded into ``plane`` and ``plane`` is swept
+    into the weight sums.
     """
     n_scan = 0
-    n_marked = 0  # scan_cells[:n_marked] have their tiles marked
+    n_words = (win_w * win_h + 63) >> 6
     y_peak = math.log(p_hit) - math.log1p(-p_hit)
-    for first in range(0, laser_x.shape[0], MASK_SAMPLES):
-        for j in range(first, min(first + MASK_SAMPLES, laser_x.shape[0])):
-            bit = np.uint64(1) << np.uint64(j - first)
-            sid = float(stamp_base + j)
-            w = weights[j]
-            for k in range(angles.shape[0]):
-                beam_kind = kind[k]
-                if beam_kind == BEAM_SKIP:
-                    continue
-                # per-beam constants in locals: the compiler cannot hoist loads past the scratch writes
-                stop = r_stop[k]
-                peak_at = r_peak[k]
-                z_k = z[k]
-                a_k = a[k]
-                b_k = b[k]
-                s_k = s[k]
-                g_peak_k = g_peak[k]
-                free_until_k = free_until[k]
-                inside, ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol = ray_start(
-                    laser_x[j], laser_y[j], laser_yaw[j] + angles[k], stop, res, win_ix0, win_iy0, win_w, win_h)
-                if not inside:
-                    continue
-                r_in = 0.0
-                mine = True
-                cell_tx = tx0 - 1  # the tile whose ownership ``mine`` holds; none yet (no ray leaves the window)
-                cell_ty = ty0 - 1
-                ray_done = False
-                free_limit = min(free_until_k, stop)
-                if all_owned:  # every tile owned: both phases walk the scratch index c, no ownership checks
-                    c = (iy - win_iy0) * win_w + ix - win_ix0
-                    row_step = step_y * win_w
-                    while True:  # the free phase
-                        r_out = min(t_max_x, t_max_y)
-                        if r_out >= free_limit:
-                            break
-                        if r_out > r_in:
-                            n_scan = _mark(mask, c, bit, scan_cells, n_scan)
-                        r_in = r_out
-                        c, t_max_x, t_max_y = step_index(c, step_x, row_step, t_max_x, t_max_y, t_delta_x, t_delta_y,
-                                                          tol)
-                    while True:  # the cells from free_until to the ray's end
-                        # (the four lines of a visit repeat the general loop's below: an inlined helper for them
-                        # made the whole pass 1.14-1.18x slower, measured 2026-11-26)
-                        r_out = min(t_max_x, t_max_y, stop)
-                        if r_out > r_in:
-                            d = segment_logodds(r_in, r_out, beam_kind, free_until_k, z_k, peak_at, a_k, b_k, s_k,
-                                                g_peak_k, table, u0, du, p_miss, p_hit, l_free, y_peak) - l_free
-                            n_scan = _mark(mask, c, bit, scan_cells, n_scan)
-                            if d > 0.0:
-                                add_sample_value(excess, c, sid, w, d)
-                        if r_out >= stop:
-                            break
-                        r_in = r_out
-                        c, t_max_x, t_max_y = step_index(c, step_x, row_step, t_max_x, t_max_y, t_delta_x, t_delta_y,
-                                                          tol)
-                    continue
-                # some tiles are another shard's: the walk keeps (ix, iy) to look ownership up per tile
-                while True:  # the free phase
+    for j in range(laser_x.shape[0]):
+        sid = float(stamp_base + j)
+        w = weights[j]
+        cos_yaw = math.cos(laser_yaw[j])
+        sin_yaw = math.sin(laser_yaw[j])
+        for k in range(cos_angles.shape[0]):
+            beam_kind = kind[k]
+            if beam_kind == BEAM_SKIP:
+                continue
+            # per-beam constants in locals: the compiler cannot hoist loads past the scratch writes
+            stop = r_stop[k]
+            peak_at = r_peak[k]
+            z_k = z[k]
+            a_k = a[k]
+            b_k = b[k]
+            s_k = s[k]
+            g_peak_k = g_peak[k]
+            free_until_k = free_until[k]
+            dx, dy = beam_direction(cos_yaw, sin_yaw, cos_angles[k], sin_angles[k])
+            inside, ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol = ray_start(
+                laser_x[j], laser_y[j], dx, dy, stop, res, win_ix0, win_iy0, win_w, win_h)
+            if not inside:
+                continue
+            r_in = 0.0
+            mine = True
+            cell_tx = tx0 - 1  # the tile whose ownership ``mine`` holds; none yet (no ray leaves the window)
+            cell_ty = ty0 - 1
+            ray_done = False
+            free_limit = min(free_until_k, stop)
+            if all_owned:  # every tile owned: the free phase as runs, then the walk on the scratch index c
+                runs_end = free_limit - JUMP_MARGIN * (1.0 + free_limit)
+                if runs_end > 0.0:
+                    first_ix, first_iy = ix, iy
+                    if min(t_max_x, t_max_y) <= 0.0:  # the ray starts on its cell's edge and leaves it at once
+                        first_ix, first_iy, _, _ = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x,
+                                                            t_delta_y, tol)
+                    end_ix, end_iy = mark_free_runs(plane, columns, col_stride, laser_x[j], laser_y[j], dx, dy,
+                                                    first_ix, first_iy, runs_end, res, tol, win_ix0, win_iy0, win_w)
+                    # the walk goes on from the runs' last cell, the grid lines crossed up to it counted; its r_in
+                    # is taken as runs_end (segment_logodds reads r_in only past the peak, well beyond)
+                    t_max_x += max((end_ix - ix) * step_x, 0) * t_delta_x
+                    t_max_y += max((end_iy - iy) * step_y, 0) * t_delta_y
+                    ix, iy = end_ix, end_iy
+                    r_in = runs_end
+                c = (iy - win_iy0) * win_w + ix - win_ix0
+                row_step = step_y * win_w
+                while True:  # what is left of the free phase (a cell or two)
                     r_out = min(t_max_x, t_max_y)
                     if r_out >= free_limit:
                         break
-                    if (ix >> tile_shift) != cell_tx or (iy >> tile_shift) != cell_ty:
-                        cell_tx = ix >> tile_shift
-                        cell_ty = iy >> tile_shift
-                        mine = owned[cell_ty - ty0, cell_tx - tx0]
-                    if not mine:
-                        jumped_from = r_in
-                        ix, iy, t_max_x, t_max_y, r_in, t_exit = jump_over_tile(
-                            ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tile_shift)
-                        if t_exit >= stop:
-                            ray_done = True
-                            break
-                        if r_in > jumped_from:
-                            continue  # look at the cell the jump landed in
-                    elif r_out > r_in:
-                        n_scan = _mark(mask, (iy - win_iy0) * win_w + ix - win_ix0, bit, scan_cells, n_scan)
+                    if r_out > r_in:
+                        set_bit(plane, c)
                     r_in = r_out
-                    ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x,
-                                                        t_delta_y, tol)
-                while not ray_done:  # the cells from free_until to the ray's end
-                    if (ix >> tile_shift) != cell_tx or (iy >> tile_shift) != cell_ty:
-                        cell_tx = ix >> tile_shift
-                        cell_ty = iy >> tile_shift
-                        mine = owned[cell_ty - ty0, cell_tx - tx0]
-                    if not mine:
-                        ix, iy, t_max_x, t_max_y, r_in, t_exit = jump_over_tile(
-                            ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tile_shift)
-                        if t_exit >= stop:
-                            break
+                    c, t_max_x, t_max_y = step_index(c, step_x, row_step, t_max_x, t_max_y, t_delta_x, t_delta_y,
+                                                      tol)
+                while True:  # the cells from free_until to the ray's end
+                    # (the four lines of a visit repeat the general loop's below: an inlined helper for them
+                    # made the whole pass 1.14-1.18x slower, measured 2026-11-26)
                     r_out = min(t_max_x, t_max_y, stop)
-                    if r_out > r_in and mine:
-                        d = segment_logodds(r_in, r_out, beam_kind, free_until_k, z_k, peak_at, a_k, b_k, s_k, g_peak_k,
-                                            table, u0, du, p_miss, p_hit, l_free, y_peak) - l_free
-                        c = (iy - win_iy0) * win_w + ix - win_ix0
-                        n_scan = _mark(mask, c, bit, scan_cells, n_scan)
+                    if r_out > r_in:
+                        d = segment_logodds(r_in, r_out, beam_kind, free_until_k, z_k, peak_at, a_k, b_k, s_k,
+                                            g_peak_k, table, u0, du, p_miss, p_hit, l_free, y_peak) - l_free
+                        set_bit(plane, c)
                         if d > 0.0:
-                            add_sample_value(excess, c, sid, w, d)
+                            add_sample_value(excess, np.uint64(c), sid, w, d)
                     if r_out >= stop:
                         break
                     r_in = r_out
-                    ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x,
-                                                        t_delta_y, tol)
-        _fold_masks(mask, weight_sum, scan_cells, n_scan, weights, first, n_marked, win_w, win_ix0, win_iy0,
-                    tile_touched, tile_shift, tx0, ty0)
-        n_marked = n_scan
+                    c, t_max_x, t_max_y = step_index(c, step_x, row_step, t_max_x, t_max_y, t_delta_x, t_delta_y,
+                                                      tol)
+                continue
+            # some tiles are another shard's: the walk keeps (ix, iy) to look ownership up per tile
+            while True:  # the free phase
+                r_out = min(t_max_x, t_max_y)
+                if r_out >= free_limit:
+                    break
+                if (ix >> tile_shift) != cell_tx or (iy >> tile_shift) != cell_ty:
+                    cell_tx = ix >> tile_shift
+                    cell_ty = iy >> tile_shift
+                    mine = owned[cell_ty - ty0, cell_tx - tx0]
+                if not mine:
+                    jumped_from = r_in
+                    ix, iy, t_max_x, t_max_y, r_in, t_exit = jump_over_tile(
+                        ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tile_shift)
+                    if t_exit >= stop:
+                        ray_done = True
+                        break
+                    if r_in > jumped_from:
+                        continue  # look at the cell the jump landed in
+                elif r_out > r_in:
+                    set_bit(plane, (iy - win_iy0) * win_w + ix - win_ix0)
+                r_in = r_out
+                ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x,
+                                                    t_delta_y, tol)
+            while not ray_done:  # the cells from free_until to the ray's end
+                if (ix >> tile_shift) != cell_tx or (iy >> tile_shift) != cell_ty:
+                    cell_tx = ix >> tile_shift
+                    cell_ty = iy >> tile_shift
+                    mine = owned[cell_ty - ty0, cell_tx - tx0]
+                if not mine:
+                    ix, iy, t_max_x, t_max_y, r_in, t_exit = jump_over_tile(
+                        ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tile_shift)
+                    if t_exit >= stop:
+                        break
+                r_out = min(t_max_x, t_max_y, stop)
+                if r_out > r_in and mine:
+                    d = segment_logodds(r_in, r_out, beam_kind, free_until_k, z_k, peak_at, a_k, b_k, s_k, g_peak_k,
+                                        table, u0, du, p_miss, p_hit, l_free, y_peak) - l_free
+                    c = (iy - win_iy0) * win_w + ix - win_ix0
+                    set_bit(plane, c)
+                    if d > 0.0:
+                        add_sample_value(excess, np.uint64(c), sid, w, d)
+                if r_out >= stop:
+                    break
+                r_in = r_out
+                ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x,
+                                                    t_delta_y, tol)
+        if all_owned:
+            fold_columns(columns, col_stride, plane, win_w)
+        n_scan = _sweep_plane(plane, n_words, listed, weight_sum, w, scan_cells, n_scan, win_w, win_ix0, win_iy0,
+                              tile_touched, tile_shift, tx0, ty0)
     return n_scan
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def apply_scan(scan_cells, n_scan, mask, weight_sum, excess, stamp_base, l_free, win_w, win_ix0, win_iy0,
+def apply_scan(scan_cells, n_scan, listed, weight_sum, excess, stamp_base, l_free, win_w, win_ix0, win_iy0,
                 tile_shift, tx0, ty0, slot_map, logodds, variance, observed, l_min, l_max):  # pragma: no cover
     """Add the scan's weighted mean to each touched cell (clamped) and its spread to the variance layer, from
-    the moments l_free W + D1 and l_free^2 W + 2 l_free D1 + D2; clear the cells' masks and weight sums for
-    the next scan."""
+    the moments l_free W + D1 and l_free^2 W + 2 l_free D1 + D2; clear the cells' listed bits and weight sums
+    for the next scan."""
     for q in range(n_scan):
         c = scan_cells[q]
         ix = c % win_w + win_ix0
@@ -236,7 +240,7 @@ def apply_scan(scan_cells, n_scan, mask, weight_sum, excess, stamp_base, l_free,
         in_tile = (1 << tile_shift) - 1
         ly = iy & in_tile
         lx = ix & in_tile
-        mask[c] = 0
+        listed[c >> 6] = 0
         moment1 = l_free * weight_sum[c]
         weight_sum[c] = 0.0
         moment2 = l_free * moment1

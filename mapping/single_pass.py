@@ -19,7 +19,7 @@ import numpy as np
 
 from mapping.beam_model import BEAM_SKIP, segment_logodds
 from mapping.raytrace import dda_step
-from mapping.window_walk import jump_over_tile, ray_start
+from mapping.window_walk import beam_direction, jump_over_tile, ray_start
 
 @nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _record_index(gx, gy, blocks_w):  # pragma: no cover - compiled
@@ -57,9 +57,9 @@ def _bit_count(bits):  # pragma: no cover - compiled
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def accumulate_single(laser_x, laser_y, laser_yaw, angles, kind, z, r_stop, r_peak, a, b, s, g_peak, free_until, table,
-                       u0, du, res, p_miss, p_hit, l_free, win_ix0, win_iy0, win_w, win_h, tile_shift, tx0, ty0, owned,
-                       all_owned, touched, raised, excess, blocks_w, blocks_h,
+def accumulate_single(laser_x, laser_y, laser_yaw, cos_angles, sin_angles, kind, z, r_stop, r_peak, a, b, s, g_peak,
+                       free_until, table, u0, du, res, p_miss, p_hit, l_free, win_ix0, win_iy0, win_w, win_h,
+                       tile_shift, tx0, ty0, owned, all_owned, touched, raised, excess, blocks_w, blocks_h,
                        tile_touched):  # pragma: no cover - compiled
     """The pass for one pose sample (laser at laser_x, laser_y m, heading laser_yaw rad): every (beam, cell)
     pair; returns the number of distinct cells touched and marks their tiles in tile_touched.
@@ -72,7 +72,9 @@ def accumulate_single(laser_x, laser_y, laser_yaw, angles, kind, z, r_stop, r_pe
     only where the raised bit is set). Free-phase visits only set a bit: no write to the large excess array.
     The bits are zero between scans (:func:`apply_single` clears them)."""
     y_peak = math.log(p_hit) - math.log1p(-p_hit)
-    for k in range(angles.shape[0]):
+    cos_yaw = math.cos(laser_yaw)
+    sin_yaw = math.sin(laser_yaw)
+    for k in range(cos_angles.shape[0]):
         beam_kind = kind[k]
         if beam_kind == BEAM_SKIP:
             continue
@@ -84,8 +86,9 @@ def accumulate_single(laser_x, laser_y, laser_yaw, angles, kind, z, r_stop, r_pe
         s_k = s[k]
         g_peak_k = g_peak[k]
         free_until_k = free_until[k]
+        dx, dy = beam_direction(cos_yaw, sin_yaw, cos_angles[k], sin_angles[k])
         inside, ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol = ray_start(
-            laser_x, laser_y, laser_yaw + angles[k], stop, res, win_ix0, win_iy0, win_w, win_h)
+            laser_x, laser_y, dx, dy, stop, res, win_ix0, win_iy0, win_w, win_h)
         if not inside:
             continue
         r_in = 0.0

@@ -58,17 +58,22 @@ def jump_over_tile(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def ray_start(x0, y0, theta, stop, res, win_ix0, win_iy0, win_w, win_h):  # pragma: no cover - compiled
-    """Start a ray of length stop (m) from (x0, y0) (m, map frame) at theta (rad): returns (inside, ix, iy,
-    step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol), the traversal state of
+def beam_direction(cos_yaw, sin_yaw, cos_angle, sin_angle):  # pragma: no cover - compiled
+    """The unit direction (dx, dy) of a beam at angle a (rad, laser frame) from a laser heading yaw (rad, map
+    frame), from the cosines and sines of both: no trigonometric call per ray."""
+    return cos_yaw * cos_angle - sin_yaw * sin_angle, sin_yaw * cos_angle + cos_yaw * sin_angle
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def ray_start(x0, y0, dx, dy, stop, res, win_ix0, win_iy0, win_w, win_h):  # pragma: no cover - compiled
+    """Start a ray of length stop (m) from (x0, y0) (m, map frame) along the unit direction (dx, dy): returns
+    (inside, ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol), the traversal state of
     :func:`mapping.raytrace.dda_start` and the ray's :func:`mapping.raytrace.corner_tol`.
 
     inside is false when an end cell of the ray is not inside the window (win_ix0, win_iy0, win_w, win_h)
     with a cell to spare. The window covers every ray's reach with a cell to spare, so this never skips; it
     guards the scratch memory once per ray (a segment's cells lie between its end cells, give or take a
     rounding)."""
-    dx = math.cos(theta)
-    dy = math.sin(theta)
     ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y = dda_start(x0, y0, dx, dy, res)
     end_gx = math.floor((x0 + stop * dx) / res) - win_ix0
     end_gy = math.floor((y0 + stop * dy) / res) - win_iy0

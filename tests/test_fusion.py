@@ -10,7 +10,6 @@ from mapping.beam_model import BEAM_HIT, BEAM_NO_RETURN, BEAM_SKIP, beam_table
 from mapping.errors import InputError
 from mapping.fusion import MonteCarloFusion, merge_duplicates
 from mapping.grid import TiledGrid
-from mapping.samples_pass import MASK_SAMPLES
 from mapping.sensor_model import SensorModel
 from reference import reference_fuse
 
@@ -171,11 +170,11 @@ def test_constant_sigma_beam_table_matches_the_general_one():
     assert constant.r_stop[7] == 0.0
 
 
-def test_samples_in_several_mask_chunks_match_slow_reference():
-    """More samples than one chunk of the kernel's sample masks (the weight sums are folded per chunk)."""
+def test_many_samples_match_slow_reference():
+    """130 samples, more than the 64 bits of a word (the kernel once kept one bit per sample in a cell's mask)."""
     rng = np.random.default_rng(5)
     model = SensorModel(resolution=0.1, sigma0=0.04)
-    n_samples = 2 * MASK_SAMPLES + 4
+    n_samples = 130
     angles, ranges, samples, weights = random_scan(rng, 6, n_samples, 0.08)
     grid = TiledGrid(0.1, tile_size=8)
     MonteCarloFusion(grid, model, angles, 0.15, 1.0, merge_identical=False).fuse(ranges, samples, weights)

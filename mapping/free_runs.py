@@ -1,0 +1,130 @@
+"""A ray's free stretch marked as runs of cells in one-bit-per-cell planes, with no steps from cell to cell.
+
+The cells a ray crosses within one grid row are a contiguous run of columns, from the column where it enters the
+row to the column where it leaves it, and likewise within one grid column. Both ends come straight from the ray's
+line at the row's (column's) edges, so a run costs a few independent operations however many cells it holds,
+where the traversal of :mod:`mapping.raytrace` takes one dependent step per cell (docs/performance.md). A shallow
+ray (|dx| >= |dy|) is marked per row in the row-major plane, a steep one per column in the column-major plane;
+each run is then one or two word ORs. The runs give the cells the traversal visits, under its corner rule: where
+the ray crosses a row (column) edge within the ray's corner tolerance of a column (row) edge, it passes
+diagonally through the corner and neither cell beside the corner is marked.
+
+The row-major plane covers the scan's window (mapping.window_walk): cell c = gy * win_w + gx is bit c % 64 of
+word c // 64. The column-major plane holds cell (gx, gy) at bit gx * col_stride + gy, col_stride a multiple of
+64 (a word belongs to one column); :func:`fold_columns` moves its bits into the row-major plane. Marking is
+idempotent, so the runs of one pose sample's beams may overlap.
+"""
+from __future__ import annotations
+
+import math
+
+import numba as nb
+import numpy as np
+from numba.cpython.unsafe.numbers import trailing_zeros  # LLVM's cttz: the set bits of a word, one by one
+
+ALL_BITS = np.uint64(0xFFFFFFFFFFFFFFFF)
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def set_bit(plane, c):  # pragma: no cover - compiled
+    """Mark cell c in a plane."""
+    plane[np.uint64(c >> 6)] |= np.uint64(1) << np.uint64(c & 63)
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def set_run(plane, c_lo, c_hi):  # pragma: no cover - compiled
+    """Mark bits c_lo..c_hi (inclusive, c_lo <= c_hi) of a plane. Without a branch on whether the run ends in
+    the word it starts in (unpredictable): both end words are ORed, with the other end's bits when they are one."""
+    w_lo = np.uint64(c_lo >> 6)  # unsigned indices: no test for a negative index per access
+    w_hi = np.uint64(c_hi >> 6)
+    lo_bits = ALL_BITS << np.uint64(c_lo & 63)
+    hi_bits = ALL_BITS >> np.uint64(63 - (c_hi & 63))
+    one_word = w_lo == w_hi
+    plane[w_lo] |= lo_bits & (hi_bits if one_word else ALL_BITS)
+    plane[w_hi] |= hi_bits & (lo_bits if one_word else ALL_BITS)
+    for w in range((c_lo >> 6) + 1, c_hi >> 6):
+        plane[np.uint64(w)] = ALL_BITS
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _mark_runs(plane, stride, u0, v0, du, dv, iu, iv, end_u, end_v, tol_u, win_u0, win_v0):  # pragma: no cover
+    """Mark, one run per line of constant v, the cells a ray crosses from (u0, v0) (grid units) along (du, dv),
+    |du| >= |dv|, up to (end_u, end_v), in the plane that holds cell (u, v) at bit (v - win_v0) * stride + u -
+    win_u0.
+
+    (iu, iv) is the ray's first cell of positive length; tol_u is the corner tolerance along u. The last cell,
+    returned as (u, v), is the one the ray is in just before the end point. A line the ray crosses holds at least
+    its entry cell (rounding may put the exit before it)."""
+    if dv > 0.0:
+        lines = max(math.ceil(end_v) - 1 - iv, 0)  # the lines after the first
+        v_step, exit_edge = 1, 1  # line v is left at its edge v + exit_edge
+    else:
+        lines = max(iv - math.floor(end_v), 0) if dv < 0.0 else 0
+        v_step, exit_edge = -1, 0
+    slope = du / dv if dv != 0.0 else 0.0
+    edge0 = u0 + (iv + exit_edge - v0) * slope  # u where the ray leaves its first line
+    edge_step = v_step * slope  # and then from line to line: the k-th exit edge is edge0 + k * edge_step
+    base = (iv - win_v0) * stride - win_u0
+    base_step = v_step * stride
+    col = iu
+    if du > 0.0:
+        for k in range(lines):
+            edge = edge0 + k * edge_step
+            set_run(plane, base + col, base + max(math.ceil(edge - tol_u) - 1, col))  # a corner: not the cell before
+            col = math.floor(edge + tol_u)
+            base += base_step
+        end_col = max(math.ceil(end_u) - 1, col)
+        set_run(plane, base + col, base + end_col)
+    else:
+        for k in range(lines):
+            edge = edge0 + k * edge_step
+            set_run(plane, base + min(math.floor(edge + tol_u), col), base + col)
+            col = math.ceil(edge - tol_u) - 1
+            base += base_step
+        end_col = min(math.floor(end_u), col)
+        set_run(plane, base + end_col, base + col)
+    return end_col, iv + lines * v_step
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def mark_free_runs(rows, columns, col_stride, x0, y0, dx, dy, ix, iy, r_end, res, tol, win_ix0, win_iy0,
+                   win_w):  # pragma: no cover - compiled
+    """Mark the cells the ray from (x0, y0) (m, map frame) along the unit direction (dx, dy) crosses before
+    r_end (m): the cells :func:`mapping.raytrace.trace_ray` visits with r_in < r_end, give or take the one
+    holding r_end. Returns the last cell marked (ix, iy): the one the ray is in just before r_end. A shallow
+    ray goes into the row-major plane ``rows``, a steep one into the column-major plane ``columns`` (module
+    docstring).
+
+    (ix, iy) is the ray's first cell of positive length (the traversal's start cell, or its second when the
+    ray starts on the start cell's edge and leaves it at once); tol is the ray's corner tolerance (m,
+    :func:`mapping.raytrace.corner_tol`), tol |dx| / res across columns and tol |dy| / res across rows in grid
+    units. Every cell must lie in the window (ray_start checks the end cells).
+    """
+    per_cell = 1.0 / res  # (m to grid units; the start cell comes from the traversal, so rounding here is harmless)
+    gx0 = x0 * per_cell
+    gy0 = y0 * per_cell
+    end_x = (x0 + r_end * dx) * per_cell
+    end_y = (y0 + r_end * dy) * per_cell
+    if abs(dx) >= abs(dy):
+        return _mark_runs(rows, win_w, gx0, gy0, dx, dy, ix, iy, end_x, end_y, tol * abs(dx) * per_cell, win_ix0,
+                          win_iy0)
+    last_iy, last_ix = _mark_runs(columns, col_stride, gy0, gx0, dy, dx, iy, ix, end_y, end_x, tol * abs(dy) * per_cell,
+                                  win_iy0, win_ix0)
+    return last_ix, last_iy
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy")
+def fold_columns(columns, col_stride, rows, win_w):  # pragma: no cover - compiled
+    """Move every bit of the column-major plane into the row-major one and clear it (widths in cells)."""
+    words_per_col = col_stride >> 6
+    for gx in range(win_w):
+        for k in range(words_per_col):
+            i = gx * words_per_col + k
+            bits = columns[i]
+            if bits == 0:
+                continue
+            columns[i] = 0
+            gy_base = k << 6
+            while bits != 0:
+                set_bit(rows, (gy_base + trailing_zeros(bits)) * win_w + gx)
+                bits &= bits - np.uint64(1)
