@@ -11,8 +11,9 @@ diagonally through the corner and neither cell beside the corner is marked.
 
 The row-major plane covers the scan's window (mapping.window_walk): cell c = gy * win_w + gx is bit c % 64 of
 word c // 64. The column-major plane holds cell (gx, gy) at bit gx * col_stride + gy, col_stride a multiple of
-64 (a word belongs to one column); :func:`fold_columns` moves its bits into the row-major plane. Marking is
-idempotent, so the runs of one pose sample's beams may overlap.
+64 (a word belongs to one column); :func:`fold_columns` moves its bits into the row-major plane by 64 x 64 bit
+transposes, for which the window's width is a multiple of 64 too. Marking is idempotent, so the runs of one pose
+sample's beams may overlap.
 """
 from __future__ import annotations
 
@@ -20,7 +21,6 @@ import math
 
 import numba as nb
 import numpy as np
-from numba.cpython.unsafe.numbers import trailing_zeros  # LLVM's cttz: the set bits of a word, one by one
 
 ALL_BITS = np.uint64(0xFFFFFFFFFFFFFFFF)
 
@@ -47,7 +47,8 @@ def set_run(plane, c_lo, c_hi):  # pragma: no cover - compiled
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _mark_runs(plane, stride, u0, v0, du, dv, iu, iv, end_u, end_v, tol_u, win_u0, win_v0):  # pragma: no cover
+def _mark_runs(plane, stride, u0, v0, du, dv, iu, iv, end_u, end_v, tol_u, win_u0, win_v0, exits,
+               entries):  # pragma: no cover - compiled
     """Mark, one run per line of constant v, the cells a ray crosses from (u0, v0) (grid units) along (du, dv),
     |du| >= |dv|, up to (end_u, end_v), in the plane that holds cell (u, v) at bit (v - win_v0) * stride + u -
     win_u0.
@@ -67,19 +68,27 @@ def _mark_runs(plane, stride, u0, v0, du, dv, iu, iv, end_u, end_v, tol_u, win_u
     base = (iv - win_v0) * stride - win_u0
     base_step = v_step * stride
     col = iu
+    # first the cells at every exit edge (a loop with no branch and no carried state: it vectorises), then the
+    # runs, each from the cell the line is entered at to its exit cell
     if du > 0.0:
         for k in range(lines):
             edge = edge0 + k * edge_step
-            set_run(plane, base + col, base + max(math.ceil(edge - tol_u) - 1, col))  # a corner: not the cell before
-            col = math.floor(edge + tol_u)
+            exits[k] = math.ceil(edge - tol_u) - 1  # a corner within tol_u: the cell before it is the last
+            entries[k] = math.floor(edge + tol_u)
+        for k in range(lines):
+            set_run(plane, base + col, base + max(exits[k], col))
+            col = entries[k]
             base += base_step
         end_col = max(math.ceil(end_u) - 1, col)
         set_run(plane, base + col, base + end_col)
     else:
         for k in range(lines):
             edge = edge0 + k * edge_step
-            set_run(plane, base + min(math.floor(edge + tol_u), col), base + col)
-            col = math.ceil(edge - tol_u) - 1
+            exits[k] = math.floor(edge + tol_u)
+            entries[k] = math.ceil(edge - tol_u) - 1
+        for k in range(lines):
+            set_run(plane, base + min(exits[k], col), base + col)
+            col = entries[k]
             base += base_step
         end_col = min(math.floor(end_u), col)
         set_run(plane, base + end_col, base + col)
@@ -87,8 +96,8 @@ def _mark_runs(plane, stride, u0, v0, du, dv, iu, iv, end_u, end_v, tol_u, win_u
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def mark_free_runs(rows, columns, col_stride, x0, y0, dx, dy, ix, iy, r_end, res, tol, win_ix0, win_iy0,
-                   win_w):  # pragma: no cover - compiled
+def mark_free_runs(rows, columns, col_stride, x0, y0, dx, dy, ix, iy, r_end, res, tol, win_ix0, win_iy0, win_w,
+                   exits, entries):  # pragma: no cover - compiled
     """Mark the cells the ray from (x0, y0) (m, map frame) along the unit direction (dx, dy) crosses before
     r_end (m): the cells :func:`mapping.raytrace.trace_ray` visits with r_in < r_end, give or take the one
     holding r_end. Returns the last cell marked (ix, iy): the one the ray is in just before r_end. A shallow
@@ -107,24 +116,51 @@ def mark_free_runs(rows, columns, col_stride, x0, y0, dx, dy, ix, iy, r_end, res
     end_y = (y0 + r_end * dy) * per_cell
     if abs(dx) >= abs(dy):
         return _mark_runs(rows, win_w, gx0, gy0, dx, dy, ix, iy, end_x, end_y, tol * abs(dx) * per_cell, win_ix0,
-                          win_iy0)
+                          win_iy0, exits, entries)
     last_iy, last_ix = _mark_runs(columns, col_stride, gy0, gx0, dy, dx, iy, ix, end_y, end_x, tol * abs(dy) * per_cell,
-                                  win_iy0, win_ix0)
+                                  win_iy0, win_ix0, exits, entries)
     return last_ix, last_iy
 
 
+#: the masks of the 64 x 64 bit transpose's six rounds: the low half of each group of 2 * width bits
+_TRANSPOSE_MASKS = np.array([0x00000000FFFFFFFF, 0x0000FFFF0000FFFF, 0x00FF00FF00FF00FF, 0x0F0F0F0F0F0F0F0F,
+                             0x3333333333333333, 0x5555555555555555], dtype=np.uint64)
+
+
+@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def transpose64(block):  # pragma: no cover - compiled
+    """Transpose a 64 x 64 bit matrix in place: bit b of block[i] becomes bit i of block[b]. Six rounds, each
+    swapping the off-diagonal halves of every 2w x 2w sub-block (w = 32, 16, ..., 1) with shifts and masks."""
+    width = 32
+    for round_ in range(6):
+        mask = _TRANSPOSE_MASKS[round_]
+        shift = np.uint64(width)
+        for k in range(64):
+            if k & width == 0:
+                swapped = ((block[k] >> shift) ^ block[k + width]) & mask
+                block[k + width] ^= swapped
+                block[k] ^= swapped << shift
+        width >>= 1
+
+
 @nb.njit(cache=True, nogil=True, error_model="numpy")
-def fold_columns(columns, col_stride, rows, win_w):  # pragma: no cover - compiled
-    """Move every bit of the column-major plane into the row-major one and clear it (widths in cells)."""
+def fold_columns(columns, col_stride, rows, win_w, win_h, block):  # pragma: no cover - compiled
+    """Move every bit of the column-major plane into the row-major one and clear it, 64 x 64 cells at a time:
+    the 64 columns' words of a block, transposed, are the 64 rows' words. win_w (cells) must be a multiple of
+    64, so that a row's 64-cell blocks are words of the row-major plane; block is scratch for 64 words."""
     words_per_col = col_stride >> 6
-    for gx in range(win_w):
-        for k in range(words_per_col):
-            i = gx * words_per_col + k
-            bits = columns[i]
-            if bits == 0:
+    row_words = win_w >> 6
+    for b in range(row_words):  # columns 64 b .. 64 b + 63
+        for k in range(words_per_col):  # rows 64 k .. 64 k + 63
+            any_bits = np.uint64(0)
+            for i in range(64):
+                word = columns[(64 * b + i) * words_per_col + k]
+                block[i] = word
+                any_bits |= word
+            if any_bits == 0:
                 continue
-            columns[i] = 0
-            gy_base = k << 6
-            while bits != 0:
-                set_bit(rows, (gy_base + trailing_zeros(bits)) * win_w + gx)
-                bits &= bits - np.uint64(1)
+            for i in range(64):
+                columns[(64 * b + i) * words_per_col + k] = 0
+            transpose64(block)
+            for i in range(min(64, win_h - 64 * k)):
+                rows[(64 * k + i) * row_words + b] |= block[i]

@@ -288,6 +288,8 @@ class MonteCarloFusion:
                           self._l_min, self._l_max)
             return FuseResult(int(n_scan), changed)
 
+        # the samples pass's scratch rows and columns are whole 64-bit words of its bit planes (mapping.free_runs)
+        win_w = -(-win_w // 64) * 64
         col_stride = -(-win_h // 64) * 64
         self._scratch(win_w * win_h, win_w * col_stride)
         if self._stamp_next + len(samples) >= STAMP_LIMIT:

@@ -102,6 +102,9 @@ def accumulate_scan(laser_x, laser_y, laser_yaw, weights, cos_angles, sin_angles
     n_scan = 0
     n_words = (win_w * win_h + 63) >> 6
     y_peak = math.log(p_hit) - math.log1p(-p_hit)
+    exits = np.empty(max(win_w, win_h), np.int64)  # per grid line of a ray's runs (mapping.free_runs)
+    entries = np.empty(max(win_w, win_h), np.int64)
+    block = np.empty(64, np.uint64)  # 64 x 64 bits being folded from the column-major plane
     for j in range(laser_x.shape[0]):
         sid = float(stamp_base + j)
         w = weights[j]
@@ -139,7 +142,8 @@ def accumulate_scan(laser_x, laser_y, laser_yaw, weights, cos_angles, sin_angles
                         first_ix, first_iy, _, _ = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x,
                                                             t_delta_y, tol)
                     end_ix, end_iy = mark_free_runs(plane, columns, col_stride, laser_x[j], laser_y[j], dx, dy,
-                                                    first_ix, first_iy, runs_end, res, tol, win_ix0, win_iy0, win_w)
+                                                    first_ix, first_iy, runs_end, res, tol, win_ix0, win_iy0, win_w,
+                                                    exits, entries)
                     # the walk goes on from the runs' last cell, the grid lines crossed up to it counted; its r_in
                     # is taken as runs_end (segment_logodds reads r_in only past the peak, well beyond)
                     t_max_x += max((end_ix - ix) * step_x, 0) * t_delta_x
@@ -220,7 +224,7 @@ def accumulate_scan(laser_x, laser_y, laser_yaw, weights, cos_angles, sin_angles
                 ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x,
                                                     t_delta_y, tol)
         if all_owned:
-            fold_columns(columns, col_stride, plane, win_w)
+            fold_columns(columns, col_stride, plane, win_w, win_h, block)
         n_scan = _sweep_plane(plane, n_words, listed, weight_sum, w, scan_cells, n_scan, win_w, win_ix0, win_iy0,
                               tile_touched, tile_shift, tx0, ty0)
     return n_scan

@@ -6,14 +6,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapping.free_runs import fold_columns, mark_free_runs, set_run
+from mapping.free_runs import fold_columns, mark_free_runs, set_run, transpose64
 from mapping.raytrace import corner_tol, traverse
 from mapping.window_walk import JUMP_MARGIN
 
 RES = 0.05
 # a window that is neither square nor centred, and holds every ray below (origins within 2 m of (0, 0), 1.8 m
 # long at most: x and y within 3.8 m); the kernels rely on the caller for that
-WIN_IX0, WIN_IY0, WIN_W, WIN_H = -104, -88, 200, 170
+WIN_IX0, WIN_IY0, WIN_W, WIN_H = -104, -88, 192, 170  # (the width a multiple of 64, as fold_columns needs)
 COL_STRIDE = 192  # the column-major plane's column length: WIN_H rounded up to a multiple of 64
 
 
@@ -25,8 +25,9 @@ def runs_cells(x0, y0, angle, r_end, stop):
     rows = np.zeros(WIN_W * WIN_H // 64 + 1, np.uint64)
     columns = np.zeros(WIN_W * COL_STRIDE // 64, np.uint64)
     last = mark_free_runs(rows, columns, COL_STRIDE, x0, y0, math.cos(angle), math.sin(angle), int(ix[0]), int(iy[0]),
-                          r_end, RES, corner_tol(stop), WIN_IX0, WIN_IY0, WIN_W)
-    fold_columns(columns, COL_STRIDE, rows, WIN_W)
+                          r_end, RES, corner_tol(stop), WIN_IX0, WIN_IY0, WIN_W, np.empty(WIN_W, np.int64),
+                          np.empty(WIN_W, np.int64))
+    fold_columns(columns, COL_STRIDE, rows, WIN_W, WIN_H, np.empty(64, np.uint64))
     assert not columns.any(), "the fold clears the column-major plane"
     bits = np.unpackbits(rows.view(np.uint8), bitorder="little")[:WIN_W * WIN_H]
     marked = {(int(c % WIN_W) + WIN_IX0, int(c // WIN_W) + WIN_IY0) for c in np.flatnonzero(bits)}
@@ -96,3 +97,29 @@ def test_set_run_sets_exactly_the_bits_of_the_run(c_lo, c_hi):
     set_run(plane, c_lo, c_hi)
     bits = np.unpackbits(plane.view(np.uint8), bitorder="little")
     assert np.flatnonzero(bits).tolist() == list(range(c_lo, c_hi + 1))
+
+
+def test_transpose64_against_numpy():
+    rng = np.random.default_rng(3)
+    for density in (0.01, 0.5, 1.0):
+        bits = rng.random((64, 64)) < density  # bits[i, b]: bit b of word i
+        block = np.packbits(bits, axis=1, bitorder="little").view(np.uint64).ravel().copy()
+        transpose64(block)
+        got = np.unpackbits(block.view(np.uint8), bitorder="little").reshape(64, 64).astype(bool)
+        np.testing.assert_array_equal(got, bits.T)
+
+
+def test_fold_moves_every_column_bit_to_its_row():
+    """Bits set cell by cell in the column-major plane reach the row-major plane at the same cells, in every
+    64 x 64 block, the partial last row block included; the column plane is left clear."""
+    rng = np.random.default_rng(4)
+    cells = {(int(gx), int(gy)) for gx, gy in zip(rng.integers(0, WIN_W, 3000), rng.integers(0, WIN_H, 3000))}
+    columns = np.zeros(WIN_W * COL_STRIDE // 64, np.uint64)
+    for gx, gy in cells:
+        c = gx * COL_STRIDE + gy
+        columns[c >> 6] |= np.uint64(1) << np.uint64(c & 63)
+    rows = np.zeros(WIN_W * WIN_H // 64, np.uint64)
+    fold_columns(columns, COL_STRIDE, rows, WIN_W, WIN_H, np.empty(64, np.uint64))
+    bits = np.unpackbits(rows.view(np.uint8), bitorder="little")
+    assert {(int(c % WIN_W), int(c // WIN_W)) for c in np.flatnonzero(bits)} == cells
+    assert not columns.any()
