@@ -53,9 +53,10 @@ def _mark_runs(plane, stride, u0, v0, du, dv, iu, iv, end_u, end_v, tol_u, win_u
     |du| >= |dv|, up to (end_u, end_v), in the plane that holds cell (u, v) at bit (v - win_v0) * stride + u -
     win_u0.
 
-    (iu, iv) is the ray's first cell of positive length; tol_u is the corner tolerance along u. The last cell,
-    returned as (u, v), is the one the ray is in just before the end point. A line the ray crosses holds at least
-    its entry cell (rounding may put the exit before it)."""
+    (iu, iv) is the ray's first cell of positive length; tol_u is the corner tolerance along u; exits and entries
+    are scratch for the lines' exit and entry cells (as many as the window has lines). The last cell, returned as
+    (u, v), is the one the ray is in just before the end point. A line the ray crosses holds at least its entry
+    cell (rounding may put the exit before it)."""
     if dv > 0.0:
         lines = max(math.ceil(end_v) - 1 - iv, 0)  # the lines after the first
         v_step, exit_edge = 1, 1  # line v is left at its edge v + exit_edge
@@ -107,7 +108,8 @@ def mark_free_runs(rows, columns, col_stride, x0, y0, dx, dy, ix, iy, r_end, res
     (ix, iy) is the ray's first cell of positive length (the traversal's start cell, or its second when the
     ray starts on the start cell's edge and leaves it at once); tol is the ray's corner tolerance (m,
     :func:`mapping.raytrace.corner_tol`), tol |dx| / res across columns and tol |dy| / res across rows in grid
-    units. Every cell must lie in the window (ray_start checks the end cells).
+    units. Every cell must lie in the window (ray_start checks the end cells). exits and entries (int64) are
+    scratch for max(win_w, window height) values.
     """
     per_cell = 1.0 / res  # (m to grid units; the start cell comes from the traversal, so rounding here is harmless)
     gx0 = x0 * per_cell
