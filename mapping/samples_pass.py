@@ -133,7 +133,8 @@ def accumulate_scan(laser_x, laser_y, laser_yaw, weights, cos_angles, sin_angles
             cell_tx = tx0 - 1  # the tile whose ownership ``mine`` holds; none yet (no ray leaves the window)
             cell_ty = ty0 - 1
             ray_done = False
-            free_limit = min(free_until_k, stop)
+            ray_end = stop - tol  # a grid line crossed within tol of stop ends the ray: no sliver of a cell past it
+            free_limit = min(free_until_k, ray_end)
             if all_owned:  # every tile owned: the free phase as runs, then the walk on the scratch index c
                 runs_end = free_limit - JUMP_MARGIN * (1.0 + free_limit)
                 if runs_end > 0.0:
@@ -171,7 +172,7 @@ def accumulate_scan(laser_x, laser_y, laser_yaw, weights, cos_angles, sin_angles
                         set_bit(plane, c)
                         if d > 0.0:
                             add_sample_value(excess, np.uint64(c), sid, w, d)
-                    if r_out >= stop:
+                    if r_out >= ray_end:
                         break
                     r_in = r_out
                     c, t_max_x, t_max_y = step_index(c, step_x, row_step, t_max_x, t_max_y, t_delta_x, t_delta_y,
@@ -190,7 +191,7 @@ def accumulate_scan(laser_x, laser_y, laser_yaw, weights, cos_angles, sin_angles
                     jumped_from = r_in
                     ix, iy, t_max_x, t_max_y, r_in, t_exit = jump_over_tile(
                         ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tile_shift)
-                    if t_exit >= stop:
+                    if t_exit >= ray_end:
                         ray_done = True
                         break
                     if r_in > jumped_from:
@@ -208,7 +209,7 @@ def accumulate_scan(laser_x, laser_y, laser_yaw, weights, cos_angles, sin_angles
                 if not mine:
                     ix, iy, t_max_x, t_max_y, r_in, t_exit = jump_over_tile(
                         ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tile_shift)
-                    if t_exit >= stop:
+                    if t_exit >= ray_end:
                         break
                 r_out = min(t_max_x, t_max_y, stop)
                 if r_out > r_in and mine:
@@ -218,7 +219,7 @@ def accumulate_scan(laser_x, laser_y, laser_yaw, weights, cos_angles, sin_angles
                     set_bit(plane, c)
                     if d > 0.0:
                         add_sample_value(excess, np.uint64(c), sid, w, d)
-                if r_out >= stop:
+                if r_out >= ray_end:
                     break
                 r_in = r_out
                 ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x,

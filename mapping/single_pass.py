@@ -96,7 +96,8 @@ def accumulate_single(laser_x, laser_y, laser_yaw, cos_angles, sin_angles, kind,
         cell_tx = tx0 - 1  # the tile whose ownership ``mine`` holds; none yet (no ray leaves the window)
         cell_ty = ty0 - 1
         ray_done = False
-        free_limit = min(free_until_k, stop)
+        ray_end = stop - tol  # a grid line crossed within tol of stop ends the ray: no sliver of a cell past it
+        free_limit = min(free_until_k, ray_end)
         held_block = 0  # the block whose bits held_bits gathers (a store per block, not one per cell)
         held_bits = np.int64(0)
         while all_owned:  # the free phase, every tile owned (the same walk without the ownership checks)
@@ -129,7 +130,7 @@ def accumulate_single(laser_x, laser_y, laser_yaw, cos_angles, sin_angles, kind,
                 jumped_from = r_in
                 ix, iy, t_max_x, t_max_y, r_in, t_exit = jump_over_tile(
                     ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tile_shift)
-                if t_exit >= stop:
+                if t_exit >= ray_end:
                     ray_done = True
                     break
                 if r_in > jumped_from:
@@ -148,14 +149,14 @@ def accumulate_single(laser_x, laser_y, laser_yaw, cos_angles, sin_angles, kind,
             if not mine:
                 ix, iy, t_max_x, t_max_y, r_in, t_exit = jump_over_tile(
                     ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tile_shift)
-                if t_exit >= stop:
+                if t_exit >= ray_end:
                     break
             r_out = min(t_max_x, t_max_y, stop)
             if r_out > r_in and mine:
                 d = segment_logodds(r_in, r_out, beam_kind, free_until_k, z_k, peak_at, a_k, b_k, s_k, g_peak_k, table,
                                     u0, du, p_miss, p_hit, l_free, y_peak) - l_free
                 _raise_excess(touched, raised, excess, ix - win_ix0, iy - win_iy0, d, blocks_w)
-            if r_out >= stop:
+            if r_out >= ray_end:
                 break
             r_in = r_out
             ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol)

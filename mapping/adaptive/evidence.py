@@ -115,7 +115,7 @@ def _scan_evidence(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop
                         n_touched += 1
                     add_sample_value(rec, c, sid, w, y)
                 next_ix, next_iy = ix, iy
-                if finished or r_out >= stop:
+                if finished or r_out >= stop - tol:  # (as in the fusion passes: no sliver past the end)
                     finished = True
                     top = n_levels
                 else:
