@@ -110,7 +110,8 @@ def check_window(x_lo: float, y_lo: float, x_hi: float, y_hi: float, reach: floa
     if not (farthest + reach) / resolution <= MAX_CELL_INDEX:  # also NaN and inf
         raise InputError(f"a scan {farthest:.6g} m from the map origin with rays {reach:.6g} m long reaches beyond "
                          f"the {MAX_CELL_INDEX * resolution:.3g} m that {resolution} m cells cover")
-    width = (x_hi - x_lo + 2 * reach) / resolution + 9  # + the 8-cell alignment and a cell to spare
+    # + the 8-cell alignment, a cell to spare and the samples pass's padding to whole 64-cell words
+    width = (x_hi - x_lo + 2 * reach) / resolution + 72
     height = (y_hi - y_lo + 2 * reach) / resolution + 9
     if width * height > MAX_WINDOW_CELLS:
         raise InputError(f"one scan would span about {width:.0f} x {height:.0f} cells of {resolution} m, more than the "

@@ -27,6 +27,27 @@ def fused_cells(grid: TiledGrid) -> dict:
     return out
 
 
+def whole_and_joined(tile_size, fusion_args, scans, shards, shard_of):
+    """The grid of ``scans`` ((ranges, samples, weights) each) fused by one MonteCarloFusion(grid, *fusion_args)
+    owning every tile, and the grid joined from ``shards`` fusions that each own the tiles (tx, ty) with
+    shard_of(tx, ty) == its index (each shard's tiles checked to be its own)."""
+    res = fusion_args[0].resolution
+    whole = TiledGrid(res, tile_size=tile_size)
+    fusion = MonteCarloFusion(whole, *fusion_args)
+    for scan in scans:
+        fusion.fuse(*scan)
+    joined = TiledGrid(res, tile_size=tile_size)
+    for shard in range(shards):
+        part = TiledGrid(res, tile_size=tile_size)
+        fusion = MonteCarloFusion(part, *fusion_args, owns_tile=lambda tx, ty, shard=shard: shard_of(tx, ty) == shard)
+        for scan in scans:
+            fusion.fuse(*scan)
+        for key in part.keys():
+            assert shard_of(*key) == shard
+            joined.set_tile(key, *part.tile_arrays(key))
+    return whole, joined
+
+
 def erf_model(r, z, sigma, l):
     """The closed form written out by hand, independent of mapping.sensor_model."""
     s = math.sqrt(2) * sigma
@@ -231,22 +252,10 @@ def test_shards_partition_the_map():
     model = SensorModel(resolution=RES)
     angles = np.linspace(-math.pi, math.pi, 90, endpoint=False)
     scans = [(np.where(np.arange(90) % 7 == 0, np.inf, rng.uniform(1, 6, 90)),
-              np.column_stack([rng.normal(0, 0.1, 5), rng.normal(0, 0.1, 5), rng.normal(0, 0.05, 5)]))
+              np.column_stack([rng.normal(0, 0.1, 5), rng.normal(0, 0.1, 5), rng.normal(0, 0.05, 5)]),
+              np.full(5, 0.2))
              for _ in range(3)]
-    whole = TiledGrid(RES, tile_size=32)
-    fusion = MonteCarloFusion(whole, model, angles, 0.1, 8.0)
-    for ranges, samples in scans:
-        fusion.fuse(ranges, samples, np.full(5, 0.2))
-    joined = TiledGrid(RES, tile_size=32)
-    for shard in range(3):
-        part = TiledGrid(RES, tile_size=32)
-        owner = lambda tx, ty, shard=shard: (tx * 7 + ty * 13) % 3 == shard  # noqa: E731
-        fusion = MonteCarloFusion(part, model, angles, 0.1, 8.0, owns_tile=owner)
-        for ranges, samples in scans:
-            fusion.fuse(ranges, samples, np.full(5, 0.2))
-        for key in part.keys():
-            assert owner(*key)
-            joined.set_tile(key, *part.tile_arrays(key))
+    whole, joined = whole_and_joined(32, (model, angles, 0.1, 8.0), scans, 3, lambda tx, ty: (tx * 7 + ty * 13) % 3)
     a, b = whole.rasterize(), joined.rasterize()
     for key in a:
         np.testing.assert_array_equal(a[key], b[key])
@@ -344,20 +353,11 @@ def test_rays_ending_on_a_grid_line_give_the_same_cells_whole_and_sharded():
     line and covers cells 0..9 of its row. The summed crossings of the walk (the shards' path) land 3e-17 m short
     of the end; the walk used to visit a sliver of cell 10 there while the runs (one shard owning every tile) did
     not, so the sharded map differed from the whole one."""
-    model = SensorModel(resolution=0.02)
     samples = np.array([[0.0, 0.006, 0.0], [0.0, 0.026, 0.0], [0.0, 0.046, 0.0]])
-    weights = np.full(3, 1 / 3)
-    whole = TiledGrid(0.02, tile_size=4)
-    MonteCarloFusion(whole, model, np.array([0.0]), 0.05, 0.2).fuse(np.array([np.nan]), samples, weights)
+    scan = (np.array([np.nan]), samples, np.full(3, 1 / 3))
+    whole, joined = whole_and_joined(4, (SensorModel(resolution=0.02), np.array([0.0]), 0.05, 0.2), [scan], 2,
+                                     lambda tx, ty: (tx + ty) % 2)
     assert sorted(fused_cells(whole)) == sorted((k, row) for k in range(10) for row in range(3))
-    joined = TiledGrid(0.02, tile_size=4)
-    for shard in range(2):
-        part = TiledGrid(0.02, tile_size=4)
-        owner = lambda tx, ty, shard=shard: (tx + ty) % 2 == shard  # noqa: E731
-        MonteCarloFusion(part, model, np.array([0.0]), 0.05, 0.2, owns_tile=owner).fuse(np.array([np.nan]), samples,
-                                                                                         weights)
-        for key in part.keys():
-            joined.set_tile(key, *part.tile_arrays(key))
     a, b = whole.rasterize(), joined.rasterize()
     for key in a:
         np.testing.assert_array_equal(a[key], b[key])
@@ -389,16 +389,8 @@ def test_whole_and_sharded_maps_agree_on_random_setups(seed):
             poses = np.column_stack([rng.normal(0, 0.3, m), rng.normal(0, 0.3, m), rng.normal(0, 0.5, m)])
         weights = rng.random(m)
         weights /= weights.sum()
-        whole = TiledGrid(res, tile_size=tile)
-        MonteCarloFusion(whole, model, angles, 0.05, range_max, offset).fuse(ranges, poses, weights)
-        joined = TiledGrid(res, tile_size=tile)
-        for shard in range(2):
-            part = TiledGrid(res, tile_size=tile)
-            owner = lambda tx, ty, shard=shard: (tx * 7 + ty * 13) % 2 == shard  # noqa: E731
-            MonteCarloFusion(part, model, angles, 0.05, range_max, offset, owns_tile=owner).fuse(ranges, poses,
-                                                                                                  weights)
-            for key in part.keys():
-                joined.set_tile(key, *part.tile_arrays(key))
+        whole, joined = whole_and_joined(tile, (model, angles, 0.05, range_max, offset), [(ranges, poses, weights)], 2,
+                                         lambda tx, ty: (tx * 7 + ty * 13) % 2)
         a, b = whole.rasterize(), joined.rasterize()
         np.testing.assert_array_equal(a["observed"], b["observed"])
         np.testing.assert_allclose(a["logodds"], b["logodds"], rtol=0, atol=1e-9)
