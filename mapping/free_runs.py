@@ -47,24 +47,33 @@ def set_run(plane, c_lo, c_hi):  # pragma: no cover - compiled
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _mark_runs(plane, stride, u0, v0, du, dv, iu, iv, end_u, end_v, tol_u, win_u0, win_v0, exits,
+def _mark_runs(plane, stride, u0, v0, du, dv, iu, iv, r_end, res, tol_u, win_u0, win_v0, exits,
                entries):  # pragma: no cover - compiled
-    """Mark, one run per line of constant v, the cells a ray crosses from (u0, v0) (grid units) along (du, dv),
-    |du| >= |dv|, up to (end_u, end_v), in the plane that holds cell (u, v) at bit (v - win_v0) * stride + u -
-    win_u0.
+    """Mark, one run per line of constant v, the cells a ray crosses from (u0, v0) (m) along the unit direction
+    (du, dv), |du| >= |dv|, up to the range r_end (m), in the plane that holds cell (u, v) at bit
+    (v - win_v0) * stride + u - win_u0.
 
-    (iu, iv) is the ray's first cell of positive length; tol_u is the corner tolerance along u; exits and entries
-    are scratch for the lines' exit and entry cells (as many as the window has lines). The last cell, returned as
-    (u, v), is the one the ray is in just before the end point. A line the ray crosses holds at least its entry
-    cell (rounding may put the exit before it)."""
-    if dv > 0.0:
-        lines = max(math.ceil(end_v) - 1 - iv, 0)  # the lines after the first
-        v_step, exit_edge = 1, 1  # line v is left at its edge v + exit_edge
-    else:
-        lines = max(iv - math.floor(end_v), 0) if dv < 0.0 else 0
-        v_step, exit_edge = -1, 0
-    slope = du / dv if dv != 0.0 else 0.0
-    edge0 = u0 + (iv + exit_edge - v0) * slope  # u where the ray leaves its first line
+    (iu, iv) is the ray's first cell of positive length; res is the cell size (m); tol_u is the corner tolerance
+    along u (grid units); exits and entries are scratch for the lines' exit and entry cells (as many as the
+    window has lines). The last cell, returned as (u, v), is the one the ray is in just before the end point. A
+    line the ray crosses holds at least its entry cell (rounding may put the exit before it).
+
+    The v lines are crossed where the traversal crosses them: at the ranges it computes (in m, from the range
+    to the first, :func:`mapping.raytrace.dda_start`, in steps of res / |dv|). So the two agree on the row of
+    every cell even for a ray that runs along a grid line within rounding, where a crossing moves by
+    decimetres with the last bit of v0."""
+    v_step, exit_edge = (1, 1) if dv > 0.0 else (-1, 0)  # line v is left at its edge v + exit_edge
+    per_cell = 1.0 / res
+    lines = 0  # the lines after the first
+    edge0 = 0.0  # u where the ray leaves its first line
+    slope = 0.0
+    if dv != 0.0:
+        t_first = ((iv + exit_edge) * res - v0) / dv  # the range to the first line crossed
+        if r_end > t_first:
+            lines = math.ceil((r_end - t_first) * abs(dv) * per_cell)
+        slope = du / dv
+        edge0 = (u0 + t_first * du) * per_cell
+    end_u = (u0 + r_end * du) * per_cell
     edge_step = v_step * slope  # and then from line to line: the k-th exit edge is edge0 + k * edge_step
     base = (iv - win_v0) * stride - win_u0
     base_step = v_step * stride
@@ -111,16 +120,12 @@ def mark_free_runs(rows, columns, col_stride, x0, y0, dx, dy, ix, iy, r_end, res
     units. Every cell must lie in the window (ray_start checks the end cells). exits and entries (int64) are
     scratch for max(win_w, window height) values.
     """
-    per_cell = 1.0 / res  # (m to grid units; the start cell comes from the traversal, so rounding here is harmless)
-    gx0 = x0 * per_cell
-    gy0 = y0 * per_cell
-    end_x = (x0 + r_end * dx) * per_cell
-    end_y = (y0 + r_end * dy) * per_cell
+    per_cell = 1.0 / res
     if abs(dx) >= abs(dy):
-        return _mark_runs(rows, win_w, gx0, gy0, dx, dy, ix, iy, end_x, end_y, tol * abs(dx) * per_cell, win_ix0,
+        return _mark_runs(rows, win_w, x0, y0, dx, dy, ix, iy, r_end, res, tol * abs(dx) * per_cell, win_ix0,
                           win_iy0, exits, entries)
-    last_iy, last_ix = _mark_runs(columns, col_stride, gy0, gx0, dy, dx, iy, ix, end_y, end_x, tol * abs(dy) * per_cell,
-                                  win_iy0, win_ix0, exits, entries)
+    last_iy, last_ix = _mark_runs(columns, col_stride, y0, x0, dy, dx, iy, ix, r_end, res,
+                                  tol * abs(dy) * per_cell, win_iy0, win_ix0, exits, entries)
     return last_ix, last_iy
 
 
