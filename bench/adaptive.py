@@ -141,7 +141,8 @@ def compare_rules(posed: PosedScans, model: SensorModel, sweep: dict[str, Adapti
     over the regular grid's observed cells), ``bytes_fraction``, ``auc``, ``tree_oracle_auc``,
     ``free_space_auc``, ``claimed_free_m2``, ``scans_per_s`` and ``scans_per_cpu_s``. Then, for every prefix
     that counts unknowns, the AUCs of the rule without unknowns interpolated to its cell budget
-    (``no_unknowns_auc_at_PREFIX_cells``, NaN outside the sweep without unknowns)."""
+    (``no_unknowns_auc_at_PREFIX_cells``, NaN outside the sweep without unknowns) and the lead of unknowns
+    over them (``PREFIX_auc_lead_at_same_cells``; the same for the free-space AUC)."""
     scans = len(posed.stamps)
 
     def regular():
@@ -182,6 +183,7 @@ def compare_rules(posed: PosedScans, model: SensorModel, sweep: dict[str, Adapti
         for column, score in ((1, "auc"), (2, "free_space_auc")):
             value = np.interp(cells, [c[0] for c in without], [c[column] for c in without]) if inside else np.nan
             out[f"no_unknowns_{score}_at_{prefix}_cells"] = float(value)
+            out[f"{prefix}_{score}_lead_at_same_cells"] = out[f"{prefix}_{score}"] - float(value)
     return out
 
 

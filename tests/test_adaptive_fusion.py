@@ -58,6 +58,20 @@ def test_half_free_half_hidden_cell_splits_with_unknowns_only():
     assert (level < 3).all() and ((ax << level) >= 40).all()
 
 
+def test_merging_never_paints_the_hidden_part_of_a_fig3_cell_free():
+    """With the default merge rules, Fig. 3's view seen six times: the seen part turns certain and merges, but
+    the corner hidden behind the obstacle (finest cell (47, 7)) keeps what it had after the first scan, in a
+    cell finer than Fig. 3's, not free to a planner: no merge reaches across the shadow's edge."""
+    scan = (FIG3_RANGES, FIG3_POSE, np.ones(1))
+    params = AdaptiveParams(start_level=3, unknowns=True)
+    cells = (np.array([40, 47]), np.array([0, 7]))  # a seen finest cell and the hidden corner
+    once, six = fused(params, [scan], FIG3_ANGLES, 3.0), fused(params, [scan] * 6, FIG3_ANGLES, 3.0)
+    seen, hidden = six.find(*cells)
+    assert six.logodds[seen] < logit(0.2) and six.active_cells < once.active_cells  # certain, and merged
+    assert six.logodds[hidden] == once.logodds[once.find(*cells)[1]] and six.level[hidden] < 3
+    assert six.logodds[hidden] > logit(0.2)
+
+
 def test_children_inherit_the_parents_logodds_and_hits_and_misses_carry_over():
     # scan 1 sees the whole cell free (no obstacle); scan 2 is Fig. 3's half-hidden view
     free = (np.full(FIG3_ANGLES.shape, np.inf), FIG3_POSE, np.ones(1))
@@ -332,6 +346,30 @@ def test_a_merge_the_split_test_would_undo_is_not_made_and_the_veto_sees_the_par
     assert calls == [(1, [0], [0], [[10.0, 100.0]])]
     assert grid.find_exact(np.array([1]), np.array([0]), np.array([0]))[0] == -1
     assert grid.active_cells == 4
+
+
+def test_a_scans_unknowns_do_not_veto_merging_siblings_that_earlier_scans_saw_free():
+    """Four free finest cells (p = 0.1, 5 misses each) under level-1 cell (20, 1): x in [2.0, 2.1], y in
+    [0.1, 0.2]. Fig. 3's view sees their lower half free and hides the rest behind the obstacle at 1 m (its
+    shadow edge, the 4.5 degree beam, crosses them at y = 0.174-0.182), so this scan has misses and unknowns in
+    the parent, which its split test with unknowns rejects. The siblings still merge: the veto asks only whether
+    their carried hits and misses would split the parent again, and they were all seen free before."""
+    grid = AdaptiveGrid(RES)
+    children = (np.zeros(4, np.int64), np.array([40, 41, 40, 41]), np.array([2, 2, 3, 3]))
+    grid.edit(np.zeros(0, np.int64), *children, np.full(4, logit(0.1)), np.zeros(4), np.zeros(4), np.full(4, 5.0))
+    fusion = AdaptiveFusion(grid, SensorModel(resolution=RES), FIG3_ANGLES, 0.05, 3.0,
+                            params=AdaptiveParams(start_level=1, unknowns=True))
+    parent = (np.array([1]), np.array([20]), np.array([1]))
+    model, beams = fusion.model, beam_table(FIG3_RANGES, fusion.model, 0.05, 3.0)
+    evidence = fusion.scanner.scan(FIG3_POSE, np.ones(1), FIG3_ANGLES, beams, fusion._count_ranges(beams),
+                                   fusion._table, RES, model.p_miss, model.p_hit, model.l_free)
+    hits, misses, unknowns = evidence.counts(*parent)[0]
+    assert hits == 0 and misses > 0 and unknowns > 0
+    assert fusion.test.reject(np.array([1]), [[0.0, 20.0 + misses, unknowns]]), "this scan alone would split it"
+    fusion.fuse(FIG3_RANGES, FIG3_POSE, np.ones(1))
+    merged = grid.find_exact(*parent)[0]
+    assert merged >= 0 and (grid.find_exact(*children) == -1).all()
+    assert grid.logodds[merged] < logit(0.2)  # still free: the mean of the children, updated by this scan
 
 
 def test_a_merged_cell_takes_the_mean_variance_and_the_summed_hits_and_misses():

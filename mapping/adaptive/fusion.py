@@ -20,8 +20,9 @@ Per scan, with pose samples x_j and weights w_j (sum 1):
    assume;
 5. merge, from the finest level up: four active siblings of which the scan touched at least one merge into
    their parent when a rule of :class:`~mapping.adaptive.merging.MergeRules` holds, unless the split test
-   rejects the parent with the children's carried counts (the merge would be undone); the parent takes the
-   mean of their log-odds (and of their variances) and the sum of their hits and misses.
+   rejects the parent with the children's carried hits and misses (the merge would be undone; this scan's
+   unknowns do not count, see ``_merge``); the parent takes the mean of their log-odds (and of their
+   variances) and the sum of their hits and misses.
 
 Unknowns are never stored: they count in the test of the scan that saw them only.
 All loops over samples, beams and cells are compiled or vectorised; Python loops run per level and per tile.
@@ -141,7 +142,7 @@ class AdaptiveFusion:
         created = self._activate(ix, iy)
         splits = self._split(evidence, np.unique(self.grid.find(ix, iy)))
         updated = self._update(self.grid.find(ix, iy), first, spread)
-        merges = self._merge(evidence, updated)
+        merges = self._merge(updated)
         return AdaptiveFuseResult(len(updated[0]), created, splits, merges)
 
     def _count_ranges(self, beams: BeamTable) -> np.ndarray:
@@ -227,11 +228,19 @@ class AdaptiveFusion:
         grid.variance[cells] = grid.variance[cells] + np.bincount(inverse, weights=spread) / count
         return grid.cells(cells)
 
-    def _merge(self, evidence: ScanEvidence, updated: tuple[np.ndarray, np.ndarray, np.ndarray]) -> int:
-        """Merge siblings recursively from the finest level up (step 5); returns the number of merges."""
+    def _merge(self, updated: tuple[np.ndarray, np.ndarray, np.ndarray]) -> int:
+        """Merge siblings recursively from the finest level up (step 5); returns the number of merges.
+
+        The veto tests the parent on its children's carried hits and misses only. This scan's unknowns do not
+        count: they say that this scan left part of the parent unseen, not that earlier scans did. Siblings
+        that a merge rule finds nearly certain or in agreement got those values from scans (a child never seen
+        keeps its parent's value, the prior p = 1/2 where the parent split when first seen partly hidden, and
+        fails every rule), so the merge paints no unseen space. Counting them kept the free cells along shadow
+        edges split for good (docs/adaptive.md, section 5).
+        """
 
         def undone(level: int, px: np.ndarray, py: np.ndarray, carried: np.ndarray) -> np.ndarray:
-            totals = np.concatenate([carried, evidence.counts(np.full(px.shape, level), px, py)[:, 2:]], axis=1)
+            totals = np.concatenate([carried, np.zeros((px.size, 1))], axis=1)  # no unknowns
             return (carried.sum(axis=1) > 0) & self.test.reject(np.full(px.shape, level), totals)
 
         return merge_siblings(self.grid, *updated, self.params.merge, self.max_level, undone)
