@@ -352,20 +352,19 @@ def test_a_scans_unknowns_do_not_veto_merging_siblings_that_earlier_scans_saw_fr
     """Four free finest cells (p = 0.1, 5 misses each) under level-1 cell (20, 1): x in [2.0, 2.1], y in
     [0.1, 0.2]. Fig. 3's view sees their lower half free and hides the rest behind the obstacle at 1 m (its
     shadow edge, the 4.5 degree beam, crosses them at y = 0.174-0.182), so this scan has misses and unknowns in
-    the parent, which its split test with unknowns rejects. The siblings still merge: the veto asks only whether
-    their carried hits and misses would split the parent again, and they were all seen free before."""
+    the parent, which its split test with unknowns rejects (a parent with no history splits on them). The
+    siblings still merge: the veto asks only whether their carried hits and misses would split the parent again,
+    and they were all seen free before."""
     grid = AdaptiveGrid(RES)
     children = (np.zeros(4, np.int64), np.array([40, 41, 40, 41]), np.array([2, 2, 3, 3]))
     grid.edit(np.zeros(0, np.int64), *children, np.full(4, logit(0.1)), np.zeros(4), np.zeros(4), np.full(4, 5.0))
     fusion = AdaptiveFusion(grid, SensorModel(resolution=RES), FIG3_ANGLES, 0.05, 3.0,
                             params=AdaptiveParams(start_level=1, unknowns=True))
     parent = (np.array([1]), np.array([20]), np.array([1]))
-    model, beams = fusion.model, beam_table(FIG3_RANGES, fusion.model, 0.05, 3.0)
-    evidence = fusion.scanner.scan(FIG3_POSE, np.ones(1), FIG3_ANGLES, beams, fusion._count_ranges(beams),
-                                   fusion._table, RES, model.p_miss, model.p_hit, model.l_free)
-    hits, misses, unknowns = evidence.counts(*parent)[0]
-    assert hits == 0 and misses > 0 and unknowns > 0
-    assert fusion.test.reject(np.array([1]), [[0.0, 20.0 + misses, unknowns]]), "this scan alone would split it"
+    for unknowns, splits in ((True, True), (False, False)):  # seen by this scan alone, it splits on the unknowns
+        fresh = fused(AdaptiveParams(start_level=1, unknowns=unknowns, merge=NEVER_MERGE),
+                      [(FIG3_RANGES, FIG3_POSE, np.ones(1))], FIG3_ANGLES, 3.0)
+        assert (fresh.find_exact(*parent)[0] == -1) == splits
     fusion.fuse(FIG3_RANGES, FIG3_POSE, np.ones(1))
     merged = grid.find_exact(*parent)[0]
     assert merged >= 0 and (grid.find_exact(*children) == -1).all()
