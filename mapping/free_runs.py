@@ -47,14 +47,14 @@ def set_run(plane, c_lo, c_hi):  # pragma: no cover - compiled
 
 
 @nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _mark_runs(plane, stride, u0, v0, du, dv, iu, iv, r_end, res, tol_u, win_u0, win_v0, exits,
+def _mark_runs(plane, stride, u0, v0, du, dv, iu, iv, r_end, res, tol, win_u0, win_v0, exits,
                entries):  # pragma: no cover - compiled
     """Mark, one run per line of constant v, the cells a ray crosses from (u0, v0) (m) along the unit direction
     (du, dv), |du| >= |dv|, up to the range r_end (m), in the plane that holds cell (u, v) at bit
     (v - win_v0) * stride + u - win_u0.
 
-    (iu, iv) is the ray's first cell of positive length; res is the cell size (m); tol_u is the corner tolerance
-    along u (grid units); exits and entries are scratch for the lines' exit and entry cells (as many as the
+    (iu, iv) is the ray's first cell of positive length; res is the cell size (m); tol is the ray's corner
+    tolerance (m); exits and entries are scratch for the lines' exit and entry cells (as many as the
     window has lines). The last cell, returned as (u, v), is the one the ray is in just before the end point. A
     line the ray crosses holds at least its entry cell (rounding may put the exit before it).
 
@@ -64,6 +64,7 @@ def _mark_runs(plane, stride, u0, v0, du, dv, iu, iv, r_end, res, tol_u, win_u0,
     decimetres with the last bit of v0."""
     v_step, exit_edge = (1, 1) if dv > 0.0 else (-1, 0)  # line v is left at its edge v + exit_edge
     per_cell = 1.0 / res
+    tol_u = tol * abs(du) * per_cell  # the corner tolerance along u, in grid units
     lines = 0  # the lines after the first
     edge0 = 0.0  # u where the ray leaves its first line
     slope = 0.0
@@ -120,12 +121,10 @@ def mark_free_runs(rows, columns, col_stride, x0, y0, dx, dy, ix, iy, r_end, res
     units. Every cell must lie in the window (ray_start checks the end cells). exits and entries (int64) are
     scratch for max(win_w, window height) values.
     """
-    per_cell = 1.0 / res
     if abs(dx) >= abs(dy):
-        return _mark_runs(rows, win_w, x0, y0, dx, dy, ix, iy, r_end, res, tol * abs(dx) * per_cell, win_ix0,
-                          win_iy0, exits, entries)
-    last_iy, last_ix = _mark_runs(columns, col_stride, y0, x0, dy, dx, iy, ix, r_end, res,
-                                  tol * abs(dy) * per_cell, win_iy0, win_ix0, exits, entries)
+        return _mark_runs(rows, win_w, x0, y0, dx, dy, ix, iy, r_end, res, tol, win_ix0, win_iy0, exits, entries)
+    last_iy, last_ix = _mark_runs(columns, col_stride, y0, x0, dy, dx, iy, ix, r_end, res, tol, win_iy0, win_ix0,
+                                  exits, entries)
     return last_ix, last_iy
 
 
