@@ -236,7 +236,7 @@ class ShardStats(Message):
     """What one mapper shard has done. The reply to a query on pg/map/<map>/stats/<shard>."""
 
     TYPE = "ShardStats"
-    VERSION = 2  # 2: resent
+    VERSION = 3  # 2: resent; 3: refused
     RULES = (Rule("range", "shard < shards", _shard_index),)
 
     map: str = spec(Name("map name"))
@@ -255,6 +255,9 @@ class ShardStats(Message):
                                "node or source catching up), dropped, by key"))
     rejected: dict = spec(Counts("messages dropped as malformed or of an unknown version, by key"))
     overflow: dict = spec(Counts("messages dropped because a bounded buffer was full, by buffer"))
+    refused: dict = spec(Counts("messages and scans refused or given up, by kind: e.g. key (no posegrid key), "
+                                "ahead (a seq beyond the seq window: forged or stray), size, work, bound and extent "
+                                "(past a resource limit), robots, malformed, missing, overflow"))
 
 
 @dataclass(frozen=True, eq=False)

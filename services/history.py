@@ -129,16 +129,19 @@ def ask(session: zenoh.Session, robot: str, parameters: dict[str, str], timeout:
     messages, problems, answerers = [], [], {}
     for answer in _answers(session, robot, parameters, timeout):
         if answer.ok is None:
-            problems.append(answer.err.payload.to_string())
+            problems.append(answer.err.payload.to_bytes()[:500].decode("utf-8", "replace"))
             continue
-        parts = str(answer.ok.key_expr).split("/")  # pg/<robot>/history/<stream>
+        parsed = keys.parse_history_reply_key(str(answer.ok.key_expr))  # (robot, stream) of pg/<robot>/history/<s>
         attachment = answer.ok.attachment
         answerer = None if attachment is None else Answerer.decode(attachment.to_bytes())
-        if answerer is None:
+        if parsed is None or robot not in ("*", parsed[0]):
+            problems.append(f"a reply on {str(answer.ok.key_expr)[:200]!r} is no pg/{robot}/history/<stream> key "
+                            "(a wildcard, an unknown stream or another robot); not taken")
+        elif answerer is None:
             problems.append(f"a reply on {answer.ok.key_expr} does not say who answers it; not taken")
         elif accept(answerer):
-            answerers.setdefault((parts[1], parts[-1]), set()).add(answerer.id)
-            messages.append((parts[1], parts[-1], answer.ok.payload.to_bytes()))
+            answerers.setdefault(parsed, set()).add(answerer.id)
+            messages.append((*parsed, answer.ok.payload.to_bytes()))
     clashes = {key for key, ids in answerers.items() if len(ids) > 1}
     problems += [f"{len(answerers[key])} processes answer the {key[1]} history of robot {key[0]!r} (is a robot name "
                  "used by two runs at once?); none of them is taken" for key in sorted(clashes)]

@@ -48,12 +48,22 @@ MISSING = "missing"  # scans that never came: their stream went past their seqs
 ORPHANED = "orphaned"  # its partner never comes: the partner's stream went past its seq without it
 LATE = "late"  # it came after its own stream had passed its seq (a re-sent message not fused yet): refused
 JUMP = "jump"  # it jumped past a gap that its stream's next message did not confirm (a stray): refused
+AHEAD = "ahead"  # it lies more than the window beyond what its stream has shown: held until the stream gets near
 
 #: evicted halves remembered, to be asked for again when their partner comes (only their seqs: about 200 bytes
 #: each); 13.6 min of a 10 Hz robot's scans
 EVICTED_LIMIT = 8192
 #: evicted halves of one stream asked for at once: the partners of the ones after the first come next
 REFETCH_BATCH = 32
+#: seqs beyond the last one its stream has passed that a live message may lie and still be taken (a gap larger
+#: than this is believed only as below): 25 s of a 40 Hz laser. A peer that forges a scan and a pose far ahead
+#: would otherwise make the stream pass every real seq up to them, given up as missing and then refused as late
+DEFAULT_SEQ_WINDOW = 1024
+#: messages beyond the window held per stream, lowest seqs kept: taken once the stream gets within the window
+FAR_KEPT = 64
+#: consecutive seqs beyond the window that make the jump believed (a stream that really skipped more than the
+#: window, e.g. a shard cut off for minutes, goes on in order from the far side)
+CONFIRM_RUN = 16
 
 #: what each reason means, for the logs
 GIVEN_UP_BECAUSE = {
@@ -64,6 +74,8 @@ GIVEN_UP_BECAUSE = {
     ORPHANED: "given up on: its partner never comes (the partner's stream went past its seq)",
     LATE: "came after its stream had gone past its seq (a re-sent message); refused",
     JUMP: "jumped past a gap that the next message of its stream did not confirm (a stray message); refused",
+    AHEAD: "lies beyond the seq window of what its stream has shown (a forged or stray seq?); held, and taken only "
+           "if the stream gets within the window of it or goes on in order from it",
 }
 
 
@@ -88,13 +100,24 @@ class GivenUp:
 class JoinBuffer(Generic[ScanT, PoseT]):
     """A bounded scan/pose join; see the module docstring."""
 
-    def __init__(self, capacity: int, recover: Callable[[str, bool, int, int], dict[int, object]] | None = None):
+    def __init__(self, capacity: int, recover: Callable[[str, bool, int, int], dict[int, object]] | None = None,
+                 window: int = DEFAULT_SEQ_WINDOW, max_bytes: int | None = None,
+                 size: Callable[[object], int] = lambda item: 0):
         """``recover(robot, scans, first, last)``: what it can find of the robot's scans (else poses) with seqs
-        first..last (inclusive), which its stream skipped, as {seq: scan or pose}."""
+        first..last (inclusive), which its stream skipped, as {seq: scan or pose}. ``window``: seqs beyond its
+        stream's last one that a live message may lie (:data:`DEFAULT_SEQ_WINDOW`). ``max_bytes``: bytes (as
+        ``size`` measures a half) one robot's waiting halves may hold; beyond, its oldest are evicted as when
+        the buffer is full (None: no bound)."""
         if capacity < 1:
             raise ValueError(f"join buffer capacity must be >= 1, got {capacity}")
+        if window < 1:
+            raise ValueError(f"seq window must be >= 1, got {window}")
         self.capacity = capacity
         self.recover = recover
+        self.window = window
+        self.max_bytes = max_bytes
+        self._size = size
+        self._far: dict[tuple[str, bool], dict[int, object]] = {}  # (robot, scans?) -> {seq: item} beyond window
         self._pending: OrderedDict[JoinKey, _Pending] = OrderedDict()
         self._last: dict[tuple[str, bool], int] = {}  # (robot, scans?) -> the last seq its stream has passed
         self._held: dict[tuple[str, bool], tuple[int, object]] = {}  # (robot, scans?) -> (seq, item) past a gap
@@ -106,19 +129,91 @@ class JoinBuffer(Generic[ScanT, PoseT]):
     def __len__(self) -> int:
         return len(self._pending) + len(self._held)
 
+    def held_bytes(self, robot: str) -> int:
+        """Bytes (as ``size`` measures them) of ``robot``'s halves waiting here (for a partner, past a gap, or
+        beyond the window)."""
+        total = sum(self._size(half) for key, entry in self._pending.items() if key[0] == robot
+                    for half in (entry.scan, entry.pose) if half is not None)
+        total += sum(self._size(held[1]) for stream, held in self._held.items() if stream[0] == robot)
+        return total + sum(self._size(item) for stream, far in self._far.items() if stream[0] == robot
+                           for item in far.values())
+
     def waiting(self, key: JoinKey, is_scan: bool):
         """The scan (else pose) of ``key`` that waits here for its partner, or None."""
         entry = self._pending.get(key)
         return None if entry is None else (entry.scan if is_scan else entry.pose)
 
-    def add_scan(self, key: JoinKey, scan: ScanT) -> tuple[list[tuple[ScanT, PoseT]], list[GivenUp]]:
+    def add_scan(self, key: JoinKey, scan: ScanT, trusted: bool = False) -> tuple[list[tuple[ScanT, PoseT]],
+                                                                                 list[GivenUp]]:
         """Offer a scan; returns the completed (scan, pose) pairs (none, one, or two when it confirms a gap) and
-        the halves given up on."""
-        return self._add(key, scan, is_scan=True)
+        the halves given up on. ``trusted``: it came from a history, so the seq window does not apply."""
+        return self._offer(key, scan, True, trusted)
 
-    def add_pose(self, key: JoinKey, pose: PoseT) -> tuple[list[tuple[ScanT, PoseT]], list[GivenUp]]:
+    def add_pose(self, key: JoinKey, pose: PoseT, trusted: bool = False) -> tuple[list[tuple[ScanT, PoseT]],
+                                                                                 list[GivenUp]]:
         """Offer a pose; returns what :meth:`add_scan` returns."""
-        return self._add(key, pose, is_scan=False)
+        return self._offer(key, pose, False, trusted)
+
+    def beyond_window(self, robot: str, is_scan: bool, seq: int) -> bool:
+        """Whether ``seq`` lies more than the window beyond the last seq the robot's scan (else pose) stream has
+        passed."""
+        return seq > self._last.get((robot, is_scan), -1) + self.window
+
+    def _offer(self, key: JoinKey, item, is_scan: bool, trusted: bool):
+        """:meth:`_add`, unless a live ``item`` lies beyond the seq window: then it is held with the stream's other
+        far messages (the lowest FAR_KEPT), and taken once the stream gets within the window of it, or once
+        CONFIRM_RUN consecutive seqs are held (the stream really jumped)."""
+        robot, seq = key
+        stream = (robot, is_scan)
+        if trusted or not self.beyond_window(robot, is_scan, seq):
+            pairs, gone = self._add(key, item, is_scan)
+        else:
+            far = self._far.setdefault(stream, {})
+            far[seq] = item
+            while len(far) > FAR_KEPT:
+                del far[max(far)]
+            pairs, gone = [], [GivenUp(robot, seq, 1, is_scan, AHEAD)]
+            run = _run_through(far, seq) if seq in far else []
+            if len(run) < CONFIRM_RUN:
+                return pairs, gone
+            for other in run:  # the stream goes on in order from the far side: its jump is real
+                more_pairs, more = self._add((robot, other), far.pop(other), is_scan, confirmed=True)
+                pairs, gone = pairs + more_pairs, gone + more
+        more_pairs, more = self._reoffer(robot, is_scan)
+        return pairs + more_pairs, gone + more + self._within_bytes(robot)
+
+    def _reoffer(self, robot: str, is_scan: bool):
+        """Take the far messages of the stream that now lie within the window, in seq order."""
+        far = self._far.get((robot, is_scan))
+        pairs, gone = [], []
+        while far:
+            seq = min(far)
+            if self.beyond_window(robot, is_scan, seq):
+                break
+            more_pairs, more = self._add((robot, seq), far.pop(seq), is_scan)
+            pairs, gone = pairs + more_pairs, gone + more
+        return pairs, gone
+
+    def _within_bytes(self, robot: str) -> list[GivenUp]:
+        """Evict the robot's oldest waiting halves while they hold more than ``max_bytes``."""
+        gone: list[GivenUp] = []
+        if self.max_bytes is None:
+            return gone
+        excess = self.held_bytes(robot) - self.max_bytes
+        for stream in [(robot, True), (robot, False)]:  # the far messages first: the least likely to be needed
+            far = self._far.get(stream, {})
+            while excess > 0 and far:
+                seq = max(far)
+                excess -= self._size(far.pop(seq))  # (counted as ahead when it came)
+        while excess > 0:
+            oldest = next((key for key in self._pending if key[0] == robot), None)
+            if oldest is None:
+                break
+            entry = self._pending.pop(oldest)
+            half = entry.scan if entry.scan is not None else entry.pose
+            excess -= self._size(half)
+            gone += self._evict(robot, oldest[1], entry.scan is not None)
+        return gone
 
     def settle(self, robot: str, scans: int) -> tuple[list[tuple[ScanT, PoseT]], list[GivenUp]]:
         """End the robot's streams after ``scans`` scans (seqs 0 .. scans-1): a held message within them is taken
@@ -139,19 +234,29 @@ class JoinBuffer(Generic[ScanT, PoseT]):
             more_pairs, more = self._pass(robot, is_scan, self._last.get((robot, is_scan), -1) + 1, scans)
             pairs += more_pairs
             gone += more
+        for is_scan in (True, False):  # held beyond the window and never reached: counted as ahead already
+            self._far.pop((robot, is_scan), None)
         waiting = [key for key in self._pending if key[0] == robot]
         gone += [GivenUp(robot, seq, 1, self._pending.pop((robot, seq)).scan is not None, ORPHANED)
                  for _, seq in waiting]
         gone += self._forget_evicted(lambda key: key[0] == robot)
         return pairs, gone
 
-    def _add(self, key: JoinKey, item, is_scan: bool):
+    def _add(self, key: JoinKey, item, is_scan: bool, confirmed: bool = False):
+        """File a message of its stream: taken when it is the stream's next, else held past a gap until the
+        stream's next message confirms it (``confirmed``: taken at once, the gap is believed)."""
         robot, seq = key
         stream = (robot, is_scan)
         last = self._last.get(stream, -1)
         if seq <= last:
             return [], [GivenUp(robot, seq, 1, is_scan, LATE)]
         held = self._held.pop(stream, None)
+        if confirmed:  # a message held past a gap lies below the run: the stream went past it, its gap is real
+            pairs, gone = [], []
+            if held is not None:
+                pairs, gone = self._take(robot, held[0], held[1], is_scan)
+            more_pairs, more = self._take(robot, seq, item, is_scan)
+            return pairs + more_pairs, gone + more
         if seq == last + 1:  # the stream goes on: a message held past a gap was a stray
             stray = [] if held is None else [GivenUp(robot, held[0], 1, is_scan, JUMP)]
             pairs, gone = self._take(robot, seq, item, is_scan)
@@ -290,6 +395,16 @@ class JoinBuffer(Generic[ScanT, PoseT]):
             return {}
         return {seq: item for seq, item in self.recover(robot, is_scan, first, stop - 1).items()
                 if first <= seq < stop and seq not in taken}
+
+
+def _run_through(seqs: dict[int, object], seq: int) -> list[int]:
+    """The run of consecutive seqs of ``seqs`` that holds ``seq``, ascending."""
+    first, last = seq, seq
+    while first - 1 in seqs:
+        first -= 1
+    while last + 1 in seqs:
+        last += 1
+    return list(range(first, last + 1))
 
 
 def _absent_runs(first: int, stop: int, present: Iterable[int]) -> list[tuple[int, int]]:

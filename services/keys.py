@@ -15,6 +15,9 @@
 """
 from __future__ import annotations
 
+from schemas.messages import RESERVED_ROBOT_NAMES
+from schemas.wire import is_valid_name
+
 ROOT = "pg"
 
 #: per-robot streams a mapper or SLAM node subscribes to, by last key chunk
@@ -26,9 +29,37 @@ def robot_key(robot: str, stream: str) -> str:
     return f"{ROOT}/{robot}/{stream}"
 
 
-def robot_of(key: str) -> str:
-    """The robot chunk of a pg/<robot>/... key."""
-    return key.split("/")[1]
+#: the streams a robot publishes on pg/<robot>/<stream>
+ROBOT_STREAMS = frozenset({SCAN, ODOM, LANDMARKS, POSE, END, PRIOR})
+
+
+def parse_robot_key(key: str, streams: frozenset[str] | set[str] = ROBOT_STREAMS) -> tuple[str, str] | None:
+    """(robot, stream) of a concrete key pg/<robot>/<stream> whose stream is one of ``streams``; None for any
+    other key: a wildcard (``*``, ``**``, ``$*``) in any chunk, another depth, a robot chunk that is no robot
+    name (schemas.wire.NAME_PATTERN, not ``map``), or an unknown stream. A subscriber on pg/*/scan receives a
+    publication on pg/r1/* or pg/** too (their key expressions intersect), so every subscriber parses the key
+    with this before using any part of it."""
+    parts = key.split("/")
+    if len(parts) != 3 or parts[0] != ROOT or parts[2] not in streams:
+        return None
+    robot = parts[1]
+    if not is_valid_name(robot) or robot in RESERVED_ROBOT_NAMES:
+        return None
+    return robot, parts[2]
+
+
+def parse_history_reply_key(key: str) -> tuple[str, str] | None:
+    """(robot, stream) of a concrete history reply key pg/<robot>/history/<stream> (services.history); None for
+    any other key (a wildcard, another depth, an unknown stream, a robot chunk that is no robot name)."""
+    parts = key.split("/")
+    if len(parts) != 4 or parts[2] != "history":
+        return None
+    return parse_robot_key(f"{parts[0]}/{parts[1]}/{parts[3]}")
+
+
+#: the label rejections of a key that is no posegrid key are counted under (the key itself may be anything a peer
+#: makes up, so it is not used as a counter's name)
+INVALID_KEY = f"{ROOT}/<invalid key>"
 
 
 def history_key(robot: str, stream: str = "**") -> str:

@@ -21,7 +21,7 @@ import zenoh
 
 from services import history, keys
 from services.process import RejectCounter, get_logger
-from services.shard import MapShard, ShardConfig
+from services.shard import SHARD_STREAMS, MapShard, ShardConfig
 from services.zenoh_config import open_session
 
 #: messages that may wait in the intake queue between the network and the fusion thread
@@ -44,6 +44,7 @@ class Mapper:
         self.lock = threading.Lock()
         self.intake: queue.Queue[tuple[str, bytes]] = queue.Queue(intake_capacity)
         self.intake_overflow = 0
+        self.intake_bytes = 0  # bytes of the payloads in ``intake`` (guarded by _overflow_lock)
         self._overflow_lock = threading.Lock()
         self._declared = []
         self._stats_lock = threading.Lock()  # guards _stats_payload only
@@ -51,13 +52,42 @@ class Mapper:
 
     # ---------------------------------------------------------------------------- zenoh callbacks
     def _on_sample(self, sample: zenoh.Sample) -> None:
+        """Queue a publication for the fusion thread, unless its key is no robot stream of a shard's (counted under
+        keys.INVALID_KEY), it is larger than any message a shard takes, or the queue is full (by count or bytes)."""
         key = str(sample.key_expr)
-        try:
-            self.intake.put_nowait((key, sample.payload.to_bytes()))
-        except queue.Full:
+        if keys.parse_robot_key(key, SHARD_STREAMS.keys()) is None:
+            self.rejects.count(keys.INVALID_KEY, "key", f"a message on {key[:200]!r}, which is no pg/<robot>/scan, "
+                               "pose or end key (a wildcard, another depth or an invalid robot name)")
+            return
+        limits = self.config.limits
+        size = len(sample.payload)
+        if size > limits.message_bytes():
+            self.rejects.count(key, "size", f"a message of {size} bytes, more than a scan of --max-beams "
+                               f"{limits.max_beams} beams may take ({limits.message_bytes()} bytes)")
+            return
+        with self._overflow_lock:
+            room = self.intake_bytes + size <= limits.intake_bytes
+            if room:
+                self.intake_bytes += size
+        if room:
+            try:
+                self.intake.put_nowait((key, sample.payload.to_bytes()))
+                return
+            except queue.Full:
+                pass
             with self._overflow_lock:
-                self.intake_overflow += 1
-            self.rejects.count(key, "overflow", f"the intake queue ({self.intake.maxsize}) was full")
+                self.intake_bytes -= size
+        with self._overflow_lock:
+            self.intake_overflow += 1
+        self.rejects.count(key, "overflow", f"the intake queue ({self.intake.maxsize} messages, "
+                           f"{limits.intake_bytes} bytes) was full")
+
+    def _next_message(self, timeout: float) -> tuple[str, bytes]:
+        """The next queued publication (raises queue.Empty after ``timeout`` s), its bytes released."""
+        key, payload = self.intake.get(timeout=timeout)
+        with self._overflow_lock:
+            self.intake_bytes -= len(payload)
+        return key, payload
 
     def _on_tile_query(self, query: zenoh.Query) -> None:
         wanted = query.key_expr
@@ -89,7 +119,7 @@ class Mapper:
                                                                "to": str(last + 1)}, HISTORY_TIMEOUT, self._ours)
         for problem in problems:
             self.rejects.count(keys.history_key(robot), "history", problem)
-        return [payload for _, got, payload in messages if got == stream]
+        return [payload for _, got, payload in messages if got == stream]  # (history.ask checks the reply keys)
 
     def catch_up(self) -> None:
         """Take every robot's scans and poses published before this shard subscribed, from the histories
@@ -139,7 +169,7 @@ class Mapper:
         while not stop.is_set():
             timeout = 0.2 if next_due is None else min(0.2, max(0.0, next_due - time.monotonic()))
             try:
-                key, payload = self.intake.get(timeout=timeout)
+                key, payload = self._next_message(timeout)
             except queue.Empty:
                 pass
             else:

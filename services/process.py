@@ -52,10 +52,17 @@ def get_logger(name: str) -> logging.Logger:
     return logger
 
 
-class RejectCounter:
-    """Counts dropped messages by key and logs the first one of each (key pattern, kind).
+#: distinct keys a :class:`RejectCounter` counts under their own name; rejections on further keys (a peer making up
+#: key after key) are counted under OTHER_KEYS, so the counter's memory stays bounded
+MAX_REJECT_KEYS = 256
+OTHER_KEYS = "<other keys>"
 
-    Thread-safe: zenoh callbacks and the main loop may both count.
+
+class RejectCounter:
+    """Counts dropped messages by key and kind, and logs the first one of each (key, kind).
+
+    Thread-safe: zenoh callbacks and the main loop may both count. At most :data:`MAX_REJECT_KEYS` keys are
+    counted by name; the rest go under :data:`OTHER_KEYS`.
     """
 
     def __init__(self, logger: logging.Logger):
@@ -63,11 +70,15 @@ class RejectCounter:
         self._lock = threading.Lock()
         self._logged: set[tuple[str, str]] = set()
         self.by_key: Counter[str] = Counter()
+        self.by_kind: Counter[str] = Counter()
 
     def count(self, key: str, kind: str, detail: str, times: int = 1) -> None:
         """Count ``times`` messages on ``key`` dropped for ``kind``; log ``detail`` the first time per (key, kind)."""
         with self._lock:
+            if key not in self.by_key and len(self.by_key) >= MAX_REJECT_KEYS:
+                key = OTHER_KEYS
             self.by_key[key] += times
+            self.by_kind[kind] += times
             first = (key, kind) not in self._logged
             self._logged.add((key, kind))
         if first:
@@ -75,5 +86,11 @@ class RejectCounter:
                                  key, kind, detail)
 
     def snapshot(self) -> dict[str, int]:
+        """Rejections by key."""
         with self._lock:
             return dict(self.by_key)
+
+    def kinds(self) -> dict[str, int]:
+        """Rejections by kind (e.g. "ahead", "size", "key")."""
+        with self._lock:
+            return dict(self.by_kind)

@@ -27,6 +27,7 @@ from schemas.wire import Message
 from services import keys
 from services.join import EVICTED_LIMIT, GIVEN_UP_BECAUSE, MISSING, ORPHANED, OVERFLOW, GivenUp, JoinBuffer, \
     SeqLedger
+from services.limits import ShardLimits
 from services.ownership import owns_tile
 from services.process import RejectCounter, get_logger
 
@@ -60,6 +61,16 @@ class ShardConfig:
     tile_size: int = TILE_SIZE
     publish_interval: float = 0.05
     join_capacity: int = 512
+    limits: ShardLimits = ShardLimits()
+
+
+#: the streams a shard subscribes to, and the message types each may carry
+SHARD_STREAMS = {keys.SCAN: (LaserScan,), keys.POSE: POSE_TYPES, keys.END: (StreamEnd,)}
+
+
+def message_bytes(message: object) -> int:
+    """Bytes the arrays of a decoded message hold (what it costs to keep it waiting)."""
+    return sum(value.nbytes for value in vars(message).values() if isinstance(value, np.ndarray))
 
 
 class MapShard:
@@ -78,10 +89,13 @@ class MapShard:
         self._fusions: OrderedDict[tuple, MonteCarloFusion] = OrderedDict()
         self._history = history
         self._history_high: dict[tuple[str, str], int] = {}  # (robot, stream) -> highest seq a history gave
-        self._join: JoinBuffer[LaserScan, object] = JoinBuffer(config.join_capacity,
-                                                                None if history is None else self._recover)
+        limits = config.limits
+        self._join: JoinBuffer[LaserScan, object] = JoinBuffer(
+            config.join_capacity, None if history is None else self._recover, window=limits.seq_window,
+            max_bytes=limits.join_bytes, size=message_bytes)
         self._fused_seqs = SeqLedger(max(SEQ_HORIZON_JOINS * config.join_capacity, 2 * EVICTED_LIMIT))
         self.log = get_logger(f"mapper[{config.shard}]")  # the logger services.mapper.Mapper writes to
+        self._robots: set[str] = set()  # robots this shard keeps state for (at most limits.max_robots)
         self.received: Counter[str] = Counter()
         self.resent: Counter[str] = Counter()  # by key: messages of fused seqs, the same as those fused
         self.fused: Counter[str] = Counter()
@@ -109,18 +123,32 @@ class MapShard:
 
     def decode(self, key: str, payload: bytes) -> Message | None:
         """The message ``payload`` received on ``key`` (pg/<robot>/<stream>) holds; None after counting why it
-        is refused (malformed, the wrong type for the key, another robot's)."""
+        is refused (a key that is no robot stream of a shard's, e.g. a wildcard; a robot past the limit; malformed;
+        the wrong type for the key; another robot's; a scan of more beams than the limit)."""
+        parsed = keys.parse_robot_key(key, SHARD_STREAMS.keys())
+        if parsed is None:
+            self.rejects.count(keys.INVALID_KEY, "key", f"a message on {key[:200]!r}, which is no pg/<robot>/scan, "
+                               "pose or end key (a wildcard, another depth or an invalid robot name)")
+            return None
+        robot, stream = parsed
+        if robot not in self._robots and len(self._robots) >= self.config.limits.max_robots:
+            self.rejects.count(keys.INVALID_KEY, "robots", f"a message of robot {robot!r}: this shard keeps "
+                               f"{self.config.limits.max_robots} robots already (--max-robots)")
+            return None
         self.received[key] += 1
-        stream = key.rsplit("/", 1)[-1]
-        expected = {keys.SCAN: (LaserScan,), keys.POSE: POSE_TYPES, keys.END: (StreamEnd,)}[stream]
         try:
-            message = decode_message(payload, *expected)
+            message = decode_message(payload, *SHARD_STREAMS[stream])
         except MessageError as exc:
             self.rejects.count(key, exc.reason, str(exc))
             return None
-        if message.robot != keys.robot_of(key):
+        if message.robot != robot:
             self.rejects.count(key, "robot", f"a {message.TYPE} of robot {message.robot!r} arrived on {key}")
             return None
+        if isinstance(message, LaserScan) and message.ranges.shape[0] > self.config.limits.max_beams:
+            self.rejects.count(key, "size", f"a scan of {message.ranges.shape[0]} beams, more than the limit "
+                               f"{self.config.limits.max_beams} (--max-beams)")
+            return None
+        self._robots.add(robot)
         return message
 
     def in_seq_order(self, replies: Iterable[tuple[str, bytes]]) -> list[tuple[str, Message]]:
@@ -152,9 +180,15 @@ class MapShard:
                                    f"{message.scans} scans, where this shard has fused or given up {accounted}: "
                                    "another run's end (a robot name belongs to one run at a time)")
                 return
+            if self._join.beyond_window(message.robot, True, message.scans - 1):
+                self.rejects.count(key, "ahead", f"an end of the stream of robot {message.robot!r} announcing "
+                                   f"{message.scans} scans, more than the seq window "
+                                   f"({self.config.limits.seq_window}) beyond the scans this shard has seen: "
+                                   "a forged or stray end")
+                return
             if message.robot not in self.ended:  # the first end is news: the last poses may still come (the source
                 self._heard[message.robot] = self._clock()  # repeats it, and a repeat is no news)
-            self.ended[message.robot] = message.scans
+            self.ended[message.robot] = max(message.scans, self.ended.get(message.robot, 0))
             self._unsettled.add(message.robot)
             return
         caught_up_to = self._history_high.get((message.robot, stream), -1)
@@ -174,9 +208,9 @@ class MapShard:
             self._count_resent(key, message)
             return
         if isinstance(message, LaserScan):
-            pairs, gone = self._join.add_scan(join_key, message)
+            pairs, gone = self._join.add_scan(join_key, message, trusted=from_history)
         else:
-            pairs, gone = self._join.add_pose(join_key, message)
+            pairs, gone = self._join.add_pose(join_key, message, trusted=from_history)
         self._give_up(gone)
         for pair in pairs:
             self._fuse(*pair)
@@ -278,6 +312,13 @@ class MapShard:
         self._fused_seqs.mark(scan.robot, scan.seq, (scan.digest(), pose.digest()))
         try:
             samples, weights = self.pose_samples(scan, pose)
+            cfg = self.config
+            refused = cfg.limits.scan_problem(samples, scan.ranges.shape[0], scan.range_max, cfg.model.resolution,
+                                              cfg.tile_size)
+            if refused is not None:
+                self.discarded[scan.robot] += 1
+                self.rejects.count(f"fuse/{scan.robot}", refused[0], f"scan seq {scan.seq} refused: {refused[1]}")
+                return
             result = self._fusion_for(scan).fuse(scan.ranges, samples, weights)
         except InputError as exc:
             self.discarded[scan.robot] += 1
@@ -324,7 +365,7 @@ class MapShard:
             uptime=time.monotonic() - self.started, fused=dict(self.fused), discarded=dict(self.discarded),
             ended=dict(self.ended), received=dict(self.received), resent=dict(self.resent),
             rejected=self.rejects.snapshot(),
-            overflow={**overflow, "join": self.join_overflow},
+            overflow={**overflow, "join": self.join_overflow}, refused=self.rejects.kinds(),
         )
 
     # ------------------------------------------------------------------------------- tiles

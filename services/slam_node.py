@@ -40,6 +40,7 @@ from schemas.messages import (
     decode_message,
 )
 from services import history, keys
+from services.limits import ShardLimits
 from services.process import RejectCounter, get_logger
 from services.steps import OutOfOrder, Released, StepAssembler
 from services.zenoh_config import open_session
@@ -54,6 +55,8 @@ HISTORY_TIMEOUT = 60.0
 RECOVER_TIMEOUT = 5.0
 #: bytes of published poses the node keeps for its history (the oldest go first): 1 KB a pose of 30 particles
 POSE_HISTORY_BYTES = 64 * 2**20
+#: the largest message the node takes off the network: a scan of services.limits.DEFAULT_MAX_BEAMS beams
+MAX_MESSAGE_BYTES = ShardLimits().message_bytes()
 
 
 class StepError(ValueError):
@@ -213,7 +216,18 @@ class SlamNode:
 
     # ---------------------------------------------------------------------------- zenoh callbacks
     def _on_sample(self, sample: zenoh.Sample) -> None:
+        """Queue a publication for the filter thread, unless its key is no stream of this robot (a wildcard such as
+        pg/<robot>/* reaches every subscriber): counted under keys.INVALID_KEY."""
         key = str(sample.key_expr)
+        parsed = keys.parse_robot_key(key, EXPECTED.keys())
+        if parsed is None or parsed[0] != self.config.robot:
+            self.rejects.count(keys.INVALID_KEY, "key", f"a message on {key[:200]!r}, which is no "
+                               f"pg/{self.config.robot}/<stream> key of a stream this node reads")
+            return
+        if len(sample.payload) > MAX_MESSAGE_BYTES:
+            self.rejects.count(key, "size", f"a message of {len(sample.payload)} bytes, more than the "
+                               f"{MAX_MESSAGE_BYTES} this node takes")
+            return
         try:
             self.intake.put_nowait((key, sample.payload.to_bytes()))
         except queue.Full:
@@ -232,8 +246,13 @@ class SlamNode:
     def handle(self, key: str, payload: bytes, from_history: bool = False) -> None:
         """Decode one message, file it with its step, and take every step that is now complete. A live message
         that the source's history gave already (:meth:`catch_up`) is dropped without a word."""
+        parsed = keys.parse_robot_key(key, EXPECTED.keys())
+        if parsed is None or parsed[0] != self.config.robot:
+            self.rejects.count(keys.INVALID_KEY, "key", f"a message on {key[:200]!r}, which is no "
+                               f"pg/{self.config.robot}/<stream> key of a stream this node reads")
+            return
         self.received[key] += 1
-        stream = key.rsplit("/", 1)[-1]
+        stream = parsed[1]
         try:
             message = decode_message(payload, *EXPECTED[stream])
         except MessageError as exc:
@@ -256,12 +275,17 @@ class SlamNode:
             # of it): a node that starts after the end would take an ended source's history, which catch_up refuses
             # (it may be a stale run's)
             self._file(self.steps.flush(tail=self.steps.next_seq > 0))
+        elif stream in self.steps.needs and not from_history and self.steps.beyond_window(message.seq):
+            self.rejects.count(key, "ahead", f"a {message.TYPE} for seq {message.seq}, more than the seq window "
+                               f"({self.steps.window}) beyond the next step {self.steps.next_seq} (a forged or "
+                               "stray seq?): held, and used only if the stream gets near it or goes on from it")
+            self._file(self.steps.add(stream, message.seq, message))
         else:
             late = self._check_order(key, message.seq)
             if stream not in self.steps.needs:
                 return
             try:
-                released = self.steps.add(stream, message.seq, message)
+                released = self.steps.add(stream, message.seq, message, trusted=from_history)
             except OutOfOrder as exc:
                 if not late:
                     self._report_order(key, str(exc))

@@ -8,11 +8,18 @@ node asks the source's history for them), and at the end it is asked for every s
 released (the last steps may have been lost, e.g. while the router was down). A part whose seq was already
 released or skipped arrives *out of order*: it is reported and dropped. At most ``capacity`` incomplete steps
 are held; the oldest is evicted beyond that.
+
+A live part more than ``window`` seqs beyond the next step to release is not believed on its own word (a peer
+forging a step far ahead would make the assembler skip every real step up to it): it is held apart, at most
+FAR_KEPT seqs of them, and filed once the released steps get within the window of it, or once CONFIRM_RUN
+consecutive far seqs are complete (the stream really jumped). Parts from the source's history are trusted.
 """
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+
+from services.join import CONFIRM_RUN, DEFAULT_SEQ_WINDOW, FAR_KEPT
 
 
 class OutOfOrder(Exception):
@@ -27,30 +34,47 @@ class Released:
     steps: list[tuple[int, dict]] = field(default_factory=list)
     skipped: list[tuple[int, int]] = field(default_factory=list)
     evicted: int = 0
+    ahead: int = 0  # parts held beyond the seq window (counted when they come)
 
 
 class StepAssembler:
     """See the module docstring. ``needs``: the parts a step must have, e.g. {"odom", "landmarks"}."""
 
     def __init__(self, needs: set[str], capacity: int = 256, reorder: int = 16,
-                 recover: Callable[[int, int | None], dict[int, dict]] | None = None):
+                 recover: Callable[[int, int | None], dict[int, dict]] | None = None,
+                 window: int = DEFAULT_SEQ_WINDOW):
         """``recover(first, last)``: the parts {seq: {part: message}} it can find of seqs first..last (inclusive;
         last None: every seq from first on, at the end of the stream), which are about to be skipped; what it
-        returns fills them in."""
+        returns fills them in. ``window``: seqs beyond the next step that a live part may lie."""
         self.needs = frozenset(needs)
         self.capacity = capacity
         self.reorder = reorder
         self.recover = recover
+        self.window = window
+        self._far: dict[int, dict] = {}  # seq -> parts, held beyond the window
         self._asked_through = -1  # the last seq recover was asked for
         self.next_seq = 0
         self._pending: dict[int, dict] = {}
 
-    def add(self, part: str, seq: int, message) -> Released:
-        """Store one part; returns what it releases. Raises :class:`OutOfOrder` for a seq already passed."""
+    def beyond_window(self, seq: int) -> bool:
+        """Whether ``seq`` lies more than the window beyond the next step to release."""
+        return seq > self.next_seq + self.window
+
+    def add(self, part: str, seq: int, message, trusted: bool = False) -> Released:
+        """Store one part; returns what it releases. Raises :class:`OutOfOrder` for a seq already passed.
+        ``trusted``: it came from the source's history, and the seq window does not apply."""
         if seq < self.next_seq:
             raise OutOfOrder(f"{part} seq {seq} arrived after seq {self.next_seq - 1} was processed")
-        self._pending.setdefault(seq, {})[part] = message
         released = Released()
+        if not trusted and self.beyond_window(seq):
+            released.ahead = 1
+            self._far.setdefault(seq, {})[part] = message
+            while len(self._far) > FAR_KEPT:
+                del self._far[max(self._far)]
+            if not self._far_run_complete(seq):
+                return released
+        else:
+            self._pending.setdefault(seq, {})[part] = message
         while len(self._pending) > self.capacity:
             oldest = min(self._pending)
             del self._pending[oldest]
@@ -67,11 +91,39 @@ class StepAssembler:
         self._release(released, flush=True)
         return released
 
+    def _far_run_complete(self, seq: int) -> bool:
+        """Whether ``seq`` is in a run of CONFIRM_RUN consecutive complete far seqs; if so, the run is filed (the
+        stream really jumped; the steps before it are recovered or skipped as for any gap)."""
+        def complete(other: int) -> bool:
+            return other in self._far and self.needs <= self._far[other].keys()
+
+        if not complete(seq):
+            return False
+        first, last = seq, seq
+        while complete(first - 1):
+            first -= 1
+        while complete(last + 1):
+            last += 1
+        if last - first + 1 < CONFIRM_RUN:
+            return False
+        for other in range(first, last + 1):
+            self._pending[other] = self._far.pop(other)
+        return True
+
+    def _refile_far(self) -> None:
+        """File the far parts that the released steps have got within the window of."""
+        for seq in sorted(seq for seq in self._far if not self.beyond_window(seq)):
+            parts = self._far.pop(seq)
+            if seq >= self.next_seq:
+                self._pending.setdefault(seq, {}).update(parts)
+
     def _complete(self, seq: int) -> bool:
         return seq in self._pending and self.needs <= self._pending[seq].keys()
 
     def _release(self, released: Released, flush: bool) -> None:
         while True:
+            if self._far and not flush:
+                self._refile_far()
             if self._complete(self.next_seq):
                 released.steps.append((self.next_seq, self._pending.pop(self.next_seq)))
                 self.next_seq += 1

@@ -112,7 +112,8 @@ def shard_stats(draw):
         tiles_owned=draw(st.integers(0, 10**6)), cells_updated=draw(st.integers(0, 10**12)),
         tile_updates=draw(st.integers(0, 10**6)), join_pending=draw(st.integers(0, 100)),
         uptime=draw(st.floats(0, 1e6)), fused=draw(counts), discarded=draw(counts), ended=draw(counts),
-        received=draw(counts), resent=draw(counts), rejected=draw(counts), overflow=draw(counts))
+        received=draw(counts), resent=draw(counts), rejected=draw(counts), overflow=draw(counts),
+        refused=draw(counts))
 
 
 MESSAGES = {
@@ -468,7 +469,8 @@ def tile(**overrides):
 
 def stats(**overrides):
     values = dict(map="m", shard=0, shards=2, tiles_owned=0, cells_updated=0, tile_updates=0, join_pending=0,
-                  uptime=0.0, fused={}, discarded={}, ended={}, received={}, resent={}, rejected={}, overflow={})
+                  uptime=0.0, fused={}, discarded={}, ended={}, received={}, resent={}, rejected={}, overflow={},
+                  refused={})
     values.update(overrides)
     return ShardStats(**values)
 

@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from mapping.sensor_model import SensorModel
 from schemas.messages import LaserScan, PoseGaussian, PoseSamples, StreamEnd
 from services.join import (
+    CONFIRM_RUN,
     EVICTED_LIMIT,
     JUMP,
     MISSING,
@@ -24,6 +25,7 @@ from services.join import (
     JoinBuffer,
     SeqLedger,
 )
+from services.limits import ShardLimits
 from services.process import RejectCounter
 from services.shard import FUSIONS_KEPT, SETTLE_AFTER, MapShard, ShardConfig
 from services.steps import OutOfOrder, StepAssembler
@@ -200,16 +202,18 @@ def test_join_gives_up_at_once_on_what_a_confirmed_gap_leaves_behind():
 
 
 def test_join_counts_a_gap_of_a_trillion_seqs_as_one_run_without_walking_it():
-    """A schema-valid stream that jumps 10^12 seqs ahead (a counter gone wrong, stamps used as seqs) is counted at
-    once. The buffer walked every skipped seq in Python: the shard sat at 100 % CPU and fused nothing more, for
-    every robot, while /health said ok. Run in a thread so that a regression fails here instead of hanging."""
+    """A schema-valid stream that really jumps 10^12 seqs ahead (a counter gone wrong, stamps used as seqs) and goes
+    on in order from there is believed after CONFIRM_RUN messages and counted at once. The buffer walked every
+    skipped seq in Python: the shard sat at 100 % CPU and fused nothing more, for every robot, while /health said
+    ok. Run in a thread so that a regression fails here instead of hanging."""
     big = 10**12
-    buffer = JoinBuffer(capacity=16)
+    run = range(big, big + CONFIRM_RUN)
+    buffer = JoinBuffer(capacity=64)
     results = []
 
     def feed():
         assert buffer.add_scan(("w", 0), "s0") == ([], []) and buffer.add_pose(("w", 0), "p0") == ([("s0", "p0")], [])
-        for seq in (big, big + 1, big + 2):
+        for seq in run:
             results.append(buffer.add_scan(("w", seq), f"s{seq}"))
             results.append(buffer.add_pose(("w", seq), f"p{seq}"))
 
@@ -219,8 +223,69 @@ def test_join_counts_a_gap_of_a_trillion_seqs_as_one_run_without_walking_it():
     assert not worker.is_alive(), "the join buffer walks the seqs a gap skips"
     pairs = [pair for got, _ in results for pair in got]
     gone = [g for _, given_up in results for g in _given_up(given_up)]
-    assert pairs == [(f"s{seq}", f"p{seq}") for seq in (big, big + 1, big + 2)]
-    assert gone == [("w", 1, big - 1, "scan", "missing")]
+    assert pairs == [(f"s{seq}", f"p{seq}") for seq in run]
+    held = [(robot, first, count, what, why) for robot, first, count, what, why in gone if why == "ahead"]
+    assert len(held) == 2 * CONFIRM_RUN  # every far half is counted as it comes, and taken once its run confirms
+    assert [g for g in gone if g[4] != "ahead"] == [("w", 1, big - 1, "scan", "missing")]
+
+
+def test_forged_seqs_far_ahead_are_held_and_the_real_stream_goes_on():
+    """Issue 29, finding 2: two valid scans and two valid poses at seq 100000/100001 made each shard give up the
+    seqs up to them as missing and refuse every later real scan as late. Beyond the seq window they are held,
+    counted as ahead, and the real stream pairs and goes on; nothing is given up."""
+    buffer = JoinBuffer(capacity=64, window=1024)
+    pairs = []
+    for seq in range(112):
+        pairs += buffer.add_scan(("r", seq), f"s{seq}")[0] + buffer.add_pose(("r", seq), f"p{seq}")[0]
+    gone = []
+    for seq in (100_000, 100_001):
+        for add, half in ((buffer.add_scan, "s"), (buffer.add_pose, "p")):
+            got, lost = add(("r", seq), f"forged-{half}{seq}")
+            pairs += got
+            gone += _given_up(lost)
+    for seq in range(112, 300):
+        for add, half in ((buffer.add_scan, "s"), (buffer.add_pose, "p")):
+            got, lost = add(("r", seq), f"{half}{seq}")
+            pairs += got
+            gone += _given_up(lost)
+    assert pairs == [(f"s{seq}", f"p{seq}") for seq in range(300)]
+    assert sorted(gone) == sorted([("r", seq, 1, what, "ahead") for seq in (100_000, 100_001)
+                                   for what in ("scan", "pose")])
+    assert buffer.settle("r", 300) == ([], [])  # the forged halves never reached: not given up again
+
+
+def test_a_real_gap_wider_than_the_window_is_believed_from_a_run_and_taken_from_the_history():
+    """A shard cut off for longer than the window (live seqs jump 5000 ahead) believes the jump once the stream goes
+    on in order for CONFIRM_RUN seqs, and takes what the gap skipped from ``recover``."""
+    history = {seq: f"s{seq}" for seq in range(5000)}
+    poses = {seq: f"p{seq}" for seq in range(5000)}
+
+    def recover(robot, is_scan, first, last):
+        source = history if is_scan else poses
+        return {seq: source[seq] for seq in range(first, last + 1) if seq in source}
+
+    buffer = JoinBuffer(capacity=8192, recover=recover, window=1024)
+    pairs, gone = buffer.add_scan(("r", 0), "s0")[0] + buffer.add_pose(("r", 0), "p0")[0], []
+    for seq in range(5000, 5000 + CONFIRM_RUN):
+        for add, half in ((buffer.add_scan, "s"), (buffer.add_pose, "p")):
+            got, lost = add(("r", seq), f"{half}{seq}")
+            pairs += got
+            gone += _given_up(lost)
+    assert pairs == [(f"s{seq}", f"p{seq}") for seq in range(5000 + CONFIRM_RUN)]
+    assert {g[4] for g in gone} == {"ahead"}
+
+
+def test_the_join_holds_at_most_its_byte_bound_of_one_robots_halves():
+    """Issue 29, finding 3: scans with no pose grew a shard by a gigabyte. Halves past the robot's byte bound are
+    evicted (as from a full buffer), and the bound holds whatever comes."""
+    buffer = JoinBuffer(capacity=512, max_bytes=10_000, size=len)
+    gone = []
+    for seq in range(100):
+        gone += _given_up(buffer.add_scan(("r", seq), "x" * 1000)[1])
+    assert buffer.held_bytes("r") <= 10_000
+    assert len(gone) == 90 and {g[4] for g in gone} == {"overflow"}
+    assert buffer.add_scan(("q", 0), "y" * 5000) == ([], [])  # another robot has its own bound
+    assert buffer.held_bytes("q") == 5000
 
 
 def test_join_takes_a_held_message_when_its_stream_goes_past_it_after_another_gap():
@@ -280,19 +345,44 @@ def test_a_step_stream_that_jumps_a_trillion_seqs_ahead_is_skipped_as_one_run():
     it (the SLAM node went from 116 MB to 3.3 GB in 6 s and stopped publishing poses). Run in a thread so that a
     regression fails here instead of hanging."""
     big = 10**12
+    run = list(range(big, big + CONFIRM_RUN))
     steps = StepAssembler({"odom"}, reorder=2)
     outs = []
 
     def feed():
-        outs.extend(steps.add("odom", seq, f"o{seq}") for seq in (0, big, big + 1))
+        outs.extend(steps.add("odom", seq, f"o{seq}") for seq in [0, *run])
         outs.append(steps.flush(tail=False))
 
     worker = threading.Thread(target=feed, daemon=True)
     worker.start()
     worker.join(timeout=60)
     assert not worker.is_alive(), "the step assembler walks the seqs a gap skips"
-    assert [seq for out in outs for seq, _ in out.steps] == [0, big, big + 1]
+    assert [seq for out in outs for seq, _ in out.steps] == [0, *run]
     assert [run for out in outs for run in out.skipped] == [(1, big - 1)]
+    assert sum(out.ahead for out in outs) == CONFIRM_RUN  # held until their run confirmed the jump
+
+
+def test_forged_steps_far_ahead_do_not_make_the_assembler_skip_the_real_ones():
+    """Issue 29, finding 2 on the SLAM node: complete steps forged 10^5 seqs ahead are held beyond the seq window,
+    and the real steps after them go on in order; nothing is skipped."""
+    steps = StepAssembler({"odom", "scan"}, reorder=16, window=1024)
+    released, ahead = [], 0
+    for seq in range(0, 50):
+        for part in ("odom", "scan"):
+            out = steps.add(part, seq, f"{part}{seq}")
+            released += [s for s, _ in out.steps]
+            assert out.skipped == []
+    for seq in range(100_000, 100_020):  # a forger sends 20 complete steps, not consecutive
+        for part in ("odom", "scan"):
+            out = steps.add(part, 2 * seq, "forged")
+            ahead += out.ahead
+            released += [s for s, _ in out.steps]
+    for seq in range(50, 100):
+        for part in ("odom", "scan"):
+            out = steps.add(part, seq, f"{part}{seq}")
+            released += [s for s, _ in out.steps]
+            assert out.skipped == []
+    assert released == list(range(100)) and ahead == 40
 
 
 def test_steps_about_to_be_skipped_are_asked_for_and_what_comes_back_is_used():
@@ -593,9 +683,10 @@ def test_an_end_that_contradicts_the_stream_is_refused():
 def test_seqs_past_the_ledger_horizon_are_rejected_as_they_cannot_be_compared():
     """The ledger keeps what was fused only within its horizon: a message of an older seq cannot be compared with
     the one fused, so it is rejected (as "old"), whether it is the same or not (counted as resent, a new run under
-    an old robot name would have gone unnoticed: an audit)."""
+    an old robot name would have gone unnoticed: an audit). (A seq window wider than the gap, so the gap is taken.)"""
     now = [0.0]
-    shard = MapShard(ShardConfig("m", 0, 1, SensorModel()), RejectCounter(logging.getLogger("t")), clock=lambda: now[0])
+    config = ShardConfig("m", 0, 1, SensorModel(), limits=ShardLimits(seq_window=10**6))
+    shard = MapShard(config, RejectCounter(logging.getLogger("t")), clock=lambda: now[0])
     horizon = shard._fused_seqs.horizon
     for seq in (0, horizon + 5):
         shard.handle("pg/r/scan", _scan(seq).encode())

@@ -1,0 +1,103 @@
+"""The resource limits a mapper shard holds every peer to (docs/security.md, "Limits").
+
+A peer on the Zenoh network can send valid messages that would exhaust a machine: scans of millions of beams,
+poses of thousands of samples far from anything, streams that never pair up. Each limit below is an option of
+`posegrid mapper` (and `posegrid run`) with the default given here; a message or scan past one is refused,
+counted under its kind in the shard's stats and logged once, never fused in part.
+
+- ``max_beams``: beams in one LaserScan (checked when it arrives, before it is held anywhere).
+- ``max_work``: ray cells one scan may cost, samples x beams x ceil(range_max / resolution): the most cells
+  the fusion passes may visit (one core does about 10^9 in 1 to 2 s).
+- ``map_bound``: every pose sample's x and y must lie within this many metres of the map origin; with the
+  range limit it bounds the map's extent in all.
+- ``max_scan_cells``: cells (at the map's resolution) of the tiles one scan may reach at most (the tiles of its
+  samples' positions, widened by range_max): the most a single scan can grow the map.
+- ``join_bytes``: bytes of one robot's scans and poses waiting in the join buffer (with the count bound,
+  ``--join-buffer``; the oldest are evicted and asked for again from the histories).
+- ``intake_bytes``: bytes of messages waiting in the intake queue between the network and the fusion thread.
+- ``max_robots``: robots one shard keeps state for; messages of further robot names are refused.
+- ``seq_window``: seqs beyond what a robot's stream has shown that a live message may lie
+  (services.join.DEFAULT_SEQ_WINDOW); an end-of-stream mark beyond it is refused.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from services.join import DEFAULT_SEQ_WINDOW
+
+#: defaults (docs/security.md gives the reasoning; a 1 081-beam lidar to 30 m with 1 000 samples costs 6.5e8)
+DEFAULT_MAX_BEAMS = 32_768
+DEFAULT_MAX_WORK = 1_000_000_000
+DEFAULT_MAP_BOUND = 1_000.0
+DEFAULT_MAX_SCAN_CELLS = 25_000_000
+DEFAULT_JOIN_BYTES = 64 * 2**20
+DEFAULT_INTAKE_BYTES = 256 * 2**20
+DEFAULT_MAX_ROBOTS = 64
+
+
+@dataclass(frozen=True)
+class ShardLimits:
+    """The limits above; every field is in the unit its name says (beams, ray cells, m, cells, bytes, robots,
+    seqs)."""
+
+    max_beams: int = DEFAULT_MAX_BEAMS
+    max_work: int = DEFAULT_MAX_WORK
+    map_bound: float = DEFAULT_MAP_BOUND
+    max_scan_cells: int = DEFAULT_MAX_SCAN_CELLS
+    join_bytes: int = DEFAULT_JOIN_BYTES
+    intake_bytes: int = DEFAULT_INTAKE_BYTES
+    max_robots: int = DEFAULT_MAX_ROBOTS
+    seq_window: int = DEFAULT_SEQ_WINDOW
+
+    def __post_init__(self) -> None:
+        for name in ("max_beams", "max_work", "max_scan_cells", "join_bytes", "intake_bytes", "max_robots",
+                     "seq_window"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not (math.isfinite(self.map_bound) and self.map_bound > 0):
+            raise ValueError(f"map_bound must be a positive number of metres, got {self.map_bound}")
+
+    def message_bytes(self) -> int:
+        """The largest payload a shard takes off the network: a scan of ``max_beams`` beams (4 bytes a range,
+        with room for intensities and the envelope) or a pose of the most samples a message may carry."""
+        return 16 * self.max_beams + 2**20
+
+    def scan_problem(self, samples: np.ndarray, beams: int, range_max: float, resolution: float,
+                     tile_size: int) -> tuple[str, str] | None:
+        """(kind, one sentence) when fusing a scan of ``beams`` beams to ``range_max`` m from pose ``samples``
+        (M, 3: x m, y m, yaw rad in the map frame) would pass a limit; None when it may be fused."""
+        work = samples.shape[0] * beams * math.ceil(range_max / resolution)
+        if work > self.max_work:
+            return "work", (f"{samples.shape[0]} samples x {beams} beams x {math.ceil(range_max / resolution)} cells "
+                            f"to range_max = {work:.3g} ray cells, more than the limit {self.max_work:.3g} "
+                            "(--max-work)")
+        far = np.abs(samples[:, :2]).max(initial=0.0)
+        if not far <= self.map_bound:
+            return "bound", (f"a pose sample lies {far:.1f} m from the map origin, beyond the map bound "
+                             f"{self.map_bound:g} m (--map-bound)")
+        cells = reach_cells(samples, range_max, resolution, tile_size)
+        if cells > self.max_scan_cells:
+            return "extent", (f"its samples and range reach tiles of {cells:.3g} cells, more than one scan may grow "
+                              f"the map by ({self.max_scan_cells:.3g}, --max-scan-cells)")
+        return None
+
+
+def reach_cells(samples: np.ndarray, range_max: float, resolution: float, tile_size: int) -> int:
+    """An upper bound on the cells of the tiles a scan can touch: the tiles of the samples' positions, each widened
+    by range_max in every direction, counted without double counting (their union), times cells per tile."""
+    side = tile_size * resolution
+    reach = math.ceil(range_max / side)
+    tiles = np.unique(np.floor(samples[:, :2] / side).astype(np.int64), axis=0)
+    if tiles.shape[0] == 0:
+        return 0
+    width = 2 * reach + 1
+    if tiles.shape[0] * width * width <= 1_000_000:  # exact union of the widened squares
+        offsets = np.stack(np.meshgrid(np.arange(-reach, reach + 1), np.arange(-reach, reach + 1)), -1).reshape(-1, 2)
+        covered = np.unique((tiles[:, None, :] + offsets[None, :, :]).reshape(-1, 2), axis=0).shape[0]
+    else:  # too many to list: the bound from the box that holds them
+        span = tiles.max(axis=0) - tiles.min(axis=0) + width
+        covered = min(int(span[0]) * int(span[1]), tiles.shape[0] * width * width)
+    return covered * tile_size * tile_size

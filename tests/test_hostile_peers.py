@@ -1,0 +1,334 @@
+"""What a hostile peer on the Zenoh network can send to a mapper shard and a SLAM node (issue 29, findings 1-3):
+wildcard and made-up keys, forged seqs and ends, and valid messages built to exhaust a machine. Each is refused
+and counted, and the real stream is fused as if nothing had happened.
+
+The unit tests drive :class:`services.shard.MapShard` directly; the last test publishes generated keys to real
+processes (router, mapper shard, SLAM node, HTTP API) and checks that every one of them lives and still works.
+"""
+from __future__ import annotations
+
+import contextlib
+import logging
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import zenoh
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from mapping.sensor_model import SensorModel
+from schemas.messages import MAX_SEQ, LaserScan, PoseSamples, ShardStats, StreamEnd, decode_message
+from services import keys
+from services.launcher import free_port
+from services.limits import ShardLimits, reach_cells
+from services.process import MAX_REJECT_KEYS, OTHER_KEYS, RejectCounter
+from services.shard import MapShard, ShardConfig
+from services.zenoh_config import build_config
+
+CLI = [sys.executable, "-m", "services"]
+
+
+def _scan(seq: int, robot: str = "r", beams: int = 5, range_max: float = 5.0) -> LaserScan:
+    ranges = np.array([1.0, 2.0, np.inf, 1.5, 3.0] * (beams // 5 + 1), np.float32)[:beams]
+    return LaserScan(robot=robot, seq=seq, stamp=0.1 * seq, angle_min=-1.0, angle_increment=2.0 / beams,
+                     range_min=0.05, range_max=range_max, sensor_offset=np.zeros(3), ranges=ranges)
+
+
+def _pose(seq: int, robot: str = "r", xy=(3.0, 3.0), samples: int = 1) -> PoseSamples:
+    """``samples`` distinct poses (1 mm apart in x, so that none are merged as duplicates) at ``xy`` (m)."""
+    cloud = np.tile([xy[0], xy[1], 0.01 * seq], (samples, 1)).astype(np.float64)
+    cloud[:, 0] += 1e-3 * np.arange(samples)
+    return PoseSamples(robot=robot, seq=seq, stamp=0.1 * seq, samples=cloud, weights=np.full(samples, 1.0 / samples))
+
+
+def _shard(limits: ShardLimits = ShardLimits()) -> MapShard:
+    return MapShard(ShardConfig("m", 0, 1, SensorModel(), limits=limits), RejectCounter(logging.getLogger("hostile")))
+
+
+def _feed(shard: MapShard, seqs, robot: str = "r") -> None:
+    for seq in seqs:
+        shard.handle(keys.robot_key(robot, keys.SCAN), _scan(seq, robot).encode())
+        shard.handle(keys.robot_key(robot, keys.POSE), _pose(seq, robot).encode())
+
+
+def _grid_bytes(shard: MapShard) -> dict:
+    return {tile: tuple(layer.tobytes() for layer in shard.grid.tile_arrays(tile)) for tile in shard.tiles()}
+
+
+# ------------------------------------------------------------------------------------------------ keys
+
+
+@pytest.mark.parametrize("key", ["pg/r/*", "pg/**", "pg/*/scan", "pg/r/$*", "pg/r/scan/extra", "pg/r", "pg/map/scan",
+                                 "pg/-bad/scan", "pg/r/odom", "xx/r/scan", "pg/" + "a" * 65 + "/scan"])
+def test_a_publication_on_a_key_that_is_no_robot_stream_is_counted_not_fatal(key):
+    """Finding 1: a put on pg/robot0/* raised KeyError('*') in the shard and the SLAM node, which exited."""
+    shard = _shard()
+    shard.handle(key, _scan(0).encode())
+    _feed(shard, range(3))
+    stats = shard.stats({})
+    assert stats.rejected == {keys.INVALID_KEY: 1} and stats.fused == {"r": 3}
+
+
+def test_parse_robot_key_takes_exactly_the_concrete_keys_of_known_streams():
+    assert keys.parse_robot_key("pg/robot0/scan") == ("robot0", "scan")
+    assert keys.parse_robot_key("pg/robot0/pose", {keys.SCAN}) is None
+    assert keys.parse_robot_key("pg/map/scan") is None  # "map" is no robot name
+    assert keys.parse_history_reply_key("pg/r1/history/odom") == ("r1", "odom")
+    assert keys.parse_history_reply_key("pg/r1/history/**") is None
+    assert keys.parse_history_reply_key("pg/*/history/scan") is None
+
+
+def test_the_reject_counter_keeps_at_most_its_bound_of_keys():
+    counter = RejectCounter(logging.getLogger("hostile"))
+    for index in range(MAX_REJECT_KEYS + 500):
+        counter.count(f"pg/robot{index}/scan", "malformed", "x")
+    counted = counter.snapshot()
+    assert len(counted) == MAX_REJECT_KEYS + 1 and counted[OTHER_KEYS] == 500
+    assert sum(counted.values()) == MAX_REJECT_KEYS + 500 and counter.kinds() == {"malformed": MAX_REJECT_KEYS + 500}
+
+
+def test_robots_past_the_limit_are_refused_and_counted():
+    shard = _shard(ShardLimits(max_robots=2))
+    for robot in ("a", "b", "c", "d"):
+        _feed(shard, range(2), robot)
+    stats = shard.stats({})
+    assert stats.fused == {"a": 2, "b": 2} and stats.rejected == {keys.INVALID_KEY: 8}
+
+
+# ------------------------------------------------------------------------------------------------ forged seqs
+
+
+def test_forged_seqs_far_ahead_leave_the_real_stream_whole():
+    """Finding 2: two valid scans and two valid poses at seq 100000/100001 made each shard give up 99 890 scans as
+    missing and refuse every later real scan as late. The map must be the one without them."""
+    clean, attacked = _shard(), _shard()
+    _feed(clean, range(300))
+    _feed(attacked, range(112))
+    _feed(attacked, (100_000, 100_001))
+    _feed(attacked, range(112, 300))
+    for shard in (clean, attacked):
+        shard.handle("pg/r/end", StreamEnd(robot="r", scans=300).encode())
+    stats = attacked.stats({})
+    assert stats.fused == {"r": 300} and stats.discarded == {} and attacked.caught_up()
+    assert stats.rejected == {"join/r": 4}  # held beyond the window, counted as ahead
+    assert _grid_bytes(attacked) == _grid_bytes(clean)
+
+
+def test_a_forged_end_far_ahead_cannot_make_the_counters_absurd():
+    """Finding 2: an end announcing 2^53 scans after the run made scans_discarded 9 007 199 254 740 592."""
+    now = [0.0]
+    shard = MapShard(ShardConfig("m", 0, 1, SensorModel()), RejectCounter(logging.getLogger("hostile")),
+                     clock=lambda: now[0])
+    _feed(shard, range(50))
+    shard.handle("pg/r/end", StreamEnd(robot="r", scans=50).encode())
+    shard.handle("pg/r/end", StreamEnd(robot="r", scans=MAX_SEQ + 1).encode())
+    now[0] = 1000.0
+    shard.settle()
+    stats = shard.stats({})
+    assert stats.ended == {"r": 50} and stats.fused == {"r": 50} and stats.discarded == {}
+    assert stats.rejected == {"pg/r/end": 1} and shard.rejects.kinds() == {"ahead": 1}
+
+
+# ------------------------------------------------------------------------------------------------ resources
+
+
+def test_a_scan_of_more_beams_than_the_limit_is_refused_before_it_is_held():
+    """Finding 3: 25 scans of 10^7 beams with no pose grew each shard by about 1 GB."""
+    shard = _shard(ShardLimits(max_beams=100))
+    for seq in range(25):
+        shard.handle("pg/r/scan", _scan(seq, beams=101).encode())
+    assert shard._join.held_bytes("r") == 0
+    assert shard.stats({}).rejected == {"pg/r/scan": 25} and shard.rejects.kinds() == {"size": 25}
+
+
+def test_the_join_holds_at_most_its_byte_bound_of_scans_waiting_for_a_pose():
+    shard = _shard(ShardLimits(join_bytes=100_000))
+    for seq in range(200):
+        shard.handle("pg/r/scan", _scan(seq, beams=1000).encode())  # 4 000 bytes each, no pose ever
+    assert shard._join.held_bytes("r") <= 100_000
+
+
+def test_a_scan_past_the_work_limit_is_refused_and_counted_as_discarded():
+    """Finding 3: one 10^6-beam scan with a 1 000-sample pose kept a shard busy for 5 minutes."""
+    model = SensorModel()
+    work = 1000 * 50 * int(np.ceil(5.0 / model.resolution))
+    shard = _shard(ShardLimits(max_work=work - 1))
+    shard.handle("pg/r/scan", _scan(0, beams=50).encode())
+    shard.handle("pg/r/pose", _pose(0, samples=1000).encode())
+    _feed(shard, range(1, 3))
+    stats = shard.stats({})
+    assert stats.fused == {"r": 2} and stats.discarded == {"r": 1} and shard.rejects.kinds() == {"work": 1}
+
+
+def test_a_pose_beyond_the_map_bound_is_refused():
+    """Finding 3: a pose at (750 m, 750 m) made each npz export 2.96 GB."""
+    shard = _shard(ShardLimits(map_bound=500.0))
+    shard.handle("pg/r/scan", _scan(0).encode())
+    shard.handle("pg/r/pose", _pose(0, xy=(750.0, 750.0)).encode())
+    _feed(shard, range(1, 3))
+    stats = shard.stats({})
+    assert stats.fused == {"r": 2} and stats.discarded == {"r": 1} and shard.rejects.kinds() == {"bound": 1}
+    assert all(abs(tx) < 5 and abs(ty) < 5 for tx, ty in shard.tiles())
+
+
+def test_reach_cells_counts_the_union_of_the_widened_sample_tiles():
+    """Hand-computed: 12.8 m tiles (256 cells of 0.05 m); range 5 m widens each sample's tile by one tile."""
+    one = np.array([[3.0, 3.0, 0.0]])
+    assert reach_cells(one, 5.0, 0.05, 256) == 9 * 256 * 256
+    two_apart = np.array([[3.0, 3.0, 0.0], [3.0 + 12.8, 3.0, 0.0]])  # neighbouring tiles: 4 x 3 tiles
+    assert reach_cells(two_apart, 5.0, 0.05, 256) == 12 * 256 * 256
+    far = np.array([[3.0, 3.0, 0.0], [300.0, 3.0, 0.0]])  # disjoint: 9 + 9
+    assert reach_cells(far, 5.0, 0.05, 256) == 18 * 256 * 256
+
+
+def test_a_pose_cloud_spread_over_a_large_area_is_refused_by_the_extent_limit():
+    shard = _shard(ShardLimits(max_scan_cells=50 * 256 * 256))
+    spread = PoseSamples(robot="r", seq=0, stamp=0.0, weights=np.full(40, 1 / 40),
+                         samples=np.column_stack([np.arange(40) * 20.0, np.zeros(40), np.zeros(40)]))
+    shard.handle("pg/r/scan", _scan(0).encode())
+    shard.handle("pg/r/pose", spread.encode())
+    assert shard.stats({}).discarded == {"r": 1} and shard.rejects.kinds() == {"extent": 1} and not shard.tiles()
+
+
+def test_limits_refuse_nonsense_values():
+    for bad in ({"max_beams": 0}, {"map_bound": float("nan")}, {"map_bound": -1.0}, {"seq_window": 0}):
+        with pytest.raises(ValueError):
+            ShardLimits(**bad)
+
+
+# ------------------------------------------------------------------------------------------------ real processes
+
+KEY_CHUNKS = st.one_of(st.sampled_from(["*", "**", "$*", "pg", "map", "robot0", "scan", "pose", "end", "odom",
+                                        "prior", "landmarks", "history", "alive", "tile", "stats", "slam", "0"]),
+                       st.from_regex(r"[A-Za-z0-9_.\-]{1,12}", fullmatch=True),
+                       st.text(alphabet=st.characters(blacklist_characters="/*$?#", blacklist_categories=("Cs",)),
+                               min_size=1, max_size=8))
+HOSTILE_KEYS = st.lists(KEY_CHUNKS, min_size=1, max_size=6).map(lambda chunks: "/".join(["pg", *chunks]))
+
+
+@pytest.fixture(scope="module")
+def pipeline(tmp_path_factory):
+    """A router, one mapper shard, a grid FastSLAM node for robot0 and the HTTP API, ended by PID at the end."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    api_port = free_port()
+    log_dir = tmp_path_factory.mktemp("hostile-logs")
+    argvs = {
+        "router": ["router", "--listen", endpoint],
+        "mapper": ["mapper", "--shard", "0", "--shards", "1", "--map", "m", "--connect", endpoint],
+        "slam": ["slam-node", "--robot", "robot0", "--algo", "ekf", "--initial", "0,0,0", "--connect", endpoint],
+        "api": ["api", "--host", "127.0.0.1", "--port", str(api_port), "--connect", endpoint],
+    }
+    procs = {}
+    try:
+        for name, argv in argvs.items():
+            log = open(log_dir / f"{name}.log", "w")  # noqa: SIM115 - closed with the process below
+            procs[name] = (subprocess.Popen([*CLI, *argv], stdout=log, stderr=subprocess.STDOUT), log)
+            if name == "router":
+                time.sleep(0.5)
+        session = zenoh.open(build_config("client", connect=[endpoint]))
+        deadline = time.monotonic() + 90
+        while time.monotonic() < deadline:
+            if list(session.get("pg/map/m/stats/0", timeout=2)) and list(session.get("pg/robot0/slam/stats",
+                                                                                    timeout=2)):
+                break
+            time.sleep(0.2)
+        yield session, procs, api_port
+        session.close()
+    finally:
+        for process, log in reversed(list(procs.values())):
+            if process.poll() is None:
+                process.send_signal(signal.SIGINT)
+                try:
+                    process.wait(20)
+                except subprocess.TimeoutExpired:
+                    process.kill()
+                    process.wait()
+            log.close()
+
+
+@pytest.mark.slow
+@settings(max_examples=80, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(key=HOSTILE_KEYS, payload=st.one_of(st.binary(max_size=64), st.sampled_from([_scan(0, "robot0").encode(),
+                                                                                  _pose(0, "robot0").encode()])))
+def test_generated_keys_reach_every_process_and_none_of_them_dies(pipeline, key, payload):
+    """Finding 1, as a property: a put on any key under pg/ (wildcards, unknown streams, wrong depth, odd
+    characters) leaves the router, the shard, the SLAM node and the API running."""
+    session, procs, _ = pipeline
+    with contextlib.suppress(zenoh.ZError):  # a key expression zenoh itself refuses never leaves the session
+        session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+    dead = {name: process.returncode for name, (process, _) in procs.items() if process.poll() is not None}
+    assert not dead, f"after a put on {key!r}: {dead} exited"
+
+
+@pytest.mark.slow
+def test_after_the_hostile_keys_every_process_still_answers_and_fuses(pipeline):
+    session, procs, api_port = pipeline
+    session.put("pg/robot0/*", b"", congestion_control=zenoh.CongestionControl.BLOCK)  # the finding's own put
+    session.put("pg/**", b"\x00", congestion_control=zenoh.CongestionControl.BLOCK)
+    session.put("pg/r9/pose", _pose(0, "r9").encode(), congestion_control=zenoh.CongestionControl.BLOCK)
+    session.put("pg/r9/scan", _scan(0, "r9").encode(), congestion_control=zenoh.CongestionControl.BLOCK)
+    deadline, stats = time.monotonic() + 60, None
+    while time.monotonic() < deadline:
+        replies = [r.ok for r in session.get("pg/map/m/stats/0", timeout=5) if r.ok is not None]
+        stats = decode_message(replies[0].payload.to_bytes(), ShardStats) if replies else None
+        if stats is not None and stats.fused.get("r9") == 1:
+            break
+        time.sleep(0.2)
+    assert stats is not None and stats.fused.get("r9") == 1, stats
+    assert stats.rejected.get(keys.INVALID_KEY, 0) >= 2
+    assert [r.ok for r in session.get("pg/robot0/slam/stats", timeout=5) if r.ok is not None]
+    import urllib.request
+
+    with urllib.request.urlopen(f"http://127.0.0.1:{api_port}/health", timeout=20) as response:
+        assert response.status in (200, 503)
+    dead = {name: process.returncode for name, (process, _) in procs.items() if process.poll() is not None}
+    assert not dead, dead
+
+
+# ------------------------------------------------------------------------------------------------ files
+
+
+def _npz_with_member(path, name: str, header: dict, body: bytes) -> None:
+    """A .npz whose member ``name`` has the .npy ``header`` as given and ``body`` after it (deflated)."""
+    import io
+    import zipfile
+
+    member = io.BytesIO()
+    np.lib.format.write_array_header_1_0(member, header)
+    member.write(body)
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED) as archive:
+        archive.writestr(name, member.getvalue())
+
+
+def test_an_array_declaring_a_trillion_elements_is_refused_as_damaged_not_out_of_memory(tmp_path):
+    """Finding 8: a declared 10^12-element array was refused with a misleading "out of memory" message."""
+    from schemas.files import read_npz
+    from schemas.wire import FormatError
+
+    path = tmp_path / "huge.npz"
+    _npz_with_member(path, "ranges.npy", {"descr": "<f8", "fortran_order": False, "shape": (10**12,)}, bytes(16))
+    with pytest.raises(FormatError, match=r"declares shape \(1000000000000,\).*holds 16 bytes"):
+        read_npz(path, "posed-scan file")
+    out = subprocess.run([*CLI, "fuse", str(path), "-o", str(tmp_path / "map.npz")], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 2 and "declares shape" in out.stderr and "Traceback" not in out.stderr
+    assert "memory" not in out.stderr and not (tmp_path / "map.npz").exists()
+
+
+def test_a_zip_bomb_is_refused_before_it_is_inflated(tmp_path, monkeypatch):
+    """Finding 8: a 2 MB zip bomb reached 4.25 GB of memory before it was refused. The sizes in the zip directory
+    are read first (the limit is lowered here so that the test inflates nothing large)."""
+    import schemas.files
+    from schemas.wire import FormatError
+
+    monkeypatch.setattr(schemas.files, "MAX_NPZ_BYTES", 2**20)
+    path = tmp_path / "bomb.npz"
+    _npz_with_member(path, "ranges.npy", {"descr": "|u1", "fortran_order": False, "shape": (8 * 2**20,)},
+                     bytes(8 * 2**20))
+    assert path.stat().st_size < 64 * 2**10
+    with pytest.raises(FormatError, match="GiB once inflated"):
+        schemas.files.read_npz(path, "posed-scan file")
