@@ -10,8 +10,11 @@ metres along the beam from the laser; angles are radians in the laser frame, cou
 """
 from __future__ import annotations
 
+import errno
 import io
 import os
+import secrets
+import stat
 import zipfile
 import zlib
 from collections.abc import Callable
@@ -128,10 +131,39 @@ def read_npz(path: str | Path, what: str) -> dict[str, np.ndarray]:
     if not isinstance(loaded, np.lib.npyio.NpzFile):
         raise FormatError(f"{path}: holds one bare array (a .npy file), not the named arrays of a .npz {what}")
     try:
-        with loaded as data:  # members are read (and inflated) here
+        with loaded as data:  # members are read (and inflated) here, once their headers have been checked
+            _check_npz_members(data.zip, path, what)
             return {key: data[key] for key in data.files}
     except (zipfile.BadZipFile, ValueError, OSError, EOFError, zlib.error) as exc:
         raise FormatError(f"{path}: not a readable .npz {what} ({exc})") from None
+
+
+#: bytes all arrays of one .npz file may hold once inflated (2 GiB: a map of 2.7 * 10^8 cells); a file past it is
+#: refused before anything is inflated (a 2 MB zip bomb inflated to 4.25 GB before it was refused)
+MAX_NPZ_BYTES = 2 * 2**30
+
+
+def _check_npz_members(archive: zipfile.ZipFile, path: Path, what: str) -> None:
+    """Refuse (FormatError) a .npz whose members inflate past MAX_NPZ_BYTES, or whose .npy header declares an array
+    of another size than the member holds (a header declaring 10^12 elements in a few bytes), reading only the
+    zip directory and each member's header."""
+    members = [info for info in archive.infolist() if info.filename.endswith(".npy")]
+    total = sum(info.file_size for info in members)
+    if total > MAX_NPZ_BYTES:
+        raise FormatError(f"{path}: its arrays would take {total / 2**30:.1f} GiB once inflated, more than the "
+                          f"{MAX_NPZ_BYTES / 2**30:.0f} GiB a {what} may (a damaged or hostile file?)")
+    for info in members:
+        with archive.open(info) as member:
+            version = np.lib.format.read_magic(member)
+            if version not in ((1, 0), (2, 0), (3, 0)):
+                raise FormatError(f"{path}: array {info.filename!r} has an unknown .npy version {version}")
+            header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                      else np.lib.format.read_array_header_2_0)(member, max_header_size=10_000)
+            shape, _, dtype = header
+            declared = int(np.prod(shape, dtype=object)) * dtype.itemsize
+            if dtype.hasobject or declared + member.tell() != info.file_size:
+                raise FormatError(f"{path}: array {info.filename!r} declares shape {shape} of {dtype} "
+                                  f"({declared} bytes) but holds {info.file_size - member.tell()} bytes")
 
 
 def _require(data: dict, key: str, path, what: str) -> np.ndarray:
@@ -391,22 +423,106 @@ def load_truth(path: str | Path) -> TruthRaster:
 # --------------------------------------------------------------------------------------------- writing
 
 
-def write_atomically(path: str | Path, write: Callable[[BinaryIO], None]) -> None:
-    """Call ``write`` on a new file beside ``path`` and move it onto ``path`` once complete, so a failed write (a
-    full disk, an error while writing) leaves no partial file, and ``path`` is written as given (``np.savez``
-    would add ".npz" to a name without it). An OSError names ``path``."""
-    path = Path(path)
-    partial = path.with_name(f".{path.name}.partial")
+#: what a path that exists but is neither a regular file nor a folder is, by its stat mode (never written to)
+_SPECIAL_KINDS = ((stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"), (stat.S_ISFIFO, "a FIFO"),
+                  (stat.S_ISSOCK, "a socket"))
+
+
+def output_path_problem(path: str | Path) -> str | None:
+    """Why :func:`write_atomically` cannot write ``path``, as a phrase that says what to do (to follow "PATH: "),
+    or None when it can: ``path`` is, or links to, a regular file or nothing yet, in a writable folder.
+
+    Refused: an empty path, a name ending in "/", a folder, a device, FIFO or socket (which a rename would replace
+    and a write would not store), a path whose folder does not exist or cannot be written (permissions, a
+    read-only file system)."""
+    text = os.fspath(path)
+    if not text:
+        return "an empty path names no file; give a file name"
+    if text.endswith(os.sep):
+        return "ends in a separator, so it names a folder; give a file name"
+    target = os.path.realpath(text)  # a symlink is written through: its target takes the file
+    subject = f"links to {target}, which is" if os.path.islink(text) else "is"
     try:
-        with open(partial, "wb") as handle:
+        mode = os.stat(target).st_mode
+    except FileNotFoundError:
+        mode = None
+    except OSError as exc:  # a part of the path is a file, a loop of links, a folder it may not search
+        return f"cannot be used as a file name ({exc.strerror}); give another path"
+    if mode is not None and stat.S_ISDIR(mode):
+        return f"{subject} a folder, not a file; give a file name (inside it, if that is where it goes)"
+    kind = next((name for test, name in _SPECIAL_KINDS if test(mode)), None) if mode is not None else None
+    if kind is not None:
+        return f"{subject} {kind}, not a regular file; give the path of a regular file"
+    folder = os.path.dirname(target)
+    if not os.path.isdir(folder):
+        return f"folder {folder} does not exist; create it first or give a path in an existing folder"
+    if not os.access(folder, os.W_OK | os.X_OK):
+        return (f"folder {folder} cannot be written (its permissions or a read-only file system); give a path in a "
+                "writable folder")
+    return None
+
+
+def write_atomically(path: str | Path, write: Callable[[BinaryIO], None]) -> None:
+    """Call ``write`` on a new file beside ``path``, flush it to disk (fsync) and move it onto ``path`` once
+    complete, so a failed write (a full disk, an I/O error, an error while writing) leaves no partial file and
+    the old contents, and ``path`` is written as given (``np.savez`` would add ".npz" to a name without it).
+
+    A symlink is followed: its target is replaced and the link stays. A replaced file keeps its permission bits.
+    A path :func:`output_path_problem` refuses (a device, FIFO, socket or folder, a missing folder) raises an
+    OSError before anything is written; every OSError names ``path``."""
+    problem = output_path_problem(path)
+    if problem is not None:
+        raise OSError(errno.EINVAL, problem, os.fspath(path))
+    target = os.path.realpath(path)
+    partial = os.path.join(os.path.dirname(target),
+                           f".{os.path.basename(target)[:64]}.{os.getpid()}.{secrets.token_hex(4)}.partial")
+    try:
+        # O_EXCL: a file or link already at the temporary name is never written through
+        with os.fdopen(os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666), "wb") as handle:
             write(handle)
-        os.replace(partial, path)
+            handle.flush()
+            os.fsync(handle.fileno())
+        _keep_permissions(target, partial)
+        os.replace(partial, target)
+        _sync_folder(os.path.dirname(target))
     except OSError as exc:
-        partial.unlink(missing_ok=True)
-        raise OSError(exc.errno, exc.strerror or str(exc), str(path)) from None
+        _discard(partial)
+        raise OSError(exc.errno, exc.strerror or str(exc), os.fspath(path)) from None
     except BaseException:
-        partial.unlink(missing_ok=True)
+        _discard(partial)
         raise
+
+
+def _keep_permissions(target: str, partial: str) -> None:
+    """Give ``partial`` the permission bits of the file ``target`` it replaces (none: the umask's, as created)."""
+    try:
+        mode = os.stat(target).st_mode
+    except FileNotFoundError:
+        return
+    os.chmod(partial, stat.S_IMODE(mode))
+
+
+def _sync_folder(folder: str) -> None:
+    """fsync ``folder`` so the rename into it is on disk too (skipped where folders cannot be opened or synced)."""
+    try:
+        descriptor = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(descriptor)
+    except OSError as exc:
+        if exc.errno not in (errno.EINVAL, errno.ENOTSUP, errno.EBADF):
+            raise
+    finally:
+        os.close(descriptor)
+
+
+def _discard(partial: str) -> None:
+    """Remove a temporary file left by a failed write, if it is there."""
+    try:
+        os.unlink(partial)
+    except FileNotFoundError:
+        pass
 
 
 def save_posed_scans(path: str | Path, scans: PosedScans) -> None:

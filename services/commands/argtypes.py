@@ -1,9 +1,12 @@
-"""argparse types the subcommands share. A bad value stops at parsing: argparse prints the usage line and one
-sentence naming the option, and exits 2."""
+"""argparse types the subcommands share, and the check of their output paths. A bad value stops at parsing:
+argparse prints the usage line and one sentence naming the option, and exits 2. An output path that cannot take
+a file stops the command before it reads or computes anything (:func:`check_outputs`: one line, exit 2)."""
 from __future__ import annotations
 
 import argparse
 import math
+import os
+from pathlib import Path
 
 
 def finite_float(text: str) -> float:
@@ -55,3 +58,27 @@ def odom_delay_seconds(text: str) -> float:
     if not abs(value) <= MAX_ODOM_DELAY:
         raise argparse.ArgumentTypeError(f"expected a delay within +-{MAX_ODOM_DELAY:g} s, got {text}")
     return value
+
+
+def checked_output(value: str | Path | None, option: str) -> Path | None:
+    """The output path ``value`` given to ``option`` (None stays None), checked before any work is done: raise
+    UsageError with one sentence naming the option, the path and what to do when
+    :func:`schemas.files.write_atomically` could not write it (an empty path, a folder, a device, FIFO or socket,
+    a missing or unwritable folder). Call it at the start of a command, before reading or computing anything."""
+    from schemas.files import output_path_problem
+    from services.cli import UsageError
+
+    if value is None:
+        return None
+    problem = output_path_problem(value)
+    if problem is not None:
+        raise UsageError(f"{option} {os.fspath(value) or repr('')}: {problem}")
+    return Path(value)
+
+
+def check_outputs(args: argparse.Namespace, **options: str) -> None:
+    """Check every output path of ``args`` (its attribute name = the option that gives it, e.g. output="-o")
+    with :func:`checked_output` and put the Path in its place. Output options take the text as given (no
+    ``type=Path``, which would read an empty path as "."), so this must run before the command uses them."""
+    for name, option in options.items():
+        setattr(args, name, checked_output(getattr(args, name), option))

@@ -11,7 +11,7 @@ import sys
 import time
 from pathlib import Path
 
-from services.commands.argtypes import finite_float, odom_delay_seconds
+from services.commands.argtypes import check_outputs, checked_output, finite_float, odom_delay_seconds
 
 #: grid FastSLAM particles when --particles is not given
 DEFAULT_GRID_PARTICLES = 30
@@ -86,10 +86,10 @@ def add_gridslam_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group(
         "grid FastSLAM (--algo gridslam: INPUT is a CARMEN log .clf/.log/.gz or a ROS bag; --particles "
         f"defaults to {DEFAULT_GRID_PARTICLES}; docs/gridslam.md)")
-    group.add_argument("--poses-output", type=Path, default=None, metavar="POSES.npz",
+    group.add_argument("--poses-output", default=None, metavar="POSES.npz",
                        help="pose-distribution file: every scan, the final particles' trajectories with the final "
                        "weights (default: OUTPUT with the suffix .poses.npz)")
-    group.add_argument("--best-output", type=Path, default=None, metavar="BEST.npz",
+    group.add_argument("--best-output", default=None, metavar="BEST.npz",
                        help="posed-scan file: the integrated scans at the final best particle's poses, one sample "
                        "each, for its map (default: OUTPUT with the suffix .best.npz)")
     add_filter_options(group)
@@ -103,7 +103,7 @@ def add_gridslam_arguments(parser: argparse.ArgumentParser) -> None:
                        "(default: all)")
     group.add_argument("--scan-topic", type=str, default=None, help="ROS bag: the LaserScan topic (default: the "
                        "only one, or /scan)")
-    group.add_argument("--stats", type=Path, default=None, metavar="OUT.json",
+    group.add_argument("--stats", default=None, metavar="OUT.json",
                        help="write timing and effective-sample-size figures as JSON")
 
 
@@ -136,12 +136,13 @@ def _config(args: argparse.Namespace):
 
 def _output_paths(args: argparse.Namespace) -> tuple[Path, Path]:
     """The best-particle and pose-distribution paths (--best-output, --poses-output or their defaults beside
-    OUTPUT); raise UsageError when two of OUTPUT, those two and --stats name one file (one would overwrite the
-    other)."""
+    OUTPUT), each output checked by :func:`checked_output`; raise UsageError when one cannot be written or two of
+    OUTPUT, those two and --stats name one file (one would overwrite the other)."""
     from services.cli import UsageError
 
-    best = args.best_output or args.output.with_suffix(".best.npz")
-    poses = args.poses_output or args.output.with_suffix(".poses.npz")
+    check_outputs(args, output="-o", best_output="--best-output", poses_output="--poses-output", stats="--stats")
+    best = args.best_output or checked_output(args.output.with_suffix(".best.npz"), "--best-output's default")
+    poses = args.poses_output or checked_output(args.output.with_suffix(".poses.npz"), "--poses-output's default")
     named = [("-o", args.output),
              ("--best-output" if args.best_output else "--best-output's default", best),
              ("--poses-output" if args.poses_output else "--poses-output's default", poses)]

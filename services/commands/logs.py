@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.commands.argtypes import finite_float
+from services.commands.argtypes import check_outputs, finite_float
 
 #: file suffixes (in any case) read as pose .npz files; a .bag file or a folder is a ROS bag; anything else a
 #: CARMEN log
@@ -38,7 +38,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                           help="s within which a stamp matches a pose exactly (default 0.001)")
     evaluate.add_argument("--max-gap", type=finite_float, default=None,
                           help="s: interpolate only between poses at most this far apart (default 5)")
-    evaluate.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write the scores as JSON")
+    evaluate.add_argument("--json", default=None, metavar="OUT", help="also write the scores as JSON")
     evaluate.set_defaults(func=run_eval_relations)
 
 
@@ -90,6 +90,7 @@ def run_eval_relations(args: argparse.Namespace) -> int:
                                 trajectory_from_log)
     from slam.timealign import time_map, to_reference_time
 
+    check_outputs(args, json="--json")
     tolerance = DEFAULT_TOLERANCE if args.tolerance is None else args.tolerance
     max_gap = DEFAULT_MAX_GAP if args.max_gap is None else args.max_gap
     if tolerance < 0 or max_gap <= 0:

@@ -7,7 +7,7 @@ import math
 import sys
 from pathlib import Path
 
-from services.commands.argtypes import finite_float, pose_sample_count, random_seed
+from services.commands.argtypes import check_outputs, checked_output, finite_float, pose_sample_count, random_seed
 
 #: --coarse-cell when not given, m
 DEFAULT_COARSE_CELL = 0.8
@@ -56,7 +56,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "that shows where pose uncertainty blurred the map; mode ml uses the most likely pose only.",
     )
     fuse.add_argument("posed", type=Path, help="posed-scan .npz (docs/formats.md)")
-    fuse.add_argument("-o", "--output", type=Path, required=True, help="map .npz to write")
+    fuse.add_argument("-o", "--output", required=True, metavar="MAP.npz",
+                      help="map .npz to write (a regular file or a link to one; written in full or not at all)")
     fuse.add_argument("--mode", choices=("mc", "ml"), default="mc", help="mc: all samples (default); ml: most likely")
     fuse.add_argument("--samples", type=pose_sample_count, default=None,
                       help="pose samples drawn per scan for Gaussian poses (default: derived from the covariance "
@@ -95,7 +96,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     export.add_argument("map", type=Path, help="map .npz")
     export.add_argument("--format", choices=("pgm", "png"), required=True,
                         help="pgm: PATH.pgm and a map_server YAML beside it; png: an image for people")
-    export.add_argument("-o", "--output", type=Path, required=True, help="image path (.pgm or .png)")
+    export.add_argument("-o", "--output", required=True, metavar="IMAGE", help="image path (.pgm or .png)")
     export.add_argument("--layer", choices=("probability", "variance"), default="probability",
                         help="png only: which layer to draw (default probability)")
     export.add_argument("--crop", type=finite_float, default=None, metavar="MARGIN",
@@ -137,10 +138,30 @@ def _note_peak_behind_returns(model, posed) -> None:
               "section 1)", file=sys.stderr, flush=True)
 
 
+def _scans_without_beams(posed, model) -> int:
+    """How many scans of ``posed`` have no beam the fusion uses: each reading below range_min, negative or -inf
+    (mapping.beam_model.beam_table's skipped beams), so the scan adds nothing to the map."""
+    from mapping.beam_model import BEAM_SKIP, beam_table
+
+    return sum(not (beam_table(ranges, model, posed.range_min, posed.range_max).kind != BEAM_SKIP).any()
+               for ranges in posed.ranges)
+
+
+def _refuse_an_empty_map(args: argparse.Namespace, posed, empty_scans: int) -> None:
+    """Raise UsageError naming ``args.posed`` when none of its scans has a usable beam: the map would be empty."""
+    from services.cli import UsageError
+
+    if empty_scans == len(posed.stamps):
+        raise UsageError(f"{args.posed}: none of its {empty_scans} scans has a usable beam (every reading is below "
+                         f"range_min {posed.range_min:g} m, negative or -inf), so the map would be empty; nothing "
+                         f"written to {args.output}")
+
+
 def run_fuse(args: argparse.Namespace) -> int:
     from schemas.files import MapFile, load_posed_scans, save_map
     from services.cli import UsageError
 
+    check_outputs(args, output="-o")
     adaptive_options = {"--unknowns/--no-unknowns": args.unknowns, "--coarse-cell": args.coarse_cell,
                         "--significance": args.significance, "--unknown-range": args.unknown_range}
     given = [option for option, value in adaptive_options.items() if value is not None]
@@ -151,6 +172,8 @@ def run_fuse(args: argparse.Namespace) -> int:
                          "pose only")
     model = sensor_model_from_args(args)
     posed = load_posed_scans(args.posed)
+    empty_scans = _scans_without_beams(posed, model)
+    _refuse_an_empty_map(args, posed, empty_scans)
     _note_peak_behind_returns(model, posed)
     if not posed.poses.is_gaussian and (args.samples is not None or args.accuracy is not None):
         raise UsageError(f"{args.posed} holds pose samples, which are fused as they are; --samples and --accuracy "
@@ -177,11 +200,15 @@ def run_fuse(args: argparse.Namespace) -> int:
         grid = fuse_posed_scans(posed, **options)
         summary = None
     raster = grid.rasterize()
+    if not raster["observed"].any():
+        raise UsageError(f"{args.posed}: its scans observed no cell, so the map is empty; nothing written to "
+                         f"{args.output}")
     summary = summary or f"{int(raster['observed'].sum())} observed"
     save_map(args.output, MapFile(**raster))
     height, width = raster["logodds"].shape
+    unusable = f", {empty_scans} without a usable beam (every reading below range_min, negative or -inf)"
     print(f"wrote {args.output}: {width} x {height} cells at {args.resolution} m, {summary}, "
-          f"{len(posed.stamps)} scans fused ({args.mode})")
+          f"{len(posed.stamps) - empty_scans} scans fused ({args.mode}){unusable if empty_scans else ''}")
     return 0
 
 
@@ -190,20 +217,20 @@ def run_export(args: argparse.Namespace) -> int:
     from schemas.files import load_map, write_atomically
     from services.cli import UsageError
 
+    check_outputs(args, output="-o")
     if args.output.suffix.lower() != f".{args.format}":
         raise UsageError(f"-o {args.output}: a {args.format} export needs a name ending in .{args.format}"
                          + (" (the map_server YAML is written beside it as NAME.yaml)" if args.format == "pgm" else ""))
     if args.format == "pgm" and args.layer != "probability":
         raise UsageError("--layer variance draws a png; a pgm for map_server holds the occupancy only")
+    yaml_path = checked_output(args.output.with_suffix(".yaml"), "the map_server YAML beside -o,") \
+        if args.format == "pgm" else None
     map_file = load_map(args.map)
     arrays = vars(map_file)
     if args.crop is not None:
         arrays = crop_to_occupied(arrays, args.crop)
     if args.format == "pgm":
         pgm, yaml = render_pgm(arrays, image_name=args.output.name)
-        yaml_path = args.output.with_suffix(".yaml")
-        if yaml_path.is_dir():
-            raise UsageError(f"{yaml_path}, where the map_server YAML goes, is a folder")
         write_atomically(args.output, lambda handle: handle.write(pgm))
         write_atomically(yaml_path, lambda handle: handle.write(yaml.encode()))
         print(f"wrote {args.output} and {yaml_path}")

@@ -11,7 +11,7 @@ import sys
 import time
 from pathlib import Path
 
-from services.commands.argtypes import finite_float, pose_sample_count, random_seed
+from services.commands.argtypes import check_outputs, checked_output, finite_float, pose_sample_count, random_seed
 
 ALGORITHMS = ("odometry", "ekf", "fastslam1", "fastslam2", "gridslam")
 #: FastSLAM particles of `posegrid slam` when --particles is not given: on MRCLAM dataset 7, 29 of 30 runs (robots
@@ -61,7 +61,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "(velocity commands and odometry readings) and landmarks.npz (range-bearing measurements); "
         "docs/slam.md describes the last two. The same --seed gives the same files.",
     )
-    simulate.add_argument("outdir", type=Path, help="folder to write (created if missing)")
+    simulate.add_argument("outdir", help="folder to write (created if missing)")
     simulate.add_argument("--seed", type=random_seed, default=0, help="seed of every noise source (default 0)")
     simulate.add_argument("--steps", type=int, default=400, help="number of steps (default 400)")
     simulate.add_argument("--dt", type=finite_float, default=0.1, help="step length in s (default 0.1)")
@@ -85,7 +85,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "ground truth) or at --initial. Landmark positions are estimated, never read from the input's truth.",
     )
     slam.add_argument("input", type=Path, help="simulator folder or MRCLAM folder (gridslam: a CARMEN log or ROS bag)")
-    slam.add_argument("-o", "--output", type=Path, required=True, help=".npz to write")
+    slam.add_argument("-o", "--output", required=True, metavar="OUTPUT.npz", help=".npz to write")
     slam.add_argument("--algo", choices=ALGORITHMS, required=True,
                       help="odometry: dead reckoning (baseline); ekf: EKF-SLAM; fastslam1 / fastslam2: FastSLAM; "
                       "gridslam: grid FastSLAM on a laser log")
@@ -154,6 +154,29 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 # ------------------------------------------------------------------------------------------------ simulate
 
 
+#: the files `posegrid simulate` writes into its folder
+SIMULATION_FILES = ("scans.npz", "truth.npz", "groundtruth.npz", "controls.npz", "landmarks.npz")
+
+
+def _simulation_folder(text: str) -> Path:
+    """OUTDIR of `posegrid simulate`, created if missing, after checking that it can hold every one of
+    :data:`SIMULATION_FILES` (UsageError otherwise, naming the path and what to do)."""
+    from services.cli import UsageError
+
+    if not text:
+        raise UsageError("OUTDIR '': an empty path names no folder; give the folder to write")
+    folder = Path(text)
+    if folder.exists() and not folder.is_dir():
+        raise UsageError(f"OUTDIR {folder}: not a folder; give a folder to write the simulation into")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UsageError(f"OUTDIR {folder}: cannot be created ({exc.strerror}); give a folder that can") from None
+    for name in SIMULATION_FILES:
+        checked_output(folder / name, "OUTDIR's")
+    return folder
+
+
 def run_simulate(args: argparse.Namespace) -> int:
     from services.cli import UsageError
 
@@ -172,9 +195,9 @@ def run_simulate(args: argparse.Namespace) -> int:
     from slam.simlog import save_sim_log
     from slam.simulator import simulate_office
 
+    args.outdir = _simulation_folder(args.outdir)
     run = simulate_office(seed=args.seed, steps=args.steps, n_beams=args.beams, range_max=args.range_max,
                           fov=args.fov, laser_sigma=args.laser_sigma, dt=args.dt, truth_resolution=args.resolution)
-    args.outdir.mkdir(parents=True, exist_ok=True)
     truth_poses = PoseSet(samples=run.true_poses[:, None, :], weights=np.ones((len(run.stamps), 1)))
     save_posed_scans(args.outdir / "scans.npz", PosedScans(
         ranges=run.ranges, angle_min=run.angle_min, angle_increment=run.angle_increment, range_min=run.range_min,
@@ -338,6 +361,7 @@ def _refuse_ignored_options(args: argparse.Namespace) -> None:
 
 def run_slam(args: argparse.Namespace) -> int:
     _refuse_ignored_options(args)
+    check_outputs(args, output="-o")
     if args.algo == "gridslam":  # laser logs: services/commands/gridslam.py
         from services.commands.gridslam import run_gridslam_command
 

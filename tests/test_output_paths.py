@@ -1,0 +1,275 @@
+"""Output paths of every CLI command: checked before any work, written through a temporary file that is fsynced
+and renamed onto a regular file only, and never reported as written when the write failed.
+
+Every path here lies in tmp_path; /dev/full is only stat-ed (it must be refused before anything is written).
+"""
+from __future__ import annotations
+
+import errno
+import os
+import signal
+import stat
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from schemas.files import load_map, output_path_problem, save_posed_scans, write_atomically
+from services.cli import main
+from worlds import room_posed_scans
+
+ROOT = Path(__file__).resolve().parents[1]
+DEV_FULL = Path("/dev/full")
+
+
+@pytest.fixture(scope="module")
+def posed_file(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("posed") / "room.npz"
+    save_posed_scans(path, room_posed_scans(steps=6, beams=90))
+    return path
+
+
+@pytest.fixture
+def bad_outputs(tmp_path) -> dict[str, tuple[str, str]]:
+    """Paths no command may write, in tmp_path: name -> (path, a phrase of the refusal)."""
+    fifo = tmp_path / "fifo.png"
+    os.mkfifo(fifo)
+    (tmp_path / "folder.png").mkdir()
+    (tmp_path / "to-fifo.png").symlink_to(fifo)
+    return {"fifo": (str(fifo), "is a FIFO, not a regular file"),
+            "folder": (str(tmp_path / "folder.png"), "is a folder, not a file"),
+            "empty": ("", "an empty path names no file"),
+            "missing folder": (str(tmp_path / "absent" / "out.png"), f"folder {tmp_path / 'absent'} does not exist"),
+            "link to a fifo": (str(tmp_path / "to-fifo.png"), f"links to {fifo}, which is a FIFO")}
+
+
+def one_line_exit_2(argv: list[str], capsys, *fragments: str) -> str:
+    """Run the CLI in this process; assert exit 2, nothing on stdout and one line on stderr holding fragments."""
+    code = main(argv)
+    captured = capsys.readouterr()
+    err = captured.err.strip()
+    assert code == 2 and "\n" not in err and "Traceback" not in err and captured.out == "", captured
+    for fragment in fragments:
+        assert fragment in err, err
+    return err
+
+
+def special_files_unchanged(tmp_path: Path) -> None:
+    assert stat.S_ISFIFO(os.lstat(tmp_path / "fifo.png").st_mode)
+    assert (tmp_path / "folder.png").is_dir() and not any((tmp_path / "folder.png").iterdir())
+    assert os.path.islink(tmp_path / "to-fifo.png")
+    assert not list(tmp_path.glob(".*partial"))
+
+
+# The input of each command does not exist (its name holds "no-input"): the output's refusal, not the input's,
+# shows the output is checked before anything is read.
+COMMANDS = {
+    "fuse": lambda tmp, out: ["fuse", str(tmp / "no-input.npz"), "-o", out],
+    "export": lambda tmp, out: ["export", str(tmp / "no-input.npz"), "--format", "png", "-o", out],
+    "slam": lambda tmp, out: ["slam", "--algo", "ekf", str(tmp / "no-input"), "-o", out],
+    "slam gridslam -o": lambda tmp, out: ["slam", "--algo", "gridslam", str(tmp / "no-input.clf"), "-o", out],
+    "slam gridslam --stats": lambda tmp, out: ["slam", "--algo", "gridslam", str(tmp / "no-input.clf"),
+                                               "-o", str(tmp / "g.npz"), "--stats", out],
+    "slam gridslam --best-output": lambda tmp, out: ["slam", "--algo", "gridslam", str(tmp / "no-input.clf"),
+                                                     "-o", str(tmp / "g.npz"), "--best-output", out],
+    "slam gridslam --poses-output": lambda tmp, out: ["slam", "--algo", "gridslam", str(tmp / "no-input.clf"),
+                                                      "-o", str(tmp / "g.npz"), "--poses-output", out],
+    "eval-relations --json": lambda tmp, out: ["eval-relations", str(tmp / "no-input.npz"), str(tmp / "no-input.txt"),
+                                               "--json", out],
+    "run --export": lambda tmp, out: ["run", "--posed", str(tmp / "no-input.npz"), "--no-api", "--export", out],
+}
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+@pytest.mark.parametrize("kind", ["fifo", "folder", "empty", "missing folder", "link to a fifo"])
+def test_every_output_is_checked_before_any_work(tmp_path, bad_outputs, capsys, command, kind):
+    path, phrase = bad_outputs[kind]
+    err = one_line_exit_2(COMMANDS[command](tmp_path, path), capsys, phrase)
+    assert "no-input" not in err  # the input was never read
+    special_files_unchanged(tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fifo.png", "folder.png", "to-fifo.png"]
+
+
+def test_the_yaml_beside_a_pgm_is_checked_too(tmp_path, capsys):
+    (tmp_path / "m.yaml").mkdir()
+    one_line_exit_2(["export", str(tmp_path / "no-input.npz"), "--format", "pgm", "-o", str(tmp_path / "m.pgm")],
+                    capsys, "the map_server YAML beside -o", f"{tmp_path / 'm.yaml'}: is a folder")
+
+
+def test_the_derived_gridslam_outputs_are_checked_too(tmp_path, capsys):
+    os.mkfifo(tmp_path / "g.best.npz")
+    one_line_exit_2(["slam", "--algo", "gridslam", str(tmp_path / "no-input.clf"), "-o", str(tmp_path / "g.npz")],
+                    capsys, "--best-output's default", "is a FIFO")
+
+
+def test_simulate_checks_its_folder_and_files_before_simulating(tmp_path, capsys):
+    folder = tmp_path / "sim"
+    folder.mkdir()
+    os.mkfifo(folder / "truth.npz")
+    one_line_exit_2(["simulate", str(folder), "--steps", "5", "--beams", "5"], capsys, str(folder / "truth.npz"),
+                    "is a FIFO")
+    assert [p.name for p in folder.iterdir()] == ["truth.npz"]  # scans.npz, written first, was not written
+    (tmp_path / "file").write_text("x")
+    one_line_exit_2(["simulate", str(tmp_path / "file")], capsys, "not a folder")
+    one_line_exit_2(["simulate", ""], capsys, "an empty path names no folder")
+
+
+def test_dev_full_is_refused_up_front_and_stays_a_device(posed_file, tmp_path, capsys):
+    """/dev/full is only stat-ed and reached through a link in tmp_path (a writer that renamed onto its output
+    would replace the link, not the device), and named directly only once the writer is shown to refuse every
+    special file, so that no version of the code under test can replace the device."""
+    if not DEV_FULL.exists():
+        pytest.skip("no /dev/full here")
+    assert stat.S_ISCHR(os.stat(DEV_FULL).st_mode)
+    assert "is a character device" in output_path_problem(DEV_FULL)
+    link = tmp_path / "full.npz"
+    link.symlink_to(DEV_FULL)
+    one_line_exit_2(["fuse", str(posed_file), "-o", str(link)], capsys,
+                    "links to /dev/full, which is a character device")
+    with pytest.raises(OSError, match="character device"):
+        write_atomically(link, lambda handle: handle.write(b"x"))
+    assert os.path.islink(link) and stat.S_ISCHR(os.stat(DEV_FULL).st_mode)
+    os.mkfifo(tmp_path / "fifo")
+    with pytest.raises(OSError, match="is a FIFO"):  # the writer itself refuses special files ...
+        write_atomically(tmp_path / "fifo", lambda handle: handle.write(b"x"))
+    one_line_exit_2(["fuse", str(posed_file), "-o", str(DEV_FULL)], capsys,  # ... so this cannot replace the device
+                    "-o /dev/full: is a character device")
+    assert stat.S_ISCHR(os.stat(DEV_FULL).st_mode)
+
+
+def test_a_symlink_is_written_through_and_stays_a_link(posed_file, tmp_path, capsys):
+    target = tmp_path / "maps" / "real.npz"
+    target.parent.mkdir()
+    target.write_bytes(b"an old map")
+    os.chmod(target, 0o640)
+    link = tmp_path / "map.npz"
+    link.symlink_to(target)
+    assert main(["fuse", str(posed_file), "-o", str(link)]) == 0
+    assert f"wrote {link}" in capsys.readouterr().out
+    assert os.path.islink(link) and os.readlink(link) == str(target)
+    assert load_map(target).observed.any()
+    assert stat.S_IMODE(os.stat(target).st_mode) == 0o640  # the replaced file keeps its permissions
+    dangling = tmp_path / "new.npz"
+    dangling.symlink_to(tmp_path / "maps" / "created.npz")
+    assert main(["fuse", str(posed_file), "-o", str(dangling)]) == 0
+    assert os.path.islink(dangling) and load_map(tmp_path / "maps" / "created.npz").observed.any()
+    assert sorted(p.name for p in (tmp_path / "maps").iterdir()) == ["created.npz", "real.npz"]
+
+
+def test_a_failed_write_is_an_error_not_wrote_and_keeps_the_old_file(posed_file, tmp_path, capsys, monkeypatch):
+    out = tmp_path / "map.npz"
+    out.write_bytes(b"the previous map")
+
+    def failing_fsync(descriptor: int) -> None:
+        raise OSError(errno.EIO, os.strerror(errno.EIO))
+    monkeypatch.setattr(os, "fsync", failing_fsync)
+    assert main(["fuse", str(posed_file), "-o", str(out)]) == 2
+    captured = capsys.readouterr()
+    last = captured.err.strip().splitlines()[-1]  # after the progress bar
+    assert last == f"posegrid fuse: error: {os.strerror(errno.EIO)} ({out})", captured.err
+    assert "wrote" not in captured.out + captured.err and "Traceback" not in captured.err
+    assert out.read_bytes() == b"the previous map"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["map.npz"]  # no temporary file left
+
+
+def test_disk_full_midway_leaves_the_old_file_and_no_temporary(tmp_path):
+    out = tmp_path / "out.json"
+    out.write_text("old")
+
+    def fails_halfway(handle) -> None:
+        handle.write(b"half")
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    with pytest.raises(OSError, match=os.strerror(errno.ENOSPC)) as failure:
+        write_atomically(out, fails_halfway)
+    assert failure.value.filename == str(out)
+    assert out.read_text() == "old" and sorted(p.name for p in tmp_path.iterdir()) == ["out.json"]
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into any folder")
+def test_an_unwritable_folder_is_refused(tmp_path):
+    folder = tmp_path / "locked"
+    folder.mkdir()
+    folder.chmod(0o500)
+    try:
+        assert "cannot be written" in output_path_problem(folder / "out.npz")
+    finally:
+        folder.chmod(0o700)
+
+
+def unusable_ranges(tmp_path: Path, scans: slice, value: float = -1.0) -> Path:
+    """The room's posed scans with every range of ``scans`` set to ``value`` m, negative or below range_min
+    (0.05 m): no usable beam in those scans."""
+    posed = room_posed_scans(steps=6, beams=90)
+    ranges = posed.ranges.copy()
+    ranges[scans] = value
+    path = tmp_path / "unusable.npz"
+    save_posed_scans(path, replace(posed, ranges=ranges))
+    return path
+
+
+@pytest.mark.parametrize("grid", ["regular", "adaptive"])
+def test_scans_without_a_usable_beam_give_no_empty_map(tmp_path, capsys, grid):
+    out = tmp_path / "map.npz"
+    posed = unusable_ranges(tmp_path, slice(None))
+    one_line_exit_2(["fuse", str(posed), "-o", str(out), "--grid", grid], capsys,
+                    "none of its 6 scans has a usable beam", "nothing written")
+    assert not out.exists()
+    partly = unusable_ranges(tmp_path, slice(1, 3))
+    assert main(["fuse", str(partly), "-o", str(out), "--grid", grid]) == 0
+    said = capsys.readouterr().out
+    assert "4 scans fused" in said and "2 without a usable beam" in said, said
+    assert load_map(out).observed.any()
+
+
+@pytest.mark.slow
+def test_run_exports_no_empty_map(tmp_path):
+    """`posegrid run --export` of scans without a usable beam: exit 1, an error line, no file."""
+    posed = unusable_ranges(tmp_path, slice(None), 0.01)  # (a LaserScan message carries no negative range)
+    out = tmp_path / "run.npz"
+    process = subprocess.Popen([sys.executable, "-m", "services", "run", "--posed", str(posed), "--no-api",
+                                "--export", str(out)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True, start_new_session=True)
+    try:
+        _, err = process.communicate(timeout=180)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)  # the launcher's own group, started above
+            process.wait()
+    assert process.returncode == 1, err
+    assert "the map is empty" in err and f"nothing written to {out}" in err
+    assert not out.exists() and not list(tmp_path.glob(".*partial"))
+
+
+class AssembledMap:
+    """Stands in for services.map_client.MapReader at the end of a run: the shards' map, already assembled."""
+
+    def __init__(self, grid) -> None:
+        self.grid = grid
+
+    def assemble(self, shards: int, resolution: float):
+        return self.grid
+
+
+def test_run_export_that_cannot_be_written_is_an_error_not_wrote(posed_file, tmp_path, capsys):
+    """The launcher's export goes through the same writer: a path that turned into a FIFO while the run went on
+    (it was checked at the start) gives exit 1 and one error line, and the FIFO stays."""
+    from schemas.files import load_posed_scans
+    from services.fusion_runner import fuse_posed_scans
+    from services.launcher import Plan, _export
+
+    grid = fuse_posed_scans(load_posed_scans(posed_file))
+    fifo = tmp_path / "map.npz"
+    os.mkfifo(fifo)
+    plan = Plan(map_name="main", robot="robot0", shards=1, resolution=0.05, mapper_argv=[], source_argv=[],
+                export=fifo)
+    assert _export(AssembledMap(grid), plan, 0) == 1
+    captured = capsys.readouterr()
+    assert captured.err.strip() == f"posegrid run: error: cannot write {fifo}: is a FIFO, not a regular file; give " \
+        "the path of a regular file" and "wrote" not in captured.out
+    assert stat.S_ISFIFO(os.lstat(fifo).st_mode) and sorted(p.name for p in tmp_path.iterdir()) == ["map.npz"]
+    plan.export = tmp_path / "written.npz"
+    assert _export(AssembledMap(grid), plan, 0) == 0
+    assert f"wrote {plan.export}" in capsys.readouterr().out and load_map(plan.export).observed.any()
