@@ -20,6 +20,7 @@ COMMAND_MODULES = (
     "services.commands.pipeline",
     "services.commands.logs",
     "services.commands.api",
+    "services.commands.security",
 )
 
 

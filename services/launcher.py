@@ -6,6 +6,13 @@ Children run in their own process group, so the launcher alone decides when they
 (SIGINT) or SIGTERM it sends SIGINT to the source, then to the SLAM node, the API and the shards together,
 then to the router, waits for each (SIGKILL after a grace period) and reports every exit code. Each child also
 watches the launcher (services.process.PARENT_PID_ENV) and stops if the launcher dies.
+
+A child that ends while the run goes on (any exit or signal; the source: a non-zero exit or a signal, since
+one that ends 0 has finished its replay) is started again with the same arguments after a backoff
+(:class:`RestartPolicy`), and takes what it missed from the histories (docs/keys.md). A restarted source
+replays its input from the start: every input of `posegrid run` is a file or the seeded simulation, so it
+publishes the very messages it published before, which the shards drop as `resent` and the SLAM node as
+out of order. A child that fails more often than the policy allows stops the run.
 """
 from __future__ import annotations
 
@@ -16,7 +23,8 @@ import subprocess
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from tqdm import tqdm
@@ -25,12 +33,15 @@ from schemas.files import MapFile, save_map
 from services import keys
 from services.map_client import IncompleteMap, MapReader
 from services.process import PARENT_PID_ENV, get_logger
+from services.security import Role, remove_material, run_material, zenoh_argv
 from services.zenoh_config import build_config, open_session
 
 #: seconds a child gets to stop after SIGINT before it is killed
 STOP_GRACE = 15.0
 #: exit codes of a child that stopped as asked (130: SIGINT arrived before it had set up its handlers)
 CLEAN_EXITS = (0, 130)
+#: the exit code of a process that refused its input or options (services.cli.UsageError): never restarted
+USAGE_EXIT = 2
 #: seconds the launcher waits for the shards to come up
 START_TIMEOUT = 60.0
 
@@ -42,38 +53,138 @@ def free_port() -> int:
         return probe.getsockname()[1]
 
 
+@dataclass(frozen=True)
+class RestartPolicy:
+    """When `posegrid run` starts a child again that ended while the run went on.
+
+    The restart of a child that has had n restarts in the last ``window`` s waits ``first_delay`` * 2**n s, at
+    most ``max_delay`` s (0.5, 1, 2, 4, 8 s by default); a child that fails once more after ``max_restarts``
+    restarts within ``window`` s stops the run (at most 5 restarts within 60 s by default)."""
+
+    max_restarts: int = 5  # restarts of one child within ``window``
+    window: float = 60.0  # s
+    first_delay: float = 0.5  # s
+    max_delay: float = 10.0  # s
+
+    def recent(self, restarts: Sequence[float], now: float) -> int:
+        """How many of the restart times ``restarts`` (s) lie within ``window`` s before ``now`` (s, same clock)."""
+        return sum(1 for t in restarts if now - t < self.window)
+
+    def delay(self, restarts: Sequence[float], now: float) -> float | None:
+        """Seconds to wait before restarting a child that failed at ``now`` (s) and was restarted before at the
+        times ``restarts`` (s, the same clock); None when it may not be restarted again."""
+        recent = self.recent(restarts, now)
+        if recent >= self.max_restarts:
+            return None
+        return min(self.first_delay * 2.0 ** min(recent, 64), self.max_delay)
+
+
+def describe_exit(code: int) -> str:
+    """"exited 1", or for a child ended by a signal "exited -9 (SIGKILL)" (Popen's code: minus the signal)."""
+    if code < 0:
+        try:
+            return f"exited {code} ({signal.Signals(-code).name})"
+        except ValueError:
+            return f"exited {code} (signal {-code})"
+    return f"exited {code}"
+
+
+def _say(line: str) -> None:
+    """One line on stderr, above the progress bar if one is showing."""
+    tqdm.write(line, file=sys.stderr)
+    sys.stderr.flush()
+
+
+def spawn_service(argv: list[str]) -> subprocess.Popen:
+    """``python -m services ARGV`` in a session of its own, told the launcher's pid (PARENT_PID_ENV)."""
+    env = {**os.environ, PARENT_PID_ENV: str(os.getpid())}
+    return subprocess.Popen([sys.executable, "-m", "services", *argv], env=env, start_new_session=True)
+
+
 @dataclass
 class Child:
     name: str
     process: subprocess.Popen
     expected_to_finish: bool = False  # the source ends on its own when the replay is over
+    argv: list[str] = field(default_factory=list)  # its `posegrid` arguments, to start it again with
+    restarts: list[float] = field(default_factory=list)  # clock times of the failures it was restarted after, s
+    failures: int = 0  # times it ended while it should have kept running
+    restart_at: float | None = None  # clock time its pending restart is due, s (None: none pending)
+
+    def ended_badly(self) -> bool:
+        """Whether it has ended when it should not have (any non-zero exit, or a server that ended)."""
+        code = self.process.poll()
+        return code is not None and (code != 0 or not self.expected_to_finish)
 
 
 class Children:
-    """The launcher's child processes, started in order and stopped in reverse."""
+    """The launcher's child processes, started in order and stopped in reverse; :meth:`tend` restarts the ones
+    that end under ``policy``. ``clock`` (s) and ``spawn`` (argv -> Popen) are for tests."""
 
-    def __init__(self, log):
+    def __init__(self, log, policy: RestartPolicy | None = None, clock: Callable[[], float] = time.monotonic,
+                 spawn: Callable[[list[str]], subprocess.Popen] = spawn_service):
         self.log = log
+        self.policy = policy or RestartPolicy()
+        self.clock = clock
+        self.spawn = spawn
         self.children: list[Child] = []
+        self.last_start = clock()  # clock time of the latest start or restart, s
 
     def start(self, name: str, argv: list[str], expected_to_finish: bool = False) -> Child:
-        env = {**os.environ, PARENT_PID_ENV: str(os.getpid())}
-        process = subprocess.Popen([sys.executable, "-m", "services", *argv], env=env, start_new_session=True)
-        child = Child(name, process, expected_to_finish)
+        child = Child(name, self.spawn(argv), expected_to_finish, argv=list(argv))
         self.children.append(child)
+        self.last_start = self.clock()
         return child
 
     def failed(self) -> Child | None:
         """A child that ended when it should not have (any non-zero exit, or a server that ended)."""
+        return next((child for child in self.children if child.ended_badly()), None)
+
+    def running_to_finish(self) -> bool:
+        """Whether a child that ends on its own (the source) is still running, or is to be restarted."""
+        return any(c.expected_to_finish and (c.process.poll() is None or c.restart_at is not None)
+                   for c in self.children)
+
+    def tend(self) -> Child | None:
+        """Restart the children whose backoff is over, and schedule a restart for each that has just ended badly,
+        one line each on stderr. Returns a child that failed past the policy's cap (having said so on stderr):
+        the run must stop. Call it every fraction of a second."""
+        now = self.clock()
         for child in self.children:
-            code = child.process.poll()
-            if code is not None and (code != 0 or not child.expected_to_finish):
+            if child.restart_at is not None:
+                if now >= child.restart_at:
+                    self._restart(child)
+            elif child.ended_badly() and not self._schedule(child, now):
                 return child
         return None
 
-    def running_to_finish(self) -> bool:
-        """Whether a child that ends on its own (the source) is still running."""
-        return any(c.expected_to_finish and c.process.poll() is None for c in self.children)
+    def _schedule(self, child: Child, now: float) -> bool:
+        """Note a failure of ``child`` at ``now`` and plan its restart; False when the policy allows none."""
+        child.failures += 1
+        code = child.process.returncode
+        if code == USAGE_EXIT:  # its input or options are wrong: it would fail the same way again
+            _say(f"posegrid run: error: {child.name} (pid {child.process.pid}) {describe_exit(code)}: its input or "
+                 "options were refused (its own error line above says why); not restarting it: stopping the run")
+            return False
+        delay = self.policy.delay(child.restarts, now)
+        if delay is None:
+            times = "time" if child.failures == 1 else "times"
+            _say(f"posegrid run: error: {child.name} failed {child.failures} {times}; the last time (pid "
+                 f"{child.process.pid}) it {describe_exit(code)}; it had {self.policy.recent(child.restarts, now)} "
+                 f"restart(s) in the last {self.policy.window:g} s, the most --max-restarts allows: stopping the run")
+            return False
+        child.restarts.append(now)
+        child.restart_at = now + delay
+        _say(f"posegrid run: {child.name} (pid {child.process.pid}) {describe_exit(code)}; restarting in {delay:g} s "
+             f"(restart {self.policy.recent(child.restarts, now)} of {self.policy.max_restarts} within "
+             f"{self.policy.window:g} s)")
+        return True
+
+    def _restart(self, child: Child) -> None:
+        child.restart_at = None
+        child.process = self.spawn(child.argv)
+        self.last_start = self.clock()
+        _say(f"posegrid run: {child.name} restarted (pid {child.process.pid})")
 
     def stop_all(self) -> dict[str, int]:
         """SIGINT every running child and wait; the router last, so the others can still say goodbye.
@@ -117,7 +228,10 @@ class Plan:
     scans: int | None = None  # scans the input holds, for the progress bar (None: unknown)
     router_port: int | None = None
     api_port: int | None = None  # None: no HTTP API
+    api_argv: list[str] = field(default_factory=list)  # the API's HTTP options (services.commands.api)
     description: str = ""
+    restart: RestartPolicy = field(default_factory=RestartPolicy)  # when a child that ends is started again
+    secure: bool = False  # TLS, client certificates, passwords and ACL per role (services.security)
 
 
 def _describe_exit(codes: dict[str, int]) -> str:
@@ -128,32 +242,45 @@ def run_pipeline(plan: Plan, stop: threading.Event) -> int:
     """Run the pipeline of ``plan`` until the export is written or ``stop`` is set; returns the exit code."""
     log = get_logger("run")
     port = plan.router_port or free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
-    children = Children(log)
-    connect = ["--connect", endpoint]
+    endpoint = f"{'tls' if plan.secure else 'tcp'}/127.0.0.1:{port}"
+    material = run_material(plan.robot, plan.map_name, endpoint) if plan.secure else None
+    if material is not None:
+        print(f"posegrid run: secure: TLS, passwords and ACL; CA {material.ca}; a read-only client connects with "
+              f"--zenoh-config {material.config_for(Role('api'))} (removed when the run ends)", flush=True)
+
+    def role_zenoh(kind: str, scope: str | None = None) -> list[str]:
+        """A child's --connect, and with --secure the config of its role."""
+        return ["--connect", endpoint, *zenoh_argv(material, Role(kind, scope))]
+
+    children = Children(log, plan.restart)
     code = 1
     try:
-        children.start("router", ["router", "--listen", endpoint])
+        children.start("router", ["router", "--listen", endpoint, *zenoh_argv(material, None)])
         for shard in range(plan.shards):  # they keep trying to reach the router while it starts
             children.start(f"mapper[{shard}]", ["mapper", "--shard", str(shard), "--shards", str(plan.shards),
-                                                "--map", plan.map_name, *plan.mapper_argv, *connect])
+                                                "--map", plan.map_name, *plan.mapper_argv,
+                                                *role_zenoh("mapper", plan.map_name)])
         if plan.api_port is not None:  # the API learns the shards from their liveliness: start it alongside
-            children.start("api", ["api", "--host", "127.0.0.1", "--port", str(plan.api_port), *connect])
-        session = open_session(build_config("client", connect=[endpoint]), "the launcher")
+            children.start("api", ["api", "--host", "127.0.0.1", "--port", str(plan.api_port), *plan.api_argv,
+                                   *role_zenoh("api")])
+        launcher_config = material.config_for(Role("launcher")) if material is not None else None
+        session = open_session(build_config("client", connect=[endpoint], config_file=launcher_config), "the launcher")
         try:
             if not _wait_for_shards(session, plan, children, stop):
                 return 130 if stop.is_set() else 1
             if plan.slam_argv is not None:
-                children.start("slam-node", ["slam-node", "--robot", plan.robot, *plan.slam_argv, *connect])
+                children.start("slam-node", ["slam-node", "--robot", plan.robot, *plan.slam_argv,
+                                             *role_zenoh("slam", plan.robot)])
             children.start("source", ["source", "--robot", plan.robot, "--map", plan.map_name, "--wait-mappers",
                                       str(plan.shards), *(["--wait-slam"] if plan.slam_argv is not None else []),
-                                      *plan.source_argv, *connect], expected_to_finish=True)
+                                      *plan.source_argv, *role_zenoh("source", plan.robot)], expected_to_finish=True)
             _banner(plan, endpoint, children)
             code = _supervise(session, plan, children, stop, log)
         finally:
             session.close()
     finally:
         codes = children.stop_all()
+        remove_material(material)
         print(f"posegrid run: stopped: {_describe_exit(codes)}", flush=True)
         if code == 0 and any(c not in CLEAN_EXITS for c in codes.values()):
             code = 1
@@ -161,16 +288,20 @@ def run_pipeline(plan: Plan, stop: threading.Event) -> int:
 
 
 def _wait_for_shards(session, plan: Plan, children: Children, stop: threading.Event) -> bool:
-    deadline = time.monotonic() + START_TIMEOUT
+    """Wait until every shard's liveliness token is up, restarting children that end (:meth:`Children.tend`).
+    False when ``stop`` is set, a child fails past the restart cap, or START_TIMEOUT s pass after the latest
+    start or restart of a child without every shard up."""
     key = keys.shard_alive_key(plan.map_name, "*")
     while not stop.is_set():
         alive = sum(r.ok is not None for r in session.liveliness().get(key, timeout=2.0))
         if alive >= plan.shards:
             return True
-        failed = children.failed()
-        if failed is not None or time.monotonic() > deadline:
-            what = f"{failed.name} exited {failed.process.returncode}" if failed else f"only {alive} came up"
-            print(f"posegrid run: error: the {plan.shards} mapper shard(s) did not start ({what})", file=sys.stderr)
+        if children.tend() is not None:
+            print(f"posegrid run: error: the {plan.shards} mapper shard(s) did not start", file=sys.stderr)
+            return False
+        if children.clock() > children.last_start + START_TIMEOUT:
+            print(f"posegrid run: error: the {plan.shards} mapper shard(s) did not start (only {alive} came up in "
+                  f"{START_TIMEOUT:.0f} s)", file=sys.stderr)
             return False
         stop.wait(0.1)
     return False
@@ -189,15 +320,14 @@ def _banner(plan: Plan, endpoint: str, children: Children) -> None:
 
 
 def _supervise(session, plan: Plan, children: Children, stop: threading.Event, log) -> int:
-    """Show progress until every shard has all scans; then export (and return) or serve until stopped."""
+    """Show progress until every shard has all scans; then export (and return) or serve until stopped. Restarts
+    the children that end meanwhile (:meth:`Children.tend`); returns 1 when one fails past the restart cap."""
     reader = MapReader(session, plan.map_name)
     finished = False
     with tqdm(total=plan.scans, desc="fused (slowest shard)", unit="scan", file=sys.stderr, disable=None,
               mininterval=0.5) as bar:
         while not stop.wait(0.25):
-            failed = children.failed()
-            if failed is not None:
-                print(f"posegrid run: error: {failed.name} exited {failed.process.returncode}", file=sys.stderr)
+            if children.tend() is not None:  # (it said which child, and why)
                 return 1
             if finished:
                 continue
@@ -223,13 +353,24 @@ def _supervise(session, plan: Plan, children: Children, stop: threading.Event, l
 
 
 def _export(reader: MapReader, plan: Plan, discarded: int) -> int:
+    """Write the map assembled from every shard to ``plan.export`` (schemas.files.save_map: a temporary file,
+    fsynced, renamed onto the path); 1 with one line on stderr when the map is incomplete or empty or the write
+    fails (nothing is written then), else 0 unless the shards gave up on scans."""
     try:
         grid = reader.assemble(plan.shards, plan.resolution)
     except IncompleteMap as exc:
         print(f"posegrid run: error: cannot export the map: {exc}", file=sys.stderr)
         return 1
     raster = grid.rasterize()
-    save_map(plan.export, MapFile(**raster))
+    if not raster["observed"].any():
+        print(f"posegrid run: error: the map is empty (no scan had a usable beam, so no cell was observed); nothing "
+              f"written to {plan.export}", file=sys.stderr)
+        return 1
+    try:
+        save_map(plan.export, MapFile(**raster))
+    except OSError as exc:
+        print(f"posegrid run: error: cannot write {plan.export}: {exc.strerror or exc}", file=sys.stderr)
+        return 1
     height, width = raster["logodds"].shape
     print(f"posegrid run: wrote {plan.export}: {width} x {height} cells at {plan.resolution} m, "
           f"{int(raster['observed'].sum())} observed, from {len(grid.keys())} tiles of {plan.shards} shard(s)",

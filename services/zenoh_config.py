@@ -127,5 +127,8 @@ def open_session(config: zenoh.Config, what: str) -> zenoh.Session:
             raise UsageError(f"{what} could not open its zenoh session ({_first_line(exc)}); is another process "
                              f"listening on {json.dumps(read_key(config, 'listen/endpoints'))}? pick another "
                              "--listen (`posegrid run`: --router-port)") from None
+        secured = any(str(endpoint).startswith("tls/") for endpoint in connect)
         raise UsageError(f"{what} could not open its zenoh session ({_first_line(exc)}); is `posegrid router` "
-                         f"running at {json.dumps(connect)}?") from None
+                         f"running at {json.dumps(connect)}?"
+                         + (" Does it trust this client's certificate and password, and this client its CA "
+                            "(docs/security.md)?" if secured else "")) from None

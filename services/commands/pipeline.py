@@ -9,8 +9,10 @@ import argparse
 import sys
 from pathlib import Path
 
-from services.commands.argtypes import finite_float, odom_delay_seconds, pose_sample_count, random_seed
+from services.commands.api import add_http_arguments
+from services.commands.argtypes import checked_output, finite_float, odom_delay_seconds, pose_sample_count, random_seed
 from services.commands.gridslam import add_filter_options, filter_option_values, reject_filter_options
+from services.commands.limits import add_limit_arguments, limit_argv, limits_from_args
 from services.commands.mapping import add_sensor_model_arguments
 
 DEFAULT_MAP = "main"
@@ -56,6 +58,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                        help="scans and poses that may wait for their partner (default 512; overflow is counted)")
     shard.add_argument("--intake-buffer", type=int, default=4096,
                        help="messages that may wait for the fusion thread (default 4096; overflow is counted)")
+    add_limit_arguments(mapper)
     add_zenoh_arguments(mapper)
     mapper.set_defaults(func=run_mapper)
 
@@ -107,7 +110,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     add_input_arguments(run, default_sim=True)
     run.add_argument("--shards", type=int, default=1, help="mapper shards (default 1)")
-    run.add_argument("--export", type=Path, default=None, metavar="MAP.npz",
+    run.add_argument("--export", default=None, metavar="MAP.npz",
                      help="write the map when the replay ends, then stop everything and exit")
     run.add_argument("--map", default=DEFAULT_MAP, help=f"map name (default {DEFAULT_MAP})")
     run.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot name (default {DEFAULT_ROBOT})")
@@ -116,12 +119,56 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                      help="port of the router on 127.0.0.1 (default: a free one)")
     run.add_argument("--api-port", type=int, default=8000, help="port of the HTTP API on 127.0.0.1 (default 8000)")
     run.add_argument("--no-api", action="store_true", help="do not start the HTTP API")
+    add_http_arguments(run, prefix="api-")  # passed on to the API (services.commands.api)
+    run.add_argument("--secure", action="store_true",
+                     help="Zenoh over TLS with client certificates, a password per process and access control per "
+                     "role (docs/security.md): a CA, certificates, passwords and configs are written to a new 0700 "
+                     "folder, printed at the start and removed at the end")
+    add_restart_arguments(run)
     add_fusion_arguments(run)
+    add_limit_arguments(run)
     add_slam_arguments(run, particles=RUN_PARTICLES)
     run.set_defaults(func=run_pipeline)
 
 
 # ------------------------------------------------------------------------------------------ shared options
+
+
+def add_restart_arguments(parser: argparse.ArgumentParser) -> None:
+    """When `run` starts a child again that ended (services.launcher.RestartPolicy, whose defaults these show)."""
+    group = parser.add_argument_group(
+        "restarts", "A child that ends while the run goes on (the source: with a non-zero exit or a signal) is "
+        "started again with the same arguments and takes what it missed from the histories; a restarted source "
+        "replays its input from the start, and the shards drop what they have fused. Restart n (n = 0, 1, ...) "
+        "within --restart-window waits --restart-delay * 2^n s, at most --max-restart-delay; a child that fails "
+        "once more after --max-restarts restarts within --restart-window stops the run.")
+    group.add_argument("--max-restarts", type=int, default=5, metavar="N",
+                       help="restarts of one child within --restart-window; 0: a child that ends stops the run "
+                       "(default 5)")
+    group.add_argument("--restart-window", type=finite_float, default=60.0, metavar="SECONDS",
+                       help="the span --max-restarts counts restarts in, s (default 60)")
+    group.add_argument("--restart-delay", type=finite_float, default=0.5, metavar="SECONDS",
+                       help="wait before a child's first restart within --restart-window, s; doubles with each "
+                       "further one (default 0.5)")
+    group.add_argument("--max-restart-delay", type=finite_float, default=10.0, metavar="SECONDS",
+                       help="the longest wait before a restart, s (default 10)")
+
+
+def restart_policy(args: argparse.Namespace):
+    """The services.launcher.RestartPolicy of the restart options; UsageError (exit 2) for a bad value."""
+    from services.cli import UsageError
+
+    if args.max_restarts < 0:
+        raise UsageError(f"--max-restarts must be >= 0, got {args.max_restarts}")
+    if not args.restart_window > 0:
+        raise UsageError(f"--restart-window must be > 0 s, got {args.restart_window}")
+    if not 0 <= args.restart_delay <= args.max_restart_delay:
+        raise UsageError(f"need 0 <= --restart-delay <= --max-restart-delay, got {args.restart_delay} and "
+                         f"{args.max_restart_delay}")
+    from services.launcher import RestartPolicy
+
+    return RestartPolicy(max_restarts=args.max_restarts, window=args.restart_window, first_delay=args.restart_delay,
+                         max_delay=args.max_restart_delay)
 
 
 def add_fusion_arguments(parser: argparse.ArgumentParser) -> None:
@@ -355,7 +402,7 @@ def run_mapper(args: argparse.Namespace) -> int:
     config = ShardConfig(map_name=args.map, shard=args.shard, shards=args.shards, model=sensor_model_from_args(args),
                          mode=args.mode, n_samples=args.samples, seed=args.seed, accuracy=args.accuracy,
                          tile_size=args.tile_size, publish_interval=args.publish_interval,
-                         join_capacity=args.join_buffer)
+                         join_capacity=args.join_buffer, limits=limits_from_args(args))
     zenoh_config = config_from_args(args, "client")
     return serve(config, zenoh_config, install_stop_event(), args.intake_buffer)
 
@@ -400,12 +447,12 @@ def run_pipeline(args: argparse.Namespace) -> int:
         raise UsageError(f"--router-port must be a TCP port, got {args.router_port}")
     _check_positive(args, "accuracy", "resolution")
     _check_log_options(args)
+    restarts = restart_policy(args)
     rate_text = args.rate or ("max" if args.export is not None else "realtime")
     _rate(rate_text)
-    if args.export is not None and not args.export.parent.is_dir():
-        raise UsageError(f"--export {args.export}: folder {args.export.parent} does not exist")
+    args.export = checked_output(args.export, "--export")
     if not args.no_api:
-        from services.commands.api import check_port_free
+        from services.commands.api import api_child_options, check_port_free
 
         if not 0 < args.api_port < 65536:
             raise UsageError(f"--api-port must be a TCP port (1..65535), got {args.api_port}")
@@ -415,8 +462,9 @@ def run_pipeline(args: argparse.Namespace) -> int:
     from services.process import install_stop_event
 
     plan = Plan(map_name=args.map, robot=args.robot, shards=args.shards, resolution=args.resolution,
-                mapper_argv=fusion_argv(args), source_argv=["--rate", rate_text], export=args.export,
-                router_port=args.router_port, api_port=None if args.no_api else args.api_port)
+                mapper_argv=fusion_argv(args) + limit_argv(args), source_argv=["--rate", rate_text], export=args.export,
+                router_port=args.router_port, api_port=None if args.no_api else args.api_port,
+                api_argv=[] if args.no_api else api_child_options(args))
     if args.posed is not None:
         from schemas.files import load_posed_scans
 
@@ -462,6 +510,8 @@ def run_pipeline(args: argparse.Namespace) -> int:
         plan.slam_argv = slam_argv(args, "sim")
         plan.description = (f"simulating the office world (seed {args.seed}, {args.steps} steps of 0.1 s) through "
                             f"{args.algo or DEFAULT_ALGORITHM} into {args.shards} shard(s)")
+    plan.restart = restarts
+    plan.secure = args.secure
     return launch(plan, install_stop_event())
 
 

@@ -1,0 +1,308 @@
+"""Zenoh access control (services/security.py, docs/security.md) with a real router process, real TLS
+certificates and real client sessions on loopback:
+
+- the generated material is private (0700 folder, 0600 files) and its certificates chain to its CA;
+- a client without TLS, without a client certificate, without a password, with a wrong password or trusting
+  another CA is refused (zenoh.open fails), while the same client with everything right connects;
+- a source-role put on pg/r/scan reaches a mapper-role subscriber, and no other role's put does (nor a client
+  holding one role's certificate and another role's password); a forged shard token or history answer from
+  the read-only API role reaches nobody;
+- `posegrid run --secure` runs a short simulation over TLS with the ACL and exports the map.
+
+Absence is shown after a positive control on the same path has arrived, then a bounded wait.
+"""
+from __future__ import annotations
+
+import copy
+import json
+import os
+import queue
+import re
+import signal
+import stat
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from services.cli import main
+from services.launcher import free_port
+from services.security import Material, write_material
+
+CLI = [sys.executable, "-m", "services"]
+#: how long a refused client keeps trying before zenoh.open gives up, ms
+REFUSAL_TIMEOUT_MS = 2000
+#: how long after a positive control has arrived a message that must not come is still waited for, s
+ABSENCE_WAIT = 1.5
+#: generous bound for anything that must happen, s
+EVENT_TIMEOUT = 30.0
+
+
+# ------------------------------------------------------------------------------------------ fixtures
+
+
+@pytest.fixture
+def material(tmp_path) -> Material:
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    return write_material(tmp_path / "secure", ["r", "r2"], ["m"], endpoint, endpoint, days=1)
+
+
+@pytest.fixture
+def router(material):
+    """A `posegrid router` process with the secure config; ended by PID."""
+    process = subprocess.Popen([*CLI, "router", "--zenoh-config", str(material.router_config)],
+                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines: queue.Queue[str] = queue.Queue()
+    threading.Thread(target=lambda: [lines.put(line) for line in process.stdout], daemon=True).start()
+    try:
+        deadline = time.monotonic() + EVENT_TIMEOUT
+        seen: list[str] = []
+        while not any("routing; listening on tls/127.0.0.1" in line for line in seen):
+            try:
+                seen.append(lines.get(timeout=max(0.0, deadline - time.monotonic())))
+            except queue.Empty:
+                pytest.fail("the secure router did not start:\n" + "".join(seen))
+        yield process
+    finally:
+        if process.poll() is None:
+            process.send_signal(signal.SIGINT)
+            try:
+                process.wait(20)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+
+
+@pytest.fixture
+def sessions():
+    """Opens client sessions from config dicts; closes every one at the end."""
+    opened: list[zenoh.Session] = []
+
+    def open_session(config: dict) -> zenoh.Session:
+        session = zenoh.open(zenoh.Config.from_json5(json.dumps(config)))
+        opened.append(session)
+        return session
+
+    yield open_session
+    for session in opened:
+        session.close()
+
+
+def role_config(material: Material, user: str) -> dict:
+    """The client config written for ``user``, as a dict, with a short connect timeout."""
+    config = json.loads(material.clients[user].read_text())
+    config["connect"]["timeout_ms"] = REFUSAL_TIMEOUT_MS
+    return config
+
+
+class Inbox:
+    """Payloads a subscriber received, with an event per expected payload."""
+
+    def __init__(self):
+        self.payloads: list[bytes] = []
+        self._arrived = threading.Condition()
+
+    def __call__(self, sample: zenoh.Sample) -> None:
+        with self._arrived:
+            self.payloads.append(sample.payload.to_bytes())
+            self._arrived.notify_all()
+
+    def wait_for(self, payload: bytes, timeout: float = EVENT_TIMEOUT) -> bool:
+        with self._arrived:
+            return self._arrived.wait_for(lambda: payload in self.payloads, timeout)
+
+
+def wait_until(predicate, timeout: float = EVENT_TIMEOUT):
+    deadline = time.monotonic() + timeout
+    while not (value := predicate()):
+        if time.monotonic() > deadline:
+            raise AssertionError("timed out")
+        time.sleep(0.05)
+    return value
+
+
+# ------------------------------------------------------------------------------------------ material
+
+
+def test_material_is_private_and_chains_to_its_ca(material):
+    from cryptography import x509
+    from cryptography.x509.oid import NameOID
+
+    assert stat.S_IMODE(os.stat(material.folder).st_mode) == 0o700
+    files = sorted(material.folder.iterdir())
+    assert files and all(stat.S_IMODE(os.stat(path).st_mode) == 0o600 for path in files)
+    users = ["source-r", "source-r2", "slam-r", "slam-r2", "mapper-m", "api", "launcher"]
+    assert sorted(material.clients) == sorted(users)
+    assert not [p.name for p in files if "ca" in p.name and p.suffix == ".key"], "the CA's key is never written"
+    ca = x509.load_pem_x509_certificate((material.folder / "ca.pem").read_bytes())
+    router_cert = x509.load_pem_x509_certificate((material.folder / "router.pem").read_bytes())
+    router_cert.verify_directly_issued_by(ca)
+    names = router_cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+    assert "localhost" in names.get_values_for_type(x509.DNSName)
+    assert [str(ip) for ip in names.get_values_for_type(x509.IPAddress)] == ["127.0.0.1"]
+    for user in users:
+        cert = x509.load_pem_x509_certificate((material.folder / f"{user}.pem").read_bytes())
+        cert.verify_directly_issued_by(ca)
+        assert cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)[0].value == user
+    entries = dict(line.split(":", 1) for line in material.dictionary.read_text().splitlines())
+    assert sorted(entries) == sorted(users)
+    assert len(set(entries.values())) == len(users) and min(map(len, entries.values())) >= 40
+
+
+def test_secure_init_writes_the_material_and_refuses_to_overwrite(tmp_path, capsys):
+    folder = tmp_path / "deploy"
+    assert main(["secure-init", str(folder), "--robot", "a", "--robot", "b", "--map", "m1", "--host", "router"]) == 0
+    out = capsys.readouterr().out
+    assert f"CA certificate (clients trust it): {folder.resolve() / 'ca.pem'}" in out
+    assert {p.name for p in folder.glob("*.json5")} == {"router.json5", "source-a.json5", "source-b.json5",
+                                                         "slam-a.json5", "slam-b.json5", "mapper-m1.json5",
+                                                         "api.json5", "launcher.json5"}
+    assert json.loads((folder / "api.json5").read_text())["connect"]["endpoints"] == ["tls/router:7447"]
+    before = (folder / "users.txt").read_text()
+    assert main(["secure-init", str(folder)]) == 2
+    assert "is not empty; pass --force" in capsys.readouterr().err
+    assert (folder / "users.txt").read_text() == before
+    assert main(["secure-init", str(folder), "--force"]) == 0
+    assert (folder / "users.txt").read_text() != before
+    assert main(["secure-init", str(tmp_path / "x"), "--robot", "map"]) == 2
+    assert main(["secure-init", str(tmp_path / "y"), "--host", "router:7447"]) == 2
+
+
+# ------------------------------------------------------------------------------------------ authentication
+
+
+def _without_client_certificate(config: dict) -> dict:
+    tls = config["transport"]["link"]["tls"]
+    del tls["connect_certificate"], tls["connect_private_key"]
+    tls["enable_mtls"] = False
+    return config
+
+
+def _refused_configs(material: Material, other: Material) -> dict[str, dict]:
+    good = role_config(material, "api")
+    plain = {"mode": "client", "connect": {"endpoints": [good["connect"]["endpoints"][0].replace("tls/", "tcp/")],
+                                           "timeout_ms": REFUSAL_TIMEOUT_MS},
+             "scouting": {"multicast": {"enabled": False}}}
+    no_password = copy.deepcopy(good)
+    del no_password["transport"]["auth"]
+    foreign_cert = role_config(other, "api")  # a certificate of another CA, with the right password
+    foreign_cert["connect"] = good["connect"]
+    foreign_cert["transport"]["auth"] = good["transport"]["auth"]
+    foreign_cert["transport"]["link"]["tls"]["root_ca_certificate"] = str(material.ca)
+    trusts_other_ca = copy.deepcopy(good)
+    trusts_other_ca["transport"]["link"]["tls"]["root_ca_certificate"] = str(other.ca)
+    return {"plain tcp": plain, "no client certificate": _without_client_certificate(copy.deepcopy(good)),
+            "no password": no_password, "client certificate of another CA": foreign_cert,
+            "trusts another CA": trusts_other_ca}
+
+
+def test_clients_without_tls_or_credentials_are_refused(tmp_path, material, router, sessions):
+    endpoint = role_config(material, "api")["connect"]["endpoints"][0]
+    other = write_material(tmp_path / "other", ["r"], ["m"], endpoint, endpoint, days=1)
+    sessions(role_config(material, "api"))  # the positive control: everything right connects
+    for name, config in _refused_configs(material, other).items():
+        with pytest.raises(zenoh.ZError):
+            sessions(config)
+            pytest.fail(f"a client with {name} connected")
+
+
+def test_a_wrong_password_is_refused(material, router, sessions):
+    sessions(role_config(material, "source-r"))  # the positive control
+    for user, password in (("source-r", "not-the-password"), ("source-r", ""), ("nobody", "x"),
+                           ("source-r", role_config(material, "api")["transport"]["auth"]["usrpwd"]["password"])):
+        config = role_config(material, "source-r")
+        config["transport"]["auth"]["usrpwd"] = {"user": user, "password": password}
+        with pytest.raises(zenoh.ZError):
+            sessions(config)
+            pytest.fail(f"user {user!r} with a wrong password connected")
+
+
+# ------------------------------------------------------------------------------------------ access control
+
+
+def test_a_source_put_reaches_a_mapper_subscriber(material, router, sessions):
+    mapper = sessions(role_config(material, "mapper-m"))
+    inbox = Inbox()
+    mapper.declare_subscriber("pg/*/scan", inbox)
+    source = sessions(role_config(material, "source-r"))
+    publisher = source.declare_publisher("pg/r/scan")
+    wait_until(lambda: publisher.matching_status.matching)  # the router tells the source someone listens
+    publisher.put(b"scan 0")
+    assert inbox.wait_for(b"scan 0")
+
+
+def _mixed_credentials(material: Material) -> dict:
+    """The API's certificate with the source's password: it connects, but matches no role."""
+    config = role_config(material, "api")
+    config["transport"]["auth"] = role_config(material, "source-r")["transport"]["auth"]
+    return config
+
+
+def test_only_the_robots_source_may_put_its_scans(material, router, sessions):
+    mapper = sessions(role_config(material, "mapper-m"))
+    inbox = Inbox()
+    mapper.declare_subscriber("pg/*/scan", inbox)
+    intruders = {user: role_config(material, user) for user in ("api", "launcher", "slam-r", "mapper-m", "source-r2")}
+    intruders["api certificate, source password"] = _mixed_credentials(material)
+    for name, config in intruders.items():
+        sessions(config).put("pg/r/scan", f"forged by {name}".encode())
+    publisher = sessions(role_config(material, "source-r")).declare_publisher("pg/r/scan")
+    wait_until(lambda: publisher.matching_status.matching)
+    publisher.put(b"control")
+    assert inbox.wait_for(b"control")
+    time.sleep(ABSENCE_WAIT)  # proving absence: a forged put sent before the control had time to arrive
+    assert inbox.payloads == [b"control"]
+
+
+def test_the_api_role_cannot_forge_a_shard_or_a_history(material, router, sessions):
+    api = sessions(role_config(material, "api"))
+    api_token = api.liveliness().declare_token("pg/map/m/alive/9")
+    forged = api.declare_queryable("pg/r/history/**", lambda query: query.reply("pg/r/history/scan", b"forged"))
+    mapper = sessions(role_config(material, "mapper-m"))
+    mapper_token = mapper.liveliness().declare_token("pg/map/m/alive/0")
+    source = sessions(role_config(material, "source-r"))
+    real = source.declare_queryable("pg/r/history/**", lambda query: query.reply("pg/r/history/scan", b"real"))
+    launcher = sessions(role_config(material, "launcher"))
+
+    def tokens() -> list[str]:
+        return sorted(str(r.ok.key_expr) for r in launcher.liveliness().get("pg/map/m/alive/*", timeout=5.0)
+                      if r.ok is not None)
+
+    def history() -> list[bytes]:
+        return sorted(r.ok.payload.to_bytes() for r in mapper.get("pg/*/history/**", timeout=5.0) if r.ok is not None)
+
+    wait_until(lambda: "pg/map/m/alive/0" in tokens())
+    wait_until(lambda: b"real" in history())
+    time.sleep(ABSENCE_WAIT)
+    assert tokens() == ["pg/map/m/alive/0"]
+    assert history() == [b"real"]
+    for declared in (api_token, forged, mapper_token, real):
+        declared.undeclare()
+
+
+# ------------------------------------------------------------------------------------------ posegrid run --secure
+
+
+@pytest.mark.slow
+def test_run_secure_simulates_and_exports(tmp_path):
+    exported = tmp_path / "map.npz"
+    process = subprocess.Popen([*CLI, "run", "--secure", "--steps", "40", "--export", str(exported), "--api-port",
+                                str(free_port())], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        output, _ = process.communicate(timeout=240)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    assert process.returncode == 0, output
+    folder = Path(re.search(r"secure: .*; CA (\S+)/ca\.pem", output).group(1))
+    assert re.search(r"zenoh router: tls/127\.0\.0\.1:\d+", output), output
+    assert "replay finished: 40 scans, each of 1 shard(s) fused 40" in output, output
+    assert re.search(r"stopped: router exited 0, mapper\[0\] exited 0, api exited 0, slam-node exited 0, "
+                     r"source exited 0", output), output
+    assert exported.is_file()
+    assert not folder.exists(), "the run's keys and passwords are removed when it ends"
