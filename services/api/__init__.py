@@ -9,5 +9,9 @@ Modules, one job each:
 - ``events``: the server-sent event stream of tile changes and poses,
 - ``models``: the JSON response schemas (the OpenAPI document derives from them),
 - ``app``: the FastAPI routes; ``fastpath``: answers repeated tile requests from the cache before them,
+- ``export``: the raster size of an export, known before it is built, and the window that crops one,
+- ``limits``: what the API holds and runs at most, and the counts of what it refused at those limits,
+- ``guard``: the Host header and access-token checks in front of everything,
+- ``protocol``: uvicorn's HTTP protocol with a deadline for each request to arrive,
 - ``server``: runs it all under uvicorn; ``static/``: the viewer (one HTML, one JS, one CSS file).
 """

@@ -27,14 +27,17 @@ from fastapi.responses import FileResponse, JSONResponse, Response, StreamingRes
 from fastapi.staticfiles import StaticFiles
 
 from mapping.errors import InputError
-from mapping.export import render_pgm, render_png
-from schemas.files import MapFile, save_map
+from mapping.export import render_pgm
 from schemas.messages import ShardStats
 from services.api import models
 from services.api.events import EventHub
+from services.api.export import Window, covered, raster_shape, windowed
 from services.api.fastpath import tile_response
+from services.api.limits import (EXPORT_BYTES_PER_CELL, MAX_MAPS, MAX_ROBOTS, RETRY_AFTER, STRAY_TTL, VERIFY_WINDOW,
+                                 HttpLimits, Slots)
 from services.api.mappers import MapperLink
 from services.api.registry import MAX_LEVEL, MapInfo, MapRegistry
+from services.api.render import npz_bytes, png_bytes
 from services.api.robots import RobotTracker, reduce_samples
 from services.api.tiles import TileService, TileUnavailable, render_key
 from services.map_client import IncompleteMap
@@ -54,17 +57,20 @@ tile_size cells; at zoom level z a cell is 2^z level-0 cells wide and tile (x, y
 x in [x * tile_size * 2^z * resolution, (x + 1) * ...) m, likewise y. A level-z cell combines its four
 level-(z-1) cells: observed = any observed; log-odds and variance = the mean over the observed ones.
 
-Errors: `{"detail": "one sentence"}` with 404 (unknown map or robot, tile outside the map), 409 (nothing
-to export yet), 413 (a map too large to export whole), 422 (a malformed or out-of-range parameter) or 503 (a
-shard holding the data did not answer).
+Errors: `{"detail": "one sentence"}` with 400 (a Host header the API does not answer to), 401 (no or a wrong
+access token, when the API has one), 404 (unknown map or robot, tile outside the map), 409 (nothing to export
+yet), 413 (an export whose raster would exceed the API's --max-export-cells: export a window), 422 (a malformed
+or out-of-range parameter) or 503 (a shard holding the data did not answer, or every slot for event streams or
+exports is taken: retry after the Retry-After header's seconds).
 """
 
 ERRORS = {
     404: "unknown map or robot, or a tile outside the map's range",
-    409: "the map has nothing to export yet",
-    413: "the map's tiles span more cells than one raster may hold (mapping.grid.MAX_RASTER_CELLS)",
+    409: "the map (or the window) has nothing to export yet",
+    413: "the export's raster would span more cells than the API's --max-export-cells; export a window "
+         "(x_min, y_min, x_max, y_max)",
     422: "a parameter is malformed or out of its range (layer, format, z < 0, vmax <= 0, ...)",
-    503: "a shard holding the data did not answer",
+    503: "a shard holding the data did not answer, or every export slot is taken (see Retry-After)",
 }
 
 
@@ -80,6 +86,8 @@ TileX = Annotated[int, Path(description="tile column at level z: map-frame x in 
                             "(T = tile_size, r = resolution); may be negative")]
 TileY = Annotated[int, Path(description="tile row at level z: map-frame y in [y*T*2^z*r, (y+1)*T*2^z*r) m; "
                             "may be negative")]
+WindowEdge = Annotated[float | None, Query(allow_inf_nan=False, description="export window edge, m in the map "
+                                          "frame; give all four of x_min, y_min, x_max, y_max or none")]
 Vmax = Annotated[float | None, Query(gt=0, allow_inf_nan=False,
                                      description="variance layer: the variance (log-odds squared) drawn at the top "
                                      "of the colour ramp; default the map's variance_scale")]
@@ -103,11 +111,15 @@ class Backend:
     started: float
 
     @classmethod
-    def open(cls, session: zenoh.Session, cache_bytes: int, query_timeout: float) -> "Backend":
-        """Wire the parts on an open Zenoh session and start listening."""
+    def open(cls, session: zenoh.Session, cache_bytes: int, query_timeout: float, max_maps: int = MAX_MAPS,
+             max_robots: int = MAX_ROBOTS, stray_ttl: float = STRAY_TTL,
+             verify_window: float = VERIFY_WINDOW) -> "Backend":
+        """Wire the parts on an open Zenoh session and start listening (limits: services.api.registry,
+        services.api.robots, services.api.mappers; stray_ttl and verify_window in s)."""
         epoch = secrets.token_hex(4)
-        registry, robots, hub = MapRegistry(), RobotTracker(), EventHub(epoch)
-        link = MapperLink(session, registry, robots, hub, query_timeout)
+        registry = MapRegistry(max_maps)
+        robots, hub = RobotTracker(max_robots=max_robots, stray_ttl=stray_ttl), EventHub(epoch)
+        link = MapperLink(session, registry, robots, hub, query_timeout, verify_window)
         tiles = TileService(registry, link, epoch, cache_bytes, on_change=hub.tile_changed)
         link.start()
         return cls(registry, tiles, robots, hub, link, time.monotonic())
@@ -120,10 +132,19 @@ def _extent(x0: float, y0: float, x1: float, y1: float) -> models.Extent:
     return models.Extent(x_min=x0, y_min=y0, x_max=x1, y_max=y1)
 
 
-def create_app(backend: Backend) -> FastAPI:
-    """The FastAPI application over ``backend``."""
+def busy(what: str, limit: int, option: str) -> HTTPException:
+    """The 503 for a request that finds every one of ``limit`` slots taken."""
+    return HTTPException(503, f"{limit} {what} are in progress, the most this API runs at once ({option}); retry "
+                         f"in {RETRY_AFTER} s", headers={"Retry-After": str(RETRY_AFTER)})
+
+
+def create_app(backend: Backend, limits: HttpLimits = HttpLimits()) -> FastAPI:
+    """The FastAPI application over ``backend``, within ``limits``."""
     registry, tiles, robots, hub, link = backend.registry, backend.tiles, backend.robots, backend.hub, backend.link
     tile_limiter = anyio.CapacityLimiter(TILE_THREADS)
+    export_slots, event_slots = Slots(limits.exports), Slots(limits.event_clients)
+    limit_values = {"maps": registry.max_maps, "robots": robots.max_robots, "event_clients": limits.event_clients,
+                    "exports": limits.exports, "export_cells": limits.export_cells}
 
     async def tile_work(function, *args):
         return await anyio.to_thread.run_sync(function, *args, limiter=tile_limiter)
@@ -151,7 +172,7 @@ def create_app(backend: Backend) -> FastAPI:
     progress: dict[tuple[str, str], tuple[int, float]] = {}  # (map, robot) -> (scans done, when that last changed)
 
     def known_map(name: str) -> MapInfo:
-        info = registry.get(name)
+        info = registry.served(name)
         if info is None:
             raise HTTPException(404, f"unknown map {name!r}; known maps: {', '.join(registry.names()) or 'none'}")
         return info
@@ -209,7 +230,7 @@ def create_app(backend: Backend) -> FastAPI:
     # ------------------------------------------------------------------------------- maps
     @app.get("/maps", response_model=list[models.MapSummary], tags=["maps"])
     def list_maps() -> list[models.MapSummary]:
-        """Every map a shard has announced (by its liveliness token), with extent and cell counts."""
+        """Every map a shard has proved (its liveliness token, then valid stats), with extent and cell counts."""
         out = []
         for name in registry.names():
             link.stats(name)
@@ -267,57 +288,101 @@ def create_app(backend: Backend) -> FastAPI:
         raise HTTPException(404, f"tiles are served as .png or .npz, not {name!r}")
 
     @app.get("/maps/{map}/export", tags=["maps"], response_class=Response, responses={
-        200: {"description": "npz: a map file (docs/formats.md); pgm: a zip of MAP.pgm and MAP.yaml for ROS "
-              "map_server; png: an image, north up", "content": {"application/octet-stream": {},
-                                                                 "application/zip": {}, "image/png": {}}},
+        200: {"description": "npz: a map file (docs/formats.md), or with layer only that layer, observed, origin and "
+              "resolution; pgm: a zip of MAP.pgm and MAP.yaml for ROS map_server; png: an image, north up",
+              "content": {"application/octet-stream": {}, "application/zip": {}, "image/png": {}}},
         **errors(404, 409, 413, 422, 503)})
     def export(map: MapName,
                format: Annotated[Literal["npz", "pgm", "png"], Query(
                    description="npz (a map file), pgm (with its YAML, zipped) or png")],
-               layer: Annotated[Literal["probability", "variance"], Query(
-                   description="png only: probability, or variance scaled to its 99th percentile")] = "probability",
-               ) -> Response:
-        """The whole map assembled from every shard's tiles now, cropped to the observed cells."""
-        if format != "png" and layer != "probability":
-            raise HTTPException(422, f"layer={layer} draws a png; an npz export carries every layer and a pgm the "
-                                "occupancy only")
-        info = known_map(map)
-        stats = link.stats(map)
+               layer: Annotated[Literal["probability", "logodds", "variance"] | None, Query(
+                   description="png: the layer drawn (default probability; variance is scaled to its 99th "
+                   "percentile); npz: omit for a complete map file, or give one to get only that layer with observed, "
+                   "origin (m) and resolution (m), as a tile's npz; pgm: map_server's occupancy image, so omit it or "
+                   "give probability (another layer is 422)")] = None,
+               x_min: WindowEdge = None, y_min: WindowEdge = None, x_max: WindowEdge = None,
+               y_max: WindowEdge = None) -> Response:
+        """The map assembled from every shard's tiles now, cropped to the observed cells; with a window
+        (x_min, y_min, x_max, y_max, m, all four), only its cells that overlap the window. The raster is sized from
+        the tiles before it is built: beyond --max-export-cells the answer is 413, and a window makes it smaller.
+        At most --max-exports are built at once; the next is 503 with Retry-After."""
+        if format == "pgm" and layer not in (None, "probability"):
+            raise HTTPException(422, f"layer={layer}: a pgm export is map_server's occupancy image; export the "
+                                f"{layer} layer as png or npz")
+        edges = (x_min, y_min, x_max, y_max)
+        if None in edges and edges != (None,) * 4:
+            raise HTTPException(422, "a window needs all four of x_min, y_min, x_max and y_max (m), or none of them")
+        if x_min is not None and not (x_min < x_max and y_min < y_max):
+            raise HTTPException(422, f"the window must have x_min < x_max and y_min < y_max, got x {x_min}..{x_max} "
+                                f"m, y {y_min}..{y_max} m")
+        if not export_slots.take():
+            link.refused.add("exports")
+            raise busy("exports", limits.exports, "--max-exports")
+        try:
+            return build_export(map, format, layer, None if x_min is None else edges)
+        finally:
+            export_slots.give_back()
+
+    def check_export_size(name: str, tiles_read: list, tile_size: int, resolution: float, window: bool) -> None:
+        """413 when the raster an export of ``tiles_read`` allocates exceeds the limit (nothing allocated yet)."""
+        width, height = raster_shape(tiles_read, tile_size)
+        if width * height <= limits.export_cells:
+            return
+        cells, span = width * height, tile_size * resolution
+        x0, y0 = min(t[0] for t in tiles_read) * span, min(t[1] for t in tiles_read) * span
+        raise HTTPException(413, f"the export of {'this window of ' if window else ''}map {name!r} would be a "
+                            f"raster of {width} x {height} = {cells} cells ({cells * EXPORT_BYTES_PER_CELL} bytes as "
+                            f"npz; its tiles span x {x0:.6g}..{x0 + width * resolution:.6g} m, y "
+                            f"{y0:.6g}..{y0 + height * resolution:.6g} m), more than this API's limit of "
+                            f"{limits.export_cells} cells (--max-export-cells); export a smaller window with x_min, "
+                            "y_min, x_max, y_max (m), or read the map tile by tile")
+
+    def build_export(name: str, fmt: str, layer: str | None, edges: tuple[float, ...] | None) -> Response:
+        info = known_map(name)
+        stats = link.stats(name)
         if not stats:
-            raise HTTPException(503, f"no shard of map {map!r} answered")
-        silent = sorted(set(range(max(s.shards for s in stats.values()))) - set(stats))
+            raise HTTPException(503, f"no shard of map {name!r} answered")
+        shards = max(s.shards for s in stats.values())
+        silent = sorted(set(range(shards)) - set(stats))
         if silent:  # checked before "no tiles yet": the tiles may all lie on them
-            raise HTTPException(503, f"shard(s) {silent} of map {map!r} did not answer; the export would miss "
+            raise HTTPException(503, f"shard(s) {silent} of map {name!r} did not answer; the export would miss "
                                 "their tiles")
         if info.resolution is None:
-            raise HTTPException(409, f"map {map!r} has no tiles yet")
+            raise HTTPException(409, f"map {name!r} has no tiles yet")
+        window = None if edges is None else Window.of(*edges, info.resolution)
+        tiles.sync(name)  # the tiles the registry lists: the size is checked before any tile is fetched
+        check_export_size(name, covered(registry.tiles(name), info.tile_size, window), info.tile_size, info.resolution,
+                          window is not None)
+        grid = link.assemble(name, shards, info.resolution)
+        check_export_size(name, covered(grid.keys(), grid.tile_size, window), grid.tile_size, grid.resolution,
+                          window is not None)  # the tiles as assembled, before the raster is allocated
         try:
-            raster = link.assemble(map, max(s.shards for s in stats.values()), info.resolution).rasterize()
+            raster = windowed(grid, window).rasterize()
         except InputError as exc:
-            raise HTTPException(413, f"map {map!r} is too large to export whole: {exc}") from None
+            raise HTTPException(413, f"map {name!r} is too large to export: {exc}") from None
         if not raster["observed"].any():
-            raise HTTPException(409, f"map {map!r} has no observed cells yet")
-        buffer = io.BytesIO()
-        if format == "npz":
-            save_map(buffer, MapFile(**raster))
-            media, filename = "application/octet-stream", f"{map}.npz"
-        elif format == "pgm":
-            pgm, yaml = render_pgm(raster, image_name=f"{map}.pgm")
+            raise HTTPException(409, f"map {name!r} has no observed cells {'in the window ' if window else ''}yet")
+        layers = (raster["logodds"], raster["variance"], raster["observed"])
+        if fmt == "npz":
+            body = npz_bytes(layers, layer, raster["origin"], float(raster["resolution"]))
+            media, filename = "application/octet-stream", f"{name}.npz"
+        elif fmt == "pgm":
+            pgm, yaml = render_pgm(raster, image_name=f"{name}.pgm")
+            buffer = io.BytesIO()
             with zipfile.ZipFile(buffer, "w") as archive:
-                archive.writestr(zipfile.ZipInfo(f"{map}.pgm", date_time=(1980, 1, 1, 0, 0, 0)), pgm)
-                archive.writestr(zipfile.ZipInfo(f"{map}.yaml", date_time=(1980, 1, 1, 0, 0, 0)), yaml)
-            media, filename = "application/zip", f"{map}.zip"
+                archive.writestr(zipfile.ZipInfo(f"{name}.pgm", date_time=(1980, 1, 1, 0, 0, 0)), pgm)
+                archive.writestr(zipfile.ZipInfo(f"{name}.yaml", date_time=(1980, 1, 1, 0, 0, 0)), yaml)
+            body, media, filename = buffer.getvalue(), "application/zip", f"{name}.zip"
         else:
-            buffer.write(render_png(raster, layer))
-            media, filename = "image/png", f"{map}.png"
-        return Response(buffer.getvalue(), media_type=media,
-                        headers={"Content-Disposition": f'attachment; filename="{filename}"'})
+            body = png_bytes(layers, layer or "probability", None)
+            media, filename = "image/png", f"{name}.png"
+        return Response(body, media_type=media, headers={"Content-Disposition": f'attachment; filename="{filename}"'})
 
     # ------------------------------------------------------------------------------- stats
     def map_stats(name: str) -> models.MapStats:
         info = known_map(name)
         stats = link.stats(name)
-        latest = robots.latest_seqs()
+        latest = robots.latest_seqs(vouched_only=True)  # stray poses make no lag (services.api.robots)
         now = time.monotonic()
         shard_ids = sorted(set(range(info.shards or 0)) | info.alive | set(stats))
         per_shard, rejected = [], dict(link.rejects.snapshot())
@@ -346,10 +411,11 @@ def create_app(backend: Backend) -> FastAPI:
 
     @app.get("/health", response_model=models.Health, tags=["status"])
     def health() -> models.Health:
-        """Shards alive and answering, scans fused and lag per map, the API's own rejected messages. Degraded too
-        while a robot's scans lag, its source is gone and the shards have made no progress on them for
-        STRANDED_AFTER s: they cannot come any more (a shard restarted after the source ended finds no history to
-        take them from), and nothing else would say so."""
+        """Shards alive and answering, scans fused and lag per map, the API's own rejected messages and what it
+        refused at its limits. Degraded too while a robot's scans lag, its source is gone, a shard has counted
+        scans of it and the shards have made no progress on them for STRANDED_AFTER s: they cannot come any more
+        (a shard restarted after the source ended finds no history to take them from), and nothing else would say
+        so. Only robots a process liveliness token vouched for have a lag (services.api.robots)."""
         maps, ok = {}, bool(registry.names())
         sources = {process.split("/", 1)[0] for process in list(link.processes) if process.endswith("/source")}
         now = time.monotonic()
@@ -358,16 +424,21 @@ def create_app(backend: Backend) -> FastAPI:
             maps[name] = models.MapHealth(shards=s.shards, shards_alive=s.shards_alive, scans_fused=s.scans_fused,
                                           scans_discarded=s.scans_discarded, lag_scans=s.lag_scans)
             stranded = False
+            counted = {robot for p in s.per_shard for robot, n in {**(p.scans_fused or {}), **(p.scans_discarded or {}),
+                                                                   **(p.scans_announced or {})}.items() if n}
             for robot, lag in s.lag_scans.items():
                 done = s.scans_fused.get(robot, 0) + s.scans_discarded.get(robot, 0)
                 if progress.get((name, robot), (None,))[0] != done:  # still moving (a source that did not wait
                     progress[(name, robot)] = (done, now)  # for the shards exits while they catch up)
-                stranded |= lag > 0 and robot not in sources and now - progress[(name, robot)][1] >= STRANDED_AFTER
+                stranded |= (lag > 0 and robot in counted and robot not in sources
+                             and now - progress[(name, robot)][1] >= STRANDED_AFTER)
             ok = ok and s.shards is not None and all(p.alive and p.answered for p in s.per_shard) and \
                 len(s.per_shard) >= s.shards and not stranded
         return models.Health(status="ok" if ok else "degraded", uptime_s=time.monotonic() - backend.started,
                              maps=maps, robots=robots.robots(), processes_alive=sorted(link.processes),
-                             rejected=link.rejects.snapshot(), event_clients=hub.clients)
+                             rejected=link.rejects.snapshot(), event_clients=hub.clients,
+                             exports_running=export_slots.taken, refused=link.refused.snapshot(),
+                             limits=limit_values)
 
     # ------------------------------------------------------------------------------- robots
     def latest(robot: str):
@@ -413,11 +484,17 @@ def create_app(backend: Backend) -> FastAPI:
     @app.get("/events", tags=["status"], response_class=StreamingResponse, responses={200: {
         "description": "server-sent events: hello, tiles ({map, tiles: [[tx, ty, version], ...]}, level-0 "
         "tiles that changed), pose ({robot, seq, stamp, mean, covariance, samples, weights}), resync",
-        "content": {"text/event-stream": {}}}})
+        "content": {"text/event-stream": {}}},
+        503: {"model": models.Problem, "description": "every event-stream slot is taken (--max-event-clients); "
+              "retry after Retry-After s"}})
     async def events() -> StreamingResponse:
-        """A stream of tile-changed and pose events, batched every 0.25 s (docs/api.md)."""
-        return StreamingResponse(hub.stream(), media_type="text/event-stream",
-                                 headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
+        """A stream of tile-changed and pose events, batched every 0.25 s (docs/api.md); at most
+        --max-event-clients at once."""
+        if not event_slots.take():  # on the event loop: no other request takes a slot between check and take
+            link.refused.add("event_clients")
+            raise busy("event streams", limits.event_clients, "--max-event-clients")
+        return SlotStream(hub.stream(), event_slots, media_type="text/event-stream",
+                          headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
 
     @app.get("/", include_in_schema=False)
     async def viewer() -> FileResponse:
@@ -425,6 +502,21 @@ def create_app(backend: Backend) -> FastAPI:
 
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     return app
+
+
+class SlotStream(StreamingResponse):
+    """A streaming response that gives its slot back when it ends, however it ends (a client gone before the
+    first event included)."""
+
+    def __init__(self, content, slots: Slots, **kwargs) -> None:
+        super().__init__(content, **kwargs)
+        self.slots = slots
+
+    async def __call__(self, scope, receive, send) -> None:
+        try:
+            await super().__call__(scope, receive, send)
+        finally:
+            self.slots.give_back()
 
 
 def _shard_fields(s: ShardStats, latest: dict[str, int]) -> dict:

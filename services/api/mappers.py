@@ -1,8 +1,13 @@
 """The API's Zenoh side: what it subscribes to and what it asks the mapper shards (docs/keys.md).
 
 Subscriptions (callbacks run on Zenoh's threads and only record; they never query):
-- liveliness pg/map/*/alive/*: which shards of which maps are up (a map is known once a shard of it is);
-- liveliness pg/*/alive/*: which robot processes (source, SLAM node) are up;
+- liveliness pg/map/*/alive/*: which shards of which maps are up. A token only makes its shard pending: the
+  shard is alive once it has answered its stats query (pg/map/<map>/stats/*) with valid stats for that map and
+  index (shard < shards), and a map is known once a shard of it is. A thread of this class asks the pending
+  shards, at once and then every VERIFY_INTERVAL s; a token still unproved after ``verify_window`` s is
+  forgotten and counted as rejected (kind "unverified"), so a peer's made-up token lists no map;
+- liveliness pg/*/alive/*: which robot processes (source, SLAM node) are up; a robot with such a token is
+  vouched for (services.api.robots.RobotTracker);
 - pg/map/*/tile/0/*/*: tile updates; each gives its level-0 tile a new version (services.api.registry)
   and a ``tiles`` event; the window's values are not kept (the tile is asked for when someone wants it);
 - pg/*/pose: pose distributions, for /robots and ``pose`` events.
@@ -16,6 +21,7 @@ contents contradict its key, is dropped and counted by key in :attr:`MapperLink.
 """
 from __future__ import annotations
 
+import threading
 from collections import Counter
 from collections.abc import Iterator
 
@@ -26,6 +32,7 @@ from schemas.messages import POSE_TYPES, MessageError, ShardStats, TileUpdate, d
 from schemas.wire import is_valid_name
 from services import keys
 from services.api.events import EventHub
+from services.api.limits import MAX_PROCESSES, VERIFY_WINDOW, Tally
 from services.api.registry import MapRegistry, TileKey
 from services.api.robots import RobotTracker
 from services.map_client import MapReader
@@ -35,6 +42,8 @@ from services.process import RejectCounter, get_logger
 #: s to wait for the shards' stats: a shard answers them from its Zenoh thread in milliseconds, and /health, which
 #: asks for them, must answer while a stalled shard is still alive to the router (up to its Zenoh lease)
 STATS_TIMEOUT = 2.0
+#: s between two rounds of asking the pending shards for their stats
+VERIFY_INTERVAL = 1.0
 
 
 def _parse_int(text: str) -> int | None:
@@ -48,16 +57,20 @@ class MapperLink:
     """Subscriptions and queries on an open Zenoh session. Call :meth:`start`, later :meth:`close`."""
 
     def __init__(self, session: zenoh.Session, registry: MapRegistry, robots: RobotTracker, hub: EventHub,
-                 query_timeout: float = 10.0) -> None:
+                 query_timeout: float = 10.0, verify_window: float = VERIFY_WINDOW) -> None:
         self.session = session
         self.registry = registry
         self.robots = robots
         self.hub = hub
         self.query_timeout = query_timeout
+        self.verify_window = verify_window
         self.log = get_logger("api")
         self.rejects = RejectCounter(self.log)
+        self.refused = Tally()  # tokens and poses refused because a limit was reached, by what
         self.processes: set[str] = set()  # "<robot>/<process>" whose liveliness token is up
         self._declared: list = []
+        self._wake, self._stopping = threading.Event(), threading.Event()
+        self._verifier: threading.Thread | None = None
 
     # ---------------------------------------------------------------------------- subscriptions
     def start(self) -> None:
@@ -75,11 +88,42 @@ class MapperLink:
             for reply in liveliness.get(key, timeout=self.query_timeout):
                 if reply.ok is not None:
                     self._guard(callback)(reply.ok)
+        self.verify_pending()
+        self._verifier = threading.Thread(target=self._verify_loop, daemon=True, name="api-verify")
+        self._verifier.start()
 
     def close(self) -> None:
+        self._stopping.set()
+        self._wake.set()
+        if self._verifier is not None:
+            self._verifier.join()
         for entity in reversed(self._declared):
             entity.undeclare()
         self._declared.clear()
+
+    def _verify_loop(self) -> None:
+        """Ask the pending shards for their stats when a token appears and every VERIFY_INTERVAL s while some
+        wait; forget the tokens unproved for longer than ``verify_window``."""
+        while not self._stopping.is_set():
+            self._wake.wait(VERIFY_INTERVAL)
+            self._wake.clear()
+            if not self._stopping.is_set():
+                try:
+                    self.verify_pending()
+                except Exception:  # noqa: BLE001 - the thread must outlive any one round
+                    self.log.exception("verifying shard tokens failed; trying again")
+
+    def verify_pending(self) -> None:
+        """One round: the stats of every map with pending shards, asked at once (proving the shards that answer),
+        then the expiry of the tokens pending too long."""
+        try:
+            self.stats_of(self.registry.pending())
+        except zenoh.ZError as exc:  # the session is closing
+            self.log.debug("verifying shard tokens: %s", exc)
+        for name, shard in self.registry.expire_pending(self.verify_window):
+            self.rejects.count(keys.shard_alive_key(name, shard), "unverified", f"shard {shard} of map {name!r} "
+                               f"did not answer its stats query within {self.verify_window:g} s of its liveliness "
+                               "token, which is ignored")
 
     def _guard(self, callback):
         """``callback`` with any exception counted as a rejected message instead of escaping into Zenoh."""
@@ -97,15 +141,34 @@ class MapperLink:
         if not is_valid_name(name) or shard is None or shard < 0:
             self.rejects.count(key, "key", "a shard liveliness token whose key is not pg/map/<map>/alive/<shard>")
             return
-        self.registry.shard_alive(name, shard, sample.kind == zenoh.SampleKind.PUT)
+        if sample.kind != zenoh.SampleKind.PUT:
+            self.registry.token_down(name, shard)
+            return
+        refusal = self.registry.token_up(name, shard)
+        if refusal is None:
+            self._wake.set()
+        else:
+            self.refused.add("shard_tokens")
+            self.rejects.count(key, "capacity", refusal)
 
     def _on_process_token(self, sample: zenoh.Sample) -> None:
-        _, robot, _, process = str(sample.key_expr).split("/")
+        key = str(sample.key_expr)
+        _, robot, _, process = key.split("/")
         name = f"{robot}/{process}"
-        if sample.kind == zenoh.SampleKind.PUT:
-            self.processes.add(name)
-        else:
+        if sample.kind != zenoh.SampleKind.PUT:
             self.processes.discard(name)
+            return
+        if not is_valid_name(robot) or not is_valid_name(process):
+            self.rejects.count(key, "key", "a process liveliness token whose key is not pg/<robot>/alive/<process>")
+        elif len(self.processes) >= MAX_PROCESSES and name not in self.processes:
+            self.refused.add("processes")
+            self.rejects.count(key, "capacity", f"{MAX_PROCESSES} process liveliness tokens are held already")
+        elif not self.robots.vouch(robot):
+            self.refused.add("robots")
+            self.rejects.count(key, "capacity", f"{self.robots.max_robots} robots are vouched for already "
+                               "(--max-robots)")
+        else:
+            self.processes.add(name)
 
     def _on_tile_update(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
@@ -132,10 +195,17 @@ class MapperLink:
         except MessageError as exc:
             self.rejects.count(key, exc.reason, str(exc))
             return
-        if message.robot != keys.robot_of(key):
-            self.rejects.count(key, "robot", f"a pose of robot {message.robot!r} arrived on {key}")
+        parsed = keys.parse_robot_key(key, {keys.POSE})
+        if parsed is None or message.robot != parsed[0]:
+            self.rejects.count(key if parsed else keys.INVALID_KEY, "robot",
+                               f"a pose of robot {message.robot!r} arrived on {key}")
             return
-        self.hub.pose(self.robots.update(message))
+        summary = self.robots.update(message)
+        if summary is None:
+            self.refused.add("robots")
+            self.rejects.count(key, "capacity", f"{self.robots.max_robots} robots are tracked already (--max-robots)")
+            return
+        self.hub.pose(summary)
 
     @staticmethod
     def _tile_problem(key: str, update: TileUpdate) -> str | None:
@@ -219,21 +289,29 @@ class MapperLink:
 
     def stats(self, map_name: str) -> dict[int, ShardStats]:
         """The stats of every shard of the map that answers within STATS_TIMEOUT, by shard index (records the
-        shard count)."""
-        stats = {}
-        for key, payload in self._query(keys.stats_key(map_name, "*"), min(self.query_timeout, STATS_TIMEOUT)):
-            try:
-                message = decode_message(payload, ShardStats)
-            except MessageError as exc:
-                self.rejects.count(key, exc.reason, str(exc))
-                continue
-            if key != keys.stats_key(message.map, message.shard) or message.map != map_name:
-                self.rejects.count(key, "key", f"stats of shard {message.shard} of map {message.map!r} on {key}")
-                continue
-            stats[message.shard] = message
-        if stats:
-            self.registry.set_shards(map_name, max(s.shards for s in stats.values()))
-        return stats
+        shard count and proves the pending shards that answered: services.api.registry)."""
+        return self.stats_of([map_name])[map_name]
+
+    def stats_of(self, names: list[str]) -> dict[str, dict[int, ShardStats]]:
+        """:meth:`stats` of several maps, asked at once (so the wait is one STATS_TIMEOUT, not one per map)."""
+        timeout = min(self.query_timeout, STATS_TIMEOUT)
+        handlers = [(name, keys.stats_key(name, "*")) for name in names]
+        handlers = [(name, selector, self._get(selector, timeout)) for name, selector in handlers]
+        out = {}
+        for name, selector, handler in handlers:
+            stats = out[name] = {}
+            for key, payload in self._replies(selector, handler):
+                try:
+                    message = decode_message(payload, ShardStats)
+                except MessageError as exc:
+                    self.rejects.count(key, exc.reason, str(exc))
+                    continue
+                if key != keys.stats_key(message.map, message.shard) or message.map != name:
+                    self.rejects.count(key, "key", f"stats of shard {message.shard} of map {message.map!r} on {key}")
+                    continue
+                stats[message.shard] = message
+            self.registry.record_stats(name, stats)
+        return out
 
     def assemble(self, map_name: str, shards: int, resolution: float) -> TiledGrid:
         """The whole map from all shards, checked against their tile counts (services.map_client);

@@ -126,8 +126,15 @@ class Health(BaseModel):
     maps: dict[str, MapHealth]
     robots: list[str] = Field(description="robots whose poses the API has received")
     processes_alive: list[str] = Field(description="robot processes with a liveliness token, '<robot>/<process>'")
-    rejected: dict[str, int] = Field(description="messages the API itself dropped as malformed, by key")
+    rejected: dict[str, int] = Field(description="messages the API itself dropped (malformed, unproved shard "
+                                     "tokens, beyond a limit), by key")
     event_clients: int = Field(description="open /events streams")
+    exports_running: int = Field(description="exports being built now")
+    refused: dict[str, int] = Field(description="what the API refused because a limit was reached, by what: "
+                                    "shard_tokens (--max-maps, or too many tokens waiting for their shard), robots "
+                                    "(--max-robots), processes, event_clients (--max-event-clients), exports "
+                                    "(--max-exports)")
+    limits: dict[str, int] = Field(description="the limits: maps, robots, event_clients, exports, export_cells")
 
 
 class Pose(BaseModel):

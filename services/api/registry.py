@@ -13,6 +13,7 @@ import time
 from dataclasses import dataclass, field
 
 from mapping.pyramid import children_of, tile_range, top_level
+from services.api.limits import MAX_MAPS, MAX_PENDING
 from services.ownership import tile_owner
 
 TileKey = tuple[int, int]
@@ -29,7 +30,10 @@ class MapInfo:
     resolution: float | None = None  # m per level-0 cell; None until the first tile is seen
     tile_size: int | None = None  # cells per tile side
     shards: int | None = None  # shard count the shards report in their stats
-    alive: set[int] = field(default_factory=set)  # shards whose liveliness token is up
+    alive: set[int] = field(default_factory=set)  # verified shards whose liveliness token is up
+    pending: dict[int, float] = field(default_factory=dict)  # shard -> time.monotonic() its token appeared, while
+    # the shard has not yet answered its stats query (services.api.mappers verifies it)
+    verified: bool = False  # whether a shard of the map ever proved itself; only such maps are served
     last_update: dict[int, float] = field(default_factory=dict)  # shard -> time.monotonic() of its last tile update
     updates_received: dict[int, int] = field(default_factory=dict)  # shard -> tile updates received from it
     levels: list[dict[TileKey, int]] = field(default_factory=lambda: [{} for _ in range(MAX_LEVEL + 1)])
@@ -57,19 +61,99 @@ class MapInfo:
 
 
 class MapRegistry:
-    """Every map the API has heard of, thread-safe (Zenoh callbacks write, HTTP handlers read)."""
+    """Every map the API has heard of, thread-safe (Zenoh callbacks write, HTTP handlers read).
 
-    def __init__(self) -> None:
+    A shard's liveliness token only makes the shard *pending* (:meth:`token_up`); the shard becomes alive when
+    it answers its stats query with valid stats for that map and index (:meth:`record_stats`). A map is served
+    (:meth:`names`, :meth:`served`) once one of its shards has; a map none of whose shards ever did is
+    forgotten when its last pending token goes away or expires. At most ``max_maps`` maps are held, and at most
+    ``max_pending`` pending tokens in all; tokens beyond either are refused (the caller counts them).
+    """
+
+    def __init__(self, max_maps: int = MAX_MAPS, max_pending: int = MAX_PENDING) -> None:
         self.lock = threading.Lock()
         self._maps: dict[str, MapInfo] = {}
         self._counter = 0
+        self.max_maps = max_maps
+        self.max_pending = max_pending
 
     def names(self) -> list[str]:
+        """The maps a shard has proved (the ones the API serves)."""
         with self.lock:
-            return sorted(self._maps)
+            return sorted(name for name, info in self._maps.items() if info.verified)
 
     def get(self, name: str) -> MapInfo | None:
+        """The map, verified or not (:meth:`served` for the maps the API serves)."""
         return self._maps.get(name)
+
+    def served(self, name: str) -> MapInfo | None:
+        """The map if a shard of it has proved itself, else None."""
+        info = self._maps.get(name)
+        return info if info is not None and info.verified else None
+
+    def token_up(self, name: str, shard: int) -> str | None:
+        """Record shard ``shard`` of map ``name``'s liveliness token as pending verification (nothing to do
+        when the shard is alive already); returns why it was refused (None when taken): too many maps or
+        pending tokens."""
+        with self.lock:
+            info = self._maps.get(name)
+            if info is None and len(self._maps) >= self.max_maps:
+                return f"the API already holds {self.max_maps} maps (--max-maps)"
+            if info is not None and (shard in info.alive or shard in info.pending):
+                return None
+            if sum(len(i.pending) for i in self._maps.values()) >= self.max_pending:
+                return f"{self.max_pending} shard tokens already wait for their shard to answer"
+            self._info(name).pending[shard] = time.monotonic()
+            return None
+
+    def token_down(self, name: str, shard: int) -> None:
+        """Record shard ``shard`` of map ``name``'s liveliness token going away."""
+        with self.lock:
+            info = self._maps.get(name)
+            if info is not None:
+                info.alive.discard(shard)
+                info.pending.pop(shard, None)
+                self._forget_unproved(name)
+
+    def pending(self) -> list[str]:
+        """Maps with shards waiting for verification."""
+        with self.lock:
+            return sorted(name for name, info in self._maps.items() if info.pending)
+
+    def record_stats(self, name: str, stats: dict) -> None:
+        """Take the valid stats (services.api.mappers.MapperLink.stats: shard index -> ShardStats of this map,
+        each with shard < shards) that answered a query: record the shard count and make every pending shard that
+        answered alive."""
+        if not stats:
+            return
+        with self.lock:
+            info = self._maps.get(name)
+            if info is None:
+                return
+            info.shards = max(s.shards for s in stats.values())
+            for shard in [s for s in info.pending if s in stats]:
+                del info.pending[shard]
+                info.alive.add(shard)
+                info.verified, info.synced = True, False  # a shard that comes up asks for a sync
+
+    def expire_pending(self, window: float) -> list[tuple[str, int]]:
+        """Forget the tokens pending for more than ``window`` s (and the maps left with no proved shard);
+        returns the (map, shard) forgotten."""
+        now, gone = time.monotonic(), []
+        with self.lock:
+            for name, info in list(self._maps.items()):
+                for shard, since in list(info.pending.items()):
+                    if now - since > window:
+                        del info.pending[shard]
+                        gone.append((name, shard))
+                self._forget_unproved(name)
+        return gone
+
+    def _forget_unproved(self, name: str) -> None:
+        """Drop map ``name`` if no shard of it ever proved itself and none is pending (holding the lock)."""
+        info = self._maps.get(name)
+        if info is not None and not info.verified and not info.pending:
+            del self._maps[name]
 
     def _info(self, name: str) -> MapInfo:
         info = self._maps.get(name)
@@ -84,12 +168,12 @@ class MapRegistry:
             return dict(info.tiles) if info else {}
 
     def shard_alive(self, name: str, shard: int, alive: bool) -> None:
-        """Record a shard's liveliness token appearing or going away; a shard that appears asks for a sync."""
+        """Record a proved shard coming up or going away; a shard that comes up asks for a sync."""
         with self.lock:
             info = self._info(name)
             if alive:
                 info.alive.add(shard)
-                info.synced = False
+                info.verified, info.synced = True, False
             else:
                 info.alive.discard(shard)
 
@@ -107,9 +191,9 @@ class MapRegistry:
         count is known, the tile is another shard's (services.ownership)."""
         with self.lock:
             info = self._maps.get(name)
-            if info is None or not info.alive:
+            if info is None or not (info.alive or info.pending):
                 return f"no live shard serves map {name!r}"
-            if shard not in info.alive:
+            if shard not in info.alive and shard not in info.pending:  # a pending shard's first updates count
                 return f"shard {shard} of map {name!r} is not alive (alive: {sorted(info.alive)})"
             shards = info.shards
         if shards is not None:

@@ -32,8 +32,9 @@ def empty_layers(tile_size: int) -> TileLayers:
     return np.zeros(shape, np.float32), np.zeros(shape, np.float32), np.zeros(shape, bool)
 
 
-def png_bytes(layers: TileLayers, layer: str, vmax: float) -> bytes:
-    """PNG of one layer; ``vmax`` is the variance that maps to the top of the variance ramp."""
+def png_bytes(layers: TileLayers, layer: str, vmax: float | None) -> bytes:
+    """PNG of one layer; ``vmax`` is the variance that maps to the top of the variance ramp (None: the 99th
+    percentile of the observed cells' variance)."""
     logodds, variance, observed = layers
     if layer == "logodds":
         low, high = LOGODDS_RANGE

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from schemas.messages import PoseGaussian, PoseSamples
+from services.api.limits import MAX_ROBOTS, STRAY_TTL
 from slam.angles import wrap_angle
 
 #: samples drawn from a Gaussian pose for display
@@ -75,34 +76,79 @@ def summarize(message: PoseSamples | PoseGaussian, received: float) -> PoseSumma
 
 
 class RobotTracker:
-    """Thread-safe: Zenoh callbacks call :meth:`update`, HTTP handlers read."""
+    """Thread-safe: Zenoh callbacks call :meth:`update` and :meth:`vouch`, HTTP handlers read.
 
-    def __init__(self, trajectory_length: int = TRAJECTORY_LENGTH) -> None:
+    A robot is *vouched for* once a liveliness token of one of its processes (pg/<robot>/alive/<process>: its
+    source or SLAM node) has been seen; it is then kept until the API stops. Poses of a robot nobody vouched
+    for are *stray*: the robot is listed, but :meth:`latest_seqs` leaves it out unless asked, and it is forgotten
+    ``stray_ttl`` s after its last pose. At most ``max_robots`` robots are tracked and ``max_robots`` names
+    vouched for; a pose or token beyond that is refused (the caller counts it).
+    """
+
+    def __init__(self, trajectory_length: int = TRAJECTORY_LENGTH, max_robots: int = MAX_ROBOTS,
+                 stray_ttl: float = STRAY_TTL) -> None:
         self._lock = threading.Lock()
         self._latest: dict[str, PoseSummary] = {}
         self._trajectory: dict[str, deque[tuple[int, float, float, float, float]]] = {}
+        self._heard: dict[str, float] = {}  # robot -> time.monotonic() of its latest pose
+        self._vouched: set[str] = set()
         self._length = trajectory_length
+        self.max_robots = max_robots
+        self.stray_ttl = stray_ttl
 
-    def update(self, message: PoseSamples | PoseGaussian) -> PoseSummary:
-        """Take a new pose message; returns its summary."""
+    def update(self, message: PoseSamples | PoseGaussian) -> PoseSummary | None:
+        """Take a new pose message; returns its summary, or None when it is refused: a robot not tracked yet
+        while ``max_robots`` are."""
+        now = time.monotonic()
+        with self._lock:
+            if message.robot not in self._latest:
+                self._expire(now)
+                if len(self._latest) >= self.max_robots:
+                    return None
         summary = summarize(message, time.time())
         with self._lock:
             self._latest[summary.robot] = summary
+            self._heard[summary.robot] = now
             track = self._trajectory.setdefault(summary.robot, deque(maxlen=self._length))
             track.append((summary.seq, summary.stamp, *(float(v) for v in summary.mean)))
         return summary
 
-    def robots(self) -> list[str]:
+    def vouch(self, robot: str) -> bool:
+        """Record that a process of ``robot`` declared its liveliness token; False when refused (``max_robots``
+        names are vouched for already)."""
         with self._lock:
+            if robot not in self._vouched and len(self._vouched) >= self.max_robots:
+                return False
+            self._vouched.add(robot)
+            return True
+
+    def expire(self) -> None:
+        """Forget the stray robots whose last pose is more than ``stray_ttl`` s old."""
+        with self._lock:
+            self._expire(time.monotonic())
+
+    def _expire(self, now: float) -> None:
+        """:meth:`expire` holding the lock."""
+        for robot in [r for r, heard in self._heard.items() if r not in self._vouched and now - heard > self.stray_ttl]:
+            del self._latest[robot], self._trajectory[robot], self._heard[robot]
+
+    def robots(self) -> list[str]:
+        """Every robot tracked (stray ones whose time is up are forgotten first)."""
+        with self._lock:
+            self._expire(time.monotonic())
             return sorted(self._latest)
 
     def latest(self, robot: str) -> PoseSummary | None:
-        return self._latest.get(robot)
-
-    def latest_seqs(self) -> dict[str, int]:
-        """The seq of the latest pose of every robot."""
+        """The robot's latest pose; None for a robot not tracked (or a stray one whose time is up)."""
         with self._lock:
-            return {robot: summary.seq for robot, summary in self._latest.items()}
+            self._expire(time.monotonic())
+            return self._latest.get(robot)
+
+    def latest_seqs(self, vouched_only: bool = False) -> dict[str, int]:
+        """The seq of the latest pose of every robot (only of those vouched for, with ``vouched_only``)."""
+        with self._lock:
+            return {robot: summary.seq for robot, summary in self._latest.items()
+                    if not vouched_only or robot in self._vouched}
 
     def trajectory(self, robot: str) -> np.ndarray:
         """Rows (seq, stamp s, x m, y m, yaw rad) of the robot's mean poses, oldest first; (0, 5) if unknown."""

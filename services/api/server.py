@@ -1,19 +1,47 @@
-"""Runs the API under uvicorn on one Zenoh session until SIGINT/SIGTERM or the launcher's death."""
+"""Runs the API under uvicorn on one Zenoh session until SIGINT/SIGTERM or the launcher's death.
+
+The application stack, outermost first: the Host and token checks (services.api.guard), HEAD as GET
+(services.api.head), cached tiles (services.api.fastpath), FastAPI (services.api.app); under uvicorn with the
+request deadline of services.api.protocol, the keep-alive timeout and a cap on open connections.
+"""
 from __future__ import annotations
 
 import threading
+from dataclasses import dataclass, field
 
 import uvicorn
 import zenoh
 
 from services.api.app import Backend, create_app
 from services.api.fastpath import CachedTiles
+from services.api.guard import Guard, allowed_hosts
 from services.api.head import HeadAsGet
+from services.api.limits import (KEEP_ALIVE, MAX_CONNECTIONS, MAX_MAPS, MAX_ROBOTS, REQUEST_TIMEOUT, STRAY_TTL,
+                                 VERIFY_WINDOW, HttpLimits)
+from services.api.protocol import timed_protocol
 from services.process import get_logger, install_stop_event
 from services.zenoh_config import open_session
 
 #: seconds open connections (event streams) get to finish when the server stops
 GRACEFUL_SHUTDOWN = 2.0
+
+
+@dataclass(frozen=True)
+class ServeOptions:
+    """Everything `posegrid api` takes beyond the address and the Zenoh session (docs/api.md)."""
+
+    cache_bytes: int = 256 << 20
+    query_timeout: float = 10.0  # s
+    token: str | None = None
+    allowed_hosts: tuple[str, ...] = ()
+    limits: HttpLimits = field(default_factory=HttpLimits)
+    max_connections: int = MAX_CONNECTIONS
+    keep_alive: float = KEEP_ALIVE  # s
+    request_timeout: float = REQUEST_TIMEOUT  # s
+    max_maps: int = MAX_MAPS
+    max_robots: int = MAX_ROBOTS
+    stray_ttl: float = STRAY_TTL  # s
+    verify_window: float = VERIFY_WINDOW  # s
 
 
 class _Server(uvicorn.Server):
@@ -28,17 +56,23 @@ class _Server(uvicorn.Server):
         super().handle_exit(sig, frame)
 
 
-def serve(host: str, port: int, zenoh_config: zenoh.Config, cache_bytes: int, query_timeout: float) -> int:
+def serve(host: str, port: int, zenoh_config: zenoh.Config, options: ServeOptions = ServeOptions()) -> int:
     """Serve the API and the viewer on http://host:port/ until stopped; returns the exit code."""
     log = get_logger("api")
     stop = install_stop_event()  # uvicorn takes over SIGINT/SIGTERM while it runs; this keeps the parent watch
     session = open_session(zenoh_config, "the API")
     try:
-        backend = Backend.open(session, cache_bytes, query_timeout)
+        backend = Backend.open(session, options.cache_bytes, options.query_timeout, options.max_maps,
+                               options.max_robots, options.stray_ttl, options.verify_window)
         try:
-            config = uvicorn.Config(HeadAsGet(CachedTiles(create_app(backend), backend.tiles)), host=host, port=port,
-                                    log_level="warning", access_log=False, lifespan="on",
-                                    timeout_graceful_shutdown=GRACEFUL_SHUTDOWN)
+            app = Guard(HeadAsGet(CachedTiles(create_app(backend, options.limits), backend.tiles)),
+                        allowed_hosts(host, list(options.allowed_hosts)), options.token)
+            config = uvicorn.Config(app, host=host, port=port, log_level="warning", access_log=False, lifespan="on",
+                                    timeout_graceful_shutdown=GRACEFUL_SHUTDOWN,
+                                    http=timed_protocol(options.request_timeout),
+                                    timeout_keep_alive=options.keep_alive,
+                                    # uvicorn refuses when the open connections, this one included, reach the limit
+                                    limit_concurrency=options.max_connections + 1)
             server = _Server(config, backend)
 
             def exit_when_stopped() -> None:

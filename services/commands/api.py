@@ -2,10 +2,112 @@
 from __future__ import annotations
 
 import argparse
+import os
 
+from services.api import limits
+from services.api.guard import TOKEN_PATTERN
 from services.commands.argtypes import finite_float
 
 DEFAULT_PORT = 8000
+#: the environment variable that gives the API its access token (a child inherits it: `posegrid run`)
+TOKEN_ENV = "POSEGRID_API_TOKEN"
+
+
+def positive_int(text: str) -> int:
+    """An integer >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def positive_seconds(text: str) -> float:
+    """A finite number of seconds > 0."""
+    value = finite_float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0 s, got {text!r}")
+    return value
+
+
+def access_token(text: str) -> str:
+    """An access token: 16 to 256 of A-Z a-z 0-9 - _ . ~ (what travels unchanged in a URL and a cookie)."""
+    if not TOKEN_PATTERN.match(text):
+        raise argparse.ArgumentTypeError("a token is 16 to 256 of A-Z a-z 0-9 - _ . ~ (make one with: python -c "
+                                         "'import secrets; print(secrets.token_urlsafe())')")
+    return text
+
+
+def host_name(text: str) -> str:
+    """A name or address the Host header may give (``*``: any; an IPv6 address with or without brackets)."""
+    import ipaddress
+
+    from services.api.guard import host_of
+
+    try:
+        return str(ipaddress.IPv6Address(text))
+    except ValueError:
+        pass
+    if text != "*" and host_of(text) != text.lower().strip("[]"):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a host name or address (no port, no scheme)")
+    return text
+
+
+#: the HTTP options, which `posegrid run` takes too, as --api-NAME, and passes on: (name, argparse keywords)
+HTTP_OPTIONS: list[tuple[str, dict]] = [
+    ("token", dict(type=access_token, default=None, metavar="TOKEN", help=(
+        f"require this access token on every request (default: ${TOKEN_ENV}, else none): 'Authorization: Bearer "
+        "TOKEN', ?token=TOKEN, or the cookie the viewer gets when opened as /?token=TOKEN; prefer the environment "
+        "variable, which other users cannot read in the process list"))),
+    ("allowed-host", dict(type=host_name, action="append", default=[], metavar="NAME", help=(
+        "also answer requests whose Host header is NAME (repeatable; localhost, 127.0.0.1 and [::1] always are, "
+        "and the --host address; '*': any, behind a proxy that checks it). Others are 400 (DNS rebinding)"))),
+    ("max-event-clients", dict(type=positive_int, default=limits.MAX_EVENT_CLIENTS, metavar="N", help=(
+        f"event streams (GET /events) open at once; the next is 503 (default {limits.MAX_EVENT_CLIENTS})"))),
+    ("max-exports", dict(type=positive_int, default=limits.MAX_EXPORTS, metavar="N", help=(
+        f"exports built at once; the next is 503 (default {limits.MAX_EXPORTS})"))),
+    ("max-export-cells", dict(type=positive_int, default=limits.MAX_EXPORT_CELLS, metavar="N", help=(
+        f"cells the raster of one export may span, else 413: export a window (default {limits.MAX_EXPORT_CELLS}, "
+        f"4096 x 4096; {limits.EXPORT_BYTES_PER_CELL} bytes a cell as npz)"))),
+    ("max-connections", dict(type=positive_int, default=limits.MAX_CONNECTIONS, metavar="N", help=(
+        f"HTTP connections open at once; requests on further ones are 503 (default {limits.MAX_CONNECTIONS})"))),
+    ("keep-alive-timeout", dict(type=positive_seconds, default=limits.KEEP_ALIVE, metavar="S", help=(
+        f"s an idle keep-alive connection stays open (default {limits.KEEP_ALIVE:g})"))),
+    ("request-timeout", dict(type=positive_seconds, default=limits.REQUEST_TIMEOUT, metavar="S", help=(
+        f"s a request may take to arrive whole before its connection is closed (default "
+        f"{limits.REQUEST_TIMEOUT:g})"))),
+]
+
+
+def add_http_arguments(parser: argparse.ArgumentParser, prefix: str = "") -> None:
+    """The HTTP options as ``--{prefix}NAME`` (`posegrid run` uses prefix "api-")."""
+    group = parser.add_argument_group("HTTP access and limits (docs/api.md)")
+    for name, keywords in HTTP_OPTIONS:
+        group.add_argument(f"--{prefix}{name}", **keywords)
+
+
+def _value(args: argparse.Namespace, prefix: str, name: str):
+    return getattr(args, f"{prefix}{name}".replace("-", "_"))
+
+
+def api_child_options(args: argparse.Namespace, prefix: str = "api-") -> list[str]:
+    """The arguments that give a `posegrid api` child the HTTP options of ``args`` (those given as
+    ``--{prefix}NAME``). The token goes in this process's environment (TOKEN_ENV), which the child inherits,
+    not on its command line."""
+    argv = []
+    for name, keywords in HTTP_OPTIONS:
+        value = _value(args, prefix, name)
+        if name == "token":
+            if value is not None:
+                os.environ[TOKEN_ENV] = value
+        elif name == "allowed-host":
+            for host in value:
+                argv += [f"--{name}", host]
+        elif value != keywords["default"]:
+            argv += [f"--{name}", str(value)]
+    return argv
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -19,12 +121,26 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "Swagger UI from a CDN). Connects to the Zenoh router as a client. Stops on Ctrl-C or SIGTERM.",
     )
     api.add_argument("--host", default="127.0.0.1",
-                     help="address to listen on (default 127.0.0.1; 0.0.0.0 exposes the API to the network)")
+                     help="address to listen on (default 127.0.0.1; 0.0.0.0 exposes the API to the network: set "
+                     "--token and --allowed-host then)")
     api.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"TCP port (default {DEFAULT_PORT})")
     api.add_argument("--cache-mb", type=finite_float, default=256.0,
                      help="memory for cached tiles, MiB (default 256; least recently used tiles go first)")
     api.add_argument("--query-timeout", type=finite_float, default=10.0,
                      help="how long a query to the shards may take, s (default 10)")
+    add_http_arguments(api)
+    group = api.add_argument_group("what the API tracks at most (docs/api.md)")
+    group.add_argument("--max-maps", type=positive_int, default=limits.MAX_MAPS, metavar="N",
+                       help=f"maps held, announced or proved; further shard tokens are refused (default "
+                       f"{limits.MAX_MAPS})")
+    group.add_argument("--max-robots", type=positive_int, default=limits.MAX_ROBOTS, metavar="N",
+                       help=f"robots tracked; poses of further robots are refused (default {limits.MAX_ROBOTS})")
+    group.add_argument("--stray-robot-ttl", type=positive_seconds, default=limits.STRAY_TTL, metavar="S",
+                       help="s after its last pose that a robot with no source or SLAM node liveliness token is "
+                       f"forgotten (default {limits.STRAY_TTL:g})")
+    group.add_argument("--verify-window", type=positive_seconds, default=limits.VERIFY_WINDOW, metavar="S",
+                       help="s a shard's liveliness token may wait for the shard to answer its stats query before it "
+                       f"is ignored (default {limits.VERIFY_WINDOW:g})")
     add_zenoh_arguments(api)
     api.set_defaults(func=run_api)
 
@@ -44,6 +160,18 @@ def check_port_free(host: str, port: int) -> None:
                              "(`posegrid run`: --api-port)") from None
 
 
+def token_of(args: argparse.Namespace) -> str | None:
+    """--token, else the TOKEN_ENV environment variable (checked like --token), else None."""
+    from services.cli import UsageError
+
+    if args.token is not None:
+        return args.token
+    value = os.environ.get(TOKEN_ENV) or None
+    if value is not None and not TOKEN_PATTERN.match(value):
+        raise UsageError(f"${TOKEN_ENV} must be 16 to 256 of A-Z a-z 0-9 - _ . ~")
+    return value
+
+
 def run_api(args: argparse.Namespace) -> int:
     from services.cli import UsageError
 
@@ -51,9 +179,16 @@ def run_api(args: argparse.Namespace) -> int:
         raise UsageError(f"--port must be a TCP port (1..65535), got {args.port}")
     if not args.cache_mb > 0 or not args.query_timeout > 0:
         raise UsageError("--cache-mb and --query-timeout must be > 0")
+    token = token_of(args)
     check_port_free(args.host, args.port)
-    from services.api.server import serve
+    from services.api.server import ServeOptions, serve
     from services.zenoh_config import config_from_args
 
-    return serve(args.host, args.port, config_from_args(args, "client"), int(args.cache_mb * 2 ** 20),
-                 args.query_timeout)
+    options = ServeOptions(
+        cache_bytes=int(args.cache_mb * 2 ** 20), query_timeout=args.query_timeout, token=token,
+        allowed_hosts=tuple(args.allowed_host),
+        limits=limits.HttpLimits(args.max_event_clients, args.max_exports, args.max_export_cells),
+        max_connections=args.max_connections, keep_alive=args.keep_alive_timeout,
+        request_timeout=args.request_timeout, max_maps=args.max_maps, max_robots=args.max_robots,
+        stray_ttl=args.stray_robot_ttl, verify_window=args.verify_window)
+    return serve(args.host, args.port, config_from_args(args, "client"), options)

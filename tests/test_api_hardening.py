@@ -1,0 +1,483 @@
+"""`posegrid api` against what a peer on the Zenoh network or an HTTP client may do wrong or on purpose (docs/api.md):
+made-up shard liveliness tokens and stray poses, the Host header, the access token, the limits on event streams,
+exports and export size, the export window, and requests that never finish arriving.
+
+One stack for the module: a router, one real mapper shard mapping the test room at 2 cm with 32-cell tiles, the
+API (real uvicorn process) with small limits, a source replaying 20 scans; the test plays extra "shards" and
+peers over its own Zenoh session.
+"""
+from __future__ import annotations
+
+import dataclasses
+import io
+import math
+import os
+import select
+import socket
+import subprocess
+import threading
+import time
+
+import httpx
+import numpy as np
+import pytest
+
+from api_stack import POSEGRID, ROOT, Stack, free_port, wait_until, write_room
+from schemas.messages import PoseSamples, ShardStats
+from services import keys
+from services.api.guard import allowed_hosts
+from services.map_client import MapReader
+from services.zenoh_config import build_config, open_session
+
+pytestmark = pytest.mark.slow
+
+MAP, RESOLUTION, TILE, SCANS = "lab", 0.02, 32, 20
+TOKEN = "test-token-0123456789abcdef"
+#: the module API's limits (small, so that the tests reach them)
+EXPORT_CELLS, VERIFY_WINDOW, STRAY_TTL, MAX_MAPS, MAX_ROBOTS, REQUEST_TIMEOUT = 20000, 3, 8, 6, 6, 2
+API_OPTIONS = ("--max-maps", str(MAX_MAPS), "--max-robots", str(MAX_ROBOTS), "--stray-robot-ttl", str(STRAY_TTL),
+               "--verify-window", str(VERIFY_WINDOW), "--max-exports", "1", "--max-event-clients", "2",
+               "--max-export-cells", str(EXPORT_CELLS), "--request-timeout", str(REQUEST_TIMEOUT))
+
+
+def start_api(stack: Stack, name: str, *options: str, headers: dict | None = None) -> str:
+    """Start `posegrid api` with ``options`` as process ``name``; its URL once /health answers 200."""
+    url = f"http://127.0.0.1:{free_port()}"
+    stack.start(name, "api", "--port", url.rsplit(":", 1)[1], *options)
+
+    def up() -> bool:
+        stack.check_alive()
+        try:
+            return httpx.get(f"{url}/health", headers=headers, timeout=5).status_code == 200
+        except httpx.TransportError:
+            return False
+    wait_until(up, 60, f"{name} to answer /health")
+    return url
+
+
+def settled(api: str) -> bool:
+    """Whether the shard fused every scan of the replay and the API has every tile update it published."""
+    response = httpx.get(f"{api}/maps/{MAP}/stats", timeout=30)
+    if response.status_code != 200:
+        return False
+    shards = response.json()["per_shard"]
+    return len(shards) == 1 and shards[0]["answered"] and shards[0]["scans_fused"].get("robot0") == SCANS and \
+        shards[0]["tile_updates_received"] == shards[0]["tile_updates"]
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("hardening")
+    processes = Stack(folder)
+    try:
+        processes.router()
+        processes.mappers(1, MAP, "--resolution", str(RESOLUTION), "--tile-size", str(TILE))
+        processes.api_url = start_api(processes, "api", *API_OPTIONS)
+        processes.source(write_room(folder / "room.npz", (0.0, 0.0)), MAP, 1)
+        wait_until(lambda: settled(processes.api_url), 180, "the shard to fuse the replay")
+        yield processes
+    finally:
+        processes.stop()
+
+
+@pytest.fixture(scope="module")
+def api(stack) -> str:
+    return stack.api_url
+
+
+@pytest.fixture(scope="module")
+def session(stack):
+    zenoh_session = open_session(build_config("client", connect=[stack.endpoint]), "the test")
+    yield zenoh_session
+    zenoh_session.close()
+
+
+class FakeShard:
+    """Shard 0 of 1 of map ``name``, played by the test: a liveliness token and a stats queryable that answers
+    valid ShardStats (no tiles). With :attr:`hold` set, it keeps the stats queries it gets unanswered (the query
+    stays open until :meth:`release`) and sets :attr:`held`."""
+
+    def __init__(self, session, name: str) -> None:
+        self.name = name
+        self.hold = False
+        self.held = threading.Event()
+        self._kept: list = []
+        self._queryable = session.declare_queryable(keys.stats_key(name, 0), self._on_query)
+        self._token = session.liveliness().declare_token(keys.shard_alive_key(name, 0))
+
+    def _on_query(self, query) -> None:
+        if self.hold:
+            self._kept.append(query)
+            self.held.set()
+            return
+        given = {"map": self.name, "shard": 0, "shards": 1, "uptime": 1.0}  # the rest: counts of 0, none by key
+        stats = ShardStats(**{f.name: given.get(f.name, {} if f.type in ("dict", dict) else 0)
+                              for f in dataclasses.fields(ShardStats)})
+        query.reply(keys.stats_key(self.name, 0), stats.encode())
+
+    def release(self) -> None:
+        """Answer nothing more to the held queries (dropping them ends them) and answer again."""
+        self.hold = False
+        self._kept.clear()
+
+    def close(self) -> None:
+        self._token.undeclare()
+        self._queryable.undeclare()
+
+
+@pytest.fixture(scope="module")
+def fake_shards(session):
+    """A factory of FakeShards that stay up until the module ends (a proved map whose shard goes away would make
+    /health degraded for the tests after)."""
+    made: list[FakeShard] = []
+
+    def make(name: str) -> FakeShard:
+        made.append(FakeShard(session, name))
+        return made[-1]
+    yield make
+    for fake in made:
+        fake.close()
+
+
+def get_json(url: str, **kwargs) -> dict | list:
+    response = httpx.get(url, timeout=30, **kwargs)
+    assert response.status_code == 200, response.text
+    return response.json()
+
+
+def problem(response: httpx.Response, status: int) -> str:
+    assert response.status_code == status, response.text
+    assert response.headers["content-type"] == "application/json"
+    detail = response.json()["detail"]
+    assert isinstance(detail, str) and detail
+    return detail
+
+
+def map_names(api: str) -> list[str]:
+    return [m["name"] for m in get_json(f"{api}/maps")]
+
+
+def pose(robot: str, seq: int) -> bytes:
+    return PoseSamples(robot=robot, seq=seq, stamp=seq * 0.1, samples=np.array([[1.0, 1.0, 0.0]]),
+                       weights=np.array([1.0])).encode()
+
+
+# ------------------------------------------------------------------------------------------ Zenoh peers
+
+
+def test_a_made_up_shard_token_lists_no_map_and_is_forgotten(api, session):
+    key = keys.shard_alive_key("ghost", 0)
+    token = session.liveliness().declare_token(key)
+    try:
+        def forgotten() -> bool:
+            assert "ghost" not in map_names(api)
+            assert httpx.get(f"{api}/maps/ghost", timeout=30).status_code == 404
+            health = get_json(f"{api}/health")
+            assert health["status"] == "ok" and "ghost" not in health["maps"], health
+            return health["rejected"].get(key, 0) >= 1  # counted as unproved once the window is over
+        wait_until(forgotten, VERIFY_WINDOW + 60, "the made-up token to be counted as unproved")
+    finally:
+        token.undeclare()
+
+
+def test_a_token_for_a_shard_beyond_the_maps_shard_count_is_no_shard(api, session):
+    key = keys.shard_alive_key(MAP, 5)  # the map has 1 shard
+    token = session.liveliness().declare_token(key)
+    try:
+        def forgotten() -> bool:
+            assert get_json(f"{api}/maps/{MAP}")["shards_alive"] == [0]
+            assert [s["shard"] for s in get_json(f"{api}/maps/{MAP}/stats")["per_shard"]] == [0]
+            health = get_json(f"{api}/health")
+            assert health["status"] == "ok", health
+            return health["rejected"].get(key, 0) >= 1
+        wait_until(forgotten, VERIFY_WINDOW + 60, "the token of shard 5 to be counted as unproved")
+    finally:
+        token.undeclare()
+
+
+def test_made_up_maps_are_capped_and_forgotten_when_their_tokens_go(api, session, fake_shards):
+    before = get_json(f"{api}/health")["refused"].get("shard_tokens", 0)
+    tokens = [session.liveliness().declare_token(keys.shard_alive_key(f"flood{i}", 0)) for i in range(10)]
+    try:  # at most MAX_MAPS maps, one of them the real one: at least 10 - (MAX_MAPS - 1) tokens refused
+        wait_until(lambda: get_json(f"{api}/health")["refused"].get("shard_tokens", 0) - before >= 10 - MAX_MAPS + 1,
+                   30, "the tokens beyond --max-maps to be refused")
+        assert not any(name.startswith("flood") for name in map_names(api))
+    finally:
+        for token in tokens:
+            token.undeclare()
+    fake_shards("late")  # a real-looking shard of a new map: there is room for it once the tokens are gone
+    wait_until(lambda: "late" in map_names(api), 30, "map 'late' to be listed")
+    health = get_json(f"{api}/health")
+    assert health["limits"]["maps"] == MAX_MAPS and health["maps"]["late"]["shards_alive"] == [0]
+
+
+def test_stray_poses_neither_lag_nor_degrade_health_and_expire(api, session):
+    """Poses of a robot no source or SLAM node token vouched for: listed for --stray-robot-ttl s, never in the lag,
+    never stranded (they were: lag = seq + 1, 'stranded' 5 s later, degraded until the API restarted)."""
+    key = keys.robot_key("ghostbot", keys.POSE)
+
+    def listed() -> bool:
+        session.put(key, pose("ghostbot", 1000))  # again each time: an earlier one may have met a full tracker
+        return "ghostbot" in [r["robot"] for r in get_json(f"{api}/robots")]
+    wait_until(listed, 60, "the stray robot to be listed")
+    assert STRAY_TTL > 5.0  # longer than the API's STRANDED_AFTER: a stranded robot would show before it expires
+
+    def gone() -> bool:
+        health = get_json(f"{api}/health")
+        assert health["status"] == "ok", health
+        assert "ghostbot" not in health["maps"][MAP]["lag_scans"]
+        assert "ghostbot" not in get_json(f"{api}/maps/{MAP}/stats")["lag_scans"]
+        return "ghostbot" not in health["robots"]
+    wait_until(gone, STRAY_TTL + 60, "the stray robot to expire", interval=0.5)
+    assert httpx.get(f"{api}/robots/ghostbot/pose", timeout=30).status_code == 404
+
+
+def test_robots_are_capped_and_refusals_counted(api, session):
+    before = get_json(f"{api}/health")["refused"].get("robots", 0)
+    for i in range(MAX_ROBOTS + 4):
+        session.put(keys.robot_key(f"crowd{i}", keys.POSE), pose(f"crowd{i}", 1))
+    wait_until(lambda: get_json(f"{api}/health")["refused"].get("robots", 0) - before >= 4, 30,
+               "the poses beyond --max-robots to be refused")
+    assert len(get_json(f"{api}/robots")) <= MAX_ROBOTS
+    assert get_json(f"{api}/health")["limits"]["robots"] == MAX_ROBOTS
+
+
+# ------------------------------------------------------------------------------------------ HTTP access
+
+
+def test_host_header_must_name_the_api(api):
+    detail = problem(httpx.get(f"{api}/health", headers={"Host": "evil.example"}, timeout=30), 400)
+    assert "evil.example" in detail and "--allowed-host" in detail
+    problem(httpx.get(f"{api}/maps", headers={"Host": "evil.example:80"}, timeout=30), 400)
+    problem(httpx.get(f"{api}/maps/{MAP}/tiles/0/0/0.png", headers={"Host": "127.0.0.1.evil.example"}, timeout=30),
+            400)  # the cached-tile fast path is behind the check too
+    for host in ("localhost:1234", "127.0.0.1", "[::1]:8000", "LOCALHOST"):
+        assert httpx.get(f"{api}/health", headers={"Host": host}, timeout=30).status_code == 200, host
+
+
+def test_hosts_beyond_loopback_are_the_allowed_ones_and_the_bound_address():
+    assert allowed_hosts("192.0.2.7", ["maps.example"]) == {"localhost", "127.0.0.1", "::1", "192.0.2.7",
+                                                            "maps.example"}
+    assert allowed_hosts("0.0.0.0", []) == {"localhost", "127.0.0.1", "::1"}
+    assert allowed_hosts("::", ["[2001:db8::1]"]) == {"localhost", "127.0.0.1", "::1", "2001:db8::1"}
+
+
+def test_the_access_token_guards_every_route(stack):
+    url = start_api(stack, "api-token", "--token", TOKEN, headers={"Authorization": f"Bearer {TOKEN}"})
+    try:
+        for path in ("/health", "/maps", "/", "/static/viewer.js", "/openapi.json", "/events"):
+            response = httpx.get(url + path, timeout=30)
+            assert "access token" in problem(response, 401), path
+            assert response.headers["www-authenticate"].startswith("Bearer"), path
+        assert "wrong" in problem(httpx.get(f"{url}/health", headers={"Authorization": "Bearer nope"}, timeout=30),
+                                  401)
+        assert httpx.get(f"{url}/health", headers={"Authorization": f"Bearer {TOKEN}"}, timeout=30).status_code == 200
+        assert httpx.get(f"{url}/health", params={"token": TOKEN}, timeout=30).status_code == 200
+        # the viewer: /?token= sets the cookie and drops the token from the address; the viewer's requests
+        # (static files, the event stream, the API) then carry the cookie
+        opened = httpx.get(f"{url}/", params={"token": TOKEN, "map": MAP}, timeout=30)
+        assert opened.status_code == 303 and opened.headers["location"] == f"/?map={MAP}"
+        cookie = opened.headers["set-cookie"]
+        assert cookie.startswith(f"posegrid_token={TOKEN};") and "HttpOnly" in cookie
+        with httpx.Client(base_url=url, cookies={"posegrid_token": TOKEN}, timeout=30) as browser:
+            assert browser.get("/").headers["content-type"].startswith("text/html")
+            assert browser.get("/static/viewer.js").status_code == 200
+            assert browser.get("/maps").status_code == 200
+            with browser.stream("GET", "/events") as events:
+                assert events.status_code == 200
+                assert "event: hello" in next(events.iter_text())
+    finally:
+        process = stack.processes.pop("api-token")
+        process.terminate()
+        process.wait(30)
+
+
+def test_a_bad_token_is_a_usage_error():
+    for argv, env in ((["api", "--token", "short"], {}), (["api"], {"POSEGRID_API_TOKEN": "has spaces in it ok"})):
+        result = subprocess.run([*POSEGRID, *argv, "--port", str(free_port())], cwd=ROOT, capture_output=True,
+                                text=True, timeout=60, env={**os.environ, **env})
+        assert result.returncode == 2, result.stderr
+        assert "16 to 256" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_posegrid_run_passes_the_http_options_on(monkeypatch):
+    from services.cli import build_parser
+    from services.commands.api import TOKEN_ENV, api_child_options
+
+    monkeypatch.setenv(TOKEN_ENV, "placeholder-0123456789")  # restored after the test
+    args = build_parser().parse_args(["run", "--api-token", TOKEN, "--api-allowed-host", "maps.example",
+                                      "--api-max-exports", "3", "--api-request-timeout", "4"])
+    assert api_child_options(args) == ["--allowed-host", "maps.example", "--max-exports", "3",
+                                       "--request-timeout", "4.0"]
+    assert os.environ[TOKEN_ENV] == TOKEN  # the child inherits it; it is not on its command line
+
+
+# ------------------------------------------------------------------------------------------ limits
+
+
+def test_event_streams_beyond_the_limit_are_503(api):
+    with httpx.Client(base_url=api, timeout=30) as client:
+        with client.stream("GET", "/events") as first, client.stream("GET", "/events") as second:
+            readers = [stream.iter_text() for stream in (first, second)]  # kept: a reader let go closes its stream
+            for stream, reader in zip((first, second), readers):
+                assert stream.status_code == 200 and "event: hello" in next(reader)
+            with httpx.stream("GET", f"{api}/events", timeout=30) as third:  # a stream, were it admitted
+                if third.status_code == 503:
+                    third.read()
+                refused = third
+            assert "--max-event-clients" in problem(refused, 503)
+            assert int(refused.headers["retry-after"]) > 0
+        assert get_json(f"{api}/health")["refused"]["event_clients"] >= 1
+
+        def admitted() -> bool:  # the slots come back once the server sees the streams closed
+            with client.stream("GET", "/events") as again:
+                return again.status_code == 200
+        wait_until(admitted, 30, "an event-stream slot to be free again")
+
+
+def test_exports_beyond_the_limit_are_503(api, fake_shards):
+    slow = fake_shards("slow")
+    wait_until(lambda: "slow" in map_names(api), 30, "map 'slow' to be listed")
+    for _ in range(3):  # again only if the first export was over (the API waits 2 s for stats) before the second
+        slow.held.clear()
+        slow.hold = True  # the export of 'slow' waits for its shard's stats, holding the only export slot
+        answers: list[httpx.Response] = []
+        first = threading.Thread(target=lambda: answers.append(httpx.get(f"{api}/maps/slow/export",
+                                                                         params={"format": "npz"}, timeout=60)))
+        first.start()
+        try:
+            assert slow.held.wait(30), "the export did not ask the shard"
+            refused = httpx.get(f"{api}/maps/{MAP}/export", params={"format": "png"}, timeout=30)
+            first_over = bool(answers)
+        finally:
+            slow.release()
+            first.join(60)
+        if refused.status_code == 503 or not first_over:
+            break
+    assert "--max-exports" in problem(refused, 503)
+    assert int(refused.headers["retry-after"]) > 0
+    assert answers and answers[0].status_code == 503  # its shard did not answer in time
+    assert get_json(f"{api}/health")["refused"]["exports"] >= 1
+    assert httpx.get(f"{api}/maps/{MAP}/export", params={"format": "png"}, timeout=60).status_code != 503
+
+
+# ------------------------------------------------------------------------------------------ export size, window
+
+
+def shards_grid(session):
+    return MapReader(session, MAP).assemble(1, RESOLUTION)
+
+
+def windowed_reference(session, window: tuple[float, float, float, float]) -> dict[str, np.ndarray]:
+    """The shards' map restricted to the cells that overlap ``window`` (m) and cropped to the observed ones,
+    computed here from the whole raster."""
+    full = shards_grid(session).rasterize()
+    rows, columns = full["observed"].shape
+    ix0, iy0 = (round(v / RESOLUTION) for v in full["origin"])
+    ix = ix0 + np.arange(columns)
+    iy = iy0 + np.arange(rows)
+    inside = ((iy >= math.floor(window[1] / RESOLUTION)) & (iy < math.ceil(window[3] / RESOLUTION)))[:, None] & \
+        ((ix >= math.floor(window[0] / RESOLUTION)) & (ix < math.ceil(window[2] / RESOLUTION)))[None, :]
+    observed = full["observed"] & inside
+    keep_rows, keep_columns = np.flatnonzero(observed.any(axis=1)), np.flatnonzero(observed.any(axis=0))
+    crop = (slice(keep_rows[0], keep_rows[-1] + 1), slice(keep_columns[0], keep_columns[-1] + 1))
+    out = {key: full[key][crop] for key in ("logodds", "probability", "variance")}
+    out["observed"] = observed[crop]
+    out["origin"] = np.array([(ix0 + keep_columns[0]) * RESOLUTION, (iy0 + keep_rows[0]) * RESOLUTION])
+    return out
+
+
+WINDOW = (1.5, 1.0, 2.5, 2.0)  # m, inside the room (0..4 m x 0..3 m)
+
+
+def test_an_export_beyond_the_cell_limit_is_413_before_it_is_built_and_a_window_exports(api, session):
+    tiles = shards_grid(session).keys()
+    width = (max(t[0] for t in tiles) - min(t[0] for t in tiles) + 1) * TILE
+    height = (max(t[1] for t in tiles) - min(t[1] for t in tiles) + 1) * TILE
+    assert width * height > EXPORT_CELLS
+    detail = problem(httpx.get(f"{api}/maps/{MAP}/export", params={"format": "npz"}, timeout=60), 413)
+    for part in (f"{width} x {height}", str(width * height), str(width * height * 13), str(EXPORT_CELLS), "x_min"):
+        assert part in detail, (part, detail)
+
+    window = dict(zip(("x_min", "y_min", "x_max", "y_max"), WINDOW))
+    response = httpx.get(f"{api}/maps/{MAP}/export", params={"format": "npz", **window}, timeout=60)
+    assert response.status_code == 200, response.text
+    with np.load(io.BytesIO(response.content)) as data:
+        exported = {key: data[key] for key in data.files}
+    reference = windowed_reference(session, WINDOW)
+    for key in ("logodds", "probability", "observed", "variance"):
+        np.testing.assert_array_equal(exported[key], reference[key], err_msg=key)
+    np.testing.assert_allclose(exported["origin"], reference["origin"])
+    assert exported["origin"][0] >= WINDOW[0] - RESOLUTION and exported["origin"][1] >= WINDOW[1] - RESOLUTION
+
+    assert "all four" in problem(httpx.get(f"{api}/maps/{MAP}/export", params={"format": "npz", "x_min": 1},
+                                           timeout=30), 422)
+    assert "x_min < x_max" in problem(httpx.get(f"{api}/maps/{MAP}/export", params={
+        "format": "npz", **window, "x_max": 1.0}, timeout=30), 422)
+
+
+def test_export_layers_follow_the_openapi_schema(api, session):
+    """Every format and layer the OpenAPI document offers for the export is answered as its description says:
+    npz with a layer is that layer with observed, origin and resolution (it was 422 though the schema allows it),
+    png draws it, pgm takes only probability."""
+    operation = get_json(f"{api}/openapi.json")["paths"]["/maps/{map}/export"]["get"]
+    parameters = {p["name"]: p for p in operation["parameters"]}
+    formats = parameters["format"]["schema"]["enum"]
+    layer_schema = parameters["layer"]["schema"]
+    layers = next(option["enum"] for option in layer_schema["anyOf"] if "enum" in option)
+    assert {"npz", "pgm", "png"} == set(formats) and "variance" in layers
+    assert not parameters["layer"].get("required", False)
+    described = parameters["layer"]["description"]
+    assert "pgm" in described and "422" in described  # the one refused pair is in the document
+    window = dict(zip(("x_min", "y_min", "x_max", "y_max"), WINDOW))
+    reference = windowed_reference(session, WINDOW)
+    for fmt in formats:
+        for layer in layers:
+            response = httpx.get(f"{api}/maps/{MAP}/export", params={"format": fmt, "layer": layer, **window},
+                                 timeout=60)
+            if fmt == "pgm" and layer != "probability":
+                assert "pgm" in problem(response, 422)
+                continue
+            assert response.status_code == 200, (fmt, layer, response.text)
+            if fmt == "npz":
+                with np.load(io.BytesIO(response.content)) as data:
+                    assert sorted(data.files) == sorted([layer, "observed", "origin", "resolution"])
+                    np.testing.assert_array_equal(data["observed"], reference["observed"])
+                    np.testing.assert_array_equal(data[layer], reference[layer])
+
+
+# ------------------------------------------------------------------------------------------ slow requests
+
+
+def closed_within(sock: socket.socket, seconds: float, drip: bytes = b"") -> bool:
+    """Whether the server closes ``sock`` within ``seconds``, while the client sends ``drip`` every 0.5 s."""
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        readable, _, _ = select.select([sock], [], [], 0.5)
+        try:
+            if readable and sock.recv(4096) == b"":
+                return True
+            if drip:
+                sock.sendall(drip)
+        except (ConnectionResetError, BrokenPipeError):
+            return True
+    return False
+
+
+def test_a_request_that_never_finishes_arriving_is_cut_off(api):
+    host, port = api.removeprefix("http://").split(":")
+    with socket.create_connection((host, int(port)), timeout=30) as partial:
+        partial.sendall(b"GET /health HTTP/1.1\r\nHost: 127.0.0.1\r\n")  # no blank line: the headers never end
+        assert closed_within(partial, 30), "the server kept a half-sent request open"
+    with socket.create_connection((host, int(port)), timeout=30) as slowloris:
+        slowloris.sendall(b"GET /health HTTP/1.1\r\n")
+        assert closed_within(slowloris, 30, drip=b"X-Slow: 1\r\n"), "the server kept a dripping request open"
+    with socket.create_connection((host, int(port)), timeout=30) as whole:  # a whole request is answered
+        whole.sendall(b"GET /health HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
+        assert whole.recv(12).startswith(b"HTTP/1.1 200")
+    # an answer that takes longer than the deadline (an event stream) is not cut off
+    with httpx.stream("GET", f"{api}/events", timeout=30) as events:
+        reader = events.iter_text()  # kept: a reader let go closes its stream
+        assert "event: hello" in next(reader)
+        time.sleep(2 * REQUEST_TIMEOUT + 1)
+        assert get_json(f"{api}/health")["event_clients"] >= 1
