@@ -31,6 +31,7 @@ from tqdm import tqdm
 
 from schemas.files import MapFile, save_map
 from services import keys
+from services.api.guard import TOKEN_ENV
 from services.map_client import IncompleteMap, MapReader
 from services.process import PARENT_PID_ENV, get_logger
 from services.security import Role, remove_material, run_material, zenoh_argv
@@ -313,6 +314,8 @@ def _banner(plan: Plan, endpoint: str, children: Children) -> None:
              f"  map {plan.map_name!r}: tiles on {keys.tile_key(plan.map_name, 0, '*', '*')}, "
              f"stats on {keys.stats_key(plan.map_name, '*')}",
              (f"  HTTP API and map viewer: http://127.0.0.1:{plan.api_port}/  (OpenAPI: /openapi.json)"
+              + ("; it wants the access token: open /?token=TOKEN once, or send 'Authorization: Bearer TOKEN'"
+                 if os.environ.get(TOKEN_ENV) else "")
               if plan.api_port is not None else "  HTTP API: not started (--no-api)"),
              "  running: " + ", ".join(f"{c.name} (pid {c.process.pid})" for c in children.children),
              "  Ctrl-C stops everything"]

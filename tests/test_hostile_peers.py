@@ -8,11 +8,13 @@ processes (router, mapper shard, SLAM node, HTTP API) and checks that every one 
 from __future__ import annotations
 
 import contextlib
+import json
 import logging
 import signal
 import subprocess
 import sys
 import time
+import urllib.request
 
 import numpy as np
 import pytest
@@ -281,12 +283,27 @@ def test_after_the_hostile_keys_every_process_still_answers_and_fuses(pipeline):
     assert stats is not None and stats.fused.get("r9") == 1, stats
     assert stats.rejected.get(keys.INVALID_KEY, 0) >= 2
     assert [r.ok for r in session.get("pg/robot0/slam/stats", timeout=5) if r.ok is not None]
-    import urllib.request
-
-    with urllib.request.urlopen(f"http://127.0.0.1:{api_port}/health", timeout=20) as response:
-        assert response.status in (200, 503)
+    session.put("pg/r9/scan", _scan(100_000, "r9").encode(), congestion_control=zenoh.CongestionControl.BLOCK)
+    health, deadline = None, time.monotonic() + 60
+    while time.monotonic() < deadline:  # /health says what the shards could not trust (finding 2)
+        with urllib.request.urlopen(f"http://127.0.0.1:{api_port}/health", timeout=20) as response:
+            health = json.load(response)
+        distrust = " ".join(health["maps"].get("m", {}).get("distrust", []))
+        if "seq window" in distrust and "no posegrid key" in distrust:
+            break
+        time.sleep(0.5)
+    assert "seq window" in distrust and "no posegrid key" in distrust, health
     dead = {name: process.returncode for name, (process, _) in procs.items() if process.poll() is not None}
     assert not dead, dead
+
+
+def test_health_names_each_kind_of_distrusted_refusal_once():
+    from services.api.app import distrust
+
+    assert distrust({"ahead": 4, "malformed": 7, "key": 1}) == [
+        "4 messages with seqs or ends beyond the seq window (forged or stray seqs; held, never fused)",
+        "1 messages on keys that are no posegrid key (wildcards, made-up streams)"]
+    assert distrust({"malformed": 3, "missing": 2}) == []
 
 
 # ------------------------------------------------------------------------------------------------ files

@@ -128,6 +128,25 @@ class Backend:
         self.link.close()
 
 
+#: the kinds of refusal (ShardStats.refused) that say a peer sends what it should not, and what each means
+DISTRUSTED = {
+    "ahead": "messages with seqs or ends beyond the seq window (forged or stray seqs; held, never fused)",
+    "key": "messages on keys that are no posegrid key (wildcards, made-up streams)",
+    "duplicate": "scans or poses that differ from the ones fused for the same seq (two publishers for one robot?)",
+    "robots": "messages of robots past the shards' --max-robots",
+    "size": "messages larger than the limits allow",
+    "work": "scans whose fusion would cost more than --max-work",
+    "bound": "scans posed beyond --map-bound",
+    "extent": "scans reaching more cells than --max-scan-cells",
+}
+
+
+def distrust(refused: dict[str, int]) -> list[str]:
+    """One sentence per kind of refusal in ``refused`` (by kind, summed over a map's shards) that :data:`DISTRUSTED`
+    names, e.g. "4 messages with seqs or ends beyond the seq window (...)"."""
+    return [f"{refused[kind]} {text}" for kind, text in DISTRUSTED.items() if refused.get(kind)]
+
+
 def _extent(x0: float, y0: float, x1: float, y1: float) -> models.Extent:
     return models.Extent(x_min=x0, y_min=y0, x_max=x1, y_max=y1)
 
@@ -401,8 +420,13 @@ def create_app(backend: Backend, limits: HttpLimits = HttpLimits()) -> FastAPI:
         fused = {r: min(s.scans_fused.get(r, 0) for s in answered) for r in robots_seen} if answered else {}
         discarded = {r: max(s.scans_discarded.get(r, 0) for s in answered) for r in robots_seen} if answered else {}
         lag = {r: max(s.lag_scans.get(r, 0) for s in answered) for r in robots_seen if r in latest} if answered else {}
+        refused: dict[str, int] = {}
+        for s in stats.values():
+            for kind, count in s.refused.items():
+                refused[kind] = refused.get(kind, 0) + count
         return models.MapStats(map=name, shards=info.shards, shards_alive=sorted(info.alive), scans_fused=fused,
-                               scans_discarded=discarded, lag_scans=lag, rejected=rejected, per_shard=per_shard)
+                               scans_discarded=discarded, lag_scans=lag, rejected=rejected, refused=refused,
+                               per_shard=per_shard)
 
     @app.get("/maps/{map}/stats", response_model=models.MapStats, tags=["status"], responses=errors(404, 422))
     def get_stats(map: MapName) -> models.MapStats:
@@ -422,7 +446,8 @@ def create_app(backend: Backend, limits: HttpLimits = HttpLimits()) -> FastAPI:
         for name in registry.names():
             s = map_stats(name)
             maps[name] = models.MapHealth(shards=s.shards, shards_alive=s.shards_alive, scans_fused=s.scans_fused,
-                                          scans_discarded=s.scans_discarded, lag_scans=s.lag_scans)
+                                          scans_discarded=s.scans_discarded, lag_scans=s.lag_scans,
+                                          distrust=distrust(s.refused))
             stranded = False
             counted = {robot for p in s.per_shard for robot, n in {**(p.scans_fused or {}), **(p.scans_discarded or {}),
                                                                    **(p.scans_announced or {})}.items() if n}

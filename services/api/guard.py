@@ -28,6 +28,8 @@ from urllib.parse import parse_qsl, urlencode
 LOOPBACK_NAMES = frozenset({"localhost", "127.0.0.1", "::1"})
 #: the cookie the viewer's token travels in
 COOKIE = "posegrid_token"
+#: the environment variable that gives the API its access token (a child inherits it: `posegrid run`)
+TOKEN_ENV = "POSEGRID_API_TOKEN"
 #: what a token may hold: characters that travel unchanged in a URL and a cookie (secrets.token_urlsafe's), at
 #: least 16 of them
 TOKEN_PATTERN = re.compile(r"^[A-Za-z0-9_.~-]{16,256}$")

@@ -106,6 +106,9 @@ class MapStats(BaseModel):
     lag_scans: dict[str, int] = Field(description="by robot: the largest lag over the shards (see ShardStatus)")
     rejected: dict[str, int] = Field(description="messages dropped as malformed, by key: the shards' counts "
                                      "plus the API's own")
+    refused: dict[str, int] = Field(default_factory=dict, description="by kind, summed over the shards: what they "
+                                    "refused or gave up (ShardStats.refused: key, ahead, size, work, bound, extent, "
+                                    "robots, malformed, ...)")
     per_shard: list[ShardStatus]
 
 
@@ -115,6 +118,10 @@ class MapHealth(BaseModel):
     scans_fused: dict[str, int] = Field(description="by robot, the minimum over the shards")
     scans_discarded: dict[str, int] = Field(description="by robot, the maximum over the shards: scans the map lacks")
     lag_scans: dict[str, int] = Field(description="by robot, the maximum over the shards")
+    distrust: list[str] = Field(default_factory=list, description="one sentence per kind of message the shards "
+                                "refused that says a peer sends what it should not (forged or stray seqs, keys that "
+                                "are no posegrid key, messages past a limit): the map holds none of them, but "
+                                "someone on the network is misbehaving")
 
 
 class Health(BaseModel):

@@ -5,12 +5,10 @@ import argparse
 import os
 
 from services.api import limits
-from services.api.guard import TOKEN_PATTERN
+from services.api.guard import TOKEN_ENV, TOKEN_PATTERN
 from services.commands.argtypes import finite_float
 
 DEFAULT_PORT = 8000
-#: the environment variable that gives the API its access token (a child inherits it: `posegrid run`)
-TOKEN_ENV = "POSEGRID_API_TOKEN"
 
 
 def positive_int(text: str) -> int:
