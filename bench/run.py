@@ -13,7 +13,7 @@ from pathlib import Path
 RESULTS = Path(__file__).resolve().parent / "results"
 #: benchmark modules, each with run() -> dict of figures
 SUITES = ("bench.fusion", "bench.quality", "bench.adaptive", "bench.adaptive_real", "bench.pipeline", "bench.api",
-          "bench.slam")
+          "bench.slam", "bench.chaos")
 
 
 def run_cli(argv: list[str]) -> str:

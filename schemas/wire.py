@@ -31,7 +31,7 @@ REASONS = (
     "malformed",  # not msgpack, not a map, or no type/version header
     "type",  # unknown message type, or a type not expected on this key
     "version",  # a version of a known type this build does not read
-    "missing",  # a required field is absent
+    "missing_field",  # a required field is absent
     "unknown_field",  # a field the type does not define
     "field_type",  # a field holds the wrong kind of value (text for a number, ...)
     "dtype",  # an array has another dtype than its spec
@@ -364,7 +364,7 @@ def _validate(cls: type[Message], wire: dict) -> dict[str, Any]:
         ctx.fail("version", f"version {wire.get('v')!r} is not supported (this build reads version {cls.VERSION})")
     missing = [name for name in specs if name not in wire]
     if missing:
-        ctx.fail("missing", f"missing field(s) {', '.join(missing)}")
+        ctx.fail("missing_field", f"missing field(s) {', '.join(missing)}")
     extra = sorted(str(k) for k in wire if k not in specs and k not in ("type", "v"))
     if extra:
         ctx.fail("unknown_field", f"unknown field(s) {', '.join(extra)}")

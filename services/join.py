@@ -61,8 +61,10 @@ REFETCH_BATCH = 32
 DEFAULT_SEQ_WINDOW = 1024
 #: messages beyond the window held per stream, lowest seqs kept: taken once the stream gets within the window
 FAR_KEPT = 64
-#: consecutive seqs beyond the window that make the jump believed (a stream that really skipped more than the
-#: window, e.g. a shard cut off for minutes, goes on in order from the far side)
+#: consecutive seqs beyond the window after which a jump is checked: believed when ``recover`` (the histories)
+#: holds the first of them, the same as the one held (a stream that really skipped more than the window, e.g. a
+#: shard cut off for minutes, goes on from the far side, and its publisher's history has it); without ``recover``,
+#: believed on the run alone. A peer forging a run of seqs is never in the real publisher's history
 CONFIRM_RUN = 16
 
 #: what each reason means, for the logs
@@ -102,12 +104,14 @@ class JoinBuffer(Generic[ScanT, PoseT]):
 
     def __init__(self, capacity: int, recover: Callable[[str, bool, int, int], dict[int, object]] | None = None,
                  window: int = DEFAULT_SEQ_WINDOW, max_bytes: int | None = None,
-                 size: Callable[[object], int] = lambda item: 0):
+                 size: Callable[[object], int] = lambda item: 0,
+                 same: Callable[[object, object], bool] = lambda a, b: a == b):
         """``recover(robot, scans, first, last)``: what it can find of the robot's scans (else poses) with seqs
         first..last (inclusive), which its stream skipped, as {seq: scan or pose}. ``window``: seqs beyond its
         stream's last one that a live message may lie (:data:`DEFAULT_SEQ_WINDOW`). ``max_bytes``: bytes (as
         ``size`` measures a half) one robot's waiting halves may hold; beyond, its oldest are evicted as when
-        the buffer is full (None: no bound)."""
+        the buffer is full (None: no bound). ``same(a, b)``: whether two halves are the same message (a far run is
+        believed when ``recover`` gives its first message, the same as the one held)."""
         if capacity < 1:
             raise ValueError(f"join buffer capacity must be >= 1, got {capacity}")
         if window < 1:
@@ -117,6 +121,7 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         self.window = window
         self.max_bytes = max_bytes
         self._size = size
+        self._same = same
         self._far: dict[tuple[str, bool], dict[int, object]] = {}  # (robot, scans?) -> {seq: item} beyond window
         self._pending: OrderedDict[JoinKey, _Pending] = OrderedDict()
         self._last: dict[tuple[str, bool], int] = {}  # (robot, scans?) -> the last seq its stream has passed
@@ -174,13 +179,21 @@ class JoinBuffer(Generic[ScanT, PoseT]):
                 del far[max(far)]
             pairs, gone = [], [GivenUp(robot, seq, 1, is_scan, AHEAD)]
             run = _run_through(far, seq) if seq in far else []
-            if len(run) < CONFIRM_RUN:
+            if len(run) < CONFIRM_RUN or len(run) % CONFIRM_RUN or not self._vouched(robot, is_scan, run[0], far):
                 return pairs, gone
             for other in run:  # the stream goes on in order from the far side: its jump is real
                 more_pairs, more = self._add((robot, other), far.pop(other), is_scan, confirmed=True)
                 pairs, gone = pairs + more_pairs, gone + more
         more_pairs, more = self._reoffer(robot, is_scan)
         return pairs + more_pairs, gone + more + self._within_bytes(robot)
+
+    def _vouched(self, robot: str, is_scan: bool, seq: int, far: dict[int, object]) -> bool:
+        """Whether the far message ``seq`` is vouched for: ``recover`` gives the same message for it (or there is no
+        ``recover`` to ask)."""
+        if self.recover is None:
+            return True
+        found = self.recover(robot, is_scan, seq, seq).get(seq)
+        return found is not None and self._same(found, far[seq])
 
     def _reoffer(self, robot: str, is_scan: bool):
         """Take the far messages of the stream that now lie within the window, in seq order."""

@@ -92,7 +92,7 @@ class MapShard:
         limits = config.limits
         self._join: JoinBuffer[LaserScan, object] = JoinBuffer(
             config.join_capacity, None if history is None else self._recover, window=limits.seq_window,
-            max_bytes=limits.join_bytes, size=message_bytes)
+            max_bytes=limits.join_bytes, size=message_bytes, same=lambda a, b: a.digest() == b.digest())
         self._fused_seqs = SeqLedger(max(SEQ_HORIZON_JOINS * config.join_capacity, 2 * EVICTED_LIMIT))
         self.log = get_logger(f"mapper[{config.shard}]")  # the logger services.mapper.Mapper writes to
         self._robots: set[str] = set()  # robots this shard keeps state for (at most limits.max_robots)

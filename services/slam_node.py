@@ -205,7 +205,7 @@ class SlamNode:
         self.initial = config.initial
         self.driver = None
         needs = GridDriver.needs if config.algorithm == "gridslam" else LandmarkDriver.needs
-        self.steps = StepAssembler(needs, recover=self._recover)
+        self.steps = StepAssembler(needs, recover=self._recover, same=lambda a, b: a.digest() == b.digest())
         self._ready: list[tuple[int, dict]] = []
         self._highest_seq: dict[str, int] = {}
         self._history_high: dict[str, int] = {}  # per stream, the highest seq the source's history gave

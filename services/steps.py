@@ -12,7 +12,8 @@ are held; the oldest is evicted beyond that.
 A live part more than ``window`` seqs beyond the next step to release is not believed on its own word (a peer
 forging a step far ahead would make the assembler skip every real step up to it): it is held apart, at most
 FAR_KEPT seqs of them, and filed once the released steps get within the window of it, or once CONFIRM_RUN
-consecutive far seqs are complete (the stream really jumped). Parts from the source's history are trusted.
+consecutive far seqs are complete and ``recover`` (the source's history) gives the first of them, the same parts
+(the stream really jumped; without ``recover`` the run alone is believed). Parts from the history are trusted.
 """
 from __future__ import annotations
 
@@ -42,7 +43,8 @@ class StepAssembler:
 
     def __init__(self, needs: set[str], capacity: int = 256, reorder: int = 16,
                  recover: Callable[[int, int | None], dict[int, dict]] | None = None,
-                 window: int = DEFAULT_SEQ_WINDOW):
+                 window: int = DEFAULT_SEQ_WINDOW,
+                 same: Callable[[object, object], bool] = lambda a, b: a == b):
         """``recover(first, last)``: the parts {seq: {part: message}} it can find of seqs first..last (inclusive;
         last None: every seq from first on, at the end of the stream), which are about to be skipped; what it
         returns fills them in. ``window``: seqs beyond the next step that a live part may lie."""
@@ -51,6 +53,7 @@ class StepAssembler:
         self.reorder = reorder
         self.recover = recover
         self.window = window
+        self._same = same
         self._far: dict[int, dict] = {}  # seq -> parts, held beyond the window
         self._asked_through = -1  # the last seq recover was asked for
         self.next_seq = 0
@@ -104,11 +107,19 @@ class StepAssembler:
             first -= 1
         while complete(last + 1):
             last += 1
-        if last - first + 1 < CONFIRM_RUN:
+        if last - first + 1 < CONFIRM_RUN or (last - first + 1) % CONFIRM_RUN or not self._vouched(first):
             return False
         for other in range(first, last + 1):
             self._pending[other] = self._far.pop(other)
         return True
+
+    def _vouched(self, seq: int) -> bool:
+        """Whether ``recover`` gives the far step ``seq``'s parts, the same as those held (True without it)."""
+        if self.recover is None:
+            return True
+        found = self.recover(seq, seq).get(seq, {})
+        held = self._far[seq]
+        return all(part in found and self._same(found[part], message) for part, message in held.items())
 
     def _refile_far(self) -> None:
         """File the far parts that the released steps have got within the window of."""

@@ -1,6 +1,6 @@
 """The one place that builds Zenoh configurations for every posegrid process.
 
-Defaults (DESIGN.md): multicast scouting off; a router listens on tcp/127.0.0.1:7447; every other
+Defaults (DESIGN.md): multicast scouting and the shared-memory transport off; a router listens on tcp/127.0.0.1:7447; every other
 process is a Zenoh *client* that connects to that router and listens nowhere, so nothing leaves the
 loopback interface and all traffic follows one path through the router. A user's JSON5 config file
 overrides any of these keys it sets; ``--listen`` / ``--connect`` endpoints on the command line
@@ -59,6 +59,10 @@ def build_config(
         config = zenoh.Config()
     _default(config, "mode", None, mode)
     _default(config, "scouting/multicast/enabled", None, False)
+    # zenoh's shared-memory transport (on by default for messages of 3 KiB and more between processes of one
+    # machine) lost blocking puts while the receiver's network thread waited for Python's GIL: 3 of 20 puts of
+    # 1.6 MB to one slow subscriber (bench/chaos.py); over TCP on loopback all arrive
+    _default(config, "transport/shared_memory/enabled", True, False)
     effective_mode = read_key(config, "mode")
     if effective_mode == "router":
         _default(config, "listen/endpoints", _ZENOH_DEFAULT_LISTEN, [DEFAULT_ROUTER_ENDPOINT])

@@ -231,7 +231,7 @@ def test_missing_and_unknown_fields(message, data):
     wire = wire_of(message)
     name = data.draw(st.sampled_from(sorted(fields(message))))
     del wire[name]
-    assert reason_of(wire) == "missing"
+    assert reason_of(wire) == "missing_field"
     wire = wire_of(message)
     wire["colour"] = 1
     assert reason_of(wire) == "unknown_field"

@@ -257,8 +257,8 @@ def test_forged_seqs_far_ahead_are_held_and_the_real_stream_goes_on():
 def test_a_real_gap_wider_than_the_window_is_believed_from_a_run_and_taken_from_the_history():
     """A shard cut off for longer than the window (live seqs jump 5000 ahead) believes the jump once the stream goes
     on in order for CONFIRM_RUN seqs, and takes what the gap skipped from ``recover``."""
-    history = {seq: f"s{seq}" for seq in range(5000)}
-    poses = {seq: f"p{seq}" for seq in range(5000)}
+    history = {seq: f"s{seq}" for seq in range(5000 + CONFIRM_RUN)}  # the publishers' histories hold the far side
+    poses = {seq: f"p{seq}" for seq in range(5000 + CONFIRM_RUN)}
 
     def recover(robot, is_scan, first, last):
         source = history if is_scan else poses
@@ -273,6 +273,33 @@ def test_a_real_gap_wider_than_the_window_is_believed_from_a_run_and_taken_from_
             gone += _given_up(lost)
     assert pairs == [(f"s{seq}", f"p{seq}") for seq in range(5000 + CONFIRM_RUN)]
     assert {g[4] for g in gone} == {"ahead"}
+
+
+def test_a_forged_run_of_consecutive_seqs_far_ahead_is_not_believed_when_the_history_lacks_it():
+    """A peer forging CONFIRM_RUN (or more) consecutive scans and poses beyond the window: the publishers' histories
+    do not hold them, so the jump is not believed, and the real stream goes on; the bench's step-1 forgery gave
+    up 100 000 seqs as missing and refused the real scans."""
+    real = {seq: (f"s{seq}", f"p{seq}") for seq in range(300)}
+
+    def recover(robot, is_scan, first, last):
+        return {seq: real[seq][0 if is_scan else 1] for seq in range(first, last + 1) if seq in real}
+
+    buffer = JoinBuffer(capacity=64, recover=recover, window=1024)
+    pairs, gone = [], []
+    for seq in range(100):
+        pairs += buffer.add_scan(("r", seq), f"s{seq}")[0] + buffer.add_pose(("r", seq), f"p{seq}")[0]
+    for seq in range(100_000, 100_000 + 2 * CONFIRM_RUN):
+        for add, half in ((buffer.add_scan, "s"), (buffer.add_pose, "p")):
+            got, lost = add(("r", seq), f"forged-{half}{seq}")
+            pairs += got
+            gone += _given_up(lost)
+    for seq in range(100, 300):
+        for add, half in ((buffer.add_scan, "s"), (buffer.add_pose, "p")):
+            got, lost = add(("r", seq), f"{half}{seq}")
+            pairs += got
+            gone += _given_up(lost)
+    assert pairs == [(f"s{seq}", f"p{seq}") for seq in range(300)]
+    assert {g[4] for g in gone} == {"ahead"} and len(gone) == 4 * CONFIRM_RUN
 
 
 def test_the_join_holds_at_most_its_byte_bound_of_one_robots_halves():
@@ -383,6 +410,26 @@ def test_forged_steps_far_ahead_do_not_make_the_assembler_skip_the_real_ones():
             released += [s for s, _ in out.steps]
             assert out.skipped == []
     assert released == list(range(100)) and ahead == 40
+
+
+def test_a_forged_run_of_consecutive_steps_is_not_taken_when_the_history_lacks_it():
+    real = {seq: {"odom": f"odom{seq}", "scan": f"scan{seq}"} for seq in range(100)}
+    steps = StepAssembler({"odom", "scan"}, reorder=16, window=1024,
+                          recover=lambda first, last: {s: real[s] for s in range(first, (last or first) + 1)
+                                                       if s in real})
+    released = []
+    for seq in range(50):
+        for part in ("odom", "scan"):
+            released += [s for s, _ in steps.add(part, seq, f"{part}{seq}").steps]
+    for seq in range(100_000, 100_000 + 2 * CONFIRM_RUN):  # consecutive and complete, but no history has them
+        for part in ("odom", "scan"):
+            assert steps.add(part, seq, "forged").steps == []
+    for seq in range(50, 100):
+        for part in ("odom", "scan"):
+            out = steps.add(part, seq, f"{part}{seq}")
+            released += [s for s, _ in out.steps]
+            assert out.skipped == []
+    assert released == list(range(100))
 
 
 def test_steps_about_to_be_skipped_are_asked_for_and_what_comes_back_is_used():
