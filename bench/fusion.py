@@ -223,8 +223,8 @@ def run(steps: int = 400, octomap_mc_every: int = 1) -> dict:
 
     # each baseline runs in turns with posegrid on the same scans (_interleaved_seconds). OctoMap fed 60 samples
     # takes about 0.18 s a scan; it is fed every scan (octomap_mc_every = 1), as posegrid is: fed every 20th scan
-    # only (until the ninth session), its smaller tree took 6 % less time a scan (0.166 against 0.177 s, the same
-    # 10 scans), which flattered it
+    # only, its smaller tree takes 6 % less time a scan (0.166 against 0.177 s, the same 10 scans), which would
+    # flatter it
     mc_steps, grid_mc = _fusion_steps(posed, "mc")
     plain_steps, visits = _plain_loop_steps(posed)
     bresenham_steps, bresenham_visits = _plain_loop_steps(posed, _bresenham_ray_loop)
