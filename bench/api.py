@@ -26,7 +26,7 @@ import httpx
 
 from bench.scenarios import honest_posed_scans, office_run
 from schemas.files import save_posed_scans
-from services.launcher import Children, free_port
+from services.nodes.launcher import Children, free_port
 from services.process import get_logger
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -28,7 +28,7 @@ posegrid turns it off in every config it builds (services.zenoh_config), and eve
 What the mix leaves out, because no limit can tell it from the real robot (only access control keeps such a
 peer out, docs/security.md):
 
-- valid messages of "bench" at seqs within the seq window of its stream (services.join.DEFAULT_SEQ_WINDOW): a
+- valid messages of "bench" at seqs within the seq window of its stream (services.state.join.DEFAULT_SEQ_WINDOW): a
   forged pose for a seq the real stream has not reached yet is taken first (the first one stands), so the map
   would differ;
 - stray robot names before the real robot's first message: the max_robots slots go first come, first served,
@@ -52,11 +52,11 @@ from mapping.grid import TILE_SIZE
 from mapping.sensor_model import SensorModel
 from schemas.messages import MAX_SEQ, LaserScan, MessageError, PoseSamples, ShardStats, StreamEnd
 from services import keys
-from services.limits import ShardLimits
+from services.state.limits import ShardLimits
 from services.map_client import IncompleteMap, MapReader
 from services.process import get_logger
-from services.shard import SHARD_STREAMS
-from services.source import STREAM_OF, Source, SourceOptions, SourceStalled
+from services.state.shard import SHARD_STREAMS
+from services.nodes.source import STREAM_OF, Source, SourceOptions, SourceStalled
 from services.streams import Stream, posed_stream
 from services.zenoh_config import build_config
 

@@ -28,10 +28,10 @@ from bench.scenarios import honest_posed_scans, office_run, select_scans
 from mapping.grid import TILE_SIZE
 from schemas.messages import ShardStats, TileUpdate, decode_message
 from services import keys
-from services.launcher import Children, free_port
+from services.nodes.launcher import Children, free_port
 from services.map_client import MapReader
 from services.process import get_logger
-from services.source import Source, SourceOptions
+from services.nodes.source import Source, SourceOptions
 from services.streams import posed_stream
 from services.fusion_runner import fuse_posed_scans
 from services.zenoh_config import build_config

@@ -13,6 +13,8 @@ import argparse
 import importlib
 import sys
 
+from services.errors import UsageError
+
 #: modules that register subcommands, in the order ``--help`` lists them
 COMMAND_MODULES = (
     "services.commands.mapping",
@@ -22,10 +24,6 @@ COMMAND_MODULES = (
     "services.commands.api",
     "services.commands.security",
 )
-
-
-class UsageError(Exception):
-    """A command-line argument is wrong; the message says what and how to fix it (exit 2)."""
 
 
 def input_errors() -> tuple[type[BaseException], ...]:
@@ -73,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    # run the imported module's main, not this __main__ copy: the subcommands raise services.cli.UsageError,
+    # run the imported module's main, not this __main__ copy: the subcommands raise services.errors.UsageError,
     # which must be the class main() catches
     from services.cli import main as imported_main
 

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import zenoh
 
-from services.cli import UsageError
+from services.errors import UsageError
 
 #: where the router listens and everyone else connects unless configured otherwise
 DEFAULT_ROUTER_ENDPOINT = "tcp/127.0.0.1:7447"
@@ -42,7 +42,7 @@ def build_config(
 
     Starts from ``config_file`` (JSON5) when given and fills every key the file leaves unset with
     posegrid's loopback-only defaults; non-empty ``listen`` / ``connect`` endpoint lists replace the
-    corresponding keys. Raises :class:`services.cli.UsageError` for an unknown mode, a missing or invalid
+    corresponding keys. Raises :class:`services.errors.UsageError` for an unknown mode, a missing or invalid
     file, or an endpoint zenoh rejects.
     """
     if mode not in MODES:

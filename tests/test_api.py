@@ -27,7 +27,7 @@ from schemas.files import load_map, load_posed_scans
 from schemas.messages import TileUpdate
 from services import keys
 from services.map_client import MapReader
-from services.ownership import tile_owner
+from services.state.ownership import tile_owner
 from services.zenoh_config import build_config, open_session
 
 pytestmark = pytest.mark.slow

@@ -17,7 +17,7 @@ from services.api.registry import MapRegistry
 from services.api.render import LOGODDS_RANGE
 from services.api.robots import RobotTracker, reduce_samples, summarize, weighted_mean_cov
 from services.api.tiles import TileService, render_key, tile_facts, variance_scale
-from services.ownership import tile_owner
+from services.state.ownership import tile_owner
 
 
 def test_versions_propagate_to_every_level_and_only_grow():

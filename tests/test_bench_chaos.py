@@ -10,10 +10,10 @@ from bench.scenarios import honest_posed_scans, office_run
 from mapping.sensor_model import SensorModel
 from schemas.messages import POSE_TYPES, LaserScan, MessageError, StreamEnd, decode_message
 from services import keys
-from services.join import CONFIRM_RUN, DEFAULT_SEQ_WINDOW
+from services.state.join import CONFIRM_RUN, DEFAULT_SEQ_WINDOW
 from services.process import RejectCounter, get_logger
-from services.shard import MapShard, ShardConfig
-from services.source import STREAM_OF
+from services.state.shard import MapShard, ShardConfig
+from services.nodes.source import STREAM_OF
 from services.streams import posed_stream
 
 SCANS = 12

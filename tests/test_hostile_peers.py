@@ -2,7 +2,7 @@
 wildcard and made-up keys, forged seqs and ends, and valid messages built to exhaust a machine. Each is refused
 and counted, and the real stream is fused as if nothing had happened.
 
-The unit tests drive :class:`services.shard.MapShard` directly; the last test publishes generated keys to real
+The unit tests drive :class:`services.state.shard.MapShard` directly; the last test publishes generated keys to real
 processes (router, mapper shard, SLAM node, HTTP API) and checks that every one of them lives and still works.
 """
 from __future__ import annotations
@@ -25,10 +25,10 @@ from hypothesis import strategies as st
 from mapping.sensor_model import SensorModel
 from schemas.messages import MAX_SEQ, LaserScan, PoseSamples, ShardStats, StreamEnd, decode_message
 from services import keys
-from services.launcher import free_port
-from services.limits import ShardLimits, reach_cells
+from services.nodes.launcher import free_port
+from services.state.limits import ShardLimits, reach_cells
 from services.process import MAX_REJECT_KEYS, OTHER_KEYS, RejectCounter
-from services.shard import MapShard, ShardConfig
+from services.state.shard import MapShard, ShardConfig
 from services.zenoh_config import build_config
 
 CLI = [sys.executable, "-m", "services"]

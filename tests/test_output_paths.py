@@ -258,7 +258,7 @@ def test_run_export_that_cannot_be_written_is_an_error_not_wrote(posed_file, tmp
     (it was checked at the start) gives exit 1 and one error line, and the FIFO stays."""
     from schemas.files import load_posed_scans
     from services.fusion_runner import fuse_posed_scans
-    from services.launcher import Plan, _export
+    from services.nodes.launcher import Plan, _export
 
     grid = fuse_posed_scans(load_posed_scans(posed_file))
     fifo = tmp_path / "map.npz"

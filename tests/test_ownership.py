@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from services.ownership import owns_tile, tile_owner, tile_score
+from services.state.ownership import owns_tile, tile_owner, tile_score
 
 TILES = [(tx, ty) for tx in range(-30, 30) for ty in range(-30, 30)]  # 3600 tiles
 
@@ -53,7 +53,7 @@ def test_removing_a_shard_moves_only_its_tiles():
 
 def test_scores_are_the_same_in_another_process():
     """Python's hash() is salted per process; the score must not be."""
-    code = ("from services.ownership import tile_score; "
+    code = ("from services.state.ownership import tile_score; "
             "print([tile_score((tx, -tx), s) for tx in range(5) for s in range(3)])")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          env={"PYTHONHASHSEED": "12345", "PATH": ""}, cwd=str(__import__("conftest").ROOT))

@@ -32,8 +32,8 @@ from schemas.files import PosedScans, PoseSet, load_map, load_posed_scans, save_
 from schemas.messages import LandmarkObservations, LaserScan, MessageError, NodeStats, Odometry, PoseGaussian, \
     PoseSamples, ShardStats, StreamEnd, decode_message
 from services.cli import main
-from services.launcher import free_port
-from services.ownership import tile_owner
+from services.nodes.launcher import free_port
+from services.state.ownership import tile_owner
 from services.zenoh_config import build_config
 
 pytestmark = pytest.mark.slow
@@ -458,7 +458,7 @@ def test_grid_fastslam_node_over_zenoh_gives_the_map_of_its_filter_in_process(tm
     from services.commands.logs import read_log
     from services.fusion_runner import fuse_posed_scans
     from services.keys import ODOM, SCAN
-    from services.slam_node import GridDriver
+    from services.nodes.slam_node import GridDriver
     from services.streams import laser_log_stream
     from slam.gridslam import GridSlamConfig
     from slam.laserlog import with_odometry_delay

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from mapping.sensor_model import SensorModel
 from schemas.messages import LaserScan, PoseGaussian, PoseSamples, StreamEnd
-from services.join import (
+from services.state.join import (
     CONFIRM_RUN,
     EVICTED_LIMIT,
     JUMP,
@@ -25,10 +25,10 @@ from services.join import (
     JoinBuffer,
     SeqLedger,
 )
-from services.limits import ShardLimits
+from services.state.limits import ShardLimits
 from services.process import RejectCounter
-from services.shard import FUSIONS_KEPT, SETTLE_AFTER, MapShard, ShardConfig
-from services.steps import OutOfOrder, StepAssembler
+from services.state.shard import FUSIONS_KEPT, SETTLE_AFTER, MapShard, ShardConfig
+from services.state.steps import OutOfOrder, StepAssembler
 
 
 @settings(max_examples=60, deadline=None)

@@ -11,8 +11,8 @@ import time
 import pytest
 import zenoh
 
-from services.cli import UsageError, main
-from services.launcher import free_port
+from services.errors import UsageError, main
+from services.nodes.launcher import free_port
 from services.zenoh_config import build_config, read_key
 
 CLI = [sys.executable, "-m", "services"]

@@ -30,7 +30,7 @@ import pytest
 import zenoh
 
 from services.cli import main
-from services.launcher import free_port
+from services.nodes.launcher import free_port
 from services.security import Material, write_material
 
 CLI = [sys.executable, "-m", "services"]

@@ -1,4 +1,4 @@
-"""`posegrid run` supervises its children (services.launcher.RestartPolicy, Children.tend):
+"""`posegrid run` supervises its children (services.nodes.launcher.RestartPolicy, Children.tend):
 
 - the backoff and the cap on restarts, with an injected clock: exact delays;
 - a child that ends is started again with the same arguments, one line per restart; the source only when it
@@ -24,7 +24,7 @@ import pytest
 
 from schemas.files import load_map
 from services.cli import main
-from services.launcher import Children, RestartPolicy, describe_exit
+from services.nodes.launcher import Children, RestartPolicy, describe_exit
 from services.process import get_logger
 from test_pipeline import CLI, _alive, make_posed, procs  # noqa: F401  (procs: the fixture)
 
@@ -145,7 +145,7 @@ def test_a_child_failing_past_the_cap_is_returned_with_one_line(fake_children, c
 
 
 def test_a_child_that_refuses_its_input_is_not_restarted(fake_children, capsys):
-    """Exit 2 is a refused input or option (services.cli.UsageError): a restart would fail the same way, so the run
+    """Exit 2 is a refused input or option (services.errors.UsageError): a restart would fail the same way, so the run
     stops at once with one line."""
     children, _, spawned = fake_children
     source = children.start("source", ["source", "--posed", "bad.npz"], expected_to_finish=True)

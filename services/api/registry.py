@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 from mapping.pyramid import children_of, tile_range, top_level
 from services.api.limits import MAX_MAPS, MAX_PENDING
-from services.ownership import tile_owner
+from services.state.ownership import tile_owner
 
 TileKey = tuple[int, int]
 
@@ -188,7 +188,7 @@ class MapRegistry:
     def check_sender(self, name: str, shard: int, tile: TileKey) -> str | None:
         """Why a tile update that says it comes from ``shard`` for level-0 ``tile`` of map ``name`` is not to be
         trusted (None when it is): no live shard serves the map, that shard is not alive, or, once the shard
-        count is known, the tile is another shard's (services.ownership)."""
+        count is known, the tile is another shard's (services.state.ownership)."""
         with self.lock:
             info = self._maps.get(name)
             if info is None or not (info.alive or info.pending):

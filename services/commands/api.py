@@ -147,7 +147,7 @@ def check_port_free(host: str, port: int) -> None:
     """Raise UsageError when nothing can listen on host:port (taken, or not an address of this machine)."""
     import socket
 
-    from services.cli import UsageError
+    from services.errors import UsageError
 
     with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as probe:
         probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -160,7 +160,7 @@ def check_port_free(host: str, port: int) -> None:
 
 def token_of(args: argparse.Namespace) -> str | None:
     """--token, else the TOKEN_ENV environment variable (checked like --token), else None."""
-    from services.cli import UsageError
+    from services.errors import UsageError
 
     if args.token is not None:
         return args.token
@@ -171,7 +171,7 @@ def token_of(args: argparse.Namespace) -> str | None:
 
 
 def run_api(args: argparse.Namespace) -> int:
-    from services.cli import UsageError
+    from services.errors import UsageError
 
     if not 0 < args.port < 65536:
         raise UsageError(f"--port must be a TCP port (1..65535), got {args.port}")

@@ -66,7 +66,7 @@ def checked_output(value: str | Path | None, option: str) -> Path | None:
     :func:`schemas.files.write_atomically` could not write it (an empty path, a folder, a device, FIFO or socket,
     a missing or unwritable folder). Call it at the start of a command, before reading or computing anything."""
     from schemas.files import output_path_problem
-    from services.cli import UsageError
+    from services.errors import UsageError
 
     if value is None:
         return None

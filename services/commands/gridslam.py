@@ -49,7 +49,7 @@ def filter_option_values(args: argparse.Namespace) -> list[tuple[str, str, float
 
 def reject_filter_options(args: argparse.Namespace, algo: str) -> None:
     """Raise UsageError when a grid FastSLAM filter option is given to another algorithm (it would be ignored)."""
-    from services.cli import UsageError
+    from services.errors import UsageError
 
     given = [option for option, _, value in filter_option_values(args) if value is not None]
     given += ["--scans"] if getattr(args, "scans", None) is not None else []
@@ -110,7 +110,7 @@ def add_gridslam_arguments(parser: argparse.ArgumentParser) -> None:
 def _config(args: argparse.Namespace):
     from dataclasses import replace
 
-    from services.cli import UsageError
+    from services.errors import UsageError
     from slam.gridslam import GridSlamConfig
 
     overrides = {"particles": DEFAULT_GRID_PARTICLES if args.particles is None else args.particles,
@@ -138,7 +138,7 @@ def _output_paths(args: argparse.Namespace) -> tuple[Path, Path]:
     """The best-particle and pose-distribution paths (--best-output, --poses-output or their defaults beside
     OUTPUT), each output checked by :func:`checked_output`; raise UsageError when one cannot be written or two of
     OUTPUT, those two and --stats name one file (one would overwrite the other)."""
-    from services.cli import UsageError
+    from services.errors import UsageError
 
     check_outputs(args, output="-o", best_output="--best-output", poses_output="--poses-output", stats="--stats")
     best = args.best_output or checked_output(args.output.with_suffix(".best.npz"), "--best-output's default")
@@ -179,7 +179,7 @@ def _apply_odometry_delay(args: argparse.Namespace, log, config):
     import numpy as np
     from tqdm import tqdm
 
-    from services.cli import UsageError
+    from services.errors import UsageError
     from slam.errors import LogFormatError
     from slam.gridslam import run_gridslam
     from slam.laserlog import check_odometry_stream, with_odometry_delay
@@ -220,7 +220,7 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
 
     from schemas.files import (PoseDistributionFile, PosedScans, PoseSet, save_pose_distribution, save_posed_scans,
                                write_atomically)
-    from services.cli import UsageError
+    from services.errors import UsageError
     from services.commands.logs import read_log
     from slam.gridslam import run_gridslam
 

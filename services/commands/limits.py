@@ -1,9 +1,9 @@
-"""The resource-limit options of `posegrid mapper` and `posegrid run` (services.limits, docs/security.md)."""
+"""The resource-limit options of `posegrid mapper` and `posegrid run` (services.state.limits, docs/security.md)."""
 from __future__ import annotations
 
 import argparse
 
-from services.limits import ShardLimits
+from services.state.limits import ShardLimits
 
 #: (option, field of ShardLimits, type, help) of each limit
 _LIMITS = (
@@ -35,7 +35,7 @@ def add_limit_arguments(parser: argparse.ArgumentParser) -> None:
 
 def limits_from_args(args: argparse.Namespace) -> ShardLimits:
     """The ShardLimits the options give; UsageError (exit 2) for a value out of range."""
-    from services.cli import UsageError
+    from services.errors import UsageError
 
     try:
         return ShardLimits(**{field: getattr(args, field) for _, field, _, _ in _LIMITS})

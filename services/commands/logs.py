@@ -85,7 +85,7 @@ def _note(message: str) -> None:
 
 def run_eval_relations(args: argparse.Namespace) -> int:
     from schemas.files import write_atomically
-    from services.cli import UsageError
+    from services.errors import UsageError
     from slam.relations import (DEFAULT_MAX_GAP, DEFAULT_TOLERANCE, Trajectory, read_relations, score_relations,
                                 trajectory_from_log)
     from slam.timealign import time_map, to_reference_time

@@ -35,7 +35,7 @@ def sensor_model_from_args(args: argparse.Namespace):
     """The sensor model the options describe; a sigma option that the chosen --sigma-model does not read is
     refused rather than ignored."""
     from mapping.sensor_model import SensorModel
-    from services.cli import UsageError
+    from services.errors import UsageError
 
     unread = {"constant": ("sigma_slope", "baseline_focal"), "linear": ("baseline_focal",),
               "stereo": ("sigma_slope",)}[args.sigma_model]
@@ -149,7 +149,7 @@ def _scans_without_beams(posed, model) -> int:
 
 def _refuse_an_empty_map(args: argparse.Namespace, posed, empty_scans: int) -> None:
     """Raise UsageError naming ``args.posed`` when none of its scans has a usable beam: the map would be empty."""
-    from services.cli import UsageError
+    from services.errors import UsageError
 
     if empty_scans == len(posed.stamps):
         raise UsageError(f"{args.posed}: none of its {empty_scans} scans has a usable beam (every reading is below "
@@ -159,7 +159,7 @@ def _refuse_an_empty_map(args: argparse.Namespace, posed, empty_scans: int) -> N
 
 def run_fuse(args: argparse.Namespace) -> int:
     from schemas.files import MapFile, load_posed_scans, save_map
-    from services.cli import UsageError
+    from services.errors import UsageError
 
     check_outputs(args, output="-o")
     adaptive_options = {"--unknowns/--no-unknowns": args.unknowns, "--coarse-cell": args.coarse_cell,
@@ -215,7 +215,7 @@ def run_fuse(args: argparse.Namespace) -> int:
 def run_export(args: argparse.Namespace) -> int:
     from mapping.export import crop_to_occupied, render_pgm, render_png
     from schemas.files import load_map, write_atomically
-    from services.cli import UsageError
+    from services.errors import UsageError
 
     check_outputs(args, output="-o")
     if args.output.suffix.lower() != f".{args.format}":

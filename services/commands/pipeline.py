@@ -135,7 +135,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def add_restart_arguments(parser: argparse.ArgumentParser) -> None:
-    """When `run` starts a child again that ended (services.launcher.RestartPolicy, whose defaults these show)."""
+    """When `run` starts a child again that ended (services.nodes.launcher.RestartPolicy, whose defaults these show)."""
     group = parser.add_argument_group(
         "restarts", "A child that ends while the run goes on (the source: with a non-zero exit or a signal) is "
         "started again with the same arguments and takes what it missed from the histories; a restarted source "
@@ -155,8 +155,8 @@ def add_restart_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def restart_policy(args: argparse.Namespace):
-    """The services.launcher.RestartPolicy of the restart options; UsageError (exit 2) for a bad value."""
-    from services.cli import UsageError
+    """The services.nodes.launcher.RestartPolicy of the restart options; UsageError (exit 2) for a bad value."""
+    from services.errors import UsageError
 
     if args.max_restarts < 0:
         raise UsageError(f"--max-restarts must be >= 0, got {args.max_restarts}")
@@ -165,7 +165,7 @@ def restart_policy(args: argparse.Namespace):
     if not 0 <= args.restart_delay <= args.max_restart_delay:
         raise UsageError(f"need 0 <= --restart-delay <= --max-restart-delay, got {args.restart_delay} and "
                          f"{args.max_restart_delay}")
-    from services.launcher import RestartPolicy
+    from services.nodes.launcher import RestartPolicy
 
     return RestartPolicy(max_restarts=args.max_restarts, window=args.restart_window, first_delay=args.restart_delay,
                          max_delay=args.max_restart_delay)
@@ -287,8 +287,8 @@ def slam_argv(args: argparse.Namespace, models: str) -> list[str]:
 
 
 def _rate(text: str) -> float | None:
-    from services.cli import UsageError
-    from services.source import parse_rate
+    from services.errors import UsageError
+    from services.nodes.source import parse_rate
 
     try:
         return parse_rate(text)
@@ -299,7 +299,7 @@ def _rate(text: str) -> float | None:
 def _check_name(value: str, option: str) -> None:
     from schemas.messages import RESERVED_ROBOT_NAMES
     from schemas.wire import is_valid_name
-    from services.cli import UsageError
+    from services.errors import UsageError
 
     if not is_valid_name(value) or (option == "--robot" and value in RESERVED_ROBOT_NAMES):
         raise UsageError(f"{option} {value!r} is not a valid name (letters, digits, '_', '.', '-', at most 64"
@@ -307,7 +307,7 @@ def _check_name(value: str, option: str) -> None:
 
 
 def _check_positive(args: argparse.Namespace, *names: str) -> None:
-    from services.cli import UsageError
+    from services.errors import UsageError
 
     for name in names:
         value = getattr(args, name)
@@ -317,7 +317,7 @@ def _check_positive(args: argparse.Namespace, *names: str) -> None:
 
 def _check_log_options(args: argparse.Namespace) -> None:
     """--scan-topic is for a bag, --odom-delay for a laser log."""
-    from services.cli import UsageError
+    from services.errors import UsageError
 
     if args.scan_topic is not None and args.bag is None:
         raise UsageError("--scan-topic names a topic of a ROS bag: give it with --bag")
@@ -329,7 +329,7 @@ def _laser_log(args: argparse.Namespace, command: str):
     """The laser log of --carmen or --bag (read by that format's reader, whatever the file's suffix), with its
     odometry read at --odom-delay; what the reader skipped is noted on stderr. Raises LogFormatError (exit 2)
     for a log that cannot be replayed."""
-    from services.cli import UsageError
+    from services.errors import UsageError
     from slam.carmen import read_carmen
     from slam.errors import LogFormatError
     from slam.laserlog import check_scan_order, with_odometry_delay
@@ -373,7 +373,7 @@ def _stream(args: argparse.Namespace):
 
 def run_router(args: argparse.Namespace) -> int:
     from services.process import install_stop_event
-    from services.router import run_router as route
+    from services.nodes.router import run_router as route
     from services.zenoh_config import config_from_args
 
     config = config_from_args(args, "router")
@@ -381,7 +381,7 @@ def run_router(args: argparse.Namespace) -> int:
 
 
 def run_mapper(args: argparse.Namespace) -> int:
-    from services.cli import UsageError
+    from services.errors import UsageError
 
     if args.shards < 1 or not 0 <= args.shard < args.shards:
         raise UsageError(f"need --shards >= 1 and 0 <= --shard < --shards, got shard {args.shard} of {args.shards}")
@@ -394,9 +394,9 @@ def run_mapper(args: argparse.Namespace) -> int:
     _check_positive(args, "accuracy")
     _check_name(args.map, "--map")
     from services.commands.mapping import sensor_model_from_args
-    from services.mapper import run_mapper as serve
+    from services.nodes.mapper import run_mapper as serve
     from services.process import install_stop_event
-    from services.shard import ShardConfig
+    from services.state.shard import ShardConfig
     from services.zenoh_config import config_from_args
 
     config = ShardConfig(map_name=args.map, shard=args.shard, shards=args.shards, model=sensor_model_from_args(args),
@@ -408,7 +408,7 @@ def run_mapper(args: argparse.Namespace) -> int:
 
 
 def run_source(args: argparse.Namespace) -> int:
-    from services.cli import UsageError
+    from services.errors import UsageError
 
     _check_name(args.robot, "--robot")
     _check_name(args.map, "--map")
@@ -418,7 +418,7 @@ def run_source(args: argparse.Namespace) -> int:
         raise UsageError(f"--steps must be >= 1, got {args.steps}")
     rate = _rate(args.rate)
     from services.process import install_stop_event
-    from services.source import Source, SourceOptions, SourceStalled
+    from services.nodes.source import Source, SourceOptions, SourceStalled
     from services.zenoh_config import config_from_args, open_session
 
     stop = install_stop_event()
@@ -437,7 +437,7 @@ def run_source(args: argparse.Namespace) -> int:
 
 
 def run_pipeline(args: argparse.Namespace) -> int:
-    from services.cli import UsageError
+    from services.errors import UsageError
 
     _check_name(args.robot, "--robot")
     _check_name(args.map, "--map")
@@ -457,8 +457,8 @@ def run_pipeline(args: argparse.Namespace) -> int:
         if not 0 < args.api_port < 65536:
             raise UsageError(f"--api-port must be a TCP port (1..65535), got {args.api_port}")
         check_port_free("127.0.0.1", args.api_port)
-    from services.launcher import Plan
-    from services.launcher import run_pipeline as launch
+    from services.nodes.launcher import Plan
+    from services.nodes.launcher import run_pipeline as launch
     from services.process import install_stop_event
 
     plan = Plan(map_name=args.map, robot=args.robot, shards=args.shards, resolution=args.resolution,
@@ -548,7 +548,7 @@ def _slam_models(args: argparse.Namespace):
 
 
 def run_slam_node(args: argparse.Namespace) -> int:
-    from services.cli import UsageError
+    from services.errors import UsageError
 
     _check_name(args.robot, "--robot")
     if not 0 <= args.resample_threshold <= 1:
@@ -565,8 +565,8 @@ def run_slam_node(args: argparse.Namespace) -> int:
     import numpy as np
 
     from services.process import install_stop_event
-    from services.slam_node import NodeConfig
-    from services.slam_node import run_slam_node as serve
+    from services.nodes.slam_node import NodeConfig
+    from services.nodes.slam_node import run_slam_node as serve
     from services.zenoh_config import config_from_args
 
     config = NodeConfig(robot=args.robot, algorithm=algo,

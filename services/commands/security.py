@@ -44,7 +44,7 @@ def _endpoint_host(host: str) -> str:
 
 
 def run_secure_init(args: argparse.Namespace) -> int:
-    from services.cli import UsageError
+    from services.errors import UsageError
     from services.commands.pipeline import DEFAULT_MAP, DEFAULT_ROBOT, _check_name
     from services.security import DEFAULT_VALID_DAYS, write_material
 

@@ -161,7 +161,7 @@ SIMULATION_FILES = ("scans.npz", "truth.npz", "groundtruth.npz", "controls.npz",
 def _simulation_folder(text: str) -> Path:
     """OUTDIR of `posegrid simulate`, created if missing, after checking that it can hold every one of
     :data:`SIMULATION_FILES` (UsageError otherwise, naming the path and what to do)."""
-    from services.cli import UsageError
+    from services.errors import UsageError
 
     if not text:
         raise UsageError("OUTDIR '': an empty path names no folder; give the folder to write")
@@ -178,7 +178,7 @@ def _simulation_folder(text: str) -> Path:
 
 
 def run_simulate(args: argparse.Namespace) -> int:
-    from services.cli import UsageError
+    from services.errors import UsageError
 
     limits = {"--steps": (args.steps, 1, 100_000), "--beams": (args.beams, 1, 100_000), "--dt": (args.dt, 1e-3, 1.0),
               "--resolution": (args.resolution, 5e-3, 1.0), "--laser-sigma": (args.laser_sigma, 0.0, 1.0),
@@ -216,7 +216,7 @@ def run_simulate(args: argparse.Namespace) -> int:
 
 
 def _floats(text: str, count: tuple[int, ...], option: str) -> list[float]:
-    from services.cli import UsageError
+    from services.errors import UsageError
 
     try:
         values = [float(v) for v in text.split(",")]
@@ -230,7 +230,7 @@ def _floats(text: str, count: tuple[int, ...], option: str) -> list[float]:
 def _initial_pose(text: str) -> list[float]:
     """--initial X,Y,YAW (m, m, rad), each within +-POSE_LIMIT (the bound every pose message keeps to)."""
     from schemas.messages import POSE_LIMIT
-    from services.cli import UsageError
+    from services.errors import UsageError
 
     pose = _floats(text, (3,), "--initial")
     if max(abs(v) for v in pose) > POSE_LIMIT:
@@ -240,7 +240,7 @@ def _initial_pose(text: str) -> list[float]:
 
 def _load_input(args: argparse.Namespace):
     """(sequence, motion model, sensor model, default outlier gate, posed-scans path or None, notes)."""
-    from services.cli import UsageError
+    from services.errors import UsageError
     from slam import mrclam
     from slam.simlog import CONTROLS_FILE, load_sim_log
 
@@ -286,7 +286,7 @@ def _load_input(args: argparse.Namespace):
 
 def _check_limits(option: str, value: float, limits: tuple[float, float]) -> None:
     """Raise UsageError unless low <= value <= high for ``limits`` = (low, high) (the option's units)."""
-    from services.cli import UsageError
+    from services.errors import UsageError
 
     low, high = limits
     if not low <= value <= high:
@@ -296,7 +296,7 @@ def _check_limits(option: str, value: float, limits: tuple[float, float]) -> Non
 def _noise_overrides(args: argparse.Namespace, motion, sensor, gate):
     from dataclasses import replace
 
-    from services.cli import UsageError
+    from services.errors import UsageError
     from slam.motion import ALPHA_LIMITS, VelocityMotionModel
     from slam.range_bearing import RANGE_FRACTION_LIMITS, SIGMA_BEARING_LIMITS, SIGMA_RANGE_LIMITS
 
@@ -321,7 +321,7 @@ def _noise_overrides(args: argparse.Namespace, motion, sensor, gate):
 
 
 def _make_filter(args: argparse.Namespace, motion, sensor, gate, initial, default_particles: int = DEFAULT_PARTICLES):
-    from services.cli import UsageError
+    from services.errors import UsageError
     from slam.dead_reckoning import DeadReckoning
     from slam.ekf import EKFSLAM
     from slam.fastslam import FastSLAM
@@ -343,7 +343,7 @@ def _refuse_ignored_options(args: argparse.Namespace) -> None:
     """Raise UsageError when an option is given to an algorithm that would ignore it (:data:`OPTION_ALGORITHMS`;
     grid FastSLAM's own options: :func:`services.commands.gridslam.reject_filter_options`), then put the
     defaults of :data:`SLAM_DEFAULTS` in place of the options left alone."""
-    from services.cli import UsageError
+    from services.errors import UsageError
     from services.commands.gridslam import reject_filter_options
 
     reject_filter_options(args, args.algo)
@@ -428,7 +428,7 @@ def _truth_at(path: Path, stamps):
     ground truth covers no stamp."""
 
     from schemas.files import load_pose_distribution
-    from services.cli import UsageError
+    from services.errors import UsageError
     from slam.mrclam import read_groundtruth
     from slam.scoring import fit_gaussian, interpolate_poses
 
@@ -459,7 +459,7 @@ def run_eval_traj(args: argparse.Namespace) -> int:
     import numpy as np
 
     from schemas.files import load_pose_distribution
-    from services.cli import UsageError
+    from services.errors import UsageError
     from slam.scoring import fit_gaussian, score_trajectory
 
     dist = load_pose_distribution(args.poses)

@@ -3,7 +3,7 @@ scan (pg/<robot>/pose, tagged with the scan's seq).
 
 Landmark filters (odometry dead reckoning, EKF-SLAM, FastSLAM 1.0/2.0, slam/) take step ``seq`` when its
 Odometry and LandmarkObservations are in; grid FastSLAM (slam/gridslam) when its LaserScan and Odometry
-(with the odometry pose) are in. Steps are taken strictly in seq order (services.steps). A message whose
+(with the odometry pose) are in. Steps are taken strictly in seq order (services.state.steps). A message whose
 seq is not above every seq seen on its key arrived out of order: the node says so (logged once per key,
 counted per key) and uses it if its step is still to come, else drops it. The filter starts at ``--initial`` or at
 the prior the source publishes on pg/<robot>/prior. Per step, the node publishes what the offline
@@ -11,7 +11,7 @@ the prior the source publishes on pg/<robot>/prior. Per step, the node publishes
 weights before resampling; grid FastSLAM publishes the filtered particles (the offline run smooths them
 by ancestry, which a live node cannot do).
 
-Threads and bad input as in services.mapper: callbacks feed a bounded intake queue, one thread decodes
+Threads and bad input as in services.nodes.mapper: callbacks feed a bounded intake queue, one thread decodes
 and filters; malformed messages are counted per key in the NodeStats (pg/<robot>/slam/stats) and logged
 once per kind.
 """
@@ -40,9 +40,9 @@ from schemas.messages import (
     decode_message,
 )
 from services import history, keys
-from services.limits import ShardLimits
+from services.state.limits import ShardLimits
 from services.process import RejectCounter, get_logger
-from services.steps import OutOfOrder, Released, StepAssembler
+from services.state.steps import OutOfOrder, Released, StepAssembler
 from services.zenoh_config import open_session
 from slam.gridslam import GridFastSLAM, GridSlamConfig
 from slam.motion import OdometryMotionModel, odometry_controls, split_odometry_motion
@@ -55,7 +55,7 @@ HISTORY_TIMEOUT = 60.0
 RECOVER_TIMEOUT = 5.0
 #: bytes of published poses the node keeps for its history (the oldest go first): 1 KB a pose of 30 particles
 POSE_HISTORY_BYTES = 64 * 2**20
-#: the largest message the node takes off the network: a scan of services.limits.DEFAULT_MAX_BEAMS beams
+#: the largest message the node takes off the network: a scan of services.state.limits.DEFAULT_MAX_BEAMS beams
 MAX_MESSAGE_BYTES = ShardLimits().message_bytes()
 
 

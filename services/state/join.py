@@ -7,14 +7,14 @@ past its Zenoh lease, a full intake queue), or the SLAM node gave up on the step
 a later message of the stream lies beyond it; until then the message past the gap is held, and if the stream
 goes on below it instead, the held one was a stray (another process on the robot's keys) and is refused as a
 jump. Once a gap is believed, the buffer's ``recover`` (if given) is asked for the messages the gap skipped
-(services.shard asks the source's and the SLAM node's histories); what it returns is taken as if it had come,
+(services.state.shard asks the source's and the SLAM node's histories); what it returns is taken as if it had come,
 and so are the partners ``recover`` finds for it where their own stream has not got there yet (a gap larger
 than the buffer is then paired at once, not evicted; the partner's stream later passes them as taken).
 The scans that still never came are counted as given up and so are the halves waiting for a partner the gap
 skipped, at once, instead of holding halves whose partner cannot come (a source waiting for every scan to be
 accounted for would wait for ever). :meth:`JoinBuffer.settle` ends a
 robot's streams after the source's count of scans; the caller decides when (the end mark itself can overtake
-the last scans: services.shard waits for quiet).
+the last scans: services.state.shard waits for quiet).
 
 The buffer holds the halves still waiting for their partner, at most ``capacity`` of them; when it is full
 the oldest waiting half is evicted. With ``recover``, an evicted half is only remembered by its seq (at most

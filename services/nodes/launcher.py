@@ -41,7 +41,7 @@ from services.zenoh_config import build_config, open_session
 STOP_GRACE = 15.0
 #: exit codes of a child that stopped as asked (130: SIGINT arrived before it had set up its handlers)
 CLEAN_EXITS = (0, 130)
-#: the exit code of a process that refused its input or options (services.cli.UsageError): never restarted
+#: the exit code of a process that refused its input or options (services.errors.UsageError): never restarted
 USAGE_EXIT = 2
 #: seconds the launcher waits for the shards to come up
 START_TIMEOUT = 60.0

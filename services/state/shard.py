@@ -25,10 +25,10 @@ from schemas.messages import POSE_TYPES, LaserScan, MessageError, PoseGaussian, 
     decode_message
 from schemas.wire import Message
 from services import keys
-from services.join import EVICTED_LIMIT, GIVEN_UP_BECAUSE, MISSING, ORPHANED, OVERFLOW, GivenUp, JoinBuffer, \
+from services.state.join import EVICTED_LIMIT, GIVEN_UP_BECAUSE, MISSING, ORPHANED, OVERFLOW, GivenUp, JoinBuffer, \
     SeqLedger
-from services.limits import ShardLimits
-from services.ownership import owns_tile
+from services.state.limits import ShardLimits
+from services.state.ownership import owns_tile
 from services.process import RejectCounter, get_logger
 
 TileKey = tuple[int, int]
@@ -37,7 +37,7 @@ TileKey = tuple[int, int]
 #: each holds its own scratch window, so a laser whose geometry changes scan by scan must not grow memory
 FUSIONS_KEPT = 4
 #: a fused seq more than this many times the join capacity (and twice the evicted halves the join may still ask
-#: the histories for: services.join.EVICTED_LIMIT) below a robot's highest counts as done
+#: the histories for: services.state.join.EVICTED_LIMIT) below a robot's highest counts as done
 SEQ_HORIZON_JOINS = 8
 #: s after an ended robot's last taken scan or pose at which its streams are settled: what is still missing or
 #: waiting is given up (:meth:`MapShard.settle`)
@@ -74,12 +74,12 @@ def message_bytes(message: object) -> int:
 
 
 class MapShard:
-    """One shard's grid and bookkeeping. Not thread-safe: callers serialise access (services.mapper)."""
+    """One shard's grid and bookkeeping. Not thread-safe: callers serialise access (services.nodes.mapper)."""
 
     def __init__(self, config: ShardConfig, rejects: RejectCounter, clock: Callable[[], float] = time.monotonic,
                  history: Callable[[str, str, int, int], list[bytes]] | None = None):
         """``history(robot, stream, first, last)``: the encoded messages of the robot's ``stream`` (keys.SCAN or
-        keys.POSE) with seqs first..last that the processes which published them still hold (services.mapper
+        keys.POSE) with seqs first..last that the processes which published them still hold (services.nodes.mapper
         asks pg/<robot>/history/**); the join takes them for messages lost in transit."""
         self.config = config
         self.grid = TiledGrid(config.model.resolution, config.tile_size)
@@ -94,7 +94,7 @@ class MapShard:
             config.join_capacity, None if history is None else self._recover, window=limits.seq_window,
             max_bytes=limits.join_bytes, size=message_bytes, same=lambda a, b: a.digest() == b.digest())
         self._fused_seqs = SeqLedger(max(SEQ_HORIZON_JOINS * config.join_capacity, 2 * EVICTED_LIMIT))
-        self.log = get_logger(f"mapper[{config.shard}]")  # the logger services.mapper.Mapper writes to
+        self.log = get_logger(f"mapper[{config.shard}]")  # the logger services.nodes.mapper.Mapper writes to
         self._robots: set[str] = set()  # robots this shard keeps state for (at most limits.max_robots)
         self.received: Counter[str] = Counter()
         self.resent: Counter[str] = Counter()  # by key: messages of fused seqs, the same as those fused
@@ -170,7 +170,7 @@ class MapShard:
 
     def take(self, key: str, message: Message, from_history: bool = False) -> None:
         """Act on a decoded ``message`` received on ``key``: note an end, or join a scan or pose and fuse what
-        pairs up. ``from_history``: it came from a history at startup (:meth:`services.mapper.Mapper.catch_up`),
+        pairs up. ``from_history``: it came from a history at startup (:meth:`services.nodes.mapper.Mapper.catch_up`),
         and a live copy of it, or of an earlier message of its stream, is then dropped without a word."""
         stream = key.rsplit("/", 1)[-1]
         if isinstance(message, StreamEnd):  # (it may overtake the last scans: each key has its own callback thread)
@@ -265,7 +265,7 @@ class MapShard:
         return found
 
     def _give_up(self, gone: list[GivenUp]) -> None:
-        """Count the halves the join gave up on (services.join): scans that never came or whose pose never
+        """Count the halves the join gave up on (services.state.join): scans that never came or whose pose never
         comes are discarded scans; every half is counted under join/<robot> by reason, the first logged."""
         for half in gone:
             if half.scans and half.reason in (OVERFLOW, MISSING, ORPHANED):
@@ -339,7 +339,7 @@ class MapShard:
     # ------------------------------------------------------------------------------- progress
     def settle(self) -> None:
         """Once a robot's stream has ended and no scan or pose of it has been taken for SETTLE_AFTER s, settle it
-        (:meth:`services.join.JoinBuffer.settle`): a message held past a gap is taken, the scans after the last one
+        (:meth:`services.state.join.JoinBuffer.settle`): a message held past a gap is taken, the scans after the last one
         seen (lost in transit with the end of the stream, say while this shard was cut off) and the scans still
         waiting for a pose (lost too, or the SLAM node gave up on the last steps: a pose stream has no end mark)
         are given up. Counted as discarded, so the shard catches up. (The end of a stream can overtake its last

@@ -1,7 +1,7 @@
 """`posegrid mapper --shard I --shards N`: one map shard as a Zenoh process.
 
 Subscribes to every robot's scans, poses and end-of-stream marks (pg/*/scan, pg/*/pose, pg/*/end), fuses
-the cells of the tiles it owns (services.shard), publishes tile updates at a bounded rate on
+the cells of the tiles it owns (services.state.shard), publishes tile updates at a bounded rate on
 pg/map/<map>/tile/0/<tx>/<ty>, answers tile queries (pg/map/<map>/tile/**, whole tiles) and stats queries
 (pg/map/<map>/stats/<I>), and holds the liveliness token pg/map/<map>/alive/<I> while it is up.
 
@@ -21,7 +21,7 @@ import zenoh
 
 from services import history, keys
 from services.process import RejectCounter, get_logger
-from services.shard import SHARD_STREAMS, MapShard, ShardConfig
+from services.state.shard import SHARD_STREAMS, MapShard, ShardConfig
 from services.zenoh_config import open_session
 
 #: messages that may wait in the intake queue between the network and the fusion thread

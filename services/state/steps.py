@@ -20,7 +20,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from services.join import CONFIRM_RUN, DEFAULT_SEQ_WINDOW, FAR_KEPT
+from services.state.join import CONFIRM_RUN, DEFAULT_SEQ_WINDOW, FAR_KEPT
 
 
 class OutOfOrder(Exception):

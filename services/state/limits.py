@@ -17,7 +17,7 @@ counted under its kind in the shard's stats and logged once, never fused in part
 - ``intake_bytes``: bytes of messages waiting in the intake queue between the network and the fusion thread.
 - ``max_robots``: robots one shard keeps state for; messages of further robot names are refused.
 - ``seq_window``: seqs beyond what a robot's stream has shown that a live message may lie
-  (services.join.DEFAULT_SEQ_WINDOW); an end-of-stream mark beyond it is refused.
+  (services.state.join.DEFAULT_SEQ_WINDOW); an end-of-stream mark beyond it is refused.
 """
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.join import DEFAULT_SEQ_WINDOW
+from services.state.join import DEFAULT_SEQ_WINDOW
 
 #: defaults (docs/security.md gives the reasoning; a 1 081-beam lidar to 30 m with 1 000 samples costs 6.5e8)
 DEFAULT_MAX_BEAMS = 32_768

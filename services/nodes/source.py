@@ -223,7 +223,7 @@ class Source:
         stats = self._shard_stats()
         robot, scans = end.robot, end.scans
         beyond = [s.shard for s in stats if s.fused.get(robot, 0) + s.discarded.get(robot, 0) > scans]
-        if beyond and not self._warned_beyond:  # (the shards refuse such an end: services.shard)
+        if beyond and not self._warned_beyond:  # (the shards refuse such an end: services.state.shard)
             self._warned_beyond = True
             self.log.warning("shard(s) %s of map %r hold more scans of robot %r than the %d this run published: "
                              "another run under this robot name reached them, and they refuse this end; use another "
