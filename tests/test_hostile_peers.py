@@ -298,7 +298,7 @@ def test_after_the_hostile_keys_every_process_still_answers_and_fuses(pipeline):
 
 
 def test_health_names_each_kind_of_distrusted_refusal_once():
-    from services.api.app import distrust
+    from services.api.status import distrust
 
     assert distrust({"ahead": 4, "malformed": 7, "key": 1}) == [
         "4 messages with seqs or ends beyond the seq window (forged or stray seqs; held, never fused)",

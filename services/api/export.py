@@ -29,7 +29,7 @@ class Window:
     iy1: int
 
     @classmethod
-    def of(cls, x_min: float, y_min: float, x_max: float, y_max: float, resolution: float) -> "Window":
+    def of(cls, x_min: float, y_min: float, x_max: float, y_max: float, resolution: float) -> Window:
         """The cells of ``resolution`` m that overlap [x_min, x_max) x [y_min, y_max) m."""
         return cls(math.floor(x_min / resolution), math.floor(y_min / resolution),
                    math.ceil(x_max / resolution), math.ceil(y_max / resolution))

@@ -21,6 +21,9 @@ MAX_EXPORT_CELLS = 1 << 24
 EXPORT_BYTES_PER_CELL = 13
 #: s a client refused for a busy slot is told to wait before it tries again (Retry-After)
 RETRY_AFTER = 5
+#: tile requests that may fetch or render at once (their own worker threads; FastAPI's pool keeps its 40 for
+#: the other routes; services.api.routes.tiles)
+TILE_THREADS = 16
 #: connections open at once before requests get 503 (`--max-connections`)
 MAX_CONNECTIONS = 256
 #: s an idle keep-alive connection stays open (`--keep-alive-timeout`)

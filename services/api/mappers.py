@@ -38,7 +38,6 @@ from services.api.robots import RobotTracker
 from services.map_client import MapReader
 from services.process import RejectCounter, get_logger
 
-
 #: s to wait for the shards' stats: a shard answers them from its Zenoh thread in milliseconds, and /health, which
 #: asks for them, must answer while a stalled shard is still alive to the router (up to its Zenoh lease)
 STATS_TIMEOUT = 2.0
@@ -110,7 +109,7 @@ class MapperLink:
             if not self._stopping.is_set():
                 try:
                     self.verify_pending()
-                except Exception:  # noqa: BLE001 - the thread must outlive any one round
+                except Exception:  # the thread must outlive any one round (logged, not swallowed)
                     self.log.exception("verifying shard tokens failed; trying again")
 
     def verify_pending(self) -> None:

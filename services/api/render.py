@@ -1,4 +1,5 @@
-"""A tile's layers as bytes: PNG for people (mapping.export's colours), .npz in the map-file format.
+"""A tile's layers, or an exported map's, as bytes: PNG for people (mapping.export's colours), .npz in the
+map-file format, and for an export also a zip of a PGM and its YAML for ROS map_server.
 
 PNG tiles are north up (row 0 of the raster, the southern-most, is the image's bottom row), one pixel per
 cell. Layers: probability (grey level 1 - p: free light, occupied black), variance (the black-red-yellow ramp over
@@ -9,11 +10,12 @@ from __future__ import annotations
 
 import io
 import math
+import zipfile
 
 import numpy as np
 from PIL import Image
 
-from mapping.export import UNOBSERVED_RGB, render_png
+from mapping.export import UNOBSERVED_RGB, render_pgm, render_png
 from mapping.grid import probability_of
 from mapping.pyramid import TileLayers
 from schemas.files import MapFile, save_map, write_npz_deterministic
@@ -61,3 +63,30 @@ def npz_bytes(layers: TileLayers, layer: str | None, origin: tuple[float, float]
         write_npz_deterministic(buffer, {layer: values, "observed": observed, "origin": np.asarray(origin, np.float64),
                                          "resolution": np.float64(resolution)})
     return buffer.getvalue()
+
+
+#: the time stamp of every member of an export's zip (fixed, so that the same map gives the same bytes)
+ZIP_TIME = (1980, 1, 1, 0, 0, 0)
+
+
+def pgm_zip(raster: dict, name: str) -> bytes:
+    """A zip of ``name``.pgm and ``name``.yaml, the map_server image of a rasterized map (mapping.export.render_pgm;
+    ``raster`` as mapping.grid.TiledGrid.rasterize returns it)."""
+    pgm, yaml = render_pgm(raster, image_name=f"{name}.pgm")
+    buffer = io.BytesIO()
+    with zipfile.ZipFile(buffer, "w") as archive:
+        archive.writestr(zipfile.ZipInfo(f"{name}.pgm", date_time=ZIP_TIME), pgm)
+        archive.writestr(zipfile.ZipInfo(f"{name}.yaml", date_time=ZIP_TIME), yaml)
+    return buffer.getvalue()
+
+
+def export_body(raster: dict, name: str, fmt: str, layer: str | None) -> tuple[bytes, str, str]:
+    """(body, media type, file name) of the export of map ``name`` in format ``fmt`` (npz, pgm or png; layer as
+    GET /maps/{map}/export takes it); ``raster`` as mapping.grid.TiledGrid.rasterize returns it."""
+    layers = (raster["logodds"], raster["variance"], raster["observed"])
+    if fmt == "npz":
+        return (npz_bytes(layers, layer, raster["origin"], float(raster["resolution"])), "application/octet-stream",
+                f"{name}.npz")
+    if fmt == "pgm":
+        return pgm_zip(raster, name), "application/zip", f"{name}.zip"
+    return png_bytes(layers, layer or "probability", None), "image/png", f"{name}.png"

@@ -12,6 +12,7 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
@@ -33,7 +34,7 @@ class PoseSummary:
     seq: int
     stamp: float  # sensor time of the scan, s
     received: float  # Unix time the API received it, s
-    form: str  # "samples" (particles from SLAM) or "gaussian" (mean + covariance from SLAM)
+    form: Literal["samples", "gaussian"]  # "samples" (particles from SLAM) or "gaussian" (mean + covariance from SLAM)
     samples: np.ndarray  # (M, 3)
     weights: np.ndarray  # (M,), sums to 1
     mean: np.ndarray  # (3,)

@@ -12,12 +12,21 @@ from dataclasses import dataclass, field
 import uvicorn
 import zenoh
 
-from services.api.app import Backend, create_app
+from services.api.app import create_app
+from services.api.backend import Backend
 from services.api.fastpath import CachedTiles
 from services.api.guard import Guard, allowed_hosts
 from services.api.head import HeadAsGet
-from services.api.limits import (KEEP_ALIVE, MAX_CONNECTIONS, MAX_MAPS, MAX_ROBOTS, REQUEST_TIMEOUT, STRAY_TTL,
-                                 VERIFY_WINDOW, HttpLimits)
+from services.api.limits import (
+    KEEP_ALIVE,
+    MAX_CONNECTIONS,
+    MAX_MAPS,
+    MAX_ROBOTS,
+    REQUEST_TIMEOUT,
+    STRAY_TTL,
+    VERIFY_WINDOW,
+    HttpLimits,
+)
 from services.api.protocol import timed_protocol
 from services.process import get_logger, install_stop_event
 from services.zenoh_config import open_session

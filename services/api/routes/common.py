@@ -1,0 +1,86 @@
+"""What every route module shares: the per-application state they are built over (:class:`Api`, a FastAPI
+dependency read from ``app.state.api``), the error responses they document, the ``map`` path parameter and the
+map look-ups that answer 404 for an unknown map.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Annotated
+
+import anyio
+from fastapi import Depends, HTTPException, Path, Request
+
+from services.api import models
+from services.api.backend import Backend
+from services.api.limits import RETRY_AFTER, TILE_THREADS, HttpLimits, Slots
+from services.api.registry import MapInfo
+from services.api.status import Progress
+
+ERRORS = {
+    404: "unknown map or robot, or a tile outside the map's range",
+    409: "the map (or the window) has nothing to export yet",
+    413: "the export's raster would span more cells than the API's --max-export-cells; export a window "
+         "(x_min, y_min, x_max, y_max)",
+    422: "a parameter is malformed or out of its range (layer, format, z < 0, vmax <= 0, ...)",
+    503: "a shard holding the data did not answer, or every export slot is taken (see Retry-After)",
+}
+
+
+def errors(*codes: int) -> dict:
+    """The OpenAPI ``responses`` entries of these error status codes (body: models.Problem)."""
+    return {code: {"model": models.Problem, "description": ERRORS[code]} for code in codes}
+
+
+MapName = Annotated[str, Path(description="map name, e.g. main (GET /maps lists them)")]
+
+
+@dataclass
+class Api:
+    """What the routes of one application are built over: the backend, the limits they enforce, and the state
+    they keep between requests (slots, the tile worker limiter, /health's record of progress)."""
+
+    backend: Backend
+    limits: HttpLimits
+    tile_limiter: anyio.CapacityLimiter = field(default_factory=lambda: anyio.CapacityLimiter(TILE_THREADS))
+    progress: Progress = field(default_factory=Progress)
+
+    def __post_init__(self) -> None:
+        self.export_slots = Slots(self.limits.exports)
+        self.event_slots = Slots(self.limits.event_clients)
+
+    def limit_values(self) -> dict[str, int]:
+        """The limits /health shows."""
+        return {"maps": self.backend.registry.max_maps, "robots": self.backend.robots.max_robots,
+                "event_clients": self.limits.event_clients, "exports": self.limits.exports,
+                "export_cells": self.limits.export_cells}
+
+
+async def get_api(request: Request) -> Api:
+    """The :class:`Api` of the application serving ``request`` (a coroutine, so that it runs on the event loop and
+    the tile routes never wait for a thread)."""
+    return request.app.state.api
+
+
+ApiDep = Annotated[Api, Depends(get_api)]
+
+
+def busy(what: str, limit: int, option: str) -> HTTPException:
+    """The 503 for a request that finds every one of ``limit`` slots taken."""
+    return HTTPException(503, f"{limit} {what} are in progress, the most this API runs at once ({option}); retry "
+                         f"in {RETRY_AFTER} s", headers={"Retry-After": str(RETRY_AFTER)})
+
+
+def known_map(api: Api, name: str) -> MapInfo:
+    """The served map ``name``; 404 naming the known maps when there is none."""
+    registry = api.backend.registry
+    info = registry.served(name)
+    if info is None:
+        raise HTTPException(404, f"unknown map {name!r}; known maps: {', '.join(registry.names()) or 'none'}")
+    return info
+
+
+def synced_map(api: Api, name: str) -> MapInfo:
+    """:func:`known_map`, after the API has asked the shards for the map's tiles (once; blocks)."""
+    info = known_map(api, name)
+    api.backend.tiles.sync(name)
+    return info

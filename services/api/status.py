@@ -1,0 +1,151 @@
+"""What GET /maps/{map}/stats and GET /health say, computed from plain data: the shards' stats, the registry's
+view of a map, the robots' latest pose seqs, the robot processes alive and the clock. No Zenoh, no HTTP: the
+routes (services.api.routes.status) gather the data and these functions combine it.
+
+Over a map's shards: scans fused = the minimum over the answering shards (every shard has fused at least
+that many), scans discarded and lag = the maximum (the scans some part of the map lacks). Lag of a shard for a
+robot = the latest pose seq + 1 minus the scans the shard fused or gave up on.
+
+A map is healthy when its shard count is known and every shard is alive and answers. A robot is *stranded* on
+a map when its scans lag, its source process is gone, a shard has counted scans of it and the shards' scans
+done for it (fused + discarded) have not changed for :data:`STRANDED_AFTER` s: those scans cannot come any
+more (a shard restarted after the source ended finds no history to take them from), and nothing else would
+say so. /health is "ok" when there is a map, every map is healthy and no robot is stranded.
+"""
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from typing import Any
+
+from schemas.messages import ShardStats
+from services.api import models
+from services.api.registry import MapInfo
+
+#: s without progress on a robot's lagging scans, its source gone, before /health calls them stranded
+STRANDED_AFTER = 5.0
+
+#: the kinds of refusal (ShardStats.refused) that say a peer sends what it should not, and what each means
+DISTRUSTED = {
+    "ahead": "messages with seqs or ends beyond the seq window (forged or stray seqs; held, never fused)",
+    "key": "messages on keys that are no posegrid key (wildcards, made-up streams)",
+    "duplicate": "scans or poses that differ from the ones fused for the same seq (two publishers for one robot?)",
+    "robots": "messages of robots past the shards' --max-robots",
+    "size": "messages larger than the limits allow",
+    "work": "scans whose fusion would cost more than --max-work",
+    "bound": "scans posed beyond --map-bound",
+    "extent": "scans reaching more cells than --max-scan-cells",
+}
+
+
+def distrust(refused: Mapping[str, int]) -> list[str]:
+    """One sentence per kind of refusal in ``refused`` (by kind, summed over a map's shards) that :data:`DISTRUSTED`
+    names, e.g. "4 messages with seqs or ends beyond the seq window (...)"."""
+    return [f"{refused[kind]} {text}" for kind, text in DISTRUSTED.items() if refused.get(kind)]
+
+
+def summed(counts: Iterable[Mapping[str, int]]) -> dict[str, int]:
+    """The counts of every mapping added up by key, keys in the order first seen."""
+    total: dict[str, int] = {}
+    for mapping in counts:
+        for key, count in mapping.items():
+            total[key] = total.get(key, 0) + count
+    return total
+
+
+def shard_lag(s: ShardStats, latest: Mapping[str, int]) -> dict[str, int]:
+    """By robot of ``latest`` (robot -> latest pose seq): scans the shard is behind, never negative."""
+    return {r: max(0, seq + 1 - s.fused.get(r, 0) - s.discarded.get(r, 0)) for r, seq in latest.items()}
+
+
+def shard_status(shard: int, info: MapInfo, s: ShardStats | None, latest: Mapping[str, int],
+                 now: float) -> models.ShardStatus:
+    """One shard of map ``info``: its liveliness and tile updates as the API saw them, and its stats ``s`` (None:
+    it did not answer); ``latest``: robot -> latest pose seq; ``now``: time.monotonic(), s."""
+    age = info.last_update.get(shard)
+    fields: dict[str, Any] = {} if s is None else dict(
+        scans_fused=s.fused, scans_discarded=s.discarded, scans_announced=s.ended, tiles_owned=s.tiles_owned,
+        cells_updated=s.cells_updated, tile_updates=s.tile_updates, join_pending=s.join_pending, uptime_s=s.uptime,
+        received=s.received, resent=s.resent, rejected=s.rejected, overflow=s.overflow, lag_scans=shard_lag(s, latest))
+    return models.ShardStatus(shard=shard, alive=shard in info.alive, answered=s is not None,
+                              tile_updates_received=info.updates_received.get(shard, 0),
+                              last_tile_update_age_s=None if age is None else now - age, **fields)
+
+
+def map_stats(info: MapInfo, stats: Mapping[int, ShardStats], latest: Mapping[str, int],
+              api_rejected: Mapping[str, int], now: float) -> models.MapStats:
+    """Map ``info``'s shards and what they did: ``stats`` by shard (those that answered), ``latest`` the latest
+    pose seq by robot (those whose lag counts), ``api_rejected`` the API's own rejected messages by key, ``now``
+    time.monotonic() in s. The shards listed: 0..shards-1, those alive and those that answered."""
+    shard_ids = sorted(set(range(info.shards or 0)) | info.alive | set(stats))
+    answered = list(stats.values())
+    lags = [shard_lag(s, latest) for s in answered]
+    robots_seen = sorted({r for s in answered for r in s.fused} | set(latest)) if answered else []
+    return models.MapStats(
+        map=info.name, shards=info.shards, shards_alive=sorted(info.alive),
+        scans_fused={r: min(s.fused.get(r, 0) for s in answered) for r in robots_seen},
+        scans_discarded={r: max(s.discarded.get(r, 0) for s in answered) for r in robots_seen},
+        lag_scans={r: max(lag.get(r, 0) for lag in lags) for r in robots_seen if r in latest},
+        rejected=summed([api_rejected, *(s.rejected for s in answered)]), refused=summed(s.refused for s in answered),
+        per_shard=[shard_status(shard, info, stats.get(shard), latest, now) for shard in shard_ids])
+
+
+def map_health(s: models.MapStats) -> models.MapHealth:
+    """The part of a map's stats /health shows, with the distrust sentences of its refusals."""
+    return models.MapHealth(shards=s.shards, shards_alive=s.shards_alive, scans_fused=s.scans_fused,
+                            scans_discarded=s.scans_discarded, lag_scans=s.lag_scans, distrust=distrust(s.refused))
+
+
+def shards_healthy(s: models.MapStats) -> bool:
+    """Whether the map's shard count is known and each of its shards is alive and answered."""
+    return s.shards is not None and len(s.per_shard) >= s.shards and all(p.alive and p.answered for p in s.per_shard)
+
+
+def sources_alive(processes: Iterable[str]) -> set[str]:
+    """The robots whose source process ("<robot>/source") holds a liveliness token."""
+    return {process.split("/", 1)[0] for process in processes if process.endswith("/source")}
+
+
+def counted_robots(s: models.MapStats) -> set[str]:
+    """The robots some shard of the map has fused, given up on or been announced a scan of."""
+    return {robot for p in s.per_shard for counts in (p.scans_fused, p.scans_discarded, p.scans_announced)
+            for robot, n in (counts or {}).items() if n}
+
+
+class Progress:
+    """When the scans done (fused + discarded) for each robot on each map last changed, as /health saw them."""
+
+    def __init__(self) -> None:
+        self._seen: dict[tuple[str, str], tuple[int, float]] = {}  # (map, robot) -> (scans done, since when, s)
+
+    def stalled(self, map_name: str, robot: str, done: int, now: float) -> float:
+        """Record ``done`` scans at time ``now`` (s); the s since the count last changed (0 when it just did)."""
+        seen = self._seen.get((map_name, robot))
+        if seen is None or seen[0] != done:
+            self._seen[(map_name, robot)] = seen = (done, now)
+        return now - seen[1]
+
+
+def stranded(map_name: str, s: models.MapStats, sources: set[str], progress: Progress, now: float) -> list[str]:
+    """The robots stranded on the map (module docstring), sorted; records the progress of every robot that has a
+    lag, so call it at every /health. ``sources``: robots whose source is alive; ``now``: time.monotonic(), s."""
+    counted = counted_robots(s)
+    out = []
+    for robot, lag in sorted(s.lag_scans.items()):
+        done = s.scans_fused.get(robot, 0) + s.scans_discarded.get(robot, 0)
+        still = progress.stalled(map_name, robot, done, now)  # a source that did not wait for the shards exits
+        if lag > 0 and robot in counted and robot not in sources and still >= STRANDED_AFTER:  # while they catch up
+            out.append(robot)
+    return out
+
+
+def health_report(maps: Mapping[str, models.MapStats], processes: Iterable[str], progress: Progress, now: float,
+                  **system: Any) -> models.Health:
+    """/health from every map's stats, the robot processes alive ("<robot>/<process>") and ``now``
+    (time.monotonic(), s); ``system``: the remaining Health fields, about the API itself (uptime_s, robots,
+    rejected, event_clients, exports_running, refused, limits)."""
+    processes = sorted(processes)
+    sources = sources_alive(processes)
+    stuck = {name: stranded(name, s, sources, progress, now) for name, s in maps.items()}
+    ok = bool(maps) and all(shards_healthy(s) and not stuck[name] for name, s in maps.items())
+    return models.Health(status="ok" if ok else "degraded", maps={name: map_health(s) for name, s in maps.items()},
+                         processes_alive=processes, **system)
