@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: install run test bench clean clean-cache
+.PHONY: install run test bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -28,11 +28,8 @@ bench: $(STAMP)
 	$(PY) -m pip install --quiet -e '.[bench]' || echo 'pyoctomap not installed: the OctoMap columns will be skipped'
 	$(PY) -m bench.run
 
-## make clean-cache: numba's compiled kernels (mapping/, slam/). Needed after editing a helper that kernels in other
-## files inline (raytrace, window_walk, free_runs, beam_model): numba's cache notices a change in a kernel's own
-## file only, and would go on running the old helper
-clean-cache:
-	find mapping slam -name __pycache__ -prune -exec rm -rf {} +
-
-clean: clean-cache
+## make clean: the virtual environment, build and benchmark outputs, and the bytecode and numba kernel caches
+## (nothing needs it after an edit: a kernel's cache follows every module it imports, mapping/jit.py)
+clean:
 	rm -rf $(VENV) build *.egg-info bench/results .pytest_cache
+	find mapping slam -name __pycache__ -prune -exec rm -rf {} +

@@ -19,6 +19,8 @@ per second of this process's CPU time (steadier when other work shares the machi
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
+from typing import Protocol, TypeVar
 
 import numpy as np
 
@@ -37,14 +39,27 @@ RESOLUTION = 0.05
 SIGNIFICANCES = (0.01, 1e-6, 0.9)
 
 
-def _fuse(posed, make_fusion) -> tuple[float, float, object]:
+GridT = TypeVar("GridT", covariant=True)
+
+
+class _Fusion(Protocol[GridT]):
+    """What `_fuse` needs of MonteCarloFusion and AdaptiveFusion: their grid and their per-scan fuse."""
+
+    @property
+    def grid(self) -> GridT: ...
+
+    def fuse(self, ranges: np.ndarray, samples: np.ndarray, weights: np.ndarray) -> object: ...
+
+
+def _fuse(posed: PosedScans, make_fusion: Callable[[], _Fusion[GridT]]) -> tuple[float, float, GridT]:
     """Wall and CPU seconds to fuse every scan with the fusion ``make_fusion()`` returns (after a warm-up on a
     copy), and the grid."""
-    make_fusion().fuse(posed.ranges[0], posed.poses.samples[0], posed.poses.weights[0])
+    samples, weights = posed.poses.weighted_samples()
+    make_fusion().fuse(posed.ranges[0], samples[0], weights[0])
     fusion = make_fusion()
     wall, cpu = time.perf_counter(), time.process_time()
     for t in range(len(posed.stamps)):
-        fusion.fuse(posed.ranges[t], posed.poses.samples[t], posed.poses.weights[t])
+        fusion.fuse(posed.ranges[t], samples[t], weights[t])
     return time.perf_counter() - wall, time.process_time() - cpu, fusion.grid
 
 
@@ -145,7 +160,7 @@ def compare_rules(posed: PosedScans, model: SensorModel, sweep: dict[str, Adapti
     over them (``PREFIX_auc_lead_at_same_cells``; the same for the free-space AUC)."""
     scans = len(posed.stamps)
 
-    def regular():
+    def regular() -> MonteCarloFusion:
         return MonteCarloFusion(TiledGrid(RESOLUTION), model, posed.beam_angles, posed.range_min, posed.range_max,
                                 posed.sensor_offset)
 
@@ -159,7 +174,7 @@ def compare_rules(posed: PosedScans, model: SensorModel, sweep: dict[str, Adapti
                  "label_pure_cells_fraction": label_pure_cells(raster, AdaptiveParams().start_level) / observed}
     curves: dict[bool, list[tuple[float, float, float]]] = {True: [], False: []}
     for prefix, params in sweep.items():
-        def adaptive(params=params):
+        def adaptive(params: AdaptiveParams = params) -> AdaptiveFusion:
             return AdaptiveFusion(AdaptiveGrid(RESOLUTION), model, posed.beam_angles, posed.range_min,
                                   posed.range_max, posed.sensor_offset, params)
 

@@ -41,7 +41,7 @@ def measure_log(log: Path) -> dict:
         run_cli(["slam", "--algo", "gridslam", str(log), "--seed", "0", "-o", str(path)])
         posed = select_scans(load_posed_scans(path), slice(None, None, SCAN_STEP))
     out: dict = {"scans": len(posed.stamps), "beams": int(posed.ranges.shape[1]),
-                 "range_max_m": float(posed.range_max), "particles": int(posed.poses.samples.shape[1])}
+                 "range_max_m": float(posed.range_max), "particles": int(posed.poses.weighted_samples()[0].shape[1])}
     out.update(compare_rules(posed, SensorModel(resolution=RESOLUTION), sweep()))
     return out
 

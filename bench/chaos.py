@@ -52,12 +52,12 @@ from mapping.grid import TILE_SIZE
 from mapping.sensor_model import SensorModel
 from schemas.messages import MAX_SEQ, LaserScan, MessageError, PoseSamples, ShardStats, StreamEnd
 from services import keys
-from services.state.limits import ShardLimits
 from services.map_client import IncompleteMap, MapReader
-from services.process import get_logger
-from services.state.shard import SHARD_STREAMS
 from services.nodes.source import STREAM_OF, Source, SourceOptions, SourceStalled
-from services.streams import Stream, posed_stream
+from services.process import get_logger
+from services.state.limits import ShardLimits
+from services.state.shard import SHARD_STREAMS
+from services.streams import Step, Stream, posed_stream
 from services.zenoh_config import build_config
 
 SCANS = 200
@@ -135,12 +135,21 @@ WILDCARDS = ("pg/**", "**", "pg/bench/*", "pg/bench/**", "pg/*/scan", "pg/*/pose
              "pg/bench/sc$*", "pg/*/po$*")
 
 
+def _scan_and_pose(step: Step) -> tuple[LaserScan, PoseSamples]:
+    """The scan and the pose samples of one step of a posed-scan stream (:func:`services.streams.posed_stream`)."""
+    scan, pose = step.messages
+    if not isinstance(scan, LaserScan) or not isinstance(pose, PoseSamples):
+        raise TypeError(f"a step of scan and pose samples expected, got {type(scan).__name__} and "
+                        f"{type(pose).__name__}")
+    return scan, pose
+
+
 def _forged(stream: Stream, count: int) -> tuple[list[LaserScan], list[PoseSamples], list[StreamEnd]]:
     """``count`` scans and poses of the real robot at seqs FORGED_SEQ, + FORGED_SEQ_STEP, ... (copies of its real
     ones, valid and in the office), and ``count // 2`` forged ends of its stream (2**53 - 1 and 10**6 scans)."""
     scans, poses = [], []
     for i in range(count):
-        scan, pose = stream.steps[i % len(stream.steps)].messages
+        scan, pose = _scan_and_pose(stream.steps[i % len(stream.steps)])
         scans.append(replace(scan, seq=FORGED_SEQ + FORGED_SEQ_STEP * i))
         poses.append(replace(pose, seq=FORGED_SEQ + FORGED_SEQ_STEP * i))
     ends = [StreamEnd(robot=ROBOT, scans=MAX_SEQ if i % 2 else 10**6) for i in range(count // 2)]
@@ -192,7 +201,7 @@ def hostile_mix(stream: Stream, map_name: str, seed: int = MIX_SEED, total: int 
     the stray robots take the free robot slots), then garbage, wildcards, forged seqs and ends shuffled, then
     the stray robots' scans (no poses: nothing of theirs is fused)."""
     rng = np.random.default_rng(seed)
-    scan, pose = stream.steps[0].messages
+    scan, pose = _scan_and_pose(stream.steps[0])
     probes = _limit_probes(rng, scan)
     scans, poses, ends = _forged(stream, FORGED)
     forged = [(keys.robot_key(ROBOT, STREAM_OF[type(m)]), m.encode()) for m in scans + poses + ends]
@@ -322,7 +331,7 @@ def _one_run(stream: Stream, mix: Mix | None) -> RunResult:
                                       args=(cluster.endpoint, MAP, mix, peer))
             thread.start()
         completed = _publish(cluster, stream)
-        if thread is not None:
+        if peer is not None and thread is not None:
             peer.during_run = peer.sent
             thread.join(300)
             if peer.error is not None:
@@ -403,6 +412,8 @@ def run() -> dict:
     clean = _one_run(stream, None)
     chaos = _one_run(stream, mix)
     peer = chaos.peer
+    if peer is None:
+        raise RuntimeError("the chaos run has no hostile peer")
     out: dict = {
         "scans": SCANS, "samples": SAMPLES, "shards": SHARDS,
         "chaos_alive_all": chaos.alive, "clean_alive_all": clean.alive,

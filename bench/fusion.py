@@ -21,8 +21,8 @@ import functools
 import math
 import tempfile
 import time
+from typing import Any
 
-import numba as nb
 import numpy as np
 
 from bench.run import run_cli
@@ -30,6 +30,7 @@ from bench.scenarios import MIT_CSAIL, honest_posed_scans, office_run, resampled
 from mapping.evaluation import score_map
 from mapping.fusion import MonteCarloFusion, laser_poses
 from mapping.grid import TiledGrid
+from mapping.jit import kernel
 from mapping.raytrace import corner_tol, dda_start, dda_step
 from mapping.sensor_model import SensorModel
 from schemas.files import load_posed_scans
@@ -97,7 +98,7 @@ def _interleaved_seconds(*step_lists: list, chunk: int) -> list[np.ndarray]:
     return seconds
 
 
-@nb.njit(cache=True, nogil=True)
+@kernel(nogil=True)
 def _plain_ray_loop(laser_x, laser_y, laser_yaw, angles, ranges, range_max, res, l_free, l_occ, grid,
                     ix0, iy0):  # pragma: no cover - compiled
     """The yardstick: every sample ray walked cell by cell with the shared traversal, l_free added to each
@@ -123,7 +124,7 @@ def _plain_ray_loop(laser_x, laser_y, laser_yaw, angles, ranges, range_max, res,
     return visits
 
 
-@nb.njit(cache=True, nogil=True)
+@kernel(nogil=True)
 def _bresenham_ray_loop(laser_x, laser_y, laser_yaw, angles, ranges, range_max, res, l_free, l_occ, grid,
                         ix0, iy0):  # pragma: no cover - compiled
     """A cheaper yardstick than :func:`_plain_ray_loop`, the same arguments: each sample ray as Bresenham's
@@ -184,10 +185,10 @@ def _plain_loop_steps(posed, loop=_plain_ray_loop) -> tuple[list, list[int]]:
     return [functools.partial(step, t) for t in range(len(lasers))], visits
 
 
-def _octomap_steps(posed, mode: str, every: int = 1) -> tuple[list, object] | None:
+def _octomap_steps(posed, mode: str, every: int = 1) -> tuple[list, Any] | None:
     """Per scan a callable inserting it into an OctoMap tree, one point cloud per pose sample, for every
-    ``every``-th scan (None for the others); and the tree (for its memoryUsage()). None when pyoctomap is not
-    installed."""
+    ``every``-th scan (None for the others); and the tree (a pyoctomap.OcTree, untyped: Any; for its
+    memoryUsage()). None when pyoctomap is not installed."""
     try:
         import pyoctomap
     except ImportError:
@@ -260,7 +261,7 @@ def run(steps: int = 400, octomap_mc_every: int = 1) -> dict:
         out[f"{label}_scans_with_repeats"] = int(np.sum(np.array(distinct) < particles.poses.samples.shape[1]))
         out[f"{label}_merge_speedup"] = unmerged_s.sum() / merged_s.sum()
 
-    if octo_mc is not None:
+    if octo_mc is not None and octo_ml is not None:  # both or neither: pyoctomap is installed or not
         fed = np.arange(0, scans, octomap_mc_every)  # mc's time on the very scans OctoMap was fed
         out["octomap_ml_scans_per_s"] = scans / seconds_ml[1].sum()
         octomap_s = seconds[3].sum()

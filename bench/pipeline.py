@@ -28,12 +28,12 @@ from bench.scenarios import honest_posed_scans, office_run, select_scans
 from mapping.grid import TILE_SIZE
 from schemas.messages import ShardStats, TileUpdate, decode_message
 from services import keys
-from services.nodes.launcher import Children, free_port
-from services.map_client import MapReader
-from services.process import get_logger
-from services.nodes.source import Source, SourceOptions
-from services.streams import posed_stream
 from services.fusion_runner import fuse_posed_scans
+from services.map_client import MapReader
+from services.nodes.launcher import Children, free_port
+from services.nodes.source import Source, SourceOptions
+from services.process import get_logger
+from services.streams import posed_stream
 from services.zenoh_config import build_config
 
 SAMPLES = 60
@@ -57,7 +57,7 @@ class Cluster:
         self.map_name = map_name
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.children = Children(get_logger("bench"))
-        self.session: zenoh.Session | None = None
+        self._session: zenoh.Session | None = None
         self.tile_bytes = 0
         self.tile_updates: list[tuple[float, int]] = []  # (arrival s, seq tag)
         self._lock = threading.Lock()
@@ -69,7 +69,7 @@ class Cluster:
             self.children.start(f"mapper[{shard}]", ["mapper", "--shard", str(shard), "--shards", str(self.shards),
                                                      "--map", self.map_name, "--tile-size", str(self.tile_size),
                                                      *connect])
-        self.session = zenoh.open(build_config("client", connect=[self.endpoint]))
+        self._session = zenoh.open(build_config("client", connect=[self.endpoint]))
         self.session.declare_subscriber(keys.tiles_key(self.map_name), self._on_tile)
         deadline = time.monotonic() + 120
         while sum(r.ok is not None for r in self.session.liveliness().get(
@@ -79,7 +79,14 @@ class Cluster:
             time.sleep(0.1)
         return self
 
-    def __exit__(self, *exc) -> None:
+    @property
+    def session(self) -> zenoh.Session:
+        """This process's client session, open inside the ``with`` block."""
+        if self._session is None:
+            raise RuntimeError("the cluster is not running: use it in a with block")
+        return self._session
+
+    def __exit__(self, *exc: object) -> None:
         self.session.close()
         self.children.stop_all()
 

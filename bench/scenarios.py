@@ -66,7 +66,7 @@ def resampled_particles(posed: PosedScans, seed: int = 0) -> PosedScans:
     """The particle set after a multinomial resampling step, as a particle filter outputs it: many
     particles repeat. Weights stay equal (1/M each, duplicates included)."""
     rng = np.random.default_rng(seed)
-    samples = posed.poses.samples
+    samples, weights = posed.poses.weighted_samples()
     steps, count, _ = samples.shape
     picks = rng.integers(0, count, size=(steps, count))
     picks = np.sort(picks // 4 * 4, axis=1)  # draw from every 4th particle: about M/4 distinct poses
@@ -74,7 +74,7 @@ def resampled_particles(posed: PosedScans, seed: int = 0) -> PosedScans:
     return PosedScans(
         ranges=posed.ranges, angle_min=posed.angle_min, angle_increment=posed.angle_increment,
         range_min=posed.range_min, range_max=posed.range_max, stamps=posed.stamps, sensor_offset=posed.sensor_offset,
-        poses=PoseSet(samples=resampled, weights=posed.poses.weights),
+        poses=PoseSet(samples=resampled, weights=weights),
     )
 
 

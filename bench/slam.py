@@ -45,7 +45,10 @@ def _score(tmp: Path, robot: int, args: list[str], seed: int | None) -> tuple[di
     seeded = [] if seed is None else ["--seed", str(seed)]
     printed = run_cli(["slam", str(DATA), "--robot", str(robot), *args, *seeded, "-o", str(out)])
     score = json.loads(run_cli(["eval-traj", str(out), str(DATA / f"Robot{robot}_Groundtruth.dat")]))
-    return score, float(re.search(r"([0-9.]+) ms per step", printed).group(1))
+    timing = re.search(r"([0-9.]+) ms per step", printed)
+    if timing is None:
+        raise RuntimeError(f"`posegrid slam` printed no 'ms per step' line: {printed!r}")
+    return score, float(timing.group(1))
 
 
 def run() -> dict:

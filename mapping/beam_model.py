@@ -13,9 +13,9 @@ import functools
 import math
 from dataclasses import dataclass
 
-import numba as nb
 import numpy as np
 
+from mapping.jit import kernel
 from mapping.sensor_model import PEAK_EPS, TAIL_SIGMAS, SensorModel
 
 #: beam kinds in the compiled kernel
@@ -29,7 +29,8 @@ FREE_SHORTCUT_SIGMAS = 5.0
 SQRT2 = math.sqrt(2.0)
 
 #: constant-sigma models read the log-odds from a table over u = (r - z) / sigma, from the free shortcut to
-#: the traversal's end, with linear interpolation (error < 2e-4 in log-odds at the squashing's kink, far less elsewhere; tested)
+#: the traversal's end, with linear interpolation (error < 2e-4 in log-odds at the squashing's kink, far less
+#: elsewhere; tested)
 TABLE_DU = 0.002
 #: the widest peak the table covers: l/2 up to this many sigma (the free shortcut then starts above TABLE_U0)
 TABLE_PEAK_SIGMAS = 8.0
@@ -80,7 +81,7 @@ def _constant_sigma_peak(model: SensorModel) -> tuple[float, float]:
     return float(model.peak_range(np.zeros(1))[0]), float(model.peak(np.ones(1))[0])
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(nogil=True, error_model="numpy")
 def _constant_sigma_beams(ranges, range_min, range_max, sigma0, half, peak_offset, peak):  # pragma: no cover
     """The fields of :class:`BeamTable` for a constant-sigma model, one pass over the beams (the same
     arithmetic as :func:`beam_table`'s array expressions, so the same bits)."""
@@ -132,12 +133,12 @@ def beam_table(ranges: np.ndarray, model: SensorModel, range_min: float, range_m
     return BeamTable(kind, z, r_stop, r_peak, z - half, z + half, SQRT2 * sigma, g_peak, free_until)
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(nogil=True, error_model="numpy")
 def _model_g(r, a, b, s):  # pragma: no cover - compiled
     return 0.25 + 0.25 * math.erf((b - r) / s) - 0.5 * math.erf((a - r) / s)
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(nogil=True, error_model="numpy")
 def _squash_logodds(g, g_peak, p_miss, p_hit):  # pragma: no cover - compiled
     if g < 0.5:
         p = 0.5 - (0.5 - p_miss) * (1.0 - 2.0 * g)
@@ -148,7 +149,7 @@ def _squash_logodds(g, g_peak, p_miss, p_hit):  # pragma: no cover - compiled
     return math.log(p) - math.log1p(-p)
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(nogil=True, error_model="numpy")
 def cell_logodds(r_in, r_out, r_peak, a, b, s, g_peak, p_miss, p_hit):  # pragma: no cover - compiled
     """The log-odds a hit beam gives a cell it crosses over [r_in, r_out]: the model's maximum there.
 
@@ -163,7 +164,7 @@ def cell_logodds(r_in, r_out, r_peak, a, b, s, g_peak, p_miss, p_hit):  # pragma
     return _squash_logodds(g, g_peak, p_miss, p_hit)
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(nogil=True, error_model="numpy")
 def _table_logodds(r, z, inv_sigma, table, u0, du):  # pragma: no cover - compiled
     """Linear interpolation in a table of y over u = (r - z) / sigma (constant-sigma models). Multiplies by
     inv_sigma = 1 / sigma and 1 / du: the compiler hoists those divisions out of a ray's loop, and a
@@ -178,7 +179,7 @@ def _table_logodds(r, z, inv_sigma, table, u0, du):  # pragma: no cover - compil
     return table[i] + t * (table[i + 1] - table[i])
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@kernel(nogil=True, error_model="numpy", inline="always")
 def segment_logodds(r_in, r_out, beam_kind, free_until, z, r_peak, a, b, s, g_peak, table, u0, du, p_miss, p_hit,
                     l_free, y_peak):  # pragma: no cover - compiled
     """The value one beam gives a cell it crosses over [r_in, r_out] (m): free before free_until (and for

@@ -19,19 +19,20 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
 import numpy as np
+
+from mapping.jit import kernel
 
 ALL_BITS = np.uint64(0xFFFFFFFFFFFFFFFF)
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@kernel(nogil=True, error_model="numpy", inline="always")
 def set_bit(plane, c):  # pragma: no cover - compiled
     """Mark cell c in a plane."""
     plane[np.uint64(c >> 6)] |= np.uint64(1) << np.uint64(c & 63)
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@kernel(nogil=True, error_model="numpy", inline="always")
 def set_run(plane, c_lo, c_hi):  # pragma: no cover - compiled
     """Mark bits c_lo..c_hi (inclusive, c_lo <= c_hi) of a plane. Without a branch on whether the run ends in
     the word it starts in (unpredictable): both end words are ORed, with the other end's bits when they are one."""
@@ -46,7 +47,7 @@ def set_run(plane, c_lo, c_hi):  # pragma: no cover - compiled
         plane[np.uint64(w)] = ALL_BITS
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@kernel(nogil=True, error_model="numpy", inline="always")
 def _mark_runs(plane, stride, u0, v0, du, dv, iu, iv, r_end, res, tol, win_u0, win_v0, exits,
                entries):  # pragma: no cover - compiled
     """Mark, one run per line of constant v, the cells a ray crosses from (u0, v0) (m) along the unit direction
@@ -106,7 +107,7 @@ def _mark_runs(plane, stride, u0, v0, du, dv, iu, iv, r_end, res, tol, win_u0, w
     return end_col, iv + lines * v_step
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@kernel(nogil=True, error_model="numpy", inline="always")
 def mark_free_runs(rows, columns, col_stride, x0, y0, dx, dy, ix, iy, r_end, res, tol, win_ix0, win_iy0, win_w,
                    exits, entries):  # pragma: no cover - compiled
     """Mark the cells the ray from (x0, y0) (m, map frame) along the unit direction (dx, dy) crosses before
@@ -133,7 +134,7 @@ _TRANSPOSE_MASKS = np.array([0x00000000FFFFFFFF, 0x0000FFFF0000FFFF, 0x00FF00FF0
                              0x3333333333333333, 0x5555555555555555], dtype=np.uint64)
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@kernel(nogil=True, error_model="numpy", inline="always")
 def transpose64(block):  # pragma: no cover - compiled
     """Transpose a 64 x 64 bit matrix in place: bit b of block[i] becomes bit i of block[b]. Six rounds, each
     swapping the off-diagonal halves of every 2w x 2w sub-block (w = 32, 16, ..., 1) with shifts and masks."""
@@ -149,7 +150,7 @@ def transpose64(block):  # pragma: no cover - compiled
         width >>= 1
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(nogil=True, error_model="numpy")
 def fold_columns(columns, col_stride, rows, win_w, win_h, block):  # pragma: no cover - compiled
     """Move every bit of the column-major plane into the row-major one and clear it, 64 x 64 cells at a time:
     the 64 columns' words of a block, transposed, are the 64 rows' words. win_w (cells) must be a multiple of

@@ -28,12 +28,12 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import numba as nb
 import numpy as np
 
 from mapping.beam_model import BEAM_SKIP, TABLE_DU, TABLE_U0, beam_table, logodds_table
 from mapping.errors import InputError
 from mapping.grid import TiledGrid
+from mapping.jit import kernel
 from mapping.samples_pass import STAMP_LIMIT, accumulate_scan, apply_scan
 from mapping.sensor_model import SensorModel
 from mapping.single_pass import accumulate_single, apply_single
@@ -54,7 +54,7 @@ class FuseResult:
     tiles_changed: list[tuple[int, int]]
 
 
-@nb.njit(cache=True, nogil=True)
+@kernel(nogil=True)
 def _finite_weighted(samples, weights):  # pragma: no cover - compiled
     """Whether every sample coordinate and weight is finite and every weight >= 0, and the weights' sum."""
     for j in range(samples.shape[0]):
@@ -89,7 +89,7 @@ def check_scan(ranges: np.ndarray, samples: np.ndarray, weights: np.ndarray,
     return ranges, samples, weights
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(nogil=True, error_model="numpy")
 def _laser_poses(samples, ox, oy, oyaw):  # pragma: no cover - compiled
     poses = np.empty((samples.shape[0], 3))
     for j in range(samples.shape[0]):
@@ -168,7 +168,9 @@ class MonteCarloFusion:
         merge_identical: bool = True,
     ) -> None:
         if not np.isclose(grid.resolution, model.resolution):
-            raise InputError(f"grid resolution {grid.resolution} m differs from the sensor model's {model.resolution} m")
+            raise InputError(
+                f"grid resolution {grid.resolution} m differs from the sensor model's {model.resolution} m"
+            )
         if not 0 <= range_min < range_max or not np.isfinite(range_max):
             raise InputError(f"need 0 <= range_min < range_max < inf, got {range_min} and {range_max}")
         self.grid = grid
@@ -243,8 +245,8 @@ class MonteCarloFusion:
     def fuse(self, ranges: np.ndarray, samples: np.ndarray, weights: np.ndarray) -> FuseResult:
         """Fuse one scan: ranges (B,) m, robot pose samples (M, 3) map frame, weights (M,) summing to 1.
 
-        One distinct sample (after merging) takes the one-sample pass (:func:`mapping.single_pass.accumulate_single`), which gives
-        the same map as the samples pass for less work."""
+        One distinct sample (after merging) takes the one-sample pass
+        (:func:`mapping.single_pass.accumulate_single`), which gives the same map as the samples pass for less work."""
         ranges, samples, weights = check_scan(ranges, samples, weights, self.angles.shape[0])
         if self.merge_identical:
             samples, weights = merge_duplicates(samples, weights)

@@ -131,11 +131,11 @@ class TiledGrid:
         variance = np.zeros(shape, np.float32)
         observed = np.zeros(shape, bool)
         for key, slot in self._slot_of.items():
-            rows = slice((key[1] - ty0) * size, (key[1] - ty0 + 1) * size)
-            cols = slice((key[0] - tx0) * size, (key[0] - tx0 + 1) * size)
-            logodds[rows, cols] = self.logodds[slot]
-            variance[rows, cols] = self.variance[slot]
-            observed[rows, cols] = self.observed[slot]
+            tile_rows = slice((key[1] - ty0) * size, (key[1] - ty0 + 1) * size)
+            tile_cols = slice((key[0] - tx0) * size, (key[0] - tx0 + 1) * size)
+            logodds[tile_rows, tile_cols] = self.logodds[slot]
+            variance[tile_rows, tile_cols] = self.variance[slot]
+            observed[tile_rows, tile_cols] = self.observed[slot]
         rows = np.flatnonzero(observed.any(axis=1))
         cols = np.flatnonzero(observed.any(axis=0))
         if rows.size == 0:

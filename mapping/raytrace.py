@@ -14,8 +14,9 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
 import numpy as np
+
+from mapping.jit import kernel
 
 #: crossings of the two grid-line families closer than this (relative, m) are one corner crossing
 CORNER_EPS = 1e-12
@@ -29,7 +30,7 @@ def max_cells(r_stop: float, resolution: float) -> int:
     return int(math.ceil(r_stop * math.sqrt(2.0) / resolution)) + 3
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@kernel(nogil=True, error_model="numpy", inline="always")
 def dda_start(x0, y0, dx, dy, res):  # pragma: no cover - compiled
     """Start cell and stepping state of a ray: (ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y).
 
@@ -53,13 +54,13 @@ def dda_start(x0, y0, dx, dy, res):  # pragma: no cover - compiled
     return ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@kernel(nogil=True, error_model="numpy", inline="always")
 def corner_tol(r_stop):  # pragma: no cover - compiled
     """The corner tolerance (m) of a ray of length r_stop: crossings closer than this are one corner."""
     return CORNER_EPS * (1.0 + r_stop)
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@kernel(nogil=True, error_model="numpy", inline="always")
 def dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol):  # pragma: no cover - compiled
     """Move to the next cell: returns (ix, iy, t_max_x, t_max_y). The new cell's r_in is the old
     min(t_max_x, t_max_y); tol is the ray's :func:`corner_tol`."""
@@ -70,7 +71,7 @@ def dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol
     return ix + step_x, iy + step_y, t_max_x + t_delta_x, t_max_y + t_delta_y  # both at a corner: diagonally
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(nogil=True, error_model="numpy")
 def trace_ray(x0, y0, dx, dy, r_stop, res, out_ix, out_iy, out_rin, out_rout):  # pragma: no cover - compiled
     """Fill the out_* buffers with the cells the ray crosses up to r_stop; return how many.
 

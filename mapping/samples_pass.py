@@ -17,12 +17,12 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
 import numpy as np
 from numba.cpython.unsafe.numbers import trailing_zeros  # LLVM's cttz: the set bits of a word, one by one
 
 from mapping.beam_model import BEAM_SKIP, segment_logodds
 from mapping.free_runs import fold_columns, mark_free_runs, set_bit
+from mapping.jit import kernel
 from mapping.raytrace import dda_step
 from mapping.window_walk import JUMP_MARGIN, beam_direction, jump_over_tile, ray_start, step_index
 
@@ -30,7 +30,7 @@ from mapping.window_walk import JUMP_MARGIN, beam_direction, jump_over_tile, ray
 STAMP_LIMIT = 2**52
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@kernel(nogil=True, error_model="numpy", inline="always")
 def add_sample_value(rec, c, sid, w, y):  # pragma: no cover - compiled
     """Give cell record rec[c] the value y from sample ``sid`` (weight w) under the one-value-per-sample
     rule: rec[c, 0] the stamp of the last sample that touched the cell, rec[c, 1] that sample's value so
@@ -47,7 +47,7 @@ def add_sample_value(rec, c, sid, w, y):  # pragma: no cover - compiled
     rec[c, 3] += w * y * y if first else w * (new * new - old * old)
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(nogil=True, error_model="numpy")
 def _sweep_plane(plane, n_words, listed, weight_sum, w, scan_cells, n_scan, win_w, win_ix0, win_iy0, tile_touched,
                  tile_shift, tx0, ty0):  # pragma: no cover - compiled
     """Add one sample's weight w to the weight sum of every cell its plane marks, and clear the plane. A cell
@@ -75,7 +75,7 @@ def _sweep_plane(plane, n_words, listed, weight_sum, w, scan_cells, n_scan, win_
     return n_scan
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(nogil=True, error_model="numpy")
 def accumulate_scan(laser_x, laser_y, laser_yaw, weights, cos_angles, sin_angles, kind, z, r_stop, r_peak, a, b, s,
                      g_peak, free_until, table, u0, du, res, p_miss, p_hit, l_free, win_ix0, win_iy0, win_w, win_h,
                      tile_shift, tx0, ty0, owned, all_owned, plane, columns, col_stride, listed, weight_sum, excess,
@@ -231,7 +231,7 @@ def accumulate_scan(laser_x, laser_y, laser_yaw, weights, cos_angles, sin_angles
     return n_scan
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(nogil=True, error_model="numpy")
 def apply_scan(scan_cells, n_scan, listed, weight_sum, excess, stamp_base, l_free, win_w, win_ix0, win_iy0,
                 tile_shift, tx0, ty0, slot_map, logodds, variance, observed, l_min, l_max):  # pragma: no cover
     """Add the scan's weighted mean to each touched cell (clamped) and its spread to the variance layer, from

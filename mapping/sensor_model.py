@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import overload
 
 import numpy as np
 from scipy.special import erf
@@ -36,8 +37,16 @@ PEAK_EPS = 1e-9
 TAIL_SIGMAS = 3.0
 
 
+@overload
+def logit(p: float) -> float: ...
+
+
+@overload
+def logit(p: np.ndarray) -> np.ndarray: ...
+
+
 def logit(p: float | np.ndarray) -> float | np.ndarray:
-    """log(p / (1 - p))."""
+    """log(p / (1 - p)): a float for a float, an array (same shape) for an array."""
     return np.log(p) - np.log1p(-p)
 
 

@@ -14,14 +14,15 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
 import numpy as np
 
 from mapping.beam_model import BEAM_SKIP, segment_logodds
+from mapping.jit import kernel
 from mapping.raytrace import dda_step
 from mapping.window_walk import beam_direction, jump_over_tile, ray_start
 
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+
+@kernel(nogil=True, error_model="numpy", inline="always")
 def _record_index(gx, gy, blocks_w):  # pragma: no cover - compiled
     """Place of window cell (gx, gy) in the one-sample pass's per-cell excess: 8 x 8 blocks, so a ray's
     neighbouring cells share cache lines; block index * 64 + the cell's bit in the block's bit sets (the
@@ -29,7 +30,7 @@ def _record_index(gx, gy, blocks_w):  # pragma: no cover - compiled
     return ((gy >> 3) * blocks_w + (gx >> 3)) * 64 + ((gy & 7) << 3) + (gx & 7)
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@kernel(nogil=True, error_model="numpy", inline="always")
 def _raise_excess(touched, raised, excess, gx, gy, d, blocks_w):  # pragma: no cover - compiled
     """One-sample pass: mark window cell (gx, gy) touched and keep its largest excess d > 0 (see
     :func:`accumulate_single` for the arrays)."""
@@ -46,7 +47,7 @@ def _raise_excess(touched, raised, excess, gx, gy, d, blocks_w):  # pragma: no c
             excess[c] = d
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@kernel(nogil=True, error_model="numpy", inline="always")
 def _bit_count(bits):  # pragma: no cover - compiled
     """The number of set bits of an int64 (one loop iteration per set bit)."""
     n = 0
@@ -56,7 +57,7 @@ def _bit_count(bits):  # pragma: no cover - compiled
     return n
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(nogil=True, error_model="numpy")
 def accumulate_single(laser_x, laser_y, laser_yaw, cos_angles, sin_angles, kind, z, r_stop, r_peak, a, b, s, g_peak,
                        free_until, table, u0, du, res, p_miss, p_hit, l_free, win_ix0, win_iy0, win_w, win_h,
                        tile_shift, tx0, ty0, owned, all_owned, touched, raised, excess, blocks_w, blocks_h,
@@ -64,8 +65,8 @@ def accumulate_single(laser_x, laser_y, laser_yaw, cos_angles, sin_angles, kind,
     """The pass for one pose sample (laser at laser_x, laser_y m, heading laser_yaw rad): every (beam, cell)
     pair; returns the number of distinct cells touched and marks their tiles in tile_touched.
 
-    Same walk as :func:`mapping.samples_pass.accumulate_scan` (window, two phases, shards' tiles), but with one sample the cell
-    just keeps the largest excess d of the beams that touch it. The window's origin is a multiple of 8 cells,
+    Same walk as :func:`mapping.samples_pass.accumulate_scan` (window, two phases, shards' tiles), but with one sample
+    the cell just keeps the largest excess d of the beams that touch it. The window's origin is a multiple of 8 cells,
     so its 8 x 8 blocks are blocks of the global grid. Per block (index (gy >> 3) * blocks_w + (gx >> 3)),
     touched[block] and raised[block] (int64) hold bit (gy & 7) * 8 + (gx & 7) for the cells touched in this
     scan and for those with an excess d > 0, whose largest d is excess[c] (c from :func:`_record_index`, valid
@@ -177,7 +178,7 @@ def accumulate_single(laser_x, laser_y, laser_yaw, cos_angles, sin_angles, kind,
     return n_cells
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(nogil=True, error_model="numpy")
 def apply_single(touched, raised, excess, blocks_w, blocks_h, w, l_free, win_ix0, win_iy0, tile_shift, tx0, ty0,
                   slot_map, logodds, observed, l_min, l_max):  # pragma: no cover - compiled
     """Add the one-sample scan to each touched cell: w (l_free + d) as the multi-sample moments give it,

@@ -9,15 +9,14 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
-
+from mapping.jit import kernel
 from mapping.raytrace import FAR, corner_tol, dda_start, dda_step
 
 #: a shard jumps over another shard's tile to this far (relative, m) before the tile's exit, then steps
 JUMP_MARGIN = 1e-9
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@kernel(nogil=True, error_model="numpy", inline="always")
 def _axis_exit(i, step, t_max, t_delta, tile_shift):  # pragma: no cover - compiled
     """Along one axis: the range at which a ray in cell index i, stepping by ``step`` (-1, 0, 1), crosses the
     last grid line of i's tile (tiles of 2**tile_shift cells); FAR when it does not move along the axis."""
@@ -29,14 +28,14 @@ def _axis_exit(i, step, t_max, t_delta, tile_shift):  # pragma: no cover - compi
     return FAR
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@kernel(nogil=True, error_model="numpy", inline="always")
 def tile_exit(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tile_shift):  # pragma: no cover
     """Range at which a ray in cell (ix, iy) leaves that cell's tile (tiles of 2**tile_shift cells)."""
     return min(_axis_exit(ix, step_x, t_max_x, t_delta_x, tile_shift),
                _axis_exit(iy, step_y, t_max_y, t_delta_y, tile_shift))
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@kernel(nogil=True, error_model="numpy", inline="always")
 def jump_over_tile(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in,
                     tile_shift):  # pragma: no cover - compiled
     """Move a ray in another shard's tile to just before it leaves the tile (the work divides among
@@ -57,14 +56,14 @@ def jump_over_tile(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_
     return ix, iy, t_max_x, t_max_y, r_in, t_exit
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@kernel(nogil=True, error_model="numpy", inline="always")
 def beam_direction(cos_yaw, sin_yaw, cos_angle, sin_angle):  # pragma: no cover - compiled
     """The unit direction (dx, dy) of a beam at angle a (rad, laser frame) from a laser heading yaw (rad, map
     frame), from the cosines and sines of both: no trigonometric call per ray."""
     return cos_yaw * cos_angle - sin_yaw * sin_angle, sin_yaw * cos_angle + cos_yaw * sin_angle
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@kernel(nogil=True, error_model="numpy", inline="always")
 def ray_start(x0, y0, dx, dy, stop, res, win_ix0, win_iy0, win_w, win_h):  # pragma: no cover - compiled
     """Start a ray of length stop (m) from (x0, y0) (m, map frame) along the unit direction (dx, dy): returns
     (inside, ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol), the traversal state of
@@ -82,7 +81,7 @@ def ray_start(x0, y0, dx, dy, stop, res, win_ix0, win_iy0, win_w, win_h):  # pra
     return inside, ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, corner_tol(stop)
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@kernel(nogil=True, error_model="numpy", inline="always")
 def step_index(c, step_x, row_step, t_max_x, t_max_y, t_delta_x, t_delta_y, tol):  # pragma: no cover - compiled
     """:func:`mapping.raytrace.dda_step` on a row-major window index c (row_step = step_y * window width):
     returns (c, t_max_x, t_max_y). Handed (c, 0) and (step_x, row_step), dda_step returns c's move along the

@@ -10,6 +10,7 @@ metres along the beam from the laser; angles are radians in the laser frame, cou
 """
 from __future__ import annotations
 
+import contextlib
 import errno
 import io
 import os
@@ -20,7 +21,7 @@ import zlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 import numpy as np
 
@@ -50,14 +51,28 @@ class PoseSet:
     def is_gaussian(self) -> bool:
         return self.mean is not None
 
+    def gaussian(self) -> tuple[np.ndarray, np.ndarray]:
+        """(mean, cov) of the Gaussian form; FormatError unless both are set."""
+        if self.mean is None or self.cov is None:
+            raise FormatError("a Gaussian pose set needs both 'mean' and 'cov'")
+        return self.mean, self.cov
+
+    def weighted_samples(self) -> tuple[np.ndarray, np.ndarray]:
+        """(samples, weights) of the sample form; FormatError unless both are set."""
+        if self.samples is None or self.weights is None:
+            raise FormatError("a sampled pose set needs both 'samples' and 'weights'")
+        return self.samples, self.weights
+
     def __len__(self) -> int:
-        return len(self.mean) if self.is_gaussian else len(self.samples)
+        return len(self.gaussian()[0]) if self.is_gaussian else len(self.weighted_samples()[0])
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The keys this form writes to a file."""
         if self.is_gaussian:
-            return {"mean": self.mean, "cov": self.cov}
-        return {"samples": self.samples, "weights": self.weights}
+            mean, cov = self.gaussian()
+            return {"mean": mean, "cov": cov}
+        samples, weights = self.weighted_samples()
+        return {"samples": samples, "weights": weights}
 
 
 @dataclass(frozen=True)
@@ -182,10 +197,10 @@ _KEYS_HELP = {
 
 
 def _scalar(data: dict, key: str, path, what: str) -> float:
-    value = np.asarray(_require(data, key, path, what))
-    if value.size != 1 or value.dtype.kind not in "iuf":
-        raise FormatError(f"{path}: '{key}' must be a number, got shape {value.shape} dtype {value.dtype}")
-    value = float(value.reshape(()))
+    array = np.asarray(_require(data, key, path, what))
+    if array.size != 1 or array.dtype.kind not in "iuf":
+        raise FormatError(f"{path}: '{key}' must be a number, got shape {array.shape} dtype {array.dtype}")
+    value = float(array.reshape(()))
     if not np.isfinite(value):
         raise FormatError(f"{path}: '{key}' must be finite, got {value}")
     return value
@@ -250,7 +265,7 @@ def _raster_frame(data: dict, path, what: str) -> tuple[np.ndarray, float]:
 def validate_pose_set(poses: PoseSet, steps: int, where: str) -> None:
     """Check shapes, finiteness, weight sums and covariance symmetry of ``poses`` for ``steps`` steps."""
     if poses.is_gaussian:
-        mean, cov = poses.mean, poses.cov
+        mean, cov = poses.gaussian()
         if mean.shape != (steps, 3):
             raise FormatError(f"{where}: 'mean' must have shape ({steps}, 3), got {mean.shape}")
         if cov.shape != (steps, 3, 3):
@@ -271,7 +286,7 @@ def validate_pose_set(poses: PoseSet, steps: int, where: str) -> None:
                 f"(smallest eigenvalue {eig_min[step]:.3g})"
             )
         return
-    samples, weights = poses.samples, poses.weights
+    samples, weights = poses.weighted_samples()
     if samples.ndim != 3 or samples.shape[0] != steps or samples.shape[2] != 3 or samples.shape[1] < 1:
         raise FormatError(f"{where}: 'samples' must have shape ({steps}, M, 3) with M >= 1, got {samples.shape}")
     if weights.shape != samples.shape[:2]:
@@ -317,7 +332,9 @@ def _read_stamps(data: dict, path, what: str, steps: int | None = None) -> np.nd
                           "smaller holds a Unix time only to about 2 minutes)")
     stamps = stamps.astype(np.float64)
     if stamps.ndim != 1 or (steps is not None and stamps.shape[0] != steps):
-        raise FormatError(f"{path}: 'stamps' must have shape ({steps if steps is not None else 'T'},), got {stamps.shape}")
+        raise FormatError(
+            f"{path}: 'stamps' must have shape ({steps if steps is not None else 'T'},), got {stamps.shape}"
+        )
     if not np.isfinite(stamps).all():
         raise FormatError(f"{path}: 'stamps' has NaN or inf at step {int(np.argmax(~np.isfinite(stamps)))}")
     if stamps.shape[0] == 0:
@@ -519,36 +536,36 @@ def _sync_folder(folder: str) -> None:
 
 def _discard(partial: str) -> None:
     """Remove a temporary file left by a failed write, if it is there."""
-    try:
+    with contextlib.suppress(FileNotFoundError):
         os.unlink(partial)
-    except FileNotFoundError:
-        pass
 
 
 def save_posed_scans(path: str | Path, scans: PosedScans) -> None:
     """Write a posed-scan file with exactly the contract's keys; refuses poses its loader would refuse."""
     validate_pose_set(scans.poses, len(scans.stamps), f"the poses to write to {path}")
-    write_atomically(path, lambda handle: np.savez_compressed(
-        handle,
-        ranges=np.asarray(scans.ranges, np.float32),
-        angle_min=np.float64(scans.angle_min),
-        angle_increment=np.float64(scans.angle_increment),
-        range_min=np.float64(scans.range_min),
-        range_max=np.float64(scans.range_max),
-        stamps=np.asarray(scans.stamps, np.float64),
-        sensor_offset=np.asarray(scans.sensor_offset, np.float64),
+    # Any: np.savez_compressed's stubs give its ** keywords the type of its own allow_pickle (bool)
+    arrays: dict[str, Any] = {
+        "ranges": np.asarray(scans.ranges, np.float32),
+        "angle_min": np.float64(scans.angle_min),
+        "angle_increment": np.float64(scans.angle_increment),
+        "range_min": np.float64(scans.range_min),
+        "range_max": np.float64(scans.range_max),
+        "stamps": np.asarray(scans.stamps, np.float64),
+        "sensor_offset": np.asarray(scans.sensor_offset, np.float64),
         **{k: np.asarray(v, np.float64) for k, v in scans.poses.arrays().items()},
-    ))
+    }
+    write_atomically(path, lambda handle: np.savez_compressed(handle, **arrays))
 
 
 def save_pose_distribution(path: str | Path, dist: PoseDistributionFile) -> None:
     """Write a pose-distribution file; refuses poses its loader would refuse (a filter that diverged to NaN)."""
     validate_pose_set(dist.poses, len(dist.stamps), f"the poses to write to {path}")
-    write_atomically(path, lambda handle: np.savez_compressed(
-        handle,
-        stamps=np.asarray(dist.stamps, np.float64),
+    # Any: as in save_posed_scans
+    arrays: dict[str, Any] = {
+        "stamps": np.asarray(dist.stamps, np.float64),
         **{k: np.asarray(v, np.float64) for k, v in dist.poses.arrays().items()},
-    ))
+    }
+    write_atomically(path, lambda handle: np.savez_compressed(handle, **arrays))
 
 
 def write_npz_deterministic(path: str | Path | BinaryIO, arrays: dict[str, np.ndarray]) -> None:

@@ -12,6 +12,7 @@ they belong to, and mappers join scans and poses by (robot, seq).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TypeVar, overload
 
 import numpy as np
 
@@ -289,8 +290,25 @@ PoseDistribution = PoseSamples | PoseGaussian
 POSE_TYPES = (PoseSamples, PoseGaussian)
 
 
+_M1 = TypeVar("_M1", bound=Message)
+_M2 = TypeVar("_M2", bound=Message)
+
+
+@overload
+def decode_message(payload: bytes, expected: type[_M1], /) -> _M1: ...
+
+
+@overload
+def decode_message(payload: bytes, first: type[_M1], second: type[_M2], /) -> _M1 | _M2: ...
+
+
+@overload
+def decode_message(payload: bytes, *expected: type[Message]) -> Message: ...
+
+
 def decode_message(payload: bytes, *expected: type[Message]) -> Message:
-    """Decode and validate ``payload``; with ``expected`` types given, any other type is rejected.
+    """Decode and validate ``payload``; with ``expected`` types given, any other type is rejected (so the
+    result is of one of them: type checkers see it from one or two ``expected`` types).
 
     Raises :class:`MessageError` (reason in :data:`schemas.wire.REASONS`) on any defect.
     """
@@ -298,7 +316,21 @@ def decode_message(payload: bytes, *expected: type[Message]) -> Message:
 
 
 __all__ = [
-    "LaserScan", "Odometry", "LandmarkObservations", "PoseSamples", "PoseGaussian", "PoseDistribution",
-    "POSE_TYPES", "StreamEnd", "TileUpdate", "ShardStats", "NodeStats", "MESSAGE_TYPES", "MessageError",
-    "decode_message", "RESERVED_ROBOT_NAMES", "POSE_LIMIT", "MAX_POSE_SAMPLES",
+    "MAX_POSE_SAMPLES",
+    "MESSAGE_TYPES",
+    "POSE_LIMIT",
+    "POSE_TYPES",
+    "RESERVED_ROBOT_NAMES",
+    "LandmarkObservations",
+    "LaserScan",
+    "MessageError",
+    "NodeStats",
+    "Odometry",
+    "PoseDistribution",
+    "PoseGaussian",
+    "PoseSamples",
+    "ShardStats",
+    "StreamEnd",
+    "TileUpdate",
+    "decode_message",
 ]

@@ -18,8 +18,9 @@ import dataclasses
 import hashlib
 import math
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable, ClassVar
+from typing import Any, ClassVar
 
 import msgpack
 import numpy as np
@@ -78,7 +79,7 @@ class Spec(abc.ABC):
         return value
 
     @abc.abstractmethod
-    def from_wire(self, name: str, value: Any, ctx: "_DecodeContext") -> Any:
+    def from_wire(self, name: str, value: Any, ctx: _DecodeContext) -> Any:
         """The validated Python value of a wire value; raises :class:`MessageError`."""
 
     @abc.abstractmethod
@@ -101,7 +102,7 @@ class Int(Spec):
         return value
 
     def json_schema(self):
-        out = {"type": "integer", "description": self.doc}
+        out: dict[str, Any] = {"type": "integer", "description": self.doc}
         if self.minimum is not None:
             out["minimum"] = self.minimum
         if self.maximum is not None:
@@ -132,7 +133,7 @@ class Float(Spec):
         return value
 
     def json_schema(self):
-        out = {"type": "number", "description": self.doc + " (finite)"}
+        out: dict[str, Any] = {"type": "number", "description": self.doc + " (finite)"}
         if self.minimum is not None:
             out["minimum"] = self.minimum
         if self.exclusive_minimum is not None:
@@ -155,7 +156,7 @@ class Name(Spec):
         return value
 
     def json_schema(self):
-        out = {"type": "string", "pattern": NAME_PATTERN, "description": self.doc}
+        out: dict[str, Any] = {"type": "string", "pattern": NAME_PATTERN, "description": self.doc}
         if self.forbidden:
             out["not"] = {"enum": list(self.forbidden)}
         return out
@@ -192,8 +193,9 @@ class Array(Spec):
 
     ``shape`` holds an int for a fixed length or a letter for a length that must agree across the
     message's fields (e.g. ``("M", 3)`` for samples and ``("M",)`` for their weights). ``values`` is
-    "finite" (every value finite), "ranges" (finite values >= 0, NaN or +inf meaning no return, -inf a reading too close to measure) or
-    "any" (booleans). ``minimum`` bounds the finite values from below, ``magnitude`` their absolute values.
+    "finite" (every value finite), "ranges" (finite values >= 0, NaN or +inf meaning no return, -inf a reading
+    too close to measure) or "any" (booleans). ``minimum`` bounds the finite values from below, ``magnitude``
+    their absolute values.
     """
 
     dtype: str = "<f8"
@@ -229,14 +231,16 @@ class Array(Spec):
             ctx.fail("size", f"'{name}' has {count} elements, more than the limit {MAX_ARRAY_ELEMENTS}")
         itemsize = np.dtype(self.dtype).itemsize
         if len(data) != count * itemsize:
-            ctx.fail("size", f"'{name}' data has {len(data)} bytes, shape {shape} of {self.dtype} needs {count * itemsize}")
+            ctx.fail(
+                "size", f"'{name}' data has {len(data)} bytes, shape {shape} of {self.dtype} needs {count * itemsize}"
+            )
         if self.dtype == "|b1" and (np.frombuffer(data, np.uint8) > 1).any():
             ctx.fail("range", f"'{name}' is boolean but holds bytes other than 0 and 1")
         array = np.frombuffer(data, np.dtype(self.dtype)).reshape(shape).copy()
         self._check_values(name, array, ctx)
         return array
 
-    def _check_values(self, name: str, array: np.ndarray, ctx: "_DecodeContext") -> None:
+    def _check_values(self, name: str, array: np.ndarray, ctx: _DecodeContext) -> None:
         if self.values == "any":
             return
         finite = np.isfinite(array)
@@ -286,7 +290,7 @@ def _first(mask: np.ndarray) -> tuple[int, ...] | int:
     return index[0] if len(index) == 1 else index
 
 
-def is_valid_name(value: str) -> bool:
+def is_valid_name(value: object) -> bool:
     """Whether ``value`` may be a robot or map name (one key-expression chunk, see :data:`NAME_PATTERN`)."""
     return isinstance(value, str) and re.fullmatch(NAME_PATTERN, value) is not None
 
@@ -315,6 +319,8 @@ class Message:
     TYPE: ClassVar[str]
     VERSION: ClassVar[int]
     RULES: ClassVar[tuple[Rule, ...]] = ()
+    # set by @dataclass on every subclass; declared here so that type checkers see Message as a dataclass
+    __dataclass_fields__: ClassVar[dict[str, dataclasses.Field[Any]]]
 
     @classmethod
     def specs(cls) -> dict[str, Spec]:
@@ -382,8 +388,9 @@ def decode(payload: bytes, registry: dict[str, type[Message]], expected: tuple[t
     """
     try:
         wire = msgpack.unpackb(payload, raw=False, strict_map_key=True)
-    except Exception as exc:  # msgpack raises several unrelated types for corrupt input
-        raise MessageError("?", "malformed", f"not a msgpack document ({type(exc).__name__}{': ' + str(exc) if str(exc) else ''})") from None
+    except Exception as exc:  # noqa: BLE001 - msgpack raises several unrelated types for corrupt input
+        detail = f"{type(exc).__name__}{': ' + str(exc) if str(exc) else ''}"
+        raise MessageError("?", "malformed", f"not a msgpack document ({detail})") from None
     if not isinstance(wire, dict):
         raise MessageError("?", "malformed", f"expected a msgpack map, got {type(wire).__name__}")
     name, version = wire.get("type"), wire.get("v")

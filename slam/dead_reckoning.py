@@ -19,7 +19,9 @@ class DeadReckoning:
         self.mean = np.asarray(initial_pose, dtype=np.float64).copy()
         self.cov = np.zeros((3, 3))
 
-    def step(self, controls: np.ndarray, measurements: np.ndarray, landmark_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def step(
+        self, controls: np.ndarray, measurements: np.ndarray, landmark_ids: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Propagate through controls (K, 3); measurements are ignored. Returns (mean (3,), cov (3, 3))."""
         for control in controls:
             mean, jac_g, q = self.motion.linearize(self.mean[None, :], control)

@@ -206,7 +206,9 @@ class EKFSLAM:
         else:
             self.rejected += 1
 
-    def step(self, controls: np.ndarray, measurements: np.ndarray, landmark_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def step(
+        self, controls: np.ndarray, measurements: np.ndarray, landmark_ids: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Predict through controls (K, 3), fuse measurements (O, 2); return pose mean (3,) and cov (3, 3)."""
         for control in controls:
             self.predict(control)

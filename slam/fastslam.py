@@ -15,9 +15,10 @@ After the pose, each landmark EKF is updated with the measurement (or initialise
 
 Correspondences: known (one landmark slot per id, shared by all particles) or unknown (per-particle
 maximum-likelihood association, each landmark taking at most one measurement per step; a measurement whose
-best likelihood is below p0 starts a new landmark in that particle, and the weight takes p0). With known ids, ``outlier_gate`` (a squared Mahalanobis distance)
-makes a measurement beyond it update nothing in that particle and caps its likelihood at the gate's value,
-so one wild measurement cannot wipe out the particles that explain the rest.
+best likelihood is below p0 starts a new landmark in that particle, and the weight takes p0). With known ids,
+``outlier_gate`` (a squared Mahalanobis distance) makes a measurement beyond it update nothing in that particle
+and caps its likelihood at the gate's value, so one wild measurement cannot wipe out the particles that explain
+the rest.
 
 Measurements taken while the robot has not moved since the last update are skipped (unless
 ``update_while_stationary``): a standing robot has no motion noise to renew the particles, so repeated
@@ -89,7 +90,9 @@ class FastSLAM:
         self.resample_threshold = resample_threshold
         self.outlier_gate = outlier_gate
         if new_landmark_loglik is None:
-            new_landmark_loglik = -0.5 * CHI2_2_9999 - 0.5 * np.log(np.linalg.det(sensor.covariance(np.zeros(2)))) - np.log(2 * np.pi)
+            new_landmark_loglik = (
+                -0.5 * CHI2_2_9999 - 0.5 * np.log(np.linalg.det(sensor.covariance(np.zeros(2)))) - np.log(2 * np.pi)
+            )
         self.log_p0 = float(new_landmark_loglik)
         n = n_particles
         self.rows = np.arange(n)
@@ -147,14 +150,18 @@ class FastSLAM:
             nu, s, _ = self._innovation(self.poses[:, None, :], self.pose_cov[:, None], self.mu, self.sigma, z, noise)
             s_inv, det = inv2(s)
             d2 = np.einsum("nli,nlij,nlj->nl", nu, s_inv, nu)
-            loglik = np.where(self.seen & ~self.taken, -0.5 * d2 - 0.5 * np.log(np.abs(det)) - np.log(2 * np.pi), -np.inf)
+            loglik = np.where(
+                self.seen & ~self.taken, -0.5 * d2 - 0.5 * np.log(np.abs(det)) - np.log(2 * np.pi), -np.inf
+            )
             best = np.argmax(loglik, axis=1)
             is_new = loglik[self.rows, best] < self.log_p0
             slot = np.where(is_new, self.count, best)
             self.count = self.count + is_new
             self._ensure_capacity(int(self.count.max()))
             self.taken[self.rows, slot] = True
-        nu, s, h_x = self._innovation(self.poses, self.pose_cov, self.mu[self.rows, slot], self.sigma[self.rows, slot], z, noise)
+        nu, s, h_x = self._innovation(
+            self.poses, self.pose_cov, self.mu[self.rows, slot], self.sigma[self.rows, slot], z, noise
+        )
         s_inv, det = inv2(s)
         d2 = np.einsum("ni,nij,nj->n", nu, s_inv, nu)
         return slot, is_new, nu, s_inv, det, h_x, d2
@@ -176,8 +183,8 @@ class FastSLAM:
         """Weight by, sample with (version 2) and fuse the measurements (O, 2) of one step."""
         pending = []
         self.taken[:] = False
-        for z, landmark_id in zip(measurements, landmark_ids):
-            z = np.asarray(z, dtype=np.float64)
+        for row, landmark_id in zip(measurements, landmark_ids):
+            z = np.asarray(row, dtype=np.float64)
             noise = self.sensor.covariance(z)
             slot, is_new, nu, s_inv, det, h_x, d2 = self._associate(z, noise, int(landmark_id))
             gate = np.inf if (self.outlier_gate is None or not self.known) else self.outlier_gate
@@ -258,7 +265,9 @@ class FastSLAM:
         self.mu = regauge_points(self.mu, turn, centre_from, centre_to)
         self.sigma = turn_covariances(self.sigma, turn)
 
-    def step(self, controls: np.ndarray, measurements: np.ndarray, landmark_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def step(
+        self, controls: np.ndarray, measurements: np.ndarray, landmark_ids: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Predict through controls (K, 3), update with measurements (O, 2); return poses (N, 3) and weights (N,)."""
         self.predict(controls)
         self.moved = self.moved or any(self.motion.moves(control) for control in controls)

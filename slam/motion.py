@@ -187,7 +187,11 @@ class OdometryMotionModel:
         rot1, trans, rot2 = control[..., 0], control[..., 1], control[..., 2]
         a = self.alphas
         return np.stack(
-            [a[0] * rot1**2 + a[1] * trans**2, a[2] * trans**2 + a[3] * (rot1**2 + rot2**2), a[0] * rot2**2 + a[1] * trans**2],
+            [
+                a[0] * rot1**2 + a[1] * trans**2,
+                a[2] * trans**2 + a[3] * (rot1**2 + rot2**2),
+                a[0] * rot2**2 + a[1] * trans**2,
+            ],
             axis=-1,
         )
 
@@ -238,7 +242,11 @@ def compose(poses: np.ndarray, delta: np.ndarray) -> np.ndarray:
     """poses (N, 3) moved by the relative motion delta (3,) given in each pose's own frame (x (+) delta)."""
     c, s = np.cos(poses[:, 2]), np.sin(poses[:, 2])
     return np.stack(
-        [poses[:, 0] + c * delta[0] - s * delta[1], poses[:, 1] + s * delta[0] + c * delta[1], wrap_angle(poses[:, 2] + delta[2])],
+        [
+            poses[:, 0] + c * delta[0] - s * delta[1],
+            poses[:, 1] + s * delta[0] + c * delta[1],
+            wrap_angle(poses[:, 2] + delta[2]),
+        ],
         axis=1,
     )
 

@@ -48,20 +48,26 @@ def read_table(path: str | Path, kind: str, timed: bool = True) -> np.ndarray:
     except FileNotFoundError:
         raise LogFormatError(f"{path}: no such file (an MRCLAM folder needs it)") from None
     except UnicodeDecodeError as exc:
-        raise LogFormatError(f"{path}: not an ASCII text file (byte {exc.start} is {exc.object[exc.start]:#x})") from None
+        raise LogFormatError(
+            f"{path}: not an ASCII text file (byte {exc.start} is {exc.object[exc.start]:#x})"
+        ) from None
     except OSError as exc:
         raise LogFormatError(f"{path}: cannot be read ({exc.strerror})") from None
-    rows = []
+    rows: list[list[float]] = []
     for number, line in enumerate(text.splitlines(), start=1):
         fields = line.split()
         if not fields or fields[0].startswith("#"):
             continue
         if len(fields) != n_cols:
-            raise LogFormatError(f"{path.name} line {number}: expected {n_cols} numbers ({columns}), got {len(fields)} fields")
+            raise LogFormatError(
+                f"{path.name} line {number}: expected {n_cols} numbers ({columns}), got {len(fields)} fields"
+            )
         try:
             values = [float(f) for f in fields]
         except ValueError:
-            raise LogFormatError(f"{path.name} line {number}: expected {n_cols} numbers ({columns}), got '{line.strip()}'") from None
+            raise LogFormatError(
+                f"{path.name} line {number}: expected {n_cols} numbers ({columns}), got '{line.strip()}'"
+            ) from None
         if not all(np.isfinite(values)):
             raise LogFormatError(f"{path.name} line {number}: a value is NaN or inf")
         if timed and rows and values[0] < rows[-1][0]:
@@ -156,7 +162,7 @@ def mrclam_sequence(
     run: MrclamRobot,
     initial_pose: np.ndarray | None = None,
     period: float = 0.2,
-    command_delay: float = None,
+    command_delay: float | None = None,
     range_calibration: tuple[float, float] | None = None,
     velocity_scale: tuple[float, float] | None = None,
 ) -> SlamSequence:

@@ -7,11 +7,12 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 
+from mapping.jit import kernel
 
-@numba.njit(cache=True)
+
+@kernel()
 def _mark_traversed(grid, x0, y0, x1, y1, origin_x, origin_y, resolution):  # pragma: no cover - compiled
     height, width = grid.shape
     for k in range(x0.shape[0]):
@@ -55,7 +56,9 @@ def _mark_traversed(grid, x0, y0, x1, y1, origin_x, origin_y, resolution):  # pr
                 grid[iy, ix] = True
 
 
-def mark_segments(grid: np.ndarray, starts: np.ndarray, ends: np.ndarray, origin: np.ndarray, resolution: float) -> None:
+def mark_segments(
+    grid: np.ndarray, starts: np.ndarray, ends: np.ndarray, origin: np.ndarray, resolution: float
+) -> None:
     """Set to True, in place, every cell of the bool ``grid`` (H, W) crossed by a segment from starts (R, 2)
     to ends (R, 2) (m, map frame), both end cells included; cells outside the grid are skipped."""
     starts = np.ascontiguousarray(starts, dtype=np.float64)

@@ -54,7 +54,7 @@ class Trajectory:
     poses: np.ndarray  # float64 (K, 3)
 
     @staticmethod
-    def sorted(stamps: np.ndarray, poses: np.ndarray) -> "Trajectory":
+    def sorted(stamps: np.ndarray, poses: np.ndarray) -> Trajectory:
         """A trajectory from unsorted records (a stable sort, so equal stamps keep their order)."""
         order = np.argsort(stamps, kind="stable")
         return Trajectory(np.asarray(stamps, np.float64)[order], np.asarray(poses, np.float64)[order])
@@ -154,7 +154,9 @@ def poses_at(
     """
     stamps = trajectory.stamps
     query = np.asarray(query, dtype=np.float64)
-    right = np.clip(np.searchsorted(stamps, query), 1, len(stamps) - 1) if len(stamps) > 1 else np.zeros(len(query), int)
+    right = (
+        np.clip(np.searchsorted(stamps, query), 1, len(stamps) - 1) if len(stamps) > 1 else np.zeros(len(query), int)
+    )
     left = np.maximum(right - 1, 0)
     nearest = np.where(np.abs(stamps[left] - query) <= np.abs(stamps[right] - query), left, right)
     exact = np.abs(stamps[nearest] - query) <= tolerance

@@ -30,8 +30,16 @@ from pathlib import Path
 import numpy as np
 
 from slam.errors import LogFormatError
-from slam.laserlog import (MAX_ODOM_GAP, MAX_ODOM_HOLD, POSE_LIMIT, LaserLog, Skipped, interpolate_poses,
-                           odometry_problem, plausible_pose)
+from slam.laserlog import (
+    MAX_ODOM_GAP,
+    MAX_ODOM_HOLD,
+    POSE_LIMIT,
+    LaserLog,
+    Skipped,
+    interpolate_poses,
+    odometry_problem,
+    plausible_pose,
+)
 
 #: the file suffixes rosbags reads a bag file by: ROS 1, and ROS 2's two storage formats
 BAG_SUFFIXES = (".bag", ".mcap", ".db3")
@@ -125,8 +133,10 @@ def _records(reader, connections, skipped: list[Skipped]):
             conn, _time, raw = next(stream)
         except StopIteration:
             return
-        except Exception as exc:  # rosbags raises reader, decompression and struct errors on broken chunks
-            skipped.append(Skipped(count + 1, f"the bag breaks off here ({type(exc).__name__}: {exc}); reading stopped"))
+        except Exception as exc:  # noqa: BLE001 - rosbags raises reader, decompression and struct errors there
+            skipped.append(
+                Skipped(count + 1, f"the bag breaks off here ({type(exc).__name__}: {exc}); reading stopped")
+            )
             return
         count += 1
         yield conn, raw
@@ -152,7 +162,7 @@ def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hol
     for number, (conn, raw) in enumerate(_records(reader, selected, skipped), start=1):
         try:
             msg = reader.deserialize(raw, conn.msgtype)
-        except Exception as exc:  # the decoder raises many types on corrupt bytes; a bad message is skipped
+        except Exception as exc:  # noqa: BLE001 - the decoder raises many types on corrupt bytes: skip the message
             skipped.append(Skipped(number, f"{conn.topic}: does not decode as {conn.msgtype} ({type(exc).__name__})"))
             continue
         if conn.topic == scan_topic:

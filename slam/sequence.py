@@ -16,6 +16,7 @@ import numpy as np
 
 from slam.errors import LogFormatError
 
+
 @dataclass(frozen=True)
 class SlamSequence:
     """Controls and landmark measurements for T steps (see the module docstring for the layout)."""
@@ -42,7 +43,9 @@ class SlamSequence:
             if ptr.shape != (steps + 1,) or ptr[0] != 0 or ptr[-1] != rows or np.any(np.diff(ptr) < 0):
                 raise LogFormatError(f"{source}: the {name} pointers do not index {rows} rows over {steps} steps")
         if self.landmark_ids.shape != (len(self.measurements),):
-            raise LogFormatError(f"{source}: {len(self.landmark_ids)} landmark ids for {len(self.measurements)} measurements")
+            raise LogFormatError(
+                f"{source}: {len(self.landmark_ids)} landmark ids for {len(self.measurements)} measurements"
+            )
         if self.motion not in ("velocity", "odometry"):
             raise LogFormatError(f"{source}: unknown motion kind '{self.motion}' (velocity or odometry)")
         for name, values in (("stamps", self.stamps), ("controls", self.controls), ("measurements", self.measurements),
@@ -52,7 +55,9 @@ class SlamSequence:
         if steps == 0:
             raise LogFormatError(f"{source}: has no steps")
         if np.any(np.diff(self.stamps) < 0):
-            raise LogFormatError(f"{source}: the step stamps go backwards at step {int(np.argmax(np.diff(self.stamps) < 0)) + 1}")
+            raise LogFormatError(
+                f"{source}: the step stamps go backwards at step {int(np.argmax(np.diff(self.stamps) < 0)) + 1}"
+            )
 
 
 @dataclass(frozen=True)
@@ -79,7 +84,9 @@ class Filter(Protocol):
 
     gaussian: bool
 
-    def step(self, controls: np.ndarray, measurements: np.ndarray, landmark_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def step(
+        self, controls: np.ndarray, measurements: np.ndarray, landmark_ids: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Apply controls (K, 3), then measurements (O, 2) with ids (O,); return (mean, cov) or (samples, weights)."""
 
 

@@ -97,6 +97,7 @@ def _load(path: Path, shapes: dict[str, tuple]) -> dict[str, np.ndarray]:
     every array that names it, () a scalar."""
     if not path.is_file():
         raise LogFormatError(f"{path}: no such file (a simulator folder holds {CONTROLS_FILE} and {LANDMARKS_FILE})")
+    arrays: dict[str, np.ndarray] | None = None  # stays None when the file holds one bare array
     try:  # as schemas.files.read_npz does, for LogFormatError: slam/ does not import schemas/ (tests/test_layers.py)
         loaded = np.load(path, allow_pickle=False)
         if isinstance(loaded, np.lib.npyio.NpzFile):
@@ -104,7 +105,7 @@ def _load(path: Path, shapes: dict[str, tuple]) -> dict[str, np.ndarray]:
                 arrays = {key: data[key] for key in data.files}
     except (zipfile.BadZipFile, ValueError, OSError, EOFError, zlib.error) as exc:
         raise LogFormatError(f"{path}: not a readable .npz file ({exc})") from None
-    if not isinstance(loaded, np.lib.npyio.NpzFile):
+    if arrays is None:
         raise LogFormatError(f"{path}: holds one bare array (a .npy file), not the named arrays of a .npz file")
     sizes: dict[str, int] = {}
     for key, shape in shapes.items():
@@ -117,7 +118,9 @@ def _load(path: Path, shapes: dict[str, tuple]) -> dict[str, np.ndarray]:
             actual != (sizes.setdefault(dim, actual) if isinstance(dim, str) else dim)
             for dim, actual in zip(shape, value.shape)
         ):
-            raise LogFormatError(f"{path}: '{key}' has shape {value.shape}, expected {shape} (letters: lengths shared by arrays)")
+            raise LogFormatError(
+                f"{path}: '{key}' has shape {value.shape}, expected {shape} (letters: lengths shared by arrays)"
+            )
     return arrays
 
 
@@ -155,6 +158,8 @@ def load_sim_log(folder: str | Path) -> SimLog:
     _check_within(folder / LANDMARKS_FILE, m, {
         "range": (0.0, POSE_LIMIT), "bearing": (-BEARING_LIMIT, BEARING_LIMIT), "sigma_range": SIGMA_RANGE_LIMITS,
         "sigma_bearing": SIGMA_BEARING_LIMITS, "truth": pose_range})
+    a1, a2, a3, a4, a5, a6 = (float(a) for a in c["velocity_alphas"])  # (6,), as _load checked
+    o1, o2, o3, o4 = (float(a) for a in c["odometry_alphas"])  # (4,), as _load checked
     return SimLog(
         stamps=c["stamps"].astype(np.float64),
         commands=c["commands"].astype(np.float64),
@@ -164,7 +169,7 @@ def load_sim_log(folder: str | Path) -> SimLog:
         landmark_id=m["id"].astype(np.int64),
         landmark_z=np.column_stack([m["range"], m["bearing"]]).astype(np.float64),
         landmark_truth=m["truth"].astype(np.float64),
-        velocity_model=VelocityMotionModel(tuple(float(a) for a in c["velocity_alphas"]), float(c["velocity_dt_ref"])),
-        odometry_model=OdometryMotionModel(tuple(float(a) for a in c["odometry_alphas"])),
+        velocity_model=VelocityMotionModel((a1, a2, a3, a4, a5, a6), float(c["velocity_dt_ref"])),
+        odometry_model=OdometryMotionModel((o1, o2, o3, o4)),
         sensor=RangeBearingModel(float(m["sigma_range"]), float(m["sigma_bearing"])),
     )

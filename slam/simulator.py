@@ -66,7 +66,9 @@ class SimRun:
         )
 
 
-def _drive(steps: int, dt: float, model: VelocityMotionModel, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def _drive(
+    steps: int, dt: float, model: VelocityMotionModel, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """True poses (T, 3) and commands (T, 2) of the waypoint follower (it steers from the true pose)."""
     waypoints = np.array(WAYPOINTS)
     poses = np.zeros((steps, 3))
@@ -138,7 +140,9 @@ def simulate_office(
     """
     if steps < 1 or n_beams < 1 or dt <= 0 or range_max <= LASER_RANGE_MIN or truth_resolution <= 0:
         raise ValueError("need steps >= 1, n_beams >= 1, dt > 0, range_max > 0.05 m and truth_resolution > 0")
-    motion_rng, odometry_rng, landmark_rng, laser_rng = (np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4))
+    motion_rng, odometry_rng, landmark_rng, laser_rng = (
+        np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4)
+    )
     segments = office_segments()
     landmarks = office_landmarks()
     true_poses, commands = _drive(steps, dt, velocity_model, motion_rng)
@@ -149,14 +153,20 @@ def simulate_office(
 
     offset = np.array(LASER_OFFSET)
     cos_t, sin_t = np.cos(true_poses[:, 2]), np.sin(true_poses[:, 2])
-    sensor_xy = true_poses[:, :2] + np.column_stack([cos_t * offset[0] - sin_t * offset[1], sin_t * offset[0] + cos_t * offset[1]])
+    sensor_xy = true_poses[:, :2] + np.column_stack(
+        [cos_t * offset[0] - sin_t * offset[1], sin_t * offset[0] + cos_t * offset[1]]
+    )
     angle_increment = fov / (n_beams - 1) if n_beams > 1 else 0.0
     angle_min = -fov / 2.0 if n_beams > 1 else 0.0
     beam_angles = angle_min + angle_increment * np.arange(n_beams)
     world_angles = (true_poses[:, 2:3] + offset[2] + beam_angles[None, :]).ravel()
     origins = np.repeat(sensor_xy, n_beams, axis=0)
     exact = cast_rays(origins, world_angles, segments, range_max)
-    noisy = np.where(np.isfinite(exact), np.maximum(exact + laser_rng.standard_normal(exact.shape) * laser_sigma, LASER_RANGE_MIN), np.inf)
+    noisy = np.where(
+        np.isfinite(exact),
+        np.maximum(exact + laser_rng.standard_normal(exact.shape) * laser_sigma, LASER_RANGE_MIN),
+        np.inf,
+    )
 
     reach = np.minimum(exact, range_max)
     endpoints = origins + reach[:, None] * np.column_stack([np.cos(world_angles), np.sin(world_angles)])

@@ -46,7 +46,9 @@ def matching_scans(log: LaserLog, reference: LaserLog, cap: float = DEFAULT_CAP)
     counts: dict[bytes, int] = {}
     for key in own_keys:
         counts[key] = counts.get(key, 0) + 1
-    pairs = [(i, ref_index[k]) for i, k in enumerate(own_keys) if counts[k] == 1 and k in ref_index and k not in ref_dupes]
+    pairs = [
+        (i, ref_index[k]) for i, k in enumerate(own_keys) if counts[k] == 1 and k in ref_index and k not in ref_dupes
+    ]
     pairs.sort(key=lambda p: log.stamps[p[0]])
     kept: list[tuple[int, int]] = []
     for i, j in pairs:

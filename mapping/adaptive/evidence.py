@@ -31,11 +31,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numba as nb
 import numpy as np
 
 from mapping.beam_model import BEAM_HIT, BEAM_SKIP, TABLE_DU, TABLE_U0, BeamTable, segment_logodds
 from mapping.fusion import check_window
+from mapping.jit import kernel
 from mapping.raytrace import FAR, corner_tol, dda_start, dda_step
 from mapping.samples_pass import STAMP_LIMIT, add_sample_value
 
@@ -43,7 +43,7 @@ from mapping.samples_pass import STAMP_LIMIT, add_sample_value
 HIT, MISS, UNKNOWN = 1, 2, 3
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@kernel(nogil=True, error_model="numpy", inline="always")
 def _bit_length(v):  # pragma: no cover - compiled
     n = 0
     while v > 0:
@@ -52,7 +52,7 @@ def _bit_length(v):  # pragma: no cover - compiled
     return n
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(nogil=True, error_model="numpy")
 def _scan_evidence(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop, r_count, r_peak, a, b, s, g_peak,
                    free_until, table, u0, du, res, p_miss, p_hit, l_free, lv_x0, lv_y0, lv_w, lv_h, lv_off, rec, cnt,
                    seen, touched, stamp_base, count_unknowns):  # pragma: no cover - compiled

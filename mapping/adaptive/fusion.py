@@ -216,7 +216,9 @@ class AdaptiveFusion:
         shares = np.where(total > 0, groups / np.where(total > 0, total, 1.0), 0.25)
         return shares.reshape(child_counts.shape)
 
-    def _update(self, owner: np.ndarray, first: np.ndarray, spread: np.ndarray) -> tuple[np.ndarray, ...]:
+    def _update(
+        self, owner: np.ndarray, first: np.ndarray, spread: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The Monte Carlo update (step 4): each touched active cell gets the mean, over the finest cells it holds
         that the scan touched (``owner`` their active cells), of their first moments and spreads. Returns the
         updated cells' (level, ax, ay)."""

@@ -27,14 +27,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from functools import cached_property, lru_cache
+from functools import cache, cached_property
 
-import numba as nb
 import numpy as np
 from scipy.special import erfc
 from scipy.stats import chi2
 
 from mapping.errors import InputError
+from mapping.jit import kernel
 
 #: count columns with unknowns; without unknowns the columns are (HIT, MISS)
 HIT, MISS, UNKNOWN = 0, 1, 2
@@ -62,7 +62,7 @@ def outside_fraction(chord: np.ndarray, sigma: float) -> np.ndarray:
     return np.where(t > 1e-9, out, 1.0)
 
 
-@lru_cache(maxsize=None)
+@cache
 def spill(cell_size: float, sigma: float) -> float:
     """Share of returns lying in a square cell that the noise carries across one side of it (one way).
 
@@ -100,7 +100,7 @@ def min_chi_square(counts: np.ndarray, dominant: int, bounds: np.ndarray) -> np.
     return out
 
 
-@nb.njit(cache=True, nogil=True, error_model="numpy")
+@kernel(nogil=True, error_model="numpy")
 def _min_chi_square(counts, dominant, bounds, out):  # pragma: no cover - compiled
     n_rows, n_cols = counts.shape
     q = np.empty(n_cols)

@@ -90,6 +90,13 @@ class AdaptiveGrid:
     (the tile is the coarsest possible cell, level log2(tile_size)).
     """
 
+    # the CELL_COLUMNS arrays, one entry per active cell in key order (set by name in __init__ and edit)
+    level: np.ndarray  # int8, the cell's level
+    logodds: np.ndarray  # float32
+    variance: np.ndarray  # float32
+    hits: np.ndarray  # float32
+    misses: np.ndarray  # float32
+
     def __init__(self, resolution: float = 0.05, tile_size: int = TILE_SIZE) -> None:
         if not resolution > 0:
             raise InputError(f"resolution must be > 0 m, got {resolution}")

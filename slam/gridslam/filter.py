@@ -138,7 +138,8 @@ class GridFastSLAM:
             else np.zeros((len(predicted), 0, 2))
         _, score, mean, cov, log_eta = match_and_propose(
             *grid, predicted, starts, q_inv, q_logdet, self.offset, *beams, cfg.kernel, cfg.sigma_match, cfg.sigma_like,
-            cfg.p_rand, cfg.gain, cfg.lin_step, cfg.ang_step, cfg.refinements, cfg.yaw_search, cfg.prior_cap, self.stencil, self.fit)
+            cfg.p_rand, cfg.gain, cfg.lin_step, cfg.ang_step, cfg.refinements, cfg.yaw_search, cfg.prior_cap,
+            self.stencil, self.fit)
         good = score >= cfg.min_match * max(len(idx), 1)
         poses = np.empty_like(predicted)
         floor = np.diag([cfg.proposal_floor_xy**2, cfg.proposal_floor_xy**2, cfg.proposal_floor_yaw**2])
@@ -153,7 +154,9 @@ class GridFastSLAM:
         poses[:, 2] = wrap_angle(poses[:, 2])
         return poses, log_eta, int((~good).sum())
 
-    def integrate(self, odometry: np.ndarray, ranges: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, StepReport]:
+    def integrate(
+        self, odometry: np.ndarray, ranges: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, StepReport]:
         """Integrate one scan (ranges (B,) m) taken at odometry pose (3,).
 
         Returns the particles' poses (M, 3) and normalised weights (M,) at this scan (before resampling),

@@ -12,17 +12,16 @@ from __future__ import annotations
 
 import math
 
-import numba as nb
 import numpy as np
 
+from mapping.jit import kernel
 from mapping.raytrace import trace_ray
-
 
 #: hill-climbing refinements (the last ones, with the smallest steps) that use every beam
 FINE_REFINEMENTS = 3
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@kernel(nogil=True, inline="always")
 def _tile_id(table, j, tx0, ty0, shift, ix, iy):  # pragma: no cover - compiled
     u = (ix >> shift) - tx0
     v = (iy >> shift) - ty0
@@ -31,7 +30,7 @@ def _tile_id(table, j, tx0, ty0, shift, ix, iy):  # pragma: no cover - compiled
     return table[j, v, u]
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@kernel(nogil=True, inline="always")
 def _value(pool, table, j, tx0, ty0, shift, ix, iy):  # pragma: no cover - compiled
     tid = _tile_id(table, j, tx0, ty0, shift, ix, iy)
     if tid < 0:
@@ -40,13 +39,13 @@ def _value(pool, table, j, tx0, ty0, shift, ix, iy):  # pragma: no cover - compi
     return pool[tid, iy & mask, ix & mask, 0]
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@kernel(nogil=True, inline="always")
 def _laser_pose(x, y, th, offset):  # pragma: no cover - compiled
     c, s = math.cos(th), math.sin(th)
     return x + c * offset[0] - s * offset[1], y + s * offset[0] + c * offset[1], th + offset[2]
 
 
-@nb.njit(cache=True, nogil=True)
+@kernel(nogil=True)
 def _check_rows(table, poses, cos_b, sin_b, rng):  # pragma: no cover - compiled
     if poses.shape[0] != table.shape[0]:
         raise ValueError("poses must have one row per particle (the table's first axis)")
@@ -54,7 +53,7 @@ def _check_rows(table, poses, cos_b, sin_b, rng):  # pragma: no cover - compiled
         raise ValueError("cos_b, sin_b and the ranges must have one entry per beam")
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@kernel(nogil=True, inline="always")
 def own_tile(pool, refcount, free_stack, n_free, table, j, v, u):  # pragma: no cover - compiled
     """The pool tile particle j may write at table entry (v, u): its own tile, or a fresh zero tile where it
     has none, or a private copy of a shared one (copy-on-write). -1 when the free list is empty (the caller
@@ -78,7 +77,7 @@ def own_tile(pool, refcount, free_stack, n_free, table, j, v, u):  # pragma: no 
     return new, copied
 
 
-@nb.njit(cache=True, nogil=True)
+@kernel(nogil=True)
 def insert_scan(pool, refcount, free_stack, n_free, table, tx0, ty0, shift, res, poses, offset, cos_b, sin_b,
                 r_stop, hit, l_occ, l_free, l_min, l_max, resume, counters):  # pragma: no cover - compiled
     """Insert one scan into every particle's grid, particle j seeing it from ``poses[j]``.
@@ -139,7 +138,7 @@ def insert_scan(pool, refcount, free_stack, n_free, table, tx0, ty0, shift, res,
     return True
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@kernel(nogil=True, inline="always")
 def _candidate(pool, table, j, tx0, ty0, shift, res, ex, ey, dx, dy, ix, iy, tid, best):  # pragma: no cover
     """best, lowered to the squared distance (m^2) from (ex, ey) to the mean end point of cell (ix, iy)
     (in pool tile ``tid``) when that cell is occupied (log-odds > 0) and the point one cell back along the
@@ -166,7 +165,7 @@ def _candidate(pool, table, j, tx0, ty0, shift, res, ex, ey, dx, dy, ix, iy, tid
     return d2 if d2 < best else best
 
 
-@nb.njit(cache=True, nogil=True)
+@kernel(nogil=True)
 def _evaluate(pool, table, j, tx0, ty0, shift, res, x, y, th, offset, cos_b, sin_b, rng, kernel,
               inv2s2_match, inv2s2_like, log_p_rand, p_rand, stride=1):  # pragma: no cover - compiled
     """(match score, log-likelihood) of the beams (cos_b, sin_b, rng) from robot pose (x, y, th) on
@@ -214,7 +213,7 @@ def _evaluate(pool, table, j, tx0, ty0, shift, res, x, y, th, offset, cos_b, sin
     return score, loglik
 
 
-@nb.njit(cache=True, nogil=True, inline="always")
+@kernel(nogil=True, inline="always")
 def _objective(pool, table, j, tx0, ty0, shift, res, x, y, th, offset, cos_b, sin_b, rng, kernel, inv_m, inv_l,
                log_pr, p_rand, stride, gain, predicted, q_inv, prior_cap):  # pragma: no cover - compiled
     """(match score / gain + log of the motion density, up to a constant; match score) at pose (x, y, th)
@@ -222,8 +221,8 @@ def _objective(pool, table, j, tx0, ty0, shift, res, x, y, th, offset, cos_b, si
     2 s_m^2) is about the log-likelihood's change between a matched and an unmatched beam, and it locates
     the optimum more precisely: on a synthetic room within 1 cm where the log-likelihood strays 5 cm).
     With ``stride`` > 1 the score of the beams used is scaled up to all beams."""
-    score, loglik = _evaluate(pool, table, j, tx0, ty0, shift, res, x, y, th, offset, cos_b, sin_b, rng, kernel,
-                              inv_m, inv_l, log_pr, p_rand, stride)
+    score, _loglik = _evaluate(pool, table, j, tx0, ty0, shift, res, x, y, th, offset, cos_b, sin_b, rng, kernel,
+                               inv_m, inv_l, log_pr, p_rand, stride)
     ex = x - predicted[j, 0]
     ey = y - predicted[j, 1]
     et = (th - predicted[j, 2] + math.pi) % (2.0 * math.pi) - math.pi
@@ -233,7 +232,7 @@ def _objective(pool, table, j, tx0, ty0, shift, res, x, y, th, offset, cos_b, si
     return score * stride / gain - 0.5 * min(maha, prior_cap), score * stride
 
 
-@nb.njit(cache=True, nogil=True)
+@kernel(nogil=True)
 def log_likelihoods(pool, table, tx0, ty0, shift, res, poses, offset, cos_b, sin_b, rng, kernel,
                     sigma_match, sigma_like, p_rand):  # pragma: no cover - compiled
     """Scan log-likelihood (M,) of each particle's pose on its own grid, and match score (M,)."""
@@ -248,7 +247,7 @@ def log_likelihoods(pool, table, tx0, ty0, shift, res, poses, offset, cos_b, sin
     return loglik, score
 
 
-@nb.njit(cache=True, nogil=True)
+@kernel(nogil=True)
 def match_and_propose(pool, table, tx0, ty0, shift, res, predicted, starts, q_inv, q_logdet, offset, cos_b, sin_b,
                       rng, kernel, sigma_match, sigma_like, p_rand, gain, lin_step, ang_step, refinements,
                       yaw_search, prior_cap, stencil, fit):  # pragma: no cover - compiled
@@ -263,8 +262,8 @@ def match_and_propose(pool, table, tx0, ty0, shift, res, predicted, starts, q_in
     of degrees, more than hill climbing recovers), each tried at the predicted position and at the
     positions ``starts`` (M, S, 2) m (S >= 0; the filter passes the particle's last position and the
     odometry's move mirrored behind it: wheel slip and a lost sign put the truth there, beyond hill
-    climbing's reach from the prediction), then hill climbing (moves of +-lin_step m in x and y and +-ang_step rad in yaw,
-    halved ``refinements`` times). The yaw search and all but the last :data:`FINE_REFINEMENTS` refinements use
+    climbing's reach from the prediction), then hill climbing (moves of +-lin_step m in x and y and +-ang_step rad in
+    yaw, halved ``refinements`` times). The yaw search and all but the last :data:`FINE_REFINEMENTS` refinements use
     every second beam (half the cost; the coarse steps need no more).
 
     The improved proposal is then the Laplace approximation of p(z | m, x)^(1/gain) N(x; x'_j, Q_j): the
@@ -272,15 +271,15 @@ def match_and_propose(pool, table, tx0, ty0, shift, res, predicted, starts, q_in
     (10, K) maps the K values to [c, g (3), a00, a11, a22, a01, a02, a12], the least-squares coefficients
     of c + g.d + a00 d0^2/2 + a11 d1^2/2 + a22 d2^2/2 + a01 d0 d1 + a02 d0 d2 + a12 d1 d2); H = -A/gain,
     clipped to be positive semi-definite, is the likelihood's information and g/gain its slope at x^ (not
-    zero: x^ maximises the likelihood times the capped prior; kept only along H's positive eigenvectors). With the motion model's information Q^-1
-    (``q_inv`` (M, 3, 3), log det Q ``q_logdet`` (M,)) and b = g/gain + Q^-1 d the proposal is
-    N(x^ + P^-1 b, P^-1), P = H + Q^-1, and the weight factor eta is the Gaussian integral of likelihood
+    zero: x^ maximises the likelihood times the capped prior; kept only along H's positive eigenvectors). With the
+    motion model's information Q^-1 (``q_inv`` (M, 3, 3), log det Q ``q_logdet`` (M,)) and b = g/gain + Q^-1 d the
+    proposal is N(x^ + P^-1 b, P^-1), P = H + Q^-1, and the weight factor eta is the Gaussian integral of likelihood
     times motion model: log eta = c/gain - log|Q|/2 - log|P|/2 - (d'Q^-1 d - b'P^-1 b)/2,
     d = x' - x^. Along a direction the scan does not fix (a corridor's axis) H vanishes and the particles
     spread as the odometry says; across it they follow the scan.
 
-    Returns the match (M, 3), its match score (M,; the fallback test), the proposal's mean (M, 3) and covariance (M, 3, 3), and
-    log eta (M,).
+    Returns the match (M, 3), its match score (M,; the fallback test), the proposal's mean (M, 3) and covariance
+    (M, 3, 3), and log eta (M,).
     """
     _check_rows(table, predicted, cos_b, sin_b, rng)
     if q_inv.shape[0] != predicted.shape[0] or q_logdet.shape[0] != predicted.shape[0]:
@@ -318,7 +317,8 @@ def match_and_propose(pool, table, tx0, ty0, shift, res, predicted, starts, q_in
             if stride == 2 and r >= refinements - FINE_REFINEMENTS:
                 stride = 1
                 best, score = _objective(pool, table, j, tx0, ty0, shift, res, bx, by, bt, offset, cos_b, sin_b, rng,
-                                         kernel, inv_m, inv_l, log_pr, p_rand, stride, gain, predicted, q_inv, prior_cap)
+                                         kernel, inv_m, inv_l, log_pr, p_rand, stride, gain, predicted, q_inv,
+                                         prior_cap)
             for _it in range(64):
                 cand_x, cand_y, cand_t, cand_f, cand_s = bx, by, bt, best, score
                 for move in range(6):
@@ -380,6 +380,6 @@ def match_and_propose(pool, table, tx0, ty0, shift, res, predicted, starts, q_in
         shift_local = covariance @ pull
         mean[j, 0], mean[j, 1], mean[j, 2] = bx + shift_local[0], by + shift_local[1], bt + shift_local[2]
         cov[j] = covariance
-        sign, logdet_p = np.linalg.slogdet(precision)
+        _sign, logdet_p = np.linalg.slogdet(precision)
         log_eta[j] = coef[0] / gain - 0.5 * q_logdet[j] - 0.5 * logdet_p - 0.5 * (d @ qd - pull @ shift_local)
     return matched, scores, mean, cov, log_eta

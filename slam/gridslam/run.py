@@ -51,8 +51,9 @@ def _backtrack(poses: list[np.ndarray], parents: list[np.ndarray | None]) -> np.
     index = np.arange(m)
     out[-1] = poses[-1]
     for t in range(steps - 2, -1, -1):
-        if parents[t] is not None:
-            index = parents[t][index]
+        parent = parents[t]
+        if parent is not None:
+            index = parent[index]
         out[t] = poses[t][index]
     return out
 

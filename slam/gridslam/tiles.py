@@ -128,6 +128,8 @@ class TileMaps:
         v0, u0 = vs.min(), us.min()
         out = np.zeros(((vs.max() - v0 + 1) * side, (us.max() - u0 + 1) * side), np.float32)
         for v, u in zip(vs, us):  # one block copy per tile (not per cell): a few hundred per map
-            out[(v - v0) * side:(v - v0 + 1) * side, (u - u0) * side:(u - u0 + 1) * side] = self.pool[rows[v, u], :, :, LOGODDS]
+            out[(v - v0) * side:(v - v0 + 1) * side, (u - u0) * side:(u - u0 + 1) * side] = self.pool[
+                rows[v, u], :, :, LOGODDS
+            ]
         origin = np.array([(self.tx0 + u0) * side, (self.ty0 + v0) * side], np.float64) * self.resolution
         return out, origin

@@ -1,0 +1,211 @@
+"""numba kernels whose on-disk cache follows every source file they can inline.
+
+numba's own cache (``njit(cache=True)``) stamps a kernel's compiled code with its own file only. A kernel
+inlines helpers and freezes module constants from other files (``mapping.raytrace``, ``mapping.window_walk``,
+...), so after an edit there numba would go on loading the old machine code. :func:`kernel` is ``njit`` with
+a cache whose source stamp also holds a SHA-256 over the kernel's import closure: its own file and every
+first-party module it imports, followed transitively (imports read from the source, relative ones and those
+inside functions included). A first-party module is one that lives under the same import root as the
+kernel's package (for ``mapping.fusion`` in ``/repo/mapping/fusion.py``: ``/repo``); installed packages
+(numpy, numba) stay outside it, as with numba's own cache. An edit of any file in the closure makes every kernel
+that reaches it compile afresh on its next call, and the fresh code replaces the stale entry in place.
+
+The cache goes where numba's would (``NUMBA_CACHE_DIR`` if set, else the package's ``__pycache__``, else the
+user cache), under the same file names. It builds on numba's private caching internals (the dispatcher's
+``_cache``, ``FunctionCache._impl_class``, the impl's ``_locator`` behind its ``locator`` property, the
+locators' ``get_source_stamp`` and ``_py_file``), checked against numba 0.59.1 and 0.68.1; where they are
+missing, kernels compile without a disk cache (each process afresh), with a warning.
+"""
+from __future__ import annotations
+
+import ast
+import functools
+import hashlib
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, TypeVar
+
+import numba as nb
+
+#: one import statement as read from a source file: (level of a relative import, module or "", names)
+ImportRecord = tuple[int, str, tuple[str, ...]]
+
+
+@functools.cache
+def _read_source(path: str, mtime_ns: int, size: int) -> tuple[bytes, tuple[ImportRecord, ...]]:
+    """The SHA-256 of a file's bytes and its import statements (stat fields only key the memo)."""
+    data = Path(path).read_bytes()
+    records: list[ImportRecord] = []
+    for node in ast.walk(ast.parse(data, path)):
+        if isinstance(node, ast.Import):
+            records.extend((0, alias.name, ()) for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            records.append((node.level, node.module or "", tuple(alias.name for alias in node.names)))
+    return hashlib.sha256(data).digest(), tuple(records)
+
+
+def _source(path: Path) -> tuple[bytes, tuple[ImportRecord, ...]]:
+    """:func:`_read_source` for the file as it is now."""
+    st = path.stat()
+    return _read_source(str(path), st.st_mtime_ns, st.st_size)
+
+
+def _module_file(root: Path, name: str) -> Path | None:
+    """The file of module ``name`` under ``root`` (a module or a package's ``__init__.py``), or None."""
+    base = root.joinpath(*name.split("."))
+    for candidate in (base.parent / f"{base.name}.py", base / "__init__.py"):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def _absolute(importer: str, is_package: bool, level: int, module: str) -> str | None:
+    """The absolute name of ``from <level dots><module> import ...`` written in module ``importer``."""
+    if level == 0:
+        return module or None
+    package = importer if is_package else importer.rpartition(".")[0]
+    parts = package.split(".") if package else []
+    if level - 1 > len(parts):
+        return None
+    base = parts[: len(parts) - (level - 1)] + (module.split(".") if module else [])
+    return ".".join(base) or None
+
+
+def _imported_names(name: str, path: Path) -> set[str]:
+    """Every module the file of module ``name`` may import: ``from a import b`` gives ``a`` and ``a.b``."""
+    is_package = path.name == "__init__.py"
+    names: set[str] = set()
+    for level, module, aliases in _source(path)[1]:
+        base = _absolute(name, is_package, level, module)
+        if base is None:
+            continue
+        names.add(base)
+        names.update(f"{base}.{alias}" for alias in aliases if alias != "*")
+    return names
+
+
+def _import_root(module: str, path: Path) -> tuple[Path, str]:
+    """The directory ``module`` was imported from, and its name there (a script: its folder and stem)."""
+    parts = module.split(".")
+    depth = len(parts) - (0 if path.name == "__init__.py" else 1)
+    root = path.parent
+    for _ in range(depth):
+        root = root.parent
+    if module != "__main__" and _module_file(root, module) == path:
+        return root, module
+    return path.parent, path.stem
+
+
+def closure_files(module: str, path: Path) -> dict[str, Path]:
+    """The file of ``module`` at ``path`` and of every first-party module it imports, transitively, by
+    path relative to the import root (POSIX separators)."""
+    root, name = _import_root(module, path.resolve())
+    files = {name: _module_file(root, name) or path.resolve()}
+    pending = [name]
+    while pending:
+        current = pending.pop()
+        for imported in _imported_names(current, files[current]):
+            found = _module_file(root, imported) if imported not in files else None
+            if found is not None:
+                files[imported] = found
+                pending.append(imported)
+    return {file.relative_to(root).as_posix(): file for file in files.values()}
+
+
+def closure_digest(module: str, path: Path) -> str:
+    """SHA-256 (hex) over :func:`closure_files`, names and contents: a change in any of them changes it."""
+    digest = hashlib.sha256()
+    for relative, file in sorted(closure_files(module, path).items()):
+        digest.update(relative.encode() + b"\0" + _source(file)[0])
+    return digest.hexdigest()
+
+
+class _ClosureLocator:
+    """One of numba's cache locators, with :func:`closure_digest` added to its source stamp."""
+
+    def __init__(self, inner: Any, module: str) -> None:
+        self._inner = inner
+        self._closure_module = module
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._inner, name)
+
+    def get_source_stamp(self) -> Any:
+        """Picklable; a changed stamp makes numba drop the cache index and compile afresh."""
+        stamp = self._inner.get_source_stamp()
+        path = Path(getattr(self._inner, "_py_file", ""))
+        if not path.is_file():  # an interactive prompt or a zip archive: numba's own stamp
+            return stamp
+        return stamp, closure_digest(self._closure_module, path)
+
+
+class UnsupportedNumba(RuntimeError):
+    """numba's private caching classes are not as this module expects."""
+
+
+def _wrap_locator(impl: Any, py_func: Callable[..., Any]) -> None:
+    """Replace the locator numba chose for ``py_func`` (any of its candidates, ``NUMBA_CACHE_LOCATOR_CLASSES``
+    included) by the same wrapped in :class:`_ClosureLocator`."""
+    inner = getattr(impl, "_locator", None)
+    if inner is None or impl.locator is not inner:
+        raise UnsupportedNumba("CacheImpl has no _locator behind its locator property")
+    impl._locator = _ClosureLocator(inner, py_func.__module__ or "__main__")
+
+
+def _closure_cache_class() -> type | None:
+    """numba's ``FunctionCache`` whose locator is wrapped in :class:`_ClosureLocator`; None (with a warning)
+    if numba's private caching classes are missing."""
+    try:
+        from numba.core import caching
+
+        impl_base = caching.FunctionCache._impl_class
+        if not isinstance(getattr(impl_base, "locator", None), property):
+            raise UnsupportedNumba("CacheImpl.locator is not a property")
+    except (ImportError, AttributeError, UnsupportedNumba) as exc:
+        _warn_uncached(exc)
+        return None
+
+    def init(self: Any, py_func: Callable[..., Any]) -> None:
+        impl_base.__init__(self, py_func)
+        _wrap_locator(self, py_func)
+
+    impl = type("ClosureCompileResultCacheImpl", (impl_base,), {"__init__": init})
+    return type("ClosureFunctionCache", (caching.FunctionCache,), {"_impl_class": impl})
+
+
+def _warn_uncached(reason: Exception) -> None:
+    """Kernels still compile, each process afresh: slower starts, never stale code."""
+    warnings.warn(f"numba {nb.__version__}: its caching internals are not as mapping.jit expects ({reason}); "
+                  "kernels compile without a disk cache", RuntimeWarning, stacklevel=3)
+
+
+_CACHE_CLASS = _closure_cache_class()
+
+
+#: a kernel's Python function; the dispatcher numba returns for it is typed as the function (same parameters)
+KernelT = TypeVar("KernelT", bound=Callable[..., Any])
+
+
+def kernel(**options: Any) -> Callable[[KernelT], KernelT]:
+    """``numba.njit(**options)`` with an on-disk cache keyed by the kernel's import closure.
+
+    Use as ``@kernel(nogil=True, error_model="numpy")``; ``cache`` is not an option (always on).
+    """
+    if "cache" in options:
+        raise TypeError("kernel() always caches; drop the cache option")
+
+    def decorate(py_func: KernelT) -> KernelT:
+        dispatcher = nb.njit(**options)(py_func)
+        if _CACHE_CLASS is None:
+            return dispatcher
+        if not hasattr(dispatcher, "_cache"):
+            _warn_uncached(UnsupportedNumba("the dispatcher has no _cache"))
+            return dispatcher
+        try:
+            dispatcher._cache = _CACHE_CLASS(py_func)
+        except UnsupportedNumba as exc:
+            _warn_uncached(exc)
+        return dispatcher
+
+    return decorate

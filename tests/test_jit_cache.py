@@ -1,0 +1,130 @@
+"""mapping.jit.kernel: numba's disk cache never serves a kernel compiled against an older helper.
+
+A tiny package in a temporary directory (kernel -> helper -> constants, as mapping's kernels inline
+raytrace and window_walk) runs in fresh processes that share one NUMBA_CACHE_DIR; between runs a helper or
+a constant changes. numba's plain ``njit(cache=True)`` is the control: it loads the stale machine code.
+"""
+import ast
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from mapping.jit import closure_files, kernel
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: what run(2.0) returns: gain(x) + 1 with gain(x) = GAIN * x and GAIN = 3
+FIRST = 7.0
+
+
+def decorator(flavour: str, options: str) -> str:
+    """The decorator line of one kernel: mapping.jit's, or numba's own cache (the control)."""
+    if flavour == "kernel":
+        return f"@kernel({options})"
+    return f"@numba.njit({', '.join(filter(None, ['cache=True', options]))})"
+
+
+def write_package(root: Path, flavour: str) -> Path:
+    """tinypkg/: kernel.run inlines helper.gain, which reads consts.GAIN through a relative import."""
+    header = "from mapping.jit import kernel\n" if flavour == "kernel" else "import numba\n"
+    package = root / "tinypkg"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "consts.py").write_text("GAIN = 3.0\n")
+    inlined, plain = decorator(flavour, 'inline="always"'), decorator(flavour, "")
+    (package / "helper.py").write_text(
+        f"{header}from .consts import GAIN\n\n\n{inlined}\ndef gain(x):\n    return GAIN * x\n"
+    )
+    (package / "kernel.py").write_text(
+        f"{header}from tinypkg.helper import gain\n\n\n{plain}\ndef run(x):\n    return gain(x) + 1.0\n"
+    )
+    return package
+
+
+def run_python(root: Path, script: str) -> str:
+    """``script`` in a fresh process that imports tinypkg from ``root``, the numba cache under it: stdout."""
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(root / "numba_cache"), "PYTHONDONTWRITEBYTECODE": "1",
+           "PYTHONPATH": os.pathsep.join([str(root), str(ROOT)])}
+    done = subprocess.run([sys.executable, "-c", script], cwd=root, env=env, capture_output=True, text=True,
+                          timeout=300, check=False)
+    assert done.returncode == 0, done.stderr
+    return done.stdout
+
+
+def run_kernel(root: Path) -> tuple[float, int, int]:
+    """run(2.0) in a fresh process: (result, cache hits, cache misses)."""
+    script = ("from tinypkg.kernel import run\nv = run(2.0)\n"
+              "print(v, sum(run.stats.cache_hits.values()), sum(run.stats.cache_misses.values()))")
+    value, hits, misses = run_python(root, script).split()
+    return float(value), int(hits), int(misses)
+
+
+EDITS = {
+    # the constant two imports away: GAIN = 30 -> 30 * 2 + 1
+    "consts": ("consts.py", "GAIN = 3.0", "GAIN = 30.0", 61.0),
+    # the inlined helper's body: 3 * 2 * 2 + 1
+    "helper": ("helper.py", "return GAIN * x", "return GAIN * x * x", 13.0),
+}
+
+
+@pytest.mark.parametrize("edit", sorted(EDITS))
+def test_an_edit_behind_a_cached_kernel_recompiles_it(tmp_path, edit):
+    package = write_package(tmp_path, "kernel")
+    assert run_kernel(tmp_path) == (FIRST, 0, 1)
+    assert run_kernel(tmp_path) == (FIRST, 1, 0), "an unchanged kernel comes from the disk cache"
+    name, old, new, expected = EDITS[edit]
+    (package / name).write_text((package / name).read_text().replace(old, new))
+    assert run_kernel(tmp_path) == (expected, 0, 1)
+
+
+def test_numbas_own_cache_serves_the_stale_helper(tmp_path):
+    """The control: with njit(cache=True) the same edit goes unnoticed."""
+    package = write_package(tmp_path, "numba")
+    assert run_kernel(tmp_path) == (FIRST, 0, 1)
+    name, old, new, _ = EDITS["consts"]
+    (package / name).write_text((package / name).read_text().replace(old, new))
+    assert run_kernel(tmp_path) == (FIRST, 1, 0)
+
+
+def test_without_numbas_caching_internals_kernels_run_uncached_with_a_warning(tmp_path):
+    """A numba whose private caching classes moved: correct results, no disk cache, one warning."""
+    write_package(tmp_path, "kernel")
+    script = ("import warnings\nfrom numba.core import caching\ndel caching.FunctionCache._impl_class\n"
+              "with warnings.catch_warnings(record=True) as caught:\n    warnings.simplefilter('always')\n"
+              "    from tinypkg.kernel import run\n"
+              "print(run(2.0), *sorted({str(w.message).split(': ')[1] for w in caught}), sep='\\n')")
+    value, *messages = run_python(tmp_path, script).splitlines()
+    assert float(value) == FIRST
+    expected = ("its caching internals are not as mapping.jit expects (CacheImpl.locator is not a property); "
+                "kernels compile without a disk cache")
+    assert messages == [expected]
+    assert not list((tmp_path / "numba_cache").rglob("*.nbi"))
+
+
+def test_the_closure_of_a_fusion_kernel_holds_the_helpers_it_inlines():
+    files = closure_files("mapping.samples_pass", ROOT / "mapping" / "samples_pass.py")
+    assert {"mapping/raytrace.py", "mapping/window_walk.py", "mapping/free_runs.py",
+            "mapping/beam_model.py", "mapping/samples_pass.py"} <= set(files)
+    assert all(path.startswith(("mapping/", "slam/")) for path in files), "numpy and numba stay outside"
+
+
+def numba_cache_calls(path: Path) -> list[int]:
+    """Lines of calls with cache=True (numba's own cache) in one source file."""
+    return [node.lineno for node in ast.walk(ast.parse(path.read_text(), str(path)))
+            if isinstance(node, ast.Call)
+            and any(k.arg == "cache" and isinstance(k.value, ast.Constant) and k.value.value is True
+                    for k in node.keywords)]
+
+
+def test_no_kernel_uses_numbas_own_cache():
+    files = [f for package in ("mapping", "slam", "bench") for f in sorted((ROOT / package).rglob("*.py"))]
+    offenders = {str(f.relative_to(ROOT)): numba_cache_calls(f) for f in files}
+    assert not {f: lines for f, lines in offenders.items() if lines}
+
+
+def test_kernel_refuses_a_cache_option():
+    with pytest.raises(TypeError, match="always caches"):
+        kernel(cache=False)
