@@ -3,6 +3,7 @@ same way, so a sharded map equals the in-process one cell for cell)."""
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 from tqdm import tqdm
@@ -12,16 +13,30 @@ from mapping.fusion import MonteCarloFusion
 from mapping.grid import TiledGrid
 from mapping.poses import scan_samples
 from mapping.sensor_model import SensorModel
-from schemas.files import PosedScans, PoseSet
+from schemas.files import PosedScans
 
 
-def scan_pose_samples(poses: PoseSet, t: int, mode: str, n_samples: int | None, seed: int,
-                      range_max: float, accuracy: float) -> tuple[np.ndarray, np.ndarray]:
-    """Samples and weights for scan t of a pose set (Gaussian draws seeded by (seed, t))."""
-    if poses.is_gaussian:
-        return scan_samples(mode, mean=poses.mean[t], cov=poses.cov[t], n_samples=n_samples, seed=seed, seq=t,
-                            accuracy=accuracy, range_max=range_max)
-    return scan_samples(mode, samples=poses.samples[t], weights=poses.weights[t])
+@dataclass(frozen=True)
+class PoseSampling:
+    """How the pose samples a scan is fused with are drawn: the one path `posegrid fuse` and the mapper shards
+    (services.state.shard) both take, so that a sharded map equals the in-process one cell for cell.
+
+    mode: "mc" (every sample, or Gaussian draws) or "ml" (the most likely pose only); n_samples: Gaussian draws per
+    scan, None to derive them from the covariance and ``accuracy`` (m); seed: with the scan's seq, seeds the draws.
+    """
+
+    mode: str = "mc"
+    n_samples: int | None = None
+    seed: int = 0
+    accuracy: float = 0.05
+
+    def draw(self, seq: int, range_max: float, *, mean: np.ndarray | None = None, cov: np.ndarray | None = None,
+             samples: np.ndarray | None = None, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(samples (M, 3): x m, y m, yaw rad; weights (M,)) for scan ``seq`` (laser range limit ``range_max`` m) of a
+        Gaussian pose (``mean`` (3,), ``cov`` (3, 3)) or a weighted sample set (``samples`` (K, 3), ``weights``
+        (K,)): :func:`mapping.poses.scan_samples`, the Gaussian draws seeded by (seed, seq)."""
+        return scan_samples(self.mode, mean=mean, cov=cov, samples=samples, weights=weights, n_samples=self.n_samples,
+                            seed=self.seed, seq=seq, accuracy=self.accuracy, range_max=range_max)
 
 
 def fuse_posed_scans(
@@ -78,8 +93,9 @@ def _fuse_each_scan(posed: PosedScans, fuse: Callable[[np.ndarray, np.ndarray, n
                     n_samples: int | None, seed: int, accuracy: float | None, model: SensorModel,
                     progress: bool) -> None:
     """Call ``fuse(ranges, samples, weights)`` for every scan, in order."""
-    accuracy = accuracy if accuracy is not None else model.resolution
+    sampling = PoseSampling(mode, n_samples, seed, accuracy if accuracy is not None else model.resolution)
+    arrays = posed.poses.arrays()  # mean and cov, or samples and weights: (T, ...) each
     steps = range(len(posed.stamps))
     for t in tqdm(steps, desc="fusing", unit="scan", disable=not progress, mininterval=0.5):
-        samples, weights = scan_pose_samples(posed.poses, t, mode, n_samples, seed, posed.range_max, accuracy)
+        samples, weights = sampling.draw(t, posed.range_max, **{name: array[t] for name, array in arrays.items()})
         fuse(posed.ranges[t], samples, weights)

@@ -17,7 +17,7 @@ import msgpack
 import zenoh
 
 from services import keys
-
+from services.process import RejectCounter
 
 #: a seq in a query's parameters
 _SEQ = re.compile(r"[0-9]{1,18}")
@@ -146,3 +146,13 @@ def ask(session: zenoh.Session, robot: str, parameters: dict[str, str], timeout:
     problems += [f"{len(answerers[key])} processes answer the {key[1]} history of robot {key[0]!r} (is a robot name "
                  "used by two runs at once?); none of them is taken" for key in sorted(clashes)]
     return [m for m in messages if (m[0], m[1]) not in clashes], problems
+
+
+def ask_counted(session: zenoh.Session, robot: str, parameters: dict[str, str], timeout: float, rejects: RejectCounter,
+                accept: Callable[[Answerer], bool] = lambda answerer: True) -> list[tuple[str, str, bytes]]:
+    """:func:`ask`, each problem counted by ``rejects`` under pg/<robot>/history/** (kind "history", logged once):
+    (robot, stream, payload) of each message taken, in the order sent."""
+    messages, problems = ask(session, robot, parameters, timeout, accept)
+    for problem in problems:
+        rejects.count(keys.history_key(robot), "history", problem)
+    return messages

@@ -11,7 +11,8 @@ import time
 import pytest
 import zenoh
 
-from services.errors import UsageError, main
+from services.cli import main
+from services.errors import UsageError
 from services.nodes.launcher import free_port
 from services.zenoh_config import build_config, read_key
 

@@ -107,7 +107,7 @@ def add_gridslam_arguments(parser: argparse.ArgumentParser) -> None:
                        help="write timing and effective-sample-size figures as JSON")
 
 
-def _config(args: argparse.Namespace):
+def gridslam_config(args: argparse.Namespace):
     from dataclasses import replace
 
     from services.errors import UsageError
@@ -224,7 +224,7 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
     from services.commands.logs import read_log
     from slam.gridslam import run_gridslam
 
-    config = _config(args)
+    config = gridslam_config(args)
     best_path, poses_path = _output_paths(args)
     if args.scans is not None and args.scans < 2:
         raise UsageError(f"--scans must be >= 2 (a scan to start from and one to integrate), got {args.scans}")

@@ -531,7 +531,7 @@ def _slam_models(args: argparse.Namespace):
     """(motion model, landmark sensor model, outlier gate) of --models and the noise overrides."""
     import inspect
 
-    from services.commands.slam import _noise_overrides
+    from services.commands.slam import noise_overrides
     from slam import mrclam
     from slam.motion import OdometryMotionModel
     from slam.simulator import simulate_office
@@ -544,7 +544,7 @@ def _slam_models(args: argparse.Namespace):
         sensor, gate = defaults["sensor"].default, None
     if args.motion == "odometry" and not isinstance(motion, OdometryMotionModel):
         motion = OdometryMotionModel()
-    return _noise_overrides(args, motion, sensor, gate)
+    return noise_overrides(args, motion, sensor, gate)
 
 
 def run_slam_node(args: argparse.Namespace) -> int:
@@ -553,24 +553,24 @@ def run_slam_node(args: argparse.Namespace) -> int:
     _check_name(args.robot, "--robot")
     if not 0 <= args.resample_threshold <= 1:
         raise UsageError(f"--resample-threshold must be in [0, 1], got {args.resample_threshold}")
-    from services.commands.gridslam import _config as gridslam_config
-    from services.commands.slam import _initial_pose, _make_filter
+    from services.commands.gridslam import gridslam_config
+    from services.commands.slam import initial_pose, make_filter
 
     algo = args.algo or DEFAULT_ALGORITHM
     args.algo = algo
     reject_filter_options(args, algo)
     motion, sensor, gate = _slam_models(args)
-    initial = _initial_pose(args.initial) if args.initial is not None else None
+    initial = initial_pose(args.initial) if args.initial is not None else None
     grid_config = gridslam_config(args) if algo == "gridslam" else None
     import numpy as np
 
-    from services.process import install_stop_event
-    from services.nodes.slam_node import NodeConfig
     from services.nodes.slam_node import run_slam_node as serve
+    from services.process import install_stop_event
+    from services.state.slam import NodeConfig
     from services.zenoh_config import config_from_args
 
     config = NodeConfig(robot=args.robot, algorithm=algo,
-                        make_filter=lambda start: _make_filter(args, motion, sensor, gate, start, NODE_PARTICLES),
+                        make_filter=lambda start: make_filter(args, motion, sensor, gate, start, NODE_PARTICLES),
                         motion=args.motion, initial=None if initial is None else np.array(initial),
                         grid_config=grid_config, seed=args.seed)
     return serve(config, config_from_args(args, "client"), install_stop_event())

@@ -227,7 +227,7 @@ def _floats(text: str, count: tuple[int, ...], option: str) -> list[float]:
     return values
 
 
-def _initial_pose(text: str) -> list[float]:
+def initial_pose(text: str) -> list[float]:
     """--initial X,Y,YAW (m, m, rad), each within +-POSE_LIMIT (the bound every pose message keeps to)."""
     from schemas.messages import POSE_LIMIT
     from services.errors import UsageError
@@ -266,7 +266,7 @@ def _load_input(args: argparse.Namespace):
         if not period >= MIN_PERIOD:
             raise UsageError(f"--period must be at least {MIN_PERIOD:g} s (the commands come about every "
                              f"0.015 s), got {period:g}")
-        initial = _initial_pose(args.initial) if args.initial is not None else None
+        initial = initial_pose(args.initial) if args.initial is not None else None
         run = mrclam.read_mrclam(args.input, args.robot)
         sequence = mrclam.mrclam_sequence(run, initial_pose=initial, period=period,
                                           range_calibration=None if args.raw_ranges else mrclam.MRCLAM_RANGE_CALIBRATION,
@@ -293,7 +293,7 @@ def _check_limits(option: str, value: float, limits: tuple[float, float]) -> Non
         raise UsageError(f"{option} must be in [{low:g}, {high:g}], got {value:g}")
 
 
-def _noise_overrides(args: argparse.Namespace, motion, sensor, gate):
+def noise_overrides(args: argparse.Namespace, motion, sensor, gate):
     from dataclasses import replace
 
     from services.errors import UsageError
@@ -320,7 +320,7 @@ def _noise_overrides(args: argparse.Namespace, motion, sensor, gate):
     return motion, sensor, gate
 
 
-def _make_filter(args: argparse.Namespace, motion, sensor, gate, initial, default_particles: int = DEFAULT_PARTICLES):
+def make_filter(args: argparse.Namespace, motion, sensor, gate, initial, default_particles: int = DEFAULT_PARTICLES):
     from services.errors import UsageError
     from slam.dead_reckoning import DeadReckoning
     from slam.ekf import EKFSLAM
@@ -375,7 +375,7 @@ def run_slam(args: argparse.Namespace) -> int:
     from slam.sequence import run_filter
 
     sequence, motion, sensor, gate, scans_path, notes = _load_input(args)
-    motion, sensor, gate = _noise_overrides(args, motion, sensor, gate)
+    motion, sensor, gate = noise_overrides(args, motion, sensor, gate)
     sequence.validate(str(args.input))
     scans = load_posed_scans(scans_path) if scans_path is not None else None
     if scans is not None and len(scans.stamps) != len(sequence):
@@ -384,7 +384,7 @@ def run_slam(args: argparse.Namespace) -> int:
         step = int(np.argmax(np.abs(scans.stamps - sequence.stamps) > STAMP_TOLERANCE))
         raise FormatError(f"{scans_path}: scan {step} is stamped {scans.stamps[step]:.6f} s but the controls' step "
                           f"{step} {sequence.stamps[step]:.6f} s; the scans must be those of the controls' steps")
-    slam_filter = _make_filter(args, motion, sensor, gate, sequence.initial_pose)
+    slam_filter = make_filter(args, motion, sensor, gate, sequence.initial_pose)
 
     started = time.perf_counter()
     with tqdm(total=len(sequence), desc=f"slam {args.algo}", unit="step", disable=None, file=sys.stderr) as bar:

@@ -5,8 +5,8 @@ the cells of the tiles it owns (services.state.shard), publishes tile updates at
 pg/map/<map>/tile/0/<tx>/<ty>, answers tile queries (pg/map/<map>/tile/**, whole tiles) and stats queries
 (pg/map/<map>/stats/<I>), and holds the liveliness token pg/map/<map>/alive/<I> while it is up.
 
-Threads: Zenoh callbacks only copy payloads into a bounded intake queue (a full queue drops the message
-and counts it, never silently) or answer queries; one main thread decodes, fuses and publishes. A lock
+Threads: Zenoh callbacks only copy payloads into a bounded intake queue (services.intake: a full queue drops
+the message and counts it, never silently) or answer queries; one main thread decodes, fuses and publishes. A lock
 serialises the main thread and the tile queries around the shard's state. Stats queries are answered from a
 snapshot the main thread refreshes after every message (and at least every 0.2 s), so they never wait
 for a scan's fusion (15 to 20 ms): the source's flow control and the HTTP API poll them.
@@ -20,12 +20,13 @@ import time
 import zenoh
 
 from services import history, keys
+from services.intake import DEFAULT_CAPACITY, Intake
 from services.process import RejectCounter, get_logger
 from services.state.shard import SHARD_STREAMS, MapShard, ShardConfig
 from services.zenoh_config import open_session
 
 #: messages that may wait in the intake queue between the network and the fusion thread
-DEFAULT_INTAKE_CAPACITY = 4096
+DEFAULT_INTAKE_CAPACITY = DEFAULT_CAPACITY
 #: s to wait for the histories of scans and poses that never reached the shard (it waits meanwhile)
 HISTORY_TIMEOUT = 5.0
 #: s to wait at startup for the histories of every robot's run so far
@@ -42,53 +43,12 @@ class Mapper:
         self.rejects = RejectCounter(self.log)
         self.shard = MapShard(config, self.rejects, history=self._history)
         self.lock = threading.Lock()
-        self.intake: queue.Queue[tuple[str, bytes]] = queue.Queue(intake_capacity)
-        self.intake_overflow = 0
-        self.intake_bytes = 0  # bytes of the payloads in ``intake`` (guarded by _overflow_lock)
-        self._overflow_lock = threading.Lock()
-        self._declared = []
+        self.intake = Intake(SHARD_STREAMS, self.rejects, config.limits, capacity=intake_capacity)
+        self._declared: list = []  # what declare() declared, undeclared in reverse order
         self._stats_lock = threading.Lock()  # guards _stats_payload only
         self._stats_payload = b""
 
     # ---------------------------------------------------------------------------- zenoh callbacks
-    def _on_sample(self, sample: zenoh.Sample) -> None:
-        """Queue a publication for the fusion thread, unless its key is no robot stream of a shard's (counted under
-        keys.INVALID_KEY), it is larger than any message a shard takes, or the queue is full (by count or bytes)."""
-        key = str(sample.key_expr)
-        if keys.parse_robot_key(key, SHARD_STREAMS.keys()) is None:
-            self.rejects.count(keys.INVALID_KEY, "key", f"a message on {key[:200]!r}, which is no pg/<robot>/scan, "
-                               "pose or end key (a wildcard, another depth or an invalid robot name)")
-            return
-        limits = self.config.limits
-        size = len(sample.payload)
-        if size > limits.message_bytes():
-            self.rejects.count(key, "size", f"a message of {size} bytes, more than a scan of --max-beams "
-                               f"{limits.max_beams} beams may take ({limits.message_bytes()} bytes)")
-            return
-        with self._overflow_lock:
-            room = self.intake_bytes + size <= limits.intake_bytes
-            if room:
-                self.intake_bytes += size
-        if room:
-            try:
-                self.intake.put_nowait((key, sample.payload.to_bytes()))
-                return
-            except queue.Full:
-                pass
-            with self._overflow_lock:
-                self.intake_bytes -= size
-        with self._overflow_lock:
-            self.intake_overflow += 1
-        self.rejects.count(key, "overflow", f"the intake queue ({self.intake.maxsize} messages, "
-                           f"{limits.intake_bytes} bytes) was full")
-
-    def _next_message(self, timeout: float) -> tuple[str, bytes]:
-        """The next queued publication (raises queue.Empty after ``timeout`` s), its bytes released."""
-        key, payload = self.intake.get(timeout=timeout)
-        with self._overflow_lock:
-            self.intake_bytes -= len(payload)
-        return key, payload
-
     def _on_tile_query(self, query: zenoh.Query) -> None:
         wanted = query.key_expr
         with self.lock:
@@ -104,7 +64,7 @@ class Mapper:
 
     def _refresh_stats(self) -> None:
         """Snapshot the shard's stats for the stats queries (main thread, holding ``lock``)."""
-        payload = self.shard.stats({"intake": self.intake_overflow}).encode()
+        payload = self.shard.stats({"intake": self.intake.overflow}).encode()
         with self._stats_lock:
             self._stats_payload = payload
 
@@ -115,10 +75,8 @@ class Mapper:
     def _history(self, robot: str, stream: str, first: int, last: int) -> list[bytes]:
         """The robot's ``stream`` messages first..last from the histories (services.history): the source's for
         scans (and poses of a posed-scan file), the SLAM node's for poses."""
-        messages, problems = history.ask(self.session, robot, {"streams": stream, "from": str(first),
-                                                               "to": str(last + 1)}, HISTORY_TIMEOUT, self._ours)
-        for problem in problems:
-            self.rejects.count(keys.history_key(robot), "history", problem)
+        asked = {"streams": stream, "from": str(first), "to": str(last + 1)}
+        messages = history.ask_counted(self.session, robot, asked, HISTORY_TIMEOUT, self.rejects, self._ours)
         return [payload for _, got, payload in messages if got == stream]  # (history.ask checks the reply keys)
 
     def catch_up(self) -> None:
@@ -127,10 +85,8 @@ class Mapper:
         that starts late or restarts builds the map of the run so far. It otherwise waits for a gap to show, and
         none shows while a source holds back for the shards (``--rate max``) or has ended. Stats are refreshed as
         it goes (the source's flow control reads them). Nothing happens when nobody answers."""
-        replies, problems = history.ask(self.session, "*", {"streams": f"{keys.SCAN},{keys.POSE}"}, CATCH_UP_TIMEOUT,
-                                        self._ours)
-        for problem in problems:
-            self.rejects.count(keys.history_key("*"), "history", problem)
+        replies = history.ask_counted(self.session, "*", {"streams": f"{keys.SCAN},{keys.POSE}"}, CATCH_UP_TIMEOUT,
+                                      self.rejects, self._ours)
         with self.lock:
             taken = self.shard.in_seq_order((keys.robot_key(robot, stream), payload)
                                             for robot, stream, payload in replies)
@@ -149,7 +105,7 @@ class Mapper:
         this shard already receives what it publishes."""
         session, name = self.session, self.config.map_name
         for stream in (keys.SCAN, keys.POSE, keys.END):
-            self._declared.append(session.declare_subscriber(keys.robot_key("*", stream), self._on_sample))
+            self._declared.append(session.declare_subscriber(keys.robot_key("*", stream), self.intake.on_sample))
         self._declared.append(session.declare_queryable(keys.tiles_key(name), self._on_tile_query))
         self._declared.append(session.declare_queryable(keys.stats_key(name, self.config.shard), self._on_stats_query))
         self._declared.append(session.liveliness().declare_token(keys.shard_alive_key(name, self.config.shard)))
@@ -169,7 +125,7 @@ class Mapper:
         while not stop.is_set():
             timeout = 0.2 if next_due is None else min(0.2, max(0.0, next_due - time.monotonic()))
             try:
-                key, payload = self._next_message(timeout)
+                key, payload = self.intake.next(timeout)
             except queue.Empty:
                 pass
             else:

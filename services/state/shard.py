@@ -2,10 +2,10 @@
 poses, fuses the cells of its own tiles, and says which tile windows to publish and when.
 
 Fusion is exactly `posegrid fuse`'s per-scan path (services.fusion_runner): the same sensor model, the
-same :class:`mapping.fusion.MonteCarloFusion`, and the pose samples of :func:`mapping.poses.scan_samples`
-with Gaussian draws seeded by (seed, seq); so the union of all shards' tiles equals the in-process map
-when the scans arrive in seq order (log-odds clamping makes fusion order matter; a shard fuses each scan
-as soon as its pose is there).
+same :class:`mapping.fusion.MonteCarloFusion`, and the pose samples of :class:`services.fusion_runner.PoseSampling`
+(Gaussian draws seeded by (seed, seq)); so the union of all shards' tiles equals the in-process map when the
+scans arrive in seq order (log-odds clamping makes fusion order matter; a shard fuses each scan as soon as its
+pose is there).
 """
 from __future__ import annotations
 
@@ -19,17 +19,25 @@ import numpy as np
 from mapping.errors import InputError
 from mapping.fusion import MonteCarloFusion
 from mapping.grid import TILE_SIZE, TiledGrid
-from mapping.poses import scan_samples
 from mapping.sensor_model import SensorModel
-from schemas.messages import POSE_TYPES, LaserScan, MessageError, PoseGaussian, ShardStats, StreamEnd, TileUpdate, \
-    decode_message
+from schemas.messages import POSE_TYPES, LaserScan, PoseGaussian, ShardStats, StreamEnd, TileUpdate
 from schemas.wire import Message
 from services import keys
-from services.state.join import EVICTED_LIMIT, GIVEN_UP_BECAUSE, MISSING, ORPHANED, OVERFLOW, GivenUp, JoinBuffer, \
-    SeqLedger
+from services.fusion_runner import PoseSampling
+from services.process import RejectCounter, get_logger
+from services.state.checks import decode_of_robot, history_reply, robot_stream
+from services.state.join import (
+    EVICTED_LIMIT,
+    GIVEN_UP_BECAUSE,
+    MISSING,
+    ORPHANED,
+    OVERFLOW,
+    GivenUp,
+    JoinBuffer,
+    SeqLedger,
+)
 from services.state.limits import ShardLimits
 from services.state.ownership import owns_tile
-from services.process import RejectCounter, get_logger
 
 TileKey = tuple[int, int]
 
@@ -85,7 +93,8 @@ class MapShard:
         self.grid = TiledGrid(config.model.resolution, config.tile_size)
         self.owns = owns_tile(config.shard, config.shards)
         self.rejects = rejects
-        self.accuracy = config.accuracy if config.accuracy is not None else config.model.resolution
+        self.sampling = PoseSampling(config.mode, config.n_samples, config.seed,
+                                     config.accuracy if config.accuracy is not None else config.model.resolution)
         self._fusions: OrderedDict[tuple, MonteCarloFusion] = OrderedDict()
         self._history = history
         self._history_high: dict[tuple[str, str], int] = {}  # (robot, stream) -> highest seq a history gave
@@ -125,10 +134,8 @@ class MapShard:
         """The message ``payload`` received on ``key`` (pg/<robot>/<stream>) holds; None after counting why it
         is refused (a key that is no robot stream of a shard's, e.g. a wildcard; a robot past the limit; malformed;
         the wrong type for the key; another robot's; a scan of more beams than the limit)."""
-        parsed = keys.parse_robot_key(key, SHARD_STREAMS.keys())
+        parsed = robot_stream(key, SHARD_STREAMS, self.rejects)
         if parsed is None:
-            self.rejects.count(keys.INVALID_KEY, "key", f"a message on {key[:200]!r}, which is no pg/<robot>/scan, "
-                               "pose or end key (a wildcard, another depth or an invalid robot name)")
             return None
         robot, stream = parsed
         if robot not in self._robots and len(self._robots) >= self.config.limits.max_robots:
@@ -136,20 +143,19 @@ class MapShard:
                                f"{self.config.limits.max_robots} robots already (--max-robots)")
             return None
         self.received[key] += 1
-        try:
-            message = decode_message(payload, *SHARD_STREAMS[stream])
-        except MessageError as exc:
-            self.rejects.count(key, exc.reason, str(exc))
-            return None
-        if message.robot != robot:
-            self.rejects.count(key, "robot", f"a {message.TYPE} of robot {message.robot!r} arrived on {key}")
-            return None
-        if isinstance(message, LaserScan) and message.ranges.shape[0] > self.config.limits.max_beams:
-            self.rejects.count(key, "size", f"a scan of {message.ranges.shape[0]} beams, more than the limit "
-                               f"{self.config.limits.max_beams} (--max-beams)")
+        message = decode_of_robot(key, robot, payload, SHARD_STREAMS[stream], self.rejects)
+        if message is None or self._too_many_beams(key, message):
             return None
         self._robots.add(robot)
         return message
+
+    def _too_many_beams(self, key: str, message: Message) -> bool:
+        """Whether ``message`` is a scan of more beams than the limit (counted under ``key`` when it is)."""
+        if isinstance(message, LaserScan) and message.ranges.shape[0] > self.config.limits.max_beams:
+            self.rejects.count(key, "size", f"a scan of {message.ranges.shape[0]} beams, more than the limit "
+                               f"{self.config.limits.max_beams} (--max-beams)")
+            return True
+        return False
 
     def in_seq_order(self, replies: Iterable[tuple[str, bytes]]) -> list[tuple[str, Message]]:
         """The scans and poses that histories gave, as (key, payload) pairs with key pg/<robot>/scan or
@@ -244,20 +250,14 @@ class MapShard:
 
     def _recover(self, robot: str, is_scan: bool, first: int, last: int) -> dict[int, object]:
         """Scans (else poses) first..last of ``robot`` that its stream skipped, from the history; each checked as
-        a received message is (a bad one counted under the history's key)."""
+        a received message is, and for its seq (a bad one counted under the history's key)."""
         stream = keys.SCAN if is_scan else keys.POSE
         key = keys.history_key(robot, stream)
         found = {}
         for payload in self._history(robot, stream, first, last):
-            try:
-                message = decode_message(payload, *((LaserScan,) if is_scan else POSE_TYPES))
-            except MessageError as exc:
-                self.rejects.count(key, exc.reason, str(exc))
-                continue
-            if message.robot != robot or not first <= message.seq <= last:
-                self.rejects.count(key, "key", f"a {message.TYPE} of robot {message.robot!r}, seq {message.seq}, "
-                                   f"answered a question about seqs {first}-{last} of robot {robot!r}")
-            elif not self._fused_seqs.done(robot, message.seq):
+            message = history_reply(key, robot, payload, SHARD_STREAMS[stream], first, last, self.rejects)
+            if message is not None and not self._too_many_beams(key, message) \
+                    and not self._fused_seqs.done(robot, message.seq):
                 found[message.seq] = message
         if found:
             self.log.info("took %d %s(s) of robot %r in seqs %d-%d from the history (lost in transit, or dropped "
@@ -302,11 +302,9 @@ class MapShard:
 
     def pose_samples(self, scan: LaserScan, pose) -> tuple[np.ndarray, np.ndarray]:
         """(samples (M, 3), weights (M,)) to fuse ``scan`` with, as `posegrid fuse` draws them."""
-        cfg = self.config
         if isinstance(pose, PoseGaussian):
-            return scan_samples(cfg.mode, mean=pose.mean, cov=pose.cov, n_samples=cfg.n_samples, seed=cfg.seed,
-                                seq=scan.seq, accuracy=self.accuracy, range_max=scan.range_max)
-        return scan_samples(cfg.mode, samples=pose.samples, weights=pose.weights)
+            return self.sampling.draw(scan.seq, scan.range_max, mean=pose.mean, cov=pose.cov)
+        return self.sampling.draw(scan.seq, scan.range_max, samples=pose.samples, weights=pose.weights)
 
     def _fuse(self, scan: LaserScan, pose) -> None:
         self._fused_seqs.mark(scan.robot, scan.seq, (scan.digest(), pose.digest()))
@@ -324,7 +322,7 @@ class MapShard:
             self.discarded[scan.robot] += 1
             self.rejects.count(f"fuse/{scan.robot}", "input", f"scan seq {scan.seq} could not be fused: {exc}")
             return
-        except Exception as exc:  # noqa: BLE001 - a defect met by one scan must not stop the shard: counted, logged
+        except Exception as exc:
             self.discarded[scan.robot] += 1
             self.log.exception("scan seq %d of robot %r failed to fuse; the shard goes on", scan.seq, scan.robot)
             self.rejects.count(f"fuse/{scan.robot}", "error",
@@ -339,8 +337,8 @@ class MapShard:
     # ------------------------------------------------------------------------------- progress
     def settle(self) -> None:
         """Once a robot's stream has ended and no scan or pose of it has been taken for SETTLE_AFTER s, settle it
-        (:meth:`services.state.join.JoinBuffer.settle`): a message held past a gap is taken, the scans after the last one
-        seen (lost in transit with the end of the stream, say while this shard was cut off) and the scans still
+        (:meth:`services.state.join.JoinBuffer.settle`): a message held past a gap is taken, the scans after the last
+        one seen (lost in transit with the end of the stream, say while this shard was cut off) and the scans still
         waiting for a pose (lost too, or the SLAM node gave up on the last steps: a pose stream has no end mark)
         are given up. Counted as discarded, so the shard catches up. (The end of a stream can overtake its last
         scans on the way in, so it is not taken as proof that they are lost.)"""

@@ -41,7 +41,7 @@ class Released:
 class StepAssembler:
     """See the module docstring. ``needs``: the parts a step must have, e.g. {"odom", "landmarks"}."""
 
-    def __init__(self, needs: set[str], capacity: int = 256, reorder: int = 16,
+    def __init__(self, needs: set[str] | frozenset[str], capacity: int = 256, reorder: int = 16,
                  recover: Callable[[int, int | None], dict[int, dict]] | None = None,
                  window: int = DEFAULT_SEQ_WINDOW,
                  same: Callable[[object, object], bool] = lambda a, b: a == b):

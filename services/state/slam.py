@@ -1,0 +1,408 @@
+"""A SLAM node's state, without any networking: it decodes what arrives for its robot, files each message with
+its step, takes the steps strictly in seq order (services.state.steps) through the filter and hands each pose it
+gives to be published, keeping the poses for the node's history. services.nodes.slam_node puts the Zenoh
+declarations around it, as services.nodes.mapper does around services.state.shard.
+
+Landmark filters (odometry dead reckoning, EKF-SLAM, FastSLAM 1.0/2.0, slam/) take step ``seq`` when its
+Odometry and LandmarkObservations are in; grid FastSLAM (slam/gridslam) when its LaserScan and Odometry
+(with the odometry pose) are in. A message whose seq is not above every seq seen on its key arrived out of order:
+it is reported (logged once per key, counted per key) and used if its step is still to come, else dropped. The
+filter starts at ``--initial`` or at the prior the source publishes on pg/<robot>/prior. Per step, the pose is what
+the offline `posegrid slam` writes for that step: mean and covariance (Gaussian filters) or particles and their
+weights before resampling; grid FastSLAM gives the filtered particles (the offline run smooths them by ancestry,
+which a live node cannot do).
+"""
+from __future__ import annotations
+
+import copy
+import time
+from collections import Counter, OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from schemas.messages import (
+    LandmarkObservations,
+    LaserScan,
+    NodeStats,
+    Odometry,
+    PoseGaussian,
+    PoseSamples,
+    StreamEnd,
+)
+from services import keys
+from services.process import RejectCounter, get_logger
+from services.state.checks import decode_of_robot, history_reply, robot_stream
+from services.state.steps import OutOfOrder, Released, StepAssembler
+from slam.gridslam import GridFastSLAM, GridSlamConfig
+from slam.motion import OdometryMotionModel, odometry_controls, split_odometry_motion
+
+#: the streams a SLAM node reads, and the message types each may carry
+EXPECTED = {keys.SCAN: (LaserScan,), keys.ODOM: (Odometry,), keys.LANDMARKS: (LandmarkObservations,),
+            keys.END: (StreamEnd,), keys.PRIOR: (PoseGaussian,)}
+#: the odometry motion model that moves a velocity-motion filter over steps that never arrived (NodeConfig.bridge)
+DEFAULT_BRIDGE = OdometryMotionModel()
+#: bytes of published poses kept for the node's history (the oldest go first): 1 KB a pose of 30 particles
+POSE_HISTORY_BYTES = 64 * 2**20
+
+
+class StepError(ValueError):
+    """A step the filter cannot take (e.g. odometry motion without an odometry pose)."""
+
+
+@dataclass(frozen=True)
+class NodeConfig:
+    """robot: whose streams to follow; algorithm: odometry, ekf, fastslam1, fastslam2 or gridslam;
+    make_filter(initial_pose) builds a landmark filter (None for gridslam); motion: "velocity" or
+    "odometry" (which Odometry field the landmark filters read); initial: start pose or None to wait
+    for the source's prior; grid_config, seed: grid FastSLAM's (max_range is capped at the laser's);
+    intake_capacity: bounded queue size; bridge: the odometry motion model that moves a velocity-motion filter
+    over steps that never arrived, by the odometry poses around them (:class:`LandmarkDriver`)."""
+
+    robot: str
+    algorithm: str
+    make_filter: Callable[[np.ndarray], object] | None
+    motion: str = "velocity"
+    initial: np.ndarray | None = None
+    grid_config: GridSlamConfig | None = None
+    seed: int = 0
+    intake_capacity: int = 4096
+    bridge: OdometryMotionModel | None = DEFAULT_BRIDGE
+
+
+@dataclass(frozen=True)
+class Gap:
+    """Seqs first..last never arrived before the step just taken; bridged: whether its motion covers theirs."""
+
+    first: int
+    last: int
+    bridged: bool
+
+
+class LandmarkDriver:
+    """Feeds an EKF / FastSLAM / dead-reckoning filter one step at a time, as slam.sequence.run_filter does.
+
+    Steps that never arrived (lost in transit: a router restart, a network gap) take their motion with them. With
+    odometry motion the next step's controls come from the last odometry pose taken, so they cover the gap. With
+    velocity motion the gap's commands are gone; when the odometry messages carry the dead-reckoned pose, the
+    step after the gap is moved by the odometry poses around it instead, split into one piece per step it spans
+    (slam.motion.split_odometry_motion), under ``bridge`` (an odometry motion model), and its own commands, which
+    that motion includes, are not used. :attr:`last_gap` says what the step just taken did about a gap before
+    it."""
+
+    needs = frozenset({keys.ODOM, keys.LANDMARKS})
+
+    def __init__(self, slam_filter, motion: str, bridge: OdometryMotionModel | None = None):
+        self.filter = slam_filter
+        self.motion = motion
+        self.bridge = bridge
+        self._last_pose: np.ndarray | None = None  # odometry pose of the last step taken (None: it had none)
+        self._last_seq: int | None = None
+        self.last_gap: Gap | None = None
+
+    def step(self, parts: dict) -> tuple[np.ndarray, np.ndarray]:
+        odom: Odometry = parts[keys.ODOM]
+        seen: LandmarkObservations = parts[keys.LANDMARKS]
+        pose = odom.pose[0] if odom.pose.shape[0] else None
+        gap = None if self._last_seq is None or odom.seq == self._last_seq + 1 else (self._last_seq + 1, odom.seq - 1)
+        model = None
+        if self.motion == "odometry":
+            if pose is None:
+                raise StepError(f"seq {odom.seq}: odometry motion needs the odometry pose, the message has none")
+            controls = np.zeros((0, 3)) if self._last_pose is None else odometry_controls(
+                np.stack([self._last_pose, pose]))
+        elif gap is not None and pose is not None and self._last_pose is not None and self.bridge is not None:
+            motion = odometry_controls(np.stack([self._last_pose, pose]))[0]
+            controls, model = split_odometry_motion(motion, odom.seq - self._last_seq), self.bridge
+        else:
+            controls = odom.commands
+        measurements = np.column_stack([seen.ranges, seen.bearings])
+        if model is None:
+            result = self.filter.step(controls, measurements, seen.ids)
+        else:
+            velocity, self.filter.motion = self.filter.motion, model
+            try:
+                result = self.filter.step(controls, measurements, seen.ids)
+            finally:
+                self.filter.motion = velocity
+        self.last_gap = None if gap is None else Gap(*gap, bridged=self.motion == "odometry" or model is not None)
+        self._last_pose = pose
+        self._last_seq = odom.seq
+        return result
+
+    def save(self) -> object:
+        """The filter's state before a step (a copy: a landmark filter's arrays are small)."""
+        return copy.deepcopy((self.filter, self._last_pose, self._last_seq))
+
+    def restore(self, saved: object) -> None:
+        """Go back to the state :meth:`save` returned, undoing a step whose pose could not be published."""
+        self.filter, self._last_pose, self._last_seq = saved
+        self.last_gap = None
+
+
+class GridDriver:
+    """Feeds grid FastSLAM one scan at a time: integrate when due, else follow the odometry. A failed step is
+    not undone (:meth:`save` keeps nothing): a copy of every particle's map per scan would cost more than the
+    step. Odometry beyond the wire's pose limit never reaches it."""
+
+    needs = frozenset({keys.SCAN, keys.ODOM})
+
+    def save(self) -> object:
+        return None
+
+    def restore(self, saved: object) -> None:
+        pass
+
+    def __init__(self, initial: np.ndarray, config: GridSlamConfig, seed: int):
+        self.initial = initial
+        self.config = config
+        self.seed = seed
+        self.filter = None
+
+    def step(self, parts: dict) -> tuple[np.ndarray, np.ndarray]:
+        scan: LaserScan = parts[keys.SCAN]
+        odom: Odometry = parts[keys.ODOM]
+        if odom.pose.shape[0] == 0:
+            raise StepError(f"seq {odom.seq}: grid FastSLAM needs the odometry pose, the message has none")
+        if self.filter is None:  # as slam.gridslam.run_gridslam sets it up
+            config = replace(self.config, max_range=min(self.config.max_range, scan.range_max))
+            angles = scan.angle_min + scan.angle_increment * np.arange(scan.ranges.shape[0])
+            self.filter = GridFastSLAM(config, angles, scan.sensor_offset, scan.range_min, self.initial, self.seed)
+        if self.filter.due(odom.pose[0]):
+            poses, weights, _, _ = self.filter.integrate(odom.pose[0], scan.ranges)
+            return poses, weights
+        return self.filter.follow(odom.pose[0]), self.filter.weights
+
+
+class SlamState:
+    """One robot's SLAM node without its network: feed it with :meth:`handle` (and :meth:`take_history` at
+    startup); it calls ``publish(payload)`` with each encoded pose, in seq order. Not thread-safe: callers serialise
+    access (services.nodes.slam_node).
+
+    ``history(streams, first, last)``: (pg/<robot>/<stream>, payload) of the robot's messages of ``streams`` with
+    seqs first..last (last None: every one from ``first``) that the source's history holds, in the order it sent
+    them; the step assembler takes them for steps that did not all arrive. None: nothing is recovered."""
+
+    def __init__(self, config: NodeConfig, rejects: RejectCounter, publish: Callable[[bytes], None],
+                 history: Callable[[frozenset[str], int, int | None], list[tuple[str, bytes]]] | None = None):
+        self.config = config
+        self.log = get_logger(f"slam-node[{config.robot}]")  # the logger services.nodes.slam_node writes to
+        self.rejects = rejects
+        self._publish = publish
+        self._history = history
+        self.received: Counter[str] = Counter()
+        self.out_of_order: Counter[str] = Counter()
+        self.published = 0
+        self.steps_done = 0  # seqs taken, failed or skipped
+        self.started = time.monotonic()
+        self.initial = config.initial
+        self.driver: LandmarkDriver | GridDriver | None = None
+        needs = GridDriver.needs if config.algorithm == "gridslam" else LandmarkDriver.needs
+        self.steps = StepAssembler(needs, recover=None if history is None else self._recover,
+                                   same=lambda a, b: a.digest() == b.digest())
+        self._ready: list[tuple[int, dict]] = []
+        self._highest_seq: dict[str, int] = {}
+        self._history_high: dict[str, int] = {}  # per stream, the highest seq the source's history gave
+        self._poses_sent: OrderedDict[int, bytes] = OrderedDict()  # seq -> published pose, for the history
+        self._poses_bytes = 0
+
+    # ---------------------------------------------------------------------------- messages
+    def handle(self, key: str, payload: bytes, from_history: bool = False) -> None:
+        """Decode one message, file it with its step, and take every step that is now complete. A live message
+        that the source's history gave already (:meth:`take_history`) is dropped without a word."""
+        parsed = robot_stream(key, EXPECTED, self.rejects, self.config.robot)
+        if parsed is None:
+            return
+        self.received[key] += 1
+        stream = parsed[1]
+        message = decode_of_robot(key, self.config.robot, payload, EXPECTED[stream], self.rejects)
+        if message is None:
+            return
+        if stream in self.steps.needs and from_history:
+            self._history_high[stream] = max(self._history_high.get(stream, -1), message.seq)
+        elif stream in self.steps.needs and message.seq <= self._history_high.get(stream, -1):
+            return
+        if stream == keys.PRIOR:
+            if self.initial is None:
+                self.initial = message.mean
+                self.log.info("starting at the source's prior (%.3f m, %.3f m, %.3f rad)", *message.mean)
+            self._take_ready()
+        elif stream == keys.END:
+            # the steps lost at the end are taken back only for a run this node has followed (it has taken steps
+            # of it): a node that starts after the end would take an ended source's history, which catch_up refuses
+            # (it may be a stale run's)
+            self._file(self.steps.flush(tail=self.steps.next_seq > 0))
+        elif stream in self.steps.needs and not from_history and self.steps.beyond_window(message.seq):
+            self.rejects.count(key, "ahead", f"a {message.TYPE} for seq {message.seq}, more than the seq window "
+                               f"({self.steps.window}) beyond the next step {self.steps.next_seq} (a forged or "
+                               "stray seq?): held, and used only if the stream gets near it or goes on from it")
+            self._file(self.steps.add(stream, message.seq, message))
+        else:
+            self._add_part(key, stream, message, from_history)
+
+    def _add_part(self, key: str, stream: str, message, from_history: bool) -> None:
+        """Check the order of a message within the seq window and file it with its step when it is a part of one."""
+        late = self._check_order(key, message.seq)
+        if stream not in self.steps.needs:
+            return
+        try:
+            released = self.steps.add(stream, message.seq, message, trusted=from_history)
+        except OutOfOrder as exc:
+            if not late:
+                self._report_order(key, str(exc))
+            return
+        self._file(released)
+
+    def take_history(self, replies: list[tuple[str, bytes]]) -> None:
+        """Take what the source's history gave at startup ((pg/<robot>/<stream>, payload), in the order it was
+        sent), as if it had arrived live; a live copy that comes later is dropped without a word."""
+        for key, payload in replies:
+            self.handle(key, payload, from_history=True)
+        self.log.info("took %d message(s) the source published before this node was up (steps up to seq %d)",
+                      len(replies), max(self._history_high.values(), default=-1))
+
+    def _check_order(self, key: str, seq: int) -> bool:
+        """Report (log once per key, count always) a message whose seq is not above every seq seen on its key."""
+        highest = self._highest_seq.get(key, -1)
+        if seq > highest:
+            self._highest_seq[key] = seq
+            return False
+        used = "; it is dropped" if seq < self.steps.next_seq else "; its step is still to come, so it is used"
+        self._report_order(key, f"seq {seq} arrived after seq {highest}{used}")
+        return True
+
+    def _report_order(self, key: str, detail: str) -> None:
+        self.out_of_order[key] += 1
+        if self.out_of_order[key] == 1:
+            self.log.warning("out of order on %s: %s; further ones on this key are only counted", key, detail)
+
+    # ---------------------------------------------------------------------------- steps
+    def _file(self, released: Released) -> None:
+        if released.skipped:
+            self.log.warning("skipped seq %s of robot %s: parts of them never arrived",
+                             _spans(released.skipped), self.config.robot)
+            self.steps_done += sum(count for _, count in released.skipped)
+        lost = released.evicted
+        self._ready.extend(released.steps)
+        while self.initial is None and len(self._ready) > self.steps.capacity:  # no start pose yet: the newest
+            self._ready.pop(0)
+            self.steps_done += 1
+            lost += 1
+        if lost:
+            self.rejects.count(keys.robot_key(self.config.robot, "steps"), "overflow",
+                               f"dropped {lost} step(s) to bound the buffers")
+        self._take_ready()
+
+    def _take_ready(self) -> None:
+        if self.initial is None:
+            return
+        for seq, parts in self._ready:
+            self._take(seq, parts)
+        self._ready.clear()
+
+    def _new_driver(self) -> LandmarkDriver | GridDriver:
+        cfg = self.config
+        initial = np.asarray(self.initial, np.float64)
+        return (GridDriver(initial, cfg.grid_config, cfg.seed) if cfg.algorithm == "gridslam"
+                else LandmarkDriver(cfg.make_filter(initial), cfg.motion, cfg.bridge))
+
+    def _take(self, seq: int, parts: dict) -> None:
+        """Take step ``seq`` through the filter and publish its pose; a step the filter cannot take is undone,
+        counted and skipped."""
+        cfg = self.config
+        if self.driver is None:
+            self.driver = self._new_driver()
+        stamp = next(iter(parts.values())).stamp
+        self.steps_done += 1
+        saved = self.driver.save()
+        try:
+            first, second = self.driver.step(parts)
+            if cfg.algorithm == "gridslam" or not self.driver.filter.gaussian:
+                message = PoseSamples(robot=cfg.robot, seq=seq, stamp=stamp, samples=first, weights=second)
+            else:
+                message = PoseGaussian(robot=cfg.robot, seq=seq, stamp=stamp, mean=first, cov=second)
+            payload = message.encode()  # validates: a filter driven out of range by its input gives no pose
+        except (StepError, ValueError, IndexError, KeyError, np.linalg.LinAlgError) as exc:
+            # valid messages the filter still cannot use (e.g. an unknown landmark id), or a pose outside what a
+            # PoseSamples/PoseGaussian may carry: skip the step, as if it had not come, and go on
+            self.driver.restore(saved)
+            self.rejects.count(keys.robot_key(cfg.robot, "steps"), "step", f"seq {seq} skipped: {exc}")
+            return
+        except Exception as exc:
+            self.driver.restore(saved)
+            self.log.exception("seq %d failed; the node goes on", seq)
+            self.rejects.count(keys.robot_key(cfg.robot, "steps"), "error", f"seq {seq} failed: {type(exc).__name__}")
+            return
+        self._publish(payload)
+        self.published += 1
+        self._keep_pose(seq, payload)
+        self._report_gap(seq, getattr(self.driver, "last_gap", None))
+
+    def _report_gap(self, seq: int, gap: Gap | None) -> None:
+        """Log how step ``seq`` moved over the steps before it that never arrived, if any."""
+        if gap is not None and gap.bridged:
+            self.log.info("seq %d: moved over seq %d-%d, which never arrived, by the odometry poses around them", seq,
+                          gap.first, gap.last)
+        elif gap is not None:
+            self.log.warning("seq %d: the velocity commands of seq %d-%d never arrived and the odometry messages "
+                             "carry no pose to bridge them; the poses from here on miss that motion", seq, gap.first,
+                             gap.last)
+
+    def _recover(self, first: int, last: int | None) -> dict[int, dict]:
+        """The parts of steps first..last (None: every step the source has published from ``first``), which did
+        not all arrive (lost in transit), from the source's history ({seq: {stream: message}}; what it lacks is
+        skipped as before). Called by the step assembler. A live copy of a part taken here that comes later is
+        dropped without a word, as after :meth:`take_history`."""
+        parts: dict[int, dict] = {}
+        robot = self.config.robot
+        for key, payload in self._history(self.steps.needs, first, last):
+            stream = key.rsplit("/", 1)[-1]
+            message = history_reply(keys.history_key(robot), robot, payload, EXPECTED[stream], first, last,
+                                    self.rejects)
+            if message is not None:
+                parts.setdefault(message.seq, {})[stream] = message
+                self._history_high[stream] = max(self._history_high.get(stream, -1), message.seq)
+        if parts and last is None:  # the end mark can overtake the last steps: they may still be on their way
+            self.log.info("at the end of the stream, took seq %s, which had not all arrived (lost, or still on their "
+                          "way), from the source's history", _spans(_runs(sorted(parts))))
+        elif parts:
+            self.log.info("took seq %s, which did not all arrive, from the source's history",
+                          _spans(_runs(sorted(parts))))
+        return parts
+
+    # ---------------------------------------------------------------------------- what the node serves
+    def _keep_pose(self, seq: int, payload: bytes) -> None:
+        """Keep a published pose for the history, within POSE_HISTORY_BYTES."""
+        old = self._poses_sent.pop(seq, None)
+        self._poses_bytes += len(payload) - (0 if old is None else len(old))
+        self._poses_sent[seq] = payload
+        while self._poses_bytes > POSE_HISTORY_BYTES:
+            self._poses_bytes -= len(self._poses_sent.popitem(last=False)[1])
+
+    def poses(self, wants: Callable[[int], bool]) -> list[bytes]:
+        """The encoded poses kept for the history whose seq ``wants`` takes, in the order they were published."""
+        return [payload for seq, payload in self._poses_sent.items() if wants(seq)]
+
+    def stats(self) -> NodeStats:
+        """The node's statistics (pg/<robot>/slam/stats)."""
+        return NodeStats(robot=self.config.robot, algorithm=self.config.algorithm, poses_published=self.published,
+                         steps_done=self.steps_done, uptime=time.monotonic() - self.started,
+                         received=dict(self.received), rejected=self.rejects.snapshot(),
+                         out_of_order=dict(self.out_of_order))
+
+
+def _runs(seqs: list[int]) -> list[tuple[int, int]]:
+    """Ascending seqs as runs (first seq, count) of consecutive ones."""
+    runs: list[tuple[int, int]] = []
+    for seq in seqs:
+        if runs and seq == runs[-1][0] + runs[-1][1]:
+            runs[-1] = (runs[-1][0], runs[-1][1] + 1)
+        else:
+            runs.append((seq, 1))
+    return runs
+
+
+def _spans(runs: list[tuple[int, int]]) -> str:
+    """Runs (first seq, count) as "3, 7-12, 15"."""
+    return ", ".join(str(first) if count == 1 else f"{first}-{first + count - 1}" for first, count in runs)

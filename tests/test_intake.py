@@ -1,0 +1,144 @@
+"""The checks a mapper shard and a SLAM node share (services.intake, services.state.checks): the bounded intake
+queue in front of both, and the checks of what a history answers, run the same way by the shard's join and by the
+SLAM node's step assembler (services.state.slam, driven here without a network)."""
+from __future__ import annotations
+
+import logging
+import queue
+
+import numpy as np
+import pytest
+import zenoh
+
+from mapping.sensor_model import SensorModel
+from schemas.messages import (
+    LandmarkObservations,
+    LaserScan,
+    Odometry,
+    PoseGaussian,
+    PoseSamples,
+    StreamEnd,
+    decode_message,
+)
+from services import keys
+from services.intake import Intake
+from services.process import RejectCounter
+from services.state.limits import ShardLimits
+from services.state.shard import SHARD_STREAMS, MapShard, ShardConfig
+from services.state.slam import NodeConfig, SlamState
+from slam.dead_reckoning import DeadReckoning
+from slam.motion import OdometryMotionModel
+
+
+def _rejects(name: str) -> RejectCounter:
+    return RejectCounter(logging.getLogger(f"test-intake-{name}"))
+
+
+# ------------------------------------------------------------------------------------------------ the intake queue
+
+
+@pytest.mark.parametrize("key", ["pg/*/scan", "pg/r/odom", "pg/r/scan/x", "pg/map/scan", "pg/-x/pose"])
+def test_the_intake_refuses_a_key_that_is_no_robot_stream_it_reads(key):
+    rejects = _rejects("key")
+    intake = Intake(SHARD_STREAMS, rejects)
+    assert not intake.offer(key, b"payload")
+    assert rejects.snapshot() == {keys.INVALID_KEY: 1} and rejects.kinds() == {"key": 1} and intake.empty()
+
+
+def test_a_node_intake_takes_only_its_own_robots_streams():
+    rejects = _rejects("robot")
+    intake = Intake(["odom", "scan"], rejects, robot="r1")
+    assert not intake.offer("pg/r2/odom", b"x") and intake.offer("pg/r1/odom", zenoh.ZBytes(b"abc"))
+    assert rejects.snapshot() == {keys.INVALID_KEY: 1}
+    assert intake.next(1.0) == ("pg/r1/odom", b"abc")  # a Zenoh payload is queued as a copy of its bytes
+
+
+def test_the_intake_refuses_a_message_larger_than_any_scan_the_limits_allow():
+    rejects = _rejects("size")
+    limits = ShardLimits(max_beams=10)  # messages of up to 16 * 10 + 2^20 bytes
+    intake = Intake(SHARD_STREAMS, rejects, limits)
+    assert intake.offer("pg/r/scan", b"x" * limits.message_bytes())
+    assert not intake.offer("pg/r/scan", b"x" * (limits.message_bytes() + 1))
+    assert rejects.snapshot() == {"pg/r/scan": 1} and rejects.kinds() == {"size": 1} and intake.overflow == 0
+
+
+def test_the_intake_bounds_what_waits_by_bytes_and_by_count_and_counts_each_overflow():
+    rejects = _rejects("overflow")
+    intake = Intake(SHARD_STREAMS, rejects, ShardLimits(intake_bytes=100), capacity=3)
+    assert intake.offer("pg/r/scan", b"a" * 60) and not intake.offer("pg/r/pose", b"b" * 41)  # 101 bytes > 100
+    assert intake.offer("pg/r/pose", b"c" * 40) and intake.bytes == 100
+    assert intake.next(1.0) == ("pg/r/scan", b"a" * 60) and intake.bytes == 40  # taken out: its bytes are free again
+    assert intake.offer("pg/r/end", b"d") and intake.offer("pg/r/end", b"e")
+    assert not intake.offer("pg/r/end", b"f")  # 3 messages wait already
+    assert intake.overflow == 2 and rejects.kinds() == {"overflow": 2}
+    assert rejects.snapshot() == {"pg/r/pose": 1, "pg/r/end": 1} and intake.bytes == 42
+    assert [intake.next(1.0)[1] for _ in range(3)] == [b"c" * 40, b"d", b"e"] and intake.bytes == 0
+    with pytest.raises(queue.Empty):
+        intake.next(0.01)
+
+
+# ------------------------------------------------------------------------------------------------ history replies
+
+
+def _scan(seq: int, beams: int = 5) -> LaserScan:
+    ranges = np.full(beams, 1.5, np.float32)
+    return LaserScan(robot="r", seq=seq, stamp=0.1 * seq, angle_min=-1.0, angle_increment=2.0 / beams,
+                     range_min=0.05, range_max=5.0, sensor_offset=np.zeros(3), ranges=ranges)
+
+
+def _pose(seq: int) -> PoseSamples:
+    return PoseSamples(robot="r", seq=seq, stamp=0.1 * seq, samples=np.array([[3.0, 3.0, 0.01 * seq]]),
+                       weights=np.ones(1))
+
+
+def test_a_shard_refuses_a_scan_from_a_history_with_more_beams_than_the_limit():
+    """A history's scans pass the checks a live scan passes: one of more beams than --max-beams is refused and
+    counted under the history's key, not fused (the history path took it unchecked)."""
+    def history(robot: str, stream: str, first: int, last: int) -> list[bytes]:
+        make = (lambda seq: _scan(seq, beams=10 if seq == 5 else 5)) if stream == keys.SCAN else _pose
+        return [make(seq).encode() for seq in range(first, last + 1)]
+    shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), join_capacity=4, limits=ShardLimits(max_beams=5)),
+                     _rejects("beams"), history=history)
+    for seq in (20, 21, 22):
+        shard.handle("pg/r/scan", _scan(seq).encode())
+        shard.handle("pg/r/pose", _pose(seq).encode())
+    stats = shard.stats({"intake": 0})
+    assert stats.rejected[keys.history_key("r", keys.SCAN)] == 1 and stats.refused["size"] == 1, stats
+    assert stats.fused == {"r": 22} and stats.discarded == {"r": 1}  # the join gives seq 5 up: its scan is missing
+
+
+def _odometry(seq: int, robot: str = "r") -> Odometry:
+    return Odometry(robot=robot, seq=seq, stamp=0.1 * seq, pose=np.array([[0.1 * seq, 0.0, 0.0]]),
+                    commands=np.zeros((0, 3)))
+
+
+def _seen(seq: int) -> LandmarkObservations:
+    return LandmarkObservations(robot="r", seq=seq, stamp=0.1 * seq, ids=np.zeros(0, np.int64), ranges=np.zeros(0),
+                                bearings=np.zeros(0))
+
+
+def test_a_slam_node_takes_lost_steps_from_the_history_and_counts_replies_about_other_robots_or_seqs():
+    """Steps 3-4 never arrive; the source's history gives them back, along with an odometry of another robot for
+    seq 3 and landmarks of seq 1, before the span asked for: those two are counted under the history's key,
+    the steps are taken, and every step gets its pose, in seq order."""
+    asked, published = [], []
+
+    def history(streams: frozenset[str], first: int, last: int | None) -> list[tuple[str, bytes]]:
+        asked.append((sorted(streams), first, last))
+        replies = [("pg/r/odom", _odometry(3, robot="x").encode()), ("pg/r/landmarks", _seen(1).encode())]
+        for seq in range(first, (last if last is not None else 9) + 1):
+            replies += [("pg/r/odom", _odometry(seq).encode()), ("pg/r/landmarks", _seen(seq).encode())]
+        return replies
+    config = NodeConfig(robot="r", algorithm="odometry", motion="odometry", initial=np.zeros(3),
+                        make_filter=lambda start: DeadReckoning(OdometryMotionModel(), start))
+    rejects = _rejects("slam-history")
+    state = SlamState(config, rejects, publish=published.append, history=history)
+    for seq in [0, 1, 2, *range(5, 10)]:
+        state.handle("pg/r/odom", _odometry(seq).encode())
+        state.handle("pg/r/landmarks", _seen(seq).encode())
+    state.handle("pg/r/end", StreamEnd(robot="r", scans=10).encode())
+    assert asked and all(first <= 3 and (last is None or last >= 4) for _, first, last in asked), asked
+    assert rejects.snapshot() == {keys.history_key("r"): 2 * len(asked)} and rejects.kinds() == {"key": 2 * len(asked)}
+    poses = [decode_message(payload, PoseGaussian) for payload in published]
+    assert [pose.seq for pose in poses] == list(range(10)) and state.stats().poses_published == 10
+    np.testing.assert_allclose(poses[9].mean, [0.9, 0.0, 0.0], atol=1e-12)  # moved by every step's odometry
