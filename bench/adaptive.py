@@ -16,6 +16,7 @@ hold the labels exactly (`label_pure_cells`): what the quadtree itself allows, w
 Speeds are scans per second, single-threaded, after a warm-up scan that compiles the kernels: wall-clock, and
 per second of this process's CPU time (steadier when other work shares the machine).
 """
+
 from __future__ import annotations
 
 import time
@@ -80,14 +81,22 @@ def free_space_labels(regular: dict) -> dict:
     score, an adaptive map loses AUC where it shows unseen space as free (the paper's Fig. 3 error), which the
     occupancy labels over observed cells cannot see."""
     free = regular["observed"] & (regular["probability"] < 0.5)
-    return {"occupied": ~free, "visible": np.ones_like(free), "origin": regular["origin"],
-            "resolution": regular["resolution"]}
+    return {
+        "occupied": ~free,
+        "visible": np.ones_like(free),
+        "origin": regular["origin"],
+        "resolution": regular["resolution"],
+    }
 
 
 def regular_labels(raster: dict) -> dict:
     """The paper's Fig. 4(b) labels: the regular grid's thresholded occupancy (p > 1/2) over its observed cells."""
-    return {"occupied": raster["probability"] > 0.5, "visible": raster["observed"], "origin": raster["origin"],
-            "resolution": raster["resolution"]}
+    return {
+        "occupied": raster["probability"] > 0.5,
+        "visible": raster["observed"],
+        "origin": raster["origin"],
+        "resolution": raster["resolution"],
+    }
 
 
 def tree_oracle_logodds(tree: dict, regular: dict) -> np.ndarray:
@@ -127,8 +136,8 @@ def label_pure_cells(raster: dict, start_level: int) -> int:
     h, w = raster["observed"].shape
     observed = np.zeros((-(-(h + pad_y) // side) * side, -(-(w + pad_x) // side) * side), bool)
     occupied = np.zeros_like(observed)
-    observed[pad_y:pad_y + h, pad_x:pad_x + w] = raster["observed"]
-    occupied[pad_y:pad_y + h, pad_x:pad_x + w] = raster["observed"] & (raster["probability"] > 0.5)
+    observed[pad_y : pad_y + h, pad_x : pad_x + w] = raster["observed"]
+    occupied[pad_y : pad_y + h, pad_x : pad_x + w] = raster["observed"] & (raster["probability"] > 0.5)
     free = observed & ~occupied
     count = observed.astype(np.int64)  # per block of the current level: its cells over observed fine cells
     merged = np.ones_like(observed)  # per block: it is one cell
@@ -161,34 +170,55 @@ def compare_rules(posed: PosedScans, model: SensorModel, sweep: dict[str, Adapti
     scans = len(posed.stamps)
 
     def regular() -> MonteCarloFusion:
-        return MonteCarloFusion(TiledGrid(RESOLUTION), model, posed.beam_angles, posed.range_min, posed.range_max,
-                                posed.sensor_offset)
+        return MonteCarloFusion(
+            TiledGrid(RESOLUTION), model, posed.beam_angles, posed.range_min, posed.range_max, posed.sensor_offset
+        )
 
     seconds, cpu, fine = _fuse(posed, regular)
     raster = fine.rasterize()
     labels = regular_labels(raster)
     free_labels = free_space_labels(raster)
     observed = fine.observed_cells()
-    out: dict = {"regular_scans_per_s": scans / seconds, "regular_scans_per_cpu_s": scans / cpu,
-                 "regular_observed_cells": observed, "regular_bytes_per_observed_cell": fine.nbytes / observed,
-                 "label_pure_cells_fraction": label_pure_cells(raster, AdaptiveParams().start_level) / observed}
+    out: dict = {
+        "regular_scans_per_s": scans / seconds,
+        "regular_scans_per_cpu_s": scans / cpu,
+        "regular_observed_cells": observed,
+        "regular_bytes_per_observed_cell": fine.nbytes / observed,
+        "label_pure_cells_fraction": label_pure_cells(raster, AdaptiveParams().start_level) / observed,
+    }
     curves: dict[bool, list[tuple[float, float, float]]] = {True: [], False: []}
     for prefix, params in sweep.items():
+
         def adaptive(params: AdaptiveParams = params) -> AdaptiveFusion:
-            return AdaptiveFusion(AdaptiveGrid(RESOLUTION), model, posed.beam_angles, posed.range_min,
-                                  posed.range_max, posed.sensor_offset, params)
+            return AdaptiveFusion(
+                AdaptiveGrid(RESOLUTION),
+                model,
+                posed.beam_angles,
+                posed.range_min,
+                posed.range_max,
+                posed.sensor_offset,
+                params,
+            )
 
         seconds, cpu, grid = _fuse(posed, adaptive)
         tree = grid.rasterize()
         cells = grid.active_cells / observed
         auc, free_auc = score_map(tree, labels)["auc"], score_map(tree, free_labels)["auc"]
         curves[params.unknowns].append((cells, auc, free_auc))
-        out.update({f"{prefix}_cells_fraction": cells, f"{prefix}_active_cells": grid.active_cells,
-                    f"{prefix}_bytes_fraction": grid.nbytes / fine.nbytes,
-                    f"{prefix}_bytes_per_observed_cell": grid.nbytes / observed, f"{prefix}_auc": auc,
-                    f"{prefix}_tree_oracle_auc": tree_oracle_auc(tree, raster, labels),
-                    f"{prefix}_free_space_auc": free_auc, f"{prefix}_claimed_free_m2": claimed_free_m2(tree, raster),
-                    f"{prefix}_scans_per_s": scans / seconds, f"{prefix}_scans_per_cpu_s": scans / cpu})
+        out.update(
+            {
+                f"{prefix}_cells_fraction": cells,
+                f"{prefix}_active_cells": grid.active_cells,
+                f"{prefix}_bytes_fraction": grid.nbytes / fine.nbytes,
+                f"{prefix}_bytes_per_observed_cell": grid.nbytes / observed,
+                f"{prefix}_auc": auc,
+                f"{prefix}_tree_oracle_auc": tree_oracle_auc(tree, raster, labels),
+                f"{prefix}_free_space_auc": free_auc,
+                f"{prefix}_claimed_free_m2": claimed_free_m2(tree, raster),
+                f"{prefix}_scans_per_s": scans / seconds,
+                f"{prefix}_scans_per_cpu_s": scans / cpu,
+            }
+        )
     without = sorted(curves[False])
     for prefix, params in sweep.items():
         if not params.unknowns or not without:
@@ -217,7 +247,12 @@ def run(steps: int = 400) -> dict:
     """Measure; returns a flat dict of figures (also printed by bench.run)."""
     sim = office_run(seed=0, steps=steps)
     posed = honest_posed_scans(sim, seed=1, particles=SAMPLES)
-    out: dict = {"scans": len(posed.stamps), "beams": int(posed.ranges.shape[1]), "samples": SAMPLES,
-                 "resolution_m": RESOLUTION, "start_cell_m": RESOLUTION * (1 << AdaptiveParams().start_level)}
+    out: dict = {
+        "scans": len(posed.stamps),
+        "beams": int(posed.ranges.shape[1]),
+        "samples": SAMPLES,
+        "resolution_m": RESOLUTION,
+        "start_cell_m": RESOLUTION * (1 << AdaptiveParams().start_level),
+    }
     out.update(compare_rules(posed, SensorModel(resolution=RESOLUTION), significance_sweep()))
     return out

@@ -8,6 +8,7 @@ log's name as a prefix. The sweep adds `unknown_range` 1.6 m, because on these l
 objects reach to 30 m (docs/adaptive.md). A log that is absent from ../shared/data is skipped, with the reason.
 About 16 minutes on one core.
 """
+
 from __future__ import annotations
 
 import tempfile
@@ -30,8 +31,10 @@ SHORT_UNKNOWN_RANGE = 1.6
 
 def sweep() -> dict[str, AdaptiveParams]:
     """Figure prefix -> parameters: the office's significance sweep, and unknowns up to SHORT_UNKNOWN_RANGE."""
-    return {**significance_sweep(),
-            f"unknowns_range_{SHORT_UNKNOWN_RANGE:g}m": AdaptiveParams(unknown_range=SHORT_UNKNOWN_RANGE)}
+    return {
+        **significance_sweep(),
+        f"unknowns_range_{SHORT_UNKNOWN_RANGE:g}m": AdaptiveParams(unknown_range=SHORT_UNKNOWN_RANGE),
+    }
 
 
 def measure_log(log: Path) -> dict:
@@ -40,8 +43,12 @@ def measure_log(log: Path) -> dict:
         path = Path(tmp) / "posed.npz"
         run_cli(["slam", "--algo", "gridslam", str(log), "--seed", "0", "-o", str(path)])
         posed = select_scans(load_posed_scans(path), slice(None, None, SCAN_STEP))
-    out: dict = {"scans": len(posed.stamps), "beams": int(posed.ranges.shape[1]),
-                 "range_max_m": float(posed.range_max), "particles": int(posed.poses.weighted_samples()[0].shape[1])}
+    out: dict = {
+        "scans": len(posed.stamps),
+        "beams": int(posed.ranges.shape[1]),
+        "range_max_m": float(posed.range_max),
+        "particles": int(posed.poses.weighted_samples()[0].shape[1]),
+    }
     out.update(compare_rules(posed, SensorModel(resolution=RESOLUTION), sweep()))
     return out
 

@@ -12,6 +12,7 @@
 Every process, the load loop included, shares this machine's cores: the figures are lower bounds for a
 server with cores of its own.
 """
+
 from __future__ import annotations
 
 import socket
@@ -34,8 +35,15 @@ IMAGES = ROOT / "docs" / "img"
 MAP, STEPS = "bench", 150
 CACHED_REQUESTS, UNCACHED_REQUESTS, CONNECTIONS = 20_000, 300, 4
 CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                 "--disable-component-update", "--disable-sync", "--no-first-run"]
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
 
 
 def _wait(predicate, timeout: float, what: str):
@@ -95,16 +103,25 @@ def _throughput(posed_path: Path) -> dict:
         children.start("mapper", ["mapper", "--shard", "0", "--shards", "1", "--map", MAP, *connect])
         children.start("api", ["api", "--port", str(cached_port), *connect])
         children.start("api-nocache", ["api", "--port", str(uncached_port), "--cache-mb", "0.001", *connect])
-        children.start("source", ["source", "--posed", str(posed_path), "--map", MAP, "--wait-mappers", "1",
-                                  "--rate", "max", *connect], expected_to_finish=True)
+        children.start(
+            "source",
+            ["source", "--posed", str(posed_path), "--map", MAP, "--wait-mappers", "1", "--rate", "max", *connect],
+            expected_to_finish=True,
+        )
         api = f"http://127.0.0.1:{cached_port}"
         _wait(lambda: _answers(f"{api}/maps/{MAP}"), 120, "the API")
-        _wait(lambda: httpx.get(f"{api}/maps/{MAP}/stats", timeout=30).json()["scans_fused"].get("robot0") == STEPS,
-              300, "the shard to fuse the run")
+        _wait(
+            lambda: httpx.get(f"{api}/maps/{MAP}/stats", timeout=30).json()["scans_fused"].get("robot0") == STEPS,
+            300,
+            "the shard to fuse the run",
+        )
         summary = httpx.get(f"{api}/maps/{MAP}", timeout=30).json()
         bounds = summary["tile_bounds"]
-        tiles = [f"/maps/{MAP}/tiles/0/{x}/{y}.png".encode() for x in range(bounds["x_min"], bounds["x_max"] + 1)
-                 for y in range(bounds["y_min"], bounds["y_max"] + 1)]
+        tiles = [
+            f"/maps/{MAP}/tiles/0/{x}/{y}.png".encode()
+            for x in range(bounds["x_min"], bounds["x_max"] + 1)
+            for y in range(bounds["y_min"], bounds["y_max"] + 1)
+        ]
         answers = {path: httpx.get(f"{api}{path.decode()}", timeout=30) for path in tiles}
         busiest = max(tiles, key=lambda path: len(answers[path].content))  # the most detailed tile
         etag = answers[busiest].headers["etag"].encode()
@@ -113,8 +130,9 @@ def _throughput(posed_path: Path) -> dict:
             "tiles_level0": len(tiles),
             "tile_png_bytes": len(answers[busiest].content),
             "cached_tile_requests_per_s": _load(cached_port, [busiest], CACHED_REQUESTS),
-            "cached_304_requests_per_s": _load(cached_port, [busiest], CACHED_REQUESTS, b"If-None-Match: " + etag
-                                               + b"\r\n"),
+            "cached_304_requests_per_s": _load(
+                cached_port, [busiest], CACHED_REQUESTS, b"If-None-Match: " + etag + b"\r\n"
+            ),
             "uncached_tile_requests_per_s": _load(uncached_port, tiles, UNCACHED_REQUESTS),
         }
     finally:
@@ -132,9 +150,19 @@ def _first_tile() -> dict:
         browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         page = browser.new_page(viewport={"width": 1200, "height": 800})
         started = time.perf_counter()
-        run = subprocess.Popen([sys.executable, "-c", "import sys; from services.cli import main; sys.exit(main())",
-                                "run", "--api-port", str(port)], cwd=ROOT, stdout=subprocess.DEVNULL,
-                               stderr=subprocess.DEVNULL)
+        run = subprocess.Popen(
+            [
+                sys.executable,
+                "-c",
+                "import sys; from services.cli import main; sys.exit(main())",
+                "run",
+                "--api-port",
+                str(port),
+            ],
+            cwd=ROOT,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
         try:
             while True:
                 try:

@@ -36,6 +36,7 @@ peer out, docs/security.md):
 
 All processes share this machine's cores; the hostile run is slower, and its wall time is reported, not judged.
 """
+
 from __future__ import annotations
 
 import threading
@@ -112,7 +113,7 @@ def _garbage_payloads(rng: np.random.Generator, templates: list[bytes], count: i
             continue
         payload = bytearray(templates[rng.integers(len(templates))])
         if kind == 1:
-            out.append(bytes(payload[:rng.integers(len(payload))]))
+            out.append(bytes(payload[: rng.integers(len(payload))]))
         else:
             where = rng.integers(0, len(payload), size=int(rng.integers(1, 8)))
             payload_array = np.frombuffer(payload, np.uint8).copy()
@@ -124,23 +125,42 @@ def _garbage_payloads(rng: np.random.Generator, templates: list[bytes], count: i
 def _peer_keys(map_name: str) -> list[str]:
     """Every concrete key a peer may publish on around robot ROBOT and map ``map_name``, and some it may not."""
     streams = sorted(keys.ROBOT_STREAMS)
-    return ([keys.robot_key(ROBOT, s) for s in streams] + [keys.history_key(ROBOT, s) for s in (keys.SCAN, keys.POSE)]
-            + [keys.tile_key(map_name, 0, 0, 0), keys.stats_key(map_name, 0), keys.slam_stats_key(ROBOT),
-               keys.robot_alive_key(ROBOT, "source"), keys.robot_key("map", keys.SCAN),
-               keys.robot_key("intruder", keys.SCAN)])
+    return (
+        [keys.robot_key(ROBOT, s) for s in streams]
+        + [keys.history_key(ROBOT, s) for s in (keys.SCAN, keys.POSE)]
+        + [
+            keys.tile_key(map_name, 0, 0, 0),
+            keys.stats_key(map_name, 0),
+            keys.slam_stats_key(ROBOT),
+            keys.robot_alive_key(ROBOT, "source"),
+            keys.robot_key("map", keys.SCAN),
+            keys.robot_key("intruder", keys.SCAN),
+        ]
+    )
 
 
 #: wildcard keys (Zenoh takes a put on any of them; "$*" only inside a chunk: "pg/bench/$*" is not canonical)
-WILDCARDS = ("pg/**", "**", "pg/bench/*", "pg/bench/**", "pg/*/scan", "pg/*/pose", "pg/*/end", "pg/*/*",
-             "pg/bench/sc$*", "pg/*/po$*")
+WILDCARDS = (
+    "pg/**",
+    "**",
+    "pg/bench/*",
+    "pg/bench/**",
+    "pg/*/scan",
+    "pg/*/pose",
+    "pg/*/end",
+    "pg/*/*",
+    "pg/bench/sc$*",
+    "pg/*/po$*",
+)
 
 
 def _scan_and_pose(step: Step) -> tuple[LaserScan, PoseSamples]:
     """The scan and the pose samples of one step of a posed-scan stream (:func:`services.streams.posed_stream`)."""
     scan, pose = step.messages
     if not isinstance(scan, LaserScan) or not isinstance(pose, PoseSamples):
-        raise TypeError(f"a step of scan and pose samples expected, got {type(scan).__name__} and "
-                        f"{type(pose).__name__}")
+        raise TypeError(
+            f"a step of scan and pose samples expected, got {type(scan).__name__} and {type(pose).__name__}"
+        )
     return scan, pose
 
 
@@ -161,9 +181,11 @@ def _ghost(scan: LaserScan, pose: PoseSamples) -> list[bytes]:
     seq FORGED_SEQ, the pose 5 000 m out (beyond the map bound), and an end of its stream. Overwritten bytes
     may change its seqs (the msgpack integer type byte among them), but not the robot name into "bench"."""
     far = pose.samples + [5_000.0, 0.0, 0.0]
-    return [replace(scan, robot="ghost", seq=FORGED_SEQ).encode(),
-            replace(pose, robot="ghost", seq=FORGED_SEQ, samples=far).encode(),
-            StreamEnd(robot="ghost", scans=MAX_SEQ).encode()]
+    return [
+        replace(scan, robot="ghost", seq=FORGED_SEQ).encode(),
+        replace(pose, robot="ghost", seq=FORGED_SEQ, samples=far).encode(),
+        StreamEnd(robot="ghost", scans=MAX_SEQ).encode(),
+    ]
 
 
 def _samples(robot: str, seq: int, points: np.ndarray) -> PoseSamples:
@@ -181,8 +203,9 @@ def _limit_probes(rng: np.random.Generator, scan: LaserScan) -> Mix:
     def pair(robot: str, seq: int, ranges: np.ndarray, points: np.ndarray) -> None:
         probe = replace(scan, robot=robot, seq=seq, ranges=ranges.astype(np.float32))
         pose = _samples(robot, seq, points)
-        mix.extend([(keys.robot_key(robot, keys.SCAN), probe.encode()),
-                    (keys.robot_key(robot, keys.POSE), pose.encode())])
+        mix.extend(
+            [(keys.robot_key(robot, keys.SCAN), probe.encode()), (keys.robot_key(robot, keys.POSE), pose.encode())]
+        )
 
     office = np.array([[2.0, 2.0, 0.0]])
     pair("faraway", 0, scan.ranges, office + [5_000.0, 0.0, 0.0])
@@ -207,15 +230,23 @@ def hostile_mix(stream: Stream, map_name: str, seed: int = MIX_SEED, total: int 
     forged = [(keys.robot_key(ROBOT, STREAM_OF[type(m)]), m.encode()) for m in scans + poses + ends]
     valid = [m.encode() for m in (scans[0], poses[0], ends[0], ends[1])]
     on = {stream: keys.robot_key(ROBOT, stream) for stream in SHARD_STREAMS}
-    wrong = [(on[keys.SCAN], poses[1].encode()), (on[keys.POSE], scans[1].encode()), (on[keys.END], scans[2].encode()),
-             (on[keys.SCAN], replace(scans[3], robot="intruder").encode())] * 10  # wrong type; another robot's
+    wrong = [
+        (on[keys.SCAN], poses[1].encode()),
+        (on[keys.POSE], scans[1].encode()),
+        (on[keys.END], scans[2].encode()),
+        (on[keys.SCAN], replace(scans[3], robot="intruder").encode()),
+    ] * 10  # wrong type; another robot's
     wild = [(WILDCARDS[i % len(WILDCARDS)], valid[i % len(valid)] if i % 2 else rng.bytes(64)) for i in range(500)]
-    strays = [(keys.robot_key(f"stray{i:03d}", keys.SCAN), replace(scan, robot=f"stray{i:03d}").encode())
-              for i in range(STRAY_ROBOTS)]
+    strays = [
+        (keys.robot_key(f"stray{i:03d}", keys.SCAN), replace(scan, robot=f"stray{i:03d}").encode())
+        for i in range(STRAY_ROBOTS)
+    ]
     room = max(0, total - len(probes) - len(forged) - len(wrong) - len(wild) - len(strays))
     targets = _peer_keys(map_name)
-    garbage = [(targets[i % len(targets)], payload)
-               for i, payload in enumerate(_garbage_payloads(rng, _ghost(scan, pose), room))]
+    garbage = [
+        (targets[i % len(targets)], payload)
+        for i, payload in enumerate(_garbage_payloads(rng, _ghost(scan, pose), room))
+    ]
     body = forged + wrong + wild + garbage
     order = rng.permutation(len(body))
     return probes + [body[i] for i in order] + strays
@@ -312,7 +343,8 @@ def _publish(cluster: Cluster, stream: Stream) -> bool:
     fused or given up (False when the source stalled, e.g. because the shards refuse the end)."""
     try:
         Source(cluster.session, stream, SourceOptions(rate=None, wait_mappers=SHARDS, map_name=MAP)).run(
-            threading.Event())
+            threading.Event()
+        )
     except SourceStalled as exc:
         LOG.warning("the source stalled: %s", exc)
         return False
@@ -327,8 +359,9 @@ def _one_run(stream: Stream, mix: Mix | None) -> RunResult:
         peer, thread = None, None
         if mix is not None:
             peer = Peer()
-            thread = threading.Thread(target=send_mix, name="hostile peer", daemon=True,
-                                      args=(cluster.endpoint, MAP, mix, peer))
+            thread = threading.Thread(
+                target=send_mix, name="hostile peer", daemon=True, args=(cluster.endpoint, MAP, mix, peer)
+            )
             thread.start()
         completed = _publish(cluster, stream)
         if peer is not None and thread is not None:
@@ -343,12 +376,21 @@ def _one_run(stream: Stream, mix: Mix | None) -> RunResult:
         except IncompleteMap as exc:
             LOG.warning("the map could not be assembled: %s", exc)
             raster = None
-        rss = {int(c.name[len("mapper["):-1]): peak_rss(c.process.pid) for c in cluster.children.children
-               if c.name.startswith("mapper[")}
-        alive = cluster.children.failed() is None and all(
-            c.process.poll() is None for c in cluster.children.children)
-    return RunResult(raster, stats, {i: v for i, v in rss.items() if v is not None}, alive, completed,
-                     time.perf_counter() - started, peer)
+        rss = {
+            int(c.name[len("mapper[") : -1]): peak_rss(c.process.pid)
+            for c in cluster.children.children
+            if c.name.startswith("mapper[")
+        }
+        alive = cluster.children.failed() is None and all(c.process.poll() is None for c in cluster.children.children)
+    return RunResult(
+        raster,
+        stats,
+        {i: v for i, v in rss.items() if v is not None},
+        alive,
+        completed,
+        time.perf_counter() - started,
+        peer,
+    )
 
 
 # ------------------------------------------------------------------------------------------ figures
@@ -356,8 +398,10 @@ def identical(a: dict[str, np.ndarray] | None, b: dict[str, np.ndarray] | None) 
     """Whether two rasters have bit-identical logodds, observed, variance and origin (False if one is None)."""
     if a is None or b is None:
         return False
-    return all(a[k].shape == b[k].shape and a[k].dtype == b[k].dtype and a[k].tobytes() == b[k].tobytes()
-               for k in ("logodds", "observed", "variance", "origin"))
+    return all(
+        a[k].shape == b[k].shape and a[k].dtype == b[k].dtype and a[k].tobytes() == b[k].tobytes()
+        for k in ("logodds", "observed", "variance", "origin")
+    )
 
 
 def cells_differing(a: dict[str, np.ndarray] | None, b: dict[str, np.ndarray] | None) -> int:
@@ -415,21 +459,30 @@ def run() -> dict:
     if peer is None:
         raise RuntimeError("the chaos run has no hostile peer")
     out: dict = {
-        "scans": SCANS, "samples": SAMPLES, "shards": SHARDS,
-        "chaos_alive_all": chaos.alive, "clean_alive_all": clean.alive,
-        "chaos_source_completed": chaos.completed, "clean_source_completed": clean.completed,
-        "chaos_scans_total": len(stream.steps), "chaos_scans_fused": _fused(chaos), "clean_scans_fused": _fused(clean),
+        "scans": SCANS,
+        "samples": SAMPLES,
+        "shards": SHARDS,
+        "chaos_alive_all": chaos.alive,
+        "clean_alive_all": clean.alive,
+        "chaos_source_completed": chaos.completed,
+        "clean_source_completed": clean.completed,
+        "chaos_scans_total": len(stream.steps),
+        "chaos_scans_fused": _fused(chaos),
+        "clean_scans_fused": _fused(clean),
         "chaos_scans_discarded": max((s.discarded.get(ROBOT, 0) for s in chaos.stats.values()), default=0),
         "chaos_map_identical": identical(clean.raster, chaos.raster),
         "chaos_map_cells_differing": cells_differing(clean.raster, chaos.raster),
         "chaos_rss_ratio_max": _rss_ratio_max(clean, chaos),
         "chaos_rss_mb_max": max(chaos.peak_rss.values(), default=0) / 2**20,
         "clean_rss_mb_max": max(clean.peak_rss.values(), default=0) / 2**20,
-        "chaos_messages_sent": peer.sent, "chaos_messages_during_run": peer.during_run,
-        "chaos_messages_unaccounted": max((unaccounted(s, mix, len(stream.steps)) for s in chaos.stats.values()),
-                                          default=-1),
+        "chaos_messages_sent": peer.sent,
+        "chaos_messages_during_run": peer.during_run,
+        "chaos_messages_unaccounted": max(
+            (unaccounted(s, mix, len(stream.steps)) for s in chaos.stats.values()), default=-1
+        ),
         "chaos_mix_s": peer.ended - peer.started,
-        "clean_run_s": clean.wall_s, "chaos_run_s": chaos.wall_s,
+        "clean_run_s": clean.wall_s,
+        "chaos_run_s": chaos.wall_s,
         "clean_refused_total": sum(_refused(clean).values()),
     }
     for kind, count in sorted(_refused(chaos).items()):

@@ -15,6 +15,7 @@ the project's two FastSLAMs (`_fastslam_outputs`). Each is fused with merging an
 Each comparison runs in turns of a few scans (posegrid's, then the baseline's same scans, ...), so the
 machine's drift, tens of percent within a minute on a shared machine, falls on both sides of a ratio alike.
 """
+
 from __future__ import annotations
 
 import functools
@@ -47,18 +48,26 @@ def _fusion_steps(posed, mode: str, merge_identical: bool = True) -> tuple[list,
     after a warm-up scan into another grid that compiles the kernels; and that grid."""
     model = SensorModel(resolution=RESOLUTION)
     grid = TiledGrid(RESOLUTION)
-    fusion = MonteCarloFusion(grid, model, posed.beam_angles, posed.range_min, posed.range_max, posed.sensor_offset,
-                              merge_identical=merge_identical)
+    fusion = MonteCarloFusion(
+        grid,
+        model,
+        posed.beam_angles,
+        posed.range_min,
+        posed.range_max,
+        posed.sensor_offset,
+        merge_identical=merge_identical,
+    )
     poses = posed.poses
     picks = []
     for t in range(len(posed.stamps)):
         if mode == "ml":
             best = int(np.argmax(poses.weights[t]))
-            picks.append((poses.samples[t, best:best + 1], np.ones(1)))
+            picks.append((poses.samples[t, best : best + 1], np.ones(1)))
         else:
             picks.append((poses.samples[t], poses.weights[t]))
     MonteCarloFusion(TiledGrid(RESOLUTION), model, posed.beam_angles, posed.range_min, posed.range_max).fuse(
-        posed.ranges[0], *picks[0])
+        posed.ranges[0], *picks[0]
+    )
     steps = [functools.partial(fusion.fuse, posed.ranges[t], *picks[t]) for t in range(len(posed.stamps))]
     return steps, grid
 
@@ -72,12 +81,36 @@ def _fastslam_outputs() -> dict:
     outputs = {}
     with tempfile.TemporaryDirectory() as tmp:
         run_cli(["simulate", f"{tmp}/sim", "--seed", "0"])
-        run_cli(["slam", "--algo", "fastslam2", f"{tmp}/sim", "--particles", str(SAMPLES), "--seed", "0",
-                 "-o", f"{tmp}/fastslam2.npz"])
+        run_cli(
+            [
+                "slam",
+                "--algo",
+                "fastslam2",
+                f"{tmp}/sim",
+                "--particles",
+                str(SAMPLES),
+                "--seed",
+                "0",
+                "-o",
+                f"{tmp}/fastslam2.npz",
+            ]
+        )
         outputs["fastslam2_office"] = load_posed_scans(f"{tmp}/fastslam2.npz")
         if MIT_CSAIL.is_file():
-            run_cli(["slam", "--algo", "gridslam", str(MIT_CSAIL), "--seed", "0", "--scans", str(GRIDSLAM_SCANS),
-                     "-o", f"{tmp}/gridslam.npz"])
+            run_cli(
+                [
+                    "slam",
+                    "--algo",
+                    "gridslam",
+                    str(MIT_CSAIL),
+                    "--seed",
+                    "0",
+                    "--scans",
+                    str(GRIDSLAM_SCANS),
+                    "-o",
+                    f"{tmp}/gridslam.npz",
+                ]
+            )
             outputs["gridslam_mit_csail"] = load_posed_scans(f"{tmp}/gridslam.npz")
     return outputs
 
@@ -99,8 +132,9 @@ def _interleaved_seconds(*step_lists: list, chunk: int) -> list[np.ndarray]:
 
 
 @kernel(nogil=True)
-def _plain_ray_loop(laser_x, laser_y, laser_yaw, angles, ranges, range_max, res, l_free, l_occ, grid,
-                    ix0, iy0):  # pragma: no cover - compiled
+def _plain_ray_loop(
+    laser_x, laser_y, laser_yaw, angles, ranges, range_max, res, l_free, l_occ, grid, ix0, iy0
+):  # pragma: no cover - compiled
     """The yardstick: every sample ray walked cell by cell with the shared traversal, l_free added to each
     cell before the return and l_occ to the cell holding it, into one dense float32 grid (global cell
     (ix0 + i, iy0 + j) is grid[j, i]). No per-cell rule, no moments, no variance; returns the cells visited."""
@@ -112,21 +146,22 @@ def _plain_ray_loop(laser_x, laser_y, laser_yaw, angles, ranges, range_max, res,
             stop = z if hit else range_max
             theta = laser_yaw[j] + angles[k]
             ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y = dda_start(
-                laser_x[j], laser_y[j], math.cos(theta), math.sin(theta), res)
+                laser_x[j], laser_y[j], math.cos(theta), math.sin(theta), res
+            )
             tol = corner_tol(stop)
             while min(t_max_x, t_max_y) < stop:
                 grid[iy - iy0, ix - ix0] += l_free
                 visits += 1
-                ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y,
-                                                    tol)
+                ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol)
             grid[iy - iy0, ix - ix0] += l_occ if hit else l_free
             visits += 1
     return visits
 
 
 @kernel(nogil=True)
-def _bresenham_ray_loop(laser_x, laser_y, laser_yaw, angles, ranges, range_max, res, l_free, l_occ, grid,
-                        ix0, iy0):  # pragma: no cover - compiled
+def _bresenham_ray_loop(
+    laser_x, laser_y, laser_yaw, angles, ranges, range_max, res, l_free, l_occ, grid, ix0, iy0
+):  # pragma: no cover - compiled
     """A cheaper yardstick than :func:`_plain_ray_loop`, the same arguments: each sample ray as Bresenham's
     8-connected integer line from the sensor's cell to the end cell (it steps diagonally through corners, so
     it skips cells the ray crosses: not the exact traversal the issue requires); l_free before the end cell,
@@ -174,14 +209,25 @@ def _plain_loop_steps(posed, loop=_plain_ray_loop) -> tuple[list, list[int]]:
     ix1, iy1 = (np.floor((all_xy.max(axis=0) + reach) / RESOLUTION)).astype(int)
     grid = np.zeros((iy1 - iy0 + 1, ix1 - ix0 + 1), np.float32)
     args = (posed.beam_angles, posed.range_max, RESOLUTION, model.l_free, model.l_hit)
-    loop(lasers[0][:1, 0].copy(), lasers[0][:1, 1].copy(), lasers[0][:1, 2].copy(), args[0], ranges[0], *args[1:],
-         grid, ix0, iy0)  # compile
+    loop(
+        lasers[0][:1, 0].copy(),
+        lasers[0][:1, 1].copy(),
+        lasers[0][:1, 2].copy(),
+        args[0],
+        ranges[0],
+        *args[1:],
+        grid,
+        ix0,
+        iy0,
+    )  # compile
     visits = [0]
 
     def step(t: int) -> None:
         laser = lasers[t]
-        visits[0] += loop(laser[:, 0].copy(), laser[:, 1].copy(), laser[:, 2].copy(), args[0], ranges[t], *args[1:],
-                          grid, ix0, iy0)
+        visits[0] += loop(
+            laser[:, 0].copy(), laser[:, 1].copy(), laser[:, 2].copy(), args[0], ranges[t], *args[1:], grid, ix0, iy0
+        )
+
     return [functools.partial(step, t) for t in range(len(lasers))], visits
 
 
@@ -204,12 +250,20 @@ def _octomap_steps(posed, mode: str, every: int = 1) -> tuple[list, Any] | None:
         if mode == "ml":
             samples = samples[int(np.argmax(posed.poses.weights[t]))][None]
         lasers = laser_poses(samples, posed.sensor_offset)
-        clouds[t] = [(np.column_stack([x + ranges[t] * np.cos(yaw + angles), y + ranges[t] * np.sin(yaw + angles),
-                                       np.zeros_like(angles)]), np.array([x, y, 0.0])) for x, y, yaw in lasers]
+        clouds[t] = [
+            (
+                np.column_stack(
+                    [x + ranges[t] * np.cos(yaw + angles), y + ranges[t] * np.sin(yaw + angles), np.zeros_like(angles)]
+                ),
+                np.array([x, y, 0.0]),
+            )
+            for x, y, yaw in lasers
+        ]
 
     def step(t: int) -> None:
         for points, origin in clouds[t]:
             tree.insertPointCloud(points, origin, max_range=posed.range_max)
+
     return [functools.partial(step, t) if t in clouds else None for t in range(len(posed.stamps))], tree
 
 
@@ -219,8 +273,13 @@ def run(steps: int = 400, octomap_mc_every: int = 1) -> dict:
     posed = honest_posed_scans(sim, seed=1, particles=SAMPLES)
     scans = len(posed.stamps)
     rays_per_scan = SAMPLES * posed.ranges.shape[1]
-    out: dict = {"scans": scans, "beams": int(posed.ranges.shape[1]), "samples": SAMPLES,
-                 "resolution_m": RESOLUTION, "range_max_m": float(posed.range_max)}
+    out: dict = {
+        "scans": scans,
+        "beams": int(posed.ranges.shape[1]),
+        "samples": SAMPLES,
+        "resolution_m": RESOLUTION,
+        "range_max_m": float(posed.range_max),
+    }
 
     # each baseline runs in turns with posegrid on the same scans (_interleaved_seconds). OctoMap fed 60 samples
     # takes about 0.18 s a scan; it is fed every scan (octomap_mc_every = 1), as posegrid is: fed every 20th scan
@@ -230,8 +289,7 @@ def run(steps: int = 400, octomap_mc_every: int = 1) -> dict:
     plain_steps, visits = _plain_loop_steps(posed)
     bresenham_steps, bresenham_visits = _plain_loop_steps(posed, _bresenham_ray_loop)
     octo_mc = _octomap_steps(posed, "mc", every=octomap_mc_every)
-    seconds = _interleaved_seconds(mc_steps, plain_steps, bresenham_steps, *([octo_mc[0]] if octo_mc else []),
-                                   chunk=5)
+    seconds = _interleaved_seconds(mc_steps, plain_steps, bresenham_steps, *([octo_mc[0]] if octo_mc else []), chunk=5)
     mc_s, plain_s, bresenham_s = seconds[0].sum(), seconds[1].sum(), seconds[2].sum()
     out["mc_scans_per_s"] = scans / mc_s
     out["mc_sample_rays_per_s"] = scans * rays_per_scan / mc_s
@@ -255,8 +313,11 @@ def run(steps: int = 400, octomap_mc_every: int = 1) -> dict:
         out["gridslam_mit_csail"] = f"skipped: the log is not present ({MIT_CSAIL})"
     for label, particles in particle_sets.items():
         distinct = [len(np.unique(s, axis=0)) for s in particles.poses.samples]
-        merged_s, unmerged_s = _interleaved_seconds(_fusion_steps(particles, "mc", merge_identical=True)[0],
-                                                    _fusion_steps(particles, "mc", merge_identical=False)[0], chunk=5)
+        merged_s, unmerged_s = _interleaved_seconds(
+            _fusion_steps(particles, "mc", merge_identical=True)[0],
+            _fusion_steps(particles, "mc", merge_identical=False)[0],
+            chunk=5,
+        )
         out[f"{label}_distinct_particles_mean"] = float(np.mean(distinct))
         out[f"{label}_scans_with_repeats"] = int(np.sum(np.array(distinct) < particles.poses.samples.shape[1]))
         out[f"{label}_merge_speedup"] = unmerged_s.sum() / merged_s.sum()

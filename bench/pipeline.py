@@ -16,6 +16,7 @@ samples per scan.
 
 All processes share this machine's cores, so the figures bound what separate machines would give.
 """
+
 from __future__ import annotations
 
 import threading
@@ -66,14 +67,31 @@ class Cluster:
         connect = ["--connect", self.endpoint]
         self.children.start("router", ["router", "--listen", self.endpoint])
         for shard in range(self.shards):
-            self.children.start(f"mapper[{shard}]", ["mapper", "--shard", str(shard), "--shards", str(self.shards),
-                                                     "--map", self.map_name, "--tile-size", str(self.tile_size),
-                                                     *connect])
+            self.children.start(
+                f"mapper[{shard}]",
+                [
+                    "mapper",
+                    "--shard",
+                    str(shard),
+                    "--shards",
+                    str(self.shards),
+                    "--map",
+                    self.map_name,
+                    "--tile-size",
+                    str(self.tile_size),
+                    *connect,
+                ],
+            )
         self._session = zenoh.open(build_config("client", connect=[self.endpoint]))
         self.session.declare_subscriber(keys.tiles_key(self.map_name), self._on_tile)
         deadline = time.monotonic() + 120
-        while sum(r.ok is not None for r in self.session.liveliness().get(
-                keys.shard_alive_key(self.map_name, "*"), timeout=2.0)) < self.shards:
+        while (
+            sum(
+                r.ok is not None
+                for r in self.session.liveliness().get(keys.shard_alive_key(self.map_name, "*"), timeout=2.0)
+            )
+            < self.shards
+        ):
             if time.monotonic() > deadline or self.children.failed():
                 raise RuntimeError("the bench's mapper shards did not come up")
             time.sleep(0.1)
@@ -124,8 +142,9 @@ def _throughput(posed, shards: int, tile_size: int) -> dict:
     stream = posed_stream(posed, ROBOT)
     in_bytes = sum(len(m.encode()) for step in stream.steps for m in step.messages)
     with Cluster(shards, f"tp{shards}", tile_size) as cluster:
-        source = Source(cluster.session, stream, SourceOptions(rate=None, wait_mappers=shards,
-                                                                map_name=cluster.map_name))
+        source = Source(
+            cluster.session, stream, SourceOptions(rate=None, wait_mappers=shards, map_name=cluster.map_name)
+        )
         started = time.perf_counter()
         source.run(threading.Event())
         cluster.wait_fused(len(stream.steps))
@@ -133,17 +152,23 @@ def _throughput(posed, shards: int, tile_size: int) -> dict:
         time.sleep(0.5)  # the last tile updates
         out_bytes = cluster.tile_bytes
     scans = len(stream.steps)
-    return {"scans_per_s": scans / elapsed, "bytes_in_per_scan": in_bytes / scans,
-            "bytes_out_per_scan": out_bytes / scans}
+    return {
+        "scans_per_s": scans / elapsed,
+        "bytes_in_per_scan": in_bytes / scans,
+        "bytes_out_per_scan": out_bytes / scans,
+    }
 
 
 def _latency(posed, shards: int, tile_size: int) -> dict:
     stream = posed_stream(select_scans(posed, slice(0, WARMUP + LATENCY_SCANS)), ROBOT)
     published: dict[int, float] = {}
     with Cluster(shards, f"lat{shards}", tile_size) as cluster:
-        publishers = {name: cluster.session.declare_publisher(keys.robot_key(ROBOT, name),
-                                                              congestion_control=zenoh.CongestionControl.BLOCK)
-                      for name in (keys.SCAN, keys.POSE)}
+        publishers = {
+            name: cluster.session.declare_publisher(
+                keys.robot_key(ROBOT, name), congestion_control=zenoh.CongestionControl.BLOCK
+            )
+            for name in (keys.SCAN, keys.POSE)
+        }
         t0 = time.perf_counter()
         for seq, step in enumerate(stream.steps):
             delay = t0 + seq / LASER_HZ - time.perf_counter()
@@ -163,9 +188,13 @@ def _latency(posed, shards: int, tile_size: int) -> dict:
     latency_ms = {seq: 1e3 * (arrival - published[seq]) for seq, arrival in last.items()}
     measured = np.array([ms for seq, ms in latency_ms.items() if seq >= WARMUP])
     warmup = [ms for seq, ms in latency_ms.items() if seq < WARMUP]
-    return {"latency_ms_median": float(np.median(measured)), "latency_ms_p99": float(np.percentile(measured, 99)),
-            "latency_ms_max": float(measured.max()), "latency_ms_warmup_max": max(warmup, default=float("nan")),
-            "latency_scans_without_own_update": len(stream.steps) - len(last)}
+    return {
+        "latency_ms_median": float(np.median(measured)),
+        "latency_ms_p99": float(np.percentile(measured, 99)),
+        "latency_ms_max": float(measured.max()),
+        "latency_ms_warmup_max": max(warmup, default=float("nan")),
+        "latency_scans_without_own_update": len(stream.steps) - len(last),
+    }
 
 
 def run() -> dict:

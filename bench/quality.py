@@ -4,6 +4,7 @@ Truth cells are grouped by their distance to the nearest truth wall cell and by 
 the scans that saw them; per group the mean occupancy probability of each map, and the AUC each map
 reaches when only the wall cells and that group's free cells are ranked.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -20,20 +21,28 @@ def run(steps: int = 400) -> dict:
     sim = office_run(seed=0, steps=steps)
     truth = truth_arrays(sim)
     posed = honest_posed_scans(sim, seed=1)
-    maps = {mode: fuse_posed_scans(posed, mode=mode, n_samples=SAMPLES if mode == "mc" else None).rasterize()
-            for mode in ("mc", "ml")}
+    maps = {
+        mode: fuse_posed_scans(posed, mode=mode, n_samples=SAMPLES if mode == "mc" else None).rasterize()
+        for mode in ("mc", "ml")
+    }
     visible, occupied = truth["visible"], truth["occupied"]
     rows, cols = np.nonzero(visible)
-    p = {mode: probability_on_raster(m, truth["origin"], float(truth["resolution"]), visible.shape)[rows, cols]
-         for mode, m in maps.items()}
+    p = {
+        mode: probability_on_raster(m, truth["origin"], float(truth["resolution"]), visible.shape)[rows, cols]
+        for mode, m in maps.items()
+    }
     labels = occupied[rows, cols]
     distance = distance_transform_edt(~occupied)[rows, cols]  # in cells, 0 on walls
     out: dict = {}
     for mode in maps:
         for key, value in score_map(maps[mode], truth).items():
             out[f"{mode}_{key}"] = value
-    groups = {"wall": labels, "free_1cell": (distance > 0) & (distance <= 1.5),
-              "free_2-3cells": (distance > 1.5) & (distance <= 3.5), "free_far": distance > 3.5}
+    groups = {
+        "wall": labels,
+        "free_1cell": (distance > 0) & (distance <= 1.5),
+        "free_2-3cells": (distance > 1.5) & (distance <= 3.5),
+        "free_far": distance > 3.5,
+    }
     for name, mask in groups.items():
         out[f"cells_{name}"] = int(mask.sum())
         for mode in maps:

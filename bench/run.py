@@ -1,4 +1,5 @@
 """`make bench`: run every benchmark, write JSON under bench/results/, print a table."""
+
 from __future__ import annotations
 
 import contextlib
@@ -12,8 +13,16 @@ from pathlib import Path
 
 RESULTS = Path(__file__).resolve().parent / "results"
 #: benchmark modules, each with run() -> dict of figures
-SUITES = ("bench.fusion", "bench.quality", "bench.adaptive", "bench.adaptive_real", "bench.pipeline", "bench.api",
-          "bench.slam", "bench.chaos")
+SUITES = (
+    "bench.fusion",
+    "bench.quality",
+    "bench.adaptive",
+    "bench.adaptive_real",
+    "bench.pipeline",
+    "bench.api",
+    "bench.slam",
+    "bench.chaos",
+)
 
 
 def run_cli(argv: list[str]) -> str:
@@ -37,8 +46,13 @@ def main(argv: list[str]) -> int:
         started = time.perf_counter()
         figures = module.run()
         figures["wall_s"] = time.perf_counter() - started
-        record = {"suite": name, "machine": platform.machine(), "python": platform.python_version(),
-                  "time": time.strftime("%Y-%m-%dT%H:%M:%S"), "figures": figures}
+        record = {
+            "suite": name,
+            "machine": platform.machine(),
+            "python": platform.python_version(),
+            "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
+            "figures": figures,
+        }
         path = RESULTS / f"{name.split('.')[-1]}.json"
         path.write_text(json.dumps(record, indent=2))
         width = max(len(k) for k in figures)

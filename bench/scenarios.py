@@ -7,6 +7,7 @@ with covariance Sigma_t whose position sigma varies smoothly between 0.03 and 0.
 `select_scans` cuts any posed scans, real logs included, down to the scans a suite needs. The real laser logs
 live in ../shared/data, beside the repository, not in it; a suite skips a log that is absent, with the reason.
 """
+
 from __future__ import annotations
 
 from dataclasses import replace
@@ -29,8 +30,8 @@ def honest_covariances(steps: int) -> np.ndarray:
     sigma_xy = 0.03 + 0.12 * level
     sigma_yaw = 0.005 + 0.025 * level
     cov = np.zeros((steps, 3, 3))
-    cov[:, 0, 0] = cov[:, 1, 1] = sigma_xy ** 2
-    cov[:, 2, 2] = sigma_yaw ** 2
+    cov[:, 0, 0] = cov[:, 1, 1] = sigma_xy**2
+    cov[:, 2, 2] = sigma_yaw**2
     return cov
 
 
@@ -51,15 +52,25 @@ def honest_posed_scans(run: SimRun, seed: int = 0, particles: int | None = None)
         draws = mean[:, None, :] + np.einsum("tij,tmj->tmi", factors, rng.standard_normal((len(cov), particles, 3)))
         poses = PoseSet(samples=draws, weights=np.full((len(cov), particles), 1.0 / particles))
     return PosedScans(
-        ranges=run.ranges, angle_min=run.angle_min, angle_increment=run.angle_increment, range_min=run.range_min,
-        range_max=run.range_max, stamps=run.stamps, sensor_offset=np.asarray(run.sensor_offset, float), poses=poses,
+        ranges=run.ranges,
+        angle_min=run.angle_min,
+        angle_increment=run.angle_increment,
+        range_min=run.range_min,
+        range_max=run.range_max,
+        stamps=run.stamps,
+        sensor_offset=np.asarray(run.sensor_offset, float),
+        poses=poses,
     )
 
 
 def truth_arrays(run: SimRun) -> dict:
     """The run's truth raster as the scorer's dict."""
-    return {"occupied": run.truth_occupied, "visible": run.truth_visible, "origin": run.truth_origin,
-            "resolution": run.truth_resolution}
+    return {
+        "occupied": run.truth_occupied,
+        "visible": run.truth_visible,
+        "origin": run.truth_origin,
+        "resolution": run.truth_resolution,
+    }
 
 
 def resampled_particles(posed: PosedScans, seed: int = 0) -> PosedScans:
@@ -72,8 +83,13 @@ def resampled_particles(posed: PosedScans, seed: int = 0) -> PosedScans:
     picks = np.sort(picks // 4 * 4, axis=1)  # draw from every 4th particle: about M/4 distinct poses
     resampled = np.take_along_axis(samples, picks[..., None], axis=1)
     return PosedScans(
-        ranges=posed.ranges, angle_min=posed.angle_min, angle_increment=posed.angle_increment,
-        range_min=posed.range_min, range_max=posed.range_max, stamps=posed.stamps, sensor_offset=posed.sensor_offset,
+        ranges=posed.ranges,
+        angle_min=posed.angle_min,
+        angle_increment=posed.angle_increment,
+        range_min=posed.range_min,
+        range_max=posed.range_max,
+        stamps=posed.stamps,
+        sensor_offset=posed.sensor_offset,
         poses=PoseSet(samples=resampled, weights=weights),
     )
 

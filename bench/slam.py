@@ -10,6 +10,7 @@ the next on these runs, so both FastSLAMs also run at seeds 1 and 2, and ``runs_
 15 runs that reach the target. Skipped, with the reason, when ../shared/data/mrclam7 is absent. About 30 minutes
 on one core.
 """
+
 from __future__ import annotations
 
 import json
@@ -64,8 +65,10 @@ def run() -> dict:
                 figures[f"r{robot}_{name}_inside95"] = score["inside95"]
                 figures[f"r{robot}_{name}_nees"] = score["nees_mean"]
                 figures[f"r{robot}_{name}_ms_per_step"] = ms
-                print(f"  robot {robot} {name}: ATE {score['ate_rmse_m']:.2f} m, inside95 {score['inside95']:.2f}",
-                      flush=True)
+                print(
+                    f"  robot {robot} {name}: ATE {score['ate_rmse_m']:.2f} m, inside95 {score['inside95']:.2f}",
+                    flush=True,
+                )
             figures[f"worst_inside95_{name}"] = min(figures[f"r{r}_{name}_inside95"] for r in ROBOTS)
         for name in SEEDED:  # the particle filters again, at more seeds: one seed decides too little
             inside = [figures[f"r{r}_{name}_inside95"] for r in ROBOTS]
@@ -75,7 +78,10 @@ def run() -> dict:
                     figures[f"r{robot}_{name}_seed{seed}_ate_m"] = score["ate_rmse_m"]
                     figures[f"r{robot}_{name}_seed{seed}_inside95"] = score["inside95"]
                     inside.append(score["inside95"])
-                    print(f"  robot {robot} {name} seed {seed}: ATE {score['ate_rmse_m']:.2f} m, inside95 "
-                          f"{score['inside95']:.2f}", flush=True)
+                    print(
+                        f"  robot {robot} {name} seed {seed}: ATE {score['ate_rmse_m']:.2f} m, inside95 "
+                        f"{score['inside95']:.2f}",
+                        flush=True,
+                    )
             figures[f"runs_meeting_target_{name}"] = f"{sum(v >= TARGET_INSIDE95 for v in inside)} of {len(inside)}"
     return figures

@@ -7,6 +7,7 @@ largest value over the segment, read from a table over u = (r - z) / sigma for c
 (:func:`logodds_table`) or evaluated in closed form otherwise. Used by the regular grid's passes
 (:mod:`mapping.samples_pass`, :mod:`mapping.single_pass`) and by the adaptive grid's evidence pass.
 """
+
 from __future__ import annotations
 
 import functools
@@ -117,8 +118,9 @@ def beam_table(ranges: np.ndarray, model: SensorModel, range_min: float, range_m
     ranges = np.asarray(ranges, dtype=np.float64)
     half = model.l / 2
     if model.sigma == "constant":  # the same sigma, peak offset and peak value for every beam: one compiled pass
-        kind, fields = _constant_sigma_beams(ranges, float(range_min), float(range_max), float(model.sigma0), half,
-                                             *_constant_sigma_peak(model))
+        kind, fields = _constant_sigma_beams(
+            ranges, float(range_min), float(range_max), float(model.sigma0), half, *_constant_sigma_peak(model)
+        )
         return BeamTable(kind, *fields)
     no_return = np.isnan(ranges) | (ranges > range_max)
     hit = ~no_return & (ranges >= range_min)
@@ -180,8 +182,9 @@ def _table_logodds(r, z, inv_sigma, table, u0, du):  # pragma: no cover - compil
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def segment_logodds(r_in, r_out, beam_kind, free_until, z, r_peak, a, b, s, g_peak, table, u0, du, p_miss, p_hit,
-                    l_free, y_peak):  # pragma: no cover - compiled
+def segment_logodds(
+    r_in, r_out, beam_kind, free_until, z, r_peak, a, b, s, g_peak, table, u0, du, p_miss, p_hit, l_free, y_peak
+):  # pragma: no cover - compiled
     """The value one beam gives a cell it crosses over [r_in, r_out] (m): free before free_until (and for
     beams with no return), else the model's largest value over the segment, from the table when there is one."""
     if r_out < free_until or beam_kind == BEAM_NO_RETURN:

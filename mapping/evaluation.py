@@ -10,6 +10,7 @@ instead made the scores depend on rounding: the simulator's truth cells are cent
 fused map (walls on round coordinates run through truth cell centres and along map cell borders), and moving a
 map's origin by 1e-9 m, or storing it as float32, moved AUC from 0.841 to 0.798.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -27,8 +28,9 @@ NLL_EPS = 1e-6
 EDGE_SNAP = 1e-3
 
 
-def sample_map(probability: np.ndarray, origin: np.ndarray, resolution: float,
-               x: np.ndarray, y: np.ndarray) -> np.ndarray:
+def sample_map(
+    probability: np.ndarray, origin: np.ndarray, resolution: float, x: np.ndarray, y: np.ndarray
+) -> np.ndarray:
     """The map's probability at map-frame points (x, y) in m; 0.5 outside the raster. For points well inside
     cells (the centres of another raster aligned with the map's cells); scoring averages over cells instead
     (:func:`probability_on_raster`)."""
@@ -40,8 +42,9 @@ def sample_map(probability: np.ndarray, origin: np.ndarray, resolution: float,
     return out
 
 
-def _overlap_weights(t_origin: float, t_res: float, t_count: int, m_origin: float, m_res: float,
-                     m_count: int) -> sparse.csr_matrix:
+def _overlap_weights(
+    t_origin: float, t_res: float, t_count: int, m_origin: float, m_res: float, m_count: int
+) -> sparse.csr_matrix:
     """Along one axis: the fraction of each truth interval [t_origin + k t_res, t_origin + (k + 1) t_res) (m)
     that each map interval [m_origin + j m_res, ...) covers, as a (t_count, m_count) matrix. Parts of a truth
     interval outside the map get no weight. Work and memory grow with the overlapping (truth, map) pairs, at most
@@ -63,8 +66,9 @@ def _overlap_weights(t_origin: float, t_res: float, t_count: int, m_origin: floa
     return sparse.csr_matrix((weights[keep], (rows[keep], cols[keep])), shape=(t_count, m_count))
 
 
-def probability_on_raster(map_arrays: dict, origin: np.ndarray, resolution: float,
-                          shape: tuple[int, int]) -> np.ndarray:
+def probability_on_raster(
+    map_arrays: dict, origin: np.ndarray, resolution: float, shape: tuple[int, int]
+) -> np.ndarray:
     """The map's occupancy probability averaged over each cell of another raster, (H, W) float64.
 
     map_arrays: map-file keys (``probability``, ``origin``, ``resolution``, and ``observed`` if present: an

@@ -4,6 +4,7 @@ Input is a dict with the map file's keys (``probability``, ``observed``, ``varia
 ``resolution``); row 0 of the raster is the southern-most row (y grows with the row index), so images are
 flipped vertically to put north up, as map_server expects.
 """
+
 from __future__ import annotations
 
 import io
@@ -34,8 +35,7 @@ def occupancy_pixels(probability: np.ndarray, observed: np.ndarray) -> np.ndarra
 def _yaml_printable(code: int) -> bool:
     """Whether a code point may stand as itself in a YAML double-quoted scalar (YAML 1.2's printable set, less
     the line and paragraph separators and the byte order mark, which readers treat specially)."""
-    return 0x20 <= code <= 0x7E or (0xA0 <= code <= 0xFFFD and code not in (0x2028, 0x2029, 0xFEFF)) \
-        or code >= 0x10000
+    return 0x20 <= code <= 0x7E or (0xA0 <= code <= 0xFFFD and code not in (0x2028, 0x2029, 0xFEFF)) or code >= 0x10000
 
 
 def _yaml_quoted(text: str) -> str:
@@ -43,8 +43,16 @@ def _yaml_quoted(text: str) -> str:
     '#', ': ' or '[' stays the name: as a plain scalar, 'a #b.pgm' read as 'a' and 'c: d.pgm' did not parse."""
     if any(0xD800 <= ord(char) <= 0xDFFF for char in text):  # an undecodable byte of the file system's name
         raise InputError(f"the image name {text!r} is not valid UTF-8; a YAML file cannot name it")
-    escaped = ("\\" + char if char in '"\\' else char if _yaml_printable(ord(char))
-               else f"\\x{ord(char):02x}" if ord(char) < 0x100 else f"\\u{ord(char):04x}" for char in text)
+    escaped = (
+        "\\" + char
+        if char in '"\\'
+        else char
+        if _yaml_printable(ord(char))
+        else f"\\x{ord(char):02x}"
+        if ord(char) < 0x100
+        else f"\\u{ord(char):04x}"
+        for char in text
+    )
     return '"' + "".join(escaped) + '"'
 
 
@@ -81,8 +89,10 @@ def crop_to_occupied(map_arrays: dict, margin: float) -> dict:
     pad = int(np.ceil(min(margin / float(map_arrays["resolution"]), max(occupied.shape))))  # no wider than the map
     r0, r1 = max(rows[0] - pad, 0), min(rows[-1] + pad + 1, occupied.shape[0])
     c0, c1 = max(cols[0] - pad, 0), min(cols[-1] + pad + 1, occupied.shape[1])
-    cropped = {key: (value[r0:r1, c0:c1] if isinstance(value, np.ndarray) and value.shape == occupied.shape else value)
-               for key, value in map_arrays.items()}
+    cropped = {
+        key: (value[r0:r1, c0:c1] if isinstance(value, np.ndarray) and value.shape == occupied.shape else value)
+        for key, value in map_arrays.items()
+    }
     cropped["origin"] = np.asarray(map_arrays["origin"], float) + float(map_arrays["resolution"]) * np.array([c0, r0])
     return cropped
 

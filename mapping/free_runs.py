@@ -15,6 +15,7 @@ word c // 64. The column-major plane holds cell (gx, gy) at bit gx * col_stride 
 transposes, for which the window's width is a multiple of 64 too. Marking is idempotent, so the runs of one pose
 sample's beams may overlap.
 """
+
 from __future__ import annotations
 
 import math
@@ -48,8 +49,9 @@ def set_run(plane, c_lo, c_hi):  # pragma: no cover - compiled
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def _mark_runs(plane, stride, u0, v0, du, dv, iu, iv, r_end, res, tol, win_u0, win_v0, exits,
-               entries):  # pragma: no cover - compiled
+def _mark_runs(
+    plane, stride, u0, v0, du, dv, iu, iv, r_end, res, tol, win_u0, win_v0, exits, entries
+):  # pragma: no cover - compiled
     """Mark, one run per line of constant v, the cells a ray crosses from (u0, v0) (m) along the unit direction
     (du, dv), |du| >= |dv|, up to the range r_end (m), in the plane that holds cell (u, v) at bit
     (v - win_v0) * stride + u - win_u0.
@@ -108,8 +110,9 @@ def _mark_runs(plane, stride, u0, v0, du, dv, iu, iv, r_end, res, tol, win_u0, w
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def mark_free_runs(rows, columns, col_stride, x0, y0, dx, dy, ix, iy, r_end, res, tol, win_ix0, win_iy0, win_w,
-                   exits, entries):  # pragma: no cover - compiled
+def mark_free_runs(
+    rows, columns, col_stride, x0, y0, dx, dy, ix, iy, r_end, res, tol, win_ix0, win_iy0, win_w, exits, entries
+):  # pragma: no cover - compiled
     """Mark the cells the ray from (x0, y0) (m, map frame) along the unit direction (dx, dy) crosses before
     r_end (m): the cells :func:`mapping.raytrace.trace_ray` visits with r_in < r_end, give or take the one
     holding r_end. Returns the last cell marked (ix, iy): the one the ray is in just before r_end. A shallow
@@ -124,14 +127,24 @@ def mark_free_runs(rows, columns, col_stride, x0, y0, dx, dy, ix, iy, r_end, res
     """
     if abs(dx) >= abs(dy):
         return _mark_runs(rows, win_w, x0, y0, dx, dy, ix, iy, r_end, res, tol, win_ix0, win_iy0, exits, entries)
-    last_iy, last_ix = _mark_runs(columns, col_stride, y0, x0, dy, dx, iy, ix, r_end, res, tol, win_iy0, win_ix0,
-                                  exits, entries)
+    last_iy, last_ix = _mark_runs(
+        columns, col_stride, y0, x0, dy, dx, iy, ix, r_end, res, tol, win_iy0, win_ix0, exits, entries
+    )
     return last_ix, last_iy
 
 
 #: the masks of the 64 x 64 bit transpose's six rounds: the low half of each group of 2 * width bits
-_TRANSPOSE_MASKS = np.array([0x00000000FFFFFFFF, 0x0000FFFF0000FFFF, 0x00FF00FF00FF00FF, 0x0F0F0F0F0F0F0F0F,
-                             0x3333333333333333, 0x5555555555555555], dtype=np.uint64)
+_TRANSPOSE_MASKS = np.array(
+    [
+        0x00000000FFFFFFFF,
+        0x0000FFFF0000FFFF,
+        0x00FF00FF00FF00FF,
+        0x0F0F0F0F0F0F0F0F,
+        0x3333333333333333,
+        0x5555555555555555,
+    ],
+    dtype=np.uint64,
+)
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")

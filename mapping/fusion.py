@@ -22,6 +22,7 @@ per-sample records near the returns); one distinct sample takes the one-sample p
 which gives the same map for about half the time. Both walk the rays with :mod:`mapping.window_walk` and value
 the cells with :mod:`mapping.beam_model`.
 """
+
 from __future__ import annotations
 
 import math
@@ -69,8 +70,9 @@ def _finite_weighted(samples, weights):  # pragma: no cover - compiled
     return True, total
 
 
-def check_scan(ranges: np.ndarray, samples: np.ndarray, weights: np.ndarray,
-               beams: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def check_scan(
+    ranges: np.ndarray, samples: np.ndarray, weights: np.ndarray, beams: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Validate one scan's inputs and return them as arrays: ranges (B,), samples (M, 3), weights (M,)."""
     ranges = np.asarray(ranges)
     samples = np.asarray(samples, dtype=np.float64)
@@ -108,16 +110,20 @@ def check_window(x_lo: float, y_lo: float, x_hi: float, y_hi: float, reach: floa
     poses lie in [x_lo, x_hi] x [y_lo, y_hi] (m) and ``reach`` (m) is the rays' longest reach."""
     farthest = max(abs(x_lo), abs(x_hi), abs(y_lo), abs(y_hi))
     if not (farthest + reach) / resolution <= MAX_CELL_INDEX:  # also NaN and inf
-        raise InputError(f"a scan {farthest:.6g} m from the map origin with rays {reach:.6g} m long reaches beyond "
-                         f"the {MAX_CELL_INDEX * resolution:.3g} m that {resolution} m cells cover")
+        raise InputError(
+            f"a scan {farthest:.6g} m from the map origin with rays {reach:.6g} m long reaches beyond "
+            f"the {MAX_CELL_INDEX * resolution:.3g} m that {resolution} m cells cover"
+        )
     # + the 8-cell alignment, a cell to spare and the samples pass's padding to whole 64-cell words
     width = (x_hi - x_lo + 2 * reach) / resolution + 72
     height = (y_hi - y_lo + 2 * reach) / resolution + 9
     if width * height > MAX_WINDOW_CELLS:
-        raise InputError(f"one scan would span about {width:.0f} x {height:.0f} cells of {resolution} m, more than the "
-                         f"{MAX_WINDOW_CELLS} a scan may: its pose samples spread over {x_hi - x_lo:.4g} m x "
-                         f"{y_hi - y_lo:.4g} m and its rays reach {reach:.4g} m (a diverged pose estimate, or a range "
-                         f"limit too long for this resolution?)")
+        raise InputError(
+            f"one scan would span about {width:.0f} x {height:.0f} cells of {resolution} m, more than the "
+            f"{MAX_WINDOW_CELLS} a scan may: its pose samples spread over {x_hi - x_lo:.4g} m x "
+            f"{y_hi - y_lo:.4g} m and its rays reach {reach:.4g} m (a diverged pose estimate, or a range "
+            f"limit too long for this resolution?)"
+        )
 
 
 def laser_poses(samples: np.ndarray, sensor_offset: np.ndarray) -> np.ndarray:
@@ -259,7 +265,7 @@ class MonteCarloFusion:
         res = grid.resolution
         reach = float(beams.r_stop.max()) + res
         if len(lasers) == 1:  # (reductions cost a few microseconds each)
-            (x_lo, y_lo, _), = lasers.tolist()
+            ((x_lo, y_lo, _),) = lasers.tolist()
             x_hi, y_hi = x_lo, y_lo
         else:
             (x_lo, y_lo), (x_hi, y_hi) = lasers[:, :2].min(axis=0).tolist(), lasers[:, :2].max(axis=0).tolist()
@@ -280,15 +286,63 @@ class MonteCarloFusion:
             self._single_scratch(blocks_w * blocks_h)
             x, y, yaw = lasers[0].tolist()
             n_scan = accumulate_single(
-                x, y, yaw, self._cos_angles, self._sin_angles, beams.kind, beams.z, beams.r_stop, beams.r_peak,
-                beams.a, beams.b, beams.s, beams.g_peak, beams.free_until, self._table, TABLE_U0, TABLE_DU, res,
-                model.p_miss, model.p_hit, self._l_free, win_ix0, win_iy0, win_w, win_h, shift, tx0, ty0, owned,
-                all_owned, self._touched_bits, self._raised_bits, self._largest, blocks_w, blocks_h, touched,
+                x,
+                y,
+                yaw,
+                self._cos_angles,
+                self._sin_angles,
+                beams.kind,
+                beams.z,
+                beams.r_stop,
+                beams.r_peak,
+                beams.a,
+                beams.b,
+                beams.s,
+                beams.g_peak,
+                beams.free_until,
+                self._table,
+                TABLE_U0,
+                TABLE_DU,
+                res,
+                model.p_miss,
+                model.p_hit,
+                self._l_free,
+                win_ix0,
+                win_iy0,
+                win_w,
+                win_h,
+                shift,
+                tx0,
+                ty0,
+                owned,
+                all_owned,
+                self._touched_bits,
+                self._raised_bits,
+                self._largest,
+                blocks_w,
+                blocks_h,
+                touched,
             )
             slot_map, changed = self._tile_slots(touched, tx0, ty0)
-            apply_single(self._touched_bits, self._raised_bits, self._largest, blocks_w, blocks_h, float(weights[0]),
-                          self._l_free, win_ix0, win_iy0, shift, tx0, ty0, slot_map, grid.logodds, grid.observed,
-                          self._l_min, self._l_max)
+            apply_single(
+                self._touched_bits,
+                self._raised_bits,
+                self._largest,
+                blocks_w,
+                blocks_h,
+                float(weights[0]),
+                self._l_free,
+                win_ix0,
+                win_iy0,
+                shift,
+                tx0,
+                ty0,
+                slot_map,
+                grid.logodds,
+                grid.observed,
+                self._l_min,
+                self._l_max,
+            )
             return FuseResult(int(n_scan), changed)
 
         # the samples pass's scratch rows and columns are whole 64-bit words of its bit planes (mapping.free_runs)
@@ -301,15 +355,67 @@ class MonteCarloFusion:
         stamp_base = self._stamp_next
         self._stamp_next += len(samples)
         n_scan = accumulate_scan(
-            lasers[:, 0].copy(), lasers[:, 1].copy(), lasers[:, 2].copy(), weights, self._cos_angles, self._sin_angles,
-            beams.kind, beams.z, beams.r_stop, beams.r_peak, beams.a, beams.b, beams.s, beams.g_peak,
-            beams.free_until, self._table, TABLE_U0, TABLE_DU, res, model.p_miss, model.p_hit, self._l_free,
-            win_ix0, win_iy0, win_w, win_h, shift, tx0, ty0, owned, all_owned,
-            self._plane, self._columns, col_stride, self._listed, self._weight_sum, self._excess, self._scan_cells,
-            touched, stamp_base,
+            lasers[:, 0].copy(),
+            lasers[:, 1].copy(),
+            lasers[:, 2].copy(),
+            weights,
+            self._cos_angles,
+            self._sin_angles,
+            beams.kind,
+            beams.z,
+            beams.r_stop,
+            beams.r_peak,
+            beams.a,
+            beams.b,
+            beams.s,
+            beams.g_peak,
+            beams.free_until,
+            self._table,
+            TABLE_U0,
+            TABLE_DU,
+            res,
+            model.p_miss,
+            model.p_hit,
+            self._l_free,
+            win_ix0,
+            win_iy0,
+            win_w,
+            win_h,
+            shift,
+            tx0,
+            ty0,
+            owned,
+            all_owned,
+            self._plane,
+            self._columns,
+            col_stride,
+            self._listed,
+            self._weight_sum,
+            self._excess,
+            self._scan_cells,
+            touched,
+            stamp_base,
         )
         slot_map, changed = self._tile_slots(touched, tx0, ty0)
-        apply_scan(self._scan_cells, n_scan, self._listed, self._weight_sum, self._excess, stamp_base, self._l_free,
-                    win_w, win_ix0, win_iy0, shift, tx0, ty0, slot_map, grid.logodds, grid.variance, grid.observed,
-                    self._l_min, self._l_max)
+        apply_scan(
+            self._scan_cells,
+            n_scan,
+            self._listed,
+            self._weight_sum,
+            self._excess,
+            stamp_base,
+            self._l_free,
+            win_w,
+            win_ix0,
+            win_iy0,
+            shift,
+            tx0,
+            ty0,
+            slot_map,
+            grid.logodds,
+            grid.variance,
+            grid.observed,
+            self._l_min,
+            self._l_max,
+        )
         return FuseResult(int(n_scan), changed)

@@ -13,6 +13,7 @@ Per cell the grid keeps
 Tiles live in three stacked arrays (slot, T, T) that grow by doubling, so compiled kernels can write
 into any tile through a slot index; memory follows the observed area.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -115,8 +116,12 @@ class TiledGrid:
         if not keys:
             empty = np.zeros((0, 0), np.float32)
             return {
-                "logodds": empty, "probability": empty.copy(), "observed": np.zeros((0, 0), bool),
-                "variance": empty.copy(), "origin": np.zeros(2), "resolution": np.float64(self.resolution),
+                "logodds": empty,
+                "probability": empty.copy(),
+                "observed": np.zeros((0, 0), bool),
+                "variance": empty.copy(),
+                "origin": np.zeros(2),
+                "resolution": np.float64(self.resolution),
             }
         tx = np.array([k[0] for k in keys])
         ty = np.array([k[1] for k in keys])
@@ -124,9 +129,11 @@ class TiledGrid:
         shape = (int(ty.max() - ty0 + 1) * size, int(tx.max() - tx0 + 1) * size)  # Python ints: no overflow
         if shape[0] * shape[1] > MAX_RASTER_CELLS:
             width_m, height_m = shape[1] * self.resolution, shape[0] * self.resolution
-            raise InputError(f"the map's tiles span {shape[1]} x {shape[0]} cells ({width_m:.6g} m x "
-                             f"{height_m:.6g} m), more than the {MAX_RASTER_CELLS} cells one raster may hold; read "
-                             "it tile by tile instead")
+            raise InputError(
+                f"the map's tiles span {shape[1]} x {shape[0]} cells ({width_m:.6g} m x "
+                f"{height_m:.6g} m), more than the {MAX_RASTER_CELLS} cells one raster may hold; read "
+                "it tile by tile instead"
+            )
         logodds = np.zeros(shape, np.float32)
         variance = np.zeros(shape, np.float32)
         observed = np.zeros(shape, bool)

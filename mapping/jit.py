@@ -16,6 +16,7 @@ user cache), under the same file names. It builds on numba's private caching int
 locators' ``get_source_stamp`` and ``_py_file``), checked against numba 0.59.1 and 0.68.1; where they are
 missing, kernels compile without a disk cache (each process afresh), with a warning.
 """
+
 from __future__ import annotations
 
 import ast
@@ -176,8 +177,12 @@ def _closure_cache_class() -> type | None:
 
 def _warn_uncached(reason: Exception) -> None:
     """Kernels still compile, each process afresh: slower starts, never stale code."""
-    warnings.warn(f"numba {nb.__version__}: its caching internals are not as mapping.jit expects ({reason}); "
-                  "kernels compile without a disk cache", RuntimeWarning, stacklevel=3)
+    warnings.warn(
+        f"numba {nb.__version__}: its caching internals are not as mapping.jit expects ({reason}); "
+        "kernels compile without a disk cache",
+        RuntimeWarning,
+        stacklevel=3,
+    )
 
 
 _CACHE_CLASS = _closure_cache_class()

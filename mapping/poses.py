@@ -9,6 +9,7 @@ Asking for that error to stay below ``accuracy`` with 95 % confidence gives
 
     M = ceil(1.96^2 v / accuracy^2),   clipped to [1, max_samples].
 """
+
 from __future__ import annotations
 
 import math
@@ -23,8 +24,9 @@ Z95 = 1.959963984540054  # two-sided 95 % standard-normal quantile
 DEFAULT_MAX_SAMPLES = 200
 
 
-def samples_for_accuracy(cov: np.ndarray, range_max: float, accuracy: float,
-                         max_samples: int = DEFAULT_MAX_SAMPLES) -> int:
+def samples_for_accuracy(
+    cov: np.ndarray, range_max: float, accuracy: float, max_samples: int = DEFAULT_MAX_SAMPLES
+) -> int:
     """The number of Gaussian pose samples the rule in the module docstring asks for."""
     if not accuracy > 0:
         raise InputError(f"accuracy must be > 0 m, got {accuracy}")
@@ -88,5 +90,5 @@ def scan_samples(
     weights = np.asarray(weights, dtype=float).reshape(-1)
     if mode == "ml":
         best = int(np.argmax(weights))
-        return samples[best:best + 1], np.ones(1)
+        return samples[best : best + 1], np.ones(1)
     return merge_duplicates(samples, weights)

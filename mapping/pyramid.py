@@ -15,6 +15,7 @@ cells, not of the 4^z level-0 cells below it):
 Averaging log-odds keeps the coarse cell's probability between its children's; averaging only over
 observed children keeps unknown space from pulling a half-seen block towards 0.5.
 """
+
 from __future__ import annotations
 
 from collections.abc import Sequence

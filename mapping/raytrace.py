@@ -10,6 +10,7 @@ The corner tolerance is fixed per ray (it scales with the ray's length), which k
 dependent operations from one cell to the next. The compiled fusion kernels inline :func:`dda_start` and
 :func:`dda_step` so there is one traversal in the code base.
 """
+
 from __future__ import annotations
 
 import math
@@ -107,6 +108,7 @@ def traverse(x0: float, y0: float, angle: float, r_stop: float, resolution: floa
     iy = np.empty(size, np.int64)
     r_in = np.empty(size, np.float64)
     r_out = np.empty(size, np.float64)
-    n = trace_ray(float(x0), float(y0), math.cos(angle), math.sin(angle), float(r_stop), float(resolution),
-                  ix, iy, r_in, r_out)
+    n = trace_ray(
+        float(x0), float(y0), math.cos(angle), math.sin(angle), float(r_stop), float(resolution), ix, iy, r_in, r_out
+    )
     return ix[:n], iy[:n], r_in[:n], r_out[:n]

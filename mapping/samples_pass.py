@@ -13,6 +13,7 @@ several of the sample's beams is marked once; most of a beam's free stretch is m
 cells with an excess keep a per-sample record (the largest excess of the sample's beams, by stamp) for D1 and
 D2. A second bit plane marks the cells listed in this scan.
 """
+
 from __future__ import annotations
 
 import math
@@ -48,8 +49,22 @@ def add_sample_value(rec, c, sid, w, y):  # pragma: no cover - compiled
 
 
 @kernel(nogil=True, error_model="numpy")
-def _sweep_plane(plane, n_words, listed, weight_sum, w, scan_cells, n_scan, win_w, win_ix0, win_iy0, tile_touched,
-                 tile_shift, tx0, ty0):  # pragma: no cover - compiled
+def _sweep_plane(
+    plane,
+    n_words,
+    listed,
+    weight_sum,
+    w,
+    scan_cells,
+    n_scan,
+    win_w,
+    win_ix0,
+    win_iy0,
+    tile_touched,
+    tile_shift,
+    tx0,
+    ty0,
+):  # pragma: no cover - compiled
     """Add one sample's weight w to the weight sum of every cell its plane marks, and clear the plane. A cell
     not yet listed in this scan (its bit clear in ``listed``) is listed in scan_cells and its tile marked in
     tile_touched. Returns the new list length."""
@@ -66,8 +81,9 @@ def _sweep_plane(plane, n_words, listed, weight_sum, w, scan_cells, n_scan, win_
                 c = base + trailing_zeros(new)
                 scan_cells[n_scan] = c
                 n_scan += 1
-                tile_touched[((c // win_w + win_iy0) >> tile_shift) - ty0,
-                             ((c % win_w + win_ix0) >> tile_shift) - tx0] = True
+                tile_touched[
+                    ((c // win_w + win_iy0) >> tile_shift) - ty0, ((c % win_w + win_ix0) >> tile_shift) - tx0
+                ] = True
                 new &= new - np.uint64(1)
         while bits != 0:
             weight_sum[base + trailing_zeros(bits)] += w
@@ -76,10 +92,48 @@ def _sweep_plane(plane, n_words, listed, weight_sum, w, scan_cells, n_scan, win_
 
 
 @kernel(nogil=True, error_model="numpy")
-def accumulate_scan(laser_x, laser_y, laser_yaw, weights, cos_angles, sin_angles, kind, z, r_stop, r_peak, a, b, s,
-                     g_peak, free_until, table, u0, du, res, p_miss, p_hit, l_free, win_ix0, win_iy0, win_w, win_h,
-                     tile_shift, tx0, ty0, owned, all_owned, plane, columns, col_stride, listed, weight_sum, excess,
-                     scan_cells, tile_touched, stamp_base):  # pragma: no cover - compiled
+def accumulate_scan(
+    laser_x,
+    laser_y,
+    laser_yaw,
+    weights,
+    cos_angles,
+    sin_angles,
+    kind,
+    z,
+    r_stop,
+    r_peak,
+    a,
+    b,
+    s,
+    g_peak,
+    free_until,
+    table,
+    u0,
+    du,
+    res,
+    p_miss,
+    p_hit,
+    l_free,
+    win_ix0,
+    win_iy0,
+    win_w,
+    win_h,
+    tile_shift,
+    tx0,
+    ty0,
+    owned,
+    all_owned,
+    plane,
+    columns,
+    col_stride,
+    listed,
+    weight_sum,
+    excess,
+    scan_cells,
+    tile_touched,
+    stamp_base,
+):  # pragma: no cover - compiled
     """One pass over all (sample, beam, cell) triples; returns the number of distinct cells touched.
 
     Window cell (gx, gy) is global cell (win_ix0 + gx, win_iy0 + gy); its scratch entries are at
@@ -125,7 +179,8 @@ def accumulate_scan(laser_x, laser_y, laser_yaw, weights, cos_angles, sin_angles
             free_until_k = free_until[k]
             dx, dy = beam_direction(cos_yaw, sin_yaw, cos_angles[k], sin_angles[k])
             inside, ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol = ray_start(
-                laser_x[j], laser_y[j], dx, dy, stop, res, win_ix0, win_iy0, win_w, win_h)
+                laser_x[j], laser_y[j], dx, dy, stop, res, win_ix0, win_iy0, win_w, win_h
+            )
             if not inside:
                 continue
             r_in = 0.0
@@ -140,11 +195,28 @@ def accumulate_scan(laser_x, laser_y, laser_yaw, weights, cos_angles, sin_angles
                 if runs_end > 0.0:
                     first_ix, first_iy = ix, iy
                     if min(t_max_x, t_max_y) <= 0.0:  # the ray starts on its cell's edge and leaves it at once
-                        first_ix, first_iy, _, _ = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x,
-                                                            t_delta_y, tol)
-                    end_ix, end_iy = mark_free_runs(plane, columns, col_stride, laser_x[j], laser_y[j], dx, dy,
-                                                    first_ix, first_iy, runs_end, res, tol, win_ix0, win_iy0, win_w,
-                                                    exits, entries)
+                        first_ix, first_iy, _, _ = dda_step(
+                            ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol
+                        )
+                    end_ix, end_iy = mark_free_runs(
+                        plane,
+                        columns,
+                        col_stride,
+                        laser_x[j],
+                        laser_y[j],
+                        dx,
+                        dy,
+                        first_ix,
+                        first_iy,
+                        runs_end,
+                        res,
+                        tol,
+                        win_ix0,
+                        win_iy0,
+                        win_w,
+                        exits,
+                        entries,
+                    )
                     # the walk goes on from the runs' last cell, the grid lines crossed up to it counted; its r_in
                     # is taken as runs_end (segment_logodds reads r_in only past the peak, well beyond)
                     t_max_x += max((end_ix - ix) * step_x, 0) * t_delta_x
@@ -160,23 +232,41 @@ def accumulate_scan(laser_x, laser_y, laser_yaw, weights, cos_angles, sin_angles
                     if r_out > r_in:
                         set_bit(plane, c)
                     r_in = r_out
-                    c, t_max_x, t_max_y = step_index(c, step_x, row_step, t_max_x, t_max_y, t_delta_x, t_delta_y,
-                                                      tol)
+                    c, t_max_x, t_max_y = step_index(c, step_x, row_step, t_max_x, t_max_y, t_delta_x, t_delta_y, tol)
                 while True:  # the cells from free_until to the ray's end
                     # (the four lines of a visit repeat the general loop's below: an inlined helper for them
                     # made the whole pass 1.14-1.18x slower, measured 2026-11-26)
                     r_out = min(t_max_x, t_max_y, stop)
                     if r_out > r_in:
-                        d = segment_logodds(r_in, r_out, beam_kind, free_until_k, z_k, peak_at, a_k, b_k, s_k,
-                                            g_peak_k, table, u0, du, p_miss, p_hit, l_free, y_peak) - l_free
+                        d = (
+                            segment_logodds(
+                                r_in,
+                                r_out,
+                                beam_kind,
+                                free_until_k,
+                                z_k,
+                                peak_at,
+                                a_k,
+                                b_k,
+                                s_k,
+                                g_peak_k,
+                                table,
+                                u0,
+                                du,
+                                p_miss,
+                                p_hit,
+                                l_free,
+                                y_peak,
+                            )
+                            - l_free
+                        )
                         set_bit(plane, c)
                         if d > 0.0:
                             add_sample_value(excess, np.uint64(c), sid, w, d)
                     if r_out >= ray_end:
                         break
                     r_in = r_out
-                    c, t_max_x, t_max_y = step_index(c, step_x, row_step, t_max_x, t_max_y, t_delta_x, t_delta_y,
-                                                      tol)
+                    c, t_max_x, t_max_y = step_index(c, step_x, row_step, t_max_x, t_max_y, t_delta_x, t_delta_y, tol)
                 continue
             # some tiles are another shard's: the walk keeps (ix, iy) to look ownership up per tile
             while True:  # the free phase
@@ -190,7 +280,8 @@ def accumulate_scan(laser_x, laser_y, laser_yaw, weights, cos_angles, sin_angles
                 if not mine:
                     jumped_from = r_in
                     ix, iy, t_max_x, t_max_y, r_in, t_exit = jump_over_tile(
-                        ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tile_shift)
+                        ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tile_shift
+                    )
                     if t_exit >= ray_end:
                         ray_done = True
                         break
@@ -199,8 +290,7 @@ def accumulate_scan(laser_x, laser_y, laser_yaw, weights, cos_angles, sin_angles
                 elif r_out > r_in:
                     set_bit(plane, (iy - win_iy0) * win_w + ix - win_ix0)
                 r_in = r_out
-                ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x,
-                                                    t_delta_y, tol)
+                ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol)
             while not ray_done:  # the cells from free_until to the ray's end
                 if (ix >> tile_shift) != cell_tx or (iy >> tile_shift) != cell_ty:
                     cell_tx = ix >> tile_shift
@@ -208,13 +298,34 @@ def accumulate_scan(laser_x, laser_y, laser_yaw, weights, cos_angles, sin_angles
                     mine = owned[cell_ty - ty0, cell_tx - tx0]
                 if not mine:
                     ix, iy, t_max_x, t_max_y, r_in, t_exit = jump_over_tile(
-                        ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tile_shift)
+                        ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tile_shift
+                    )
                     if t_exit >= ray_end:
                         break
                 r_out = min(t_max_x, t_max_y, stop)
                 if r_out > r_in and mine:
-                    d = segment_logodds(r_in, r_out, beam_kind, free_until_k, z_k, peak_at, a_k, b_k, s_k, g_peak_k,
-                                        table, u0, du, p_miss, p_hit, l_free, y_peak) - l_free
+                    d = (
+                        segment_logodds(
+                            r_in,
+                            r_out,
+                            beam_kind,
+                            free_until_k,
+                            z_k,
+                            peak_at,
+                            a_k,
+                            b_k,
+                            s_k,
+                            g_peak_k,
+                            table,
+                            u0,
+                            du,
+                            p_miss,
+                            p_hit,
+                            l_free,
+                            y_peak,
+                        )
+                        - l_free
+                    )
                     c = (iy - win_iy0) * win_w + ix - win_ix0
                     set_bit(plane, c)
                     if d > 0.0:
@@ -222,18 +333,50 @@ def accumulate_scan(laser_x, laser_y, laser_yaw, weights, cos_angles, sin_angles
                 if r_out >= ray_end:
                     break
                 r_in = r_out
-                ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x,
-                                                    t_delta_y, tol)
+                ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol)
         if all_owned:
             fold_columns(columns, col_stride, plane, win_w, win_h, block)
-        n_scan = _sweep_plane(plane, n_words, listed, weight_sum, w, scan_cells, n_scan, win_w, win_ix0, win_iy0,
-                              tile_touched, tile_shift, tx0, ty0)
+        n_scan = _sweep_plane(
+            plane,
+            n_words,
+            listed,
+            weight_sum,
+            w,
+            scan_cells,
+            n_scan,
+            win_w,
+            win_ix0,
+            win_iy0,
+            tile_touched,
+            tile_shift,
+            tx0,
+            ty0,
+        )
     return n_scan
 
 
 @kernel(nogil=True, error_model="numpy")
-def apply_scan(scan_cells, n_scan, listed, weight_sum, excess, stamp_base, l_free, win_w, win_ix0, win_iy0,
-                tile_shift, tx0, ty0, slot_map, logodds, variance, observed, l_min, l_max):  # pragma: no cover
+def apply_scan(
+    scan_cells,
+    n_scan,
+    listed,
+    weight_sum,
+    excess,
+    stamp_base,
+    l_free,
+    win_w,
+    win_ix0,
+    win_iy0,
+    tile_shift,
+    tx0,
+    ty0,
+    slot_map,
+    logodds,
+    variance,
+    observed,
+    l_min,
+    l_max,
+):  # pragma: no cover
     """Add the scan's weighted mean to each touched cell (clamped) and its spread to the variance layer, from
     the moments l_free W + D1 and l_free^2 W + 2 l_free D1 + D2; clear the cells' listed bits and weight sums
     for the next scan."""

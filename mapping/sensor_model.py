@@ -17,6 +17,7 @@ with g_peak = max_r g(r) = g(r*), r* = z + sigma^2 ln2 / l, the model's maximum 
 
 Ranges in metres along the beam from the laser origin.
 """
+
 from __future__ import annotations
 
 import math

@@ -10,6 +10,7 @@ pass (:func:`apply_single`) walks the touched blocks, adds w (l_free + d) to eac
 variance layer alone (spread 0) and clears the bits. The rays are walked exactly as in the samples pass
 (same helpers, window, free phase and shards' tiles).
 """
+
 from __future__ import annotations
 
 import math
@@ -58,10 +59,44 @@ def _bit_count(bits):  # pragma: no cover - compiled
 
 
 @kernel(nogil=True, error_model="numpy")
-def accumulate_single(laser_x, laser_y, laser_yaw, cos_angles, sin_angles, kind, z, r_stop, r_peak, a, b, s, g_peak,
-                       free_until, table, u0, du, res, p_miss, p_hit, l_free, win_ix0, win_iy0, win_w, win_h,
-                       tile_shift, tx0, ty0, owned, all_owned, touched, raised, excess, blocks_w, blocks_h,
-                       tile_touched):  # pragma: no cover - compiled
+def accumulate_single(
+    laser_x,
+    laser_y,
+    laser_yaw,
+    cos_angles,
+    sin_angles,
+    kind,
+    z,
+    r_stop,
+    r_peak,
+    a,
+    b,
+    s,
+    g_peak,
+    free_until,
+    table,
+    u0,
+    du,
+    res,
+    p_miss,
+    p_hit,
+    l_free,
+    win_ix0,
+    win_iy0,
+    win_w,
+    win_h,
+    tile_shift,
+    tx0,
+    ty0,
+    owned,
+    all_owned,
+    touched,
+    raised,
+    excess,
+    blocks_w,
+    blocks_h,
+    tile_touched,
+):  # pragma: no cover - compiled
     """The pass for one pose sample (laser at laser_x, laser_y m, heading laser_yaw rad): every (beam, cell)
     pair; returns the number of distinct cells touched and marks their tiles in tile_touched.
 
@@ -89,7 +124,8 @@ def accumulate_single(laser_x, laser_y, laser_yaw, cos_angles, sin_angles, kind,
         free_until_k = free_until[k]
         dx, dy = beam_direction(cos_yaw, sin_yaw, cos_angles[k], sin_angles[k])
         inside, ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol = ray_start(
-            laser_x, laser_y, dx, dy, stop, res, win_ix0, win_iy0, win_w, win_h)
+            laser_x, laser_y, dx, dy, stop, res, win_ix0, win_iy0, win_w, win_h
+        )
         if not inside:
             continue
         r_in = 0.0
@@ -130,7 +166,8 @@ def accumulate_single(laser_x, laser_y, laser_yaw, cos_angles, sin_angles, kind,
             if not mine:
                 jumped_from = r_in
                 ix, iy, t_max_x, t_max_y, r_in, t_exit = jump_over_tile(
-                    ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tile_shift)
+                    ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tile_shift
+                )
                 if t_exit >= ray_end:
                     ray_done = True
                     break
@@ -149,13 +186,34 @@ def accumulate_single(laser_x, laser_y, laser_yaw, cos_angles, sin_angles, kind,
                 mine = owned[cell_ty - ty0, cell_tx - tx0]
             if not mine:
                 ix, iy, t_max_x, t_max_y, r_in, t_exit = jump_over_tile(
-                    ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tile_shift)
+                    ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tile_shift
+                )
                 if t_exit >= ray_end:
                     break
             r_out = min(t_max_x, t_max_y, stop)
             if r_out > r_in and mine:
-                d = segment_logodds(r_in, r_out, beam_kind, free_until_k, z_k, peak_at, a_k, b_k, s_k, g_peak_k, table,
-                                    u0, du, p_miss, p_hit, l_free, y_peak) - l_free
+                d = (
+                    segment_logodds(
+                        r_in,
+                        r_out,
+                        beam_kind,
+                        free_until_k,
+                        z_k,
+                        peak_at,
+                        a_k,
+                        b_k,
+                        s_k,
+                        g_peak_k,
+                        table,
+                        u0,
+                        du,
+                        p_miss,
+                        p_hit,
+                        l_free,
+                        y_peak,
+                    )
+                    - l_free
+                )
                 _raise_excess(touched, raised, excess, ix - win_ix0, iy - win_iy0, d, blocks_w)
             if r_out >= ray_end:
                 break
@@ -179,8 +237,25 @@ def accumulate_single(laser_x, laser_y, laser_yaw, cos_angles, sin_angles, kind,
 
 
 @kernel(nogil=True, error_model="numpy")
-def apply_single(touched, raised, excess, blocks_w, blocks_h, w, l_free, win_ix0, win_iy0, tile_shift, tx0, ty0,
-                  slot_map, logodds, observed, l_min, l_max):  # pragma: no cover - compiled
+def apply_single(
+    touched,
+    raised,
+    excess,
+    blocks_w,
+    blocks_h,
+    w,
+    l_free,
+    win_ix0,
+    win_iy0,
+    tile_shift,
+    tx0,
+    ty0,
+    slot_map,
+    logodds,
+    observed,
+    l_min,
+    l_max,
+):  # pragma: no cover - compiled
     """Add the one-sample scan to each touched cell: w (l_free + d) as the multi-sample moments give it,
     l_free W + D1 with W = w and D1 = w d (d the cell's largest excess, 0 where none), clamped to [l_min,
     l_max]; mark the cell observed. The spread of one sample is 0, so the variance layer is left as it is.

@@ -5,6 +5,7 @@ A window is a rectangle of global cells (win_ix0, win_iy0, win_w, win_h) that co
 with a cell to spare; window cell (gx, gy) is global cell (win_ix0 + gx, win_iy0 + gy), and its row-major
 index is c = gy * win_w + gx. Ranges (m) are along the ray from the laser, as in :mod:`mapping.raytrace`.
 """
+
 from __future__ import annotations
 
 import math
@@ -31,13 +32,15 @@ def _axis_exit(i, step, t_max, t_delta, tile_shift):  # pragma: no cover - compi
 @kernel(nogil=True, error_model="numpy", inline="always")
 def tile_exit(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tile_shift):  # pragma: no cover
     """Range at which a ray in cell (ix, iy) leaves that cell's tile (tiles of 2**tile_shift cells)."""
-    return min(_axis_exit(ix, step_x, t_max_x, t_delta_x, tile_shift),
-               _axis_exit(iy, step_y, t_max_y, t_delta_y, tile_shift))
+    return min(
+        _axis_exit(ix, step_x, t_max_x, t_delta_x, tile_shift), _axis_exit(iy, step_y, t_max_y, t_delta_y, tile_shift)
+    )
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def jump_over_tile(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in,
-                    tile_shift):  # pragma: no cover - compiled
+def jump_over_tile(
+    ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tile_shift
+):  # pragma: no cover - compiled
     """Move a ray in another shard's tile to just before it leaves the tile (the work divides among
     shards); the normal steps then cross into the next tile exactly. Returns (ix, iy, t_max_x, t_max_y,
     r_in, t_exit) with t_exit the range (m) at which the ray leaves the tile."""
@@ -76,8 +79,11 @@ def ray_start(x0, y0, dx, dy, stop, res, win_ix0, win_iy0, win_w, win_h):  # pra
     ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y = dda_start(x0, y0, dx, dy, res)
     end_gx = math.floor((x0 + stop * dx) / res) - win_ix0
     end_gy = math.floor((y0 + stop * dy) / res) - win_iy0
-    inside = not (min(ix - win_ix0, iy - win_iy0, end_gx, end_gy) < 1 or max(ix - win_ix0, end_gx) >= win_w - 1
-                  or max(iy - win_iy0, end_gy) >= win_h - 1)
+    inside = not (
+        min(ix - win_ix0, iy - win_iy0, end_gx, end_gy) < 1
+        or max(ix - win_ix0, end_gx) >= win_w - 1
+        or max(iy - win_iy0, end_gy) >= win_h - 1
+    )
     return inside, ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, corner_tol(stop)
 
 

@@ -8,6 +8,7 @@ any tool that follows the contract.
 Frames and units: poses are (x, y, yaw) of the robot in the map frame, metres and radians; ranges are
 metres along the beam from the laser; angles are radians in the laser frame, counter-clockwise from +x.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -137,8 +138,9 @@ def read_npz(path: str | Path, what: str) -> dict[str, np.ndarray]:
     with open(path, "rb") as handle:
         magic = handle.read(6)
     if magic[:2] != b"PK" and magic != b"\x93NUMPY":  # numpy would call anything else pickled data
-        raise FormatError(f"{path}: not a .npz archive (a zip of .npy arrays, as numpy.savez writes); expected a "
-                          f"{what}")
+        raise FormatError(
+            f"{path}: not a .npz archive (a zip of .npy arrays, as numpy.savez writes); expected a {what}"
+        )
     try:
         loaded = np.load(path, allow_pickle=False)
     except (zipfile.BadZipFile, ValueError, OSError, EOFError) as exc:
@@ -165,20 +167,25 @@ def _check_npz_members(archive: zipfile.ZipFile, path: Path, what: str) -> None:
     members = [info for info in archive.infolist() if info.filename.endswith(".npy")]
     total = sum(info.file_size for info in members)
     if total > MAX_NPZ_BYTES:
-        raise FormatError(f"{path}: its arrays would take {total / 2**30:.1f} GiB once inflated, more than the "
-                          f"{MAX_NPZ_BYTES / 2**30:.0f} GiB a {what} may (a damaged or hostile file?)")
+        raise FormatError(
+            f"{path}: its arrays would take {total / 2**30:.1f} GiB once inflated, more than the "
+            f"{MAX_NPZ_BYTES / 2**30:.0f} GiB a {what} may (a damaged or hostile file?)"
+        )
     for info in members:
         with archive.open(info) as member:
             version = np.lib.format.read_magic(member)
             if version not in ((1, 0), (2, 0), (3, 0)):
                 raise FormatError(f"{path}: array {info.filename!r} has an unknown .npy version {version}")
-            header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
-                      else np.lib.format.read_array_header_2_0)(member, max_header_size=10_000)
+            header = (
+                np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            )(member, max_header_size=10_000)
             shape, _, dtype = header
             declared = int(np.prod(shape, dtype=object)) * dtype.itemsize
             if dtype.hasobject or declared + member.tell() != info.file_size:
-                raise FormatError(f"{path}: array {info.filename!r} declares shape {shape} of {dtype} "
-                                  f"({declared} bytes) but holds {info.file_size - member.tell()} bytes")
+                raise FormatError(
+                    f"{path}: array {info.filename!r} declares shape {shape} of {dtype} "
+                    f"({declared} bytes) but holds {info.file_size - member.tell()} bytes"
+                )
 
 
 def _require(data: dict, key: str, path, what: str) -> np.ndarray:
@@ -244,8 +251,10 @@ def _agrees_with_logodds(probability: np.ndarray, logodds: np.ndarray, path) -> 
     off = np.abs(np.asarray(probability, np.float64) - expected) > PROBABILITY_TOLERANCE
     if off.any():
         index = tuple(int(i) for i in np.argwhere(off)[0])
-        raise FormatError(f"{path}: 'probability' is not the logistic of 'logodds': at {index} it holds "
-                          f"{probability[index]:.6g} where logodds {logodds[index]:.6g} gives {expected[index]:.6g}")
+        raise FormatError(
+            f"{path}: 'probability' is not the logistic of 'logodds': at {index} it holds "
+            f"{probability[index]:.6g} where logodds {logodds[index]:.6g} gives {expected[index]:.6g}"
+        )
 
 
 def _raster_frame(data: dict, path, what: str) -> tuple[np.ndarray, float]:
@@ -253,8 +262,9 @@ def _raster_frame(data: dict, path, what: str) -> tuple[np.ndarray, float]:
     RASTER_RESOLUTION_LIMITS m, so every cell index computed from them is exact."""
     origin = _numeric(_require(data, "origin", path, what), "origin", path).astype(np.float64)
     if origin.shape != (2,) or not (np.abs(origin) <= RASTER_ORIGIN_LIMIT).all():
-        raise FormatError(f"{path}: 'origin' must be 2 finite numbers (x, y) in m within +-{RASTER_ORIGIN_LIMIT:g}, "
-                          f"got {origin}")
+        raise FormatError(
+            f"{path}: 'origin' must be 2 finite numbers (x, y) in m within +-{RASTER_ORIGIN_LIMIT:g}, got {origin}"
+        )
     resolution = _scalar(data, "resolution", path, what)
     low, high = RASTER_RESOLUTION_LIMITS
     if not low <= resolution <= high:
@@ -282,8 +292,7 @@ def validate_pose_set(poses: PoseSet, steps: int, where: str) -> None:
         if neg.any():
             step = int(np.argmax(neg))
             raise FormatError(
-                f"{where}: 'cov' is not positive semi-definite at step {step} "
-                f"(smallest eigenvalue {eig_min[step]:.3g})"
+                f"{where}: 'cov' is not positive semi-definite at step {step} (smallest eigenvalue {eig_min[step]:.3g})"
             )
         return
     samples, weights = poses.weighted_samples()
@@ -328,8 +337,10 @@ def _read_pose_set(data: dict, steps: int, path, what: str) -> PoseSet:
 def _read_stamps(data: dict, path, what: str, steps: int | None = None) -> np.ndarray:
     stamps = _numeric(_require(data, "stamps", path, what), "stamps", path)
     if stamps.dtype.kind == "f" and stamps.dtype.itemsize < 8:
-        raise FormatError(f"{path}: 'stamps' must be float64 seconds, got {stamps.dtype} (a float32 or "
-                          "smaller holds a Unix time only to about 2 minutes)")
+        raise FormatError(
+            f"{path}: 'stamps' must be float64 seconds, got {stamps.dtype} (a float32 or "
+            "smaller holds a Unix time only to about 2 minutes)"
+        )
     stamps = stamps.astype(np.float64)
     if stamps.ndim != 1 or (steps is not None and stamps.shape[0] != steps):
         raise FormatError(
@@ -441,8 +452,12 @@ def load_truth(path: str | Path) -> TruthRaster:
 
 
 #: what a path that exists but is neither a regular file nor a folder is, by its stat mode (never written to)
-_SPECIAL_KINDS = ((stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"), (stat.S_ISFIFO, "a FIFO"),
-                  (stat.S_ISSOCK, "a socket"))
+_SPECIAL_KINDS = (
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISFIFO, "a FIFO"),
+    (stat.S_ISSOCK, "a socket"),
+)
 
 
 def output_path_problem(path: str | Path) -> str | None:
@@ -474,8 +489,10 @@ def output_path_problem(path: str | Path) -> str | None:
     if not os.path.isdir(folder):
         return f"folder {folder} does not exist; create it first or give a path in an existing folder"
     if not os.access(folder, os.W_OK | os.X_OK):
-        return (f"folder {folder} cannot be written (its permissions or a read-only file system); give a path in a "
-                "writable folder")
+        return (
+            f"folder {folder} cannot be written (its permissions or a read-only file system); give a path in a "
+            "writable folder"
+        )
     return None
 
 
@@ -491,8 +508,9 @@ def write_atomically(path: str | Path, write: Callable[[BinaryIO], None]) -> Non
     if problem is not None:
         raise OSError(errno.EINVAL, problem, os.fspath(path))
     target = os.path.realpath(path)
-    partial = os.path.join(os.path.dirname(target),
-                           f".{os.path.basename(target)[:64]}.{os.getpid()}.{secrets.token_hex(4)}.partial")
+    partial = os.path.join(
+        os.path.dirname(target), f".{os.path.basename(target)[:64]}.{os.getpid()}.{secrets.token_hex(4)}.partial"
+    )
     try:
         # O_EXCL: a file or link already at the temporary name is never written through
         with os.fdopen(os.open(partial, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666), "wb") as handle:
@@ -603,10 +621,13 @@ def save_map(path: str | Path | BinaryIO, map_file: MapFile) -> None:
 
 def save_truth(path: str | Path, truth: TruthRaster) -> None:
     """Write a truth raster."""
-    write_atomically(path, lambda handle: np.savez_compressed(
-        handle,
-        occupied=np.asarray(truth.occupied, bool),
-        visible=np.asarray(truth.visible, bool),
-        origin=np.asarray(truth.origin, np.float64),
-        resolution=np.float64(truth.resolution),
-    ))
+    write_atomically(
+        path,
+        lambda handle: np.savez_compressed(
+            handle,
+            occupied=np.asarray(truth.occupied, bool),
+            visible=np.asarray(truth.visible, bool),
+            origin=np.asarray(truth.origin, np.float64),
+            resolution=np.float64(truth.resolution),
+        ),
+    )

@@ -4,6 +4,7 @@ Run ``python -m schemas.jsonschema docs/messages`` to regenerate the committed d
 that the committed files equal what this module derives, so the docs cannot drift from the code.
 msgpack values are described by their JSON equivalents; array payloads are msgpack ``bin``.
 """
+
 from __future__ import annotations
 
 import json

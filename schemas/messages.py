@@ -9,6 +9,7 @@ seconds (sensor time for sensor data, Unix time for ``published``). ``seq`` numb
 0, 1, 2, ... in publication order; pose, odometry and landmark messages carry the seq of the scan
 they belong to, and mappers join scans and poses by (robot, seq).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -103,8 +104,11 @@ class LaserScan(Message):
     VERSION = 1
     RULES = (
         Rule("range", "0 <= range_min < range_max", _range_limits),
-        Rule("range", "at least one beam; angle_increment != 0 when there are several; |angle_min| and "
-             "|angle_increment| <= 2 pi", _beams),
+        Rule(
+            "range",
+            "at least one beam; angle_increment != 0 when there are several; |angle_min| and |angle_increment| <= 2 pi",
+            _beams,
+        ),
     )
 
     robot: str = spec(ROBOT)
@@ -131,10 +135,17 @@ class Odometry(Message):
     robot: str = spec(ROBOT)
     seq: int = spec(SEQ)
     stamp: float = spec(STAMP)
-    pose: np.ndarray = spec(Array("the dead-reckoned (x m, y m, yaw rad) in the odometry frame; no row when the "
-                                  "robot reports none", "<f8", ("P", 3), magnitude=POSE_LIMIT))
-    commands: np.ndarray = spec(Array("velocity commands since the previous seq, in order: (v m/s, w rad/s, held "
-                                      "for dt s)", "<f8", ("K", 3)))
+    pose: np.ndarray = spec(
+        Array(
+            "the dead-reckoned (x m, y m, yaw rad) in the odometry frame; no row when the robot reports none",
+            "<f8",
+            ("P", 3),
+            magnitude=POSE_LIMIT,
+        )
+    )
+    commands: np.ndarray = spec(
+        Array("velocity commands since the previous seq, in order: (v m/s, w rad/s, held for dt s)", "<f8", ("K", 3))
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -160,14 +171,20 @@ class PoseSamples(Message):
 
     TYPE = "PoseSamples"
     VERSION = 1
-    RULES = (Rule("weights", f"1 to {MAX_POSE_SAMPLES} samples; weights >= 0 and sum to 1 within "
-                  f"{WEIGHT_SUM_TOLERANCE}", _weights),)
+    RULES = (
+        Rule(
+            "weights",
+            f"1 to {MAX_POSE_SAMPLES} samples; weights >= 0 and sum to 1 within {WEIGHT_SUM_TOLERANCE}",
+            _weights,
+        ),
+    )
 
     robot: str = spec(ROBOT)
     seq: int = spec(SEQ)
     stamp: float = spec(STAMP)
-    samples: np.ndarray = spec(Array("pose samples (x m, y m, yaw rad) in the map frame", "<f8", ("M", 3),
-                                     magnitude=POSE_LIMIT))
+    samples: np.ndarray = spec(
+        Array("pose samples (x m, y m, yaw rad) in the map frame", "<f8", ("M", 3), magnitude=POSE_LIMIT)
+    )
     weights: np.ndarray = spec(Array("weight per sample", "<f8", ("M",)))
 
 
@@ -183,8 +200,9 @@ class PoseGaussian(Message):
     seq: int = spec(SEQ)
     stamp: float = spec(STAMP)
     mean: np.ndarray = spec(Array("mean pose (x m, y m, yaw rad) in the map frame", "<f8", (3,), magnitude=POSE_LIMIT))
-    cov: np.ndarray = spec(Array("covariance of (x, y, yaw), m^2, m*rad, rad^2", "<f8", (3, 3),
-                                 magnitude=POSE_LIMIT ** 2))
+    cov: np.ndarray = spec(
+        Array("covariance of (x, y, yaw), m^2, m*rad, rad^2", "<f8", (3, 3), magnitude=POSE_LIMIT**2)
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -195,8 +213,9 @@ class StreamEnd(Message):
     VERSION = 1
 
     robot: str = spec(ROBOT)
-    scans: int = spec(Int("number of scans published (and poses, when the source publishes poses)", minimum=0,
-                          maximum=MAX_SEQ + 1))
+    scans: int = spec(
+        Int("number of scans published (and poses, when the source publishes poses)", minimum=0, maximum=MAX_SEQ + 1)
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -227,8 +246,9 @@ class TileUpdate(Message):
     seq: int = spec(Int("seq of the last scan fused into this tile (by robot)", minimum=0, maximum=MAX_SEQ))
     published: float = spec(Float("Unix time the shard sent this update, s"))
     logodds: np.ndarray = spec(Array("occupancy log-odds per cell", "<f4", ("H", "W")))
-    variance: np.ndarray = spec(Array("spread of the per-sample log-odds that pose uncertainty adds", "<f4", ("H", "W"),
-                                      minimum=0.0))
+    variance: np.ndarray = spec(
+        Array("spread of the per-sample log-odds that pose uncertainty adds", "<f4", ("H", "W"), minimum=0.0)
+    )
     observed: np.ndarray = spec(Array("whether any beam has touched the cell", "|b1", ("H", "W"), values="any"))
 
 
@@ -252,13 +272,21 @@ class ShardStats(Message):
     discarded: dict = spec(Counts("scans given up on (join buffer overflow, no pose), by robot"))
     ended: dict = spec(Counts("scans announced by the source's StreamEnd, by robot"))
     received: dict = spec(Counts("messages received, by key"))
-    resent: dict = spec(Counts("messages of seqs this shard has fused, the same as the ones fused (a restarted SLAM "
-                               "node or source catching up), dropped, by key"))
+    resent: dict = spec(
+        Counts(
+            "messages of seqs this shard has fused, the same as the ones fused (a restarted SLAM "
+            "node or source catching up), dropped, by key"
+        )
+    )
     rejected: dict = spec(Counts("messages dropped as malformed or of an unknown version, by key"))
     overflow: dict = spec(Counts("messages dropped because a bounded buffer was full, by buffer"))
-    refused: dict = spec(Counts("messages and scans refused or given up, by kind: e.g. key (no posegrid key), "
-                                "ahead (a seq beyond the seq window: forged or stray), size, work, bound and extent "
-                                "(past a resource limit), robots, malformed, missing, overflow"))
+    refused: dict = spec(
+        Counts(
+            "messages and scans refused or given up, by kind: e.g. key (no posegrid key), "
+            "ahead (a seq beyond the seq window: forged or stray), size, work, bound and extent "
+            "(past a resource limit), robots, malformed, missing, overflow"
+        )
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -281,8 +309,17 @@ class NodeStats(Message):
 #: every message type, by wire name
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.TYPE: cls
-    for cls in (LaserScan, Odometry, LandmarkObservations, PoseSamples, PoseGaussian, StreamEnd, TileUpdate,
-                ShardStats, NodeStats)
+    for cls in (
+        LaserScan,
+        Odometry,
+        LandmarkObservations,
+        PoseSamples,
+        PoseGaussian,
+        StreamEnd,
+        TileUpdate,
+        ShardStats,
+        NodeStats,
+    )
 }
 
 #: the two forms a pose distribution takes on pg/<robot>/pose

@@ -11,6 +11,7 @@ never a list of floats.
 Every decoding failure raises :class:`MessageError` (a :class:`schemas.errors.FormatError`) whose
 ``reason`` is one of :data:`REASONS`, so receivers can count rejections by kind.
 """
+
 from __future__ import annotations
 
 import abc
@@ -151,8 +152,11 @@ class Name(Spec):
         if not isinstance(value, str):
             ctx.fail("field_type", f"'{name}' must be text, got {type(value).__name__}")
         if not is_valid_name(value) or value in self.forbidden:
-            ctx.fail("range", f"'{name}' = {value!r} is not a valid name (letters, digits, '_', '.', '-'; "
-                     f"at most 64; not {', '.join(self.forbidden) or 'empty'})")
+            ctx.fail(
+                "range",
+                f"'{name}' = {value!r} is not a valid name (letters, digits, '_', '.', '-'; "
+                f"at most 64; not {', '.join(self.forbidden) or 'empty'})",
+            )
         return value
 
     def json_schema(self):
@@ -214,8 +218,9 @@ class Array(Spec):
         dtype, shape, data = value["dtype"], value["shape"], value["data"]
         if dtype != self.dtype:
             ctx.fail("dtype", f"'{name}' must have dtype {self.dtype}, got {dtype!r}")
-        if not isinstance(shape, list) or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 0
-                                                  for n in shape):
+        if not isinstance(shape, list) or not all(
+            isinstance(n, int) and not isinstance(n, bool) and n >= 0 for n in shape
+        ):
             ctx.fail("shape", f"'{name}' shape must be a list of non-negative integers, got {shape!r}")
         if len(shape) != len(self.shape):
             ctx.fail("shape", f"'{name}' must have {len(self.shape)} dimensions {self.shape}, got {shape}")
@@ -253,12 +258,16 @@ class Array(Spec):
         if self.magnitude is not None:
             beyond = finite & (np.abs(array) > self.magnitude)
             if beyond.any():
-                ctx.fail("range", f"'{name}' has {array[beyond][0]:.6g} at index {_first(beyond)}, beyond "
-                         f"+-{self.magnitude:g}")
+                ctx.fail(
+                    "range",
+                    f"'{name}' has {array[beyond][0]:.6g} at index {_first(beyond)}, beyond +-{self.magnitude:g}",
+                )
 
     def json_schema(self):
-        dims = [{"const": d} if isinstance(d, int) else {"type": "integer", "minimum": 0, "description": f"length {d}"}
-                for d in self.shape]
+        dims = [
+            {"const": d} if isinstance(d, int) else {"type": "integer", "minimum": 0, "description": f"length {d}"}
+            for d in self.shape
+        ]
         values = {
             "finite": "every value finite",
             "ranges": "finite values >= 0, NaN or +inf for no return, -inf for too close to measure (REP 117)",

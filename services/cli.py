@@ -7,6 +7,7 @@ inside the handlers, so ``posegrid --help`` is instant.
 Exit codes: 0 success, 1 runtime failure, 2 bad input or usage (one sentence on stderr, no traceback),
 130 interrupted.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -65,8 +66,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"posegrid {args.command}: error: {exc.strerror or exc} ({exc.filename or ''})", file=sys.stderr)
         return 2
     except MemoryError as exc:  # numpy's names the size it could not allocate
-        print(f"posegrid {args.command}: error: out of memory ({exc}); fewer particles or samples, fewer scans or "
-              "beams, a coarser resolution or a shorter range need less", file=sys.stderr)
+        print(
+            f"posegrid {args.command}: error: out of memory ({exc}); fewer particles or samples, fewer scans or "
+            "beams, a coarser resolution or a shorter range need less",
+            file=sys.stderr,
+        )
         return 2
 
 

@@ -1,5 +1,6 @@
 """Errors every posegrid process may raise for its user, kept apart from the command line so that no runtime
 module imports services.cli."""
+
 from __future__ import annotations
 
 

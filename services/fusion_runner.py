@@ -1,5 +1,6 @@
 """What `posegrid fuse` does, as a function other processes reuse (the mapper shards fuse each scan the
 same way, so a sharded map equals the in-process one cell for cell)."""
+
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -30,13 +31,31 @@ class PoseSampling:
     seed: int = 0
     accuracy: float = 0.05
 
-    def draw(self, seq: int, range_max: float, *, mean: np.ndarray | None = None, cov: np.ndarray | None = None,
-             samples: np.ndarray | None = None, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def draw(
+        self,
+        seq: int,
+        range_max: float,
+        *,
+        mean: np.ndarray | None = None,
+        cov: np.ndarray | None = None,
+        samples: np.ndarray | None = None,
+        weights: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray]:
         """(samples (M, 3): x m, y m, yaw rad; weights (M,)) for scan ``seq`` (laser range limit ``range_max`` m) of a
         Gaussian pose (``mean`` (3,), ``cov`` (3, 3)) or a weighted sample set (``samples`` (K, 3), ``weights``
         (K,)): :func:`mapping.poses.scan_samples`, the Gaussian draws seeded by (seed, seq)."""
-        return scan_samples(self.mode, mean=mean, cov=cov, samples=samples, weights=weights, n_samples=self.n_samples,
-                            seed=self.seed, seq=seq, accuracy=self.accuracy, range_max=range_max)
+        return scan_samples(
+            self.mode,
+            mean=mean,
+            cov=cov,
+            samples=samples,
+            weights=weights,
+            n_samples=self.n_samples,
+            seed=self.seed,
+            seq=seq,
+            accuracy=self.accuracy,
+            range_max=range_max,
+        )
 
 
 def fuse_posed_scans(
@@ -60,8 +79,9 @@ def fuse_posed_scans(
     """
     model = model or SensorModel(resolution=resolution)
     grid = grid or TiledGrid(model.resolution)
-    fusion = MonteCarloFusion(grid, model, posed.beam_angles, posed.range_min, posed.range_max,
-                              posed.sensor_offset, owns_tile)
+    fusion = MonteCarloFusion(
+        grid, model, posed.beam_angles, posed.range_min, posed.range_max, posed.sensor_offset, owns_tile
+    )
     _fuse_each_scan(posed, fusion.fuse, mode, n_samples, seed, accuracy, model, progress)
     return grid
 
@@ -83,15 +103,23 @@ def fuse_posed_scans_adaptive(
     resolution; ``params`` sets its start level, split test and merge rules."""
     model = model or SensorModel(resolution=resolution)
     grid = grid or AdaptiveGrid(model.resolution)
-    fusion = AdaptiveFusion(grid, model, posed.beam_angles, posed.range_min, posed.range_max, posed.sensor_offset,
-                            params)
+    fusion = AdaptiveFusion(
+        grid, model, posed.beam_angles, posed.range_min, posed.range_max, posed.sensor_offset, params
+    )
     _fuse_each_scan(posed, fusion.fuse, mode, n_samples, seed, accuracy, model, progress)
     return grid
 
 
-def _fuse_each_scan(posed: PosedScans, fuse: Callable[[np.ndarray, np.ndarray, np.ndarray], object], mode: str,
-                    n_samples: int | None, seed: int, accuracy: float | None, model: SensorModel,
-                    progress: bool) -> None:
+def _fuse_each_scan(
+    posed: PosedScans,
+    fuse: Callable[[np.ndarray, np.ndarray, np.ndarray], object],
+    mode: str,
+    n_samples: int | None,
+    seed: int,
+    accuracy: float | None,
+    model: SensorModel,
+    progress: bool,
+) -> None:
     """Call ``fuse(ranges, samples, weights)`` for every scan, in order."""
     sampling = PoseSampling(mode, n_samples, seed, accuracy if accuracy is not None else model.resolution)
     arrays = posed.poses.arrays()  # mean and cov, or samples and weights: (T, ...) each

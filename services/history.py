@@ -6,6 +6,7 @@ A query names ``streams`` (comma-separated key chunks, default every one the ans
 comes back as one reply on pg/<robot>/history/<its stream>, in the order it was published, so a query must ask
 for no consolidation.
 """
+
 from __future__ import annotations
 
 import re
@@ -52,9 +53,13 @@ def parse_request(query: zenoh.Query, robot: str) -> HistoryRequest | None:
     asked = query.parameters.get("streams")
     streams = set(STREAMS) if asked is None else set(asked.split(","))
     first, stop = query.parameters.get("from", "0"), query.parameters.get("to")
-    problem = (f"unknown stream(s) {sorted(streams - STREAMS)}; known: {sorted(STREAMS)}" if streams - STREAMS else
-               None if _SEQ.fullmatch(first) and (stop is None or _SEQ.fullmatch(stop)) else
-               f"'from' and 'to' must be seqs 0 .. 10^18 in ASCII digits, got {first!r} and {stop!r}")
+    problem = (
+        f"unknown stream(s) {sorted(streams - STREAMS)}; known: {sorted(STREAMS)}"
+        if streams - STREAMS
+        else None
+        if _SEQ.fullmatch(first) and (stop is None or _SEQ.fullmatch(stop))
+        else f"'from' and 'to' must be seqs 0 .. 10^18 in ASCII digits, got {first!r} and {stop!r}"
+    )
     if problem:
         query.reply_err(f"history query {query.selector}: {problem}".encode())
         return None
@@ -106,9 +111,14 @@ def _answers(session: zenoh.Session, robot: str, parameters: dict[str, str], tim
         while not _reachable(session) and time.monotonic() < deadline:
             time.sleep(0.1)
             grace_until = time.monotonic() + RECONNECT_GRACE
-        replies = list(session.get(zenoh.Selector(keys.history_key(robot), parameters), timeout=timeout,
-                                   consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE),
-                                   congestion_control=zenoh.CongestionControl.BLOCK))  # (replies go out under it)
+        replies = list(
+            session.get(
+                zenoh.Selector(keys.history_key(robot), parameters),
+                timeout=timeout,
+                consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE),
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+        )  # (replies go out under it)
         now = time.monotonic()
         if replies or now >= deadline:
             return replies
@@ -118,8 +128,13 @@ def _answers(session: zenoh.Session, robot: str, parameters: dict[str, str], tim
             time.sleep(RETRY_PERIOD)
 
 
-def ask(session: zenoh.Session, robot: str, parameters: dict[str, str], timeout: float,
-        accept: Callable[[Answerer], bool] = lambda answerer: True) -> tuple[list[tuple[str, str, bytes]], list[str]]:
+def ask(
+    session: zenoh.Session,
+    robot: str,
+    parameters: dict[str, str],
+    timeout: float,
+    accept: Callable[[Answerer], bool] = lambda answerer: True,
+) -> tuple[list[tuple[str, str, bytes]], list[str]]:
     """Ask the histories of ``robot`` ("*": every robot): ((robot, stream, payload) of each message in the order
     sent, problems). Only answerers that ``accept`` takes count (a shard takes its own map's sources; a SLAM node
     catching up, sources still publishing). When two of them answer for one robot's stream (a robot name that
@@ -135,21 +150,32 @@ def ask(session: zenoh.Session, robot: str, parameters: dict[str, str], timeout:
         attachment = answer.ok.attachment
         answerer = None if attachment is None else Answerer.decode(attachment.to_bytes())
         if parsed is None or robot not in ("*", parsed[0]):
-            problems.append(f"a reply on {str(answer.ok.key_expr)[:200]!r} is no pg/{robot}/history/<stream> key "
-                            "(a wildcard, an unknown stream or another robot); not taken")
+            problems.append(
+                f"a reply on {str(answer.ok.key_expr)[:200]!r} is no pg/{robot}/history/<stream> key "
+                "(a wildcard, an unknown stream or another robot); not taken"
+            )
         elif answerer is None:
             problems.append(f"a reply on {answer.ok.key_expr} does not say who answers it; not taken")
         elif accept(answerer):
             answerers.setdefault(parsed, set()).add(answerer.id)
             messages.append((*parsed, answer.ok.payload.to_bytes()))
     clashes = {key for key, ids in answerers.items() if len(ids) > 1}
-    problems += [f"{len(answerers[key])} processes answer the {key[1]} history of robot {key[0]!r} (is a robot name "
-                 "used by two runs at once?); none of them is taken" for key in sorted(clashes)]
+    problems += [
+        f"{len(answerers[key])} processes answer the {key[1]} history of robot {key[0]!r} (is a robot name "
+        "used by two runs at once?); none of them is taken"
+        for key in sorted(clashes)
+    ]
     return [m for m in messages if (m[0], m[1]) not in clashes], problems
 
 
-def ask_counted(session: zenoh.Session, robot: str, parameters: dict[str, str], timeout: float, rejects: RejectCounter,
-                accept: Callable[[Answerer], bool] = lambda answerer: True) -> list[tuple[str, str, bytes]]:
+def ask_counted(
+    session: zenoh.Session,
+    robot: str,
+    parameters: dict[str, str],
+    timeout: float,
+    rejects: RejectCounter,
+    accept: Callable[[Answerer], bool] = lambda answerer: True,
+) -> list[tuple[str, str, bytes]]:
     """:func:`ask`, each problem counted by ``rejects`` under pg/<robot>/history/** (kind "history", logged once):
     (robot, stream, payload) of each message taken, in the order sent."""
     messages, problems = ask(session, robot, parameters, timeout, accept)

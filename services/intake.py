@@ -7,6 +7,7 @@ its key is no robot stream the process reads (kind "key", under keys.INVALID_KEY
 :func:`services.state.checks.robot_stream`), when it is larger than any message the process takes (kind "size"),
 or when the queue is full, by count or by bytes (kind "overflow", also counted in :attr:`Intake.overflow`).
 """
+
 from __future__ import annotations
 
 import queue
@@ -35,8 +36,14 @@ class Intake:
     limits: ``message_bytes()`` bounds one payload, ``intake_bytes`` the payloads waiting (bytes); capacity: how many
     may wait."""
 
-    def __init__(self, streams: Iterable[str], rejects: RejectCounter, limits: ShardLimits = DEFAULT_LIMITS,
-                 robot: str | None = None, capacity: int = DEFAULT_CAPACITY):
+    def __init__(
+        self,
+        streams: Iterable[str],
+        rejects: RejectCounter,
+        limits: ShardLimits = DEFAULT_LIMITS,
+        robot: str | None = None,
+        capacity: int = DEFAULT_CAPACITY,
+    ):
         self.streams = tuple(streams)
         self.rejects = rejects
         self.limits = limits
@@ -58,8 +65,12 @@ class Intake:
         limits = self.limits
         size = len(payload)
         if size > limits.message_bytes():
-            self.rejects.count(key, "size", f"a message of {size} bytes, more than a scan of --max-beams "
-                               f"{limits.max_beams} beams may take ({limits.message_bytes()} bytes)")
+            self.rejects.count(
+                key,
+                "size",
+                f"a message of {size} bytes, more than a scan of --max-beams "
+                f"{limits.max_beams} beams may take ({limits.message_bytes()} bytes)",
+            )
             return False
         with self._lock:
             room = self.bytes + size <= limits.intake_bytes
@@ -74,8 +85,9 @@ class Intake:
                     self.bytes -= size
         with self._lock:
             self.overflow += 1
-        self.rejects.count(key, "overflow", f"the intake queue ({self._queue.maxsize} messages, "
-                           f"{limits.intake_bytes} bytes) was full")
+        self.rejects.count(
+            key, "overflow", f"the intake queue ({self._queue.maxsize} messages, {limits.intake_bytes} bytes) was full"
+        )
         return False
 
     def next(self, timeout: float) -> tuple[str, bytes]:

@@ -1,18 +1,19 @@
 """The Zenoh key space (docs/keys.md): every key posegrid uses is built or parsed here.
 
-    pg/<robot>/scan                      LaserScan
-    pg/<robot>/odom                      Odometry
-    pg/<robot>/landmarks                 LandmarkObservations
-    pg/<robot>/pose                      PoseSamples or PoseGaussian, tagged with the scan's seq
-    pg/<robot>/end                       StreamEnd
-    pg/<robot>/prior                     PoseGaussian: where a SLAM filter starts (seq 0, zero covariance)
-    pg/<robot>/slam/stats                queryable: NodeStats
-    pg/<robot>/history/<stream>          queryable (source): the messages it has published, for late joiners
-    pg/<robot>/alive/<process>           liveliness token of the robot's source or SLAM node
-    pg/map/<map>/tile/<z>/<tx>/<ty>      TileUpdate publications; queryable (the owning shard answers)
-    pg/map/<map>/stats/<shard>           queryable: ShardStats
-    pg/map/<map>/alive/<shard>           liveliness token of a mapper shard
+pg/<robot>/scan                      LaserScan
+pg/<robot>/odom                      Odometry
+pg/<robot>/landmarks                 LandmarkObservations
+pg/<robot>/pose                      PoseSamples or PoseGaussian, tagged with the scan's seq
+pg/<robot>/end                       StreamEnd
+pg/<robot>/prior                     PoseGaussian: where a SLAM filter starts (seq 0, zero covariance)
+pg/<robot>/slam/stats                queryable: NodeStats
+pg/<robot>/history/<stream>          queryable (source): the messages it has published, for late joiners
+pg/<robot>/alive/<process>           liveliness token of the robot's source or SLAM node
+pg/map/<map>/tile/<z>/<tx>/<ty>      TileUpdate publications; queryable (the owning shard answers)
+pg/map/<map>/stats/<shard>           queryable: ShardStats
+pg/map/<map>/alive/<shard>           liveliness token of a mapper shard
 """
+
 from __future__ import annotations
 
 from schemas.messages import RESERVED_ROBOT_NAMES

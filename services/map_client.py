@@ -3,6 +3,7 @@
 Used by the launcher (progress, export), the source (flow control) and the benchmark. Replies that do
 not decode are skipped and counted in :attr:`MapReader.rejected`, never trusted.
 """
+
 from __future__ import annotations
 
 import zenoh
@@ -26,9 +27,13 @@ class MapReader:
 
     def _replies(self, selector: str, expected, timeout: float) -> list:
         messages = []
-        handler = self.session.get(selector, target=zenoh.QueryTarget.ALL,
-                                   consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE),
-                                   congestion_control=zenoh.CongestionControl.BLOCK, timeout=timeout)
+        handler = self.session.get(
+            selector,
+            target=zenoh.QueryTarget.ALL,
+            consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            timeout=timeout,
+        )
         for reply in handler:
             if reply.ok is None:
                 self.rejected += 1
@@ -58,7 +63,7 @@ class MapReader:
         if sorted(stats) != list(range(shards)):
             raise IncompleteMap(f"expected shards 0..{shards - 1} of map {self.map_name!r}, got {sorted(stats)}")
         tiles = self.tiles(timeout)
-        per_shard = {i: 0 for i in range(shards)}
+        per_shard = dict.fromkeys(range(shards), 0)
         seen = set()
         for tile in tiles:
             if (tile.tx, tile.ty) in seen:

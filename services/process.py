@@ -1,6 +1,7 @@
 """What every long-running posegrid process shares: a stop flag set by SIGINT/SIGTERM (or by the death of
 the launcher that started it), stderr logging, and counting of rejected messages with one log line per kind.
 """
+
 from __future__ import annotations
 
 import logging
@@ -82,8 +83,9 @@ class RejectCounter:
             first = (key, kind) not in self._logged
             self._logged.add((key, kind))
         if first:
-            self._logger.warning("dropped a message on %s (%s): %s; further ones of this kind are only counted",
-                                 key, kind, detail)
+            self._logger.warning(
+                "dropped a message on %s (%s): %s; further ones of this kind are only counted", key, kind, detail
+            )
 
     def snapshot(self) -> dict[str, int]:
         """Rejections by key."""

@@ -17,6 +17,7 @@ Roles (user names): ``source-<robot>``, ``slam-<robot>`` (the SLAM node of one r
 shard of one map), ``api`` (reads everything, writes nothing), ``launcher`` (`posegrid run`'s own session: map
 stats, tiles and shard liveliness, read only).
 """
+
 from __future__ import annotations
 
 import datetime
@@ -81,8 +82,12 @@ class Material:
 def roles_for(robots: list[str], maps: list[str]) -> list[Role]:
     """Every role of a deployment with these robots and maps."""
     robots, maps = list(dict.fromkeys(robots)), list(dict.fromkeys(maps))
-    return ([Role("source", r) for r in robots] + [Role("slam", r) for r in robots]
-            + [Role("mapper", m) for m in maps] + [Role("api"), Role("launcher")])
+    return (
+        [Role("source", r) for r in robots]
+        + [Role("slam", r) for r in robots]
+        + [Role("mapper", m) for m in maps]
+        + [Role("api"), Role("launcher")]
+    )
 
 
 # --------------------------------------------------------------------------------------------- ACL
@@ -102,43 +107,50 @@ def role_permissions(role: Role) -> list[tuple[str, list[str], list[str]]]:
     any_robot, any_map = "*", "*"
     r = role.scope or ""
     if role.kind == "source":
-        return [("ingress", [_PUT], _streams(r, SOURCE_STREAMS)),
-                ("ingress", [_QUERYABLE, _REPLY], [keys.history_key(r)]),
-                ("ingress", [_TOKEN], [keys.robot_alive_key(r, "source")]),
-                ("ingress", [_QUERY], [keys.stats_key(any_map, "*"), keys.slam_stats_key(r)]),
-                ("ingress", [_LIVE_QUERY], [keys.shard_alive_key(any_map, "*"), keys.robot_alive_key(r, "slam")]),
-                ("egress", [_QUERY], [keys.history_key(any_robot)]),
-                ("egress", [_REPLY], [keys.stats_key(any_map, "*"), keys.slam_stats_key(r)]),
-                ("egress", [_TOKEN], [keys.shard_alive_key(any_map, "*"), keys.robot_alive_key(r, "slam")]),
-                ("egress", [_SUB], _streams(any_robot, SOURCE_STREAMS))]
+        return [
+            ("ingress", [_PUT], _streams(r, SOURCE_STREAMS)),
+            ("ingress", [_QUERYABLE, _REPLY], [keys.history_key(r)]),
+            ("ingress", [_TOKEN], [keys.robot_alive_key(r, "source")]),
+            ("ingress", [_QUERY], [keys.stats_key(any_map, "*"), keys.slam_stats_key(r)]),
+            ("ingress", [_LIVE_QUERY], [keys.shard_alive_key(any_map, "*"), keys.robot_alive_key(r, "slam")]),
+            ("egress", [_QUERY], [keys.history_key(any_robot)]),
+            ("egress", [_REPLY], [keys.stats_key(any_map, "*"), keys.slam_stats_key(r)]),
+            ("egress", [_TOKEN], [keys.shard_alive_key(any_map, "*"), keys.robot_alive_key(r, "slam")]),
+            ("egress", [_SUB], _streams(any_robot, SOURCE_STREAMS)),
+        ]
     if role.kind == "slam":
-        return [("ingress", [_PUT], [keys.robot_key(r, keys.POSE)]),
-                ("ingress", [_SUB], _streams(r, SLAM_INPUTS)),
-                ("ingress", [_QUERYABLE, _REPLY], [keys.slam_stats_key(r), keys.history_key(r)]),
-                ("ingress", [_QUERY], [keys.history_key(r)]),
-                ("ingress", [_TOKEN], [keys.robot_alive_key(r, "slam")]),
-                ("egress", [_PUT], _streams(r, SLAM_INPUTS)),
-                ("egress", [_QUERY], [keys.slam_stats_key(r), keys.history_key(any_robot)]),
-                ("egress", [_REPLY], [keys.history_key(r)]),
-                ("egress", [_SUB], _streams(any_robot, [keys.POSE]))]
+        return [
+            ("ingress", [_PUT], [keys.robot_key(r, keys.POSE)]),
+            ("ingress", [_SUB], _streams(r, SLAM_INPUTS)),
+            ("ingress", [_QUERYABLE, _REPLY], [keys.slam_stats_key(r), keys.history_key(r)]),
+            ("ingress", [_QUERY], [keys.history_key(r)]),
+            ("ingress", [_TOKEN], [keys.robot_alive_key(r, "slam")]),
+            ("egress", [_PUT], _streams(r, SLAM_INPUTS)),
+            ("egress", [_QUERY], [keys.slam_stats_key(r), keys.history_key(any_robot)]),
+            ("egress", [_REPLY], [keys.history_key(r)]),
+            ("egress", [_SUB], _streams(any_robot, [keys.POSE])),
+        ]
     if role.kind == "mapper":
         m = role.scope or ""
         own = f"{keys.ROOT}/map/{m}/**"
-        return [("ingress", [_PUT, _QUERYABLE, _REPLY], [own]),
-                ("ingress", [_TOKEN], [keys.shard_alive_key(m, "*")]),
-                ("ingress", [_SUB], _streams(any_robot, MAPPER_INPUTS)),
-                ("ingress", [_QUERY], [keys.history_key(any_robot)]),
-                ("egress", [_PUT], _streams(any_robot, MAPPER_INPUTS)),
-                ("egress", [_QUERY], [own]),
-                ("egress", [_REPLY], [keys.history_key(any_robot)])]
+        return [
+            ("ingress", [_PUT, _QUERYABLE, _REPLY], [own]),
+            ("ingress", [_TOKEN], [keys.shard_alive_key(m, "*")]),
+            ("ingress", [_SUB], _streams(any_robot, MAPPER_INPUTS)),
+            ("ingress", [_QUERY], [keys.history_key(any_robot)]),
+            ("egress", [_PUT], _streams(any_robot, MAPPER_INPUTS)),
+            ("egress", [_QUERY], [own]),
+            ("egress", [_REPLY], [keys.history_key(any_robot)]),
+        ]
     everything = f"{keys.ROOT}/**"
     if role.kind == "api":
-        return [("ingress", [_SUB, _QUERY, _LIVE_SUB, _LIVE_QUERY], [everything]),
-                ("egress", [_PUT, _REPLY, _TOKEN], [everything])]
+        return [
+            ("ingress", [_SUB, _QUERY, _LIVE_SUB, _LIVE_QUERY], [everything]),
+            ("egress", [_PUT, _REPLY, _TOKEN], [everything]),
+        ]
     if role.kind == "launcher":
         maps = f"{keys.ROOT}/map/**"
-        return [("ingress", [_QUERY, _LIVE_QUERY], [maps]),
-                ("egress", [_REPLY, _TOKEN], [maps])]
+        return [("ingress", [_QUERY, _LIVE_QUERY], [maps]), ("egress", [_REPLY, _TOKEN], [maps])]
     raise ValueError(f"unknown role kind {role.kind!r}")
 
 
@@ -150,13 +162,13 @@ def acl_config(roles: list[Role]) -> dict:
         ids = []
         for index, (flow, messages, key_exprs) in enumerate(role_permissions(role)):
             rule_id = f"{role.user}/{index}"
-            rules.append({"id": rule_id, "permission": "allow", "flows": [flow], "messages": messages,
-                          "key_exprs": key_exprs})
+            rules.append(
+                {"id": rule_id, "permission": "allow", "flows": [flow], "messages": messages, "key_exprs": key_exprs}
+            )
             ids.append(rule_id)
         subjects.append({"id": role.user, "usernames": [role.user], "cert_common_names": [role.user]})
         policies.append({"id": role.user, "rules": ids, "subjects": [role.user]})
-    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
-            "policies": policies}
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
 
 
 # --------------------------------------------------------------------------------------------- certificates
@@ -179,11 +191,15 @@ def _certificate(subject_cn: str, public_key, issuer_cn: str, issuer_key, days: 
     from cryptography.x509.oid import NameOID
 
     start = _now() - datetime.timedelta(minutes=5)
-    builder = (x509.CertificateBuilder()
-               .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, subject_cn)]))
-               .issuer_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, issuer_cn)]))
-               .public_key(public_key).serial_number(x509.random_serial_number())
-               .not_valid_before(start).not_valid_after(start + datetime.timedelta(days=days)))
+    builder = (
+        x509.CertificateBuilder()
+        .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, subject_cn)]))
+        .issuer_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, issuer_cn)]))
+        .public_key(public_key)
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(start)
+        .not_valid_after(start + datetime.timedelta(days=days))
+    )
     for extension, critical in extensions:
         builder = builder.add_extension(extension, critical=critical)
     return builder.sign(issuer_key, hashes.SHA256())
@@ -193,12 +209,25 @@ def _leaf_extensions(ca_key, usage, names: list[str] | None):
     """Extensions of a router (``names``: its subject alternative names) or client certificate."""
     from cryptography import x509
 
-    extensions = [(x509.BasicConstraints(ca=False, path_length=None), True),
-                  (x509.KeyUsage(digital_signature=True, key_encipherment=False, content_commitment=False,
-                                 data_encipherment=False, key_agreement=False, key_cert_sign=False, crl_sign=False,
-                                 encipher_only=False, decipher_only=False), True),
-                  (x509.ExtendedKeyUsage([usage]), False),
-                  (x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()), False)]
+    extensions = [
+        (x509.BasicConstraints(ca=False, path_length=None), True),
+        (
+            x509.KeyUsage(
+                digital_signature=True,
+                key_encipherment=False,
+                content_commitment=False,
+                data_encipherment=False,
+                key_agreement=False,
+                key_cert_sign=False,
+                crl_sign=False,
+                encipher_only=False,
+                decipher_only=False,
+            ),
+            True,
+        ),
+        (x509.ExtendedKeyUsage([usage]), False),
+        (x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()), False),
+    ]
     if names:
         extensions.append((x509.SubjectAlternativeName([_general_name(n) for n in names]), False))
     return extensions
@@ -224,8 +253,9 @@ def _write_private(path: Path, data: bytes) -> None:
 def _pem_key(key) -> bytes:
     from cryptography.hazmat.primitives import serialization
 
-    return key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
-                             serialization.NoEncryption())
+    return key.private_bytes(
+        serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
+    )
 
 
 def _pem_cert(cert) -> bytes:
@@ -243,12 +273,31 @@ def write_certificates(folder: Path, router_names: list[str], users: list[str], 
 
     ca_key = _new_key()
     ca_name = f"posegrid CA {secrets.token_hex(4)}"
-    ca = _certificate(ca_name, ca_key.public_key(), ca_name, ca_key, days, [
-        (x509.BasicConstraints(ca=True, path_length=0), True),
-        (x509.KeyUsage(digital_signature=True, key_cert_sign=True, crl_sign=True, key_encipherment=False,
-                       content_commitment=False, data_encipherment=False, key_agreement=False, encipher_only=False,
-                       decipher_only=False), True),
-        (x509.SubjectKeyIdentifier.from_public_key(ca_key.public_key()), False)])
+    ca = _certificate(
+        ca_name,
+        ca_key.public_key(),
+        ca_name,
+        ca_key,
+        days,
+        [
+            (x509.BasicConstraints(ca=True, path_length=0), True),
+            (
+                x509.KeyUsage(
+                    digital_signature=True,
+                    key_cert_sign=True,
+                    crl_sign=True,
+                    key_encipherment=False,
+                    content_commitment=False,
+                    data_encipherment=False,
+                    key_agreement=False,
+                    encipher_only=False,
+                    decipher_only=False,
+                ),
+                True,
+            ),
+            (x509.SubjectKeyIdentifier.from_public_key(ca_key.public_key()), False),
+        ],
+    )
     _write_private(folder / "ca.pem", _pem_cert(ca))
     leaves = [("router", ExtendedKeyUsageOID.SERVER_AUTH, router_names)]
     leaves += [(user, ExtendedKeyUsageOID.CLIENT_AUTH, None) for user in users]
@@ -266,28 +315,46 @@ def write_certificates(folder: Path, router_names: list[str], users: list[str], 
 def router_config(folder: Path, listen: str, roles: list[Role]) -> dict:
     """The router's Zenoh config: TLS on ``listen`` with client certificates required, the user/password
     dictionary, and :func:`acl_config`."""
-    return {"mode": "router", "listen": {"endpoints": [listen]},
-            "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-            "transport": {"link": {"protocols": ["tls"],
-                                   "tls": {"root_ca_certificate": str(folder / "ca.pem"),
-                                           "listen_certificate": str(folder / "router.pem"),
-                                           "listen_private_key": str(folder / "router.key"),
-                                           "enable_mtls": True}},
-                          "auth": {"usrpwd": {"dictionary_file": str(folder / "users.txt")}}},
-            "access_control": acl_config(roles)}
+    return {
+        "mode": "router",
+        "listen": {"endpoints": [listen]},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {
+            "link": {
+                "protocols": ["tls"],
+                "tls": {
+                    "root_ca_certificate": str(folder / "ca.pem"),
+                    "listen_certificate": str(folder / "router.pem"),
+                    "listen_private_key": str(folder / "router.key"),
+                    "enable_mtls": True,
+                },
+            },
+            "auth": {"usrpwd": {"dictionary_file": str(folder / "users.txt")}},
+        },
+        "access_control": acl_config(roles),
+    }
 
 
 def client_config(folder: Path, connect: str, user: str, password: str) -> dict:
     """A client's Zenoh config: connect to ``connect`` over TLS, trusting only the run's CA, presenting
     ``user``'s certificate and password."""
-    return {"mode": "client", "connect": {"endpoints": [connect]},
-            "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-            "transport": {"link": {"protocols": ["tls"],
-                                   "tls": {"root_ca_certificate": str(folder / "ca.pem"),
-                                           "connect_certificate": str(folder / f"{user}.pem"),
-                                           "connect_private_key": str(folder / f"{user}.key"),
-                                           "enable_mtls": True}},
-                          "auth": {"usrpwd": {"user": user, "password": password}}}}
+    return {
+        "mode": "client",
+        "connect": {"endpoints": [connect]},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {
+            "link": {
+                "protocols": ["tls"],
+                "tls": {
+                    "root_ca_certificate": str(folder / "ca.pem"),
+                    "connect_certificate": str(folder / f"{user}.pem"),
+                    "connect_private_key": str(folder / f"{user}.key"),
+                    "enable_mtls": True,
+                },
+            },
+            "auth": {"usrpwd": {"user": user, "password": password}},
+        },
+    }
 
 
 def prepare_folder(folder: Path) -> Path:
@@ -298,8 +365,15 @@ def prepare_folder(folder: Path) -> Path:
     return folder
 
 
-def write_material(folder: Path, robots: list[str], maps: list[str], listen: str, connect: str,
-                   router_names: list[str] | None = None, days: float = DEFAULT_VALID_DAYS) -> Material:
+def write_material(
+    folder: Path,
+    robots: list[str],
+    maps: list[str],
+    listen: str,
+    connect: str,
+    router_names: list[str] | None = None,
+    days: float = DEFAULT_VALID_DAYS,
+) -> Material:
     """Write the CA, certificates, passwords and Zenoh configs of a deployment with ``robots`` and ``maps`` into
     ``folder`` (created 0700; files 0600). The router listens on ``listen``, clients connect to ``connect``; its
     certificate names ``router_names`` besides localhost and 127.0.0.1. Existing files are replaced."""

@@ -5,6 +5,7 @@ seq, in publication order: the LaserScan (when the dataset has a laser), Odometr
 (when it has them, for a SLAM node) and the pose distribution (when the dataset has poses, e.g. a posed-scan
 file: then no SLAM node is needed). ``prior`` is where a SLAM filter starts (published on pg/<robot>/prior).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -44,9 +45,13 @@ def _scan(robot: str, seq: int, stamp: float, ranges: np.ndarray, geometry: dict
 
 
 def _geometry(source) -> dict:
-    return {"angle_min": float(source.angle_min), "angle_increment": float(source.angle_increment),
-            "range_min": float(source.range_min), "range_max": float(source.range_max),
-            "sensor_offset": np.asarray(source.sensor_offset, np.float64)}
+    return {
+        "angle_min": float(source.angle_min),
+        "angle_increment": float(source.angle_increment),
+        "range_min": float(source.range_min),
+        "range_max": float(source.range_max),
+        "sensor_offset": np.asarray(source.sensor_offset, np.float64),
+    }
 
 
 def _prior(robot: str, stamp: float, pose) -> PoseGaussian:
@@ -55,8 +60,9 @@ def _prior(robot: str, stamp: float, pose) -> PoseGaussian:
 
 def _landmarks(robot, seq, stamp, ids, z) -> LandmarkObservations:
     z = np.asarray(z, np.float64).reshape(-1, 2)
-    return LandmarkObservations(robot=robot, seq=seq, stamp=stamp, ids=np.asarray(ids, np.int64), ranges=z[:, 0],
-                                bearings=z[:, 1])
+    return LandmarkObservations(
+        robot=robot, seq=seq, stamp=stamp, ids=np.asarray(ids, np.int64), ranges=z[:, 0], bearings=z[:, 1]
+    )
 
 
 def posed_stream(posed: PosedScans, robot: str) -> Stream:
@@ -73,19 +79,36 @@ def posed_stream(posed: PosedScans, robot: str) -> Stream:
     return Stream(robot, steps, prior=None, has_poses=True)
 
 
-def slam_input_stream(robot: str, stamps: np.ndarray, *, ranges: np.ndarray | None, geometry: dict | None,
-                      odometry: np.ndarray | None, commands: np.ndarray | None, control_ptr: np.ndarray | None,
-                      landmark_ids: np.ndarray, landmark_z: np.ndarray, measurement_ptr: np.ndarray,
-                      initial_pose: np.ndarray) -> Stream:
+def slam_input_stream(
+    robot: str,
+    stamps: np.ndarray,
+    *,
+    ranges: np.ndarray | None,
+    geometry: dict | None,
+    odometry: np.ndarray | None,
+    commands: np.ndarray | None,
+    control_ptr: np.ndarray | None,
+    landmark_ids: np.ndarray,
+    landmark_z: np.ndarray,
+    measurement_ptr: np.ndarray,
+    initial_pose: np.ndarray,
+) -> Stream:
     """Scans (optional) with what a SLAM node needs per step: odometry pose readings (T, 3) and/or velocity
     commands (K, 3) split by ``control_ptr`` (T + 1,), and landmarks split by ``measurement_ptr`` (T + 1,)."""
     steps = []
     for t, stamp in enumerate(np.asarray(stamps, np.float64).tolist()):
-        pose = odometry[t:t + 1] if odometry is not None else np.zeros((0, 3))
-        cmds = commands[control_ptr[t]:control_ptr[t + 1]] if commands is not None else np.zeros((0, 3))
-        messages = [Odometry(robot=robot, seq=t, stamp=stamp, pose=pose, commands=cmds),
-                    _landmarks(robot, t, stamp, landmark_ids[measurement_ptr[t]:measurement_ptr[t + 1]],
-                               landmark_z[measurement_ptr[t]:measurement_ptr[t + 1]])]
+        pose = odometry[t : t + 1] if odometry is not None else np.zeros((0, 3))
+        cmds = commands[control_ptr[t] : control_ptr[t + 1]] if commands is not None else np.zeros((0, 3))
+        messages = [
+            Odometry(robot=robot, seq=t, stamp=stamp, pose=pose, commands=cmds),
+            _landmarks(
+                robot,
+                t,
+                stamp,
+                landmark_ids[measurement_ptr[t] : measurement_ptr[t + 1]],
+                landmark_z[measurement_ptr[t] : measurement_ptr[t + 1]],
+            ),
+        ]
         if ranges is not None:
             messages.insert(0, _scan(robot, t, stamp, ranges[t], geometry))
         steps.append(Step(stamp, tuple(messages)))
@@ -97,9 +120,18 @@ def sim_stream(run, robot: str) -> Stream:
     velocity commands and landmark measurements; the SLAM prior is the true first pose."""
     sequence = run.log().sequence("velocity")
     return slam_input_stream(
-        robot, run.stamps, ranges=run.ranges, geometry=_geometry(run), odometry=run.odometry,
-        commands=sequence.controls, control_ptr=sequence.control_ptr, landmark_ids=sequence.landmark_ids,
-        landmark_z=sequence.measurements, measurement_ptr=sequence.measurement_ptr, initial_pose=run.true_poses[0])
+        robot,
+        run.stamps,
+        ranges=run.ranges,
+        geometry=_geometry(run),
+        odometry=run.odometry,
+        commands=sequence.controls,
+        control_ptr=sequence.control_ptr,
+        landmark_ids=sequence.landmark_ids,
+        landmark_z=sequence.measurements,
+        measurement_ptr=sequence.measurement_ptr,
+        initial_pose=run.true_poses[0],
+    )
 
 
 def sim_folder_stream(folder: Path, robot: str) -> Stream:
@@ -112,27 +144,53 @@ def sim_folder_stream(folder: Path, robot: str) -> Stream:
     scans = load_posed_scans(folder / "scans.npz") if (folder / "scans.npz").is_file() else None
     sequence = log.sequence("velocity")
     return slam_input_stream(
-        robot, log.stamps, ranges=scans.ranges if scans is not None else None,
-        geometry=_geometry(scans) if scans is not None else None, odometry=log.odometry,
-        commands=sequence.controls, control_ptr=sequence.control_ptr, landmark_ids=sequence.landmark_ids,
-        landmark_z=sequence.measurements, measurement_ptr=sequence.measurement_ptr, initial_pose=log.initial_pose)
+        robot,
+        log.stamps,
+        ranges=scans.ranges if scans is not None else None,
+        geometry=_geometry(scans) if scans is not None else None,
+        odometry=log.odometry,
+        commands=sequence.controls,
+        control_ptr=sequence.control_ptr,
+        landmark_ids=sequence.landmark_ids,
+        landmark_z=sequence.measurements,
+        measurement_ptr=sequence.measurement_ptr,
+        initial_pose=log.initial_pose,
+    )
 
 
-def mrclam_stream(folder: Path, robot_number: int, robot: str, period: float = 0.2, raw_ranges: bool = False,
-                  raw_commands: bool = False) -> Stream:
+def mrclam_stream(
+    folder: Path,
+    robot_number: int,
+    robot: str,
+    period: float = 0.2,
+    raw_ranges: bool = False,
+    raw_commands: bool = False,
+) -> Stream:
     """One robot of an MRCLAM folder: velocity commands and landmark measurements (no laser), stepped every
     ``period`` s and at every measurement, as `posegrid slam` reads them (ranges calibrated unless
     ``raw_ranges``, commands scaled to the executed speeds unless ``raw_commands``); the prior is the first
     ground-truth pose."""
     from slam.mrclam import MRCLAM_RANGE_CALIBRATION, MRCLAM_VELOCITY_SCALE, mrclam_sequence, read_mrclam
 
-    sequence = mrclam_sequence(read_mrclam(folder, robot_number), period=period,
-                               range_calibration=None if raw_ranges else MRCLAM_RANGE_CALIBRATION,
-                               velocity_scale=None if raw_commands else MRCLAM_VELOCITY_SCALE)
+    sequence = mrclam_sequence(
+        read_mrclam(folder, robot_number),
+        period=period,
+        range_calibration=None if raw_ranges else MRCLAM_RANGE_CALIBRATION,
+        velocity_scale=None if raw_commands else MRCLAM_VELOCITY_SCALE,
+    )
     return slam_input_stream(
-        robot, sequence.stamps, ranges=None, geometry=None, odometry=None, commands=sequence.controls,
-        control_ptr=sequence.control_ptr, landmark_ids=sequence.landmark_ids, landmark_z=sequence.measurements,
-        measurement_ptr=sequence.measurement_ptr, initial_pose=sequence.initial_pose)
+        robot,
+        sequence.stamps,
+        ranges=None,
+        geometry=None,
+        odometry=None,
+        commands=sequence.controls,
+        control_ptr=sequence.control_ptr,
+        landmark_ids=sequence.landmark_ids,
+        landmark_z=sequence.measurements,
+        measurement_ptr=sequence.measurement_ptr,
+        initial_pose=sequence.initial_pose,
+    )
 
 
 def laser_log_stream(log, robot: str) -> Stream:
@@ -141,6 +199,15 @@ def laser_log_stream(log, robot: str) -> Stream:
     odometry frame)."""
     steps = len(log.stamps)
     return slam_input_stream(
-        robot, log.stamps, ranges=log.ranges, geometry=_geometry(log), odometry=log.odometry, commands=None,
-        control_ptr=None, landmark_ids=np.zeros(0, np.int64), landmark_z=np.zeros((0, 2)),
-        measurement_ptr=np.zeros(steps + 1, np.int64), initial_pose=log.odometry[0])
+        robot,
+        log.stamps,
+        ranges=log.ranges,
+        geometry=_geometry(log),
+        odometry=log.odometry,
+        commands=None,
+        control_ptr=None,
+        landmark_ids=np.zeros(0, np.int64),
+        landmark_z=np.zeros((0, 2)),
+        measurement_ptr=np.zeros(steps + 1, np.int64),
+        initial_pose=log.odometry[0],
+    )

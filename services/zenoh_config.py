@@ -6,6 +6,7 @@ loopback interface and all traffic follows one path through the router. A user's
 overrides any of these keys it sets; ``--listen`` / ``--connect`` endpoints on the command line
 override both.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -108,12 +109,27 @@ def _first_line(exc: BaseException) -> str:
 def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
     """Add --zenoh-config, --listen and --connect (every posegrid process takes them)."""
     group = parser.add_argument_group("zenoh")
-    group.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE",
-                       help="zenoh JSON5 config file; keys it sets override posegrid's loopback-only defaults")
-    group.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
-                       help="endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable; overrides the file)")
-    group.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
-                       help=f"endpoint to connect to (repeatable; default {DEFAULT_ROUTER_ENDPOINT}, the router)")
+    group.add_argument(
+        "--zenoh-config",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="zenoh JSON5 config file; keys it sets override posegrid's loopback-only defaults",
+    )
+    group.add_argument(
+        "--listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable; overrides the file)",
+    )
+    group.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help=f"endpoint to connect to (repeatable; default {DEFAULT_ROUTER_ENDPOINT}, the router)",
+    )
 
 
 def config_from_args(args: argparse.Namespace, mode: str) -> zenoh.Config:
@@ -128,11 +144,18 @@ def open_session(config: zenoh.Config, what: str) -> zenoh.Session:
     except zenoh.ZError as exc:
         connect = read_key(config, "connect/endpoints")
         if not connect or "listener" in _first_line(exc):  # its own listening endpoint is what failed
-            raise UsageError(f"{what} could not open its zenoh session ({_first_line(exc)}); is another process "
-                             f"listening on {json.dumps(read_key(config, 'listen/endpoints'))}? pick another "
-                             "--listen (`posegrid run`: --router-port)") from None
+            raise UsageError(
+                f"{what} could not open its zenoh session ({_first_line(exc)}); is another process "
+                f"listening on {json.dumps(read_key(config, 'listen/endpoints'))}? pick another "
+                "--listen (`posegrid run`: --router-port)"
+            ) from None
         secured = any(str(endpoint).startswith("tls/") for endpoint in connect)
-        raise UsageError(f"{what} could not open its zenoh session ({_first_line(exc)}); is `posegrid router` "
-                         f"running at {json.dumps(connect)}?"
-                         + (" Does it trust this client's certificate and password, and this client its CA "
-                            "(docs/security.md)?" if secured else "")) from None
+        raise UsageError(
+            f"{what} could not open its zenoh session ({_first_line(exc)}); is `posegrid router` "
+            f"running at {json.dumps(connect)}?"
+            + (
+                " Does it trust this client's certificate and password, and this client its CA (docs/security.md)?"
+                if secured
+                else ""
+            )
+        ) from None

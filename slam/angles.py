@@ -1,4 +1,5 @@
 """Angle helpers shared by the motion and measurement models (radians)."""
+
 from __future__ import annotations
 
 import numpy as np

@@ -31,6 +31,7 @@ finite beyond POSE_LIMIT (1e7 m; slam.laserlog), a non-finite stamp, a pose not 
 +-POSE_LIMIT, or disagrees with the first scan's geometry is skipped and recorded with its line number in
 :attr:`LaserLog.skipped`; nothing is ever shifted into a neighbouring field.
 """
+
 from __future__ import annotations
 
 import gzip
@@ -310,8 +311,11 @@ def _laser_poses(robot: np.ndarray, offset: np.ndarray) -> np.ndarray:
     """Laser poses (T, 3) in the odometry frame: robot (+) offset."""
     c, s = np.cos(robot[:, 2]), np.sin(robot[:, 2])
     return np.stack(
-        [robot[:, 0] + c * offset[0] - s * offset[1], robot[:, 1] + s * offset[0] + c * offset[1],
-         wrap_angle(robot[:, 2] + offset[2])],
+        [
+            robot[:, 0] + c * offset[0] - s * offset[1],
+            robot[:, 1] + s * offset[0] + c * offset[1],
+            wrap_angle(robot[:, 2] + offset[2]),
+        ],
         axis=1,
     )
 

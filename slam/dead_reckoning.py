@@ -2,6 +2,7 @@
 
 The baseline every SLAM filter must beat; its covariance grows without bound, as it should.
 """
+
 from __future__ import annotations
 
 import numpy as np

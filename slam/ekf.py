@@ -33,6 +33,7 @@ dropped. With known ids, ``outlier_gate`` (if set) drops a measurement whose d^2
 Output per step: the robot pose mean (3,) and its covariance (3, 3) in plain (x, y, theta) coordinates,
 A Sigma_pose A^T with A = d(x, y, theta)/d(xi_p, xi_theta); the landmarks are marginalised out.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -120,9 +121,9 @@ class EKFSLAM:
         """Innovation, H Sigma (2, n) and innovation covariance S (2, 2) of measurement z of landmark slot j,
         with measurement-noise covariance ``noise`` (2, 2). H is h_m on xi_p and -h_m on xi_mj."""
         idx = 3 + 2 * j
-        z_hat, _, h_m = predict_measurement(self.mu[:3], self.mu[idx:idx + 2])
-        h_sigma = h_m @ (self.sigma[0:2, :] - self.sigma[idx:idx + 2, :])
-        s = (h_sigma[:, 0:2] - h_sigma[:, idx:idx + 2]) @ h_m.T + noise
+        z_hat, _, h_m = predict_measurement(self.mu[:3], self.mu[idx : idx + 2])
+        h_sigma = h_m @ (self.sigma[0:2, :] - self.sigma[idx : idx + 2, :])
+        s = (h_sigma[:, 0:2] - h_sigma[:, idx : idx + 2]) @ h_m.T + noise
         nu = z - z_hat
         nu[1] = wrap_angle(nu[1])
         return nu, h_sigma, s

@@ -38,6 +38,7 @@ alignment to the weighted mean map, the shapes (pose relative to map) are resamp
 the offspring take the parents' gauges in a random permutation, so the set of gauges survives unchanged. This
 is exact when gauge and shape are independent in the posterior, and an approximation otherwise.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -207,8 +208,9 @@ class FastSLAM:
         for z, noise, slot, is_new, inlier in pending:
             self._fuse_landmark(z, noise, slot, is_new, inlier)
 
-    def _fuse_landmark(self, z: np.ndarray, noise: np.ndarray, slot: np.ndarray, is_new: np.ndarray,
-                       inlier: np.ndarray) -> None:
+    def _fuse_landmark(
+        self, z: np.ndarray, noise: np.ndarray, slot: np.ndarray, is_new: np.ndarray, inlier: np.ndarray
+    ) -> None:
         """EKF update of each particle's landmark at ``slot`` from its pose, or its initialisation when new."""
         mu = self.mu[self.rows, slot]
         sigma = self.sigma[self.rows, slot]

@@ -5,6 +5,7 @@ together by one rigid motion, so a SLAM filter learns a map's gauge only from wh
 helpers measure the gauge of many maps against one reference and move maps between gauges, all vectorised
 over the maps. Angles in rad, positions in m, all in the world frame.
 """
+
 from __future__ import annotations
 
 import numpy as np

@@ -5,6 +5,7 @@ frame (``poses``: the frame of whatever produced them, e.g. a SLAM-corrected map
 the laser's (x m, y m, yaw rad) in the robot frame; ranges are metres along each beam from the laser,
 ``+inf`` where the log records no return (a reading at or beyond the log's maximum range).
 """
+
 from __future__ import annotations
 
 import math
@@ -70,8 +71,14 @@ class LaserLog:
 
     def first(self, count: int) -> LaserLog:
         """The log's first ``count`` scans (the odometry stream, parameters and skipped records kept)."""
-        return replace(self, stamps=self.stamps[:count], ranges=self.ranges[:count],
-                       odometry=self.odometry[:count], poses=self.poses[:count], where=self.where[:count])
+        return replace(
+            self,
+            stamps=self.stamps[:count],
+            ranges=self.ranges[:count],
+            odometry=self.odometry[:count],
+            poses=self.poses[:count],
+            where=self.where[:count],
+        )
 
     def skipped_summary(self, limit: int = 5) -> str:
         """One sentence naming how many records were skipped, the first few places and their reasons."""
@@ -102,26 +109,33 @@ def check_scan_order(log: LaserLog) -> None:
     back = np.flatnonzero(np.diff(log.stamps) <= 0)
     if len(back):
         i = int(back[0])
-        raise LogFormatError(f"{log.source}: scan stamps must increase, but the scan at {log.unit} {log.where[i + 1]} "
-                             f"({log.stamps[i + 1]:.6f} s) is not later than the one before ({log.stamps[i]:.6f} s)")
+        raise LogFormatError(
+            f"{log.source}: scan stamps must increase, but the scan at {log.unit} {log.where[i + 1]} "
+            f"({log.stamps[i + 1]:.6f} s) is not later than the one before ({log.stamps[i]:.6f} s)"
+        )
 
 
 def check_odometry_stream(log: LaserLog) -> None:
     """Raise :class:`LogFormatError` unless the log has a separate odometry stream in time order, which reading
     the odometry at other times than the scans' needs."""
     if not len(log.odom_stamps):
-        raise LogFormatError(f"{log.source}: its odometry comes only with the scans, so it cannot be read at "
-                             "other times (an odometry delay needs a separate odometry stream: ODOM lines or a "
-                             "bag's odometry topic)")
+        raise LogFormatError(
+            f"{log.source}: its odometry comes only with the scans, so it cannot be read at "
+            "other times (an odometry delay needs a separate odometry stream: ODOM lines or a "
+            "bag's odometry topic)"
+        )
     back = np.flatnonzero(np.diff(log.odom_stamps) < 0)
     if len(back):
-        raise LogFormatError(f"{log.source}: its odometry stream goes back in time after its record {back[0] + 1} "
-                             f"({log.odom_stamps[back[0]]:.6f} s, then {log.odom_stamps[back[0] + 1]:.6f} s), so it "
-                             "cannot be read at other times than the scans'")
+        raise LogFormatError(
+            f"{log.source}: its odometry stream goes back in time after its record {back[0] + 1} "
+            f"({log.odom_stamps[back[0]]:.6f} s, then {log.odom_stamps[back[0] + 1]:.6f} s), so it "
+            "cannot be read at other times than the scans'"
+        )
 
 
-def odometry_problem(odom_stamps: np.ndarray, stamp: float, max_gap: float = MAX_ODOM_GAP,
-                     max_hold: float = MAX_ODOM_HOLD) -> str:
+def odometry_problem(
+    odom_stamps: np.ndarray, stamp: float, max_gap: float = MAX_ODOM_GAP, max_hold: float = MAX_ODOM_HOLD
+) -> str:
     """Why the odometry (sorted stamps, s) cannot give a pose at ``stamp``, or "" when it can: the stamp lies
     more than ``max_hold`` s outside the odometry's span, or between two odometry records more than ``max_gap``
     s apart."""
@@ -154,11 +168,22 @@ def with_odometry_delay(log: LaserLog, delay: float) -> LaserLog:
     problems = [odometry_problem(log.odom_stamps, stamp + delay) for stamp in log.stamps.tolist()]
     kept = np.array([not problem for problem in problems], dtype=bool)
     if not kept.any():
-        raise LogFormatError(f"{log.source}: with the odometry read {delay:+g} s from the scans' stamps, no scan "
-                             f"has odometry around it ({problems[-1]})")
-    dropped = [Skipped(int(where), f"with the odometry read {delay:+g} s from its stamp: {problem}")
-               for where, problem in zip(log.where.tolist(), problems) if problem]
+        raise LogFormatError(
+            f"{log.source}: with the odometry read {delay:+g} s from the scans' stamps, no scan "
+            f"has odometry around it ({problems[-1]})"
+        )
+    dropped = [
+        Skipped(int(where), f"with the odometry read {delay:+g} s from its stamp: {problem}")
+        for where, problem in zip(log.where.tolist(), problems)
+        if problem
+    ]
     stamps = log.stamps[kept]
-    return replace(log, stamps=stamps, ranges=log.ranges[kept], poses=log.poses[kept], where=log.where[kept],
-                   odometry=interpolate_poses(log.odom_stamps, log.odom_poses, stamps + delay),
-                   skipped=tuple(sorted(log.skipped + tuple(dropped), key=lambda s: s.where)))
+    return replace(
+        log,
+        stamps=stamps,
+        ranges=log.ranges[kept],
+        poses=log.poses[kept],
+        where=log.where[kept],
+        odometry=interpolate_poses(log.odom_stamps, log.odom_poses, stamps + delay),
+        skipped=tuple(sorted(log.skipped + tuple(dropped), key=lambda s: s.where)),
+    )

@@ -14,6 +14,7 @@ whether a control moves the robot at all):
 and ``linearize`` (noise-free motion with the Jacobian G = dg/dx and the process-noise covariance
 Q = V M V^T in pose space, for EKFs).
 """
+
 from __future__ import annotations
 
 import math
@@ -71,8 +72,16 @@ class VelocityMotionModel:
         a = self.alphas
         scale = self.dt_ref / dt if dt > 0 else 0.0
         floor_v, floor_w = self.floor if (v != 0.0 or w != 0.0) else (0.0, 0.0)
-        return np.array([a[0] * v * v + a[1] * w * w + floor_v, a[2] * v * v + a[3] * w * w + floor_w,
-                         a[4] * v * v + a[5] * w * w]) * scale
+        return (
+            np.array(
+                [
+                    a[0] * v * v + a[1] * w * w + floor_v,
+                    a[2] * v * v + a[3] * w * w + floor_w,
+                    a[4] * v * v + a[5] * w * w,
+                ]
+            )
+            * scale
+        )
 
     @staticmethod
     def _move(poses: np.ndarray, v: np.ndarray, w: np.ndarray, gamma: np.ndarray, dt: float) -> np.ndarray:

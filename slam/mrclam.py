@@ -9,6 +9,7 @@ whitespace-separated numbers. Measurements of robots, of barcodes in no table an
 odometry's time span (no command to move the robot there) are skipped and counted.
 Landmark positions are never used by the filters; Landmark_Groundtruth.dat is read for scoring only.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -98,7 +99,7 @@ def find_robots(folder: str | Path) -> list[int]:
     """Robot numbers K with a RobotK_Odometry.dat in ``folder``."""
     found = []
     for path in Path(folder).glob("Robot*_Odometry.dat"):
-        number = path.name[len("Robot"):-len("_Odometry.dat")]
+        number = path.name[len("Robot") : -len("_Odometry.dat")]
         if number.isdigit():
             found.append(int(number))
     return sorted(found)

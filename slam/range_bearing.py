@@ -5,6 +5,7 @@ r = |m - (x, y)| (m), phi = atan2(my - y, mx - x) - theta (rad, robot frame, cou
 heading), with additive Gaussian noise of covariance R = diag(sigma_r^2, sigma_bearing^2), where sigma_r may grow with
 the range (see :class:`RangeBearingModel`).
 """
+
 from __future__ import annotations
 
 import math

@@ -3,6 +3,7 @@
 Grid convention (DESIGN.md): cell (i, j) covers x in [origin_x + j res, origin_x + (j+1) res) and
 y in [origin_y + i res, origin_y + (i+1) res); row i grows with y.
 """
+
 from __future__ import annotations
 
 import math
@@ -63,8 +64,9 @@ def mark_segments(
     to ends (R, 2) (m, map frame), both end cells included; cells outside the grid are skipped."""
     starts = np.ascontiguousarray(starts, dtype=np.float64)
     ends = np.ascontiguousarray(ends, dtype=np.float64)
-    _mark_traversed(grid, starts[:, 0], starts[:, 1], ends[:, 0], ends[:, 1],
-                    float(origin[0]), float(origin[1]), float(resolution))
+    _mark_traversed(
+        grid, starts[:, 0], starts[:, 1], ends[:, 0], ends[:, 1], float(origin[0]), float(origin[1]), float(resolution)
+    )
 
 
 def raster_frame(segments: np.ndarray, resolution: float, margin: float = 1.0) -> tuple[np.ndarray, tuple[int, int]]:

@@ -1,4 +1,5 @@
 """Exact 2-D ray casting against line segments, vectorised over rays x segments with NumPy."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -19,8 +20,8 @@ def cast_rays(origins: np.ndarray, angles: np.ndarray, segments: np.ndarray, max
     a = segments[:, :2]
     e = segments[:, 2:] - a
     for start in range(0, len(origins), CHUNK_RAYS):
-        p = origins[start:start + CHUNK_RAYS, None, :]
-        theta = angles[start:start + CHUNK_RAYS]
+        p = origins[start : start + CHUNK_RAYS, None, :]
+        theta = angles[start : start + CHUNK_RAYS]
         d = np.stack([np.cos(theta), np.sin(theta)], axis=-1)[:, None, :]
         denom = d[..., 0] * e[None, :, 1] - d[..., 1] * e[None, :, 0]
         ap = a[None] - p
@@ -30,7 +31,7 @@ def cast_rays(origins: np.ndarray, angles: np.ndarray, segments: np.ndarray, max
         u = (ap[..., 0] * d[..., 1] - ap[..., 1] * d[..., 0]) / safe
         hit = ~parallel & (t >= 0.0) & (u >= 0.0) & (u <= 1.0)
         nearest = np.where(hit, t, np.inf).min(axis=1)
-        out[start:start + CHUNK_RAYS] = np.where(nearest <= max_range, nearest, np.inf)
+        out[start : start + CHUNK_RAYS] = np.where(nearest <= max_range, nearest, np.inf)
     return out
 
 
@@ -46,8 +47,8 @@ def segments_block(starts: np.ndarray, ends: np.ndarray, segments: np.ndarray) -
     e = segments[:, 2:] - a
     eps = 1e-9
     for start in range(0, len(starts), CHUNK_RAYS):
-        p = starts[start:start + CHUNK_RAYS, None, :]
-        d = (ends[start:start + CHUNK_RAYS] - starts[start:start + CHUNK_RAYS])[:, None, :]
+        p = starts[start : start + CHUNK_RAYS, None, :]
+        d = (ends[start : start + CHUNK_RAYS] - starts[start : start + CHUNK_RAYS])[:, None, :]
         denom = d[..., 0] * e[None, :, 1] - d[..., 1] * e[None, :, 0]
         parallel = np.abs(denom) < 1e-12
         safe = np.where(parallel, 1.0, denom)
@@ -55,5 +56,5 @@ def segments_block(starts: np.ndarray, ends: np.ndarray, segments: np.ndarray) -
         t = (ap[..., 0] * e[None, :, 1] - ap[..., 1] * e[None, :, 0]) / safe
         u = (ap[..., 0] * d[..., 1] - ap[..., 1] * d[..., 0]) / safe
         crossing = ~parallel & (t > eps) & (t < 1.0 - eps) & (u > -eps) & (u < 1.0 + eps)
-        out[start:start + CHUNK_RAYS] = crossing.any(axis=1)
+        out[start : start + CHUNK_RAYS] = crossing.any(axis=1)
     return out

@@ -14,6 +14,7 @@ within ``tolerance`` seconds (default 1 ms; the benchmark's stamps are scan stam
 around it when those are at most ``max_gap`` seconds apart (default 5 s, the longest odometry gaps of
 the logs). A relation with an endpoint that matches neither way is skipped and counted.
 """
+
 from __future__ import annotations
 
 import math

@@ -1,4 +1,5 @@
 """Importance-weight helpers for particle filters."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -22,7 +23,7 @@ def low_variance_resample(weights: np.ndarray, rng: np.random.Generator) -> np.n
     of weight w is copied floor(N w) or ceil(N w) times.
     """
     n = len(weights)
-    pointers = (rng.uniform(0.0, 1.0 / n) + np.arange(n) / n)
+    pointers = rng.uniform(0.0, 1.0 / n) + np.arange(n) / n
     cumulative = np.cumsum(weights)
     cumulative[-1] = 1.0
     return np.minimum(np.searchsorted(cumulative, pointers, side="right"), n - 1)

@@ -22,6 +22,7 @@ range_max through whatever the laser could not measure in the mapper's fusion.)
 Odometry poses and transforms that are not finite or lie beyond +-POSE_LIMIT (1e7 m; slam.laserlog) are
 skipped.
 """
+
 from __future__ import annotations
 
 import math
@@ -89,11 +90,15 @@ def _open(path: Path):
     if not path.exists():
         raise LogFormatError(f"{path}: no such file or bag folder (expected a ROS 1 .bag or a ROS 2 bag)")
     if path.is_dir() and not (path / "metadata.yaml").exists():
-        raise LogFormatError(f"{path}: a folder without metadata.yaml, so not a ROS 2 bag (expected a ROS 1 .bag "
-                             "file or a ROS 2 bag folder)")
+        raise LogFormatError(
+            f"{path}: a folder without metadata.yaml, so not a ROS 2 bag (expected a ROS 1 .bag "
+            "file or a ROS 2 bag folder)"
+        )
     if path.is_file() and path.suffix not in BAG_SUFFIXES:  # rosbags tells the formats apart by the suffix alone
-        raise LogFormatError(f"{path}: not named as a bag: rosbags reads a ROS 1 bag named *.bag and a ROS 2 storage "
-                             "file named *.mcap or *.db3 (or give the ROS 2 bag's folder); rename or link it")
+        raise LogFormatError(
+            f"{path}: not named as a bag: rosbags reads a ROS 1 bag named *.bag and a ROS 2 storage "
+            "file named *.mcap or *.db3 (or give the ROS 2 bag's folder); rename or link it"
+        )
     try:
         reader = AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
         reader.open()
@@ -182,8 +187,11 @@ def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hol
             pose = (float(p.x), float(p.y), _yaw(q))
             stamp = _stamp(msg.header)
             if not (plausible_pose(pose) and math.isfinite(stamp)):
-                skipped.append(Skipped(number, f"{odom_topic}: non-finite stamp, or a pose not finite or beyond "
-                                               f"+-{POSE_LIMIT:g} m"))
+                skipped.append(
+                    Skipped(
+                        number, f"{odom_topic}: non-finite stamp, or a pose not finite or beyond +-{POSE_LIMIT:g} m"
+                    )
+                )
                 continue
             odom.append((stamp, pose, msg.child_frame_id))
         else:
@@ -191,8 +199,13 @@ def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hol
                 t, q = tf.transform.translation, tf.transform.rotation
                 pose = (float(t.x), float(t.y), _yaw(q))
                 if not plausible_pose(pose):
-                    skipped.append(Skipped(number, f"{conn.topic}: transform {tf.header.frame_id}->{tf.child_frame_id} "
-                                                   f"not finite or beyond +-{POSE_LIMIT:g} m"))
+                    skipped.append(
+                        Skipped(
+                            number,
+                            f"{conn.topic}: transform {tf.header.frame_id}->{tf.child_frame_id} "
+                            f"not finite or beyond +-{POSE_LIMIT:g} m",
+                        )
+                    )
                 elif conn.topic == "/tf_static":
                     tf_static[tf.child_frame_id] = (tf.header.frame_id, pose)
                 else:
@@ -273,18 +286,24 @@ def _same_laser(scan: tuple, other: tuple) -> bool:
     """Whether two decoded scans (number, stamp, ranges, (angle_min, angle_increment, range_min, range_max, frame))
     come from one laser: the same beam count and frame, the geometry within 1e-6 relative (float32 fields jitter)."""
     (_, _, ranges, geometry), (_, _, other_ranges, other_geometry) = scan, other
-    return (ranges.size == other_ranges.size and geometry[4] == other_geometry[4]
-            and all(abs(a - b) <= 1e-9 + 1e-6 * abs(b) for a, b in zip(geometry[:4], other_geometry[:4])))
+    return (
+        ranges.size == other_ranges.size
+        and geometry[4] == other_geometry[4]
+        and all(abs(a - b) <= 1e-9 + 1e-6 * abs(b) for a, b in zip(geometry[:4], other_geometry[:4]))
+    )
 
 
-def _scan_problem(ranges: np.ndarray, angle_min: float, angle_increment: float, range_min: float,
-                  range_max: float) -> str:
+def _scan_problem(
+    ranges: np.ndarray, angle_min: float, angle_increment: float, range_min: float, range_max: float
+) -> str:
     """Why a LaserScan (finite geometry; ranges m, angles rad) is not a scan the mapper can take, or "": the
     rules of the wire's LaserScan (schemas.messages), which the source would otherwise meet only when it
     publishes the scan, in the middle of a replay."""
     if not 0.0 <= range_min < range_max or range_max <= MIN_RANGE_FLOOR:
-        return (f"range_min {range_min:g} m and range_max {range_max:g} m: need 0 <= range_min < range_max and "
-                f"range_max > {MIN_RANGE_FLOOR:g} m")
+        return (
+            f"range_min {range_min:g} m and range_max {range_max:g} m: need 0 <= range_min < range_max and "
+            f"range_max > {MIN_RANGE_FLOOR:g} m"
+        )
     if angle_increment == 0.0 and ranges.size > 1:
         return f"angle_increment is 0 for {ranges.size} beams"
     if max(abs(angle_min), abs(angle_increment)) > 2 * math.pi:

@@ -6,6 +6,7 @@ and the ground truth share a frame and the raw differences are the errors.
 For particles, the point estimate is the weighted mean (circular mean for yaw) and the covariance is the
 weighted covariance of the particles about it (yaw residuals wrapped): the Gaussian fitted to them.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -38,8 +39,9 @@ def fit_gaussian(samples: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, 
     """Weighted mean (T, 3) and covariance (T, 3, 3) of particles samples (T, N, 3), weights (T, N)."""
     weights = weights / weights.sum(axis=1, keepdims=True)
     mean_xy = np.einsum("tn,tnk->tk", weights, samples[..., :2])
-    yaw = np.arctan2(np.einsum("tn,tn->t", weights, np.sin(samples[..., 2])),
-                     np.einsum("tn,tn->t", weights, np.cos(samples[..., 2])))
+    yaw = np.arctan2(
+        np.einsum("tn,tn->t", weights, np.sin(samples[..., 2])), np.einsum("tn,tn->t", weights, np.cos(samples[..., 2]))
+    )
     mean = np.column_stack([mean_xy, yaw])
     residual = samples - mean[:, None, :]
     residual[..., 2] = wrap_angle(residual[..., 2])
@@ -66,8 +68,10 @@ def interpolate_poses(stamps: np.ndarray, truth_stamps: np.ndarray, truth_poses:
     """Ground truth (G, 3) at truth_stamps (G,) interpolated linearly to ``stamps`` (T,) (yaw unwrapped first,
     so it turns the short way); stamps outside the ground truth's span take its first or last pose."""
     yaw = np.unwrap(truth_poses[:, 2])
-    return np.column_stack([
-        np.interp(stamps, truth_stamps, truth_poses[:, 0]),
-        np.interp(stamps, truth_stamps, truth_poses[:, 1]),
-        wrap_angle(np.interp(stamps, truth_stamps, yaw)),
-    ])
+    return np.column_stack(
+        [
+            np.interp(stamps, truth_stamps, truth_poses[:, 0]),
+            np.interp(stamps, truth_stamps, truth_poses[:, 1]),
+            wrap_angle(np.interp(stamps, truth_stamps, yaw)),
+        ]
+    )

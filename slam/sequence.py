@@ -6,6 +6,7 @@ measurements taken at the stamp (range m, bearing rad, landmark id). Both are st
 arrays: the controls of step t are ``controls[control_ptr[t]:control_ptr[t + 1]]``, likewise measurements.
 Step 0 usually has no controls: the filter starts at ``initial_pose`` at ``stamps[0]``.
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -48,8 +49,12 @@ class SlamSequence:
             )
         if self.motion not in ("velocity", "odometry"):
             raise LogFormatError(f"{source}: unknown motion kind '{self.motion}' (velocity or odometry)")
-        for name, values in (("stamps", self.stamps), ("controls", self.controls), ("measurements", self.measurements),
-                             ("initial pose", self.initial_pose)):
+        for name, values in (
+            ("stamps", self.stamps),
+            ("controls", self.controls),
+            ("measurements", self.measurements),
+            ("initial pose", self.initial_pose),
+        ):
             if not np.all(np.isfinite(values)):
                 raise LogFormatError(f"{source}: the {name} hold NaN or inf")
         if steps == 0:
@@ -96,9 +101,9 @@ def run_filter(slam_filter: Filter, sequence: SlamSequence, progress: Callable[[
     cptr, mptr = sequence.control_ptr, sequence.measurement_ptr
     for t in range(len(sequence)):
         a, b = slam_filter.step(
-            sequence.controls[cptr[t]:cptr[t + 1]],
-            sequence.measurements[mptr[t]:mptr[t + 1]],
-            sequence.landmark_ids[mptr[t]:mptr[t + 1]],
+            sequence.controls[cptr[t] : cptr[t + 1]],
+            sequence.measurements[mptr[t] : mptr[t + 1]],
+            sequence.landmark_ids[mptr[t] : mptr[t + 1]],
         )
         first.append(a)
         second.append(b)

@@ -16,6 +16,7 @@ filters cannot use: alphas outside slam.motion.ALPHA_LIMITS, noise outside slam.
 ``velocity_dt_ref`` outside :data:`DT_REF_LIMITS`, negative ranges, and poses, commands or positions beyond
 +-POSE_LIMIT (1e7 m; slam.laserlog).
 """
+
 from __future__ import annotations
 
 import zipfile
@@ -80,14 +81,22 @@ def save_sim_log(folder: str | Path, log: SimLog) -> None:
     folder = Path(folder)
     np.savez_compressed(
         folder / CONTROLS_FILE,
-        stamps=log.stamps, commands=log.commands, odometry=log.odometry, initial_pose=log.initial_pose,
-        velocity_alphas=np.array(log.velocity_model.alphas), velocity_dt_ref=np.float64(log.velocity_model.dt_ref),
+        stamps=log.stamps,
+        commands=log.commands,
+        odometry=log.odometry,
+        initial_pose=log.initial_pose,
+        velocity_alphas=np.array(log.velocity_model.alphas),
+        velocity_dt_ref=np.float64(log.velocity_model.dt_ref),
         odometry_alphas=np.array(log.odometry_model.alphas),
     )
     np.savez_compressed(
         folder / LANDMARKS_FILE,
-        step=log.landmark_step, id=log.landmark_id, range=log.landmark_z[:, 0], bearing=log.landmark_z[:, 1],
-        sigma_range=np.float64(log.sensor.sigma_range), sigma_bearing=np.float64(log.sensor.sigma_bearing),
+        step=log.landmark_step,
+        id=log.landmark_id,
+        range=log.landmark_z[:, 0],
+        bearing=log.landmark_z[:, 1],
+        sigma_range=np.float64(log.sensor.sigma_range),
+        sigma_bearing=np.float64(log.sensor.sigma_bearing),
         truth=log.landmark_truth,
     )
 
@@ -130,18 +139,39 @@ def _check_within(path: Path, arrays: dict[str, np.ndarray], limits: dict[str, t
     for key, (low, high) in limits.items():
         value = arrays[key]
         if value.size and not np.all((value >= low) & (value <= high)):
-            raise LogFormatError(f"{path}: '{key}' must lie in [{low:g}, {high:g}], but holds values from "
-                                 f"{value.min():g} to {value.max():g}")
+            raise LogFormatError(
+                f"{path}: '{key}' must lie in [{low:g}, {high:g}], but holds values from "
+                f"{value.min():g} to {value.max():g}"
+            )
 
 
 def load_sim_log(folder: str | Path) -> SimLog:
     """Read a simulator folder's ``controls.npz`` and ``landmarks.npz``; LogFormatError if malformed."""
     folder = Path(folder)
-    c = _load(folder / CONTROLS_FILE, {"stamps": ("T",), "commands": ("T", 2), "odometry": ("T", 3),
-                                       "initial_pose": (3,), "velocity_alphas": (6,), "velocity_dt_ref": (),
-                                       "odometry_alphas": (4,)})
-    m = _load(folder / LANDMARKS_FILE, {"step": ("O",), "id": ("O",), "range": ("O",), "bearing": ("O",),
-                                        "sigma_range": (), "sigma_bearing": (), "truth": ("L", 2)})
+    c = _load(
+        folder / CONTROLS_FILE,
+        {
+            "stamps": ("T",),
+            "commands": ("T", 2),
+            "odometry": ("T", 3),
+            "initial_pose": (3,),
+            "velocity_alphas": (6,),
+            "velocity_dt_ref": (),
+            "odometry_alphas": (4,),
+        },
+    )
+    m = _load(
+        folder / LANDMARKS_FILE,
+        {
+            "step": ("O",),
+            "id": ("O",),
+            "range": ("O",),
+            "bearing": ("O",),
+            "sigma_range": (),
+            "sigma_bearing": (),
+            "truth": ("L", 2),
+        },
+    )
     steps = len(c["stamps"])
     step = m["step"].astype(np.int64)
     if steps == 0 or np.any(np.diff(c["stamps"]) <= 0):
@@ -152,12 +182,29 @@ def load_sim_log(folder: str | Path) -> SimLog:
         if np.any(m[key] != np.round(m[key])):
             raise LogFormatError(f"{folder / LANDMARKS_FILE}: '{key}' must hold whole numbers")
     pose_range = (-POSE_LIMIT, POSE_LIMIT)
-    _check_within(folder / CONTROLS_FILE, c, {
-        "commands": pose_range, "odometry": pose_range, "initial_pose": pose_range, "velocity_alphas": ALPHA_LIMITS,
-        "velocity_dt_ref": DT_REF_LIMITS, "odometry_alphas": ALPHA_LIMITS})
-    _check_within(folder / LANDMARKS_FILE, m, {
-        "range": (0.0, POSE_LIMIT), "bearing": (-BEARING_LIMIT, BEARING_LIMIT), "sigma_range": SIGMA_RANGE_LIMITS,
-        "sigma_bearing": SIGMA_BEARING_LIMITS, "truth": pose_range})
+    _check_within(
+        folder / CONTROLS_FILE,
+        c,
+        {
+            "commands": pose_range,
+            "odometry": pose_range,
+            "initial_pose": pose_range,
+            "velocity_alphas": ALPHA_LIMITS,
+            "velocity_dt_ref": DT_REF_LIMITS,
+            "odometry_alphas": ALPHA_LIMITS,
+        },
+    )
+    _check_within(
+        folder / LANDMARKS_FILE,
+        m,
+        {
+            "range": (0.0, POSE_LIMIT),
+            "bearing": (-BEARING_LIMIT, BEARING_LIMIT),
+            "sigma_range": SIGMA_RANGE_LIMITS,
+            "sigma_bearing": SIGMA_BEARING_LIMITS,
+            "truth": pose_range,
+        },
+    )
     a1, a2, a3, a4, a5, a6 = (float(a) for a in c["velocity_alphas"])  # (6,), as _load checked
     o1, o2, o3, o4 = (float(a) for a in c["odometry_alphas"])  # (4,), as _load checked
     return SimLog(

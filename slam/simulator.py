@@ -6,6 +6,7 @@ to the true relative motion, a landmark sensor measures range and bearing to the
 field of view and not hidden by an obstacle, and a 2-D laser measures ranges by exact ray casting against
 the obstacle edges. Step t is at time t dt; the measurements of step t are taken at the true pose of step t.
 """
+
 from __future__ import annotations
 
 import math
@@ -59,9 +60,16 @@ class SimRun:
     def log(self) -> SimLog:
         """The SLAM inputs of this run (what ``posegrid simulate`` writes to controls.npz and landmarks.npz)."""
         return SimLog(
-            stamps=self.stamps, commands=self.commands, odometry=self.odometry, initial_pose=self.true_poses[0].copy(),
-            landmark_step=self.landmark_step, landmark_id=self.landmark_id, landmark_z=self.landmark_z,
-            landmark_truth=self.landmarks, velocity_model=self.velocity_model, odometry_model=self.odometry_model,
+            stamps=self.stamps,
+            commands=self.commands,
+            odometry=self.odometry,
+            initial_pose=self.true_poses[0].copy(),
+            landmark_step=self.landmark_step,
+            landmark_id=self.landmark_id,
+            landmark_z=self.landmark_z,
+            landmark_truth=self.landmarks,
+            velocity_model=self.velocity_model,
+            odometry_model=self.odometry_model,
             sensor=self.sensor,
         )
 

@@ -1,4 +1,5 @@
 """Small Gaussian helpers vectorised over a leading batch axis (particles or landmarks)."""
+
 from __future__ import annotations
 
 import numpy as np

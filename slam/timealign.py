@@ -7,6 +7,7 @@ whose range vectors (rounded to 1 cm, readings beyond ``cap`` treated alike) occ
 log are pairs. Pairs out of time order are dropped; between pairs the offset is interpolated linearly,
 beyond the first and last pair it is held.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -76,9 +77,15 @@ def to_reference_time(stamps: np.ndarray, map_stamps: np.ndarray, offsets: np.nd
     return np.asarray(stamps, np.float64) + np.interp(stamps, map_stamps, offsets)
 
 
-def odometry_delay(stamps: np.ndarray, yaw: np.ndarray, odom_stamps: np.ndarray, odom_yaw: np.ndarray,
-                   max_delay: float = MAX_ODOMETRY_DELAY, step: float = ODOMETRY_DELAY_STEP,
-                   window: float = ODOMETRY_DELAY_WINDOW) -> tuple[float, float]:
+def odometry_delay(
+    stamps: np.ndarray,
+    yaw: np.ndarray,
+    odom_stamps: np.ndarray,
+    odom_yaw: np.ndarray,
+    max_delay: float = MAX_ODOMETRY_DELAY,
+    step: float = ODOMETRY_DELAY_STEP,
+    window: float = ODOMETRY_DELAY_WINDOW,
+) -> tuple[float, float]:
     """The delay d (s) for which the odometry's heading changes, read at scan stamp + d, best match the
     heading changes of a scan-matched trajectory (``yaw`` (T,) rad at ``stamps`` (T,) s, e.g. a grid
     FastSLAM particle's), with ``odom_yaw`` (K,) rad at ``odom_stamps`` (K,) s.
@@ -101,8 +108,9 @@ def odometry_delay(stamps: np.ndarray, yaw: np.ndarray, odom_stamps: np.ndarray,
     turned = np.interp(centres + half, stamps, yaw) - np.interp(centres - half, stamps, yaw)
     best = (np.inf, 0.0)
     for delay in np.arange(-max_delay, max_delay + step / 2, step):
-        odom_turned = (np.interp(centres + delay + half, odom_stamps, odom_yaw)
-                       - np.interp(centres + delay - half, odom_stamps, odom_yaw))
+        odom_turned = np.interp(centres + delay + half, odom_stamps, odom_yaw) - np.interp(
+            centres + delay - half, odom_stamps, odom_yaw
+        )
         mismatch = float(np.mean(np.abs(turned - odom_turned)))
         if mismatch < best[0]:
             best = (mismatch, float(delay))

@@ -1,5 +1,6 @@
 """Real processes for the API and viewer tests: a Zenoh router, mapper shards, the API and a source, each
 started as `python -m services.cli ...` on free loopback ports and ended by PID."""
+
 from __future__ import annotations
 
 import os
@@ -44,9 +45,16 @@ def write_room(path: Path, shift: tuple[float, float], steps: int = 20, particle
     """The 4 m x 3 m test room (tests/worlds.py) moved by ``shift`` m, with weighted pose samples."""
     scans = room_posed_scans(steps=steps, seed=seed, gaussian=False, particles=particles)
     samples = scans.poses.samples + np.array([shift[0], shift[1], 0.0])
-    moved = PosedScans(ranges=scans.ranges, angle_min=scans.angle_min, angle_increment=scans.angle_increment,
-                       range_min=scans.range_min, range_max=scans.range_max, stamps=scans.stamps,
-                       sensor_offset=scans.sensor_offset, poses=PoseSet(samples=samples, weights=scans.poses.weights))
+    moved = PosedScans(
+        ranges=scans.ranges,
+        angle_min=scans.angle_min,
+        angle_increment=scans.angle_increment,
+        range_min=scans.range_min,
+        range_max=scans.range_max,
+        stamps=scans.stamps,
+        sensor_offset=scans.sensor_offset,
+        poses=PoseSet(samples=samples, weights=scans.poses.weights),
+    )
     save_posed_scans(path, moved)
     return path
 
@@ -64,8 +72,9 @@ class Stack:
     def start(self, name: str, *argv: str, connect: bool = True) -> subprocess.Popen:
         log = open(self.logs / f"{name}.log", "wb")
         command = [*POSEGRID, *argv, *(["--connect", self.endpoint] if connect else [])]
-        process = subprocess.Popen(command, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
-                                   env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        process = subprocess.Popen(
+            command, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1"}
+        )
         self.processes[name] = process
         return process
 
@@ -74,8 +83,9 @@ class Stack:
 
     def mappers(self, shards: int, map_name: str, *options: str) -> None:
         for shard in range(shards):
-            self.start(f"mapper{shard}", "mapper", "--shard", str(shard), "--shards", str(shards), "--map", map_name,
-                       *options)
+            self.start(
+                f"mapper{shard}", "mapper", "--shard", str(shard), "--shards", str(shards), "--map", map_name, *options
+            )
 
     def api(self) -> str:
         port = free_port()
@@ -92,8 +102,20 @@ class Stack:
             return False
 
     def source(self, posed: Path, map_name: str, shards: int, robot: str = "robot0", rate: str = "max") -> None:
-        self.start(f"source-{robot}", "source", "--posed", str(posed), "--robot", robot, "--map", map_name,
-                   "--wait-mappers", str(shards), "--rate", rate)
+        self.start(
+            f"source-{robot}",
+            "source",
+            "--posed",
+            str(posed),
+            "--robot",
+            robot,
+            "--map",
+            map_name,
+            "--wait-mappers",
+            str(shards),
+            "--rate",
+            rate,
+        )
 
     def check_alive(self) -> None:
         """Fail (with the process's log) if a server process has ended."""

@@ -1,4 +1,5 @@
 """Small ROS bags written with rosbags' writers, for the tests of the bag reader and of the pipeline's --bag."""
+
 from __future__ import annotations
 
 import math
@@ -17,7 +18,9 @@ class BagBuilder:
         self.ros2 = ros2
         self.store = get_typestore(Stores.ROS2_HUMBLE if ros2 else Stores.ROS1_NOETIC)
         if "tf2_msgs/msg/TFMessage" not in self.store.types:  # the ROS 1 store lacks tf2_msgs
-            self.store.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage"))
+            self.store.register(
+                get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage")
+            )
         self.items: list[tuple[str, str, float, object]] = []  # topic, msgtype, time, msg or raw bytes
 
     def _t(self, name):
@@ -33,32 +36,48 @@ class BagBuilder:
     def quat(self, yaw: float):
         return self._t("geometry_msgs/msg/Quaternion")(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
 
-    def scan(self, stamp, ranges, topic="/scan", angle_min=-1.0, increment=0.5, range_max=10.0, frame="laser",
-             range_min=0.1):
+    def scan(
+        self, stamp, ranges, topic="/scan", angle_min=-1.0, increment=0.5, range_max=10.0, frame="laser", range_min=0.1
+    ):
         ranges = np.asarray(ranges, np.float32)
         msg = self._t("sensor_msgs/msg/LaserScan")(
-            header=self.header(stamp, frame), angle_min=angle_min, angle_max=angle_min + increment * (len(ranges) - 1),
-            angle_increment=increment, time_increment=0.0, scan_time=0.0, range_min=range_min, range_max=range_max,
-            ranges=ranges, intensities=np.zeros(0, np.float32))
+            header=self.header(stamp, frame),
+            angle_min=angle_min,
+            angle_max=angle_min + increment * (len(ranges) - 1),
+            angle_increment=increment,
+            time_increment=0.0,
+            scan_time=0.0,
+            range_min=range_min,
+            range_max=range_max,
+            ranges=ranges,
+            intensities=np.zeros(0, np.float32),
+        )
         self.items.append((topic, "sensor_msgs/msg/LaserScan", stamp, msg))
 
     def odom(self, stamp, x, y, yaw, topic="/odom"):
         t = self._t
-        pose = t("geometry_msgs/msg/Pose")(position=t("geometry_msgs/msg/Point")(x=x, y=y, z=0.0), orientation=self.quat(yaw))
+        pose = t("geometry_msgs/msg/Pose")(
+            position=t("geometry_msgs/msg/Point")(x=x, y=y, z=0.0), orientation=self.quat(yaw)
+        )
         zero3 = t("geometry_msgs/msg/Vector3")(x=0.0, y=0.0, z=0.0)
         msg = t("nav_msgs/msg/Odometry")(
-            header=self.header(stamp, "odom"), child_frame_id="base_link",
+            header=self.header(stamp, "odom"),
+            child_frame_id="base_link",
             pose=t("geometry_msgs/msg/PoseWithCovariance")(pose=pose, covariance=np.zeros(36)),
             twist=t("geometry_msgs/msg/TwistWithCovariance")(
-                twist=t("geometry_msgs/msg/Twist")(linear=zero3, angular=zero3), covariance=np.zeros(36)))
+                twist=t("geometry_msgs/msg/Twist")(linear=zero3, angular=zero3), covariance=np.zeros(36)
+            ),
+        )
         self.items.append((topic, "nav_msgs/msg/Odometry", stamp, msg))
 
     def tf(self, stamp, parent, child, x, y, yaw, topic="/tf"):
         t = self._t
         transform = t("geometry_msgs/msg/Transform")(
-            translation=t("geometry_msgs/msg/Vector3")(x=x, y=y, z=0.0), rotation=self.quat(yaw))
+            translation=t("geometry_msgs/msg/Vector3")(x=x, y=y, z=0.0), rotation=self.quat(yaw)
+        )
         stamped = t("geometry_msgs/msg/TransformStamped")(
-            header=self.header(stamp, parent), child_frame_id=child, transform=transform)
+            header=self.header(stamp, parent), child_frame_id=child, transform=transform
+        )
         self.items.append((topic, "tf2_msgs/msg/TFMessage", stamp, t("tf2_msgs/msg/TFMessage")(transforms=[stamped])))
 
     def raw(self, stamp, topic, msgtype, data: bytes):

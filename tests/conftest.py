@@ -1,4 +1,5 @@
 """Shared fixtures: the real data folder beside the checkout, and small worlds built in code."""
+
 from __future__ import annotations
 
 import sys

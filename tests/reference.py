@@ -3,6 +3,7 @@
 Cells along a ray are found by collecting every crossing of a vertical or horizontal grid line (no DDA),
 sorting them and taking the cell at each piece's midpoint; the model is evaluated with scipy's erf.
 """
+
 from __future__ import annotations
 
 import math
@@ -44,12 +45,19 @@ def reference_cell_logodds(model: SensorModel, r_in: float, r_out: float, z: flo
     return float(np.max(model.logodds(r, z)))
 
 
-def reference_fuse(model: SensorModel, angles: np.ndarray, range_min: float, range_max: float,
-                   ranges: np.ndarray, samples: np.ndarray, weights: np.ndarray,
-                   offset=(0.0, 0.0, 0.0)) -> tuple[dict, dict]:
+def reference_fuse(
+    model: SensorModel,
+    angles: np.ndarray,
+    range_min: float,
+    range_max: float,
+    ranges: np.ndarray,
+    samples: np.ndarray,
+    weights: np.ndarray,
+    offset=(0.0, 0.0, 0.0),
+) -> tuple[dict, dict]:
     """One scan's per-cell weighted mean and spread {(ix, iy): value}, by brute force."""
     per_sample = []
-    for (x, y, yaw) in samples:
+    for x, y, yaw in samples:
         lx = x + math.cos(yaw) * offset[0] - math.sin(yaw) * offset[1]
         ly = y + math.sin(yaw) * offset[0] + math.cos(yaw) * offset[1]
         values: dict[tuple[int, int], float] = {}

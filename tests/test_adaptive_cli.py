@@ -1,4 +1,5 @@
 """`posegrid fuse --grid adaptive` writes the same map file contract, with the `level` layer."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -23,8 +24,24 @@ def test_adaptive_map_file_holds_levels_and_works_with_the_tools(posed_file, tmp
     assert main(["fuse", str(posed_file), "-o", str(regular), "--samples", "8"]) == 0
     assert main(["fuse", str(posed_file), "-o", str(adaptive), "--samples", "8", "--grid", "adaptive"]) == 0
     out = capsys.readouterr().out
-    assert main(["fuse", str(posed_file), "-o", str(einhorn), "--samples", "8", "--grid", "adaptive",
-                 "--no-unknowns", "--coarse-cell", "0.4"]) == 0
+    assert (
+        main(
+            [
+                "fuse",
+                str(posed_file),
+                "-o",
+                str(einhorn),
+                "--samples",
+                "8",
+                "--grid",
+                "adaptive",
+                "--no-unknowns",
+                "--coarse-cell",
+                "0.4",
+            ]
+        )
+        == 0
+    )
     fine, tree, other = load_map(regular), load_map(adaptive), load_map(einhorn)
     assert fine.level is None and tree.level is not None and tree.level.dtype == np.int8
     # the raster is the finest resolution; every observed cell belongs to one active cell
@@ -35,8 +52,12 @@ def test_adaptive_map_file_holds_levels_and_works_with_the_tools(posed_file, tmp
     assert active < 0.5 * fine.observed.sum()
     assert (other.level == 3).any() and not np.array_equal(other.level, tree.level)
     # the tools read it unchanged: scoring against the regular map's occupancy, and the PGM export
-    truth = {"occupied": fine.probability > 0.5, "visible": fine.observed, "origin": fine.origin,
-             "resolution": fine.resolution}
+    truth = {
+        "occupied": fine.probability > 0.5,
+        "visible": fine.observed,
+        "origin": fine.origin,
+        "resolution": fine.resolution,
+    }
     assert score_map(vars(tree), truth)["auc"] > 0.9
     pgm, _ = render_pgm(vars(tree))
     assert pgm.startswith(b"P5")
@@ -60,10 +81,15 @@ def test_unknown_range_reaches_the_split_test(posed_file, tmp_path):
     from services.fusion_runner import fuse_posed_scans_adaptive
 
     out = tmp_path / "short.npz"
-    assert main(["fuse", str(posed_file), "-o", str(out), "--samples", "8", "--grid", "adaptive",
-                 "--unknown-range", "0.3"]) == 0
-    expected = fuse_posed_scans_adaptive(load_posed_scans(posed_file), n_samples=8,
-                                         params=AdaptiveParams(unknown_range=0.3)).rasterize()
+    assert (
+        main(
+            ["fuse", str(posed_file), "-o", str(out), "--samples", "8", "--grid", "adaptive", "--unknown-range", "0.3"]
+        )
+        == 0
+    )
+    expected = fuse_posed_scans_adaptive(
+        load_posed_scans(posed_file), n_samples=8, params=AdaptiveParams(unknown_range=0.3)
+    ).rasterize()
     default = fuse_posed_scans_adaptive(load_posed_scans(posed_file), n_samples=8).rasterize()
     assert not np.array_equal(expected["level"], default["level"])  # the option changes the tree here
     np.testing.assert_array_equal(load_map(out).level, expected["level"])
@@ -73,6 +99,7 @@ def test_bad_unknown_range_is_a_usage_error(posed_file, tmp_path, capsys):
     out = str(tmp_path / "m.npz")
     assert main(["fuse", str(posed_file), "-o", out, "--grid", "adaptive", "--unknown-range", "-1"]) == 2
     assert "unknown_range must be >= 0" in capsys.readouterr().err
-    assert main(["fuse", str(posed_file), "-o", out, "--grid", "adaptive", "--no-unknowns",
-                 "--unknown-range", "1"]) == 2
+    assert (
+        main(["fuse", str(posed_file), "-o", out, "--grid", "adaptive", "--no-unknowns", "--unknown-range", "1"]) == 2
+    )
     assert "drop one of them" in capsys.readouterr().err

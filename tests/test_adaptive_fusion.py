@@ -1,5 +1,6 @@
 """Adaptive fusion: the paper's Fig. 3, the merge rules, a one-wall world, weighted counts against a slow
 reference, and agreement with the regular grid where the two must agree."""
+
 import math
 
 import numpy as np
@@ -39,7 +40,7 @@ def fused(params, scans, angles, range_max, model=None):
 # below 4.5 degrees have no return and cross it; beams above end on an obstacle at 1 m, so the cell's upper
 # part is hidden behind it.
 FIG3_ANGLES = np.radians(np.arange(0.2, 9.5, 0.2))
-FIG3_RANGES = np.where(FIG3_ANGLES > np.radians(4.5), 1.0, np.inf)
+FIG3_RANGES = np.where(np.radians(4.5) < FIG3_ANGLES, 1.0, np.inf)
 FIG3_POSE = np.array([[0.013, 0.017, 0.0]])
 FIG3_CELL = (np.array([3]), np.array([5]), np.array([0]))
 
@@ -92,7 +93,7 @@ def test_children_inherit_the_parents_logodds_and_hits_and_misses_carry_over():
     plain = fused(fig3_params(False), [free, half], FIG3_ANGLES, 3.0)
     one = fused(fig3_params(False), [free], FIG3_ANGLES, 3.0)
     cell, first = plain.find_exact(*FIG3_CELL)[0], one.find_exact(*FIG3_CELL)[0]
-    assert plain.hits[cell] == 0 and one.misses[first] == pytest.approx(np.sum(FIG3_ANGLES < np.radians(9.46)), abs=2)
+    assert plain.hits[cell] == 0 and one.misses[first] == pytest.approx(np.sum(np.radians(9.46) > FIG3_ANGLES), abs=2)
     assert one.misses[first] < plain.misses[cell] < 2 * one.misses[first]
 
 
@@ -106,22 +107,42 @@ def sibling_grid(groups):
         ay += [0, 0, 1, 1]
         lo += [logit(p) for p in probabilities]
     zeros = np.zeros(len(lo))
-    grid.edit(np.zeros(0, np.int64), np.zeros(len(lo), np.int64), np.array(ax), np.array(ay), np.array(lo), zeros,
-              zeros, zeros)
+    grid.edit(
+        np.zeros(0, np.int64),
+        np.zeros(len(lo), np.int64),
+        np.array(ax),
+        np.array(ay),
+        np.array(lo),
+        zeros,
+        zeros,
+        zeros,
+    )
     return grid, np.array(lo).reshape(-1, 4)
 
 
-@pytest.mark.parametrize("rules, merged, kept", [
-    # rule 1: spread below 0.05 and mean within 0.15 of 0 or 1
-    (MergeRules(std_max=0.05, margin=0.15, above=1.0, below=0.0),
-     [[0.87, 0.87, 0.87, 0.95], [0.05, 0.1, 0.1, 0.12]], [[0.8, 0.8, 0.8, 0.8], [0.05, 0.05, 0.05, 0.2]]),
-    # rule 2: all above 0.9
-    (MergeRules(std_max=0.0, margin=0.0, above=0.9, below=0.0),
-     [[0.91, 0.93, 0.95, 0.97], [0.95, 0.95, 0.95, 0.95]], [[0.91, 0.93, 0.95, 0.89], [0.1, 0.1, 0.1, 0.1]]),
-    # rule 3: all below 0.2
-    (MergeRules(std_max=0.0, margin=0.0, above=1.0, below=0.2),
-     [[0.12, 0.15, 0.19, 0.13], [0.01, 0.02, 0.03, 0.04]], [[0.12, 0.15, 0.21, 0.13], [0.95, 0.95, 0.95, 0.95]]),
-])
+@pytest.mark.parametrize(
+    "rules, merged, kept",
+    [
+        # rule 1: spread below 0.05 and mean within 0.15 of 0 or 1
+        (
+            MergeRules(std_max=0.05, margin=0.15, above=1.0, below=0.0),
+            [[0.87, 0.87, 0.87, 0.95], [0.05, 0.1, 0.1, 0.12]],
+            [[0.8, 0.8, 0.8, 0.8], [0.05, 0.05, 0.05, 0.2]],
+        ),
+        # rule 2: all above 0.9
+        (
+            MergeRules(std_max=0.0, margin=0.0, above=0.9, below=0.0),
+            [[0.91, 0.93, 0.95, 0.97], [0.95, 0.95, 0.95, 0.95]],
+            [[0.91, 0.93, 0.95, 0.89], [0.1, 0.1, 0.1, 0.1]],
+        ),
+        # rule 3: all below 0.2
+        (
+            MergeRules(std_max=0.0, margin=0.0, above=1.0, below=0.2),
+            [[0.12, 0.15, 0.19, 0.13], [0.01, 0.02, 0.03, 0.04]],
+            [[0.12, 0.15, 0.21, 0.13], [0.95, 0.95, 0.95, 0.95]],
+        ),
+    ],
+)
 def test_each_merge_rule(rules, merged, kept):
     grid, lo = sibling_grid(merged + kept)
     level, ax, ay = grid.cells()
@@ -132,8 +153,12 @@ def test_each_merge_rule(rules, merged, kept):
         assert grid.logodds[index] == pytest.approx(lo[g].mean(), rel=1e-6)  # the mean of the log-odds
     for g in range(len(merged), len(merged) + len(kept)):
         assert grid.find_exact(np.array([1]), np.array([g]), np.array([0]))[0] == -1
-        assert (grid.find_exact(np.zeros(4, np.int64), np.array([2 * g, 2 * g + 1, 2 * g, 2 * g + 1]),
-                                np.array([0, 0, 1, 1])) >= 0).all()
+        assert (
+            grid.find_exact(
+                np.zeros(4, np.int64), np.array([2 * g, 2 * g + 1, 2 * g, 2 * g + 1]), np.array([0, 0, 1, 1])
+            )
+            >= 0
+        ).all()
 
 
 def test_merging_recurses_and_needs_four_leaves():
@@ -185,7 +210,7 @@ def test_one_wall_gives_fine_cells_along_it_and_coarse_cells_elsewhere():
     level, ax, ay = grid.cells()
     x0, x1 = (ax << level) * RES, ((ax + 1) << level) * RES
     y_mid = ((ay << level) + (1 << level) / 2) * RES
-    on_wall = (x0 <= 3.13) & (3.13 < x1) & (y_mid > -1.0) & (y_mid < 2.0)  # the part seen from near
+    on_wall = (x0 <= 3.13) & (x1 > 3.13) & (y_mid > -1.0) & (y_mid < 2.0)  # the part seen from near
     length = (1 << level[on_wall]) * RES
     assert length.sum() == pytest.approx(3.0, abs=0.5), "the wall is covered by active cells"
     assert (level[on_wall] <= 2).all() and length[level[on_wall] <= 1].sum() > 0.6 * length.sum()
@@ -237,12 +262,24 @@ def test_weighted_counts_equal_the_sum_of_per_sample_counts(unknowns):
     if unknowns:
         r_count[beams.kind == BEAM_HIT] = np.maximum(r_count[beams.kind == BEAM_HIT], 2.0)
     assert (beams.kind == BEAM_NO_RETURN).sum() >= 2
-    evidence = EvidenceScanner(levels, unknowns).scan(lasers, weights, angles, beams, r_count, logodds_table(model),
-                                                      model.resolution, model.p_miss, model.p_hit, model.l_free)
+    evidence = EvidenceScanner(levels, unknowns).scan(
+        lasers,
+        weights,
+        angles,
+        beams,
+        r_count,
+        logodds_table(model),
+        model.resolution,
+        model.p_miss,
+        model.p_hit,
+        model.l_free,
+    )
     expected = reference_counts(model, angles, 0.05, 2.0, ranges, lasers, weights, levels, unknowns)
     for k in range(levels):
-        ax, ay = np.meshgrid(np.arange(evidence.x0[k], evidence.x0[k] + evidence.w[k]),
-                             np.arange(evidence.y0[k], evidence.y0[k] + evidence.h[k]))
+        ax, ay = np.meshgrid(
+            np.arange(evidence.x0[k], evidence.x0[k] + evidence.w[k]),
+            np.arange(evidence.y0[k], evidence.y0[k] + evidence.h[k]),
+        )
         got = evidence.counts(np.full(ax.size, k), ax.ravel(), ay.ravel())
         want = np.array([expected.get((k, x, y), [0.0, 0.0, 0.0]) for x, y in zip(ax.ravel(), ay.ravel())])
         want[want[:, 0] + want[:, 1] == 0, 2] = 0.0  # unknowns are kept only where the test reads them
@@ -255,8 +292,14 @@ def test_finest_start_without_merging_is_the_regular_grid():
     posed = room_posed_scans(steps=4, beams=90, gaussian=False, particles=6)
     model = SensorModel(resolution=RES)
     grid = AdaptiveGrid(RES)
-    adaptive = AdaptiveFusion(grid, model, posed.beam_angles, posed.range_min, posed.range_max,
-                              params=AdaptiveParams(start_level=0, merge=NEVER_MERGE))
+    adaptive = AdaptiveFusion(
+        grid,
+        model,
+        posed.beam_angles,
+        posed.range_min,
+        posed.range_max,
+        params=AdaptiveParams(start_level=0, merge=NEVER_MERGE),
+    )
     regular = TiledGrid(RES)
     fusion = MonteCarloFusion(regular, model, posed.beam_angles, posed.range_min, posed.range_max)
     for t in range(4):
@@ -271,12 +314,17 @@ def test_finest_start_without_merging_is_the_regular_grid():
 def test_a_coarse_cell_holds_the_mean_of_the_regular_grids_cells():
     posed = room_posed_scans(steps=1, beams=90, gaussian=False, particles=6)
     model = SensorModel(resolution=RES)
-    grid = fused(AdaptiveParams(start_level=3, merge=NEVER_MERGE), [(posed.ranges[0], posed.poses.samples[0],
-                                                                      posed.poses.weights[0])],
-                 posed.beam_angles, posed.range_max, model)
+    grid = fused(
+        AdaptiveParams(start_level=3, merge=NEVER_MERGE),
+        [(posed.ranges[0], posed.poses.samples[0], posed.poses.weights[0])],
+        posed.beam_angles,
+        posed.range_max,
+        model,
+    )
     regular = TiledGrid(RES)
     MonteCarloFusion(regular, model, posed.beam_angles, posed.range_min, posed.range_max).fuse(
-        posed.ranges[0], posed.poses.samples[0], posed.poses.weights[0])
+        posed.ranges[0], posed.poses.samples[0], posed.poses.weights[0]
+    )
     raster = regular.rasterize()
     rows, cols = np.nonzero(raster["observed"])
     ix = np.round(raster["origin"][0] / RES).astype(int) + cols
@@ -326,8 +374,16 @@ def _siblings(probabilities, variance, hits, misses):
     """Four level-0 siblings under parent (1, 0, 0)."""
     grid = AdaptiveGrid(0.05, tile_size=16)
     lo = np.array([math.log(p / (1 - p)) for p in probabilities])
-    grid.edit(np.zeros(0, np.int64), np.zeros(4, np.int64), np.array([0, 1, 0, 1]), np.array([0, 0, 1, 1]), lo,
-              np.array(variance, float), np.array(hits, float), np.array(misses, float))
+    grid.edit(
+        np.zeros(0, np.int64),
+        np.zeros(4, np.int64),
+        np.array([0, 1, 0, 1]),
+        np.array([0, 0, 1, 1]),
+        lo,
+        np.array(variance, float),
+        np.array(hits, float),
+        np.array(misses, float),
+    )
     return grid, lo
 
 
@@ -358,12 +414,17 @@ def test_a_scans_unknowns_do_not_veto_merging_siblings_that_earlier_scans_saw_fr
     grid = AdaptiveGrid(RES)
     children = (np.zeros(4, np.int64), np.array([40, 41, 40, 41]), np.array([2, 2, 3, 3]))
     grid.edit(np.zeros(0, np.int64), *children, np.full(4, logit(0.1)), np.zeros(4), np.zeros(4), np.full(4, 5.0))
-    fusion = AdaptiveFusion(grid, SensorModel(resolution=RES), FIG3_ANGLES, 0.05, 3.0,
-                            params=AdaptiveParams(start_level=1, unknowns=True))
+    fusion = AdaptiveFusion(
+        grid, SensorModel(resolution=RES), FIG3_ANGLES, 0.05, 3.0, params=AdaptiveParams(start_level=1, unknowns=True)
+    )
     parent = (np.array([1]), np.array([20]), np.array([1]))
     for unknowns, splits in ((True, True), (False, False)):  # seen by this scan alone, it splits on the unknowns
-        fresh = fused(AdaptiveParams(start_level=1, unknowns=unknowns, merge=NEVER_MERGE),
-                      [(FIG3_RANGES, FIG3_POSE, np.ones(1))], FIG3_ANGLES, 3.0)
+        fresh = fused(
+            AdaptiveParams(start_level=1, unknowns=unknowns, merge=NEVER_MERGE),
+            [(FIG3_RANGES, FIG3_POSE, np.ones(1))],
+            FIG3_ANGLES,
+            3.0,
+        )
         assert (fresh.find_exact(*parent)[0] == -1) == splits
     fusion.fuse(FIG3_RANGES, FIG3_POSE, np.ones(1))
     merged = grid.find_exact(*parent)[0]
@@ -374,8 +435,12 @@ def test_a_scans_unknowns_do_not_veto_merging_siblings_that_earlier_scans_saw_fr
 def test_a_merged_cell_takes_the_mean_variance_and_the_summed_hits_and_misses():
     grid, lo = _siblings([0.1, 0.12, 0.08, 0.1], [1.0, 2.0, 3.0, 4.0], [1, 2, 3, 4], [10, 20, 30, 40])
     level, ax, ay = grid.cells()
-    assert merge_siblings(grid, level, ax, ay, MergeRules(), max_level=1,
-                          undone=lambda lv, px, py, carried: np.zeros(px.shape, bool)) == 1
+    assert (
+        merge_siblings(
+            grid, level, ax, ay, MergeRules(), max_level=1, undone=lambda lv, px, py, carried: np.zeros(px.shape, bool)
+        )
+        == 1
+    )
     parent = grid.find_exact(np.array([1]), np.array([0]), np.array([0]))[0]
     assert parent >= 0
     assert grid.logodds[parent] == pytest.approx(lo.mean(), rel=1e-6)

@@ -1,4 +1,5 @@
 """The split test: the noise spill against simulation, the minimum X^2 against brute force and scipy."""
+
 import math
 
 import numpy as np
@@ -108,8 +109,9 @@ def test_families_and_degrees_of_freedom():
     assert UNKNOWN == 2
 
 
-@pytest.mark.parametrize("kwargs", [dict(sigma=0.0), dict(sigma=-0.03), dict(floor=0.0), dict(floor=0.25),
-                                    dict(resolution=0.0)])
+@pytest.mark.parametrize(
+    "kwargs", [dict(sigma=0.0), dict(sigma=-0.03), dict(floor=0.0), dict(floor=0.25), dict(resolution=0.0)]
+)
 def test_split_test_parameters_are_checked(kwargs):
     with pytest.raises(InputError):
         SplitTest(**{"resolution": 0.05, "sigma": 0.03, **kwargs})

@@ -1,4 +1,5 @@
 """The adaptive grid's storage: lookups against a brute-force cover, edits, and the raster with `level`."""
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -28,8 +29,13 @@ def brute_cover(cells, ix, iy):
 # a 16 x 16 tile at (0, 0) split unevenly, plus one coarse cell in the tile at (-1, -1)
 CELLS = [
     (3, 0, 0, 1.0),  # finest cells x 0..7, y 0..7
-    (2, 2, 0, 2.0), (2, 3, 0, 3.0), (2, 3, 1, 4.0),  # three quarters of the tile's lower-right level-3 cell
-    (0, 8, 4, 5.0), (0, 9, 4, 6.0), (0, 8, 5, 7.0), (1, 5, 3, 8.0),  # its last quarter, split further
+    (2, 2, 0, 2.0),
+    (2, 3, 0, 3.0),
+    (2, 3, 1, 4.0),  # three quarters of the tile's lower-right level-3 cell
+    (0, 8, 4, 5.0),
+    (0, 9, 4, 6.0),
+    (0, 8, 5, 7.0),
+    (1, 5, 3, 8.0),  # its last quarter, split further
     (4, -1, -1, 9.0),  # the whole tile (-1, -1): finest cells -16..-1
 ]
 

@@ -4,6 +4,7 @@ One stack for the module: a router, two shards mapping the test room moved to st
 origin (so tile indices go negative) at 2 cm with 32-cell tiles (so there are four zoom levels), the API,
 and a source replaying 20 scans with weighted pose samples. The last test stops a shard.
 """
+
 from __future__ import annotations
 
 import io
@@ -45,7 +46,8 @@ def settled(api: str, robot: str, scans: int):
     shards = stats["per_shard"]
     done = len(shards) == SHARDS and all(
         s["answered"] and s["scans_fused"].get(robot) == scans and s["tile_updates_received"] == s["tile_updates"]
-        for s in shards)
+        for s in shards
+    )
     return stats if done else None
 
 
@@ -114,8 +116,11 @@ def test_maps_report_extent_resolution_cells_and_shards(api, session):
     assert bounds["x_min"] < 0 and bounds["y_min"] < 0
     assert summary["extent"]["x_min"] == pytest.approx(bounds["x_min"] * TILE * RESOLUTION)
     raster = grid.rasterize()
-    assert summary["cells"] == {"per_tile": TILE * TILE, "total": len(tiles) * TILE * TILE,
-                                "observed": int(raster["observed"].sum())}
+    assert summary["cells"] == {
+        "per_tile": TILE * TILE,
+        "total": len(tiles) * TILE * TILE,
+        "observed": int(raster["observed"].sum()),
+    }
     height, width = raster["observed"].shape
     observed = summary["observed_extent"]
     assert observed["x_min"] == pytest.approx(raster["origin"][0])
@@ -125,8 +130,13 @@ def test_maps_report_extent_resolution_cells_and_shards(api, session):
 
 
 def test_unknown_map_is_404_everywhere(api):
-    for path in ("/maps/nowhere", "/maps/nowhere/tiles/0/0/0.png", "/maps/nowhere/tiles/0/0/0.npz",
-                 "/maps/nowhere/stats", "/maps/nowhere/export?format=npz"):
+    for path in (
+        "/maps/nowhere",
+        "/maps/nowhere/tiles/0/0/0.png",
+        "/maps/nowhere/tiles/0/0/0.npz",
+        "/maps/nowhere/stats",
+        "/maps/nowhere/export?format=npz",
+    ):
         detail = problem(httpx.get(api + path, timeout=30), 404)
         assert "nowhere" in detail and MAP in detail, path
 
@@ -155,8 +165,9 @@ def reference_parent(children: list[dict | None]) -> tuple[np.ndarray, np.ndarra
             block = (slice(dy * TILE, (dy + 1) * TILE), slice(dx * TILE, (dx + 1) * TILE))
             logodds[block] = np.where(child["observed"], child["logodds"], np.nan)
             variance[block] = np.where(child["observed"], child["variance"], np.nan)
-    blocks = [layer.reshape(TILE, 2, TILE, 2).transpose(0, 2, 1, 3).reshape(TILE, TILE, 4)
-              for layer in (logodds, variance)]
+    blocks = [
+        layer.reshape(TILE, 2, TILE, 2).transpose(0, 2, 1, 3).reshape(TILE, TILE, 4) for layer in (logodds, variance)
+    ]
     seen = ~np.isnan(blocks[0]).all(axis=2)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # "mean of empty slice" for unobserved blocks
@@ -182,7 +193,7 @@ def test_coarse_tiles_are_the_combination_of_their_four_children(api):
         np.testing.assert_array_equal(parent["observed"], observed)
         np.testing.assert_allclose(parent["logodds"], logodds, rtol=1e-6, atol=1e-6)
         np.testing.assert_allclose(parent["variance"], variance, rtol=1e-6, atol=1e-6)
-        cell = RESOLUTION * 2 ** z
+        cell = RESOLUTION * 2**z
         assert float(parent["resolution"]) == pytest.approx(cell)
         np.testing.assert_allclose(parent["origin"], [x * TILE * cell, y * TILE * cell])
         checked += int(parent["observed"].any())
@@ -224,8 +235,9 @@ def test_cached_answer_matches_the_first_and_etag_round_trip(api):
     first, second = httpx.get(url, timeout=30), httpx.get(url, timeout=30)
     assert first.status_code == second.status_code == 200
     drop = {"date"}
-    assert {k: v for k, v in first.headers.items() if k not in drop} == \
-        {k: v for k, v in second.headers.items() if k not in drop}
+    assert {k: v for k, v in first.headers.items() if k not in drop} == {
+        k: v for k, v in second.headers.items() if k not in drop
+    }
     assert first.content == second.content
     etag = first.headers["etag"]
     assert first.headers["cache-control"] == "no-cache"
@@ -240,14 +252,22 @@ def test_head_answers_as_get_without_the_body(api):
     """HEAD (curl -I, uptime monitors) gets GET's status and headers, Content-Length included, and no body; the
     event stream answers HEAD at once instead of streaming."""
     drop = {"date"}
-    for path in (f"/maps/{MAP}/tiles/3/0/0.png", f"/maps/{MAP}/tiles/3/0/0.png",  # FastAPI, then the tile cache
-                 f"/maps/{MAP}/tiles/0/0/0.npz?layer=logodds", f"/maps/{MAP}/export?format=pgm", "/maps", "/",
-                 "/maps/nope", f"/maps/{MAP}/tiles/0/0/0.png?layer=nope"):
+    for path in (
+        f"/maps/{MAP}/tiles/3/0/0.png",
+        f"/maps/{MAP}/tiles/3/0/0.png",  # FastAPI, then the tile cache
+        f"/maps/{MAP}/tiles/0/0/0.npz?layer=logodds",
+        f"/maps/{MAP}/export?format=pgm",
+        "/maps",
+        "/",
+        "/maps/nope",
+        f"/maps/{MAP}/tiles/0/0/0.png?layer=nope",
+    ):
         get, head = httpx.get(f"{api}{path}", timeout=30), httpx.head(f"{api}{path}", timeout=30)
         assert head.status_code == get.status_code, path
         assert head.content == b"" and get.content, path
-        assert {k: v for k, v in head.headers.items() if k not in drop} == \
-            {k: v for k, v in get.headers.items() if k not in drop}, path
+        assert {k: v for k, v in head.headers.items() if k not in drop} == {
+            k: v for k, v in get.headers.items() if k not in drop
+        }, path
         assert int(head.headers["content-length"]) == len(get.content), path
     for _ in range(20):
         events = httpx.head(f"{api}/events", timeout=10)
@@ -266,10 +286,12 @@ def test_bad_tile_requests_are_4xx_with_a_reason(api):
     assert "'z'" in problem(httpx.get(f"{tiles}/-1/0/0.png", timeout=30), 422)
     assert "'y'" in problem(httpx.get(f"{tiles}/0/0/north.png", timeout=30), 422)
     assert "'layer'" in problem(httpx.get(f"{tiles}/0/0/0.png", params={"layer": "colour"}, timeout=30), 422)
-    assert "'vmax'" in problem(httpx.get(f"{tiles}/0/0/0.png", params={"layer": "variance", "vmax": 0},
-                                         timeout=30), 422)
-    assert "'vmax'" in problem(httpx.get(f"{tiles}/0/0/0.png", params={"layer": "variance", "vmax": "inf"},
-                                         timeout=30), 422)
+    assert "'vmax'" in problem(
+        httpx.get(f"{tiles}/0/0/0.png", params={"layer": "variance", "vmax": 0}, timeout=30), 422
+    )
+    assert "'vmax'" in problem(
+        httpx.get(f"{tiles}/0/0/0.png", params={"layer": "variance", "vmax": "inf"}, timeout=30), 422
+    )
     assert ".png" in problem(httpx.get(f"{tiles}/0/0/0.jpg", timeout=30), 404)
     assert "'format'" in problem(httpx.get(f"{api}/maps/{MAP}/export", params={"format": "tiff"}, timeout=30), 422)
     assert "'format'" in problem(httpx.get(f"{api}/maps/{MAP}/export", timeout=30), 422)
@@ -303,8 +325,9 @@ def test_export_equals_the_shards_state(api, session, tmp_path):
     np.testing.assert_allclose(exported.origin, raster["origin"])
     assert exported.resolution == RESOLUTION
 
-    archive = zipfile.ZipFile(io.BytesIO(httpx.get(f"{api}/maps/{MAP}/export", params={"format": "pgm"},
-                                                   timeout=60).content))
+    archive = zipfile.ZipFile(
+        io.BytesIO(httpx.get(f"{api}/maps/{MAP}/export", params={"format": "pgm"}, timeout=60).content)
+    )
     assert sorted(archive.namelist()) == [f"{MAP}.pgm", f"{MAP}.yaml"]
     pgm, yaml = render_pgm(raster, image_name=f"{MAP}.pgm")
     assert archive.read(f"{MAP}.pgm") == pgm and archive.read(f"{MAP}.yaml").decode() == yaml
@@ -329,8 +352,9 @@ def test_robot_pose_and_trajectory(api, stack):
     np.testing.assert_allclose(pose["samples"], samples)
     np.testing.assert_allclose(pose["weights"], weights)
     np.testing.assert_allclose(pose["mean"][:2], np.average(samples[:, :2], axis=0, weights=weights))
-    np.testing.assert_allclose(pose["covariance"][0][0], np.average((samples[:, 0] - pose["mean"][0]) ** 2,
-                                                                    weights=weights))
+    np.testing.assert_allclose(
+        pose["covariance"][0][0], np.average((samples[:, 0] - pose["mean"][0]) ** 2, weights=weights)
+    )
     fewer = httpx.get(f"{api}/robots/robot0/pose", params={"max_samples": 3}, timeout=30).json()
     assert len(fewer["samples"]) == 3 and sum(fewer["weights"]) == pytest.approx(1.0)
     track = httpx.get(f"{api}/robots/robot0/trajectory", timeout=30).json()
@@ -363,18 +387,40 @@ def test_bad_zenoh_data_is_counted_by_key_never_trusted(api, session):
     garbage_key = keys.tile_key(MAP, 0, 0, 0)
     session.put(garbage_key, b"\x93not msgpack")
     session.put(keys.robot_key("robot0", keys.POSE), b"\x81\xa4type\xa9PoseNoise")
-    tile = TileUpdate(map=MAP, shard=0, z=0, tx=0, ty=0, tile_size=TILE, resolution=RESOLUTION, row0=0, col0=0,
-                      robot="robot0", seq=0, published=0.0, logodds=np.zeros((1, 1), np.float32),
-                      variance=np.zeros((1, 1), np.float32), observed=np.ones((1, 1), bool))
+    tile = TileUpdate(
+        map=MAP,
+        shard=0,
+        z=0,
+        tx=0,
+        ty=0,
+        tile_size=TILE,
+        resolution=RESOLUTION,
+        row0=0,
+        col0=0,
+        robot="robot0",
+        seq=0,
+        published=0.0,
+        logodds=np.zeros((1, 1), np.float32),
+        variance=np.zeros((1, 1), np.float32),
+        observed=np.ones((1, 1), bool),
+    )
     wrong_key = keys.tile_key(MAP, 0, 7, 7)
     session.put(wrong_key, tile.encode())
 
     def counted():
         rejected = httpx.get(f"{api}/health", timeout=30).json()["rejected"]
         return all(rejected.get(k, 0) >= 1 for k in (garbage_key, wrong_key, "pg/robot0/pose")) and rejected
+
     wait_until(counted, 30, "the API to count the bad messages")
-    shards = wait_until(lambda: [s for s in httpx.get(f"{api}/maps/{MAP}/stats", timeout=30).json()["per_shard"]
-                                 if s["rejected"].get("pg/robot0/pose")], 30, "the shards to count the bad pose")
+    shards = wait_until(
+        lambda: [
+            s
+            for s in httpx.get(f"{api}/maps/{MAP}/stats", timeout=30).json()["per_shard"]
+            if s["rejected"].get("pg/robot0/pose")
+        ],
+        30,
+        "the shards to count the bad pose",
+    )
     assert len(shards) == SHARDS
     stats = httpx.get(f"{api}/maps/{MAP}/stats", timeout=30).json()
     assert stats["rejected"]["pg/robot0/pose"] >= SHARDS + 1  # both shards and the API
@@ -418,10 +464,12 @@ def test_tiles_change_etags_change_and_events_flow(api, stack, tmp_path):
     assert httpx.get(url, headers={"If-None-Match": after.headers["etag"]}, timeout=30).status_code == 304
 
     def seen():
-        tiles = {(tx, ty) for name, data in events if name == "tiles" and data["map"] == MAP
-                 for tx, ty, _ in data["tiles"]}
+        tiles = {
+            (tx, ty) for name, data in events if name == "tiles" and data["map"] == MAP for tx, ty, _ in data["tiles"]
+        }
         poses = [data for name, data in events if name == "pose" and data["robot"] == "robot1"]
         return (1, 0) in tiles and poses and poses
+
     poses = wait_until(seen, 30, "tiles and pose events of the second robot")
     stop.set()
     assert poses[-1]["seq"] == SCANS - 1 and len(poses[-1]["samples"]) == 10
@@ -433,9 +481,18 @@ def test_tiles_change_etags_change_and_events_flow(api, stack, tmp_path):
 
 def test_openapi_describes_every_parameter_and_error(api):
     spec = httpx.get(f"{api}/openapi.json", timeout=30).json()
-    assert {"/maps", "/maps/{map}", "/maps/{map}/tiles/{z}/{x}/{y}.png", "/maps/{map}/tiles/{z}/{x}/{y}.npz",
-            "/maps/{map}/export", "/maps/{map}/stats", "/health", "/robots/{robot}/pose",
-            "/robots/{robot}/trajectory", "/events"} <= set(spec["paths"])
+    assert {
+        "/maps",
+        "/maps/{map}",
+        "/maps/{map}/tiles/{z}/{x}/{y}.png",
+        "/maps/{map}/tiles/{z}/{x}/{y}.npz",
+        "/maps/{map}/export",
+        "/maps/{map}/stats",
+        "/health",
+        "/robots/{robot}/pose",
+        "/robots/{robot}/trajectory",
+        "/events",
+    } <= set(spec["paths"])
     for path, operations in spec["paths"].items():
         for method, operation in operations.items():
             for parameter in operation.get("parameters", []):
@@ -463,11 +520,11 @@ def test_api_command_rejects_a_taken_port():
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         port = taken.getsockname()[1]
-        result = subprocess.run([*POSEGRID, "api", "--port", str(port)], cwd=ROOT,
-                                capture_output=True, text=True, timeout=60)
+        result = subprocess.run(
+            [*POSEGRID, "api", "--port", str(port)], cwd=ROOT, capture_output=True, text=True, timeout=60
+        )
     assert result.returncode == 2 and "pick another --port" in result.stderr
-    result = subprocess.run([*POSEGRID, "api", "--port", "70000"], cwd=ROOT,
-                            capture_output=True, text=True, timeout=60)
+    result = subprocess.run([*POSEGRID, "api", "--port", "70000"], cwd=ROOT, capture_output=True, text=True, timeout=60)
     assert result.returncode == 2 and "--port" in result.stderr
 
 
@@ -479,17 +536,35 @@ def test_tile_updates_no_shard_stands_behind_do_not_break_the_map(api, session):
     a map no shard serves: the non-owner's and the unknown map's are refused; the owner's is taken, and the
     first request that asks the owner for that tile finds it does not hold it and drops it. (Late in the module:
     the owner's update counts as received, which `settled` would see.)"""
+
     def forged(map_name: str, shard: int) -> bytes:
-        return TileUpdate(map=map_name, shard=shard, z=0, tx=7, ty=7, tile_size=TILE, resolution=RESOLUTION, row0=0,
-                          col0=0, robot="robot0", seq=0, published=0.0, logodds=np.full((TILE, TILE), 3.0, np.float32),
-                          variance=np.zeros((TILE, TILE), np.float32),
-                          observed=np.ones((TILE, TILE), bool)).encode()
+        return TileUpdate(
+            map=map_name,
+            shard=shard,
+            z=0,
+            tx=7,
+            ty=7,
+            tile_size=TILE,
+            resolution=RESOLUTION,
+            row0=0,
+            col0=0,
+            robot="robot0",
+            seq=0,
+            published=0.0,
+            logodds=np.full((TILE, TILE), 3.0, np.float32),
+            variance=np.zeros((TILE, TILE), np.float32),
+            observed=np.ones((TILE, TILE), bool),
+        ).encode()
+
     httpx.get(f"{api}/maps/{MAP}/stats", timeout=30).raise_for_status()  # the API knows the shard count
     for shard in range(SHARDS):
         session.put(keys.tile_key(MAP, 0, 7, 7), forged(MAP, shard))
     session.put(keys.tile_key("ghost", 0, 7, 7), forged("ghost", 0))
-    wait_until(lambda: httpx.get(f"{api}/health", timeout=30).json()["rejected"].get(keys.tile_key("ghost", 0, 7, 7)),
-               30, "the API to refuse the update of a map no shard serves")
+    wait_until(
+        lambda: httpx.get(f"{api}/health", timeout=30).json()["rejected"].get(keys.tile_key("ghost", 0, 7, 7)),
+        30,
+        "the API to refuse the update of a map no shard serves",
+    )
     maps = httpx.get(f"{api}/maps", timeout=30)
     assert maps.status_code == 200 and [m["name"] for m in maps.json()] == [MAP]
     summary = httpx.get(f"{api}/maps/{MAP}", timeout=30)
@@ -520,25 +595,48 @@ def test_a_stalled_shard_holds_up_only_its_own_tiles(api, stack, session):
         except httpx.ConnectError:  # not listening yet
             return None
         return response.headers["etag"] if response.status_code == 200 else None
+
     before = wait_until(etag, 60, "the second API to serve a tile")
     stalled, waiting, threads = stack.processes["mapper1"], [], []
     stalled.send_signal(signal.SIGSTOP)
     try:
         for (tx, ty), shard in (((sx, sy), 1), ((x, y), 0)):  # in this order: one subscriber, one session
-            session.put(keys.tile_key(MAP, 0, tx, ty), TileUpdate(
-                map=MAP, shard=shard, z=0, tx=tx, ty=ty, tile_size=TILE, resolution=RESOLUTION, row0=0, col0=0,
-                robot="robot0", seq=0, published=0.0, logodds=np.zeros((TILE, TILE), np.float32),
-                variance=np.zeros((TILE, TILE), np.float32), observed=np.zeros((TILE, TILE), bool)).encode())
+            session.put(
+                keys.tile_key(MAP, 0, tx, ty),
+                TileUpdate(
+                    map=MAP,
+                    shard=shard,
+                    z=0,
+                    tx=tx,
+                    ty=ty,
+                    tile_size=TILE,
+                    resolution=RESOLUTION,
+                    row0=0,
+                    col0=0,
+                    robot="robot0",
+                    seq=0,
+                    published=0.0,
+                    logodds=np.zeros((TILE, TILE), np.float32),
+                    variance=np.zeros((TILE, TILE), np.float32),
+                    observed=np.zeros((TILE, TILE), bool),
+                ).encode(),
+            )
         # shard 0's tile is asked for again and comes back while shard 1 is stopped (a request that waited for
         # shard 1 would raise ReadTimeout here)
         wait_until(lambda: etag() not in (None, before), 30, "shard 0's tile under its new version")
 
         def ask_stalled(vmax: int) -> None:
             try:
-                waiting.append(httpx.get(f"{url}/maps/{MAP}/tiles/0/{sx}/{sy}.png",
-                                         params={"layer": "variance", "vmax": vmax}, timeout=90).status_code)
+                waiting.append(
+                    httpx.get(
+                        f"{url}/maps/{MAP}/tiles/0/{sx}/{sy}.png",
+                        params={"layer": "variance", "vmax": vmax},
+                        timeout=90,
+                    ).status_code
+                )
             except httpx.HTTPError as exc:
                 waiting.append(type(exc).__name__)
+
         threads += [threading.Thread(target=ask_stalled, args=(vmax,), daemon=True) for vmax in range(1, 61)]
         for thread in threads:
             thread.start()
@@ -558,8 +656,11 @@ def test_a_stalled_shard_holds_up_only_its_own_tiles(api, stack, session):
 def test_a_stopped_shard_shows_in_health_and_stops_the_export(api, stack):
     stack.processes["mapper1"].send_signal(signal.SIGINT)
     stack.processes["mapper1"].wait(30)
-    health = wait_until(lambda: (h := httpx.get(f"{api}/health", timeout=30).json())["status"] == "degraded" and h,
-                        30, "health to report the stopped shard")
+    health = wait_until(
+        lambda: (h := httpx.get(f"{api}/health", timeout=30).json())["status"] == "degraded" and h,
+        30,
+        "health to report the stopped shard",
+    )
     assert health["maps"][MAP]["shards_alive"] == [0]
     stats = httpx.get(f"{api}/maps/{MAP}/stats", timeout=30).json()
     assert [(s["shard"], s["alive"], s["answered"]) for s in stats["per_shard"]] == [(0, True, True), (1, False, False)]
@@ -573,22 +674,49 @@ def test_a_stopped_shard_shows_in_health_and_stops_the_export(api, stack):
     assert one.status_code == 200 and one.json()["tiles"] > 0
     # started again after the sources ended: every shard answers, but shard 1's scans cannot come back (no source
     # holds a history any more); the lag says so and the status stays degraded (it said ok)
-    stack.start("mapper1", "mapper", "--shard", "1", "--shards", str(SHARDS), "--map", MAP, "--resolution",
-                str(RESOLUTION), "--tile-size", str(TILE))
-    health = wait_until(lambda: (h := httpx.get(f"{api}/health", timeout=30).json())["maps"][MAP]["shards_alive"]
-                        == [0, 1] and h["maps"][MAP]["lag_scans"].get("robot0", 0) > 0 and h, 60,
-                        "the restarted shard to answer with its lag")
+    stack.start(
+        "mapper1",
+        "mapper",
+        "--shard",
+        "1",
+        "--shards",
+        str(SHARDS),
+        "--map",
+        MAP,
+        "--resolution",
+        str(RESOLUTION),
+        "--tile-size",
+        str(TILE),
+    )
+    health = wait_until(
+        lambda: (
+            (h := httpx.get(f"{api}/health", timeout=30).json())["maps"][MAP]["shards_alive"] == [0, 1]
+            and h["maps"][MAP]["lag_scans"].get("robot0", 0) > 0
+            and h
+        ),
+        60,
+        "the restarted shard to answer with its lag",
+    )
     assert "robot0/source" not in health["processes_alive"]
-    wait_until(lambda: httpx.get(f"{api}/health", timeout=30).json()["status"] == "degraded", 30,
-               "health to call the scans that cannot come stranded")
+    wait_until(
+        lambda: httpx.get(f"{api}/health", timeout=30).json()["status"] == "degraded",
+        30,
+        "health to call the scans that cannot come stranded",
+    )
 
 
 def test_a_map_whose_only_tiles_may_lie_on_a_down_shard_is_503_not_empty(api, stack):
     """Shard 0 of 2 of a new map runs and holds nothing; shard 1 never started. A tile and an export are 503 (the
     data may be on shard 1), not 404 / 409 "no tiles yet" (they were)."""
     stack.start("half0", "mapper", "--shard", "0", "--shards", "2", "--map", "half")
-    wait_until(lambda: httpx.get(f"{api}/maps/half", timeout=30).status_code == 200
-               and httpx.get(f"{api}/maps/half", timeout=30).json()["shards_alive"] == [0], 60, "map 'half' to show")
+    wait_until(
+        lambda: (
+            httpx.get(f"{api}/maps/half", timeout=30).status_code == 200
+            and httpx.get(f"{api}/maps/half", timeout=30).json()["shards_alive"] == [0]
+        ),
+        60,
+        "map 'half' to show",
+    )
     assert "shard(s) [1]" in problem(httpx.get(f"{api}/maps/half/tiles/0/0/0.png", timeout=30), 503)
     assert "shard(s) [1]" in problem(httpx.get(f"{api}/maps/half/export", params={"format": "npz"}, timeout=60), 503)
 

@@ -6,6 +6,7 @@ One stack for the module: a router, one real mapper shard mapping the test room 
 API (real uvicorn process) with small limits, a source replaying 20 scans; the test plays extra "shards" and
 peers over its own Zenoh session.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -35,9 +36,24 @@ MAP, RESOLUTION, TILE, SCANS = "lab", 0.02, 32, 20
 TOKEN = "test-token-0123456789abcdef"
 #: the module API's limits (small, so that the tests reach them)
 EXPORT_CELLS, VERIFY_WINDOW, STRAY_TTL, MAX_MAPS, MAX_ROBOTS, REQUEST_TIMEOUT = 20000, 3, 8, 6, 6, 2
-API_OPTIONS = ("--max-maps", str(MAX_MAPS), "--max-robots", str(MAX_ROBOTS), "--stray-robot-ttl", str(STRAY_TTL),
-               "--verify-window", str(VERIFY_WINDOW), "--max-exports", "1", "--max-event-clients", "2",
-               "--max-export-cells", str(EXPORT_CELLS), "--request-timeout", str(REQUEST_TIMEOUT))
+API_OPTIONS = (
+    "--max-maps",
+    str(MAX_MAPS),
+    "--max-robots",
+    str(MAX_ROBOTS),
+    "--stray-robot-ttl",
+    str(STRAY_TTL),
+    "--verify-window",
+    str(VERIFY_WINDOW),
+    "--max-exports",
+    "1",
+    "--max-event-clients",
+    "2",
+    "--max-export-cells",
+    str(EXPORT_CELLS),
+    "--request-timeout",
+    str(REQUEST_TIMEOUT),
+)
 
 
 def start_api(stack: Stack, name: str, *options: str, headers: dict | None = None) -> str:
@@ -51,6 +67,7 @@ def start_api(stack: Stack, name: str, *options: str, headers: dict | None = Non
             return httpx.get(f"{url}/health", headers=headers, timeout=5).status_code == 200
         except httpx.TransportError:
             return False
+
     wait_until(up, 60, f"{name} to answer /health")
     return url
 
@@ -61,8 +78,12 @@ def settled(api: str) -> bool:
     if response.status_code != 200:
         return False
     shards = response.json()["per_shard"]
-    return len(shards) == 1 and shards[0]["answered"] and shards[0]["scans_fused"].get("robot0") == SCANS and \
-        shards[0]["tile_updates_received"] == shards[0]["tile_updates"]
+    return (
+        len(shards) == 1
+        and shards[0]["answered"]
+        and shards[0]["scans_fused"].get("robot0") == SCANS
+        and shards[0]["tile_updates_received"] == shards[0]["tile_updates"]
+    )
 
 
 @pytest.fixture(scope="module")
@@ -111,8 +132,9 @@ class FakeShard:
             self.held.set()
             return
         given = {"map": self.name, "shard": 0, "shards": 1, "uptime": 1.0}  # the rest: counts of 0, none by key
-        stats = ShardStats(**{f.name: given.get(f.name, {} if f.type in ("dict", dict) else 0)
-                              for f in dataclasses.fields(ShardStats)})
+        stats = ShardStats(
+            **{f.name: given.get(f.name, {} if f.type in ("dict", dict) else 0) for f in dataclasses.fields(ShardStats)}
+        )
         query.reply(keys.stats_key(self.name, 0), stats.encode())
 
     def release(self) -> None:
@@ -134,6 +156,7 @@ def fake_shards(session):
     def make(name: str) -> FakeShard:
         made.append(FakeShard(session, name))
         return made[-1]
+
     yield make
     for fake in made:
         fake.close()
@@ -158,8 +181,9 @@ def map_names(api: str) -> list[str]:
 
 
 def pose(robot: str, seq: int) -> bytes:
-    return PoseSamples(robot=robot, seq=seq, stamp=seq * 0.1, samples=np.array([[1.0, 1.0, 0.0]]),
-                       weights=np.array([1.0])).encode()
+    return PoseSamples(
+        robot=robot, seq=seq, stamp=seq * 0.1, samples=np.array([[1.0, 1.0, 0.0]]), weights=np.array([1.0])
+    ).encode()
 
 
 # ------------------------------------------------------------------------------------------ Zenoh peers
@@ -169,12 +193,14 @@ def test_a_made_up_shard_token_lists_no_map_and_is_forgotten(api, session):
     key = keys.shard_alive_key("ghost", 0)
     token = session.liveliness().declare_token(key)
     try:
+
         def forgotten() -> bool:
             assert "ghost" not in map_names(api)
             assert httpx.get(f"{api}/maps/ghost", timeout=30).status_code == 404
             health = get_json(f"{api}/health")
             assert health["status"] == "ok" and "ghost" not in health["maps"], health
             return health["rejected"].get(key, 0) >= 1  # counted as unproved once the window is over
+
         wait_until(forgotten, VERIFY_WINDOW + 60, "the made-up token to be counted as unproved")
     finally:
         token.undeclare()
@@ -184,12 +210,14 @@ def test_a_token_for_a_shard_beyond_the_maps_shard_count_is_no_shard(api, sessio
     key = keys.shard_alive_key(MAP, 5)  # the map has 1 shard
     token = session.liveliness().declare_token(key)
     try:
+
         def forgotten() -> bool:
             assert get_json(f"{api}/maps/{MAP}")["shards_alive"] == [0]
             assert [s["shard"] for s in get_json(f"{api}/maps/{MAP}/stats")["per_shard"]] == [0]
             health = get_json(f"{api}/health")
             assert health["status"] == "ok", health
             return health["rejected"].get(key, 0) >= 1
+
         wait_until(forgotten, VERIFY_WINDOW + 60, "the token of shard 5 to be counted as unproved")
     finally:
         token.undeclare()
@@ -199,8 +227,11 @@ def test_made_up_maps_are_capped_and_forgotten_when_their_tokens_go(api, session
     before = get_json(f"{api}/health")["refused"].get("shard_tokens", 0)
     tokens = [session.liveliness().declare_token(keys.shard_alive_key(f"flood{i}", 0)) for i in range(10)]
     try:  # at most MAX_MAPS maps, one of them the real one: at least 10 - (MAX_MAPS - 1) tokens refused
-        wait_until(lambda: get_json(f"{api}/health")["refused"].get("shard_tokens", 0) - before >= 10 - MAX_MAPS + 1,
-                   30, "the tokens beyond --max-maps to be refused")
+        wait_until(
+            lambda: get_json(f"{api}/health")["refused"].get("shard_tokens", 0) - before >= 10 - MAX_MAPS + 1,
+            30,
+            "the tokens beyond --max-maps to be refused",
+        )
         assert not any(name.startswith("flood") for name in map_names(api))
     finally:
         for token in tokens:
@@ -219,6 +250,7 @@ def test_stray_poses_neither_lag_nor_degrade_health_and_expire(api, session):
     def listed() -> bool:
         session.put(key, pose("ghostbot", 1000))  # again each time: an earlier one may have met a full tracker
         return "ghostbot" in [r["robot"] for r in get_json(f"{api}/robots")]
+
     wait_until(listed, 60, "the stray robot to be listed")
     assert STRAY_TTL > 5.0  # longer than the API's STRANDED_AFTER: a stranded robot would show before it expires
 
@@ -228,6 +260,7 @@ def test_stray_poses_neither_lag_nor_degrade_health_and_expire(api, session):
         assert "ghostbot" not in health["maps"][MAP]["lag_scans"]
         assert "ghostbot" not in get_json(f"{api}/maps/{MAP}/stats")["lag_scans"]
         return "ghostbot" not in health["robots"]
+
     wait_until(gone, STRAY_TTL + 60, "the stray robot to expire", interval=0.5)
     assert httpx.get(f"{api}/robots/ghostbot/pose", timeout=30).status_code == 404
 
@@ -236,8 +269,11 @@ def test_robots_are_capped_and_refusals_counted(api, session):
     before = get_json(f"{api}/health")["refused"].get("robots", 0)
     for i in range(MAX_ROBOTS + 4):
         session.put(keys.robot_key(f"crowd{i}", keys.POSE), pose(f"crowd{i}", 1))
-    wait_until(lambda: get_json(f"{api}/health")["refused"].get("robots", 0) - before >= 4, 30,
-               "the poses beyond --max-robots to be refused")
+    wait_until(
+        lambda: get_json(f"{api}/health")["refused"].get("robots", 0) - before >= 4,
+        30,
+        "the poses beyond --max-robots to be refused",
+    )
     assert len(get_json(f"{api}/robots")) <= MAX_ROBOTS
     assert get_json(f"{api}/health")["limits"]["robots"] == MAX_ROBOTS
 
@@ -249,15 +285,21 @@ def test_host_header_must_name_the_api(api):
     detail = problem(httpx.get(f"{api}/health", headers={"Host": "evil.example"}, timeout=30), 400)
     assert "evil.example" in detail and "--allowed-host" in detail
     problem(httpx.get(f"{api}/maps", headers={"Host": "evil.example:80"}, timeout=30), 400)
-    problem(httpx.get(f"{api}/maps/{MAP}/tiles/0/0/0.png", headers={"Host": "127.0.0.1.evil.example"}, timeout=30),
-            400)  # the cached-tile fast path is behind the check too
+    problem(
+        httpx.get(f"{api}/maps/{MAP}/tiles/0/0/0.png", headers={"Host": "127.0.0.1.evil.example"}, timeout=30), 400
+    )  # the cached-tile fast path is behind the check too
     for host in ("localhost:1234", "127.0.0.1", "[::1]:8000", "LOCALHOST"):
         assert httpx.get(f"{api}/health", headers={"Host": host}, timeout=30).status_code == 200, host
 
 
 def test_hosts_beyond_loopback_are_the_allowed_ones_and_the_bound_address():
-    assert allowed_hosts("192.0.2.7", ["maps.example"]) == {"localhost", "127.0.0.1", "::1", "192.0.2.7",
-                                                            "maps.example"}
+    assert allowed_hosts("192.0.2.7", ["maps.example"]) == {
+        "localhost",
+        "127.0.0.1",
+        "::1",
+        "192.0.2.7",
+        "maps.example",
+    }
     assert allowed_hosts("0.0.0.0", []) == {"localhost", "127.0.0.1", "::1"}
     assert allowed_hosts("::", ["[2001:db8::1]"]) == {"localhost", "127.0.0.1", "::1", "2001:db8::1"}
 
@@ -269,8 +311,7 @@ def test_the_access_token_guards_every_route(stack):
             response = httpx.get(url + path, timeout=30)
             assert "access token" in problem(response, 401), path
             assert response.headers["www-authenticate"].startswith("Bearer"), path
-        assert "wrong" in problem(httpx.get(f"{url}/health", headers={"Authorization": "Bearer nope"}, timeout=30),
-                                  401)
+        assert "wrong" in problem(httpx.get(f"{url}/health", headers={"Authorization": "Bearer nope"}, timeout=30), 401)
         assert httpx.get(f"{url}/health", headers={"Authorization": f"Bearer {TOKEN}"}, timeout=30).status_code == 200
         assert httpx.get(f"{url}/health", params={"token": TOKEN}, timeout=30).status_code == 200
         # the viewer: /?token= sets the cookie and drops the token from the address; the viewer's requests
@@ -294,8 +335,14 @@ def test_the_access_token_guards_every_route(stack):
 
 def test_a_bad_token_is_a_usage_error():
     for argv, env in ((["api", "--token", "short"], {}), (["api"], {"POSEGRID_API_TOKEN": "has spaces in it ok"})):
-        result = subprocess.run([*POSEGRID, *argv, "--port", str(free_port())], cwd=ROOT, capture_output=True,
-                                text=True, timeout=60, env={**os.environ, **env})
+        result = subprocess.run(
+            [*POSEGRID, *argv, "--port", str(free_port())],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=60,
+            env={**os.environ, **env},
+        )
         assert result.returncode == 2, result.stderr
         assert "16 to 256" in result.stderr and "Traceback" not in result.stderr
 
@@ -305,10 +352,27 @@ def test_posegrid_run_passes_the_http_options_on(monkeypatch):
     from services.commands.api import TOKEN_ENV, api_child_options
 
     monkeypatch.setenv(TOKEN_ENV, "placeholder-0123456789")  # restored after the test
-    args = build_parser().parse_args(["run", "--api-token", TOKEN, "--api-allowed-host", "maps.example",
-                                      "--api-max-exports", "3", "--api-request-timeout", "4"])
-    assert api_child_options(args) == ["--allowed-host", "maps.example", "--max-exports", "3",
-                                       "--request-timeout", "4.0"]
+    args = build_parser().parse_args(
+        [
+            "run",
+            "--api-token",
+            TOKEN,
+            "--api-allowed-host",
+            "maps.example",
+            "--api-max-exports",
+            "3",
+            "--api-request-timeout",
+            "4",
+        ]
+    )
+    assert api_child_options(args) == [
+        "--allowed-host",
+        "maps.example",
+        "--max-exports",
+        "3",
+        "--request-timeout",
+        "4.0",
+    ]
     assert os.environ[TOKEN_ENV] == TOKEN  # the child inherits it; it is not on its command line
 
 
@@ -332,6 +396,7 @@ def test_event_streams_beyond_the_limit_are_503(api):
         def admitted() -> bool:  # the slots come back once the server sees the streams closed
             with client.stream("GET", "/events") as again:
                 return again.status_code == 200
+
         wait_until(admitted, 30, "an event-stream slot to be free again")
 
 
@@ -342,8 +407,9 @@ def test_exports_beyond_the_limit_are_503(api, fake_shards):
         slow.held.clear()
         slow.hold = True  # the export of 'slow' waits for its shard's stats, holding the only export slot
         answers: list[httpx.Response] = []
-        first = threading.Thread(target=lambda: answers.append(httpx.get(f"{api}/maps/slow/export",
-                                                                         params={"format": "npz"}, timeout=60)))
+        first = threading.Thread(
+            target=lambda: answers.append(httpx.get(f"{api}/maps/slow/export", params={"format": "npz"}, timeout=60))
+        )
         first.start()
         try:
             assert slow.held.wait(30), "the export did not ask the shard"
@@ -376,8 +442,9 @@ def windowed_reference(session, window: tuple[float, float, float, float]) -> di
     ix0, iy0 = (round(v / RESOLUTION) for v in full["origin"])
     ix = ix0 + np.arange(columns)
     iy = iy0 + np.arange(rows)
-    inside = ((iy >= math.floor(window[1] / RESOLUTION)) & (iy < math.ceil(window[3] / RESOLUTION)))[:, None] & \
-        ((ix >= math.floor(window[0] / RESOLUTION)) & (ix < math.ceil(window[2] / RESOLUTION)))[None, :]
+    inside = ((iy >= math.floor(window[1] / RESOLUTION)) & (iy < math.ceil(window[3] / RESOLUTION)))[:, None] & (
+        (ix >= math.floor(window[0] / RESOLUTION)) & (ix < math.ceil(window[2] / RESOLUTION))
+    )[None, :]
     observed = full["observed"] & inside
     keep_rows, keep_columns = np.flatnonzero(observed.any(axis=1)), np.flatnonzero(observed.any(axis=0))
     crop = (slice(keep_rows[0], keep_rows[-1] + 1), slice(keep_columns[0], keep_columns[-1] + 1))
@@ -410,10 +477,12 @@ def test_an_export_beyond_the_cell_limit_is_413_before_it_is_built_and_a_window_
     np.testing.assert_allclose(exported["origin"], reference["origin"])
     assert exported["origin"][0] >= WINDOW[0] - RESOLUTION and exported["origin"][1] >= WINDOW[1] - RESOLUTION
 
-    assert "all four" in problem(httpx.get(f"{api}/maps/{MAP}/export", params={"format": "npz", "x_min": 1},
-                                           timeout=30), 422)
-    assert "x_min < x_max" in problem(httpx.get(f"{api}/maps/{MAP}/export", params={
-        "format": "npz", **window, "x_max": 1.0}, timeout=30), 422)
+    assert "all four" in problem(
+        httpx.get(f"{api}/maps/{MAP}/export", params={"format": "npz", "x_min": 1}, timeout=30), 422
+    )
+    assert "x_min < x_max" in problem(
+        httpx.get(f"{api}/maps/{MAP}/export", params={"format": "npz", **window, "x_max": 1.0}, timeout=30), 422
+    )
 
 
 def test_export_layers_follow_the_openapi_schema(api, session):
@@ -433,8 +502,9 @@ def test_export_layers_follow_the_openapi_schema(api, session):
     reference = windowed_reference(session, WINDOW)
     for fmt in formats:
         for layer in layers:
-            response = httpx.get(f"{api}/maps/{MAP}/export", params={"format": fmt, "layer": layer, **window},
-                                 timeout=60)
+            response = httpx.get(
+                f"{api}/maps/{MAP}/export", params={"format": fmt, "layer": layer, **window}, timeout=60
+            )
             if fmt == "pgm" and layer != "probability":
                 assert "pgm" in problem(response, 422)
                 continue

@@ -1,4 +1,5 @@
 """services.api.status: what /maps/{map}/stats and /health say, from plain data, against hand-computed values."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -9,15 +10,23 @@ from services.api.registry import MapInfo
 from services.api.status import STRANDED_AFTER, Progress, distrust, health_report, map_stats, shards_healthy, stranded
 
 #: the Health fields about the API itself, passed through health_report unchanged
-SYSTEM = dict(uptime_s=12.5, robots=["r1"], rejected={"pose": 1}, event_clients=2, exports_running=1,
-              refused={"exports": 3}, limits={"maps": 64})
+SYSTEM = dict(
+    uptime_s=12.5,
+    robots=["r1"],
+    rejected={"pose": 1},
+    event_clients=2,
+    exports_running=1,
+    refused={"exports": 3},
+    limits={"maps": 64},
+)
 
 
 def shard(index: int, shards: int = 2, **given) -> ShardStats:
     """Stats of shard ``index`` of map m: ``given`` fields, every other count 0 and every other dict empty."""
     values = {"map": "m", "shard": index, "shards": shards, "uptime": 1.0, **given}
-    return ShardStats(**{f.name: values.get(f.name, {} if f.type in ("dict", dict) else 0)
-                         for f in dataclasses.fields(ShardStats)})
+    return ShardStats(
+        **{f.name: values.get(f.name, {} if f.type in ("dict", dict) else 0) for f in dataclasses.fields(ShardStats)}
+    )
 
 
 def info(shards: int | None = 2, alive: set[int] | None = None, **given) -> MapInfo:
@@ -25,10 +34,18 @@ def info(shards: int | None = 2, alive: set[int] | None = None, **given) -> MapI
 
 
 def two_shards() -> dict[int, ShardStats]:
-    return {0: shard(0, fused={"r1": 10, "r2": 3}, discarded={"r1": 1}, rejected={"scan": 2},
-                     refused={"ahead": 4, "malformed": 1}),
-            1: shard(1, fused={"r1": 7}, discarded={"r1": 2, "r2": 1}, rejected={"pose": 1},
-                     refused={"ahead": 1, "key": 2})}
+    return {
+        0: shard(
+            0,
+            fused={"r1": 10, "r2": 3},
+            discarded={"r1": 1},
+            rejected={"scan": 2},
+            refused={"ahead": 4, "malformed": 1},
+        ),
+        1: shard(
+            1, fused={"r1": 7}, discarded={"r1": 2, "r2": 1}, rejected={"pose": 1}, refused={"ahead": 1, "key": 2}
+        ),
+    }
 
 
 def test_map_stats_fuse_min_discard_max_and_lag_max_over_the_shards():
@@ -45,17 +62,26 @@ def test_map_stats_fuse_min_discard_max_and_lag_max_over_the_shards():
 
 
 def test_lag_is_never_negative_and_counts_robots_no_shard_has_fused():
-    s = map_stats(info(shards=1), {0: shard(0, shards=1, fused={"r1": 5})}, latest={"r1": 2, "r3": 0},
-                  api_rejected={}, now=0.0)
+    s = map_stats(
+        info(shards=1), {0: shard(0, shards=1, fused={"r1": 5})}, latest={"r1": 2, "r3": 0}, api_rejected={}, now=0.0
+    )
     assert s.lag_scans == {"r1": 0, "r3": 1}  # r1: 3 - 5 < 0; r3: seq 0 + 1 - nothing
     assert s.scans_fused == {"r1": 5, "r3": 0}
 
 
 def test_a_shard_that_is_down_is_listed_silent_and_the_map_is_unhealthy():
-    s = map_stats(info(shards=3, alive={0, 2}, last_update={0: 100.0}, updates_received={0: 7}),
-                  {0: shard(0, shards=3), 2: shard(2, shards=3)}, latest={}, api_rejected={}, now=103.5)
-    assert [(p.shard, p.alive, p.answered) for p in s.per_shard] == [(0, True, True), (1, False, False),
-                                                                     (2, True, True)]
+    s = map_stats(
+        info(shards=3, alive={0, 2}, last_update={0: 100.0}, updates_received={0: 7}),
+        {0: shard(0, shards=3), 2: shard(2, shards=3)},
+        latest={},
+        api_rejected={},
+        now=103.5,
+    )
+    assert [(p.shard, p.alive, p.answered) for p in s.per_shard] == [
+        (0, True, True),
+        (1, False, False),
+        (2, True, True),
+    ]
     assert s.per_shard[1].scans_fused is None and s.per_shard[1].tiles_owned is None
     assert (s.per_shard[0].tile_updates_received, s.per_shard[0].last_tile_update_age_s) == (7, 3.5)
     assert (s.per_shard[2].tile_updates_received, s.per_shard[2].last_tile_update_age_s) == (0, None)
@@ -79,26 +105,37 @@ def test_health_is_ok_with_every_shard_up_and_degraded_without_maps():
     report = health_report({"m": s}, ["r1/slam", "r1/source"], Progress(), 0.0, **SYSTEM)
     assert report.status == "ok"
     assert report.processes_alive == ["r1/slam", "r1/source"]
-    assert (report.uptime_s, report.event_clients, report.exports_running, report.refused) == (12.5, 2, 1,
-                                                                                               {"exports": 3})
+    assert (report.uptime_s, report.event_clients, report.exports_running, report.refused) == (
+        12.5,
+        2,
+        1,
+        {"exports": 3},
+    )
     m = report.maps["m"]
     assert (m.scans_fused, m.scans_discarded, m.lag_scans) == ({"r1": 7, "r2": 0}, {"r1": 2, "r2": 1}, {"r1": 4})
     assert m.distrust == [  # ahead 4 + 1, key 2; malformed is no sign of distrust
         "5 messages with seqs or ends beyond the seq window (forged or stray seqs; held, never fused)",
-        "2 messages on keys that are no posegrid key (wildcards, made-up streams)"]
+        "2 messages on keys that are no posegrid key (wildcards, made-up streams)",
+    ]
     assert health_report({}, [], Progress(), 0.0, **SYSTEM).status == "degraded"
 
 
 def test_distrust_follows_the_table_order_and_skips_zero_and_unnamed_kinds():
     assert distrust({"extent": 1, "duplicate": 2, "size": 0, "missing": 9}) == [
         "2 scans or poses that differ from the ones fused for the same seq (two publishers for one robot?)",
-        "1 scans reaching more cells than --max-scan-cells"]
+        "1 scans reaching more cells than --max-scan-cells",
+    ]
 
 
 def lagging(fused: int = 10, **given) -> MapStats:
     """Stats of a one-shard map on which r1 (latest seq 19) lags 20 - fused scans."""
-    return map_stats(info(shards=1), {0: shard(0, shards=1, fused={"r1": fused} if fused else {}, **given)},
-                     latest={"r1": 19}, api_rejected={}, now=0.0)
+    return map_stats(
+        info(shards=1),
+        {0: shard(0, shards=1, fused={"r1": fused} if fused else {}, **given)},
+        latest={"r1": 19},
+        api_rejected={},
+        now=0.0,
+    )
 
 
 def test_a_lagging_robot_whose_source_is_gone_is_stranded_after_no_progress_for_the_limit():

@@ -1,4 +1,5 @@
 """The API's parts that need no process: versions, caches, ETags, pose summaries, event batching."""
+
 from __future__ import annotations
 
 import asyncio
@@ -103,7 +104,7 @@ def test_weighted_mean_averages_yaw_on_the_circle():
     mean, cov = weighted_mean_cov(samples, weights)
     assert mean[0] == pytest.approx(1.0) and mean[1] == pytest.approx(1.5)
     assert abs(abs(mean[2]) - np.pi) < 1e-9  # not 0, the arithmetic mean of the angles
-    assert cov[2, 2] == pytest.approx(0.5 * 0.1 ** 2, rel=1e-6)
+    assert cov[2, 2] == pytest.approx(0.5 * 0.1**2, rel=1e-6)
     assert cov[0, 0] == pytest.approx(0.5) and np.allclose(cov, cov.T)
 
 
@@ -117,8 +118,7 @@ def test_reduce_samples_follows_the_weights():
 
 
 def test_gaussian_pose_is_summarised_with_drawn_samples():
-    message = PoseGaussian(robot="r", seq=7, stamp=0.7, mean=np.array([1.0, 2.0, 0.5]),
-                           cov=np.diag([0.04, 0.01, 0.0]))
+    message = PoseGaussian(robot="r", seq=7, stamp=0.7, mean=np.array([1.0, 2.0, 0.5]), cov=np.diag([0.04, 0.01, 0.0]))
     one, two = summarize(message, 0.0), summarize(message, 1.0)
     assert one.form == "gaussian" and one.samples.shape == (100, 3)
     np.testing.assert_array_equal(one.samples, two.samples)  # seeded by seq
@@ -129,8 +129,11 @@ def test_gaussian_pose_is_summarised_with_drawn_samples():
 def test_tracker_keeps_latest_and_trajectory():
     tracker = RobotTracker()
     for seq in range(3):
-        tracker.update(PoseSamples(robot="r", seq=seq, stamp=seq * 0.1, samples=np.array([[seq, 0.0, 0.0]]),
-                                   weights=np.array([1.0])))
+        tracker.update(
+            PoseSamples(
+                robot="r", seq=seq, stamp=seq * 0.1, samples=np.array([[seq, 0.0, 0.0]]), weights=np.array([1.0])
+            )
+        )
     assert tracker.robots() == ["r"] and tracker.latest("r").seq == 2 and tracker.latest_seqs() == {"r": 2}
     np.testing.assert_allclose(tracker.trajectory("r")[:, [0, 2]], [[0, 0], [1, 1], [2, 2]])
     assert tracker.trajectory("nobody").shape == (0, 5)
@@ -155,12 +158,14 @@ def test_event_hub_batches_changes_per_flush():
         assert "resync" in await stream.__anext__()
         await stream.aclose()
         assert hub.clients == 0
+
     asyncio.run(scenario())
 
 
 def test_a_client_gone_while_its_stream_waits_leaves_no_task_behind():
     """uvicorn cancels a disconnected client's stream inside asyncio.wait: the queue getter must go with it
     (it used to stay pending: "Task was destroyed but it is pending!" in the log, once per client)."""
+
     async def scenario():
         hub = EventHub("e", interval=0.01, backlog=2)
         stream = hub.stream()
@@ -173,12 +178,13 @@ def test_a_client_gone_while_its_stream_waits_leaves_no_task_behind():
         await asyncio.sleep(0)  # let the cancelled getter finish
         assert [task for task in asyncio.all_tasks() if task is not asyncio.current_task()] == []
         assert hub.clients == 0
+
     asyncio.run(scenario())
 
 
 def test_logodds_png_spans_the_sensor_models_clamping_range():
     model = SensorModel()
-    assert LOGODDS_RANGE == pytest.approx((logit(model.p_min), logit(model.p_max)), rel=1e-12)
+    assert pytest.approx((logit(model.p_min), logit(model.p_max)), rel=1e-12) == LOGODDS_RANGE
 
 
 @pytest.mark.parametrize("spec_version", ["2.3", "2.4"])
@@ -209,8 +215,15 @@ def test_head_stops_a_streaming_response_under_either_asgi_spec(spec_version):
             sent.append(message)
             if message["type"] == "http.response.body" and not message.get("more_body", False):
                 complete.set()
-        scope = {"type": "http", "method": "HEAD", "path": "/", "headers": [], "query_string": b"",
-                 "asgi": {"version": "3.0", "spec_version": spec_version}}
+
+        scope = {
+            "type": "http",
+            "method": "HEAD",
+            "path": "/",
+            "headers": [],
+            "query_string": b"",
+            "asgi": {"version": "3.0", "spec_version": spec_version},
+        }
         await asyncio.wait_for(HeadAsGet(app)(scope, receive, send), 5)
         return sent
 
@@ -224,9 +237,23 @@ def test_head_stops_a_streaming_response_under_either_asgi_spec(spec_version):
 
 def update(tx: int, ty: int, fill: float) -> TileUpdate:
     """A whole 2 x 2 level-0 tile as a shard sends it."""
-    return TileUpdate(map="m", shard=0, z=0, tx=tx, ty=ty, tile_size=2, resolution=0.05, row0=0, col0=0, robot="r",
-                      seq=0, published=0.0, logodds=np.full((2, 2), fill, np.float32),
-                      variance=np.ones((2, 2), np.float32), observed=np.ones((2, 2), bool))
+    return TileUpdate(
+        map="m",
+        shard=0,
+        z=0,
+        tx=tx,
+        ty=ty,
+        tile_size=2,
+        resolution=0.05,
+        row0=0,
+        col0=0,
+        robot="r",
+        seq=0,
+        published=0.0,
+        logodds=np.full((2, 2), fill, np.float32),
+        variance=np.ones((2, 2), np.float32),
+        observed=np.ones((2, 2), bool),
+    )
 
 
 class Source:
@@ -264,8 +291,9 @@ def test_a_sync_that_finds_the_cached_tile_unchanged_keeps_its_version():
     version = registry.tile_changed("m", (0, 0), 0.05, 2)
     source = Source({(0, 0): update(0, 0, 1.0)})
     changes = []
-    service = TileService(registry, source, "e", 1 << 20,
-                          on_change=lambda name, tile, v: changes.append((name, tile, v)))
+    service = TileService(
+        registry, source, "e", 1 << 20, on_change=lambda name, tile, v: changes.append((name, tile, v))
+    )
     assert service.layers("m", 0, 0, 0)[0][0, 0] == 1.0  # fetched and cached at `version`
     service.sync("m")  # the shard holds exactly what is cached: nothing changed
     assert registry.version("m", 0, 0, 0) == version and changes == []

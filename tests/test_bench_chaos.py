@@ -1,5 +1,6 @@
 """The hostile mix of bench/chaos.py: what it may and may not carry, and what a shard makes of it (in process, the
 shard's own decoding and join, no network)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -10,10 +11,10 @@ from bench.scenarios import honest_posed_scans, office_run
 from mapping.sensor_model import SensorModel
 from schemas.messages import POSE_TYPES, LaserScan, MessageError, StreamEnd, decode_message
 from services import keys
-from services.state.join import CONFIRM_RUN, DEFAULT_SEQ_WINDOW
-from services.process import RejectCounter, get_logger
-from services.state.shard import MapShard, ShardConfig
 from services.nodes.source import STREAM_OF
+from services.process import RejectCounter, get_logger
+from services.state.join import CONFIRM_RUN, DEFAULT_SEQ_WINDOW
+from services.state.shard import MapShard, ShardConfig
 from services.streams import posed_stream
 
 SCANS = 12
@@ -38,8 +39,9 @@ def _decoded(payload: bytes):
 
 
 def _longest_run(seqs: set[int]) -> int:
-    return max((len([s for s in range(seq, seq + CONFIRM_RUN) if s in seqs]) for seq in seqs if seq - 1 not in seqs),
-               default=0)
+    return max(
+        (len([s for s in range(seq, seq + CONFIRM_RUN) if s in seqs]) for seq in seqs if seq - 1 not in seqs), default=0
+    )
 
 
 def test_the_mix_is_deterministic_and_forges_the_real_robot_only_beyond_its_seq_window(mix, stream):
@@ -61,16 +63,28 @@ def test_the_mix_is_deterministic_and_forges_the_real_robot_only_beyond_its_seq_
 
 
 def test_expected_arrivals_counts_one_delivery_per_shard_subscriber_a_key_intersects():
-    mix = [("pg/**", b""), ("**", b""), ("pg/*/scan", b""), ("pg/bench/sc$*", b""), ("pg/bench/odom", b""),
-           ("pg/bench/history/scan", b""), ("pg/map/chaos/tile/0/0/0", b""), ("pg/r1/end", b"")]
+    mix = [
+        ("pg/**", b""),
+        ("**", b""),
+        ("pg/*/scan", b""),
+        ("pg/bench/sc$*", b""),
+        ("pg/bench/odom", b""),
+        ("pg/bench/history/scan", b""),
+        ("pg/map/chaos/tile/0/0/0", b""),
+        ("pg/r1/end", b""),
+    ]
     assert chaos.expected_arrivals(mix) == 3 + 3 + 1 + 1 + 0 + 0 + 0 + 1
 
 
 def _replay(stream, mix) -> MapShard:
     """A one-shard map of ``stream`` with ``mix`` handed to the shard after the first scan (keys a shard does not
     subscribe to left out, as the network would)."""
-    published = {(STREAM_OF[type(message)], message.seq): message.encode() for step in stream.steps
-                 for message in step.messages if hasattr(message, "seq")}
+    published = {
+        (STREAM_OF[type(message)], message.seq): message.encode()
+        for step in stream.steps
+        for message in step.messages
+        if hasattr(message, "seq")
+    }
 
     def history(robot: str, what: str, first: int, last: int) -> list[bytes]:
         """What the source's history answers: the real stream's messages (a forged run is not among them)."""
@@ -78,8 +92,9 @@ def _replay(stream, mix) -> MapShard:
             return []
         return [published[(what, seq)] for seq in range(first, last + 1) if (what, seq) in published]
 
-    shard = MapShard(ShardConfig(chaos.MAP, 0, 1, SensorModel()), RejectCounter(get_logger("test-chaos")),
-                     history=history)
+    shard = MapShard(
+        ShardConfig(chaos.MAP, 0, 1, SensorModel()), RejectCounter(get_logger("test-chaos")), history=history
+    )
     arrivals = [(key, payload) for key, payload in mix if chaos.expected_arrivals([(key, payload)])]
     for seq, step in enumerate(stream.steps):
         for message in step.messages:

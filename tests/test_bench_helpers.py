@@ -1,5 +1,6 @@
 """Benchmark helpers the figures rest on: the adaptive benchmark's tree oracle (hand-computed cell means on a tiny
 raster), its label-pure quadtree (cells counted by hand) and the scan selection every suite cuts its inputs with."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -11,8 +12,12 @@ from schemas.files import PosedScans, PoseSet
 
 def test_tree_oracle_gives_each_active_cell_the_mean_of_the_observed_fine_cells_under_it():
     # regular raster: 4 x 4 cells of 1 m from (2, 2) m, log-odds 0..15 row by row; cell (row 1, col 0) unobserved
-    regular = {"logodds": np.arange(16.0).reshape(4, 4), "observed": np.ones((4, 4), bool),
-               "origin": np.array([2.0, 2.0]), "resolution": 1.0}
+    regular = {
+        "logodds": np.arange(16.0).reshape(4, 4),
+        "observed": np.ones((4, 4), bool),
+        "origin": np.array([2.0, 2.0]),
+        "resolution": 1.0,
+    }
     regular["observed"][1, 0] = False
     # tree raster from (2, 2) m, one column wider than the regular raster: rows 0-1 x cols 0-1 is one level-1
     # cell (world cells 2-3, aligned), rows 2-3 x cols 2-3 another; the rest level 0; the extra column lies off
@@ -33,15 +38,23 @@ def test_tree_oracle_gives_each_active_cell_the_mean_of_the_observed_fine_cells_
 
 def test_tree_oracle_keeps_cells_of_the_same_size_apart_across_a_level_boundary():
     # two level-1 cells side by side in a 2 x 4 raster: their means must not mix
-    regular = {"logodds": np.array([[1.0, 1.0, 5.0, 5.0], [1.0, 1.0, 5.0, 5.0]]), "observed": np.ones((2, 4), bool),
-               "origin": np.array([0.0, 0.0]), "resolution": 0.5}
+    regular = {
+        "logodds": np.array([[1.0, 1.0, 5.0, 5.0], [1.0, 1.0, 5.0, 5.0]]),
+        "observed": np.ones((2, 4), bool),
+        "origin": np.array([0.0, 0.0]),
+        "resolution": 0.5,
+    }
     tree = {"level": np.ones((2, 4), np.int8), "origin": np.array([0.0, 0.0]), "resolution": 0.5}
     np.testing.assert_allclose(tree_oracle_logodds(tree, regular), regular["logodds"])
 
 
 def _labels(occupied: np.ndarray, observed: np.ndarray, origin: tuple[float, float]) -> dict:
-    return {"probability": np.where(occupied, 0.9, 0.1), "observed": observed, "origin": np.array(origin),
-            "resolution": 1.0}
+    return {
+        "probability": np.where(occupied, 0.9, 0.1),
+        "observed": observed,
+        "origin": np.array(origin),
+        "resolution": 1.0,
+    }
 
 
 def test_label_pure_quadtree_keeps_fine_cells_only_where_the_labels_mix():
@@ -72,9 +85,16 @@ def test_label_pure_quadtree_blocks_follow_the_world_frame_not_the_raster():
 
 
 def _posed(poses: PoseSet, scans: int) -> PosedScans:
-    return PosedScans(ranges=np.arange(scans * 2, dtype=np.float32).reshape(scans, 2), angle_min=0.0,
-                      angle_increment=0.1, range_min=0.1, range_max=5.0, stamps=np.arange(scans) * 0.5,
-                      sensor_offset=np.zeros(3), poses=poses)
+    return PosedScans(
+        ranges=np.arange(scans * 2, dtype=np.float32).reshape(scans, 2),
+        angle_min=0.0,
+        angle_increment=0.1,
+        range_min=0.1,
+        range_max=5.0,
+        stamps=np.arange(scans) * 0.5,
+        sensor_offset=np.zeros(3),
+        poses=poses,
+    )
 
 
 def test_select_scans_keeps_each_scan_with_its_own_pose_distribution_in_either_form():

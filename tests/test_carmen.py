@@ -1,4 +1,5 @@
 """CARMEN reader on hand-written lines (good and broken), the writer's round trip, and the real logs."""
+
 from __future__ import annotations
 
 import gzip
@@ -8,11 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import shared_file
 from slam.carmen import read_carmen, write_carmen
 from slam.errors import LogFormatError
-
-from conftest import shared_file
-
 
 GOOD_FLASER = "FLASER 3 1.0 2.5 81.91 0.1 0.2 0.3 1.1 1.2 1.3 100.5 host 0.5"
 
@@ -97,10 +96,40 @@ def test_broken_lines_are_skipped_with_line_numbers_and_never_shift(tmp_path):
     assert "skipped 10 lines" in summary and "line 2:" in summary and "and 8 more" in summary
 
 
-def robotlaser(start=-1.0, res=1.0, max_range=10.0, ranges=(1.0, 2.0, 12.0), remissions=(),
-               laser=(1.0, 2.3, math.pi / 2), robot=(1.0, 2.0, math.pi / 2), stamp=50.25) -> str:
-    fields = ["ROBOTLASER1", "0", start, 2.0, res, max_range, 0.01, 0, len(ranges), *ranges,
-              len(remissions), *remissions, *laser, *robot, 0, 0, 0, 0, 0, stamp, "host", 0.5]
+def robotlaser(
+    start=-1.0,
+    res=1.0,
+    max_range=10.0,
+    ranges=(1.0, 2.0, 12.0),
+    remissions=(),
+    laser=(1.0, 2.3, math.pi / 2),
+    robot=(1.0, 2.0, math.pi / 2),
+    stamp=50.25,
+) -> str:
+    fields = [
+        "ROBOTLASER1",
+        "0",
+        start,
+        2.0,
+        res,
+        max_range,
+        0.01,
+        0,
+        len(ranges),
+        *ranges,
+        len(remissions),
+        *remissions,
+        *laser,
+        *robot,
+        0,
+        0,
+        0,
+        0,
+        0,
+        stamp,
+        "host",
+        0.5,
+    ]
     return " ".join(str(f) for f in fields)
 
 
@@ -116,8 +145,13 @@ def test_robotlaser_fields_and_offset(tmp_path):
 
 
 def test_robotlaser_preferred_over_flaser_and_geometry_checked(tmp_path):
-    lines = [GOOD_FLASER, robotlaser(), robotlaser(res=0.5), robotlaser(ranges=(1.0, 2.0)),
-             robotlaser(remissions=(1.0,))[:-4]]
+    lines = [
+        GOOD_FLASER,
+        robotlaser(),
+        robotlaser(res=0.5),
+        robotlaser(ranges=(1.0, 2.0)),
+        robotlaser(remissions=(1.0,))[:-4],
+    ]
     log = read_carmen(write(tmp_path, lines))
     assert log.where.tolist() == [2]
     reasons = {s.where: s.reason for s in log.skipped}
@@ -190,8 +224,17 @@ def test_writer_round_trip(tmp_path, record, suffix):
 
 def test_writer_rejects_flaser_with_sideways_laser(tmp_path):
     with pytest.raises(ValueError, match="x axis"):
-        write_carmen(tmp_path / "x.clf", np.zeros(1), np.ones((1, 3)), np.zeros((1, 3)), -1.0, 1.0, 5.0,
-                     np.array([0.0, 0.1, 0.0]), record="FLASER")
+        write_carmen(
+            tmp_path / "x.clf",
+            np.zeros(1),
+            np.ones((1, 3)),
+            np.zeros((1, 3)),
+            -1.0,
+            1.0,
+            5.0,
+            np.array([0.0, 0.1, 0.0]),
+            record="FLASER",
+        )
 
 
 def test_real_mit_csail_clf():
@@ -203,10 +246,13 @@ def test_real_mit_csail_clf():
     assert np.isinf(log.ranges).any() and np.nanmin(log.ranges) == pytest.approx(0.27, abs=1e-6)
 
 
-@pytest.mark.parametrize("name,scans,beams,odom,offset", [
-    ("intel-lab/intel-corrected.log.gz", 910, 180, 14541, 0.0),
-    ("fr079/freiburg-079-corrected.log.gz", 4791, 360, 9725, -0.04),
-])
+@pytest.mark.parametrize(
+    "name,scans,beams,odom,offset",
+    [
+        ("intel-lab/intel-corrected.log.gz", 910, 180, 14541, 0.0),
+        ("fr079/freiburg-079-corrected.log.gz", 4791, 360, 9725, -0.04),
+    ],
+)
 def test_real_corrected_logs(name, scans, beams, odom, offset):
     log = read_carmen(shared_file(name))
     assert log.ranges.shape == (scans, beams) and log.skipped == ()
@@ -258,25 +304,31 @@ def test_the_rear_laser_faces_backwards(tmp_path):
 
 def test_robotlaser_offset_is_the_median_over_the_scans(tmp_path):
     # laser 0.9 m ahead in the first scan (an outlier), 0.3 m in the two others: the median is 0.3
-    lines = [robotlaser(ranges=(1.0, 2.0, 3.0), laser=(0.9, 0.0, 0.0), robot=(0.0, 0.0, 0.0), stamp=1.0),
-             robotlaser(ranges=(1.0, 2.0, 3.0), laser=(1.3, 0.0, 0.0), robot=(1.0, 0.0, 0.0), stamp=2.0),
-             robotlaser(ranges=(1.0, 2.0, 3.0), laser=(2.3, 0.0, 0.0), robot=(2.0, 0.0, 0.0), stamp=3.0)]
+    lines = [
+        robotlaser(ranges=(1.0, 2.0, 3.0), laser=(0.9, 0.0, 0.0), robot=(0.0, 0.0, 0.0), stamp=1.0),
+        robotlaser(ranges=(1.0, 2.0, 3.0), laser=(1.3, 0.0, 0.0), robot=(1.0, 0.0, 0.0), stamp=2.0),
+        robotlaser(ranges=(1.0, 2.0, 3.0), laser=(2.3, 0.0, 0.0), robot=(2.0, 0.0, 0.0), stamp=3.0),
+    ]
     log = read_carmen(write(tmp_path, lines))
     assert len(log) == 3
     np.testing.assert_allclose(log.sensor_offset, [0.3, 0.0, 0.0], atol=1e-12)
 
 
 def test_a_non_positive_flaser_resolution_is_a_log_format_error(tmp_path):
-    lines = ["PARAM laser_front_laser_resolution 0 0 host 0",
-             "FLASER 3 1.0 2.5 3.0 0.1 0.2 0.3 1.1 1.2 1.3 100.5 host 0.5"]
+    lines = [
+        "PARAM laser_front_laser_resolution 0 0 host 0",
+        "FLASER 3 1.0 2.5 3.0 0.1 0.2 0.3 1.1 1.2 1.3 100.5 host 0.5",
+    ]
     with pytest.raises(LogFormatError, match="resolution and maximum range must be positive"):
         read_carmen(write(tmp_path, lines))
 
 
 def test_a_scan_with_a_non_finite_stamp_is_skipped(tmp_path):
-    lines = ["FLASER 3 1.0 2.5 3.0 0.1 0.2 0.3 1.1 1.2 1.3 100.5 host 0.5",
-             "FLASER 3 1.0 2.5 3.0 0.1 0.2 0.3 1.1 1.2 1.3 nan host 1.5",
-             "FLASER 3 1.0 2.5 3.0 0.1 0.2 0.3 1.1 1.2 1.3 inf host 2.5"]
+    lines = [
+        "FLASER 3 1.0 2.5 3.0 0.1 0.2 0.3 1.1 1.2 1.3 100.5 host 0.5",
+        "FLASER 3 1.0 2.5 3.0 0.1 0.2 0.3 1.1 1.2 1.3 nan host 1.5",
+        "FLASER 3 1.0 2.5 3.0 0.1 0.2 0.3 1.1 1.2 1.3 inf host 2.5",
+    ]
     log = read_carmen(write(tmp_path, lines))
     assert log.where.tolist() == [1]
     assert [(s.where, "timestamp is not finite" in s.reason) for s in log.skipped] == [(2, True), (3, True)]

@@ -1,4 +1,5 @@
 """`posegrid fuse / export / eval` as a user runs them: real processes, real files."""
+
 from __future__ import annotations
 
 import json
@@ -10,16 +11,25 @@ import numpy as np
 import pytest
 
 from schemas.errors import FormatError
-from schemas.files import (PoseDistributionFile, PoseSet, TruthRaster, load_map, save_pose_distribution,
-                           save_posed_scans, save_truth, write_atomically)
+from schemas.files import (
+    PoseDistributionFile,
+    PoseSet,
+    TruthRaster,
+    load_map,
+    save_pose_distribution,
+    save_posed_scans,
+    save_truth,
+    write_atomically,
+)
 from worlds import room_posed_scans
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def posegrid(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "services.cli", *args], cwd=ROOT, capture_output=True, text=True,
-                          timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "services.cli", *args], cwd=ROOT, capture_output=True, text=True, timeout=300
+    )
 
 
 @pytest.fixture(scope="module")
@@ -34,8 +44,9 @@ def test_fuse_says_when_the_sensor_model_draws_walls_behind_the_returns(posed_fi
     (b f = 50) against l = 0.071 m, about 0.3 m, six cells, which the map would show without a word."""
     quiet = posegrid("fuse", str(posed_file), "-o", str(tmp_path / "a.npz"))
     assert quiet.returncode == 0 and "behind the return" not in quiet.stderr, quiet.stderr
-    noisy = posegrid("fuse", str(posed_file), "-o", str(tmp_path / "b.npz"), "--sigma-model", "stereo",
-                     "--baseline-focal", "50")
+    noisy = posegrid(
+        "fuse", str(posed_file), "-o", str(tmp_path / "b.npz"), "--sigma-model", "stereo", "--baseline-focal", "50"
+    )
     assert noisy.returncode == 0 and "behind its return" in noisy.stderr and "--peak-width" in noisy.stderr
 
 
@@ -64,8 +75,9 @@ def test_fuse_export_eval_round_trip(posed_file, tmp_path):
     assert (tmp_path / "m.pgm").read_bytes().startswith(f"P5\n{width} {height}\n255\n".encode())
     assert 'image: "m.pgm"' in (tmp_path / "m.yaml").read_text()
     for layer in ("probability", "variance"):
-        result = posegrid("export", str(map_path), "--format", "png", "-o", str(tmp_path / f"{layer}.png"),
-                          "--layer", layer)
+        result = posegrid(
+            "export", str(map_path), "--format", "png", "-o", str(tmp_path / f"{layer}.png"), "--layer", layer
+        )
         assert result.returncode == 0, result.stderr
     # eval against the room's truth: walls are the border cells of the box
     truth = np.zeros((60, 80), bool)
@@ -84,26 +96,44 @@ def _bad(tmp_path: Path, name: str, **arrays) -> Path:
 
 
 def good_arrays(**override):
-    arrays = dict(ranges=np.ones((2, 3), np.float32), angle_min=0.0, angle_increment=0.1, range_min=0.1,
-                  range_max=5.0, stamps=np.arange(2.0), samples=np.zeros((2, 1, 3)), weights=np.ones((2, 1)))
+    arrays = dict(
+        ranges=np.ones((2, 3), np.float32),
+        angle_min=0.0,
+        angle_increment=0.1,
+        range_min=0.1,
+        range_max=5.0,
+        stamps=np.arange(2.0),
+        samples=np.zeros((2, 1, 3)),
+        weights=np.ones((2, 1)),
+    )
     arrays.update(override)
     return {k: v for k, v in arrays.items() if v is not None}
 
 
-@pytest.mark.parametrize("arrays, phrase", [
-    (good_arrays(weights=np.full((2, 1), 0.5)), "sum to"),
-    (good_arrays(samples=np.full((2, 1, 3), np.nan)), "NaN"),
-    (good_arrays(ranges=np.ones(3, np.float32)), "shape (T, B)"),
-    (good_arrays(stamps=None), "missing key 'stamps'"),
-    (good_arrays(samples=np.zeros((2, 1, 2))), "'samples' must have shape"),
-    (good_arrays(range_max=0.05), "range_min < range_max"),
-    (good_arrays(ranges=np.ones((0, 3), np.float32), stamps=np.zeros(0), samples=np.zeros((0, 1, 3)),
-                 weights=np.zeros((0, 1))), "holds no steps"),
-    (good_arrays(ranges=np.ones((2, 3), np.complex64)), "must hold real numbers"),
-    (good_arrays(samples=np.full((2, 1, 3), "x")), "must hold real numbers"),
-    (good_arrays(angle_min=1e30), "'angle_min' = 1e+30 rad is more than a full turn"),
-    (good_arrays(stamps=np.arange(2.0, dtype=np.float32)), "'stamps' must be float64 seconds, got float32"),
-])
+@pytest.mark.parametrize(
+    "arrays, phrase",
+    [
+        (good_arrays(weights=np.full((2, 1), 0.5)), "sum to"),
+        (good_arrays(samples=np.full((2, 1, 3), np.nan)), "NaN"),
+        (good_arrays(ranges=np.ones(3, np.float32)), "shape (T, B)"),
+        (good_arrays(stamps=None), "missing key 'stamps'"),
+        (good_arrays(samples=np.zeros((2, 1, 2))), "'samples' must have shape"),
+        (good_arrays(range_max=0.05), "range_min < range_max"),
+        (
+            good_arrays(
+                ranges=np.ones((0, 3), np.float32),
+                stamps=np.zeros(0),
+                samples=np.zeros((0, 1, 3)),
+                weights=np.zeros((0, 1)),
+            ),
+            "holds no steps",
+        ),
+        (good_arrays(ranges=np.ones((2, 3), np.complex64)), "must hold real numbers"),
+        (good_arrays(samples=np.full((2, 1, 3), "x")), "must hold real numbers"),
+        (good_arrays(angle_min=1e30), "'angle_min' = 1e+30 rad is more than a full turn"),
+        (good_arrays(stamps=np.arange(2.0, dtype=np.float32)), "'stamps' must be float64 seconds, got float32"),
+    ],
+)
 def test_malformed_posed_files_exit_2_with_one_line(tmp_path, arrays, phrase):
     result = posegrid("fuse", str(_bad(tmp_path, "bad.npz", **arrays)), "-o", str(tmp_path / "m.npz"))
     assert result.returncode == 2
@@ -124,11 +154,17 @@ def test_bad_option_value_exit_2(posed_file, tmp_path):
     assert result.returncode == 2 and "sigma0" in result.stderr
 
 
-@pytest.mark.parametrize("options, phrase", [
-    (["--mode", "ml", "--samples", "20"], "ml uses the mean pose only"),
-    (["--sigma-slope", "0.01"], "--sigma-slope does nothing with --sigma-model constant"),
-    (["--sigma-model", "linear", "--baseline-focal", "300"], "--baseline-focal does nothing with --sigma-model linear"),
-])
+@pytest.mark.parametrize(
+    "options, phrase",
+    [
+        (["--mode", "ml", "--samples", "20"], "ml uses the mean pose only"),
+        (["--sigma-slope", "0.01"], "--sigma-slope does nothing with --sigma-model constant"),
+        (
+            ["--sigma-model", "linear", "--baseline-focal", "300"],
+            "--baseline-focal does nothing with --sigma-model linear",
+        ),
+    ],
+)
 def test_options_the_fusion_would_ignore_are_refused(posed_file, tmp_path, options, phrase):
     _one_line_exit_2(posegrid("fuse", str(posed_file), "-o", str(tmp_path / "m.npz"), *options), phrase)
     assert not (tmp_path / "m.npz").exists()
@@ -136,8 +172,9 @@ def test_options_the_fusion_would_ignore_are_refused(posed_file, tmp_path, optio
 
 def _one_line_exit_2(result: subprocess.CompletedProcess, phrase: str) -> None:
     lines = result.stderr.strip().splitlines()
-    assert result.returncode == 2 and len(lines) == 1 and phrase in lines[0] and "Traceback" not in result.stderr, \
+    assert result.returncode == 2 and len(lines) == 1 and phrase in lines[0] and "Traceback" not in result.stderr, (
         result.stderr
+    )
 
 
 def test_an_npy_or_a_damaged_archive_is_one_line(tmp_path):
@@ -148,7 +185,7 @@ def test_an_npy_or_a_damaged_archive_is_one_line(tmp_path):
     damaged = tmp_path / "damaged.npz"
     np.savez_compressed(damaged, **good_arrays(ranges=np.random.default_rng(0).random((200, 300), np.float32)))
     data = bytearray(damaged.read_bytes())
-    data[len(data) // 3: len(data) // 3 + 64] = bytes(64)  # inside the compressed ranges
+    data[len(data) // 3 : len(data) // 3 + 64] = bytes(64)  # inside the compressed ranges
     damaged.write_bytes(bytes(data))
     _one_line_exit_2(posegrid("fuse", str(damaged), "-o", str(tmp_path / "m.npz")), "not a readable")
     assert not (tmp_path / "m.npz").exists()
@@ -162,17 +199,20 @@ def map_arrays(posed_file, tmp_path_factory) -> dict:
         return dict(data)
 
 
-@pytest.mark.parametrize("key, value, phrase", [
-    ("probability", "text", "'probability' must hold real numbers"),
-    ("probability", np.nan, "'probability' holds nan"),
-    ("probability", 1.5, "in [0, 1]"),
-    ("probability", 0.97, "'probability' is not the logistic of 'logodds': at (0, 0) it holds 0.97"),
-    ("variance", -1.0, "'variance' holds -1"),
-    ("observed", "text", "'observed' must be boolean"),
-    ("observed", 2, "'observed' must be boolean"),
-    ("level", 1000, "'level' holds 1000"),
-    ("level", 0.5, "'level' must hold integers"),
-])
+@pytest.mark.parametrize(
+    "key, value, phrase",
+    [
+        ("probability", "text", "'probability' must hold real numbers"),
+        ("probability", np.nan, "'probability' holds nan"),
+        ("probability", 1.5, "in [0, 1]"),
+        ("probability", 0.97, "'probability' is not the logistic of 'logodds': at (0, 0) it holds 0.97"),
+        ("variance", -1.0, "'variance' holds -1"),
+        ("observed", "text", "'observed' must be boolean"),
+        ("observed", 2, "'observed' must be boolean"),
+        ("level", 1000, "'level' holds 1000"),
+        ("level", 0.5, "'level' must hold integers"),
+    ],
+)
 def test_map_layers_out_of_their_range_are_one_line(map_arrays, tmp_path, key, value, phrase):
     arrays = dict(map_arrays)
     shape = arrays["logodds"].shape
@@ -186,18 +226,27 @@ def test_map_layers_out_of_their_range_are_one_line(map_arrays, tmp_path, key, v
     assert not (tmp_path / "m.png").exists()
 
 
-@pytest.mark.parametrize("key, value, phrase", [
-    ("resolution", 1e-300, "'resolution' must be in [1e-06, 1000] m"),  # map_server would read 0.000000
-    ("origin", np.array([1e12, 0.0]), "'origin' must be 2 finite numbers (x, y) in m within +-1e+09"),
-])
+@pytest.mark.parametrize(
+    "key, value, phrase",
+    [
+        ("resolution", 1e-300, "'resolution' must be in [1e-06, 1000] m"),  # map_server would read 0.000000
+        ("origin", np.array([1e12, 0.0]), "'origin' must be 2 finite numbers (x, y) in m within +-1e+09"),
+    ],
+)
 def test_a_map_frame_no_cell_index_can_follow_is_one_line(map_arrays, tmp_path, key, value, phrase):
     path = _bad(tmp_path, "bad-frame.npz", **{**map_arrays, key: value})
     _one_line_exit_2(posegrid("export", str(path), "--format", "pgm", "-o", str(tmp_path / "m.pgm")), phrase)
 
 
 def test_an_empty_map_exports_no_image(map_arrays, tmp_path):
-    empty = {**map_arrays, **{key: map_arrays[key][:0, :0] for key in ("logodds", "probability", "observed",
-                                                                      "variance") if key in map_arrays}}
+    empty = {
+        **map_arrays,
+        **{
+            key: map_arrays[key][:0, :0]
+            for key in ("logodds", "probability", "observed", "variance")
+            if key in map_arrays
+        },
+    }
     path = _bad(tmp_path, "empty.npz", **empty)
     for fmt in ("pgm", "png"):
         _one_line_exit_2(posegrid("export", str(path), "--format", fmt, "-o", str(tmp_path / f"m.{fmt}")), "empty")
@@ -228,12 +277,18 @@ def test_export_names_must_fit_the_format(posed_file, tmp_path):
     """A pgm's YAML goes beside it as NAME.yaml: -o map.yaml would have been overwritten by it."""
     map_path = tmp_path / "map.npz"
     assert posegrid("fuse", str(posed_file), "-o", str(map_path)).returncode == 0
-    _one_line_exit_2(posegrid("export", str(map_path), "--format", "pgm", "-o", str(tmp_path / "same.yaml")),
-                     "needs a name ending in .pgm")
-    _one_line_exit_2(posegrid("export", str(map_path), "--format", "png", "-o", str(tmp_path / "m.pgm")),
-                     "needs a name ending in .png")
-    _one_line_exit_2(posegrid("export", str(map_path), "--format", "pgm", "-o", str(tmp_path / "m.pgm"), "--layer",
-                              "variance"), "--layer variance draws a png")
+    _one_line_exit_2(
+        posegrid("export", str(map_path), "--format", "pgm", "-o", str(tmp_path / "same.yaml")),
+        "needs a name ending in .pgm",
+    )
+    _one_line_exit_2(
+        posegrid("export", str(map_path), "--format", "png", "-o", str(tmp_path / "m.pgm")),
+        "needs a name ending in .png",
+    )
+    _one_line_exit_2(
+        posegrid("export", str(map_path), "--format", "pgm", "-o", str(tmp_path / "m.pgm"), "--layer", "variance"),
+        "--layer variance draws a png",
+    )
     assert sorted(p.name for p in tmp_path.iterdir()) == ["map.npz"]
 
 
@@ -245,6 +300,7 @@ def test_outputs_are_written_at_the_given_name_and_never_in_part(posed_file, tmp
     def fails_halfway(handle):
         handle.write(b"half a map")
         raise OSError(28, "No space left on device")
+
     with pytest.raises(OSError, match="No space left on device") as failure:
         write_atomically(tmp_path / "out.npz", fails_halfway)
     assert failure.value.filename == str(tmp_path / "out.npz")
@@ -253,8 +309,10 @@ def test_outputs_are_written_at_the_given_name_and_never_in_part(posed_file, tmp
 
 def test_poses_a_loader_would_refuse_are_not_written(tmp_path):
     """A filter that diverged to NaN must not leave a file that every reader then refuses."""
-    bad = PoseDistributionFile(stamps=np.arange(2.0), poses=PoseSet(mean=np.array([[0.0, 0.0, 0.0], [np.nan, 0, 0]]),
-                                                                   cov=np.stack([np.eye(3)] * 2)))
+    bad = PoseDistributionFile(
+        stamps=np.arange(2.0),
+        poses=PoseSet(mean=np.array([[0.0, 0.0, 0.0], [np.nan, 0, 0]]), cov=np.stack([np.eye(3)] * 2)),
+    )
     with pytest.raises(FormatError, match="the poses to write to .*'mean' has NaN or inf at step 1"):
         save_pose_distribution(tmp_path / "poses.npz", bad)
     assert not (tmp_path / "poses.npz").exists()

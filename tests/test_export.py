@@ -1,4 +1,5 @@
 """PGM + YAML for map_server and PNG rendering."""
+
 import io
 
 import numpy as np
@@ -13,13 +14,34 @@ from mapping.export import crop_to_occupied, render_pgm, render_png, render_rgb
 def small_map():
     probability = np.array([[0.9, 0.1, 0.5], [0.5, 0.5, 0.1]], np.float32)
     observed = np.array([[True, True, True], [False, True, True]])
-    return {"probability": probability, "observed": observed, "variance": np.arange(6, dtype=np.float32).reshape(2, 3),
-            "origin": np.array([-1.0, 2.0]), "resolution": 0.5}
+    return {
+        "probability": probability,
+        "observed": observed,
+        "variance": np.arange(6, dtype=np.float32).reshape(2, 3),
+        "origin": np.array([-1.0, 2.0]),
+        "resolution": 0.5,
+    }
 
 
-@pytest.mark.parametrize("name", ["a #b.pgm", "c: d.pgm", "[e].pgm", "%f.pgm", "'g.pgm", "@h.pgm", 'q"uo\\te.pgm',
-                                  "karte-\u00fc.pgm", "tab\there.pgm", "line\nbreak.pgm", "sep\u2028.pgm",
-                                  "\ufeffbom.pgm", "smile-\U0001f600.pgm", "del\x7f\x85.pgm"])
+@pytest.mark.parametrize(
+    "name",
+    [
+        "a #b.pgm",
+        "c: d.pgm",
+        "[e].pgm",
+        "%f.pgm",
+        "'g.pgm",
+        "@h.pgm",
+        'q"uo\\te.pgm',
+        "karte-\u00fc.pgm",
+        "tab\there.pgm",
+        "line\nbreak.pgm",
+        "sep\u2028.pgm",
+        "\ufeffbom.pgm",
+        "smile-\U0001f600.pgm",
+        "del\x7f\x85.pgm",
+    ],
+)
 def test_yaml_names_any_image_file_as_it_is(name):
     """As a plain YAML scalar 'a #b.pgm' read as 'a' (the rest a comment) and 'c: d.pgm' did not parse; map_server
     loaded the wrong file or none. Read back by a YAML parser, the YAML names the file exactly."""
@@ -56,8 +78,13 @@ def test_crop_keeps_the_occupied_cells_plus_margin_and_moves_the_origin():
     probability = np.full((10, 12), 0.1, np.float32)
     probability[4, 5] = probability[6, 7] = 0.9  # occupied: rows 4..6, columns 5..7
     observed = np.ones((10, 12), bool)
-    arrays = {"probability": probability, "observed": observed, "variance": np.zeros((10, 12), np.float32),
-              "origin": np.array([-1.0, 2.0]), "resolution": 0.5}
+    arrays = {
+        "probability": probability,
+        "observed": observed,
+        "variance": np.zeros((10, 12), np.float32),
+        "origin": np.array([-1.0, 2.0]),
+        "resolution": 0.5,
+    }
     cropped = crop_to_occupied(arrays, margin=1.0)  # two cells
     assert cropped["probability"].shape == (7, 7) and cropped["variance"].shape == (7, 7)
     np.testing.assert_allclose(cropped["origin"], [-1.0 + 3 * 0.5, 2.0 + 2 * 0.5])
@@ -70,10 +97,13 @@ def test_crop_keeps_the_occupied_cells_plus_margin_and_moves_the_origin():
 
 def _arrays(probability, observed=None, variance=None, resolution=0.5):
     probability = np.asarray(probability, np.float32)
-    return {"probability": probability,
-            "observed": np.ones(probability.shape, bool) if observed is None else np.asarray(observed, bool),
-            "variance": None if variance is None else np.asarray(variance, np.float32),
-            "origin": np.array([-1.0, 2.0]), "resolution": resolution}
+    return {
+        "probability": probability,
+        "observed": np.ones(probability.shape, bool) if observed is None else np.asarray(observed, bool),
+        "variance": None if variance is None else np.asarray(variance, np.float32),
+        "origin": np.array([-1.0, 2.0]),
+        "resolution": resolution,
+    }
 
 
 def test_unobserved_cells_are_unknown_in_the_pgm_whatever_their_probability():

@@ -1,5 +1,6 @@
 """The file loaders' checks (schemas.files), each on a file that breaks exactly one rule of docs/formats.md;
 the phrase expected is the one the contract names."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -10,22 +11,36 @@ from schemas.files import load_map, load_pose_distribution, load_posed_scans, lo
 
 
 def posed(**override):
-    arrays = dict(ranges=np.ones((2, 3), np.float32), angle_min=0.0, angle_increment=0.1, range_min=0.1,
-                  range_max=5.0, stamps=np.arange(2.0), samples=np.zeros((2, 1, 3)), weights=np.ones((2, 1)))
+    arrays = dict(
+        ranges=np.ones((2, 3), np.float32),
+        angle_min=0.0,
+        angle_increment=0.1,
+        range_min=0.1,
+        range_max=5.0,
+        stamps=np.arange(2.0),
+        samples=np.zeros((2, 1, 3)),
+        weights=np.ones((2, 1)),
+    )
     arrays.update(override)
     return {k: v for k, v in arrays.items() if v is not None}
 
 
 def gaussian(**override):
-    return posed(**{"samples": None, "weights": None, "mean": np.zeros((2, 3)), "cov": np.stack([np.eye(3)] * 2),
-                    **override})
+    return posed(
+        **{"samples": None, "weights": None, "mean": np.zeros((2, 3)), "cov": np.stack([np.eye(3)] * 2), **override}
+    )
 
 
 def a_map(**override):
     logodds = np.array([[0.0, 1.0], [-1.0, 2.0]], np.float32)
-    arrays = dict(logodds=logodds, probability=(1 / (1 + np.exp(-logodds.astype(float)))).astype(np.float32),
-                  observed=np.ones((2, 2), bool), variance=np.zeros((2, 2), np.float32), origin=np.zeros(2),
-                  resolution=0.05)
+    arrays = dict(
+        logodds=logodds,
+        probability=(1 / (1 + np.exp(-logodds.astype(float)))).astype(np.float32),
+        observed=np.ones((2, 2), bool),
+        variance=np.zeros((2, 2), np.float32),
+        origin=np.zeros(2),
+        resolution=0.05,
+    )
     arrays.update(override)
     return arrays
 
@@ -36,18 +51,24 @@ def _write(tmp_path, arrays):
     return path
 
 
-@pytest.mark.parametrize("arrays, phrase", [
-    (posed(range_min=-0.5), "0 <= range_min < range_max"),
-    (posed(angle_increment=0.0), "'angle_increment' is 0 but the scans have 3 beams"),
-    (posed(range_max=np.inf), "'range_max' must be finite"),
-    (posed(sensor_offset=np.array([0.0, np.nan, 0.0])), "'sensor_offset' must be 3 finite numbers"),
-    (posed(samples=np.zeros((3, 1, 3)), weights=np.ones((3, 1))), "'samples' must have shape (2, M, 3)"),
-    (posed(weights=np.ones((2, 2)) * 0.5, samples=np.zeros((2, 1, 3))), "'weights' must have shape (2, 1)"),
-    (posed(weights=np.array([[1.5, -0.5], [0.5, 0.5]]), samples=np.zeros((2, 2, 3))), "negative, NaN or inf"),
-    (gaussian(cov=np.stack([np.eye(3), np.diag([1.0, -0.1, 1.0])])), "not positive semi-definite at step 1"),
-    (gaussian(cov=np.stack([np.eye(3), np.eye(3) + np.triu(np.ones((3, 3)), 1) * 1e-3])), "not symmetric at step 1"),
-    (gaussian(mean=np.zeros((3, 3))), "'mean' must have shape (2, 3)"),
-])
+@pytest.mark.parametrize(
+    "arrays, phrase",
+    [
+        (posed(range_min=-0.5), "0 <= range_min < range_max"),
+        (posed(angle_increment=0.0), "'angle_increment' is 0 but the scans have 3 beams"),
+        (posed(range_max=np.inf), "'range_max' must be finite"),
+        (posed(sensor_offset=np.array([0.0, np.nan, 0.0])), "'sensor_offset' must be 3 finite numbers"),
+        (posed(samples=np.zeros((3, 1, 3)), weights=np.ones((3, 1))), "'samples' must have shape (2, M, 3)"),
+        (posed(weights=np.ones((2, 2)) * 0.5, samples=np.zeros((2, 1, 3))), "'weights' must have shape (2, 1)"),
+        (posed(weights=np.array([[1.5, -0.5], [0.5, 0.5]]), samples=np.zeros((2, 2, 3))), "negative, NaN or inf"),
+        (gaussian(cov=np.stack([np.eye(3), np.diag([1.0, -0.1, 1.0])])), "not positive semi-definite at step 1"),
+        (
+            gaussian(cov=np.stack([np.eye(3), np.eye(3) + np.triu(np.ones((3, 3)), 1) * 1e-3])),
+            "not symmetric at step 1",
+        ),
+        (gaussian(mean=np.zeros((3, 3))), "'mean' must have shape (2, 3)"),
+    ],
+)
 def test_posed_scan_files_that_break_one_rule_are_refused(tmp_path, arrays, phrase):
     with pytest.raises(FormatError) as info:
         load_posed_scans(_write(tmp_path, arrays))
@@ -60,11 +81,17 @@ def test_pose_distribution_files_check_the_poses_too(tmp_path):
         load_pose_distribution(_write(tmp_path, arrays))
 
 
-@pytest.mark.parametrize("arrays, phrase", [
-    (a_map(observed=np.ones((2, 3), bool)), "'observed' has shape (2, 3), 'logodds' has (2, 2)"),
-    (a_map(resolution=5000.0), "'resolution' must be in [1e-06, 1000] m"),
-    (a_map(probability=np.array([[0.5, 0.7311], [0.2689, 0.8900]], np.float32)), "not the logistic"),  # 0.881 -> 0.890
-])
+@pytest.mark.parametrize(
+    "arrays, phrase",
+    [
+        (a_map(observed=np.ones((2, 3), bool)), "'observed' has shape (2, 3), 'logodds' has (2, 2)"),
+        (a_map(resolution=5000.0), "'resolution' must be in [1e-06, 1000] m"),
+        (
+            a_map(probability=np.array([[0.5, 0.7311], [0.2689, 0.8900]], np.float32)),
+            "not the logistic",
+        ),  # 0.881 -> 0.890
+    ],
+)
 def test_map_files_that_break_one_rule_are_refused(tmp_path, arrays, phrase):
     with pytest.raises(FormatError) as info:
         load_map(_write(tmp_path, arrays))

@@ -1,4 +1,5 @@
 """Free-space runs (mapping.free_runs) mark exactly the cells the exact traversal visits before a range."""
+
 import math
 
 import numpy as np
@@ -20,16 +21,32 @@ COL_STRIDE = 192  # the column-major plane's column length: WIN_H rounded up to 
 def runs_cells(x0, y0, angle, r_end, stop):
     """The cells mark_free_runs marks for the ray (both planes folded), and the last cell it returns."""
     ix, iy, r_in, r_out = traverse(x0, y0, angle, stop, RES)
-    assert WIN_IX0 < ix.min() and ix.max() < WIN_IX0 + WIN_W - 1
-    assert WIN_IY0 < iy.min() and iy.max() < WIN_IY0 + WIN_H - 1
+    assert ix.min() > WIN_IX0 and ix.max() < WIN_IX0 + WIN_W - 1
+    assert iy.min() > WIN_IY0 and iy.max() < WIN_IY0 + WIN_H - 1
     rows = np.zeros(WIN_W * WIN_H // 64 + 1, np.uint64)
     columns = np.zeros(WIN_W * COL_STRIDE // 64, np.uint64)
-    last = mark_free_runs(rows, columns, COL_STRIDE, x0, y0, math.cos(angle), math.sin(angle), int(ix[0]), int(iy[0]),
-                          r_end, RES, corner_tol(stop), WIN_IX0, WIN_IY0, WIN_W, np.empty(WIN_W, np.int64),
-                          np.empty(WIN_W, np.int64))
+    last = mark_free_runs(
+        rows,
+        columns,
+        COL_STRIDE,
+        x0,
+        y0,
+        math.cos(angle),
+        math.sin(angle),
+        int(ix[0]),
+        int(iy[0]),
+        r_end,
+        RES,
+        corner_tol(stop),
+        WIN_IX0,
+        WIN_IY0,
+        WIN_W,
+        np.empty(WIN_W, np.int64),
+        np.empty(WIN_W, np.int64),
+    )
     fold_columns(columns, COL_STRIDE, rows, WIN_W, WIN_H, np.empty(64, np.uint64))
     assert not columns.any(), "the fold clears the column-major plane"
-    bits = np.unpackbits(rows.view(np.uint8), bitorder="little")[:WIN_W * WIN_H]
+    bits = np.unpackbits(rows.view(np.uint8), bitorder="little")[: WIN_W * WIN_H]
     marked = {(int(c % WIN_W) + WIN_IX0, int(c // WIN_W) + WIN_IY0) for c in np.flatnonzero(bits)}
     return marked, last
 
@@ -50,14 +67,17 @@ def check_prefix(x0, y0, angle, stop, end_fraction):
     cells, holding = traversal(x0, y0, angle, r_end, stop)
     end = cells.index(last)
     assert abs(end - holding) <= 1, (x0, y0, angle, stop, r_end)
-    assert marked == set(cells[:end + 1]), (x0, y0, angle, stop, r_end)
+    assert marked == set(cells[: end + 1]), (x0, y0, angle, stop, r_end)
 
 
 # origins on cell corners, edges and centres, and anywhere; angles along the axes, the diagonals and anywhere
 nice_coordinate = st.integers(-40, 40).map(lambda k: k * RES / 2)
 coordinate = st.one_of(nice_coordinate, st.floats(-2.0, 2.0))
-angle = st.one_of(st.integers(-8, 8).map(lambda k: k * math.pi / 4),
-                  st.integers(-16, 16).map(lambda k: k * math.pi / 8), st.floats(-math.pi, math.pi))
+angle = st.one_of(
+    st.integers(-8, 8).map(lambda k: k * math.pi / 4),
+    st.integers(-16, 16).map(lambda k: k * math.pi / 8),
+    st.floats(-math.pi, math.pi),
+)
 
 
 @settings(max_examples=300, deadline=None)

@@ -1,4 +1,5 @@
 """Monte Carlo fusion: hand-computed cells, a slow reference, ml equivalence, reproducibility, sharding."""
+
 import math
 
 import numpy as np
@@ -119,18 +120,29 @@ def random_scan(rng, n_beams, n_samples, spread):
     angles = np.sort(rng.uniform(-math.pi, math.pi, n_beams))
     ranges = rng.uniform(0.1, 1.2, n_beams)
     ranges[rng.random(n_beams) < 0.15] = np.nan
-    samples = np.column_stack([rng.normal(0.3, spread, n_samples), rng.normal(-0.2, spread, n_samples),
-                               rng.normal(0.4, 3 * spread, n_samples)])
+    samples = np.column_stack(
+        [
+            rng.normal(0.3, spread, n_samples),
+            rng.normal(-0.2, spread, n_samples),
+            rng.normal(0.4, 3 * spread, n_samples),
+        ]
+    )
     weights = rng.random(n_samples)
     return angles, ranges, samples, weights / weights.sum()
 
 
 @settings(max_examples=12, deadline=None)
-@given(seed=st.integers(0, 10_000), n_beams=st.integers(1, 12), n_samples=st.integers(1, 5),
-       sigma_kind=st.sampled_from(["constant", "linear"]))
+@given(
+    seed=st.integers(0, 10_000),
+    n_beams=st.integers(1, 12),
+    n_samples=st.integers(1, 5),
+    sigma_kind=st.sampled_from(["constant", "linear"]),
+)
 def test_compiled_fusion_matches_slow_reference(seed, n_beams, n_samples, sigma_kind):
     rng = np.random.default_rng(seed)
-    model = SensorModel(resolution=0.1, sigma=sigma_kind, sigma0=0.04, sigma_slope=0.02 if sigma_kind == "linear" else 0.0)
+    model = SensorModel(
+        resolution=0.1, sigma=sigma_kind, sigma0=0.04, sigma_slope=0.02 if sigma_kind == "linear" else 0.0
+    )
     angles, ranges, samples, weights = random_scan(rng, n_beams, n_samples, 0.08)
     offset = (0.1, -0.05, 0.2)
     grid = TiledGrid(0.1, tile_size=8)  # small tiles: scans cross tile borders
@@ -145,9 +157,14 @@ def test_compiled_fusion_matches_slow_reference(seed, n_beams, n_samples, sigma_
 
 
 @settings(max_examples=16, deadline=None)
-@given(seed=st.integers(0, 10_000), n_beams=st.integers(1, 12), copies=st.integers(1, 3),
-       sigma_kind=st.sampled_from(["constant", "linear"]), shard=st.sampled_from([None, 0, 1]),
-       tile_size=st.sampled_from([4, 8]))
+@given(
+    seed=st.integers(0, 10_000),
+    n_beams=st.integers(1, 12),
+    copies=st.integers(1, 3),
+    sigma_kind=st.sampled_from(["constant", "linear"]),
+    shard=st.sampled_from([None, 0, 1]),
+    tile_size=st.sampled_from([4, 8]),
+)
 def test_one_sample_pass_matches_slow_reference(seed, n_beams, copies, sigma_kind, shard, tile_size):
     """One distinct pose (also a particle set whose particles are all that pose) takes the one-sample pass:
     it must agree with the slow reference, with beams that have no return, for a shard that fuses only its
@@ -185,8 +202,9 @@ def test_constant_sigma_beam_table_matches_the_general_one():
     expected_kinds = [BEAM_SKIP] + [BEAM_HIT] * 4 + [BEAM_NO_RETURN] * 2 + [BEAM_SKIP, BEAM_NO_RETURN, BEAM_HIT]
     assert constant.kind.tolist() == linear.kind.tolist() == expected_kinds
     for field in ("z", "r_stop", "r_peak", "a", "b", "s", "g_peak", "free_until"):
-        np.testing.assert_allclose(getattr(constant, field), getattr(linear, field), rtol=1e-12, atol=1e-12,
-                                   err_msg=field)
+        np.testing.assert_allclose(
+            getattr(constant, field), getattr(linear, field), rtol=1e-12, atol=1e-12, err_msg=field
+        )
     assert constant.r_stop[[5, 6, 8]].tolist() == [12.0] * 3  # no return: free up to range_max
     assert constant.r_stop[7] == 0.0
 
@@ -251,10 +269,14 @@ def test_shards_partition_the_map():
     rng = np.random.default_rng(11)
     model = SensorModel(resolution=RES)
     angles = np.linspace(-math.pi, math.pi, 90, endpoint=False)
-    scans = [(np.where(np.arange(90) % 7 == 0, np.inf, rng.uniform(1, 6, 90)),
-              np.column_stack([rng.normal(0, 0.1, 5), rng.normal(0, 0.1, 5), rng.normal(0, 0.05, 5)]),
-              np.full(5, 0.2))
-             for _ in range(3)]
+    scans = [
+        (
+            np.where(np.arange(90) % 7 == 0, np.inf, rng.uniform(1, 6, 90)),
+            np.column_stack([rng.normal(0, 0.1, 5), rng.normal(0, 0.1, 5), rng.normal(0, 0.05, 5)]),
+            np.full(5, 0.2),
+        )
+        for _ in range(3)
+    ]
     whole, joined = whole_and_joined(32, (model, angles, 0.1, 8.0), scans, 3, lambda tx, ty: (tx * 7 + ty * 13) % 3)
     a, b = whole.rasterize(), joined.rasterize()
     for key in a:
@@ -277,18 +299,21 @@ def test_unbounded_map_grows_tiles_on_demand():
     assert raster["origin"][0] < -100.9 and raster["origin"][1] == pytest.approx(250.0)
 
 
-@pytest.mark.parametrize("samples, weights, message", [
-    (np.zeros((2, 3)), np.array([0.5, 0.6]), "sum to 1"),
-    (np.full((1, 3), np.nan), np.ones(1), "finite"),
-    (np.zeros((0, 3)), np.zeros(0), "M >= 1"),
-    (np.zeros((2, 2)), np.full(2, 0.5), "M >= 1"),  # not (M, 3): one sentence, not numpy's reshape error
-    (np.zeros((1, 6)), np.full(2, 0.5), "M >= 1"),  # two poses in one row: refused, not read as (2, 3)
-    (np.array([[0.0, 0.0, 0.0], [1.0, 0.0, np.inf]]), np.full(2, 0.5), "finite"),
-    (np.zeros((2, 3)), np.array([1.5, -0.5]), "non-negative"),
-    (np.array([[1e300, 0.0, 0.0]]), np.ones(1), "beyond"),  # finite, but no cell index reaches it
-    (np.array([[0.0, -1e16, 0.0]]), np.ones(1), "beyond"),
-    (np.array([[0.0, 0.0, 0.0], [300.0, 300.0, 0.0]]), np.full(2, 0.5), "spread over 300 m x 300 m"),  # diverged
-])
+@pytest.mark.parametrize(
+    "samples, weights, message",
+    [
+        (np.zeros((2, 3)), np.array([0.5, 0.6]), "sum to 1"),
+        (np.full((1, 3), np.nan), np.ones(1), "finite"),
+        (np.zeros((0, 3)), np.zeros(0), "M >= 1"),
+        (np.zeros((2, 2)), np.full(2, 0.5), "M >= 1"),  # not (M, 3): one sentence, not numpy's reshape error
+        (np.zeros((1, 6)), np.full(2, 0.5), "M >= 1"),  # two poses in one row: refused, not read as (2, 3)
+        (np.array([[0.0, 0.0, 0.0], [1.0, 0.0, np.inf]]), np.full(2, 0.5), "finite"),
+        (np.zeros((2, 3)), np.array([1.5, -0.5]), "non-negative"),
+        (np.array([[1e300, 0.0, 0.0]]), np.ones(1), "beyond"),  # finite, but no cell index reaches it
+        (np.array([[0.0, -1e16, 0.0]]), np.ones(1), "beyond"),
+        (np.array([[0.0, 0.0, 0.0], [300.0, 300.0, 0.0]]), np.full(2, 0.5), "spread over 300 m x 300 m"),  # diverged
+    ],
+)
 def test_bad_poses_are_rejected(samples, weights, message):
     grid = TiledGrid(RES)
     fusion = MonteCarloFusion(grid, SensorModel(resolution=RES), np.array([0.0]), 0.05, 5.0)
@@ -297,10 +322,13 @@ def test_bad_poses_are_rejected(samples, weights, message):
     assert grid.keys() == []  # refused before anything was written
 
 
-@pytest.mark.parametrize("range_max, message", [
-    (1e308, "reaches beyond"),  # finite, but its reach over a cell overflows to inf
-    (1000.0, "spread over 0 m x 0 m and its rays reach 1000"),  # 40 000 x 40 000 cells of 0.05 m
-])
+@pytest.mark.parametrize(
+    "range_max, message",
+    [
+        (1e308, "reaches beyond"),  # finite, but its reach over a cell overflows to inf
+        (1000.0, "spread over 0 m x 0 m and its rays reach 1000"),  # 40 000 x 40 000 cells of 0.05 m
+    ],
+)
 def test_a_range_limit_no_window_can_hold_is_refused(range_max, message):
     grid = TiledGrid(RES)
     fusion = MonteCarloFusion(grid, SensorModel(resolution=RES), np.array([0.0]), 0.05, range_max)
@@ -338,7 +366,8 @@ def test_a_narrow_noise_model_keeps_the_cell_before_the_peak_free(resolution, si
     x0 = resolution - 0.01
     grid = TiledGrid(resolution)
     MonteCarloFusion(grid, model, np.array([0.0]), 0.05, 10.0).fuse(
-        np.array([2.0]), np.array([[x0, resolution / 2, 0.0]]), np.ones(1))
+        np.array([2.0]), np.array([[x0, resolution / 2, 0.0]]), np.ones(1)
+    )
     k = int(math.floor(2.0 / resolution + 1e-9)) - 1  # the cell just before the one holding x = 2.0
     g = _model_g((k + 1) * resolution - x0, 2.0, sigma0, model.l)
     assert g < 0.5  # before the peak: the free branch of the squashing
@@ -355,8 +384,9 @@ def test_rays_ending_on_a_grid_line_give_the_same_cells_whole_and_sharded():
     not, so the sharded map differed from the whole one."""
     samples = np.array([[0.0, 0.006, 0.0], [0.0, 0.026, 0.0], [0.0, 0.046, 0.0]])
     scan = (np.array([np.nan]), samples, np.full(3, 1 / 3))
-    whole, joined = whole_and_joined(4, (SensorModel(resolution=0.02), np.array([0.0]), 0.05, 0.2), [scan], 2,
-                                     lambda tx, ty: (tx + ty) % 2)
+    whole, joined = whole_and_joined(
+        4, (SensorModel(resolution=0.02), np.array([0.0]), 0.05, 0.2), [scan], 2, lambda tx, ty: (tx + ty) % 2
+    )
     assert sorted(fused_cells(whole)) == sorted((k, row) for k in range(10) for row in range(3))
     a, b = whole.rasterize(), joined.rasterize()
     for key in a:
@@ -383,14 +413,24 @@ def test_whole_and_sharded_maps_agree_on_random_setups(seed):
         ranges[rng.random(n_beams) < 0.1] = np.nan
         m = int(rng.integers(2, 40))
         if rng.random() < 0.3:
-            poses = np.column_stack([rng.integers(-20, 20, m) * res / 2, rng.integers(-20, 20, m) * res / 2,
-                                     rng.integers(-8, 8, m) * math.pi / 4])
+            poses = np.column_stack(
+                [
+                    rng.integers(-20, 20, m) * res / 2,
+                    rng.integers(-20, 20, m) * res / 2,
+                    rng.integers(-8, 8, m) * math.pi / 4,
+                ]
+            )
         else:
             poses = np.column_stack([rng.normal(0, 0.3, m), rng.normal(0, 0.3, m), rng.normal(0, 0.5, m)])
         weights = rng.random(m)
         weights /= weights.sum()
-        whole, joined = whole_and_joined(tile, (model, angles, 0.05, range_max, offset), [(ranges, poses, weights)], 2,
-                                         lambda tx, ty: (tx * 7 + ty * 13) % 2)
+        whole, joined = whole_and_joined(
+            tile,
+            (model, angles, 0.05, range_max, offset),
+            [(ranges, poses, weights)],
+            2,
+            lambda tx, ty: (tx * 7 + ty * 13) % 2,
+        )
         a, b = whole.rasterize(), joined.rasterize()
         np.testing.assert_array_equal(a["observed"], b["observed"])
         np.testing.assert_allclose(a["logodds"], b["logodds"], rtol=0, atol=1e-9)

@@ -1,4 +1,5 @@
 """mapping.grid's tiled map: the raster crop, parameter and layer checks and summaries, by hand."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -31,12 +32,15 @@ def test_rasterize_crops_to_the_observed_cells_by_hand():
     np.testing.assert_allclose(raster["probability"], 1 / (1 + np.exp(-raster["logodds"].astype(float))), rtol=1e-6)
 
 
-@pytest.mark.parametrize("kwargs, message", [
-    (dict(resolution=0.0), "resolution must be > 0"),
-    (dict(resolution=float("nan")), "resolution must be > 0"),
-    (dict(tile_size=3), "power of two"),
-    (dict(tile_size=0), "power of two"),
-])
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(resolution=0.0), "resolution must be > 0"),
+        (dict(resolution=float("nan")), "resolution must be > 0"),
+        (dict(tile_size=3), "power of two"),
+        (dict(tile_size=0), "power of two"),
+    ],
+)
 def test_bad_grid_parameters_are_refused(kwargs, message):
     with pytest.raises(InputError, match=message):
         TiledGrid(**kwargs)

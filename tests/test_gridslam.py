@@ -1,5 +1,6 @@
 """Grid FastSLAM: copy-on-write tiles, scan insertion, likelihood and matcher, and a simulated run
 exported as a CARMEN log (ATE against odometry's, Monte Carlo map against the best particle's map)."""
+
 from __future__ import annotations
 
 import math
@@ -14,12 +15,12 @@ from schemas.files import load_pose_distribution, load_posed_scans
 from services.cli import main
 from services.fusion_runner import fuse_posed_scans
 from slam.angles import wrap_angle
-from slam.motion import odometry_controls
 from slam.carmen import read_carmen, write_carmen
 from slam.gridslam import GridFastSLAM, GridSlamConfig, run_gridslam
 from slam.gridslam.filter import proposal_stencil
 from slam.gridslam.kernels import log_likelihoods, match_and_propose
 from slam.gridslam.tiles import TileMaps
+from slam.motion import odometry_controls
 from slam.raycast import cast_rays
 from slam.simulator import simulate_office
 
@@ -30,10 +31,23 @@ def insert(maps: TileMaps, poses, angles, ranges, max_range=10.0, l_occ=0.85, l_
     """Insert one scan per particle pose through the same path the filter uses."""
     poses = np.asarray(poses, float)
     ranges = np.asarray(ranges, float)
-    maps.cover(poses[:, 0].min() - max_range, poses[:, 1].min() - max_range,
-               poses[:, 0].max() + max_range, poses[:, 1].max() + max_range)
-    maps.insert(poses, np.zeros(3), np.cos(angles), np.sin(angles), np.minimum(ranges, max_range),
-                ranges <= max_range, l_occ, l_free, 5.0)
+    maps.cover(
+        poses[:, 0].min() - max_range,
+        poses[:, 1].min() - max_range,
+        poses[:, 0].max() + max_range,
+        poses[:, 1].max() + max_range,
+    )
+    maps.insert(
+        poses,
+        np.zeros(3),
+        np.cos(angles),
+        np.sin(angles),
+        np.minimum(ranges, max_range),
+        ranges <= max_range,
+        l_occ,
+        l_free,
+        5.0,
+    )
 
 
 def cell(maps: TileMaps, particle: int, ix: int, iy: int) -> float:
@@ -123,8 +137,27 @@ def test_matcher_recovers_a_displaced_pose_and_likelihood_peaks_at_truth():
     predicted = np.array([truth + [0.12, -0.09, 0.05]])
     q = np.diag([1.0, 1.0, 0.5]) ** 2  # a broad motion prior: the match is the likelihood's mode
     matched, score, mean, cov, _ = match_and_propose(
-        *grid, predicted, np.zeros((1, 0, 2)), np.linalg.inv(q)[None], np.array([np.linalg.slogdet(q)[1]]), np.zeros(3), cos_b, sin_b,
-        ranges, 1, 0.05, 0.075, 0.05, 3.0, 0.05, 0.05, 5, 0.25, 9.0, *proposal_stencil(0.02, 0.01))
+        *grid,
+        predicted,
+        np.zeros((1, 0, 2)),
+        np.linalg.inv(q)[None],
+        np.array([np.linalg.slogdet(q)[1]]),
+        np.zeros(3),
+        cos_b,
+        sin_b,
+        ranges,
+        1,
+        0.05,
+        0.075,
+        0.05,
+        3.0,
+        0.05,
+        0.05,
+        5,
+        0.25,
+        9.0,
+        *proposal_stencil(0.02, 0.01),
+    )
     # mean end points per cell give sub-cell precision: well under the 5 cm cells and under 0.3 degrees
     assert np.hypot(*(matched[0, :2] - truth[:2])) < 0.01
     assert abs(wrap_angle(matched[0, 2] - truth[2])) < 0.005
@@ -157,8 +190,24 @@ def test_matcher_starts_where_the_robot_stood_and_behind_it():
         predicted = (before + step)[None]
         starts = np.stack([before[None, :2], (before - step)[None, :2]], axis=1)
         for extra, found in ((starts, True), (np.zeros((1, 0, 2)), False)):
-            matched, *_ = match_and_propose(*grid, predicted, extra, *args, ranges, 1, 0.05, 0.075, 0.05, 3.0, 0.05,
-                                            0.05, 5, 0.25, 9.0, *proposal_stencil(0.02, 0.01))
+            matched, *_ = match_and_propose(
+                *grid,
+                predicted,
+                extra,
+                *args,
+                ranges,
+                1,
+                0.05,
+                0.075,
+                0.05,
+                3.0,
+                0.05,
+                0.05,
+                5,
+                0.25,
+                9.0,
+                *proposal_stencil(0.02, 0.01),
+            )
             assert (np.hypot(*(matched[0, :2] - truth[:2])) < 0.02) == found
 
 
@@ -184,15 +233,24 @@ def drifting_odometry(true_poses: np.ndarray, seed: int) -> np.ndarray:
     odometry = np.zeros_like(true_poses)
     for t in range(len(forward)):  # integration of a few hundred steps (test input, not a hot path)
         cc, ss = math.cos(odometry[t, 2]), math.sin(odometry[t, 2])
-        odometry[t + 1] = (odometry[t, 0] + cc * forward[t] - ss * lateral[t],
-                           odometry[t, 1] + ss * forward[t] + cc * lateral[t], wrap_angle(odometry[t, 2] + turn[t]))
+        odometry[t + 1] = (
+            odometry[t, 0] + cc * forward[t] - ss * lateral[t],
+            odometry[t, 1] + ss * forward[t] + cc * lateral[t],
+            wrap_angle(odometry[t, 2] + turn[t]),
+        )
     return odometry
 
 
 def to_map_frame(start: np.ndarray, poses: np.ndarray) -> np.ndarray:
     c, s = math.cos(start[2]), math.sin(start[2])
-    return np.stack([start[0] + c * poses[..., 0] - s * poses[..., 1], start[1] + s * poses[..., 0] + c * poses[..., 1],
-                     wrap_angle(poses[..., 2] + start[2])], axis=-1)
+    return np.stack(
+        [
+            start[0] + c * poses[..., 0] - s * poses[..., 1],
+            start[1] + s * poses[..., 0] + c * poses[..., 1],
+            wrap_angle(poses[..., 2] + start[2]),
+        ],
+        axis=-1,
+    )
 
 
 def ate(estimate: np.ndarray, truth: np.ndarray) -> float:
@@ -203,8 +261,16 @@ def ate(estimate: np.ndarray, truth: np.ndarray) -> float:
 def simulated_log(tmp_path_factory) -> tuple[Path, object]:
     run = simulate_office(seed=3, steps=420, n_beams=181, range_max=10.0)
     path = tmp_path_factory.mktemp("sim") / "office.clf"
-    write_carmen(path, run.stamps, run.ranges, drifting_odometry(run.true_poses, seed=5), run.angle_min,
-                 run.angle_increment, run.range_max, run.sensor_offset)
+    write_carmen(
+        path,
+        run.stamps,
+        run.ranges,
+        drifting_odometry(run.true_poses, seed=5),
+        run.angle_min,
+        run.angle_increment,
+        run.range_max,
+        run.sensor_offset,
+    )
     return path, run
 
 
@@ -241,8 +307,12 @@ def test_simulated_carmen_log_beats_odometry_and_monte_carlo_map_beats_best_part
     def in_truth_frame(scans):
         return replace(scans, poses=replace(scans.poses, samples=to_map_frame(start, scans.poses.samples)))
 
-    truth = {"occupied": run.truth_occupied, "visible": run.truth_visible, "origin": run.truth_origin,
-             "resolution": run.truth_resolution}
+    truth = {
+        "occupied": run.truth_occupied,
+        "visible": run.truth_visible,
+        "origin": run.truth_origin,
+        "resolution": run.truth_resolution,
+    }
     mc = score_map(fuse_posed_scans(in_truth_frame(posed)).rasterize(), truth)
     best_map = score_map(fuse_posed_scans(in_truth_frame(best_posed)).rasterize(), truth)
     assert mc["nll"] <= best_map["nll"] + 0.005
@@ -253,12 +323,37 @@ def test_same_seed_same_result_and_bad_input_exits_2(simulated_log, tmp_path, ca
     path, _ = simulated_log
     short = read_carmen(path)
     cut = tmp_path / "short.clf"
-    write_carmen(cut, short.stamps[:60], short.ranges[:60], short.odometry[:60], short.angle_min,
-                 short.angle_increment, short.range_max, short.sensor_offset)
+    write_carmen(
+        cut,
+        short.stamps[:60],
+        short.ranges[:60],
+        short.odometry[:60],
+        short.angle_min,
+        short.angle_increment,
+        short.range_max,
+        short.sensor_offset,
+    )
     first = run_gridslam(read_carmen(cut), GridSlamConfig(particles=4), seed=9)
     head = tmp_path / "head.npz"  # --scans 30: the first 30 scans' filter, the same as a log cut there
-    assert main(["slam", "--algo", "gridslam", str(cut), "-o", str(head), "--particles", "4", "--seed", "9",
-                 "--scans", "30"]) == 0
+    assert (
+        main(
+            [
+                "slam",
+                "--algo",
+                "gridslam",
+                str(cut),
+                "-o",
+                str(head),
+                "--particles",
+                "4",
+                "--seed",
+                "9",
+                "--scans",
+                "30",
+            ]
+        )
+        == 0
+    )
     expected = run_gridslam(read_carmen(cut).first(30), GridSlamConfig(particles=4), seed=9)
     np.testing.assert_array_equal(load_pose_distribution(tmp_path / "head.poses.npz").poses.samples, expected.samples)
     again = run_gridslam(read_carmen(cut), GridSlamConfig(particles=4), seed=9)
@@ -299,17 +394,45 @@ def test_odometry_delay_auto_finds_a_late_laser_clock(simulated_log, tmp_path, c
     path, run = simulated_log
     log = read_carmen(path)
     late = tmp_path / "late.clf"
-    write_carmen(late, log.stamps + 0.1, log.ranges, log.odometry, log.angle_min, log.angle_increment,
-                 log.range_max, log.sensor_offset)
+    write_carmen(
+        late,
+        log.stamps + 0.1,
+        log.ranges,
+        log.odometry,
+        log.angle_min,
+        log.angle_increment,
+        log.range_max,
+        log.sensor_offset,
+    )
     with late.open("a") as out:  # the odometry stream on the true clock
         for t, (x, y, yaw) in zip(log.stamps, log.odometry):
             out.write(f"ODOM {x:.6f} {y:.6f} {yaw:.6f} 0 0 0 {t:.6f} sim {t:.6f}\n")
     out_npz = tmp_path / "late.npz"
     stats = tmp_path / "stats.json"
-    assert main(["slam", "--algo", "gridslam", str(late), "-o", str(out_npz), "--particles", "8", "--seed", "1",
-                 "--odom-delay", "auto", "--stats", str(stats)]) == 0
+    assert (
+        main(
+            [
+                "slam",
+                "--algo",
+                "gridslam",
+                str(late),
+                "-o",
+                str(out_npz),
+                "--particles",
+                "8",
+                "--seed",
+                "1",
+                "--odom-delay",
+                "auto",
+                "--stats",
+                str(stats),
+            ]
+        )
+        == 0
+    )
     assert "odometry delay -0.1" in capsys.readouterr().err
     import json
+
     assert json.loads(stats.read_text())["odometry_delay_s"] == pytest.approx(-0.1, abs=0.015)
     assert main(["slam", "--algo", "gridslam", str(path), "-o", str(out_npz), "--odom-delay", "0.1"]) == 2
     assert "separate odometry stream" in capsys.readouterr().err
@@ -342,12 +465,15 @@ def test_first_scan_with_every_range_below_min_range_starts_an_empty_map(tmp_pat
     assert load_pose_distribution(tmp_path / "o.poses.npz").poses.samples.shape == (6, 2, 3)
 
 
-@pytest.mark.parametrize(("log_kwargs", "message"), [
-    ({"scans": 1}, "holds 1 usable scan; grid FastSLAM needs at least 2"),
-    ({"stamps": [100.0, 100.2, 100.4, 100.3, 100.6, 100.8]}, "line 9 (100.300000 s) is not later"),
-    ({"stamps": [100.0, 100.2, 100.2, 100.4, 100.6, 100.8]}, "scan stamps must increase"),
-    ({"scans": 2, "first_ranges": np.full(91, 0.01)}, "only 1 of its 2 scans have a reading of at least 0.05 m"),
-])
+@pytest.mark.parametrize(
+    ("log_kwargs", "message"),
+    [
+        ({"scans": 1}, "holds 1 usable scan; grid FastSLAM needs at least 2"),
+        ({"stamps": [100.0, 100.2, 100.4, 100.3, 100.6, 100.8]}, "line 9 (100.300000 s) is not later"),
+        ({"stamps": [100.0, 100.2, 100.2, 100.4, 100.6, 100.8]}, "scan stamps must increase"),
+        ({"scans": 2, "first_ranges": np.full(91, 0.01)}, "only 1 of its 2 scans have a reading of at least 0.05 m"),
+    ],
+)
 def test_unusable_laser_logs_exit_2_without_output(tmp_path, capsys, log_kwargs, message):
     log = small_log(tmp_path / "bad.clf", **log_kwargs)
     out = tmp_path / "o.npz"
@@ -357,17 +483,22 @@ def test_unusable_laser_logs_exit_2_without_output(tmp_path, capsys, log_kwargs,
     assert not out.exists()
 
 
-@pytest.mark.parametrize(("option", "value", "message"), [
-    ("--grid-resolution", "1e-5", "--grid-resolution must be in [0.01, 1] m"),
-    ("--grid-resolution", "5", "--grid-resolution must be in [0.01, 1] m"),
-    ("--linear-update", "-0.1", "--linear-update and --angular-update must be >= 0"),
-    ("--angular-update", "-0.1", "--linear-update and --angular-update must be >= 0"),
-    ("--particles", "1001", "--particles for grid FastSLAM must be at most 1000"),  # 10 000 asked for 32 GiB
-])
+@pytest.mark.parametrize(
+    ("option", "value", "message"),
+    [
+        ("--grid-resolution", "1e-5", "--grid-resolution must be in [0.01, 1] m"),
+        ("--grid-resolution", "5", "--grid-resolution must be in [0.01, 1] m"),
+        ("--linear-update", "-0.1", "--linear-update and --angular-update must be >= 0"),
+        ("--angular-update", "-0.1", "--linear-update and --angular-update must be >= 0"),
+        ("--particles", "1001", "--particles for grid FastSLAM must be at most 1000"),  # 10 000 asked for 32 GiB
+    ],
+)
 def test_filter_options_out_of_range_exit_2(tmp_path, capsys, option, value, message):
     out = tmp_path / "o.npz"
-    assert main(["slam", "--algo", "gridslam", str(small_log(tmp_path / "ok.clf")), "-o", str(out),
-                 f"{option}={value}"]) == 2
+    assert (
+        main(["slam", "--algo", "gridslam", str(small_log(tmp_path / "ok.clf")), "-o", str(out), f"{option}={value}"])
+        == 2
+    )
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err
     assert not out.exists()
@@ -381,13 +512,16 @@ def test_odometry_delay_needs_an_odometry_stream_in_time_order(tmp_path, capsys)
     assert "odometry stream goes back in time after its record 1" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize(("flags", "message"), [
-    (["--best-output", "{out}"], "-o and --best-output both name"),
-    (["--poses-output", "{out}"], "-o and --poses-output both name"),
-    (["--stats", "{out}"], "-o and --stats both name"),
-    (["--poses-output", "{dir}/o.best.npz"], "--best-output's default and --poses-output both name"),
-    (["--best-output", "{dir}/b.npz", "--stats", "{dir}/./b.npz"], "--best-output and --stats both name"),
-])
+@pytest.mark.parametrize(
+    ("flags", "message"),
+    [
+        (["--best-output", "{out}"], "-o and --best-output both name"),
+        (["--poses-output", "{out}"], "-o and --poses-output both name"),
+        (["--stats", "{out}"], "-o and --stats both name"),
+        (["--poses-output", "{dir}/o.best.npz"], "--best-output's default and --poses-output both name"),
+        (["--best-output", "{dir}/b.npz", "--stats", "{dir}/./b.npz"], "--best-output and --stats both name"),
+    ],
+)
 def test_outputs_that_would_overwrite_each_other_exit_2(tmp_path, capsys, flags, message):
     out = tmp_path / "o.npz"
     flags = [f.format(out=out, dir=tmp_path) for f in flags]

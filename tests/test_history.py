@@ -1,6 +1,7 @@
 """History-query parsing (services.history) at its boundaries; the pipeline tests query history through real
 Zenoh sessions. parse_request only reads a query's parameters, selector and key expression and answers errors
 with reply_err, so a stand-in query object drives it here."""
+
 from __future__ import annotations
 
 import zenoh

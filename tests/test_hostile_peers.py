@@ -5,6 +5,7 @@ and counted, and the real stream is fused as if nothing had happened.
 The unit tests drive :class:`services.state.shard.MapShard` directly; the last test publishes generated keys to real
 processes (router, mapper shard, SLAM node, HTTP API) and checks that every one of them lives and still works.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -26,8 +27,8 @@ from mapping.sensor_model import SensorModel
 from schemas.messages import MAX_SEQ, LaserScan, PoseSamples, ShardStats, StreamEnd, decode_message
 from services import keys
 from services.nodes.launcher import free_port
-from services.state.limits import ShardLimits, reach_cells
 from services.process import MAX_REJECT_KEYS, OTHER_KEYS, RejectCounter
+from services.state.limits import ShardLimits, reach_cells
 from services.state.shard import MapShard, ShardConfig
 from services.zenoh_config import build_config
 
@@ -36,8 +37,17 @@ CLI = [sys.executable, "-m", "services"]
 
 def _scan(seq: int, robot: str = "r", beams: int = 5, range_max: float = 5.0) -> LaserScan:
     ranges = np.array([1.0, 2.0, np.inf, 1.5, 3.0] * (beams // 5 + 1), np.float32)[:beams]
-    return LaserScan(robot=robot, seq=seq, stamp=0.1 * seq, angle_min=-1.0, angle_increment=2.0 / beams,
-                     range_min=0.05, range_max=range_max, sensor_offset=np.zeros(3), ranges=ranges)
+    return LaserScan(
+        robot=robot,
+        seq=seq,
+        stamp=0.1 * seq,
+        angle_min=-1.0,
+        angle_increment=2.0 / beams,
+        range_min=0.05,
+        range_max=range_max,
+        sensor_offset=np.zeros(3),
+        ranges=ranges,
+    )
 
 
 def _pose(seq: int, robot: str = "r", xy=(3.0, 3.0), samples: int = 1) -> PoseSamples:
@@ -64,8 +74,22 @@ def _grid_bytes(shard: MapShard) -> dict:
 # ------------------------------------------------------------------------------------------------ keys
 
 
-@pytest.mark.parametrize("key", ["pg/r/*", "pg/**", "pg/*/scan", "pg/r/$*", "pg/r/scan/extra", "pg/r", "pg/map/scan",
-                                 "pg/-bad/scan", "pg/r/odom", "xx/r/scan", "pg/" + "a" * 65 + "/scan"])
+@pytest.mark.parametrize(
+    "key",
+    [
+        "pg/r/*",
+        "pg/**",
+        "pg/*/scan",
+        "pg/r/$*",
+        "pg/r/scan/extra",
+        "pg/r",
+        "pg/map/scan",
+        "pg/-bad/scan",
+        "pg/r/odom",
+        "xx/r/scan",
+        "pg/" + "a" * 65 + "/scan",
+    ],
+)
 def test_a_publication_on_a_key_that_is_no_robot_stream_is_counted_not_fatal(key):
     """Finding 1: a put on pg/robot0/* raised KeyError('*') in the shard and the SLAM node, which exited."""
     shard = _shard()
@@ -123,8 +147,9 @@ def test_forged_seqs_far_ahead_leave_the_real_stream_whole():
 def test_a_forged_end_far_ahead_cannot_make_the_counters_absurd():
     """Finding 2: an end announcing 2^53 scans after the run made scans_discarded 9 007 199 254 740 592."""
     now = [0.0]
-    shard = MapShard(ShardConfig("m", 0, 1, SensorModel()), RejectCounter(logging.getLogger("hostile")),
-                     clock=lambda: now[0])
+    shard = MapShard(
+        ShardConfig("m", 0, 1, SensorModel()), RejectCounter(logging.getLogger("hostile")), clock=lambda: now[0]
+    )
     _feed(shard, range(50))
     shard.handle("pg/r/end", StreamEnd(robot="r", scans=50).encode())
     shard.handle("pg/r/end", StreamEnd(robot="r", scans=MAX_SEQ + 1).encode())
@@ -189,8 +214,13 @@ def test_reach_cells_counts_the_union_of_the_widened_sample_tiles():
 
 def test_a_pose_cloud_spread_over_a_large_area_is_refused_by_the_extent_limit():
     shard = _shard(ShardLimits(max_scan_cells=50 * 256 * 256))
-    spread = PoseSamples(robot="r", seq=0, stamp=0.0, weights=np.full(40, 1 / 40),
-                         samples=np.column_stack([np.arange(40) * 20.0, np.zeros(40), np.zeros(40)]))
+    spread = PoseSamples(
+        robot="r",
+        seq=0,
+        stamp=0.0,
+        weights=np.full(40, 1 / 40),
+        samples=np.column_stack([np.arange(40) * 20.0, np.zeros(40), np.zeros(40)]),
+    )
     shard.handle("pg/r/scan", _scan(0).encode())
     shard.handle("pg/r/pose", spread.encode())
     assert shard.stats({}).discarded == {"r": 1} and shard.rejects.kinds() == {"extent": 1} and not shard.tiles()
@@ -204,11 +234,32 @@ def test_limits_refuse_nonsense_values():
 
 # ------------------------------------------------------------------------------------------------ real processes
 
-KEY_CHUNKS = st.one_of(st.sampled_from(["*", "**", "$*", "pg", "map", "robot0", "scan", "pose", "end", "odom",
-                                        "prior", "landmarks", "history", "alive", "tile", "stats", "slam", "0"]),
-                       st.from_regex(r"[A-Za-z0-9_.\-]{1,12}", fullmatch=True),
-                       st.text(alphabet=st.characters(blacklist_characters="/*$?#", blacklist_categories=("Cs",)),
-                               min_size=1, max_size=8))
+KEY_CHUNKS = st.one_of(
+    st.sampled_from(
+        [
+            "*",
+            "**",
+            "$*",
+            "pg",
+            "map",
+            "robot0",
+            "scan",
+            "pose",
+            "end",
+            "odom",
+            "prior",
+            "landmarks",
+            "history",
+            "alive",
+            "tile",
+            "stats",
+            "slam",
+            "0",
+        ]
+    ),
+    st.from_regex(r"[A-Za-z0-9_.\-]{1,12}", fullmatch=True),
+    st.text(alphabet=st.characters(blacklist_characters="/*$?#", blacklist_categories=("Cs",)), min_size=1, max_size=8),
+)
 HOSTILE_KEYS = st.lists(KEY_CHUNKS, min_size=1, max_size=6).map(lambda chunks: "/".join(["pg", *chunks]))
 
 
@@ -234,8 +285,9 @@ def pipeline(tmp_path_factory):
         session = zenoh.open(build_config("client", connect=[endpoint]))
         deadline = time.monotonic() + 90
         while time.monotonic() < deadline:
-            if list(session.get("pg/map/m/stats/0", timeout=2)) and list(session.get("pg/robot0/slam/stats",
-                                                                                    timeout=2)):
+            if list(session.get("pg/map/m/stats/0", timeout=2)) and list(
+                session.get("pg/robot0/slam/stats", timeout=2)
+            ):
                 break
             time.sleep(0.2)
         yield session, procs, api_port
@@ -254,8 +306,12 @@ def pipeline(tmp_path_factory):
 
 @pytest.mark.slow
 @settings(max_examples=80, deadline=None, derandomize=True, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(key=HOSTILE_KEYS, payload=st.one_of(st.binary(max_size=64), st.sampled_from([_scan(0, "robot0").encode(),
-                                                                                  _pose(0, "robot0").encode()])))
+@given(
+    key=HOSTILE_KEYS,
+    payload=st.one_of(
+        st.binary(max_size=64), st.sampled_from([_scan(0, "robot0").encode(), _pose(0, "robot0").encode()])
+    ),
+)
 def test_generated_keys_reach_every_process_and_none_of_them_dies(pipeline, key, payload):
     """Finding 1, as a property: a put on any key under pg/ (wildcards, unknown streams, wrong depth, odd
     characters) leaves the router, the shard, the SLAM node and the API running."""
@@ -302,7 +358,8 @@ def test_health_names_each_kind_of_distrusted_refusal_once():
 
     assert distrust({"ahead": 4, "malformed": 7, "key": 1}) == [
         "4 messages with seqs or ends beyond the seq window (forged or stray seqs; held, never fused)",
-        "1 messages on keys that are no posegrid key (wildcards, made-up streams)"]
+        "1 messages on keys that are no posegrid key (wildcards, made-up streams)",
+    ]
     assert distrust({"malformed": 3, "missing": 2}) == []
 
 
@@ -330,8 +387,9 @@ def test_an_array_declaring_a_trillion_elements_is_refused_as_damaged_not_out_of
     _npz_with_member(path, "ranges.npy", {"descr": "<f8", "fortran_order": False, "shape": (10**12,)}, bytes(16))
     with pytest.raises(FormatError, match=r"declares shape \(1000000000000,\).*holds 16 bytes"):
         read_npz(path, "posed-scan file")
-    out = subprocess.run([*CLI, "fuse", str(path), "-o", str(tmp_path / "map.npz")], capture_output=True, text=True,
-                         timeout=120)
+    out = subprocess.run(
+        [*CLI, "fuse", str(path), "-o", str(tmp_path / "map.npz")], capture_output=True, text=True, timeout=120
+    )
     assert out.returncode == 2 and "declares shape" in out.stderr and "Traceback" not in out.stderr
     assert "memory" not in out.stderr and not (tmp_path / "map.npz").exists()
 
@@ -344,8 +402,9 @@ def test_a_zip_bomb_is_refused_before_it_is_inflated(tmp_path, monkeypatch):
 
     monkeypatch.setattr(schemas.files, "MAX_NPZ_BYTES", 2**20)
     path = tmp_path / "bomb.npz"
-    _npz_with_member(path, "ranges.npy", {"descr": "|u1", "fortran_order": False, "shape": (8 * 2**20,)},
-                     bytes(8 * 2**20))
+    _npz_with_member(
+        path, "ranges.npy", {"descr": "|u1", "fortran_order": False, "shape": (8 * 2**20,)}, bytes(8 * 2**20)
+    )
     assert path.stat().st_size < 64 * 2**10
     with pytest.raises(FormatError, match="GiB once inflated"):
         schemas.files.read_npz(path, "posed-scan file")

@@ -1,6 +1,7 @@
 """The checks a mapper shard and a SLAM node share (services.intake, services.state.checks): the bounded intake
 queue in front of both, and the checks of what a history answers, run the same way by the shard's join and by the
 SLAM node's step assembler (services.state.slam, driven here without a network)."""
+
 from __future__ import annotations
 
 import logging
@@ -82,23 +83,38 @@ def test_the_intake_bounds_what_waits_by_bytes_and_by_count_and_counts_each_over
 
 def _scan(seq: int, beams: int = 5) -> LaserScan:
     ranges = np.full(beams, 1.5, np.float32)
-    return LaserScan(robot="r", seq=seq, stamp=0.1 * seq, angle_min=-1.0, angle_increment=2.0 / beams,
-                     range_min=0.05, range_max=5.0, sensor_offset=np.zeros(3), ranges=ranges)
+    return LaserScan(
+        robot="r",
+        seq=seq,
+        stamp=0.1 * seq,
+        angle_min=-1.0,
+        angle_increment=2.0 / beams,
+        range_min=0.05,
+        range_max=5.0,
+        sensor_offset=np.zeros(3),
+        ranges=ranges,
+    )
 
 
 def _pose(seq: int) -> PoseSamples:
-    return PoseSamples(robot="r", seq=seq, stamp=0.1 * seq, samples=np.array([[3.0, 3.0, 0.01 * seq]]),
-                       weights=np.ones(1))
+    return PoseSamples(
+        robot="r", seq=seq, stamp=0.1 * seq, samples=np.array([[3.0, 3.0, 0.01 * seq]]), weights=np.ones(1)
+    )
 
 
 def test_a_shard_refuses_a_scan_from_a_history_with_more_beams_than_the_limit():
     """A history's scans pass the checks a live scan passes: one of more beams than --max-beams is refused and
     counted under the history's key, not fused (the history path took it unchecked)."""
+
     def history(robot: str, stream: str, first: int, last: int) -> list[bytes]:
         make = (lambda seq: _scan(seq, beams=10 if seq == 5 else 5)) if stream == keys.SCAN else _pose
         return [make(seq).encode() for seq in range(first, last + 1)]
-    shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), join_capacity=4, limits=ShardLimits(max_beams=5)),
-                     _rejects("beams"), history=history)
+
+    shard = MapShard(
+        ShardConfig("m", 0, 1, SensorModel(), join_capacity=4, limits=ShardLimits(max_beams=5)),
+        _rejects("beams"),
+        history=history,
+    )
     for seq in (20, 21, 22):
         shard.handle("pg/r/scan", _scan(seq).encode())
         shard.handle("pg/r/pose", _pose(seq).encode())
@@ -108,13 +124,15 @@ def test_a_shard_refuses_a_scan_from_a_history_with_more_beams_than_the_limit():
 
 
 def _odometry(seq: int, robot: str = "r") -> Odometry:
-    return Odometry(robot=robot, seq=seq, stamp=0.1 * seq, pose=np.array([[0.1 * seq, 0.0, 0.0]]),
-                    commands=np.zeros((0, 3)))
+    return Odometry(
+        robot=robot, seq=seq, stamp=0.1 * seq, pose=np.array([[0.1 * seq, 0.0, 0.0]]), commands=np.zeros((0, 3))
+    )
 
 
 def _seen(seq: int) -> LandmarkObservations:
-    return LandmarkObservations(robot="r", seq=seq, stamp=0.1 * seq, ids=np.zeros(0, np.int64), ranges=np.zeros(0),
-                                bearings=np.zeros(0))
+    return LandmarkObservations(
+        robot="r", seq=seq, stamp=0.1 * seq, ids=np.zeros(0, np.int64), ranges=np.zeros(0), bearings=np.zeros(0)
+    )
 
 
 def test_a_slam_node_takes_lost_steps_from_the_history_and_counts_replies_about_other_robots_or_seqs():
@@ -129,8 +147,14 @@ def test_a_slam_node_takes_lost_steps_from_the_history_and_counts_replies_about_
         for seq in range(first, (last if last is not None else 9) + 1):
             replies += [("pg/r/odom", _odometry(seq).encode()), ("pg/r/landmarks", _seen(seq).encode())]
         return replies
-    config = NodeConfig(robot="r", algorithm="odometry", motion="odometry", initial=np.zeros(3),
-                        make_filter=lambda start: DeadReckoning(OdometryMotionModel(), start))
+
+    config = NodeConfig(
+        robot="r",
+        algorithm="odometry",
+        motion="odometry",
+        initial=np.zeros(3),
+        make_filter=lambda start: DeadReckoning(OdometryMotionModel(), start),
+    )
     rejects = _rejects("slam-history")
     state = SlamState(config, rejects, publish=published.append, history=history)
     for seq in [0, 1, 2, *range(5, 10)]:

@@ -4,6 +4,7 @@ A tiny package in a temporary directory (kernel -> helper -> constants, as mappi
 raytrace and window_walk) runs in fresh processes that share one NUMBA_CACHE_DIR; between runs a helper or
 a constant changes. numba's plain ``njit(cache=True)`` is the control: it loads the stale machine code.
 """
+
 import ast
 import os
 import subprocess
@@ -46,18 +47,25 @@ def write_package(root: Path, flavour: str) -> Path:
 
 def run_python(root: Path, script: str) -> str:
     """``script`` in a fresh process that imports tinypkg from ``root``, the numba cache under it: stdout."""
-    env = {**os.environ, "NUMBA_CACHE_DIR": str(root / "numba_cache"), "PYTHONDONTWRITEBYTECODE": "1",
-           "PYTHONPATH": os.pathsep.join([str(root), str(ROOT)])}
-    done = subprocess.run([sys.executable, "-c", script], cwd=root, env=env, capture_output=True, text=True,
-                          timeout=300, check=False)
+    env = {
+        **os.environ,
+        "NUMBA_CACHE_DIR": str(root / "numba_cache"),
+        "PYTHONDONTWRITEBYTECODE": "1",
+        "PYTHONPATH": os.pathsep.join([str(root), str(ROOT)]),
+    }
+    done = subprocess.run(
+        [sys.executable, "-c", script], cwd=root, env=env, capture_output=True, text=True, timeout=300, check=False
+    )
     assert done.returncode == 0, done.stderr
     return done.stdout
 
 
 def run_kernel(root: Path) -> tuple[float, int, int]:
     """run(2.0) in a fresh process: (result, cache hits, cache misses)."""
-    script = ("from tinypkg.kernel import run\nv = run(2.0)\n"
-              "print(v, sum(run.stats.cache_hits.values()), sum(run.stats.cache_misses.values()))")
+    script = (
+        "from tinypkg.kernel import run\nv = run(2.0)\n"
+        "print(v, sum(run.stats.cache_hits.values()), sum(run.stats.cache_misses.values()))"
+    )
     value, hits, misses = run_python(root, script).split()
     return float(value), int(hits), int(misses)
 
@@ -92,31 +100,42 @@ def test_numbas_own_cache_serves_the_stale_helper(tmp_path):
 def test_without_numbas_caching_internals_kernels_run_uncached_with_a_warning(tmp_path):
     """A numba whose private caching classes moved: correct results, no disk cache, one warning."""
     write_package(tmp_path, "kernel")
-    script = ("import warnings\nfrom numba.core import caching\ndel caching.FunctionCache._impl_class\n"
-              "with warnings.catch_warnings(record=True) as caught:\n    warnings.simplefilter('always')\n"
-              "    from tinypkg.kernel import run\n"
-              "print(run(2.0), *sorted({str(w.message).split(': ')[1] for w in caught}), sep='\\n')")
+    script = (
+        "import warnings\nfrom numba.core import caching\ndel caching.FunctionCache._impl_class\n"
+        "with warnings.catch_warnings(record=True) as caught:\n    warnings.simplefilter('always')\n"
+        "    from tinypkg.kernel import run\n"
+        "print(run(2.0), *sorted({str(w.message).split(': ')[1] for w in caught}), sep='\\n')"
+    )
     value, *messages = run_python(tmp_path, script).splitlines()
     assert float(value) == FIRST
-    expected = ("its caching internals are not as mapping.jit expects (CacheImpl.locator is not a property); "
-                "kernels compile without a disk cache")
+    expected = (
+        "its caching internals are not as mapping.jit expects (CacheImpl.locator is not a property); "
+        "kernels compile without a disk cache"
+    )
     assert messages == [expected]
     assert not list((tmp_path / "numba_cache").rglob("*.nbi"))
 
 
 def test_the_closure_of_a_fusion_kernel_holds_the_helpers_it_inlines():
     files = closure_files("mapping.samples_pass", ROOT / "mapping" / "samples_pass.py")
-    assert {"mapping/raytrace.py", "mapping/window_walk.py", "mapping/free_runs.py",
-            "mapping/beam_model.py", "mapping/samples_pass.py"} <= set(files)
+    assert {
+        "mapping/raytrace.py",
+        "mapping/window_walk.py",
+        "mapping/free_runs.py",
+        "mapping/beam_model.py",
+        "mapping/samples_pass.py",
+    } <= set(files)
     assert all(path.startswith(("mapping/", "slam/")) for path in files), "numpy and numba stay outside"
 
 
 def numba_cache_calls(path: Path) -> list[int]:
     """Lines of calls with cache=True (numba's own cache) in one source file."""
-    return [node.lineno for node in ast.walk(ast.parse(path.read_text(), str(path)))
-            if isinstance(node, ast.Call)
-            and any(k.arg == "cache" and isinstance(k.value, ast.Constant) and k.value.value is True
-                    for k in node.keywords)]
+    return [
+        node.lineno
+        for node in ast.walk(ast.parse(path.read_text(), str(path)))
+        if isinstance(node, ast.Call)
+        and any(k.arg == "cache" and isinstance(k.value, ast.Constant) and k.value.value is True for k in node.keywords)
+    ]
 
 
 def test_no_kernel_uses_numbas_own_cache():

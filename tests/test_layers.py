@@ -1,4 +1,5 @@
 """The layering rules of docs/architecture.md, checked on the source."""
+
 import ast
 from pathlib import Path
 
@@ -46,17 +47,25 @@ def test_no_runtime_module_imports_the_command_line():
     """services/ below the CLI (state, nodes, api and the shared modules) never reaches services.cli or
     services.commands: a process depends on what it runs, not on argparse glue."""
     cli = {ROOT / "services" / "cli.py", ROOT / "services" / "__main__.py"}
-    runtime = [f for f in sorted((ROOT / "services").rglob("*.py"))
-               if f not in cli and "commands" not in f.relative_to(ROOT).parts]
-    offenders = {str(f.relative_to(ROOT)): sorted(m for m in imported_modules(f)
-                                                  if m == "services.cli" or m.startswith("services.commands"))
-                 for f in runtime}
+    runtime = [
+        f
+        for f in sorted((ROOT / "services").rglob("*.py"))
+        if f not in cli and "commands" not in f.relative_to(ROOT).parts
+    ]
+    offenders = {
+        str(f.relative_to(ROOT)): sorted(
+            m for m in imported_modules(f) if m == "services.cli" or m.startswith("services.commands")
+        )
+        for f in runtime
+    }
     assert not {f: bad for f, bad in offenders.items() if bad}
 
 
 def test_the_state_package_holds_no_networking():
     """services/state is what a shard and a SLAM node decide, testable without a network."""
     forbidden = {"zenoh", "fastapi", "uvicorn", "socket", "subprocess"}
-    offenders = {str(f.relative_to(ROOT)): sorted(imported_roots(f) & forbidden)
-                 for f in sorted((ROOT / "services" / "state").rglob("*.py"))}
+    offenders = {
+        str(f.relative_to(ROOT)): sorted(imported_roots(f) & forbidden)
+        for f in sorted((ROOT / "services" / "state").rglob("*.py"))
+    }
     assert offenders and not {f: bad for f, bad in offenders.items() if bad}

@@ -1,5 +1,6 @@
 """Wire messages: every type round-trips bit for bit, and every kind of corruption is rejected with
 the reason that names it. The expected values are built here by hand, not by the codec."""
+
 from __future__ import annotations
 
 import json
@@ -12,6 +13,7 @@ from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
+from conftest import ROOT
 from schemas.errors import FormatError
 from schemas.jsonschema import render_schemas
 from schemas.messages import (
@@ -33,8 +35,6 @@ from schemas.messages import (
 )
 from schemas.wire import MAX_ARRAY_ELEMENTS
 
-from conftest import ROOT
-
 SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 names = st.from_regex(r"\A[A-Za-z0-9][A-Za-z0-9_.-]{0,15}\Z").filter(lambda s: s != "map")
@@ -50,20 +50,34 @@ def f64(shape):
 @st.composite
 def laser_scans(draw):
     beams = draw(st.integers(1, 50))
-    ranges = draw(hnp.arrays(np.float32, beams, elements=st.one_of(
-        st.floats(0, 50, width=32), st.just(float("nan")), st.just(float("inf")))))
+    ranges = draw(
+        hnp.arrays(
+            np.float32,
+            beams,
+            elements=st.one_of(st.floats(0, 50, width=32), st.just(float("nan")), st.just(float("inf"))),
+        )
+    )
     range_min = draw(st.floats(0, 1))
-    return LaserScan(robot=draw(names), seq=draw(seqs), stamp=draw(finite), angle_min=draw(st.floats(-6.28, 6.28)),
-                     angle_increment=draw(st.floats(0.001, 0.1)), range_min=range_min,
-                     range_max=range_min + draw(st.floats(0.5, 80)), sensor_offset=draw(f64(3)), ranges=ranges)
+    return LaserScan(
+        robot=draw(names),
+        seq=draw(seqs),
+        stamp=draw(finite),
+        angle_min=draw(st.floats(-6.28, 6.28)),
+        angle_increment=draw(st.floats(0.001, 0.1)),
+        range_min=range_min,
+        range_max=range_min + draw(st.floats(0.5, 80)),
+        sensor_offset=draw(f64(3)),
+        ranges=ranges,
+    )
 
 
 @st.composite
 def pose_samples(draw):
     m = draw(st.integers(1, 30))
     raw = draw(hnp.arrays(np.float64, m, elements=st.floats(0.01, 1)))
-    return PoseSamples(robot=draw(names), seq=draw(seqs), stamp=draw(finite), samples=draw(f64((m, 3))),
-                       weights=raw / raw.sum())
+    return PoseSamples(
+        robot=draw(names), seq=draw(seqs), stamp=draw(finite), samples=draw(f64((m, 3))), weights=raw / raw.sum()
+    )
 
 
 @st.composite
@@ -77,17 +91,26 @@ def odometries(draw):
     k = draw(st.integers(0, 5))
     commands = draw(f64((k, 3)))
     commands[:, 2] = np.abs(commands[:, 2])
-    return Odometry(robot=draw(names), seq=draw(seqs), stamp=draw(finite), pose=draw(f64((draw(st.integers(0, 1)), 3))),
-                    commands=commands)
+    return Odometry(
+        robot=draw(names),
+        seq=draw(seqs),
+        stamp=draw(finite),
+        pose=draw(f64((draw(st.integers(0, 1)), 3))),
+        commands=commands,
+    )
 
 
 @st.composite
 def landmarks(draw):
     k = draw(st.integers(0, 10))
     return LandmarkObservations(
-        robot=draw(names), seq=draw(seqs), stamp=draw(finite),
+        robot=draw(names),
+        seq=draw(seqs),
+        stamp=draw(finite),
         ids=draw(hnp.arrays(np.int64, k, elements=st.integers(-1, 1000))),
-        ranges=draw(hnp.arrays(np.float64, k, elements=st.floats(0, 100))), bearings=draw(f64(k)))
+        ranges=draw(hnp.arrays(np.float64, k, elements=st.floats(0, 100))),
+        bearings=draw(f64(k)),
+    )
 
 
 @st.composite
@@ -95,25 +118,45 @@ def tile_updates(draw):
     size = draw(st.integers(1, 32))
     h, w = draw(st.integers(0, size)), draw(st.integers(0, size))
     return TileUpdate(
-        map=draw(names), shard=draw(st.integers(0, 9)), z=0, tx=draw(st.integers(-1000, 1000)),
-        ty=draw(st.integers(-1000, 1000)), tile_size=size, resolution=draw(st.floats(0.001, 1)),
-        row0=draw(st.integers(0, size - h)), col0=draw(st.integers(0, size - w)), robot=draw(names),
-        seq=draw(seqs), published=draw(finite),
+        map=draw(names),
+        shard=draw(st.integers(0, 9)),
+        z=0,
+        tx=draw(st.integers(-1000, 1000)),
+        ty=draw(st.integers(-1000, 1000)),
+        tile_size=size,
+        resolution=draw(st.floats(0.001, 1)),
+        row0=draw(st.integers(0, size - h)),
+        col0=draw(st.integers(0, size - w)),
+        robot=draw(names),
+        seq=draw(seqs),
+        published=draw(finite),
         logodds=draw(hnp.arrays(np.float32, (h, w), elements=st.floats(-20, 20, width=32))),
         variance=draw(hnp.arrays(np.float32, (h, w), elements=st.floats(0, 50, width=32))),
-        observed=draw(hnp.arrays(np.bool_, (h, w))))
+        observed=draw(hnp.arrays(np.bool_, (h, w))),
+    )
 
 
 @st.composite
 def shard_stats(draw):
     shards = draw(st.integers(1, 8))
     return ShardStats(
-        map=draw(names), shard=draw(st.integers(0, shards - 1)), shards=shards,
-        tiles_owned=draw(st.integers(0, 10**6)), cells_updated=draw(st.integers(0, 10**12)),
-        tile_updates=draw(st.integers(0, 10**6)), join_pending=draw(st.integers(0, 100)),
-        uptime=draw(st.floats(0, 1e6)), fused=draw(counts), discarded=draw(counts), ended=draw(counts),
-        received=draw(counts), resent=draw(counts), rejected=draw(counts), overflow=draw(counts),
-        refused=draw(counts))
+        map=draw(names),
+        shard=draw(st.integers(0, shards - 1)),
+        shards=shards,
+        tiles_owned=draw(st.integers(0, 10**6)),
+        cells_updated=draw(st.integers(0, 10**12)),
+        tile_updates=draw(st.integers(0, 10**6)),
+        join_pending=draw(st.integers(0, 100)),
+        uptime=draw(st.floats(0, 1e6)),
+        fused=draw(counts),
+        discarded=draw(counts),
+        ended=draw(counts),
+        received=draw(counts),
+        resent=draw(counts),
+        rejected=draw(counts),
+        overflow=draw(counts),
+        refused=draw(counts),
+    )
 
 
 MESSAGES = {
@@ -125,9 +168,17 @@ MESSAGES = {
     "StreamEnd": st.builds(StreamEnd, robot=names, scans=st.integers(0, 10**9)),
     "TileUpdate": tile_updates(),
     "ShardStats": shard_stats(),
-    "NodeStats": st.builds(NodeStats, robot=names, algorithm=st.sampled_from(["ekf", "fastslam", "gridslam"]),
-                           poses_published=st.integers(0, 10**6), steps_done=st.integers(0, 10**6), uptime=st.floats(0, 1e6), received=counts,
-                           rejected=counts, out_of_order=counts),
+    "NodeStats": st.builds(
+        NodeStats,
+        robot=names,
+        algorithm=st.sampled_from(["ekf", "fastslam", "gridslam"]),
+        poses_published=st.integers(0, 10**6),
+        steps_done=st.integers(0, 10**6),
+        uptime=st.floats(0, 1e6),
+        received=counts,
+        rejected=counts,
+        out_of_order=counts,
+    ),
 }
 any_message = st.sampled_from(sorted(MESSAGES)).flatmap(lambda name: MESSAGES[name])
 
@@ -161,8 +212,17 @@ def test_round_trip_is_bit_exact(message):
 
 def test_arrays_travel_as_raw_bytes_not_lists():
     ranges = np.arange(1, 361, dtype=np.float32) / 10
-    scan = LaserScan(robot="r", seq=0, stamp=0.0, angle_min=0.0, angle_increment=0.01, range_min=0.0,
-                     range_max=40.0, sensor_offset=np.zeros(3), ranges=ranges)
+    scan = LaserScan(
+        robot="r",
+        seq=0,
+        stamp=0.0,
+        angle_min=0.0,
+        angle_increment=0.01,
+        range_min=0.0,
+        range_max=40.0,
+        sensor_offset=np.zeros(3),
+        ranges=ranges,
+    )
     wire = msgpack.unpackb(scan.encode())
     assert wire["ranges"] == {"dtype": "<f4", "shape": [360], "data": ranges.tobytes()}
     assert len(scan.encode()) < 360 * 4 + 300
@@ -284,9 +344,11 @@ def test_inconsistent_lengths_across_fields():
 @given(any_message, st.data())
 def test_nonfinite_values(message, data):
     wire = wire_of(message)
-    finite_fields = [n for n, v in fields(message).items()
-                     if isinstance(v, float) or (isinstance(v, np.ndarray) and v.dtype.kind == "f" and v.size
-                                                 and n != "ranges")]
+    finite_fields = [
+        n
+        for n, v in fields(message).items()
+        if isinstance(v, float) or (isinstance(v, np.ndarray) and v.dtype.kind == "f" and v.size and n != "ranges")
+    ]
     if not finite_fields:
         return
     name = data.draw(st.sampled_from(sorted(finite_fields)))
@@ -301,8 +363,17 @@ def test_nonfinite_values(message, data):
 
 
 def scan(**overrides):
-    values = dict(robot="r", seq=0, stamp=0.0, angle_min=-1.0, angle_increment=0.5, range_min=0.1, range_max=5.0,
-                  sensor_offset=np.zeros(3), ranges=np.array([1.0, 2.0, 3.0], np.float32))
+    values = dict(
+        robot="r",
+        seq=0,
+        stamp=0.0,
+        angle_min=-1.0,
+        angle_increment=0.5,
+        range_min=0.1,
+        range_max=5.0,
+        sensor_offset=np.zeros(3),
+        ranges=np.array([1.0, 2.0, 3.0], np.float32),
+    )
     values.update(overrides)
     return LaserScan(**values)
 
@@ -318,22 +389,25 @@ def test_ranges_may_say_no_return_or_too_close():
     np.testing.assert_array_equal(decoded.ranges, ranges)
 
 
-@pytest.mark.parametrize("overrides", [
-    {"ranges": np.array([1.0, -0.5, 2.0], np.float32)},
-    {"range_min": 6.0},
-    {"range_min": -0.1},
-    {"angle_increment": 0.0},
-    {"robot": "a/b"},
-    {"robot": "*"},
-    {"robot": "map"},
-    {"robot": ""},
-    {"seq": -1},
-    {"seq": MAX_SEQ + 1},  # not exact as a JSON number: /health's lag would lie to JavaScript clients
-    {"angle_min": 1e30},  # every beam on one ray, once the angles are rounded
-    {"angle_increment": -7.0},
-    {"range_min": 2.0, "range_max": 2.0},  # range_min < range_max, strictly
-    {"angle_increment": 0.0, "ranges": np.array([1.0, 2.0], np.float32)},  # two beams on one ray
-])
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        {"ranges": np.array([1.0, -0.5, 2.0], np.float32)},
+        {"range_min": 6.0},
+        {"range_min": -0.1},
+        {"angle_increment": 0.0},
+        {"robot": "a/b"},
+        {"robot": "*"},
+        {"robot": "map"},
+        {"robot": ""},
+        {"seq": -1},
+        {"seq": MAX_SEQ + 1},  # not exact as a JSON number: /health's lag would lie to JavaScript clients
+        {"angle_min": 1e30},  # every beam on one ray, once the angles are rounded
+        {"angle_increment": -7.0},
+        {"range_min": 2.0, "range_max": 2.0},  # range_min < range_max, strictly
+        {"angle_increment": 0.0, "ranges": np.array([1.0, 2.0], np.float32)},  # two beams on one ray
+    ],
+)
 def test_out_of_range_values(overrides):
     with pytest.raises(MessageError) as info:
         scan(**overrides).encode()
@@ -355,12 +429,15 @@ def test_scan_without_beams_is_rejected():
     assert info.value.reason == "shape"
 
 
-@pytest.mark.parametrize("weights, reason", [
-    (np.array([0.5, 0.6]), "weights"),
-    (np.array([1.5, -0.5]), "weights"),
-    (np.array([0.0, 0.0]), "weights"),
-    (np.array([0.5, 0.501]), "weights"),  # sums to 1.001: past the 1e-4 tolerance
-])
+@pytest.mark.parametrize(
+    "weights, reason",
+    [
+        (np.array([0.5, 0.6]), "weights"),
+        (np.array([1.5, -0.5]), "weights"),
+        (np.array([0.0, 0.0]), "weights"),
+        (np.array([0.5, 0.501]), "weights"),  # sums to 1.001: past the 1e-4 tolerance
+    ],
+)
 def test_bad_weights(weights, reason):
     wire = wire_of(PoseSamples(robot="r", seq=0, stamp=0.0, samples=np.zeros((2, 3)), weights=np.full(2, 0.5)))
     wire["weights"]["data"] = weights.astype("<f8").tobytes()
@@ -373,12 +450,15 @@ def test_weights_within_the_tolerance_of_one_are_taken():
     assert decode_message(msgpack.packb(wire, use_bin_type=True)).weights[1] == 0.50001
 
 
-@pytest.mark.parametrize("cov", [
-    np.array([[1.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]),  # not symmetric
-    np.diag([1.0, -0.1, 1.0]),  # not positive semi-definite
-    np.array([[1.0, 1e-6, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]),  # asymmetric by 1e-6 (tolerance 2e-9)
-    np.diag([1.0, -1e-6, 1.0]),  # eigenvalue -1e-6 (tolerance -2e-12)
-])
+@pytest.mark.parametrize(
+    "cov",
+    [
+        np.array([[1.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]),  # not symmetric
+        np.diag([1.0, -0.1, 1.0]),  # not positive semi-definite
+        np.array([[1.0, 1e-6, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]),  # asymmetric by 1e-6 (tolerance 2e-9)
+        np.diag([1.0, -1e-6, 1.0]),  # eigenvalue -1e-6 (tolerance -2e-12)
+    ],
+)
 def test_bad_covariance(cov):
     wire = wire_of(PoseGaussian(robot="r", seq=0, stamp=0.0, mean=np.zeros(3), cov=np.eye(3)))
     wire["cov"]["data"] = cov.astype("<f8").tobytes()
@@ -413,9 +493,23 @@ def test_more_samples_than_a_message_may_carry_are_rejected():
 
 
 def test_boolean_bytes_other_than_0_and_1_are_rejected():
-    tile = TileUpdate(map="m", shard=0, z=0, tx=0, ty=0, tile_size=2, resolution=0.1, row0=0, col0=0, robot="r",
-                      seq=0, published=0.0, logodds=np.zeros((2, 2), np.float32),
-                      variance=np.zeros((2, 2), np.float32), observed=np.ones((2, 2), bool))
+    tile = TileUpdate(
+        map="m",
+        shard=0,
+        z=0,
+        tx=0,
+        ty=0,
+        tile_size=2,
+        resolution=0.1,
+        row0=0,
+        col0=0,
+        robot="r",
+        seq=0,
+        published=0.0,
+        logodds=np.zeros((2, 2), np.float32),
+        variance=np.zeros((2, 2), np.float32),
+        observed=np.ones((2, 2), bool),
+    )
     wire = wire_of(tile)
     wire["observed"]["data"] = bytes([1, 0, 2, 1])
     assert reason_of(wire) == "range"
@@ -460,27 +554,59 @@ def test_schema_describes_the_wire_keys_and_constants(message):
 
 
 def tile(**overrides):
-    values = dict(map="m", shard=0, z=0, tx=0, ty=0, tile_size=4, resolution=0.1, row0=0, col0=0, robot="r", seq=0,
-                  published=0.0, logodds=np.zeros((2, 2), np.float32), variance=np.zeros((2, 2), np.float32),
-                  observed=np.ones((2, 2), bool))
+    values = dict(
+        map="m",
+        shard=0,
+        z=0,
+        tx=0,
+        ty=0,
+        tile_size=4,
+        resolution=0.1,
+        row0=0,
+        col0=0,
+        robot="r",
+        seq=0,
+        published=0.0,
+        logodds=np.zeros((2, 2), np.float32),
+        variance=np.zeros((2, 2), np.float32),
+        observed=np.ones((2, 2), bool),
+    )
     values.update(overrides)
     return TileUpdate(**values)
 
 
 def stats(**overrides):
-    values = dict(map="m", shard=0, shards=2, tiles_owned=0, cells_updated=0, tile_updates=0, join_pending=0,
-                  uptime=0.0, fused={}, discarded={}, ended={}, received={}, resent={}, rejected={}, overflow={},
-                  refused={})
+    values = dict(
+        map="m",
+        shard=0,
+        shards=2,
+        tiles_owned=0,
+        cells_updated=0,
+        tile_updates=0,
+        join_pending=0,
+        uptime=0.0,
+        fused={},
+        discarded={},
+        ended={},
+        received={},
+        resent={},
+        rejected={},
+        overflow={},
+        refused={},
+    )
     values.update(overrides)
     return ShardStats(**values)
 
 
-@pytest.mark.parametrize("message", [
-    tile(resolution=0.0),  # exclusive minimum
-    tile(col0=3),  # a 2-wide window from column 3 leaves a 4-wide tile
-    stats(shard=2, shards=2),  # shard indices are 0 .. shards - 1
-    stats(fused={"r": -1}),  # counts are >= 0
-])
+@pytest.mark.parametrize(
+    "message",
+    [
+        tile(resolution=0.0),  # exclusive minimum
+        tile(col0=3),  # a 2-wide window from column 3 leaves a 4-wide tile
+        stats(shard=2, shards=2),  # shard indices are 0 .. shards - 1
+        stats(fused={"r": -1}),  # counts are >= 0
+    ],
+)
 def test_tile_and_stats_boundary_values_are_out_of_range(message):
     with pytest.raises(MessageError) as info:
         message.encode()

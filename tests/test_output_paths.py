@@ -3,6 +3,7 @@ and renamed onto a regular file only, and never reported as written when the wri
 
 Every path here lies in tmp_path; /dev/full is only stat-ed (it must be refused before anything is written).
 """
+
 from __future__ import annotations
 
 import errno
@@ -14,7 +15,6 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from schemas.files import load_map, output_path_problem, save_posed_scans, write_atomically
@@ -39,11 +39,13 @@ def bad_outputs(tmp_path) -> dict[str, tuple[str, str]]:
     os.mkfifo(fifo)
     (tmp_path / "folder.png").mkdir()
     (tmp_path / "to-fifo.png").symlink_to(fifo)
-    return {"fifo": (str(fifo), "is a FIFO, not a regular file"),
-            "folder": (str(tmp_path / "folder.png"), "is a folder, not a file"),
-            "empty": ("", "an empty path names no file"),
-            "missing folder": (str(tmp_path / "absent" / "out.png"), f"folder {tmp_path / 'absent'} does not exist"),
-            "link to a fifo": (str(tmp_path / "to-fifo.png"), f"links to {fifo}, which is a FIFO")}
+    return {
+        "fifo": (str(fifo), "is a FIFO, not a regular file"),
+        "folder": (str(tmp_path / "folder.png"), "is a folder, not a file"),
+        "empty": ("", "an empty path names no file"),
+        "missing folder": (str(tmp_path / "absent" / "out.png"), f"folder {tmp_path / 'absent'} does not exist"),
+        "link to a fifo": (str(tmp_path / "to-fifo.png"), f"links to {fifo}, which is a FIFO"),
+    }
 
 
 def one_line_exit_2(argv: list[str], capsys, *fragments: str) -> str:
@@ -71,14 +73,43 @@ COMMANDS = {
     "export": lambda tmp, out: ["export", str(tmp / "no-input.npz"), "--format", "png", "-o", out],
     "slam": lambda tmp, out: ["slam", "--algo", "ekf", str(tmp / "no-input"), "-o", out],
     "slam gridslam -o": lambda tmp, out: ["slam", "--algo", "gridslam", str(tmp / "no-input.clf"), "-o", out],
-    "slam gridslam --stats": lambda tmp, out: ["slam", "--algo", "gridslam", str(tmp / "no-input.clf"),
-                                               "-o", str(tmp / "g.npz"), "--stats", out],
-    "slam gridslam --best-output": lambda tmp, out: ["slam", "--algo", "gridslam", str(tmp / "no-input.clf"),
-                                                     "-o", str(tmp / "g.npz"), "--best-output", out],
-    "slam gridslam --poses-output": lambda tmp, out: ["slam", "--algo", "gridslam", str(tmp / "no-input.clf"),
-                                                      "-o", str(tmp / "g.npz"), "--poses-output", out],
-    "eval-relations --json": lambda tmp, out: ["eval-relations", str(tmp / "no-input.npz"), str(tmp / "no-input.txt"),
-                                               "--json", out],
+    "slam gridslam --stats": lambda tmp, out: [
+        "slam",
+        "--algo",
+        "gridslam",
+        str(tmp / "no-input.clf"),
+        "-o",
+        str(tmp / "g.npz"),
+        "--stats",
+        out,
+    ],
+    "slam gridslam --best-output": lambda tmp, out: [
+        "slam",
+        "--algo",
+        "gridslam",
+        str(tmp / "no-input.clf"),
+        "-o",
+        str(tmp / "g.npz"),
+        "--best-output",
+        out,
+    ],
+    "slam gridslam --poses-output": lambda tmp, out: [
+        "slam",
+        "--algo",
+        "gridslam",
+        str(tmp / "no-input.clf"),
+        "-o",
+        str(tmp / "g.npz"),
+        "--poses-output",
+        out,
+    ],
+    "eval-relations --json": lambda tmp, out: [
+        "eval-relations",
+        str(tmp / "no-input.npz"),
+        str(tmp / "no-input.txt"),
+        "--json",
+        out,
+    ],
     "run --export": lambda tmp, out: ["run", "--posed", str(tmp / "no-input.npz"), "--no-api", "--export", out],
 }
 
@@ -95,22 +126,31 @@ def test_every_output_is_checked_before_any_work(tmp_path, bad_outputs, capsys, 
 
 def test_the_yaml_beside_a_pgm_is_checked_too(tmp_path, capsys):
     (tmp_path / "m.yaml").mkdir()
-    one_line_exit_2(["export", str(tmp_path / "no-input.npz"), "--format", "pgm", "-o", str(tmp_path / "m.pgm")],
-                    capsys, "the map_server YAML beside -o", f"{tmp_path / 'm.yaml'}: is a folder")
+    one_line_exit_2(
+        ["export", str(tmp_path / "no-input.npz"), "--format", "pgm", "-o", str(tmp_path / "m.pgm")],
+        capsys,
+        "the map_server YAML beside -o",
+        f"{tmp_path / 'm.yaml'}: is a folder",
+    )
 
 
 def test_the_derived_gridslam_outputs_are_checked_too(tmp_path, capsys):
     os.mkfifo(tmp_path / "g.best.npz")
-    one_line_exit_2(["slam", "--algo", "gridslam", str(tmp_path / "no-input.clf"), "-o", str(tmp_path / "g.npz")],
-                    capsys, "--best-output's default", "is a FIFO")
+    one_line_exit_2(
+        ["slam", "--algo", "gridslam", str(tmp_path / "no-input.clf"), "-o", str(tmp_path / "g.npz")],
+        capsys,
+        "--best-output's default",
+        "is a FIFO",
+    )
 
 
 def test_simulate_checks_its_folder_and_files_before_simulating(tmp_path, capsys):
     folder = tmp_path / "sim"
     folder.mkdir()
     os.mkfifo(folder / "truth.npz")
-    one_line_exit_2(["simulate", str(folder), "--steps", "5", "--beams", "5"], capsys, str(folder / "truth.npz"),
-                    "is a FIFO")
+    one_line_exit_2(
+        ["simulate", str(folder), "--steps", "5", "--beams", "5"], capsys, str(folder / "truth.npz"), "is a FIFO"
+    )
     assert [p.name for p in folder.iterdir()] == ["truth.npz"]  # scans.npz, written first, was not written
     (tmp_path / "file").write_text("x")
     one_line_exit_2(["simulate", str(tmp_path / "file")], capsys, "not a folder")
@@ -127,16 +167,20 @@ def test_dev_full_is_refused_up_front_and_stays_a_device(posed_file, tmp_path, c
     assert "is a character device" in output_path_problem(DEV_FULL)
     link = tmp_path / "full.npz"
     link.symlink_to(DEV_FULL)
-    one_line_exit_2(["fuse", str(posed_file), "-o", str(link)], capsys,
-                    "links to /dev/full, which is a character device")
+    one_line_exit_2(
+        ["fuse", str(posed_file), "-o", str(link)], capsys, "links to /dev/full, which is a character device"
+    )
     with pytest.raises(OSError, match="character device"):
         write_atomically(link, lambda handle: handle.write(b"x"))
     assert os.path.islink(link) and stat.S_ISCHR(os.stat(DEV_FULL).st_mode)
     os.mkfifo(tmp_path / "fifo")
     with pytest.raises(OSError, match="is a FIFO"):  # the writer itself refuses special files ...
         write_atomically(tmp_path / "fifo", lambda handle: handle.write(b"x"))
-    one_line_exit_2(["fuse", str(posed_file), "-o", str(DEV_FULL)], capsys,  # ... so this cannot replace the device
-                    "-o /dev/full: is a character device")
+    one_line_exit_2(
+        ["fuse", str(posed_file), "-o", str(DEV_FULL)],
+        capsys,  # ... so this cannot replace the device
+        "-o /dev/full: is a character device",
+    )
     assert stat.S_ISCHR(os.stat(DEV_FULL).st_mode)
 
 
@@ -165,6 +209,7 @@ def test_a_failed_write_is_an_error_not_wrote_and_keeps_the_old_file(posed_file,
 
     def failing_fsync(descriptor: int) -> None:
         raise OSError(errno.EIO, os.strerror(errno.EIO))
+
     monkeypatch.setattr(os, "fsync", failing_fsync)
     assert main(["fuse", str(posed_file), "-o", str(out)]) == 2
     captured = capsys.readouterr()
@@ -182,6 +227,7 @@ def test_disk_full_midway_leaves_the_old_file_and_no_temporary(tmp_path):
     def fails_halfway(handle) -> None:
         handle.write(b"half")
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
     with pytest.raises(OSError, match=os.strerror(errno.ENOSPC)) as failure:
         write_atomically(out, fails_halfway)
     assert failure.value.filename == str(out)
@@ -214,8 +260,12 @@ def unusable_ranges(tmp_path: Path, scans: slice, value: float = -1.0) -> Path:
 def test_scans_without_a_usable_beam_give_no_empty_map(tmp_path, capsys, grid):
     out = tmp_path / "map.npz"
     posed = unusable_ranges(tmp_path, slice(None))
-    one_line_exit_2(["fuse", str(posed), "-o", str(out), "--grid", grid], capsys,
-                    "none of its 6 scans has a usable beam", "nothing written")
+    one_line_exit_2(
+        ["fuse", str(posed), "-o", str(out), "--grid", grid],
+        capsys,
+        "none of its 6 scans has a usable beam",
+        "nothing written",
+    )
     assert not out.exists()
     partly = unusable_ranges(tmp_path, slice(1, 3))
     assert main(["fuse", str(partly), "-o", str(out), "--grid", grid]) == 0
@@ -229,9 +279,14 @@ def test_run_exports_no_empty_map(tmp_path):
     """`posegrid run --export` of scans without a usable beam: exit 1, an error line, no file."""
     posed = unusable_ranges(tmp_path, slice(None), 0.01)  # (a LaserScan message carries no negative range)
     out = tmp_path / "run.npz"
-    process = subprocess.Popen([sys.executable, "-m", "services", "run", "--posed", str(posed), "--no-api",
-                                "--export", str(out)], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                               text=True, start_new_session=True)
+    process = subprocess.Popen(
+        [sys.executable, "-m", "services", "run", "--posed", str(posed), "--no-api", "--export", str(out)],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
     try:
         _, err = process.communicate(timeout=180)
     finally:
@@ -263,12 +318,14 @@ def test_run_export_that_cannot_be_written_is_an_error_not_wrote(posed_file, tmp
     grid = fuse_posed_scans(load_posed_scans(posed_file))
     fifo = tmp_path / "map.npz"
     os.mkfifo(fifo)
-    plan = Plan(map_name="main", robot="robot0", shards=1, resolution=0.05, mapper_argv=[], source_argv=[],
-                export=fifo)
+    plan = Plan(map_name="main", robot="robot0", shards=1, resolution=0.05, mapper_argv=[], source_argv=[], export=fifo)
     assert _export(AssembledMap(grid), plan, 0) == 1
     captured = capsys.readouterr()
-    assert captured.err.strip() == f"posegrid run: error: cannot write {fifo}: is a FIFO, not a regular file; give " \
-        "the path of a regular file" and "wrote" not in captured.out
+    assert (
+        captured.err.strip()
+        == f"posegrid run: error: cannot write {fifo}: is a FIFO, not a regular file; give the path of a regular file"
+        and "wrote" not in captured.out
+    )
     assert stat.S_ISFIFO(os.lstat(fifo).st_mode) and sorted(p.name for p in tmp_path.iterdir()) == ["map.npz"]
     plan.export = tmp_path / "written.npz"
     assert _export(AssembledMap(grid), plan, 0) == 0

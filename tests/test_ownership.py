@@ -1,4 +1,5 @@
 """Rendezvous ownership: one owner per tile, a stable function across processes, minimal movement."""
+
 from __future__ import annotations
 
 import subprocess
@@ -15,8 +16,10 @@ TILES = [(tx, ty) for tx in range(-30, 30) for ty in range(-30, 30)]  # 3600 til
 
 
 @settings(max_examples=30, deadline=None)
-@given(st.integers(1, 12), st.lists(st.tuples(st.integers(-10**6, 10**6), st.integers(-10**6, 10**6)), min_size=1,
-                                    max_size=50))
+@given(
+    st.integers(1, 12),
+    st.lists(st.tuples(st.integers(-(10**6), 10**6), st.integers(-(10**6), 10**6)), min_size=1, max_size=50),
+)
 def test_every_tile_has_exactly_one_owner(shards, tiles):
     predicates = [owns_tile(i, shards) for i in range(shards)]
     for tile in tiles:
@@ -53,10 +56,18 @@ def test_removing_a_shard_moves_only_its_tiles():
 
 def test_scores_are_the_same_in_another_process():
     """Python's hash() is salted per process; the score must not be."""
-    code = ("from services.state.ownership import tile_score; "
-            "print([tile_score((tx, -tx), s) for tx in range(5) for s in range(3)])")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
-                         env={"PYTHONHASHSEED": "12345", "PATH": ""}, cwd=str(__import__("conftest").ROOT))
+    code = (
+        "from services.state.ownership import tile_score; "
+        "print([tile_score((tx, -tx), s) for tx in range(5) for s in range(3)])"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        check=True,
+        env={"PYTHONHASHSEED": "12345", "PATH": ""},
+        cwd=str(__import__("conftest").ROOT),
+    )
     assert out.stdout.strip() == str([tile_score((tx, -tx), s) for tx in range(5) for s in range(3)])
 
 

@@ -7,6 +7,7 @@
 
 Every process is started here or by the launcher started here, and ended by PID in a finalizer.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -29,8 +30,18 @@ import pytest
 import zenoh
 
 from schemas.files import PosedScans, PoseSet, load_map, load_posed_scans, save_posed_scans
-from schemas.messages import LandmarkObservations, LaserScan, MessageError, NodeStats, Odometry, PoseGaussian, \
-    PoseSamples, ShardStats, StreamEnd, decode_message
+from schemas.messages import (
+    LandmarkObservations,
+    LaserScan,
+    MessageError,
+    NodeStats,
+    Odometry,
+    PoseGaussian,
+    PoseSamples,
+    ShardStats,
+    StreamEnd,
+    decode_message,
+)
 from services import history, keys
 from services.cli import main
 from services.nodes.launcher import free_port
@@ -73,17 +84,30 @@ def make_posed(path: Path, form: str, steps: int = 36, beams: int = 120, particl
         samples = true[:, None, :] + rng.normal(0, [0.03, 0.03, 0.01], (steps, particles, 3))
         weights = rng.random((steps, particles))
         poses = PoseSet(samples=samples, weights=weights / weights.sum(axis=1, keepdims=True))
-    save_posed_scans(path, PosedScans(ranges=ranges, angle_min=float(angles[0]), angle_increment=float(angles[1] - angles[0]),
-                                      range_min=0.05, range_max=RANGE_MAX, stamps=0.1 * t, sensor_offset=np.zeros(3),
-                                      poses=poses))
+    save_posed_scans(
+        path,
+        PosedScans(
+            ranges=ranges,
+            angle_min=float(angles[0]),
+            angle_increment=float(angles[1] - angles[0]),
+            range_min=0.05,
+            range_max=RANGE_MAX,
+            stamps=0.1 * t,
+            sensor_offset=np.zeros(3),
+            poses=poses,
+        ),
+    )
     return path
 
 
 def touched_tiles(resolution: float = 0.05, tile: int = 256) -> set[tuple[int, int]]:
     span = resolution * tile
     x0, x1, y0, y1 = ROOM
-    return {(tx, ty) for tx in range(int(np.floor(x0 / span)), int(np.floor(x1 / span)) + 1)
-            for ty in range(int(np.floor(y0 / span)), int(np.floor(y1 / span)) + 1)}
+    return {
+        (tx, ty)
+        for tx in range(int(np.floor(x0 / span)), int(np.floor(x1 / span)) + 1)
+        for ty in range(int(np.floor(y0 / span)), int(np.floor(y1 / span)) + 1)
+    }
 
 
 # ------------------------------------------------------------------------------------------------ processes
@@ -106,7 +130,7 @@ class Proc:
     def wait_for(self, pattern: str, timeout: float = 60.0) -> re.Match:
         deadline = time.monotonic() + timeout
         for line in list(self.lines):
-            if (match := re.search(pattern, line)):
+            if match := re.search(pattern, line):
                 return match
         while time.monotonic() < deadline:
             try:
@@ -115,7 +139,7 @@ class Proc:
                 if self.process.poll() is not None and self._queue.empty():
                     break
                 continue
-            if (match := re.search(pattern, line)):
+            if match := re.search(pattern, line):
                 return match
         raise AssertionError(f"no line matching {pattern!r}; output:\n" + "\n".join(self.lines[-40:]))
 
@@ -184,8 +208,21 @@ def test_run_posed_export_equals_fuse(tmp_path, procs, shards, form):
     draws = ["--samples", "12"] if form == "gaussian" else []  # fuse refuses a sample count for samples
     assert main(["fuse", str(posed), "-o", str(fused), *draws]) == 0
     exported = tmp_path / "run.npz"
-    run = procs([*CLI, "run", "--posed", str(posed), "--shards", str(shards), "--export", str(exported),
-                 "--samples", "12", "--no-api"])
+    run = procs(
+        [
+            *CLI,
+            "run",
+            "--posed",
+            str(posed),
+            "--shards",
+            str(shards),
+            "--export",
+            str(exported),
+            "--samples",
+            "12",
+            "--no-api",
+        ]
+    )
     assert run.process.wait(120) == 0, run.output()
     output = run.output()
     assert re.search(r"stopped: router exited 0, (mapper\[\d\] exited 0, ){%d}source exited 0" % shards, output), output
@@ -202,8 +239,9 @@ def test_run_posed_export_equals_fuse(tmp_path, procs, shards, form):
 def test_launcher_stops_every_child_on_sigint_mid_replay(tmp_path, procs):
     posed = make_posed(tmp_path / "posed.npz", "samples", steps=300)
     api_port = free_port()
-    run = procs([*CLI, "run", "--posed", str(posed), "--shards", "2", "--rate", "realtime", "--api-port",
-                 str(api_port)])
+    run = procs(
+        [*CLI, "run", "--posed", str(posed), "--shards", "2", "--rate", "realtime", "--api-port", str(api_port)]
+    )
     url = run.wait_for(r"HTTP API and map viewer: (http://\S+)").group(1)
     assert url == f"http://127.0.0.1:{api_port}/"
     banner = run.wait_for(r"running: (.*)")
@@ -226,14 +264,27 @@ def test_launcher_stops_every_child_on_sigint_mid_replay(tmp_path, procs):
 def _scan(seq: int, robot: str = "r1") -> LaserScan:
     angles = np.linspace(-np.pi, np.pi, 60, endpoint=False)
     ranges = room_ranges(np.array([[0.5, 0.2, 0.0]]), angles)[0]
-    return LaserScan(robot=robot, seq=seq, stamp=0.1 * seq, angle_min=float(angles[0]),
-                     angle_increment=float(angles[1] - angles[0]), range_min=0.05, range_max=RANGE_MAX,
-                     sensor_offset=np.zeros(3), ranges=ranges)
+    return LaserScan(
+        robot=robot,
+        seq=seq,
+        stamp=0.1 * seq,
+        angle_min=float(angles[0]),
+        angle_increment=float(angles[1] - angles[0]),
+        range_min=0.05,
+        range_max=RANGE_MAX,
+        sensor_offset=np.zeros(3),
+        ranges=ranges,
+    )
 
 
 def _pose(seq: int, robot: str = "r1") -> PoseSamples:
-    return PoseSamples(robot=robot, seq=seq, stamp=0.1 * seq, samples=np.array([[0.5, 0.2, 0.0], [0.52, 0.2, 0.01]]),
-                       weights=np.array([0.5, 0.5]))
+    return PoseSamples(
+        robot=robot,
+        seq=seq,
+        stamp=0.1 * seq,
+        samples=np.array([[0.5, 0.2, 0.0], [0.52, 0.2, 0.01]]),
+        weights=np.array([0.5, 0.5]),
+    )
 
 
 GARBAGE = {
@@ -259,8 +310,9 @@ def test_a_shard_cut_off_mid_stream_takes_what_it_missed_from_the_history(tmp_pa
     procs([*CLI, "router", "--listen", endpoint, "--zenoh-config", str(lease)]).wait_for("routing")
     mapper = procs([*CLI, "mapper", "--shard", "0", "--shards", "1", "--map", "gap", *zenoh_args])
     mapper.wait_for("up; tiles on")
-    source = procs([*CLI, "source", "--posed", str(posed), "--map", "gap", "--wait-mappers", "1", "--rate", "2",
-                    *zenoh_args])
+    source = procs(
+        [*CLI, "source", "--posed", str(posed), "--map", "gap", "--wait-mappers", "1", "--rate", "2", *zenoh_args]
+    )
     source.wait_for("publishing")
     time.sleep(1.5)
     os.kill(mapper.process.pid, signal.SIGSTOP)
@@ -297,12 +349,43 @@ def test_a_mapper_restarted_while_the_source_holds_back_takes_the_run_from_the_h
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
     procs([*CLI, "slam-node", "--robot", "r1", "--algo", "ekf", "--connect", endpoint]).wait_for("up for robot")
-    mapper_argv = [*CLI, "mapper", "--shard", "0", "--shards", "1", "--map", "again", "--join-buffer", "4",
-                   "--connect", endpoint]
+    mapper_argv = [
+        *CLI,
+        "mapper",
+        "--shard",
+        "0",
+        "--shards",
+        "1",
+        "--map",
+        "again",
+        "--join-buffer",
+        "4",
+        "--connect",
+        endpoint,
+    ]
     first = procs(mapper_argv)
     first.wait_for("up; tiles on")
-    source = procs([*CLI, "source", "--sim-dir", str(sim), "--robot", "r1", "--map", "again", "--wait-mappers", "1",
-                    "--wait-slam", "--rate", "max", "--window", "4", "--connect", endpoint])
+    source = procs(
+        [
+            *CLI,
+            "source",
+            "--sim-dir",
+            str(sim),
+            "--robot",
+            "r1",
+            "--map",
+            "again",
+            "--wait-mappers",
+            "1",
+            "--wait-slam",
+            "--rate",
+            "max",
+            "--window",
+            "4",
+            "--connect",
+            endpoint,
+        ]
+    )
     session = zenoh.open(build_config("client", connect=[endpoint]))
     try:
         from services.map_client import MapReader
@@ -316,8 +399,10 @@ def test_a_mapper_restarted_while_the_source_holds_back_takes_the_run_from_the_h
         first.process.wait(10)
         second = procs(mapper_argv)
         assert source.process.wait(90) == 0, source.output()
-        second.wait_for(r"took [1-9]\d* scan\(s\) and \d+ pose\(s\) published before this shard was up from the "
-                        "histories")  # scans among them: the ones the killed shard had not fused
+        second.wait_for(
+            r"took [1-9]\d* scan\(s\) and \d+ pose\(s\) published before this shard was up from the "
+            "histories"
+        )  # scans among them: the ones the killed shard had not fused
         stats = reader.stats()[0]
     finally:
         session.close()
@@ -339,6 +424,7 @@ def test_garbage_on_every_key_is_counted_and_processes_keep_working(tmp_path, pr
     def keep_gaussians(sample):
         with contextlib.suppress(MessageError):  # the test's own garbage on the key is not the node's
             node_poses.append(decode_message(sample.payload.to_bytes(), PoseGaussian))
+
     listener = session.declare_subscriber("pg/r1/pose", keep_gaussians)
     try:
         keys = ["pg/r1/scan", "pg/r1/pose", "pg/r1/end", "pg/r1/odom", "pg/r1/landmarks", "pg/r1/prior"]
@@ -348,15 +434,31 @@ def test_garbage_on_every_key_is_counted_and_processes_keep_working(tmp_path, pr
         session.put("pg/r1/scan", _pose(0).encode())  # a valid message of the wrong type for its key
         session.put("pg/r2/scan", _scan(0).encode())  # a valid scan claiming another robot than its key
         # valid messages that drive the EKF 1e14 m away: its pose is no PoseGaussian; the step is skipped
-        session.put("pg/r1/odom", Odometry(robot="r1", seq=0, stamp=0.0, pose=np.zeros((0, 3)),
-                                           commands=np.array([[1e7, 0.0, 1e7]])).encode())
-        session.put("pg/r1/landmarks", LandmarkObservations(robot="r1", seq=0, stamp=0.0, ids=np.zeros(0, np.int64),
-                                                            ranges=np.zeros(0), bearings=np.zeros(0)).encode())
+        session.put(
+            "pg/r1/odom",
+            Odometry(
+                robot="r1", seq=0, stamp=0.0, pose=np.zeros((0, 3)), commands=np.array([[1e7, 0.0, 1e7]])
+            ).encode(),
+        )
+        session.put(
+            "pg/r1/landmarks",
+            LandmarkObservations(
+                robot="r1", seq=0, stamp=0.0, ids=np.zeros(0, np.int64), ranges=np.zeros(0), bearings=np.zeros(0)
+            ).encode(),
+        )
         # ... and the filter is back where it was: the next, ordinary step is published
-        session.put("pg/r1/odom", Odometry(robot="r1", seq=1, stamp=0.1, pose=np.zeros((0, 3)),
-                                           commands=np.array([[0.5, 0.0, 0.1]])).encode())
-        session.put("pg/r1/landmarks", LandmarkObservations(robot="r1", seq=1, stamp=0.1, ids=np.zeros(0, np.int64),
-                                                            ranges=np.zeros(0), bearings=np.zeros(0)).encode())
+        session.put(
+            "pg/r1/odom",
+            Odometry(
+                robot="r1", seq=1, stamp=0.1, pose=np.zeros((0, 3)), commands=np.array([[0.5, 0.0, 0.1]])
+            ).encode(),
+        )
+        session.put(
+            "pg/r1/landmarks",
+            LandmarkObservations(
+                robot="r1", seq=1, stamp=0.1, ids=np.zeros(0, np.int64), ranges=np.zeros(0), bearings=np.zeros(0)
+            ).encode(),
+        )
         for selector in ("pg/map/m/tile/0/*/*", "pg/map/m/stats/*"):
             list(session.get(selector, payload=b"\xff garbage query", timeout=5))
         # the shards still work: a valid scan and pose are joined and fused, in reverse order (robot r3: r1's
@@ -366,10 +468,14 @@ def test_garbage_on_every_key_is_counted_and_processes_keep_working(tmp_path, pr
         session.put("pg/r3/end", StreamEnd(robot="r3", scans=1).encode())
         deadline = time.monotonic() + 30
         while True:
-            stats = [decode_message(r.ok.payload.to_bytes(), ShardStats)
-                     for r in session.get("pg/map/m/stats/*", timeout=5) if r.ok is not None]
-            if len(stats) == 1 and stats[0].fused.get("r3") == 1 and stats[0].ended.get("r3") == 1 \
-                    or time.monotonic() > deadline:  # (the end has its own callback thread: it may come last)
+            stats = [
+                decode_message(r.ok.payload.to_bytes(), ShardStats)
+                for r in session.get("pg/map/m/stats/*", timeout=5)
+                if r.ok is not None
+            ]
+            if (
+                len(stats) == 1 and stats[0].fused.get("r3") == 1 and stats[0].ended.get("r3") == 1
+            ) or time.monotonic() > deadline:  # (the end has its own callback thread: it may come last)
                 break
             time.sleep(0.1)
         tiles = [r.ok for r in session.get("pg/map/m/tile/0/*/*", timeout=10) if r.ok is not None]
@@ -377,23 +483,33 @@ def test_garbage_on_every_key_is_counted_and_processes_keep_working(tmp_path, pr
         while not node_poses and time.monotonic() < deadline:
             time.sleep(0.1)
         node_pose = node_poses[0] if node_poses else None
-        node_stats = [decode_message(r.ok.payload.to_bytes(), NodeStats)
-                      for r in session.get("pg/r1/slam/stats", timeout=5) if r.ok is not None]
+        node_stats = [
+            decode_message(r.ok.payload.to_bytes(), NodeStats)
+            for r in session.get("pg/r1/slam/stats", timeout=5)
+            if r.ok is not None
+        ]
     finally:
         listener.undeclare()
         session.close()
     assert len(stats) == 1 and stats[0].fused == {"r3": 1}, stats
     for s in stats:
         # the mappers subscribe to scan, pose and end; every garbage payload there is counted on its key
-        assert s.rejected == {"pg/r1/scan": len(GARBAGE) + 1, "pg/r1/pose": len(GARBAGE), "pg/r1/end": len(GARBAGE),
-                              "pg/r2/scan": 1}, s.rejected
+        assert s.rejected == {
+            "pg/r1/scan": len(GARBAGE) + 1,
+            "pg/r1/pose": len(GARBAGE),
+            "pg/r1/end": len(GARBAGE),
+            "pg/r2/scan": 1,
+        }, s.rejected
         assert s.discarded == {} and s.ended == {"r3": 1}, s
         assert s.received["pg/r1/scan"] == len(GARBAGE) + 1
     assert tiles and sum(s.tiles_owned for s in stats) == len(tiles)
     # the SLAM node subscribes to scan, odom, landmarks, end and prior of its robot
     assert len(node_stats) == 1
-    assert node_stats[0].rejected == {"pg/r1/scan": len(GARBAGE) + 1, "pg/r1/steps": 1, **{
-        f"pg/r1/{k}": len(GARBAGE) for k in ("odom", "landmarks", "end", "prior")}}, node_stats[0].rejected
+    assert node_stats[0].rejected == {
+        "pg/r1/scan": len(GARBAGE) + 1,
+        "pg/r1/steps": 1,
+        **{f"pg/r1/{k}": len(GARBAGE) for k in ("odom", "landmarks", "end", "prior")},
+    }, node_stats[0].rejected
     assert node_stats[0].steps_done == 2 and node_stats[0].poses_published == 1
     assert node_pose is not None and node_pose.seq == 1
     np.testing.assert_allclose(node_pose.mean, [0.05, 0.0, 0.0], atol=1e-9)  # 0.5 m/s for 0.1 s from the start
@@ -421,8 +537,9 @@ def test_run_through_the_slam_node_equals_offline_slam_then_fuse(tmp_path, procs
     fused = tmp_path / "fused.npz"
     assert main(["fuse", str(offline), "-o", str(fused), "--samples", "8"]) == 0
     exported = tmp_path / "run.npz"
-    run = procs([*CLI, "run", "--sim-dir", str(sim), "--algo", "ekf", "--samples", "8", "--no-api",
-                 "--export", str(exported)])
+    run = procs(
+        [*CLI, "run", "--sim-dir", str(sim), "--algo", "ekf", "--samples", "8", "--no-api", "--export", str(exported)]
+    )
     assert run.process.wait(120) == 0, run.output()
     assert "slam-node exited 0" in run.output()
     expected, got = load_map(fused), load_map(exported)
@@ -437,8 +554,16 @@ def _write_log(sim, path: Path, fmt: str) -> Path:
     if fmt == "carmen":
         from slam.carmen import write_carmen
 
-        write_carmen(path, sim.stamps, sim.ranges, sim.true_poses, sim.angle_min, sim.angle_increment, sim.range_max,
-                     sim.sensor_offset)
+        write_carmen(
+            path,
+            sim.stamps,
+            sim.ranges,
+            sim.true_poses,
+            sim.angle_min,
+            sim.angle_increment,
+            sim.range_max,
+            sim.sensor_offset,
+        )
         return path
     from bags import BagBuilder
 
@@ -473,23 +598,47 @@ def test_grid_fastslam_node_over_zenoh_gives_the_map_of_its_filter_in_process(tm
     driver = GridDriver(stream.prior.mean, GridSlamConfig(particles=5, resample_threshold=0.5), seed=7)
     scans, samples, weights = [], [], []
     for step in stream.steps:
-        parts = {SCAN if isinstance(m, LaserScan) else ODOM: m for m in step.messages
-                 if isinstance(m, (LaserScan, Odometry))}
+        parts = {
+            SCAN if isinstance(m, LaserScan) else ODOM: m for m in step.messages if isinstance(m, (LaserScan, Odometry))
+        }
         poses, w = driver.step(parts)
         scans.append(parts[SCAN])
         samples.append(poses)
         weights.append(w)
     first = scans[0]
-    posed = PosedScans(ranges=np.array([m.ranges for m in scans]), angle_min=first.angle_min,
-                       angle_increment=first.angle_increment, range_min=first.range_min, range_max=first.range_max,
-                       stamps=np.array([m.stamp for m in scans]),
-                       sensor_offset=first.sensor_offset, poses=PoseSet(samples=np.array(samples), weights=np.array(weights)))
+    posed = PosedScans(
+        ranges=np.array([m.ranges for m in scans]),
+        angle_min=first.angle_min,
+        angle_increment=first.angle_increment,
+        range_min=first.range_min,
+        range_max=first.range_max,
+        stamps=np.array([m.stamp for m in scans]),
+        sensor_offset=first.sensor_offset,
+        poses=PoseSet(samples=np.array(samples), weights=np.array(weights)),
+    )
     expected = fuse_posed_scans(posed).rasterize()
     assert len({tuple(np.round(s[:, :2].ravel(), 9)) for s in samples}) > 1  # the particles do spread
 
     exported = tmp_path / "run.npz"
-    run = procs([*CLI, "run", f"--{fmt}", str(log), "--odom-delay", str(delay), "--particles", "5", "--seed", "7",
-                 "--resample-threshold", "0.5", "--no-api", "--export", str(exported)])
+    run = procs(
+        [
+            *CLI,
+            "run",
+            f"--{fmt}",
+            str(log),
+            "--odom-delay",
+            str(delay),
+            "--particles",
+            "5",
+            "--seed",
+            "7",
+            "--resample-threshold",
+            "0.5",
+            "--no-api",
+            "--export",
+            str(exported),
+        ]
+    )
     assert run.process.wait(180) == 0, run.output()
     assert "slam-node exited 0" in run.output()
     got = load_map(exported)
@@ -510,27 +659,47 @@ def test_slam_node_takes_steps_in_order_and_reports_late_ones(procs):
 
         def step(seq: int, parts=("odom", "landmarks")):
             if "odom" in parts:
-                session.put("pg/r1/odom", Odometry(robot="r1", seq=seq, stamp=0.1 * seq, pose=np.zeros((0, 3)),
-                                                   commands=np.array([[1.0, 0.0, 0.1]] if seq else np.zeros((0, 3))))
-                            .encode())
+                session.put(
+                    "pg/r1/odom",
+                    Odometry(
+                        robot="r1",
+                        seq=seq,
+                        stamp=0.1 * seq,
+                        pose=np.zeros((0, 3)),
+                        commands=np.array([[1.0, 0.0, 0.1]] if seq else np.zeros((0, 3))),
+                    ).encode(),
+                )
             if "landmarks" in parts:
-                session.put("pg/r1/landmarks", LandmarkObservations(
-                    robot="r1", seq=seq, stamp=0.1 * seq, ids=np.zeros(0, np.int64), ranges=np.zeros(0),
-                    bearings=np.zeros(0)).encode())
+                session.put(
+                    "pg/r1/landmarks",
+                    LandmarkObservations(
+                        robot="r1",
+                        seq=seq,
+                        stamp=0.1 * seq,
+                        ids=np.zeros(0, np.int64),
+                        ranges=np.zeros(0),
+                        bearings=np.zeros(0),
+                    ).encode(),
+                )
 
         step(1, ("landmarks",))  # parts of seq 1 before seq 0 and before the prior: held back
         step(0)
-        session.put("pg/r1/prior", PoseGaussian(robot="r1", seq=0, stamp=0.0, mean=np.array([2.0, 3.0, 0.0]),
-                                                cov=np.zeros((3, 3))).encode())
+        session.put(
+            "pg/r1/prior",
+            PoseGaussian(robot="r1", seq=0, stamp=0.0, mean=np.array([2.0, 3.0, 0.0]), cov=np.zeros((3, 3))).encode(),
+        )
         step(1, ("odom",))
         step(2)
         received = [decode_message(poses.get(timeout=20), PoseGaussian) for _ in range(3)]
         step(1)  # late: seq 1 was processed already
         deadline = time.monotonic() + 20
         while True:
-            stats = [decode_message(r.ok.payload.to_bytes(), NodeStats)
-                     for r in session.get("pg/r1/slam/stats", timeout=5) if r.ok is not None]
-            if stats and sum(stats[0].out_of_order.values()) == 3 or time.monotonic() > deadline:
+            stats = [
+                decode_message(r.ok.payload.to_bytes(), NodeStats)
+                for r in session.get("pg/r1/slam/stats", timeout=5)
+                if r.ok is not None
+            ]
+            if (stats and sum(stats[0].out_of_order.values()) == 3) or time.monotonic() > deadline:
                 break
             time.sleep(0.1)
         subscriber.undeclare()
@@ -538,12 +707,15 @@ def test_slam_node_takes_steps_in_order_and_reports_late_ones(procs):
         session.close()
     assert [p.seq for p in received] == [0, 1, 2]
     # dead reckoning from the prior (2, 3, 0) at 1 m/s along x for 0.1 s per step
-    np.testing.assert_allclose([p.mean for p in received], [[2.0, 3.0, 0.0], [2.1, 3.0, 0.0], [2.2, 3.0, 0.0]],
-                               atol=1e-9)
+    np.testing.assert_allclose(
+        [p.mean for p in received], [[2.0, 3.0, 0.0], [2.1, 3.0, 0.0], [2.2, 3.0, 0.0]], atol=1e-9
+    )
     # landmarks: seq 0 after seq 1 (reordered and used), then seq 1 again after 2; odom: seq 1 again after 2
     assert stats[0].out_of_order == {"pg/r1/odom": 1, "pg/r1/landmarks": 2} and stats[0].poses_published == 3
-    node.wait_for(r"out of order on pg/r1/landmarks: seq 0 arrived after seq 1; its step is still to come, so it "
-                  r"is used")
+    node.wait_for(
+        r"out of order on pg/r1/landmarks: seq 0 arrived after seq 1; its step is still to come, so it "
+        r"is used"
+    )
     node.wait_for(r"out of order on pg/r1/odom: seq 1 arrived after seq 2; it is dropped")
 
 
@@ -554,8 +726,12 @@ def test_slam_node_moves_over_lost_steps_by_the_odometry_poses(procs):
     0.5 rad/s), so both expectations are hand-computed: on the arc, and for r2, one arc step after seq 2."""
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
-    nodes = {robot: procs([*CLI, "slam-node", "--robot", robot, "--algo", "odometry", "--initial", "0,0,0",
-                           "--connect", endpoint]) for robot in ("r1", "r2")}
+    nodes = {
+        robot: procs(
+            [*CLI, "slam-node", "--robot", robot, "--algo", "odometry", "--initial", "0,0,0", "--connect", endpoint]
+        )
+        for robot in ("r1", "r2")
+    }
     for node in nodes.values():
         node.wait_for("up for robot")
     v, w, dt = 1.0, 0.5, 0.1
@@ -563,22 +739,36 @@ def test_slam_node_moves_over_lost_steps_by_the_odometry_poses(procs):
     def on_arc(seq: int) -> list[float]:
         theta = w * dt * seq
         return [v / w * np.sin(theta), v / w * (1.0 - np.cos(theta)), theta]
+
     poses = {robot: queue.Queue() for robot in nodes}
     sent = [0, 1, 2, *range(13, 31)]
     session = zenoh.open(build_config("client", connect=[endpoint]))
     try:
-        subscribers = [session.declare_subscriber(f"pg/{robot}/pose", lambda s, q=poses[robot]: q.put(
-            s.payload.to_bytes())) for robot in nodes]
+        subscribers = [
+            session.declare_subscriber(f"pg/{robot}/pose", lambda s, q=poses[robot]: q.put(s.payload.to_bytes()))
+            for robot in nodes
+        ]
         for seq in sent:
             for robot, pose in (("r1", np.array([on_arc(seq)])), ("r2", np.zeros((0, 3)))):
                 commands = np.array([[v, w, dt]]) if seq else np.zeros((0, 3))
-                session.put(f"pg/{robot}/odom", Odometry(robot=robot, seq=seq, stamp=dt * seq, pose=pose,
-                                                         commands=commands).encode())
-                session.put(f"pg/{robot}/landmarks", LandmarkObservations(
-                    robot=robot, seq=seq, stamp=dt * seq, ids=np.zeros(0, np.int64), ranges=np.zeros(0),
-                    bearings=np.zeros(0)).encode())
-        received = {robot: [decode_message(poses[robot].get(timeout=20), PoseGaussian) for _ in sent]
-                    for robot in nodes}
+                session.put(
+                    f"pg/{robot}/odom",
+                    Odometry(robot=robot, seq=seq, stamp=dt * seq, pose=pose, commands=commands).encode(),
+                )
+                session.put(
+                    f"pg/{robot}/landmarks",
+                    LandmarkObservations(
+                        robot=robot,
+                        seq=seq,
+                        stamp=dt * seq,
+                        ids=np.zeros(0, np.int64),
+                        ranges=np.zeros(0),
+                        bearings=np.zeros(0),
+                    ).encode(),
+                )
+        received = {
+            robot: [decode_message(poses[robot].get(timeout=20), PoseGaussian) for _ in sent] for robot in nodes
+        }
         for subscriber in subscribers:
             subscriber.undeclare()
     finally:
@@ -589,8 +779,10 @@ def test_slam_node_moves_over_lost_steps_by_the_odometry_poses(procs):
     np.testing.assert_allclose(received["r2"][3].mean, on_arc(3), atol=1e-9)
     assert np.linalg.norm(received["r2"][3].mean[:2] - on_arc(13)[:2]) > 0.9
     nodes["r1"].wait_for(r"seq 13: moved over seq 3-12, which never arrived, by the odometry poses around them")
-    nodes["r2"].wait_for(r"seq 13: the velocity commands of seq 3-12 never arrived and the odometry messages carry "
-                         r"no pose to bridge them")
+    nodes["r2"].wait_for(
+        r"seq 13: the velocity commands of seq 3-12 never arrived and the odometry messages carry "
+        r"no pose to bridge them"
+    )
 
 
 def _simulated_run_and_offline_poses(tmp_path: Path, steps: int) -> tuple[Path, list[str], PoseSet]:
@@ -633,8 +825,9 @@ class _Poses:
         missing = set(range(seqs)) - self.seqs()
         if not missing:
             return
-        messages, _ = history.ask(session, "r1", {"streams": keys.POSE, "from": str(min(missing)),
-                                                  "to": str(max(missing) + 1)}, 30.0)
+        messages, _ = history.ask(
+            session, "r1", {"streams": keys.POSE, "from": str(min(missing)), "to": str(max(missing) + 1)}, 30.0
+        )
         for _, _, payload in messages:  # (what still lacks is reported by the caller's check of every seq)
             pose = decode_message(payload, PoseSamples)
             if pose.seq in missing:
@@ -647,8 +840,24 @@ class _Poses:
 
 def _replay(procs, sim: Path, endpoint: str, rate: str):
     """Replay the simulated run ``sim`` as robot r1 into map m at ``rate``, waiting for one mapper shard."""
-    return procs([*CLI, "source", "--sim-dir", str(sim), "--robot", "r1", "--rate", rate, "--map", "m",
-                  "--wait-mappers", "1", "--connect", endpoint])
+    return procs(
+        [
+            *CLI,
+            "source",
+            "--sim-dir",
+            str(sim),
+            "--robot",
+            "r1",
+            "--rate",
+            rate,
+            "--map",
+            "m",
+            "--wait-mappers",
+            "1",
+            "--connect",
+            endpoint,
+        ]
+    )
 
 
 def test_a_restarted_slam_node_takes_the_run_from_the_sources_history(tmp_path, procs):
@@ -661,8 +870,9 @@ def test_a_restarted_slam_node_takes_the_run_from_the_sources_history(tmp_path, 
     sim, node_args, expected = _simulated_run_and_offline_poses(tmp_path, 120)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
-    mapper = procs([*CLI, "mapper", "--shard", "0", "--shards", "1", "--map", "m", "--join-buffer", "4",
-                    "--connect", endpoint])
+    mapper = procs(
+        [*CLI, "mapper", "--shard", "0", "--shards", "1", "--map", "m", "--join-buffer", "4", "--connect", endpoint]
+    )
     node = [*CLI, "slam-node", "--robot", "r1", *node_args, "--connect", endpoint]
     first = procs(node)
     first.wait_for("up for robot")
@@ -677,8 +887,11 @@ def test_a_restarted_slam_node_takes_the_run_from_the_sources_history(tmp_path, 
         time.sleep(2.0)  # scans pile up in the mapper's join meanwhile, waiting for their poses
         second = procs(node)
         second.wait_for(r"took \d+ message\(s\) the source published before this node was up")
-        bad = [reply.err.payload.to_string() for reply in session.get("pg/r1/history/**?from=-1;streams=odom,x",
-                                                                        timeout=10) if reply.err is not None]
+        bad = [
+            reply.err.payload.to_string()
+            for reply in session.get("pg/r1/history/**?from=-1;streams=odom,x", timeout=10)
+            if reply.err is not None
+        ]
         assert bad and all("unknown stream(s) ['x']" in error for error in bad)  # from the source and the node
         assert source.process.wait(60) == 0, source.output()  # (once the shard has accounted for every scan)
         from services.map_client import MapReader
@@ -711,8 +924,9 @@ def test_a_history_question_asked_while_the_router_restarts_waits_for_it(procs):
     answerer, asker = (zenoh.open(build_config("client", connect=[endpoint])) for _ in range(2))
     try:
         who = history.Answerer("a source", "m", False)
-        answerer.declare_queryable(keys.history_key("r"), lambda query: history.reply(query, who, "r", keys.SCAN,
-                                                                                     b"scan 7"))
+        answerer.declare_queryable(
+            keys.history_key("r"), lambda query: history.reply(query, who, "r", keys.SCAN, b"scan 7")
+        )
         deadline = time.monotonic() + 10  # until the queryable's declaration has reached the asker through the router
         while history.ask(asker, "r", {}, 5.0) != ([("r", keys.SCAN, b"scan 7")], []):
             assert time.monotonic() < deadline, "the answerer never answered with the router up"
@@ -757,13 +971,17 @@ def test_what_the_router_loses_is_taken_from_the_histories(tmp_path, procs):
         procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
         assert source.process.wait(60) == 0, source.output()
         spans = node.wait_for(r"took seq (.+?), which (?:did not all arrive|had not all arrived)").group(1)
-        recovered = {seq for span in spans.split(", ") for seq in range(int(span.split("-")[0]),
-                                                                         int(span.split("-")[-1]) + 1)}
+        recovered = {
+            seq for span in spans.split(", ") for seq in range(int(span.split("-")[0]), int(span.split("-")[-1]) + 1)
+        }
         poses.until(lambda seqs: recovered <= seqs)
         poses.close()
         poses.fill_from_history(session, 400)
-        shard = [decode_message(r.ok.payload.to_bytes(), ShardStats) for r in session.get("pg/map/m/stats/0", timeout=10)
-                 if r.ok is not None]
+        shard = [
+            decode_message(r.ok.payload.to_bytes(), ShardStats)
+            for r in session.get("pg/map/m/stats/0", timeout=10)
+            if r.ok is not None
+        ]
     finally:
         session.close()
     assert "skipped" not in node.output()
@@ -821,9 +1039,23 @@ def test_slam_node_on_real_mrclam_data_publishes_what_offline_slam_writes(tmp_pa
     session = zenoh.open(build_config("client", connect=[endpoint]))
     try:
         subscriber = session.declare_subscriber(
-            "pg/robot0/pose", lambda s: (lambda m: got.__setitem__(m.seq, m))(decode_message(s.payload.to_bytes())))
-        source = procs([*CLI, "source", "--mrclam", str(folder), "--mrclam-robot", "1", "--rate", "max",
-                        "--wait-slam", "--connect", endpoint])
+            "pg/robot0/pose", lambda s: (lambda m: got.__setitem__(m.seq, m))(decode_message(s.payload.to_bytes()))
+        )
+        source = procs(
+            [
+                *CLI,
+                "source",
+                "--mrclam",
+                str(folder),
+                "--mrclam-robot",
+                "1",
+                "--rate",
+                "max",
+                "--wait-slam",
+                "--connect",
+                endpoint,
+            ]
+        )
         assert source.process.wait(120) == 0, source.output()
         deadline = time.monotonic() + 30
         while len(got) < len(expected["stamps"]) and time.monotonic() < deadline:

@@ -1,5 +1,6 @@
 """docker-compose.yml and the Dockerfile, checked without a Docker engine: the YAML's structure, and every
 service's command parsed by posegrid's own command-line parser."""
+
 from __future__ import annotations
 
 import re
@@ -9,7 +10,9 @@ import pytest
 from conftest import ROOT
 from services.cli import build_parser
 
-yaml = pytest.importorskip("ruamel.yaml", reason="no YAML parser installed (ruamel.yaml); cannot check the compose file")
+yaml = pytest.importorskip(
+    "ruamel.yaml", reason="no YAML parser installed (ruamel.yaml); cannot check the compose file"
+)
 
 EXPECTED = {"router", "source", "slam", "mapper0", "mapper1", "api"}
 

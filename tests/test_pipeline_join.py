@@ -1,5 +1,6 @@
 """The in-process parts of the pipeline: joining scans with poses by (robot, seq) in any arrival order with a
 bounded, counted buffer; the SLAM node's in-order step release; a shard's counting of bad input."""
+
 from __future__ import annotations
 
 import logging
@@ -13,6 +14,7 @@ from hypothesis import strategies as st
 
 from mapping.sensor_model import SensorModel
 from schemas.messages import LaserScan, PoseGaussian, PoseSamples, StreamEnd
+from services.process import RejectCounter
 from services.state.join import (
     CONFIRM_RUN,
     EVICTED_LIMIT,
@@ -26,7 +28,6 @@ from services.state.join import (
     SeqLedger,
 )
 from services.state.limits import ShardLimits
-from services.process import RejectCounter
 from services.state.shard import FUSIONS_KEPT, SETTLE_AFTER, MapShard, ShardConfig
 from services.state.steps import OutOfOrder, StepAssembler
 
@@ -72,6 +73,7 @@ def test_join_asks_a_history_again_for_what_it_evicted_when_the_partner_comes():
     def recover(robot: str, scans: bool, first: int, last: int) -> dict[int, object]:
         asked.append((scans, first, last))
         return {seq: seq for seq in range(first, last + 1) if scans and seq != 5}  # scan 5 is gone from it
+
     buffer = JoinBuffer(capacity=2, recover=recover)
     for seq in range(10):
         assert buffer.add_scan(("r", seq), seq) == ([], [])  # scans 0-7 evicted, not given up
@@ -89,7 +91,10 @@ def test_join_asks_a_history_again_for_what_it_evicted_when_the_partner_comes():
     assert buffer.add_pose(("r", 13), "p13") == ([], [])  # held past the gap until the pose stream goes on
     pairs, gone = buffer.add_pose(("r", 14), "p14")
     assert pairs == [(13, "p13")] and _given_up(gone) == [
-        ("r", 12, 1, "scan", "orphaned"), ("r", 10, 1, "scan", "orphaned"), ("r", 11, 1, "scan", "orphaned")]
+        ("r", 12, 1, "scan", "orphaned"),
+        ("r", 10, 1, "scan", "orphaned"),
+        ("r", 11, 1, "scan", "orphaned"),
+    ]
 
 
 def test_join_pairs_a_half_waiting_below_a_gap_before_the_gap():
@@ -100,6 +105,7 @@ def test_join_pairs_a_half_waiting_below_a_gap_before_the_gap():
     def recover(robot: str, scans: bool, first: int, last: int) -> dict[int, object]:
         asked.append((scans, first, last))
         return {seq: f"{'s' if scans else 'p'}{seq}" for seq in range(first, last + 1)}
+
     buffer = JoinBuffer(capacity=512, recover=recover)
     fused = []
     for seq in range(5):
@@ -116,13 +122,16 @@ def test_join_pairs_a_half_waiting_below_a_gap_before_the_gap():
 
 def _ordered_join(capacity: int):
     """A join whose recover hook holds every scan and pose, and the seqs of the pairs it completes, in order."""
+
     def recover(robot: str, scans: bool, first: int, last: int) -> dict[int, object]:
         return {seq: seq for seq in range(first, last + 1)}
+
     buffer, fused = JoinBuffer(capacity=capacity, recover=recover), []
 
     def add(kind: str, seq: int) -> None:
         pairs, _ = (buffer.add_scan if kind == "scan" else buffer.add_pose)(("r", seq), seq)
         fused.extend(scan for scan, _ in pairs)
+
     return add, fused
 
 
@@ -135,8 +144,16 @@ def test_join_fuses_evicted_halves_below_a_gap_before_it():
         add("pose", seq)
     for seq in range(2, 10):
         add("scan", seq)
-    for kind, seq in [("scan", 14), ("scan", 15), ("pose", 10), ("pose", 11), ("pose", 12), ("pose", 13),
-                      ("pose", 14), ("pose", 15)]:
+    for kind, seq in [
+        ("scan", 14),
+        ("scan", 15),
+        ("pose", 10),
+        ("pose", 11),
+        ("pose", 12),
+        ("pose", 13),
+        ("pose", 14),
+        ("pose", 15),
+    ]:
         add(kind, seq)
     assert fused == list(range(16))
 
@@ -163,6 +180,7 @@ def test_join_keeps_each_streams_batch_of_evicted_halves_asked_for_again():
     def recover(robot: str, scans: bool, first: int, last: int) -> dict[int, object]:
         asked.append((robot, first, last))
         return {seq: f"{robot}{seq}" for seq in range(first, last + 1)}
+
     buffer = JoinBuffer(capacity=8, recover=recover)
     for seq in range(64):
         for robot in "ab":
@@ -188,8 +206,12 @@ def test_join_gives_up_at_once_on_what_a_confirmed_gap_leaves_behind():
     assert buffer.add_pose(("r", 3), "p3") == ([], [])
     pairs, gone = buffer.add_pose(("r", 4), "p4")  # poses 1 and 2 skipped (the SLAM node gave up on them)
     assert pairs == []
-    assert _given_up(gone) == [("r", 1, 1, "scan", "orphaned"), ("r", 2, 1, "scan", "orphaned"),
-                               ("r", 3, 1, "pose", "orphaned"), ("r", 4, 1, "pose", "orphaned")]  # scans 3, 4 lost
+    assert _given_up(gone) == [
+        ("r", 1, 1, "scan", "orphaned"),
+        ("r", 2, 1, "scan", "orphaned"),
+        ("r", 3, 1, "pose", "orphaned"),
+        ("r", 4, 1, "pose", "orphaned"),
+    ]  # scans 3, 4 lost
     assert buffer.add_pose(("r", 5), "p5") == ([("s5", "p5")], [])
     assert buffer.add_pose(("r", 1000), "stray") == ([], [])  # another process on the robot's keys ...
     pairs, gone = buffer.add_pose(("r", 6), "p6")  # ... is found out when the stream goes on where it was
@@ -249,8 +271,9 @@ def test_forged_seqs_far_ahead_are_held_and_the_real_stream_goes_on():
             pairs += got
             gone += _given_up(lost)
     assert pairs == [(f"s{seq}", f"p{seq}") for seq in range(300)]
-    assert sorted(gone) == sorted([("r", seq, 1, what, "ahead") for seq in (100_000, 100_001)
-                                   for what in ("scan", "pose")])
+    assert sorted(gone) == sorted(
+        [("r", seq, 1, what, "ahead") for seq in (100_000, 100_001) for what in ("scan", "pose")]
+    )
     assert buffer.settle("r", 300) == ([], [])  # the forged halves never reached: not given up again
 
 
@@ -339,8 +362,11 @@ def test_join_settle_takes_what_is_held_and_gives_up_the_rest():
     assert len(buffer) == 0
     assert buffer.add_scan(("x", 0), "x0") == ([], []) and buffer.add_scan(("x", 7), "x7") == ([], [])
     pairs, gone = buffer.settle("x", 3)  # a held scan beyond the end: a stray
-    assert pairs == [] and _given_up(gone) == [("x", 7, 1, "scan", "jump"), ("x", 1, 2, "scan", "missing"),
-                                               ("x", 0, 1, "scan", "orphaned")]
+    assert pairs == [] and _given_up(gone) == [
+        ("x", 7, 1, "scan", "jump"),
+        ("x", 1, 2, "scan", "missing"),
+        ("x", 0, 1, "scan", "orphaned"),
+    ]
 
 
 @settings(max_examples=60, deadline=None)
@@ -394,7 +420,7 @@ def test_forged_steps_far_ahead_do_not_make_the_assembler_skip_the_real_ones():
     and the real steps after them go on in order; nothing is skipped."""
     steps = StepAssembler({"odom", "scan"}, reorder=16, window=1024)
     released, ahead = [], 0
-    for seq in range(0, 50):
+    for seq in range(50):
         for part in ("odom", "scan"):
             out = steps.add(part, seq, f"{part}{seq}")
             released += [s for s, _ in out.steps]
@@ -414,9 +440,12 @@ def test_forged_steps_far_ahead_do_not_make_the_assembler_skip_the_real_ones():
 
 def test_a_forged_run_of_consecutive_steps_is_not_taken_when_the_history_lacks_it():
     real = {seq: {"odom": f"odom{seq}", "scan": f"scan{seq}"} for seq in range(100)}
-    steps = StepAssembler({"odom", "scan"}, reorder=16, window=1024,
-                          recover=lambda first, last: {s: real[s] for s in range(first, (last or first) + 1)
-                                                       if s in real})
+    steps = StepAssembler(
+        {"odom", "scan"},
+        reorder=16,
+        window=1024,
+        recover=lambda first, last: {s: real[s] for s in range(first, (last or first) + 1) if s in real},
+    )
     released = []
     for seq in range(50):
         for part in ("odom", "scan"):
@@ -440,14 +469,17 @@ def test_steps_about_to_be_skipped_are_asked_for_and_what_comes_back_is_used():
     def recover(first: int, last: int) -> dict[int, dict]:
         asked.append((first, last))
         return {1: {"odom": "b", "landmarks": "B"}, 2: {"odom": "c"}, 9: {"odom": "x", "landmarks": "X"}}
+
     steps = StepAssembler({"odom", "landmarks"}, reorder=2, recover=recover)
     for seq in (0, 4, 5):
         out = steps.add("odom", seq, f"o{seq}")
         out = steps.add("landmarks", seq, f"l{seq}")
     assert asked == [(1, 3)]
-    assert [(seq, parts) for seq, parts in out.steps] == [(1, {"odom": "b", "landmarks": "B"}),
-                                                          (4, {"odom": "o4", "landmarks": "l4"}),
-                                                          (5, {"odom": "o5", "landmarks": "l5"})]
+    assert [(seq, parts) for seq, parts in out.steps] == [
+        (1, {"odom": "b", "landmarks": "B"}),
+        (4, {"odom": "o4", "landmarks": "l4"}),
+        (5, {"odom": "o5", "landmarks": "l5"}),
+    ]
     assert out.skipped == [(2, 2)]
 
 
@@ -461,6 +493,7 @@ def test_the_end_of_the_stream_asks_for_every_step_not_released_yet():
     def recover(first: int, last: int | None) -> dict[int, dict]:
         asked.append((first, last))
         return {seq: {"odom": f"o{seq}", "landmarks": f"l{seq}"} for seq in (1, 3, 4, 5)}
+
     steps = StepAssembler({"odom", "landmarks"}, recover=recover)
     for seq in (0, 1, 2):
         steps.add("odom", seq, f"o{seq}")
@@ -473,21 +506,30 @@ def test_the_end_of_the_stream_asks_for_every_step_not_released_yet():
 
 
 def _scan(seq: int, robot: str = "r") -> LaserScan:
-    return LaserScan(robot=robot, seq=seq, stamp=0.1 * seq, angle_min=-1.0, angle_increment=0.5, range_min=0.05,
-                     range_max=5.0, sensor_offset=np.zeros(3), ranges=np.array([1.0, 2.0, np.inf, 1.5, 3.0], np.float32))
+    return LaserScan(
+        robot=robot,
+        seq=seq,
+        stamp=0.1 * seq,
+        angle_min=-1.0,
+        angle_increment=0.5,
+        range_min=0.05,
+        range_max=5.0,
+        sensor_offset=np.zeros(3),
+        ranges=np.array([1.0, 2.0, np.inf, 1.5, 3.0], np.float32),
+    )
 
 
 def _pose(seq: int, robot: str = "r") -> PoseSamples:
     """At (3 m, 3 m): every beam of _scan stays inside tile (0, 0), which spans 0 .. 12.8 m."""
-    return PoseSamples(robot=robot, seq=seq, stamp=0.1 * seq, samples=np.array([[3.0, 3.0, 0.1 * seq]]),
-                       weights=np.ones(1))
+    return PoseSamples(
+        robot=robot, seq=seq, stamp=0.1 * seq, samples=np.array([[3.0, 3.0, 0.1 * seq]]), weights=np.ones(1)
+    )
 
 
 def test_shard_counts_join_overflow_and_bad_input_per_key():
     log = logging.getLogger("test-shard")
     now = [0.0]
-    shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), join_capacity=4), RejectCounter(log),
-                     clock=lambda: now[0])
+    shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), join_capacity=4), RejectCounter(log), clock=lambda: now[0])
     for seq in range(6):  # six scans, no poses: two are given up on
         shard.handle("pg/r/scan", _scan(seq).encode())
     shard.handle("pg/r/pose", _pose(5).encode())  # held: nothing follows to confirm that poses 0-4 were skipped
@@ -531,8 +573,9 @@ def test_shard_settles_an_ended_stream_only_after_the_robot_goes_quiet():
     repeated end or junk on the robot's keys does not put that off. (An end after a long silence, the router
     down at the end of a run, used to settle the robot at once, before the SLAM node published the last poses.)"""
     now = [100.0]
-    shard = MapShard(ShardConfig("m", 0, 1, SensorModel()), RejectCounter(logging.getLogger("test-shard")),
-                     clock=lambda: now[0])
+    shard = MapShard(
+        ShardConfig("m", 0, 1, SensorModel()), RejectCounter(logging.getLogger("test-shard")), clock=lambda: now[0]
+    )
     for seq in range(8):
         shard.handle("pg/r/scan", _scan(seq).encode())
         if seq < 6:
@@ -579,8 +622,11 @@ def _arrivals(draw):
 def _play_and_settle(shard: MapShard, now: list[float], n: int, events, pauses) -> None:
     """Hand the shard the arrivals, advancing its clock by the pauses, then settle it: every scan of the n counts
     once, as fused or given up, never more along the way, and nothing is left waiting."""
-    encoded = {"scan": lambda seq: _scan(seq).encode(), "pose": lambda seq: _pose(seq).encode(),
-               "end": lambda scans: StreamEnd(robot="r", scans=scans).encode()}
+    encoded = {
+        "scan": lambda seq: _scan(seq).encode(),
+        "pose": lambda seq: _pose(seq).encode(),
+        "end": lambda scans: StreamEnd(robot="r", scans=scans).encode(),
+    }
     for (kind, seq), pause in zip(events, pauses):
         now[0] += pause
         shard.handle(f"pg/r/{kind}", encoded[kind](seq))
@@ -600,8 +646,11 @@ def test_every_scan_is_fused_or_given_up_exactly_once(arrival):
     unless the stream went quiet long enough to be settled before it was over."""
     n, capacity, kept, events, pauses, patient = arrival
     now = [0.0]
-    shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), join_capacity=capacity),
-                     RejectCounter(logging.getLogger("test-shard-property")), clock=lambda: now[0])
+    shard = MapShard(
+        ShardConfig("m", 0, 1, SensorModel(), join_capacity=capacity),
+        RejectCounter(logging.getLogger("test-shard-property")),
+        clock=lambda: now[0],
+    )
     _play_and_settle(shard, now, n, events, pauses)
     if capacity >= 2 * n and patient:
         assert shard.fused["r"] == len(set(kept["scan"]) & set(kept["pose"]))
@@ -616,17 +665,23 @@ def test_what_the_histories_hold_of_lost_messages_is_fused_and_nothing_counts_tw
     buffer: a half evicted from it is asked for again when its partner comes."""
     n, capacity, kept, events, pauses, patient = arrival
     everything = data.draw(st.booleans())
-    held = {kind: set(range(n)) if everything else data.draw(st.sets(st.integers(0, n - 1)))
-            for kind in ("scan", "pose")}
+    held = {
+        kind: set(range(n)) if everything else data.draw(st.sets(st.integers(0, n - 1))) for kind in ("scan", "pose")
+    }
     asked = []
 
     def history(robot: str, stream: str, first: int, last: int) -> list[bytes]:
         asked.append((stream, first, last))
         make = _scan if stream == "scan" else _pose
         return [make(seq).encode() for seq in range(first, last + 1) if seq in held[stream]]
+
     now = [0.0]
-    shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), join_capacity=capacity),
-                     RejectCounter(logging.getLogger("test-shard-history")), clock=lambda: now[0], history=history)
+    shard = MapShard(
+        ShardConfig("m", 0, 1, SensorModel(), join_capacity=capacity),
+        RejectCounter(logging.getLogger("test-shard-history")),
+        clock=lambda: now[0],
+        history=history,
+    )
     _play_and_settle(shard, now, n, events, pauses)
     assert all(0 <= first <= last < n + 1000 for _, first, last in asked)
     if everything and patient:
@@ -636,11 +691,16 @@ def test_what_the_histories_hold_of_lost_messages_is_fused_and_nothing_counts_tw
 def test_a_gap_larger_than_the_join_buffer_comes_back_from_the_histories_whole():
     """A shard that starts (or restarts) 20 steps into a run, with room for 4 halves: the scans of the gap come
     back with their poses and are fused at once, so none is evicted before its pose (it was: 16 of 20 evicted)."""
+
     def history(robot: str, stream: str, first: int, last: int) -> list[bytes]:
         make = _scan if stream == "scan" else _pose
         return [make(seq).encode() for seq in range(first, last + 1)]
-    shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), join_capacity=4),
-                     RejectCounter(logging.getLogger("test-shard-restart")), history=history)
+
+    shard = MapShard(
+        ShardConfig("m", 0, 1, SensorModel(), join_capacity=4),
+        RejectCounter(logging.getLogger("test-shard-restart")),
+        history=history,
+    )
     for seq in (20, 21, 22):
         shard.handle("pg/r/scan", _scan(seq).encode())
         shard.handle("pg/r/pose", _pose(seq).encode())
@@ -654,14 +714,18 @@ def test_histories_taken_at_startup_pair_up_however_long_the_run():
     which answer one after the other: the source's scans, then the SLAM node's poses. Taken in that order, 16 of
     the 20 scans were evicted before their poses came (a mapper restarted 2 000 steps into a run lost 1 640 of
     them); in seq order every scan meets its pose. A reply on another stream, or a bad one, is counted."""
-    shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), join_capacity=4),
-                     RejectCounter(logging.getLogger("test-shard-catch-up")))
-    replies = [("pg/r/scan", _scan(seq).encode()) for seq in range(20)] + [
-        ("pg/r/pose", _pose(seq).encode()) for seq in range(20)] + [
-        ("pg/r/end", StreamEnd(robot="r", scans=20).encode()), ("pg/r/pose", b"\x00 not msgpack")]
+    shard = MapShard(
+        ShardConfig("m", 0, 1, SensorModel(), join_capacity=4), RejectCounter(logging.getLogger("test-shard-catch-up"))
+    )
+    replies = (
+        [("pg/r/scan", _scan(seq).encode()) for seq in range(20)]
+        + [("pg/r/pose", _pose(seq).encode()) for seq in range(20)]
+        + [("pg/r/end", StreamEnd(robot="r", scans=20).encode()), ("pg/r/pose", b"\x00 not msgpack")]
+    )
     taken = shard.in_seq_order(replies)
     assert [(key, message.seq) for key, message in taken] == [
-        (key, seq) for seq in range(20) for key in ("pg/r/scan", "pg/r/pose")]
+        (key, seq) for seq in range(20) for key in ("pg/r/scan", "pg/r/pose")
+    ]
     for key, message in taken:
         shard.take(key, message, from_history=True)
     shard.handle("pg/r/end", StreamEnd(robot="r", scans=20).encode())
@@ -753,8 +817,9 @@ def test_shard_counts_poses_no_fusion_can_take_and_goes_on():
     counted and dropped, and the next scan is fused."""
     shard = MapShard(ShardConfig("m", 0, 1, SensorModel()), RejectCounter(logging.getLogger("test-shard")))
     diverged = PoseGaussian(robot="r", seq=0, stamp=0.0, mean=np.array([3.0, 3.0, 0.0]), cov=np.diag([1e4, 1e4, 0.01]))
-    apart = PoseSamples(robot="r", seq=1, stamp=0.1, samples=np.array([[3.0, 3.0, 0.0], [1003.0, 1003.0, 0.0]]),
-                        weights=np.full(2, 0.5))
+    apart = PoseSamples(
+        robot="r", seq=1, stamp=0.1, samples=np.array([[3.0, 3.0, 0.0], [1003.0, 1003.0, 0.0]]), weights=np.full(2, 0.5)
+    )
     for seq, pose in enumerate((diverged, apart, _pose(2))):
         shard.handle("pg/r/scan", _scan(seq).encode())
         shard.handle("pg/r/pose", pose.encode())
@@ -786,8 +851,10 @@ def test_tile_updates_carry_only_the_changed_window():
     assert again == []  # nothing changed since
     for update in first:
         logodds, variance, observed = shard.grid.tile_arrays((update.tx, update.ty))
-        window = (slice(update.row0, update.row0 + update.logodds.shape[0]),
-                  slice(update.col0, update.col0 + update.logodds.shape[1]))
+        window = (
+            slice(update.row0, update.row0 + update.logodds.shape[0]),
+            slice(update.col0, update.col0 + update.logodds.shape[1]),
+        )
         np.testing.assert_array_equal(update.logodds, logodds[window])
         outside = observed.copy()
         outside[window] = False

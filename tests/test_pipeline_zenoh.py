@@ -1,5 +1,6 @@
 """Zenoh configuration (one builder, loopback-only defaults, user overrides), the router process, and the
 pipeline commands' command-line behaviour."""
+
 from __future__ import annotations
 
 import json
@@ -34,8 +35,10 @@ def test_defaults_are_loopback_only_without_multicast():
 
 def test_user_file_overrides_what_it_sets_and_defaults_fill_the_rest(tmp_path):
     path = tmp_path / "zenoh.json5"
-    path.write_text('{ // a user config\n mode: "peer", listen: { endpoints: ["tcp/127.0.0.1:17999"] },\n'
-                    ' scouting: { multicast: { enabled: true } } }\n')
+    path.write_text(
+        '{ // a user config\n mode: "peer", listen: { endpoints: ["tcp/127.0.0.1:17999"] },\n'
+        " scouting: { multicast: { enabled: true } } }\n"
+    )
     config = build_config("client", config_file=path)
     assert read_key(config, "mode") == "peer"
     assert read_key(config, "listen/endpoints") == ["tcp/127.0.0.1:17999"]
@@ -52,10 +55,13 @@ def test_command_line_endpoints_override_the_file(tmp_path):
     assert read_key(config, "scouting/multicast/enabled") is False
 
 
-@pytest.mark.parametrize("kwargs, message", [
-    ({"connect": ["not-an-endpoint"]}, "connect/endpoints"),
-    ({"config_file": "/nonexistent/zenoh.json5"}, "does not exist"),
-])
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"connect": ["not-an-endpoint"]}, "connect/endpoints"),
+        ({"config_file": "/nonexistent/zenoh.json5"}, "does not exist"),
+    ],
+)
 def test_bad_configuration_is_one_sentence(kwargs, message):
     with pytest.raises(UsageError) as info:
         build_config("client", **kwargs)
@@ -122,52 +128,59 @@ def test_a_router_port_in_use_names_the_option_to_change():
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         port = taken.getsockname()[1]
-        result = subprocess.run([*CLI, "router", "--listen", f"tcp/127.0.0.1:{port}"], capture_output=True,
-                                text=True, timeout=60)
+        result = subprocess.run(
+            [*CLI, "router", "--listen", f"tcp/127.0.0.1:{port}"], capture_output=True, text=True, timeout=60
+        )
     assert result.returncode == 2 and result.stderr.count("\n") == 1, result.stderr
     assert "is another process listening on" in result.stderr and "pick another --listen" in result.stderr
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["mapper", "--shard", "2", "--shards", "2"], "--shard"),
-    (["mapper", "--shard", "0", "--shards", "1", "--tile-size", "100"], "power of 2"),
-    (["mapper", "--shard", "0", "--shards", "1", "--map", "a/b"], "--map"),
-    (["source", "--posed", "x.npz", "--rate", "fast"], "rate"),
-    (["source", "--posed", "x.npz", "--robot", "map"], "--robot"),
-    (["run", "--posed", "/nonexistent.npz"], "no such file"),
-    (["run", "--posed", "x.npz", "--shards", "0"], "--shards"),
-    (["run", "--mrclam", "/tmp"], "no laser"),
-    (["run", "--carmen", "x.clf", "--algo", "ekf"], "gridslam"),
-    (["run", "--bag", "x.bag", "--algo", "fastslam2"], "a ROS bag has no landmarks"),
-    (["run", "--carmen", "x.clf", "--scan-topic", "/scan"], "give it with --bag"),
-    (["source", "--carmen", "x.clf", "--scan-topic", "/scan"], "give it with --bag"),
-    (["source", "--bag", "/nonexistent.bag"], "/nonexistent.bag"),
-    (["run", "--bag", "/nonexistent.bag", "--no-api"], "/nonexistent.bag"),  # before anything is started
-    (["run", "--posed", "x.npz", "--odom-delay", "0.1"], "give it with --carmen or --bag"),
-    (["slam-node", "--initial", "1,2"], "--initial"),
-    (["simulate", "out", "--resolution", "1e-5"], "--resolution must be in [0.005, 1]"),  # a 2.8 TiB raster
-    (["simulate", "out", "--dt", "1e6"], "--dt must be in [0.001, 1]"),
-    (["simulate", "out", "--steps", "100000", "--beams", "100000"], "--steps x --beams is 10000000000"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["mapper", "--shard", "2", "--shards", "2"], "--shard"),
+        (["mapper", "--shard", "0", "--shards", "1", "--tile-size", "100"], "power of 2"),
+        (["mapper", "--shard", "0", "--shards", "1", "--map", "a/b"], "--map"),
+        (["source", "--posed", "x.npz", "--rate", "fast"], "rate"),
+        (["source", "--posed", "x.npz", "--robot", "map"], "--robot"),
+        (["run", "--posed", "/nonexistent.npz"], "no such file"),
+        (["run", "--posed", "x.npz", "--shards", "0"], "--shards"),
+        (["run", "--mrclam", "/tmp"], "no laser"),
+        (["run", "--carmen", "x.clf", "--algo", "ekf"], "gridslam"),
+        (["run", "--bag", "x.bag", "--algo", "fastslam2"], "a ROS bag has no landmarks"),
+        (["run", "--carmen", "x.clf", "--scan-topic", "/scan"], "give it with --bag"),
+        (["source", "--carmen", "x.clf", "--scan-topic", "/scan"], "give it with --bag"),
+        (["source", "--bag", "/nonexistent.bag"], "/nonexistent.bag"),
+        (["run", "--bag", "/nonexistent.bag", "--no-api"], "/nonexistent.bag"),  # before anything is started
+        (["run", "--posed", "x.npz", "--odom-delay", "0.1"], "give it with --carmen or --bag"),
+        (["slam-node", "--initial", "1,2"], "--initial"),
+        (["simulate", "out", "--resolution", "1e-5"], "--resolution must be in [0.005, 1]"),  # a 2.8 TiB raster
+        (["simulate", "out", "--dt", "1e6"], "--dt must be in [0.001, 1]"),
+        (["simulate", "out", "--steps", "100000", "--beams", "100000"], "--steps x --beams is 10000000000"),
+    ],
+)
 def test_bad_arguments_exit_2_with_one_sentence(argv, message, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err and err.count("\n") == 1, err
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["slam-node", "--particles", "0"], "argument --particles: must be in 1 .. 10000, got 0"),
-    (["slam-node", "--particles", "10001"], "argument --particles: must be in 1 .. 10000"),  # past a PoseSamples
-    (["run", "--particles", "20000"], "argument --particles: must be in 1 .. 10000"),
-    (["mapper", "--shard", "0", "--shards", "1", "--map", "m", "--samples", "10001"], "argument --samples"),
-    (["fuse", "x.npz", "-o", "y.npz", "--samples", "100000000"], "argument --samples: must be in 1 .. 10000"),
-    (["fuse", "x.npz", "-o", "y.npz", "--resolution", "inf"], "argument --resolution: must be a finite number"),
-    (["fuse", "x.npz", "-o", "y.npz", "--sigma-slope", "nan"], "argument --sigma-slope: must be a finite number"),
-    (["fuse", "x.npz", "-o", "y.npz", "--seed", "-1"], "argument --seed: a seed is an integer >= 0, got -1"),
-    (["simulate", "out", "--dt", "nan"], "argument --dt: must be a finite number"),
-    (["slam", "sim", "-o", "p.npz", "--algo", "ekf", "--seed", "-2"], "argument --seed"),
-    (["export", "m.npz", "--format", "png", "-o", "m.png", "--crop", "inf"], "argument --crop"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["slam-node", "--particles", "0"], "argument --particles: must be in 1 .. 10000, got 0"),
+        (["slam-node", "--particles", "10001"], "argument --particles: must be in 1 .. 10000"),  # past a PoseSamples
+        (["run", "--particles", "20000"], "argument --particles: must be in 1 .. 10000"),
+        (["mapper", "--shard", "0", "--shards", "1", "--map", "m", "--samples", "10001"], "argument --samples"),
+        (["fuse", "x.npz", "-o", "y.npz", "--samples", "100000000"], "argument --samples: must be in 1 .. 10000"),
+        (["fuse", "x.npz", "-o", "y.npz", "--resolution", "inf"], "argument --resolution: must be a finite number"),
+        (["fuse", "x.npz", "-o", "y.npz", "--sigma-slope", "nan"], "argument --sigma-slope: must be a finite number"),
+        (["fuse", "x.npz", "-o", "y.npz", "--seed", "-1"], "argument --seed: a seed is an integer >= 0, got -1"),
+        (["simulate", "out", "--dt", "nan"], "argument --dt: must be a finite number"),
+        (["slam", "sim", "-o", "p.npz", "--algo", "ekf", "--seed", "-2"], "argument --seed"),
+        (["export", "m.npz", "--format", "png", "-o", "m.png", "--crop", "inf"], "argument --crop"),
+    ],
+)
 def test_bad_values_stop_at_parsing_with_the_option_named(argv, message, capsys):
     """argparse's own error: the usage, then one line naming the option and what it must be; exit 2."""
     with pytest.raises(SystemExit) as stop:
@@ -196,14 +209,22 @@ def test_two_processes_answering_one_robots_history_are_both_refused(started):
     assert "routing" in router.stderr.readline()
     config = build_config("client", connect=[endpoint])
     with zenoh.open(config) as old, zenoh.open(config) as new, zenoh.open(config) as reader:
+
         def answering(session, run: bytes, streams: set[str]):
             def answer(query):
                 request = history.parse_request(query, "r1")
                 for stream in sorted(streams & (request.streams if request else set())):
                     for seq in range(request.first, 3 if request.stop is None else min(request.stop, 3)):
-                        history.reply(query, history.Answerer(str(session.info.zid()), "m", False), "r1", stream,
-                                      run + b"%d" % seq)
+                        history.reply(
+                            query,
+                            history.Answerer(str(session.info.zid()), "m", False),
+                            "r1",
+                            stream,
+                            run + b"%d" % seq,
+                        )
+
             return session.declare_queryable("pg/r1/history/**", answer)
+
         queryables = [answering(old, b"old", {"scan"}), answering(new, b"new", {"scan", "pose"})]
         time.sleep(0.5)
         messages, problems = history.ask(reader, "r1", {}, timeout=10)

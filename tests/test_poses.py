@@ -1,4 +1,5 @@
 """Pose samples for one scan: Gaussian draws, the sample-count rule, ml selection."""
+
 import math
 
 import numpy as np
@@ -35,7 +36,7 @@ def test_gaussian_scan_samples_are_seeded_by_seed_and_seq():
 def test_sample_count_rule_by_hand():
     # v = max eigenvalue of the xy block (0.09) + (R sigma_yaw)^2 = 0.09 + (10 * 0.01)^2 = 0.1
     cov = np.diag([0.04, 0.09, 1e-4])
-    expected = math.ceil(Z95 ** 2 * 0.1 / 0.1 ** 2)  # 39
+    expected = math.ceil(Z95**2 * 0.1 / 0.1**2)  # 39
     assert samples_for_accuracy(cov, range_max=10.0, accuracy=0.1) == expected
     assert samples_for_accuracy(np.zeros((3, 3)), 10.0, 0.05) == 1
     assert samples_for_accuracy(np.eye(3), 10.0, 0.01, max_samples=50) == 50
@@ -65,7 +66,7 @@ def test_sample_count_rule_takes_the_xy_block_only():
     """v = lambda_max of the xy block (0.01) + (R sigma_yaw)^2 = 0.01 + 1 * 0.04 = 0.05; the yaw variance (0.04)
     exceeds the xy ones, so an eigenvalue over the whole 3x3 covariance (0.04) would give v = 0.08."""
     cov = np.diag([0.01, 0.01, 0.04])
-    assert samples_for_accuracy(cov, range_max=1.0, accuracy=0.1) == math.ceil(Z95 ** 2 * 0.05 / 0.1 ** 2)  # 20
+    assert samples_for_accuracy(cov, range_max=1.0, accuracy=0.1) == math.ceil(Z95**2 * 0.05 / 0.1**2)  # 20
 
 
 @pytest.mark.parametrize("accuracy", [0.0, -0.1, float("nan")])
@@ -88,11 +89,14 @@ def test_mc_particles_are_merged_with_summed_weights():
     np.testing.assert_allclose(w, [0.75, 0.25])
 
 
-@pytest.mark.parametrize("kwargs, message", [
-    (dict(mean=np.zeros(3)), "needs both mean and cov"),
-    (dict(samples=np.zeros((1, 3))), "needs samples and weights"),
-    (dict(weights=np.ones(1)), "needs samples and weights"),
-])
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(mean=np.zeros(3)), "needs both mean and cov"),
+        (dict(samples=np.zeros((1, 3))), "needs samples and weights"),
+        (dict(weights=np.ones(1)), "needs samples and weights"),
+    ],
+)
 @pytest.mark.parametrize("mode", ["mc", "ml"])
 def test_incomplete_pose_inputs_are_refused(kwargs, message, mode):
     with pytest.raises(InputError, match=message):

@@ -1,4 +1,5 @@
 """The zoom-level combination rule (mapping/pyramid.py) against hand-computed values."""
+
 import numpy as np
 import pytest
 
@@ -8,18 +9,20 @@ from mapping.pyramid import children_of, combine_children, downsample, tile_rang
 
 def test_downsample_hand_computed_block():
     # rows are y; the 2 x 2 blocks are [rows 0-1, cols 0-1], [rows 0-1, cols 2-3], [rows 2-3, ...]
-    logodds = np.array([[1.0, 3.0, 9.0, -2.0],
-                        [-1.0, 5.0, 4.0, 0.0],
-                        [2.0, 2.0, 7.0, 7.0],
-                        [2.0, 2.0, 7.0, 7.0]], np.float32)
-    variance = np.array([[0.5, 0.1, 8.0, 1.0],
-                         [0.2, 0.3, 2.0, 3.0],
-                         [1.0, 1.0, 9.0, 9.0],
-                         [1.0, 1.0, 9.0, 9.0]], np.float32)
-    observed = np.array([[True, True, False, True],
-                         [False, True, False, True],
-                         [False, False, False, False],
-                         [False, False, False, True]])
+    logodds = np.array(
+        [[1.0, 3.0, 9.0, -2.0], [-1.0, 5.0, 4.0, 0.0], [2.0, 2.0, 7.0, 7.0], [2.0, 2.0, 7.0, 7.0]], np.float32
+    )
+    variance = np.array(
+        [[0.5, 0.1, 8.0, 1.0], [0.2, 0.3, 2.0, 3.0], [1.0, 1.0, 9.0, 9.0], [1.0, 1.0, 9.0, 9.0]], np.float32
+    )
+    observed = np.array(
+        [
+            [True, True, False, True],
+            [False, True, False, True],
+            [False, False, False, False],
+            [False, False, False, True],
+        ]
+    )
     lo, var, obs = downsample(logodds, variance, observed)
     # block (0, 0): observed 1, 3, 5 -> mean 3; variances 0.5, 0.1, 0.3 -> 0.3
     # block (0, 1): observed -2, 0 -> -1; variances 1, 3 -> 2 (the unobserved 9 and 4 do not count)
@@ -48,6 +51,7 @@ def test_tile_addressing_below_zero():
     assert top_level((-1, 0), (-1, 0)) == 0  # 2 x 2 tiles around the origin: already the top
     assert top_level((-3, 0), (0, 0)) == 2  # -3..0 -> -2..0 at z = 1 (3 tiles) -> -1..0 at z = 2
     assert top_level((5, 7), (0, 0)) == 1  # 5..7 -> 2..3
+
 
 def test_bad_shapes_are_input_errors():
     with pytest.raises(InputError):

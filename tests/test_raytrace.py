@@ -1,4 +1,5 @@
 """Exact traversal against an independent grid-line-crossing reference."""
+
 import math
 
 from hypothesis import assume, given, settings
@@ -24,8 +25,11 @@ def test_diagonal_through_corners_visits_no_point_contact_cells():
 
 @settings(max_examples=300, deadline=None)
 @given(
-    x0=st.floats(-5, 5), y0=st.floats(-5, 5), angle=st.floats(-math.pi, math.pi),
-    length=st.floats(0.01, 6), res=st.sampled_from([0.05, 0.1, 0.25]),
+    x0=st.floats(-5, 5),
+    y0=st.floats(-5, 5),
+    angle=st.floats(-math.pi, math.pi),
+    length=st.floats(0.01, 6),
+    res=st.sampled_from([0.05, 0.1, 0.25]),
 )
 def test_traversal_matches_reference(x0, y0, angle, length, res):
     # a ray within 1e-9 rad of a grid line's direction but not on it is numerically ambiguous: skip those

@@ -1,4 +1,5 @@
 """Relation reader, relation errors against hand-computed values, clock alignment, and `posegrid eval-relations`."""
+
 from __future__ import annotations
 
 import json
@@ -8,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import shared_file
 from schemas.files import PoseDistributionFile, PoseSet, save_pose_distribution
 from services.cli import main
 from slam.carmen import write_carmen
@@ -15,9 +17,6 @@ from slam.errors import LogFormatError
 from slam.laserlog import LaserLog, with_odometry_delay
 from slam.relations import Trajectory, poses_at, read_relations, score_relations, trajectory_from_log
 from slam.timealign import odometry_delay, time_map, to_reference_time
-
-from conftest import shared_file
-
 
 # x(0) = (0, 0, 0), x(1) = (1, 0, pi/2), x(2) = (1, 1, pi/2)
 TRAJ = Trajectory(np.array([0.0, 1.0, 2.0]), np.array([[0, 0, 0], [1, 0, math.pi / 2], [1, 1, math.pi / 2]], float))
@@ -67,7 +66,15 @@ def test_poses_at_tolerance_and_gap():
 
 
 def test_relation_file_bad_lines(tmp_path):
-    lines = ["1 2 0 0 0 0 0 0", "1 2 3", "a 2 0 0 0 0 0 0", "1 nan 0 0 0 0 0 0", "3 3 0 0 0 0 0 0", "", "4 5 1 1 0 0 0 1"]
+    lines = [
+        "1 2 0 0 0 0 0 0",
+        "1 2 3",
+        "a 2 0 0 0 0 0 0",
+        "1 nan 0 0 0 0 0 0",
+        "3 3 0 0 0 0 0 0",
+        "",
+        "4 5 1 1 0 0 0 1",
+    ]
     relations = read_relations(write(tmp_path, "r", lines))
     assert relations.lines.tolist() == [1, 7]
     assert [s.where for s in relations.skipped] == [2, 3, 4, 5]
@@ -82,15 +89,30 @@ def small_log(stamps, ranges, poses=None, odom_stamps=(), odom_poses=()) -> Lase
     n = len(stamps)
     poses = np.zeros((n, 3)) if poses is None else np.asarray(poses, float)
     return LaserLog(
-        source="mem", stamps=np.asarray(stamps, float), ranges=np.asarray(ranges, np.float32), angle_min=-1.0,
-        angle_increment=1.0, range_min=0.0, range_max=80.0, sensor_offset=np.zeros(3), odometry=poses, poses=poses,
-        where=np.arange(1, n + 1), odom_stamps=np.asarray(odom_stamps, float),
-        odom_poses=np.asarray(odom_poses, float).reshape(-1, 3))
+        source="mem",
+        stamps=np.asarray(stamps, float),
+        ranges=np.asarray(ranges, np.float32),
+        angle_min=-1.0,
+        angle_increment=1.0,
+        range_min=0.0,
+        range_max=80.0,
+        sensor_offset=np.zeros(3),
+        odometry=poses,
+        poses=poses,
+        where=np.arange(1, n + 1),
+        odom_stamps=np.asarray(odom_stamps, float),
+        odom_poses=np.asarray(odom_poses, float).reshape(-1, 3),
+    )
 
 
 def test_trajectory_from_log_merges_odometry():
-    log = small_log([1.0, 2.0], np.ones((2, 3)), poses=[[1, 1, 0], [2, 2, 0]],
-                    odom_stamps=[0.0, 1.5, 2.0, 0.5], odom_poses=[[9, 9, 9], [1.5, 1.5, 0], [8, 8, 8], [0.5, 0.5, 0]])
+    log = small_log(
+        [1.0, 2.0],
+        np.ones((2, 3)),
+        poses=[[1, 1, 0], [2, 2, 0]],
+        odom_stamps=[0.0, 1.5, 2.0, 0.5],
+        odom_poses=[[9, 9, 9], [1.5, 1.5, 0], [8, 8, 8], [0.5, 0.5, 0]],
+    )
     traj = trajectory_from_log(log)
     # the stamp-0 ODOM repeat is dropped, the ODOM at a scan's stamp yields to the scan
     np.testing.assert_array_equal(traj.stamps, [0.5, 1.0, 1.5, 2.0])
@@ -206,8 +228,7 @@ def test_odometry_delay_is_recovered_from_turns(true_delay):
 def test_cli_eval_relations_reads_an_uppercase_npz_as_a_pose_file(tmp_path, capsys):
     rel = write(tmp_path, "r.relations", RELATION_LINES)
     npz = tmp_path / "POSES.NPZ"
-    save_pose_distribution(npz, PoseDistributionFile(TRAJ.stamps, PoseSet(mean=TRAJ.poses,
-                                                                          cov=np.zeros((3, 3, 3)))))
+    save_pose_distribution(npz, PoseDistributionFile(TRAJ.stamps, PoseSet(mean=TRAJ.poses, cov=np.zeros((3, 3, 3)))))
     assert main(["eval-relations", str(npz), str(rel)]) == 0
     assert "4 of 5 relations" in capsys.readouterr().out
     # a pose file is no log to align: refused in one sentence, not read as a CARMEN log without scans

@@ -1,4 +1,5 @@
 """ROS bag reader on small bags written here with rosbags' writers, and on the real bags."""
+
 from __future__ import annotations
 
 import math
@@ -6,12 +7,11 @@ import math
 import numpy as np
 import pytest
 
+from bags import BagBuilder
+from conftest import shared_file
 from slam.carmen import read_carmen
 from slam.errors import LogFormatError
 from slam.rosbag_reader import read_rosbag
-
-from bags import BagBuilder
-from conftest import shared_file
 
 
 def standard_bag(ros2: bool = False, odometry_on_tf: bool = False) -> BagBuilder:
@@ -129,7 +129,7 @@ def test_a_bag_file_not_named_dot_bag_is_refused_with_what_to_do(tmp_path, name)
 
 def test_a_ros2_storage_file_alone_is_read(tmp_path):
     folder = standard_bag(ros2=True).write(tmp_path / "bag2")
-    storage, = [p for p in folder.iterdir() if p.suffix in (".db3", ".mcap")]
+    (storage,) = [p for p in folder.iterdir() if p.suffix in (".db3", ".mcap")]
     check_standard(read_rosbag(storage))
 
 
@@ -213,9 +213,12 @@ def test_real_mit_csail_bag_matches_the_clf():
     assert bag.angle_increment == pytest.approx(clf.angle_increment, rel=1e-6)
 
 
-@pytest.mark.parametrize("name,scans,beams,offset", [
-    ("fr079/fr079.orig.bag", 4934, 360, 0.04),
-])
+@pytest.mark.parametrize(
+    "name,scans,beams,offset",
+    [
+        ("fr079/fr079.orig.bag", 4934, 360, 0.04),
+    ],
+)
 def test_real_bag(name, scans, beams, offset):
     log = read_rosbag(shared_file(name))
     assert log.ranges.shape == (scans, beams) and log.skipped == ()
@@ -233,7 +236,7 @@ def test_bag_that_breaks_off_midway_keeps_what_came_before(tmp_path):
     at = blob.find(np.array([7.5, 8.5, 9.5], np.float32).tobytes())
     assert at > 0
     # the record of scan 100: garble the lengths before its ranges so the chunk cannot be parsed on
-    blob[at - 120:at - 4] = b"\xff" * 116
+    blob[at - 120 : at - 4] = b"\xff" * 116
     broken = tmp_path / "broken.bag"
     broken.write_bytes(bytes(blob))
     try:

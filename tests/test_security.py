@@ -11,6 +11,7 @@ certificates and real client sessions on loopback:
 
 Absence is shown after a positive control on the same path has arrived, then a bounded wait.
 """
+
 from __future__ import annotations
 
 import copy
@@ -54,8 +55,12 @@ def material(tmp_path) -> Material:
 @pytest.fixture
 def router(material):
     """A `posegrid router` process with the secure config; ended by PID."""
-    process = subprocess.Popen([*CLI, "router", "--zenoh-config", str(material.router_config)],
-                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    process = subprocess.Popen(
+        [*CLI, "router", "--zenoh-config", str(material.router_config)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     lines: queue.Queue[str] = queue.Queue()
     threading.Thread(target=lambda: [lines.put(line) for line in process.stdout], daemon=True).start()
     try:
@@ -158,9 +163,16 @@ def test_secure_init_writes_the_material_and_refuses_to_overwrite(tmp_path, caps
     assert main(["secure-init", str(folder), "--robot", "a", "--robot", "b", "--map", "m1", "--host", "router"]) == 0
     out = capsys.readouterr().out
     assert f"CA certificate (clients trust it): {folder.resolve() / 'ca.pem'}" in out
-    assert {p.name for p in folder.glob("*.json5")} == {"router.json5", "source-a.json5", "source-b.json5",
-                                                         "slam-a.json5", "slam-b.json5", "mapper-m1.json5",
-                                                         "api.json5", "launcher.json5"}
+    assert {p.name for p in folder.glob("*.json5")} == {
+        "router.json5",
+        "source-a.json5",
+        "source-b.json5",
+        "slam-a.json5",
+        "slam-b.json5",
+        "mapper-m1.json5",
+        "api.json5",
+        "launcher.json5",
+    }
     assert json.loads((folder / "api.json5").read_text())["connect"]["endpoints"] == ["tls/router:7447"]
     before = (folder / "users.txt").read_text()
     assert main(["secure-init", str(folder)]) == 2
@@ -184,9 +196,14 @@ def _without_client_certificate(config: dict) -> dict:
 
 def _refused_configs(material: Material, other: Material) -> dict[str, dict]:
     good = role_config(material, "api")
-    plain = {"mode": "client", "connect": {"endpoints": [good["connect"]["endpoints"][0].replace("tls/", "tcp/")],
-                                           "timeout_ms": REFUSAL_TIMEOUT_MS},
-             "scouting": {"multicast": {"enabled": False}}}
+    plain = {
+        "mode": "client",
+        "connect": {
+            "endpoints": [good["connect"]["endpoints"][0].replace("tls/", "tcp/")],
+            "timeout_ms": REFUSAL_TIMEOUT_MS,
+        },
+        "scouting": {"multicast": {"enabled": False}},
+    }
     no_password = copy.deepcopy(good)
     del no_password["transport"]["auth"]
     foreign_cert = role_config(other, "api")  # a certificate of another CA, with the right password
@@ -195,9 +212,13 @@ def _refused_configs(material: Material, other: Material) -> dict[str, dict]:
     foreign_cert["transport"]["link"]["tls"]["root_ca_certificate"] = str(material.ca)
     trusts_other_ca = copy.deepcopy(good)
     trusts_other_ca["transport"]["link"]["tls"]["root_ca_certificate"] = str(other.ca)
-    return {"plain tcp": plain, "no client certificate": _without_client_certificate(copy.deepcopy(good)),
-            "no password": no_password, "client certificate of another CA": foreign_cert,
-            "trusts another CA": trusts_other_ca}
+    return {
+        "plain tcp": plain,
+        "no client certificate": _without_client_certificate(copy.deepcopy(good)),
+        "no password": no_password,
+        "client certificate of another CA": foreign_cert,
+        "trusts another CA": trusts_other_ca,
+    }
 
 
 def test_clients_without_tls_or_credentials_are_refused(tmp_path, material, router, sessions):
@@ -212,8 +233,12 @@ def test_clients_without_tls_or_credentials_are_refused(tmp_path, material, rout
 
 def test_a_wrong_password_is_refused(material, router, sessions):
     sessions(role_config(material, "source-r"))  # the positive control
-    for user, password in (("source-r", "not-the-password"), ("source-r", ""), ("nobody", "x"),
-                           ("source-r", role_config(material, "api")["transport"]["auth"]["usrpwd"]["password"])):
+    for user, password in (
+        ("source-r", "not-the-password"),
+        ("source-r", ""),
+        ("nobody", "x"),
+        ("source-r", role_config(material, "api")["transport"]["auth"]["usrpwd"]["password"]),
+    ):
         config = role_config(material, "source-r")
         config["transport"]["auth"]["usrpwd"] = {"user": user, "password": password}
         with pytest.raises(zenoh.ZError):
@@ -269,8 +294,9 @@ def test_the_api_role_cannot_forge_a_shard_or_a_history(material, router, sessio
     launcher = sessions(role_config(material, "launcher"))
 
     def tokens() -> list[str]:
-        return sorted(str(r.ok.key_expr) for r in launcher.liveliness().get("pg/map/m/alive/*", timeout=5.0)
-                      if r.ok is not None)
+        return sorted(
+            str(r.ok.key_expr) for r in launcher.liveliness().get("pg/map/m/alive/*", timeout=5.0) if r.ok is not None
+        )
 
     def history() -> list[bytes]:
         return sorted(r.ok.payload.to_bytes() for r in mapper.get("pg/*/history/**", timeout=5.0) if r.ok is not None)
@@ -290,8 +316,12 @@ def test_the_api_role_cannot_forge_a_shard_or_a_history(material, router, sessio
 @pytest.mark.slow
 def test_run_secure_simulates_and_exports(tmp_path):
     exported = tmp_path / "map.npz"
-    process = subprocess.Popen([*CLI, "run", "--secure", "--steps", "40", "--export", str(exported), "--api-port",
-                                str(free_port())], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    process = subprocess.Popen(
+        [*CLI, "run", "--secure", "--steps", "40", "--export", str(exported), "--api-port", str(free_port())],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     try:
         output, _ = process.communicate(timeout=240)
     finally:
@@ -302,7 +332,10 @@ def test_run_secure_simulates_and_exports(tmp_path):
     folder = Path(re.search(r"secure: .*; CA (\S+)/ca\.pem", output).group(1))
     assert re.search(r"zenoh router: tls/127\.0\.0\.1:\d+", output), output
     assert "replay finished: 40 scans, each of 1 shard(s) fused 40" in output, output
-    assert re.search(r"stopped: router exited 0, mapper\[0\] exited 0, api exited 0, slam-node exited 0, "
-                     r"source exited 0", output), output
+    assert re.search(
+        r"stopped: router exited 0, mapper\[0\] exited 0, api exited 0, slam-node exited 0, "
+        r"source exited 0",
+        output,
+    ), output
     assert exported.is_file()
     assert not folder.exists(), "the run's keys and passwords are removed when it ends"

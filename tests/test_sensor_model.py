@@ -1,12 +1,13 @@
 """The inverse sensor model against a numerical convolution and the OctoMap increments."""
+
 import math
 
 import numpy as np
 import pytest
 from scipy.special import logit as sp_logit
 
-from mapping.errors import InputError
 from mapping.beam_model import TABLE_DU, TABLE_U0, logodds_table
+from mapping.errors import InputError
 from mapping.sensor_model import SensorModel
 
 
@@ -64,11 +65,14 @@ def test_peak_range_is_the_maximum():
     assert r[np.argmax(g)] == pytest.approx(float(model.peak_range(z)), abs=1e-5)
 
 
-@pytest.mark.parametrize("kind, kwargs, z, expected", [
-    ("constant", {"sigma0": 0.02}, 7.0, 0.02),
-    ("linear", {"sigma0": 0.01, "sigma_slope": 0.01}, 4.0, 0.05),
-    ("stereo", {"baseline_focal": 100.0}, 5.0, 0.25),
-])
+@pytest.mark.parametrize(
+    "kind, kwargs, z, expected",
+    [
+        ("constant", {"sigma0": 0.02}, 7.0, 0.02),
+        ("linear", {"sigma0": 0.01, "sigma_slope": 0.01}, 4.0, 0.05),
+        ("stereo", {"baseline_focal": 100.0}, 5.0, 0.25),
+    ],
+)
 def test_sigma_models(kind, kwargs, z, expected):
     assert float(SensorModel(sigma=kind, **kwargs).sigma_at(z)) == pytest.approx(expected)
 
@@ -86,19 +90,30 @@ def test_constant_sigma_table_matches_the_closed_form():
     assert np.median(np.abs(mid - exact)) < 1e-6
 
 
-@pytest.mark.parametrize("kwargs", [
-    {"resolution": 0.0}, {"sigma": "cubic"}, {"sigma0": -1.0}, {"sigma": "stereo"},
-    {"p_hit": 0.4}, {"p_min": 0.5}, {"peak_width": 0.0},
-])
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"resolution": 0.0},
+        {"sigma": "cubic"},
+        {"sigma0": -1.0},
+        {"sigma": "stereo"},
+        {"p_hit": 0.4},
+        {"p_min": 0.5},
+        {"peak_width": 0.0},
+    ],
+)
 def test_bad_parameters_are_rejected(kwargs):
     with pytest.raises(InputError):
         SensorModel(**kwargs)
 
 
-@pytest.mark.parametrize("kwargs", [
-    {"sigma": "linear", "sigma_slope": -0.01},  # a noise that shrinks with range
-    {"p_hit": 0.8, "p_max": 0.75},  # the clamp below the hit increment
-])
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"sigma": "linear", "sigma_slope": -0.01},  # a noise that shrinks with range
+        {"p_hit": 0.8, "p_max": 0.75},  # the clamp below the hit increment
+    ],
+)
 def test_more_bad_parameters_are_rejected(kwargs):
     with pytest.raises(InputError):
         SensorModel(**kwargs)

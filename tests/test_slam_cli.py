@@ -1,4 +1,5 @@
 """The simulate, slam and eval-traj subcommands end to end, and their one-line errors with exit 2."""
+
 from __future__ import annotations
 
 import json
@@ -49,7 +50,10 @@ def test_slam_on_a_simulator_folder_writes_posed_scans(simdir, tmp_path, capsys)
     assert posed.poses.is_gaussian and posed.poses.mean.shape == (60, 3)
 
     particles = tmp_path / "fs.npz"
-    assert main(["slam", "--algo", "fastslam2", str(simdir), "-o", str(particles), "--particles", "30", "--seed", "2"]) == 0
+    assert (
+        main(["slam", "--algo", "fastslam2", str(simdir), "-o", str(particles), "--particles", "30", "--seed", "2"])
+        == 0
+    )
     assert load_posed_scans(particles).poses.samples.shape == (60, 30, 3)
 
     capsys.readouterr()
@@ -90,8 +94,10 @@ def _mrclam_sample(folder: Path) -> None:
 
     write("Barcodes.dat", [(1, 5), (6, 63), (7, 81)])
     write("Robot1_Odometry.dat", [(10.0 + 0.1 * k, 0.2, 0.1) for k in range(30)])
-    write("Robot1_Measurement.dat", [(10.5, 63, 2.0, 0.1), (11.0, 81, 1.5, -0.2), (11.5, 5, 1.0, 0.0),
-                                     (12.0, 63, 1.9, 0.15)])
+    write(
+        "Robot1_Measurement.dat",
+        [(10.5, 63, 2.0, 0.1), (11.0, 81, 1.5, -0.2), (11.5, 5, 1.0, 0.0), (12.0, 63, 1.9, 0.15)],
+    )
     write("Robot1_Groundtruth.dat", [(10.0 + 0.05 * k, 0.01 * k, 0.0, 0.005 * k) for k in range(70)])
 
 
@@ -153,10 +159,12 @@ def test_bad_inputs_give_one_line_and_exit_2(simdir, tmp_path, capsys):
         assert stop.value.code == 2 and "argument --particles: must be in 1 .. 10000" in capsys.readouterr().err
     _one_line_exit_2(["slam", "--algo", "ekf", str(simdir), "-o", out, "--alphas", "1,2"], capsys, "--alphas")
     # grid FastSLAM's options given to another filter would be ignored: refused, here and for the pipeline
-    _one_line_exit_2(["slam", "--algo", "ekf", str(simdir), "-o", out, "--prior-cap", "36"], capsys, "--prior-cap",
-                     "--algo gridslam")
-    _one_line_exit_2(["slam", "--algo", "fastslam2", str(simdir), "-o", out, "--scans", "50"], capsys, "--scans",
-                     "--algo gridslam")
+    _one_line_exit_2(
+        ["slam", "--algo", "ekf", str(simdir), "-o", out, "--prior-cap", "36"], capsys, "--prior-cap", "--algo gridslam"
+    )
+    _one_line_exit_2(
+        ["slam", "--algo", "fastslam2", str(simdir), "-o", out, "--scans", "50"], capsys, "--scans", "--algo gridslam"
+    )
     _one_line_exit_2(["run", "--sim-dir", str(simdir), "--min-range", "1"], capsys, "--min-range", "fastslam2")
 
     broken = tmp_path / "broken"
@@ -171,29 +179,58 @@ def test_bad_inputs_give_one_line_and_exit_2(simdir, tmp_path, capsys):
     _one_line_exit_2(["slam", "--algo", "ekf", str(mrclam), "-o", out], capsys, "--robot")
     with open(mrclam / "Robot1_Odometry.dat", "a", newline="") as handle:
         handle.write("13.5 \t fast \t 0.1 \r\n")
-    _one_line_exit_2(["slam", "--algo", "ekf", str(mrclam), "--robot", "1", "-o", out], capsys,
-                     "Robot1_Odometry.dat line 35")
+    _one_line_exit_2(
+        ["slam", "--algo", "ekf", str(mrclam), "--robot", "1", "-o", out], capsys, "Robot1_Odometry.dat line 35"
+    )
     _one_line_exit_2(["eval-traj", str(simdir / "scans.npz"), str(tmp_path / "missing.dat")], capsys, "missing.dat")
     _one_line_exit_2(["eval-traj", str(tmp_path / "nope.npz"), str(simdir)], capsys, "nope.npz")
 
 
-@pytest.mark.parametrize(("option", "value"), [
-    ("--sigma-bearing", "1e-300"), ("--sigma-bearing", "4"), ("--sigma-range", "1e300"), ("--sigma-range", "1e-4"),
-    ("--range-fraction", "1e300"), ("--range-fraction", "-0.1"), ("--alphas", "1e300,0,0,0,0,0"),
-    ("--alphas", "0,0,0,0,0,1001"),
-])
+@pytest.mark.parametrize(
+    ("option", "value"),
+    [
+        ("--sigma-bearing", "1e-300"),
+        ("--sigma-bearing", "4"),
+        ("--sigma-range", "1e300"),
+        ("--sigma-range", "1e-4"),
+        ("--range-fraction", "1e300"),
+        ("--range-fraction", "-0.1"),
+        ("--alphas", "1e300,0,0,0,0,0"),
+        ("--alphas", "0,0,0,0,0,1001"),
+    ],
+)
 def test_noise_options_outside_their_range_are_refused(simdir, tmp_path, capsys, option, value):
     # values that overflowed, made the EKF's innovation covariance singular or wrote NaN poses before
     out = tmp_path / "x.npz"
-    _one_line_exit_2(["slam", "--algo", "ekf", str(simdir), "-o", str(out), f"{option}={value}"], capsys,
-                     option, "must be in [")
+    _one_line_exit_2(
+        ["slam", "--algo", "ekf", str(simdir), "-o", str(out), f"{option}={value}"], capsys, option, "must be in ["
+    )
     assert not out.exists()
 
 
 def test_noise_options_at_their_limits_give_finite_poses(simdir, tmp_path):
     out = tmp_path / "x.npz"
-    assert main(["slam", "--algo", "ekf", str(simdir), "-o", str(out), "--sigma-range", "1e-3",
-                 "--sigma-bearing", "1e-3", "--range-fraction", "1", "--alphas", "1000,1000,1000,1000,1000,1000"]) == 0
+    assert (
+        main(
+            [
+                "slam",
+                "--algo",
+                "ekf",
+                str(simdir),
+                "-o",
+                str(out),
+                "--sigma-range",
+                "1e-3",
+                "--sigma-bearing",
+                "1e-3",
+                "--range-fraction",
+                "1",
+                "--alphas",
+                "1000,1000,1000,1000,1000,1000",
+            ]
+        )
+        == 0
+    )
     poses = load_posed_scans(out).poses
     assert np.isfinite(poses.mean).all() and np.isfinite(poses.cov).all()
     assert (np.linalg.eigvalsh(poses.cov) >= 0).all()
@@ -202,10 +239,17 @@ def test_noise_options_at_their_limits_give_finite_poses(simdir, tmp_path):
 def test_mrclam_period_and_initial_pose_are_bounded(tmp_path, capsys):
     _mrclam_sample(tmp_path)
     out = tmp_path / "x.npz"
-    _one_line_exit_2(["slam", "--algo", "ekf", str(tmp_path), "--robot", "1", "-o", str(out), "--period", "1e-9"],
-                     capsys, "--period", "at least 0.01 s")
-    _one_line_exit_2(["slam", "--algo", "ekf", str(tmp_path), "--robot", "1", "-o", str(out), "--initial",
-                      "1e300,0,0"], capsys, "--initial takes a pose within +-1e+07")  # else NaN steps later
+    _one_line_exit_2(
+        ["slam", "--algo", "ekf", str(tmp_path), "--robot", "1", "-o", str(out), "--period", "1e-9"],
+        capsys,
+        "--period",
+        "at least 0.01 s",
+    )
+    _one_line_exit_2(
+        ["slam", "--algo", "ekf", str(tmp_path), "--robot", "1", "-o", str(out), "--initial", "1e300,0,0"],
+        capsys,
+        "--initial takes a pose within +-1e+07",
+    )  # else NaN steps later
     assert not out.exists()
 
 
@@ -225,7 +269,8 @@ def test_mrclam_measurements_before_the_start_are_counted(tmp_path, capsys):
     # has no filter yet to take it
     _mrclam_sample(tmp_path)
     (tmp_path / "Robot1_Groundtruth.dat").write_text(
-        "# header\r\n" * 4 + "".join(f"{10.6 + 0.05 * k} \t 0.0 \t 0.0 \t 0.0 \r\n" for k in range(40)), newline="")
+        "# header\r\n" * 4 + "".join(f"{10.6 + 0.05 * k} \t 0.0 \t 0.0 \t 0.0 \r\n" for k in range(40)), newline=""
+    )
     out = tmp_path / "ekf.npz"
     assert main(["slam", "--algo", "ekf", str(tmp_path), "--robot", "1", "-o", str(out)]) == 0
     assert "1 before the filter's start" in capsys.readouterr().out
@@ -236,28 +281,56 @@ def test_eval_traj_refuses_ground_truth_from_another_time_base(simdir, tmp_path,
     # the simulator's estimate spans 0-5.9 s, the MRCLAM ground truth 10-13.45 s: scoring would compare every
     # step with the ground truth's first pose
     _mrclam_sample(tmp_path)
-    err = _one_line_exit_2(["eval-traj", str(simdir / "scans.npz"), str(tmp_path / "Robot1_Groundtruth.dat")],
-                           capsys, "0.000000 .. 5.900000 s", "10.000000 .. 13.450000 s", "Robot1_Groundtruth.dat")
+    err = _one_line_exit_2(
+        ["eval-traj", str(simdir / "scans.npz"), str(tmp_path / "Robot1_Groundtruth.dat")],
+        capsys,
+        "0.000000 .. 5.900000 s",
+        "10.000000 .. 13.450000 s",
+        "Robot1_Groundtruth.dat",
+    )
     assert "same time base" in err
-    _one_line_exit_2(["eval-traj", str(simdir / "scans.npz"), str(tmp_path / "nonexistent")], capsys,
-                     "nonexistent: no such file or folder")
+    _one_line_exit_2(
+        ["eval-traj", str(simdir / "scans.npz"), str(tmp_path / "nonexistent")],
+        capsys,
+        "nonexistent: no such file or folder",
+    )
 
 
-@pytest.mark.parametrize("algo, options, phrase", [
-    ("ekf", ["--particles", "100"],
-     "--particles does not apply to --algo ekf (only to fastslam1, fastslam2, gridslam)"),
-    ("odometry", ["--plain-resampling"], "--plain-resampling does not apply to --algo odometry"),
-    ("ekf", ["--seed", "3", "--resample-threshold", "0.3"], "--seed, --resample-threshold do not apply to --algo ekf"),
-    ("odometry", ["--associate", "unknown", "--sigma-range", "0.2"],
-     "--associate, --sigma-range do not apply to --algo odometry (only to ekf, fastslam1, fastslam2)"),
-    ("gridslam", ["--associate", "known"], "--associate does not apply to --algo gridslam"),
-    ("gridslam", ["--motion", "velocity", "--raw-ranges"], "--raw-ranges, --motion do not apply to --algo gridslam"),
-    ("ekf", ["--raw-commands"], "a simulator folder has none"),
-    ("fastslam1", ["--period", "0.5"], "--period is for MRCLAM folders"),
-    ("ekf", ["--stats", "s.json", "--odom-delay", "0.1"],
-     "--stats, --odom-delay do not apply to --algo ekf (only to gridslam)"),
-    ("fastslam2", ["--scan-topic", "/scan"], "--scan-topic does not apply to --algo fastslam2"),
-])
+@pytest.mark.parametrize(
+    "algo, options, phrase",
+    [
+        (
+            "ekf",
+            ["--particles", "100"],
+            "--particles does not apply to --algo ekf (only to fastslam1, fastslam2, gridslam)",
+        ),
+        ("odometry", ["--plain-resampling"], "--plain-resampling does not apply to --algo odometry"),
+        (
+            "ekf",
+            ["--seed", "3", "--resample-threshold", "0.3"],
+            "--seed, --resample-threshold do not apply to --algo ekf",
+        ),
+        (
+            "odometry",
+            ["--associate", "unknown", "--sigma-range", "0.2"],
+            "--associate, --sigma-range do not apply to --algo odometry (only to ekf, fastslam1, fastslam2)",
+        ),
+        ("gridslam", ["--associate", "known"], "--associate does not apply to --algo gridslam"),
+        (
+            "gridslam",
+            ["--motion", "velocity", "--raw-ranges"],
+            "--raw-ranges, --motion do not apply to --algo gridslam",
+        ),
+        ("ekf", ["--raw-commands"], "a simulator folder has none"),
+        ("fastslam1", ["--period", "0.5"], "--period is for MRCLAM folders"),
+        (
+            "ekf",
+            ["--stats", "s.json", "--odom-delay", "0.1"],
+            "--stats, --odom-delay do not apply to --algo ekf (only to gridslam)",
+        ),
+        ("fastslam2", ["--scan-topic", "/scan"], "--scan-topic does not apply to --algo fastslam2"),
+    ],
+)
 def test_options_the_filter_would_ignore_are_refused(simdir, tmp_path, capsys, algo, options, phrase):
     out = tmp_path / "x.npz"
     _one_line_exit_2(["slam", "--algo", algo, str(simdir), "-o", str(out), *options], capsys, phrase)
@@ -271,8 +344,13 @@ def test_eval_traj_scores_only_the_steps_its_ground_truth_covers(simdir, tmp_pat
 
     truth = load_pose_distribution(simdir / "groundtruth.npz")
     for name, keep in (("short.npz", truth.stamps <= 2.0), ("one.npz", truth.stamps == truth.stamps[10])):
-        save_pose_distribution(tmp_path / name, PoseDistributionFile(stamps=truth.stamps[keep], poses=PoseSet(
-            samples=truth.poses.samples[keep], weights=truth.poses.weights[keep])))
+        save_pose_distribution(
+            tmp_path / name,
+            PoseDistributionFile(
+                stamps=truth.stamps[keep],
+                poses=PoseSet(samples=truth.poses.samples[keep], weights=truth.poses.weights[keep]),
+            ),
+        )
     estimate = simdir / "scans.npz"  # the true poses, 0 .. 5.9 s every 0.1 s
     assert main(["eval-traj", str(estimate), str(tmp_path / "short.npz")]) == 0
     captured = capsys.readouterr()
@@ -288,8 +366,10 @@ def test_eval_traj_refuses_scores_that_are_not_finite(simdir, tmp_path, capsys):
 
     mean = np.zeros((60, 3))
     mean[:, 0] = 1e200
-    save_pose_distribution(tmp_path / "far.npz", PoseDistributionFile(
-        stamps=0.1 * np.arange(60), poses=PoseSet(mean=mean, cov=np.tile(np.eye(3), (60, 1, 1)))))
+    save_pose_distribution(
+        tmp_path / "far.npz",
+        PoseDistributionFile(stamps=0.1 * np.arange(60), poses=PoseSet(mean=mean, cov=np.tile(np.eye(3), (60, 1, 1)))),
+    )
     _one_line_exit_2(["eval-traj", str(tmp_path / "far.npz"), str(simdir)], capsys, "far.npz")
 
 
@@ -303,16 +383,19 @@ def _altered_copy(simdir: Path, folder: Path, name: str, **arrays) -> Path:
     return folder
 
 
-@pytest.mark.parametrize(("name", "key", "value", "message"), [
-    ("controls.npz", "velocity_alphas", [-0.01, 0, 0, 0, 0, 0], "'velocity_alphas' must lie in [0, 1000]"),
-    ("controls.npz", "odometry_alphas", [0, 0, 2e3, 0], "'odometry_alphas' must lie in [0, 1000]"),
-    ("controls.npz", "velocity_dt_ref", 0.0, "'velocity_dt_ref' must lie in [0.001, 1000]"),
-    ("controls.npz", "odometry", "1e300", "'odometry' must lie in [-1e+07, 1e+07]"),
-    ("landmarks.npz", "range", "-1", "'range' must lie in [0, 1e+07]"),
-    ("landmarks.npz", "bearing", "1e20", "'bearing' must lie in [-6.28319, 6.28319]"),
-    ("landmarks.npz", "sigma_bearing", 1e-300, "'sigma_bearing' must lie in [0.001, 3.14159]"),
-    ("landmarks.npz", "id", "0.5", "'id' must hold whole numbers"),
-])
+@pytest.mark.parametrize(
+    ("name", "key", "value", "message"),
+    [
+        ("controls.npz", "velocity_alphas", [-0.01, 0, 0, 0, 0, 0], "'velocity_alphas' must lie in [0, 1000]"),
+        ("controls.npz", "odometry_alphas", [0, 0, 2e3, 0], "'odometry_alphas' must lie in [0, 1000]"),
+        ("controls.npz", "velocity_dt_ref", 0.0, "'velocity_dt_ref' must lie in [0.001, 1000]"),
+        ("controls.npz", "odometry", "1e300", "'odometry' must lie in [-1e+07, 1e+07]"),
+        ("landmarks.npz", "range", "-1", "'range' must lie in [0, 1e+07]"),
+        ("landmarks.npz", "bearing", "1e20", "'bearing' must lie in [-6.28319, 6.28319]"),
+        ("landmarks.npz", "sigma_bearing", 1e-300, "'sigma_bearing' must lie in [0.001, 3.14159]"),
+        ("landmarks.npz", "id", "0.5", "'id' must hold whole numbers"),
+    ],
+)
 def test_simulator_folder_values_the_filters_cannot_use_exit_2(simdir, tmp_path, capsys, name, key, value, message):
     if isinstance(value, str):  # the file's own array with its first entry replaced
         with np.load(simdir / name) as data:
@@ -330,8 +413,11 @@ def test_simulator_scans_must_carry_the_controls_stamps(simdir, tmp_path, capsys
         stamps = data["stamps"] * 2.0
     folder = _altered_copy(simdir, tmp_path / "bad", "controls.npz", stamps=stamps)
     out = tmp_path / "x.npz"
-    _one_line_exit_2(["slam", "--algo", "ekf", str(folder), "-o", str(out)], capsys,
-                     "scans.npz: scan 1 is stamped 0.100000 s but the controls' step 1 0.200000 s")
+    _one_line_exit_2(
+        ["slam", "--algo", "ekf", str(folder), "-o", str(out)],
+        capsys,
+        "scans.npz: scan 1 is stamped 0.100000 s but the controls' step 1 0.200000 s",
+    )
     assert not out.exists()
 
 
@@ -343,16 +429,22 @@ def test_simulator_file_that_is_a_npy_or_corrupt_exits_2(simdir, tmp_path, capsy
     with open(folder / "controls.npz", "wb") as handle:
         np.save(handle, np.zeros(3))
     out = tmp_path / "x.npz"
-    _one_line_exit_2(["slam", "--algo", "ekf", str(folder), "-o", str(out)], capsys,
-                     "controls.npz: holds one bare array (a .npy file)")
+    _one_line_exit_2(
+        ["slam", "--algo", "ekf", str(folder), "-o", str(out)],
+        capsys,
+        "controls.npz: holds one bare array (a .npy file)",
+    )
     # the first member's compressed data broken: zlib's own error, not the zip file's CRC check
     folder = _altered_copy(simdir, tmp_path / "zlib", "controls.npz")
     data = bytearray((folder / "controls.npz").read_bytes())
     with zipfile.ZipFile(folder / "controls.npz") as archive:
         start = archive.infolist()[0].header_offset
-    name_length, extra_length = struct.unpack("<HH", data[start + 26:start + 30])
+    name_length, extra_length = struct.unpack("<HH", data[start + 26 : start + 30])
     data[start + 30 + name_length + extra_length] ^= 0xFF
     (folder / "controls.npz").write_bytes(bytes(data))
-    _one_line_exit_2(["slam", "--algo", "ekf", str(folder), "-o", str(out)], capsys,
-                     "controls.npz: not a readable .npz file (Error -3 while decompressing")
+    _one_line_exit_2(
+        ["slam", "--algo", "ekf", str(folder), "-o", str(out)],
+        capsys,
+        "controls.npz: not a readable .npz file (Error -3 while decompressing",
+    )
     assert not out.exists()

@@ -1,4 +1,5 @@
 """EKF-SLAM, FastSLAM 1.0/2.0 and dead reckoning on short simulated runs (slam.ekf, slam.fastslam)."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -61,8 +62,13 @@ def test_ekf_with_odometry_motion_model(sim, dead_reckoning):
 
 
 def test_ekf_with_zero_noise_follows_the_truth_exactly():
-    run = simulate_office(seed=5, steps=100, n_beams=3, velocity_model=VelocityMotionModel(alphas=(0.0,) * 6),
-                          sensor=RangeBearingModel(sigma_range=0.0, sigma_bearing=0.0))
+    run = simulate_office(
+        seed=5,
+        steps=100,
+        n_beams=3,
+        velocity_model=VelocityMotionModel(alphas=(0.0,) * 6),
+        sensor=RangeBearingModel(sigma_range=0.0, sigma_bearing=0.0),
+    )
     log = run.log()
     # the filter's own noise model must be positive for its gains to exist; the data are exact
     ekf = EKFSLAM(VelocityMotionModel(alphas=(1e-4,) * 6), RangeBearingModel(0.01, 0.001), log.initial_pose)
@@ -79,11 +85,15 @@ def _standing_still(measurements_per_step: list[list[list[float]]], landmark_id:
     steps = len(measurements_per_step)
     counts = [len(step) for step in measurements_per_step]
     return SlamSequence(
-        stamps=0.1 * np.arange(steps), controls=np.tile([0.0, 0.0, 0.1], (steps - 1, 1)),
+        stamps=0.1 * np.arange(steps),
+        controls=np.tile([0.0, 0.0, 0.1], (steps - 1, 1)),
         control_ptr=np.concatenate([[0], np.arange(steps)]),
         measurements=np.array([z for step in measurements_per_step for z in step]),
-        landmark_ids=np.full(sum(counts), landmark_id), measurement_ptr=np.concatenate([[0], np.cumsum(counts)]),
-        initial_pose=np.zeros(3), motion="velocity")
+        landmark_ids=np.full(sum(counts), landmark_id),
+        measurement_ptr=np.concatenate([[0], np.cumsum(counts)]),
+        initial_pose=np.zeros(3),
+        motion="velocity",
+    )
 
 
 def test_ekf_outlier_gate_drops_a_wild_measurement():
@@ -100,19 +110,23 @@ def test_ekf_outlier_gate_drops_a_wild_measurement():
     assert np.abs(ungated.landmarks()[1] - [[2.0, 0.0]]).max() > 0.1
 
 
-@pytest.mark.parametrize(("seen_again", "rejected", "landmarks"), [
-    # the pose is exact, so a re-sighting of a landmark made from one sighting has S = 2 R and
-    # d^2 = dr^2 / (2 * 0.1^2): 2 (matched), 12.5 (between the gates: dropped), 50 (a new landmark)
-    ([[2.2, 0.0]], 0, [[2.1, 0.0]]),
-    ([[2.5, 0.0]], 1, [[2.0, 0.0]]),
-    ([[3.0, 0.0]], 0, [[2.0, 0.0], [3.0, 0.0]]),
-    # the same landmark twice in one step: the second may not match it again, and lies in its gate, so it is
-    # dropped, not made a second landmark on top of the first
-    ([[2.0, 0.0], [2.0, 0.0]], 1, [[2.0, 0.0]]),
-])
+@pytest.mark.parametrize(
+    ("seen_again", "rejected", "landmarks"),
+    [
+        # the pose is exact, so a re-sighting of a landmark made from one sighting has S = 2 R and
+        # d^2 = dr^2 / (2 * 0.1^2): 2 (matched), 12.5 (between the gates: dropped), 50 (a new landmark)
+        ([[2.2, 0.0]], 0, [[2.1, 0.0]]),
+        ([[2.5, 0.0]], 1, [[2.0, 0.0]]),
+        ([[3.0, 0.0]], 0, [[2.0, 0.0], [3.0, 0.0]]),
+        # the same landmark twice in one step: the second may not match it again, and lies in its gate, so it is
+        # dropped, not made a second landmark on top of the first
+        ([[2.0, 0.0], [2.0, 0.0]], 1, [[2.0, 0.0]]),
+    ],
+)
 def test_ekf_unknown_correspondence_gates(seen_again, rejected, landmarks):
-    ekf = EKFSLAM(VelocityMotionModel(alphas=(0.01,) * 6), RangeBearingModel(0.1, 0.02), np.zeros(3),
-                  known_correspondences=False)
+    ekf = EKFSLAM(
+        VelocityMotionModel(alphas=(0.01,) * 6), RangeBearingModel(0.1, 0.02), np.zeros(3), known_correspondences=False
+    )
     run_filter(ekf, _standing_still([[[2.0, 0.0]], seen_again]))
     assert ekf.rejected == rejected
     np.testing.assert_allclose(ekf.landmarks()[1], landmarks, atol=1e-12)
@@ -124,8 +138,15 @@ def test_ekf_unknown_correspondence_gates(seen_again, rejected, landmarks):
 @pytest.mark.parametrize(("version", "particles", "preserve_gauge"), [(1, 2000, False), (2, 1000, True)])
 def test_fastslam_beats_dead_reckoning_and_is_honest(sim, dead_reckoning, version, particles, preserve_gauge):
     run, log = sim
-    slam = FastSLAM(log.velocity_model, log.sensor, log.initial_pose, n_particles=particles, version=version, seed=1,
-                    preserve_gauge=preserve_gauge)
+    slam = FastSLAM(
+        log.velocity_model,
+        log.sensor,
+        log.initial_pose,
+        n_particles=particles,
+        version=version,
+        seed=1,
+        preserve_gauge=preserve_gauge,
+    )
     track = run_filter(slam, log.sequence())
     np.testing.assert_allclose(track.weights.sum(axis=1), 1.0)
     assert track.samples.shape == (150, particles, 3)
@@ -136,8 +157,15 @@ def test_fastslam_beats_dead_reckoning_and_is_honest(sim, dead_reckoning, versio
 
 def test_fastslam_unknown_correspondences(sim, dead_reckoning):
     run, log = sim
-    slam = FastSLAM(log.velocity_model, log.sensor, log.initial_pose, n_particles=200, version=2, seed=2,
-                    known_correspondences=False)
+    slam = FastSLAM(
+        log.velocity_model,
+        log.sensor,
+        log.initial_pose,
+        n_particles=200,
+        version=2,
+        seed=2,
+        known_correspondences=False,
+    )
     score = _score(run_filter(slam, log.sequence()), run.true_poses)
     assert score.ate_rmse_m < 0.3 * dead_reckoning.ate_rmse_m
     best = int(np.argmax(slam.log_w))
@@ -172,11 +200,15 @@ def test_fastslam_skips_measurements_while_standing_still():
     rng = np.random.default_rng(6)
     controls = np.array([[0.5, 0.1, 0.1]] * 5 + [[0.0, 0.0, 0.1]] * 30)
     sequence = SlamSequence(
-        stamps=0.1 * np.arange(steps), controls=controls, control_ptr=np.concatenate([[0], np.arange(steps)]),
+        stamps=0.1 * np.arange(steps),
+        controls=controls,
+        control_ptr=np.concatenate([[0], np.arange(steps)]),
         measurements=np.vstack([z_start] + [z_stop + noise for noise in rng.normal(0, [0.05, 0.02], (30, 2, 2))]),
         landmark_ids=np.tile([0, 1], 31),
-        measurement_ptr=np.concatenate([[0, 2], [2] * 5, 2 + 2 * np.arange(1, 31)]), initial_pose=np.zeros(3),
-        motion="velocity")
+        measurement_ptr=np.concatenate([[0, 2], [2] * 5, 2 + 2 * np.arange(1, 31)]),
+        initial_pose=np.zeros(3),
+        motion="velocity",
+    )
     sensor = RangeBearingModel(0.05, 0.02)
     slam = FastSLAM(model, sensor, np.zeros(3), n_particles=300, version=2, seed=4)
     track = run_filter(slam, sequence)

@@ -1,5 +1,6 @@
 """FastSLAM's gauge-preserving resampling (slam.gauge, slam.fastslam): rigid alignment against brute force, the
 weights' blindness to the gauge, and resampling that keeps the set of gauges while copying shapes."""
+
 from __future__ import annotations
 
 import copy
@@ -51,15 +52,17 @@ def test_map_gauges_turn_is_the_least_squares_rotation_on_noisy_maps():
 
 def test_regauge_points_by_hand():
     # turn by 90 degrees about shift_from = (1, 0), then put that point at (5, 5): (2, 0) -> (5, 6)
-    moved = regauge_points(np.array([[[2.0, 0.0], [1.0, 0.0]]]), np.array([np.pi / 2]), np.array([[1.0, 0.0]]),
-                           np.array([[5.0, 5.0]]))
+    moved = regauge_points(
+        np.array([[[2.0, 0.0], [1.0, 0.0]]]), np.array([np.pi / 2]), np.array([[1.0, 0.0]]), np.array([[5.0, 5.0]])
+    )
     np.testing.assert_allclose(moved, [[[5.0, 6.0], [5.0, 5.0]]], atol=1e-12)
 
 
 def _filter(n_particles: int, preserve_gauge: bool = True) -> FastSLAM:
     """A FastSLAM 1.0 whose particles hold three mapped landmarks (ids 0-2), from one measurement each."""
-    slam = FastSLAM(MOTION, SENSOR, np.zeros(3), n_particles=n_particles, version=1, seed=5,
-                    preserve_gauge=preserve_gauge)
+    slam = FastSLAM(
+        MOTION, SENSOR, np.zeros(3), n_particles=n_particles, version=1, seed=5, preserve_gauge=preserve_gauge
+    )
     slam.update(np.array([[2.2, 0.5], [3.3, -0.4], [2.7, 2.0]]), np.array([0, 1, 2]))
     return slam
 
@@ -86,8 +89,11 @@ def test_weights_and_landmark_updates_do_not_see_the_gauge():
     moved.update(z, ids)
     np.testing.assert_allclose(moved.log_w - moved_w, slam.log_w - before_w, atol=1e-9)
     np.testing.assert_allclose(moved.mu[:, :3], regauge_points(slam.mu[:, :3], turn, shift_from, shift_to), atol=1e-9)
-    np.testing.assert_allclose(moved.sigma[:, :3], rotations(turn)[:, None] @ slam.sigma[:, :3]
-                               @ np.swapaxes(rotations(turn), 1, 2)[:, None], atol=1e-12)
+    np.testing.assert_allclose(
+        moved.sigma[:, :3],
+        rotations(turn)[:, None] @ slam.sigma[:, :3] @ np.swapaxes(rotations(turn), 1, 2)[:, None],
+        atol=1e-12,
+    )
 
 
 @pytest.mark.parametrize("preserve_gauge", [True, False])

@@ -4,6 +4,7 @@ The error of an estimate X^ = (theta^, p^, m^_i) against the truth X is defined 
 filter's code, to first order: theta^ = theta + xi_theta, p^ = Rot(xi_theta) p + xi_p,
 m^_i = Rot(xi_theta) m_i + xi_mi.
 """
+
 from __future__ import annotations
 
 import numpy as np

@@ -1,5 +1,6 @@
 """Motion and measurement models, Gaussian helpers and resampling (slam.motion, slam.range_bearing,
 slam.stats, slam.resampling) against hand-computed values, finite differences and sampling."""
+
 from __future__ import annotations
 
 import math
@@ -37,8 +38,10 @@ def test_wrap_angle_lands_in_half_open_range_and_keeps_the_direction(angle):
 
 def test_wrap_angle_folds_the_rounded_up_end_to_minus_pi():
     # (-4e-16 + pi) - pi: the remainder of -4e-16 by 2 pi rounds to 2 pi, which gave +pi
-    np.testing.assert_array_equal(wrap_angle(np.array([-math.pi - 4e-16, math.pi, -math.pi, 3 * math.pi])),
-                                  [-math.pi, -math.pi, -math.pi, -math.pi])
+    np.testing.assert_array_equal(
+        wrap_angle(np.array([-math.pi - 4e-16, math.pi, -math.pi, 3 * math.pi])),
+        [-math.pi, -math.pi, -math.pi, -math.pi],
+    )
 
 
 # ------------------------------------------------------------------------------------------- velocity model
@@ -66,7 +69,9 @@ def test_velocity_sample_without_noise_is_the_prediction():
     model = VelocityMotionModel(alphas=(0.0,) * 6)
     poses = np.array([[0.0, 0.0, 0.3], [1.0, -2.0, -2.0]])
     control = np.array([0.7, 0.4, 0.5])
-    np.testing.assert_allclose(model.sample(poses, control, np.random.default_rng(0)), model.predict(poses, control), atol=1e-12)
+    np.testing.assert_allclose(
+        model.sample(poses, control, np.random.default_rng(0)), model.predict(poses, control), atol=1e-12
+    )
 
 
 @settings(max_examples=40, deadline=None)
@@ -127,11 +132,15 @@ def test_odometry_controls_by_hand():
     back = odometry_controls(np.array([[1.0, 1.0, math.pi / 2], [1.001, 1.0 - math.sqrt(3) / 1000, math.pi / 2]]))
     np.testing.assert_allclose(back[0], [math.pi / 6, -0.002, -math.pi / 6], atol=1e-9)
     # rotation noise a1 (pi / 6)^2 = 0.0014 rad^2, not a1 (5 pi / 6)^2 = 0.034
-    assert OdometryMotionModel().motion_variances(back[0])[0] == pytest.approx(0.005 * (math.pi / 6) ** 2 + 0.005 * 4e-6)
+    assert OdometryMotionModel().motion_variances(back[0])[0] == pytest.approx(
+        0.005 * (math.pi / 6) ** 2 + 0.005 * 4e-6
+    )
 
 
 def test_odometry_model_step_by_hand():
-    moved = OdometryMotionModel().predict(np.array([[2.0, 0.0, math.pi / 2]]), np.array([math.pi / 4, math.sqrt(2), math.pi / 4]))
+    moved = OdometryMotionModel().predict(
+        np.array([[2.0, 0.0, math.pi / 2]]), np.array([math.pi / 4, math.sqrt(2), math.pi / 4])
+    )
     np.testing.assert_allclose(moved[0, :2], [1.0, 1.0], atol=1e-12)
     assert abs(wrap_angle(moved[0, 2] - math.pi)) < 1e-12
 
@@ -147,15 +156,15 @@ def test_split_odometry_motion_by_hand():
     np.testing.assert_allclose(split_odometry_motion(np.array([0.3, 2.0, -0.1]), 1), [[0.3, 2.0, -0.1]])
     # a straight motion: translation variance a3 (2/4)^2 per piece, 4 a3 / 4 in all, a quarter of a3 2^2
     variances = OdometryMotionModel(alphas=(0.1, 0.2, 0.3, 0.4)).motion_variances(
-        split_odometry_motion(np.array([0.0, 2.0, 0.0]), 4))
+        split_odometry_motion(np.array([0.0, 2.0, 0.0]), 4)
+    )
     assert variances[:, 1].sum() == pytest.approx(0.3 * 4 / 4)
     with pytest.raises(ValueError):
         split_odometry_motion(np.array([0.0, 1.0, 0.0]), 0)
 
 
 @settings(max_examples=40, deadline=None)
-@given(x=coords, y=coords, theta=angles, rot1=angles, trans=st.floats(-2, 2), rot2=angles,
-       pieces=st.integers(1, 50))
+@given(x=coords, y=coords, theta=angles, rot1=angles, trans=st.floats(-2, 2), rot2=angles, pieces=st.integers(1, 50))
 def test_split_odometry_motion_composes_to_the_motion(x, y, theta, rot1, trans, rot2, pieces):
     model = OdometryMotionModel()
     pose = np.array([[x, y, theta]])
@@ -167,8 +176,14 @@ def test_split_odometry_motion_composes_to_the_motion(x, y, theta, rot1, trans, 
 
 
 @settings(max_examples=40, deadline=None)
-@given(x=coords, y=coords, theta=angles, rot1=st.floats(-math.pi, math.pi),
-       trans=st.one_of(st.just(0.0), st.floats(1e-4, 2), st.floats(-2, -1e-4)), rot2=st.floats(-1.5, 1.5))
+@given(
+    x=coords,
+    y=coords,
+    theta=angles,
+    rot1=st.floats(-math.pi, math.pi),
+    trans=st.one_of(st.just(0.0), st.floats(1e-4, 2), st.floats(-2, -1e-4)),
+    rot2=st.floats(-1.5, 1.5),
+)
 def test_odometry_controls_invert_the_motion(x, y, theta, rot1, trans, rot2):
     # (translations under MIN_TRANSLATION = 1e-6 m count as turns on the spot, so none are drawn; forwards or
     # backwards in any direction)
@@ -259,7 +274,9 @@ def test_psd_cholesky_handles_zero_and_singular_covariances():
 
 def test_sample_gaussian_moments():
     cov = np.array([[0.5, 0.2, 0.0], [0.2, 0.3, 0.1], [0.0, 0.1, 0.2]])
-    draws = sample_gaussian(np.tile([1.0, -2.0, 0.5], (50_000, 1)), np.tile(cov, (50_000, 1, 1)), np.random.default_rng(5))
+    draws = sample_gaussian(
+        np.tile([1.0, -2.0, 0.5], (50_000, 1)), np.tile(cov, (50_000, 1, 1)), np.random.default_rng(5)
+    )
     # bounds of 5 standard errors: sqrt(0.5 / 50 000) = 0.0032 for the mean, about 0.003 for the covariances
     np.testing.assert_allclose(draws.mean(axis=0), [1.0, -2.0, 0.5], atol=0.016)
     np.testing.assert_allclose(np.cov(draws.T), cov, atol=0.015)

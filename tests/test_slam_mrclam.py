@@ -1,4 +1,5 @@
 """The UTIAS MRCLAM reader (slam.mrclam) on hand-written samples and, when present, on dataset 7."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -6,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import DATA as SHARED_DATA
 from slam.errors import LogFormatError
 from slam.mrclam import (
     calibrate_ranges,
@@ -15,8 +17,6 @@ from slam.mrclam import (
     read_mrclam,
     read_table,
 )
-
-from conftest import DATA as SHARED_DATA
 
 DATA = SHARED_DATA / "mrclam7"
 
@@ -35,16 +35,35 @@ def _write(folder: Path, name: str, what: str, columns: str, rows: list[tuple]) 
 
 @pytest.fixture()
 def sample(tmp_path: Path) -> Path:
-    _write(tmp_path, "Barcodes.dat", "Barcode", "Subject #    Barcode #",
-           [(1, 5), (2, 14), (6, 63), (7, 81)])
-    _write(tmp_path, "Landmark_Groundtruth.dat", "Landmark Groundtruth", "Subject #    x [m]    y [m]    x std-dev [m]    y std-dev [m]",
-           [(6, 1.0, 2.0, 0.001, 0.001), (7, -1.0, 0.5, 0.001, 0.001)])
-    _write(tmp_path, "Robot1_Odometry.dat", "Odometry", "Time [s]    forward velocity [m/s]    angular velocity[rad/s]",
-           [(100.05, 0.5, 0.0), (100.25, 0.0, 0.2), (100.45, 0.1, -0.1)])
-    _write(tmp_path, "Robot1_Measurement.dat", "Measurement", "Time [s]    Subject #    range [m]    bearing [rad]",
-           [(100.1, 63, 2.0, 0.1), (100.1, 14, 3.0, 0.0), (100.3, 81, 1.5, -0.2), (100.3, 34, 1.0, 0.0)])
-    _write(tmp_path, "Robot1_Groundtruth.dat", "Robot Groundtruth", "Time [s]    x [m]    y [m]    orientation [rad]",
-           [(100.0, 0.5, 0.25, 0.1), (100.5, 0.7, 0.25, 0.15)])
+    _write(tmp_path, "Barcodes.dat", "Barcode", "Subject #    Barcode #", [(1, 5), (2, 14), (6, 63), (7, 81)])
+    _write(
+        tmp_path,
+        "Landmark_Groundtruth.dat",
+        "Landmark Groundtruth",
+        "Subject #    x [m]    y [m]    x std-dev [m]    y std-dev [m]",
+        [(6, 1.0, 2.0, 0.001, 0.001), (7, -1.0, 0.5, 0.001, 0.001)],
+    )
+    _write(
+        tmp_path,
+        "Robot1_Odometry.dat",
+        "Odometry",
+        "Time [s]    forward velocity [m/s]    angular velocity[rad/s]",
+        [(100.05, 0.5, 0.0), (100.25, 0.0, 0.2), (100.45, 0.1, -0.1)],
+    )
+    _write(
+        tmp_path,
+        "Robot1_Measurement.dat",
+        "Measurement",
+        "Time [s]    Subject #    range [m]    bearing [rad]",
+        [(100.1, 63, 2.0, 0.1), (100.1, 14, 3.0, 0.0), (100.3, 81, 1.5, -0.2), (100.3, 34, 1.0, 0.0)],
+    )
+    _write(
+        tmp_path,
+        "Robot1_Groundtruth.dat",
+        "Robot Groundtruth",
+        "Time [s]    x [m]    y [m]    orientation [rad]",
+        [(100.0, 0.5, 0.25, 0.1), (100.5, 0.7, 0.25, 0.15)],
+    )
     return tmp_path
 
 
@@ -69,11 +88,14 @@ def test_sequence_steps_controls_and_measurements_by_hand(sample):
     np.testing.assert_allclose(seq.stamps, [100.0, 100.1, 100.2, 100.3, 100.4])
     # the commands, held from their stamps, cut at every step: zero before 100.05, then 0.5 m/s until 100.25 ...
     expected = [
-        [], [[0.0, 0.0, 0.05], [0.5, 0.0, 0.05]], [[0.5, 0.0, 0.1]], [[0.5, 0.0, 0.05], [0.0, 0.2, 0.05]],
+        [],
+        [[0.0, 0.0, 0.05], [0.5, 0.0, 0.05]],
+        [[0.5, 0.0, 0.1]],
+        [[0.5, 0.0, 0.05], [0.0, 0.2, 0.05]],
         [[0.0, 0.2, 0.1]],
     ]
     for t, rows in enumerate(expected):
-        got = seq.controls[seq.control_ptr[t]:seq.control_ptr[t + 1]]
+        got = seq.controls[seq.control_ptr[t] : seq.control_ptr[t + 1]]
         np.testing.assert_allclose(got.reshape(-1, 3), np.array(rows).reshape(-1, 3), atol=1e-9)
     np.testing.assert_array_equal(np.diff(seq.measurement_ptr), [0, 1, 0, 1, 0])
     np.testing.assert_array_equal(seq.landmark_ids, [6, 7])
@@ -156,8 +178,11 @@ def test_dataset7_counts():
 def test_measurements_with_no_range_or_no_bearing_are_skipped_and_counted(sample):
     """A landmark seen at a range <= 0 m or a bearing beyond a full turn is no measurement: skipped, counted."""
     path = sample / "Robot1_Measurement.dat"
-    path.write_text(path.read_text() + "100.35 \t 63 \t -2.0 \t 0.1\r\n100.4 \t 81 \t 0.0 \t 0.0\r\n"
-                    "100.4 \t 63 \t 1.0 \t 7.0\r\n100.4 \t 81 \t 1.2 \t -6.0\r\n", newline="")
+    path.write_text(
+        path.read_text() + "100.35 \t 63 \t -2.0 \t 0.1\r\n100.4 \t 81 \t 0.0 \t 0.0\r\n"
+        "100.4 \t 63 \t 1.0 \t 7.0\r\n100.4 \t 81 \t 1.2 \t -6.0\r\n",
+        newline="",
+    )
     run = read_mrclam(sample, 1)
     assert run.skipped_invalid == 3
     np.testing.assert_allclose(run.measurements, [[100.1, 2.0, 0.1], [100.3, 1.5, -0.2], [100.4, 1.2, -6.0]])

@@ -1,4 +1,5 @@
 """Trajectory scoring (slam.scoring) against hand-computed values."""
+
 from __future__ import annotations
 
 import math
@@ -23,8 +24,9 @@ def test_score_by_hand():
 
 
 def test_heading_error_wraps():
-    score = score_trajectory(np.array([[0.0, 0.0, math.pi - 0.1]]), np.tile(np.eye(3), (1, 1, 1)),
-                             np.array([[0.0, 0.0, -math.pi + 0.1]]))
+    score = score_trajectory(
+        np.array([[0.0, 0.0, math.pi - 0.1]]), np.tile(np.eye(3), (1, 1, 1)), np.array([[0.0, 0.0, -math.pi + 0.1]])
+    )
     assert score.heading_mae_rad == pytest.approx(0.2)
 
 
@@ -62,7 +64,7 @@ def test_interpolate_poses_turns_the_short_way():
 def test_chi2_quantile():
     from scipy.stats import chi2
 
-    assert CHI2_3_95 == pytest.approx(chi2.ppf(0.95, 3), abs=1e-4)
+    assert pytest.approx(chi2.ppf(0.95, 3), abs=1e-4) == CHI2_3_95
 
 
 def test_fit_gaussian_normalises_the_weights():
@@ -70,7 +72,7 @@ def test_fit_gaussian_normalises_the_weights():
     samples = np.array([[[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]]])
     mean, cov = fit_gaussian(samples, np.array([[1.0, 3.0]]))
     np.testing.assert_allclose(mean[0], [-0.5, 0.0, 0.0], atol=1e-12)
-    np.testing.assert_allclose(cov[0, 0, 0], 0.25 * 1.5 ** 2 + 0.75 * 0.5 ** 2)
+    np.testing.assert_allclose(cov[0, 0, 0], 0.25 * 1.5**2 + 0.75 * 0.5**2)
 
 
 def test_interpolated_yaw_is_wrapped_into_minus_pi_pi():

@@ -1,4 +1,5 @@
 """The simulator: ray casting, grid traversal, truth raster, landmark sensing and reproducibility."""
+
 from __future__ import annotations
 
 import math
@@ -175,11 +176,16 @@ def test_landmark_measurements_respect_range_fov_and_noise():
 
 
 def test_no_noise_run_follows_its_commands_and_odometry():
-    run = simulate_office(seed=4, steps=80, n_beams=3, velocity_model=VelocityMotionModel(alphas=(0.0,) * 6),
-                          odometry_model=OdometryMotionModel(alphas=(0.0,) * 4))
+    run = simulate_office(
+        seed=4,
+        steps=80,
+        n_beams=3,
+        velocity_model=VelocityMotionModel(alphas=(0.0,) * 6),
+        odometry_model=OdometryMotionModel(alphas=(0.0,) * 4),
+    )
     model = VelocityMotionModel()
     for t in range(1, 80):
-        moved = model.predict(run.true_poses[t - 1:t], np.array([*run.commands[t], 0.1]))
+        moved = model.predict(run.true_poses[t - 1 : t], np.array([*run.commands[t], 0.1]))
         np.testing.assert_allclose(moved[0], run.true_poses[t], atol=1e-9)
     np.testing.assert_allclose(odometry_controls(run.odometry), odometry_controls(run.true_poses), atol=1e-9)
 

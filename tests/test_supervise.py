@@ -11,6 +11,7 @@
 Every process is started here or by the launcher started here, and ended by PID in a finalizer (the ``procs``
 fixture of test_pipeline, which also ends every pid the launcher printed, restarted ones included).
 """
+
 from __future__ import annotations
 
 import os
@@ -100,8 +101,12 @@ def fake_children():
         spawned.append(argv)
         return FakeProcess(100 + len(spawned))
 
-    children = Children(get_logger("test"), RestartPolicy(max_restarts=2, window=60.0, first_delay=0.5,
-                                                          max_delay=10.0), clock=clock, spawn=spawn)
+    children = Children(
+        get_logger("test"),
+        RestartPolicy(max_restarts=2, window=60.0, first_delay=0.5, max_delay=10.0),
+        clock=clock,
+        spawn=spawn,
+    )
     return children, clock, spawned
 
 
@@ -111,8 +116,9 @@ def test_a_child_that_ends_is_started_again_with_its_argv_after_the_backoff(fake
     children.start("router", ["router"])
     mapper.process.end(-signal.SIGKILL)
     assert children.tend() is None
-    assert capsys.readouterr().err == ("posegrid run: mapper[1] (pid 101) exited -9 (SIGKILL); restarting in 0.5 s "
-                                       "(restart 1 of 2 within 60 s)\n")
+    assert capsys.readouterr().err == (
+        "posegrid run: mapper[1] (pid 101) exited -9 (SIGKILL); restarting in 0.5 s (restart 1 of 2 within 60 s)\n"
+    )
     clock.now += 0.49
     assert children.tend() is None
     assert len(spawned) == 2 and mapper.process.pid == 101  # not yet
@@ -140,8 +146,10 @@ def test_a_child_failing_past_the_cap_is_returned_with_one_line(fake_children, c
     api.process.end(-signal.SIGKILL)
     assert children.tend() is api
     last = capsys.readouterr().err.splitlines()[-1]
-    assert last == ("posegrid run: error: api failed 3 times; the last time (pid 103) it exited -9 (SIGKILL); it had "
-                    "2 restart(s) in the last 60 s, the most --max-restarts allows: stopping the run")
+    assert last == (
+        "posegrid run: error: api failed 3 times; the last time (pid 103) it exited -9 (SIGKILL); it had "
+        "2 restart(s) in the last 60 s, the most --max-restarts allows: stopping the run"
+    )
 
 
 def test_a_child_that_refuses_its_input_is_not_restarted(fake_children, capsys):
@@ -151,9 +159,11 @@ def test_a_child_that_refuses_its_input_is_not_restarted(fake_children, capsys):
     source = children.start("source", ["source", "--posed", "bad.npz"], expected_to_finish=True)
     source.process.end(2)
     assert children.tend() is source and len(spawned) == 1
-    assert capsys.readouterr().err == ("posegrid run: error: source (pid 101) exited 2: its input or options were "
-                                       "refused (its own error line above says why); not restarting it: stopping "
-                                       "the run\n")
+    assert capsys.readouterr().err == (
+        "posegrid run: error: source (pid 101) exited 2: its input or options were "
+        "refused (its own error line above says why); not restarting it: stopping "
+        "the run\n"
+    )
 
 
 def test_the_source_is_restarted_only_when_it_fails(fake_children, capsys):
@@ -199,14 +209,16 @@ def test_a_child_killed_mid_run_is_restarted_and_every_scan_is_fused(tmp_path, p
     steps = 200
     posed = make_posed(tmp_path / "posed.npz", "samples", steps=steps)
     exported = tmp_path / "run.npz"
-    run = procs([*CLI, "run", "--posed", str(posed), "--shards", "2", "--export", str(exported), "--rate", "2",
-                 "--no-api"])
+    run = procs(
+        [*CLI, "run", "--posed", str(posed), "--shards", "2", "--export", str(exported), "--rate", "2", "--no-api"]
+    )
     pid = _pids(run.wait_for(r"running: (.*)").group(1))[victim]
     run.wait_for(rf"publishing {steps} steps")
     time.sleep(2.0)  # some 40 steps into the 10 s replay
     os.kill(pid, signal.SIGKILL)
-    restart = re.escape(f"posegrid run: {victim} (pid {pid}) exited -9 (SIGKILL); restarting in 0.5 s (restart 1 of "
-                        "5 within 60 s)")
+    restart = re.escape(
+        f"posegrid run: {victim} (pid {pid}) exited -9 (SIGKILL); restarting in 0.5 s (restart 1 of 5 within 60 s)"
+    )
     run.wait_for(restart)
     new_pid = int(run.wait_for(rf"{re.escape(victim)} restarted \(pid (\d+)\)").group(1))
     assert new_pid != pid and not _alive(pid)
@@ -215,8 +227,9 @@ def test_a_child_killed_mid_run_is_restarted_and_every_scan_is_fused(tmp_path, p
     finished = f"posegrid run: replay finished: {steps} scans, each of 2 shard(s) fused {steps}"
     assert finished in run.lines, output
     assert re.search(restart, output).start() < output.index(finished), "killed after the replay had finished"
-    assert re.search(r"stopped: router exited 0, mapper\[0\] exited 0, mapper\[1\] exited 0, source exited 0",
-                     output), output
+    assert re.search(
+        r"stopped: router exited 0, mapper\[0\] exited 0, mapper\[1\] exited 0, source exited 0", output
+    ), output
     assert not _alive(new_pid)
     _assert_same_map(exported, _fused_map(tmp_path, posed))
 
@@ -266,8 +279,25 @@ def test_a_shard_killed_while_starting_is_restarted(tmp_path, procs):  # noqa: F
 @pytest.mark.slow
 def test_a_child_failing_past_the_cap_stops_the_run(tmp_path, procs):  # noqa: F811
     posed = make_posed(tmp_path / "posed.npz", "samples", steps=600)
-    run = procs([*CLI, "run", "--posed", str(posed), "--shards", "2", "--rate", "realtime", "--no-api",
-                 "--max-restarts", "1", "--restart-delay", "0.2", "--restart-window", "600"])
+    run = procs(
+        [
+            *CLI,
+            "run",
+            "--posed",
+            str(posed),
+            "--shards",
+            "2",
+            "--rate",
+            "realtime",
+            "--no-api",
+            "--max-restarts",
+            "1",
+            "--restart-delay",
+            "0.2",
+            "--restart-window",
+            "600",
+        ]
+    )
     pids = _pids(run.wait_for(r"running: (.*)").group(1))
     first = pids["mapper[0]"]
     os.kill(first, signal.SIGKILL)
@@ -275,8 +305,10 @@ def test_a_child_failing_past_the_cap_stops_the_run(tmp_path, procs):  # noqa: F
     second = int(run.wait_for(r"mapper\[0\] restarted \(pid (\d+)\)").group(1))
     os.kill(second, signal.SIGKILL)
     assert run.process.wait(120) == 1, run.output()
-    reason = (f"posegrid run: error: mapper[0] failed 2 times; the last time (pid {second}) it exited -9 (SIGKILL); "
-              "it had 1 restart(s) in the last 600 s, the most --max-restarts allows: stopping the run")
+    reason = (
+        f"posegrid run: error: mapper[0] failed 2 times; the last time (pid {second}) it exited -9 (SIGKILL); "
+        "it had 1 restart(s) in the last 600 s, the most --max-restarts allows: stopping the run"
+    )
     assert reason in run.lines, run.output()
     assert not any("replay finished" in line for line in run.lines)
     assert run.wait_for(r"stopped: (.*)").group(1).startswith("router exited 0, mapper[0] exited -9")

@@ -2,6 +2,7 @@
 
 Skips with a reason where Chromium or Playwright is absent, except in CI (CI=true), where it must run.
 """
+
 from __future__ import annotations
 
 import io
@@ -17,8 +18,15 @@ from api_stack import Stack, wait_until, write_room
 pytestmark = pytest.mark.slow
 
 CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                 "--disable-component-update", "--disable-sync", "--no-first-run"]
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
 #: the viewer's canvas background and the tiles' unobserved colour (mapping.export.UNOBSERVED_RGB)
 BACKGROUND = (180, 190, 205)
 
@@ -67,10 +75,12 @@ def test_viewer_draws_tiles_live_and_switches_to_variance(pipeline, tmp_path):
             page.wait_for_function("window.pgViewer.eventsSeen > 0", timeout=60_000)  # live updates arrive
             page.wait_for_function("window.pgViewer.robots.size > 0", timeout=60_000)
             page.click("#layer-variance")
-            page.wait_for_function("window.pgViewer.drawnLayer === 'variance' && window.pgViewer.tilesDrawn > 0",
-                                   timeout=60_000)
-            status = wait_until(lambda: (text := page.inner_text("#status")).startswith("scans fused") and text,
-                                60, "the status line")
+            page.wait_for_function(
+                "window.pgViewer.drawnLayer === 'variance' && window.pgViewer.tilesDrawn > 0", timeout=60_000
+            )
+            status = wait_until(
+                lambda: (text := page.inner_text("#status")).startswith("scans fused") and text, 60, "the status line"
+            )
             assert "shards alive: 1/1" in status
             shot = tmp_path / "viewer.png"
             page.locator("#view").screenshot(path=str(shot))

@@ -1,4 +1,5 @@
 """Small worlds built in code for tests: a rectangular room seen by a laser, with exact ranges."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -17,14 +18,15 @@ def room_ranges(poses: np.ndarray, angles: np.ndarray, width: float, height: flo
     return np.minimum(tx, ty)
 
 
-def room_posed_scans(steps: int = 20, beams: int = 90, seed: int = 0, gaussian: bool = True,
-                     particles: int = 10, range_max: float = 8.0) -> PosedScans:
+def room_posed_scans(
+    steps: int = 20, beams: int = 90, seed: int = 0, gaussian: bool = True, particles: int = 10, range_max: float = 8.0
+) -> PosedScans:
     """A robot turning in place near the centre of a 4 m x 3 m room, with honest pose distributions."""
     rng = np.random.default_rng(seed)
     angles = np.linspace(-np.pi, np.pi, beams, endpoint=False)
     truth = np.column_stack([np.full(steps, 2.0), np.full(steps, 1.5), np.linspace(0, 1.0, steps)])
     ranges = room_ranges(truth, angles, 4.0, 3.0) + rng.normal(0, 0.01, (steps, beams))
-    cov = np.tile(np.diag([0.02 ** 2, 0.02 ** 2, 0.01 ** 2]), (steps, 1, 1))
+    cov = np.tile(np.diag([0.02**2, 0.02**2, 0.01**2]), (steps, 1, 1))
     mean = truth + rng.normal(0, 1, (steps, 3)) * np.array([0.02, 0.02, 0.01])
     if gaussian:
         poses = PoseSet(mean=mean, cov=cov)
@@ -32,6 +34,13 @@ def room_posed_scans(steps: int = 20, beams: int = 90, seed: int = 0, gaussian: 
         samples = mean[:, None, :] + rng.normal(0, 1, (steps, particles, 3)) * np.array([0.02, 0.02, 0.01])
         weights = rng.random((steps, particles))
         poses = PoseSet(samples=samples, weights=weights / weights.sum(axis=1, keepdims=True))
-    return PosedScans(ranges=ranges.astype(np.float32), angle_min=float(angles[0]),
-                      angle_increment=float(angles[1] - angles[0]), range_min=0.05, range_max=range_max,
-                      stamps=np.arange(steps) * 0.1, sensor_offset=np.zeros(3), poses=poses)
+    return PosedScans(
+        ranges=ranges.astype(np.float32),
+        angle_min=float(angles[0]),
+        angle_increment=float(angles[1] - angles[0]),
+        range_min=0.05,
+        range_max=range_max,
+        stamps=np.arange(steps) * 0.1,
+        sensor_offset=np.zeros(3),
+        poses=poses,
+    )

@@ -10,10 +10,18 @@ only where the scans show structure, fused with the same Monte Carlo rule as the
 
 docs/adaptive.md explains the method and its choices.
 """
+
 from mapping.adaptive.fusion import AdaptiveFuseResult, AdaptiveFusion, AdaptiveParams, level_for_cell_size
 from mapping.adaptive.merging import MergeRules
 from mapping.adaptive.splitting import SplitTest
 from mapping.adaptive.tree import AdaptiveGrid
 
-__all__ = ["AdaptiveFuseResult", "AdaptiveFusion", "AdaptiveGrid", "AdaptiveParams", "MergeRules", "SplitTest",
-           "level_for_cell_size"]
+__all__ = [
+    "AdaptiveFuseResult",
+    "AdaptiveFusion",
+    "AdaptiveGrid",
+    "AdaptiveParams",
+    "MergeRules",
+    "SplitTest",
+    "level_for_cell_size",
+]

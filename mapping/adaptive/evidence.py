@@ -26,6 +26,7 @@ Evidence lives in scratch windows that cover the scan's reach: the finest window
 and per level k the level-k cells over it for the counts, flattened into one array with per-level offsets.
 Records carry stamps, as in the regular kernel, so the scratch is reused without clearing.
 """
+
 from __future__ import annotations
 
 import math
@@ -53,9 +54,41 @@ def _bit_length(v):  # pragma: no cover - compiled
 
 
 @kernel(nogil=True, error_model="numpy")
-def _scan_evidence(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop, r_count, r_peak, a, b, s, g_peak,
-                   free_until, table, u0, du, res, p_miss, p_hit, l_free, lv_x0, lv_y0, lv_w, lv_h, lv_off, rec, cnt,
-                   seen, touched, stamp_base, count_unknowns):  # pragma: no cover - compiled
+def _scan_evidence(
+    laser_x,
+    laser_y,
+    laser_yaw,
+    weights,
+    angles,
+    kind,
+    z,
+    r_stop,
+    r_count,
+    r_peak,
+    a,
+    b,
+    s,
+    g_peak,
+    free_until,
+    table,
+    u0,
+    du,
+    res,
+    p_miss,
+    p_hit,
+    l_free,
+    lv_x0,
+    lv_y0,
+    lv_w,
+    lv_h,
+    lv_off,
+    rec,
+    cnt,
+    seen,
+    touched,
+    stamp_base,
+    count_unknowns,
+):  # pragma: no cover - compiled
     """The pass; returns how many finest cells got log-odds evidence (listed in ``touched``).
 
     Finest window cell (gx, gy) = global (lv_x0[0] + gx, lv_y0[0] + gy) has record rec[gy * lv_w[0] + gx] =
@@ -83,7 +116,8 @@ def _scan_evidence(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop
                 continue
             theta = laser_yaw[j] + angles[k]
             ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y = dda_start(
-                laser_x[j], laser_y[j], math.cos(theta), math.sin(theta), res)
+                laser_x[j], laser_y[j], math.cos(theta), math.sin(theta), res
+            )
             stop = r_stop[k]
             z_hit = z[k] if beam_kind == BEAM_HIT else FAR
             for lvl in range(n_levels):
@@ -103,8 +137,25 @@ def _scan_evidence(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop
                     if not hit_passed and z_hit < r_out:
                         run_hit[0] = True
                         hit_passed = True
-                    y = segment_logodds(r_in, r_out, beam_kind, free_until[k], z[k], r_peak[k], a[k], b[k], s[k],
-                                         g_peak[k], table, u0, du, p_miss, p_hit, l_free, y_peak)
+                    y = segment_logodds(
+                        r_in,
+                        r_out,
+                        beam_kind,
+                        free_until[k],
+                        z[k],
+                        r_peak[k],
+                        a[k],
+                        b[k],
+                        s[k],
+                        g_peak[k],
+                        table,
+                        u0,
+                        du,
+                        p_miss,
+                        p_hit,
+                        l_free,
+                        y_peak,
+                    )
                     c = gy * lv_w[0] + gx
                     if rec[c, 0] < stamp_base:  # first touch in this scan
                         rec[c, 2] = 0.0
@@ -120,8 +171,9 @@ def _scan_evidence(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop
                     top = n_levels
                 else:
                     r_in = r_out
-                    next_ix, next_iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y,
-                                                                  t_delta_x, t_delta_y, tol)
+                    next_ix, next_iy, t_max_x, t_max_y = dda_step(
+                        ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol
+                    )
                     moved = (next_ix ^ ix) | (next_iy ^ iy)
                     top = n_levels if moved < 0 else min(_bit_length(moved), n_levels)
                 # close the runs that end here (levels 0..top-1, finest first): fold each into its parent run,
@@ -162,12 +214,14 @@ def _scan_evidence(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop
             dy = math.sin(theta)
             # ranges from the return; its level-1 cell holds the hit, every cell entered after it is unknown
             ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y = dda_start(
-                laser_x[j] + z[k] * dx, laser_y[j] + z[k] * dy, dx, dy, 2.0 * res)
+                laser_x[j] + z[k] * dx, laser_y[j] + z[k] * dy, dx, dy, 2.0 * res
+            )
             stop = r_count[k] - z[k]
             tol = corner_tol(stop)
             while min(t_max_x, t_max_y) < stop:
-                next_ix, next_iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y,
-                                                              t_delta_x, t_delta_y, tol)
+                next_ix, next_iy, t_max_x, t_max_y = dda_step(
+                    ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol
+                )
                 gx = next_ix - lv_x0[1]
                 gy = next_iy - lv_y0[1]
                 if gx < 0 or gy < 0 or gx >= lv_w[1] or gy >= lv_h[1]:
@@ -175,8 +229,11 @@ def _scan_evidence(laser_x, laser_y, laser_yaw, weights, angles, kind, z, r_stop
                 moved = (next_ix ^ ix) | (next_iy ^ iy)
                 top = n_levels if moved < 0 else min(1 + _bit_length(moved), n_levels)
                 for lvl in range(1, top):
-                    q = (lv_off[lvl] + ((next_iy >> (lvl - 1)) - lv_y0[lvl]) * lv_w[lvl]
-                         + ((next_ix >> (lvl - 1)) - lv_x0[lvl]))
+                    q = (
+                        lv_off[lvl]
+                        + ((next_iy >> (lvl - 1)) - lv_y0[lvl]) * lv_w[lvl]
+                        + ((next_ix >> (lvl - 1)) - lv_x0[lvl])
+                    )
                     if seen[q]:
                         cnt[q, UNKNOWN] += w
                 ix = next_ix
@@ -210,8 +267,12 @@ class ScanEvidence:
         index = self.touched_index
         record = self.rec[index]
         first = record[:, 2]
-        return (index % self.w[0] + self.x0[0], index // self.w[0] + self.y0[0], first,
-                np.maximum(record[:, 3] - first * first, 0.0))
+        return (
+            index % self.w[0] + self.x0[0],
+            index // self.w[0] + self.y0[0],
+            first,
+            np.maximum(record[:, 3] - first * first, 0.0),
+        )
 
     def counts(self, level: np.ndarray, ax: np.ndarray, ay: np.ndarray) -> np.ndarray:
         """(N, 3) weighted hits, misses and unknowns of cells (level, ax, ay); zeros where the scan has none
@@ -229,7 +290,7 @@ class ScanEvidence:
         coarse = inside & (level > 0)
         record = self.cnt[np.where(coarse, self.off[lv] + gy * self.w[lv] + gx, 0)]
         fresh = coarse & (record[:, 0] == self.stamp_base)
-        out[fresh] = record[fresh, HIT:UNKNOWN + 1]
+        out[fresh] = record[fresh, HIT : UNKNOWN + 1]
         return out
 
 
@@ -248,9 +309,19 @@ class EvidenceScanner:
         self._seen = np.zeros(0, np.uint8)
         self._touched = np.zeros(0, np.int64)
 
-    def scan(self, lasers: np.ndarray, weights: np.ndarray, angles: np.ndarray, beams: BeamTable,
-             r_count: np.ndarray, table: np.ndarray, resolution: float, p_miss: float, p_hit: float,
-             l_free: float) -> ScanEvidence:
+    def scan(
+        self,
+        lasers: np.ndarray,
+        weights: np.ndarray,
+        angles: np.ndarray,
+        beams: BeamTable,
+        r_count: np.ndarray,
+        table: np.ndarray,
+        resolution: float,
+        p_miss: float,
+        p_hit: float,
+        l_free: float,
+    ) -> ScanEvidence:
         """Gather the evidence of one scan.
 
         lasers: (M, 3) laser poses (x m, y m, yaw rad) in the map frame; weights: (M,) summing to 1;
@@ -289,9 +360,38 @@ class EvidenceScanner:
         stamp_base = self._stamp_next
         self._stamp_next += len(lasers)
         n = _scan_evidence(
-            lasers[:, 0].copy(), lasers[:, 1].copy(), lasers[:, 2].copy(), weights, angles, beams.kind, beams.z,
-            beams.r_stop, r_count, beams.r_peak, beams.a, beams.b, beams.s, beams.g_peak, beams.free_until, table,
-            TABLE_U0, TABLE_DU,
-            res, p_miss, p_hit, l_free, x0, y0, w, h, off, self._rec, self._cnt, self._seen, self._touched,
-            stamp_base, self.count_unknowns)
+            lasers[:, 0].copy(),
+            lasers[:, 1].copy(),
+            lasers[:, 2].copy(),
+            weights,
+            angles,
+            beams.kind,
+            beams.z,
+            beams.r_stop,
+            r_count,
+            beams.r_peak,
+            beams.a,
+            beams.b,
+            beams.s,
+            beams.g_peak,
+            beams.free_until,
+            table,
+            TABLE_U0,
+            TABLE_DU,
+            res,
+            p_miss,
+            p_hit,
+            l_free,
+            x0,
+            y0,
+            w,
+            h,
+            off,
+            self._rec,
+            self._cnt,
+            self._seen,
+            self._touched,
+            stamp_base,
+            self.count_unknowns,
+        )
         return ScanEvidence(x0, y0, w, h, off, self._rec, self._cnt, self._touched[:n].copy(), stamp_base)

@@ -27,6 +27,7 @@ Per scan, with pose samples x_j and weights w_j (sum 1):
 Unknowns are never stored: they count in the test of the scan that saw them only.
 All loops over samples, beams and cells are compiled or vectorised; Python loops run per level and per tile.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -104,14 +105,17 @@ class AdaptiveFusion:
     ) -> None:
         params = params or AdaptiveParams()
         if not np.isclose(grid.resolution, model.resolution):
-            raise InputError(f"grid resolution {grid.resolution} m differs from the sensor model's "
-                             f"{model.resolution} m")
+            raise InputError(
+                f"grid resolution {grid.resolution} m differs from the sensor model's {model.resolution} m"
+            )
         if not 0 <= range_min < range_max or not np.isfinite(range_max):
             raise InputError(f"need 0 <= range_min < range_max < inf, got {range_min} and {range_max}")
         max_level = grid.max_level if params.max_level is None else params.max_level
         if not 0 <= params.start_level <= max_level <= grid.max_level:
-            raise InputError(f"need 0 <= start_level <= max_level <= {grid.max_level} (a tile), got "
-                             f"{params.start_level} and {max_level}")
+            raise InputError(
+                f"need 0 <= start_level <= max_level <= {grid.max_level} (a tile), got "
+                f"{params.start_level} and {max_level}"
+            )
         if params.unknown_range is not None and not params.unknown_range >= 0:
             raise InputError(f"unknown_range must be >= 0 m, got {params.unknown_range}")
         self.grid = grid
@@ -135,9 +139,18 @@ class AdaptiveFusion:
         beams = beam_table(ranges, self.model, self.range_min, self.range_max)
         if not (beams.kind != BEAM_SKIP).any():
             return AdaptiveFuseResult(0, 0, 0, 0)
-        evidence = self.scanner.scan(laser_poses(samples, self.sensor_offset), weights, self.angles, beams,
-                                     self._count_ranges(beams), self._table, self.model.resolution,
-                                     self.model.p_miss, self.model.p_hit, self.model.l_free)
+        evidence = self.scanner.scan(
+            laser_poses(samples, self.sensor_offset),
+            weights,
+            self.angles,
+            beams,
+            self._count_ranges(beams),
+            self._table,
+            self.model.resolution,
+            self.model.p_miss,
+            self.model.p_hit,
+            self.model.l_free,
+        )
         ix, iy, first, spread = evidence.fine()
         created = self._activate(ix, iy)
         splits = self._split(evidence, np.unique(self.grid.find(ix, iy)))
@@ -150,8 +163,11 @@ class AdaptiveFusion:
         r_count = beams.r_stop.copy()
         if self.params.unknowns:
             hit = beams.kind == BEAM_HIT
-            reach = self.range_max if self.params.unknown_range is None else np.minimum(
-                self.range_max, beams.z[hit] + self.params.unknown_range)
+            reach = (
+                self.range_max
+                if self.params.unknown_range is None
+                else np.minimum(self.range_max, beams.z[hit] + self.params.unknown_range)
+            )
             r_count[hit] = np.maximum(beams.r_stop[hit], reach)
         return r_count
 
@@ -162,8 +178,9 @@ class AdaptiveFusion:
         new = self.grid.find(bx << start, by << start) < 0
         if new.any():
             zeros = np.zeros(int(new.sum()))
-            self.grid.edit(np.zeros(0, np.int64), np.full(zeros.shape, start), bx[new], by[new], zeros, zeros, zeros,
-                           zeros)
+            self.grid.edit(
+                np.zeros(0, np.int64), np.full(zeros.shape, start), bx[new], by[new], zeros, zeros, zeros, zeros
+            )
         return int(new.sum())
 
     def _split(self, evidence: ScanEvidence, index: np.ndarray) -> int:
@@ -184,8 +201,9 @@ class AdaptiveFusion:
             cy = np.concatenate([ay[level == k], pending[1]])
             lo = np.concatenate([grid.logodds[here], pending[2]])
             var = np.concatenate([grid.variance[here], pending[3]])
-            carried = np.stack([np.concatenate([grid.hits[here], pending[4]]),
-                                np.concatenate([grid.misses[here], pending[5]])], axis=1)
+            carried = np.stack(
+                [np.concatenate([grid.hits[here], pending[4]]), np.concatenate([grid.misses[here], pending[5]])], axis=1
+            )
             counts = evidence.counts(np.full(cx.shape, k), cx, cy)
             totals = np.concatenate([carried + counts[:, :2], counts[:, 2:]], axis=1)
             # a cell is tested when the scan sees it; the finest cells are never split
@@ -196,13 +214,20 @@ class AdaptiveFusion:
             grid.misses[here] = totals[old, 1]
             removed.append(here[split[old]])
             keep = ~old & ~split
-            added.append((np.full(int(keep.sum()), k), cx[keep], cy[keep], lo[keep], var[keep], totals[keep, 0],
-                          totals[keep, 1]))
+            added.append(
+                (np.full(int(keep.sum()), k), cx[keep], cy[keep], lo[keep], var[keep], totals[keep, 0], totals[keep, 1])
+            )
             splits += int(split.sum())
             kx, ky = children(cx[split], cy[split])
             shares = self._shares(evidence.counts(np.full(kx.shape, k - 1), kx, ky)[:, :2])
-            pending = (kx, ky, np.repeat(lo[split], 4), np.repeat(var[split], 4),
-                       np.repeat(carried[split, 0], 4) * shares[:, 0], np.repeat(carried[split, 1], 4) * shares[:, 1])
+            pending = (
+                kx,
+                ky,
+                np.repeat(lo[split], 4),
+                np.repeat(var[split], 4),
+                np.repeat(carried[split, 0], 4) * shares[:, 0],
+                np.repeat(carried[split, 1], 4) * shares[:, 1],
+            )
         columns = [np.concatenate(parts) for parts in zip(*added)]
         grid.edit(np.concatenate(removed), *columns)
         return splits

@@ -11,6 +11,7 @@ The merged cell takes the mean of the children's log-odds, so little is lost: si
 agree or are all nearly certain. It also takes the mean of their variances and the sum of their carried hits
 and misses. Merging is checked from the finest level up and repeats as long as merges happen.
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -48,9 +49,15 @@ class MergeRules:
         return agree | (p > self.above).all(axis=1) | (p < self.below).all(axis=1)
 
 
-def merge_siblings(grid: AdaptiveGrid, level: np.ndarray, ax: np.ndarray, ay: np.ndarray, rules: MergeRules,
-                   max_level: int,
-                   undone: Callable[[int, np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None) -> int:
+def merge_siblings(
+    grid: AdaptiveGrid,
+    level: np.ndarray,
+    ax: np.ndarray,
+    ay: np.ndarray,
+    rules: MergeRules,
+    max_level: int,
+    undone: Callable[[int, np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None,
+) -> int:
     """Merge the active siblings of cells (level, ax, ay) by ``rules``, recursively up to ``max_level``.
 
     A group of four is merged when all four are active cells of one level and a rule holds, unless
@@ -71,9 +78,16 @@ def merge_siblings(grid: AdaptiveGrid, level: np.ndarray, ax: np.ndarray, ay: np
             merge[merge] = ~undone(k + 1, px[merge], py[merge], carried[merge])
         merged_x, merged_y = px[merge], py[merge]
         if merge.any():
-            grid.edit(kids[merge].ravel(), np.full(merged_x.shape, k + 1), merged_x, merged_y,
-                      grid.logodds[kids[merge]].astype(np.float64).mean(axis=1),
-                      grid.variance[kids[merge]].astype(np.float64).mean(axis=1), carried[merge, 0], carried[merge, 1])
+            grid.edit(
+                kids[merge].ravel(),
+                np.full(merged_x.shape, k + 1),
+                merged_x,
+                merged_y,
+                grid.logodds[kids[merge]].astype(np.float64).mean(axis=1),
+                grid.variance[kids[merge]].astype(np.float64).mean(axis=1),
+                carried[merge, 0],
+                carried[merge, 1],
+            )
             merges += int(merge.sum())
         at_next = level == k + 1
         frontier_x = np.concatenate([ax[at_next], merged_x])

@@ -23,6 +23,7 @@ every family's X^2 exceeds the chi-square quantile. Under any member of a family
 asymptotically chi-square distributed and the minimum is smaller, so the test rejects a homogeneous cell with
 probability at most alpha.
 """
+
 from __future__ import annotations
 
 import math
@@ -176,8 +177,11 @@ class SplitTest:
         f = np.full(level.shape, self.floor)
         inf = np.full(level.shape, np.inf)
         if self.unknowns:
-            return [(MISS, np.stack([noise, inf, f], axis=1)), (HIT, np.stack([inf, noise, noise], axis=1)),
-                    (UNKNOWN, np.stack([noise, f, inf], axis=1))]
+            return [
+                (MISS, np.stack([noise, inf, f], axis=1)),
+                (HIT, np.stack([inf, noise, noise], axis=1)),
+                (UNKNOWN, np.stack([noise, f, inf], axis=1)),
+            ]
         return [(MISS, np.stack([noise, inf], axis=1)), (HIT, np.stack([inf, noise], axis=1))]
 
     def statistic(self, level: np.ndarray, counts: np.ndarray) -> np.ndarray:

@@ -19,6 +19,7 @@ active cell has been observed; a finest cell that no active cell covers was neve
 Per active cell: ``level`` (int8), ``logodds`` and ``variance`` (float32, as in the regular grid) and the
 weighted ``hits`` and ``misses`` counts (float32) that the split test carries from scan to scan.
 """
+
 from __future__ import annotations
 
 import math
@@ -29,8 +30,13 @@ from mapping.errors import InputError
 from mapping.grid import TILE_SIZE, probability_of
 
 #: per-cell columns besides the key, with their dtypes
-CELL_COLUMNS = (("level", np.int8), ("logodds", np.float32), ("variance", np.float32),
-                ("hits", np.float32), ("misses", np.float32))
+CELL_COLUMNS = (
+    ("level", np.int8),
+    ("logodds", np.float32),
+    ("variance", np.float32),
+    ("hits", np.float32),
+    ("misses", np.float32),
+)
 
 #: tiles of up to 2^15 finest cells a side keep the local Morton code within 30 bits
 MAX_TILE_SHIFT = 15
@@ -126,8 +132,13 @@ class AdaptiveGrid:
     @property
     def nbytes(self) -> int:
         """Bytes held by the active cells' arrays (key and columns) and the tile tables."""
-        return int(self.key.nbytes + sum(getattr(self, name).nbytes for name, _ in CELL_COLUMNS)
-                   + self._tile_xy.nbytes + self._tile_code.nbytes + self._tile_slot.nbytes)
+        return int(
+            self.key.nbytes
+            + sum(getattr(self, name).nbytes for name, _ in CELL_COLUMNS)
+            + self._tile_xy.nbytes
+            + self._tile_code.nbytes
+            + self._tile_slot.nbytes
+        )
 
     # ----------------------------------------------------------------------------------- keys
     def _slots(self, tx: np.ndarray, ty: np.ndarray, create: bool) -> np.ndarray:
@@ -146,8 +157,9 @@ class AdaptiveGrid:
             codes = np.concatenate([self._tile_code, new])
             order = np.argsort(codes)
             self._tile_code = codes[order]
-            self._tile_slot = np.concatenate([self._tile_slot, np.arange(len(self._tile_xy) - new.size,
-                                                                         len(self._tile_xy))])[order]
+            self._tile_slot = np.concatenate(
+                [self._tile_slot, np.arange(len(self._tile_xy) - new.size, len(self._tile_xy))]
+            )[order]
             return self._slots(tx, ty, create=False)
         return np.where(found, self._tile_slot[where] if self._tile_code.size else -1, -1)
 
@@ -216,8 +228,17 @@ class AdaptiveGrid:
         return np.unique(np.concatenate([inside, covering[covering >= 0]]))
 
     # ----------------------------------------------------------------------------------- edits
-    def edit(self, remove: np.ndarray, level: np.ndarray, ax: np.ndarray, ay: np.ndarray,
-             logodds: np.ndarray, variance: np.ndarray, hits: np.ndarray, misses: np.ndarray) -> None:
+    def edit(
+        self,
+        remove: np.ndarray,
+        level: np.ndarray,
+        ax: np.ndarray,
+        ay: np.ndarray,
+        logodds: np.ndarray,
+        variance: np.ndarray,
+        hits: np.ndarray,
+        misses: np.ndarray,
+    ) -> None:
         """Remove the active cells at indices ``remove`` and add cells (level, ax, ay) with the given values.
 
         The caller keeps the partition: the added cells must cover exactly what was removed, plus cells
@@ -250,9 +271,15 @@ class AdaptiveGrid:
             raise InputError(f"raster resolution must be > 0 m, got {resolution}")
         if self.key.size == 0:
             empty = np.zeros((0, 0), np.float32)
-            return {"logodds": empty, "probability": empty.copy(), "observed": np.zeros((0, 0), bool),
-                    "variance": empty.copy(), "level": np.zeros((0, 0), np.int8), "origin": np.zeros(2),
-                    "resolution": np.float64(out_res)}
+            return {
+                "logodds": empty,
+                "probability": empty.copy(),
+                "observed": np.zeros((0, 0), bool),
+                "variance": empty.copy(),
+                "level": np.zeros((0, 0), np.int8),
+                "origin": np.zeros(2),
+                "resolution": np.float64(out_res),
+            }
         level, ax, ay = self.cells()
         x0, y0 = (ax << level).min(), (ay << level).min()
         x1, y1 = ((ax + 1) << level).max(), ((ay + 1) << level).max()

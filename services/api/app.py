@@ -7,6 +7,7 @@ Handlers that ask the shards over Zenoh are plain functions (FastAPI runs them i
 handlers are coroutines that answer from the cache at once and hand a miss to worker threads of their own
 (services.api.routes.tiles). The robot routes read only what the API holds and are coroutines: they never wait.
 """
+
 from __future__ import annotations
 
 import asyncio
@@ -49,8 +50,10 @@ exports is taken: retry after the Retry-After header's seconds).
 
 async def invalid(request: Request, exc: RequestValidationError) -> JSONResponse:
     """422 with one sentence per invalid parameter: where it is, its name and what is wrong with it."""
-    parts = [f"{error['loc'][0]} parameter {'.'.join(map(str, error['loc'][1:]))!r}: {error['msg']}"
-             for error in exc.errors()]
+    parts = [
+        f"{error['loc'][0]} parameter {'.'.join(map(str, error['loc'][1:]))!r}: {error['msg']}"
+        for error in exc.errors()
+    ]
     return JSONResponse({"detail": "; ".join(parts)}, status_code=422)
 
 
@@ -74,8 +77,13 @@ def create_app(backend: Backend, limits: HttpLimits | None = None) -> FastAPI:
         backend.hub.close()
         flusher.cancel()
 
-    app = FastAPI(title="posegrid API", version="1", description=DESCRIPTION, lifespan=lifespan, exception_handlers={
-        RequestValidationError: invalid, TileUnavailable: unavailable, IncompleteMap: unavailable})
+    app = FastAPI(
+        title="posegrid API",
+        version="1",
+        description=DESCRIPTION,
+        lifespan=lifespan,
+        exception_handlers={RequestValidationError: invalid, TileUnavailable: unavailable, IncompleteMap: unavailable},
+    )
     app.state.api = Api(backend, limits or HttpLimits())
     for router in ROUTERS:
         app.include_router(router)

@@ -2,6 +2,7 @@
 tracker, the event hub and the link to the mapper shards. The routes receive it as a FastAPI dependency
 (services.api.routes.common), so they can be built over any object with these attributes.
 """
+
 from __future__ import annotations
 
 import secrets
@@ -30,9 +31,16 @@ class Backend:
     started: float
 
     @classmethod
-    def open(cls, session: zenoh.Session, cache_bytes: int, query_timeout: float, max_maps: int = MAX_MAPS,
-             max_robots: int = MAX_ROBOTS, stray_ttl: float = STRAY_TTL,
-             verify_window: float = VERIFY_WINDOW) -> Backend:
+    def open(
+        cls,
+        session: zenoh.Session,
+        cache_bytes: int,
+        query_timeout: float,
+        max_maps: int = MAX_MAPS,
+        max_robots: int = MAX_ROBOTS,
+        stray_ttl: float = STRAY_TTL,
+        verify_window: float = VERIFY_WINDOW,
+    ) -> Backend:
         """Wire the parts on an open Zenoh session and start listening (limits: services.api.registry,
         services.api.robots, services.api.mappers; cache_bytes in bytes; query_timeout, stray_ttl and
         verify_window in s)."""

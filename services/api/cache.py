@@ -1,4 +1,5 @@
 """A thread-safe least-recently-used cache bounded by the bytes its values hold."""
+
 from __future__ import annotations
 
 import threading

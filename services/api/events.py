@@ -13,6 +13,7 @@ robot's pose at most once (the latest). Events (``event:`` name, ``data:`` one J
 
 A comment line is sent every :data:`KEEPALIVE` seconds of silence, so proxies keep the connection open.
 """
+
 from __future__ import annotations
 
 import asyncio
@@ -35,8 +36,15 @@ def sse(event: str, data: dict) -> str:
 
 def pose_event(summary: PoseSummary) -> dict:
     samples, weights = reduce_samples(summary.samples, summary.weights, EVENT_SAMPLES)
-    return {"robot": summary.robot, "seq": summary.seq, "stamp": summary.stamp, "mean": summary.mean.tolist(),
-            "covariance": summary.cov.tolist(), "samples": samples.round(4).tolist(), "weights": weights.tolist()}
+    return {
+        "robot": summary.robot,
+        "seq": summary.seq,
+        "stamp": summary.stamp,
+        "mean": summary.mean.tolist(),
+        "covariance": summary.cov.tolist(),
+        "samples": samples.round(4).tolist(),
+        "weights": weights.tolist(),
+    }
 
 
 class EventHub:
@@ -81,8 +89,10 @@ class EventHub:
             poses, self._poses = self._poses, {}
         if not self._clients:
             return
-        events = [sse("tiles", {"map": name, "tiles": [[tx, ty, v] for (tx, ty), v in sorted(changed.items())]})
-                  for name, changed in sorted(tiles.items())]
+        events = [
+            sse("tiles", {"map": name, "tiles": [[tx, ty, v] for (tx, ty), v in sorted(changed.items())]})
+            for name, changed in sorted(tiles.items())
+        ]
         events += [sse("pose", pose_event(summary)) for _, summary in sorted(poses.items())]
         if not events:
             return

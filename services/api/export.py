@@ -6,6 +6,7 @@ API's --max-export-cells limits. A window (x_min, y_min, x_max, y_max, m, map fr
 overlap it and, within them, the cells that overlap it, so the export of a window holds the observed cells
 inside it, cropped to them.
 """
+
 from __future__ import annotations
 
 import math
@@ -31,8 +32,12 @@ class Window:
     @classmethod
     def of(cls, x_min: float, y_min: float, x_max: float, y_max: float, resolution: float) -> Window:
         """The cells of ``resolution`` m that overlap [x_min, x_max) x [y_min, y_max) m."""
-        return cls(math.floor(x_min / resolution), math.floor(y_min / resolution),
-                   math.ceil(x_max / resolution), math.ceil(y_max / resolution))
+        return cls(
+            math.floor(x_min / resolution),
+            math.floor(y_min / resolution),
+            math.ceil(x_max / resolution),
+            math.ceil(y_max / resolution),
+        )
 
     def overlaps(self, tile: TileKey, tile_size: int) -> bool:
         """Whether level-0 tile ``tile`` holds a cell of the window."""

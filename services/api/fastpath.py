@@ -8,6 +8,7 @@ encoded tile is cached at the tile's current version. Everything else, including
 fail, goes on to FastAPI, which validates it, answers it and fills the cache; both build the response with
 :func:`tile_response`, so a client cannot tell which one answered.
 """
+
 from __future__ import annotations
 
 import math
@@ -20,7 +21,8 @@ from services.api.tiles import Rendered, TileService, render_key
 # ASCII digits only ([0-9], not \d, which also matches Arabic-Indic and fullwidth digits that int() and float()
 # take but FastAPI refuses): every request the fast path takes, FastAPI would answer alike
 TILE_PATH = re.compile(
-    r"^/maps/([A-Za-z0-9][A-Za-z0-9_.-]{0,63})/tiles/([0-9]{1,2})/(-?[0-9]{1,12})/(-?[0-9]{1,12})\.(png|npz)$")
+    r"^/maps/([A-Za-z0-9][A-Za-z0-9_.-]{0,63})/tiles/([0-9]{1,2})/(-?[0-9]{1,12})/(-?[0-9]{1,12})\.(png|npz)$"
+)
 #: the plain decimal numbers the fast path reads as ``vmax`` (others go to FastAPI, which decides)
 PLAIN_NUMBER = re.compile(r"^([0-9]+(\.[0-9]*)?|\.[0-9]+)([eE][+-]?[0-9]{1,3})?$")
 

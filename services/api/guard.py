@@ -16,6 +16,7 @@ Anything else is 401 with ``WWW-Authenticate: Bearer``. Tokens are compared with
 Starlette's TrustedHostMiddleware does the Host part, but answers in plain text; this API answers every error
 as ``{"detail": ...}``, so the check is written here.
 """
+
 from __future__ import annotations
 
 import ipaddress
@@ -70,8 +71,11 @@ def host_of(header: str | None) -> str | None:
 
 def _problem(status: int, detail: str, headers: list[tuple[bytes, bytes]] = ()) -> tuple[int, list, bytes]:
     body = json.dumps({"detail": detail}).encode()
-    return status, [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
-                    *headers], body
+    return (
+        status,
+        [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()), *headers],
+        body,
+    )
 
 
 class Guard:
@@ -92,8 +96,11 @@ class Guard:
         if host is None:
             return _problem(400, f"the Host header {text[:100]!r} is malformed")
         if "*" not in self.hosts and host not in self.hosts:
-            return _problem(400, f"this API does not answer to the Host {text[:100]!r}; start it with --allowed-host "
-                            f"{host} to accept that name")
+            return _problem(
+                400,
+                f"this API does not answer to the Host {text[:100]!r}; start it with --allowed-host "
+                f"{host} to accept that name",
+            )
         return None
 
     def _matches(self, given: str | None) -> bool:
@@ -109,13 +116,22 @@ class Guard:
         if self._matches(in_query) and scope["path"] == "/" and scope["method"] in ("GET", "HEAD"):
             rest = urlencode([(key, value) for key, value in query if key != "token"])
             location = "/" + (f"?{rest}" if rest else "")
-            return 303, [(b"location", location.encode("latin-1")), (b"content-length", b"0"), (b"set-cookie", (
-                f"{COOKIE}={in_query}; Path=/; HttpOnly; SameSite=Lax").encode())], b""
+            return (
+                303,
+                [
+                    (b"location", location.encode("latin-1")),
+                    (b"content-length", b"0"),
+                    (b"set-cookie", (f"{COOKIE}={in_query}; Path=/; HttpOnly; SameSite=Lax").encode()),
+                ],
+                b"",
+            )
         if self._matches(bearer) or self._matches(in_query) or self._matches(cookie):
             return None
-        detail = ("this API needs its access token: send 'Authorization: Bearer TOKEN', or open the viewer as "
-                  "/?token=TOKEN" if bearer is None and in_query is None and cookie is None
-                  else "the access token is wrong")
+        detail = (
+            "this API needs its access token: send 'Authorization: Bearer TOKEN', or open the viewer as /?token=TOKEN"
+            if bearer is None and in_query is None and cookie is None
+            else "the access token is wrong"
+        )
         return _problem(401, detail, [(b"www-authenticate", b'Bearer realm="posegrid"')])
 
     async def __call__(self, scope, receive, send) -> None:

@@ -10,6 +10,7 @@ waits instead for a send to raise OSError, which the stream's next send then doe
 ended the stream before the cancellation and left its generator, and an event-hub client, to the garbage
 collector: an audit counted up to 9 such clients after 100 HEADs.)
 """
+
 from __future__ import annotations
 
 from starlette.requests import ClientDisconnect

@@ -4,6 +4,7 @@ Every limit is a `posegrid api` option (docs/api.md): maps and robots tracked (a
 names must not grow the API's memory without bound), concurrent event streams and exports (each holds memory
 or a thread while it runs), and the cells of one export's raster (allocated whole while it is built).
 """
+
 from __future__ import annotations
 
 import threading

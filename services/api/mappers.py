@@ -19,6 +19,7 @@ shard answers), all tiles of a map (pg/map/<map>/tile/0/*/*), the shards' stats,
 Whatever arrives is decoded and validated (schemas.messages); a message that does not decode, or whose
 contents contradict its key, is dropped and counted by key in :attr:`MapperLink.rejects`, never trusted.
 """
+
 from __future__ import annotations
 
 import threading
@@ -55,8 +56,15 @@ def _parse_int(text: str) -> int | None:
 class MapperLink:
     """Subscriptions and queries on an open Zenoh session. Call :meth:`start`, later :meth:`close`."""
 
-    def __init__(self, session: zenoh.Session, registry: MapRegistry, robots: RobotTracker, hub: EventHub,
-                 query_timeout: float = 10.0, verify_window: float = VERIFY_WINDOW) -> None:
+    def __init__(
+        self,
+        session: zenoh.Session,
+        registry: MapRegistry,
+        robots: RobotTracker,
+        hub: EventHub,
+        query_timeout: float = 10.0,
+        verify_window: float = VERIFY_WINDOW,
+    ) -> None:
         self.session = session
         self.registry = registry
         self.robots = robots
@@ -120,17 +128,23 @@ class MapperLink:
         except zenoh.ZError as exc:  # the session is closing
             self.log.debug("verifying shard tokens: %s", exc)
         for name, shard in self.registry.expire_pending(self.verify_window):
-            self.rejects.count(keys.shard_alive_key(name, shard), "unverified", f"shard {shard} of map {name!r} "
-                               f"did not answer its stats query within {self.verify_window:g} s of its liveliness "
-                               "token, which is ignored")
+            self.rejects.count(
+                keys.shard_alive_key(name, shard),
+                "unverified",
+                f"shard {shard} of map {name!r} "
+                f"did not answer its stats query within {self.verify_window:g} s of its liveliness "
+                "token, which is ignored",
+            )
 
     def _guard(self, callback):
         """``callback`` with any exception counted as a rejected message instead of escaping into Zenoh."""
+
         def guarded(sample: zenoh.Sample) -> None:
             try:
                 callback(sample)
             except Exception as exc:  # noqa: BLE001 - a bad message must never stop the subscription
                 self.rejects.count(str(sample.key_expr), "error", f"{type(exc).__name__}: {exc}")
+
         return guarded
 
     def _on_shard_token(self, sample: zenoh.Sample) -> None:
@@ -164,8 +178,9 @@ class MapperLink:
             self.rejects.count(key, "capacity", f"{MAX_PROCESSES} process liveliness tokens are held already")
         elif not self.robots.vouch(robot):
             self.refused.add("robots")
-            self.rejects.count(key, "capacity", f"{self.robots.max_robots} robots are vouched for already "
-                               "(--max-robots)")
+            self.rejects.count(
+                key, "capacity", f"{self.robots.max_robots} robots are vouched for already (--max-robots)"
+            )
         else:
             self.processes.add(name)
 
@@ -176,9 +191,11 @@ class MapperLink:
         except MessageError as exc:
             self.rejects.count(key, exc.reason, str(exc))
             return
-        problem = (self._tile_problem(key, update)
-                   or self.registry.check_sender(update.map, update.shard, (update.tx, update.ty))
-                   or self.registry.check_geometry(update.map, update.resolution, update.tile_size))
+        problem = (
+            self._tile_problem(key, update)
+            or self.registry.check_sender(update.map, update.shard, (update.tx, update.ty))
+            or self.registry.check_geometry(update.map, update.resolution, update.tile_size)
+        )
         if problem:
             self.rejects.count(key, "key", problem)
             return
@@ -196,8 +213,9 @@ class MapperLink:
             return
         parsed = keys.parse_robot_key(key, {keys.POSE})
         if parsed is None or message.robot != parsed[0]:
-            self.rejects.count(key if parsed else keys.INVALID_KEY, "robot",
-                               f"a pose of robot {message.robot!r} arrived on {key}")
+            self.rejects.count(
+                key if parsed else keys.INVALID_KEY, "robot", f"a pose of robot {message.robot!r} arrived on {key}"
+            )
             return
         summary = self.robots.update(message)
         if summary is None:
@@ -218,10 +236,13 @@ class MapperLink:
     def _get(self, selector: str, timeout: float | None = None):
         """Send a query to every matching queryable; returns the reply handler (iterating it waits, at most
         ``timeout`` s, by default the query timeout)."""
-        return self.session.get(selector, target=zenoh.QueryTarget.ALL,
-                                consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE),
-                                congestion_control=zenoh.CongestionControl.BLOCK,
-                                timeout=self.query_timeout if timeout is None else timeout)
+        return self.session.get(
+            selector,
+            target=zenoh.QueryTarget.ALL,
+            consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+            timeout=self.query_timeout if timeout is None else timeout,
+        )
 
     def _query(self, selector: str, timeout: float | None = None) -> list[tuple[str, bytes]]:
         return list(self._replies(selector, self._get(selector, timeout)))
@@ -282,8 +303,12 @@ class MapperLink:
         tiles = self._whole_tiles(map_name, self._query(keys.tile_key(map_name, 0, "*", "*")))
         shards = max((s.shards for s in stats.values()), default=0)
         sent = Counter(tile.shard for tile in tiles)
-        complete = (bool(stats) and sorted(stats) == list(range(shards))
-                    and all(sent[shard] == s.tiles_owned for shard, s in stats.items()) and set(sent) <= set(stats))
+        complete = (
+            bool(stats)
+            and sorted(stats) == list(range(shards))
+            and all(sent[shard] == s.tiles_owned for shard, s in stats.items())
+            and set(sent) <= set(stats)
+        )
         return tiles, complete
 
     def stats(self, map_name: str) -> dict[int, ShardStats]:
@@ -320,5 +345,6 @@ class MapperLink:
             return reader.assemble(shards, resolution, timeout=self.query_timeout)
         finally:
             for _ in range(reader.rejected):
-                self.rejects.count(keys.tile_key(map_name, 0, "*", "*"), "export", "a reply to the export query "
-                                   "did not decode")
+                self.rejects.count(
+                    keys.tile_key(map_name, 0, "*", "*"), "export", "a reply to the export query did not decode"
+                )

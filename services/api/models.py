@@ -2,6 +2,7 @@
 
 Units: metres, radians, seconds; poses are (x, y, yaw) of the robot in the map frame.
 """
+
 from __future__ import annotations
 
 from typing import Literal
@@ -38,8 +39,9 @@ class CellCounts(BaseModel):
 
     per_tile: int = Field(description="cells per tile (tile_size squared)")
     total: int = Field(description="cells in the tiles that exist")
-    observed: int | None = Field(description="cells any scan has touched (null while a shard that holds tiles of "
-                                 "the map does not answer)")
+    observed: int | None = Field(
+        description="cells any scan has touched (null while a shard that holds tiles of the map does not answer)"
+    )
 
 
 class MapSummary(BaseModel):
@@ -48,20 +50,27 @@ class MapSummary(BaseModel):
     name: str
     resolution: float | None = Field(description="side of a level-0 cell, m (null until the first tile exists)")
     tile_size: int | None = Field(description="cells per tile side (null until the first tile exists)")
-    shards: int | None = Field(description="number of shards the map is split among, as they report it "
-                               "(null until one has answered a stats query)")
+    shards: int | None = Field(
+        description="number of shards the map is split among, as they report it "
+        "(null until one has answered a stats query)"
+    )
     shards_alive: list[int] = Field(description="shards whose liveliness token is up")
     tiles: int = Field(description="level-0 tiles that exist")
     tile_bounds: TileBounds | None = Field(description="level-0 tiles spanned (null without tiles)")
     extent: Extent | None = Field(description="area the level-0 tiles span, m (tile aligned; null without tiles)")
-    observed_extent: Extent | None = Field(description="area of the observed cells, m (null when none, or while a "
-                                           "shard that holds tiles of the map does not answer)")
-    max_zoom: int | None = Field(description="coarsest zoom level served: z ranges over 0..max_zoom "
-                                 "(null without tiles)")
+    observed_extent: Extent | None = Field(
+        description="area of the observed cells, m (null when none, or while a "
+        "shard that holds tiles of the map does not answer)"
+    )
+    max_zoom: int | None = Field(
+        description="coarsest zoom level served: z ranges over 0..max_zoom (null without tiles)"
+    )
     cells: CellCounts
-    variance_scale: float | None = Field(description="variance (log-odds squared) at the top of the variance "
-                                         "colour ramp when a tile request gives no vmax (null while a shard that "
-                                         "holds tiles of the map does not answer)")
+    variance_scale: float | None = Field(
+        description="variance (log-odds squared) at the top of the variance "
+        "colour ramp when a tile request gives no vmax (null while a shard that "
+        "holds tiles of the map does not answer)"
+    )
 
 
 class ShardStatus(BaseModel):
@@ -72,26 +81,35 @@ class ShardStatus(BaseModel):
     answered: bool = Field(description="it answered the stats query (the fields below are null when not)")
     scans_fused: dict[str, int] | None = Field(default=None, description="scans fused, by robot")
     scans_discarded: dict[str, int] | None = Field(default=None, description="scans given up on, by robot")
-    scans_announced: dict[str, int] | None = Field(default=None,
-                                                   description="scans the source's end-of-stream announced, by robot")
+    scans_announced: dict[str, int] | None = Field(
+        default=None, description="scans the source's end-of-stream announced, by robot"
+    )
     tiles_owned: int | None = Field(default=None, description="level-0 tiles the shard holds")
     cells_updated: int | None = Field(default=None, description="cell updates fused (a cell counts once per scan)")
     tile_updates: int | None = Field(default=None, description="tile updates published")
     join_pending: int | None = Field(default=None, description="scans or poses waiting for their partner")
     uptime_s: float | None = Field(default=None, description="s")
     received: dict[str, int] | None = Field(default=None, description="messages received, by key")
-    resent: dict[str, int] | None = Field(default=None, description="messages of seqs the shard has fused, the same "
-                                          "as the ones fused (a restarted SLAM node or source catching up), by key")
+    resent: dict[str, int] | None = Field(
+        default=None,
+        description="messages of seqs the shard has fused, the same "
+        "as the ones fused (a restarted SLAM node or source catching up), by key",
+    )
     rejected: dict[str, int] | None = Field(default=None, description="messages dropped as malformed, by key")
-    overflow: dict[str, int] | None = Field(default=None,
-                                            description="messages dropped because a buffer was full, by buffer")
-    lag_scans: dict[str, int] | None = Field(default=None,
+    overflow: dict[str, int] | None = Field(
+        default=None, description="messages dropped because a buffer was full, by buffer"
+    )
+    lag_scans: dict[str, int] | None = Field(
+        default=None,
         description="by robot: the latest pose seq the API has seen + 1, minus the scans the shard fused or gave "
-        "up on (how far the shard is behind SLAM)")
-    tile_updates_received: int = Field(description="tile updates of this shard the API has received (equal to "
-                                       "tile_updates when none is in flight)")
-    last_tile_update_age_s: float | None = Field(default=None,
-        description="s since the API received this shard's last tile update (null: none yet)")
+        "up on (how far the shard is behind SLAM)",
+    )
+    tile_updates_received: int = Field(
+        description="tile updates of this shard the API has received (equal to tile_updates when none is in flight)"
+    )
+    last_tile_update_age_s: float | None = Field(
+        default=None, description="s since the API received this shard's last tile update (null: none yet)"
+    )
 
 
 class MapStats(BaseModel):
@@ -101,14 +119,20 @@ class MapStats(BaseModel):
     shards: int | None = Field(description="number of shards (null when none answered)")
     shards_alive: list[int]
     scans_fused: dict[str, int] = Field(description="by robot: scans fused by every answering shard (the minimum)")
-    scans_discarded: dict[str, int] = Field(description="by robot: the most scans a shard gave up on (lost in "
-                                            "transit, no pose, could not be fused; see its rejected keys)")
+    scans_discarded: dict[str, int] = Field(
+        description="by robot: the most scans a shard gave up on (lost in "
+        "transit, no pose, could not be fused; see its rejected keys)"
+    )
     lag_scans: dict[str, int] = Field(description="by robot: the largest lag over the shards (see ShardStatus)")
-    rejected: dict[str, int] = Field(description="messages dropped as malformed, by key: the shards' counts "
-                                     "plus the API's own")
-    refused: dict[str, int] = Field(default_factory=dict, description="by kind, summed over the shards: what they "
-                                    "refused or gave up (ShardStats.refused: key, ahead, size, work, bound, extent, "
-                                    "robots, malformed, ...)")
+    rejected: dict[str, int] = Field(
+        description="messages dropped as malformed, by key: the shards' counts plus the API's own"
+    )
+    refused: dict[str, int] = Field(
+        default_factory=dict,
+        description="by kind, summed over the shards: what they "
+        "refused or gave up (ShardStats.refused: key, ahead, size, work, bound, extent, "
+        "robots, malformed, ...)",
+    )
     per_shard: list[ShardStatus]
 
 
@@ -118,29 +142,36 @@ class MapHealth(BaseModel):
     scans_fused: dict[str, int] = Field(description="by robot, the minimum over the shards")
     scans_discarded: dict[str, int] = Field(description="by robot, the maximum over the shards: scans the map lacks")
     lag_scans: dict[str, int] = Field(description="by robot, the maximum over the shards")
-    distrust: list[str] = Field(default_factory=list, description="one sentence per kind of message the shards "
-                                "refused that says a peer sends what it should not (forged or stray seqs, keys that "
-                                "are no posegrid key, messages past a limit): the map holds none of them, but "
-                                "someone on the network is misbehaving")
+    distrust: list[str] = Field(
+        default_factory=list,
+        description="one sentence per kind of message the shards "
+        "refused that says a peer sends what it should not (forged or stray seqs, keys that "
+        "are no posegrid key, messages past a limit): the map holds none of them, but "
+        "someone on the network is misbehaving",
+    )
 
 
 class Health(BaseModel):
     """The whole system at a glance."""
 
     status: Literal["ok", "degraded"] = Field(
-        description="ok: every shard of every map is alive and answers; degraded otherwise")
+        description="ok: every shard of every map is alive and answers; degraded otherwise"
+    )
     uptime_s: float = Field(description="s since the API started")
     maps: dict[str, MapHealth]
     robots: list[str] = Field(description="robots whose poses the API has received")
     processes_alive: list[str] = Field(description="robot processes with a liveliness token, '<robot>/<process>'")
-    rejected: dict[str, int] = Field(description="messages the API itself dropped (malformed, unproved shard "
-                                     "tokens, beyond a limit), by key")
+    rejected: dict[str, int] = Field(
+        description="messages the API itself dropped (malformed, unproved shard tokens, beyond a limit), by key"
+    )
     event_clients: int = Field(description="open /events streams")
     exports_running: int = Field(description="exports being built now")
-    refused: dict[str, int] = Field(description="what the API refused because a limit was reached, by what: "
-                                    "shard_tokens (--max-maps, or too many tokens waiting for their shard), robots "
-                                    "(--max-robots), processes, event_clients (--max-event-clients), exports "
-                                    "(--max-exports)")
+    refused: dict[str, int] = Field(
+        description="what the API refused because a limit was reached, by what: "
+        "shard_tokens (--max-maps, or too many tokens waiting for their shard), robots "
+        "(--max-robots), processes, event_clients (--max-event-clients), exports "
+        "(--max-exports)"
+    )
     limits: dict[str, int] = Field(description="the limits: maps, robots, event_clients, exports, export_cells")
 
 
@@ -153,7 +184,8 @@ class Pose(BaseModel):
     received: float = Field(description="Unix time the API received the pose, s")
     form: Literal["samples", "gaussian"] = Field(
         description="samples: weighted particles from SLAM; gaussian: mean and covariance from SLAM "
-        "(the samples are then drawn from it for display)")
+        "(the samples are then drawn from it for display)"
+    )
     samples: list[list[float]] = Field(description="pose samples [x m, y m, yaw rad], map frame")
     weights: list[float] = Field(description="weight per sample, summing to 1")
     samples_total: int = Field(description="samples in the distribution before max_samples reduced them")

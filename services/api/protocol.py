@@ -10,6 +10,7 @@ arrived whole (request line, headers and body) within ``request_timeout`` s of t
 the previous response ending. A request that has arrived is never cut off, however long its answer takes (an
 event stream, an export).
 """
+
 from __future__ import annotations
 
 import asyncio

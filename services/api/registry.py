@@ -6,6 +6,7 @@ a level-z tile (x, y) is the largest version among the level-0 tiles it covers (
 exist): any change below it gives it a new, larger version. Versions of all levels are kept up to date on
 every change, so reading one is a dictionary look-up.
 """
+
 from __future__ import annotations
 
 import threading
@@ -210,8 +211,10 @@ class MapRegistry:
         if info is None or info.resolution is None:
             return None
         if (info.resolution, info.tile_size) != (resolution, tile_size):
-            return (f"map {name!r} has {info.tile_size}-cell tiles of {info.resolution} m cells, "
-                    f"not {tile_size} of {resolution} m")
+            return (
+                f"map {name!r} has {info.tile_size}-cell tiles of {info.resolution} m cells, "
+                f"not {tile_size} of {resolution} m"
+            )
         return None
 
     def tile_changed(self, name: str, tile: TileKey, resolution: float, tile_size: int) -> int:

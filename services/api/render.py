@@ -6,6 +6,7 @@ cell. Layers: probability (grey level 1 - p: free light, occupied black), varian
 variance / vmax) and logodds (grey, linear from the map's lower clamp, white, to its upper clamp, black);
 unobserved cells are pale blue-grey in all three.
 """
+
 from __future__ import annotations
 
 import io
@@ -56,12 +57,28 @@ def npz_bytes(layers: TileLayers, layer: str | None, origin: tuple[float, float]
     logodds, variance, observed = layers
     buffer = io.BytesIO()
     if layer is None:
-        save_map(buffer, MapFile(logodds=logodds, probability=probability_of(logodds), observed=observed,
-                                 origin=np.asarray(origin, np.float64), resolution=resolution, variance=variance))
+        save_map(
+            buffer,
+            MapFile(
+                logodds=logodds,
+                probability=probability_of(logodds),
+                observed=observed,
+                origin=np.asarray(origin, np.float64),
+                resolution=resolution,
+                variance=variance,
+            ),
+        )
     else:
         values = {"logodds": logodds, "probability": probability_of(logodds), "variance": variance}[layer]
-        write_npz_deterministic(buffer, {layer: values, "observed": observed, "origin": np.asarray(origin, np.float64),
-                                         "resolution": np.float64(resolution)})
+        write_npz_deterministic(
+            buffer,
+            {
+                layer: values,
+                "observed": observed,
+                "origin": np.asarray(origin, np.float64),
+                "resolution": np.float64(resolution),
+            },
+        )
     return buffer.getvalue()
 
 
@@ -85,8 +102,11 @@ def export_body(raster: dict, name: str, fmt: str, layer: str | None) -> tuple[b
     GET /maps/{map}/export takes it); ``raster`` as mapping.grid.TiledGrid.rasterize returns it."""
     layers = (raster["logodds"], raster["variance"], raster["observed"])
     if fmt == "npz":
-        return (npz_bytes(layers, layer, raster["origin"], float(raster["resolution"])), "application/octet-stream",
-                f"{name}.npz")
+        return (
+            npz_bytes(layers, layer, raster["origin"], float(raster["resolution"])),
+            "application/octet-stream",
+            f"{name}.npz",
+        )
     if fmt == "pgm":
         return pgm_zip(raster, name), "application/zip", f"{name}.zip"
     return png_bytes(layers, layer or "probability", None), "image/png", f"{name}.png"

@@ -6,6 +6,7 @@ to [-pi, pi)); a Gaussian message keeps its mean and covariance and gets :data:`
 drawn from it (seeded by the scan's seq, so the same message always gives the same cloud) for display.
 The trajectory is the sequence of mean poses.
 """
+
 from __future__ import annotations
 
 import threading
@@ -69,11 +70,29 @@ def summarize(message: PoseSamples | PoseGaussian, received: float) -> PoseSumma
         rng = np.random.default_rng(message.seq)
         samples = rng.multivariate_normal(message.mean, message.cov, DRAWN_SAMPLES, method="eigh")
         weights = np.full(DRAWN_SAMPLES, 1.0 / DRAWN_SAMPLES)
-        return PoseSummary(message.robot, message.seq, message.stamp, received, "gaussian", samples, weights,
-                           np.asarray(message.mean, float), np.asarray(message.cov, float))
+        return PoseSummary(
+            message.robot,
+            message.seq,
+            message.stamp,
+            received,
+            "gaussian",
+            samples,
+            weights,
+            np.asarray(message.mean, float),
+            np.asarray(message.cov, float),
+        )
     mean, cov = weighted_mean_cov(message.samples, message.weights)
-    return PoseSummary(message.robot, message.seq, message.stamp, received, "samples",
-                       np.asarray(message.samples, float), np.asarray(message.weights, float), mean, cov)
+    return PoseSummary(
+        message.robot,
+        message.seq,
+        message.stamp,
+        received,
+        "samples",
+        np.asarray(message.samples, float),
+        np.asarray(message.weights, float),
+        mean,
+        cov,
+    )
 
 
 class RobotTracker:
@@ -86,8 +105,9 @@ class RobotTracker:
     vouched for; a pose or token beyond that is refused (the caller counts it).
     """
 
-    def __init__(self, trajectory_length: int = TRAJECTORY_LENGTH, max_robots: int = MAX_ROBOTS,
-                 stray_ttl: float = STRAY_TTL) -> None:
+    def __init__(
+        self, trajectory_length: int = TRAJECTORY_LENGTH, max_robots: int = MAX_ROBOTS, stray_ttl: float = STRAY_TTL
+    ) -> None:
         self._lock = threading.Lock()
         self._latest: dict[str, PoseSummary] = {}
         self._trajectory: dict[str, deque[tuple[int, float, float, float, float]]] = {}
@@ -148,8 +168,11 @@ class RobotTracker:
     def latest_seqs(self, vouched_only: bool = False) -> dict[str, int]:
         """The seq of the latest pose of every robot (only of those vouched for, with ``vouched_only``)."""
         with self._lock:
-            return {robot: summary.seq for robot, summary in self._latest.items()
-                    if not vouched_only or robot in self._vouched}
+            return {
+                robot: summary.seq
+                for robot, summary in self._latest.items()
+                if not vouched_only or robot in self._vouched
+            }
 
     def trajectory(self, robot: str) -> np.ndarray:
         """Rows (seq, stamp s, x m, y m, yaw rad) of the robot's mean poses, oldest first; (0, 5) if unknown."""

@@ -4,6 +4,7 @@ The application stack, outermost first: the Host and token checks (services.api.
 (services.api.head), cached tiles (services.api.fastpath), FastAPI (services.api.app); under uvicorn with the
 request deadline of services.api.protocol, the keep-alive timeout and a cap on open connections.
 """
+
 from __future__ import annotations
 
 import threading
@@ -71,17 +72,34 @@ def serve(host: str, port: int, zenoh_config: zenoh.Config, options: ServeOption
     stop = install_stop_event()  # uvicorn takes over SIGINT/SIGTERM while it runs; this keeps the parent watch
     session = open_session(zenoh_config, "the API")
     try:
-        backend = Backend.open(session, options.cache_bytes, options.query_timeout, options.max_maps,
-                               options.max_robots, options.stray_ttl, options.verify_window)
+        backend = Backend.open(
+            session,
+            options.cache_bytes,
+            options.query_timeout,
+            options.max_maps,
+            options.max_robots,
+            options.stray_ttl,
+            options.verify_window,
+        )
         try:
-            app = Guard(HeadAsGet(CachedTiles(create_app(backend, options.limits), backend.tiles)),
-                        allowed_hosts(host, list(options.allowed_hosts)), options.token)
-            config = uvicorn.Config(app, host=host, port=port, log_level="warning", access_log=False, lifespan="on",
-                                    timeout_graceful_shutdown=GRACEFUL_SHUTDOWN,
-                                    http=timed_protocol(options.request_timeout),
-                                    timeout_keep_alive=options.keep_alive,
-                                    # uvicorn refuses when the open connections, this one included, reach the limit
-                                    limit_concurrency=options.max_connections + 1)
+            app = Guard(
+                HeadAsGet(CachedTiles(create_app(backend, options.limits), backend.tiles)),
+                allowed_hosts(host, list(options.allowed_hosts)),
+                options.token,
+            )
+            config = uvicorn.Config(
+                app,
+                host=host,
+                port=port,
+                log_level="warning",
+                access_log=False,
+                lifespan="on",
+                timeout_graceful_shutdown=GRACEFUL_SHUTDOWN,
+                http=timed_protocol(options.request_timeout),
+                timeout_keep_alive=options.keep_alive,
+                # uvicorn refuses when the open connections, this one included, reach the limit
+                limit_concurrency=options.max_connections + 1,
+            )
             server = _Server(config, backend)
 
             def exit_when_stopped() -> None:
@@ -90,8 +108,14 @@ def serve(host: str, port: int, zenoh_config: zenoh.Config, options: ServeOption
                 server.should_exit = True
 
             threading.Thread(target=exit_when_stopped, daemon=True, name="api-stop").start()
-            log.info("serving on http://%s:%d/ (viewer), http://%s:%d/openapi.json (OpenAPI); maps known: %s",
-                     host, port, host, port, ", ".join(backend.registry.names()) or "none yet")
+            log.info(
+                "serving on http://%s:%d/ (viewer), http://%s:%d/openapi.json (OpenAPI); maps known: %s",
+                host,
+                port,
+                host,
+                port,
+                ", ".join(backend.registry.names()) or "none yet",
+            )
             server.run()
             return 0 if server.started else 1
         finally:

@@ -12,6 +12,7 @@ done for it (fused + discarded) have not changed for :data:`STRANDED_AFTER` s: t
 more (a shard restarted after the source ended finds no history to take them from), and nothing else would
 say so. /health is "ok" when there is a map, every map is healthy and no robot is stranded.
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
@@ -57,22 +58,48 @@ def shard_lag(s: ShardStats, latest: Mapping[str, int]) -> dict[str, int]:
     return {r: max(0, seq + 1 - s.fused.get(r, 0) - s.discarded.get(r, 0)) for r, seq in latest.items()}
 
 
-def shard_status(shard: int, info: MapInfo, s: ShardStats | None, latest: Mapping[str, int],
-                 now: float) -> models.ShardStatus:
+def shard_status(
+    shard: int, info: MapInfo, s: ShardStats | None, latest: Mapping[str, int], now: float
+) -> models.ShardStatus:
     """One shard of map ``info``: its liveliness and tile updates as the API saw them, and its stats ``s`` (None:
     it did not answer); ``latest``: robot -> latest pose seq; ``now``: time.monotonic(), s."""
     age = info.last_update.get(shard)
-    fields: dict[str, Any] = {} if s is None else dict(
-        scans_fused=s.fused, scans_discarded=s.discarded, scans_announced=s.ended, tiles_owned=s.tiles_owned,
-        cells_updated=s.cells_updated, tile_updates=s.tile_updates, join_pending=s.join_pending, uptime_s=s.uptime,
-        received=s.received, resent=s.resent, rejected=s.rejected, overflow=s.overflow, lag_scans=shard_lag(s, latest))
-    return models.ShardStatus(shard=shard, alive=shard in info.alive, answered=s is not None,
-                              tile_updates_received=info.updates_received.get(shard, 0),
-                              last_tile_update_age_s=None if age is None else now - age, **fields)
+    fields: dict[str, Any] = (
+        {}
+        if s is None
+        else dict(
+            scans_fused=s.fused,
+            scans_discarded=s.discarded,
+            scans_announced=s.ended,
+            tiles_owned=s.tiles_owned,
+            cells_updated=s.cells_updated,
+            tile_updates=s.tile_updates,
+            join_pending=s.join_pending,
+            uptime_s=s.uptime,
+            received=s.received,
+            resent=s.resent,
+            rejected=s.rejected,
+            overflow=s.overflow,
+            lag_scans=shard_lag(s, latest),
+        )
+    )
+    return models.ShardStatus(
+        shard=shard,
+        alive=shard in info.alive,
+        answered=s is not None,
+        tile_updates_received=info.updates_received.get(shard, 0),
+        last_tile_update_age_s=None if age is None else now - age,
+        **fields,
+    )
 
 
-def map_stats(info: MapInfo, stats: Mapping[int, ShardStats], latest: Mapping[str, int],
-              api_rejected: Mapping[str, int], now: float) -> models.MapStats:
+def map_stats(
+    info: MapInfo,
+    stats: Mapping[int, ShardStats],
+    latest: Mapping[str, int],
+    api_rejected: Mapping[str, int],
+    now: float,
+) -> models.MapStats:
     """Map ``info``'s shards and what they did: ``stats`` by shard (those that answered), ``latest`` the latest
     pose seq by robot (those whose lag counts), ``api_rejected`` the API's own rejected messages by key, ``now``
     time.monotonic() in s. The shards listed: 0..shards-1, those alive and those that answered."""
@@ -81,18 +108,28 @@ def map_stats(info: MapInfo, stats: Mapping[int, ShardStats], latest: Mapping[st
     lags = [shard_lag(s, latest) for s in answered]
     robots_seen = sorted({r for s in answered for r in s.fused} | set(latest)) if answered else []
     return models.MapStats(
-        map=info.name, shards=info.shards, shards_alive=sorted(info.alive),
+        map=info.name,
+        shards=info.shards,
+        shards_alive=sorted(info.alive),
         scans_fused={r: min(s.fused.get(r, 0) for s in answered) for r in robots_seen},
         scans_discarded={r: max(s.discarded.get(r, 0) for s in answered) for r in robots_seen},
         lag_scans={r: max(lag.get(r, 0) for lag in lags) for r in robots_seen if r in latest},
-        rejected=summed([api_rejected, *(s.rejected for s in answered)]), refused=summed(s.refused for s in answered),
-        per_shard=[shard_status(shard, info, stats.get(shard), latest, now) for shard in shard_ids])
+        rejected=summed([api_rejected, *(s.rejected for s in answered)]),
+        refused=summed(s.refused for s in answered),
+        per_shard=[shard_status(shard, info, stats.get(shard), latest, now) for shard in shard_ids],
+    )
 
 
 def map_health(s: models.MapStats) -> models.MapHealth:
     """The part of a map's stats /health shows, with the distrust sentences of its refusals."""
-    return models.MapHealth(shards=s.shards, shards_alive=s.shards_alive, scans_fused=s.scans_fused,
-                            scans_discarded=s.scans_discarded, lag_scans=s.lag_scans, distrust=distrust(s.refused))
+    return models.MapHealth(
+        shards=s.shards,
+        shards_alive=s.shards_alive,
+        scans_fused=s.scans_fused,
+        scans_discarded=s.scans_discarded,
+        lag_scans=s.lag_scans,
+        distrust=distrust(s.refused),
+    )
 
 
 def shards_healthy(s: models.MapStats) -> bool:
@@ -107,8 +144,13 @@ def sources_alive(processes: Iterable[str]) -> set[str]:
 
 def counted_robots(s: models.MapStats) -> set[str]:
     """The robots some shard of the map has fused, given up on or been announced a scan of."""
-    return {robot for p in s.per_shard for counts in (p.scans_fused, p.scans_discarded, p.scans_announced)
-            for robot, n in (counts or {}).items() if n}
+    return {
+        robot
+        for p in s.per_shard
+        for counts in (p.scans_fused, p.scans_discarded, p.scans_announced)
+        for robot, n in (counts or {}).items()
+        if n
+    }
 
 
 class Progress:
@@ -138,8 +180,9 @@ def stranded(map_name: str, s: models.MapStats, sources: set[str], progress: Pro
     return out
 
 
-def health_report(maps: Mapping[str, models.MapStats], processes: Iterable[str], progress: Progress, now: float,
-                  **system: Any) -> models.Health:
+def health_report(
+    maps: Mapping[str, models.MapStats], processes: Iterable[str], progress: Progress, now: float, **system: Any
+) -> models.Health:
     """/health from every map's stats, the robot processes alive ("<robot>/<process>") and ``now``
     (time.monotonic(), s); ``system``: the remaining Health fields, about the API itself (uptime_s, robots,
     rejected, event_clients, exports_running, refused, limits)."""
@@ -147,5 +190,9 @@ def health_report(maps: Mapping[str, models.MapStats], processes: Iterable[str],
     sources = sources_alive(processes)
     stuck = {name: stranded(name, s, sources, progress, now) for name, s in maps.items()}
     ok = bool(maps) and all(shards_healthy(s) and not stuck[name] for name, s in maps.items())
-    return models.Health(status="ok" if ok else "degraded", maps={name: map_health(s) for name, s in maps.items()},
-                         processes_alive=processes, **system)
+    return models.Health(
+        status="ok" if ok else "degraded",
+        maps={name: map_health(s) for name, s in maps.items()},
+        processes_alive=processes,
+        **system,
+    )

@@ -12,6 +12,7 @@ from its shard, and a shard that does not answer makes the request fail with :cl
 the owning shard is up but does not hold the tile (it restarted, or the update that announced the tile came from
 no shard), every shard is asked what it holds, and listed tiles that none holds are dropped.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -103,15 +104,24 @@ def tile_facts(tile: TileKey, layers: TileLayers) -> TileFacts:
     rows = np.flatnonzero(observed.any(axis=1))
     cols = np.flatnonzero(observed.any(axis=0))
     x0, y0 = tile[0] * size, tile[1] * size
-    return TileFacts(int(seen.size), float(np.percentile(seen, 99)),
-                     (x0 + int(cols[0]), y0 + int(rows[0]), x0 + int(cols[-1]), y0 + int(rows[-1])))
+    return TileFacts(
+        int(seen.size),
+        float(np.percentile(seen, 99)),
+        (x0 + int(cols[0]), y0 + int(rows[0]), x0 + int(cols[-1]), y0 + int(rows[-1])),
+    )
 
 
 class TileService:
     """Tiles of every level of every map. Thread-safe."""
 
-    def __init__(self, registry: MapRegistry, source: TileSource, epoch: str, cache_bytes: int,
-                 on_change: Callable[[str, TileKey, int], None] = lambda name, tile, version: None) -> None:
+    def __init__(
+        self,
+        registry: MapRegistry,
+        source: TileSource,
+        epoch: str,
+        cache_bytes: int,
+        on_change: Callable[[str, TileKey, int], None] = lambda name, tile, version: None,
+    ) -> None:
         self.registry = registry
         self.source = source
         self.epoch = epoch
@@ -155,11 +165,18 @@ class TileService:
                 self.on_change(name, tile, version)
             if complete:  # tiles listed before the sync that no shard holds: lost with a restarted shard, or bogus
                 held = {(update.tx, update.ty) for update in updates}
-                gone = {tile for tile, version in before.items()
-                        if tile not in held and self.registry.version(name, 0, *tile) == version}
+                gone = {
+                    tile
+                    for tile, version in before.items()
+                    if tile not in held and self.registry.version(name, 0, *tile) == version
+                }
                 if gone:
-                    self.log.warning("map %r: %d tile(s) listed that no shard holds, now dropped: %s", name,
-                                     len(gone), ", ".join(map(str, sorted(gone)[:4])))
+                    self.log.warning(
+                        "map %r: %d tile(s) listed that no shard holds, now dropped: %s",
+                        name,
+                        len(gone),
+                        ", ".join(map(str, sorted(gone)[:4])),
+                    )
                     self.registry.forget_tiles(name, gone)
                     self._content.pop(name, None)
 
@@ -175,8 +192,10 @@ class TileService:
             missing = [tile for tile in missing if self.registry.version(name, 0, *tile)]
         if missing:
             info = self.registry.get(name)
-            raise TileUnavailable(f"map {name!r}: level-0 tile(s) {', '.join(map(str, missing[:4]))} did not come "
-                                  f"back from their shard (shards alive: {sorted(info.alive) if info else []})")
+            raise TileUnavailable(
+                f"map {name!r}: level-0 tile(s) {', '.join(map(str, missing[:4]))} did not come "
+                f"back from their shard (shards alive: {sorted(info.alive) if info else []})"
+            )
         return {tile: self._store(name, tile, wanted[tile], update) for tile, update in got.items()}
 
     def _stale_below(self, name: str, z: int, x: int, y: int, out: dict[TileKey, int]) -> None:
@@ -234,10 +253,14 @@ class TileService:
             by_tile.update((tile, entry[1]) for tile, entry in self._fetch(name, stale).items())
         facts = list(by_tile.values())
         boxes = np.array([f.bounds for f in facts if f.bounds is not None]).reshape(-1, 4)
-        bounds = None if not len(boxes) else (*(int(v) for v in boxes[:, :2].min(axis=0)),
-                                               *(int(v) for v in boxes[:, 2:].max(axis=0)))
-        result = MapContent(sum(f.observed for f in facts), variance_scale(max((f.variance_p99 for f in facts),
-                                                                                 default=0.0)), bounds)
+        bounds = (
+            None
+            if not len(boxes)
+            else (*(int(v) for v in boxes[:, :2].min(axis=0)), *(int(v) for v in boxes[:, 2:].max(axis=0)))
+        )
+        result = MapContent(
+            sum(f.observed for f in facts), variance_scale(max((f.variance_p99 for f in facts), default=0.0)), bounds
+        )
         self._content[name] = (latest, result)
         return result
 
@@ -258,7 +281,7 @@ class TileService:
         if fmt == "png":
             body = png_bytes(layers, layer, vmax if vmax is not None else 1.0)
         else:
-            cell = info.resolution * 2 ** z
+            cell = info.resolution * 2**z
             span = cell * info.tile_size
             body = npz_bytes(layers, layer, (x * span, y * span), cell)
         digest = hashlib.blake2b(repr(key).encode(), digest_size=6).hexdigest()

@@ -1,4 +1,5 @@
 """`posegrid api`: the HTTP API and browser viewer over the mapper shards (docs/api.md)."""
+
 from __future__ import annotations
 
 import argparse
@@ -33,8 +34,10 @@ def positive_seconds(text: str) -> float:
 def access_token(text: str) -> str:
     """An access token: 16 to 256 of A-Z a-z 0-9 - _ . ~ (what travels unchanged in a URL and a cookie)."""
     if not TOKEN_PATTERN.match(text):
-        raise argparse.ArgumentTypeError("a token is 16 to 256 of A-Z a-z 0-9 - _ . ~ (make one with: python -c "
-                                         "'import secrets; print(secrets.token_urlsafe())')")
+        raise argparse.ArgumentTypeError(
+            "a token is 16 to 256 of A-Z a-z 0-9 - _ . ~ (make one with: python -c "
+            "'import secrets; print(secrets.token_urlsafe())')"
+        )
     return text
 
 
@@ -55,27 +58,94 @@ def host_name(text: str) -> str:
 
 #: the HTTP options, which `posegrid run` takes too, as --api-NAME, and passes on: (name, argparse keywords)
 HTTP_OPTIONS: list[tuple[str, dict]] = [
-    ("token", dict(type=access_token, default=None, metavar="TOKEN", help=(
-        f"require this access token on every request (default: ${TOKEN_ENV}, else none): 'Authorization: Bearer "
-        "TOKEN', ?token=TOKEN, or the cookie the viewer gets when opened as /?token=TOKEN; prefer the environment "
-        "variable, which other users cannot read in the process list"))),
-    ("allowed-host", dict(type=host_name, action="append", default=[], metavar="NAME", help=(
-        "also answer requests whose Host header is NAME (repeatable; localhost, 127.0.0.1 and [::1] always are, "
-        "and the --host address; '*': any, behind a proxy that checks it). Others are 400 (DNS rebinding)"))),
-    ("max-event-clients", dict(type=positive_int, default=limits.MAX_EVENT_CLIENTS, metavar="N", help=(
-        f"event streams (GET /events) open at once; the next is 503 (default {limits.MAX_EVENT_CLIENTS})"))),
-    ("max-exports", dict(type=positive_int, default=limits.MAX_EXPORTS, metavar="N", help=(
-        f"exports built at once; the next is 503 (default {limits.MAX_EXPORTS})"))),
-    ("max-export-cells", dict(type=positive_int, default=limits.MAX_EXPORT_CELLS, metavar="N", help=(
-        f"cells the raster of one export may span, else 413: export a window (default {limits.MAX_EXPORT_CELLS}, "
-        f"4096 x 4096; {limits.EXPORT_BYTES_PER_CELL} bytes a cell as npz)"))),
-    ("max-connections", dict(type=positive_int, default=limits.MAX_CONNECTIONS, metavar="N", help=(
-        f"HTTP connections open at once; requests on further ones are 503 (default {limits.MAX_CONNECTIONS})"))),
-    ("keep-alive-timeout", dict(type=positive_seconds, default=limits.KEEP_ALIVE, metavar="S", help=(
-        f"s an idle keep-alive connection stays open (default {limits.KEEP_ALIVE:g})"))),
-    ("request-timeout", dict(type=positive_seconds, default=limits.REQUEST_TIMEOUT, metavar="S", help=(
-        f"s a request may take to arrive whole before its connection is closed (default "
-        f"{limits.REQUEST_TIMEOUT:g})"))),
+    (
+        "token",
+        dict(
+            type=access_token,
+            default=None,
+            metavar="TOKEN",
+            help=(
+                f"require this access token on every request (default: ${TOKEN_ENV}, else none): 'Authorization: Bearer "
+                "TOKEN', ?token=TOKEN, or the cookie the viewer gets when opened as /?token=TOKEN; prefer the environment "
+                "variable, which other users cannot read in the process list"
+            ),
+        ),
+    ),
+    (
+        "allowed-host",
+        dict(
+            type=host_name,
+            action="append",
+            default=[],
+            metavar="NAME",
+            help=(
+                "also answer requests whose Host header is NAME (repeatable; localhost, 127.0.0.1 and [::1] always are, "
+                "and the --host address; '*': any, behind a proxy that checks it). Others are 400 (DNS rebinding)"
+            ),
+        ),
+    ),
+    (
+        "max-event-clients",
+        dict(
+            type=positive_int,
+            default=limits.MAX_EVENT_CLIENTS,
+            metavar="N",
+            help=(f"event streams (GET /events) open at once; the next is 503 (default {limits.MAX_EVENT_CLIENTS})"),
+        ),
+    ),
+    (
+        "max-exports",
+        dict(
+            type=positive_int,
+            default=limits.MAX_EXPORTS,
+            metavar="N",
+            help=(f"exports built at once; the next is 503 (default {limits.MAX_EXPORTS})"),
+        ),
+    ),
+    (
+        "max-export-cells",
+        dict(
+            type=positive_int,
+            default=limits.MAX_EXPORT_CELLS,
+            metavar="N",
+            help=(
+                f"cells the raster of one export may span, else 413: export a window (default {limits.MAX_EXPORT_CELLS}, "
+                f"4096 x 4096; {limits.EXPORT_BYTES_PER_CELL} bytes a cell as npz)"
+            ),
+        ),
+    ),
+    (
+        "max-connections",
+        dict(
+            type=positive_int,
+            default=limits.MAX_CONNECTIONS,
+            metavar="N",
+            help=(
+                f"HTTP connections open at once; requests on further ones are 503 (default {limits.MAX_CONNECTIONS})"
+            ),
+        ),
+    ),
+    (
+        "keep-alive-timeout",
+        dict(
+            type=positive_seconds,
+            default=limits.KEEP_ALIVE,
+            metavar="S",
+            help=(f"s an idle keep-alive connection stays open (default {limits.KEEP_ALIVE:g})"),
+        ),
+    ),
+    (
+        "request-timeout",
+        dict(
+            type=positive_seconds,
+            default=limits.REQUEST_TIMEOUT,
+            metavar="S",
+            help=(
+                f"s a request may take to arrive whole before its connection is closed (default "
+                f"{limits.REQUEST_TIMEOUT:g})"
+            ),
+        ),
+    ),
 ]
 
 
@@ -112,33 +182,64 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     from services.zenoh_config import add_zenoh_arguments
 
     api = subparsers.add_parser(
-        "api", help="HTTP API and browser viewer of the maps (a Zenoh client of the mapper shards)",
+        "api",
+        help="HTTP API and browser viewer of the maps (a Zenoh client of the mapper shards)",
         description="Serve the maps the mapper shards hold over HTTP: map summaries, PNG and .npz tiles at every "
         "zoom level (cached, with ETags), whole-map exports (npz, pgm+yaml, png), shard statistics, health, robot "
         "poses, a server-sent event stream, and the viewer at / (OpenAPI document at /openapi.json; /docs loads "
         "Swagger UI from a CDN). Connects to the Zenoh router as a client. Stops on Ctrl-C or SIGTERM.",
     )
-    api.add_argument("--host", default="127.0.0.1",
-                     help="address to listen on (default 127.0.0.1; 0.0.0.0 exposes the API to the network: set "
-                     "--token and --allowed-host then)")
+    api.add_argument(
+        "--host",
+        default="127.0.0.1",
+        help="address to listen on (default 127.0.0.1; 0.0.0.0 exposes the API to the network: set "
+        "--token and --allowed-host then)",
+    )
     api.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"TCP port (default {DEFAULT_PORT})")
-    api.add_argument("--cache-mb", type=finite_float, default=256.0,
-                     help="memory for cached tiles, MiB (default 256; least recently used tiles go first)")
-    api.add_argument("--query-timeout", type=finite_float, default=10.0,
-                     help="how long a query to the shards may take, s (default 10)")
+    api.add_argument(
+        "--cache-mb",
+        type=finite_float,
+        default=256.0,
+        help="memory for cached tiles, MiB (default 256; least recently used tiles go first)",
+    )
+    api.add_argument(
+        "--query-timeout",
+        type=finite_float,
+        default=10.0,
+        help="how long a query to the shards may take, s (default 10)",
+    )
     add_http_arguments(api)
     group = api.add_argument_group("what the API tracks at most (docs/api.md)")
-    group.add_argument("--max-maps", type=positive_int, default=limits.MAX_MAPS, metavar="N",
-                       help=f"maps held, announced or proved; further shard tokens are refused (default "
-                       f"{limits.MAX_MAPS})")
-    group.add_argument("--max-robots", type=positive_int, default=limits.MAX_ROBOTS, metavar="N",
-                       help=f"robots tracked; poses of further robots are refused (default {limits.MAX_ROBOTS})")
-    group.add_argument("--stray-robot-ttl", type=positive_seconds, default=limits.STRAY_TTL, metavar="S",
-                       help="s after its last pose that a robot with no source or SLAM node liveliness token is "
-                       f"forgotten (default {limits.STRAY_TTL:g})")
-    group.add_argument("--verify-window", type=positive_seconds, default=limits.VERIFY_WINDOW, metavar="S",
-                       help="s a shard's liveliness token may wait for the shard to answer its stats query before it "
-                       f"is ignored (default {limits.VERIFY_WINDOW:g})")
+    group.add_argument(
+        "--max-maps",
+        type=positive_int,
+        default=limits.MAX_MAPS,
+        metavar="N",
+        help=f"maps held, announced or proved; further shard tokens are refused (default {limits.MAX_MAPS})",
+    )
+    group.add_argument(
+        "--max-robots",
+        type=positive_int,
+        default=limits.MAX_ROBOTS,
+        metavar="N",
+        help=f"robots tracked; poses of further robots are refused (default {limits.MAX_ROBOTS})",
+    )
+    group.add_argument(
+        "--stray-robot-ttl",
+        type=positive_seconds,
+        default=limits.STRAY_TTL,
+        metavar="S",
+        help="s after its last pose that a robot with no source or SLAM node liveliness token is "
+        f"forgotten (default {limits.STRAY_TTL:g})",
+    )
+    group.add_argument(
+        "--verify-window",
+        type=positive_seconds,
+        default=limits.VERIFY_WINDOW,
+        metavar="S",
+        help="s a shard's liveliness token may wait for the shard to answer its stats query before it "
+        f"is ignored (default {limits.VERIFY_WINDOW:g})",
+    )
     add_zenoh_arguments(api)
     api.set_defaults(func=run_api)
 
@@ -154,8 +255,9 @@ def check_port_free(host: str, port: int) -> None:
         try:
             probe.bind((host, port))
         except OSError as exc:
-            raise UsageError(f"cannot listen on {host}:{port} ({exc.strerror}); pick another --port "
-                             "(`posegrid run`: --api-port)") from None
+            raise UsageError(
+                f"cannot listen on {host}:{port} ({exc.strerror}); pick another --port (`posegrid run`: --api-port)"
+            ) from None
 
 
 def token_of(args: argparse.Namespace) -> str | None:
@@ -183,10 +285,17 @@ def run_api(args: argparse.Namespace) -> int:
     from services.zenoh_config import config_from_args
 
     options = ServeOptions(
-        cache_bytes=int(args.cache_mb * 2 ** 20), query_timeout=args.query_timeout, token=token,
+        cache_bytes=int(args.cache_mb * 2**20),
+        query_timeout=args.query_timeout,
+        token=token,
         allowed_hosts=tuple(args.allowed_host),
         limits=limits.HttpLimits(args.max_event_clients, args.max_exports, args.max_export_cells),
-        max_connections=args.max_connections, keep_alive=args.keep_alive_timeout,
-        request_timeout=args.request_timeout, max_maps=args.max_maps, max_robots=args.max_robots,
-        stray_ttl=args.stray_robot_ttl, verify_window=args.verify_window)
+        max_connections=args.max_connections,
+        keep_alive=args.keep_alive_timeout,
+        request_timeout=args.request_timeout,
+        max_maps=args.max_maps,
+        max_robots=args.max_robots,
+        stray_ttl=args.stray_robot_ttl,
+        verify_window=args.verify_window,
+    )
     return serve(args.host, args.port, config_from_args(args, "client"), options)

@@ -1,6 +1,7 @@
 """argparse types the subcommands share, and the check of their output paths. A bad value stops at parsing:
 argparse prints the usage line and one sentence naming the option, and exits 2. An output path that cannot take
 a file stops the command before it reads or computes anything (:func:`check_outputs`: one line, exit 2)."""
+
 from __future__ import annotations
 
 import argparse

@@ -3,6 +3,7 @@
 The slam command (services/commands/slam.py) adds these options to its parser and hands over to
 :func:`run_gridslam_command` when --algo is gridslam.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -37,9 +38,14 @@ def _odom_delay(text: str) -> str | float:
 
 
 #: grid FastSLAM's filter options, shared by `posegrid slam`, `slam-node` and `run`: (option, GridSlamConfig field)
-FILTER_OPTIONS = (("--max-range", "max_range"), ("--linear-update", "linear_update"),
-                  ("--angular-update", "angular_update"), ("--grid-resolution", "resolution"),
-                  ("--min-range", "min_range"), ("--prior-cap", "prior_cap"))
+FILTER_OPTIONS = (
+    ("--max-range", "max_range"),
+    ("--linear-update", "linear_update"),
+    ("--angular-update", "angular_update"),
+    ("--grid-resolution", "resolution"),
+    ("--min-range", "min_range"),
+    ("--prior-cap", "prior_cap"),
+)
 
 
 def filter_option_values(args: argparse.Namespace) -> list[tuple[str, str, float | None]]:
@@ -54,8 +60,10 @@ def reject_filter_options(args: argparse.Namespace, algo: str) -> None:
     given = [option for option, _, value in filter_option_values(args) if value is not None]
     given += ["--scans"] if getattr(args, "scans", None) is not None else []
     if given and algo != "gridslam":
-        raise UsageError(f"{', '.join(given)} only apply to grid FastSLAM, but the SLAM algorithm is {algo}; add "
-                         "--algo gridslam or drop them")
+        raise UsageError(
+            f"{', '.join(given)} only apply to grid FastSLAM, but the SLAM algorithm is {algo}; add "
+            "--algo gridslam or drop them"
+        )
 
 
 def add_filter_options(group: argparse._ArgumentGroup, label: str = "") -> None:
@@ -66,45 +74,70 @@ def add_filter_options(group: argparse._ArgumentGroup, label: str = "") -> None:
     defaults = GridSlamConfig()
     helps = {
         "--max-range": f"m: beams are used up to here, longer ones only clear space (default {defaults.max_range:g}, "
-                       "at most the laser's)",
+        "at most the laser's)",
         "--linear-update": f"m of odometry between scans integrated into the maps (default {defaults.linear_update:g})",
         "--angular-update": f"rad of odometry turn between integrated scans (default {defaults.angular_update:g})",
         "--grid-resolution": f"m, cell size of the particles' grids, in [{GRID_RESOLUTION_LIMITS[0]:g}, "
-                             f"{GRID_RESOLUTION_LIMITS[1]:g}] (default {defaults.resolution:g})",
+        f"{GRID_RESOLUTION_LIMITS[1]:g}] (default {defaults.resolution:g})",
         "--min-range": f"m: shorter readings are ignored, e.g. people right beside the robot (default "
-                       f"{defaults.min_range:g}, or the sensor's if larger)",
+        f"{defaults.min_range:g}, or the sensor's if larger)",
         "--prior-cap": "squared Mahalanobis distance from the odometry beyond which the scan matcher stops weighing "
-                       f"the odometry (default {defaults.prior_cap:g}; larger trusts the odometry more)",
+        f"the odometry (default {defaults.prior_cap:g}; larger trusts the odometry more)",
     }
     for option, _ in FILTER_OPTIONS:
-        group.add_argument(option, type=finite_float, default=None, metavar="D2" if option == "--prior-cap" else None,
-                           help=label + helps[option])
+        group.add_argument(
+            option,
+            type=finite_float,
+            default=None,
+            metavar="D2" if option == "--prior-cap" else None,
+            help=label + helps[option],
+        )
 
 
 def add_gridslam_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of --algo gridslam (INPUT is then a CARMEN log .clf/.log/.gz or a ROS 1/2 bag)."""
     group = parser.add_argument_group(
         "grid FastSLAM (--algo gridslam: INPUT is a CARMEN log .clf/.log/.gz or a ROS bag; --particles "
-        f"defaults to {DEFAULT_GRID_PARTICLES}; docs/gridslam.md)")
-    group.add_argument("--poses-output", default=None, metavar="POSES.npz",
-                       help="pose-distribution file: every scan, the final particles' trajectories with the final "
-                       "weights (default: OUTPUT with the suffix .poses.npz)")
-    group.add_argument("--best-output", default=None, metavar="BEST.npz",
-                       help="posed-scan file: the integrated scans at the final best particle's poses, one sample "
-                       "each, for its map (default: OUTPUT with the suffix .best.npz)")
+        f"defaults to {DEFAULT_GRID_PARTICLES}; docs/gridslam.md)"
+    )
+    group.add_argument(
+        "--poses-output",
+        default=None,
+        metavar="POSES.npz",
+        help="pose-distribution file: every scan, the final particles' trajectories with the final "
+        "weights (default: OUTPUT with the suffix .poses.npz)",
+    )
+    group.add_argument(
+        "--best-output",
+        default=None,
+        metavar="BEST.npz",
+        help="posed-scan file: the integrated scans at the final best particle's poses, one sample "
+        "each, for its map (default: OUTPUT with the suffix .best.npz)",
+    )
     add_filter_options(group)
-    group.add_argument("--odom-delay", type=_odom_delay, default=0.0, metavar="SECONDS|auto",
-                       help="read each scan's odometry this many seconds after its stamp (negative: before), for a "
-                       "laser whose stamps run late against the odometry's; 'auto' estimates it by running the "
-                       f"filter over the first {AUTO_DELAY_SECONDS:.0f} s and comparing its scan-matched turns with "
-                       "the odometry's (needs a separate odometry stream; default 0)")
-    group.add_argument("--scans", type=int, default=None, metavar="N",
-                       help="use only the log's first N scans, e.g. to try options quickly on a long log "
-                       "(default: all)")
-    group.add_argument("--scan-topic", type=str, default=None, help="ROS bag: the LaserScan topic (default: the "
-                       "only one, or /scan)")
-    group.add_argument("--stats", default=None, metavar="OUT.json",
-                       help="write timing and effective-sample-size figures as JSON")
+    group.add_argument(
+        "--odom-delay",
+        type=_odom_delay,
+        default=0.0,
+        metavar="SECONDS|auto",
+        help="read each scan's odometry this many seconds after its stamp (negative: before), for a "
+        "laser whose stamps run late against the odometry's; 'auto' estimates it by running the "
+        f"filter over the first {AUTO_DELAY_SECONDS:.0f} s and comparing its scan-matched turns with "
+        "the odometry's (needs a separate odometry stream; default 0)",
+    )
+    group.add_argument(
+        "--scans",
+        type=int,
+        default=None,
+        metavar="N",
+        help="use only the log's first N scans, e.g. to try options quickly on a long log (default: all)",
+    )
+    group.add_argument(
+        "--scan-topic", type=str, default=None, help="ROS bag: the LaserScan topic (default: the only one, or /scan)"
+    )
+    group.add_argument(
+        "--stats", default=None, metavar="OUT.json", help="write timing and effective-sample-size figures as JSON"
+    )
 
 
 def gridslam_config(args: argparse.Namespace):
@@ -113,15 +146,19 @@ def gridslam_config(args: argparse.Namespace):
     from services.errors import UsageError
     from slam.gridslam import GridSlamConfig
 
-    overrides = {"particles": DEFAULT_GRID_PARTICLES if args.particles is None else args.particles,
-                 "resample_threshold": args.resample_threshold}
+    overrides = {
+        "particles": DEFAULT_GRID_PARTICLES if args.particles is None else args.particles,
+        "resample_threshold": args.resample_threshold,
+    }
     for _, field, value in filter_option_values(args):
         if value is not None:
             overrides[field] = value
     config = replace(GridSlamConfig(), **overrides)
     if config.particles > MAX_GRID_PARTICLES:
-        raise UsageError(f"--particles for grid FastSLAM must be at most {MAX_GRID_PARTICLES} (each particle keeps a "
-                         f"map), got {config.particles}")
+        raise UsageError(
+            f"--particles for grid FastSLAM must be at most {MAX_GRID_PARTICLES} (each particle keeps a "
+            f"map), got {config.particles}"
+        )
     low, high = GRID_RESOLUTION_LIMITS
     if not low <= config.resolution <= high:
         raise UsageError(f"--grid-resolution must be in [{low:g}, {high:g}] m, got {config.resolution:g}")
@@ -143,9 +180,11 @@ def _output_paths(args: argparse.Namespace) -> tuple[Path, Path]:
     check_outputs(args, output="-o", best_output="--best-output", poses_output="--poses-output", stats="--stats")
     best = args.best_output or checked_output(args.output.with_suffix(".best.npz"), "--best-output's default")
     poses = args.poses_output or checked_output(args.output.with_suffix(".poses.npz"), "--poses-output's default")
-    named = [("-o", args.output),
-             ("--best-output" if args.best_output else "--best-output's default", best),
-             ("--poses-output" if args.poses_output else "--poses-output's default", poses)]
+    named = [
+        ("-o", args.output),
+        ("--best-output" if args.best_output else "--best-output's default", best),
+        ("--poses-output" if args.poses_output else "--poses-output's default", poses),
+    ]
     named += [("--stats", args.stats)] if args.stats is not None else []
     seen: dict[Path, str] = {}
     for option, path in named:
@@ -164,14 +203,18 @@ def _check_log(log, config) -> None:
     from slam.laserlog import check_scan_order
 
     if len(log) < 2:
-        raise LogFormatError(f"{log.source}: holds {len(log)} usable scan; grid FastSLAM needs at least 2 (a scan to "
-                             "start from and one to integrate)")
+        raise LogFormatError(
+            f"{log.source}: holds {len(log)} usable scan; grid FastSLAM needs at least 2 (a scan to "
+            "start from and one to integrate)"
+        )
     check_scan_order(log)
     range_min = max(log.range_min, config.min_range)
     usable = int(np.count_nonzero((log.ranges >= range_min).any(axis=1)))
     if usable < 2:
-        raise LogFormatError(f"{log.source}: only {usable} of its {len(log)} scans have a reading of at least "
-                             f"{range_min:g} m (--min-range); grid FastSLAM needs at least 2")
+        raise LogFormatError(
+            f"{log.source}: only {usable} of its {len(log)} scans have a reading of at least "
+            f"{range_min:g} m (--min-range); grid FastSLAM needs at least 2"
+        )
 
 
 def _apply_odometry_delay(args: argparse.Namespace, log, config):
@@ -196,12 +239,16 @@ def _apply_odometry_delay(args: argparse.Namespace, log, config):
         with tqdm(total=len(head), desc="odometry delay", unit="scan", file=sys.stderr, mininterval=0.5) as bar:
             trial = run_gridslam(head, config, seed=args.seed, progress=lambda done, ess: bar.update(done))
         try:
-            delay, mismatch = odometry_delay(trial.stamps, trial.samples[:, trial.best, 2], log.odom_stamps,
-                                             log.odom_poses[:, 2])
+            delay, mismatch = odometry_delay(
+                trial.stamps, trial.samples[:, trial.best, 2], log.odom_stamps, log.odom_poses[:, 2]
+            )
         except ValueError as exc:
             raise UsageError(f"--odom-delay auto: {exc}") from None
-        print(f"posegrid slam: odometry delay {delay:+.2f} s, estimated over the first {len(head)} scans "
-              f"(mean heading mismatch {np.degrees(mismatch):.2f} deg per 0.5 s)", file=sys.stderr)
+        print(
+            f"posegrid slam: odometry delay {delay:+.2f} s, estimated over the first {len(head)} scans "
+            f"(mean heading mismatch {np.degrees(mismatch):.2f} deg per 0.5 s)",
+            file=sys.stderr,
+        )
     try:
         return with_odometry_delay(log, delay), delay
     except LogFormatError as exc:
@@ -218,10 +265,16 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
     import numpy as np
     from tqdm import tqdm
 
-    from schemas.files import (PoseDistributionFile, PosedScans, PoseSet, save_pose_distribution, save_posed_scans,
-                               write_atomically)
-    from services.errors import UsageError
+    from schemas.files import (
+        PoseDistributionFile,
+        PosedScans,
+        PoseSet,
+        save_pose_distribution,
+        save_posed_scans,
+        write_atomically,
+    )
     from services.commands.logs import read_log
+    from services.errors import UsageError
     from slam.gridslam import run_gridslam
 
     config = gridslam_config(args)
@@ -239,6 +292,7 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
     started = time.perf_counter()
     cpu_started = time.process_time()
     with tqdm(total=len(log), desc="slam gridslam", unit="scan", file=sys.stderr, mininterval=0.5) as bar:
+
         def progress(done: int, ess: float) -> None:
             bar.update(done)
             bar.set_postfix(ess=f"{ess:.1f}", refresh=False)
@@ -251,35 +305,52 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
     range_max = min(config.max_range, log.range_max)
 
     def posed(samples, weights) -> PosedScans:
-        return PosedScans(ranges=log.ranges[chosen], angle_min=log.angle_min, angle_increment=log.angle_increment,
-                          range_min=max(log.range_min, config.min_range), range_max=range_max,
-                          stamps=log.stamps[chosen], sensor_offset=log.sensor_offset,
-                          poses=PoseSet(samples=samples, weights=weights))
+        return PosedScans(
+            ranges=log.ranges[chosen],
+            angle_min=log.angle_min,
+            angle_increment=log.angle_increment,
+            range_min=max(log.range_min, config.min_range),
+            range_max=range_max,
+            stamps=log.stamps[chosen],
+            sensor_offset=log.sensor_offset,
+            poses=PoseSet(samples=samples, weights=weights),
+        )
 
     weights = np.tile(result.weights, (len(log), 1))
     save_posed_scans(args.output, posed(result.samples[chosen], weights[chosen]))
     best = result.samples[chosen][:, [result.best]]
     save_posed_scans(best_path, posed(best, np.ones((int(chosen.sum()), 1))))
-    save_pose_distribution(poses_path, PoseDistributionFile(
-        stamps=result.stamps, poses=PoseSet(samples=result.samples, weights=weights)))
+    save_pose_distribution(
+        poses_path, PoseDistributionFile(stamps=result.stamps, poses=PoseSet(samples=result.samples, weights=weights))
+    )
 
     duration = float(log.stamps[-1] - log.stamps[0])
     stats = {
-        "scans": len(log), "integrated": int(chosen.sum()), "particles": config.particles,
-        "seconds_total": elapsed, "cpu_seconds_total": cpu, "seconds_per_scan": elapsed / len(log),
+        "scans": len(log),
+        "integrated": int(chosen.sum()),
+        "particles": config.particles,
+        "seconds_total": elapsed,
+        "cpu_seconds_total": cpu,
+        "seconds_per_scan": elapsed / len(log),
         "seconds_per_integrated_scan": float(result.seconds.mean()) if len(result.seconds) else 0.0,
-        "log_duration_s": duration, "real_time_factor": duration / max(elapsed, 1e-9),
+        "log_duration_s": duration,
+        "real_time_factor": duration / max(elapsed, 1e-9),
         "final_ess": float(result.ess[-1]) if len(result.ess) else float(config.particles),
         "mean_ess": float(result.ess.mean()) if len(result.ess) else float(config.particles),
-        "resamplings": int(result.resampled.sum()), "motion_fallbacks": result.fallbacks,
-        "tiles_in_use": result.maps.tiles_in_use, "tiles_copied": result.maps.copies, "odometry_delay_s": delay,
+        "resamplings": int(result.resampled.sum()),
+        "motion_fallbacks": result.fallbacks,
+        "tiles_in_use": result.maps.tiles_in_use,
+        "tiles_copied": result.maps.copies,
+        "odometry_delay_s": delay,
     }
     if args.stats is not None:
         text = json.dumps(stats, indent=1) + "\n"
         write_atomically(args.stats, lambda handle: handle.write(text.encode()))
-    print(f"wrote {args.output} (posed-scan file, {stats['integrated']} integrated scans), {best_path} (the best "
-          f"particle's poses) and {poses_path} (pose-distribution file, {len(log)} scans): "
-          f"{1e3 * stats['seconds_per_integrated_scan']:.1f} ms per "
-          f"integrated scan, {duration:.0f} s of log in {elapsed:.1f} s ({stats['real_time_factor']:.1f}x real "
-          f"time), final N_eff {stats['final_ess']:.1f} of {config.particles}, {stats['resamplings']} resamplings")
+    print(
+        f"wrote {args.output} (posed-scan file, {stats['integrated']} integrated scans), {best_path} (the best "
+        f"particle's poses) and {poses_path} (pose-distribution file, {len(log)} scans): "
+        f"{1e3 * stats['seconds_per_integrated_scan']:.1f} ms per "
+        f"integrated scan, {duration:.0f} s of log in {elapsed:.1f} s ({stats['real_time_factor']:.1f}x real "
+        f"time), final N_eff {stats['final_ess']:.1f} of {config.particles}, {stats['resamplings']} resamplings"
+    )
     return 0

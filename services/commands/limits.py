@@ -1,4 +1,5 @@
 """The resource-limit options of `posegrid mapper` and `posegrid run` (services.state.limits, docs/security.md)."""
+
 from __future__ import annotations
 
 import argparse
@@ -8,20 +9,53 @@ from services.state.limits import ShardLimits
 #: (option, field of ShardLimits, type, help) of each limit
 _LIMITS = (
     ("--max-beams", "max_beams", int, "beams one scan may have; a longer scan is refused (default %(default)s)"),
-    ("--max-work", "max_work", int, "ray cells one scan may cost, samples x beams x range_max / resolution; a "
-     "costlier scan is refused (default %(default)s, about 1 to 2 s of one core)"),
-    ("--map-bound", "map_bound", float, "m: pose samples must lie within this distance of the map origin in x "
-     "and y; a scan posed beyond is refused (default %(default)s)"),
-    ("--max-scan-cells", "max_scan_cells", int, "cells of the tiles one scan may reach (its samples' tiles widened "
-     "by range_max); a scan reaching more is refused (default %(default)s)"),
-    ("--join-bytes", "join_bytes", int, "bytes of one robot's scans and poses that may wait for their partner; the "
-     "oldest are evicted beyond (default %(default)s)"),
-    ("--intake-bytes", "intake_bytes", int, "bytes of messages that may wait for the fusion thread; more are "
-     "dropped and counted (default %(default)s)"),
-    ("--max-robots", "max_robots", int, "robots a shard keeps state for; messages of further robots are refused "
-     "(default %(default)s)"),
-    ("--seq-window", "seq_window", int, "seqs beyond what a robot's stream has shown that a live message may lie; "
-     "one further ahead is held until the stream gets near it (default %(default)s)"),
+    (
+        "--max-work",
+        "max_work",
+        int,
+        "ray cells one scan may cost, samples x beams x range_max / resolution; a "
+        "costlier scan is refused (default %(default)s, about 1 to 2 s of one core)",
+    ),
+    (
+        "--map-bound",
+        "map_bound",
+        float,
+        "m: pose samples must lie within this distance of the map origin in x "
+        "and y; a scan posed beyond is refused (default %(default)s)",
+    ),
+    (
+        "--max-scan-cells",
+        "max_scan_cells",
+        int,
+        "cells of the tiles one scan may reach (its samples' tiles widened "
+        "by range_max); a scan reaching more is refused (default %(default)s)",
+    ),
+    (
+        "--join-bytes",
+        "join_bytes",
+        int,
+        "bytes of one robot's scans and poses that may wait for their partner; the "
+        "oldest are evicted beyond (default %(default)s)",
+    ),
+    (
+        "--intake-bytes",
+        "intake_bytes",
+        int,
+        "bytes of messages that may wait for the fusion thread; more are dropped and counted (default %(default)s)",
+    ),
+    (
+        "--max-robots",
+        "max_robots",
+        int,
+        "robots a shard keeps state for; messages of further robots are refused (default %(default)s)",
+    ),
+    (
+        "--seq-window",
+        "seq_window",
+        int,
+        "seqs beyond what a robot's stream has shown that a live message may lie; "
+        "one further ahead is held until the stream gets near it (default %(default)s)",
+    ),
 )
 
 

@@ -1,4 +1,5 @@
 """Subcommands on robot logs: eval-relations (the SLAM benchmark's relation error)."""
+
 from __future__ import annotations
 
 import argparse
@@ -17,7 +18,8 @@ NPZ_SUFFIXES = (".npz",)
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     evaluate = subparsers.add_parser(
-        "eval-relations", help="score a trajectory by the SLAM benchmark's relations (Kuemmerle et al. 2009)",
+        "eval-relations",
+        help="score a trajectory by the SLAM benchmark's relations (Kuemmerle et al. 2009)",
         description="Relation error of a trajectory: for every relation 't1 t2 dx dy dz roll pitch yaw' "
         "(true motion from t1 to t2 in t1's frame) the estimated motion between the poses at t1 and t2 is "
         "compared with it; prints the mean and std of the translational (m) and rotational (deg) errors and "
@@ -29,15 +31,32 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     evaluate.add_argument("poses", type=Path, help="pose .npz, CARMEN log (.clf/.log/.gz) or ROS bag")
     evaluate.add_argument("relations", type=Path, help="relation file (t1 t2 dx dy dz roll pitch yaw per line)")
-    evaluate.add_argument("--align-to", type=Path, default=None, metavar="RAWLOG",
-                          help="put a log's stamps on RAWLOG's clock first, by the scans both hold (for "
-                          "re-stamped corrected logs such as freiburg-079-corrected.log.gz)")
-    evaluate.add_argument("--estimate", choices=("best", "mean"), default="best",
-                          help="pose files with samples: the highest-weight sample (default) or the weighted mean")
-    evaluate.add_argument("--tolerance", type=finite_float, default=None,
-                          help="s within which a stamp matches a pose exactly (default 0.001)")
-    evaluate.add_argument("--max-gap", type=finite_float, default=None,
-                          help="s: interpolate only between poses at most this far apart (default 5)")
+    evaluate.add_argument(
+        "--align-to",
+        type=Path,
+        default=None,
+        metavar="RAWLOG",
+        help="put a log's stamps on RAWLOG's clock first, by the scans both hold (for "
+        "re-stamped corrected logs such as freiburg-079-corrected.log.gz)",
+    )
+    evaluate.add_argument(
+        "--estimate",
+        choices=("best", "mean"),
+        default="best",
+        help="pose files with samples: the highest-weight sample (default) or the weighted mean",
+    )
+    evaluate.add_argument(
+        "--tolerance",
+        type=finite_float,
+        default=None,
+        help="s within which a stamp matches a pose exactly (default 0.001)",
+    )
+    evaluate.add_argument(
+        "--max-gap",
+        type=finite_float,
+        default=None,
+        help="s: interpolate only between poses at most this far apart (default 5)",
+    )
     evaluate.add_argument("--json", default=None, metavar="OUT", help="also write the scores as JSON")
     evaluate.set_defaults(func=run_eval_relations)
 
@@ -73,8 +92,10 @@ def _pose_file_trajectory(path: Path, estimate: str):
         chosen = samples[np.arange(len(samples)), np.argmax(weights, axis=1)]
     else:
         xy = np.einsum("tm,tmk->tk", weights, samples[:, :, :2])
-        yaw = np.arctan2(np.einsum("tm,tm->t", weights, np.sin(samples[:, :, 2])),
-                         np.einsum("tm,tm->t", weights, np.cos(samples[:, :, 2])))
+        yaw = np.arctan2(
+            np.einsum("tm,tm->t", weights, np.sin(samples[:, :, 2])),
+            np.einsum("tm,tm->t", weights, np.cos(samples[:, :, 2])),
+        )
         chosen = np.column_stack([xy, wrap_angle(yaw)])
     return Trajectory.sorted(dist.stamps, chosen)
 
@@ -86,8 +107,14 @@ def _note(message: str) -> None:
 def run_eval_relations(args: argparse.Namespace) -> int:
     from schemas.files import write_atomically
     from services.errors import UsageError
-    from slam.relations import (DEFAULT_MAX_GAP, DEFAULT_TOLERANCE, Trajectory, read_relations, score_relations,
-                                trajectory_from_log)
+    from slam.relations import (
+        DEFAULT_MAX_GAP,
+        DEFAULT_TOLERANCE,
+        Trajectory,
+        read_relations,
+        score_relations,
+        trajectory_from_log,
+    )
     from slam.timealign import time_map, to_reference_time
 
     check_outputs(args, json="--json")
@@ -98,8 +125,10 @@ def run_eval_relations(args: argparse.Namespace) -> int:
     relations = read_relations(args.relations)
     if relations.skipped:
         shown = ", ".join(str(s.where) for s in relations.skipped[:10])
-        _note(f"{args.relations}: skipped {len(relations.skipped)} malformed lines (lines {shown}"
-              f"{' ...' if len(relations.skipped) > 10 else ''})")
+        _note(
+            f"{args.relations}: skipped {len(relations.skipped)} malformed lines (lines {shown}"
+            f"{' ...' if len(relations.skipped) > 10 else ''})"
+        )
     if args.poses.suffix.lower() in NPZ_SUFFIXES:
         if args.align_to is not None:
             raise UsageError("--align-to needs a log (with scans) as POSES, not a pose .npz")
@@ -112,18 +141,26 @@ def run_eval_relations(args: argparse.Namespace) -> int:
         if args.align_to is not None:
             reference = read_log(args.align_to)
             stamps, offsets = time_map(log, reference)
-            _note(f"aligned {args.poses} to {args.align_to} by {len(stamps)} shared scans "
-                  f"(offset {offsets.min():.6f} .. {offsets.max():.6f} s)")
+            _note(
+                f"aligned {args.poses} to {args.align_to} by {len(stamps)} shared scans "
+                f"(offset {offsets.min():.6f} .. {offsets.max():.6f} s)"
+            )
             trajectory = Trajectory.sorted(to_reference_time(trajectory.stamps, stamps, offsets), trajectory.poses)
     score = score_relations(trajectory, relations, tolerance, max_gap)
     summary = score.summary()
     if args.json is not None:  # first: a file that cannot be written stops the command before it reports
         text = json.dumps(summary, indent=1) + "\n"
         write_atomically(args.json, lambda handle: handle.write(text.encode()))
-    print(f"{args.poses}: {summary['relations_used']} of {summary['relations_total']} relations matched "
-          f"(tolerance {tolerance} s, max gap {max_gap} s)")
-    print(f"  translational error: mean {summary['trans_mean_m']:.4f} m, std {summary['trans_std_m']:.4f} m; "
-          f"squared: mean {summary['trans_sq_mean_m2']:.5f} m^2, std {summary['trans_sq_std_m2']:.5f} m^2")
-    print(f"  rotational error:    mean {summary['rot_mean_deg']:.3f} deg, std {summary['rot_std_deg']:.3f} deg; "
-          f"squared: mean {summary['rot_sq_mean_deg2']:.3f} deg^2, std {summary['rot_sq_std_deg2']:.3f} deg^2")
+    print(
+        f"{args.poses}: {summary['relations_used']} of {summary['relations_total']} relations matched "
+        f"(tolerance {tolerance} s, max gap {max_gap} s)"
+    )
+    print(
+        f"  translational error: mean {summary['trans_mean_m']:.4f} m, std {summary['trans_std_m']:.4f} m; "
+        f"squared: mean {summary['trans_sq_mean_m2']:.5f} m^2, std {summary['trans_sq_std_m2']:.5f} m^2"
+    )
+    print(
+        f"  rotational error:    mean {summary['rot_mean_deg']:.3f} deg, std {summary['rot_std_deg']:.3f} deg; "
+        f"squared: mean {summary['rot_sq_mean_deg2']:.3f} deg^2, std {summary['rot_sq_std_deg2']:.3f} deg^2"
+    )
     return 0

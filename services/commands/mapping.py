@@ -1,4 +1,5 @@
 """Subcommands on maps: fuse, export, eval."""
+
 from __future__ import annotations
 
 import argparse
@@ -17,18 +18,37 @@ def add_sensor_model_arguments(parser: argparse.ArgumentParser) -> None:
     """The inverse sensor model's options (shared with the mapper shards)."""
     group = parser.add_argument_group("inverse sensor model (docs/sensor_model.md)")
     group.add_argument("--resolution", type=finite_float, default=0.05, help="cell size in m (default 0.05)")
-    group.add_argument("--sigma-model", choices=("constant", "linear", "stereo"), default="constant",
-                       help="how range noise sigma grows with range z: constant sigma0, linear sigma0 + slope*z, "
-                       "or stereo z^2/(b*f) (default constant)")
-    group.add_argument("--sigma0", type=finite_float, default=0.03,
-                       help="range noise sigma in m, or the linear model's "
-                       "intercept (default 0.03)")
-    group.add_argument("--sigma-slope", type=finite_float, default=0.0,
-                       help="linear model: sigma grows by this many m per m (default 0: as constant)")
-    group.add_argument("--baseline-focal", type=finite_float, default=0.0,
-                       help="stereo model: baseline (m) times focal length (px), so sigma = z^2/(b*f)")
-    group.add_argument("--peak-width", type=finite_float, default=None,
-                       help="width l of the occupied peak in m (default: the cell diagonal)")
+    group.add_argument(
+        "--sigma-model",
+        choices=("constant", "linear", "stereo"),
+        default="constant",
+        help="how range noise sigma grows with range z: constant sigma0, linear sigma0 + slope*z, "
+        "or stereo z^2/(b*f) (default constant)",
+    )
+    group.add_argument(
+        "--sigma0",
+        type=finite_float,
+        default=0.03,
+        help="range noise sigma in m, or the linear model's intercept (default 0.03)",
+    )
+    group.add_argument(
+        "--sigma-slope",
+        type=finite_float,
+        default=0.0,
+        help="linear model: sigma grows by this many m per m (default 0: as constant)",
+    )
+    group.add_argument(
+        "--baseline-focal",
+        type=finite_float,
+        default=0.0,
+        help="stereo model: baseline (m) times focal length (px), so sigma = z^2/(b*f)",
+    )
+    group.add_argument(
+        "--peak-width",
+        type=finite_float,
+        default=None,
+        help="width l of the occupied peak in m (default: the cell diagonal)",
+    )
 
 
 def sensor_model_from_args(args: argparse.Namespace):
@@ -37,75 +57,133 @@ def sensor_model_from_args(args: argparse.Namespace):
     from mapping.sensor_model import SensorModel
     from services.errors import UsageError
 
-    unread = {"constant": ("sigma_slope", "baseline_focal"), "linear": ("baseline_focal",),
-              "stereo": ("sigma_slope",)}[args.sigma_model]
+    unread = {"constant": ("sigma_slope", "baseline_focal"), "linear": ("baseline_focal",), "stereo": ("sigma_slope",)}[
+        args.sigma_model
+    ]
     for name in unread:
         if getattr(args, name) != 0.0:
-            raise UsageError(f"--{name.replace('_', '-')} does nothing with --sigma-model {args.sigma_model}; drop it "
-                             "or choose the model that reads it")
+            raise UsageError(
+                f"--{name.replace('_', '-')} does nothing with --sigma-model {args.sigma_model}; drop it "
+                "or choose the model that reads it"
+            )
 
-    return SensorModel(resolution=args.resolution, sigma=args.sigma_model, sigma0=args.sigma0,
-                       sigma_slope=args.sigma_slope, baseline_focal=args.baseline_focal, peak_width=args.peak_width)
+    return SensorModel(
+        resolution=args.resolution,
+        sigma=args.sigma_model,
+        sigma0=args.sigma0,
+        sigma_slope=args.sigma_slope,
+        baseline_focal=args.baseline_focal,
+        peak_width=args.peak_width,
+    )
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     fuse = subparsers.add_parser(
-        "fuse", help="fuse a posed-scan file into an occupancy map",
+        "fuse",
+        help="fuse a posed-scan file into an occupancy map",
         description="Build an occupancy map from a posed-scan file (scans + per-scan pose distributions). "
         "mode mc integrates every pose sample (Monte Carlo, the paper's method) and keeps a variance layer "
         "that shows where pose uncertainty blurred the map; mode ml uses the most likely pose only.",
     )
     fuse.add_argument("posed", type=Path, help="posed-scan .npz (docs/formats.md)")
-    fuse.add_argument("-o", "--output", required=True, metavar="MAP.npz",
-                      help="map .npz to write (a regular file or a link to one; written in full or not at all)")
+    fuse.add_argument(
+        "-o",
+        "--output",
+        required=True,
+        metavar="MAP.npz",
+        help="map .npz to write (a regular file or a link to one; written in full or not at all)",
+    )
     fuse.add_argument("--mode", choices=("mc", "ml"), default="mc", help="mc: all samples (default); ml: most likely")
-    fuse.add_argument("--samples", type=pose_sample_count, default=None,
-                      help="pose samples drawn per scan for Gaussian poses (default: derived from the covariance "
-                      "and --accuracy)")
-    fuse.add_argument("--accuracy", type=finite_float, default=None,
-                      help="required accuracy in m of the Monte Carlo mean beam end point, for the derived sample "
-                      "count (default: one cell)")
+    fuse.add_argument(
+        "--samples",
+        type=pose_sample_count,
+        default=None,
+        help="pose samples drawn per scan for Gaussian poses (default: derived from the covariance and --accuracy)",
+    )
+    fuse.add_argument(
+        "--accuracy",
+        type=finite_float,
+        default=None,
+        help="required accuracy in m of the Monte Carlo mean beam end point, for the derived sample "
+        "count (default: one cell)",
+    )
     fuse.add_argument("--seed", type=random_seed, default=0, help="seed of the Gaussian pose sampling (default 0)")
-    fuse.add_argument("--grid", choices=("regular", "adaptive"), default="regular",
-                      help="regular: one cell size everywhere (default); adaptive: a quadtree that keeps fine cells "
-                      "only where the scans show structure (docs/adaptive.md); both write the same map file, the "
-                      "adaptive one with a 'level' layer")
+    fuse.add_argument(
+        "--grid",
+        choices=("regular", "adaptive"),
+        default="regular",
+        help="regular: one cell size everywhere (default); adaptive: a quadtree that keeps fine cells "
+        "only where the scans show structure (docs/adaptive.md); both write the same map file, the "
+        "adaptive one with a 'level' layer",
+    )
     add_sensor_model_arguments(fuse)
     adaptive = fuse.add_argument_group("adaptive grid (--grid adaptive, docs/adaptive.md)")
-    adaptive.add_argument("--unknowns", action=argparse.BooleanOptionalAction, default=None,
-                          help="count unknowns (rays that ended before reaching a cell) in the split test, the "
-                          "paper's rule; --no-unknowns: only hits and misses, Einhorn et al.'s (default: unknowns)")
-    adaptive.add_argument("--coarse-cell", type=finite_float, default=None,
-                          help="cell size in m where a scan first observes something: --resolution times a power "
-                          f"of two (default {DEFAULT_COARSE_CELL:g})")
-    adaptive.add_argument("--significance", type=finite_float, default=None,
-                          help="significance of the chi-square split test; larger splits more (default 0.01)")
-    adaptive.add_argument("--unknown-range", type=finite_float, default=None, metavar="M",
-                          help="count a ray's unknowns only up to M m beyond its return (default: up to the "
-                          "range limit, the paper's rule). With a long-range laser among chairs and people, the "
-                          "shadow of every small object splits cells out to the range limit; 1.6 keeps the "
-                          "splits near the returns (docs/adaptive.md, real data)")
+    adaptive.add_argument(
+        "--unknowns",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="count unknowns (rays that ended before reaching a cell) in the split test, the "
+        "paper's rule; --no-unknowns: only hits and misses, Einhorn et al.'s (default: unknowns)",
+    )
+    adaptive.add_argument(
+        "--coarse-cell",
+        type=finite_float,
+        default=None,
+        help="cell size in m where a scan first observes something: --resolution times a power "
+        f"of two (default {DEFAULT_COARSE_CELL:g})",
+    )
+    adaptive.add_argument(
+        "--significance",
+        type=finite_float,
+        default=None,
+        help="significance of the chi-square split test; larger splits more (default 0.01)",
+    )
+    adaptive.add_argument(
+        "--unknown-range",
+        type=finite_float,
+        default=None,
+        metavar="M",
+        help="count a ray's unknowns only up to M m beyond its return (default: up to the "
+        "range limit, the paper's rule). With a long-range laser among chairs and people, the "
+        "shadow of every small object splits cells out to the range limit; 1.6 keeps the "
+        "splits near the returns (docs/adaptive.md, real data)",
+    )
     fuse.set_defaults(func=run_fuse)
 
     export = subparsers.add_parser(
-        "export", help="export a map as PGM+YAML (ROS map_server) or PNG",
+        "export",
+        help="export a map as PGM+YAML (ROS map_server) or PNG",
         description="Export a map file. pgm writes PATH (.pgm) and a map_server YAML beside it; png writes an "
         "image for people (grey level 1 - p: free light, occupied black; unobserved pale blue), or the variance "
         "layer with --layer variance.",
     )
     export.add_argument("map", type=Path, help="map .npz")
-    export.add_argument("--format", choices=("pgm", "png"), required=True,
-                        help="pgm: PATH.pgm and a map_server YAML beside it; png: an image for people")
+    export.add_argument(
+        "--format",
+        choices=("pgm", "png"),
+        required=True,
+        help="pgm: PATH.pgm and a map_server YAML beside it; png: an image for people",
+    )
     export.add_argument("-o", "--output", required=True, metavar="IMAGE", help="image path (.pgm or .png)")
-    export.add_argument("--layer", choices=("probability", "variance"), default="probability",
-                        help="png only: which layer to draw (default probability)")
-    export.add_argument("--crop", type=finite_float, default=None, metavar="MARGIN",
-                        help="m: cut the map to its occupied cells plus MARGIN on every side (rays with no return "
-                        "clear space far beyond the walls; default: the whole map)")
+    export.add_argument(
+        "--layer",
+        choices=("probability", "variance"),
+        default="probability",
+        help="png only: which layer to draw (default probability)",
+    )
+    export.add_argument(
+        "--crop",
+        type=finite_float,
+        default=None,
+        metavar="MARGIN",
+        help="m: cut the map to its occupied cells plus MARGIN on every side (rays with no return "
+        "clear space far beyond the walls; default: the whole map)",
+    )
     export.set_defaults(func=run_export)
 
     evaluate = subparsers.add_parser(
-        "eval", help="score a map against a truth raster (AUC, Brier, NLL)",
+        "eval",
+        help="score a map against a truth raster (AUC, Brier, NLL)",
         description="Score MAP against TRUTH over the truth's visible cells; prints one JSON line with "
         "auc (null when those cells hold one class only), brier, nll (natural log, per cell) and n (cells scored). "
         "Each truth cell takes the map's probability averaged over its area; parts the map does not cover or has "
@@ -132,10 +210,14 @@ def _note_peak_behind_returns(model, posed) -> None:
     sigma = float(model.sigma_at(z))
     behind = min(float(model.peak_range(np.array([z]))[0]) - z, TAIL_SIGMAS * sigma)  # beams stop at z + 3 sigma
     if behind > model.resolution / 2:
-        print(f"posegrid fuse: note: at {z:.3g} m the range noise sigma is {sigma:.3g} m against a peak width l of "
-              f"{model.l:.3g} m, so the strongest occupied evidence of a beam lies {behind:.3g} m behind its return, "
-              "and walls are drawn behind the surfaces; raise --peak-width towards sigma (docs/sensor_model.md, "
-              "section 1)", file=sys.stderr, flush=True)
+        print(
+            f"posegrid fuse: note: at {z:.3g} m the range noise sigma is {sigma:.3g} m against a peak width l of "
+            f"{model.l:.3g} m, so the strongest occupied evidence of a beam lies {behind:.3g} m behind its return, "
+            "and walls are drawn behind the surfaces; raise --peak-width towards sigma (docs/sensor_model.md, "
+            "section 1)",
+            file=sys.stderr,
+            flush=True,
+        )
 
 
 def _scans_without_beams(posed, model) -> int:
@@ -143,8 +225,10 @@ def _scans_without_beams(posed, model) -> int:
     (mapping.beam_model.beam_table's skipped beams), so the scan adds nothing to the map."""
     from mapping.beam_model import BEAM_SKIP, beam_table
 
-    return sum(not (beam_table(ranges, model, posed.range_min, posed.range_max).kind != BEAM_SKIP).any()
-               for ranges in posed.ranges)
+    return sum(
+        not (beam_table(ranges, model, posed.range_min, posed.range_max).kind != BEAM_SKIP).any()
+        for ranges in posed.ranges
+    )
 
 
 def _refuse_an_empty_map(args: argparse.Namespace, posed, empty_scans: int) -> None:
@@ -152,9 +236,11 @@ def _refuse_an_empty_map(args: argparse.Namespace, posed, empty_scans: int) -> N
     from services.errors import UsageError
 
     if empty_scans == len(posed.stamps):
-        raise UsageError(f"{args.posed}: none of its {empty_scans} scans has a usable beam (every reading is below "
-                         f"range_min {posed.range_min:g} m, negative or -inf), so the map would be empty; nothing "
-                         f"written to {args.output}")
+        raise UsageError(
+            f"{args.posed}: none of its {empty_scans} scans has a usable beam (every reading is below "
+            f"range_min {posed.range_min:g} m, negative or -inf), so the map would be empty; nothing "
+            f"written to {args.output}"
+        )
 
 
 def run_fuse(args: argparse.Namespace) -> int:
@@ -162,24 +248,32 @@ def run_fuse(args: argparse.Namespace) -> int:
     from services.errors import UsageError
 
     check_outputs(args, output="-o")
-    adaptive_options = {"--unknowns/--no-unknowns": args.unknowns, "--coarse-cell": args.coarse_cell,
-                        "--significance": args.significance, "--unknown-range": args.unknown_range}
+    adaptive_options = {
+        "--unknowns/--no-unknowns": args.unknowns,
+        "--coarse-cell": args.coarse_cell,
+        "--significance": args.significance,
+        "--unknown-range": args.unknown_range,
+    }
     given = [option for option, value in adaptive_options.items() if value is not None]
     if args.grid == "regular" and given:
         raise UsageError(f"{', '.join(given)} shape the adaptive grid only; add --grid adaptive or drop them")
     if args.mode == "ml" and (args.samples is not None or args.accuracy is not None):
-        raise UsageError("--samples and --accuracy set how many Gaussian pose samples mc draws; ml uses the mean "
-                         "pose only")
+        raise UsageError(
+            "--samples and --accuracy set how many Gaussian pose samples mc draws; ml uses the mean pose only"
+        )
     model = sensor_model_from_args(args)
     posed = load_posed_scans(args.posed)
     empty_scans = _scans_without_beams(posed, model)
     _refuse_an_empty_map(args, posed, empty_scans)
     _note_peak_behind_returns(model, posed)
     if not posed.poses.is_gaussian and (args.samples is not None or args.accuracy is not None):
-        raise UsageError(f"{args.posed} holds pose samples, which are fused as they are; --samples and --accuracy "
-                         "set how many to draw from Gaussian poses")
-    options = dict(mode=args.mode, model=model, n_samples=args.samples, seed=args.seed, accuracy=args.accuracy,
-                   progress=True)
+        raise UsageError(
+            f"{args.posed} holds pose samples, which are fused as they are; --samples and --accuracy "
+            "set how many to draw from Gaussian poses"
+        )
+    options = dict(
+        mode=args.mode, model=model, n_samples=args.samples, seed=args.seed, accuracy=args.accuracy, progress=True
+    )
     if args.grid == "adaptive":
         from mapping.adaptive import AdaptiveParams, level_for_cell_size
         from services.fusion_runner import fuse_posed_scans_adaptive
@@ -189,9 +283,12 @@ def run_fuse(args: argparse.Namespace) -> int:
         if args.unknown_range is not None and not unknowns:
             raise UsageError("--unknown-range limits the unknowns that --no-unknowns turns off; drop one of them")
         coarse_cell = args.coarse_cell if args.coarse_cell is not None else DEFAULT_COARSE_CELL
-        params = AdaptiveParams(start_level=level_for_cell_size(coarse_cell, args.resolution), unknowns=unknowns,
-                                significance=defaults.significance if args.significance is None else args.significance,
-                                unknown_range=args.unknown_range)
+        params = AdaptiveParams(
+            start_level=level_for_cell_size(coarse_cell, args.resolution),
+            unknowns=unknowns,
+            significance=defaults.significance if args.significance is None else args.significance,
+            unknown_range=args.unknown_range,
+        )
         grid = fuse_posed_scans_adaptive(posed, params=params, **options)
         summary = f"{grid.active_cells} active cells ({'with' if unknowns else 'without'} unknowns)"
     else:
@@ -201,14 +298,17 @@ def run_fuse(args: argparse.Namespace) -> int:
         summary = None
     raster = grid.rasterize()
     if not raster["observed"].any():
-        raise UsageError(f"{args.posed}: its scans observed no cell, so the map is empty; nothing written to "
-                         f"{args.output}")
+        raise UsageError(
+            f"{args.posed}: its scans observed no cell, so the map is empty; nothing written to {args.output}"
+        )
     summary = summary or f"{int(raster['observed'].sum())} observed"
     save_map(args.output, MapFile(**raster))
     height, width = raster["logodds"].shape
     unusable = f", {empty_scans} without a usable beam (every reading below range_min, negative or -inf)"
-    print(f"wrote {args.output}: {width} x {height} cells at {args.resolution} m, {summary}, "
-          f"{len(posed.stamps) - empty_scans} scans fused ({args.mode}){unusable if empty_scans else ''}")
+    print(
+        f"wrote {args.output}: {width} x {height} cells at {args.resolution} m, {summary}, "
+        f"{len(posed.stamps) - empty_scans} scans fused ({args.mode}){unusable if empty_scans else ''}"
+    )
     return 0
 
 
@@ -219,12 +319,17 @@ def run_export(args: argparse.Namespace) -> int:
 
     check_outputs(args, output="-o")
     if args.output.suffix.lower() != f".{args.format}":
-        raise UsageError(f"-o {args.output}: a {args.format} export needs a name ending in .{args.format}"
-                         + (" (the map_server YAML is written beside it as NAME.yaml)" if args.format == "pgm" else ""))
+        raise UsageError(
+            f"-o {args.output}: a {args.format} export needs a name ending in .{args.format}"
+            + (" (the map_server YAML is written beside it as NAME.yaml)" if args.format == "pgm" else "")
+        )
     if args.format == "pgm" and args.layer != "probability":
         raise UsageError("--layer variance draws a png; a pgm for map_server holds the occupancy only")
-    yaml_path = checked_output(args.output.with_suffix(".yaml"), "the map_server YAML beside -o,") \
-        if args.format == "pgm" else None
+    yaml_path = (
+        checked_output(args.output.with_suffix(".yaml"), "the map_server YAML beside -o,")
+        if args.format == "pgm"
+        else None
+    )
     map_file = load_map(args.map)
     arrays = vars(map_file)
     if args.crop is not None:
@@ -247,8 +352,11 @@ def run_eval(args: argparse.Namespace) -> int:
 
     scores = score_map(vars(load_map(args.map)), vars(load_truth(args.truth)))
     if math.isnan(scores["auc"]):  # one class only: Brier and NLL still say something, AUC nothing
-        print(f"posegrid eval: the truth's {scores['n']} visible cells hold one class only, so the ROC AUC is undefined "
-              "(null)", file=sys.stderr)
+        print(
+            f"posegrid eval: the truth's {scores['n']} visible cells hold one class only, so the ROC AUC is undefined "
+            "(null)",
+            file=sys.stderr,
+        )
         scores["auc"] = None
     print(json.dumps(scores, allow_nan=False))  # the rest is finite: the map and the truth are validated
     return 0

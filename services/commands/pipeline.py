@@ -3,6 +3,7 @@
 Every process connects to the router as a Zenoh client on tcp/127.0.0.1:7447 unless --connect,
 --listen or --zenoh-config say otherwise (services/zenoh_config.py).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -31,7 +32,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     from services.zenoh_config import add_zenoh_arguments
 
     router = subparsers.add_parser(
-        "router", help="a Zenoh router in a Python process (for machines without zenohd)",
+        "router",
+        help="a Zenoh router in a Python process (for machines without zenohd)",
         description="Route Zenoh traffic between posegrid processes. Listens on tcp/127.0.0.1:7447 unless "
         "--listen or --zenoh-config say otherwise; multicast scouting is off. Stops on Ctrl-C or SIGTERM.",
     )
@@ -39,7 +41,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     router.set_defaults(func=run_router)
 
     mapper = subparsers.add_parser(
-        "mapper", help="one map shard: fuses the scans into the tiles it owns, serves them over Zenoh",
+        "mapper",
+        help="one map shard: fuses the scans into the tiles it owns, serves them over Zenoh",
         description="A mapper shard. Owns the tiles that rendezvous hashing of (tile, shards 0..N-1) gives "
         "shard I, fuses every robot's scans (pg/*/scan) with their poses (pg/*/pose, joined by seq) into "
         "those tiles only, publishes tile updates on pg/map/MAP/tile/0/TX/TY at most every "
@@ -52,18 +55,31 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_fusion_arguments(mapper)
     shard = mapper.add_argument_group("shard")
     shard.add_argument("--tile-size", type=int, default=256, help="cells per tile side, a power of 2 (default 256)")
-    shard.add_argument("--publish-interval", type=finite_float, default=0.05,
-                       help="shortest time between two updates of one tile, s (default 0.05)")
-    shard.add_argument("--join-buffer", type=int, default=512,
-                       help="scans and poses that may wait for their partner (default 512; overflow is counted)")
-    shard.add_argument("--intake-buffer", type=int, default=4096,
-                       help="messages that may wait for the fusion thread (default 4096; overflow is counted)")
+    shard.add_argument(
+        "--publish-interval",
+        type=finite_float,
+        default=0.05,
+        help="shortest time between two updates of one tile, s (default 0.05)",
+    )
+    shard.add_argument(
+        "--join-buffer",
+        type=int,
+        default=512,
+        help="scans and poses that may wait for their partner (default 512; overflow is counted)",
+    )
+    shard.add_argument(
+        "--intake-buffer",
+        type=int,
+        default=4096,
+        help="messages that may wait for the fusion thread (default 4096; overflow is counted)",
+    )
     add_limit_arguments(mapper)
     add_zenoh_arguments(mapper)
     mapper.set_defaults(func=run_mapper)
 
     source = subparsers.add_parser(
-        "source", help="publish a simulated world live, or replay a dataset, over Zenoh",
+        "source",
+        help="publish a simulated world live, or replay a dataset, over Zenoh",
         description="Publish one robot's scans (pg/ROBOT/scan), odometry, landmarks and, for a posed-scan "
         "file, poses (pg/ROBOT/pose), each tagged with the scan's seq, then an end-of-stream mark "
         "(pg/ROBOT/end). --rate max publishes as fast as the mapper shards and the SLAM node take (never more "
@@ -72,18 +88,28 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_input_arguments(source, default_sim=False)
     source.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot name (default {DEFAULT_ROBOT})")
     add_rate_argument(source, "realtime")
-    source.add_argument("--wait-mappers", type=int, default=0, metavar="N",
-                        help="wait for N mapper shards of --map before publishing (default 0: do not wait)")
+    source.add_argument(
+        "--wait-mappers",
+        type=int,
+        default=0,
+        metavar="N",
+        help="wait for N mapper shards of --map before publishing (default 0: do not wait)",
+    )
     source.add_argument("--map", default=DEFAULT_MAP, help=f"map whose shards to wait for (default {DEFAULT_MAP})")
     source.add_argument("--wait-slam", action="store_true", help="wait for the robot's SLAM node before publishing")
-    source.add_argument("--window", type=int, default=32,
-                        help="--rate max: scans the source may run ahead of the slowest shard, and steps ahead "
-                        "of the SLAM node with --wait-slam (default 32)")
+    source.add_argument(
+        "--window",
+        type=int,
+        default=32,
+        help="--rate max: scans the source may run ahead of the slowest shard, and steps ahead "
+        "of the SLAM node with --wait-slam (default 32)",
+    )
     add_zenoh_arguments(source)
     source.set_defaults(func=run_source)
 
     node = subparsers.add_parser(
-        "slam-node", help="run a SLAM filter on a robot's streams and publish its pose distribution per scan",
+        "slam-node",
+        help="run a SLAM filter on a robot's streams and publish its pose distribution per scan",
         description="Follow robot ROBOT's odometry and landmarks (EKF-SLAM, FastSLAM, dead reckoning) or scans "
         "and odometry (grid FastSLAM), take the steps in seq order (a message for a seq already processed is "
         "reported as out of order), and publish per scan the pose distribution on pg/ROBOT/pose: mean and "
@@ -93,13 +119,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     node.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot name (default {DEFAULT_ROBOT})")
     add_slam_arguments(node)
     node.add_argument("--seed", type=random_seed, default=0, help="seed of the particle filter (default 0)")
-    node.add_argument("--initial", default=None, metavar="X,Y,YAW",
-                      help="start pose in m, m, rad (default: the prior the source publishes)")
+    node.add_argument(
+        "--initial",
+        default=None,
+        metavar="X,Y,YAW",
+        help="start pose in m, m, rad (default: the prior the source publishes)",
+    )
     add_zenoh_arguments(node)
     node.set_defaults(func=run_slam_node)
 
     run = subparsers.add_parser(
-        "run", help="run the whole pipeline: router, source, SLAM node, mapper shards, HTTP API",
+        "run",
+        help="run the whole pipeline: router, source, SLAM node, mapper shards, HTTP API",
         description="Start a Zenoh router, N mapper shards, the HTTP API and map viewer, a SLAM node (unless "
         "the input has poses) and a source, print where to look and show progress. Input: the built-in simulated "
         "office (default), a posed-scan file (--posed: scans and poses, no SLAM node), a simulator folder, a CARMEN "
@@ -110,20 +141,28 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     add_input_arguments(run, default_sim=True)
     run.add_argument("--shards", type=int, default=1, help="mapper shards (default 1)")
-    run.add_argument("--export", default=None, metavar="MAP.npz",
-                     help="write the map when the replay ends, then stop everything and exit")
+    run.add_argument(
+        "--export",
+        default=None,
+        metavar="MAP.npz",
+        help="write the map when the replay ends, then stop everything and exit",
+    )
     run.add_argument("--map", default=DEFAULT_MAP, help=f"map name (default {DEFAULT_MAP})")
     run.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot name (default {DEFAULT_ROBOT})")
     add_rate_argument(run, None)
-    run.add_argument("--router-port", type=int, default=None,
-                     help="port of the router on 127.0.0.1 (default: a free one)")
+    run.add_argument(
+        "--router-port", type=int, default=None, help="port of the router on 127.0.0.1 (default: a free one)"
+    )
     run.add_argument("--api-port", type=int, default=8000, help="port of the HTTP API on 127.0.0.1 (default 8000)")
     run.add_argument("--no-api", action="store_true", help="do not start the HTTP API")
     add_http_arguments(run, prefix="api-")  # passed on to the API (services.commands.api)
-    run.add_argument("--secure", action="store_true",
-                     help="Zenoh over TLS with client certificates, a password per process and access control per "
-                     "role (docs/security.md): a CA, certificates, passwords and configs are written to a new 0700 "
-                     "folder, printed at the start and removed at the end")
+    run.add_argument(
+        "--secure",
+        action="store_true",
+        help="Zenoh over TLS with client certificates, a password per process and access control per "
+        "role (docs/security.md): a CA, certificates, passwords and configs are written to a new 0700 "
+        "folder, printed at the start and removed at the end",
+    )
     add_restart_arguments(run)
     add_fusion_arguments(run)
     add_limit_arguments(run)
@@ -137,21 +176,42 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def add_restart_arguments(parser: argparse.ArgumentParser) -> None:
     """When `run` starts a child again that ended (services.nodes.launcher.RestartPolicy, whose defaults these show)."""
     group = parser.add_argument_group(
-        "restarts", "A child that ends while the run goes on (the source: with a non-zero exit or a signal) is "
+        "restarts",
+        "A child that ends while the run goes on (the source: with a non-zero exit or a signal) is "
         "started again with the same arguments and takes what it missed from the histories; a restarted source "
         "replays its input from the start, and the shards drop what they have fused. Restart n (n = 0, 1, ...) "
         "within --restart-window waits --restart-delay * 2^n s, at most --max-restart-delay; a child that fails "
-        "once more after --max-restarts restarts within --restart-window stops the run.")
-    group.add_argument("--max-restarts", type=int, default=5, metavar="N",
-                       help="restarts of one child within --restart-window; 0: a child that ends stops the run "
-                       "(default 5)")
-    group.add_argument("--restart-window", type=finite_float, default=60.0, metavar="SECONDS",
-                       help="the span --max-restarts counts restarts in, s (default 60)")
-    group.add_argument("--restart-delay", type=finite_float, default=0.5, metavar="SECONDS",
-                       help="wait before a child's first restart within --restart-window, s; doubles with each "
-                       "further one (default 0.5)")
-    group.add_argument("--max-restart-delay", type=finite_float, default=10.0, metavar="SECONDS",
-                       help="the longest wait before a restart, s (default 10)")
+        "once more after --max-restarts restarts within --restart-window stops the run.",
+    )
+    group.add_argument(
+        "--max-restarts",
+        type=int,
+        default=5,
+        metavar="N",
+        help="restarts of one child within --restart-window; 0: a child that ends stops the run (default 5)",
+    )
+    group.add_argument(
+        "--restart-window",
+        type=finite_float,
+        default=60.0,
+        metavar="SECONDS",
+        help="the span --max-restarts counts restarts in, s (default 60)",
+    )
+    group.add_argument(
+        "--restart-delay",
+        type=finite_float,
+        default=0.5,
+        metavar="SECONDS",
+        help="wait before a child's first restart within --restart-window, s; doubles with each "
+        "further one (default 0.5)",
+    )
+    group.add_argument(
+        "--max-restart-delay",
+        type=finite_float,
+        default=10.0,
+        metavar="SECONDS",
+        help="the longest wait before a restart, s (default 10)",
+    )
 
 
 def restart_policy(args: argparse.Namespace):
@@ -163,35 +223,68 @@ def restart_policy(args: argparse.Namespace):
     if not args.restart_window > 0:
         raise UsageError(f"--restart-window must be > 0 s, got {args.restart_window}")
     if not 0 <= args.restart_delay <= args.max_restart_delay:
-        raise UsageError(f"need 0 <= --restart-delay <= --max-restart-delay, got {args.restart_delay} and "
-                         f"{args.max_restart_delay}")
+        raise UsageError(
+            f"need 0 <= --restart-delay <= --max-restart-delay, got {args.restart_delay} and {args.max_restart_delay}"
+        )
     from services.nodes.launcher import RestartPolicy
 
-    return RestartPolicy(max_restarts=args.max_restarts, window=args.restart_window, first_delay=args.restart_delay,
-                         max_delay=args.max_restart_delay)
+    return RestartPolicy(
+        max_restarts=args.max_restarts,
+        window=args.restart_window,
+        first_delay=args.restart_delay,
+        max_delay=args.max_restart_delay,
+    )
 
 
 def add_fusion_arguments(parser: argparse.ArgumentParser) -> None:
     """`posegrid fuse`'s fusion options, for the shards (and `run`, which passes them on)."""
     group = parser.add_argument_group("fusion (as for posegrid fuse)")
     group.add_argument("--mode", choices=("mc", "ml"), default="mc", help="mc: all samples (default); ml: most likely")
-    group.add_argument("--samples", type=pose_sample_count, default=None,
-                       help="pose samples per scan for Gaussian poses (default: derived from the covariance)")
-    group.add_argument("--accuracy", type=finite_float, default=None,
-                       help="accuracy in m for the derived sample count (default: one cell)")
-    group.add_argument("--seed", type=random_seed, default=0,
-                       help="seed of the Gaussian pose sampling (`posegrid run`: also of the simulated world and "
-                       "the SLAM filter) (default 0)")
+    group.add_argument(
+        "--samples",
+        type=pose_sample_count,
+        default=None,
+        help="pose samples per scan for Gaussian poses (default: derived from the covariance)",
+    )
+    group.add_argument(
+        "--accuracy",
+        type=finite_float,
+        default=None,
+        help="accuracy in m for the derived sample count (default: one cell)",
+    )
+    group.add_argument(
+        "--seed",
+        type=random_seed,
+        default=0,
+        help="seed of the Gaussian pose sampling (`posegrid run`: also of the simulated world and "
+        "the SLAM filter) (default 0)",
+    )
     add_sensor_model_arguments(parser)
 
 
 def fusion_argv(args: argparse.Namespace) -> list[str]:
     """The fusion and sensor-model options of ``args`` as command-line arguments for a shard."""
-    argv = ["--mode", args.mode, "--seed", str(args.seed), "--resolution", repr(args.resolution),
-            "--sigma-model", args.sigma_model, "--sigma0", repr(args.sigma0), "--sigma-slope", repr(args.sigma_slope),
-            "--baseline-focal", repr(args.baseline_focal)]
-    for option, value in (("--samples", args.samples), ("--accuracy", args.accuracy),
-                          ("--peak-width", args.peak_width)):
+    argv = [
+        "--mode",
+        args.mode,
+        "--seed",
+        str(args.seed),
+        "--resolution",
+        repr(args.resolution),
+        "--sigma-model",
+        args.sigma_model,
+        "--sigma0",
+        repr(args.sigma0),
+        "--sigma-slope",
+        repr(args.sigma_slope),
+        "--baseline-focal",
+        repr(args.baseline_focal),
+    ]
+    for option, value in (
+        ("--samples", args.samples),
+        ("--accuracy", args.accuracy),
+        ("--peak-width", args.peak_width),
+    ):
         if value is not None:
             argv += [option, repr(value)]
     return argv
@@ -203,69 +296,137 @@ def add_input_arguments(parser: argparse.ArgumentParser, default_sim: bool) -> N
     group = parser.add_argument_group("input (one of)")
     mrclam_help = (lambda text: argparse.SUPPRESS) if default_sim else (lambda text: text)
     inputs = group.add_mutually_exclusive_group(required=not default_sim)
-    inputs.add_argument("--sim", action="store_true",
-                        help="simulate the office world live (slam.simulator)" + (" (default)" if default_sim else ""))
+    inputs.add_argument(
+        "--sim",
+        action="store_true",
+        help="simulate the office world live (slam.simulator)" + (" (default)" if default_sim else ""),
+    )
     inputs.add_argument("--posed", type=Path, metavar="FILE.npz", help="posed-scan file: scans with their poses")
     inputs.add_argument("--sim-dir", type=Path, metavar="DIR", help="folder written by `posegrid simulate`")
-    inputs.add_argument("--mrclam", type=Path, metavar="DIR",
-                        help=mrclam_help("UTIAS MRCLAM dataset folder (no laser)"))
+    inputs.add_argument(
+        "--mrclam", type=Path, metavar="DIR", help=mrclam_help("UTIAS MRCLAM dataset folder (no laser)")
+    )
     inputs.add_argument("--carmen", type=Path, metavar="FILE", help="CARMEN log (.clf/.log, plain or gzip)")
-    inputs.add_argument("--bag", type=Path, metavar="BAG", help="ROS bag with LaserScan and odometry (Odometry "
-                        "messages or /tf): a ROS 1 .bag file or a ROS 2 bag folder")
-    group.add_argument("--mrclam-robot", type=int, default=1, metavar="K",
-                       help=mrclam_help("MRCLAM robot number (default 1)"))
-    group.add_argument("--scan-topic", type=str, default=None, metavar="TOPIC",
-                       help="--bag: the LaserScan topic (default: the only one, or /scan)")
-    group.add_argument("--odom-delay", type=odom_delay_seconds, default=0.0, metavar="SECONDS",
-                       help="--carmen, --bag: read each scan's odometry this many seconds after its stamp (negative: "
-                       "before), from the log's separate odometry stream, for a laser whose stamps run late against "
-                       "the odometry's (Freiburg 079's bag: -0.10; `posegrid slam --algo gridslam LOG --odom-delay "
-                       "auto` estimates it; default 0)")
-    group.add_argument("--raw-ranges", action="store_true", help=mrclam_help(
-                       "MRCLAM: publish the ranges as logged, without the bearing-dependent range calibration"))
-    group.add_argument("--raw-commands", action="store_true", help=mrclam_help(
-                       "MRCLAM: publish the velocity commands as logged, without the calibration of the speeds the "
-                       "robots executed"))
+    inputs.add_argument(
+        "--bag",
+        type=Path,
+        metavar="BAG",
+        help="ROS bag with LaserScan and odometry (Odometry messages or /tf): a ROS 1 .bag file or a ROS 2 bag folder",
+    )
+    group.add_argument(
+        "--mrclam-robot", type=int, default=1, metavar="K", help=mrclam_help("MRCLAM robot number (default 1)")
+    )
+    group.add_argument(
+        "--scan-topic",
+        type=str,
+        default=None,
+        metavar="TOPIC",
+        help="--bag: the LaserScan topic (default: the only one, or /scan)",
+    )
+    group.add_argument(
+        "--odom-delay",
+        type=odom_delay_seconds,
+        default=0.0,
+        metavar="SECONDS",
+        help="--carmen, --bag: read each scan's odometry this many seconds after its stamp (negative: "
+        "before), from the log's separate odometry stream, for a laser whose stamps run late against "
+        "the odometry's (Freiburg 079's bag: -0.10; `posegrid slam --algo gridslam LOG --odom-delay "
+        "auto` estimates it; default 0)",
+    )
+    group.add_argument(
+        "--raw-ranges",
+        action="store_true",
+        help=mrclam_help("MRCLAM: publish the ranges as logged, without the bearing-dependent range calibration"),
+    )
+    group.add_argument(
+        "--raw-commands",
+        action="store_true",
+        help=mrclam_help(
+            "MRCLAM: publish the velocity commands as logged, without the calibration of the speeds the robots executed"
+        ),
+    )
     group.add_argument("--steps", type=int, default=400, help="--sim: steps of 0.1 s to simulate (default 400)")
     if not default_sim:  # `run` has --seed among its fusion options and passes it on
         group.add_argument("--seed", type=random_seed, default=0, help="--sim: seed of the simulated world (default 0)")
 
 
 def add_rate_argument(parser: argparse.ArgumentParser, default: str | None) -> None:
-    parser.add_argument("--rate", default=default,
-                        help="'realtime', a factor of real time (e.g. 2) or 'max' (as fast as the shards take); "
-                        "default " + (default or "max with --export, else realtime"))
+    parser.add_argument(
+        "--rate",
+        default=default,
+        help="'realtime', a factor of real time (e.g. 2) or 'max' (as fast as the shards take); "
+        "default " + (default or "max with --export, else realtime"),
+    )
 
 
 def add_slam_arguments(parser: argparse.ArgumentParser, particles: int | None = None) -> None:
     """The SLAM node's filter options (the same names and meanings as `posegrid slam`)."""
     group = parser.add_argument_group("SLAM node (as for posegrid slam)")
-    group.add_argument("--algo", choices=SLAM_ALGORITHMS, default=None,
-                       help="odometry, ekf, fastslam1, fastslam2 (landmarks) or gridslam (laser and odometry); "
-                       f"default {DEFAULT_ALGORITHM}, and for `posegrid run` gridslam with --carmen or --bag")
-    group.add_argument("--particles", type=pose_sample_count, default=particles,
-                       help="FastSLAM / grid FastSLAM particles (default %s)"
-                       % (particles or f"{NODE_PARTICLES} for FastSLAM, 30 for grid FastSLAM"))
-    group.add_argument("--associate", choices=("known", "unknown"), default="known",
-                       help="landmark correspondences: known ids (default) or estimated")
-    group.add_argument("--motion", choices=("velocity", "odometry"), default="velocity",
-                       help="landmark filters: velocity commands (default) or odometry readings as controls")
-    group.add_argument("--models", choices=("sim", "mrclam"), default=None,
-                       help="noise-model defaults: the simulator's or the ones fitted for MRCLAM (default: "
-                       "what the input is)")
-    group.add_argument("--alphas", default=None, metavar="A1,...",
-                       help="motion noise: 6 numbers (velocity model) or 4 (odometry model)")
+    group.add_argument(
+        "--algo",
+        choices=SLAM_ALGORITHMS,
+        default=None,
+        help="odometry, ekf, fastslam1, fastslam2 (landmarks) or gridslam (laser and odometry); "
+        f"default {DEFAULT_ALGORITHM}, and for `posegrid run` gridslam with --carmen or --bag",
+    )
+    group.add_argument(
+        "--particles",
+        type=pose_sample_count,
+        default=particles,
+        help="FastSLAM / grid FastSLAM particles (default %s)"
+        % (particles or f"{NODE_PARTICLES} for FastSLAM, 30 for grid FastSLAM"),
+    )
+    group.add_argument(
+        "--associate",
+        choices=("known", "unknown"),
+        default="known",
+        help="landmark correspondences: known ids (default) or estimated",
+    )
+    group.add_argument(
+        "--motion",
+        choices=("velocity", "odometry"),
+        default="velocity",
+        help="landmark filters: velocity commands (default) or odometry readings as controls",
+    )
+    group.add_argument(
+        "--models",
+        choices=("sim", "mrclam"),
+        default=None,
+        help="noise-model defaults: the simulator's or the ones fitted for MRCLAM (default: what the input is)",
+    )
+    group.add_argument(
+        "--alphas",
+        default=None,
+        metavar="A1,...",
+        help="motion noise: 6 numbers (velocity model) or 4 (odometry model)",
+    )
     group.add_argument("--sigma-range", type=finite_float, default=None, help="landmark range noise std in m")
     group.add_argument("--sigma-bearing", type=finite_float, default=None, help="landmark bearing noise std in rad")
-    group.add_argument("--range-fraction", type=finite_float, default=None,
-                       help="landmark range noise std grows by this many m per m of range")
-    group.add_argument("--outlier-gate", type=finite_float, default=None, metavar="D2",
-                       help="known ids: ignore a measurement beyond this squared Mahalanobis distance")
-    group.add_argument("--resample-threshold", type=finite_float, default=0.5,
-                       help="FastSLAM: resample when N_eff < this fraction of the particles (default 0.5)")
-    group.add_argument("--plain-resampling", action="store_true",
-                       help="FastSLAM: resample the particles' map frames with them, as the textbook does "
-                       "(default: keep every frame, known ids only; docs/slam.md)")
+    group.add_argument(
+        "--range-fraction",
+        type=finite_float,
+        default=None,
+        help="landmark range noise std grows by this many m per m of range",
+    )
+    group.add_argument(
+        "--outlier-gate",
+        type=finite_float,
+        default=None,
+        metavar="D2",
+        help="known ids: ignore a measurement beyond this squared Mahalanobis distance",
+    )
+    group.add_argument(
+        "--resample-threshold",
+        type=finite_float,
+        default=0.5,
+        help="FastSLAM: resample when N_eff < this fraction of the particles (default 0.5)",
+    )
+    group.add_argument(
+        "--plain-resampling",
+        action="store_true",
+        help="FastSLAM: resample the particles' map frames with them, as the textbook does "
+        "(default: keep every frame, known ids only; docs/slam.md)",
+    )
     add_filter_options(group, label="grid FastSLAM: ")
 
 
@@ -273,14 +434,31 @@ def slam_argv(args: argparse.Namespace, models: str) -> list[str]:
     """The SLAM options of ``args`` as arguments for a slam-node child."""
     algo = args.algo or DEFAULT_ALGORITHM
     reject_filter_options(args, algo)
-    argv = ["--algo", algo, "--associate", args.associate, "--motion", args.motion, "--seed", str(args.seed),
-            "--models", args.models or models, "--resample-threshold", repr(args.resample_threshold)]
+    argv = [
+        "--algo",
+        algo,
+        "--associate",
+        args.associate,
+        "--motion",
+        args.motion,
+        "--seed",
+        str(args.seed),
+        "--models",
+        args.models or models,
+        "--resample-threshold",
+        repr(args.resample_threshold),
+    ]
     if args.plain_resampling:
         argv.append("--plain-resampling")
-    for option, value in (("--particles", args.particles), ("--alphas", args.alphas),
-                          ("--sigma-range", args.sigma_range), ("--sigma-bearing", args.sigma_bearing),
-                          ("--range-fraction", args.range_fraction), ("--outlier-gate", args.outlier_gate),
-                          *((option, value) for option, _, value in filter_option_values(args))):
+    for option, value in (
+        ("--particles", args.particles),
+        ("--alphas", args.alphas),
+        ("--sigma-range", args.sigma_range),
+        ("--sigma-bearing", args.sigma_bearing),
+        ("--range-fraction", args.range_fraction),
+        ("--outlier-gate", args.outlier_gate),
+        *((option, value) for option, _, value in filter_option_values(args)),
+    ):
         if value is not None:
             argv += [option, value if isinstance(value, str) else repr(value)]
     return argv
@@ -302,8 +480,10 @@ def _check_name(value: str, option: str) -> None:
     from services.errors import UsageError
 
     if not is_valid_name(value) or (option == "--robot" and value in RESERVED_ROBOT_NAMES):
-        raise UsageError(f"{option} {value!r} is not a valid name (letters, digits, '_', '.', '-', at most 64"
-                         f"{'; not map' if option == '--robot' else ''})")
+        raise UsageError(
+            f"{option} {value!r} is not a valid name (letters, digits, '_', '.', '-', at most 64"
+            f"{'; not map' if option == '--robot' else ''})"
+        )
 
 
 def _check_positive(args: argparse.Namespace, *names: str) -> None:
@@ -359,8 +539,9 @@ def _stream(args: argparse.Namespace):
     if args.sim_dir is not None:
         return streams.sim_folder_stream(args.sim_dir, args.robot)
     if args.mrclam is not None:
-        return streams.mrclam_stream(args.mrclam, args.mrclam_robot, args.robot, raw_ranges=args.raw_ranges,
-                                     raw_commands=args.raw_commands)
+        return streams.mrclam_stream(
+            args.mrclam, args.mrclam_robot, args.robot, raw_ranges=args.raw_ranges, raw_commands=args.raw_commands
+        )
     if args.carmen is not None or args.bag is not None:
         return streams.laser_log_stream(_laser_log(args, "source"), args.robot)
     from slam.simulator import simulate_office
@@ -372,8 +553,8 @@ def _stream(args: argparse.Namespace):
 
 
 def run_router(args: argparse.Namespace) -> int:
-    from services.process import install_stop_event
     from services.nodes.router import run_router as route
+    from services.process import install_stop_event
     from services.zenoh_config import config_from_args
 
     config = config_from_args(args, "router")
@@ -399,10 +580,20 @@ def run_mapper(args: argparse.Namespace) -> int:
     from services.state.shard import ShardConfig
     from services.zenoh_config import config_from_args
 
-    config = ShardConfig(map_name=args.map, shard=args.shard, shards=args.shards, model=sensor_model_from_args(args),
-                         mode=args.mode, n_samples=args.samples, seed=args.seed, accuracy=args.accuracy,
-                         tile_size=args.tile_size, publish_interval=args.publish_interval,
-                         join_capacity=args.join_buffer, limits=limits_from_args(args))
+    config = ShardConfig(
+        map_name=args.map,
+        shard=args.shard,
+        shards=args.shards,
+        model=sensor_model_from_args(args),
+        mode=args.mode,
+        n_samples=args.samples,
+        seed=args.seed,
+        accuracy=args.accuracy,
+        tile_size=args.tile_size,
+        publish_interval=args.publish_interval,
+        join_capacity=args.join_buffer,
+        limits=limits_from_args(args),
+    )
     zenoh_config = config_from_args(args, "client")
     return serve(config, zenoh_config, install_stop_event(), args.intake_buffer)
 
@@ -417,15 +608,16 @@ def run_source(args: argparse.Namespace) -> int:
     if args.steps < 1:
         raise UsageError(f"--steps must be >= 1, got {args.steps}")
     rate = _rate(args.rate)
-    from services.process import install_stop_event
     from services.nodes.source import Source, SourceOptions, SourceStalled
+    from services.process import install_stop_event
     from services.zenoh_config import config_from_args, open_session
 
     stop = install_stop_event()
     zenoh_config = config_from_args(args, "client")
     stream = _stream(args)
-    options = SourceOptions(rate=rate, wait_mappers=args.wait_mappers, map_name=args.map, wait_slam=args.wait_slam,
-                            window=args.window)
+    options = SourceOptions(
+        rate=rate, wait_mappers=args.wait_mappers, map_name=args.map, wait_slam=args.wait_slam, window=args.window
+    )
     session = open_session(zenoh_config, "the source")
     try:
         return Source(session, stream, options).run(stop)
@@ -461,10 +653,18 @@ def run_pipeline(args: argparse.Namespace) -> int:
     from services.nodes.launcher import run_pipeline as launch
     from services.process import install_stop_event
 
-    plan = Plan(map_name=args.map, robot=args.robot, shards=args.shards, resolution=args.resolution,
-                mapper_argv=fusion_argv(args) + limit_argv(args), source_argv=["--rate", rate_text], export=args.export,
-                router_port=args.router_port, api_port=None if args.no_api else args.api_port,
-                api_argv=[] if args.no_api else api_child_options(args))
+    plan = Plan(
+        map_name=args.map,
+        robot=args.robot,
+        shards=args.shards,
+        resolution=args.resolution,
+        mapper_argv=fusion_argv(args) + limit_argv(args),
+        source_argv=["--rate", rate_text],
+        export=args.export,
+        router_port=args.router_port,
+        api_port=None if args.no_api else args.api_port,
+        api_argv=[] if args.no_api else api_child_options(args),
+    )
     if args.posed is not None:
         from schemas.files import load_posed_scans
 
@@ -472,13 +672,17 @@ def run_pipeline(args: argparse.Namespace) -> int:
         plan.source_argv += ["--posed", str(args.posed)]
         plan.description = f"replaying {args.posed} (scans and poses) into {args.shards} shard(s)"
     elif args.mrclam is not None:
-        raise UsageError("an MRCLAM folder holds no laser scans, so there is no map to build; publish its poses "
-                         "with `posegrid source --mrclam` and `posegrid slam-node` instead")
+        raise UsageError(
+            "an MRCLAM folder holds no laser scans, so there is no map to build; publish its poses "
+            "with `posegrid source --mrclam` and `posegrid slam-node` instead"
+        )
     elif args.carmen is not None or args.bag is not None:
         option, log = ("--carmen", args.carmen) if args.carmen is not None else ("--bag", args.bag)
         if args.algo not in (None, "gridslam"):
-            raise UsageError(f"{'a CARMEN log' if option == '--carmen' else 'a ROS bag'} has no landmarks: its SLAM "
-                             "node must be --algo gridslam")
+            raise UsageError(
+                f"{'a CARMEN log' if option == '--carmen' else 'a ROS bag'} has no landmarks: its SLAM "
+                "node must be --algo gridslam"
+            )
         args.algo = "gridslam"
         plan.scans = len(_laser_log(args, "run"))  # read here too: a log that cannot be replayed stops run at once
         plan.source_argv += [f"{option}={log}"]  # (with "=": a file named "-x.bag" is no option)
@@ -500,16 +704,19 @@ def run_pipeline(args: argparse.Namespace) -> int:
         _use_sim_models(args, log.velocity_model if args.motion == "velocity" else log.odometry_model, log.sensor)
         plan.source_argv += ["--sim-dir", str(args.sim_dir)]
         plan.slam_argv = slam_argv(args, "sim")
-        plan.description = (f"replaying {args.sim_dir} through {args.algo or DEFAULT_ALGORITHM} into {args.shards} "
-                            "shard(s)")
+        plan.description = (
+            f"replaying {args.sim_dir} through {args.algo or DEFAULT_ALGORITHM} into {args.shards} shard(s)"
+        )
     else:
         if args.steps < 1:
             raise UsageError(f"--steps must be >= 1, got {args.steps}")
         plan.scans = args.steps
         plan.source_argv += ["--sim", "--seed", str(args.seed), "--steps", str(args.steps)]
         plan.slam_argv = slam_argv(args, "sim")
-        plan.description = (f"simulating the office world (seed {args.seed}, {args.steps} steps of 0.1 s) through "
-                            f"{args.algo or DEFAULT_ALGORITHM} into {args.shards} shard(s)")
+        plan.description = (
+            f"simulating the office world (seed {args.seed}, {args.steps} steps of 0.1 s) through "
+            f"{args.algo or DEFAULT_ALGORITHM} into {args.shards} shard(s)"
+        )
     plan.restart = restarts
     plan.secure = args.secure
     return launch(plan, install_stop_event())
@@ -569,8 +776,13 @@ def run_slam_node(args: argparse.Namespace) -> int:
     from services.state.slam import NodeConfig
     from services.zenoh_config import config_from_args
 
-    config = NodeConfig(robot=args.robot, algorithm=algo,
-                        make_filter=lambda start: make_filter(args, motion, sensor, gate, start, NODE_PARTICLES),
-                        motion=args.motion, initial=None if initial is None else np.array(initial),
-                        grid_config=grid_config, seed=args.seed)
+    config = NodeConfig(
+        robot=args.robot,
+        algorithm=algo,
+        make_filter=lambda start: make_filter(args, motion, sensor, gate, start, NODE_PARTICLES),
+        motion=args.motion,
+        initial=None if initial is None else np.array(initial),
+        grid_config=grid_config,
+        seed=args.seed,
+    )
     return serve(config, config_from_args(args, "client"), install_stop_event())

@@ -1,5 +1,6 @@
 """`posegrid secure-init`: the CA, certificates, passwords and Zenoh configs of a secured deployment
 (services/security.py, docs/security.md)."""
+
 from __future__ import annotations
 
 import argparse
@@ -11,7 +12,8 @@ DEFAULT_PORT = 7447
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     init = subparsers.add_parser(
-        "secure-init", help="write a CA, TLS certificates, passwords and per-role Zenoh configs (docs/security.md)",
+        "secure-init",
+        help="write a CA, TLS certificates, passwords and per-role Zenoh configs (docs/security.md)",
         description="Write into DIR (created with mode 0700; every file 0600) what a deployment secured with Zenoh's "
         "own mechanisms needs: a certificate authority (ca.pem; its key is not kept), the router's certificate for "
         "localhost, 127.0.0.1 and every --host, one client certificate and password per role, the router's config "
@@ -21,19 +23,39 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "(with --force) to replace the material, e.g. for a new robot or before the certificates expire.",
     )
     init.add_argument("folder", type=Path, metavar="DIR", help="folder to write into (empty or new, unless --force)")
-    init.add_argument("--robot", action="append", default=None, metavar="NAME",
-                      help="a robot that may publish (repeatable; default robot0)")
-    init.add_argument("--map", action="append", default=None, metavar="NAME",
-                      help="a map whose shards may serve (repeatable; default main)")
-    init.add_argument("--host", action="append", default=[], metavar="NAME",
-                      help="a DNS name or IP address clients reach the router by, put in its certificate; the first "
-                      "is the one the client configs connect to (repeatable; default the --listen-address, or "
-                      "127.0.0.1 when that is 0.0.0.0 or ::)")
+    init.add_argument(
+        "--robot",
+        action="append",
+        default=None,
+        metavar="NAME",
+        help="a robot that may publish (repeatable; default robot0)",
+    )
+    init.add_argument(
+        "--map",
+        action="append",
+        default=None,
+        metavar="NAME",
+        help="a map whose shards may serve (repeatable; default main)",
+    )
+    init.add_argument(
+        "--host",
+        action="append",
+        default=[],
+        metavar="NAME",
+        help="a DNS name or IP address clients reach the router by, put in its certificate; the first "
+        "is the one the client configs connect to (repeatable; default the --listen-address, or "
+        "127.0.0.1 when that is 0.0.0.0 or ::)",
+    )
     init.add_argument("--port", type=int, default=DEFAULT_PORT, help=f"the router's TCP port (default {DEFAULT_PORT})")
-    init.add_argument("--listen-address", default="127.0.0.1", metavar="ADDRESS",
-                      help="the address the router listens on (default 127.0.0.1; 0.0.0.0 serves other machines)")
-    init.add_argument("--days", type=int, default=None, metavar="N",
-                      help="days the certificates are valid (default 365)")
+    init.add_argument(
+        "--listen-address",
+        default="127.0.0.1",
+        metavar="ADDRESS",
+        help="the address the router listens on (default 127.0.0.1; 0.0.0.0 serves other machines)",
+    )
+    init.add_argument(
+        "--days", type=int, default=None, metavar="N", help="days the certificates are valid (default 365)"
+    )
     init.add_argument("--force", action="store_true", help="replace what DIR holds")
     init.set_defaults(func=run_secure_init)
 
@@ -44,8 +66,8 @@ def _endpoint_host(host: str) -> str:
 
 
 def run_secure_init(args: argparse.Namespace) -> int:
-    from services.errors import UsageError
     from services.commands.pipeline import DEFAULT_MAP, DEFAULT_ROBOT, _check_name
+    from services.errors import UsageError
     from services.security import DEFAULT_VALID_DAYS, write_material
 
     robots, maps = args.robot or [DEFAULT_ROBOT], args.map or [DEFAULT_MAP]
@@ -60,8 +82,9 @@ def run_secure_init(args: argparse.Namespace) -> int:
         raise UsageError(f"--days must be >= 1, got {days}")
     for option, value in [*(("--host", host) for host in args.host), ("--listen-address", args.listen_address)]:
         if not value or any(c in value for c in "/[]#?@ ") or value.count(":") == 1:
-            raise UsageError(f"{option} takes a bare DNS name or IP address (no scheme, port or brackets), got "
-                             f"{value!r}")
+            raise UsageError(
+                f"{option} takes a bare DNS name or IP address (no scheme, port or brackets), got {value!r}"
+            )
     listen = f"tls/{_endpoint_host(args.listen_address)}:{args.port}"
     if args.folder.exists() and not args.folder.is_dir():
         raise UsageError(f"{args.folder} exists and is not a folder")

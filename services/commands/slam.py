@@ -2,6 +2,7 @@
 
 Units everywhere: metres, radians, seconds; poses are (x, y, yaw) in the map frame.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -24,7 +25,7 @@ STAMP_TOLERANCE = 1e-6
 #: (MRCLAM estimates end about 7 ms after their ground truth; farther out, the held end pose is no truth)
 TRUTH_MARGIN = 0.05
 #: simulate: the most ranges (steps x beams) one run holds, 400 MB of float32
-MAX_SIMULATED_RANGES = 10 ** 8
+MAX_SIMULATED_RANGES = 10**8
 #: MRCLAM: the shortest --period in s; the commands come at about 67 Hz, so a finer grid adds steps (and memory:
 #: steps x particles x 3 floats) without information
 MIN_PERIOD = 0.01
@@ -38,14 +39,23 @@ _LANDMARK_FILTERS = ("ekf", "fastslam1", "fastslam2")
 _FASTSLAMS = ("fastslam1", "fastslam2")
 #: the algorithms each option of `posegrid slam` applies to (grid FastSLAM's own options: gridslam.py)
 OPTION_ALGORITHMS = {
-    "--particles": _FASTSLAMS + ("gridslam",), "--seed": _FASTSLAMS + ("gridslam",),
-    "--resample-threshold": _FASTSLAMS + ("gridslam",), "--plain-resampling": _FASTSLAMS,
-    "--associate": _LANDMARK_FILTERS, "--sigma-range": _LANDMARK_FILTERS, "--sigma-bearing": _LANDMARK_FILTERS,
-    "--range-fraction": _LANDMARK_FILTERS, "--outlier-gate": _LANDMARK_FILTERS,
-    **{option: ("odometry",) + _LANDMARK_FILTERS
-       for option in ("--alphas", "--robot", "--initial", "--period", "--raw-ranges", "--raw-commands", "--motion")},
-    **{option: ("gridslam",)  # (a delay of 0, the default, counts as not given)
-       for option in ("--stats", "--scan-topic", "--best-output", "--poses-output", "--odom-delay")},
+    "--particles": _FASTSLAMS + ("gridslam",),
+    "--seed": _FASTSLAMS + ("gridslam",),
+    "--resample-threshold": _FASTSLAMS + ("gridslam",),
+    "--plain-resampling": _FASTSLAMS,
+    "--associate": _LANDMARK_FILTERS,
+    "--sigma-range": _LANDMARK_FILTERS,
+    "--sigma-bearing": _LANDMARK_FILTERS,
+    "--range-fraction": _LANDMARK_FILTERS,
+    "--outlier-gate": _LANDMARK_FILTERS,
+    **dict.fromkeys(
+        ("--alphas", "--robot", "--initial", "--period", "--raw-ranges", "--raw-commands", "--motion"),
+        ("odometry",) + _LANDMARK_FILTERS,
+    ),
+    **{
+        option: ("gridslam",)  # (a delay of 0, the default, counts as not given)
+        for option in ("--stats", "--scan-topic", "--best-output", "--poses-output", "--odom-delay")
+    },
 }
 
 
@@ -54,7 +64,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     from slam.range_bearing import RANGE_FRACTION_LIMITS, SIGMA_BEARING_LIMITS, SIGMA_RANGE_LIMITS
 
     simulate = subparsers.add_parser(
-        "simulate", help="simulate a robot in an office: odometry, landmarks, laser scans, ground truth",
+        "simulate",
+        help="simulate a robot in an office: odometry, landmarks, laser scans, ground truth",
         description="Simulate a robot driving through a 20 m x 12 m office (corridor, six rooms with doors, "
         "furniture, 37 point landmarks) and write OUTDIR/scans.npz (posed scans at the TRUE poses), "
         "truth.npz (truth raster), groundtruth.npz (true poses as a pose-distribution file), controls.npz "
@@ -68,14 +79,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     simulate.add_argument("--beams", type=int, default=361, help="laser beams per scan (default 361)")
     simulate.add_argument("--fov", type=finite_float, default=math.pi, help="laser field of view in rad (default pi)")
     simulate.add_argument("--range-max", type=finite_float, default=12.0, help="laser maximum range in m (default 12)")
-    simulate.add_argument("--laser-sigma", type=finite_float, default=0.01,
-                          help="laser range noise std in m (default 0.01)")
-    simulate.add_argument("--resolution", type=finite_float, default=0.05,
-                          help="truth raster cell size in m (default 0.05)")
+    simulate.add_argument(
+        "--laser-sigma", type=finite_float, default=0.01, help="laser range noise std in m (default 0.01)"
+    )
+    simulate.add_argument(
+        "--resolution", type=finite_float, default=0.05, help="truth raster cell size in m (default 0.05)"
+    )
     simulate.set_defaults(func=run_simulate)
 
     slam = subparsers.add_parser(
-        "slam", help="estimate the pose distribution: dead reckoning, EKF-SLAM, FastSLAM 1.0/2.0 or grid FastSLAM",
+        "slam",
+        help="estimate the pose distribution: dead reckoning, EKF-SLAM, FastSLAM 1.0/2.0 or grid FastSLAM",
         description="Run a SLAM filter over INPUT, a simulator folder (from 'posegrid simulate') or a UTIAS "
         "MRCLAM dataset folder (with --robot), or grid FastSLAM (--algo gridslam) over a laser log: a CARMEN log or "
         "a ROS bag. Output: with a simulator folder that holds scans.npz, a "
@@ -86,57 +100,120 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     slam.add_argument("input", type=Path, help="simulator folder or MRCLAM folder (gridslam: a CARMEN log or ROS bag)")
     slam.add_argument("-o", "--output", required=True, metavar="OUTPUT.npz", help=".npz to write")
-    slam.add_argument("--algo", choices=ALGORITHMS, required=True,
-                      help="odometry: dead reckoning (baseline); ekf: EKF-SLAM; fastslam1 / fastslam2: FastSLAM; "
-                      "gridslam: grid FastSLAM on a laser log")
-    slam.add_argument("--particles", type=pose_sample_count, default=None,
-                      help="FastSLAM particles (default %d)" % DEFAULT_PARTICLES)
-    slam.add_argument("--seed", type=random_seed, default=None,
-                      help="seed of the particle filter (default %d)" % SLAM_DEFAULTS["seed"])
-    slam.add_argument("--associate", choices=("known", "unknown"), default=None,
-                      help="landmark correspondences: known ids (default) or estimated (EKF: nearest in "
-                      "Mahalanobis distance with gating; FastSLAM: per-particle maximum likelihood)")
+    slam.add_argument(
+        "--algo",
+        choices=ALGORITHMS,
+        required=True,
+        help="odometry: dead reckoning (baseline); ekf: EKF-SLAM; fastslam1 / fastslam2: FastSLAM; "
+        "gridslam: grid FastSLAM on a laser log",
+    )
+    slam.add_argument(
+        "--particles", type=pose_sample_count, default=None, help="FastSLAM particles (default %d)" % DEFAULT_PARTICLES
+    )
+    slam.add_argument(
+        "--seed",
+        type=random_seed,
+        default=None,
+        help="seed of the particle filter (default %d)" % SLAM_DEFAULTS["seed"],
+    )
+    slam.add_argument(
+        "--associate",
+        choices=("known", "unknown"),
+        default=None,
+        help="landmark correspondences: known ids (default) or estimated (EKF: nearest in "
+        "Mahalanobis distance with gating; FastSLAM: per-particle maximum likelihood)",
+    )
     slam.add_argument("--robot", type=int, default=None, help="MRCLAM: robot number K (RobotK_*.dat)")
-    slam.add_argument("--initial", type=str, default=None, metavar="X,Y,YAW",
-                      help="MRCLAM: start pose in m, m, rad (default: the first ground-truth pose)")
-    slam.add_argument("--period", type=finite_float, default=None,
-                      help="MRCLAM: output a pose at least every PERIOD s besides every landmark-measurement "
-                      "stamp (default %g, at least %g)" % (DEFAULT_PERIOD, MIN_PERIOD))
-    slam.add_argument("--raw-ranges", action="store_true",
-                      help="MRCLAM: use the ranges as logged, without the bearing-dependent range calibration")
-    slam.add_argument("--raw-commands", action="store_true",
-                      help="MRCLAM: use the velocity commands as logged, without scaling them to the speeds the "
-                      "robots executed (slam.mrclam.MRCLAM_VELOCITY_SCALE, docs/slam.md)")
-    slam.add_argument("--motion", choices=("velocity", "odometry"), default=None,
-                      help="simulator: the velocity commands (default) or the odometry readings as controls")
-    noise = slam.add_argument_group("noise models (defaults: the simulator's own; for MRCLAM the values "
-                                    "fitted in docs/slam.md)")
-    noise.add_argument("--alphas", type=str, default=None, metavar="A1,...",
-                       help="motion noise: 6 numbers for the velocity model (PR table 5.3, variances per "
-                       "0.1 s), 4 for the odometry model (PR table 5.6); each in [%g, %g]" % ALPHA_LIMITS)
-    noise.add_argument("--sigma-range", type=finite_float, default=None,
-                       help="landmark range noise std in m, in [%g, %g]" % SIGMA_RANGE_LIMITS)
-    noise.add_argument("--sigma-bearing", type=finite_float, default=None,
-                       help="landmark bearing noise std in rad, in [%g, pi]" % SIGMA_BEARING_LIMITS[0])
-    noise.add_argument("--range-fraction", type=finite_float, default=None,
-                       help="landmark range noise std grows by this many m per m of range (on top of --sigma-range), "
-                       "in [%g, %g]" % RANGE_FRACTION_LIMITS)
-    noise.add_argument("--outlier-gate", type=finite_float, default=None, metavar="D2",
-                       help="known ids: ignore a measurement whose squared Mahalanobis distance exceeds D2 "
-                       "(FastSLAM: per particle, likelihood capped at D2); 'inf' turns it off")
-    noise.add_argument("--resample-threshold", type=finite_float, default=None,
-                       help="FastSLAM: resample when N_eff < this fraction of the particles (default %g)"
-                       % SLAM_DEFAULTS["resample_threshold"])
-    noise.add_argument("--plain-resampling", action="store_true",
-                       help="FastSLAM: resample the particles' map frames with them, as the textbook does "
-                       "(default: keep every frame, known ids only; docs/slam.md)")
+    slam.add_argument(
+        "--initial",
+        type=str,
+        default=None,
+        metavar="X,Y,YAW",
+        help="MRCLAM: start pose in m, m, rad (default: the first ground-truth pose)",
+    )
+    slam.add_argument(
+        "--period",
+        type=finite_float,
+        default=None,
+        help="MRCLAM: output a pose at least every PERIOD s besides every landmark-measurement "
+        "stamp (default %g, at least %g)" % (DEFAULT_PERIOD, MIN_PERIOD),
+    )
+    slam.add_argument(
+        "--raw-ranges",
+        action="store_true",
+        help="MRCLAM: use the ranges as logged, without the bearing-dependent range calibration",
+    )
+    slam.add_argument(
+        "--raw-commands",
+        action="store_true",
+        help="MRCLAM: use the velocity commands as logged, without scaling them to the speeds the "
+        "robots executed (slam.mrclam.MRCLAM_VELOCITY_SCALE, docs/slam.md)",
+    )
+    slam.add_argument(
+        "--motion",
+        choices=("velocity", "odometry"),
+        default=None,
+        help="simulator: the velocity commands (default) or the odometry readings as controls",
+    )
+    noise = slam.add_argument_group(
+        "noise models (defaults: the simulator's own; for MRCLAM the values fitted in docs/slam.md)"
+    )
+    noise.add_argument(
+        "--alphas",
+        type=str,
+        default=None,
+        metavar="A1,...",
+        help="motion noise: 6 numbers for the velocity model (PR table 5.3, variances per "
+        "0.1 s), 4 for the odometry model (PR table 5.6); each in [%g, %g]" % ALPHA_LIMITS,
+    )
+    noise.add_argument(
+        "--sigma-range",
+        type=finite_float,
+        default=None,
+        help="landmark range noise std in m, in [%g, %g]" % SIGMA_RANGE_LIMITS,
+    )
+    noise.add_argument(
+        "--sigma-bearing",
+        type=finite_float,
+        default=None,
+        help="landmark bearing noise std in rad, in [%g, pi]" % SIGMA_BEARING_LIMITS[0],
+    )
+    noise.add_argument(
+        "--range-fraction",
+        type=finite_float,
+        default=None,
+        help="landmark range noise std grows by this many m per m of range (on top of --sigma-range), "
+        "in [%g, %g]" % RANGE_FRACTION_LIMITS,
+    )
+    noise.add_argument(
+        "--outlier-gate",
+        type=finite_float,
+        default=None,
+        metavar="D2",
+        help="known ids: ignore a measurement whose squared Mahalanobis distance exceeds D2 "
+        "(FastSLAM: per particle, likelihood capped at D2); 'inf' turns it off",
+    )
+    noise.add_argument(
+        "--resample-threshold",
+        type=finite_float,
+        default=None,
+        help="FastSLAM: resample when N_eff < this fraction of the particles (default %g)"
+        % SLAM_DEFAULTS["resample_threshold"],
+    )
+    noise.add_argument(
+        "--plain-resampling",
+        action="store_true",
+        help="FastSLAM: resample the particles' map frames with them, as the textbook does "
+        "(default: keep every frame, known ids only; docs/slam.md)",
+    )
     slam.set_defaults(func=run_slam)
     from services.commands.gridslam import add_gridslam_arguments  # grid FastSLAM (--algo gridslam)
 
     add_gridslam_arguments(slam)
 
     evaluate = subparsers.add_parser(
-        "eval-traj", help="score a SLAM trajectory against ground truth (ATE, NEES, 95%% coverage)",
+        "eval-traj",
+        help="score a SLAM trajectory against ground truth (ATE, NEES, 95%% coverage)",
         description="Score the pose distributions in POSES (a pose-distribution or posed-scan .npz) against "
         "GROUNDTRUTH: a pose-distribution .npz (its mean or weighted mean), a simulator folder (its "
         "groundtruth.npz) or an MRCLAM RobotK_Groundtruth.dat; ground truth is interpolated to the estimate's "
@@ -180,35 +257,72 @@ def _simulation_folder(text: str) -> Path:
 def run_simulate(args: argparse.Namespace) -> int:
     from services.errors import UsageError
 
-    limits = {"--steps": (args.steps, 1, 100_000), "--beams": (args.beams, 1, 100_000), "--dt": (args.dt, 1e-3, 1.0),
-              "--resolution": (args.resolution, 5e-3, 1.0), "--laser-sigma": (args.laser_sigma, 0.0, 1.0),
-              "--fov": (args.fov, 1e-3, 2 * math.pi), "--range-max": (args.range_max, 0.1, 1000.0)}
+    limits = {
+        "--steps": (args.steps, 1, 100_000),
+        "--beams": (args.beams, 1, 100_000),
+        "--dt": (args.dt, 1e-3, 1.0),
+        "--resolution": (args.resolution, 5e-3, 1.0),
+        "--laser-sigma": (args.laser_sigma, 0.0, 1.0),
+        "--fov": (args.fov, 1e-3, 2 * math.pi),
+        "--range-max": (args.range_max, 0.1, 1000.0),
+    }
     for option, (value, low, high) in limits.items():  # the office is 20 m x 12 m, its robot drives at 0.5 m/s
         _check_limits(option, value, (low, high))
     if args.steps * args.beams > MAX_SIMULATED_RANGES:
-        raise UsageError(f"--steps x --beams is {args.steps * args.beams}, more than the {MAX_SIMULATED_RANGES:.0e} "
-                         "ranges a run may hold (each scan's beams are kept in memory)")
+        raise UsageError(
+            f"--steps x --beams is {args.steps * args.beams}, more than the {MAX_SIMULATED_RANGES:.0e} "
+            "ranges a run may hold (each scan's beams are kept in memory)"
+        )
     import numpy as np
 
-    from schemas.files import PoseDistributionFile, PosedScans, PoseSet, TruthRaster
-    from schemas.files import save_pose_distribution, save_posed_scans, save_truth
+    from schemas.files import (
+        PoseDistributionFile,
+        PosedScans,
+        PoseSet,
+        TruthRaster,
+        save_pose_distribution,
+        save_posed_scans,
+        save_truth,
+    )
     from slam.simlog import save_sim_log
     from slam.simulator import simulate_office
 
     args.outdir = _simulation_folder(args.outdir)
-    run = simulate_office(seed=args.seed, steps=args.steps, n_beams=args.beams, range_max=args.range_max,
-                          fov=args.fov, laser_sigma=args.laser_sigma, dt=args.dt, truth_resolution=args.resolution)
+    run = simulate_office(
+        seed=args.seed,
+        steps=args.steps,
+        n_beams=args.beams,
+        range_max=args.range_max,
+        fov=args.fov,
+        laser_sigma=args.laser_sigma,
+        dt=args.dt,
+        truth_resolution=args.resolution,
+    )
     truth_poses = PoseSet(samples=run.true_poses[:, None, :], weights=np.ones((len(run.stamps), 1)))
-    save_posed_scans(args.outdir / "scans.npz", PosedScans(
-        ranges=run.ranges, angle_min=run.angle_min, angle_increment=run.angle_increment, range_min=run.range_min,
-        range_max=run.range_max, stamps=run.stamps, sensor_offset=run.sensor_offset, poses=truth_poses))
-    save_truth(args.outdir / "truth.npz", TruthRaster(run.truth_occupied, run.truth_visible, run.truth_origin,
-                                                      run.truth_resolution))
+    save_posed_scans(
+        args.outdir / "scans.npz",
+        PosedScans(
+            ranges=run.ranges,
+            angle_min=run.angle_min,
+            angle_increment=run.angle_increment,
+            range_min=run.range_min,
+            range_max=run.range_max,
+            stamps=run.stamps,
+            sensor_offset=run.sensor_offset,
+            poses=truth_poses,
+        ),
+    )
+    save_truth(
+        args.outdir / "truth.npz",
+        TruthRaster(run.truth_occupied, run.truth_visible, run.truth_origin, run.truth_resolution),
+    )
     save_pose_distribution(args.outdir / "groundtruth.npz", PoseDistributionFile(stamps=run.stamps, poses=truth_poses))
     save_sim_log(args.outdir, run.log())
-    print(f"wrote {args.outdir}: {len(run.stamps)} steps of {args.dt} s, {run.ranges.shape[1]} beams, "
-          f"{len(run.landmarks)} landmarks, {len(run.landmark_step)} landmark measurements, "
-          f"truth raster {run.truth_occupied.shape[1]} x {run.truth_occupied.shape[0]} cells")
+    print(
+        f"wrote {args.outdir}: {len(run.stamps)} steps of {args.dt} s, {run.ranges.shape[1]} beams, "
+        f"{len(run.landmarks)} landmarks, {len(run.landmark_step)} landmark measurements, "
+        f"truth raster {run.truth_occupied.shape[1]} x {run.truth_occupied.shape[0]} cells"
+    )
     return 0
 
 
@@ -264,24 +378,32 @@ def _load_input(args: argparse.Namespace):
             raise UsageError("MRCLAM logs hold velocity commands only: drop --motion odometry")
         period = DEFAULT_PERIOD if args.period is None else args.period
         if not period >= MIN_PERIOD:
-            raise UsageError(f"--period must be at least {MIN_PERIOD:g} s (the commands come about every "
-                             f"0.015 s), got {period:g}")
+            raise UsageError(
+                f"--period must be at least {MIN_PERIOD:g} s (the commands come about every 0.015 s), got {period:g}"
+            )
         initial = initial_pose(args.initial) if args.initial is not None else None
         run = mrclam.read_mrclam(args.input, args.robot)
-        sequence = mrclam.mrclam_sequence(run, initial_pose=initial, period=period,
-                                          range_calibration=None if args.raw_ranges else mrclam.MRCLAM_RANGE_CALIBRATION,
-                                          velocity_scale=None if args.raw_commands else mrclam.MRCLAM_VELOCITY_SCALE)
+        sequence = mrclam.mrclam_sequence(
+            run,
+            initial_pose=initial,
+            period=period,
+            range_calibration=None if args.raw_ranges else mrclam.MRCLAM_RANGE_CALIBRATION,
+            velocity_scale=None if args.raw_commands else mrclam.MRCLAM_VELOCITY_SCALE,
+        )
         before_start = len(run.measurements) - len(sequence.measurements)  # mrclam_sequence leaves them out
-        notes = (f"skipped {run.skipped_robots} measurements of robots, {run.skipped_unknown} of barcodes "
-                 f"in no table, {run.skipped_outside} stamped outside the odometry's time span, "
-                 f"{before_start} before the filter's start and "
-                 f"{run.skipped_invalid} with a range <= 0 m or a bearing beyond a full turn")
-        return (sequence, mrclam.MRCLAM_MOTION, mrclam.MRCLAM_SENSOR,
-                mrclam.MRCLAM_OUTLIER_GATE, None, notes)
+        notes = (
+            f"skipped {run.skipped_robots} measurements of robots, {run.skipped_unknown} of barcodes "
+            f"in no table, {run.skipped_outside} stamped outside the odometry's time span, "
+            f"{before_start} before the filter's start and "
+            f"{run.skipped_invalid} with a range <= 0 m or a bearing beyond a full turn"
+        )
+        return (sequence, mrclam.MRCLAM_MOTION, mrclam.MRCLAM_SENSOR, mrclam.MRCLAM_OUTLIER_GATE, None, notes)
     if not args.input.exists():
         raise UsageError(f"{args.input}: no such folder")
-    raise UsageError(f"{args.input}: neither a simulator folder (no {CONTROLS_FILE}) nor an MRCLAM folder "
-                     "(no Barcodes.dat and RobotK_Odometry.dat)")
+    raise UsageError(
+        f"{args.input}: neither a simulator folder (no {CONTROLS_FILE}) nor an MRCLAM folder "
+        "(no Barcodes.dat and RobotK_Odometry.dat)"
+    )
 
 
 def _check_limits(option: str, value: float, limits: tuple[float, float]) -> None:
@@ -306,8 +428,11 @@ def noise_overrides(args: argparse.Namespace, motion, sensor, gate):
         for alpha in alphas:
             _check_limits("--alphas", alpha, ALPHA_LIMITS)
         motion = replace(motion, alphas=tuple(alphas))
-    limits = {"sigma_range": SIGMA_RANGE_LIMITS, "sigma_bearing": SIGMA_BEARING_LIMITS,
-              "range_fraction": RANGE_FRACTION_LIMITS}
+    limits = {
+        "sigma_range": SIGMA_RANGE_LIMITS,
+        "sigma_bearing": SIGMA_BEARING_LIMITS,
+        "range_fraction": RANGE_FRACTION_LIMITS,
+    }
     for name, name_limits in limits.items():
         value = getattr(args, name)
         if value is not None:
@@ -334,26 +459,40 @@ def make_filter(args: argparse.Namespace, motion, sensor, gate, initial, default
     particles = default_particles if args.particles is None else args.particles
     if not 0 <= args.resample_threshold <= 1:
         raise UsageError(f"--resample-threshold must be in [0, 1], got {args.resample_threshold}")
-    return FastSLAM(motion, sensor, initial, n_particles=particles, version=1 if args.algo == "fastslam1" else 2,
-                    known_correspondences=known, seed=args.seed, resample_threshold=args.resample_threshold,
-                    outlier_gate=gate, preserve_gauge=not args.plain_resampling)
+    return FastSLAM(
+        motion,
+        sensor,
+        initial,
+        n_particles=particles,
+        version=1 if args.algo == "fastslam1" else 2,
+        known_correspondences=known,
+        seed=args.seed,
+        resample_threshold=args.resample_threshold,
+        outlier_gate=gate,
+        preserve_gauge=not args.plain_resampling,
+    )
 
 
 def _refuse_ignored_options(args: argparse.Namespace) -> None:
     """Raise UsageError when an option is given to an algorithm that would ignore it (:data:`OPTION_ALGORITHMS`;
     grid FastSLAM's own options: :func:`services.commands.gridslam.reject_filter_options`), then put the
     defaults of :data:`SLAM_DEFAULTS` in place of the options left alone."""
-    from services.errors import UsageError
     from services.commands.gridslam import reject_filter_options
+    from services.errors import UsageError
 
     reject_filter_options(args, args.algo)
-    ignored = [option for option, algorithms in OPTION_ALGORITHMS.items()
-               if args.algo not in algorithms and getattr(args, option[2:].replace("-", "_")) not in (None, False)]
+    ignored = [
+        option
+        for option, algorithms in OPTION_ALGORITHMS.items()
+        if args.algo not in algorithms and getattr(args, option[2:].replace("-", "_")) not in (None, False)
+    ]
     if ignored:
         users = sorted({algo for option in ignored for algo in OPTION_ALGORITHMS[option]}, key=ALGORITHMS.index)
-        raise UsageError(f"{', '.join(ignored)} {'does' if len(ignored) == 1 else 'do'} not apply to --algo "
-                         f"{args.algo} (only to {', '.join(users)}): drop {'it' if len(ignored) == 1 else 'them'} "
-                         "or pick another --algo")
+        raise UsageError(
+            f"{', '.join(ignored)} {'does' if len(ignored) == 1 else 'do'} not apply to --algo "
+            f"{args.algo} (only to {', '.join(users)}): drop {'it' if len(ignored) == 1 else 'them'} "
+            "or pick another --algo"
+        )
     for name, value in SLAM_DEFAULTS.items():
         if getattr(args, name) is None:
             setattr(args, name, value)
@@ -370,8 +509,14 @@ def run_slam(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from schemas.errors import FormatError
-    from schemas.files import PoseDistributionFile, PosedScans, PoseSet
-    from schemas.files import load_posed_scans, save_pose_distribution, save_posed_scans
+    from schemas.files import (
+        PoseDistributionFile,
+        PosedScans,
+        PoseSet,
+        load_posed_scans,
+        save_pose_distribution,
+        save_posed_scans,
+    )
     from slam.sequence import run_filter
 
     sequence, motion, sensor, gate, scans_path, notes = _load_input(args)
@@ -382,8 +527,10 @@ def run_slam(args: argparse.Namespace) -> int:
         raise FormatError(f"{scans_path}: holds {len(scans.stamps)} scans but the controls have {len(sequence)} steps")
     if scans is not None and not np.allclose(scans.stamps, sequence.stamps, rtol=0.0, atol=STAMP_TOLERANCE):
         step = int(np.argmax(np.abs(scans.stamps - sequence.stamps) > STAMP_TOLERANCE))
-        raise FormatError(f"{scans_path}: scan {step} is stamped {scans.stamps[step]:.6f} s but the controls' step "
-                          f"{step} {sequence.stamps[step]:.6f} s; the scans must be those of the controls' steps")
+        raise FormatError(
+            f"{scans_path}: scan {step} is stamped {scans.stamps[step]:.6f} s but the controls' step "
+            f"{step} {sequence.stamps[step]:.6f} s; the scans must be those of the controls' steps"
+        )
     slam_filter = make_filter(args, motion, sensor, gate, sequence.initial_pose)
 
     started = time.perf_counter()
@@ -396,10 +543,19 @@ def run_slam(args: argparse.Namespace) -> int:
     else:
         poses = PoseSet(samples=track.samples, weights=track.weights)
     if scans is not None:
-        save_posed_scans(args.output, PosedScans(
-            ranges=scans.ranges, angle_min=scans.angle_min, angle_increment=scans.angle_increment,
-            range_min=scans.range_min, range_max=scans.range_max, stamps=scans.stamps,
-            sensor_offset=scans.sensor_offset, poses=poses))
+        save_posed_scans(
+            args.output,
+            PosedScans(
+                ranges=scans.ranges,
+                angle_min=scans.angle_min,
+                angle_increment=scans.angle_increment,
+                range_min=scans.range_min,
+                range_max=scans.range_max,
+                stamps=scans.stamps,
+                sensor_offset=scans.sensor_offset,
+                poses=poses,
+            ),
+        )
         kind = "posed-scan file"
     else:
         save_pose_distribution(args.output, PoseDistributionFile(stamps=track.stamps, poses=poses))
@@ -410,11 +566,15 @@ def run_slam(args: argparse.Namespace) -> int:
     if rejected is not None:
         extras.append(f"{rejected} measurements dropped by the gates")
     if hasattr(slam_filter, "resamplings"):
-        extras.append(f"{slam_filter.stationary_skipped} measurements skipped while standing still, "
-                      f"{slam_filter.resamplings} resamplings")
-    print(f"wrote {args.output} ({kind}): {len(sequence)} steps over {duration:.1f} s of data in {elapsed:.2f} s, "
-          f"{1e3 * elapsed / len(sequence):.2f} ms per step, {duration / max(elapsed, 1e-9):.0f}x real time"
-          + "".join(f"; {e}" for e in extras))
+        extras.append(
+            f"{slam_filter.stationary_skipped} measurements skipped while standing still, "
+            f"{slam_filter.resamplings} resamplings"
+        )
+    print(
+        f"wrote {args.output} ({kind}): {len(sequence)} steps over {duration:.1f} s of data in {elapsed:.2f} s, "
+        f"{1e3 * elapsed / len(sequence):.2f} ms per step, {duration / max(elapsed, 1e-9):.0f}x real time"
+        + "".join(f"; {e}" for e in extras)
+    )
     return 0
 
 
@@ -433,8 +593,10 @@ def _truth_at(path: Path, stamps):
     from slam.scoring import fit_gaussian, interpolate_poses
 
     if not path.exists():
-        raise UsageError(f"{path}: no such file or folder (GROUNDTRUTH is a pose .npz, a simulator folder or a "
-                         "RobotK_Groundtruth.dat)")
+        raise UsageError(
+            f"{path}: no such file or folder (GROUNDTRUTH is a pose .npz, a simulator folder or a "
+            "RobotK_Groundtruth.dat)"
+        )
     if path.is_dir():
         path = path / "groundtruth.npz"
     if path.suffix.lower() == ".npz":
@@ -448,9 +610,11 @@ def _truth_at(path: Path, stamps):
     first, last = truth_stamps.min(), truth_stamps.max()
     covered = (stamps >= first - TRUTH_MARGIN) & (stamps <= last + TRUTH_MARGIN)
     if not covered.any():
-        raise UsageError(f"no stamp of the estimate ({stamps.min():.6f} .. {stamps.max():.6f} s) lies within "
-                         f"{TRUTH_MARGIN:g} s of the time span of {path} ({first:.6f} .. {last:.6f} s); are they in "
-                         "the same time base?")
+        raise UsageError(
+            f"no stamp of the estimate ({stamps.min():.6f} .. {stamps.max():.6f} s) lies within "
+            f"{TRUTH_MARGIN:g} s of the time span of {path} ({first:.6f} .. {last:.6f} s); are they in "
+            "the same time base?"
+        )
     order = truth_stamps.argsort(kind="stable")
     return interpolate_poses(stamps, truth_stamps[order], mean[order]), covered
 
@@ -467,14 +631,27 @@ def run_eval_traj(args: argparse.Namespace) -> int:
     mean, cov = (poses.mean, poses.cov) if poses.is_gaussian else fit_gaussian(poses.samples, poses.weights)
     truth, covered = _truth_at(args.groundtruth, dist.stamps)
     if not covered.all():
-        print(f"posegrid eval-traj: note: scored {int(covered.sum())} of {len(covered)} steps; the others lie more "
-              f"than {TRUTH_MARGIN:g} s outside the ground truth's time span", file=sys.stderr)
+        print(
+            f"posegrid eval-traj: note: scored {int(covered.sum())} of {len(covered)} steps; the others lie more "
+            f"than {TRUTH_MARGIN:g} s outside the ground truth's time span",
+            file=sys.stderr,
+        )
     with np.errstate(over="ignore", invalid="ignore"):  # a score that overflows is refused below
         score = score_trajectory(mean[covered], cov[covered], truth[covered])
     if not all(math.isfinite(value) for value in (score.ate_rmse_m, score.heading_mae_rad, score.nees_mean)):
-        raise UsageError(f"the scores of {args.poses} against {args.groundtruth} are not finite (ATE "
-                         f"{score.ate_rmse_m}, NEES {score.nees_mean}): a pose or covariance is too large to score")
-    print(json.dumps({"ate_rmse_m": round(score.ate_rmse_m, 6), "heading_mae_rad": round(score.heading_mae_rad, 6),
-                      "nees_mean": round(score.nees_mean, 4), "inside95": round(score.inside95, 4),
-                      "steps": score.steps}))
+        raise UsageError(
+            f"the scores of {args.poses} against {args.groundtruth} are not finite (ATE "
+            f"{score.ate_rmse_m}, NEES {score.nees_mean}): a pose or covariance is too large to score"
+        )
+    print(
+        json.dumps(
+            {
+                "ate_rmse_m": round(score.ate_rmse_m, 6),
+                "heading_mae_rad": round(score.heading_mae_rad, 6),
+                "nees_mean": round(score.nees_mean, 4),
+                "inside95": round(score.inside95, 4),
+                "steps": score.steps,
+            }
+        )
+    )
     return 0

@@ -14,6 +14,7 @@ replays its input from the start: every input of `posegrid run` is a file or the
 publishes the very messages it published before, which the shards drop as `resent` and the SLAM node as
 out of order. A child that fails more often than the policy allows stops the run.
 """
+
 from __future__ import annotations
 
 import os
@@ -81,7 +82,7 @@ class RestartPolicy:
 
 
 def describe_exit(code: int) -> str:
-    """"exited 1", or for a child ended by a signal "exited -9 (SIGKILL)" (Popen's code: minus the signal)."""
+    """ "exited 1", or for a child ended by a signal "exited -9 (SIGKILL)" (Popen's code: minus the signal)."""
     if code < 0:
         try:
             return f"exited {code} ({signal.Signals(-code).name})"
@@ -122,8 +123,13 @@ class Children:
     """The launcher's child processes, started in order and stopped in reverse; :meth:`tend` restarts the ones
     that end under ``policy``. ``clock`` (s) and ``spawn`` (argv -> Popen) are for tests."""
 
-    def __init__(self, log, policy: RestartPolicy | None = None, clock: Callable[[], float] = time.monotonic,
-                 spawn: Callable[[list[str]], subprocess.Popen] = spawn_service):
+    def __init__(
+        self,
+        log,
+        policy: RestartPolicy | None = None,
+        clock: Callable[[], float] = time.monotonic,
+        spawn: Callable[[list[str]], subprocess.Popen] = spawn_service,
+    ):
         self.log = log
         self.policy = policy or RestartPolicy()
         self.clock = clock
@@ -143,8 +149,9 @@ class Children:
 
     def running_to_finish(self) -> bool:
         """Whether a child that ends on its own (the source) is still running, or is to be restarted."""
-        return any(c.expected_to_finish and (c.process.poll() is None or c.restart_at is not None)
-                   for c in self.children)
+        return any(
+            c.expected_to_finish and (c.process.poll() is None or c.restart_at is not None) for c in self.children
+        )
 
     def tend(self) -> Child | None:
         """Restart the children whose backoff is over, and schedule a restart for each that has just ended badly,
@@ -164,21 +171,27 @@ class Children:
         child.failures += 1
         code = child.process.returncode
         if code == USAGE_EXIT:  # its input or options are wrong: it would fail the same way again
-            _say(f"posegrid run: error: {child.name} (pid {child.process.pid}) {describe_exit(code)}: its input or "
-                 "options were refused (its own error line above says why); not restarting it: stopping the run")
+            _say(
+                f"posegrid run: error: {child.name} (pid {child.process.pid}) {describe_exit(code)}: its input or "
+                "options were refused (its own error line above says why); not restarting it: stopping the run"
+            )
             return False
         delay = self.policy.delay(child.restarts, now)
         if delay is None:
             times = "time" if child.failures == 1 else "times"
-            _say(f"posegrid run: error: {child.name} failed {child.failures} {times}; the last time (pid "
-                 f"{child.process.pid}) it {describe_exit(code)}; it had {self.policy.recent(child.restarts, now)} "
-                 f"restart(s) in the last {self.policy.window:g} s, the most --max-restarts allows: stopping the run")
+            _say(
+                f"posegrid run: error: {child.name} failed {child.failures} {times}; the last time (pid "
+                f"{child.process.pid}) it {describe_exit(code)}; it had {self.policy.recent(child.restarts, now)} "
+                f"restart(s) in the last {self.policy.window:g} s, the most --max-restarts allows: stopping the run"
+            )
             return False
         child.restarts.append(now)
         child.restart_at = now + delay
-        _say(f"posegrid run: {child.name} (pid {child.process.pid}) {describe_exit(code)}; restarting in {delay:g} s "
-             f"(restart {self.policy.recent(child.restarts, now)} of {self.policy.max_restarts} within "
-             f"{self.policy.window:g} s)")
+        _say(
+            f"posegrid run: {child.name} (pid {child.process.pid}) {describe_exit(code)}; restarting in {delay:g} s "
+            f"(restart {self.policy.recent(child.restarts, now)} of {self.policy.max_restarts} within "
+            f"{self.policy.window:g} s)"
+        )
         return True
 
     def _restart(self, child: Child) -> None:
@@ -208,8 +221,9 @@ class Children:
             try:
                 child.process.wait(max(0.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
-                self.log.warning("%s (pid %d) did not stop within %.0f s; killing it", child.name, child.process.pid,
-                                 STOP_GRACE)
+                self.log.warning(
+                    "%s (pid %d) did not stop within %.0f s; killing it", child.name, child.process.pid, STOP_GRACE
+                )
                 child.process.kill()
                 child.process.wait()
 
@@ -246,8 +260,11 @@ def run_pipeline(plan: Plan, stop: threading.Event) -> int:
     endpoint = f"{'tls' if plan.secure else 'tcp'}/127.0.0.1:{port}"
     material = run_material(plan.robot, plan.map_name, endpoint) if plan.secure else None
     if material is not None:
-        print(f"posegrid run: secure: TLS, passwords and ACL; CA {material.ca}; a read-only client connects with "
-              f"--zenoh-config {material.config_for(Role('api'))} (removed when the run ends)", flush=True)
+        print(
+            f"posegrid run: secure: TLS, passwords and ACL; CA {material.ca}; a read-only client connects with "
+            f"--zenoh-config {material.config_for(Role('api'))} (removed when the run ends)",
+            flush=True,
+        )
 
     def role_zenoh(kind: str, scope: str | None = None) -> list[str]:
         """A child's --connect, and with --secure the config of its role."""
@@ -258,23 +275,49 @@ def run_pipeline(plan: Plan, stop: threading.Event) -> int:
     try:
         children.start("router", ["router", "--listen", endpoint, *zenoh_argv(material, None)])
         for shard in range(plan.shards):  # they keep trying to reach the router while it starts
-            children.start(f"mapper[{shard}]", ["mapper", "--shard", str(shard), "--shards", str(plan.shards),
-                                                "--map", plan.map_name, *plan.mapper_argv,
-                                                *role_zenoh("mapper", plan.map_name)])
+            children.start(
+                f"mapper[{shard}]",
+                [
+                    "mapper",
+                    "--shard",
+                    str(shard),
+                    "--shards",
+                    str(plan.shards),
+                    "--map",
+                    plan.map_name,
+                    *plan.mapper_argv,
+                    *role_zenoh("mapper", plan.map_name),
+                ],
+            )
         if plan.api_port is not None:  # the API learns the shards from their liveliness: start it alongside
-            children.start("api", ["api", "--host", "127.0.0.1", "--port", str(plan.api_port), *plan.api_argv,
-                                   *role_zenoh("api")])
+            children.start(
+                "api", ["api", "--host", "127.0.0.1", "--port", str(plan.api_port), *plan.api_argv, *role_zenoh("api")]
+            )
         launcher_config = material.config_for(Role("launcher")) if material is not None else None
         session = open_session(build_config("client", connect=[endpoint], config_file=launcher_config), "the launcher")
         try:
             if not _wait_for_shards(session, plan, children, stop):
                 return 130 if stop.is_set() else 1
             if plan.slam_argv is not None:
-                children.start("slam-node", ["slam-node", "--robot", plan.robot, *plan.slam_argv,
-                                             *role_zenoh("slam", plan.robot)])
-            children.start("source", ["source", "--robot", plan.robot, "--map", plan.map_name, "--wait-mappers",
-                                      str(plan.shards), *(["--wait-slam"] if plan.slam_argv is not None else []),
-                                      *plan.source_argv, *role_zenoh("source", plan.robot)], expected_to_finish=True)
+                children.start(
+                    "slam-node", ["slam-node", "--robot", plan.robot, *plan.slam_argv, *role_zenoh("slam", plan.robot)]
+                )
+            children.start(
+                "source",
+                [
+                    "source",
+                    "--robot",
+                    plan.robot,
+                    "--map",
+                    plan.map_name,
+                    "--wait-mappers",
+                    str(plan.shards),
+                    *(["--wait-slam"] if plan.slam_argv is not None else []),
+                    *plan.source_argv,
+                    *role_zenoh("source", plan.robot),
+                ],
+                expected_to_finish=True,
+            )
             _banner(plan, endpoint, children)
             code = _supervise(session, plan, children, stop, log)
         finally:
@@ -301,24 +344,35 @@ def _wait_for_shards(session, plan: Plan, children: Children, stop: threading.Ev
             print(f"posegrid run: error: the {plan.shards} mapper shard(s) did not start", file=sys.stderr)
             return False
         if children.clock() > children.last_start + START_TIMEOUT:
-            print(f"posegrid run: error: the {plan.shards} mapper shard(s) did not start (only {alive} came up in "
-                  f"{START_TIMEOUT:.0f} s)", file=sys.stderr)
+            print(
+                f"posegrid run: error: the {plan.shards} mapper shard(s) did not start (only {alive} came up in "
+                f"{START_TIMEOUT:.0f} s)",
+                file=sys.stderr,
+            )
             return False
         stop.wait(0.1)
     return False
 
 
 def _banner(plan: Plan, endpoint: str, children: Children) -> None:
-    lines = [f"posegrid run: {plan.description}",
-             f"  zenoh router: {endpoint}  (connect with --connect {endpoint})",
-             f"  map {plan.map_name!r}: tiles on {keys.tile_key(plan.map_name, 0, '*', '*')}, "
-             f"stats on {keys.stats_key(plan.map_name, '*')}",
-             (f"  HTTP API and map viewer: http://127.0.0.1:{plan.api_port}/  (OpenAPI: /openapi.json)"
-              + ("; it wants the access token: open /?token=TOKEN once, or send 'Authorization: Bearer TOKEN'"
-                 if os.environ.get(TOKEN_ENV) else "")
-              if plan.api_port is not None else "  HTTP API: not started (--no-api)"),
-             "  running: " + ", ".join(f"{c.name} (pid {c.process.pid})" for c in children.children),
-             "  Ctrl-C stops everything"]
+    lines = [
+        f"posegrid run: {plan.description}",
+        f"  zenoh router: {endpoint}  (connect with --connect {endpoint})",
+        f"  map {plan.map_name!r}: tiles on {keys.tile_key(plan.map_name, 0, '*', '*')}, "
+        f"stats on {keys.stats_key(plan.map_name, '*')}",
+        (
+            f"  HTTP API and map viewer: http://127.0.0.1:{plan.api_port}/  (OpenAPI: /openapi.json)"
+            + (
+                "; it wants the access token: open /?token=TOKEN once, or send 'Authorization: Bearer TOKEN'"
+                if os.environ.get(TOKEN_ENV)
+                else ""
+            )
+            if plan.api_port is not None
+            else "  HTTP API: not started (--no-api)"
+        ),
+        "  running: " + ", ".join(f"{c.name} (pid {c.process.pid})" for c in children.children),
+        "  Ctrl-C stops everything",
+    ]
     print("\n".join(lines), flush=True)
 
 
@@ -327,8 +381,9 @@ def _supervise(session, plan: Plan, children: Children, stop: threading.Event, l
     the children that end meanwhile (:meth:`Children.tend`); returns 1 when one fails past the restart cap."""
     reader = MapReader(session, plan.map_name)
     finished = False
-    with tqdm(total=plan.scans, desc="fused (slowest shard)", unit="scan", file=sys.stderr, disable=None,
-              mininterval=0.5) as bar:
+    with tqdm(
+        total=plan.scans, desc="fused (slowest shard)", unit="scan", file=sys.stderr, disable=None, mininterval=0.5
+    ) as bar:
         while not stop.wait(0.25):
             if children.tend() is not None:  # (it said which child, and why)
                 return 1
@@ -340,15 +395,21 @@ def _supervise(session, plan: Plan, children: Children, stop: threading.Event, l
             done = min(s.fused.get(plan.robot, 0) for s in stats.values())
             bar.update(done - bar.n)
             ended = [s.ended.get(plan.robot) for s in stats.values()]
-            if children.running_to_finish() or None in ended or any(s.fused.get(plan.robot, 0) + s.discarded.get(plan.robot, 0) < ended[0]
-                                    for s in stats.values()):
+            if (
+                children.running_to_finish()
+                or None in ended
+                or any(s.fused.get(plan.robot, 0) + s.discarded.get(plan.robot, 0) < ended[0] for s in stats.values())
+            ):
                 continue
             finished = True
             bar.close()
             discarded = max(s.discarded.get(plan.robot, 0) for s in stats.values())
-            print(f"posegrid run: replay finished: {ended[0]} scans, each of {plan.shards} shard(s) fused "
-                  f"{min(s.fused.get(plan.robot, 0) for s in stats.values())}"
-                  + (f", gave up on up to {discarded}" if discarded else ""), flush=True)
+            print(
+                f"posegrid run: replay finished: {ended[0]} scans, each of {plan.shards} shard(s) fused "
+                f"{min(s.fused.get(plan.robot, 0) for s in stats.values())}"
+                + (f", gave up on up to {discarded}" if discarded else ""),
+                flush=True,
+            )
             if plan.export is not None:
                 return _export(reader, plan, discarded)
             print("posegrid run: serving the finished map until Ctrl-C", flush=True)
@@ -366,8 +427,11 @@ def _export(reader: MapReader, plan: Plan, discarded: int) -> int:
         return 1
     raster = grid.rasterize()
     if not raster["observed"].any():
-        print(f"posegrid run: error: the map is empty (no scan had a usable beam, so no cell was observed); nothing "
-              f"written to {plan.export}", file=sys.stderr)
+        print(
+            f"posegrid run: error: the map is empty (no scan had a usable beam, so no cell was observed); nothing "
+            f"written to {plan.export}",
+            file=sys.stderr,
+        )
         return 1
     try:
         save_map(plan.export, MapFile(**raster))
@@ -375,9 +439,11 @@ def _export(reader: MapReader, plan: Plan, discarded: int) -> int:
         print(f"posegrid run: error: cannot write {plan.export}: {exc.strerror or exc}", file=sys.stderr)
         return 1
     height, width = raster["logodds"].shape
-    print(f"posegrid run: wrote {plan.export}: {width} x {height} cells at {plan.resolution} m, "
-          f"{int(raster['observed'].sum())} observed, from {len(grid.keys())} tiles of {plan.shards} shard(s)",
-          flush=True)
+    print(
+        f"posegrid run: wrote {plan.export}: {width} x {height} cells at {plan.resolution} m, "
+        f"{int(raster['observed'].sum())} observed, from {len(grid.keys())} tiles of {plan.shards} shard(s)",
+        flush=True,
+    )
     if discarded:
         print(f"posegrid run: error: the map misses up to {discarded} scans the shards gave up on", file=sys.stderr)
         return 1

@@ -11,6 +11,7 @@ serialises the main thread and the tile queries around the shard's state. Stats 
 snapshot the main thread refreshes after every message (and at least every 0.2 s), so they never wait
 for a scan's fusion (15 to 20 ms): the source's flow control and the HTTP API poll them.
 """
+
 from __future__ import annotations
 
 import queue
@@ -52,8 +53,11 @@ class Mapper:
     def _on_tile_query(self, query: zenoh.Query) -> None:
         wanted = query.key_expr
         with self.lock:
-            messages = [self.shard.tile_message(tile) for tile in self.shard.tiles()
-                        if wanted.intersects(keys.tile_key(self.config.map_name, 0, *tile))]
+            messages = [
+                self.shard.tile_message(tile)
+                for tile in self.shard.tiles()
+                if wanted.intersects(keys.tile_key(self.config.map_name, 0, *tile))
+            ]
         for message in messages:
             query.reply(keys.tile_key(self.config.map_name, 0, message.tx, message.ty), message.encode())
 
@@ -85,19 +89,24 @@ class Mapper:
         that starts late or restarts builds the map of the run so far. It otherwise waits for a gap to show, and
         none shows while a source holds back for the shards (``--rate max``) or has ended. Stats are refreshed as
         it goes (the source's flow control reads them). Nothing happens when nobody answers."""
-        replies = history.ask_counted(self.session, "*", {"streams": f"{keys.SCAN},{keys.POSE}"}, CATCH_UP_TIMEOUT,
-                                      self.rejects, self._ours)
+        replies = history.ask_counted(
+            self.session, "*", {"streams": f"{keys.SCAN},{keys.POSE}"}, CATCH_UP_TIMEOUT, self.rejects, self._ours
+        )
         with self.lock:
-            taken = self.shard.in_seq_order((keys.robot_key(robot, stream), payload)
-                                            for robot, stream, payload in replies)
+            taken = self.shard.in_seq_order(
+                (keys.robot_key(robot, stream), payload) for robot, stream, payload in replies
+            )
         for key, message in taken:
             with self.lock:
                 self.shard.take(key, message, from_history=True)
                 self._refresh_stats()
         if replies:
             scans = sum(stream == keys.SCAN for _, stream, _ in replies)
-            self.log.info("took %d scan(s) and %d pose(s) published before this shard was up from the histories",
-                          scans, len(replies) - scans)
+            self.log.info(
+                "took %d scan(s) and %d pose(s) published before this shard was up from the histories",
+                scans,
+                len(replies) - scans,
+            )
 
     # ---------------------------------------------------------------------------- lifecycle
     def declare(self) -> None:
@@ -118,8 +127,13 @@ class Mapper:
             self._refresh_stats()
         self.declare()
         cfg = self.config
-        self.log.info("shard %d of %d of map %r up; tiles on %s", cfg.shard, cfg.shards, cfg.map_name,
-                      keys.tile_key(cfg.map_name, 0, "*", "*"))
+        self.log.info(
+            "shard %d of %d of map %r up; tiles on %s",
+            cfg.shard,
+            cfg.shards,
+            cfg.map_name,
+            keys.tile_key(cfg.map_name, 0, "*", "*"),
+        )
         self.catch_up()
         next_due = None
         while not stop.is_set():
@@ -137,16 +151,23 @@ class Mapper:
                 flush = self.shard.caught_up() and self.intake.empty()
                 updates, next_due = self.shard.due_updates(time.monotonic(), flush=flush)
             for update in updates:
-                self.session.put(keys.tile_key(cfg.map_name, 0, update.tx, update.ty), update.encode(),
-                                 congestion_control=zenoh.CongestionControl.BLOCK)
+                self.session.put(
+                    keys.tile_key(cfg.map_name, 0, update.tx, update.ty),
+                    update.encode(),
+                    congestion_control=zenoh.CongestionControl.BLOCK,
+                )
         for entity in reversed(self._declared):
             entity.undeclare()
         self.log.info("stopped after fusing %d scans", sum(self.shard.fused.values()))
         return 0
 
 
-def run_mapper(config: ShardConfig, zenoh_config: zenoh.Config, stop: threading.Event,
-               intake_capacity: int = DEFAULT_INTAKE_CAPACITY) -> int:
+def run_mapper(
+    config: ShardConfig,
+    zenoh_config: zenoh.Config,
+    stop: threading.Event,
+    intake_capacity: int = DEFAULT_INTAKE_CAPACITY,
+) -> int:
     """Open a session and run one shard until ``stop`` is set."""
     session = open_session(zenoh_config, f"mapper shard {config.shard}")
     try:

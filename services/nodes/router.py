@@ -5,6 +5,7 @@ processes, which connect to it as Zenoh clients (services/zenoh_config.py). With
 log goes to stderr: RUST_LOG=zenoh::net::routing::interceptor::access_control=trace shows every access control
 decision of a secured router (docs/security.md).
 """
+
 from __future__ import annotations
 
 import os

@@ -10,6 +10,7 @@ the liveliness token pg/<robot>/alive/slam, and the questions to the source's hi
 Threads and bad input as in services.nodes.mapper: callbacks feed a bounded intake queue (services.intake), one
 thread decodes and filters; malformed messages are counted per key in the NodeStats and logged once per kind.
 """
+
 from __future__ import annotations
 
 import queue
@@ -68,8 +69,12 @@ class SlamNode:
         self._pose_publisher.put(payload)
 
     # ---------------------------------------------------------------------------- the source's history
-    def _history(self, parameters: dict[str, str], timeout: float,
-                 accept: Callable[[history.Answerer], bool] = lambda answerer: True) -> list[tuple[str, bytes]]:
+    def _history(
+        self,
+        parameters: dict[str, str],
+        timeout: float,
+        accept: Callable[[history.Answerer], bool] = lambda answerer: True,
+    ) -> list[tuple[str, bytes]]:
         """(pg/<robot>/<stream>, payload) of the messages the histories ``accept`` answers with (services.history),
         in the order they were sent; none when nobody answers."""
         robot = self.config.robot
@@ -88,8 +93,9 @@ class SlamNode:
         the run is, in the state of a node that saw all of it (its poses so far are published again; shards
         refuse the ones they have fused). Nothing happens when no source answers."""
         streams = ",".join(sorted(self.state.steps.needs | {keys.PRIOR}))
-        replies = self._history({"streams": streams}, HISTORY_TIMEOUT,
-                                accept=lambda answerer: not answerer.ended)  # a run that has ended is not this one
+        replies = self._history(
+            {"streams": streams}, HISTORY_TIMEOUT, accept=lambda answerer: not answerer.ended
+        )  # a run that has ended is not this one
         if replies:
             with self.lock:
                 self.state.take_history(replies)
@@ -98,8 +104,9 @@ class SlamNode:
     def declare(self) -> None:
         """The pose publisher, subscribers and queryables first, the liveliness token last."""
         robot, session = self.config.robot, self.session
-        self._pose_publisher = session.declare_publisher(keys.robot_key(robot, keys.POSE),
-                                                         congestion_control=zenoh.CongestionControl.BLOCK)
+        self._pose_publisher = session.declare_publisher(
+            keys.robot_key(robot, keys.POSE), congestion_control=zenoh.CongestionControl.BLOCK
+        )
         self._declared.append(self._pose_publisher)
         for stream in EXPECTED:
             self._declared.append(session.declare_subscriber(keys.robot_key(robot, stream), self.intake.on_sample))

@@ -14,6 +14,7 @@ until every shard has acknowledged that end in its stats, publishing it again ev
 While it runs, the source answers queries on pg/<robot>/history/<stream> with what it has published so far
 (:meth:`Source.history`), so a SLAM node that starts late or restarts can take the run from its start.
 """
+
 from __future__ import annotations
 
 import math
@@ -41,8 +42,14 @@ from services.process import get_logger
 from services.streams import Stream
 
 #: publication key chunk per message type
-STREAM_OF = {LaserScan: keys.SCAN, Odometry: keys.ODOM, LandmarkObservations: keys.LANDMARKS,
-             PoseSamples: keys.POSE, PoseGaussian: keys.POSE, StreamEnd: keys.END}
+STREAM_OF = {
+    LaserScan: keys.SCAN,
+    Odometry: keys.ODOM,
+    LandmarkObservations: keys.LANDMARKS,
+    PoseSamples: keys.POSE,
+    PoseGaussian: keys.POSE,
+    StreamEnd: keys.END,
+}
 
 #: how long the source waits for subscribers to appear, or for a stalled mapper to make progress, s
 WAIT_TIMEOUT = 60.0
@@ -67,7 +74,7 @@ class SourceOptions:
 
 
 def parse_rate(text: str) -> float | None:
-    """"max" -> None (as fast as subscribers take), "realtime" -> 1.0, a positive number -> that factor."""
+    """ "max" -> None (as fast as subscribers take), "realtime" -> 1.0, a positive number -> that factor."""
     if text == "max":
         return None
     if text == "realtime":
@@ -103,7 +110,8 @@ class Source:
     def _publisher(self, stream: str) -> zenoh.Publisher:
         if stream not in self._publishers:
             self._publishers[stream] = self.session.declare_publisher(
-                keys.robot_key(self.stream.robot, stream), congestion_control=zenoh.CongestionControl.BLOCK)
+                keys.robot_key(self.stream.robot, stream), congestion_control=zenoh.CongestionControl.BLOCK
+            )
         return self._publishers[stream]
 
     def _publish(self, message, stream: str | None = None) -> None:
@@ -119,7 +127,7 @@ class Source:
         out = []
         if keys.PRIOR in streams and prior_out:
             out.append((keys.PRIOR, self.stream.prior.encode()))
-        for step in self.stream.steps[first:published if stop is None else min(stop, published)]:
+        for step in self.stream.steps[first : published if stop is None else min(stop, published)]:
             out += [(STREAM_OF[type(m)], m.encode()) for m in step.messages if STREAM_OF[type(m)] in streams]
         return out
 
@@ -154,12 +162,16 @@ class Source:
     def _wait_for_subscribers(self, stop: threading.Event) -> bool:
         opts = self.options
         if opts.wait_mappers and not self._wait_for(
-                f"{opts.wait_mappers} mapper shard(s) of map {opts.map_name!r}",
-                lambda: self._tokens(keys.shard_alive_key(opts.map_name, "*")) >= opts.wait_mappers, stop):
+            f"{opts.wait_mappers} mapper shard(s) of map {opts.map_name!r}",
+            lambda: self._tokens(keys.shard_alive_key(opts.map_name, "*")) >= opts.wait_mappers,
+            stop,
+        ):
             return False
         if opts.wait_slam and not self._wait_for(
-                f"the SLAM node of robot {self.stream.robot!r}",
-                lambda: self._tokens(keys.robot_alive_key(self.stream.robot, "slam")) >= 1, stop):
+            f"the SLAM node of robot {self.stream.robot!r}",
+            lambda: self._tokens(keys.robot_alive_key(self.stream.robot, "slam")) >= 1,
+            stop,
+        ):
             return False
         if opts.wait_mappers and self.stream.scans:
             scans = self._publisher(keys.SCAN)
@@ -202,8 +214,10 @@ class Source:
             return True
         deadline = time.monotonic() + WAIT_TIMEOUT
         while True:
-            progress = (self._shards_done() if self.options.wait_mappers else 0,
-                        self._slam_done() if self.options.wait_slam else 0)
+            progress = (
+                self._shards_done() if self.options.wait_mappers else 0,
+                self._slam_done() if self.options.wait_slam else 0,
+            )
             if progress[0] > self._scans_done or progress[1] > self._steps_done:
                 self._scans_done = max(self._scans_done, progress[0])
                 self._steps_done = max(self._steps_done, progress[1])
@@ -213,8 +227,10 @@ class Source:
             if stop.wait(0.01):
                 return False
             if time.monotonic() > deadline:
-                raise SourceStalled(f"the subscribers took nothing for {WAIT_TIMEOUT:.0f} s (shards: {self._scans_done} "
-                                    f"of {scans_sent} scans, SLAM node: {self._steps_done} of {steps_sent} steps)")
+                raise SourceStalled(
+                    f"the subscribers took nothing for {WAIT_TIMEOUT:.0f} s (shards: {self._scans_done} "
+                    f"of {scans_sent} scans, SLAM node: {self._steps_done} of {steps_sent} steps)"
+                )
 
     def _ended_everywhere(self, end: StreamEnd) -> bool:
         """Whether every shard waited for knows the end of the stream and has fused or given up on every scan;
@@ -225,13 +241,18 @@ class Source:
         beyond = [s.shard for s in stats if s.fused.get(robot, 0) + s.discarded.get(robot, 0) > scans]
         if beyond and not self._warned_beyond:  # (the shards refuse such an end: services.state.shard)
             self._warned_beyond = True
-            self.log.warning("shard(s) %s of map %r hold more scans of robot %r than the %d this run published: "
-                             "another run under this robot name reached them, and they refuse this end; use another "
-                             "--robot",
-                             ", ".join(map(str, beyond)), self.options.map_name, robot, scans)
+            self.log.warning(
+                "shard(s) %s of map %r hold more scans of robot %r than the %d this run published: "
+                "another run under this robot name reached them, and they refuse this end; use another "
+                "--robot",
+                ", ".join(map(str, beyond)),
+                self.options.map_name,
+                robot,
+                scans,
+            )
         if len(stats) >= self.options.wait_mappers and all(
-                s.ended.get(robot) == scans and s.fused.get(robot, 0) + s.discarded.get(robot, 0) >= scans
-                for s in stats):  # every scan accounted for: a shard that restarted may still ask the history
+            s.ended.get(robot) == scans and s.fused.get(robot, 0) + s.discarded.get(robot, 0) >= scans for s in stats
+        ):  # every scan accounted for: a shard that restarted may still ask the history
             return True
         if time.monotonic() - self._end_sent >= END_REPEAT:
             self._publish(end)
@@ -255,9 +276,13 @@ class Source:
                 self._publish(stream.prior, keys.PRIOR)
                 with self._history_lock:
                     self._prior_out = True
-            self.log.info("publishing %d steps (%d scans) of robot %r %s", len(stream.steps), stream.scans,
-                          stream.robot, "as fast as the subscribers take" if opts.rate is None
-                          else f"at {opts.rate:g}x real time")
+            self.log.info(
+                "publishing %d steps (%d scans) of robot %r %s",
+                len(stream.steps),
+                stream.scans,
+                stream.robot,
+                "as fast as the subscribers take" if opts.rate is None else f"at {opts.rate:g}x real time",
+            )
             started = time.monotonic()
             t0 = stream.steps[0].stamp if stream.steps else 0.0
             scans_sent = 0
@@ -282,10 +307,12 @@ class Source:
                 self._end_out = True
             self._end_sent = time.monotonic()
             elapsed = time.monotonic() - started
-            self.log.info("published %d scans in %.2f s (%.1f scans/s)", scans_sent, elapsed,
-                          scans_sent / max(elapsed, 1e-9))
-            if opts.wait_mappers and not self._wait_for("every shard to acknowledge the end of the stream",
-                                                        lambda: self._ended_everywhere(end), stop):
+            self.log.info(
+                "published %d scans in %.2f s (%.1f scans/s)", scans_sent, elapsed, scans_sent / max(elapsed, 1e-9)
+            )
+            if opts.wait_mappers and not self._wait_for(
+                "every shard to acknowledge the end of the stream", lambda: self._ended_everywhere(end), stop
+            ):
                 return self._stopped()
             return 0
         finally:

@@ -6,6 +6,7 @@ from a history (services.history) passes one more: it holds a seq of the span as
 Each refusal is counted by a :class:`services.process.RejectCounter` (logged once per key and kind); the functions
 return None then, so the caller drops the message.
 """
+
 from __future__ import annotations
 
 from collections.abc import Iterable
@@ -16,23 +17,29 @@ from services import keys
 from services.process import RejectCounter
 
 
-def robot_stream(key: str, streams: Iterable[str], rejects: RejectCounter,
-                 robot: str | None = None) -> tuple[str, str] | None:
+def robot_stream(
+    key: str, streams: Iterable[str], rejects: RejectCounter, robot: str | None = None
+) -> tuple[str, str] | None:
     """(robot, stream) of ``key`` when it is pg/<robot>/<stream> with a stream of ``streams`` (and, given ``robot``,
     that robot's); None after counting it under keys.INVALID_KEY, kind "key" (a wildcard such as pg/*/scan reaches
     every subscriber, and a peer may publish on any key its role allows)."""
     streams = tuple(streams)
     parsed = keys.parse_robot_key(key, frozenset(streams))
     if parsed is None or robot not in (None, parsed[0]):
-        rejects.count(keys.INVALID_KEY, "key", f"a message on {key[:200]!r}, which is no pg/{robot or '<robot>'}/"
-                      f"<stream> key of the streams {', '.join(streams)} (a wildcard, another depth, another robot or "
-                      "an invalid robot name)")
+        rejects.count(
+            keys.INVALID_KEY,
+            "key",
+            f"a message on {key[:200]!r}, which is no pg/{robot or '<robot>'}/"
+            f"<stream> key of the streams {', '.join(streams)} (a wildcard, another depth, another robot or "
+            "an invalid robot name)",
+        )
         return None
     return parsed
 
 
-def decode_of_robot(key: str, robot: str, payload: bytes, types: tuple[type[Message], ...],
-                    rejects: RejectCounter) -> Message | None:
+def decode_of_robot(
+    key: str, robot: str, payload: bytes, types: tuple[type[Message], ...], rejects: RejectCounter
+) -> Message | None:
     """The message ``payload`` received on ``key`` holds, when it decodes to one of ``types`` and is ``robot``'s;
     None after counting why not under ``key`` (the decoding's reason, e.g. "malformed" or "type"; or "robot")."""
     message = _decoded(key, payload, types, rejects)
@@ -44,8 +51,15 @@ def decode_of_robot(key: str, robot: str, payload: bytes, types: tuple[type[Mess
     return message
 
 
-def history_reply(key: str, robot: str, payload: bytes, types: tuple[type[Message], ...], first: int, last: int | None,
-                  rejects: RejectCounter) -> Message | None:
+def history_reply(
+    key: str,
+    robot: str,
+    payload: bytes,
+    types: tuple[type[Message], ...],
+    first: int,
+    last: int | None,
+    rejects: RejectCounter,
+) -> Message | None:
     """The message a history replied with (``payload``) to a question about ``robot``'s seqs first..last (last None:
     every seq from ``first``), when it decodes to one of ``types``, is that robot's and holds a seq of the span; None
     after counting why not under ``key`` (the history's key the caller counts it under): the decoding's reason, or
@@ -54,8 +68,12 @@ def history_reply(key: str, robot: str, payload: bytes, types: tuple[type[Messag
     if message is None:
         return None
     if message.robot != robot or message.seq < first or (last is not None and message.seq > last):
-        rejects.count(key, "key", f"a {message.TYPE} of robot {message.robot!r}, seq {message.seq}, answered a "
-                      f"question about seqs {first}-{'' if last is None else last} of robot {robot!r}")
+        rejects.count(
+            key,
+            "key",
+            f"a {message.TYPE} of robot {message.robot!r}, seq {message.seq}, answered a "
+            f"question about seqs {first}-{'' if last is None else last} of robot {robot!r}",
+        )
         return None
     return message
 

@@ -24,6 +24,7 @@ longer than the buffer lasts then costs no scan, as the source's history still h
 :class:`GivenUp`, so the caller counts it (nothing is dropped silently). :class:`SeqLedger` remembers which
 (robot, seq) pairs were already fused, so that a re-sent pair is refused instead of fused twice.
 """
+
 from __future__ import annotations
 
 from collections import OrderedDict
@@ -70,14 +71,14 @@ CONFIRM_RUN = 16
 #: what each reason means, for the logs
 GIVEN_UP_BECAUSE = {
     OVERFLOW: "the join buffer was full, and it was past what the buffer remembers to ask the histories for again "
-              "or they no longer hold it; given up on without its partner",
+    "or they no longer hold it; given up on without its partner",
     MISSING: "never reached this shard (lost in transit: a network gap, a shard stalled past its Zenoh lease or a "
-             "full intake queue) and no history holds them; the map lacks them",
+    "full intake queue) and no history holds them; the map lacks them",
     ORPHANED: "given up on: its partner never comes (the partner's stream went past its seq)",
     LATE: "came after its stream had gone past its seq (a re-sent message); refused",
     JUMP: "jumped past a gap that the next message of its stream did not confirm (a stray message); refused",
     AHEAD: "lies beyond the seq window of what its stream has shown (a forged or stray seq?); held, and taken only "
-           "if the stream gets within the window of it or goes on in order from it",
+    "if the stream gets within the window of it or goes on in order from it",
 }
 
 
@@ -102,10 +103,15 @@ class GivenUp:
 class JoinBuffer(Generic[ScanT, PoseT]):
     """A bounded scan/pose join; see the module docstring."""
 
-    def __init__(self, capacity: int, recover: Callable[[str, bool, int, int], dict[int, object]] | None = None,
-                 window: int = DEFAULT_SEQ_WINDOW, max_bytes: int | None = None,
-                 size: Callable[[object], int] = lambda item: 0,
-                 same: Callable[[object, object], bool] = lambda a, b: a == b):
+    def __init__(
+        self,
+        capacity: int,
+        recover: Callable[[str, bool, int, int], dict[int, object]] | None = None,
+        window: int = DEFAULT_SEQ_WINDOW,
+        max_bytes: int | None = None,
+        size: Callable[[object], int] = lambda item: 0,
+        same: Callable[[object, object], bool] = lambda a, b: a == b,
+    ):
         """``recover(robot, scans, first, last)``: what it can find of the robot's scans (else poses) with seqs
         first..last (inclusive), which its stream skipped, as {seq: scan or pose}. ``window``: seqs beyond its
         stream's last one that a live message may lie (:data:`DEFAULT_SEQ_WINDOW`). ``max_bytes``: bytes (as
@@ -137,25 +143,33 @@ class JoinBuffer(Generic[ScanT, PoseT]):
     def held_bytes(self, robot: str) -> int:
         """Bytes (as ``size`` measures them) of ``robot``'s halves waiting here (for a partner, past a gap, or
         beyond the window)."""
-        total = sum(self._size(half) for key, entry in self._pending.items() if key[0] == robot
-                    for half in (entry.scan, entry.pose) if half is not None)
+        total = sum(
+            self._size(half)
+            for key, entry in self._pending.items()
+            if key[0] == robot
+            for half in (entry.scan, entry.pose)
+            if half is not None
+        )
         total += sum(self._size(held[1]) for stream, held in self._held.items() if stream[0] == robot)
-        return total + sum(self._size(item) for stream, far in self._far.items() if stream[0] == robot
-                           for item in far.values())
+        return total + sum(
+            self._size(item) for stream, far in self._far.items() if stream[0] == robot for item in far.values()
+        )
 
     def waiting(self, key: JoinKey, is_scan: bool):
         """The scan (else pose) of ``key`` that waits here for its partner, or None."""
         entry = self._pending.get(key)
         return None if entry is None else (entry.scan if is_scan else entry.pose)
 
-    def add_scan(self, key: JoinKey, scan: ScanT, trusted: bool = False) -> tuple[list[tuple[ScanT, PoseT]],
-                                                                                 list[GivenUp]]:
+    def add_scan(
+        self, key: JoinKey, scan: ScanT, trusted: bool = False
+    ) -> tuple[list[tuple[ScanT, PoseT]], list[GivenUp]]:
         """Offer a scan; returns the completed (scan, pose) pairs (none, one, or two when it confirms a gap) and
         the halves given up on. ``trusted``: it came from a history, so the seq window does not apply."""
         return self._offer(key, scan, True, trusted)
 
-    def add_pose(self, key: JoinKey, pose: PoseT, trusted: bool = False) -> tuple[list[tuple[ScanT, PoseT]],
-                                                                                 list[GivenUp]]:
+    def add_pose(
+        self, key: JoinKey, pose: PoseT, trusted: bool = False
+    ) -> tuple[list[tuple[ScanT, PoseT]], list[GivenUp]]:
         """Offer a pose; returns what :meth:`add_scan` returns."""
         return self._offer(key, pose, False, trusted)
 
@@ -250,8 +264,9 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         for is_scan in (True, False):  # held beyond the window and never reached: counted as ahead already
             self._far.pop((robot, is_scan), None)
         waiting = [key for key in self._pending if key[0] == robot]
-        gone += [GivenUp(robot, seq, 1, self._pending.pop((robot, seq)).scan is not None, ORPHANED)
-                 for _, seq in waiting]
+        gone += [
+            GivenUp(robot, seq, 1, self._pending.pop((robot, seq)).scan is not None, ORPHANED) for _, seq in waiting
+        ]
         gone += self._forget_evicted(lambda key: key[0] == robot)
         return pairs, gone
 
@@ -306,8 +321,10 @@ class JoinBuffer(Generic[ScanT, PoseT]):
                 del self._evicted[(robot, seq, not is_scan)]
                 partner = self._refetch(robot, seq, not is_scan)
                 if partner is None:
-                    return [], [GivenUp(robot, seq, 1, not is_scan, OVERFLOW),
-                                GivenUp(robot, seq, 1, is_scan, ORPHANED)]
+                    return [], [
+                        GivenUp(robot, seq, 1, not is_scan, OVERFLOW),
+                        GivenUp(robot, seq, 1, is_scan, ORPHANED),
+                    ]
                 return [(item, partner) if is_scan else (partner, item)], []
             if seq <= self._last.get((robot, not is_scan), -1):  # the partner's stream passed it: never comes
                 return [], [GivenUp(robot, seq, 1, is_scan, ORPHANED)]
@@ -336,14 +353,24 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         taken = {seq for seq in ahead if seq < skipped_to}  # recovered with their partners already
         ahead -= taken
         found = self._recovered(robot, is_scan, skipped_from, skipped_to, taken)
-        gone = [GivenUp(robot, first, count, True, MISSING)
-                for first, count in _absent_runs(skipped_from, skipped_to, found.keys() | taken)] if is_scan else []
-        for key in [k for k in self._pending if k[0] == robot and skipped_from <= k[1] < skipped_to
-                    and k[1] not in found]:
+        gone = (
+            [
+                GivenUp(robot, first, count, True, MISSING)
+                for first, count in _absent_runs(skipped_from, skipped_to, found.keys() | taken)
+            ]
+            if is_scan
+            else []
+        )
+        for key in [
+            k for k in self._pending if k[0] == robot and skipped_from <= k[1] < skipped_to and k[1] not in found
+        ]:
             gone.append(GivenUp(robot, key[1], 1, not is_scan, ORPHANED))
             del self._pending[key]
-        gone += self._forget_evicted(lambda key: key[0] == robot and key[2] != is_scan
-                                     and skipped_from <= key[1] < skipped_to and key[1] not in found)
+        gone += self._forget_evicted(
+            lambda key: (
+                key[0] == robot and key[2] != is_scan and skipped_from <= key[1] < skipped_to and key[1] not in found
+            )
+        )
         # their partners too, where the partner's stream has not got there yet: paired at once, a gap larger than
         # the buffer does not overflow it (a shard restarted late in a run); and the partners of the halves
         # waiting below the gap (evicted ones included), so that the pairs come out in seq order; none at or past
@@ -352,8 +379,11 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         below = skipped_from if held is None else min(skipped_from, held)
         waiting = [k[1] for k in self._pending if k[0] == robot and partner_last < k[1] < below]
         waiting += [k[1] for k in self._evicted if k[0] == robot and k[2] == is_scan and partner_last < k[1] < below]
-        lacking = waiting + [seq for seq in found if (robot, seq) not in self._pending and seq > partner_last
-                             and (held is None or seq < held)]
+        lacking = waiting + [
+            seq
+            for seq in found
+            if (robot, seq) not in self._pending and seq > partner_last and (held is None or seq < held)
+        ]
         partners = self._recovered(robot, not is_scan, min(lacking), max(lacking) + 1, set()) if lacking else {}
         pairs = []
         for seq in sorted({*found, *waiting}):
@@ -406,8 +436,11 @@ class JoinBuffer(Generic[ScanT, PoseT]):
             stop -= 1
         if self.recover is None or first >= stop:
             return {}
-        return {seq: item for seq, item in self.recover(robot, is_scan, first, stop - 1).items()
-                if first <= seq < stop and seq not in taken}
+        return {
+            seq: item
+            for seq, item in self.recover(robot, is_scan, first, stop - 1).items()
+            if first <= seq < stop and seq not in taken
+        }
 
 
 def _run_through(seqs: dict[int, object], seq: int) -> list[int]:

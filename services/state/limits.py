@@ -19,6 +19,7 @@ counted under its kind in the shard's stats and logged once, never fused in part
 - ``seq_window``: seqs beyond what a robot's stream has shown that a live message may lie
   (services.state.join.DEFAULT_SEQ_WINDOW); an end-of-stream mark beyond it is refused.
 """
+
 from __future__ import annotations
 
 import math
@@ -53,8 +54,15 @@ class ShardLimits:
     seq_window: int = DEFAULT_SEQ_WINDOW
 
     def __post_init__(self) -> None:
-        for name in ("max_beams", "max_work", "max_scan_cells", "join_bytes", "intake_bytes", "max_robots",
-                     "seq_window"):
+        for name in (
+            "max_beams",
+            "max_work",
+            "max_scan_cells",
+            "join_bytes",
+            "intake_bytes",
+            "max_robots",
+            "seq_window",
+        ):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not (math.isfinite(self.map_bound) and self.map_bound > 0):
@@ -65,23 +73,30 @@ class ShardLimits:
         with room for intensities and the envelope) or a pose of the most samples a message may carry."""
         return 16 * self.max_beams + 2**20
 
-    def scan_problem(self, samples: np.ndarray, beams: int, range_max: float, resolution: float,
-                     tile_size: int) -> tuple[str, str] | None:
+    def scan_problem(
+        self, samples: np.ndarray, beams: int, range_max: float, resolution: float, tile_size: int
+    ) -> tuple[str, str] | None:
         """(kind, one sentence) when fusing a scan of ``beams`` beams to ``range_max`` m from pose ``samples``
         (M, 3: x m, y m, yaw rad in the map frame) would pass a limit; None when it may be fused."""
         work = samples.shape[0] * beams * math.ceil(range_max / resolution)
         if work > self.max_work:
-            return "work", (f"{samples.shape[0]} samples x {beams} beams x {math.ceil(range_max / resolution)} cells "
-                            f"to range_max = {work:.3g} ray cells, more than the limit {self.max_work:.3g} "
-                            "(--max-work)")
+            return "work", (
+                f"{samples.shape[0]} samples x {beams} beams x {math.ceil(range_max / resolution)} cells "
+                f"to range_max = {work:.3g} ray cells, more than the limit {self.max_work:.3g} "
+                "(--max-work)"
+            )
         far = np.abs(samples[:, :2]).max(initial=0.0)
         if not far <= self.map_bound:
-            return "bound", (f"a pose sample lies {far:.1f} m from the map origin, beyond the map bound "
-                             f"{self.map_bound:g} m (--map-bound)")
+            return "bound", (
+                f"a pose sample lies {far:.1f} m from the map origin, beyond the map bound "
+                f"{self.map_bound:g} m (--map-bound)"
+            )
         cells = reach_cells(samples, range_max, resolution, tile_size)
         if cells > self.max_scan_cells:
-            return "extent", (f"its samples and range reach tiles of {cells:.3g} cells, more than one scan may grow "
-                              f"the map by ({self.max_scan_cells:.3g}, --max-scan-cells)")
+            return "extent", (
+                f"its samples and range reach tiles of {cells:.3g} cells, more than one scan may grow "
+                f"the map by ({self.max_scan_cells:.3g}, --max-scan-cells)"
+            )
         return None
 
 

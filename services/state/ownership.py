@@ -6,6 +6,7 @@ alike (Python's ``hash()`` is salted per process and would not be). Every tile h
 adding a shard moves only the tiles the new shard now wins, about 1/(N+1) of them, and moves each of
 them to the new shard.
 """
+
 from __future__ import annotations
 
 import hashlib

@@ -7,6 +7,7 @@ same :class:`mapping.fusion.MonteCarloFusion`, and the pose samples of :class:`s
 scans arrive in seq order (log-odds clamping makes fusion order matter; a shard fuses each scan as soon as its
 pose is there).
 """
+
 from __future__ import annotations
 
 import time
@@ -84,8 +85,13 @@ def message_bytes(message: object) -> int:
 class MapShard:
     """One shard's grid and bookkeeping. Not thread-safe: callers serialise access (services.nodes.mapper)."""
 
-    def __init__(self, config: ShardConfig, rejects: RejectCounter, clock: Callable[[], float] = time.monotonic,
-                 history: Callable[[str, str, int, int], list[bytes]] | None = None):
+    def __init__(
+        self,
+        config: ShardConfig,
+        rejects: RejectCounter,
+        clock: Callable[[], float] = time.monotonic,
+        history: Callable[[str, str, int, int], list[bytes]] | None = None,
+    ):
         """``history(robot, stream, first, last)``: the encoded messages of the robot's ``stream`` (keys.SCAN or
         keys.POSE) with seqs first..last that the processes which published them still hold (services.nodes.mapper
         asks pg/<robot>/history/**); the join takes them for messages lost in transit."""
@@ -93,15 +99,24 @@ class MapShard:
         self.grid = TiledGrid(config.model.resolution, config.tile_size)
         self.owns = owns_tile(config.shard, config.shards)
         self.rejects = rejects
-        self.sampling = PoseSampling(config.mode, config.n_samples, config.seed,
-                                     config.accuracy if config.accuracy is not None else config.model.resolution)
+        self.sampling = PoseSampling(
+            config.mode,
+            config.n_samples,
+            config.seed,
+            config.accuracy if config.accuracy is not None else config.model.resolution,
+        )
         self._fusions: OrderedDict[tuple, MonteCarloFusion] = OrderedDict()
         self._history = history
         self._history_high: dict[tuple[str, str], int] = {}  # (robot, stream) -> highest seq a history gave
         limits = config.limits
         self._join: JoinBuffer[LaserScan, object] = JoinBuffer(
-            config.join_capacity, None if history is None else self._recover, window=limits.seq_window,
-            max_bytes=limits.join_bytes, size=message_bytes, same=lambda a, b: a.digest() == b.digest())
+            config.join_capacity,
+            None if history is None else self._recover,
+            window=limits.seq_window,
+            max_bytes=limits.join_bytes,
+            size=message_bytes,
+            same=lambda a, b: a.digest() == b.digest(),
+        )
         self._fused_seqs = SeqLedger(max(SEQ_HORIZON_JOINS * config.join_capacity, 2 * EVICTED_LIMIT))
         self.log = get_logger(f"mapper[{config.shard}]")  # the logger services.nodes.mapper.Mapper writes to
         self._robots: set[str] = set()  # robots this shard keeps state for (at most limits.max_robots)
@@ -139,8 +154,12 @@ class MapShard:
             return None
         robot, stream = parsed
         if robot not in self._robots and len(self._robots) >= self.config.limits.max_robots:
-            self.rejects.count(keys.INVALID_KEY, "robots", f"a message of robot {robot!r}: this shard keeps "
-                               f"{self.config.limits.max_robots} robots already (--max-robots)")
+            self.rejects.count(
+                keys.INVALID_KEY,
+                "robots",
+                f"a message of robot {robot!r}: this shard keeps "
+                f"{self.config.limits.max_robots} robots already (--max-robots)",
+            )
             return None
         self.received[key] += 1
         message = decode_of_robot(key, robot, payload, SHARD_STREAMS[stream], self.rejects)
@@ -152,8 +171,12 @@ class MapShard:
     def _too_many_beams(self, key: str, message: Message) -> bool:
         """Whether ``message`` is a scan of more beams than the limit (counted under ``key`` when it is)."""
         if isinstance(message, LaserScan) and message.ranges.shape[0] > self.config.limits.max_beams:
-            self.rejects.count(key, "size", f"a scan of {message.ranges.shape[0]} beams, more than the limit "
-                               f"{self.config.limits.max_beams} (--max-beams)")
+            self.rejects.count(
+                key,
+                "size",
+                f"a scan of {message.ranges.shape[0]} beams, more than the limit "
+                f"{self.config.limits.max_beams} (--max-beams)",
+            )
             return True
         return False
 
@@ -182,15 +205,23 @@ class MapShard:
         if isinstance(message, StreamEnd):  # (it may overtake the last scans: each key has its own callback thread)
             accounted = self.fused[message.robot] + self.discarded[message.robot]
             if message.scans < accounted:
-                self.rejects.count(key, "end", f"an end of the stream of robot {message.robot!r} announcing "
-                                   f"{message.scans} scans, where this shard has fused or given up {accounted}: "
-                                   "another run's end (a robot name belongs to one run at a time)")
+                self.rejects.count(
+                    key,
+                    "end",
+                    f"an end of the stream of robot {message.robot!r} announcing "
+                    f"{message.scans} scans, where this shard has fused or given up {accounted}: "
+                    "another run's end (a robot name belongs to one run at a time)",
+                )
                 return
             if self._join.beyond_window(message.robot, True, message.scans - 1):
-                self.rejects.count(key, "ahead", f"an end of the stream of robot {message.robot!r} announcing "
-                                   f"{message.scans} scans, more than the seq window "
-                                   f"({self.config.limits.seq_window}) beyond the scans this shard has seen: "
-                                   "a forged or stray end")
+                self.rejects.count(
+                    key,
+                    "ahead",
+                    f"an end of the stream of robot {message.robot!r} announcing "
+                    f"{message.scans} scans, more than the seq window "
+                    f"({self.config.limits.seq_window}) beyond the scans this shard has seen: "
+                    "a forged or stray end",
+                )
                 return
             if message.robot not in self.ended:  # the first end is news: the last poses may still come (the source
                 self._heard[message.robot] = self._clock()  # repeats it, and a repeat is no news)
@@ -229,24 +260,37 @@ class MapShard:
         digests for, which cannot be compared (``old``)."""
         fused = self._fused_seqs.note(message.robot, message.seq)  # (scan digest, pose digest) or None
         if fused is None:
-            self.rejects.count(key, "old", f"a {message.TYPE} of robot {message.robot!r} for seq {message.seq}, which "
-                               f"this shard has fused already, more than {self._fused_seqs.horizon} seqs ago: too old "
-                               "to be compared with the one fused (a re-sent or out-of-date message)")
+            self.rejects.count(
+                key,
+                "old",
+                f"a {message.TYPE} of robot {message.robot!r} for seq {message.seq}, which "
+                f"this shard has fused already, more than {self._fused_seqs.horizon} seqs ago: too old "
+                "to be compared with the one fused (a re-sent or out-of-date message)",
+            )
         elif fused[1 if stream == keys.POSE else 0] == message.digest():
             self._count_resent(key, message)
         else:
-            self.rejects.count(key, "duplicate", f"a {message.TYPE} of robot {message.robot!r} for seq {message.seq}, "
-                               "which this shard has fused already, differs from the one fused (two publishers for "
-                               "one robot, or a stale run under its name); the first one stands")
+            self.rejects.count(
+                key,
+                "duplicate",
+                f"a {message.TYPE} of robot {message.robot!r} for seq {message.seq}, "
+                "which this shard has fused already, differs from the one fused (two publishers for "
+                "one robot, or a stale run under its name); the first one stands",
+            )
 
     def _count_resent(self, key: str, message: Message) -> None:
         """Count a scan or pose that came again, the same as the copy fused or waiting for its pair; log the first
         per key."""
         self.resent[key] += 1
         if self.resent[key] == 1:
-            self.log.info("a %s of robot %r for seq %d came again, the same as the copy this shard has (a restarted "
-                          "SLAM node or source catching up): ignored; further ones on %s are only counted (resent)",
-                          message.TYPE, message.robot, message.seq, key)
+            self.log.info(
+                "a %s of robot %r for seq %d came again, the same as the copy this shard has (a restarted "
+                "SLAM node or source catching up): ignored; further ones on %s are only counted (resent)",
+                message.TYPE,
+                message.robot,
+                message.seq,
+                key,
+            )
 
     def _recover(self, robot: str, is_scan: bool, first: int, last: int) -> dict[int, object]:
         """Scans (else poses) first..last of ``robot`` that its stream skipped, from the history; each checked as
@@ -256,12 +300,22 @@ class MapShard:
         found = {}
         for payload in self._history(robot, stream, first, last):
             message = history_reply(key, robot, payload, SHARD_STREAMS[stream], first, last, self.rejects)
-            if message is not None and not self._too_many_beams(key, message) \
-                    and not self._fused_seqs.done(robot, message.seq):
+            if (
+                message is not None
+                and not self._too_many_beams(key, message)
+                and not self._fused_seqs.done(robot, message.seq)
+            ):
                 found[message.seq] = message
         if found:
-            self.log.info("took %d %s(s) of robot %r in seqs %d-%d from the history (lost in transit, or dropped "
-                          "from a full join buffer)", len(found), stream, robot, first, last)
+            self.log.info(
+                "took %d %s(s) of robot %r in seqs %d-%d from the history (lost in transit, or dropped "
+                "from a full join buffer)",
+                len(found),
+                stream,
+                robot,
+                first,
+                last,
+            )
         return found
 
     def _give_up(self, gone: list[GivenUp]) -> None:
@@ -272,8 +326,12 @@ class MapShard:
                 self.discarded[half.robot] += half.count
             if half.reason == OVERFLOW:
                 self.join_overflow += half.count
-            self.rejects.count(f"join/{half.robot}", half.reason,
-                               f"{half.describe()}: {GIVEN_UP_BECAUSE[half.reason]}", times=half.count)
+            self.rejects.count(
+                f"join/{half.robot}",
+                half.reason,
+                f"{half.describe()}: {GIVEN_UP_BECAUSE[half.reason]}",
+                times=half.count,
+            )
 
     # ------------------------------------------------------------------------------- fusion
     def warm_up(self) -> None:
@@ -286,13 +344,20 @@ class MapShard:
         fusion.fuse(np.array([1.0, np.inf, 2.0]), np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0]]), np.array([0.5, 0.5]))
 
     def _fusion_for(self, scan: LaserScan) -> MonteCarloFusion:
-        geometry = (scan.angle_min, scan.angle_increment, scan.ranges.shape[0], scan.range_min, scan.range_max,
-                    tuple(scan.sensor_offset.tolist()))
+        geometry = (
+            scan.angle_min,
+            scan.angle_increment,
+            scan.ranges.shape[0],
+            scan.range_min,
+            scan.range_max,
+            tuple(scan.sensor_offset.tolist()),
+        )
         fusion = self._fusions.get(geometry)
         if fusion is None:
             beam_angles = scan.angle_min + scan.angle_increment * np.arange(scan.ranges.shape[0])
-            fusion = MonteCarloFusion(self.grid, self.config.model, beam_angles, scan.range_min, scan.range_max,
-                                      scan.sensor_offset, self.owns)
+            fusion = MonteCarloFusion(
+                self.grid, self.config.model, beam_angles, scan.range_min, scan.range_max, scan.sensor_offset, self.owns
+            )
             self._fusions[geometry] = fusion
             while len(self._fusions) > FUSIONS_KEPT:
                 self._fusions.popitem(last=False)
@@ -311,8 +376,9 @@ class MapShard:
         try:
             samples, weights = self.pose_samples(scan, pose)
             cfg = self.config
-            refused = cfg.limits.scan_problem(samples, scan.ranges.shape[0], scan.range_max, cfg.model.resolution,
-                                              cfg.tile_size)
+            refused = cfg.limits.scan_problem(
+                samples, scan.ranges.shape[0], scan.range_max, cfg.model.resolution, cfg.tile_size
+            )
             if refused is not None:
                 self.discarded[scan.robot] += 1
                 self.rejects.count(f"fuse/{scan.robot}", refused[0], f"scan seq {scan.seq} refused: {refused[1]}")
@@ -325,8 +391,9 @@ class MapShard:
         except Exception as exc:
             self.discarded[scan.robot] += 1
             self.log.exception("scan seq %d of robot %r failed to fuse; the shard goes on", scan.seq, scan.robot)
-            self.rejects.count(f"fuse/{scan.robot}", "error",
-                               f"scan seq {scan.seq} failed: {type(exc).__name__}: {exc}")
+            self.rejects.count(
+                f"fuse/{scan.robot}", "error", f"scan seq {scan.seq} failed: {type(exc).__name__}: {exc}"
+            )
             return
         self.fused[scan.robot] += 1
         self.cells_updated += result.cells_updated
@@ -358,12 +425,22 @@ class MapShard:
         """This shard's statistics; ``overflow`` counts the intake queue's drops (kept by the caller)."""
         cfg = self.config
         return ShardStats(
-            map=cfg.map_name, shard=cfg.shard, shards=cfg.shards, tiles_owned=len(self.grid.keys()),
-            cells_updated=self.cells_updated, tile_updates=self.tile_updates, join_pending=len(self._join),
-            uptime=time.monotonic() - self.started, fused=dict(self.fused), discarded=dict(self.discarded),
-            ended=dict(self.ended), received=dict(self.received), resent=dict(self.resent),
+            map=cfg.map_name,
+            shard=cfg.shard,
+            shards=cfg.shards,
+            tiles_owned=len(self.grid.keys()),
+            cells_updated=self.cells_updated,
+            tile_updates=self.tile_updates,
+            join_pending=len(self._join),
+            uptime=time.monotonic() - self.started,
+            fused=dict(self.fused),
+            discarded=dict(self.discarded),
+            ended=dict(self.ended),
+            received=dict(self.received),
+            resent=dict(self.resent),
             rejected=self.rejects.snapshot(),
-            overflow={**overflow, "join": self.join_overflow}, refused=self.rejects.kinds(),
+            overflow={**overflow, "join": self.join_overflow},
+            refused=self.rejects.kinds(),
         )
 
     # ------------------------------------------------------------------------------- tiles
@@ -378,9 +455,21 @@ class MapShard:
         region = (slice(row0, row0 + rows), slice(col0, col0 + cols))
         robot, seq = self._last_scan[tile]
         return TileUpdate(
-            map=self.config.map_name, shard=self.config.shard, z=0, tx=tile[0], ty=tile[1], tile_size=size,
-            resolution=self.grid.resolution, row0=row0, col0=col0, robot=robot, seq=seq, published=time.time(),
-            logodds=logodds[region].copy(), variance=variance[region].copy(), observed=observed[region].copy(),
+            map=self.config.map_name,
+            shard=self.config.shard,
+            z=0,
+            tx=tile[0],
+            ty=tile[1],
+            tile_size=size,
+            resolution=self.grid.resolution,
+            row0=row0,
+            col0=col0,
+            robot=robot,
+            seq=seq,
+            published=time.time(),
+            logodds=logodds[region].copy(),
+            variance=variance[region].copy(),
+            observed=observed[region].copy(),
         )
 
     def due_updates(self, now: float, flush: bool = False) -> tuple[list[TileUpdate], float | None]:

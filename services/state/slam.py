@@ -12,6 +12,7 @@ the offline `posegrid slam` writes for that step: mean and covariance (Gaussian 
 weights before resampling; grid FastSLAM gives the filtered particles (the offline run smooths them by ancestry,
 which a live node cannot do).
 """
+
 from __future__ import annotations
 
 import copy
@@ -39,8 +40,13 @@ from slam.gridslam import GridFastSLAM, GridSlamConfig
 from slam.motion import OdometryMotionModel, odometry_controls, split_odometry_motion
 
 #: the streams a SLAM node reads, and the message types each may carry
-EXPECTED = {keys.SCAN: (LaserScan,), keys.ODOM: (Odometry,), keys.LANDMARKS: (LandmarkObservations,),
-            keys.END: (StreamEnd,), keys.PRIOR: (PoseGaussian,)}
+EXPECTED = {
+    keys.SCAN: (LaserScan,),
+    keys.ODOM: (Odometry,),
+    keys.LANDMARKS: (LandmarkObservations,),
+    keys.END: (StreamEnd,),
+    keys.PRIOR: (PoseGaussian,),
+}
 #: the odometry motion model that moves a velocity-motion filter over steps that never arrived (NodeConfig.bridge)
 DEFAULT_BRIDGE = OdometryMotionModel()
 #: bytes of published poses kept for the node's history (the oldest go first): 1 KB a pose of 30 particles
@@ -110,8 +116,9 @@ class LandmarkDriver:
         if self.motion == "odometry":
             if pose is None:
                 raise StepError(f"seq {odom.seq}: odometry motion needs the odometry pose, the message has none")
-            controls = np.zeros((0, 3)) if self._last_pose is None else odometry_controls(
-                np.stack([self._last_pose, pose]))
+            controls = (
+                np.zeros((0, 3)) if self._last_pose is None else odometry_controls(np.stack([self._last_pose, pose]))
+            )
         elif gap is not None and pose is not None and self._last_pose is not None and self.bridge is not None:
             motion = odometry_controls(np.stack([self._last_pose, pose]))[0]
             controls, model = split_odometry_motion(motion, odom.seq - self._last_seq), self.bridge
@@ -184,8 +191,13 @@ class SlamState:
     seqs first..last (last None: every one from ``first``) that the source's history holds, in the order it sent
     them; the step assembler takes them for steps that did not all arrive. None: nothing is recovered."""
 
-    def __init__(self, config: NodeConfig, rejects: RejectCounter, publish: Callable[[bytes], None],
-                 history: Callable[[frozenset[str], int, int | None], list[tuple[str, bytes]]] | None = None):
+    def __init__(
+        self,
+        config: NodeConfig,
+        rejects: RejectCounter,
+        publish: Callable[[bytes], None],
+        history: Callable[[frozenset[str], int, int | None], list[tuple[str, bytes]]] | None = None,
+    ):
         self.config = config
         self.log = get_logger(f"slam-node[{config.robot}]")  # the logger services.nodes.slam_node writes to
         self.rejects = rejects
@@ -199,8 +211,9 @@ class SlamState:
         self.initial = config.initial
         self.driver: LandmarkDriver | GridDriver | None = None
         needs = GridDriver.needs if config.algorithm == "gridslam" else LandmarkDriver.needs
-        self.steps = StepAssembler(needs, recover=None if history is None else self._recover,
-                                   same=lambda a, b: a.digest() == b.digest())
+        self.steps = StepAssembler(
+            needs, recover=None if history is None else self._recover, same=lambda a, b: a.digest() == b.digest()
+        )
         self._ready: list[tuple[int, dict]] = []
         self._highest_seq: dict[str, int] = {}
         self._history_high: dict[str, int] = {}  # per stream, the highest seq the source's history gave
@@ -234,9 +247,13 @@ class SlamState:
             # (it may be a stale run's)
             self._file(self.steps.flush(tail=self.steps.next_seq > 0))
         elif stream in self.steps.needs and not from_history and self.steps.beyond_window(message.seq):
-            self.rejects.count(key, "ahead", f"a {message.TYPE} for seq {message.seq}, more than the seq window "
-                               f"({self.steps.window}) beyond the next step {self.steps.next_seq} (a forged or "
-                               "stray seq?): held, and used only if the stream gets near it or goes on from it")
+            self.rejects.count(
+                key,
+                "ahead",
+                f"a {message.TYPE} for seq {message.seq}, more than the seq window "
+                f"({self.steps.window}) beyond the next step {self.steps.next_seq} (a forged or "
+                "stray seq?): held, and used only if the stream gets near it or goes on from it",
+            )
             self._file(self.steps.add(stream, message.seq, message))
         else:
             self._add_part(key, stream, message, from_history)
@@ -259,8 +276,11 @@ class SlamState:
         sent), as if it had arrived live; a live copy that comes later is dropped without a word."""
         for key, payload in replies:
             self.handle(key, payload, from_history=True)
-        self.log.info("took %d message(s) the source published before this node was up (steps up to seq %d)",
-                      len(replies), max(self._history_high.values(), default=-1))
+        self.log.info(
+            "took %d message(s) the source published before this node was up (steps up to seq %d)",
+            len(replies),
+            max(self._history_high.values(), default=-1),
+        )
 
     def _check_order(self, key: str, seq: int) -> bool:
         """Report (log once per key, count always) a message whose seq is not above every seq seen on its key."""
@@ -280,8 +300,9 @@ class SlamState:
     # ---------------------------------------------------------------------------- steps
     def _file(self, released: Released) -> None:
         if released.skipped:
-            self.log.warning("skipped seq %s of robot %s: parts of them never arrived",
-                             _spans(released.skipped), self.config.robot)
+            self.log.warning(
+                "skipped seq %s of robot %s: parts of them never arrived", _spans(released.skipped), self.config.robot
+            )
             self.steps_done += sum(count for _, count in released.skipped)
         lost = released.evicted
         self._ready.extend(released.steps)
@@ -290,8 +311,9 @@ class SlamState:
             self.steps_done += 1
             lost += 1
         if lost:
-            self.rejects.count(keys.robot_key(self.config.robot, "steps"), "overflow",
-                               f"dropped {lost} step(s) to bound the buffers")
+            self.rejects.count(
+                keys.robot_key(self.config.robot, "steps"), "overflow", f"dropped {lost} step(s) to bound the buffers"
+            )
         self._take_ready()
 
     def _take_ready(self) -> None:
@@ -304,8 +326,11 @@ class SlamState:
     def _new_driver(self) -> LandmarkDriver | GridDriver:
         cfg = self.config
         initial = np.asarray(self.initial, np.float64)
-        return (GridDriver(initial, cfg.grid_config, cfg.seed) if cfg.algorithm == "gridslam"
-                else LandmarkDriver(cfg.make_filter(initial), cfg.motion, cfg.bridge))
+        return (
+            GridDriver(initial, cfg.grid_config, cfg.seed)
+            if cfg.algorithm == "gridslam"
+            else LandmarkDriver(cfg.make_filter(initial), cfg.motion, cfg.bridge)
+        )
 
     def _take(self, seq: int, parts: dict) -> None:
         """Take step ``seq`` through the filter and publish its pose; a step the filter cannot take is undone,
@@ -342,12 +367,20 @@ class SlamState:
     def _report_gap(self, seq: int, gap: Gap | None) -> None:
         """Log how step ``seq`` moved over the steps before it that never arrived, if any."""
         if gap is not None and gap.bridged:
-            self.log.info("seq %d: moved over seq %d-%d, which never arrived, by the odometry poses around them", seq,
-                          gap.first, gap.last)
+            self.log.info(
+                "seq %d: moved over seq %d-%d, which never arrived, by the odometry poses around them",
+                seq,
+                gap.first,
+                gap.last,
+            )
         elif gap is not None:
-            self.log.warning("seq %d: the velocity commands of seq %d-%d never arrived and the odometry messages "
-                             "carry no pose to bridge them; the poses from here on miss that motion", seq, gap.first,
-                             gap.last)
+            self.log.warning(
+                "seq %d: the velocity commands of seq %d-%d never arrived and the odometry messages "
+                "carry no pose to bridge them; the poses from here on miss that motion",
+                seq,
+                gap.first,
+                gap.last,
+            )
 
     def _recover(self, first: int, last: int | None) -> dict[int, dict]:
         """The parts of steps first..last (None: every step the source has published from ``first``), which did
@@ -358,17 +391,22 @@ class SlamState:
         robot = self.config.robot
         for key, payload in self._history(self.steps.needs, first, last):
             stream = key.rsplit("/", 1)[-1]
-            message = history_reply(keys.history_key(robot), robot, payload, EXPECTED[stream], first, last,
-                                    self.rejects)
+            message = history_reply(
+                keys.history_key(robot), robot, payload, EXPECTED[stream], first, last, self.rejects
+            )
             if message is not None:
                 parts.setdefault(message.seq, {})[stream] = message
                 self._history_high[stream] = max(self._history_high.get(stream, -1), message.seq)
         if parts and last is None:  # the end mark can overtake the last steps: they may still be on their way
-            self.log.info("at the end of the stream, took seq %s, which had not all arrived (lost, or still on their "
-                          "way), from the source's history", _spans(_runs(sorted(parts))))
+            self.log.info(
+                "at the end of the stream, took seq %s, which had not all arrived (lost, or still on their "
+                "way), from the source's history",
+                _spans(_runs(sorted(parts))),
+            )
         elif parts:
-            self.log.info("took seq %s, which did not all arrive, from the source's history",
-                          _spans(_runs(sorted(parts))))
+            self.log.info(
+                "took seq %s, which did not all arrive, from the source's history", _spans(_runs(sorted(parts)))
+            )
         return parts
 
     # ---------------------------------------------------------------------------- what the node serves
@@ -386,10 +424,16 @@ class SlamState:
 
     def stats(self) -> NodeStats:
         """The node's statistics (pg/<robot>/slam/stats)."""
-        return NodeStats(robot=self.config.robot, algorithm=self.config.algorithm, poses_published=self.published,
-                         steps_done=self.steps_done, uptime=time.monotonic() - self.started,
-                         received=dict(self.received), rejected=self.rejects.snapshot(),
-                         out_of_order=dict(self.out_of_order))
+        return NodeStats(
+            robot=self.config.robot,
+            algorithm=self.config.algorithm,
+            poses_published=self.published,
+            steps_done=self.steps_done,
+            uptime=time.monotonic() - self.started,
+            received=dict(self.received),
+            rejected=self.rejects.snapshot(),
+            out_of_order=dict(self.out_of_order),
+        )
 
 
 def _runs(seqs: list[int]) -> list[tuple[int, int]]:

@@ -15,6 +15,7 @@ FAR_KEPT seqs of them, and filed once the released steps get within the window o
 consecutive far seqs are complete and ``recover`` (the source's history) gives the first of them, the same parts
 (the stream really jumped; without ``recover`` the run alone is believed). Parts from the history are trusted.
 """
+
 from __future__ import annotations
 
 from collections.abc import Callable
@@ -41,10 +42,15 @@ class Released:
 class StepAssembler:
     """See the module docstring. ``needs``: the parts a step must have, e.g. {"odom", "landmarks"}."""
 
-    def __init__(self, needs: set[str] | frozenset[str], capacity: int = 256, reorder: int = 16,
-                 recover: Callable[[int, int | None], dict[int, dict]] | None = None,
-                 window: int = DEFAULT_SEQ_WINDOW,
-                 same: Callable[[object, object], bool] = lambda a, b: a == b):
+    def __init__(
+        self,
+        needs: set[str] | frozenset[str],
+        capacity: int = 256,
+        reorder: int = 16,
+        recover: Callable[[int, int | None], dict[int, dict]] | None = None,
+        window: int = DEFAULT_SEQ_WINDOW,
+        same: Callable[[object, object], bool] = lambda a, b: a == b,
+    ):
         """``recover(first, last)``: the parts {seq: {part: message}} it can find of seqs first..last (inclusive;
         last None: every seq from first on, at the end of the stream), which are about to be skipped; what it
         returns fills them in. ``window``: seqs beyond the next step that a live part may lie."""
@@ -97,6 +103,7 @@ class StepAssembler:
     def _far_run_complete(self, seq: int) -> bool:
         """Whether ``seq`` is in a run of CONFIRM_RUN consecutive complete far seqs; if so, the run is filed (the
         stream really jumped; the steps before it are recovered or skipped as for any gap)."""
+
         def complete(other: int) -> bool:
             return other in self._far and self.needs <= self._far[other].keys()
 

@@ -1,5 +1,6 @@
 """Parameters of grid FastSLAM, apart from the filter so that the command line can show their defaults
 without loading the compiled kernels."""
+
 from __future__ import annotations
 
 import math
@@ -45,8 +46,18 @@ class GridSlamConfig:
 
     def validate(self) -> None:
         """Raise ValueError naming the first parameter out of range."""
-        positive = ("resolution", "max_range", "sigma_match", "sigma_like", "gain", "weight_temper", "lin_step",
-                    "ang_step", "l_occ", "l_clamp")
+        positive = (
+            "resolution",
+            "max_range",
+            "sigma_match",
+            "sigma_like",
+            "gain",
+            "weight_temper",
+            "lin_step",
+            "ang_step",
+            "l_occ",
+            "l_clamp",
+        )
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
@@ -55,5 +66,7 @@ class GridSlamConfig:
         if not 0 < self.p_rand < 1 or not 0 <= self.resample_threshold <= 1 or self.l_free >= 0:
             raise ValueError("need 0 < p_rand < 1, 0 <= resample_threshold <= 1 and l_free < 0")
         if not (0 <= self.min_range < self.max_range and 0 <= self.prior_cap < math.inf):
-            raise ValueError(f"need 0 <= min_range < max_range and a finite prior_cap >= 0, got min_range "
-                             f"{self.min_range}, prior_cap {self.prior_cap}")
+            raise ValueError(
+                f"need 0 <= min_range < max_range and a finite prior_cap >= 0, got min_range "
+                f"{self.min_range}, prior_cap {self.prior_cap}"
+            )

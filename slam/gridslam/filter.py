@@ -22,6 +22,7 @@ The scan likelihood p(z | m, x) is a product over beams of p_rand + (1 - p_rand)
 with d the distance from the beam's end to the nearest occupied cell near it (the likelihood field,
 evaluated on the grid itself), tempered by 1/gain because neighbouring beams are not independent.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -61,8 +62,15 @@ def proposal_stencil(xy: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
 class GridFastSLAM:
     """The filter's state: M poses, log weights and grids; feed it scans in time order."""
 
-    def __init__(self, config: GridSlamConfig, beam_angles: np.ndarray, sensor_offset: np.ndarray,
-                 range_min: float, initial_pose: np.ndarray, seed: int) -> None:
+    def __init__(
+        self,
+        config: GridSlamConfig,
+        beam_angles: np.ndarray,
+        sensor_offset: np.ndarray,
+        range_min: float,
+        initial_pose: np.ndarray,
+        seed: int,
+    ) -> None:
         """beam_angles (B,) rad in the laser frame; sensor_offset (3,) laser pose in the robot frame;
         range_min m (the sensor's); initial_pose (3,) where every particle starts (map frame)."""
         config.validate()
@@ -134,12 +142,32 @@ class GridFastSLAM:
         # other places to start the match from: where the particle stood (the wheels slipped) and as far
         # backwards as the odometry says forwards (a log that drops the sign of a backward move)
         moved = predicted[:, :2] - self.poses[:, :2]
-        starts = np.stack([self.poses[:, :2], self.poses[:, :2] - moved], axis=1) if cfg.slip_starts \
+        starts = (
+            np.stack([self.poses[:, :2], self.poses[:, :2] - moved], axis=1)
+            if cfg.slip_starts
             else np.zeros((len(predicted), 0, 2))
+        )
         _, score, mean, cov, log_eta = match_and_propose(
-            *grid, predicted, starts, q_inv, q_logdet, self.offset, *beams, cfg.kernel, cfg.sigma_match, cfg.sigma_like,
-            cfg.p_rand, cfg.gain, cfg.lin_step, cfg.ang_step, cfg.refinements, cfg.yaw_search, cfg.prior_cap,
-            self.stencil, self.fit)
+            *grid,
+            predicted,
+            starts,
+            q_inv,
+            q_logdet,
+            self.offset,
+            *beams,
+            cfg.kernel,
+            cfg.sigma_match,
+            cfg.sigma_like,
+            cfg.p_rand,
+            cfg.gain,
+            cfg.lin_step,
+            cfg.ang_step,
+            cfg.refinements,
+            cfg.yaw_search,
+            cfg.prior_cap,
+            self.stencil,
+            self.fit,
+        )
         good = score >= cfg.min_match * max(len(idx), 1)
         poses = np.empty_like(predicted)
         floor = np.diag([cfg.proposal_floor_xy**2, cfg.proposal_floor_xy**2, cfg.proposal_floor_yaw**2])
@@ -148,8 +176,9 @@ class GridFastSLAM:
         if (~good).any():
             poses[~good] = self.motion.sample(self.poses[~good], control, self.rng)
             own_maps = (maps.pool, maps.table[~good], maps.tx0, maps.ty0, maps.shift, cfg.resolution)
-            loglik, _ = log_likelihoods(*own_maps, poses[~good], self.offset, *beams, cfg.kernel, cfg.sigma_match,
-                                        cfg.sigma_like, cfg.p_rand)
+            loglik, _ = log_likelihoods(
+                *own_maps, poses[~good], self.offset, *beams, cfg.kernel, cfg.sigma_match, cfg.sigma_like, cfg.p_rand
+            )
             log_eta[~good] = loglik / cfg.gain
         poses[:, 2] = wrap_angle(poses[:, 2])
         return poses, log_eta, int((~good).sum())
@@ -184,4 +213,3 @@ class GridFastSLAM:
             self.poses = self.poses[parents]
             self.log_w = np.zeros(self.config.particles)
         return poses, weights, parents, StepReport(ess=ess, resampled=parents is not None, fallbacks=fallbacks)
-

@@ -8,6 +8,7 @@ global lattice of mapping.raytrace (cell (ix, iy) covers [ix*res, (ix+1)*res) x 
 Poses are robot poses (x m, y m, yaw rad) in the map frame; ``offset`` (3,) is the laser's pose in the
 robot frame; beams are given by their direction in the laser frame (``cos_b``, ``sin_b``) and range (m).
 """
+
 from __future__ import annotations
 
 import math
@@ -78,8 +79,29 @@ def own_tile(pool, refcount, free_stack, n_free, table, j, v, u):  # pragma: no 
 
 
 @kernel(nogil=True)
-def insert_scan(pool, refcount, free_stack, n_free, table, tx0, ty0, shift, res, poses, offset, cos_b, sin_b,
-                r_stop, hit, l_occ, l_free, l_min, l_max, resume, counters):  # pragma: no cover - compiled
+def insert_scan(
+    pool,
+    refcount,
+    free_stack,
+    n_free,
+    table,
+    tx0,
+    ty0,
+    shift,
+    res,
+    poses,
+    offset,
+    cos_b,
+    sin_b,
+    r_stop,
+    hit,
+    l_occ,
+    l_free,
+    l_min,
+    l_max,
+    resume,
+    counters,
+):  # pragma: no cover - compiled
     """Insert one scan into every particle's grid, particle j seeing it from ``poses[j]``.
 
     Adds ``l_free`` to every cell a beam crosses before its end and ``l_occ`` to its end cell when
@@ -166,8 +188,28 @@ def _candidate(pool, table, j, tx0, ty0, shift, res, ex, ey, dx, dy, ix, iy, tid
 
 
 @kernel(nogil=True)
-def _evaluate(pool, table, j, tx0, ty0, shift, res, x, y, th, offset, cos_b, sin_b, rng, kernel,
-              inv2s2_match, inv2s2_like, log_p_rand, p_rand, stride=1):  # pragma: no cover - compiled
+def _evaluate(
+    pool,
+    table,
+    j,
+    tx0,
+    ty0,
+    shift,
+    res,
+    x,
+    y,
+    th,
+    offset,
+    cos_b,
+    sin_b,
+    rng,
+    kernel,
+    inv2s2_match,
+    inv2s2_like,
+    log_p_rand,
+    p_rand,
+    stride=1,
+):  # pragma: no cover - compiled
     """(match score, log-likelihood) of the beams (cos_b, sin_b, rng) from robot pose (x, y, th) on
     particle j's grid. For each beam end the nearest mean end point of an occupied cell (log-odds > 0)
     within ``kernel`` cells whose neighbour one cell back towards the laser is not occupied gives the
@@ -197,14 +239,16 @@ def _evaluate(pool, table, j, tx0, ty0, shift, res, x, y, th, offset, cos_b, sin
             if tid >= 0:
                 for b in range(-kernel, kernel + 1):
                     for a in range(-kernel, kernel + 1):
-                        best = _candidate(pool, table, j, tx0, ty0, shift, res, ex, ey, dx, dy, cx + a, cy + b,
-                                          tid, best)
+                        best = _candidate(
+                            pool, table, j, tx0, ty0, shift, res, ex, ey, dx, dy, cx + a, cy + b, tid, best
+                        )
         else:
             for b in range(-kernel, kernel + 1):
                 for a in range(-kernel, kernel + 1):
                     cell_tid = _tile_id(table, j, tx0, ty0, shift, cx + a, cy + b)
-                    best = _candidate(pool, table, j, tx0, ty0, shift, res, ex, ey, dx, dy, cx + a, cy + b,
-                                      cell_tid, best)
+                    best = _candidate(
+                        pool, table, j, tx0, ty0, shift, res, ex, ey, dx, dy, cx + a, cy + b, cell_tid, best
+                    )
         if best < np.inf:
             score += math.exp(-best * inv2s2_match)
             loglik += math.log(p_rand + (1.0 - p_rand) * math.exp(-best * inv2s2_like))
@@ -214,43 +258,133 @@ def _evaluate(pool, table, j, tx0, ty0, shift, res, x, y, th, offset, cos_b, sin
 
 
 @kernel(nogil=True, inline="always")
-def _objective(pool, table, j, tx0, ty0, shift, res, x, y, th, offset, cos_b, sin_b, rng, kernel, inv_m, inv_l,
-               log_pr, p_rand, stride, gain, predicted, q_inv, prior_cap):  # pragma: no cover - compiled
+def _objective(
+    pool,
+    table,
+    j,
+    tx0,
+    ty0,
+    shift,
+    res,
+    x,
+    y,
+    th,
+    offset,
+    cos_b,
+    sin_b,
+    rng,
+    kernel,
+    inv_m,
+    inv_l,
+    log_pr,
+    p_rand,
+    stride,
+    gain,
+    predicted,
+    q_inv,
+    prior_cap,
+):  # pragma: no cover - compiled
     """(match score / gain + log of the motion density, up to a constant; match score) at pose (x, y, th)
     for particle j. The score stands in for the log-likelihood in the search (each beam's term exp(-d^2 /
     2 s_m^2) is about the log-likelihood's change between a matched and an unmatched beam, and it locates
     the optimum more precisely: on a synthetic room within 1 cm where the log-likelihood strays 5 cm).
     With ``stride`` > 1 the score of the beams used is scaled up to all beams."""
-    score, _loglik = _evaluate(pool, table, j, tx0, ty0, shift, res, x, y, th, offset, cos_b, sin_b, rng, kernel,
-                               inv_m, inv_l, log_pr, p_rand, stride)
+    score, _loglik = _evaluate(
+        pool,
+        table,
+        j,
+        tx0,
+        ty0,
+        shift,
+        res,
+        x,
+        y,
+        th,
+        offset,
+        cos_b,
+        sin_b,
+        rng,
+        kernel,
+        inv_m,
+        inv_l,
+        log_pr,
+        p_rand,
+        stride,
+    )
     ex = x - predicted[j, 0]
     ey = y - predicted[j, 1]
     et = (th - predicted[j, 2] + math.pi) % (2.0 * math.pi) - math.pi
-    maha = (ex * (q_inv[j, 0, 0] * ex + q_inv[j, 0, 1] * ey + q_inv[j, 0, 2] * et)
-            + ey * (q_inv[j, 1, 0] * ex + q_inv[j, 1, 1] * ey + q_inv[j, 1, 2] * et)
-            + et * (q_inv[j, 2, 0] * ex + q_inv[j, 2, 1] * ey + q_inv[j, 2, 2] * et))
+    maha = (
+        ex * (q_inv[j, 0, 0] * ex + q_inv[j, 0, 1] * ey + q_inv[j, 0, 2] * et)
+        + ey * (q_inv[j, 1, 0] * ex + q_inv[j, 1, 1] * ey + q_inv[j, 1, 2] * et)
+        + et * (q_inv[j, 2, 0] * ex + q_inv[j, 2, 1] * ey + q_inv[j, 2, 2] * et)
+    )
     return score * stride / gain - 0.5 * min(maha, prior_cap), score * stride
 
 
 @kernel(nogil=True)
-def log_likelihoods(pool, table, tx0, ty0, shift, res, poses, offset, cos_b, sin_b, rng, kernel,
-                    sigma_match, sigma_like, p_rand):  # pragma: no cover - compiled
+def log_likelihoods(
+    pool, table, tx0, ty0, shift, res, poses, offset, cos_b, sin_b, rng, kernel, sigma_match, sigma_like, p_rand
+):  # pragma: no cover - compiled
     """Scan log-likelihood (M,) of each particle's pose on its own grid, and match score (M,)."""
     _check_rows(table, poses, cos_b, sin_b, rng)
     m = poses.shape[0]
     loglik = np.empty(m)
     score = np.empty(m)
     for j in range(m):
-        score[j], loglik[j] = _evaluate(pool, table, j, tx0, ty0, shift, res, poses[j, 0], poses[j, 1], poses[j, 2],
-                                        offset, cos_b, sin_b, rng, kernel, 0.5 / sigma_match**2,
-                                        0.5 / sigma_like**2, math.log(p_rand), p_rand)
+        score[j], loglik[j] = _evaluate(
+            pool,
+            table,
+            j,
+            tx0,
+            ty0,
+            shift,
+            res,
+            poses[j, 0],
+            poses[j, 1],
+            poses[j, 2],
+            offset,
+            cos_b,
+            sin_b,
+            rng,
+            kernel,
+            0.5 / sigma_match**2,
+            0.5 / sigma_like**2,
+            math.log(p_rand),
+            p_rand,
+        )
     return loglik, score
 
 
 @kernel(nogil=True)
-def match_and_propose(pool, table, tx0, ty0, shift, res, predicted, starts, q_inv, q_logdet, offset, cos_b, sin_b,
-                      rng, kernel, sigma_match, sigma_like, p_rand, gain, lin_step, ang_step, refinements,
-                      yaw_search, prior_cap, stencil, fit):  # pragma: no cover - compiled
+def match_and_propose(
+    pool,
+    table,
+    tx0,
+    ty0,
+    shift,
+    res,
+    predicted,
+    starts,
+    q_inv,
+    q_logdet,
+    offset,
+    cos_b,
+    sin_b,
+    rng,
+    kernel,
+    sigma_match,
+    sigma_like,
+    p_rand,
+    gain,
+    lin_step,
+    ang_step,
+    refinements,
+    yaw_search,
+    prior_cap,
+    stencil,
+    fit,
+):  # pragma: no cover - compiled
     """Scan-match every particle on its own grid, then fit the improved proposal around the match.
 
     For particle j the match maximises score(x)/gain - min(m(x), prior_cap)/2, m the squared Mahalanobis
@@ -298,8 +432,32 @@ def match_and_propose(pool, table, tx0, ty0, shift, res, predicted, starts, q_in
     for j in range(m):
         bx, by, bt = predicted[j, 0], predicted[j, 1], predicted[j, 2]
         stride = 2 if refinements > FINE_REFINEMENTS else 1
-        best, score = _objective(pool, table, j, tx0, ty0, shift, res, bx, by, bt, offset, cos_b, sin_b, rng, kernel,
-                                 inv_m, inv_l, log_pr, p_rand, stride, gain, predicted, q_inv, prior_cap)
+        best, score = _objective(
+            pool,
+            table,
+            j,
+            tx0,
+            ty0,
+            shift,
+            res,
+            bx,
+            by,
+            bt,
+            offset,
+            cos_b,
+            sin_b,
+            rng,
+            kernel,
+            inv_m,
+            inv_l,
+            log_pr,
+            p_rand,
+            stride,
+            gain,
+            predicted,
+            q_inv,
+            prior_cap,
+        )
         turns = int(yaw_search / ang_step)
         start_t = bt
         for st in range(starts.shape[1] + 1):
@@ -307,18 +465,64 @@ def match_and_propose(pool, table, tx0, ty0, shift, res, predicted, starts, q_in
             for k in range(-turns, turns + 1):
                 if k == 0 and st == 0:
                     continue
-                f, s = _objective(pool, table, j, tx0, ty0, shift, res, sx, sy, start_t + k * ang_step, offset, cos_b,
-                                  sin_b, rng, kernel, inv_m, inv_l, log_pr, p_rand, stride, gain, predicted, q_inv,
-                                  prior_cap)
+                f, s = _objective(
+                    pool,
+                    table,
+                    j,
+                    tx0,
+                    ty0,
+                    shift,
+                    res,
+                    sx,
+                    sy,
+                    start_t + k * ang_step,
+                    offset,
+                    cos_b,
+                    sin_b,
+                    rng,
+                    kernel,
+                    inv_m,
+                    inv_l,
+                    log_pr,
+                    p_rand,
+                    stride,
+                    gain,
+                    predicted,
+                    q_inv,
+                    prior_cap,
+                )
                 if f > best:
                     best, score, bx, by, bt = f, s, sx, sy, start_t + k * ang_step
         lin, ang = lin_step, ang_step
         for r in range(refinements):
             if stride == 2 and r >= refinements - FINE_REFINEMENTS:
                 stride = 1
-                best, score = _objective(pool, table, j, tx0, ty0, shift, res, bx, by, bt, offset, cos_b, sin_b, rng,
-                                         kernel, inv_m, inv_l, log_pr, p_rand, stride, gain, predicted, q_inv,
-                                         prior_cap)
+                best, score = _objective(
+                    pool,
+                    table,
+                    j,
+                    tx0,
+                    ty0,
+                    shift,
+                    res,
+                    bx,
+                    by,
+                    bt,
+                    offset,
+                    cos_b,
+                    sin_b,
+                    rng,
+                    kernel,
+                    inv_m,
+                    inv_l,
+                    log_pr,
+                    p_rand,
+                    stride,
+                    gain,
+                    predicted,
+                    q_inv,
+                    prior_cap,
+                )
             for _it in range(64):
                 cand_x, cand_y, cand_t, cand_f, cand_s = bx, by, bt, best, score
                 for move in range(6):
@@ -335,8 +539,32 @@ def match_and_propose(pool, table, tx0, ty0, shift, res, predicted, starts, q_in
                         tt += ang
                     else:
                         tt -= ang
-                    f, s = _objective(pool, table, j, tx0, ty0, shift, res, tx, ty, tt, offset, cos_b, sin_b, rng,
-                                      kernel, inv_m, inv_l, log_pr, p_rand, stride, gain, predicted, q_inv, prior_cap)
+                    f, s = _objective(
+                        pool,
+                        table,
+                        j,
+                        tx0,
+                        ty0,
+                        shift,
+                        res,
+                        tx,
+                        ty,
+                        tt,
+                        offset,
+                        cos_b,
+                        sin_b,
+                        rng,
+                        kernel,
+                        inv_m,
+                        inv_l,
+                        log_pr,
+                        p_rand,
+                        stride,
+                        gain,
+                        predicted,
+                        q_inv,
+                        prior_cap,
+                    )
                     if f > cand_f:
                         cand_x, cand_y, cand_t, cand_f, cand_s = tx, ty, tt, f, s
                 if cand_f > best:
@@ -348,8 +576,27 @@ def match_and_propose(pool, table, tx0, ty0, shift, res, predicted, starts, q_in
         matched[j, 0], matched[j, 1], matched[j, 2] = bx, by, bt
         scores[j] = score
         for k in range(k_count):
-            _, ll_k[k] = _evaluate(pool, table, j, tx0, ty0, shift, res, bx + stencil[k, 0], by + stencil[k, 1],
-                                   bt + stencil[k, 2], offset, cos_b, sin_b, rng, kernel, inv_m, inv_l, log_pr, p_rand)
+            _, ll_k[k] = _evaluate(
+                pool,
+                table,
+                j,
+                tx0,
+                ty0,
+                shift,
+                res,
+                bx + stencil[k, 0],
+                by + stencil[k, 1],
+                bt + stencil[k, 2],
+                offset,
+                cos_b,
+                sin_b,
+                rng,
+                kernel,
+                inv_m,
+                inv_l,
+                log_pr,
+                p_rand,
+            )
         coef = fit @ ll_k
         # Hessian of the tempered log-likelihood at the match, made positive semi-definite
         curv = np.empty((3, 3))

@@ -7,6 +7,7 @@ was built from, so fusing them (posegrid fuse) gives the map the filter believes
 to few distinct poses where the particles share ancestors; that is the filter's real uncertainty, not
 a loss.
 """
+
 from __future__ import annotations
 
 import time

@@ -17,6 +17,7 @@ A cell holds four numbers (the last axis): its log-odds (:data:`LOGODDS`), the s
 their count (:data:`HITS`), so the scan matcher measures distances to the mean end point, not to the cell
 centre (sub-cell precision).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -73,7 +74,7 @@ class TileMaps:
         table = np.full((self.particles, ty_hi - ty_lo + 1, tx_hi - tx_lo + 1), -1, np.int32)
         if nx:
             u0, v0 = self.tx0 - tx_lo, self.ty0 - ty_lo
-            table[:, v0:v0 + ny, u0:u0 + nx] = self.table
+            table[:, v0 : v0 + ny, u0 : u0 + nx] = self.table
         self.table, self.tx0, self.ty0 = table, int(tx_lo), int(ty_lo)
 
     def reserve(self, count: int) -> None:
@@ -89,20 +90,46 @@ class TileMaps:
         stack = np.empty(new, np.int32)
         n = int(self.n_free[0])
         stack[:n] = self.free_stack[:n]
-        stack[n:n + new - old] = np.arange(new - 1, old - 1, -1, dtype=np.int32)
+        stack[n : n + new - old] = np.arange(new - 1, old - 1, -1, dtype=np.int32)
         self.pool, self.refcount, self.free_stack = pool, refcount, stack
         self.n_free[0] = n + new - old
 
-    def insert(self, poses: np.ndarray, offset: np.ndarray, cos_b: np.ndarray, sin_b: np.ndarray,
-               r_stop: np.ndarray, hit: np.ndarray, l_occ: float, l_free: float, l_clamp: float) -> int:
+    def insert(
+        self,
+        poses: np.ndarray,
+        offset: np.ndarray,
+        cos_b: np.ndarray,
+        sin_b: np.ndarray,
+        r_stop: np.ndarray,
+        hit: np.ndarray,
+        l_occ: float,
+        l_free: float,
+        l_clamp: float,
+    ) -> int:
         """Insert one scan into every particle's grid (slam.gridslam.kernels.insert_scan), growing the pool
         as the kernel asks. poses (M, 3) robot poses (m, rad, map frame); offset (3,) laser pose in the
         robot frame; beams by direction (cos_b, sin_b) in the laser frame, length r_stop (m, NaN: unused)
         and hit flags. The table must already span the beams (:meth:`cover`). Returns the cell updates."""
         resume = np.zeros(3, np.int64)
         counters = np.zeros(2, np.int64)
-        args = (self.tx0, self.ty0, self.shift, self.resolution, np.ascontiguousarray(poses, np.float64), offset,
-                cos_b, sin_b, r_stop, hit, l_occ, l_free, -l_clamp, l_clamp, resume, counters)
+        args = (
+            self.tx0,
+            self.ty0,
+            self.shift,
+            self.resolution,
+            np.ascontiguousarray(poses, np.float64),
+            offset,
+            cos_b,
+            sin_b,
+            r_stop,
+            hit,
+            l_occ,
+            l_free,
+            -l_clamp,
+            l_clamp,
+            resume,
+            counters,
+        )
         while not insert_scan(self.pool, self.refcount, self.free_stack, self.n_free, self.table, *args):
             self.reserve(len(self.pool))
         self.copies += int(counters[1])
@@ -128,7 +155,7 @@ class TileMaps:
         v0, u0 = vs.min(), us.min()
         out = np.zeros(((vs.max() - v0 + 1) * side, (us.max() - u0 + 1) * side), np.float32)
         for v, u in zip(vs, us):  # one block copy per tile (not per cell): a few hundred per map
-            out[(v - v0) * side:(v - v0 + 1) * side, (u - u0) * side:(u - u0 + 1) * side] = self.pool[
+            out[(v - v0) * side : (v - v0 + 1) * side, (u - u0) * side : (u - u0 + 1) * side] = self.pool[
                 rows[v, u], :, :, LOGODDS
             ]
         origin = np.array([(self.tx0 + u0) * side, (self.ty0 + v0) * side], np.float64) * self.resolution

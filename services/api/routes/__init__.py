@@ -11,6 +11,7 @@
 
 :data:`ROUTERS` is the order services.api.app includes them in (the order of the OpenAPI document's paths).
 """
+
 from __future__ import annotations
 
 from services.api.routes import events, export, maps, robots, status, tiles

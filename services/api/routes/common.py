@@ -2,6 +2,7 @@
 dependency read from ``app.state.api``), the error responses they document, the ``map`` path parameter and the
 map look-ups that answer 404 for an unknown map.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -20,7 +21,7 @@ ERRORS = {
     404: "unknown map or robot, or a tile outside the map's range",
     409: "the map (or the window) has nothing to export yet",
     413: "the export's raster would span more cells than the API's --max-export-cells; export a window "
-         "(x_min, y_min, x_max, y_max)",
+    "(x_min, y_min, x_max, y_max)",
     422: "a parameter is malformed or out of its range (layer, format, z < 0, vmax <= 0, ...)",
     503: "a shard holding the data did not answer, or every export slot is taken (see Retry-After)",
 }
@@ -50,9 +51,13 @@ class Api:
 
     def limit_values(self) -> dict[str, int]:
         """The limits /health shows."""
-        return {"maps": self.backend.registry.max_maps, "robots": self.backend.robots.max_robots,
-                "event_clients": self.limits.event_clients, "exports": self.limits.exports,
-                "export_cells": self.limits.export_cells}
+        return {
+            "maps": self.backend.registry.max_maps,
+            "robots": self.backend.robots.max_robots,
+            "event_clients": self.limits.event_clients,
+            "exports": self.limits.exports,
+            "export_cells": self.limits.export_cells,
+        }
 
 
 async def get_api(request: Request) -> Api:
@@ -66,8 +71,11 @@ ApiDep = Annotated[Api, Depends(get_api)]
 
 def busy(what: str, limit: int, option: str) -> HTTPException:
     """The 503 for a request that finds every one of ``limit`` slots taken."""
-    return HTTPException(503, f"{limit} {what} are in progress, the most this API runs at once ({option}); retry "
-                         f"in {RETRY_AFTER} s", headers={"Retry-After": str(RETRY_AFTER)})
+    return HTTPException(
+        503,
+        f"{limit} {what} are in progress, the most this API runs at once ({option}); retry in {RETRY_AFTER} s",
+        headers={"Retry-After": str(RETRY_AFTER)},
+    )
 
 
 def known_map(api: Api, name: str) -> MapInfo:

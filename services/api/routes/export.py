@@ -4,6 +4,7 @@ The raster is sized from the tiles before any is fetched, and again from the til
 raster is allocated: beyond --max-export-cells the answer is 413 (services.api.export). At most --max-exports
 are built at once; the next is 503 with Retry-After.
 """
+
 from __future__ import annotations
 
 from typing import Annotated, Literal
@@ -19,8 +20,13 @@ from services.api.routes.common import Api, ApiDep, MapName, busy, errors, known
 
 router = APIRouter()
 
-WindowEdge = Annotated[float | None, Query(allow_inf_nan=False, description="export window edge, m in the map "
-                                          "frame; give all four of x_min, y_min, x_max, y_max or none")]
+WindowEdge = Annotated[
+    float | None,
+    Query(
+        allow_inf_nan=False,
+        description="export window edge, m in the map frame; give all four of x_min, y_min, x_max, y_max or none",
+    ),
+]
 
 
 Edges = tuple[float, float, float, float]
@@ -29,8 +35,9 @@ Edges = tuple[float, float, float, float]
 def check_layer(fmt: str, layer: str | None) -> None:
     """422 for a layer the format cannot hold."""
     if fmt == "pgm" and layer not in (None, "probability"):
-        raise HTTPException(422, f"layer={layer}: a pgm export is map_server's occupancy image; export the "
-                            f"{layer} layer as png or npz")
+        raise HTTPException(
+            422, f"layer={layer}: a pgm export is map_server's occupancy image; export the {layer} layer as png or npz"
+        )
 
 
 def window_edges(x_min: float | None, y_min: float | None, x_max: float | None, y_max: float | None) -> Edges | None:
@@ -41,13 +48,13 @@ def window_edges(x_min: float | None, y_min: float | None, x_max: float | None, 
     if x_min is None or y_min is None or x_max is None or y_max is None:
         raise HTTPException(422, "a window needs all four of x_min, y_min, x_max and y_max (m), or none of them")
     if not (x_min < x_max and y_min < y_max):
-        raise HTTPException(422, f"the window must have x_min < x_max and y_min < y_max, got x {x_min}..{x_max} "
-                            f"m, y {y_min}..{y_max} m")
+        raise HTTPException(
+            422, f"the window must have x_min < x_max and y_min < y_max, got x {x_min}..{x_max} m, y {y_min}..{y_max} m"
+        )
     return x_min, y_min, x_max, y_max
 
 
-def check_export_size(api: Api, name: str, tiles_read: list, tile_size: int, resolution: float,
-                      window: bool) -> None:
+def check_export_size(api: Api, name: str, tiles_read: list, tile_size: int, resolution: float, window: bool) -> None:
     """413 when the raster an export of ``tiles_read`` allocates exceeds the limit (nothing allocated yet)."""
     limit = api.limits.export_cells
     width, height = raster_shape(tiles_read, tile_size)
@@ -55,12 +62,15 @@ def check_export_size(api: Api, name: str, tiles_read: list, tile_size: int, res
         return
     cells, span = width * height, tile_size * resolution
     x0, y0 = min(t[0] for t in tiles_read) * span, min(t[1] for t in tiles_read) * span
-    raise HTTPException(413, f"the export of {'this window of ' if window else ''}map {name!r} would be a "
-                        f"raster of {width} x {height} = {cells} cells ({cells * EXPORT_BYTES_PER_CELL} bytes as "
-                        f"npz; its tiles span x {x0:.6g}..{x0 + width * resolution:.6g} m, y "
-                        f"{y0:.6g}..{y0 + height * resolution:.6g} m), more than this API's limit of "
-                        f"{limit} cells (--max-export-cells); export a smaller window with x_min, "
-                        "y_min, x_max, y_max (m), or read the map tile by tile")
+    raise HTTPException(
+        413,
+        f"the export of {'this window of ' if window else ''}map {name!r} would be a "
+        f"raster of {width} x {height} = {cells} cells ({cells * EXPORT_BYTES_PER_CELL} bytes as "
+        f"npz; its tiles span x {x0:.6g}..{x0 + width * resolution:.6g} m, y "
+        f"{y0:.6g}..{y0 + height * resolution:.6g} m), more than this API's limit of "
+        f"{limit} cells (--max-export-cells); export a smaller window with x_min, "
+        "y_min, x_max, y_max (m), or read the map tile by tile",
+    )
 
 
 def shard_count(api: Api, name: str) -> int:
@@ -71,8 +81,7 @@ def shard_count(api: Api, name: str) -> int:
     shards = max(s.shards for s in stats.values())
     silent = sorted(set(range(shards)) - set(stats))
     if silent:  # checked before "no tiles yet": the tiles may all lie on them
-        raise HTTPException(503, f"shard(s) {silent} of map {name!r} did not answer; the export would miss "
-                            "their tiles")
+        raise HTTPException(503, f"shard(s) {silent} of map {name!r} did not answer; the export would miss their tiles")
     return shards
 
 
@@ -85,11 +94,18 @@ def build_export(api: Api, name: str, fmt: str, layer: str | None, edges: Edges 
         raise HTTPException(409, f"map {name!r} has no tiles yet")
     window = None if edges is None else Window.of(*edges, info.resolution)
     backend.tiles.sync(name)  # the tiles the registry lists: the size is checked before any tile is fetched
-    check_export_size(api, name, covered(backend.registry.tiles(name), info.tile_size, window), info.tile_size,
-                      info.resolution, window is not None)
+    check_export_size(
+        api,
+        name,
+        covered(backend.registry.tiles(name), info.tile_size, window),
+        info.tile_size,
+        info.resolution,
+        window is not None,
+    )
     grid = backend.link.assemble(name, shards, info.resolution)
-    check_export_size(api, name, covered(grid.keys(), grid.tile_size, window), grid.tile_size, grid.resolution,
-                      window is not None)  # the tiles as assembled, before the raster is allocated
+    check_export_size(
+        api, name, covered(grid.keys(), grid.tile_size, window), grid.tile_size, grid.resolution, window is not None
+    )  # the tiles as assembled, before the raster is allocated
     try:
         raster = windowed(grid, window).rasterize()
     except InputError as exc:
@@ -100,21 +116,39 @@ def build_export(api: Api, name: str, fmt: str, layer: str | None, edges: Edges 
     return Response(body, media_type=media, headers={"Content-Disposition": f'attachment; filename="{filename}"'})
 
 
-@router.get("/maps/{map}/export", tags=["maps"], response_class=Response, responses={
-    200: {"description": "npz: a map file (docs/formats.md), or with layer only that layer, observed, origin and "
-          "resolution; pgm: a zip of MAP.pgm and MAP.yaml for ROS map_server; png: an image, north up",
-          "content": {"application/octet-stream": {}, "application/zip": {}, "image/png": {}}},
-    **errors(404, 409, 413, 422, 503)})
-def export(api: ApiDep, map: MapName,
-           format: Annotated[Literal["npz", "pgm", "png"], Query(
-               description="npz (a map file), pgm (with its YAML, zipped) or png")],
-           layer: Annotated[Literal["probability", "logodds", "variance"] | None, Query(
-               description="png: the layer drawn (default probability; variance is scaled to its 99th "
-               "percentile); npz: omit for a complete map file, or give one to get only that layer with observed, "
-               "origin (m) and resolution (m), as a tile's npz; pgm: map_server's occupancy image, so omit it or "
-               "give probability (another layer is 422)")] = None,
-           x_min: WindowEdge = None, y_min: WindowEdge = None, x_max: WindowEdge = None,
-           y_max: WindowEdge = None) -> Response:
+@router.get(
+    "/maps/{map}/export",
+    tags=["maps"],
+    response_class=Response,
+    responses={
+        200: {
+            "description": "npz: a map file (docs/formats.md), or with layer only that layer, observed, origin and "
+            "resolution; pgm: a zip of MAP.pgm and MAP.yaml for ROS map_server; png: an image, north up",
+            "content": {"application/octet-stream": {}, "application/zip": {}, "image/png": {}},
+        },
+        **errors(404, 409, 413, 422, 503),
+    },
+)
+def export(
+    api: ApiDep,
+    map: MapName,
+    format: Annotated[
+        Literal["npz", "pgm", "png"], Query(description="npz (a map file), pgm (with its YAML, zipped) or png")
+    ],
+    layer: Annotated[
+        Literal["probability", "logodds", "variance"] | None,
+        Query(
+            description="png: the layer drawn (default probability; variance is scaled to its 99th "
+            "percentile); npz: omit for a complete map file, or give one to get only that layer with observed, "
+            "origin (m) and resolution (m), as a tile's npz; pgm: map_server's occupancy image, so omit it or "
+            "give probability (another layer is 422)"
+        ),
+    ] = None,
+    x_min: WindowEdge = None,
+    y_min: WindowEdge = None,
+    x_max: WindowEdge = None,
+    y_max: WindowEdge = None,
+) -> Response:
     """The map assembled from every shard's tiles now, cropped to the observed cells; with a window
     (x_min, y_min, x_max, y_max, m, all four), only its cells that overlap the window. The raster is sized from
     the tiles before it is built: beyond --max-export-cells the answer is 413, and a window makes it smaller.

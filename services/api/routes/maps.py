@@ -1,4 +1,5 @@
 """GET /maps and GET /maps/{map}: every map a shard has proved, and one map, with extent and cell counts."""
+
 from __future__ import annotations
 
 from fastapi import APIRouter
@@ -32,11 +33,21 @@ def summary(info: MapInfo, content: MapContent | None) -> models.MapSummary:
         observed = extent(ix0 * res, iy0 * res, (ix1 + 1) * res, (iy1 + 1) * res)
     per_tile = (size or 0) ** 2
     return models.MapSummary(
-        name=info.name, resolution=res, tile_size=size, shards=info.shards, shards_alive=sorted(info.alive),
-        tiles=len(info.tiles), tile_bounds=bounds, extent=area, observed_extent=observed, max_zoom=info.top_level,
-        cells=models.CellCounts(per_tile=per_tile, total=per_tile * len(info.tiles),
-                                observed=None if content is None else content.observed),
-        variance_scale=None if content is None else content.variance_scale)
+        name=info.name,
+        resolution=res,
+        tile_size=size,
+        shards=info.shards,
+        shards_alive=sorted(info.alive),
+        tiles=len(info.tiles),
+        tile_bounds=bounds,
+        extent=area,
+        observed_extent=observed,
+        max_zoom=info.top_level,
+        cells=models.CellCounts(
+            per_tile=per_tile, total=per_tile * len(info.tiles), observed=None if content is None else content.observed
+        ),
+        variance_scale=None if content is None else content.variance_scale,
+    )
 
 
 def summary_now(api: Api, info: MapInfo) -> models.MapSummary:

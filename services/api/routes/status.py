@@ -1,4 +1,5 @@
 """GET /maps/{map}/stats and GET /health: the data gathered from the backend, combined by services.api.status."""
+
 from __future__ import annotations
 
 import time
@@ -38,7 +39,16 @@ def health(api: ApiDep) -> models.Health:
     processes = list(backend.link.processes)  # a copy: Zenoh's threads change the set
     maps = {name: stats_now(api, known_map(api, name)) for name in backend.registry.names()}
     now = time.monotonic()
-    return health_report(maps, processes, api.progress, now, uptime_s=now - backend.started,
-                         robots=backend.robots.robots(), rejected=backend.link.rejects.snapshot(),
-                         event_clients=backend.hub.clients, exports_running=api.export_slots.taken,
-                         refused=backend.link.refused.snapshot(), limits=api.limit_values())
+    return health_report(
+        maps,
+        processes,
+        api.progress,
+        now,
+        uptime_s=now - backend.started,
+        robots=backend.robots.robots(),
+        rejected=backend.link.rejects.snapshot(),
+        event_clients=backend.hub.clients,
+        exports_running=api.export_slots.taken,
+        refused=backend.link.refused.snapshot(),
+        limits=api.limit_values(),
+    )
