@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: install run test bench clean
+.PHONY: install run test lint bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -19,9 +19,17 @@ install: $(STAMP)
 run: $(STAMP)
 	$(VENV)/bin/posegrid run $(RUN_ARGS)
 
-## make test: the test suite (pytest's exit 5, "no tests collected", fails the target)
+## make test: the test suite (pytest's exit 5, "no tests collected", fails the target and says so)
 test: $(STAMP)
-	$(PY) -m pytest -q
+	@$(PY) -m pytest -q; rc=$$?; \
+	if [ $$rc -eq 5 ]; then echo "make test: pytest collected no tests (exit 5): that is a failure" >&2; fi; \
+	exit $$rc
+
+## make lint: ruff's rules and format, and mypy, as configured in pyproject.toml (CI runs it before the tests)
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/mypy
 
 ## make bench: benchmarks; JSON under bench/results/, a table on stdout
 bench: $(STAMP)

@@ -496,7 +496,7 @@ def output_path_problem(path: str | Path) -> str | None:
     return None
 
 
-def write_atomically(path: str | Path, write: Callable[[BinaryIO], None]) -> None:
+def write_atomically(path: str | Path, write: Callable[[BinaryIO], object]) -> None:
     """Call ``write`` on a new file beside ``path``, flush it to disk (fsync) and move it onto ``path`` once
     complete, so a failed write (a full disk, an I/O error, an error while writing) leaves no partial file and
     the old contents, and ``path`` is written as given (``np.savez`` would add ".npz" to a name without it).

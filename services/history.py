@@ -52,7 +52,8 @@ def parse_request(query: zenoh.Query, robot: str) -> HistoryRequest | None:
     says what was wrong."""
     asked = query.parameters.get("streams")
     streams = set(STREAMS) if asked is None else set(asked.split(","))
-    first, stop = query.parameters.get("from", "0"), query.parameters.get("to")
+    asked_first, stop = query.parameters.get("from"), query.parameters.get("to")
+    first = "0" if asked_first is None else asked_first
     problem = (
         f"unknown stream(s) {sorted(streams - STREAMS)}; known: {sorted(STREAMS)}"
         if streams - STREAMS
@@ -141,10 +142,14 @@ def ask(
     two runs use at once), neither is taken: that stream's messages are left out and a problem says so, since the
     live stream cannot say which run it belongs to. A session cut off from the router waits for it to come back
     (:func:`_answers`)."""
-    messages, problems, answerers = [], [], {}
+    messages: list[tuple[str, str, bytes]] = []
+    problems: list[str] = []
+    answerers: dict[tuple[str, str], set[str]] = {}  # (robot, stream) -> ids of the processes answering for it
     for answer in _answers(session, robot, parameters, timeout):
         if answer.ok is None:
-            problems.append(answer.err.payload.to_bytes()[:500].decode("utf-8", "replace"))
+            error = answer.err
+            assert error is not None  # a reply holds either a sample or an error
+            problems.append(error.payload.to_bytes()[:500].decode("utf-8", "replace"))
             continue
         parsed = keys.parse_history_reply_key(str(answer.ok.key_expr))  # (robot, stream) of pg/<robot>/history/<s>
         attachment = answer.ok.attachment

@@ -20,7 +20,7 @@ stats, tiles and shard liveliness, read only).
 
 from __future__ import annotations
 
-import datetime
+import datetime as dt
 import ipaddress
 import json
 import os
@@ -174,8 +174,8 @@ def acl_config(roles: list[Role]) -> dict:
 # --------------------------------------------------------------------------------------------- certificates
 
 
-def _now() -> datetime.datetime:
-    return datetime.datetime.now(datetime.timezone.utc)
+def _now() -> dt.datetime:
+    return dt.datetime.now(dt.timezone.utc)
 
 
 def _new_key():
@@ -190,7 +190,7 @@ def _certificate(subject_cn: str, public_key, issuer_cn: str, issuer_key, days: 
     from cryptography.hazmat.primitives import hashes
     from cryptography.x509.oid import NameOID
 
-    start = _now() - datetime.timedelta(minutes=5)
+    start = _now() - dt.timedelta(minutes=5)
     builder = (
         x509.CertificateBuilder()
         .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, subject_cn)]))
@@ -198,7 +198,7 @@ def _certificate(subject_cn: str, public_key, issuer_cn: str, issuer_key, days: 
         .public_key(public_key)
         .serial_number(x509.random_serial_number())
         .not_valid_before(start)
-        .not_valid_after(start + datetime.timedelta(days=days))
+        .not_valid_after(start + dt.timedelta(days=days))
     )
     for extension, critical in extensions:
         builder = builder.add_extension(extension, critical=critical)
@@ -299,7 +299,9 @@ def write_certificates(folder: Path, router_names: list[str], users: list[str], 
         ],
     )
     _write_private(folder / "ca.pem", _pem_cert(ca))
-    leaves = [("router", ExtendedKeyUsageOID.SERVER_AUTH, router_names)]
+    leaves: list[tuple[str, x509.ObjectIdentifier, list[str] | None]] = [
+        ("router", ExtendedKeyUsageOID.SERVER_AUTH, router_names)
+    ]
     leaves += [(user, ExtendedKeyUsageOID.CLIENT_AUTH, None) for user in users]
     for name, usage, names in leaves:
         key = _new_key()

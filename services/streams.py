@@ -71,10 +71,13 @@ def posed_stream(posed: PosedScans, robot: str) -> Stream:
     poses = posed.poses
     steps = []
     for t, stamp in enumerate(posed.stamps.tolist()):
+        pose: PoseGaussian | PoseSamples
         if poses.is_gaussian:
-            pose = PoseGaussian(robot=robot, seq=t, stamp=stamp, mean=poses.mean[t], cov=poses.cov[t])
+            mean, cov = poses.gaussian()
+            pose = PoseGaussian(robot=robot, seq=t, stamp=stamp, mean=mean[t], cov=cov[t])
         else:
-            pose = PoseSamples(robot=robot, seq=t, stamp=stamp, samples=poses.samples[t], weights=poses.weights[t])
+            samples, weights = poses.weighted_samples()
+            pose = PoseSamples(robot=robot, seq=t, stamp=stamp, samples=samples[t], weights=weights[t])
         steps.append(Step(stamp, (_scan(robot, t, stamp, posed.ranges[t], geometry), pose)))
     return Stream(robot, steps, prior=None, has_poses=True)
 
@@ -93,12 +96,16 @@ def slam_input_stream(
     measurement_ptr: np.ndarray,
     initial_pose: np.ndarray,
 ) -> Stream:
-    """Scans (optional) with what a SLAM node needs per step: odometry pose readings (T, 3) and/or velocity
-    commands (K, 3) split by ``control_ptr`` (T + 1,), and landmarks split by ``measurement_ptr`` (T + 1,)."""
+    """Scans (optional, with their ``geometry``) with what a SLAM node needs per step: odometry pose readings
+    (T, 3) and/or velocity commands (K, 3) split by ``control_ptr`` (T + 1,), and landmarks split by
+    ``measurement_ptr`` (T + 1,)."""
     steps = []
     for t, stamp in enumerate(np.asarray(stamps, np.float64).tolist()):
         pose = odometry[t : t + 1] if odometry is not None else np.zeros((0, 3))
-        cmds = commands[control_ptr[t] : control_ptr[t + 1]] if commands is not None else np.zeros((0, 3))
+        cmds = np.zeros((0, 3))
+        if commands is not None:
+            assert control_ptr is not None  # commands come with the pointer that splits them
+            cmds = commands[control_ptr[t] : control_ptr[t + 1]]
         messages = [
             Odometry(robot=robot, seq=t, stamp=stamp, pose=pose, commands=cmds),
             _landmarks(
@@ -110,6 +117,7 @@ def slam_input_stream(
             ),
         ]
         if ranges is not None:
+            assert geometry is not None  # scans come with their geometry
             messages.insert(0, _scan(robot, t, stamp, ranges[t], geometry))
         steps.append(Step(stamp, tuple(messages)))
     return Stream(robot, steps, prior=_prior(robot, stamps[0], initial_pose), has_poses=False)

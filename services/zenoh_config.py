@@ -1,8 +1,8 @@
 """The one place that builds Zenoh configurations for every posegrid process.
 
-Defaults (DESIGN.md): multicast scouting and the shared-memory transport off; a router listens on tcp/127.0.0.1:7447; every other
-process is a Zenoh *client* that connects to that router and listens nowhere, so nothing leaves the
-loopback interface and all traffic follows one path through the router. A user's JSON5 config file
+Defaults (DESIGN.md): multicast scouting and the shared-memory transport off; a router listens on
+tcp/127.0.0.1:7447; every other process is a Zenoh *client* that connects to that router and listens nowhere,
+so nothing leaves the loopback interface and all traffic follows one path through the router. A user's JSON5 config file
 overrides any of these keys it sets; ``--listen`` / ``--connect`` endpoints on the command line
 override both.
 """

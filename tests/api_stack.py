@@ -70,11 +70,11 @@ class Stack:
         self.api_url: str | None = None
 
     def start(self, name: str, *argv: str, connect: bool = True) -> subprocess.Popen:
-        log = open(self.logs / f"{name}.log", "wb")
         command = [*POSEGRID, *argv, *(["--connect", self.endpoint] if connect else [])]
-        process = subprocess.Popen(
-            command, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1"}
-        )
+        with open(self.logs / f"{name}.log", "wb") as log:  # the child keeps its own copy of the descriptor
+            process = subprocess.Popen(
+                command, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "PYTHONUNBUFFERED": "1"}
+            )
         self.processes[name] = process
         return process
 

@@ -7,6 +7,7 @@ sorting them and taking the cell at each piece's midpoint; the model is evaluate
 from __future__ import annotations
 
 import math
+from itertools import pairwise
 
 import numpy as np
 
@@ -28,7 +29,7 @@ def cells_on_ray(x0: float, y0: float, angle: float, length: float, res: float) 
                 ts.append(t)
     ts = sorted(set(ts))
     out = []
-    for t_in, t_out in zip(ts[:-1], ts[1:]):
+    for t_in, t_out in pairwise(ts):
         if t_out - t_in <= 1e-12:
             continue
         mid = 0.5 * (t_in + t_out)

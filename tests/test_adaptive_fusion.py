@@ -55,7 +55,7 @@ def test_half_free_half_hidden_cell_splits_with_unknowns_only():
     without = fused(fig3_params(False), [scan], FIG3_ANGLES, 3.0)
     assert without.find_exact(*FIG3_CELL)[0] >= 0, "Einhorn's rule sees only misses: a free cell"
     assert with_unknowns.find_exact(*FIG3_CELL)[0] == -1, "with unknowns the cell is split"
-    level, ax, ay = with_unknowns.cells(with_unknowns.find(np.arange(40, 48), np.full(8, 2)))
+    level, ax, _ay = with_unknowns.cells(with_unknowns.find(np.arange(40, 48), np.full(8, 2)))
     assert (level < 3).all() and ((ax << level) >= 40).all()
 
 

@@ -181,7 +181,7 @@ def test_gzip_and_truncated_gzip(tmp_path):
 def test_unusable_inputs_raise_log_format_error(tmp_path):
     with pytest.raises(LogFormatError, match="no such file"):
         read_carmen(tmp_path / "missing.clf")
-    with pytest.raises(LogFormatError, match="no usable front laser scan.*line 1"):
+    with pytest.raises(LogFormatError, match=r"no usable front laser scan.*line 1"):
         read_carmen(write(tmp_path, ["FLASER 3 1 2", "ODOM 0 0 0 0 0 0 1 h 1"]))
     with pytest.raises(LogFormatError, match="not a number"):
         read_carmen(write(tmp_path, ["PARAM robot_front_laser_max big 0 h 0", GOOD_FLASER]))

@@ -28,7 +28,12 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def posegrid(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, "-m", "services.cli", *args], cwd=ROOT, capture_output=True, text=True, timeout=300
+        [sys.executable, "-m", "services.cli", *args],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
     )
 
 
@@ -313,6 +318,6 @@ def test_poses_a_loader_would_refuse_are_not_written(tmp_path):
         stamps=np.arange(2.0),
         poses=PoseSet(mean=np.array([[0.0, 0.0, 0.0], [np.nan, 0, 0]]), cov=np.stack([np.eye(3)] * 2)),
     )
-    with pytest.raises(FormatError, match="the poses to write to .*'mean' has NaN or inf at step 1"):
+    with pytest.raises(FormatError, match=r"the poses to write to .*'mean' has NaN or inf at step 1"):
         save_pose_distribution(tmp_path / "poses.npz", bad)
     assert not (tmp_path / "poses.npz").exists()

@@ -20,7 +20,7 @@ COL_STRIDE = 192  # the column-major plane's column length: WIN_H rounded up to 
 
 def runs_cells(x0, y0, angle, r_end, stop):
     """The cells mark_free_runs marks for the ray (both planes folded), and the last cell it returns."""
-    ix, iy, r_in, r_out = traverse(x0, y0, angle, stop, RES)
+    ix, iy, _r_in, _r_out = traverse(x0, y0, angle, stop, RES)
     assert ix.min() > WIN_IX0 and ix.max() < WIN_IX0 + WIN_W - 1
     assert iy.min() > WIN_IY0 and iy.max() < WIN_IY0 + WIN_H - 1
     rows = np.zeros(WIN_W * WIN_H // 64 + 1, np.uint64)
@@ -53,7 +53,7 @@ def runs_cells(x0, y0, angle, r_end, stop):
 
 def traversal(x0, y0, angle, r_end, stop):
     """The traversal's cells in order, and the index of the one holding r_end (entered before it)."""
-    ix, iy, r_in, r_out = traverse(x0, y0, angle, stop, RES)
+    ix, iy, r_in, _r_out = traverse(x0, y0, angle, stop, RES)
     cells = list(zip(ix.tolist(), iy.tolist()))
     return cells, int(np.count_nonzero(r_in < r_end)) - 1
 

@@ -20,7 +20,7 @@ RES = 0.05
 def fused_cells(grid: TiledGrid) -> dict:
     """{(ix, iy): (logodds, variance)} of every observed cell."""
     out = {}
-    for key in grid.keys():
+    for key in grid.keys():  # noqa: SIM118  # a TiledGrid, not a dict: it has no __iter__
         lo, var, obs = grid.tile_arrays(key)
         rows, cols = np.nonzero(obs)
         for r, c in zip(rows, cols):
@@ -43,7 +43,7 @@ def whole_and_joined(tile_size, fusion_args, scans, shards, shard_of):
         fusion = MonteCarloFusion(part, *fusion_args, owns_tile=lambda tx, ty, shard=shard: shard_of(tx, ty) == shard)
         for scan in scans:
             fusion.fuse(*scan)
-        for key in part.keys():
+        for key in part.keys():  # noqa: SIM118  # a TiledGrid, not a dict: it has no __iter__
             assert shard_of(*key) == shard
             joined.set_tile(key, *part.tile_arrays(key))
     return whole, joined
@@ -294,7 +294,7 @@ def test_unbounded_map_grows_tiles_on_demand():
     grid = TiledGrid(RES, tile_size=16)
     fusion = MonteCarloFusion(grid, SensorModel(resolution=RES), np.array([0.0]), 0.05, 5.0)
     fusion.fuse(np.array([1.0]), np.array([[-100.0, 250.0, math.pi]]), np.ones(1))
-    assert all(key[0] < 0 and key[1] > 0 for key in grid.keys())
+    assert all(key[0] < 0 and key[1] > 0 for key in grid.keys())  # noqa: SIM118  # TiledGrid: no __iter__
     raster = grid.rasterize()
     assert raster["origin"][0] < -100.9 and raster["origin"][1] == pytest.approx(250.0)
 
@@ -343,8 +343,9 @@ def test_a_map_too_wide_for_one_raster_is_refused_not_allocated():
     fusion = MonteCarloFusion(grid, SensorModel(resolution=RES), np.array([0.0]), 0.05, 5.0)
     for x in (0.0, 2e6):
         fusion.fuse(np.array([1.0]), np.array([[x, 0.0, 0.0]]), np.ones(1))
-    assert {tx for tx, _ in grid.keys()} == {0, 1, 2_500_000, 2_500_001}  # 16 cells of 0.05 m a tile
-    with pytest.raises(InputError, match="more than the .* cells one raster may hold"):
+    # 16 cells of 0.05 m a tile
+    assert {tx for tx, _ in grid.keys()} == {0, 1, 2_500_000, 2_500_001}  # noqa: SIM118  # TiledGrid: no __iter__
+    with pytest.raises(InputError, match=r"more than the .* cells one raster may hold"):
         grid.rasterize()
 
 

@@ -136,7 +136,7 @@ def test_matcher_recovers_a_displaced_pose_and_likelihood_peaks_at_truth():
     grid = (maps.pool, maps.table, maps.tx0, maps.ty0, maps.shift, RES)
     predicted = np.array([truth + [0.12, -0.09, 0.05]])
     q = np.diag([1.0, 1.0, 0.5]) ** 2  # a broad motion prior: the match is the likelihood's mode
-    matched, score, mean, cov, _ = match_and_propose(
+    matched, score, _mean, _cov, _ = match_and_propose(
         *grid,
         predicted,
         np.zeros((1, 0, 2)),
@@ -391,7 +391,7 @@ def test_odometry_delay_auto_finds_a_late_laser_clock(simulated_log, tmp_path, c
     0.13 s there): `--odom-delay auto` runs the filter over the log's start, compares its scan-matched
     turns with the odometry's and reads the odometry 0.1 s earlier; a log without a separate odometry
     stream is refused with exit 2."""
-    path, run = simulated_log
+    path, _run = simulated_log
     log = read_carmen(path)
     late = tmp_path / "late.clf"
     write_carmen(

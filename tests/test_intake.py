@@ -166,3 +166,31 @@ def test_a_slam_node_takes_lost_steps_from_the_history_and_counts_replies_about_
     poses = [decode_message(payload, PoseGaussian) for payload in published]
     assert [pose.seq for pose in poses] == list(range(10)) and state.stats().poses_published == 10
     np.testing.assert_allclose(poses[9].mean, [0.9, 0.0, 0.0], atol=1e-12)  # moved by every step's odometry
+
+
+def test_a_history_reply_on_a_stream_no_step_has_is_counted_not_fatal():
+    """A hostile answerer replying on pg/r/history/end (a StreamEnd has no seq) stopped the SLAM node with an
+    AttributeError while it recovered lost steps; the reply is counted and the steps are taken."""
+    published: list[bytes] = []
+
+    def history(streams: frozenset[str], first: int, last: int | None) -> list[tuple[str, bytes]]:
+        replies = [("pg/r/end", StreamEnd(robot="r", scans=10).encode())]
+        for seq in range(first, (last if last is not None else 4) + 1):
+            replies += [("pg/r/odom", _odometry(seq).encode()), ("pg/r/landmarks", _seen(seq).encode())]
+        return replies
+
+    config = NodeConfig(
+        robot="r",
+        algorithm="odometry",
+        motion="odometry",
+        initial=np.zeros(3),
+        make_filter=lambda start: DeadReckoning(OdometryMotionModel(), start),
+    )
+    rejects = _rejects("slam-history-end")
+    state = SlamState(config, rejects, publish=published.append, history=history)
+    for seq in (0, 1, 3, 4):
+        state.handle("pg/r/odom", _odometry(seq).encode())
+        state.handle("pg/r/landmarks", _seen(seq).encode())
+    state.handle("pg/r/end", StreamEnd(robot="r", scans=5).encode())
+    assert [decode_message(p, PoseGaussian).seq for p in published] == [0, 1, 2, 3, 4]
+    assert rejects.kinds().get("history", 0) >= 1

@@ -310,7 +310,7 @@ def array_fields(message):
     return sorted(name for name, value in fields(message).items() if isinstance(value, np.ndarray))
 
 
-with_arrays = any_message.filter(lambda m: array_fields(m))
+with_arrays = any_message.filter(array_fields)
 
 
 @SETTINGS

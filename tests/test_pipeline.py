@@ -225,7 +225,7 @@ def test_run_posed_export_equals_fuse(tmp_path, procs, shards, form):
     )
     assert run.process.wait(120) == 0, run.output()
     output = run.output()
-    assert re.search(r"stopped: router exited 0, (mapper\[\d\] exited 0, ){%d}source exited 0" % shards, output), output
+    assert re.search(rf"stopped: router exited 0, (mapper\[\d\] exited 0, ){{{shards}}}source exited 0", output), output
     expected, got = load_map(fused), load_map(exported)
     assert got.logodds.shape == expected.logodds.shape
     np.testing.assert_array_equal(got.observed, expected.observed)

@@ -663,7 +663,7 @@ def test_what_the_histories_hold_of_lost_messages_is_fused_and_nothing_counts_tw
     SLAM node still up after a router restart): every scan still counts exactly once, and when the histories
     hold every message, every scan is fused (unless the stream goes quiet too early), however small the join
     buffer: a half evicted from it is asked for again when its partner comes."""
-    n, capacity, kept, events, pauses, patient = arrival
+    n, capacity, _kept, events, pauses, patient = arrival
     everything = data.draw(st.booleans())
     held = {
         kind: set(range(n)) if everything else data.draw(st.sets(st.integers(0, n - 1))) for kind in ("scan", "pose")
@@ -850,7 +850,7 @@ def test_tile_updates_carry_only_the_changed_window():
     again, _ = shard.due_updates(now=1.0)
     assert again == []  # nothing changed since
     for update in first:
-        logodds, variance, observed = shard.grid.tile_arrays((update.tx, update.ty))
+        logodds, _variance, observed = shard.grid.tile_arrays((update.tx, update.ty))
         window = (
             slice(update.row0, update.row0 + update.logodds.shape[0]),
             slice(update.col0, update.col0 + update.logodds.shape[1]),

@@ -69,6 +69,6 @@ def test_a_long_ray_through_corners_keeps_the_corner_tolerance_relative():
     # ray visits 1 + (horizontal lines crossed) cells: y ends at 300 * 2/sqrt(5) = 268.33 m -> 2683 lines.
     # Over 300 m the two crossing families drift apart by more than 1e-12 m absolute, so a fixed tolerance
     # would add point-contact cells (~1e-12 m long).
-    ix, iy, r_in, r_out = traverse(0.05, 0.0, math.atan2(2.0, 1.0), 300.0, 0.1)
+    ix, _iy, r_in, r_out = traverse(0.05, 0.0, math.atan2(2.0, 1.0), 300.0, 0.1)
     assert len(ix) == 2684
     assert (r_out - r_in).min() > 1e-6

@@ -123,7 +123,7 @@ def test_a_laser_frame_not_linked_to_the_odometry_is_an_error_naming_the_bag(tmp
 @pytest.mark.parametrize("name", ["a.BAG", "a", "a.bag.active"])
 def test_a_bag_file_not_named_dot_bag_is_refused_with_what_to_do(tmp_path, name):
     path = standard_bag().write(tmp_path / "a.bag").rename(tmp_path / name)
-    with pytest.raises(LogFormatError, match="not named as a bag: .*rename or link it"):
+    with pytest.raises(LogFormatError, match=r"not named as a bag: .*rename or link it"):
         read_rosbag(path)
 
 

@@ -144,10 +144,10 @@ def test_bad_lines_name_file_and_line(sample, line, message):
 
 
 def test_missing_robot_and_files(sample):
-    with pytest.raises(LogFormatError, match="no Robot3_Odometry.dat"):
+    with pytest.raises(LogFormatError, match=r"no Robot3_Odometry\.dat"):
         read_mrclam(sample, 3)
     (sample / "Robot1_Measurement.dat").unlink()
-    with pytest.raises(LogFormatError, match="Robot1_Measurement.dat: no such file"):
+    with pytest.raises(LogFormatError, match=r"Robot1_Measurement\.dat: no such file"):
         read_mrclam(sample, 1)
     with pytest.raises(LogFormatError, match="holds no data lines"):
         (sample / "empty.dat").write_text("# nothing\n")

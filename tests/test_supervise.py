@@ -14,6 +14,7 @@ fixture of test_pipeline, which also ends every pid the launcher printed, restar
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import signal
@@ -237,10 +238,8 @@ def test_a_child_killed_mid_run_is_restarted_and_every_scan_is_fused(tmp_path, p
 def _children_of(pid: int) -> list[int]:
     found = []
     for task in Path(f"/proc/{pid}/task").iterdir():
-        try:
+        with contextlib.suppress(FileNotFoundError):
             found += [int(child) for child in (task / "children").read_text().split()]
-        except FileNotFoundError:
-            pass
     return found
 
 

@@ -23,6 +23,7 @@ import ipaddress
 import json
 import re
 import secrets
+from collections.abc import Sequence
 from urllib.parse import parse_qsl, urlencode
 
 #: names every API answers to (lower case, IPv6 without brackets)
@@ -69,7 +70,7 @@ def host_of(header: str | None) -> str | None:
     return match.group(1).lower().strip("[]")
 
 
-def _problem(status: int, detail: str, headers: list[tuple[bytes, bytes]] = ()) -> tuple[int, list, bytes]:
+def _problem(status: int, detail: str, headers: Sequence[tuple[bytes, bytes]] = ()) -> tuple[int, list, bytes]:
     body = json.dumps({"detail": detail}).encode()
     return (
         status,
@@ -104,7 +105,12 @@ class Guard:
         return None
 
     def _matches(self, given: str | None) -> bool:
-        return given is not None and secrets.compare_digest(given.encode("utf-8", "replace"), self.token)
+        # only called with a token set (__call__ checks); without one, nothing matches
+        return (
+            given is not None
+            and self.token is not None
+            and secrets.compare_digest(given.encode("utf-8", "replace"), self.token)
+        )
 
     def _token_answer(self, scope, headers: dict[bytes, bytes]):
         """None to let the request through; else the (status, headers, body) to answer with."""

@@ -319,11 +319,12 @@ class MapperLink:
     def stats_of(self, names: list[str]) -> dict[str, dict[int, ShardStats]]:
         """:meth:`stats` of several maps, asked at once (so the wait is one STATS_TIMEOUT, not one per map)."""
         timeout = min(self.query_timeout, STATS_TIMEOUT)
-        handlers = [(name, keys.stats_key(name, "*")) for name in names]
-        handlers = [(name, selector, self._get(selector, timeout)) for name, selector in handlers]
-        out = {}
+        selectors = [(name, keys.stats_key(name, "*")) for name in names]
+        handlers = [(name, selector, self._get(selector, timeout)) for name, selector in selectors]
+        out: dict[str, dict[int, ShardStats]] = {}
         for name, selector, handler in handlers:
-            stats = out[name] = {}
+            stats: dict[int, ShardStats] = {}
+            out[name] = stats
             for key, payload in self._replies(selector, handler):
                 try:
                     message = decode_message(payload, ShardStats)

@@ -50,13 +50,13 @@ class MapInfo:
     @property
     def top_level(self) -> int | None:
         """The coarsest zoom level served (mapping.pyramid.top_level); None while the map has no tiles."""
-        if self.x_range is None:
+        if self.x_range is None or self.y_range is None:  # set together: both or neither
             return None
         return top_level(self.x_range, self.y_range)
 
     def level_range(self, z: int) -> tuple[tuple[int, int], tuple[int, int]] | None:
         """(x range, y range), inclusive, of the level-z tiles that cover the map; None without tiles."""
-        if self.x_range is None:
+        if self.x_range is None or self.y_range is None:  # set together: both or neither
             return None
         return tile_range(*self.x_range, z), tile_range(*self.y_range, z)
 

@@ -131,7 +131,8 @@ class RobotTracker:
             self._latest[summary.robot] = summary
             self._heard[summary.robot] = now
             track = self._trajectory.setdefault(summary.robot, deque(maxlen=self._length))
-            track.append((summary.seq, summary.stamp, *(float(v) for v in summary.mean)))
+            x, y, yaw = (float(v) for v in summary.mean)  # mean: (3,)
+            track.append((summary.seq, summary.stamp, x, y, yaw))
         return summary
 
     def vouch(self, robot: str) -> bool:

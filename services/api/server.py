@@ -94,9 +94,11 @@ def serve(host: str, port: int, zenoh_config: zenoh.Config, options: ServeOption
                 log_level="warning",
                 access_log=False,
                 lifespan="on",
-                timeout_graceful_shutdown=GRACEFUL_SHUTDOWN,
+                # uvicorn annotates both timeouts int but hands them to asyncio (wait_for, call_later): seconds
+                # as float work, and the options are fractional seconds
+                timeout_graceful_shutdown=GRACEFUL_SHUTDOWN,  # type: ignore[arg-type]  # float s: see above
                 http=timed_protocol(options.request_timeout),
-                timeout_keep_alive=options.keep_alive,
+                timeout_keep_alive=options.keep_alive,  # type: ignore[arg-type]  # float s: see above
                 # uvicorn refuses when the open connections, this one included, reach the limit
                 limit_concurrency=options.max_connections + 1,
             )

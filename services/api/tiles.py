@@ -27,7 +27,7 @@ import numpy as np
 from mapping.pyramid import TileLayers, children_of, combine_children
 from schemas.messages import TileUpdate
 from services.api.cache import ByteLRU
-from services.api.registry import MapInfo, MapRegistry, TileKey
+from services.api.registry import MapRegistry, TileKey
 from services.api.render import empty_layers, npz_bytes, png_bytes
 from services.process import get_logger
 
@@ -89,7 +89,12 @@ def render_key(name: str, z: int, x: int, y: int, fmt: str, layer: str | None, v
     """The canonical cache key of a tile request (layer and vmax dropped where they do not matter)."""
     if fmt == "png":
         layer = layer or "probability"
-        vmax = float(vmax) if layer == "variance" else None
+        if layer != "variance":
+            vmax = None
+        elif vmax is None:  # the callers fill in the map's default (MapContent.variance_scale) first
+            raise TypeError("a variance PNG's render key needs vmax")
+        else:
+            vmax = float(vmax)
     else:
         vmax = None
     return name, z, x, y, fmt, layer, vmax
@@ -215,9 +220,12 @@ class TileService:
         self._stale_below(name, z, x, y, stale)
         if stale:
             self._fetch(name, stale)
-        return self._build(name, self.registry.get(name), z, x, y)
+        info = self.registry.get(name)
+        if info is None or info.tile_size is None:  # unknown map, or none of its tiles seen: no tile below
+            return None
+        return self._build(name, info.tile_size, z, x, y)
 
-    def _build(self, name: str, info: MapInfo, z: int, x: int, y: int) -> TileLayers | None:
+    def _build(self, name: str, tile_size: int, z: int, x: int, y: int) -> TileLayers | None:
         version = self.registry.version(name, z, x, y)
         if version == 0:
             return None
@@ -228,8 +236,8 @@ class TileService:
                 return None
         if entry is not None:
             return entry[0]
-        children = [self._build(name, info, z - 1, *child) for child in children_of(x, y)]
-        layers = combine_children(children, info.tile_size)
+        children = [self._build(name, tile_size, z - 1, *child) for child in children_of(x, y)]
+        layers = combine_children(children, tile_size)
         self._layers.put((name, z, x, y), version, (layers, None), _nbytes(layers))
         return layers
 
@@ -245,19 +253,19 @@ class TileService:
         stale: dict[TileKey, int] = {}
         for tile, version in tiles.items():
             entry = self._layers.get((name, 0, *tile), version)
-            if entry is None:
+            known_facts = None if entry is None else entry[1]  # level-0 entries always have their facts
+            if known_facts is None:
                 stale[tile] = version
             else:
-                by_tile[tile] = entry[1]
+                by_tile[tile] = known_facts
         if stale:
             by_tile.update((tile, entry[1]) for tile, entry in self._fetch(name, stale).items())
         facts = list(by_tile.values())
         boxes = np.array([f.bounds for f in facts if f.bounds is not None]).reshape(-1, 4)
-        bounds = (
-            None
-            if not len(boxes)
-            else (*(int(v) for v in boxes[:, :2].min(axis=0)), *(int(v) for v in boxes[:, 2:].max(axis=0)))
-        )
+        bounds: tuple[int, int, int, int] | None = None
+        if len(boxes):
+            (x_min, y_min), (x_max, y_max) = boxes[:, :2].min(axis=0), boxes[:, 2:].max(axis=0)
+            bounds = (int(x_min), int(y_min), int(x_max), int(y_max))
         result = MapContent(
             sum(f.observed for f in facts), variance_scale(max((f.variance_p99 for f in facts), default=0.0)), bounds
         )
@@ -277,9 +285,11 @@ class TileService:
         if hit is not None:
             return hit
         info = self.registry.get(name)
+        if info is None or info.resolution is None or info.tile_size is None:
+            raise TileUnavailable(f"map {name!r} has no tiles now (it went away while the tile was asked for)")
         layers = self.layers(name, z, x, y) or empty_layers(info.tile_size)
         if fmt == "png":
-            body = png_bytes(layers, layer, vmax if vmax is not None else 1.0)
+            body = png_bytes(layers, layer or "probability", vmax if vmax is not None else 1.0)
         else:
             cell = info.resolution * 2**z
             span = cell * info.tile_size

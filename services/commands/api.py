@@ -65,9 +65,9 @@ HTTP_OPTIONS: list[tuple[str, dict]] = [
             default=None,
             metavar="TOKEN",
             help=(
-                f"require this access token on every request (default: ${TOKEN_ENV}, else none): 'Authorization: Bearer "
-                "TOKEN', ?token=TOKEN, or the cookie the viewer gets when opened as /?token=TOKEN; prefer the environment "
-                "variable, which other users cannot read in the process list"
+                f"require this access token on every request (default: ${TOKEN_ENV}, else none): 'Authorization: "
+                "Bearer TOKEN', ?token=TOKEN, or the cookie the viewer gets when opened as /?token=TOKEN; prefer the "
+                "environment variable, which other users cannot read in the process list"
             ),
         ),
     ),
@@ -79,8 +79,8 @@ HTTP_OPTIONS: list[tuple[str, dict]] = [
             default=[],
             metavar="NAME",
             help=(
-                "also answer requests whose Host header is NAME (repeatable; localhost, 127.0.0.1 and [::1] always are, "
-                "and the --host address; '*': any, behind a proxy that checks it). Others are 400 (DNS rebinding)"
+                "also answer requests whose Host header is NAME (repeatable; localhost, 127.0.0.1 and [::1] always "
+                "are, and the --host address; '*': any, behind a proxy that checks it). Others are 400 (DNS rebinding)"
             ),
         ),
     ),
@@ -109,8 +109,8 @@ HTTP_OPTIONS: list[tuple[str, dict]] = [
             default=limits.MAX_EXPORT_CELLS,
             metavar="N",
             help=(
-                f"cells the raster of one export may span, else 413: export a window (default {limits.MAX_EXPORT_CELLS}, "
-                f"4096 x 4096; {limits.EXPORT_BYTES_PER_CELL} bytes a cell as npz)"
+                f"cells the raster of one export may span, else 413: export a window (default "
+                f"{limits.MAX_EXPORT_CELLS}, 4096 x 4096; {limits.EXPORT_BYTES_PER_CELL} bytes a cell as npz)"
             ),
         ),
     ),

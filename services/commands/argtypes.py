@@ -8,6 +8,7 @@ import argparse
 import math
 import os
 from pathlib import Path
+from typing import overload
 
 
 def finite_float(text: str) -> float:
@@ -61,6 +62,10 @@ def odom_delay_seconds(text: str) -> float:
     return value
 
 
+@overload
+def checked_output(value: str | Path, option: str) -> Path: ...
+@overload
+def checked_output(value: None, option: str) -> None: ...
 def checked_output(value: str | Path | None, option: str) -> Path | None:
     """The output path ``value`` given to ``option`` (None stays None), checked before any work is done: raise
     UsageError with one sentence naming the option, the path and what to do when

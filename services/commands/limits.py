@@ -13,29 +13,37 @@ _LIMITS = (
         "--max-work",
         "max_work",
         int,
-        "ray cells one scan may cost, samples x beams x range_max / resolution; a "
-        "costlier scan is refused (default %(default)s, about 1 to 2 s of one core)",
+        (
+            "ray cells one scan may cost, samples x beams x range_max / resolution; a "
+            "costlier scan is refused (default %(default)s, about 1 to 2 s of one core)"
+        ),
     ),
     (
         "--map-bound",
         "map_bound",
         float,
-        "m: pose samples must lie within this distance of the map origin in x "
-        "and y; a scan posed beyond is refused (default %(default)s)",
+        (
+            "m: pose samples must lie within this distance of the map origin in x "
+            "and y; a scan posed beyond is refused (default %(default)s)"
+        ),
     ),
     (
         "--max-scan-cells",
         "max_scan_cells",
         int,
-        "cells of the tiles one scan may reach (its samples' tiles widened "
-        "by range_max); a scan reaching more is refused (default %(default)s)",
+        (
+            "cells of the tiles one scan may reach (its samples' tiles widened "
+            "by range_max); a scan reaching more is refused (default %(default)s)"
+        ),
     ),
     (
         "--join-bytes",
         "join_bytes",
         int,
-        "bytes of one robot's scans and poses that may wait for their partner; the "
-        "oldest are evicted beyond (default %(default)s)",
+        (
+            "bytes of one robot's scans and poses that may wait for their partner; the "
+            "oldest are evicted beyond (default %(default)s)"
+        ),
     ),
     (
         "--intake-bytes",
@@ -53,8 +61,10 @@ _LIMITS = (
         "--seq-window",
         "seq_window",
         int,
-        "seqs beyond what a robot's stream has shown that a live message may lie; "
-        "one further ahead is held until the stream gets near it (default %(default)s)",
+        (
+            "seqs beyond what a robot's stream has shown that a live message may lie; "
+            "one further ahead is held until the stream gets near it (default %(default)s)"
+        ),
     ),
 )
 

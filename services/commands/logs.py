@@ -86,8 +86,8 @@ def _pose_file_trajectory(path: Path, estimate: str):
     dist = load_pose_distribution(path)
     poses = dist.poses
     if poses.is_gaussian:
-        return Trajectory.sorted(dist.stamps, poses.mean)
-    samples, weights = poses.samples, poses.weights
+        return Trajectory.sorted(dist.stamps, poses.gaussian()[0])
+    samples, weights = poses.weighted_samples()
     if estimate == "best":
         chosen = samples[np.arange(len(samples)), np.argmax(weights, axis=1)]
     else:

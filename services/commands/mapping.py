@@ -7,8 +7,13 @@ import json
 import math
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from services.commands.argtypes import check_outputs, checked_output, finite_float, pose_sample_count, random_seed
+
+if TYPE_CHECKING:
+    from mapping.adaptive import AdaptiveGrid
+    from mapping.grid import TiledGrid
 
 #: --coarse-cell when not given, m
 DEFAULT_COARSE_CELL = 0.8
@@ -274,6 +279,7 @@ def run_fuse(args: argparse.Namespace) -> int:
     options = dict(
         mode=args.mode, model=model, n_samples=args.samples, seed=args.seed, accuracy=args.accuracy, progress=True
     )
+    grid: AdaptiveGrid | TiledGrid
     if args.grid == "adaptive":
         from mapping.adaptive import AdaptiveParams, level_for_cell_size
         from services.fusion_runner import fuse_posed_scans_adaptive
@@ -302,7 +308,8 @@ def run_fuse(args: argparse.Namespace) -> int:
             f"{args.posed}: its scans observed no cell, so the map is empty; nothing written to {args.output}"
         )
     summary = summary or f"{int(raster['observed'].sum())} observed"
-    save_map(args.output, MapFile(**raster))
+    # rasterize() returns the map file's fields by name (resolution as a NumPy scalar), which mypy cannot match
+    save_map(args.output, MapFile(**raster))  # type: ignore[arg-type]  # keys are MapFile's fields: see above
     height, width = raster["logodds"].shape
     unusable = f", {empty_scans} without a usable beam (every reading below range_min, negative or -inf)"
     print(
@@ -325,16 +332,14 @@ def run_export(args: argparse.Namespace) -> int:
         )
     if args.format == "pgm" and args.layer != "probability":
         raise UsageError("--layer variance draws a png; a pgm for map_server holds the occupancy only")
-    yaml_path = (
-        checked_output(args.output.with_suffix(".yaml"), "the map_server YAML beside -o,")
-        if args.format == "pgm"
-        else None
-    )
+    yaml_path = None  # set for a pgm only
+    if args.format == "pgm":
+        yaml_path = checked_output(args.output.with_suffix(".yaml"), "the map_server YAML beside -o,")
     map_file = load_map(args.map)
     arrays = vars(map_file)
     if args.crop is not None:
         arrays = crop_to_occupied(arrays, args.crop)
-    if args.format == "pgm":
+    if yaml_path is not None:  # a pgm
         pgm, yaml = render_pgm(arrays, image_name=args.output.name)
         write_atomically(args.output, lambda handle: handle.write(pgm))
         write_atomically(yaml_path, lambda handle: handle.write(yaml.encode()))
@@ -351,12 +356,13 @@ def run_eval(args: argparse.Namespace) -> int:
     from schemas.files import load_map, load_truth
 
     scores = score_map(vars(load_map(args.map)), vars(load_truth(args.truth)))
+    report: dict[str, float | None] = dict(scores)
     if math.isnan(scores["auc"]):  # one class only: Brier and NLL still say something, AUC nothing
         print(
             f"posegrid eval: the truth's {scores['n']} visible cells hold one class only, so the ROC AUC is undefined "
             "(null)",
             file=sys.stderr,
         )
-        scores["auc"] = None
-    print(json.dumps(scores, allow_nan=False))  # the rest is finite: the map and the truth are validated
+        report["auc"] = None
+    print(json.dumps(report, allow_nan=False))  # the rest is finite: the map and the truth are validated
     return 0

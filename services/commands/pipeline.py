@@ -9,12 +9,16 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from services.commands.api import add_http_arguments
+from services.commands.api import add_http_arguments, api_child_options, check_port_free
 from services.commands.argtypes import checked_output, finite_float, odom_delay_seconds, pose_sample_count, random_seed
 from services.commands.gridslam import add_filter_options, filter_option_values, reject_filter_options
 from services.commands.limits import add_limit_arguments, limit_argv, limits_from_args
 from services.commands.mapping import add_sensor_model_arguments
+
+if TYPE_CHECKING:
+    from services.nodes.launcher import Plan
 
 DEFAULT_MAP = "main"
 DEFAULT_ROBOT = "robot0"
@@ -29,6 +33,14 @@ NODE_PARTICLES = 500
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    _add_router(subparsers)
+    _add_mapper(subparsers)
+    _add_source(subparsers)
+    _add_slam_node(subparsers)
+    _add_run(subparsers)
+
+
+def _add_router(subparsers: argparse._SubParsersAction) -> None:
     from services.zenoh_config import add_zenoh_arguments
 
     router = subparsers.add_parser(
@@ -39,6 +51,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     add_zenoh_arguments(router)
     router.set_defaults(func=run_router)
+
+
+def _add_mapper(subparsers: argparse._SubParsersAction) -> None:
+    from services.zenoh_config import add_zenoh_arguments
 
     mapper = subparsers.add_parser(
         "mapper",
@@ -77,6 +93,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_zenoh_arguments(mapper)
     mapper.set_defaults(func=run_mapper)
 
+
+def _add_source(subparsers: argparse._SubParsersAction) -> None:
+    from services.zenoh_config import add_zenoh_arguments
+
     source = subparsers.add_parser(
         "source",
         help="publish a simulated world live, or replay a dataset, over Zenoh",
@@ -107,6 +127,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_zenoh_arguments(source)
     source.set_defaults(func=run_source)
 
+
+def _add_slam_node(subparsers: argparse._SubParsersAction) -> None:
+    from services.zenoh_config import add_zenoh_arguments
+
     node = subparsers.add_parser(
         "slam-node",
         help="run a SLAM filter on a robot's streams and publish its pose distribution per scan",
@@ -128,6 +152,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_zenoh_arguments(node)
     node.set_defaults(func=run_slam_node)
 
+
+def _add_run(subparsers: argparse._SubParsersAction) -> None:
     run = subparsers.add_parser(
         "run",
         help="run the whole pipeline: router, source, SLAM node, mapper shards, HTTP API",
@@ -644,8 +670,6 @@ def run_pipeline(args: argparse.Namespace) -> int:
     _rate(rate_text)
     args.export = checked_output(args.export, "--export")
     if not args.no_api:
-        from services.commands.api import api_child_options, check_port_free
-
         if not 0 < args.api_port < 65536:
             raise UsageError(f"--api-port must be a TCP port (1..65535), got {args.api_port}")
         check_port_free("127.0.0.1", args.api_port)
@@ -665,6 +689,17 @@ def run_pipeline(args: argparse.Namespace) -> int:
         api_port=None if args.no_api else args.api_port,
         api_argv=[] if args.no_api else api_child_options(args),
     )
+    _plan_input(args, plan)
+    plan.restart = restarts
+    plan.secure = args.secure
+    return launch(plan, install_stop_event())
+
+
+def _plan_input(args: argparse.Namespace, plan: Plan) -> None:
+    """Fill in what ``plan`` replays: the input's scan count, the source's and the SLAM node's options and the
+    description, after checking the input (UsageError when it cannot be run)."""
+    from services.errors import UsageError
+
     if args.posed is not None:
         from schemas.files import load_posed_scans
 
@@ -717,9 +752,6 @@ def run_pipeline(args: argparse.Namespace) -> int:
             f"simulating the office world (seed {args.seed}, {args.steps} steps of 0.1 s) through "
             f"{args.algo or DEFAULT_ALGORITHM} into {args.shards} shard(s)"
         )
-    plan.restart = restarts
-    plan.secure = args.secure
-    return launch(plan, install_stop_event())
 
 
 def _use_sim_models(args: argparse.Namespace, motion, sensor) -> None:
@@ -740,9 +772,10 @@ def _slam_models(args: argparse.Namespace):
 
     from services.commands.slam import noise_overrides
     from slam import mrclam
-    from slam.motion import OdometryMotionModel
+    from slam.motion import MotionModel, OdometryMotionModel
     from slam.simulator import simulate_office
 
+    motion: MotionModel
     if (args.models or "sim") == "mrclam":
         motion, sensor, gate = mrclam.MRCLAM_MOTION, mrclam.MRCLAM_SENSOR, mrclam.MRCLAM_OUTLIER_GATE
     else:

@@ -31,7 +31,14 @@ MAX_SIMULATED_RANGES = 10**8
 MIN_PERIOD = 0.01
 #: defaults of the options whose default is None in the parser, so that an option given to an algorithm that
 #: would ignore it can be told from one left alone (:func:`_refuse_ignored_options`)
-SLAM_DEFAULTS = {"seed": 0, "associate": "known", "motion": "velocity", "resample_threshold": 0.5}
+DEFAULT_SEED = 0
+DEFAULT_RESAMPLE_THRESHOLD = 0.5
+SLAM_DEFAULTS = {
+    "seed": DEFAULT_SEED,
+    "associate": "known",
+    "motion": "velocity",
+    "resample_threshold": DEFAULT_RESAMPLE_THRESHOLD,
+}
 #: MRCLAM: the default --period in s (a simulator folder has a pose at every step and refuses --period)
 DEFAULT_PERIOD = 0.2
 
@@ -52,17 +59,19 @@ OPTION_ALGORITHMS = {
         ("--alphas", "--robot", "--initial", "--period", "--raw-ranges", "--raw-commands", "--motion"),
         ("odometry",) + _LANDMARK_FILTERS,
     ),
-    **{
-        option: ("gridslam",)  # (a delay of 0, the default, counts as not given)
-        for option in ("--stats", "--scan-topic", "--best-output", "--poses-output", "--odom-delay")
-    },
+    **dict.fromkeys(  # (a delay of 0, the default, counts as not given)
+        ("--stats", "--scan-topic", "--best-output", "--poses-output", "--odom-delay"), ("gridslam",)
+    ),
 }
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from slam.motion import ALPHA_LIMITS
-    from slam.range_bearing import RANGE_FRACTION_LIMITS, SIGMA_BEARING_LIMITS, SIGMA_RANGE_LIMITS
+    _add_simulate(subparsers)
+    _add_slam(subparsers)
+    _add_eval_traj(subparsers)
 
+
+def _add_simulate(subparsers: argparse._SubParsersAction) -> None:
     simulate = subparsers.add_parser(
         "simulate",
         help="simulate a robot in an office: odometry, landmarks, laser scans, ground truth",
@@ -87,6 +96,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     simulate.set_defaults(func=run_simulate)
 
+
+def _add_slam(subparsers: argparse._SubParsersAction) -> None:
     slam = subparsers.add_parser(
         "slam",
         help="estimate the pose distribution: dead reckoning, EKF-SLAM, FastSLAM 1.0/2.0 or grid FastSLAM",
@@ -108,13 +119,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "gridslam: grid FastSLAM on a laser log",
     )
     slam.add_argument(
-        "--particles", type=pose_sample_count, default=None, help="FastSLAM particles (default %d)" % DEFAULT_PARTICLES
+        "--particles", type=pose_sample_count, default=None, help=f"FastSLAM particles (default {DEFAULT_PARTICLES:d})"
     )
     slam.add_argument(
         "--seed",
         type=random_seed,
         default=None,
-        help="seed of the particle filter (default %d)" % SLAM_DEFAULTS["seed"],
+        help=f"seed of the particle filter (default {DEFAULT_SEED:d})",
     )
     slam.add_argument(
         "--associate",
@@ -136,7 +147,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         type=finite_float,
         default=None,
         help="MRCLAM: output a pose at least every PERIOD s besides every landmark-measurement "
-        "stamp (default %g, at least %g)" % (DEFAULT_PERIOD, MIN_PERIOD),
+        f"stamp (default {DEFAULT_PERIOD:g}, at least {MIN_PERIOD:g})",
     )
     slam.add_argument(
         "--raw-ranges",
@@ -155,6 +166,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         help="simulator: the velocity commands (default) or the odometry readings as controls",
     )
+    _add_noise_options(slam)
+    slam.set_defaults(func=run_slam)
+    from services.commands.gridslam import add_gridslam_arguments  # grid FastSLAM (--algo gridslam)
+
+    add_gridslam_arguments(slam)
+
+
+def _add_noise_options(slam: argparse.ArgumentParser) -> None:
+    """The noise-model options of `posegrid slam`, in their own --help group."""
+    from slam.motion import ALPHA_LIMITS
+    from slam.range_bearing import RANGE_FRACTION_LIMITS, SIGMA_BEARING_LIMITS, SIGMA_RANGE_LIMITS
+
     noise = slam.add_argument_group(
         "noise models (defaults: the simulator's own; for MRCLAM the values fitted in docs/slam.md)"
     )
@@ -164,26 +187,26 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         metavar="A1,...",
         help="motion noise: 6 numbers for the velocity model (PR table 5.3, variances per "
-        "0.1 s), 4 for the odometry model (PR table 5.6); each in [%g, %g]" % ALPHA_LIMITS,
+        f"0.1 s), 4 for the odometry model (PR table 5.6); each in [{ALPHA_LIMITS[0]:g}, {ALPHA_LIMITS[1]:g}]",
     )
     noise.add_argument(
         "--sigma-range",
         type=finite_float,
         default=None,
-        help="landmark range noise std in m, in [%g, %g]" % SIGMA_RANGE_LIMITS,
+        help=f"landmark range noise std in m, in [{SIGMA_RANGE_LIMITS[0]:g}, {SIGMA_RANGE_LIMITS[1]:g}]",
     )
     noise.add_argument(
         "--sigma-bearing",
         type=finite_float,
         default=None,
-        help="landmark bearing noise std in rad, in [%g, pi]" % SIGMA_BEARING_LIMITS[0],
+        help=f"landmark bearing noise std in rad, in [{SIGMA_BEARING_LIMITS[0]:g}, pi]",
     )
     noise.add_argument(
         "--range-fraction",
         type=finite_float,
         default=None,
         help="landmark range noise std grows by this many m per m of range (on top of --sigma-range), "
-        "in [%g, %g]" % RANGE_FRACTION_LIMITS,
+        f"in [{RANGE_FRACTION_LIMITS[0]:g}, {RANGE_FRACTION_LIMITS[1]:g}]",
     )
     noise.add_argument(
         "--outlier-gate",
@@ -197,8 +220,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--resample-threshold",
         type=finite_float,
         default=None,
-        help="FastSLAM: resample when N_eff < this fraction of the particles (default %g)"
-        % SLAM_DEFAULTS["resample_threshold"],
+        help=f"FastSLAM: resample when N_eff < this fraction of the particles (default {DEFAULT_RESAMPLE_THRESHOLD:g})",
     )
     noise.add_argument(
         "--plain-resampling",
@@ -206,11 +228,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="FastSLAM: resample the particles' map frames with them, as the textbook does "
         "(default: keep every frame, known ids only; docs/slam.md)",
     )
-    slam.set_defaults(func=run_slam)
-    from services.commands.gridslam import add_gridslam_arguments  # grid FastSLAM (--algo gridslam)
 
-    add_gridslam_arguments(slam)
 
+def _add_eval_traj(subparsers: argparse._SubParsersAction) -> None:
     evaluate = subparsers.add_parser(
         "eval-traj",
         help="score a SLAM trajectory against ground truth (ATE, NEES, 95%% coverage)",
@@ -354,6 +374,8 @@ def initial_pose(text: str) -> list[float]:
 
 def _load_input(args: argparse.Namespace):
     """(sequence, motion model, sensor model, default outlier gate, posed-scans path or None, notes)."""
+    import numpy as np
+
     from services.errors import UsageError
     from slam import mrclam
     from slam.simlog import CONTROLS_FILE, load_sim_log
@@ -381,7 +403,7 @@ def _load_input(args: argparse.Namespace):
             raise UsageError(
                 f"--period must be at least {MIN_PERIOD:g} s (the commands come about every 0.015 s), got {period:g}"
             )
-        initial = initial_pose(args.initial) if args.initial is not None else None
+        initial = np.array(initial_pose(args.initial)) if args.initial is not None else None
         run = mrclam.read_mrclam(args.input, args.robot)
         sequence = mrclam.mrclam_sequence(
             run,
@@ -602,7 +624,7 @@ def _truth_at(path: Path, stamps):
     if path.suffix.lower() == ".npz":
         dist = load_pose_distribution(path)
         poses = dist.poses
-        mean = poses.mean if poses.is_gaussian else fit_gaussian(poses.samples, poses.weights)[0]
+        mean = poses.gaussian()[0] if poses.is_gaussian else fit_gaussian(*poses.weighted_samples())[0]
         truth_stamps = dist.stamps
     else:
         table = read_groundtruth(path)
@@ -628,7 +650,7 @@ def run_eval_traj(args: argparse.Namespace) -> int:
 
     dist = load_pose_distribution(args.poses)
     poses = dist.poses
-    mean, cov = (poses.mean, poses.cov) if poses.is_gaussian else fit_gaussian(poses.samples, poses.weights)
+    mean, cov = poses.gaussian() if poses.is_gaussian else fit_gaussian(*poses.weighted_samples())
     truth, covered = _truth_at(args.groundtruth, dist.stamps)
     if not covered.all():
         print(

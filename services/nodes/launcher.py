@@ -17,6 +17,7 @@ out of order. A child that fails more often than the policy allows stops the run
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
@@ -212,10 +213,8 @@ class Children:
     def _stop(self, group: list[Child]) -> None:
         for child in group:
             if child.process.poll() is None:
-                try:
+                with contextlib.suppress(ProcessLookupError):
                     child.process.send_signal(signal.SIGINT)
-                except ProcessLookupError:
-                    pass
         deadline = time.monotonic() + STOP_GRACE
         for child in group:
             try:
@@ -358,8 +357,10 @@ def _banner(plan: Plan, endpoint: str, children: Children) -> None:
     lines = [
         f"posegrid run: {plan.description}",
         f"  zenoh router: {endpoint}  (connect with --connect {endpoint})",
-        f"  map {plan.map_name!r}: tiles on {keys.tile_key(plan.map_name, 0, '*', '*')}, "
-        f"stats on {keys.stats_key(plan.map_name, '*')}",
+        (
+            f"  map {plan.map_name!r}: tiles on {keys.tile_key(plan.map_name, 0, '*', '*')}, "
+            f"stats on {keys.stats_key(plan.map_name, '*')}"
+        ),
         (
             f"  HTTP API and map viewer: http://127.0.0.1:{plan.api_port}/  (OpenAPI: /openapi.json)"
             + (
@@ -420,6 +421,7 @@ def _export(reader: MapReader, plan: Plan, discarded: int) -> int:
     """Write the map assembled from every shard to ``plan.export`` (schemas.files.save_map: a temporary file,
     fsynced, renamed onto the path); 1 with one line on stderr when the map is incomplete or empty or the write
     fails (nothing is written then), else 0 unless the shards gave up on scans."""
+    assert plan.export is not None  # called only for a plan with an export path
     try:
         grid = reader.assemble(plan.shards, plan.resolution)
     except IncompleteMap as exc:
@@ -434,7 +436,15 @@ def _export(reader: MapReader, plan: Plan, discarded: int) -> int:
         )
         return 1
     try:
-        save_map(plan.export, MapFile(**raster))
+        map_file = MapFile(
+            logodds=raster["logodds"],
+            probability=raster["probability"],
+            observed=raster["observed"],
+            origin=raster["origin"],
+            resolution=float(raster["resolution"]),
+            variance=raster["variance"],
+        )
+        save_map(plan.export, map_file)
     except OSError as exc:
         print(f"posegrid run: error: cannot write {plan.export}: {exc.strerror or exc}", file=sys.stderr)
         return 1

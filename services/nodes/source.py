@@ -126,6 +126,7 @@ class Source:
             prior_out, published = self._prior_out, self._steps_published
         out = []
         if keys.PRIOR in streams and prior_out:
+            assert self.stream.prior is not None  # it is out only when there is one
             out.append((keys.PRIOR, self.stream.prior.encode()))
         for step in self.stream.steps[first : published if stop is None else min(stop, published)]:
             out += [(STREAM_OF[type(m)], m.encode()) for m in step.messages if STREAM_OF[type(m)] in streams]

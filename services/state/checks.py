@@ -10,11 +10,30 @@ return None then, so the caller drops the message.
 from __future__ import annotations
 
 from collections.abc import Iterable
+from typing import TypeVar
 
-from schemas.messages import MessageError, decode_message
+from schemas.messages import (
+    LandmarkObservations,
+    LaserScan,
+    MessageError,
+    Odometry,
+    PoseGaussian,
+    PoseSamples,
+    StreamEnd,
+    decode_message,
+)
 from schemas.wire import Message
 from services import keys
 from services.process import RejectCounter
+
+#: a message of one seq of a robot's stream (each has ``robot`` and ``seq`` fields)
+SeqMessage = LaserScan | Odometry | LandmarkObservations | PoseSamples | PoseGaussian
+#: a message of a robot's stream (each has a ``robot`` field)
+RobotMessage = SeqMessage | StreamEnd
+
+_M = TypeVar("_M", bound=Message)
+_R = TypeVar("_R", bound=RobotMessage)
+_S = TypeVar("_S", bound=SeqMessage)
 
 
 def robot_stream(
@@ -38,8 +57,8 @@ def robot_stream(
 
 
 def decode_of_robot(
-    key: str, robot: str, payload: bytes, types: tuple[type[Message], ...], rejects: RejectCounter
-) -> Message | None:
+    key: str, robot: str, payload: bytes, types: tuple[type[_R], ...], rejects: RejectCounter
+) -> _R | None:
     """The message ``payload`` received on ``key`` holds, when it decodes to one of ``types`` and is ``robot``'s;
     None after counting why not under ``key`` (the decoding's reason, e.g. "malformed" or "type"; or "robot")."""
     message = _decoded(key, payload, types, rejects)
@@ -55,11 +74,11 @@ def history_reply(
     key: str,
     robot: str,
     payload: bytes,
-    types: tuple[type[Message], ...],
+    types: tuple[type[_S], ...],
     first: int,
     last: int | None,
     rejects: RejectCounter,
-) -> Message | None:
+) -> _S | None:
     """The message a history replied with (``payload``) to a question about ``robot``'s seqs first..last (last None:
     every seq from ``first``), when it decodes to one of ``types``, is that robot's and holds a seq of the span; None
     after counting why not under ``key`` (the history's key the caller counts it under): the decoding's reason, or
@@ -78,10 +97,12 @@ def history_reply(
     return message
 
 
-def _decoded(key: str, payload: bytes, types: tuple[type[Message], ...], rejects: RejectCounter) -> Message | None:
+def _decoded(key: str, payload: bytes, types: tuple[type[_M], ...], rejects: RejectCounter) -> _M | None:
     """``payload`` decoded as one of ``types``; None after counting the decoding's reason under ``key``."""
     try:
-        return decode_message(payload, *types)
+        message = decode_message(payload, *types)
     except MessageError as exc:
         rejects.count(key, exc.reason, str(exc))
         return None
+    assert isinstance(message, types)  # decode_message refuses every other type
+    return message

@@ -28,12 +28,13 @@ longer than the buffer lasts then costs no scan, as the source's history still h
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Generic, TypeVar
 
 ScanT = TypeVar("ScanT")
 PoseT = TypeVar("PoseT")
+NoteT = TypeVar("NoteT")
 JoinKey = tuple[str, int]  # (robot, seq)
 
 
@@ -106,11 +107,11 @@ class JoinBuffer(Generic[ScanT, PoseT]):
     def __init__(
         self,
         capacity: int,
-        recover: Callable[[str, bool, int, int], dict[int, object]] | None = None,
+        recover: Callable[[str, bool, int, int], Mapping[int, ScanT | PoseT]] | None = None,
         window: int = DEFAULT_SEQ_WINDOW,
         max_bytes: int | None = None,
-        size: Callable[[object], int] = lambda item: 0,
-        same: Callable[[object, object], bool] = lambda a, b: a == b,
+        size: Callable[[ScanT | PoseT], int] = lambda item: 0,
+        same: Callable[[ScanT | PoseT, ScanT | PoseT], bool] = lambda a, b: a == b,
     ):
         """``recover(robot, scans, first, last)``: what it can find of the robot's scans (else poses) with seqs
         first..last (inclusive), which its stream skipped, as {seq: scan or pose}. ``window``: seqs beyond its
@@ -128,14 +129,16 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         self.max_bytes = max_bytes
         self._size = size
         self._same = same
-        self._far: dict[tuple[str, bool], dict[int, object]] = {}  # (robot, scans?) -> {seq: item} beyond window
-        self._pending: OrderedDict[JoinKey, _Pending] = OrderedDict()
+        # (robot, scans?) -> {seq: item} beyond the window
+        self._far: dict[tuple[str, bool], dict[int, ScanT | PoseT]] = {}
+        self._pending: OrderedDict[JoinKey, _Pending[ScanT, PoseT]] = OrderedDict()
         self._last: dict[tuple[str, bool], int] = {}  # (robot, scans?) -> the last seq its stream has passed
-        self._held: dict[tuple[str, bool], tuple[int, object]] = {}  # (robot, scans?) -> (seq, item) past a gap
+        # (robot, scans?) -> (seq, item) past a gap
+        self._held: dict[tuple[str, bool], tuple[int, ScanT | PoseT]] = {}
         self._ahead: dict[tuple[str, bool], set[int]] = {}  # (robot, scans?) -> seqs recovered before it got there
         self._evicted: OrderedDict[tuple[str, int, bool], None] = OrderedDict()  # (robot, seq, scan?), oldest first
-        self._fetched: dict[tuple[str, bool], dict[int, object]] = {}  # (robot, scans?) -> evicted halves asked
-        # for again ahead of need, by seq (the last batch of that stream)
+        # (robot, scans?) -> evicted halves asked for again ahead of need, by seq (the last batch of that stream)
+        self._fetched: dict[tuple[str, bool], dict[int, ScanT | PoseT]] = {}
 
     def __len__(self) -> int:
         return len(self._pending) + len(self._held)
@@ -155,7 +158,7 @@ class JoinBuffer(Generic[ScanT, PoseT]):
             self._size(item) for stream, far in self._far.items() if stream[0] == robot for item in far.values()
         )
 
-    def waiting(self, key: JoinKey, is_scan: bool):
+    def waiting(self, key: JoinKey, is_scan: bool) -> ScanT | PoseT | None:
         """The scan (else pose) of ``key`` that waits here for its partner, or None."""
         entry = self._pending.get(key)
         return None if entry is None else (entry.scan if is_scan else entry.pose)
@@ -201,7 +204,7 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         more_pairs, more = self._reoffer(robot, is_scan)
         return pairs + more_pairs, gone + more + self._within_bytes(robot)
 
-    def _vouched(self, robot: str, is_scan: bool, seq: int, far: dict[int, object]) -> bool:
+    def _vouched(self, robot: str, is_scan: bool, seq: int, far: dict[int, ScanT | PoseT]) -> bool:
         """Whether the far message ``seq`` is vouched for: ``recover`` gives the same message for it (or there is no
         ``recover`` to ask)."""
         if self.recover is None:
@@ -209,10 +212,11 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         found = self.recover(robot, is_scan, seq, seq).get(seq)
         return found is not None and self._same(found, far[seq])
 
-    def _reoffer(self, robot: str, is_scan: bool):
+    def _reoffer(self, robot: str, is_scan: bool) -> tuple[list[tuple[ScanT, PoseT]], list[GivenUp]]:
         """Take the far messages of the stream that now lie within the window, in seq order."""
         far = self._far.get((robot, is_scan))
-        pairs, gone = [], []
+        pairs: list[tuple[ScanT, PoseT]] = []
+        gone: list[GivenUp] = []
         while far:
             seq = min(far)
             if self.beyond_window(robot, is_scan, seq):
@@ -238,6 +242,7 @@ class JoinBuffer(Generic[ScanT, PoseT]):
                 break
             entry = self._pending.pop(oldest)
             half = entry.scan if entry.scan is not None else entry.pose
+            assert half is not None  # an entry waits with one half (:meth:`_place` files it with the other)
             excess -= self._size(half)
             gone += self._evict(robot, oldest[1], entry.scan is not None)
         return gone
@@ -428,7 +433,7 @@ class JoinBuffer(Generic[ScanT, PoseT]):
             self._fetched.get((robot, is_scan), {}).pop(seq, None)
         return [GivenUp(robot, seq, 1, is_scan, ORPHANED) for robot, seq, is_scan in keys]
 
-    def _recovered(self, robot: str, is_scan: bool, first: int, stop: int, taken: set[int]) -> dict[int, object]:
+    def _recovered(self, robot: str, is_scan: bool, first: int, stop: int, taken: set[int]) -> dict[int, ScanT | PoseT]:
         """What ``recover`` finds of the robot's scans (else poses) first .. stop-1, less ``taken``."""
         while first < stop and first in taken:
             first += 1
@@ -443,7 +448,7 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         }
 
 
-def _run_through(seqs: dict[int, object], seq: int) -> list[int]:
+def _run_through(seqs: Mapping[int, object], seq: int) -> list[int]:
     """The run of consecutive seqs of ``seqs`` that holds ``seq``, ascending."""
     first, last = seq, seq
     while first - 1 in seqs:
@@ -467,7 +472,7 @@ def _absent_runs(first: int, stop: int, present: Iterable[int]) -> list[tuple[in
     return runs
 
 
-class SeqLedger:
+class SeqLedger(Generic[NoteT]):
     """The seqs of each robot already fused (or given up on at fusion), each with a note of what was fused
     (e.g. digests of the scan and the pose, so that a message sent again can be told from a conflicting one).
 
@@ -480,7 +485,7 @@ class SeqLedger:
         if horizon < 1:
             raise ValueError(f"seq ledger horizon must be >= 1, got {horizon}")
         self.horizon = horizon
-        self._seqs: dict[str, dict[int, object]] = {}
+        self._seqs: dict[str, dict[int, NoteT | None]] = {}
         self._highest: dict[str, int] = {}
 
     def done(self, robot: str, seq: int) -> bool:
@@ -488,13 +493,13 @@ class SeqLedger:
         highest = self._highest.get(robot)
         return highest is not None and (seq <= highest - self.horizon or seq in self._seqs[robot])
 
-    def note(self, robot: str, seq: int) -> object | None:
+    def note(self, robot: str, seq: int) -> NoteT | None:
         """What :meth:`mark` recorded with ``robot``'s ``seq``; None when it is not kept (not done, or older than
         the horizon)."""
         highest = self._highest.get(robot)
         return None if highest is None or seq <= highest - self.horizon else self._seqs[robot].get(seq)
 
-    def mark(self, robot: str, seq: int, note: object = None) -> None:
+    def mark(self, robot: str, seq: int, note: NoteT | None = None) -> None:
         """Record ``robot``'s ``seq`` as done, with ``note``."""
         seqs = self._seqs.setdefault(robot, {})
         seqs[seq] = note

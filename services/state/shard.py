@@ -21,7 +21,7 @@ from mapping.errors import InputError
 from mapping.fusion import MonteCarloFusion
 from mapping.grid import TILE_SIZE, TiledGrid
 from mapping.sensor_model import SensorModel
-from schemas.messages import POSE_TYPES, LaserScan, PoseGaussian, ShardStats, StreamEnd, TileUpdate
+from schemas.messages import POSE_TYPES, LaserScan, PoseDistribution, PoseGaussian, ShardStats, StreamEnd, TileUpdate
 from schemas.wire import Message
 from services import keys
 from services.fusion_runner import PoseSampling
@@ -73,8 +73,12 @@ class ShardConfig:
     limits: ShardLimits = ShardLimits()
 
 
+#: what a shard joins: a scan or the pose distribution of its seq
+ScanOrPose = LaserScan | PoseDistribution
+#: the streams a shard joins, and the message types each may carry
+JOINED_STREAMS: dict[str, tuple[type[ScanOrPose], ...]] = {keys.SCAN: (LaserScan,), keys.POSE: POSE_TYPES}
 #: the streams a shard subscribes to, and the message types each may carry
-SHARD_STREAMS = {keys.SCAN: (LaserScan,), keys.POSE: POSE_TYPES, keys.END: (StreamEnd,)}
+SHARD_STREAMS: dict[str, tuple[type[ScanOrPose | StreamEnd], ...]] = {**JOINED_STREAMS, keys.END: (StreamEnd,)}
 
 
 def message_bytes(message: object) -> int:
@@ -109,7 +113,7 @@ class MapShard:
         self._history = history
         self._history_high: dict[tuple[str, str], int] = {}  # (robot, stream) -> highest seq a history gave
         limits = config.limits
-        self._join: JoinBuffer[LaserScan, object] = JoinBuffer(
+        self._join: JoinBuffer[LaserScan, PoseDistribution] = JoinBuffer(
             config.join_capacity,
             None if history is None else self._recover,
             window=limits.seq_window,
@@ -117,7 +121,10 @@ class MapShard:
             size=message_bytes,
             same=lambda a, b: a.digest() == b.digest(),
         )
-        self._fused_seqs = SeqLedger(max(SEQ_HORIZON_JOINS * config.join_capacity, 2 * EVICTED_LIMIT))
+        # (robot, seq) -> digests of the scan and the pose fused
+        self._fused_seqs: SeqLedger[tuple[bytes, bytes]] = SeqLedger(
+            max(SEQ_HORIZON_JOINS * config.join_capacity, 2 * EVICTED_LIMIT)
+        )
         self.log = get_logger(f"mapper[{config.shard}]")  # the logger services.nodes.mapper.Mapper writes to
         self._robots: set[str] = set()  # robots this shard keeps state for (at most limits.max_robots)
         self.received: Counter[str] = Counter()
@@ -135,7 +142,7 @@ class MapShard:
         self._dirty: set[TileKey] = set()
         self._last_sent: dict[TileKey, float] = {}
         self._last_scan: dict[TileKey, tuple[str, int]] = {}
-        self._snapshots: dict[TileKey, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._snapshots: dict[TileKey, tuple[np.ndarray, ...]] = {}  # (logodds, variance, observed) last published
 
     # ------------------------------------------------------------------------------- intake
     def handle(self, key: str, payload: bytes) -> None:
@@ -145,7 +152,7 @@ class MapShard:
         if message is not None:
             self.take(key, message)
 
-    def decode(self, key: str, payload: bytes) -> Message | None:
+    def decode(self, key: str, payload: bytes) -> ScanOrPose | StreamEnd | None:
         """The message ``payload`` received on ``key`` (pg/<robot>/<stream>) holds; None after counting why it
         is refused (a key that is no robot stream of a shard's, e.g. a wildcard; a robot past the limit; malformed;
         the wrong type for the key; another robot's; a scan of more beams than the limit)."""
@@ -180,7 +187,7 @@ class MapShard:
             return True
         return False
 
-    def in_seq_order(self, replies: Iterable[tuple[str, bytes]]) -> list[tuple[str, Message]]:
+    def in_seq_order(self, replies: Iterable[tuple[str, bytes]]) -> list[tuple[str, ScanOrPose]]:
         """The scans and poses that histories gave, as (key, payload) pairs with key pg/<robot>/scan or
         pg/<robot>/pose, decoded (a bad one counted) and put in seq order for :meth:`take`. Each history
         answers in the order it published, one after the other (the source's scans, then the SLAM node's
@@ -193,11 +200,12 @@ class MapShard:
                 continue
             message = self.decode(key, payload)
             if message is not None:
+                assert not isinstance(message, StreamEnd)  # decoded as its key's stream: a scan or a pose
                 taken.append((key, message))
         taken.sort(key=lambda item: item[1].seq)  # (stable: a seq's scan and pose keep the order they came in)
         return taken
 
-    def take(self, key: str, message: Message, from_history: bool = False) -> None:
+    def take(self, key: str, message: ScanOrPose | StreamEnd, from_history: bool = False) -> None:
         """Act on a decoded ``message`` received on ``key``: note an end, or join a scan or pose and fuse what
         pairs up. ``from_history``: it came from a history at startup (:meth:`services.nodes.mapper.Mapper.catch_up`),
         and a live copy of it, or of an earlier message of its stream, is then dropped without a word."""
@@ -252,7 +260,7 @@ class MapShard:
         for pair in pairs:
             self._fuse(*pair)
 
-    def _refuse_fused(self, key: str, stream: str, message: Message) -> None:
+    def _refuse_fused(self, key: str, stream: str, message: ScanOrPose) -> None:
         """Drop a scan or pose of a seq this shard has fused. One identical to the message fused is sent again (a
         restarted SLAM node publishes the run's poses again as it catches up; a seeded filter gives the same ones):
         counted under ``resent``, logged once per key. One that differs (two SLAM nodes for one robot, a stale
@@ -278,7 +286,7 @@ class MapShard:
                 "one robot, or a stale run under its name); the first one stands",
             )
 
-    def _count_resent(self, key: str, message: Message) -> None:
+    def _count_resent(self, key: str, message: ScanOrPose) -> None:
         """Count a scan or pose that came again, the same as the copy fused or waiting for its pair; log the first
         per key."""
         self.resent[key] += 1
@@ -292,14 +300,15 @@ class MapShard:
                 key,
             )
 
-    def _recover(self, robot: str, is_scan: bool, first: int, last: int) -> dict[int, object]:
+    def _recover(self, robot: str, is_scan: bool, first: int, last: int) -> dict[int, ScanOrPose]:
         """Scans (else poses) first..last of ``robot`` that its stream skipped, from the history; each checked as
         a received message is, and for its seq (a bad one counted under the history's key)."""
+        assert self._history is not None  # the join is given this method only with a history
         stream = keys.SCAN if is_scan else keys.POSE
         key = keys.history_key(robot, stream)
-        found = {}
+        found: dict[int, ScanOrPose] = {}
         for payload in self._history(robot, stream, first, last):
-            message = history_reply(key, robot, payload, SHARD_STREAMS[stream], first, last, self.rejects)
+            message = history_reply(key, robot, payload, JOINED_STREAMS[stream], first, last, self.rejects)
             if (
                 message is not None
                 and not self._too_many_beams(key, message)
@@ -365,13 +374,13 @@ class MapShard:
             self._fusions.move_to_end(geometry)
         return fusion
 
-    def pose_samples(self, scan: LaserScan, pose) -> tuple[np.ndarray, np.ndarray]:
+    def pose_samples(self, scan: LaserScan, pose: PoseDistribution) -> tuple[np.ndarray, np.ndarray]:
         """(samples (M, 3), weights (M,)) to fuse ``scan`` with, as `posegrid fuse` draws them."""
         if isinstance(pose, PoseGaussian):
             return self.sampling.draw(scan.seq, scan.range_max, mean=pose.mean, cov=pose.cov)
         return self.sampling.draw(scan.seq, scan.range_max, samples=pose.samples, weights=pose.weights)
 
-    def _fuse(self, scan: LaserScan, pose) -> None:
+    def _fuse(self, scan: LaserScan, pose: PoseDistribution) -> None:
         self._fused_seqs.mark(scan.robot, scan.seq, (scan.digest(), pose.digest()))
         try:
             samples, weights = self.pose_samples(scan, pose)

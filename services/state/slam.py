@@ -34,18 +34,26 @@ from schemas.messages import (
 )
 from services import keys
 from services.process import RejectCounter, get_logger
-from services.state.checks import decode_of_robot, history_reply, robot_stream
+from services.state.checks import SeqMessage, decode_of_robot, history_reply, robot_stream
 from services.state.steps import OutOfOrder, Released, StepAssembler
 from slam.gridslam import GridFastSLAM, GridSlamConfig
 from slam.motion import OdometryMotionModel, odometry_controls, split_odometry_motion
 
+#: the parts of a step: the message of one seq on pg/<robot>/scan, odom or landmarks
+StepPart = LaserScan | Odometry | LandmarkObservations
 #: the streams a SLAM node reads, and the message types each may carry
-EXPECTED = {
+EXPECTED: dict[str, tuple[type[StepPart | StreamEnd | PoseGaussian], ...]] = {
     keys.SCAN: (LaserScan,),
     keys.ODOM: (Odometry,),
     keys.LANDMARKS: (LandmarkObservations,),
     keys.END: (StreamEnd,),
     keys.PRIOR: (PoseGaussian,),
+}
+#: the parts a step may have, by stream: what a history reply about steps may carry
+STEP_PARTS: dict[str, tuple[type[StepPart], ...]] = {
+    keys.SCAN: (LaserScan,),
+    keys.ODOM: (Odometry,),
+    keys.LANDMARKS: (LandmarkObservations,),
 }
 #: the odometry motion model that moves a velocity-motion filter over steps that never arrived (NodeConfig.bridge)
 DEFAULT_BRIDGE = OdometryMotionModel()
@@ -121,7 +129,8 @@ class LandmarkDriver:
             )
         elif gap is not None and pose is not None and self._last_pose is not None and self.bridge is not None:
             motion = odometry_controls(np.stack([self._last_pose, pose]))[0]
-            controls, model = split_odometry_motion(motion, odom.seq - self._last_seq), self.bridge
+            spanned = odom.seq - gap[0] + 1  # the steps the motion covers: the gap's and this one
+            controls, model = split_odometry_motion(motion, spanned), self.bridge
         else:
             controls = odom.commands
         measurements = np.column_stack([seen.ranges, seen.bearings])
@@ -144,6 +153,7 @@ class LandmarkDriver:
 
     def restore(self, saved: object) -> None:
         """Go back to the state :meth:`save` returned, undoing a step whose pose could not be published."""
+        assert isinstance(saved, tuple)  # (filter, odometry pose, seq), as :meth:`save` made it
         self.filter, self._last_pose, self._last_seq = saved
         self.last_gap = None
 
@@ -165,7 +175,7 @@ class GridDriver:
         self.initial = initial
         self.config = config
         self.seed = seed
-        self.filter = None
+        self.filter: GridFastSLAM | None = None  # made at the first scan, which gives the laser's geometry
 
     def step(self, parts: dict) -> tuple[np.ndarray, np.ndarray]:
         scan: LaserScan = parts[keys.SCAN]
@@ -211,7 +221,7 @@ class SlamState:
         self.initial = config.initial
         self.driver: LandmarkDriver | GridDriver | None = None
         needs = GridDriver.needs if config.algorithm == "gridslam" else LandmarkDriver.needs
-        self.steps = StepAssembler(
+        self.steps: StepAssembler[SeqMessage] = StepAssembler(
             needs, recover=None if history is None else self._recover, same=lambda a, b: a.digest() == b.digest()
         )
         self._ready: list[tuple[int, dict]] = []
@@ -232,21 +242,27 @@ class SlamState:
         message = decode_of_robot(key, self.config.robot, payload, EXPECTED[stream], self.rejects)
         if message is None:
             return
-        if stream in self.steps.needs and from_history:
-            self._history_high[stream] = max(self._history_high.get(stream, -1), message.seq)
-        elif stream in self.steps.needs and message.seq <= self._history_high.get(stream, -1):
-            return
-        if stream == keys.PRIOR:
+        if isinstance(message, PoseGaussian):  # keys.PRIOR's type, and no other stream's
             if self.initial is None:
                 self.initial = message.mean
                 self.log.info("starting at the source's prior (%.3f m, %.3f m, %.3f rad)", *message.mean)
             self._take_ready()
-        elif stream == keys.END:
+        elif isinstance(message, StreamEnd):  # keys.END's
             # the steps lost at the end are taken back only for a run this node has followed (it has taken steps
             # of it): a node that starts after the end would take an ended source's history, which catch_up refuses
             # (it may be a stale run's)
             self._file(self.steps.flush(tail=self.steps.next_seq > 0))
-        elif stream in self.steps.needs and not from_history and self.steps.beyond_window(message.seq):
+        else:
+            self._take_part(key, stream, message, from_history)
+
+    def _take_part(self, key: str, stream: str, message: StepPart, from_history: bool) -> None:
+        """File a scan, odometry or landmarks message that :meth:`handle` decoded on ``key`` with its step, unless the
+        source's history gave it already; one beyond the seq window is counted and held."""
+        if stream in self.steps.needs and from_history:
+            self._history_high[stream] = max(self._history_high.get(stream, -1), message.seq)
+        elif stream in self.steps.needs and message.seq <= self._history_high.get(stream, -1):
+            return
+        if stream in self.steps.needs and not from_history and self.steps.beyond_window(message.seq):
             self.rejects.count(
                 key,
                 "ahead",
@@ -258,7 +274,7 @@ class SlamState:
         else:
             self._add_part(key, stream, message, from_history)
 
-    def _add_part(self, key: str, stream: str, message, from_history: bool) -> None:
+    def _add_part(self, key: str, stream: str, message: StepPart, from_history: bool) -> None:
         """Check the order of a message within the seq window and file it with its step when it is a part of one."""
         late = self._check_order(key, message.seq)
         if stream not in self.steps.needs:
@@ -326,11 +342,11 @@ class SlamState:
     def _new_driver(self) -> LandmarkDriver | GridDriver:
         cfg = self.config
         initial = np.asarray(self.initial, np.float64)
-        return (
-            GridDriver(initial, cfg.grid_config, cfg.seed)
-            if cfg.algorithm == "gridslam"
-            else LandmarkDriver(cfg.make_filter(initial), cfg.motion, cfg.bridge)
-        )
+        if cfg.algorithm == "gridslam":
+            assert cfg.grid_config is not None  # NodeConfig: grid FastSLAM's settings come with it
+            return GridDriver(initial, cfg.grid_config, cfg.seed)
+        assert cfg.make_filter is not None  # NodeConfig: None for gridslam only
+        return LandmarkDriver(cfg.make_filter(initial), cfg.motion, cfg.bridge)
 
     def _take(self, seq: int, parts: dict) -> None:
         """Take step ``seq`` through the filter and publish its pose; a step the filter cannot take is undone,
@@ -343,7 +359,8 @@ class SlamState:
         saved = self.driver.save()
         try:
             first, second = self.driver.step(parts)
-            if cfg.algorithm == "gridslam" or not self.driver.filter.gaussian:
+            message: PoseSamples | PoseGaussian
+            if isinstance(self.driver, GridDriver) or not self.driver.filter.gaussian:  # (gridslam's driver)
                 message = PoseSamples(robot=cfg.robot, seq=seq, stamp=stamp, samples=first, weights=second)
             else:
                 message = PoseGaussian(robot=cfg.robot, seq=seq, stamp=stamp, mean=first, cov=second)
@@ -382,17 +399,23 @@ class SlamState:
                 gap.last,
             )
 
-    def _recover(self, first: int, last: int | None) -> dict[int, dict]:
+    def _recover(self, first: int, last: int | None) -> dict[int, dict[str, SeqMessage]]:
         """The parts of steps first..last (None: every step the source has published from ``first``), which did
         not all arrive (lost in transit), from the source's history ({seq: {stream: message}}; what it lacks is
         skipped as before). Called by the step assembler. A live copy of a part taken here that comes later is
         dropped without a word, as after :meth:`take_history`."""
-        parts: dict[int, dict] = {}
+        assert self._history is not None  # the step assembler is given this method only with a history
+        parts: dict[int, dict[str, SeqMessage]] = {}
         robot = self.config.robot
         for key, payload in self._history(self.steps.needs, first, last):
             stream = key.rsplit("/", 1)[-1]
+            if stream not in self.steps.needs:  # e.g. a reply on pg/<robot>/history/end: no source sends one
+                self.rejects.count(
+                    keys.history_key(robot), "history", f"a history reply on {key}, which is no part of a step"
+                )
+                continue
             message = history_reply(
-                keys.history_key(robot), robot, payload, EXPECTED[stream], first, last, self.rejects
+                keys.history_key(robot), robot, payload, STEP_PARTS[stream], first, last, self.rejects
             )
             if message is not None:
                 parts.setdefault(message.seq, {})[stream] = message

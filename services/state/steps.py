@@ -18,10 +18,13 @@ consecutive far seqs are complete and ``recover`` (the source's history) gives t
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from typing import Generic, TypeVar
 
 from services.state.join import CONFIRM_RUN, DEFAULT_SEQ_WINDOW, FAR_KEPT
+
+PartT = TypeVar("PartT")
 
 
 class OutOfOrder(Exception):
@@ -39,17 +42,18 @@ class Released:
     ahead: int = 0  # parts held beyond the seq window (counted when they come)
 
 
-class StepAssembler:
-    """See the module docstring. ``needs``: the parts a step must have, e.g. {"odom", "landmarks"}."""
+class StepAssembler(Generic[PartT]):
+    """See the module docstring. ``needs``: the parts a step must have, e.g. {"odom", "landmarks"}; a part is a
+    ``PartT`` (a message)."""
 
     def __init__(
         self,
         needs: set[str] | frozenset[str],
         capacity: int = 256,
         reorder: int = 16,
-        recover: Callable[[int, int | None], dict[int, dict]] | None = None,
+        recover: Callable[[int, int | None], Mapping[int, Mapping[str, PartT]]] | None = None,
         window: int = DEFAULT_SEQ_WINDOW,
-        same: Callable[[object, object], bool] = lambda a, b: a == b,
+        same: Callable[[PartT, PartT], bool] = lambda a, b: a == b,
     ):
         """``recover(first, last)``: the parts {seq: {part: message}} it can find of seqs first..last (inclusive;
         last None: every seq from first on, at the end of the stream), which are about to be skipped; what it
@@ -60,16 +64,16 @@ class StepAssembler:
         self.recover = recover
         self.window = window
         self._same = same
-        self._far: dict[int, dict] = {}  # seq -> parts, held beyond the window
+        self._far: dict[int, dict[str, PartT]] = {}  # seq -> parts, held beyond the window
         self._asked_through = -1  # the last seq recover was asked for
         self.next_seq = 0
-        self._pending: dict[int, dict] = {}
+        self._pending: dict[int, dict[str, PartT]] = {}
 
     def beyond_window(self, seq: int) -> bool:
         """Whether ``seq`` lies more than the window beyond the next step to release."""
         return seq > self.next_seq + self.window
 
-    def add(self, part: str, seq: int, message, trusted: bool = False) -> Released:
+    def add(self, part: str, seq: int, message: PartT, trusted: bool = False) -> Released:
         """Store one part; returns what it releases. Raises :class:`OutOfOrder` for a seq already passed.
         ``trusted``: it came from the source's history, and the seq window does not apply."""
         if seq < self.next_seq:
@@ -159,7 +163,7 @@ class StepAssembler:
                 released.skipped.append((self.next_seq, waiting[0] - self.next_seq))
             self.next_seq = waiting[0]
 
-    def _fill(self, found: dict[int, dict], first: int, stop: int | None) -> None:
+    def _fill(self, found: Mapping[int, Mapping[str, PartT]], first: int, stop: int | None) -> None:
         """File the parts ``recover`` found of seqs first .. stop-1 (stop None: no end)."""
         for seq, parts in found.items():
             if first <= seq and (stop is None or seq < stop):
