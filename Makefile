@@ -19,9 +19,10 @@ install: $(STAMP)
 run: $(STAMP)
 	$(VENV)/bin/posegrid run $(RUN_ARGS)
 
-## make test: the test suite (pytest's exit 5, "no tests collected", fails the target and says so)
+## make test: the test suite on every core (pytest-xdist; pytest's exit 5, "no tests collected", fails the target
+## and says so). One file alone: .venv/bin/python -m pytest tests/test_x.py
 test: $(STAMP)
-	@$(PY) -m pytest -q; rc=$$?; \
+	@$(PY) -m pytest -q -n auto; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "make test: pytest collected no tests (exit 5): that is a failure" >&2; fi; \
 	exit $$rc
 

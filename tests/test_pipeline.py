@@ -977,11 +977,16 @@ def test_what_the_router_loses_is_taken_from_the_histories(tmp_path, procs):
         poses.until(lambda seqs: recovered <= seqs)
         poses.close()
         poses.fill_from_history(session, 400)
-        shard = [
-            decode_message(r.ok.payload.to_bytes(), ShardStats)
-            for r in session.get("pg/map/m/stats/0", timeout=10)
-            if r.ok is not None
-        ]
+        deadline, shard = time.monotonic() + 60, []
+        while time.monotonic() < deadline:  # the shard may still be fusing the last pairs the poses completed
+            shard = [
+                decode_message(r.ok.payload.to_bytes(), ShardStats)
+                for r in session.get("pg/map/m/stats/0", timeout=10)
+                if r.ok is not None
+            ]
+            if shard and shard[0].fused.get("r1", 0) + shard[0].discarded.get("r1", 0) >= 400:
+                break
+            time.sleep(0.2)
     finally:
         session.close()
     assert "skipped" not in node.output()
