@@ -17,7 +17,7 @@ import math
 import numpy as np
 
 from mapping.errors import InputError
-from mapping.fusion import merge_duplicates
+from mapping.scan_input import merge_duplicates
 
 MODES = ("mc", "ml")
 Z95 = 1.959963984540054  # two-sided 95 % standard-normal quantile

@@ -35,10 +35,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from mapping.beam_model import BEAM_HIT, BEAM_SKIP, TABLE_DU, TABLE_U0, BeamTable, segment_logodds
-from mapping.fusion import check_window
 from mapping.jit import kernel
 from mapping.raytrace import FAR, corner_tol, dda_start, dda_step
 from mapping.samples_pass import STAMP_LIMIT, add_sample_value
+from mapping.scan_input import check_window
 
 #: columns of a count record: [stamp, hits, misses, unknowns]
 HIT, MISS, UNKNOWN = 1, 2, 3

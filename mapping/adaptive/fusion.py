@@ -40,7 +40,7 @@ from mapping.adaptive.splitting import SplitTest
 from mapping.adaptive.tree import AdaptiveGrid, children, unique_cells
 from mapping.beam_model import BEAM_HIT, BEAM_SKIP, BeamTable, beam_table, logodds_table
 from mapping.errors import InputError
-from mapping.fusion import check_scan, laser_poses, merge_duplicates
+from mapping.scan_input import check_scan, laser_poses, merge_duplicates
 from mapping.sensor_model import SensorModel
 
 
