@@ -128,6 +128,7 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         self.window = window
         self.max_bytes = max_bytes
         self._size = size
+        self._largest = 0  # bytes of the largest half offered so far: bounds what the halves waiting here hold
         self._same = same
         # (robot, scans?) -> {seq: item} beyond the window
         self._far: dict[tuple[str, bool], dict[int, ScanT | PoseT]] = {}
@@ -142,6 +143,10 @@ class JoinBuffer(Generic[ScanT, PoseT]):
 
     def __len__(self) -> int:
         return len(self._pending) + len(self._held)
+
+    def _waiting(self) -> int:
+        """How many halves wait here, of every robot (for a partner, past a gap, or beyond the window)."""
+        return 2 * len(self._pending) + len(self._held) + sum(len(far) for far in self._far.values())
 
     def held_bytes(self, robot: str) -> int:
         """Bytes (as ``size`` measures them) of ``robot``'s halves waiting here (for a partner, past a gap, or
@@ -187,6 +192,8 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         CONFIRM_RUN consecutive seqs are held (the stream really jumped)."""
         robot, seq = key
         stream = (robot, is_scan)
+        if self.max_bytes is not None:
+            self._largest = max(self._largest, self._size(item))
         if trusted or not self.beyond_window(robot, is_scan, seq):
             pairs, gone = self._add(key, item, is_scan)
         else:
@@ -228,8 +235,8 @@ class JoinBuffer(Generic[ScanT, PoseT]):
     def _within_bytes(self, robot: str) -> list[GivenUp]:
         """Evict the robot's oldest waiting halves while they hold more than ``max_bytes``."""
         gone: list[GivenUp] = []
-        if self.max_bytes is None:
-            return gone
+        if self.max_bytes is None or self._waiting() * self._largest <= self.max_bytes:
+            return gone  # (the bound needs no walk over the halves: with laser scans of kilobytes it always holds)
         excess = self.held_bytes(robot) - self.max_bytes
         for stream in [(robot, True), (robot, False)]:  # the far messages first: the least likely to be needed
             far = self._far.get(stream, {})
