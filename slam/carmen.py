@@ -45,6 +45,7 @@ import numpy as np
 from slam.angles import wrap_angle
 from slam.errors import LogFormatError
 from slam.laserlog import POSE_LIMIT, LaserLog, Skipped, plausible_pose
+from slam.motion import compose
 
 #: maximum range assumed for FLASER/RLASER lines when no PARAM gives one (m)
 DEFAULT_RANGE_MAX = 80.0
@@ -307,19 +308,6 @@ def read_carmen(path: str | Path, laser: str = "front") -> LaserLog:
     )
 
 
-def _laser_poses(robot: np.ndarray, offset: np.ndarray) -> np.ndarray:
-    """Laser poses (T, 3) in the odometry frame: robot (+) offset."""
-    c, s = np.cos(robot[:, 2]), np.sin(robot[:, 2])
-    return np.stack(
-        [
-            robot[:, 0] + c * offset[0] - s * offset[1],
-            robot[:, 1] + s * offset[0] + c * offset[1],
-            wrap_angle(robot[:, 2] + offset[2]),
-        ],
-        axis=1,
-    )
-
-
 def write_carmen(
     path: str | Path,
     stamps: np.ndarray,
@@ -364,7 +352,7 @@ def write_carmen(
             f"PARAM robot_front_laser_max {range_max:.17g} 0 {host} 0",
             f"PARAM robot_frontlaser_offset {offset[0]:.17g} 0 {host} 0",
         ]
-    laser = _laser_poses(odometry, offset)
+    laser = compose(odometry, offset)  # laser poses in the odometry frame
     for t in range(steps):
         values = " ".join(f"{r:.6f}" for r in clean[t])
         stamp = f"{stamps[t]:.6f}"

@@ -13,6 +13,18 @@ import numpy as np
 from mapping.jit import kernel
 
 
+@kernel(inline="always")
+def _axis_start(g0, i, d):  # pragma: no cover - compiled
+    """Along one axis of a segment that starts at grid coordinate g0 (cells), in cell i, and moves d cells
+    along it: (the fraction of the segment at which it crosses its first cell border on this axis, the
+    fraction between two such crossings); inf for both when d is 0."""
+    if d > 0:
+        return (i + 1 - g0) / d, abs(1.0 / d)
+    if d < 0:
+        return (g0 - i) / -d, abs(1.0 / d)
+    return math.inf, math.inf
+
+
 @kernel()
 def _mark_traversed(grid, x0, y0, x1, y1, origin_x, origin_y, resolution):  # pragma: no cover - compiled
     height, width = grid.shape
@@ -29,20 +41,8 @@ def _mark_traversed(grid, x0, y0, x1, y1, origin_x, origin_y, resolution):  # pr
         dy = gy1 - gy0
         step_x = 1 if dx > 0 else -1
         step_y = 1 if dy > 0 else -1
-        if dx > 0:
-            t_max_x = (ix + 1 - gx0) / dx
-        elif dx < 0:
-            t_max_x = (gx0 - ix) / -dx
-        else:
-            t_max_x = math.inf
-        if dy > 0:
-            t_max_y = (iy + 1 - gy0) / dy
-        elif dy < 0:
-            t_max_y = (gy0 - iy) / -dy
-        else:
-            t_max_y = math.inf
-        t_delta_x = abs(1.0 / dx) if dx != 0 else math.inf
-        t_delta_y = abs(1.0 / dy) if dy != 0 else math.inf
+        t_max_x, t_delta_x = _axis_start(gx0, ix, dx)
+        t_max_y, t_delta_y = _axis_start(gy0, iy, dy)
         if 0 <= iy < height and 0 <= ix < width:
             grid[iy, ix] = True
         for _ in range(abs(ex - ix) + abs(ey - iy)):

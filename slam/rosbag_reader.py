@@ -26,6 +26,7 @@ skipped.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -53,11 +54,11 @@ ODOMETRY = "nav_msgs/msg/Odometry"
 TF_MESSAGE = "tf2_msgs/msg/TFMessage"
 
 
-def _stamp(header) -> float:
+def header_stamp(header) -> float:
     return header.stamp.sec + 1e-9 * header.stamp.nanosec
 
 
-def _yaw(q) -> float:
+def quaternion_yaw(q) -> float:
     """Yaw (rad) of a quaternion: rotation about z of its projection onto the plane."""
     return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
 
@@ -83,7 +84,7 @@ def _pick_topic(connections, msgtype: str, wanted: str | None, usual: str, path:
     return None
 
 
-def _open(path: Path):
+def open_bag(path: Path):
     from rosbags.highlevel import AnyReader, AnyReaderError
     from rosbags.typesys import Stores, get_typestore
 
@@ -121,14 +122,14 @@ def read_rosbag(
     :class:`LogFormatError` when the bag cannot be opened or yields no scan with odometry.
     """
     path = Path(path)
-    reader = _open(path)
+    reader = open_bag(path)
     try:
         return _read(reader, path, scan_topic, odom_topic, max_odom_gap, max_odom_hold)
     finally:
         reader.close()
 
 
-def _records(reader, connections, skipped: list[Skipped]):
+def bag_records(reader, connections, skipped: list[Skipped]):
     """(connection, raw bytes) of the bag's messages in order; a bag that breaks off mid-way (a corrupt or
     truncated chunk) ends the iteration with one entry in ``skipped`` instead of an exception."""
     stream = reader.messages(connections=connections)
@@ -147,76 +148,124 @@ def _records(reader, connections, skipped: list[Skipped]):
         yield conn, raw
 
 
+#: a decoded scan: (message number, stamp s, ranges (B,) m, (angle_min, angle_increment, range_min, range_max, frame))
+_DecodedScan = tuple[int, float, np.ndarray, tuple]
+
+
+@dataclass
+class _Decoded:
+    """What the selected messages of a bag hold, in bag order, and the messages skipped so far."""
+
+    scans: list[_DecodedScan] = field(default_factory=list)
+    odom: list[tuple[float, tuple[float, float, float], str]] = field(default_factory=list)  # stamp, pose, child
+    tf_dynamic: list[tuple[float, str, str, tuple[float, float, float]]] = field(default_factory=list)
+    tf_static: dict[str, tuple[str, tuple[float, float, float]]] = field(default_factory=dict)  # child: parent, pose
+    skipped: list[Skipped] = field(default_factory=list)
+
+
 def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hold) -> LaserLog:
-    conns = reader.connections
-    scan_topic = _pick_topic(conns, LASER_SCAN, scan_topic, "/scan", path, "LaserScan")
+    """The LaserLog of an open bag (see :func:`read_rosbag`)."""
+    scan_topic, odom_topic, selected = _select(reader.connections, path, scan_topic, odom_topic)
+    got = _decode(reader, selected, scan_topic, odom_topic)
+    if not got.scans:
+        refused = [s.reason for s in got.skipped if s.reason.startswith(f"{scan_topic}:")]
+        why = f" (the first: {refused[0]})" if refused else ""
+        raise LogFormatError(f"{path}: no usable scan on {scan_topic}{why}")
+    first = _usual_laser(got.scans)
+    base_frame = got.odom[0][2] if got.odom else None
+    try:
+        offset, base_frame = static_chain(got.tf_static, first[3][4], base_frame)
+    except LogFormatError as exc:
+        raise LogFormatError(f"{path}: {exc}") from None
+    odom_stamps, odom_poses = _odometry(got, odom_topic, base_frame, path)
+    kept = _kept_scans(got, first, odom_stamps, scan_topic, max_odom_gap, max_odom_hold)
+    if not kept:
+        raise LogFormatError(
+            f"{path}: no scan on {scan_topic} has odometry around its stamp ({got.skipped[-1].reason})"
+        )
+    got.skipped.sort(key=lambda s: s.where)
+    return _laser_log(path, kept, first[3], offset, odom_stamps, odom_poses, got.skipped)
+
+
+def _select(connections, path: Path, scan_topic: str | None, odom_topic: str | None) -> tuple[str, str | None, list]:
+    """The scan topic, the odometry topic (None: odometry from /tf) and the connections to read."""
+    scan_topic = _pick_topic(connections, LASER_SCAN, scan_topic, "/scan", path, "LaserScan")
     if scan_topic is None:
         raise LogFormatError(f"{path}: has no sensor_msgs/LaserScan topic")
-    odom_topic = _pick_topic(conns, ODOMETRY, odom_topic, "/odom", path, "Odometry")
-    tf_topics = {c.topic for c in conns if c.msgtype == TF_MESSAGE}
+    odom_topic = _pick_topic(connections, ODOMETRY, odom_topic, "/odom", path, "Odometry")
+    tf_topics = {c.topic for c in connections if c.msgtype == TF_MESSAGE}
     wanted = {scan_topic, odom_topic, "/tf_static"} | ({"/tf"} if odom_topic is None else set())
-    selected = [c for c in conns if c.topic in wanted and (c.topic not in tf_topics or c.msgtype == TF_MESSAGE)]
+    selected = [c for c in connections if c.topic in wanted and (c.topic not in tf_topics or c.msgtype == TF_MESSAGE)]
     if odom_topic is None and "/tf" not in tf_topics:
         raise LogFormatError(f"{path}: has neither a nav_msgs/Odometry topic nor /tf transforms for odometry")
+    return scan_topic, odom_topic, selected
 
-    skipped: list[Skipped] = []
-    scans: list[tuple[int, float, np.ndarray, tuple]] = []
-    odom: list[tuple[float, tuple[float, float, float], str]] = []  # stamp, pose, child frame
-    tf_dynamic: list[tuple[float, str, str, tuple[float, float, float]]] = []
-    tf_static: dict[str, tuple[str, tuple[float, float, float]]] = {}
-    for number, (conn, raw) in enumerate(_records(reader, selected, skipped), start=1):
+
+def _decode(reader, selected: list, scan_topic: str, odom_topic: str | None) -> _Decoded:
+    """Every selected message decoded and sorted into scans, odometry and transforms; one that does not
+    decode or holds implausible values is skipped."""
+    got = _Decoded()
+    for number, (conn, raw) in enumerate(bag_records(reader, selected, got.skipped), start=1):
         try:
             msg = reader.deserialize(raw, conn.msgtype)
         except Exception as exc:  # noqa: BLE001 - the decoder raises many types on corrupt bytes: skip the message
-            skipped.append(Skipped(number, f"{conn.topic}: does not decode as {conn.msgtype} ({type(exc).__name__})"))
+            got.skipped.append(
+                Skipped(number, f"{conn.topic}: does not decode as {conn.msgtype} ({type(exc).__name__})")
+            )
             continue
         if conn.topic == scan_topic:
-            geometry = (float(msg.angle_min), float(msg.angle_increment), float(msg.range_min), float(msg.range_max))
-            ranges = np.asarray(msg.ranges, dtype=np.float32)
-            stamp = _stamp(msg.header)
-            if not (all(math.isfinite(g) for g in geometry) and math.isfinite(stamp)) or ranges.size == 0:
-                skipped.append(Skipped(number, f"{scan_topic}: no ranges, or a non-finite stamp or geometry"))
-                continue
-            problem = _scan_problem(ranges, *geometry)
-            if problem:
-                skipped.append(Skipped(number, f"{scan_topic}: {problem}"))
-                continue
-            scans.append((number, stamp, ranges, geometry + (msg.header.frame_id,)))
-        elif conn.topic == odom_topic:
-            p, q = msg.pose.pose.position, msg.pose.pose.orientation
-            pose = (float(p.x), float(p.y), _yaw(q))
-            stamp = _stamp(msg.header)
-            if not (plausible_pose(pose) and math.isfinite(stamp)):
-                skipped.append(
-                    Skipped(
-                        number, f"{odom_topic}: non-finite stamp, or a pose not finite or beyond +-{POSE_LIMIT:g} m"
-                    )
-                )
-                continue
-            odom.append((stamp, pose, msg.child_frame_id))
+            _add_scan(got, number, msg, scan_topic)
+        elif odom_topic is not None and conn.topic == odom_topic:
+            _add_odometry(got, number, msg, odom_topic)
         else:
-            for tf in msg.transforms:
-                t, q = tf.transform.translation, tf.transform.rotation
-                pose = (float(t.x), float(t.y), _yaw(q))
-                if not plausible_pose(pose):
-                    skipped.append(
-                        Skipped(
-                            number,
-                            f"{conn.topic}: transform {tf.header.frame_id}->{tf.child_frame_id} "
-                            f"not finite or beyond +-{POSE_LIMIT:g} m",
-                        )
-                    )
-                elif conn.topic == "/tf_static":
-                    tf_static[tf.child_frame_id] = (tf.header.frame_id, pose)
-                else:
-                    tf_dynamic.append((_stamp(tf.header), tf.header.frame_id, tf.child_frame_id, pose))
-    if not scans:
-        refused = [s.reason for s in skipped if s.reason.startswith(f"{scan_topic}:")]
-        why = f" (the first: {refused[0]})" if refused else ""
-        raise LogFormatError(f"{path}: no usable scan on {scan_topic}{why}")
+            _add_transforms(got, number, msg, conn.topic)
+    return got
 
-    # the log's laser: the beam count, geometry and frame most of its scans have (the first of those scans), so that
-    # one odd scan, even the first, costs only itself
+
+def _add_scan(got: _Decoded, number: int, msg, topic: str) -> None:
+    """Add LaserScan message ``number`` to ``got.scans``, or a reason to ``got.skipped``."""
+    geometry = (float(msg.angle_min), float(msg.angle_increment), float(msg.range_min), float(msg.range_max))
+    ranges = np.asarray(msg.ranges, dtype=np.float32)
+    stamp = header_stamp(msg.header)
+    if not (all(math.isfinite(g) for g in geometry) and math.isfinite(stamp)) or ranges.size == 0:
+        got.skipped.append(Skipped(number, f"{topic}: no ranges, or a non-finite stamp or geometry"))
+        return
+    problem = wire_scan_problem(ranges, *geometry)
+    if problem:
+        got.skipped.append(Skipped(number, f"{topic}: {problem}"))
+        return
+    got.scans.append((number, stamp, ranges, (*geometry, msg.header.frame_id)))
+
+
+def _add_odometry(got: _Decoded, number: int, msg, topic: str) -> None:
+    """Add Odometry message ``number`` to ``got.odom``, or a reason to ``got.skipped``."""
+    p, q = msg.pose.pose.position, msg.pose.pose.orientation
+    pose = (float(p.x), float(p.y), quaternion_yaw(q))
+    stamp = header_stamp(msg.header)
+    if not (plausible_pose(pose) and math.isfinite(stamp)):
+        reason = f"{topic}: non-finite stamp, or a pose not finite or beyond +-{POSE_LIMIT:g} m"
+        got.skipped.append(Skipped(number, reason))
+        return
+    got.odom.append((stamp, pose, msg.child_frame_id))
+
+
+def _add_transforms(got: _Decoded, number: int, msg, topic: str) -> None:
+    """Add the transforms of TFMessage ``number`` on /tf or /tf_static to ``got``, skipping implausible ones."""
+    for tf in msg.transforms:
+        t, q = tf.transform.translation, tf.transform.rotation
+        pose = (float(t.x), float(t.y), quaternion_yaw(q))
+        if not plausible_pose(pose):
+            link = f"{tf.header.frame_id}->{tf.child_frame_id}"
+            got.skipped.append(Skipped(number, f"{topic}: transform {link} not finite or beyond +-{POSE_LIMIT:g} m"))
+        elif topic == "/tf_static":
+            got.tf_static[tf.child_frame_id] = (tf.header.frame_id, pose)
+        else:
+            got.tf_dynamic.append((header_stamp(tf.header), tf.header.frame_id, tf.child_frame_id, pose))
+
+
+def _usual_laser(scans: list[_DecodedScan]) -> _DecodedScan:
+    """The first scan of the laser (beam count, geometry and frame) most scans have (a tie: the laser seen first),
+    so that one odd scan, even the first, costs only itself."""
     lasers: list[list] = []  # [a scan of the laser, how many scans have it], in order of first appearance
     for scan in scans:
         laser = next((laser for laser in lasers if _same_laser(scan, laser[0])), None)
@@ -224,42 +273,60 @@ def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hol
             lasers.append([scan, 1])
         else:
             laser[1] += 1
-    first = max(lasers, key=lambda laser: laser[1])[0]  # (a tie: the laser seen first)
-    laser_frame = first[3][4]
-    base_frame = odom[0][2] if odom else None
-    try:
-        offset, base_frame = _static_chain(tf_static, laser_frame, base_frame)
-    except LogFormatError as exc:
-        raise LogFormatError(f"{path}: {exc}") from None
+    return max(lasers, key=lambda laser: laser[1])[0]
+
+
+def _odometry(got: _Decoded, odom_topic: str | None, base_frame: str, path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Odometry stamps (K,) s and poses (K, 3) in time order: from the Odometry topic, or (None) the /tf
+    transforms whose child is ``base_frame``."""
+    odom = got.odom
     if odom_topic is None:
-        odom = [(s, pose, child) for s, parent, child, pose in tf_dynamic if child == base_frame]
+        odom = [(s, pose, child) for s, _parent, child, pose in got.tf_dynamic if child == base_frame]
         if not odom:
             raise LogFormatError(f"{path}: /tf holds no transform to the base frame '{base_frame}'")
-    odom.sort(key=lambda o: o[0])
+    odom = sorted(odom, key=lambda o: o[0])
     odom_stamps = np.array([o[0] for o in odom])
     odom_poses = np.array([o[1] for o in odom]).reshape(-1, 3)
     if not len(odom_stamps):
         raise LogFormatError(f"{path}: {odom_topic} holds no decodable odometry")
+    return odom_stamps, odom_poses
 
+
+def _kept_scans(
+    got: _Decoded, first: _DecodedScan, odom_stamps: np.ndarray, topic: str, max_odom_gap: float, max_odom_hold: float
+) -> list[_DecodedScan]:
+    """The scans of the ``first`` scan's laser with odometry around their stamps (gap and hold in s); each
+    other scan adds its reason to ``got.skipped``."""
     kept = []
-    for number, stamp, ranges, geometry in scans:
+    for scan in got.scans:
+        number, stamp, ranges, _geometry = scan
         if ranges.size != first[2].size:
-            skipped.append(Skipped(number, f"{scan_topic}: has {ranges.size} beams, most scans {first[2].size}"))
-        elif not _same_laser((number, stamp, ranges, geometry), first):
-            skipped.append(Skipped(number, f"{scan_topic}: geometry or frame differs from most scans'"))
+            got.skipped.append(Skipped(number, f"{topic}: has {ranges.size} beams, most scans {first[2].size}"))
+        elif not _same_laser(scan, first):
+            got.skipped.append(Skipped(number, f"{topic}: geometry or frame differs from most scans'"))
         else:
             problem = odometry_problem(odom_stamps, stamp, max_odom_gap, max_odom_hold)
             if problem:
-                skipped.append(Skipped(number, f"{scan_topic}: {problem}"))
+                got.skipped.append(Skipped(number, f"{topic}: {problem}"))
             else:
-                kept.append((number, stamp, ranges))
-    if not kept:
-        raise LogFormatError(f"{path}: no scan on {scan_topic} has odometry around its stamp ({skipped[-1].reason})")
-    skipped.sort(key=lambda s: s.where)
-    angle_min, angle_increment, range_min, range_max = first[3][:4]
+                kept.append(scan)
+    return kept
+
+
+def _laser_log(
+    path: Path,
+    kept: list[_DecodedScan],
+    geometry: tuple,
+    offset: tuple[float, float, float],
+    odom_stamps: np.ndarray,
+    odom_poses: np.ndarray,
+    skipped: list[Skipped],
+) -> LaserLog:
+    """The LaserLog of the kept scans, with ``geometry`` (angle_min, angle_increment, range_min, range_max, frame)
+    and the laser's pose ``offset`` on the robot; ranges cleaned as the module docstring says."""
+    angle_min, angle_increment, range_min, range_max = geometry[:4]
     stamps = np.array([k[1] for k in kept])
     ranges = np.stack([k[2] for k in kept]).astype(np.float32)
-    range_min = max(range_min, MIN_RANGE_FLOOR)
     ranges[ranges >= range_max] = np.inf
     ranges[np.isnan(ranges) | np.isneginf(ranges)] = 0.0  # invalid, or too close: below range_min, skipped
     odometry = interpolate_poses(odom_stamps, odom_poses, stamps)
@@ -269,7 +336,7 @@ def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hol
         ranges=ranges,
         angle_min=angle_min,
         angle_increment=angle_increment,
-        range_min=range_min,
+        range_min=max(range_min, MIN_RANGE_FLOOR),
         range_max=range_max,
         sensor_offset=np.array(offset),
         odometry=odometry,
@@ -293,7 +360,7 @@ def _same_laser(scan: tuple, other: tuple) -> bool:
     )
 
 
-def _scan_problem(
+def wire_scan_problem(
     ranges: np.ndarray, angle_min: float, angle_increment: float, range_min: float, range_max: float
 ) -> str:
     """Why a LaserScan (finite geometry; ranges m, angles rad) is not a scan the mapper can take, or "": the
@@ -315,7 +382,7 @@ def _scan_problem(
     return ""
 
 
-def _static_chain(tf_static: dict, laser_frame: str, base_frame: str | None) -> tuple[tuple[float, float, float], str]:
+def static_chain(tf_static: dict, laser_frame: str, base_frame: str | None) -> tuple[tuple[float, float, float], str]:
     """The laser's pose in the base frame from the static transforms, and the base frame's name.
 
     Walks parent links from ``laser_frame`` until ``base_frame`` (or, when that is None, the chain's root).

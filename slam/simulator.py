@@ -123,6 +123,25 @@ def _landmark_measurements(poses, landmarks, segments, sensor, max_range, fov, r
     return step.astype(np.int64), ident.astype(np.int64), z
 
 
+def _laser_rays(
+    true_poses: np.ndarray, offset: np.ndarray, beam_angles: np.ndarray, segments: np.ndarray, range_max: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The noise-free beams of a laser at ``offset`` (3,) on the robot at each true pose (T, 3), beam angles
+    (B,) rad in the laser frame, over the walls ``segments`` (S, 4): per beam (T*B, pose-major) its origin (2,)
+    m, its exact range m (inf: no wall within ``range_max``) and its end point (2,) m (at range_max for no
+    return)."""
+    cos_t, sin_t = np.cos(true_poses[:, 2]), np.sin(true_poses[:, 2])
+    sensor_xy = true_poses[:, :2] + np.column_stack(
+        [cos_t * offset[0] - sin_t * offset[1], sin_t * offset[0] + cos_t * offset[1]]
+    )
+    world_angles = (true_poses[:, 2:3] + offset[2] + beam_angles[None, :]).ravel()
+    origins = np.repeat(sensor_xy, len(beam_angles), axis=0)
+    exact = cast_rays(origins, world_angles, segments, range_max)
+    reach = np.minimum(exact, range_max)
+    endpoints = origins + reach[:, None] * np.column_stack([np.cos(world_angles), np.sin(world_angles)])
+    return origins, exact, endpoints
+
+
 def simulate_office(
     seed: int = 0,
     steps: int = 400,
@@ -160,24 +179,15 @@ def simulate_office(
     )
 
     offset = np.array(LASER_OFFSET)
-    cos_t, sin_t = np.cos(true_poses[:, 2]), np.sin(true_poses[:, 2])
-    sensor_xy = true_poses[:, :2] + np.column_stack(
-        [cos_t * offset[0] - sin_t * offset[1], sin_t * offset[0] + cos_t * offset[1]]
-    )
     angle_increment = fov / (n_beams - 1) if n_beams > 1 else 0.0
     angle_min = -fov / 2.0 if n_beams > 1 else 0.0
     beam_angles = angle_min + angle_increment * np.arange(n_beams)
-    world_angles = (true_poses[:, 2:3] + offset[2] + beam_angles[None, :]).ravel()
-    origins = np.repeat(sensor_xy, n_beams, axis=0)
-    exact = cast_rays(origins, world_angles, segments, range_max)
+    origins, exact, endpoints = _laser_rays(true_poses, offset, beam_angles, segments, range_max)
     noisy = np.where(
         np.isfinite(exact),
         np.maximum(exact + laser_rng.standard_normal(exact.shape) * laser_sigma, LASER_RANGE_MIN),
         np.inf,
     )
-
-    reach = np.minimum(exact, range_max)
-    endpoints = origins + reach[:, None] * np.column_stack([np.cos(world_angles), np.sin(world_angles)])
     occupied, visible, origin = truth_raster(segments, origins, endpoints, truth_resolution)
     return SimRun(
         stamps=np.arange(steps) * dt,

@@ -7,6 +7,11 @@ particle (-1: none) over tile coordinates (tx0 + u, ty0 + v), ``res`` the cell s
 global lattice of mapping.raytrace (cell (ix, iy) covers [ix*res, (ix+1)*res) x [iy*res, (iy+1)*res)).
 Poses are robot poses (x m, y m, yaw rad) in the map frame; ``offset`` (3,) is the laser's pose in the
 robot frame; beams are given by their direction in the laser frame (``cos_b``, ``sin_b``) and range (m).
+
+Inside, the helpers take these bundled in tuples: ``grid`` (pool, table, tx0, ty0, shift, res), ``beams``
+(offset, cos_b, sin_b, rng), ``field`` (the likelihood field: cells searched around a beam's end, 1 / 2 s_m^2
+and 1 / 2 s_l^2 in m^-2, log p_rand, p_rand; :func:`_likelihood_field`) and ``prior`` (predicted (M, 3),
+q_inv (M, 3, 3), prior_cap, gain; :func:`_objective`).
 """
 
 from __future__ import annotations
@@ -20,19 +25,35 @@ from mapping.raytrace import trace_ray
 
 #: hill-climbing refinements (the last ones, with the smallest steps) that use every beam
 FINE_REFINEMENTS = 3
+#: the most hill-climbing moves at one step size
+MAX_CLIMB_MOVES = 64
+
+
+@kernel(nogil=True, inline="always")
+def _tile_coords(tx0, ty0, shift, ix, iy):  # pragma: no cover - compiled
+    """Table entry (u, v) of the tile holding cell (ix, iy); it may lie outside the table (:func:`_outside`)."""
+    return (ix >> shift) - tx0, (iy >> shift) - ty0
+
+
+@kernel(nogil=True, inline="always")
+def _outside(table, u, v):  # pragma: no cover - compiled
+    """Whether entry (u, v) lies outside the table (NY x NX entries per particle)."""
+    return u < 0 or v < 0 or u >= table.shape[2] or v >= table.shape[1]
 
 
 @kernel(nogil=True, inline="always")
 def _tile_id(table, j, tx0, ty0, shift, ix, iy):  # pragma: no cover - compiled
-    u = (ix >> shift) - tx0
-    v = (iy >> shift) - ty0
-    if u < 0 or v < 0 or v >= table.shape[1] or u >= table.shape[2]:
+    """Pool tile of particle j holding cell (ix, iy), -1 where it has none."""
+    u, v = _tile_coords(tx0, ty0, shift, ix, iy)
+    if _outside(table, u, v):
         return -1
     return table[j, v, u]
 
 
 @kernel(nogil=True, inline="always")
-def _value(pool, table, j, tx0, ty0, shift, ix, iy):  # pragma: no cover - compiled
+def _value(grid, j, ix, iy):  # pragma: no cover - compiled
+    """Log-odds of cell (ix, iy) in particle j's grid (0 where it has no tile)."""
+    pool, table, tx0, ty0, shift, _res = grid
     tid = _tile_id(table, j, tx0, ty0, shift, ix, iy)
     if tid < 0:
         return 0.0
@@ -42,8 +63,16 @@ def _value(pool, table, j, tx0, ty0, shift, ix, iy):  # pragma: no cover - compi
 
 @kernel(nogil=True, inline="always")
 def _laser_pose(x, y, th, offset):  # pragma: no cover - compiled
+    """The laser's position (m, map frame) and the cosine and sine of its heading, for robot pose (x, y, th)."""
     c, s = math.cos(th), math.sin(th)
-    return x + c * offset[0] - s * offset[1], y + s * offset[0] + c * offset[1], th + offset[2]
+    lth = th + offset[2]
+    return x + c * offset[0] - s * offset[1], y + s * offset[0] + c * offset[1], math.cos(lth), math.sin(lth)
+
+
+@kernel(nogil=True, inline="always")
+def _beam_direction(cl, sl, cos_b, sin_b, i):  # pragma: no cover - compiled
+    """Unit direction (map frame) of beam i from a laser heading with cosine cl and sine sl."""
+    return cl * cos_b[i] - sl * sin_b[i], sl * cos_b[i] + cl * sin_b[i]
 
 
 @kernel(nogil=True)
@@ -79,42 +108,25 @@ def own_tile(pool, refcount, free_stack, n_free, table, j, v, u):  # pragma: no 
 
 
 @kernel(nogil=True)
-def insert_scan(
-    pool,
-    refcount,
-    free_stack,
-    n_free,
-    table,
-    tx0,
-    ty0,
-    shift,
-    res,
-    poses,
-    offset,
-    cos_b,
-    sin_b,
-    r_stop,
-    hit,
-    l_occ,
-    l_free,
-    l_min,
-    l_max,
-    resume,
-    counters,
-):  # pragma: no cover - compiled
+def insert_scan(pool, refcount, free_stack, n_free, table, frame, scan, update, resume, counters):  # pragma: no cover
     """Insert one scan into every particle's grid, particle j seeing it from ``poses[j]``.
 
-    Adds ``l_free`` to every cell a beam crosses before its end and ``l_occ`` to its end cell when
-    ``hit[i]`` (also adding the end point to the cell's end-point sums); log-odds stay in [l_min, l_max].
-    ``r_stop`` (B,) m is each beam's length (NaN: beam unused). A tile a particle shares or lacks is made
-    its own first (:func:`own_tile`). When the free list runs dry the kernel stops, stores where it was in
-    ``resume`` (particle, beam, cell) and returns False; called again with a grown pool and the same
-    ``resume`` it continues there. ``counters`` accumulates (cell updates, tiles copied). True when done.
+    ``frame`` is (tx0, ty0, shift, res), ``scan`` (poses (M, 3), offset, cos_b, sin_b, r_stop, hit) and
+    ``update`` (l_occ, l_free, l_min, l_max). Adds ``l_free`` to every cell a beam crosses before its end and
+    ``l_occ`` to its end cell when ``hit[i]`` (also adding the end point to the cell's end-point sums);
+    log-odds stay in [l_min, l_max]. ``r_stop`` (B,) m is each beam's length (NaN: beam unused). A tile a
+    particle shares or lacks is made its own first (:func:`own_tile`). When the free list runs dry the kernel
+    stops, stores where it was in ``resume`` (particle, beam, cell) and returns False; called again with a
+    grown pool and the same ``resume`` it continues there. ``counters`` accumulates (cell updates, tiles
+    copied). True when done.
     """
+    tx0, ty0, shift, res = frame
+    poses, offset, cos_b, sin_b, r_stop, hit = scan
+    l_occ, l_free, l_min, l_max = update
     _check_rows(table, poses, cos_b, sin_b, r_stop)
     if hit.shape[0] != cos_b.shape[0]:
         raise ValueError("hit must have one entry per beam")
-    m, ny, nx = table.shape
+    m = table.shape[0]
     longest = np.nanmax(r_stop) if r_stop.shape[0] else 0.0  # NaN when no beam is used
     cap = int(math.ceil(longest * math.sqrt(2.0) / res)) + 3 if longest > 0.0 else 3
     bix = np.empty(cap, np.int64)
@@ -123,21 +135,19 @@ def insert_scan(
     brout = np.empty(cap, np.float64)
     mask = (1 << shift) - 1
     for j in range(resume[0], m):
-        lx, ly, lth = _laser_pose(poses[j, 0], poses[j, 1], poses[j, 2], offset)
-        cl, sl = math.cos(lth), math.sin(lth)
+        lx, ly, cl, sl = _laser_pose(poses[j, 0], poses[j, 1], poses[j, 2], offset)
         first_beam = resume[1] if j == resume[0] else 0
         for i in range(first_beam, cos_b.shape[0]):
             if not r_stop[i] > 0.0:
                 continue
-            dx = cl * cos_b[i] - sl * sin_b[i]
-            dy = sl * cos_b[i] + cl * sin_b[i]
+            dx, dy = _beam_direction(cl, sl, cos_b, sin_b, i)
             n = trace_ray(lx, ly, dx, dy, r_stop[i], res, bix, biy, brin, brout)
+            ex, ey = lx + r_stop[i] * dx, ly + r_stop[i] * dy
             first_cell = resume[2] if (j == resume[0] and i == resume[1]) else 0
             last_u, last_v, tid = -1, -1, -1
             for k in range(first_cell, n):
-                u = (bix[k] >> shift) - tx0
-                v = (biy[k] >> shift) - ty0
-                if u < 0 or v < 0 or u >= nx or v >= ny:
+                u, v = _tile_coords(tx0, ty0, shift, bix[k], biy[k])
+                if _outside(table, u, v):
                     continue
                 if u != last_u or v != last_v:
                     tid, copied = own_tile(pool, refcount, free_stack, n_free, table, j, v, u)
@@ -152,8 +162,8 @@ def insert_scan(
                 value = pool[tid, cy, cx, 0] + (l_occ if end else l_free)
                 pool[tid, cy, cx, 0] = min(max(value, l_min), l_max)
                 if end:
-                    pool[tid, cy, cx, 1] += lx + r_stop[i] * dx - bix[k] * res
-                    pool[tid, cy, cx, 2] += ly + r_stop[i] * dy - biy[k] * res
+                    pool[tid, cy, cx, 1] += ex - bix[k] * res
+                    pool[tid, cy, cx, 2] += ey - biy[k] * res
                     pool[tid, cy, cx, 3] += 1.0
                 counters[0] += 1
     resume[0], resume[1], resume[2] = m, 0, 0
@@ -161,12 +171,13 @@ def insert_scan(
 
 
 @kernel(nogil=True, inline="always")
-def _candidate(pool, table, j, tx0, ty0, shift, res, ex, ey, dx, dy, ix, iy, tid, best):  # pragma: no cover
+def _candidate(grid, j, ex, ey, dx, dy, ix, iy, tid, best):  # pragma: no cover - compiled
     """best, lowered to the squared distance (m^2) from (ex, ey) to the mean end point of cell (ix, iy)
     (in pool tile ``tid``) when that cell is occupied (log-odds > 0) and the point one cell back along the
     beam (dx, dy) is not."""
     if tid < 0:
         return best
+    pool, _table, _tx0, _ty0, shift, res = grid
     mask = (1 << shift) - 1
     oy = iy & mask
     ox = ix & mask
@@ -181,74 +192,63 @@ def _candidate(pool, table, j, tx0, ty0, shift, res, ex, ey, dx, dy, ix, iy, tid
         py = (iy + 0.5) * res
     fx = int(math.floor((px - dx * res) / res))
     fy = int(math.floor((py - dy * res) / res))
-    if _value(pool, table, j, tx0, ty0, shift, fx, fy) > 0.0:
+    if _value(grid, j, fx, fy) > 0.0:
         return best
     d2 = (px - ex) * (px - ex) + (py - ey) * (py - ey)
     return d2 if d2 < best else best
 
 
-@kernel(nogil=True)
-def _evaluate(
-    pool,
-    table,
-    j,
-    tx0,
-    ty0,
-    shift,
-    res,
-    x,
-    y,
-    th,
-    offset,
-    cos_b,
-    sin_b,
-    rng,
-    kernel,
-    inv2s2_match,
-    inv2s2_like,
-    log_p_rand,
-    p_rand,
-    stride=1,
-):  # pragma: no cover - compiled
-    """(match score, log-likelihood) of the beams (cos_b, sin_b, rng) from robot pose (x, y, th) on
-    particle j's grid. For each beam end the nearest mean end point of an occupied cell (log-odds > 0)
-    within ``kernel`` cells whose neighbour one cell back towards the laser is not occupied gives the
-    distance d (m); the score adds
-    exp(-d^2 / 2 s_m^2), the log-likelihood log(p_rand + (1 - p_rand) exp(-d^2 / 2 s_l^2)) (log p_rand
-    when there is no such cell). Only every ``stride``-th beam is used."""
-    lx, ly, lth = _laser_pose(x, y, th, offset)
-    cl, sl = math.cos(lth), math.sin(lth)
+@kernel(nogil=True, inline="always")
+def _nearest_end(grid, j, ex, ey, dx, dy, radius, inv_res):  # pragma: no cover - compiled
+    """Squared distance (m^2) from a beam's end (ex, ey) along (dx, dy) to the nearest :func:`_candidate`
+    cell within ``radius`` cells of it in particle j's grid (inf: none); inv_res is 1 / res (1/m)."""
+    _pool, table, tx0, ty0, shift, _res = grid
     side = 1 << shift
     mask = side - 1
-    inv_res = 1.0 / res
+    cx = int(math.floor(ex * inv_res))
+    cy = int(math.floor(ey * inv_res))
+    best = np.inf
+    tid = _tile_id(table, j, tx0, ty0, shift, cx, cy)
+    ox = cx & mask
+    oy = cy & mask
+    if radius <= ox < side - radius and radius <= oy < side - radius:
+        # the whole neighbourhood lies in one tile
+        if tid >= 0:
+            for b in range(-radius, radius + 1):
+                for a in range(-radius, radius + 1):
+                    best = _candidate(grid, j, ex, ey, dx, dy, cx + a, cy + b, tid, best)
+    else:
+        for b in range(-radius, radius + 1):
+            for a in range(-radius, radius + 1):
+                cell_tid = _tile_id(table, j, tx0, ty0, shift, cx + a, cy + b)
+                best = _candidate(grid, j, ex, ey, dx, dy, cx + a, cy + b, cell_tid, best)
+    return best
+
+
+@kernel(nogil=True, inline="always")
+def _likelihood_field(radius, sigma_match, sigma_like, p_rand):  # pragma: no cover - compiled
+    """The ``field`` tuple of the likelihood field: cells searched around a beam's end, 1 / 2 s_m^2 and
+    1 / 2 s_l^2 (m^-2) from the sigmas (m), log p_rand and p_rand."""
+    return radius, 0.5 / sigma_match**2, 0.5 / sigma_like**2, math.log(p_rand), p_rand
+
+
+@kernel(nogil=True)
+def _evaluate(grid, j, x, y, th, beams, field, stride):  # pragma: no cover - compiled
+    """(match score, log-likelihood) of the beams (offset, cos_b, sin_b, rng) from robot pose (x, y, th) on
+    particle j's grid. For each beam end the nearest mean end point of an occupied cell (log-odds > 0)
+    within ``field[0]`` cells whose neighbour one cell back towards the laser is not occupied gives the
+    distance d (m); the score adds exp(-d^2 / 2 s_m^2), the log-likelihood
+    log(p_rand + (1 - p_rand) exp(-d^2 / 2 s_l^2)) (log p_rand when there is no such cell). Only every
+    ``stride``-th beam is used."""
+    offset, cos_b, sin_b, rng = beams
+    radius, inv2s2_match, inv2s2_like, log_p_rand, p_rand = field
+    lx, ly, cl, sl = _laser_pose(x, y, th, offset)
+    inv_res = 1.0 / grid[5]
     score = 0.0
     loglik = 0.0
     for i in range(0, cos_b.shape[0], stride):
-        dx = cl * cos_b[i] - sl * sin_b[i]
-        dy = sl * cos_b[i] + cl * sin_b[i]
-        ex = lx + rng[i] * dx
-        ey = ly + rng[i] * dy
-        cx = int(math.floor(ex * inv_res))
-        cy = int(math.floor(ey * inv_res))
-        best = np.inf
-        tid = _tile_id(table, j, tx0, ty0, shift, cx, cy)
-        ox = cx & mask
-        oy = cy & mask
-        if kernel <= ox < side - kernel and kernel <= oy < side - kernel:
-            # the whole neighbourhood lies in one tile
-            if tid >= 0:
-                for b in range(-kernel, kernel + 1):
-                    for a in range(-kernel, kernel + 1):
-                        best = _candidate(
-                            pool, table, j, tx0, ty0, shift, res, ex, ey, dx, dy, cx + a, cy + b, tid, best
-                        )
-        else:
-            for b in range(-kernel, kernel + 1):
-                for a in range(-kernel, kernel + 1):
-                    cell_tid = _tile_id(table, j, tx0, ty0, shift, cx + a, cy + b)
-                    best = _candidate(
-                        pool, table, j, tx0, ty0, shift, res, ex, ey, dx, dy, cx + a, cy + b, cell_tid, best
-                    )
+        dx, dy = _beam_direction(cl, sl, cos_b, sin_b, i)
+        best = _nearest_end(grid, j, lx + rng[i] * dx, ly + rng[i] * dy, dx, dy, radius, inv_res)
         if best < np.inf:
             score += math.exp(-best * inv2s2_match)
             loglik += math.log(p_rand + (1.0 - p_rand) * math.exp(-best * inv2s2_like))
@@ -258,59 +258,15 @@ def _evaluate(
 
 
 @kernel(nogil=True, inline="always")
-def _objective(
-    pool,
-    table,
-    j,
-    tx0,
-    ty0,
-    shift,
-    res,
-    x,
-    y,
-    th,
-    offset,
-    cos_b,
-    sin_b,
-    rng,
-    kernel,
-    inv_m,
-    inv_l,
-    log_pr,
-    p_rand,
-    stride,
-    gain,
-    predicted,
-    q_inv,
-    prior_cap,
-):  # pragma: no cover - compiled
+def _objective(grid, j, x, y, th, beams, field, prior, stride):  # pragma: no cover - compiled
     """(match score / gain + log of the motion density, up to a constant; match score) at pose (x, y, th)
-    for particle j. The score stands in for the log-likelihood in the search (each beam's term exp(-d^2 /
-    2 s_m^2) is about the log-likelihood's change between a matched and an unmatched beam, and it locates
-    the optimum more precisely: on a synthetic room within 1 cm where the log-likelihood strays 5 cm).
-    With ``stride`` > 1 the score of the beams used is scaled up to all beams."""
-    score, _loglik = _evaluate(
-        pool,
-        table,
-        j,
-        tx0,
-        ty0,
-        shift,
-        res,
-        x,
-        y,
-        th,
-        offset,
-        cos_b,
-        sin_b,
-        rng,
-        kernel,
-        inv_m,
-        inv_l,
-        log_pr,
-        p_rand,
-        stride,
-    )
+    for particle j; ``prior`` is (predicted (M, 3), q_inv (M, 3, 3), prior_cap, gain). The score stands in
+    for the log-likelihood in the search (each beam's term exp(-d^2 / 2 s_m^2) is about the log-likelihood's
+    change between a matched and an unmatched beam, and it locates the optimum more precisely: on a synthetic
+    room within 1 cm where the log-likelihood strays 5 cm). With ``stride`` > 1 the score of the beams used
+    is scaled up to all beams."""
+    predicted, q_inv, prior_cap, gain = prior
+    score, _loglik = _evaluate(grid, j, x, y, th, beams, field, stride)
     ex = x - predicted[j, 0]
     ey = y - predicted[j, 1]
     et = (th - predicted[j, 2] + math.pi) % (2.0 * math.pi) - math.pi
@@ -328,32 +284,127 @@ def log_likelihoods(
 ):  # pragma: no cover - compiled
     """Scan log-likelihood (M,) of each particle's pose on its own grid, and match score (M,)."""
     _check_rows(table, poses, cos_b, sin_b, rng)
+    grid = (pool, table, tx0, ty0, shift, res)
+    beams = (offset, cos_b, sin_b, rng)
+    field = _likelihood_field(kernel, sigma_match, sigma_like, p_rand)
     m = poses.shape[0]
     loglik = np.empty(m)
     score = np.empty(m)
     for j in range(m):
-        score[j], loglik[j] = _evaluate(
-            pool,
-            table,
-            j,
-            tx0,
-            ty0,
-            shift,
-            res,
-            poses[j, 0],
-            poses[j, 1],
-            poses[j, 2],
-            offset,
-            cos_b,
-            sin_b,
-            rng,
-            kernel,
-            0.5 / sigma_match**2,
-            0.5 / sigma_like**2,
-            math.log(p_rand),
-            p_rand,
-        )
+        score[j], loglik[j] = _evaluate(grid, j, poses[j, 0], poses[j, 1], poses[j, 2], beams, field, 1)
     return loglik, score
+
+
+@kernel(nogil=True)
+def _search_yaws(grid, j, beams, field, prior, starts, ang_step, yaw_search, stride):  # pragma: no cover
+    """The best (objective, score, x, y, yaw) of the yaws predicted[j] + k ang_step, |k ang_step| <=
+    ``yaw_search`` rad, each tried at the predicted position and at the positions ``starts[j]`` (S, 2) m."""
+    predicted = prior[0]
+    bx, by, bt = predicted[j, 0], predicted[j, 1], predicted[j, 2]
+    best, score = _objective(grid, j, bx, by, bt, beams, field, prior, stride)
+    turns = int(yaw_search / ang_step)
+    start_t = bt
+    for st in range(starts.shape[1] + 1):
+        sx, sy = (predicted[j, 0], predicted[j, 1]) if st == 0 else (starts[j, st - 1, 0], starts[j, st - 1, 1])
+        for k in range(-turns, turns + 1):
+            if k == 0 and st == 0:
+                continue
+            f, s = _objective(grid, j, sx, sy, start_t + k * ang_step, beams, field, prior, stride)
+            if f > best:
+                best, score, bx, by, bt = f, s, sx, sy, start_t + k * ang_step
+    return best, score, bx, by, bt
+
+
+@kernel(nogil=True, inline="always")
+def _neighbour(x, y, th, move, lin, ang):  # pragma: no cover - compiled
+    """Pose (x, y, th) moved by hill-climbing move 0..5: +lin, -lin m in x, then in y; +ang, -ang rad in yaw."""
+    if move == 0:
+        return x + lin, y, th
+    if move == 1:
+        return x - lin, y, th
+    if move == 2:
+        return x, y + lin, th
+    if move == 3:
+        return x, y - lin, th
+    if move == 4:
+        return x, y, th + ang
+    return x, y, th - ang
+
+
+@kernel(nogil=True)
+def _climb(grid, j, beams, field, prior, stride, lin, ang, found):  # pragma: no cover - compiled
+    """Hill climbing from ``found`` (objective, score, x, y, yaw): take the best of the six moves of +-lin m
+    in x and y and +-ang rad in yaw while it raises the objective, at most :data:`MAX_CLIMB_MOVES` times."""
+    best, score, bx, by, bt = found
+    for _it in range(MAX_CLIMB_MOVES):
+        cand_x, cand_y, cand_t, cand_f, cand_s = bx, by, bt, best, score
+        for move in range(6):
+            tx, ty, tt = _neighbour(bx, by, bt, move, lin, ang)
+            f, s = _objective(grid, j, tx, ty, tt, beams, field, prior, stride)
+            if f > cand_f:
+                cand_x, cand_y, cand_t, cand_f, cand_s = tx, ty, tt, f, s
+        if cand_f > best:
+            bx, by, bt, best, score = cand_x, cand_y, cand_t, cand_f, cand_s
+        else:
+            break
+    return best, score, bx, by, bt
+
+
+@kernel(nogil=True)
+def _match(grid, j, beams, field, prior, starts, search):  # pragma: no cover - compiled
+    """Particle j's scan match (objective, score, x, y, yaw): :func:`_search_yaws`, then :func:`_climb` with
+    the steps of ``search`` (lin_step m, ang_step rad, refinements, yaw_search rad) halved ``refinements``
+    times. The yaw search and all but the last :data:`FINE_REFINEMENTS` refinements use every second beam."""
+    lin, ang, refinements, yaw_search = search
+    stride = 2 if refinements > FINE_REFINEMENTS else 1
+    found = _search_yaws(grid, j, beams, field, prior, starts, ang, yaw_search, stride)
+    for r in range(refinements):
+        if stride == 2 and r >= refinements - FINE_REFINEMENTS:
+            stride = 1
+            _, _, bx, by, bt = found
+            best, score = _objective(grid, j, bx, by, bt, beams, field, prior, stride)
+            found = (best, score, bx, by, bt)
+        found = _climb(grid, j, beams, field, prior, stride, lin, ang, found)
+        lin *= 0.5
+        ang *= 0.5
+    return found
+
+
+@kernel(nogil=True)
+def _laplace(coef, gain, predicted, q_inv, q_logdet, bx, by, bt):  # pragma: no cover - compiled
+    """The improved proposal around the match (bx, by, bt) of one particle (see :func:`match_and_propose`)
+    from the fitted quadratic ``coef`` (10,), the prediction (3,) and the motion model's information
+    q_inv (3, 3) and log det Q: (mean x, y, yaw, covariance (3, 3), log eta)."""
+    # Hessian of the tempered log-likelihood at the match, made positive semi-definite
+    curv = np.empty((3, 3))
+    curv[0, 0], curv[1, 1], curv[2, 2] = -coef[4], -coef[5], -coef[6]
+    curv[0, 1] = curv[1, 0] = -coef[7]
+    curv[0, 2] = curv[2, 0] = -coef[8]
+    curv[1, 2] = curv[2, 1] = -coef[9]
+    eigval, eigvec = np.linalg.eigh(curv / gain)
+    hess = (eigvec * np.maximum(eigval, 0.0)) @ eigvec.T
+    # the prediction relative to the match (yaw wrapped)
+    d = np.empty(3)
+    d[0] = predicted[0] - bx
+    d[1] = predicted[1] - by
+    d[2] = (predicted[2] - bt + math.pi) % (2.0 * math.pi) - math.pi
+    qd = q_inv @ d
+    # the match maximises likelihood times (capped) prior, so the likelihood's own slope there is not
+    # zero: keep the fitted gradient, or the prior would be counted twice
+    # (only where the fit curves down: along a direction it does not, the quadratic says nothing)
+    slope = np.empty(3)
+    slope[0], slope[1], slope[2] = coef[1] / gain, coef[2] / gain, coef[3] / gain
+    along = eigvec.T @ slope
+    for e in range(3):
+        if eigval[e] <= 0.0:
+            along[e] = 0.0
+    pull = eigvec @ along + qd
+    precision = hess + q_inv
+    covariance = np.linalg.inv(precision)
+    shift = covariance @ pull
+    _sign, logdet_p = np.linalg.slogdet(precision)
+    log_eta = coef[0] / gain - 0.5 * q_logdet - 0.5 * logdet_p - 0.5 * (d @ qd - pull @ shift)
+    return bx + shift[0], by + shift[1], bt + shift[2], covariance, log_eta
 
 
 @kernel(nogil=True)
@@ -418,215 +469,23 @@ def match_and_propose(
     _check_rows(table, predicted, cos_b, sin_b, rng)
     if q_inv.shape[0] != predicted.shape[0] or q_logdet.shape[0] != predicted.shape[0]:
         raise ValueError("q_inv and q_logdet must have one entry per particle")
+    grid = (pool, table, tx0, ty0, shift, res)
+    beams = (offset, cos_b, sin_b, rng)
+    field = _likelihood_field(kernel, sigma_match, sigma_like, p_rand)
+    prior = (predicted, q_inv, prior_cap, gain)
+    search = (lin_step, ang_step, refinements, yaw_search)
     m = predicted.shape[0]
-    inv_m = 0.5 / sigma_match**2
-    inv_l = 0.5 / sigma_like**2
-    log_pr = math.log(p_rand)
     matched = np.empty((m, 3))
     scores = np.empty(m)
     mean = np.empty((m, 3))
     cov = np.empty((m, 3, 3))
     log_eta = np.empty(m)
-    k_count = stencil.shape[0]
-    ll_k = np.empty(k_count)
+    ll_k = np.empty(stencil.shape[0])
     for j in range(m):
-        bx, by, bt = predicted[j, 0], predicted[j, 1], predicted[j, 2]
-        stride = 2 if refinements > FINE_REFINEMENTS else 1
-        best, score = _objective(
-            pool,
-            table,
-            j,
-            tx0,
-            ty0,
-            shift,
-            res,
-            bx,
-            by,
-            bt,
-            offset,
-            cos_b,
-            sin_b,
-            rng,
-            kernel,
-            inv_m,
-            inv_l,
-            log_pr,
-            p_rand,
-            stride,
-            gain,
-            predicted,
-            q_inv,
-            prior_cap,
-        )
-        turns = int(yaw_search / ang_step)
-        start_t = bt
-        for st in range(starts.shape[1] + 1):
-            sx, sy = (predicted[j, 0], predicted[j, 1]) if st == 0 else (starts[j, st - 1, 0], starts[j, st - 1, 1])
-            for k in range(-turns, turns + 1):
-                if k == 0 and st == 0:
-                    continue
-                f, s = _objective(
-                    pool,
-                    table,
-                    j,
-                    tx0,
-                    ty0,
-                    shift,
-                    res,
-                    sx,
-                    sy,
-                    start_t + k * ang_step,
-                    offset,
-                    cos_b,
-                    sin_b,
-                    rng,
-                    kernel,
-                    inv_m,
-                    inv_l,
-                    log_pr,
-                    p_rand,
-                    stride,
-                    gain,
-                    predicted,
-                    q_inv,
-                    prior_cap,
-                )
-                if f > best:
-                    best, score, bx, by, bt = f, s, sx, sy, start_t + k * ang_step
-        lin, ang = lin_step, ang_step
-        for r in range(refinements):
-            if stride == 2 and r >= refinements - FINE_REFINEMENTS:
-                stride = 1
-                best, score = _objective(
-                    pool,
-                    table,
-                    j,
-                    tx0,
-                    ty0,
-                    shift,
-                    res,
-                    bx,
-                    by,
-                    bt,
-                    offset,
-                    cos_b,
-                    sin_b,
-                    rng,
-                    kernel,
-                    inv_m,
-                    inv_l,
-                    log_pr,
-                    p_rand,
-                    stride,
-                    gain,
-                    predicted,
-                    q_inv,
-                    prior_cap,
-                )
-            for _it in range(64):
-                cand_x, cand_y, cand_t, cand_f, cand_s = bx, by, bt, best, score
-                for move in range(6):
-                    tx, ty, tt = bx, by, bt
-                    if move == 0:
-                        tx += lin
-                    elif move == 1:
-                        tx -= lin
-                    elif move == 2:
-                        ty += lin
-                    elif move == 3:
-                        ty -= lin
-                    elif move == 4:
-                        tt += ang
-                    else:
-                        tt -= ang
-                    f, s = _objective(
-                        pool,
-                        table,
-                        j,
-                        tx0,
-                        ty0,
-                        shift,
-                        res,
-                        tx,
-                        ty,
-                        tt,
-                        offset,
-                        cos_b,
-                        sin_b,
-                        rng,
-                        kernel,
-                        inv_m,
-                        inv_l,
-                        log_pr,
-                        p_rand,
-                        stride,
-                        gain,
-                        predicted,
-                        q_inv,
-                        prior_cap,
-                    )
-                    if f > cand_f:
-                        cand_x, cand_y, cand_t, cand_f, cand_s = tx, ty, tt, f, s
-                if cand_f > best:
-                    bx, by, bt, best, score = cand_x, cand_y, cand_t, cand_f, cand_s
-                else:
-                    break
-            lin *= 0.5
-            ang *= 0.5
+        _, scores[j], bx, by, bt = _match(grid, j, beams, field, prior, starts, search)
         matched[j, 0], matched[j, 1], matched[j, 2] = bx, by, bt
-        scores[j] = score
-        for k in range(k_count):
-            _, ll_k[k] = _evaluate(
-                pool,
-                table,
-                j,
-                tx0,
-                ty0,
-                shift,
-                res,
-                bx + stencil[k, 0],
-                by + stencil[k, 1],
-                bt + stencil[k, 2],
-                offset,
-                cos_b,
-                sin_b,
-                rng,
-                kernel,
-                inv_m,
-                inv_l,
-                log_pr,
-                p_rand,
-            )
-        coef = fit @ ll_k
-        # Hessian of the tempered log-likelihood at the match, made positive semi-definite
-        curv = np.empty((3, 3))
-        curv[0, 0], curv[1, 1], curv[2, 2] = -coef[4], -coef[5], -coef[6]
-        curv[0, 1] = curv[1, 0] = -coef[7]
-        curv[0, 2] = curv[2, 0] = -coef[8]
-        curv[1, 2] = curv[2, 1] = -coef[9]
-        eigval, eigvec = np.linalg.eigh(curv / gain)
-        hess = (eigvec * np.maximum(eigval, 0.0)) @ eigvec.T
-        # the prediction relative to the match (yaw wrapped)
-        d = np.empty(3)
-        d[0] = predicted[j, 0] - bx
-        d[1] = predicted[j, 1] - by
-        d[2] = (predicted[j, 2] - bt + math.pi) % (2.0 * math.pi) - math.pi
-        qd = q_inv[j] @ d
-        # the match maximises likelihood times (capped) prior, so the likelihood's own slope there is not
-        # zero: keep the fitted gradient, or the prior would be counted twice
-        # (only where the fit curves down: along a direction it does not, the quadratic says nothing)
-        slope = np.empty(3)
-        slope[0], slope[1], slope[2] = coef[1] / gain, coef[2] / gain, coef[3] / gain
-        along = eigvec.T @ slope
-        for e in range(3):
-            if eigval[e] <= 0.0:
-                along[e] = 0.0
-        pull = eigvec @ along + qd
-        precision = hess + q_inv[j]
-        covariance = np.linalg.inv(precision)
-        shift_local = covariance @ pull
-        mean[j, 0], mean[j, 1], mean[j, 2] = bx + shift_local[0], by + shift_local[1], bt + shift_local[2]
-        cov[j] = covariance
-        _sign, logdet_p = np.linalg.slogdet(precision)
-        log_eta[j] = coef[0] / gain - 0.5 * q_logdet[j] - 0.5 * logdet_p - 0.5 * (d @ qd - pull @ shift_local)
+        for k in range(stencil.shape[0]):
+            _, ll_k[k] = _evaluate(grid, j, bx + stencil[k, 0], by + stencil[k, 1], bt + stencil[k, 2], beams, field, 1)
+        mx, my, mt, cov[j], log_eta[j] = _laplace(fit @ ll_k, gain, predicted[j], q_inv[j], q_logdet[j], bx, by, bt)
+        mean[j, 0], mean[j, 1], mean[j, 2] = mx, my, mt
     return matched, scores, mean, cov, log_eta

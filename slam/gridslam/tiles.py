@@ -112,25 +112,12 @@ class TileMaps:
         and hit flags. The table must already span the beams (:meth:`cover`). Returns the cell updates."""
         resume = np.zeros(3, np.int64)
         counters = np.zeros(2, np.int64)
-        args = (
-            self.tx0,
-            self.ty0,
-            self.shift,
-            self.resolution,
-            np.ascontiguousarray(poses, np.float64),
-            offset,
-            cos_b,
-            sin_b,
-            r_stop,
-            hit,
-            l_occ,
-            l_free,
-            -l_clamp,
-            l_clamp,
-            resume,
-            counters,
-        )
-        while not insert_scan(self.pool, self.refcount, self.free_stack, self.n_free, self.table, *args):
+        frame = (self.tx0, self.ty0, self.shift, self.resolution)
+        scan = (np.ascontiguousarray(poses, np.float64), offset, cos_b, sin_b, r_stop, hit)
+        update = (l_occ, l_free, -l_clamp, l_clamp)
+        while not insert_scan(
+            self.pool, self.refcount, self.free_stack, self.n_free, self.table, frame, scan, update, resume, counters
+        ):
             self.reserve(len(self.pool))
         self.copies += int(counters[1])
         return int(counters[0])
