@@ -10,12 +10,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
 from schemas.files import PosedScans
 from schemas.messages import LandmarkObservations, LaserScan, Odometry, PoseGaussian, PoseSamples
 from schemas.wire import Message
+
+if TYPE_CHECKING:
+    from slam.sequence import SlamSequence
 
 
 @dataclass(frozen=True)
@@ -58,7 +62,27 @@ def _prior(robot: str, stamp: float, pose) -> PoseGaussian:
     return PoseGaussian(robot=robot, seq=0, stamp=float(stamp), mean=np.asarray(pose, np.float64), cov=np.zeros((3, 3)))
 
 
-def _landmarks(robot, seq, stamp, ids, z) -> LandmarkObservations:
+class Scans(Protocol):
+    """Laser scans with their geometry (angle_min, angle_increment, range_min, range_max, sensor_offset):
+    schemas.files.PosedScans, slam.simulator.SimRun or slam.laserlog.LaserLog."""
+
+    @property
+    def ranges(self) -> np.ndarray: ...
+
+
+def _commands(sequence: SlamSequence | None, seq: int) -> np.ndarray:
+    """The velocity commands (K, 3) of step ``seq`` of ``sequence`` (none without one)."""
+    if sequence is None:
+        return np.zeros((0, 3))
+    return sequence.controls[sequence.control_ptr[seq] : sequence.control_ptr[seq + 1]]
+
+
+def _landmarks(robot: str, seq: int, stamp: float, sequence: SlamSequence | None) -> LandmarkObservations:
+    """The landmark measurements of step ``seq`` of ``sequence`` (none without one)."""
+    ids, z = np.zeros(0, np.int64), np.zeros((0, 2))
+    if sequence is not None:
+        rows = slice(sequence.measurement_ptr[seq], sequence.measurement_ptr[seq + 1])
+        ids, z = sequence.landmark_ids[rows], sequence.measurements[rows]
     z = np.asarray(z, np.float64).reshape(-1, 2)
     return LandmarkObservations(
         robot=robot, seq=seq, stamp=stamp, ids=np.asarray(ids, np.int64), ranges=z[:, 0], bearings=z[:, 1]
@@ -86,39 +110,24 @@ def slam_input_stream(
     robot: str,
     stamps: np.ndarray,
     *,
-    ranges: np.ndarray | None,
-    geometry: dict | None,
+    scans: Scans | None,
     odometry: np.ndarray | None,
-    commands: np.ndarray | None,
-    control_ptr: np.ndarray | None,
-    landmark_ids: np.ndarray,
-    landmark_z: np.ndarray,
-    measurement_ptr: np.ndarray,
+    sequence: SlamSequence | None,
     initial_pose: np.ndarray,
 ) -> Stream:
-    """Scans (optional, with their ``geometry``) with what a SLAM node needs per step: odometry pose readings
-    (T, 3) and/or velocity commands (K, 3) split by ``control_ptr`` (T + 1,), and landmarks split by
-    ``measurement_ptr`` (T + 1,)."""
+    """What a SLAM node needs at each of the T ``stamps`` (s): the scan (when there are ``scans``), the odometry
+    pose reading (when there is ``odometry``, (T, 3)), and the velocity commands and landmark measurements of the
+    step in ``sequence`` (none without one). The SLAM prior is ``initial_pose``."""
+    geometry = _geometry(scans) if scans is not None else {}
     steps = []
     for t, stamp in enumerate(np.asarray(stamps, np.float64).tolist()):
         pose = odometry[t : t + 1] if odometry is not None else np.zeros((0, 3))
-        cmds = np.zeros((0, 3))
-        if commands is not None:
-            assert control_ptr is not None  # commands come with the pointer that splits them
-            cmds = commands[control_ptr[t] : control_ptr[t + 1]]
         messages = [
-            Odometry(robot=robot, seq=t, stamp=stamp, pose=pose, commands=cmds),
-            _landmarks(
-                robot,
-                t,
-                stamp,
-                landmark_ids[measurement_ptr[t] : measurement_ptr[t + 1]],
-                landmark_z[measurement_ptr[t] : measurement_ptr[t + 1]],
-            ),
+            Odometry(robot=robot, seq=t, stamp=stamp, pose=pose, commands=_commands(sequence, t)),
+            _landmarks(robot, t, stamp, sequence),
         ]
-        if ranges is not None:
-            assert geometry is not None  # scans come with their geometry
-            messages.insert(0, _scan(robot, t, stamp, ranges[t], geometry))
+        if scans is not None:
+            messages.insert(0, _scan(robot, t, stamp, scans.ranges[t], geometry))
         steps.append(Step(stamp, tuple(messages)))
     return Stream(robot, steps, prior=_prior(robot, stamps[0], initial_pose), has_poses=False)
 
@@ -126,18 +135,12 @@ def slam_input_stream(
 def sim_stream(run, robot: str) -> Stream:
     """A simulated run (slam.simulator.SimRun or a simulator folder's pieces): scans, odometry readings,
     velocity commands and landmark measurements; the SLAM prior is the true first pose."""
-    sequence = run.log().sequence("velocity")
     return slam_input_stream(
         robot,
         run.stamps,
-        ranges=run.ranges,
-        geometry=_geometry(run),
+        scans=run,
         odometry=run.odometry,
-        commands=sequence.controls,
-        control_ptr=sequence.control_ptr,
-        landmark_ids=sequence.landmark_ids,
-        landmark_z=sequence.measurements,
-        measurement_ptr=sequence.measurement_ptr,
+        sequence=run.log().sequence("velocity"),
         initial_pose=run.true_poses[0],
     )
 
@@ -150,54 +153,25 @@ def sim_folder_stream(folder: Path, robot: str) -> Stream:
 
     log = load_sim_log(folder)
     scans = load_posed_scans(folder / "scans.npz") if (folder / "scans.npz").is_file() else None
-    sequence = log.sequence("velocity")
     return slam_input_stream(
         robot,
         log.stamps,
-        ranges=scans.ranges if scans is not None else None,
-        geometry=_geometry(scans) if scans is not None else None,
+        scans=scans,
         odometry=log.odometry,
-        commands=sequence.controls,
-        control_ptr=sequence.control_ptr,
-        landmark_ids=sequence.landmark_ids,
-        landmark_z=sequence.measurements,
-        measurement_ptr=sequence.measurement_ptr,
+        sequence=log.sequence("velocity"),
         initial_pose=log.initial_pose,
     )
 
 
-def mrclam_stream(
-    folder: Path,
-    robot_number: int,
-    robot: str,
-    period: float = 0.2,
-    raw_ranges: bool = False,
-    raw_commands: bool = False,
-) -> Stream:
-    """One robot of an MRCLAM folder: velocity commands and landmark measurements (no laser), stepped every
-    ``period`` s and at every measurement, as `posegrid slam` reads them (ranges calibrated unless
-    ``raw_ranges``, commands scaled to the executed speeds unless ``raw_commands``); the prior is the first
-    ground-truth pose."""
-    from slam.mrclam import MRCLAM_RANGE_CALIBRATION, MRCLAM_VELOCITY_SCALE, mrclam_sequence, read_mrclam
+def mrclam_stream(folder: Path, robot_number: int, robot: str, period: float = 0.2) -> Stream:
+    """One robot of an MRCLAM folder: velocity commands and landmark measurements (no laser) as logged, stepped
+    every ``period`` s and at every measurement, as `posegrid slam` reads them; the prior is the first ground-truth
+    pose. A robot's calibration is the SLAM node's (--calibration, --profile)."""
+    from slam.mrclam import mrclam_sequence, read_mrclam
 
-    sequence = mrclam_sequence(
-        read_mrclam(folder, robot_number),
-        period=period,
-        range_calibration=None if raw_ranges else MRCLAM_RANGE_CALIBRATION,
-        velocity_scale=None if raw_commands else MRCLAM_VELOCITY_SCALE,
-    )
+    sequence = mrclam_sequence(read_mrclam(folder, robot_number), period=period)
     return slam_input_stream(
-        robot,
-        sequence.stamps,
-        ranges=None,
-        geometry=None,
-        odometry=None,
-        commands=sequence.controls,
-        control_ptr=sequence.control_ptr,
-        landmark_ids=sequence.landmark_ids,
-        landmark_z=sequence.measurements,
-        measurement_ptr=sequence.measurement_ptr,
-        initial_pose=sequence.initial_pose,
+        robot, sequence.stamps, scans=None, odometry=None, sequence=sequence, initial_pose=sequence.initial_pose
     )
 
 
@@ -205,17 +179,6 @@ def laser_log_stream(log, robot: str) -> Stream:
     """A laser log (slam.laserlog.LaserLog, read from a CARMEN log or a ROS bag): scans with the odometry pose at
     each scan (for grid FastSLAM); no landmarks. The prior is the first odometry pose (the map frame is the
     odometry frame)."""
-    steps = len(log.stamps)
     return slam_input_stream(
-        robot,
-        log.stamps,
-        ranges=log.ranges,
-        geometry=_geometry(log),
-        odometry=log.odometry,
-        commands=None,
-        control_ptr=None,
-        landmark_ids=np.zeros(0, np.int64),
-        landmark_z=np.zeros((0, 2)),
-        measurement_ptr=np.zeros(steps + 1, np.int64),
-        initial_pose=log.odometry[0],
+        robot, log.stamps, scans=log, odometry=log.odometry, sequence=None, initial_pose=log.odometry[0]
     )

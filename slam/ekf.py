@@ -39,7 +39,8 @@ from __future__ import annotations
 import numpy as np
 
 from slam.angles import wrap_angle
-from slam.motion import MotionModel
+from slam.consistency import ConsistencyMonitor
+from slam.motion import MotionModel, compose, local_motion, rotate_covariance
 from slam.range_bearing import RangeBearingModel, inverse_measurement, predict_measurement
 
 #: chi-square(2) quantiles: 0.99 for association, 0.9999 before a new landmark is started
@@ -75,6 +76,8 @@ class EKFSLAM:
         outlier_gate: float | None = None,
         association_gate: float = CHI2_2_99,
         new_landmark_gate: float = CHI2_2_9999,
+        adaptive: bool = True,
+        scale_sd: float = 0.0,
     ) -> None:
         self.motion = motion
         self.sensor = sensor
@@ -83,10 +86,13 @@ class EKFSLAM:
         self.association_gate = association_gate
         self.new_landmark_gate = new_landmark_gate
         self.mu = np.asarray(initial_pose, dtype=np.float64).copy()
+        self.origin = self.mu[:2].copy()  # the start position, about which the map's scale is uncertain
+        self.scale_sd = scale_sd
         self.sigma = np.zeros((3, 3))  # covariance of xi = (xi_p, xi_theta, xi_m1, ...)
         self.ids: list[int] = []  # landmark id of each landmark slot (known correspondences), else slot number
         self.slot_of: dict[int, int] = {}
         self.rejected = 0  # measurements dropped by a gate
+        self.monitor = ConsistencyMonitor(adaptive=adaptive)  # NIS watch and noise scale (slam.consistency)
 
     @property
     def n_landmarks(self) -> int:
@@ -97,25 +103,36 @@ class EKFSLAM:
         return np.array(self.ids, dtype=np.int64), self.mu[3:].reshape(-1, 2).copy()
 
     def pose_covariance(self) -> np.ndarray:
-        """Covariance (3, 3) of the pose (x m, y m, theta rad) in plain coordinates."""
+        """Covariance (3, 3) of the pose (x m, y m, theta rad) in plain coordinates, with the map scale's relative
+        uncertainty ``scale_sd`` added: scaling map and path about the start by 1 + e moves the position by
+        e (p - start), which no measurement or motion shows (slam.calibration, ``scale_sd``)."""
         a = invariant_to_plain(self.mu[:3])
-        return a @ self.sigma[:3, :3] @ a.T
+        cov = a @ self.sigma[:3, :3] @ a.T
+        lever = self.mu[:2] - self.origin
+        cov[:2, :2] += self.scale_sd**2 * np.outer(lever, lever)
+        return cov
 
     def _points(self) -> np.ndarray:
         """Robot position and landmarks as rows (1 + L, 2), the points the error's rotation moves."""
         return np.concatenate([self.mu[None, :2], self.mu[3:].reshape(-1, 2)])
 
-    def predict(self, control: np.ndarray) -> None:
-        """Move the mean; xi is unchanged (F = I) and gains the motion noise B q B^T."""
-        mean, _, q = self.motion.linearize(self.mu[None, :3], control)
-        self.mu[:3] = mean[0]
+    def predict(self, controls: np.ndarray) -> None:
+        """Move the mean through one step's controls (K, 3); xi is unchanged (F = I) and gains the step's motion
+        noise B q B^T, q the step's pose covariance (slam.motion.local_motion, turned to the map frame, times the
+        noise scale) and B taken at the new pose. One control (3,) is a step of one control."""
+        controls = np.asarray(controls, dtype=np.float64).reshape(-1, 3)
+        if len(controls) == 0:
+            return
+        delta, cov_local = local_motion(self.motion, controls)
+        q = rotate_covariance(cov_local, self.mu[2:3])[0] * self.monitor.scale
+        self.mu[:3] = compose(self.mu[None, :3], delta)[0]
         points = self._points()
         noise_map = np.zeros((len(self.mu), 3))  # B = d xi / d(plain pose noise)
         noise_map[0, 0] = noise_map[1, 1] = noise_map[2, 2] = 1.0
         minus_j_points = np.column_stack([points[:, 1], -points[:, 0]])
         noise_map[0:2, 2] = minus_j_points[0]
         noise_map[3:, 2] = minus_j_points[1:].ravel()
-        self.sigma += noise_map @ q[0] @ noise_map.T
+        self.sigma += noise_map @ q @ noise_map.T
 
     def _innovation(self, j: int, z: np.ndarray, noise: np.ndarray):
         """Innovation, H Sigma (2, n) and innovation covariance S (2, 2) of measurement z of landmark slot j,
@@ -182,37 +199,47 @@ class EKFSLAM:
         best = int(np.argmin(d2))
         return best, float(d2[best]), nearest_any
 
+    def _watch(self, d2: float, gated: bool) -> None:
+        """Give one NIS to the consistency monitor; scale the covariance when it changes the noise scale."""
+        factor = self.monitor.add(d2, gated)
+        if factor is not None:
+            self.sigma *= factor
+
     def update(self, z: np.ndarray, landmark_id: int, taken: set[int]) -> None:
         """Fuse one measurement z = (range m, bearing rad); ``landmark_id`` is used with known correspondences
         only; unknown correspondences add the matched landmark to ``taken`` (one measurement per landmark
-        and step)."""
-        noise = self.sensor.covariance(z)
+        and step). Each measurement of a mapped landmark gives its NIS to the consistency monitor."""
+        noise = self.sensor.covariance(z) * self.monitor.scale
         if self.known:
             if landmark_id not in self.slot_of:
                 self._add_landmark(z, noise, landmark_id)
                 return
             nu, h_sigma, s = self._innovation(self.slot_of[landmark_id], z, noise)
-            if self.outlier_gate is not None and nu @ np.linalg.solve(s, nu) > self.outlier_gate:
+            d2 = float(nu @ np.linalg.solve(s, nu))
+            gated = self.outlier_gate is not None and d2 > self.outlier_gate
+            if gated:
                 self.rejected += 1
-                return
-            self._correct(nu, h_sigma, s)
+            else:
+                self._correct(nu, h_sigma, s)
+            self._watch(d2, gated)
             return
         slot, d2, nearest_any = self._associate(z, noise, taken)
         if slot is not None and d2 < self.association_gate:
             self._correct(*self._innovation(slot, z, noise))
             taken.add(slot)
+            self._watch(d2, False)
         elif nearest_any > self.new_landmark_gate:
             taken.add(self.n_landmarks)
             self._add_landmark(z, noise, self.n_landmarks)
         else:
             self.rejected += 1
+            self._watch(nearest_any, True)
 
     def step(
         self, controls: np.ndarray, measurements: np.ndarray, landmark_ids: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
         """Predict through controls (K, 3), fuse measurements (O, 2); return pose mean (3,) and cov (3, 3)."""
-        for control in controls:
-            self.predict(control)
+        self.predict(controls)
         taken: set[int] = set()
         for z, landmark_id in zip(measurements, landmark_ids):
             self.update(np.asarray(z, dtype=np.float64), int(landmark_id), taken)

@@ -41,11 +41,15 @@ is exact when gauge and shape are independent in the posterior, and an approxima
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from slam.angles import wrap_angle
+from slam.consistency import ConsistencyMonitor, scaled_motion
 from slam.gauge import map_gauges, regauge_points, turn_covariances
-from slam.motion import MotionModel, compose, local_motion, rotate_covariance
+from slam.kernels import _mixture_nis, _predict_particles, fastslam_known_update
+from slam.motion import MotionModel, local_motion
 from slam.range_bearing import RangeBearingModel, inverse_measurement, predict_measurement
 from slam.resampling import effective_sample_size, low_variance_resample, normalize_log_weights
 from slam.stats import inv2, sample_gaussian
@@ -78,6 +82,8 @@ class FastSLAM:
         new_landmark_loglik: float | None = None,
         update_while_stationary: bool = False,
         preserve_gauge: bool = True,
+        adaptive: bool = True,
+        scale_sd: float = 0.0,
     ) -> None:
         if version not in (1, 2):
             raise ValueError(f"FastSLAM version must be 1 or 2, got {version}")
@@ -111,6 +117,11 @@ class FastSLAM:
         self.update_while_stationary = update_while_stationary
         self.moved = True  # since the last measurement update (the first measurements are always used)
         self.stationary_skipped = 0  # measurements not used because the robot had not moved
+        self.monitor = ConsistencyMonitor(adaptive=adaptive)  # NIS watch and noise scale (slam.consistency)
+        # each particle's map scale about the start (1 + e, e ~ N(0, scale_sd^2)): no measurement or motion shows
+        # it, so it only spreads the poses given out; it stays with the particle's index, as a gauge does
+        self.origin = self.poses[0, :2].copy()
+        self.scales = 1.0 + scale_sd * np.random.default_rng([seed, 1]).standard_normal(n)
 
     # ------------------------------------------------------------------------------------------- state
 
@@ -139,27 +150,19 @@ class FastSLAM:
         nu[..., 1] = wrap_angle(nu[..., 1])
         return nu, s, h_x
 
-    def _associate(self, z: np.ndarray, noise: np.ndarray, landmark_id: int):
-        """Slot (N,) and is-new (N,) of measurement z in each particle, with nu, S (inverse), H_x, d^2."""
-        if self.known:
-            if landmark_id not in self.slot_of:
-                self.slot_of[landmark_id] = len(self.slot_of)
-                self._ensure_capacity(len(self.slot_of))
-            slot = np.full(len(self.rows), self.slot_of[landmark_id])
-            is_new = ~self.seen[self.rows, slot]
-        else:
-            nu, s, _ = self._innovation(self.poses[:, None, :], self.pose_cov[:, None], self.mu, self.sigma, z, noise)
-            s_inv, det = inv2(s)
-            d2 = np.einsum("nli,nlij,nlj->nl", nu, s_inv, nu)
-            loglik = np.where(
-                self.seen & ~self.taken, -0.5 * d2 - 0.5 * np.log(np.abs(det)) - np.log(2 * np.pi), -np.inf
-            )
-            best = np.argmax(loglik, axis=1)
-            is_new = loglik[self.rows, best] < self.log_p0
-            slot = np.where(is_new, self.count, best)
-            self.count = self.count + is_new
-            self._ensure_capacity(int(self.count.max()))
-            self.taken[self.rows, slot] = True
+    def _associate(self, z: np.ndarray, noise: np.ndarray):
+        """Unknown ids: slot (N,) and is-new (N,) of measurement z in each particle (maximum likelihood among the
+        landmarks not yet matched in this step), with nu, S^-1, det S, H_x and d^2 at that slot."""
+        nu, s, _ = self._innovation(self.poses[:, None, :], self.pose_cov[:, None], self.mu, self.sigma, z, noise)
+        s_inv, det = inv2(s)
+        d2 = np.einsum("nli,nlij,nlj->nl", nu, s_inv, nu)
+        loglik = np.where(self.seen & ~self.taken, -0.5 * d2 - 0.5 * np.log(np.abs(det)) - np.log(2 * np.pi), -np.inf)
+        best = np.argmax(loglik, axis=1)
+        is_new = loglik[self.rows, best] < self.log_p0
+        slot = np.where(is_new, self.count, best)
+        self.count = self.count + is_new
+        self._ensure_capacity(int(self.count.max()))
+        self.taken[self.rows, slot] = True
         nu, s, h_x = self._innovation(
             self.poses, self.pose_cov, self.mu[self.rows, slot], self.sigma[self.rows, slot], z, noise
         )
@@ -167,31 +170,82 @@ class FastSLAM:
         d2 = np.einsum("ni,nij,nj->n", nu, s_inv, nu)
         return slot, is_new, nu, s_inv, det, h_x, d2
 
+    def _slots(self, landmark_ids: np.ndarray) -> np.ndarray:
+        """Known ids: the landmark slot (O,) of each id, new ids getting the next free slots."""
+        for landmark_id in landmark_ids:
+            if int(landmark_id) not in self.slot_of:
+                self.slot_of[int(landmark_id)] = len(self.slot_of)
+        self._ensure_capacity(len(self.slot_of))
+        return np.array([self.slot_of[int(i)] for i in landmark_ids], dtype=np.int64)
+
     def predict(self, controls: np.ndarray) -> None:
         """Move every particle by the controls (K, 3) of one step: one sample per control (version 1), or the
-        Gaussian prior N(x (+) delta, R P_local R^T) of the whole step (version 2; see slam.motion.local_motion)."""
+        Gaussian prior N(x (+) delta, R P_local R^T) of the whole step (version 2; see slam.motion.local_motion);
+        the motion noise times the consistency monitor's noise scale."""
+        scale = self.monitor.scale
         if self.version == 1:
+            motion = scaled_motion(self.motion, scale)
             for control in controls:
-                self.poses = self.motion.sample(self.poses, control, self.rng)
+                self.poses = motion.sample(self.poses, control, self.rng)
             return
         if len(controls) == 0:
             return
         delta, cov_local = local_motion(self.motion, controls)
-        self.pose_cov = rotate_covariance(cov_local, self.poses[:, 2])
-        self.poses = compose(self.poses, delta)
+        _predict_particles(self.poses, self.pose_cov, delta, cov_local * scale)
 
     def update(self, measurements: np.ndarray, landmark_ids: np.ndarray) -> None:
-        """Weight by, sample with (version 2) and fuse the measurements (O, 2) of one step."""
+        """Weight by, sample with (version 2) and fuse the measurements (O, 2) of one step; each measurement of a
+        landmark some particle has mapped gives its NIS under the particles' mixture to the consistency monitor."""
+        measurements = np.ascontiguousarray(measurements, dtype=np.float64).reshape(-1, 2)
+        if not self.known:
+            nis = self._update_unknown(measurements)
+        else:
+            slots = self._slots(landmark_ids)  # first: it may grow the landmark arrays
+            scale = self.monitor.scale
+            sd_range = self.sensor.sigma_range + self.sensor.range_fraction * measurements[:, 0]
+            noise = np.column_stack([sd_range**2, np.full(len(measurements), self.sensor.sigma_bearing**2)]) * scale
+            normals = self.rng.standard_normal(self.poses.shape) if self.version == 2 else np.zeros(self.poses.shape)
+            nis = np.empty(len(measurements))
+            gate = np.inf if self.outlier_gate is None else float(self.outlier_gate)
+            fastslam_known_update(
+                self.version, self.poses, self.pose_cov, self.mu, self.sigma, self.seen, self.log_w, measurements,
+                slots, noise, gate, self.log_p0, normals, nis,
+            )  # fmt: skip
+        for value in nis:
+            factor = self.monitor.add(float(value), self.outlier_gate is not None and value > self.outlier_gate)
+            if factor is not None:
+                self._rescale(factor)
+
+    def _rescale(self, factor: float) -> None:
+        """The consistency watch multiplied the noise by ``factor``: multiply the landmark covariances by it too,
+        and the particles' spread about their weighted mean pose by its square root, each particle's pose and
+        map moved together by one rigid motion (as gauge-preserving resampling moves them: no weight changes), so
+        the set's covariance scales as a Gaussian filter's would."""
+        self.sigma *= factor
+        weights = normalize_log_weights(self.log_w)
+        centre = weights @ self.poses[:, :2]
+        heading = float(np.angle(weights @ np.exp(1j * self.poses[:, 2])))
+        grow = math.sqrt(factor) - 1.0
+        turn = grow * wrap_angle(self.poses[:, 2] - heading)
+        target = self.poses[:, :2] + grow * (self.poses[:, :2] - centre)
+        self._regauge(turn, self.poses[:, :2].copy(), target)
+
+    def _update_unknown(self, measurements: np.ndarray) -> np.ndarray:
+        """:meth:`update` with unknown ids, vectorised over particles; returns each measurement's mixture NIS."""
         pending = []
+        nis = np.full(len(measurements), np.nan)
         self.taken[:] = False
-        for row, landmark_id in zip(measurements, landmark_ids):
-            z = np.asarray(row, dtype=np.float64)
-            noise = self.sensor.covariance(z)
-            slot, is_new, nu, s_inv, det, h_x, d2 = self._associate(z, noise, int(landmark_id))
-            gate = np.inf if (self.outlier_gate is None or not self.known) else self.outlier_gate
-            inlier = ~is_new & (d2 <= gate)
-            loglik = -0.5 * np.minimum(d2, gate) - 0.5 * np.log(np.abs(det)) - np.log(2 * np.pi)
+        for k, z in enumerate(measurements):
+            noise = self.sensor.covariance(z) * self.monitor.scale
+            before = self.log_w.copy()
+            slot, is_new, nu, s_inv, det, h_x, d2 = self._associate(z, noise)
+            inlier = ~is_new
+            loglik = -0.5 * d2 - 0.5 * np.log(np.abs(det)) - np.log(2 * np.pi)
             self.log_w += np.where(is_new, self.log_p0, loglik)
+            s = (
+                s_inv[:, [1, 0, 0], [1, 1, 0]] * np.array([1.0, -1.0, 1.0]) * det[:, None]
+            )  # S from S^-1: (s00, s01, s11)
+            nis[k] = _mixture_nis(before, inlier, np.ascontiguousarray(nu), np.ascontiguousarray(s))
             if self.version == 2:
                 gain = self.pose_cov @ _t(h_x) @ s_inv  # (N, 3, 2)
                 step = np.einsum("nij,nj->ni", gain, nu)
@@ -207,6 +261,7 @@ class FastSLAM:
             self.pose_cov = np.zeros_like(self.pose_cov)
         for z, noise, slot, is_new, inlier in pending:
             self._fuse_landmark(z, noise, slot, is_new, inlier)
+        return nis
 
     def _fuse_landmark(
         self, z: np.ndarray, noise: np.ndarray, slot: np.ndarray, is_new: np.ndarray, inlier: np.ndarray
@@ -281,5 +336,6 @@ class FastSLAM:
         self.update(measurements, landmark_ids)
         weights = normalize_log_weights(self.log_w)
         samples = self.poses.copy()
+        samples[:, :2] = self.origin + self.scales[:, None] * (samples[:, :2] - self.origin)
         self.resample_if_degenerate(weights)
         return samples, weights

@@ -265,8 +265,22 @@ def local_motion(motion: MotionModel, controls: np.ndarray) -> tuple[np.ndarray,
     both in the frame of the start pose.
 
     Every pose moves by the same delta in its own frame, and its linearised motion noise is this covariance
-    rotated by its heading (:func:`rotate_covariance`): one linearisation serves all particles.
+    rotated by its heading (:func:`rotate_covariance`): one linearisation serves all particles. The velocity
+    model's runs compiled (slam.kernels.velocity_local_motion), the odometry model's through :meth:`linearize`.
     """
+    if isinstance(motion, VelocityMotionModel):
+        from slam.kernels import velocity_local_motion
+
+        delta, cov = np.zeros(3), np.zeros((3, 3))
+        velocity_local_motion(
+            np.ascontiguousarray(controls, dtype=np.float64).reshape(-1, 3),
+            np.asarray(motion.alphas, dtype=np.float64),
+            np.asarray(motion.floor, dtype=np.float64),
+            float(motion.dt_ref),
+            delta,
+            cov,
+        )
+        return delta, cov
     pose = np.zeros((1, 3))
     cov = np.zeros((3, 3))
     for control in controls:

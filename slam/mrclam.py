@@ -8,6 +8,8 @@ std x m, std y m). Subjects 1-5 are robots, the others landmarks. All files have
 whitespace-separated numbers. Measurements of robots, of barcodes in no table and those stamped outside the
 odometry's time span (no command to move the robot there) are skipped and counted.
 Landmark positions are never used by the filters; Landmark_Groundtruth.dat is read for scoring only.
+The data are read as logged: no dataset's calibration is applied unless one is given (:func:`read_sequence`,
+slam.calibration; profile ``mrclam7`` is dataset 7's).
 """
 
 from __future__ import annotations
@@ -17,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
+from slam.calibration import Calibration
 from slam.errors import LogFormatError
-from slam.motion import VelocityMotionModel
-from slam.range_bearing import BEARING_LIMIT, RangeBearingModel
+from slam.range_bearing import BEARING_LIMIT
 from slam.sequence import SlamSequence
 
 #: subjects 1..ROBOT_SUBJECTS are robots; larger subjects are landmarks
@@ -147,25 +149,11 @@ def read_groundtruth(path: str | Path) -> np.ndarray:
     return read_table(path, "Groundtruth")
 
 
-def calibrate_ranges(measurements: np.ndarray, coefficients: tuple[float, float]) -> np.ndarray:
-    """Measurements (M, 2) (range m, bearing rad) with ranges divided by c0 + c2 bearing^2.
-
-    MRCLAM's cameras measure range from the barcode's apparent size, and the ratio of measured to true range
-    falls off towards the image edges; :data:`MRCLAM_RANGE_CALIBRATION` holds the fit (docs/slam.md).
-    """
-    c0, c2 = coefficients
-    out = np.array(measurements, dtype=np.float64)
-    out[:, 0] /= c0 + c2 * out[:, 1] ** 2
-    return out
-
-
 def mrclam_sequence(
     run: MrclamRobot,
     initial_pose: np.ndarray | None = None,
     period: float = 0.2,
-    command_delay: float | None = None,
-    range_calibration: tuple[float, float] | None = None,
-    velocity_scale: tuple[float, float] | None = None,
+    command_delay: float = 0.0,
 ) -> SlamSequence:
     """The filters' input for one MRCLAM robot.
 
@@ -174,13 +162,10 @@ def mrclam_sequence(
     every ``period`` s, up to the last odometry stamp (:func:`read_mrclam` skips measurements outside the
     odometry's span; measurements stamped before the start are left out here). Controls: the velocity
     commands as (v, w, dt) pieces, each odometry row held until the next one (zero before the first), cut at
-    the step stamps, each command taking effect ``command_delay`` s after its stamp (default
-    :data:`MRCLAM_COMMAND_DELAY`), its (v, w) multiplied by ``velocity_scale`` (executed / commanded, e.g.
-    :data:`MRCLAM_VELOCITY_SCALE`; None: as logged). Ranges are corrected by :func:`calibrate_ranges` with
-    ``range_calibration`` (None: uncorrected). Landmark ids are MRCLAM subject numbers.
+    the step stamps, each command taking effect ``command_delay`` s after its stamp (default 0: as logged).
+    Commands and measurements are as logged (slam.calibration corrects them). Landmark ids are MRCLAM subject
+    numbers.
     """
-    if command_delay is None:
-        command_delay = MRCLAM_COMMAND_DELAY
     if initial_pose is None:
         if run.groundtruth is None:
             raise LogFormatError(f"robot {run.robot}: no ground truth to start from; give an initial pose (x,y,yaw)")
@@ -199,8 +184,6 @@ def mrclam_sequence(
     dt = np.diff(breaks)
     active = np.searchsorted(odo_t, breaks[:-1], side="right") - 1
     velocity = np.where(active[:, None] >= 0, run.odometry[np.maximum(active, 0), 1:3], 0.0)
-    if velocity_scale is not None:
-        velocity = velocity * np.asarray(velocity_scale, dtype=np.float64)
     controls = np.column_stack([velocity, dt])
     piece_step = np.searchsorted(stamps, breaks[1:], side="left")
     control_ptr = np.searchsorted(piece_step, np.arange(len(stamps) + 1), side="left")
@@ -210,7 +193,7 @@ def mrclam_sequence(
         stamps=stamps,
         controls=controls,
         control_ptr=control_ptr,
-        measurements=meas[:, 1:3] if range_calibration is None else calibrate_ranges(meas[:, 1:3], range_calibration),
+        measurements=meas[:, 1:3],
         landmark_ids=subjects,
         measurement_ptr=measurement_ptr,
         initial_pose=initial,
@@ -218,23 +201,16 @@ def mrclam_sequence(
     )
 
 
-#: s from a velocity command's stamp to the robot's response (cross-correlation with ground truth, docs/slam.md)
-MRCLAM_COMMAND_DELAY = 0.2
-#: executed / commanded (v, w): least squares of the ground truth's path length and yaw change against the
-#: commanded ones (delayed by MRCLAM_COMMAND_DELAY) over 4 s windows, all five robots of dataset 7 pooled;
-#: leaving out each robot in turn gives 0.915-0.926 and 0.953-0.962 (docs/slam.md)
-MRCLAM_VELOCITY_SCALE = (0.918, 0.958)
-#: range correction (c0, c2) of :func:`calibrate_ranges`: measured / true range = c0 + c2 bearing^2
-MRCLAM_RANGE_CALIBRATION = (1.033, -0.46)
-#: velocity-model noise for MRCLAM's commanded velocities (alphas and floor of slam.motion.VelocityMotionModel),
-#: fitted to ground-truth increments (docs/slam.md): translation and the floor from 4 s windows, the rotation
-#: term from 16 s windows (rotation errors persist over whole manoeuvres)
-MRCLAM_VELOCITY_ALPHAS = (0.32, 0.086, 0.0, 0.5, 0.0, 0.0)
-MRCLAM_VELOCITY_FLOOR = (0.0, 0.0035)
-#: the motion model `posegrid slam` uses for MRCLAM
-MRCLAM_MOTION = VelocityMotionModel(MRCLAM_VELOCITY_ALPHAS, floor=MRCLAM_VELOCITY_FLOOR)
-#: landmark measurement noise for MRCLAM's cameras after the range calibration: the scatter fitted to ground
-#: truth, inflated for the measurement errors' correlation in time (docs/slam.md)
-MRCLAM_SENSOR = RangeBearingModel(sigma_range=0.05, sigma_bearing=0.02, range_fraction=0.07)
-#: known ids: measurements beyond this squared Mahalanobis distance are outliers (chi-square(2) 0.9999)
-MRCLAM_OUTLIER_GATE = 18.42
+def read_sequence(
+    folder: str | Path,
+    robot: int,
+    calibration: Calibration | None = None,
+    initial_pose: np.ndarray | None = None,
+    period: float = 0.2,
+) -> tuple[MrclamRobot, SlamSequence]:
+    """Robot ``robot`` of an MRCLAM folder and its filter input: as logged without a ``calibration``, else with
+    its command delay and its corrections of the commands and measurements applied (slam.calibration)."""
+    run = read_mrclam(folder, robot)
+    delay = 0.0 if calibration is None else calibration.command_delay
+    sequence = mrclam_sequence(run, initial_pose=initial_pose, period=period, command_delay=delay)
+    return run, sequence if calibration is None else calibration.apply(sequence)

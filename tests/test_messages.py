@@ -178,6 +178,8 @@ MESSAGES = {
         received=counts,
         rejected=counts,
         out_of_order=counts,
+        noise_scale=st.floats(0, 1e4),
+        consistency=counts,
     ),
 }
 any_message = st.sampled_from(sorted(MESSAGES)).flatmap(lambda name: MESSAGES[name])

@@ -112,17 +112,18 @@ def test_slam_and_eval_on_an_mrclam_folder(tmp_path, capsys):
     assert json.loads(capsys.readouterr().out)["steps"] == len(dist.stamps)
 
 
-def test_mrclam_commands_are_scaled_to_the_executed_speeds_unless_raw(tmp_path):
-    # dead reckoning's heading change is the sum of w dt: 0.1 rad/s held until the last step, times 0.958
+def test_mrclam_commands_are_as_logged_unless_a_profile_corrects_them(tmp_path):
+    # dead reckoning's heading change is the sum of w dt: 0.1 rad/s from the first command (10.0 s) to the last step
+    # (12.8 s) as logged; with profile mrclam7 the same commands 0.2 s late (nothing before 10.2 s) times 0.958
     _mrclam_sample(tmp_path)
     yaw_change = {}
-    for flags in ([], ["--raw-commands"]):
-        out = tmp_path / f"odometry{len(flags)}.npz"
+    for name, flags in (("logged", ["--calibration", "none"]), ("profile", ["--profile", "mrclam7"])):
+        out = tmp_path / f"odometry_{name}.npz"
         assert main(["slam", "--algo", "odometry", str(tmp_path), "--robot", "1", "-o", str(out), *flags]) == 0
         mean = load_pose_distribution(out).poses.mean
-        yaw_change[bool(flags)] = mean[-1, 2] - mean[0, 2]
-    assert yaw_change[True] > 0.2
-    assert yaw_change[False] == pytest.approx(0.958 * yaw_change[True], rel=1e-9)
+        yaw_change[name] = mean[-1, 2] - mean[0, 2]
+    assert yaw_change["logged"] == pytest.approx(0.1 * 2.8, rel=1e-9)
+    assert yaw_change["profile"] == pytest.approx(0.958 * 0.1 * 2.6, rel=1e-9)
 
 
 @pytest.mark.parametrize("algo", ["ekf", "fastslam2"])
@@ -318,10 +319,11 @@ def test_eval_traj_refuses_ground_truth_from_another_time_base(simdir, tmp_path,
         ("gridslam", ["--associate", "known"], "--associate does not apply to --algo gridslam"),
         (
             "gridslam",
-            ["--motion", "velocity", "--raw-ranges"],
-            "--raw-ranges, --motion do not apply to --algo gridslam",
+            ["--motion", "velocity", "--profile", "mrclam7"],
+            "--profile, --motion do not apply to --algo gridslam",
         ),
-        ("ekf", ["--raw-commands"], "a simulator folder has none"),
+        ("ekf", ["--profile", "mrclam7", "--calibration", "c.json"], "give --profile or --calibration, not both"),
+        ("ekf", ["--motion", "odometry", "--profile", "mrclam7"], "a calibration is for velocity commands"),
         ("fastslam1", ["--period", "0.5"], "--period is for MRCLAM folders"),
         (
             "ekf",

@@ -8,13 +8,14 @@ import numpy as np
 import pytest
 
 from conftest import DATA as SHARED_DATA
+from slam.calibration import MRCLAM7, Calibration
 from slam.errors import LogFormatError
 from slam.mrclam import (
-    calibrate_ranges,
     find_robots,
     is_mrclam_folder,
     mrclam_sequence,
     read_mrclam,
+    read_sequence,
     read_table,
 )
 
@@ -101,12 +102,16 @@ def test_sequence_steps_controls_and_measurements_by_hand(sample):
     np.testing.assert_array_equal(seq.landmark_ids, [6, 7])
 
 
-def test_velocity_scale_multiplies_v_and_w_only(sample):
+def test_velocity_scale_multiplies_v_and_w_only_and_the_bias_moves_only_moving_commands(sample):
     run = read_mrclam(sample, 1)
-    raw = mrclam_sequence(run, period=0.2, command_delay=0.0)
-    scaled = mrclam_sequence(run, period=0.2, command_delay=0.0, velocity_scale=(0.5, 2.0))
+    raw = mrclam_sequence(run, period=0.2)
+    scaled = Calibration(velocity_scale=(0.5, 2.0)).apply(raw)
     np.testing.assert_allclose(scaled.controls, raw.controls * [0.5, 2.0, 1.0])
     np.testing.assert_array_equal(scaled.control_ptr, raw.control_ptr)
+    biased = Calibration(velocity_bias=(0.0, -0.01)).apply(raw).controls
+    moving = (raw.controls[:, 0] != 0.0) | (raw.controls[:, 1] != 0.0)
+    assert not moving.all() and moving.any()  # the sample stands still before its first command
+    np.testing.assert_allclose(biased[:, 1], np.where(moving, raw.controls[:, 1] - 0.01, 0.0))
 
 
 def test_command_delay_and_initial_pose(sample):
@@ -121,9 +126,32 @@ def test_command_delay_and_initial_pose(sample):
     assert moving[:, 2].sum() == pytest.approx(0.2)
 
 
-def test_range_calibration_by_hand():
-    z = calibrate_ranges(np.array([[2.0, 0.0], [2.0, 0.5]]), (1.0, -0.4))
+def test_range_calibration_and_bearing_bias_by_hand():
+    z = Calibration(range_calibration=(1.0, -0.4)).correct_measurements(np.array([[2.0, 0.0], [2.0, 0.5]]))
     np.testing.assert_allclose(z, [[2.0, 0.0], [2.0 / 0.9, 0.5]])
+    # the bias comes off the bearing first; the range factor is taken at the corrected bearing
+    z = Calibration(range_calibration=(1.1, -0.4), bearing_bias=0.1).correct_measurements(np.array([[2.0, 0.6]]))
+    np.testing.assert_allclose(z, [[2.0 / (1.1 - 0.4 * 0.25), 0.5]])
+
+
+def test_reading_gives_the_data_as_logged_and_the_profile_corrects_them(sample):
+    """No dataset's calibration is a default: the reader gives the file's values; profile mrclam7 gives them
+    delayed by 0.2 s, scaled to the executed speeds (0.918, 0.958) and the ranges divided by 1.033 - 0.46 b^2."""
+    _, logged = read_sequence(sample, 1)
+    _, corrected = read_sequence(sample, 1, MRCLAM7)
+    np.testing.assert_allclose(logged.measurements, [[2.0, 0.1], [1.5, -0.2]])  # as in Robot1_Measurement.dat
+    np.testing.assert_allclose(
+        corrected.measurements, [[2.0 / (1.033 - 0.46 * 0.1**2), 0.1], [1.5 / (1.033 - 0.46 * 0.2**2), -0.2]]
+    )
+    np.testing.assert_array_equal(corrected.stamps, logged.stamps)
+    # as logged: 0.5 m/s from 100.05 s; corrected: from 100.25 s, at 0.918 x 0.5 m/s
+    first = lambda seq: seq.controls[seq.controls[:, 0] > 0][0, 0]  # noqa: E731
+    start = lambda seq: 100.0 + seq.controls[: np.argmax(seq.controls[:, 0] > 0), 2].sum()  # noqa: E731
+    assert first(logged) == 0.5 and start(logged) == pytest.approx(100.05)
+    assert first(corrected) == pytest.approx(0.918 * 0.5) and start(corrected) == pytest.approx(100.25)
+    # the 0.5 m/s command is held 100.05-100.25 s as logged, and from 100.25 s to the last step (100.4 s) corrected
+    held = lambda seq: seq.controls[seq.controls[:, 0] > 0, 2].sum()  # noqa: E731
+    assert held(logged) == pytest.approx(0.2) and held(corrected) == pytest.approx(0.15)
 
 
 @pytest.mark.parametrize(

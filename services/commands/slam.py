@@ -10,9 +10,17 @@ import json
 import math
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, NoReturn
 
 from services.commands.argtypes import check_outputs, checked_output, finite_float, pose_sample_count, random_seed
+from services.commands.options import add_choice, add_command, dest
+
+if TYPE_CHECKING:
+    from slam.motion import MotionModel
+    from slam.range_bearing import RangeBearingModel
+    from slam.sequence import SlamSequence
 
 ALGORITHMS = ("odometry", "ekf", "fastslam1", "fastslam2", "gridslam")
 #: FastSLAM particles of `posegrid slam` when --particles is not given: on MRCLAM dataset 7, 29 of 30 runs (robots
@@ -26,6 +34,17 @@ STAMP_TOLERANCE = 1e-6
 TRUTH_MARGIN = 0.05
 #: simulate: the most ranges (steps x beams) one run holds, 400 MB of float32
 MAX_SIMULATED_RANGES = 10**8
+#: simulate's options: the slam.simulator.simulate_office argument each sets and the values it takes, [low, high]
+#: (the office is 20 m x 12 m, its robot drives at 0.5 m/s)
+SIMULATION_OPTIONS = {
+    "--steps": ("steps", 1, 100_000),
+    "--beams": ("n_beams", 1, 100_000),
+    "--dt": ("dt", 1e-3, 1.0),
+    "--resolution": ("truth_resolution", 5e-3, 1.0),
+    "--laser-sigma": ("laser_sigma", 0.0, 1.0),
+    "--fov": ("fov", 1e-3, 2 * math.pi),
+    "--range-max": ("range_max", 0.1, 1000.0),
+}
 #: MRCLAM: the shortest --period in s; the commands come at about 67 Hz, so a finer grid adds steps (and memory:
 #: steps x particles x 3 floats) without information
 MIN_PERIOD = 0.01
@@ -55,8 +74,9 @@ OPTION_ALGORITHMS = {
     "--sigma-bearing": _LANDMARK_FILTERS,
     "--range-fraction": _LANDMARK_FILTERS,
     "--outlier-gate": _LANDMARK_FILTERS,
+    "--fixed-noise": _LANDMARK_FILTERS,
     **dict.fromkeys(
-        ("--alphas", "--robot", "--initial", "--period", "--raw-ranges", "--raw-commands", "--motion"),
+        ("--alphas", "--robot", "--initial", "--period", "--profile", "--calibration", "--motion"),
         ("odometry",) + _LANDMARK_FILTERS,
     ),
     **dict.fromkeys(  # (a delay of 0, the default, counts as not given)
@@ -72,15 +92,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _add_simulate(subparsers: argparse._SubParsersAction) -> None:
-    simulate = subparsers.add_parser(
-        "simulate",
-        help="simulate a robot in an office: odometry, landmarks, laser scans, ground truth",
-        description="Simulate a robot driving through a 20 m x 12 m office (corridor, six rooms with doors, "
-        "furniture, 37 point landmarks) and write OUTDIR/scans.npz (posed scans at the TRUE poses), "
-        "truth.npz (truth raster), groundtruth.npz (true poses as a pose-distribution file), controls.npz "
-        "(velocity commands and odometry readings) and landmarks.npz (range-bearing measurements); "
-        "docs/slam.md describes the last two. The same --seed gives the same files.",
-    )
+    simulate = add_command(subparsers, "simulate", run_simulate)
     simulate.add_argument("outdir", help="folder to write (created if missing)")
     simulate.add_argument("--seed", type=random_seed, default=0, help="seed of every noise source (default 0)")
     simulate.add_argument("--steps", type=int, default=400, help="number of steps (default 400)")
@@ -94,21 +106,10 @@ def _add_simulate(subparsers: argparse._SubParsersAction) -> None:
     simulate.add_argument(
         "--resolution", type=finite_float, default=0.05, help="truth raster cell size in m (default 0.05)"
     )
-    simulate.set_defaults(func=run_simulate)
 
 
 def _add_slam(subparsers: argparse._SubParsersAction) -> None:
-    slam = subparsers.add_parser(
-        "slam",
-        help="estimate the pose distribution: dead reckoning, EKF-SLAM, FastSLAM 1.0/2.0 or grid FastSLAM",
-        description="Run a SLAM filter over INPUT, a simulator folder (from 'posegrid simulate') or a UTIAS "
-        "MRCLAM dataset folder (with --robot), or grid FastSLAM (--algo gridslam) over a laser log: a CARMEN log or "
-        "a ROS bag. Output: with a simulator folder that holds scans.npz, a "
-        "posed-scan file (its scans with the filter's pose distribution at every scan); otherwise a "
-        "pose-distribution file. EKF and odometry give mean+cov per step; FastSLAM gives particles and "
-        "their weights before resampling. The filter starts at the true first pose (simulator; MRCLAM "
-        "ground truth) or at --initial. Landmark positions are estimated, never read from the input's truth.",
-    )
+    slam = add_command(subparsers, "slam", run_slam)
     slam.add_argument("input", type=Path, help="simulator folder or MRCLAM folder (gridslam: a CARMEN log or ROS bag)")
     slam.add_argument("-o", "--output", required=True, metavar="OUTPUT.npz", help=".npz to write")
     slam.add_argument(
@@ -127,21 +128,16 @@ def _add_slam(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         help=f"seed of the particle filter (default {DEFAULT_SEED:d})",
     )
-    slam.add_argument(
+    add_choice(
+        slam,
         "--associate",
-        choices=("known", "unknown"),
-        default=None,
-        help="landmark correspondences: known ids (default) or estimated (EKF: nearest in "
+        ("known", "unknown"),
+        "landmark correspondences: known ids (default) or estimated (EKF: nearest in "
         "Mahalanobis distance with gating; FastSLAM: per-particle maximum likelihood)",
+        default=None,
     )
     slam.add_argument("--robot", type=int, default=None, help="MRCLAM: robot number K (RobotK_*.dat)")
-    slam.add_argument(
-        "--initial",
-        type=str,
-        default=None,
-        metavar="X,Y,YAW",
-        help="MRCLAM: start pose in m, m, rad (default: the first ground-truth pose)",
-    )
+    add_initial_option(slam, "MRCLAM: start pose in m, m, rad (default: the first ground-truth pose)")
     slam.add_argument(
         "--period",
         type=finite_float,
@@ -149,25 +145,15 @@ def _add_slam(subparsers: argparse._SubParsersAction) -> None:
         help="MRCLAM: output a pose at least every PERIOD s besides every landmark-measurement "
         f"stamp (default {DEFAULT_PERIOD:g}, at least {MIN_PERIOD:g})",
     )
-    slam.add_argument(
-        "--raw-ranges",
-        action="store_true",
-        help="MRCLAM: use the ranges as logged, without the bearing-dependent range calibration",
-    )
-    slam.add_argument(
-        "--raw-commands",
-        action="store_true",
-        help="MRCLAM: use the velocity commands as logged, without scaling them to the speeds the "
-        "robots executed (slam.mrclam.MRCLAM_VELOCITY_SCALE, docs/slam.md)",
-    )
-    slam.add_argument(
+    add_calibration_options(slam)
+    add_choice(
+        slam,
         "--motion",
-        choices=("velocity", "odometry"),
+        ("velocity", "odometry"),
+        "simulator: the velocity commands (default) or the odometry readings as controls",
         default=None,
-        help="simulator: the velocity commands (default) or the odometry readings as controls",
     )
     _add_noise_options(slam)
-    slam.set_defaults(func=run_slam)
     from services.commands.gridslam import add_gridslam_arguments  # grid FastSLAM (--algo gridslam)
 
     add_gridslam_arguments(slam)
@@ -179,7 +165,7 @@ def _add_noise_options(slam: argparse.ArgumentParser) -> None:
     from slam.range_bearing import RANGE_FRACTION_LIMITS, SIGMA_BEARING_LIMITS, SIGMA_RANGE_LIMITS
 
     noise = slam.add_argument_group(
-        "noise models (defaults: the simulator's own; for MRCLAM the values fitted in docs/slam.md)"
+        "noise models (defaults: the calibration's, or a simulator folder's own models; these override them)"
     )
     noise.add_argument(
         "--alphas",
@@ -217,6 +203,12 @@ def _add_noise_options(slam: argparse.ArgumentParser) -> None:
         "(FastSLAM: per particle, likelihood capped at D2); 'inf' turns it off",
     )
     noise.add_argument(
+        "--fixed-noise",
+        action="store_true",
+        help="landmark filters: keep the noise models as given (default: inflate them while the innovations show "
+        "the filter overconfident, slam.consistency)",
+    )
+    noise.add_argument(
         "--resample-threshold",
         type=finite_float,
         default=None,
@@ -231,21 +223,9 @@ def _add_noise_options(slam: argparse.ArgumentParser) -> None:
 
 
 def _add_eval_traj(subparsers: argparse._SubParsersAction) -> None:
-    evaluate = subparsers.add_parser(
-        "eval-traj",
-        help="score a SLAM trajectory against ground truth (ATE, NEES, 95%% coverage)",
-        description="Score the pose distributions in POSES (a pose-distribution or posed-scan .npz) against "
-        "GROUNDTRUTH: a pose-distribution .npz (its mean or weighted mean), a simulator folder (its "
-        "groundtruth.npz) or an MRCLAM RobotK_Groundtruth.dat; ground truth is interpolated to the estimate's "
-        "stamps. No alignment: the filters start at the true first pose in the map frame. Prints one JSON "
-        "line: ate_rmse_m (RMS position error, m), heading_mae_rad (mean absolute yaw error, rad), nees_mean "
-        "(mean normalised estimation error squared, 3 DOF; about 3 when honest), inside95 (fraction of steps "
-        "whose true pose is inside the estimate's 95% region, particles via a fitted Gaussian; about 0.95 "
-        "when honest) and steps.",
-    )
+    evaluate = add_command(subparsers, "eval-traj", run_eval_traj)
     evaluate.add_argument("poses", type=Path, help="pose-distribution or posed-scan .npz")
     evaluate.add_argument("groundtruth", type=Path, help="pose .npz, simulator folder or RobotK_Groundtruth.dat")
-    evaluate.set_defaults(func=run_eval_traj)
 
 
 # ------------------------------------------------------------------------------------------------ simulate
@@ -275,19 +255,17 @@ def _simulation_folder(text: str) -> Path:
 
 
 def run_simulate(args: argparse.Namespace) -> int:
+    """simulate a robot in an office: odometry, landmarks, laser scans, ground truth
+
+    Simulate a robot driving through a 20 m x 12 m office (corridor, six rooms with doors, furniture, 37 point
+    landmarks) and write OUTDIR/scans.npz (posed scans at the TRUE poses), truth.npz (truth raster),
+    groundtruth.npz (true poses as a pose-distribution file), controls.npz (velocity commands and odometry
+    readings) and landmarks.npz (range-bearing measurements); docs/slam.md describes the last two. The same --seed
+    gives the same files."""
     from services.errors import UsageError
 
-    limits = {
-        "--steps": (args.steps, 1, 100_000),
-        "--beams": (args.beams, 1, 100_000),
-        "--dt": (args.dt, 1e-3, 1.0),
-        "--resolution": (args.resolution, 5e-3, 1.0),
-        "--laser-sigma": (args.laser_sigma, 0.0, 1.0),
-        "--fov": (args.fov, 1e-3, 2 * math.pi),
-        "--range-max": (args.range_max, 0.1, 1000.0),
-    }
-    for option, (value, low, high) in limits.items():  # the office is 20 m x 12 m, its robot drives at 0.5 m/s
-        _check_limits(option, value, (low, high))
+    for option, (_, low, high) in SIMULATION_OPTIONS.items():
+        _check_limits(option, getattr(args, dest(option)), (low, high))
     if args.steps * args.beams > MAX_SIMULATED_RANGES:
         raise UsageError(
             f"--steps x --beams is {args.steps * args.beams}, more than the {MAX_SIMULATED_RANGES:.0e} "
@@ -309,29 +287,10 @@ def run_simulate(args: argparse.Namespace) -> int:
 
     args.outdir = _simulation_folder(args.outdir)
     run = simulate_office(
-        seed=args.seed,
-        steps=args.steps,
-        n_beams=args.beams,
-        range_max=args.range_max,
-        fov=args.fov,
-        laser_sigma=args.laser_sigma,
-        dt=args.dt,
-        truth_resolution=args.resolution,
+        seed=args.seed, **{name: getattr(args, dest(option)) for option, (name, _, _) in SIMULATION_OPTIONS.items()}
     )
     truth_poses = PoseSet(samples=run.true_poses[:, None, :], weights=np.ones((len(run.stamps), 1)))
-    save_posed_scans(
-        args.outdir / "scans.npz",
-        PosedScans(
-            ranges=run.ranges,
-            angle_min=run.angle_min,
-            angle_increment=run.angle_increment,
-            range_min=run.range_min,
-            range_max=run.range_max,
-            stamps=run.stamps,
-            sensor_offset=run.sensor_offset,
-            poses=truth_poses,
-        ),
-    )
+    save_posed_scans(args.outdir / "scans.npz", PosedScans.from_scans(run, truth_poses))
     save_truth(
         args.outdir / "truth.npz",
         TruthRaster(run.truth_occupied, run.truth_visible, run.truth_origin, run.truth_resolution),
@@ -361,6 +320,50 @@ def _floats(text: str, count: tuple[int, ...], option: str) -> list[float]:
     return values
 
 
+def add_initial_option(parser: argparse.ArgumentParser, help: str) -> None:
+    """--initial X,Y,YAW: where the filter starts (read by :func:`initial_pose`; None when not given)."""
+    parser.add_argument("--initial", default=None, metavar="X,Y,YAW", help=help)
+
+
+def add_calibration_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup, auto: bool = True) -> None:
+    """--profile NAME and --calibration FILE (with ``auto``: also 'auto' and 'none'), read by
+    :func:`chosen_calibration`."""
+    from slam.calibration import PROFILES
+
+    parser.add_argument(
+        "--profile",
+        choices=sorted(PROFILES),
+        default=None,
+        help="a named calibration of the robot's data and noise (mrclam7: MRCLAM dataset 7's, fitted to its ground "
+        "truth; docs/slam.md)",
+    )
+    parser.add_argument(
+        "--calibration",
+        default=None,
+        metavar="FILE" + ("|auto|none" if auto else ""),
+        help="a calibration file (from `posegrid calibrate`)"
+        + (
+            "; 'auto' fits one to INPUT first, without ground truth (the default for an MRCLAM folder); 'none' "
+            "takes the data as logged with generic noise (slam.calibration.GENERIC); a simulator folder uses the "
+            "noise it was made with unless this or --profile is given"
+            if auto
+            else " (default: none, the data as logged with generic noise)"
+        ),
+    )
+
+
+def chosen_calibration(args: argparse.Namespace):
+    """The calibration of --profile or --calibration FILE (None for neither, 'auto' or 'none'); UsageError when
+    both are given."""
+    from services.errors import UsageError
+    from slam.calibration import named_calibration
+
+    if args.profile is not None and args.calibration is not None:
+        raise UsageError("give --profile or --calibration, not both")
+    path = None if args.calibration in (None, "auto", "none") else args.calibration
+    return named_calibration(args.profile, path)
+
+
 def initial_pose(text: str) -> list[float]:
     """--initial X,Y,YAW (m, m, rad), each within +-POSE_LIMIT (the bound every pose message keeps to)."""
     from schemas.messages import POSE_LIMIT
@@ -372,59 +375,137 @@ def initial_pose(text: str) -> list[float]:
     return pose
 
 
-def _load_input(args: argparse.Namespace):
-    """(sequence, motion model, sensor model, default outlier gate, posed-scans path or None, notes)."""
+def mrclam_input(args: argparse.Namespace):
+    """The MRCLAM robot of --robot in ``args.input``: (run, sequence_at(delay) the filter input as logged with its
+    commands delayed by ``delay`` s, notes on what was skipped)."""
     import numpy as np
 
     from services.errors import UsageError
     from slam import mrclam
-    from slam.simlog import CONTROLS_FILE, load_sim_log
 
-    if (args.input / CONTROLS_FILE).is_file():
-        if args.robot is not None or args.initial is not None:
-            raise UsageError("--robot and --initial are for MRCLAM folders; a simulator folder starts at its true pose")
-        if args.raw_ranges or args.raw_commands:
-            raise UsageError("--raw-ranges and --raw-commands undo MRCLAM's calibrations; a simulator folder has none")
-        if args.period is not None:
-            raise UsageError("--period is for MRCLAM folders; a simulator folder has a pose at every step")
-        log = load_sim_log(args.input)
-        sequence = log.sequence(args.motion)
-        motion = log.velocity_model if args.motion == "velocity" else log.odometry_model
-        scans = args.input / "scans.npz"
-        return sequence, motion, log.sensor, None, scans if scans.is_file() else None, ""
-    if mrclam.is_mrclam_folder(args.input):
-        robots = mrclam.find_robots(args.input)
-        if args.robot is None:
-            raise UsageError(f"{args.input} is an MRCLAM folder: pick a robot with --robot K (here: {robots})")
-        if args.motion != "velocity":
-            raise UsageError("MRCLAM logs hold velocity commands only: drop --motion odometry")
-        period = DEFAULT_PERIOD if args.period is None else args.period
-        if not period >= MIN_PERIOD:
-            raise UsageError(
-                f"--period must be at least {MIN_PERIOD:g} s (the commands come about every 0.015 s), got {period:g}"
-            )
-        initial = np.array(initial_pose(args.initial)) if args.initial is not None else None
-        run = mrclam.read_mrclam(args.input, args.robot)
-        sequence = mrclam.mrclam_sequence(
-            run,
-            initial_pose=initial,
-            period=period,
-            range_calibration=None if args.raw_ranges else mrclam.MRCLAM_RANGE_CALIBRATION,
-            velocity_scale=None if args.raw_commands else mrclam.MRCLAM_VELOCITY_SCALE,
+    robots = mrclam.find_robots(args.input)
+    if args.robot is None:
+        raise UsageError(f"{args.input} is an MRCLAM folder: pick a robot with --robot K (here: {robots})")
+    if getattr(args, "motion", "velocity") != "velocity":
+        raise UsageError("MRCLAM logs hold velocity commands only: drop --motion odometry")
+    period = DEFAULT_PERIOD if args.period is None else args.period
+    if not period >= MIN_PERIOD:
+        raise UsageError(
+            f"--period must be at least {MIN_PERIOD:g} s (the commands come about every 0.015 s), got {period:g}"
         )
-        before_start = len(run.measurements) - len(sequence.measurements)  # mrclam_sequence leaves them out
-        notes = (
-            f"skipped {run.skipped_robots} measurements of robots, {run.skipped_unknown} of barcodes "
-            f"in no table, {run.skipped_outside} stamped outside the odometry's time span, "
-            f"{before_start} before the filter's start and "
-            f"{run.skipped_invalid} with a range <= 0 m or a bearing beyond a full turn"
-        )
-        return (sequence, mrclam.MRCLAM_MOTION, mrclam.MRCLAM_SENSOR, mrclam.MRCLAM_OUTLIER_GATE, None, notes)
-    if not args.input.exists():
-        raise UsageError(f"{args.input}: no such folder")
+    initial = np.array(initial_pose(args.initial)) if args.initial is not None else None
+    run = mrclam.read_mrclam(args.input, args.robot)
+
+    def sequence_at(delay: float):
+        return mrclam.mrclam_sequence(run, initial_pose=initial, period=period, command_delay=delay)
+
+    before_start = len(run.measurements) - len(sequence_at(0.0).measurements)  # mrclam_sequence leaves them out
+    notes = (
+        f"skipped {run.skipped_robots} measurements of robots, {run.skipped_unknown} of barcodes "
+        f"in no table, {run.skipped_outside} stamped outside the odometry's time span, "
+        f"{before_start} before the filter's start and "
+        f"{run.skipped_invalid} with a range <= 0 m or a bearing beyond a full turn"
+    )
+    return run, sequence_at, notes
+
+
+def sim_folder_input(args: argparse.Namespace):
+    """A simulator folder's log, after refusing the options that are for MRCLAM folders."""
+    from services.errors import UsageError
+    from slam.simlog import load_sim_log
+
+    if args.robot is not None or args.initial is not None:
+        raise UsageError("--robot and --initial are for MRCLAM folders; a simulator folder starts at its true pose")
+    if args.period is not None:
+        raise UsageError("--period is for MRCLAM folders; a simulator folder has a pose at every step")
+    return load_sim_log(args.input)
+
+
+def refuse_input(path: Path) -> NoReturn:
+    """UsageError for an INPUT that is neither a simulator nor an MRCLAM folder."""
+    from services.errors import UsageError
+    from slam.simlog import CONTROLS_FILE
+
+    if not path.exists():
+        raise UsageError(f"{path}: no such folder")
     raise UsageError(
-        f"{args.input}: neither a simulator folder (no {CONTROLS_FILE}) nor an MRCLAM folder "
+        f"{path}: neither a simulator folder (no {CONTROLS_FILE}) nor an MRCLAM folder "
         "(no Barcodes.dat and RobotK_Odometry.dat)"
+    )
+
+
+@dataclass
+class SlamInput:
+    """What `posegrid slam` runs a landmark filter over: the sequence (corrected by the calibration), the models,
+    the outlier gate, the map scale's sd, the posed scans to carry along (or None) and notes for the output line."""
+
+    sequence: SlamSequence
+    motion: MotionModel
+    sensor: RangeBearingModel
+    gate: float | None
+    scale_sd: float
+    scans: Path | None
+    notes: list[str]
+
+
+def _self_calibrated(args: argparse.Namespace, sequence_at, delays):
+    """--calibration auto: the calibration fitted to the input (slam.selfcal), and a note on it."""
+    from services.errors import UsageError
+    from slam.calibration import GENERIC
+    from slam.selfcal import NotEnoughData, self_calibrate
+
+    if args.associate != "known":
+        raise UsageError("--calibration auto needs the landmark ids: use --associate known, or a calibration file")
+    started = time.perf_counter()
+    try:
+        calibration = self_calibrate(sequence_at, delays=delays, source=f"posegrid slam {args.input}").calibration
+    except NotEnoughData as exc:
+        return GENERIC, f"not self-calibrated ({exc}): generic noise, the data as logged"
+    return calibration, f"self-calibrated in {time.perf_counter() - started:.1f} s: {calibration.summary()}"
+
+
+def _load_input(args: argparse.Namespace) -> SlamInput:
+    """The filter input of ``args.input`` with the calibration the options choose (docs/slam.md, "Calibration")."""
+    from services.errors import UsageError
+    from slam import mrclam
+    from slam.calibration import GENERIC
+    from slam.simlog import CONTROLS_FILE
+
+    chosen = chosen_calibration(args)
+    if (args.input / CONTROLS_FILE).is_file():
+        log = sim_folder_input(args)
+        scans = args.input / "scans.npz"
+        scans_path = scans if scans.is_file() else None
+        if chosen is None and args.calibration in (None, "none"):  # the noise the folder was made with
+            motion = log.velocity_model if args.motion == "velocity" else log.odometry_model
+            return SlamInput(log.sequence(args.motion), motion, log.sensor, None, 0.0, scans_path, [])
+        if args.motion != "velocity":
+            raise UsageError("a calibration is for velocity commands: drop --motion odometry")
+        notes = []
+        if chosen is None:
+            chosen, note = _self_calibrated(args, lambda delay: log.sequence(), (0.0,))
+            notes.append(note)
+        if chosen.command_delay:
+            notes.append(f"a simulator folder's commands take no delay (the calibration's: {chosen.command_delay:g} s)")
+        return _calibrated(chosen.apply(log.sequence()), chosen, scans_path, notes)
+    if not mrclam.is_mrclam_folder(args.input):
+        refuse_input(args.input)
+    _, sequence_at, skipped = mrclam_input(args)
+    notes = [skipped]
+    if chosen is None and args.calibration == "none":
+        chosen = GENERIC
+    elif chosen is None:
+        from slam.selfcal import DELAY_GRID
+
+        chosen, note = _self_calibrated(args, sequence_at, DELAY_GRID)
+        notes.append(note)
+    return _calibrated(chosen.apply(sequence_at(chosen.command_delay)), chosen, None, notes)
+
+
+def _calibrated(sequence, calibration, scans: Path | None, notes: list[str]) -> SlamInput:
+    """The :class:`SlamInput` of a corrected ``sequence`` with ``calibration``'s models."""
+    return SlamInput(
+        sequence, calibration.motion, calibration.sensor, calibration.outlier_gate, calibration.scale_sd, scans, notes
     )
 
 
@@ -467,17 +548,36 @@ def noise_overrides(args: argparse.Namespace, motion, sensor, gate):
     return motion, sensor, gate
 
 
-def make_filter(args: argparse.Namespace, motion, sensor, gate, initial, default_particles: int = DEFAULT_PARTICLES):
+def make_filter(
+    args: argparse.Namespace,
+    motion,
+    sensor,
+    gate,
+    initial,
+    default_particles: int = DEFAULT_PARTICLES,
+    scale_sd: float = 0.0,
+):
+    """The filter of --algo with the given models, outlier gate and map-scale sd (slam.calibration), adaptive
+    noise unless --fixed-noise."""
     from services.errors import UsageError
     from slam.dead_reckoning import DeadReckoning
     from slam.ekf import EKFSLAM
     from slam.fastslam import FastSLAM
 
     known = args.associate == "known"
+    adaptive = not getattr(args, "fixed_noise", False)
     if args.algo == "odometry":
         return DeadReckoning(motion, initial)
     if args.algo == "ekf":
-        return EKFSLAM(motion, sensor, initial, known_correspondences=known, outlier_gate=gate)
+        return EKFSLAM(
+            motion,
+            sensor,
+            initial,
+            known_correspondences=known,
+            outlier_gate=gate,
+            adaptive=adaptive,
+            scale_sd=scale_sd,
+        )
     particles = default_particles if args.particles is None else args.particles
     if not 0 <= args.resample_threshold <= 1:
         raise UsageError(f"--resample-threshold must be in [0, 1], got {args.resample_threshold}")
@@ -492,6 +592,8 @@ def make_filter(args: argparse.Namespace, motion, sensor, gate, initial, default
         resample_threshold=args.resample_threshold,
         outlier_gate=gate,
         preserve_gauge=not args.plain_resampling,
+        adaptive=adaptive,
+        scale_sd=scale_sd,
     )
 
 
@@ -506,7 +608,7 @@ def _refuse_ignored_options(args: argparse.Namespace) -> None:
     ignored = [
         option
         for option, algorithms in OPTION_ALGORITHMS.items()
-        if args.algo not in algorithms and getattr(args, option[2:].replace("-", "_")) not in (None, False)
+        if args.algo not in algorithms and getattr(args, dest(option)) not in (None, False)
     ]
     if ignored:
         users = sorted({algo for option in ignored for algo in OPTION_ALGORITHMS[option]}, key=ALGORITHMS.index)
@@ -521,28 +623,32 @@ def _refuse_ignored_options(args: argparse.Namespace) -> None:
 
 
 def run_slam(args: argparse.Namespace) -> int:
+    """estimate the pose distribution: dead reckoning, EKF-SLAM, FastSLAM 1.0/2.0 or grid FastSLAM
+
+    Run a SLAM filter over INPUT, a simulator folder (from 'posegrid simulate') or a UTIAS MRCLAM dataset folder
+    (with --robot), or grid FastSLAM (--algo gridslam) over a laser log: a CARMEN log or a ROS bag. Output: with a
+    simulator folder that holds scans.npz, a posed-scan file (its scans with the filter's pose distribution at
+    every scan); otherwise a pose-distribution file. EKF and odometry give mean+cov per step; FastSLAM gives
+    particles and their weights before resampling. The filter starts at the true first pose (simulator; MRCLAM
+    ground truth) or at --initial. Landmark positions are estimated, never read from the input's truth."""
     _refuse_ignored_options(args)
     check_outputs(args, output="-o")
     if args.algo == "gridslam":  # laser logs: services/commands/gridslam.py
         from services.commands.gridslam import run_gridslam_command
 
         return run_gridslam_command(args)
+    from dataclasses import replace
+
     import numpy as np
     from tqdm import tqdm
 
     from schemas.errors import FormatError
-    from schemas.files import (
-        PoseDistributionFile,
-        PosedScans,
-        PoseSet,
-        load_posed_scans,
-        save_pose_distribution,
-        save_posed_scans,
-    )
+    from schemas.files import PoseDistributionFile, PoseSet, load_posed_scans, save_pose_distribution, save_posed_scans
     from slam.sequence import run_filter
 
-    sequence, motion, sensor, gate, scans_path, notes = _load_input(args)
-    motion, sensor, gate = noise_overrides(args, motion, sensor, gate)
+    loaded = _load_input(args)
+    sequence, scans_path = loaded.sequence, loaded.scans
+    motion, sensor, gate = noise_overrides(args, loaded.motion, loaded.sensor, loaded.gate)
     sequence.validate(str(args.input))
     scans = load_posed_scans(scans_path) if scans_path is not None else None
     if scans is not None and len(scans.stamps) != len(sequence):
@@ -553,7 +659,7 @@ def run_slam(args: argparse.Namespace) -> int:
             f"{scans_path}: scan {step} is stamped {scans.stamps[step]:.6f} s but the controls' step "
             f"{step} {sequence.stamps[step]:.6f} s; the scans must be those of the controls' steps"
         )
-    slam_filter = make_filter(args, motion, sensor, gate, sequence.initial_pose)
+    slam_filter = make_filter(args, motion, sensor, gate, sequence.initial_pose, scale_sd=loaded.scale_sd)
 
     started = time.perf_counter()
     with tqdm(total=len(sequence), desc=f"slam {args.algo}", unit="step", disable=None, file=sys.stderr) as bar:
@@ -565,28 +671,18 @@ def run_slam(args: argparse.Namespace) -> int:
     else:
         poses = PoseSet(samples=track.samples, weights=track.weights)
     if scans is not None:
-        save_posed_scans(
-            args.output,
-            PosedScans(
-                ranges=scans.ranges,
-                angle_min=scans.angle_min,
-                angle_increment=scans.angle_increment,
-                range_min=scans.range_min,
-                range_max=scans.range_max,
-                stamps=scans.stamps,
-                sensor_offset=scans.sensor_offset,
-                poses=poses,
-            ),
-        )
+        save_posed_scans(args.output, replace(scans, poses=poses))
         kind = "posed-scan file"
     else:
         save_pose_distribution(args.output, PoseDistributionFile(stamps=track.stamps, poses=poses))
         kind = "pose-distribution file"
     duration = float(track.stamps[-1] - track.stamps[0])
     rejected = getattr(slam_filter, "rejected", None)
-    extras = [notes] if notes else []
+    extras = list(loaded.notes)
     if rejected is not None:
         extras.append(f"{rejected} measurements dropped by the gates")
+    if hasattr(slam_filter, "monitor"):
+        extras.append(slam_filter.monitor.stats().summary())
     if hasattr(slam_filter, "resamplings"):
         extras.append(
             f"{slam_filter.stationary_skipped} measurements skipped while standing still, "
@@ -642,6 +738,15 @@ def _truth_at(path: Path, stamps):
 
 
 def run_eval_traj(args: argparse.Namespace) -> int:
+    """score a SLAM trajectory against ground truth (ATE, NEES, 95% coverage)
+
+    Score the pose distributions in POSES (a pose-distribution or posed-scan .npz) against GROUNDTRUTH: a
+    pose-distribution .npz (its mean or weighted mean), a simulator folder (its groundtruth.npz) or an MRCLAM
+    RobotK_Groundtruth.dat; ground truth is interpolated to the estimate's stamps. No alignment: the filters start
+    at the true first pose in the map frame. Prints one JSON line: ate_rmse_m (RMS position error, m),
+    heading_mae_rad (mean absolute yaw error, rad), nees_mean (mean normalised estimation error squared, 3 DOF;
+    about 3 when honest), inside95 (fraction of steps whose true pose is inside the estimate's 95% region,
+    particles via a fitted Gaussian; about 0.95 when honest) and steps."""
     import numpy as np
 
     from schemas.files import load_pose_distribution

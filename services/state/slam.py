@@ -36,6 +36,7 @@ from services import keys
 from services.process import RejectCounter, get_logger
 from services.state.checks import SeqMessage, decode_of_robot, history_reply, robot_stream
 from services.state.steps import OutOfOrder, Released, StepAssembler
+from slam.calibration import Calibration
 from slam.gridslam import GridFastSLAM, GridSlamConfig
 from slam.motion import OdometryMotionModel, odometry_controls, split_odometry_motion
 
@@ -72,7 +73,9 @@ class NodeConfig:
     "odometry" (which Odometry field the landmark filters read); initial: start pose or None to wait
     for the source's prior; grid_config, seed: grid FastSLAM's (max_range is capped at the laser's);
     intake_capacity: bounded queue size; bridge: the odometry motion model that moves a velocity-motion filter
-    over steps that never arrived, by the odometry poses around them (:class:`LandmarkDriver`)."""
+    over steps that never arrived, by the odometry poses around them (:class:`LandmarkDriver`); calibration: the
+    corrections the landmark filters apply to the commands and measurements as they arrive (slam.calibration; None:
+    as they come)."""
 
     robot: str
     algorithm: str
@@ -83,6 +86,7 @@ class NodeConfig:
     seed: int = 0
     intake_capacity: int = 4096
     bridge: OdometryMotionModel | None = DEFAULT_BRIDGE
+    calibration: Calibration | None = None
 
 
 @dataclass(frozen=True)
@@ -103,14 +107,22 @@ class LandmarkDriver:
     step after the gap is moved by the odometry poses around it instead, split into one piece per step it spans
     (slam.motion.split_odometry_motion), under ``bridge`` (an odometry motion model), and its own commands, which
     that motion includes, are not used. :attr:`last_gap` says what the step just taken did about a gap before
-    it."""
+    it. With a ``calibration``, its corrections (command delay, speed scale and bias, range and bearing bias) apply
+    to the commands and measurements as they arrive (slam.calibration.StepCorrector)."""
 
     needs = frozenset({keys.ODOM, keys.LANDMARKS})
 
-    def __init__(self, slam_filter, motion: str, bridge: OdometryMotionModel | None = None):
+    def __init__(
+        self,
+        slam_filter,
+        motion: str,
+        bridge: OdometryMotionModel | None = None,
+        calibration: Calibration | None = None,
+    ):
         self.filter = slam_filter
         self.motion = motion
         self.bridge = bridge
+        self.corrector = None if calibration is None or calibration.is_identity() else calibration.step_corrector()
         self._last_pose: np.ndarray | None = None  # odometry pose of the last step taken (None: it had none)
         self._last_seq: int | None = None
         self.last_gap: Gap | None = None
@@ -134,6 +146,9 @@ class LandmarkDriver:
         else:
             controls = odom.commands
         measurements = np.column_stack([seen.ranges, seen.bearings])
+        if self.corrector is not None:  # the delay line takes every step's commands, used or not
+            commands, measurements = self.corrector(odom.commands, measurements)
+            controls = commands if self.motion == "velocity" and model is None else controls
         if model is None:
             result = self.filter.step(controls, measurements, seen.ids)
         else:
@@ -149,12 +164,12 @@ class LandmarkDriver:
 
     def save(self) -> object:
         """The filter's state before a step (a copy: a landmark filter's arrays are small)."""
-        return copy.deepcopy((self.filter, self._last_pose, self._last_seq))
+        return copy.deepcopy((self.filter, self._last_pose, self._last_seq, self.corrector))
 
     def restore(self, saved: object) -> None:
         """Go back to the state :meth:`save` returned, undoing a step whose pose could not be published."""
-        assert isinstance(saved, tuple)  # (filter, odometry pose, seq), as :meth:`save` made it
-        self.filter, self._last_pose, self._last_seq = saved
+        assert isinstance(saved, tuple)  # (filter, odometry pose, seq, corrector), as :meth:`save` made it
+        self.filter, self._last_pose, self._last_seq, self.corrector = saved
         self.last_gap = None
 
 
@@ -346,7 +361,7 @@ class SlamState:
             assert cfg.grid_config is not None  # NodeConfig: grid FastSLAM's settings come with it
             return GridDriver(initial, cfg.grid_config, cfg.seed)
         assert cfg.make_filter is not None  # NodeConfig: None for gridslam only
-        return LandmarkDriver(cfg.make_filter(initial), cfg.motion, cfg.bridge)
+        return LandmarkDriver(cfg.make_filter(initial), cfg.motion, cfg.bridge, cfg.calibration)
 
     def _take(self, seq: int, parts: dict) -> None:
         """Take step ``seq`` through the filter and publish its pose; a step the filter cannot take is undone,
@@ -456,7 +471,22 @@ class SlamState:
             received=dict(self.received),
             rejected=self.rejects.snapshot(),
             out_of_order=dict(self.out_of_order),
+            **self._consistency(),
         )
+
+    def _consistency(self) -> dict:
+        """The landmark filter's consistency watch (slam.consistency) as NodeStats' noise_scale and consistency."""
+        monitor = getattr(getattr(self.driver, "filter", None), "monitor", None)
+        if monitor is None:
+            return {"noise_scale": 1.0, "consistency": {}}
+        watched = monitor.stats()
+        counts = {
+            "measurements": watched.measurements,
+            "gated": watched.gated,
+            "inflations": watched.inflations,
+            "deflations": watched.deflations,
+        }
+        return {"noise_scale": watched.noise_scale, "consistency": counts}
 
 
 def _runs(seqs: list[int]) -> list[tuple[int, int]]:

@@ -1,0 +1,103 @@
+"""`posegrid calibrate`: fit a robot's calibration (slam.calibration) to its own data, without ground truth, and
+write it as a calibration file that `posegrid slam`, `slam-node` and `run` read (--calibration FILE).
+
+Units: metres, radians, seconds (every field of the file names its unit; docs/slam.md, "Calibration").
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+from services.commands.argtypes import check_outputs, finite_float
+from services.commands.options import add_command
+from services.commands.slam import DEFAULT_PERIOD, MIN_PERIOD, add_initial_option
+
+#: --fraction's default: the whole input
+DEFAULT_FRACTION = 1.0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = add_command(subparsers, "calibrate", run_calibrate)
+    parser.add_argument("input", type=Path, help="MRCLAM folder (with --robot) or simulator folder")
+    parser.add_argument("-o", "--output", required=True, metavar="CALIBRATION.json", help="calibration file to write")
+    parser.add_argument("--robot", type=int, default=None, help="MRCLAM: robot number K (RobotK_*.dat)")
+    add_initial_option(parser, "MRCLAM: start pose in m, m, rad (default: the first ground-truth pose)")
+    parser.add_argument(
+        "--period",
+        type=finite_float,
+        default=None,
+        help=f"MRCLAM: a step at least every PERIOD s besides every measurement (default {DEFAULT_PERIOD:g}, at "
+        f"least {MIN_PERIOD:g})",
+    )
+    parser.add_argument(
+        "--fraction",
+        type=finite_float,
+        default=DEFAULT_FRACTION,
+        help="fit on the first FRACTION of the input's time span, in (0, 1] (default 1: all of it); e.g. 0.5 to "
+        "score the calibration on the half it was not fitted to",
+    )
+
+
+def _first_part(sequence, fraction: float):
+    """The steps of ``sequence`` within the first ``fraction`` of its time span."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    stamps = sequence.stamps
+    until = stamps[0] + fraction * (stamps[-1] - stamps[0])
+    steps = int(np.searchsorted(stamps, until, side="right"))
+    controls, measurements = sequence.control_ptr[steps], sequence.measurement_ptr[steps]
+    return replace(
+        sequence,
+        stamps=stamps[:steps],
+        controls=sequence.controls[:controls],
+        control_ptr=sequence.control_ptr[: steps + 1],
+        measurements=sequence.measurements[:measurements],
+        landmark_ids=sequence.landmark_ids[:measurements],
+        measurement_ptr=sequence.measurement_ptr[: steps + 1],
+    )
+
+
+def run_calibrate(args: argparse.Namespace) -> int:
+    """fit a robot's calibration to its data alone and write it as a calibration file
+
+    Estimate, from INPUT alone (no ground truth), what the landmark filters need to know about the robot: the delay
+    of its velocity commands, the scale of its speeds and its yaw-rate bias, its camera's range calibration and
+    bearing bias, and the noise of its motion and of its landmark measurements (slam.selfcal: the filters' own
+    estimate of the trajectory and the map stands in for ground truth, over several rounds). The map's overall
+    scale cannot be had from the data; the ranges set it. Writes a JSON calibration file for `posegrid slam`,
+    `slam-node` and `run` (--calibration FILE) and prints what it found."""
+    from services.commands.slam import mrclam_input, refuse_input, sim_folder_input
+    from services.errors import UsageError
+    from slam import mrclam
+    from slam.calibration import save_calibration
+    from slam.selfcal import DELAY_GRID, NotEnoughData, self_calibrate
+    from slam.simlog import CONTROLS_FILE
+
+    check_outputs(args, output="-o")
+    if not 0.0 < args.fraction <= 1.0:
+        raise UsageError(f"--fraction must be in (0, 1], got {args.fraction:g}")
+    delays: tuple[float, ...]
+    if (args.input / CONTROLS_FILE).is_file():
+        log = sim_folder_input(args)
+        sequence_at, delays, what = (lambda delay: log.sequence()), (0.0,), f"{args.input}"
+    elif mrclam.is_mrclam_folder(args.input):
+        _, sequence_at, _ = mrclam_input(args)
+        delays, what = DELAY_GRID, f"{args.input} robot {args.robot}"
+    else:
+        refuse_input(args.input)
+    started = time.perf_counter()
+    try:
+        fit = self_calibrate(
+            lambda delay: _first_part(sequence_at(delay), args.fraction),
+            delays=delays,
+            source=f"posegrid calibrate {what}, first {args.fraction:g} of its time span",
+        )
+    except NotEnoughData as exc:
+        raise UsageError(f"{what}: too little to calibrate from: {exc}") from None
+    save_calibration(args.output, fit.calibration)
+    print(f"wrote {args.output} in {time.perf_counter() - started:.1f} s: {fit.calibration.summary()}")
+    return 0

@@ -1,0 +1,581 @@
+"""Self-calibration: a robot's :class:`slam.calibration.Calibration` estimated from its own data, without ground truth.
+
+The parameters are those of the calibration: the command delay, the executed-speed scale (k_v, k_w) and yaw-rate
+bias b_w, the range calibration's bearing term c2 and the bearing bias, the velocity motion noise (a1, a2, a4 and
+the yaw-rate floor) and the range-bearing noise (sigma_r, range fraction, sigma_bearing). They are fitted by
+maximum likelihood on the innovations of the right-invariant EKF-SLAM with known ids (the prediction-error
+decomposition: each measurement's innovation nu with covariance S contributes (d^2 + log det S) / 2 to the
+negative log likelihood, d^2 = nu^T S^-1 nu; a Huber bound on d^2 keeps outliers from steering the fit), with
+Powell's method on transformed parameters (logs of the positive ones), each evaluation one compiled EKF pass
+(slam.kernels.ekf_likelihood_pass). The command delay is chosen on a grid (it needs the commands re-cut).
+
+Two quantities cannot be had from the data alone. The overall scale: scaling every range and the speed together
+changes no bearing and no turn, so the range calibration's c0 stays 1 and k_v is the speed scale relative to the
+ranges. And the measurement errors' correlation in time, which makes fusing them as independent overconfident
+however well the innovations fit: the innovations of one landmark's consecutive measurements then correlate, and
+the fitted range and bearing variances are multiplied by their integrated autocorrelation (1 + 2 sum of the
+correlations at lags 1, 2, ..., while they stay positive), the number of measurements that carry one
+measurement's worth of independent information.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.optimize import nnls
+
+from slam.angles import wrap_angle
+from slam.calibration import GENERIC, Calibration
+from slam.consistency import scaled_motion
+from slam.kernels import ekf_likelihood_pass, smooth_localisation
+from slam.motion import VelocityMotionModel
+from slam.range_bearing import RangeBearingModel
+from slam.sequence import SlamSequence
+
+#: squared Mahalanobis distance beyond which a measurement's contribution grows linearly in d (Huber)
+HUBER_D2 = 9.21
+#: command delays (s) tried by default
+DELAY_GRID = tuple(round(0.05 * k, 2) for k in range(9))
+#: the smoothed trajectory that the motion is fitted against takes the motion noise this many times larger than
+#: the current estimate, so that it follows the landmarks rather than the motion model: with the estimate itself,
+#: the fitted noise shrinks from one iteration to the next (residuals against a trajectory that follows the
+#: model are smaller than the motion's true errors)
+SMOOTHING_MOTION_SCALE = 4.0
+#: the least data a fit takes: s of data, measurements of landmarks seen more than once, short windows of motion
+MIN_SECONDS, MIN_MEASUREMENTS, MIN_WINDOWS = 30.0, 50, 10
+#: the fitted motion variances are multiplied by this factor (see docs/slam.md, "Self-calibration")
+MOTION_FACTOR = 3.0
+#: s: windows of the speed scale and the along-track noise, and of the yaw noise; a window starts every
+#: length / WINDOW_OVERLAP s
+SHORT_WINDOW, LONG_WINDOW = 4.0, 16.0
+WINDOW_OVERLAP = 8
+#: a landmark's consecutive measurements farther apart than this (s) start a new track for the autocorrelation
+TRACK_GAP = 3.0
+#: s: the longest time between two measurements of a track whose correlation counts
+MAX_LAG_S = 30
+
+
+@dataclass(frozen=True)
+class FitData:
+    """A velocity-motion sequence with known ids, as the compiled pass takes it (commands and measurements as
+    logged; the calibration's corrections are applied per evaluation)."""
+
+    stamps: np.ndarray
+    controls: np.ndarray
+    control_ptr: np.ndarray
+    measurements: np.ndarray
+    slot: np.ndarray  # (O,) landmark slot 0..n_slots-1
+    measurement_ptr: np.ndarray
+    initial_pose: np.ndarray
+    n_slots: int
+    measurement_time: np.ndarray  # (O,) s
+
+    @classmethod
+    def of(cls, sequence: SlamSequence) -> FitData:
+        if sequence.motion != "velocity":
+            raise ValueError("self-calibration needs velocity commands (the odometry motion model has no speed scale)")
+        ids, slot = np.unique(sequence.landmark_ids, return_inverse=True)
+        step = np.repeat(np.arange(len(sequence)), np.diff(sequence.measurement_ptr))
+        return cls(
+            stamps=sequence.stamps,
+            controls=np.ascontiguousarray(sequence.controls, dtype=np.float64),
+            control_ptr=np.ascontiguousarray(sequence.control_ptr, dtype=np.int64),
+            measurements=np.ascontiguousarray(sequence.measurements, dtype=np.float64),
+            slot=slot.astype(np.int64),
+            measurement_ptr=np.ascontiguousarray(sequence.measurement_ptr, dtype=np.int64),
+            initial_pose=np.asarray(sequence.initial_pose, dtype=np.float64),
+            n_slots=len(ids),
+            measurement_time=sequence.stamps[step],
+        )
+
+
+@dataclass(frozen=True)
+class PassResult:
+    """Per measurement: d^2, log det S and the innovation (O, 2), NaN where a measurement started a landmark;
+    the pose after each step (T, 3) and the final map (n_slots, 2)."""
+
+    d2: np.ndarray
+    logdet: np.ndarray
+    nu: np.ndarray
+    poses: np.ndarray
+    landmarks: np.ndarray
+
+    def negative_log_likelihood(self, huber: float = HUBER_D2) -> float:
+        """Sum over measurements of (rho(d^2) + log det S) / 2, rho Huber's bound on d^2; +inf if not finite."""
+        used = np.isfinite(self.d2)
+        d2 = self.d2[used]
+        rho = np.where(d2 <= huber, d2, 2.0 * np.sqrt(huber * d2) - huber)
+        value = 0.5 * float(np.sum(rho + self.logdet[used]))
+        return value if math.isfinite(value) else math.inf
+
+
+def likelihood_pass(data: FitData, calibration: Calibration, huber: float = HUBER_D2) -> PassResult:
+    """One EKF pass over ``data`` with ``calibration``'s corrections and noise (its command delay is the data's)."""
+    count = len(data.measurements)
+    out = PassResult(
+        np.empty(count),
+        np.empty(count),
+        np.empty((count, 2)),
+        np.empty((len(data.stamps), 3)),
+        np.empty((data.n_slots, 2)),
+    )
+    motion, sensor = calibration.motion, calibration.sensor
+    ekf_likelihood_pass(
+        calibration.correct_commands(data.controls),
+        data.control_ptr,
+        calibration.correct_measurements(data.measurements),
+        data.slot,
+        data.measurement_ptr,
+        data.initial_pose,
+        data.n_slots,
+        np.asarray(motion.alphas, dtype=np.float64),
+        np.asarray(motion.floor, dtype=np.float64),
+        float(motion.dt_ref),
+        np.array([sensor.sigma_range, sensor.range_fraction, sensor.sigma_bearing]),
+        huber,
+        out.d2,
+        out.logdet,
+        out.nu,
+        out.poses,
+        out.landmarks,
+    )
+    return out
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """Smoothed poses (T, 3) and their covariances (T, 3, 3) against a fixed map (n_slots, 2)."""
+
+    poses: np.ndarray
+    cov: np.ndarray
+    landmarks: np.ndarray
+
+
+def smoothed_poses(
+    data: FitData, calibration: Calibration, landmarks: np.ndarray, huber: float = HUBER_D2
+) -> Trajectory:
+    """The poses of ``data`` against the fixed map ``landmarks`` (n_slots, 2), forward filtered and smoothed
+    backward (slam.kernels.smooth_localisation), with ``calibration``'s corrections and noise."""
+    motion, sensor = calibration.motion, calibration.sensor
+    out = np.empty((len(data.stamps), 3))
+    cov = np.empty((len(data.stamps), 3, 3))
+    smooth_localisation(
+        calibration.correct_commands(data.controls),
+        data.control_ptr,
+        calibration.correct_measurements(data.measurements),
+        data.slot,
+        data.measurement_ptr,
+        data.initial_pose,
+        np.ascontiguousarray(landmarks, dtype=np.float64),
+        np.asarray(motion.alphas, dtype=np.float64),
+        np.asarray(motion.floor, dtype=np.float64),
+        float(motion.dt_ref),
+        np.array([sensor.sigma_range, sensor.range_fraction, sensor.sigma_bearing]),
+        huber,
+        out,
+        cov,
+    )
+    return Trajectory(out, cov, landmarks)
+
+
+def refit_map(data: FitData, poses: np.ndarray, calibration: Calibration, iterations: int = 5) -> np.ndarray:
+    """Each landmark's position (n_slots, 2) that best explains its measurements from the given poses (T, 3):
+    Gauss-Newton on the range and bearing residuals weighted by the calibration's noise, from the first
+    sighting's position (NaN for a landmark never seen). The map errors then leave the residuals, which keep the
+    measurements' own errors."""
+    from slam.range_bearing import inverse_measurement, predict_measurement
+
+    step = np.repeat(np.arange(len(data.stamps)), np.diff(data.measurement_ptr))
+    z = calibration.correct_measurements(data.measurements)
+    sensor = calibration.sensor
+    weight = np.column_stack(
+        [
+            1.0 / (sensor.sigma_range + sensor.range_fraction * z[:, 0]) ** 2,
+            np.full(len(z), 1.0 / sensor.sigma_bearing**2),
+        ]
+    )
+    out = np.full((data.n_slots, 2), np.nan)
+    for j in range(data.n_slots):
+        rows = np.flatnonzero(data.slot == j)
+        if len(rows) == 0:
+            continue
+        m = inverse_measurement(poses[step[rows[0]]], z[rows[0]])[0]
+        for _ in range(iterations):
+            z_hat, _, h_m = predict_measurement(poses[step[rows]], np.broadcast_to(m, (len(rows), 2)))
+            nu = z[rows] - z_hat
+            nu[:, 1] = wrap_angle(nu[:, 1])
+            w = np.minimum(
+                weight[rows], weight[rows] * HUBER_D2 / np.maximum((nu**2 * weight[rows]).sum(1, keepdims=True), 1e-12)
+            )
+            normal = np.einsum("nki,nk,nkj->ij", h_m, w, h_m)
+            if np.linalg.cond(normal) > 1e12:
+                break
+            m = m + np.linalg.solve(normal, np.einsum("nki,nk,nk->i", h_m, w, nu))
+        out[j] = m
+    return out
+
+
+# ------------------------------------------------------------------------------------------- windows
+
+
+@dataclass(frozen=True)
+class Windows:
+    """The commanded and the estimated motion over consecutive windows of a sequence (one row per window).
+
+    ``chord`` m: the length of the motion the commands give (speeds as logged, turns at the calibration's
+    yaw-rate scale); ``along`` m: the estimated displacement projected on the commanded one; ``turn_cmd`` rad:
+    the commanded yaw change (as logged); ``moving`` s: time spent moving; ``turn`` rad: the estimated yaw change;
+    ``v2``, ``w2``: sum of the corrected v^2 dt ((m/s)^2 s) and w^2 dt ((rad/s)^2 s) over the window."""
+
+    chord: np.ndarray
+    along: np.ndarray
+    turn_cmd: np.ndarray
+    moving: np.ndarray
+    turn: np.ndarray
+    v2: np.ndarray
+    w2: np.ndarray
+
+
+def window_bounds(stamps: np.ndarray, length: float, stride: float) -> np.ndarray:
+    """(first, last) step index pairs (W, 2) of windows of about ``length`` s starting every ``stride`` s."""
+    starts = np.arange(stamps[0], stamps[-1] - length, stride)
+    first = np.searchsorted(stamps, starts, side="left")
+    last = np.searchsorted(stamps, starts + length, side="left")
+    keep = last < len(stamps)
+    return np.unique(np.column_stack([first[keep], last[keep]]), axis=0).reshape(-1, 2)
+
+
+def measure_windows(data: FitData, poses: np.ndarray, calibration: Calibration, length: float) -> Windows:
+    """The windows of ``length`` s of ``data`` (overlapping, :data:`WINDOW_OVERLAP`) against the estimated poses
+    (T, 3) (see :class:`Windows`)."""
+    from slam.motion import VelocityMotionModel, local_motion
+
+    bounds = window_bounds(data.stamps, length, length / WINDOW_OVERLAP)
+    heading = np.concatenate([[0.0], np.cumsum(wrap_angle(np.diff(poses[:, 2])))])
+    shape = replace(calibration, velocity_scale=(1.0, calibration.velocity_scale[1]), velocity_bias=(0.0, 0.0))
+    noiseless = VelocityMotionModel(alphas=(0.0,) * 6)
+    rows = []
+    for a, b in bounds:
+        raw = data.controls[data.control_ptr[a] : data.control_ptr[b]]
+        if len(raw) == 0:
+            continue
+        delta = local_motion(noiseless, shape.correct_commands(raw))[0]
+        corrected = calibration.correct_commands(raw)
+        c, s = math.cos(poses[a, 2]), math.sin(poses[a, 2])
+        dx, dy = poses[b, 0] - poses[a, 0], poses[b, 1] - poses[a, 1]
+        local = np.array([c * dx + s * dy, -s * dx + c * dy])
+        chord = float(np.hypot(delta[0], delta[1]))
+        along = float(local @ delta[:2] / chord) if chord > 1e-9 else 0.0
+        moving = (raw[:, 0] != 0.0) | (raw[:, 1] != 0.0)
+        dt = raw[:, 2]
+        rows.append(
+            (
+                chord,
+                along,
+                float(np.sum(raw[:, 1] * dt)),
+                float(np.sum(dt * moving)),
+                heading[b] - heading[a],
+                float(np.sum(corrected[:, 0] ** 2 * dt)),
+                float(np.sum(corrected[:, 1] ** 2 * dt)),
+            )
+        )
+    table = np.array(rows, dtype=np.float64).reshape(-1, 7)
+    return Windows(*(table[:, k] for k in range(7)))
+
+
+def _nonnegative_fit(columns: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Non-negative least squares of ``target`` on ``columns``, refitted once without the rows whose target
+    exceeds ten times the first fit's value (windows spoiled by an estimate's jump)."""
+    coefficients = nnls(columns, target)[0]
+    keep = target <= 10.0 * np.maximum(columns @ coefficients, 1e-12)
+    if keep.sum() >= columns.shape[1] + 2 and not keep.all():
+        coefficients = nnls(columns[keep], target[keep])[0]
+    return coefficients
+
+
+def fit_motion(short: Windows, long: Windows, dt_ref: float) -> dict[str, float]:
+    """Speed scale k_v (along-track displacement against the commanded chord), yaw-rate scale k_w and bias b_w
+    (yaw change against the commanded one and the time moving), from the short windows; the motion noise by
+    non-negative least squares of the squared residuals on the model's variance terms: along-track (a1, a2,
+    floor_v and an intercept for the estimate's own noise) from the short windows, yaw (a3, a4, floor_w,
+    intercept) from the long ones, where rotation errors that persist over a manoeuvre show."""
+    moving = short.chord > 1e-3
+    k_v = float(np.sum(short.along[moving] * short.chord[moving]) / max(np.sum(short.chord[moving] ** 2), 1e-12))
+    design = np.column_stack([short.turn_cmd, short.moving])
+    k_w, b_w = np.linalg.lstsq(design, short.turn, rcond=None)[0]
+    along_error = short.along - k_v * short.chord
+    columns = np.column_stack([short.v2 * dt_ref, short.w2 * dt_ref, short.moving * dt_ref, np.ones(len(short.chord))])
+    a1, a2, floor_v, _ = _nonnegative_fit(columns, along_error**2)
+    turn_error = long.turn - (k_w * long.turn_cmd + b_w * long.moving)
+    columns = np.column_stack([long.w2 * dt_ref, long.moving * dt_ref, np.ones(len(long.turn))])
+    a4, floor_w, _ = _nonnegative_fit(columns, turn_error**2)
+    return {
+        "k_v": k_v, "k_w": float(k_w), "b_w": float(b_w), "a1": a1, "a2": a2, "a3": 0.0, "a4": a4,
+        "floor_v": floor_v, "floor_w": floor_w,
+    }  # fmt: skip
+
+
+# --------------------------------------------------------------------------------------------- sensor
+
+
+@dataclass(frozen=True)
+class Residuals:
+    """Per measurement against a :class:`Trajectory`: the range as logged and as predicted (m), the corrected
+    bearing (rad), the bearing residual (as logged less predicted, rad) and the range residual (corrected less
+    predicted, m), the variances the trajectory's own uncertainty adds to the two residuals (H P H^T's diagonal;
+    m^2, rad^2) and ``used``, whether the landmark is on the map."""
+
+    raw_range: np.ndarray
+    predicted_range: np.ndarray
+    bearing: np.ndarray
+    bearing_error: np.ndarray
+    range_error: np.ndarray
+    range_var: np.ndarray
+    bearing_var: np.ndarray
+    used: np.ndarray
+
+
+def measurement_residuals(data: FitData, trajectory: Trajectory, calibration: Calibration) -> Residuals:
+    """The :class:`Residuals` of ``data``'s measurements against ``trajectory``."""
+    from slam.range_bearing import predict_measurement
+
+    step = np.repeat(np.arange(len(data.stamps)), np.diff(data.measurement_ptr))
+    corrected = calibration.correct_measurements(data.measurements)
+    predicted, h_x, _ = predict_measurement(trajectory.poses[step], trajectory.landmarks[data.slot])
+    added = np.einsum("nij,njk,nik->ni", h_x, trajectory.cov[step], h_x)
+    used = np.isfinite(predicted).all(axis=1) & np.isfinite(added).all(axis=1)
+    bearing_error = wrap_angle(data.measurements[:, 1] - predicted[:, 1])
+    return Residuals(
+        data.measurements[:, 0],
+        predicted[:, 0],
+        corrected[:, 1],
+        bearing_error,
+        corrected[:, 0] - predicted[:, 0],
+        added[:, 0],
+        added[:, 1],
+        used,
+    )
+
+
+def fit_sensor(data: FitData, trajectory: Trajectory, calibration: Calibration) -> dict[str, float]:
+    """Range calibration c2 (least squares of measured / predicted range on 1 and bearing^2; c0 is the unobservable
+    scale, kept 1), bearing bias (median bearing residual), and the noise, with the trajectory's own uncertainty
+    added to the squared residuals as the EM step does (E[e^2] = e^2 + H P H^T): sigma_bearing from the bearing's,
+    sigma_range and the range fraction from non-negative least squares of the range's on 1 and r^2 (variance
+    sigma_range^2 + (fraction r)^2, which the filters' (sigma_range + fraction r)^2 bounds); residuals beyond 5
+    robust sd are left out."""
+    res = measurement_residuals(data, trajectory, calibration)
+    used = res.used
+    ratio = res.raw_range[used] / np.maximum(res.predicted_range[used], 1e-6)
+    keep = _inliers(ratio)
+    design = np.column_stack([np.ones(keep.sum()), res.bearing[used][keep] ** 2])
+    c0, c2 = np.linalg.lstsq(design, ratio[keep], rcond=None)[0]
+    bias = float(np.median(res.bearing_error[used]))
+    centred = res.bearing_error[used] - bias
+    keep = _inliers(centred)
+    sigma_bearing = math.sqrt(float(np.mean(centred[keep] ** 2 + res.bearing_var[used][keep])))
+    errors = res.range_error[used]
+    keep = _inliers(errors)
+    target = errors[keep] ** 2 + res.range_var[used][keep]
+    columns = np.column_stack([np.ones(keep.sum()), res.predicted_range[used][keep] ** 2])
+    constant, slope = nnls(columns, target)[0]
+    return {
+        "c2": float(c2 / c0), "bearing_bias": bias, "sigma_bearing": sigma_bearing,
+        "sigma_range": math.sqrt(constant), "range_fraction": math.sqrt(slope),
+    }  # fmt: skip
+
+
+def _inliers(values: np.ndarray) -> np.ndarray:
+    """Whether each value lies within 5 robust sd (1.4826 MAD) of the median."""
+    centre = np.median(values)
+    return np.abs(values - centre) <= 5.0 * 1.4826 * np.median(np.abs(values - centre)) + 1e-12
+
+
+def _track_pairs(used: np.ndarray, slots: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (i < j) of measurements of the same landmark in one track (broken at gaps over
+    :data:`TRACK_GAP` s), at most :data:`MAX_LAG_S` s apart."""
+    pairs_i, pairs_j = [np.zeros(0, dtype=np.int64)], [np.zeros(0, dtype=np.int64)]
+    for j in np.unique(slots[used]):
+        index = np.flatnonzero(used & (slots == j))
+        cuts = np.flatnonzero(np.diff(times[index]) > TRACK_GAP) + 1
+        for track in np.split(index, cuts):
+            a, b = np.triu_indices(len(track), k=1)
+            pairs_i.append(track[a])
+            pairs_j.append(track[b])
+    first, second = np.concatenate(pairs_i), np.concatenate(pairs_j)
+    near = times[second] - times[first] <= MAX_LAG_S
+    return first[near], second[near]
+
+
+def _cross_pairs(used: np.ndarray, slots: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (i < j) of measurements of different landmarks at most :data:`MAX_LAG_S` s apart (the
+    measurements are in time order)."""
+    pairs_i, pairs_j = [np.zeros(0, dtype=np.int64)], [np.zeros(0, dtype=np.int64)]
+    for offset in range(1, len(times)):
+        i = np.arange(len(times) - offset)
+        keep = (
+            (times[i + offset] - times[i] <= MAX_LAG_S) & (slots[i] != slots[i + offset]) & used[i] & used[i + offset]
+        )
+        if not (times[i + offset] - times[i] <= MAX_LAG_S).any():
+            break
+        pairs_i.append(i[keep])
+        pairs_j.append(i[keep] + offset)
+    return np.concatenate(pairs_i), np.concatenate(pairs_j)
+
+
+def _lag_correlation(u: np.ndarray, first: np.ndarray, second: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """The pooled correlation of ``u`` over pairs, per 1 s bin of the time between them (0 where under 30 pairs)."""
+    lag = (times[second] - times[first]).astype(np.int64)
+    product = np.bincount(lag, u[first] * u[second], minlength=MAX_LAG_S + 1)[: MAX_LAG_S + 1]
+    count = np.bincount(lag, minlength=MAX_LAG_S + 1)[: MAX_LAG_S + 1]
+    return np.where(count >= 30, product / np.maximum(count, 1) / float(np.mean(u**2)), 0.0)
+
+
+def error_correlation(data: FitData, trajectory: Trajectory, calibration: Calibration) -> tuple[float, float]:
+    """How many measurements carry one measurement's worth of independent information, for range and bearing:
+    1 + the mean over measurements of the summed correlation with the other measurements of the same landmark's
+    track (tracks broken at gaps over :data:`TRACK_GAP` s). The correlation is a function of the time between two
+    measurements, pooled over all pairs in 1 s bins up to :data:`MAX_LAG_S` and counted while positive, less the
+    correlation of measurements of different landmarks at that time apart: that part is the estimated
+    trajectory's own error, which every landmark sees, not the measurements'. 1 for white errors."""
+    res = measurement_residuals(data, trajectory, calibration)
+    used, sensor = res.used, calibration.sensor
+    scaled = np.column_stack(
+        [
+            res.range_error / (sensor.sigma_range + sensor.range_fraction * res.predicted_range),
+            wrap_angle(res.bearing_error - calibration.bearing_bias) / sensor.sigma_bearing,
+        ]
+    )
+    times, slots = data.measurement_time, data.slot
+    first, second = _track_pairs(used, slots, times)
+    if len(first) == 0:
+        return 1.0, 1.0
+    across = _cross_pairs(used, slots, times)
+    lag = (times[second] - times[first]).astype(np.int64)
+    out = []
+    for component in (0, 1):
+        u = np.where(used, np.clip(scaled[:, component] - np.median(scaled[used, component]), -4.0, 4.0), 0.0)
+        rho = _lag_correlation(u, first, second, times) - np.maximum(_lag_correlation(u, *across, times), 0.0)
+        positive = np.cumprod(rho > 0.0).astype(bool)  # lags up to the first that is not positive
+        weight = np.where(positive[lag], rho[lag], 0.0)
+        extra = np.bincount(first, weight, minlength=len(u)) + np.bincount(second, weight, minlength=len(u))
+        out.append(1.0 + float(np.mean(extra[used])))
+    return out[0], out[1]
+
+
+# ------------------------------------------------------------------------------------------------ fit
+
+
+def _estimate(data: FitData, calibration: Calibration) -> Trajectory:
+    """The E-step: the map of an EKF-SLAM pass, the poses smoothed against it (with the motion noise
+    :data:`SMOOTHING_MOTION_SCALE` times larger), and the map refitted to those poses."""
+    smoothing = replace(calibration, motion=scaled_motion(calibration.motion, SMOOTHING_MOTION_SCALE))
+    trajectory = smoothed_poses(data, smoothing, likelihood_pass(data, calibration).landmarks)
+    return replace(trajectory, landmarks=refit_map(data, trajectory.poses, calibration))
+
+
+def _inflated(sensor: RangeBearingModel, correlation: tuple[float, float]) -> RangeBearingModel:
+    """``sensor``'s variances multiplied by the correlation factors (range, bearing)."""
+    root_r, root_b = math.sqrt(correlation[0]), math.sqrt(correlation[1])
+    return RangeBearingModel(
+        sigma_range=max(sensor.sigma_range * root_r, 1e-3),
+        sigma_bearing=max(sensor.sigma_bearing * root_b, 1e-3),
+        range_fraction=sensor.range_fraction * root_r,
+    )
+
+
+def _em_step(data: FitData, calibration: Calibration, delay: float) -> tuple[Calibration, RangeBearingModel, dict]:
+    """One iteration of the fit against the E-step's estimate: the calibration (measurement noise inflated for
+    its correlation), the measurement noise before the inflation, and the fitted values."""
+    trajectory = _estimate(data, calibration)
+    values = fit_motion(
+        measure_windows(data, trajectory.poses, calibration, SHORT_WINDOW),
+        measure_windows(data, trajectory.poses, calibration, LONG_WINDOW),
+        calibration.motion.dt_ref,
+    )
+    values.update(fit_sensor(data, trajectory, calibration))
+    floor = 1e-8  # keeps every motion variance positive (a zero would make the linearised filters certain)
+    white = RangeBearingModel(
+        max(values["sigma_range"], 1e-3), max(values["sigma_bearing"], 1e-3), values["range_fraction"]
+    )
+    fitted = replace(
+        calibration,
+        command_delay=delay,
+        velocity_scale=(values["k_v"], values["k_w"]),
+        velocity_bias=(0.0, values["b_w"]),
+        range_calibration=(1.0, values["c2"]),
+        bearing_bias=values["bearing_bias"],
+        motion=VelocityMotionModel(
+            alphas=(values["a1"] + floor, values["a2"], 0.0, values["a4"] + floor, 0.0, 0.0),
+            dt_ref=calibration.motion.dt_ref,
+            floor=(values["floor_v"] + floor, values["floor_w"] + floor),
+        ),
+        sensor=white,
+    )
+    correlation = error_correlation(data, trajectory, fitted)
+    values.update(delay=delay, range_correlation=correlation[0], bearing_correlation=correlation[1])
+    return replace(fitted, sensor=_inflated(white, correlation)), white, values
+
+
+class NotEnoughData(ValueError):
+    """The data are too short or hold too few measurements or too little motion for a fit."""
+
+
+def check_enough(data: FitData) -> None:
+    """Raise :class:`NotEnoughData` unless ``data`` spans :data:`MIN_SECONDS`, holds :data:`MIN_MEASUREMENTS`
+    measurements of landmarks seen more than once and moves in :data:`MIN_WINDOWS` short windows."""
+    span = float(data.stamps[-1] - data.stamps[0])
+    repeated = int(np.sum(np.bincount(data.slot, minlength=data.n_slots)[data.slot] > 1))
+    moving = data.controls[(data.controls[:, 0] != 0.0) | (data.controls[:, 1] != 0.0), 2].sum()
+    if span < MIN_SECONDS or repeated < MIN_MEASUREMENTS or moving < MIN_WINDOWS * SHORT_WINDOW:
+        raise NotEnoughData(
+            f"{span:.0f} s of data with {repeated} measurements of landmarks seen more than once and {moving:.0f} s "
+            f"of motion: a fit needs at least {MIN_SECONDS:g} s, {MIN_MEASUREMENTS} such measurements and "
+            f"{MIN_WINDOWS * SHORT_WINDOW:g} s of motion"
+        )
+
+
+@dataclass(frozen=True)
+class SelfCalibration:
+    """What :func:`self_calibrate` found: the calibration, and per iteration the fitted values."""
+
+    calibration: Calibration
+    iterations: list[dict[str, float]]
+
+
+def self_calibrate(
+    sequence_at: Callable[[float], SlamSequence],
+    delays: tuple[float, ...] = DELAY_GRID,
+    start: Calibration = GENERIC,
+    iterations: int = 4,
+    source: str = "",
+) -> SelfCalibration:
+    """Fit a calibration to the sequence ``sequence_at(delay)`` (the data with its commands delayed by ``delay`` s,
+    as logged otherwise; velocity commands, known ids), without ground truth.
+
+    ``iterations`` rounds, from ``start`` at delay 0, of: the command delay of the best EKF likelihood on the grid
+    ``delays``; an estimate of the trajectory and the map with the current calibration (:func:`_estimate`); and
+    against it, as one would fit against ground truth, the speed scales, yaw-rate bias and motion noise over
+    windows (:func:`fit_motion`), the range calibration, bearing bias and measurement noise from the residuals
+    (:func:`fit_sensor`), the measurement noise inflated by the errors' correlation (:func:`error_correlation`).
+    Last, the motion variances times :data:`MOTION_FACTOR`."""
+    cache: dict[float, FitData] = {}
+
+    def data_at(delay: float) -> FitData:
+        if delay not in cache:
+            cache[delay] = FitData.of(sequence_at(delay))
+        return cache[delay]
+
+    check_enough(data_at(0.0))
+    calibration = replace(start, command_delay=0.0)
+    history: list[dict[str, float]] = []
+    for _ in range(iterations):
+        delay = min(delays, key=lambda d: likelihood_pass(data_at(d), calibration).negative_log_likelihood())
+        calibration, _, values = _em_step(data_at(delay), calibration, delay)
+        history.append(values)
+    calibration = replace(calibration, motion=scaled_motion(calibration.motion, MOTION_FACTOR))
+    diagnostics = {"iterations": [{k: round(float(v), 6) for k, v in row.items()} for row in history]}
+    return SelfCalibration(replace(calibration, source=source, diagnostics=diagnostics), history)

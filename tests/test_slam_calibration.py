@@ -1,0 +1,176 @@
+"""Calibrations (slam.calibration), their files, self-calibration without ground truth (slam.selfcal) and
+`posegrid calibrate`, on simulated MRCLAM-format robots whose truth is known (slam.mrclam_sim)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from services.cli import main
+from slam.calibration import (
+    GENERIC,
+    MRCLAM7,
+    Calibration,
+    calibration_to_json,
+    load_calibration,
+    named_calibration,
+    save_calibration,
+)
+from slam.ekf import EKFSLAM
+from slam.errors import LogFormatError
+from slam.motion import VelocityMotionModel, local_motion
+from slam.mrclam import mrclam_sequence, read_mrclam
+from slam.mrclam_sim import simulate_mrclam_robot, write_mrclam_folder
+from slam.range_bearing import RangeBearingModel
+from slam.selfcal import FitData, likelihood_pass, self_calibrate
+from slam.sequence import run_filter
+
+#: a robot unlike MRCLAM's: commands executed 0.15 s late at 93 % of the speed and 105 % of the turn rate, a
+#: yaw-rate bias of -0.01 rad/s while moving, ranges short by 20 % b^2 at bearing b, range-bearing noise 0.08 m /
+#: 0.03 rad
+TRUTH = Calibration(
+    command_delay=0.15,
+    velocity_scale=(0.93, 1.05),
+    velocity_bias=(0.0, -0.01),
+    range_calibration=(1.0, -0.2),
+    motion=VelocityMotionModel((0.1, 0.01, 0.0, 0.05, 0.0, 0.0), floor=(1e-4, 5e-4)),
+    sensor=RangeBearingModel(sigma_range=0.08, sigma_bearing=0.03),
+    scale_sd=0.0,
+)
+
+
+@pytest.fixture(scope="module")
+def robot(tmp_path_factory) -> Path:
+    return write_mrclam_folder(tmp_path_factory.mktemp("robot"), simulate_mrclam_robot(TRUTH, seed=3, duration=200.0))
+
+
+def test_a_calibration_file_reads_back_the_same_calibration(tmp_path):
+    path = tmp_path / "c.json"
+    save_calibration(path, MRCLAM7)
+    document = json.loads(path.read_text())
+    assert document["schema"] == "posegrid.calibration" and document["version"] == 1
+    assert document["command_delay_s"] == 0.2 and document["units"]["command_delay_s"] == "s"
+    assert load_calibration(path) == MRCLAM7
+    assert named_calibration("mrclam7", None) is MRCLAM7 and named_calibration(None, None) is None
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        (lambda d: d.update(schema="other"), "not a posegrid calibration file"),
+        (lambda d: d.update(version=7), "calibration version 7 is not supported"),
+        (lambda d: d.pop("velocity_scale"), "'velocity_scale' is missing"),
+        (lambda d: d.update(velocity_scale=[0.9]), "'velocity_scale' must be a list of 2 numbers"),
+        (lambda d: d["sensor"].update(sigma_bearing_rad=-1.0), "'sensor.sigma_bearing_rad' must be in"),
+        (lambda d: d.update(command_delay_s="0.2"), "'command_delay_s' must be a finite number"),
+    ],
+)
+def test_a_bad_calibration_file_is_refused_naming_the_field(tmp_path, change, message):
+    document = calibration_to_json(GENERIC)
+    change(document)
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps(document))
+    with pytest.raises(LogFormatError, match=message):
+        load_calibration(path)
+    path.write_text("{not json")
+    with pytest.raises(LogFormatError, match="not JSON"):
+        load_calibration(path)
+
+
+def test_the_velocity_kernel_composes_the_motion_as_the_model_does():
+    model = VelocityMotionModel((0.3, 0.05, 0.02, 0.4, 0.01, 0.02), floor=(1e-3, 2e-3))
+    rng = np.random.default_rng(0)
+    controls = np.column_stack([rng.uniform(-0.2, 0.5, 9), rng.uniform(-1, 1, 9), rng.uniform(0.001, 0.03, 9)])
+    controls[3, :2] = 0.0  # standing still: no motion, no floor
+    delta, cov = local_motion(model, controls)
+    pose, expected = np.zeros((1, 3)), np.zeros((3, 3))
+    for control in controls:
+        pose, jac, q = model.linearize(pose, control)
+        expected = jac[0] @ expected @ jac[0].T + q[0]
+    np.testing.assert_allclose(delta, pose[0], atol=1e-15)
+    np.testing.assert_allclose(cov, expected, rtol=1e-12, atol=1e-18)
+
+
+def test_the_likelihood_pass_is_the_ekf(robot):
+    """The compiled pass that the fit evaluates gives the squared innovations the EKF-SLAM of slam.ekf gives."""
+    run = read_mrclam(robot, 1)
+    sequence = TRUTH.apply(mrclam_sequence(run, command_delay=TRUTH.command_delay))
+    ekf = EKFSLAM(TRUTH.motion, TRUTH.sensor, sequence.initial_pose, adaptive=False)
+    seen: list[float] = []
+    ekf._watch = lambda d2, gated: seen.append(d2)  # type: ignore[method-assign]
+    run_filter(ekf, sequence)
+    plain = replace(TRUTH, velocity_scale=(1.0, 1.0), velocity_bias=(0.0, 0.0), range_calibration=(1.0, 0.0))
+    result = likelihood_pass(FitData.of(sequence), plain, huber=1e12)
+    np.testing.assert_allclose(result.d2[np.isfinite(result.d2)], seen, rtol=1e-8)
+
+
+def test_self_calibration_recovers_the_robots_corrections_and_noise(robot):
+    """Without ground truth, within these tolerances (docs/slam.md, "Self-calibration", over seeds 1-5): the delay
+    to one step of its 0.05 s grid, speed scale 3 %, turn-rate scale 5 %, yaw-rate bias 0.004 rad/s, c2 0.1, the
+    measurement noise before its inflation for correlation 30 %, the yaw noise a4 within a factor 2.5."""
+    run = read_mrclam(robot, 1)
+    fit = self_calibrate(lambda delay: mrclam_sequence(run, command_delay=delay))
+    found, last = fit.calibration, fit.iterations[-1]
+    assert found.command_delay == pytest.approx(0.15, abs=0.051)
+    assert found.velocity_scale[0] == pytest.approx(0.93, rel=0.03)
+    assert found.velocity_scale[1] == pytest.approx(1.05, rel=0.05)
+    assert found.velocity_bias[1] == pytest.approx(-0.01, abs=0.004)
+    assert found.range_calibration == (1.0, pytest.approx(-0.2, abs=0.1))
+    assert last["sigma_bearing"] == pytest.approx(0.03, rel=0.3)
+    assert last["sigma_range"] + 4.0 * last["range_fraction"] == pytest.approx(0.08, rel=0.3)  # at a typical 4 m
+    assert 0.05 / 2.5 < last["a4"] < 0.05 * 2.5
+    assert found.scale_sd == GENERIC.scale_sd  # the map's scale is not in the data
+
+
+def test_calibrate_writes_a_file_that_slam_reads(robot, tmp_path, capsys):
+    calibration = tmp_path / "robot.json"
+    assert main(["calibrate", str(robot), "--robot", "1", "--fraction", "0.5", "-o", str(calibration)]) == 0
+    assert "command delay 0.15 s" in capsys.readouterr().out
+    fitted = load_calibration(calibration)
+    assert "first 0.5" in fitted.source and fitted.command_delay == pytest.approx(0.15)
+    out = tmp_path / "ekf.npz"
+    assert (
+        main(["slam", "--algo", "ekf", str(robot), "--robot", "1", "--calibration", str(calibration), "-o", str(out)])
+        == 0
+    )
+    printed = capsys.readouterr().out
+    assert "self-calibrated" not in printed and "noise scale" in printed
+    assert main(["eval-traj", str(out), str(robot / "Robot1_Groundtruth.dat")]) == 0
+    score = json.loads(capsys.readouterr().out)
+    assert score["inside95"] >= 0.85 and score["ate_rmse_m"] < 1.0
+
+
+@pytest.mark.parametrize(
+    ("options", "phrase"),
+    [
+        (["--robot", "1", "--fraction", "0"], "--fraction must be in (0, 1]"),
+        (["--robot", "1", "--fraction", "0.05"], "too little to calibrate from"),
+        (["--robot", "4"], "no Robot4_Odometry.dat"),
+        ([], "pick a robot with --robot K"),
+    ],
+)
+def test_calibrate_refuses_bad_input_in_one_line(robot, tmp_path, capsys, options, phrase):
+    out = tmp_path / "c.json"
+    assert main(["calibrate", str(robot), "-o", str(out), *options]) == 2
+    err = capsys.readouterr().err.strip()
+    assert phrase in err and "\n" not in err and not out.exists()
+
+
+def test_run_hands_the_calibration_to_its_slam_node_and_a_node_refuses_to_fit_one(tmp_path, capsys):
+    from services.cli import build_parser
+    from services.commands.pipeline import slam_argv
+
+    parser = build_parser()
+    calibration = tmp_path / "robot.json"
+    save_calibration(calibration, TRUTH)
+    for given in (["--profile", "mrclam7"], ["--calibration", str(calibration)]):
+        argv = slam_argv(parser.parse_args(["run", *given]), "sim")
+        assert argv[argv.index(given[0]) + 1] == given[1]
+        node = parser.parse_args(["slam-node", *argv])
+        assert (node.profile, node.calibration) == ((given[1], None) if given[0] == "--profile" else (None, given[1]))
+    assert main(["slam-node", "--algo", "ekf", "--calibration", "auto"]) == 2
+    assert "fit one with `posegrid calibrate`" in capsys.readouterr().err
