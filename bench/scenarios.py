@@ -51,16 +51,7 @@ def honest_posed_scans(run: SimRun, seed: int = 0, particles: int | None = None)
     else:
         draws = mean[:, None, :] + np.einsum("tij,tmj->tmi", factors, rng.standard_normal((len(cov), particles, 3)))
         poses = PoseSet(samples=draws, weights=np.full((len(cov), particles), 1.0 / particles))
-    return PosedScans(
-        ranges=run.ranges,
-        angle_min=run.angle_min,
-        angle_increment=run.angle_increment,
-        range_min=run.range_min,
-        range_max=run.range_max,
-        stamps=run.stamps,
-        sensor_offset=np.asarray(run.sensor_offset, float),
-        poses=poses,
-    )
+    return PosedScans.from_scans(run, poses)
 
 
 def truth_arrays(run: SimRun) -> dict:
@@ -82,16 +73,7 @@ def resampled_particles(posed: PosedScans, seed: int = 0) -> PosedScans:
     picks = rng.integers(0, count, size=(steps, count))
     picks = np.sort(picks // 4 * 4, axis=1)  # draw from every 4th particle: about M/4 distinct poses
     resampled = np.take_along_axis(samples, picks[..., None], axis=1)
-    return PosedScans(
-        ranges=posed.ranges,
-        angle_min=posed.angle_min,
-        angle_increment=posed.angle_increment,
-        range_min=posed.range_min,
-        range_max=posed.range_max,
-        stamps=posed.stamps,
-        sensor_offset=posed.sensor_offset,
-        poses=PoseSet(samples=resampled, weights=weights),
-    )
+    return replace(posed, poses=PoseSet(samples=resampled, weights=weights))
 
 
 def select_scans(posed: PosedScans, index: slice) -> PosedScans:

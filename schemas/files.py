@@ -20,7 +20,7 @@ import stat
 import zipfile
 import zlib
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -93,6 +93,13 @@ class PosedScans:
     def beam_angles(self) -> np.ndarray:
         """Beam angles (B,) in rad, laser frame."""
         return self.angle_min + self.angle_increment * np.arange(self.ranges.shape[1])
+
+    @classmethod
+    def from_scans(cls, scans: Any, poses: PoseSet) -> PosedScans:
+        """The scans of ``scans`` (anything with this class's fields but poses, e.g. a slam.simulator.SimRun) with
+        the pose distributions ``poses``."""
+        values = {field.name: getattr(scans, field.name) for field in fields(cls) if field.name != "poses"}
+        return cls(**{**values, "sensor_offset": np.asarray(values["sensor_offset"], np.float64)}, poses=poses)
 
 
 @dataclass(frozen=True)

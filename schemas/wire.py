@@ -103,12 +103,7 @@ class Int(Spec):
         return value
 
     def json_schema(self):
-        out: dict[str, Any] = {"type": "integer", "description": self.doc}
-        if self.minimum is not None:
-            out["minimum"] = self.minimum
-        if self.maximum is not None:
-            out["maximum"] = self.maximum
-        return out
+        return _bounded({"type": "integer", "description": self.doc}, minimum=self.minimum, maximum=self.maximum)
 
 
 @dataclass(frozen=True)
@@ -134,12 +129,16 @@ class Float(Spec):
         return value
 
     def json_schema(self):
-        out: dict[str, Any] = {"type": "number", "description": self.doc + " (finite)"}
-        if self.minimum is not None:
-            out["minimum"] = self.minimum
-        if self.exclusive_minimum is not None:
-            out["exclusiveMinimum"] = self.exclusive_minimum
-        return out
+        return _bounded(
+            {"type": "number", "description": self.doc + " (finite)"},
+            minimum=self.minimum,
+            exclusiveMinimum=self.exclusive_minimum,
+        )
+
+
+def _bounded(schema: dict[str, Any], **bounds: float | None) -> dict[str, Any]:
+    """``schema`` with each of ``bounds`` that is set (JSON Schema keyword: value), in the order given."""
+    return {**schema, **{keyword: value for keyword, value in bounds.items() if value is not None}}
 
 
 @dataclass(frozen=True)
@@ -304,9 +303,11 @@ def is_valid_name(value: object) -> bool:
     return isinstance(value, str) and re.fullmatch(NAME_PATTERN, value) is not None
 
 
-def spec(field_spec: Spec) -> Any:
-    """A dataclass field carrying ``field_spec``; use as ``robot: str = spec(Name("robot name"))``."""
-    return dataclasses.field(metadata={"spec": field_spec})
+def spec(field_spec: Spec, default: Any = dataclasses.MISSING, default_factory: Any = dataclasses.MISSING) -> Any:
+    """A dataclass field carrying ``field_spec``; use as ``robot: str = spec(Name("robot name"))``. ``default`` (or
+    ``default_factory``): what a constructor call that leaves the field out gets, for a field added to a message in a
+    later version (code that builds the older form keeps working); the wire form always carries every field."""
+    return dataclasses.field(default=default, default_factory=default_factory, metadata={"spec": field_spec})
 
 
 # --------------------------------------------------------------------------------------------- messages

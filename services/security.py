@@ -205,26 +205,34 @@ def _certificate(subject_cn: str, public_key, issuer_cn: str, issuer_key, days: 
     return builder.sign(issuer_key, hashes.SHA256())
 
 
+#: every flag of a certificate's key usage extension (RFC 5280, 4.2.1.3)
+_KEY_USAGES = (
+    "digital_signature",
+    "content_commitment",
+    "key_encipherment",
+    "data_encipherment",
+    "key_agreement",
+    "key_cert_sign",
+    "crl_sign",
+    "encipher_only",
+    "decipher_only",
+)
+
+
+def _key_usage(*granted: str):
+    """The key usage extension that grants ``granted`` (names of :data:`_KEY_USAGES`) and nothing else."""
+    from cryptography import x509
+
+    return x509.KeyUsage(**{name: name in granted for name in _KEY_USAGES})
+
+
 def _leaf_extensions(ca_key, usage, names: list[str] | None):
     """Extensions of a router (``names``: its subject alternative names) or client certificate."""
     from cryptography import x509
 
     extensions = [
         (x509.BasicConstraints(ca=False, path_length=None), True),
-        (
-            x509.KeyUsage(
-                digital_signature=True,
-                key_encipherment=False,
-                content_commitment=False,
-                data_encipherment=False,
-                key_agreement=False,
-                key_cert_sign=False,
-                crl_sign=False,
-                encipher_only=False,
-                decipher_only=False,
-            ),
-            True,
-        ),
+        (_key_usage("digital_signature"), True),
         (x509.ExtendedKeyUsage([usage]), False),
         (x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()), False),
     ]
@@ -281,20 +289,7 @@ def write_certificates(folder: Path, router_names: list[str], users: list[str], 
         days,
         [
             (x509.BasicConstraints(ca=True, path_length=0), True),
-            (
-                x509.KeyUsage(
-                    digital_signature=True,
-                    key_cert_sign=True,
-                    crl_sign=True,
-                    key_encipherment=False,
-                    content_commitment=False,
-                    data_encipherment=False,
-                    key_agreement=False,
-                    encipher_only=False,
-                    decipher_only=False,
-                ),
-                True,
-            ),
+            (_key_usage("digital_signature", "key_cert_sign", "crl_sign"), True),
             (x509.SubjectKeyIdentifier.from_public_key(ca_key.public_key()), False),
         ],
     )
@@ -314,49 +309,42 @@ def write_certificates(folder: Path, router_names: list[str], users: list[str], 
 # --------------------------------------------------------------------------------------------- configs
 
 
-def router_config(folder: Path, listen: str, roles: list[Role]) -> dict:
-    """The router's Zenoh config: TLS on ``listen`` with client certificates required, the user/password
-    dictionary, and :func:`acl_config`."""
+def _tls_config(folder: Path, mode: str, endpoint: str, name: str, usrpwd: dict) -> dict:
+    """The Zenoh config both ends share: a router listens on ``endpoint``, a client connects to it; over TLS only,
+    trusting only the run's CA (``folder``/ca.pem), presenting the certificate of ``name`` and asking for the
+    peer's (mutual TLS), with the user/password settings ``usrpwd``; no scouting."""
+    side = "listen" if mode == "router" else "connect"
     return {
-        "mode": "router",
-        "listen": {"endpoints": [listen]},
+        "mode": mode,
+        side: {"endpoints": [endpoint]},
         "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
         "transport": {
             "link": {
                 "protocols": ["tls"],
                 "tls": {
                     "root_ca_certificate": str(folder / "ca.pem"),
-                    "listen_certificate": str(folder / "router.pem"),
-                    "listen_private_key": str(folder / "router.key"),
+                    f"{side}_certificate": str(folder / f"{name}.pem"),
+                    f"{side}_private_key": str(folder / f"{name}.key"),
                     "enable_mtls": True,
                 },
             },
-            "auth": {"usrpwd": {"dictionary_file": str(folder / "users.txt")}},
+            "auth": {"usrpwd": usrpwd},
         },
-        "access_control": acl_config(roles),
     }
+
+
+def router_config(folder: Path, listen: str, roles: list[Role]) -> dict:
+    """The router's Zenoh config: TLS on ``listen`` with client certificates required, the user/password
+    dictionary, and :func:`acl_config`."""
+    config = _tls_config(folder, "router", listen, "router", {"dictionary_file": str(folder / "users.txt")})
+    config["access_control"] = acl_config(roles)
+    return config
 
 
 def client_config(folder: Path, connect: str, user: str, password: str) -> dict:
     """A client's Zenoh config: connect to ``connect`` over TLS, trusting only the run's CA, presenting
     ``user``'s certificate and password."""
-    return {
-        "mode": "client",
-        "connect": {"endpoints": [connect]},
-        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
-        "transport": {
-            "link": {
-                "protocols": ["tls"],
-                "tls": {
-                    "root_ca_certificate": str(folder / "ca.pem"),
-                    "connect_certificate": str(folder / f"{user}.pem"),
-                    "connect_private_key": str(folder / f"{user}.key"),
-                    "enable_mtls": True,
-                },
-            },
-            "auth": {"usrpwd": {"user": user, "password": password}},
-        },
-    }
+    return _tls_config(folder, "client", connect, user, {"user": user, "password": password})
 
 
 def prepare_folder(folder: Path) -> Path:

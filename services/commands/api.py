@@ -4,31 +4,15 @@ from __future__ import annotations
 
 import argparse
 import os
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 from services.api import limits
 from services.api.guard import TOKEN_ENV, TOKEN_PATTERN
-from services.commands.argtypes import finite_float
+from services.commands.argtypes import finite_float, positive_int, positive_seconds
+from services.commands.options import add_command
 
 DEFAULT_PORT = 8000
-
-
-def positive_int(text: str) -> int:
-    """An integer >= 1."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
-
-
-def positive_seconds(text: str) -> float:
-    """A finite number of seconds > 0."""
-    value = finite_float(text)
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"must be > 0 s, got {text!r}")
-    return value
 
 
 def access_token(text: str) -> str:
@@ -56,104 +40,134 @@ def host_name(text: str) -> str:
     return text
 
 
-#: the HTTP options, which `posegrid run` takes too, as --api-NAME, and passes on: (name, argparse keywords)
-HTTP_OPTIONS: list[tuple[str, dict]] = [
-    (
+class HttpOption(NamedTuple):
+    """An option of `posegrid api`: given as --NAME (`posegrid run`: --api-NAME), parsed by ``type``, ``default``
+    unless given, shown as ``metavar`` and ``help`` in --help; ``action`` "append" for a repeatable one."""
+
+    name: str
+    type: Callable[[str], Any]
+    default: Any
+    metavar: str
+    help: str
+    action: str = "store"
+
+
+#: the HTTP options, which `posegrid run` takes too, as --api-NAME, and passes on
+HTTP_OPTIONS = (
+    HttpOption(
         "token",
-        dict(
-            type=access_token,
-            default=None,
-            metavar="TOKEN",
-            help=(
-                f"require this access token on every request (default: ${TOKEN_ENV}, else none): 'Authorization: "
-                "Bearer TOKEN', ?token=TOKEN, or the cookie the viewer gets when opened as /?token=TOKEN; prefer the "
-                "environment variable, which other users cannot read in the process list"
-            ),
-        ),
+        access_token,
+        None,
+        "TOKEN",
+        f"require this access token on every request (default: ${TOKEN_ENV}, else none): 'Authorization: "
+        "Bearer TOKEN', ?token=TOKEN, or the cookie the viewer gets when opened as /?token=TOKEN; prefer the "
+        "environment variable, which other users cannot read in the process list",
     ),
-    (
+    HttpOption(
         "allowed-host",
-        dict(
-            type=host_name,
-            action="append",
-            default=[],
-            metavar="NAME",
-            help=(
-                "also answer requests whose Host header is NAME (repeatable; localhost, 127.0.0.1 and [::1] always "
-                "are, and the --host address; '*': any, behind a proxy that checks it). Others are 400 (DNS rebinding)"
-            ),
-        ),
+        host_name,
+        [],
+        "NAME",
+        "also answer requests whose Host header is NAME (repeatable; localhost, 127.0.0.1 and [::1] always "
+        "are, and the --host address; '*': any, behind a proxy that checks it). Others are 400 (DNS rebinding)",
+        action="append",
     ),
-    (
+    HttpOption(
         "max-event-clients",
-        dict(
-            type=positive_int,
-            default=limits.MAX_EVENT_CLIENTS,
-            metavar="N",
-            help=(f"event streams (GET /events) open at once; the next is 503 (default {limits.MAX_EVENT_CLIENTS})"),
-        ),
+        positive_int,
+        limits.MAX_EVENT_CLIENTS,
+        "N",
+        f"event streams (GET /events) open at once; the next is 503 (default {limits.MAX_EVENT_CLIENTS})",
     ),
-    (
+    HttpOption(
         "max-exports",
-        dict(
-            type=positive_int,
-            default=limits.MAX_EXPORTS,
-            metavar="N",
-            help=(f"exports built at once; the next is 503 (default {limits.MAX_EXPORTS})"),
-        ),
+        positive_int,
+        limits.MAX_EXPORTS,
+        "N",
+        f"exports built at once; the next is 503 (default {limits.MAX_EXPORTS})",
     ),
-    (
+    HttpOption(
         "max-export-cells",
-        dict(
-            type=positive_int,
-            default=limits.MAX_EXPORT_CELLS,
-            metavar="N",
-            help=(
-                f"cells the raster of one export may span, else 413: export a window (default "
-                f"{limits.MAX_EXPORT_CELLS}, 4096 x 4096; {limits.EXPORT_BYTES_PER_CELL} bytes a cell as npz)"
-            ),
-        ),
+        positive_int,
+        limits.MAX_EXPORT_CELLS,
+        "N",
+        f"cells the raster of one export may span, else 413: export a window (default "
+        f"{limits.MAX_EXPORT_CELLS}, 4096 x 4096; {limits.EXPORT_BYTES_PER_CELL} bytes a cell as npz)",
     ),
-    (
+    HttpOption(
         "max-connections",
-        dict(
-            type=positive_int,
-            default=limits.MAX_CONNECTIONS,
-            metavar="N",
-            help=(
-                f"HTTP connections open at once; requests on further ones are 503 (default {limits.MAX_CONNECTIONS})"
-            ),
-        ),
+        positive_int,
+        limits.MAX_CONNECTIONS,
+        "N",
+        f"HTTP connections open at once; requests on further ones are 503 (default {limits.MAX_CONNECTIONS})",
     ),
-    (
+    HttpOption(
         "keep-alive-timeout",
-        dict(
-            type=positive_seconds,
-            default=limits.KEEP_ALIVE,
-            metavar="S",
-            help=(f"s an idle keep-alive connection stays open (default {limits.KEEP_ALIVE:g})"),
-        ),
+        positive_seconds,
+        limits.KEEP_ALIVE,
+        "S",
+        f"s an idle keep-alive connection stays open (default {limits.KEEP_ALIVE:g})",
     ),
-    (
+    HttpOption(
         "request-timeout",
-        dict(
-            type=positive_seconds,
-            default=limits.REQUEST_TIMEOUT,
-            metavar="S",
-            help=(
-                f"s a request may take to arrive whole before its connection is closed (default "
-                f"{limits.REQUEST_TIMEOUT:g})"
-            ),
-        ),
+        positive_seconds,
+        limits.REQUEST_TIMEOUT,
+        "S",
+        f"s a request may take to arrive whole before its connection is closed (default {limits.REQUEST_TIMEOUT:g})",
     ),
-]
+)
+
+#: what `posegrid api` tracks at most (its own options: `posegrid run` leaves them at their defaults)
+TRACKING_OPTIONS = (
+    HttpOption(
+        "max-maps",
+        positive_int,
+        limits.MAX_MAPS,
+        "N",
+        f"maps held, announced or proved; further shard tokens are refused (default {limits.MAX_MAPS})",
+    ),
+    HttpOption(
+        "max-robots",
+        positive_int,
+        limits.MAX_ROBOTS,
+        "N",
+        f"robots tracked; poses of further robots are refused (default {limits.MAX_ROBOTS})",
+    ),
+    HttpOption(
+        "stray-robot-ttl",
+        positive_seconds,
+        limits.STRAY_TTL,
+        "S",
+        "s after its last pose that a robot with no source or SLAM node liveliness token is "
+        f"forgotten (default {limits.STRAY_TTL:g})",
+    ),
+    HttpOption(
+        "verify-window",
+        positive_seconds,
+        limits.VERIFY_WINDOW,
+        "S",
+        "s a shard's liveliness token may wait for the shard to answer its stats query before it "
+        f"is ignored (default {limits.VERIFY_WINDOW:g})",
+    ),
+)
+
+
+def _add_options(group: argparse._ArgumentGroup, options: tuple[HttpOption, ...], prefix: str = "") -> None:
+    """Add each of ``options`` to ``group`` as --``prefix``NAME."""
+    for option in options:
+        group.add_argument(
+            f"--{prefix}{option.name}",
+            type=option.type,
+            default=option.default,
+            metavar=option.metavar,
+            action=option.action,
+            help=option.help,
+        )
 
 
 def add_http_arguments(parser: argparse.ArgumentParser, prefix: str = "") -> None:
     """The HTTP options as ``--{prefix}NAME`` (`posegrid run` uses prefix "api-")."""
-    group = parser.add_argument_group("HTTP access and limits (docs/api.md)")
-    for name, keywords in HTTP_OPTIONS:
-        group.add_argument(f"--{prefix}{name}", **keywords)
+    _add_options(parser.add_argument_group("HTTP access and limits (docs/api.md)"), HTTP_OPTIONS, prefix)
 
 
 def _value(args: argparse.Namespace, prefix: str, name: str):
@@ -165,30 +179,23 @@ def api_child_options(args: argparse.Namespace, prefix: str = "api-") -> list[st
     ``--{prefix}NAME``). The token goes in this process's environment (TOKEN_ENV), which the child inherits,
     not on its command line."""
     argv = []
-    for name, keywords in HTTP_OPTIONS:
-        value = _value(args, prefix, name)
-        if name == "token":
+    for option in HTTP_OPTIONS:
+        value = _value(args, prefix, option.name)
+        if option.name == "token":
             if value is not None:
                 os.environ[TOKEN_ENV] = value
-        elif name == "allowed-host":
+        elif option.name == "allowed-host":
             for host in value:
-                argv += [f"--{name}", host]
-        elif value != keywords["default"]:
-            argv += [f"--{name}", str(value)]
+                argv += [f"--{option.name}", host]
+        elif value != option.default:
+            argv += [f"--{option.name}", str(value)]
     return argv
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     from services.zenoh_config import add_zenoh_arguments
 
-    api = subparsers.add_parser(
-        "api",
-        help="HTTP API and browser viewer of the maps (a Zenoh client of the mapper shards)",
-        description="Serve the maps the mapper shards hold over HTTP: map summaries, PNG and .npz tiles at every "
-        "zoom level (cached, with ETags), whole-map exports (npz, pgm+yaml, png), shard statistics, health, robot "
-        "poses, a server-sent event stream, and the viewer at / (OpenAPI document at /openapi.json; /docs loads "
-        "Swagger UI from a CDN). Connects to the Zenoh router as a client. Stops on Ctrl-C or SIGTERM.",
-    )
+    api = add_command(subparsers, "api", run_api)
     api.add_argument(
         "--host",
         default="127.0.0.1",
@@ -209,39 +216,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="how long a query to the shards may take, s (default 10)",
     )
     add_http_arguments(api)
-    group = api.add_argument_group("what the API tracks at most (docs/api.md)")
-    group.add_argument(
-        "--max-maps",
-        type=positive_int,
-        default=limits.MAX_MAPS,
-        metavar="N",
-        help=f"maps held, announced or proved; further shard tokens are refused (default {limits.MAX_MAPS})",
-    )
-    group.add_argument(
-        "--max-robots",
-        type=positive_int,
-        default=limits.MAX_ROBOTS,
-        metavar="N",
-        help=f"robots tracked; poses of further robots are refused (default {limits.MAX_ROBOTS})",
-    )
-    group.add_argument(
-        "--stray-robot-ttl",
-        type=positive_seconds,
-        default=limits.STRAY_TTL,
-        metavar="S",
-        help="s after its last pose that a robot with no source or SLAM node liveliness token is "
-        f"forgotten (default {limits.STRAY_TTL:g})",
-    )
-    group.add_argument(
-        "--verify-window",
-        type=positive_seconds,
-        default=limits.VERIFY_WINDOW,
-        metavar="S",
-        help="s a shard's liveliness token may wait for the shard to answer its stats query before it "
-        f"is ignored (default {limits.VERIFY_WINDOW:g})",
-    )
+    _add_options(api.add_argument_group("what the API tracks at most (docs/api.md)"), TRACKING_OPTIONS)
     add_zenoh_arguments(api)
-    api.set_defaults(func=run_api)
 
 
 def check_port_free(host: str, port: int) -> None:
@@ -273,6 +249,12 @@ def token_of(args: argparse.Namespace) -> str | None:
 
 
 def run_api(args: argparse.Namespace) -> int:
+    """HTTP API and browser viewer of the maps (a Zenoh client of the mapper shards)
+
+    Serve the maps the mapper shards hold over HTTP: map summaries, PNG and .npz tiles at every zoom level (cached,
+    with ETags), whole-map exports (npz, pgm+yaml, png), shard statistics, health, robot poses, a server-sent event
+    stream, and the viewer at / (OpenAPI document at /openapi.json; /docs loads Swagger UI from a CDN). Connects to
+    the Zenoh router as a client. Stops on Ctrl-C or SIGTERM."""
     from services.errors import UsageError
 
     if not 0 < args.port < 65536:

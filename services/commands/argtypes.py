@@ -22,14 +22,35 @@ def finite_float(text: str) -> float:
     return value
 
 
-def random_seed(text: str) -> int:
-    """A random seed: an integer >= 0 (numpy's generators take no negative seeds)."""
+def _integer(text: str) -> int:
+    """``text`` as an integer; ArgumentTypeError (argparse's one sentence naming the option) when it is none."""
     try:
-        value = int(text)
+        return int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+
+
+def random_seed(text: str) -> int:
+    """A random seed: an integer >= 0 (numpy's generators take no negative seeds)."""
+    value = _integer(text)
     if value < 0:
         raise argparse.ArgumentTypeError(f"a seed is an integer >= 0, got {value}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    """An integer >= 1."""
+    value = _integer(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def positive_seconds(text: str) -> float:
+    """A finite number of seconds > 0."""
+    value = finite_float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0 s, got {text!r}")
     return value
 
 
@@ -38,10 +59,7 @@ def pose_sample_count(text: str) -> int:
     sample is ray-cast; a count past that stalls a mapper for minutes a scan)."""
     from schemas.messages import MAX_POSE_SAMPLES
 
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    value = _integer(text)
     if not 1 <= value <= MAX_POSE_SAMPLES:
         raise argparse.ArgumentTypeError(f"must be in 1 .. {MAX_POSE_SAMPLES}, got {value}")
     return value

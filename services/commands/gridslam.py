@@ -262,23 +262,37 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
     the .best.npz posed-scan file with the final best particle's poses (its map); and the .poses.npz
     pose-distribution file with every scan's pose on each final particle's trajectory (for the relation
     error)."""
-    import numpy as np
-    from tqdm import tqdm
-
-    from schemas.files import (
-        PoseDistributionFile,
-        PosedScans,
-        PoseSet,
-        save_pose_distribution,
-        save_posed_scans,
-        write_atomically,
-    )
-    from services.commands.logs import read_log
-    from services.errors import UsageError
-    from slam.gridslam import run_gridslam
+    from schemas.files import write_atomically
 
     config = gridslam_config(args)
     best_path, poses_path = _output_paths(args)
+    log, delay = _prepared_log(args, config)
+    started = time.perf_counter()
+    cpu_started = time.process_time()
+    result = _run_filter(log, config, args.seed)
+    elapsed = time.perf_counter() - started
+    cpu = time.process_time() - cpu_started
+    _save_outputs(args.output, best_path, poses_path, log, config, result)
+    stats = _run_stats(log, config, result, delay, elapsed, cpu)
+    if args.stats is not None:
+        text = json.dumps(stats, indent=1) + "\n"
+        write_atomically(args.stats, lambda handle: handle.write(text.encode()))
+    print(
+        f"wrote {args.output} (posed-scan file, {stats['integrated']} integrated scans), {best_path} (the best "
+        f"particle's poses) and {poses_path} (pose-distribution file, {len(log)} scans): "
+        f"{1e3 * stats['seconds_per_integrated_scan']:.1f} ms per "
+        f"integrated scan, {stats['log_duration_s']:.0f} s of log in {elapsed:.1f} s ({stats['real_time_factor']:.1f}x "
+        f"real time), final N_eff {stats['final_ess']:.1f} of {config.particles}, {stats['resamplings']} resamplings"
+    )
+    return 0
+
+
+def _prepared_log(args: argparse.Namespace, config):
+    """The laser log of args.input (its first --scans scans) with its odometry read at --odom-delay, checked by
+    :func:`_check_log` before and after the delay, and the delay in s."""
+    from services.commands.logs import read_log
+    from services.errors import UsageError
+
     if args.scans is not None and args.scans < 2:
         raise UsageError(f"--scans must be >= 2 (a scan to start from and one to integrate), got {args.scans}")
     log = read_log(args.input, scan_topic=args.scan_topic)
@@ -289,17 +303,30 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
     if log.skipped:  # (after the delay, which skips the scans it leaves without odometry)
         print(f"posegrid slam: note: {log.skipped_summary()}", file=sys.stderr)
     _check_log(log, config)
-    started = time.perf_counter()
-    cpu_started = time.process_time()
+    return log, delay
+
+
+def _run_filter(log, config, seed: int):
+    """slam.gridslam.run_gridslam over ``log``, with a progress bar on stderr that shows the effective sample
+    size."""
+    from tqdm import tqdm
+
+    from slam.gridslam import run_gridslam
+
     with tqdm(total=len(log), desc="slam gridslam", unit="scan", file=sys.stderr, mininterval=0.5) as bar:
 
         def progress(done: int, ess: float) -> None:
             bar.update(done)
             bar.set_postfix(ess=f"{ess:.1f}", refresh=False)
 
-        result = run_gridslam(log, config, seed=args.seed, progress=progress)
-    elapsed = time.perf_counter() - started
-    cpu = time.process_time() - cpu_started
+        return run_gridslam(log, config, seed=seed, progress=progress)
+
+
+def _save_outputs(output: Path, best_path: Path, poses_path: Path, log, config, result) -> None:
+    """Write the three files of :func:`run_gridslam_command` from the filter's ``result``."""
+    import numpy as np
+
+    from schemas.files import PoseDistributionFile, PosedScans, PoseSet, save_pose_distribution, save_posed_scans
 
     chosen = result.integrated
     range_max = min(config.max_range, log.range_max)
@@ -317,17 +344,21 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
         )
 
     weights = np.tile(result.weights, (len(log), 1))
-    save_posed_scans(args.output, posed(result.samples[chosen], weights[chosen]))
+    save_posed_scans(output, posed(result.samples[chosen], weights[chosen]))
     best = result.samples[chosen][:, [result.best]]
     save_posed_scans(best_path, posed(best, np.ones((int(chosen.sum()), 1))))
     save_pose_distribution(
         poses_path, PoseDistributionFile(stamps=result.stamps, poses=PoseSet(samples=result.samples, weights=weights))
     )
 
+
+def _run_stats(log, config, result, delay: float, elapsed: float, cpu: float) -> dict:
+    """The figures --stats writes: times (s) of ``elapsed`` wall and ``cpu`` time, effective sample sizes,
+    resamplings, tiles, the odometry ``delay`` (s)."""
     duration = float(log.stamps[-1] - log.stamps[0])
-    stats = {
+    return {
         "scans": len(log),
-        "integrated": int(chosen.sum()),
+        "integrated": int(result.integrated.sum()),
         "particles": config.particles,
         "seconds_total": elapsed,
         "cpu_seconds_total": cpu,
@@ -343,14 +374,3 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
         "tiles_copied": result.maps.copies,
         "odometry_delay_s": delay,
     }
-    if args.stats is not None:
-        text = json.dumps(stats, indent=1) + "\n"
-        write_atomically(args.stats, lambda handle: handle.write(text.encode()))
-    print(
-        f"wrote {args.output} (posed-scan file, {stats['integrated']} integrated scans), {best_path} (the best "
-        f"particle's poses) and {poses_path} (pose-distribution file, {len(log)} scans): "
-        f"{1e3 * stats['seconds_per_integrated_scan']:.1f} ms per "
-        f"integrated scan, {duration:.0f} s of log in {elapsed:.1f} s ({stats['real_time_factor']:.1f}x real "
-        f"time), final N_eff {stats['final_ess']:.1f} of {config.particles}, {stats['resamplings']} resamplings"
-    )
-    return 0

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from services.commands.argtypes import check_outputs, finite_float
+from services.commands.options import add_choice, add_command
 
 #: file suffixes (in any case) read as pose .npz files; a .bag file or a folder is a ROS bag; anything else a
 #: CARMEN log
@@ -17,18 +18,7 @@ NPZ_SUFFIXES = (".npz",)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    evaluate = subparsers.add_parser(
-        "eval-relations",
-        help="score a trajectory by the SLAM benchmark's relations (Kuemmerle et al. 2009)",
-        description="Relation error of a trajectory: for every relation 't1 t2 dx dy dz roll pitch yaw' "
-        "(true motion from t1 to t2 in t1's frame) the estimated motion between the poses at t1 and t2 is "
-        "compared with it; prints the mean and std of the translational (m) and rotational (deg) errors and "
-        "of their squares. POSES is a posed-scan or pose-distribution .npz (per stamp the highest-weight "
-        "sample, or the weighted mean with --estimate mean, or the Gaussian mean), a CARMEN log (its laser "
-        "lines' poses plus its timed ODOM lines: odometry for raw logs, the corrected poses for corrected "
-        "logs) or a ROS bag (its odometry). Stamps match within --tolerance; between poses at most "
-        "--max-gap apart the pose is interpolated; unmatched relations are skipped and counted.",
-    )
+    evaluate = add_command(subparsers, "eval-relations", run_eval_relations)
     evaluate.add_argument("poses", type=Path, help="pose .npz, CARMEN log (.clf/.log/.gz) or ROS bag")
     evaluate.add_argument("relations", type=Path, help="relation file (t1 t2 dx dy dz roll pitch yaw per line)")
     evaluate.add_argument(
@@ -39,11 +29,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="put a log's stamps on RAWLOG's clock first, by the scans both hold (for "
         "re-stamped corrected logs such as freiburg-079-corrected.log.gz)",
     )
-    evaluate.add_argument(
+    add_choice(
+        evaluate,
         "--estimate",
-        choices=("best", "mean"),
-        default="best",
-        help="pose files with samples: the highest-weight sample (default) or the weighted mean",
+        ("best", "mean"),
+        "pose files with samples: the highest-weight sample (default) or the weighted mean",
     )
     evaluate.add_argument(
         "--tolerance",
@@ -58,7 +48,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="s: interpolate only between poses at most this far apart (default 5)",
     )
     evaluate.add_argument("--json", default=None, metavar="OUT", help="also write the scores as JSON")
-    evaluate.set_defaults(func=run_eval_relations)
 
 
 def read_log(path: Path, scan_topic: str | None = None):
@@ -105,6 +94,15 @@ def _note(message: str) -> None:
 
 
 def run_eval_relations(args: argparse.Namespace) -> int:
+    """score a trajectory by the SLAM benchmark's relations (Kuemmerle et al. 2009)
+
+    Relation error of a trajectory: for every relation 't1 t2 dx dy dz roll pitch yaw' (true motion from t1 to t2
+    in t1's frame) the estimated motion between the poses at t1 and t2 is compared with it; prints the mean and
+    std of the translational (m) and rotational (deg) errors and of their squares. POSES is a posed-scan or
+    pose-distribution .npz (per stamp the highest-weight sample, or the weighted mean with --estimate mean, or the
+    Gaussian mean), a CARMEN log (its laser lines' poses plus its timed ODOM lines: odometry for raw logs, the
+    corrected poses for corrected logs) or a ROS bag (its odometry). Stamps match within --tolerance; between poses
+    at most --max-gap apart the pose is interpolated; unmatched relations are skipped and counted."""
     from schemas.files import write_atomically
     from services.errors import UsageError
     from slam.relations import (

@@ -10,24 +10,35 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from services.commands.argtypes import check_outputs, checked_output, finite_float, pose_sample_count, random_seed
+from services.commands.options import add_choice, add_command, dest, option_argv
 
 if TYPE_CHECKING:
-    from mapping.adaptive import AdaptiveGrid
+    from mapping.adaptive import AdaptiveGrid, AdaptiveParams
     from mapping.grid import TiledGrid
+    from services.fusion_runner import FusionOptions
 
 #: --coarse-cell when not given, m
 DEFAULT_COARSE_CELL = 0.8
+#: the inverse sensor model's options and the mapping.sensor_model.SensorModel field each sets
+SENSOR_MODEL_OPTIONS = {
+    "--resolution": "resolution",
+    "--sigma-model": "sigma",
+    "--sigma0": "sigma0",
+    "--sigma-slope": "sigma_slope",
+    "--baseline-focal": "baseline_focal",
+    "--peak-width": "peak_width",
+}
 
 
 def add_sensor_model_arguments(parser: argparse.ArgumentParser) -> None:
     """The inverse sensor model's options (shared with the mapper shards)."""
     group = parser.add_argument_group("inverse sensor model (docs/sensor_model.md)")
     group.add_argument("--resolution", type=finite_float, default=0.05, help="cell size in m (default 0.05)")
-    group.add_argument(
+    add_choice(
+        group,
         "--sigma-model",
-        choices=("constant", "linear", "stereo"),
-        default="constant",
-        help="how range noise sigma grows with range z: constant sigma0, linear sigma0 + slope*z, "
+        ("constant", "linear", "stereo"),
+        "how range noise sigma grows with range z: constant sigma0, linear sigma0 + slope*z, "
         "or stereo z^2/(b*f) (default constant)",
     )
     group.add_argument(
@@ -56,6 +67,17 @@ def add_sensor_model_arguments(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_sampling_arguments(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup, samples: str, accuracy: str, seed: str
+) -> None:
+    """--mode, --samples, --accuracy and --seed: how the pose samples each scan is fused with are drawn
+    (services.fusion_runner.PoseSampling); ``samples``, ``accuracy`` and ``seed`` are those options' help."""
+    add_choice(parser, "--mode", ("mc", "ml"), "mc: all samples (default); ml: most likely")
+    parser.add_argument("--samples", type=pose_sample_count, default=None, help=samples)
+    parser.add_argument("--accuracy", type=finite_float, default=None, help=accuracy)
+    parser.add_argument("--seed", type=random_seed, default=0, help=seed)
+
+
 def sensor_model_from_args(args: argparse.Namespace):
     """The sensor model the options describe; a sigma option that the chosen --sigma-model does not read is
     refused rather than ignored."""
@@ -72,24 +94,25 @@ def sensor_model_from_args(args: argparse.Namespace):
                 "or choose the model that reads it"
             )
 
-    return SensorModel(
-        resolution=args.resolution,
-        sigma=args.sigma_model,
-        sigma0=args.sigma0,
-        sigma_slope=args.sigma_slope,
-        baseline_focal=args.baseline_focal,
-        peak_width=args.peak_width,
-    )
+    return SensorModel(**{field: getattr(args, dest(option)) for option, field in SENSOR_MODEL_OPTIONS.items()})
+
+
+def sensor_model_argv(args: argparse.Namespace) -> list[str]:
+    """The sensor-model options of ``args`` as command-line arguments for another process (`posegrid run`'s
+    shards)."""
+    return option_argv(args, SENSOR_MODEL_OPTIONS)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    fuse = subparsers.add_parser(
-        "fuse",
-        help="fuse a posed-scan file into an occupancy map",
-        description="Build an occupancy map from a posed-scan file (scans + per-scan pose distributions). "
-        "mode mc integrates every pose sample (Monte Carlo, the paper's method) and keeps a variance layer "
-        "that shows where pose uncertainty blurred the map; mode ml uses the most likely pose only.",
-    )
+    _add_fuse(subparsers)
+    _add_export(subparsers)
+    evaluate = add_command(subparsers, "eval", run_eval)
+    evaluate.add_argument("map", type=Path, help="map .npz")
+    evaluate.add_argument("truth", type=Path, help="truth raster .npz")
+
+
+def _add_fuse(subparsers: argparse._SubParsersAction) -> None:
+    fuse = add_command(subparsers, "fuse", run_fuse)
     fuse.add_argument("posed", type=Path, help="posed-scan .npz (docs/formats.md)")
     fuse.add_argument(
         "-o",
@@ -98,30 +121,26 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="MAP.npz",
         help="map .npz to write (a regular file or a link to one; written in full or not at all)",
     )
-    fuse.add_argument("--mode", choices=("mc", "ml"), default="mc", help="mc: all samples (default); ml: most likely")
-    fuse.add_argument(
-        "--samples",
-        type=pose_sample_count,
-        default=None,
-        help="pose samples drawn per scan for Gaussian poses (default: derived from the covariance and --accuracy)",
-    )
-    fuse.add_argument(
-        "--accuracy",
-        type=finite_float,
-        default=None,
-        help="required accuracy in m of the Monte Carlo mean beam end point, for the derived sample "
+    add_sampling_arguments(
+        fuse,
+        samples="pose samples drawn per scan for Gaussian poses (default: derived from the covariance and --accuracy)",
+        accuracy="required accuracy in m of the Monte Carlo mean beam end point, for the derived sample "
         "count (default: one cell)",
+        seed="seed of the Gaussian pose sampling (default 0)",
     )
-    fuse.add_argument("--seed", type=random_seed, default=0, help="seed of the Gaussian pose sampling (default 0)")
-    fuse.add_argument(
+    add_choice(
+        fuse,
         "--grid",
-        choices=("regular", "adaptive"),
-        default="regular",
-        help="regular: one cell size everywhere (default); adaptive: a quadtree that keeps fine cells "
+        ("regular", "adaptive"),
+        "regular: one cell size everywhere (default); adaptive: a quadtree that keeps fine cells "
         "only where the scans show structure (docs/adaptive.md); both write the same map file, the "
         "adaptive one with a 'level' layer",
     )
     add_sensor_model_arguments(fuse)
+    _add_adaptive_arguments(fuse)
+
+
+def _add_adaptive_arguments(fuse: argparse.ArgumentParser) -> None:
     adaptive = fuse.add_argument_group("adaptive grid (--grid adaptive, docs/adaptive.md)")
     adaptive.add_argument(
         "--unknowns",
@@ -153,15 +172,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "shadow of every small object splits cells out to the range limit; 1.6 keeps the "
         "splits near the returns (docs/adaptive.md, real data)",
     )
-    fuse.set_defaults(func=run_fuse)
 
-    export = subparsers.add_parser(
-        "export",
-        help="export a map as PGM+YAML (ROS map_server) or PNG",
-        description="Export a map file. pgm writes PATH (.pgm) and a map_server YAML beside it; png writes an "
-        "image for people (grey level 1 - p: free light, occupied black; unobserved pale blue), or the variance "
-        "layer with --layer variance.",
-    )
+
+def _add_export(subparsers: argparse._SubParsersAction) -> None:
+    export = add_command(subparsers, "export", run_export)
     export.add_argument("map", type=Path, help="map .npz")
     export.add_argument(
         "--format",
@@ -170,12 +184,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="pgm: PATH.pgm and a map_server YAML beside it; png: an image for people",
     )
     export.add_argument("-o", "--output", required=True, metavar="IMAGE", help="image path (.pgm or .png)")
-    export.add_argument(
-        "--layer",
-        choices=("probability", "variance"),
-        default="probability",
-        help="png only: which layer to draw (default probability)",
-    )
+    add_choice(export, "--layer", ("probability", "variance"), "png only: which layer to draw (default probability)")
     export.add_argument(
         "--crop",
         type=finite_float,
@@ -184,19 +193,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="m: cut the map to its occupied cells plus MARGIN on every side (rays with no return "
         "clear space far beyond the walls; default: the whole map)",
     )
-    export.set_defaults(func=run_export)
-
-    evaluate = subparsers.add_parser(
-        "eval",
-        help="score a map against a truth raster (AUC, Brier, NLL)",
-        description="Score MAP against TRUTH over the truth's visible cells; prints one JSON line with "
-        "auc (null when those cells hold one class only), brier, nll (natural log, per cell) and n (cells scored). "
-        "Each truth cell takes the map's probability averaged over its area; parts the map does not cover or has "
-        "not observed count as 0.5, so the two rasters may differ in origin, extent and resolution.",
-    )
-    evaluate.add_argument("map", type=Path, help="map .npz")
-    evaluate.add_argument("truth", type=Path, help="truth raster .npz")
-    evaluate.set_defaults(func=run_eval)
 
 
 def _note_peak_behind_returns(model, posed) -> None:
@@ -248,11 +244,11 @@ def _refuse_an_empty_map(args: argparse.Namespace, posed, empty_scans: int) -> N
         )
 
 
-def run_fuse(args: argparse.Namespace) -> int:
-    from schemas.files import MapFile, load_posed_scans, save_map
+def _refuse_unread_options(args: argparse.Namespace) -> None:
+    """UsageError for options `posegrid fuse` would not read: the adaptive grid's with --grid regular, the
+    sample count's with --mode ml."""
     from services.errors import UsageError
 
-    check_outputs(args, output="-o")
     adaptive_options = {
         "--unknowns/--no-unknowns": args.unknowns,
         "--coarse-cell": args.coarse_cell,
@@ -266,6 +262,37 @@ def run_fuse(args: argparse.Namespace) -> int:
         raise UsageError(
             "--samples and --accuracy set how many Gaussian pose samples mc draws; ml uses the mean pose only"
         )
+
+
+def _adaptive_params(args: argparse.Namespace) -> AdaptiveParams:
+    """The mapping.adaptive.AdaptiveParams of the adaptive-grid options (theirs where left unset)."""
+    from mapping.adaptive import AdaptiveParams, level_for_cell_size
+    from services.errors import UsageError
+
+    defaults = AdaptiveParams()
+    unknowns = defaults.unknowns if args.unknowns is None else args.unknowns
+    if args.unknown_range is not None and not unknowns:
+        raise UsageError("--unknown-range limits the unknowns that --no-unknowns turns off; drop one of them")
+    coarse_cell = args.coarse_cell if args.coarse_cell is not None else DEFAULT_COARSE_CELL
+    return AdaptiveParams(
+        start_level=level_for_cell_size(coarse_cell, args.resolution),
+        unknowns=unknowns,
+        significance=defaults.significance if args.significance is None else args.significance,
+        unknown_range=args.unknown_range,
+    )
+
+
+def run_fuse(args: argparse.Namespace) -> int:
+    """fuse a posed-scan file into an occupancy map
+
+    Build an occupancy map from a posed-scan file (scans + per-scan pose distributions). mode mc integrates every
+    pose sample (Monte Carlo, the paper's method) and keeps a variance layer that shows where pose uncertainty
+    blurred the map; mode ml uses the most likely pose only."""
+    from schemas.files import MapFile, load_posed_scans, save_map
+    from services.errors import UsageError
+
+    check_outputs(args, output="-o")
+    _refuse_unread_options(args)
     model = sensor_model_from_args(args)
     posed = load_posed_scans(args.posed)
     empty_scans = _scans_without_beams(posed, model)
@@ -276,27 +303,21 @@ def run_fuse(args: argparse.Namespace) -> int:
             f"{args.posed} holds pose samples, which are fused as they are; --samples and --accuracy "
             "set how many to draw from Gaussian poses"
         )
-    options = dict(
-        mode=args.mode, model=model, n_samples=args.samples, seed=args.seed, accuracy=args.accuracy, progress=True
-    )
+    options: FusionOptions = {
+        "mode": args.mode,
+        "model": model,
+        "n_samples": args.samples,
+        "seed": args.seed,
+        "accuracy": args.accuracy,
+        "progress": True,
+    }
     grid: AdaptiveGrid | TiledGrid
     if args.grid == "adaptive":
-        from mapping.adaptive import AdaptiveParams, level_for_cell_size
         from services.fusion_runner import fuse_posed_scans_adaptive
 
-        defaults = AdaptiveParams()
-        unknowns = defaults.unknowns if args.unknowns is None else args.unknowns
-        if args.unknown_range is not None and not unknowns:
-            raise UsageError("--unknown-range limits the unknowns that --no-unknowns turns off; drop one of them")
-        coarse_cell = args.coarse_cell if args.coarse_cell is not None else DEFAULT_COARSE_CELL
-        params = AdaptiveParams(
-            start_level=level_for_cell_size(coarse_cell, args.resolution),
-            unknowns=unknowns,
-            significance=defaults.significance if args.significance is None else args.significance,
-            unknown_range=args.unknown_range,
-        )
+        params = _adaptive_params(args)
         grid = fuse_posed_scans_adaptive(posed, params=params, **options)
-        summary = f"{grid.active_cells} active cells ({'with' if unknowns else 'without'} unknowns)"
+        summary = f"{grid.active_cells} active cells ({'with' if params.unknowns else 'without'} unknowns)"
     else:
         from services.fusion_runner import fuse_posed_scans
 
@@ -320,6 +341,11 @@ def run_fuse(args: argparse.Namespace) -> int:
 
 
 def run_export(args: argparse.Namespace) -> int:
+    """export a map as PGM+YAML (ROS map_server) or PNG
+
+    Export a map file. pgm writes PATH (.pgm) and a map_server YAML beside it; png writes an image for people
+    (grey level 1 - p: free light, occupied black; unobserved pale blue), or the variance layer with --layer
+    variance."""
     from mapping.export import crop_to_occupied, render_pgm, render_png
     from schemas.files import load_map, write_atomically
     from services.errors import UsageError
@@ -352,6 +378,12 @@ def run_export(args: argparse.Namespace) -> int:
 
 
 def run_eval(args: argparse.Namespace) -> int:
+    """score a map against a truth raster (AUC, Brier, NLL)
+
+    Score MAP against TRUTH over the truth's visible cells; prints one JSON line with auc (null when those cells
+    hold one class only), brier, nll (natural log, per cell) and n (cells scored). Each truth cell takes the map's
+    probability averaged over its area; parts the map does not cover or has not observed count as 0.5, so the two
+    rasters may differ in origin, extent and resolution."""
     from mapping.evaluation import score_map
     from schemas.files import load_map, load_truth
 

@@ -6,22 +6,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from services.commands.options import add_command
+
 #: where a router listens and clients connect unless told otherwise (the port of DEFAULT_ROUTER_ENDPOINT)
 DEFAULT_PORT = 7447
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    init = subparsers.add_parser(
-        "secure-init",
-        help="write a CA, TLS certificates, passwords and per-role Zenoh configs (docs/security.md)",
-        description="Write into DIR (created with mode 0700; every file 0600) what a deployment secured with Zenoh's "
-        "own mechanisms needs: a certificate authority (ca.pem; its key is not kept), the router's certificate for "
-        "localhost, 127.0.0.1 and every --host, one client certificate and password per role, the router's config "
-        "(router.json5: TLS with client certificates, the password dictionary, access control that denies by "
-        "default) and one client config per role (ROLE.json5). Roles: source-ROBOT and slam-ROBOT per robot, "
-        "mapper-MAP per map, api, launcher. Start each process with --zenoh-config DIR/ROLE.json5; run it again "
-        "(with --force) to replace the material, e.g. for a new robot or before the certificates expire.",
-    )
+    init = add_command(subparsers, "secure-init", run_secure_init)
     init.add_argument("folder", type=Path, metavar="DIR", help="folder to write into (empty or new, unless --force)")
     init.add_argument(
         "--robot",
@@ -57,7 +49,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--days", type=int, default=None, metavar="N", help="days the certificates are valid (default 365)"
     )
     init.add_argument("--force", action="store_true", help="replace what DIR holds")
-    init.set_defaults(func=run_secure_init)
 
 
 def _endpoint_host(host: str) -> str:
@@ -66,6 +57,15 @@ def _endpoint_host(host: str) -> str:
 
 
 def run_secure_init(args: argparse.Namespace) -> int:
+    """write a CA, TLS certificates, passwords and per-role Zenoh configs (docs/security.md)
+
+    Write into DIR (created with mode 0700; every file 0600) what a deployment secured with Zenoh's own mechanisms
+    needs: a certificate authority (ca.pem; its key is not kept), the router's certificate for localhost,
+    127.0.0.1 and every --host, one client certificate and password per role, the router's config (router.json5:
+    TLS with client certificates, the password dictionary, access control that denies by default) and one client
+    config per role (ROLE.json5). Roles: source-ROBOT and slam-ROBOT per robot, mapper-MAP per map, api, launcher.
+    Start each process with --zenoh-config DIR/ROLE.json5; run it again (with --force) to replace the material,
+    e.g. for a new robot or before the certificates expire."""
     from services.commands.pipeline import DEFAULT_MAP, DEFAULT_ROBOT, _check_name
     from services.errors import UsageError
     from services.security import DEFAULT_VALID_DAYS, write_material

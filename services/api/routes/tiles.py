@@ -7,10 +7,11 @@ leaves FastAPI's thread pool to the other routes.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Annotated, Any, Literal
 
 import anyio.to_thread
-from fastapi import APIRouter, HTTPException, Path, Query, Request
+from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request
 from fastapi.responses import Response
 
 from services.api.fastpath import tile_response
@@ -48,6 +49,20 @@ Vmax = Annotated[
         "of the colour ramp; default the map's variance_scale",
     ),
 ]
+
+
+@dataclass(frozen=True)
+class TileAt:
+    """Which tile a request names in its path: map ``map``, zoom level ``z``, column ``x``, row ``y``."""
+
+    map: MapName
+    z: Z
+    x: TileX
+    y: TileY
+
+
+#: a route parameter that FastAPI fills from the tile's path
+TileDep = Annotated[TileAt, Depends()]
 
 TILE_CONTENT: dict[int | str, dict[str, Any]] = {
     200: {
@@ -89,10 +104,9 @@ async def tile_work(api: Api, function, *args):
     return await anyio.to_thread.run_sync(function, *args, limiter=api.tile_limiter)
 
 
-async def tile(
-    api: Api, request: Request, name: str, z: int, x: int, y: int, fmt: str, layer: str | None, vmax: float | None
-) -> Response:
+async def tile(api: Api, request: Request, at: TileAt, fmt: str, layer: str | None, vmax: float | None) -> Response:
     """The tile response (200 with the encoded tile and its ETag, or 304) of either format."""
+    name, z, x, y = at.map, at.z, at.x, at.y
     tiles = api.backend.tiles
     info = known_map(api, name)
     if not info.synced:
@@ -115,10 +129,7 @@ async def tile(
 async def tile_png(
     api: ApiDep,
     request: Request,
-    map: MapName,
-    z: Z,
-    x: TileX,
-    y: TileY,
+    at: TileDep,
     layer: Annotated[
         Literal["probability", "logodds", "variance"],
         Query(
@@ -131,7 +142,7 @@ async def tile_png(
 ) -> Response:
     """One tile as a PNG, north up, one pixel per cell. Send If-None-Match with the ETag to get 304
     while the tile is unchanged."""
-    return await tile(api, request, map, z, x, y, "png", layer, vmax)
+    return await tile(api, request, at, "png", layer, vmax)
 
 
 @router.get(
@@ -147,10 +158,7 @@ async def tile_png(
 async def tile_npz(
     api: ApiDep,
     request: Request,
-    map: MapName,
-    z: Z,
-    x: TileX,
-    y: TileY,
+    at: TileDep,
     layer: Annotated[
         Literal["probability", "logodds", "variance"] | None,
         Query(
@@ -162,7 +170,7 @@ async def tile_npz(
 ) -> Response:
     """One tile as NumPy .npz in the map-file format, its origin the tile's lower-left corner (m) and its
     resolution 2^z times the map's."""
-    return await tile(api, request, map, z, x, y, "npz", layer, None)
+    return await tile(api, request, at, "npz", layer, None)
 
 
 @router.get("/maps/{map}/tiles/{z}/{x}/{name}", include_in_schema=False)

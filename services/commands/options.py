@@ -1,0 +1,57 @@
+"""What every subcommand module builds its parser from: the subcommand itself (:func:`add_command`) and options
+that take one of a few words (:func:`add_choice`); and the way back from parsed options to the command-line
+arguments that give a child process the same values (:func:`option_argv`)."""
+
+from __future__ import annotations
+
+import argparse
+import inspect
+from collections.abc import Callable, Iterable, Sequence
+
+#: a subcommand's handler: the parsed arguments in, the exit code out
+Handler = Callable[[argparse.Namespace], int]
+
+
+def add_command(subparsers: argparse._SubParsersAction, name: str, func: Handler) -> argparse.ArgumentParser:
+    """Add the subcommand ``name``, which runs ``func``. ``func``'s docstring is the command's help, so it is
+    written for the user: its first paragraph is the command's line in `posegrid --help`, the rest the description
+    `posegrid NAME --help` shows (argparse refills both to the terminal's width)."""
+    summary, _, description = (inspect.getdoc(func) or "").partition("\n\n")
+    parser = subparsers.add_parser(name, help=summary.replace("%", "%%"), description=description or None)
+    parser.set_defaults(func=func)
+    return parser
+
+
+#: :func:`add_choice`'s default: the first of the choices
+FIRST = object()
+
+
+def add_choice(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup,
+    option: str,
+    choices: Sequence[str],
+    help: str,
+    default: object = FIRST,
+) -> None:
+    """Add ``option``, which takes one of ``choices``; unless given, it is ``default`` (by default the first
+    choice; None: the option can be told apart from one left alone)."""
+    parser.add_argument(option, choices=choices, default=choices[0] if default is FIRST else default, help=help)
+
+
+def dest(option: str) -> str:
+    """The attribute of the parsed arguments that holds ``option`` ("--sigma-model": "sigma_model")."""
+    return option[2:].replace("-", "_")
+
+
+def option_argv(args: argparse.Namespace, options: Iterable[str]) -> list[str]:
+    """``options`` of ``args`` as command-line arguments that give another process the same values: a flag alone
+    when set (store_true), else the option and its value (text as it is, a number by repr, which reads back to the
+    same float); an option left unset (None or False) is left out."""
+    argv: list[str] = []
+    for option in options:
+        value = getattr(args, dest(option))
+        if value is True:
+            argv.append(option)
+        elif value is not None and value is not False:
+            argv += [option, value if isinstance(value, str) else repr(value)]
+    return argv
