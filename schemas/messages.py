@@ -37,6 +37,9 @@ MAX_SEQ = 2**53 - 1
 ROBOT = Name("robot name, one key chunk", forbidden=RESERVED_ROBOT_NAMES)
 SEQ = Int("index of the scan this message belongs to, 0, 1, 2 ... per robot", minimum=0, maximum=MAX_SEQ)
 STAMP = Float("sensor time of the scan, s")
+#: the counts a shard's and a SLAM node's stats share
+RECEIVED = Counts("messages received, by key")
+REJECTED = Counts("messages dropped as malformed or of an unknown version, by key")
 
 
 def _range_limits(v, fail):
@@ -97,7 +100,17 @@ def _shard_index(v, fail):
 
 
 @dataclass(frozen=True, eq=False)
-class LaserScan(Message):
+class ScanMessage(Message):
+    """Base of the messages that belong to one of a robot's scans: their first fields say whose scan, which
+    (``seq``) and when (``stamp``)."""
+
+    robot: str = spec(ROBOT)
+    seq: int = spec(SEQ)
+    stamp: float = spec(STAMP)
+
+
+@dataclass(frozen=True, eq=False)
+class LaserScan(ScanMessage):
     """One 2D laser scan. Published on pg/<robot>/scan."""
 
     TYPE = "LaserScan"
@@ -111,9 +124,6 @@ class LaserScan(Message):
         ),
     )
 
-    robot: str = spec(ROBOT)
-    seq: int = spec(SEQ)
-    stamp: float = spec(STAMP)
     angle_min: float = spec(Float("angle of beam 0 in the laser frame, rad"))
     angle_increment: float = spec(Float("angle between consecutive beams, rad"))
     range_min: float = spec(Float("shortest valid range, m", minimum=0.0))
@@ -123,7 +133,7 @@ class LaserScan(Message):
 
 
 @dataclass(frozen=True, eq=False)
-class Odometry(Message):
+class Odometry(ScanMessage):
     """What the robot's wheels report between the previous scan and scan ``seq``: the velocity commands
     applied (for velocity motion models) and, when the robot reports one, its dead-reckoned pose (for
     odometry motion models). Published on pg/<robot>/odom."""
@@ -132,9 +142,6 @@ class Odometry(Message):
     VERSION = 1
     RULES = (Rule("shape", "at most one pose row; command dt >= 0", _one_pose_at_most),)
 
-    robot: str = spec(ROBOT)
-    seq: int = spec(SEQ)
-    stamp: float = spec(STAMP)
     pose: np.ndarray = spec(
         Array(
             "the dead-reckoned (x m, y m, yaw rad) in the odometry frame; no row when the robot reports none",
@@ -149,23 +156,20 @@ class Odometry(Message):
 
 
 @dataclass(frozen=True, eq=False)
-class LandmarkObservations(Message):
+class LandmarkObservations(ScanMessage):
     """Landmarks seen at the time of scan ``seq``, as range and bearing from the robot.
     Published on pg/<robot>/landmarks."""
 
     TYPE = "LandmarkObservations"
     VERSION = 1
 
-    robot: str = spec(ROBOT)
-    seq: int = spec(SEQ)
-    stamp: float = spec(STAMP)
     ids: np.ndarray = spec(Array("landmark id per observation, -1 when the correspondence is unknown", "<i8", ("K",)))
     ranges: np.ndarray = spec(Array("distance from the robot per observation, m", "<f8", ("K",), minimum=0.0))
     bearings: np.ndarray = spec(Array("bearing in the robot frame per observation, rad", "<f8", ("K",)))
 
 
 @dataclass(frozen=True, eq=False)
-class PoseSamples(Message):
+class PoseSamples(ScanMessage):
     """The robot's pose distribution at scan ``seq`` as weighted samples (particles).
     Published on pg/<robot>/pose."""
 
@@ -179,9 +183,6 @@ class PoseSamples(Message):
         ),
     )
 
-    robot: str = spec(ROBOT)
-    seq: int = spec(SEQ)
-    stamp: float = spec(STAMP)
     samples: np.ndarray = spec(
         Array("pose samples (x m, y m, yaw rad) in the map frame", "<f8", ("M", 3), magnitude=POSE_LIMIT)
     )
@@ -189,16 +190,13 @@ class PoseSamples(Message):
 
 
 @dataclass(frozen=True, eq=False)
-class PoseGaussian(Message):
+class PoseGaussian(ScanMessage):
     """The robot's pose distribution at scan ``seq`` as a Gaussian. Published on pg/<robot>/pose."""
 
     TYPE = "PoseGaussian"
     VERSION = 1
     RULES = (Rule("covariance", "cov symmetric positive semi-definite", _covariance),)
 
-    robot: str = spec(ROBOT)
-    seq: int = spec(SEQ)
-    stamp: float = spec(STAMP)
     mean: np.ndarray = spec(Array("mean pose (x m, y m, yaw rad) in the map frame", "<f8", (3,), magnitude=POSE_LIMIT))
     cov: np.ndarray = spec(
         Array("covariance of (x, y, yaw), m^2, m*rad, rad^2", "<f8", (3, 3), magnitude=POSE_LIMIT**2)
@@ -257,7 +255,7 @@ class ShardStats(Message):
     """What one mapper shard has done. The reply to a query on pg/map/<map>/stats/<shard>."""
 
     TYPE = "ShardStats"
-    VERSION = 3  # 2: resent; 3: refused
+    VERSION = 4  # 2: resent; 3: refused; 4: persist, committed, commit_age
     RULES = (Rule("range", "shard < shards", _shard_index),)
 
     map: str = spec(Name("map name"))
@@ -271,14 +269,14 @@ class ShardStats(Message):
     fused: dict = spec(Counts("scans fused, by robot"))
     discarded: dict = spec(Counts("scans given up on (join buffer overflow, no pose), by robot"))
     ended: dict = spec(Counts("scans announced by the source's StreamEnd, by robot"))
-    received: dict = spec(Counts("messages received, by key"))
+    received: dict = spec(RECEIVED)
     resent: dict = spec(
         Counts(
             "messages of seqs this shard has fused, the same as the ones fused (a restarted SLAM "
             "node or source catching up), dropped, by key"
         )
     )
-    rejected: dict = spec(Counts("messages dropped as malformed or of an unknown version, by key"))
+    rejected: dict = spec(REJECTED)
     overflow: dict = spec(Counts("messages dropped because a bounded buffer was full, by buffer"))
     refused: dict = spec(
         Counts(
@@ -287,6 +285,21 @@ class ShardStats(Message):
             "(past a resource limit), robots, malformed, missing, overflow"
         )
     )
+    persist: str = spec(
+        Name(
+            "the shard's state directory (docs/persistence.md): off (none, the map lives in memory only), ok (the "
+            "last commit succeeded) or failing (it did not: the shard serves from memory and retries)"
+        ),
+        default="off",
+    )
+    committed: dict = spec(
+        Counts("scans fused or given up that the shard's store holds as of its last commit, by robot"),
+        default_factory=dict,
+    )
+    commit_age: float = spec(
+        Float("seconds since the shard's last commit to its store; -1 when there was none", minimum=-1.0),
+        default=-1.0,
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -294,16 +307,30 @@ class NodeStats(Message):
     """What a SLAM node has done. The reply to a query on pg/<robot>/slam/stats."""
 
     TYPE = "NodeStats"
-    VERSION = 1
+    VERSION = 2
 
     robot: str = spec(ROBOT)
     algorithm: str = spec(Name("SLAM algorithm the node runs"))
     poses_published: int = spec(Int("pose distributions published", minimum=0))
     steps_done: int = spec(Int("steps taken, failed or skipped: every seq below this one is dealt with", minimum=0))
     uptime: float = spec(Float("seconds since the node started", minimum=0.0))
-    received: dict = spec(Counts("messages received, by key"))
-    rejected: dict = spec(Counts("messages dropped as malformed or of an unknown version, by key"))
+    received: dict = spec(RECEIVED)
+    rejected: dict = spec(REJECTED)
     out_of_order: dict = spec(Counts("scans that arrived with a seq at or below one already processed, by key"))
+    noise_scale: float = spec(
+        Float(
+            "landmark filters: the factor on the configured motion and measurement noise covariances that the "
+            "consistency watch has set (1: as configured; larger while the filter's innovations showed it "
+            "overconfident); 1 for grid FastSLAM",
+            minimum=0.0,
+        )
+    )
+    consistency: dict = spec(
+        Counts(
+            "landmark filters' consistency watch: measurements whose NIS it took, of them dropped by the gate, and "
+            "how often it inflated or deflated the noise; empty for grid FastSLAM"
+        )
+    )
 
 
 #: every message type, by wire name

@@ -131,7 +131,7 @@ class FakeShard:
             self._kept.append(query)
             self.held.set()
             return
-        given = {"map": self.name, "shard": 0, "shards": 1, "uptime": 1.0}  # the rest: counts of 0, none by key
+        given = {"map": self.name, "shard": 0, "shards": 1, "uptime": 1.0, "persist": "off"}  # the rest: 0, none by key
         stats = ShardStats(
             **{f.name: given.get(f.name, {} if f.type in ("dict", dict) else 0) for f in dataclasses.fields(ShardStats)}
         )

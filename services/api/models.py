@@ -110,6 +110,24 @@ class ShardStatus(BaseModel):
     last_tile_update_age_s: float | None = Field(
         default=None, description="s since the API received this shard's last tile update (null: none yet)"
     )
+    persist: Literal["off", "ok", "failing"] | None = Field(
+        default=None,
+        description="its state directory (docs/persistence.md): off (none), ok, or failing (its last commit failed: "
+        "it serves from memory and retries)",
+    )
+    committed_scans: dict[str, int] | None = Field(
+        default=None, description="by robot: scans fused or given up that its store holds as of its last commit"
+    )
+    last_commit_age_s: float | None = Field(default=None, description="s since its last commit (null: none)")
+
+
+class ShardCommit(BaseModel):
+    """One shard's last commit to its state directory (docs/persistence.md)."""
+
+    shard: int
+    persist: Literal["off", "ok", "failing"] = Field(description="off (no state directory), ok or failing")
+    scans: int = Field(description="scans fused or given up (every robot) that its store holds")
+    age_s: float | None = Field(description="s since its last commit (null: none)")
 
 
 class MapStats(BaseModel):
@@ -149,13 +167,17 @@ class MapHealth(BaseModel):
         "are no posegrid key, messages past a limit): the map holds none of them, but "
         "someone on the network is misbehaving",
     )
+    commits: list[ShardCommit] = Field(
+        default_factory=list, description="each answering shard's last commit to its state directory"
+    )
 
 
 class Health(BaseModel):
     """The whole system at a glance."""
 
     status: Literal["ok", "degraded"] = Field(
-        description="ok: every shard of every map is alive and answers; degraded otherwise"
+        description="ok: every shard of every map is alive and answers, none reports persist failing and no robot is "
+        "stranded; degraded otherwise"
     )
     uptime_s: float = Field(description="s since the API started")
     maps: dict[str, MapHealth]

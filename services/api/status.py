@@ -6,7 +6,8 @@ Over a map's shards: scans fused = the minimum over the answering shards (every 
 that many), scans discarded and lag = the maximum (the scans some part of the map lacks). Lag of a shard for a
 robot = the latest pose seq + 1 minus the scans the shard fused or gave up on.
 
-A map is healthy when its shard count is known and every shard is alive and answers. A robot is *stranded* on
+A map is healthy when its shard count is known and every shard is alive, answers and, when it keeps a state
+directory, commits to it (its ``persist`` is not "failing"). A robot is *stranded* on
 a map when its scans lag, its source process is gone, a shard has counted scans of it and the shards' scans
 done for it (fused + discarded) have not changed for :data:`STRANDED_AFTER` s: those scans cannot come any
 more (a shard restarted after the source ended finds no history to take them from), and nothing else would
@@ -81,6 +82,9 @@ def shard_status(
             rejected=s.rejected,
             overflow=s.overflow,
             lag_scans=shard_lag(s, latest),
+            persist=s.persist if s.persist in ("off", "ok", "failing") else None,
+            committed_scans=s.committed,
+            last_commit_age_s=None if s.commit_age < 0 else s.commit_age,
         )
     )
     return models.ShardStatus(
@@ -129,12 +133,27 @@ def map_health(s: models.MapStats) -> models.MapHealth:
         scans_discarded=s.scans_discarded,
         lag_scans=s.lag_scans,
         distrust=distrust(s.refused),
+        commits=[
+            models.ShardCommit(
+                shard=p.shard,
+                persist=p.persist,
+                scans=sum((p.committed_scans or {}).values()),
+                age_s=p.last_commit_age_s,
+            )
+            for p in s.per_shard
+            if p.persist is not None
+        ],
     )
 
 
 def shards_healthy(s: models.MapStats) -> bool:
-    """Whether the map's shard count is known and each of its shards is alive and answered."""
-    return s.shards is not None and len(s.per_shard) >= s.shards and all(p.alive and p.answered for p in s.per_shard)
+    """Whether the map's shard count is known and each of its shards is alive, answered and, with a state directory,
+    commits."""
+    return (
+        s.shards is not None
+        and len(s.per_shard) >= s.shards
+        and all(p.alive and p.answered and p.persist != "failing" for p in s.per_shard)
+    )
 
 
 def sources_alive(processes: Iterable[str]) -> set[str]:

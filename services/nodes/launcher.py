@@ -37,6 +37,7 @@ from services.api.guard import TOKEN_ENV
 from services.map_client import IncompleteMap, MapReader
 from services.process import PARENT_PID_ENV, get_logger
 from services.security import Role, remove_material, run_material, zenoh_argv
+from services.state.store.run import RunState
 from services.zenoh_config import build_config, open_session
 
 #: seconds a child gets to stop after SIGINT before it is killed
@@ -246,6 +247,9 @@ class Plan:
     description: str = ""
     restart: RestartPolicy = field(default_factory=RestartPolicy)  # when a child that ends is started again
     secure: bool = False  # TLS, client certificates, passwords and ACL per role (services.security)
+    state: RunState | None = None  # the run's state directory and session (None: the map lives in memory only)
+    source_command: str = "source"  # the child feeding the robot's streams: `source` (a replay), or `ros2` (live)
+    router_argv: list[str] = field(default_factory=list)  # more router options (`run --ros2 --ros2-connect`)
 
 
 def _describe_exit(codes: dict[str, int]) -> str:
@@ -272,7 +276,7 @@ def run_pipeline(plan: Plan, stop: threading.Event) -> int:
     children = Children(log, plan.restart)
     code = 1
     try:
-        children.start("router", ["router", "--listen", endpoint, *zenoh_argv(material, None)])
+        children.start("router", ["router", "--listen", endpoint, *plan.router_argv, *zenoh_argv(material, None)])
         for shard in range(plan.shards):  # they keep trying to reach the router while it starts
             children.start(
                 f"mapper[{shard}]",
@@ -285,6 +289,7 @@ def run_pipeline(plan: Plan, stop: threading.Event) -> int:
                     "--map",
                     plan.map_name,
                     *plan.mapper_argv,
+                    *([] if plan.state is None else plan.state.shard_argv(shard)),
                     *role_zenoh("mapper", plan.map_name),
                 ],
             )
@@ -302,9 +307,9 @@ def run_pipeline(plan: Plan, stop: threading.Event) -> int:
                     "slam-node", ["slam-node", "--robot", plan.robot, *plan.slam_argv, *role_zenoh("slam", plan.robot)]
                 )
             children.start(
-                "source",
+                plan.source_command,
                 [
-                    "source",
+                    plan.source_command,
                     "--robot",
                     plan.robot,
                     "--map",
@@ -315,7 +320,7 @@ def run_pipeline(plan: Plan, stop: threading.Event) -> int:
                     *plan.source_argv,
                     *role_zenoh("source", plan.robot),
                 ],
-                expected_to_finish=True,
+                expected_to_finish=plan.source_command == "source",  # (the ROS 2 bridge runs until Ctrl-C)
             )
             _banner(plan, endpoint, children)
             code = _supervise(session, plan, children, stop, log)
@@ -371,6 +376,7 @@ def _banner(plan: Plan, endpoint: str, children: Children) -> None:
             if plan.api_port is not None
             else "  HTTP API: not started (--no-api)"
         ),
+        "  state: " + ("in memory only" if plan.state is None else plan.state.describe()),
         "  running: " + ", ".join(f"{c.name} (pid {c.process.pid})" for c in children.children),
         "  Ctrl-C stops everything",
     ]

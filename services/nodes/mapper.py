@@ -5,6 +5,10 @@ the cells of the tiles it owns (services.state.shard), publishes tile updates at
 pg/map/<map>/tile/0/<tx>/<ty>, answers tile queries (pg/map/<map>/tile/**, whole tiles) and stats queries
 (pg/map/<map>/stats/<I>), and holds the liveliness token pg/map/<map>/alive/<I> while it is up.
 
+With a state directory (``--state-dir``, docs/persistence.md) the shard starts from its store (services.state.store),
+takes from the histories only what came after it, and commits its changes there on a writer thread of its own
+(services.state.store.writer), everything when it stops.
+
 Threads: Zenoh callbacks only copy payloads into a bounded intake queue (services.intake: a full queue drops
 the message and counts it, never silently) or answer queries; one main thread decodes, fuses and publishes. A lock
 serialises the main thread and the tile queries around the shard's state. Stats queries are answered from a
@@ -17,13 +21,19 @@ from __future__ import annotations
 import queue
 import threading
 import time
+from dataclasses import dataclass
+from pathlib import Path
 
 import zenoh
 
+from schemas.wire import is_valid_name
 from services import history, keys
 from services.intake import DEFAULT_CAPACITY, Intake
 from services.process import RejectCounter, get_logger
 from services.state.shard import SHARD_STREAMS, MapShard, ShardConfig
+from services.state.store.db import ShardStore, StoredState, StoreError, StoreIdentity
+from services.state.store.journal import Journal, tiles_of_map
+from services.state.store.writer import DEFAULT_COMMIT_INTERVAL, DEFAULT_COMMIT_SCANS, NO_STORE, Persister
 from services.zenoh_config import open_session
 
 #: messages that may wait in the intake queue between the network and the fusion thread
@@ -32,22 +42,119 @@ DEFAULT_INTAKE_CAPACITY = DEFAULT_CAPACITY
 HISTORY_TIMEOUT = 5.0
 #: s to wait at startup for the histories of every robot's run so far
 CATCH_UP_TIMEOUT = 60.0
+#: s to wait for the liveliness tokens of the robots' processes (which robots a resumed shard asks the histories of)
+ROBOTS_TIMEOUT = 2.0
+
+
+@dataclass(frozen=True)
+class PersistOptions:
+    """A shard's durable state (docs/persistence.md): its state directory (None: the map lives in memory only), the
+    session it writes (None: the store's latest, or a new one), a commit at least every ``commit_scans`` scans or
+    ``commit_interval`` s, the most bytes its database may take (None: no limit), and an exported map to start from
+    (``load``: its tiles this shard owns, as a prior)."""
+
+    state_dir: Path | None = None
+    session: str | None = None
+    commit_scans: int = DEFAULT_COMMIT_SCANS
+    commit_interval: float = DEFAULT_COMMIT_INTERVAL
+    max_bytes: int | None = None
+    load: Path | None = None
+
+
+@dataclass
+class Durable:
+    """A shard's opened store, what it held, and the map to seed from (:meth:`open`)."""
+
+    options: PersistOptions
+    store: ShardStore | None
+    stored: StoredState | None
+    seed: dict | None  # tiles of --load
+
+    @classmethod
+    def open(cls, config: ShardConfig, options: PersistOptions) -> Durable:
+        """Open the store and read --load; StoreError (or a map file's FormatError) says why they cannot be used."""
+        store = stored = None
+        if options.state_dir is not None:
+            identity = StoreIdentity(
+                config.map_name, config.shard, config.shards, config.tile_size, config.model.resolution
+            )
+            store = ShardStore.open(options.state_dir, identity, options.session, options.max_bytes)
+            try:
+                stored = store.load()
+            except BaseException:
+                store.close()
+                raise
+        seed = None
+        if options.load is not None:
+            try:
+                seed = _seed_tiles(config, options.load, stored)
+            except BaseException:
+                if store is not None:
+                    store.close()
+                raise
+        return cls(options, store, stored, seed)
+
+
+def _seed_tiles(config: ShardConfig, path: Path, stored: StoredState | None) -> dict:
+    """The tiles of the exported map ``path`` (every tile; the shard takes those it owns); StoreError when the store
+    holds a map already or the map does not fit the shard's grid."""
+    from schemas.files import load_map
+
+    if stored is not None and (stored.tiles or stored.robots):
+        raise StoreError(
+            f"--load {path} seeds a new map, but the state directory holds one already ({len(stored.tiles)} tiles); "
+            "leave out --load to resume it"
+        )
+    return tiles_of_map(load_map(path), config.model.resolution, config.tile_size, str(path))
 
 
 class Mapper:
     """A running shard: Zenoh declarations around a :class:`MapShard`. Use :meth:`run`."""
 
-    def __init__(self, config: ShardConfig, session: zenoh.Session, intake_capacity: int = DEFAULT_INTAKE_CAPACITY):
+    def __init__(
+        self,
+        config: ShardConfig,
+        session: zenoh.Session,
+        intake_capacity: int = DEFAULT_INTAKE_CAPACITY,
+        durable: Durable | None = None,
+    ):
         self.config = config
         self.session = session
         self.log = get_logger(f"mapper[{config.shard}]")
         self.rejects = RejectCounter(self.log)
         self.shard = MapShard(config, self.rejects, history=self._history)
+        self.persister = None if durable is None else self._start_from(durable)
         self.lock = threading.Lock()
         self.intake = Intake(SHARD_STREAMS, self.rejects, config.limits, capacity=intake_capacity)
         self._declared: list = []  # what declare() declared, undeclared in reverse order
         self._stats_lock = threading.Lock()  # guards _stats_payload only
         self._stats_payload = b""
+
+    def _start_from(self, durable: Durable) -> Persister | None:
+        """Resume the shard from its store and seed it from --load; the persister of the store (None without one)."""
+        persister = None
+        if durable.store is not None:
+            assert durable.stored is not None  # (loaded with the store)
+            stored, options = durable.stored, durable.options
+            self.shard.journal = Journal()
+            self.shard.resume(stored)
+            persister = Persister(durable.store, options.commit_scans, options.commit_interval, self.log)
+            persister.resumed(stored)
+            scans = sum(r.fused + r.discarded for r in stored.robots.values())
+            self.log.info(
+                "state in %s, session %s: %s",
+                durable.store.path,
+                stored.session,
+                f"resumed {len(stored.tiles)} tile(s) and {scans} scan(s) of {len(stored.robots)} robot(s)"
+                if stored.tiles or stored.robots
+                else "a new map",
+            )
+        if durable.seed is not None:
+            owned = self.shard.seed(durable.seed)
+            self.log.info(
+                "started from %s: %d of its %d tile(s) are this shard's", durable.options.load, owned, len(durable.seed)
+            )
+        return persister
 
     # ---------------------------------------------------------------------------- zenoh callbacks
     def _on_tile_query(self, query: zenoh.Query) -> None:
@@ -68,7 +175,8 @@ class Mapper:
 
     def _refresh_stats(self) -> None:
         """Snapshot the shard's stats for the stats queries (main thread, holding ``lock``)."""
-        payload = self.shard.stats({"intake": self.intake.overflow}).encode()
+        persist = NO_STORE if self.persister is None else self.persister.report()
+        payload = self.shard.stats({"intake": self.intake.overflow}, persist).encode()
         with self._stats_lock:
             self._stats_payload = payload
 
@@ -88,10 +196,14 @@ class Mapper:
         (services.history), in seq order (:meth:`MapShard.in_seq_order`), as if they had arrived live: a shard
         that starts late or restarts builds the map of the run so far. It otherwise waits for a gap to show, and
         none shows while a source holds back for the shards (``--rate max``) or has ended. Stats are refreshed as
-        it goes (the source's flow control reads them). Nothing happens when nobody answers."""
-        replies = history.ask_counted(
-            self.session, "*", {"streams": f"{keys.SCAN},{keys.POSE}"}, CATCH_UP_TIMEOUT, self.rejects, self._ours
-        )
+        it goes (the source's flow control reads them). Nothing happens when nobody answers. A shard resumed from its
+        store asks only for what comes after its ledger (:meth:`_resumed_replies`)."""
+        starts = self.shard.resume_points()
+        if starts:
+            replies = self._resumed_replies(starts)
+        else:
+            asked = {"streams": f"{keys.SCAN},{keys.POSE}"}
+            replies = history.ask_counted(self.session, "*", asked, CATCH_UP_TIMEOUT, self.rejects, self._ours)
         with self.lock:
             taken = self.shard.in_seq_order(
                 (keys.robot_key(robot, stream), payload) for robot, stream, payload in replies
@@ -99,6 +211,8 @@ class Mapper:
         for key, message in taken:
             with self.lock:
                 self.shard.take(key, message, from_history=True)
+                if self.persister is not None:
+                    self.persister.step(self.shard)
                 self._refresh_stats()
         if replies:
             scans = sum(stream == keys.SCAN for _, stream, _ in replies)
@@ -107,6 +221,26 @@ class Mapper:
                 scans,
                 len(replies) - scans,
             )
+
+    def _resumed_replies(self, starts: dict[str, int]) -> list[tuple[str, str, bytes]]:
+        """The histories' scans and poses of each robot from the seq its streams resume at (``starts``; 0 for a robot
+        the store does not know whose source or SLAM node is alive), robot by robot."""
+        robots = dict.fromkeys(self._robots_alive(), 0) | starts
+        replies = []
+        for robot, first in sorted(robots.items()):
+            asked = {"streams": f"{keys.SCAN},{keys.POSE}", "from": str(first)}
+            replies += history.ask_counted(self.session, robot, asked, CATCH_UP_TIMEOUT, self.rejects, self._ours)
+        return replies
+
+    def _robots_alive(self) -> set[str]:
+        """The robots whose source or SLAM node holds its liveliness token (pg/<robot>/alive/<process>)."""
+        robots = set()
+        for reply in self.session.liveliness().get(keys.robot_alive_key("*", "*"), timeout=ROBOTS_TIMEOUT):
+            if reply.ok is not None:
+                robot = str(reply.ok.key_expr).split("/")[1]
+                if is_valid_name(robot):
+                    robots.add(robot)
+        return robots
 
     # ---------------------------------------------------------------------------- lifecycle
     def declare(self) -> None:
@@ -147,6 +281,8 @@ class Mapper:
                     self.shard.handle(key, payload)
             with self.lock:
                 self.shard.settle()
+                if self.persister is not None:
+                    self.persister.step(self.shard)
                 self._refresh_stats()
                 flush = self.shard.caught_up() and self.intake.empty()
                 updates, next_due = self.shard.due_updates(time.monotonic(), flush=flush)
@@ -159,6 +295,9 @@ class Mapper:
         for entity in reversed(self._declared):
             entity.undeclare()
         self.log.info("stopped after fusing %d scans", sum(self.shard.fused.values()))
+        if self.persister is not None and not self.persister.finish(self.shard):
+            self.log.error("the last changes could not be committed (%s)", self.persister.failing)
+            return 1
         return 0
 
 
@@ -167,10 +306,18 @@ def run_mapper(
     zenoh_config: zenoh.Config,
     stop: threading.Event,
     intake_capacity: int = DEFAULT_INTAKE_CAPACITY,
+    persist: PersistOptions | None = None,
 ) -> int:
-    """Open a session and run one shard until ``stop`` is set."""
-    session = open_session(zenoh_config, f"mapper shard {config.shard}")
+    """Open the shard's store (``persist``; StoreError before anything else when it cannot be used) and a session,
+    and run one shard until ``stop`` is set."""
+    durable = None if persist is None else Durable.open(config, persist)
     try:
-        return Mapper(config, session, intake_capacity).run(stop)
+        session = open_session(zenoh_config, f"mapper shard {config.shard}")
+    except BaseException:
+        if durable is not None and durable.store is not None:
+            durable.store.close()
+        raise
+    try:
+        return Mapper(config, session, intake_capacity, durable).run(stop)
     finally:
         session.close()

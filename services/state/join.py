@@ -181,6 +181,12 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         """Offer a pose; returns what :meth:`add_scan` returns."""
         return self._offer(key, pose, False, trusted)
 
+    def start_after(self, robot: str, seq: int) -> None:
+        """Both of the robot's streams have passed ``seq`` already (a shard resuming from its store has fused or
+        given up on every seq up to it): the next message of each is ``seq`` + 1, and what lies below is late."""
+        for is_scan in (True, False):
+            self._last[(robot, is_scan)] = max(self._last.get((robot, is_scan), -1), seq)
+
     def beyond_window(self, robot: str, is_scan: bool, seq: int) -> bool:
         """Whether ``seq`` lies more than the window beyond the last seq the robot's scan (else pose) stream has
         passed."""

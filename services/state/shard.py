@@ -39,6 +39,9 @@ from services.state.join import (
 )
 from services.state.limits import ShardLimits
 from services.state.ownership import owns_tile
+from services.state.store.db import Batch, LedgerEntry, RobotState, StoredState, TileState
+from services.state.store.journal import SEED_ROBOT, Journal
+from services.state.store.writer import NO_STORE, PersistReport
 
 TileKey = tuple[int, int]
 
@@ -143,6 +146,7 @@ class MapShard:
         self._last_sent: dict[TileKey, float] = {}
         self._last_scan: dict[TileKey, tuple[str, int]] = {}
         self._snapshots: dict[TileKey, tuple[np.ndarray, ...]] = {}  # (logodds, variance, observed) last published
+        self.journal: Journal | None = None  # what changed since the last commit, for a shard with a store
 
     # ------------------------------------------------------------------------------- intake
     def handle(self, key: str, payload: bytes) -> None:
@@ -233,6 +237,8 @@ class MapShard:
                 return
             if message.robot not in self.ended:  # the first end is news: the last poses may still come (the source
                 self._heard[message.robot] = self._clock()  # repeats it, and a repeat is no news)
+            if self.journal is not None and self.ended.get(message.robot) != message.scans:
+                self.journal.noted(self._clock())
             self.ended[message.robot] = max(message.scans, self.ended.get(message.robot, 0))
             self._unsettled.add(message.robot)
             return
@@ -333,6 +339,8 @@ class MapShard:
         for half in gone:
             if half.scans and half.reason in (OVERFLOW, MISSING, ORPHANED):
                 self.discarded[half.robot] += half.count
+                if self.journal is not None:
+                    self.journal.gave_up(half.robot, half.first + half.count - 1, half.count, self._clock())
             if half.reason == OVERFLOW:
                 self.join_overflow += half.count
             self.rejects.count(
@@ -381,7 +389,15 @@ class MapShard:
         return self.sampling.draw(scan.seq, scan.range_max, samples=pose.samples, weights=pose.weights)
 
     def _fuse(self, scan: LaserScan, pose: PoseDistribution) -> None:
-        self._fused_seqs.mark(scan.robot, scan.seq, (scan.digest(), pose.digest()))
+        """Fuse a joined pair (or count it as given up when it cannot be fused), noting it in the journal."""
+        digests = (scan.digest(), pose.digest())
+        self._fused_seqs.mark(scan.robot, scan.seq, digests)
+        tiles = self._fuse_pair(scan, pose)
+        if self.journal is not None:
+            self.journal.fused(LedgerEntry(scan.robot, scan.seq, *digests), tiles, self._clock())
+
+    def _fuse_pair(self, scan: LaserScan, pose: PoseDistribution) -> list[TileKey]:
+        """Fuse ``scan`` at ``pose`` into the owned tiles; the tiles it changed (none when it was refused)."""
         try:
             samples, weights = self.pose_samples(scan, pose)
             cfg = self.config
@@ -391,24 +407,25 @@ class MapShard:
             if refused is not None:
                 self.discarded[scan.robot] += 1
                 self.rejects.count(f"fuse/{scan.robot}", refused[0], f"scan seq {scan.seq} refused: {refused[1]}")
-                return
+                return []
             result = self._fusion_for(scan).fuse(scan.ranges, samples, weights)
         except InputError as exc:
             self.discarded[scan.robot] += 1
             self.rejects.count(f"fuse/{scan.robot}", "input", f"scan seq {scan.seq} could not be fused: {exc}")
-            return
+            return []
         except Exception as exc:
             self.discarded[scan.robot] += 1
             self.log.exception("scan seq %d of robot %r failed to fuse; the shard goes on", scan.seq, scan.robot)
             self.rejects.count(
                 f"fuse/{scan.robot}", "error", f"scan seq {scan.seq} failed: {type(exc).__name__}: {exc}"
             )
-            return
+            return []
         self.fused[scan.robot] += 1
         self.cells_updated += result.cells_updated
         for tile in result.tiles_changed:
             self._dirty.add(tile)
             self._last_scan[tile] = (scan.robot, scan.seq)
+        return result.tiles_changed
 
     # ------------------------------------------------------------------------------- progress
     def settle(self) -> None:
@@ -430,8 +447,9 @@ class MapShard:
         """Whether every ended stream has all its scans fused or discarded."""
         return bool(self.ended) and all(self.fused[r] + self.discarded[r] >= n for r, n in self.ended.items())
 
-    def stats(self, overflow: dict[str, int]) -> ShardStats:
-        """This shard's statistics; ``overflow`` counts the intake queue's drops (kept by the caller)."""
+    def stats(self, overflow: dict[str, int], persist: PersistReport = NO_STORE) -> ShardStats:
+        """This shard's statistics; ``overflow`` counts the intake queue's drops and ``persist`` says how its store
+        does (both kept by the caller)."""
         cfg = self.config
         return ShardStats(
             map=cfg.map_name,
@@ -450,7 +468,75 @@ class MapShard:
             rejected=self.rejects.snapshot(),
             overflow={**overflow, "join": self.join_overflow},
             refused=self.rejects.kinds(),
+            persist=persist.state,
+            committed=persist.committed,
+            commit_age=persist.age,
         )
+
+    # ------------------------------------------------------------------------------- durable state
+    def batch(self) -> Batch:
+        """What a commit of the journal's changes writes (services.state.store): copies of the tiles changed, every
+        robot's counts, the new ledger entries; the journal starts afresh."""
+        journal = self.journal
+        assert journal is not None  # (a shard with a store keeps one)
+        changed, ledger, changes = journal.take()
+        tiles = []
+        for key in changed:
+            logodds, variance, observed = self.grid.tile_arrays(key)
+            robot, seq = self._last_scan.get(key, (SEED_ROBOT, 0))
+            tiles.append(TileState(key, logodds.copy(), variance.copy(), observed.copy(), robot, seq))
+        robots = [
+            RobotState(r, self.fused[r], self.discarded[r], self.ended.get(r), journal.high.get(r, -1) + 1)
+            for r in sorted({*self.fused, *self.discarded, *self.ended, *journal.high})
+        ]
+        horizon = self._fused_seqs.horizon
+        keep_from = {robot: high - horizon + 1 for robot, high in journal.fused_high.items()}
+        return Batch(tiles, robots, ledger, keep_from, self.cells_updated, changes)
+
+    def resume(self, state: StoredState) -> None:
+        """Start from a store's state: its tiles (published again once the shard is up), and for each robot of its
+        session the counts, the digests of the seqs fused and the seq its streams go on after; a robot whose stream
+        had ended is settled again (what the histories still hold of it is taken, the rest given up)."""
+        for tile in state.tiles:
+            self.grid.set_tile(tile.key, tile.logodds, tile.variance, tile.observed)
+            self._last_scan[tile.key] = (tile.robot, tile.seq)
+            self._dirty.add(tile.key)
+        for entry in state.ledger:
+            self._fused_seqs.mark(entry.robot, entry.seq, (entry.scan, entry.pose))
+        now = self._clock()
+        for robot in state.robots.values():
+            name = robot.robot
+            self._robots.add(name)
+            for counter, count in ((self.fused, robot.fused), (self.discarded, robot.discarded)):
+                if count:
+                    counter[name] = count
+            if robot.ended is not None:
+                self.ended[name] = robot.ended
+                self._heard[name] = now
+                self._unsettled.add(name)
+            if robot.next_seq > 0:
+                self._join.start_after(name, robot.next_seq - 1)
+        self.cells_updated = state.cells_updated
+        if self.journal is not None:
+            self.journal.resumed(state)
+
+    def resume_points(self) -> dict[str, int]:
+        """By robot this shard resumed: the seq its streams go on from (every seq below is fused or given up)."""
+        if self.journal is None:
+            return {}
+        return {robot: high + 1 for robot, high in self.journal.high.items()}
+
+    def seed(self, tiles: dict[TileKey, tuple[np.ndarray, np.ndarray, np.ndarray]]) -> int:
+        """Start from an exported map's tiles (services.state.store.journal.tiles_of_map) as a prior: those this
+        shard owns replace its own; returns how many."""
+        owned = [key for key in tiles if self.owns(*key)]
+        for key in owned:
+            self.grid.set_tile(key, *tiles[key])
+            self._last_scan[key] = (SEED_ROBOT, 0)
+            self._dirty.add(key)
+        if self.journal is not None and owned:
+            self.journal.noted(self._clock(), owned)
+        return len(owned)
 
     # ------------------------------------------------------------------------------- tiles
     def tiles(self) -> list[TileKey]:

@@ -1,0 +1,146 @@
+"""The state-directory options of `posegrid mapper` and `posegrid run` (docs/persistence.md): where a shard keeps its
+map and ledger, how often it commits, and which session it writes."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from services.commands.argtypes import finite_float
+
+if TYPE_CHECKING:
+    from services.nodes.launcher import Plan
+    from services.nodes.mapper import PersistOptions
+
+#: the commit interval's defaults, as services.state.store.writer has them (kept here so `--help` stays instant;
+#: tests/test_persist.py checks that they agree)
+COMMIT_SCANS = 256
+COMMIT_INTERVAL = 2.0
+
+
+def _add_commit_options(group: Any) -> None:
+    group.add_argument(
+        "--commit-scans",
+        type=int,
+        default=COMMIT_SCANS,
+        metavar="N",
+        help=f"commit at least every N scans fused or given up (default {COMMIT_SCANS})",
+    )
+    group.add_argument(
+        "--commit-interval",
+        type=finite_float,
+        default=COMMIT_INTERVAL,
+        metavar="SECONDS",
+        help=f"... or once the oldest change not committed is this old, s (default {COMMIT_INTERVAL:g})",
+    )
+
+
+def add_persist_options(parser: argparse.ArgumentParser) -> None:
+    """`posegrid mapper`'s state options."""
+    group = parser.add_argument_group(
+        "durable state (docs/persistence.md)",
+        "With --state-dir the shard keeps its tiles and its ledger of fused seqs in a SQLite database there, starts "
+        "from it when it holds one, and takes from the histories only the scans after its ledger.",
+    )
+    group.add_argument("--state-dir", type=Path, default=None, metavar="DIR", help="the shard's state directory")
+    group.add_argument(
+        "--session",
+        default=None,
+        metavar="ID",
+        help="--state-dir: the session this shard writes; a new id starts the robots' seqs afresh on the map on "
+        "disk (default: the store's latest session, or a new one)",
+    )
+    group.add_argument(
+        "--load",
+        type=Path,
+        default=None,
+        metavar="MAP.npz",
+        help="start from an exported map (posegrid run --export, posegrid fuse): the tiles this shard owns",
+    )
+    group.add_argument(
+        "--state-limit-mb",
+        type=finite_float,
+        default=None,
+        metavar="MB",
+        help="--state-dir: the most MiB the database may take; past it commits fail and the shard serves from "
+        "memory, reporting persist: failing (default: no limit)",
+    )
+    _add_commit_options(group)
+
+
+def _check_commit_options(args: argparse.Namespace) -> None:
+    from services.errors import UsageError
+
+    if args.commit_scans < 1:
+        raise UsageError(f"--commit-scans must be >= 1, got {args.commit_scans}")
+    if not args.commit_interval > 0:
+        raise UsageError(f"--commit-interval must be > 0 s, got {args.commit_interval}")
+
+
+def persist_from_args(args: argparse.Namespace) -> PersistOptions:
+    """The services.nodes.mapper.PersistOptions of the mapper's options; UsageError (exit 2) for a bad value."""
+    from services.errors import UsageError
+    from services.nodes.mapper import PersistOptions
+
+    _check_commit_options(args)
+    if args.state_dir is None:
+        for option, value in (("--session", args.session), ("--state-limit-mb", args.state_limit_mb)):
+            if value is not None:
+                raise UsageError(f"{option} is an option of the state directory: give it with --state-dir")
+    limit = args.state_limit_mb
+    if limit is not None and not limit > 0:
+        raise UsageError(f"--state-limit-mb must be > 0, got {limit}")
+    return PersistOptions(
+        state_dir=args.state_dir,
+        session=args.session,
+        commit_scans=args.commit_scans,
+        commit_interval=args.commit_interval,
+        max_bytes=None if limit is None else math.floor(limit * 2**20),
+        load=args.load,
+    )
+
+
+def add_run_persist_options(parser: argparse.ArgumentParser) -> None:
+    """`posegrid run`'s state options."""
+    group = parser.add_argument_group(
+        "durable state (docs/persistence.md)",
+        "With --state-dir (a new run) or --resume (a run's directory) each shard keeps its map and ledger in "
+        "DIR/shard-I/; a shard the launcher restarts starts from there.",
+    )
+    where = group.add_mutually_exclusive_group()
+    where.add_argument("--state-dir", type=Path, default=None, metavar="DIR", help="a new directory for this run")
+    where.add_argument(
+        "--resume",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="start from the map of the run in DIR and add this run to it as a new session",
+    )
+    group.add_argument(
+        "--continue-session",
+        action="store_true",
+        help="--resume: go on with DIR's latest session instead (a replay of the same input that was interrupted: "
+        "the shards skip what they had fused)",
+    )
+    _add_commit_options(group)
+
+
+def plan_state(args: argparse.Namespace, plan: Plan) -> None:
+    """Give ``plan`` the run's state directory (a new one, or the one resumed) and the shards' commit options;
+    UsageError (exit 2) when it cannot be used."""
+    from services.errors import UsageError
+
+    if args.continue_session and args.resume is None:
+        raise UsageError("--continue-session goes on with a resumed run's session: give it with --resume DIR")
+    directory = args.resume if args.resume is not None else args.state_dir
+    if directory is None:
+        return
+    _check_commit_options(args)
+    from services.state.store.run import prepare_run
+
+    plan.state = prepare_run(
+        directory, args.resume is not None, args.continue_session, plan.map_name, plan.shards, plan.resolution
+    )
+    plan.mapper_argv += ["--commit-scans", str(args.commit_scans), "--commit-interval", repr(args.commit_interval)]

@@ -1,0 +1,486 @@
+"""One mapper shard's database: SQLite in WAL mode, one file per shard in its state directory (docs/persistence.md).
+
+Tables:
+- ``meta`` (key, value): the store's format and schema version and what it belongs to (map, shard index and count,
+  tile size, resolution), the cell updates fused so far and the Unix time of the last commit;
+- ``sessions`` (ordinal, id, started): the sessions that have written to it, oldest first;
+- ``tiles`` (tx, ty, robot, seq, layers): every tile's layers (log-odds float32, variance float32, observed as bits,
+  over the window of its cells a scan touched, zlib-compressed together: :func:`encode_layers`) and the last scan
+  fused into it;
+- ``robots`` (session, robot, fused, discarded, ended, next_seq): per session and robot, the scans fused and given up,
+  the scans the stream's end announced, and the seq below which every scan is fused or given up;
+- ``ledger`` (session, robot, seq, scan, pose): the digests of the scan and pose fused for each seq, kept for the
+  seqs a shard still compares a re-sent message with (services.state.join.SeqLedger's horizon).
+
+A commit writes one batch (:class:`Batch`: the tiles changed since the last one, every robot's counts and the new
+ledger entries) in one transaction, so the file always holds a prefix of the run.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import os
+import secrets
+import sqlite3
+import time
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from schemas.wire import is_valid_name
+from services.errors import UsageError
+
+#: what the ``meta`` table's ``format`` says: the file is a posegrid shard's store
+FORMAT = "posegrid-shard-store"
+#: the layout of the tables; a store of another version is refused, not guessed at
+SCHEMA_VERSION = 1
+#: the database file and the lock file in a shard's state directory
+DB_NAME = "shard.sqlite"
+LOCK_NAME = "shard.lock"
+#: zlib level of the tile layers: the fastest; on the simulated office with 30 pose samples a scan (noisy floats) it
+#: halves a tile in about 12 ms, and higher levels gain a few per cent for two to three times the time
+COMPRESSION_LEVEL = 1
+#: SQLite's magic string, the first 16 bytes of every database file
+SQLITE_HEADER = b"SQLite format 3\x00"
+
+TileKey = tuple[int, int]
+
+_TABLES = (
+    "CREATE TABLE meta (key TEXT PRIMARY KEY, value) WITHOUT ROWID",
+    "CREATE TABLE sessions (ordinal INTEGER PRIMARY KEY, id TEXT NOT NULL UNIQUE, started REAL NOT NULL)",
+    (
+        "CREATE TABLE tiles (tx INTEGER NOT NULL, ty INTEGER NOT NULL, robot TEXT NOT NULL, seq INTEGER NOT NULL, "
+        "layers BLOB NOT NULL, PRIMARY KEY (tx, ty))"
+    ),
+    (
+        "CREATE TABLE robots (session TEXT NOT NULL, robot TEXT NOT NULL, fused INTEGER NOT NULL, discarded INTEGER "
+        "NOT NULL, ended INTEGER, next_seq INTEGER NOT NULL, PRIMARY KEY (session, robot)) WITHOUT ROWID"
+    ),
+    (
+        "CREATE TABLE ledger (session TEXT NOT NULL, robot TEXT NOT NULL, seq INTEGER NOT NULL, scan BLOB NOT NULL, "
+        "pose BLOB NOT NULL, PRIMARY KEY (session, robot, seq)) WITHOUT ROWID"
+    ),
+)
+
+
+class StoreError(UsageError):
+    """A state directory or store that a shard cannot use: one sentence saying why (the shard exits 2)."""
+
+
+class StoreWriteError(Exception):
+    """A commit that failed (disk full, I/O error, the store's size limit); the store holds the previous one."""
+
+
+@dataclass(frozen=True)
+class StoreIdentity:
+    """What a store belongs to; a shard refuses a store of any other (map, shard, shards, tile size, resolution)."""
+
+    map_name: str
+    shard: int
+    shards: int
+    tile_size: int  # cells per tile side
+    resolution: float  # m per cell
+
+    def describe(self) -> str:
+        return (
+            f"shard {self.shard} of {self.shards} of map {self.map_name!r} (tiles of {self.tile_size} cells, "
+            f"{self.resolution:g} m cells)"
+        )
+
+
+@dataclass(frozen=True)
+class TileState:
+    """One tile's layers, (T, T) each, row = y (mapping.grid), and the last scan fused into it."""
+
+    key: TileKey
+    logodds: np.ndarray  # float32
+    variance: np.ndarray  # float32
+    observed: np.ndarray  # bool
+    robot: str
+    seq: int
+
+
+@dataclass(frozen=True)
+class RobotState:
+    """One robot's counts in a session: scans fused, given up, announced by its end (None: no end yet), and the seq
+    below which every scan is fused or given up."""
+
+    robot: str
+    fused: int
+    discarded: int
+    ended: int | None
+    next_seq: int
+
+
+@dataclass(frozen=True)
+class LedgerEntry:
+    """A fused seq and the digests (schemas.wire.Message.digest) of the scan and the pose fused."""
+
+    robot: str
+    seq: int
+    scan: bytes
+    pose: bytes
+
+
+@dataclass
+class Batch:
+    """What one commit writes: the tiles changed since the last commit, every robot's counts, the new ledger entries,
+    the lowest seq whose ledger entry is still needed by robot (older ones are deleted), the cell updates so far and
+    the scans fused or given up since the last commit (``scans``)."""
+
+    tiles: list[TileState] = field(default_factory=list)
+    robots: list[RobotState] = field(default_factory=list)
+    ledger: list[LedgerEntry] = field(default_factory=list)
+    keep_from: dict[str, int] = field(default_factory=dict)
+    cells_updated: int = 0
+    scans: int = 0
+
+
+@dataclass
+class StoredState:
+    """What a store holds for a shard that starts on it: every tile, and its session's robots and ledger."""
+
+    session: str
+    tiles: list[TileState]
+    robots: dict[str, RobotState]
+    ledger: list[LedgerEntry]  # in seq order
+    cells_updated: int
+    committed_at: float | None  # Unix time of the last commit, s (None: none yet)
+
+
+def new_session_id() -> str:
+    """A new session id: the UTC time and 6 random hex digits, e.g. 20250101T120000Z-3fa9c1."""
+    return time.strftime("%Y%m%dT%H%M%SZ", time.gmtime()) + "-" + secrets.token_hex(3)
+
+
+#: the header of a tile's blob: the window (row0, col0, rows, cols) outside which every layer is zero, uint32 each
+_WINDOW = np.dtype("<u4")
+
+
+def encode_layers(logodds: np.ndarray, variance: np.ndarray, observed: np.ndarray) -> bytes:
+    """A tile's three layers as one blob: the window of its cells that are not all zero (row0, col0, rows, cols as
+    little-endian uint32), then, zlib-compressed, the window's log-odds and variance as little-endian float32 and its
+    observed cells as bits (numpy.packbits, row-major). Cells a scan never touched are zero in every layer, so a tile
+    the robot saw a corner of costs what the corner does."""
+    touched = observed | (logodds != 0) | (variance != 0)
+    rows, cols = np.flatnonzero(touched.any(axis=1)), np.flatnonzero(touched.any(axis=0))
+    if rows.size == 0:
+        window = (0, 0, 0, 0)
+    else:
+        window = (int(rows[0]), int(cols[0]), int(rows[-1] + 1 - rows[0]), int(cols[-1] + 1 - cols[0]))
+    inside = (slice(window[0], window[0] + window[2]), slice(window[1], window[1] + window[3]))
+    raw = (
+        np.ascontiguousarray(logodds[inside], "<f4").tobytes()
+        + np.ascontiguousarray(variance[inside], "<f4").tobytes()
+        + np.packbits(observed[inside]).tobytes()
+    )
+    return np.array(window, _WINDOW).tobytes() + zlib.compress(raw, COMPRESSION_LEVEL)
+
+
+def decode_layers(blob: bytes, tile_size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The (logodds, variance, observed) of a blob :func:`encode_layers` wrote; ValueError when it is not one."""
+    head = 4 * _WINDOW.itemsize
+    if len(blob) < head:
+        raise ValueError(f"its layers are {len(blob)} bytes, shorter than their header")
+    row0, col0, rows, cols = (int(v) for v in np.frombuffer(blob, _WINDOW, 4))
+    if row0 + rows > tile_size or col0 + cols > tile_size:
+        raise ValueError(f"its window ({row0}, {col0}, {rows}, {cols}) exceeds a {tile_size}x{tile_size} tile")
+    try:
+        raw = zlib.decompress(blob[head:])
+    except zlib.error as exc:
+        raise ValueError(f"its layers do not decompress ({exc})") from None
+    cells = rows * cols
+    if len(raw) != 8 * cells + (cells + 7) // 8:
+        raise ValueError(f"its layers hold {len(raw)} bytes, not those of a {rows}x{cols} window")
+    shape, inside = (tile_size, tile_size), (slice(row0, row0 + rows), slice(col0, col0 + cols))
+    logodds, variance, observed = np.zeros(shape, np.float32), np.zeros(shape, np.float32), np.zeros(shape, bool)
+    logodds[inside] = np.frombuffer(raw, "<f4", cells).reshape(rows, cols)
+    variance[inside] = np.frombuffer(raw, "<f4", cells, 4 * cells).reshape(rows, cols)
+    observed[inside] = np.unpackbits(np.frombuffer(raw, np.uint8, offset=8 * cells), count=cells).reshape(rows, cols)
+    if not (np.isfinite(logodds).all() and np.isfinite(variance).all() and (variance >= 0).all()):
+        raise ValueError("its layers hold values no fusion writes (not finite, or a negative variance)")
+    return logodds, variance, observed
+
+
+class ShardStore:
+    """An open store (:meth:`open`): loads the state (:meth:`load`) and commits batches (:meth:`commit`). The
+    state directory is locked (flock on shard.lock) while it is open, so two shard processes never write one store.
+    Not thread-safe: one thread at a time (services.state.store.writer hands it to its thread)."""
+
+    def __init__(self, directory: Path, connection: sqlite3.Connection, lock: int, session: str, tile_size: int):
+        self.directory = directory
+        self.path = directory / DB_NAME
+        self._db = connection
+        self._lock = lock
+        self.session = session
+        self._tile_size = tile_size
+
+    # ------------------------------------------------------------------------------------------ opening
+    @classmethod
+    def open(
+        cls, directory: Path, identity: StoreIdentity, session: str | None = None, max_bytes: int | None = None
+    ) -> ShardStore:
+        """Open (or create) the store in ``directory`` for ``identity``; ``session``: the session this shard writes
+        (None: the store's latest, or a new one); ``max_bytes``: the most the database file may grow to (None: no
+        limit). Raises :class:`StoreError` when the directory cannot be written or the store is damaged, truncated,
+        foreign or another shard's."""
+        if session is not None and not is_valid_name(session):
+            raise StoreError(f"--session {session!r} is not a valid name (letters, digits, '_', '.', '-', at most 64)")
+        lock = _lock_directory(directory)
+        path, created = directory / DB_NAME, False
+        try:
+            created = not _check_file(path)
+            connection = _connect(path, max_bytes)
+            try:
+                if created:
+                    _create(connection, path, identity)
+                else:
+                    _check_integrity(connection, path)
+                    _check_meta(connection, path, identity)
+                chosen = _register_session(connection, path, session)
+            except BaseException:
+                connection.close()
+                raise
+        except BaseException:
+            if created:  # (a store this call began and could not finish, say on a full disk, is no store at all)
+                for leftover in (path, Path(f"{path}-wal"), Path(f"{path}-shm")):
+                    leftover.unlink(missing_ok=True)
+            os.close(lock)
+            raise
+        return cls(directory, connection, lock, chosen, identity.tile_size)
+
+    # ------------------------------------------------------------------------------------------ reading
+    def load(self) -> StoredState:
+        """Every tile, and this session's robots and ledger. Raises :class:`StoreError` for a damaged tile."""
+        db = self._db
+        try:
+            tiles = [self._tile(row) for row in db.execute("SELECT tx, ty, robot, seq, layers FROM tiles")]
+            robots = {
+                row[0]: RobotState(*row)
+                for row in db.execute(
+                    "SELECT robot, fused, discarded, ended, next_seq FROM robots WHERE session = ?", (self.session,)
+                )
+            }
+            ledger = [
+                LedgerEntry(*row)
+                for row in db.execute(
+                    "SELECT robot, seq, scan, pose FROM ledger WHERE session = ? ORDER BY robot, seq", (self.session,)
+                )
+            ]
+            meta = dict(db.execute("SELECT key, value FROM meta WHERE key IN ('cells_updated', 'committed_at')"))
+        except sqlite3.DatabaseError as exc:
+            raise StoreError(f"the store {self.path} cannot be read ({exc}): it is damaged") from None
+        return StoredState(
+            self.session, tiles, robots, ledger, int(meta.get("cells_updated") or 0), meta.get("committed_at")
+        )
+
+    def _tile(self, row: tuple) -> TileState:
+        tx, ty, robot, seq, blob = row
+        try:
+            logodds, variance, observed = decode_layers(blob, self._tile_size)
+        except ValueError as exc:
+            raise StoreError(f"tile ({tx}, {ty}) of the store {self.path} is damaged: {exc}") from None
+        return TileState((tx, ty), logodds, variance, observed, robot, seq)
+
+    def sessions(self) -> list[str]:
+        """The ids of the sessions that have written to this store, oldest first."""
+        return [row[0] for row in self._db.execute("SELECT id FROM sessions ORDER BY ordinal")]
+
+    # ------------------------------------------------------------------------------------------ writing
+    def commit(self, batch: Batch) -> float:
+        """Write ``batch`` in one transaction; returns the commit's Unix time (s). Raises :class:`StoreWriteError`
+        (after rolling back) when SQLite or the disk refuses it."""
+        session, db = self.session, self._db
+        now = time.time()
+        try:
+            db.execute("BEGIN IMMEDIATE")
+            try:
+                db.executemany(
+                    "INSERT OR REPLACE INTO tiles VALUES (?, ?, ?, ?, ?)",
+                    (
+                        (t.key[0], t.key[1], t.robot, t.seq, encode_layers(t.logodds, t.variance, t.observed))
+                        for t in batch.tiles
+                    ),
+                )
+                db.executemany(
+                    "INSERT OR REPLACE INTO robots VALUES (?, ?, ?, ?, ?, ?)",
+                    ((session, r.robot, r.fused, r.discarded, r.ended, r.next_seq) for r in batch.robots),
+                )
+                db.executemany(
+                    "INSERT OR REPLACE INTO ledger VALUES (?, ?, ?, ?, ?)",
+                    ((session, e.robot, e.seq, e.scan, e.pose) for e in batch.ledger),
+                )
+                db.executemany(
+                    "DELETE FROM ledger WHERE session = ? AND robot = ? AND seq < ?",
+                    ((session, robot, seq) for robot, seq in batch.keep_from.items()),
+                )
+                db.executemany(
+                    "INSERT OR REPLACE INTO meta VALUES (?, ?)",
+                    (("cells_updated", batch.cells_updated), ("committed_at", now)),
+                )
+                db.execute("COMMIT")
+            except BaseException:
+                with contextlib.suppress(sqlite3.Error):
+                    db.execute("ROLLBACK")
+                raise
+        except (sqlite3.Error, OSError) as exc:
+            raise StoreWriteError(f"a commit to {self.path} failed: {exc}") from None
+        return now
+
+    def close(self) -> None:
+        """Close the database (SQLite checkpoints the write-ahead log into it) and release the directory's lock."""
+        try:
+            self._db.close()
+        finally:
+            os.close(self._lock)
+
+
+# ---------------------------------------------------------------------------------------------- opening steps
+
+
+def _lock_directory(directory: Path) -> int:
+    """Create ``directory`` if needed and lock it for this process (the lock's fd); StoreError when it cannot be
+    created or written, or another process holds it."""
+    if directory.exists() and not directory.is_dir():
+        raise StoreError(f"the state directory {directory} is not a directory")
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        lock = os.open(directory / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as exc:
+        raise StoreError(f"cannot write to the state directory {directory}: {exc.strerror or exc}") from None
+    try:
+        fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        holder = os.read(lock, 32).decode("ascii", "replace").strip() or "unknown"
+        os.close(lock)
+        raise StoreError(
+            f"the state directory {directory} is in use by another shard process (pid {holder}); give each "
+            "shard its own --state-dir"
+        ) from None
+    os.ftruncate(lock, 0)
+    os.pwrite(lock, str(os.getpid()).encode(), 0)
+    return lock
+
+
+def _check_file(path: Path) -> bool:
+    """Whether the store's file exists; StoreError when it exists but is no SQLite database (empty, truncated before
+    its header, another kind of file), or when only its write-ahead log is left."""
+    if not path.exists():
+        if Path(f"{path}-wal").exists():
+            raise StoreError(
+                f"the store {path} is missing but its write-ahead log {path}-wal is there: the database was "
+                "removed or moved; restore it, or remove the log to start an empty map"
+            )
+        return False
+    if not path.is_file():
+        raise StoreError(f"the store {path} is not a regular file")
+    with path.open("rb") as file:
+        header = file.read(100)
+    if len(header) < 100:
+        raise StoreError(f"the store {path} is truncated ({len(header)} bytes, less than a SQLite header)")
+    if not header.startswith(SQLITE_HEADER):
+        raise StoreError(f"the store {path} is not a SQLite database")
+    return True
+
+
+def _connect(path: Path, max_bytes: int | None) -> sqlite3.Connection:
+    """A connection in WAL mode with full synchronous commits (a commit survives a power cut), autocommit off (the
+    commits begin their own transactions), usable from the writer thread."""
+    try:
+        db = sqlite3.connect(path, isolation_level=None, check_same_thread=False, timeout=10.0)
+    except sqlite3.Error as exc:
+        raise StoreError(f"cannot open the store {path}: {exc}") from None
+    try:
+        mode = db.execute("PRAGMA journal_mode = WAL").fetchone()[0]
+        db.execute("PRAGMA synchronous = FULL")
+        if max_bytes is not None:
+            page = db.execute("PRAGMA page_size").fetchone()[0]
+            db.execute(f"PRAGMA max_page_count = {max(1, max_bytes // page)}")
+    except sqlite3.DatabaseError as exc:
+        db.close()
+        raise StoreError(f"the store {path} cannot be opened ({exc}): it is damaged or not a database") from None
+    if mode != "wal":
+        db.close()
+        raise StoreError(f"the store {path} cannot use a write-ahead log (journal mode {mode!r})")
+    return db
+
+
+def _check_integrity(db: sqlite3.Connection, path: Path) -> None:
+    """SQLite's own check of every page and index (PRAGMA quick_check); StoreError when it finds a problem."""
+    try:
+        rows = db.execute("PRAGMA quick_check").fetchall()
+    except sqlite3.DatabaseError as exc:
+        raise StoreError(f"the store {path} fails SQLite's integrity check ({exc}): it is damaged") from None
+    if rows != [("ok",)]:
+        first = " ".join(str(rows[0][0]).replace("*** in database main ***", "").split()) if rows else "no answer"
+        raise StoreError(f"the store {path} fails SQLite's integrity check ({first[:200]}): it is damaged")
+
+
+def _check_meta(db: sqlite3.Connection, path: Path, identity: StoreIdentity) -> None:
+    """StoreError unless the file is a posegrid shard store of this schema version and of ``identity``."""
+    meta: dict[str, Any]
+    try:
+        meta = dict(db.execute("SELECT key, value FROM meta"))
+    except sqlite3.DatabaseError:
+        meta = {}
+    if meta.get("format") != FORMAT:
+        raise StoreError(f"the store {path} is a SQLite database but no posegrid shard store")
+    if meta.get("schema_version") != SCHEMA_VERSION:
+        raise StoreError(
+            f"the store {path} has schema version {meta.get('schema_version')!r}; this build reads version "
+            f"{SCHEMA_VERSION}"
+        )
+    try:
+        stored = StoreIdentity(meta["map"], meta["shard"], meta["shards"], meta["tile_size"], meta["resolution"])
+    except KeyError as missing:
+        raise StoreError(
+            f"the store {path} lacks its {missing} entry: it is no complete posegrid shard store"
+        ) from None
+    if stored != identity:
+        raise StoreError(
+            f"the store {path} holds {stored.describe()}, not {identity.describe()}: another map's or another "
+            "shard's state; give this shard its own --state-dir"
+        )
+
+
+def _create(db: sqlite3.Connection, path: Path, identity: StoreIdentity) -> None:
+    """The tables and the meta rows of a new store, in one transaction."""
+    meta = {
+        "format": FORMAT,
+        "schema_version": SCHEMA_VERSION,
+        "map": identity.map_name,
+        "shard": identity.shard,
+        "shards": identity.shards,
+        "tile_size": identity.tile_size,
+        "resolution": identity.resolution,
+        "created": time.time(),
+        "cells_updated": 0,
+    }
+    try:
+        db.execute("BEGIN IMMEDIATE")
+        for statement in _TABLES:
+            db.execute(statement)
+        db.executemany("INSERT INTO meta VALUES (?, ?)", meta.items())
+        db.execute("COMMIT")
+    except sqlite3.Error as exc:
+        db.close()
+        raise StoreError(f"cannot write the store {path}: {exc}") from None
+
+
+def _register_session(db: sqlite3.Connection, path: Path, session: str | None) -> str:
+    """The session this shard writes: ``session`` (recorded when it is new), else the store's latest, else a new one."""
+    try:
+        if session is None:
+            latest = db.execute("SELECT id FROM sessions ORDER BY ordinal DESC LIMIT 1").fetchone()
+            session = latest[0] if latest else new_session_id()
+        db.execute("BEGIN IMMEDIATE")
+        db.execute("INSERT OR IGNORE INTO sessions (id, started) VALUES (?, ?)", (session, time.time()))
+        db.execute("COMMIT")
+    except sqlite3.Error as exc:
+        raise StoreError(f"cannot write the store {path}: {exc}") from None
+    assert session is not None  # (chosen above)
+    return session

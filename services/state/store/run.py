@@ -1,0 +1,112 @@
+"""The state directory of a `posegrid run` (:func:`prepare_run`): run.json (the map, shard count, resolution and the
+sessions that wrote to it) and one state directory per shard, shard-<I>/ (services.state.store.db)."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from services.state.store.db import StoreError, new_session_id
+
+RUN_FILE = "run.json"
+RUN_FORMAT = "posegrid-run"
+RUN_VERSION = 1
+
+
+@dataclass(frozen=True)
+class RunState:
+    """Where a run's shards keep their state, and the session they write (shared by every shard of the run, and kept
+    when the launcher restarts a shard)."""
+
+    directory: Path
+    session: str
+    resumed: bool  # the directory held a run before this one
+
+    def shard_dir(self, shard: int) -> Path:
+        return self.directory / f"shard-{shard}"
+
+    def shard_argv(self, shard: int) -> list[str]:
+        """The `posegrid mapper` options of shard ``shard``."""
+        return ["--state-dir", str(self.shard_dir(shard)), "--session", self.session]
+
+    def describe(self) -> str:
+        return f"{self.directory} (session {self.session}{', resumed' if self.resumed else ''})"
+
+
+def prepare_run(
+    directory: Path, resume: bool, continue_session: bool, map_name: str, shards: int, resolution: float
+) -> RunState:
+    """The state of a run in ``directory``: a new one (``resume`` False: the directory must be new or empty), or the
+    run it holds (``resume``), with a new session or, with ``continue_session``, its latest one. Raises StoreError
+    (exit 2) for a directory that cannot be used, or a run of another map, shard count or resolution."""
+    path = directory / RUN_FILE
+    record: dict[str, Any]
+    if not resume:
+        if path.exists():
+            raise StoreError(f"{directory} holds a run already: continue it with --resume {directory}")
+        if directory.is_dir() and any(directory.iterdir()):
+            raise StoreError(f"the state directory {directory} is not empty and holds no run")
+        record = {"format": RUN_FORMAT, "version": RUN_VERSION, "map": map_name, "shards": shards}
+        record |= {"resolution": resolution, "sessions": []}
+    else:
+        record = _read_run(path, directory)
+        for option, key, value in (("--map", "map", map_name), ("--shards", "shards", shards)):
+            if record[key] != value:
+                raise StoreError(
+                    f"{directory} holds a run with {option} {record[key]}, not {value}: give {option} {record[key]}"
+                )
+        if record["resolution"] != resolution:
+            raise StoreError(
+                f"{directory} holds a map of {record['resolution']!r} m cells, not {resolution!r}: give "
+                f"--resolution {record['resolution']!r}"
+            )
+    sessions = record["sessions"]
+    if continue_session and not sessions:
+        raise StoreError(f"{directory} holds no session to continue")
+    session = sessions[-1]["id"] if continue_session else new_session_id()
+    if not continue_session:
+        sessions.append({"id": session, "started": time.time()})
+    _write_run(path, directory, record)
+    return RunState(directory, session, resume)
+
+
+def _read_run(path: Path, directory: Path) -> dict[str, Any]:
+    """run.json of ``directory``, checked; StoreError when it is missing or no run's."""
+    try:
+        record = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise StoreError(f"--resume {directory}: it holds no {RUN_FILE}, so no posegrid run") from None
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise StoreError(f"{path} cannot be read: {exc}") from None
+    ok = (
+        isinstance(record, dict)
+        and record.get("format") == RUN_FORMAT
+        and isinstance(record.get("map"), str)
+        and isinstance(record.get("shards"), int)
+        and isinstance(record.get("resolution"), float)
+        and isinstance(record.get("sessions"), list)
+        and all(isinstance(s, dict) and isinstance(s.get("id"), str) for s in record["sessions"])
+    )
+    if not ok:
+        raise StoreError(f"{path} is no posegrid run record")
+    if record.get("version") != RUN_VERSION:
+        raise StoreError(f"{path} has version {record.get('version')!r}; this build reads version {RUN_VERSION}")
+    return record
+
+
+def _write_run(path: Path, directory: Path, record: dict[str, Any]) -> None:
+    """Write run.json through a temporary file, flushed to disk and renamed onto it; StoreError when it cannot be."""
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        temporary = path.with_name(f".{RUN_FILE}.{os.getpid()}")
+        with temporary.open("w") as file:
+            json.dump(record, file, indent=2)
+            file.flush()
+            os.fsync(file.fileno())
+        os.replace(temporary, path)
+    except OSError as exc:
+        raise StoreError(f"cannot write to the state directory {directory}: {exc.strerror or exc}") from None

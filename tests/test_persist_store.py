@@ -1,0 +1,457 @@
+"""A shard's durable state in process (services.state.store, docs/persistence.md), with real SQLite files:
+
+- a shard "killed" at seeded random points (its store closed with only what was committed) and resumed, taking
+  from the histories only what came after its ledger, ends with the map of a shard never stopped, bit for bit;
+- a store refuses what is not its own or is damaged: another map, shard, tile size, resolution or schema version,
+  a foreign SQLite file, a truncated or corrupted file, a directory in use, one that cannot be written (exit 2 with
+  one line from `posegrid mapper`, before any network);
+- a commit that fails (the store's size limit, as a full disk) leaves the shard serving, reports persist failing,
+  and the next commit that succeeds holds everything;
+- sessions: a new session's seqs start afresh on the map, an old one's ledger stays;
+- an exported map seeds a shard with the tiles it owns;
+- the run directory of `posegrid run --state-dir / --resume`.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import sqlite3
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mapping.sensor_model import SensorModel
+from schemas.files import MapFile, load_posed_scans, save_map
+from schemas.messages import LaserScan, ShardStats, decode_message
+from services import keys
+from services.api import models, status
+from services.api.registry import MapInfo
+from services.cli import main
+from services.commands import persist_options
+from services.nodes.launcher import free_port
+from services.nodes.mapper import Durable, PersistOptions
+from services.process import RejectCounter
+from services.state.ownership import owns_tile
+from services.state.shard import MapShard, ShardConfig
+from services.state.store import writer
+from services.state.store.db import DB_NAME, ShardStore, StoreError, StoreIdentity, decode_layers, encode_layers
+from services.state.store.journal import Journal, tiles_of_map
+from services.state.store.run import prepare_run
+from services.streams import posed_stream
+from test_pipeline import make_posed
+
+LOG = logging.getLogger("test_persist_store")
+RESOLUTION = 0.05
+
+
+def _config(shard: int = 0, shards: int = 1, tile_size: int = 64) -> ShardConfig:
+    return ShardConfig(
+        map_name="m", shard=shard, shards=shards, model=SensorModel(resolution=RESOLUTION), tile_size=tile_size
+    )
+
+
+def _identity(config: ShardConfig) -> StoreIdentity:
+    return StoreIdentity(config.map_name, config.shard, config.shards, config.tile_size, config.model.resolution)
+
+
+@pytest.fixture(scope="module")
+def pairs(tmp_path_factory) -> list[tuple[LaserScan, object]]:
+    """(scan, pose) of a robot "r1" driving through a room, in seq order (6 pose samples a scan)."""
+    path = make_posed(tmp_path_factory.mktemp("posed") / "posed.npz", "samples", steps=80)
+    return [step.messages for step in posed_stream(load_posed_scans(path), "r1").steps]  # type: ignore[misc]
+
+
+def _feed(shard: MapShard, pairs, seqs, persister=None, from_history=False) -> None:
+    for seq in seqs:
+        scan, pose = pairs[seq]
+        shard.take(keys.robot_key(scan.robot, keys.SCAN), scan, from_history=from_history)
+        shard.take(keys.robot_key(pose.robot, keys.POSE), pose, from_history=from_history)
+        if persister is not None:
+            persister.step(shard)
+
+
+def _same_grid(got: MapShard, expected: MapShard) -> None:
+    assert sorted(got.grid.keys()) == sorted(expected.grid.keys())
+    for key in sorted(expected.grid.keys()):
+        for mine, theirs in zip(got.grid.tile_arrays(key), expected.grid.tile_arrays(key)):
+            np.testing.assert_array_equal(mine, theirs)
+
+
+def _reference(pairs, config: ShardConfig) -> MapShard:
+    shard = MapShard(config, RejectCounter(LOG))
+    _feed(shard, pairs, range(len(pairs)))
+    return shard
+
+
+def _open(config: ShardConfig, directory: Path, every_scans: int, session: str | None = None, max_bytes=None):
+    """A shard started on the store in ``directory``, and its persister."""
+    store = ShardStore.open(directory, _identity(config), session, max_bytes)
+    stored = store.load()
+    shard = MapShard(config, RejectCounter(LOG))
+    shard.journal = Journal()
+    shard.resume(stored)
+    persister = writer.Persister(store, every_scans, 1e9, LOG)
+    persister.resumed(stored)
+    return shard, persister
+
+
+def test_a_shard_killed_at_random_points_and_resumed_ends_with_the_map_of_one_never_stopped(tmp_path, pairs):
+    """12 seeded kill points for each of two shards: each life takes what the "histories" hold after its ledger, then
+    the live stream; a kill keeps only what was committed (the batch in flight may or may not land: both are
+    prefixes)."""
+    shards = 2
+    rng = np.random.default_rng(7 + shards)
+    kills = sorted(rng.choice(np.arange(1, len(pairs)), size=12, replace=False).tolist())
+    for index in range(shards):
+        config = _config(index, shards)
+        expected = _reference(pairs, config)
+        directory = tmp_path / f"shard-{index}"
+        published = 0  # pairs the source has published so far
+        lives = 0
+        for stop in [*kills, len(pairs)]:
+            shard, persister = _open(config, directory, every_scans=int(rng.integers(1, 8)))
+            lives += 1
+            resumed_at = shard.resume_points().get("r1", 0)
+            assert resumed_at <= published  # never past what it was given
+            _feed(shard, pairs, range(resumed_at, published), persister, from_history=True)  # (catch_up)
+            _feed(shard, pairs, range(published, stop), persister)
+            published = stop
+            if stop < len(pairs):
+                persister.abandon()
+        assert persister.finish(shard)
+        assert lives == 13
+        _same_grid(shard, expected)
+        assert shard.fused == {"r1": len(pairs)} and not shard.discarded and not shard.resent
+        assert shard.rejects.snapshot() == {}  # nothing fused twice, nothing refused
+        again, persister = _open(config, directory, every_scans=1)  # a clean stop committed everything
+        _same_grid(again, expected)
+        assert again.fused == {"r1": len(pairs)} and again.resume_points() == {"r1": len(pairs)}
+        persister.abandon()
+
+
+def test_a_resumed_shard_drops_a_replay_of_what_it_fused_as_resent(tmp_path, pairs):
+    """A source restarted from the start (a full restart with --continue-session): the seqs in the ledger are
+    dropped as resent, by their digests, and the rest fused."""
+    config = _config()
+    shard, persister = _open(config, tmp_path, every_scans=5)
+    _feed(shard, pairs, range(30), persister)
+    assert persister.finish(shard)
+    shard, persister = _open(config, tmp_path, every_scans=5)
+    _feed(shard, pairs, range(len(pairs)), persister)
+    assert shard.resent == {"pg/r1/scan": 30, "pg/r1/pose": 30} and shard.fused == {"r1": len(pairs)}
+    _same_grid(shard, _reference(pairs, config))
+    persister.abandon()
+
+
+def test_a_new_session_fuses_the_robots_seqs_again_on_top_of_the_map(tmp_path, pairs):
+    config = _config()
+    shard, persister = _open(config, tmp_path, every_scans=8, session="first")
+    _feed(shard, pairs, range(len(pairs)), persister)
+    assert persister.finish(shard)
+    shard, persister = _open(config, tmp_path, every_scans=8, session="second")
+    assert shard.fused == {} and shard.resume_points() == {}  # the old session's seqs do not block the new one's
+    _feed(shard, pairs, range(20), persister)
+    assert shard.fused == {"r1": 20} and not shard.resent
+    expected = _reference(pairs, config)  # the first session's map, then its first 20 scans again (as another
+    again = [(replace(scan, robot="r2"), replace(pose, robot="r2")) for scan, pose in pairs[:20]]  # robot's: the
+    _feed(expected, again, range(20))  # reference shard's own ledger would drop them)
+    _same_grid(shard, expected)
+    assert persister.finish(shard)
+    store = ShardStore.open(tmp_path, _identity(config), "first")
+    assert store.sessions() == ["first", "second"] and store.load().robots["r1"].fused == len(pairs)
+    store.close()
+
+
+def test_a_failed_commit_keeps_the_shard_serving_and_the_next_one_holds_everything(tmp_path, pairs):
+    """The store's size limit (SQLite's max_page_count) fails a commit the way a full disk does."""
+    config = _config()
+    shard, persister = _open(config, tmp_path, every_scans=4, max_bytes=64 * 1024)
+    _feed(shard, pairs, range(40), persister)
+    if persister._flight is not None:
+        persister._flight[1].exception()  # (let the last batch finish)
+    persister.step(shard)
+    report = persister.report()
+    assert report.state == "failing" and "database or disk is full" in persister.failing
+    stats = decode_message(shard.stats({}, report).encode(), ShardStats)
+    assert stats.persist == "failing" and stats.fused == {"r1": 40}
+    info = MapInfo("m", shards=1, alive={0})
+    health = status.map_stats(info, {0: stats}, {}, {}, 0.0)
+    assert not status.shards_healthy(health) and status.map_health(health).commits[0].persist == "failing"
+    persister.store._db.execute("PRAGMA max_page_count = 1000000")  # the disk has room again
+    persister._retry_at = 0.0
+    _feed(shard, pairs, range(40, len(pairs)), persister)
+    assert persister.finish(shard) and persister.failing is None
+    again, persister = _open(config, tmp_path, every_scans=4)
+    _same_grid(again, _reference(pairs, config))
+    assert again.fused == {"r1": len(pairs)}
+    persister.abandon()
+
+
+# ------------------------------------------------------------------------------------------------ refusals
+
+
+def _mapper(directory: Path, *extra: str) -> list[str]:
+    return [
+        "mapper",
+        "--shard",
+        "0",
+        "--shards",
+        "1",
+        "--map",
+        "m",
+        "--tile-size",
+        "64",
+        "--state-dir",
+        str(directory),
+        "--connect",
+        f"tcp/127.0.0.1:{free_port()}",
+        *extra,
+    ]
+
+
+def _committed_store(directory: Path, pairs, config: ShardConfig | None = None) -> Path:
+    shard, persister = _open(config or _config(), directory, every_scans=4)
+    _feed(shard, pairs, range(len(pairs)), persister)
+    assert persister.finish(shard)
+    return directory / DB_NAME
+
+
+def _refused(argv: list[str], capsys) -> str:
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    return err
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (
+            ["--map", "other"],
+            "holds shard 0 of 1 of map 'm' (tiles of 64 cells, 0.05 m cells), not shard 0 of 1 of map 'other'",
+        ),
+        (["--shards", "2"], "not shard 0 of 2 of map 'm'"),
+        (["--tile-size", "128"], "not shard 0 of 1 of map 'm' (tiles of 128 cells"),
+        (["--resolution", "0.1"], "0.1 m cells): another map's or another shard's state"),
+    ],
+)
+def test_a_store_of_another_map_shard_count_tile_size_or_resolution_is_refused(tmp_path, pairs, capsys, argv, message):
+    _committed_store(tmp_path, pairs[:10])
+    assert message in _refused(_mapper(tmp_path, *argv), capsys)
+
+
+def _foreign(path: Path) -> None:
+    with sqlite3.connect(path) as db:
+        db.execute("CREATE TABLE notes (text TEXT)")
+
+
+def _version_2(path: Path) -> None:
+    with sqlite3.connect(path) as db:
+        db.execute("UPDATE meta SET value = 2 WHERE key = 'schema_version'")
+
+
+def _truncated(path: Path) -> None:
+    with path.open("r+b") as file:
+        file.truncate(path.stat().st_size // 2)
+
+
+def _scribbled(path: Path) -> None:
+    """Random bytes over the middle of the file: a damaged page (a B-tree or a tile's layers)."""
+    data = bytearray(path.read_bytes())
+    middle = len(data) // 2
+    data[middle : middle + 3000] = np.random.default_rng(0).integers(0, 256, 3000, dtype=np.uint8).tobytes()
+    path.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize(
+    "damage, message",
+    [
+        (_foreign, "is a SQLite database but no posegrid shard store"),
+        (_version_2, "has schema version 2; this build reads version 1"),
+        (_truncated, "database disk image is malformed"),
+        (_scribbled, "is damaged"),
+        (lambda path: path.write_bytes(b""), "is truncated (0 bytes, less than a SQLite header)"),
+        (lambda path: path.write_text("tiles\n" * 100), "is not a SQLite database"),
+    ],
+)
+def test_a_foreign_damaged_or_truncated_store_is_refused_with_one_sentence(tmp_path, pairs, capsys, damage, message):
+    path = tmp_path / "state" / DB_NAME
+    if damage is _foreign:
+        path.parent.mkdir()
+    else:
+        _committed_store(tmp_path / "state", pairs)
+    damage(path)
+    err = _refused(_mapper(tmp_path / "state"), capsys)
+    assert message in err and str(path) in err
+
+
+def test_a_store_whose_database_is_gone_but_its_log_is_there_is_refused(tmp_path, pairs, capsys):
+    path = _committed_store(tmp_path, pairs[:5])
+    Path(f"{path}-wal").write_bytes(b"\0" * 32)
+    path.unlink()
+    assert "is missing but its write-ahead log" in _refused(_mapper(tmp_path), capsys)
+
+
+def test_a_state_directory_in_use_or_that_cannot_be_written_is_refused(tmp_path, capsys):
+    held = ShardStore.open(tmp_path / "busy", _identity(_config()))
+    try:
+        err = _refused(_mapper(tmp_path / "busy"), capsys)
+        assert f"is in use by another shard process (pid {os.getpid()})" in err
+    finally:
+        held.close()
+    (tmp_path / "file").write_text("")
+    assert "is not a directory" in _refused(_mapper(tmp_path / "file"), capsys)
+    read_only = Path("/sys/posegrid-state")  # (permissions do not stop root; a read-only mount does)
+    if os.access("/sys", os.W_OK) and os.geteuid() != 0:
+        pytest.skip("/sys is writable here")
+    assert "cannot write to the state directory /sys/posegrid-state" in _refused(_mapper(read_only), capsys)
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["mapper", "--shard", "0", "--shards", "1", "--session", "s"], "--session is an option of the state"),
+        (["mapper", "--shard", "0", "--shards", "1", "--commit-scans", "0"], "--commit-scans must be >= 1"),
+        (["run", "--continue-session", "--no-api"], "give it with --resume DIR"),
+    ],
+)
+def test_bad_state_options_exit_2_with_one_sentence(argv, message, capsys):
+    assert message in _refused(argv, capsys)
+
+
+def test_run_refuses_a_state_directory_it_cannot_start_or_resume_with_one_sentence(tmp_path, capsys):
+    base = ["run", "--no-api", "--steps", "5"]
+    assert "holds no run.json, so no posegrid run" in _refused([*base, "--resume", str(tmp_path)], capsys)
+    prepare_run(tmp_path / "run", False, False, "main", 1, 0.05)
+    err = _refused([*base, "--state-dir", str(tmp_path / "run")], capsys)
+    assert f"holds a run already: continue it with --resume {tmp_path / 'run'}" in err
+    assert "give --shards 1" in _refused([*base, "--resume", str(tmp_path / "run"), "--shards", "2"], capsys)
+
+
+def test_the_commit_defaults_of_the_options_are_the_writers():
+    assert persist_options.COMMIT_SCANS == writer.DEFAULT_COMMIT_SCANS
+    assert persist_options.COMMIT_INTERVAL == writer.DEFAULT_COMMIT_INTERVAL
+
+
+# ------------------------------------------------------------------------------------------------ runs and seeds
+
+
+def test_a_run_directory_is_new_or_resumed_with_its_own_map_and_shards(tmp_path):
+    first = prepare_run(tmp_path / "run", False, False, "m", 2, 0.05)
+    assert first.shard_argv(1) == ["--state-dir", str(tmp_path / "run" / "shard-1"), "--session", first.session]
+    with pytest.raises(StoreError, match=re.escape("holds a run already: continue it with --resume")):
+        prepare_run(tmp_path / "run", False, False, "m", 2, 0.05)
+    again = prepare_run(tmp_path / "run", True, True, "m", 2, 0.05)
+    assert again.session == first.session and again.resumed
+    other = prepare_run(tmp_path / "run", True, False, "m", 2, 0.05)
+    assert other.session != first.session
+    with pytest.raises(StoreError, match=re.escape("holds a run with --shards 2, not 3: give --shards 2")):
+        prepare_run(tmp_path / "run", True, False, "m", 3, 0.05)
+    with pytest.raises(StoreError, match=re.escape("holds a map of 0.05 m cells, not 0.1")):
+        prepare_run(tmp_path / "run", True, False, "m", 2, 0.1)
+    with pytest.raises(StoreError, match=re.escape("holds no run.json, so no posegrid run")):
+        prepare_run(tmp_path, True, False, "m", 2, 0.05)
+
+
+def test_an_exported_map_seeds_each_shard_with_the_tiles_it_owns(pairs):
+    full = _reference(pairs, _config())
+    raster = full.grid.rasterize()
+    exported = MapFile(
+        logodds=raster["logodds"],
+        probability=raster["probability"],
+        observed=raster["observed"],
+        origin=raster["origin"],
+        resolution=float(raster["resolution"]),
+        variance=raster["variance"],
+    )
+    tiles = tiles_of_map(exported, RESOLUTION, 64, "map.npz")
+    assert set(tiles) == {key for key in sorted(full.grid.keys()) if full.grid.tile_arrays(key)[2].any()}
+    for index in range(2):
+        shard = MapShard(_config(index, 2), RejectCounter(LOG))
+        owned = [key for key in tiles if owns_tile(index, 2)(*key)]
+        assert shard.seed(tiles) == len(owned) > 0 and sorted(shard.grid.keys()) == sorted(owned)
+        for key in owned:
+            for mine, theirs in zip(shard.grid.tile_arrays(key), full.grid.tile_arrays(key)):
+                np.testing.assert_array_equal(mine, theirs)
+    shifted = MapFile(**{**vars(exported), "origin": exported.origin + 0.01})
+    with pytest.raises(StoreError, match=re.escape("not on the shard's grid of 0.05 m cells")):
+        tiles_of_map(shifted, RESOLUTION, 64, "map.npz")
+    with pytest.raises(StoreError, match=re.escape("has cells of 0.05 m; this shard's are 0.1 m")):
+        tiles_of_map(exported, 0.1, 64, "map.npz")
+
+
+def test_health_reports_each_shards_last_commit():
+    stats = ShardStats(
+        map="m",
+        shard=0,
+        shards=1,
+        tiles_owned=1,
+        cells_updated=1,
+        tile_updates=1,
+        join_pending=0,
+        uptime=1.0,
+        fused={"r1": 5},
+        discarded={},
+        ended={},
+        received={},
+        resent={},
+        rejected={},
+        overflow={},
+        refused={},
+        persist="ok",
+        committed={"r1": 4},
+        commit_age=0.5,
+    )
+    decoded = decode_message(stats.encode(), ShardStats)
+    assert (decoded.persist, decoded.committed, decoded.commit_age) == ("ok", {"r1": 4}, 0.5)
+    view = status.map_stats(MapInfo("m", shards=1, alive={0}), {0: decoded}, {}, {}, 0.0)
+    assert status.shards_healthy(view)
+    assert status.map_health(view).commits == [models.ShardCommit(shard=0, persist="ok", scans=4, age_s=0.5)]
+
+
+def test_a_tiles_layers_round_trip_through_the_window_of_its_touched_cells():
+    rng = np.random.default_rng(3)
+    for rows, cols in [(slice(0, 0), slice(0, 0)), (slice(5, 9), slice(60, 64)), (slice(0, 64), slice(0, 64))]:
+        logodds, variance = np.zeros((64, 64), np.float32), np.zeros((64, 64), np.float32)
+        observed = np.zeros((64, 64), bool)
+        observed[rows, cols] = True
+        logodds[rows, cols] = rng.normal(size=logodds[rows, cols].shape)
+        variance[rows, cols] = rng.random(variance[rows, cols].shape)
+        blob = encode_layers(logodds, variance, observed)
+        for got, expected in zip(decode_layers(blob, 64), (logodds, variance, observed)):
+            np.testing.assert_array_equal(got, expected)
+            assert got.dtype == expected.dtype
+    assert len(encode_layers(logodds * 0, variance * 0, observed & False)) < 32  # an empty tile costs its header
+    with pytest.raises(ValueError, match="exceeds a 32x32 tile"):
+        decode_layers(blob, 32)
+    with pytest.raises(ValueError, match="do not decompress"):
+        decode_layers(blob[:16] + b"not zlib", 64)
+
+
+def test_load_seeds_only_a_new_store_and_refuses_one_that_holds_a_map(tmp_path, pairs, capsys):
+    full = _reference(pairs, _config())
+    exported = tmp_path / "map.npz"
+    raster = full.grid.rasterize()
+    layers = {key: raster[key] for key in ("logodds", "probability", "observed", "origin", "variance")}
+    save_map(exported, MapFile(**layers, resolution=float(raster["resolution"])))
+    durable = Durable.open(_config(), PersistOptions(state_dir=tmp_path / "new", load=exported))
+    assert durable.seed is not None and durable.stored is not None and not durable.stored.tiles
+    durable.store.close()
+    _committed_store(tmp_path / "old", pairs[:5])
+    err = _refused(_mapper(tmp_path / "old", "--load", str(exported)), capsys)
+    assert "seeds a new map, but the state directory holds one already" in err
+
+
+def test_a_disk_full_at_start_exits_2_and_leaves_no_half_made_store(tmp_path, capsys):
+    """The store's size limit stands in for a full disk: creating the store fails, exit 2 with one sentence, and the
+    file it began is removed, so the next start (with room) makes a new store instead of refusing a foreign one."""
+    err = _refused(_mapper(tmp_path, "--state-limit-mb", "0.001"), capsys)
+    assert "cannot write the store" in err and "database or disk is full" in err
+    assert not (tmp_path / DB_NAME).exists()
+    store = ShardStore.open(tmp_path, _identity(_config()))
+    assert store.load().tiles == []
+    store.close()
