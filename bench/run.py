@@ -22,6 +22,8 @@ SUITES = (
     "bench.api",
     "bench.slam",
     "bench.chaos",
+    "bench.persist",
+    "bench.ros2",
 )
 
 

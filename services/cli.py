@@ -20,7 +20,9 @@ from services.errors import UsageError
 COMMAND_MODULES = (
     "services.commands.mapping",
     "services.commands.slam",
+    "services.commands.calibrate",
     "services.commands.pipeline",
+    "services.commands.ros2",
     "services.commands.logs",
     "services.commands.api",
     "services.commands.security",

@@ -13,9 +13,17 @@ from typing import TYPE_CHECKING
 
 from services.commands.api import add_http_arguments, api_child_options, check_port_free
 from services.commands.argtypes import checked_output, finite_float, odom_delay_seconds, pose_sample_count, random_seed
-from services.commands.gridslam import add_filter_options, filter_option_values, reject_filter_options
+from services.commands.gridslam import FILTER_OPTIONS, add_filter_options, reject_filter_options
 from services.commands.limits import add_limit_arguments, limit_argv, limits_from_args
-from services.commands.mapping import add_sensor_model_arguments
+from services.commands.mapping import add_sampling_arguments, add_sensor_model_arguments, sensor_model_argv
+from services.commands.options import add_choice, add_command, option_argv
+from services.commands.persist_options import (
+    add_persist_options,
+    add_run_persist_options,
+    persist_from_args,
+    plan_state,
+)
+from services.commands.slam import add_calibration_options, add_initial_option
 
 if TYPE_CHECKING:
     from services.nodes.launcher import Plan
@@ -30,6 +38,24 @@ RUN_PARTICLES = 30
 #: landmark FastSLAM particles of a `slam-node` unless --particles says otherwise: fewer than `posegrid slam`'s
 #: offline default, since every mapper shard ray-casts each of them in every scan
 NODE_PARTICLES = 500
+#: the options of :func:`add_slam_arguments` that `run` passes on to its SLAM node as given (--algo and --models
+#: are filled in first)
+SLAM_NODE_OPTIONS = (
+    "--associate",
+    "--motion",
+    "--seed",
+    "--resample-threshold",
+    "--plain-resampling",
+    "--particles",
+    "--alphas",
+    "--sigma-range",
+    "--sigma-bearing",
+    "--range-fraction",
+    "--outlier-gate",
+    "--profile",
+    "--calibration",
+    *(option for option, _ in FILTER_OPTIONS),
+)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -43,31 +69,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _add_router(subparsers: argparse._SubParsersAction) -> None:
     from services.zenoh_config import add_zenoh_arguments
 
-    router = subparsers.add_parser(
-        "router",
-        help="a Zenoh router in a Python process (for machines without zenohd)",
-        description="Route Zenoh traffic between posegrid processes. Listens on tcp/127.0.0.1:7447 unless "
-        "--listen or --zenoh-config say otherwise; multicast scouting is off. Stops on Ctrl-C or SIGTERM.",
-    )
+    router = add_command(subparsers, "router", run_router)
     add_zenoh_arguments(router)
-    router.set_defaults(func=run_router)
 
 
 def _add_mapper(subparsers: argparse._SubParsersAction) -> None:
     from services.zenoh_config import add_zenoh_arguments
 
-    mapper = subparsers.add_parser(
-        "mapper",
-        help="one map shard: fuses the scans into the tiles it owns, serves them over Zenoh",
-        description="A mapper shard. Owns the tiles that rendezvous hashing of (tile, shards 0..N-1) gives "
-        "shard I, fuses every robot's scans (pg/*/scan) with their poses (pg/*/pose, joined by seq) into "
-        "those tiles only, publishes tile updates on pg/map/MAP/tile/0/TX/TY at most every "
-        "--publish-interval s per tile, answers tile and stats queries, and declares the liveliness token "
-        "pg/map/MAP/alive/I. Fusion options mean what they mean for `posegrid fuse`.",
-    )
+    mapper = add_command(subparsers, "mapper", run_mapper)
     mapper.add_argument("--shard", type=int, required=True, help="this shard's index I, 0 <= I < N")
     mapper.add_argument("--shards", type=int, required=True, help="number of shards N")
-    mapper.add_argument("--map", default=DEFAULT_MAP, help=f"map name (default {DEFAULT_MAP})")
+    _add_map_option(mapper)
     add_fusion_arguments(mapper)
     shard = mapper.add_argument_group("shard")
     shard.add_argument("--tile-size", type=int, default=256, help="cells per tile side, a power of 2 (default 256)")
@@ -90,23 +102,16 @@ def _add_mapper(subparsers: argparse._SubParsersAction) -> None:
         help="messages that may wait for the fusion thread (default 4096; overflow is counted)",
     )
     add_limit_arguments(mapper)
+    add_persist_options(mapper)
     add_zenoh_arguments(mapper)
-    mapper.set_defaults(func=run_mapper)
 
 
 def _add_source(subparsers: argparse._SubParsersAction) -> None:
     from services.zenoh_config import add_zenoh_arguments
 
-    source = subparsers.add_parser(
-        "source",
-        help="publish a simulated world live, or replay a dataset, over Zenoh",
-        description="Publish one robot's scans (pg/ROBOT/scan), odometry, landmarks and, for a posed-scan "
-        "file, poses (pg/ROBOT/pose), each tagged with the scan's seq, then an end-of-stream mark "
-        "(pg/ROBOT/end). --rate max publishes as fast as the mapper shards and the SLAM node take (never more "
-        "than --window scans or steps ahead of the slowest of those it waits for).",
-    )
+    source = add_command(subparsers, "source", run_source)
     add_input_arguments(source, default_sim=False)
-    source.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot name (default {DEFAULT_ROBOT})")
+    _add_robot_option(source)
     add_rate_argument(source, "realtime")
     source.add_argument(
         "--wait-mappers",
@@ -115,7 +120,7 @@ def _add_source(subparsers: argparse._SubParsersAction) -> None:
         metavar="N",
         help="wait for N mapper shards of --map before publishing (default 0: do not wait)",
     )
-    source.add_argument("--map", default=DEFAULT_MAP, help=f"map whose shards to wait for (default {DEFAULT_MAP})")
+    _add_map_option(source, "map whose shards to wait for")
     source.add_argument("--wait-slam", action="store_true", help="wait for the robot's SLAM node before publishing")
     source.add_argument(
         "--window",
@@ -125,46 +130,21 @@ def _add_source(subparsers: argparse._SubParsersAction) -> None:
         "of the SLAM node with --wait-slam (default 32)",
     )
     add_zenoh_arguments(source)
-    source.set_defaults(func=run_source)
 
 
 def _add_slam_node(subparsers: argparse._SubParsersAction) -> None:
     from services.zenoh_config import add_zenoh_arguments
 
-    node = subparsers.add_parser(
-        "slam-node",
-        help="run a SLAM filter on a robot's streams and publish its pose distribution per scan",
-        description="Follow robot ROBOT's odometry and landmarks (EKF-SLAM, FastSLAM, dead reckoning) or scans "
-        "and odometry (grid FastSLAM), take the steps in seq order (a message for a seq already processed is "
-        "reported as out of order), and publish per scan the pose distribution on pg/ROBOT/pose: mean and "
-        "covariance, or particles and weights. The filter starts at --initial or at the prior the source "
-        "publishes. Stats on pg/ROBOT/slam/stats.",
-    )
-    node.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot name (default {DEFAULT_ROBOT})")
+    node = add_command(subparsers, "slam-node", run_slam_node)
+    _add_robot_option(node)
     add_slam_arguments(node)
     node.add_argument("--seed", type=random_seed, default=0, help="seed of the particle filter (default 0)")
-    node.add_argument(
-        "--initial",
-        default=None,
-        metavar="X,Y,YAW",
-        help="start pose in m, m, rad (default: the prior the source publishes)",
-    )
+    add_initial_option(node, "start pose in m, m, rad (default: the prior the source publishes)")
     add_zenoh_arguments(node)
-    node.set_defaults(func=run_slam_node)
 
 
 def _add_run(subparsers: argparse._SubParsersAction) -> None:
-    run = subparsers.add_parser(
-        "run",
-        help="run the whole pipeline: router, source, SLAM node, mapper shards, HTTP API",
-        description="Start a Zenoh router, N mapper shards, the HTTP API and map viewer, a SLAM node (unless "
-        "the input has poses) and a source, print where to look and show progress. Input: the built-in simulated "
-        "office (default), a posed-scan file (--posed: scans and poses, no SLAM node), a simulator folder, a CARMEN "
-        "log or a ROS bag (both with grid FastSLAM). An MRCLAM folder has no laser, so no map: replay it with "
-        "`posegrid source --mrclam` and `posegrid slam-node`. When the replay ends the shards keep serving the map "
-        "until Ctrl-C; with --export the map assembled from all shards is written and run exits 0. Ctrl-C stops "
-        "every child cleanly.",
-    )
+    run = add_command(subparsers, "run", run_pipeline)
     add_input_arguments(run, default_sim=True)
     run.add_argument("--shards", type=int, default=1, help="mapper shards (default 1)")
     run.add_argument(
@@ -173,8 +153,8 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:
         metavar="MAP.npz",
         help="write the map when the replay ends, then stop everything and exit",
     )
-    run.add_argument("--map", default=DEFAULT_MAP, help=f"map name (default {DEFAULT_MAP})")
-    run.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot name (default {DEFAULT_ROBOT})")
+    _add_map_option(run)
+    _add_robot_option(run)
     add_rate_argument(run, None)
     run.add_argument(
         "--router-port", type=int, default=None, help="port of the router on 127.0.0.1 (default: a free one)"
@@ -190,13 +170,26 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:
         "folder, printed at the start and removed at the end",
     )
     add_restart_arguments(run)
+    add_run_persist_options(run)
     add_fusion_arguments(run)
     add_limit_arguments(run)
     add_slam_arguments(run, particles=RUN_PARTICLES)
-    run.set_defaults(func=run_pipeline)
+    from services.commands.ros2 import add_ros2_run_arguments
+
+    add_ros2_run_arguments(run)  # `run --ros2`: a live ROS 2 robot (docs/ros2.md)
 
 
 # ------------------------------------------------------------------------------------------ shared options
+
+
+def _add_robot_option(parser: argparse.ArgumentParser) -> None:
+    """--robot: whose streams a process publishes or follows."""
+    parser.add_argument("--robot", default=DEFAULT_ROBOT, help=f"robot name (default {DEFAULT_ROBOT})")
+
+
+def _add_map_option(parser: argparse.ArgumentParser, text: str = "map name") -> None:
+    """--map, with ``text`` as its help (the default is added)."""
+    parser.add_argument("--map", default=DEFAULT_MAP, help=f"{text} (default {DEFAULT_MAP})")
 
 
 def add_restart_arguments(parser: argparse.ArgumentParser) -> None:
@@ -264,56 +257,19 @@ def restart_policy(args: argparse.Namespace):
 
 def add_fusion_arguments(parser: argparse.ArgumentParser) -> None:
     """`posegrid fuse`'s fusion options, for the shards (and `run`, which passes them on)."""
-    group = parser.add_argument_group("fusion (as for posegrid fuse)")
-    group.add_argument("--mode", choices=("mc", "ml"), default="mc", help="mc: all samples (default); ml: most likely")
-    group.add_argument(
-        "--samples",
-        type=pose_sample_count,
-        default=None,
-        help="pose samples per scan for Gaussian poses (default: derived from the covariance)",
-    )
-    group.add_argument(
-        "--accuracy",
-        type=finite_float,
-        default=None,
-        help="accuracy in m for the derived sample count (default: one cell)",
-    )
-    group.add_argument(
-        "--seed",
-        type=random_seed,
-        default=0,
-        help="seed of the Gaussian pose sampling (`posegrid run`: also of the simulated world and "
-        "the SLAM filter) (default 0)",
+    add_sampling_arguments(
+        parser.add_argument_group("fusion (as for posegrid fuse)"),
+        samples="pose samples per scan for Gaussian poses (default: derived from the covariance)",
+        accuracy="accuracy in m for the derived sample count (default: one cell)",
+        seed="seed of the Gaussian pose sampling (`posegrid run`: also of the simulated world and the SLAM filter) "
+        "(default 0)",
     )
     add_sensor_model_arguments(parser)
 
 
 def fusion_argv(args: argparse.Namespace) -> list[str]:
     """The fusion and sensor-model options of ``args`` as command-line arguments for a shard."""
-    argv = [
-        "--mode",
-        args.mode,
-        "--seed",
-        str(args.seed),
-        "--resolution",
-        repr(args.resolution),
-        "--sigma-model",
-        args.sigma_model,
-        "--sigma0",
-        repr(args.sigma0),
-        "--sigma-slope",
-        repr(args.sigma_slope),
-        "--baseline-focal",
-        repr(args.baseline_focal),
-    ]
-    for option, value in (
-        ("--samples", args.samples),
-        ("--accuracy", args.accuracy),
-        ("--peak-width", args.peak_width),
-    ):
-        if value is not None:
-            argv += [option, repr(value)]
-    return argv
+    return option_argv(args, ("--mode", "--seed", "--samples", "--accuracy")) + sensor_model_argv(args)
 
 
 def add_input_arguments(parser: argparse.ArgumentParser, default_sim: bool) -> None:
@@ -359,18 +315,6 @@ def add_input_arguments(parser: argparse.ArgumentParser, default_sim: bool) -> N
         "the odometry's (Freiburg 079's bag: -0.10; `posegrid slam --algo gridslam LOG --odom-delay "
         "auto` estimates it; default 0)",
     )
-    group.add_argument(
-        "--raw-ranges",
-        action="store_true",
-        help=mrclam_help("MRCLAM: publish the ranges as logged, without the bearing-dependent range calibration"),
-    )
-    group.add_argument(
-        "--raw-commands",
-        action="store_true",
-        help=mrclam_help(
-            "MRCLAM: publish the velocity commands as logged, without the calibration of the speeds the robots executed"
-        ),
-    )
     group.add_argument("--steps", type=int, default=400, help="--sim: steps of 0.1 s to simulate (default 400)")
     if not default_sim:  # `run` has --seed among its fusion options and passes it on
         group.add_argument("--seed", type=random_seed, default=0, help="--sim: seed of the simulated world (default 0)")
@@ -388,12 +332,13 @@ def add_rate_argument(parser: argparse.ArgumentParser, default: str | None) -> N
 def add_slam_arguments(parser: argparse.ArgumentParser, particles: int | None = None) -> None:
     """The SLAM node's filter options (the same names and meanings as `posegrid slam`)."""
     group = parser.add_argument_group("SLAM node (as for posegrid slam)")
-    group.add_argument(
+    add_choice(
+        group,
         "--algo",
-        choices=SLAM_ALGORITHMS,
-        default=None,
-        help="odometry, ekf, fastslam1, fastslam2 (landmarks) or gridslam (laser and odometry); "
+        SLAM_ALGORITHMS,
+        "odometry, ekf, fastslam1, fastslam2 (landmarks) or gridslam (laser and odometry); "
         f"default {DEFAULT_ALGORITHM}, and for `posegrid run` gridslam with --carmen or --bag",
+        default=None,
     )
     group.add_argument(
         "--particles",
@@ -402,24 +347,22 @@ def add_slam_arguments(parser: argparse.ArgumentParser, particles: int | None = 
         help="FastSLAM / grid FastSLAM particles (default %s)"
         % (particles or f"{NODE_PARTICLES} for FastSLAM, 30 for grid FastSLAM"),
     )
-    group.add_argument(
-        "--associate",
-        choices=("known", "unknown"),
-        default="known",
-        help="landmark correspondences: known ids (default) or estimated",
-    )
-    group.add_argument(
+    add_choice(group, "--associate", ("known", "unknown"), "landmark correspondences: known ids (default) or estimated")
+    add_choice(
+        group,
         "--motion",
-        choices=("velocity", "odometry"),
-        default="velocity",
-        help="landmark filters: velocity commands (default) or odometry readings as controls",
+        ("velocity", "odometry"),
+        "landmark filters: velocity commands (default) or odometry readings as controls",
     )
-    group.add_argument(
+    add_choice(
+        group,
         "--models",
-        choices=("sim", "mrclam"),
+        ("sim", "mrclam"),
+        "noise-model defaults: the simulator's, or for a robot in the MRCLAM format the generic ones "
+        "(slam.calibration.GENERIC; a robot's own: --calibration or --profile) (default: what the input is)",
         default=None,
-        help="noise-model defaults: the simulator's or the ones fitted for MRCLAM (default: what the input is)",
     )
+    add_calibration_options(group, auto=False)
     group.add_argument(
         "--alphas",
         default=None,
@@ -457,37 +400,11 @@ def add_slam_arguments(parser: argparse.ArgumentParser, particles: int | None = 
 
 
 def slam_argv(args: argparse.Namespace, models: str) -> list[str]:
-    """The SLAM options of ``args`` as arguments for a slam-node child."""
+    """The SLAM options of ``args`` as arguments for a slam-node child (``models``: its noise-model defaults unless
+    --models names them)."""
     algo = args.algo or DEFAULT_ALGORITHM
     reject_filter_options(args, algo)
-    argv = [
-        "--algo",
-        algo,
-        "--associate",
-        args.associate,
-        "--motion",
-        args.motion,
-        "--seed",
-        str(args.seed),
-        "--models",
-        args.models or models,
-        "--resample-threshold",
-        repr(args.resample_threshold),
-    ]
-    if args.plain_resampling:
-        argv.append("--plain-resampling")
-    for option, value in (
-        ("--particles", args.particles),
-        ("--alphas", args.alphas),
-        ("--sigma-range", args.sigma_range),
-        ("--sigma-bearing", args.sigma_bearing),
-        ("--range-fraction", args.range_fraction),
-        ("--outlier-gate", args.outlier_gate),
-        *((option, value) for option, _, value in filter_option_values(args)),
-    ):
-        if value is not None:
-            argv += [option, value if isinstance(value, str) else repr(value)]
-    return argv
+    return ["--algo", algo, "--models", args.models or models, *option_argv(args, SLAM_NODE_OPTIONS)]
 
 
 def _rate(text: str) -> float | None:
@@ -565,9 +482,7 @@ def _stream(args: argparse.Namespace):
     if args.sim_dir is not None:
         return streams.sim_folder_stream(args.sim_dir, args.robot)
     if args.mrclam is not None:
-        return streams.mrclam_stream(
-            args.mrclam, args.mrclam_robot, args.robot, raw_ranges=args.raw_ranges, raw_commands=args.raw_commands
-        )
+        return streams.mrclam_stream(args.mrclam, args.mrclam_robot, args.robot)
     if args.carmen is not None or args.bag is not None:
         return streams.laser_log_stream(_laser_log(args, "source"), args.robot)
     from slam.simulator import simulate_office
@@ -579,6 +494,10 @@ def _stream(args: argparse.Namespace):
 
 
 def run_router(args: argparse.Namespace) -> int:
+    """a Zenoh router in a Python process (for machines without zenohd)
+
+    Route Zenoh traffic between posegrid processes. Listens on tcp/127.0.0.1:7447 unless --listen or
+    --zenoh-config say otherwise; multicast scouting is off. Stops on Ctrl-C or SIGTERM."""
     from services.nodes.router import run_router as route
     from services.process import install_stop_event
     from services.zenoh_config import config_from_args
@@ -588,6 +507,13 @@ def run_router(args: argparse.Namespace) -> int:
 
 
 def run_mapper(args: argparse.Namespace) -> int:
+    """one map shard: fuses the scans into the tiles it owns, serves them over Zenoh
+
+    A mapper shard. Owns the tiles that rendezvous hashing of (tile, shards 0..N-1) gives shard I, fuses every
+    robot's scans (pg/*/scan) with their poses (pg/*/pose, joined by seq) into those tiles only, publishes tile
+    updates on pg/map/MAP/tile/0/TX/TY at most every --publish-interval s per tile, answers tile and stats
+    queries, and declares the liveliness token pg/map/MAP/alive/I. Fusion options mean what they mean for
+    `posegrid fuse`."""
     from services.errors import UsageError
 
     if args.shards < 1 or not 0 <= args.shard < args.shards:
@@ -621,10 +547,16 @@ def run_mapper(args: argparse.Namespace) -> int:
         limits=limits_from_args(args),
     )
     zenoh_config = config_from_args(args, "client")
-    return serve(config, zenoh_config, install_stop_event(), args.intake_buffer)
+    return serve(config, zenoh_config, install_stop_event(), args.intake_buffer, persist_from_args(args))
 
 
 def run_source(args: argparse.Namespace) -> int:
+    """publish a simulated world live, or replay a dataset, over Zenoh
+
+    Publish one robot's scans (pg/ROBOT/scan), odometry, landmarks and, for a posed-scan file, poses
+    (pg/ROBOT/pose), each tagged with the scan's seq, then an end-of-stream mark (pg/ROBOT/end). --rate max
+    publishes as fast as the mapper shards and the SLAM node take (never more than --window scans or steps ahead
+    of the slowest of those it waits for)."""
     from services.errors import UsageError
 
     _check_name(args.robot, "--robot")
@@ -655,6 +587,14 @@ def run_source(args: argparse.Namespace) -> int:
 
 
 def run_pipeline(args: argparse.Namespace) -> int:
+    """run the whole pipeline: router, source, SLAM node, mapper shards, HTTP API
+
+    Start a Zenoh router, N mapper shards, the HTTP API and map viewer, a SLAM node (unless the input has
+    poses) and a source, print where to look and show progress. Input: the built-in simulated office (default), a
+    posed-scan file (--posed: scans and poses, no SLAM node), a simulator folder, a CARMEN log or a ROS bag (both
+    with grid FastSLAM). An MRCLAM folder has no laser, so no map: replay it with `posegrid source --mrclam` and
+    `posegrid slam-node`. When the replay ends the shards keep serving the map until Ctrl-C; with --export the map
+    assembled from all shards is written and run exits 0. Ctrl-C stops every child cleanly."""
     from services.errors import UsageError
 
     _check_name(args.robot, "--robot")
@@ -692,6 +632,7 @@ def run_pipeline(args: argparse.Namespace) -> int:
     _plan_input(args, plan)
     plan.restart = restarts
     plan.secure = args.secure
+    plan_state(args, plan)
     return launch(plan, install_stop_event())
 
 
@@ -700,7 +641,11 @@ def _plan_input(args: argparse.Namespace, plan: Plan) -> None:
     description, after checking the input (UsageError when it cannot be run)."""
     from services.errors import UsageError
 
-    if args.posed is not None:
+    if args.ros2:
+        from services.commands.ros2 import plan_ros2
+
+        plan_ros2(args, plan)
+    elif args.posed is not None:
         from schemas.files import load_posed_scans
 
         plan.scans = len(load_posed_scans(args.posed).stamps)  # validates the file before anything starts
@@ -755,7 +700,10 @@ def _plan_input(args: argparse.Namespace, plan: Plan) -> None:
 
 
 def _use_sim_models(args: argparse.Namespace, motion, sensor) -> None:
-    """Fill the noise options the user left unset with the simulator folder's own models."""
+    """Fill the noise options the user left unset with the simulator folder's own models (unless a calibration
+    gives them)."""
+    if args.profile is not None or args.calibration is not None:
+        return
     if args.alphas is None:
         args.alphas = ",".join(repr(float(a)) for a in motion.alphas)
     if args.sigma_range is None:
@@ -767,27 +715,46 @@ def _use_sim_models(args: argparse.Namespace, motion, sensor) -> None:
 
 
 def _slam_models(args: argparse.Namespace):
-    """(motion model, landmark sensor model, outlier gate) of --models and the noise overrides."""
+    """(motion model, landmark sensor model, outlier gate, calibration or None, map-scale sd) of --profile or
+    --calibration, else of --models; then the noise overrides."""
     import inspect
 
-    from services.commands.slam import noise_overrides
-    from slam import mrclam
+    from services.commands.slam import chosen_calibration, noise_overrides
+    from services.errors import UsageError
+    from slam.calibration import GENERIC
     from slam.motion import MotionModel, OdometryMotionModel
     from slam.simulator import simulate_office
 
     motion: MotionModel
-    if (args.models or "sim") == "mrclam":
-        motion, sensor, gate = mrclam.MRCLAM_MOTION, mrclam.MRCLAM_SENSOR, mrclam.MRCLAM_OUTLIER_GATE
+    if args.calibration == "auto":
+        raise UsageError(
+            "--calibration auto fits a calibration to a whole log, which a live node does not have: fit one with "
+            "`posegrid calibrate` and give the file"
+        )
+    calibration = GENERIC if args.calibration == "none" else chosen_calibration(args)
+    if calibration is not None and args.motion != "velocity":
+        raise UsageError("a calibration is for velocity commands: drop --motion odometry")
+    if calibration is None and (args.models or "sim") == "mrclam":
+        calibration = GENERIC
+    if calibration is not None:
+        motion, sensor, gate = calibration.motion, calibration.sensor, calibration.outlier_gate
+        scale_sd = calibration.scale_sd
     else:
         defaults = inspect.signature(simulate_office).parameters
         motion = defaults["velocity_model" if args.motion == "velocity" else "odometry_model"].default
-        sensor, gate = defaults["sensor"].default, None
+        sensor, gate, scale_sd = defaults["sensor"].default, None, 0.0
     if args.motion == "odometry" and not isinstance(motion, OdometryMotionModel):
         motion = OdometryMotionModel()
-    return noise_overrides(args, motion, sensor, gate)
+    return (*noise_overrides(args, motion, sensor, gate), calibration, scale_sd)
 
 
 def run_slam_node(args: argparse.Namespace) -> int:
+    """run a SLAM filter on a robot's streams and publish its pose distribution per scan
+
+    Follow robot ROBOT's odometry and landmarks (EKF-SLAM, FastSLAM, dead reckoning) or scans and odometry
+    (grid FastSLAM), take the steps in seq order (a message for a seq already processed is reported as out of
+    order), and publish per scan the pose distribution on pg/ROBOT/pose: mean and covariance, or particles and
+    weights. The filter starts at --initial or at the prior the source publishes. Stats on pg/ROBOT/slam/stats."""
     from services.errors import UsageError
 
     _check_name(args.robot, "--robot")
@@ -799,7 +766,7 @@ def run_slam_node(args: argparse.Namespace) -> int:
     algo = args.algo or DEFAULT_ALGORITHM
     args.algo = algo
     reject_filter_options(args, algo)
-    motion, sensor, gate = _slam_models(args)
+    motion, sensor, gate, calibration, scale_sd = _slam_models(args)
     initial = initial_pose(args.initial) if args.initial is not None else None
     grid_config = gridslam_config(args) if algo == "gridslam" else None
     import numpy as np
@@ -812,10 +779,11 @@ def run_slam_node(args: argparse.Namespace) -> int:
     config = NodeConfig(
         robot=args.robot,
         algorithm=algo,
-        make_filter=lambda start: make_filter(args, motion, sensor, gate, start, NODE_PARTICLES),
+        make_filter=lambda start: make_filter(args, motion, sensor, gate, start, NODE_PARTICLES, scale_sd),
         motion=args.motion,
         initial=None if initial is None else np.array(initial),
         grid_config=grid_config,
         seed=args.seed,
+        calibration=calibration,
     )
     return serve(config, config_from_args(args, "client"), install_stop_event())

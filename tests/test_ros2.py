@@ -1,0 +1,317 @@
+"""The ROS 2 bridge's pieces without a network: the key expressions, liveliness tokens, QoS strings and attachments
+of rmw_zenoh and zenoh-bridge-ros2dds against the examples docs/ros2.md quotes from their sources; type hashes;
+odometry interpolation against the bag reader's; the join of scans with the robot's own poses; the map mirror."""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from schemas.messages import PoseGaussian, PoseSamples, TileUpdate
+from services import keys
+from services.process import RejectCounter
+from services.ros2 import convert, names
+from services.ros2 import types as rt
+from services.ros2.ingest import Ingest, IngestConfig, OdometryTrack
+from services.ros2.mapout import MapMirror
+from slam.laserlog import interpolate_poses
+
+DOC = (Path(__file__).resolve().parents[1] / "docs" / "ros2.md").read_text()
+STRING_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
+STRING = "std_msgs/msg/String"
+
+
+def quoted(text: str) -> str:
+    """``text``, after checking that docs/ros2.md quotes it."""
+    assert text in DOC, f"docs/ros2.md does not quote {text!r}"
+    return text
+
+
+def test_topic_keys_match_rmw_zenohs_examples():
+    graph = names.Graph(names.RMW, 0, "/", "talker", "8b20917502ee955ac4476e0266340d5c")
+    assert rt.MessageType(STRING).type_hash == STRING_HASH
+    assert graph.topic_key("/chatter", STRING, STRING_HASH) == quoted(
+        f"0/chatter/std_msgs::msg::dds_::String_/{STRING_HASH}"
+    )
+    robot1 = names.Graph(names.RMW, 0, "/robot1", "talker", "x")
+    key = robot1.topic_key(names.resolve("chatter", "/robot1"), STRING, STRING_HASH)
+    assert key == quoted(f"0/robot1/chatter/std_msgs::msg::dds_::String_/{STRING_HASH}")
+    grid = rt.MessageType(rt.OCCUPANCY_GRID)
+    assert robot1.topic_key("/robot1/map", grid.name, grid.type_hash) == quoted(
+        "0/robot1/map/nav_msgs::msg::dds_::OccupancyGrid_/RIHS01_8d348150c12913a31ee0ec170fbf25089e4745d17035792a1ba94d6f0bc0cfc7"
+    )
+    assert names.parse_topic_key(key, robot1, "/robot1/chatter") == ("std_msgs::msg::dds_::String_", STRING_HASH)
+    for other in ("0/robot1/chatter/*/x", "0/robot1/chatter/a/b/c", "1/robot1/chatter/a/b", "0/robot1/chat/a/b"):
+        assert names.parse_topic_key(other, robot1, "/robot1/chatter") is None
+
+
+def test_liveliness_tokens_and_qos_match_rmw_zenohs_examples():
+    listener = names.Graph(names.RMW, 2, "/", "listener", "aac3178e146ba6f1fc6e6a4085e77f21")
+    assert listener.node_token() == quoted("@ros2_lv/2/aac3178e146ba6f1fc6e6a4085e77f21/0/0/NN/%/%/listener")
+    subscription = listener.entity_token(names.SUBSCRIPTION, 10, "/chatter", STRING, STRING_HASH, names.QoS(depth=10))
+    assert subscription == quoted(
+        "@ros2_lv/2/aac3178e146ba6f1fc6e6a4085e77f21/0/10/MS/%/%/listener/%chatter/std_msgs::msg::dds_::String_/"
+        f"{STRING_HASH}/::,10:,:,:,,"
+    )
+    talker = names.Graph(names.RMW, 2, "/", "talker", "8b20917502ee955ac4476e0266340d5c")
+    publisher = talker.entity_token(names.PUBLISHER, 10, "/chatter", STRING, STRING_HASH, names.QoS(depth=7))
+    assert publisher == quoted(
+        "@ros2_lv/2/8b20917502ee955ac4476e0266340d5c/0/10/MP/%/%/talker/%chatter/std_msgs::msg::dds_::String_/"
+        f"{STRING_HASH}/::,7:,:,:,,"
+    )
+    assert names.rmw_qos(names.MAP_QOS) == quoted(":1:,1:,:,:,,")
+    assert names.rmw_qos(names.SENSOR_QOS) == quoted("2::,5:,:,:,,")
+    assert names.rmw_qos(names.QoS(depth=names.RMW_DEFAULT_DEPTH)) == "::,:,:,:,,"  # all defaults: all empty
+
+
+def test_bridge_mode_keys_and_route_tokens_match_zenoh_bridge_ros2dds():
+    graph = names.Graph(names.BRIDGE, 0, "/robot1", "posegrid", "aac3178e146ba6f1fc6e6a4085e77f21")
+    assert graph.topic_key("/robot1/map", rt.OCCUPANCY_GRID, "ignored") == "robot1/map"
+    assert graph.node_token() is None
+    token = graph.entity_token(names.PUBLISHER, 1, "/robot1/map", rt.OCCUPANCY_GRID, "ignored", names.MAP_QOS)
+    assert token == quoted(
+        "@/aac3178e146ba6f1fc6e6a4085e77f21/@ros2_lv/MP/robot1§map/nav_msgs§msg§OccupancyGrid/:1:1:0,1"
+    )
+    assert names.parse_topic_key("robot1/map", graph, "/robot1/map") == ("", "")
+    assert names.parse_topic_key("robot1/map/x", graph, "/robot1/map") is None
+
+
+def test_attachment_layout_matches_the_docs():
+    attachment = names.Attachment(1, 1_700_000_000 * 10**9, bytes(range(16)))
+    data = names.encode_attachment(attachment)
+    assert data.hex() == quoted("0100000000000000 00002a36fe9c9717 10 000102030405060708090a0b0c0d0e0f").replace(
+        " ", ""
+    )
+    assert names.decode_attachment(data) == attachment
+    from zenoh.ext import Int64, z_serialize  # the earlier layout, fields named first
+
+    named = z_serialize(("sequence_number", Int64(3), "source_timestamp", Int64(4), "source_gid", bytes(16)))
+    assert names.decode_attachment(named.to_bytes()) == names.Attachment(3, 4, bytes(16))
+    for bad in (b"", b"garbage", data + b"x", data[:-1]):
+        assert names.decode_attachment(bad) is None
+    token = "@ros2_lv/0/x/0/1/MP/%/%/posegrid/%map/t/h/q"
+    assert names.gid_of(token) == names.gid_of(token) and len(names.gid_of(token)) == 16
+
+
+def test_type_hashes_match_what_ros2_reports():
+    for name, prefix in (
+        (rt.OCCUPANCY_GRID, "RIHS01_8d348150"),
+        (rt.LASER_SCAN, "RIHS01_64c19139"),
+        (rt.GRID_UPDATE, "RIHS01_c4095b0b"),
+        (rt.PARTICLE_CLOUD, "RIHS01_193d8cb8"),
+    ):
+        assert rt.MessageType(name).type_hash.startswith(quoted(prefix))
+    assert rt.MessageType(rt.GRID_UPDATE).dds_name == "map_msgs::msg::dds_::OccupancyGridUpdate_"
+    with pytest.raises(rt.CdrError):
+        rt.MessageType(rt.LASER_SCAN).decode(b"\x00\x01\x00\x00garbage")
+
+
+@pytest.mark.parametrize("records", [4096, 8])
+def test_odometry_is_interpolated_as_the_bag_reader_does_bit_for_bit(records):
+    """Yaw unwrapped one record at a time (and only the newest ``records`` kept) gives np.unwrap's value over the
+    whole stream: interpolate_poses over all odometry, as slam.rosbag_reader reads a bag."""
+    rng = np.random.default_rng(3)
+    stamps = np.cumsum(rng.uniform(0.01, 0.2, 300))
+    poses = np.column_stack([rng.normal(0, 5, 300), rng.normal(0, 5, 300), rng.uniform(-np.pi, np.pi, 300)])
+    poses[::7, 2] = np.pi  # the boundary cases of np.unwrap
+    poses[1::7, 2] = -np.pi
+    track = OdometryTrack(records)
+    for i, (stamp, pose) in enumerate(zip(stamps, poses)):
+        assert track.add(float(stamp), tuple(pose))
+        if i >= 3:
+            query = float(stamps[i - 2] + 0.3 * (stamps[i - 1] - stamps[i - 2]))
+            expected = interpolate_poses(stamps[: i + 1], poses[: i + 1], np.array([query]))[0]
+            assert np.array_equal(track.pose_at(query), expected)
+    assert not track.add(float(stamps[0]), (0.0, 0.0, 0.0))  # older than the last: refused
+
+
+def _ros_scan(stamp: float, frame: str = "laser", increment: float = 0.5):
+    return rt.MessageType(rt.LASER_SCAN).cls()(
+        header=convert.header(stamp, frame),
+        angle_min=-1.0,
+        angle_max=0.0,
+        angle_increment=increment,
+        time_increment=0.0,
+        scan_time=0.0,
+        range_min=0.1,
+        range_max=10.0,
+        ranges=np.array([1.0, 2.0, 3.0], np.float32),
+        intensities=np.zeros(0, np.float32),
+    )
+
+
+def _tf(stamp: float, parent: str, child: str, x: float, yaw: float):
+    transform = rt.field_class("geometry_msgs/msg/Transform")(
+        translation=rt.field_class("geometry_msgs/msg/Vector3")(x=x, y=0.0, z=0.0),
+        rotation=convert.ros_pose(0, 0, yaw).orientation,
+    )
+    stamped = rt.field_class("geometry_msgs/msg/TransformStamped")(
+        header=convert.header(stamp, parent), child_frame_id=child, transform=transform
+    )
+    return rt.MessageType(rt.TF_MESSAGE).cls()(transforms=[stamped])
+
+
+class Clock:
+    def __init__(self):
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_the_robots_own_poses_are_joined_with_the_scans_nearest_their_stamps():
+    rejects = RejectCounter(logging.getLogger("test"))
+    clock = Clock()
+    ingest = Ingest(IngestConfig("r1", poses=True, wait=1.0, pose_tolerance=0.02), rejects, clock)
+    ingest.on_transforms("/tf_static", _tf(0.0, "base_link", "laser", 0.2, math.pi / 2), static=True)
+    for stamp in (0.0, 0.1, 0.2, 0.3):
+        ingest.on_scan("/scan", _ros_scan(stamp))
+    covariance = np.zeros(36)
+    covariance[[0, 7, 35]] = [0.01, 0.02, 0.03]
+    pose_msg = rt.MessageType(rt.POSE_COVARIANCE).cls()(
+        header=convert.header(0.205, "map"),
+        pose=rt.field_class("geometry_msgs/msg/PoseWithCovariance")(
+            pose=convert.ros_pose(1.0, 2.0, 0.5), covariance=covariance
+        ),
+    )
+    ingest.on_pose("/amcl_pose", convert.to_gaussian(pose_msg, "r1", 0))
+    out = ingest.ready()
+    assert [(stream, m.seq) for stream, m in out] == [(keys.SCAN, 0), (keys.POSE, 0)]
+    scan, pose = out[0][1], out[1][1]
+    assert scan.stamp == pytest.approx(0.2) and np.allclose(scan.sensor_offset, [0.2, 0.0, math.pi / 2])
+    assert isinstance(pose, PoseGaussian) and np.allclose(pose.mean, [1.0, 2.0, 0.5])
+    np.testing.assert_allclose(pose.cov, np.diag([0.01, 0.02, 0.03]))
+    assert ingest.unposed == 2  # the scans at 0.0 and 0.1 came before the one matched
+    cloud_type = rt.MessageType(rt.PARTICLE_CLOUD)
+    particle = rt.field_class("nav2_msgs/msg/Particle")
+    cloud = cloud_type.cls()(
+        header=convert.header(0.31, "map"),
+        particles=[
+            particle(pose=convert.ros_pose(1, 1, 0), weight=1.0),
+            particle(pose=convert.ros_pose(2, 1, 0), weight=3.0),
+        ],
+    )
+    decoded = cloud_type.decode(cloud_type.encode(cloud))
+    ingest.on_pose("/particle_cloud", convert.to_samples(decoded, "r1", 0, weighted=True))
+    out = ingest.ready()
+    samples = out[1][1]
+    assert [m.seq for _, m in out] == [1, 1] and isinstance(samples, PoseSamples)
+    np.testing.assert_allclose(samples.weights, [0.25, 0.75])
+    ingest.on_pose("/particle_cloud", convert.to_samples(decoded, "r1", 0, weighted=True))  # no scan near 0.31 now
+    clock.now = 5.0
+    assert ingest.ready() == [] and rejects.kinds() == {"join": 1}
+
+
+def test_scans_without_a_transform_or_with_nan_geometry_are_counted_not_taken():
+    rejects = RejectCounter(logging.getLogger("test"))
+    clock = Clock()
+    ingest = Ingest(IngestConfig("r1", wait=1.0), rejects, clock)
+    odom_type = rt.MessageType(rt.ODOMETRY)
+    odometry = odom_type.decode(
+        odom_type.encode(
+            odom_type.cls()(
+                header=convert.header(1.0, "odom"),
+                child_frame_id="base_link",
+                pose=rt.field_class("geometry_msgs/msg/PoseWithCovariance")(
+                    pose=convert.ros_pose(0, 0, 0), covariance=np.zeros(36)
+                ),
+                twist=rt.field_class("geometry_msgs/msg/TwistWithCovariance")(
+                    twist=rt.field_class("geometry_msgs/msg/Twist")(
+                        linear=rt.field_class("geometry_msgs/msg/Vector3")(x=0.0, y=0.0, z=0.0),
+                        angular=rt.field_class("geometry_msgs/msg/Vector3")(x=0.0, y=0.0, z=0.0),
+                    ),
+                    covariance=np.zeros(36),
+                ),
+            )
+        )
+    )
+    ingest.on_odometry("/odom", odometry)
+    ingest.on_scan("/scan", _ros_scan(1.0, increment=math.nan))
+    ingest.on_scan("/scan", _ros_scan(1.0, frame="nowhere"))
+    assert ingest.ready() == []  # waits for a transform that may still come
+    clock.now = 2.0
+    assert ingest.ready() == []
+    assert rejects.kinds() == {"geometry": 1, "transform": 1} and rejects.snapshot() == {"/scan": 2}
+    ingest.on_scan("/scan", _ros_scan(1.0, frame="base_link"))  # the laser at the base: no transform needed
+    assert [stream for stream, _ in ingest.ready()] == [keys.PRIOR, keys.SCAN, keys.ODOM]
+
+
+def _tile(tx: int, ty: int, row0: int = 0, col0: int = 0, size: int = 4, shape=(4, 4), seed: int = 0) -> TileUpdate:
+    rng = np.random.default_rng(seed)
+    return TileUpdate(
+        map="main",
+        shard=0,
+        z=0,
+        tx=tx,
+        ty=ty,
+        tile_size=size,
+        resolution=0.5,
+        row0=row0,
+        col0=col0,
+        robot="r1",
+        seq=0,
+        published=0.0,
+        logodds=rng.normal(0, 2, shape).astype(np.float32),
+        variance=rng.uniform(0, 2, shape).astype(np.float32),
+        observed=rng.uniform(size=shape) < 0.8,
+    )
+
+
+def test_the_map_mirror_places_updates_in_the_grid_last_published():
+    mirror = MapMirror(variance_scale=2.0)
+    assert mirror.apply(_tile(0, 0)) is None and mirror.grown  # nothing published yet
+    mirror.apply(_tile(-1, 1, seed=1))
+    raster = mirror.raster()
+    assert raster is not None and raster.occupancy.shape == (8, 8) and raster.origin == (-2.0, 0.0)
+    tile = _tile(0, 0, seed=2)
+    expected = np.rint(100 / (1 + np.exp(-tile.logodds.astype(np.float64)))).astype(np.int8)
+    patch = mirror.apply(_tile(0, 0, row0=1, col0=2, shape=(2, 2), seed=3))
+    assert patch is not None and (patch.x, patch.y) == (4 + 2, 0 + 1)  # tile (0, 0): column 4, row 0
+    mirror.apply(tile)
+    raster = mirror.raster()
+    values = raster.occupancy[0:4, 4:8]
+    np.testing.assert_array_equal(values, np.where(tile.observed, expected, -1))
+    variance = np.rint(np.clip(100 * tile.variance.astype(np.float64) / 2.0, 0, 100)).astype(np.int8)
+    np.testing.assert_array_equal(raster.variance[0:4, 4:8], np.where(tile.observed, variance, -1))
+    assert (raster.occupancy[4:8, 4:8] == -1).all()  # tile (0, 1) was never seen
+    assert mirror.apply(_tile(1, 0)) is None and mirror.grown  # beyond the grid: the next whole grid takes it
+    assert "resolution" not in mirror.check(tile) and mirror.check(_tile(0, 0, size=8, shape=(8, 8)))
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["ros2", "--namespace", "/9robot", "--connect", "tcp/127.0.0.1:1"], "is not a ROS 2 name"),
+        (["ros2", "--domain", "300", "--connect", "tcp/127.0.0.1:1"], "the ROS domain id must be 0 .. 232"),
+        (["ros2", "--scan-topic", "a//b", "--connect", "tcp/127.0.0.1:1"], "topic 'a//b' is not a ROS 2 name"),
+        (["ros2", "--robot", "map", "--connect", "tcp/127.0.0.1:1"], "--robot 'map' is not a valid name"),
+        (["ros2", "play", "/nonexistent/bag", "--rate", "2x"], "rate must be 'max'"),
+        (["run", "--ros2", "--posed", "x.npz", "--no-api"], "--ros2 maps a live robot: it takes no input (--posed)"),
+        (["run", "--ros2", "--export", "m.npz", "--no-api"], "leave out --export"),
+        (["run", "--ros2", "--secure", "--no-api"], "--ros2 does not run with --secure"),
+        (["run", "--ros2", "--algo", "ekf", "--no-api"], "--algo must be gridslam"),
+    ],
+)
+def test_bad_ros2_options_are_one_line_and_exit_2(argv, message, capsys):
+    from services.cli import main
+
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0] and "Traceback" not in err[0], err
+
+
+def test_play_refuses_a_missing_bag_and_a_ros1_bag(tmp_path, capsys):
+    from bags import BagBuilder
+    from services.cli import main
+
+    assert main(["ros2", "play", str(tmp_path / "none"), "--connect", "tcp/127.0.0.1:1"]) == 2
+    assert "no such file or bag folder" in capsys.readouterr().err
+    ros1 = BagBuilder()
+    ros1.scan(0.0, [1.0])
+    path = ros1.write(tmp_path / "a.bag")
+    assert main(["ros2", "play", str(path), "--connect", "tcp/127.0.0.1:1"]) == 2
+    assert "a ROS 1 bag; `posegrid ros2 play` replays ROS 2 bags" in capsys.readouterr().err
