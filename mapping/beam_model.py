@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -56,9 +56,10 @@ def logodds_table(model: SensorModel) -> np.ndarray:
     return np.ascontiguousarray(model.logodds(r, z), dtype=np.float64)
 
 
-@dataclass(frozen=True)
-class BeamTable:
-    """Per-beam quantities that do not depend on the pose sample (all ranges in m)."""
+class BeamTable(NamedTuple):
+    """Per-beam quantities that do not depend on the pose sample (all ranges in m). A kernel takes it as a plain
+    tuple (``tuple(beams)``: numba's dispatcher types a plain tuple in C, a named one through Python) and names
+    it again inside (``BeamTable(*beams)``)."""
 
     kind: np.ndarray  # int8 (B,): BEAM_SKIP, BEAM_HIT or BEAM_NO_RETURN
     z: np.ndarray  # float64 (B,): the return's range (hits), 0 otherwise
@@ -181,18 +182,73 @@ def _table_logodds(r, z, inv_sigma, table, u0, du):  # pragma: no cover - compil
     return table[i] + t * (table[i + 1] - table[i])
 
 
+class LogOddsModel(NamedTuple):
+    """What the kernels read of a sensor model: the constant-sigma table (:func:`logodds_table`, or empty) over u
+    from u0 in steps of du, p_miss and p_hit, l_free (the free cell's log-odds) and y_peak (the log-odds at the
+    peak, logit(p_hit)); built once per fusion by :func:`logodds_model`."""
+
+    table: np.ndarray
+    u0: float
+    du: float
+    p_miss: float
+    p_hit: float
+    l_free: float
+    y_peak: float
+
+
+@kernel(nogil=True, error_model="numpy")
+def _logit(p):  # pragma: no cover - compiled
+    return math.log(p) - math.log1p(-p)
+
+
+def logodds_model(model: SensorModel) -> LogOddsModel:
+    """The :class:`LogOddsModel` of a sensor model (y_peak computed by numba, as the kernels computed it)."""
+    return LogOddsModel(
+        logodds_table(model), TABLE_U0, TABLE_DU, model.p_miss, model.p_hit, model.l_free, _logit(model.p_hit)
+    )
+
+
+class Beam(NamedTuple):
+    """One beam's entries of a :class:`BeamTable`, as the passes and :func:`segment_logodds` read them (ranges in m)."""
+
+    kind: int
+    r_stop: float
+    free_until: float
+    z: float
+    r_peak: float
+    a: float
+    b: float
+    s: float
+    g_peak: float
+
+
 @kernel(nogil=True, error_model="numpy", inline="always")
-def segment_logodds(
-    r_in, r_out, beam_kind, free_until, z, r_peak, a, b, s, g_peak, table, u0, du, p_miss, p_hit, l_free, y_peak
-):  # pragma: no cover - compiled
-    """The value one beam gives a cell it crosses over [r_in, r_out] (m): free before free_until (and for
-    beams with no return), else the model's largest value over the segment, from the table when there is one."""
-    if r_out < free_until or beam_kind == BEAM_NO_RETURN:
-        return l_free
-    if table.shape[0] > 0:
-        if r_out <= r_peak:
-            return _table_logodds(r_out, z, SQRT2 / s, table, u0, du)
-        if r_in >= r_peak:
-            return _table_logodds(r_in, z, SQRT2 / s, table, u0, du)
-        return y_peak
-    return cell_logodds(r_in, r_out, r_peak, a, b, s, g_peak, p_miss, p_hit)
+def beam_at(beams, k):  # pragma: no cover - compiled
+    """Beam k of a :class:`BeamTable`, in locals: the compiler cannot hoist loads past a pass's scratch writes."""
+    return Beam(
+        beams.kind[k],
+        beams.r_stop[k],
+        beams.free_until[k],
+        beams.z[k],
+        beams.r_peak[k],
+        beams.a[k],
+        beams.b[k],
+        beams.s[k],
+        beams.g_peak[k],
+    )
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def segment_logodds(r_in, r_out, beam, model):  # pragma: no cover - compiled
+    """The value one :class:`Beam` gives a cell it crosses over [r_in, r_out] (m): free before free_until (and for
+    beams with no return), else the model's largest value over the segment, from the table when there is one
+    (``model``: a :class:`LogOddsModel`)."""
+    if r_out < beam.free_until or beam.kind == BEAM_NO_RETURN:
+        return model.l_free
+    if model.table.shape[0] > 0:
+        if r_out <= beam.r_peak:
+            return _table_logodds(r_out, beam.z, SQRT2 / beam.s, model.table, model.u0, model.du)
+        if r_in >= beam.r_peak:
+            return _table_logodds(r_in, beam.z, SQRT2 / beam.s, model.table, model.u0, model.du)
+        return model.y_peak
+    return cell_logodds(r_in, r_out, beam.r_peak, beam.a, beam.b, beam.s, beam.g_peak, model.p_miss, model.p_hit)

@@ -49,32 +49,33 @@ def set_run(plane, c_lo, c_hi):  # pragma: no cover - compiled
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def _mark_runs(
-    plane, stride, u0, v0, du, dv, iu, iv, r_end, res, tol, win_u0, win_v0, exits, entries
-):  # pragma: no cover - compiled
+def _mark_runs(plane, stride, win_u0, win_v0, line, cell, r_end, res, tol, lines):  # pragma: no cover - compiled
     """Mark, one run per line of constant v, the cells a ray crosses from (u0, v0) (m) along the unit direction
-    (du, dv), |du| >= |dv|, up to the range r_end (m), in the plane that holds cell (u, v) at bit
-    (v - win_v0) * stride + u - win_u0.
+    (du, dv), line = (u0, v0, du, dv) with |du| >= |dv|, up to the range r_end (m), in the plane that holds cell
+    (u, v) at bit (v - win_v0) * stride + u - win_u0.
 
-    (iu, iv) is the ray's first cell of positive length; res is the cell size (m); tol is the ray's corner
-    tolerance (m); exits and entries are scratch for the lines' exit and entry cells (as many as the
-    window has lines). The last cell, returned as (u, v), is the one the ray is in just before the end point. A
-    line the ray crosses holds at least its entry cell (rounding may put the exit before it).
+    cell = (iu, iv) is the ray's first cell of positive length; res is the cell size (m); tol is the ray's corner
+    tolerance (m); lines (int64, (2, n)) is scratch for the lines' exit and entry cells (as many as the window has
+    lines). The last cell, returned as (u, v), is the one the ray is in just before the end point. A line the ray
+    crosses holds at least its entry cell (rounding may put the exit before it).
 
     The v lines are crossed where the traversal crosses them: at the ranges it computes (in m, from the range
     to the first, :func:`mapping.raytrace.dda_start`, in steps of res / |dv|). So the two agree on the row of
     every cell even for a ray that runs along a grid line within rounding, where a crossing moves by
     decimetres with the last bit of v0."""
+    u0, v0, du, dv = line
+    iu, iv = cell
+    exits, entries = lines[0], lines[1]
     v_step, exit_edge = (1, 1) if dv > 0.0 else (-1, 0)  # line v is left at its edge v + exit_edge
     per_cell = 1.0 / res
     tol_u = tol * abs(du) * per_cell  # the corner tolerance along u, in grid units
-    lines = 0  # the lines after the first
+    n_lines = 0  # the lines after the first
     edge0 = 0.0  # u where the ray leaves its first line
     slope = 0.0
     if dv != 0.0:
         t_first = ((iv + exit_edge) * res - v0) / dv  # the range to the first line crossed
         if r_end > t_first:
-            lines = math.ceil((r_end - t_first) * abs(dv) * per_cell)
+            n_lines = math.ceil((r_end - t_first) * abs(dv) * per_cell)
         slope = du / dv
         edge0 = (u0 + t_first * du) * per_cell
     end_u = (u0 + r_end * du) * per_cell
@@ -85,50 +86,49 @@ def _mark_runs(
     # first the cells at every exit edge (a loop with no branch and no carried state: it vectorises), then the
     # runs, each from the cell the line is entered at to its exit cell
     if du > 0.0:
-        for k in range(lines):
+        for k in range(n_lines):
             edge = edge0 + k * edge_step
             exits[k] = math.ceil(edge - tol_u) - 1  # a corner within tol_u: the cell before it is the last
             entries[k] = math.floor(edge + tol_u)
-        for k in range(lines):
+        for k in range(n_lines):
             set_run(plane, base + col, base + max(exits[k], col))
             col = entries[k]
             base += base_step
         end_col = max(math.ceil(end_u) - 1, col)
         set_run(plane, base + col, base + end_col)
     else:
-        for k in range(lines):
+        for k in range(n_lines):
             edge = edge0 + k * edge_step
             exits[k] = math.floor(edge + tol_u)
             entries[k] = math.ceil(edge - tol_u) - 1
-        for k in range(lines):
+        for k in range(n_lines):
             set_run(plane, base + min(exits[k], col), base + col)
             col = entries[k]
             base += base_step
         end_col = min(math.floor(end_u), col)
         set_run(plane, base + end_col, base + col)
-    return end_col, iv + lines * v_step
+    return end_col, iv + n_lines * v_step
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def mark_free_runs(
-    rows, columns, col_stride, x0, y0, dx, dy, ix, iy, r_end, res, tol, win_ix0, win_iy0, win_w, exits, entries
-):  # pragma: no cover - compiled
-    """Mark the cells the ray from (x0, y0) (m, map frame) along the unit direction (dx, dy) crosses before
-    r_end (m): the cells :func:`mapping.raytrace.trace_ray` visits with r_in < r_end, give or take the one
-    holding r_end. Returns the last cell marked (ix, iy): the one the ray is in just before r_end. A shallow
-    ray goes into the row-major plane ``rows``, a steep one into the column-major plane ``columns`` (module
-    docstring).
+def mark_free_runs(rows, columns, col_stride, window, line, cell, r_end, res, tol, lines):  # pragma: no cover
+    """Mark the cells the ray from (x0, y0) (m, map frame) along the unit direction (dx, dy), line = (x0, y0, dx,
+    dy), crosses before r_end (m): the cells :func:`mapping.raytrace.trace_ray` visits with r_in < r_end, give or
+    take the one holding r_end. Returns the last cell marked (ix, iy): the one the ray is in just before r_end. A
+    shallow ray goes into the row-major plane ``rows`` of the :class:`mapping.window_walk.Window`, a steep one into the
+    column-major plane ``columns`` (module docstring).
 
-    (ix, iy) is the ray's first cell of positive length (the traversal's start cell, or its second when the
-    ray starts on the start cell's edge and leaves it at once); tol is the ray's corner tolerance (m,
+    cell = (ix, iy) is the ray's first cell of positive length (the traversal's start cell, or its second when
+    the ray starts on the start cell's edge and leaves it at once); tol is the ray's corner tolerance (m,
     :func:`mapping.raytrace.corner_tol`), tol |dx| / res across columns and tol |dy| / res across rows in grid
-    units. Every cell must lie in the window (ray_start checks the end cells). exits and entries (int64) are
-    scratch for max(win_w, window height) values.
+    units. Every cell must lie in the window (ray_start checks the end cells). lines (int64, (2, n)) is scratch
+    for n = max(w, window height) values.
     """
+    x0, y0, dx, dy = line
     if abs(dx) >= abs(dy):
-        return _mark_runs(rows, win_w, x0, y0, dx, dy, ix, iy, r_end, res, tol, win_ix0, win_iy0, exits, entries)
+        return _mark_runs(rows, window.w, window.ix0, window.iy0, line, cell, r_end, res, tol, lines)
     last_iy, last_ix = _mark_runs(
-        columns, col_stride, y0, x0, dy, dx, iy, ix, r_end, res, tol, win_iy0, win_ix0, exits, entries
+        columns, col_stride, window.iy0, window.ix0, (y0, x0, dy, dx), (cell[1], cell[0]), r_end, res, tol, lines
     )
     return last_ix, last_iy
 

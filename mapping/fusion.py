@@ -31,13 +31,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mapping.beam_model import BEAM_SKIP, TABLE_DU, TABLE_U0, beam_table, logodds_table
+from mapping.beam_model import BEAM_SKIP, BeamTable, beam_table, logodds_model
 from mapping.errors import InputError
 from mapping.grid import TiledGrid
 from mapping.samples_pass import STAMP_LIMIT, accumulate_scan, apply_scan
 from mapping.scan_input import check_scan, check_window, laser_poses, merge_duplicates
 from mapping.sensor_model import SensorModel
 from mapping.single_pass import accumulate_single, apply_single
+from mapping.window_walk import Tiles, Window
 
 
 @dataclass(frozen=True)
@@ -88,13 +89,21 @@ class MonteCarloFusion:
         self._stamp_next = 1
         self._scratch_size = 0
         self._columns = np.zeros(0, np.uint64)
+        self._lines = np.zeros((2, 0), np.int64)  # a ray's exit and entry cells per grid line (mapping.free_runs)
+        self._block = np.zeros(64, np.uint64)  # 64 x 64 bits being folded from the column-major plane
         self._single_blocks = 0
-        self._table = logodds_table(model)
-        self._l_free, self._l_min, self._l_max = model.l_free, model.l_min, model.l_max  # (properties: computed)
+        # what the kernels read of the model, built once: plain tuples (mapping.beam_model.BeamTable says why)
+        self._model_terms = tuple(logodds_model(model))
+        self._levels = (model.l_free, model.l_min, model.l_max)  # (properties: computed)
+        self._directions = (self._cos_angles, self._sin_angles)
 
-    def _scratch(self, cells: int, column_bits: int) -> None:
+    def _scratch(self, cells: int, column_bits: int, lines: int) -> None:
+        """The samples pass's scratch for a window of ``cells`` cells, ``column_bits`` bits of the column-major plane
+        (mapping.free_runs) and ``lines`` grid lines a side at most."""
         if column_bits > self._columns.shape[0] * 64:
-            self._columns = np.zeros(column_bits // 64, np.uint64)  # the column-major plane (mapping.free_runs)
+            self._columns = np.zeros(column_bits // 64, np.uint64)
+        if lines > self._lines.shape[1]:
+            self._lines = np.zeros((2, lines), np.int64)
         if cells <= self._scratch_size:
             return
         self._scratch_size = cells
@@ -155,132 +164,70 @@ class MonteCarloFusion:
         if not (beams.kind != BEAM_SKIP).any():
             return FuseResult(0, [])
         lasers = laser_poses(samples, self.sensor_offset)
+        window, tiles = self._window(lasers, float(beams.r_stop.max()) + self.grid.resolution)
+        if len(samples) == 1:
+            return self._fuse_single(lasers[0], float(weights[0]), beams, window, tiles)
+        return self._fuse_samples(lasers, weights, beams, window, tiles)
 
-        grid = self.grid
-        res = grid.resolution
-        reach = float(beams.r_stop.max()) + res
+    def _window(self, lasers: np.ndarray, reach: float) -> tuple[Window, Tiles]:
+        """The scratch window over the rays of laser poses (M, 3) that reach ``reach`` m (its origin a multiple of 8
+        cells: the one-sample pass's 8 x 8 blocks are the grid's), and the tiles over it."""
+        res = self.grid.resolution
         if len(lasers) == 1:  # (reductions cost a few microseconds each)
             ((x_lo, y_lo, _),) = lasers.tolist()
             x_hi, y_hi = x_lo, y_lo
         else:
             (x_lo, y_lo), (x_hi, y_hi) = lasers[:, :2].min(axis=0).tolist(), lasers[:, :2].max(axis=0).tolist()
         check_window(x_lo, y_lo, x_hi, y_hi, reach, res)
-        win_ix0 = math.floor((x_lo - reach) / res) & ~7  # a multiple of 8: the scratch's 8 x 8 blocks are the grid's
-        win_iy0 = math.floor((y_lo - reach) / res) & ~7
-        win_w = math.floor((x_hi + reach) / res) - win_ix0 + 1
-        win_h = math.floor((y_hi + reach) / res) - win_iy0 + 1
-        shift = grid.tile_shift
-        tx0, ty0 = win_ix0 >> shift, win_iy0 >> shift
-        ntx = ((win_ix0 + win_w - 1) >> shift) - tx0 + 1
-        nty = ((win_iy0 + win_h - 1) >> shift) - ty0 + 1
-        blocks_w, blocks_h = -(-win_w // 8), -(-win_h // 8)
+        ix0 = math.floor((x_lo - reach) / res) & ~7
+        iy0 = math.floor((y_lo - reach) / res) & ~7
+        w = math.floor((x_hi + reach) / res) - ix0 + 1
+        h = math.floor((y_hi + reach) / res) - iy0 + 1
+        shift = self.grid.tile_shift
+        tx0, ty0 = ix0 >> shift, iy0 >> shift
+        ntx = ((ix0 + w - 1) >> shift) - tx0 + 1
+        nty = ((iy0 + h - 1) >> shift) - ty0 + 1
         owned, all_owned = self._owned_mask(tx0, ty0, ntx, nty)
-        touched = np.zeros((nty, ntx), np.bool_)
-        model = self.model
-        if len(samples) == 1:
-            self._single_scratch(blocks_w * blocks_h)
-            x, y, yaw = lasers[0].tolist()
-            n_scan = accumulate_single(
-                x,
-                y,
-                yaw,
-                self._cos_angles,
-                self._sin_angles,
-                beams.kind,
-                beams.z,
-                beams.r_stop,
-                beams.r_peak,
-                beams.a,
-                beams.b,
-                beams.s,
-                beams.g_peak,
-                beams.free_until,
-                self._table,
-                TABLE_U0,
-                TABLE_DU,
-                res,
-                model.p_miss,
-                model.p_hit,
-                self._l_free,
-                win_ix0,
-                win_iy0,
-                win_w,
-                win_h,
-                shift,
-                tx0,
-                ty0,
-                owned,
-                all_owned,
-                self._touched_bits,
-                self._raised_bits,
-                self._largest,
-                blocks_w,
-                blocks_h,
-                touched,
-            )
-            slot_map, changed = self._tile_slots(touched, tx0, ty0)
-            apply_single(
-                self._touched_bits,
-                self._raised_bits,
-                self._largest,
-                blocks_w,
-                blocks_h,
-                float(weights[0]),
-                self._l_free,
-                win_ix0,
-                win_iy0,
-                shift,
-                tx0,
-                ty0,
-                slot_map,
-                grid.logodds,
-                grid.observed,
-                self._l_min,
-                self._l_max,
-            )
-            return FuseResult(int(n_scan), changed)
+        return Window(ix0, iy0, w, h), Tiles(owned, all_owned, shift, tx0, ty0)
 
+    def _ray_args(
+        self, beams: BeamTable
+    ) -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.ndarray, ...], tuple[object, ...], float]:
+        """What both passes' kernels take about the rays, in their order: the beams' directions (cosines, sines),
+        the beam table, the model's terms and the cell size (m), as plain tuples (mapping.beam_model.BeamTable)."""
+        return self._directions, tuple(beams), self._model_terms, self.grid.resolution
+
+    def _fuse_single(
+        self, laser: np.ndarray, weight: float, beams: BeamTable, window: Window, tiles: Tiles
+    ) -> FuseResult:
+        """The one-sample pass (laser pose (3,): x m, y m, yaw rad; its sample's weight)."""
+        blocks_w, blocks_h = -(-window.w // 8), -(-window.h // 8)
+        self._single_scratch(blocks_w * blocks_h)
+        touched = np.zeros(tiles.owned.shape, np.bool_)
+        scratch = (self._touched_bits, self._raised_bits, self._largest, blocks_w, blocks_h, touched)
+        window_args, tile_args = tuple(window), tuple(tiles)
+        n_scan = accumulate_single(laser, *self._ray_args(beams), window_args, tile_args, scratch)
+        slot_map, changed = self._tile_slots(touched, tiles.tx0, tiles.ty0)
+        grid = self.grid  # (its layers after _tile_slots: new tiles may have moved them)
+        layers = (grid.logodds, grid.variance, grid.observed)
+        apply_single(scratch, weight, window_args, tile_args, slot_map, layers, self._levels)
+        return FuseResult(int(n_scan), changed)
+
+    def _fuse_samples(
+        self, lasers: np.ndarray, weights: np.ndarray, beams: BeamTable, window: Window, tiles: Tiles
+    ) -> FuseResult:
+        """The samples pass (laser poses (M, 3), weights (M,))."""
         # the samples pass's scratch rows and columns are whole 64-bit words of its bit planes (mapping.free_runs)
-        win_w = -(-win_w // 64) * 64
-        col_stride = -(-win_h // 64) * 64
-        self._scratch(win_w * win_h, win_w * col_stride)
-        if self._stamp_next + len(samples) >= STAMP_LIMIT:
+        win_w = -(-window.w // 64) * 64
+        col_stride = -(-window.h // 64) * 64
+        self._scratch(win_w * window.h, win_w * col_stride, max(win_w, window.h))
+        if self._stamp_next + len(lasers) >= STAMP_LIMIT:
             self._excess[:] = 0
             self._stamp_next = 1
         stamp_base = self._stamp_next
-        self._stamp_next += len(samples)
-        n_scan = accumulate_scan(
-            lasers[:, 0].copy(),
-            lasers[:, 1].copy(),
-            lasers[:, 2].copy(),
-            weights,
-            self._cos_angles,
-            self._sin_angles,
-            beams.kind,
-            beams.z,
-            beams.r_stop,
-            beams.r_peak,
-            beams.a,
-            beams.b,
-            beams.s,
-            beams.g_peak,
-            beams.free_until,
-            self._table,
-            TABLE_U0,
-            TABLE_DU,
-            res,
-            model.p_miss,
-            model.p_hit,
-            self._l_free,
-            win_ix0,
-            win_iy0,
-            win_w,
-            win_h,
-            shift,
-            tx0,
-            ty0,
-            owned,
-            all_owned,
+        self._stamp_next += len(lasers)
+        touched = np.zeros(tiles.owned.shape, np.bool_)
+        scratch = (
             self._plane,
             self._columns,
             col_stride,
@@ -289,28 +236,13 @@ class MonteCarloFusion:
             self._excess,
             self._scan_cells,
             touched,
-            stamp_base,
+            self._lines,
+            self._block,
         )
-        slot_map, changed = self._tile_slots(touched, tx0, ty0)
-        apply_scan(
-            self._scan_cells,
-            n_scan,
-            self._listed,
-            self._weight_sum,
-            self._excess,
-            stamp_base,
-            self._l_free,
-            win_w,
-            win_ix0,
-            win_iy0,
-            shift,
-            tx0,
-            ty0,
-            slot_map,
-            grid.logodds,
-            grid.variance,
-            grid.observed,
-            self._l_min,
-            self._l_max,
-        )
+        window_args, tile_args = (window.ix0, window.iy0, win_w, window.h), tuple(tiles)
+        n_scan = accumulate_scan(lasers, weights, *self._ray_args(beams), window_args, tile_args, scratch, stamp_base)
+        slot_map, changed = self._tile_slots(touched, tiles.tx0, tiles.ty0)
+        grid = self.grid
+        layers = (grid.logodds, grid.variance, grid.observed)
+        apply_scan(scratch, n_scan, stamp_base, window_args, tile_args, slot_map, layers, self._levels)
         return FuseResult(int(n_scan), changed)

@@ -114,15 +114,7 @@ class TiledGrid:
         keys = self.keys()
         size = self.tile_size
         if not keys:
-            empty = np.zeros((0, 0), np.float32)
-            return {
-                "logodds": empty,
-                "probability": empty.copy(),
-                "observed": np.zeros((0, 0), bool),
-                "variance": empty.copy(),
-                "origin": np.zeros(2),
-                "resolution": np.float64(self.resolution),
-            }
+            return empty_raster(self.resolution)
         tx = np.array([k[0] for k in keys])
         ty = np.array([k[1] for k in keys])
         tx0, ty0 = tx.min(), ty.min()
@@ -160,6 +152,21 @@ class TiledGrid:
             "origin": origin,
             "resolution": np.float64(self.resolution),
         }
+
+
+def empty_raster(resolution: float, **layers: np.ndarray) -> dict[str, np.ndarray]:
+    """The raster of a map with no observed cell: 0 x 0 layers at the origin, cells of ``resolution`` m, with the map
+    file's keys and any further (0 x 0) ``layers`` before origin."""
+    empty = np.zeros((0, 0), np.float32)
+    return {
+        "logodds": empty,
+        "probability": empty.copy(),
+        "observed": np.zeros((0, 0), bool),
+        "variance": empty.copy(),
+        **layers,
+        "origin": np.zeros(2),
+        "resolution": np.float64(resolution),
+    }
 
 
 def probability_of(logodds: np.ndarray) -> np.ndarray:

@@ -188,17 +188,43 @@ def _warn_uncached(reason: Exception) -> None:
 _CACHE_CLASS = _closure_cache_class()
 
 
+def _no_refcounts_option() -> dict[str, bool]:
+    """numba's option that compiles a kernel without reference counting ({} with a warning where it is missing:
+    such kernels then compile with it, slower, never wrong)."""
+    from numba.core.cpu import CPUTargetOptions
+
+    if hasattr(CPUTargetOptions, "_nrt"):
+        return {"_nrt": False}
+    warnings.warn(
+        f"numba {nb.__version__} has no _nrt option: kernels compile with reference counting", RuntimeWarning, 2
+    )
+    return {}
+
+
+_NO_REFCOUNTS = _no_refcounts_option()
+
+
 #: a kernel's Python function; the dispatcher numba returns for it is typed as the function (same parameters)
 KernelT = TypeVar("KernelT", bound=Callable[..., Any])
 
 
-def kernel(**options: Any) -> Callable[[KernelT], KernelT]:
+def kernel(*, refcounted: bool = True, **options: Any) -> Callable[[KernelT], KernelT]:
     """``numba.njit(**options)`` with an on-disk cache keyed by the kernel's import closure.
 
     Use as ``@kernel(nogil=True, error_model="numpy")``; ``cache`` is not an option (always on).
+
+    ``refcounted=False`` compiles the kernel, and the helpers it inlines, without numba's reference counting of
+    arrays (numba's private ``_nrt`` option, off; where a numba lacks it, with reference counting and a warning):
+    such a kernel may not create or return arrays, only read and write those it is handed, which its caller keeps
+    alive. With reference counting, every array taken out of a tuple, or handed to an inlined helper, inside a
+    loop may cost an atomic increment and decrement per iteration where numba's pruning of them fails (an array
+    used in one branch only), which made a pass whose walk hands tuples of scratch arrays to its visitors several
+    times slower.
     """
     if "cache" in options:
         raise TypeError("kernel() always caches; drop the cache option")
+    if not refcounted:
+        options.update(_NO_REFCOUNTS)
 
     def decorate(py_func: KernelT) -> KernelT:
         dispatcher = nb.njit(**options)(py_func)

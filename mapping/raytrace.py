@@ -40,19 +40,19 @@ def dda_start(x0, y0, dx, dy, res):  # pragma: no cover - compiled
     """
     ix = int(math.floor(x0 / res))
     iy = int(math.floor(y0 / res))
-    if dx > 0.0:
-        step_x, t_max_x, t_delta_x = 1, ((ix + 1) * res - x0) / dx, res / dx
-    elif dx < 0.0:
-        step_x, t_max_x, t_delta_x = -1, (ix * res - x0) / dx, -res / dx
-    else:
-        step_x, t_max_x, t_delta_x = 0, FAR, FAR
-    if dy > 0.0:
-        step_y, t_max_y, t_delta_y = 1, ((iy + 1) * res - y0) / dy, res / dy
-    elif dy < 0.0:
-        step_y, t_max_y, t_delta_y = -1, (iy * res - y0) / dy, -res / dy
-    else:
-        step_y, t_max_y, t_delta_y = 0, FAR, FAR
+    step_x, t_max_x, t_delta_x = _axis_start(ix, x0, dx, res)
+    step_y, t_max_y, t_delta_y = _axis_start(iy, y0, dy, res)
     return ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _axis_start(i, origin, d, res):  # pragma: no cover - compiled
+    """Along one axis, a ray from ``origin`` (m, in cell i) with direction component d: (step, t_max, t_delta)."""
+    if d > 0.0:
+        return 1, ((i + 1) * res - origin) / d, res / d
+    if d < 0.0:
+        return -1, (i * res - origin) / d, -res / d
+    return 0, FAR, FAR
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")

@@ -9,7 +9,7 @@ import pytest
 from mapping.adaptive import AdaptiveFusion, AdaptiveGrid, AdaptiveParams, MergeRules
 from mapping.adaptive.evidence import EvidenceScanner
 from mapping.adaptive.merging import merge_siblings
-from mapping.beam_model import BEAM_HIT, BEAM_NO_RETURN, beam_table, logodds_table
+from mapping.beam_model import BEAM_HIT, BEAM_NO_RETURN, beam_table, logodds_model
 from mapping.errors import InputError
 from mapping.fusion import MonteCarloFusion, laser_poses
 from mapping.grid import TiledGrid
@@ -268,11 +268,8 @@ def test_weighted_counts_equal_the_sum_of_per_sample_counts(unknowns):
         angles,
         beams,
         r_count,
-        logodds_table(model),
+        logodds_model(model),
         model.resolution,
-        model.p_miss,
-        model.p_hit,
-        model.l_free,
     )
     expected = reference_counts(model, angles, 0.05, 2.0, ranges, lasers, weights, levels, unknowns)
     for k in range(levels):

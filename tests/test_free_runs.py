@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from mapping.free_runs import fold_columns, mark_free_runs, set_run, transpose64
 from mapping.raytrace import corner_tol, traverse
-from mapping.window_walk import JUMP_MARGIN
+from mapping.window_walk import JUMP_MARGIN, Window
 
 RES = 0.05
 # a window that is neither square nor centred, and holds every ray below (origins within 2 m of (0, 0), 1.8 m
@@ -29,20 +29,13 @@ def runs_cells(x0, y0, angle, r_end, stop):
         rows,
         columns,
         COL_STRIDE,
-        x0,
-        y0,
-        math.cos(angle),
-        math.sin(angle),
-        int(ix[0]),
-        int(iy[0]),
+        Window(WIN_IX0, WIN_IY0, WIN_W, WIN_H),
+        (x0, y0, math.cos(angle), math.sin(angle)),
+        (int(ix[0]), int(iy[0])),
         r_end,
         RES,
         corner_tol(stop),
-        WIN_IX0,
-        WIN_IY0,
-        WIN_W,
-        np.empty(WIN_W, np.int64),
-        np.empty(WIN_W, np.int64),
+        np.empty((2, WIN_W), np.int64),
     )
     fold_columns(columns, COL_STRIDE, rows, WIN_W, WIN_H, np.empty(64, np.uint64))
     assert not columns.any(), "the fold clears the column-major plane"

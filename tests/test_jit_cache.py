@@ -144,6 +144,25 @@ def test_no_kernel_uses_numbas_own_cache():
     assert not {f: lines for f, lines in offenders.items() if lines}
 
 
+def test_a_kernel_without_reference_counting_writes_arrays_and_refuses_to_create_one(tmp_path):
+    """refcounted=False: the kernel reads and writes the arrays it is handed (in tuples too); one that would create
+    an array does not compile."""
+    package = tmp_path / "nrtpkg"
+    package.mkdir()
+    (package / "__init__.py").write_text("")
+    (package / "kernels.py").write_text(
+        "import numpy as np\nfrom mapping.jit import kernel\n\n\n@kernel(refcounted=False)\ndef add(pair):\n"
+        "    a, b = pair\n    for i in range(a.shape[0]):\n        a[i] += b[i]\n\n\n"
+        "@kernel(refcounted=False)\ndef make(n):\n    return np.zeros(n)\n"
+    )
+    script = (
+        "import numpy as np\nfrom numba.core.errors import TypingError\nfrom nrtpkg.kernels import add, make\n"
+        "a = np.zeros(3)\nadd((a, np.arange(3.0)))\nprint(a.tolist())\n"
+        "try:\n    make(3)\nexcept TypingError:\n    print('refused')\n"
+    )
+    assert run_python(tmp_path, script).split("\n")[:2] == ["[0.0, 1.0, 2.0]", "refused"]
+
+
 def test_kernel_refuses_a_cache_option():
     with pytest.raises(TypeError, match="always caches"):
         kernel(cache=False)

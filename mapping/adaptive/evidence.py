@@ -1,7 +1,7 @@
 """One scan's evidence for the adaptive grid, gathered in one compiled pass over (sample, beam, finest cell).
 
-Each ray under each pose sample is traversed at the finest resolution with the shared Amanatides-Woo helpers
-(:func:`mapping.raytrace.dda_start`, :func:`mapping.raytrace.dda_step`). The pass records
+Each ray under each pose sample is walked at the finest resolution by the ray walk of the regular grid's passes
+(:func:`mapping.window_walk.walk_ray`, every tile owned and no free phase). The pass records
 
 * per finest cell, the regular grid's Monte Carlo evidence (paper, eq. 9), computed exactly as
   :mod:`mapping.fusion`'s kernel does: a beam gives the cell the model's largest value over its segment
@@ -16,8 +16,8 @@ Each ray under each pose sample is traversed at the finest resolution with the s
 
 Unknowns are counted only where the split test reads them: at levels >= 1 (the finest cells are never
 split) and in cells that the scan also gives hits or misses (a cell is tested only when the scan sees it).
-They are counted in a second loop that follows each ray from its return through level-1 cells, so the long
-stretches behind the returns cost little.
+They are counted in a second loop that walks each ray from its return through level-1 cells (the same walk on
+cells twice as wide), so the long stretches behind the returns cost little.
 
 Nothing here depends on which cells are active, so after the pass the split test can descend through any
 level and the update can aggregate the finest evidence into whatever cells are active.
@@ -31,17 +31,67 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
-from mapping.beam_model import BEAM_HIT, BEAM_SKIP, TABLE_DU, TABLE_U0, BeamTable, segment_logodds
+from mapping.beam_model import BEAM_HIT, BEAM_SKIP, BeamTable, LogOddsModel, beam_at, segment_logodds
 from mapping.jit import kernel
-from mapping.raytrace import FAR, corner_tol, dda_start, dda_step
+from mapping.raytrace import FAR
 from mapping.samples_pass import STAMP_LIMIT, add_sample_value
 from mapping.scan_input import check_window
+from mapping.window_walk import Tiles, Window, ray_start, walk_ray
 
 #: columns of a count record: [stamp, hits, misses, unknowns]
 HIT, MISS, UNKNOWN = 1, 2, 3
+
+
+class Levels(NamedTuple):
+    """The scratch windows per level k (int64 arrays, one entry a level): level-k cells ax in [x0[k], x0[k] + w[k]),
+    ay in [y0[k], y0[k] + h[k]); the counts of level k >= 1 start at off[k] in the count records."""
+
+    x0: np.ndarray
+    y0: np.ndarray
+    w: np.ndarray
+    h: np.ndarray
+    off: np.ndarray
+
+
+class EvidenceScratch(NamedTuple):
+    """rec: (finest window cells, 6) records; cnt: (counted cells, 4) count records; seen: (counted cells,) uint8;
+    touched: the finest cells with log-odds evidence (see :func:`_scan_evidence`); run_hit, run_len: (levels,)
+    bool, per level whether the open run of a ray holds its return and whether it has positive length; owned:
+    a (1, 1) True, the tiles of a walk that owns every tile."""
+
+    rec: np.ndarray
+    cnt: np.ndarray
+    seen: np.ndarray
+    touched: np.ndarray
+    run_hit: np.ndarray
+    run_len: np.ndarray
+    owned: np.ndarray
+
+
+class _Runs(NamedTuple):
+    """What the evidence visitors read and write: the scratch, the levels' windows, the model, the sample's stamp
+    sid and weight w, and the scan's stamp_base."""
+
+    scratch: EvidenceScratch
+    levels: Levels
+    model: LogOddsModel
+    sid: float
+    w: float
+    stamp_base: int
+
+
+class _Unknowns(NamedTuple):
+    """What the unknowns' visitor reads and writes: ``seen`` and the count records, the levels' windows, and the
+    sample's weight w."""
+
+    seen: np.ndarray
+    cnt: np.ndarray
+    levels: Levels
+    w: float
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
@@ -53,48 +103,108 @@ def _bit_length(v):  # pragma: no cover - compiled
     return n
 
 
-@kernel(nogil=True, error_model="numpy")
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _direction(theta):  # pragma: no cover - compiled
+    """The unit direction of a ray at heading theta (rad, map frame), from a cos and a sin of the heading. (The
+    regular grid's passes compose it from the cosines and sines of the laser's heading and the beam's angle,
+    :func:`mapping.window_walk.beam_direction`, which differs in the last bits.)"""
+    return math.cos(theta), math.sin(theta)
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _levels_left(ix, iy, prev_ix, prev_iy, n_levels):  # pragma: no cover - compiled
+    """How many levels (from the finest) of cell (prev_ix, prev_iy) the step to (ix, iy) leaves."""
+    moved = (ix ^ prev_ix) | (iy ^ prev_iy)
+    return n_levels if moved < 0 else min(_bit_length(moved), n_levels)
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _close_runs(runs, top, ix, iy, hit_passed):  # pragma: no cover - compiled
+    """Close the runs of levels 0..top-1 that end in cell (ix, iy), finest first: fold each into its parent run,
+    count a hit or a miss (a run that began beyond the return is left to the unknowns' pass), and open the next."""
+    rec, cnt, seen = runs.scratch.rec, runs.scratch.cnt, runs.scratch.seen
+    lv, run_hit, run_len = runs.levels, runs.scratch.run_hit, runs.scratch.run_len
+    n_levels = lv.x0.shape[0]
+    for lvl in range(top):
+        if run_len[lvl] and (run_hit[lvl] or not hit_passed):
+            if lvl + 1 < n_levels:
+                run_len[lvl + 1] = True
+                if run_hit[lvl]:
+                    run_hit[lvl + 1] = True
+            if lvl == 0:  # a finest run is the cell just recorded: its counts share the record
+                rec[(iy - lv.y0[0]) * lv.w[0] + ix - lv.x0[0], 4 if run_hit[0] else 5] += runs.w
+            else:
+                q = lv.off[lvl] + ((iy >> lvl) - lv.y0[lvl]) * lv.w[lvl] + ((ix >> lvl) - lv.x0[lvl])
+                if cnt[q, 0] != runs.stamp_base:
+                    cnt[q, 0] = runs.stamp_base
+                    cnt[q, 1] = 0.0
+                    cnt[q, 2] = 0.0
+                    cnt[q, 3] = 0.0
+                cnt[q, HIT if run_hit[lvl] else MISS] += runs.w
+                seen[q] = 1
+        run_hit[lvl] = False
+        run_len[lvl] = False
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _no_free_phase(runs, carry, ix, iy):  # pragma: no cover - compiled
+    return carry
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _record_cell(runs, beam, carry, ix, iy, r_in, r_out):  # pragma: no cover - compiled
+    """A finest cell the ray crosses over [r_in, r_out] (m): close the runs the step from the previous cell left,
+    then give the cell its value and open its run. carry: (previous cell's ix, iy, whether the ray passed its
+    return, cells listed in touched)."""
+    prev_ix, prev_iy, hit_passed, n_touched = carry
+    _close_runs(runs, _levels_left(ix, iy, prev_ix, prev_iy, runs.levels.x0.shape[0]), prev_ix, prev_iy, hit_passed)
+    runs.scratch.run_len[0] = True
+    z_hit = beam.z if beam.kind == BEAM_HIT else FAR
+    if not hit_passed and z_hit < r_out:
+        runs.scratch.run_hit[0] = True
+        hit_passed = True
+    y = segment_logodds(r_in, r_out, beam, runs.model)
+    rec, lv = runs.scratch.rec, runs.levels
+    c = (iy - lv.y0[0]) * lv.w[0] + ix - lv.x0[0]
+    if rec[c, 0] < runs.stamp_base:  # first touch in this scan
+        rec[c, 2] = 0.0
+        rec[c, 3] = 0.0
+        rec[c, 4] = 0.0
+        rec[c, 5] = 0.0
+        runs.scratch.touched[n_touched] = c
+        n_touched += 1
+    add_sample_value(rec, c, runs.sid, runs.w, y)
+    return ix, iy, hit_passed, n_touched
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _count_unknown(unknowns, beam, carry, ix, iy, r_in, r_out):  # pragma: no cover - compiled
+    """A level-1 cell (ix, iy) the ray enters behind its return: an unknown for each level >= 1 the step from the
+    previous cell (carry) enters anew, in the cells the scan has seen."""
+    prev_ix, prev_iy = carry
+    lv = unknowns.levels
+    top = min(1 + _levels_left(ix, iy, prev_ix, prev_iy, lv.x0.shape[0]), lv.x0.shape[0])
+    for lvl in range(1, top):
+        q = lv.off[lvl] + ((iy >> (lvl - 1)) - lv.y0[lvl]) * lv.w[lvl] + ((ix >> (lvl - 1)) - lv.x0[lvl])
+        if unknowns.seen[q]:
+            unknowns.cnt[q, UNKNOWN] += unknowns.w
+    return ix, iy
+
+
+@kernel(nogil=True, error_model="numpy", refcounted=False)
 def _scan_evidence(
-    laser_x,
-    laser_y,
-    laser_yaw,
-    weights,
-    angles,
-    kind,
-    z,
-    r_stop,
-    r_count,
-    r_peak,
-    a,
-    b,
-    s,
-    g_peak,
-    free_until,
-    table,
-    u0,
-    du,
-    res,
-    p_miss,
-    p_hit,
-    l_free,
-    lv_x0,
-    lv_y0,
-    lv_w,
-    lv_h,
-    lv_off,
-    rec,
-    cnt,
-    seen,
-    touched,
-    stamp_base,
-    count_unknowns,
+    lasers, weights, angles, beams, r_count, model, res, levels, scratch, stamp_base, count_unknowns
 ):  # pragma: no cover - compiled
     """The pass; returns how many finest cells got log-odds evidence (listed in ``touched``).
 
-    Finest window cell (gx, gy) = global (lv_x0[0] + gx, lv_y0[0] + gy) has record rec[gy * lv_w[0] + gx] =
+    lasers: (M, 3) laser poses (x m, y m, yaw rad), weights (M,); angles: (B,) beam angles (rad, laser frame);
+    beams: a :class:`BeamTable`, model a :class:`LogOddsModel`, levels a :class:`Levels`, scratch an
+    :class:`EvidenceScratch` (plain tuples); r_count: (B,) m; res: the finest cell size (m).
+
+    Finest window cell (gx, gy) = global (x0[0] + gx, y0[0] + gy) has record rec[gy * w[0] + gx] =
     [stamp of the last sample that touched it, that sample's value, sum_j w_j y, sum_j w_j y^2, hits,
     misses]; the stamps are stamp_base + j, smaller ones are from earlier scans. Level-k cell (ax, ay), k >= 1,
-    has count record q = lv_off[k] + (ay - lv_y0[k]) * lv_w[k] + ax - lv_x0[k], cnt[q] = [stamp_base, hits,
+    has count record q = off[k] + (ay - y0[k]) * w[k] + ax - x0[k], cnt[q] = [stamp_base, hits,
     misses, unknowns], and seen[q] = 1 once the scan gave it a hit or a miss (``seen`` must be all 0 on entry).
 
     First every ray is followed up to r_stop for the values, hits and misses. Then, with ``count_unknowns``,
@@ -102,143 +212,54 @@ def _scan_evidence(
     level >= 1 it enters adds an unknown, if the scan has seen that cell: the split test reads unknowns only
     in cells with hits or misses, and skipping the others keeps the long stretches behind the returns cheap.
     """
-    n_levels = lv_x0.shape[0]
-    run_hit = np.zeros(n_levels, np.bool_)  # per level, the open run holds the return
-    run_len = np.zeros(n_levels, np.bool_)  # the open run has positive length
+    beams, model, levels, scratch = BeamTable(*beams), LogOddsModel(*model), Levels(*levels), EvidenceScratch(*scratch)
+    n_levels = levels.x0.shape[0]
+    every_tile = Tiles(scratch.owned, True, 0, 0, 0)
+    finest = Window(levels.x0[0], levels.y0[0], levels.w[0], levels.h[0])
+    run_hit, run_len = scratch.run_hit, scratch.run_len
     n_touched = 0
-    y_peak = math.log(p_hit) - math.log1p(-p_hit)
-    for j in range(laser_x.shape[0]):
-        sid = float(stamp_base + j)
-        w = weights[j]
+    for j in range(lasers.shape[0]):
+        runs = _Runs(scratch, levels, model, float(stamp_base + j), weights[j], stamp_base)
         for k in range(angles.shape[0]):
-            beam_kind = kind[k]
-            if beam_kind == BEAM_SKIP:
+            beam = beam_at(beams, k)
+            if beam.kind == BEAM_SKIP:
                 continue
-            theta = laser_yaw[j] + angles[k]
-            ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y = dda_start(
-                laser_x[j], laser_y[j], math.cos(theta), math.sin(theta), res
+            dx, dy = _direction(lasers[j, 2] + angles[k])
+            inside, ray = ray_start(lasers[j, 0], lasers[j, 1], dx, dy, beam.r_stop, res, finest)
+            if not inside:
+                continue  # (the window covers every ray's reach with cells to spare: this guards the memory)
+            run_hit[:] = False
+            run_len[:] = False
+            carry = (ray.ix, ray.iy, False, n_touched)
+            carry = walk_ray(
+                ray, 0.0, -math.inf, beam.r_stop, every_tile, _no_free_phase, _record_cell, runs, (beams, k), carry
             )
-            stop = r_stop[k]
-            z_hit = z[k] if beam_kind == BEAM_HIT else FAR
-            for lvl in range(n_levels):
-                run_hit[lvl] = False
-                run_len[lvl] = False
-            hit_passed = False
-            r_in = 0.0
-            tol = corner_tol(stop)
-            while True:
-                r_out = min(t_max_x, t_max_y, stop)
-                gx = ix - lv_x0[0]
-                gy = iy - lv_y0[0]
-                # the window covers every ray's reach, so the guard never fires; it protects the scratch memory
-                finished = gx < 0 or gy < 0 or gx >= lv_w[0] or gy >= lv_h[0]
-                if not finished and r_out > r_in:
-                    run_len[0] = True
-                    if not hit_passed and z_hit < r_out:
-                        run_hit[0] = True
-                        hit_passed = True
-                    y = segment_logodds(
-                        r_in,
-                        r_out,
-                        beam_kind,
-                        free_until[k],
-                        z[k],
-                        r_peak[k],
-                        a[k],
-                        b[k],
-                        s[k],
-                        g_peak[k],
-                        table,
-                        u0,
-                        du,
-                        p_miss,
-                        p_hit,
-                        l_free,
-                        y_peak,
-                    )
-                    c = gy * lv_w[0] + gx
-                    if rec[c, 0] < stamp_base:  # first touch in this scan
-                        rec[c, 2] = 0.0
-                        rec[c, 3] = 0.0
-                        rec[c, 4] = 0.0
-                        rec[c, 5] = 0.0
-                        touched[n_touched] = c
-                        n_touched += 1
-                    add_sample_value(rec, c, sid, w, y)
-                next_ix, next_iy = ix, iy
-                if finished or r_out >= stop - tol:  # (as in the fusion passes: no sliver past the end)
-                    finished = True
-                    top = n_levels
-                else:
-                    r_in = r_out
-                    next_ix, next_iy, t_max_x, t_max_y = dda_step(
-                        ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol
-                    )
-                    moved = (next_ix ^ ix) | (next_iy ^ iy)
-                    top = n_levels if moved < 0 else min(_bit_length(moved), n_levels)
-                # close the runs that end here (levels 0..top-1, finest first): fold each into its parent run,
-                # count a hit or a miss (a run that began beyond the return is left to the unknowns' pass),
-                # and open the next run
-                for lvl in range(top):
-                    if run_len[lvl] and (run_hit[lvl] or not hit_passed):
-                        if lvl + 1 < n_levels:
-                            run_len[lvl + 1] = True
-                            if run_hit[lvl]:
-                                run_hit[lvl + 1] = True
-                        if lvl == 0:  # a finest run is the cell just recorded: its counts share the record
-                            rec[gy * lv_w[0] + gx, 4 if run_hit[0] else 5] += w
-                        else:
-                            q = lv_off[lvl] + ((iy >> lvl) - lv_y0[lvl]) * lv_w[lvl] + ((ix >> lvl) - lv_x0[lvl])
-                            if cnt[q, 0] != stamp_base:
-                                cnt[q, 0] = stamp_base
-                                cnt[q, 1] = 0.0
-                                cnt[q, 2] = 0.0
-                                cnt[q, 3] = 0.0
-                            cnt[q, HIT if run_hit[lvl] else MISS] += w
-                            seen[q] = 1
-                    run_hit[lvl] = False
-                    run_len[lvl] = False
-                if finished:
-                    break
-                ix = next_ix
-                iy = next_iy
-    if not count_unknowns or n_levels < 2:
-        return n_touched
-    for j in range(laser_x.shape[0]):
-        w = weights[j]
-        for k in range(angles.shape[0]):
-            if kind[k] != BEAM_HIT or r_count[k] <= z[k]:
-                continue
-            theta = laser_yaw[j] + angles[k]
-            dx = math.cos(theta)
-            dy = math.sin(theta)
-            # ranges from the return; its level-1 cell holds the hit, every cell entered after it is unknown
-            ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y = dda_start(
-                laser_x[j] + z[k] * dx, laser_y[j] + z[k] * dy, dx, dy, 2.0 * res
-            )
-            stop = r_count[k] - z[k]
-            tol = corner_tol(stop)
-            while min(t_max_x, t_max_y) < stop:
-                next_ix, next_iy, t_max_x, t_max_y = dda_step(
-                    ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol
-                )
-                gx = next_ix - lv_x0[1]
-                gy = next_iy - lv_y0[1]
-                if gx < 0 or gy < 0 or gx >= lv_w[1] or gy >= lv_h[1]:
-                    break  # cannot happen, as above
-                moved = (next_ix ^ ix) | (next_iy ^ iy)
-                top = n_levels if moved < 0 else min(1 + _bit_length(moved), n_levels)
-                for lvl in range(1, top):
-                    q = (
-                        lv_off[lvl]
-                        + ((next_iy >> (lvl - 1)) - lv_y0[lvl]) * lv_w[lvl]
-                        + ((next_ix >> (lvl - 1)) - lv_x0[lvl])
-                    )
-                    if seen[q]:
-                        cnt[q, UNKNOWN] += w
-                ix = next_ix
-                iy = next_iy
+            prev_ix, prev_iy, hit_passed, n_touched = carry
+            _close_runs(runs, n_levels, prev_ix, prev_iy, hit_passed)
+    if count_unknowns and n_levels >= 2:
+        _count_unknowns(lasers, weights, angles, beams, r_count, res, levels, scratch, every_tile)
     return n_touched
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _count_unknowns(lasers, weights, angles, beams, r_count, res, levels, scratch, every_tile):  # pragma: no cover
+    """The unknowns' pass of :func:`_scan_evidence`: every ray with a return walked from it up to r_count through
+    level-1 cells (the return's level-1 cell holds the hit, every cell entered after it is unknown)."""
+    coarse = Window(levels.x0[1], levels.y0[1], levels.w[1], levels.h[1])
+    for j in range(lasers.shape[0]):
+        unknowns = _Unknowns(scratch.seen, scratch.cnt, levels, weights[j])
+        for k in range(angles.shape[0]):
+            if beams.kind[k] != BEAM_HIT or r_count[k] <= beams.z[k]:
+                continue
+            dx, dy = _direction(lasers[j, 2] + angles[k])
+            z = beams.z[k]
+            stop = r_count[k] - z  # ranges from the return
+            inside, ray = ray_start(lasers[j, 0] + z * dx, lasers[j, 1] + z * dy, dx, dy, stop, 2.0 * res, coarse)
+            if inside:
+                start = (ray.ix, ray.iy)
+                walk_ray(
+                    ray, 0.0, -math.inf, stop, every_tile, _no_free_phase, _count_unknown, unknowns, (beams, k), start
+                )
 
 
 @dataclass(frozen=True)
@@ -316,27 +337,45 @@ class EvidenceScanner:
         angles: np.ndarray,
         beams: BeamTable,
         r_count: np.ndarray,
-        table: np.ndarray,
+        model: LogOddsModel,
         resolution: float,
-        p_miss: float,
-        p_hit: float,
-        l_free: float,
     ) -> ScanEvidence:
         """Gather the evidence of one scan.
 
         lasers: (M, 3) laser poses (x m, y m, yaw rad) in the map frame; weights: (M,) summing to 1;
         angles: (B,) beam angles in rad, laser frame; beams: the scan's beam table; r_count: (B,) m, how far
-        each ray is followed for counting (>= beams.r_stop); table: the constant-sigma log-odds table or empty;
-        resolution: the finest cell size in m; p_miss, p_hit, l_free: the sensor model's.
+        each ray is followed for counting (>= beams.r_stop); model: what the kernels read of the sensor model
+        (:func:`mapping.beam_model.logodds_model`); resolution: the finest cell size in m.
         """
-        res = resolution
-        reach = float(r_count.max()) + res
+        levels = self._windows(lasers, float(r_count.max()) + resolution, resolution)
+        stamp_base = self._stamps(len(lasers))
+        flags = np.zeros(self.levels, np.bool_)
+        scratch = (self._rec, self._cnt, self._seen, self._touched, flags, flags.copy(), np.ones((1, 1), np.bool_))
+        n = _scan_evidence(
+            lasers,
+            weights,
+            angles,
+            tuple(beams),
+            r_count,
+            tuple(model),
+            resolution,
+            tuple(levels),
+            scratch,
+            stamp_base,
+            self.count_unknowns,
+        )
+        return ScanEvidence(*levels, self._rec, self._cnt, self._touched[:n].copy(), stamp_base)
+
+    def _windows(self, lasers: np.ndarray, reach: float, res: float) -> Levels:
+        """The scratch windows of every level over the rays of laser poses (M, 3) that reach ``reach`` m (cells of
+        res m), each with two finest cells to spare on every side beyond the reach (a level-1 cell at least, as
+        the walk's start checks), and scratch that holds them, the count records' ``seen`` cleared."""
         (x_lo, y_lo), (x_hi, y_hi) = lasers[:, :2].min(axis=0).tolist(), lasers[:, :2].max(axis=0).tolist()
         check_window(x_lo, y_lo, x_hi, y_hi, reach, res)
-        ix0 = math.floor((x_lo - reach) / res)
-        iy0 = math.floor((y_lo - reach) / res)
-        ix1 = math.floor((x_hi + reach) / res)
-        iy1 = math.floor((y_hi + reach) / res)
+        ix0 = math.floor((x_lo - reach) / res) - 2
+        iy0 = math.floor((y_lo - reach) / res) - 2
+        ix1 = math.floor((x_hi + reach) / res) + 2
+        iy1 = math.floor((y_hi + reach) / res) + 2
         shifts = np.arange(self.levels)
         x0, y0 = np.int64(ix0) >> shifts, np.int64(iy0) >> shifts
         w = (np.int64(ix1) >> shifts) - x0 + 1
@@ -353,45 +392,14 @@ class EvidenceScanner:
             self._cnt = np.zeros((counted, 4))
             self._seen = np.zeros(counted, np.uint8)
         self._seen[:counted] = 0
-        if self._stamp_next + len(lasers) >= STAMP_LIMIT:
+        return Levels(x0, y0, w, h, off)
+
+    def _stamps(self, samples: int) -> int:
+        """The stamp of the scan's first sample (the scratch cleared when the stamps run out)."""
+        if self._stamp_next + samples >= STAMP_LIMIT:
             self._rec[:] = 0
             self._cnt[:] = 0
             self._stamp_next = 1
         stamp_base = self._stamp_next
-        self._stamp_next += len(lasers)
-        n = _scan_evidence(
-            lasers[:, 0].copy(),
-            lasers[:, 1].copy(),
-            lasers[:, 2].copy(),
-            weights,
-            angles,
-            beams.kind,
-            beams.z,
-            beams.r_stop,
-            r_count,
-            beams.r_peak,
-            beams.a,
-            beams.b,
-            beams.s,
-            beams.g_peak,
-            beams.free_until,
-            table,
-            TABLE_U0,
-            TABLE_DU,
-            res,
-            p_miss,
-            p_hit,
-            l_free,
-            x0,
-            y0,
-            w,
-            h,
-            off,
-            self._rec,
-            self._cnt,
-            self._seen,
-            self._touched,
-            stamp_base,
-            self.count_unknowns,
-        )
-        return ScanEvidence(x0, y0, w, h, off, self._rec, self._cnt, self._touched[:n].copy(), stamp_base)
+        self._stamp_next += samples
+        return stamp_base

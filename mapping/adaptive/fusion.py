@@ -38,7 +38,7 @@ from mapping.adaptive.evidence import EvidenceScanner, ScanEvidence
 from mapping.adaptive.merging import MergeRules, merge_siblings
 from mapping.adaptive.splitting import SplitTest
 from mapping.adaptive.tree import AdaptiveGrid, children, unique_cells
-from mapping.beam_model import BEAM_HIT, BEAM_SKIP, BeamTable, beam_table, logodds_table
+from mapping.beam_model import BEAM_HIT, BEAM_SKIP, BeamTable, beam_table, logodds_model
 from mapping.errors import InputError
 from mapping.scan_input import check_scan, laser_poses, merge_duplicates
 from mapping.sensor_model import SensorModel
@@ -129,7 +129,7 @@ class AdaptiveFusion:
         sigma = params.sigma if params.sigma is not None else float(model.sigma_at(range_max / 2))
         self.test = SplitTest(model.resolution, sigma, params.significance, params.unknowns, params.floor)
         self.scanner = EvidenceScanner(max_level + 1, params.unknowns)
-        self._table = logodds_table(model)
+        self._model_terms = logodds_model(model)
 
     # ----------------------------------------------------------------------------------- one scan
     def fuse(self, ranges: np.ndarray, samples: np.ndarray, weights: np.ndarray) -> AdaptiveFuseResult:
@@ -145,11 +145,8 @@ class AdaptiveFusion:
             self.angles,
             beams,
             self._count_ranges(beams),
-            self._table,
+            self._model_terms,
             self.model.resolution,
-            self.model.p_miss,
-            self.model.p_hit,
-            self.model.l_free,
         )
         ix, iy, first, spread = evidence.fine()
         created = self._activate(ix, iy)

@@ -27,7 +27,7 @@ import math
 import numpy as np
 
 from mapping.errors import InputError
-from mapping.grid import TILE_SIZE, probability_of
+from mapping.grid import TILE_SIZE, empty_raster, probability_of
 
 #: per-cell columns besides the key, with their dtypes
 CELL_COLUMNS = (
@@ -270,16 +270,7 @@ class AdaptiveGrid:
         if not out_res > 0:
             raise InputError(f"raster resolution must be > 0 m, got {resolution}")
         if self.key.size == 0:
-            empty = np.zeros((0, 0), np.float32)
-            return {
-                "logodds": empty,
-                "probability": empty.copy(),
-                "observed": np.zeros((0, 0), bool),
-                "variance": empty.copy(),
-                "level": np.zeros((0, 0), np.int8),
-                "origin": np.zeros(2),
-                "resolution": np.float64(out_res),
-            }
+            return empty_raster(out_res, level=np.zeros((0, 0), np.int8))
         level, ax, ay = self.cells()
         x0, y0 = (ax << level).min(), (ay << level).min()
         x1, y1 = ((ax + 1) << level).max(), ((ay + 1) << level).max()
