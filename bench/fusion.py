@@ -48,15 +48,8 @@ def _fusion_steps(posed, mode: str, merge_identical: bool = True) -> tuple[list,
     after a warm-up scan into another grid that compiles the kernels; and that grid."""
     model = SensorModel(resolution=RESOLUTION)
     grid = TiledGrid(RESOLUTION)
-    fusion = MonteCarloFusion(
-        grid,
-        model,
-        posed.beam_angles,
-        posed.range_min,
-        posed.range_max,
-        posed.sensor_offset,
-        merge_identical=merge_identical,
-    )
+    beams = (posed.beam_angles, posed.range_min, posed.range_max)
+    fusion = MonteCarloFusion(grid, model, *beams, posed.sensor_offset, merge_identical=merge_identical)
     poses = posed.poses
     picks = []
     for t in range(len(posed.stamps)):
@@ -65,9 +58,7 @@ def _fusion_steps(posed, mode: str, merge_identical: bool = True) -> tuple[list,
             picks.append((poses.samples[t, best : best + 1], np.ones(1)))
         else:
             picks.append((poses.samples[t], poses.weights[t]))
-    MonteCarloFusion(TiledGrid(RESOLUTION), model, posed.beam_angles, posed.range_min, posed.range_max).fuse(
-        posed.ranges[0], *picks[0]
-    )
+    MonteCarloFusion(TiledGrid(RESOLUTION), model, *beams).fuse(posed.ranges[0], *picks[0])
     steps = [functools.partial(fusion.fuse, posed.ranges[t], *picks[t]) for t in range(len(posed.stamps))]
     return steps, grid
 
@@ -131,6 +122,15 @@ def _interleaved_seconds(*step_lists: list, chunk: int) -> list[np.ndarray]:
     return seconds
 
 
+@kernel(nogil=True, inline="always")
+def _sample_ray(laser_yaw, angles, ranges, range_max, j, k):  # pragma: no cover - compiled
+    """Beam k from laser pose j: (whether its reading is a return, where the ray stops in m: the reading, or
+    range_max without a return, its heading in rad in the map frame)."""
+    z = ranges[k]
+    hit = z <= range_max
+    return hit, z if hit else range_max, laser_yaw[j] + angles[k]
+
+
 @kernel(nogil=True)
 def _plain_ray_loop(
     laser_x, laser_y, laser_yaw, angles, ranges, range_max, res, l_free, l_occ, grid, ix0, iy0
@@ -141,10 +141,7 @@ def _plain_ray_loop(
     visits = 0
     for j in range(laser_x.shape[0]):
         for k in range(angles.shape[0]):
-            z = ranges[k]
-            hit = z <= range_max
-            stop = z if hit else range_max
-            theta = laser_yaw[j] + angles[k]
+            hit, stop, theta = _sample_ray(laser_yaw, angles, ranges, range_max, j, k)
             ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y = dda_start(
                 laser_x[j], laser_y[j], math.cos(theta), math.sin(theta), res
             )
@@ -169,10 +166,7 @@ def _bresenham_ray_loop(
     visits = 0
     for j in range(laser_x.shape[0]):
         for k in range(angles.shape[0]):
-            z = ranges[k]
-            hit = z <= range_max
-            stop = z if hit else range_max
-            theta = laser_yaw[j] + angles[k]
+            hit, stop, theta = _sample_ray(laser_yaw, angles, ranges, range_max, j, k)
             x = int(math.floor(laser_x[j] / res))
             y = int(math.floor(laser_y[j] / res))
             x_end = int(math.floor((laser_x[j] + stop * math.cos(theta)) / res))

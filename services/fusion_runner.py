@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, TypedDict
 
 import numpy as np
 from tqdm import tqdm
@@ -15,6 +16,9 @@ from mapping.grid import TiledGrid
 from mapping.poses import scan_samples
 from mapping.sensor_model import SensorModel
 from schemas.files import PosedScans
+
+if TYPE_CHECKING:
+    from typing_extensions import Unpack
 
 
 @dataclass(frozen=True)
@@ -58,70 +62,81 @@ class PoseSampling:
         )
 
 
+class FusionOptions(TypedDict, total=False):
+    """How :func:`fuse_posed_scans` fuses, every key optional.
+
+    mode: "mc" (all pose samples, the paper's method; the default) or "ml" (the most likely pose only).
+    model: the inverse sensor model (default: SensorModel(resolution), resolution in m, default 0.05).
+    n_samples: Gaussian draws per scan, None (the default) to derive them from the covariance and ``accuracy``
+    (m, default one cell). seed: with the scan's seq, seeds the draws (default 0). progress: show a progress bar.
+    """
+
+    mode: str
+    model: SensorModel
+    resolution: float
+    n_samples: int | None
+    seed: int
+    accuracy: float | None
+    progress: bool
+
+
 def fuse_posed_scans(
     posed: PosedScans,
     *,
-    mode: str = "mc",
-    model: SensorModel | None = None,
-    resolution: float = 0.05,
-    n_samples: int | None = None,
-    seed: int = 0,
-    accuracy: float | None = None,
     grid: TiledGrid | None = None,
     owns_tile: Callable[[int, int], bool] | None = None,
-    progress: bool = False,
+    **options: Unpack[FusionOptions],
 ) -> TiledGrid:
-    """Fuse every scan of a posed-scan file into a tiled grid and return it.
-
-    mode: "mc" (all pose samples, the paper's method) or "ml" (the most likely pose only).
-    model: the inverse sensor model (default: SensorModel(resolution)). n_samples: Gaussian draws per scan,
-    None to derive them from the covariance and ``accuracy`` (m, default one cell).
-    """
-    model = model or SensorModel(resolution=resolution)
+    """Fuse every scan of a posed-scan file into a tiled grid (``grid``, else a new one; with ``owns_tile``, only
+    the tiles it accepts) as ``options`` say, and return it."""
+    model = _model(options)
     grid = grid or TiledGrid(model.resolution)
-    fusion = MonteCarloFusion(
-        grid, model, posed.beam_angles, posed.range_min, posed.range_max, posed.sensor_offset, owns_tile
-    )
-    _fuse_each_scan(posed, fusion.fuse, mode, n_samples, seed, accuracy, model, progress)
+    fusion = MonteCarloFusion(grid, model, *_beam_geometry(posed), owns_tile)
+    _fuse_each_scan(posed, fusion.fuse, model, options)
     return grid
 
 
 def fuse_posed_scans_adaptive(
     posed: PosedScans,
     *,
-    mode: str = "mc",
-    model: SensorModel | None = None,
-    resolution: float = 0.05,
-    n_samples: int | None = None,
-    seed: int = 0,
-    accuracy: float | None = None,
     params: AdaptiveParams | None = None,
     grid: AdaptiveGrid | None = None,
-    progress: bool = False,
+    **options: Unpack[FusionOptions],
 ) -> AdaptiveGrid:
     """As :func:`fuse_posed_scans`, into an adaptive grid (docs/adaptive.md) whose finest cells are the model's
     resolution; ``params`` sets its start level, split test and merge rules."""
-    model = model or SensorModel(resolution=resolution)
+    model = _model(options)
     grid = grid or AdaptiveGrid(model.resolution)
-    fusion = AdaptiveFusion(
-        grid, model, posed.beam_angles, posed.range_min, posed.range_max, posed.sensor_offset, params
-    )
-    _fuse_each_scan(posed, fusion.fuse, mode, n_samples, seed, accuracy, model, progress)
+    fusion = AdaptiveFusion(grid, model, *_beam_geometry(posed), params)
+    _fuse_each_scan(posed, fusion.fuse, model, options)
     return grid
+
+
+def _model(options: FusionOptions) -> SensorModel:
+    return options.get("model") or SensorModel(resolution=options.get("resolution", 0.05))
+
+
+def _beam_geometry(posed: PosedScans) -> tuple[np.ndarray, float, float, np.ndarray]:
+    """(beam angles rad, range_min m, range_max m, sensor offset) of the scans, as the fusion passes take them."""
+    return posed.beam_angles, posed.range_min, posed.range_max, posed.sensor_offset
 
 
 def _fuse_each_scan(
     posed: PosedScans,
     fuse: Callable[[np.ndarray, np.ndarray, np.ndarray], object],
-    mode: str,
-    n_samples: int | None,
-    seed: int,
-    accuracy: float | None,
     model: SensorModel,
-    progress: bool,
+    options: FusionOptions,
 ) -> None:
-    """Call ``fuse(ranges, samples, weights)`` for every scan, in order."""
-    sampling = PoseSampling(mode, n_samples, seed, accuracy if accuracy is not None else model.resolution)
+    """Call ``fuse(ranges, samples, weights)`` for every scan, in order, with its pose samples drawn as
+    ``options`` say."""
+    accuracy = options.get("accuracy")
+    sampling = PoseSampling(
+        options.get("mode", "mc"),
+        options.get("n_samples"),
+        options.get("seed", 0),
+        accuracy if accuracy is not None else model.resolution,
+    )
+    progress = options.get("progress", False)
     arrays = posed.poses.arrays()  # mean and cov, or samples and weights: (T, ...) each
     steps = range(len(posed.stamps))
     for t in tqdm(steps, desc="fusing", unit="scan", disable=not progress, mininterval=0.5):
