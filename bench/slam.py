@@ -24,6 +24,7 @@ import json
 import re
 import sys
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 from bench.run import run_cli
@@ -40,23 +41,23 @@ ALGORITHMS = ("ekf", "fastslam2")
 ATE_RATIO, INSIDE95 = 1.3, (0.85, 0.99)
 #: s of each simulated run, and the seeds simulated
 SIM_SECONDS, SIM_SEEDS = 300.0, (1, 2)
+#: the simulated robot 'late', like the issue's held-out robot: a late, over-turning drive with a yaw-rate bias;
+#: noise 0.08 m / 0.03 rad
+LATE_ROBOT = Calibration(
+    command_delay=0.15,
+    velocity_scale=(0.93, 1.05),
+    velocity_bias=(0.0, -0.01),
+    range_calibration=(1.0, -0.2),
+    bearing_bias=0.01,
+    motion=VelocityMotionModel((0.1, 0.01, 0.0, 0.05, 0.0, 0.0), floor=(1e-4, 5e-4)),
+    sensor=RangeBearingModel(0.08, 0.03),
+    scale_sd=0.0,
+    source="simulated robot 'late'",
+)
+
 #: simulated robots: name -> (true calibration, simulator options); none of them is MRCLAM's
 SIM_ROBOTS: dict[str, tuple[Calibration, dict]] = {
-    # like the issue's held-out robot: a late, over-turning drive with a yaw-rate bias; noise 0.08 m / 0.03 rad
-    "late": (
-        Calibration(
-            command_delay=0.15,
-            velocity_scale=(0.93, 1.05),
-            velocity_bias=(0.0, -0.01),
-            range_calibration=(1.0, -0.2),
-            bearing_bias=0.01,
-            motion=VelocityMotionModel((0.1, 0.01, 0.0, 0.05, 0.0, 0.0), floor=(1e-4, 5e-4)),
-            sensor=RangeBearingModel(0.08, 0.03),
-            scale_sd=0.0,
-            source="simulated robot 'late'",
-        ),
-        {},
-    ),
+    "late": (LATE_ROBOT, {}),
     # noisy motion and camera, a fast drive
     "noisy": (
         Calibration(
@@ -83,20 +84,7 @@ SIM_ROBOTS: dict[str, tuple[Calibration, dict]] = {
         {},
     ),
     # 'late' with measurement errors correlated over 5 s (as MRCLAM's cameras' are over longer times)
-    "correlated": (
-        Calibration(
-            command_delay=0.15,
-            velocity_scale=(0.93, 1.05),
-            velocity_bias=(0.0, -0.01),
-            range_calibration=(1.0, -0.2),
-            bearing_bias=0.01,
-            motion=VelocityMotionModel((0.1, 0.01, 0.0, 0.05, 0.0, 0.0), floor=(1e-4, 5e-4)),
-            sensor=RangeBearingModel(0.08, 0.03),
-            scale_sd=0.0,
-            source="simulated robot 'correlated'",
-        ),
-        {"error_time": 5.0},
-    ),
+    "correlated": (replace(LATE_ROBOT, source="simulated robot 'correlated'"), {"error_time": 5.0}),
 }
 
 

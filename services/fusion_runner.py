@@ -10,7 +10,6 @@ from typing import TYPE_CHECKING, TypedDict
 import numpy as np
 from tqdm import tqdm
 
-from mapping.adaptive import AdaptiveFusion, AdaptiveGrid, AdaptiveParams
 from mapping.fusion import MonteCarloFusion
 from mapping.grid import TiledGrid
 from mapping.poses import scan_samples
@@ -19,6 +18,8 @@ from schemas.files import PosedScans
 
 if TYPE_CHECKING:
     from typing_extensions import Unpack
+
+    from mapping.adaptive import AdaptiveGrid, AdaptiveParams
 
 
 @dataclass(frozen=True)
@@ -105,6 +106,8 @@ def fuse_posed_scans_adaptive(
 ) -> AdaptiveGrid:
     """As :func:`fuse_posed_scans`, into an adaptive grid (docs/adaptive.md) whose finest cells are the model's
     resolution; ``params`` sets its start level, split test and merge rules."""
+    from mapping.adaptive import AdaptiveFusion, AdaptiveGrid  # scipy.stats: only when an adaptive map is made
+
     model = _model(options)
     grid = grid or AdaptiveGrid(model.resolution)
     fusion = AdaptiveFusion(grid, model, *_beam_geometry(posed), params)

@@ -361,6 +361,19 @@ def _sandwich2(h00, h01, h10, h11, cov):  # pragma: no cover - compiled
 
 
 @kernel()
+def _kalman_step(pose, p, ph0, ph1, i00, i01, i11, nu0, nu1):  # pragma: no cover - compiled
+    """In place: pose (3,) += K nu and P (3, 3) -= K (P H^T)^T, with K = (P H^T) S^-1; ph0, ph1 the columns of
+    P H^T (3,), (i00, i01, i11) the symmetric S^-1 and (nu0, nu1) the innovation (m, rad). The heading is wrapped."""
+    for a in range(3):
+        k0 = ph0[a] * i00 + ph1[a] * i01
+        k1 = ph0[a] * i01 + ph1[a] * i11
+        pose[a] += k0 * nu0 + k1 * nu1
+        for b in range(3):
+            p[a, b] -= k0 * ph0[b] + k1 * ph1[b]
+    pose[2] = _wrap(pose[2])
+
+
+@kernel()
 def _weigh_and_refine(version, n, poses, pose_cov, mu, sigma, j, z, r00, r11, gate):  # pragma: no cover - compiled
     """Particle n, measurement z of landmark slot j: innovation, S = H_x P H_x^T + H_m Sigma H_m^T + R, d^2, the
     capped log likelihood and (version 2, inlier) the Kalman refinement of the pose prior. Returns (nu0, nu1, s00,
@@ -384,13 +397,7 @@ def _weigh_and_refine(version, n, poses, pose_cov, mu, sigma, j, z, r00, r11, ga
     d2 = i00 * nu0 * nu0 + 2.0 * i01 * nu0 * nu1 + i11 * nu1 * nu1
     loglik = -0.5 * min(d2, gate) - 0.5 * math.log(abs(det)) - LOG_2PI
     if version == 2 and d2 <= gate:
-        for a in range(3):
-            k0 = ph0[a] * i00 + ph1[a] * i01
-            k1 = ph0[a] * i01 + ph1[a] * i11
-            pose[a] += k0 * nu0 + k1 * nu1
-            for b in range(3):
-                p[a, b] -= k0 * ph0[b] + k1 * ph1[b]
-        pose[2] = _wrap(pose[2])
+        _kalman_step(pose, p, ph0, ph1, i00, i01, i11, nu0, nu1)
     return nu0, nu1, s00, s01, s11, d2, loglik
 
 
@@ -501,13 +508,7 @@ def _localisation_update(x, p, m0, m1, r_meas, phi, r00, r11, huber):  # pragma:
     inflate = math.sqrt(d2 / huber) if d2 > huber else 1.0
     det *= inflate * inflate
     i00, i01, i11 = s11 * inflate / det, -s01 * inflate / det, s00 * inflate / det
-    for a in range(3):
-        k0 = ph0[a] * i00 + ph1[a] * i01
-        k1 = ph0[a] * i01 + ph1[a] * i11
-        x[a] += k0 * nu0 + k1 * nu1
-        for b in range(3):
-            p[a, b] -= k0 * ph0[b] + k1 * ph1[b]
-    x[2] = _wrap(x[2])
+    _kalman_step(x, p, ph0, ph1, i00, i01, i11, nu0, nu1)
 
 
 @kernel()

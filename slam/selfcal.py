@@ -112,6 +112,26 @@ class PassResult:
         return value if math.isfinite(value) else math.inf
 
 
+def _corrected_inputs(
+    data: FitData, calibration: Calibration
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The compiled passes' first six arguments: ``data``'s commands and measurements with ``calibration``'s
+    corrections, their index arrays and the initial pose (m, m, rad)."""
+    return (
+        calibration.correct_commands(data.controls),
+        data.control_ptr,
+        calibration.correct_measurements(data.measurements),
+        data.slot,
+        data.measurement_ptr,
+        data.initial_pose,
+    )
+
+
+def _motion_arguments(motion: VelocityMotionModel) -> tuple[np.ndarray, np.ndarray, float]:
+    """The velocity model as the compiled passes take it: alphas (6,), floor (2,), dt_ref (s)."""
+    return np.asarray(motion.alphas, dtype=np.float64), np.asarray(motion.floor, dtype=np.float64), float(motion.dt_ref)
+
+
 def likelihood_pass(data: FitData, calibration: Calibration, huber: float = HUBER_D2) -> PassResult:
     """One EKF pass over ``data`` with ``calibration``'s corrections and noise (its command delay is the data's)."""
     count = len(data.measurements)
@@ -122,18 +142,11 @@ def likelihood_pass(data: FitData, calibration: Calibration, huber: float = HUBE
         np.empty((len(data.stamps), 3)),
         np.empty((data.n_slots, 2)),
     )
-    motion, sensor = calibration.motion, calibration.sensor
+    sensor = calibration.sensor
     ekf_likelihood_pass(
-        calibration.correct_commands(data.controls),
-        data.control_ptr,
-        calibration.correct_measurements(data.measurements),
-        data.slot,
-        data.measurement_ptr,
-        data.initial_pose,
+        *_corrected_inputs(data, calibration),
         data.n_slots,
-        np.asarray(motion.alphas, dtype=np.float64),
-        np.asarray(motion.floor, dtype=np.float64),
-        float(motion.dt_ref),
+        *_motion_arguments(calibration.motion),
         np.array([sensor.sigma_range, sensor.range_fraction, sensor.sigma_bearing]),
         huber,
         out.d2,
@@ -159,20 +172,13 @@ def smoothed_poses(
 ) -> Trajectory:
     """The poses of ``data`` against the fixed map ``landmarks`` (n_slots, 2), forward filtered and smoothed
     backward (slam.kernels.smooth_localisation), with ``calibration``'s corrections and noise."""
-    motion, sensor = calibration.motion, calibration.sensor
+    sensor = calibration.sensor
     out = np.empty((len(data.stamps), 3))
     cov = np.empty((len(data.stamps), 3, 3))
     smooth_localisation(
-        calibration.correct_commands(data.controls),
-        data.control_ptr,
-        calibration.correct_measurements(data.measurements),
-        data.slot,
-        data.measurement_ptr,
-        data.initial_pose,
+        *_corrected_inputs(data, calibration),
         np.ascontiguousarray(landmarks, dtype=np.float64),
-        np.asarray(motion.alphas, dtype=np.float64),
-        np.asarray(motion.floor, dtype=np.float64),
-        float(motion.dt_ref),
+        *_motion_arguments(calibration.motion),
         np.array([sensor.sigma_range, sensor.range_fraction, sensor.sigma_bearing]),
         huber,
         out,

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from services.commands.argtypes import check_outputs, finite_float
 from services.commands.options import add_command
-from services.commands.slam import DEFAULT_PERIOD, MIN_PERIOD, add_initial_option
+from services.commands.slam import add_mrclam_input_options
 
 #: --fraction's default: the whole input
 DEFAULT_FRACTION = 1.0
@@ -22,15 +22,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser = add_command(subparsers, "calibrate", run_calibrate)
     parser.add_argument("input", type=Path, help="MRCLAM folder (with --robot) or simulator folder")
     parser.add_argument("-o", "--output", required=True, metavar="CALIBRATION.json", help="calibration file to write")
-    parser.add_argument("--robot", type=int, default=None, help="MRCLAM: robot number K (RobotK_*.dat)")
-    add_initial_option(parser, "MRCLAM: start pose in m, m, rad (default: the first ground-truth pose)")
-    parser.add_argument(
-        "--period",
-        type=finite_float,
-        default=None,
-        help=f"MRCLAM: a step at least every PERIOD s besides every measurement (default {DEFAULT_PERIOD:g}, at "
-        f"least {MIN_PERIOD:g})",
-    )
+    add_mrclam_input_options(parser, "take a step")
     parser.add_argument(
         "--fraction",
         type=finite_float,

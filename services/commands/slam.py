@@ -136,15 +136,7 @@ def _add_slam(subparsers: argparse._SubParsersAction) -> None:
         "Mahalanobis distance with gating; FastSLAM: per-particle maximum likelihood)",
         default=None,
     )
-    slam.add_argument("--robot", type=int, default=None, help="MRCLAM: robot number K (RobotK_*.dat)")
-    add_initial_option(slam, "MRCLAM: start pose in m, m, rad (default: the first ground-truth pose)")
-    slam.add_argument(
-        "--period",
-        type=finite_float,
-        default=None,
-        help="MRCLAM: output a pose at least every PERIOD s besides every landmark-measurement "
-        f"stamp (default {DEFAULT_PERIOD:g}, at least {MIN_PERIOD:g})",
-    )
+    add_mrclam_input_options(slam, "output a pose")
     add_calibration_options(slam)
     add_choice(
         slam,
@@ -318,6 +310,20 @@ def _floats(text: str, count: tuple[int, ...], option: str) -> list[float]:
     if len(values) not in count or not all(math.isfinite(v) for v in values):
         raise UsageError(f"{option} takes {' or '.join(map(str, count))} finite numbers, got '{text}'")
     return values
+
+
+def add_mrclam_input_options(parser: argparse.ArgumentParser, each: str) -> None:
+    """--robot K, --initial X,Y,YAW and --period PERIOD (s) of an MRCLAM input; ``each`` says what happens every
+    PERIOD s (e.g. "output a pose")."""
+    parser.add_argument("--robot", type=int, default=None, help="MRCLAM: robot number K (RobotK_*.dat)")
+    add_initial_option(parser, "MRCLAM: start pose in m, m, rad (default: the first ground-truth pose)")
+    parser.add_argument(
+        "--period",
+        type=finite_float,
+        default=None,
+        help=f"MRCLAM: {each} at least every PERIOD s besides every landmark-measurement "
+        f"stamp (default {DEFAULT_PERIOD:g}, at least {MIN_PERIOD:g})",
+    )
 
 
 def add_initial_option(parser: argparse.ArgumentParser, help: str) -> None:
