@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import os
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -10,6 +12,14 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """`posegrid run` keeps a run's state under $XDG_STATE_HOME by default: point it, for this session and the
+    processes it starts, at a temporary folder, so no test writes into the user's home."""
+    if "POSEGRID_TEST_STATE_HOME" not in os.environ:
+        os.environ["POSEGRID_TEST_STATE_HOME"] = tempfile.mkdtemp(prefix="posegrid-state-")
+    os.environ["XDG_STATE_HOME"] = os.environ["POSEGRID_TEST_STATE_HOME"]
 
 
 @pytest.fixture(scope="session")

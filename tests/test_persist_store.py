@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import re
@@ -455,3 +456,29 @@ def test_a_disk_full_at_start_exits_2_and_leaves_no_half_made_store(tmp_path, ca
     store = ShardStore.open(tmp_path, _identity(_config()))
     assert store.load().tiles == []
     store.close()
+
+
+def _planned_state(argv: list[str]):
+    """The Plan.state that `posegrid run ARGV` would start with (the real parser and plan_state, no processes)."""
+    from services.cli import build_parser
+    from services.commands.persist_options import plan_state
+    from services.nodes.launcher import Plan
+
+    args = build_parser().parse_args(["run", *argv])
+    plan = Plan(map_name="main", robot="r", shards=2, resolution=0.05, mapper_argv=[], source_argv=[])
+    plan_state(args, plan)
+    return plan
+
+
+def test_run_keeps_its_state_by_default_in_a_new_folder_under_xdg_state_home(tmp_path, monkeypatch):
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path))
+    plan = _planned_state([])
+    assert plan.state is not None
+    directory = plan.state.directory
+    assert directory.parent == tmp_path / "posegrid" / "runs" and directory.name.startswith("main-")
+    assert json.loads((directory / "run.json").read_text())["shards"] == 2
+    assert plan.state.shard_argv(1)[:2] == ["--state-dir", str(directory / "shard-1")]
+    assert "--commit-scans" in plan.mapper_argv
+    # --no-state: the map in memory only, nothing written
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "other"))
+    assert _planned_state(["--no-state"]).state is None and not (tmp_path / "other").exists()

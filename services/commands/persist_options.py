@@ -106,8 +106,10 @@ def add_run_persist_options(parser: argparse.ArgumentParser) -> None:
     """`posegrid run`'s state options."""
     group = parser.add_argument_group(
         "durable state (docs/persistence.md)",
-        "With --state-dir (a new run) or --resume (a run's directory) each shard keeps its map and ledger in "
-        "DIR/shard-I/; a shard the launcher restarts starts from there.",
+        "Each shard keeps its map and ledger in DIR/shard-I/ (SQLite), and a shard the launcher restarts starts "
+        "from there. DIR is --state-dir (a new run), --resume (a run's directory), or by default a new folder "
+        "posegrid/runs/MAP-DATE-TIME-PID under $XDG_STATE_HOME (~/.local/state); --no-state keeps the map in "
+        "memory only.",
     )
     where = group.add_mutually_exclusive_group()
     where.add_argument("--state-dir", type=Path, default=None, metavar="DIR", help="a new directory for this run")
@@ -117,6 +119,9 @@ def add_run_persist_options(parser: argparse.ArgumentParser) -> None:
         default=None,
         metavar="DIR",
         help="start from the map of the run in DIR and add this run to it as a new session",
+    )
+    where.add_argument(
+        "--no-state", action="store_true", help="keep the map in memory only: it is lost when the run stops"
     )
     group.add_argument(
         "--continue-session",
@@ -134,12 +139,14 @@ def plan_state(args: argparse.Namespace, plan: Plan) -> None:
 
     if args.continue_session and args.resume is None:
         raise UsageError("--continue-session goes on with a resumed run's session: give it with --resume DIR")
+    if args.no_state:
+        return
+    from services.state.store.run import default_run_dir, prepare_run
+
     directory = args.resume if args.resume is not None else args.state_dir
     if directory is None:
-        return
+        directory = default_run_dir(plan.map_name)
     _check_commit_options(args)
-    from services.state.store.run import prepare_run
-
     plan.state = prepare_run(
         directory, args.resume is not None, args.continue_session, plan.map_name, plan.shards, plan.resolution
     )

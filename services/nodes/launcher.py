@@ -376,7 +376,12 @@ def _banner(plan: Plan, endpoint: str, children: Children) -> None:
             if plan.api_port is not None
             else "  HTTP API: not started (--no-api)"
         ),
-        "  state: " + ("in memory only" if plan.state is None else plan.state.describe()),
+        "  state: "
+        + (
+            "in memory only (--no-state)"
+            if plan.state is None
+            else f"{plan.state.describe()}; go on later with: posegrid run --resume {plan.state.directory}"
+        ),
         "  running: " + ", ".join(f"{c.name} (pid {c.process.pid})" for c in children.children),
         "  Ctrl-C stops everything",
     ]

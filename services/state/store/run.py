@@ -37,6 +37,14 @@ class RunState:
         return f"{self.directory} (session {self.session}{', resumed' if self.resumed else ''})"
 
 
+def default_run_dir(map_name: str) -> Path:
+    """Where `posegrid run` keeps a run's state when no --state-dir, --resume or --no-state is given: a new folder
+    ``posegrid/runs/<map>-<UTC date>-<time>-<pid>`` under ``$XDG_STATE_HOME`` (default ``~/.local/state``)."""
+    base = Path(os.environ.get("XDG_STATE_HOME") or Path.home() / ".local" / "state")
+    stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
+    return base / "posegrid" / "runs" / f"{map_name}-{stamp}-{os.getpid()}"
+
+
 def prepare_run(
     directory: Path, resume: bool, continue_session: bool, map_name: str, shards: int, resolution: float
 ) -> RunState:
