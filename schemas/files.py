@@ -19,7 +19,7 @@ import secrets
 import stat
 import zipfile
 import zlib
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -121,6 +121,13 @@ class MapFile:
     resolution: float  # m
     variance: np.ndarray | None = None  # float32 (H, W)
     level: np.ndarray | None = None  # int8 (H, W), adaptive maps only
+
+    @classmethod
+    def from_raster(cls, raster: Mapping[str, Any]) -> MapFile:
+        """The map file of a grid's ``rasterize()`` dict (its keys are this class's fields; the resolution, m, may
+        be a NumPy scalar there)."""
+        fields = {name: raster[name] for name in cls.__dataclass_fields__ if name in raster}
+        return cls(**{**fields, "resolution": float(raster["resolution"])})
 
 
 @dataclass(frozen=True)

@@ -361,14 +361,7 @@ def test_a_run_directory_is_new_or_resumed_with_its_own_map_and_shards(tmp_path)
 def test_an_exported_map_seeds_each_shard_with_the_tiles_it_owns(pairs):
     full = _reference(pairs, _config())
     raster = full.grid.rasterize()
-    exported = MapFile(
-        logodds=raster["logodds"],
-        probability=raster["probability"],
-        observed=raster["observed"],
-        origin=raster["origin"],
-        resolution=float(raster["resolution"]),
-        variance=raster["variance"],
-    )
+    exported = MapFile.from_raster(raster)
     tiles = tiles_of_map(exported, RESOLUTION, 64, "map.npz")
     assert set(tiles) == {key for key in sorted(full.grid.keys()) if full.grid.tile_arrays(key)[2].any()}
     for index in range(2):

@@ -329,8 +329,7 @@ def run_fuse(args: argparse.Namespace) -> int:
             f"{args.posed}: its scans observed no cell, so the map is empty; nothing written to {args.output}"
         )
     summary = summary or f"{int(raster['observed'].sum())} observed"
-    # rasterize() returns the map file's fields by name (resolution as a NumPy scalar), which mypy cannot match
-    save_map(args.output, MapFile(**raster))  # type: ignore[arg-type]  # keys are MapFile's fields: see above
+    save_map(args.output, MapFile.from_raster(raster))
     height, width = raster["logodds"].shape
     unusable = f", {empty_scans} without a usable beam (every reading below range_min, negative or -inf)"
     print(

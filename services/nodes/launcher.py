@@ -447,14 +447,7 @@ def _export(reader: MapReader, plan: Plan, discarded: int) -> int:
         )
         return 1
     try:
-        map_file = MapFile(
-            logodds=raster["logodds"],
-            probability=raster["probability"],
-            observed=raster["observed"],
-            origin=raster["origin"],
-            resolution=float(raster["resolution"]),
-            variance=raster["variance"],
-        )
+        map_file = MapFile.from_raster(raster)
         save_map(plan.export, map_file)
     except OSError as exc:
         print(f"posegrid run: error: cannot write {plan.export}: {exc.strerror or exc}", file=sys.stderr)
