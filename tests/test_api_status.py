@@ -21,11 +21,20 @@ SYSTEM = dict(
 )
 
 
+def _unset(field: dataclasses.Field):
+    """What a ShardStats field not given holds: its default, else an empty dict (counts by key) or 0."""
+    if field.default is not dataclasses.MISSING:
+        return field.default
+    if field.default_factory is not dataclasses.MISSING:
+        return field.default_factory()
+    return {} if field.type in ("dict", dict) else 0
+
+
 def shard(index: int, shards: int = 2, **given) -> ShardStats:
-    """Stats of shard ``index`` of map m: ``given`` fields, every other count 0 and every other dict empty."""
+    """Stats of shard ``index`` of map m: ``given`` fields, every other one its default, 0 or an empty dict."""
     values = {"map": "m", "shard": index, "shards": shards, "uptime": 1.0, **given}
     return ShardStats(
-        **{f.name: values.get(f.name, {} if f.type in ("dict", dict) else 0) for f in dataclasses.fields(ShardStats)}
+        **{f.name: values[f.name] if f.name in values else _unset(f) for f in dataclasses.fields(ShardStats)}
     )
 
 

@@ -43,6 +43,7 @@ from services.state.store.db import DB_NAME, ShardStore, StoreError, StoreIdenti
 from services.state.store.journal import Journal, tiles_of_map
 from services.state.store.run import prepare_run
 from services.streams import posed_stream
+from test_api_status import shard
 from test_pipeline import make_posed
 
 LOG = logging.getLogger("test_persist_store")
@@ -379,23 +380,13 @@ def test_an_exported_map_seeds_each_shard_with_the_tiles_it_owns(pairs):
 
 
 def test_health_reports_each_shards_last_commit():
-    stats = ShardStats(
-        map="m",
-        shard=0,
+    stats = shard(
+        0,
         shards=1,
         tiles_owned=1,
         cells_updated=1,
         tile_updates=1,
-        join_pending=0,
-        uptime=1.0,
         fused={"r1": 5},
-        discarded={},
-        ended={},
-        received={},
-        resent={},
-        rejected={},
-        overflow={},
-        refused={},
         persist="ok",
         committed={"r1": 4},
         commit_age=0.5,
