@@ -576,26 +576,14 @@ def _write_log(sim, path: Path, fmt: str) -> Path:
     return bag.write(path)
 
 
-@pytest.mark.parametrize("fmt", ["carmen", "bag"])
-def test_grid_fastslam_node_over_zenoh_gives_the_map_of_its_filter_in_process(tmp_path, procs, fmt):
-    """run --carmen / --bag (source -> grid FastSLAM slam-node -> shard, over Zenoh) must give the map that the
-    same filter, fed the same scans in this process, and `posegrid fuse` give. The bag's odometry is read
-    0.04 s after each scan (--odom-delay), between its odometry messages."""
-    from services.commands.logs import read_log
-    from services.fusion_runner import fuse_posed_scans
+def grid_filter_in_process(stream, particles: int, seed: int) -> PosedScans:
+    """The posed scans the SLAM node's grid FastSLAM driver gives, in this process, for a source ``stream``
+    (services.streams): every scan with the particles it was integrated at (resample threshold 0.5)."""
     from services.keys import ODOM, SCAN
     from services.state.slam import GridDriver
-    from services.streams import laser_log_stream
     from slam.gridslam import GridSlamConfig
-    from slam.laserlog import with_odometry_delay
-    from slam.simulator import simulate_office
 
-    sim = simulate_office(seed=4, steps=60, n_beams=91, range_max=8.0)
-    log = _write_log(sim, tmp_path / ("office.clf" if fmt == "carmen" else "office.bag"), fmt)
-    delay = 0.0 if fmt == "carmen" else 0.04
-    stream = laser_log_stream(with_odometry_delay(read_log(log), delay), "robot0")
-    assert len(stream.steps) == 60
-    driver = GridDriver(stream.prior.mean, GridSlamConfig(particles=5, resample_threshold=0.5), seed=7)
+    driver = GridDriver(stream.prior.mean, GridSlamConfig(particles=particles, resample_threshold=0.5), seed=seed)
     scans, samples, weights = [], [], []
     for step in stream.steps:
         parts = {
@@ -606,7 +594,7 @@ def test_grid_fastslam_node_over_zenoh_gives_the_map_of_its_filter_in_process(tm
         samples.append(poses)
         weights.append(w)
     first = scans[0]
-    posed = PosedScans(
+    return PosedScans(
         ranges=np.array([m.ranges for m in scans]),
         angle_min=first.angle_min,
         angle_increment=first.angle_increment,
@@ -616,8 +604,27 @@ def test_grid_fastslam_node_over_zenoh_gives_the_map_of_its_filter_in_process(tm
         sensor_offset=first.sensor_offset,
         poses=PoseSet(samples=np.array(samples), weights=np.array(weights)),
     )
+
+
+@pytest.mark.parametrize("fmt", ["carmen", "bag"])
+def test_grid_fastslam_node_over_zenoh_gives_the_map_of_its_filter_in_process(tmp_path, procs, fmt):
+    """run --carmen / --bag (source -> grid FastSLAM slam-node -> shard, over Zenoh) must give the map that the
+    same filter, fed the same scans in this process, and `posegrid fuse` give. The bag's odometry is read
+    0.04 s after each scan (--odom-delay), between its odometry messages."""
+    from services.commands.logs import read_log
+    from services.fusion_runner import fuse_posed_scans
+    from services.streams import laser_log_stream
+    from slam.laserlog import with_odometry_delay
+    from slam.simulator import simulate_office
+
+    sim = simulate_office(seed=4, steps=60, n_beams=91, range_max=8.0)
+    log = _write_log(sim, tmp_path / ("office.clf" if fmt == "carmen" else "office.bag"), fmt)
+    delay = 0.0 if fmt == "carmen" else 0.04
+    stream = laser_log_stream(with_odometry_delay(read_log(log), delay), "robot0")
+    assert len(stream.steps) == 60
+    posed = grid_filter_in_process(stream, particles=5, seed=7)
     expected = fuse_posed_scans(posed).rasterize()
-    assert len({tuple(np.round(s[:, :2].ravel(), 9)) for s in samples}) > 1  # the particles do spread
+    assert len({tuple(np.round(s[:, :2].ravel(), 9)) for s in posed.poses.samples}) > 1  # the particles do spread
 
     exported = tmp_path / "run.npz"
     run = procs(

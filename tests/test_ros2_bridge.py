@@ -32,7 +32,7 @@ from services.ros2.bridge import stats_key
 from services.streams import laser_log_stream
 from services.zenoh_config import build_config
 from slam.rosbag_reader import read_rosbag
-from test_pipeline import CLI, procs  # noqa: F401 - procs is a fixture
+from test_pipeline import CLI, grid_filter_in_process, procs  # noqa: F401 - procs is a fixture
 
 pytestmark = pytest.mark.slow
 
@@ -341,13 +341,8 @@ def test_run_ros2_gives_the_map_run_bag_gives(tmp_path, procs):  # noqa: F811
     """The simulated office as a ROS 2 bag, replayed through `posegrid run --ros2` (bridge, grid FastSLAM node,
     shard): the map equals the one the same filter and fusion give in this process from the bag reader's stream,
     which is the map `posegrid run --bag` gives (tests/test_pipeline.py)."""
-    from schemas.files import PosedScans, PoseSet
-    from schemas.messages import LaserScan, Odometry
     from services.fusion_runner import fuse_posed_scans
-    from services.keys import ODOM, SCAN
     from services.map_client import MapReader
-    from services.state.slam import GridDriver
-    from slam.gridslam import GridSlamConfig
     from slam.simulator import simulate_office
 
     sim = simulate_office(seed=4, steps=40, n_beams=91, range_max=8.0)
@@ -358,29 +353,8 @@ def test_run_ros2_gives_the_map_run_bag_gives(tmp_path, procs):  # noqa: F811
         builder.scan(stamp, ranges, angle_min=sim.angle_min, increment=sim.angle_increment, range_max=sim.range_max)
     bag = builder.write(tmp_path / "office")
     stream = laser_log_stream(read_rosbag(bag), "robot0")
-    driver = GridDriver(stream.prior.mean, GridSlamConfig(particles=5, resample_threshold=0.5), seed=7)
-    scans, samples, weights = [], [], []
-    for step in stream.steps:
-        parts = {
-            SCAN if isinstance(m, LaserScan) else ODOM: m for m in step.messages if isinstance(m, (LaserScan, Odometry))
-        }
-        poses, w = driver.step(parts)
-        scans.append(parts[SCAN])
-        samples.append(poses)
-        weights.append(w)
-    first = scans[0]
-    expected = fuse_posed_scans(
-        PosedScans(
-            ranges=np.array([m.ranges for m in scans]),
-            angle_min=first.angle_min,
-            angle_increment=first.angle_increment,
-            range_min=first.range_min,
-            range_max=first.range_max,
-            stamps=np.array([m.stamp for m in scans]),
-            sensor_offset=first.sensor_offset,
-            poses=PoseSet(samples=np.array(samples), weights=np.array(weights)),
-        )
-    ).rasterize()
+    posed = grid_filter_in_process(stream, particles=5, seed=7)
+    expected = fuse_posed_scans(posed).rasterize()
 
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
@@ -408,9 +382,9 @@ def test_run_ros2_gives_the_map_run_bag_gives(tmp_path, procs):  # noqa: F811
     try:
         reader = MapReader(session, "main")
         wait_until(
-            lambda: (s := reader.stats(timeout=2.0)) and s[0].fused.get("robot0", 0) == len(scans),
+            lambda: (s := reader.stats(timeout=2.0)) and s[0].fused.get("robot0", 0) == len(posed.stamps),
             timeout=120,
-            what=f"{len(scans)} scans fused",
+            what=f"{len(posed.stamps)} scans fused",
         )
         got = reader.assemble(1, 0.05).rasterize()
     finally:
