@@ -72,7 +72,9 @@ def _new_pid(run: Proc, name: str, seen: set[int], timeout: float = 60.0) -> int
 
 
 def test_a_shard_killed_at_ten_random_points_ends_with_the_map_of_a_run_without_kills(tmp_path, procs):  # noqa: F811
-    steps = 200
+    # long enough that ten kills end before the replay does even when the shard, catching up after each restart,
+    # runs many scans past the kill point before the test reads its stats (a loaded machine: tens of scans)
+    steps = 500
     posed = make_posed(tmp_path / "posed.npz", "samples", steps=steps)
     exported = tmp_path / "run.npz"
     port = free_port()
@@ -112,6 +114,7 @@ def test_a_shard_killed_at_ten_random_points_ends_with_the_map_of_a_run_without_
         reader = MapReader(session, "main")
         for _ in range(10):  # each kill 1 to 15 scans past the last one (the shard resumes from its last commit)
             target += int(rng.integers(1, 16))
+            assert target < steps, "the run would end before this kill: the test needs a longer run"
             stats = _wait_stats(
                 reader, lambda s, t=target: 0 in s and s[0].fused.get("r1", 0) >= t, f"the shard to fuse {target} scans"
             )
