@@ -93,7 +93,7 @@ def trace_ray(x0, y0, dx, dy, r_stop, res, out_ix, out_iy, out_rin, out_rout):  
             n += 1
         if r_out >= r_stop:
             break
-        r = r_out
+        r = max(r, r_out)  # an origin within rounding of a grid line can give a first crossing at r < 0
         ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol)
     return n
 

@@ -48,6 +48,12 @@ def test_traversal_matches_reference(x0, y0, angle, length, res):
     assert got_cells == ref_cells
 
 
+def test_an_origin_within_rounding_of_a_grid_line_starts_at_r_0():
+    # 0.85 / 0.05 rounds below 17: the first crossing lies 2.7e-16 m behind the origin, and must not become r_in
+    _, _, r_in, r_out = traverse(0.85, 0.0, 2.0, 1.0, 0.05)
+    assert r_in[0] == 0.0 and all(a == b for a, b in zip(r_out[:-1], r_in[1:]))
+
+
 def test_origin_on_a_grid_line_going_back_skips_the_point_contact_cell():
     # the origin lies on x = 0.1 and the ray goes along -x: cell 1 is touched only at r = 0 and is not visited
     ix, iy, r_in, r_out = traverse(0.1, 0.05, math.pi, 0.25, 0.1)
