@@ -313,6 +313,12 @@ def test_garbage_on_every_subscribed_key_is_counted_and_the_bridge_goes_on(tmp_p
     nan_scan, lost_scan, good_scan = (scan_type.encode(item[3]) for item in builder.items[:3])
     garbage += [(scan_key, nan_scan, attachment), (scan_key, lost_scan, attachment), (scan_key, good_scan, None)]
     garbage += [("pg/map/main/tile/0/0/0", b"\xc1", None), ("pg/r1/pose", b"not msgpack", None)]
+    # a put before the router has learnt the bridge's subscriptions is lost (a loaded machine): wait for a match
+    keys = {_key("odom", rt.ODOMETRY)} | {key for key, _, _ in garbage if not key.startswith("pg/")}
+    for key in keys:
+        publisher = session.declare_publisher(key)
+        wait_until(lambda p=publisher: p.matching_status.matching, what=f"the bridge to subscribe to {key}")
+        publisher.undeclare()
     session.put(
         _key("odom", rt.ODOMETRY), rt.MessageType(rt.ODOMETRY).encode(builder.items[3][3]), attachment=attachment
     )
