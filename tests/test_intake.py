@@ -148,15 +148,8 @@ def test_a_slam_node_takes_lost_steps_from_the_history_and_counts_replies_about_
             replies += [("pg/r/odom", _odometry(seq).encode()), ("pg/r/landmarks", _seen(seq).encode())]
         return replies
 
-    config = NodeConfig(
-        robot="r",
-        algorithm="odometry",
-        motion="odometry",
-        initial=np.zeros(3),
-        make_filter=lambda start: DeadReckoning(OdometryMotionModel(), start),
-    )
     rejects = _rejects("slam-history")
-    state = SlamState(config, rejects, publish=published.append, history=history)
+    state = _dead_reckoning_state(rejects, published, history)
     for seq in [0, 1, 2, *range(5, 10)]:
         state.handle("pg/r/odom", _odometry(seq).encode())
         state.handle("pg/r/landmarks", _seen(seq).encode())
@@ -166,6 +159,19 @@ def test_a_slam_node_takes_lost_steps_from_the_history_and_counts_replies_about_
     poses = [decode_message(payload, PoseGaussian) for payload in published]
     assert [pose.seq for pose in poses] == list(range(10)) and state.stats().poses_published == 10
     np.testing.assert_allclose(poses[9].mean, [0.9, 0.0, 0.0], atol=1e-12)  # moved by every step's odometry
+
+
+def _dead_reckoning_state(rejects, published: list[bytes], history) -> SlamState:
+    """A SLAM node's state for robot r with an odometry-only filter from the origin, publishing into ``published``
+    and asking ``history`` for what its streams skipped."""
+    config = NodeConfig(
+        robot="r",
+        algorithm="odometry",
+        motion="odometry",
+        initial=np.zeros(3),
+        make_filter=lambda start: DeadReckoning(OdometryMotionModel(), start),
+    )
+    return SlamState(config, rejects, publish=published.append, history=history)
 
 
 def test_a_history_reply_on_a_stream_no_step_has_is_counted_not_fatal():
@@ -179,15 +185,8 @@ def test_a_history_reply_on_a_stream_no_step_has_is_counted_not_fatal():
             replies += [("pg/r/odom", _odometry(seq).encode()), ("pg/r/landmarks", _seen(seq).encode())]
         return replies
 
-    config = NodeConfig(
-        robot="r",
-        algorithm="odometry",
-        motion="odometry",
-        initial=np.zeros(3),
-        make_filter=lambda start: DeadReckoning(OdometryMotionModel(), start),
-    )
     rejects = _rejects("slam-history-end")
-    state = SlamState(config, rejects, publish=published.append, history=history)
+    state = _dead_reckoning_state(rejects, published, history)
     for seq in (0, 1, 3, 4):
         state.handle("pg/r/odom", _odometry(seq).encode())
         state.handle("pg/r/landmarks", _seen(seq).encode())
