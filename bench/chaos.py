@@ -54,7 +54,7 @@ from mapping.sensor_model import SensorModel
 from schemas.messages import MAX_SEQ, LaserScan, MessageError, PoseSamples, ShardStats, StreamEnd
 from services import keys
 from services.map_client import IncompleteMap, MapReader
-from services.nodes.source import STREAM_OF, Source, SourceOptions, SourceStalled
+from services.nodes.source import Source, SourceOptions, SourceStalled
 from services.process import get_logger
 from services.state.limits import ShardLimits
 from services.state.shard import SHARD_STREAMS
@@ -227,7 +227,7 @@ def hostile_mix(stream: Stream, map_name: str, seed: int = MIX_SEED, total: int 
     scan, pose = _scan_and_pose(stream.steps[0])
     probes = _limit_probes(rng, scan)
     scans, poses, ends = _forged(stream, FORGED)
-    forged = [(keys.robot_key(ROBOT, STREAM_OF[type(m)]), m.encode()) for m in scans + poses + ends]
+    forged = [(keys.robot_key(ROBOT, keys.STREAM_OF[type(m)]), m.encode()) for m in scans + poses + ends]
     valid = [m.encode() for m in (scans[0], poses[0], ends[0], ends[1])]
     on = {stream: keys.robot_key(ROBOT, stream) for stream in SHARD_STREAMS}
     wrong = [

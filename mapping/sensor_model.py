@@ -51,6 +51,23 @@ def logit(p: float | np.ndarray) -> float | np.ndarray:
     return np.log(p) - np.log1p(-p)
 
 
+class _LogOdds:
+    """A read-only attribute of the model: the log-odds (:func:`logit`) of its probability field ``field``."""
+
+    def __init__(self, field: str) -> None:
+        self.field = field
+
+    @overload
+    def __get__(self, model: None, owner: type) -> _LogOdds: ...
+
+    @overload
+    def __get__(self, model: object, owner: type | None = None) -> float: ...
+
+    def __get__(self, model: object, owner: type | None = None) -> float | _LogOdds:
+        """logit of ``model``'s field; the descriptor itself when read on the class."""
+        return self if model is None else float(logit(getattr(model, self.field)))
+
+
 @dataclass(frozen=True)
 class SensorModel:
     """Parameters of the inverse sensor model and of the log-odds scale of the map.
@@ -99,21 +116,11 @@ class SensorModel:
         """Peak width l in m."""
         return self.peak_width if self.peak_width is not None else self.resolution * math.sqrt(2.0)
 
-    @property
-    def l_free(self) -> float:
-        return float(logit(self.p_miss))
-
-    @property
-    def l_hit(self) -> float:
-        return float(logit(self.p_hit))
-
-    @property
-    def l_min(self) -> float:
-        return float(logit(self.p_min))
-
-    @property
-    def l_max(self) -> float:
-        return float(logit(self.p_max))
+    #: the log-odds of p_miss, p_hit, p_min and p_max
+    l_free = _LogOdds("p_miss")
+    l_hit = _LogOdds("p_hit")
+    l_min = _LogOdds("p_min")
+    l_max = _LogOdds("p_max")
 
     def sigma_at(self, z: float | np.ndarray) -> float | np.ndarray:
         """Range noise sigma(z) in m."""

@@ -16,7 +16,7 @@ pg/map/<map>/alive/<shard>           liveliness token of a mapper shard
 
 from __future__ import annotations
 
-from schemas.messages import RESERVED_ROBOT_NAMES
+from schemas.messages import POSE_TYPES, RESERVED_ROBOT_NAMES, LandmarkObservations, LaserScan, Odometry, StreamEnd
 from schemas.wire import is_valid_name
 
 ROOT = "pg"
@@ -32,6 +32,16 @@ def robot_key(robot: str, stream: str) -> str:
 
 #: the streams a robot publishes on pg/<robot>/<stream>
 ROBOT_STREAMS = frozenset({SCAN, ODOM, LANDMARKS, POSE, END, PRIOR})
+
+#: the stream (last key chunk) each message type a robot publishes goes out on: every pose type on POSE (the
+#: prior, a PoseGaussian too, goes out on PRIOR instead)
+STREAM_OF: dict[type, str] = {
+    LaserScan: SCAN,
+    Odometry: ODOM,
+    LandmarkObservations: LANDMARKS,
+    StreamEnd: END,
+    **dict.fromkeys(POSE_TYPES, POSE),
+}
 
 
 def parse_robot_key(key: str, streams: frozenset[str] | set[str] = ROBOT_STREAMS) -> tuple[str, str] | None:

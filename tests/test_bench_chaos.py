@@ -11,7 +11,6 @@ from bench.scenarios import honest_posed_scans, office_run
 from mapping.sensor_model import SensorModel
 from schemas.messages import POSE_TYPES, LaserScan, MessageError, StreamEnd, decode_message
 from services import keys
-from services.nodes.source import STREAM_OF
 from services.process import RejectCounter, get_logger
 from services.state.join import CONFIRM_RUN, DEFAULT_SEQ_WINDOW
 from services.state.shard import MapShard, ShardConfig
@@ -80,7 +79,7 @@ def _replay(stream, mix) -> MapShard:
     """A one-shard map of ``stream`` with ``mix`` handed to the shard after the first scan (keys a shard does not
     subscribe to left out, as the network would)."""
     published = {
-        (STREAM_OF[type(message)], message.seq): message.encode()
+        (keys.STREAM_OF[type(message)], message.seq): message.encode()
         for step in stream.steps
         for message in step.messages
         if hasattr(message, "seq")
@@ -98,7 +97,7 @@ def _replay(stream, mix) -> MapShard:
     arrivals = [(key, payload) for key, payload in mix if chaos.expected_arrivals([(key, payload)])]
     for seq, step in enumerate(stream.steps):
         for message in step.messages:
-            shard.handle(keys.robot_key(chaos.ROBOT, STREAM_OF[type(message)]), message.encode())
+            shard.handle(keys.robot_key(chaos.ROBOT, keys.STREAM_OF[type(message)]), message.encode())
         if seq == 0:
             for key, payload in arrivals:
                 shard.handle(key, payload)

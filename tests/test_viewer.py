@@ -14,19 +14,10 @@ import pytest
 from PIL import Image
 
 from api_stack import Stack, wait_until, write_room
+from bench.api import CHROMIUM, CHROMIUM_ARGS  # the browser and its flags, as the benchmark drives it
 
 pytestmark = pytest.mark.slow
 
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--no-first-run",
-]
 #: the viewer's canvas background and the tiles' unobserved colour (mapping.export.UNOBSERVED_RGB)
 BACKGROUND = (180, 190, 205)
 
@@ -38,7 +29,7 @@ def sync_playwright():
         from playwright.sync_api import sync_playwright as start
     except ImportError:
         missing, start = "the playwright Python package is not installed (pip install -e '.[test]')", None
-    if missing is None and not CHROMIUM.is_file():
+    if missing is None and not Path(CHROMIUM).is_file():
         missing = f"{CHROMIUM} is absent (apt-get install chromium; .ci/run does)"
     if missing is not None:
         if os.environ.get("CI") == "true":
@@ -65,7 +56,7 @@ def pipeline(tmp_path):
 def test_viewer_draws_tiles_live_and_switches_to_variance(pipeline, tmp_path):
     start = sync_playwright()
     with start() as playwright:
-        browser = playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         try:
             page = browser.new_page(viewport={"width": 1000, "height": 700})
             errors = []

@@ -1,15 +1,20 @@
-"""What every subcommand module builds its parser from: the subcommand itself (:func:`add_command`) and options
-that take one of a few words (:func:`add_choice`); and the way back from parsed options to the command-line
-arguments that give a child process the same values (:func:`option_argv`)."""
+"""What every subcommand module builds its parser from: the subcommand itself (:func:`add_command`), options
+that take one of a few words (:func:`add_choice`) and groups of options from a table (:func:`add_group`); and the
+way back from parsed options to the command-line arguments that give a child process the same values
+(:func:`option_argv`)."""
 
 from __future__ import annotations
 
 import argparse
 import inspect
 from collections.abc import Callable, Iterable, Sequence
+from typing import Any
 
 #: a subcommand's handler: the parsed arguments in, the exit code out
 Handler = Callable[[argparse.Namespace], int]
+#: a row of an option table (:func:`add_group`): the option's name without its leading "--", and the keywords
+#: ``add_argument`` takes for it
+OptionRow = tuple[str, dict[str, Any]]
 
 
 def add_command(subparsers: argparse._SubParsersAction, name: str, func: Handler) -> argparse.ArgumentParser:
@@ -36,6 +41,21 @@ def add_choice(
     """Add ``option``, which takes one of ``choices``; unless given, it is ``default`` (by default the first
     choice; None: the option can be told apart from one left alone)."""
     parser.add_argument(option, choices=choices, default=choices[0] if default is FIRST else default, help=help)
+
+
+def add_group(
+    parser: argparse.ArgumentParser,
+    title: str,
+    description: str | None,
+    rows: Iterable[OptionRow],
+    prefix: str = "",
+) -> argparse._ArgumentGroup:
+    """Add the argument group ``title`` (``description`` under it in --help) holding the option --``prefix``NAME of
+    each row (NAME, keywords) of ``rows``, in their order; returns the group."""
+    group = parser.add_argument_group(title, description)
+    for name, keywords in rows:
+        group.add_argument(f"--{prefix}{name}", **keywords)
+    return group
 
 
 def dest(option: str) -> str:

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from services.commands.argtypes import finite_float, positive_seconds
+from services.commands.options import OptionRow, add_group
 
 if TYPE_CHECKING:
     from services.nodes.launcher import Plan
@@ -19,6 +20,11 @@ DEFAULT_ROBOT = "robot0"
 DEFAULT_MAP = "main"
 #: the particle cloud types the bridge reads, by the name --particles-type takes
 PARTICLE_TYPES = {"ParticleCloud": "nav2_msgs/msg/ParticleCloud", "PoseArray": "geometry_msgs/msg/PoseArray"}
+#: where the robot sits in the ROS 2 graph, as the bridge (`posegrid ros2`) and `posegrid run --ros2` both take it
+ROBOT_GRAPH: tuple[OptionRow, ...] = (
+    ("domain", dict(type=int, default=None, help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID, else 0)")),
+    ("namespace", dict(default="/", help="the robot's ROS namespace, e.g. /robot1 (default /)")),
+)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -74,22 +80,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def add_graph_arguments(parser: argparse.ArgumentParser, node: str = "posegrid") -> None:
     """Where the process sits in the ROS 2 graph: --mode, --domain, --namespace, --node."""
-    group = parser.add_argument_group("ROS 2 graph")
-    group.add_argument(
-        "--mode",
+    mode = dict(
         choices=("rmw_zenoh", "bridge"),
         default="rmw_zenoh",
         help="rmw_zenoh: keys <domain>/<topic>/<type>/<hash>, attachments and liveliness tokens; bridge: plain "
         "topic keys as zenoh-bridge-ros2dds routes them (default rmw_zenoh)",
     )
-    group.add_argument(
-        "--domain",
-        type=int,
-        default=None,
-        help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID, else 0)",
-    )
-    group.add_argument("--namespace", default="/", help="the robot's ROS namespace, e.g. /robot1 (default /)")
-    group.add_argument("--node", default=node, help=f"the node name in the ROS graph (default {node})")
+    node_row = ("node", dict(default=node, help=f"the node name in the ROS graph (default {node})"))
+    add_group(parser, "ROS 2 graph", None, [("mode", mode), *ROBOT_GRAPH, node_row])
 
 
 def _bridge_table() -> list[tuple[str, str, dict]]:
@@ -155,11 +153,9 @@ def _bridge_table() -> list[tuple[str, str, dict]]:
 
 def add_bridge_arguments(parser: argparse.ArgumentParser, prefix: str = "") -> None:
     """The bridge's topics and behaviour (``prefix``: none for `posegrid ros2`, "ros2-" for `posegrid run`)."""
-    groups: dict[str, argparse._ArgumentGroup] = {}
-    for group, name, keywords in _bridge_table():
-        if group not in groups:
-            groups[group] = parser.add_argument_group(group)
-        groups[group].add_argument(f"--{prefix}{name}", **keywords)
+    table = _bridge_table()
+    for title in dict.fromkeys(group for group, _name, _keywords in table):
+        add_group(parser, title, None, [(name, keywords) for group, name, keywords in table if group == title], prefix)
 
 
 def bridge_argv(args: argparse.Namespace, prefix: str) -> list[str]:
@@ -310,26 +306,31 @@ def run_play(args: argparse.Namespace) -> int:
 
 def add_ros2_run_arguments(run: argparse.ArgumentParser) -> None:
     """`posegrid run --ros2`'s options: the robot is a live ROS 2 robot, its bridge a child of the run."""
-    group = run.add_argument_group(
+    rows = [
+        ("ros2", dict(action="store_true", help="map a live ROS 2 robot (rmw_zenoh or zenoh-bridge-ros2dds)")),
+        *ROBOT_GRAPH,
+        ("ros2-mode", dict(choices=("rmw_zenoh", "bridge"), default="rmw_zenoh", help="(default rmw_zenoh)")),
+        ("ros2-node", dict(default="posegrid", help="the bridge's node name (default posegrid)")),
+        (
+            "ros2-connect",
+            dict(
+                action="append",
+                default=[],
+                metavar="ENDPOINT",
+                help="the run's router also connects to this Zenoh router of the ROS 2 side (rmw_zenohd, "
+                "zenoh-bridge-ros2dds), e.g. tcp/192.168.1.5:7447 (repeatable); or give --router-port 7447 and let "
+                "the robot's sessions connect to the run's router",
+            ),
+        ),
+    ]
+    add_group(
+        run,
         "ROS 2 robot (--ros2)",
         "With --ros2 the run maps a live ROS 2 robot instead of replaying an input: `posegrid ros2` (the bridge) "
         "takes its scans, odometry and transforms, grid FastSLAM its poses (unless --ros2-pose-topic or "
         "--ros2-particles-topic take the robot's own), and the map goes back on its map topics. The bridge's "
         "options (`posegrid ros2 --help`) are taken here with the prefix --ros2-.",
-    )
-    group.add_argument("--ros2", action="store_true", help="map a live ROS 2 robot (rmw_zenoh or zenoh-bridge-ros2dds)")
-    group.add_argument("--namespace", default="/", help="the robot's ROS namespace, e.g. /robot1 (default /)")
-    group.add_argument("--domain", type=int, default=None, help="ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID, else 0)")
-    group.add_argument("--ros2-mode", choices=("rmw_zenoh", "bridge"), default="rmw_zenoh", help="(default rmw_zenoh)")
-    group.add_argument("--ros2-node", default="posegrid", help="the bridge's node name (default posegrid)")
-    group.add_argument(
-        "--ros2-connect",
-        action="append",
-        default=[],
-        metavar="ENDPOINT",
-        help="the run's router also connects to this Zenoh router of the ROS 2 side (rmw_zenohd, "
-        "zenoh-bridge-ros2dds), e.g. tcp/192.168.1.5:7447 (repeatable); or give --router-port 7447 and let the "
-        "robot's sessions connect to the run's router",
+        rows,
     )
     add_bridge_arguments(run, prefix="ros2-")
 

@@ -24,33 +24,14 @@ from dataclasses import dataclass
 
 import zenoh
 
-from schemas.messages import (
-    LandmarkObservations,
-    LaserScan,
-    MessageError,
-    NodeStats,
-    Odometry,
-    PoseGaussian,
-    PoseSamples,
-    ShardStats,
-    StreamEnd,
-    decode_message,
-)
+from schemas.messages import LaserScan, MessageError, NodeStats, ShardStats, StreamEnd, decode_message
 from services import history, keys
 from services.map_client import MapReader
 from services.process import get_logger
 from services.streams import Stream
 
-#: publication key chunk per message type
-STREAM_OF = {
-    LaserScan: keys.SCAN,
-    Odometry: keys.ODOM,
-    LandmarkObservations: keys.LANDMARKS,
-    PoseSamples: keys.POSE,
-    PoseGaussian: keys.POSE,
-    StreamEnd: keys.END,
-}
-
+#: the replay logs its progress this many times (at every tenth of its steps)
+PROGRESS_PARTS = 10
 #: how long the source waits for subscribers to appear, or for a stalled mapper to make progress, s
 WAIT_TIMEOUT = 60.0
 #: s between two publications of the end of the stream while a shard has not acknowledged it
@@ -114,8 +95,13 @@ class Source:
             )
         return self._publishers[stream]
 
+    def _report_progress(self, published: int, total: int) -> None:
+        """Log how far the replay is, at every tenth of its steps (a long replay shows it is moving)."""
+        if published < total and published * PROGRESS_PARTS // total > (published - 1) * PROGRESS_PARTS // total:
+            self.log.info("published %d of %d steps", published, total)
+
     def _publish(self, message, stream: str | None = None) -> None:
-        self._publisher(stream or STREAM_OF[type(message)]).put(message.encode())
+        self._publisher(stream or keys.STREAM_OF[type(message)]).put(message.encode())
 
     # ------------------------------------------------------------------------------- history
     def history(self, streams: set[str], first: int, stop: int | None = None) -> list[tuple[str, bytes]]:
@@ -129,7 +115,7 @@ class Source:
             assert self.stream.prior is not None  # it is out only when there is one
             out.append((keys.PRIOR, self.stream.prior.encode()))
         for step in self.stream.steps[first : published if stop is None else min(stop, published)]:
-            out += [(STREAM_OF[type(m)], m.encode()) for m in step.messages if STREAM_OF[type(m)] in streams]
+            out += [(keys.STREAM_OF[type(m)], m.encode()) for m in step.messages if keys.STREAM_OF[type(m)] in streams]
         return out
 
     def _on_history_query(self, query: zenoh.Query) -> None:
@@ -302,6 +288,7 @@ class Source:
                     scans_sent += isinstance(message, LaserScan)
                 with self._history_lock:
                     self._steps_published = steps_sent + 1
+                self._report_progress(steps_sent + 1, len(stream.steps))
             end = StreamEnd(robot=stream.robot, scans=scans_sent)
             self._publish(end)
             with self._history_lock:

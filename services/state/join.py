@@ -119,13 +119,9 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         ``size`` measures a half) one robot's waiting halves may hold; beyond, its oldest are evicted as when
         the buffer is full (None: no bound). ``same(a, b)``: whether two halves are the same message (a far run is
         believed when ``recover`` gives its first message, the same as the one held)."""
-        if capacity < 1:
-            raise ValueError(f"join buffer capacity must be >= 1, got {capacity}")
-        if window < 1:
-            raise ValueError(f"seq window must be >= 1, got {window}")
-        self.capacity = capacity
+        self.capacity = _at_least_one(capacity, "join buffer capacity")
         self.recover = recover
-        self.window = window
+        self.window = _at_least_one(window, "seq window")
         self.max_bytes = max_bytes
         self._size = size
         self._largest = 0  # bytes of the largest half offered so far: bounds what the halves waiting here hold
@@ -461,6 +457,13 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         }
 
 
+def _at_least_one(value: int, what: str) -> int:
+    """``value``, a count that must be >= 1; ValueError naming ``what`` otherwise."""
+    if value < 1:
+        raise ValueError(f"{what} must be >= 1, got {value}")
+    return value
+
+
 def _run_through(seqs: Mapping[int, object], seq: int) -> list[int]:
     """The run of consecutive seqs of ``seqs`` that holds ``seq``, ascending."""
     first, last = seq, seq
@@ -495,9 +498,7 @@ class SeqLedger(Generic[NoteT]):
     """
 
     def __init__(self, horizon: int):
-        if horizon < 1:
-            raise ValueError(f"seq ledger horizon must be >= 1, got {horizon}")
-        self.horizon = horizon
+        self.horizon = _at_least_one(horizon, "seq ledger horizon")
         self._seqs: dict[str, dict[int, NoteT | None]] = {}
         self._highest: dict[str, int] = {}
 
