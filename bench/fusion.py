@@ -48,8 +48,8 @@ def _fusion_steps(posed, mode: str, merge_identical: bool = True) -> tuple[list,
     after a warm-up scan into another grid that compiles the kernels; and that grid."""
     model = SensorModel(resolution=RESOLUTION)
     grid = TiledGrid(RESOLUTION)
-    beams = (posed.beam_angles, posed.range_min, posed.range_max)
-    fusion = MonteCarloFusion(grid, model, *beams, posed.sensor_offset, merge_identical=merge_identical)
+    angles, range_min, range_max, offset = posed.single_geometry()
+    fusion = MonteCarloFusion(grid, model, angles, range_min, range_max, offset, merge_identical=merge_identical)
     poses = posed.poses
     picks = []
     for t in range(len(posed.stamps)):
@@ -58,7 +58,7 @@ def _fusion_steps(posed, mode: str, merge_identical: bool = True) -> tuple[list,
             picks.append((poses.samples[t, best : best + 1], np.ones(1)))
         else:
             picks.append((poses.samples[t], poses.weights[t]))
-    MonteCarloFusion(TiledGrid(RESOLUTION), model, *beams).fuse(posed.ranges[0], *picks[0])
+    MonteCarloFusion(TiledGrid(RESOLUTION), model, angles, range_min, range_max).fuse(posed.ranges[0], *picks[0])
     steps = [functools.partial(fusion.fuse, posed.ranges[t], *picks[t]) for t in range(len(posed.stamps))]
     return steps, grid
 
@@ -195,14 +195,15 @@ def _plain_loop_steps(posed, loop=_plain_ray_loop) -> tuple[list, list[int]]:
     """One callable per scan running ``loop`` (:func:`_plain_ray_loop` or :func:`_bresenham_ray_loop`) over
     the scan's sample rays (compiled first), and a one-element list that counts the cells they visit."""
     model = SensorModel(resolution=RESOLUTION)
-    lasers = [laser_poses(posed.poses.samples[t], posed.sensor_offset) for t in range(len(posed.stamps))]
+    geometry = posed.single_geometry()
+    lasers = [laser_poses(posed.poses.samples[t], geometry.sensor_offset) for t in range(len(posed.stamps))]
     ranges = np.where(np.isfinite(posed.ranges), posed.ranges, np.inf).astype(np.float64)
-    reach = posed.range_max + 1.0
+    reach = geometry.range_max + 1.0
     all_xy = np.concatenate(lasers)[:, :2]
     ix0, iy0 = (np.floor((all_xy.min(axis=0) - reach) / RESOLUTION)).astype(int)
     ix1, iy1 = (np.floor((all_xy.max(axis=0) + reach) / RESOLUTION)).astype(int)
     grid = np.zeros((iy1 - iy0 + 1, ix1 - ix0 + 1), np.float32)
-    args = (posed.beam_angles, posed.range_max, RESOLUTION, model.l_free, model.l_hit)
+    args = (geometry.beam_angles, geometry.range_max, RESOLUTION, model.l_free, model.l_hit)
     loop(
         lasers[0][:1, 0].copy(),
         lasers[0][:1, 1].copy(),
@@ -234,16 +235,17 @@ def _octomap_steps(posed, mode: str, every: int = 1) -> tuple[list, Any] | None:
     except ImportError:
         return None
     tree = pyoctomap.OcTree(RESOLUTION)
-    angles = posed.beam_angles
+    geometry = posed.single_geometry()
+    angles, range_max = geometry.beam_angles, geometry.range_max
     ranges = posed.ranges.astype(np.float64)
     # no return: a point beyond max_range, so OctoMap marks free space up to max_range and no hit
-    ranges = np.where(np.isfinite(ranges) & (ranges <= posed.range_max), ranges, posed.range_max + 1.0)
+    ranges = np.where(np.isfinite(ranges) & (ranges <= range_max), ranges, range_max + 1.0)
     clouds = {}
     for t in range(0, len(posed.stamps), every):
         samples = posed.poses.samples[t]
         if mode == "ml":
             samples = samples[int(np.argmax(posed.poses.weights[t]))][None]
-        lasers = laser_poses(samples, posed.sensor_offset)
+        lasers = laser_poses(samples, geometry.sensor_offset)
         clouds[t] = [
             (
                 np.column_stack(
@@ -256,7 +258,7 @@ def _octomap_steps(posed, mode: str, every: int = 1) -> tuple[list, Any] | None:
 
     def step(t: int) -> None:
         for points, origin in clouds[t]:
-            tree.insertPointCloud(points, origin, max_range=posed.range_max)
+            tree.insertPointCloud(points, origin, max_range=range_max)
 
     return [functools.partial(step, t) if t in clouds else None for t in range(len(posed.stamps))], tree
 
@@ -272,7 +274,7 @@ def run(steps: int = 400, octomap_mc_every: int = 1) -> dict:
         "beams": int(posed.ranges.shape[1]),
         "samples": SAMPLES,
         "resolution_m": RESOLUTION,
-        "range_max_m": float(posed.range_max),
+        "range_max_m": posed.single_geometry().range_max,
     }
 
     # each baseline runs in turns with posegrid on the same scans (_interleaved_seconds). OctoMap fed 60 samples

@@ -1,5 +1,7 @@
 """End-to-end figures of the distributed pipeline over Zenoh (issue 8), on the simulated office with 60 pose
-samples per scan.
+samples per scan, and (issue 34, figures prefixed "warehouse_") on the simulated warehouse's modern lidar (1081
+beams to 30 m) with 100 particles a scan, 1 and 2 shards, fewer scans (WAREHOUSE_STEPS; WAREHOUSE_LATENCY_SCANS at
+10 Hz, which one shard does not keep up with: the backlog, and so the latency, grows over the run).
 
 - throughput: scans per second from the first publication until every shard has fused every scan, with
   1 and 2 mapper shards (processes; 2 also with 32-cell tiles, see CONFIGURATIONS) behind a router (a
@@ -12,20 +14,23 @@ samples per scan.
   compiled kernels and creates its first tiles (a laser streams for hours; start-up is reported apart,
   as the worst latency among the warm-up scans);
 - bytes per scan: msgpack payloads of the scan and pose messages (in) and of the tile updates (out);
-  Zenoh framing and TCP headers are not counted.
+  Zenoh framing and TCP headers are not counted;
+- each mapper shard's peak resident memory (VmHWM, read before it stops) in the throughput runs.
 
 All processes share this machine's cores, so the figures bound what separate machines would give.
 """
 
 from __future__ import annotations
 
+import re
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import zenoh
 
-from bench.scenarios import honest_posed_scans, office_run, select_scans
+from bench.scenarios import honest_posed_scans, office_run, select_scans, warehouse_run
 from mapping.grid import TILE_SIZE
 from schemas.messages import ShardStats, TileUpdate, decode_message
 from services import keys
@@ -47,6 +52,11 @@ ROBOT = "bench"
 #: one of them, so with the default tiles one of two shards does nearly all the work; 32-cell tiles show
 #: the work dividing (docs/architecture.md, "Sharding").
 CONFIGURATIONS = ((1, TILE_SIZE), (2, TILE_SIZE), (2, 32))
+#: the warehouse: particles a scan, scans in the throughput runs and in the 10 Hz latency runs, configurations
+WAREHOUSE_PARTICLES = 100
+WAREHOUSE_STEPS = 120
+WAREHOUSE_LATENCY_SCANS = 40
+WAREHOUSE_CONFIGURATIONS = ((1, TILE_SIZE), (2, TILE_SIZE))
 
 
 class Cluster:
@@ -116,6 +126,18 @@ class Cluster:
             self.tile_bytes += len(payload)
             self.tile_updates.append((arrival, update.seq))
 
+    def peak_rss_bytes(self) -> list[int]:
+        """Each mapper shard's peak resident memory so far (VmHWM of /proc/PID/status, bytes), in shard order."""
+        peaks = []
+        for child in self.children.children:
+            if child.name.startswith("mapper"):
+                status = Path(f"/proc/{child.process.pid}/status").read_text()
+                found = re.search(r"^VmHWM:\s+(\d+) kB", status, re.MULTILINE)
+                if found is None:
+                    raise RuntimeError(f"no VmHWM in /proc/{child.process.pid}/status")
+                peaks.append(int(found.group(1)) * 1024)
+        return peaks
+
     def fused(self) -> int:
         stats: dict[int, ShardStats] = MapReader(self.session, self.map_name).stats()
         if len(stats) < self.shards:
@@ -151,16 +173,18 @@ def _throughput(posed, shards: int, tile_size: int) -> dict:
         elapsed = time.perf_counter() - started
         time.sleep(0.5)  # the last tile updates
         out_bytes = cluster.tile_bytes
+        peaks = cluster.peak_rss_bytes()
     scans = len(stream.steps)
     return {
         "scans_per_s": scans / elapsed,
         "bytes_in_per_scan": in_bytes / scans,
         "bytes_out_per_scan": out_bytes / scans,
+        **{f"shard{shard}_peak_rss_mb": peak / 2**20 for shard, peak in enumerate(peaks)},
     }
 
 
-def _latency(posed, shards: int, tile_size: int) -> dict:
-    stream = posed_stream(select_scans(posed, slice(0, WARMUP + LATENCY_SCANS)), ROBOT)
+def _latency(posed, shards: int, tile_size: int, scans: int = LATENCY_SCANS) -> dict:
+    stream = posed_stream(select_scans(posed, slice(0, WARMUP + scans)), ROBOT)
     published: dict[int, float] = {}
     with Cluster(shards, f"lat{shards}", tile_size) as cluster:
         publishers = {
@@ -197,11 +221,11 @@ def _latency(posed, shards: int, tile_size: int) -> dict:
     }
 
 
-def run() -> dict:
-    posed = honest_posed_scans(office_run(seed=0, steps=STEPS), seed=1, particles=SAMPLES)
-    out: dict = {"samples": SAMPLES, "scans": STEPS}
+def _scenario(posed, configurations, latency_scans: int) -> dict:
+    """The throughput and latency figures of ``posed`` in each (shards, tile size) configuration."""
+    out: dict = {}
     in_process = []
-    for shards, tile_size in CONFIGURATIONS:
+    for shards, tile_size in configurations:
         name = f"shards{shards}" + ("" if tile_size == TILE_SIZE else f"_tile{tile_size}")
         # the baseline right before and right after each pipeline run (their mean): this shared machine's
         # speed drifts by tens of percent within a minute
@@ -211,7 +235,18 @@ def run() -> dict:
         in_process.append((before + _in_process_rate(posed)) / 2)
         out[f"{name}_in_process_scans_per_s"] = in_process[-1]
         out[f"{name}_ratio_to_in_process"] = out[f"{name}_scans_per_s"] / in_process[-1]
-        for key, value in _latency(posed, shards, tile_size).items():
+        for key, value in _latency(posed, shards, tile_size, latency_scans).items():
             out[f"{name}_{key}_at_{LASER_HZ:g}hz"] = value
     out["in_process_scans_per_s"] = float(np.median(in_process))
+    return out
+
+
+def run() -> dict:
+    posed = honest_posed_scans(office_run(seed=0, steps=STEPS), seed=1, particles=SAMPLES)
+    out: dict = {"samples": SAMPLES, "scans": STEPS}
+    out.update(_scenario(posed, CONFIGURATIONS, LATENCY_SCANS))
+    warehouse = honest_posed_scans(warehouse_run(seed=0, steps=WAREHOUSE_STEPS), seed=1, particles=WAREHOUSE_PARTICLES)
+    out.update({"warehouse_particles": WAREHOUSE_PARTICLES, "warehouse_scans": WAREHOUSE_STEPS})
+    figures = _scenario(warehouse, WAREHOUSE_CONFIGURATIONS, WAREHOUSE_LATENCY_SCANS)
+    out.update({f"warehouse_{key}": value for key, value in figures.items()})
     return out

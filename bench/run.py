@@ -15,6 +15,8 @@ RESULTS = Path(__file__).resolve().parent / "results"
 #: benchmark modules, each with run() -> dict of figures
 SUITES = (
     "bench.fusion",
+    "bench.threads",
+    "bench.warehouse",
     "bench.quality",
     "bench.adaptive",
     "bench.adaptive_real",

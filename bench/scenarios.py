@@ -1,4 +1,4 @@
-"""Benchmark inputs: the simulated office with honest pose distributions around the true path.
+"""Benchmark inputs: the simulated office and warehouse with honest pose distributions around the true path.
 
 "Honest" means the estimate's error is drawn from the very covariance it reports, so the true pose lies
 inside the estimate's 95 % region about 95 % of the time: mean_t = truth_t + L_t eps_t, eps_t ~ N(0, I),
@@ -17,6 +17,7 @@ import numpy as np
 
 from schemas.files import PosedScans, PoseSet
 from slam.simulator import SimRun, simulate_office
+from slam.warehouse import simulate_warehouse
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 MIT_CSAIL = SHARED_DATA / "mit-csail" / "mit-csail.clf"
@@ -38,6 +39,11 @@ def honest_covariances(steps: int) -> np.ndarray:
 def office_run(seed: int = 0, steps: int = 400) -> SimRun:
     """The simulated office: 361 beams over 180 degrees, 12 m range."""
     return simulate_office(seed=seed, steps=steps, n_beams=361, range_max=12.0)
+
+
+def warehouse_run(seed: int = 0, steps: int = 400) -> SimRun:
+    """The simulated warehouse (slam.warehouse): 1081 beams over 270 degrees, 30 m range, 40 Hz."""
+    return simulate_warehouse(seed=seed, steps=steps)
 
 
 def honest_posed_scans(run: SimRun, seed: int = 0, particles: int | None = None) -> PosedScans:
@@ -78,6 +84,5 @@ def resampled_particles(posed: PosedScans, seed: int = 0) -> PosedScans:
 
 def select_scans(posed: PosedScans, index: slice) -> PosedScans:
     """The scans of ``posed`` that ``index`` picks (slice(0, 10): the first ten; slice(None, None, 4): every
-    4th), each with its pose distribution in whichever form it has."""
-    poses = PoseSet(**{key: value[index] for key, value in posed.poses.arrays().items()})
-    return replace(posed, ranges=posed.ranges[index], stamps=posed.stamps[index], poses=poses)
+    4th), each with its geometry and its pose distribution in whichever form it has."""
+    return posed.select(index)

@@ -21,19 +21,28 @@ sample, most of each ray's free space marked in it as runs of cells per grid lin
 per-sample records near the returns); one distinct sample takes the one-sample pass (:mod:`mapping.single_pass`),
 which gives the same map for about half the time. Both walk the rays with :mod:`mapping.window_walk` and value
 the cells with :mod:`mapping.beam_model`.
+
+A scan is fused in three stages: :meth:`MonteCarloFusion.prepare` (checks, beam table, window),
+:meth:`~MonteCarloFusion.walk` (the compiled pass into a :class:`FusionScratch`; it reads nothing of the map) and
+:meth:`~MonteCarloFusion.apply` (the only stage that writes the map). :class:`FusionThreads` walks several scans at
+once, each into a scratch of its own, and applies them in scan order (:mod:`mapping.parallel_fusion`), so the map is
+the same bit for bit on any number of threads.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from mapping.beam_model import BEAM_SKIP, BeamTable, beam_table, logodds_model
 from mapping.errors import InputError
 from mapping.grid import TiledGrid
+from mapping.parallel_fusion import in_scan_order
 from mapping.samples_pass import STAMP_LIMIT, accumulate_scan, apply_scan
 from mapping.scan_input import check_scan, check_window, laser_poses, merge_duplicates
 from mapping.sensor_model import SensorModel
@@ -49,13 +58,114 @@ class FuseResult:
     tiles_changed: list[tuple[int, int]]
 
 
+#: what :meth:`MonteCarloFusion.fuse_iter` takes per scan: ranges (B,) m, robot pose samples (M, 3), weights (M,)
+ScanInput = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+class FusionScratch:
+    """The working memory of one scan's walk (:func:`mapping.samples_pass.accumulate_scan` or
+    :func:`mapping.single_pass.accumulate_single`), grown to the largest window walked in it and reused.
+
+    Per cell of the scratch window the samples pass keeps two bits (plane, listed), a weight sum (8 bytes), a
+    four-float excess record (32 bytes) and a list entry (8 bytes), plus a bit of the column-major plane; the
+    one-sample pass keeps 8 bytes and two bits. About 57 bytes a window cell in all: 14 MB for the office's 12 m
+    laser at 0.05 m (a window of about 490 x 490 cells), 85 MB for a 30 m laser, 0.95 GB at the largest window a
+    scan may take (mapping.scan_input.MAX_WINDOW_CELLS). A fusion on T threads keeps T of them.
+
+    Nothing in it carries from one scan to the next: each pass clears what it set, and the samples pass tells
+    the excess records of earlier scans by their stamps (unique per scratch: :meth:`stamps`)."""
+
+    def __init__(self) -> None:
+        self.stamp_next = 1
+        self.size = 0  # cells the samples pass's per-cell arrays hold
+        self.columns = np.zeros(0, np.uint64)
+        self.lines = np.zeros((2, 0), np.int64)  # a ray's exit and entry cells per grid line (mapping.free_runs)
+        self.block = np.zeros(64, np.uint64)  # 64 x 64 bits being folded from the column-major plane
+        self.plane = self.listed = np.zeros(0, np.uint64)
+        self.weight_sum = np.zeros(0, np.float64)
+        self.excess = np.zeros((0, 4), np.float64)
+        self.scan_cells = np.zeros(0, np.int64)
+        self.single_blocks = 0
+        self.touched_bits = self.raised_bits = np.zeros(0, np.int64)
+        self.largest = np.zeros(0, np.float64)
+
+    def for_samples(self, cells: int, column_bits: int, lines: int) -> None:
+        """Room for the samples pass over a window of ``cells`` cells, ``column_bits`` bits of the column-major plane
+        (mapping.free_runs) and ``lines`` grid lines a side at most."""
+        if column_bits > self.columns.shape[0] * 64:
+            self.columns = np.zeros(column_bits // 64, np.uint64)
+        if lines > self.lines.shape[1]:
+            self.lines = np.zeros((2, lines), np.int64)
+        if cells <= self.size:
+            return
+        self.size = cells
+        # per cell (see accumulate_scan): a bit in the sample's plane and in the listed plane, the weight sum,
+        # the excess record
+        self.plane = np.zeros((cells + 63) // 64, np.uint64)
+        self.listed = np.zeros((cells + 63) // 64, np.uint64)
+        self.weight_sum = np.zeros(cells, np.float64)
+        self.excess = np.zeros((cells, 4), np.float64)
+        self.scan_cells = np.zeros(cells, np.int64)
+
+    def for_single(self, blocks: int) -> None:
+        """Room for the one-sample pass over a window of ``blocks`` 8 x 8 blocks."""
+        if blocks <= self.single_blocks:
+            return
+        self.single_blocks = blocks
+        # per 8 x 8 block and per cell (see accumulate_single): touched and raised bits, the largest excess
+        self.touched_bits = np.zeros(blocks, np.int64)
+        self.raised_bits = np.zeros(blocks, np.int64)
+        self.largest = np.zeros(blocks * 64, np.float64)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes its arrays hold now."""
+        return sum(value.nbytes for value in vars(self).values() if isinstance(value, np.ndarray))
+
+    def stamps(self, count: int) -> int:
+        """The first of ``count`` fresh sample stamps of this scratch (the records are cleared when stamps would pass
+        STAMP_LIMIT, and the stamps start again)."""
+        if self.stamp_next + count >= STAMP_LIMIT:
+            self.excess[:] = 0
+            self.stamp_next = 1
+        first = self.stamp_next
+        self.stamp_next += count
+        return first
+
+
+class Ready(NamedTuple):
+    """A checked scan, to walk: laser poses (M, 3) after merging, their weights (M,), the beam table, the window."""
+
+    lasers: np.ndarray
+    weights: np.ndarray
+    beams: BeamTable
+    window: Window
+    tiles: Tiles
+
+
+class Walked(NamedTuple):
+    """A walked scan, to apply: the pass's scratch (the kernels' tuple), the cells it listed, the tiles it touched,
+    the window and tiles (tuples), and the one sample's weight (one-sample pass) or the first stamp (samples pass)."""
+
+    single: bool
+    scratch: tuple
+    n_scan: int
+    touched: np.ndarray
+    window_args: tuple
+    tile_args: tuple
+    weight: float
+    stamp_base: int
+
+
 class MonteCarloFusion:
     """Fuses scans of one laser into a :class:`TiledGrid`, one compiled pass per scan.
 
     beam_angles: (B,) rad in the laser frame; range_min, range_max: m; sensor_offset: the laser's
     (x m, y m, yaw rad) in the robot frame; owns_tile: optional (tx, ty) -> bool, for a shard that fuses
     only its own tiles (the cells of other tiles are skipped); merge_identical: merge identical pose
-    samples before ray casting (on by default; off only to measure what merging saves).
+    samples before ray casting (on by default; off only to measure what merging saves); threads: how many scans
+    :meth:`fuse_iter` walks at once, or a :class:`FusionThreads` shared with the other fusions of the same grid (one
+    per laser geometry). Not thread-safe: one caller at a time.
     """
 
     def __init__(
@@ -68,6 +178,7 @@ class MonteCarloFusion:
         sensor_offset: tuple[float, float, float] | np.ndarray = (0.0, 0.0, 0.0),
         owns_tile: Callable[[int, int], bool] | None = None,
         merge_identical: bool = True,
+        threads: int | FusionThreads = 1,
     ) -> None:
         if not np.isclose(grid.resolution, model.resolution):
             raise InputError(
@@ -84,45 +195,14 @@ class MonteCarloFusion:
         self.sensor_offset = np.asarray(sensor_offset, dtype=np.float64)
         self.owns_tile = owns_tile
         self.merge_identical = merge_identical
+        self.threads = threads if isinstance(threads, FusionThreads) else FusionThreads(threads)
         self._owned_cache: dict[tuple[int, int], bool] = {}
         self._owned_windows: dict[tuple[int, int, int, int], tuple[np.ndarray, bool]] = {}
-        self._stamp_next = 1
-        self._scratch_size = 0
-        self._columns = np.zeros(0, np.uint64)
-        self._lines = np.zeros((2, 0), np.int64)  # a ray's exit and entry cells per grid line (mapping.free_runs)
-        self._block = np.zeros(64, np.uint64)  # 64 x 64 bits being folded from the column-major plane
-        self._single_blocks = 0
+        self._scratch = FusionScratch()  # :meth:`fuse`'s (empty until a scan is walked in it)
         # what the kernels read of the model, built once: plain tuples (mapping.beam_model.BeamTable says why)
         self._model_terms = tuple(logodds_model(model))
         self._levels = (model.l_free, model.l_min, model.l_max)  # (properties: computed)
         self._directions = (self._cos_angles, self._sin_angles)
-
-    def _scratch(self, cells: int, column_bits: int, lines: int) -> None:
-        """The samples pass's scratch for a window of ``cells`` cells, ``column_bits`` bits of the column-major plane
-        (mapping.free_runs) and ``lines`` grid lines a side at most."""
-        if column_bits > self._columns.shape[0] * 64:
-            self._columns = np.zeros(column_bits // 64, np.uint64)
-        if lines > self._lines.shape[1]:
-            self._lines = np.zeros((2, lines), np.int64)
-        if cells <= self._scratch_size:
-            return
-        self._scratch_size = cells
-        # per cell (see accumulate_scan): a bit in the sample's plane and in the listed plane, the weight sum,
-        # the excess record
-        self._plane = np.zeros((cells + 63) // 64, np.uint64)
-        self._listed = np.zeros((cells + 63) // 64, np.uint64)
-        self._weight_sum = np.zeros(cells, np.float64)
-        self._excess = np.zeros((cells, 4), np.float64)
-        self._scan_cells = np.zeros(cells, np.int64)
-
-    def _single_scratch(self, blocks: int) -> None:
-        if blocks <= self._single_blocks:
-            return
-        self._single_blocks = blocks
-        # per 8 x 8 block and per cell (see accumulate_single): touched and raised bits, the largest excess
-        self._touched_bits = np.zeros(blocks, np.int64)
-        self._raised_bits = np.zeros(blocks, np.int64)
-        self._largest = np.zeros(blocks * 64, np.float64)
 
     def _owned_mask(self, tx0: int, ty0: int, ntx: int, nty: int) -> tuple[np.ndarray, bool]:
         """Which tiles of the window's ntx x nty tiles from (tx0, ty0) the shard owns, and whether all; kept
@@ -156,18 +236,68 @@ class MonteCarloFusion:
         """Fuse one scan: ranges (B,) m, robot pose samples (M, 3) map frame, weights (M,) summing to 1.
 
         One distinct sample (after merging) takes the one-sample pass
-        (:func:`mapping.single_pass.accumulate_single`), which gives the same map as the samples pass for less work."""
-        ranges, samples, weights = check_scan(ranges, samples, weights, self.angles.shape[0])
+        (:func:`mapping.single_pass.accumulate_single`), which gives the same map as the samples pass for less work.
+        Raises InputError for a scan it refuses (the map unchanged)."""
+        ready = self.prepare((ranges, samples, weights))
+        if ready is None:
+            return FuseResult(0, [])
+        return self.apply(self.walk(ready, self._scratch))
+
+    def fuse_iter(self, scans: Iterable[ScanInput]) -> Iterator[FuseResult | InputError]:
+        """Fuse ``scans`` ((ranges, samples, weights) each, as :meth:`fuse` takes them) in order on this fusion's
+        threads (:meth:`FusionThreads.fuse_iter`), yielding each scan's FuseResult or the InputError that refused it;
+        the map is the same bit for bit for any thread count."""
+        return self.threads.fuse_iter((self, scan) for scan in scans)
+
+    def fuse_many(self, scans: Iterable[ScanInput]) -> list[FuseResult | InputError]:
+        """:meth:`fuse_iter` as a list."""
+        return list(self.fuse_iter(scans))
+
+    def prepare(self, scan: ScanInput) -> Ready | None:
+        """The first stage of :meth:`fuse`: the scan (ranges, samples, weights) checked and ready to walk (None when
+        no beam of it is used); InputError when it is refused. Runs on the caller's thread, in scan order (it keeps
+        the shard's ownership caches)."""
+        ranges, samples, weights = check_scan(*scan, self.angles.shape[0])
         if self.merge_identical:
             samples, weights = merge_duplicates(samples, weights)
         beams = beam_table(ranges, self.model, self.range_min, self.range_max)
         if not (beams.kind != BEAM_SKIP).any():
-            return FuseResult(0, [])
+            return None
         lasers = laser_poses(samples, self.sensor_offset)
         window, tiles = self._window(lasers, float(beams.r_stop.max()) + self.grid.resolution)
-        if len(samples) == 1:
-            return self._fuse_single(lasers[0], float(weights[0]), beams, window, tiles)
-        return self._fuse_samples(lasers, weights, beams, window, tiles)
+        return Ready(lasers, weights, beams, window, tiles)
+
+    def walk(self, ready: Ready, scratch: FusionScratch) -> Walked:
+        """The second stage of :meth:`fuse`: the scan's compiled pass into ``scratch``, the one-sample pass for one
+        distinct sample, else the samples pass. Reads nothing of the grid: safe on a pool thread, one scan per
+        scratch."""
+        if len(ready.lasers) == 1:
+            return self._walk_single(ready, scratch)
+        return self._walk_samples(ready, scratch)
+
+    def apply(self, walked: Walked) -> FuseResult:
+        """The last stage of :meth:`fuse`: add a walked scan into the grid (its tiles created as needed, in row
+        order) and clear its scratch. Runs on the caller's thread, in scan order."""
+        tx0, ty0 = walked.tile_args[3], walked.tile_args[4]  # (Tiles: owned, all_owned, shift, tx0, ty0)
+        slot_map, changed = self._tile_slots(walked.touched, tx0, ty0)
+        grid = self.grid  # (its layers after _tile_slots: new tiles may have moved them)
+        layers = (grid.logodds, grid.variance, grid.observed)
+        if walked.single:
+            apply_single(
+                walked.scratch, walked.weight, walked.window_args, walked.tile_args, slot_map, layers, self._levels
+            )
+        else:
+            apply_scan(
+                walked.scratch,
+                walked.n_scan,
+                walked.stamp_base,
+                walked.window_args,
+                walked.tile_args,
+                slot_map,
+                layers,
+                self._levels,
+            )
+        return FuseResult(walked.n_scan, changed)
 
     def _window(self, lasers: np.ndarray, reach: float) -> tuple[Window, Tiles]:
         """The scratch window over the rays of laser poses (M, 3) that reach ``reach`` m (its origin a multiple of 8
@@ -197,52 +327,104 @@ class MonteCarloFusion:
         the beam table, the model's terms and the cell size (m), as plain tuples (mapping.beam_model.BeamTable)."""
         return self._directions, tuple(beams), self._model_terms, self.grid.resolution
 
-    def _fuse_single(
-        self, laser: np.ndarray, weight: float, beams: BeamTable, window: Window, tiles: Tiles
-    ) -> FuseResult:
-        """The one-sample pass (laser pose (3,): x m, y m, yaw rad; its sample's weight)."""
+    def _walk_single(self, ready: Ready, scratch: FusionScratch) -> Walked:
+        """The one-sample pass (one laser pose (3,): x m, y m, yaw rad; its sample's weight)."""
+        window, tiles = ready.window, ready.tiles
         blocks_w, blocks_h = -(-window.w // 8), -(-window.h // 8)
-        self._single_scratch(blocks_w * blocks_h)
+        scratch.for_single(blocks_w * blocks_h)
         touched = np.zeros(tiles.owned.shape, np.bool_)
-        scratch = (self._touched_bits, self._raised_bits, self._largest, blocks_w, blocks_h, touched)
+        args = (scratch.touched_bits, scratch.raised_bits, scratch.largest, blocks_w, blocks_h, touched)
         window_args, tile_args = tuple(window), tuple(tiles)
-        n_scan = accumulate_single(laser, *self._ray_args(beams), window_args, tile_args, scratch)
-        slot_map, changed = self._tile_slots(touched, tiles.tx0, tiles.ty0)
-        grid = self.grid  # (its layers after _tile_slots: new tiles may have moved them)
-        layers = (grid.logodds, grid.variance, grid.observed)
-        apply_single(scratch, weight, window_args, tile_args, slot_map, layers, self._levels)
-        return FuseResult(int(n_scan), changed)
+        n_scan = accumulate_single(ready.lasers[0], *self._ray_args(ready.beams), window_args, tile_args, args)
+        return Walked(True, args, int(n_scan), touched, window_args, tile_args, float(ready.weights[0]), 0)
 
-    def _fuse_samples(
-        self, lasers: np.ndarray, weights: np.ndarray, beams: BeamTable, window: Window, tiles: Tiles
-    ) -> FuseResult:
+    def _walk_samples(self, ready: Ready, scratch: FusionScratch) -> Walked:
         """The samples pass (laser poses (M, 3), weights (M,))."""
+        window, tiles = ready.window, ready.tiles
         # the samples pass's scratch rows and columns are whole 64-bit words of its bit planes (mapping.free_runs)
         win_w = -(-window.w // 64) * 64
         col_stride = -(-window.h // 64) * 64
-        self._scratch(win_w * window.h, win_w * col_stride, max(win_w, window.h))
-        if self._stamp_next + len(lasers) >= STAMP_LIMIT:
-            self._excess[:] = 0
-            self._stamp_next = 1
-        stamp_base = self._stamp_next
-        self._stamp_next += len(lasers)
+        scratch.for_samples(win_w * window.h, win_w * col_stride, max(win_w, window.h))
+        stamp_base = scratch.stamps(len(ready.lasers))
         touched = np.zeros(tiles.owned.shape, np.bool_)
-        scratch = (
-            self._plane,
-            self._columns,
+        args = (
+            scratch.plane,
+            scratch.columns,
             col_stride,
-            self._listed,
-            self._weight_sum,
-            self._excess,
-            self._scan_cells,
+            scratch.listed,
+            scratch.weight_sum,
+            scratch.excess,
+            scratch.scan_cells,
             touched,
-            self._lines,
-            self._block,
+            scratch.lines,
+            scratch.block,
         )
         window_args, tile_args = (window.ix0, window.iy0, win_w, window.h), tuple(tiles)
-        n_scan = accumulate_scan(lasers, weights, *self._ray_args(beams), window_args, tile_args, scratch, stamp_base)
-        slot_map, changed = self._tile_slots(touched, tiles.tx0, tiles.ty0)
-        grid = self.grid
-        layers = (grid.logodds, grid.variance, grid.observed)
-        apply_scan(scratch, n_scan, stamp_base, window_args, tile_args, slot_map, layers, self._levels)
-        return FuseResult(int(n_scan), changed)
+        n_scan = accumulate_scan(
+            ready.lasers, ready.weights, *self._ray_args(ready.beams), window_args, tile_args, args, stamp_base
+        )
+        return Walked(False, args, int(n_scan), touched, window_args, tile_args, 0.0, stamp_base)
+
+
+class FusionThreads:
+    """Fuses scans on ``count`` threads (mapping.parallel_fusion): the walks of up to ``count`` scans at once, each on a
+    :class:`FusionScratch` of its own, the scans applied in order, so the map is the same bit for bit as fused one by
+    one. One serves any fusions of one grid (a laser whose geometry changes has a fusion per geometry), their scans in
+    one stream. With count 1 each scan is fused by its fusion's :meth:`MonteCarloFusion.fuse`, with no pool.
+
+    Memory: ``count`` scratches of about 57 bytes a window cell each (:class:`FusionScratch`), on top of each fusion's
+    own (for :meth:`MonteCarloFusion.fuse`); the pool's threads start on the first scans fused with count > 1. Not
+    thread-safe: one caller at a time."""
+
+    def __init__(self, count: int = 1) -> None:
+        if count < 1:
+            raise InputError(f"need threads >= 1, got {count}")
+        self.count = count
+        self._scratches = [FusionScratch() for _ in range(count)] if count > 1 else []
+        self._pool: ThreadPoolExecutor | None = None
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes the threads' scratches hold now (the fusions' own, for :meth:`MonteCarloFusion.fuse`, aside)."""
+        return sum(scratch.nbytes for scratch in self._scratches)
+
+    def fuse_iter(self, scans: Iterable[tuple[MonteCarloFusion, ScanInput]]) -> Iterator[FuseResult | InputError]:
+        """Fuse each scan ((ranges, samples, weights), as :meth:`MonteCarloFusion.fuse` takes them) with its fusion, in
+        order, yielding its FuseResult, or the InputError that refused it (the map unchanged by that scan; the next
+        scans go on). Any other error is raised at its scan's turn, the earlier scans fused and none of the later
+        ones, as fusing them one by one would; closing the iterator early waits for the walks in flight."""
+        if self.count == 1:
+            return _one_by_one(scans)
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(self.count, thread_name_prefix="fusion")
+        return in_scan_order(scans, _prepare, _walk, _apply, self._scratches, self._pool, FuseResult(0, []))
+
+
+def _one_by_one(scans: Iterable[tuple[MonteCarloFusion, ScanInput]]) -> Iterator[FuseResult | InputError]:
+    """:meth:`FusionThreads.fuse_iter` on one thread: each scan's :meth:`MonteCarloFusion.fuse`."""
+    for fusion, (ranges, samples, weights) in scans:
+        try:
+            result = fusion.fuse(ranges, samples, weights)
+        except InputError as exc:
+            yield exc
+        else:
+            yield result
+
+
+def _prepare(item: tuple[MonteCarloFusion, ScanInput]) -> tuple[MonteCarloFusion, Ready] | None:
+    """:meth:`MonteCarloFusion.prepare` of a (fusion, scan) pair, the fusion kept with the prepared scan."""
+    fusion, scan = item
+    ready = fusion.prepare(scan)
+    return None if ready is None else (fusion, ready)
+
+
+def _walk(item: tuple[MonteCarloFusion, Ready], scratch: FusionScratch) -> tuple[MonteCarloFusion, Walked]:
+    """:meth:`MonteCarloFusion.walk` of a prepared (fusion, scan) pair into ``scratch`` (on a pool thread)."""
+    fusion, ready = item
+    return fusion, fusion.walk(ready, scratch)
+
+
+def _apply(item: tuple[MonteCarloFusion, Walked]) -> FuseResult:
+    """:meth:`MonteCarloFusion.apply` of a walked (fusion, scan) pair."""
+    fusion, walked = item
+    return fusion.apply(walked)

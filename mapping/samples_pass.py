@@ -27,7 +27,19 @@ from mapping.beam_model import BeamTable, LogOddsModel, beam_at, segment_logodds
 from mapping.free_runs import fold_columns, mark_free_runs, set_bit
 from mapping.jit import kernel
 from mapping.raytrace import dda_step
-from mapping.window_walk import JUMP_MARGIN, Ray, Tiles, Window, beam_ray, index_ray, ownership_constants, walk_ray
+from mapping.window_walk import (
+    JUMP_MARGIN,
+    Ray,
+    Tiles,
+    Window,
+    beam_direction,
+    beam_ray,
+    index_ray,
+    jump_over_tile,
+    ownership_constants,
+    tile_exit,
+    walk_ray,
+)
 
 #: per-sample stamps are stored as float64 (exact below 2**53); the scratch is cleared and stamps restart here
 STAMP_LIMIT = 2**52
@@ -121,7 +133,7 @@ def _free_runs(x0, y0, dx, dy, ray, free_limit, res, window, scratch):  # pragma
     first_ix, first_iy = ix, iy
     if min(t_max_x, t_max_y) <= 0.0:  # the ray starts on its cell's edge and leaves it at once
         first_ix, first_iy, _, _ = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol)
-    end_ix, end_iy = mark_free_runs(
+    end = mark_free_runs(
         scratch.plane,
         scratch.columns,
         scratch.col_stride,
@@ -133,9 +145,126 @@ def _free_runs(x0, y0, dx, dy, ray, free_limit, res, window, scratch):  # pragma
         tol,
         scratch.lines,
     )
-    t_max_x += max((end_ix - ix) * step_x, 0) * t_delta_x
-    t_max_y += max((end_iy - iy) * step_y, 0) * t_delta_y
-    return Ray(end_ix, end_iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol), runs_end
+    return _ray_moved_to(ray, end), runs_end
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _ray_moved_to(ray, cell):  # pragma: no cover - compiled
+    """``ray`` (as it started) moved on to the cell (ix, iy) its runs ended in, the grid lines crossed up to it
+    counted from the cells' indices (a product, not a sum per line: the whole window's walk and a shard's take the
+    same arithmetic)."""
+    ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol = ray
+    t_max_x += max((cell[0] - ix) * step_x, 0) * t_delta_x
+    t_max_y += max((cell[1] - iy) * step_y, 0) * t_delta_y
+    return Ray(cell[0], cell[1], step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol)
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _owned_free_runs(x0, y0, dx, dy, ray, free_limit, res, window, tiles, scratch):  # pragma: no cover - compiled
+    """A shard's :func:`_free_runs`: the ray's free phase marked as runs up to just before free_limit (m) in the
+    tiles the shard owns; it jumps over the other shards' tiles (:func:`jump_over_tile`) and marks nothing there,
+    so the work a ray's free phase costs divides among the shards by the tiles each owns. One stretch of runs per
+    stretch of owned tiles along the ray: from the cell the ray enters the first in to just before it leaves the
+    last (:func:`_close_stretch`).
+
+    Returns (ray, r_in, tile_end) for the walk to go on from: when the free phase ends in an owned tile, the ray at
+    the runs' last cell and r_in the runs' end, as :func:`_free_runs` gives them (the same arithmetic, so the cells
+    near the return get the same values as in the whole window's walk), and tile_end the range (m) at which the ray
+    leaves that tile; else the ray in the first cell of the tile the free phase ends in, r_in the range it enters
+    it at (the walk jumps over that tile) and tile_end 0."""
+    runs_end = free_limit - JUMP_MARGIN * (1.0 + free_limit)
+    if runs_end <= 0.0:
+        return ray, 0.0, 0.0
+    ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol = ray
+    if min(t_max_x, t_max_y) <= 0.0:  # the ray starts on its cell's edge and leaves it at once
+        ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol)
+    shift = tiles.shift
+    r_in = 0.0
+    stretch = (ix, iy)  # the cell the current stretch of owned tiles starts in
+    last = (ix, iy)  # the last cell of the tile before this one
+    mine = False  # whether the ray is in a stretch of owned tiles
+    while True:  # one turn per tile the free phase crosses: (ix, iy) is the cell the ray enters it in, at r_in
+        owned = tiles.owned[(iy >> shift) - tiles.ty0, (ix >> shift) - tiles.tx0]
+        if owned and not mine:
+            stretch = (ix, iy)
+        elif mine and not owned:
+            _close_stretch((x0, y0, dx, dy), stretch, last, r_in, res, tol, window, scratch)
+        mine = owned
+        t_exit = tile_exit(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, shift)
+        if t_exit >= runs_end:
+            break
+        ix, iy, t_max_x, t_max_y, _, _ = jump_over_tile(
+            ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, shift
+        )
+        r_in = min(t_max_x, t_max_y)
+        last = (ix, iy)
+        ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol)
+    if mine:
+        end = mark_free_runs(
+            scratch.plane,
+            scratch.columns,
+            scratch.col_stride,
+            window,
+            (x0, y0, dx, dy),
+            stretch,
+            runs_end,
+            res,
+            tol,
+            scratch.lines,
+        )
+        return _ray_moved_to(ray, end), runs_end, t_exit
+    return Ray(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol), r_in, 0.0
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _close_stretch(line, stretch, last, r_next, res, tol, window, scratch):  # pragma: no cover - compiled
+    """Mark a ray's cells from ``stretch`` (the cell it entered its stretch of owned tiles in) to ``last`` (the last
+    cell of the stretch), line = (x0, y0, dx, dy) as for :func:`mark_free_runs`, the next tile entered at the range
+    r_next (m): runs to just before r_next, and ``last`` itself (the runs stop short of a last cell shorter than
+    their margin)."""
+    mark_free_runs(
+        scratch.plane,
+        scratch.columns,
+        scratch.col_stride,
+        window,
+        line,
+        stretch,
+        r_next - JUMP_MARGIN * (1.0 + r_next),
+        res,
+        tol,
+        scratch.lines,
+    )
+    set_bit(scratch.plane, (last[1] - window.iy0) * window.w + last[0] - window.ix0)
+
+
+#: a ray whose bounding box spans more tiles than this is walked without the bound of :func:`_may_reach_owned`
+BOUND_TILES = 16
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _may_reach_owned(laser, heading, directions, k, stop, res, tiles):  # pragma: no cover - compiled
+    """The cheap bound that lets a shard skip a ray before walking it: False when no tile the shard owns meets the
+    bounding box of the ray of beam k (its start and end cells, the end at ``stop`` m, and a cell more on every side:
+    a ray starting on a grid line, or ending within rounding of one, crosses into the cell beyond), so the ray cannot
+    reach one; True otherwise (also when the box spans more than BOUND_TILES tiles: the test would cost more than it
+    saves). laser, heading, directions: as for :func:`mapping.window_walk.beam_ray`."""
+    dx, dy = beam_direction(heading[0], heading[1], directions[0][k], directions[1][k])
+    shift = tiles.shift
+    ix_a = math.floor(laser[0] / res)
+    iy_a = math.floor(laser[1] / res)
+    ix_b = math.floor((laser[0] + stop * dx) / res)
+    iy_b = math.floor((laser[1] + stop * dy) / res)
+    tx_lo, tx_hi = ((min(ix_a, ix_b) - 1) >> shift) - tiles.tx0, ((max(ix_a, ix_b) + 1) >> shift) - tiles.tx0
+    ty_lo, ty_hi = ((min(iy_a, iy_b) - 1) >> shift) - tiles.ty0, ((max(iy_a, iy_b) + 1) >> shift) - tiles.ty0
+    if (tx_hi - tx_lo + 1) * (ty_hi - ty_lo + 1) > BOUND_TILES:
+        return True
+    # (the window holds a ray's cells with a cell to spare, ray_start checks; clamped so that no box reads past it)
+    nty, ntx = tiles.owned.shape
+    for ty in range(max(ty_lo, 0), min(ty_hi, nty - 1) + 1):
+        for tx in range(max(tx_lo, 0), min(tx_hi, ntx - 1) + 1):
+            if tiles.owned[ty, tx]:
+                return True
+    return False
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
@@ -144,14 +273,18 @@ def _walk_sample(laser, sid, w, directions, beams, model, res, window, tiles, sc
     excess records.
 
     When the shard owns every tile, the free phase is marked as runs and the walk goes on from their last cell on
-    the window's index (:func:`mapping.window_walk.index_ray`), with no ownership look-ups; otherwise it walks the
-    global cells and looks ownership up per tile."""
+    the window's index (:func:`mapping.window_walk.index_ray`), with no ownership look-ups; otherwise the free phase
+    is marked as runs in the shard's own tiles (:func:`_owned_free_runs`); the walk goes on as the whole window's
+    does where the rest of the ray lies in one tile the shard owns, else on the global cells, looking ownership up
+    per tile."""
     heading = (math.cos(laser[2]), math.sin(laser[2]))
     by_index = _Marks(scratch.plane, scratch.excess, (0, 0, 1), model, sid, w)
     by_cell = _Marks(scratch.plane, scratch.excess, (window.ix0, window.iy0, window.w), model, sid, w)
     every_tile, some_tiles = ownership_constants(tiles)
     for k in range(beams.kind.shape[0]):
         beam = beam_at(beams, k)
+        if not tiles.all_owned and not _may_reach_owned(laser, heading, directions, k, beam.r_stop, res, tiles):
+            continue  # a ray that crosses none of the shard's tiles
         inside, ray, dx, dy = beam_ray(laser, heading, directions, beam, k, res, window)
         if not inside:
             continue  # a skipped beam
@@ -163,7 +296,27 @@ def _walk_sample(laser, sid, w, directions, beams, model, res, window, tiles, sc
                 ray, r_in, beam.free_until, beam.r_stop, every_tile, _mark_free, _mark_near, by_index, (beams, k), 0
             )
         else:
-            walk_ray(ray, 0.0, beam.free_until, beam.r_stop, some_tiles, _mark_free, _mark_near, by_cell, (beams, k), 0)
+            free_limit = min(beam.free_until, beam.r_stop - ray.tol)
+            ray, r_in, tile_end = _owned_free_runs(
+                laser[0], laser[1], dx, dy, ray, free_limit, res, window, tiles, scratch
+            )
+            if tile_end >= beam.r_stop:
+                walk_ray(
+                    index_ray(ray, window),
+                    r_in,
+                    beam.free_until,
+                    beam.r_stop,
+                    every_tile,
+                    _mark_free,
+                    _mark_near,
+                    by_index,
+                    (beams, k),
+                    0,
+                )
+            else:
+                walk_ray(
+                    ray, r_in, beam.free_until, beam.r_stop, some_tiles, _mark_free, _mark_near, by_cell, (beams, k), 0
+                )
 
 
 @kernel(nogil=True, error_model="numpy", refcounted=False)
@@ -186,10 +339,10 @@ def accumulate_scan(
 
     Each ray is walked by :func:`mapping.window_walk.walk_ray` in two phases: the free phase, cells that end before
     the beam's free_until, which take l_free without evaluating the model; then the cells up to the ray's end,
-    valued by :func:`segment_logodds`. When the shard owns every tile of the window, the free phase is marked as
-    runs of cells per grid row or column (a steep ray's go into the column-major plane) up to just before its
-    end (:func:`_free_runs`). After a sample's beams its column plane is folded into ``plane`` and ``plane`` is
-    swept into the weight sums.
+    valued by :func:`segment_logodds`. The free phase is marked as runs of cells per grid row or column (a steep
+    ray's go into the column-major plane) up to just before its end (:func:`_free_runs`), by a shard that does not
+    own every tile of the window in its own tiles only, skipping the rays that reach none (:func:`_walk_sample`).
+    After a sample's beams its column plane is folded into ``plane`` and ``plane`` is swept into the weight sums.
     """
     beams, model, window, tiles = BeamTable(*beams), LogOddsModel(*model), Window(*window), Tiles(*tiles)
     scratch = SamplesScratch(*scratch)
@@ -197,8 +350,7 @@ def accumulate_scan(
     for j in range(lasers.shape[0]):
         w = weights[j]
         _walk_sample(lasers[j], float(stamp_base + j), w, directions, beams, model, res, window, tiles, scratch)
-        if tiles.all_owned:
-            fold_columns(scratch.columns, scratch.col_stride, scratch.plane, window.w, window.h, scratch.block)
+        fold_columns(scratch.columns, scratch.col_stride, scratch.plane, window.w, window.h, scratch.block)
         n_scan = _sweep_plane(scratch, w, n_scan, window, tiles)
     return n_scan
 

@@ -3,18 +3,20 @@ same way, so a sharded map equals the in-process one cell for cell)."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections import OrderedDict
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, TypedDict
+from typing import TYPE_CHECKING, TypedDict, TypeVar
 
 import numpy as np
 from tqdm import tqdm
 
-from mapping.fusion import MonteCarloFusion
+from mapping.errors import InputError
+from mapping.fusion import FusionThreads, MonteCarloFusion, ScanInput
 from mapping.grid import TiledGrid
 from mapping.poses import scan_samples
 from mapping.sensor_model import SensorModel
-from schemas.files import PosedScans
+from schemas.files import GEOMETRY_KEYS, PosedScans, ScanGeometry
 
 if TYPE_CHECKING:
     from typing_extensions import Unpack
@@ -70,6 +72,8 @@ class FusionOptions(TypedDict, total=False):
     model: the inverse sensor model (default: SensorModel(resolution), resolution in m, default 0.05).
     n_samples: Gaussian draws per scan, None (the default) to derive them from the covariance and ``accuracy``
     (m, default one cell). seed: with the scan's seq, seeds the draws (default 0). progress: show a progress bar.
+    threads: scans fused side by side (mapping.fusion.FusionThreads; default 1; the regular grid only): the map is
+    the same bit for bit for any count.
     """
 
     mode: str
@@ -79,6 +83,7 @@ class FusionOptions(TypedDict, total=False):
     seed: int
     accuracy: float | None
     progress: bool
+    threads: int
 
 
 def fuse_posed_scans(
@@ -89,12 +94,18 @@ def fuse_posed_scans(
     **options: Unpack[FusionOptions],
 ) -> TiledGrid:
     """Fuse every scan of a posed-scan file into a tiled grid (``grid``, else a new one; with ``owns_tile``, only
-    the tiles it accepts) as ``options`` say, and return it."""
+    the tiles it accepts) as ``options`` say, and return it. Raises the InputError of the first scan refused (the
+    scans before it fused, none after it)."""
     model = _model(options)
-    grid = grid or TiledGrid(model.resolution)
-    fusion = MonteCarloFusion(grid, model, *_beam_geometry(posed), owns_tile)
-    _fuse_each_scan(posed, fusion.fuse, model, options)
-    return grid
+    tiled = grid or TiledGrid(model.resolution)
+    threads = FusionThreads(options.get("threads", 1))  # (shared by the fusions of every laser geometry)
+    scans = _scans(
+        posed, lambda geometry: MonteCarloFusion(tiled, model, *geometry, owns_tile, threads=threads), model, options
+    )
+    for outcome in threads.fuse_iter(scans):
+        if isinstance(outcome, InputError):
+            raise outcome
+    return tiled
 
 
 def fuse_posed_scans_adaptive(
@@ -109,29 +120,34 @@ def fuse_posed_scans_adaptive(
     from mapping.adaptive import AdaptiveFusion, AdaptiveGrid  # scipy.stats: only when an adaptive map is made
 
     model = _model(options)
-    grid = grid or AdaptiveGrid(model.resolution)
-    fusion = AdaptiveFusion(grid, model, *_beam_geometry(posed), params)
-    _fuse_each_scan(posed, fusion.fuse, model, options)
-    return grid
+    adaptive = grid or AdaptiveGrid(model.resolution)
+    for fusion, (ranges, samples, weights) in _scans(
+        posed, lambda geometry: AdaptiveFusion(adaptive, model, *geometry, params), model, options
+    ):
+        fusion.fuse(ranges, samples, weights)
+    return adaptive
 
 
 def _model(options: FusionOptions) -> SensorModel:
     return options.get("model") or SensorModel(resolution=options.get("resolution", 0.05))
 
 
-def _beam_geometry(posed: PosedScans) -> tuple[np.ndarray, float, float, np.ndarray]:
-    """(beam angles rad, range_min m, range_max m, sensor offset) of the scans, as the fusion passes take them."""
-    return posed.beam_angles, posed.range_min, posed.range_max, posed.sensor_offset
+#: laser geometries (beam count and angles, range limits, offset) whose fusion pass one fusion keeps at once, most
+#: recently used first; past it the least recently used is dropped (its scratch freed) and made again when a scan
+#: of its geometry comes back, which costs time, not a different map. 8: an interlaced laser's four geometries,
+#: twice (two lasers on one topic)
+FUSIONS_KEPT = 8
+
+#: a fusion pass (mapping.fusion.MonteCarloFusion, mapping.adaptive.AdaptiveFusion)
+Fusion = TypeVar("Fusion")
 
 
-def _fuse_each_scan(
-    posed: PosedScans,
-    fuse: Callable[[np.ndarray, np.ndarray, np.ndarray], object],
-    model: SensorModel,
-    options: FusionOptions,
-) -> None:
-    """Call ``fuse(ranges, samples, weights)`` for every scan, in order, with its pose samples drawn as
-    ``options`` say."""
+def _scans(
+    posed: PosedScans, make: Callable[[ScanGeometry], Fusion], model: SensorModel, options: FusionOptions
+) -> Iterator[tuple[Fusion, ScanInput]]:
+    """Every scan, in order, with the fusion pass of its own laser geometry and its pose samples drawn as ``options``
+    say: (pass, (ranges (B,) m, samples (M, 3), weights (M,))). ``make(geometry)`` makes the pass of a geometry (all
+    passes write into one grid), and the last FUSIONS_KEPT are kept."""
     accuracy = options.get("accuracy")
     sampling = PoseSampling(
         options.get("mode", "mc"),
@@ -141,7 +157,25 @@ def _fuse_each_scan(
     )
     progress = options.get("progress", False)
     arrays = posed.poses.arrays()  # mean and cov, or samples and weights: (T, ...) each
+    passes: OrderedDict[tuple, Fusion] = OrderedDict()
     steps = range(len(posed.stamps))
     for t in tqdm(steps, desc="fusing", unit="scan", disable=not progress, mininterval=0.5):
-        samples, weights = sampling.draw(t, posed.range_max, **{name: array[t] for name, array in arrays.items()})
-        fuse(posed.ranges[t], samples, weights)
+        range_max = float(posed.range_max[t])
+        samples, weights = sampling.draw(t, range_max, **{name: array[t] for name, array in arrays.items()})
+        yield _pass_for(passes, posed, t, make), (posed.scan_ranges(t), samples, weights)
+
+
+def _pass_for(
+    passes: OrderedDict[tuple, Fusion], posed: PosedScans, t: int, make: Callable[[ScanGeometry], Fusion]
+) -> Fusion:
+    """The fusion pass of scan t's geometry from ``passes`` (most recently used last), made when missing."""
+    key = (posed.scan_beams(t), *(float(getattr(posed, name)[t]) for name in GEOMETRY_KEYS))
+    key += tuple(posed.sensor_offset[t].tolist())
+    fuse = passes.get(key)
+    if fuse is None:
+        fuse = passes[key] = make(posed.geometry(t))
+        while len(passes) > FUSIONS_KEPT:
+            passes.popitem(last=False)
+    else:
+        passes.move_to_end(key)
+    return fuse

@@ -1,4 +1,5 @@
-"""A seeded, reproducible simulation of a robot in the office of slam.world (the paper's section VII.A).
+"""A seeded, reproducible simulation of a robot in a world of straight-edge obstacles: the office of slam.world
+(the paper's section VII.A), or any :class:`World` (slam.warehouse builds one).
 
 The robot follows the route's waypoints with commanded velocities; its true motion is the velocity motion
 model's sample (so the commands are noisy controls), its odometry readings add the odometry model's noise
@@ -18,7 +19,7 @@ from slam.angles import wrap_angle
 from slam.motion import OdometryMotionModel, VelocityMotionModel, odometry_controls
 from slam.range_bearing import RangeBearingModel
 from slam.raster import truth_raster
-from slam.raycast import cast_rays, segments_block
+from slam.raycast import CHUNK_RAYS, cast_rays, segments_block
 from slam.simlog import SimLog
 from slam.world import WAYPOINTS, office_landmarks, office_segments
 
@@ -28,6 +29,16 @@ LASER_OFFSET = (0.1, 0.0, 0.0)
 MAX_SPEED, MAX_TURN_RATE, HEADING_GAIN, WAYPOINT_RADIUS = 1.0, 1.5, 2.5, 0.4
 #: shortest laser range (m)
 LASER_RANGE_MIN = 0.05
+
+
+@dataclass(frozen=True)
+class World:
+    """What a simulation drives through: obstacle edges (S, 4) as rows (x0, y0, x1, y1), point landmarks (L, 2)
+    and the route's waypoints (K, 2), driven in order and then again from the first; all m, map frame."""
+
+    segments: np.ndarray
+    landmarks: np.ndarray
+    waypoints: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -75,12 +86,18 @@ class SimRun:
 
 
 def _drive(
-    steps: int, dt: float, model: VelocityMotionModel, rng: np.random.Generator
+    steps: int,
+    dt: float,
+    model: VelocityMotionModel,
+    rng: np.random.Generator,
+    waypoints: np.ndarray,
+    max_speed: float = MAX_SPEED,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """True poses (T, 3) and commands (T, 2) of the waypoint follower (it steers from the true pose)."""
-    waypoints = np.array(WAYPOINTS)
+    """True poses (T, 3) and commands (T, 2) of the waypoint follower (it steers from the true pose), from the
+    first of the ``waypoints`` (K, 2) (m) facing the second, at up to ``max_speed`` m/s."""
     poses = np.zeros((steps, 3))
-    poses[0] = (waypoints[0, 0], waypoints[0, 1], 0.0)
+    first_leg = waypoints[1 % len(waypoints)] - waypoints[0]
+    poses[0] = (waypoints[0, 0], waypoints[0, 1], math.atan2(first_leg[1], first_leg[0]))
     commands = np.zeros((steps, 2))
     target = 1
     for t in range(1, steps):
@@ -90,7 +107,7 @@ def _drive(
         dx, dy = waypoints[target] - pose[:2]
         error = float(wrap_angle(math.atan2(dy, dx) - pose[2]))
         w = float(np.clip(HEADING_GAIN * error, -MAX_TURN_RATE, MAX_TURN_RATE))
-        v = MAX_SPEED * max(0.0, math.cos(error)) ** 2
+        v = max_speed * max(0.0, math.cos(error)) ** 2
         commands[t] = (v, w)
         poses[t] = model.sample(pose[None, :], np.array([v, w, dt]), rng)[0]
     return poses, commands
@@ -136,10 +153,27 @@ def _laser_rays(
     )
     world_angles = (true_poses[:, 2:3] + offset[2] + beam_angles[None, :]).ravel()
     origins = np.repeat(sensor_xy, len(beam_angles), axis=0)
-    exact = cast_rays(origins, world_angles, segments, range_max)
+    exact = np.empty(len(origins))
+    group = max(1, CHUNK_RAYS // len(beam_angles))  # poses whose rays are cast together
+    for first in range(0, len(true_poses), group):
+        rays = slice(first * len(beam_angles), (first + group) * len(beam_angles))
+        near = _segments_within(segments, sensor_xy[first : first + group], range_max)
+        exact[rays] = cast_rays(origins[rays], world_angles[rays], near, range_max)
     reach = np.minimum(exact, range_max)
     endpoints = origins + reach[:, None] * np.column_stack([np.cos(world_angles), np.sin(world_angles)])
     return origins, exact, endpoints
+
+
+def _segments_within(segments: np.ndarray, points: np.ndarray, reach: float) -> np.ndarray:
+    """The segments (S, 4) whose bounding box lies within ``reach`` m of the bounding box of ``points`` (P, 2): a
+    superset of those a ray of length ``reach`` from any of the points can hit, so casting against them gives
+    the same ranges as casting against all (the nearest hit is computed alike; the others are farther than
+    ``reach``)."""
+    low, high = points.min(axis=0), points.max(axis=0)
+    seg_low = np.minimum(segments[:, :2], segments[:, 2:])
+    seg_high = np.maximum(segments[:, :2], segments[:, 2:])
+    gap = np.maximum(np.maximum(seg_low - high, low - seg_high), 0.0)
+    return segments[np.hypot(gap[:, 0], gap[:, 1]) <= reach]
 
 
 def simulate_office(
@@ -165,14 +199,52 @@ def simulate_office(
     ``truth_resolution`` m. Noise models: ``velocity_model`` (true motion around the commands) and
     ``odometry_model`` (odometry readings around the true motion).
     """
+    office = World(office_segments(), office_landmarks(), np.array(WAYPOINTS))
+    return simulate_world(
+        office,
+        seed=seed,
+        steps=steps,
+        n_beams=n_beams,
+        range_max=range_max,
+        fov=fov,
+        laser_sigma=laser_sigma,
+        dt=dt,
+        truth_resolution=truth_resolution,
+        velocity_model=velocity_model,
+        odometry_model=odometry_model,
+        sensor=sensor,
+        landmark_range_max=landmark_range_max,
+        landmark_fov=landmark_fov,
+    )
+
+
+def simulate_world(
+    world: World,
+    *,
+    seed: int = 0,
+    steps: int = 400,
+    n_beams: int = 361,
+    range_max: float = 12.0,
+    fov: float = math.pi,
+    laser_sigma: float = 0.01,
+    dt: float = 0.1,
+    truth_resolution: float = 0.05,
+    max_speed: float = MAX_SPEED,
+    velocity_model: VelocityMotionModel = VelocityMotionModel(),
+    odometry_model: OdometryMotionModel = OdometryMotionModel(),
+    sensor: RangeBearingModel = RangeBearingModel(sigma_range=0.1, sigma_bearing=0.03),
+    landmark_range_max: float = 6.0,
+    landmark_fov: float = math.pi,
+) -> SimRun:
+    """Simulate ``steps`` steps of ``dt`` s in ``world``, the robot driving its route at up to ``max_speed`` m/s;
+    the other arguments as for :func:`simulate_office`, and the same arguments give the same run."""
     if steps < 1 or n_beams < 1 or dt <= 0 or range_max <= LASER_RANGE_MIN or truth_resolution <= 0:
         raise ValueError("need steps >= 1, n_beams >= 1, dt > 0, range_max > 0.05 m and truth_resolution > 0")
     motion_rng, odometry_rng, landmark_rng, laser_rng = (
         np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4)
     )
-    segments = office_segments()
-    landmarks = office_landmarks()
-    true_poses, commands = _drive(steps, dt, velocity_model, motion_rng)
+    segments, landmarks = world.segments, world.landmarks
+    true_poses, commands = _drive(steps, dt, velocity_model, motion_rng, world.waypoints, max_speed)
     odometry = _odometry(true_poses, odometry_model, odometry_rng)
     landmark_step, landmark_id, landmark_z = _landmark_measurements(
         true_poses, landmarks, segments, sensor, landmark_range_max, landmark_fov, landmark_rng

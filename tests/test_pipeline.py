@@ -221,6 +221,7 @@ def test_run_posed_export_equals_fuse(tmp_path, procs, shards, form):
             "--samples",
             "12",
             "--no-api",
+            *(["--threads", "2"] if shards == 2 else []),  # (two fusion threads in each shard: the same map)
         ]
     )
     assert run.process.wait(120) == 0, run.output()
@@ -583,7 +584,8 @@ def grid_filter_in_process(stream, particles: int, seed: int) -> PosedScans:
     from services.state.slam import GridDriver
     from slam.gridslam import GridSlamConfig
 
-    driver = GridDriver(stream.prior.mean, GridSlamConfig(particles=particles, resample_threshold=0.5), seed=seed)
+    config = GridSlamConfig(particles=particles, particle_cap=particles, resample_threshold=0.5)  # a fixed count
+    driver = GridDriver(stream.prior.mean, config, seed=seed)
     scans, samples, weights = [], [], []
     for step in stream.steps:
         parts = {
@@ -636,6 +638,8 @@ def test_grid_fastslam_node_over_zenoh_gives_the_map_of_its_filter_in_process(tm
             "--odom-delay",
             str(delay),
             "--particles",
+            "5",
+            "--particle-cap",
             "5",
             "--seed",
             "7",
@@ -957,9 +961,9 @@ def test_what_the_router_loses_is_taken_from_the_histories(tmp_path, procs):
     """The router dies mid-run and comes back on its port: what the source published meanwhile never reaches the
     SLAM node or the mapper shard. The node takes those steps from the source's history instead of skipping
     them, so every step gets its pose, and each is offline `posegrid slam`'s for that step, same seed, bit for
-    bit; the shard takes the scans from it too, and fuses every scan of the run. More steps are lost (3 s at 10x
-    real time) than the node's step buffer holds (256): a node used to keep only the newest 256 of those it took
-    back, and bridged the rest."""
+    bit; the shard takes the scans from it too, and fuses every scan of the run. More steps are lost (the router
+    stays down until the source has published 360 of the 400) than the node's step buffer holds (256): a node used
+    to keep only the newest 256 of those it took back, and bridged the rest."""
     sim, node_args, expected = _simulated_run_and_offline_poses(tmp_path, 400)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = procs([*CLI, "router", "--listen", endpoint])
@@ -974,7 +978,7 @@ def test_what_the_router_loses_is_taken_from_the_histories(tmp_path, procs):
         poses.take(20, timeout=60)
         router.process.kill()
         router.process.wait(10)
-        time.sleep(3.0)  # 300 steps of the run go out meanwhile, to no one
+        source.wait_for("published 360 of 400 steps", timeout=120)  # 300 steps or more go out meanwhile, to no one
         procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
         assert source.process.wait(60) == 0, source.output()
         spans = node.wait_for(r"took seq (.+?), which (?:did not all arrive|had not all arrived)").group(1)

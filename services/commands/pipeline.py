@@ -13,10 +13,17 @@ from typing import TYPE_CHECKING
 
 from services.commands.api import add_http_arguments, api_child_options, check_port_free
 from services.commands.argtypes import checked_output, finite_float, odom_delay_seconds, pose_sample_count, random_seed
-from services.commands.gridslam import FILTER_OPTIONS, add_filter_options, reject_filter_options
+from services.commands.gridslam import DEFAULT_GRID_PARTICLES, FILTER_OPTIONS, add_filter_options, reject_filter_options
 from services.commands.limits import add_limit_arguments, limit_argv, limits_from_args
-from services.commands.mapping import add_sampling_arguments, add_sensor_model_arguments, sensor_model_argv
-from services.commands.options import add_choice, add_command, option_argv
+from services.commands.mapping import (
+    add_sampling_arguments,
+    add_sensor_model_arguments,
+    add_threads_argument,
+    available_cores,
+    sensor_model_argv,
+    threads_from_args,
+)
+from services.commands.options import add_choice, add_command, add_group, option_argv
 from services.commands.persist_options import (
     add_persist_options,
     add_run_persist_options,
@@ -101,6 +108,7 @@ def _add_mapper(subparsers: argparse._SubParsersAction) -> None:
         default=4096,
         help="messages that may wait for the fusion thread (default 4096; overflow is counted)",
     )
+    add_threads_argument(shard, "every core this process may use")
     add_limit_arguments(mapper)
     add_persist_options(mapper)
     add_zenoh_arguments(mapper)
@@ -172,6 +180,7 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:
     add_restart_arguments(run)
     add_run_persist_options(run)
     add_fusion_arguments(run)
+    add_threads_argument(run, "each of the N shards gets the cores this process may use divided by N, at least 1")
     add_limit_arguments(run)
     add_slam_arguments(run, particles=RUN_PARTICLES)
     from services.commands.ros2 import add_ros2_run_arguments
@@ -194,42 +203,36 @@ def _add_map_option(parser: argparse.ArgumentParser, text: str = "map name") -> 
 
 def add_restart_arguments(parser: argparse.ArgumentParser) -> None:
     """When `run` starts a child again that ended (services.nodes.launcher.RestartPolicy, whose defaults these show)."""
-    group = parser.add_argument_group(
+    rows = [
+        (name, dict(type=kind, default=default, metavar=metavar, help=f"{what} (default {default:g})"))
+        for name, kind, default, metavar, what in (
+            (
+                "max-restarts",
+                int,
+                5,
+                "N",
+                "restarts of one child within --restart-window; 0: a child that ends stops the run",
+            ),
+            ("restart-window", finite_float, 60.0, "SECONDS", "the span --max-restarts counts restarts in, s"),
+            (
+                "restart-delay",
+                finite_float,
+                0.5,
+                "SECONDS",
+                "wait before a child's first restart within --restart-window, s; doubles with each further one",
+            ),
+            ("max-restart-delay", finite_float, 10.0, "SECONDS", "the longest wait before a restart, s"),
+        )
+    ]
+    add_group(
+        parser,
         "restarts",
         "A child that ends while the run goes on (the source: with a non-zero exit or a signal) is "
         "started again with the same arguments and takes what it missed from the histories; a restarted source "
         "replays its input from the start, and the shards drop what they have fused. Restart n (n = 0, 1, ...) "
         "within --restart-window waits --restart-delay * 2^n s, at most --max-restart-delay; a child that fails "
         "once more after --max-restarts restarts within --restart-window stops the run.",
-    )
-    group.add_argument(
-        "--max-restarts",
-        type=int,
-        default=5,
-        metavar="N",
-        help="restarts of one child within --restart-window; 0: a child that ends stops the run (default 5)",
-    )
-    group.add_argument(
-        "--restart-window",
-        type=finite_float,
-        default=60.0,
-        metavar="SECONDS",
-        help="the span --max-restarts counts restarts in, s (default 60)",
-    )
-    group.add_argument(
-        "--restart-delay",
-        type=finite_float,
-        default=0.5,
-        metavar="SECONDS",
-        help="wait before a child's first restart within --restart-window, s; doubles with each "
-        "further one (default 0.5)",
-    )
-    group.add_argument(
-        "--max-restart-delay",
-        type=finite_float,
-        default=10.0,
-        metavar="SECONDS",
-        help="the longest wait before a restart, s (default 10)",
+        rows,
     )
 
 
@@ -345,7 +348,7 @@ def add_slam_arguments(parser: argparse.ArgumentParser, particles: int | None = 
         type=pose_sample_count,
         default=particles,
         help="FastSLAM / grid FastSLAM particles (default %s)"
-        % (particles or f"{NODE_PARTICLES} for FastSLAM, 30 for grid FastSLAM"),
+        % (particles or f"{NODE_PARTICLES} for FastSLAM, {DEFAULT_GRID_PARTICLES} for grid FastSLAM"),
     )
     add_choice(group, "--associate", ("known", "unknown"), "landmark correspondences: known ids (default) or estimated")
     add_choice(
@@ -526,6 +529,7 @@ def run_mapper(args: argparse.Namespace) -> int:
         raise UsageError("--join-buffer and --intake-buffer must be >= 1")
     _check_positive(args, "accuracy")
     _check_name(args.map, "--map")
+    threads = threads_from_args(args)
     from services.commands.mapping import sensor_model_from_args
     from services.nodes.mapper import run_mapper as serve
     from services.process import install_stop_event
@@ -545,6 +549,7 @@ def run_mapper(args: argparse.Namespace) -> int:
         publish_interval=args.publish_interval,
         join_capacity=args.join_buffer,
         limits=limits_from_args(args),
+        threads=threads,
     )
     zenoh_config = config_from_args(args, "client")
     return serve(config, zenoh_config, install_stop_event(), args.intake_buffer, persist_from_args(args))
@@ -605,6 +610,7 @@ def run_pipeline(args: argparse.Namespace) -> int:
         raise UsageError(f"--router-port must be a TCP port, got {args.router_port}")
     _check_positive(args, "accuracy", "resolution")
     _check_log_options(args)
+    threads = threads_from_args(args, default=max(1, available_cores() // args.shards))
     restarts = restart_policy(args)
     rate_text = args.rate or ("max" if args.export is not None else "realtime")
     _rate(rate_text)
@@ -622,7 +628,7 @@ def run_pipeline(args: argparse.Namespace) -> int:
         robot=args.robot,
         shards=args.shards,
         resolution=args.resolution,
-        mapper_argv=fusion_argv(args) + limit_argv(args),
+        mapper_argv=fusion_argv(args) + limit_argv(args) + ["--threads", str(threads)],
         source_argv=["--rate", rate_text],
         export=args.export,
         router_port=args.router_port,

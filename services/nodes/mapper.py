@@ -10,10 +10,13 @@ takes from the histories only what came after it, and commits its changes there 
 (services.state.store.writer), everything when it stops.
 
 Threads: Zenoh callbacks only copy payloads into a bounded intake queue (services.intake: a full queue drops
-the message and counts it, never silently) or answer queries; one main thread decodes, fuses and publishes. A lock
-serialises the main thread and the tile queries around the shard's state. Stats queries are answered from a
-snapshot the main thread refreshes after every message (and at least every 0.2 s), so they never wait
-for a scan's fusion (15 to 20 ms): the source's flow control and the HTTP API poll them.
+the message and counts it, never silently) or answer queries; one main thread decodes, fuses and publishes. With
+``--threads T`` > 1 the main thread takes up to TAKEN_PER_THREAD * T messages that wait in the queue at once (never
+waiting for more) and fuses the pairs they complete together, their walks on T fusion threads
+(mapping.parallel_fusion); the map is the one the scans give fused one by one. A lock serialises the main thread
+and the tile queries around the shard's state. Stats queries are answered from a snapshot the main thread refreshes
+after every message, or messages taken at once (and at least every 0.2 s), so they never wait for a scan's fusion
+(15 to 20 ms): the source's flow control and the HTTP API poll them.
 """
 
 from __future__ import annotations
@@ -44,6 +47,9 @@ HISTORY_TIMEOUT = 5.0
 CATCH_UP_TIMEOUT = 60.0
 #: s to wait for the liveliness tokens of the robots' processes (which robots a resumed shard asks the histories of)
 ROBOTS_TIMEOUT = 2.0
+#: messages the main thread takes from the intake queue at once per fusion thread (a scan and its pose per pair:
+#: two scans a thread to walk)
+TAKEN_PER_THREAD = 4
 
 
 @dataclass(frozen=True)
@@ -180,6 +186,27 @@ class Mapper:
         with self._stats_lock:
             self._stats_payload = payload
 
+    def _taken_at_once(self) -> int:
+        """How many messages the main thread takes before it fuses what they complete (1 with one fusion thread)."""
+        threads = self.config.threads
+        return 1 if threads == 1 else TAKEN_PER_THREAD * threads
+
+    def _handle_waiting(self, key: str, payload: bytes) -> None:
+        """Handle the message (``key``, ``payload``) just taken from the intake and the ones waiting behind it, up to
+        :meth:`_taken_at_once` (none is waited for), then fuse the pairs they complete together (main thread, holding
+        ``lock``)."""
+        limit = self._taken_at_once()
+        try:
+            self.shard.handle(key, payload, defer=limit > 1)
+            for _ in range(limit - 1):
+                try:
+                    key, payload = self.intake.next(0.0)
+                except queue.Empty:
+                    break
+                self.shard.handle(key, payload, defer=True)
+        finally:
+            self.shard.fuse_ready()
+
     def _ours(self, answerer: history.Answerer) -> bool:
         """Whether a history's answerer publishes for this shard's map (a SLAM node publishes for any)."""
         return answerer.map in (None, self.config.map_name)
@@ -208,9 +235,14 @@ class Mapper:
             taken = self.shard.in_seq_order(
                 (keys.robot_key(robot, stream), payload) for robot, stream, payload in replies
             )
-        for key, message in taken:
+        chunk = self._taken_at_once()
+        for first in range(0, len(taken), chunk):
             with self.lock:
-                self.shard.take(key, message, from_history=True)
+                try:
+                    for key, message in taken[first : first + chunk]:
+                        self.shard.take(key, message, from_history=True, defer=chunk > 1)
+                finally:
+                    self.shard.fuse_ready()
                 if self.persister is not None:
                     self.persister.step(self.shard)
                 self._refresh_stats()
@@ -278,7 +310,7 @@ class Mapper:
                 pass
             else:
                 with self.lock:
-                    self.shard.handle(key, payload)
+                    self._handle_waiting(key, payload)
             with self.lock:
                 self.shard.settle()
                 if self.persister is not None:

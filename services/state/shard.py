@@ -5,7 +5,8 @@ Fusion is exactly `posegrid fuse`'s per-scan path (services.fusion_runner): the 
 same :class:`mapping.fusion.MonteCarloFusion`, and the pose samples of :class:`services.fusion_runner.PoseSampling`
 (Gaussian draws seeded by (seed, seq)); so the union of all shards' tiles equals the in-process map when the
 scans arrive in seq order (log-odds clamping makes fusion order matter; a shard fuses each scan as soon as its
-pose is there).
+pose is there, or, when its caller hands it several messages at once, with the other pairs they complete, on
+ShardConfig.threads threads and in join order: the same map).
 """
 
 from __future__ import annotations
@@ -18,13 +19,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from mapping.errors import InputError
-from mapping.fusion import MonteCarloFusion
+from mapping.fusion import FuseResult, FusionThreads, MonteCarloFusion
 from mapping.grid import TILE_SIZE, TiledGrid
 from mapping.sensor_model import SensorModel
 from schemas.messages import POSE_TYPES, LaserScan, PoseDistribution, PoseGaussian, ShardStats, StreamEnd, TileUpdate
 from schemas.wire import Message
 from services import keys
-from services.fusion_runner import PoseSampling
+from services.fusion_runner import FUSIONS_KEPT, PoseSampling
 from services.process import RejectCounter, get_logger
 from services.state.checks import decode_of_robot, history_reply, robot_stream
 from services.state.join import (
@@ -45,9 +46,6 @@ from services.state.store.writer import NO_STORE, PersistReport
 
 TileKey = tuple[int, int]
 
-#: laser geometries (beam angles, range limits, offset) whose fusion a shard keeps, most recently used first;
-#: each holds its own scratch window, so a laser whose geometry changes scan by scan must not grow memory
-FUSIONS_KEPT = 4
 #: a fused seq more than this many times the join capacity (and twice the evicted halves the join may still ask
 #: the histories for: services.state.join.EVICTED_LIMIT) below a robot's highest counts as done
 SEQ_HORIZON_JOINS = 8
@@ -60,7 +58,8 @@ SETTLE_AFTER = 15.0
 class ShardConfig:
     """What a shard needs to know. mode/n_samples/seed/accuracy mean what they mean for `posegrid fuse`;
     publish_interval (s) is the shortest time between two updates of one tile; join_capacity bounds the
-    scans and poses waiting for their partner."""
+    scans and poses waiting for their partner; threads: how many of the scans ready at once are walked side by
+    side (mapping.parallel_fusion; the map is the same for any count)."""
 
     map_name: str
     shard: int
@@ -74,6 +73,7 @@ class ShardConfig:
     publish_interval: float = 0.05
     join_capacity: int = 512
     limits: ShardLimits = ShardLimits()
+    threads: int = 1
 
 
 #: what a shard joins: a scan or the pose distribution of its seq
@@ -113,6 +113,9 @@ class MapShard:
             config.accuracy if config.accuracy is not None else config.model.resolution,
         )
         self._fusions: OrderedDict[tuple, MonteCarloFusion] = OrderedDict()
+        self._threads = FusionThreads(config.threads)  # (shared by the fusions of every laser geometry)
+        # pairs joined and not yet fused, in join order, with their digests (scan, pose)
+        self._ready: list[tuple[LaserScan, PoseDistribution, tuple[bytes, bytes]]] = []
         self._history = history
         self._history_high: dict[tuple[str, str], int] = {}  # (robot, stream) -> highest seq a history gave
         limits = config.limits
@@ -149,12 +152,12 @@ class MapShard:
         self.journal: Journal | None = None  # what changed since the last commit, for a shard with a store
 
     # ------------------------------------------------------------------------------- intake
-    def handle(self, key: str, payload: bytes) -> None:
-        """Decode one message received on ``key`` (pg/<robot>/<stream>) and act on it; a bad one is counted and
-        dropped."""
+    def handle(self, key: str, payload: bytes, defer: bool = False) -> None:
+        """Decode one message received on ``key`` (pg/<robot>/<stream>) and act on it (:meth:`take`, ``defer`` as
+        there); a bad one is counted and dropped."""
         message = self.decode(key, payload)
         if message is not None:
-            self.take(key, message)
+            self.take(key, message, defer=defer)
 
     def decode(self, key: str, payload: bytes) -> ScanOrPose | StreamEnd | None:
         """The message ``payload`` received on ``key`` (pg/<robot>/<stream>) holds; None after counting why it
@@ -209,12 +212,15 @@ class MapShard:
         taken.sort(key=lambda item: item[1].seq)  # (stable: a seq's scan and pose keep the order they came in)
         return taken
 
-    def take(self, key: str, message: ScanOrPose | StreamEnd, from_history: bool = False) -> None:
+    def take(self, key: str, message: ScanOrPose | StreamEnd, from_history: bool = False, defer: bool = False) -> None:
         """Act on a decoded ``message`` received on ``key``: note an end, or join a scan or pose and fuse what
         pairs up. ``from_history``: it came from a history at startup (:meth:`services.nodes.mapper.Mapper.catch_up`),
-        and a live copy of it, or of an earlier message of its stream, is then dropped without a word."""
+        and a live copy of it, or of an earlier message of its stream, is then dropped without a word. ``defer``: keep
+        the pairs for :meth:`fuse_ready` (which the caller calls before anyone else looks at the shard), so that the
+        pairs of several messages are fused together on the shard's threads."""
         stream = key.rsplit("/", 1)[-1]
         if isinstance(message, StreamEnd):  # (it may overtake the last scans: each key has its own callback thread)
+            self.fuse_ready()  # (the end is checked against the scans fused so far)
             accounted = self.fused[message.robot] + self.discarded[message.robot]
             if message.scans < accounted:
                 self.rejects.count(
@@ -263,8 +269,9 @@ class MapShard:
         else:
             pairs, gone = self._join.add_pose(join_key, message, trusted=from_history)
         self._give_up(gone)
-        for pair in pairs:
-            self._fuse(*pair)
+        self._ready_to_fuse(pairs)
+        if not defer:
+            self.fuse_ready()
 
     def _refuse_fused(self, key: str, stream: str, message: ScanOrPose) -> None:
         """Drop a scan or pose of a seq this shard has fused. One identical to the message fused is sent again (a
@@ -373,7 +380,14 @@ class MapShard:
         if fusion is None:
             beam_angles = scan.angle_min + scan.angle_increment * np.arange(scan.ranges.shape[0])
             fusion = MonteCarloFusion(
-                self.grid, self.config.model, beam_angles, scan.range_min, scan.range_max, scan.sensor_offset, self.owns
+                self.grid,
+                self.config.model,
+                beam_angles,
+                scan.range_min,
+                scan.range_max,
+                scan.sensor_offset,
+                self.owns,
+                threads=self._threads,
             )
             self._fusions[geometry] = fusion
             while len(self._fusions) > FUSIONS_KEPT:
@@ -388,44 +402,93 @@ class MapShard:
             return self.sampling.draw(scan.seq, scan.range_max, mean=pose.mean, cov=pose.cov)
         return self.sampling.draw(scan.seq, scan.range_max, samples=pose.samples, weights=pose.weights)
 
-    def _fuse(self, scan: LaserScan, pose: PoseDistribution) -> None:
-        """Fuse a joined pair (or count it as given up when it cannot be fused), noting it in the journal."""
-        digests = (scan.digest(), pose.digest())
-        self._fused_seqs.mark(scan.robot, scan.seq, digests)
-        tiles = self._fuse_pair(scan, pose)
-        if self.journal is not None:
-            self.journal.fused(LedgerEntry(scan.robot, scan.seq, *digests), tiles, self._clock())
+    def _ready_to_fuse(self, pairs: list[tuple[LaserScan, PoseDistribution]]) -> None:
+        """Mark joined pairs fused (a copy that comes again is dropped from now on) and keep them for
+        :meth:`fuse_ready`, in join order."""
+        for scan, pose in pairs:
+            digests = (scan.digest(), pose.digest())
+            self._fused_seqs.mark(scan.robot, scan.seq, digests)
+            self._ready.append((scan, pose, digests))
 
-    def _fuse_pair(self, scan: LaserScan, pose: PoseDistribution) -> list[TileKey]:
-        """Fuse ``scan`` at ``pose`` into the owned tiles; the tiles it changed (none when it was refused)."""
+    def fuse_ready(self) -> None:
+        """Fuse the pairs kept by :meth:`_ready_to_fuse`, in join order (or count those that cannot be fused as given
+        up), noting each in the journal. The scans of one laser geometry next to each other are fused together, on the
+        fusion's threads (:meth:`mapping.fusion.MonteCarloFusion.fuse_iter`): the map is the one they give fused one
+        by one."""
+        ready, self._ready = self._ready, []
+        tiles = self._fuse_pairs([(scan, pose) for scan, pose, _ in ready])
+        if self.journal is not None:
+            for (scan, _, digests), changed in zip(ready, tiles):
+                self.journal.fused(LedgerEntry(scan.robot, scan.seq, *digests), changed, self._clock())
+
+    def _fuse_pairs(self, pairs: list[tuple[LaserScan, PoseDistribution]]) -> list[list[TileKey]]:
+        """Fuse ``pairs`` into the owned tiles, in order; the tiles each changed (none for one refused)."""
+        tiles: list[list[TileKey]] = [[] for _ in pairs]
+        drawn = []  # (index, scan, samples, weights) of the pairs to fuse
+        for index, (scan, pose) in enumerate(pairs):
+            samples = self._draw(scan, pose)
+            if samples is not None:
+                drawn.append((index, scan, *samples))
+        for (index, scan, _, _), outcome in zip(drawn, self._fuse_drawn(drawn)):
+            tiles[index] = self._count_outcome(scan, outcome)
+        return tiles
+
+    def _draw(self, scan: LaserScan, pose: PoseDistribution) -> tuple[np.ndarray, np.ndarray] | None:
+        """The pose samples and weights to fuse ``scan`` with; None after counting why it is refused."""
         try:
             samples, weights = self.pose_samples(scan, pose)
-            cfg = self.config
-            refused = cfg.limits.scan_problem(
-                samples, scan.ranges.shape[0], scan.range_max, cfg.model.resolution, cfg.tile_size
+        except Exception as exc:  # noqa: BLE001 - counted and logged with its traceback (_count_outcome)
+            self._count_outcome(scan, exc)
+            return None
+        cfg = self.config
+        refused = cfg.limits.scan_problem(
+            samples, scan.ranges.shape[0], scan.range_max, cfg.model.resolution, cfg.tile_size
+        )
+        if refused is not None:
+            self.discarded[scan.robot] += 1
+            self.rejects.count(f"fuse/{scan.robot}", refused[0], f"scan seq {scan.seq} refused: {refused[1]}")
+            return None
+        return samples, weights
+
+    def _fuse_drawn(self, drawn: list[tuple[int, LaserScan, np.ndarray, np.ndarray]]) -> list[FuseResult | Exception]:
+        """The outcome of fusing each scan of ``drawn`` ((index, scan, samples, weights) each) with the fusion of its
+        laser geometry, in order, on the shard's threads: a FuseResult, the InputError that refused it, or the error it
+        failed with (logged; the scans after it are fused all the same)."""
+        outcomes: list[FuseResult | Exception] = []
+        while len(outcomes) < len(drawn):
+            scans = (
+                (self._fusion_for(scan), (scan.ranges, samples, weights))
+                for _, scan, samples, weights in drawn[len(outcomes) :]
             )
-            if refused is not None:
-                self.discarded[scan.robot] += 1
-                self.rejects.count(f"fuse/{scan.robot}", refused[0], f"scan seq {scan.seq} refused: {refused[1]}")
-                return []
-            result = self._fusion_for(scan).fuse(scan.ranges, samples, weights)
-        except InputError as exc:
+            try:
+                for outcome in self._threads.fuse_iter(scans):
+                    outcomes.append(outcome)
+            except Exception as exc:  # noqa: BLE001 - counted and logged with its traceback (_count_outcome)
+                outcomes.append(exc)  # (the scan whose turn it was; an InputError: a geometry no fusion takes)
+        return outcomes
+
+    def _count_outcome(self, scan: LaserScan, outcome: FuseResult | Exception) -> list[TileKey]:
+        """Count how fusing ``scan`` went (fused; refused, an InputError; failed, another error, logged with its
+        traceback); the tiles it changed."""
+        if isinstance(outcome, InputError):
             self.discarded[scan.robot] += 1
-            self.rejects.count(f"fuse/{scan.robot}", "input", f"scan seq {scan.seq} could not be fused: {exc}")
+            self.rejects.count(f"fuse/{scan.robot}", "input", f"scan seq {scan.seq} could not be fused: {outcome}")
             return []
-        except Exception as exc:
+        if isinstance(outcome, Exception):
             self.discarded[scan.robot] += 1
-            self.log.exception("scan seq %d of robot %r failed to fuse; the shard goes on", scan.seq, scan.robot)
+            self.log.error(
+                "scan seq %d of robot %r failed to fuse; the shard goes on", scan.seq, scan.robot, exc_info=outcome
+            )
             self.rejects.count(
-                f"fuse/{scan.robot}", "error", f"scan seq {scan.seq} failed: {type(exc).__name__}: {exc}"
+                f"fuse/{scan.robot}", "error", f"scan seq {scan.seq} failed: {type(outcome).__name__}: {outcome}"
             )
             return []
         self.fused[scan.robot] += 1
-        self.cells_updated += result.cells_updated
-        for tile in result.tiles_changed:
+        self.cells_updated += outcome.cells_updated
+        for tile in outcome.tiles_changed:
             self._dirty.add(tile)
             self._last_scan[tile] = (scan.robot, scan.seq)
-        return result.tiles_changed
+        return outcome.tiles_changed
 
     # ------------------------------------------------------------------------------- progress
     def settle(self) -> None:
@@ -440,8 +503,8 @@ class MapShard:
             self._unsettled.discard(robot)
             pairs, gone = self._join.settle(robot, self.ended[robot])
             self._give_up(gone)
-            for pair in pairs:
-                self._fuse(*pair)
+            self._ready_to_fuse(pairs)
+        self.fuse_ready()
 
     def caught_up(self) -> bool:
         """Whether every ended stream has all its scans fused or discarded."""
