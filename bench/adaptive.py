@@ -170,9 +170,7 @@ def compare_rules(posed: PosedScans, model: SensorModel, sweep: dict[str, Adapti
     scans = len(posed.stamps)
 
     def regular() -> MonteCarloFusion:
-        return MonteCarloFusion(
-            TiledGrid(RESOLUTION), model, posed.beam_angles, posed.range_min, posed.range_max, posed.sensor_offset
-        )
+        return MonteCarloFusion(TiledGrid(RESOLUTION), model, *posed.single_geometry())
 
     seconds, cpu, fine = _fuse(posed, regular)
     raster = fine.rasterize()
@@ -190,15 +188,7 @@ def compare_rules(posed: PosedScans, model: SensorModel, sweep: dict[str, Adapti
     for prefix, params in sweep.items():
 
         def adaptive(params: AdaptiveParams = params) -> AdaptiveFusion:
-            return AdaptiveFusion(
-                AdaptiveGrid(RESOLUTION),
-                model,
-                posed.beam_angles,
-                posed.range_min,
-                posed.range_max,
-                posed.sensor_offset,
-                params,
-            )
+            return AdaptiveFusion(AdaptiveGrid(RESOLUTION), model, *posed.single_geometry(), params)
 
         seconds, cpu, grid = _fuse(posed, adaptive)
         tree = grid.rasterize()

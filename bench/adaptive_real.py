@@ -46,7 +46,7 @@ def measure_log(log: Path) -> dict:
     out: dict = {
         "scans": len(posed.stamps),
         "beams": int(posed.ranges.shape[1]),
-        "range_max_m": float(posed.range_max),
+        "range_max_m": float(posed.range_max.max()),
         "particles": int(posed.poses.weighted_samples()[0].shape[1]),
     }
     out.update(compare_rules(posed, SensorModel(resolution=RESOLUTION), sweep()))

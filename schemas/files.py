@@ -20,9 +20,9 @@ import stat
 import zipfile
 import zlib
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, NamedTuple
 
 import numpy as np
 
@@ -76,30 +76,113 @@ class PoseSet:
         return {"samples": samples, "weights": weights}
 
 
+class ScanGeometry(NamedTuple):
+    """One scan's laser geometry as the fusion passes take it (mapping.fusion.MonteCarloFusion's arguments after
+    the grid and the model): beam angles (B,) rad in the laser frame, range limits m, and the laser's (x m, y m,
+    yaw rad) in the robot frame."""
+
+    beam_angles: np.ndarray
+    range_min: float
+    range_max: float
+    sensor_offset: np.ndarray
+
+
+def _per_scan(value: Any, steps: int, columns: int = 0) -> np.ndarray:
+    """``value`` (one for every scan, or one per scan) as a float64 array of one row per scan: (steps,), or
+    (steps, columns) when ``columns``. ValueError on another shape."""
+    array = np.asarray(value, np.float64)
+    shape = (steps, columns) if columns else (steps,)
+    if array.shape not in (shape, shape[1:]):
+        raise ValueError(f"expected one value per scan {shape} or one for all {shape[1:]}, got shape {array.shape}")
+    return np.array(np.broadcast_to(array, shape))
+
+
+#: the geometry keys of a posed-scan file, each a scalar (every scan) or (T,) (one per scan)
+GEOMETRY_KEYS = ("angle_min", "angle_increment", "range_min", "range_max")
+
+
 @dataclass(frozen=True)
 class PosedScans:
-    """A posed-scan file: T laser scans of B beams, each with the robot's pose distribution."""
+    """A posed-scan file: T laser scans, each with its own laser geometry and the robot's pose distribution.
 
-    ranges: np.ndarray  # float32 (T, B) m; NaN, inf or > range_max: no return
-    angle_min: float  # rad, laser frame
-    angle_increment: float  # rad
-    range_min: float  # m
-    range_max: float  # m
+    The geometry fields may be given as one value for every scan (a number; (3,) for the offset) and are kept
+    per scan. Scan t's readings are ``ranges[t, :beams[t]]``; the rest of the row is padding (NaN) that nothing
+    reads; ``beams`` defaults to every scan using its whole row."""
+
+    ranges: np.ndarray  # float32 (T, Bmax) m; NaN, inf or > range_max: no return (within the scan's beams)
+    angle_min: np.ndarray  # float64 (T,) rad, laser frame
+    angle_increment: np.ndarray  # float64 (T,) rad
+    range_min: np.ndarray  # float64 (T,) m
+    range_max: np.ndarray  # float64 (T,) m
     stamps: np.ndarray  # float64 (T,) s
-    sensor_offset: np.ndarray  # float64 (3,): laser (x, y, yaw) in the robot frame, m and rad
+    sensor_offset: np.ndarray  # float64 (T, 3): laser (x, y, yaw) in the robot frame, m and rad
     poses: PoseSet
+    beams: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # int64 (T,); empty: whole rows
+
+    def __post_init__(self) -> None:
+        steps = len(self.stamps)
+        for name in GEOMETRY_KEYS:
+            object.__setattr__(self, name, _per_scan(getattr(self, name), steps))
+        object.__setattr__(self, "sensor_offset", _per_scan(self.sensor_offset, steps, 3))
+        width = self.ranges.shape[1] if np.ndim(self.ranges) == 2 else 0
+        beams = np.asarray(self.beams, np.int64)
+        if beams.size == 0:  # (the default: every scan's readings fill its row)
+            beams = np.full(steps, width, np.int64)
+        if np.shape(self.ranges) != (steps, width) or beams.shape != (steps,) or (beams > width).any():
+            raise ValueError(f"ranges {np.shape(self.ranges)} and beams {beams.shape} do not fit {steps} scans")
+        object.__setattr__(self, "beams", beams)
+
+    def scan_beams(self, t: int) -> int:
+        """Scan t's beam count."""
+        return int(self.beams[t])
+
+    def scan_ranges(self, t: int) -> np.ndarray:
+        """Scan t's own readings (beams[t],) in m."""
+        return self.ranges[t, : self.scan_beams(t)]
+
+    def beam_angles(self, t: int) -> np.ndarray:
+        """Scan t's beam angles (beams[t],) in rad, laser frame."""
+        return self.angle_min[t] + self.angle_increment[t] * np.arange(self.scan_beams(t))
+
+    def geometry(self, t: int) -> ScanGeometry:
+        """Scan t's geometry as the fusion passes take it."""
+        return ScanGeometry(
+            self.beam_angles(t), float(self.range_min[t]), float(self.range_max[t]), self.sensor_offset[t].copy()
+        )
 
     @property
-    def beam_angles(self) -> np.ndarray:
-        """Beam angles (B,) in rad, laser frame."""
-        return self.angle_min + self.angle_increment * np.arange(self.ranges.shape[1])
+    def uniform(self) -> bool:
+        """Whether every scan has the first one's beam count and geometry (a file then holds scalars)."""
+        columns = (self.beams, *(getattr(self, name) for name in GEOMETRY_KEYS), self.sensor_offset)
+        return all(bool((column == column[:1]).all()) for column in columns)
+
+    def single_geometry(self) -> ScanGeometry:
+        """The geometry every scan shares, for a consumer that takes one laser; ValueError when they differ."""
+        if not len(self.stamps) or not self.uniform:
+            raise ValueError("the scans do not share one laser geometry; take each scan's own (PosedScans.geometry)")
+        return self.geometry(0)
+
+    def select(self, index: Any) -> PosedScans:
+        """The scans that ``index`` (a slice, a boolean mask or indices) picks, each with its geometry and poses."""
+        beams = self.beams[index]
+        width = int(beams.max()) if beams.size else 0
+        poses = PoseSet(**{key: value[index] for key, value in self.poses.arrays().items()})
+        return replace(
+            self,
+            ranges=self.ranges[index][:, :width],
+            stamps=self.stamps[index],
+            poses=poses,
+            beams=beams,
+            sensor_offset=self.sensor_offset[index],
+            **{name: getattr(self, name)[index] for name in GEOMETRY_KEYS},
+        )
 
     @classmethod
     def from_scans(cls, scans: Any, poses: PoseSet) -> PosedScans:
-        """The scans of ``scans`` (anything with this class's fields but poses, e.g. a slam.simulator.SimRun) with
-        the pose distributions ``poses``."""
-        values = {field.name: getattr(scans, field.name) for field in fields(cls) if field.name != "poses"}
-        return cls(**{**values, "sensor_offset": np.asarray(values["sensor_offset"], np.float64)}, poses=poses)
+        """The scans of ``scans`` (anything with this class's fields but poses, e.g. a slam.simulator.SimRun or a
+        slam.laserlog.LaserLog; ``beams`` optional) with the pose distributions ``poses``."""
+        names = [member.name for member in fields(cls) if member.name != "poses"]
+        return cls(**{name: getattr(scans, name) for name in names if hasattr(scans, name)}, poses=poses)
 
 
 @dataclass(frozen=True)
@@ -368,39 +451,98 @@ def _read_stamps(data: dict, path, what: str, steps: int | None = None) -> np.nd
 
 
 def load_posed_scans(path: str | Path) -> PosedScans:
-    """Read and validate a posed-scan file (contract in docs/formats.md)."""
+    """Read and validate a posed-scan file (contract in docs/formats.md): its geometry keys as scalars shared
+    by every scan or one value per scan, and the optional per-scan beam counts."""
     what = "posed-scan file"
     data = read_npz(path, what)
     ranges = _numeric(_require(data, "ranges", path, what), "ranges", path)
     if ranges.ndim != 2 or ranges.shape[1] < 1:
         raise FormatError(f"{path}: 'ranges' must have shape (T, B) with B >= 1, got {ranges.shape}")
     steps = ranges.shape[0]
-    range_min = _scalar(data, "range_min", path, what)
-    range_max = _scalar(data, "range_max", path, what)
-    angle_increment = _scalar(data, "angle_increment", path, what)
-    if not 0 <= range_min < range_max:
-        raise FormatError(f"{path}: need 0 <= range_min < range_max, got {range_min} and {range_max}")
-    if angle_increment == 0 and ranges.shape[1] > 1:
-        raise FormatError(f"{path}: 'angle_increment' is 0 but the scans have {ranges.shape[1]} beams")
-    angle_min = _scalar(data, "angle_min", path, what)
-    for key, value in (("angle_min", angle_min), ("angle_increment", angle_increment)):
-        if abs(value) > 2 * np.pi:  # beyond a turn, the angles lose the precision that tells beams apart
-            raise FormatError(f"{path}: '{key}' = {value} rad is more than a full turn")
-    offset = np.zeros(3)
-    if "sensor_offset" in data:
-        offset = _numeric(data["sensor_offset"], "sensor_offset", path).astype(np.float64)
-        if offset.shape != (3,) or not np.isfinite(offset).all():
-            raise FormatError(f"{path}: 'sensor_offset' must be 3 finite numbers (x m, y m, yaw rad), got {offset}")
+    beams = _read_beams(data, ranges.shape, path)
+    geometry = {key: _read_per_scan(data, key, steps, path, what) for key in GEOMETRY_KEYS}
+    _check_geometry(geometry, beams, path)
+    ranges = ranges.astype(np.float32)
+    ranges[np.arange(ranges.shape[1]) >= beams[:, None]] = np.nan  # the padding: nothing reads it
     return PosedScans(
-        ranges=ranges.astype(np.float32),
-        angle_min=angle_min,
-        angle_increment=angle_increment,
-        range_min=range_min,
-        range_max=range_max,
+        ranges=ranges,
         stamps=_read_stamps(data, path, what, steps),
-        sensor_offset=offset,
+        sensor_offset=_read_offset(data, steps, path),
         poses=_read_pose_set(data, steps, path, what),
+        beams=beams,
+        **geometry,
     )
+
+
+def _read_beams(data: dict, shape: tuple[int, ...], path) -> np.ndarray:
+    """The per-scan beam counts (T,) of a posed-scan file whose ranges have ``shape`` (T, B): its ``beams`` key,
+    integers in [1, B], or B for every scan without one."""
+    steps, width = shape
+    if "beams" not in data:
+        return np.full(steps, width, np.int64)
+    beams = np.asarray(data["beams"])
+    if beams.dtype.kind not in "iu" or beams.shape != (steps,):
+        raise FormatError(f"{path}: 'beams' must be ({steps},) integers, one beam count per scan, got {beams.shape}")
+    bad = np.flatnonzero((beams < 1) | (beams > width))
+    if bad.size:
+        raise FormatError(f"{path}: 'beams' is {beams[bad[0]]} at scan {bad[0]}; each must be in [1, {width}]")
+    return beams.astype(np.int64)
+
+
+def _read_per_scan(data: dict, key: str, steps: int, path, what: str) -> np.ndarray:
+    """Key ``key`` of a posed-scan file: a finite number shared by every scan, or (T,) finite numbers."""
+    array = np.asarray(_require(data, key, path, what))
+    if array.size == 1:
+        return np.full(steps, _scalar(data, key, path, what))
+    if array.shape != (steps,):
+        raise FormatError(f"{path}: '{key}' must be a number or ({steps},) numbers (one per scan), got {array.shape}")
+    return _within(array, key, path, -np.inf, np.inf).astype(np.float64)
+
+
+def _check_geometry(geometry: dict[str, np.ndarray], beams: np.ndarray, path) -> None:
+    """Refuse a scan whose range limits or beam angles cannot be used (the first such scan named, when the
+    file gives the scans different values)."""
+    range_min, range_max = geometry["range_min"], geometry["range_max"]
+    increment = geometry["angle_increment"]
+    bad = np.flatnonzero(~((range_min >= 0) & (range_min < range_max)))
+    if bad.size:
+        t = int(bad[0])
+        raise FormatError(
+            f"{path}: need 0 <= range_min < range_max, got {range_min[t]} and {range_max[t]}"
+            + _which_scan(t, range_min, range_max)
+        )
+    bad = np.flatnonzero((increment == 0) & (beams > 1))
+    if bad.size:
+        t = int(bad[0])
+        raise FormatError(
+            f"{path}: 'angle_increment' is 0 but the scans have {beams[t]} beams" + _which_scan(t, increment, beams)
+        )
+    for key in ("angle_min", "angle_increment"):
+        bad = np.flatnonzero(np.abs(geometry[key]) > 2 * np.pi)  # beyond a turn, the angles lose the precision
+        if bad.size:  # that tells beams apart
+            t = int(bad[0])
+            raise FormatError(
+                f"{path}: '{key}' = {geometry[key][t]} rad is more than a full turn" + _which_scan(t, geometry[key])
+            )
+
+
+def _which_scan(t: int, *columns: np.ndarray) -> str:
+    """ " at scan t" when one of the per-scan ``columns`` differs between scans (a file of per-scan values), else
+    "" (every scan has the value)."""
+    return f" at scan {t}" if any(bool((column != column[0]).any()) for column in columns) else ""
+
+
+def _read_offset(data: dict, steps: int, path) -> np.ndarray:
+    """The laser's pose on the robot, (3,) for every scan or (T, 3) per scan (zeros when absent)."""
+    if "sensor_offset" not in data:
+        return np.zeros(3)
+    offset = _numeric(data["sensor_offset"], "sensor_offset", path).astype(np.float64)
+    if offset.shape not in ((3,), (steps, 3)) or not np.isfinite(offset).all():
+        raise FormatError(
+            f"{path}: 'sensor_offset' must be 3 finite numbers (x m, y m, yaw rad), or ({steps}, 3) of them (one "
+            f"row per scan), got shape {offset.shape}"
+        )
+    return offset
 
 
 def load_pose_distribution(path: str | Path) -> PoseDistributionFile:
@@ -577,16 +719,33 @@ def save_posed_scans(path: str | Path, scans: PosedScans) -> None:
     validate_pose_set(scans.poses, len(scans.stamps), f"the poses to write to {path}")
     # Any: np.savez_compressed's stubs give its ** keywords the type of its own allow_pickle (bool)
     arrays: dict[str, Any] = {
-        "ranges": np.asarray(scans.ranges, np.float32),
-        "angle_min": np.float64(scans.angle_min),
-        "angle_increment": np.float64(scans.angle_increment),
-        "range_min": np.float64(scans.range_min),
-        "range_max": np.float64(scans.range_max),
+        **_geometry_arrays(scans),
         "stamps": np.asarray(scans.stamps, np.float64),
-        "sensor_offset": np.asarray(scans.sensor_offset, np.float64),
         **{k: np.asarray(v, np.float64) for k, v in scans.poses.arrays().items()},
     }
     write_atomically(path, lambda handle: np.savez_compressed(handle, **arrays))
+
+
+def _geometry_arrays(scans: PosedScans) -> dict[str, np.ndarray]:
+    """The ranges and geometry keys of a posed-scan file. Scans of one geometry: ``ranges`` (T, B) and scalars,
+    as every version of the contract writes them. Otherwise every geometry key per scan ((T,), sensor_offset
+    (T, 3)) and ``beams`` (T,), ``ranges`` (T, Bmax) NaN past each scan's beams: a tool that knows only the
+    scalar form refuses such a file instead of misreading it."""
+    width = int(scans.beams.max()) if len(scans.beams) else scans.ranges.shape[1]
+    ranges = np.array(scans.ranges[:, :width], np.float32)
+    if scans.uniform:
+        return {
+            "ranges": ranges,
+            **{key: np.float64(getattr(scans, key)[0] if len(scans.stamps) else 0.0) for key in GEOMETRY_KEYS},
+            "sensor_offset": np.asarray(scans.sensor_offset[0] if len(scans.stamps) else np.zeros(3), np.float64),
+        }
+    ranges[np.arange(width) >= scans.beams[:, None]] = np.nan
+    return {
+        "ranges": ranges,
+        **{key: np.asarray(getattr(scans, key), np.float64) for key in GEOMETRY_KEYS},
+        "sensor_offset": np.asarray(scans.sensor_offset, np.float64),
+        "beams": np.asarray(scans.beams, np.int64),
+    }
 
 
 def save_pose_distribution(path: str | Path, dist: PoseDistributionFile) -> None:

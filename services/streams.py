@@ -44,18 +44,27 @@ class Stream:
         return sum(isinstance(m, LaserScan) for step in self.steps for m in step.messages)
 
 
-def _scan(robot: str, seq: int, stamp: float, ranges: np.ndarray, geometry: dict) -> LaserScan:
-    return LaserScan(robot=robot, seq=seq, stamp=stamp, ranges=ranges, **geometry)
+def _scan(robot: str, seq: int, stamp: float, scans: Scans, t: int) -> LaserScan:
+    """Row t of ``scans`` as the LaserScan of ``seq``, with the scan's own beam count and geometry."""
+    beams = getattr(scans, "beams", None)
+    offset = np.asarray(scans.sensor_offset, np.float64)
+    return LaserScan(
+        robot=robot,
+        seq=seq,
+        stamp=stamp,
+        ranges=scans.ranges[t] if beams is None else scans.ranges[t, : int(beams[t])],
+        angle_min=_of_scan(scans.angle_min, t),
+        angle_increment=_of_scan(scans.angle_increment, t),
+        range_min=_of_scan(scans.range_min, t),
+        range_max=_of_scan(scans.range_max, t),
+        sensor_offset=offset if offset.ndim == 1 else offset[t],
+    )
 
 
-def _geometry(source) -> dict:
-    return {
-        "angle_min": float(source.angle_min),
-        "angle_increment": float(source.angle_increment),
-        "range_min": float(source.range_min),
-        "range_max": float(source.range_max),
-        "sensor_offset": np.asarray(source.sensor_offset, np.float64),
-    }
+def _of_scan(value: float | np.ndarray, t: int) -> float:
+    """Scan t's value of a geometry field that holds one value for every scan or one per scan."""
+    array = np.asarray(value, np.float64)
+    return float(array if array.ndim == 0 else array[t])
 
 
 def _prior(robot: str, stamp: float, pose) -> PoseGaussian:
@@ -63,11 +72,28 @@ def _prior(robot: str, stamp: float, pose) -> PoseGaussian:
 
 
 class Scans(Protocol):
-    """Laser scans with their geometry (angle_min, angle_increment, range_min, range_max, sensor_offset):
-    schemas.files.PosedScans, slam.simulator.SimRun or slam.laserlog.LaserLog."""
+    """Laser scans (T, B) with their geometry: angle_min, angle_increment, range_min and range_max one value for
+    every scan or one per scan (T,), sensor_offset (3,) or (T, 3), and optionally ``beams`` (T,), each scan's
+    beam count (its readings are the first of its row): schemas.files.PosedScans, slam.simulator.SimRun or
+    slam.laserlog.LaserLog."""
 
     @property
     def ranges(self) -> np.ndarray: ...
+
+    @property
+    def angle_min(self) -> float | np.ndarray: ...
+
+    @property
+    def angle_increment(self) -> float | np.ndarray: ...
+
+    @property
+    def range_min(self) -> float | np.ndarray: ...
+
+    @property
+    def range_max(self) -> float | np.ndarray: ...
+
+    @property
+    def sensor_offset(self) -> np.ndarray: ...
 
 
 def _commands(sequence: SlamSequence | None, seq: int) -> np.ndarray:
@@ -90,8 +116,7 @@ def _landmarks(robot: str, seq: int, stamp: float, sequence: SlamSequence | None
 
 
 def posed_stream(posed: PosedScans, robot: str) -> Stream:
-    """A posed-scan file: per row a LaserScan and its pose distribution."""
-    geometry = _geometry(posed)
+    """A posed-scan file: per row a LaserScan (with the scan's own geometry) and its pose distribution."""
     poses = posed.poses
     steps = []
     for t, stamp in enumerate(posed.stamps.tolist()):
@@ -102,7 +127,7 @@ def posed_stream(posed: PosedScans, robot: str) -> Stream:
         else:
             samples, weights = poses.weighted_samples()
             pose = PoseSamples(robot=robot, seq=t, stamp=stamp, samples=samples[t], weights=weights[t])
-        steps.append(Step(stamp, (_scan(robot, t, stamp, posed.ranges[t], geometry), pose)))
+        steps.append(Step(stamp, (_scan(robot, t, stamp, posed, t), pose)))
     return Stream(robot, steps, prior=None, has_poses=True)
 
 
@@ -118,7 +143,6 @@ def slam_input_stream(
     """What a SLAM node needs at each of the T ``stamps`` (s): the scan (when there are ``scans``), the odometry
     pose reading (when there is ``odometry``, (T, 3)), and the velocity commands and landmark measurements of the
     step in ``sequence`` (none without one). The SLAM prior is ``initial_pose``."""
-    geometry = _geometry(scans) if scans is not None else {}
     steps = []
     for t, stamp in enumerate(np.asarray(stamps, np.float64).tolist()):
         pose = odometry[t : t + 1] if odometry is not None else np.zeros((0, 3))
@@ -127,7 +151,7 @@ def slam_input_stream(
             _landmarks(robot, t, stamp, sequence),
         ]
         if scans is not None:
-            messages.insert(0, _scan(robot, t, stamp, scans.ranges[t], geometry))
+            messages.insert(0, _scan(robot, t, stamp, scans, t))
         steps.append(Step(stamp, tuple(messages)))
     return Stream(robot, steps, prior=_prior(robot, stamps[0], initial_pose), has_poses=False)
 

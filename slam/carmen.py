@@ -25,11 +25,17 @@ Conventions this reader fixes (the old FLASER/RLASER lines carry no laser geomet
   which the sensor offset follows (median over the scans).
 
 One laser is read (``laser="front"``: ROBOTLASER1 lines when the log has any, else FLASER; ``"rear"``:
-ROBOTLASER2, else RLASER). Every scan must have the first scan's beam count and laser parameters. A line
-that does not parse, declares a beam count its fields do not match, holds a range that is NaN, negative or
-finite beyond POSE_LIMIT (1e7 m; slam.laserlog), a non-finite stamp, a pose not finite or beyond
-+-POSE_LIMIT, or disagrees with the first scan's geometry is skipped and recorded with its line number in
-:attr:`LaserLog.skipped`; nothing is ever shifted into a neighbouring field.
+ROBOTLASER2, else RLASER). Every scan keeps its own beam count and geometry (slam.laserlog): a ROBOTLASER
+line's are its own fields, so an interlaced laser or one whose beam count changes is read in full; a
+FLASER/RLASER line carries only its beam count, and its geometry follows from that count by the rules above
+(an interlaced laser's shifted starts cannot be told from such a line: its scans share one geometry). The
+laser's offset on the robot is one for the whole log (ROBOTLASER: the median over the scans, as the lines
+print it to 6 decimals). A line that does not parse, declares a beam count its fields do not match, holds a
+range that is NaN, negative or finite beyond POSE_LIMIT (1e7 m; slam.laserlog), a non-finite stamp, a pose not
+finite or beyond +-POSE_LIMIT, or a ROBOTLASER geometry that is unusable in itself
+(:func:`slam.laserlog.geometry_problem`: an increment of 0 for several beams, an angle beyond a full turn) is
+skipped and recorded with its line number and reason in :attr:`LaserLog.skipped`; nothing is ever shifted
+into a neighbouring field.
 """
 
 from __future__ import annotations
@@ -44,7 +50,7 @@ import numpy as np
 
 from slam.angles import wrap_angle
 from slam.errors import LogFormatError
-from slam.laserlog import POSE_LIMIT, LaserLog, Skipped, plausible_pose
+from slam.laserlog import PADDING, POSE_LIMIT, LaserLog, Skipped, geometry_problem, per_scan, plausible_pose
 from slam.motion import compose
 
 #: maximum range assumed for FLASER/RLASER lines when no PARAM gives one (m)
@@ -147,6 +153,9 @@ def _parse_robotlaser(tokens: list[str], line: int) -> _Scan:
     if not all(math.isfinite(v) for v in header[:4]) or max_range <= 0:
         raise _BadLine("laser parameters (start angle, fov, resolution, max range) are not finite and positive")
     n = _count(tokens[8], "beam count")
+    problem = geometry_problem(n, start_angle, resolution, 0.0, max_range)
+    if problem:
+        raise _BadLine(f"laser parameters unusable: {problem}")
     if len(tokens) < n + 24:
         raise _BadLine(f"declares {n} beams so needs at least {n + 24} fields, has {len(tokens)}")
     m = _count(tokens[9 + n], "remission count", minimum=0)
@@ -234,6 +243,9 @@ def _flaser_geometry(params: dict[str, str], side: str, beams: int, path: Path) 
     range_max = _param_float(params, f"robot_{side}_laser_max", DEFAULT_RANGE_MAX, path)
     if step <= 0 or range_max <= 0:
         raise LogFormatError(f"{path}: the {side} laser's resolution and maximum range must be positive")
+    problem = geometry_problem(beams, -0.5 * fov, step, 0.0, range_max)
+    if problem:
+        raise LogFormatError(f"{path}: the {side} laser's PARAMs give scans of {beams} beams that {problem}")
     return -0.5 * fov, step, range_max
 
 
@@ -267,44 +279,39 @@ def read_carmen(path: str | Path, laser: str = "front") -> LaserLog:
             f"{path}: holds no usable {laser} laser scan ({kinds['old']} or {kinds['new']} line)"
             + (f"; first problem at line {skipped[0].where}: {skipped[0].reason}" if skipped else "")
         )
-    first = scans[0]
-    beams = len(first.ranges)
-    kept: list[_Scan] = []
-    for scan in scans:
-        if len(scan.ranges) != beams:
-            skipped.append(Skipped(scan.line, f"{kind}: has {len(scan.ranges)} beams, the log's first scan {beams}"))
-        elif scan.geometry and not np.allclose(scan.geometry, first.geometry, rtol=1e-6, atol=1e-9):
-            skipped.append(Skipped(scan.line, f"{kind}: laser parameters differ from the first scan's"))
-        else:
-            kept.append(scan)
-    skipped.sort(key=lambda s: s.where)
     side = kinds["param"]
-    if first.geometry:
-        angle_min, angle_increment, range_max = first.geometry
-        offset = np.median(_robot_to_laser_offsets(kept), axis=0)
+    if scans[0].geometry:
+        geometry = np.array([s.geometry for s in scans], dtype=np.float64)
+        offset = np.median(_robot_to_laser_offsets(scans), axis=0)
     else:
-        angle_min, angle_increment, range_max = _flaser_geometry(params, side, beams, path)
+        by_count = {n: _flaser_geometry(params, side, n, path) for n in {len(s.ranges) for s in scans}}
+        geometry = np.array([by_count[len(s.ranges)] for s in scans], dtype=np.float64)
         forward = _param_float(params, f"robot_{side}laser_offset", 0.0, path)
         offset = np.array([forward, 0.0, 0.0 if side == "front" else math.pi])
-    ranges = np.array([s.ranges for s in kept], dtype=np.float32)
-    ranges[ranges >= range_max] = np.inf
+    beams = np.array([len(s.ranges) for s in scans], dtype=np.int64)
+    ranges = np.full((len(scans), int(beams.max())), PADDING, dtype=np.float32)
+    for row, scan in zip(ranges, scans):
+        row[: len(scan.ranges)] = scan.ranges
+    ranges[ranges >= geometry[:, 2:3]] = np.inf  # (the NaN padding compares false: it stays)
+    skipped.sort(key=lambda s: s.where)
     return LaserLog(
         source=str(path),
-        stamps=np.array([s.stamp for s in kept], dtype=np.float64),
+        stamps=np.array([s.stamp for s in scans], dtype=np.float64),
         ranges=ranges,
-        angle_min=float(angle_min),
-        angle_increment=float(angle_increment),
-        range_min=0.0,
-        range_max=float(range_max),
+        angle_min=geometry[:, 0],
+        angle_increment=geometry[:, 1],
+        range_min=np.zeros(len(scans)),
+        range_max=geometry[:, 2],
         sensor_offset=np.asarray(offset, dtype=np.float64),
-        odometry=np.array([s.odometry for s in kept], dtype=np.float64),
-        poses=np.array([s.pose for s in kept], dtype=np.float64),
-        where=np.array([s.line for s in kept], dtype=np.int64),
+        odometry=np.array([s.odometry for s in scans], dtype=np.float64),
+        poses=np.array([s.pose for s in scans], dtype=np.float64),
+        where=np.array([s.line for s in scans], dtype=np.int64),
         odom_stamps=np.array([o[0] for o in odom], dtype=np.float64),
         odom_poses=np.array([o[1] for o in odom], dtype=np.float64).reshape(-1, 3),
         params=params,
         skipped=tuple(skipped),
         unit="line",
+        beams=beams,
     )
 
 
@@ -313,56 +320,56 @@ def write_carmen(
     stamps: np.ndarray,
     ranges: np.ndarray,
     odometry: np.ndarray,
-    angle_min: float,
-    angle_increment: float,
-    range_max: float,
+    angle_min: float | np.ndarray,
+    angle_increment: float | np.ndarray,
+    range_max: float | np.ndarray,
     sensor_offset: np.ndarray | None = None,
     poses: np.ndarray | None = None,
     record: str = "ROBOTLASER1",
     host: str = "posegrid",
+    beams: np.ndarray | None = None,
 ) -> None:
     """Write scans with odometry as a CARMEN log that :func:`read_carmen` reads back (gzip for a .gz path).
 
     ``stamps`` (T,) s; ``ranges`` (T, B) m, NaN/inf/above ``range_max`` written as the max-range reading;
-    ``odometry`` (T, 3) robot odometry poses; beam i points at ``angle_min + i*angle_increment`` (rad, laser
-    frame); ``sensor_offset`` (3,) laser pose in the robot frame. ``record`` "ROBOTLASER1" stores the
-    geometry in every line; "FLASER" stores it in PARAM lines, needs a laser facing forwards on the robot's
-    x axis and ``angle_min`` = -fov/2, and also stores ``poses`` (T, 3) (default: the odometry) as the
-    line's pose. Numbers are written with 6 decimals.
+    ``odometry`` (T, 3) robot odometry poses; beam i of scan t points at ``angle_min + i*angle_increment`` (rad,
+    laser frame); ``sensor_offset`` (3,) laser pose in the robot frame. ``angle_min``, ``angle_increment`` and
+    ``range_max`` are one number for every scan or one per scan (T,), ``sensor_offset`` (3,) or (T, 3), and
+    ``beams`` (T,) the beam count of each scan (default: all B), its readings the first of its row.
+    ``record`` "ROBOTLASER1" stores each scan's geometry in its line; "FLASER" stores one geometry in PARAM
+    lines (the beam count may change from scan to scan), needs a laser facing forwards on the robot's x axis
+    and ``angle_min`` = -fov/2, and also stores ``poses`` (T, 3) (default: the odometry) as the line's pose.
+    Numbers are written with 6 decimals.
     """
     stamps = np.asarray(stamps, dtype=np.float64)
     ranges = np.asarray(ranges, dtype=np.float64)
     odometry = np.asarray(odometry, dtype=np.float64)
-    offset = np.zeros(3) if sensor_offset is None else np.asarray(sensor_offset, dtype=np.float64)
     poses = odometry if poses is None else np.asarray(poses, dtype=np.float64)
-    steps, beams = ranges.shape
+    steps, width = ranges.shape
     if stamps.shape != (steps,) or odometry.shape != (steps, 3) or poses.shape != (steps, 3):
         raise ValueError("stamps (T,), ranges (T, B), odometry (T, 3) and poses (T, 3) must agree on T")
     if record not in ("ROBOTLASER1", "FLASER"):
         raise ValueError(f"record must be 'ROBOTLASER1' or 'FLASER', got '{record}'")
-    if record == "FLASER" and (offset[1] != 0 or offset[2] != 0):
-        raise ValueError("a FLASER log can only hold a laser on the robot's x axis facing forwards")
-    clean = np.where(np.isfinite(ranges) & (ranges <= range_max), ranges, range_max)
-    fov = angle_increment * (beams - 1)
+    geometry = np.column_stack([per_scan(v, steps) for v in (angle_min, angle_increment, range_max)])
+    offset = per_scan(np.zeros(3) if sensor_offset is None else sensor_offset, steps, 3)
+    counts = np.full(steps, width, np.int64) if beams is None else np.asarray(beams, np.int64)
+    clean = np.where(np.isfinite(ranges) & (ranges <= geometry[:, 2:3]), ranges, geometry[:, 2:3])
     lines = ["# written by posegrid (slam.carmen.write_carmen)"]
     if record == "FLASER":
-        lines += [
-            f"PARAM laser_front_laser_fov {math.degrees(-2.0 * angle_min):.17g} 0 {host} 0",
-            f"PARAM laser_front_laser_resolution {math.degrees(angle_increment):.17g} 0 {host} 0",
-            f"PARAM robot_front_laser_max {range_max:.17g} 0 {host} 0",
-            f"PARAM robot_frontlaser_offset {offset[0]:.17g} 0 {host} 0",
-        ]
-    laser = compose(odometry, offset)  # laser poses in the odometry frame
+        lines += _flaser_params(geometry, offset, host)
+    laser = compose(odometry, offset.T)  # laser poses in the odometry frame (delta (3, T): one offset per scan)
     for t in range(steps):
-        values = " ".join(f"{r:.6f}" for r in clean[t])
+        n = int(counts[t])
+        values = " ".join(f"{r:.6f}" for r in clean[t, :n])
         stamp = f"{stamps[t]:.6f}"
         if record == "FLASER":
             pose = " ".join(f"{v:.6f}" for v in (*poses[t], *odometry[t]))
-            lines.append(f"FLASER {beams} {values} {pose} {stamp} {host} {stamp}")
+            lines.append(f"FLASER {n} {values} {pose} {stamp} {host} {stamp}")
         else:
-            head = f"ROBOTLASER1 0 {angle_min:.17g} {fov:.17g} {angle_increment:.17g} {range_max:.17g} 0.01 0"
+            first, step, far = geometry[t].tolist()
+            head = f"ROBOTLASER1 0 {first:.17g} {step * (n - 1):.17g} {step:.17g} {far:.17g} 0.01 0"
             pose = " ".join(f"{v:.6f}" for v in (*laser[t], *odometry[t]))
-            lines.append(f"{head} {beams} {values} 0 {pose} 0 0 0 0 0 {stamp} {host} {stamp}")
+            lines.append(f"{head} {n} {values} 0 {pose} 0 0 0 0 0 {stamp} {host} {stamp}")
     text = "\n".join(lines) + "\n"
     path = Path(path)
     if path.suffix.lower() == ".gz":
@@ -370,3 +377,22 @@ def write_carmen(
             stream.write(text)
     else:
         path.write_text(text, encoding="ascii")
+
+
+def _flaser_params(geometry: np.ndarray, offset: np.ndarray, host: str) -> list[str]:
+    """The PARAM lines that give FLASER lines their geometry: ``geometry`` (T, 3) per scan (angle_min rad,
+    angle_increment rad, range_max m) and ``offset`` (T, 3) must be one for all scans, the laser facing forwards
+    on the robot's x axis (ValueError otherwise)."""
+    if not len(geometry):
+        return []
+    if (offset[:, 1:] != 0).any() or (offset != offset[0]).any():
+        raise ValueError("a FLASER log can only hold a laser on the robot's x axis facing forwards")
+    if (geometry != geometry[0]).any():
+        raise ValueError("a FLASER log holds one laser geometry (PARAM lines); write per-scan geometry as ROBOTLASER1")
+    angle_min, angle_increment, range_max = geometry[0].tolist()
+    return [
+        f"PARAM laser_front_laser_fov {math.degrees(-2.0 * angle_min):.17g} 0 {host} 0",
+        f"PARAM laser_front_laser_resolution {math.degrees(angle_increment):.17g} 0 {host} 0",
+        f"PARAM robot_front_laser_max {range_max:.17g} 0 {host} 0",
+        f"PARAM robot_frontlaser_offset {offset[0, 0]:.17g} 0 {host} 0",
+    ]

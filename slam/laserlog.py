@@ -3,7 +3,13 @@
 Frames and units: ``odometry`` and ``poses`` are robot poses (x m, y m, yaw rad) in the log's odometry
 frame (``poses``: the frame of whatever produced them, e.g. a SLAM-corrected map frame); ``sensor_offset`` is
 the laser's (x m, y m, yaw rad) in the robot frame; ranges are metres along each beam from the laser,
-``+inf`` where the log records no return (a reading at or beyond the log's maximum range).
+``+inf`` where the log records no return (a reading at or beyond the scan's maximum range).
+
+Every scan keeps its own geometry: its beam count, angle_min, angle_increment, range limits and the laser's
+offset on the robot, so an interlaced laser (successive scans shifted by a fraction of a step), a laser whose
+beam count changes and two lasers on one topic are all read in full. ``ranges`` is (T, Bmax), where Bmax is
+the largest beam count; row t holds scan t's ``beams[t]`` readings first, then NaN padding that no consumer
+reads (:meth:`LaserLog.scan_ranges` gives the scan's own readings).
 """
 
 from __future__ import annotations
@@ -40,18 +46,58 @@ class Skipped:
     reason: str
 
 
+#: what the rows of ``LaserLog.ranges`` (and a posed-scan file's) hold past a scan's own beam count
+PADDING = np.nan
+
+#: a scan's laser geometry as one hashable key: (beams, angle_min rad, angle_increment rad, range_min m,
+#: range_max m, offset x m, offset y m, offset yaw rad)
+GeometryKey = tuple[int, float, float, float, float, float, float, float]
+
+
+def geometry_problem(beams: int, angle_min: float, angle_increment: float, range_min: float, range_max: float) -> str:
+    """Why a scan of ``beams`` beams with this geometry (rad, m) is unusable in itself, or "": a value that is not
+    finite, range limits outside 0 <= range_min < range_max, no beam, an increment of 0 for several beams (every
+    beam would point one way), or an angle beyond a full turn (the beams' directions lose their precision)."""
+    values = (angle_min, angle_increment, range_min, range_max)
+    if not all(math.isfinite(v) for v in values):
+        return "its angle_min, angle_increment, range_min or range_max is not finite"
+    if beams < 1:
+        return "it has no beam"
+    if not 0.0 <= range_min < range_max:
+        return f"range_min {range_min:g} m and range_max {range_max:g} m: need 0 <= range_min < range_max"
+    if angle_increment == 0.0 and beams > 1:
+        return f"angle_increment is 0 for {beams} beams"
+    if max(abs(angle_min), abs(angle_increment)) > 2 * math.pi:
+        return "angle_min or angle_increment beyond a full turn"
+    return ""
+
+
+def per_scan(value, steps: int, columns: int = 0) -> np.ndarray:
+    """``value`` (a number, or one per scan) as a float64 array of one row per scan: (steps,), or (steps,
+    columns) when ``columns`` (a (columns,) value is shared by every scan). Raises ValueError on another shape."""
+    array = np.asarray(value, np.float64)
+    shape = (steps, columns) if columns else (steps,)
+    if array.shape not in (shape, shape[1:]):
+        raise ValueError(f"expected one value per scan {shape} or one for all {shape[1:]}, got shape {array.shape}")
+    return np.array(np.broadcast_to(array, shape))
+
+
 @dataclass(frozen=True)
 class LaserLog:
-    """T laser scans of B beams in file order, each with the robot's odometry pose at the scan's time."""
+    """T laser scans in file order, each with its own geometry and the robot's odometry pose at the scan's time.
+
+    The geometry fields may be given as one value for every scan (a number; (3,) for the offset) and are kept
+    per scan; scan t's readings are ``ranges[t, :beams[t]]``, and ``beams`` defaults to every scan filling its row
+    of ``ranges``."""
 
     source: str  # file the log came from, for messages
     stamps: np.ndarray  # float64 (T,) s
-    ranges: np.ndarray  # float32 (T, B) m; +inf = no return
-    angle_min: float  # rad, laser frame
-    angle_increment: float  # rad
-    range_min: float  # m
-    range_max: float  # m
-    sensor_offset: np.ndarray  # float64 (3,): laser pose in the robot frame
+    ranges: np.ndarray  # float32 (T, Bmax) m; +inf = no return; PADDING (NaN) past beams[t]
+    angle_min: np.ndarray  # float64 (T,) rad, laser frame
+    angle_increment: np.ndarray  # float64 (T,) rad
+    range_min: np.ndarray  # float64 (T,) m
+    range_max: np.ndarray  # float64 (T,) m
+    sensor_offset: np.ndarray  # float64 (T, 3): laser pose in the robot frame at each scan
     odometry: np.ndarray  # float64 (T, 3): robot odometry pose at each scan
     poses: np.ndarray  # float64 (T, 3): the robot pose the log states for each scan (corrected logs: SLAM pose)
     where: np.ndarray  # int64 (T,): the 1-based line or message number of each scan
@@ -60,25 +106,73 @@ class LaserLog:
     params: dict[str, str] = field(default_factory=dict)
     skipped: tuple[Skipped, ...] = ()
     unit: str = "line"  # what `where` counts: "line" or "message"
+    beams: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # int64 (T,); empty: whole rows
+
+    def __post_init__(self) -> None:
+        steps = len(self.stamps)
+        for name in ("angle_min", "angle_increment", "range_min", "range_max"):
+            object.__setattr__(self, name, per_scan(getattr(self, name), steps))
+        object.__setattr__(self, "sensor_offset", per_scan(self.sensor_offset, steps, 3))
+        width = self.ranges.shape[1] if self.ranges.ndim == 2 else 0
+        beams = np.asarray(self.beams, np.int64)
+        if beams.size == 0:  # (the default: every scan's readings fill its row)
+            beams = np.full(steps, width, np.int64)
+        if self.ranges.shape != (steps, width) or beams.shape != (steps,) or (beams > width).any():
+            raise ValueError(f"ranges {self.ranges.shape} and beams {beams.shape} do not fit {steps} scans")
+        object.__setattr__(self, "beams", beams)
 
     def __len__(self) -> int:
         return len(self.stamps)
 
-    @property
-    def beam_angles(self) -> np.ndarray:
-        """Beam angles (B,) in rad, laser frame."""
-        return self.angle_min + self.angle_increment * np.arange(self.ranges.shape[1])
+    def scan_ranges(self, t: int) -> np.ndarray:
+        """Scan t's own readings (beams[t],) in m."""
+        return self.ranges[t, : self.scan_beams(t)]
+
+    def scan_beams(self, t: int) -> int:
+        """Scan t's beam count."""
+        return int(self.beams[t])
+
+    def beam_angles(self, t: int) -> np.ndarray:
+        """Scan t's beam angles (beams[t],) in rad, laser frame."""
+        return self.angle_min[t] + self.angle_increment[t] * np.arange(self.scan_beams(t))
+
+    def geometry_key(self, t: int) -> GeometryKey:
+        """Scan t's geometry as a hashable key (:data:`GeometryKey`): scans with equal keys share one laser."""
+        x, y, yaw = self.sensor_offset[t].tolist()
+        return (
+            self.scan_beams(t),
+            float(self.angle_min[t]),
+            float(self.angle_increment[t]),
+            float(self.range_min[t]),
+            float(self.range_max[t]),
+            x,
+            y,
+            yaw,
+        )
+
+    def select(self, index) -> LaserLog:
+        """The log's scans that ``index`` (a slice, a boolean mask or indices) picks, each with its own geometry;
+        the odometry stream, parameters and skipped records are kept."""
+        beams = self.beams[index]
+        width = int(beams.max()) if beams.size else 0
+        return replace(
+            self,
+            stamps=self.stamps[index],
+            ranges=self.ranges[index][:, :width],
+            angle_min=self.angle_min[index],
+            angle_increment=self.angle_increment[index],
+            range_min=self.range_min[index],
+            range_max=self.range_max[index],
+            sensor_offset=self.sensor_offset[index],
+            odometry=self.odometry[index],
+            poses=self.poses[index],
+            where=self.where[index],
+            beams=beams,
+        )
 
     def first(self, count: int) -> LaserLog:
         """The log's first ``count`` scans (the odometry stream, parameters and skipped records kept)."""
-        return replace(
-            self,
-            stamps=self.stamps[:count],
-            ranges=self.ranges[:count],
-            odometry=self.odometry[:count],
-            poses=self.poses[:count],
-            where=self.where[:count],
-        )
+        return self.select(slice(0, count))
 
     def skipped_summary(self, limit: int = 5) -> str:
         """One sentence naming how many records were skipped, the first few places and their reasons."""
@@ -177,13 +271,9 @@ def with_odometry_delay(log: LaserLog, delay: float) -> LaserLog:
         for where, problem in zip(log.where.tolist(), problems)
         if problem
     ]
-    stamps = log.stamps[kept]
+    log = log.select(kept)
     return replace(
         log,
-        stamps=stamps,
-        ranges=log.ranges[kept],
-        poses=log.poses[kept],
-        where=log.where[kept],
-        odometry=interpolate_poses(log.odom_stamps, log.odom_poses, stamps + delay),
+        odometry=interpolate_poses(log.odom_stamps, log.odom_poses, log.stamps + delay),
         skipped=tuple(sorted(log.skipped + tuple(dropped), key=lambda s: s.where)),
     )

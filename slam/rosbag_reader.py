@@ -2,17 +2,20 @@
 
 What is read:
 - scans: ``sensor_msgs/LaserScan`` on the scan topic (``scan_topic``, default: the bag's only LaserScan
-  topic, or ``/scan`` when it has several); every scan must have the first one's beam count and geometry;
+  topic, or ``/scan`` when it has several), each with its own beam count, geometry and frame (slam.laserlog):
+  an interlaced laser, a beam count that changes and two lasers publishing on one topic are read in full;
 - odometry: ``nav_msgs/Odometry`` on the odometry topic (default: the only Odometry topic, or ``/odom``);
   without one, the ``tf2_msgs/TFMessage`` transforms on ``/tf`` whose child is the robot's base frame;
-- the laser's pose on the robot: the chain of ``/tf_static`` transforms from the scan's frame up to the
-  base frame (the Odometry child frame, else the root of that chain), projected to (x, y, yaw).
+- the laser's pose on the robot, per laser frame: the chain of ``/tf_static`` transforms from the scan's frame
+  up to the base frame (the Odometry child frame, else the root of the chain of the frame most scans have),
+  projected to (x, y, yaw). When that chain is missing for the frame most scans have, the bag is refused; a
+  scan of another frame without one is skipped.
 
 Each scan's odometry pose is interpolated at the scan's header stamp between the two odometry poses around
 it (linear in x, y and unwrapped yaw; real bags publish odometry irregularly, the Intel lab's with gaps of
 up to 3 s). A scan is skipped when those two are more than ``max_odom_gap`` seconds apart, or when it lies
 outside the odometry's time span by more than ``max_odom_hold`` seconds (within that, the end pose is
-held); likewise one that does not decode or differs from the geometry most scans have. Each skip records the
+held); likewise one that does not decode or is unusable in itself (:func:`wire_scan_problem`). Each skip records the
 scan's 1-based message number (counting all messages of the topics read, in bag order) and the reason.
 Readings at or above the scan's range_max become ``+inf`` (no return). NaN (an invalid reading) and -inf (too
 close to measure) say nothing about free space (REP 117), so they become 0, below range_min, which every consumer
@@ -35,9 +38,11 @@ from slam.errors import LogFormatError
 from slam.laserlog import (
     MAX_ODOM_GAP,
     MAX_ODOM_HOLD,
+    PADDING,
     POSE_LIMIT,
     LaserLog,
     Skipped,
+    geometry_problem,
     interpolate_poses,
     odometry_problem,
     plausible_pose,
@@ -171,20 +176,15 @@ def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hol
         refused = [s.reason for s in got.skipped if s.reason.startswith(f"{scan_topic}:")]
         why = f" (the first: {refused[0]})" if refused else ""
         raise LogFormatError(f"{path}: no usable scan on {scan_topic}{why}")
-    first = _usual_laser(got.scans)
-    base_frame = got.odom[0][2] if got.odom else None
-    try:
-        offset, base_frame = static_chain(got.tf_static, first[3][4], base_frame)
-    except LogFormatError as exc:
-        raise LogFormatError(f"{path}: {exc}") from None
+    mounts, base_frame = _laser_mounts(got, got.odom[0][2] if got.odom else None, path)
     odom_stamps, odom_poses = _odometry(got, odom_topic, base_frame, path)
-    kept = _kept_scans(got, first, odom_stamps, scan_topic, max_odom_gap, max_odom_hold)
+    kept = _kept_scans(got, mounts, odom_stamps, scan_topic, max_odom_gap, max_odom_hold)
     if not kept:
         raise LogFormatError(
             f"{path}: no scan on {scan_topic} has odometry around its stamp ({got.skipped[-1].reason})"
         )
     got.skipped.sort(key=lambda s: s.where)
-    return _laser_log(path, kept, first[3], offset, odom_stamps, odom_poses, got.skipped)
+    return _laser_log(path, kept, mounts, odom_stamps, odom_poses, got.skipped)
 
 
 def _select(connections, path: Path, scan_topic: str | None, odom_topic: str | None) -> tuple[str, str | None, list]:
@@ -263,17 +263,28 @@ def _add_transforms(got: _Decoded, number: int, msg, topic: str) -> None:
             got.tf_dynamic.append((header_stamp(tf.header), tf.header.frame_id, tf.child_frame_id, pose))
 
 
-def _usual_laser(scans: list[_DecodedScan]) -> _DecodedScan:
-    """The first scan of the laser (beam count, geometry and frame) most scans have (a tie: the laser seen first),
-    so that one odd scan, even the first, costs only itself."""
-    lasers: list[list] = []  # [a scan of the laser, how many scans have it], in order of first appearance
-    for scan in scans:
-        laser = next((laser for laser in lasers if _same_laser(scan, laser[0])), None)
-        if laser is None:
-            lasers.append([scan, 1])
-        else:
-            laser[1] += 1
-    return max(lasers, key=lambda laser: laser[1])[0]
+def _laser_mounts(
+    got: _Decoded, base_frame: str | None, path: Path
+) -> tuple[dict[str, tuple[float, float, float] | str], str]:
+    """Per laser frame of the scans, its pose (x m, y m, yaw rad) on the robot from the /tf_static chain up to
+    ``base_frame`` (None: the root of the chain of the frame most scans have; a tie: the frame seen first), or,
+    for a frame no chain links to it, the reason; and the base frame. Raises :class:`LogFormatError` when the
+    frame most scans have is not linked."""
+    counts: dict[str, int] = {}
+    for scan in got.scans:
+        counts[scan[3][4]] = counts.get(scan[3][4], 0) + 1
+    frames = sorted(counts, key=lambda frame: -counts[frame])  # (a stable sort: ties keep their first sighting)
+    try:
+        main, base_frame = static_chain(got.tf_static, frames[0], base_frame)
+    except LogFormatError as exc:
+        raise LogFormatError(f"{path}: {exc}") from None
+    mounts: dict[str, tuple[float, float, float] | str] = {frames[0]: main}
+    for frame in frames[1:]:
+        try:
+            mounts[frame] = static_chain(got.tf_static, frame, base_frame)[0]
+        except LogFormatError as exc:
+            mounts[frame] = str(exc)
+    return mounts, base_frame
 
 
 def _odometry(got: _Decoded, odom_topic: str | None, base_frame: str, path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -293,52 +304,52 @@ def _odometry(got: _Decoded, odom_topic: str | None, base_frame: str, path: Path
 
 
 def _kept_scans(
-    got: _Decoded, first: _DecodedScan, odom_stamps: np.ndarray, topic: str, max_odom_gap: float, max_odom_hold: float
+    got: _Decoded, mounts: dict, odom_stamps: np.ndarray, topic: str, max_odom_gap: float, max_odom_hold: float
 ) -> list[_DecodedScan]:
-    """The scans of the ``first`` scan's laser with odometry around their stamps (gap and hold in s); each
-    other scan adds its reason to ``got.skipped``."""
+    """The scans whose laser frame is on the robot (``mounts``: :func:`_laser_mounts`) with odometry around
+    their stamps (gap and hold in s); each other scan adds its reason to ``got.skipped``."""
     kept = []
     for scan in got.scans:
-        number, stamp, ranges, _geometry = scan
-        if ranges.size != first[2].size:
-            got.skipped.append(Skipped(number, f"{topic}: has {ranges.size} beams, most scans {first[2].size}"))
-        elif not _same_laser(scan, first):
-            got.skipped.append(Skipped(number, f"{topic}: geometry or frame differs from most scans'"))
+        number, stamp, _ranges, geometry = scan
+        mount = mounts[geometry[4]]
+        problem = mount if isinstance(mount, str) else odometry_problem(odom_stamps, stamp, max_odom_gap, max_odom_hold)
+        if problem:
+            got.skipped.append(Skipped(number, f"{topic}: {problem}"))
         else:
-            problem = odometry_problem(odom_stamps, stamp, max_odom_gap, max_odom_hold)
-            if problem:
-                got.skipped.append(Skipped(number, f"{topic}: {problem}"))
-            else:
-                kept.append(scan)
+            kept.append(scan)
     return kept
 
 
 def _laser_log(
     path: Path,
     kept: list[_DecodedScan],
-    geometry: tuple,
-    offset: tuple[float, float, float],
+    mounts: dict,
     odom_stamps: np.ndarray,
     odom_poses: np.ndarray,
     skipped: list[Skipped],
 ) -> LaserLog:
-    """The LaserLog of the kept scans, with ``geometry`` (angle_min, angle_increment, range_min, range_max, frame)
-    and the laser's pose ``offset`` on the robot; ranges cleaned as the module docstring says."""
-    angle_min, angle_increment, range_min, range_max = geometry[:4]
+    """The LaserLog of the kept scans, each with its own geometry (angle_min, angle_increment, range_min,
+    range_max, frame) and its frame's pose on the robot (``mounts``); ranges cleaned as the module docstring
+    says."""
+    beams = np.array([k[2].size for k in kept], dtype=np.int64)
+    ranges = np.full((len(kept), int(beams.max())), PADDING, dtype=np.float32)
+    for row, scan in zip(ranges, kept):
+        row[: scan[2].size] = scan[2]
+    geometry = np.array([k[3][:4] for k in kept], dtype=np.float64)  # (T, 4)
+    padding = np.arange(ranges.shape[1]) >= beams[:, None]
+    ranges[ranges >= geometry[:, 3:4]] = np.inf
+    ranges[(np.isnan(ranges) | np.isneginf(ranges)) & ~padding] = 0.0  # invalid, or too close: below range_min
     stamps = np.array([k[1] for k in kept])
-    ranges = np.stack([k[2] for k in kept]).astype(np.float32)
-    ranges[ranges >= range_max] = np.inf
-    ranges[np.isnan(ranges) | np.isneginf(ranges)] = 0.0  # invalid, or too close: below range_min, skipped
     odometry = interpolate_poses(odom_stamps, odom_poses, stamps)
     return LaserLog(
         source=str(path),
         stamps=stamps,
         ranges=ranges,
-        angle_min=angle_min,
-        angle_increment=angle_increment,
-        range_min=max(range_min, MIN_RANGE_FLOOR),
-        range_max=range_max,
-        sensor_offset=np.array(offset),
+        angle_min=geometry[:, 0],
+        angle_increment=geometry[:, 1],
+        range_min=np.maximum(geometry[:, 2], MIN_RANGE_FLOOR),
+        range_max=geometry[:, 3],
+        sensor_offset=np.array([mounts[k[3][4]] for k in kept], dtype=np.float64),
         odometry=odometry,
         poses=odometry.copy(),
         where=np.array([k[0] for k in kept], dtype=np.int64),
@@ -346,17 +357,7 @@ def _laser_log(
         odom_poses=odom_poses,
         skipped=tuple(skipped),
         unit="message",
-    )
-
-
-def _same_laser(scan: tuple, other: tuple) -> bool:
-    """Whether two decoded scans (number, stamp, ranges, (angle_min, angle_increment, range_min, range_max, frame))
-    come from one laser: the same beam count and frame, the geometry within 1e-6 relative (float32 fields jitter)."""
-    (_, _, ranges, geometry), (_, _, other_ranges, other_geometry) = scan, other
-    return (
-        ranges.size == other_ranges.size
-        and geometry[4] == other_geometry[4]
-        and all(abs(a - b) <= 1e-9 + 1e-6 * abs(b) for a, b in zip(geometry[:4], other_geometry[:4]))
+        beams=beams,
     )
 
 
@@ -371,10 +372,9 @@ def wire_scan_problem(
             f"range_min {range_min:g} m and range_max {range_max:g} m: need 0 <= range_min < range_max and "
             f"range_max > {MIN_RANGE_FLOOR:g} m"
         )
-    if angle_increment == 0.0 and ranges.size > 1:
-        return f"angle_increment is 0 for {ranges.size} beams"
-    if max(abs(angle_min), abs(angle_increment)) > 2 * math.pi:
-        return "angle_min or angle_increment beyond a full turn"
+    problem = geometry_problem(ranges.size, angle_min, angle_increment, range_min, range_max)
+    if problem:
+        return problem
     negative = np.flatnonzero(ranges < 0)  # (-inf, "too close" in REP 117, is kept: it becomes 0, skipped)
     negative = negative[np.isfinite(ranges[negative])]
     if negative.size:

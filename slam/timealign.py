@@ -26,24 +26,24 @@ ODOMETRY_DELAY_WINDOW = 0.5
 DEFAULT_CAP = 79.0
 
 
-def _keys(ranges: np.ndarray, cap: float) -> list[bytes]:
+def _keys(log: LaserLog, cap: float) -> list[bytes]:
+    """Per scan, its own readings (its beam count of them) in cm as bytes: equal keys, equal scans."""
+    ranges = log.ranges
     finite = np.isfinite(ranges) & (ranges < cap)
     centi = np.where(finite, np.round(np.where(finite, ranges, 0.0) * 100.0), -1).astype(np.int32)
-    return [row.tobytes() for row in centi]
+    return [row[:beams].tobytes() for row, beams in zip(centi, log.beams)]
 
 
 def matching_scans(log: LaserLog, reference: LaserLog, cap: float = DEFAULT_CAP) -> tuple[np.ndarray, np.ndarray]:
-    """Indices (P,), (P,) of the scans of ``log`` and ``reference`` with the same ranges, each unique in
-    both logs, in time order in both."""
-    if log.ranges.shape[1] != reference.ranges.shape[1]:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    """Indices (P,), (P,) of the scans of ``log`` and ``reference`` with the same ranges (the same beam count
+    and readings), each unique in both logs, in time order in both."""
     ref_index: dict[bytes, int] = {}
     ref_dupes: set[bytes] = set()
-    for i, key in enumerate(_keys(reference.ranges, cap)):
+    for i, key in enumerate(_keys(reference, cap)):
         if key in ref_index:
             ref_dupes.add(key)
         ref_index[key] = i
-    own_keys = _keys(log.ranges, cap)
+    own_keys = _keys(log, cap)
     counts: dict[bytes, int] = {}
     for key in own_keys:
         counts[key] = counts.get(key, 0) + 1

@@ -289,16 +289,12 @@ def test_finest_start_without_merging_is_the_regular_grid():
     posed = room_posed_scans(steps=4, beams=90, gaussian=False, particles=6)
     model = SensorModel(resolution=RES)
     grid = AdaptiveGrid(RES)
+    angles, range_min, range_max, _ = posed.single_geometry()
     adaptive = AdaptiveFusion(
-        grid,
-        model,
-        posed.beam_angles,
-        posed.range_min,
-        posed.range_max,
-        params=AdaptiveParams(start_level=0, merge=NEVER_MERGE),
+        grid, model, angles, range_min, range_max, params=AdaptiveParams(start_level=0, merge=NEVER_MERGE)
     )
     regular = TiledGrid(RES)
-    fusion = MonteCarloFusion(regular, model, posed.beam_angles, posed.range_min, posed.range_max)
+    fusion = MonteCarloFusion(regular, model, angles, range_min, range_max)
     for t in range(4):
         adaptive.fuse(posed.ranges[t], posed.poses.samples[t], posed.poses.weights[t])
         fusion.fuse(posed.ranges[t], posed.poses.samples[t], posed.poses.weights[t])
@@ -311,15 +307,16 @@ def test_finest_start_without_merging_is_the_regular_grid():
 def test_a_coarse_cell_holds_the_mean_of_the_regular_grids_cells():
     posed = room_posed_scans(steps=1, beams=90, gaussian=False, particles=6)
     model = SensorModel(resolution=RES)
+    angles, range_min, range_max, _ = posed.single_geometry()
     grid = fused(
         AdaptiveParams(start_level=3, merge=NEVER_MERGE),
         [(posed.ranges[0], posed.poses.samples[0], posed.poses.weights[0])],
-        posed.beam_angles,
-        posed.range_max,
+        angles,
+        range_max,
         model,
     )
     regular = TiledGrid(RES)
-    MonteCarloFusion(regular, model, posed.beam_angles, posed.range_min, posed.range_max).fuse(
+    MonteCarloFusion(regular, model, angles, range_min, range_max).fuse(
         posed.ranges[0], posed.poses.samples[0], posed.poses.weights[0]
     )
     raster = regular.rasterize()

@@ -107,4 +107,4 @@ def test_select_scans_keeps_each_scan_with_its_own_pose_distribution_in_either_f
         np.testing.assert_array_equal(picked.ranges[:, 0], [0.0, 8.0, 16.0])
         for key, value in picked.poses.arrays().items():
             np.testing.assert_array_equal(value, poses.arrays()[key][[0, 4, 8]])
-        assert picked.poses.is_gaussian == poses.is_gaussian and picked.range_max == 5.0
+        assert picked.poses.is_gaussian == poses.is_gaussian and (picked.range_max == 5.0).all()

@@ -34,13 +34,13 @@ def test_flaser_fields_geometry_and_no_return(tmp_path):
     np.testing.assert_allclose(log.odometry[0], [1.1, 1.2, 1.3])
     assert log.stamps[0] == 100.5
     assert log.where.tolist() == [2]
-    np.testing.assert_array_equal(log.sensor_offset, [0.0, 0.0, 0.0])
+    np.testing.assert_array_equal(log.sensor_offset, [[0.0, 0.0, 0.0]])
 
 
 def test_even_beam_count_drops_one_end(tmp_path):
     log = read_carmen(write(tmp_path, ["FLASER 4 1 1 1 1 0 0 0 0 0 0 5.0 h 5.0"]))
     assert log.angle_increment == pytest.approx(math.pi / 4)
-    np.testing.assert_allclose(log.beam_angles, [-math.pi / 2, -math.pi / 4, 0.0, math.pi / 4])
+    np.testing.assert_allclose(log.beam_angles(0), [-math.pi / 2, -math.pi / 4, 0.0, math.pi / 4])
 
 
 def test_params_set_geometry_offset_and_range_max(tmp_path):
@@ -57,7 +57,7 @@ def test_params_set_geometry_offset_and_range_max(tmp_path):
     assert log.range_max == 2.0
     # 2.5 >= 2.0 is a max reading now
     np.testing.assert_array_equal(log.ranges[0], np.array([1.0, np.inf, np.inf], np.float32))
-    np.testing.assert_allclose(log.sensor_offset, [0.25, 0.0, 0.0])
+    np.testing.assert_allclose(log.sensor_offset, [[0.25, 0.0, 0.0]])
     assert log.params["robot_frontlaser_offset"] == "0.25"
 
 
@@ -69,7 +69,7 @@ def test_broken_lines_are_skipped_with_line_numbers_and_never_shift(tmp_path):
         "FLASER 3 1.0 nan 3.0 0.1 0.2 0.3 1.1 1.2 1.3 103.0 host 3.0",  # 4: NaN range
         "FLASER 3 1.0 -2 3.0 0.1 0.2 0.3 1.1 1.2 1.3 104.0 host 4.0",  # 5: negative range
         "FLASER x 1.0 2.0 3.0 0.1 0.2 0.3 1.1 1.2 1.3 105.0 host 5.0",  # 6: beam count not an integer
-        "FLASER 4 1.0 2.0 3.0 4.0 0.1 0.2 0.3 1.1 1.2 1.3 106.0 host 6.0",  # 7: other beam count
+        "FLASER 4 1.0 2.0 3.0 4.0 0.1 0.2 0.3 1.1 1.2 1.3 106.0 host 6.0",  # 7: another beam count: kept
         "FLASER 3 1.0 2.0 3.0 0.1 0.2 inf 1.1 1.2 1.3 107.0 host 7.0",  # 8: pose not finite
         "ODOM 1 2 3 0 0 0 108.0 host",  # 9: ODOM one field short
         "PARAM lonely",  # 10: PARAM without a value
@@ -79,21 +79,24 @@ def test_broken_lines_are_skipped_with_line_numbers_and_never_shift(tmp_path):
         "NEFF 12",  # another record type: passed over
     ]
     log = read_carmen(write(tmp_path, lines))
-    assert log.where.tolist() == [1, 11]
-    assert [s.where for s in log.skipped] == [2, 3, 4, 5, 6, 7, 8, 9, 10, 12]
+    assert log.where.tolist() == [1, 7, 11]
+    assert [s.where for s in log.skipped] == [2, 3, 4, 5, 6, 8, 9, 10, 12]
     reasons = {s.where: s.reason for s in log.skipped}
     assert "needs 14 fields, has 13" in reasons[2]
     assert "'abc' is not a number" in reasons[3]
     assert "range 2 is nan" in reasons[4]
     assert "range 2 is -2.0" in reasons[5]
-    assert "has 4 beams, the log's first scan 3" in reasons[7]
     assert reasons[9].startswith("ODOM")
-    np.testing.assert_array_equal(log.ranges[1], [4.0, 5.0, 6.0])
-    np.testing.assert_allclose(log.poses[1], [7.1, 7.2, 7.3])
-    np.testing.assert_allclose(log.odometry[1], [8.1, 8.2, 8.3])
-    assert log.stamps.tolist() == [100.5, 109.0]
+    np.testing.assert_array_equal(log.ranges[2, :3], [4.0, 5.0, 6.0])
+    np.testing.assert_allclose(log.poses[2], [7.1, 7.2, 7.3])
+    np.testing.assert_allclose(log.odometry[2], [8.1, 8.2, 8.3])
+    assert log.stamps.tolist() == [100.5, 106.0, 109.0]
+    # the 4-beam scan keeps its own count (its step follows from it: 180 / 4 deg), the others theirs
+    assert log.beams.tolist() == [3, 4, 3]
+    assert log.angle_increment == pytest.approx([math.pi / 2, math.pi / 4, math.pi / 2])
+    assert np.isnan(log.ranges[0, 3]) and log.scan_ranges(0).tolist() == [1.0, 2.5, np.inf]
     summary = log.skipped_summary(limit=2)
-    assert "skipped 10 lines" in summary and "line 2:" in summary and "and 8 more" in summary
+    assert "skipped 9 lines" in summary and "line 2:" in summary and "and 7 more" in summary
 
 
 def robotlaser(
@@ -140,25 +143,29 @@ def test_robotlaser_fields_and_offset(tmp_path):
     np.testing.assert_array_equal(log.ranges[0], np.array([1.0, 2.0, np.inf], np.float32))
     np.testing.assert_allclose(log.odometry[0], [1.0, 2.0, math.pi / 2])
     # the laser is 0.3 m along world +y from a robot facing +y: 0.3 m ahead in the robot frame
-    np.testing.assert_allclose(log.sensor_offset, [0.3, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(log.sensor_offset, [[0.3, 0.0, 0.0]], atol=1e-12)
     assert log.stamps[0] == 50.25
 
 
-def test_robotlaser_preferred_over_flaser_and_geometry_checked(tmp_path):
+def test_robotlaser_preferred_over_flaser_and_each_line_keeps_its_geometry(tmp_path):
     lines = [
         GOOD_FLASER,
         robotlaser(),
         robotlaser(res=0.5),
         robotlaser(ranges=(1.0, 2.0)),
         robotlaser(remissions=(1.0,))[:-4],
+        robotlaser(res=0.0),  # every beam one way: unusable in itself
+        robotlaser(start=7.0),  # beyond a full turn
     ]
     log = read_carmen(write(tmp_path, lines))
-    assert log.where.tolist() == [2]
+    assert log.where.tolist() == [2, 3, 4]
+    assert log.angle_increment.tolist() == [1.0, 0.5, 1.0] and log.beams.tolist() == [3, 3, 2]
+    np.testing.assert_allclose(log.beam_angles(1), [-1.0, -0.5, 0.0])
     reasons = {s.where: s.reason for s in log.skipped}
-    assert set(reasons) == {3, 4, 5}
-    assert "laser parameters differ" in reasons[3]
-    assert "has 2 beams" in reasons[4]
+    assert set(reasons) == {5, 6, 7}
     assert "needs 28 fields, has 27" in reasons[5]
+    assert "angle_increment is 0 for 3 beams" in reasons[6]
+    assert "beyond a full turn" in reasons[7]
 
 
 def test_gzip_and_truncated_gzip(tmp_path):
@@ -214,10 +221,10 @@ def test_writer_round_trip(tmp_path, record, suffix):
     log = read_carmen(path)
     assert len(log) == steps and log.skipped == ()
     assert log.angle_min == pytest.approx(angle_min) and log.angle_increment == pytest.approx(step)
-    assert log.range_max == 8.0
+    assert (log.range_max == 8.0).all()
     np.testing.assert_allclose(log.stamps, stamps, atol=1e-6)
     np.testing.assert_allclose(log.odometry, odometry, atol=1e-6)
-    np.testing.assert_allclose(log.sensor_offset, offset, atol=1e-5)
+    np.testing.assert_allclose(log.sensor_offset, np.tile(offset, (steps, 1)), atol=1e-5)
     expected = np.where(np.isfinite(ranges) & (ranges < 8.0), ranges, np.inf)
     np.testing.assert_allclose(log.ranges, expected, atol=1e-5)
 
@@ -257,7 +264,7 @@ def test_real_corrected_logs(name, scans, beams, odom, offset):
     log = read_carmen(shared_file(name))
     assert log.ranges.shape == (scans, beams) and log.skipped == ()
     assert len(log.odom_stamps) == odom
-    assert log.sensor_offset[0] == pytest.approx(offset)
+    assert log.sensor_offset[:, 0] == pytest.approx(offset)
     # corrected logs repeat the pose: x y theta equals odom_*
     np.testing.assert_array_equal(log.poses, log.odometry)
 
@@ -298,7 +305,7 @@ def test_the_rear_laser_faces_backwards(tmp_path):
     ]
     log = read_carmen(write(tmp_path, lines), laser="rear")
     assert log.where.tolist() == [2]
-    np.testing.assert_allclose(log.sensor_offset, [-0.2, 0.0, math.pi])
+    np.testing.assert_allclose(log.sensor_offset, [[-0.2, 0.0, math.pi]])
     np.testing.assert_array_equal(log.ranges[0], [1.0, 2.0, 3.0])
 
 
@@ -311,7 +318,7 @@ def test_robotlaser_offset_is_the_median_over_the_scans(tmp_path):
     ]
     log = read_carmen(write(tmp_path, lines))
     assert len(log) == 3
-    np.testing.assert_allclose(log.sensor_offset, [0.3, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(log.sensor_offset, [[0.3, 0.0, 0.0]] * 3, atol=1e-12)
 
 
 def test_a_non_positive_flaser_resolution_is_a_log_format_error(tmp_path):

@@ -25,25 +25,29 @@ def standard_bag(ros2: bool = False, odometry_on_tf: bool = False) -> BagBuilder
             bag.odom(stamp, x, y, yaw)
     bag.scan(0.5, [1.0, 2.0, 3.0])  # message 3
     bag.scan(1.5, [4.0, 12.0, np.nan])  # message 5
-    bag.scan(1.6, [4.0, 5.0])  # message 6: two beams instead of three
+    bag.scan(1.6, [4.0, 5.0])  # message 6: two beams instead of three, read with its own geometry
     bag.scan(2.3, [7.0, 8.0, 9.0])  # message 8: 0.3 s after the last odometry, end pose held
     bag.scan(3.0, [7.0, 8.0, 9.0])  # message 9: 1.0 s after: skipped
     return bag
 
 
 def check_standard(log):
-    assert log.where.tolist() == [3, 5, 8]
-    assert [s.where for s in log.skipped] == [6, 9]
-    assert "has 2 beams" in log.skipped[0].reason and "outside the odometry" in log.skipped[1].reason
-    np.testing.assert_allclose(log.stamps, [0.5, 1.5, 2.3])
+    assert log.where.tolist() == [3, 5, 6, 8]
+    assert [s.where for s in log.skipped] == [9]
+    assert "outside the odometry" in log.skipped[0].reason
+    np.testing.assert_allclose(log.stamps, [0.5, 1.5, 1.6, 2.3])
+    assert log.beams.tolist() == [3, 3, 2, 3]
     assert log.angle_min == pytest.approx(-1.0) and log.angle_increment == pytest.approx(0.5)
     assert log.range_min == pytest.approx(0.1) and log.range_max == pytest.approx(10.0)
-    np.testing.assert_allclose(log.sensor_offset, [0.1, 0.0, math.pi / 2], atol=1e-12)
+    np.testing.assert_allclose(log.sensor_offset, [[0.1, 0.0, math.pi / 2]] * 4, atol=1e-12)
     # halfway between (0,0,0) and (1,0,pi/2); then between (1,0,pi/2) and (1,2,-3) the short way over pi
-    yaw = 0.5 * (math.pi / 2 + (-3.0 + 2 * math.pi))  # 2.427 rad, below pi
-    np.testing.assert_allclose(log.odometry, [[0.5, 0.0, math.pi / 4], [1.0, 1.0, yaw], [1.0, 2.0, -3.0]], atol=1e-9)
+    later = -3.0 + 2 * math.pi  # -3 rad unwrapped after pi/2
+    yaw = 0.5 * (math.pi / 2 + later)  # 2.427 rad, below pi
+    expected = [[0.5, 0.0, math.pi / 4], [1.0, 1.0, yaw], [1.0, 1.2, math.pi / 2 + 0.6 * (later - math.pi / 2)]]
+    np.testing.assert_allclose(log.odometry, [*expected, [1.0, 2.0, -3.0]], atol=1e-9)
     np.testing.assert_array_equal(log.ranges[1, :2], [4.0, np.inf])
     assert log.ranges[1, 2] == 0.0  # NaN, invalid: below range_min, skipped (REP 117)
+    assert log.scan_ranges(2).tolist() == [4.0, 5.0] and np.isnan(log.ranges[2, 2])  # the padding stays NaN
 
 
 def test_ros1_bag_with_odometry(tmp_path):
@@ -62,9 +66,9 @@ def test_undecodable_message_is_skipped(tmp_path):
     bag = standard_bag()
     bag.raw(1.7, "/scan", "sensor_msgs/msg/LaserScan", b"\x01\x02\x03")
     log = read_rosbag(bag.write(tmp_path / "a.bag"))
-    assert log.where.tolist() == [3, 5, 9]
+    assert log.where.tolist() == [3, 5, 6, 9]
     bad = {s.where: s.reason for s in log.skipped}
-    assert set(bad) == {6, 7, 10} and "does not decode" in bad[7]
+    assert set(bad) == {7, 10} and "does not decode" in bad[7]
 
 
 def test_scans_the_wire_refuses_are_skipped_by_the_reader(tmp_path):
@@ -105,7 +109,7 @@ def test_invalid_and_too_close_readings_clear_no_free_space(tmp_path):
     bag.scan(0.5, [np.nan, -np.inf, np.inf, 10.0, 2.0], range_min=0.0)
     log = read_rosbag(bag.write(tmp_path / "a.bag"))
     assert log.range_min == 1e-3 and log.ranges[0].tolist() == [0.0, 0.0, np.inf, np.inf, 2.0]
-    kinds = beam_table(log.ranges[0], SensorModel(), log.range_min, log.range_max).kind
+    kinds = beam_table(log.ranges[0], SensorModel(), log.range_min[0], log.range_max[0]).kind
     assert kinds.tolist() == [BEAM_SKIP, BEAM_SKIP, BEAM_NO_RETURN, BEAM_NO_RETURN, BEAM_HIT]
 
 
@@ -142,9 +146,9 @@ def test_a_bag_whose_scans_are_all_refused_says_why(tmp_path):
         read_rosbag(bag.write(tmp_path / "a.bag"))
 
 
-def test_float32_jitter_in_the_geometry_is_one_laser(tmp_path):
-    """Scans whose increments differ by a float32 ulp are one laser (within 1e-6), counted together when the reader
-    picks the laser most scans have: 3 x 4 jittered scans of 3 beams outnumber 5 of 2 beams."""
+def test_every_scan_keeps_its_own_geometry_jittered_or_not(tmp_path):
+    """Scans whose increments differ by a float32 ulp, and scans of another beam count, are all read, each with the
+    geometry its message gives."""
     bag = BagBuilder()
     for t in range(20):
         bag.odom(float(t), float(t), 0.0, 0.0)
@@ -155,16 +159,19 @@ def test_float32_jitter_in_the_geometry_is_one_laser(tmp_path):
     for i in range(5):
         bag.scan(13.5 + i, [1.0, 2.0])
     log = read_rosbag(bag.write(tmp_path / "a.bag"))
-    assert len(log) == 12 and log.ranges.shape[1] == 3 and len(log.skipped) == 5
+    assert len(log) == 17 and log.ranges.shape[1] == 3 and log.skipped == ()
+    assert log.beams.tolist() == [3] * 12 + [2] * 5
+    expected = [float(np.float32(increments[i % 3])) for i in range(12)] + [0.5] * 5
+    assert log.angle_increment.tolist() == expected
 
 
-def test_one_odd_first_scan_costs_only_itself(tmp_path):
-    """The laser is what most scans have: a first scan of 2 beams among scans of 3 is skipped, not the rest."""
+def test_an_odd_first_scan_is_read_with_its_own_beam_count(tmp_path):
+    """A first scan of 2 beams among scans of 3 is read, and so are the others."""
     bag = standard_bag()
     bag.scan(0.2, [1.0, 2.0])
     log = read_rosbag(bag.write(tmp_path / "a.bag"))
-    assert len(log) == 3 and log.ranges.shape[1] == 3
-    assert [s.reason for s in log.skipped if "beams" in s.reason] == ["/scan: has 2 beams, most scans 3"] * 2
+    assert len(log) == 5 and log.beams.tolist() == [2, 3, 3, 2, 3]
+    assert not [s for s in log.skipped if "beams" in s.reason]
 
 
 def test_odometry_gap_limit(tmp_path):
@@ -222,7 +229,7 @@ def test_real_mit_csail_bag_matches_the_clf():
 def test_real_bag(name, scans, beams, offset):
     log = read_rosbag(shared_file(name))
     assert log.ranges.shape == (scans, beams) and log.skipped == ()
-    assert log.sensor_offset[0] == pytest.approx(offset)
+    assert log.sensor_offset[:, 0] == pytest.approx(offset)
     assert np.all(np.diff(log.stamps) > 0)
 
 
@@ -261,4 +268,4 @@ def test_odometry_and_transforms_beyond_the_pose_limit_are_skipped(tmp_path):
     reasons = {s.where: s.reason for s in log.skipped}
     assert "beyond +-1e+07 m" in reasons[5] and "beyond +-1e+07 m" in reasons[8]
     assert np.abs(log.odometry[:, :2]).max() <= 2.0
-    np.testing.assert_allclose(log.sensor_offset, [0.1, 0.0, math.pi / 2], atol=1e-12)
+    np.testing.assert_allclose(log.sensor_offset, [[0.1, 0.0, math.pi / 2]] * len(log), atol=1e-12)
