@@ -2,20 +2,20 @@
 
 The parameters are those of the calibration: the command delay, the executed-speed scale (k_v, k_w) and yaw-rate
 bias b_w, the range calibration's bearing term c2 and the bearing bias, the velocity motion noise (a1, a2, a4 and
-the yaw-rate floor) and the range-bearing noise (sigma_r, range fraction, sigma_bearing). They are fitted by
-maximum likelihood on the innovations of the right-invariant EKF-SLAM with known ids (the prediction-error
-decomposition: each measurement's innovation nu with covariance S contributes (d^2 + log det S) / 2 to the
-negative log likelihood, d^2 = nu^T S^-1 nu; a Huber bound on d^2 keeps outliers from steering the fit), with
-Powell's method on transformed parameters (logs of the positive ones), each evaluation one compiled EKF pass
-(slam.kernels.ekf_likelihood_pass). The command delay is chosen on a grid (it needs the commands re-cut).
+the floors) and the range-bearing noise (sigma_r, range fraction, sigma_bearing). The filters' own estimate stands
+in for the ground truth (:func:`self_calibrate`, several rounds): the command delay is the one on a grid whose
+right-invariant EKF-SLAM pass (slam.kernels.ekf_likelihood_pass) has the highest innovation likelihood (the
+prediction-error decomposition: each measurement's innovation nu with covariance S contributes (d^2 + log det S) / 2
+to the negative log likelihood, d^2 = nu^T S^-1 nu, with a Huber bound on d^2); the trajectory is then smoothed
+against that pass's map, and the speed scales, the motion noise (over windows of several lengths, so that the noise,
+which grows with a window's length, is told from the estimate's own error, which does not) and the sensor's
+corrections and noise are fitted against it, as one would fit them against ground truth.
 
 Two quantities cannot be had from the data alone. The overall scale: scaling every range and the speed together
 changes no bearing and no turn, so the range calibration's c0 stays 1 and k_v is the speed scale relative to the
 ranges. And the measurement errors' correlation in time, which makes fusing them as independent overconfident
-however well the innovations fit: the innovations of one landmark's consecutive measurements then correlate, and
-the fitted range and bearing variances are multiplied by their integrated autocorrelation (1 + 2 sum of the
-correlations at lags 1, 2, ..., while they stay positive), the number of measurements that carry one
-measurement's worth of independent information.
+however well the innovations fit: the fitted range and bearing variances are multiplied by the number of
+measurements that carry one measurement's worth of independent information (:func:`error_correlation`).
 """
 
 from __future__ import annotations
@@ -46,11 +46,17 @@ DELAY_GRID = tuple(round(0.05 * k, 2) for k in range(9))
 SMOOTHING_MOTION_SCALE = 4.0
 #: the least data a fit takes: s of data, measurements of landmarks seen more than once, short windows of motion
 MIN_SECONDS, MIN_MEASUREMENTS, MIN_WINDOWS = 30.0, 50, 10
-#: the fitted motion variances are multiplied by this factor (see docs/slam.md, "Self-calibration")
+#: the fitted motion variances are multiplied by this factor: the filters take the corrections as exact, and their
+#: errors (a turn-rate scale off by 2 %, a delay off by a grid step) and errors that last a manoeuvre act as motion
+#: noise that the white model lacks. Chosen among 1-6 on the simulated robots of bench/slam.py at seeds 3-6, which
+#: the benchmark does not score (docs/slam.md, "Self-calibration")
 MOTION_FACTOR = 3.0
 #: s: windows of the speed scale and the along-track noise, and of the yaw noise; a window starts every
-#: length / WINDOW_OVERLAP s
-SHORT_WINDOW, LONG_WINDOW = 4.0, 16.0
+#: length / WINDOW_OVERLAP s. Several lengths, so that the fits can tell the motion noise (whose variance grows with
+#: a window's length) from the estimate's own error (the same at every length)
+SHORT_WINDOWS, LONG_WINDOWS = (2.0, 4.0, 8.0), (8.0, 16.0, 32.0)
+#: s: the window length of the least-data check (:func:`check_enough`)
+SHORT_WINDOW = 4.0
 WINDOW_OVERLAP = 8
 #: a landmark's consecutive measurements farther apart than this (s) start a new track for the autocorrelation
 TRACK_GAP = 3.0
@@ -292,6 +298,13 @@ def measure_windows(data: FitData, poses: np.ndarray, calibration: Calibration, 
     return Windows(*(table[:, k] for k in range(7)))
 
 
+def windows_of(data: FitData, poses: np.ndarray, calibration: Calibration, lengths: tuple[float, ...]) -> Windows:
+    """The windows of every length in ``lengths`` (s) of ``data`` against the estimated poses (T, 3), one table
+    (:func:`measure_windows`)."""
+    parts = [measure_windows(data, poses, calibration, length) for length in lengths]
+    return Windows(*(np.concatenate([getattr(part, name) for part in parts]) for name in Windows.__dataclass_fields__))
+
+
 def _nonnegative_fit(columns: np.ndarray, target: np.ndarray) -> np.ndarray:
     """Non-negative least squares of ``target`` on ``columns``, refitted once without the rows whose target
     exceeds ten times the first fit's value (windows spoiled by an estimate's jump)."""
@@ -307,7 +320,10 @@ def fit_motion(short: Windows, long: Windows, dt_ref: float) -> dict[str, float]
     (yaw change against the commanded one and the time moving), from the short windows; the motion noise by
     non-negative least squares of the squared residuals on the model's variance terms: along-track (a1, a2,
     floor_v and an intercept for the estimate's own noise) from the short windows, yaw (a3, a4, floor_w,
-    intercept) from the long ones, where rotation errors that persist over a manoeuvre show."""
+    intercept) from the long ones, where rotation errors that persist over a manoeuvre show. The windows come in
+    several lengths (:data:`SHORT_WINDOWS`, :data:`LONG_WINDOWS`): the model's variances grow with a window's
+    length and the intercept does not, which is what separates them (with one length a robot that drives at one
+    speed makes them collinear, and the fit gave the noise to the intercept)."""
     moving = short.chord > 1e-3
     k_v = float(np.sum(short.along[moving] * short.chord[moving]) / max(np.sum(short.chord[moving] ** 2), 1e-12))
     design = np.column_stack([short.turn_cmd, short.moving])
@@ -498,8 +514,8 @@ def _em_step(data: FitData, calibration: Calibration, delay: float) -> tuple[Cal
     its correlation), the measurement noise before the inflation, and the fitted values."""
     trajectory = _estimate(data, calibration)
     values = fit_motion(
-        measure_windows(data, trajectory.poses, calibration, SHORT_WINDOW),
-        measure_windows(data, trajectory.poses, calibration, LONG_WINDOW),
+        windows_of(data, trajectory.poses, calibration, SHORT_WINDOWS),
+        windows_of(data, trajectory.poses, calibration, LONG_WINDOWS),
         calibration.motion.dt_ref,
     )
     values.update(fit_sensor(data, trajectory, calibration))

@@ -26,7 +26,7 @@ from slam.motion import VelocityMotionModel, local_motion
 from slam.mrclam import mrclam_sequence, read_mrclam
 from slam.mrclam_sim import simulate_mrclam_robot, write_mrclam_folder
 from slam.range_bearing import RangeBearingModel
-from slam.selfcal import FitData, likelihood_pass, self_calibrate
+from slam.selfcal import LONG_WINDOWS, SHORT_WINDOWS, FitData, fit_motion, likelihood_pass, self_calibrate, windows_of
 from slam.sequence import run_filter
 
 #: a robot unlike MRCLAM's: commands executed 0.15 s late at 93 % of the speed and 105 % of the turn rate, a
@@ -124,6 +124,42 @@ def test_self_calibration_recovers_the_robots_corrections_and_noise(robot):
     assert last["sigma_range"] + 4.0 * last["range_fraction"] == pytest.approx(0.08, rel=0.3)  # at a typical 4 m
     assert 0.05 / 2.5 < last["a4"] < 0.05 * 2.5
     assert found.scale_sd == GENERIC.scale_sd  # the map's scale is not in the data
+
+
+def _straight_drive(seed: int, steps: int, a1: float, estimate_sd: float) -> tuple[FitData, np.ndarray]:
+    """A robot commanded straight on at 0.15 m/s for ``steps`` steps of 0.1 s, executing the speed with the velocity
+    model's a1 noise (dt_ref 0.1 s), and an estimate of its poses (T, 3) off by white noise of ``estimate_sd`` m
+    per step (the estimate's own error, which does not grow with time)."""
+    rng = np.random.default_rng(seed)
+    dt, v = 0.1, 0.15
+    driven = v * dt + rng.normal(0.0, np.sqrt(a1 * v**2 * 0.1 * dt), steps - 1)
+    along = np.concatenate([[0.0], np.cumsum(driven)])
+    poses = np.column_stack([along, np.zeros(steps), np.zeros(steps)])
+    poses[:, :2] += rng.normal(0.0, estimate_sd, (steps, 2))
+    controls = np.column_stack([np.full(steps - 1, v), np.zeros(steps - 1), np.full(steps - 1, dt)])
+    data = FitData(
+        stamps=np.arange(steps) * dt, controls=controls, control_ptr=np.arange(steps), measurements=np.zeros((0, 2)),
+        slot=np.zeros(0, dtype=np.int64), measurement_ptr=np.zeros(steps, dtype=np.int64), initial_pose=np.zeros(3),
+        n_slots=0, measurement_time=np.zeros(0),
+    )  # fmt: skip
+    return data, poses
+
+
+def test_the_motion_fit_tells_the_motion_noise_from_the_estimates_own_error():
+    """At one speed, the along-track noise (a1 v^2 + floor_v, per dt_ref) and the estimate's own error are collinear in
+    windows of one length: all of it went to the intercept. With the windows of several lengths that the
+    self-calibration measures, the noise grows with the length and the estimate's error does not."""
+    data, poses = _straight_drive(seed=0, steps=12_000, a1=0.1, estimate_sd=0.03)
+    truth = 0.1 * 0.15**2
+
+    def along_track_noise(lengths: tuple[float, ...]) -> float:
+        fit = fit_motion(
+            windows_of(data, poses, Calibration(), lengths), windows_of(data, poses, Calibration(), LONG_WINDOWS), 0.1
+        )
+        return fit["a1"] * 0.15**2 + fit["floor_v"]
+
+    assert along_track_noise(SHORT_WINDOWS) == pytest.approx(truth, rel=0.35)
+    assert along_track_noise((4.0,)) < truth / 3.0
 
 
 def test_calibrate_writes_a_file_that_slam_reads(robot, tmp_path, capsys):
