@@ -23,6 +23,7 @@ SUITES = (
     "bench.pipeline",
     "bench.api",
     "bench.slam",
+    "bench.gridslam",
     "bench.chaos",
     "bench.persist",
     "bench.ros2",

@@ -18,7 +18,7 @@ from typing import TypeVar, overload
 import numpy as np
 
 from schemas.files import WEIGHT_SUM_TOLERANCE
-from schemas.wire import Array, Counts, Float, Int, Message, MessageError, Name, Rule, decode, spec
+from schemas.wire import Array, Counts, Figures, Float, Int, Message, MessageError, Name, Rule, decode, spec
 
 #: robot names that would collide with other key-space roots (``pg/map/...``)
 RESERVED_ROBOT_NAMES = ("map",)
@@ -307,7 +307,7 @@ class NodeStats(Message):
     """What a SLAM node has done. The reply to a query on pg/<robot>/slam/stats."""
 
     TYPE = "NodeStats"
-    VERSION = 2
+    VERSION = 3  # 3: health
 
     robot: str = spec(ROBOT)
     algorithm: str = spec(Name("SLAM algorithm the node runs"))
@@ -330,6 +330,15 @@ class NodeStats(Message):
             "landmark filters' consistency watch: measurements whose NIS it took, of them dropped by the gate, and "
             "how often it inflated or deflated the noise; empty for grid FastSLAM"
         )
+    )
+    health: dict = spec(
+        Figures(
+            "grid FastSLAM: the health of the last integrated scan (slam.gridslam.health.ScanHealth: matched, "
+            "score_z, ess, particles, spread_xy m, spread_yaw rad, sigma_xy m, sigma_yaw rad, fallbacks, failed, "
+            "widened, resampled, next_particles; flags 0 or 1; a value not yet known is left out) and of the run so "
+            "far (scans, failed_scans); empty for the landmark filters"
+        ),
+        default_factory=dict,
     )
 
 

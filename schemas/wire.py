@@ -191,6 +191,27 @@ class Counts(Spec):
 
 
 @dataclass(frozen=True)
+class Figures(Spec):
+    """A map from text labels to finite numbers."""
+
+    def to_wire(self, value):
+        return {str(k): float(v) for k, v in value.items()}
+
+    def from_wire(self, name, value, ctx):
+        if not isinstance(value, dict):
+            ctx.fail("field_type", f"'{name}' must be a map of numbers, got {type(value).__name__}")
+        for key, number in value.items():
+            if not isinstance(key, str) or isinstance(number, bool) or not isinstance(number, (int, float)):
+                ctx.fail("field_type", f"'{name}' must map text to numbers, got {key!r}: {number!r}")
+            if not math.isfinite(number):
+                ctx.fail("range", f"'{name}[{key}]' = {number} is not finite")
+        return {key: float(number) for key, number in value.items()}
+
+    def json_schema(self):
+        return {"type": "object", "description": self.doc, "additionalProperties": {"type": "number"}}
+
+
+@dataclass(frozen=True)
 class Array(Spec):
     """A NumPy array of a fixed dtype and shape pattern.
 

@@ -14,8 +14,9 @@ from pathlib import Path
 
 from services.commands.argtypes import check_outputs, checked_output, finite_float, odom_delay_seconds
 
-#: grid FastSLAM particles when --particles is not given
-DEFAULT_GRID_PARTICLES = 30
+#: grid FastSLAM particles when --particles is not given: the least KLD-sampling keeps (GridSlamConfig.particle_cap
+#: the most)
+DEFAULT_GRID_PARTICLES = 25
 
 #: --odom-delay auto runs the filter over this much of the log's start (s) to estimate the delay
 AUTO_DELAY_SECONDS = 120.0
@@ -45,6 +46,7 @@ FILTER_OPTIONS = (
     ("--grid-resolution", "resolution"),
     ("--min-range", "min_range"),
     ("--prior-cap", "prior_cap"),
+    ("--particle-cap", "particle_cap"),
 )
 
 
@@ -83,13 +85,15 @@ def add_filter_options(group: argparse._ArgumentGroup, label: str = "") -> None:
         f"{defaults.min_range:g}, or the sensor's if larger)",
         "--prior-cap": "squared Mahalanobis distance from the odometry beyond which the scan matcher stops weighing "
         f"the odometry (default {defaults.prior_cap:g}; larger trusts the odometry more)",
+        "--particle-cap": "the most particles KLD-sampling grows the set to while the scans leave the pose open "
+        f"(--particles is the least; default {defaults.particle_cap}; at most --particles: a fixed count)",
     }
     for option, _ in FILTER_OPTIONS:
         group.add_argument(
             option,
-            type=finite_float,
+            type=int if option == "--particle-cap" else finite_float,
             default=None,
-            metavar="D2" if option == "--prior-cap" else None,
+            metavar={"--prior-cap": "D2", "--particle-cap": "N"}.get(option),
             help=label + helps[option],
         )
 
@@ -154,11 +158,12 @@ def gridslam_config(args: argparse.Namespace):
         if value is not None:
             overrides[field] = value
     config = replace(GridSlamConfig(), **overrides)
-    if config.particles > MAX_GRID_PARTICLES:
-        raise UsageError(
-            f"--particles for grid FastSLAM must be at most {MAX_GRID_PARTICLES} (each particle keeps a "
-            f"map), got {config.particles}"
-        )
+    for option, count in (("--particles", config.particles), ("--particle-cap", config.particle_cap)):
+        if count > MAX_GRID_PARTICLES:
+            raise UsageError(
+                f"{option} for grid FastSLAM must be at most {MAX_GRID_PARTICLES} (each particle keeps a map), "
+                f"got {count}"
+            )
     low, high = GRID_RESOLUTION_LIMITS
     if not low <= config.resolution <= high:
         raise UsageError(f"--grid-resolution must be in [{low:g}, {high:g}] m, got {config.resolution:g}")
@@ -208,12 +213,12 @@ def _check_log(log, config) -> None:
             "start from and one to integrate)"
         )
     check_scan_order(log)
-    range_min = max(log.range_min, config.min_range)
-    usable = int(np.count_nonzero((log.ranges >= range_min).any(axis=1)))
+    range_min = np.maximum(log.range_min, config.min_range)
+    usable = int(np.count_nonzero((log.ranges >= range_min[:, None]).any(axis=1)))  # (NaN padding: never)
     if usable < 2:
         raise LogFormatError(
             f"{log.source}: only {usable} of its {len(log)} scans have a reading of at least "
-            f"{range_min:g} m (--min-range); grid FastSLAM needs at least 2"
+            f"{range_min.min():g} m (--min-range); grid FastSLAM needs at least 2"
         )
 
 
@@ -274,6 +279,7 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
     cpu = time.process_time() - cpu_started
     _save_outputs(args.output, best_path, poses_path, log, config, result)
     stats = _run_stats(log, config, result, delay, elapsed, cpu)
+    _report_health(stats)
     if args.stats is not None:
         text = json.dumps(stats, indent=1) + "\n"
         write_atomically(args.stats, lambda handle: handle.write(text.encode()))
@@ -282,9 +288,31 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
         f"particle's poses) and {poses_path} (pose-distribution file, {len(log)} scans): "
         f"{1e3 * stats['seconds_per_integrated_scan']:.1f} ms per "
         f"integrated scan, {stats['log_duration_s']:.0f} s of log in {elapsed:.1f} s ({stats['real_time_factor']:.1f}x "
-        f"real time), final N_eff {stats['final_ess']:.1f} of {config.particles}, {stats['resamplings']} resamplings"
+        f"real time), final N_eff {stats['final_ess']:.1f} of {stats['final_particles']}, {stats['resamplings']} "
+        "resamplings"
     )
     return 0
+
+
+def _report_health(stats: dict) -> None:
+    """Print the run's health summary (slam.gridslam.health) on stderr: one line, and a warning line for each
+    thing that went wrong (scans that stayed unmatched, a trajectory farther from the log's own poses than its
+    odometry)."""
+    summary = stats["health_summary"]
+    reference = stats.get("reference")
+    line = (
+        f"posegrid slam: health: matched-beam fraction median {summary['median_matched']:.2f} (5th percentile "
+        f"{summary['low_matched']:.2f}), {summary['failed']} of {summary['scans']} integrated scans failed to match, "
+        f"{summary['mean_particles']:.1f} particles on average (at most {summary['max_particles']})"
+    )
+    if reference is not None:
+        line += (
+            f"; against the poses the log states: best trajectory {reference['best_rmse_m']:.3f} m, odometry "
+            f"{reference['odometry_rmse_m']:.3f} m (RMS)"
+        )
+    print(line, file=sys.stderr)
+    for warning in summary["warnings"]:
+        print(f"posegrid slam: warning: {warning}", file=sys.stderr)
 
 
 def _prepared_log(args: argparse.Namespace, config):
@@ -329,18 +357,19 @@ def _save_outputs(output: Path, best_path: Path, poses_path: Path, log, config, 
     from schemas.files import PoseDistributionFile, PosedScans, PoseSet, save_pose_distribution, save_posed_scans
 
     chosen = result.integrated
-    range_max = min(config.max_range, log.range_max)
+    scans = log.select(chosen)  # each with its own geometry, the range limits the filter used
 
     def posed(samples, weights) -> PosedScans:
         return PosedScans(
-            ranges=log.ranges[chosen],
-            angle_min=log.angle_min,
-            angle_increment=log.angle_increment,
-            range_min=max(log.range_min, config.min_range),
-            range_max=range_max,
-            stamps=log.stamps[chosen],
-            sensor_offset=log.sensor_offset,
+            ranges=scans.ranges,
+            angle_min=scans.angle_min,
+            angle_increment=scans.angle_increment,
+            range_min=np.maximum(scans.range_min, config.min_range),
+            range_max=np.minimum(scans.range_max, config.max_range),
+            stamps=scans.stamps,
+            sensor_offset=scans.sensor_offset,
             poses=PoseSet(samples=samples, weights=weights),
+            beams=scans.beams,
         )
 
     weights = np.tile(result.weights, (len(log), 1))
@@ -354,8 +383,11 @@ def _save_outputs(output: Path, best_path: Path, poses_path: Path, log, config, 
 
 def _run_stats(log, config, result, delay: float, elapsed: float, cpu: float) -> dict:
     """The figures --stats writes: times (s) of ``elapsed`` wall and ``cpu`` time, effective sample sizes,
-    resamplings, tiles, the odometry ``delay`` (s)."""
+    resamplings, tiles, the odometry ``delay`` (s), the health of every integrated scan (columns, one value per
+    integrated scan) and its summary, and the errors against the poses the log states where it states others
+    than its odometry."""
     duration = float(log.stamps[-1] - log.stamps[0])
+    health, summary, reference = _health_figures(log, result)
     return {
         "scans": len(log),
         "integrated": int(result.integrated.sum()),
@@ -373,4 +405,33 @@ def _run_stats(log, config, result, delay: float, elapsed: float, cpu: float) ->
         "tiles_in_use": result.maps.tiles_in_use,
         "tiles_copied": result.maps.copies,
         "odometry_delay_s": delay,
+        "final_particles": len(result.weights),
+        "health_summary": summary,
+        "reference": reference,
+        "health": health,
     }
+
+
+def _health_figures(log, result) -> tuple[dict, dict, dict | None]:
+    """(per-scan health columns, summary, reference errors or None) of a run; the summary gains a warning when the
+    best trajectory ends farther from the log's stated poses than its odometry."""
+    import math
+
+    from slam.gridslam.health import ScanHealth, reference_errors, summarize
+
+    columns: dict[str, list] = {name: [] for name in ScanHealth.__dataclass_fields__}
+    for record in result.health:
+        for name, value in record.as_dict().items():
+            columns[name].append(round(value, 5) if isinstance(value, float) else value)
+    columns["stamp"] = [round(float(t), 6) for t in result.stamps[result.integrated]]
+    summary = summarize(list(result.health)).as_dict()
+    summary = {k: (None if isinstance(v, float) and math.isnan(v) else v) for k, v in summary.items()}
+    errors = reference_errors(result.samples[:, result.best], log.odometry, log.poses)
+    if errors is None:
+        return columns, summary, None
+    if errors[0] >= errors[1]:
+        summary["warnings"].append(
+            f"the best trajectory is farther from the poses the log states ({errors[0]:.3f} m RMS) than its own "
+            f"odometry is ({errors[1]:.3f} m): this run ended worse than its odometry"
+        )
+    return columns, summary, {"best_rmse_m": errors[0], "odometry_rmse_m": errors[1]}

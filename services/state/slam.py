@@ -19,7 +19,7 @@ import copy
 import time
 from collections import Counter, OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -38,6 +38,8 @@ from services.state.checks import SeqMessage, decode_of_robot, history_reply, ro
 from services.state.steps import OutOfOrder, Released, StepAssembler
 from slam.calibration import Calibration
 from slam.gridslam import GridFastSLAM, GridSlamConfig
+from slam.gridslam.filter import Laser
+from slam.gridslam.health import ScanHealth
 from slam.motion import OdometryMotionModel, odometry_controls, split_odometry_motion
 
 #: the parts of a step: the message of one seq on pg/<robot>/scan, odom or landmarks
@@ -71,7 +73,7 @@ class NodeConfig:
     """robot: whose streams to follow; algorithm: odometry, ekf, fastslam1, fastslam2 or gridslam;
     make_filter(initial_pose) builds a landmark filter (None for gridslam); motion: "velocity" or
     "odometry" (which Odometry field the landmark filters read); initial: start pose or None to wait
-    for the source's prior; grid_config, seed: grid FastSLAM's (max_range is capped at the laser's);
+    for the source's prior; grid_config, seed: grid FastSLAM's (max_range is capped at each scan's range_max);
     intake_capacity: bounded queue size; bridge: the odometry motion model that moves a velocity-motion filter
     over steps that never arrived, by the odometry poses around them (:class:`LandmarkDriver`); calibration: the
     corrections the landmark filters apply to the commands and measurements as they arrive (slam.calibration; None:
@@ -191,18 +193,32 @@ class GridDriver:
         self.config = config
         self.seed = seed
         self.filter: GridFastSLAM | None = None  # made at the first scan, which gives the laser's geometry
+        self.last_health: ScanHealth | None = None  # of the last integrated scan
+        self.scans = 0  # integrated scans
+        self.failed = 0  # of them, whose best match failed
+
+    def health(self) -> dict:
+        """NodeStats' health: the last integrated scan's (slam.gridslam.health.ScanHealth; flags as 0 or 1, values
+        not yet known left out) and the counts of integrated and failed scans."""
+        if self.last_health is None:
+            return {}
+        figures = {k: float(v) for k, v in self.last_health.as_dict().items() if v is not None}
+        return {**figures, "scans": float(self.scans), "failed_scans": float(self.failed)}
 
     def step(self, parts: dict) -> tuple[np.ndarray, np.ndarray]:
         scan: LaserScan = parts[keys.SCAN]
         odom: Odometry = parts[keys.ODOM]
         if odom.pose.shape[0] == 0:
             raise StepError(f"seq {odom.seq}: grid FastSLAM needs the odometry pose, the message has none")
+        angles = scan.angle_min + scan.angle_increment * np.arange(scan.ranges.shape[0])
         if self.filter is None:  # as slam.gridslam.run_gridslam sets it up
-            config = replace(self.config, max_range=min(self.config.max_range, scan.range_max))
-            angles = scan.angle_min + scan.angle_increment * np.arange(scan.ranges.shape[0])
-            self.filter = GridFastSLAM(config, angles, scan.sensor_offset, scan.range_min, self.initial, self.seed)
-        if self.filter.due(odom.pose[0]):
-            poses, weights, _, _ = self.filter.integrate(odom.pose[0], scan.ranges)
+            self.filter = GridFastSLAM(self.config, angles, scan.sensor_offset, scan.range_min, self.initial, self.seed)
+        if self.filter.due(odom.pose[0]):  # each scan with its own laser geometry
+            laser = Laser.of(self.config, angles, scan.sensor_offset, scan.range_min, scan.range_max)
+            poses, weights, _, report = self.filter.integrate(odom.pose[0], scan.ranges, laser)
+            self.last_health = report.health
+            self.scans += 1
+            self.failed += int(report.health.failed)
             return poses, weights
         return self.filter.follow(odom.pose[0]), self.filter.weights
 
@@ -471,6 +487,7 @@ class SlamState:
             received=dict(self.received),
             rejected=self.rejects.snapshot(),
             out_of_order=dict(self.out_of_order),
+            health=self.driver.health() if isinstance(self.driver, GridDriver) else {},
             **self._consistency(),
         )
 

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 class GridSlamConfig:
     """Parameters of grid FastSLAM (m, rad; log-odds are natural-log odds)."""
 
-    particles: int = 30
+    particles: int = 25  # the least particles (KLD-sampling grows the set up to particle_cap)
     resolution: float = 0.05  # cell size, m
     tile_cells: int = 32  # tile edge in cells (copy-on-write unit; a power of two)
     max_range: float = 30.0  # m: beams are used up to here; longer or no return: free space up to here
@@ -43,6 +43,19 @@ class GridSlamConfig:
     linear_update: float = 0.1  # m of odometry between integrated scans
     angular_update: float = 0.05  # rad
     resample_threshold: float = 0.5  # resample when N_eff < this * particles
+    # honesty and health (docs/gridslam.md, "Honesty and health"; slam.gridslam.honesty and .health)
+    keep_spread: bool = True  # keep the spread resampling loses as a covariance per particle (an honest cloud)
+    revisit_gap: int = 100  # integrated scans after which coming back within revisit_radius lowers it again
+    revisit_radius: float = 1.0  # m
+    particle_cap: int = 50  # KLD-sampling grows the set up to this many particles (<= particles: a fixed count)
+    kld_epsilon: float = 0.15  # KLD-sampling's bound on the divergence of the sample from the weighted set
+    kld_delta: float = 0.01  # ... exceeded with at most this probability
+    kld_bin_xy: float = 0.5  # m, KLD-sampling's bins
+    kld_bin_yaw: float = 0.5  # rad
+    recovery: bool = True  # after a failed match: no weighting by that scan, a wider proposal for the next
+    fail_match: float = 0.2  # the best particle's matched-beam fraction below which the match failed
+    fail_z: float = -6.0  # ... or its z against the recent scans below which it failed
+    widen: float = 4.0  # after a failure: the factor on the motion model's variances and the yaw search's square
 
     def validate(self) -> None:
         """Raise ValueError naming the first parameter out of range."""
@@ -61,8 +74,16 @@ class GridSlamConfig:
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        if self.particles < 1 or self.match_beams < 1 or self.tile_cells < 1 or self.kernel < 0:
-            raise ValueError("particles, match_beams and tile_cells must be >= 1, kernel >= 0")
+        for name in ("kld_epsilon", "kld_bin_xy", "kld_bin_yaw", "revisit_radius", "revisit_gap"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if not (0 < self.kld_delta < 1 and self.widen >= 1 and 0 <= self.fail_match <= 1):
+            raise ValueError(
+                f"need 0 < kld_delta < 1, widen >= 1 and 0 <= fail_match <= 1, got {self.kld_delta}, {self.widen}, "
+                f"{self.fail_match}"
+            )
+        if min(self.particles, self.particle_cap, self.match_beams, self.tile_cells) < 1 or self.kernel < 0:
+            raise ValueError("particles, particle_cap, match_beams and tile_cells must be >= 1, kernel >= 0")
         if not 0 < self.p_rand < 1 or not 0 <= self.resample_threshold <= 1 or self.l_free >= 0:
             raise ValueError("need 0 < p_rand < 1, 0 <= resample_threshold <= 1 and l_free < 0")
         if not (0 <= self.min_range < self.max_range and 0 <= self.prior_cap < math.inf):

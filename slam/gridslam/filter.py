@@ -12,7 +12,14 @@ Rao-Blackwellized particle filters'):
    motion model and is weighted by its scan likelihood;
 3. the scan is inserted into every particle's grid (log-odds, copy-on-write tiles, slam.gridslam.tiles);
 4. selective resampling: only when the effective sample size N_eff = 1 / sum w^2 falls below
-   ``resample_threshold`` * M (low-variance resampling); maps are shared, not copied.
+   ``resample_threshold`` * M (low-variance resampling), or when KLD-sampling (slam.gridslam.health.kld_count)
+   asks for more particles than there are; the new count is KLD-sampling's, within [particles, particle_cap];
+   maps are shared, not copied;
+5. honesty (slam.gridslam.honesty): each particle keeps a covariance of the spread resampling lost, carried
+   along as it moves and lowered when the robot is back where it was long ago; the filter's covariance at a
+   scan is the particles' weighted spread plus their kept covariance;
+6. health (slam.gridslam.health): the best particle's matched-beam fraction and its z against the recent scans;
+   a match that fails does not weigh the particles, and the next scan's proposal is wider.
 
 A scan is integrated when the odometry has moved ``linear_update`` m or turned ``angular_update`` rad
 since the last integrated one (and always the first); in between, particles follow the odometry
@@ -25,27 +32,39 @@ evaluated on the grid itself), tempered by 1/gain because neighbouring beams are
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from slam.angles import wrap_angle
+from slam.consistency import scaled_motion
 from slam.gridslam.config import GridSlamConfig
+from slam.gridslam.health import HealthWatch, ScanHealth, kld_count, spreads, systematic_resample
+from slam.gridslam.honesty import (
+    Revisits,
+    cloud_covariance,
+    exploration_covariance,
+    resampled_drift,
+    transport,
+    weighted_covariance,
+)
 from slam.gridslam.kernels import log_likelihoods, match_and_propose
 from slam.gridslam.tiles import TileMaps
 from slam.motion import OdometryMotionModel, odometry_controls
-from slam.resampling import effective_sample_size, low_variance_resample, normalize_log_weights
+from slam.resampling import effective_sample_size, normalize_log_weights
 from slam.stats import sample_gaussian
 
 
 @dataclass(frozen=True)
 class StepReport:
     """What one integrated scan did: N_eff after weighting (before resampling), whether it resampled,
-    and how many particles fell back to the motion model."""
+    how many particles fell back to the motion model, and its health (slam.gridslam.health)."""
 
     ess: float
     resampled: bool
     fallbacks: int
+    health: ScanHealth
 
 
 def proposal_stencil(xy: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
@@ -59,8 +78,46 @@ def proposal_stencil(xy: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
     return d, np.linalg.pinv(design)
 
 
+@dataclass(frozen=True)
+class Laser:
+    """One scan's laser as the filter takes it: the beams' directions (cosines and sines (B,) of their angles in
+    the laser frame), the laser's pose (x m, y m, yaw rad) on the robot, and the readings it uses: those in
+    [range_min, max_range] m mark their end cell, longer ones only clear space up to max_range."""
+
+    cos_b: np.ndarray
+    sin_b: np.ndarray
+    offset: np.ndarray
+    range_min: float
+    max_range: float
+
+    @classmethod
+    def of(
+        cls,
+        config: GridSlamConfig,
+        beam_angles: np.ndarray,
+        sensor_offset: np.ndarray,
+        range_min: float,
+        range_max: float = math.inf,
+    ) -> Laser:
+        """A scan's laser (beam angles (B,) rad, offset (3,), the sensor's range limits m) within the config's
+        min_range and max_range."""
+        angles = np.asarray(beam_angles, np.float64)
+        return cls(
+            np.cos(angles),
+            np.sin(angles),
+            np.asarray(sensor_offset, np.float64),
+            max(float(range_min), config.min_range),
+            min(float(range_max), config.max_range),
+        )
+
+    @property
+    def reach(self) -> float:
+        """How far (m) from the robot a beam of this laser reaches at most."""
+        return self.max_range + float(np.hypot(self.offset[0], self.offset[1]))
+
+
 class GridFastSLAM:
-    """The filter's state: M poses, log weights and grids; feed it scans in time order."""
+    """The filter's state: M poses, log weights and grids; feed it scans in time order, each with its laser."""
 
     def __init__(
         self,
@@ -72,14 +129,12 @@ class GridFastSLAM:
         seed: int,
     ) -> None:
         """beam_angles (B,) rad in the laser frame; sensor_offset (3,) laser pose in the robot frame;
-        range_min m (the sensor's); initial_pose (3,) where every particle starts (map frame)."""
+        range_min m (the sensor's): the laser of the scans :meth:`integrate` is given without one;
+        initial_pose (3,) where every particle starts (map frame)."""
         config.validate()
         self.config = config
         self.rng = np.random.default_rng(seed)
-        self.cos_b = np.cos(beam_angles)
-        self.sin_b = np.sin(beam_angles)
-        self.offset = np.asarray(sensor_offset, np.float64)
-        self.range_min = max(float(range_min), config.min_range)
+        self.use_laser(Laser.of(config, beam_angles, sensor_offset, range_min))
         m = config.particles
         self.poses = np.tile(np.asarray(initial_pose, np.float64), (m, 1))
         self.log_w = np.zeros(m)
@@ -87,7 +142,18 @@ class GridFastSLAM:
         self.motion = OdometryMotionModel(alphas=config.motion_alphas)
         self.stencil, self.fit = proposal_stencil(config.stencil_xy, config.stencil_yaw)
         self.odometry_ref: np.ndarray | None = None  # odometry at the last integrated scan
-        self.reach = config.max_range + float(np.hypot(self.offset[0], self.offset[1]))
+        self.drift = np.zeros((m, 3, 3))  # per particle: the covariance kept beyond the set's spread (honesty)
+        self.watch = HealthWatch()
+        self.widen = False  # whether the next proposal is widened (the last match failed)
+        self.last_z = math.nan  # the last scan's matched-beam z (HealthWatch)
+        self.last_covariance = np.zeros((3, 3))  # the filter's covariance at the last integrated scan
+        self.revisits = Revisits(config.revisit_gap, config.revisit_radius)
+
+    def use_laser(self, laser: Laser) -> None:
+        """Take the scans that follow with ``laser``'s geometry (every scan of a log may have its own)."""
+        self.laser = laser
+        self.cos_b, self.sin_b, self.offset = laser.cos_b, laser.sin_b, laser.offset
+        self.range_min, self.max_range, self.reach = laser.range_min, laser.max_range, laser.reach
 
     @property
     def weights(self) -> np.ndarray:
@@ -99,8 +165,8 @@ class GridFastSLAM:
         cfg = self.config
         r = np.asarray(ranges, np.float64)
         usable = ~np.isnan(r) & (r >= self.range_min)
-        hit = usable & (r <= cfg.max_range)
-        r_stop = np.where(usable, np.minimum(r, cfg.max_range), np.nan)
+        hit = usable & (r <= self.max_range)
+        r_stop = np.where(usable, np.minimum(r, self.max_range), np.nan)
         idx = np.flatnonzero(hit)
         if len(idx) > cfg.match_beams:
             idx = idx[np.unique(np.round(np.linspace(0, len(idx) - 1, cfg.match_beams)).astype(np.int64))]
@@ -129,11 +195,21 @@ class GridFastSLAM:
         cfg = self.config
         self.maps.insert(poses, self.offset, self.cos_b, self.sin_b, r_stop, hit, cfg.l_occ, cfg.l_free, cfg.l_clamp)
 
-    def _propose(self, control: np.ndarray, r_stop: np.ndarray, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
-        """New poses (M, 3), log weight factors (M,) and the number of motion-model fallbacks."""
+    def covariance(self, poses: np.ndarray) -> np.ndarray:
+        """The filter's covariance (3, 3) (m, rad) of particle poses (M, 3) under the current weights, the spread
+        kept for what resampling lost included (slam.gridslam.honesty.cloud_covariance)."""
+        return cloud_covariance(poses, self.weights, self.drift)
+
+    def _propose(
+        self, control: np.ndarray, r_stop: np.ndarray, idx: np.ndarray, widen: bool = False
+    ) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
+        """New poses (M, 3), log weight factors (M,), the number of motion-model fallbacks and the match scores
+        (M,). ``widen``: the motion model's variances and the yaw search's are config.widen times larger."""
         cfg, maps = self.config, self.maps
-        predicted, _, q = self.motion.linearize(self.poses, control)
-        q = q + np.diag([cfg.motion_floor_xy**2, cfg.motion_floor_xy**2, cfg.motion_floor_yaw**2])
+        scale = cfg.widen if widen else 1.0
+        motion = scaled_motion(self.motion, scale)
+        predicted, _, q = motion.linearize(self.poses, control)
+        q = q + scale * np.diag([cfg.motion_floor_xy**2, cfg.motion_floor_xy**2, cfg.motion_floor_yaw**2])
         self._cover(predicted)
         q_inv = np.linalg.inv(q)
         q_logdet = np.linalg.slogdet(q)[1]
@@ -163,7 +239,7 @@ class GridFastSLAM:
             cfg.lin_step,
             cfg.ang_step,
             cfg.refinements,
-            cfg.yaw_search,
+            cfg.yaw_search * np.sqrt(scale),
             cfg.prior_cap,
             self.stencil,
             self.fit,
@@ -174,31 +250,39 @@ class GridFastSLAM:
         if good.any():
             poses[good] = sample_gaussian(mean[good], cov[good] + floor, self.rng)
         if (~good).any():
-            poses[~good] = self.motion.sample(self.poses[~good], control, self.rng)
+            poses[~good] = motion.sample(self.poses[~good], control, self.rng)
             own_maps = (maps.pool, maps.table[~good], maps.tx0, maps.ty0, maps.shift, cfg.resolution)
             loglik, _ = log_likelihoods(
                 *own_maps, poses[~good], self.offset, *beams, cfg.kernel, cfg.sigma_match, cfg.sigma_like, cfg.p_rand
             )
             log_eta[~good] = loglik / cfg.gain
         poses[:, 2] = wrap_angle(poses[:, 2])
-        return poses, log_eta, int((~good).sum())
+        return poses, log_eta, int((~good).sum()), score
 
     def integrate(
-        self, odometry: np.ndarray, ranges: np.ndarray
+        self, odometry: np.ndarray, ranges: np.ndarray, laser: Laser | None = None
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, StepReport]:
-        """Integrate one scan (ranges (B,) m) taken at odometry pose (3,).
+        """Integrate one scan (ranges (B,) m) taken at odometry pose (3,) by ``laser`` (None: the last one).
 
         Returns the particles' poses (M, 3) and normalised weights (M,) at this scan (before resampling),
-        the resampling parents (M,) (particle j continues particle parents[j]) or None, and a report.
+        the parents (N,) of the set that follows, resampled or split (particle j continues particle parents[j]),
+        or None, and a report.
         """
+        if laser is not None:
+            self.use_laser(laser)
         r_stop, hit, idx = self._beams(ranges)
         odometry = np.asarray(odometry, np.float64)
-        fallbacks = 0
+        fallbacks, matched, widened, failed = 0, math.nan, self.widen, False
         if self.odometry_ref is not None:
             control = odometry_controls(np.stack([self.odometry_ref, odometry]))[0]
-            self.poses, log_eta, fallbacks = self._propose(control, r_stop, idx)
-            self.log_w = self.log_w + log_eta / self.config.weight_temper
-            self.log_w -= self.log_w.max()
+            before = self.poses
+            self.poses, log_eta, fallbacks, score = self._propose(control, r_stop, idx, widened)
+            fractions = score / max(len(idx), 1)
+            if self.config.keep_spread:
+                reach = float(np.mean(r_stop[idx])) if len(idx) else self.max_range
+                explored = exploration_covariance(fractions, self.config.resolution, reach)
+                self.drift = transport(self.drift, before, self.poses) + explored
+            matched, failed = self._weigh(log_eta, fractions)
         else:
             self._cover(self.poses)
         self.odometry_ref = odometry
@@ -206,10 +290,81 @@ class GridFastSLAM:
         weights = self.weights
         ess = effective_sample_size(weights)
         poses = self.poses.copy()
-        parents = None
-        if ess < self.config.resample_threshold * self.config.particles:
-            parents = low_variance_resample(weights, self.rng)
-            self.maps.resample(parents)
-            self.poses = self.poses[parents]
-            self.log_w = np.zeros(self.config.particles)
-        return poses, weights, parents, StepReport(ess=ess, resampled=parents is not None, fallbacks=fallbacks)
+        best = poses[int(np.argmax(weights))]
+        if self.config.keep_spread and not (math.isnan(matched) or failed):
+            self.drift = self.revisits.shrink(self.drift, best)
+        self.last_covariance = self.covariance(poses)
+        self.revisits.add(best, self.last_covariance)
+        parents, resampled = self._resample(weights, ess)
+        health = self._health(poses, weights, (matched, ess, fallbacks, failed, widened), resampled)
+        return poses, weights, parents, StepReport(ess, resampled, fallbacks, health)
+
+    def _weigh(self, log_eta: np.ndarray, matched: np.ndarray) -> tuple[float, bool]:
+        """Weigh the particles by log_eta (M,) unless the best particle's match failed (config.recovery: its
+        matched-beam fraction below fail_match or its z against the recent scans below fail_z; a scan nobody
+        explains says nothing about which particle is right, and the next proposal is widened). Returns the best
+        particle's matched-beam fraction (matched (M,): each particle's) and whether its match failed."""
+        cfg = self.config
+        best = int(np.argmax(self.log_w + log_eta / cfg.weight_temper))
+        self.last_z = self.watch.zscore(float(matched[best]))
+        self.watch.add(float(matched[best]))
+        failed = bool(matched[best] < cfg.fail_match or self.last_z < cfg.fail_z)
+        self.widen = failed and cfg.recovery
+        if not self.widen:
+            self.log_w = self.log_w + log_eta / cfg.weight_temper
+            self.log_w -= self.log_w.max()
+        return float(matched[best]), failed
+
+    def _resample(self, weights: np.ndarray, ess: float) -> tuple[np.ndarray | None, bool]:
+        """Resample (low variance) to KLD-sampling's count (slam.gridslam.health.kld_count, within [particles,
+        particle_cap]) when N_eff < resample_threshold times the particles. Otherwise, when KLD-sampling asks for
+        more particles than there are, split: every particle stays, with the weights, and the new ones are copies
+        drawn from the weights, a particle and its copies sharing its weight, so the weighted set is unchanged
+        and nothing is thrown away. Returns the parents (particle j continues parents[j]) or None, and whether
+        it resampled."""
+        cfg = self.config
+        m = len(self.poses)
+        count = cfg.particles
+        if cfg.particle_cap > cfg.particles:
+            limits = (cfg.particles, cfg.particle_cap)
+            bins = (cfg.kld_bin_xy, cfg.kld_bin_yaw)
+            count = kld_count(self.poses, weights, self.rng, limits, bins, cfg.kld_epsilon, cfg.kld_delta)
+        resample = ess < cfg.resample_threshold * m
+        if not (resample or count > m):
+            return None, False
+        if resample:
+            parents = systematic_resample(weights, count, self.rng)
+            lost = resampled_drift(self.drift, self.poses, weights, parents) if cfg.keep_spread else None
+            self.drift = self.drift[parents] if lost is None else lost
+            self.log_w = np.zeros(count)
+        else:
+            parents = np.concatenate([np.arange(m), systematic_resample(weights, count - m, self.rng)])
+            self.log_w = (self.log_w - np.log(np.bincount(parents, minlength=m)))[parents]
+            self.drift = self.drift[parents]
+        self.maps.resample(parents)
+        self.poses = self.poses[parents]
+        return parents, resample
+
+    def _health(
+        self, poses: np.ndarray, weights: np.ndarray, scan: tuple[float, float, int, bool, bool], resampled: bool
+    ) -> ScanHealth:
+        """The :class:`ScanHealth` of the scan just integrated: particles poses (M, 3) of weights (M,) before
+        resampling, scan = (matched, ess, fallbacks, failed, widened), whether it resampled."""
+        matched, ess, fallbacks, failed, widened = scan
+        own = spreads(weighted_covariance(poses, weights))
+        total = spreads(self.last_covariance)
+        return ScanHealth(
+            matched=matched,
+            score_z=self.last_z if not math.isnan(matched) else math.nan,
+            ess=ess,
+            particles=len(poses),
+            spread_xy=own[0],
+            spread_yaw=own[1],
+            sigma_xy=total[0],
+            sigma_yaw=total[1],
+            fallbacks=fallbacks,
+            failed=failed,
+            widened=widened,
+            resampled=resampled,
+            next_particles=len(self.poses),
+        )
