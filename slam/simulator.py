@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -176,46 +177,11 @@ def _segments_within(segments: np.ndarray, points: np.ndarray, reach: float) -> 
     return segments[np.hypot(gap[:, 0], gap[:, 1]) <= reach]
 
 
-def simulate_office(
-    seed: int = 0,
-    steps: int = 400,
-    n_beams: int = 361,
-    range_max: float = 12.0,
-    fov: float = math.pi,
-    laser_sigma: float = 0.01,
-    dt: float = 0.1,
-    truth_resolution: float = 0.05,
-    velocity_model: VelocityMotionModel = VelocityMotionModel(),
-    odometry_model: OdometryMotionModel = OdometryMotionModel(),
-    sensor: RangeBearingModel = RangeBearingModel(sigma_range=0.1, sigma_bearing=0.03),
-    landmark_range_max: float = 6.0,
-    landmark_fov: float = math.pi,
-) -> SimRun:
-    """Simulate ``steps`` steps of ``dt`` s in the office; the same arguments give the same run.
-
-    Laser: ``n_beams`` beams spread evenly over ``fov`` rad centred on the laser's heading, ranges to
-    ``range_max`` m with Gaussian noise of ``laser_sigma`` m. Landmark sensor: ``sensor`` noise, range
-    ``landmark_range_max`` m, field of view ``landmark_fov`` rad. The truth raster has cells of
-    ``truth_resolution`` m. Noise models: ``velocity_model`` (true motion around the commands) and
-    ``odometry_model`` (odometry readings around the true motion).
-    """
+def simulate_office(seed: int = 0, steps: int = 400, **options: Any) -> SimRun:
+    """Simulate ``steps`` steps in the office; ``options`` as for :func:`simulate_world` (its defaults: 361 beams
+    over 180 degrees, 12 m range, 0.1 s steps). The same arguments give the same run."""
     office = World(office_segments(), office_landmarks(), np.array(WAYPOINTS))
-    return simulate_world(
-        office,
-        seed=seed,
-        steps=steps,
-        n_beams=n_beams,
-        range_max=range_max,
-        fov=fov,
-        laser_sigma=laser_sigma,
-        dt=dt,
-        truth_resolution=truth_resolution,
-        velocity_model=velocity_model,
-        odometry_model=odometry_model,
-        sensor=sensor,
-        landmark_range_max=landmark_range_max,
-        landmark_fov=landmark_fov,
-    )
+    return simulate_world(office, seed=seed, steps=steps, **options)
 
 
 def simulate_world(
@@ -237,7 +203,14 @@ def simulate_world(
     landmark_fov: float = math.pi,
 ) -> SimRun:
     """Simulate ``steps`` steps of ``dt`` s in ``world``, the robot driving its route at up to ``max_speed`` m/s;
-    the other arguments as for :func:`simulate_office`, and the same arguments give the same run."""
+    the same arguments give the same run.
+
+    Laser: ``n_beams`` beams spread evenly over ``fov`` rad centred on the laser's heading, ranges to
+    ``range_max`` m with Gaussian noise of ``laser_sigma`` m. Landmark sensor: ``sensor`` noise, range
+    ``landmark_range_max`` m, field of view ``landmark_fov`` rad. The truth raster has cells of
+    ``truth_resolution`` m. Noise models: ``velocity_model`` (true motion around the commands) and
+    ``odometry_model`` (odometry readings around the true motion).
+    """
     if steps < 1 or n_beams < 1 or dt <= 0 or range_max <= LASER_RANGE_MIN or truth_resolution <= 0:
         raise ValueError("need steps >= 1, n_beams >= 1, dt > 0, range_max > 0.05 m and truth_resolution > 0")
     motion_rng, odometry_rng, landmark_rng, laser_rng = (
