@@ -376,6 +376,8 @@ def test_run_ros2_gives_the_map_run_bag_gives(tmp_path, procs):  # noqa: F811
             "--no-api",
             "--particles",
             "5",
+            "--particle-cap",
+            "5",
             "--seed",
             "7",
             "--resample-threshold",

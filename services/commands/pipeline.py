@@ -729,7 +729,7 @@ def _slam_models(args: argparse.Namespace):
     from services.errors import UsageError
     from slam.calibration import GENERIC
     from slam.motion import MotionModel, OdometryMotionModel
-    from slam.simulator import simulate_office
+    from slam.simulator import simulate_world
 
     motion: MotionModel
     if args.calibration == "auto":
@@ -746,7 +746,7 @@ def _slam_models(args: argparse.Namespace):
         motion, sensor, gate = calibration.motion, calibration.sensor, calibration.outlier_gate
         scale_sd = calibration.scale_sd
     else:
-        defaults = inspect.signature(simulate_office).parameters
+        defaults = inspect.signature(simulate_world).parameters  # the simulator's own noise
         motion = defaults["velocity_model" if args.motion == "velocity" else "odometry_model"].default
         sensor, gate, scale_sd = defaults["sensor"].default, None, 0.0
     if args.motion == "odometry" and not isinstance(motion, OdometryMotionModel):
