@@ -121,6 +121,15 @@ def _mark_near(marks, beam, carry, p, q, r_in, r_out):  # pragma: no cover - com
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
+def _scratch_runs(scratch, window, line, first, runs_end, res, tol):  # pragma: no cover - compiled
+    """:func:`mapping.free_runs.mark_free_runs` into the samples pass's planes and line buffer: line = (x0, y0, dx,
+    dy), from cell ``first`` (ix, iy) to just before ``runs_end`` (m); returns the runs' last cell."""
+    return mark_free_runs(
+        scratch.plane, scratch.columns, scratch.col_stride, window, line, first, runs_end, res, tol, scratch.lines
+    )
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
 def _free_runs(x0, y0, dx, dy, ray, free_limit, res, window, scratch):  # pragma: no cover - compiled
     """Mark a ray's free phase as runs (:func:`mapping.free_runs.mark_free_runs`) up to just before free_limit (m)
     and return (ray, r_in): the ray moved to the runs' last cell, the grid lines crossed up to it counted, and the
@@ -133,18 +142,7 @@ def _free_runs(x0, y0, dx, dy, ray, free_limit, res, window, scratch):  # pragma
     first_ix, first_iy = ix, iy
     if min(t_max_x, t_max_y) <= 0.0:  # the ray starts on its cell's edge and leaves it at once
         first_ix, first_iy, _, _ = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol)
-    end = mark_free_runs(
-        scratch.plane,
-        scratch.columns,
-        scratch.col_stride,
-        window,
-        (x0, y0, dx, dy),
-        (first_ix, first_iy),
-        runs_end,
-        res,
-        tol,
-        scratch.lines,
-    )
+    end = _scratch_runs(scratch, window, (x0, y0, dx, dy), (first_ix, first_iy), runs_end, res, tol)
     return _ray_moved_to(ray, end), runs_end
 
 
@@ -200,18 +198,7 @@ def _owned_free_runs(x0, y0, dx, dy, ray, free_limit, res, window, tiles, scratc
         last = (ix, iy)
         ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol)
     if mine:
-        end = mark_free_runs(
-            scratch.plane,
-            scratch.columns,
-            scratch.col_stride,
-            window,
-            (x0, y0, dx, dy),
-            stretch,
-            runs_end,
-            res,
-            tol,
-            scratch.lines,
-        )
+        end = _scratch_runs(scratch, window, (x0, y0, dx, dy), stretch, runs_end, res, tol)
         return _ray_moved_to(ray, end), runs_end, t_exit
     return Ray(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol), r_in, 0.0
 
@@ -222,18 +209,7 @@ def _close_stretch(line, stretch, last, r_next, res, tol, window, scratch):  # p
     cell of the stretch), line = (x0, y0, dx, dy) as for :func:`mark_free_runs`, the next tile entered at the range
     r_next (m): runs to just before r_next, and ``last`` itself (the runs stop short of a last cell shorter than
     their margin)."""
-    mark_free_runs(
-        scratch.plane,
-        scratch.columns,
-        scratch.col_stride,
-        window,
-        line,
-        stretch,
-        r_next - JUMP_MARGIN * (1.0 + r_next),
-        res,
-        tol,
-        scratch.lines,
-    )
+    _scratch_runs(scratch, window, line, stretch, r_next - JUMP_MARGIN * (1.0 + r_next), res, tol)
     set_bit(scratch.plane, (last[1] - window.iy0) * window.w + last[0] - window.ix0)
 
 
