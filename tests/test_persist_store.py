@@ -262,10 +262,13 @@ def _truncated(path: Path) -> None:
 
 
 def _scribbled(path: Path) -> None:
-    """Random bytes over the middle of the file: a damaged page (a B-tree or a tile's layers)."""
+    """Random bytes over every page but the first (the header and the schema stay): damaged B-trees and tiles.
+    (3 000 bytes in the middle could fall on a free page, where nothing is damaged: the file's layout varies with
+    how many commits the writer thread made.)"""
     data = bytearray(path.read_bytes())
-    middle = len(data) // 2
-    data[middle : middle + 3000] = np.random.default_rng(0).integers(0, 256, 3000, dtype=np.uint8).tobytes()
+    page = int.from_bytes(data[16:18], "big")
+    page = 65536 if page == 1 else page  # (SQLite's header: 1 stands for 64 KiB pages)
+    data[page:] = np.random.default_rng(0).integers(0, 256, len(data) - page, dtype=np.uint8).tobytes()
     path.write_bytes(bytes(data))
 
 
