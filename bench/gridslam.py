@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.run import run_cli
-from slam.carmen import write_carmen
+from slam.carmen import write_carmen_scans
 from slam.gridslam.simlogs import SimLaserLog, sim_log
 
 #: (world, seed) of every run
@@ -38,18 +38,7 @@ def write_sim_log(log: SimLaserLog, path: Path) -> Path:
     pose-distribution file with one sample per scan, for `posegrid eval-traj`); returns the truth's path."""
     from schemas.files import PoseDistributionFile, PoseSet, save_pose_distribution
 
-    write_carmen(
-        path,
-        log.stamps,
-        log.ranges,
-        log.odometry,
-        log.angle_min,
-        log.angle_increment,
-        log.range_max,
-        log.sensor_offset,
-        poses=log.true_poses,
-        record="FLASER",
-    )
+    write_carmen_scans(path, log, poses=log.true_poses, record="FLASER")
     truth = Path(path).with_suffix(".truth.npz")
     poses = PoseSet(samples=log.true_poses[:, None, :].copy(), weights=np.ones((len(log.stamps), 1)))
     save_pose_distribution(truth, PoseDistributionFile(stamps=log.stamps, poses=poses))

@@ -51,17 +51,9 @@ class PoseSampling:
         """(samples (M, 3): x m, y m, yaw rad; weights (M,)) for scan ``seq`` (laser range limit ``range_max`` m) of a
         Gaussian pose (``mean`` (3,), ``cov`` (3, 3)) or a weighted sample set (``samples`` (K, 3), ``weights``
         (K,)): :func:`mapping.poses.scan_samples`, the Gaussian draws seeded by (seed, seq)."""
+        # the fields (mode, n_samples, seed, accuracy) are scan_samples' own arguments
         return scan_samples(
-            self.mode,
-            mean=mean,
-            cov=cov,
-            samples=samples,
-            weights=weights,
-            n_samples=self.n_samples,
-            seed=self.seed,
-            seq=seq,
-            accuracy=self.accuracy,
-            range_max=range_max,
+            mean=mean, cov=cov, samples=samples, weights=weights, seq=seq, range_max=range_max, **vars(self)
         )
 
 

@@ -45,6 +45,7 @@ import math
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -377,6 +378,51 @@ def write_carmen(
             stream.write(text)
     else:
         path.write_text(text, encoding="ascii")
+
+
+class LaserScans(Protocol):
+    """What :func:`write_carmen_scans` reads of a log: a :class:`slam.laserlog.LaserLog`, a simulated run
+    (slam.simulator.SimRun, slam.gridslam.simlogs.SimLaserLog) or anything with these fields: stamps (T,) s,
+    ranges (T, B) m, odometry (T, 3) robot poses, angle_min and angle_increment (rad) and range_max (m), each one
+    number or one per scan (T,), and sensor_offset (3,) or (T, 3), the laser pose in the robot frame."""
+
+    @property
+    def stamps(self) -> np.ndarray: ...
+    @property
+    def ranges(self) -> np.ndarray: ...
+    @property
+    def odometry(self) -> np.ndarray: ...
+    @property
+    def angle_min(self) -> Any: ...
+    @property
+    def angle_increment(self) -> Any: ...
+    @property
+    def range_max(self) -> Any: ...
+    @property
+    def sensor_offset(self) -> np.ndarray: ...
+
+
+def write_carmen_scans(
+    path: str | Path,
+    scans: LaserScans,
+    *,
+    odometry: np.ndarray | None = None,
+    stamps: np.ndarray | None = None,
+    **options,
+) -> None:
+    """:func:`write_carmen` for the scans, geometry and odometry of ``scans``; ``odometry`` (T, 3) and ``stamps``
+    (T,) s replace the log's own, and ``options`` (poses, record, host, beams) go to :func:`write_carmen`."""
+    write_carmen(
+        path,
+        scans.stamps if stamps is None else stamps,
+        scans.ranges,
+        scans.odometry if odometry is None else odometry,
+        scans.angle_min,
+        scans.angle_increment,
+        scans.range_max,
+        scans.sensor_offset,
+        **options,
+    )
 
 
 def _flaser_params(geometry: np.ndarray, offset: np.ndarray, host: str) -> list[str]:

@@ -36,12 +36,17 @@ A Sigma_pose A^T with A = d(x, y, theta)/d(xi_p, xi_theta); the landmarks are ma
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from slam.angles import wrap_angle
-from slam.consistency import ConsistencyMonitor
+from slam.landmark_filter import LandmarkFilter, LandmarkOptions
 from slam.motion import MotionModel, compose, local_motion, rotate_covariance
 from slam.range_bearing import RangeBearingModel, inverse_measurement, predict_measurement
+
+if TYPE_CHECKING:
+    from typing_extensions import Unpack
 
 #: chi-square(2) quantiles: 0.99 for association, 0.9999 before a new landmark is started
 CHI2_2_99 = 9.2103
@@ -62,8 +67,9 @@ def _rotation_left_jacobian(angle: float) -> np.ndarray:
     return np.array([[s, c - 1.0], [1.0 - c, s]]) / angle
 
 
-class EKFSLAM:
-    """Right-invariant EKF-SLAM over a pose and a growing list of point landmarks."""
+class EKFSLAM(LandmarkFilter):
+    """Right-invariant EKF-SLAM over a pose and a growing list of point landmarks (``options``: the shared
+    :class:`slam.landmark_filter.LandmarkOptions`)."""
 
     gaussian = True
 
@@ -72,27 +78,18 @@ class EKFSLAM:
         motion: MotionModel,
         sensor: RangeBearingModel,
         initial_pose: np.ndarray,
-        known_correspondences: bool = True,
-        outlier_gate: float | None = None,
         association_gate: float = CHI2_2_99,
         new_landmark_gate: float = CHI2_2_9999,
-        adaptive: bool = True,
-        scale_sd: float = 0.0,
+        **options: Unpack[LandmarkOptions],
     ) -> None:
-        self.motion = motion
-        self.sensor = sensor
-        self.known = known_correspondences
-        self.outlier_gate = outlier_gate
+        super().__init__(motion, sensor, initial_pose, **options)
         self.association_gate = association_gate
         self.new_landmark_gate = new_landmark_gate
         self.mu = np.asarray(initial_pose, dtype=np.float64).copy()
-        self.origin = self.mu[:2].copy()  # the start position, about which the map's scale is uncertain
-        self.scale_sd = scale_sd
         self.sigma = np.zeros((3, 3))  # covariance of xi = (xi_p, xi_theta, xi_m1, ...)
         self.ids: list[int] = []  # landmark id of each landmark slot (known correspondences), else slot number
         self.slot_of: dict[int, int] = {}
         self.rejected = 0  # measurements dropped by a gate
-        self.monitor = ConsistencyMonitor(adaptive=adaptive)  # NIS watch and noise scale (slam.consistency)
 
     @property
     def n_landmarks(self) -> int:

@@ -42,17 +42,22 @@ is exact when gauge and shape are independent in the posterior, and an approxima
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from slam.angles import wrap_angle
-from slam.consistency import ConsistencyMonitor, scaled_motion
+from slam.consistency import scaled_motion
 from slam.gauge import map_gauges, regauge_points, turn_covariances
 from slam.kernels import _mixture_nis, _predict_particles, fastslam_known_update
+from slam.landmark_filter import LandmarkFilter, LandmarkOptions
 from slam.motion import MotionModel, local_motion
 from slam.range_bearing import RangeBearingModel, inverse_measurement, predict_measurement
 from slam.resampling import effective_sample_size, low_variance_resample, normalize_log_weights
 from slam.stats import inv2, sample_gaussian
+
+if TYPE_CHECKING:
+    from typing_extensions import Unpack
 
 #: chi-square(2) quantile 0.9999: with unknown correspondences, the default p0 is the likelihood at this
 #: squared Mahalanobis distance under the measurement noise alone
@@ -63,8 +68,9 @@ def _t(mat: np.ndarray) -> np.ndarray:
     return np.swapaxes(mat, -1, -2)
 
 
-class FastSLAM:
-    """A Rao-Blackwellised particle filter over poses with per-particle landmark EKFs."""
+class FastSLAM(LandmarkFilter):
+    """A Rao-Blackwellised particle filter over poses with per-particle landmark EKFs (``options``: the shared
+    :class:`slam.landmark_filter.LandmarkOptions`)."""
 
     gaussian = False
 
@@ -75,27 +81,21 @@ class FastSLAM:
         initial_pose: np.ndarray,
         n_particles: int = 100,
         version: int = 2,
-        known_correspondences: bool = True,
         seed: int = 0,
         resample_threshold: float = 0.5,
-        outlier_gate: float | None = None,
         new_landmark_loglik: float | None = None,
         update_while_stationary: bool = False,
         preserve_gauge: bool = True,
-        adaptive: bool = True,
-        scale_sd: float = 0.0,
+        **options: Unpack[LandmarkOptions],
     ) -> None:
         if version not in (1, 2):
             raise ValueError(f"FastSLAM version must be 1 or 2, got {version}")
         if n_particles < 1:
             raise ValueError(f"need at least one particle, got {n_particles}")
-        self.motion = motion
-        self.sensor = sensor
+        super().__init__(motion, sensor, initial_pose, **options)
         self.version = version
-        self.known = known_correspondences
         self.rng = np.random.default_rng(seed)
         self.resample_threshold = resample_threshold
-        self.outlier_gate = outlier_gate
         if new_landmark_loglik is None:
             new_landmark_loglik = (
                 -0.5 * CHI2_2_9999 - 0.5 * np.log(np.linalg.det(sensor.covariance(np.zeros(2)))) - np.log(2 * np.pi)
@@ -113,15 +113,13 @@ class FastSLAM:
         self.count = np.zeros(n, dtype=np.int64)  # landmark slots in use per particle
         self.slot_of: dict[int, int] = {}  # known correspondences: landmark id -> slot
         self.resamplings = 0
-        self.preserve_gauge = preserve_gauge and known_correspondences  # unknown ids: slots differ per particle
+        self.preserve_gauge = preserve_gauge and self.known  # unknown ids: slots differ per particle
         self.update_while_stationary = update_while_stationary
         self.moved = True  # since the last measurement update (the first measurements are always used)
         self.stationary_skipped = 0  # measurements not used because the robot had not moved
-        self.monitor = ConsistencyMonitor(adaptive=adaptive)  # NIS watch and noise scale (slam.consistency)
         # each particle's map scale about the start (1 + e, e ~ N(0, scale_sd^2)): no measurement or motion shows
         # it, so it only spreads the poses given out; it stays with the particle's index, as a gauge does
-        self.origin = self.poses[0, :2].copy()
-        self.scales = 1.0 + scale_sd * np.random.default_rng([seed, 1]).standard_normal(n)
+        self.scales = 1.0 + self.scale_sd * np.random.default_rng([seed, 1]).standard_normal(n)
 
     # ------------------------------------------------------------------------------------------- state
 

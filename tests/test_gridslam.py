@@ -15,10 +15,11 @@ from schemas.files import load_pose_distribution, load_posed_scans
 from services.cli import main
 from services.fusion_runner import fuse_posed_scans
 from slam.angles import wrap_angle
-from slam.carmen import read_carmen, write_carmen
+from slam.carmen import read_carmen, write_carmen, write_carmen_scans
 from slam.gridslam import GridFastSLAM, GridSlamConfig, run_gridslam
 from slam.gridslam.filter import proposal_stencil
 from slam.gridslam.kernels import log_likelihoods, match_and_propose
+from slam.gridslam.simlogs import drifting_odometry
 from slam.gridslam.tiles import TileMaps
 from slam.motion import odometry_controls
 from slam.raycast import cast_rays
@@ -218,29 +219,6 @@ def test_backward_odometry_is_a_negative_translation():
     assert trans == pytest.approx(-0.1) and rot1 == pytest.approx(0.0, abs=1e-12) and rot2 == pytest.approx(0.02)
 
 
-def drifting_odometry(true_poses: np.ndarray, seed: int) -> np.ndarray:
-    """Odometry from the true motion with 5 % scale noise, lateral slip and a heading drift of 0.03 rad per m
-    (a miscalibrated wheel base), integrated from (0, 0, 0)."""
-    rng = np.random.default_rng(seed)
-    c, s = np.cos(true_poses[:-1, 2]), np.sin(true_poses[:-1, 2])
-    d = np.diff(true_poses[:, :2], axis=0)
-    forward, lateral = c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]
-    turn = wrap_angle(np.diff(true_poses[:, 2]))
-    noise = rng.standard_normal((len(forward), 3))
-    forward = forward * (1 + 0.05 * noise[:, 0])
-    lateral = lateral + 0.02 * np.abs(forward) * noise[:, 1]
-    turn = turn + 0.05 * np.abs(turn) * noise[:, 2] + 0.03 * forward
-    odometry = np.zeros_like(true_poses)
-    for t in range(len(forward)):  # integration of a few hundred steps (test input, not a hot path)
-        cc, ss = math.cos(odometry[t, 2]), math.sin(odometry[t, 2])
-        odometry[t + 1] = (
-            odometry[t, 0] + cc * forward[t] - ss * lateral[t],
-            odometry[t, 1] + ss * forward[t] + cc * lateral[t],
-            wrap_angle(odometry[t, 2] + turn[t]),
-        )
-    return odometry
-
-
 def to_map_frame(start: np.ndarray, poses: np.ndarray) -> np.ndarray:
     c, s = math.cos(start[2]), math.sin(start[2])
     return np.stack(
@@ -261,16 +239,7 @@ def ate(estimate: np.ndarray, truth: np.ndarray) -> float:
 def simulated_log(tmp_path_factory) -> tuple[Path, object]:
     run = simulate_office(seed=3, steps=420, n_beams=181, range_max=10.0)
     path = tmp_path_factory.mktemp("sim") / "office.clf"
-    write_carmen(
-        path,
-        run.stamps,
-        run.ranges,
-        drifting_odometry(run.true_poses, seed=5),
-        run.angle_min,
-        run.angle_increment,
-        run.range_max,
-        run.sensor_offset,
-    )
+    write_carmen_scans(path, run, odometry=drifting_odometry(run.true_poses, seed=5, start=np.zeros(3)))
     return path, run
 
 
@@ -324,16 +293,7 @@ def test_same_seed_same_result_and_bad_input_exits_2(simulated_log, tmp_path, ca
     path, _ = simulated_log
     short = read_carmen(path).first(60)
     cut = tmp_path / "short.clf"
-    write_carmen(
-        cut,
-        short.stamps,
-        short.ranges,
-        short.odometry,
-        short.angle_min,
-        short.angle_increment,
-        short.range_max,
-        short.sensor_offset,
-    )
+    write_carmen_scans(cut, short)
     first = run_gridslam(read_carmen(cut), GridSlamConfig(particles=4), seed=9)
     head = tmp_path / "head.npz"  # --scans 30: the first 30 scans' filter, the same as a log cut there
     assert (
@@ -395,16 +355,7 @@ def test_odometry_delay_auto_finds_a_late_laser_clock(simulated_log, tmp_path, c
     path, _run = simulated_log
     log = read_carmen(path)
     late = tmp_path / "late.clf"
-    write_carmen(
-        late,
-        log.stamps + 0.1,
-        log.ranges,
-        log.odometry,
-        log.angle_min,
-        log.angle_increment,
-        log.range_max,
-        log.sensor_offset,
-    )
+    write_carmen_scans(late, log, stamps=log.stamps + 0.1)
     with late.open("a") as out:  # the odometry stream on the true clock
         for t, (x, y, yaw) in zip(log.stamps, log.odometry):
             out.write(f"ODOM {x:.6f} {y:.6f} {yaw:.6f} 0 0 0 {t:.6f} sim {t:.6f}\n")

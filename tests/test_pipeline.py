@@ -553,18 +553,9 @@ def test_run_through_the_slam_node_equals_offline_slam_then_fuse(tmp_path, procs
 def _write_log(sim, path: Path, fmt: str) -> Path:
     """A simulated run as a CARMEN log or a ROS 1 bag: its scans with the true poses as odometry."""
     if fmt == "carmen":
-        from slam.carmen import write_carmen
+        from slam.carmen import write_carmen_scans
 
-        write_carmen(
-            path,
-            sim.stamps,
-            sim.ranges,
-            sim.true_poses,
-            sim.angle_min,
-            sim.angle_increment,
-            sim.range_max,
-            sim.sensor_offset,
-        )
+        write_carmen_scans(path, sim, odometry=sim.true_poses)
         return path
     from bags import BagBuilder
 

@@ -569,21 +569,15 @@ def make_filter(
     from slam.dead_reckoning import DeadReckoning
     from slam.ekf import EKFSLAM
     from slam.fastslam import FastSLAM
+    from slam.landmark_filter import LandmarkOptions
 
     known = args.associate == "known"
     adaptive = not getattr(args, "fixed_noise", False)
     if args.algo == "odometry":
         return DeadReckoning(motion, initial)
+    options = LandmarkOptions(known_correspondences=known, outlier_gate=gate, adaptive=adaptive, scale_sd=scale_sd)
     if args.algo == "ekf":
-        return EKFSLAM(
-            motion,
-            sensor,
-            initial,
-            known_correspondences=known,
-            outlier_gate=gate,
-            adaptive=adaptive,
-            scale_sd=scale_sd,
-        )
+        return EKFSLAM(motion, sensor, initial, **options)
     particles = default_particles if args.particles is None else args.particles
     if not 0 <= args.resample_threshold <= 1:
         raise UsageError(f"--resample-threshold must be in [0, 1], got {args.resample_threshold}")
@@ -593,13 +587,10 @@ def make_filter(
         initial,
         n_particles=particles,
         version=1 if args.algo == "fastslam1" else 2,
-        known_correspondences=known,
         seed=args.seed,
         resample_threshold=args.resample_threshold,
-        outlier_gate=gate,
         preserve_gauge=not args.plain_resampling,
-        adaptive=adaptive,
-        scale_sd=scale_sd,
+        **options,
     )
 
 

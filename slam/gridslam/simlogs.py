@@ -48,11 +48,16 @@ class SimLaserLog:
 
 
 def drifting_odometry(
-    true_poses: np.ndarray, seed: int, scale: float = 0.05, slip: float = 0.02, drift: float = 0.03
+    true_poses: np.ndarray,
+    seed: int,
+    scale: float = 0.05,
+    slip: float = 0.02,
+    drift: float = 0.03,
+    start: np.ndarray | None = None,
 ) -> np.ndarray:
     """Odometry (T, 3) from the true motion with ``scale`` relative noise on each forward step, lateral slip of
     ``slip`` times the step and a heading drift of ``drift`` rad per m driven (a miscalibrated wheel base),
-    integrated from the true first pose."""
+    integrated from ``start`` (3,) (m, rad; default: the true first pose)."""
     rng = np.random.default_rng(seed)
     c, s = np.cos(true_poses[:-1, 2]), np.sin(true_poses[:-1, 2])
     d = np.diff(true_poses[:, :2], axis=0)
@@ -62,10 +67,11 @@ def drifting_odometry(
     forward = forward * (1 + scale * noise[:, 0])
     lateral = lateral + slip * np.abs(forward) * noise[:, 1]
     turn = turn + scale * np.abs(turn) * noise[:, 2] + drift * forward
-    heading = true_poses[0, 2] + np.concatenate([[0.0], np.cumsum(turn)])
+    x0, y0, yaw0 = true_poses[0] if start is None else start
+    heading = yaw0 + np.concatenate([[0.0], np.cumsum(turn)])
     ch, sh = np.cos(heading[:-1]), np.sin(heading[:-1])
-    x = true_poses[0, 0] + np.concatenate([[0.0], np.cumsum(ch * forward - sh * lateral)])
-    y = true_poses[0, 1] + np.concatenate([[0.0], np.cumsum(sh * forward + ch * lateral)])
+    x = x0 + np.concatenate([[0.0], np.cumsum(ch * forward - sh * lateral)])
+    y = y0 + np.concatenate([[0.0], np.cumsum(sh * forward + ch * lateral)])
     return np.column_stack([x, y, wrap_angle(heading)])
 
 
