@@ -96,5 +96,6 @@ def run(steps: int = 400) -> dict:
     out["turns"] = len(seconds)
     out["maps_identical"] = _same_maps([fusion.grid for fusion in fusions])
     widest = fusions[-1].threads
-    out["scratch_mb_per_thread"] = widest.nbytes / widest.count / 1e6
+    out["scratch_mb_each"] = widest.nbytes / widest.scratches / 1e6
+    out["scratch_mb_total"] = widest.nbytes / 1e6
     return out

@@ -372,16 +372,24 @@ class FusionThreads:
     one. One serves any fusions of one grid (a laser whose geometry changes has a fusion per geometry), their scans in
     one stream. With count 1 each scan is fused by its fusion's :meth:`MonteCarloFusion.fuse`, with no pool.
 
-    Memory: ``count`` scratches of about 57 bytes a window cell each (:class:`FusionScratch`), on top of each fusion's
-    own (for :meth:`MonteCarloFusion.fuse`); the pool's threads start on the first scans fused with count > 1. Not
-    thread-safe: one caller at a time."""
+    There is one scratch more than threads: while the calling thread applies a walked scan (its scratch still in
+    use), the next scan's walk already waits on the pool, so no core idles during an apply.
+
+    Memory: ``count + 1`` scratches of about 57 bytes a window cell each (:class:`FusionScratch`), on top of each
+    fusion's own (for :meth:`MonteCarloFusion.fuse`); the pool's threads start on the first scans fused with
+    count > 1. Not thread-safe: one caller at a time."""
 
     def __init__(self, count: int = 1) -> None:
         if count < 1:
             raise InputError(f"need threads >= 1, got {count}")
         self.count = count
-        self._scratches = [FusionScratch() for _ in range(count)] if count > 1 else []
+        self._scratches = [FusionScratch() for _ in range(count + 1)] if count > 1 else []
         self._pool: ThreadPoolExecutor | None = None
+
+    @property
+    def scratches(self) -> int:
+        """How many scratches the threads walk into (count + 1; none with one thread)."""
+        return len(self._scratches)
 
     @property
     def nbytes(self) -> int:
