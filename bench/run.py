@@ -24,6 +24,7 @@ SUITES = (
     "bench.api",
     "bench.slam",
     "bench.gridslam",
+    "bench.gridslam_logs",
     "bench.chaos",
     "bench.persist",
     "bench.ros2",

@@ -251,11 +251,12 @@ def with_odometry_delay(log: LaserLog, delay: float) -> LaserLog:
     """The log with each scan's odometry read from the log's separate odometry stream at stamp + ``delay``
     (s; negative: earlier). For a laser whose stamps run late against its odometry's (Freiburg 079's bag:
     about 0.13 s), so that a scan is paired with the pose the robot had when it was taken. ``poses``, what
-    the log states, is left as it is. A scan whose stamp + ``delay`` has no odometry around it
-    (:func:`odometry_problem`: past the stream's ends, or in a long gap) is skipped, and listed in ``skipped``,
-    as the readers do with the scans' own stamps. Raises :class:`LogFormatError` when the log has no separate
-    odometry stream in time order (:func:`check_odometry_stream`; e.g. a CARMEN log whose odometry comes only
-    inside the laser lines) or no scan keeps its odometry."""
+    the log states, is left as it is where it states poses of its own (a corrected log); where they are its
+    odometry (a raw log, a bag), they stay its odometry, now the shifted one. A scan whose stamp + ``delay`` has
+    no odometry around it (:func:`odometry_problem`: past the stream's ends, or in a long gap) is skipped, and
+    listed in ``skipped``, as the readers do with the scans' own stamps. Raises :class:`LogFormatError` when the
+    log has no separate odometry stream in time order (:func:`check_odometry_stream`; e.g. a CARMEN log whose
+    odometry comes only inside the laser lines) or no scan keeps its odometry."""
     if delay == 0.0:
         return log
     check_odometry_stream(log)
@@ -271,9 +272,12 @@ def with_odometry_delay(log: LaserLog, delay: float) -> LaserLog:
         for where, problem in zip(log.where.tolist(), problems)
         if problem
     ]
+    states_poses = not np.allclose(log.poses, log.odometry, atol=1e-6)  # (as slam.gridslam.health judges it)
     log = log.select(kept)
+    odometry = interpolate_poses(log.odom_stamps, log.odom_poses, log.stamps + delay)
     return replace(
         log,
-        odometry=interpolate_poses(log.odom_stamps, log.odom_poses, log.stamps + delay),
+        odometry=odometry,
+        poses=log.poses if states_poses else odometry,
         skipped=tuple(sorted(log.skipped + tuple(dropped), key=lambda s: s.where)),
     )

@@ -108,3 +108,15 @@ def test_select_scans_keeps_each_scan_with_its_own_pose_distribution_in_either_f
         for key, value in picked.poses.arrays().items():
             np.testing.assert_array_equal(value, poses.arrays()[key][[0, 4, 8]])
         assert picked.poses.is_gaussian == poses.is_gaussian and (picked.range_max == 5.0).all()
+
+
+def test_leave_one_out_chooses_on_the_other_logs_relative_to_their_best():
+    """Hand-worked: on log a, candidate x is best (1.0) and y 2x worse; on b, y is best and x 1.5x worse; on c both
+    are equal. Holding out a: b and c prefer y (means 1.25 against 1.0 for y); holding out b: a and c prefer x;
+    holding out c: x (relative 1.0 and 1.5 -> 1.25) against y (2.0 and 1.0 -> 1.5)."""
+    from bench.gridslam_logs import leave_one_out
+
+    errors = {"x": {"a": 0.10, "b": 0.06, "c": 0.05}, "y": {"a": 0.20, "b": 0.04, "c": 0.05}}
+    chosen = leave_one_out(errors)
+    assert chosen == {"a": ("y", 0.20), "b": ("x", 0.06), "c": ("x", 0.05)}
+    assert leave_one_out({"x": {"a": 1.0}}) == {}  # one log: nothing to choose on

@@ -349,9 +349,10 @@ def test_filter_rejects_bad_config():
 
 def test_odometry_delay_auto_finds_a_late_laser_clock(simulated_log, tmp_path, capsys):
     """A log whose laser stamps run 0.1 s late against its ODOM stream (the Freiburg 079 bag's fault, about
-    0.13 s there): `--odom-delay auto` runs the filter over the log's start, compares its scan-matched
-    turns with the odometry's and reads the odometry 0.1 s earlier; a log without a separate odometry
-    stream is refused with exit 2."""
+    0.13 s there): the default (`--odom-delay auto` where the log has a separate odometry stream) runs the filter
+    over the log's start, compares its scan-matched turns with the odometry's and reads the odometry 0.1 s
+    earlier; asked for on a log without a separate odometry stream, a delay or `auto` is refused with exit 2
+    (the default reads such a log as it is: the other tests)."""
     path, _run = simulated_log
     log = read_carmen(path)
     late = tmp_path / "late.clf"
@@ -374,8 +375,6 @@ def test_odometry_delay_auto_finds_a_late_laser_clock(simulated_log, tmp_path, c
                 "8",
                 "--seed",
                 "1",
-                "--odom-delay",
-                "auto",
                 "--stats",
                 str(stats),
             ]
@@ -386,8 +385,34 @@ def test_odometry_delay_auto_finds_a_late_laser_clock(simulated_log, tmp_path, c
     import json
 
     assert json.loads(stats.read_text())["odometry_delay_s"] == pytest.approx(-0.1, abs=0.015)
-    assert main(["slam", "--algo", "gridslam", str(path), "-o", str(out_npz), "--odom-delay", "0.1"]) == 2
-    assert "separate odometry stream" in capsys.readouterr().err
+    for delay in ("0.1", "auto"):
+        assert main(["slam", "--algo", "gridslam", str(path), "-o", str(out_npz), "--odom-delay", delay]) == 2
+        assert "separate odometry stream" in capsys.readouterr().err
+
+
+def test_odometry_stamps_in_bursts_are_read_as_they_are_by_default_and_refused_for_auto(
+    simulated_log, tmp_path, capsys
+):
+    """Scans stamped two at a time 1 ms apart (a log converted with coarse timing, as the Intel bag is) beside an
+    ODOM stream: the default reads the odometry at the scans' stamps and says why it did not estimate a delay;
+    `--odom-delay auto` is refused with exit 2 and the reason."""
+    import json
+
+    path, _run = simulated_log
+    log = read_carmen(path).first(60)
+    stamps = np.repeat(0.2 * np.arange(30), 2) + np.tile([0.0, 0.001], 30)
+    bursty = tmp_path / "bursty.clf"
+    write_carmen_scans(bursty, log, stamps=stamps)
+    with bursty.open("a") as out:
+        for t, (x, y, yaw) in zip(stamps, log.odometry):
+            out.write(f"ODOM {x:.6f} {y:.6f} {yaw:.6f} 0 0 0 {t:.6f} sim {t:.6f}\n")
+    out_npz, stats = tmp_path / "b.npz", tmp_path / "b.json"
+    argv = ["slam", "--algo", "gridslam", str(bursty), "-o", str(out_npz), "--particles", "2", "--particle-cap", "2"]
+    assert main(argv + ["--stats", str(stats)]) == 0
+    assert "odometry delay 0 s (not estimated: its scans come in bursts" in capsys.readouterr().err
+    assert json.loads(stats.read_text())["odometry_delay_s"] == 0.0
+    assert main(argv + ["--odom-delay", "auto"]) == 2
+    assert "scans come in bursts" in capsys.readouterr().err
 
 
 def test_a_scan_without_usable_beams_inserts_nothing():

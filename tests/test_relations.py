@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -16,7 +17,7 @@ from slam.carmen import write_carmen
 from slam.errors import LogFormatError
 from slam.laserlog import LaserLog, with_odometry_delay
 from slam.relations import Trajectory, poses_at, read_relations, score_relations, trajectory_from_log
-from slam.timealign import odometry_delay, time_map, to_reference_time
+from slam.timealign import bursty_stamps, odometry_delay, time_map, to_reference_time
 
 # x(0) = (0, 0, 0), x(1) = (1, 0, pi/2), x(2) = (1, 1, pi/2)
 TRAJ = Trajectory(np.array([0.0, 1.0, 2.0]), np.array([[0, 0, 0], [1, 0, math.pi / 2], [1, 1, math.pi / 2]], float))
@@ -180,14 +181,18 @@ def test_real_relations_corrected_fr079_aligned_to_its_bag(tmp_path):
 
 
 def test_odometry_read_later_or_earlier_than_the_scans():
-    """with_odometry_delay reads the ODOM stream at stamp + delay (yaw unwrapped across +-pi)."""
+    """with_odometry_delay reads the ODOM stream at stamp + delay (yaw unwrapped across +-pi). Poses a log states
+    of its own (a corrected log's) stay; where its stated poses are its odometry (a raw log, a bag) they follow
+    the shifted odometry, so nothing later takes the raw odometry for a reference to judge the run by."""
     stream_t = np.arange(0.0, 10.0, 0.5)
     stream = np.column_stack([stream_t, 2 * stream_t, 3.0 + 0.1 * stream_t])  # yaw crosses pi at t = 1.42
     log = small_log([2.0, 4.0], np.ones((2, 3)), odom_stamps=stream_t, odom_poses=stream)
     shifted = with_odometry_delay(log, -0.25)
     np.testing.assert_allclose(shifted.odometry[:, :2], [[1.75, 3.5], [3.75, 7.5]])
     np.testing.assert_allclose(np.cos(shifted.odometry[:, 2]), np.cos([3.175, 3.375]))
-    np.testing.assert_array_equal(shifted.poses, log.poses)
+    np.testing.assert_array_equal(shifted.poses, shifted.odometry)  # the log stated only its odometry
+    corrected = replace(log, poses=np.array([[5.0, 6.0, 0.1], [7.0, 8.0, 0.2]]))
+    np.testing.assert_array_equal(with_odometry_delay(corrected, -0.25).poses, corrected.poses)
     assert with_odometry_delay(log, 0.0) is log
     with pytest.raises(LogFormatError, match="separate odometry stream"):
         with_odometry_delay(small_log([1.0], np.ones((1, 3))), 0.1)
@@ -207,6 +212,23 @@ def test_a_delay_past_the_odometry_skips_the_scans_it_leaves_without_odometry():
     assert "6 s apart" in shifted.skipped[0].reason and "0.7 s outside" in shifted.skipped[1].reason
     with pytest.raises(LogFormatError, match="no scan has odometry around it"):
         with_odometry_delay(log, -5.0)
+
+
+def test_stamps_in_bursts_cannot_time_an_odometry_delay():
+    """Scans two at a time 1 ms apart, every 0.2 s (the Intel bag's way): more than 5 % of the intervals are under a
+    fifth of the median, so the stamps are said to come in bursts; regular scans with odometry at twice their rate
+    are not, and odometry records in bursts beside regular scans are."""
+    regular = np.arange(0.0, 20.0, 0.1)
+    bursts = np.sort(np.concatenate([np.arange(0.0, 20.0, 0.2), np.arange(0.0, 20.0, 0.2) + 0.001]))
+    odometry = np.arange(0.0, 20.0, 0.05)
+    assert bursty_stamps(regular, odometry) == ""
+    assert "scans come in bursts" in bursty_stamps(bursts, odometry)
+    assert "odometry records come in bursts" in bursty_stamps(
+        regular, np.sort(np.concatenate([regular, regular + 1e-4]))
+    )
+    one_late = regular.copy()
+    one_late[50] = one_late[49] + 0.001  # one short interval in 199: 0.5 %, no burst
+    assert bursty_stamps(one_late, odometry) == ""
 
 
 @pytest.mark.parametrize("true_delay", [-0.13, 0.0, 0.07])

@@ -122,12 +122,14 @@ def add_gridslam_arguments(parser: argparse.ArgumentParser) -> None:
     group.add_argument(
         "--odom-delay",
         type=_odom_delay,
-        default=0.0,
+        default=None,
         metavar="SECONDS|auto",
         help="read each scan's odometry this many seconds after its stamp (negative: before), for a "
         "laser whose stamps run late against the odometry's; 'auto' estimates it by running the "
         f"filter over the first {AUTO_DELAY_SECONDS:.0f} s and comparing its scan-matched turns with "
-        "the odometry's (needs a separate odometry stream; default 0)",
+        "the odometry's (needs a separate odometry stream). Default: auto where the log has a separate "
+        "odometry stream (a bag's odometry topic, a CARMEN log's ODOM lines) long enough to compare, "
+        "else 0 (docs/gridslam.md, 'Laser and odometry clocks')",
     )
     group.add_argument(
         "--scans",
@@ -223,41 +225,77 @@ def _check_log(log, config) -> None:
 
 
 def _apply_odometry_delay(args: argparse.Namespace, log, config):
-    """The log with its odometry read at --odom-delay (estimated first for 'auto'), and the delay in s."""
+    """The log with its odometry read at --odom-delay (by default, or for 'auto', estimated first), and the delay
+    in s."""
+    from services.errors import UsageError
+    from slam.errors import LogFormatError
+    from slam.laserlog import with_odometry_delay
+
+    wanted = _default_delay(log) if args.odom_delay is None else args.odom_delay
+    asked = args.odom_delay == "auto"
+    delay = _estimated_delay(args, log, config, asked) if wanted == "auto" else float(wanted)
+    try:
+        return with_odometry_delay(log, delay), delay
+    except LogFormatError as exc:
+        raise UsageError(f"--odom-delay: {exc}") from None
+
+
+def _default_delay(log) -> str | float:
+    """Without --odom-delay: "auto" where the log has a separate odometry stream whose stamps, and the scans',
+    can time a delay; else 0 (said on stderr when the stream is there but its stamps come in bursts)."""
+    from slam.errors import LogFormatError
+    from slam.laserlog import check_odometry_stream
+    from slam.timealign import bursty_stamps
+
+    try:
+        check_odometry_stream(log)
+    except LogFormatError:
+        return 0.0  # odometry only with the scans: there is no other time to read it at
+    problem = bursty_stamps(log.stamps, log.odom_stamps)
+    if problem:
+        print(f"posegrid slam: odometry delay 0 s (not estimated: {problem})", file=sys.stderr)
+        return 0.0
+    return "auto"
+
+
+def _estimated_delay(args: argparse.Namespace, log, config, asked: bool) -> float:
+    """The odometry delay (s) estimated by running the filter over the log's first AUTO_DELAY_SECONDS: a log it
+    cannot be estimated on is refused (UsageError) where --odom-delay auto was ``asked`` for, else read with 0."""
     import numpy as np
     from tqdm import tqdm
 
     from services.errors import UsageError
     from slam.errors import LogFormatError
     from slam.gridslam import run_gridslam
-    from slam.laserlog import check_odometry_stream, with_odometry_delay
-    from slam.timealign import odometry_delay
+    from slam.laserlog import check_odometry_stream
+    from slam.timealign import bursty_stamps, odometry_delay
 
-    delay = args.odom_delay
-    if delay == "auto":
-        try:
-            check_odometry_stream(log)
-        except LogFormatError as exc:
-            raise UsageError(f"--odom-delay auto: {exc}") from None
-        count = int(np.searchsorted(log.stamps, log.stamps[0] + AUTO_DELAY_SECONDS))
-        head = log.first(max(count, 2))
-        with tqdm(total=len(head), desc="odometry delay", unit="scan", file=sys.stderr, mininterval=0.5) as bar:
-            trial = run_gridslam(head, config, seed=args.seed, progress=lambda done, ess: bar.update(done))
-        try:
-            delay, mismatch = odometry_delay(
-                trial.stamps, trial.samples[:, trial.best, 2], log.odom_stamps, log.odom_poses[:, 2]
-            )
-        except ValueError as exc:
-            raise UsageError(f"--odom-delay auto: {exc}") from None
-        print(
-            f"posegrid slam: odometry delay {delay:+.2f} s, estimated over the first {len(head)} scans "
-            f"(mean heading mismatch {np.degrees(mismatch):.2f} deg per 0.5 s)",
-            file=sys.stderr,
-        )
     try:
-        return with_odometry_delay(log, delay), delay
+        check_odometry_stream(log)
     except LogFormatError as exc:
-        raise UsageError(f"--odom-delay: {exc}") from None
+        raise UsageError(f"--odom-delay auto: {exc}") from None
+    problem = bursty_stamps(log.stamps, log.odom_stamps)
+    if problem:
+        raise UsageError(f"--odom-delay auto: {log.source}: {problem}; give the delay in seconds, or 0")
+    count = int(np.searchsorted(log.stamps, log.stamps[0] + AUTO_DELAY_SECONDS))
+    head = log.first(max(count, 2))
+    with tqdm(total=len(head), desc="odometry delay", unit="scan", file=sys.stderr, mininterval=0.5) as bar:
+        trial = run_gridslam(head, config, seed=args.seed, progress=lambda done, ess: bar.update(done))
+    try:
+        delay, mismatch = odometry_delay(
+            trial.stamps, trial.samples[:, trial.best, 2], log.odom_stamps, log.odom_poses[:, 2]
+        )
+    except ValueError as exc:
+        if asked:
+            raise UsageError(f"--odom-delay auto: {exc}") from None
+        print(f"posegrid slam: odometry delay 0 s (not estimated: {exc})", file=sys.stderr)
+        return 0.0
+    print(
+        f"posegrid slam: odometry delay {delay:+.2f} s, estimated over the first {len(head)} scans "
+        f"(mean heading mismatch {np.degrees(mismatch):.2f} deg per 0.5 s)",
+        file=sys.stderr,
+    )
+    return delay
 
 
 def run_gridslam_command(args: argparse.Namespace) -> int:
@@ -271,7 +309,9 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
 
     config = gridslam_config(args)
     best_path, poses_path = _output_paths(args)
+    before = time.process_time()
     log, delay = _prepared_log(args, config)
+    reading_cpu = time.process_time() - before  # (reading the log, and estimating the delay where it is)
     started = time.perf_counter()
     cpu_started = time.process_time()
     result = _run_filter(log, config, args.seed)
@@ -279,6 +319,7 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
     cpu = time.process_time() - cpu_started
     _save_outputs(args.output, best_path, poses_path, log, config, result)
     stats = _run_stats(log, config, result, delay, elapsed, cpu)
+    stats["cpu_seconds_reading"] = reading_cpu
     _report_health(stats)
     if args.stats is not None:
         text = json.dumps(stats, indent=1) + "\n"
@@ -382,7 +423,8 @@ def _save_outputs(output: Path, best_path: Path, poses_path: Path, log, config, 
 
 
 def _run_stats(log, config, result, delay: float, elapsed: float, cpu: float) -> dict:
-    """The figures --stats writes: times (s) of ``elapsed`` wall and ``cpu`` time, effective sample sizes,
+    """The figures --stats writes: times (s) of ``elapsed`` wall and ``cpu`` time (the filter's run; the caller adds
+    ``cpu_seconds_reading``, reading the log and estimating its odometry delay), effective sample sizes,
     resamplings, tiles, the odometry ``delay`` (s), the health of every integrated scan (columns, one value per
     integrated scan) and its summary, and the errors against the poses the log states where it states others
     than its odometry."""
