@@ -468,6 +468,7 @@ def test_unusable_laser_logs_exit_2_without_output(tmp_path, capsys, log_kwargs,
         ("--linear-update", "-0.1", "--linear-update and --angular-update must be >= 0"),
         ("--angular-update", "-0.1", "--linear-update and --angular-update must be >= 0"),
         ("--particles", "1001", "--particles for grid FastSLAM must be at most 1000"),  # 10 000 asked for 32 GiB
+        ("--widen", "0.5", "widen >= 1"),
     ],
 )
 def test_filter_options_out_of_range_exit_2(tmp_path, capsys, option, value, message):

@@ -159,7 +159,8 @@ def test_stats_report_every_integrated_scans_health(office_run):
     matched = np.array(health["matched"][1:], float)  # (the first scan has nothing to match: None)
     assert health["matched"][0] is None and np.all((matched > 0.5) & (matched <= 1.0))
     assert np.all(np.array(health["ess"]) <= np.array(health["particles"]) + 1e-9)
-    assert min(health["particles"]) == 25 and max(health["particles"]) <= 50
+    defaults = GridSlamConfig()
+    assert min(health["particles"]) == defaults.particles and max(health["particles"]) <= defaults.particle_cap
     assert np.all(np.array(health["sigma_xy"]) >= np.array(health["spread_xy"]) - 1e-9)
     assert sum(health["failed"]) == summary["failed"] == 0 and summary["warnings"] == []
     # the simulated log states the true poses: the run is judged against them

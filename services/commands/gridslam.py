@@ -16,7 +16,7 @@ from services.commands.argtypes import check_outputs, checked_output, finite_flo
 
 #: grid FastSLAM particles when --particles is not given: the least KLD-sampling keeps (GridSlamConfig.particle_cap
 #: the most)
-DEFAULT_GRID_PARTICLES = 25
+DEFAULT_GRID_PARTICLES = 30
 
 #: --odom-delay auto runs the filter over this much of the log's start (s) to estimate the delay
 AUTO_DELAY_SECONDS = 120.0
@@ -47,6 +47,7 @@ FILTER_OPTIONS = (
     ("--min-range", "min_range"),
     ("--prior-cap", "prior_cap"),
     ("--particle-cap", "particle_cap"),
+    ("--widen", "widen"),
 )
 
 
@@ -86,14 +87,18 @@ def add_filter_options(group: argparse._ArgumentGroup, label: str = "") -> None:
         "--prior-cap": "squared Mahalanobis distance from the odometry beyond which the scan matcher stops weighing "
         f"the odometry (default {defaults.prior_cap:g}; larger trusts the odometry more)",
         "--particle-cap": "the most particles KLD-sampling grows the set to while the scans leave the pose open "
-        f"(--particles is the least; default {defaults.particle_cap}; at most --particles: a fixed count)",
+        f"(--particles is the least; default {defaults.particle_cap}; at most --particles: a fixed count, the "
+        "default, chosen by leave-one-out on the shared logs, docs/gridslam.md)",
+        "--widen": "after a failed match, the next proposal's motion variances (and its yaw search's square) are "
+        f"this many times larger, >= 1 (default {defaults.widen:g}: not widened, chosen by leave-one-out; a failed "
+        "match never weighs the particles)",
     }
     for option, _ in FILTER_OPTIONS:
         group.add_argument(
             option,
             type=int if option == "--particle-cap" else finite_float,
             default=None,
-            metavar={"--prior-cap": "D2", "--particle-cap": "N"}.get(option),
+            metavar={"--prior-cap": "D2", "--particle-cap": "N", "--widen": "FACTOR"}.get(option),
             help=label + helps[option],
         )
 

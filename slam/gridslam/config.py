@@ -11,7 +11,7 @@ from dataclasses import dataclass
 class GridSlamConfig:
     """Parameters of grid FastSLAM (m, rad; log-odds are natural-log odds)."""
 
-    particles: int = 25  # the least particles (KLD-sampling grows the set up to particle_cap)
+    particles: int = 30  # the least particles (KLD-sampling grows the set up to particle_cap)
     resolution: float = 0.05  # cell size, m
     tile_cells: int = 32  # tile edge in cells (copy-on-write unit; a power of two)
     max_range: float = 30.0  # m: beams are used up to here; longer or no return: free space up to here
@@ -47,7 +47,7 @@ class GridSlamConfig:
     keep_spread: bool = True  # keep the spread resampling loses as a covariance per particle (an honest cloud)
     revisit_gap: int = 100  # integrated scans after which coming back within revisit_radius lowers it again
     revisit_radius: float = 1.0  # m
-    particle_cap: int = 50  # KLD-sampling grows the set up to this many particles (<= particles: a fixed count)
+    particle_cap: int = 30  # KLD-sampling grows the set up to this many particles (<= particles: a fixed count)
     kld_epsilon: float = 0.15  # KLD-sampling's bound on the divergence of the sample from the weighted set
     kld_delta: float = 0.01  # ... exceeded with at most this probability
     kld_bin_xy: float = 0.5  # m, KLD-sampling's bins
@@ -55,7 +55,7 @@ class GridSlamConfig:
     recovery: bool = True  # after a failed match: no weighting by that scan, a wider proposal for the next
     fail_match: float = 0.2  # the best particle's matched-beam fraction below which the match failed
     fail_z: float = -6.0  # ... or its z against the recent scans below which it failed
-    widen: float = 4.0  # after a failure: the factor on the motion model's variances and the yaw search's square
+    widen: float = 1.0  # after a failure: the factor on the motion model's variances and the yaw search's square
 
     def validate(self) -> None:
         """Raise ValueError naming the first parameter out of range."""

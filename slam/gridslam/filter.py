@@ -302,15 +302,16 @@ class GridFastSLAM:
     def _weigh(self, log_eta: np.ndarray, matched: np.ndarray) -> tuple[float, bool]:
         """Weigh the particles by log_eta (M,) unless the best particle's match failed (config.recovery: its
         matched-beam fraction below fail_match or its z against the recent scans below fail_z; a scan nobody
-        explains says nothing about which particle is right, and the next proposal is widened). Returns the best
-        particle's matched-beam fraction (matched (M,): each particle's) and whether its match failed."""
+        explains says nothing about which particle is right; the next proposal is widened where config.widen > 1).
+        Returns the best particle's matched-beam fraction (matched (M,): each particle's) and whether its match
+        failed."""
         cfg = self.config
         best = int(np.argmax(self.log_w + log_eta / cfg.weight_temper))
         self.last_z = self.watch.zscore(float(matched[best]))
         self.watch.add(float(matched[best]))
         failed = bool(matched[best] < cfg.fail_match or self.last_z < cfg.fail_z)
-        self.widen = failed and cfg.recovery
-        if not self.widen:
+        self.widen = failed and cfg.recovery and cfg.widen > 1.0
+        if not (failed and cfg.recovery):
             self.log_w = self.log_w + log_eta / cfg.weight_temper
             self.log_w -= self.log_w.max()
         return float(matched[best]), failed
