@@ -16,6 +16,7 @@ RESULTS = Path(__file__).resolve().parent / "results"
 SUITES = (
     "bench.fusion",
     "bench.threads",
+    "bench.samples_scaling",
     "bench.warehouse",
     "bench.quality",
     "bench.adaptive",
