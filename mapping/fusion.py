@@ -70,7 +70,7 @@ class FusionScratch:
     four-float excess record (32 bytes) and a list entry (8 bytes), plus a bit of the column-major plane; the
     one-sample pass keeps 8 bytes and two bits. About 57 bytes a window cell in all: 14 MB for the office's 12 m
     laser at 0.05 m (a window of about 490 x 490 cells), 85 MB for a 30 m laser, 0.95 GB at the largest window a
-    scan may take (mapping.scan_input.MAX_WINDOW_CELLS). A fusion on T threads keeps T of them.
+    scan may take (mapping.scan_input.MAX_WINDOW_CELLS). A fusion on T > 1 threads keeps T + 1 of them.
 
     Nothing in it carries from one scan to the next: each pass clears what it set, and the samples pass tells
     the excess records of earlier scans by their stamps (unique per scratch: :meth:`stamps`)."""

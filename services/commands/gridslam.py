@@ -230,58 +230,55 @@ def _check_log(log, config) -> None:
 
 
 def _apply_odometry_delay(args: argparse.Namespace, log, config):
-    """The log with its odometry read at --odom-delay (by default, or for 'auto', estimated first), and the delay
-    in s."""
+    """The log with its odometry read at --odom-delay, and the delay in s. Without it, the delay is estimated
+    where the log can time one and is 0 elsewhere (said on stderr when the log has an odometry stream whose stamps
+    cannot time it); 'auto' on a log that cannot time one is refused."""
     from services.errors import UsageError
     from slam.errors import LogFormatError
     from slam.laserlog import with_odometry_delay
 
-    wanted = _default_delay(log) if args.odom_delay is None else args.odom_delay
-    asked = args.odom_delay == "auto"
-    delay = _estimated_delay(args, log, config, asked) if wanted == "auto" else float(wanted)
+    wanted = args.odom_delay
+    if wanted is None or wanted == "auto":
+        problem, has_stream = _untimeable(log)
+        if problem and wanted == "auto":
+            raise UsageError(f"--odom-delay auto: {problem}; give the delay in seconds, or 0")
+        if problem and has_stream:
+            print(f"posegrid slam: odometry delay 0 s (not estimated: {problem})", file=sys.stderr)
+        delay = 0.0 if problem else _estimated_delay(args, log, config, asked=wanted == "auto")
+    else:
+        delay = float(wanted)
     try:
         return with_odometry_delay(log, delay), delay
     except LogFormatError as exc:
         raise UsageError(f"--odom-delay: {exc}") from None
 
 
-def _default_delay(log) -> str | float:
-    """Without --odom-delay: "auto" where the log has a separate odometry stream whose stamps, and the scans',
-    can time a delay; else 0 (said on stderr when the stream is there but its stamps come in bursts)."""
+def _untimeable(log) -> tuple[str, bool]:
+    """Why an odometry delay cannot be estimated on the log ("" when it can: a separate odometry stream in time
+    order, and stamps not in bursts, slam.timealign.bursty_stamps), and whether it has an odometry stream."""
     from slam.errors import LogFormatError
     from slam.laserlog import check_odometry_stream
     from slam.timealign import bursty_stamps
 
     try:
         check_odometry_stream(log)
-    except LogFormatError:
-        return 0.0  # odometry only with the scans: there is no other time to read it at
+    except LogFormatError as exc:
+        return str(exc), False
     problem = bursty_stamps(log.stamps, log.odom_stamps)
-    if problem:
-        print(f"posegrid slam: odometry delay 0 s (not estimated: {problem})", file=sys.stderr)
-        return 0.0
-    return "auto"
+    return (f"{log.source}: {problem}" if problem else ""), True
 
 
 def _estimated_delay(args: argparse.Namespace, log, config, asked: bool) -> float:
-    """The odometry delay (s) estimated by running the filter over the log's first AUTO_DELAY_SECONDS: a log it
-    cannot be estimated on is refused (UsageError) where --odom-delay auto was ``asked`` for, else read with 0."""
+    """The odometry delay (s) estimated by running the filter over the log's first AUTO_DELAY_SECONDS (a log that
+    can time one, :func:`_untimeable`); a trajectory too short to compare is refused (UsageError) where
+    --odom-delay auto was ``asked`` for, else read with 0."""
     import numpy as np
     from tqdm import tqdm
 
     from services.errors import UsageError
-    from slam.errors import LogFormatError
     from slam.gridslam import run_gridslam
-    from slam.laserlog import check_odometry_stream
-    from slam.timealign import bursty_stamps, odometry_delay
+    from slam.timealign import odometry_delay
 
-    try:
-        check_odometry_stream(log)
-    except LogFormatError as exc:
-        raise UsageError(f"--odom-delay auto: {exc}") from None
-    problem = bursty_stamps(log.stamps, log.odom_stamps)
-    if problem:
-        raise UsageError(f"--odom-delay auto: {log.source}: {problem}; give the delay in seconds, or 0")
     count = int(np.searchsorted(log.stamps, log.stamps[0] + AUTO_DELAY_SECONDS))
     head = log.first(max(count, 2))
     with tqdm(total=len(head), desc="odometry delay", unit="scan", file=sys.stderr, mininterval=0.5) as bar:
