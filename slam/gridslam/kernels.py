@@ -190,12 +190,14 @@ def _candidate(grid, j, ex, ey, dx, dy, ix, iy, tid, best):  # pragma: no cover 
     else:
         px = (ix + 0.5) * res
         py = (iy + 0.5) * res
+    d2 = (px - ex) * (px - ex) + (py - ey) * (py - ey)
+    if d2 >= best:  # (the cell behind is looked up only for a cell that would be the nearest)
+        return best
     fx = int(math.floor((px - dx * res) / res))
     fy = int(math.floor((py - dy * res) / res))
     if _value(grid, j, fx, fy) > 0.0:
         return best
-    d2 = (px - ex) * (px - ex) + (py - ey) * (py - ey)
-    return d2 if d2 < best else best
+    return d2
 
 
 @kernel(nogil=True, inline="always")
@@ -233,12 +235,13 @@ def _likelihood_field(radius, sigma_match, sigma_like, p_rand):  # pragma: no co
 
 
 @kernel(nogil=True)
-def _evaluate(grid, j, x, y, th, beams, field, stride):  # pragma: no cover - compiled
+def _evaluate(grid, j, x, y, th, beams, field, stride, with_loglik):  # pragma: no cover - compiled
     """(match score, log-likelihood) of the beams (offset, cos_b, sin_b, rng) from robot pose (x, y, th) on
     particle j's grid. For each beam end the nearest mean end point of an occupied cell (log-odds > 0)
     within ``field[0]`` cells whose neighbour one cell back towards the laser is not occupied gives the
     distance d (m); the score adds exp(-d^2 / 2 s_m^2), the log-likelihood
-    log(p_rand + (1 - p_rand) exp(-d^2 / 2 s_l^2)) (log p_rand when there is no such cell). Only every
+    log(p_rand + (1 - p_rand) exp(-d^2 / 2 s_l^2)) (log p_rand when there is no such cell; 0 without
+    ``with_loglik``, a constant at every call site: the search needs the score only). Only every
     ``stride``-th beam is used."""
     offset, cos_b, sin_b, rng = beams
     radius, inv2s2_match, inv2s2_like, log_p_rand, p_rand = field
@@ -251,8 +254,9 @@ def _evaluate(grid, j, x, y, th, beams, field, stride):  # pragma: no cover - co
         best = _nearest_end(grid, j, lx + rng[i] * dx, ly + rng[i] * dy, dx, dy, radius, inv_res)
         if best < np.inf:
             score += math.exp(-best * inv2s2_match)
-            loglik += math.log(p_rand + (1.0 - p_rand) * math.exp(-best * inv2s2_like))
-        else:
+            if with_loglik:
+                loglik += math.log(p_rand + (1.0 - p_rand) * math.exp(-best * inv2s2_like))
+        elif with_loglik:
             loglik += log_p_rand
     return score, loglik
 
@@ -266,7 +270,7 @@ def _objective(grid, j, x, y, th, beams, field, prior, stride):  # pragma: no co
     room within 1 cm where the log-likelihood strays 5 cm). With ``stride`` > 1 the score of the beams used
     is scaled up to all beams."""
     predicted, q_inv, prior_cap, gain = prior
-    score, _loglik = _evaluate(grid, j, x, y, th, beams, field, stride)
+    score, _loglik = _evaluate(grid, j, x, y, th, beams, field, stride, False)
     ex = x - predicted[j, 0]
     ey = y - predicted[j, 1]
     et = (th - predicted[j, 2] + math.pi) % (2.0 * math.pi) - math.pi
@@ -291,7 +295,7 @@ def log_likelihoods(
     loglik = np.empty(m)
     score = np.empty(m)
     for j in range(m):
-        score[j], loglik[j] = _evaluate(grid, j, poses[j, 0], poses[j, 1], poses[j, 2], beams, field, 1)
+        score[j], loglik[j] = _evaluate(grid, j, poses[j, 0], poses[j, 1], poses[j, 2], beams, field, 1, True)
     return loglik, score
 
 
@@ -485,7 +489,9 @@ def match_and_propose(
         _, scores[j], bx, by, bt = _match(grid, j, beams, field, prior, starts, search)
         matched[j, 0], matched[j, 1], matched[j, 2] = bx, by, bt
         for k in range(stencil.shape[0]):
-            _, ll_k[k] = _evaluate(grid, j, bx + stencil[k, 0], by + stencil[k, 1], bt + stencil[k, 2], beams, field, 1)
+            _, ll_k[k] = _evaluate(
+                grid, j, bx + stencil[k, 0], by + stencil[k, 1], bt + stencil[k, 2], beams, field, 1, True
+            )
         mx, my, mt, cov[j], log_eta[j] = _laplace(fit @ ll_k, gain, predicted[j], q_inv[j], q_logdet[j], bx, by, bt)
         mean[j, 0], mean[j, 1], mean[j, 2] = mx, my, mt
     return matched, scores, mean, cov, log_eta
