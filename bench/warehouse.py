@@ -33,6 +33,7 @@ import numpy as np
 
 from bench.fusion import _interleaved_seconds, _octomap_steps
 from bench.scenarios import honest_posed_scans, warehouse_run
+from mapping.bundling import RECOMMENDED_TOLERANCE
 from mapping.fusion import MonteCarloFusion
 from mapping.grid import TiledGrid
 from mapping.sensor_model import SensorModel
@@ -57,9 +58,14 @@ SHARD_COUNTS = (1, 2, 4)
 Picks = list[tuple[np.ndarray, np.ndarray]]
 
 
-def _fusion(posed: PosedScans, owner: Callable[[int, int], bool] | None = None) -> MonteCarloFusion:
-    """A fusion of the scans' laser into a fresh grid of RESOLUTION m cells (owning the tiles ``owner`` accepts)."""
-    return MonteCarloFusion(TiledGrid(RESOLUTION), SensorModel(resolution=RESOLUTION), *posed.single_geometry(), owner)
+def _fusion(
+    posed: PosedScans, owner: Callable[[int, int], bool] | None = None, bundle: float = 0.0
+) -> MonteCarloFusion:
+    """A fusion of the scans' laser into a fresh grid of RESOLUTION m cells (owning the tiles ``owner`` accepts; its
+    samples bundled with tolerance ``bundle`` m, mapping.bundling)."""
+    return MonteCarloFusion(
+        TiledGrid(RESOLUTION), SensorModel(resolution=RESOLUTION), *posed.single_geometry(), owner, bundle=bundle
+    )
 
 
 def _particles(posed: PosedScans) -> Picks:
@@ -93,7 +99,8 @@ def _cpu_timed(step: Callable[[], object], spent: np.ndarray, t: int) -> None:
 
 
 def _speed(posed100: PosedScans, posed500: PosedScans, gaussian: PosedScans) -> dict:
-    """Scans/s of 100 and 500 particles and of the Gaussians, in turns, against OctoMap fed the same particles."""
+    """Scans/s of 100 and 500 particles (exact and bundled with the recommended tolerance, mapping.bundling) and of
+    the Gaussians, in turns, against OctoMap fed the same particles."""
     scans = len(posed100.stamps)
     _fusion(posed100).fuse(posed100.ranges[0], *_particles(posed100)[0])  # compile the kernels
     draws = _gaussian_draws(gaussian)
@@ -101,6 +108,10 @@ def _speed(posed100: PosedScans, posed500: PosedScans, gaussian: PosedScans) -> 
         "mc100": _steps(_fusion(posed100), posed100, _particles(posed100)),
         "mc500": _steps(_fusion(posed500), posed500, _particles(posed500), EVERY_500),
         "gaussian": _steps(_fusion(gaussian), gaussian, draws),
+        "bundled100": _steps(_fusion(posed100, bundle=RECOMMENDED_TOLERANCE), posed100, _particles(posed100)),
+        "bundled500": _steps(
+            _fusion(posed500, bundle=RECOMMENDED_TOLERANCE), posed500, _particles(posed500), EVERY_500
+        ),
     }
     cpu = {name: np.zeros(scans) for name in ours}
     lists = {
@@ -116,7 +127,8 @@ def _speed(posed100: PosedScans, posed500: PosedScans, gaussian: PosedScans) -> 
     seconds = dict(zip(lists, _interleaved_seconds(*lists.values(), chunk=CHUNK)))
     beams = posed100.ranges.shape[1]
     counts = np.array([len(w) for _, w in draws])
-    fused = {"mc100": scans, "mc500": len(range(0, scans, EVERY_500)), "gaussian": scans}
+    every500 = len(range(0, scans, EVERY_500))
+    fused = {"mc100": scans, "mc500": every500, "gaussian": scans, "bundled100": scans, "bundled500": every500}
     out: dict = {"mc500_scans": fused["mc500"]}
     for name, count in fused.items():
         out[f"{name}_scans_per_s"] = count / seconds[name].sum()
@@ -128,6 +140,8 @@ def _speed(posed100: PosedScans, posed500: PosedScans, gaussian: PosedScans) -> 
             "gaussian_samples_mean": float(counts.mean()),
             "gaussian_samples_min": int(counts.min()),
             "gaussian_samples_max": int(counts.max()),
+            "bundled100_speedup": seconds["mc100"].sum() / seconds["bundled100"].sum(),
+            "bundled500_speedup": seconds["mc500"].sum() / seconds["bundled500"].sum(),
         }
     )
     if "octomap100" not in lists:

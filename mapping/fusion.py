@@ -40,6 +40,7 @@ from typing import NamedTuple
 import numpy as np
 
 from mapping.beam_model import BEAM_SKIP, BeamTable, beam_table, logodds_model
+from mapping.bundling import bundle_samples, check_tolerance
 from mapping.errors import InputError
 from mapping.grid import TiledGrid
 from mapping.parallel_fusion import in_scan_order
@@ -52,10 +53,12 @@ from mapping.window_walk import Tiles, Window
 
 @dataclass(frozen=True)
 class FuseResult:
-    """What one scan changed: the number of distinct cells updated and the tiles they lie in."""
+    """What one scan changed: the number of distinct cells updated and the tiles they lie in; and the pose samples
+    whose rays it walked (after merging identical ones and bundling, mapping.bundling; 0 for a scan not walked)."""
 
     cells_updated: int
     tiles_changed: list[tuple[int, int]]
+    samples_walked: int = 0
 
 
 #: what :meth:`MonteCarloFusion.fuse_iter` takes per scan: ranges (B,) m, robot pose samples (M, 3), weights (M,)
@@ -145,7 +148,8 @@ class Ready(NamedTuple):
 
 class Walked(NamedTuple):
     """A walked scan, to apply: the pass's scratch (the kernels' tuple), the cells it listed, the tiles it touched,
-    the window and tiles (tuples), and the one sample's weight (one-sample pass) or the first stamp (samples pass)."""
+    the window and tiles (tuples), the one sample's weight (one-sample pass) or the first stamp (samples pass), and the
+    number of laser poses walked."""
 
     single: bool
     scratch: tuple
@@ -155,6 +159,7 @@ class Walked(NamedTuple):
     tile_args: tuple
     weight: float
     stamp_base: int
+    samples: int  # the laser poses walked
 
 
 class MonteCarloFusion:
@@ -163,7 +168,9 @@ class MonteCarloFusion:
     beam_angles: (B,) rad in the laser frame; range_min, range_max: m; sensor_offset: the laser's
     (x m, y m, yaw rad) in the robot frame; owns_tile: optional (tx, ty) -> bool, for a shard that fuses
     only its own tiles (the cells of other tiles are skipped); merge_identical: merge identical pose
-    samples before ray casting (on by default; off only to measure what merging saves); threads: how many scans
+    samples before ray casting (on by default; off only to measure what merging saves); bundle: the tolerance (m) of
+    :mod:`mapping.bundling` (0, the default: every distinct sample walks its rays; > 0: the samples of a scan are
+    bundled and only the bundles' leaders walk, an approximation within that bound); threads: how many scans
     :meth:`fuse_iter` walks at once, or a :class:`FusionThreads` shared with the other fusions of the same grid (one
     per laser geometry). Not thread-safe: one caller at a time.
     """
@@ -179,6 +186,7 @@ class MonteCarloFusion:
         owns_tile: Callable[[int, int], bool] | None = None,
         merge_identical: bool = True,
         threads: int | FusionThreads = 1,
+        bundle: float = 0.0,
     ) -> None:
         if not np.isclose(grid.resolution, model.resolution):
             raise InputError(
@@ -186,6 +194,10 @@ class MonteCarloFusion:
             )
         if not 0 <= range_min < range_max or not np.isfinite(range_max):
             raise InputError(f"need 0 <= range_min < range_max < inf, got {range_min} and {range_max}")
+        try:
+            self.bundle = check_tolerance(bundle)
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
         self.grid = grid
         self.model = model
         self.angles = np.ascontiguousarray(beam_angles, dtype=np.float64)
@@ -264,6 +276,9 @@ class MonteCarloFusion:
         if not (beams.kind != BEAM_SKIP).any():
             return None
         lasers = laser_poses(samples, self.sensor_offset)
+        if self.bundle > 0.0 and len(lasers) > 1:
+            used = beams.kind != BEAM_SKIP
+            lasers, weights = bundle_samples(lasers, weights, self.bundle, float(beams.r_stop[used].mean()))
         window, tiles = self._window(lasers, float(beams.r_stop.max()) + self.grid.resolution)
         return Ready(lasers, weights, beams, window, tiles)
 
@@ -297,7 +312,7 @@ class MonteCarloFusion:
                 layers,
                 self._levels,
             )
-        return FuseResult(walked.n_scan, changed)
+        return FuseResult(walked.n_scan, changed, walked.samples)
 
     def _window(self, lasers: np.ndarray, reach: float) -> tuple[Window, Tiles]:
         """The scratch window over the rays of laser poses (M, 3) that reach ``reach`` m (its origin a multiple of 8
@@ -336,7 +351,7 @@ class MonteCarloFusion:
         args = (scratch.touched_bits, scratch.raised_bits, scratch.largest, blocks_w, blocks_h, touched)
         window_args, tile_args = tuple(window), tuple(tiles)
         n_scan = accumulate_single(ready.lasers[0], *self._ray_args(ready.beams), window_args, tile_args, args)
-        return Walked(True, args, int(n_scan), touched, window_args, tile_args, float(ready.weights[0]), 0)
+        return Walked(True, args, int(n_scan), touched, window_args, tile_args, float(ready.weights[0]), 0, 1)
 
     def _walk_samples(self, ready: Ready, scratch: FusionScratch) -> Walked:
         """The samples pass (laser poses (M, 3), weights (M,))."""
@@ -363,7 +378,7 @@ class MonteCarloFusion:
         n_scan = accumulate_scan(
             ready.lasers, ready.weights, *self._ray_args(ready.beams), window_args, tile_args, args, stamp_base
         )
-        return Walked(False, args, int(n_scan), touched, window_args, tile_args, 0.0, stamp_base)
+        return Walked(False, args, int(n_scan), touched, window_args, tile_args, 0.0, stamp_base, len(ready.lasers))
 
 
 class FusionThreads:

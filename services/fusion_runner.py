@@ -65,7 +65,8 @@ class FusionOptions(TypedDict, total=False):
     n_samples: Gaussian draws per scan, None (the default) to derive them from the covariance and ``accuracy``
     (m, default one cell). seed: with the scan's seq, seeds the draws (default 0). progress: show a progress bar.
     threads: scans fused side by side (mapping.fusion.FusionThreads; default 1; the regular grid only): the map is
-    the same bit for bit for any count.
+    the same bit for bit for any count. bundle: the pose bundles' tolerance in m (mapping.bundling; default 0, exact;
+    the regular grid only).
     """
 
     mode: str
@@ -76,6 +77,7 @@ class FusionOptions(TypedDict, total=False):
     accuracy: float | None
     progress: bool
     threads: int
+    bundle: float
 
 
 def fuse_posed_scans(
@@ -92,7 +94,12 @@ def fuse_posed_scans(
     tiled = grid or TiledGrid(model.resolution)
     threads = FusionThreads(options.get("threads", 1))  # (shared by the fusions of every laser geometry)
     scans = _scans(
-        posed, lambda geometry: MonteCarloFusion(tiled, model, *geometry, owns_tile, threads=threads), model, options
+        posed,
+        lambda geometry: MonteCarloFusion(
+            tiled, model, *geometry, owns_tile, threads=threads, bundle=options.get("bundle", 0.0)
+        ),
+        model,
+        options,
     )
     for outcome in threads.fuse_iter(scans):
         if isinstance(outcome, InputError):

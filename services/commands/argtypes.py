@@ -46,6 +46,14 @@ def positive_int(text: str) -> int:
     return value
 
 
+def bundle_metres(text: str) -> float:
+    """A finite number of metres >= 0 (--bundle: the pose bundles' tolerance, mapping.bundling; 0: exact)."""
+    value = finite_float(text)
+    if not value >= 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0 m (0: every sample walks its rays), got {text!r}")
+    return value
+
+
 def positive_seconds(text: str) -> float:
     """A finite number of seconds > 0."""
     value = finite_float(text)

@@ -10,7 +10,14 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from services.commands.argtypes import check_outputs, checked_output, finite_float, pose_sample_count, random_seed
+from services.commands.argtypes import (
+    bundle_metres,
+    check_outputs,
+    checked_output,
+    finite_float,
+    pose_sample_count,
+    random_seed,
+)
 from services.commands.options import add_choice, add_command, dest, option_argv
 
 if TYPE_CHECKING:
@@ -77,6 +84,16 @@ def add_sampling_arguments(
     parser.add_argument("--samples", type=pose_sample_count, default=None, help=samples)
     parser.add_argument("--accuracy", type=finite_float, default=None, help=accuracy)
     parser.add_argument("--seed", type=random_seed, default=0, help=seed)
+    parser.add_argument(
+        "--bundle",
+        type=bundle_metres,
+        default=0.0,
+        metavar="METRES",
+        help="mc only: walk the rays of a scan's pose samples in bundles, each from one sample that every other in it "
+        "is within this tolerance of (|dp| + mean ray length x |dyaw|): fewer rays walked for a map within a stated "
+        "bound of the exact one; 0.1 keeps the office map within 0.001 AUC and 1 %% Brier "
+        "(docs/performance.md, 'Bundled samples') (default 0: exact, every sample walks its rays)",
+    )
 
 
 def available_cores() -> int:
@@ -299,10 +316,14 @@ def _refuse_unread_options(args: argparse.Namespace) -> None:
         raise UsageError(f"{', '.join(given)} shape the adaptive grid only; add --grid adaptive or drop them")
     if args.grid == "adaptive" and args.threads is not None:
         raise UsageError("--threads fuses the regular grid's scans side by side; the adaptive grid fuses on one thread")
+    if args.grid == "adaptive" and args.bundle > 0:
+        raise UsageError("--bundle walks the regular grid's rays in bundles; the adaptive grid walks every sample's")
     if args.mode == "ml" and (args.samples is not None or args.accuracy is not None):
         raise UsageError(
             "--samples and --accuracy set how many Gaussian pose samples mc draws; ml uses the mean pose only"
         )
+    if args.mode == "ml" and args.bundle > 0:
+        raise UsageError("--bundle bundles the pose samples mc walks; ml walks the mean pose only")
 
 
 def _adaptive_params(args: argparse.Namespace) -> AdaptiveParams:
@@ -352,6 +373,7 @@ def run_fuse(args: argparse.Namespace) -> int:
         "seed": args.seed,
         "accuracy": args.accuracy,
         "progress": True,
+        "bundle": args.bundle,
     }
     grid: AdaptiveGrid | TiledGrid
     if args.grid == "adaptive":

@@ -272,7 +272,7 @@ def add_fusion_arguments(parser: argparse.ArgumentParser) -> None:
 
 def fusion_argv(args: argparse.Namespace) -> list[str]:
     """The fusion and sensor-model options of ``args`` as command-line arguments for a shard."""
-    return option_argv(args, ("--mode", "--seed", "--samples", "--accuracy")) + sensor_model_argv(args)
+    return option_argv(args, ("--mode", "--seed", "--samples", "--accuracy", "--bundle")) + sensor_model_argv(args)
 
 
 def add_input_arguments(parser: argparse.ArgumentParser, default_sim: bool) -> None:
@@ -432,6 +432,14 @@ def _check_name(value: str, option: str) -> None:
         )
 
 
+def _check_bundle(args: argparse.Namespace) -> None:
+    """--bundle bundles the samples of mc; with ml it would do nothing, so it is refused."""
+    from services.errors import UsageError
+
+    if args.mode == "ml" and args.bundle > 0:
+        raise UsageError("--bundle bundles the pose samples mc walks; ml walks the mean pose only")
+
+
 def _check_positive(args: argparse.Namespace, *names: str) -> None:
     from services.errors import UsageError
 
@@ -528,6 +536,7 @@ def run_mapper(args: argparse.Namespace) -> int:
     if args.join_buffer < 1 or args.intake_buffer < 1:
         raise UsageError("--join-buffer and --intake-buffer must be >= 1")
     _check_positive(args, "accuracy")
+    _check_bundle(args)
     _check_name(args.map, "--map")
     threads = threads_from_args(args)
     from services.commands.mapping import sensor_model_from_args
@@ -550,6 +559,7 @@ def run_mapper(args: argparse.Namespace) -> int:
         join_capacity=args.join_buffer,
         limits=limits_from_args(args),
         threads=threads,
+        bundle=args.bundle,
     )
     zenoh_config = config_from_args(args, "client")
     return serve(config, zenoh_config, install_stop_event(), args.intake_buffer, persist_from_args(args))
@@ -609,6 +619,7 @@ def run_pipeline(args: argparse.Namespace) -> int:
     if args.router_port is not None and not 0 < args.router_port < 65536:
         raise UsageError(f"--router-port must be a TCP port, got {args.router_port}")
     _check_positive(args, "accuracy", "resolution")
+    _check_bundle(args)
     _check_log_options(args)
     threads = threads_from_args(args, default=max(1, available_cores() // args.shards))
     restarts = restart_policy(args)

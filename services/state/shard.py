@@ -74,6 +74,7 @@ class ShardConfig:
     join_capacity: int = 512
     limits: ShardLimits = ShardLimits()
     threads: int = 1
+    bundle: float = 0.0  # m: the pose bundles' tolerance (mapping.bundling; 0: every sample walks its rays)
 
 
 #: what a shard joins: a scan or the pose distribution of its seq
@@ -388,6 +389,7 @@ class MapShard:
                 scan.sensor_offset,
                 self.owns,
                 threads=self._threads,
+                bundle=self.config.bundle,
             )
             self._fusions[geometry] = fusion
             while len(self._fusions) > FUSIONS_KEPT:
