@@ -199,14 +199,23 @@ def procs():
 # ------------------------------------------------------------------------------------------------ tests
 
 
-@pytest.mark.parametrize("shards, form", [(1, "gaussian"), (2, "samples"), (3, "gaussian")])
-def test_run_posed_export_equals_fuse(tmp_path, procs, shards, form):
+@pytest.mark.parametrize(
+    "shards, form, bundle",
+    [(1, "gaussian", []), (2, "samples", []), (3, "gaussian", []), (2, "gaussian", ["--bundle", "0.1"])],
+)
+def test_run_posed_export_equals_fuse(tmp_path, procs, shards, form, bundle):
+    """`posegrid run --posed ... --export` over Zenoh gives `posegrid fuse`'s map, on 1 to 3 shards, and with the
+    pose samples bundled (--bundle, passed on to the shards) the bundled map, which differs from the exact one."""
     owners = {tile_owner(tile, range(shards)) for tile in touched_tiles()}
     assert owners == set(range(shards)), "the test world must give every shard tiles"
     posed = make_posed(tmp_path / "posed.npz", form)
     fused = tmp_path / "fused.npz"
     draws = ["--samples", "12"] if form == "gaussian" else []  # fuse refuses a sample count for samples
-    assert main(["fuse", str(posed), "-o", str(fused), *draws]) == 0
+    assert main(["fuse", str(posed), "-o", str(fused), *draws, *bundle]) == 0
+    if bundle:
+        exact = tmp_path / "exact.npz"
+        assert main(["fuse", str(posed), "-o", str(exact), *draws]) == 0
+        assert not np.array_equal(load_map(exact).logodds, load_map(fused).logodds)
     exported = tmp_path / "run.npz"
     run = procs(
         [
@@ -222,6 +231,7 @@ def test_run_posed_export_equals_fuse(tmp_path, procs, shards, form):
             "12",
             "--no-api",
             *(["--threads", "2"] if shards == 2 else []),  # (two fusion threads in each shard: the same map)
+            *bundle,
         ]
     )
     assert run.process.wait(120) == 0, run.output()
