@@ -16,11 +16,12 @@ The whole scan is one compiled pass over all (sample, beam, cell) triples, writt
 that covers the scan (its origin a multiple of 8 cells), followed by one compiled pass that adds the
 window's touched cells into the tiles. No Python loop runs per sample, beam or cell.
 
-A scan with M > 1 distinct samples takes the samples pass (:mod:`mapping.samples_pass`: a bit plane per
-sample, most of each ray's free space marked in it as runs of cells per grid line (:mod:`mapping.free_runs`),
-per-sample records near the returns); one distinct sample takes the one-sample pass (:mod:`mapping.single_pass`),
-which gives the same map for about half the time. Both walk the rays with :mod:`mapping.window_walk` and value
-the cells with :mod:`mapping.beam_model`.
+Identical samples are merged first; with a bundle tolerance (:mod:`mapping.bundling`, opt-in) the samples are bundled
+and only the bundles' leaders walk. A scan with M > 1 distinct samples takes the samples pass
+(:mod:`mapping.samples_pass`: a bit plane per sample, most of each ray's free space marked in it as runs of cells per
+grid line (:mod:`mapping.free_runs`), per-sample records near the returns); one distinct sample takes the one-sample
+pass (:mod:`mapping.single_pass`), which gives the same map for about half the time. Both walk the rays with
+:mod:`mapping.window_walk` and value the cells with :mod:`mapping.beam_model`.
 
 A scan is fused in three stages: :meth:`MonteCarloFusion.prepare` (checks, beam table, window),
 :meth:`~MonteCarloFusion.walk` (the compiled pass into a :class:`FusionScratch`; it reads nothing of the map) and
