@@ -1,6 +1,7 @@
 """Fusion on several threads (mapping.fusion.FusionThreads): scans/s on the simulated office (400 scans, 60 weighted
-samples a scan, 0.05 m cells) with one thread and with two (and with every core this process may use, when that is
-more), in turns on the same scans, and the ratio.
+samples a scan, 0.05 m cells) and on the warehouse (figures prefixed ``warehouse_``: its first 200 scans, 100
+particles, the 1 081-beam 30 m lidar) with one thread and with two (and with every core this process may use, when
+that is more), in turns on the same scans, and the ratio.
 
 Each thread count fuses into a grid of its own, turn by turn: TURN scans with one thread, the same TURN scans with two
 threads, and so on over the run, so that the machine's drift (tens of percent within a minute on a shared machine)
@@ -17,7 +18,7 @@ import time
 
 import numpy as np
 
-from bench.scenarios import honest_posed_scans, office_run
+from bench.scenarios import honest_posed_scans, office_run, warehouse_run
 from mapping.fusion import MonteCarloFusion
 from mapping.grid import TiledGrid
 from mapping.sensor_model import SensorModel
@@ -25,6 +26,7 @@ from schemas.files import PosedScans
 from services.commands.mapping import available_cores
 
 SAMPLES = 60
+WAREHOUSE_PARTICLES = 100
 RESOLUTION = 0.05
 #: scans per turn
 TURN = 40
@@ -76,15 +78,24 @@ def _same_maps(grids: list[TiledGrid]) -> bool:
     )
 
 
-def run(steps: int = 400) -> dict:
+def run(steps: int = 400, warehouse_steps: int = 200) -> dict:
     """Measure; returns a flat dict of figures (also printed by bench.run)."""
-    posed = honest_posed_scans(office_run(seed=0, steps=steps), seed=1, particles=SAMPLES)
+    office = honest_posed_scans(office_run(seed=0, steps=steps), seed=1, particles=SAMPLES)
+    out = _threads(office)
+    warehouse = honest_posed_scans(warehouse_run(seed=0, steps=warehouse_steps), seed=1, particles=WAREHOUSE_PARTICLES)
+    out.update({f"warehouse_{name}": value for name, value in _threads(warehouse).items()})
+    return out
+
+
+def _threads(posed: PosedScans) -> dict:
+    """The figures of one scenario: scans/s, CPU per scan and cores busy per thread count, speed-ups, same maps."""
     cores = available_cores()
     counts = sorted({1, 2, cores})
     fusions = _fusions(posed, counts)
     seconds, cpu = _turns(posed, fusions)
     scans = len(posed.stamps)
-    out: dict = {"scans": scans, "samples": SAMPLES, "resolution_m": RESOLUTION, "cores": cores, "turn_scans": TURN}
+    samples = posed.poses.weighted_samples()[1].shape[1]
+    out: dict = {"scans": scans, "samples": samples, "resolution_m": RESOLUTION, "cores": cores, "turn_scans": TURN}
     for column, count in enumerate(counts):
         out[f"threads_{count}_scans_per_s"] = scans / seconds[:, column].sum()
         out[f"threads_{count}_cpu_ms_per_scan"] = 1e3 * cpu[:, column].sum() / scans
