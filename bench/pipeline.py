@@ -1,13 +1,14 @@
 """End-to-end figures of the distributed pipeline over Zenoh (issue 8), on the simulated office with 60 pose
 samples per scan, and (issue 34, figures prefixed "warehouse_") on the simulated warehouse's modern lidar (1081
-beams to 30 m) with 100 particles a scan, 1 and 2 shards, fewer scans (WAREHOUSE_STEPS; WAREHOUSE_LATENCY_SCANS at
-10 Hz, which one shard does not keep up with: the backlog, and so the latency, grows over the run).
+beams to 30 m) with 100 particles a scan, 1 and 2 shards, exact and with the samples bundled (`mapper --bundle 0.1`,
+names ending "_bundle0.1"), fewer scans (WAREHOUSE_STEPS; WAREHOUSE_LATENCY_SCANS at 10 Hz, which one exact shard
+does not keep up with: the backlog, and so the latency, grows over the run).
 
 - throughput: scans per second from the first publication until every shard has fused every scan, with
   1 and 2 mapper shards (processes; 2 also with 32-cell tiles, see CONFIGURATIONS) behind a router (a
   process), the source publishing "as fast as the shards take" from this process; as a ratio to the
   in-process `posegrid fuse` rate on the same scans, measured right before and right after each pipeline
-  run (their mean; the figure without a prefix is the median over the runs);
+  run (their mean, bundled where the shards bundle; the figure without a prefix is the median over the exact runs);
 - latency at a 10 Hz laser: per scan, from its publication to the arrival (here) of the last tile update
   that the shards sent right after fusing it (updates carry the seq of the last scan fused into the tile);
   median and p99 over the scans after the first WARMUP ones, which a mapper takes while it loads its
@@ -48,23 +49,25 @@ LATENCY_SCANS = 100  # scans measured in the 10 Hz latency runs
 WARMUP = 10  # scans published before them, at the same rate
 LASER_HZ = 10.0
 ROBOT = "bench"
-#: (mapper shards, tile side in cells). The office spans about 2 x 2 default tiles, most of its cells in
-#: one of them, so with the default tiles one of two shards does nearly all the work; 32-cell tiles show
-#: the work dividing (docs/architecture.md, "Sharding").
-CONFIGURATIONS = ((1, TILE_SIZE), (2, TILE_SIZE), (2, 32))
+#: (mapper shards, tile side in cells, bundle tolerance m). The office spans about 2 x 2 default tiles, most of its
+#: cells in one of them, so with the default tiles one of two shards does nearly all the work; 32-cell tiles show
+#: the work dividing (docs/architecture.md, "Sharding"). A tolerance > 0: the shards bundle the samples
+#: (`mapper --bundle`, mapping.bundling), and the in-process rate they are compared with does too.
+CONFIGURATIONS = ((1, TILE_SIZE, 0.0), (2, TILE_SIZE, 0.0), (2, 32, 0.0))
 #: the warehouse: particles a scan, scans in the throughput runs and in the 10 Hz latency runs, configurations
 WAREHOUSE_PARTICLES = 100
 WAREHOUSE_STEPS = 120
 WAREHOUSE_LATENCY_SCANS = 40
-WAREHOUSE_CONFIGURATIONS = ((1, TILE_SIZE), (2, TILE_SIZE))
+WAREHOUSE_CONFIGURATIONS = ((1, TILE_SIZE, 0.0), (2, TILE_SIZE, 0.0), (1, TILE_SIZE, 0.1), (2, TILE_SIZE, 0.1))
 
 
 class Cluster:
     """A router and ``shards`` mapper processes on loopback, and a client session of this process."""
 
-    def __init__(self, shards: int, map_name: str, tile_size: int = TILE_SIZE):
+    def __init__(self, shards: int, map_name: str, tile_size: int = TILE_SIZE, bundle: float = 0.0):
         self.shards = shards
         self.tile_size = tile_size
+        self.bundle = bundle
         self.map_name = map_name
         self.endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.children = Children(get_logger("bench"))
@@ -89,6 +92,8 @@ class Cluster:
                     self.map_name,
                     "--tile-size",
                     str(self.tile_size),
+                    "--bundle",
+                    repr(self.bundle),
                     *connect,
                 ],
             )
@@ -152,18 +157,19 @@ class Cluster:
             time.sleep(0.01)
 
 
-def _in_process_rate(posed) -> float:
-    """Scans per second of `posegrid fuse`'s loop (after one warm-up scan that compiles the kernels)."""
-    fuse_posed_scans(select_scans(posed, slice(0, 1)))
+def _in_process_rate(posed, bundle: float = 0.0) -> float:
+    """Scans per second of `posegrid fuse`'s loop (after one warm-up scan that compiles the kernels), the samples
+    bundled with tolerance ``bundle`` m."""
+    fuse_posed_scans(select_scans(posed, slice(0, 1)), bundle=bundle)
     started = time.perf_counter()
-    fuse_posed_scans(posed)
+    fuse_posed_scans(posed, bundle=bundle)
     return len(posed.stamps) / (time.perf_counter() - started)
 
 
-def _throughput(posed, shards: int, tile_size: int) -> dict:
+def _throughput(posed, shards: int, tile_size: int, bundle: float) -> dict:
     stream = posed_stream(posed, ROBOT)
     in_bytes = sum(len(m.encode()) for step in stream.steps for m in step.messages)
-    with Cluster(shards, f"tp{shards}", tile_size) as cluster:
+    with Cluster(shards, f"tp{shards}", tile_size, bundle) as cluster:
         source = Source(
             cluster.session, stream, SourceOptions(rate=None, wait_mappers=shards, map_name=cluster.map_name)
         )
@@ -183,10 +189,10 @@ def _throughput(posed, shards: int, tile_size: int) -> dict:
     }
 
 
-def _latency(posed, shards: int, tile_size: int, scans: int = LATENCY_SCANS) -> dict:
+def _latency(posed, shards: int, tile_size: int, bundle: float, scans: int = LATENCY_SCANS) -> dict:
     stream = posed_stream(select_scans(posed, slice(0, WARMUP + scans)), ROBOT)
     published: dict[int, float] = {}
-    with Cluster(shards, f"lat{shards}", tile_size) as cluster:
+    with Cluster(shards, f"lat{shards}", tile_size, bundle) as cluster:
         publishers = {
             name: cluster.session.declare_publisher(
                 keys.robot_key(ROBOT, name), congestion_control=zenoh.CongestionControl.BLOCK
@@ -222,22 +228,24 @@ def _latency(posed, shards: int, tile_size: int, scans: int = LATENCY_SCANS) -> 
 
 
 def _scenario(posed, configurations, latency_scans: int) -> dict:
-    """The throughput and latency figures of ``posed`` in each (shards, tile size) configuration."""
+    """The throughput and latency figures of ``posed`` in each (shards, tile size, bundle tolerance) configuration."""
     out: dict = {}
     in_process = []
-    for shards, tile_size in configurations:
+    for shards, tile_size, bundle in configurations:
         name = f"shards{shards}" + ("" if tile_size == TILE_SIZE else f"_tile{tile_size}")
+        name += f"_bundle{bundle:g}" if bundle > 0 else ""
         # the baseline right before and right after each pipeline run (their mean): this shared machine's
         # speed drifts by tens of percent within a minute
-        before = _in_process_rate(posed)
-        for key, value in _throughput(posed, shards, tile_size).items():
+        before = _in_process_rate(posed, bundle)
+        for key, value in _throughput(posed, shards, tile_size, bundle).items():
             out[f"{name}_{key}"] = value
-        in_process.append((before + _in_process_rate(posed)) / 2)
-        out[f"{name}_in_process_scans_per_s"] = in_process[-1]
-        out[f"{name}_ratio_to_in_process"] = out[f"{name}_scans_per_s"] / in_process[-1]
-        for key, value in _latency(posed, shards, tile_size, latency_scans).items():
+        rate = (before + _in_process_rate(posed, bundle)) / 2
+        in_process += [rate] if bundle == 0 else []  # (the exact fusion's rate, below)
+        out[f"{name}_in_process_scans_per_s"] = rate
+        out[f"{name}_ratio_to_in_process"] = out[f"{name}_scans_per_s"] / rate
+        for key, value in _latency(posed, shards, tile_size, bundle, latency_scans).items():
             out[f"{name}_{key}_at_{LASER_HZ:g}hz"] = value
-    out["in_process_scans_per_s"] = float(np.median(in_process))
+    out["in_process_scans_per_s"] = float(np.median(in_process))  # (exact)
     return out
 
 
