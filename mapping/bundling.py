@@ -39,7 +39,7 @@ RECOMMENDED_TOLERANCE = 0.1
 
 @kernel(nogil=True)
 def _leaders(lasers, order, weights, tolerance, reach):  # pragma: no cover - compiled
-    """(leader index (K,) into ``lasers``, bundle weight (K,), K) of the samples taken in ``order``."""
+    """(leader indices (K,) into ``lasers``, bundle weights (K,)) of the samples taken in ``order``."""
     m = lasers.shape[0]
     leaders = np.empty(m, np.int64)
     summed = np.empty(m)

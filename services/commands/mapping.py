@@ -322,6 +322,14 @@ def _refuse_unread_options(args: argparse.Namespace) -> None:
         raise UsageError(
             "--samples and --accuracy set how many Gaussian pose samples mc draws; ml uses the mean pose only"
         )
+    refuse_bundle_with_ml(args)
+
+
+def refuse_bundle_with_ml(args: argparse.Namespace) -> None:
+    """--bundle (add_sampling_arguments) bundles the samples mc walks; with --mode ml it would do nothing, so it is
+    refused (UsageError), here and for the mapper and `run`."""
+    from services.errors import UsageError
+
     if args.mode == "ml" and args.bundle > 0:
         raise UsageError("--bundle bundles the pose samples mc walks; ml walks the mean pose only")
 

@@ -20,6 +20,7 @@ from services.commands.mapping import (
     add_sensor_model_arguments,
     add_threads_argument,
     available_cores,
+    refuse_bundle_with_ml,
     sensor_model_argv,
     threads_from_args,
 )
@@ -432,14 +433,6 @@ def _check_name(value: str, option: str) -> None:
         )
 
 
-def _check_bundle(args: argparse.Namespace) -> None:
-    """--bundle bundles the samples of mc; with ml it would do nothing, so it is refused."""
-    from services.errors import UsageError
-
-    if args.mode == "ml" and args.bundle > 0:
-        raise UsageError("--bundle bundles the pose samples mc walks; ml walks the mean pose only")
-
-
 def _check_positive(args: argparse.Namespace, *names: str) -> None:
     from services.errors import UsageError
 
@@ -536,7 +529,7 @@ def run_mapper(args: argparse.Namespace) -> int:
     if args.join_buffer < 1 or args.intake_buffer < 1:
         raise UsageError("--join-buffer and --intake-buffer must be >= 1")
     _check_positive(args, "accuracy")
-    _check_bundle(args)
+    refuse_bundle_with_ml(args)
     _check_name(args.map, "--map")
     threads = threads_from_args(args)
     from services.commands.mapping import sensor_model_from_args
@@ -619,7 +612,7 @@ def run_pipeline(args: argparse.Namespace) -> int:
     if args.router_port is not None and not 0 < args.router_port < 65536:
         raise UsageError(f"--router-port must be a TCP port, got {args.router_port}")
     _check_positive(args, "accuracy", "resolution")
-    _check_bundle(args)
+    refuse_bundle_with_ml(args)
     _check_log_options(args)
     threads = threads_from_args(args, default=max(1, available_cores() // args.shards))
     restarts = restart_policy(args)
