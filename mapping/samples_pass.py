@@ -120,10 +120,13 @@ def _mark_near(marks, beam, carry, p, q, r_in, r_out):  # pragma: no cover - com
     return carry
 
 
-@kernel(nogil=True, error_model="numpy", inline="always")
+@kernel(nogil=True, error_model="numpy", refcounted=False)
 def _scratch_runs(scratch, window, line, first, runs_end, res, tol):  # pragma: no cover - compiled
     """:func:`mapping.free_runs.mark_free_runs` into the samples pass's planes and line buffer: line = (x0, y0, dx,
-    dy), from cell ``first`` (ix, iy) to just before ``runs_end`` (m); returns the runs' last cell."""
+    dy), from cell ``first`` (ix, iy) to just before ``runs_end`` (m); returns the runs' last cell.
+
+    A call, not inlined: the pass reaches it from three places, and numba inlining mark_free_runs into each made
+    accumulate_scan take 80 s to compile (22 s so); LLVM still inlines it, and a scan's fusion costs the same."""
     return mark_free_runs(
         scratch.plane, scratch.columns, scratch.col_stride, window, line, first, runs_end, res, tol, scratch.lines
     )

@@ -20,6 +20,7 @@ import zipfile
 import httpx
 import numpy as np
 import pytest
+import zenoh
 from PIL import Image
 
 from api_stack import POSEGRID, ROOT, Stack, free_port, wait_until, write_room
@@ -35,6 +36,8 @@ pytestmark = pytest.mark.slow
 
 MAP, SHARDS, RESOLUTION, TILE, SCANS = "lab", 2, 0.02, 32, 20
 SHIFT = (-1.0, -1.0)
+
+BLOCK = zenoh.CongestionControl.BLOCK  # (tiles: as the shards send them; DROP may lose large messages)
 
 
 def settled(api: str, robot: str, scans: int):
@@ -560,8 +563,8 @@ def test_tile_updates_no_shard_stands_behind_do_not_break_the_map(api, session):
 
     httpx.get(f"{api}/maps/{MAP}/stats", timeout=30).raise_for_status()  # the API knows the shard count
     for shard in range(SHARDS):
-        session.put(keys.tile_key(MAP, 0, 7, 7), forged(MAP, shard))
-    session.put(keys.tile_key("ghost", 0, 7, 7), forged("ghost", 0))
+        session.put(keys.tile_key(MAP, 0, 7, 7), forged(MAP, shard), congestion_control=BLOCK)
+    session.put(keys.tile_key("ghost", 0, 7, 7), forged("ghost", 0), congestion_control=BLOCK)
     wait_until(
         lambda: httpx.get(f"{api}/health", timeout=30).json()["rejected"].get(keys.tile_key("ghost", 0, 7, 7)),
         30,
@@ -622,6 +625,7 @@ def test_a_stalled_shard_holds_up_only_its_own_tiles(api, stack, session):
                     variance=np.zeros((TILE, TILE), np.float32),
                     observed=np.zeros((TILE, TILE), bool),
                 ).encode(),
+                congestion_control=BLOCK,
             )
         # shard 0's tile is asked for again and comes back while shard 1 is stopped (a request that waited for
         # shard 1 would raise ReadTimeout here)

@@ -38,6 +38,8 @@ pytestmark = pytest.mark.slow
 
 NAMESPACE = "/robot1"
 
+BLOCK = zenoh.CongestionControl.BLOCK
+
 
 def small_bag(path: Path, scan_stamps=(0.5, 1.5, 2.3)) -> Path:
     """A ROS 2 bag: the laser's mount on /tf_static, odometry at 0, 1, 2 s (the yaw crosses pi between the last
@@ -214,7 +216,8 @@ def test_the_map_and_poses_go_out_as_ros_messages_cell_for_cell(tmp_path, procs,
     }
     tiles = _tiles(0)
     for tile in tiles:
-        session.put(f"pg/map/main/tile/0/{tile.tx}/{tile.ty}", tile.encode())
+        # (a tile is 590 kB: BLOCK, as the shards send them; the default DROP may lose it on a loaded machine)
+        session.put(f"pg/map/main/tile/0/{tile.tx}/{tile.ty}", tile.encode(), congestion_control=BLOCK)
     grid_type = rt.MessageType(rt.OCCUPANCY_GRID)
     expected = _expected_grid(tiles, "occupancy")
     while True:  # (the whole grid goes out as the tiles come, at most every 0.2 s: the first may hold fewer)
@@ -252,7 +255,7 @@ def test_the_map_and_poses_go_out_as_ros_messages_cell_for_cell(tmp_path, procs,
             "observed": np.ones((3, 5), bool),
         }
     )
-    session.put("pg/map/main/tile/0/0/0", window.encode())
+    session.put("pg/map/main/tile/0/0/0", window.encode(), congestion_control=BLOCK)
     update_type = rt.MessageType(rt.GRID_UPDATE)
     update = update_type.decode(subscribers["updates"].get(timeout=30)[0])
     while update.width == 256:  # (the whole tile (0, 0), sent as an update once the grid held it)
