@@ -240,7 +240,8 @@ def _scenario(posed, configurations, latency_scans: int) -> dict:
         for key, value in _throughput(posed, shards, tile_size, bundle).items():
             out[f"{name}_{key}"] = value
         rate = (before + _in_process_rate(posed, bundle)) / 2
-        in_process += [rate] if bundle == 0 else []  # (the exact fusion's rate, below)
+        if bundle == 0:
+            in_process.append(rate)  # (the exact fusion's rate, below)
         out[f"{name}_in_process_scans_per_s"] = rate
         out[f"{name}_ratio_to_in_process"] = out[f"{name}_scans_per_s"] / rate
         for key, value in _latency(posed, shards, tile_size, bundle, latency_scans).items():

@@ -274,11 +274,11 @@ class MonteCarloFusion:
         if self.merge_identical:
             samples, weights = merge_duplicates(samples, weights)
         beams = beam_table(ranges, self.model, self.range_min, self.range_max)
-        if not (beams.kind != BEAM_SKIP).any():
+        used = beams.kind != BEAM_SKIP
+        if not used.any():
             return None
         lasers = laser_poses(samples, self.sensor_offset)
-        if self.bundle > 0.0 and len(lasers) > 1:
-            used = beams.kind != BEAM_SKIP
+        if self.bundle > 0.0:
             lasers, weights = bundle_samples(lasers, weights, self.bundle, float(beams.r_stop[used].mean()))
         window, tiles = self._window(lasers, float(beams.r_stop.max()) + self.grid.resolution)
         return Ready(lasers, weights, beams, window, tiles)

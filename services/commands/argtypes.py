@@ -48,10 +48,12 @@ def positive_int(text: str) -> int:
 
 def bundle_metres(text: str) -> float:
     """A finite number of metres >= 0 (--bundle: the pose bundles' tolerance, mapping.bundling; 0: exact)."""
-    value = finite_float(text)
-    if not value >= 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0 m (0: every sample walks its rays), got {text!r}")
-    return value
+    from mapping.bundling import check_tolerance
+
+    try:
+        return check_tolerance(finite_float(text))
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(f"{exc} (0: every sample walks its rays)") from None
 
 
 def positive_seconds(text: str) -> float:
