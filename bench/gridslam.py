@@ -7,7 +7,8 @@ Every run goes through the command line as a user's would: the simulated log is 
 truth beside it (`write_sim_log`), `posegrid slam --algo gridslam` runs with its defaults and `posegrid eval-traj`
 scores the pose-distribution file against the truth. Logs: the office (slam.world) and the ring corridor
 (slam.gridslam.simlogs), seeds 1 to 3 each; none was used to choose the filter's constants (docs/gridslam.md,
-"Honesty and health", says where they come from). About 5 minutes on one core. `python -m bench.gridslam` prints
+"Honesty and health", says where they come from); the ring corridor again with loop closure on (opt-in). About 8
+minutes on one core. `python -m bench.gridslam` prints
 the table docs/gridslam.md shows.
 """
 
@@ -26,6 +27,8 @@ from slam.gridslam.simlogs import SimLaserLog, sim_log
 
 #: (world, seed) of every run
 RUNS = tuple((world, seed) for world in ("office", "loop") for seed in (1, 2, 3))
+#: runs made again with loop closure on (`--loop-closure on`, opt-in; docs/gridslam.md, "Loop closure")
+LOOP_CLOSURE_RUNS = tuple(("loop", seed) for seed in (1, 2, 3))
 #: how the table names the worlds
 WORLD_NAMES = {"loop": "ring corridor"}
 #: the target of issue 31: the true pose inside the 95 % region at this fraction of the scans or more
@@ -45,13 +48,14 @@ def write_sim_log(log: SimLaserLog, path: Path) -> Path:
     return truth
 
 
-def run_one(world: str, seed: int, folder: Path) -> dict:
-    """One simulated log through `posegrid slam` and `posegrid eval-traj`: its figures."""
+def run_one(world: str, seed: int, folder: Path, *options: str) -> dict:
+    """One simulated log through `posegrid slam` (with ``options``) and `posegrid eval-traj`: its figures."""
     log = sim_log(world, seed)
     path = folder / f"{world}{seed}.clf"
     truth = write_sim_log(log, path)
     out, stats_path = folder / f"{world}{seed}.npz", folder / f"{world}{seed}.json"
-    run_cli(["slam", "--algo", "gridslam", str(path), "-o", str(out), "--seed", "0", "--stats", str(stats_path)])
+    argv = ["slam", "--algo", "gridslam", str(path), "-o", str(out), "--seed", "0", "--stats", str(stats_path)]
+    run_cli([*argv, *options])
     stats = json.loads(stats_path.read_text())
     score = json.loads(run_cli(["eval-traj", str(out.with_suffix(".poses.npz")), str(truth)]))
     summary = stats["health_summary"]
@@ -64,6 +68,7 @@ def run_one(world: str, seed: int, folder: Path) -> dict:
         "mean_particles": summary["mean_particles"],
         "failed_scans": summary["failed"],
         "warnings": len(summary["warnings"]),
+        "loop_closures": stats["loop_closure"]["closures"],
     }
 
 
@@ -74,6 +79,9 @@ def run() -> dict:
         for world, seed in RUNS:
             for key, value in run_one(world, seed, Path(tmp)).items():
                 figures[f"{world}{seed}_{key}"] = value
+        for world, seed in LOOP_CLOSURE_RUNS:
+            for key, value in run_one(world, seed, Path(tmp), "--loop-closure", "on").items():
+                figures[f"loop_closure_{world}{seed}_{key}"] = value
     for key in ("inside95", "nees", "ate_m", "cpu_real_time"):
         figures[f"mean_{key}"] = float(np.mean([figures[f"{w}{s}_{key}"] for w, s in RUNS]))
     figures["worst_inside95"] = float(min(figures[f"{w}{s}_inside95"] for w, s in RUNS))
@@ -92,6 +100,12 @@ def main() -> int:
         print(
             f"| {WORLD_NAMES.get(world, world)} seed {seed} | {f['inside95']:.3f} | {f['nees']:.2f} | "
             f"{f['ate_m']:.3f} | {f['odometry_ate_m']:.2f} | {rt:.1f}x | {n:.1f} |"
+        )
+    for world, seed in LOOP_CLOSURE_RUNS:
+        f = {k: figures[f"loop_closure_{world}{seed}_{k}"] for k in ("inside95", "nees", "ate_m", "loop_closures")}
+        print(
+            f"| {WORLD_NAMES.get(world, world)} seed {seed}, --loop-closure on | {f['inside95']:.3f} | "
+            f"{f['nees']:.2f} | {f['ate_m']:.3f} | closures: {f['loop_closures']} | | |"
         )
     return 0
 

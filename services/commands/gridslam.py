@@ -10,6 +10,7 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from services.commands.argtypes import check_outputs, checked_output, finite_float, odom_delay_seconds
@@ -52,10 +53,18 @@ FILTER_OPTIONS = (
     ("--prior-cap", "prior_cap"),
     ("--particle-cap", "particle_cap"),
     ("--widen", "widen"),
+    ("--loop-closure", "loop_closure"),
 )
 
 
-def filter_option_values(args: argparse.Namespace) -> list[tuple[str, str, float | None]]:
+def _on_off(text: str) -> str:
+    """--loop-closure: "on" or "off" (kept as text, so that `run` passes it on to its SLAM node as given)."""
+    if text not in ("on", "off"):
+        raise argparse.ArgumentTypeError(f"expected 'on' or 'off', got {text!r}")
+    return text
+
+
+def filter_option_values(args: argparse.Namespace) -> list[tuple[str, str, float | str | None]]:
     """(option, GridSlamConfig field, the value given or None) for each of :data:`FILTER_OPTIONS`."""
     return [(option, field, getattr(args, option[2:].replace("-", "_"))) for option, field in FILTER_OPTIONS]
 
@@ -96,13 +105,19 @@ def add_filter_options(group: argparse._ArgumentGroup, label: str = "") -> None:
         "--widen": "after a failed match, the next proposal's motion variances (and its yaw search's square) are "
         f"this many times larger, >= 1 (default {defaults.widen:g}: not widened, chosen by leave-one-out; a failed "
         "match never weighs the particles)",
+        "--loop-closure": "'on': search old submaps over a wide window for a loop the particles lost, and correct "
+        "the path and the grids through a pose graph (default 'off': on the shared logs it cost time and gained "
+        "nothing; docs/gridslam.md, 'Loop closure')",
     }
+    types: dict[str, Callable[[str], object]] = {"--particle-cap": int, "--loop-closure": _on_off}
     for option, _ in FILTER_OPTIONS:
         group.add_argument(
             option,
-            type=int if option == "--particle-cap" else finite_float,
+            type=types.get(option, finite_float),
             default=None,
-            metavar={"--prior-cap": "D2", "--particle-cap": "N", "--widen": "FACTOR"}.get(option),
+            metavar={"--prior-cap": "D2", "--particle-cap": "N", "--widen": "FACTOR", "--loop-closure": "on|off"}.get(
+                option
+            ),
             help=label + helps[option],
         )
 
@@ -167,7 +182,7 @@ def gridslam_config(args: argparse.Namespace):
     }
     for _, field, value in filter_option_values(args):
         if value is not None:
-            overrides[field] = value
+            overrides[field] = value == "on" if isinstance(value, str) else value
     config = replace(GridSlamConfig(), **overrides)
     for option, count in (("--particles", config.particles), ("--particle-cap", config.particle_cap)):
         if count > MAX_GRID_PARTICLES:
@@ -434,9 +449,9 @@ def _save_outputs(output: Path, best_path: Path, poses_path: Path, log, config, 
 def _run_stats(log, config, result, delay: float, elapsed: float, cpu: float) -> dict:
     """The figures --stats writes: times (s) of ``elapsed`` wall and ``cpu`` time (the filter's run; the caller adds
     ``cpu_seconds_reading``, reading the log and estimating its odometry delay), effective sample sizes,
-    resamplings, tiles, the odometry ``delay`` (s), the health of every integrated scan (columns, one value per
-    integrated scan) and its summary, and the errors against the poses the log states where it states others
-    than its odometry."""
+    resamplings, tiles, the odometry ``delay`` (s), the loop closer's counts, the health of every integrated scan
+    (columns, one value per integrated scan) and its summary, and the errors against the poses the log states where
+    it states others than its odometry."""
     duration = float(log.stamps[-1] - log.stamps[0])
     health, summary, reference = _health_figures(log, result)
     return {
@@ -457,6 +472,7 @@ def _run_stats(log, config, result, delay: float, elapsed: float, cpu: float) ->
         "tiles_copied": result.maps.copies,
         "odometry_delay_s": delay,
         "final_particles": len(result.weights),
+        "loop_closure": result.loops,
         "health_summary": summary,
         "reference": reference,
         "health": health,

@@ -199,11 +199,17 @@ class GridDriver:
 
     def health(self) -> dict:
         """NodeStats' health: the last integrated scan's (slam.gridslam.health.ScanHealth; flags as 0 or 1, values
-        not yet known left out) and the counts of integrated and failed scans."""
-        if self.last_health is None:
+        not yet known left out), the counts of integrated and failed scans and the loop closures taken so far."""
+        if self.last_health is None or self.filter is None:
             return {}
         figures = {k: float(v) for k, v in self.last_health.as_dict().items() if v is not None}
-        return {**figures, "scans": float(self.scans), "failed_scans": float(self.failed)}
+        closures = 0 if self.filter.loops is None else len(self.filter.loops.closures)
+        return {
+            **figures,
+            "scans": float(self.scans),
+            "failed_scans": float(self.failed),
+            "loop_closures": float(closures),
+        }
 
     def step(self, parts: dict) -> tuple[np.ndarray, np.ndarray]:
         scan: LaserScan = parts[keys.SCAN]

@@ -56,6 +56,14 @@ class GridSlamConfig:
     fail_match: float = 0.2  # the best particle's matched-beam fraction below which the match failed
     fail_z: float = -6.0  # ... or its z against the recent scans below which it failed
     widen: float = 1.0  # after a failure: the factor on the motion model's variances and the yaw search's square
+    # loop closure (docs/gridslam.md, "Loop closure"; slam.gridslam.loops)
+    loop_closure: bool = False  # search for loop closures against old submaps, keep a pose graph (opt-in: docs)
+    loop_every: int = 10  # integrated scans between two loop searches
+    loop_submap: int = 50  # a submap holds the scans of this many nodes either side of the old node
+    loop_window_xy: float = 1.0  # m: the search window's least half-width (else 3 sigma of the filter's covariance)
+    loop_window_yaw: float = 0.1  # rad: ... and its least half-width in yaw
+    loop_window_max: float = 4.0  # m: the search window's largest half-width
+    loop_min_match: float = 0.5  # the matched-beam fraction a loop closure needs against its submap
 
     def validate(self) -> None:
         """Raise ValueError naming the first parameter out of range."""
@@ -74,9 +82,22 @@ class GridSlamConfig:
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in ("kld_epsilon", "kld_bin_xy", "kld_bin_yaw", "revisit_radius", "revisit_gap"):
+        for name in (
+            "kld_epsilon",
+            "kld_bin_xy",
+            "kld_bin_yaw",
+            "revisit_radius",
+            "revisit_gap",
+            "loop_every",
+            "loop_submap",
+            "loop_window_xy",
+            "loop_window_yaw",
+            "loop_window_max",
+        ):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if not 0 <= self.loop_min_match <= 1:
+            raise ValueError(f"loop_min_match must lie in [0, 1], got {self.loop_min_match}")
         if not (0 < self.kld_delta < 1 and self.widen >= 1 and 0 <= self.fail_match <= 1):
             raise ValueError(
                 f"need 0 < kld_delta < 1, widen >= 1 and 0 <= fail_match <= 1, got {self.kld_delta}, {self.widen}, "

@@ -19,7 +19,10 @@ Rao-Blackwellized particle filters'):
    along as it moves and lowered when the robot is back where it was long ago; the filter's covariance at a
    scan is the particles' weighted spread plus their kept covariance;
 6. health (slam.gridslam.health): the best particle's matched-beam fraction and its z against the recent scans;
-   a match that fails does not weigh the particles, and the next scan's proposal is wider.
+   a match that fails does not weigh the particles, and the next scan's proposal is wider;
+7. loop closure (opt-in, config.loop_closure; slam.gridslam.loops): the scan is a node of a pose graph and is
+   searched for, every few scans, in an old submap over a wide window; a closure that moves the graph rebuilds the
+   grids from it and moves the particles onto it.
 
 A scan is integrated when the odometry has moved ``linear_update`` m or turned ``angular_update`` rad
 since the last integrated one (and always the first); in between, particles follow the odometry
@@ -33,6 +36,7 @@ evaluated on the grid itself), tempered by 1/gain because neighbouring beams are
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -50,8 +54,10 @@ from slam.gridslam.honesty import (
     weighted_covariance,
 )
 from slam.gridslam.kernels import log_likelihoods, match_and_propose
+from slam.gridslam.loops import Closure, LoopCloser
 from slam.gridslam.tiles import TileMaps
-from slam.motion import OdometryMotionModel, odometry_controls
+from slam.motion import OdometryMotionModel, odometry_controls, rotate_covariance
+from slam.posegraph import apply_transform
 from slam.resampling import effective_sample_size, normalize_log_weights
 from slam.stats import sample_gaussian
 
@@ -148,6 +154,8 @@ class GridFastSLAM:
         self.last_z = math.nan  # the last scan's matched-beam z (HealthWatch)
         self.last_covariance = np.zeros((3, 3))  # the filter's covariance at the last integrated scan
         self.revisits = Revisits(config.revisit_gap, config.revisit_radius)
+        self.loops = LoopCloser(config) if config.loop_closure else None
+        self.drawn = np.zeros((config.particles, 3, 3))  # the covariances the last scan's poses were drawn with
 
     def use_laser(self, laser: Laser) -> None:
         """Take the scans that follow with ``laser``'s geometry (every scan of a log may have its own)."""
@@ -202,9 +210,10 @@ class GridFastSLAM:
 
     def _propose(
         self, control: np.ndarray, r_stop: np.ndarray, idx: np.ndarray, widen: bool = False
-    ) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
-        """New poses (M, 3), log weight factors (M,), the number of motion-model fallbacks and the match scores
-        (M,). ``widen``: the motion model's variances and the yaw search's are config.widen times larger."""
+    ) -> tuple[np.ndarray, np.ndarray, int, np.ndarray, np.ndarray]:
+        """New poses (M, 3), log weight factors (M,), the number of motion-model fallbacks, the match scores (M,)
+        and the covariances (M, 3, 3) the poses were drawn with (m, rad). ``widen``: the motion model's variances and
+        the yaw search's are config.widen times larger."""
         cfg, maps = self.config, self.maps
         scale = cfg.widen if widen else 1.0
         motion = scaled_motion(self.motion, scale)
@@ -247,8 +256,9 @@ class GridFastSLAM:
         good = score >= cfg.min_match * max(len(idx), 1)
         poses = np.empty_like(predicted)
         floor = np.diag([cfg.proposal_floor_xy**2, cfg.proposal_floor_xy**2, cfg.proposal_floor_yaw**2])
+        drawn = np.where(good[:, None, None], cov + floor, q)
         if good.any():
-            poses[good] = sample_gaussian(mean[good], cov[good] + floor, self.rng)
+            poses[good] = sample_gaussian(mean[good], drawn[good], self.rng)
         if (~good).any():
             poses[~good] = motion.sample(self.poses[~good], control, self.rng)
             own_maps = (maps.pool, maps.table[~good], maps.tx0, maps.ty0, maps.shift, cfg.resolution)
@@ -257,7 +267,7 @@ class GridFastSLAM:
             )
             log_eta[~good] = loglik / cfg.gain
         poses[:, 2] = wrap_angle(poses[:, 2])
-        return poses, log_eta, int((~good).sum()), score
+        return poses, log_eta, int((~good).sum()), score, drawn
 
     def integrate(
         self, odometry: np.ndarray, ranges: np.ndarray, laser: Laser | None = None
@@ -276,13 +286,16 @@ class GridFastSLAM:
         if self.odometry_ref is not None:
             control = odometry_controls(np.stack([self.odometry_ref, odometry]))[0]
             before = self.poses
-            self.poses, log_eta, fallbacks, score = self._propose(control, r_stop, idx, widened)
+            self.poses, log_eta, fallbacks, score, drawn = self._propose(control, r_stop, idx, widened)
             fractions = score / max(len(idx), 1)
             if self.config.keep_spread:
                 reach = float(np.mean(r_stop[idx])) if len(idx) else self.max_range
                 explored = exploration_covariance(fractions, self.config.resolution, reach)
                 self.drift = transport(self.drift, before, self.poses) + explored
             matched, failed = self._weigh(log_eta, fractions)
+            reach = float(np.mean(r_stop[idx])) if len(idx) else self.max_range
+            # (each move's covariance: what the proposal drew with, and a cell's precision on top)
+            self.drawn = drawn + exploration_covariance(np.zeros(1), self.config.resolution, reach)[0]
         else:
             self._cover(self.poses)
         self.odometry_ref = odometry
@@ -295,9 +308,62 @@ class GridFastSLAM:
             self.drift = self.revisits.shrink(self.drift, best)
         self.last_covariance = self.covariance(poses)
         self.revisits.add(best, self.last_covariance)
+        if self.loops is not None:
+            self._close_loops(poses, int(np.argmax(weights)), r_stop, hit, matched if not failed else math.nan)
         parents, resampled = self._resample(weights, ess)
+        if self.loops is not None:
+            self.loops.link(parents)
         health = self._health(poses, weights, (matched, ess, fallbacks, failed, widened), resampled)
         return poses, weights, parents, StepReport(ess, resampled, fallbacks, health)
+
+    def _close_loops(
+        self, poses: np.ndarray, best: int, r_stop: np.ndarray, hit: np.ndarray, matched: float
+    ) -> Closure | None:
+        """Add this scan (the particles' poses (M, 3), the best's index) to the loop closer's graph
+        (slam.gridslam.loops) and search for a loop closure unless its match failed (``matched``, the best particle's
+        matched-beam fraction on its own map, NaN); when the solved graph moves the current pose, rebuild the grids
+        from the graph and move the particles with it."""
+        assert self.loops is not None
+        began = time.process_time()
+        drawn = self.drawn if len(self.drawn) == len(poses) else np.zeros((len(poses), 3, 3))
+        laser = (self.cos_b, self.sin_b, self.offset)
+        node = self.loops.add(poses, best, drawn, self.last_covariance, r_stop, hit, laser)
+        closure = None if math.isnan(matched) else self.loops.close(node, matched)
+        if closure is not None and closure.rebuild:
+            self._rebuild(closure.transform)
+        self.loops.seconds += time.process_time() - began
+        return closure
+
+    def _rebuild(self, transform: np.ndarray) -> None:
+        """Every particle's grid becomes one map built from every node's scan at the graph's poses (shared, copy on
+        write), and the particles move by ``transform`` (3,), the best one onto the graph's pose."""
+        assert self.loops is not None
+        cfg = self.config
+        maps = TileMaps(1, cfg.resolution, cfg.tile_cells)
+        poses = self.loops.graph.poses
+        reach = max(self.reach, max(float(np.hypot(*scan.offset[:2])) for scan in self.loops.scans) + cfg.max_range)
+        lo, hi = poses[:, :2].min(axis=0) - reach, poses[:, :2].max(axis=0) + reach
+        maps.cover(lo[0], lo[1], hi[0], hi[1])
+        for pose, scan in zip(poses, self.loops.scans):  # one compiled insertion per node's scan
+            maps.insert(
+                pose[None],
+                scan.offset,
+                scan.cos_b,
+                scan.sin_b,
+                scan.r_stop,
+                scan.hit,
+                cfg.l_occ,
+                cfg.l_free,
+                cfg.l_clamp,
+            )
+        maps.resample(np.zeros(len(self.poses), np.int64))
+        self.maps = maps
+        self.poses = apply_transform(transform, self.poses)
+        turn = np.full(len(self.drift), float(transform[2]))
+        self.drift = rotate_covariance(self.drift, turn)
+        self.last_covariance = rotate_covariance(self.last_covariance, turn[:1])[0]
+        self.revisits.poses = [pose.copy() for pose in poses]
+        self.loops.rebuilt(transform)
 
     def _weigh(self, log_eta: np.ndarray, matched: np.ndarray) -> tuple[float, bool]:
         """Weigh the particles by log_eta (M,) unless the best particle's match failed (config.recovery: its

@@ -21,8 +21,11 @@ from slam.gridslam.config import GridSlamConfig
 from slam.gridslam.filter import GridFastSLAM, Laser
 from slam.gridslam.health import ScanHealth
 from slam.gridslam.honesty import spread_trajectories
+from slam.gridslam.loops import LoopCloser
 from slam.gridslam.tiles import TileMaps
 from slam.laserlog import GeometryKey, LaserLog
+from slam.motion import rotate_covariance
+from slam.posegraph import apply_transform
 
 
 @dataclass(frozen=True)
@@ -32,7 +35,7 @@ class GridSlamResult:
     the grids), covariance (T, 3, 3) the filter's covariance at each scan (m, rad; slam.gridslam.honesty).
     Per integrated scan: ess (I,) N_eff before resampling, resampled (I,) bool, seconds (I,) processing time,
     health (I,) (slam.gridslam.health.ScanHealth). maps: the filter's grids at the end
-    (slam.gridslam.tiles.TileMaps)."""
+    (slam.gridslam.tiles.TileMaps). loops: the loop closer's counts (:func:`loop_summary`)."""
 
     stamps: np.ndarray
     samples: np.ndarray
@@ -45,6 +48,7 @@ class GridSlamResult:
     maps: TileMaps
     covariance: np.ndarray
     health: tuple[ScanHealth, ...]
+    loops: dict[str, float]
 
     @property
     def best(self) -> int:
@@ -139,9 +143,12 @@ def run_gridslam(
         if progress is not None:
             progress(1, current_ess)
     samples = _backtrack(poses, parents)
+    covariances = np.array(covariance)
     if config.keep_spread:
         spread_rng = np.random.default_rng([seed, 1])  # apart from the filter's, which it would shift
-        samples = spread_trajectories(samples, weights, np.array(covariance), int(np.argmax(weights)), spread_rng)
+        samples = spread_trajectories(samples, weights, covariances, int(np.argmax(weights)), spread_rng)
+    if slam.loops is not None:
+        samples, covariances = _onto_graph(slam.loops, int(np.argmax(weights)), integrated, samples, covariances)
     return GridSlamResult(
         stamps=log.stamps.copy(),
         samples=samples,
@@ -152,6 +159,29 @@ def run_gridslam(
         seconds=np.array(seconds),
         fallbacks=fallbacks,
         maps=slam.maps,
-        covariance=np.array(covariance),
+        covariance=covariances,
         health=tuple(health),
+        loops=loop_summary(slam.loops),
     )
+
+
+def _onto_graph(
+    loops: LoopCloser, best: int, integrated: np.ndarray, samples: np.ndarray, covariances: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Samples (T, M, 3) and covariances (T, 3, 3) moved onto the pose graph solved along final particle ``best``'s
+    lineage: each scan's by the transform of its node (an integrated scan's own, the scans after it by the node's
+    frame after a rebuild)."""
+    recorded, after = loops.corrections(best)
+    node = np.cumsum(integrated) - 1
+    transforms = np.where(integrated[:, None], recorded[node], after[node])
+    moved = apply_transform(transforms, samples)
+    return moved, rotate_covariance(covariances, transforms[:, 2])
+
+
+def loop_summary(loops: LoopCloser | None) -> dict[str, float]:
+    """The loop closer's counts: searches made, closures taken, grid rebuilds, and the CPU seconds it took (all 0
+    without loop closure)."""
+    if loops is None:
+        return {"searches": 0, "closures": 0, "rebuilds": 0, "cpu_seconds": 0.0}
+    counts = {"searches": loops.searches, "closures": len(loops.closures), "rebuilds": loops.rebuilds}
+    return {**counts, "cpu_seconds": round(loops.seconds, 3)}
