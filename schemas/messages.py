@@ -336,7 +336,7 @@ class NodeStats(Message):
             "grid FastSLAM: the health of the last integrated scan (slam.gridslam.health.ScanHealth: matched, "
             "score_z, ess, particles, spread_xy m, spread_yaw rad, sigma_xy m, sigma_yaw rad, fallbacks, failed, "
             "widened, resampled, next_particles; flags 0 or 1; a value not yet known is left out) and of the run so "
-            "far (scans, failed_scans); empty for the landmark filters"
+            "far (scans, failed_scans, loop_closures); empty for the landmark filters"
         ),
         default_factory=dict,
     )

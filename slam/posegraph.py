@@ -54,10 +54,6 @@ class PoseGraph:
     def __len__(self) -> int:
         return len(self.poses)
 
-    @property
-    def edges(self) -> int:
-        return len(self._i)
-
     def add_node(self, pose: np.ndarray) -> int:
         """Append a node at ``pose`` (3,); returns its index."""
         self.poses = np.vstack([self.poses, np.asarray(pose, np.float64)[None]])
@@ -72,10 +68,10 @@ class PoseGraph:
         self._z.append(np.asarray(z, np.float64))
         self._info.append(np.linalg.inv(np.asarray(covariance, np.float64)))
 
-    def remove_last_edge(self) -> None:
-        """Drop the edge added last."""
+    def remove_last_edges(self, count: int) -> None:
+        """Drop the ``count`` edges added last."""
         for column in (self._i, self._j, self._z, self._info):
-            column.pop()
+            del column[len(column) - count :]
 
     def residuals(self, poses: np.ndarray | None = None) -> np.ndarray:
         """Every edge's residual (E, 3) at ``poses`` (N, 3) (default: the graph's)."""

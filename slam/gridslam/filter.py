@@ -54,7 +54,7 @@ from slam.gridslam.honesty import (
     weighted_covariance,
 )
 from slam.gridslam.kernels import log_likelihoods, match_and_propose
-from slam.gridslam.loops import Closure, LoopCloser
+from slam.gridslam.loops import LoopCloser
 from slam.gridslam.tiles import TileMaps
 from slam.motion import OdometryMotionModel, odometry_controls, rotate_covariance
 from slam.posegraph import apply_transform
@@ -155,7 +155,6 @@ class GridFastSLAM:
         self.last_covariance = np.zeros((3, 3))  # the filter's covariance at the last integrated scan
         self.revisits = Revisits(config.revisit_gap, config.revisit_radius)
         self.loops = LoopCloser(config) if config.loop_closure else None
-        self.drawn = np.zeros((config.particles, 3, 3))  # the covariances the last scan's poses were drawn with
 
     def use_laser(self, laser: Laser) -> None:
         """Take the scans that follow with ``laser``'s geometry (every scan of a log may have its own)."""
@@ -283,19 +282,19 @@ class GridFastSLAM:
         r_stop, hit, idx = self._beams(ranges)
         odometry = np.asarray(odometry, np.float64)
         fallbacks, matched, widened, failed = 0, math.nan, self.widen, False
+        moves = np.zeros((len(self.poses), 3, 3))  # each move's covariance (for the loop closer's graph)
         if self.odometry_ref is not None:
             control = odometry_controls(np.stack([self.odometry_ref, odometry]))[0]
             before = self.poses
             self.poses, log_eta, fallbacks, score, drawn = self._propose(control, r_stop, idx, widened)
             fractions = score / max(len(idx), 1)
+            reach = float(np.mean(r_stop[idx])) if len(idx) else self.max_range
             if self.config.keep_spread:
-                reach = float(np.mean(r_stop[idx])) if len(idx) else self.max_range
                 explored = exploration_covariance(fractions, self.config.resolution, reach)
                 self.drift = transport(self.drift, before, self.poses) + explored
             matched, failed = self._weigh(log_eta, fractions)
-            reach = float(np.mean(r_stop[idx])) if len(idx) else self.max_range
-            # (each move's covariance: what the proposal drew with, and a cell's precision on top)
-            self.drawn = drawn + exploration_covariance(np.zeros(1), self.config.resolution, reach)[0]
+            # (what the proposal drew with, and a cell's precision on top)
+            moves = drawn + exploration_covariance(np.zeros(1), self.config.resolution, reach)[0]
         else:
             self._cover(self.poses)
         self.odometry_ref = odometry
@@ -309,7 +308,7 @@ class GridFastSLAM:
         self.last_covariance = self.covariance(poses)
         self.revisits.add(best, self.last_covariance)
         if self.loops is not None:
-            self._close_loops(poses, int(np.argmax(weights)), r_stop, hit, matched if not failed else math.nan)
+            self._close_loops(poses, moves, r_stop, hit, matched if not failed else math.nan)
         parents, resampled = self._resample(weights, ess)
         if self.loops is not None:
             self.loops.link(parents)
@@ -317,22 +316,21 @@ class GridFastSLAM:
         return poses, weights, parents, StepReport(ess, resampled, fallbacks, health)
 
     def _close_loops(
-        self, poses: np.ndarray, best: int, r_stop: np.ndarray, hit: np.ndarray, matched: float
-    ) -> Closure | None:
-        """Add this scan (the particles' poses (M, 3), the best's index) to the loop closer's graph
-        (slam.gridslam.loops) and search for a loop closure unless its match failed (``matched``, the best particle's
-        matched-beam fraction on its own map, NaN); when the solved graph moves the current pose, rebuild the grids
-        from the graph and move the particles with it."""
+        self, poses: np.ndarray, moves: np.ndarray, r_stop: np.ndarray, hit: np.ndarray, matched: float
+    ) -> None:
+        """Add this scan (the particles' poses (M, 3) and the covariances (M, 3, 3) of their moves) to the loop
+        closer's graph (slam.gridslam.loops) and search for a loop closure unless its match failed (``matched``, the
+        best particle's matched-beam fraction on its own map, NaN); when the solved graph moves the current pose,
+        rebuild the grids from the graph and move the particles with it."""
         assert self.loops is not None
         began = time.process_time()
-        drawn = self.drawn if len(self.drawn) == len(poses) else np.zeros((len(poses), 3, 3))
         laser = (self.cos_b, self.sin_b, self.offset)
-        node = self.loops.add(poses, best, drawn, self.last_covariance, r_stop, hit, laser)
+        best = int(np.argmax(self.weights))
+        node = self.loops.add(poses, best, moves, self.last_covariance, r_stop, hit, laser)
         closure = None if math.isnan(matched) else self.loops.close(node, matched)
         if closure is not None and closure.rebuild:
             self._rebuild(closure.transform)
         self.loops.seconds += time.process_time() - began
-        return closure
 
     def _rebuild(self, transform: np.ndarray) -> None:
         """Every particle's grid becomes one map built from every node's scan at the graph's poses (shared, copy on
@@ -341,7 +339,7 @@ class GridFastSLAM:
         cfg = self.config
         maps = TileMaps(1, cfg.resolution, cfg.tile_cells)
         poses = self.loops.graph.poses
-        reach = max(self.reach, max(float(np.hypot(*scan.offset[:2])) for scan in self.loops.scans) + cfg.max_range)
+        reach = cfg.max_range + max(float(np.hypot(*scan.offset[:2])) for scan in self.loops.scans)
         lo, hi = poses[:, :2].min(axis=0) - reach, poses[:, :2].max(axis=0) + reach
         maps.cover(lo[0], lo[1], hi[0], hi[1])
         for pose, scan in zip(poses, self.loops.scans):  # one compiled insertion per node's scan
@@ -362,7 +360,7 @@ class GridFastSLAM:
         turn = np.full(len(self.drift), float(transform[2]))
         self.drift = rotate_covariance(self.drift, turn)
         self.last_covariance = rotate_covariance(self.last_covariance, turn[:1])[0]
-        self.revisits.poses = [pose.copy() for pose in poses]
+        self.revisits.moved(poses)
         self.loops.rebuilt(transform)
 
     def _weigh(self, log_eta: np.ndarray, matched: np.ndarray) -> tuple[float, bool]:

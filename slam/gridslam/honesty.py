@@ -121,6 +121,10 @@ class Revisits:
         self.poses.append(np.asarray(pose, np.float64).copy())
         self.covariances.append(covariance)
 
+    def moved(self, poses: np.ndarray) -> None:
+        """Every visit's pose becomes the row of ``poses`` (N, 3) (the path corrected by a loop closure)."""
+        self.poses = [pose.copy() for pose in poses]
+
     def shrink(self, drift: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """The kept covariances drift (M, 3, 3) after the best particle reached ``pose`` (3,) with a scan that
         matched: each whose trace exceeds that of the smallest covariance (by trace) of the visits at least ``gap``

@@ -309,9 +309,6 @@ class LoopCloser:
         self.loop_edges: list[tuple[int, int, np.ndarray, np.ndarray]] = []  # (old, node, z, covariance) taken
         self.pending: _Candidate | None = None  # the last search's match, waiting for the next to agree
 
-    def __len__(self) -> int:
-        return len(self.graph)
-
     def add(
         self,
         poses: np.ndarray,
@@ -395,8 +392,9 @@ class LoopCloser:
 
     def close(self, node: int, matched: float) -> Closure | None:
         """Search for a loop closure at ``node`` (the last added; at most every loop_every nodes): match its scan
-        against the submap round the nearest old node within the window, and if accepted, solve the graph with the
-        new edge. Returns the closure taken, or None."""
+        against the submap round the nearest old node within the window; a match that counts waits for the next
+        search's to agree, and then both go into the graph, which is solved. ``matched``: the best particle's
+        matched-beam fraction on its own map at this scan. Returns the closure taken, or None."""
         cfg = self.config
         if node - self.last_search < cfg.loop_every or len(self.scans[node].points) < LEAST_POINTS:
             return None
@@ -429,8 +427,7 @@ class LoopCloser:
             return None
         offset = relative_motion(estimate[None], match.pose[None])[0]
         significant = self._significant(offset)
-        world = offset.copy()
-        world[:2] = match.pose[:2] - estimate[:2]
+        world = np.array([*(match.pose[:2] - estimate[:2]), offset[2]])  # (map frame)
         gate = covariance + self.covariances[old] + match.covariance
         if float(world @ np.linalg.solve(gate, world)) > GATE_CHI2:
             return None
@@ -451,8 +448,7 @@ class LoopCloser:
         if significant:
             self.graph.optimize()
             if self.graph.chi2()[-2:].max() > GATE_CHI2:
-                self.graph.remove_last_edge()
-                self.graph.remove_last_edge()
+                self.graph.remove_last_edges(len(edges))
                 self.graph.poses = before
                 return None
         self.loop_edges += edges

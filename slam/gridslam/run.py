@@ -144,11 +144,12 @@ def run_gridslam(
             progress(1, current_ess)
     samples = _backtrack(poses, parents)
     covariances = np.array(covariance)
+    best = int(np.argmax(weights))
     if config.keep_spread:
         spread_rng = np.random.default_rng([seed, 1])  # apart from the filter's, which it would shift
-        samples = spread_trajectories(samples, weights, covariances, int(np.argmax(weights)), spread_rng)
+        samples = spread_trajectories(samples, weights, covariances, best, spread_rng)
     if slam.loops is not None:
-        samples, covariances = _onto_graph(slam.loops, int(np.argmax(weights)), integrated, samples, covariances)
+        samples, covariances = _onto_graph(slam.loops, best, integrated, samples, covariances)
     return GridSlamResult(
         stamps=log.stamps.copy(),
         samples=samples,
