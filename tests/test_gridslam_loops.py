@@ -105,17 +105,20 @@ def test_a_long_corridor_loop_closes_with_the_loop_search_and_not_without(tmp_pa
     """A heading error picked up at a corner bends the corridor the particles map. Without loop closure and without
     the failed-match recovery the filter comes back metres off and does not close the loop (docs/gridslam.md: the
     shipped 30 particles end 2.95 m off here; 10 keep the test's time down). With loop closure (opt-in,
-    --loop-closure on) the same 10 particles find the old corridor by the wide search, solve the pose graph and
-    close the loop: the end comes within 0.35 m of the truth, and the solved graph takes the whole path most of the
-    way."""
+    --loop-closure on) the same 10 particles find the old corridor by the wide search, a second match confirms it,
+    the pose graph is solved and the grids rebuilt: over the last 5 % of the drive (back in the old corridor) the
+    best particle stays within 0.35 m of the truth where the plain filter is more than 1 m off, and the solved graph
+    takes the whole path's RMS error down by a quarter at least."""
     log, truth = ring_corridor(tmp_path)
-    plain = run_gridslam(log, GridSlamConfig(particles=10, particle_cap=10, recovery=False), seed=0)
+    plain = run_gridslam(log, GridSlamConfig(particles=10, particle_cap=10, recovery=False, loop_closure=False), seed=0)
     closing = run_gridslam(log, GridSlamConfig(particles=10, particle_cap=10, loop_closure=True), seed=0)
     plain_errors, closing_errors = best_errors(plain, truth), best_errors(closing, truth)
     plain_rms, closing_rms = np.sqrt(np.mean(plain_errors**2)), np.sqrt(np.mean(closing_errors**2))
-    assert plain_errors[-1] > 1.0 and plain_rms > 0.5
+    tail = slice(int(0.95 * len(truth)), None)
+    assert plain_errors[tail].min() > 1.0 and plain_rms > 0.5
     assert closing.loops["closures"] >= 1 and closing.loops["rebuilds"] >= 1
-    assert closing_errors[-1] < 0.35 and closing_rms < 0.6 * plain_rms, (closing_errors[-1], closing_rms, plain_rms)
+    assert closing_errors[tail].max() < 0.35, closing_errors[tail].max()
+    assert closing_rms < 0.75 * plain_rms, (closing_rms, plain_rms)
     assert plain.loops == {"searches": 0, "closures": 0, "rebuilds": 0, "cpu_seconds": 0.0}
 
 

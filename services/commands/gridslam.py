@@ -106,8 +106,8 @@ def add_filter_options(group: argparse._ArgumentGroup, label: str = "") -> None:
         f"this many times larger, >= 1 (default {defaults.widen:g}: not widened, chosen by leave-one-out; a failed "
         "match never weighs the particles)",
         "--loop-closure": "'on': search old submaps over a wide window for a loop the particles lost, and correct "
-        "the path and the grids through a pose graph (default 'off': on the shared logs it cost time and "
-        "accuracy; docs/gridslam.md, 'Loop closure')",
+        "the path and the grids through a pose graph (default 'off': it closes simulated loops the particles lost, "
+        "but cost accuracy on the Intel log; docs/gridslam.md, 'Loop closure')",
     }
     types: dict[str, Callable[[str], object]] = {"--particle-cap": int, "--loop-closure": _on_off}
     for option, _ in FILTER_OPTIONS:

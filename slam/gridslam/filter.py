@@ -338,7 +338,7 @@ class GridFastSLAM:
         assert self.loops is not None
         cfg = self.config
         maps = TileMaps(1, cfg.resolution, cfg.tile_cells)
-        poses = self.loops.graph.poses
+        poses = self.loops.solved
         reach = cfg.max_range + max(float(np.hypot(*scan.offset[:2])) for scan in self.loops.scans)
         lo, hi = poses[:, :2].min(axis=0) - reach, poses[:, :2].max(axis=0) + reach
         maps.cover(lo[0], lo[1], hi[0], hi[1])

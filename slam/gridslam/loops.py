@@ -7,27 +7,33 @@ after a long drive the heading error picked up at one corner bends the rest of t
 the truth. Graph-based laser SLAM searches for the match instead (Hess et al. 2016, Cartographer; Olson 2009,
 correlative scan matching). Here:
 
-- every integrated scan is a node of a pose graph (slam.posegraph). Its pose follows the last node's by the best
-  particle's own move from its parent (its ancestor at the last node), with the covariance the proposal drew that
-  move with (along a corridor, the odometry's) plus a cell's precision;
-- every ``loop_every`` integrated scans, when the graph holds a node at least ``revisit_gap`` nodes old within the
-  search window of the current node, the scan is matched against a *submap*: the end points of the scans of the
-  ``loop_submap`` nodes either side of the nearest such node, placed by the graph. The search is exhaustive over a
-  window three standard deviations of the filter's covariance wide (at least ``loop_window_xy`` m and
-  ``loop_window_yaw`` rad, at most ``loop_window_max`` m and MAX_WINDOW_YAW): coarse (COARSE_CELLS cells, on a
-  max-filtered likelihood field), then every cell round the best coarse poses, then halved steps
-  (:func:`match_scan`, :func:`correlative_search`). Its covariance is the spread of the coarse response (Olson 2009):
-  along a corridor's axis it is wide;
+- every integrated scan is kept with every particle's pose, the covariance each was drawn with and the resampling
+  that followed, so that any particle's path (its lineage: its ancestors' poses) can be read back;
+- every ``loop_every`` integrated scans, when the best particle's path holds a node at least ``revisit_gap`` nodes
+  old within the search window of its current pose, the scan is matched against a *submap*: the end points of the
+  scans of the ``loop_submap`` nodes either side of the nearest such node, placed by that path. The search is
+  exhaustive over a window three standard deviations of the filter's covariance wide (at least ``loop_window_xy``
+  m and ``loop_window_yaw`` rad, at most ``loop_window_max`` m and MAX_WINDOW_YAW): coarse (COARSE_CELLS cells, on
+  a max-filtered likelihood field), then every cell round the best coarse poses, then halved steps
+  (:func:`match_scan`, :func:`correlative_search`). Its covariance is the spread of the coarse response (Olson
+  2009): along a corridor's axis it is wide;
 - a match counts when the submap explains the scan at least as well as the best particle's own map does (and at
-  least ``loop_min_match``), when its offset lies within the chi-square gate of the filter's covariance plus the
-  match's, and when the next search's match agrees with it (:func:`_agree`). Both edges go into the graph; if the
-  offset is beyond what the filter's own matcher pulls in, the graph is solved, and edges the solved graph cannot
-  hold (residual beyond the gate) are taken out again;
-- when the solved graph moves the current node that far, the filter rebuilds the particles' grids from every node's
-  scan at the graph's poses (one shared map) and moves the particles with the best one (slam.gridslam.filter).
+  least ``loop_min_match``) and when its offset lies within the chi-square gate of the filter's covariance plus the
+  match's. The next search confirms it: centred where the match predicts the robot now is, with the match's
+  covariance as window and gate (:func:`_predict`; the filter's own covariance is no guide once its particles agree
+  on the wrong corridor), its match must agree (:func:`_agree`);
+- it is acted on only when the filter missed the loop: when the match moves the best particle beyond what the
+  filter's own matcher pulls in and beyond the match's own uncertainty (:meth:`LoopCloser._significant`). Where
+  the filter closed the loop itself nothing changes. Otherwise both matches become loop edges of a pose graph
+  (slam.posegraph) along the best particle's path: its own moves from scan to scan, with the covariances the
+  proposal drew them with, and every loop edge taken so far. The graph is solved; edges it cannot hold (residual
+  beyond the gate) are dropped;
+- when the solved graph moves the current pose that far, the filter rebuilds the particles' grids from every
+  node's scan at the graph's poses (one shared map) and moves the particles with the best one
+  (slam.gridslam.filter).
 
-The written trajectories follow the graph too (:meth:`LoopCloser.corrections`, used by slam.gridslam.run): the chain
-is remade along the final best particle's lineage with every loop edge and solved, and every scan's particle poses
+The written trajectories follow the graph too (:meth:`LoopCloser.corrections`, used by slam.gridslam.run): the graph
+is made along the final best particle's lineage with every loop edge and solved, and every scan's particle poses
 move by the transform that takes that lineage's pose onto the solved graph's.
 """
 
@@ -264,36 +270,47 @@ class _Scan:
     points: np.ndarray
 
 
+#: a loop edge of the graph: the old node, the current node, the current node's pose z (3,) in the old node's frame
+#: and its covariance (3, 3) in that frame
+Edge = tuple[int, int, np.ndarray, np.ndarray]
+
+
 @dataclass(frozen=True)
 class _Candidate:
-    """A search's accepted match: the node searched from, the old node whose submap it matched, the match and the
-    graph's estimate (3,) of the node when it searched."""
+    """A search's accepted match: the node searched from, the old node whose submap it matched, the match, the best
+    particle's pose (3,) when it searched (the estimate) and the loop edge it makes."""
 
     node: int
     old: int
     match: Match
     estimate: np.ndarray
+    edge: Edge
+
+
+def _predict(first: _Candidate, estimate: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where a match ``first`` says a later pose of the best particle ``estimate`` (3,) (map frame) truly is: the
+    transform that takes the first's estimate to its match, applied to ``estimate``, and the covariance (3, 3) of that
+    prediction: the first match's, its yaw uncertainty swung over the distance between the two poses."""
+    correction = transform_between(first.match.pose[None], first.estimate[None])
+    predicted = apply_transform(correction[0], estimate[None])[0]
+    lever = float(np.hypot(*(estimate[:2] - first.estimate[:2]))) ** 2 * first.match.covariance[2, 2]
+    return predicted, first.match.covariance + np.diag([lever, lever, 0.0])
 
 
 def _agree(first: _Candidate, second: _Candidate) -> bool:
-    """Whether two matches correct the path alike: the transform that takes the first's estimate to its match,
-    applied to the second's estimate, lands on the second's match within the chi-square gate of both matches'
-    covariances (the first's yaw uncertainty swung over the distance between the two)."""
-    correction = transform_between(first.match.pose[None], first.estimate[None])
-    predicted = apply_transform(correction[0], second.estimate[None])[0]
+    """Whether two matches correct the path alike: :func:`_predict` from the first lands on the second's match within
+    the chi-square gate of the prediction's and the second match's covariances."""
+    predicted, covariance = _predict(first, second.estimate)
     diff = second.match.pose - predicted
     diff[2] = wrap_angle(diff[2])
-    lever = float(np.hypot(*(second.estimate[:2] - first.estimate[:2]))) ** 2 * first.match.covariance[2, 2]
-    covariance = first.match.covariance + second.match.covariance + np.diag([lever, lever, 0.0])
-    return float(diff @ np.linalg.solve(covariance, diff)) <= GATE_CHI2
+    return float(diff @ np.linalg.solve(covariance + second.match.covariance, diff)) <= GATE_CHI2
 
 
 class LoopCloser:
-    """The pose graph of the best particle's path with every node's scan, and the loop search over it."""
+    """Every integrated scan with the particles' poses, and the loop search along the best particle's path."""
 
     def __init__(self, config: GridSlamConfig) -> None:
         self.config = config
-        self.graph = PoseGraph()
         self.scans: list[_Scan] = []
         self.poses: list[np.ndarray] = []  # per node: every particle's pose (M, 3) as the filter wrote it
         self.drawn: list[np.ndarray] = []  # ... the covariances (M, 3, 3) it drew them with
@@ -301,12 +318,13 @@ class LoopCloser:
         self.frames: list[np.ndarray] = []  # ... the transform (3,) a rebuild moved the particles by after it
         self.best: list[int] = []  # ... the best particle
         self.covariances: list[np.ndarray] = []  # per node: the filter's covariance there
+        self.solved = np.zeros((0, 3))  # the graph's poses of the nodes up to the last rebuild (the grids' frame)
         self.last_search = -(10**9)
         self.searches = 0
         self.closures: list[Closure] = []
         self.rebuilds = 0
         self.seconds = 0.0  # CPU time (s) in loop searches, graph solves and rebuilds
-        self.loop_edges: list[tuple[int, int, np.ndarray, np.ndarray]] = []  # (old, node, z, covariance) taken
+        self.loop_edges: list[Edge] = []  # taken
         self.pending: _Candidate | None = None  # the last search's match, waiting for the next to agree
 
     def add(
@@ -322,36 +340,26 @@ class LoopCloser:
         """Add a node for an integrated scan: every particle's pose (M, 3) there (before resampling), the index of
         the best, the covariances (M, 3, 3) (map frame) the poses were drawn with round their moves (with a cell's
         precision), the filter's covariance there, the scan's ranges r_stop (B,) m and hit flags (B,) and its laser
-        (cos_b, sin_b, offset). The node's graph pose follows the last node's by the best particle's own move from
-        its parent (:meth:`link`): the chain of scan-matched moves, whichever particle is best at each scan.
-        Returns the node's index."""
-        poses = np.array(poses, np.float64)
+        (cos_b, sin_b, offset). Returns the node's index."""
         cos_b, sin_b, offset = laser
         points = end_points(r_stop, hit, cos_b, sin_b, offset)
         self.scans.append(_Scan(r_stop.copy(), hit.copy(), cos_b, sin_b, offset, points))
         self.covariances.append(np.asarray(covariance, np.float64))
-        n = len(self.graph)
-        if n == 0:
-            self.graph.add_node(poses[best])
-        else:
-            move, step = self._move(n, best, poses, drawn)
-            self.graph.add_node(apply_transform(self.graph.poses[-1], move[None])[0])
-            self.graph.add_edge(n - 1, n, move, step)
-        self.poses.append(poses)
+        self.poses.append(np.array(poses, np.float64))
         self.drawn.append(np.array(drawn, np.float64))
         self.parents.append(None)
         self.frames.append(np.zeros(3))
         self.best.append(int(best))
-        return n
+        return len(self.poses) - 1
 
-    def _move(self, n: int, particle: int, poses: np.ndarray, drawn: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Particle ``particle``'s move (3,) to node n (poses (M, 3), drawn (M, 3, 3)) from its parent at node n - 1,
-        in the parent's frame, and its covariance (3, 3) in that frame."""
+    def _move(self, n: int, particle: int) -> tuple[np.ndarray, np.ndarray]:
+        """Particle ``particle``'s move (3,) to node n from its parent at node n - 1, in the parent's frame, and its
+        covariance (3, 3) in that frame."""
         parents = self.parents[n - 1]
         parent = self.poses[n - 1][particle if parents is None else parents[particle]]
         parent = apply_transform(self.frames[n - 1], parent[None])[0]  # (moved by a rebuild after node n - 1)
-        move = relative_motion(parent[None], poses[particle][None])[0]
-        return move, in_frame(drawn[particle], float(parent[2]))
+        move = relative_motion(parent[None], self.poses[n][particle][None])[0]
+        return move, in_frame(self.drawn[n][particle], float(parent[2]))
 
     def link(self, parents: np.ndarray | None) -> None:
         """The last node's particle set was resampled or split: particle j of the next node continues particle
@@ -360,7 +368,7 @@ class LoopCloser:
 
     def lineage(self, particle: int) -> np.ndarray:
         """The index (N,) at each node of particle ``particle``'s ancestor (``particle`` indexes the set after the
-        last node)."""
+        last node; before the last node's :meth:`link`, its set)."""
         index = np.empty(len(self.poses), np.int64)
         current = particle
         for n in range(len(self.poses) - 1, -1, -1):  # one step per node
@@ -369,102 +377,137 @@ class LoopCloser:
             index[n] = current
         return index
 
-    def _old_node(self, node: int, window_xy: float) -> int | None:
-        """The node at least revisit_gap nodes before ``node`` nearest to it in the graph, if within window_xy + 1 m."""
+    def path(self, lineage: np.ndarray) -> np.ndarray:
+        """The poses (N, 3) of a lineage (:meth:`lineage`) where the grids hold its scans now: the graph's poses up
+        to the last rebuild, the particle's own after it."""
+        path = np.array([poses[j] for poses, j in zip(self.poses, lineage)])
+        path[: len(self.solved)] = self.solved
+        return path
+
+    def graph(self, lineage: np.ndarray, edges: list[Edge]) -> PoseGraph:
+        """The pose graph along a lineage: its own moves from node to node (with the covariances they were drawn
+        with), every loop edge taken and ``edges``; started at :meth:`path`."""
+        graph = PoseGraph()
+        for pose in self.path(lineage):  # one node each
+            graph.add_node(pose)
+        for n in range(1, len(lineage)):  # one edge per node
+            graph.add_edge(n - 1, n, *self._move(n, int(lineage[n])))
+        for edge in [*self.loop_edges, *edges]:
+            graph.add_edge(*edge)
+        return graph
+
+    def _old_node(self, node: int, center: np.ndarray, path: np.ndarray, window_xy: float) -> int | None:
+        """The node at least revisit_gap nodes before ``node`` nearest on ``path`` (N, 3) to ``center`` (3,), if
+        within window_xy + 1 m."""
         old = node - self.config.revisit_gap
         if old < 0:
             return None
-        poses = self.graph.poses
-        distance = np.hypot(poses[: old + 1, 0] - poses[node, 0], poses[: old + 1, 1] - poses[node, 1])
+        distance = np.hypot(path[: old + 1, 0] - center[0], path[: old + 1, 1] - center[1])
         nearest = int(np.argmin(distance))
         return nearest if distance[nearest] <= window_xy + 1.0 else None
 
-    def _submap(self, old: int, node: int) -> np.ndarray:
-        """End points (P, 2) (map frame, by the graph's poses) of the nodes within loop_submap of ``old`` that are at
-        least revisit_gap nodes before ``node``."""
+    def _submap(self, old: int, node: int, path: np.ndarray) -> np.ndarray:
+        """End points (P, 2) (map frame, placed by ``path`` (N, 3)) of the nodes within loop_submap of ``old`` that
+        are at least revisit_gap nodes before ``node``."""
         cfg = self.config
         last = min(old + cfg.loop_submap, node - cfg.revisit_gap)
         chunks = []
         for k in range(max(0, old - cfg.loop_submap), last + 1):  # one vectorised transform per node's scan
             points = self.scans[k].points
-            chunks.append(apply_transform(self.graph.poses[k], np.column_stack([points, np.zeros(len(points))]))[:, :2])
+            chunks.append(apply_transform(path[k], np.column_stack([points, np.zeros(len(points))]))[:, :2])
         return np.concatenate(chunks) if chunks else np.zeros((0, 2))
 
-    def close(self, node: int, matched: float) -> Closure | None:
-        """Search for a loop closure at ``node`` (the last added; at most every loop_every nodes): match its scan
-        against the submap round the nearest old node within the window; a match that counts waits for the next
-        search's to agree, and then both go into the graph, which is solved. ``matched``: the best particle's
-        matched-beam fraction on its own map at this scan. Returns the closure taken, or None."""
+    def _search(self, node: int, path: np.ndarray, matched: float, pending: _Candidate | None) -> _Candidate | None:
+        """Match the scan of ``node`` against the submap round the nearest old node on ``path`` within the window;
+        the match if it counts (explains the scan at least as well as ``matched``, the best particle's own map, and
+        lies within the chi-square gate), else None. The search is centred on the best particle's pose, its window
+        and gate are the filter's covariance (and the old node's); while a match is ``pending`` they are where that
+        match predicts the pose and its covariance (:func:`_predict`): the filter's covariance shrinks as its
+        particles agree on the wrong corridor, the pending match's does not."""
         cfg = self.config
-        if node - self.last_search < cfg.loop_every or len(self.scans[node].points) < LEAST_POINTS:
-            return None
-        covariance = self.covariances[node]
+        estimate = path[node]
+        if pending is None:
+            center, covariance = estimate, self.covariances[node]
+        else:
+            center, covariance = _predict(pending, estimate)
         sigma_xy = math.sqrt(max(float(np.linalg.eigvalsh(covariance[:2, :2]).max()), 0.0))
         window_xy = min(max(cfg.loop_window_xy, 3.0 * sigma_xy), cfg.loop_window_max)
         window_yaw = min(max(cfg.loop_window_yaw, 3.0 * math.sqrt(max(covariance[2, 2], 0.0))), MAX_WINDOW_YAW)
-        old = self._old_node(node, window_xy)
+        old = self._old_node(node, center, path, window_xy)
         if old is None:
             return None
         self.last_search = node
         self.searches += 1
-        submap = self._submap(old, node)
-        if len(submap) < LEAST_POINTS:
-            return None
-        res = cfg.resolution
-        estimate = self.graph.poses[node]
+        submap = self._submap(old, node, path)
         points = self.scans[node].points
         if len(points) > cfg.match_beams:  # evenly spread, as the matcher's beams
             points = points[np.round(np.linspace(0, len(points) - 1, cfg.match_beams)).astype(np.int64)]
         # the field only where the scan's points can land within the window (the field is ~0 beyond 3 sigma)
         reach = float(np.max(np.hypot(points[:, 0], points[:, 1]))) + window_xy + 0.5
-        near = (np.abs(submap[:, 0] - estimate[0]) <= reach) & (np.abs(submap[:, 1] - estimate[1]) <= reach)
+        near = (np.abs(submap[:, 0] - center[0]) <= reach) & (np.abs(submap[:, 1] - center[1]) <= reach)
         if near.sum() < LEAST_POINTS:
             return None
-        field, origin = likelihood_field(submap[near], res, cfg.sigma_match, 0.5)
-        match = match_scan(field, origin, res, points, estimate, window_xy, window_yaw, 1.0 / cfg.gain)
-        # the old submap must explain the scan at least as well as the best particle's own map does now
+        field, origin = likelihood_field(submap[near], cfg.resolution, cfg.sigma_match, 0.5)
+        match = match_scan(field, origin, cfg.resolution, points, center, window_xy, window_yaw, 1.0 / cfg.gain)
         if not match.matched >= max(cfg.loop_min_match, matched if math.isfinite(matched) else 1.0):
             return None
-        offset = relative_motion(estimate[None], match.pose[None])[0]
-        significant = self._significant(offset)
-        world = np.array([*(match.pose[:2] - estimate[:2]), offset[2]])  # (map frame)
-        gate = covariance + self.covariances[old] + match.covariance
+        world = np.array([*(match.pose[:2] - center[:2]), wrap_angle(match.pose[2] - center[2])])  # (map frame)
+        gate = covariance + match.covariance + (self.covariances[old] if pending is None else 0.0)
         if float(world @ np.linalg.solve(gate, world)) > GATE_CHI2:
             return None
+        z = relative_motion(path[old][None], match.pose[None])[0]
+        edge = (old, node, z, in_frame(match.covariance, float(path[old, 2])))
+        return _Candidate(node, old, match, estimate.copy(), edge)
+
+    def close(self, node: int, matched: float) -> Closure | None:
+        """Search for a loop closure at ``node`` (the last added; at most every loop_every nodes) along the best
+        particle's path: match its scan against the submap round the nearest old node within the window
+        (:meth:`_search`); a match that counts waits for the next search's to agree, and then both become loop
+        edges. When they move the best particle beyond what its own matcher pulls in, the graph along its path is
+        solved and the grids must be rebuilt from it. ``matched``: the best particle's matched-beam fraction on its
+        own map at this scan. Returns the closure taken, or None."""
+        cfg = self.config
+        if node - self.last_search < cfg.loop_every or len(self.scans[node].points) < LEAST_POINTS:
+            return None
+        lineage = self.lineage(self.best[node])
+        path = self.path(lineage)
+        pending = self.pending
+        if pending is not None and node - pending.node > PENDING_NODES * cfg.loop_every:
+            pending = self.pending = None  # no later match agreed in time
+        candidate = self._search(node, path, matched, pending)
+        if candidate is None:
+            return None
         # a match is taken only when the next search's agrees with it (the same correction of the path)
-        candidate = _Candidate(node, old, match, estimate)
-        pending, self.pending = self.pending, candidate
-        if pending is None or node - pending.node > PENDING_NODES * cfg.loop_every or not _agree(pending, candidate):
+        self.pending = candidate
+        if pending is None or not _agree(pending, candidate):
             return None
         self.pending = None
-        before = self.graph.poses.copy()
-        edges = []
-        for taken in (pending, candidate):
-            z = relative_motion(self.graph.poses[taken.old][None], taken.match.pose[None])[0]
-            edges.append(
-                (taken.old, taken.node, z, in_frame(taken.match.covariance, float(self.graph.poses[taken.old, 2])))
-            )
-            self.graph.add_edge(*edges[-1])
-        if significant:
-            self.graph.optimize()
-            if self.graph.chi2()[-2:].max() > GATE_CHI2:
-                self.graph.remove_last_edges(len(edges))
-                self.graph.poses = before
-                return None
+        if not self._significant(candidate.match.pose - candidate.estimate, candidate.match.covariance):
+            return None  # the best particle's path already agrees with the old submap: nothing to correct
+        edges = [pending.edge, candidate.edge]
+        graph = self.graph(lineage, edges)
+        graph.optimize()
+        if graph.chi2()[-2:].max() > GATE_CHI2:
+            return None
+        rebuild = self._significant(graph.poses[node] - path[node], candidate.match.covariance)
+        if rebuild:
+            self.solved = graph.poses.copy()
         self.loop_edges += edges
-        best = self.poses[node][self.best[node]]
-        transform = transform_between(self.graph.poses[node][None], best[None])[0]
-        moved = relative_motion(best[None], self.graph.poses[node][None])[0]
-        rebuild = significant and self._significant(moved)
-        closure = Closure(old, node, offset, rebuild, transform)
+        offset = relative_motion(candidate.estimate[None], candidate.match.pose[None])[0]
+        transform = transform_between(graph.poses[node][None], path[node][None])[0]
+        closure = Closure(pending.old, node, offset, rebuild, transform)
         self.closures.append(closure)
         return closure
 
-    def _significant(self, offset: np.ndarray) -> bool:
-        """Whether an offset (3,) (m, rad) is beyond what the filter's own scan matcher pulls in: its first
-        hill-climbing step (lin_step m, or half of ang_step rad). A smaller one goes into the graph unsolved."""
+    def _significant(self, change: np.ndarray, covariance: np.ndarray) -> bool:
+        """Whether a change (3,) of a pose (m, rad; map frame) is a correction the filter needs: beyond what the
+        filter's scan matcher pulls in by itself (two hill-climbing steps, 2 lin_step m, or half of ang_step rad) and
+        beyond the match's own uncertainty (``covariance`` (3, 3), map frame; the chi-square gate)."""
         cfg = self.config
-        return bool(math.hypot(offset[0], offset[1]) >= cfg.lin_step or abs(offset[2]) >= cfg.ang_step / 2)
+        change = np.array([change[0], change[1], wrap_angle(float(change[2]))])
+        if not (math.hypot(change[0], change[1]) >= 2 * cfg.lin_step or abs(change[2]) >= cfg.ang_step / 2):
+            return False
+        return float(change @ np.linalg.solve(covariance, change)) > GATE_CHI2
 
     def rebuilt(self, transform: np.ndarray) -> None:
         """Record that the filter moved its particles by ``transform`` (3,) after the last node (a rebuild)."""
@@ -473,23 +516,16 @@ class LoopCloser:
 
     def corrections(self, particle: int) -> tuple[np.ndarray, np.ndarray]:
         """Per node the transforms (N, 3) that move the filter's poses onto the solved graph, for the poses written at
-        the node's scan and for those of the scans after it (they differ where the grids were rebuilt). The chain is
-        first remade along particle ``particle``'s lineage (its own moves: the path written as the best) with every
-        loop edge, and solved; without a loop closure the lineage's path stays as it is."""
+        the node's scan and for those of the scans after it (they differ where the grids were rebuilt). The graph is
+        made along particle ``particle``'s lineage (its own moves: the path written as the best) with every loop
+        edge, and solved; without a loop closure the lineage's path stays as it is."""
         lineage = self.lineage(particle)
         path = np.array([poses[j] for poses, j in zip(self.poses, lineage)])
         solved = path
         if self.closures:
-            chain = PoseGraph()
-            chain.add_node(path[0])
-            for n in range(1, len(path)):  # one edge per node
-                move, step = self._move(n, int(lineage[n]), self.poses[n], self.drawn[n])
-                chain.add_node(apply_transform(chain.poses[-1], move[None])[0])
-                chain.add_edge(n - 1, n, move, step)
-            for i, j, z, covariance in self.loop_edges:
-                chain.add_edge(i, j, z, covariance)
-            chain.optimize(iterations=20)
-            solved = chain.poses
+            graph = self.graph(lineage, [])
+            graph.optimize(iterations=20)
+            solved = graph.poses
         frames = np.array(self.frames)
         written = transform_between(solved, path)
         after = transform_between(solved, apply_transform(frames, path[:, None, :])[:, 0, :])
