@@ -104,14 +104,14 @@ def best_errors(result, truth: np.ndarray) -> np.ndarray:
 def test_a_long_corridor_loop_closes_with_the_loop_search_and_not_without(tmp_path):
     """A heading error picked up at a corner bends the corridor the particles map. Without loop closure and without
     the failed-match recovery the filter comes back metres off and does not close the loop (docs/gridslam.md: the
-    shipped 30 particles end 2.95 m off here; 10 keep the test's time down). With loop closure (opt-in,
-    --loop-closure on) the same 10 particles find the old corridor by the wide search, a second match confirms it,
+    shipped 30 particles end 2.95 m off here; 10 keep the test's time down). With loop closure (the
+    default) the same 10 particles find the old corridor by the wide search, a second match confirms it,
     the pose graph is solved and the grids rebuilt: over the last 5 % of the drive (back in the old corridor) the
     best particle stays within 0.35 m of the truth where the plain filter is more than 1 m off, and the solved graph
     takes the whole path's RMS error down by a quarter at least."""
     log, truth = ring_corridor(tmp_path)
     plain = run_gridslam(log, GridSlamConfig(particles=10, particle_cap=10, recovery=False, loop_closure=False), seed=0)
-    closing = run_gridslam(log, GridSlamConfig(particles=10, particle_cap=10, loop_closure=True), seed=0)
+    closing = run_gridslam(log, GridSlamConfig(particles=10, particle_cap=10), seed=0)
     plain_errors, closing_errors = best_errors(plain, truth), best_errors(closing, truth)
     plain_rms, closing_rms = np.sqrt(np.mean(plain_errors**2)), np.sqrt(np.mean(closing_errors**2))
     tail = slice(int(0.95 * len(truth)), None)
@@ -134,7 +134,8 @@ def test_loop_closure_is_switched_by_on_or_off_and_refused_otherwise(tmp_path, c
     parse = build_parser().parse_args
     assert gridslam_config(parse([*argv, "--loop-closure", "on", "--resample-threshold", "0.5"])).loop_closure
     assert not gridslam_config(parse([*argv, "--loop-closure", "off", "--resample-threshold", "0.5"])).loop_closure
-    assert parse(argv).loop_closure is None and not GridSlamConfig().loop_closure  # opt-in
+    assert parse(argv).loop_closure is None
+    assert gridslam_config(parse([*argv, "--resample-threshold", "0.5"])).loop_closure  # on by default
     # `run` hands it to its SLAM node as given
     run = parse(["run", "--carmen", str(path), "--loop-closure", "on"])
     assert option_argv(run, ["--loop-closure"]) == ["--loop-closure", "on"]

@@ -57,7 +57,7 @@ class GridSlamConfig:
     fail_z: float = -6.0  # ... or its z against the recent scans below which it failed
     widen: float = 1.0  # after a failure: the factor on the motion model's variances and the yaw search's square
     # loop closure (docs/gridslam.md, "Loop closure"; slam.gridslam.loops)
-    loop_closure: bool = False  # search for loop closures against old submaps, keep a pose graph (opt-in: docs)
+    loop_closure: bool = True  # search for loop closures against old submaps, keep a pose graph (docs)
     loop_every: int = 10  # integrated scans between two loop searches
     loop_submap: int = 50  # a submap holds the scans of this many nodes either side of the old node
     loop_window_xy: float = 1.0  # m: the search window's least half-width (else 3 sigma of the filter's covariance)

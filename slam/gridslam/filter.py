@@ -20,7 +20,7 @@ Rao-Blackwellized particle filters'):
    scan is the particles' weighted spread plus their kept covariance;
 6. health (slam.gridslam.health): the best particle's matched-beam fraction and its z against the recent scans;
    a match that fails does not weigh the particles, and the next scan's proposal is wider;
-7. loop closure (opt-in, config.loop_closure; slam.gridslam.loops): the scan is a node of a pose graph and is
+7. loop closure (config.loop_closure, on by default; slam.gridslam.loops): the scan is a node of a pose graph and is
    searched for, every few scans, in an old submap over a wide window; a closure that moves the graph rebuilds the
    grids from it and moves the particles onto it.
 

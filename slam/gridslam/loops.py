@@ -1,6 +1,6 @@
-"""Loop closure for grid FastSLAM (opt-in, ``GridSlamConfig.loop_closure``): scan-to-submap matching over a wide
-window and a pose graph of the path (docs/gridslam.md, "Loop closure", with what it does on the simulated and real
-logs and why it is off by default).
+"""Loop closure for grid FastSLAM (``GridSlamConfig.loop_closure``, on by default): scan-to-submap matching over a
+wide window and a pose graph of the path (docs/gridslam.md, "Loop closure", with what it does on the simulated and
+real logs).
 
 A particle filter closes a loop only if one of its particles still holds the right pose when the robot comes back;
 after a long drive the heading error picked up at one corner bends the rest of the loop and no particle is near
