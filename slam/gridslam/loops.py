@@ -377,10 +377,14 @@ class LoopCloser:
             index[n] = current
         return index
 
+    def _own_path(self, lineage: np.ndarray) -> np.ndarray:
+        """The poses (N, 3) of a lineage (:meth:`lineage`) as the filter wrote them."""
+        return np.array([poses[j] for poses, j in zip(self.poses, lineage)])
+
     def path(self, lineage: np.ndarray) -> np.ndarray:
         """The poses (N, 3) of a lineage (:meth:`lineage`) where the grids hold its scans now: the graph's poses up
         to the last rebuild, the particle's own after it."""
-        path = np.array([poses[j] for poses, j in zip(self.poses, lineage)])
+        path = self._own_path(lineage)
         path[: len(self.solved)] = self.solved
         return path
 
@@ -520,7 +524,7 @@ class LoopCloser:
         made along particle ``particle``'s lineage (its own moves: the path written as the best) with every loop
         edge, and solved; without a loop closure the lineage's path stays as it is."""
         lineage = self.lineage(particle)
-        path = np.array([poses[j] for poses, j in zip(self.poses, lineage)])
+        path = self._own_path(lineage)
         solved = path
         if self.closures:
             graph = self.graph(lineage, [])
