@@ -756,7 +756,9 @@ def save_pose_distribution(path: str | Path, dist: PoseDistributionFile) -> None
         "stamps": np.asarray(dist.stamps, np.float64),
         **{k: np.asarray(v, np.float64) for k, v in dist.poses.arrays().items()},
     }
-    write_atomically(path, lambda handle: np.savez_compressed(handle, **arrays))
+    # stored, not deflated: particles are noisy floats that deflate by about a fifth at 30x the time to write (a
+    # 15-minute run of 2 000 particles: 438 MB in 0.8 s against 351 MB in 26 s)
+    write_atomically(path, lambda handle: np.savez(handle, **arrays))
 
 
 def write_npz_deterministic(path: str | Path | BinaryIO, arrays: dict[str, np.ndarray]) -> None:
