@@ -111,7 +111,8 @@ class Laser:
         return cls(
             np.cos(angles),
             np.sin(angles),
-            np.asarray(sensor_offset, np.float64),
+            # contiguous: a strided row (a column slice's) would compile every kernel it reaches a second time
+            np.ascontiguousarray(sensor_offset, np.float64),
             max(float(range_min), config.min_range),
             min(float(range_max), config.max_range),
         )
