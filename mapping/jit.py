@@ -15,17 +15,33 @@ user cache), under the same file names. It builds on numba's private caching int
 ``_cache``, ``FunctionCache._impl_class``, the impl's ``_locator`` behind its ``locator`` property, the
 locators' ``get_source_stamp`` and ``_py_file``), checked against numba 0.59.1 and 0.68.1; where they are
 missing, kernels compile without a disk cache (each process afresh), with a warning.
+
+Processes that start together (the shards and the SLAM node of ``posegrid run``, the workers of the test suite)
+would each compile the same kernel at once, minutes of CPU on a fresh install. A kernel compiles under a lock
+file beside its cache entry (``<cache file>.lock``, ``flock``): the first process compiles and saves it, the
+others wait and then load it from the cache (:func:`_compiling`).
 """
 
 from __future__ import annotations
 
 import ast
+import contextlib
 import functools
 import hashlib
+import os
+import threading
+import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any, TypeVar
+
+try:
+    import fcntl
+
+    _HAS_FLOCK = True
+except ImportError:  # not POSIX: kernels compile without the lock between processes
+    _HAS_FLOCK = False
 
 import numba as nb
 
@@ -208,6 +224,83 @@ _NO_REFCOUNTS = _no_refcounts_option()
 KernelT = TypeVar("KernelT", bound=Callable[..., Any])
 
 
+#: the longest a process waits (s) for another to compile a kernel before compiling it itself, with a warning
+COMPILE_WAIT = 900.0
+
+#: one kernel compiles at a time in a process (numba's own compiler lock does the same, inside this one); the lock
+#: files this process holds, by path (a kernel compiled while another one compiles, as a helper: already held ones
+#: are not taken again)
+_COMPILING = threading.RLock()
+_HELD: set[str] = set()
+
+
+@contextlib.contextmanager
+def _compiling(lock_path: str | None) -> Iterator[None]:
+    """Hold the lock file ``lock_path`` (None: none) across a compile, so that another process compiling the same
+    kernel finishes and saves it first (the compile then loads it from the cache). Locks are taken in the order
+    the kernels call each other, which has no cycle, so two processes never wait on each other."""
+    with _COMPILING:
+        if lock_path is None or not _HAS_FLOCK or lock_path in _HELD:
+            yield
+            return
+        try:
+            descriptor = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError:  # a cache folder that cannot be written: numba would not save there either
+            yield
+            return
+        try:
+            _wait_for_lock(descriptor, lock_path)
+            _HELD.add(lock_path)
+            try:
+                yield
+            finally:
+                _HELD.discard(lock_path)
+        finally:
+            os.close(descriptor)  # (releases the lock)
+
+
+def _wait_for_lock(descriptor: int, lock_path: str) -> None:
+    """Take the exclusive lock on ``descriptor``, waiting up to COMPILE_WAIT s; past that, go on without it."""
+    deadline = time.monotonic() + COMPILE_WAIT
+    while True:
+        try:
+            fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return
+        except BlockingIOError:
+            if time.monotonic() > deadline:
+                warnings.warn(
+                    f"another process has held {lock_path} for {COMPILE_WAIT:.0f} s: compiling without waiting for it",
+                    RuntimeWarning,
+                    stacklevel=4,
+                )
+                return
+            time.sleep(0.05)
+
+
+def _lock_path(cache: Any) -> str | None:
+    """The lock file beside a kernel's cache index (numba's ``Cache``: ``_cache_path`` and its impl's
+    ``filename_base``), None where numba lacks them."""
+    folder = getattr(cache, "_cache_path", None)
+    base = getattr(getattr(cache, "_impl", None), "filename_base", None)
+    if not isinstance(folder, str) or not isinstance(base, str):
+        return None
+    with contextlib.suppress(OSError):
+        os.makedirs(folder, exist_ok=True)
+    return os.path.join(folder, f"{base}.lock")
+
+
+def _compile_under_lock(dispatcher: Any, lock_path: str | None) -> None:
+    """Route the dispatcher's compiles (a call with new argument types, or a kernel typing a call to it) through
+    :func:`_compiling`."""
+    compile_one = dispatcher.compile
+
+    def compile_locked(sig: Any) -> Any:
+        with _compiling(lock_path):
+            return compile_one(sig)
+
+    dispatcher.compile = compile_locked
+
+
 def kernel(*, refcounted: bool = True, **options: Any) -> Callable[[KernelT], KernelT]:
     """``numba.njit(**options)`` with an on-disk cache keyed by the kernel's import closure.
 
@@ -237,6 +330,8 @@ def kernel(*, refcounted: bool = True, **options: Any) -> Callable[[KernelT], Ke
             dispatcher._cache = _CACHE_CLASS(py_func)
         except UnsupportedNumba as exc:
             _warn_uncached(exc)
+            return dispatcher
+        _compile_under_lock(dispatcher, _lock_path(dispatcher._cache))
         return dispatcher
 
     return decorate

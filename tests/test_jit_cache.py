@@ -9,6 +9,8 @@ import ast
 import os
 import subprocess
 import sys
+import time
+import warnings
 from pathlib import Path
 
 import pytest
@@ -166,3 +168,79 @@ def test_a_kernel_without_reference_counting_writes_arrays_and_refuses_to_create
 def test_kernel_refuses_a_cache_option():
     with pytest.raises(TypeError, match="always caches"):
         kernel(cache=False)
+
+
+def _python(root: Path, script: str) -> subprocess.Popen:
+    """``script`` started in a fresh process as :func:`run_python` runs it, its stdin and stdout piped."""
+    env = {
+        **os.environ,
+        "NUMBA_CACHE_DIR": str(root / "numba_cache"),
+        "PYTHONDONTWRITEBYTECODE": "1",
+        "PYTHONPATH": os.pathsep.join([str(root), str(ROOT)]),
+    }
+    return subprocess.Popen(
+        [sys.executable, "-c", script],
+        cwd=root,
+        env=env,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def test_a_kernel_another_process_is_compiling_is_loaded_from_the_cache_not_compiled_again(tmp_path):
+    """Two processes start on a fresh cache: the one holding the kernel's compile lock compiles it; the other, which
+    called the kernel before the first had saved it, waits for the lock and loads it (a cache hit, no compile). The
+    first compiles only after the second has called the kernel (and half a second more), so without the lock the
+    second would have found no cache entry and compiled its own."""
+    write_package(tmp_path, "kernel")
+    counts = "print(v, sum(run.stats.cache_hits.values()), sum(run.stats.cache_misses.values()), flush=True)\n"
+    holder = _python(
+        tmp_path,
+        "import sys\nfrom tinypkg.kernel import run\nfrom mapping.jit import _compiling, _lock_path\n"
+        "with _compiling(_lock_path(run._cache)):\n    print('holding', flush=True)\n    sys.stdin.readline()\n"
+        "    v = run(2.0)\n" + counts,
+    )
+    waiter = None
+    try:
+        assert holder.stdout is not None and holder.stdin is not None
+        assert holder.stdout.readline().strip() == "holding", holder.stderr
+        calling = "from tinypkg.kernel import run\nprint('calling', flush=True)\nv = run(2.0)\n"
+        waiter = _python(tmp_path, calling + counts)
+        assert waiter.stdout is not None
+        assert waiter.stdout.readline().strip() == "calling"
+        time.sleep(0.5)
+        holder.stdin.write("go\n")
+        holder.stdin.flush()
+        held, _ = holder.communicate(timeout=300)
+        waited, _ = waiter.communicate(timeout=300)
+    finally:
+        for process in (holder, waiter):
+            if process is not None and process.poll() is None:
+                process.kill()
+                process.wait()
+    assert held.split() == [str(FIRST), "0", "1"]
+    assert waited.split() == [str(FIRST), "1", "0"]
+
+
+def test_a_compile_lock_held_too_long_is_passed_by_with_a_warning(tmp_path, monkeypatch):
+    """A process that holds a kernel's lock past COMPILE_WAIT (hung, stopped) does not stop the others: they compile
+    without it and say so."""
+    import fcntl
+
+    import mapping.jit as jit
+
+    monkeypatch.setattr(jit, "COMPILE_WAIT", 0.2)
+    path = tmp_path / "k.lock"
+    holder = os.open(path, os.O_RDWR | os.O_CREAT)
+    try:
+        fcntl.flock(holder, fcntl.LOCK_EX)
+        with pytest.warns(RuntimeWarning, match="compiling without waiting for it"), jit._compiling(str(path)):
+            pass
+    finally:
+        os.close(holder)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with jit._compiling(str(path)):  # free again: taken at once
+            pass
