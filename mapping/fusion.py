@@ -32,6 +32,7 @@ the same bit for bit on any number of threads.
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -45,7 +46,7 @@ from mapping.bundling import bundle_samples, check_tolerance
 from mapping.errors import InputError
 from mapping.grid import TiledGrid
 from mapping.parallel_fusion import in_scan_order
-from mapping.samples_pass import STAMP_LIMIT, accumulate_scan, apply_scan
+from mapping.samples_pass import COUNT_LEVELS, STAMP_LIMIT, accumulate_scan, apply_scan
 from mapping.scan_input import check_scan, check_window, laser_poses, merge_duplicates
 from mapping.sensor_model import SensorModel
 from mapping.single_pass import accumulate_single, apply_single
@@ -71,10 +72,11 @@ class FusionScratch:
     :func:`mapping.single_pass.accumulate_single`), grown to the largest window walked in it and reused.
 
     Per cell of the scratch window the samples pass keeps two bits (plane, listed), a weight sum (8 bytes), a
-    four-float excess record (32 bytes) and a list entry (8 bytes), plus a bit of the column-major plane; the
-    one-sample pass keeps 8 bytes and two bits. About 57 bytes a window cell in all: 14 MB for the office's 12 m
-    laser at 0.05 m (a window of about 490 x 490 cells), 85 MB for a 30 m laser, 0.95 GB at the largest window a
-    scan may take (mapping.scan_input.MAX_WINDOW_CELLS). A fusion on T > 1 threads keeps T + 1 of them.
+    four-float excess record (32 bytes), a list entry (8 bytes) and 16 bits of counts (equal weights), plus a bit of
+    the column-major plane; the one-sample pass keeps 8 bytes and two bits. About 59 bytes a window cell in all:
+    14 MB for the office's 12 m laser at 0.05 m (a window of about 490 x 490 cells), 88 MB for a 30 m laser, 0.99 GB
+    at the largest window a scan may take (mapping.scan_input.MAX_WINDOW_CELLS). A fusion on T > 1 threads keeps T + 1
+    of them.
 
     Nothing in it carries from one scan to the next: each pass clears what it set, and the samples pass tells
     the excess records of earlier scans by their stamps (unique per scratch: :meth:`stamps`)."""
@@ -89,6 +91,7 @@ class FusionScratch:
         self.weight_sum = np.zeros(0, np.float64)
         self.excess = np.zeros((0, 4), np.float64)
         self.scan_cells = np.zeros(0, np.int64)
+        self.counts = np.zeros((0, COUNT_LEVELS), np.uint64)
         self.single_blocks = 0
         self.touched_bits = self.raised_bits = np.zeros(0, np.int64)
         self.largest = np.zeros(0, np.float64)
@@ -110,6 +113,7 @@ class FusionScratch:
         self.weight_sum = np.zeros(cells, np.float64)
         self.excess = np.zeros((cells, 4), np.float64)
         self.scan_cells = np.zeros(cells, np.int64)
+        self.counts = np.zeros(((cells + 63) // 64, COUNT_LEVELS), np.uint64)
 
     def for_single(self, blocks: int) -> None:
         """Room for the one-sample pass over a window of ``blocks`` 8 x 8 blocks."""
@@ -374,12 +378,23 @@ class MonteCarloFusion:
             touched,
             scratch.lines,
             scratch.block,
+            scratch.counts,
+            _equal_weight_sums(ready.weights),
         )
         window_args, tile_args = (window.ix0, window.iy0, win_w, window.h), tuple(tiles)
         n_scan = accumulate_scan(
             ready.lasers, ready.weights, *self._ray_args(ready.beams), window_args, tile_args, args, stamp_base
         )
         return Walked(False, args, int(n_scan), touched, window_args, tile_args, 0.0, stamp_base, len(ready.lasers))
+
+
+def _equal_weight_sums(weights: np.ndarray) -> np.ndarray:
+    """When all M weights are equal (and M < 2**COUNT_LEVELS), the weight sum of n of them for n = 0..M, added one
+    after the other from 0.0 as the per-cell sums add them: the samples pass counts the samples that touch a cell and
+    reads its weight sum here (mapping.samples_pass). Else an empty array."""
+    if len(weights) >= 2**COUNT_LEVELS or not np.all(weights == weights[0]):
+        return np.zeros(0, np.float64)
+    return np.fromiter(itertools.accumulate(weights.tolist(), initial=0.0), np.float64, len(weights) + 1)
 
 
 class FusionThreads:

@@ -13,6 +13,13 @@ several of the sample's beams is marked once; most of a beam's free stretch is m
 cells with an excess keep a per-sample record (the largest excess of the sample's beams, by stamp) for D1 and
 D2. A second bit plane marks the cells listed in this scan. The rays are walked by
 :func:`mapping.window_walk.walk_ray`, with this pass's visitors (:func:`_mark_free`, :func:`_mark_near`).
+
+**Equal weights are counted, not summed.** When every sample has the same weight w (particles after resampling,
+Gaussian draws), W_i depends only on how many samples touched cell i: it is the sum w + w + ... taken that many
+times, in sample order. The sweep then adds each plane word into a bit-sliced counter of its 64 cells (a ripple
+carry over COUNT_LEVELS words, which stops at the first level the carry clears: two levels per word on average)
+instead of adding w once per set bit, and the apply reads W from the table of those sums (``sums[n]``, summed in
+the same order: the same float64 bit for bit). Other weights take the per-bit sums.
 """
 
 from __future__ import annotations
@@ -44,6 +51,9 @@ from mapping.window_walk import (
 #: per-sample stamps are stored as float64 (exact below 2**53); the scratch is cleared and stamps restart here
 STAMP_LIMIT = 2**52
 
+#: the bit-sliced counters' levels per 64-cell word: equal weights are counted for up to 2**COUNT_LEVELS - 1 samples
+COUNT_LEVELS = 16
+
 
 class SamplesScratch(NamedTuple):
     """The samples pass's scratch over a scan's window (cell c = gy * w + gx; see :func:`accumulate_scan`).
@@ -53,7 +63,9 @@ class SamplesScratch(NamedTuple):
     weight_sum: W per cell; excess: (cells, 4) records of :func:`add_sample_value`; scan_cells: the listed
     cells' c; tile_touched: (bool, per tile of the window) the tiles of the listed cells; lines: (2, max(w, h))
     int64, a ray's exit and entry cells per grid line (:mod:`mapping.free_runs`); block: 64 uint64, the 64 x 64
-    bits being folded from the column-major plane.
+    bits being folded from the column-major plane; counts: (words, COUNT_LEVELS) uint64, bit l of counts[i, k] is bit
+    l of the number of samples that touched cell 64 i + k (equal weights only, zero between scans); sums: the table
+    W = sums[n] for n samples of equal weight, empty when the weights differ (then W is summed per cell).
     """
 
     plane: np.ndarray
@@ -66,6 +78,8 @@ class SamplesScratch(NamedTuple):
     tile_touched: np.ndarray
     lines: np.ndarray
     block: np.ndarray
+    counts: np.ndarray
+    sums: np.ndarray
 
 
 class _Marks(NamedTuple):
@@ -345,10 +359,11 @@ def _list_cell(scratch, c, n_scan, window, tiles):  # pragma: no cover - compile
 
 @kernel(nogil=True, error_model="numpy", refcounted=False)
 def _sweep_plane(scratch, w, n_scan, window, tiles):  # pragma: no cover - compiled
-    """Add one sample's weight w to the weight sum of every cell its plane marks, and clear the plane. A cell
-    not yet listed in this scan (its bit clear in ``listed``) is listed in scan_cells and its tile marked in
-    tile_touched. Returns the new list length."""
+    """Add one sample's weight w to the weight sum of every cell its plane marks (with equal weights: one to their
+    counts, :func:`_count_word`), and clear the plane. A cell not yet listed in this scan (its bit clear in
+    ``listed``) is listed in scan_cells and its tile marked in tile_touched. Returns the new list length."""
     plane, listed = scratch.plane, scratch.listed
+    counted = scratch.sums.shape[0] > 0
     for i in range((window.w * window.h + 63) >> 6):
         bits = plane[i]
         if bits == 0:
@@ -362,17 +377,44 @@ def _sweep_plane(scratch, w, n_scan, window, tiles):  # pragma: no cover - compi
                 _list_cell(scratch, base + trailing_zeros(new), n_scan, window, tiles)
                 n_scan += 1
                 new &= new - np.uint64(1)
+        if counted:
+            _count_word(scratch.counts, i, bits)
+            continue
         while bits != 0:
             scratch.weight_sum[base + trailing_zeros(bits)] += w
             bits &= bits - np.uint64(1)
     return n_scan
 
 
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _count_word(counts, i, bits):  # pragma: no cover - compiled
+    """Add one to the bit-sliced counts of the cells of word i whose bit is set: a ripple carry up the levels, which
+    ends where the carry clears (COUNT_LEVELS bounds it: no cell is counted more than 2**COUNT_LEVELS - 1 times)."""
+    carry = bits
+    for level in range(COUNT_LEVELS):
+        held = counts[i, level]
+        counts[i, level] = held ^ carry
+        carry &= held
+        if carry == 0:
+            return
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _count_of(counts, c, levels):  # pragma: no cover - compiled
+    """The count of cell c in the bit-sliced counts (its ``levels`` lowest levels)."""
+    i = c >> 6
+    k = np.uint64(c & 63)
+    n = np.uint64(0)
+    for level in range(levels):
+        n |= ((counts[i, level] >> k) & np.uint64(1)) << np.uint64(level)
+    return n
+
+
 @kernel(nogil=True, error_model="numpy", refcounted=False)
 def apply_scan(scratch, n_scan, stamp_base, window, tiles, slot_map, layers, levels):  # pragma: no cover
     """Add the scan's weighted mean to each touched cell (clamped to [l_min, l_max]) and its spread to the variance
-    layer, from the moments l_free W + D1 and l_free^2 W + 2 l_free D1 + D2; clear the cells' listed bits and
-    weight sums for the next scan.
+    layer, from the moments l_free W + D1 and l_free^2 W + 2 l_free D1 + D2 (W: the cell's weight sum, or with equal
+    weights the sums' entry of its count); clear the cells' listed bits and weight sums or counts for the next scan.
 
     scratch: the :class:`SamplesScratch` of :func:`accumulate_scan`, window and tiles as there (plain tuples);
     slot_map: the grid slot of each tile of the window; layers: the grid's (logodds, variance, observed); levels:
@@ -380,7 +422,11 @@ def apply_scan(scratch, n_scan, stamp_base, window, tiles, slot_map, layers, lev
     scratch, window, tiles = SamplesScratch(*scratch), Window(*window), Tiles(*tiles)
     logodds, variance, observed = layers
     l_free, l_min, l_max = levels
-    weight_sum, excess = scratch.weight_sum, scratch.excess
+    weight_sum, excess, sums = scratch.weight_sum, scratch.excess, scratch.sums
+    counted = sums.shape[0] > 0
+    count_levels = 0  # the counts' levels in use: those of the largest count, len(sums) - 1
+    while counted and (1 << count_levels) < sums.shape[0]:
+        count_levels += 1
     in_tile = (1 << tiles.shift) - 1
     for q in range(n_scan):
         c = scratch.scan_cells[q]
@@ -389,9 +435,12 @@ def apply_scan(scratch, n_scan, stamp_base, window, tiles, slot_map, layers, lev
         slot = slot_map[(iy >> tiles.shift) - tiles.ty0, (ix >> tiles.shift) - tiles.tx0]
         ly = iy & in_tile
         lx = ix & in_tile
-        scratch.listed[c >> 6] = 0
-        moment1 = l_free * weight_sum[c]
-        weight_sum[c] = 0.0
+        if counted:  # (the counts of the word's other cells are still to be read: cleared below)
+            moment1 = l_free * sums[_count_of(scratch.counts, c, count_levels)]
+        else:
+            scratch.listed[c >> 6] = 0
+            moment1 = l_free * weight_sum[c]
+            weight_sum[c] = 0.0
         moment2 = l_free * moment1
         if excess[c, 0] >= stamp_base:
             moment1 += excess[c, 2]
@@ -410,3 +459,10 @@ def apply_scan(scratch, n_scan, stamp_base, window, tiles, slot_map, layers, lev
         logodds[slot, ly, lx] = updated
         variance[slot, ly, lx] += spread
         observed[slot, ly, lx] = True
+    if counted:
+        for q in range(n_scan):
+            i = scratch.scan_cells[q] >> 6
+            if scratch.listed[i] != 0:  # the word's first listed cell: its counts and listed bits cleared once
+                scratch.listed[i] = 0
+                for level in range(count_levels):
+                    scratch.counts[i, level] = 0

@@ -1,0 +1,90 @@
+"""Equal weights counted, not summed (mapping.samples_pass, "Equal weights are counted"): the bit-sliced counters
+against plain per-bit counts, the table of sums against a Python loop, and maps fused through the counters against
+the same scans through the per-cell sums, bit for bit (the whole window and a shard, samples and Gaussian draws)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import mapping.fusion as fusion
+from bench.scenarios import honest_posed_scans, office_run
+from mapping.fusion import MonteCarloFusion
+from mapping.grid import TiledGrid
+from mapping.samples_pass import COUNT_LEVELS, _count_of, _count_word
+from mapping.sensor_model import SensorModel
+from services.fusion_runner import PoseSampling
+from services.state.ownership import owns_tile
+
+RES = 0.05
+MODEL = SensorModel(resolution=RES)
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.lists(st.integers(0, 2**64 - 1), min_size=3, max_size=3), min_size=0, max_size=300))
+def test_the_bit_sliced_counts_are_the_number_of_times_each_bit_was_set(planes):
+    """Words added one plane at a time (three words a plane): every cell's count is the number of planes with its bit
+    set, as a plain loop over the bits counts it."""
+    counts = np.zeros((3, COUNT_LEVELS), np.uint64)
+    for plane in planes:
+        for i, word in enumerate(plane):
+            _count_word(counts, i, np.uint64(word))
+    expected = [[sum((plane[i] >> k) & 1 for plane in planes) for k in range(64)] for i in range(3)]
+    levels = max(len(planes).bit_length(), 1)
+    got = [[int(_count_of(counts, 64 * i + k, levels)) for k in range(64)] for i in range(3)]
+    assert got == expected
+
+
+def test_the_sums_table_is_the_per_cell_sum_in_sample_order():
+    weights = np.full(37, 1.0 / 37)
+    expected, total = [0.0], 0.0
+    for weight in weights.tolist():
+        total += weight
+        expected.append(total)
+    table = fusion._equal_weight_sums(weights)
+    assert table.tolist() == expected and table[-1] != 1.0  # (37 additions of 1/37 round below 1: the order matters)
+    assert fusion._equal_weight_sums(np.array([0.5, 0.25, 0.25])).size == 0
+    assert fusion._equal_weight_sums(np.full(2**COUNT_LEVELS, 2.0**-COUNT_LEVELS)).size == 0
+
+
+@pytest.fixture(scope="module")
+def office():
+    return office_run(steps=30)
+
+
+def _scans(posed, kind):
+    """(ranges, samples, weights) of every scan: the particles as they are, or Gaussian draws as `posegrid fuse`
+    draws them."""
+    if kind == "particles":
+        samples, weights = posed.poses.weighted_samples()
+        return [(posed.scan_ranges(t), samples[t], weights[t]) for t in range(len(posed.stamps))]
+    sampling, poses = PoseSampling(accuracy=RES), posed.poses
+    return [
+        (posed.scan_ranges(t), *sampling.draw(t, float(posed.range_max[t]), mean=poses.mean[t], cov=poses.cov[t]))
+        for t in range(len(posed.stamps))
+    ]
+
+
+def _fuse(posed, scans, owner):
+    grid = TiledGrid(RES, 32)
+    fuse = MonteCarloFusion(grid, MODEL, *posed.single_geometry(), owner)
+    for scan in scans:
+        fuse.fuse(*scan)
+    return grid
+
+
+@pytest.mark.parametrize("kind", ["particles", "gaussian"])
+@pytest.mark.parametrize("shard", [None, 0])
+def test_counted_weights_give_the_map_of_the_per_cell_sums_bit_for_bit(office, monkeypatch, kind, shard):
+    posed = honest_posed_scans(office, particles=40) if kind == "particles" else honest_posed_scans(office)
+    scans = _scans(posed, kind)
+    assert all(len(w) > 1 and np.all(w == w[0]) for _, _, w in scans)  # every scan is counted
+    owner = None if shard is None else owns_tile(shard, 2)
+    counted = _fuse(posed, scans, owner)
+    monkeypatch.setattr(fusion, "_equal_weight_sums", lambda weights: np.zeros(0))  # every cell's weights summed
+    summed = _fuse(posed, scans, owner)
+    assert counted.observed.any()
+    for layer in ("logodds", "variance", "observed"):
+        np.testing.assert_array_equal(getattr(counted, layer), getattr(summed, layer))
