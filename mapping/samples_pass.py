@@ -349,12 +349,28 @@ def accumulate_scan(
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def _list_cell(scratch, c, n_scan, window, tiles):  # pragma: no cover - compiled
-    """List cell c in scan_cells at n_scan and mark its tile touched."""
-    scratch.scan_cells[n_scan] = c
-    gx = c % window.w + window.ix0
-    gy = c // window.w + window.iy0
-    scratch.tile_touched[(gy >> tiles.shift) - tiles.ty0, (gx >> tiles.shift) - tiles.tx0] = True
+def _word_origin(i, window):  # pragma: no cover - compiled
+    """The global cell (ix, iy) of bit 0 of word i of a row-major plane (window.w a multiple of 64: a word lies in
+    one row). One division a word, not one a cell."""
+    row_words = window.w >> 6
+    gy = i // row_words
+    return ((i - gy * row_words) << 6) + window.ix0, gy + window.iy0
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _list_word(scratch, i, new, n_scan, window, tiles):  # pragma: no cover - compiled
+    """List the cells of word i whose bit is set in ``new`` in scan_cells from n_scan on and mark their tiles
+    touched; returns the new list length."""
+    ix0, iy = _word_origin(i, window)
+    ty = (iy >> tiles.shift) - tiles.ty0
+    base = i << 6
+    while new != 0:
+        k = trailing_zeros(new)
+        scratch.scan_cells[n_scan] = base + k
+        scratch.tile_touched[ty, ((ix0 + k) >> tiles.shift) - tiles.tx0] = True
+        n_scan += 1
+        new &= new - np.uint64(1)
+    return n_scan
 
 
 @kernel(nogil=True, error_model="numpy", refcounted=False)
@@ -373,10 +389,7 @@ def _sweep_plane(scratch, w, n_scan, window, tiles):  # pragma: no cover - compi
         new = bits & ~listed[i]
         if new != 0:
             listed[i] |= new
-            while new != 0:
-                _list_cell(scratch, base + trailing_zeros(new), n_scan, window, tiles)
-                n_scan += 1
-                new &= new - np.uint64(1)
+            n_scan = _list_word(scratch, i, new, n_scan, window, tiles)
         if counted:
             _count_word(scratch.counts, i, bits)
             continue
@@ -428,10 +441,13 @@ def apply_scan(scratch, n_scan, stamp_base, window, tiles, slot_map, layers, lev
     while counted and (1 << count_levels) < sums.shape[0]:
         count_levels += 1
     in_tile = (1 << tiles.shift) - 1
+    word, word_ix, iy = -1, 0, 0  # the last cell's word and its origin (the list holds a word's cells together)
     for q in range(n_scan):
         c = scratch.scan_cells[q]
-        ix = c % window.w + window.ix0
-        iy = c // window.w + window.iy0
+        if c >> 6 != word:
+            word = c >> 6
+            word_ix, iy = _word_origin(word, window)
+        ix = word_ix + (c & 63)
         slot = slot_map[(iy >> tiles.shift) - tiles.ty0, (ix >> tiles.shift) - tiles.tx0]
         ly = iy & in_tile
         lx = ix & in_tile
