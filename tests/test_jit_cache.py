@@ -47,16 +47,26 @@ def write_package(root: Path, flavour: str) -> Path:
     return package
 
 
-def run_python(root: Path, script: str) -> str:
-    """``script`` in a fresh process that imports tinypkg from ``root``, the numba cache under it: stdout."""
-    env = {
+def package_env(root: Path) -> dict[str, str]:
+    """The environment of a fresh process that imports the packages written under ``root``, its numba cache there."""
+    return {
         **os.environ,
         "NUMBA_CACHE_DIR": str(root / "numba_cache"),
         "PYTHONDONTWRITEBYTECODE": "1",
         "PYTHONPATH": os.pathsep.join([str(root), str(ROOT)]),
     }
+
+
+def run_python(root: Path, script: str) -> str:
+    """``script`` in a fresh process that imports tinypkg from ``root``, the numba cache under it: stdout."""
     done = subprocess.run(
-        [sys.executable, "-c", script], cwd=root, env=env, capture_output=True, text=True, timeout=300, check=False
+        [sys.executable, "-c", script],
+        cwd=root,
+        env=package_env(root),
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
     )
     assert done.returncode == 0, done.stderr
     return done.stdout
@@ -172,16 +182,10 @@ def test_kernel_refuses_a_cache_option():
 
 def _python(root: Path, script: str) -> subprocess.Popen:
     """``script`` started in a fresh process as :func:`run_python` runs it, its stdin and stdout piped."""
-    env = {
-        **os.environ,
-        "NUMBA_CACHE_DIR": str(root / "numba_cache"),
-        "PYTHONDONTWRITEBYTECODE": "1",
-        "PYTHONPATH": os.pathsep.join([str(root), str(ROOT)]),
-    }
     return subprocess.Popen(
         [sys.executable, "-c", script],
         cwd=root,
-        env=env,
+        env=package_env(root),
         stdin=subprocess.PIPE,
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
