@@ -46,8 +46,10 @@ STOP_GRACE = 15.0
 CLEAN_EXITS = (0, 130)
 #: the exit code of a process that refused its input or options (services.errors.UsageError): never restarted
 USAGE_EXIT = 2
-#: seconds the launcher waits for the shards to come up
+#: seconds the launcher waits for the shards to come up (their kernels already compiled: _load_fusion_kernels)
 START_TIMEOUT = 60.0
+#: seconds into loading the fusion kernels after which the launcher says it is compiling them
+COMPILE_NOTE_AFTER = 2.0
 
 
 def free_port() -> int:
@@ -273,6 +275,9 @@ def run_pipeline(plan: Plan, stop: threading.Event) -> int:
         """A child's --connect, and with --secure the config of its role."""
         return ["--connect", endpoint, *zenoh_argv(material, Role(kind, scope))]
 
+    _load_fusion_kernels()
+    if stop.is_set():
+        return 130
     children = Children(log, plan.restart)
     code = 1
     try:
@@ -333,6 +338,33 @@ def run_pipeline(plan: Plan, stop: threading.Event) -> int:
         if code == 0 and any(c not in CLEAN_EXITS for c in codes.values()):
             code = 1
     return code
+
+
+def _load_fusion_kernels() -> None:
+    """Load the shards' compiled fusion kernels in this process before any shard starts, compiling them where the
+    cache lacks them (the first start after an install or an edit: a minute or more on a slow machine, which the
+    shards would otherwise spend past START_TIMEOUT); the shards then load them from the cache. Says so when it
+    takes longer than COMPILE_NOTE_AFTER s."""
+    from mapping.grid import TILE_SIZE
+    from mapping.sensor_model import SensorModel
+    from services.state.shard import warm_fusion
+
+    note = threading.Timer(
+        COMPILE_NOTE_AFTER,
+        lambda: print(
+            "posegrid run: compiling the fusion kernels (once after an install or an edit; a minute or two)", flush=True
+        ),
+    )
+    note.daemon = True
+    started = time.monotonic()
+    note.start()
+    try:
+        warm_fusion(SensorModel(), TILE_SIZE)
+    finally:
+        note.cancel()
+    took = time.monotonic() - started
+    if took > COMPILE_NOTE_AFTER:
+        print(f"posegrid run: fusion kernels ready in {took:.0f} s; later starts load them at once", flush=True)
 
 
 def _wait_for_shards(session, plan: Plan, children: Children, stop: threading.Event) -> bool:

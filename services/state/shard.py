@@ -90,6 +90,15 @@ def message_bytes(message: object) -> int:
     return sum(value.nbytes for value in vars(message).values() if isinstance(value, np.ndarray))
 
 
+def warm_fusion(model: SensorModel, tile_size: int) -> None:
+    """Fuse a three-beam scan at two poses into a scratch grid of ``tile_size``-cell tiles with ``model``, so that the
+    fusion's compiled kernels are loaded, or compiled and cached where they are not yet (mapping.jit). The scratch
+    fusion owns every tile, so every kernel runs (a shard owning none of these tiles would skip the last one)."""
+    scratch = TiledGrid(model.resolution, tile_size)
+    fusion = MonteCarloFusion(scratch, model, np.array([-0.5, 0.0, 0.5]), 0.1, 5.0)
+    fusion.fuse(np.array([1.0, np.inf, 2.0]), np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0]]), np.array([0.5, 0.5]))
+
+
 class MapShard:
     """One shard's grid and bookkeeping. Not thread-safe: callers serialise access (services.nodes.mapper)."""
 
@@ -360,13 +369,10 @@ class MapShard:
 
     # ------------------------------------------------------------------------------- fusion
     def warm_up(self) -> None:
-        """Fuse a three-beam scan at two poses into a scratch grid, so that the compiled kernels are loaded
-        before the first real scan arrives; otherwise that scan's tile update carries the load (0.4 to
-        0.5 s in `make bench`). The scratch fusion owns every tile, so every kernel runs (a shard owning none
-        of these tiles would skip the last one). The shard's own grid and counters are not touched."""
-        scratch = TiledGrid(self.config.model.resolution, self.config.tile_size)
-        fusion = MonteCarloFusion(scratch, self.config.model, np.array([-0.5, 0.0, 0.5]), 0.1, 5.0)
-        fusion.fuse(np.array([1.0, np.inf, 2.0]), np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0]]), np.array([0.5, 0.5]))
+        """Load the compiled fusion kernels (:func:`warm_fusion`) before the first real scan arrives; otherwise that
+        scan's tile update carries the load (0.4 to 0.5 s in `make bench`). The shard's own grid and counters are
+        not touched."""
+        warm_fusion(self.config.model, self.config.tile_size)
 
     def _fusion_for(self, scan: LaserScan) -> MonteCarloFusion:
         geometry = (
