@@ -275,13 +275,13 @@ def run_pipeline(plan: Plan, stop: threading.Event) -> int:
         """A child's --connect, and with --secure the config of its role."""
         return ["--connect", endpoint, *zenoh_argv(material, Role(kind, scope))]
 
-    _load_fusion_kernels()
-    if stop.is_set():
-        return 130
     children = Children(log, plan.restart)
     code = 1
     try:
         children.start("router", ["router", "--listen", endpoint, *plan.router_argv, *zenoh_argv(material, None)])
+        _load_fusion_kernels()  # (while the router starts)
+        if stop.is_set():
+            return 130
         for shard in range(plan.shards):  # they keep trying to reach the router while it starts
             children.start(
                 f"mapper[{shard}]",
