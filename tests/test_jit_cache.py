@@ -241,10 +241,17 @@ def test_a_compile_lock_held_too_long_is_passed_by_with_a_warning(tmp_path, monk
     try:
         fcntl.flock(holder, fcntl.LOCK_EX)
         with pytest.warns(RuntimeWarning, match="compiling without waiting for it"), jit._compiling(str(path)):
-            pass
+            assert str(path) in jit._HELD  # (compiled as if held: a nested compile does not wait again)
     finally:
         os.close(holder)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        with jit._compiling(str(path)):  # free again: taken at once
-            pass
+    assert str(path) not in jit._HELD
+    other = os.open(path, os.O_RDWR)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            # free again: taken at once, and held while the body runs
+            with jit._compiling(str(path)), pytest.raises(BlockingIOError):
+                fcntl.flock(other, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        fcntl.flock(other, fcntl.LOCK_EX | fcntl.LOCK_NB)  # released after it
+    finally:
+        os.close(other)
