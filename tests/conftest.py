@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import sys
 import tempfile
 from pathlib import Path
@@ -14,12 +15,27 @@ DATA = ROOT.parent / "shared" / "data"
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
+#: the state folder this process made in pytest_configure, under "path" (absent: it was given one, as xdist's
+#: workers are)
+_MADE_STATE_HOME: dict[str, str] = {}
+
+
 def pytest_configure(config: pytest.Config) -> None:
     """`posegrid run` keeps a run's state under $XDG_STATE_HOME by default: point it, for this session and the
     processes it starts, at a temporary folder, so no test writes into the user's home."""
     if "POSEGRID_TEST_STATE_HOME" not in os.environ:
-        os.environ["POSEGRID_TEST_STATE_HOME"] = tempfile.mkdtemp(prefix="posegrid-state-")
+        _MADE_STATE_HOME["path"] = tempfile.mkdtemp(prefix="posegrid-state-")
+        os.environ["POSEGRID_TEST_STATE_HOME"] = _MADE_STATE_HOME["path"]
     os.environ["XDG_STATE_HOME"] = os.environ["POSEGRID_TEST_STATE_HOME"]
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    """Remove the state folder pytest_configure made (in the process that made it: the session's, not a worker's),
+    so a test run leaves nothing in the temporary folder."""
+    made = _MADE_STATE_HOME.pop("path", None)
+    if made is not None:
+        shutil.rmtree(made, ignore_errors=True)
+        os.environ.pop("POSEGRID_TEST_STATE_HOME", None)
 
 
 @pytest.fixture(scope="session")
