@@ -230,17 +230,23 @@ def _close_stretch(line, stretch, last, r_next, res, tol, window, scratch):  # p
     set_bit(scratch.plane, (last[1] - window.iy0) * window.w + last[0] - window.ix0)
 
 
-#: a ray whose bounding box spans more tiles than this is walked without the bound of :func:`_may_reach_owned`
+#: a ray whose bounding box spans more tiles than this is walked as one that may cross other shards' tiles, without
+#: looking at the box's tiles (:func:`owned_reach`)
 BOUND_TILES = 16
+#: what :func:`owned_reach` says of a ray: it crosses none of the shard's tiles, it may cross some, it crosses only
+#: the shard's tiles
+REACH_NONE, REACH_SOME, REACH_ALL = 0, 1, 2
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def _may_reach_owned(laser, heading, directions, k, stop, res, tiles):  # pragma: no cover - compiled
-    """The cheap bound that lets a shard skip a ray before walking it: False when no tile the shard owns meets the
-    bounding box of the ray of beam k (its start and end cells, the end at ``stop`` m, and a cell more on every side:
-    a ray starting on a grid line, or ending within rounding of one, crosses into the cell beyond), so the ray cannot
-    reach one; True otherwise (also when the box spans more than BOUND_TILES tiles: the test would cost more than it
-    saves). laser, heading, directions: as for :func:`mapping.window_walk.beam_ray`."""
+def owned_reach(laser, heading, directions, k, stop, res, tiles):  # pragma: no cover - compiled
+    """The cheap bound that sorts a shard's rays before walking them, from the bounding box of the ray of beam k (its
+    start and end cells, the end at ``stop`` m, and a cell more on every side: a ray starting on a grid line, or
+    ending within rounding of one, crosses into the cell beyond), which holds every cell the ray visits:
+    REACH_NONE when no tile the shard owns meets the box (the ray is skipped), REACH_ALL when the shard owns every
+    tile that meets it (the ray is walked as a shard owning the whole window walks it), REACH_SOME otherwise (also
+    when the box spans more than BOUND_TILES tiles: the test would cost more than it saves). laser, heading,
+    directions: as for :func:`mapping.window_walk.beam_ray`."""
     dx, dy = beam_direction(heading[0], heading[1], directions[0][k], directions[1][k])
     shift = tiles.shift
     ix_a = math.floor(laser[0] / res)
@@ -250,14 +256,19 @@ def _may_reach_owned(laser, heading, directions, k, stop, res, tiles):  # pragma
     tx_lo, tx_hi = ((min(ix_a, ix_b) - 1) >> shift) - tiles.tx0, ((max(ix_a, ix_b) + 1) >> shift) - tiles.tx0
     ty_lo, ty_hi = ((min(iy_a, iy_b) - 1) >> shift) - tiles.ty0, ((max(iy_a, iy_b) + 1) >> shift) - tiles.ty0
     if (tx_hi - tx_lo + 1) * (ty_hi - ty_lo + 1) > BOUND_TILES:
-        return True
-    # (the window holds a ray's cells with a cell to spare, ray_start checks; clamped so that no box reads past it)
+        return REACH_SOME
+    # (the window holds a ray's cells with a cell to spare, ray_start checks; clamped so that no box reads past it,
+    # and a box clamped is not all owned)
     nty, ntx = tiles.owned.shape
+    owned = 0
     for ty in range(max(ty_lo, 0), min(ty_hi, nty - 1) + 1):
         for tx in range(max(tx_lo, 0), min(tx_hi, ntx - 1) + 1):
-            if tiles.owned[ty, tx]:
-                return True
-    return False
+            owned += tiles.owned[ty, tx]
+    if owned == 0:
+        return REACH_NONE
+    if owned == (tx_hi - tx_lo + 1) * (ty_hi - ty_lo + 1):
+        return REACH_ALL
+    return REACH_SOME
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
@@ -265,51 +276,60 @@ def _walk_sample(laser, sid, w, directions, beams, model, res, window, tiles, sc
     """Walk every beam of one sample (laser pose (x m, y m, yaw rad), stamp sid, weight w) into its plane and the
     excess records.
 
-    When the shard owns every tile, the free phase is marked as runs and the walk goes on from their last cell on
-    the window's index (:func:`mapping.window_walk.index_ray`), with no ownership look-ups; otherwise the free phase
-    is marked as runs in the shard's own tiles (:func:`_owned_free_runs`); the walk goes on as the whole window's
-    does where the rest of the ray lies in one tile the shard owns, else on the global cells, looking ownership up
-    per tile."""
+    A ray that crosses only tiles the shard owns (every ray, when it owns every tile of the window;
+    :func:`owned_reach`) has its free phase marked as runs, and the walk goes on from their last cell on the window's
+    index (:func:`mapping.window_walk.index_ray`), with no ownership look-ups. A ray that crosses none is skipped.
+    Any other has its free phase marked as runs in the shard's own tiles (:func:`_owned_free_runs`); the walk goes on
+    as above where the rest of the ray lies in one tile the shard owns, else on the global cells, looking ownership
+    up per tile."""
     heading = (math.cos(laser[2]), math.sin(laser[2]))
     by_index = _Marks(scratch.plane, scratch.excess, (0, 0, 1), model, sid, w)
     by_cell = _Marks(scratch.plane, scratch.excess, (window.ix0, window.iy0, window.w), model, sid, w)
     every_tile, some_tiles = ownership_constants(tiles)
     for k in range(beams.kind.shape[0]):
         beam = beam_at(beams, k)
-        if not tiles.all_owned and not _may_reach_owned(laser, heading, directions, k, beam.r_stop, res, tiles):
-            continue  # a ray that crosses none of the shard's tiles
+        reach = REACH_ALL
+        if not tiles.all_owned:
+            reach = owned_reach(laser, heading, directions, k, beam.r_stop, res, tiles)
+            if reach == REACH_NONE:
+                continue  # a ray that crosses none of the shard's tiles
         inside, ray, dx, dy = beam_ray(laser, heading, directions, beam, k, res, window)
         if not inside:
             continue  # a skipped beam
-        if tiles.all_owned:
-            free_limit = min(beam.free_until, beam.r_stop - ray.tol)
+        free_limit = min(beam.free_until, beam.r_stop - ray.tol)
+        if reach == REACH_ALL:
             ray, r_in = _free_runs(laser[0], laser[1], dx, dy, ray, free_limit, res, window, scratch)
-            ray = index_ray(ray, window)
             walk_ray(
-                ray, r_in, beam.free_until, beam.r_stop, every_tile, _mark_free, _mark_near, by_index, (beams, k), 0
+                index_ray(ray, window),
+                r_in,
+                beam.free_until,
+                beam.r_stop,
+                every_tile,
+                _mark_free,
+                _mark_near,
+                by_index,
+                (beams, k),
+                0,
+            )
+            continue
+        ray, r_in, tile_end = _owned_free_runs(laser[0], laser[1], dx, dy, ray, free_limit, res, window, tiles, scratch)
+        if tile_end >= beam.r_stop:
+            walk_ray(
+                index_ray(ray, window),
+                r_in,
+                beam.free_until,
+                beam.r_stop,
+                every_tile,
+                _mark_free,
+                _mark_near,
+                by_index,
+                (beams, k),
+                0,
             )
         else:
-            free_limit = min(beam.free_until, beam.r_stop - ray.tol)
-            ray, r_in, tile_end = _owned_free_runs(
-                laser[0], laser[1], dx, dy, ray, free_limit, res, window, tiles, scratch
+            walk_ray(
+                ray, r_in, beam.free_until, beam.r_stop, some_tiles, _mark_free, _mark_near, by_cell, (beams, k), 0
             )
-            if tile_end >= beam.r_stop:
-                walk_ray(
-                    index_ray(ray, window),
-                    r_in,
-                    beam.free_until,
-                    beam.r_stop,
-                    every_tile,
-                    _mark_free,
-                    _mark_near,
-                    by_index,
-                    (beams, k),
-                    0,
-                )
-            else:
-                walk_ray(
-                    ray, r_in, beam.free_until, beam.r_stop, some_tiles, _mark_free, _mark_near, by_cell, (beams, k), 0
-                )
 
 
 @kernel(nogil=True, error_model="numpy", refcounted=False)
@@ -334,7 +354,8 @@ def accumulate_scan(
     the beam's free_until, which take l_free without evaluating the model; then the cells up to the ray's end,
     valued by :func:`segment_logodds`. The free phase is marked as runs of cells per grid row or column (a steep
     ray's go into the column-major plane) up to just before its end (:func:`_free_runs`), by a shard that does not
-    own every tile of the window in its own tiles only, skipping the rays that reach none (:func:`_walk_sample`).
+    own every tile of the window in its own tiles only, skipping the rays that reach none of them and taking those
+    that reach no other tile as a shard owning every tile does (:func:`_walk_sample`).
     After a sample's beams its column plane is folded into ``plane`` and ``plane`` is swept into the weight sums.
     """
     beams, model, window, tiles = BeamTable(*beams), LogOddsModel(*model), Window(*window), Tiles(*tiles)

@@ -1,0 +1,87 @@
+"""The bound that sorts a shard's rays before the samples pass walks them (mapping.samples_pass.owned_reach),
+against the cells the slow reference traversal gives each ray: a ray it skips crosses none of the shard's tiles, and
+a ray it walks as the whole window's walk does crosses only the shard's tiles."""
+
+import math
+
+import numpy as np
+import pytest
+
+from mapping.samples_pass import REACH_ALL, REACH_NONE, REACH_SOME, owned_reach
+from mapping.window_walk import Tiles
+from reference import cells_on_ray
+
+RES = 0.1
+SHIFT = 3  # tiles of 8 cells; tile (tx, ty) is entry (ty + 8, tx + 8): tiles -8..7 a side, cells -64..63
+TX0 = TY0 = -8
+#: one beam straight ahead in the laser frame: the ray's direction is the laser's heading
+AHEAD = (np.array([1.0]), np.array([0.0]))
+
+
+def reach(x0: float, y0: float, angle: float, stop: float, owned: np.ndarray) -> int:
+    """owned_reach of the ray from (x0, y0) (m) at ``angle`` (rad), ``stop`` m long, for the shard owning the
+    tiles where ``owned`` (16 x 16 bool) is True."""
+    laser = np.array([x0, y0, angle])
+    tiles = Tiles(owned, bool(owned.all()), SHIFT, TX0, TY0)
+    return int(owned_reach(laser, (math.cos(angle), math.sin(angle)), AHEAD, 0, stop, RES, tiles))
+
+
+def owned_on_ray(x0: float, y0: float, angle: float, stop: float, owned: np.ndarray) -> list[bool]:
+    """For each cell the reference traversal gives the ray, whether the shard owns its tile."""
+    return [
+        bool(owned[(iy >> SHIFT) - TY0, (ix >> SHIFT) - TX0]) for ix, iy, _, _ in cells_on_ray(x0, y0, angle, stop, RES)
+    ]
+
+
+def rays(seed: int, count: int):
+    """(x0, y0, angle, stop): origins within 2 m, lengths up to 3 m (every cell inside the 16 x 16 tiles), a third of
+    the origins on grid points and a third of the angles along the axes or the diagonals."""
+    rng = np.random.default_rng(seed)
+    for i in range(count):
+        x0, y0 = rng.uniform(-2.0, 2.0, 2)
+        if i % 3 == 0:
+            x0, y0 = round(x0 / RES) * RES, round(y0 / RES) * RES
+        angle = float(rng.uniform(-math.pi, math.pi)) if i % 3 else float(rng.integers(-4, 4)) * math.pi / 4
+        yield float(x0), float(y0), angle, float(rng.uniform(0.01, 3.0))
+
+
+@pytest.mark.parametrize("pattern", ["checkerboard", "stripes", "random", "blocks"])
+def test_a_skipped_ray_crosses_no_owned_tile_and_a_whole_walk_only_owned_ones(pattern):
+    tx, ty = np.meshgrid(np.arange(16), np.arange(16))
+    owned = {
+        "checkerboard": (tx + ty) % 2 == 0,
+        "stripes": tx % 3 != 1,
+        "random": np.random.default_rng(1).random((16, 16)) < 0.5,
+        "blocks": (tx // 4 + ty // 4) % 2 == 0,  # 4 x 4 tiles a shard: many rays stay in one shard's tiles
+    }[pattern]
+    seen = {REACH_NONE: 0, REACH_SOME: 0, REACH_ALL: 0}
+    for ray in rays(4, 600):
+        answer = reach(*ray, owned)
+        flags = owned_on_ray(*ray, owned)
+        seen[answer] += 1
+        if answer == REACH_NONE:
+            assert not any(flags), ray
+        elif answer == REACH_ALL:
+            assert all(flags), ray
+    if pattern in ("random", "blocks"):
+        assert min(seen.values()) > 0, seen  # every answer is given somewhere: the checks above are not idle
+
+
+def test_every_tile_owned_walks_every_ray_whole_and_none_owned_skips_every_ray():
+    for ray in rays(5, 200):
+        assert reach(*ray, np.ones((16, 16), bool)) == REACH_ALL, ray
+        assert reach(*ray, np.zeros((16, 16), bool)) == REACH_NONE, ray
+
+
+def test_a_ray_ending_a_rounding_short_of_an_unowned_tile_is_not_walked_whole():
+    """From (0.25, 0.25) m along +x to a nanometre short of x = 0.8 m, the line between tiles 0 and 1 (cells 0..7
+    and 8..15): the box takes a cell beyond the end cell, so a shard owning tile 0 but not tile 1 walks the ray as one
+    that may reach another shard's tile (a ray whose end lands within rounding of a line may cross into the cell
+    beyond it). Ending at 0.6 m, its box (cells 1..7) lies in tile 0."""
+    owned = np.zeros((16, 16), bool)
+    owned[0 - TY0, 0 - TX0] = True  # tile (0, 0)
+    assert not any(cell[0] == 8 for cell in cells_on_ray(0.25, 0.25, 0.0, 0.55 - 1e-9, RES))
+    assert reach(0.25, 0.25, 0.0, 0.55 - 1e-9, owned) == REACH_SOME
+    assert reach(0.25, 0.25, 0.0, 0.35, owned) == REACH_ALL
+    owned[0 - TY0, 1 - TX0] = True  # and tile (1, 0)
+    assert reach(0.25, 0.25, 0.0, 0.55 - 1e-9, owned) == REACH_ALL
