@@ -299,20 +299,11 @@ def _walk_sample(laser, sid, w, directions, beams, model, res, window, tiles, sc
         free_limit = min(beam.free_until, beam.r_stop - ray.tol)
         if reach == REACH_ALL:
             ray, r_in = _free_runs(laser[0], laser[1], dx, dy, ray, free_limit, res, window, scratch)
-            walk_ray(
-                index_ray(ray, window),
-                r_in,
-                beam.free_until,
-                beam.r_stop,
-                every_tile,
-                _mark_free,
-                _mark_near,
-                by_index,
-                (beams, k),
-                0,
+            tile_end = beam.r_stop  # (the rest of the ray lies in the shard's tiles)
+        else:
+            ray, r_in, tile_end = _owned_free_runs(
+                laser[0], laser[1], dx, dy, ray, free_limit, res, window, tiles, scratch
             )
-            continue
-        ray, r_in, tile_end = _owned_free_runs(laser[0], laser[1], dx, dy, ray, free_limit, res, window, tiles, scratch)
         if tile_end >= beam.r_stop:
             walk_ray(
                 index_ray(ray, window),

@@ -10,6 +10,7 @@ import pytest
 from mapping.samples_pass import REACH_ALL, REACH_NONE, REACH_SOME, owned_reach
 from mapping.window_walk import Tiles
 from reference import cells_on_ray
+from worlds import OWNERSHIP_PATTERNS, ownership_pattern
 
 RES = 0.1
 SHIFT = 3  # tiles of 8 cells; tile (tx, ty) is entry (ty + 8, tx + 8): tiles -8..7 a side, cells -64..63
@@ -45,15 +46,9 @@ def rays(seed: int, count: int):
         yield float(x0), float(y0), angle, float(rng.uniform(0.01, 3.0))
 
 
-@pytest.mark.parametrize("pattern", ["checkerboard", "stripes", "random", "blocks"])
+@pytest.mark.parametrize("pattern", OWNERSHIP_PATTERNS)
 def test_a_skipped_ray_crosses_no_owned_tile_and_a_whole_walk_only_owned_ones(pattern):
-    tx, ty = np.meshgrid(np.arange(16), np.arange(16))
-    owned = {
-        "checkerboard": (tx + ty) % 2 == 0,
-        "stripes": tx % 3 != 1,
-        "random": np.random.default_rng(1).random((16, 16)) < 0.5,
-        "blocks": (tx // 4 + ty // 4) % 2 == 0,  # 4 x 4 tiles a shard: many rays stay in one shard's tiles
-    }[pattern]
+    owned = ownership_pattern(pattern)
     seen = {REACH_NONE: 0, REACH_SOME: 0, REACH_ALL: 0}
     for ray in rays(4, 600):
         answer = reach(*ray, owned)

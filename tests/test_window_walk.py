@@ -11,6 +11,7 @@ from mapping.beam_model import BeamTable, beam_table
 from mapping.sensor_model import SensorModel
 from mapping.window_walk import Tiles, Window, ray_start, walk_ray
 from reference import cells_on_ray
+from worlds import ownership_pattern
 
 RES = 0.1
 WINDOW = Window(-64, -64, 128, 128)  # cells -64..63 a side: every ray below (origins within 1 m, 4 m long at most)
@@ -82,12 +83,7 @@ def test_every_tile_owned_visits_the_reference_cells_in_order_free_ones_first():
 
 @pytest.mark.parametrize("pattern", ["checkerboard", "stripes", "random"])
 def test_a_shard_visits_the_cells_of_its_own_tiles_only(pattern):
-    tx, ty = np.meshgrid(np.arange(16), np.arange(16))
-    owned = {
-        "checkerboard": (tx + ty) % 2 == 0,
-        "stripes": tx % 3 != 1,
-        "random": np.random.default_rng(1).random((16, 16)) < 0.5,
-    }[pattern]
+    owned = ownership_pattern(pattern)
     for ray in random_rays(2, 300):
         assert walked(*ray, owned) == expected(*ray, owned), ray
 

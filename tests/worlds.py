@@ -1,4 +1,5 @@
-"""Small worlds built in code for tests: a rectangular room seen by a laser, with exact ranges."""
+"""Small worlds built in code for tests: a rectangular room seen by a laser, with exact ranges; and the tile-ownership
+patterns of a shard that the walk tests take."""
 
 from __future__ import annotations
 
@@ -44,3 +45,21 @@ def room_posed_scans(
         sensor_offset=np.zeros(3),
         poses=poses,
     )
+
+
+#: the names :func:`ownership_pattern` takes
+OWNERSHIP_PATTERNS = ("checkerboard", "stripes", "random", "blocks")
+
+
+def ownership_pattern(name: str, size: int = 16) -> np.ndarray:
+    """Which of size x size tiles (rows ty, columns tx) a shard owns: "checkerboard", "stripes" (two columns of three),
+    "random" (each tile with probability 1/2, seed 1), or "blocks" (a checkerboard of 4 x 4 tiles, so that many rays
+    stay in one shard's tiles)."""
+    tx, ty = np.meshgrid(np.arange(size), np.arange(size))
+    patterns = {
+        "checkerboard": lambda: (tx + ty) % 2 == 0,
+        "stripes": lambda: tx % 3 != 1,
+        "random": lambda: np.random.default_rng(1).random((size, size)) < 0.5,
+        "blocks": lambda: (tx // 4 + ty // 4) % 2 == 0,
+    }
+    return patterns[name]()
