@@ -195,7 +195,11 @@ def _candidate(grid, j, ex, ey, dx, dy, ix, iy, tid, best):  # pragma: no cover 
         return best
     fx = int(math.floor((px - dx * res) / res))
     fy = int(math.floor((py - dy * res) / res))
-    if _value(grid, j, fx, fy) > 0.0:
+    if (fx ^ ix) >> shift == 0 and (fy ^ iy) >> shift == 0:  # in the same tile (the usual case): no table look-up
+        behind = pool[tid, fy & mask, fx & mask, 0]
+    else:
+        behind = _value(grid, j, fx, fy)
+    if behind > 0.0:
         return best
     return d2
 
