@@ -171,6 +171,82 @@ def test_matcher_recovers_a_displaced_pose_and_likelihood_peaks_at_truth():
     assert np.argmax(loglik) == 0 and np.all(loglik[1:] < loglik[0] - 1.0)
 
 
+def _reference_scores(pool, table, tx0, ty0, shift, res, pose, cos_b, sin_b, ranges, sigmas, p_rand):
+    """A slow reading of the likelihood field's rule (slam.gridslam.kernels._evaluate) for one particle, laser at
+    the robot: per beam, among the 3 x 3 cells around the beam's end, the occupied ones (log-odds > 0) whose cell one
+    step back along the beam from their mean end point is not occupied; the squared distance d2 (m^2) to the nearest
+    mean end point; (match score, log-likelihood) summed over the beams."""
+    mask = (1 << shift) - 1
+
+    def tile(ix, iy):
+        u, v = (ix >> shift) - tx0, (iy >> shift) - ty0
+        inside = 0 <= u < table.shape[2] and 0 <= v < table.shape[1]
+        return table[0, v, u] if inside else -1
+
+    def logodds(ix, iy):
+        tid = tile(ix, iy)
+        return 0.0 if tid < 0 else float(pool[tid, iy & mask, ix & mask, 0])
+
+    score = loglik = 0.0
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    for cb, sb, r in zip(cos_b, sin_b, ranges):
+        dx, dy = c * cb - s * sb, s * cb + c * sb
+        ex, ey = pose[0] + r * dx, pose[1] + r * dy
+        cx, cy = math.floor(ex * (1.0 / res)), math.floor(ey * (1.0 / res))
+        best = math.inf
+        for ix in range(cx - 1, cx + 2):
+            for iy in range(cy - 1, cy + 2):
+                tid = tile(ix, iy)
+                if tid < 0 or pool[tid, iy & mask, ix & mask, 0] <= 0.0:
+                    continue
+                sum_x, sum_y, hits = pool[tid, iy & mask, ix & mask, 1:]
+                px, py = (
+                    (ix * res + float(sum_x / hits), iy * res + float(sum_y / hits))
+                    if hits > 0
+                    else (
+                        (ix + 0.5) * res,
+                        (iy + 0.5) * res,
+                    )
+                )
+                d2 = (px - ex) ** 2 + (py - ey) ** 2
+                if d2 < best and logodds(math.floor((px - dx * res) / res), math.floor((py - dy * res) / res)) <= 0:
+                    best = d2
+        if best < math.inf:
+            score += math.exp(-best * 0.5 / sigmas[0] ** 2)
+            loglik += math.log(p_rand + (1 - p_rand) * math.exp(-best * 0.5 / sigmas[1] ** 2))
+        else:
+            loglik += math.log(p_rand)
+    return score, loglik
+
+
+def test_the_likelihood_field_follows_its_rule_across_tile_edges():
+    """Tiles of 4 cells, so that the cells around a beam's end and the cell behind a candidate lie in other tiles
+    than the beam's end as often as not; random occupancy, end-point sums and missing tiles. The compiled scores
+    equal the slow reading of the rule (_reference_scores) for every pose."""
+    rng = np.random.default_rng(7)
+    res, shift, tx0, ty0 = 0.1, 2, -4, -4
+    table = np.arange(64, dtype=np.int32).reshape(1, 8, 8)
+    table[0, rng.random((8, 8)) < 0.15] = -1  # tiles no scan reached
+    pool = np.zeros((64, 4, 4, 4), np.float32)
+    pool[..., 0] = rng.choice([-1.0, 0.0, 1.0, 2.0], size=(64, 4, 4))
+    pool[..., 3] = rng.integers(0, 4, size=(64, 4, 4))
+    pool[..., 1:3] = pool[..., 3:4] * rng.uniform(0.0, res, size=(64, 4, 4, 2))
+    angles = np.linspace(-math.pi, math.pi, 90, endpoint=False)
+    cos_b, sin_b = np.cos(angles), np.sin(angles)
+    poses = np.column_stack([rng.uniform(-0.5, 0.5, (12, 2)), rng.uniform(-math.pi, math.pi, 12)])
+    ranges = rng.uniform(0.3, 1.2, len(angles))
+    tables = np.repeat(table, len(poses), axis=0)
+    loglik, score = log_likelihoods(
+        pool, tables, tx0, ty0, shift, res, poses, np.zeros(3), cos_b, sin_b, ranges, 1, 0.05, 0.075, 0.05
+    )
+    for n, pose in enumerate(poses):
+        ref_score, ref_loglik = _reference_scores(
+            pool, table, tx0, ty0, shift, res, pose, cos_b, sin_b, ranges, (0.05, 0.075), 0.05
+        )
+        assert score[n] == pytest.approx(ref_score, rel=1e-9, abs=1e-12), n
+        assert loglik[n] == pytest.approx(ref_loglik, rel=1e-9), n
+
+
 def test_matcher_starts_where_the_robot_stood_and_behind_it():
     """Odometry that reports a backward move as forward (the Freiburg 079 log does) or a move the wheels
     slipped through puts the prediction 0.9 m or 0.45 m from the truth, beyond hill climbing's reach; the
