@@ -199,15 +199,10 @@ def _reference_scores(pool, table, tx0, ty0, shift, res, pose, cos_b, sin_b, ran
                 tid = tile(ix, iy)
                 if tid < 0 or pool[tid, iy & mask, ix & mask, 0] <= 0.0:
                     continue
-                sum_x, sum_y, hits = pool[tid, iy & mask, ix & mask, 1:]
-                px, py = (
-                    (ix * res + float(sum_x / hits), iy * res + float(sum_y / hits))
-                    if hits > 0
-                    else (
-                        (ix + 0.5) * res,
-                        (iy + 0.5) * res,
-                    )
-                )
+                sum_x, sum_y, hits = pool[tid, iy & mask, ix & mask, 1:]  # (float32: the quotient is one too)
+                px, py = (ix + 0.5) * res, (iy + 0.5) * res  # a cell with no end point in it: its centre
+                if hits > 0:
+                    px, py = ix * res + float(sum_x / hits), iy * res + float(sum_y / hits)
                 d2 = (px - ex) ** 2 + (py - ey) ** 2
                 if d2 < best and logodds(math.floor((px - dx * res) / res), math.floor((py - dy * res) / res)) <= 0:
                     best = d2

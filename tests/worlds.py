@@ -56,10 +56,6 @@ def ownership_pattern(name: str, size: int = 16) -> np.ndarray:
     "random" (each tile with probability 1/2, seed 1), or "blocks" (a checkerboard of 4 x 4 tiles, so that many rays
     stay in one shard's tiles)."""
     tx, ty = np.meshgrid(np.arange(size), np.arange(size))
-    patterns = {
-        "checkerboard": lambda: (tx + ty) % 2 == 0,
-        "stripes": lambda: tx % 3 != 1,
-        "random": lambda: np.random.default_rng(1).random((size, size)) < 0.5,
-        "blocks": lambda: (tx // 4 + ty // 4) % 2 == 0,
-    }
-    return patterns[name]()
+    if name == "random":
+        return np.random.default_rng(1).random((size, size)) < 0.5
+    return {"checkerboard": (tx + ty) % 2 == 0, "stripes": tx % 3 != 1, "blocks": (tx // 4 + ty // 4) % 2 == 0}[name]
