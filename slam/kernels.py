@@ -1,5 +1,6 @@
-"""Compiled (numba) inner loops of the landmark filters: the velocity model over one step's controls, the
-invariant EKF's likelihood pass for self-calibration, and FastSLAM's per-step update with known ids.
+"""Compiled (numba) inner loops of the landmark filters: the velocity model over one step's controls and over the
+self-calibration's windows, the invariant EKF's likelihood pass for self-calibration, and FastSLAM's per-step
+update with known ids.
 
 Units as everywhere in slam/: metres, radians, seconds; poses (x, y, theta). Each kernel is the only
 implementation of what it computes; the filters in slam/ekf.py, slam/fastslam.py and slam/selfcal.py call them.
@@ -82,6 +83,35 @@ def velocity_local_motion(controls, alphas, floor, dt_ref, delta, cov):  # pragm
         y += dist * sh
         th += w * dt
     delta[0], delta[1], delta[2] = x, y, _wrap(th)
+
+
+@kernel()
+def window_commands(controls, corrected, first, last, yaw_scale, out):  # pragma: no cover - compiled
+    """Per window w, the controls controls[first[w]:last[w]] (K, 3) (v m/s, w rad/s, dt s) as logged and
+    ``corrected`` (the same rows with a calibration's corrections): out[w] (6,) = the noise-free end pose (x, y) m
+    in the window's start frame of the commands with only their yaw rate scaled by ``yaw_scale`` (integrated as
+    velocity_local_motion does), the commanded yaw change sum(w dt) rad as logged, the time spent moving sum(dt)
+    s, and the corrected sum(v^2 dt) ((m/s)^2 s) and sum(w^2 dt) ((rad/s)^2 s)."""
+    for n in range(first.shape[0]):
+        x = y = th = 0.0
+        turn = moving = v2 = w2 = 0.0
+        for k in range(first[n], last[n]):
+            v, w, dt = controls[k, 0], controls[k, 1], controls[k, 2]
+            turn += w * dt
+            if v != 0.0 or w != 0.0:
+                moving += dt
+            v2 += corrected[k, 0] * corrected[k, 0] * dt
+            w2 += corrected[k, 1] * corrected[k, 1] * dt
+            if dt <= 0.0:
+                continue
+            w = w * yaw_scale
+            half = w * dt / 2.0
+            s, _ = _sinc_and_derivative(half)
+            dist = v * dt * s
+            x += dist * math.cos(th + half)
+            y += dist * math.sin(th + half)
+            th += w * dt
+        out[n, 0], out[n, 1], out[n, 2], out[n, 3], out[n, 4], out[n, 5] = x, y, turn, moving, v2, w2
 
 
 @kernel()

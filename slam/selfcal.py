@@ -30,7 +30,7 @@ from scipy.optimize import nnls
 from slam.angles import wrap_angle
 from slam.calibration import GENERIC, Calibration
 from slam.consistency import scaled_motion
-from slam.kernels import ekf_likelihood_pass, smooth_localisation
+from slam.kernels import ekf_likelihood_pass, smooth_localisation, window_commands
 from slam.motion import VelocityMotionModel
 from slam.range_bearing import RangeBearingModel
 from slam.sequence import SlamSequence
@@ -262,40 +262,23 @@ def window_bounds(stamps: np.ndarray, length: float, stride: float) -> np.ndarra
 
 def measure_windows(data: FitData, poses: np.ndarray, calibration: Calibration, length: float) -> Windows:
     """The windows of ``length`` s of ``data`` (overlapping, :data:`WINDOW_OVERLAP`) against the estimated poses
-    (T, 3) (see :class:`Windows`)."""
-    from slam.motion import VelocityMotionModel, local_motion
-
+    (T, 3) (see :class:`Windows`); the commands' sums and noise-free motion compiled (slam.kernels.window_commands)."""
     bounds = window_bounds(data.stamps, length, length / WINDOW_OVERLAP)
+    first, last = data.control_ptr[bounds[:, 0]], data.control_ptr[bounds[:, 1]]
+    keep = last > first
+    bounds, first, last = bounds[keep], first[keep], last[keep]
+    sums = np.empty((len(bounds), 6))
+    window_commands(
+        data.controls, calibration.correct_commands(data.controls), first, last, calibration.velocity_scale[1], sums
+    )
+    a, b = bounds[:, 0], bounds[:, 1]
     heading = np.concatenate([[0.0], np.cumsum(wrap_angle(np.diff(poses[:, 2])))])
-    shape = replace(calibration, velocity_scale=(1.0, calibration.velocity_scale[1]), velocity_bias=(0.0, 0.0))
-    noiseless = VelocityMotionModel(alphas=(0.0,) * 6)
-    rows = []
-    for a, b in bounds:
-        raw = data.controls[data.control_ptr[a] : data.control_ptr[b]]
-        if len(raw) == 0:
-            continue
-        delta = local_motion(noiseless, shape.correct_commands(raw))[0]
-        corrected = calibration.correct_commands(raw)
-        c, s = math.cos(poses[a, 2]), math.sin(poses[a, 2])
-        dx, dy = poses[b, 0] - poses[a, 0], poses[b, 1] - poses[a, 1]
-        local = np.array([c * dx + s * dy, -s * dx + c * dy])
-        chord = float(np.hypot(delta[0], delta[1]))
-        along = float(local @ delta[:2] / chord) if chord > 1e-9 else 0.0
-        moving = (raw[:, 0] != 0.0) | (raw[:, 1] != 0.0)
-        dt = raw[:, 2]
-        rows.append(
-            (
-                chord,
-                along,
-                float(np.sum(raw[:, 1] * dt)),
-                float(np.sum(dt * moving)),
-                heading[b] - heading[a],
-                float(np.sum(corrected[:, 0] ** 2 * dt)),
-                float(np.sum(corrected[:, 1] ** 2 * dt)),
-            )
-        )
-    table = np.array(rows, dtype=np.float64).reshape(-1, 7)
-    return Windows(*(table[:, k] for k in range(7)))
+    c, s = np.cos(poses[a, 2]), np.sin(poses[a, 2])
+    dx, dy = poses[b, 0] - poses[a, 0], poses[b, 1] - poses[a, 1]
+    chord = np.hypot(sums[:, 0], sums[:, 1])
+    projected = (c * dx + s * dy) * sums[:, 0] + (-s * dx + c * dy) * sums[:, 1]
+    along = np.where(chord > 1e-9, projected / np.maximum(chord, 1e-9), 0.0)
+    return Windows(chord, along, sums[:, 2], sums[:, 3], heading[b] - heading[a], sums[:, 4], sums[:, 5])
 
 
 def windows_of(data: FitData, poses: np.ndarray, calibration: Calibration, lengths: tuple[float, ...]) -> Windows:

@@ -26,7 +26,19 @@ from slam.motion import VelocityMotionModel, local_motion
 from slam.mrclam import mrclam_sequence, read_mrclam
 from slam.mrclam_sim import simulate_mrclam_robot, write_mrclam_folder
 from slam.range_bearing import RangeBearingModel
-from slam.selfcal import LONG_WINDOWS, SHORT_WINDOWS, FitData, fit_motion, likelihood_pass, self_calibrate, windows_of
+from slam.selfcal import (
+    LONG_WINDOWS,
+    SHORT_WINDOWS,
+    WINDOW_OVERLAP,
+    FitData,
+    Windows,
+    fit_motion,
+    likelihood_pass,
+    measure_windows,
+    self_calibrate,
+    window_bounds,
+    windows_of,
+)
 from slam.sequence import run_filter
 
 #: a robot unlike MRCLAM's: commands executed 0.15 s late at 93 % of the speed and 105 % of the turn rate, a
@@ -143,6 +155,52 @@ def _straight_drive(seed: int, steps: int, a1: float, estimate_sd: float) -> tup
         n_slots=0, measurement_time=np.zeros(0),
     )  # fmt: skip
     return data, poses
+
+
+def _slow_windows(data: FitData, poses: np.ndarray, calibration: Calibration, length: float) -> np.ndarray:
+    """The rows (W, 7) of measure_windows read from its definition, one window at a time: the commands' noise-free
+    motion (speeds as logged, turns at the calibration's yaw-rate scale) by slam.motion.local_motion, the estimated
+    displacement projected on it, and the sums over the commands."""
+    bounds = window_bounds(data.stamps, length, length / WINDOW_OVERLAP)
+    heading = np.unwrap(poses[:, 2])
+    shape = replace(calibration, velocity_scale=(1.0, calibration.velocity_scale[1]), velocity_bias=(0.0, 0.0))
+    rows = []
+    for a, b in bounds:
+        raw = data.controls[data.control_ptr[a] : data.control_ptr[b]]
+        if len(raw) == 0:
+            continue
+        delta = local_motion(VelocityMotionModel(alphas=(0.0,) * 6), shape.correct_commands(raw))[0]
+        corrected = calibration.correct_commands(raw)
+        turn = poses[a, 2]
+        shift = np.array([[np.cos(turn), np.sin(turn)], [-np.sin(turn), np.cos(turn)]]) @ (poses[b, :2] - poses[a, :2])
+        chord = np.hypot(delta[0], delta[1])
+        moving = (raw[:, 0] != 0.0) | (raw[:, 1] != 0.0)
+        rows.append([
+            chord, shift @ delta[:2] / chord if chord > 1e-9 else 0.0, np.sum(raw[:, 1] * raw[:, 2]),
+            np.sum(raw[:, 2] * moving), heading[b] - heading[a], np.sum(corrected[:, 0] ** 2 * raw[:, 2]),
+            np.sum(corrected[:, 1] ** 2 * raw[:, 2]),
+        ])  # fmt: skip
+    return np.array(rows)
+
+
+@pytest.mark.parametrize(
+    "calibration",
+    [GENERIC, TRUTH, replace(TRUTH, velocity_scale=(1.1, 0.9), velocity_bias=(0.02, 0.01))],
+    ids=["as-logged", "truth", "scaled-biased"],
+)
+def test_the_windows_follow_their_definition(robot, calibration):
+    """The windows the motion is fitted on (compiled, slam.kernels.window_commands) equal a slow reading of their
+    definition on a simulated robot's commands, against a wandering estimate that turns past +-pi."""
+    sequence = mrclam_sequence(read_mrclam(robot, 1))
+    data = FitData.of(sequence)
+    rng = np.random.default_rng(5)
+    poses = np.cumsum(rng.normal(0.0, [0.02, 0.02, 0.05], size=(len(sequence), 3)), axis=0)
+    for length in (2.0, 8.0, 32.0):
+        windows = measure_windows(data, poses, calibration, length)
+        table = np.column_stack([getattr(windows, name) for name in Windows.__dataclass_fields__])
+        slow = _slow_windows(data, poses, calibration, length)
+        assert table.shape == slow.shape and len(slow) > 10
+        np.testing.assert_allclose(table, slow, rtol=1e-9, atol=1e-9)
 
 
 def test_the_motion_fit_tells_the_motion_noise_from_the_estimates_own_error():
