@@ -342,17 +342,23 @@ def _neighbour(x, y, th, move, lin, ang):  # pragma: no cover - compiled
 @kernel(nogil=True)
 def _climb(grid, j, beams, field, prior, stride, lin, ang, found):  # pragma: no cover - compiled
     """Hill climbing from ``found`` (objective, score, x, y, yaw): take the best of the six moves of +-lin m
-    in x and y and +-ang rad in yaw while it raises the objective, at most :data:`MAX_CLIMB_MOVES` times."""
+    in x and y and +-ang rad in yaw while it raises the objective, at most :data:`MAX_CLIMB_MOVES` times. The move
+    back to where the last move came from is not tried: its objective is below the current one (moves are taken only
+    when they raise it), so it could not be taken."""
     best, score, bx, by, bt = found
+    taken = -1
     for _it in range(MAX_CLIMB_MOVES):
         cand_x, cand_y, cand_t, cand_f, cand_s = bx, by, bt, best, score
+        cand_move = -1
         for move in range(6):
+            if taken >= 0 and move == (taken ^ 1):  # moves 2k and 2k + 1 undo each other
+                continue
             tx, ty, tt = _neighbour(bx, by, bt, move, lin, ang)
             f, s = _objective(grid, j, tx, ty, tt, beams, field, prior, stride)
             if f > cand_f:
-                cand_x, cand_y, cand_t, cand_f, cand_s = tx, ty, tt, f, s
+                cand_x, cand_y, cand_t, cand_f, cand_s, cand_move = tx, ty, tt, f, s, move
         if cand_f > best:
-            bx, by, bt, best, score = cand_x, cand_y, cand_t, cand_f, cand_s
+            bx, by, bt, best, score, taken = cand_x, cand_y, cand_t, cand_f, cand_s, cand_move
         else:
             break
     return best, score, bx, by, bt
