@@ -116,9 +116,16 @@ def _import_root(module: str, path: Path) -> tuple[Path, str]:
 
 def closure_files(module: str, path: Path) -> dict[str, Path]:
     """The file of ``module`` at ``path`` and of every first-party module it imports, transitively, by
-    path relative to the import root (POSIX separators)."""
-    root, name = _import_root(module, path.resolve())
-    files = {name: _module_file(root, name) or path.resolve()}
+    path relative to the import root (POSIX separators). Found once per process and module (:func:`_closure`):
+    the kernels of one module share it, and the code a process runs is the code it imported."""
+    return dict(_closure(module, path.resolve()))
+
+
+@functools.cache
+def _closure(module: str, path: Path) -> tuple[tuple[str, Path], ...]:
+    """:func:`closure_files` as found, for a resolved ``path``."""
+    root, name = _import_root(module, path)
+    files = {name: _module_file(root, name) or path}
     pending = [name]
     while pending:
         current = pending.pop()
@@ -127,7 +134,7 @@ def closure_files(module: str, path: Path) -> dict[str, Path]:
             if found is not None:
                 files[imported] = found
                 pending.append(imported)
-    return {file.relative_to(root).as_posix(): file for file in files.values()}
+    return tuple((file.relative_to(root).as_posix(), file) for file in files.values())
 
 
 def closure_digest(module: str, path: Path) -> str:
