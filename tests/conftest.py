@@ -38,6 +38,14 @@ def pytest_unconfigure(config: pytest.Config) -> None:
         os.environ.pop("POSEGRID_TEST_STATE_HOME", None)
 
 
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """The files that hold a test marked slow first, whole and each in its order (a file's module fixtures are
+    set up once): xdist's workers then end on short tests and finish together, instead of one idling while the
+    other runs a late long one."""
+    slow_files = {item.path for item in items if item.get_closest_marker("slow") is not None}
+    items.sort(key=lambda item: item.path not in slow_files)
+
+
 @pytest.fixture(scope="session")
 def data_dir() -> Path:
     """The shared real-data folder; tests that need it skip when it is absent (a user's fresh clone)."""

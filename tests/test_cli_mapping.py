@@ -24,6 +24,7 @@ from schemas.files import (
 from worlds import room_posed_scans
 
 ROOT = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.slow  # every test runs `posegrid` as a process
 
 
 def posegrid(*args: str) -> subprocess.CompletedProcess:

@@ -314,6 +314,7 @@ def simulated_log(tmp_path_factory) -> tuple[Path, object]:
     return path, run
 
 
+@pytest.mark.slow
 def test_simulated_carmen_log_beats_odometry_and_monte_carlo_map_beats_best_particle(simulated_log, tmp_path):
     """posegrid slam --algo gridslam on a simulated office run exported as a CARMEN log: the best
     particle's trajectory is far better than odometry, and the Monte Carlo map fused from all particles
@@ -418,6 +419,7 @@ def test_filter_rejects_bad_config():
         TileMaps(2, 0.05, tile_cells=24)
 
 
+@pytest.mark.slow
 def test_odometry_delay_auto_finds_a_late_laser_clock(simulated_log, tmp_path, capsys):
     """A log whose laser stamps run 0.1 s late against its ODOM stream (the Freiburg 079 bag's fault, about
     0.13 s there): the default (`--odom-delay auto` where the log has a separate odometry stream) runs the filter

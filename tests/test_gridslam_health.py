@@ -141,6 +141,7 @@ def office_run(tmp_path_factory) -> tuple[Path, Path, dict]:
     return folder / "office.poses.npz", truth, slam(path, folder / "office.npz")
 
 
+@pytest.mark.slow
 def test_the_truth_lies_inside_the_clouds_95_percent_region(office_run, capsys):
     poses, truth, _ = office_run
     score = eval_traj(poses, truth, capsys)

@@ -101,6 +101,7 @@ def best_errors(result, truth: np.ndarray) -> np.ndarray:
     return np.hypot(best[:, 0] - truth[:, 0], best[:, 1] - truth[:, 1])
 
 
+@pytest.mark.slow
 def test_a_long_corridor_loop_closes_with_the_loop_search_and_not_without(tmp_path):
     """A heading error picked up at a corner bends the corridor the particles map. Without loop closure and without
     the failed-match recovery the filter comes back metres off and does not close the loop (docs/gridslam.md: the

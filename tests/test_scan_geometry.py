@@ -440,6 +440,7 @@ def ate(poses: np.ndarray, truth: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((poses[:, :2] - truth[:, :2]) ** 2, axis=1))))
 
 
+@pytest.mark.slow
 def test_grid_fastslam_on_an_interlaced_laser_tracks_as_well_as_on_one_geometry():
     """The same simulated run seen by one laser geometry and by the interlaced one (each scan's beams 0.25 to
     0.75 deg off the other's): the filter, taking each scan's own beam directions, tracks the interlaced run as

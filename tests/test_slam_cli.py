@@ -127,6 +127,7 @@ def test_mrclam_commands_are_as_logged_unless_a_profile_corrects_them(tmp_path):
 
 
 @pytest.mark.parametrize("algo", ["ekf", "fastslam2"])
+@pytest.mark.slow
 def test_dataset7_robot3_is_accurate_and_honest_with_the_defaults(tmp_path, capsys, data_dir, algo):
     # issue 4's target on real data, 900 s of robot 3: ATE well under dead reckoning's 2.13 m and the true pose
     # inside the 95 % region at >= 85 % of the steps (docs/slam.md: EKF 0.12 m / 0.99; FastSLAM 2.0 with
