@@ -13,7 +13,8 @@ seed 0), three runs:
 
 Figures: ATE (m) and inside95 of each run, the ATE ratio to ``ref``, and FastSLAM's real-time factor (data
 seconds per wall second, as `posegrid slam` prints it). ``targets_met`` counts the runs with ATE within 1.3x of
-``ref`` and inside95 in [0.85, 0.99]; ``ref_inside95_in_bounds`` how many ``ref`` runs have inside95 there.
+``ref`` and inside95 in [0.85, 0.99]; ``ref_inside95_in_bounds`` how many ``ref`` runs have inside95 there. ``pooled_*``
+gives, per filter, the mean inside95 over the robots and the geometric mean of the ATE ratios (:func:`pooled`).
 `python -m bench.slam` prints the table docs/slam.md shows; with ``--quick`` it skips MRCLAM. About 15 minutes on
 one core; MRCLAM is skipped, with the reason, when ../shared/data/mrclam7 is absent.
 """
@@ -27,6 +28,8 @@ import tempfile
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
+
 from bench.run import run_cli
 from bench.scenarios import SHARED_DATA
 from slam.calibration import Calibration, save_calibration
@@ -39,8 +42,9 @@ ROBOTS = (1, 2, 3, 4, 5)
 ALGORITHMS = ("ekf", "fastslam2")
 #: the targets of issue 35: ATE at most this many times the reference's, inside95 within these bounds
 ATE_RATIO, INSIDE95 = 1.3, (0.85, 0.99)
-#: s of each simulated run, and the seeds simulated
-SIM_SECONDS, SIM_SEEDS = 300.0, (1, 2)
+#: s of each simulated run, and the seeds simulated (seeds 3-6 chose the self-calibration's MOTION_FACTOR and are
+#: not scored here)
+SIM_SECONDS, SIM_SEEDS = 300.0, (1, 2, 7, 8)
 #: the simulated robot 'late', like the issue's held-out robot: a late, over-turning drive with a yaw-rate bias;
 #: noise 0.08 m / 0.03 rad
 LATE_ROBOT = Calibration(
@@ -139,6 +143,52 @@ def _ref_inside(figures: dict) -> str:
     return f"{sum(INSIDE95[0] <= v <= INSIDE95[1] for v in values)} of {len(values)}"
 
 
+def pooled(figures: dict) -> dict:
+    """Per filter and run label, over the robots of each group (``sim``, ``mrclam``, ``all``): the mean of the runs'
+    inside95 (the runs are of about equal length, so about the share of all their steps whose truth lies in the
+    95 % region: the coverage that the single runs, each mostly one draw of the map's turn and shift, estimate
+    poorly) and the geometric mean of the ATE ratios to ``ref``. Keys ``pooled_{group}_{algo}_{label}_inside95``
+    and ``..._ate_ratio``."""
+    out: dict = {}
+    cases = {k.split("_ekf_")[0] for k in figures if "_ekf_ref_ate_m" in k}
+    groups = {
+        "sim": sorted(c for c in cases if c.startswith("sim_")),
+        "mrclam": sorted(c for c in cases if c.startswith("mrclam_")),
+    }
+    groups["all"] = groups["sim"] + groups["mrclam"]
+    for group, members in groups.items():
+        if not members:
+            continue
+        for algo in ALGORITHMS:
+            for label in ("ref", "default", "half"):
+                inside = [figures[f"{c}_{algo}_{label}_inside95"] for c in members]
+                out[f"pooled_{group}_{algo}_{label}_inside95"] = float(np.mean(inside))
+                if label != "ref":
+                    ratios = [figures[f"{c}_{algo}_{label}_ate_ratio"] for c in members]
+                    out[f"pooled_{group}_{algo}_{label}_ate_ratio"] = float(np.exp(np.mean(np.log(ratios))))
+    return out
+
+
+def pooled_table(figures: dict) -> str:
+    """The pooled figures (:func:`pooled`) as a markdown table: mean inside95 and geometric-mean ATE ratio."""
+    lines = [
+        "| robots | filter | ref inside95 | default: ATE ratio / inside95 | half: ATE ratio / inside95 |",
+        "|---|---|---|---|---|",
+    ]
+    for group in ("sim", "mrclam", "all"):
+        for algo in ALGORITHMS:
+            key = f"pooled_{group}_{algo}"
+            if f"{key}_ref_inside95" not in figures:
+                continue
+            cells = [f"{figures[f'{key}_ref_inside95']:.3f}"]
+            cells += [
+                f"{figures[f'{key}_{label}_ate_ratio']:.2f} / {figures[f'{key}_{label}_inside95']:.3f}"
+                for label in ("default", "half")
+            ]
+            lines.append(f"| {group} | {algo} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def run(quick: bool = False) -> dict:
     figures: dict = {}
     with tempfile.TemporaryDirectory() as folder:
@@ -161,6 +211,7 @@ def run(quick: bool = False) -> dict:
     figures["targets_met_default"] = _met(figures, "default")
     figures["targets_met_half"] = _met(figures, "half")
     figures["ref_inside95_in_bounds"] = _ref_inside(figures)
+    figures.update(pooled(figures))
     return figures
 
 
@@ -189,6 +240,7 @@ def table(figures: dict) -> str:
 if __name__ == "__main__":
     result = run(quick="--quick" in sys.argv[1:])
     print(table(result))
+    print(pooled_table(result))
     print(
         f"targets met: default {result['targets_met_default']}, half {result['targets_met_half']}; "
         f"ref inside95 within bounds: {result['ref_inside95_in_bounds']}"
