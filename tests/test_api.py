@@ -378,7 +378,9 @@ def test_stats_and_health(api):
     assert stats["scans_discarded"] == {"robot0": 0}
     for shard in stats["per_shard"]:
         assert shard["alive"] and shard["answered"]
-        assert shard["received"]["pg/robot0/scan"] == SCANS and shard["tiles_owned"] > 0
+        # every scan arrived; a shard that joined late (kernels compiling on a fresh install) also has some of
+        # them again from the source's history, which it counts as received and fuses once
+        assert shard["received"]["pg/robot0/scan"] >= SCANS and shard["tiles_owned"] > 0
         assert shard["last_tile_update_age_s"] >= 0
     health = httpx.get(f"{api}/health", timeout=30).json()
     assert health["status"] == "ok"
