@@ -8,7 +8,7 @@ from scipy.special import logit as sp_logit
 
 from mapping.beam_model import TABLE_DU, TABLE_U0, logodds_table
 from mapping.errors import InputError
-from mapping.sensor_model import SensorModel
+from mapping.sensor_model import SensorModel, erf
 
 
 def ideal(s: np.ndarray, z: float, l: float) -> np.ndarray:
@@ -139,3 +139,12 @@ def test_squashing_is_capped_at_the_hit_probability():
 def test_a_peak_within_peak_eps_of_one_half_gives_no_occupied_evidence():
     # g_peak - 1/2 = 5e-10 <= PEAK_EPS: the beam's noise swamps its peak, so p is exactly 1/2 at g >= 1/2
     assert float(SensorModel().squashed(0.5 + 4e-10, 0.5 + 5e-10)) == 0.5
+
+
+def test_erf_is_maths_erf_element_by_element_in_any_shape():
+    """The compiled erf the model uses equals math.erf at every element of a 0-d, a 1-d and a strided 2-d array."""
+    values = np.random.default_rng(3).normal(0.0, 2.0, size=(7, 9))
+    for x in (np.asarray(0.3), values[0], values[:, ::2], np.array([0.0, -np.inf, np.inf, 1e-300, -8.0])):
+        out = erf(x)
+        assert out.shape == x.shape
+        np.testing.assert_array_equal(out, np.vectorize(math.erf)(x))
