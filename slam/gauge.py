@@ -11,12 +11,6 @@ from __future__ import annotations
 import numpy as np
 
 
-def rotations(theta: np.ndarray) -> np.ndarray:
-    """Rotation matrices (N, 2, 2) by the angles theta (N,) rad."""
-    c, s = np.cos(theta), np.sin(theta)
-    return np.stack([np.stack([c, -s], axis=-1), np.stack([s, c], axis=-1)], axis=-2)
-
-
 def map_gauges(maps: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The gauge of each of ``maps`` (N, L, 2), L >= 2 distinct points: its turn (N,) rad against the
     ``weights``-weighted (N,) mean map and its centroid (N, 2) m.

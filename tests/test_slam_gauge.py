@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from slam.fastslam import FastSLAM
-from slam.gauge import map_gauges, regauge_points, rotations
+from slam.gauge import map_gauges, regauge_points
 from slam.motion import VelocityMotionModel
 from slam.range_bearing import RangeBearingModel
 
@@ -17,6 +17,13 @@ MOTION = VelocityMotionModel(alphas=(0.05, 0.01, 0.05, 0.05, 0.0, 0.0))
 SENSOR = RangeBearingModel(0.05, 0.02)
 BASE_MAP = np.array([[2.0, 1.0], [3.0, -1.5], [-1.0, 2.5]])
 BASE_POSE = np.array([0.3, -0.2, 0.4])
+
+
+def rotations(theta: np.ndarray) -> np.ndarray:
+    """Rotation matrices (N, 2, 2) by the angles theta (N,) rad: the tests' reference for the turns slam.gauge
+    writes out."""
+    c, s = np.cos(theta), np.sin(theta)
+    return np.stack([np.stack([c, -s], axis=-1), np.stack([s, c], axis=-1)], axis=-2)
 
 
 def test_map_gauges_recover_exact_motions():
