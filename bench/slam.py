@@ -143,6 +143,13 @@ def _ref_inside(figures: dict) -> str:
     return f"{sum(INSIDE95[0] <= v <= INSIDE95[1] for v in values)} of {len(values)}"
 
 
+def _cases(figures: dict) -> list[str]:
+    """The robots scored in ``figures`` (``sim_late1``, ..., ``mrclam_r5``): the simulated first, each group sorted."""
+    return sorted(
+        {k.split("_ekf_")[0] for k in figures if "_ekf_ref_ate_m" in k}, key=lambda c: (c.startswith("mrclam"), c)
+    )
+
+
 def pooled(figures: dict) -> dict:
     """Per filter and run label, over the robots of each group (``sim``, ``mrclam``, ``all``): the mean of the runs'
     inside95 (the runs are of about equal length, so about the share of all their steps whose truth lies in the
@@ -150,12 +157,12 @@ def pooled(figures: dict) -> dict:
     poorly) and the geometric mean of the ATE ratios to ``ref``. Keys ``pooled_{group}_{algo}_{label}_inside95``
     and ``..._ate_ratio``."""
     out: dict = {}
-    cases = {k.split("_ekf_")[0] for k in figures if "_ekf_ref_ate_m" in k}
+    cases = _cases(figures)
     groups = {
-        "sim": sorted(c for c in cases if c.startswith("sim_")),
-        "mrclam": sorted(c for c in cases if c.startswith("mrclam_")),
+        "sim": [c for c in cases if c.startswith("sim_")],
+        "mrclam": [c for c in cases if c.startswith("mrclam_")],
+        "all": cases,
     }
-    groups["all"] = groups["sim"] + groups["mrclam"]
     for group, members in groups.items():
         if not members:
             continue
@@ -217,9 +224,7 @@ def run(quick: bool = False) -> dict:
 
 def table(figures: dict) -> str:
     """The figures as the markdown table of docs/slam.md."""
-    cases = sorted(
-        {k.split("_ekf_")[0] for k in figures if "_ekf_ref_ate_m" in k}, key=lambda c: (c.startswith("mrclam"), c)
-    )
+    cases = _cases(figures)
     header = (
         "| robot | filter | ref ATE m / inside95 | default ATE m (ratio) / inside95 | half ATE m (ratio) / inside95 |"
     )

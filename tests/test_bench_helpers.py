@@ -1,12 +1,15 @@
 """Benchmark helpers the figures rest on: the adaptive benchmark's tree oracle (hand-computed cell means on a tiny
-raster), its label-pure quadtree (cells counted by hand) and the scan selection every suite cuts its inputs with."""
+raster), its label-pure quadtree (cells counted by hand), the scan selection every suite cuts its inputs with, and
+the landmark benchmark's figures pooled over robots."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from bench.adaptive import label_pure_cells, tree_oracle_logodds
 from bench.scenarios import select_scans
+from bench.slam import pooled
 from schemas.files import PosedScans, PoseSet
 
 
@@ -120,3 +123,26 @@ def test_leave_one_out_chooses_on_the_other_logs_relative_to_their_best():
     chosen = leave_one_out(errors)
     assert chosen == {"a": ("y", 0.20), "b": ("x", 0.06), "c": ("x", 0.05)}
     assert leave_one_out({"x": {"a": 1.0}}) == {}  # one log: nothing to choose on
+
+
+def test_pooled_figures_are_the_mean_inside95_and_the_geometric_mean_ate_ratio_per_group():
+    figures = {}
+    runs = {  # robot -> (inside95, ATE ratio) of every (filter, label); ref has no ratio
+        "sim_a1": (0.80, 2.0),
+        "sim_b1": (1.00, 0.5),
+        "mrclam_r1": (0.90, 4.0),
+    }
+    for robot, (inside, ratio) in runs.items():
+        for algo in ("ekf", "fastslam2"):
+            figures[f"{robot}_{algo}_ref_ate_m"] = 0.1
+            for label in ("ref", "default", "half"):
+                figures[f"{robot}_{algo}_{label}_inside95"] = inside
+                if label != "ref":
+                    figures[f"{robot}_{algo}_{label}_ate_ratio"] = ratio
+    got = pooled(figures)
+    assert got["pooled_sim_ekf_default_inside95"] == pytest.approx(0.90)
+    assert got["pooled_sim_ekf_default_ate_ratio"] == pytest.approx(1.0)  # sqrt(2 * 0.5)
+    assert got["pooled_mrclam_fastslam2_half_ate_ratio"] == pytest.approx(4.0)
+    assert got["pooled_all_ekf_ref_inside95"] == pytest.approx(0.90)
+    assert got["pooled_all_fastslam2_default_ate_ratio"] == pytest.approx(4.0 ** (1 / 3))  # (2 * 0.5 * 4)^(1/3)
+    assert "pooled_all_ekf_ref_ate_ratio" not in got and len(got) == 3 * 2 * 5
