@@ -34,6 +34,16 @@ def _sinc_and_derivative(a):  # pragma: no cover - compiled
     return s, (a * math.cos(a) - math.sin(a)) / (a * a)
 
 
+@kernel(inline="always")
+def _arc(th, v, w, dt):  # pragma: no cover - compiled
+    """One control (v m/s, w rad/s, dt s) of the velocity model from heading th (rad): sinc(w dt / 2) and its
+    derivative, the chord length v dt sinc (m), and the cosine and sine of the chord's heading th + w dt / 2. The
+    pose moves by the chord along that heading and turns by w dt."""
+    half = w * dt / 2.0
+    s, ds = _sinc_and_derivative(half)
+    return s, ds, v * dt * s, math.cos(th + half), math.sin(th + half)
+
+
 @kernel()
 def velocity_local_motion(controls, alphas, floor, dt_ref, delta, cov):  # pragma: no cover - compiled
     """The velocity model (slam.motion.VelocityMotionModel) over the controls (K, 3) (v m/s, w rad/s, dt s) of
@@ -55,10 +65,7 @@ def velocity_local_motion(controls, alphas, floor, dt_ref, delta, cov):  # pragm
         var0 = (alphas[0] * v * v + alphas[1] * w * w + (floor[0] if moving else 0.0)) * scale
         var1 = (alphas[2] * v * v + alphas[3] * w * w + (floor[1] if moving else 0.0)) * scale
         var2 = (alphas[4] * v * v + alphas[5] * w * w) * scale
-        half = w * dt / 2.0
-        s, ds = _sinc_and_derivative(half)
-        dist = v * dt * s
-        ch, sh = math.cos(th + half), math.sin(th + half)
+        s, ds, dist, ch, sh = _arc(th, v, w, dt)
         g02, g12 = -dist * sh, dist * ch
         # cov <- G cov G^T with G = I + g02 e0 e2^T + g12 e1 e2^T
         for j in range(3):
@@ -105,11 +112,9 @@ def window_commands(controls, corrected, first, last, yaw_scale, out):  # pragma
             if dt <= 0.0:
                 continue
             w = w * yaw_scale
-            half = w * dt / 2.0
-            s, _ = _sinc_and_derivative(half)
-            dist = v * dt * s
-            x += dist * math.cos(th + half)
-            y += dist * math.sin(th + half)
+            _s, _ds, dist, ch, sh = _arc(th, v, w, dt)
+            x += dist * ch
+            y += dist * sh
             th += w * dt
         out[n, 0], out[n, 1], out[n, 2], out[n, 3], out[n, 4], out[n, 5] = x, y, turn, moving, v2, w2
 
