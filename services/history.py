@@ -10,6 +10,7 @@ for no consolidation.
 from __future__ import annotations
 
 import re
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -32,6 +33,12 @@ RECONNECT_WAIT = 30.0
 #: processes that answer reconnect on their own schedule
 RECONNECT_GRACE = 5.0
 RETRY_PERIOD = 0.5
+#: s between looks at the stop flag while a question waits (for its replies or for the router)
+STOP_POLL = 0.1
+
+
+class Stopped(Exception):
+    """The process was asked to stop while a question to the histories waited; nothing of it was taken."""
 
 
 @dataclass(frozen=True)
@@ -101,32 +108,50 @@ def _reachable(session: zenoh.Session) -> bool:
     return bool(list(session.info.routers_zid())) or bool(list(session.info.peers_zid()))
 
 
-def _answers(session: zenoh.Session, robot: str, parameters: dict[str, str], timeout: float) -> list[zenoh.Reply]:
+def _asked(
+    session: zenoh.Session, robot: str, parameters: dict[str, str], timeout: float, stop: threading.Event
+) -> list[zenoh.Reply]:
+    """The replies to one question in the order they came, once it is answered or ``timeout`` s have passed
+    (Stopped when ``stop`` is set first)."""
+    replies: list[zenoh.Reply] = []
+    done = threading.Event()
+    session.get(
+        zenoh.Selector(keys.history_key(robot), parameters),
+        handler=zenoh.handlers.Callback(replies.append, done.set),  # done: after the last reply's callback
+        timeout=timeout,
+        consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE),
+        congestion_control=zenoh.CongestionControl.BLOCK,
+    )  # (replies go out under it)
+    while not done.wait(STOP_POLL):
+        if stop.is_set():
+            raise Stopped(f"stopped while asking the histories of {robot!r}")
+    return replies
+
+
+def _answers(
+    session: zenoh.Session, robot: str, parameters: dict[str, str], timeout: float, stop: threading.Event
+) -> list[zenoh.Reply]:
     """The replies to one question, asked once the session reaches a router or peer. While it reaches none (the
     router restarting), a question would come back empty at once, and what it asked for would be given up as lost
     though a history holds it: it waits for the connection instead, up to RECONNECT_WAIT s. A question nobody
-    answers is asked again while the connection is down, and for RECONNECT_GRACE s after it came back."""
+    answers is asked again while the connection is down, and for RECONNECT_GRACE s after it came back. Every wait
+    ends with Stopped when ``stop`` is set: a process asked to stop does not wait for the router."""
     deadline = time.monotonic() + RECONNECT_WAIT
     grace_until = None  # set once the session had to wait for its connection
     while True:
         while not _reachable(session) and time.monotonic() < deadline:
-            time.sleep(0.1)
+            if stop.wait(STOP_POLL):
+                raise Stopped(f"stopped while waiting for the router to ask the histories of {robot!r}")
             grace_until = time.monotonic() + RECONNECT_GRACE
-        replies = list(
-            session.get(
-                zenoh.Selector(keys.history_key(robot), parameters),
-                timeout=timeout,
-                consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE),
-                congestion_control=zenoh.CongestionControl.BLOCK,
-            )
-        )  # (replies go out under it)
+        replies = _asked(session, robot, parameters, timeout, stop)
         now = time.monotonic()
         if replies or now >= deadline:
             return replies
         if _reachable(session):
             if grace_until is None or now >= grace_until:
                 return replies
-            time.sleep(RETRY_PERIOD)
+            if stop.wait(RETRY_PERIOD):
+                raise Stopped(f"stopped while asking the histories of {robot!r} again")
 
 
 def ask(
@@ -135,17 +160,18 @@ def ask(
     parameters: dict[str, str],
     timeout: float,
     accept: Callable[[Answerer], bool] = lambda answerer: True,
+    stop: threading.Event | None = None,
 ) -> tuple[list[tuple[str, str, bytes]], list[str]]:
     """Ask the histories of ``robot`` ("*": every robot): ((robot, stream, payload) of each message in the order
     sent, problems). Only answerers that ``accept`` takes count (a shard takes its own map's sources; a SLAM node
     catching up, sources still publishing). When two of them answer for one robot's stream (a robot name that
     two runs use at once), neither is taken: that stream's messages are left out and a problem says so, since the
     live stream cannot say which run it belongs to. A session cut off from the router waits for it to come back
-    (:func:`_answers`)."""
+    (:func:`_answers`); Stopped when ``stop`` is set while it waits."""
     messages: list[tuple[str, str, bytes]] = []
     problems: list[str] = []
     answerers: dict[tuple[str, str], set[str]] = {}  # (robot, stream) -> ids of the processes answering for it
-    for answer in _answers(session, robot, parameters, timeout):
+    for answer in _answers(session, robot, parameters, timeout, stop or threading.Event()):
         if answer.ok is None:
             error = answer.err
             assert error is not None  # a reply holds either a sample or an error
@@ -180,10 +206,11 @@ def ask_counted(
     timeout: float,
     rejects: RejectCounter,
     accept: Callable[[Answerer], bool] = lambda answerer: True,
+    stop: threading.Event | None = None,
 ) -> list[tuple[str, str, bytes]]:
     """:func:`ask`, each problem counted by ``rejects`` under pg/<robot>/history/** (kind "history", logged once):
     (robot, stream, payload) of each message taken, in the order sent."""
-    messages, problems = ask(session, robot, parameters, timeout, accept)
+    messages, problems = ask(session, robot, parameters, timeout, accept, stop)
     for problem in problems:
         rejects.count(keys.history_key(robot), "history", problem)
     return messages

@@ -958,6 +958,35 @@ def test_a_history_question_asked_while_the_router_restarts_waits_for_it(procs):
     assert answers == [([("r", keys.SCAN, b"scan 7")], [])]
 
 
+@pytest.mark.parametrize("node", ["mapper", "slam-node"])
+def test_a_process_stopped_while_its_history_question_waits_stops_at_once(procs, node):
+    """A shard (or SLAM node) asks the histories when it starts. Stopped while that question waited (an answerer
+    that never finishes here; the router stopped first, as a test's teardown does, behaves alike), it went on
+    waiting for the question's 60 s before it looked at its stop flag, and was killed. Now it stops within a few
+    tenths of a second (15 s allowed for a busy machine), with exit 0."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
+    held: list[zenoh.Query] = []  # the questions, kept unanswered and open
+    answerer = zenoh.open(build_config("client", connect=[endpoint]))
+    try:
+        answerer.declare_queryable(keys.history_key("*"), held.append)
+        args = {
+            "mapper": ["mapper", "--shard", "0", "--shards", "1"],
+            "slam-node": ["slam-node", "--robot", "r1", "--algo", "odometry"],
+        }[node]
+        proc = procs([*CLI, *args, "--connect", endpoint])
+        proc.wait_for("up")
+        deadline = time.monotonic() + 30
+        while not held:
+            assert time.monotonic() < deadline, "the process never asked the histories"
+            time.sleep(0.05)
+        proc.process.send_signal(signal.SIGINT)
+        assert proc.process.wait(15) == 0
+    finally:
+        answerer.close()
+    assert "stopped while asking the histories" in proc.output()
+
+
 def test_what_the_router_loses_is_taken_from_the_histories(tmp_path, procs):
     """The router dies mid-run and comes back on its port: what the source published meanwhile never reaches the
     SLAM node or the mapper shard. The node takes those steps from the source's history instead of skipping

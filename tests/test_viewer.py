@@ -39,6 +39,12 @@ def sync_playwright():
 
 
 @pytest.fixture
+def playwright_start():
+    """Playwright's entry point, looked for before the pipeline starts (a test that skips starts nothing)."""
+    return sync_playwright()
+
+
+@pytest.fixture
 def pipeline(tmp_path):
     """A router, one shard (256-cell tiles of 5 cm), the API and a source replaying 80 scans in real time
     (8 s), so the map is still being built while the browser looks at it."""
@@ -53,9 +59,8 @@ def pipeline(tmp_path):
         processes.stop()
 
 
-def test_viewer_draws_tiles_live_and_switches_to_variance(pipeline, tmp_path):
-    start = sync_playwright()
-    with start() as playwright:
+def test_viewer_draws_tiles_live_and_switches_to_variance(playwright_start, pipeline, tmp_path):
+    with playwright_start() as playwright:
         browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         try:
             page = browser.new_page(viewport={"width": 1000, "height": 700})

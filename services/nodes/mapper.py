@@ -131,6 +131,7 @@ class Mapper:
         self.shard = MapShard(config, self.rejects, history=self._history)
         self.persister = None if durable is None else self._start_from(durable)
         self.lock = threading.Lock()
+        self.stop = threading.Event()  # run()'s: set when the process is asked to stop
         self.intake = Intake(SHARD_STREAMS, self.rejects, config.limits, capacity=intake_capacity)
         self._declared: list = []  # what declare() declared, undeclared in reverse order
         self._stats_lock = threading.Lock()  # guards _stats_payload only
@@ -215,7 +216,7 @@ class Mapper:
         """The robot's ``stream`` messages first..last from the histories (services.history): the source's for
         scans (and poses of a posed-scan file), the SLAM node's for poses."""
         asked = {"streams": stream, "from": str(first), "to": str(last + 1)}
-        messages = history.ask_counted(self.session, robot, asked, HISTORY_TIMEOUT, self.rejects, self._ours)
+        messages = history.ask_counted(self.session, robot, asked, HISTORY_TIMEOUT, self.rejects, self._ours, self.stop)
         return [payload for _, got, payload in messages if got == stream]  # (history.ask checks the reply keys)
 
     def catch_up(self) -> None:
@@ -230,7 +231,9 @@ class Mapper:
             replies = self._resumed_replies(starts)
         else:
             asked = {"streams": f"{keys.SCAN},{keys.POSE}"}
-            replies = history.ask_counted(self.session, "*", asked, CATCH_UP_TIMEOUT, self.rejects, self._ours)
+            replies = history.ask_counted(
+                self.session, "*", asked, CATCH_UP_TIMEOUT, self.rejects, self._ours, self.stop
+            )
         with self.lock:
             taken = self.shard.in_seq_order(
                 (keys.robot_key(robot, stream), payload) for robot, stream, payload in replies
@@ -261,7 +264,9 @@ class Mapper:
         replies = []
         for robot, first in sorted(robots.items()):
             asked = {"streams": f"{keys.SCAN},{keys.POSE}", "from": str(first)}
-            replies += history.ask_counted(self.session, robot, asked, CATCH_UP_TIMEOUT, self.rejects, self._ours)
+            replies += history.ask_counted(
+                self.session, robot, asked, CATCH_UP_TIMEOUT, self.rejects, self._ours, self.stop
+            )
         return replies
 
     def _robots_alive(self) -> set[str]:
@@ -287,7 +292,10 @@ class Mapper:
 
     def run(self, stop: threading.Event) -> int:
         """Fuse and publish until ``stop`` is set; returns the exit code (0). The liveliness token is
-        declared once the kernels are warm, so whoever waits for it sees the shard's steady latency."""
+        declared once the kernels are warm, so whoever waits for it sees the shard's steady latency. Stopped while
+        a question to the histories waits (the router gone first), it leaves the store as a crash would: what was
+        committed stays, and the histories give the rest on the next start."""
+        self.stop = stop
         self.shard.warm_up()
         with self.lock:
             self._refresh_stats()
@@ -300,7 +308,25 @@ class Mapper:
             cfg.map_name,
             keys.tile_key(cfg.map_name, 0, "*", "*"),
         )
-        self.catch_up()
+        try:
+            self.catch_up()
+            self._serve(stop)
+        except history.Stopped as exc:
+            self._undeclare()
+            self.log.info("%s; the store keeps its last commit", exc)
+            if self.persister is not None:
+                self.persister.abandon()
+            return 0
+        self._undeclare()
+        self.log.info("stopped after fusing %d scans", sum(self.shard.fused.values()))
+        if self.persister is not None and not self.persister.finish(self.shard):
+            self.log.error("the last changes could not be committed (%s)", self.persister.failing)
+            return 1
+        return 0
+
+    def _serve(self, stop: threading.Event) -> None:
+        """Take messages from the intake, fuse them and publish the tiles due, until ``stop`` is set."""
+        cfg = self.config
         next_due = None
         while not stop.is_set():
             timeout = 0.2 if next_due is None else min(0.2, max(0.0, next_due - time.monotonic()))
@@ -324,13 +350,10 @@ class Mapper:
                     update.encode(),
                     congestion_control=zenoh.CongestionControl.BLOCK,
                 )
+
+    def _undeclare(self) -> None:
         for entity in reversed(self._declared):
             entity.undeclare()
-        self.log.info("stopped after fusing %d scans", sum(self.shard.fused.values()))
-        if self.persister is not None and not self.persister.finish(self.shard):
-            self.log.error("the last changes could not be committed (%s)", self.persister.failing)
-            return 1
-        return 0
 
 
 def run_mapper(

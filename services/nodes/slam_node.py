@@ -42,6 +42,7 @@ class SlamNode:
         self.state = SlamState(config, self.rejects, publish=self._publish_pose, history=self._recover)
         self.intake = Intake(EXPECTED, self.rejects, robot=config.robot, capacity=config.intake_capacity)
         self.lock = threading.Lock()
+        self.stop = threading.Event()  # run()'s: set when the process is asked to stop
         self._declared: list = []
         self._pose_publisher: zenoh.Publisher | None = None
 
@@ -78,7 +79,7 @@ class SlamNode:
         """(pg/<robot>/<stream>, payload) of the messages the histories ``accept`` answers with (services.history),
         in the order they were sent; none when nobody answers."""
         robot = self.config.robot
-        messages = history.ask_counted(self.session, robot, parameters, timeout, self.rejects, accept)
+        messages = history.ask_counted(self.session, robot, parameters, timeout, self.rejects, accept, self.stop)
         return [(keys.robot_key(robot, stream), payload) for _, stream, payload in messages if stream in EXPECTED]
 
     def _recover(self, streams: frozenset[str], first: int, last: int | None) -> list[tuple[str, bytes]]:
@@ -115,18 +116,24 @@ class SlamNode:
         self._declared.append(session.liveliness().declare_token(keys.robot_alive_key(robot, "slam")))
 
     def run(self, stop: threading.Event) -> int:
-        """Filter and publish until ``stop`` is set; returns the exit code (0)."""
+        """Filter and publish until ``stop`` is set; returns the exit code (0). Stopped while a question to the
+        source's history waits (the router gone first), it stops there: a node started again takes the run from
+        the histories."""
+        self.stop = stop
         robot = self.config.robot
         self.declare()
         self.log.info("%s up for robot %r; poses on %s", self.config.algorithm, robot, keys.robot_key(robot, keys.POSE))
-        self.catch_up()
-        while not stop.is_set():
-            try:
-                key, payload = self.intake.next(0.2)
-            except queue.Empty:
-                continue
-            with self.lock:
-                self.state.handle(key, payload)
+        try:
+            self.catch_up()
+            while not stop.is_set():
+                try:
+                    key, payload = self.intake.next(0.2)
+                except queue.Empty:
+                    continue
+                with self.lock:
+                    self.state.handle(key, payload)
+        except history.Stopped as exc:
+            self.log.info("%s", exc)
         for entity in reversed(self._declared):
             entity.undeclare()
         self.log.info("stopped after publishing %d poses", self.state.published)
