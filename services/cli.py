@@ -51,8 +51,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        parser = build_parser()  # (imports every command module: a SIGINT may well arrive here)
+        args = parser.parse_args(argv)
+    except KeyboardInterrupt:
+        print("posegrid: interrupted", file=sys.stderr)
+        return 130
     if not getattr(args, "func", None):
         parser.print_help()
         return 2

@@ -202,6 +202,24 @@ def test_every_process_has_help(command, capsys):
     assert info.value.code == 0 and "usage: posegrid " + command in capsys.readouterr().out
 
 
+def test_an_interrupt_while_the_commands_load_is_one_line_and_exit_130(monkeypatch, capsys):
+    """A SIGINT that arrives while ``posegrid`` imports its command modules (a test's teardown, a user's Ctrl-C
+    right after the start) gave a KeyboardInterrupt traceback. The interrupt stands in here for the signal."""
+    from services import cli
+
+    def interrupted(name: str):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli.importlib, "import_module", interrupted)
+    try:
+        code = cli.main(["mapper", "--help"])
+    except KeyboardInterrupt:
+        pytest.fail("the interrupt escaped main() (a traceback for the user)")
+    assert code == 130
+    captured = capsys.readouterr()
+    assert captured.err == "posegrid: interrupted\n" and captured.out == ""
+
+
 def test_two_processes_answering_one_robots_history_are_both_refused(started):
     """A source of an earlier run still up under the same robot name answers the history too: whose messages a
     reader would take is chance, and taking them made a map silently wrong (an audit). Both are left out, with
