@@ -269,6 +269,18 @@ def test_launcher_stops_every_child_on_sigint_mid_replay(tmp_path, procs):
     assert not any(_alive(pid) for pid in pids.values())
 
 
+def test_launcher_stops_on_sigint_while_it_compiles_the_fusion_kernels(tmp_path, procs):
+    """On a fresh install `posegrid run` compiles the fusion kernels before it starts the shards (40 s here); a
+    Ctrl-C then took effect only after the compile. Now it stops at once (an empty kernel cache makes the compile
+    happen: numba's NUMBA_CACHE_DIR, a folder of this test's)."""
+    run = procs([*CLI, "run", "--no-api", "--no-state"], env={**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)})
+    run.wait_for("compiling the fusion kernels")
+    run.process.send_signal(signal.SIGINT)
+    assert run.process.wait(15) == 130, run.output()  # (the compile alone takes longer than that)
+    assert run.wait_for(r"stopped: (.*)").group(1) == "router exited 0"
+    assert "fusion kernels ready" not in run.output()
+
+
 # ------------------------------------------------------------------------------------------------ garbage
 
 

@@ -279,8 +279,7 @@ def run_pipeline(plan: Plan, stop: threading.Event) -> int:
     code = 1
     try:
         children.start("router", ["router", "--listen", endpoint, *plan.router_argv, *zenoh_argv(material, None)])
-        _load_fusion_kernels()  # (while the router starts)
-        if stop.is_set():
+        if not _load_fusion_kernels(stop):  # (while the router starts)
             return 130
         for shard in range(plan.shards):  # they keep trying to reach the router while it starts
             children.start(
@@ -340,31 +339,44 @@ def run_pipeline(plan: Plan, stop: threading.Event) -> int:
     return code
 
 
-def _load_fusion_kernels() -> None:
+def _load_fusion_kernels(stop: threading.Event) -> bool:
     """Load the shards' compiled fusion kernels in this process before any shard starts, compiling them where the
     cache lacks them (the first start after an install or an edit: a minute or more on a slow machine, which the
     shards would otherwise spend past START_TIMEOUT); the shards then load them from the cache. Says so when it
-    takes longer than COMPILE_NOTE_AFTER s."""
+    takes longer than COMPILE_NOTE_AFTER s. False when ``stop`` is set first: the compile, which cannot be
+    interrupted, goes on in a daemon thread that ends with the process (numba writes a cache entry whole or not
+    at all), so Ctrl-C during it stops the run at once."""
     from mapping.grid import TILE_SIZE
     from mapping.sensor_model import SensorModel
     from services.state.shard import warm_fusion
 
-    note = threading.Timer(
-        COMPILE_NOTE_AFTER,
-        lambda: print(
-            "posegrid run: compiling the fusion kernels (once after an install or an edit; a minute or two)", flush=True
-        ),
-    )
-    note.daemon = True
+    failed: list[BaseException] = []
+
+    def load() -> None:
+        try:
+            warm_fusion(SensorModel(), TILE_SIZE)
+        except Exception as exc:  # noqa: BLE001 - raised again in the main thread
+            failed.append(exc)
+
     started = time.monotonic()
-    note.start()
-    try:
-        warm_fusion(SensorModel(), TILE_SIZE)
-    finally:
-        note.cancel()
-    took = time.monotonic() - started
-    if took > COMPILE_NOTE_AFTER:
+    loading = threading.Thread(target=load, daemon=True, name="compile-fusion")
+    loading.start()
+    noted = False
+    while loading.is_alive():
+        if stop.wait(0.1):
+            return False
+        if not noted and time.monotonic() - started > COMPILE_NOTE_AFTER:
+            print(
+                "posegrid run: compiling the fusion kernels (once after an install or an edit; a minute or two)",
+                flush=True,
+            )
+            noted = True
+    if failed:
+        raise failed[0]
+    if noted:
+        took = time.monotonic() - started
         print(f"posegrid run: fusion kernels ready in {took:.0f} s; later starts load them at once", flush=True)
+    return True
 
 
 def _wait_for_shards(session, plan: Plan, children: Children, stop: threading.Event) -> bool:
