@@ -5,13 +5,14 @@ Each module in :data:`COMMAND_MODULES` has ``register(subparsers)``, which adds 
 inside the handlers, so ``posegrid --help`` is instant.
 
 Exit codes: 0 success, 1 runtime failure, 2 bad input or usage (one sentence on stderr, no traceback),
-130 interrupted.
+130 interrupted (SIGINT, also when posegrid was started with it ignored, as a script's background job is).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
 
 from services.errors import UsageError
@@ -51,6 +52,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        # inherited by a background job of a script: a SIGINT before a service installs its stop handlers (which
+        # take it whatever was inherited) would be lost, and the process would run on; it interrupts instead
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         parser = build_parser()  # (imports every command module: a SIGINT may well arrive here)
         args = parser.parse_args(argv)

@@ -220,6 +220,34 @@ def test_an_interrupt_while_the_commands_load_is_one_line_and_exit_130(monkeypat
     assert captured.err == "posegrid: interrupted\n" and captured.out == ""
 
 
+#: a `posegrid router` started with SIGINT ignored (as a script's background job is), which sends itself a SIGINT
+#: while main() loads its commands: before the router installs its stop handlers
+_IGNORED_SIGINT_CHILD = """
+import os, signal, sys
+signal.signal(signal.SIGINT, signal.SIG_IGN)
+from services import cli
+load = cli.build_parser
+def interrupted_load():
+    os.kill(os.getpid(), signal.SIGINT)
+    return load()
+cli.build_parser = interrupted_load
+sys.exit(cli.main(["router", "--listen", sys.argv[1]]))
+"""
+
+
+def test_a_sigint_before_the_stop_handlers_stops_a_process_started_with_it_ignored(started):
+    """A background job of a script starts with SIGINT ignored. A SIGINT that reached a service before it installed
+    its stop handlers was lost, and the process ran on (a router 0.1 s after its start, a mapper up to 0.5 s)."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    child = subprocess.Popen([sys.executable, "-c", _IGNORED_SIGINT_CHILD, endpoint], stderr=subprocess.PIPE, text=True)
+    started.append(child)
+    try:
+        code = child.wait(30)
+    except subprocess.TimeoutExpired:
+        pytest.fail("the SIGINT was lost: the router runs on")
+    assert code == 130 and child.stderr.read() == "posegrid: interrupted\n"
+
+
 def test_two_processes_answering_one_robots_history_are_both_refused(started):
     """A source of an earlier run still up under the same robot name answers the history too: whose messages a
     reader would take is chance, and taking them made a map silently wrong (an audit). Both are left out, with
