@@ -281,6 +281,20 @@ def test_launcher_stops_on_sigint_while_it_compiles_the_fusion_kernels(tmp_path,
     assert "fusion kernels ready" not in run.output()
 
 
+def test_launcher_stopped_as_its_children_start_stops_them_without_a_crash(procs):
+    """Ctrl-C right after the banner: the children are still importing. The launcher's SIGINT became a
+    KeyboardInterrupt inside numpy's import (an ImportError and its traceback) or inside the interpreter's start-up
+    (a fatal error), the child exited 1 and so did the run. It sends SIGTERM now, which a child not yet handling
+    it dies of at once (-15, a clean exit for the launcher)."""
+    run = procs([*CLI, "run", "--no-api", "--no-state"])
+    run.wait_for(r"running: ")
+    run.process.send_signal(signal.SIGINT)
+    assert run.process.wait(60) in (0, 130), run.output()
+    stopped = run.wait_for(r"stopped: (.*)").group(1)
+    assert all(int(code) in (0, 130, -signal.SIGTERM) for code in re.findall(r"exited (-?\d+)", stopped)), stopped
+    assert "Traceback" not in run.output() and "Fatal Python error" not in run.output(), run.output()
+
+
 # ------------------------------------------------------------------------------------------------ garbage
 
 

@@ -3,7 +3,7 @@ poses) and the source as child processes, shows progress, exports the map when a
 child cleanly.
 
 Children run in their own process group, so the launcher alone decides when they stop: on Ctrl-C
-(SIGINT) or SIGTERM it sends SIGINT to the source, then to the SLAM node, the API and the shards together,
+(SIGINT) or SIGTERM it sends SIGTERM to the source, then to the SLAM node, the API and the shards together,
 then to the router, waits for each (SIGKILL after a grace period) and reports every exit code. Each child also
 watches the launcher (services.process.PARENT_PID_ENV) and stops if the launcher dies.
 
@@ -40,10 +40,14 @@ from services.security import Role, remove_material, run_material, zenoh_argv
 from services.state.store.run import RunState
 from services.zenoh_config import build_config, open_session
 
-#: seconds a child gets to stop after SIGINT before it is killed
+#: seconds a child gets to stop after SIGTERM before it is killed
 STOP_GRACE = 15.0
-#: exit codes of a child that stopped as asked (130: SIGINT arrived before it had set up its handlers)
-CLEAN_EXITS = (0, 130)
+#: exit codes of a child that stopped as asked: 0, 130 (a SIGINT before it had set up its handlers), -15 (the
+#: launcher's SIGTERM before that: the default action ends it at once, with nothing of its own begun, or a
+#: store's last commit kept as after a crash). The launcher stops its children with SIGTERM, not SIGINT: a
+#: child still starting would turn a SIGINT into a KeyboardInterrupt inside an import (numpy's gives an
+#: ImportError and a traceback) or inside the interpreter's own start-up (a fatal error, exit 1)
+CLEAN_EXITS = (0, 130, -signal.SIGTERM)
 #: the exit code of a process that refused its input or options (services.errors.UsageError): never restarted
 USAGE_EXIT = 2
 #: seconds the launcher waits for the shards to come up (their kernels already compiled: _load_fusion_kernels)
@@ -205,7 +209,7 @@ class Children:
         _say(f"posegrid run: {child.name} restarted (pid {child.process.pid})")
 
     def stop_all(self) -> dict[str, int]:
-        """SIGINT every running child and wait; the router last, so the others can still say goodbye.
+        """SIGTERM every running child and wait; the router last, so the others can still say goodbye.
         Returns every child's exit code, in start order."""
         others = [c for c in self.children if c.name != "router"]
         self._stop([c for c in others if c.expected_to_finish])
@@ -217,7 +221,7 @@ class Children:
         for child in group:
             if child.process.poll() is None:
                 with contextlib.suppress(ProcessLookupError):
-                    child.process.send_signal(signal.SIGINT)
+                    child.process.send_signal(signal.SIGTERM)
         deadline = time.monotonic() + STOP_GRACE
         for child in group:
             try:
