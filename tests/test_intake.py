@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import queue
+import threading
 
 import numpy as np
 import pytest
@@ -172,6 +173,30 @@ def _dead_reckoning_state(rejects, published: list[bytes], history) -> SlamState
         make_filter=lambda start: DeadReckoning(OdometryMotionModel(), start),
     )
     return SlamState(config, rejects, publish=published.append, history=history)
+
+
+def test_a_slam_node_stopping_while_it_takes_the_history_stops_taking_it():
+    """A node that starts into a long run takes the source's history first (thousands of steps: seconds); asked to
+    stop meanwhile (here as its third pose goes out), it takes no further message."""
+    published: list[bytes] = []
+    stop = threading.Event()
+
+    def publish(payload: bytes) -> None:
+        published.append(payload)
+        if len(published) == 3:
+            stop.set()
+
+    config = NodeConfig(
+        robot="r",
+        algorithm="odometry",
+        motion="odometry",
+        initial=np.zeros(3),
+        make_filter=lambda start: DeadReckoning(OdometryMotionModel(), start),
+    )
+    state = SlamState(config, _rejects("slam-stop"), publish=publish, history=lambda *_: [])
+    replies = [(f"pg/r/{s}", m) for seq in range(50) for s, m in (("odom", _odometry(seq)), ("landmarks", _seen(seq)))]
+    state.take_history([(key, message.encode()) for key, message in replies], stop)
+    assert [decode_message(p, PoseGaussian).seq for p in published] == [0, 1, 2]
 
 
 def test_a_history_reply_on_a_stream_no_step_has_is_counted_not_fatal():

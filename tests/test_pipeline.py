@@ -1013,6 +1013,40 @@ def test_a_process_stopped_while_its_history_question_waits_stops_at_once(procs,
     assert "stopped while asking the histories" in proc.output()
 
 
+def test_a_shard_stopped_while_it_fuses_the_histories_stops_between_chunks(procs):
+    """A shard that starts into a long run fuses the histories' scans before it takes live ones (thousands: many
+    seconds). Stopped meanwhile, it went on to the end of them (over 8 s in a probe, then killed). Now it stops
+    after the chunk it is fusing, and commits what it fused as any stop does."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
+    pairs = 3000
+    samples = np.array([[0.5, 0.2, 0.0]]) + np.random.default_rng(1).normal(0.0, 0.02, (30, 3))
+    history_messages = []
+    for seq in range(pairs):
+        pose = PoseSamples(robot="r1", seq=seq, stamp=0.1 * seq, samples=samples, weights=np.full(30, 1 / 30))
+        history_messages += [(keys.SCAN, _scan(seq).encode()), (keys.POSE, pose.encode())]
+    who = history.Answerer("a source", "m", False)
+
+    def answer(query: zenoh.Query) -> None:
+        for stream, payload in history_messages:
+            history.reply(query, who, "r1", stream, payload)
+
+    with zenoh.open(build_config("client", connect=[endpoint])) as session:
+        session.declare_queryable(keys.history_key("r1"), answer)
+        shard = procs([*CLI, "mapper", "--shard", "0", "--shards", "1", "--map", "m", "--connect", endpoint])
+        shard.wait_for("up")
+        from services.map_client import MapReader
+
+        reader, deadline = MapReader(session, "m"), time.monotonic() + 60
+        while not any(s.fused.get("r1", 0) > 0 for s in reader.stats(timeout=2.0).values()):
+            assert time.monotonic() < deadline, "the shard fused none of the histories' scans"
+            time.sleep(0.02)
+        shard.process.send_signal(signal.SIGINT)
+        assert shard.process.wait(15) == 0
+    taken, offered = map(int, shard.wait_for(r"stopped taking the histories after (\d+) of (\d+)").groups())
+    assert 0 < taken < offered == 2 * pairs
+
+
 def test_what_the_router_loses_is_taken_from_the_histories(tmp_path, procs):
     """The router dies mid-run and comes back on its port: what the source published meanwhile never reaches the
     SLAM node or the mapper shard. The node takes those steps from the source's history instead of skipping

@@ -240,6 +240,9 @@ class Mapper:
             )
         chunk = self._taken_at_once()
         for first in range(0, len(taken), chunk):
+            if self.stop.is_set():  # (what is fused so far is committed as the shard stops)
+                self.log.info("stopped taking the histories after %d of %d message(s)", first, len(taken))
+                return
             with self.lock:
                 try:
                     for key, message in taken[first : first + chunk]:

@@ -99,7 +99,7 @@ class SlamNode:
         )  # a run that has ended is not this one
         if replies:
             with self.lock:
-                self.state.take_history(replies)
+                self.state.take_history(replies, self.stop)
 
     # ---------------------------------------------------------------------------- lifecycle
     def declare(self) -> None:

@@ -16,6 +16,7 @@ which a live node cannot do).
 from __future__ import annotations
 
 import copy
+import threading
 import time
 from collections import Counter, OrderedDict
 from collections.abc import Callable
@@ -324,14 +325,20 @@ class SlamState:
             return
         self._file(released)
 
-    def take_history(self, replies: list[tuple[str, bytes]]) -> None:
+    def take_history(self, replies: list[tuple[str, bytes]], stop: threading.Event | None = None) -> None:
         """Take what the source's history gave at startup ((pg/<robot>/<stream>, payload), in the order it was
-        sent), as if it had arrived live; a live copy that comes later is dropped without a word."""
+        sent), as if it had arrived live; a live copy that comes later is dropped without a word. Stops taking
+        them when ``stop`` is set (the process is stopping: thousands of steps take seconds)."""
+        taken = 0
         for key, payload in replies:
+            if stop is not None and stop.is_set():
+                break
             self.handle(key, payload, from_history=True)
+            taken += 1
         self.log.info(
-            "took %d message(s) the source published before this node was up (steps up to seq %d)",
-            len(replies),
+            "took %d%s message(s) the source published before this node was up (steps up to seq %d)",
+            taken,
+            "" if taken == len(replies) else f" of the {len(replies)}",
             max(self._history_high.values(), default=-1),
         )
 
