@@ -19,7 +19,7 @@ import msgpack
 import zenoh
 
 from services import keys
-from services.process import RejectCounter
+from services.process import RejectCounter, Stopped
 
 #: a seq in a query's parameters
 _SEQ = re.compile(r"[0-9]{1,18}")
@@ -35,10 +35,6 @@ RECONNECT_GRACE = 5.0
 RETRY_PERIOD = 0.5
 #: s between looks at the stop flag while a question waits (for its replies or for the router)
 STOP_POLL = 0.1
-
-
-class Stopped(Exception):
-    """The process was asked to stop while a question to the histories waited; nothing of it was taken."""
 
 
 @dataclass(frozen=True)

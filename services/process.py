@@ -10,6 +10,8 @@ import signal
 import sys
 import threading
 from collections import Counter
+from collections.abc import Callable
+from typing import TypeVar
 
 #: set by the launcher in its children: the child stops when this process is no longer its parent
 PARENT_PID_ENV = "POSEGRID_PARENT_PID"
@@ -32,6 +34,40 @@ def install_stop_event() -> threading.Event:
     if parent and parent.isdigit():
         threading.Thread(target=_watch_parent, args=(int(parent), stop), daemon=True, name="parent-watch").start()
     return stop
+
+
+class Stopped(Exception):
+    """The process was asked to stop while it waited for something (a question to the histories, its input, a
+    compile); nothing of what it waited for is taken."""
+
+
+T = TypeVar("T")
+
+
+def until_stopped(work: Callable[[], T], stop: threading.Event, what: str) -> T:
+    """``work()``'s result, computed in a daemon thread named ``what``; its exception is raised here. Raises
+    :class:`Stopped` as soon as ``stop`` is set first: work that cannot be interrupted (a simulation, a file read,
+    a kernel compile) is left to end with the process, so a stop takes effect at once."""
+    results: list[T] = []
+    failures: list[Exception] = []
+
+    def run() -> None:
+        try:
+            results.append(work())
+        except Exception as exc:  # noqa: BLE001 - raised again in the caller's thread
+            failures.append(exc)
+
+    worker = threading.Thread(target=run, daemon=True, name=what)
+    worker.start()
+    while True:
+        worker.join(0.1)
+        if not worker.is_alive():
+            break
+        if stop.is_set():
+            raise Stopped(f"stopped while {what}")
+    if failures:
+        raise failures[0]
+    return results[0]
 
 
 def _watch_parent(parent_pid: int, stop: threading.Event) -> None:

@@ -1013,6 +1013,16 @@ def test_a_process_stopped_while_its_history_question_waits_stops_at_once(procs,
     assert "stopped while asking the histories" in proc.output()
 
 
+def test_a_source_stopped_while_it_simulates_its_input_stops_at_once(procs):
+    """`posegrid source --sim --steps 100000` simulates for minutes before it publishes; a stop waited for the end
+    of it. Now the source stops at once (exit 0) and says where it was."""
+    source = procs([*CLI, "source", "--sim", "--steps", "100000", "--connect", f"tcp/127.0.0.1:{free_port()}"])
+    source.wait_for("simulating 100000 steps")
+    source.process.send_signal(signal.SIGINT)
+    assert source.process.wait(15) == 0, source.output()
+    assert "stopped while reading its input" in source.output()
+
+
 def test_a_shard_stopped_while_it_fuses_the_histories_stops_between_chunks(procs):
     """A shard that starts into a long run fuses the histories' scans before it takes live ones (thousands: many
     seconds). Stopped meanwhile, it went on to the end of them (over 8 s in a probe, then killed). Now it stops

@@ -491,6 +491,7 @@ def _stream(args: argparse.Namespace):
         return streams.laser_log_stream(_laser_log(args, "source"), args.robot)
     from slam.simulator import simulate_office
 
+    print(f"posegrid source[{args.robot}]: simulating {args.steps} steps of the office", file=sys.stderr, flush=True)
     return streams.sim_stream(simulate_office(seed=args.seed, steps=args.steps), args.robot)
 
 
@@ -575,12 +576,16 @@ def run_source(args: argparse.Namespace) -> int:
         raise UsageError(f"--steps must be >= 1, got {args.steps}")
     rate = _rate(args.rate)
     from services.nodes.source import Source, SourceOptions, SourceStalled
-    from services.process import install_stop_event
+    from services.process import Stopped, install_stop_event, until_stopped
     from services.zenoh_config import config_from_args, open_session
 
     stop = install_stop_event()
     zenoh_config = config_from_args(args, "client")
-    stream = _stream(args)
+    try:
+        stream = until_stopped(lambda: _stream(args), stop, "reading its input")  # (a long simulation or log)
+    except Stopped as exc:
+        print(f"posegrid source[{args.robot}]: {exc}", file=sys.stderr, flush=True)
+        return 0
     options = SourceOptions(
         rate=rate, wait_mappers=args.wait_mappers, map_name=args.map, wait_slam=args.wait_slam, window=args.window
     )

@@ -35,7 +35,7 @@ from schemas.files import MapFile, save_map
 from services import keys
 from services.api.guard import TOKEN_ENV
 from services.map_client import IncompleteMap, MapReader
-from services.process import PARENT_PID_ENV, get_logger
+from services.process import PARENT_PID_ENV, Stopped, get_logger, until_stopped
 from services.security import Role, remove_material, run_material, zenoh_argv
 from services.state.store.run import RunState
 from services.zenoh_config import build_config, open_session
@@ -347,38 +347,30 @@ def _load_fusion_kernels(stop: threading.Event) -> bool:
     """Load the shards' compiled fusion kernels in this process before any shard starts, compiling them where the
     cache lacks them (the first start after an install or an edit: a minute or more on a slow machine, which the
     shards would otherwise spend past START_TIMEOUT); the shards then load them from the cache. Says so when it
-    takes longer than COMPILE_NOTE_AFTER s. False when ``stop`` is set first: the compile, which cannot be
-    interrupted, goes on in a daemon thread that ends with the process (numba writes a cache entry whole or not
-    at all), so Ctrl-C during it stops the run at once."""
+    takes longer than COMPILE_NOTE_AFTER s. False when ``stop`` is set first: the compile cannot be interrupted and
+    is left to end with the process (services.process.until_stopped; numba writes a cache entry whole or not at
+    all), so Ctrl-C during it stops the run at once."""
     from mapping.grid import TILE_SIZE
     from mapping.sensor_model import SensorModel
     from services.state.shard import warm_fusion
 
-    failed: list[BaseException] = []
-
-    def load() -> None:
-        try:
-            warm_fusion(SensorModel(), TILE_SIZE)
-        except Exception as exc:  # noqa: BLE001 - raised again in the main thread
-            failed.append(exc)
-
+    note = threading.Timer(
+        COMPILE_NOTE_AFTER,
+        lambda: print(
+            "posegrid run: compiling the fusion kernels (once after an install or an edit; a minute or two)", flush=True
+        ),
+    )
+    note.daemon = True
     started = time.monotonic()
-    loading = threading.Thread(target=load, daemon=True, name="compile-fusion")
-    loading.start()
-    noted = False
-    while loading.is_alive():
-        if stop.wait(0.1):
-            return False
-        if not noted and time.monotonic() - started > COMPILE_NOTE_AFTER:
-            print(
-                "posegrid run: compiling the fusion kernels (once after an install or an edit; a minute or two)",
-                flush=True,
-            )
-            noted = True
-    if failed:
-        raise failed[0]
-    if noted:
-        took = time.monotonic() - started
+    note.start()
+    try:
+        until_stopped(lambda: warm_fusion(SensorModel(), TILE_SIZE), stop, "compiling the fusion kernels")
+    except Stopped:
+        return False
+    finally:
+        note.cancel()
+    took = time.monotonic() - started
+    if took > COMPILE_NOTE_AFTER:
         print(f"posegrid run: fusion kernels ready in {took:.0f} s; later starts load them at once", flush=True)
     return True
 

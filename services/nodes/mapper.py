@@ -32,7 +32,7 @@ import zenoh
 from schemas.wire import is_valid_name
 from services import history, keys
 from services.intake import DEFAULT_CAPACITY, Intake
-from services.process import RejectCounter, get_logger
+from services.process import RejectCounter, Stopped, get_logger
 from services.state.shard import SHARD_STREAMS, MapShard, ShardConfig
 from services.state.store.db import ShardStore, StoredState, StoreError, StoreIdentity
 from services.state.store.journal import Journal, tiles_of_map
@@ -314,7 +314,7 @@ class Mapper:
         try:
             self.catch_up()
             self._serve(stop)
-        except history.Stopped as exc:
+        except Stopped as exc:
             self._undeclare()
             self.log.info("%s; the store keeps its last commit", exc)
             if self.persister is not None:

@@ -21,7 +21,7 @@ import zenoh
 
 from services import history, keys
 from services.intake import Intake
-from services.process import RejectCounter, get_logger
+from services.process import RejectCounter, Stopped, get_logger
 from services.state.slam import EXPECTED, NodeConfig, SlamState
 from services.zenoh_config import open_session
 
@@ -132,7 +132,7 @@ class SlamNode:
                     continue
                 with self.lock:
                     self.state.handle(key, payload)
-        except history.Stopped as exc:
+        except Stopped as exc:
             self.log.info("%s", exc)
         for entity in reversed(self._declared):
             entity.undeclare()
