@@ -16,6 +16,7 @@ import signal
 import sys
 
 from services.errors import UsageError
+from services.process import Stopped
 
 #: modules that register subcommands, in the order ``--help`` lists them
 COMMAND_MODULES = (
@@ -70,6 +71,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("posegrid: interrupted", file=sys.stderr)
         return 130
+    except Stopped as exc:  # (asked to stop while it waited for something it could not interrupt)
+        print(f"posegrid {args.command}: {exc}", file=sys.stderr)
+        return 0
     except input_errors() as exc:
         print(f"posegrid {args.command}: error: {exc}", file=sys.stderr)
         return 2

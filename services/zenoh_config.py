@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import threading
 from pathlib import Path
 
 import zenoh
@@ -137,8 +138,13 @@ def config_from_args(args: argparse.Namespace, mode: str) -> zenoh.Config:
     return build_config(mode, listen=args.listen, connect=args.connect, config_file=args.zenoh_config)
 
 
-def open_session(config: zenoh.Config, what: str) -> zenoh.Session:
-    """Open a Zenoh session; an unreachable router becomes a one-sentence :class:`UsageError`."""
+def open_session(config: zenoh.Config, what: str, stop: threading.Event | None = None) -> zenoh.Session:
+    """Open a Zenoh session; an unreachable router becomes a one-sentence :class:`UsageError`. With ``stop``, a stop
+    while it waits for the router (up to the connect timeout) raises services.process.Stopped at once."""
+    if stop is not None:
+        from services.process import until_stopped
+
+        return until_stopped(lambda: open_session(config, what), stop, "waiting for the router")
     try:
         return zenoh.open(config)
     except zenoh.ZError as exc:

@@ -248,6 +248,33 @@ def test_a_sigint_before_the_stop_handlers_stops_a_process_started_with_it_ignor
     assert code == 130 and child.stderr.read() == "posegrid: interrupted\n"
 
 
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["mapper", "--shard", "0", "--shards", "1"],
+        ["slam-node", "--robot", "r1", "--algo", "odometry"],
+        ["source", "--sim", "--steps", "20"],
+        ["api", "--port", str(free_port())],
+    ],
+    ids=lambda argv: argv[0],
+)
+def test_a_process_waiting_for_a_router_that_is_not_there_stops_at_once(started, argv):
+    """With no router at the endpoint, opening the Zenoh session waits out the connect timeout (10 s) and then
+    fails in one sentence; a stop meanwhile waited for it too. Now the process stops at once, exit 0 (130 where
+    the SIGINT comes before its handlers, on a machine busy enough to take 3 s for the imports)."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"  # (nothing listens there)
+    child = subprocess.Popen([*CLI, *argv, "--connect", endpoint], stderr=subprocess.PIPE, text=True)
+    started.append(child)
+    time.sleep(3.0)  # into the session's wait for the router
+    child.send_signal(signal.SIGINT)
+    signalled = time.monotonic()
+    code = child.wait(30)
+    waited = time.monotonic() - signalled
+    err = child.stderr.read()
+    assert code in (0, 130) and waited < 5.0 and "Traceback" not in err, (code, waited, err)
+    assert code == 130 or "stopped while waiting for the router" in err, err
+
+
 def test_two_processes_answering_one_robots_history_are_both_refused(started):
     """A source of an earlier run still up under the same robot name answers the history too: whose messages a
     reader would take is chance, and taking them made a map silently wrong (an audit). Both are left out, with

@@ -70,7 +70,7 @@ def serve(host: str, port: int, zenoh_config: zenoh.Config, options: ServeOption
     """Serve the API and the viewer on http://host:port/ until stopped; returns the exit code."""
     log = get_logger("api")
     stop = install_stop_event()  # uvicorn takes over SIGINT/SIGTERM while it runs; this keeps the parent watch
-    session = open_session(zenoh_config, "the API")
+    session = open_session(zenoh_config, "the API", stop)
     try:
         backend = Backend.open(
             session,

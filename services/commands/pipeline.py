@@ -589,7 +589,7 @@ def run_source(args: argparse.Namespace) -> int:
     options = SourceOptions(
         rate=rate, wait_mappers=args.wait_mappers, map_name=args.map, wait_slam=args.wait_slam, window=args.window
     )
-    session = open_session(zenoh_config, "the source")
+    session = open_session(zenoh_config, "the source", stop)
     try:
         return Source(session, stream, options).run(stop)
     except SourceStalled as exc:

@@ -370,7 +370,7 @@ def run_mapper(
     and run one shard until ``stop`` is set."""
     durable = None if persist is None else Durable.open(config, persist)
     try:
-        session = open_session(zenoh_config, f"mapper shard {config.shard}")
+        session = open_session(zenoh_config, f"mapper shard {config.shard}", stop)
     except BaseException:
         if durable is not None and durable.store is not None:
             durable.store.close()

@@ -142,7 +142,7 @@ class SlamNode:
 
 def run_slam_node(config: NodeConfig, zenoh_config: zenoh.Config, stop: threading.Event) -> int:
     """Open a session and run the node until ``stop`` is set."""
-    session = open_session(zenoh_config, f"the SLAM node of robot {config.robot}")
+    session = open_session(zenoh_config, f"the SLAM node of robot {config.robot}", stop)
     try:
         return SlamNode(config, session).run(stop)
     finally:
