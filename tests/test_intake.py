@@ -150,7 +150,7 @@ def test_a_slam_node_takes_lost_steps_from_the_history_and_counts_replies_about_
         return replies
 
     rejects = _rejects("slam-history")
-    state = _dead_reckoning_state(rejects, published, history)
+    state = _dead_reckoning_state(rejects, published.append, history)
     for seq in [0, 1, 2, *range(5, 10)]:
         state.handle("pg/r/odom", _odometry(seq).encode())
         state.handle("pg/r/landmarks", _seen(seq).encode())
@@ -162,9 +162,9 @@ def test_a_slam_node_takes_lost_steps_from_the_history_and_counts_replies_about_
     np.testing.assert_allclose(poses[9].mean, [0.9, 0.0, 0.0], atol=1e-12)  # moved by every step's odometry
 
 
-def _dead_reckoning_state(rejects, published: list[bytes], history) -> SlamState:
-    """A SLAM node's state for robot r with an odometry-only filter from the origin, publishing into ``published``
-    and asking ``history`` for what its streams skipped."""
+def _dead_reckoning_state(rejects, publish, history) -> SlamState:
+    """A SLAM node's state for robot r with an odometry-only filter from the origin, publishing with ``publish``
+    (a pose's payload) and asking ``history`` for what its streams skipped."""
     config = NodeConfig(
         robot="r",
         algorithm="odometry",
@@ -172,7 +172,7 @@ def _dead_reckoning_state(rejects, published: list[bytes], history) -> SlamState
         initial=np.zeros(3),
         make_filter=lambda start: DeadReckoning(OdometryMotionModel(), start),
     )
-    return SlamState(config, rejects, publish=published.append, history=history)
+    return SlamState(config, rejects, publish=publish, history=history)
 
 
 def test_a_slam_node_stopping_while_it_takes_the_history_stops_taking_it():
@@ -186,14 +186,7 @@ def test_a_slam_node_stopping_while_it_takes_the_history_stops_taking_it():
         if len(published) == 3:
             stop.set()
 
-    config = NodeConfig(
-        robot="r",
-        algorithm="odometry",
-        motion="odometry",
-        initial=np.zeros(3),
-        make_filter=lambda start: DeadReckoning(OdometryMotionModel(), start),
-    )
-    state = SlamState(config, _rejects("slam-stop"), publish=publish, history=lambda *_: [])
+    state = _dead_reckoning_state(_rejects("slam-stop"), publish, history=lambda *_: [])
     replies = [(f"pg/r/{s}", m) for seq in range(50) for s, m in (("odom", _odometry(seq)), ("landmarks", _seen(seq)))]
     state.take_history([(key, message.encode()) for key, message in replies], stop)
     assert [decode_message(p, PoseGaussian).seq for p in published] == [0, 1, 2]
@@ -211,7 +204,7 @@ def test_a_history_reply_on_a_stream_no_step_has_is_counted_not_fatal():
         return replies
 
     rejects = _rejects("slam-history-end")
-    state = _dead_reckoning_state(rejects, published, history)
+    state = _dead_reckoning_state(rejects, published.append, history)
     for seq in (0, 1, 3, 4):
         state.handle("pg/r/odom", _odometry(seq).encode())
         state.handle("pg/r/landmarks", _seen(seq).encode())
