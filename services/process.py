@@ -67,6 +67,8 @@ def until_stopped(work: Callable[[], T], stop: threading.Event, what: str) -> T:
             raise Stopped(f"stopped while {what}")
     if failures:
         raise failures[0]
+    if not results:  # (the work ended by SystemExit or the like, which no thread should raise)
+        raise RuntimeError(f"{what}: the work ended without a result")
     return results[0]
 
 

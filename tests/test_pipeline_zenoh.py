@@ -220,6 +220,30 @@ def test_an_interrupt_while_the_commands_load_is_one_line_and_exit_130(monkeypat
     assert captured.err == "posegrid: interrupted\n" and captured.out == ""
 
 
+def test_work_until_stopped_gives_its_result_its_error_or_stopped():
+    """services.process.until_stopped: the work's result, or its exception raised in the caller's thread, or
+    Stopped at once when the stop flag is set while the work still runs (the work is left to its thread)."""
+    import threading
+
+    from services.process import Stopped, until_stopped
+
+    stop = threading.Event()
+    assert until_stopped(lambda: 41 + 1, stop, "adding") == 42
+
+    def refuse() -> int:
+        raise UsageError("no such log")
+
+    with pytest.raises(UsageError, match="no such log"):
+        until_stopped(refuse, stop, "reading")
+    release = threading.Event()
+    threading.Timer(0.2, stop.set).start()
+    started = time.monotonic()
+    with pytest.raises(Stopped, match="stopped while waiting for ever"):
+        until_stopped(lambda: release.wait(60), stop, "waiting for ever")
+    assert time.monotonic() - started < 10.0  # (the work itself would take 60 s)
+    release.set()
+
+
 #: a `posegrid router` started with SIGINT ignored (as a script's background job is), which sends itself a SIGINT
 #: while main() loads its commands: before the router installs its stop handlers
 _IGNORED_SIGINT_CHILD = """
