@@ -1013,6 +1013,25 @@ def test_a_process_stopped_while_its_history_question_waits_stops_at_once(procs,
     assert "stopped while asking the histories" in proc.output()
 
 
+def test_a_shard_stopped_while_it_compiles_its_kernels_stops_at_once(tmp_path, procs):
+    """A shard started on its own after an install compiles its fusion kernels before it is up (20 s and more
+    here); a stop waited for the compile. Now it stops at once. An empty kernel cache (NUMBA_CACHE_DIR, a folder
+    of this test's) makes the compile happen; the SIGINT comes 4 s in, past the imports and into the compile."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
+    shard = procs(
+        [*CLI, "mapper", "--shard", "0", "--shards", "1", "--connect", endpoint],
+        env={**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)},
+    )
+    time.sleep(4.0)
+    assert shard.process.poll() is None and not any(" up;" in line for line in shard.lines), shard.output()
+    shard.process.send_signal(signal.SIGINT)
+    signalled = time.monotonic()
+    code = shard.process.wait(60)
+    assert code in (0, 130) and time.monotonic() - signalled < 8.0, (code, shard.output())
+    assert code == 130 or "stopped while loading the fusion kernels" in shard.output()
+
+
 def test_a_source_stopped_while_it_simulates_its_input_stops_at_once(procs):
     """`posegrid source --sim --steps 100000` simulates for minutes before it publishes; a stop waited for the end
     of it. Now the source stops at once (exit 0) and says where it was."""

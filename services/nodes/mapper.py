@@ -32,7 +32,7 @@ import zenoh
 from schemas.wire import is_valid_name
 from services import history, keys
 from services.intake import DEFAULT_CAPACITY, Intake
-from services.process import RejectCounter, Stopped, get_logger
+from services.process import RejectCounter, Stopped, get_logger, until_stopped
 from services.state.shard import SHARD_STREAMS, MapShard, ShardConfig
 from services.state.store.db import ShardStore, StoredState, StoreError, StoreIdentity
 from services.state.store.journal import Journal, tiles_of_map
@@ -296,28 +296,31 @@ class Mapper:
     def run(self, stop: threading.Event) -> int:
         """Fuse and publish until ``stop`` is set; returns the exit code (0). The liveliness token is
         declared once the kernels are warm, so whoever waits for it sees the shard's steady latency. Stopped while
-        a question to the histories waits (the router gone first), it leaves the store as a crash would: what was
-        committed stays, and the histories give the rest on the next start."""
+        the kernels load (a compile, on a fresh install) or a question to the histories waits (the router gone
+        first), it leaves the store as a crash would: what was committed stays, and the histories give the rest on
+        the next start."""
         self.stop = stop
-        self.shard.warm_up()
-        with self.lock:
-            self._refresh_stats()
-        self.declare()
         cfg = self.config
-        self.log.info(
-            "shard %d of %d of map %r up; tiles on %s",
-            cfg.shard,
-            cfg.shards,
-            cfg.map_name,
-            keys.tile_key(cfg.map_name, 0, "*", "*"),
-        )
         try:
+            until_stopped(self.shard.warm_up, stop, "loading the fusion kernels")  # (compiling them: a minute cold)
+            with self.lock:
+                self._refresh_stats()
+            self.declare()
+            self.log.info(
+                "shard %d of %d of map %r up; tiles on %s",
+                cfg.shard,
+                cfg.shards,
+                cfg.map_name,
+                keys.tile_key(cfg.map_name, 0, "*", "*"),
+            )
             self.catch_up()
             self._serve(stop)
         except Stopped as exc:
             self._undeclare()
-            self.log.info("%s; the store keeps its last commit", exc)
-            if self.persister is not None:
+            if self.persister is None:
+                self.log.info("%s", exc)
+            else:
+                self.log.info("%s; the store keeps its last commit", exc)
                 self.persister.abandon()
             return 0
         self._undeclare()
