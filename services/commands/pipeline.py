@@ -576,16 +576,12 @@ def run_source(args: argparse.Namespace) -> int:
         raise UsageError(f"--steps must be >= 1, got {args.steps}")
     rate = _rate(args.rate)
     from services.nodes.source import Source, SourceOptions, SourceStalled
-    from services.process import Stopped, install_stop_event, until_stopped
+    from services.process import install_stop_event, until_stopped
     from services.zenoh_config import config_from_args, open_session
 
     stop = install_stop_event()
     zenoh_config = config_from_args(args, "client")
-    try:
-        stream = until_stopped(lambda: _stream(args), stop, "reading its input")  # (a long simulation or log)
-    except Stopped as exc:
-        print(f"posegrid source[{args.robot}]: {exc}", file=sys.stderr, flush=True)
-        return 0
+    stream = until_stopped(lambda: _stream(args), stop, "reading its input")  # (a long simulation or log: Stopped)
     options = SourceOptions(
         rate=rate, wait_mappers=args.wait_mappers, map_name=args.map, wait_slam=args.wait_slam, window=args.window
     )

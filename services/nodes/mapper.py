@@ -121,17 +121,18 @@ class Mapper:
         self,
         config: ShardConfig,
         session: zenoh.Session,
+        stop: threading.Event,
         intake_capacity: int = DEFAULT_INTAKE_CAPACITY,
         durable: Durable | None = None,
     ):
         self.config = config
         self.session = session
+        self.stop = stop  # set when the process is asked to stop (services.process.install_stop_event)
         self.log = get_logger(f"mapper[{config.shard}]")
         self.rejects = RejectCounter(self.log)
         self.shard = MapShard(config, self.rejects, history=self._history)
         self.persister = None if durable is None else self._start_from(durable)
         self.lock = threading.Lock()
-        self.stop = threading.Event()  # run()'s: set when the process is asked to stop
         self.intake = Intake(SHARD_STREAMS, self.rejects, config.limits, capacity=intake_capacity)
         self._declared: list = []  # what declare() declared, undeclared in reverse order
         self._stats_lock = threading.Lock()  # guards _stats_payload only
@@ -293,16 +294,16 @@ class Mapper:
         self._declared.append(session.declare_queryable(keys.stats_key(name, self.config.shard), self._on_stats_query))
         self._declared.append(session.liveliness().declare_token(keys.shard_alive_key(name, self.config.shard)))
 
-    def run(self, stop: threading.Event) -> int:
-        """Fuse and publish until ``stop`` is set; returns the exit code (0). The liveliness token is
+    def run(self) -> int:
+        """Fuse and publish until the stop flag is set; returns the exit code (0). The liveliness token is
         declared once the kernels are warm, so whoever waits for it sees the shard's steady latency. Stopped while
         the kernels load (a compile, on a fresh install) or a question to the histories waits (the router gone
         first), it leaves the store as a crash would: what was committed stays, and the histories give the rest on
         the next start."""
-        self.stop = stop
         cfg = self.config
         try:
-            until_stopped(self.shard.warm_up, stop, "loading the fusion kernels")  # (compiling them: a minute cold)
+            # (a minute of compiling on a fresh install)
+            until_stopped(self.shard.warm_up, self.stop, "loading the fusion kernels")
             with self.lock:
                 self._refresh_stats()
             self.declare()
@@ -314,7 +315,7 @@ class Mapper:
                 keys.tile_key(cfg.map_name, 0, "*", "*"),
             )
             self.catch_up()
-            self._serve(stop)
+            self._serve()
         except Stopped as exc:
             self._undeclare()
             if self.persister is None:
@@ -330,11 +331,11 @@ class Mapper:
             return 1
         return 0
 
-    def _serve(self, stop: threading.Event) -> None:
-        """Take messages from the intake, fuse them and publish the tiles due, until ``stop`` is set."""
+    def _serve(self) -> None:
+        """Take messages from the intake, fuse them and publish the tiles due, until the stop flag is set."""
         cfg = self.config
         next_due = None
-        while not stop.is_set():
+        while not self.stop.is_set():
             timeout = 0.2 if next_due is None else min(0.2, max(0.0, next_due - time.monotonic()))
             try:
                 key, payload = self.intake.next(timeout)
@@ -379,6 +380,6 @@ def run_mapper(
             durable.store.close()
         raise
     try:
-        return Mapper(config, session, intake_capacity, durable).run(stop)
+        return Mapper(config, session, stop, intake_capacity, durable).run()
     finally:
         session.close()

@@ -34,15 +34,15 @@ RECOVER_TIMEOUT = 5.0
 class SlamNode:
     """A running node: Zenoh declarations around a :class:`SlamState`. Use :meth:`run`."""
 
-    def __init__(self, config: NodeConfig, session: zenoh.Session):
+    def __init__(self, config: NodeConfig, session: zenoh.Session, stop: threading.Event):
         self.config = config
         self.session = session
+        self.stop = stop  # set when the process is asked to stop (services.process.install_stop_event)
         self.log = get_logger(f"slam-node[{config.robot}]")
         self.rejects = RejectCounter(self.log)
         self.state = SlamState(config, self.rejects, publish=self._publish_pose, history=self._recover)
         self.intake = Intake(EXPECTED, self.rejects, robot=config.robot, capacity=config.intake_capacity)
         self.lock = threading.Lock()
-        self.stop = threading.Event()  # run()'s: set when the process is asked to stop
         self._declared: list = []
         self._pose_publisher: zenoh.Publisher | None = None
 
@@ -115,17 +115,16 @@ class SlamNode:
         self._declared.append(session.declare_queryable(keys.history_key(robot), self._on_history_query))
         self._declared.append(session.liveliness().declare_token(keys.robot_alive_key(robot, "slam")))
 
-    def run(self, stop: threading.Event) -> int:
-        """Filter and publish until ``stop`` is set; returns the exit code (0). Stopped while a question to the
+    def run(self) -> int:
+        """Filter and publish until the stop flag is set; returns the exit code (0). Stopped while a question to the
         source's history waits (the router gone first), it stops there: a node started again takes the run from
         the histories."""
-        self.stop = stop
         robot = self.config.robot
         self.declare()
         self.log.info("%s up for robot %r; poses on %s", self.config.algorithm, robot, keys.robot_key(robot, keys.POSE))
         try:
             self.catch_up()
-            while not stop.is_set():
+            while not self.stop.is_set():
                 try:
                     key, payload = self.intake.next(0.2)
                 except queue.Empty:
@@ -144,6 +143,6 @@ def run_slam_node(config: NodeConfig, zenoh_config: zenoh.Config, stop: threadin
     """Open a session and run the node until ``stop`` is set."""
     session = open_session(zenoh_config, f"the SLAM node of robot {config.robot}", stop)
     try:
-        return SlamNode(config, session).run(stop)
+        return SlamNode(config, session, stop).run()
     finally:
         session.close()
