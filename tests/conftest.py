@@ -46,6 +46,44 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     items.sort(key=lambda item: item.path not in slow_files)
 
 
+#: the test files whose tests start mappers (processes of their own, or through `posegrid run`)
+STARTS_MAPPERS = {
+    "test_api.py",
+    "test_api_hardening.py",
+    "test_hostile_peers.py",
+    "test_output_paths.py",
+    "test_persist.py",
+    "test_persist_store.py",
+    "test_pipeline.py",
+    "test_pipeline_zenoh.py",
+    "test_ros2.py",
+    "test_ros2_bridge.py",
+    "test_security.py",
+    "test_supervise.py",
+    "test_viewer.py",
+}
+
+
+@pytest.fixture(scope="session")
+def fusion_kernels() -> None:
+    """The fusion kernels a mapper loads as it starts, compiled (or loaded from numba's cache) in this test process
+    first. On a fresh clone they take 30-60 s to compile on a busy 2-core machine; a mapper that a test starts would
+    spend that before it says it is up, which the tests wait 60 s for, and a mapper stopped mid-compile keeps none of
+    it. Compiled here (under mapping.jit's lock, so xdist's workers share the work), every mapper loads them."""
+    from mapping.grid import TILE_SIZE
+    from mapping.sensor_model import SensorModel
+    from services.state.shard import warm_fusion
+
+    warm_fusion(SensorModel(), TILE_SIZE)
+
+
+@pytest.fixture(autouse=True)
+def _fusion_kernels_before_mappers(request: pytest.FixtureRequest) -> None:
+    """:func:`fusion_kernels` before the first test of a file that starts mappers (:data:`STARTS_MAPPERS`)."""
+    if request.node.path.name in STARTS_MAPPERS:
+        request.getfixturevalue("fusion_kernels")
+
+
 @pytest.fixture(scope="session")
 def data_dir() -> Path:
     """The shared real-data folder; tests that need it skip when it is absent (a user's fresh clone)."""

@@ -528,7 +528,7 @@ def test_garbage_on_every_key_is_counted_and_processes_keep_working(tmp_path, pr
     finally:
         listener.undeclare()
         session.close()
-    assert len(stats) == 1 and stats[0].fused == {"r3": 1}, stats
+    assert len(stats) == 1 and stats[0].fused == {"r3": 1}, (repr(stats), mappers[0].output())
     for s in stats:
         # the mappers subscribe to scan, pose and end; every garbage payload there is counted on its key
         assert s.rejected == {
