@@ -25,6 +25,7 @@ from PIL import Image
 
 from api_stack import POSEGRID, ROOT, Stack, free_port, wait_until, write_room
 from mapping.export import render_pgm
+from peers import put
 from schemas.files import load_map, load_posed_scans
 from schemas.messages import TileUpdate
 from services import keys
@@ -390,8 +391,8 @@ def test_stats_and_health(api):
 def test_bad_zenoh_data_is_counted_by_key_never_trusted(api, session):
     """Garbage, and a valid tile on the wrong key, are rejected per key; the API keeps serving."""
     garbage_key = keys.tile_key(MAP, 0, 0, 0)
-    session.put(garbage_key, b"\x93not msgpack")
-    session.put(keys.robot_key("robot0", keys.POSE), b"\x81\xa4type\xa9PoseNoise")
+    put(session, garbage_key, b"\x93not msgpack")
+    put(session, keys.robot_key("robot0", keys.POSE), b"\x81\xa4type\xa9PoseNoise")
     tile = TileUpdate(
         map=MAP,
         shard=0,
@@ -410,7 +411,7 @@ def test_bad_zenoh_data_is_counted_by_key_never_trusted(api, session):
         observed=np.ones((1, 1), bool),
     )
     wrong_key = keys.tile_key(MAP, 0, 7, 7)
-    session.put(wrong_key, tile.encode())
+    put(session, wrong_key, tile.encode())
 
     def counted():
         rejected = httpx.get(f"{api}/health", timeout=30).json()["rejected"]

@@ -29,6 +29,7 @@ import numpy as np
 import pytest
 import zenoh
 
+from peers import put
 from schemas.files import PosedScans, PoseSet, load_map, load_posed_scans, save_posed_scans
 from schemas.messages import (
     LandmarkObservations,
@@ -468,29 +469,33 @@ def test_garbage_on_every_key_is_counted_and_processes_keep_working(tmp_path, pr
         for key in keys:
             for payload in GARBAGE.values():
                 session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
-        session.put("pg/r1/scan", _pose(0).encode())  # a valid message of the wrong type for its key
-        session.put("pg/r2/scan", _scan(0).encode())  # a valid scan claiming another robot than its key
+        put(session, "pg/r1/scan", _pose(0).encode())  # a valid message of the wrong type for its key
+        put(session, "pg/r2/scan", _scan(0).encode())  # a valid scan claiming another robot than its key
         # valid messages that drive the EKF 1e14 m away: its pose is no PoseGaussian; the step is skipped
-        session.put(
+        put(
+            session,
             "pg/r1/odom",
             Odometry(
                 robot="r1", seq=0, stamp=0.0, pose=np.zeros((0, 3)), commands=np.array([[1e7, 0.0, 1e7]])
             ).encode(),
         )
-        session.put(
+        put(
+            session,
             "pg/r1/landmarks",
             LandmarkObservations(
                 robot="r1", seq=0, stamp=0.0, ids=np.zeros(0, np.int64), ranges=np.zeros(0), bearings=np.zeros(0)
             ).encode(),
         )
         # ... and the filter is back where it was: the next, ordinary step is published
-        session.put(
+        put(
+            session,
             "pg/r1/odom",
             Odometry(
                 robot="r1", seq=1, stamp=0.1, pose=np.zeros((0, 3)), commands=np.array([[0.5, 0.0, 0.1]])
             ).encode(),
         )
-        session.put(
+        put(
+            session,
             "pg/r1/landmarks",
             LandmarkObservations(
                 robot="r1", seq=1, stamp=0.1, ids=np.zeros(0, np.int64), ranges=np.zeros(0), bearings=np.zeros(0)
@@ -500,9 +505,9 @@ def test_garbage_on_every_key_is_counted_and_processes_keep_working(tmp_path, pr
             list(session.get(selector, payload=b"\xff garbage query", timeout=5))
         # the shards still work: a valid scan and pose are joined and fused, in reverse order (robot r3: r1's
         # poses come from the SLAM node, and a second publisher of them would race it)
-        session.put("pg/r3/pose", _pose(0, "r3").encode())
-        session.put("pg/r3/scan", _scan(0, "r3").encode())
-        session.put("pg/r3/end", StreamEnd(robot="r3", scans=1).encode())
+        put(session, "pg/r3/pose", _pose(0, "r3").encode())
+        put(session, "pg/r3/scan", _scan(0, "r3").encode())
+        put(session, "pg/r3/end", StreamEnd(robot="r3", scans=1).encode())
         deadline = time.monotonic() + 30
         while True:
             stats = [
@@ -697,7 +702,8 @@ def test_slam_node_takes_steps_in_order_and_reports_late_ones(procs):
 
         def step(seq: int, parts=("odom", "landmarks")):
             if "odom" in parts:
-                session.put(
+                put(
+                    session,
                     "pg/r1/odom",
                     Odometry(
                         robot="r1",
@@ -708,7 +714,8 @@ def test_slam_node_takes_steps_in_order_and_reports_late_ones(procs):
                     ).encode(),
                 )
             if "landmarks" in parts:
-                session.put(
+                put(
+                    session,
                     "pg/r1/landmarks",
                     LandmarkObservations(
                         robot="r1",
@@ -722,7 +729,8 @@ def test_slam_node_takes_steps_in_order_and_reports_late_ones(procs):
 
         step(1, ("landmarks",))  # parts of seq 1 before seq 0 and before the prior: held back
         step(0)
-        session.put(
+        put(
+            session,
             "pg/r1/prior",
             PoseGaussian(robot="r1", seq=0, stamp=0.0, mean=np.array([2.0, 3.0, 0.0]), cov=np.zeros((3, 3))).encode(),
         )
@@ -789,11 +797,13 @@ def test_slam_node_moves_over_lost_steps_by_the_odometry_poses(procs):
         for seq in sent:
             for robot, pose in (("r1", np.array([on_arc(seq)])), ("r2", np.zeros((0, 3)))):
                 commands = np.array([[v, w, dt]]) if seq else np.zeros((0, 3))
-                session.put(
+                put(
+                    session,
                     f"pg/{robot}/odom",
                     Odometry(robot=robot, seq=seq, stamp=dt * seq, pose=pose, commands=commands).encode(),
                 )
-                session.put(
+                put(
+                    session,
                     f"pg/{robot}/landmarks",
                     LandmarkObservations(
                         robot=robot,

@@ -24,6 +24,7 @@ import zenoh
 import zenoh.ext
 
 from bags import BagBuilder
+from peers import put
 from schemas.messages import PoseSamples, TileUpdate, decode_message
 from services.nodes.launcher import free_port
 from services.ros2 import names
@@ -272,7 +273,7 @@ def test_the_map_and_poses_go_out_as_ros_messages_cell_for_cell(tmp_path, procs,
         samples=np.array([[1.0, 2.0, 3.1], [1.2, 2.2, -3.1]]),
         weights=np.array([0.25, 0.75]),
     )
-    session.put("pg/r1/pose", samples.encode())
+    put(session, "pg/r1/pose", samples.encode())
     cloud = rt.MessageType(rt.POSE_ARRAY).decode(subscribers["cloud"].get(timeout=30)[0])
     got = [
         (p.position.x, p.position.y, math.atan2(2 * p.orientation.w * p.orientation.z, 1 - 2 * p.orientation.z**2))
@@ -322,11 +323,14 @@ def test_garbage_on_every_subscribed_key_is_counted_and_the_bridge_goes_on(tmp_p
         publisher = session.declare_publisher(key)
         wait_until(lambda p=publisher: p.matching_status.matching, what=f"the bridge to subscribe to {key}")
         publisher.undeclare()
-    session.put(
-        _key("odom", rt.ODOMETRY), rt.MessageType(rt.ODOMETRY).encode(builder.items[3][3]), attachment=attachment
+    put(
+        session,
+        _key("odom", rt.ODOMETRY),
+        rt.MessageType(rt.ODOMETRY).encode(builder.items[3][3]),
+        attachment=attachment,
     )
     for key, payload, attached in garbage:
-        session.put(key, payload, attachment=attached)
+        put(session, key, payload, attachment=attached)
     expected_kinds = {"cdr": 4, "type": 1, "attachment": 1, "geometry": 1, "transform": 1, "malformed": 2}
     stats = wait_until(
         lambda: (s := bridge_stats(session))["rejected_kinds"] == expected_kinds and s, what="every garbage counted"
@@ -340,7 +344,7 @@ def test_garbage_on_every_subscribed_key_is_counted_and_the_bridge_goes_on(tmp_p
         "pg/r1/pose": 1,
     }
     assert bridge.process.poll() is None and stats["scans"] == 0
-    session.put(scan_key, good_scan, attachment=attachment)  # a good scan still goes through
+    put(session, scan_key, good_scan, attachment=attachment)  # a good scan still goes through
     wait_until(lambda: bridge_stats(session)["scans"] == 1, what="the good scan")
     logged = [line for line in bridge.lines if "further ones of this kind are only counted" in line]
     assert len(logged) == 10  # once per topic and kind

@@ -30,6 +30,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from peers import BLOCK, put
 from services.cli import main
 from services.nodes.launcher import free_port
 from services.security import Material, write_material
@@ -274,7 +275,7 @@ def test_a_source_put_reaches_a_mapper_subscriber(material, router, sessions):
     inbox = Inbox()
     mapper.declare_subscriber("pg/*/scan", inbox)
     source = sessions(role_config(material, "source-r"))
-    publisher = source.declare_publisher("pg/r/scan")
+    publisher = source.declare_publisher("pg/r/scan", congestion_control=BLOCK)
     wait_until(lambda: publisher.matching_status.matching)  # the router tells the source someone listens
     publisher.put(b"scan 0")
     assert inbox.wait_for(b"scan 0")
@@ -294,8 +295,8 @@ def test_only_the_robots_source_may_put_its_scans(material, router, sessions):
     intruders = {user: role_config(material, user) for user in ("api", "launcher", "slam-r", "mapper-m", "source-r2")}
     intruders["api certificate, source password"] = _mixed_credentials(material)
     for name, config in intruders.items():
-        sessions(config).put("pg/r/scan", f"forged by {name}".encode())
-    publisher = sessions(role_config(material, "source-r")).declare_publisher("pg/r/scan")
+        put(sessions(config), "pg/r/scan", f"forged by {name}".encode())
+    publisher = sessions(role_config(material, "source-r")).declare_publisher("pg/r/scan", congestion_control=BLOCK)
     wait_until(lambda: publisher.matching_status.matching)
     publisher.put(b"control")
     assert inbox.wait_for(b"control")
