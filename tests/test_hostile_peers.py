@@ -24,6 +24,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from mapping.sensor_model import SensorModel
+from peers import put
 from schemas.messages import MAX_SEQ, LaserScan, PoseSamples, ShardStats, StreamEnd, decode_message
 from services import keys
 from services.nodes.launcher import free_port
@@ -317,7 +318,7 @@ def test_generated_keys_reach_every_process_and_none_of_them_dies(pipeline, key,
     characters) leaves the router, the shard, the SLAM node and the API running."""
     session, procs, _ = pipeline
     with contextlib.suppress(zenoh.ZError):  # a key expression zenoh itself refuses never leaves the session
-        session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+        put(session, key, payload)
     dead = {name: process.returncode for name, (process, _) in procs.items() if process.poll() is not None}
     assert not dead, f"after a put on {key!r}: {dead} exited"
 
@@ -325,10 +326,10 @@ def test_generated_keys_reach_every_process_and_none_of_them_dies(pipeline, key,
 @pytest.mark.slow
 def test_after_the_hostile_keys_every_process_still_answers_and_fuses(pipeline):
     session, procs, api_port = pipeline
-    session.put("pg/robot0/*", b"", congestion_control=zenoh.CongestionControl.BLOCK)  # the finding's own put
-    session.put("pg/**", b"\x00", congestion_control=zenoh.CongestionControl.BLOCK)
-    session.put("pg/r9/pose", _pose(0, "r9").encode(), congestion_control=zenoh.CongestionControl.BLOCK)
-    session.put("pg/r9/scan", _scan(0, "r9").encode(), congestion_control=zenoh.CongestionControl.BLOCK)
+    put(session, "pg/robot0/*", b"")  # the finding's own put
+    put(session, "pg/**", b"\x00")
+    put(session, "pg/r9/pose", _pose(0, "r9").encode())
+    put(session, "pg/r9/scan", _scan(0, "r9").encode())
     deadline, stats = time.monotonic() + 60, None
     while time.monotonic() < deadline:
         replies = [r.ok for r in session.get("pg/map/m/stats/0", timeout=5) if r.ok is not None]
@@ -339,7 +340,7 @@ def test_after_the_hostile_keys_every_process_still_answers_and_fuses(pipeline):
     assert stats is not None and stats.fused.get("r9") == 1, stats
     assert stats.rejected.get(keys.INVALID_KEY, 0) >= 2
     assert [r.ok for r in session.get("pg/robot0/slam/stats", timeout=5) if r.ok is not None]
-    session.put("pg/r9/scan", _scan(100_000, "r9").encode(), congestion_control=zenoh.CongestionControl.BLOCK)
+    put(session, "pg/r9/scan", _scan(100_000, "r9").encode())
     health, deadline = None, time.monotonic() + 60
     while time.monotonic() < deadline:  # /health says what the shards could not trust (finding 2)
         with urllib.request.urlopen(f"http://127.0.0.1:{api_port}/health", timeout=20) as response:
