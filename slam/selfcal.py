@@ -62,6 +62,12 @@ WINDOW_OVERLAP = 8
 TRACK_GAP = 3.0
 #: s: the longest time between two measurements of a track whose correlation counts
 MAX_LAG_S = 30
+#: the measurement variances are multiplied by the errors' correlation factor (:func:`error_correlation`) to this
+#: power. The factor is what a track's mean loses to the correlation; a filter also uses each measurement for the
+#: pose of its moment, and with the whole factor EKF-SLAM followed the landmarks less closely than it could.
+#: Chosen among 0.25, 0.5 and 1 on the simulated robots of bench/slam.py at seeds 3-6, as MOTION_FACTOR was
+#: (docs/slam.md, "Self-calibration")
+CORRELATION_POWER = 0.5
 
 
 @dataclass(frozen=True)
@@ -483,8 +489,8 @@ def _estimate(data: FitData, calibration: Calibration) -> Trajectory:
 
 
 def _inflated(sensor: RangeBearingModel, correlation: tuple[float, float]) -> RangeBearingModel:
-    """``sensor``'s variances multiplied by the correlation factors (range, bearing)."""
-    root_r, root_b = math.sqrt(correlation[0]), math.sqrt(correlation[1])
+    """``sensor``'s variances multiplied by the correlation factors (range, bearing) to :data:`CORRELATION_POWER`."""
+    root_r, root_b = (math.sqrt(factor**CORRELATION_POWER) for factor in correlation)
     return RangeBearingModel(
         sigma_range=max(sensor.sigma_range * root_r, 1e-3),
         sigma_bearing=max(sensor.sigma_bearing * root_b, 1e-3),

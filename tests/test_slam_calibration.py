@@ -27,6 +27,7 @@ from slam.mrclam import mrclam_sequence, read_mrclam
 from slam.mrclam_sim import simulate_mrclam_robot, write_mrclam_folder
 from slam.range_bearing import RangeBearingModel
 from slam.selfcal import (
+    CORRELATION_POWER,
     LONG_WINDOWS,
     SHORT_WINDOWS,
     WINDOW_OVERLAP,
@@ -136,6 +137,11 @@ def test_self_calibration_recovers_the_robots_corrections_and_noise(robot):
     assert last["sigma_range"] + 4.0 * last["range_fraction"] == pytest.approx(0.08, rel=0.3)  # at a typical 4 m
     assert 0.05 / 2.5 < last["a4"] < 0.05 * 2.5
     assert found.scale_sd == GENERIC.scale_sd  # the map's scale is not in the data
+    # the filters' measurement noise: the white noise found, each variance times its correlation factor to
+    # CORRELATION_POWER (a sd times the factor to half of it)
+    for sd, factor in ((found.sensor.sigma_bearing, "bearing"), (found.sensor.sigma_range, "range")):
+        white = last[f"sigma_{factor}"]
+        assert sd == pytest.approx(white * last[f"{factor}_correlation"] ** (CORRELATION_POWER / 2), rel=1e-12)
 
 
 def _straight_drive(seed: int, steps: int, a1: float, estimate_sd: float) -> tuple[FitData, np.ndarray]:
