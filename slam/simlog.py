@@ -34,6 +34,8 @@ from slam.sequence import SlamSequence
 
 CONTROLS_FILE = "controls.npz"
 LANDMARKS_FILE = "landmarks.npz"
+#: the files `posegrid simulate` writes into its folder
+SIMULATION_FILES = ("scans.npz", "truth.npz", "groundtruth.npz", CONTROLS_FILE, LANDMARKS_FILE)
 #: accepted velocity_dt_ref (s): the time the velocity model's noise is stated for (the simulator's: 0.1 s)
 DT_REF_LIMITS = (1e-3, 1e3)
 

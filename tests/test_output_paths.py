@@ -330,3 +330,43 @@ def test_run_export_that_cannot_be_written_is_an_error_not_wrote(posed_file, tmp
     plan.export = tmp_path / "written.npz"
     assert _export(AssembledMap(grid), plan, 0) == 0
     assert f"wrote {plan.export}" in capsys.readouterr().out and load_map(plan.export).observed.any()
+
+
+@pytest.fixture(scope="module")
+def sim_folder(tmp_path_factory) -> Path:
+    """A simulator folder (`posegrid simulate`, 100 steps), the input of `slam` and `calibrate`."""
+    folder = tmp_path_factory.mktemp("sim") / "sim"
+    assert main(["simulate", str(folder), "--seed", "0", "--steps", "100"]) == 0
+    return folder
+
+
+@pytest.mark.parametrize(
+    "command, replaced",
+    [
+        (lambda sim, posed: ["calibrate", str(sim), "-o", str(sim / "controls.npz")], "sim/controls.npz"),
+        (lambda sim, posed: ["slam", str(sim), "--algo", "ekf", "-o", str(sim / "scans.npz")], "sim/scans.npz"),
+        (lambda sim, posed: ["slam", str(sim), "--algo", "ekf", "-o", "link"], "sim/truth.npz"),
+        (lambda sim, posed: ["fuse", str(posed), "-o", str(posed)], "room.npz"),
+        (lambda sim, posed: ["fuse", str(posed), "-o", "link"], "room.npz"),
+    ],
+    ids=["calibrate, a file of its folder", "slam, a file of its folder", "slam, a link to one", "fuse", "fuse, link"],
+)
+def test_an_output_that_would_replace_the_input_is_refused(
+    tmp_path, monkeypatch, capsys, sim_folder, posed_file, command, replaced
+):
+    """An output path that is the input file, or a data file of the input folder, directly or through a link,
+    is refused in one line, and the input is left as it was."""
+    target = sim_folder.parent / replaced if replaced.startswith("sim/") else posed_file
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "link").symlink_to(target)
+    before = target.read_bytes()
+    one_line_exit_2(command(sim_folder, posed_file), capsys, "is a file this command reads", "give another path")
+    assert target.read_bytes() == before
+
+
+def test_an_output_beside_the_inputs_of_a_folder_is_written(tmp_path, sim_folder):
+    """A new file inside the input folder is no input: `slam` writes its poses there."""
+    output = sim_folder / "poses.npz"
+    assert main(["slam", str(sim_folder), "--algo", "ekf", "-o", str(output)]) == 0
+    assert output.is_file()
+    output.unlink()

@@ -110,9 +110,31 @@ def checked_output(value: str | Path | None, option: str) -> Path | None:
     return Path(value)
 
 
-def check_outputs(args: argparse.Namespace, **options: str) -> None:
+#: the files of an input folder that a command reads, which no output may replace: an MRCLAM folder's tables and a
+#: ROS 2 bag's (and a simulator folder's, slam.simlog.SIMULATION_FILES)
+INPUT_FOLDER_FILES = ("*.dat", "*.db3", "*.mcap", "metadata.yaml")
+
+
+def check_outputs(args: argparse.Namespace, inputs: tuple[Path, ...] = (), **options: str) -> None:
     """Check every output path of ``args`` (its attribute name = the option that gives it, e.g. output="-o")
     with :func:`checked_output` and put the Path in its place. Output options take the text as given (no
-    ``type=Path``, which would read an empty path as "."), so this must run before the command uses them."""
+    ``type=Path``, which would read an empty path as "."), so this must run before the command uses them.
+
+    ``inputs``: what the command reads (files, or folders of :data:`INPUT_FOLDER_FILES` and the simulator's files);
+    an output that is one of them, or one of such a folder's files, through links too, is refused: writing it would
+    replace the data."""
+    from services.errors import UsageError
+    from slam.simlog import SIMULATION_FILES
+
+    read = {os.path.realpath(path) for path in inputs if path.is_file()}
+    for folder in (path for path in inputs if path.is_dir()):
+        patterns = (*INPUT_FOLDER_FILES, *SIMULATION_FILES)
+        read |= {os.path.realpath(file) for pattern in patterns for file in folder.glob(pattern)}
     for name, option in options.items():
-        setattr(args, name, checked_output(getattr(args, name), option))
+        path = checked_output(getattr(args, name), option)
+        if path is not None and os.path.realpath(path) in read:
+            raise UsageError(
+                f"{option} {path}: is a file this command reads (its input); writing it would replace the data: "
+                "give another path"
+            )
+        setattr(args, name, path)

@@ -208,7 +208,14 @@ def _output_paths(args: argparse.Namespace) -> tuple[Path, Path]:
     OUTPUT, those two and --stats name one file (one would overwrite the other)."""
     from services.errors import UsageError
 
-    check_outputs(args, output="-o", best_output="--best-output", poses_output="--poses-output", stats="--stats")
+    check_outputs(
+        args,
+        inputs=(args.input,),
+        output="-o",
+        best_output="--best-output",
+        poses_output="--poses-output",
+        stats="--stats",
+    )
     best = args.best_output or checked_output(args.output.with_suffix(".best.npz"), "--best-output's default")
     poses = args.poses_output or checked_output(args.output.with_suffix(".poses.npz"), "--poses-output's default")
     named = [

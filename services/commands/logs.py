@@ -115,7 +115,7 @@ def run_eval_relations(args: argparse.Namespace) -> int:
     )
     from slam.timealign import time_map, to_reference_time
 
-    check_outputs(args, json="--json")
+    check_outputs(args, inputs=(args.poses, args.relations), json="--json")
     tolerance = DEFAULT_TOLERANCE if args.tolerance is None else args.tolerance
     max_gap = DEFAULT_MAX_GAP if args.max_gap is None else args.max_gap
     if tolerance < 0 or max_gap <= 0:

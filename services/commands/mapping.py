@@ -362,7 +362,7 @@ def run_fuse(args: argparse.Namespace) -> int:
     from schemas.files import MapFile, load_posed_scans, save_map
     from services.errors import UsageError
 
-    check_outputs(args, output="-o")
+    check_outputs(args, inputs=(args.posed,), output="-o")
     _refuse_unread_options(args)
     threads = threads_from_args(args)
     model = sensor_model_from_args(args)
@@ -423,7 +423,7 @@ def run_export(args: argparse.Namespace) -> int:
     from schemas.files import load_map, write_atomically
     from services.errors import UsageError
 
-    check_outputs(args, output="-o")
+    check_outputs(args, inputs=(args.map,), output="-o")
     if args.output.suffix.lower() != f".{args.format}":
         raise UsageError(
             f"-o {args.output}: a {args.format} export needs a name ending in .{args.format}"

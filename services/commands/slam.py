@@ -223,14 +223,11 @@ def _add_eval_traj(subparsers: argparse._SubParsersAction) -> None:
 # ------------------------------------------------------------------------------------------------ simulate
 
 
-#: the files `posegrid simulate` writes into its folder
-SIMULATION_FILES = ("scans.npz", "truth.npz", "groundtruth.npz", "controls.npz", "landmarks.npz")
-
-
 def _simulation_folder(text: str) -> Path:
     """OUTDIR of `posegrid simulate`, created if missing, after checking that it can hold every one of
-    :data:`SIMULATION_FILES` (UsageError otherwise, naming the path and what to do)."""
+    :data:`slam.simlog.SIMULATION_FILES` (UsageError otherwise, naming the path and what to do)."""
     from services.errors import UsageError
+    from slam.simlog import SIMULATION_FILES
 
     if not text:
         raise UsageError("OUTDIR '': an empty path names no folder; give the folder to write")
@@ -629,7 +626,7 @@ def run_slam(args: argparse.Namespace) -> int:
     particles and their weights before resampling. The filter starts at the true first pose (simulator; MRCLAM
     ground truth) or at --initial. Landmark positions are estimated, never read from the input's truth."""
     _refuse_ignored_options(args)
-    check_outputs(args, output="-o")
+    check_outputs(args, inputs=(args.input,), output="-o")
     if args.algo == "gridslam":  # laser logs: services/commands/gridslam.py
         from services.commands.gridslam import run_gridslam_command
 
