@@ -588,3 +588,14 @@ def test_a_pose_file_is_no_laser_log_whatever_the_case_of_its_suffix(tmp_path, c
     posed.write_bytes(b"PK")  # never opened: the suffix decides
     assert main(["slam", "--algo", "gridslam", str(posed), "-o", str(tmp_path / "o.npz")]) == 2
     assert "POSED.NPZ: a .npz file, not a laser log" in capsys.readouterr().err
+
+
+def test_a_log_whose_robot_never_moves_far_enough_integrates_one_scan_and_says_so(tmp_path, capsys):
+    """With --linear-update beyond the drive (0.75 m) only the first scan is integrated: nothing is matched, which
+    the health line says instead of failing on the missing match statistics."""
+    log = small_log(tmp_path / "short.clf")
+    out = tmp_path / "o.npz"
+    code = main(["slam", "--algo", "gridslam", str(log), "-o", str(out), "--particles", "2", "--linear-update", "100"])
+    err = capsys.readouterr().err
+    assert code == 0 and "Traceback" not in err, err
+    assert "1 integrated scan(s), none matched against a map" in err and out.is_file()

@@ -372,11 +372,18 @@ def _report_health(stats: dict) -> None:
     odometry)."""
     summary = stats["health_summary"]
     reference = stats.get("reference")
-    line = (
-        f"posegrid slam: health: matched-beam fraction median {summary['median_matched']:.2f} (5th percentile "
-        f"{summary['low_matched']:.2f}), {summary['failed']} of {summary['scans']} integrated scans failed to match, "
-        f"{summary['mean_particles']:.1f} particles on average (at most {summary['max_particles']})"
-    )
+    if summary["median_matched"] is None:  # (NaN in the stats' JSON: no scan but the first was integrated)
+        line = (
+            f"posegrid slam: health: {summary['scans']} integrated scan(s), none matched against a map (the first "
+            "starts it; the next is integrated once the odometry moves --linear-update m or turns --angular-update "
+            "rad)"
+        )
+    else:
+        line = (
+            f"posegrid slam: health: matched-beam fraction median {summary['median_matched']:.2f} (5th percentile "
+            f"{summary['low_matched']:.2f}), {summary['failed']} of {summary['scans']} integrated scans failed to "
+            f"match, {summary['mean_particles']:.1f} particles on average (at most {summary['max_particles']})"
+        )
     if reference is not None:
         line += (
             f"; against the poses the log states: best trajectory {reference['best_rmse_m']:.3f} m, odometry "
