@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from slam.angles import wrap_angle
-from slam.errors import LogFormatError
+from slam.errors import LogFormatError, refuse_special_file
 from slam.motion import ALPHA_LIMITS, VelocityMotionModel
 from slam.range_bearing import (
     RANGE_FRACTION_LIMITS,
@@ -325,6 +325,7 @@ def calibration_from_json(document: Any, name: str = "calibration") -> Calibrati
 def load_calibration(path: str | Path) -> Calibration:
     """Read a JSON calibration file; LogFormatError naming the file (and field) when it cannot be used."""
     path = Path(path)
+    refuse_special_file(path, "calibration file")
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
@@ -335,6 +336,8 @@ def load_calibration(path: str | Path) -> Calibration:
         document = json.loads(text)
     except json.JSONDecodeError as exc:
         raise LogFormatError(f"{path}: not JSON (line {exc.lineno}: {exc.msg})") from None
+    except RecursionError:
+        raise LogFormatError(f"{path}: not a calibration file (its JSON is nested too deeply to read)") from None
     return calibration_from_json(document, str(path))
 
 

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from slam.calibration import Calibration
-from slam.errors import LogFormatError
+from slam.errors import LogFormatError, refuse_special_file
 from slam.range_bearing import BEARING_LIMIT
 from slam.sequence import SlamSequence
 
@@ -46,6 +46,7 @@ def read_table(path: str | Path, kind: str, timed: bool = True) -> np.ndarray:
     path = Path(path)
     columns = _COLUMNS[kind]
     n_cols = columns.count(",") + 1
+    refuse_special_file(path, f"MRCLAM {kind} table")
     try:
         text = path.read_text(encoding="ascii", errors="strict")
     except FileNotFoundError:

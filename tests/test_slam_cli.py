@@ -451,3 +451,26 @@ def test_simulator_file_that_is_a_npy_or_corrupt_exits_2(simdir, tmp_path, capsy
         "controls.npz: not a readable .npz file (Error -3 while decompressing",
     )
     assert not out.exists()
+
+
+def test_a_calibration_or_truth_that_is_no_regular_file_or_nests_too_deep_is_one_line(simdir, tmp_path, capsys):
+    """A FIFO (reading it would wait for a writer for ever) or a device (/dev/zero never ends; only stat-ed here)
+    given as a calibration file or an MRCLAM ground-truth table, and a calibration whose JSON nests deeper than
+    Python's parser goes, are refused in one line before anything is read."""
+    import os
+
+    os.mkfifo(tmp_path / "fifo.json")
+    os.mkfifo(tmp_path / "fifo.dat")
+    (tmp_path / "deep.json").write_text("[" * 100_000 + "]" * 100_000)
+    out = str(tmp_path / "x.npz")
+    for calibration, fragment in (
+        (tmp_path / "fifo.json", "is a FIFO, not a regular file"),
+        (Path("/dev/zero"), "is a device or socket, not a regular file"),
+        (tmp_path / "deep.json", "nested too deeply"),
+    ):
+        _one_line_exit_2(["slam", str(simdir), "--algo", "ekf", "--calibration", str(calibration), "-o", out], capsys,
+                         str(calibration), fragment)  # fmt: skip
+    assert main(["slam", str(simdir), "--algo", "ekf", "-o", out]) == 0
+    capsys.readouterr()
+    for truth in (tmp_path / "fifo.dat", Path("/dev/zero")):
+        _one_line_exit_2(["eval-traj", out, str(truth)], capsys, str(truth), "not a regular file")
