@@ -42,6 +42,8 @@ MAPPER_INPUTS = (keys.SCAN, keys.POSE, keys.END)
 LOOPBACK_NAMES = ("localhost", "127.0.0.1")
 #: how long generated certificates are valid unless told otherwise (`posegrid secure-init`), days
 DEFAULT_VALID_DAYS = 365
+#: the longest validity `posegrid secure-init` gives its certificates, days (100 years; X.509 dates end in 9999)
+MAX_VALID_DAYS = 36_500
 #: how long the certificates of one `posegrid run --secure` are valid, days
 RUN_VALID_DAYS = 7
 #: bytes of randomness in each password (secrets.token_urlsafe: 32 bytes -> 43 characters)

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 
-from mapping.adaptive import AdaptiveFusion, AdaptiveGrid, AdaptiveParams, MergeRules
+from mapping.adaptive import AdaptiveFusion, AdaptiveGrid, AdaptiveParams, MergeRules, level_for_cell_size
 from mapping.adaptive.evidence import EvidenceScanner
 from mapping.adaptive.merging import merge_siblings
 from mapping.beam_model import BEAM_HIT, BEAM_NO_RETURN, beam_table, logodds_model
@@ -446,3 +446,15 @@ def test_a_merged_cell_takes_the_mean_variance_and_the_summed_hits_and_misses():
 def test_merge_thresholds_outside_0_1_are_refused(kwargs):
     with pytest.raises(InputError, match="merge threshold"):
         MergeRules(**kwargs)
+
+
+@pytest.mark.parametrize("cell, level", [(0.05, 0), (0.1, 1), (0.4, 3), (0.05 * 2.0**62, 62)])
+def test_a_cell_size_a_power_of_two_times_the_resolution_gives_its_level(cell, level):
+    assert level_for_cell_size(cell, 0.05) == level
+
+
+@pytest.mark.parametrize("cell", [0.03, 0.15, 0.0, -0.1, 0.05 * 2.0**63, 1e308, math.inf, math.nan])
+def test_any_other_cell_size_is_refused_with_a_reason(cell):
+    """Not a power of two times 0.05 m, none at all, or beyond 2^62 (1e308 overflowed the level's integer)."""
+    with pytest.raises(InputError, match="times a power of two"):
+        level_for_cell_size(cell, 0.05)

@@ -183,6 +183,11 @@ def test_secure_init_writes_the_material_and_refuses_to_overwrite(tmp_path, caps
     assert (folder / "users.txt").read_text() != before
     assert main(["secure-init", str(tmp_path / "x"), "--robot", "map"]) == 2
     assert main(["secure-init", str(tmp_path / "y"), "--host", "router:7447"]) == 2
+    capsys.readouterr()
+    for days in ("0", "36501", "100000000"):  # past 9999 the certificate's date overflowed: a traceback
+        assert main(["secure-init", str(tmp_path / "z"), "--days", days]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "--days must be 1 to 36500" in err and "\n" not in err and "Traceback" not in err, err
 
 
 # ------------------------------------------------------------------------------------------ authentication

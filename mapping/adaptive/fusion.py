@@ -78,11 +78,13 @@ class AdaptiveFuseResult:
 
 
 def level_for_cell_size(cell_size: float, resolution: float) -> int:
-    """The level k with resolution * 2^k == cell_size (m); InputError if there is none."""
+    """The level k with resolution * 2^k == cell_size (m), k at most 62; InputError if there is none."""
     ratio = cell_size / resolution
-    level = int(round(np.log2(ratio))) if ratio > 0 else -1
-    if level < 0 or not np.isclose(resolution * (1 << level), cell_size, rtol=1e-9):
-        raise InputError(f"cell size {cell_size} m is not the finest resolution {resolution} m times a power of two")
+    level = int(round(np.log2(ratio))) if 0 < ratio < np.inf else -1
+    if not 0 <= level <= 62 or not np.isclose(resolution * (1 << level), cell_size, rtol=1e-9):
+        raise InputError(
+            f"cell size {cell_size} m is not the finest resolution {resolution} m times a power of two (2^0 to 2^62)"
+        )
     return level
 
 

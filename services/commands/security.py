@@ -68,7 +68,7 @@ def run_secure_init(args: argparse.Namespace) -> int:
     e.g. for a new robot or before the certificates expire."""
     from services.commands.pipeline import DEFAULT_MAP, DEFAULT_ROBOT, _check_name
     from services.errors import UsageError
-    from services.security import DEFAULT_VALID_DAYS, write_material
+    from services.security import DEFAULT_VALID_DAYS, MAX_VALID_DAYS, write_material
 
     robots, maps = args.robot or [DEFAULT_ROBOT], args.map or [DEFAULT_MAP]
     for robot in robots:
@@ -78,8 +78,8 @@ def run_secure_init(args: argparse.Namespace) -> int:
     if not 0 < args.port < 65536:
         raise UsageError(f"--port must be a TCP port (1..65535), got {args.port}")
     days = DEFAULT_VALID_DAYS if args.days is None else args.days
-    if days < 1:
-        raise UsageError(f"--days must be >= 1, got {days}")
+    if not 1 <= days <= MAX_VALID_DAYS:
+        raise UsageError(f"--days must be 1 to {MAX_VALID_DAYS} (100 years), got {days}")
     for option, value in [*(("--host", host) for host in args.host), ("--listen-address", args.listen_address)]:
         if not value or any(c in value for c in "/[]#?@ ") or value.count(":") == 1:
             raise UsageError(
