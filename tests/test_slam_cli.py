@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from schemas.files import load_pose_distribution, load_posed_scans, load_truth
+from schemas.files import load_pose_distribution, load_posed_scans, load_truth, save_pose_distribution
 from services.cli import main
 
 
@@ -474,3 +475,17 @@ def test_a_calibration_or_truth_that_is_no_regular_file_or_nests_too_deep_is_one
     capsys.readouterr()
     for truth in (tmp_path / "fifo.dat", Path("/dev/zero")):
         _one_line_exit_2(["eval-traj", out, str(truth)], capsys, str(truth), "not a regular file")
+
+
+def test_ground_truth_with_two_poses_at_one_time_is_refused(simdir, tmp_path, capsys):
+    """Interpolating ground truth needs one pose per time: a pose file whose stamps repeat (equal ones, or the
+    same time twice after sorting) is refused in one line instead of giving an ATE of whichever pose won."""
+    truth = load_pose_distribution(simdir / "groundtruth.npz")
+    stamps = truth.stamps.copy()
+    stamps[5] = stamps[4]
+    doubled = tmp_path / "doubled.npz"
+    save_pose_distribution(doubled, replace(truth, stamps=stamps))
+    estimate = str(tmp_path / "x.npz")
+    assert main(["slam", str(simdir), "--algo", "ekf", "-o", estimate]) == 0
+    capsys.readouterr()
+    _one_line_exit_2(["eval-traj", estimate, str(doubled)], capsys, "holds two poses at", "one pose per time")

@@ -697,7 +697,8 @@ def _truth_at(path: Path, stamps):
     """Ground-truth poses (T, 3) at ``stamps`` (s) from a pose .npz, a simulator folder or a
     RobotK_Groundtruth.dat, and which stamps the ground truth covers: within TRUTH_MARGIN of its time span
     (past it, interpolation would only repeat its end poses). UsageError when the path does not exist or the
-    ground truth covers no stamp."""
+    ground truth covers no stamp or holds two poses at one time."""
+    import numpy as np
 
     from schemas.files import load_pose_distribution
     from services.errors import UsageError
@@ -728,6 +729,12 @@ def _truth_at(path: Path, stamps):
             "the same time base?"
         )
     order = truth_stamps.argsort(kind="stable")
+    repeated = np.flatnonzero(np.diff(truth_stamps[order]) <= 0.0)
+    if len(repeated):
+        raise UsageError(
+            f"{path}: holds two poses at {truth_stamps[order][repeated[0]]:.6f} s; ground truth needs one pose per "
+            "time to be interpolated"
+        )
     return interpolate_poses(stamps, truth_stamps[order], mean[order]), covered
 
 
