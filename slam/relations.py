@@ -31,6 +31,8 @@ from slam.laserlog import LaserLog, Skipped
 DEFAULT_TOLERANCE = 1e-3
 #: interpolate a pose only between trajectory stamps at most this far apart (s)
 DEFAULT_MAX_GAP = 5.0
+#: m: a relation's displacement beyond this is no robot's (its squared error would overflow the scores)
+MAX_DISPLACEMENT = 1e6
 
 
 @dataclass(frozen=True)
@@ -93,7 +95,8 @@ def read_relations(path: str | Path) -> Relations:
     """Read a relation file (``t1 t2 dx dy dz roll pitch yaw`` per line, white-space separated).
 
     Blank and ``#`` lines are passed over; a line with another field count, a field that is not a finite
-    number, or t1 == t2 is skipped and recorded with its line number. Raises :class:`LogFormatError` when
+    number, t1 == t2, or a displacement beyond :data:`MAX_DISPLACEMENT` is skipped and recorded with its line
+    number. Raises :class:`LogFormatError` when
     the file cannot be read or holds no relation.
     """
     path = Path(path)
@@ -117,6 +120,8 @@ def read_relations(path: str | Path) -> Relations:
                 skipped.append(Skipped(number, "a field is not finite"))
             elif values[0] == values[1]:
                 skipped.append(Skipped(number, "t1 equals t2"))
+            elif max(abs(v) for v in values[2:5]) > MAX_DISPLACEMENT:
+                skipped.append(Skipped(number, f"a displacement beyond {MAX_DISPLACEMENT:g} m"))
             else:
                 rows.append(values)
                 lines.append(number)

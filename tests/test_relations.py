@@ -75,10 +75,11 @@ def test_relation_file_bad_lines(tmp_path):
         "3 3 0 0 0 0 0 0",
         "",
         "4 5 1 1 0 0 0 1",
+        "6 7 1e308 0 0 0 0 0",  # finite, but its squared error overflows the scores
     ]
     relations = read_relations(write(tmp_path, "r", lines))
     assert relations.lines.tolist() == [1, 7]
-    assert [s.where for s in relations.skipped] == [2, 3, 4, 5]
+    assert [s.where for s in relations.skipped] == [2, 3, 4, 5, 8]
     np.testing.assert_array_equal(relations.delta[1], [1, 1, 1])
     with pytest.raises(LogFormatError, match="holds no relation"):
         read_relations(write(tmp_path, "empty", ["# nothing"]))
