@@ -50,7 +50,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from slam.angles import wrap_angle
-from slam.errors import LogFormatError
+from slam.errors import LogFormatError, refuse_special_file
 from slam.laserlog import PADDING, POSE_LIMIT, LaserLog, Skipped, geometry_problem, per_scan, plausible_pose
 from slam.motion import compose
 
@@ -269,6 +269,7 @@ def read_carmen(path: str | Path, laser: str = "front") -> LaserLog:
     if laser not in ("front", "rear"):
         raise LogFormatError(f"laser must be 'front' or 'rear', got '{laser}'")
     path = Path(path)
+    refuse_special_file(path, "CARMEN log")
     if not path.is_file():
         raise LogFormatError(f"{path}: no such file (expected a CARMEN log)")
     kinds = _FRONT if laser == "front" else _REAR

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from slam.angles import wrap_angle
-from slam.errors import LogFormatError
+from slam.errors import LogFormatError, refuse_special_file
 from slam.laserlog import LaserLog, Skipped
 
 #: a relation stamp and a trajectory stamp closer than this (s) are the same instant
@@ -96,10 +96,10 @@ def read_relations(path: str | Path) -> Relations:
 
     Blank and ``#`` lines are passed over; a line with another field count, a field that is not a finite
     number, t1 == t2, or a displacement beyond :data:`MAX_DISPLACEMENT` is skipped and recorded with its line
-    number. Raises :class:`LogFormatError` when
-    the file cannot be read or holds no relation.
+    number. Raises :class:`LogFormatError` when the file cannot be read or holds no relation.
     """
     path = Path(path)
+    refuse_special_file(path, "relation file")
     if not path.is_file():
         raise LogFormatError(f"{path}: no such file (expected a relation file)")
     rows, lines, skipped = [], [], []

@@ -277,3 +277,17 @@ def test_poses_exactly_max_gap_apart_are_interpolated():
     poses, ok = poses_at(traj, np.array([2.5]), tolerance=1e-3, max_gap=5.0)
     assert ok.tolist() == [True]
     np.testing.assert_allclose(poses[0], [1.0, 2.0, 0.5])
+
+
+def test_a_relation_file_or_log_that_is_a_fifo_or_folder_says_so(tmp_path):
+    """Not "no such file": the path exists, it is no regular file (a FIFO would also wait for a writer)."""
+    import os
+
+    from slam.carmen import read_carmen
+
+    os.mkfifo(tmp_path / "fifo.txt")
+    (tmp_path / "folder.clf").mkdir()
+    with pytest.raises(LogFormatError, match="is a FIFO, not a regular file; give the path of the relation file"):
+        read_relations(tmp_path / "fifo.txt")
+    with pytest.raises(LogFormatError, match="is a folder, not a regular file; give the path of the CARMEN log"):
+        read_carmen(tmp_path / "folder.clf")
