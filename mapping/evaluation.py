@@ -127,4 +127,6 @@ def score_map(map_arrays: dict, truth_arrays: dict) -> dict[str, float]:
     corner = np.asarray(truth_arrays["origin"], float) + np.array([cols.min(), rows.min()]) * t_res
     box = (rows.max() - rows.min() + 1, cols.max() - cols.min() + 1)  # the visible cells' bounding box
     p = probability_on_raster(map_arrays, corner, t_res, box)[rows - rows.min(), cols - cols.min()]
-    return score_probabilities(p, np.asarray(truth_arrays["occupied"], bool)[rows, cols])
+    scores = score_probabilities(p, np.asarray(truth_arrays["occupied"], bool)[rows, cols])
+    scores["informed"] = int(np.count_nonzero(p != 0.5))  # scored cells the map says anything about
+    return scores

@@ -137,6 +137,7 @@ def good_arrays(**override):
         (good_arrays(ranges=np.ones((2, 3), np.complex64)), "must hold real numbers"),
         (good_arrays(samples=np.full((2, 1, 3), "x")), "must hold real numbers"),
         (good_arrays(angle_min=1e30), "'angle_min' = 1e+30 rad is more than a full turn"),
+        (good_arrays(ranges=np.ones((2, 70), np.float32)), "70 beams 0.1 rad apart sweep 6.9 rad, more than a full"),
         (good_arrays(stamps=np.arange(2.0, dtype=np.float32)), "'stamps' must be float64 seconds, got float32"),
     ],
 )
@@ -322,3 +323,19 @@ def test_poses_a_loader_would_refuse_are_not_written(tmp_path):
     with pytest.raises(FormatError, match=r"the poses to write to .*'mean' has NaN or inf at step 1"):
         save_pose_distribution(tmp_path / "poses.npz", bad)
     assert not (tmp_path / "poses.npz").exists()
+
+
+def test_a_map_that_misses_the_truth_is_warned_about(tmp_path, posed_file):
+    """A map 100 m away from the truth scores the AUC of a blank map (0.5); eval says so rather than only print it."""
+    map_path = tmp_path / "map.npz"
+    assert posegrid("fuse", str(posed_file), "-o", str(map_path)).returncode == 0
+    occupied = np.zeros((60, 80), bool)
+    occupied[::7] = True
+    save_truth(tmp_path / "far.npz", TruthRaster(occupied, np.ones_like(occupied), np.array([100.0, 100.0]), 0.05))
+    far = posegrid("eval", str(map_path), str(tmp_path / "far.npz"))
+    scores = json.loads(far.stdout)
+    assert far.returncode == 0 and scores["informed"] == 0 and scores["auc"] == 0.5 and scores["n"] == occupied.size
+    assert "observed none of the truth's 4800 visible cells" in far.stderr
+    save_truth(tmp_path / "near.npz", TruthRaster(occupied, np.ones_like(occupied), np.zeros(2), 0.05))
+    near = posegrid("eval", str(map_path), str(tmp_path / "near.npz"))
+    assert 0 < json.loads(near.stdout)["informed"] <= occupied.size and "warning" not in near.stderr

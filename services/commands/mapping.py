@@ -454,9 +454,10 @@ def run_eval(args: argparse.Namespace) -> int:
     """score a map against a truth raster (AUC, Brier, NLL)
 
     Score MAP against TRUTH over the truth's visible cells; prints one JSON line with auc (null when those cells
-    hold one class only), brier, nll (natural log, per cell) and n (cells scored). Each truth cell takes the map's
-    probability averaged over its area; parts the map does not cover or has not observed count as 0.5, so the two
-    rasters may differ in origin, extent and resolution."""
+    hold one class only), brier, nll (natural log, per cell), n (cells scored) and informed (those of them the map
+    has observed). Each truth cell takes the map's probability averaged over its area; parts the map does not cover
+    or has not observed count as 0.5, so the two rasters may differ in origin, extent and resolution. A map that
+    observed none of the scored cells gets a warning: its AUC of 0.5 says only that the two do not overlap."""
     from mapping.evaluation import score_map
     from schemas.files import load_map, load_truth
 
@@ -469,5 +470,12 @@ def run_eval(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         report["auc"] = None
+    if scores["informed"] == 0:
+        print(
+            f"posegrid eval: warning: the map has observed none of the truth's {scores['n']} visible cells, so these "
+            "scores are those of a map of 0.5 everywhere; check that the map and the truth share a frame and overlap "
+            "(their origins and extents)",
+            file=sys.stderr,
+        )
     print(json.dumps(report, allow_nan=False))  # the rest is finite: the map and the truth are validated
     return 0
