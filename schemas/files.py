@@ -524,6 +524,22 @@ def _check_geometry(geometry: dict[str, np.ndarray], beams: np.ndarray, path) ->
             raise FormatError(
                 f"{path}: '{key}' = {geometry[key][t]} rad is more than a full turn" + _which_scan(t, geometry[key])
             )
+    bad = np.flatnonzero(fan_past_a_turn(beams, increment))
+    if bad.size:
+        t = int(bad[0])
+        raise FormatError(
+            f"{path}: {beams[t]} beams {increment[t]} rad apart sweep {(beams[t] - 1) * abs(increment[t]):.6g} rad, "
+            "more than a full turn, so beams would repeat directions; check 'angle_increment'"
+            + _which_scan(t, increment, beams)
+        )
+
+
+def fan_past_a_turn(beams, increment):
+    """Whether a scan's beams sweep more than a full turn (bool, per scan for arrays): the beams then repeat
+    directions and the map would count the same walls twice. A fan of exactly a turn (first and last beam on one
+    direction, as some 360 deg scanners report) passes; half a beam of slack absorbs rounding."""
+    span = (np.asarray(beams, np.float64) - 1) * np.abs(increment)
+    return span > 2 * np.pi + 0.5 * np.abs(increment)
 
 
 def _which_scan(t: int, *columns: np.ndarray) -> str:

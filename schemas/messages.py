@@ -17,7 +17,7 @@ from typing import TypeVar, overload
 
 import numpy as np
 
-from schemas.files import WEIGHT_SUM_TOLERANCE
+from schemas.files import WEIGHT_SUM_TOLERANCE, fan_past_a_turn
 from schemas.wire import Array, Counts, Figures, Float, Int, Message, MessageError, Name, Rule, decode, spec
 
 #: robot names that would collide with other key-space roots (``pg/map/...``)
@@ -55,6 +55,8 @@ def _beams(v, fail):
     for key in ("angle_min", "angle_increment"):
         if abs(v[key]) > 2 * np.pi:  # beyond a turn, the angles lose the precision that tells beams apart
             fail("range", f"'{key}' = {v[key]} rad is more than a full turn")
+    if fan_past_a_turn(v["ranges"].shape[0], v["angle_increment"]):
+        fail("range", f"{v['ranges'].shape[0]} beams {v['angle_increment']} rad apart sweep more than a full turn")
 
 
 def _weights(v, fail):
@@ -119,7 +121,8 @@ class LaserScan(ScanMessage):
         Rule("range", "0 <= range_min < range_max", _range_limits),
         Rule(
             "range",
-            "at least one beam; angle_increment != 0 when there are several; |angle_min| and |angle_increment| <= 2 pi",
+            "at least one beam; angle_increment != 0 when there are several; |angle_min| and |angle_increment| <= 2 pi;"
+            " the beams sweep at most a turn",
             _beams,
         ),
     )

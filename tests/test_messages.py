@@ -408,12 +408,20 @@ def test_ranges_may_say_no_return_or_too_close():
         {"angle_increment": -7.0},
         {"range_min": 2.0, "range_max": 2.0},  # range_min < range_max, strictly
         {"angle_increment": 0.0, "ranges": np.array([1.0, 2.0], np.float32)},  # two beams on one ray
+        {"angle_increment": 0.5, "ranges": np.ones(15, np.float32)},  # 7 rad: the last beams repeat the first's
+        {"angle_increment": -0.5, "ranges": np.ones(15, np.float32)},
     ],
 )
 def test_out_of_range_values(overrides):
     with pytest.raises(MessageError) as info:
         scan(**overrides).encode()
     assert info.value.reason == "range"
+
+
+def test_a_fan_of_exactly_one_turn_goes_through():
+    """361 beams a degree apart (first and last on one direction), as some 360 deg scanners report."""
+    decoded = decode_message(scan(angle_increment=2 * np.pi / 360, ranges=np.ones(361, np.float32)).encode(), LaserScan)
+    assert decoded.ranges.shape == (361,)
 
 
 def test_odometry_with_two_poses_or_negative_dt_is_rejected():
