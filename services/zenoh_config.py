@@ -17,6 +17,7 @@ from pathlib import Path
 
 import zenoh
 
+from services.commands.argtypes import path_argument
 from services.errors import UsageError
 
 #: where the router listens and everyone else connects unless configured otherwise
@@ -112,7 +113,7 @@ def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_argument_group("zenoh")
     group.add_argument(
         "--zenoh-config",
-        type=Path,
+        type=path_argument,
         default=None,
         metavar="FILE",
         help="zenoh JSON5 config file; keys it sets override posegrid's loopback-only defaults",

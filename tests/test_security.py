@@ -190,6 +190,27 @@ def test_secure_init_writes_the_material_and_refuses_to_overwrite(tmp_path, caps
         assert "--days must be 1 to 36500" in err and "\n" not in err and "Traceback" not in err, err
 
 
+@pytest.mark.parametrize("host", ["a\nb", "a b", "-router", "router-", "a..b", "x" * 64, "tls/router", "[::1]", ""])
+def test_secure_init_refuses_what_is_no_host_name(tmp_path, capsys, host):
+    """The name goes into the router's certificate and every client's endpoint; 'a\\nb' wrote configs that
+    connect to no router."""
+    assert main(["secure-init", str(tmp_path / "s"), f"--host={host}"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--host takes a bare DNS name" in err and "Traceback" not in err and not (tmp_path / "s").exists()
+
+
+@pytest.mark.parametrize("host", ["router", "robot-1.lab.example", "10.0.0.2", "fe80::1"])
+def test_secure_init_takes_names_and_addresses(tmp_path, host):
+    assert main(["secure-init", str(tmp_path / "s"), "--host", host]) == 0
+
+
+def test_an_empty_folder_name_is_refused(capsys):
+    """Path('') is the current folder: the message said '. is not empty'."""
+    with pytest.raises(SystemExit) as info:
+        main(["secure-init", ""])
+    assert info.value.code == 2 and "an empty path" in capsys.readouterr().err
+
+
 # ------------------------------------------------------------------------------------------ authentication
 
 

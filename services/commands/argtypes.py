@@ -22,6 +22,14 @@ def finite_float(text: str) -> float:
     return value
 
 
+def path_argument(text: str) -> Path:
+    """A path given on the command line; an empty one is refused (``Path("")`` would quietly mean the current
+    folder)."""
+    if not text:
+        raise argparse.ArgumentTypeError("an empty path: name a file or folder")
+    return Path(text)
+
+
 def _integer(text: str) -> int:
     """``text`` as an integer; ArgumentTypeError (argparse's one sentence naming the option) when it is none."""
     try:

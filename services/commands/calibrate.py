@@ -8,9 +8,8 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 
-from services.commands.argtypes import check_outputs, finite_float
+from services.commands.argtypes import check_outputs, finite_float, path_argument
 from services.commands.options import add_command
 from services.commands.slam import add_mrclam_input_options
 
@@ -20,7 +19,7 @@ DEFAULT_FRACTION = 1.0
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = add_command(subparsers, "calibrate", run_calibrate)
-    parser.add_argument("input", type=Path, help="MRCLAM folder (with --robot) or simulator folder")
+    parser.add_argument("input", type=path_argument, help="MRCLAM folder (with --robot) or simulator folder")
     parser.add_argument("-o", "--output", required=True, metavar="CALIBRATION.json", help="calibration file to write")
     add_mrclam_input_options(parser, "take a step")
     parser.add_argument(

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from services.commands.argtypes import check_outputs, finite_float
+from services.commands.argtypes import check_outputs, finite_float, path_argument
 from services.commands.options import add_choice, add_command
 
 #: file suffixes (in any case) read as pose .npz files; a .bag file or a folder is a ROS bag; anything else a
@@ -19,11 +19,13 @@ NPZ_SUFFIXES = (".npz",)
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     evaluate = add_command(subparsers, "eval-relations", run_eval_relations)
-    evaluate.add_argument("poses", type=Path, help="pose .npz, CARMEN log (.clf/.log/.gz) or ROS bag")
-    evaluate.add_argument("relations", type=Path, help="relation file (t1 t2 dx dy dz roll pitch yaw per line)")
+    evaluate.add_argument("poses", type=path_argument, help="pose .npz, CARMEN log (.clf/.log/.gz) or ROS bag")
+    evaluate.add_argument(
+        "relations", type=path_argument, help="relation file (t1 t2 dx dy dz roll pitch yaw per line)"
+    )
     evaluate.add_argument(
         "--align-to",
-        type=Path,
+        type=path_argument,
         default=None,
         metavar="RAWLOG",
         help="put a log's stamps on RAWLOG's clock first, by the scans both hold (for "

@@ -7,7 +7,6 @@ import json
 import math
 import os
 import sys
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 from services.commands.argtypes import (
@@ -15,6 +14,7 @@ from services.commands.argtypes import (
     check_outputs,
     checked_output,
     finite_float,
+    path_argument,
     pose_sample_count,
     random_seed,
 )
@@ -163,13 +163,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _add_fuse(subparsers)
     _add_export(subparsers)
     evaluate = add_command(subparsers, "eval", run_eval)
-    evaluate.add_argument("map", type=Path, help="map .npz")
-    evaluate.add_argument("truth", type=Path, help="truth raster .npz")
+    evaluate.add_argument("map", type=path_argument, help="map .npz")
+    evaluate.add_argument("truth", type=path_argument, help="truth raster .npz")
 
 
 def _add_fuse(subparsers: argparse._SubParsersAction) -> None:
     fuse = add_command(subparsers, "fuse", run_fuse)
-    fuse.add_argument("posed", type=Path, help="posed-scan .npz (docs/formats.md)")
+    fuse.add_argument("posed", type=path_argument, help="posed-scan .npz (docs/formats.md)")
     fuse.add_argument(
         "-o",
         "--output",
@@ -233,7 +233,7 @@ def _add_adaptive_arguments(fuse: argparse.ArgumentParser) -> None:
 
 def _add_export(subparsers: argparse._SubParsersAction) -> None:
     export = add_command(subparsers, "export", run_export)
-    export.add_argument("map", type=Path, help="map .npz")
+    export.add_argument("map", type=path_argument, help="map .npz")
     export.add_argument(
         "--format",
         choices=("pgm", "png"),

@@ -5,10 +5,9 @@ from __future__ import annotations
 
 import argparse
 import math
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from services.commands.argtypes import finite_float
+from services.commands.argtypes import finite_float, path_argument
 
 if TYPE_CHECKING:
     from services.nodes.launcher import Plan
@@ -44,7 +43,9 @@ def add_persist_options(parser: argparse.ArgumentParser) -> None:
         "With --state-dir the shard keeps its tiles and its ledger of fused seqs in a SQLite database there, starts "
         "from it when it holds one, and takes from the histories only the scans after its ledger.",
     )
-    group.add_argument("--state-dir", type=Path, default=None, metavar="DIR", help="the shard's state directory")
+    group.add_argument(
+        "--state-dir", type=path_argument, default=None, metavar="DIR", help="the shard's state directory"
+    )
     group.add_argument(
         "--session",
         default=None,
@@ -54,7 +55,7 @@ def add_persist_options(parser: argparse.ArgumentParser) -> None:
     )
     group.add_argument(
         "--load",
-        type=Path,
+        type=path_argument,
         default=None,
         metavar="MAP.npz",
         help="start from an exported map (posegrid run --export, posegrid fuse): the tiles this shard owns",
@@ -112,10 +113,12 @@ def add_run_persist_options(parser: argparse.ArgumentParser) -> None:
         "memory only.",
     )
     where = group.add_mutually_exclusive_group()
-    where.add_argument("--state-dir", type=Path, default=None, metavar="DIR", help="a new directory for this run")
+    where.add_argument(
+        "--state-dir", type=path_argument, default=None, metavar="DIR", help="a new directory for this run"
+    )
     where.add_argument(
         "--resume",
-        type=Path,
+        type=path_argument,
         default=None,
         metavar="DIR",
         help="start from the map of the run in DIR and add this run to it as a new session",

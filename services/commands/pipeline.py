@@ -8,11 +8,17 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 from services.commands.api import add_http_arguments, api_child_options, check_port_free
-from services.commands.argtypes import checked_output, finite_float, odom_delay_seconds, pose_sample_count, random_seed
+from services.commands.argtypes import (
+    checked_output,
+    finite_float,
+    odom_delay_seconds,
+    path_argument,
+    pose_sample_count,
+    random_seed,
+)
 from services.commands.gridslam import DEFAULT_GRID_PARTICLES, FILTER_OPTIONS, add_filter_options, reject_filter_options
 from services.commands.limits import add_limit_arguments, limit_argv, limits_from_args
 from services.commands.mapping import (
@@ -287,15 +293,17 @@ def add_input_arguments(parser: argparse.ArgumentParser, default_sim: bool) -> N
         action="store_true",
         help="simulate the office world live (slam.simulator)" + (" (default)" if default_sim else ""),
     )
-    inputs.add_argument("--posed", type=Path, metavar="FILE.npz", help="posed-scan file: scans with their poses")
-    inputs.add_argument("--sim-dir", type=Path, metavar="DIR", help="folder written by `posegrid simulate`")
     inputs.add_argument(
-        "--mrclam", type=Path, metavar="DIR", help=mrclam_help("UTIAS MRCLAM dataset folder (no laser)")
+        "--posed", type=path_argument, metavar="FILE.npz", help="posed-scan file: scans with their poses"
     )
-    inputs.add_argument("--carmen", type=Path, metavar="FILE", help="CARMEN log (.clf/.log, plain or gzip)")
+    inputs.add_argument("--sim-dir", type=path_argument, metavar="DIR", help="folder written by `posegrid simulate`")
+    inputs.add_argument(
+        "--mrclam", type=path_argument, metavar="DIR", help=mrclam_help("UTIAS MRCLAM dataset folder (no laser)")
+    )
+    inputs.add_argument("--carmen", type=path_argument, metavar="FILE", help="CARMEN log (.clf/.log, plain or gzip)")
     inputs.add_argument(
         "--bag",
-        type=Path,
+        type=path_argument,
         metavar="BAG",
         help="ROS bag with LaserScan and odometry (Odometry messages or /tf): a ROS 1 .bag file or a ROS 2 bag folder",
     )

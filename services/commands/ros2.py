@@ -7,10 +7,9 @@ from __future__ import annotations
 
 import argparse
 import os
-from pathlib import Path
 from typing import TYPE_CHECKING
 
-from services.commands.argtypes import finite_float, positive_seconds
+from services.commands.argtypes import finite_float, path_argument, positive_seconds
 from services.commands.options import OptionRow, add_group
 
 if TYPE_CHECKING:
@@ -61,7 +60,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "as a robot on rmw_zenoh (or behind zenoh-bridge-ros2dds with --mode bridge) would, paced by the bag's "
         "timestamps. /tf_static is TRANSIENT_LOCAL. Exits 0 after the last message.",
     )
-    play.add_argument("bag", type=Path, metavar="BAG", help="a ROS 2 bag folder, or its .mcap or .db3 file")
+    play.add_argument("bag", type=path_argument, metavar="BAG", help="a ROS 2 bag folder, or its .mcap or .db3 file")
     add_graph_arguments(play, node="posegrid_play")
     play.add_argument(
         "--rate", default="realtime", help="'realtime', a factor of real time (e.g. 2) or 'max' (default realtime)"

@@ -4,8 +4,10 @@
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
+import ipaddress
+import re
 
+from services.commands.argtypes import path_argument
 from services.commands.options import add_command
 
 #: where a router listens and clients connect unless told otherwise (the port of DEFAULT_ROUTER_ENDPOINT)
@@ -14,7 +16,9 @@ DEFAULT_PORT = 7447
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     init = add_command(subparsers, "secure-init", run_secure_init)
-    init.add_argument("folder", type=Path, metavar="DIR", help="folder to write into (empty or new, unless --force)")
+    init.add_argument(
+        "folder", type=path_argument, metavar="DIR", help="folder to write into (empty or new, unless --force)"
+    )
     init.add_argument(
         "--robot",
         action="append",
@@ -51,6 +55,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     init.add_argument("--force", action="store_true", help="replace what DIR holds")
 
 
+#: one label of a DNS name (RFC 1123): letters, digits and inner hyphens, 1 to 63 characters
+_DNS_LABEL = re.compile(r"[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?")
+
+
+def _is_host(text: str) -> bool:
+    """Whether ``text`` is an IP address or a DNS name (at most 253 characters of dot-separated labels), the
+    forms a certificate's subject alternative name and a Zenoh endpoint both take."""
+    try:
+        ipaddress.ip_address(text)
+        return True
+    except ValueError:
+        pass
+    labels = text.split(".")
+    return 0 < len(text) <= 253 and all(_DNS_LABEL.fullmatch(label) for label in labels)
+
+
 def _endpoint_host(host: str) -> str:
     """``host`` as the address part of a Zenoh endpoint (an IPv6 address in brackets)."""
     return f"[{host}]" if ":" in host else host
@@ -81,9 +101,10 @@ def run_secure_init(args: argparse.Namespace) -> int:
     if not 1 <= days <= MAX_VALID_DAYS:
         raise UsageError(f"--days must be 1 to {MAX_VALID_DAYS} (100 years), got {days}")
     for option, value in [*(("--host", host) for host in args.host), ("--listen-address", args.listen_address)]:
-        if not value or any(c in value for c in "/[]#?@ ") or value.count(":") == 1:
+        if not _is_host(value):
             raise UsageError(
-                f"{option} takes a bare DNS name or IP address (no scheme, port or brackets), got {value!r}"
+                f"{option} takes a bare DNS name (letters, digits, '-' and dots) or IP address, with no scheme, port "
+                f"or brackets, got {value!r}"
             )
     listen = f"tls/{_endpoint_host(args.listen_address)}:{args.port}"
     if args.folder.exists() and not args.folder.is_dir():

@@ -14,7 +14,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
 
-from services.commands.argtypes import check_outputs, checked_output, finite_float, pose_sample_count, random_seed
+from services.commands.argtypes import (
+    check_outputs,
+    checked_output,
+    finite_float,
+    path_argument,
+    pose_sample_count,
+    random_seed,
+)
 from services.commands.options import add_choice, add_command, dest
 
 if TYPE_CHECKING:
@@ -110,7 +117,9 @@ def _add_simulate(subparsers: argparse._SubParsersAction) -> None:
 
 def _add_slam(subparsers: argparse._SubParsersAction) -> None:
     slam = add_command(subparsers, "slam", run_slam)
-    slam.add_argument("input", type=Path, help="simulator folder or MRCLAM folder (gridslam: a CARMEN log or ROS bag)")
+    slam.add_argument(
+        "input", type=path_argument, help="simulator folder or MRCLAM folder (gridslam: a CARMEN log or ROS bag)"
+    )
     slam.add_argument("-o", "--output", required=True, metavar="OUTPUT.npz", help=".npz to write")
     slam.add_argument(
         "--algo",
@@ -216,8 +225,10 @@ def _add_noise_options(slam: argparse.ArgumentParser) -> None:
 
 def _add_eval_traj(subparsers: argparse._SubParsersAction) -> None:
     evaluate = add_command(subparsers, "eval-traj", run_eval_traj)
-    evaluate.add_argument("poses", type=Path, help="pose-distribution or posed-scan .npz")
-    evaluate.add_argument("groundtruth", type=Path, help="pose .npz, simulator folder or RobotK_Groundtruth.dat")
+    evaluate.add_argument("poses", type=path_argument, help="pose-distribution or posed-scan .npz")
+    evaluate.add_argument(
+        "groundtruth", type=path_argument, help="pose .npz, simulator folder or RobotK_Groundtruth.dat"
+    )
 
 
 # ------------------------------------------------------------------------------------------------ simulate
