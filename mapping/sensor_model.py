@@ -85,6 +85,15 @@ class _LogOdds:
         return self if model is None else float(logit(getattr(model, self.field)))
 
 
+#: the largest range noise sigma0 and peak width l, m: beyond 10 km they describe no range sensor, and their squares
+#: and the erf arguments of the model leave float64's range
+MAX_MODEL_LENGTH = 1e4
+#: the steepest linear noise growth, m of sigma per m of range
+MAX_SIGMA_SLOPE = 10.0
+#: the smallest stereo b*f (m px): 1 mm baseline and 1 px focal length; below it sigma(z) = z^2/(b*f) overflows
+MIN_BASELINE_FOCAL = 1e-3
+
+
 @dataclass(frozen=True)
 class SensorModel:
     """Parameters of the inverse sensor model and of the log-odds scale of the map.
@@ -115,12 +124,16 @@ class SensorModel:
             raise InputError(f"sigma must be one of {', '.join(SIGMA_KINDS)}, got {self.sigma!r}")
         if self.sigma == "stereo" and not self.baseline_focal > 0:
             raise InputError("the stereo sigma model needs baseline_focal (b*f) > 0")
-        if self.sigma != "stereo" and not self.sigma0 > 0:
-            raise InputError(f"sigma0 must be > 0 m, got {self.sigma0}")
-        if self.sigma_slope < 0:
-            raise InputError(f"sigma_slope must be >= 0, got {self.sigma_slope}")
-        if self.peak_width is not None and not self.peak_width > 0:
-            raise InputError(f"peak_width must be > 0 m, got {self.peak_width}")
+        if self.sigma == "stereo" and not self.baseline_focal >= MIN_BASELINE_FOCAL:
+            raise InputError(f"baseline_focal (b*f) must be >= {MIN_BASELINE_FOCAL} m px, got {self.baseline_focal}")
+        if self.sigma != "stereo" and not 0 < self.sigma0 <= MAX_MODEL_LENGTH:
+            raise InputError(f"sigma0 must be > 0 m and at most {MAX_MODEL_LENGTH:g} m, got {self.sigma0}")
+        if not 0 <= self.sigma_slope <= MAX_SIGMA_SLOPE:
+            raise InputError(
+                f"sigma_slope must be 0 to {MAX_SIGMA_SLOPE:g} (m of noise per m of range), got {self.sigma_slope}"
+            )
+        if self.peak_width is not None and not 0 < self.peak_width <= MAX_MODEL_LENGTH:
+            raise InputError(f"peak_width must be > 0 m and at most {MAX_MODEL_LENGTH:g} m, got {self.peak_width}")
         if not (0 < self.p_min < self.p_miss < 0.5 < self.p_hit < self.p_max < 1):
             raise InputError(
                 "need 0 < p_min < p_miss < 0.5 < p_hit < p_max < 1, got "

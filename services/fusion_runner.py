@@ -4,7 +4,8 @@ same way, so a sharded map equals the in-process one cell for cell)."""
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator
+from contextlib import closing
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, TypedDict, TypeVar
 
@@ -101,9 +102,10 @@ def fuse_posed_scans(
         model,
         options,
     )
-    for outcome in threads.fuse_iter(scans):
-        if isinstance(outcome, InputError):
-            raise outcome
+    with closing(scans):
+        for outcome in threads.fuse_iter(scans):
+            if isinstance(outcome, InputError):
+                raise outcome
     return tiled
 
 
@@ -120,10 +122,10 @@ def fuse_posed_scans_adaptive(
 
     model = _model(options)
     adaptive = grid or AdaptiveGrid(model.resolution)
-    for fusion, (ranges, samples, weights) in _scans(
-        posed, lambda geometry: AdaptiveFusion(adaptive, model, *geometry, params), model, options
-    ):
-        fusion.fuse(ranges, samples, weights)
+    scans = _scans(posed, lambda geometry: AdaptiveFusion(adaptive, model, *geometry, params), model, options)
+    with closing(scans):
+        for fusion, (ranges, samples, weights) in scans:
+            fusion.fuse(ranges, samples, weights)
     return adaptive
 
 
@@ -143,7 +145,7 @@ Fusion = TypeVar("Fusion")
 
 def _scans(
     posed: PosedScans, make: Callable[[ScanGeometry], Fusion], model: SensorModel, options: FusionOptions
-) -> Iterator[tuple[Fusion, ScanInput]]:
+) -> Generator[tuple[Fusion, ScanInput], None, None]:
     """Every scan, in order, with the fusion pass of its own laser geometry and its pose samples drawn as ``options``
     say: (pass, (ranges (B,) m, samples (M, 3), weights (M,))). ``make(geometry)`` makes the pass of a geometry (all
     passes write into one grid), and the last FUSIONS_KEPT are kept."""
@@ -158,10 +160,12 @@ def _scans(
     arrays = posed.poses.arrays()  # mean and cov, or samples and weights: (T, ...) each
     passes: OrderedDict[tuple, Fusion] = OrderedDict()
     steps = range(len(posed.stamps))
-    for t in tqdm(steps, desc="fusing", unit="scan", disable=not progress, mininterval=0.5):
-        range_max = float(posed.range_max[t])
-        samples, weights = sampling.draw(t, range_max, **{name: array[t] for name, array in arrays.items()})
-        yield _pass_for(passes, posed, t, make), (posed.scan_ranges(t), samples, weights)
+    with tqdm(total=len(steps), desc="fusing", unit="scan", disable=not progress, mininterval=0.5) as bar:
+        for t in steps:  # the bar closes (its line ends) when the caller closes this generator, before any error
+            range_max = float(posed.range_max[t])
+            samples, weights = sampling.draw(t, range_max, **{name: array[t] for name, array in arrays.items()})
+            yield _pass_for(passes, posed, t, make), (posed.scan_ranges(t), samples, weights)
+            bar.update()
 
 
 def _pass_for(

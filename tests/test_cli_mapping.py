@@ -339,3 +339,17 @@ def test_a_map_that_misses_the_truth_is_warned_about(tmp_path, posed_file):
     save_truth(tmp_path / "near.npz", TruthRaster(occupied, np.ones_like(occupied), np.zeros(2), 0.05))
     near = posegrid("eval", str(map_path), str(tmp_path / "near.npz"))
     assert 0 < json.loads(near.stdout)["informed"] <= occupied.size and "warning" not in near.stderr
+
+
+def test_a_scan_refused_midway_ends_the_progress_bar_before_the_error(tmp_path):
+    """The error line came first and the bar's last state after it, on the same terminal line as the next prompt."""
+    samples = np.zeros((60, 1, 3))
+    samples[5, 0, 0] = 1e12  # scan 5's pose: beyond what the grid's cells can index
+    arrays = good_arrays(
+        ranges=np.ones((60, 3), np.float32), stamps=np.arange(60.0), samples=samples, weights=np.ones((60, 1))
+    )
+    result = posegrid("fuse", str(_bad(tmp_path, "far.npz", **arrays)), "-o", str(tmp_path / "m.npz"))
+    last = result.stderr.replace("\r", "\n").strip().splitlines()[-1]
+    assert result.returncode == 2 and last.startswith("posegrid fuse: error:") and "reaches beyond" in last, (
+        result.stderr
+    )

@@ -1,6 +1,8 @@
 """The inverse sensor model against a numerical convolution and the OctoMap increments."""
 
 import math
+import re
+import warnings
 
 import numpy as np
 import pytest
@@ -117,6 +119,34 @@ def test_bad_parameters_are_rejected(kwargs):
 def test_more_bad_parameters_are_rejected(kwargs):
     with pytest.raises(InputError):
         SensorModel(**kwargs)
+
+
+@pytest.mark.parametrize(
+    "kwargs, phrase",
+    [  # past these the model's squares and erf arguments overflowed: warnings, and a map of NaN or nothing
+        ({"sigma0": 1e308}, "sigma0 must be > 0 m and at most 10000 m"),
+        ({"peak_width": 1e308}, "peak_width must be > 0 m and at most 10000 m"),
+        ({"sigma": "linear", "sigma_slope": 1e300}, "sigma_slope must be 0 to 10"),
+        ({"sigma": "stereo", "baseline_focal": 1e-300}, "baseline_focal (b*f) must be >= 0.001"),
+    ],
+)
+def test_parameters_beyond_any_sensor_are_rejected(kwargs, phrase):
+    with pytest.raises(InputError, match=re.escape(phrase)):
+        SensorModel(**kwargs)
+
+
+def test_the_largest_accepted_parameters_stay_finite():
+    """At the bounds the model is still a probability, with no overflow on the way (warnings are errors here)."""
+    z = np.array([0.5, 30.0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for model in (
+            SensorModel(sigma0=1e4, peak_width=1e4),
+            SensorModel(sigma="linear", sigma_slope=10.0),
+            SensorModel(sigma="stereo", baseline_focal=1e-3),
+        ):
+            g = model.probability(model.peak_range(z), z)
+            assert np.all(np.isfinite(g)) and np.all((g >= 0) & (g <= 1))
 
 
 def test_default_peak_width_is_the_cell_diagonal():
