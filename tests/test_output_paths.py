@@ -370,3 +370,18 @@ def test_an_output_beside_the_inputs_of_a_folder_is_written(tmp_path, sim_folder
     assert main(["slam", str(sim_folder), "--algo", "ekf", "-o", str(output)]) == 0
     assert output.is_file()
     output.unlink()
+
+
+def test_a_pgm_export_whose_yaml_would_replace_the_map_is_refused(tmp_path, posed_file, capsys):
+    """The map_server YAML goes beside the pgm as NAME.yaml: a map file named m.yaml was replaced by it."""
+    map_path = tmp_path / "m.yaml"  # a map file with an unusual name (load_map reads the content, not the name)
+    assert main(["fuse", str(posed_file), "-o", str(map_path)]) == 0
+    capsys.readouterr()
+    before = map_path.read_bytes()
+    one_line_exit_2(
+        ["export", str(map_path), "--format", "pgm", "-o", str(tmp_path / "m.pgm")],
+        capsys,
+        "the map_server YAML beside -o,",
+        "is a file this command reads",
+    )
+    assert map_path.read_bytes() == before and not (tmp_path / "m.pgm").exists()

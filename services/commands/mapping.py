@@ -12,7 +12,6 @@ from typing import TYPE_CHECKING
 from services.commands.argtypes import (
     bundle_metres,
     check_outputs,
-    checked_output,
     finite_float,
     path_argument,
     pose_sample_count,
@@ -432,8 +431,10 @@ def run_export(args: argparse.Namespace) -> int:
     if args.format == "pgm" and args.layer != "probability":
         raise UsageError("--layer variance draws a png; a pgm for map_server holds the occupancy only")
     yaml_path = None  # set for a pgm only
-    if args.format == "pgm":
-        yaml_path = checked_output(args.output.with_suffix(".yaml"), "the map_server YAML beside -o,")
+    if args.format == "pgm":  # the YAML must not replace the map either (a map file named NAME.yaml)
+        args.map_server_yaml = args.output.with_suffix(".yaml")
+        check_outputs(args, inputs=(args.map,), map_server_yaml="the map_server YAML beside -o,")
+        yaml_path = args.map_server_yaml
     map_file = load_map(args.map)
     arrays = vars(map_file)
     if args.crop is not None:
