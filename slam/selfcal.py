@@ -44,8 +44,8 @@ DELAY_GRID = tuple(round(0.05 * k, 2) for k in range(9))
 #: the fitted noise shrinks from one iteration to the next (residuals against a trajectory that follows the
 #: model are smaller than the motion's true errors)
 SMOOTHING_MOTION_SCALE = 4.0
-#: the least data a fit takes: s of data, measurements of landmarks seen more than once, short windows of motion
-MIN_SECONDS, MIN_MEASUREMENTS, MIN_WINDOWS = 30.0, 50, 10
+#: the least data a fit takes: measurements of landmarks seen more than once, short windows of motion
+MIN_MEASUREMENTS, MIN_WINDOWS = 50, 10
 #: the fitted motion variances are multiplied by this factor: the filters take the corrections as exact, and their
 #: errors (a turn-rate scale off by 2 %, a delay off by a grid step) and errors that last a manoeuvre act as motion
 #: noise that the white model lacks. Chosen among 1-6 on the simulated robots of bench/slam.py at seeds 3-6, which
@@ -536,17 +536,18 @@ class NotEnoughData(ValueError):
 
 
 def check_enough(data: FitData) -> None:
-    """Raise :class:`NotEnoughData` unless ``data`` spans :data:`MIN_SECONDS`, holds :data:`MIN_MEASUREMENTS`
-    measurements of landmarks seen more than once and moves in :data:`MIN_WINDOWS` short windows."""
-    span = float(data.stamps[-1] - data.stamps[0])
+    """Raise :class:`NotEnoughData`, naming what falls short, unless ``data`` holds :data:`MIN_MEASUREMENTS`
+    measurements of landmarks seen more than once and :data:`MIN_WINDOWS` short windows of motion (s with a
+    non-zero command)."""
     repeated = int(np.sum(np.bincount(data.slot, minlength=data.n_slots)[data.slot] > 1))
-    moving = data.controls[(data.controls[:, 0] != 0.0) | (data.controls[:, 1] != 0.0), 2].sum()
-    if span < MIN_SECONDS or repeated < MIN_MEASUREMENTS or moving < MIN_WINDOWS * SHORT_WINDOW:
-        raise NotEnoughData(
-            f"{span:.0f} s of data with {repeated} measurements of landmarks seen more than once and {moving:.0f} s "
-            f"of motion: a fit needs at least {MIN_SECONDS:g} s, {MIN_MEASUREMENTS} such measurements and "
-            f"{MIN_WINDOWS * SHORT_WINDOW:g} s of motion"
-        )
+    moving = float(data.controls[(data.controls[:, 0] != 0.0) | (data.controls[:, 1] != 0.0), 2].sum())
+    short = []
+    if moving < MIN_WINDOWS * SHORT_WINDOW:
+        short.append(f"{moving:.1f} s of motion (a non-zero command), a fit needs {MIN_WINDOWS * SHORT_WINDOW:g} s")
+    if repeated < MIN_MEASUREMENTS:
+        short.append(f"{repeated} measurements of landmarks seen more than once, a fit needs {MIN_MEASUREMENTS}")
+    if short:
+        raise NotEnoughData("; ".join(short))
 
 
 @dataclass(frozen=True)

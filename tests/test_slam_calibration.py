@@ -244,6 +244,16 @@ def test_calibrate_writes_a_file_that_slam_reads(robot, tmp_path, capsys):
     assert score["inside95"] >= 0.85 and score["ate_rmse_m"] < 1.0
 
 
+def test_too_short_a_run_names_what_it_lacks(tmp_path, capsys):
+    """100 steps of 0.1 s: 9.9 s of motion (the first step has no command) against the 40 s of ten 4 s windows.
+    The message asked for '30 s' of data and '40 s of motion' at once, and named what was enough too."""
+    assert main(["simulate", str(tmp_path / "sim"), "--steps", "100"]) == 0
+    capsys.readouterr()
+    assert main(["calibrate", str(tmp_path / "sim"), "-o", str(tmp_path / "c.json")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.endswith("too little to calibrate from: 9.9 s of motion (a non-zero command), a fit needs 40 s"), err
+
+
 @pytest.mark.parametrize(
     ("options", "phrase"),
     [
