@@ -201,7 +201,9 @@ def _limit_probes(rng: np.random.Generator, scan: LaserScan) -> Mix:
     mix: Mix = []
 
     def pair(robot: str, seq: int, ranges: np.ndarray, points: np.ndarray) -> None:
-        probe = replace(scan, robot=robot, seq=seq, ranges=ranges.astype(np.float32))
+        fan = scan.angle_increment * (len(scan.ranges) - 1)  # the probe's beams over the laser's fan: a valid scan
+        increment = fan / max(len(ranges) - 1, 1)
+        probe = replace(scan, robot=robot, seq=seq, ranges=ranges.astype(np.float32), angle_increment=increment)
         pose = _samples(robot, seq, points)
         mix.extend(
             [(keys.robot_key(robot, keys.SCAN), probe.encode()), (keys.robot_key(robot, keys.POSE), pose.encode())]
