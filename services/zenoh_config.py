@@ -9,7 +9,6 @@ override both.
 
 from __future__ import annotations
 
-import argparse
 import json
 import re
 import threading
@@ -17,7 +16,6 @@ from pathlib import Path
 
 import zenoh
 
-from services.commands.argtypes import path_argument
 from services.errors import UsageError
 
 #: where the router listens and everyone else connects unless configured otherwise
@@ -106,37 +104,6 @@ def _first_line(exc: BaseException) -> str:
     lines = str(exc).strip().splitlines()
     text = re.sub(r"\s+at \S+\.rs:\d+\.?", "", lines[0]) if lines else type(exc).__name__
     return text.rstrip(". ")
-
-
-def add_zenoh_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add --zenoh-config, --listen and --connect (every posegrid process takes them)."""
-    group = parser.add_argument_group("zenoh")
-    group.add_argument(
-        "--zenoh-config",
-        type=path_argument,
-        default=None,
-        metavar="FILE",
-        help="zenoh JSON5 config file; keys it sets override posegrid's loopback-only defaults",
-    )
-    group.add_argument(
-        "--listen",
-        action="append",
-        default=[],
-        metavar="ENDPOINT",
-        help="endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable; overrides the file)",
-    )
-    group.add_argument(
-        "--connect",
-        action="append",
-        default=[],
-        metavar="ENDPOINT",
-        help=f"endpoint to connect to (repeatable; default {DEFAULT_ROUTER_ENDPOINT}, the router)",
-    )
-
-
-def config_from_args(args: argparse.Namespace, mode: str) -> zenoh.Config:
-    """The config for a process of ``mode`` from the arguments :func:`add_zenoh_arguments` added."""
-    return build_config(mode, listen=args.listen, connect=args.connect, config_file=args.zenoh_config)
 
 
 def open_session(config: zenoh.Config, what: str, stop: threading.Event | None = None) -> zenoh.Session:

@@ -204,11 +204,16 @@ def test_secure_init_takes_names_and_addresses(tmp_path, host):
     assert main(["secure-init", str(tmp_path / "s"), "--host", host]) == 0
 
 
-def test_an_empty_folder_name_is_refused(capsys):
-    """Path('') is the current folder: the message said '. is not empty'."""
+@pytest.mark.parametrize(
+    "argv", [["secure-init", ""], ["router", "--zenoh-config", ""], ["fuse", "", "-o", "m.npz"]], ids=lambda a: a[0]
+)
+def test_an_empty_path_is_refused_by_name(capsys, argv):
+    """Path('') is the current folder: the messages said '. is not empty' and 'zenoh config file . does not
+    exist'."""
     with pytest.raises(SystemExit) as info:
-        main(["secure-init", ""])
-    assert info.value.code == 2 and "an empty path" in capsys.readouterr().err
+        main(argv)
+    err = capsys.readouterr().err
+    assert info.value.code == 2 and "an empty path: name a file or folder" in err, err
 
 
 # ------------------------------------------------------------------------------------------ authentication

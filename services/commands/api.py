@@ -193,7 +193,7 @@ def api_child_options(args: argparse.Namespace, prefix: str = "api-") -> list[st
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from services.zenoh_config import add_zenoh_arguments
+    from services.commands.zenoh_options import add_zenoh_arguments
 
     api = add_command(subparsers, "api", run_api)
     api.add_argument(
@@ -264,7 +264,7 @@ def run_api(args: argparse.Namespace) -> int:
     token = token_of(args)
     check_port_free(args.host, args.port)
     from services.api.server import ServeOptions, serve
-    from services.zenoh_config import config_from_args
+    from services.commands.zenoh_options import config_from_args
 
     options = ServeOptions(
         cache_bytes=int(args.cache_mb * 2**20),

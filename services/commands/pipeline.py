@@ -81,14 +81,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _add_router(subparsers: argparse._SubParsersAction) -> None:
-    from services.zenoh_config import add_zenoh_arguments
+    from services.commands.zenoh_options import add_zenoh_arguments
 
     router = add_command(subparsers, "router", run_router)
     add_zenoh_arguments(router)
 
 
 def _add_mapper(subparsers: argparse._SubParsersAction) -> None:
-    from services.zenoh_config import add_zenoh_arguments
+    from services.commands.zenoh_options import add_zenoh_arguments
 
     mapper = add_command(subparsers, "mapper", run_mapper)
     mapper.add_argument("--shard", type=int, required=True, help="this shard's index I, 0 <= I < N")
@@ -122,7 +122,7 @@ def _add_mapper(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _add_source(subparsers: argparse._SubParsersAction) -> None:
-    from services.zenoh_config import add_zenoh_arguments
+    from services.commands.zenoh_options import add_zenoh_arguments
 
     source = add_command(subparsers, "source", run_source)
     add_input_arguments(source, default_sim=False)
@@ -148,7 +148,7 @@ def _add_source(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _add_slam_node(subparsers: argparse._SubParsersAction) -> None:
-    from services.zenoh_config import add_zenoh_arguments
+    from services.commands.zenoh_options import add_zenoh_arguments
 
     node = add_command(subparsers, "slam-node", run_slam_node)
     _add_robot_option(node)
@@ -511,9 +511,9 @@ def run_router(args: argparse.Namespace) -> int:
 
     Route Zenoh traffic between posegrid processes. Listens on tcp/127.0.0.1:7447 unless --listen or
     --zenoh-config say otherwise; multicast scouting is off. Stops on Ctrl-C or SIGTERM."""
+    from services.commands.zenoh_options import config_from_args
     from services.nodes.router import run_router as route
     from services.process import install_stop_event
-    from services.zenoh_config import config_from_args
 
     config = config_from_args(args, "router")
     return route(config, install_stop_event())
@@ -542,10 +542,10 @@ def run_mapper(args: argparse.Namespace) -> int:
     _check_name(args.map, "--map")
     threads = threads_from_args(args)
     from services.commands.mapping import sensor_model_from_args
+    from services.commands.zenoh_options import config_from_args
     from services.nodes.mapper import run_mapper as serve
     from services.process import install_stop_event
     from services.state.shard import ShardConfig
-    from services.zenoh_config import config_from_args
 
     config = ShardConfig(
         map_name=args.map,
@@ -583,9 +583,10 @@ def run_source(args: argparse.Namespace) -> int:
     if args.steps < 1:
         raise UsageError(f"--steps must be >= 1, got {args.steps}")
     rate = _rate(args.rate)
+    from services.commands.zenoh_options import config_from_args
     from services.nodes.source import Source, SourceOptions, SourceStalled
     from services.process import install_stop_event, until_stopped
-    from services.zenoh_config import config_from_args, open_session
+    from services.zenoh_config import open_session
 
     stop = install_stop_event()
     zenoh_config = config_from_args(args, "client")
@@ -790,10 +791,10 @@ def run_slam_node(args: argparse.Namespace) -> int:
     grid_config = gridslam_config(args) if algo == "gridslam" else None
     import numpy as np
 
+    from services.commands.zenoh_options import config_from_args
     from services.nodes.slam_node import run_slam_node as serve
     from services.process import install_stop_event
     from services.state.slam import NodeConfig
-    from services.zenoh_config import config_from_args
 
     config = NodeConfig(
         robot=args.robot,

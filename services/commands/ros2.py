@@ -27,7 +27,7 @@ ROBOT_GRAPH: tuple[OptionRow, ...] = (
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from services.zenoh_config import add_zenoh_arguments
+    from services.commands.zenoh_options import add_zenoh_arguments
 
     bridge = subparsers.add_parser(
         "ros2",
@@ -258,10 +258,11 @@ def bridge_options(args: argparse.Namespace, prefix: str = ""):
 
 
 def run_bridge(args: argparse.Namespace) -> int:
+    from services.commands.zenoh_options import config_from_args
     from services.errors import UsageError
     from services.process import install_stop_event
     from services.ros2.bridge import Bridge
-    from services.zenoh_config import config_from_args, open_session
+    from services.zenoh_config import open_session
 
     if args.wait_mappers < 0:
         raise UsageError(f"--wait-mappers must be >= 0, got {args.wait_mappers}")
@@ -276,9 +277,10 @@ def run_bridge(args: argparse.Namespace) -> int:
 
 def run_play(args: argparse.Namespace) -> int:
     from services.commands.pipeline import _rate
+    from services.commands.zenoh_options import config_from_args
     from services.process import install_stop_event
     from services.ros2.play import Player, PlayOptions
-    from services.zenoh_config import config_from_args, open_session
+    from services.zenoh_config import open_session
 
     mode, domain, namespace = _graph(args)
     options = PlayOptions(
