@@ -1,6 +1,6 @@
 # posegrid: every target creates .venv and installs the project when needed, so a fresh clone works. The install
-# ends by compiling the numba kernels into their cache (services/warm_kernels.py, about a minute on 2 cores), so that
-# the first `make run` and the test suite do not wait for the compiler.
+# ends by compiling the numba kernels into their cache (services/commands/warm_kernels.py, about a minute on 2
+# cores), so that the first `make run` and the test suite do not wait for the compiler.
 PYTHON ?= python3
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
@@ -12,7 +12,7 @@ $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e '.[test]'
-	$(PY) -m services.warm_kernels
+	$(PY) -m services.commands.warm_kernels
 	touch $(STAMP)
 
 install: $(STAMP)

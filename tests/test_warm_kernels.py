@@ -1,9 +1,9 @@
-"""The install's warm-up of the numba kernels (services/warm_kernels.py; `make install` runs it on every fresh
-clone, which is what checks the whole of it)."""
+"""The install's warm-up of the numba kernels (services/commands/warm_kernels.py; `make install` runs it on every
+fresh clone, which is what checks the whole of it)."""
 
 import pytest
 
-from services.warm_kernels import _cli
+from services.commands.warm_kernels import _cli
 
 
 def test_a_warm_up_command_that_fails_names_itself_and_its_error(tmp_path):

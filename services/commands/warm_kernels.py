@@ -1,5 +1,5 @@
 """Compile the numba kernels of mapping/ and slam/ into numba's on-disk cache (mapping.jit) before they are first
-needed: ``python -m services.warm_kernels``, which `make install` runs.
+needed: ``python -m services.commands.warm_kernels``, which `make install` runs.
 
 On a fresh install every kernel compiles on its first call: the fusion's take about 30 CPU s (a `posegrid run`'s
 shards do that before they say they are up), the SLAM filters', the self-calibration's and grid FastSLAM's about as
