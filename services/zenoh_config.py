@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import re
+import sys
 import threading
 from pathlib import Path
 
@@ -106,13 +107,33 @@ def _first_line(exc: BaseException) -> str:
     return text.rstrip(". ")
 
 
+#: s a process waits for its router before it says so on stderr (a router that is up answers in milliseconds)
+ROUTER_WAIT_NOTE = 1.0
+
+
+def _say_waiting(config: zenoh.Config, what: str) -> None:
+    print(
+        f"posegrid: {what} is waiting for the router at {json.dumps(read_key(config, 'connect/endpoints'))} "
+        "(is `posegrid router` running there?)",
+        file=sys.stderr,
+        flush=True,
+    )
+
+
 def open_session(config: zenoh.Config, what: str, stop: threading.Event | None = None) -> zenoh.Session:
     """Open a Zenoh session; an unreachable router becomes a one-sentence :class:`UsageError`. With ``stop``, a stop
-    while it waits for the router (up to the connect timeout) raises services.process.Stopped at once."""
+    while it waits for the router (up to the connect timeout) raises services.process.Stopped at once, and a wait
+    longer than :data:`ROUTER_WAIT_NOTE` is said on stderr."""
     if stop is not None:
         from services.process import until_stopped
 
-        return until_stopped(lambda: open_session(config, what), stop, "waiting for the router")
+        note = threading.Timer(ROUTER_WAIT_NOTE, _say_waiting, (config, what))
+        note.daemon = True
+        note.start()
+        try:
+            return until_stopped(lambda: open_session(config, what), stop, "waiting for the router")
+        finally:
+            note.cancel()
     try:
         return zenoh.open(config)
     except zenoh.ZError as exc:
