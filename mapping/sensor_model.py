@@ -122,10 +122,11 @@ class SensorModel:
             raise InputError(f"resolution must be > 0 m, got {self.resolution}")
         if self.sigma not in SIGMA_KINDS:
             raise InputError(f"sigma must be one of {', '.join(SIGMA_KINDS)}, got {self.sigma!r}")
-        if self.sigma == "stereo" and not self.baseline_focal > 0:
-            raise InputError("the stereo sigma model needs baseline_focal (b*f) > 0")
         if self.sigma == "stereo" and not self.baseline_focal >= MIN_BASELINE_FOCAL:
-            raise InputError(f"baseline_focal (b*f) must be >= {MIN_BASELINE_FOCAL} m px, got {self.baseline_focal}")
+            raise InputError(
+                f"the stereo sigma model needs baseline_focal (b*f) >= {MIN_BASELINE_FOCAL} m px, got "
+                f"{self.baseline_focal}"
+            )
         if self.sigma != "stereo" and not 0 < self.sigma0 <= MAX_MODEL_LENGTH:
             raise InputError(f"sigma0 must be > 0 m and at most {MAX_MODEL_LENGTH:g} m, got {self.sigma0}")
         if not 0 <= self.sigma_slope <= MAX_SIGMA_SLOPE:

@@ -127,7 +127,7 @@ def test_more_bad_parameters_are_rejected(kwargs):
         ({"sigma0": 1e308}, "sigma0 must be > 0 m and at most 10000 m"),
         ({"peak_width": 1e308}, "peak_width must be > 0 m and at most 10000 m"),
         ({"sigma": "linear", "sigma_slope": 1e300}, "sigma_slope must be 0 to 10"),
-        ({"sigma": "stereo", "baseline_focal": 1e-300}, "baseline_focal (b*f) must be >= 0.001"),
+        ({"sigma": "stereo", "baseline_focal": 1e-300}, "needs baseline_focal (b*f) >= 0.001 m px"),
     ],
 )
 def test_parameters_beyond_any_sensor_are_rejected(kwargs, phrase):

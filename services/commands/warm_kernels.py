@@ -39,20 +39,10 @@ def warm_mapping(folder: Path) -> None:
     the particles once more as a shard of two fuses them."""
     sim = folder / "office"
     _cli("simulate", str(sim), "--steps", "30")
-    posed = {"gaussian": folder / "gaussian.npz", "particles": folder / "particles.npz"}
-    _cli("slam", str(sim), "--algo", "ekf", "--calibration", "none", "-o", str(posed["gaussian"]))
-    _cli(
-        "slam",
-        str(sim),
-        "--algo",
-        "fastslam2",
-        "--calibration",
-        "none",
-        "--particles",
-        "20",
-        "-o",
-        str(posed["particles"]),
-    )
+    runs = {"ekf": [], "fastslam2": ["--particles", "20"]}  # Gaussian poses; particles
+    posed = {algo: folder / f"{algo}.npz" for algo in runs}
+    for algo, options in runs.items():
+        _cli("slam", str(sim), "--algo", algo, "--calibration", "none", *options, "-o", str(posed[algo]))
     for path in posed.values():
         for options in ([], ["--threads", "2"], ["--bundle", "0.1"], ["--mode", "ml"], ["--grid", "adaptive"]):
             _cli("fuse", str(path), "-o", str(folder / "map.npz"), *options)
@@ -60,7 +50,7 @@ def warm_mapping(folder: Path) -> None:
     from services.fusion_runner import fuse_posed_scans
     from services.state.ownership import owns_tile
 
-    fuse_posed_scans(load_posed_scans(posed["particles"]), owns_tile=owns_tile(0, 2))  # a shard of two
+    fuse_posed_scans(load_posed_scans(posed["fastslam2"]), owns_tile=owns_tile(0, 2))  # a shard of two
 
 
 def warm_slam(folder: Path) -> None:
