@@ -199,7 +199,7 @@ def test_secure_init_refuses_what_is_no_host_name(tmp_path, capsys, host):
     assert "--host takes a bare DNS name" in err and "Traceback" not in err and not (tmp_path / "s").exists()
 
 
-@pytest.mark.parametrize("host", ["router", "robot-1.lab.example", "10.0.0.2", "fe80::1"])
+@pytest.mark.parametrize("host", ["router", "robot-1.lab.example", "posegrid_router", "10.0.0.2", "fe80::1"])
 def test_secure_init_takes_names_and_addresses(tmp_path, host):
     assert main(["secure-init", str(tmp_path / "s"), "--host", host]) == 0
 

@@ -55,8 +55,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     init.add_argument("--force", action="store_true", help="replace what DIR holds")
 
 
-#: one label of a DNS name (RFC 1123): letters, digits and inner hyphens, 1 to 63 characters
-_DNS_LABEL = re.compile(r"[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?")
+#: one label of a DNS name (RFC 1123), 1 to 63 characters: letters, digits and inner hyphens, and underscores, which
+#: RFC 1123 leaves out but container networks use in service names and TLS libraries accept
+_DNS_LABEL = re.compile(r"[A-Za-z0-9_]([A-Za-z0-9_-]{0,61}[A-Za-z0-9_])?")
 
 
 def _is_host(text: str) -> bool:
@@ -103,8 +104,8 @@ def run_secure_init(args: argparse.Namespace) -> int:
     for option, value in [*(("--host", host) for host in args.host), ("--listen-address", args.listen_address)]:
         if not _is_host(value):
             raise UsageError(
-                f"{option} takes a bare DNS name (letters, digits, '-' and dots) or IP address, with no scheme, port "
-                f"or brackets, got {value!r}"
+                f"{option} takes a bare DNS name (letters, digits, '-', '_' and dots) or IP address, with no "
+                f"scheme, port or brackets, got {value!r}"
             )
     listen = f"tls/{_endpoint_host(args.listen_address)}:{args.port}"
     if args.folder.exists() and not args.folder.is_dir():
