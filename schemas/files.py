@@ -534,7 +534,7 @@ def _check_geometry(geometry: dict[str, np.ndarray], beams: np.ndarray, path) ->
         )
 
 
-def fan_past_a_turn(beams, increment):
+def fan_past_a_turn(beams: int | np.ndarray, increment: float | np.ndarray) -> np.bool_ | np.ndarray:
     """Whether a scan's beams sweep more than a full turn (bool, per scan for arrays): the beams then repeat
     directions and the map would count the same walls twice. A fan of exactly a turn (first and last beam on one
     direction, as some 360 deg scanners report) passes; half a beam of slack absorbs rounding."""
