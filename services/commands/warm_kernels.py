@@ -91,4 +91,10 @@ def main() -> int:
 
 
 if __name__ == "__main__":
+    if sys.argv[1:] in (["-h"], ["--help"]):
+        print(f"usage: python -m services.commands.warm_kernels\n\n{__doc__}")
+        sys.exit(0)
+    if sys.argv[1:]:
+        print(f"warm_kernels takes no arguments, got {' '.join(sys.argv[1:])!r} (see --help)", file=sys.stderr)
+        sys.exit(2)
     sys.exit(main())
