@@ -418,6 +418,13 @@ def test_out_of_range_values(overrides):
     assert info.value.reason == "range"
 
 
+def test_a_peer_sending_a_fan_past_a_turn_is_refused_on_decode():
+    """What a peer sends is checked as it is decoded, not only by this side's encoder: 15 beams 0.5 rad apart."""
+    wire = wire_of(scan(angle_increment=0.4, ranges=np.ones(15, np.float32)))  # 5.6 rad: valid as sent
+    wire["angle_increment"] = 0.5
+    assert reason_of(wire, LaserScan) == "range"
+
+
 def test_a_fan_of_exactly_one_turn_goes_through():
     """361 beams a degree apart (first and last on one direction), as some 360 deg scanners report."""
     decoded = decode_message(scan(angle_increment=2 * np.pi / 360, ranges=np.ones(361, np.float32)).encode(), LaserScan)
