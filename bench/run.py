@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import contextlib
 import importlib
-import io
 import json
 import platform
 import sys
@@ -34,14 +32,9 @@ SUITES = (
 
 def run_cli(argv: list[str]) -> str:
     """Run `posegrid ARGV` in this process, as a suite's user would; its stdout (a non-zero exit raises)."""
-    from services.cli import main
+    from services.cli import run_in_process
 
-    out = io.StringIO()
-    with contextlib.redirect_stdout(out):
-        code = main(argv)
-    if code != 0:
-        raise RuntimeError(f"posegrid {' '.join(argv)} exited {code}: {out.getvalue()}")
-    return out.getvalue()
+    return run_in_process(argv)
 
 
 def main(argv: list[str]) -> int:

@@ -11,7 +11,9 @@ Exit codes: 0 success, 1 runtime failure, 2 bad input or usage (one sentence on 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
+import io
 import signal
 import sys
 
@@ -87,6 +89,18 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 2
+
+
+def run_in_process(argv: list[str], quiet: bool = False) -> str:
+    """Run `posegrid ARGV` in this process, as a user would from a shell, and return what it printed on stdout
+    (``quiet``: its stderr is taken too, and shown only if it fails). A non-zero exit raises RuntimeError naming
+    the command and holding its output. For the benchmarks and the install's kernel warm-up."""
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out) if quiet else contextlib.nullcontext():
+        code = main(argv)
+    if code != 0:
+        raise RuntimeError(f"posegrid {' '.join(argv)} exited {code}: {out.getvalue().strip()}")
+    return out.getvalue()
 
 
 if __name__ == "__main__":

@@ -12,8 +12,6 @@ its next call, as it would without this.
 
 from __future__ import annotations
 
-import contextlib
-import io
 import sys
 import tempfile
 import time
@@ -24,13 +22,9 @@ from pathlib import Path
 
 def _cli(*argv: str) -> None:
     """Run one posegrid command in this process with its output hidden; raise with its output if it fails."""
-    from services.cli import main
+    from services.cli import run_in_process
 
-    out = io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
-        code = main(list(argv))
-    if code != 0:
-        raise RuntimeError(f"posegrid {' '.join(argv)} exited {code}: {out.getvalue().strip()}")
+    run_in_process(list(argv), quiet=True)
 
 
 def warm_mapping(folder: Path) -> None:
