@@ -15,7 +15,8 @@ Figures: ATE (m) and inside95 of each run, the ATE ratio to ``ref``, and FastSLA
 seconds per wall second, as `posegrid slam` prints it). ``targets_met`` counts the runs with ATE within 1.3x of
 ``ref`` and inside95 in [0.85, 0.99]; ``ref_inside95_in_bounds`` how many ``ref`` runs have inside95 there. ``pooled_*``
 gives, per filter, the mean inside95 over the robots and the geometric mean of the ATE ratios (:func:`pooled`).
-`python -m bench.slam` prints the table docs/slam.md shows; with ``--quick`` it skips MRCLAM. About 15 minutes on
+`python -m bench.slam` prints the table docs/slam.md shows; with ``--quick`` it skips MRCLAM; with ``--probe`` it
+runs the held-out probe's robots instead (PROBE_ROBOTS, seeds 21-24; about 10 minutes). About 15 minutes on
 one core; MRCLAM is skipped, with the reason, when ../shared/data/mrclam7 is absent.
 """
 
@@ -42,8 +43,8 @@ ROBOTS = (1, 2, 3, 4, 5)
 ALGORITHMS = ("ekf", "fastslam2")
 #: the targets of issue 35: ATE at most this many times the reference's, inside95 within these bounds
 ATE_RATIO, INSIDE95 = 1.3, (0.85, 0.99)
-#: s of each simulated run, and the seeds simulated (seeds 3-6 chose the self-calibration's MOTION_FACTOR and are
-#: not scored here)
+#: s of each simulated run, and the seeds simulated (seeds 3-6 chose the self-calibration's constants, such as
+#: CORRELATION_POWER, and are not scored here)
 SIM_SECONDS, SIM_SEEDS = 300.0, (1, 2, 7, 8)
 #: the simulated robot 'late', like the issue's held-out robot: a late, over-turning drive with a yaw-rate bias;
 #: noise 0.08 m / 0.03 rad
@@ -90,6 +91,60 @@ SIM_ROBOTS: dict[str, tuple[Calibration, dict]] = {
     # 'late' with measurement errors correlated over 5 s (as MRCLAM's cameras' are over longer times)
     "correlated": (replace(LATE_ROBOT, source="simulated robot 'correlated'"), {"error_time": 5.0}),
 }
+
+#: a held-out probe (``--probe``): robots whose drive and camera differ from SIM_ROBOTS' too; they chose nothing
+PROBE_ROBOTS: dict[str, tuple[Calibration, dict]] = {
+    # a fast drive with 20 Hz commands and five camera frames a second
+    "fast": (
+        Calibration(
+            command_delay=0.05,
+            velocity_scale=(1.08, 0.9),
+            motion=VelocityMotionModel((0.15, 0.01, 0.0, 0.1, 0.0, 0.0), floor=(1e-4, 5e-4)),
+            sensor=RangeBearingModel(0.1, 0.04),
+            scale_sd=0.0,
+            source="simulated robot 'fast'",
+        ),
+        {"speed": 0.35, "turn_rate": 1.2, "command_period": 0.05, "frame_period": 0.2},
+    ),
+    # 8 landmarks in a wide camera that misses half of them in a frame; a yaw-rate bias of 0.02 rad/s
+    "sparse": (
+        Calibration(
+            velocity_scale=(0.9, 1.1),
+            velocity_bias=(0.0, 0.02),
+            motion=VelocityMotionModel((0.05, 0.005, 0.0, 0.05, 0.0, 0.0), floor=(1e-4, 5e-4)),
+            sensor=RangeBearingModel(0.05, 0.02),
+            scale_sd=0.0,
+            source="simulated robot 'sparse'",
+        ),
+        {"landmarks": 8, "fov": 1.6, "detection": 0.5},
+    ),
+    # 30 landmarks seen to 4 m at 10 Hz, ranges 5 % long, noisy motion
+    "dense": (
+        Calibration(
+            command_delay=0.1,
+            velocity_bias=(0.0, -0.02),
+            range_calibration=(1.05, 0.0),
+            motion=VelocityMotionModel((0.2, 0.02, 0.0, 0.15, 0.0, 0.0), floor=(1e-4, 5e-4)),
+            sensor=RangeBearingModel(0.12, 0.02),
+            scale_sd=0.0,
+            source="simulated robot 'dense'",
+        ),
+        {"landmarks": 30, "max_range": 4.0, "frame_period": 0.1},
+    ),
+    # one camera frame a second
+    "slowcam": (
+        Calibration(
+            command_delay=0.1,
+            velocity_scale=(0.95, 0.97),
+            motion=VelocityMotionModel((0.08, 0.01, 0.0, 0.08, 0.0, 0.0), floor=(1e-4, 5e-4)),
+            sensor=RangeBearingModel(0.06, 0.025),
+            scale_sd=0.0,
+            source="simulated robot 'slowcam'",
+        ),
+        {"frame_period": 1.0, "speed": 0.2},
+    ),
+}
+PROBE_SEEDS = (21, 22, 23, 24)
 
 
 def _score(folder: Path, robot: int, algo: str, options: list[str], tmp: Path) -> dict:
@@ -151,15 +206,16 @@ def _cases(figures: dict) -> list[str]:
 
 
 def pooled(figures: dict) -> dict:
-    """Per filter and run label, over the robots of each group (``sim``, ``mrclam``, ``all``): the mean of the runs'
-    inside95 (the runs are of about equal length, so about the share of all their steps whose truth lies in the
-    95 % region: the coverage that the single runs, each mostly one draw of the map's turn and shift, estimate
+    """Per filter and run label, over the robots of each group (``sim``, ``probe``, ``mrclam``, ``all``): the mean
+    of the runs' inside95 (the runs are of about equal length, so about the share of all their steps whose truth lies
+    in the 95 % region: the coverage that the single runs, each mostly one draw of the map's turn and shift, estimate
     poorly) and the geometric mean of the ATE ratios to ``ref``. Keys ``pooled_{group}_{algo}_{label}_inside95``
     and ``..._ate_ratio``."""
     out: dict = {}
     cases = _cases(figures)
     groups = {
         "sim": [c for c in cases if c.startswith("sim_")],
+        "probe": [c for c in cases if c.startswith("probe_")],
         "mrclam": [c for c in cases if c.startswith("mrclam_")],
         "all": cases,
     }
@@ -182,7 +238,7 @@ def pooled_table(figures: dict) -> str:
         "| robots | filter | ref inside95 | default: ATE ratio / inside95 | half: ATE ratio / inside95 |",
         "|---|---|---|---|---|",
     ]
-    for group in ("sim", "mrclam", "all"):
+    for group in ("sim", "probe", "mrclam", "all"):
         for algo in ALGORITHMS:
             key = f"pooled_{group}_{algo}"
             if f"{key}_ref_inside95" not in figures:
@@ -196,19 +252,31 @@ def pooled_table(figures: dict) -> str:
     return "\n".join(lines)
 
 
-def run(quick: bool = False) -> dict:
+def _simulated(group: str, robots: dict, seeds: tuple[int, ...], tmp: Path, figures: dict) -> None:
+    """Every robot of ``robots`` at every seed, simulated for SIM_SECONDS s, into ``figures`` as
+    ``{group}_{name}{seed}``."""
+    for name, (truth, options) in robots.items():
+        truth_file = tmp / f"{name}_truth.json"
+        save_calibration(truth_file, truth)
+        for seed in seeds:
+            simulated = write_mrclam_folder(
+                tmp / f"{name}{seed}", simulate_mrclam_robot(truth, seed=seed, duration=SIM_SECONDS, **options)
+            )
+            _case(f"{group}_{name}{seed}", simulated, 1, ["--calibration", str(truth_file)], tmp, figures)
+
+
+def run(quick: bool = False, probe: bool = False) -> dict:
+    """The figures of the scored robots, or with ``probe`` those of the held-out probe's (PROBE_ROBOTS) only."""
     figures: dict = {}
     with tempfile.TemporaryDirectory() as folder:
         tmp = Path(folder)
-        for name, (truth, options) in SIM_ROBOTS.items():
-            truth_file = tmp / f"{name}_truth.json"
-            save_calibration(truth_file, truth)
-            for seed in SIM_SEEDS:
-                simulated = write_mrclam_folder(
-                    tmp / f"{name}{seed}", simulate_mrclam_robot(truth, seed=seed, duration=SIM_SECONDS, **options)
-                )
-                _case(f"sim_{name}{seed}", simulated, 1, ["--calibration", str(truth_file)], tmp, figures)
-        if quick:
+        if probe:
+            _simulated("probe", PROBE_ROBOTS, PROBE_SEEDS, tmp, figures)
+        else:
+            _simulated("sim", SIM_ROBOTS, SIM_SEEDS, tmp, figures)
+        if probe:
+            figures["mrclam"] = "skipped (--probe)"
+        elif quick:
             figures["mrclam"] = "skipped (--quick)"
         elif not DATA.is_dir():
             figures["mrclam"] = f"skipped: MRCLAM dataset 7 not present ({DATA})"
@@ -243,7 +311,7 @@ def table(figures: dict) -> str:
 
 
 if __name__ == "__main__":
-    result = run(quick="--quick" in sys.argv[1:])
+    result = run(quick="--quick" in sys.argv[1:], probe="--probe" in sys.argv[1:])
     print(table(result))
     print(pooled_table(result))
     print(

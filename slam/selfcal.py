@@ -9,7 +9,10 @@ prediction-error decomposition: each measurement's innovation nu with covariance
 to the negative log likelihood, d^2 = nu^T S^-1 nu, with a Huber bound on d^2); the trajectory is then smoothed
 against that pass's map, and the speed scales, the motion noise (over windows of several lengths, so that the noise,
 which grows with a window's length, is told from the estimate's own error, which does not) and the sensor's
-corrections and noise are fitted against it, as one would fit them against ground truth.
+corrections and noise are fitted against it, as one would fit them against ground truth. Two parameters that this
+fit cannot tell apart from others are taken from the innovation likelihood instead: the yaw-rate floor (the yaw
+noise of a straight drive, which the windows confuse with the noise of the turns) and the camera's bearing bias
+(which the smoothed heading takes up).
 
 Two quantities cannot be had from the data alone. The overall scale: scaling every range and the speed together
 changes no bearing and no turn, so the range calibration's c0 stays 1 and k_v is the speed scale relative to the
@@ -23,6 +26,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from functools import partial
 
 import numpy as np
 from scipy.optimize import nnls
@@ -46,11 +50,12 @@ DELAY_GRID = tuple(round(0.05 * k, 2) for k in range(9))
 SMOOTHING_MOTION_SCALE = 4.0
 #: the least data a fit takes: measurements of landmarks seen more than once, short windows of motion
 MIN_MEASUREMENTS, MIN_WINDOWS = 50, 10
-#: the fitted motion variances are multiplied by this factor: the filters take the corrections as exact, and their
-#: errors (a turn-rate scale off by 2 %, a delay off by a grid step) and errors that last a manoeuvre act as motion
-#: noise that the white model lacks. Chosen among 1-6 on the simulated robots of bench/slam.py at seeds 3-6, which
-#: the benchmark does not score (docs/slam.md, "Self-calibration")
-MOTION_FACTOR = 3.0
+#: (rad/s)^2 per dt_ref: the yaw-rate floors tried for the likeliest (half-decade steps, 1e-6 to 0.03). The floor is
+#: the yaw noise of a robot driving straight; the windows' fit cannot tell it from a4 w^2 when a robot's turns are
+#: spread evenly over its run, and gave 0 on most robots (docs/slam.md, "Self-calibration")
+YAW_FLOOR_GRID = tuple(10.0 ** (k / 2.0) for k in range(-12, -2))
+#: rad: the camera's bearing biases tried for the likeliest (steps of 0.0025 rad, up to 0.05 rad either way)
+BEARING_BIAS_GRID = tuple(round(0.0025 * k, 4) for k in range(-20, 21))
 #: s: windows of the speed scale and the along-track noise, and of the yaw noise; a window starts every
 #: length / WINDOW_OVERLAP s. Several lengths, so that the fits can tell the motion noise (whose variance grows with
 #: a window's length) from the estimate's own error (the same at every length)
@@ -65,8 +70,8 @@ MAX_LAG_S = 30
 #: the measurement variances are multiplied by the errors' correlation factor (:func:`error_correlation`) to this
 #: power. The factor is what a track's mean loses to the correlation; a filter also uses each measurement for the
 #: pose of its moment, and with the whole factor EKF-SLAM followed the landmarks less closely than it could.
-#: Chosen among 0.25, 0.5 and 1 on the simulated robots of bench/slam.py at seeds 3-6, as MOTION_FACTOR was
-#: (docs/slam.md, "Self-calibration")
+#: Chosen among 0.25, 0.5 and 1 on the simulated robots of bench/slam.py at seeds 3-6, which the benchmark does
+#: not score (docs/slam.md, "Self-calibration")
 CORRELATION_POWER = 0.5
 
 
@@ -527,8 +532,37 @@ def _em_step(data: FitData, calibration: Calibration, delay: float) -> tuple[Cal
         sensor=white,
     )
     correlation = error_correlation(data, trajectory, fitted)
-    values.update(delay=delay, range_correlation=correlation[0], bearing_correlation=correlation[1])
-    return replace(fitted, sensor=_inflated(white, correlation)), white, values
+    fitted = replace(fitted, sensor=_inflated(white, correlation))
+    floor_w = likeliest(YAW_FLOOR_GRID, lambda f: likelihood_pass(data, with_yaw_floor(fitted, f)))
+    values.update(
+        delay=delay,
+        range_correlation=correlation[0],
+        bearing_correlation=correlation[1],
+        floor_w_windows=values["floor_w"],
+        floor_w=floor_w,
+    )
+    return with_yaw_floor(fitted, floor_w), white, values
+
+
+def likeliest(candidates: tuple[float, ...], passes: Callable[[float], PassResult]) -> float:
+    """The candidate whose EKF pass (``passes(candidate)``, :func:`likelihood_pass`) has the least negative log
+    likelihood; the first of equals."""
+    return min(candidates, key=lambda candidate: passes(candidate).negative_log_likelihood())
+
+
+def with_yaw_floor(calibration: Calibration, floor_w: float) -> Calibration:
+    """``calibration`` with the motion model's yaw-rate floor set to ``floor_w`` ((rad/s)^2 per dt_ref)."""
+    motion = calibration.motion
+    return replace(calibration, motion=replace(motion, floor=(motion.floor[0], floor_w)))
+
+
+def _likeliest_bias_and_floor(data: FitData, calibration: Calibration) -> Calibration:
+    """``calibration`` with the bearing bias of the likeliest EKF pass on :data:`BEARING_BIAS_GRID`, then the
+    yaw-rate floor likeliest with it. The rounds' median residual cannot find the bias, which the smoothed estimate
+    takes up; the innovations of a pass whose heading noise is right do (docs/slam.md, "Self-calibration")."""
+    bias = likeliest(BEARING_BIAS_GRID, lambda b: likelihood_pass(data, replace(calibration, bearing_bias=b)))
+    biased = replace(calibration, bearing_bias=bias)
+    return with_yaw_floor(biased, likeliest(YAW_FLOOR_GRID, lambda f: likelihood_pass(data, with_yaw_floor(biased, f))))
 
 
 class NotEnoughData(ValueError):
@@ -558,6 +592,11 @@ class SelfCalibration:
     iterations: list[dict[str, float]]
 
 
+def _pass_at(data_at: Callable[[float], FitData], calibration: Calibration, delay: float) -> PassResult:
+    """The EKF pass (:func:`likelihood_pass`) of ``calibration`` over the data with its commands ``delay`` s late."""
+    return likelihood_pass(data_at(delay), calibration)
+
+
 def self_calibrate(
     sequence_at: Callable[[float], SlamSequence],
     delays: tuple[float, ...] = DELAY_GRID,
@@ -572,8 +611,9 @@ def self_calibrate(
     ``delays``; an estimate of the trajectory and the map with the current calibration (:func:`_estimate`); and
     against it, as one would fit against ground truth, the speed scales, yaw-rate bias and motion noise over
     windows (:func:`fit_motion`), the range calibration, bearing bias and measurement noise from the residuals
-    (:func:`fit_sensor`), the measurement noise inflated by the errors' correlation (:func:`error_correlation`).
-    Last, the motion variances times :data:`MOTION_FACTOR`."""
+    (:func:`fit_sensor`), the measurement noise inflated by the errors' correlation (:func:`error_correlation`),
+    and the yaw-rate floor of the best EKF likelihood on :data:`YAW_FLOOR_GRID`. Last, the bearing bias and then
+    the floor of the best likelihood (:func:`_likeliest_bias_and_floor`)."""
     cache: dict[float, FitData] = {}
 
     def data_at(delay: float) -> FitData:
@@ -585,9 +625,12 @@ def self_calibrate(
     calibration = replace(start, command_delay=0.0)
     history: list[dict[str, float]] = []
     for _ in range(iterations):
-        delay = min(delays, key=lambda d: likelihood_pass(data_at(d), calibration).negative_log_likelihood())
+        delay = likeliest(delays, partial(_pass_at, data_at, calibration))
         calibration, _, values = _em_step(data_at(delay), calibration, delay)
         history.append(values)
-    calibration = replace(calibration, motion=scaled_motion(calibration.motion, MOTION_FACTOR))
-    diagnostics = {"iterations": [{k: round(float(v), 6) for k, v in row.items()} for row in history]}
+    calibration = _likeliest_bias_and_floor(data_at(calibration.command_delay), calibration)
+    diagnostics = {
+        "iterations": [{k: round(float(v), 6) for k, v in row.items()} for row in history],
+        "final": {"bearing_bias": calibration.bearing_bias, "floor_w": calibration.motion.floor[1]},
+    }
     return SelfCalibration(replace(calibration, source=source, diagnostics=diagnostics), history)
