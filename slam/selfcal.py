@@ -56,6 +56,10 @@ MIN_MEASUREMENTS, MIN_WINDOWS = 50, 10
 YAW_FLOOR_GRID = tuple(10.0 ** (k / 2.0) for k in range(-12, -2))
 #: rad: the camera's bearing biases tried for the likeliest (steps of 0.0025 rad, up to 0.05 rad either way)
 BEARING_BIAS_GRID = tuple(round(0.0025 * k, 4) for k in range(-20, 21))
+#: the likeliest bias on the grid replaces the rounds' only if its negative log likelihood is lower by more than
+#: this: a likelihood-ratio test at 95 % (half of chi2(1)'s 95 % point). On a short run the likelihood is flat and
+#: its best bias is noise (60 s of the simulated 'noisy' robot, which has none: -0.04 rad, 1 below the rounds')
+BIAS_EVIDENCE = 1.92
 #: s: windows of the speed scale and the along-track noise, and of the yaw noise; a window starts every
 #: length / WINDOW_OVERLAP s. Several lengths, so that the fits can tell the motion noise (whose variance grows with
 #: a window's length) from the estimate's own error (the same at every length)
@@ -557,11 +561,17 @@ def with_yaw_floor(calibration: Calibration, floor_w: float) -> Calibration:
 
 
 def _likeliest_bias_and_floor(data: FitData, calibration: Calibration) -> Calibration:
-    """``calibration`` with the bearing bias of the likeliest EKF pass on :data:`BEARING_BIAS_GRID`, then the
-    yaw-rate floor likeliest with it. The rounds' median residual cannot find the bias, which the smoothed estimate
-    takes up; the innovations of a pass whose heading noise is right do (docs/slam.md, "Self-calibration")."""
-    bias = likeliest(BEARING_BIAS_GRID, lambda b: likelihood_pass(data, replace(calibration, bearing_bias=b)))
-    biased = replace(calibration, bearing_bias=bias)
+    """``calibration`` with the bearing bias of the likeliest EKF pass on :data:`BEARING_BIAS_GRID` where the data
+    prefer it to the calibration's own (:data:`BIAS_EVIDENCE`), then the yaw-rate floor likeliest with it. The
+    rounds' median residual cannot find the bias, which the smoothed estimate takes up; the innovations of a pass
+    whose heading noise is right do (docs/slam.md, "Self-calibration")."""
+    nll = {
+        b: likelihood_pass(data, replace(calibration, bearing_bias=b)).negative_log_likelihood()
+        for b in BEARING_BIAS_GRID
+    }
+    best = min(nll, key=nll.__getitem__)
+    kept = likelihood_pass(data, calibration).negative_log_likelihood()
+    biased = replace(calibration, bearing_bias=best) if kept - nll[best] > BIAS_EVIDENCE else calibration
     return with_yaw_floor(biased, likeliest(YAW_FLOOR_GRID, lambda f: likelihood_pass(data, with_yaw_floor(biased, f))))
 
 

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from bench.slam import SIM_ROBOTS
 from services.cli import main
 from slam.calibration import (
     GENERIC,
@@ -202,6 +203,16 @@ def test_a_turned_camera_s_bearing_bias_is_the_likeliest(tmp_path):
     run = read_mrclam(write_mrclam_folder(tmp_path, simulate_mrclam_robot(TURNED_CAMERA, seed=1, duration=300.0)), 1)
     fit = self_calibrate(lambda delay: mrclam_sequence(run, command_delay=delay))
     assert fit.calibration.bearing_bias == pytest.approx(-0.02, abs=0.005)
+
+
+def test_a_short_run_keeps_the_rounds_bias_where_the_likelihood_is_flat(tmp_path):
+    """60 s of the simulated 'noisy' robot, whose camera is straight: the likelihood hardly changes with the bias, and
+    its best on the grid, -0.04 rad, is noise; the rounds' bias stays (within 0.01 rad of the truth, 0)."""
+    noisy, options = SIM_ROBOTS["noisy"]
+    run = read_mrclam(write_mrclam_folder(tmp_path, simulate_mrclam_robot(noisy, seed=1, duration=60.0, **options)), 1)
+    fit = self_calibrate(lambda delay: mrclam_sequence(run, command_delay=delay))
+    assert abs(fit.calibration.bearing_bias) <= 0.01
+    assert fit.calibration.bearing_bias == fit.iterations[-1]["bearing_bias"]
 
 
 def _straight_drive(seed: int, steps: int, a1: float, estimate_sd: float) -> tuple[FitData, np.ndarray]:
