@@ -16,8 +16,9 @@ seconds per wall second, as `posegrid slam` prints it). ``targets_met`` counts t
 ``ref`` and inside95 in [0.85, 0.99]; ``ref_inside95_in_bounds`` how many ``ref`` runs have inside95 there. ``pooled_*``
 gives, per filter, the mean inside95 over the robots and the geometric mean of the ATE ratios (:func:`pooled`).
 `python -m bench.slam` prints the table docs/slam.md shows; with ``--quick`` it skips MRCLAM; with ``--probe`` it
-runs the held-out probe's robots instead (PROBE_ROBOTS, seeds 21-24; about 10 minutes). About 15 minutes on
-one core; MRCLAM is skipped, with the reason, when ../shared/data/mrclam7 is absent.
+runs the held-out probe's robots instead (PROBE_ROBOTS, seeds 21-24; about 10 minutes); with ``--tuning`` the
+simulated robots at the seeds that choose the self-calibration's constants (TUNING_SEEDS; about 8 minutes).
+About 15 minutes on one core; MRCLAM is skipped, with the reason, when ../shared/data/mrclam7 is absent.
 """
 
 from __future__ import annotations
@@ -43,9 +44,11 @@ ROBOTS = (1, 2, 3, 4, 5)
 ALGORITHMS = ("ekf", "fastslam2")
 #: the targets of issue 35: ATE at most this many times the reference's, inside95 within these bounds
 ATE_RATIO, INSIDE95 = 1.3, (0.85, 0.99)
-#: s of each simulated run, and the seeds simulated (seeds 3-6 chose the self-calibration's constants, such as
+#: s of each simulated run, and the seeds simulated (TUNING_SEEDS chose the self-calibration's constants, such as
 #: CORRELATION_POWER, and are not scored here)
 SIM_SECONDS, SIM_SEEDS = 300.0, (1, 2, 7, 8)
+#: the seeds of SIM_ROBOTS on which the self-calibration's constants are chosen (``--tuning``)
+TUNING_SEEDS = (3, 4, 5, 6)
 #: the simulated robot 'late', like the issue's held-out robot: a late, over-turning drive with a yaw-rate bias;
 #: noise 0.08 m / 0.03 rad
 LATE_ROBOT = Calibration(
@@ -206,15 +209,16 @@ def _cases(figures: dict) -> list[str]:
 
 
 def pooled(figures: dict) -> dict:
-    """Per filter and run label, over the robots of each group (``sim``, ``probe``, ``mrclam``, ``all``): the mean
-    of the runs' inside95 (the runs are of about equal length, so about the share of all their steps whose truth lies
-    in the 95 % region: the coverage that the single runs, each mostly one draw of the map's turn and shift, estimate
-    poorly) and the geometric mean of the ATE ratios to ``ref``. Keys ``pooled_{group}_{algo}_{label}_inside95``
-    and ``..._ate_ratio``."""
+    """Per filter and run label, over the robots of each group (``sim``, ``tune``, ``probe``, ``mrclam``, ``all``):
+    the mean of the runs' inside95 (the runs are of about equal length, so about the share of all their steps whose
+    truth lies in the 95 % region: the coverage that the single runs, each mostly one draw of the map's turn and
+    shift, estimate poorly) and the geometric mean of the ATE ratios to ``ref``. Keys
+    ``pooled_{group}_{algo}_{label}_inside95`` and ``..._ate_ratio``."""
     out: dict = {}
     cases = _cases(figures)
     groups = {
         "sim": [c for c in cases if c.startswith("sim_")],
+        "tune": [c for c in cases if c.startswith("tune_")],
         "probe": [c for c in cases if c.startswith("probe_")],
         "mrclam": [c for c in cases if c.startswith("mrclam_")],
         "all": cases,
@@ -238,7 +242,7 @@ def pooled_table(figures: dict) -> str:
         "| robots | filter | ref inside95 | default: ATE ratio / inside95 | half: ATE ratio / inside95 |",
         "|---|---|---|---|---|",
     ]
-    for group in ("sim", "probe", "mrclam", "all"):
+    for group in ("sim", "tune", "probe", "mrclam", "all"):
         for algo in ALGORITHMS:
             key = f"pooled_{group}_{algo}"
             if f"{key}_ref_inside95" not in figures:
@@ -265,17 +269,20 @@ def _simulated(group: str, robots: dict, seeds: tuple[int, ...], tmp: Path, figu
             _case(f"{group}_{name}{seed}", simulated, 1, ["--calibration", str(truth_file)], tmp, figures)
 
 
-def run(quick: bool = False, probe: bool = False) -> dict:
-    """The figures of the scored robots, or with ``probe`` those of the held-out probe's (PROBE_ROBOTS) only."""
+def run(quick: bool = False, probe: bool = False, tuning: bool = False) -> dict:
+    """The figures of the scored robots; with ``probe`` those of the held-out probe's (PROBE_ROBOTS) only, with
+    ``tuning`` those of SIM_ROBOTS at TUNING_SEEDS only."""
     figures: dict = {}
     with tempfile.TemporaryDirectory() as folder:
         tmp = Path(folder)
         if probe:
             _simulated("probe", PROBE_ROBOTS, PROBE_SEEDS, tmp, figures)
+        elif tuning:
+            _simulated("tune", SIM_ROBOTS, TUNING_SEEDS, tmp, figures)
         else:
             _simulated("sim", SIM_ROBOTS, SIM_SEEDS, tmp, figures)
-        if probe:
-            figures["mrclam"] = "skipped (--probe)"
+        if probe or tuning:
+            figures["mrclam"] = f"skipped (--{'probe' if probe else 'tuning'})"
         elif quick:
             figures["mrclam"] = "skipped (--quick)"
         elif not DATA.is_dir():
@@ -311,7 +318,7 @@ def table(figures: dict) -> str:
 
 
 if __name__ == "__main__":
-    result = run(quick="--quick" in sys.argv[1:], probe="--probe" in sys.argv[1:])
+    result = run(quick="--quick" in sys.argv[1:], probe="--probe" in sys.argv[1:], tuning="--tuning" in sys.argv[1:])
     print(table(result))
     print(pooled_table(result))
     print(

@@ -54,6 +54,12 @@ MIN_MEASUREMENTS, MIN_WINDOWS = 50, 10
 #: the yaw noise of a robot driving straight; the windows' fit cannot tell it from a4 w^2 when a robot's turns are
 #: spread evenly over its run, and gave 0 on most robots (docs/slam.md, "Self-calibration")
 YAW_FLOOR_GRID = tuple(10.0 ** (k / 2.0) for k in range(-12, -2))
+#: the yaw noise per turn rate, a4 ((rad/s)^2 per (rad/s)^2 per dt_ref), tried for the likeliest after the rounds
+#: (half-decade steps, 1e-4 to 1). The long windows see less yaw error than a robot's turns accumulate when its
+#: controller steers against its heading errors (a waypoint follower turns back what the noise turned), and gave
+#: a4 half the truth or less on the simulated robot 'noisy'; the filters add the noise step by step and need all of it
+#: (docs/slam.md, "Self-calibration")
+YAW_NOISE_GRID = tuple(10.0 ** (k / 2.0) for k in range(-8, 1))
 #: rad: the camera's bearing biases tried for the likeliest (steps of 0.0025 rad, up to 0.05 rad either way)
 BEARING_BIAS_GRID = tuple(round(0.0025 * k, 4) for k in range(-20, 21))
 #: the likeliest bias on the grid replaces the rounds' only if its negative log likelihood is lower by more than
@@ -537,7 +543,8 @@ def _em_step(data: FitData, calibration: Calibration, delay: float) -> tuple[Cal
     )
     correlation = error_correlation(data, trajectory, fitted)
     fitted = replace(fitted, sensor=_inflated(white, correlation))
-    floor_w = likeliest(YAW_FLOOR_GRID, lambda f: likelihood_pass(data, with_yaw_floor(fitted, f)))
+    floored = _likeliest_floor(data, fitted)
+    floor_w = floored.motion.floor[1]
     values.update(
         delay=delay,
         range_correlation=correlation[0],
@@ -545,7 +552,7 @@ def _em_step(data: FitData, calibration: Calibration, delay: float) -> tuple[Cal
         floor_w_windows=values["floor_w"],
         floor_w=floor_w,
     )
-    return with_yaw_floor(fitted, floor_w), white, values
+    return floored, white, values
 
 
 def likeliest(candidates: tuple[float, ...], passes: Callable[[float], PassResult]) -> float:
@@ -560,11 +567,25 @@ def with_yaw_floor(calibration: Calibration, floor_w: float) -> Calibration:
     return replace(calibration, motion=replace(motion, floor=(motion.floor[0], floor_w)))
 
 
-def _likeliest_bias_and_floor(data: FitData, calibration: Calibration) -> Calibration:
+def with_yaw_noise(calibration: Calibration, a4: float) -> Calibration:
+    """``calibration`` with the motion model's yaw noise per turn rate a4 set to ``a4`` (per dt_ref)."""
+    a = calibration.motion.alphas
+    return replace(calibration, motion=replace(calibration.motion, alphas=(a[0], a[1], a[2], a4, a[4], a[5])))
+
+
+def _likeliest_floor(data: FitData, calibration: Calibration) -> Calibration:
+    """``calibration`` with the yaw-rate floor of the likeliest EKF pass on :data:`YAW_FLOOR_GRID`."""
+    return with_yaw_floor(
+        calibration, likeliest(YAW_FLOOR_GRID, lambda f: likelihood_pass(data, with_yaw_floor(calibration, f)))
+    )
+
+
+def _likeliest_bias_and_yaw_noise(data: FitData, calibration: Calibration) -> Calibration:
     """``calibration`` with the bearing bias of the likeliest EKF pass on :data:`BEARING_BIAS_GRID` where the data
-    prefer it to the calibration's own (:data:`BIAS_EVIDENCE`), then the yaw-rate floor likeliest with it. The
-    rounds' median residual cannot find the bias, which the smoothed estimate takes up; the innovations of a pass
-    whose heading noise is right do (docs/slam.md, "Self-calibration")."""
+    prefer it to the calibration's own (:data:`BIAS_EVIDENCE`), then the yaw-rate floor likeliest with it, then a4
+    likeliest on :data:`YAW_NOISE_GRID` and the floor once more. The rounds' median residual cannot find the bias,
+    which the smoothed estimate takes up; the innovations of a pass whose heading noise is right do (docs/slam.md,
+    "Self-calibration")."""
     nll = {
         b: likelihood_pass(data, replace(calibration, bearing_bias=b)).negative_log_likelihood()
         for b in BEARING_BIAS_GRID
@@ -572,7 +593,9 @@ def _likeliest_bias_and_floor(data: FitData, calibration: Calibration) -> Calibr
     best = min(nll, key=nll.__getitem__)
     kept = likelihood_pass(data, calibration).negative_log_likelihood()
     biased = replace(calibration, bearing_bias=best) if kept - nll[best] > BIAS_EVIDENCE else calibration
-    return with_yaw_floor(biased, likeliest(YAW_FLOOR_GRID, lambda f: likelihood_pass(data, with_yaw_floor(biased, f))))
+    floored = _likeliest_floor(data, biased)
+    a4 = likeliest(YAW_NOISE_GRID, lambda value: likelihood_pass(data, with_yaw_noise(floored, value)))
+    return _likeliest_floor(data, with_yaw_noise(floored, a4))
 
 
 class NotEnoughData(ValueError):
@@ -623,7 +646,7 @@ def self_calibrate(
     windows (:func:`fit_motion`), the range calibration, bearing bias and measurement noise from the residuals
     (:func:`fit_sensor`), the measurement noise inflated by the errors' correlation (:func:`error_correlation`),
     and the yaw-rate floor of the best EKF likelihood on :data:`YAW_FLOOR_GRID`. Last, the bearing bias and then
-    the floor of the best likelihood (:func:`_likeliest_bias_and_floor`)."""
+    the floor, then a4 and the floor again, of the best likelihood (:func:`_likeliest_bias_and_yaw_noise`)."""
     cache: dict[float, FitData] = {}
 
     def data_at(delay: float) -> FitData:
@@ -638,9 +661,13 @@ def self_calibrate(
         delay = likeliest(delays, partial(_pass_at, data_at, calibration))
         calibration, _, values = _em_step(data_at(delay), calibration, delay)
         history.append(values)
-    calibration = _likeliest_bias_and_floor(data_at(calibration.command_delay), calibration)
+    calibration = _likeliest_bias_and_yaw_noise(data_at(calibration.command_delay), calibration)
     diagnostics = {
         "iterations": [{k: round(float(v), 6) for k, v in row.items()} for row in history],
-        "final": {"bearing_bias": calibration.bearing_bias, "floor_w": calibration.motion.floor[1]},
+        "final": {
+            "bearing_bias": calibration.bearing_bias,
+            "a4": calibration.motion.alphas[3],
+            "floor_w": calibration.motion.floor[1],
+        },
     }
     return SelfCalibration(replace(calibration, source=source, diagnostics=diagnostics), history)
