@@ -131,6 +131,7 @@ def test_pooled_figures_are_the_mean_inside95_and_the_geometric_mean_ate_ratio_p
         "sim_a1": (0.80, 2.0),
         "sim_b1": (1.00, 0.5),
         "mrclam_r1": (0.90, 4.0),
+        "tune_c3": (0.50, 1.0),
     }
     for robot, (inside, ratio) in runs.items():
         for algo in ("ekf", "fastslam2"):
@@ -143,6 +144,7 @@ def test_pooled_figures_are_the_mean_inside95_and_the_geometric_mean_ate_ratio_p
     assert got["pooled_sim_ekf_default_inside95"] == pytest.approx(0.90)
     assert got["pooled_sim_ekf_default_ate_ratio"] == pytest.approx(1.0)  # sqrt(2 * 0.5)
     assert got["pooled_mrclam_fastslam2_half_ate_ratio"] == pytest.approx(4.0)
-    assert got["pooled_all_ekf_ref_inside95"] == pytest.approx(0.90)
-    assert got["pooled_all_fastslam2_default_ate_ratio"] == pytest.approx(4.0 ** (1 / 3))  # (2 * 0.5 * 4)^(1/3)
-    assert "pooled_all_ekf_ref_ate_ratio" not in got and len(got) == 3 * 2 * 5
+    assert got["pooled_tune_ekf_half_inside95"] == pytest.approx(0.50)
+    assert got["pooled_all_ekf_ref_inside95"] == pytest.approx(0.80)  # (0.8 + 1 + 0.9 + 0.5) / 4
+    assert got["pooled_all_fastslam2_default_ate_ratio"] == pytest.approx(4.0 ** (1 / 4))  # (2 * 0.5 * 4 * 1)^(1/4)
+    assert "pooled_all_ekf_ref_ate_ratio" not in got and len(got) == 4 * 2 * 5
