@@ -54,11 +54,12 @@ MIN_MEASUREMENTS, MIN_WINDOWS = 50, 10
 #: the yaw noise of a robot driving straight; the windows' fit cannot tell it from a4 w^2 when a robot's turns are
 #: spread evenly over its run, and gave 0 on most robots (docs/slam.md, "Self-calibration")
 YAW_FLOOR_GRID = tuple(10.0 ** (k / 2.0) for k in range(-12, -2))
-#: the yaw noise per turn rate, a4 ((rad/s)^2 per (rad/s)^2 per dt_ref), tried for the likeliest after the rounds
-#: (half-decade steps, 1e-4 to 1). The long windows see less yaw error than a robot's turns accumulate when its
-#: controller steers against its heading errors (a waypoint follower turns back what the noise turned), and gave
-#: a4 half the truth or less on the simulated robot 'noisy'; the filters add the noise step by step and need all of it
-#: (docs/slam.md, "Self-calibration")
+#: the yaw noise per turn rate, a4 ((rad/s)^2 per (rad/s)^2 per dt_ref), tried after the rounds (half-decade steps,
+#: 1e-4 to 1) where above the windows' a4: the likeliest replaces it. The long windows see less yaw error than a
+#: robot's turns accumulate when its controller steers against its heading errors (a waypoint follower turns back
+#: what the noise turned), and gave a4 half the truth or less on the simulated robot 'noisy'; the filters add the
+#: noise step by step and need all of it. Below the windows' value the likelihood is not followed: on short runs it
+#: fell to the grid's least and the filters grew sure of every turn (docs/slam.md, "Self-calibration")
 YAW_NOISE_GRID = tuple(10.0 ** (k / 2.0) for k in range(-8, 1))
 #: rad: the camera's bearing biases tried for the likeliest (steps of 0.0025 rad, up to 0.05 rad either way)
 BEARING_BIAS_GRID = tuple(round(0.0025 * k, 4) for k in range(-20, 21))
@@ -583,9 +584,9 @@ def _likeliest_floor(data: FitData, calibration: Calibration) -> Calibration:
 def _likeliest_bias_and_yaw_noise(data: FitData, calibration: Calibration) -> Calibration:
     """``calibration`` with the bearing bias of the likeliest EKF pass on :data:`BEARING_BIAS_GRID` where the data
     prefer it to the calibration's own (:data:`BIAS_EVIDENCE`), then the yaw-rate floor likeliest with it, then a4
-    likeliest on :data:`YAW_NOISE_GRID` and the floor once more. The rounds' median residual cannot find the bias,
-    which the smoothed estimate takes up; the innovations of a pass whose heading noise is right do (docs/slam.md,
-    "Self-calibration")."""
+    likeliest among the windows' and those of :data:`YAW_NOISE_GRID` above it, and if a4 rose the floor once more.
+    The rounds' median residual cannot find the bias, which the smoothed estimate takes up; the innovations of a
+    pass whose heading noise is right do (docs/slam.md, "Self-calibration")."""
     nll = {
         b: likelihood_pass(data, replace(calibration, bearing_bias=b)).negative_log_likelihood()
         for b in BEARING_BIAS_GRID
@@ -594,8 +595,10 @@ def _likeliest_bias_and_yaw_noise(data: FitData, calibration: Calibration) -> Ca
     kept = likelihood_pass(data, calibration).negative_log_likelihood()
     biased = replace(calibration, bearing_bias=best) if kept - nll[best] > BIAS_EVIDENCE else calibration
     floored = _likeliest_floor(data, biased)
-    a4 = likeliest(YAW_NOISE_GRID, lambda value: likelihood_pass(data, with_yaw_noise(floored, value)))
-    return _likeliest_floor(data, with_yaw_noise(floored, a4))
+    windows = floored.motion.alphas[3]
+    raised = tuple(value for value in YAW_NOISE_GRID if value > windows)
+    a4 = likeliest((windows, *raised), lambda value: likelihood_pass(data, with_yaw_noise(floored, value)))
+    return _likeliest_floor(data, with_yaw_noise(floored, a4)) if a4 != windows else floored
 
 
 class NotEnoughData(ValueError):
@@ -646,7 +649,8 @@ def self_calibrate(
     windows (:func:`fit_motion`), the range calibration, bearing bias and measurement noise from the residuals
     (:func:`fit_sensor`), the measurement noise inflated by the errors' correlation (:func:`error_correlation`),
     and the yaw-rate floor of the best EKF likelihood on :data:`YAW_FLOOR_GRID`. Last, the bearing bias and then
-    the floor, then a4 and the floor again, of the best likelihood (:func:`_likeliest_bias_and_yaw_noise`)."""
+    the floor, then a4 (raised only) and the floor again, of the best likelihood
+    (:func:`_likeliest_bias_and_yaw_noise`)."""
     cache: dict[float, FitData] = {}
 
     def data_at(delay: float) -> FitData:
