@@ -584,9 +584,11 @@ def _likeliest_floor(data: FitData, calibration: Calibration) -> Calibration:
 def _likeliest_bias_and_yaw_noise(data: FitData, calibration: Calibration) -> Calibration:
     """``calibration`` with the bearing bias of the likeliest EKF pass on :data:`BEARING_BIAS_GRID` where the data
     prefer it to the calibration's own (:data:`BIAS_EVIDENCE`), then the yaw-rate floor likeliest with it, then a4
-    likeliest among the windows' and those of :data:`YAW_NOISE_GRID` above it, and if a4 rose the floor once more.
-    The rounds' median residual cannot find the bias, which the smoothed estimate takes up; the innovations of a
-    pass whose heading noise is right do (docs/slam.md, "Self-calibration")."""
+    likeliest among the windows' and those of :data:`YAW_NOISE_GRID` above it, and if a4 rose the floor likeliest
+    among its value and those of :data:`YAW_FLOOR_GRID` above it. The rounds' median residual cannot find the bias,
+    which the smoothed estimate takes up; the innovations of a pass whose heading noise is right do. The likelihood
+    may ask for less noise than the pose's error needs (innovations do not see the errors along the directions no
+    measurement fixes), so after the rounds it only raises the noise (docs/slam.md, "Self-calibration")."""
     nll = {
         b: likelihood_pass(data, replace(calibration, bearing_bias=b)).negative_log_likelihood()
         for b in BEARING_BIAS_GRID
@@ -598,7 +600,12 @@ def _likeliest_bias_and_yaw_noise(data: FitData, calibration: Calibration) -> Ca
     windows = floored.motion.alphas[3]
     raised = tuple(value for value in YAW_NOISE_GRID if value > windows)
     a4 = likeliest((windows, *raised), lambda value: likelihood_pass(data, with_yaw_noise(floored, value)))
-    return _likeliest_floor(data, with_yaw_noise(floored, a4)) if a4 != windows else floored
+    if a4 == windows:
+        return floored
+    noisier = with_yaw_noise(floored, a4)
+    floor_w = noisier.motion.floor[1]
+    floors = (floor_w, *(value for value in YAW_FLOOR_GRID if value > floor_w))
+    return with_yaw_floor(noisier, likeliest(floors, lambda f: likelihood_pass(data, with_yaw_floor(noisier, f))))
 
 
 class NotEnoughData(ValueError):
@@ -649,7 +656,7 @@ def self_calibrate(
     windows (:func:`fit_motion`), the range calibration, bearing bias and measurement noise from the residuals
     (:func:`fit_sensor`), the measurement noise inflated by the errors' correlation (:func:`error_correlation`),
     and the yaw-rate floor of the best EKF likelihood on :data:`YAW_FLOOR_GRID`. Last, the bearing bias and then
-    the floor, then a4 (raised only) and the floor again, of the best likelihood
+    the floor, then a4 and the floor again (both raised only), of the best likelihood
     (:func:`_likeliest_bias_and_yaw_noise`)."""
     cache: dict[float, FitData] = {}
 
