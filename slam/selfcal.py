@@ -574,11 +574,18 @@ def with_yaw_noise(calibration: Calibration, a4: float) -> Calibration:
     return replace(calibration, motion=replace(calibration.motion, alphas=(a[0], a[1], a[2], a4, a[4], a[5])))
 
 
-def _likeliest_floor(data: FitData, calibration: Calibration) -> Calibration:
-    """``calibration`` with the yaw-rate floor of the likeliest EKF pass on :data:`YAW_FLOOR_GRID`."""
+def _likeliest_floor(
+    data: FitData, calibration: Calibration, floors: tuple[float, ...] = YAW_FLOOR_GRID
+) -> Calibration:
+    """``calibration`` with the yaw-rate floor of the likeliest EKF pass among ``floors``."""
     return with_yaw_floor(
-        calibration, likeliest(YAW_FLOOR_GRID, lambda f: likelihood_pass(data, with_yaw_floor(calibration, f)))
+        calibration, likeliest(floors, lambda f: likelihood_pass(data, with_yaw_floor(calibration, f)))
     )
+
+
+def _raised(current: float, grid: tuple[float, ...]) -> tuple[float, ...]:
+    """``current`` and the values of ``grid`` above it: the candidates of a noise the likelihood may only raise."""
+    return (current, *(value for value in grid if value > current))
 
 
 def _likeliest_bias_and_yaw_noise(data: FitData, calibration: Calibration) -> Calibration:
@@ -588,24 +595,26 @@ def _likeliest_bias_and_yaw_noise(data: FitData, calibration: Calibration) -> Ca
     among its value and those of :data:`YAW_FLOOR_GRID` above it. The rounds' median residual cannot find the bias,
     which the smoothed estimate takes up; the innovations of a pass whose heading noise is right do. The likelihood
     may ask for less noise than the pose's error needs (innovations do not see the errors along the directions no
-    measurement fixes), so after the rounds it only raises the noise (docs/slam.md, "Self-calibration")."""
+    measurement fixes), so it only raises a4 and the floor after it; the floor chosen with a new bias may go either
+    way, as in the rounds (docs/slam.md, "Self-calibration")."""
     nll = {
         b: likelihood_pass(data, replace(calibration, bearing_bias=b)).negative_log_likelihood()
         for b in BEARING_BIAS_GRID
     }
     best = min(nll, key=nll.__getitem__)
     kept = likelihood_pass(data, calibration).negative_log_likelihood()
-    biased = replace(calibration, bearing_bias=best) if kept - nll[best] > BIAS_EVIDENCE else calibration
-    floored = _likeliest_floor(data, biased)
+    if kept - nll[best] > BIAS_EVIDENCE:
+        floored = _likeliest_floor(data, replace(calibration, bearing_bias=best))
+    else:  # the rounds' bias: the last round chose the floor with it, on these data
+        floored = calibration
     windows = floored.motion.alphas[3]
-    raised = tuple(value for value in YAW_NOISE_GRID if value > windows)
-    a4 = likeliest((windows, *raised), lambda value: likelihood_pass(data, with_yaw_noise(floored, value)))
+    a4 = likeliest(
+        _raised(windows, YAW_NOISE_GRID), lambda value: likelihood_pass(data, with_yaw_noise(floored, value))
+    )
     if a4 == windows:
         return floored
     noisier = with_yaw_noise(floored, a4)
-    floor_w = noisier.motion.floor[1]
-    floors = (floor_w, *(value for value in YAW_FLOOR_GRID if value > floor_w))
-    return with_yaw_floor(noisier, likeliest(floors, lambda f: likelihood_pass(data, with_yaw_floor(noisier, f))))
+    return _likeliest_floor(data, noisier, _raised(noisier.motion.floor[1], YAW_FLOOR_GRID))
 
 
 class NotEnoughData(ValueError):
@@ -658,6 +667,8 @@ def self_calibrate(
     and the yaw-rate floor of the best EKF likelihood on :data:`YAW_FLOOR_GRID`. Last, the bearing bias and then
     the floor, then a4 and the floor again (both raised only), of the best likelihood
     (:func:`_likeliest_bias_and_yaw_noise`)."""
+    if iterations < 1:
+        raise ValueError(f"iterations must be at least 1, not {iterations}")
     cache: dict[float, FitData] = {}
 
     def data_at(delay: float) -> FitData:

@@ -237,6 +237,12 @@ def test_the_turn_noise_is_the_likeliest_where_the_robot_steers_its_errors_away(
     assert fitted["inside95"] >= 0.85
 
 
+def test_self_calibration_needs_a_round():
+    """The final choices take the floor the last round chose; without a round there is none, which is refused."""
+    with pytest.raises(ValueError, match="iterations must be at least 1"):
+        self_calibrate(lambda delay: pytest.fail("no data is read"), iterations=0)
+
+
 def test_the_likelihood_only_raises_the_turn_noise(tmp_path, capsys):
     """60 s of the sparse robot: the likelihood's best a4 on the grid is its least, 1e-4 (2.7 better in log than
     the windows' 0.033), and with it EKF-SLAM was sure of every turn (inside95 0.03). The likelihood may raise a4
