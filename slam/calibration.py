@@ -11,7 +11,10 @@ A :class:`Calibration` holds
   (rad^-2 for c2);
 * **noise**: the velocity motion model (slam.motion.VelocityMotionModel: alphas, floor, dt_ref) and the
   range-bearing noise (slam.range_bearing.RangeBearingModel) of the corrected data, and the known-ids outlier gate
-  (a squared Mahalanobis distance, or None).
+  (a squared Mahalanobis distance, or None);
+* **what no data show**, as priors the filters add to the poses they give out: the relative sd of the map's scale
+  (``scale_sd``) and the sd of the drive angle (``heading_sd``, rad), the angle between the direction the robot
+  drives in and its heading as its sensor sees it (a crab, which the data cannot tell from a turned sensor).
 
 Named profiles (:data:`PROFILES`) hold calibrations fitted elsewhere; ``mrclam7`` is MRCLAM dataset 7's, fitted
 to its ground truth (docs/slam.md). No profile is a default: data are read as logged, and without a calibration
@@ -56,6 +59,10 @@ GENERIC_SENSOR = RangeBearingModel(sigma_range=0.1, sigma_bearing=0.03, range_fr
 #: docs/slam.md). The filters spread their poses by it about the start (slam.ekf, slam.fastslam)
 DEFAULT_SCALE_SD = 0.03
 SCALE_SD_LIMITS = (0.0, 0.5)
+#: the drive angle's sd (rad) when a calibration does not state one: none (a prior on the robot's build, which no
+#: data show; docs/slam.md, "Drive angle")
+DEFAULT_HEADING_SD = 0.0
+HEADING_SD_LIMITS = (0.0, 0.5)
 #: accepted ranges of the corrections: the delay in s, the scales, the biases (m/s, rad/s, rad) and c0, c2
 DELAY_LIMITS = (0.0, 5.0)
 SCALE_LIMITS = (0.1, 10.0)
@@ -78,6 +85,7 @@ UNITS = {
     "sensor.sigma_bearing_rad": "rad",
     "outlier_gate": "squared Mahalanobis distance (null: no gate)",
     "scale_sd": "relative sd of the map's scale about the start, dimensionless",
+    "heading_sd_rad": "sd of the angle between the drive direction and the sensor's heading, rad",
 }
 
 
@@ -94,6 +102,7 @@ class Calibration:
     sensor: RangeBearingModel = GENERIC_SENSOR
     outlier_gate: float | None = DEFAULT_OUTLIER_GATE
     scale_sd: float = DEFAULT_SCALE_SD
+    heading_sd: float = DEFAULT_HEADING_SD
     source: str = "generic defaults"
     diagnostics: dict[str, Any] = field(default_factory=dict, compare=False)
 
@@ -145,6 +154,7 @@ class Calibration:
             f"rad, alphas ({', '.join(f'{a:.3g}' for a in motion.alphas)}), floor ({motion.floor[0]:.3g}, "
             f"{motion.floor[1]:.3g}), range sd {sensor.sigma_range:.3g} m + {sensor.range_fraction:.3g} r, bearing sd "
             f"{sensor.sigma_bearing:.3g} rad, map scale sd {self.scale_sd:g}"
+            + (f", drive angle sd {self.heading_sd:g} rad" if self.heading_sd > 0.0 else "")
         )
 
     def step_corrector(self) -> StepCorrector:
@@ -232,6 +242,7 @@ def calibration_to_json(calibration: Calibration) -> dict[str, Any]:
         },
         "outlier_gate": calibration.outlier_gate,
         "scale_sd": calibration.scale_sd,
+        "heading_sd_rad": calibration.heading_sd,
         "diagnostics": calibration.diagnostics,
     }
 
@@ -317,6 +328,9 @@ def calibration_from_json(document: Any, name: str = "calibration") -> Calibrati
         ),
         outlier_gate=None if gate is None else read.number("outlier_gate", (1e-3, 1e6)),
         scale_sd=read.number("scale_sd", SCALE_SD_LIMITS),
+        heading_sd=(
+            read.number("heading_sd_rad", HEADING_SD_LIMITS) if "heading_sd_rad" in document else DEFAULT_HEADING_SD
+        ),  # (files written before the field hold none)
         source=source if isinstance(source, str) else str(source),
         diagnostics=diagnostics if isinstance(diagnostics, dict) else {},
     )

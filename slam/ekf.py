@@ -102,11 +102,14 @@ class EKFSLAM(LandmarkFilter):
     def pose_covariance(self) -> np.ndarray:
         """Covariance (3, 3) of the pose (x m, y m, theta rad) in plain coordinates, with the map scale's relative
         uncertainty ``scale_sd`` added: scaling map and path about the start by 1 + e moves the position by
-        e (p - start), which no measurement or motion shows (slam.calibration, ``scale_sd``)."""
+        e (p - start), which no measurement or motion shows (slam.calibration, ``scale_sd``); and the drive angle's
+        variance ``heading_sd``^2 added to the heading's: the filter's heading is the drive's, which may differ
+        from the body's by an angle no data show (slam.calibration, ``heading_sd``)."""
         a = invariant_to_plain(self.mu[:3])
         cov = a @ self.sigma[:3, :3] @ a.T
         lever = self.mu[:2] - self.origin
         cov[:2, :2] += self.scale_sd**2 * np.outer(lever, lever)
+        cov[2, 2] += self.heading_sd**2
         return cov
 
     def _points(self) -> np.ndarray:

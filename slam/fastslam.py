@@ -120,6 +120,9 @@ class FastSLAM(LandmarkFilter):
         # each particle's map scale about the start (1 + e, e ~ N(0, scale_sd^2)): no measurement or motion shows
         # it, so it only spreads the poses given out; it stays with the particle's index, as a gauge does
         self.scales = 1.0 + self.scale_sd * np.random.default_rng([seed, 1]).standard_normal(n)
+        # each particle's drive angle (e ~ N(0, heading_sd^2), rad): the body's heading differs from the drive's by
+        # it, which no data show; it turns only the headings given out, and stays with the particle's index too
+        self.heading_offsets = self.heading_sd * np.random.default_rng([seed, 2]).standard_normal(n)
 
     # ------------------------------------------------------------------------------------------- state
 
@@ -335,5 +338,7 @@ class FastSLAM(LandmarkFilter):
         weights = normalize_log_weights(self.log_w)
         samples = self.poses.copy()
         samples[:, :2] = self.origin + self.scales[:, None] * (samples[:, :2] - self.origin)
+        if self.heading_sd > 0.0:
+            samples[:, 2] = wrap_angle(samples[:, 2] + self.heading_offsets)
         self.resample_if_degenerate(weights)
         return samples, weights

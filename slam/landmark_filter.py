@@ -20,13 +20,14 @@ class LandmarkOptions(TypedDict, total=False):
     outlier_gate: float | None  # squared Mahalanobis distance beyond which a measurement updates nothing; None: none
     adaptive: bool  # the consistency watch (slam.consistency) scales the noise while innovations show overconfidence
     scale_sd: float  # relative sd of the map's scale about the start (slam.calibration), 0 for none
+    heading_sd: float  # sd (rad) of the drive angle, added to the headings given out (slam.calibration), 0 for none
 
 
 class LandmarkFilter:
     """The state both landmark filters keep beside their own: ``motion`` and ``sensor`` models, ``known``
     correspondences, ``outlier_gate``, the map scale's sd ``scale_sd`` and the ``origin`` (2,) m it is uncertain
-    about (the start position of ``initial_pose`` (3,): x m, y m, yaw rad, map frame), and the consistency
-    ``monitor``."""
+    about (the start position of ``initial_pose`` (3,): x m, y m, yaw rad, map frame), the drive angle's sd
+    ``heading_sd`` (rad), and the consistency ``monitor``."""
 
     def __init__(
         self,
@@ -38,9 +39,10 @@ class LandmarkFilter:
         outlier_gate: float | None = None,
         adaptive: bool = True,
         scale_sd: float = 0.0,
+        heading_sd: float = 0.0,
     ) -> None:
         self.motion, self.sensor = motion, sensor
         self.known, self.outlier_gate = known_correspondences, outlier_gate
-        self.scale_sd = scale_sd
+        self.scale_sd, self.heading_sd = scale_sd, heading_sd
         self.origin = np.asarray(initial_pose, dtype=np.float64)[:2].copy()
         self.monitor = ConsistencyMonitor(adaptive=adaptive)  # NIS watch and noise scale (slam.consistency)

@@ -2,15 +2,16 @@
 and noise, so that calibration and consistency can be checked against a known truth.
 
 A robot drives among ``landmarks`` point landmarks in an ``arena`` (m) to random waypoints, turning on the spot
-towards each (at ``turn_rate`` rad/s) and driving at ``speed`` m/s, with pauses. It logs its velocity commands
-every ``command_period`` s. The robot executes each command ``truth.command_delay`` s late, as
-``truth.correct_commands`` makes it (scale, and bias while it moves), with the noise of ``truth.motion`` (a
-velocity motion model sampled every ``SIM_DT`` s). A camera every ``frame_period`` s (+-30 %) sees each landmark
-within ``max_range`` m and ``fov`` / 2 rad of the heading with probability ``detection``, and logs range
+towards each (at ``turn_rate`` rad/s) and driving at ``speed`` m/s, with pauses. It logs its velocity commands every
+``command_period`` s. The robot executes each command ``truth.command_delay`` s late, as ``truth.correct_commands``
+makes it (scale, and bias while it moves), with the noise of ``truth.motion`` (a velocity motion model sampled every
+``SIM_DT`` s), moving at ``drive_angle`` rad to its heading (a crab: an axle not square to the body; the heading is
+the body's, which the camera and the ground truth share). A camera every ``frame_period`` s (+-30 %) sees each
+landmark within ``max_range`` m and ``fov`` / 2 rad of the heading with probability ``detection``, and logs range
 ``r (c0 + c2 b^2) + e_r`` and bearing ``b + bearing_bias + e_b`` (``truth.range_calibration``,
-``truth.bearing_bias``), with e_r, e_b of ``truth.sensor``'s noise, white or, with ``error_time`` > 0 s,
-correlated in time per landmark (AR(1), correlation exp(-dt / error_time)). Ground truth is logged at every command
-stamp. :func:`write_mrclam_folder` writes Barcodes.dat, Landmark_Groundtruth.dat and Robot1_*.dat.
+``truth.bearing_bias``), with e_r, e_b of ``truth.sensor``'s noise, white or, with ``error_time`` > 0 s, correlated
+in time per landmark (AR(1), correlation exp(-dt / error_time)). Ground truth is logged at every command stamp.
+:func:`write_mrclam_folder` writes Barcodes.dat, Landmark_Groundtruth.dat and Robot1_*.dat.
 
 The same arguments give the same run (one seeded generator per noise source).
 """
@@ -85,8 +86,9 @@ class _Driver:
         return self.speed, float(np.clip(1.5 * error, -0.5 * self.turn_rate, 0.5 * self.turn_rate))
 
 
-def _drive(duration, command_period, start_pose, truth: Calibration, driver: _Driver, rng):
-    """Command stamps (K,), commands (K, 2) and true poses (K, 3) at the stamps."""
+def _drive(duration, command_period, start_pose, truth: Calibration, driver: _Driver, rng, drive_angle: float = 0.0):
+    """Command stamps (K,), commands (K, 2) and true poses (K, 3) at the stamps; the robot moves at ``drive_angle``
+    rad to its heading."""
     count = int(duration / command_period) + 1
     stamps = np.arange(count) * command_period
     commands = np.zeros((count, 2))
@@ -105,15 +107,17 @@ def _drive(duration, command_period, start_pose, truth: Calibration, driver: _Dr
             executed.append((commands[k, 0], commands[k, 1]))
             v, w = executed.pop(0)
             if v != 0.0 or w != 0.0:
-                pose = _move(pose, truth, v, w, fine, normals[k, i])
+                pose = _move(pose, truth, v, w, fine, normals[k, i], drive_angle)
             t += fine
     return stamps, commands, poses
 
 
-def _move(pose: np.ndarray, truth: Calibration, v: float, w: float, dt: float, normal: np.ndarray) -> np.ndarray:
+def _move(
+    pose: np.ndarray, truth: Calibration, v: float, w: float, dt: float, normal: np.ndarray, drive_angle: float = 0.0
+) -> np.ndarray:
     """``pose`` moved for ``dt`` s by the command (v, w) as the robot executes it (truth.correct_commands) with the
     velocity model's noise (truth.motion), given standard normal draws (3,): slam.motion.VelocityMotionModel.sample
-    for one pose, in scalars."""
+    for one pose, in scalars, its chord turned by ``drive_angle`` rad from the heading."""
     v_true = truth.velocity_scale[0] * v + truth.velocity_bias[0]
     w_true = truth.velocity_scale[1] * w + truth.velocity_bias[1]
     sd = np.sqrt(truth.motion.velocity_variances(v_true, w_true, dt))
@@ -121,6 +125,8 @@ def _move(pose: np.ndarray, truth: Calibration, v: float, w: float, dt: float, n
     half = w_true * dt / 2.0
     dist = v_true * dt * (math.sin(half) / half if half != 0.0 else 1.0)
     heading = pose[2] + half
+    if drive_angle != 0.0:
+        heading += drive_angle
     return np.array(
         [
             pose[0] + dist * math.cos(heading),
@@ -187,6 +193,7 @@ def simulate_mrclam_robot(
     detection: float = 0.7,
     error_time: float = 0.0,
     start: float = 1000.0,
+    drive_angle: float = 0.0,
 ) -> SimRobotRun:
     """Simulate one robot for ``duration`` s (see the module docstring for every argument's meaning)."""
     drive_rng, motion_rng, camera_rng, map_rng = (
@@ -197,7 +204,7 @@ def simulate_mrclam_robot(
         [*map_rng.uniform((2.0, 2.0), (arena[0] - 2.0, arena[1] - 2.0)), map_rng.uniform(-np.pi, np.pi)]
     )
     driver = _Driver(arena, speed, turn_rate, drive_rng)
-    stamps, commands, poses = _drive(duration, command_period, start_pose, truth, driver, motion_rng)
+    stamps, commands, poses = _drive(duration, command_period, start_pose, truth, driver, motion_rng, drive_angle)
     options = {
         "frame_period": frame_period,
         "max_range": max_range,

@@ -233,3 +233,31 @@ def test_fastslam_is_reproducible(sim):
     np.testing.assert_array_equal(a.samples, b.samples)
     np.testing.assert_array_equal(a.weights, b.weights)
     assert not np.array_equal(a.samples, c.samples)
+
+
+def test_the_drive_angle_sd_widens_only_the_heading_given_out(sim):
+    # heading_sd (rad) is a prior on the angle between the drive and the body, which no data show: the EKF adds its
+    # square to the heading variance it gives out; FastSLAM turns each particle's heading given out by an offset
+    # that stays with the particle's index. Neither changes what the filter estimates.
+    _, log = sim
+    sequence = log.sequence()
+    plain, turned = (
+        run_filter(EKFSLAM(log.velocity_model, log.sensor, log.initial_pose, heading_sd=sd), sequence)
+        for sd in (0.0, 0.02)
+    )
+    np.testing.assert_array_equal(plain.mean, turned.mean)
+    added = np.zeros((3, 3))
+    added[2, 2] = 0.02**2
+    np.testing.assert_allclose(turned.cov - plain.cov, np.broadcast_to(added, plain.cov.shape), rtol=0, atol=1e-15)
+
+    def particles(sd):
+        slam = FastSLAM(log.velocity_model, log.sensor, log.initial_pose, n_particles=300, seed=5, heading_sd=sd)
+        return run_filter(slam, sequence)
+
+    plain, turned = particles(0.0), particles(0.02)
+    np.testing.assert_array_equal(plain.weights, turned.weights)
+    np.testing.assert_array_equal(plain.samples[..., :2], turned.samples[..., :2])
+    offsets = np.angle(np.exp(1j * (turned.samples[..., 2] - plain.samples[..., 2])))  # (steps, particles)
+    np.testing.assert_allclose(offsets, np.broadcast_to(offsets[0], offsets.shape), rtol=0, atol=1e-12)
+    assert abs(offsets[0].mean()) < 4 * 0.02 / np.sqrt(300)
+    assert abs(offsets[0].std() / 0.02 - 1.0) < 0.15  # the sd of 300 draws' sd is 4 %

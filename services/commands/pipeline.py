@@ -735,8 +735,8 @@ def _use_sim_models(args: argparse.Namespace, motion, sensor) -> None:
 
 
 def _slam_models(args: argparse.Namespace):
-    """(motion model, landmark sensor model, outlier gate, calibration or None, map-scale sd) of --profile or
-    --calibration, else of --models; then the noise overrides."""
+    """(motion model, landmark sensor model, outlier gate, calibration or None, map-scale sd, drive-angle sd rad) of
+    --profile or --calibration, else of --models; then the noise overrides."""
     import inspect
 
     from services.commands.slam import chosen_calibration, noise_overrides
@@ -758,14 +758,14 @@ def _slam_models(args: argparse.Namespace):
         calibration = GENERIC
     if calibration is not None:
         motion, sensor, gate = calibration.motion, calibration.sensor, calibration.outlier_gate
-        scale_sd = calibration.scale_sd
+        scale_sd, heading_sd = calibration.scale_sd, calibration.heading_sd
     else:
         defaults = inspect.signature(simulate_world).parameters  # the simulator's own noise
         motion = defaults["velocity_model" if args.motion == "velocity" else "odometry_model"].default
-        sensor, gate, scale_sd = defaults["sensor"].default, None, 0.0
+        sensor, gate, scale_sd, heading_sd = defaults["sensor"].default, None, 0.0, 0.0
     if args.motion == "odometry" and not isinstance(motion, OdometryMotionModel):
         motion = OdometryMotionModel()
-    return (*noise_overrides(args, motion, sensor, gate), calibration, scale_sd)
+    return (*noise_overrides(args, motion, sensor, gate), calibration, scale_sd, heading_sd)
 
 
 def run_slam_node(args: argparse.Namespace) -> int:
@@ -786,7 +786,7 @@ def run_slam_node(args: argparse.Namespace) -> int:
     algo = args.algo or DEFAULT_ALGORITHM
     args.algo = algo
     reject_filter_options(args, algo)
-    motion, sensor, gate, calibration, scale_sd = _slam_models(args)
+    motion, sensor, gate, calibration, scale_sd, heading_sd = _slam_models(args)
     initial = initial_pose(args.initial) if args.initial is not None else None
     grid_config = gridslam_config(args) if algo == "gridslam" else None
     import numpy as np
@@ -799,7 +799,7 @@ def run_slam_node(args: argparse.Namespace) -> int:
     config = NodeConfig(
         robot=args.robot,
         algorithm=algo,
-        make_filter=lambda start: make_filter(args, motion, sensor, gate, start, NODE_PARTICLES, scale_sd),
+        make_filter=lambda start: make_filter(args, motion, sensor, gate, start, NODE_PARTICLES, scale_sd, heading_sd),
         motion=args.motion,
         initial=None if initial is None else np.array(initial),
         grid_config=grid_config,

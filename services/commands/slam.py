@@ -458,6 +458,7 @@ class SlamInput:
     sensor: RangeBearingModel
     gate: float | None
     scale_sd: float
+    heading_sd: float
     scans: Path | None
     notes: list[str]
 
@@ -492,7 +493,7 @@ def _load_input(args: argparse.Namespace) -> SlamInput:
         scans_path = scans if scans.is_file() else None
         if chosen is None and args.calibration in (None, "none"):  # the noise the folder was made with
             motion = log.velocity_model if args.motion == "velocity" else log.odometry_model
-            return SlamInput(log.sequence(args.motion), motion, log.sensor, None, 0.0, scans_path, [])
+            return SlamInput(log.sequence(args.motion), motion, log.sensor, None, 0.0, 0.0, scans_path, [])
         if args.motion != "velocity":
             raise UsageError("a calibration is for velocity commands: drop --motion odometry")
         notes = []
@@ -519,7 +520,14 @@ def _load_input(args: argparse.Namespace) -> SlamInput:
 def _calibrated(sequence, calibration, scans: Path | None, notes: list[str]) -> SlamInput:
     """The :class:`SlamInput` of a corrected ``sequence`` with ``calibration``'s models."""
     return SlamInput(
-        sequence, calibration.motion, calibration.sensor, calibration.outlier_gate, calibration.scale_sd, scans, notes
+        sequence,
+        calibration.motion,
+        calibration.sensor,
+        calibration.outlier_gate,
+        calibration.scale_sd,
+        calibration.heading_sd,
+        scans,
+        notes,
     )
 
 
@@ -570,9 +578,10 @@ def make_filter(
     initial,
     default_particles: int = DEFAULT_PARTICLES,
     scale_sd: float = 0.0,
+    heading_sd: float = 0.0,
 ):
-    """The filter of --algo with the given models, outlier gate and map-scale sd (slam.calibration), adaptive
-    noise unless --fixed-noise."""
+    """The filter of --algo with the given models, outlier gate, map-scale sd and drive-angle sd (rad)
+    (slam.calibration), adaptive noise unless --fixed-noise."""
     from services.errors import UsageError
     from slam.dead_reckoning import DeadReckoning
     from slam.ekf import EKFSLAM
@@ -583,7 +592,9 @@ def make_filter(
     adaptive = not getattr(args, "fixed_noise", False)
     if args.algo == "odometry":
         return DeadReckoning(motion, initial)
-    options = LandmarkOptions(known_correspondences=known, outlier_gate=gate, adaptive=adaptive, scale_sd=scale_sd)
+    options = LandmarkOptions(
+        known_correspondences=known, outlier_gate=gate, adaptive=adaptive, scale_sd=scale_sd, heading_sd=heading_sd
+    )
     if args.algo == "ekf":
         return EKFSLAM(motion, sensor, initial, **options)
     particles = default_particles if args.particles is None else args.particles
@@ -664,7 +675,9 @@ def run_slam(args: argparse.Namespace) -> int:
             f"{scans_path}: scan {step} is stamped {scans.stamps[step]:.6f} s but the controls' step "
             f"{step} {sequence.stamps[step]:.6f} s; the scans must be those of the controls' steps"
         )
-    slam_filter = make_filter(args, motion, sensor, gate, sequence.initial_pose, scale_sd=loaded.scale_sd)
+    slam_filter = make_filter(
+        args, motion, sensor, gate, sequence.initial_pose, scale_sd=loaded.scale_sd, heading_sd=loaded.heading_sd
+    )
 
     started = time.perf_counter()
     with tqdm(total=len(sequence), desc=f"slam {args.algo}", unit="step", disable=None, file=sys.stderr) as bar:
