@@ -355,10 +355,12 @@ def test_the_motion_fit_tells_the_motion_noise_from_the_estimates_own_error():
 
 def test_calibrate_writes_a_file_that_slam_reads(robot, tmp_path, capsys):
     calibration = tmp_path / "robot.json"
-    assert main(["calibrate", str(robot), "--robot", "1", "--fraction", "0.5", "-o", str(calibration)]) == 0
+    options = ["--robot", "1", "--fraction", "0.5", "--drive-angle-sd", "0.01", "-o", str(calibration)]
+    assert main(["calibrate", str(robot), *options]) == 0
     assert "command delay 0.15 s" in capsys.readouterr().out
     fitted = load_calibration(calibration)
     assert "first 0.5" in fitted.source and fitted.command_delay == pytest.approx(0.15)
+    assert fitted.heading_sd == 0.01  # stated, not fitted
     out = tmp_path / "ekf.npz"
     assert (
         main(["slam", "--algo", "ekf", str(robot), "--robot", "1", "--calibration", str(calibration), "-o", str(out)])
@@ -388,6 +390,7 @@ def test_too_short_a_run_names_what_it_lacks(tmp_path, capsys):
         (["--robot", "1", "--fraction", "0.05"], "too little to calibrate from"),
         (["--robot", "4"], "no Robot4_Odometry.dat"),
         ([], "pick a robot with --robot K"),
+        (["--robot", "1", "--drive-angle-sd", "-0.01"], "--drive-angle-sd must be in [0, 0.5] rad"),
     ],
 )
 def test_calibrate_refuses_bad_input_in_one_line(robot, tmp_path, capsys, options, phrase):

@@ -29,6 +29,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="fit on the first FRACTION of the input's time span, in (0, 1] (default 1: all of it); e.g. 0.5 to "
         "score the calibration on the half it was not fitted to",
     )
+    parser.add_argument(
+        "--drive-angle-sd",
+        type=finite_float,
+        default=0.0,
+        metavar="RAD",
+        help="state the sd (rad) of the angle between the robot's drive direction and its heading, which no data "
+        "show (a crab; docs/slam.md, 'Drive angle'); the filters widen the headings they give out by it. In [0, "
+        "0.5]; default 0: none",
+    )
 
 
 def _first_part(sequence, fraction: float):
@@ -59,18 +68,26 @@ def run_calibrate(args: argparse.Namespace) -> int:
     of its velocity commands, the scale of its speeds and its yaw-rate bias, its camera's range calibration and
     bearing bias, and the noise of its motion and of its landmark measurements (slam.selfcal: the filters' own
     estimate of the trajectory and the map stands in for ground truth, over several rounds). The map's overall
-    scale cannot be had from the data; the ranges set it. Writes a JSON calibration file for `posegrid slam`,
-    `slam-node` and `run` (--calibration FILE) and prints what it found."""
+    scale cannot be had from the data; the ranges set it, nor can the angle between the drive and the heading, whose
+    sd --drive-angle-sd states. Writes a JSON calibration file for `posegrid slam`, `slam-node` and `run`
+    (--calibration FILE) and prints what it found."""
+    from dataclasses import replace
+
     from services.commands.slam import mrclam_input, refuse_input, sim_folder_input
     from services.errors import UsageError
     from slam import mrclam
-    from slam.calibration import save_calibration
+    from slam.calibration import HEADING_SD_LIMITS, save_calibration
     from slam.selfcal import DELAY_GRID, NotEnoughData, self_calibrate
     from slam.simlog import CONTROLS_FILE
 
     check_outputs(args, inputs=(args.input,), output="-o")
     if not 0.0 < args.fraction <= 1.0:
         raise UsageError(f"--fraction must be in (0, 1], got {args.fraction:g}")
+    if not HEADING_SD_LIMITS[0] <= args.drive_angle_sd <= HEADING_SD_LIMITS[1]:
+        raise UsageError(
+            f"--drive-angle-sd must be in [{HEADING_SD_LIMITS[0]:g}, {HEADING_SD_LIMITS[1]:g}] rad, "
+            f"got {args.drive_angle_sd:g}"
+        )
     delays: tuple[float, ...]
     if (args.input / CONTROLS_FILE).is_file():
         log = sim_folder_input(args)
@@ -89,6 +106,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
         )
     except NotEnoughData as exc:
         raise UsageError(f"{what}: too little to calibrate from: {exc}") from None
-    save_calibration(args.output, fit.calibration)
-    print(f"wrote {args.output} in {time.perf_counter() - started:.1f} s: {fit.calibration.summary()}")
+    calibration = replace(fit.calibration, heading_sd=args.drive_angle_sd)
+    save_calibration(args.output, calibration)
+    print(f"wrote {args.output} in {time.perf_counter() - started:.1f} s: {calibration.summary()}")
     return 0
