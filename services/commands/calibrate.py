@@ -32,11 +32,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--drive-angle-sd",
         type=finite_float,
-        default=0.0,
+        default=None,
         metavar="RAD",
         help="state the sd (rad) of the angle between the robot's drive direction and its heading, which no data "
         "show (a crab; docs/slam.md, 'Drive angle'); the filters widen the headings they give out by it. In [0, "
-        "0.5]; default 0: none",
+        "0.5]; default: the generic calibration's (slam.calibration.DEFAULT_HEADING_SD, 0: none)",
     )
 
 
@@ -83,7 +83,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     check_outputs(args, inputs=(args.input,), output="-o")
     if not 0.0 < args.fraction <= 1.0:
         raise UsageError(f"--fraction must be in (0, 1], got {args.fraction:g}")
-    if not HEADING_SD_LIMITS[0] <= args.drive_angle_sd <= HEADING_SD_LIMITS[1]:
+    if args.drive_angle_sd is not None and not HEADING_SD_LIMITS[0] <= args.drive_angle_sd <= HEADING_SD_LIMITS[1]:
         raise UsageError(
             f"--drive-angle-sd must be in [{HEADING_SD_LIMITS[0]:g}, {HEADING_SD_LIMITS[1]:g}] rad, "
             f"got {args.drive_angle_sd:g}"
@@ -106,7 +106,9 @@ def run_calibrate(args: argparse.Namespace) -> int:
         )
     except NotEnoughData as exc:
         raise UsageError(f"{what}: too little to calibrate from: {exc}") from None
-    calibration = replace(fit.calibration, heading_sd=args.drive_angle_sd)
+    calibration = fit.calibration  # its drive angle's sd: DEFAULT_HEADING_SD, from the start it was fitted from
+    if args.drive_angle_sd is not None:
+        calibration = replace(calibration, heading_sd=args.drive_angle_sd)
     save_calibration(args.output, calibration)
     print(f"wrote {args.output} in {time.perf_counter() - started:.1f} s: {calibration.summary()}")
     return 0
