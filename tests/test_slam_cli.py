@@ -333,6 +333,8 @@ def test_eval_traj_refuses_ground_truth_from_another_time_base(simdir, tmp_path,
             "--stats, --odom-delay do not apply to --algo ekf (only to gridslam)",
         ),
         ("fastslam2", ["--scan-topic", "/scan"], "--scan-topic does not apply to --algo fastslam2"),
+        ("gridslam", ["--drive-angle-sd", "0.02"], "--drive-angle-sd does not apply to --algo gridslam"),
+        ("ekf", ["--drive-angle-sd", "0.6"], "--drive-angle-sd must be in [0, 0.5], got 0.6"),
     ],
 )
 def test_options_the_filter_would_ignore_are_refused(simdir, tmp_path, capsys, algo, options, phrase):
@@ -489,3 +491,18 @@ def test_ground_truth_with_two_poses_at_one_time_is_refused(simdir, tmp_path, ca
     assert main(["slam", str(simdir), "--algo", "ekf", "-o", estimate]) == 0
     capsys.readouterr()
     _one_line_exit_2(["eval-traj", estimate, str(doubled)], capsys, "holds two poses at", "one pose per time")
+
+
+def test_a_stated_drive_angle_sd_widens_only_the_headings_given_out(simdir, tmp_path, capsys):
+    """--drive-angle-sd RAD (docs/slam.md, "Drive angle"): EKF-SLAM's heading variances grow by RAD^2 and nothing
+    else changes; as the calibration's own, a live node's --drive-angle-sd reaches its filter the same way."""
+    runs = {}
+    for name, options in (("plain", []), ("stated", ["--drive-angle-sd", "0.02"])):
+        out = tmp_path / f"{name}.npz"
+        assert main(["slam", "--algo", "ekf", str(simdir), "-o", str(out), *options]) == 0
+        runs[name] = load_pose_distribution(out).poses
+    np.testing.assert_array_equal(runs["plain"].mean, runs["stated"].mean)
+    added = runs["stated"].cov - runs["plain"].cov
+    np.testing.assert_allclose(added[:, 2, 2], 0.02**2, rtol=1e-9)
+    added[:, 2, 2] = 0.0
+    assert not added.any()

@@ -66,6 +66,7 @@ SLAM_NODE_OPTIONS = (
     "--sigma-bearing",
     "--range-fraction",
     "--outlier-gate",
+    "--drive-angle-sd",
     "--profile",
     "--calibration",
     *(option for option, _ in FILTER_OPTIONS),
@@ -395,6 +396,14 @@ def add_slam_arguments(parser: argparse.ArgumentParser, particles: int | None = 
         default=None,
         metavar="D2",
         help="known ids: ignore a measurement beyond this squared Mahalanobis distance",
+    )
+    group.add_argument(
+        "--drive-angle-sd",
+        type=finite_float,
+        default=None,
+        metavar="RAD",
+        help="landmark filters: the sd (rad) of the robot's drive angle to its heading, added to the headings "
+        "given out (docs/slam.md, 'Drive angle'; default: the calibration's)",
     )
     group.add_argument(
         "--resample-threshold",
@@ -739,7 +748,7 @@ def _slam_models(args: argparse.Namespace):
     --profile or --calibration, else of --models; then the noise overrides."""
     import inspect
 
-    from services.commands.slam import chosen_calibration, noise_overrides
+    from services.commands.slam import chosen_calibration, drive_angle_sd, noise_overrides
     from services.errors import UsageError
     from slam.calibration import GENERIC
     from slam.motion import MotionModel, OdometryMotionModel
@@ -765,7 +774,7 @@ def _slam_models(args: argparse.Namespace):
         sensor, gate, scale_sd, heading_sd = defaults["sensor"].default, None, 0.0, 0.0
     if args.motion == "odometry" and not isinstance(motion, OdometryMotionModel):
         motion = OdometryMotionModel()
-    return (*noise_overrides(args, motion, sensor, gate), calibration, scale_sd, heading_sd)
+    return (*noise_overrides(args, motion, sensor, gate), calibration, scale_sd, drive_angle_sd(args, heading_sd))
 
 
 def run_slam_node(args: argparse.Namespace) -> int:

@@ -82,6 +82,7 @@ OPTION_ALGORITHMS = {
     "--range-fraction": _LANDMARK_FILTERS,
     "--outlier-gate": _LANDMARK_FILTERS,
     "--fixed-noise": _LANDMARK_FILTERS,
+    "--drive-angle-sd": _LANDMARK_FILTERS,
     **dict.fromkeys(
         ("--alphas", "--robot", "--initial", "--period", "--profile", "--calibration", "--motion"),
         ("odometry",) + _LANDMARK_FILTERS,
@@ -202,6 +203,15 @@ def _add_noise_options(slam: argparse.ArgumentParser) -> None:
         metavar="D2",
         help="known ids: ignore a measurement whose squared Mahalanobis distance exceeds D2 "
         "(FastSLAM: per particle, likelihood capped at D2); 'inf' turns it off",
+    )
+    noise.add_argument(
+        "--drive-angle-sd",
+        type=finite_float,
+        default=None,
+        metavar="RAD",
+        help="landmark filters: the sd (rad) of the angle between the robot's drive direction and its heading, which "
+        "no data show (a crab; docs/slam.md, 'Drive angle'), added to the headings given out; in [0, 0.5] "
+        "(default: the calibration's)",
     )
     noise.add_argument(
         "--fixed-noise",
@@ -570,6 +580,18 @@ def noise_overrides(args: argparse.Namespace, motion, sensor, gate):
     return motion, sensor, gate
 
 
+def drive_angle_sd(args: argparse.Namespace, calibrations: float) -> float:
+    """The drive angle's sd (rad): --drive-angle-sd where given (checked against its limits), else the
+    calibration's ``calibrations``."""
+    from slam.calibration import HEADING_SD_LIMITS
+
+    stated = getattr(args, "drive_angle_sd", None)
+    if stated is None:
+        return calibrations
+    _check_limits("--drive-angle-sd", stated, HEADING_SD_LIMITS)
+    return float(stated)
+
+
 def make_filter(
     args: argparse.Namespace,
     motion,
@@ -676,7 +698,13 @@ def run_slam(args: argparse.Namespace) -> int:
             f"{step} {sequence.stamps[step]:.6f} s; the scans must be those of the controls' steps"
         )
     slam_filter = make_filter(
-        args, motion, sensor, gate, sequence.initial_pose, scale_sd=loaded.scale_sd, heading_sd=loaded.heading_sd
+        args,
+        motion,
+        sensor,
+        gate,
+        sequence.initial_pose,
+        scale_sd=loaded.scale_sd,
+        heading_sd=drive_angle_sd(args, loaded.heading_sd),
     )
 
     started = time.perf_counter()
