@@ -73,21 +73,17 @@ def run_calibrate(args: argparse.Namespace) -> int:
     (--calibration FILE) and prints what it found."""
     from dataclasses import replace
 
-    from services.commands.slam import mrclam_input, refuse_input, sim_folder_input
+    from services.commands.slam import drive_angle_sd, mrclam_input, refuse_input, sim_folder_input
     from services.errors import UsageError
     from slam import mrclam
-    from slam.calibration import HEADING_SD_LIMITS, save_calibration
+    from slam.calibration import GENERIC, save_calibration
     from slam.selfcal import DELAY_GRID, NotEnoughData, self_calibrate
     from slam.simlog import CONTROLS_FILE
 
     check_outputs(args, inputs=(args.input,), output="-o")
     if not 0.0 < args.fraction <= 1.0:
         raise UsageError(f"--fraction must be in (0, 1], got {args.fraction:g}")
-    if args.drive_angle_sd is not None and not HEADING_SD_LIMITS[0] <= args.drive_angle_sd <= HEADING_SD_LIMITS[1]:
-        raise UsageError(
-            f"--drive-angle-sd must be in [{HEADING_SD_LIMITS[0]:g}, {HEADING_SD_LIMITS[1]:g}] rad, "
-            f"got {args.drive_angle_sd:g}"
-        )
+    heading_sd = drive_angle_sd(args, GENERIC.heading_sd)  # (the fit starts from GENERIC and keeps its value)
     delays: tuple[float, ...]
     if (args.input / CONTROLS_FILE).is_file():
         log = sim_folder_input(args)
@@ -106,9 +102,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
         )
     except NotEnoughData as exc:
         raise UsageError(f"{what}: too little to calibrate from: {exc}") from None
-    calibration = fit.calibration  # its drive angle's sd: DEFAULT_HEADING_SD, from the start it was fitted from
-    if args.drive_angle_sd is not None:
-        calibration = replace(calibration, heading_sd=args.drive_angle_sd)
+    calibration = replace(fit.calibration, heading_sd=heading_sd)
     save_calibration(args.output, calibration)
     print(f"wrote {args.output} in {time.perf_counter() - started:.1f} s: {calibration.summary()}")
     return 0

@@ -580,14 +580,14 @@ def noise_overrides(args: argparse.Namespace, motion, sensor, gate):
     return motion, sensor, gate
 
 
-def drive_angle_sd(args: argparse.Namespace, calibrations: float) -> float:
+def drive_angle_sd(args: argparse.Namespace, calibration_sd: float) -> float:
     """The drive angle's sd (rad): --drive-angle-sd where given (checked against its limits), else the
-    calibration's ``calibrations``."""
+    calibration's, ``calibration_sd``."""
     from slam.calibration import HEADING_SD_LIMITS
 
     stated = getattr(args, "drive_angle_sd", None)
     if stated is None:
-        return calibrations
+        return calibration_sd
     _check_limits("--drive-angle-sd", stated, HEADING_SD_LIMITS)
     return float(stated)
 
