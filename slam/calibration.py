@@ -8,13 +8,17 @@ A :class:`Calibration` holds
   robot (``velocity_scale`` (k_v, k_w) dimensionless, ``velocity_bias`` (b_v m/s, b_w rad/s)), and the landmark
   sensor's range and bearing bias: a measured (r, phi) stands for the true bearing ``phi - bearing_bias`` and
   the true range ``r / (c0 + c2 (phi - bearing_bias)^2)`` with ``range_calibration`` (c0, c2) dimensionless
-  (rad^-2 for c2);
+  (rad^-2 for c2); and the **drive angle** (``drive_angle``, rad): the robot drives at this angle to its heading (a
+  crab). The filters run in the drive's frame: they take the measured bearings less ``bearing_bias + drive_angle``,
+  start at the given heading plus ``drive_angle`` and give out their heading less it;
 * **noise**: the velocity motion model (slam.motion.VelocityMotionModel: alphas, floor, dt_ref) and the
   range-bearing noise (slam.range_bearing.RangeBearingModel) of the corrected data, and the known-ids outlier gate
   (a squared Mahalanobis distance, or None);
 * **what no data show**, as priors the filters add to the poses they give out: the relative sd of the map's scale
-  (``scale_sd``) and the sd of the drive angle (``heading_sd``, rad), the angle between the direction the robot
-  drives in and its heading as its sensor sees it (a crab, which the data cannot tell from a turned sensor).
+  (``scale_sd``) and the sd of the drive angle (``drive_angle_sd``, rad). The data show the sum ``bearing_bias +
+  drive_angle`` (how the drive and the camera disagree), never how it divides between a turned camera and a crab;
+  an error e in the drive angle turns the path about its start by e (the heading given out stays right), so the
+  filters add that turn's uncertainty to the positions they give out.
 
 Named profiles (:data:`PROFILES`) hold calibrations fitted elsewhere; ``mrclam7`` is MRCLAM dataset 7's, fitted
 to its ground truth (docs/slam.md). No profile is a default: data are read as logged, and without a calibration
@@ -61,8 +65,9 @@ DEFAULT_SCALE_SD = 0.03
 SCALE_SD_LIMITS = (0.0, 0.5)
 #: the drive angle's sd (rad) when a calibration does not state one: none (a prior on the robot's build, which no
 #: data show; docs/slam.md, "Drive angle")
-DEFAULT_HEADING_SD = 0.0
-HEADING_SD_LIMITS = (0.0, 0.5)
+DEFAULT_DRIVE_ANGLE_SD = 0.0
+DRIVE_ANGLE_SD_LIMITS = (0.0, 0.5)
+DRIVE_ANGLE_LIMITS = (-0.5, 0.5)
 #: accepted ranges of the corrections: the delay in s, the scales, the biases (m/s, rad/s, rad) and c0, c2
 DELAY_LIMITS = (0.0, 5.0)
 SCALE_LIMITS = (0.1, 10.0)
@@ -85,7 +90,8 @@ UNITS = {
     "sensor.sigma_bearing_rad": "rad",
     "outlier_gate": "squared Mahalanobis distance (null: no gate)",
     "scale_sd": "relative sd of the map's scale about the start, dimensionless",
-    "heading_sd_rad": "sd of the angle between the drive direction and the sensor's heading, rad",
+    "drive_angle_rad": "angle from the heading to the direction the robot drives in, rad",
+    "drive_angle_sd_rad": "sd of the drive angle: the path's turn about its start, rad",
 }
 
 
@@ -98,11 +104,12 @@ class Calibration:
     velocity_bias: tuple[float, float] = (0.0, 0.0)
     range_calibration: tuple[float, float] = (1.0, 0.0)
     bearing_bias: float = 0.0
+    drive_angle: float = 0.0
     motion: VelocityMotionModel = GENERIC_MOTION
     sensor: RangeBearingModel = GENERIC_SENSOR
     outlier_gate: float | None = DEFAULT_OUTLIER_GATE
     scale_sd: float = DEFAULT_SCALE_SD
-    heading_sd: float = DEFAULT_HEADING_SD
+    drive_angle_sd: float = DEFAULT_DRIVE_ANGLE_SD
     source: str = "generic defaults"
     diagnostics: dict[str, Any] = field(default_factory=dict, compare=False)
 
@@ -119,13 +126,15 @@ class Calibration:
 
     def correct_measurements(self, measurements: np.ndarray) -> np.ndarray:
         """Landmark measurements (O, 2) (range m, bearing rad) with the bearing bias and the range calibration
-        removed."""
+        removed, the bearings in the drive's frame (less ``drive_angle`` too)."""
         out = np.array(measurements, dtype=np.float64).reshape(-1, 2)
         if self.bearing_bias != 0.0:
             out[:, 1] = wrap_angle(out[:, 1] - self.bearing_bias)
         c0, c2 = self.range_calibration
         if (c0, c2) != (1.0, 0.0):
             out[:, 0] /= c0 + c2 * out[:, 1] ** 2
+        if self.drive_angle != 0.0:
+            out[:, 1] = wrap_angle(out[:, 1] - self.drive_angle)
         return out
 
     def apply(self, sequence: SlamSequence) -> SlamSequence:
@@ -142,6 +151,7 @@ class Calibration:
             and self.velocity_bias == (0.0, 0.0)
             and self.range_calibration == (1.0, 0.0)
             and self.bearing_bias == 0.0
+            and self.drive_angle == 0.0
         )
 
     def summary(self) -> str:
@@ -154,7 +164,8 @@ class Calibration:
             f"rad, alphas ({', '.join(f'{a:.3g}' for a in motion.alphas)}), floor ({motion.floor[0]:.3g}, "
             f"{motion.floor[1]:.3g}), range sd {sensor.sigma_range:.3g} m + {sensor.range_fraction:.3g} r, bearing sd "
             f"{sensor.sigma_bearing:.3g} rad, map scale sd {self.scale_sd:g}"
-            + (f", drive angle sd {self.heading_sd:g} rad" if self.heading_sd > 0.0 else "")
+            + (f", drive angle {self.drive_angle:.4f} rad" if self.drive_angle != 0.0 else "")
+            + (f", drive angle sd {self.drive_angle_sd:.4f} rad" if self.drive_angle_sd > 0.0 else "")
         )
 
     def step_corrector(self) -> StepCorrector:
@@ -229,6 +240,7 @@ def calibration_to_json(calibration: Calibration) -> dict[str, Any]:
         "velocity_bias": list(calibration.velocity_bias),
         "range_calibration": list(calibration.range_calibration),
         "bearing_bias_rad": calibration.bearing_bias,
+        "drive_angle_rad": calibration.drive_angle,
         "motion": {
             "model": "velocity",
             "alphas": list(motion.alphas),
@@ -242,7 +254,7 @@ def calibration_to_json(calibration: Calibration) -> dict[str, Any]:
         },
         "outlier_gate": calibration.outlier_gate,
         "scale_sd": calibration.scale_sd,
-        "heading_sd_rad": calibration.heading_sd,
+        "drive_angle_sd_rad": calibration.drive_angle_sd,
         "diagnostics": calibration.diagnostics,
     }
 
@@ -283,6 +295,11 @@ class _Reader:
             raise self.fail(key, f"must be in [{limits[0]:g}, {limits[1]:g}], got {value:g}")
         return float(value)
 
+    def optional(self, key: str, limits: tuple[float, float], default: float) -> float:
+        """The number at top-level ``key`` within ``limits``, or ``default`` when the document has none (files
+        written before the field was added)."""
+        return self.number(key, limits) if key in self.document else default
+
     def numbers(self, key: str, limits: list[tuple[float, float]]) -> tuple[float, ...]:
         """A list of numbers, the k-th within ``limits[k]``."""
         values = self.get(key)
@@ -316,6 +333,7 @@ def calibration_from_json(document: Any, name: str = "calibration") -> Calibrati
         velocity_bias=(bv, bw),
         range_calibration=(c0, c2),
         bearing_bias=read.number("bearing_bias_rad", BEARING_BIAS_LIMITS),
+        drive_angle=read.optional("drive_angle_rad", DRIVE_ANGLE_LIMITS, 0.0),
         motion=VelocityMotionModel(
             alphas=(alphas[0], alphas[1], alphas[2], alphas[3], alphas[4], alphas[5]),
             dt_ref=read.number("motion.dt_ref_s", (1e-3, 1e3)),
@@ -328,9 +346,7 @@ def calibration_from_json(document: Any, name: str = "calibration") -> Calibrati
         ),
         outlier_gate=None if gate is None else read.number("outlier_gate", (1e-3, 1e6)),
         scale_sd=read.number("scale_sd", SCALE_SD_LIMITS),
-        heading_sd=(
-            read.number("heading_sd_rad", HEADING_SD_LIMITS) if "heading_sd_rad" in document else DEFAULT_HEADING_SD
-        ),  # (files written before the field hold none)
+        drive_angle_sd=read.optional("drive_angle_sd_rad", DRIVE_ANGLE_SD_LIMITS, DEFAULT_DRIVE_ANGLE_SD),
         source=source if isinstance(source, str) else str(source),
         diagnostics=diagnostics if isinstance(diagnostics, dict) else {},
     )

@@ -85,7 +85,7 @@ class EKFSLAM(LandmarkFilter):
         super().__init__(motion, sensor, initial_pose, **options)
         self.association_gate = association_gate
         self.new_landmark_gate = new_landmark_gate
-        self.mu = np.asarray(initial_pose, dtype=np.float64).copy()
+        self.mu = self.start.copy()
         self.sigma = np.zeros((3, 3))  # covariance of xi = (xi_p, xi_theta, xi_m1, ...)
         self.ids: list[int] = []  # landmark id of each landmark slot (known correspondences), else slot number
         self.slot_of: dict[int, int] = {}
@@ -102,14 +102,12 @@ class EKFSLAM(LandmarkFilter):
     def pose_covariance(self) -> np.ndarray:
         """Covariance (3, 3) of the pose (x m, y m, theta rad) in plain coordinates, with the map scale's relative
         uncertainty ``scale_sd`` added: scaling map and path about the start by 1 + e moves the position by
-        e (p - start), which no measurement or motion shows (slam.calibration, ``scale_sd``); and the drive angle's
-        variance ``heading_sd``^2 added to the heading's: the filter's heading is the drive's, which may differ
-        from the body's by an angle no data show (slam.calibration, ``heading_sd``)."""
+        e (p - start), which no measurement or motion shows (slam.calibration, ``scale_sd``); and the drive angle's:
+        an error e in it turns the path about the start by e (slam.landmark_filter, ``turn_covariance``)."""
         a = invariant_to_plain(self.mu[:3])
         cov = a @ self.sigma[:3, :3] @ a.T
         lever = self.mu[:2] - self.origin
-        cov[:2, :2] += self.scale_sd**2 * np.outer(lever, lever)
-        cov[2, 2] += self.heading_sd**2
+        cov[:2, :2] += self.scale_sd**2 * np.outer(lever, lever) + self.turn_covariance(self.mu[:2])
         return cov
 
     def _points(self) -> np.ndarray:
@@ -243,4 +241,6 @@ class EKFSLAM(LandmarkFilter):
         taken: set[int] = set()
         for z, landmark_id in zip(measurements, landmark_ids):
             self.update(np.asarray(z, dtype=np.float64), int(landmark_id), taken)
-        return self.mu[:3].copy(), self.pose_covariance()
+        mean = self.mu[:3].copy()
+        mean[2] = self.body_heading(mean[2])
+        return mean, self.pose_covariance()

@@ -103,7 +103,7 @@ class FastSLAM(LandmarkFilter):
         self.log_p0 = float(new_landmark_loglik)
         n = n_particles
         self.rows = np.arange(n)
-        self.poses = np.tile(np.asarray(initial_pose, dtype=np.float64), (n, 1))
+        self.poses = np.tile(self.start, (n, 1))
         self.pose_cov = np.zeros((n, 3, 3))  # version 2: covariance P of the motion prior since the last sample
         self.log_w = np.zeros(n)
         self.mu = np.zeros((n, 4, 2))
@@ -120,9 +120,9 @@ class FastSLAM(LandmarkFilter):
         # each particle's map scale about the start (1 + e, e ~ N(0, scale_sd^2)): no measurement or motion shows
         # it, so it only spreads the poses given out; it stays with the particle's index, as a gauge does
         self.scales = 1.0 + self.scale_sd * np.random.default_rng([seed, 1]).standard_normal(n)
-        # each particle's drive angle (e ~ N(0, heading_sd^2), rad): the body's heading differs from the drive's by
-        # it, which no data show; it turns only the headings given out, and stays with the particle's index too
-        self.heading_offsets = self.heading_sd * np.random.default_rng([seed, 2]).standard_normal(n)
+        # each particle's error of the drive angle (e ~ N(0, drive_angle_sd^2), rad), which no data show: it turns the
+        # positions given out about the start by e, and stays with the particle's index too
+        self.drive_offsets = self.drive_angle_sd * np.random.default_rng([seed, 2]).standard_normal(n)
 
     # ------------------------------------------------------------------------------------------- state
 
@@ -337,8 +337,11 @@ class FastSLAM(LandmarkFilter):
         self.update(measurements, landmark_ids)
         weights = normalize_log_weights(self.log_w)
         samples = self.poses.copy()
-        samples[:, :2] = self.origin + self.scales[:, None] * (samples[:, :2] - self.origin)
-        if self.heading_sd > 0.0:
-            samples[:, 2] = wrap_angle(samples[:, 2] + self.heading_offsets)
+        lever = self.scales[:, None] * (samples[:, :2] - self.origin)
+        if self.drive_angle_sd > 0.0:
+            c, s = np.cos(self.drive_offsets), np.sin(self.drive_offsets)
+            lever = np.column_stack([c * lever[:, 0] - s * lever[:, 1], s * lever[:, 0] + c * lever[:, 1]])
+        samples[:, :2] = self.origin + lever
+        samples[:, 2] = self.body_heading(samples[:, 2])
         self.resample_if_degenerate(weights)
         return samples, weights

@@ -14,6 +14,12 @@ fit cannot tell apart from others are taken from the innovation likelihood inste
 noise of a straight drive, which the windows confuse with the noise of the turns) and the camera's bearing bias
 (which the smoothed heading takes up).
 
+The bearing bias so found is how the camera and the drive disagree: a camera turned by b on a robot that drives
+straight and a straight camera on a robot that crabs by b give the same data. Which it is decides where the path
+lies (a drive angle e left out turns the path about its start by e) but no data can tell, so the fit gives each half
+(``bearing_bias`` and ``drive_angle`` b / 2) and states the drive angle's sd as b / 2, which puts either pure case
+one sd away (:func:`split_drive_and_camera`; docs/slam.md, "Drive angle").
+
 Two quantities cannot be had from the data alone. The overall scale: scaling every range and the speed together
 changes no bearing and no turn, so the range calibration's c0 stays 1 and k_v is the speed scale relative to the
 ranges. And the measurement errors' correlation in time, which makes fusing them as independent overconfident
@@ -617,6 +623,19 @@ def _likeliest_bias_and_yaw_noise(data: FitData, calibration: Calibration) -> Ca
     return _likeliest_floor(data, noisier, _raised(noisier.motion.floor[1], YAW_FLOOR_GRID))
 
 
+def split_drive_and_camera(calibration: Calibration) -> Calibration:
+    """``calibration`` (drive angle 0) with its bearing bias b, the camera's and the drive's disagreement, given half
+    to the camera (``bearing_bias``) and half to the drive (``drive_angle``), and the drive angle's sd raised to
+    b / 2 (combined with the calibration's own as independent errors): the data show only the sum."""
+    half = calibration.bearing_bias / 2.0
+    return replace(
+        calibration,
+        bearing_bias=half,
+        drive_angle=calibration.drive_angle + half,
+        drive_angle_sd=math.hypot(calibration.drive_angle_sd, half),
+    )
+
+
 class NotEnoughData(ValueError):
     """The data are too short or hold too few measurements or too little motion for a fit."""
 
@@ -666,7 +685,8 @@ def self_calibrate(
     (:func:`fit_sensor`), the measurement noise inflated by the errors' correlation (:func:`error_correlation`),
     and the yaw-rate floor of the best EKF likelihood on :data:`YAW_FLOOR_GRID`. Last, the bearing bias and then
     the floor, then a4 and the floor again (both raised only), of the best likelihood
-    (:func:`_likeliest_bias_and_yaw_noise`)."""
+    (:func:`_likeliest_bias_and_yaw_noise`). That bias, the camera's and the drive's disagreement, is then split
+    between them (:func:`split_drive_and_camera`)."""
     if iterations < 1:
         raise ValueError(f"iterations must be at least 1, not {iterations}")
     cache: dict[float, FitData] = {}
@@ -677,17 +697,21 @@ def self_calibrate(
         return cache[delay]
 
     check_enough(data_at(0.0))
-    calibration = replace(start, command_delay=0.0)
+    calibration = replace(
+        start, command_delay=0.0, bearing_bias=start.bearing_bias + start.drive_angle, drive_angle=0.0
+    )
     history: list[dict[str, float]] = []
     for _ in range(iterations):
         delay = likeliest(delays, partial(_pass_at, data_at, calibration))
         calibration, _, values = _em_step(data_at(delay), calibration, delay)
         history.append(values)
     calibration = _likeliest_bias_and_yaw_noise(data_at(calibration.command_delay), calibration)
+    disagreement = calibration.bearing_bias
+    calibration = split_drive_and_camera(calibration)
     diagnostics = {
         "iterations": [{k: round(float(v), 6) for k, v in row.items()} for row in history],
         "final": {
-            "bearing_bias": calibration.bearing_bias,
+            "bearing_bias": disagreement,
             "a4": calibration.motion.alphas[3],
             "floor_w": calibration.motion.floor[1],
         },

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -235,29 +237,57 @@ def test_fastslam_is_reproducible(sim):
     assert not np.array_equal(a.samples, c.samples)
 
 
-def test_the_drive_angle_sd_widens_only_the_heading_given_out(sim):
-    # heading_sd (rad) is a prior on the angle between the drive and the body, which no data show: the EKF adds its
-    # square to the heading variance it gives out; FastSLAM turns each particle's heading given out by an offset
-    # that stays with the particle's index. Neither changes what the filter estimates.
+def test_the_drive_angle_sd_turns_only_the_positions_given_out_about_the_start(sim):
+    # drive_angle_sd (rad) is the sd of an error e in the drive angle, which no data show: it turns the path about its
+    # start by e and leaves the heading. The EKF adds sd^2 (J d)(J d)^T to the position covariance it gives out (d the
+    # position less the start, J the quarter turn); FastSLAM turns each particle's position given out about the start
+    # by an offset that stays with the particle's index. Neither changes what the filter estimates.
     _, log = sim
     sequence = log.sequence()
     plain, turned = (
-        run_filter(EKFSLAM(log.velocity_model, log.sensor, log.initial_pose, heading_sd=sd), sequence)
+        run_filter(EKFSLAM(log.velocity_model, log.sensor, log.initial_pose, drive_angle_sd=sd), sequence)
         for sd in (0.0, 0.02)
     )
     np.testing.assert_array_equal(plain.mean, turned.mean)
-    added = np.zeros((3, 3))
-    added[2, 2] = 0.02**2
-    np.testing.assert_allclose(turned.cov - plain.cov, np.broadcast_to(added, plain.cov.shape), rtol=0, atol=1e-15)
+    lever = plain.mean[:, :2] - log.initial_pose[:2]
+    across = np.column_stack([-lever[:, 1], lever[:, 0]])
+    added = np.zeros_like(plain.cov)
+    added[:, :2, :2] = 0.02**2 * across[:, :, None] * across[:, None, :]
+    assert np.abs(added).max() > 1e-3
+    np.testing.assert_allclose(turned.cov - plain.cov, added, rtol=0, atol=1e-12)
 
     def particles(sd):
-        slam = FastSLAM(log.velocity_model, log.sensor, log.initial_pose, n_particles=300, seed=5, heading_sd=sd)
+        slam = FastSLAM(log.velocity_model, log.sensor, log.initial_pose, n_particles=300, seed=5, drive_angle_sd=sd)
         return run_filter(slam, sequence)
 
     plain, turned = particles(0.0), particles(0.02)
     np.testing.assert_array_equal(plain.weights, turned.weights)
-    np.testing.assert_array_equal(plain.samples[..., :2], turned.samples[..., :2])
-    offsets = np.angle(np.exp(1j * (turned.samples[..., 2] - plain.samples[..., 2])))  # (steps, particles)
-    np.testing.assert_allclose(offsets, np.broadcast_to(offsets[0], offsets.shape), rtol=0, atol=1e-12)
-    assert abs(offsets[0].mean()) < 4 * 0.02 / np.sqrt(300)
-    assert abs(offsets[0].std() / 0.02 - 1.0) < 0.15  # the sd of 300 draws' sd is 4 %
+    np.testing.assert_array_equal(plain.samples[..., 2], turned.samples[..., 2])
+    before, after = plain.samples[..., :2] - log.initial_pose[:2], turned.samples[..., :2] - log.initial_pose[:2]
+    np.testing.assert_allclose(np.hypot(*after.T), np.hypot(*before.T), rtol=0, atol=1e-9)
+    far = np.hypot(before[..., 0], before[..., 1]) > 0.5  # (steps, particles): the turn's angle is well defined
+    turn = np.angle(
+        np.exp(1j * (np.arctan2(after[..., 1], after[..., 0]) - np.arctan2(before[..., 1], before[..., 0])))
+    )
+    last = turn[-1]
+    assert far[-1].all()
+    np.testing.assert_allclose(np.where(far, turn, last), np.broadcast_to(last, turn.shape), rtol=0, atol=1e-9)
+    assert abs(last.mean()) < 4 * 0.02 / np.sqrt(300)
+    assert abs(last.std() / 0.02 - 1.0) < 0.15  # the sd of 300 draws' sd is 4 %
+
+
+def test_a_stated_drive_angle_starts_the_filter_in_the_drive_s_frame(sim):
+    # drive_angle c (rad): the filter runs in the drive's frame, starting at the heading given plus c, and gives out
+    # its heading less c (the bearings' correction by c is the calibration's: test_slam_calibration). Given the body
+    # heading theta0 - c, it runs as a filter started at theta0: the same positions and covariances, headings less c.
+    _, log = sim
+    sequence = log.sequence()
+    c = 0.05
+    plain = run_filter(EKFSLAM(log.velocity_model, log.sensor, log.initial_pose), sequence)
+    pose = np.array(log.initial_pose, dtype=np.float64)
+    pose[2] -= c  # the body heading: the drive's less c
+    crabbed = replace(sequence, initial_pose=pose)
+    stated = run_filter(EKFSLAM(log.velocity_model, log.sensor, pose, drive_angle=c), crabbed)
+    np.testing.assert_allclose(stated.mean[:, :2], plain.mean[:, :2], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.angle(np.exp(1j * (stated.mean[:, 2] + c - plain.mean[:, 2]))), 0.0, atol=1e-9)
+    np.testing.assert_allclose(stated.cov, plain.cov, rtol=0, atol=1e-12)

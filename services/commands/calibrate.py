@@ -34,9 +34,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         type=finite_float,
         default=None,
         metavar="RAD",
-        help="state the sd (rad) of the angle between the robot's drive direction and its heading, which no data "
-        "show (a crab; docs/slam.md, 'Drive angle'); the filters widen the headings they give out by it. In [0, "
-        "0.5]; default: the generic calibration's (slam.calibration.DEFAULT_HEADING_SD, 0: none)",
+        help="state the sd (rad) of the drive angle, the angle between the robot's drive direction and its heading "
+        "(a crab; docs/slam.md, 'Drive angle'); the filters turn the path about its start by that much in the poses "
+        "they give out. In [0, 0.5]; default: the fit's (half the disagreement it found between drive and camera)",
     )
 
 
@@ -73,17 +73,17 @@ def run_calibrate(args: argparse.Namespace) -> int:
     (--calibration FILE) and prints what it found."""
     from dataclasses import replace
 
-    from services.commands.slam import drive_angle_sd, mrclam_input, refuse_input, sim_folder_input
+    from services.commands.slam import mrclam_input, refuse_input, sim_folder_input, stated_drive_angle_sd
     from services.errors import UsageError
     from slam import mrclam
-    from slam.calibration import GENERIC, save_calibration
+    from slam.calibration import save_calibration
     from slam.selfcal import DELAY_GRID, NotEnoughData, self_calibrate
     from slam.simlog import CONTROLS_FILE
 
     check_outputs(args, inputs=(args.input,), output="-o")
     if not 0.0 < args.fraction <= 1.0:
         raise UsageError(f"--fraction must be in (0, 1], got {args.fraction:g}")
-    heading_sd = drive_angle_sd(args, GENERIC.heading_sd)  # (the fit starts from GENERIC and keeps its value)
+    stated_drive_angle_sd(args, 0.0)  # a bad --drive-angle-sd is refused before the fit
     delays: tuple[float, ...]
     if (args.input / CONTROLS_FILE).is_file():
         log = sim_folder_input(args)
@@ -102,7 +102,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
         )
     except NotEnoughData as exc:
         raise UsageError(f"{what}: too little to calibrate from: {exc}") from None
-    calibration = replace(fit.calibration, heading_sd=heading_sd)
+    calibration = replace(fit.calibration, drive_angle_sd=stated_drive_angle_sd(args, fit.calibration.drive_angle_sd))
     save_calibration(args.output, calibration)
     print(f"wrote {args.output} in {time.perf_counter() - started:.1f} s: {calibration.summary()}")
     return 0

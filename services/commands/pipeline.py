@@ -402,8 +402,8 @@ def add_slam_arguments(parser: argparse.ArgumentParser, particles: int | None = 
         type=finite_float,
         default=None,
         metavar="RAD",
-        help="landmark filters: the sd (rad) of the robot's drive angle to its heading, added to the headings "
-        "given out (docs/slam.md, 'Drive angle'; default: the calibration's)",
+        help="landmark filters: the sd (rad) of the robot's drive angle to its heading, a turn of the positions "
+        "given out about the start (docs/slam.md, 'Drive angle'; default: the calibration's)",
     )
     group.add_argument(
         "--resample-threshold",
@@ -748,7 +748,7 @@ def _slam_models(args: argparse.Namespace):
     --profile or --calibration, else of --models; then the noise overrides."""
     import inspect
 
-    from services.commands.slam import chosen_calibration, drive_angle_sd, noise_overrides
+    from services.commands.slam import chosen_calibration, noise_overrides, stated_drive_angle_sd
     from services.errors import UsageError
     from slam.calibration import GENERIC
     from slam.motion import MotionModel, OdometryMotionModel
@@ -767,14 +767,19 @@ def _slam_models(args: argparse.Namespace):
         calibration = GENERIC
     if calibration is not None:
         motion, sensor, gate = calibration.motion, calibration.sensor, calibration.outlier_gate
-        scale_sd, heading_sd = calibration.scale_sd, calibration.heading_sd
+        scale_sd, drive_angle_sd = calibration.scale_sd, calibration.drive_angle_sd
     else:
         defaults = inspect.signature(simulate_world).parameters  # the simulator's own noise
         motion = defaults["velocity_model" if args.motion == "velocity" else "odometry_model"].default
-        sensor, gate, scale_sd, heading_sd = defaults["sensor"].default, None, 0.0, 0.0
+        sensor, gate, scale_sd, drive_angle_sd = defaults["sensor"].default, None, 0.0, 0.0
     if args.motion == "odometry" and not isinstance(motion, OdometryMotionModel):
         motion = OdometryMotionModel()
-    return (*noise_overrides(args, motion, sensor, gate), calibration, scale_sd, drive_angle_sd(args, heading_sd))
+    return (
+        *noise_overrides(args, motion, sensor, gate),
+        calibration,
+        scale_sd,
+        stated_drive_angle_sd(args, drive_angle_sd),
+    )
 
 
 def run_slam_node(args: argparse.Namespace) -> int:
@@ -795,7 +800,8 @@ def run_slam_node(args: argparse.Namespace) -> int:
     algo = args.algo or DEFAULT_ALGORITHM
     args.algo = algo
     reject_filter_options(args, algo)
-    motion, sensor, gate, calibration, scale_sd, heading_sd = _slam_models(args)
+    motion, sensor, gate, calibration, scale_sd, drive_angle_sd = _slam_models(args)
+    drive_angle = calibration.drive_angle if calibration is not None else 0.0
     initial = initial_pose(args.initial) if args.initial is not None else None
     grid_config = gridslam_config(args) if algo == "gridslam" else None
     import numpy as np
@@ -808,7 +814,9 @@ def run_slam_node(args: argparse.Namespace) -> int:
     config = NodeConfig(
         robot=args.robot,
         algorithm=algo,
-        make_filter=lambda start: make_filter(args, motion, sensor, gate, start, NODE_PARTICLES, scale_sd, heading_sd),
+        make_filter=lambda start: make_filter(
+            args, motion, sensor, gate, start, NODE_PARTICLES, scale_sd, drive_angle_sd, drive_angle
+        ),
         motion=args.motion,
         initial=None if initial is None else np.array(initial),
         grid_config=grid_config,

@@ -209,9 +209,9 @@ def _add_noise_options(slam: argparse.ArgumentParser) -> None:
         type=finite_float,
         default=None,
         metavar="RAD",
-        help="landmark filters: the sd (rad) of the angle between the robot's drive direction and its heading, which "
-        "no data show (a crab; docs/slam.md, 'Drive angle'), added to the headings given out; in [0, 0.5] "
-        "(default: the calibration's)",
+        help="landmark filters: the sd (rad) of the robot's drive angle, the angle between its drive direction and "
+        "its heading (a crab; docs/slam.md, 'Drive angle'): the positions given out are turned about the start by "
+        "that much; in [0, 0.5] (default: the calibration's)",
     )
     noise.add_argument(
         "--fixed-noise",
@@ -468,7 +468,8 @@ class SlamInput:
     sensor: RangeBearingModel
     gate: float | None
     scale_sd: float
-    heading_sd: float
+    drive_angle: float
+    drive_angle_sd: float
     scans: Path | None
     notes: list[str]
 
@@ -503,7 +504,7 @@ def _load_input(args: argparse.Namespace) -> SlamInput:
         scans_path = scans if scans.is_file() else None
         if chosen is None and args.calibration in (None, "none"):  # the noise the folder was made with
             motion = log.velocity_model if args.motion == "velocity" else log.odometry_model
-            return SlamInput(log.sequence(args.motion), motion, log.sensor, None, 0.0, 0.0, scans_path, [])
+            return SlamInput(log.sequence(args.motion), motion, log.sensor, None, 0.0, 0.0, 0.0, scans_path, [])
         if args.motion != "velocity":
             raise UsageError("a calibration is for velocity commands: drop --motion odometry")
         notes = []
@@ -535,7 +536,8 @@ def _calibrated(sequence, calibration, scans: Path | None, notes: list[str]) -> 
         calibration.sensor,
         calibration.outlier_gate,
         calibration.scale_sd,
-        calibration.heading_sd,
+        calibration.drive_angle,
+        calibration.drive_angle_sd,
         scans,
         notes,
     )
@@ -580,15 +582,15 @@ def noise_overrides(args: argparse.Namespace, motion, sensor, gate):
     return motion, sensor, gate
 
 
-def drive_angle_sd(args: argparse.Namespace, calibration_sd: float) -> float:
+def stated_drive_angle_sd(args: argparse.Namespace, calibration_sd: float) -> float:
     """The drive angle's sd (rad): --drive-angle-sd where given (checked against its limits), else the
     calibration's, ``calibration_sd``."""
-    from slam.calibration import HEADING_SD_LIMITS
+    from slam.calibration import DRIVE_ANGLE_SD_LIMITS
 
     stated = getattr(args, "drive_angle_sd", None)
     if stated is None:
         return calibration_sd
-    _check_limits("--drive-angle-sd", stated, HEADING_SD_LIMITS)
+    _check_limits("--drive-angle-sd", stated, DRIVE_ANGLE_SD_LIMITS)
     return float(stated)
 
 
@@ -600,7 +602,8 @@ def make_filter(
     initial,
     default_particles: int = DEFAULT_PARTICLES,
     scale_sd: float = 0.0,
-    heading_sd: float = 0.0,
+    drive_angle_sd: float = 0.0,
+    drive_angle: float = 0.0,
 ):
     """The filter of --algo with the given models, outlier gate, map-scale sd and drive-angle sd (rad)
     (slam.calibration), adaptive noise unless --fixed-noise."""
@@ -615,7 +618,12 @@ def make_filter(
     if args.algo == "odometry":
         return DeadReckoning(motion, initial)
     options = LandmarkOptions(
-        known_correspondences=known, outlier_gate=gate, adaptive=adaptive, scale_sd=scale_sd, heading_sd=heading_sd
+        known_correspondences=known,
+        outlier_gate=gate,
+        adaptive=adaptive,
+        scale_sd=scale_sd,
+        drive_angle=drive_angle,
+        drive_angle_sd=drive_angle_sd,
     )
     if args.algo == "ekf":
         return EKFSLAM(motion, sensor, initial, **options)
@@ -704,7 +712,8 @@ def run_slam(args: argparse.Namespace) -> int:
         gate,
         sequence.initial_pose,
         scale_sd=loaded.scale_sd,
-        heading_sd=drive_angle_sd(args, loaded.heading_sd),
+        drive_angle_sd=stated_drive_angle_sd(args, loaded.drive_angle_sd),
+        drive_angle=loaded.drive_angle,
     )
 
     started = time.perf_counter()
