@@ -22,6 +22,7 @@ import time
 import urllib.error
 import urllib.request
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import msgpack
@@ -1173,17 +1174,31 @@ def test_run_hands_the_resampling_choice_to_the_slam_node():
         assert node.plain_resampling is expected
 
 
-def test_slam_node_on_real_mrclam_data_publishes_what_offline_slam_writes(tmp_path, procs, data_dir):
-    """Real data: source --mrclam -> slam-node (EKF) over zenoh gives `posegrid slam`'s poses, bit for bit."""
+@pytest.mark.parametrize("calibrated", [False, True], ids=["generic", "drive-angle"])
+def test_slam_node_on_real_mrclam_data_publishes_what_offline_slam_writes(tmp_path, procs, data_dir, calibrated):
+    """Real data: source --mrclam -> slam-node (EKF) over zenoh gives `posegrid slam`'s poses: bit for bit with the
+    generic noise on both sides (`--models mrclam` for the node); with one calibration file on both sides that
+    delays the commands and states a bearing bias, a drive angle and its sd (the node's delay line and corrections,
+    its filter's frame and the turn about the start), to 1e-6: the node's delay line cuts the commands into pieces
+    by subtracting durations, the reader by shifting stamps of about 1.2e9 s (the poses differ by up to 3e-8)."""
+    from slam.calibration import GENERIC, save_calibration
+
     folder = _mrclam_excerpt(data_dir / "mrclam7", tmp_path / "mrclam", seconds=60.0)
     offline = tmp_path / "ekf.npz"
-    # the data as logged with the generic noise on both sides (`--models mrclam` for the node)
-    offline_argv = ["slam", str(folder), "--robot", "1", "--algo", "ekf", "--calibration", "none", "-o", str(offline)]
-    assert main(offline_argv) == 0
+    if calibrated:
+        calibration = tmp_path / "cal.json"
+        save_calibration(
+            calibration,
+            replace(GENERIC, command_delay=0.2, bearing_bias=0.01, drive_angle=-0.02, drive_angle_sd=0.01),
+        )
+        chosen = ["--calibration", str(calibration)]
+    offline_argv = ["slam", str(folder), "--robot", "1", "--algo", "ekf", "-o", str(offline)]
+    assert main([*offline_argv, *(chosen if calibrated else ["--calibration", "none"])]) == 0
     expected = np.load(offline)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
-    node = procs([*CLI, "slam-node", "--algo", "ekf", "--models", "mrclam", "--connect", endpoint])
+    models = chosen if calibrated else ["--models", "mrclam"]
+    node = procs([*CLI, "slam-node", "--algo", "ekf", *models, "--connect", endpoint])
     node.wait_for("up for robot")
     got: dict[int, PoseGaussian] = {}
     session = zenoh.open(build_config("client", connect=[endpoint]))
@@ -1215,5 +1230,6 @@ def test_slam_node_on_real_mrclam_data_publishes_what_offline_slam_writes(tmp_pa
         session.close()
     assert sorted(got) == list(range(len(expected["stamps"])))
     np.testing.assert_array_equal([got[t].stamp for t in sorted(got)], expected["stamps"])
-    np.testing.assert_array_equal([got[t].mean for t in sorted(got)], expected["mean"])
-    np.testing.assert_array_equal([got[t].cov for t in sorted(got)], expected["cov"])
+    tolerance = 1e-6 if calibrated else 0.0
+    np.testing.assert_allclose([got[t].mean for t in sorted(got)], expected["mean"], rtol=0, atol=tolerance)
+    np.testing.assert_allclose([got[t].cov for t in sorted(got)], expected["cov"], rtol=0, atol=tolerance)
