@@ -7,17 +7,24 @@ from __future__ import annotations
 
 import numpy as np
 
+from slam.angles import wrap_angle
 from slam.motion import MotionModel
 
 
 class DeadReckoning:
-    """Gaussian pose (mean (3,), cov (3, 3)) propagated through the controls alone (the EKF prediction step)."""
+    """Gaussian pose (mean (3,), cov (3, 3)) propagated through the controls alone (the EKF prediction step).
+
+    ``drive_angle`` (rad): the robot drives at this angle to its heading (slam.calibration); the pose is propagated in
+    the drive's frame, from ``initial_pose`` (x m, y m, yaw rad) turned by it, and given out with the heading less it,
+    as the landmark filters do (slam.landmark_filter)."""
 
     gaussian = True
 
-    def __init__(self, motion: MotionModel, initial_pose: np.ndarray) -> None:
+    def __init__(self, motion: MotionModel, initial_pose: np.ndarray, drive_angle: float = 0.0) -> None:
         self.motion = motion
+        self.drive_angle = drive_angle
         self.mean = np.asarray(initial_pose, dtype=np.float64).copy()
+        self.mean[2] = wrap_angle(self.mean[2] + drive_angle)
         self.cov = np.zeros((3, 3))
 
     def step(
@@ -28,4 +35,6 @@ class DeadReckoning:
             mean, jac_g, q = self.motion.linearize(self.mean[None, :], control)
             self.mean = mean[0]
             self.cov = jac_g[0] @ self.cov @ jac_g[0].T + q[0]
-        return self.mean.copy(), self.cov.copy()
+        mean = self.mean.copy()
+        mean[2] = wrap_angle(mean[2] - self.drive_angle)
+        return mean, self.cov.copy()

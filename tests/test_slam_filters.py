@@ -280,6 +280,7 @@ def test_a_stated_drive_angle_starts_the_filter_in_the_drive_s_frame(sim):
     # drive_angle c (rad): the filter runs in the drive's frame, starting at the heading given plus c, and gives out
     # its heading less c (the bearings' correction by c is the calibration's: test_slam_calibration). Given the body
     # heading theta0 - c, it runs as a filter started at theta0: the same positions and covariances, headings less c.
+    # Dead reckoning, in the same frame, the same.
     _, log = sim
     sequence = log.sequence()
     c = 0.05
@@ -291,3 +292,8 @@ def test_a_stated_drive_angle_starts_the_filter_in_the_drive_s_frame(sim):
     np.testing.assert_allclose(stated.mean[:, :2], plain.mean[:, :2], rtol=0, atol=1e-9)
     np.testing.assert_allclose(np.angle(np.exp(1j * (stated.mean[:, 2] + c - plain.mean[:, 2]))), 0.0, atol=1e-9)
     np.testing.assert_allclose(stated.cov, plain.cov, rtol=0, atol=1e-12)
+    plain = run_filter(DeadReckoning(log.velocity_model, log.initial_pose), sequence)
+    stated = run_filter(DeadReckoning(log.velocity_model, pose, drive_angle=c), crabbed)
+    np.testing.assert_allclose(stated.mean[:, :2], plain.mean[:, :2], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.angle(np.exp(1j * (stated.mean[:, 2] + c - plain.mean[:, 2]))), 0.0, atol=1e-9)
+    np.testing.assert_allclose(stated.cov, plain.cov, rtol=0, atol=1e-9)

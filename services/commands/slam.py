@@ -616,7 +616,7 @@ def make_filter(
     known = args.associate == "known"
     adaptive = not getattr(args, "fixed_noise", False)
     if args.algo == "odometry":
-        return DeadReckoning(motion, initial)
+        return DeadReckoning(motion, initial, drive_angle)
     options = LandmarkOptions(
         known_correspondences=known,
         outlier_gate=gate,
