@@ -73,6 +73,10 @@ BEARING_BIAS_GRID = tuple(round(0.0025 * k, 4) for k in range(-20, 21))
 #: this: a likelihood-ratio test at 95 % (half of chi2(1)'s 95 % point). On a short run the likelihood is flat and
 #: its best bias is noise (60 s of the simulated 'noisy' robot, which has none: -0.04 rad, 1 below the rounds')
 BIAS_EVIDENCE = 1.92
+#: what a robot's ground truth calls its heading -> the share of the drive/camera disagreement given to the drive
+#: (:func:`split_drive_and_camera`): the drive's direction (ROS's base_link: the bias is the camera's), the sensor's
+#: axis (the robot crabs by the bias), or unknown (half each, and the drive angle's sd the half)
+HEADING_FRAMES = {"unknown": 0.5, "drive": 0.0, "sensor": 1.0}
 #: s: windows of the speed scale and the along-track noise, and of the yaw noise; a window starts every
 #: length / WINDOW_OVERLAP s. Several lengths, so that the fits can tell the motion noise (whose variance grows with
 #: a window's length) from the estimate's own error (the same at every length)
@@ -623,16 +627,17 @@ def _likeliest_bias_and_yaw_noise(data: FitData, calibration: Calibration) -> Ca
     return _likeliest_floor(data, noisier, _raised(noisier.motion.floor[1], YAW_FLOOR_GRID))
 
 
-def split_drive_and_camera(calibration: Calibration) -> Calibration:
-    """``calibration`` (drive angle 0) with its bearing bias b, the camera's and the drive's disagreement, given half
-    to the camera (``bearing_bias``) and half to the drive (``drive_angle``), and the drive angle's sd raised to
-    b / 2 (combined with the calibration's own as independent errors): the data show only the sum."""
-    half = calibration.bearing_bias / 2.0
+def split_drive_and_camera(calibration: Calibration, drive_share: float = 0.5) -> Calibration:
+    """``calibration`` (drive angle 0) with its bearing bias b, the camera's and the drive's disagreement, given to
+    the drive (``drive_angle``) by ``drive_share`` (0, 0.5 or 1: :data:`HEADING_FRAMES`) and to the camera
+    (``bearing_bias``) by the rest, and the drive angle's sd raised to b min(share, 1 - share), b / 2 for half each
+    (combined with the calibration's own as independent errors): the data show only the sum."""
+    b = calibration.bearing_bias
     return replace(
         calibration,
-        bearing_bias=half,
-        drive_angle=calibration.drive_angle + half,
-        drive_angle_sd=math.hypot(calibration.drive_angle_sd, half),
+        bearing_bias=(1.0 - drive_share) * b,
+        drive_angle=calibration.drive_angle + drive_share * b,
+        drive_angle_sd=math.hypot(calibration.drive_angle_sd, abs(b) * min(drive_share, 1.0 - drive_share)),
     )
 
 
@@ -674,6 +679,7 @@ def self_calibrate(
     start: Calibration = GENERIC,
     iterations: int = 4,
     source: str = "",
+    heading_frame: str = "unknown",
 ) -> SelfCalibration:
     """Fit a calibration to the sequence ``sequence_at(delay)`` (the data with its commands delayed by ``delay`` s,
     as logged otherwise; velocity commands, known ids), without ground truth.
@@ -686,9 +692,11 @@ def self_calibrate(
     and the yaw-rate floor of the best EKF likelihood on :data:`YAW_FLOOR_GRID`. Last, the bearing bias and then
     the floor, then a4 and the floor again (both raised only), of the best likelihood
     (:func:`_likeliest_bias_and_yaw_noise`). That bias, the camera's and the drive's disagreement, is then split
-    between them (:func:`split_drive_and_camera`)."""
+    between them as ``heading_frame`` says (a key of :data:`HEADING_FRAMES`: half each when unknown)."""
     if iterations < 1:
         raise ValueError(f"iterations must be at least 1, not {iterations}")
+    if heading_frame not in HEADING_FRAMES:
+        raise ValueError(f"heading_frame must be one of {sorted(HEADING_FRAMES)}, not {heading_frame!r}")
     cache: dict[float, FitData] = {}
 
     def data_at(delay: float) -> FitData:
@@ -707,7 +715,7 @@ def self_calibrate(
         history.append(values)
     calibration = _likeliest_bias_and_yaw_noise(data_at(calibration.command_delay), calibration)
     disagreement = calibration.bearing_bias
-    calibration = split_drive_and_camera(calibration)
+    calibration = split_drive_and_camera(calibration, HEADING_FRAMES[heading_frame])
     diagnostics = {
         "iterations": [{k: round(float(v), 6) for k, v in row.items()} for row in history],
         "final": {

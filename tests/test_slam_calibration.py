@@ -29,6 +29,7 @@ from slam.mrclam_sim import simulate_mrclam_robot, write_mrclam_folder
 from slam.range_bearing import RangeBearingModel
 from slam.selfcal import (
     CORRELATION_POWER,
+    HEADING_FRAMES,
     LONG_WINDOWS,
     SHORT_WINDOWS,
     WINDOW_OVERLAP,
@@ -38,6 +39,7 @@ from slam.selfcal import (
     likelihood_pass,
     measure_windows,
     self_calibrate,
+    split_drive_and_camera,
     window_bounds,
     windows_of,
 )
@@ -231,6 +233,47 @@ def test_a_turned_camera_s_bearing_bias_is_the_likeliest(tmp_path):
     assert fit.bearing_bias + fit.drive_angle == pytest.approx(-0.02, abs=0.005)
     assert fit.bearing_bias == fit.drive_angle == -fit.drive_angle_sd
     assert fit.diagnostics["final"]["bearing_bias"] == 2 * fit.bearing_bias
+
+
+@pytest.mark.parametrize(
+    ("frame", "camera", "drive", "sd"),
+    [("unknown", -0.01, -0.01, 0.01), ("drive", -0.02, 0.0, 0.0), ("sensor", 0.0, -0.02, 0.0)],
+)
+def test_the_heading_frame_says_where_the_disagreement_of_drive_and_camera_goes(frame, camera, drive, sd):
+    """By hand: a disagreement of -0.02 rad goes to the camera when the heading is the drive's (ROS's base_link), to
+    the drive when it is the sensor's, and half to each, with the drive angle's sd the half, when unknown."""
+    split = split_drive_and_camera(replace(GENERIC, bearing_bias=-0.02), HEADING_FRAMES[frame])
+    assert (split.bearing_bias, split.drive_angle, split.drive_angle_sd) == pytest.approx((camera, drive, sd))
+    stated = split_drive_and_camera(replace(GENERIC, bearing_bias=-0.02, drive_angle_sd=0.03), HEADING_FRAMES[frame])
+    assert stated.drive_angle_sd == pytest.approx(np.hypot(0.03, sd))  # a stated sd combines with the split's
+
+
+def test_calibrate_heading_frame_reaches_the_fit_and_slam_refuses_it_without_one(tmp_path, capsys):
+    """`posegrid calibrate --heading-frame sensor` gives the drive all of the disagreement it finds (its diagnostics
+    keep it) and states no sd for it; `posegrid slam` refuses the option where it fits no calibration."""
+    folder = write_mrclam_folder(tmp_path / "robot", simulate_mrclam_robot(TURNED_CAMERA, seed=1, duration=60.0))
+    out = tmp_path / "sensor.json"
+    assert main(["calibrate", str(folder), "--robot", "1", "--heading-frame", "sensor", "-o", str(out)]) == 0
+    found = load_calibration(out)
+    assert found.bearing_bias == 0.0 and found.drive_angle_sd == 0.0
+    assert found.drive_angle == found.diagnostics["final"]["bearing_bias"]
+    assert found.drive_angle < -0.01  # the camera is turned -0.02 rad: the fit finds it on 60 s too
+    capsys.readouterr()
+    argv = [
+        "slam",
+        "--algo",
+        "ekf",
+        str(folder),
+        "--robot",
+        "1",
+        "--heading-frame",
+        "drive",
+        "-o",
+        str(tmp_path / "p.npz"),
+    ]
+    assert main([*argv, "--calibration", "none"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "--heading-frame applies to the self-calibration" in err
 
 
 def test_a_short_run_keeps_the_rounds_bias_where_the_likelihood_is_flat(tmp_path):

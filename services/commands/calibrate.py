@@ -11,7 +11,7 @@ import time
 
 from services.commands.argtypes import check_outputs, finite_float, path_argument
 from services.commands.options import add_command
-from services.commands.slam import add_mrclam_input_options
+from services.commands.slam import add_heading_frame_option, add_mrclam_input_options
 
 #: --fraction's default: the whole input
 DEFAULT_FRACTION = 1.0
@@ -22,6 +22,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("input", type=path_argument, help="MRCLAM folder (with --robot) or simulator folder")
     parser.add_argument("-o", "--output", required=True, metavar="CALIBRATION.json", help="calibration file to write")
     add_mrclam_input_options(parser, "take a step")
+    add_heading_frame_option(parser, "the fit")
     parser.add_argument(
         "--fraction",
         type=finite_float,
@@ -67,10 +68,11 @@ def run_calibrate(args: argparse.Namespace) -> int:
     Estimate, from INPUT alone (no ground truth), what the landmark filters need to know about the robot: the delay
     of its velocity commands, the scale of its speeds and its yaw-rate bias, its camera's range calibration and
     bearing bias, and the noise of its motion and of its landmark measurements (slam.selfcal: the filters' own
-    estimate of the trajectory and the map stands in for ground truth, over several rounds). The map's overall
-    scale cannot be had from the data; the ranges set it, nor can the angle between the drive and the heading, whose
-    sd --drive-angle-sd states. Writes a JSON calibration file for `posegrid slam`, `slam-node` and `run`
-    (--calibration FILE) and prints what it found."""
+    estimate of the trajectory and the map stands in for ground truth, over several rounds). Two things cannot be
+    had from the data: the map's overall scale (the ranges set it), and whether the angle by which the drive and the
+    camera disagree is the camera's or the drive's (a crab): --heading-frame says, or the fit gives half to each and
+    states the drive angle's sd as the half (--drive-angle-sd states another). Writes a JSON calibration file for
+    `posegrid slam`, `slam-node` and `run` (--calibration FILE) and prints what it found."""
     from dataclasses import replace
 
     from services.commands.slam import mrclam_input, refuse_input, sim_folder_input, stated_drive_angle_sd
@@ -99,6 +101,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
             lambda delay: _first_part(sequence_at(delay), args.fraction),
             delays=delays,
             source=f"posegrid calibrate {what}, first {args.fraction:g} of its time span",
+            heading_frame=args.heading_frame or "unknown",
         )
     except NotEnoughData as exc:
         raise UsageError(f"{what}: too little to calibrate from: {exc}") from None

@@ -148,6 +148,7 @@ def _add_slam(subparsers: argparse._SubParsersAction) -> None:
     )
     add_mrclam_input_options(slam, "output a pose")
     add_calibration_options(slam)
+    add_heading_frame_option(slam, "with --calibration auto")
     add_choice(
         slam,
         "--motion",
@@ -376,6 +377,22 @@ def add_calibration_options(parser: argparse.ArgumentParser | argparse._Argument
     )
 
 
+def add_heading_frame_option(parser: argparse.ArgumentParser, when: str) -> None:
+    """--heading-frame: what the robot's heading is, which decides how the self-calibration splits the disagreement
+    of drive and camera (slam.selfcal.HEADING_FRAMES)."""
+    from slam.selfcal import HEADING_FRAMES
+
+    parser.add_argument(
+        "--heading-frame",
+        choices=sorted(HEADING_FRAMES),
+        default=None,
+        help=f"{when}: what your robot's heading (its ground truth's, the initial pose's) is: 'drive', the direction "
+        "it drives in (ROS's base_link); 'sensor', its camera's axis; 'unknown' (the default). The data show only how "
+        "drive and camera disagree in angle: it goes to the camera, to the drive, or half to each with the drive "
+        "angle's sd at the half (docs/slam.md, 'Drive angle')",
+    )
+
+
 def chosen_calibration(args: argparse.Namespace):
     """The calibration of --profile or --calibration FILE (None for neither, 'auto' or 'none'); UsageError when
     both are given."""
@@ -484,7 +501,12 @@ def _self_calibrated(args: argparse.Namespace, sequence_at, delays):
         raise UsageError("--calibration auto needs the landmark ids: use --associate known, or a calibration file")
     started = time.perf_counter()
     try:
-        calibration = self_calibrate(sequence_at, delays=delays, source=f"posegrid slam {args.input}").calibration
+        calibration = self_calibrate(
+            sequence_at,
+            delays=delays,
+            source=f"posegrid slam {args.input}",
+            heading_frame=args.heading_frame or "unknown",
+        ).calibration
     except NotEnoughData as exc:
         return GENERIC, f"not self-calibrated ({exc}): generic noise, the data as logged"
     return calibration, f"self-calibrated in {time.perf_counter() - started:.1f} s: {calibration.summary()}"
@@ -498,11 +520,18 @@ def _load_input(args: argparse.Namespace) -> SlamInput:
     from slam.simlog import CONTROLS_FILE
 
     chosen = chosen_calibration(args)
+    if args.heading_frame is not None and (chosen is not None or args.calibration == "none"):
+        raise UsageError(
+            "--heading-frame applies to the self-calibration (--calibration auto); a calibration file or profile "
+            "states its own bearing bias and drive angle"
+        )
     if (args.input / CONTROLS_FILE).is_file():
         log = sim_folder_input(args)
         scans = args.input / "scans.npz"
         scans_path = scans if scans.is_file() else None
         if chosen is None and args.calibration in (None, "none"):  # the noise the folder was made with
+            if args.heading_frame is not None:
+                raise UsageError("--heading-frame applies to the self-calibration: add --calibration auto")
             motion = log.velocity_model if args.motion == "velocity" else log.odometry_model
             return SlamInput(log.sequence(args.motion), motion, log.sensor, None, 0.0, 0.0, 0.0, scans_path, [])
         if args.motion != "velocity":
