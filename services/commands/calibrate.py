@@ -11,7 +11,7 @@ import time
 
 from services.commands.argtypes import check_outputs, finite_float, path_argument
 from services.commands.options import add_command
-from services.commands.slam import add_heading_frame_option, add_mrclam_input_options
+from services.commands.slam import add_drive_angle_sd_option, add_heading_frame_option, add_mrclam_input_options
 
 #: --fraction's default: the whole input
 DEFAULT_FRACTION = 1.0
@@ -30,15 +30,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="fit on the first FRACTION of the input's time span, in (0, 1] (default 1: all of it); e.g. 0.5 to "
         "score the calibration on the half it was not fitted to",
     )
-    parser.add_argument(
-        "--drive-angle-sd",
-        type=finite_float,
-        default=None,
-        metavar="RAD",
-        help="state the sd (rad) of the drive angle, the angle between the robot's drive direction and its heading "
-        "(a crab; docs/slam.md, 'Drive angle'); the filters turn the path about its start by that much in the poses "
-        "they give out. In [0, 0.5]; default: the fit's (half the disagreement it found between drive and camera)",
-    )
+    add_drive_angle_sd_option(parser, "state ", "the fit's: half the angle by which drive and camera disagree")
 
 
 def _first_part(sequence, fraction: float):

@@ -37,7 +37,7 @@ from services.commands.persist_options import (
     persist_from_args,
     plan_state,
 )
-from services.commands.slam import add_calibration_options, add_initial_option
+from services.commands.slam import add_calibration_options, add_drive_angle_sd_option, add_initial_option
 
 if TYPE_CHECKING:
     from services.nodes.launcher import Plan
@@ -397,14 +397,7 @@ def add_slam_arguments(parser: argparse.ArgumentParser, particles: int | None = 
         metavar="D2",
         help="known ids: ignore a measurement beyond this squared Mahalanobis distance",
     )
-    group.add_argument(
-        "--drive-angle-sd",
-        type=finite_float,
-        default=None,
-        metavar="RAD",
-        help="landmark filters: the sd (rad) of the robot's drive angle to its heading, a turn of the positions "
-        "given out about the start (docs/slam.md, 'Drive angle'; default: the calibration's)",
-    )
+    add_drive_angle_sd_option(group, "landmark filters: ", "the calibration's")
     group.add_argument(
         "--resample-threshold",
         type=finite_float,
@@ -815,7 +808,15 @@ def run_slam_node(args: argparse.Namespace) -> int:
         robot=args.robot,
         algorithm=algo,
         make_filter=lambda start: make_filter(
-            args, motion, sensor, gate, start, NODE_PARTICLES, scale_sd, drive_angle_sd, drive_angle
+            args,
+            motion,
+            sensor,
+            gate,
+            start,
+            NODE_PARTICLES,
+            scale_sd=scale_sd,
+            drive_angle_sd=drive_angle_sd,
+            drive_angle=drive_angle,
         ),
         motion=args.motion,
         initial=None if initial is None else np.array(initial),

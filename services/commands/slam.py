@@ -205,15 +205,7 @@ def _add_noise_options(slam: argparse.ArgumentParser) -> None:
         help="known ids: ignore a measurement whose squared Mahalanobis distance exceeds D2 "
         "(FastSLAM: per particle, likelihood capped at D2); 'inf' turns it off",
     )
-    noise.add_argument(
-        "--drive-angle-sd",
-        type=finite_float,
-        default=None,
-        metavar="RAD",
-        help="landmark filters: the sd (rad) of the robot's drive angle, the angle between its drive direction and "
-        "its heading (a crab; docs/slam.md, 'Drive angle'): the positions given out are turned about the start by "
-        "that much; in [0, 0.5] (default: the calibration's)",
-    )
+    add_drive_angle_sd_option(noise, "landmark filters: ", "the calibration's")
     noise.add_argument(
         "--fixed-noise",
         action="store_true",
@@ -611,6 +603,22 @@ def noise_overrides(args: argparse.Namespace, motion, sensor, gate):
     return motion, sensor, gate
 
 
+def add_drive_angle_sd_option(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup, who: str, default: str
+) -> None:
+    """--drive-angle-sd RAD, read by :func:`stated_drive_angle_sd`; ``who`` leads its help, ``default`` names what
+    stands without it."""
+    parser.add_argument(
+        "--drive-angle-sd",
+        type=finite_float,
+        default=None,
+        metavar="RAD",
+        help=f"{who}the sd (rad) of the robot's drive angle, the angle between its drive direction and its heading (a "
+        "crab; docs/slam.md, 'Drive angle'): the positions given out are turned about the start by that much; in "
+        f"[0, 0.5] (default: {default})",
+    )
+
+
 def stated_drive_angle_sd(args: argparse.Namespace, calibration_sd: float) -> float:
     """The drive angle's sd (rad): --drive-angle-sd where given (checked against its limits), else the
     calibration's, ``calibration_sd``."""
@@ -634,8 +642,8 @@ def make_filter(
     drive_angle_sd: float = 0.0,
     drive_angle: float = 0.0,
 ):
-    """The filter of --algo with the given models, outlier gate, map-scale sd and drive-angle sd (rad)
-    (slam.calibration), adaptive noise unless --fixed-noise."""
+    """The filter of --algo with the given models, outlier gate, map-scale sd, drive-angle sd (rad) and drive angle
+    (rad: the filter runs in the drive's frame) (slam.calibration), adaptive noise unless --fixed-noise."""
     from services.errors import UsageError
     from slam.dead_reckoning import DeadReckoning
     from slam.ekf import EKFSLAM
