@@ -40,6 +40,7 @@ from scipy.optimize import nnls
 from slam.angles import wrap_angle
 from slam.calibration import GENERIC, Calibration
 from slam.consistency import scaled_motion
+from slam.heading_frames import HEADING_FRAMES
 from slam.kernels import ekf_likelihood_pass, smooth_localisation, window_commands
 from slam.motion import VelocityMotionModel
 from slam.range_bearing import RangeBearingModel
@@ -73,10 +74,6 @@ BEARING_BIAS_GRID = tuple(round(0.0025 * k, 4) for k in range(-20, 21))
 #: this: a likelihood-ratio test at 95 % (half of chi2(1)'s 95 % point). On a short run the likelihood is flat and
 #: its best bias is noise (60 s of the simulated 'noisy' robot, which has none: -0.04 rad, 1 below the rounds')
 BIAS_EVIDENCE = 1.92
-#: what a robot's ground truth calls its heading -> the share of the drive/camera disagreement given to the drive
-#: (:func:`split_drive_and_camera`): the drive's direction (ROS's base_link: the bias is the camera's), the sensor's
-#: axis (the robot crabs by the bias), or unknown (half each, and the drive angle's sd the half)
-HEADING_FRAMES = {"unknown": 0.5, "drive": 0.0, "sensor": 1.0}
 #: s: windows of the speed scale and the along-track noise, and of the yaw noise; a window starts every
 #: length / WINDOW_OVERLAP s. Several lengths, so that the fits can tell the motion noise (whose variance grows with
 #: a window's length) from the estimate's own error (the same at every length)

@@ -202,6 +202,19 @@ def test_every_process_has_help(command, capsys):
     assert info.value.code == 0 and "usage: posegrid " + command in capsys.readouterr().out
 
 
+def test_the_parser_loads_no_fit_compiler_or_web_library():
+    """Every ``posegrid`` start builds the whole parser. A helper that imported the landmark self-calibration for
+    its choices loaded scipy.optimize and numba there: 0.9 of a 1.2 CPU s start, in every command and every test's
+    subprocess. Checked in a fresh interpreter, since this one has them loaded already."""
+    heavy = ("scipy", "numba", "fastapi", "uvicorn")
+    probe = (
+        "import sys; from services.cli import build_parser; build_parser(); "
+        f"print(sorted({{m.split('.')[0] for m in sys.modules if m.startswith({heavy!r})}}))"
+    )
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60, check=True)
+    assert result.stdout.strip() == "[]", f"building the parser imported {result.stdout.strip()}"
+
+
 def test_an_interrupt_while_the_commands_load_is_one_line_and_exit_130(monkeypatch, capsys):
     """A SIGINT that arrives while ``posegrid`` imports its command modules (a test's teardown, a user's Ctrl-C
     right after the start) gave a KeyboardInterrupt traceback. The interrupt stands in here for the signal."""

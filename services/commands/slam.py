@@ -371,8 +371,9 @@ def add_calibration_options(parser: argparse.ArgumentParser | argparse._Argument
 
 def add_heading_frame_option(parser: argparse.ArgumentParser, when: str) -> None:
     """--heading-frame: what the robot's heading is, which decides how the self-calibration splits the disagreement
-    of drive and camera (slam.selfcal.HEADING_FRAMES)."""
-    from slam.selfcal import HEADING_FRAMES
+    of drive and camera (slam.heading_frames.HEADING_FRAMES; a module with no imports: the parser is built on every
+    start)."""
+    from slam.heading_frames import HEADING_FRAMES
 
     parser.add_argument(
         "--heading-frame",
