@@ -163,24 +163,32 @@ def transpose64(block):  # pragma: no cover - compiled
         width >>= 1
 
 
+@kernel(nogil=True, error_model="numpy", inline="always")
+def fold_block(columns, words_per_col, rows, row_words, win_h, block, b, k):  # pragma: no cover - compiled
+    """Move the bits of the column-major plane's 64 x 64 block of columns 64 b .. 64 b + 63 and rows 64 k .. 64 k + 63
+    into the row-major plane and clear them: the 64 columns' words, transposed, are the 64 rows' words (see
+    :func:`fold_columns`)."""
+    any_bits = np.uint64(0)
+    for i in range(64):
+        word = columns[(64 * b + i) * words_per_col + k]
+        block[i] = word
+        any_bits |= word
+    if any_bits == 0:
+        return
+    for i in range(64):
+        columns[(64 * b + i) * words_per_col + k] = 0
+    transpose64(block)
+    for i in range(min(64, win_h - 64 * k)):
+        rows[(64 * k + i) * row_words + b] |= block[i]
+
+
 @kernel(nogil=True, error_model="numpy")
 def fold_columns(columns, col_stride, rows, win_w, win_h, block):  # pragma: no cover - compiled
-    """Move every bit of the column-major plane into the row-major one and clear it, 64 x 64 cells at a time:
-    the 64 columns' words of a block, transposed, are the 64 rows' words. win_w (cells) must be a multiple of
-    64, so that a row's 64-cell blocks are words of the row-major plane; block is scratch for 64 words."""
+    """Move every bit of the column-major plane into the row-major one and clear it, 64 x 64 cells at a time
+    (:func:`fold_block`). win_w (cells) must be a multiple of 64, so that a row's 64-cell blocks are words of the
+    row-major plane; block is scratch for 64 words."""
     words_per_col = col_stride >> 6
     row_words = win_w >> 6
     for b in range(row_words):  # columns 64 b .. 64 b + 63
         for k in range(words_per_col):  # rows 64 k .. 64 k + 63
-            any_bits = np.uint64(0)
-            for i in range(64):
-                word = columns[(64 * b + i) * words_per_col + k]
-                block[i] = word
-                any_bits |= word
-            if any_bits == 0:
-                continue
-            for i in range(64):
-                columns[(64 * b + i) * words_per_col + k] = 0
-            transpose64(block)
-            for i in range(min(64, win_h - 64 * k)):
-                rows[(64 * k + i) * row_words + b] |= block[i]
+            fold_block(columns, words_per_col, rows, row_words, win_h, block, b, k)

@@ -46,7 +46,7 @@ from mapping.bundling import bundle_samples, check_tolerance
 from mapping.errors import InputError
 from mapping.grid import TiledGrid
 from mapping.parallel_fusion import in_scan_order
-from mapping.samples_pass import COUNT_LEVELS, STAMP_LIMIT, accumulate_scan, apply_scan
+from mapping.samples_pass import COUNT_LEVELS, STAMP_LIMIT, accumulate_scan, apply_scan, owned_table
 from mapping.scan_input import check_scan, check_window, laser_poses, merge_duplicates
 from mapping.sensor_model import SensorModel
 from mapping.single_pass import accumulate_single, apply_single
@@ -142,13 +142,15 @@ class FusionScratch:
 
 
 class Ready(NamedTuple):
-    """A checked scan, to walk: laser poses (M, 3) after merging, their weights (M,), the beam table, the window."""
+    """A checked scan, to walk: laser poses (M, 3) after merging, their weights (M,), the beam table, the window, its
+    tiles and their owned tiles' summed-area table (:func:`mapping.samples_pass.owned_table`)."""
 
     lasers: np.ndarray
     weights: np.ndarray
     beams: BeamTable
     window: Window
     tiles: Tiles
+    owned_sum: np.ndarray
 
 
 class Walked(NamedTuple):
@@ -214,16 +216,17 @@ class MonteCarloFusion:
         self.merge_identical = merge_identical
         self.threads = threads if isinstance(threads, FusionThreads) else FusionThreads(threads)
         self._owned_cache: dict[tuple[int, int], bool] = {}
-        self._owned_windows: dict[tuple[int, int, int, int], tuple[np.ndarray, bool]] = {}
+        self._owned_windows: dict[tuple[int, int, int, int], tuple[np.ndarray, bool, np.ndarray]] = {}
         self._scratch = FusionScratch()  # :meth:`fuse`'s (empty until a scan is walked in it)
         # what the kernels read of the model, built once: plain tuples (mapping.beam_model.BeamTable says why)
         self._model_terms = tuple(logodds_model(model))
         self._levels = (model.l_free, model.l_min, model.l_max)  # (properties: computed)
         self._directions = (self._cos_angles, self._sin_angles)
 
-    def _owned_mask(self, tx0: int, ty0: int, ntx: int, nty: int) -> tuple[np.ndarray, bool]:
-        """Which tiles of the window's ntx x nty tiles from (tx0, ty0) the shard owns, and whether all; kept
-        per window (the kernels only read it)."""
+    def _owned_mask(self, tx0: int, ty0: int, ntx: int, nty: int) -> tuple[np.ndarray, bool, np.ndarray]:
+        """Which tiles of the window's ntx x nty tiles from (tx0, ty0) the shard owns, whether all, and the owned
+        tiles' summed-area table (:func:`mapping.samples_pass.owned_table`); kept per window (the kernels only read
+        them)."""
         key = (tx0, ty0, ntx, nty)
         window = self._owned_windows.get(key)
         if window is None:
@@ -235,7 +238,7 @@ class MonteCarloFusion:
                         if tile not in self._owned_cache:
                             self._owned_cache[tile] = bool(self.owns_tile(*tile))
                         owned[j, i] = self._owned_cache[tile]
-            window = self._owned_windows[key] = (owned, bool(owned.all()))
+            window = self._owned_windows[key] = (owned, bool(owned.all()), owned_table(owned))
         return window
 
     def _tile_slots(self, touched: np.ndarray, tx0: int, ty0: int) -> tuple[np.ndarray, list[tuple[int, int]]]:
@@ -272,8 +275,8 @@ class MonteCarloFusion:
 
     def prepare(self, scan: ScanInput) -> Ready | None:
         """The first stage of :meth:`fuse`: the scan (ranges, samples, weights) checked and ready to walk (None when
-        no beam of it is used); InputError when it is refused. Runs on the caller's thread, in scan order (it keeps
-        the shard's ownership caches)."""
+        no beam of it is used, or when the shard owns no tile of its window); InputError when it is refused. Runs on
+        the caller's thread, in scan order (it keeps the shard's ownership caches)."""
         ranges, samples, weights = check_scan(*scan, self.angles.shape[0])
         if self.merge_identical:
             samples, weights = merge_duplicates(samples, weights)
@@ -284,8 +287,10 @@ class MonteCarloFusion:
         lasers = laser_poses(samples, self.sensor_offset)
         if self.bundle > 0.0:
             lasers, weights = bundle_samples(lasers, weights, self.bundle, float(beams.r_stop[used].mean()))
-        window, tiles = self._window(lasers, float(beams.r_stop.max()) + self.grid.resolution)
-        return Ready(lasers, weights, beams, window, tiles)
+        window, tiles, owned_sum = self._window(lasers, float(beams.r_stop.max()) + self.grid.resolution)
+        if owned_sum[-1, -1] == 0:  # a shard that owns no tile the scan's rays may reach
+            return None
+        return Ready(lasers, weights, beams, window, tiles, owned_sum)
 
     def walk(self, ready: Ready, scratch: FusionScratch) -> Walked:
         """The second stage of :meth:`fuse`: the scan's compiled pass into ``scratch``, the one-sample pass for one
@@ -319,9 +324,10 @@ class MonteCarloFusion:
             )
         return FuseResult(walked.n_scan, changed, walked.samples)
 
-    def _window(self, lasers: np.ndarray, reach: float) -> tuple[Window, Tiles]:
+    def _window(self, lasers: np.ndarray, reach: float) -> tuple[Window, Tiles, np.ndarray]:
         """The scratch window over the rays of laser poses (M, 3) that reach ``reach`` m (its origin a multiple of 8
-        cells: the one-sample pass's 8 x 8 blocks are the grid's), and the tiles over it."""
+        cells: the one-sample pass's 8 x 8 blocks are the grid's), the tiles over it and their owned tiles'
+        summed-area table."""
         res = self.grid.resolution
         if len(lasers) == 1:  # (reductions cost a few microseconds each)
             ((x_lo, y_lo, _),) = lasers.tolist()
@@ -337,8 +343,8 @@ class MonteCarloFusion:
         tx0, ty0 = ix0 >> shift, iy0 >> shift
         ntx = ((ix0 + w - 1) >> shift) - tx0 + 1
         nty = ((iy0 + h - 1) >> shift) - ty0 + 1
-        owned, all_owned = self._owned_mask(tx0, ty0, ntx, nty)
-        return Window(ix0, iy0, w, h), Tiles(owned, all_owned, shift, tx0, ty0)
+        owned, all_owned, owned_sum = self._owned_mask(tx0, ty0, ntx, nty)
+        return Window(ix0, iy0, w, h), Tiles(owned, all_owned, shift, tx0, ty0), owned_sum
 
     def _ray_args(
         self, beams: BeamTable
@@ -383,7 +389,14 @@ class MonteCarloFusion:
         )
         window_args, tile_args = (window.ix0, window.iy0, win_w, window.h), tuple(tiles)
         n_scan = accumulate_scan(
-            ready.lasers, ready.weights, *self._ray_args(ready.beams), window_args, tile_args, args, stamp_base
+            ready.lasers,
+            ready.weights,
+            *self._ray_args(ready.beams),
+            window_args,
+            tile_args,
+            ready.owned_sum,
+            args,
+            stamp_base,
         )
         return Walked(False, args, int(n_scan), touched, window_args, tile_args, 0.0, stamp_base, len(ready.lasers))
 

@@ -31,7 +31,7 @@ import numpy as np
 from numba.cpython.unsafe.numbers import trailing_zeros  # LLVM's cttz: the set bits of a word, one by one
 
 from mapping.beam_model import BeamTable, LogOddsModel, beam_at, segment_logodds
-from mapping.free_runs import fold_columns, mark_free_runs, set_bit
+from mapping.free_runs import fold_block, fold_columns, mark_free_runs, set_bit
 from mapping.jit import kernel
 from mapping.raytrace import dda_step
 from mapping.window_walk import (
@@ -230,40 +230,48 @@ def _close_stretch(line, stretch, last, r_next, res, tol, window, scratch):  # p
     set_bit(scratch.plane, (last[1] - window.iy0) * window.w + last[0] - window.ix0)
 
 
-#: a ray whose bounding box spans more tiles than this is walked as one that may cross other shards' tiles, without
-#: looking at the box's tiles (:func:`owned_reach`)
-BOUND_TILES = 16
 #: what :func:`owned_reach` says of a ray: it crosses none of the shard's tiles, it may cross some, it crosses only
 #: the shard's tiles
 REACH_NONE, REACH_SOME, REACH_ALL = 0, 1, 2
+#: cells (a fraction of one) by which :func:`owned_reach` widens a ray's box before flooring its ends: the box's
+#: cells come from x * (1 / res), which may differ from the walk's x / res in the last bits (by about 1e-10 cells
+#: 1 000 km from the origin at 0.01 m cells)
+BOX_ROUNDING = 1e-6
+
+
+def owned_table(owned: np.ndarray) -> np.ndarray:
+    """The summed-area table of a window's owned tiles (bool, (tiles down, tiles across)): entry [j, i] (int32,
+    (tiles down + 1, tiles across + 1)) counts the owned tiles of rows < j and columns < i, so that
+    :func:`owned_reach` counts a box's in four reads."""
+    table = np.zeros((owned.shape[0] + 1, owned.shape[1] + 1), np.int32)
+    table[1:, 1:] = owned.astype(np.int32).cumsum(axis=0).cumsum(axis=1)
+    return table
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def owned_reach(laser, heading, directions, k, stop, res, tiles):  # pragma: no cover - compiled
+def owned_reach(laser, heading, directions, k, stop, inv_res, tiles, owned_sum):  # pragma: no cover - compiled
     """The cheap bound that sorts a shard's rays before walking them, from the bounding box of the ray of beam k (its
     start and end cells, the end at ``stop`` m, and a cell more on every side: a ray starting on a grid line, or
-    ending within rounding of one, crosses into the cell beyond), which holds every cell the ray visits:
-    REACH_NONE when no tile the shard owns meets the box (the ray is skipped), REACH_ALL when the shard owns every
-    tile that meets it (the ray is walked as a shard owning the whole window walks it), REACH_SOME otherwise (also
-    when the box spans more than BOUND_TILES tiles: the test would cost more than it saves). laser, heading,
-    directions: as for :func:`mapping.window_walk.beam_ray`."""
+    ending within rounding of one, crosses into the cell beyond), which holds every cell the ray visits: REACH_NONE
+    when no tile the shard owns meets the box (the ray is skipped), REACH_ALL when the shard owns every tile that
+    meets it (the ray is walked as a shard owning the whole window walks it), REACH_SOME otherwise. The box's owned
+    tiles are counted from ``owned_sum`` (:func:`owned_table`): four reads whatever its size. laser, heading,
+    directions: as for :func:`mapping.window_walk.beam_ray`; inv_res: 1 / the cell size (1/m).
+    """
     dx, dy = beam_direction(heading[0], heading[1], directions[0][k], directions[1][k])
     shift = tiles.shift
-    ix_a = math.floor(laser[0] / res)
-    iy_a = math.floor(laser[1] / res)
-    ix_b = math.floor((laser[0] + stop * dx) / res)
-    iy_b = math.floor((laser[1] + stop * dy) / res)
-    tx_lo, tx_hi = ((min(ix_a, ix_b) - 1) >> shift) - tiles.tx0, ((max(ix_a, ix_b) + 1) >> shift) - tiles.tx0
-    ty_lo, ty_hi = ((min(iy_a, iy_b) - 1) >> shift) - tiles.ty0, ((max(iy_a, iy_b) + 1) >> shift) - tiles.ty0
-    if (tx_hi - tx_lo + 1) * (ty_hi - ty_lo + 1) > BOUND_TILES:
-        return REACH_SOME
-    # (the window holds a ray's cells with a cell to spare, ray_start checks; clamped so that no box reads past it,
-    # and a box clamped is not all owned)
+    xa, ya = laser[0] * inv_res, laser[1] * inv_res
+    xb, yb = xa + stop * inv_res * dx, ya + stop * inv_res * dy
+    tx_lo = ((math.floor(min(xa, xb) - BOX_ROUNDING) - 1) >> shift) - tiles.tx0
+    tx_hi = ((math.floor(max(xa, xb) + BOX_ROUNDING) + 1) >> shift) - tiles.tx0
+    ty_lo = ((math.floor(min(ya, yb) - BOX_ROUNDING) - 1) >> shift) - tiles.ty0
+    ty_hi = ((math.floor(max(ya, yb) + BOX_ROUNDING) + 1) >> shift) - tiles.ty0
+    # (the window holds a ray's cells with a cell to spare, ray_start checks; the box is clamped to the window's tiles
+    # so that no read falls outside the table, and a box clamped is not all owned)
     nty, ntx = tiles.owned.shape
-    owned = 0
-    for ty in range(max(ty_lo, 0), min(ty_hi, nty - 1) + 1):
-        for tx in range(max(tx_lo, 0), min(tx_hi, ntx - 1) + 1):
-            owned += tiles.owned[ty, tx]
+    i0, i1 = max(tx_lo, 0), min(tx_hi, ntx - 1) + 1
+    j0, j1 = max(ty_lo, 0), min(ty_hi, nty - 1) + 1
+    owned = owned_sum[j1, i1] - owned_sum[j0, i1] - owned_sum[j1, i0] + owned_sum[j0, i0]
     if owned == 0:
         return REACH_NONE
     if owned == (tx_hi - tx_lo + 1) * (ty_hi - ty_lo + 1):
@@ -272,7 +280,7 @@ def owned_reach(laser, heading, directions, k, stop, res, tiles):  # pragma: no 
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def _walk_sample(laser, sid, w, directions, beams, model, res, window, tiles, scratch):  # pragma: no cover
+def _walk_sample(laser, sid, w, directions, beams, model, res, window, tiles, owned_sum, scratch):  # pragma: no cover
     """Walk every beam of one sample (laser pose (x m, y m, yaw rad), stamp sid, weight w) into its plane and the
     excess records.
 
@@ -286,11 +294,12 @@ def _walk_sample(laser, sid, w, directions, beams, model, res, window, tiles, sc
     by_index = _Marks(scratch.plane, scratch.excess, (0, 0, 1), model, sid, w)
     by_cell = _Marks(scratch.plane, scratch.excess, (window.ix0, window.iy0, window.w), model, sid, w)
     every_tile, some_tiles = ownership_constants(tiles)
+    inv_res = 1.0 / res
     for k in range(beams.kind.shape[0]):
         beam = beam_at(beams, k)
         reach = REACH_ALL
         if not tiles.all_owned:
-            reach = owned_reach(laser, heading, directions, k, beam.r_stop, res, tiles)
+            reach = owned_reach(laser, heading, directions, k, beam.r_stop, inv_res, tiles, owned_sum)
             if reach == REACH_NONE:
                 continue  # a ray that crosses none of the shard's tiles
         inside, ray, dx, dy = beam_ray(laser, heading, directions, beam, k, res, window)
@@ -325,14 +334,14 @@ def _walk_sample(laser, sid, w, directions, beams, model, res, window, tiles, sc
 
 @kernel(nogil=True, error_model="numpy", refcounted=False)
 def accumulate_scan(
-    lasers, weights, directions, beams, model, res, window, tiles, scratch, stamp_base
+    lasers, weights, directions, beams, model, res, window, tiles, owned_sum, scratch, stamp_base
 ):  # pragma: no cover
     """One pass over all (sample, beam, cell) triples; returns the number of distinct cells touched.
 
     lasers: (M, 3) laser poses (x m, y m, yaw rad), weights (M,); directions: the beams' (cosines, sines) in the
     laser frame; beams: a :class:`BeamTable`, model a :class:`LogOddsModel`, window a :class:`Window` (w a
-    multiple of 64 cells), tiles a :class:`Tiles`, scratch a :class:`SamplesScratch`, all as plain tuples; res:
-    the cell size (m).
+    multiple of 64 cells), tiles a :class:`Tiles`, scratch a :class:`SamplesScratch`, all as plain tuples; owned_sum:
+    the tiles' :func:`owned_table`; res: the cell size (m).
 
     Window cell (gx, gy) is global cell (ix0 + gx, iy0 + gy); its scratch entries are at c = gy * w + gx: bit c
     of plane (the cells the current sample touched) and of listed (the cells listed in this scan), both zero
@@ -347,16 +356,22 @@ def accumulate_scan(
     ray's go into the column-major plane) up to just before its end (:func:`_free_runs`), by a shard that does not
     own every tile of the window in its own tiles only, skipping the rays that reach none of them and taking those
     that reach no other tile as a shard owning every tile does (:func:`_walk_sample`).
-    After a sample's beams its column plane is folded into ``plane`` and ``plane`` is swept into the weight sums.
+    After a sample's beams its column plane is folded into ``plane`` and ``plane`` is swept into the weight sums; by a
+    shard that does not own every tile of the window, only where its tiles lie (:func:`_fold_and_sweep_owned`).
     """
     beams, model, window, tiles = BeamTable(*beams), LogOddsModel(*model), Window(*window), Tiles(*tiles)
     scratch = SamplesScratch(*scratch)
     n_scan = 0
     for j in range(lasers.shape[0]):
         w = weights[j]
-        _walk_sample(lasers[j], float(stamp_base + j), w, directions, beams, model, res, window, tiles, scratch)
-        fold_columns(scratch.columns, scratch.col_stride, scratch.plane, window.w, window.h, scratch.block)
-        n_scan = _sweep_plane(scratch, w, n_scan, window, tiles)
+        _walk_sample(
+            lasers[j], float(stamp_base + j), w, directions, beams, model, res, window, tiles, owned_sum, scratch
+        )
+        if tiles.all_owned:
+            fold_columns(scratch.columns, scratch.col_stride, scratch.plane, window.w, window.h, scratch.block)
+            n_scan = _sweep_plane(scratch, w, n_scan, window, tiles)
+        else:
+            n_scan = _fold_and_sweep_owned(scratch, w, n_scan, window, tiles, owned_sum)
     return n_scan
 
 
@@ -385,29 +400,66 @@ def _list_word(scratch, i, new, n_scan, window, tiles):  # pragma: no cover - co
     return n_scan
 
 
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _sweep_word(scratch, i, w, n_scan, window, tiles, counted):  # pragma: no cover - compiled
+    """Add one sample's weight w to the weight sum of every cell word i of its plane marks (``counted``, equal
+    weights: one to their counts, :func:`_count_word`), and clear the word. A cell not yet listed in this scan (its
+    bit clear in ``listed``) is listed in scan_cells and its tile marked in tile_touched. Returns the new list
+    length."""
+    bits = scratch.plane[i]
+    if bits == 0:
+        return n_scan
+    scratch.plane[i] = 0
+    new = bits & ~scratch.listed[i]
+    if new != 0:
+        scratch.listed[i] |= new
+        n_scan = _list_word(scratch, i, new, n_scan, window, tiles)
+    if counted:
+        _count_word(scratch.counts, i, bits)
+        return n_scan
+    base = i << 6
+    while bits != 0:
+        scratch.weight_sum[base + trailing_zeros(bits)] += w
+        bits &= bits - np.uint64(1)
+    return n_scan
+
+
 @kernel(nogil=True, error_model="numpy", refcounted=False)
 def _sweep_plane(scratch, w, n_scan, window, tiles):  # pragma: no cover - compiled
-    """Add one sample's weight w to the weight sum of every cell its plane marks (with equal weights: one to their
-    counts, :func:`_count_word`), and clear the plane. A cell not yet listed in this scan (its bit clear in
-    ``listed``) is listed in scan_cells and its tile marked in tile_touched. Returns the new list length."""
-    plane, listed = scratch.plane, scratch.listed
+    """:func:`_sweep_word` over the whole plane, word after word. Returns the new list length."""
     counted = scratch.sums.shape[0] > 0
     for i in range((window.w * window.h + 63) >> 6):
-        bits = plane[i]
-        if bits == 0:
-            continue
-        plane[i] = 0
-        base = i << 6
-        new = bits & ~listed[i]
-        if new != 0:
-            listed[i] |= new
-            n_scan = _list_word(scratch, i, new, n_scan, window, tiles)
-        if counted:
-            _count_word(scratch.counts, i, bits)
-            continue
-        while bits != 0:
-            scratch.weight_sum[base + trailing_zeros(bits)] += w
-            bits &= bits - np.uint64(1)
+        n_scan = _sweep_word(scratch, i, w, n_scan, window, tiles, counted)
+    return n_scan
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _block_owned(b, k, window, tiles, owned_sum):  # pragma: no cover - compiled
+    """Whether the window's 64 x 64 block of cells 64 b .. 64 b + 63 across and 64 k .. 64 k + 63 down meets a tile
+    the shard owns (the tiles' :func:`owned_table`)."""
+    nty, ntx = tiles.owned.shape
+    i0 = ((window.ix0 + 64 * b) >> tiles.shift) - tiles.tx0
+    j0 = ((window.iy0 + 64 * k) >> tiles.shift) - tiles.ty0
+    i1 = min(((window.ix0 + 64 * b + 63) >> tiles.shift) - tiles.tx0, ntx - 1) + 1
+    j1 = min(((window.iy0 + 64 * k + 63) >> tiles.shift) - tiles.ty0, nty - 1) + 1
+    return owned_sum[j1, i1] - owned_sum[j0, i1] - owned_sum[j1, i0] + owned_sum[j0, i0] > 0
+
+
+@kernel(nogil=True, error_model="numpy", refcounted=False)
+def _fold_and_sweep_owned(scratch, w, n_scan, window, tiles, owned_sum):  # pragma: no cover - compiled
+    """For a shard that does not own every tile of the window: fold (:func:`mapping.free_runs.fold_block`) and sweep
+    (:func:`_sweep_word`) only the 64 x 64 blocks that meet its tiles, block after block, the rest of its planes
+    being clear (its walk marks its own tiles' cells only). Returns the new list length."""
+    counted = scratch.sums.shape[0] > 0
+    row_words = window.w >> 6
+    words_per_col = scratch.col_stride >> 6
+    for k in range(words_per_col):  # rows 64 k .. 64 k + 63
+        for b in range(row_words):  # columns 64 b .. 64 b + 63
+            if not _block_owned(b, k, window, tiles, owned_sum):
+                continue
+            fold_block(scratch.columns, words_per_col, scratch.plane, row_words, window.h, scratch.block, b, k)
+            for row in range(64 * k, min(64 * k + 64, window.h)):
+                n_scan = _sweep_word(scratch, row * row_words + b, w, n_scan, window, tiles, counted)
     return n_scan
 
 

@@ -31,7 +31,9 @@ def fused_cells(grid: TiledGrid) -> dict:
 def whole_and_joined(tile_size, fusion_args, scans, shards, shard_of):
     """The grid of ``scans`` ((ranges, samples, weights) each) fused by one MonteCarloFusion(grid, *fusion_args)
     owning every tile, and the grid joined from ``shards`` fusions that each own the tiles (tx, ty) with
-    shard_of(tx, ty) == its index (each shard's tiles checked to be its own)."""
+    shard_of(tx, ty) == its index (each shard's tiles checked to be its own, and its scratch planes and sums clear
+    after each scan: a shard folds and sweeps only the blocks of its own tiles, so a bit its walk set elsewhere would
+    stay there into the next sample)."""
     res = fusion_args[0].resolution
     whole = TiledGrid(res, tile_size=tile_size)
     fusion = MonteCarloFusion(whole, *fusion_args)
@@ -43,6 +45,10 @@ def whole_and_joined(tile_size, fusion_args, scans, shards, shard_of):
         fusion = MonteCarloFusion(part, *fusion_args, owns_tile=lambda tx, ty, shard=shard: shard_of(tx, ty) == shard)
         for scan in scans:
             fusion.fuse(*scan)
+            scratch = fusion._scratch
+            assert not (
+                scratch.plane.any() or scratch.columns.any() or scratch.weight_sum.any() or scratch.counts.any()
+            )
         for key in part.keys():  # noqa: SIM118  # a TiledGrid, not a dict: it has no __iter__
             assert shard_of(*key) == shard
             joined.set_tile(key, *part.tile_arrays(key))
@@ -281,6 +287,33 @@ def test_shards_partition_the_map():
     a, b = whole.rasterize(), joined.rasterize()
     for key in a:
         np.testing.assert_array_equal(a[key], b[key])
+
+
+def test_a_shard_owning_no_tile_of_a_scans_window_walks_nothing():
+    """A scan whose window (every sample's rays, to range_max) holds none of the shard's tiles is not walked: nothing
+    changes and no sample is counted as walked. Owning one tile of the window, the same shard walks all 5 samples."""
+    model, angles = SensorModel(resolution=RES), np.linspace(-math.pi, math.pi, 90, endpoint=False)
+    rng = np.random.default_rng(5)
+    scan = (
+        rng.uniform(1, 6, 90),
+        np.column_stack([rng.normal(0, 0.1, (5, 2)), rng.normal(0, 0.05, 5)]),
+        np.full(5, 0.2),
+    )
+    asked: list[tuple[int, int]] = []
+
+    def far(tx: int, ty: int) -> bool:
+        asked.append((tx, ty))
+        return tx >= 100  # tiles of 32 cells of 0.05 m: 160 m away and more
+
+    fusion = MonteCarloFusion(TiledGrid(RES, tile_size=32), model, angles, 0.1, 8.0, owns_tile=far)
+    result = fusion.fuse(*scan)
+    assert asked and (result.cells_updated, result.tiles_changed, result.samples_walked) == (0, [], 0)
+    assert not list(fusion.grid.keys())
+    fusion = MonteCarloFusion(
+        TiledGrid(RES, tile_size=32), model, angles, 0.1, 8.0, owns_tile=lambda tx, ty: tx == ty == 0
+    )
+    result = fusion.fuse(*scan)
+    assert result.tiles_changed == [(0, 0)] and result.samples_walked == 5 and result.cells_updated > 0
 
 
 def test_merge_duplicates():

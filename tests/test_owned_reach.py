@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from mapping.samples_pass import REACH_ALL, REACH_NONE, REACH_SOME, owned_reach
+from mapping.samples_pass import REACH_ALL, REACH_NONE, REACH_SOME, owned_reach, owned_table
 from mapping.window_walk import Tiles
 from reference import cells_on_ray
 from worlds import OWNERSHIP_PATTERNS, ownership_pattern
@@ -24,7 +24,8 @@ def reach(x0: float, y0: float, angle: float, stop: float, owned: np.ndarray) ->
     tiles where ``owned`` (16 x 16 bool) is True."""
     laser = np.array([x0, y0, angle])
     tiles = Tiles(owned, bool(owned.all()), SHIFT, TX0, TY0)
-    return int(owned_reach(laser, (math.cos(angle), math.sin(angle)), AHEAD, 0, stop, RES, tiles))
+    heading = (math.cos(angle), math.sin(angle))
+    return int(owned_reach(laser, heading, AHEAD, 0, stop, 1.0 / RES, tiles, owned_table(owned)))
 
 
 def owned_on_ray(x0: float, y0: float, angle: float, stop: float, owned: np.ndarray) -> list[bool]:
@@ -80,3 +81,14 @@ def test_a_ray_ending_a_rounding_short_of_an_unowned_tile_is_not_walked_whole():
     assert reach(0.25, 0.25, 0.0, 0.35, owned) == REACH_ALL
     owned[0 - TY0, 1 - TX0] = True  # and tile (1, 0)
     assert reach(0.25, 0.25, 0.0, 0.55 - 1e-9, owned) == REACH_ALL
+
+
+def test_the_box_takes_the_cell_before_the_start_however_one_over_res_rounds():
+    """The box's cells come from x * (1 / res), which floors a cell higher than the walk's x / res at 0.8999999999999999
+    m: without the rounding allowance the box of a ray from there along +x (the walk's cells 8 and on) would start at
+    cell 8 instead of 7, and a shard owning only tile 0 (cells 0..7) would skip a ray whose box is meant to reach it."""
+    x0 = 0.8999999999999999
+    assert math.floor(x0 / RES) == 8 and math.floor(x0 * (1.0 / RES)) == 9
+    owned = np.zeros((16, 16), bool)
+    owned[0 - TY0, 0 - TX0] = True
+    assert reach(x0, 0.25, 0.0, 0.02, owned) == REACH_SOME
