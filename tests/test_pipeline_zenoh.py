@@ -215,6 +215,17 @@ def test_the_parser_loads_no_fit_compiler_or_web_library():
     assert result.stdout.strip() == "[]", f"building the parser imported {result.stdout.strip()}"
 
 
+def test_the_slam_node_loads_grid_fastslam_only_to_run_it():
+    """A landmark SLAM node has no use for grid FastSLAM's filter, its loop closure and their scipy parts (0.6 CPU s
+    of every node's start): services.state.slam imports them at the first scan of a grid FastSLAM node."""
+    probe = (
+        "import sys; import services.nodes.slam_node; "
+        "print(sorted(m for m in sys.modules if m in ('slam.gridslam.filter', 'slam.gridslam.loops', 'scipy')))"
+    )
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60, check=True)
+    assert result.stdout.strip() == "[]", f"the SLAM node's import loaded {result.stdout.strip()}"
+
+
 def test_an_interrupt_while_the_commands_load_is_one_line_and_exit_130(monkeypatch, capsys):
     """A SIGINT that arrives while ``posegrid`` imports its command modules (a test's teardown, a user's Ctrl-C
     right after the start) gave a KeyboardInterrupt traceback. The interrupt stands in here for the signal."""

@@ -21,6 +21,7 @@ import time
 from collections import Counter, OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -38,10 +39,12 @@ from services.process import RejectCounter, get_logger
 from services.state.checks import SeqMessage, decode_of_robot, history_reply, robot_stream
 from services.state.steps import OutOfOrder, Released, StepAssembler
 from slam.calibration import Calibration
-from slam.gridslam import GridFastSLAM, GridSlamConfig
-from slam.gridslam.filter import Laser
+from slam.gridslam import GridSlamConfig
 from slam.gridslam.health import ScanHealth
 from slam.motion import OdometryMotionModel, odometry_controls, split_odometry_motion
+
+if TYPE_CHECKING:
+    from slam.gridslam.filter import GridFastSLAM
 
 #: the parts of a step: the message of one seq on pg/<robot>/scan, odom or landmarks
 StepPart = LaserScan | Odometry | LandmarkObservations
@@ -217,6 +220,10 @@ class GridDriver:
         odom: Odometry = parts[keys.ODOM]
         if odom.pose.shape[0] == 0:
             raise StepError(f"seq {odom.seq}: grid FastSLAM needs the odometry pose, the message has none")
+        # (the filter's module, its loop closure and their scipy parts: imported by a grid FastSLAM node only, 0.6 s
+        # that a landmark node's start would pay for nothing)
+        from slam.gridslam.filter import GridFastSLAM, Laser
+
         angles = scan.angle_min + scan.angle_increment * np.arange(scan.ranges.shape[0])
         if self.filter is None:  # as slam.gridslam.run_gridslam sets it up
             self.filter = GridFastSLAM(self.config, angles, scan.sensor_offset, scan.range_min, self.initial, self.seed)
