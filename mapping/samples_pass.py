@@ -249,6 +249,13 @@ def owned_table(owned: np.ndarray) -> np.ndarray:
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
+def _owned_in(owned_sum, i0, i1, j0, j1):  # pragma: no cover - compiled
+    """How many tiles the shard owns among the window's tile columns i0 <= i < i1 and rows j0 <= j < j1, from their
+    :func:`owned_table`: four reads."""
+    return owned_sum[j1, i1] - owned_sum[j0, i1] - owned_sum[j1, i0] + owned_sum[j0, i0]
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
 def owned_reach(laser, heading, directions, k, stop, inv_res, tiles, owned_sum):  # pragma: no cover - compiled
     """The cheap bound that sorts a shard's rays before walking them, from the bounding box of the ray of beam k (its
     start and end cells, the end at ``stop`` m, and a cell more on every side: a ray starting on a grid line, or
@@ -271,7 +278,7 @@ def owned_reach(laser, heading, directions, k, stop, inv_res, tiles, owned_sum):
     nty, ntx = tiles.owned.shape
     i0, i1 = max(tx_lo, 0), min(tx_hi, ntx - 1) + 1
     j0, j1 = max(ty_lo, 0), min(ty_hi, nty - 1) + 1
-    owned = owned_sum[j1, i1] - owned_sum[j0, i1] - owned_sum[j1, i0] + owned_sum[j0, i0]
+    owned = _owned_in(owned_sum, i0, i1, j0, j1)
     if owned == 0:
         return REACH_NONE
     if owned == (tx_hi - tx_lo + 1) * (ty_hi - ty_lo + 1):
@@ -436,13 +443,14 @@ def _sweep_plane(scratch, w, n_scan, window, tiles):  # pragma: no cover - compi
 @kernel(nogil=True, error_model="numpy", inline="always")
 def _block_owned(b, k, window, tiles, owned_sum):  # pragma: no cover - compiled
     """Whether the window's 64 x 64 block of cells 64 b .. 64 b + 63 across and 64 k .. 64 k + 63 down meets a tile
-    the shard owns (the tiles' :func:`owned_table`)."""
+    the shard owns (the tiles' :func:`owned_table`). A block starts inside the window's tiles; its end is clamped to
+    them (the planes' width and height are padded to whole words)."""
     nty, ntx = tiles.owned.shape
     i0 = ((window.ix0 + 64 * b) >> tiles.shift) - tiles.tx0
     j0 = ((window.iy0 + 64 * k) >> tiles.shift) - tiles.ty0
     i1 = min(((window.ix0 + 64 * b + 63) >> tiles.shift) - tiles.tx0, ntx - 1) + 1
     j1 = min(((window.iy0 + 64 * k + 63) >> tiles.shift) - tiles.ty0, nty - 1) + 1
-    return owned_sum[j1, i1] - owned_sum[j0, i1] - owned_sum[j1, i0] + owned_sum[j0, i0] > 0
+    return _owned_in(owned_sum, i0, i1, j0, j1) > 0
 
 
 @kernel(nogil=True, error_model="numpy", refcounted=False)
