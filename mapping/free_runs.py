@@ -49,23 +49,19 @@ def set_run(plane, c_lo, c_hi):  # pragma: no cover - compiled
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def _mark_runs(plane, stride, win_u0, win_v0, line, cell, r_end, res, tol, lines):  # pragma: no cover - compiled
-    """Mark, one run per line of constant v, the cells a ray crosses from (u0, v0) (m) along the unit direction
-    (du, dv), line = (u0, v0, du, dv) with |du| >= |dv|, up to the range r_end (m), in the plane that holds cell
-    (u, v) at bit (v - win_v0) * stride + u - win_u0.
+def run_lines(line, cell, r_end, res, tol):  # pragma: no cover - compiled
+    """Where a ray crosses the lines of constant v, as :func:`_mark_runs` marks its runs: line = (u0, v0, du, dv) (m,
+    |du| >= |dv|), from cell = (iu, iv), its first cell of positive length, up to the range r_end (m); tol its corner
+    tolerance (m). Returns (v_step, tol_u, n_lines, edge0, edge_step): the direction it crosses the lines in (+1 or -1),
+    the corner tolerance along u in grid units, how many lines it crosses after its first row, and u (grid units)
+    where it leaves its k-th row, edge0 + k * edge_step, for k = 0 .. n_lines - 1.
 
-    cell = (iu, iv) is the ray's first cell of positive length; res is the cell size (m); tol is the ray's corner
-    tolerance (m); lines (int64, (2, n)) is scratch for the lines' exit and entry cells (as many as the window has
-    lines). The last cell, returned as (u, v), is the one the ray is in just before the end point. A line the ray
-    crosses holds at least its entry cell (rounding may put the exit before it).
-
-    The v lines are crossed where the traversal crosses them: at the ranges it computes (in m, from the range
-    to the first, :func:`mapping.raytrace.dda_start`, in steps of res / |dv|). So the two agree on the row of
-    every cell even for a ray that runs along a grid line within rounding, where a crossing moves by
-    decimetres with the last bit of v0."""
+    The v lines are crossed where the traversal crosses them: at the ranges it computes (in m, from the range to the
+    first, :func:`mapping.raytrace.dda_start`, in steps of res / |dv|). So the two agree on the row of every cell even
+    for a ray that runs along a grid line within rounding, where a crossing moves by decimetres with the last bit of
+    v0."""
     u0, v0, du, dv = line
-    iu, iv = cell
-    exits, entries = lines[0], lines[1]
+    iv = cell[1]
     v_step, exit_edge = (1, 1) if dv > 0.0 else (-1, 0)  # line v is left at its edge v + exit_edge
     per_cell = 1.0 / res
     tol_u = tol * abs(du) * per_cell  # the corner tolerance along u, in grid units
@@ -78,30 +74,70 @@ def _mark_runs(plane, stride, win_u0, win_v0, line, cell, r_end, res, tol, lines
             n_lines = math.ceil((r_end - t_first) * abs(dv) * per_cell)
         slope = du / dv
         edge0 = (u0 + t_first * du) * per_cell
-    end_u = (u0 + r_end * du) * per_cell
-    edge_step = v_step * slope  # and then from line to line: the k-th exit edge is edge0 + k * edge_step
+    return v_step, tol_u, n_lines, edge0, v_step * slope
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def row_run(edge0, edge_step, k, tol_u, forward):  # pragma: no cover - compiled
+    """The run (lo, hi) of u cells a ray marks in its k-th row, 1 <= k < its n_lines (:func:`run_lines`): from the
+    cell it enters the row in, past line k - 1, to the cell it leaves it from, at line k; ``forward``: du > 0. The
+    same arithmetic as :func:`_mark_runs`'s, so the same cells bit for bit."""
+    if forward:
+        entry = math.floor(edge0 + (k - 1) * edge_step + tol_u)
+        return entry, max(math.ceil(edge0 + k * edge_step - tol_u) - 1, entry)
+    entry = math.ceil(edge0 + (k - 1) * edge_step - tol_u) - 1
+    return min(math.floor(edge0 + k * edge_step + tol_u), entry), entry
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _mark_runs(plane, stride, win_u0, win_v0, line, cell, r_end, res, tol, lines, skip):  # pragma: no cover - compiled
+    """Mark, one run per line of constant v, the cells a ray crosses from (u0, v0) (m) along the unit direction
+    (du, dv), line = (u0, v0, du, dv) with |du| >= |dv|, up to the range r_end (m), in the plane that holds cell
+    (u, v) at bit (v - win_v0) * stride + u - win_u0; its rows 1 .. skip are left out (marked elsewhere:
+    :mod:`mapping.fan_runs`).
+
+    cell = (iu, iv) is the ray's first cell of positive length; res is the cell size (m); tol is the ray's corner
+    tolerance (m); lines (int64, (2, n)) is scratch for the lines' exit and entry cells (as many as the window has
+    lines). The last cell, returned as (u, v), is the one the ray is in just before the end point. A line the ray
+    crosses holds at least its entry cell (rounding may put the exit before it). Where the lines are crossed:
+    :func:`run_lines`."""
+    u0, _, du, _ = line
+    iu, iv = cell
+    exits, entries = lines[0], lines[1]
+    v_step, tol_u, n_lines, edge0, edge_step = run_lines(line, cell, r_end, res, tol)
+    end_u = (u0 + r_end * du) * (1.0 / res)
     base = (iv - win_v0) * stride - win_u0
     base_step = v_step * stride
     col = iu
-    # first the cells at every exit edge (a loop with no branch and no carried state: it vectorises), then the
-    # runs, each from the cell the line is entered at to its exit cell
+    # first the cells at the exit edges needed (line 0 and lines skip .. n_lines - 1: a loop with no branch and no
+    # carried state, it vectorises), then the runs, each from the cell the line is entered at to its exit cell
     if du > 0.0:
-        for k in range(n_lines):
+        for k in range(skip, n_lines):
             edge = edge0 + k * edge_step
             exits[k] = math.ceil(edge - tol_u) - 1  # a corner within tol_u: the cell before it is the last
             entries[k] = math.floor(edge + tol_u)
-        for k in range(n_lines):
+        if n_lines > 0:
+            exits[0] = math.ceil(edge0 - tol_u) - 1
+            set_run(plane, base + col, base + max(exits[0], col))
+            col = entries[skip]
+            base += (skip + 1) * base_step
+        for k in range(skip + 1, n_lines):
             set_run(plane, base + col, base + max(exits[k], col))
             col = entries[k]
             base += base_step
         end_col = max(math.ceil(end_u) - 1, col)
         set_run(plane, base + col, base + end_col)
     else:
-        for k in range(n_lines):
+        for k in range(skip, n_lines):
             edge = edge0 + k * edge_step
             exits[k] = math.floor(edge + tol_u)
             entries[k] = math.ceil(edge - tol_u) - 1
-        for k in range(n_lines):
+        if n_lines > 0:
+            exits[0] = math.floor(edge0 + tol_u)
+            set_run(plane, base + min(exits[0], col), base + col)
+            col = entries[skip]
+            base += (skip + 1) * base_step
+        for k in range(skip + 1, n_lines):
             set_run(plane, base + min(exits[k], col), base + col)
             col = entries[k]
             base += base_step
@@ -111,7 +147,7 @@ def _mark_runs(plane, stride, win_u0, win_v0, line, cell, r_end, res, tol, lines
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def mark_free_runs(rows, columns, col_stride, window, line, cell, r_end, res, tol, lines):  # pragma: no cover
+def mark_free_runs(rows, columns, col_stride, window, line, cell, r_end, res, tol, lines, skip=0):  # pragma: no cover
     """Mark the cells the ray from (x0, y0) (m, map frame) along the unit direction (dx, dy), line = (x0, y0, dx,
     dy), crosses before r_end (m): the cells :func:`mapping.raytrace.trace_ray` visits with r_in < r_end, give or
     take the one holding r_end. Returns the last cell marked (ix, iy): the one the ray is in just before r_end. A
@@ -122,13 +158,14 @@ def mark_free_runs(rows, columns, col_stride, window, line, cell, r_end, res, to
     the ray starts on the start cell's edge and leaves it at once); tol is the ray's corner tolerance (m,
     :func:`mapping.raytrace.corner_tol`), tol |dx| / res across columns and tol |dy| / res across rows in grid
     units. Every cell must lie in the window (ray_start checks the end cells). lines (int64, (2, n)) is scratch
-    for n = max(w, window height) values.
+    for n = max(w, window height) values. The ray's rows (columns, for a steep ray) 1 .. skip are left out: marked by
+    :mod:`mapping.fan_runs` with its neighbours'.
     """
     x0, y0, dx, dy = line
     if abs(dx) >= abs(dy):
-        return _mark_runs(rows, window.w, window.ix0, window.iy0, line, cell, r_end, res, tol, lines)
+        return _mark_runs(rows, window.w, window.ix0, window.iy0, line, cell, r_end, res, tol, lines, skip)
     last_iy, last_ix = _mark_runs(
-        columns, col_stride, window.iy0, window.ix0, (y0, x0, dy, dx), (cell[1], cell[0]), r_end, res, tol, lines
+        columns, col_stride, window.iy0, window.ix0, (y0, x0, dy, dx), (cell[1], cell[0]), r_end, res, tol, lines, skip
     )
     return last_ix, last_iy
 

@@ -44,6 +44,7 @@ import numpy as np
 from mapping.beam_model import BEAM_SKIP, BeamTable, beam_table, logodds_model
 from mapping.bundling import bundle_samples, check_tolerance
 from mapping.errors import InputError
+from mapping.fan_runs import fan_scratch
 from mapping.grid import TiledGrid
 from mapping.parallel_fusion import in_scan_order
 from mapping.samples_pass import COUNT_LEVELS, STAMP_LIMIT, accumulate_scan, apply_scan, owned_table
@@ -92,13 +93,16 @@ class FusionScratch:
         self.excess = np.zeros((0, 4), np.float64)
         self.scan_cells = np.zeros(0, np.int64)
         self.counts = np.zeros((0, COUNT_LEVELS), np.uint64)
+        self.fan_ints, self.fan_floats = fan_scratch(0)
         self.single_blocks = 0
         self.touched_bits = self.raised_bits = np.zeros(0, np.int64)
         self.largest = np.zeros(0, np.float64)
 
-    def for_samples(self, cells: int, column_bits: int, lines: int) -> None:
+    def for_samples(self, cells: int, column_bits: int, lines: int, beams: int) -> None:
         """Room for the samples pass over a window of ``cells`` cells, ``column_bits`` bits of the column-major plane
-        (mapping.free_runs) and ``lines`` grid lines a side at most."""
+        (mapping.free_runs), ``lines`` grid lines a side at most and scans of ``beams`` beams (mapping.fan_runs)."""
+        if beams > self.fan_ints.shape[1]:
+            self.fan_ints, self.fan_floats = fan_scratch(beams)
         if column_bits > self.columns.shape[0] * 64:
             self.columns = np.zeros(column_bits // 64, np.uint64)
         if lines > self.lines.shape[1]:
@@ -370,7 +374,7 @@ class MonteCarloFusion:
         # the samples pass's scratch rows and columns are whole 64-bit words of its bit planes (mapping.free_runs)
         win_w = -(-window.w // 64) * 64
         col_stride = -(-window.h // 64) * 64
-        scratch.for_samples(win_w * window.h, win_w * col_stride, max(win_w, window.h))
+        scratch.for_samples(win_w * window.h, win_w * col_stride, max(win_w, window.h), len(ready.beams.kind))
         stamp_base = scratch.stamps(len(ready.lasers))
         touched = np.zeros(tiles.owned.shape, np.bool_)
         args = (
@@ -386,6 +390,8 @@ class MonteCarloFusion:
             scratch.block,
             scratch.counts,
             _equal_weight_sums(ready.weights),
+            scratch.fan_ints,
+            scratch.fan_floats,
         )
         window_args, tile_args = (window.ix0, window.iy0, win_w, window.h), tuple(tiles)
         n_scan = accumulate_scan(

@@ -31,7 +31,8 @@ import numpy as np
 from numba.cpython.unsafe.numbers import trailing_zeros  # LLVM's cttz: the set bits of a word, one by one
 
 from mapping.beam_model import BeamTable, LogOddsModel, beam_at, segment_logodds
-from mapping.free_runs import fold_block, fold_columns, mark_free_runs, set_bit
+from mapping.fan_runs import EDGE0, EDGE_STEP, IU, IV, KEY, LINES, SKIP, TOL, fan_hulls, fan_key
+from mapping.free_runs import fold_block, fold_columns, mark_free_runs, run_lines, set_bit
 from mapping.jit import kernel
 from mapping.raytrace import dda_step
 from mapping.window_walk import (
@@ -65,7 +66,8 @@ class SamplesScratch(NamedTuple):
     int64, a ray's exit and entry cells per grid line (:mod:`mapping.free_runs`); block: 64 uint64, the 64 x 64
     bits being folded from the column-major plane; counts: (words, COUNT_LEVELS) uint64, bit l of counts[i, k] is bit
     l of the number of samples that touched cell 64 i + k (equal weights only, zero between scans); sums: the table
-    W = sums[n] for n samples of equal weight, empty when the weights differ (then W is summed per cell).
+    W = sums[n] for n samples of equal weight, empty when the weights differ (then W is summed per cell); fan_ints,
+    fan_floats: the records of a sample's rays for :func:`mapping.fan_runs.fan_hulls` (its ``fan_scratch``).
     """
 
     plane: np.ndarray
@@ -80,6 +82,8 @@ class SamplesScratch(NamedTuple):
     block: np.ndarray
     counts: np.ndarray
     sums: np.ndarray
+    fan_ints: np.ndarray
+    fan_floats: np.ndarray
 
 
 class _Marks(NamedTuple):
@@ -135,31 +139,40 @@ def _mark_near(marks, beam, carry, p, q, r_in, r_out):  # pragma: no cover - com
 
 
 @kernel(nogil=True, error_model="numpy", refcounted=False)
-def _scratch_runs(scratch, window, line, first, runs_end, res, tol):  # pragma: no cover - compiled
+def _scratch_runs(scratch, window, line, first, runs_end, res, tol, skip):  # pragma: no cover - compiled
     """:func:`mapping.free_runs.mark_free_runs` into the samples pass's planes and line buffer: line = (x0, y0, dx,
-    dy), from cell ``first`` (ix, iy) to just before ``runs_end`` (m); returns the runs' last cell.
+    dy), from cell ``first`` (ix, iy) to just before ``runs_end`` (m), its rows (columns) 1 .. skip left out; returns
+    the runs' last cell.
 
     A call, not inlined: the pass reaches it from three places, and numba inlining mark_free_runs into each made
     accumulate_scan take 80 s to compile (22 s so); LLVM still inlines it, and a scan's fusion costs the same."""
     return mark_free_runs(
-        scratch.plane, scratch.columns, scratch.col_stride, window, line, first, runs_end, res, tol, scratch.lines
+        scratch.plane, scratch.columns, scratch.col_stride, window, line, first, runs_end, res, tol, scratch.lines, skip
     )
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def _free_runs(x0, y0, dx, dy, ray, free_limit, res, window, scratch):  # pragma: no cover - compiled
-    """Mark a ray's free phase as runs (:func:`mapping.free_runs.mark_free_runs`) up to just before free_limit (m)
-    and return (ray, r_in): the ray moved to the runs' last cell, the grid lines crossed up to it counted, and the
-    range the walk goes on from. Its r_in is taken as the runs' end (:func:`segment_logodds` reads r_in only past
-    the peak, well beyond). Without runs (a short free phase) the ray as it was, from 0."""
-    runs_end = free_limit - JUMP_MARGIN * (1.0 + free_limit)
-    if runs_end <= 0.0:
-        return ray, 0.0
+def _runs_start(ray, free_limit):  # pragma: no cover - compiled
+    """Where a ray's free runs end (m: free_limit less JUMP_MARGIN, relative; <= 0 for no runs) and the first cell
+    (ix, iy) of positive length they start from."""
     ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol = ray
     first_ix, first_iy = ix, iy
     if min(t_max_x, t_max_y) <= 0.0:  # the ray starts on its cell's edge and leaves it at once
         first_ix, first_iy, _, _ = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol)
-    end = _scratch_runs(scratch, window, (x0, y0, dx, dy), (first_ix, first_iy), runs_end, res, tol)
+    return free_limit - JUMP_MARGIN * (1.0 + free_limit), (first_ix, first_iy)
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _free_runs(x0, y0, dx, dy, ray, free_limit, res, window, scratch, skip):  # pragma: no cover - compiled
+    """Mark a ray's free phase as runs (:func:`mapping.free_runs.mark_free_runs`) up to just before free_limit (m),
+    its rows (columns) 1 .. skip left out (marked by its fans, :func:`mapping.fan_runs.fan_hulls`), and return (ray,
+    r_in): the ray moved to the runs' last cell, the grid lines crossed up to it counted, and the range the walk goes
+    on from. Its r_in is taken as the runs' end (:func:`segment_logodds` reads r_in only past the peak, well beyond).
+    Without runs (a short free phase) the ray as it was, from 0."""
+    runs_end, first = _runs_start(ray, free_limit)
+    if runs_end <= 0.0:
+        return ray, 0.0
+    end = _scratch_runs(scratch, window, (x0, y0, dx, dy), first, runs_end, res, ray.tol, skip)
     return _ray_moved_to(ray, end), runs_end
 
 
@@ -215,7 +228,7 @@ def _owned_free_runs(x0, y0, dx, dy, ray, free_limit, res, window, tiles, scratc
         last = (ix, iy)
         ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol)
     if mine:
-        end = _scratch_runs(scratch, window, (x0, y0, dx, dy), stretch, runs_end, res, tol)
+        end = _scratch_runs(scratch, window, (x0, y0, dx, dy), stretch, runs_end, res, tol, 0)
         return _ray_moved_to(ray, end), runs_end, t_exit
     return Ray(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol), r_in, 0.0
 
@@ -226,7 +239,7 @@ def _close_stretch(line, stretch, last, r_next, res, tol, window, scratch):  # p
     cell of the stretch), line = (x0, y0, dx, dy) as for :func:`mark_free_runs`, the next tile entered at the range
     r_next (m): runs to just before r_next, and ``last`` itself (the runs stop short of a last cell shorter than
     their margin)."""
-    _scratch_runs(scratch, window, line, stretch, r_next - JUMP_MARGIN * (1.0 + r_next), res, tol)
+    _scratch_runs(scratch, window, line, stretch, r_next - JUMP_MARGIN * (1.0 + r_next), res, tol, 0)
     set_bit(scratch.plane, (last[1] - window.iy0) * window.w + last[0] - window.ix0)
 
 
@@ -286,14 +299,43 @@ def owned_reach(laser, heading, directions, k, stop, inv_res, tiles, owned_sum):
     return REACH_SOME
 
 
+@kernel(nogil=True, error_model="numpy", refcounted=False)
+def _fan_lines(laser, heading, directions, beams, res, window, scratch):  # pragma: no cover - compiled
+    """Record, for :func:`mapping.fan_runs.fan_hulls`, where each ray of one sample (laser pose (x m, y m, yaw rad),
+    heading (cos yaw, sin yaw)) crosses the lines of the plane its free runs go into, as
+    :func:`mapping.free_runs.mark_free_runs` will mark them (:func:`_free_runs`); key 0 for a ray with no runs."""
+    ints, floats = scratch.fan_ints, scratch.fan_floats
+    for k in range(beams.kind.shape[0]):
+        ints[KEY, k] = 0
+        beam = beam_at(beams, k)
+        inside, ray, dx, dy = beam_ray(laser, heading, directions, beam, k, res, window)
+        if not inside:
+            continue
+        runs_end, first = _runs_start(ray, min(beam.free_until, beam.r_stop - ray.tol))
+        if runs_end <= 0.0:
+            continue
+        steep = abs(dx) < abs(dy)
+        if steep:
+            line, cell = (laser[1], laser[0], dy, dx), (first[1], first[0])
+        else:
+            line, cell = (laser[0], laser[1], dx, dy), first
+        _, tol_u, n_lines, edge0, edge_step = run_lines(line, cell, runs_end, res, ray.tol)
+        ints[KEY, k] = fan_key(steep, line[2], line[3])
+        ints[IU, k], ints[IV, k], ints[LINES, k] = cell[0], cell[1], n_lines
+        floats[EDGE0, k], floats[EDGE_STEP, k], floats[TOL, k] = edge0, edge_step, tol_u
+
+
 @kernel(nogil=True, error_model="numpy", inline="always")
 def _walk_sample(laser, sid, w, directions, beams, model, res, window, tiles, owned_sum, scratch):  # pragma: no cover
     """Walk every beam of one sample (laser pose (x m, y m, yaw rad), stamp sid, weight w) into its plane and the
     excess records.
 
-    A ray that crosses only tiles the shard owns (every ray, when it owns every tile of the window;
-    :func:`owned_reach`) has its free phase marked as runs, and the walk goes on from their last cell on the window's
-    index (:func:`mapping.window_walk.index_ray`), with no ownership look-ups. A ray that crosses none is skipped.
+    Where the shard owns every tile of the window, the rows (columns) that fans of neighbouring rays share near the
+    laser are marked first, once a fan and row (:mod:`mapping.fan_runs`; :func:`_fan_lines` records where the rays
+    cross the lines), and each ray leaves them out of its own runs. A ray that crosses only tiles the shard owns
+    (every ray, when it owns every tile of the window; :func:`owned_reach`) has its free phase marked as runs, and the
+    walk goes on from their last cell on the window's index (:func:`mapping.window_walk.index_ray`), with no ownership
+    look-ups. A ray that crosses none is skipped.
     Any other has its free phase marked as runs in the shard's own tiles (:func:`_owned_free_runs`); the walk goes on
     as above where the rest of the ray lies in one tile the shard owns, else on the global cells, looking ownership
     up per tile."""
@@ -302,6 +344,16 @@ def _walk_sample(laser, sid, w, directions, beams, model, res, window, tiles, ow
     by_cell = _Marks(scratch.plane, scratch.excess, (window.ix0, window.iy0, window.w), model, sid, w)
     every_tile, some_tiles = ownership_constants(tiles)
     inv_res = 1.0 / res
+    if tiles.all_owned:  # the rows that fans of neighbouring rays share, marked once a fan (mapping.fan_runs)
+        _fan_lines(laser, heading, directions, beams, res, window, scratch)
+        fan_hulls(
+            (scratch.plane, scratch.columns, scratch.col_stride),
+            window,
+            scratch.fan_ints,
+            scratch.fan_floats,
+            beams.kind.shape[0],
+            scratch.lines[0],
+        )
     for k in range(beams.kind.shape[0]):
         beam = beam_at(beams, k)
         reach = REACH_ALL
@@ -314,7 +366,8 @@ def _walk_sample(laser, sid, w, directions, beams, model, res, window, tiles, ow
             continue  # a skipped beam
         free_limit = min(beam.free_until, beam.r_stop - ray.tol)
         if reach == REACH_ALL:
-            ray, r_in = _free_runs(laser[0], laser[1], dx, dy, ray, free_limit, res, window, scratch)
+            skip = scratch.fan_ints[SKIP, k] if tiles.all_owned else 0
+            ray, r_in = _free_runs(laser[0], laser[1], dx, dy, ray, free_limit, res, window, scratch, skip)
             tile_end = beam.r_stop  # (the rest of the ray lies in the shard's tiles)
         else:
             ray, r_in, tile_end = _owned_free_runs(

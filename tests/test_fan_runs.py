@@ -1,0 +1,83 @@
+"""Fans of neighbouring rays (mapping.fan_runs): the rows they share near the laser are marked once a fan, and the map
+is the one the rays' own runs give, cell for cell: against the slow reference, and against two shards joined (a
+shard's walk marks no fan)."""
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from mapping.fan_runs import SKIP
+from mapping.fusion import MonteCarloFusion
+from mapping.grid import TiledGrid
+from mapping.sensor_model import SensorModel
+from reference import reference_fuse
+from test_fusion import fused_cells, whole_and_joined
+
+
+def _poses(rng: np.random.Generator, count: int, res: float, on_grid: bool) -> np.ndarray:
+    """Pose samples anywhere, or (on_grid) half of them on grid points and cell edges with headings at multiples of
+    pi / 4: rays along the grid lines and through cell corners."""
+    poses = np.column_stack([rng.normal(0, 0.2, count), rng.normal(0, 0.2, count), rng.normal(0, 1.0, count)])
+    if on_grid:
+        poses[::2, 0] = rng.integers(-6, 6, len(poses[::2])) * res / 2
+        poses[::2, 1] = rng.integers(-6, 6, len(poses[::2])) * res / 2
+        poses[::2, 2] = rng.integers(-8, 8, len(poses[::2])) * math.pi / 4
+    return poses
+
+
+def _skipped_rows(fusion: MonteCarloFusion) -> int:
+    """Rows the fans marked for the rays of the last sample walked (their SKIP)."""
+    return int(fusion._scratch.fan_ints[SKIP].sum())
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 10_000), n_beams=st.integers(90, 360), n_samples=st.integers(2, 4))
+def test_fans_give_the_slow_references_cells(seed, n_beams, n_samples):
+    """Beams dense enough that neighbours pass within a cell of each other for the first metres: the cells and
+    values of the slow reference, which walks every ray cell by cell. (Poses anywhere: with a pose on a grid point
+    heading along a diagonal, the kernels and the reference give a few cells near the returns other values, with or
+    without fans; the next test has such poses.)"""
+    rng = np.random.default_rng(seed)
+    model = SensorModel(resolution=0.1, sigma0=0.04)
+    angles = np.linspace(-math.pi, math.pi, n_beams, endpoint=False)
+    ranges = rng.uniform(0.3, 3.2, n_beams)
+    ranges[rng.random(n_beams) < 0.1] = np.inf
+    samples = _poses(rng, n_samples, 0.1, on_grid=False)
+    weights = np.full(n_samples, 1.0 / n_samples)
+    grid = TiledGrid(0.1, tile_size=16)
+    fusion = MonteCarloFusion(grid, model, angles, 0.15, 3.0)
+    fusion.fuse(ranges, samples, weights)
+    assert _skipped_rows(fusion) > 0  # (the fans were used)
+    mean, spread = reference_fuse(model, angles, 0.15, 3.0, ranges, samples, weights)
+    got = fused_cells(grid)
+    assert set(got) == set(mean)
+    for cell, (lo, var) in got.items():
+        assert lo == pytest.approx(min(max(mean[cell], model.l_min), model.l_max), abs=3e-4), cell
+        assert var == pytest.approx(max(spread[cell], 0.0), abs=3e-4), cell
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_fans_mark_the_cells_two_shards_walk_for_a_modern_lidar(seed):
+    """1081 beams over 270 deg to 12 m in 0.05 m cells (fans out to about 10 m): one fusion owning every tile
+    (fans) against two shards joined (no fans: each ray's own runs and walk), the same observed cells and log-odds
+    to the last bits (a shard's jump over another's tile counts its lines apart)."""
+    rng = np.random.default_rng(seed)
+    model = SensorModel(resolution=0.05)
+    angles = np.linspace(-0.75 * math.pi, 0.75 * math.pi, 1081)
+    scans = []
+    for _ in range(2):
+        ranges = rng.uniform(0.3, 12.5, 1081)
+        ranges[rng.random(1081) < 0.05] = np.nan
+        samples = _poses(rng, 6, 0.05, on_grid=True)
+        scans.append((ranges, samples, np.full(6, 1.0 / 6)))
+    args = (model, angles, 0.05, 12.0, (0.1, 0.0, 0.0))
+    whole, joined = whole_and_joined(64, args, scans, 2, lambda tx, ty: (tx * 7 + ty * 13) % 2)
+    probe = MonteCarloFusion(TiledGrid(0.05, tile_size=64), *args)
+    probe.fuse(*scans[0])
+    assert _skipped_rows(probe) > 1081 * 20  # (most rays left rows to their fans)
+    a, b = whole.rasterize(), joined.rasterize()
+    np.testing.assert_array_equal(a["observed"], b["observed"])
+    np.testing.assert_allclose(a["logodds"], b["logodds"], rtol=0, atol=1e-9)
