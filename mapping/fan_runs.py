@@ -42,11 +42,13 @@ FAN_MARGIN = 1e-6
 
 #: rows of the fan scratch's int64 records (one column per beam): the ray's key (0: no runs to share; else which
 #: plane and direction), its first cell (iu, iv) in plane coordinates, its lines (n_lines), the rows its link to the
-#: next beam joins, the rows of it the fans mark (its ``skip``); then :func:`fan_hulls`'s bookkeeping: the next link
+#: next beam joins, the rows of it the fans mark (its ``skip``), what the walk's bound says of it (REACH of
+#: mapping.samples_pass: a shard's fans join only rays that cross its own tiles alone); then :func:`fan_hulls`'s
+#: bookkeeping: the next link
 #: joining as far, a run of joined links' first link (kept at its last) and last link (kept at its first), and the
 #: fans (their first links) with each one's place in that list
-KEY, IU, IV, LINES, LINK, SKIP, NEXT, RUN_LEFT, RUN_RIGHT, FANS, FAN_AT = range(11)
-FAN_INTS = 11
+KEY, IU, IV, LINES, LINK, SKIP, REACH, NEXT, RUN_LEFT, RUN_RIGHT, FANS, FAN_AT = range(12)
+FAN_INTS = 12
 #: rows of its float64 records: edge0, edge_step, tol (grid units; mapping.free_runs.run_lines)
 EDGE0, EDGE_STEP, TOL = range(3)
 FAN_FLOATS = 3

@@ -31,7 +31,7 @@ import numpy as np
 from numba.cpython.unsafe.numbers import trailing_zeros  # LLVM's cttz: the set bits of a word, one by one
 
 from mapping.beam_model import BeamTable, LogOddsModel, beam_at, segment_logodds
-from mapping.fan_runs import EDGE0, EDGE_STEP, IU, IV, KEY, LINES, SKIP, TOL, fan_hulls, fan_key
+from mapping.fan_runs import EDGE0, EDGE_STEP, IU, IV, KEY, LINES, REACH, SKIP, TOL, fan_hulls, fan_key
 from mapping.free_runs import fold_block, fold_columns, mark_free_runs, run_lines, set_bit
 from mapping.jit import kernel
 from mapping.raytrace import dda_step
@@ -300,14 +300,24 @@ def owned_reach(laser, heading, directions, k, stop, inv_res, tiles, owned_sum):
 
 
 @kernel(nogil=True, error_model="numpy", refcounted=False)
-def _fan_lines(laser, heading, directions, beams, res, window, scratch):  # pragma: no cover - compiled
+def _fan_lines(laser, heading, directions, beams, res, window, tiles, owned_sum, scratch):  # pragma: no cover
     """Record, for :func:`mapping.fan_runs.fan_hulls`, where each ray of one sample (laser pose (x m, y m, yaw rad),
     heading (cos yaw, sin yaw)) crosses the lines of the plane its free runs go into, as
-    :func:`mapping.free_runs.mark_free_runs` will mark them (:func:`_free_runs`); key 0 for a ray with no runs."""
+    :func:`mapping.free_runs.mark_free_runs` will mark them (:func:`_free_runs`), and what :func:`owned_reach` says
+    of it (REACH_ALL where the shard owns every tile of the window); key 0 for a ray with no runs, or one that may
+    cross another shard's tiles (a fan's run lies in its rays' runs, so a fan of rays in the shard's own tiles marks
+    only cells of its own)."""
     ints, floats = scratch.fan_ints, scratch.fan_floats
+    inv_res = 1.0 / res
     for k in range(beams.kind.shape[0]):
         ints[KEY, k] = 0
         beam = beam_at(beams, k)
+        reach = REACH_ALL
+        if not tiles.all_owned:
+            reach = owned_reach(laser, heading, directions, k, beam.r_stop, inv_res, tiles, owned_sum)
+        ints[REACH, k] = reach
+        if reach != REACH_ALL:
+            continue
         inside, ray, dx, dy = beam_ray(laser, heading, directions, beam, k, res, window)
         if not inside:
             continue
@@ -330,9 +340,10 @@ def _walk_sample(laser, sid, w, directions, beams, model, res, window, tiles, ow
     """Walk every beam of one sample (laser pose (x m, y m, yaw rad), stamp sid, weight w) into its plane and the
     excess records.
 
-    Where the shard owns every tile of the window, the rows (columns) that fans of neighbouring rays share near the
-    laser are marked first, once a fan and row (:mod:`mapping.fan_runs`; :func:`_fan_lines` records where the rays
-    cross the lines), and each ray leaves them out of its own runs. A ray that crosses only tiles the shard owns
+    The rows (columns) that fans of neighbouring rays share near the laser are marked first, once a fan and row
+    (:mod:`mapping.fan_runs`; :func:`_fan_lines` records where the rays cross the lines, and sorts them by
+    :func:`owned_reach`: a shard's fans join the rays that cross its own tiles alone), and each ray leaves them out
+    of its own runs. A ray that crosses only tiles the shard owns
     (every ray, when it owns every tile of the window; :func:`owned_reach`) has its free phase marked as runs, and the
     walk goes on from their last cell on the window's index (:func:`mapping.window_walk.index_ray`), with no ownership
     look-ups. A ray that crosses none is skipped.
@@ -343,31 +354,29 @@ def _walk_sample(laser, sid, w, directions, beams, model, res, window, tiles, ow
     by_index = _Marks(scratch.plane, scratch.excess, (0, 0, 1), model, sid, w)
     by_cell = _Marks(scratch.plane, scratch.excess, (window.ix0, window.iy0, window.w), model, sid, w)
     every_tile, some_tiles = ownership_constants(tiles)
-    inv_res = 1.0 / res
-    if tiles.all_owned:  # the rows that fans of neighbouring rays share, marked once a fan (mapping.fan_runs)
-        _fan_lines(laser, heading, directions, beams, res, window, scratch)
-        fan_hulls(
-            (scratch.plane, scratch.columns, scratch.col_stride),
-            window,
-            scratch.fan_ints,
-            scratch.fan_floats,
-            beams.kind.shape[0],
-            scratch.lines[0],
-        )
+    # the rows that fans of neighbouring rays share, marked once a fan (mapping.fan_runs), and each ray's bound
+    _fan_lines(laser, heading, directions, beams, res, window, tiles, owned_sum, scratch)
+    fan_hulls(
+        (scratch.plane, scratch.columns, scratch.col_stride),
+        window,
+        scratch.fan_ints,
+        scratch.fan_floats,
+        beams.kind.shape[0],
+        scratch.lines[0],
+    )
     for k in range(beams.kind.shape[0]):
+        reach = scratch.fan_ints[REACH, k]
+        if reach == REACH_NONE:
+            continue  # a ray that crosses none of the shard's tiles
         beam = beam_at(beams, k)
-        reach = REACH_ALL
-        if not tiles.all_owned:
-            reach = owned_reach(laser, heading, directions, k, beam.r_stop, inv_res, tiles, owned_sum)
-            if reach == REACH_NONE:
-                continue  # a ray that crosses none of the shard's tiles
         inside, ray, dx, dy = beam_ray(laser, heading, directions, beam, k, res, window)
         if not inside:
             continue  # a skipped beam
         free_limit = min(beam.free_until, beam.r_stop - ray.tol)
         if reach == REACH_ALL:
-            skip = scratch.fan_ints[SKIP, k] if tiles.all_owned else 0
-            ray, r_in = _free_runs(laser[0], laser[1], dx, dy, ray, free_limit, res, window, scratch, skip)
+            ray, r_in = _free_runs(
+                laser[0], laser[1], dx, dy, ray, free_limit, res, window, scratch, scratch.fan_ints[SKIP, k]
+            )
             tile_end = beam.r_stop  # (the rest of the ray lies in the shard's tiles)
         else:
             ray, r_in, tile_end = _owned_free_runs(

@@ -1,6 +1,6 @@
 """Fans of neighbouring rays (mapping.fan_runs): the rows they share near the laser are marked once a fan, and the map
 is the one the rays' own runs give, cell for cell: against the slow reference, and against two shards joined (a
-shard's walk marks no fan)."""
+shard's fans join only the rays that cross its own tiles alone; the others it walks tile by tile)."""
 
 import math
 
@@ -62,8 +62,8 @@ def test_fans_give_the_slow_references_cells(seed, n_beams, n_samples):
 @pytest.mark.parametrize("seed", range(3))
 def test_fans_mark_the_cells_two_shards_walk_for_a_modern_lidar(seed):
     """1081 beams over 270 deg to 12 m in 0.05 m cells (fans out to about 10 m): one fusion owning every tile
-    (fans) against two shards joined (no fans: each ray's own runs and walk), the same observed cells and log-odds
-    to the last bits (a shard's jump over another's tile counts its lines apart)."""
+    against two shards joined (fans of the rays in a shard's own tiles only, the rest walked tile by tile), the same
+    observed cells and log-odds to the last bits (a shard's jump over another's tile counts its lines apart)."""
     rng = np.random.default_rng(seed)
     model = SensorModel(resolution=0.05)
     angles = np.linspace(-0.75 * math.pi, 0.75 * math.pi, 1081)
