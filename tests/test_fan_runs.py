@@ -37,9 +37,9 @@ def _skipped_rows(fusion: MonteCarloFusion) -> int:
 @given(seed=st.integers(0, 10_000), n_beams=st.integers(90, 360), n_samples=st.integers(2, 4))
 def test_fans_give_the_slow_references_cells(seed, n_beams, n_samples):
     """Beams dense enough that neighbours pass within a cell of each other for the first metres: the cells and
-    values of the slow reference, which walks every ray cell by cell. (Poses anywhere: with a pose on a grid point
-    heading along a diagonal, the kernels and the reference give a few cells near the returns other values, with or
-    without fans; the next test has such poses.)"""
+    values of the slow reference, which walks every ray cell by cell. (Poses anywhere: from a pose on a grid line, a
+    beam along that line runs in the row above it or below by the sign of a direction of 1e-16, which the kernels
+    and the reference round apart; the next test has such poses.)"""
     rng = np.random.default_rng(seed)
     model = SensorModel(resolution=0.1, sigma0=0.04)
     angles = np.linspace(-math.pi, math.pi, n_beams, endpoint=False)
