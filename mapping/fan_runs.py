@@ -44,9 +44,8 @@ FAN_MARGIN = 1e-6
 #: plane and direction), its first cell (iu, iv) in plane coordinates, its lines (n_lines), the rows its link to the
 #: next beam joins, the rows of it the fans mark (its ``skip``), what the walk's bound says of it (REACH of
 #: mapping.samples_pass: a shard's fans join only rays that cross its own tiles alone); then :func:`fan_hulls`'s
-#: bookkeeping: the next link
-#: joining as far, a run of joined links' first link (kept at its last) and last link (kept at its first), and the
-#: fans (their first links) with each one's place in that list
+#: bookkeeping: the next link joining as far, a run of joined links' first link (kept at its last) and last link
+#: (kept at its first), and the fans (their first links) with each one's place in that list
 KEY, IU, IV, LINES, LINK, SKIP, REACH, NEXT, RUN_LEFT, RUN_RIGHT, FANS, FAN_AT = range(12)
 FAN_INTS = 12
 #: rows of its float64 records: edge0, edge_step, tol (grid units; mapping.free_runs.run_lines)

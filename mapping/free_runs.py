@@ -78,15 +78,25 @@ def run_lines(line, cell, r_end, res, tol):  # pragma: no cover - compiled
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def row_run(edge0, edge_step, k, tol_u, forward):  # pragma: no cover - compiled
-    """The run (lo, hi) of u cells a ray marks in its k-th row, 1 <= k < its n_lines (:func:`run_lines`): from the
-    cell it enters the row in, past line k - 1, to the cell it leaves it from, at line k; ``forward``: du > 0. The
-    same arithmetic as :func:`_mark_runs`'s, so the same cells bit for bit."""
+def line_cells(edge, tol_u, forward):  # pragma: no cover - compiled
+    """(exit, entry): the last cell (u) of the row a ray leaves at a line it crosses at u = edge (grid units) and the
+    first of the row it enters, ``forward`` for du > 0, tol_u its corner tolerance along u: at a corner within tol_u
+    it passes diagonally, and neither cell beside the corner is either."""
     if forward:
-        entry = math.floor(edge0 + (k - 1) * edge_step + tol_u)
-        return entry, max(math.ceil(edge0 + k * edge_step - tol_u) - 1, entry)
-    entry = math.ceil(edge0 + (k - 1) * edge_step - tol_u) - 1
-    return min(math.floor(edge0 + k * edge_step + tol_u), entry), entry
+        return math.ceil(edge - tol_u) - 1, math.floor(edge + tol_u)
+    return math.floor(edge + tol_u), math.ceil(edge - tol_u) - 1
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def row_run(edge0, edge_step, k, tol_u, forward):  # pragma: no cover - compiled
+    """The run (lo, hi) of u cells a ray marks in its k-th row, 1 <= k < its n_lines (:func:`run_lines`), as
+    :func:`_mark_runs` marks it: from the cell it enters the row in, past line k - 1, to the cell it leaves it from,
+    at line k; ``forward``: du > 0."""
+    _, entry = line_cells(edge0 + (k - 1) * edge_step, tol_u, forward)
+    exit_cell, _ = line_cells(edge0 + k * edge_step, tol_u, forward)
+    if forward:
+        return entry, max(exit_cell, entry)
+    return min(exit_cell, entry), entry
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
@@ -113,11 +123,9 @@ def _mark_runs(plane, stride, win_u0, win_v0, line, cell, r_end, res, tol, lines
     # carried state, it vectorises), then the runs, each from the cell the line is entered at to its exit cell
     if du > 0.0:
         for k in range(skip, n_lines):
-            edge = edge0 + k * edge_step
-            exits[k] = math.ceil(edge - tol_u) - 1  # a corner within tol_u: the cell before it is the last
-            entries[k] = math.floor(edge + tol_u)
+            exits[k], entries[k] = line_cells(edge0 + k * edge_step, tol_u, True)
         if n_lines > 0:
-            exits[0] = math.ceil(edge0 - tol_u) - 1
+            exits[0], _ = line_cells(edge0, tol_u, True)
             set_run(plane, base + col, base + max(exits[0], col))
             col = entries[skip]
             base += (skip + 1) * base_step
@@ -129,11 +137,9 @@ def _mark_runs(plane, stride, win_u0, win_v0, line, cell, r_end, res, tol, lines
         set_run(plane, base + col, base + end_col)
     else:
         for k in range(skip, n_lines):
-            edge = edge0 + k * edge_step
-            exits[k] = math.floor(edge + tol_u)
-            entries[k] = math.ceil(edge - tol_u) - 1
+            exits[k], entries[k] = line_cells(edge0 + k * edge_step, tol_u, False)
         if n_lines > 0:
-            exits[0] = math.floor(edge0 + tol_u)
+            exits[0], _ = line_cells(edge0, tol_u, False)
             set_run(plane, base + min(exits[0], col), base + col)
             col = entries[skip]
             base += (skip + 1) * base_step

@@ -343,11 +343,10 @@ def _walk_sample(laser, sid, w, directions, beams, model, res, window, tiles, ow
     The rows (columns) that fans of neighbouring rays share near the laser are marked first, once a fan and row
     (:mod:`mapping.fan_runs`; :func:`_fan_lines` records where the rays cross the lines, and sorts them by
     :func:`owned_reach`: a shard's fans join the rays that cross its own tiles alone), and each ray leaves them out
-    of its own runs. A ray that crosses only tiles the shard owns
-    (every ray, when it owns every tile of the window; :func:`owned_reach`) has its free phase marked as runs, and the
-    walk goes on from their last cell on the window's index (:func:`mapping.window_walk.index_ray`), with no ownership
-    look-ups. A ray that crosses none is skipped.
-    Any other has its free phase marked as runs in the shard's own tiles (:func:`_owned_free_runs`); the walk goes on
+    of its own runs. A ray that crosses only tiles the shard owns (every ray, when it owns every tile of the window;
+    :func:`owned_reach`) has its free phase marked as runs, and the walk goes on from their last cell on the window's
+    index (:func:`mapping.window_walk.index_ray`), with no ownership look-ups. A ray that crosses none is skipped. Any
+    other has its free phase marked as runs in the shard's own tiles (:func:`_owned_free_runs`); the walk goes on
     as above where the rest of the ray lies in one tile the shard owns, else on the global cells, looking ownership
     up per tile."""
     heading = (math.cos(laser[2]), math.sin(laser[2]))
