@@ -91,7 +91,6 @@ class FusionScratch:
         self.plane = self.listed = np.zeros(0, np.uint64)
         self.weight_sum = np.zeros(0, np.float64)
         self.excess = np.zeros((0, 4), np.float64)
-        self.scan_cells = np.zeros(0, np.int64)
         self.counts = np.zeros((0, COUNT_LEVELS), np.uint64)
         self.fan_ints, self.fan_floats = fan_scratch(0)
         self.single_blocks = 0
@@ -116,7 +115,6 @@ class FusionScratch:
         self.listed = np.zeros((cells + 63) // 64, np.uint64)
         self.weight_sum = np.zeros(cells, np.float64)
         self.excess = np.zeros((cells, 4), np.float64)
-        self.scan_cells = np.zeros(cells, np.int64)
         self.counts = np.zeros(((cells + 63) // 64, COUNT_LEVELS), np.uint64)
 
     def for_single(self, blocks: int) -> None:
@@ -158,9 +156,9 @@ class Ready(NamedTuple):
 
 
 class Walked(NamedTuple):
-    """A walked scan, to apply: the pass's scratch (the kernels' tuple), the cells it listed, the tiles it touched,
-    the window and tiles (tuples), the one sample's weight (one-sample pass) or the first stamp (samples pass), and the
-    number of laser poses walked."""
+    """A walked scan, to apply: the pass's scratch (the kernels' tuple), the cells it touched (one-sample pass; the
+    samples pass's apply counts them), the tiles it touched, the window and tiles (tuples), the one sample's weight
+    (one-sample pass) or the first stamp (samples pass), and the number of laser poses walked."""
 
     single: bool
     scratch: tuple
@@ -315,18 +313,20 @@ class MonteCarloFusion:
             apply_single(
                 walked.scratch, walked.weight, walked.window_args, walked.tile_args, slot_map, layers, self._levels
             )
+            n_scan = walked.n_scan
         else:
-            apply_scan(
-                walked.scratch,
-                walked.n_scan,
-                walked.stamp_base,
-                walked.window_args,
-                walked.tile_args,
-                slot_map,
-                layers,
-                self._levels,
+            n_scan = int(
+                apply_scan(
+                    walked.scratch,
+                    walked.stamp_base,
+                    walked.window_args,
+                    walked.tile_args,
+                    slot_map,
+                    layers,
+                    self._levels,
+                )
             )
-        return FuseResult(walked.n_scan, changed, walked.samples)
+        return FuseResult(n_scan, changed, walked.samples)
 
     def _window(self, lasers: np.ndarray, reach: float) -> tuple[Window, Tiles, np.ndarray]:
         """The scratch window over the rays of laser poses (M, 3) that reach ``reach`` m (its origin a multiple of 8
@@ -384,7 +384,6 @@ class MonteCarloFusion:
             scratch.listed,
             scratch.weight_sum,
             scratch.excess,
-            scratch.scan_cells,
             touched,
             scratch.lines,
             scratch.block,
@@ -394,7 +393,7 @@ class MonteCarloFusion:
             scratch.fan_floats,
         )
         window_args, tile_args = (window.ix0, window.iy0, win_w, window.h), tuple(tiles)
-        n_scan = accumulate_scan(
+        accumulate_scan(
             ready.lasers,
             ready.weights,
             *self._ray_args(ready.beams),
@@ -404,7 +403,7 @@ class MonteCarloFusion:
             args,
             stamp_base,
         )
-        return Walked(False, args, int(n_scan), touched, window_args, tile_args, 0.0, stamp_base, len(ready.lasers))
+        return Walked(False, args, 0, touched, window_args, tile_args, 0.0, stamp_base, len(ready.lasers))
 
 
 def _equal_weight_sums(weights: np.ndarray) -> np.ndarray:

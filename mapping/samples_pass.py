@@ -59,10 +59,10 @@ COUNT_LEVELS = 16
 class SamplesScratch(NamedTuple):
     """The samples pass's scratch over a scan's window (cell c = gy * w + gx; see :func:`accumulate_scan`).
 
-    plane, listed: one bit per cell (uint64 words), the current sample's touched cells and the cells listed in
-    this scan; columns: the column-major plane of :mod:`mapping.free_runs`, columns col_stride bits long;
-    weight_sum: W per cell; excess: (cells, 4) records of :func:`add_sample_value`; scan_cells: the listed
-    cells' c; tile_touched: (bool, per tile of the window) the tiles of the listed cells; lines: (2, max(w, h))
+    plane, listed: one bit per cell (uint64 words), the current sample's touched cells and the cells any sample
+    touched in this scan; columns: the column-major plane of :mod:`mapping.free_runs`, columns col_stride bits long;
+    weight_sum: W per cell; excess: (cells, 4) records of :func:`add_sample_value`; tile_touched: (bool, per tile
+    of the window) the tiles of the listed cells; lines: (2, max(w, h))
     int64, a ray's exit and entry cells per grid line (:mod:`mapping.free_runs`); block: 64 uint64, the 64 x 64
     bits being folded from the column-major plane; counts: (words, COUNT_LEVELS) uint64, bit l of counts[i, k] is bit
     l of the number of samples that touched cell 64 i + k (equal weights only, zero between scans); sums: the table
@@ -76,7 +76,6 @@ class SamplesScratch(NamedTuple):
     listed: np.ndarray
     weight_sum: np.ndarray
     excess: np.ndarray
-    scan_cells: np.ndarray
     tile_touched: np.ndarray
     lines: np.ndarray
     block: np.ndarray
@@ -404,7 +403,7 @@ def _walk_sample(laser, sid, w, directions, beams, model, res, window, tiles, ow
 def accumulate_scan(
     lasers, weights, directions, beams, model, res, window, tiles, owned_sum, scratch, stamp_base
 ):  # pragma: no cover
-    """One pass over all (sample, beam, cell) triples; returns the number of distinct cells touched.
+    """One pass over all (sample, beam, cell) triples into the scratch (:func:`apply_scan` adds it into the tiles).
 
     lasers: (M, 3) laser poses (x m, y m, yaw rad), weights (M,); directions: the beams' (cosines, sines) in the
     laser frame; beams: a :class:`BeamTable`, model a :class:`LogOddsModel`, window a :class:`Window` (w a
@@ -412,11 +411,11 @@ def accumulate_scan(
     the tiles' :func:`owned_table`; res: the cell size (m).
 
     Window cell (gx, gy) is global cell (ix0 + gx, iy0 + gy); its scratch entries are at c = gy * w + gx: bit c
-    of plane (the cells the current sample touched) and of listed (the cells listed in this scan), both zero
-    between scans; weight_sum[c] (W; zero between scans), excess[c] (four float64 kept by
+    of plane (the cells the current sample touched) and of listed (the cells any sample touched in this scan),
+    both zero between scans; weight_sum[c] (W; zero between scans), excess[c] (four float64 kept by
     :func:`add_sample_value` for d: the stamp, the current sample's largest d, D1, D2 (D1 and D2 zero between
-    scans); sample j's stamp is stamp_base + j, so smaller stamps are from earlier scans). scan_cells lists the
-    touched cells' c. See the module docstring.
+    scans); sample j's stamp is stamp_base + j, so smaller stamps are from earlier scans); tile_touched marks the
+    tiles of the listed cells. See the module docstring.
 
     Each ray is walked by :func:`mapping.window_walk.walk_ray` in two phases: the free phase, cells that end before
     the beam's free_until, which take l_free without evaluating the model; then the cells up to the ray's end,
@@ -429,7 +428,6 @@ def accumulate_scan(
     """
     beams, model, window, tiles = BeamTable(*beams), LogOddsModel(*model), Window(*window), Tiles(*tiles)
     scratch = SamplesScratch(*scratch)
-    n_scan = 0
     for j in range(lasers.shape[0]):
         w = weights[j]
         _walk_sample(
@@ -437,10 +435,9 @@ def accumulate_scan(
         )
         if tiles.all_owned:
             fold_columns(scratch.columns, scratch.col_stride, scratch.plane, window.w, window.h, scratch.block)
-            n_scan = _sweep_plane(scratch, w, n_scan, window, tiles)
+            _sweep_plane(scratch, w, window, tiles)
         else:
-            n_scan = _fold_and_sweep_owned(scratch, w, n_scan, window, tiles, owned_sum)
-    return n_scan
+            _fold_and_sweep_owned(scratch, w, window, tiles, owned_sum)
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
@@ -453,52 +450,48 @@ def _word_origin(i, window):  # pragma: no cover - compiled
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def _list_word(scratch, i, new, n_scan, window, tiles):  # pragma: no cover - compiled
-    """List the cells of word i whose bit is set in ``new`` in scan_cells from n_scan on and mark their tiles
-    touched; returns the new list length."""
+def _touch_tiles(scratch, i, new, window, tiles):  # pragma: no cover - compiled
+    """Mark in tile_touched the tiles of the cells of word i whose bit is set in ``new``: one step per tile the word
+    meets (a word holds 64 cells of one row)."""
     ix0, iy = _word_origin(i, window)
     ty = (iy >> tiles.shift) - tiles.ty0
-    base = i << 6
     while new != 0:
-        k = trailing_zeros(new)
-        scratch.scan_cells[n_scan] = base + k
-        scratch.tile_touched[ty, ((ix0 + k) >> tiles.shift) - tiles.tx0] = True
-        n_scan += 1
-        new &= new - np.uint64(1)
-    return n_scan
+        tx = (ix0 + trailing_zeros(new)) >> tiles.shift
+        scratch.tile_touched[ty, tx - tiles.tx0] = True
+        past = ((tx + 1) << tiles.shift) - ix0  # the word's first cell in the next tile
+        if past >= 64:
+            return
+        new &= ~((np.uint64(1) << np.uint64(past)) - np.uint64(1))
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def _sweep_word(scratch, i, w, n_scan, window, tiles, counted):  # pragma: no cover - compiled
+def _sweep_word(scratch, i, w, window, tiles, counted):  # pragma: no cover - compiled
     """Add one sample's weight w to the weight sum of every cell word i of its plane marks (``counted``, equal
-    weights: one to their counts, :func:`_count_word`), and clear the word. A cell not yet listed in this scan (its
-    bit clear in ``listed``) is listed in scan_cells and its tile marked in tile_touched. Returns the new list
-    length."""
+    weights: one to their counts, :func:`_count_word`), and clear the word. A cell new to this scan (its bit clear
+    in ``listed``) gets its bit in ``listed`` and its tile marked in tile_touched."""
     bits = scratch.plane[i]
     if bits == 0:
-        return n_scan
+        return
     scratch.plane[i] = 0
     new = bits & ~scratch.listed[i]
     if new != 0:
         scratch.listed[i] |= new
-        n_scan = _list_word(scratch, i, new, n_scan, window, tiles)
+        _touch_tiles(scratch, i, new, window, tiles)
     if counted:
         _count_word(scratch.counts, i, bits)
-        return n_scan
+        return
     base = i << 6
     while bits != 0:
         scratch.weight_sum[base + trailing_zeros(bits)] += w
         bits &= bits - np.uint64(1)
-    return n_scan
 
 
 @kernel(nogil=True, error_model="numpy", refcounted=False)
-def _sweep_plane(scratch, w, n_scan, window, tiles):  # pragma: no cover - compiled
-    """:func:`_sweep_word` over the whole plane, word after word. Returns the new list length."""
+def _sweep_plane(scratch, w, window, tiles):  # pragma: no cover - compiled
+    """:func:`_sweep_word` over the whole plane, word after word."""
     counted = scratch.sums.shape[0] > 0
     for i in range((window.w * window.h + 63) >> 6):
-        n_scan = _sweep_word(scratch, i, w, n_scan, window, tiles, counted)
-    return n_scan
+        _sweep_word(scratch, i, w, window, tiles, counted)
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
@@ -515,10 +508,10 @@ def _block_owned(b, k, window, tiles, owned_sum):  # pragma: no cover - compiled
 
 
 @kernel(nogil=True, error_model="numpy", refcounted=False)
-def _fold_and_sweep_owned(scratch, w, n_scan, window, tiles, owned_sum):  # pragma: no cover - compiled
+def _fold_and_sweep_owned(scratch, w, window, tiles, owned_sum):  # pragma: no cover - compiled
     """For a shard that does not own every tile of the window: fold (:func:`mapping.free_runs.fold_block`) and sweep
     (:func:`_sweep_word`) only the 64 x 64 blocks that meet its tiles, block after block, the rest of its planes
-    being clear (its walk marks its own tiles' cells only). Returns the new list length."""
+    being clear (its walk marks its own tiles' cells only)."""
     counted = scratch.sums.shape[0] > 0
     row_words = window.w >> 6
     words_per_col = scratch.col_stride >> 6
@@ -528,8 +521,7 @@ def _fold_and_sweep_owned(scratch, w, n_scan, window, tiles, owned_sum):  # prag
                 continue
             fold_block(scratch.columns, words_per_col, scratch.plane, row_words, window.h, scratch.block, b, k)
             for row in range(64 * k, min(64 * k + 64, window.h)):
-                n_scan = _sweep_word(scratch, row * row_words + b, w, n_scan, window, tiles, counted)
-    return n_scan
+                _sweep_word(scratch, row * row_words + b, w, window, tiles, counted)
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
@@ -557,10 +549,15 @@ def _count_of(counts, c, levels):  # pragma: no cover - compiled
 
 
 @kernel(nogil=True, error_model="numpy", refcounted=False)
-def apply_scan(scratch, n_scan, stamp_base, window, tiles, slot_map, layers, levels):  # pragma: no cover
+def apply_scan(scratch, stamp_base, window, tiles, slot_map, layers, levels):  # pragma: no cover - compiled
     """Add the scan's weighted mean to each touched cell (clamped to [l_min, l_max]) and its spread to the variance
     layer, from the moments l_free W + D1 and l_free^2 W + 2 l_free D1 + D2 (W: the cell's weight sum, or with equal
     weights the sums' entry of its count); clear the cells' listed bits and weight sums or counts for the next scan.
+    Returns the number of cells touched.
+
+    The cells are taken in memory order, word after word of the listed plane: each cell's update is its own, so the
+    order changes nothing in the map, and the scratch and the tiles are read in the order they lie (a list of the
+    cells in the order the samples first touched them made this pass 2.3 times as slow on the warehouse).
 
     scratch: the :class:`SamplesScratch` of :func:`accumulate_scan`, window and tiles as there (plain tuples);
     slot_map: the grid slot of each tile of the window; layers: the grid's (logodds, variance, observed); levels:
@@ -574,44 +571,48 @@ def apply_scan(scratch, n_scan, stamp_base, window, tiles, slot_map, layers, lev
     while counted and (1 << count_levels) < sums.shape[0]:
         count_levels += 1
     in_tile = (1 << tiles.shift) - 1
-    word, word_ix, iy = -1, 0, 0  # the last cell's word and its origin (the list holds a word's cells together)
-    for q in range(n_scan):
-        c = scratch.scan_cells[q]
-        if c >> 6 != word:
-            word = c >> 6
-            word_ix, iy = _word_origin(word, window)
-        ix = word_ix + (c & 63)
-        slot = slot_map[(iy >> tiles.shift) - tiles.ty0, (ix >> tiles.shift) - tiles.tx0]
+    n_scan = 0
+    for i in range((window.w * window.h + 63) >> 6):
+        bits = scratch.listed[i]
+        if bits == 0:
+            continue
+        scratch.listed[i] = 0
+        word_ix, iy = _word_origin(i, window)
+        ty = (iy >> tiles.shift) - tiles.ty0
         ly = iy & in_tile
-        lx = ix & in_tile
-        if counted:  # (the counts of the word's other cells are still to be read: cleared below)
-            moment1 = l_free * sums[_count_of(scratch.counts, c, count_levels)]
-        else:
-            scratch.listed[c >> 6] = 0
-            moment1 = l_free * weight_sum[c]
-            weight_sum[c] = 0.0
-        moment2 = l_free * moment1
-        if excess[c, 0] >= stamp_base:
-            moment1 += excess[c, 2]
-            moment2 += 2.0 * l_free * excess[c, 2] + excess[c, 3]
-            excess[c, 2] = 0.0
-            excess[c, 3] = 0.0
-        mean = moment1
-        spread = moment2 - mean * mean
-        if spread < 0.0:
-            spread = 0.0
-        updated = logodds[slot, ly, lx] + mean
-        if updated < l_min:
-            updated = l_min
-        elif updated > l_max:
-            updated = l_max
-        logodds[slot, ly, lx] = updated
-        variance[slot, ly, lx] += spread
-        observed[slot, ly, lx] = True
-    if counted:
-        for q in range(n_scan):
-            i = scratch.scan_cells[q] >> 6
-            if scratch.listed[i] != 0:  # the word's first listed cell: its counts and listed bits cleared once
-                scratch.listed[i] = 0
-                for level in range(count_levels):
-                    scratch.counts[i, level] = 0
+        base = i << 6
+        while bits != 0:
+            k = trailing_zeros(bits)
+            bits &= bits - np.uint64(1)
+            c = base + k
+            ix = word_ix + k
+            slot = slot_map[ty, (ix >> tiles.shift) - tiles.tx0]
+            lx = ix & in_tile
+            if counted:
+                moment1 = l_free * sums[_count_of(scratch.counts, c, count_levels)]
+            else:
+                moment1 = l_free * weight_sum[c]
+                weight_sum[c] = 0.0
+            moment2 = l_free * moment1
+            if excess[c, 0] >= stamp_base:
+                moment1 += excess[c, 2]
+                moment2 += 2.0 * l_free * excess[c, 2] + excess[c, 3]
+                excess[c, 2] = 0.0
+                excess[c, 3] = 0.0
+            mean = moment1
+            spread = moment2 - mean * mean
+            if spread < 0.0:
+                spread = 0.0
+            updated = logodds[slot, ly, lx] + mean
+            if updated < l_min:
+                updated = l_min
+            elif updated > l_max:
+                updated = l_max
+            logodds[slot, ly, lx] = updated
+            variance[slot, ly, lx] += spread
+            observed[slot, ly, lx] = True
+            n_scan += 1
+        if counted:  # the word's counts, read above, cleared for the next scan
+            for level in range(count_levels):
+                scratch.counts[i, level] = 0
+    return n_scan

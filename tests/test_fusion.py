@@ -47,7 +47,11 @@ def whole_and_joined(tile_size, fusion_args, scans, shards, shard_of):
             fusion.fuse(*scan)
             scratch = fusion._scratch
             assert not (
-                scratch.plane.any() or scratch.columns.any() or scratch.weight_sum.any() or scratch.counts.any()
+                scratch.plane.any()
+                or scratch.columns.any()
+                or scratch.listed.any()
+                or scratch.weight_sum.any()
+                or scratch.counts.any()
             )
         for key in part.keys():  # noqa: SIM118  # a TiledGrid, not a dict: it has no __iter__
             assert shard_of(*key) == shard
