@@ -91,7 +91,7 @@ class FusionScratch:
         self.plane = self.listed = np.zeros(0, np.uint64)
         self.weight_sum = np.zeros(0, np.float64)
         self.excess = np.zeros((0, 4), np.float64)
-        self.counts = np.zeros((0, COUNT_LEVELS), np.uint64)
+        self.counts = np.zeros((COUNT_LEVELS, 0), np.uint64)
         self.fan_ints, self.fan_floats = fan_scratch(0)
         self.single_blocks = 0
         self.touched_bits = self.raised_bits = np.zeros(0, np.int64)
@@ -115,7 +115,7 @@ class FusionScratch:
         self.listed = np.zeros((cells + 63) // 64, np.uint64)
         self.weight_sum = np.zeros(cells, np.float64)
         self.excess = np.zeros((cells, 4), np.float64)
-        self.counts = np.zeros(((cells + 63) // 64, COUNT_LEVELS), np.uint64)
+        self.counts = np.zeros((COUNT_LEVELS, (cells + 63) // 64), np.uint64)
 
     def for_single(self, blocks: int) -> None:
         """Room for the one-sample pass over a window of ``blocks`` 8 x 8 blocks."""

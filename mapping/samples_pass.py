@@ -64,8 +64,10 @@ class SamplesScratch(NamedTuple):
     weight_sum: W per cell; excess: (cells, 4) records of :func:`add_sample_value`; tile_touched: (bool, per tile
     of the window) the tiles of the listed cells; lines: (2, max(w, h))
     int64, a ray's exit and entry cells per grid line (:mod:`mapping.free_runs`); block: 64 uint64, the 64 x 64
-    bits being folded from the column-major plane; counts: (words, COUNT_LEVELS) uint64, bit l of counts[i, k] is bit
-    l of the number of samples that touched cell 64 i + k (equal weights only, zero between scans); sums: the table
+    bits being folded from the column-major plane (and, in the apply, the counts' levels of one word); counts:
+    (COUNT_LEVELS, words) uint64, bit k of counts[l, i] is bit l of the number of samples that touched cell 64 i + k
+    (equal weights only, zero between scans; level after level, so that the sweep's carries, which seldom pass the
+    first levels, read and write a few dense rows); sums: the table
     W = sums[n] for n samples of equal weight, empty when the weights differ (then W is summed per cell); fan_ints,
     fan_floats: the records of a sample's rays for :func:`mapping.fan_runs.fan_hulls` (its ``fan_scratch``).
     """
@@ -530,21 +532,20 @@ def _count_word(counts, i, bits):  # pragma: no cover - compiled
     ends where the carry clears (COUNT_LEVELS bounds it: no cell is counted more than 2**COUNT_LEVELS - 1 times)."""
     carry = bits
     for level in range(COUNT_LEVELS):
-        held = counts[i, level]
-        counts[i, level] = held ^ carry
+        held = counts[level, i]
+        counts[level, i] = held ^ carry
         carry &= held
         if carry == 0:
             return
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def _count_of(counts, c, levels):  # pragma: no cover - compiled
-    """The count of cell c in the bit-sliced counts (its ``levels`` lowest levels)."""
-    i = c >> 6
-    k = np.uint64(c & 63)
+def _count_of(counts, k, levels):  # pragma: no cover - compiled
+    """The count of cell k (0 .. 63) of a word from the word's bit-sliced counts (their ``levels`` lowest levels)."""
+    at = np.uint64(k)
     n = np.uint64(0)
     for level in range(levels):
-        n |= ((counts[i, level] >> k) & np.uint64(1)) << np.uint64(level)
+        n |= ((counts[level] >> at) & np.uint64(1)) << np.uint64(level)
     return n
 
 
@@ -581,6 +582,11 @@ def apply_scan(scratch, stamp_base, window, tiles, slot_map, layers, levels):  #
         ty = (iy >> tiles.shift) - tiles.ty0
         ly = iy & in_tile
         base = i << 6
+        held = scratch.block  # the word's counts, read once (and cleared for the next scan), then per cell
+        if counted:
+            for level in range(count_levels):
+                held[level] = scratch.counts[level, i]
+                scratch.counts[level, i] = 0
         while bits != 0:
             k = trailing_zeros(bits)
             bits &= bits - np.uint64(1)
@@ -589,7 +595,7 @@ def apply_scan(scratch, stamp_base, window, tiles, slot_map, layers, levels):  #
             slot = slot_map[ty, (ix >> tiles.shift) - tiles.tx0]
             lx = ix & in_tile
             if counted:
-                moment1 = l_free * sums[_count_of(scratch.counts, c, count_levels)]
+                moment1 = l_free * sums[_count_of(held, k, count_levels)]
             else:
                 moment1 = l_free * weight_sum[c]
                 weight_sum[c] = 0.0
@@ -612,7 +618,4 @@ def apply_scan(scratch, stamp_base, window, tiles, slot_map, layers, levels):  #
             variance[slot, ly, lx] += spread
             observed[slot, ly, lx] = True
             n_scan += 1
-        if counted:  # the word's counts, read above, cleared for the next scan
-            for level in range(count_levels):
-                scratch.counts[i, level] = 0
     return n_scan

@@ -27,13 +27,13 @@ MODEL = SensorModel(resolution=RES)
 def test_the_bit_sliced_counts_are_the_number_of_times_each_bit_was_set(planes):
     """Words added one plane at a time (three words a plane): every cell's count is the number of planes with its bit
     set, as a plain loop over the bits counts it."""
-    counts = np.zeros((3, COUNT_LEVELS), np.uint64)
+    counts = np.zeros((COUNT_LEVELS, 3), np.uint64)
     for plane in planes:
         for i, word in enumerate(plane):
             _count_word(counts, i, np.uint64(word))
     expected = [[sum((plane[i] >> k) & 1 for plane in planes) for k in range(64)] for i in range(3)]
     levels = max(len(planes).bit_length(), 1)
-    got = [[int(_count_of(counts, 64 * i + k, levels)) for k in range(64)] for i in range(3)]
+    got = [[int(_count_of(counts[:, i], k, levels)) for k in range(64)] for i in range(3)]
     assert got == expected
 
 
