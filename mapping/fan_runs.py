@@ -45,12 +45,17 @@ FAN_MARGIN = 1e-6
 #: next beam joins, the rows of it the fans mark (its ``skip``), what the walk's bound says of it (REACH of
 #: mapping.samples_pass: a shard's fans join only rays that cross its own tiles alone); then :func:`fan_hulls`'s
 #: bookkeeping: the next link joining as far, a run of joined links' first link (kept at its last) and last link
-#: (kept at its first), and the fans (their first links) with each one's place in that list
+#: (kept at its first), and the fans (their first links) with each one's place in that list; then the ray's start
+#: for the walk (mapping.samples_pass keeps it, so that a ray is started once): whether it started inside the window,
+#: its cell and steps (mapping.window_walk.Ray)
 KEY, IU, IV, LINES, LINK, SKIP, REACH, NEXT, RUN_LEFT, RUN_RIGHT, FANS, FAN_AT = range(12)
-FAN_INTS = 12
-#: rows of its float64 records: edge0, edge_step, tol (grid units; mapping.free_runs.run_lines)
+STARTED, RAY_IX, RAY_IY, RAY_STEP_X, RAY_STEP_Y = range(12, 17)
+FAN_INTS = 17
+#: rows of its float64 records: edge0, edge_step, tol (grid units; mapping.free_runs.run_lines); then the ray's start:
+#: its traversal's ranges (m), corner tolerance (m) and unit direction (dx, dy)
 EDGE0, EDGE_STEP, TOL = range(3)
-FAN_FLOATS = 3
+RAY_T_MAX_X, RAY_T_MAX_Y, RAY_T_DELTA_X, RAY_T_DELTA_Y, RAY_TOL, RAY_DX, RAY_DY = range(3, 10)
+FAN_FLOATS = 10
 
 
 def fan_scratch(beams: int) -> tuple[np.ndarray, np.ndarray]:

@@ -31,7 +31,31 @@ import numpy as np
 from numba.cpython.unsafe.numbers import trailing_zeros  # LLVM's cttz: the set bits of a word, one by one
 
 from mapping.beam_model import BeamTable, LogOddsModel, beam_at, segment_logodds
-from mapping.fan_runs import EDGE0, EDGE_STEP, IU, IV, KEY, LINES, REACH, SKIP, TOL, fan_hulls, fan_key
+from mapping.fan_runs import (
+    EDGE0,
+    EDGE_STEP,
+    IU,
+    IV,
+    KEY,
+    LINES,
+    RAY_DX,
+    RAY_DY,
+    RAY_IX,
+    RAY_IY,
+    RAY_STEP_X,
+    RAY_STEP_Y,
+    RAY_T_DELTA_X,
+    RAY_T_DELTA_Y,
+    RAY_T_MAX_X,
+    RAY_T_MAX_Y,
+    RAY_TOL,
+    REACH,
+    SKIP,
+    STARTED,
+    TOL,
+    fan_hulls,
+    fan_key,
+)
 from mapping.free_runs import fold_block, fold_columns, mark_free_runs, run_lines, set_bit
 from mapping.jit import kernel
 from mapping.raytrace import dda_step
@@ -300,12 +324,40 @@ def owned_reach(laser, heading, directions, k, stop, inv_res, tiles, owned_sum):
     return REACH_SOME
 
 
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _keep_ray(ints, floats, k, inside, ray, dx, dy):  # pragma: no cover - compiled
+    """Keep ray k's start (:func:`mapping.window_walk.beam_ray`'s inside, ray, dx, dy) in the fan scratch's records."""
+    ints[STARTED, k] = inside
+    ints[RAY_IX, k], ints[RAY_IY, k], ints[RAY_STEP_X, k], ints[RAY_STEP_Y, k] = ray.ix, ray.iy, ray.step_x, ray.step_y
+    floats[RAY_T_MAX_X, k], floats[RAY_T_MAX_Y, k] = ray.t_max_x, ray.t_max_y
+    floats[RAY_T_DELTA_X, k], floats[RAY_T_DELTA_Y, k] = ray.t_delta_x, ray.t_delta_y
+    floats[RAY_TOL, k], floats[RAY_DX, k], floats[RAY_DY, k] = ray.tol, dx, dy
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _kept_ray(ints, floats, k):  # pragma: no cover - compiled
+    """Ray k's start as :func:`_keep_ray` kept it: (inside, ray, dx, dy)."""
+    ray = Ray(
+        ints[RAY_IX, k],
+        ints[RAY_IY, k],
+        ints[RAY_STEP_X, k],
+        ints[RAY_STEP_Y, k],
+        floats[RAY_T_MAX_X, k],
+        floats[RAY_T_MAX_Y, k],
+        floats[RAY_T_DELTA_X, k],
+        floats[RAY_T_DELTA_Y, k],
+        floats[RAY_TOL, k],
+    )
+    return ints[STARTED, k] != 0, ray, floats[RAY_DX, k], floats[RAY_DY, k]
+
+
 @kernel(nogil=True, error_model="numpy", refcounted=False)
 def _fan_lines(laser, heading, directions, beams, res, window, tiles, owned_sum, scratch):  # pragma: no cover
     """Record, for :func:`mapping.fan_runs.fan_hulls`, where each ray of one sample (laser pose (x m, y m, yaw rad),
     heading (cos yaw, sin yaw)) crosses the lines of the plane its free runs go into, as
     :func:`mapping.free_runs.mark_free_runs` will mark them (:func:`_free_runs`), and what :func:`owned_reach` says
-    of it (REACH_ALL where the shard owns every tile of the window); key 0 for a ray with no runs, or one that may
+    of it (REACH_ALL where the shard owns every tile of the window), and keep each ray's start for the walk
+    (:func:`_keep_ray`: a ray is started once); key 0 for a ray with no runs, or one that may
     cross another shard's tiles (a fan's run lies in its rays' runs, so a fan of rays in the shard's own tiles marks
     only cells of its own)."""
     ints, floats = scratch.fan_ints, scratch.fan_floats
@@ -317,10 +369,11 @@ def _fan_lines(laser, heading, directions, beams, res, window, tiles, owned_sum,
         if not tiles.all_owned:
             reach = owned_reach(laser, heading, directions, k, beam.r_stop, inv_res, tiles, owned_sum)
         ints[REACH, k] = reach
-        if reach != REACH_ALL:
+        if reach == REACH_NONE:
             continue
         inside, ray, dx, dy = beam_ray(laser, heading, directions, beam, k, res, window)
-        if not inside:
+        _keep_ray(ints, floats, k, inside, ray, dx, dy)
+        if not inside or reach != REACH_ALL:
             continue
         runs_end, first = _runs_start(ray, min(beam.free_until, beam.r_stop - ray.tol))
         if runs_end <= 0.0:
@@ -369,7 +422,7 @@ def _walk_sample(laser, sid, w, directions, beams, model, res, window, tiles, ow
         if reach == REACH_NONE:
             continue  # a ray that crosses none of the shard's tiles
         beam = beam_at(beams, k)
-        inside, ray, dx, dy = beam_ray(laser, heading, directions, beam, k, res, window)
+        inside, ray, dx, dy = _kept_ray(scratch.fan_ints, scratch.fan_floats, k)  # (started by _fan_lines)
         if not inside:
             continue  # a skipped beam
         free_limit = min(beam.free_until, beam.r_stop - ray.tol)
