@@ -88,7 +88,7 @@ class FusionScratch:
         self.columns = np.zeros(0, np.uint64)
         self.lines = np.zeros((2, 0), np.int64)  # a ray's exit and entry cells per grid line (mapping.free_runs)
         self.block = np.zeros(64, np.uint64)  # 64 x 64 bits being folded from the column-major plane
-        self.plane = self.listed = np.zeros(0, np.uint64)
+        self.plane = self.pair_plane = self.listed = np.zeros(0, np.uint64)
         self.weight_sum = np.zeros(0, np.float64)
         self.excess = np.zeros((0, 4), np.float64)
         self.counts = np.zeros((COUNT_LEVELS, 0), np.uint64)
@@ -112,6 +112,7 @@ class FusionScratch:
         # per cell (see accumulate_scan): a bit in the sample's plane and in the listed plane, the weight sum,
         # the excess record
         self.plane = np.zeros((cells + 63) // 64, np.uint64)
+        self.pair_plane = np.zeros((cells + 63) // 64, np.uint64)
         self.listed = np.zeros((cells + 63) // 64, np.uint64)
         self.weight_sum = np.zeros(cells, np.float64)
         self.excess = np.zeros((cells, 4), np.float64)
@@ -391,6 +392,7 @@ class MonteCarloFusion:
             _equal_weight_sums(ready.weights),
             scratch.fan_ints,
             scratch.fan_floats,
+            scratch.pair_plane,
         )
         window_args, tile_args = (window.ix0, window.iy0, win_w, window.h), tuple(tiles)
         accumulate_scan(

@@ -9,15 +9,16 @@ touch cell i, and with W_i = sum of their weights, D1_i = sum_j w_j d_ij, D2_i =
 
 A sample's touched cells are marked in a plane of one bit per window cell (idempotent, so a cell crossed by
 several of the sample's beams is marked once; most of a beam's free stretch is marked as runs per grid row or column,
-:mod:`mapping.free_runs`), and after the sample's beams the plane's set bits add its weight to W_i. The few
-cells with an excess keep a per-sample record (the largest excess of the sample's beams, by stamp) for D1 and
-D2. A second bit plane marks the cells listed in this scan. The rays are walked by
-:func:`mapping.window_walk.walk_ray`, with this pass's visitors (:func:`_mark_free`, :func:`_mark_near`).
+:mod:`mapping.free_runs`), and the set bits add the sample's weight to W_i (two samples' planes swept together:
+each sample of a pair marks a plane of its own). The few cells with an excess keep a per-sample record (the largest
+excess of the sample's beams, by stamp) for D1 and D2. A third bit plane marks the cells listed in this scan. The
+rays are walked by :func:`mapping.window_walk.walk_ray`, with this pass's visitors (:func:`_mark_free`,
+:func:`_mark_near`).
 
 **Equal weights are counted, not summed.** When every sample has the same weight w (particles after resampling,
 Gaussian draws), W_i depends only on how many samples touched cell i: it is the sum w + w + ... taken that many
-times, in sample order. The sweep then adds each plane word into a bit-sliced counter of its 64 cells (a ripple
-carry over COUNT_LEVELS words, which stops at the first level the carry clears: two levels per word on average)
+times, in sample order. The sweep then adds a pair's plane words into a bit-sliced counter of its 64 cells (a ripple
+carry over COUNT_LEVELS words, which stops at the first level the carry clears: about two levels per word)
 instead of adding w once per set bit, and the apply reads W from the table of those sums (``sums[n]``, summed in
 the same order: the same float64 bit for bit). Other weights take the per-bit sums.
 """
@@ -93,7 +94,8 @@ class SamplesScratch(NamedTuple):
     (equal weights only, zero between scans; level after level, so that the sweep's carries, which seldom pass the
     first levels, read and write a few dense rows); sums: the table
     W = sums[n] for n samples of equal weight, empty when the weights differ (then W is summed per cell); fan_ints,
-    fan_floats: the records of a sample's rays for :func:`mapping.fan_runs.fan_hulls` (its ``fan_scratch``).
+    fan_floats: the records of a sample's rays for :func:`mapping.fan_runs.fan_hulls` (its ``fan_scratch``);
+    pair_plane: as plane, the touched cells of the second sample of a pair (:func:`accumulate_scan`).
     """
 
     plane: np.ndarray
@@ -109,6 +111,7 @@ class SamplesScratch(NamedTuple):
     sums: np.ndarray
     fan_ints: np.ndarray
     fan_floats: np.ndarray
+    pair_plane: np.ndarray
 
 
 class _Marks(NamedTuple):
@@ -478,21 +481,63 @@ def accumulate_scan(
     ray's go into the column-major plane) up to just before its end (:func:`_free_runs`), by a shard that does not
     own every tile of the window in its own tiles only, skipping the rays that reach none of them and taking those
     that reach no other tile as a shard owning every tile does (:func:`_walk_sample`).
-    After a sample's beams its column plane is folded into ``plane`` and ``plane`` is swept into the weight sums; by a
-    shard that does not own every tile of the window, only where its tiles lie (:func:`_fold_and_sweep_owned`).
+    After a sample's beams its column plane is folded into its row plane (``plane`` for the first sample of a pair,
+    ``pair_plane`` for the second: :func:`_second_of_pair`), and after each pair (and a last sample alone) both planes
+    are swept into the weight sums, the first sample's weight before the second's (:func:`_sweep_word`): half the
+    sweeps over the window, which are mostly clear words. A shard that does not own every tile of the window folds and
+    sweeps only where its tiles lie (:func:`_fold_owned`, :func:`_sweep_owned`).
     """
     beams, model, window, tiles = BeamTable(*beams), LogOddsModel(*model), Window(*window), Tiles(*tiles)
     scratch = SamplesScratch(*scratch)
-    for j in range(lasers.shape[0]):
-        w = weights[j]
+    second = _second_of_pair(scratch)
+    m = lasers.shape[0]
+    for j in range(m):
+        marks = scratch if j % 2 == 0 else second  # (the pair's second sample marks pair_plane)
         _walk_sample(
-            lasers[j], float(stamp_base + j), w, directions, beams, model, res, window, tiles, owned_sum, scratch
+            lasers[j],
+            float(stamp_base + j),
+            weights[j],
+            directions,
+            beams,
+            model,
+            res,
+            window,
+            tiles,
+            owned_sum,
+            marks,
         )
         if tiles.all_owned:
-            fold_columns(scratch.columns, scratch.col_stride, scratch.plane, window.w, window.h, scratch.block)
-            _sweep_plane(scratch, w, window, tiles)
+            fold_columns(marks.columns, marks.col_stride, marks.plane, window.w, window.h, marks.block)
         else:
-            _fold_and_sweep_owned(scratch, w, window, tiles, owned_sum)
+            _fold_owned(marks, window, tiles, owned_sum)
+        if j % 2 == 0 and j + 1 < m:
+            continue  # (swept with the next sample)
+        w_first, w_second = (weights[j - 1], weights[j]) if j % 2 == 1 else (weights[j], 0.0)
+        if tiles.all_owned:
+            _sweep_planes(scratch, w_first, w_second, window, tiles)
+        else:
+            _sweep_owned(scratch, w_first, w_second, window, tiles, owned_sum)
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _second_of_pair(scratch):  # pragma: no cover - compiled
+    """The scratch a pair's second sample walks into: ``scratch`` with plane and pair_plane swapped."""
+    return SamplesScratch(
+        scratch.pair_plane,
+        scratch.columns,
+        scratch.col_stride,
+        scratch.listed,
+        scratch.weight_sum,
+        scratch.excess,
+        scratch.tile_touched,
+        scratch.lines,
+        scratch.block,
+        scratch.counts,
+        scratch.sums,
+        scratch.fan_ints,
+        scratch.fan_floats,
+        scratch.plane,
+    )
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
@@ -520,33 +565,40 @@ def _touch_tiles(scratch, i, new, window, tiles):  # pragma: no cover - compiled
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def _sweep_word(scratch, i, w, window, tiles, counted):  # pragma: no cover - compiled
-    """Add one sample's weight w to the weight sum of every cell word i of its plane marks (``counted``, equal
-    weights: one to their counts, :func:`_count_word`), and clear the word. A cell new to this scan (its bit clear
-    in ``listed``) gets its bit in ``listed`` and its tile marked in tile_touched."""
-    bits = scratch.plane[i]
+def _sweep_word(scratch, i, w_first, w_second, window, tiles, counted):  # pragma: no cover - compiled
+    """Add a pair of samples' weights to the weight sum of every cell word i of their planes marks (plane: the first
+    sample's, weight w_first; pair_plane: the second's, clear when there is none), the first's before the second's
+    (``counted``, equal weights: one or two to their counts, :func:`_count_pair`), and clear the words. A cell new to
+    this scan (its bit clear in ``listed``) gets its bit in ``listed`` and its tile marked in tile_touched."""
+    first = scratch.plane[i]
+    second = scratch.pair_plane[i]
+    bits = first | second
     if bits == 0:
         return
     scratch.plane[i] = 0
+    scratch.pair_plane[i] = 0
     new = bits & ~scratch.listed[i]
     if new != 0:
         scratch.listed[i] |= new
         _touch_tiles(scratch, i, new, window, tiles)
     if counted:
-        _count_word(scratch.counts, i, bits)
+        _count_pair(scratch.counts, i, first, second)
         return
     base = i << 6
-    while bits != 0:
-        scratch.weight_sum[base + trailing_zeros(bits)] += w
-        bits &= bits - np.uint64(1)
+    while first != 0:
+        scratch.weight_sum[base + trailing_zeros(first)] += w_first
+        first &= first - np.uint64(1)
+    while second != 0:
+        scratch.weight_sum[base + trailing_zeros(second)] += w_second
+        second &= second - np.uint64(1)
 
 
 @kernel(nogil=True, error_model="numpy", refcounted=False)
-def _sweep_plane(scratch, w, window, tiles):  # pragma: no cover - compiled
-    """:func:`_sweep_word` over the whole plane, word after word."""
+def _sweep_planes(scratch, w_first, w_second, window, tiles):  # pragma: no cover - compiled
+    """:func:`_sweep_word` over a pair's whole planes, word after word."""
     counted = scratch.sums.shape[0] > 0
     for i in range((window.w * window.h + 63) >> 6):
-        _sweep_word(scratch, i, w, window, tiles, counted)
+        _sweep_word(scratch, i, w_first, w_second, window, tiles, counted)
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
@@ -563,28 +615,53 @@ def _block_owned(b, k, window, tiles, owned_sum):  # pragma: no cover - compiled
 
 
 @kernel(nogil=True, error_model="numpy", refcounted=False)
-def _fold_and_sweep_owned(scratch, w, window, tiles, owned_sum):  # pragma: no cover - compiled
-    """For a shard that does not own every tile of the window: fold (:func:`mapping.free_runs.fold_block`) and sweep
-    (:func:`_sweep_word`) only the 64 x 64 blocks that meet its tiles, block after block, the rest of its planes
-    being clear (its walk marks its own tiles' cells only)."""
-    counted = scratch.sums.shape[0] > 0
+def _fold_owned(scratch, window, tiles, owned_sum):  # pragma: no cover - compiled
+    """For a shard that does not own every tile of the window: fold (:func:`mapping.free_runs.fold_block`) only the
+    64 x 64 blocks that meet its tiles, the rest of its column plane being clear (its walk marks its own tiles'
+    cells only)."""
     row_words = window.w >> 6
     words_per_col = scratch.col_stride >> 6
     for k in range(words_per_col):  # rows 64 k .. 64 k + 63
         for b in range(row_words):  # columns 64 b .. 64 b + 63
-            if not _block_owned(b, k, window, tiles, owned_sum):
-                continue
-            fold_block(scratch.columns, words_per_col, scratch.plane, row_words, window.h, scratch.block, b, k)
-            for row in range(64 * k, min(64 * k + 64, window.h)):
-                _sweep_word(scratch, row * row_words + b, w, window, tiles, counted)
+            if _block_owned(b, k, window, tiles, owned_sum):
+                fold_block(scratch.columns, words_per_col, scratch.plane, row_words, window.h, scratch.block, b, k)
+
+
+@kernel(nogil=True, error_model="numpy", refcounted=False)
+def _sweep_owned(scratch, w_first, w_second, window, tiles, owned_sum):  # pragma: no cover - compiled
+    """For a shard that does not own every tile of the window: sweep (:func:`_sweep_word`) a pair's planes in the 64
+    x 64 blocks that meet its tiles only, block after block."""
+    counted = scratch.sums.shape[0] > 0
+    row_words = window.w >> 6
+    for k in range(scratch.col_stride >> 6):  # rows 64 k .. 64 k + 63
+        for b in range(row_words):  # columns 64 b .. 64 b + 63
+            if _block_owned(b, k, window, tiles, owned_sum):
+                for row in range(64 * k, min(64 * k + 64, window.h)):
+                    _sweep_word(scratch, row * row_words + b, w_first, w_second, window, tiles, counted)
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
 def _count_word(counts, i, bits):  # pragma: no cover - compiled
     """Add one to the bit-sliced counts of the cells of word i whose bit is set: a ripple carry up the levels, which
     ends where the carry clears (COUNT_LEVELS bounds it: no cell is counted more than 2**COUNT_LEVELS - 1 times)."""
-    carry = bits
-    for level in range(COUNT_LEVELS):
+    _carry_from(counts, i, bits, 0)
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _count_pair(counts, i, first, second):  # pragma: no cover - compiled
+    """Add to the bit-sliced counts of the cells of word i the number of the words first and second with its bit
+    set (0, 1 or 2): first ^ second at level 0, then one carry from level 1 up (the carry of level 0 and first &
+    second share no bit, so their sum there is their or)."""
+    low = first ^ second
+    held = counts[0, i]
+    counts[0, i] = held ^ low
+    _carry_from(counts, i, (held & low) | (first & second), 1)
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _carry_from(counts, i, carry, start):  # pragma: no cover - compiled
+    """Add the bits of ``carry`` to the bit-sliced counts of word i at level ``start``, rippling up."""
+    for level in range(start, COUNT_LEVELS):
         held = counts[level, i]
         counts[level, i] = held ^ carry
         carry &= held

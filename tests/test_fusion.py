@@ -48,6 +48,7 @@ def whole_and_joined(tile_size, fusion_args, scans, shards, shard_of):
             scratch = fusion._scratch
             assert not (
                 scratch.plane.any()
+                or scratch.pair_plane.any()
                 or scratch.columns.any()
                 or scratch.listed.any()
                 or scratch.weight_sum.any()
