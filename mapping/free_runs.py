@@ -153,6 +153,17 @@ def _mark_runs(plane, stride, win_u0, win_v0, line, cell, r_end, res, tol, lines
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
+def plane_coordinates(line, cell):  # pragma: no cover - compiled
+    """(steep, line, cell) of a ray, line = (x0, y0, dx, dy) from its first cell (ix, iy), in the coordinates (u, v)
+    of the plane its runs go into: a shallow ray (|dx| >= |dy|) the row-major plane's, as it is; a steep one the
+    column-major plane's, x and y swapped."""
+    x0, y0, dx, dy = line
+    if abs(dx) >= abs(dy):
+        return False, line, cell
+    return True, (y0, x0, dy, dx), (cell[1], cell[0])
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
 def mark_free_runs(rows, columns, col_stride, window, line, cell, r_end, res, tol, lines, skip=0):  # pragma: no cover
     """Mark the cells the ray from (x0, y0) (m, map frame) along the unit direction (dx, dy), line = (x0, y0, dx,
     dy), crosses before r_end (m): the cells :func:`mapping.raytrace.trace_ray` visits with r_in < r_end, give or
@@ -167,11 +178,11 @@ def mark_free_runs(rows, columns, col_stride, window, line, cell, r_end, res, to
     for n = max(w, window height) values. The ray's rows (columns, for a steep ray) 1 .. skip are left out: marked by
     :mod:`mapping.fan_runs` with its neighbours'.
     """
-    x0, y0, dx, dy = line
-    if abs(dx) >= abs(dy):
-        return _mark_runs(rows, window.w, window.ix0, window.iy0, line, cell, r_end, res, tol, lines, skip)
+    steep, line_uv, cell_uv = plane_coordinates(line, cell)
+    if not steep:
+        return _mark_runs(rows, window.w, window.ix0, window.iy0, line_uv, cell_uv, r_end, res, tol, lines, skip)
     last_iy, last_ix = _mark_runs(
-        columns, col_stride, window.iy0, window.ix0, (y0, x0, dy, dx), (cell[1], cell[0]), r_end, res, tol, lines, skip
+        columns, col_stride, window.iy0, window.ix0, line_uv, cell_uv, r_end, res, tol, lines, skip
     )
     return last_ix, last_iy
 

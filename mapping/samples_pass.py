@@ -57,11 +57,10 @@ from mapping.fan_runs import (
     fan_hulls,
     fan_key,
 )
-from mapping.free_runs import fold_block, fold_columns, mark_free_runs, run_lines, set_bit
+from mapping.free_runs import fold_block, fold_columns, mark_free_runs, plane_coordinates, run_lines, set_bit
 from mapping.jit import kernel
 from mapping.raytrace import dda_step
 from mapping.window_walk import (
-    JUMP_MARGIN,
     Ray,
     Tiles,
     Window,
@@ -69,6 +68,7 @@ from mapping.window_walk import (
     beam_ray,
     index_ray,
     jump_over_tile,
+    just_before,
     ownership_constants,
     tile_exit,
     walk_ray,
@@ -187,7 +187,7 @@ def _runs_start(ray, free_limit):  # pragma: no cover - compiled
     first_ix, first_iy = ix, iy
     if min(t_max_x, t_max_y) <= 0.0:  # the ray starts on its cell's edge and leaves it at once
         first_ix, first_iy, _, _ = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol)
-    return free_limit - JUMP_MARGIN * (1.0 + free_limit), (first_ix, first_iy)
+    return just_before(free_limit), (first_ix, first_iy)
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
@@ -228,7 +228,7 @@ def _owned_free_runs(x0, y0, dx, dy, ray, free_limit, res, window, tiles, scratc
     near the return get the same values as in the whole window's walk), and tile_end the range (m) at which the ray
     leaves that tile; else the ray in the first cell of the tile the free phase ends in, r_in the range it enters
     it at (the walk jumps over that tile) and tile_end 0."""
-    runs_end = free_limit - JUMP_MARGIN * (1.0 + free_limit)
+    runs_end = just_before(free_limit)
     if runs_end <= 0.0:
         return ray, 0.0, 0.0
     ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol = ray
@@ -267,7 +267,7 @@ def _close_stretch(line, stretch, last, r_next, res, tol, window, scratch):  # p
     cell of the stretch), line = (x0, y0, dx, dy) as for :func:`mark_free_runs`, the next tile entered at the range
     r_next (m): runs to just before r_next, and ``last`` itself (the runs stop short of a last cell shorter than
     their margin)."""
-    _scratch_runs(scratch, window, line, stretch, r_next - JUMP_MARGIN * (1.0 + r_next), res, tol, 0)
+    _scratch_runs(scratch, window, line, stretch, just_before(r_next), res, tol, 0)
     set_bit(scratch.plane, (last[1] - window.iy0) * window.w + last[0] - window.ix0)
 
 
@@ -360,9 +360,9 @@ def _fan_lines(laser, heading, directions, beams, res, window, tiles, owned_sum,
     heading (cos yaw, sin yaw)) crosses the lines of the plane its free runs go into, as
     :func:`mapping.free_runs.mark_free_runs` will mark them (:func:`_free_runs`), and what :func:`owned_reach` says
     of it (REACH_ALL where the shard owns every tile of the window), and keep each ray's start for the walk
-    (:func:`_keep_ray`: a ray is started once); key 0 for a ray with no runs, or one that may
-    cross another shard's tiles (a fan's run lies in its rays' runs, so a fan of rays in the shard's own tiles marks
-    only cells of its own)."""
+    (:func:`_keep_ray`: a ray is started once); key 0 for a ray with no runs, or one that may cross another shard's
+    tiles (a fan's run lies in its rays' runs, so a fan of rays in the shard's own tiles marks only cells of its
+    own)."""
     ints, floats = scratch.fan_ints, scratch.fan_floats
     inv_res = 1.0 / res
     for k in range(beams.kind.shape[0]):
@@ -381,11 +381,7 @@ def _fan_lines(laser, heading, directions, beams, res, window, tiles, owned_sum,
         runs_end, first = _runs_start(ray, min(beam.free_until, beam.r_stop - ray.tol))
         if runs_end <= 0.0:
             continue
-        steep = abs(dx) < abs(dy)
-        if steep:
-            line, cell = (laser[1], laser[0], dy, dx), (first[1], first[0])
-        else:
-            line, cell = (laser[0], laser[1], dx, dy), first
+        steep, line, cell = plane_coordinates((laser[0], laser[1], dx, dy), first)
         _, tol_u, n_lines, edge0, edge_step = run_lines(line, cell, runs_end, res, ray.tol)
         ints[KEY, k] = fan_key(steep, line[2], line[3])
         ints[IU, k], ints[IV, k], ints[LINES, k] = cell[0], cell[1], n_lines

@@ -74,6 +74,13 @@ JUMP_MARGIN = 1e-9
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
+def just_before(r):  # pragma: no cover - compiled
+    """The range (m) JUMP_MARGIN (relative) short of r: where a jump over a tile, or runs that must stop short of a
+    range, end."""
+    return r - JUMP_MARGIN * (1.0 + r)
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
 def _axis_exit(i, step, t_max, t_delta, tile_shift):  # pragma: no cover - compiled
     """Along one axis: the range at which a ray in cell index i, stepping by ``step`` (-1, 0, 1), crosses the
     last grid line of i's tile (tiles of 2**tile_shift cells); FAR when it does not move along the axis."""
@@ -101,7 +108,7 @@ def jump_over_tile(
     shards); the normal steps then cross into the next tile exactly. Returns (ix, iy, t_max_x, t_max_y,
     r_in, t_exit) with t_exit the range (m) at which the ray leaves the tile."""
     t_exit = tile_exit(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tile_shift)
-    t_jump = t_exit - JUMP_MARGIN * (1.0 + t_exit)
+    t_jump = just_before(t_exit)
     if t_jump > r_in:
         if t_max_x <= t_jump:
             crossings = int((t_jump - t_max_x) / t_delta_x) + 1
