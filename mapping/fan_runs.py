@@ -47,10 +47,12 @@ FAN_MARGIN = 1e-6
 #: bookkeeping: the next link joining as far, a run of joined links' first link (kept at its last) and last link
 #: (kept at its first), and the fans (their first links) with each one's place in that list; then the ray's start
 #: for the walk (mapping.samples_pass keeps it, so that a ray is started once): whether it started inside the window,
-#: its cell and steps (mapping.window_walk.Ray)
+#: its cell and steps (mapping.window_walk.Ray); and what the walk's bound says of the beam's rays under every sample
+#: of the scan at once (mapping.samples_pass.scan_reach)
 KEY, IU, IV, LINES, LINK, SKIP, REACH, NEXT, RUN_LEFT, RUN_RIGHT, FANS, FAN_AT = range(12)
 STARTED, RAY_IX, RAY_IY, RAY_STEP_X, RAY_STEP_Y = range(12, 17)
-FAN_INTS = 17
+SCAN_REACH = 17
+FAN_INTS = 18
 #: rows of its float64 records: edge0, edge_step, tol (grid units; mapping.free_runs.run_lines); then the ray's start:
 #: its traversal's ranges (m), corner tolerance (m) and unit direction (dx, dy)
 EDGE0, EDGE_STEP, TOL = range(3)

@@ -51,6 +51,7 @@ from mapping.fan_runs import (
     RAY_T_MAX_Y,
     RAY_TOL,
     REACH,
+    SCAN_REACH,
     SKIP,
     STARTED,
     TOL,
@@ -327,6 +328,71 @@ def owned_reach(laser, heading, directions, k, stop, inv_res, tiles, owned_sum):
     return REACH_SOME
 
 
+#: cells by which :func:`scan_reach` widens a beam's box beyond :func:`owned_reach`'s widening, for its own rounding:
+#: a bound of the directions from the cosines and sines of the yaws' ends rather than each sample's products
+SCAN_BOX_SLACK = 1e-6
+#: the widest spread of the samples' yaws (rad) over which :func:`scan_reach` bounds a beam's rays at once
+SCAN_YAW_SPREAD = 0.5 * math.pi
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _cos_range(lo, hi):  # pragma: no cover - compiled
+    """(min, max) of cos over the angles lo .. hi (rad, hi - lo < 2 pi), widened by a rounding's allowance."""
+    c_lo, c_hi = min(math.cos(lo), math.cos(hi)), max(math.cos(lo), math.cos(hi))
+    width = hi - lo
+    if (0.0 - lo) % (2.0 * math.pi) <= width:  # (an angle 0 mod 2 pi inside)
+        c_hi = 1.0
+    if (math.pi - lo) % (2.0 * math.pi) <= width:
+        c_lo = -1.0
+    return c_lo - 1e-9, c_hi + 1e-9
+
+
+@kernel(nogil=True, error_model="numpy")
+def scan_reach(lasers, directions, beams, inv_res, tiles, owned_sum, out):  # pragma: no cover - compiled
+    """What :func:`owned_reach` says of beam k's rays under every laser pose of the scan at once, into out[k]: the
+    box that holds every pose's ray box (the poses' positions, and their ends along any heading between the smallest
+    and the largest yaw, each ``beams.r_stop[k]`` m on, widened as owned_reach widens a ray's and by SCAN_BOX_SLACK
+    more). REACH_NONE or REACH_ALL for that box hold for each ray in it (a ray's box lies inside: none of its tiles
+    owned, or all of them); REACH_SOME says to ask per ray. Every beam REACH_SOME when the yaws spread wider than
+    SCAN_YAW_SPREAD. lasers (M, 3): (x m, y m, yaw rad); directions: the beams' (cosines, sines) in the laser frame;
+    inv_res: 1 / the cell size (1/m)."""
+    m = lasers.shape[0]
+    x_lo, x_hi = lasers[0, 0], lasers[0, 0]
+    y_lo, y_hi = lasers[0, 1], lasers[0, 1]
+    turn_lo = turn_hi = 0.0  # the yaws' spread about the first one (rad)
+    for j in range(m):
+        x_lo, x_hi = min(x_lo, lasers[j, 0]), max(x_hi, lasers[j, 0])
+        y_lo, y_hi = min(y_lo, lasers[j, 1]), max(y_hi, lasers[j, 1])
+        turn = (lasers[j, 2] - lasers[0, 2] + math.pi) % (2.0 * math.pi) - math.pi
+        turn_lo, turn_hi = min(turn_lo, turn), max(turn_hi, turn)
+    nty, ntx = tiles.owned.shape
+    shift = tiles.shift
+    margin = 1.0 + BOX_ROUNDING + SCAN_BOX_SLACK
+    for k in range(beams.kind.shape[0]):
+        out[k] = REACH_SOME
+        if turn_hi - turn_lo > SCAN_YAW_SPREAD:
+            continue
+        angle = lasers[0, 2] + math.atan2(directions[1][k], directions[0][k])
+        c_lo, c_hi = _cos_range(angle + turn_lo, angle + turn_hi)
+        s_lo, s_hi = _cos_range(angle + turn_lo - 0.5 * math.pi, angle + turn_hi - 0.5 * math.pi)  # (sin = cos - pi/2)
+        stop = beams.r_stop[k]
+        box_x_lo = min(x_lo, x_lo + stop * c_lo) * inv_res
+        box_x_hi = max(x_hi, x_hi + stop * c_hi) * inv_res
+        box_y_lo = min(y_lo, y_lo + stop * s_lo) * inv_res
+        box_y_hi = max(y_hi, y_hi + stop * s_hi) * inv_res
+        tx_lo = (math.floor(box_x_lo - margin) >> shift) - tiles.tx0
+        tx_hi = (math.floor(box_x_hi + margin) >> shift) - tiles.tx0
+        ty_lo = (math.floor(box_y_lo - margin) >> shift) - tiles.ty0
+        ty_hi = (math.floor(box_y_hi + margin) >> shift) - tiles.ty0
+        i0, i1 = max(tx_lo, 0), min(tx_hi, ntx - 1) + 1
+        j0, j1 = max(ty_lo, 0), min(ty_hi, nty - 1) + 1
+        owned = _owned_in(owned_sum, i0, i1, j0, j1) if i0 < i1 and j0 < j1 else 0
+        if owned == 0:
+            out[k] = REACH_NONE
+        elif owned == (tx_hi - tx_lo + 1) * (ty_hi - ty_lo + 1):
+            out[k] = REACH_ALL
+
+
 @kernel(nogil=True, error_model="numpy", inline="always")
 def _keep_ray(ints, floats, k, inside, ray, dx, dy):  # pragma: no cover - compiled
     """Keep ray k's start (:func:`mapping.window_walk.beam_ray`'s inside, ray, dx, dy) in the fan scratch's records."""
@@ -358,8 +424,9 @@ def _kept_ray(ints, floats, k):  # pragma: no cover - compiled
 def _fan_lines(laser, heading, directions, beams, res, window, tiles, owned_sum, scratch):  # pragma: no cover
     """Record, for :func:`mapping.fan_runs.fan_hulls`, where each ray of one sample (laser pose (x m, y m, yaw rad),
     heading (cos yaw, sin yaw)) crosses the lines of the plane its free runs go into, as
-    :func:`mapping.free_runs.mark_free_runs` will mark them (:func:`_free_runs`), and what :func:`owned_reach` says
-    of it (REACH_ALL where the shard owns every tile of the window), and keep each ray's start for the walk
+    :func:`mapping.free_runs.mark_free_runs` will mark them (:func:`_free_runs`), and what the bound says of it
+    (REACH_ALL where the shard owns every tile of the window; else the beam's under every sample, :func:`scan_reach`,
+    and where that leaves it open the ray's own, :func:`owned_reach`), and keep each ray's start for the walk
     (:func:`_keep_ray`: a ray is started once); key 0 for a ray with no runs, or one that may cross another shard's
     tiles (a fan's run lies in its rays' runs, so a fan of rays in the shard's own tiles marks only cells of its
     own)."""
@@ -370,7 +437,9 @@ def _fan_lines(laser, heading, directions, beams, res, window, tiles, owned_sum,
         beam = beam_at(beams, k)
         reach = REACH_ALL
         if not tiles.all_owned:
-            reach = owned_reach(laser, heading, directions, k, beam.r_stop, inv_res, tiles, owned_sum)
+            reach = ints[SCAN_REACH, k]  # (scan_reach: the bound of the beam's rays under every sample at once)
+            if reach == REACH_SOME:
+                reach = owned_reach(laser, heading, directions, k, beam.r_stop, inv_res, tiles, owned_sum)
         ints[REACH, k] = reach
         if reach == REACH_NONE:
             continue
@@ -487,6 +556,8 @@ def accumulate_scan(
     scratch = SamplesScratch(*scratch)
     second = _second_of_pair(scratch)
     m = lasers.shape[0]
+    if not tiles.all_owned:
+        scan_reach(lasers, directions, beams, 1.0 / res, tiles, owned_sum, scratch.fan_ints[SCAN_REACH])
     for j in range(m):
         marks = scratch if j % 2 == 0 else second  # (the pair's second sample marks pair_plane)
         _walk_sample(

@@ -1,13 +1,23 @@
 """The bound that sorts a shard's rays before the samples pass walks them (mapping.samples_pass.owned_reach),
 against the cells the slow reference traversal gives each ray: a ray it skips crosses none of the shard's tiles, and
-a ray it walks as the whole window's walk does crosses only the shard's tiles."""
+a ray it walks as the whole window's walk does crosses only the shard's tiles. And the bound of a beam's rays under
+every pose of a scan at once (scan_reach), against owned_reach's answer for each ray."""
 
 import math
 
 import numpy as np
 import pytest
 
-from mapping.samples_pass import REACH_ALL, REACH_NONE, REACH_SOME, owned_reach, owned_table
+from mapping.beam_model import BeamTable
+from mapping.samples_pass import (
+    REACH_ALL,
+    REACH_NONE,
+    REACH_SOME,
+    SCAN_YAW_SPREAD,
+    owned_reach,
+    owned_table,
+    scan_reach,
+)
 from mapping.window_walk import Tiles
 from reference import cells_on_ray
 from worlds import OWNERSHIP_PATTERNS, ownership_pattern
@@ -92,3 +102,73 @@ def test_the_box_takes_the_cell_before_the_start_however_one_over_res_rounds():
     owned = np.zeros((16, 16), bool)
     owned[0 - TY0, 0 - TX0] = True
     assert reach(x0, 0.25, 0.0, 0.02, owned) == REACH_SOME
+
+
+def scan_and_ray_reaches(lasers: np.ndarray, angles: np.ndarray, stops: np.ndarray, owned: np.ndarray):
+    """scan_reach's answer per beam, and owned_reach's per (pose, beam), for laser poses (M, 3) and beams at ``angles``
+    (rad, laser frame) ``stops`` m long, for the shard owning the tiles where ``owned`` is True."""
+    tiles = Tiles(owned, bool(owned.all()), SHIFT, TX0, TY0)
+    table = owned_table(owned)
+    directions = (np.cos(angles), np.sin(angles))
+    zeros = np.zeros(len(angles))
+    beams = BeamTable(np.ones(len(angles), np.int8), zeros, stops, *(zeros,) * 6)  # (kind, z, r_stop, ...)
+    per_beam = np.full(len(angles), -1, np.int64)
+    scan_reach(lasers, directions, beams, 1.0 / RES, tiles, table, per_beam)
+    per_ray = np.array(
+        [
+            [
+                owned_reach(
+                    laser, (math.cos(laser[2]), math.sin(laser[2])), directions, k, stops[k], 1.0 / RES, tiles, table
+                )
+                for k in range(len(angles))
+            ]
+            for laser in lasers
+        ]
+    )
+    return per_beam, per_ray
+
+
+@pytest.mark.parametrize("pattern", OWNERSHIP_PATTERNS)
+def test_a_beam_bound_for_every_pose_at_once_agrees_with_each_ray(pattern):
+    """Where scan_reach answers for a beam (REACH_NONE or REACH_ALL), owned_reach gives each pose's ray of the beam the
+    same answer; and it answers for some beams, not only REACH_SOME. Clouds of poses within 0.3 m and 0.4 rad, some
+    around the yaw of +-pi (the yaws' spread is taken about the first one, across the wrap)."""
+    owned = ownership_pattern(pattern)
+    rng = np.random.default_rng(7)
+    answered = 0
+    for cloud in range(40):
+        centre = rng.uniform(-2.0, 2.0, 2)
+        yaw = math.pi if cloud % 4 == 0 else float(rng.uniform(-math.pi, math.pi))
+        count = int(rng.integers(2, 12))
+        lasers = np.column_stack([centre + rng.uniform(-0.15, 0.15, (count, 2)), yaw + rng.uniform(-0.2, 0.2, count)])
+        lasers[:, 2] = (lasers[:, 2] + math.pi) % (2 * math.pi) - math.pi
+        angles = np.linspace(-2.3, 2.3, 47)
+        stops = rng.uniform(0.01, 3.0, angles.shape[0])
+        per_beam, per_ray = scan_and_ray_reaches(lasers, angles, stops, owned)
+        for k, answer in enumerate(per_beam):
+            if answer != REACH_SOME:
+                answered += 1
+                assert (per_ray[:, k] == answer).all(), (cloud, k, answer, per_ray[:, k])
+    assert answered >= 20, answered  # (23 of 1 880 beams on the checkerboard, 714 on the blocks: not idle)
+
+
+def test_a_beam_bound_takes_the_heading_between_the_yaws_ends():
+    """Poses at yaws -0.3 and +0.3 rad and a beam straight ahead, 1.5 m from (0.05, 0.05) m: the ray at yaw 0 (which
+    neither end's direction gives) reaches cell 15 across, its box cell 16, in tile 2 (cells 16..23); a bound from the
+    ends' directions alone would stop at cell 15 (1.5 cos 0.3 = 1.43 m) and call the beam's rays all in tiles 0 and 1.
+    With yaws spread wider than SCAN_YAW_SPREAD the bound leaves every beam to owned_reach."""
+    owned = np.zeros((16, 16), bool)
+    owned[:, 0 - TX0] = owned[:, 1 - TX0] = True  # tile columns 0 and 1 (x cells 0..15)
+    owned[:, -1 - TX0] = True  # and -1, for the box's cell before the start
+    lasers = np.array([[0.05, 0.05, -0.3], [0.05, 0.05, 0.3], [0.05, 0.05, 0.0]])
+    per_beam, per_ray = scan_and_ray_reaches(lasers, np.array([0.0]), np.array([1.5]), owned)
+    assert per_ray[2, 0] == REACH_SOME and per_beam[0] == REACH_SOME
+    per_beam, per_ray = scan_and_ray_reaches(lasers[:2], np.array([0.0]), np.array([1.5]), owned)
+    assert per_beam[0] == REACH_SOME  # (the poses at the ends only: the heading between them still counts)
+    short = np.array([1.2])  # 1.25 m: cell 12, its box to 13, in tile 1
+    per_beam, per_ray = scan_and_ray_reaches(lasers, np.array([0.0]), short, owned)
+    assert per_beam[0] == REACH_ALL and (per_ray[:, 0] == REACH_ALL).all()
+    spread = lasers.copy()
+    spread[1, 2] = -0.3 + SCAN_YAW_SPREAD + 0.01
+    per_beam, _ = scan_and_ray_reaches(spread, np.array([0.0]), short, owned)
+    assert per_beam[0] == REACH_SOME
