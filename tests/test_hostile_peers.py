@@ -211,6 +211,10 @@ def test_reach_cells_counts_the_union_of_the_widened_sample_tiles():
     assert reach_cells(two_apart, 5.0, 0.05, 256) == 12 * 256 * 256
     far = np.array([[3.0, 3.0, 0.0], [300.0, 3.0, 0.0]])  # disjoint: 9 + 9
     assert reach_cells(far, 5.0, 0.05, 256) == 18 * 256 * 256
+    cloud = np.array([[3.0, 3.0, 0.0], [12.7, 0.1, 1.0], [0.1, 12.7, -1.0]])  # one tile, three samples: 3 x 3 tiles
+    assert reach_cells(cloud, 5.0, 0.05, 256) == 9 * 256 * 256
+    assert reach_cells(cloud, 30.0, 0.05, 256) == 49 * 256 * 256  # 30 m: three tiles a side, 7 x 7
+    assert reach_cells(np.zeros((0, 3)), 5.0, 0.05, 256) == 0
 
 
 def test_a_pose_cloud_spread_over_a_large_area_is_refused_by_the_extent_limit():

@@ -105,10 +105,13 @@ def reach_cells(samples: np.ndarray, range_max: float, resolution: float, tile_s
     by range_max in every direction, counted without double counting (their union), times cells per tile."""
     side = tile_size * resolution
     reach = math.ceil(range_max / side)
-    tiles = np.unique(np.floor(samples[:, :2] / side).astype(np.int64), axis=0)
+    width = 2 * reach + 1
+    tiles = np.floor(samples[:, :2] / side).astype(np.int64)
     if tiles.shape[0] == 0:
         return 0
-    width = 2 * reach + 1
+    if (tiles == tiles[0]).all():  # (a scan's samples mostly share a tile: no sort, a tenth of a ms less a scan)
+        return width * width * tile_size * tile_size
+    tiles = np.unique(tiles, axis=0)
     if tiles.shape[0] * width * width <= 1_000_000:  # exact union of the widened squares
         offsets = np.stack(np.meshgrid(np.arange(-reach, reach + 1), np.arange(-reach, reach + 1)), -1).reshape(-1, 2)
         covered = np.unique((tiles[:, None, :] + offsets[None, :, :]).reshape(-1, 2), axis=0).shape[0]
