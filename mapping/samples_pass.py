@@ -308,19 +308,28 @@ def owned_reach(laser, heading, directions, k, stop, inv_res, tiles, owned_sum):
     directions: as for :func:`mapping.window_walk.beam_ray`; inv_res: 1 / the cell size (1/m).
     """
     dx, dy = beam_direction(heading[0], heading[1], directions[0][k], directions[1][k])
-    shift = tiles.shift
     xa, ya = laser[0] * inv_res, laser[1] * inv_res
     xb, yb = xa + stop * inv_res * dx, ya + stop * inv_res * dy
-    tx_lo = ((math.floor(min(xa, xb) - BOX_ROUNDING) - 1) >> shift) - tiles.tx0
-    tx_hi = ((math.floor(max(xa, xb) + BOX_ROUNDING) + 1) >> shift) - tiles.tx0
-    ty_lo = ((math.floor(min(ya, yb) - BOX_ROUNDING) - 1) >> shift) - tiles.ty0
-    ty_hi = ((math.floor(max(ya, yb) + BOX_ROUNDING) + 1) >> shift) - tiles.ty0
+    return _box_reach((min(xa, xb), max(xa, xb), min(ya, yb), max(ya, yb)), 1.0 + BOX_ROUNDING, tiles, owned_sum)
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _box_reach(box, margin, tiles, owned_sum):  # pragma: no cover - compiled
+    """What the tiles say of a box of cells, box = (x_lo, x_hi, y_lo, y_hi) (cell units: x / res) widened by margin
+    cells on every side: REACH_NONE when the shard owns none of the tiles it meets, REACH_ALL when it owns all of them,
+    else REACH_SOME; counted from ``owned_sum`` (:func:`owned_table`) in four reads."""
+    x_lo, x_hi, y_lo, y_hi = box
+    shift = tiles.shift
+    tx_lo = (math.floor(x_lo - margin) >> shift) - tiles.tx0
+    tx_hi = (math.floor(x_hi + margin) >> shift) - tiles.tx0
+    ty_lo = (math.floor(y_lo - margin) >> shift) - tiles.ty0
+    ty_hi = (math.floor(y_hi + margin) >> shift) - tiles.ty0
     # (the window holds a ray's cells with a cell to spare, ray_start checks; the box is clamped to the window's tiles
     # so that no read falls outside the table, and a box clamped is not all owned)
     nty, ntx = tiles.owned.shape
     i0, i1 = max(tx_lo, 0), min(tx_hi, ntx - 1) + 1
     j0, j1 = max(ty_lo, 0), min(ty_hi, nty - 1) + 1
-    owned = _owned_in(owned_sum, i0, i1, j0, j1)
+    owned = _owned_in(owned_sum, i0, i1, j0, j1) if i0 < i1 and j0 < j1 else 0
     if owned == 0:
         return REACH_NONE
     if owned == (tx_hi - tx_lo + 1) * (ty_hi - ty_lo + 1):
@@ -365,9 +374,7 @@ def scan_reach(lasers, directions, beams, inv_res, tiles, owned_sum, out):  # pr
         y_lo, y_hi = min(y_lo, lasers[j, 1]), max(y_hi, lasers[j, 1])
         turn = (lasers[j, 2] - lasers[0, 2] + math.pi) % (2.0 * math.pi) - math.pi
         turn_lo, turn_hi = min(turn_lo, turn), max(turn_hi, turn)
-    nty, ntx = tiles.owned.shape
-    shift = tiles.shift
-    margin = 1.0 + BOX_ROUNDING + SCAN_BOX_SLACK
+    margin = 1.0 + BOX_ROUNDING + SCAN_BOX_SLACK  # (a cell, as owned_reach widens a ray's box, and the slack)
     for k in range(beams.kind.shape[0]):
         out[k] = REACH_SOME
         if turn_hi - turn_lo > SCAN_YAW_SPREAD:
@@ -376,21 +383,13 @@ def scan_reach(lasers, directions, beams, inv_res, tiles, owned_sum, out):  # pr
         c_lo, c_hi = _cos_range(angle + turn_lo, angle + turn_hi)
         s_lo, s_hi = _cos_range(angle + turn_lo - 0.5 * math.pi, angle + turn_hi - 0.5 * math.pi)  # (sin = cos - pi/2)
         stop = beams.r_stop[k]
-        box_x_lo = min(x_lo, x_lo + stop * c_lo) * inv_res
-        box_x_hi = max(x_hi, x_hi + stop * c_hi) * inv_res
-        box_y_lo = min(y_lo, y_lo + stop * s_lo) * inv_res
-        box_y_hi = max(y_hi, y_hi + stop * s_hi) * inv_res
-        tx_lo = (math.floor(box_x_lo - margin) >> shift) - tiles.tx0
-        tx_hi = (math.floor(box_x_hi + margin) >> shift) - tiles.tx0
-        ty_lo = (math.floor(box_y_lo - margin) >> shift) - tiles.ty0
-        ty_hi = (math.floor(box_y_hi + margin) >> shift) - tiles.ty0
-        i0, i1 = max(tx_lo, 0), min(tx_hi, ntx - 1) + 1
-        j0, j1 = max(ty_lo, 0), min(ty_hi, nty - 1) + 1
-        owned = _owned_in(owned_sum, i0, i1, j0, j1) if i0 < i1 and j0 < j1 else 0
-        if owned == 0:
-            out[k] = REACH_NONE
-        elif owned == (tx_hi - tx_lo + 1) * (ty_hi - ty_lo + 1):
-            out[k] = REACH_ALL
+        box = (
+            min(x_lo, x_lo + stop * c_lo) * inv_res,
+            max(x_hi, x_hi + stop * c_hi) * inv_res,
+            min(y_lo, y_lo + stop * s_lo) * inv_res,
+            max(y_hi, y_hi + stop * s_hi) * inv_res,
+        )
+        out[k] = _box_reach(box, margin, tiles, owned_sum)
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
