@@ -356,6 +356,12 @@ def _cos_range(lo, hi):  # pragma: no cover - compiled
     return c_lo - 1e-9, c_hi + 1e-9
 
 
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _heading_angle(yaw):  # pragma: no cover - compiled
+    """The angle (rad, in (-pi, pi]) of the heading (cos yaw, sin yaw) a ray of that yaw is walked along."""
+    return math.atan2(math.sin(yaw), math.cos(yaw))
+
+
 @kernel(nogil=True, error_model="numpy")
 def scan_reach(lasers, directions, beams, inv_res, tiles, owned_sum, out):  # pragma: no cover - compiled
     """What :func:`owned_reach` says of beam k's rays under every laser pose of the scan at once, into out[k]: the
@@ -364,22 +370,27 @@ def scan_reach(lasers, directions, beams, inv_res, tiles, owned_sum, out):  # pr
     more). REACH_NONE or REACH_ALL for that box hold for each ray in it (a ray's box lies inside: none of its tiles
     owned, or all of them); REACH_SOME says to ask per ray. Every beam REACH_SOME when the yaws spread wider than
     SCAN_YAW_SPREAD. lasers (M, 3): (x m, y m, yaw rad); directions: the beams' (cosines, sines) in the laser frame;
-    inv_res: 1 / the cell size (1/m)."""
+    inv_res: 1 / the cell size (1/m).
+
+    The yaws are taken as the angles of the headings the walk uses (cos yaw, sin yaw), in (-pi, pi]: a yaw of any
+    size (1e7 rad passes the wire's bound) then bounds the rays to the last bits, where yaw + a beam's angle, or the
+    yaws' differences modulo a rounded 2 pi, would lose whole cells far from the origin of angles."""
     m = lasers.shape[0]
     x_lo, x_hi = lasers[0, 0], lasers[0, 0]
     y_lo, y_hi = lasers[0, 1], lasers[0, 1]
+    yaw0 = _heading_angle(lasers[0, 2])
     turn_lo = turn_hi = 0.0  # the yaws' spread about the first one (rad)
     for j in range(m):
         x_lo, x_hi = min(x_lo, lasers[j, 0]), max(x_hi, lasers[j, 0])
         y_lo, y_hi = min(y_lo, lasers[j, 1]), max(y_hi, lasers[j, 1])
-        turn = (lasers[j, 2] - lasers[0, 2] + math.pi) % (2.0 * math.pi) - math.pi
+        turn = (_heading_angle(lasers[j, 2]) - yaw0 + math.pi) % (2.0 * math.pi) - math.pi
         turn_lo, turn_hi = min(turn_lo, turn), max(turn_hi, turn)
     margin = 1.0 + BOX_ROUNDING + SCAN_BOX_SLACK  # (a cell, as owned_reach widens a ray's box, and the slack)
     for k in range(beams.kind.shape[0]):
         out[k] = REACH_SOME
         if turn_hi - turn_lo > SCAN_YAW_SPREAD:
             continue
-        angle = lasers[0, 2] + math.atan2(directions[1][k], directions[0][k])
+        angle = yaw0 + math.atan2(directions[1][k], directions[0][k])
         c_lo, c_hi = _cos_range(angle + turn_lo, angle + turn_hi)
         s_lo, s_hi = _cos_range(angle + turn_lo - 0.5 * math.pi, angle + turn_hi - 0.5 * math.pi)  # (sin = cos - pi/2)
         stop = beams.r_stop[k]
@@ -462,10 +473,10 @@ def _walk_sample(laser, sid, w, directions, beams, model, res, window, tiles, ow
     excess records.
 
     The rows (columns) that fans of neighbouring rays share near the laser are marked first, once a fan and row
-    (:mod:`mapping.fan_runs`; :func:`_fan_lines` records where the rays cross the lines, and sorts them by
-    :func:`owned_reach`: a shard's fans join the rays that cross its own tiles alone), and each ray leaves them out
-    of its own runs. A ray that crosses only tiles the shard owns (every ray, when it owns every tile of the window;
-    :func:`owned_reach`) has its free phase marked as runs, and the walk goes on from their last cell on the window's
+    (:mod:`mapping.fan_runs`; :func:`_fan_lines` records where the rays cross the lines, and sorts them by the bound,
+    :func:`scan_reach` and :func:`owned_reach`: a shard's fans join the rays that cross its own tiles alone), and each
+    ray leaves them out of its own runs. A ray that crosses only tiles the shard owns (every ray, when it owns every
+    tile of the window) has its free phase marked as runs, and the walk goes on from their last cell on the window's
     index (:func:`mapping.window_walk.index_ray`), with no ownership look-ups. A ray that crosses none is skipped. Any
     other has its free phase marked as runs in the shard's own tiles (:func:`_owned_free_runs`); the walk goes on
     as above where the rest of the ray lies in one tile the shard owns, else on the global cells, looking ownership
@@ -707,17 +718,10 @@ def _sweep_owned(scratch, w_first, w_second, window, tiles, owned_sum):  # pragm
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def _count_word(counts, i, bits):  # pragma: no cover - compiled
-    """Add one to the bit-sliced counts of the cells of word i whose bit is set: a ripple carry up the levels, which
-    ends where the carry clears (COUNT_LEVELS bounds it: no cell is counted more than 2**COUNT_LEVELS - 1 times)."""
-    _carry_from(counts, i, bits, 0)
-
-
-@kernel(nogil=True, error_model="numpy", inline="always")
 def _count_pair(counts, i, first, second):  # pragma: no cover - compiled
     """Add to the bit-sliced counts of the cells of word i the number of the words first and second with its bit
     set (0, 1 or 2): first ^ second at level 0, then one carry from level 1 up (the carry of level 0 and first &
-    second share no bit, so their sum there is their or)."""
+    second share no bit, so their sum there is their or). A last sample alone is added with ``second`` clear."""
     low = first ^ second
     held = counts[0, i]
     counts[0, i] = held ^ low
@@ -726,7 +730,9 @@ def _count_pair(counts, i, first, second):  # pragma: no cover - compiled
 
 @kernel(nogil=True, error_model="numpy", inline="always")
 def _carry_from(counts, i, carry, start):  # pragma: no cover - compiled
-    """Add the bits of ``carry`` to the bit-sliced counts of word i at level ``start``, rippling up."""
+    """Add the bits of ``carry`` to the bit-sliced counts of word i at level ``start``: a ripple carry up the levels,
+    which ends where the carry clears (COUNT_LEVELS bounds it: no cell is counted more than 2**COUNT_LEVELS - 1
+    times)."""
     for level in range(start, COUNT_LEVELS):
         held = counts[level, i]
         counts[level, i] = held ^ carry

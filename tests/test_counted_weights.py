@@ -13,7 +13,7 @@ import mapping.fusion as fusion
 from bench.scenarios import honest_posed_scans, office_run
 from mapping.fusion import MonteCarloFusion
 from mapping.grid import TiledGrid
-from mapping.samples_pass import COUNT_LEVELS, _count_of, _count_pair, _count_word
+from mapping.samples_pass import COUNT_LEVELS, _count_of, _count_pair
 from mapping.sensor_model import SensorModel
 from services.fusion_runner import PoseSampling
 from services.state.ownership import owns_tile
@@ -25,12 +25,13 @@ MODEL = SensorModel(resolution=RES)
 @settings(max_examples=100, deadline=None)
 @given(st.lists(st.lists(st.integers(0, 2**64 - 1), min_size=3, max_size=3), min_size=0, max_size=300))
 def test_the_bit_sliced_counts_are_the_number_of_times_each_bit_was_set(planes):
-    """Words added one plane at a time (three words a plane): every cell's count is the number of planes with its bit
-    set, as a plain loop over the bits counts it."""
+    """Words added one plane at a time (three words a plane), each as a last sample alone is swept (its pair's second
+    word clear): every cell's count is the number of planes with its bit set, as a plain loop over the bits counts
+    it."""
     counts = np.zeros((COUNT_LEVELS, 3), np.uint64)
     for plane in planes:
         for i, word in enumerate(plane):
-            _count_word(counts, i, np.uint64(word))
+            _count_pair(counts, i, np.uint64(word), np.uint64(0))
     expected = [[sum((plane[i] >> k) & 1 for plane in planes) for k in range(64)] for i in range(3)]
     levels = max(len(planes).bit_length(), 1)
     got = [[int(_count_of(counts[:, i], k, levels)) for k in range(64)] for i in range(3)]
@@ -47,8 +48,8 @@ def test_a_pair_of_words_adds_the_number_of_them_with_each_bit_set(pairs):
     one_by_one = np.zeros((COUNT_LEVELS, 1), np.uint64)
     for first, second in pairs:
         _count_pair(counts, 0, np.uint64(first), np.uint64(second))
-        _count_word(one_by_one, 0, np.uint64(first))
-        _count_word(one_by_one, 0, np.uint64(second))
+        _count_pair(one_by_one, 0, np.uint64(first), np.uint64(0))
+        _count_pair(one_by_one, 0, np.uint64(second), np.uint64(0))
     expected = [sum(((a >> k) & 1) + ((b >> k) & 1) for a, b in pairs) for k in range(64)]
     levels = max((2 * len(pairs)).bit_length(), 1)
     assert [int(_count_of(counts[:, 0], k, levels)) for k in range(64)] == expected

@@ -132,7 +132,8 @@ def scan_and_ray_reaches(lasers: np.ndarray, angles: np.ndarray, stops: np.ndarr
 def test_a_beam_bound_for_every_pose_at_once_agrees_with_each_ray(pattern):
     """Where scan_reach answers for a beam (REACH_NONE or REACH_ALL), owned_reach gives each pose's ray of the beam the
     same answer; and it answers for some beams, not only REACH_SOME. Clouds of poses within 0.3 m and 0.4 rad, some
-    around the yaw of +-pi (the yaws' spread is taken about the first one, across the wrap)."""
+    around the yaw of +-pi (the yaws' spread is taken about the first one, across the wrap), some at yaws near 1e15
+    rad (finite, so the fusion takes them: their headings, not the yaws' sums, must bound the rays)."""
     owned = ownership_pattern(pattern)
     rng = np.random.default_rng(7)
     answered = 0
@@ -141,7 +142,10 @@ def test_a_beam_bound_for_every_pose_at_once_agrees_with_each_ray(pattern):
         yaw = math.pi if cloud % 4 == 0 else float(rng.uniform(-math.pi, math.pi))
         count = int(rng.integers(2, 12))
         lasers = np.column_stack([centre + rng.uniform(-0.15, 0.15, (count, 2)), yaw + rng.uniform(-0.2, 0.2, count)])
-        lasers[:, 2] = (lasers[:, 2] + math.pi) % (2 * math.pi) - math.pi
+        if cloud % 4 == 1:
+            lasers[:, 2] += 1e15  # (a yaw's last bit is 0.125 rad here)
+        else:
+            lasers[:, 2] = (lasers[:, 2] + math.pi) % (2 * math.pi) - math.pi
         angles = np.linspace(-2.3, 2.3, 47)
         stops = rng.uniform(0.01, 3.0, angles.shape[0])
         per_beam, per_ray = scan_and_ray_reaches(lasers, angles, stops, owned)
@@ -172,3 +176,25 @@ def test_a_beam_bound_takes_the_heading_between_the_yaws_ends():
     spread[1, 2] = -0.3 + SCAN_YAW_SPREAD + 0.01
     per_beam, _ = scan_and_ray_reaches(spread, np.array([0.0]), short, owned)
     assert per_beam[0] == REACH_SOME
+
+
+@pytest.mark.parametrize("big", [1e7, 1e15])
+def test_a_beam_bound_depends_on_the_headings_not_on_how_large_the_yaws_are(big):
+    """The same poses with yaws near ``big`` rad (1e7: the wire's bound; 1e15: a yaw's last bit 0.125 rad) and with
+    yaws that give the same headings in (-pi, pi]: scan_reach answers alike for every beam (the walk goes along the
+    headings, so a bound from yaw + a beam's angle would miss rays by up to half a last bit)."""
+    owned = ownership_pattern("blocks")
+    rng = np.random.default_rng(11)
+    answered = 0
+    angles = np.linspace(-2.3, 2.3, 181)
+    for _ in range(20):
+        centre = rng.uniform(-2.0, 2.0, 2)
+        lasers = np.column_stack([centre + rng.uniform(-0.15, 0.15, (6, 2)), big + rng.uniform(-0.2, 0.2, 6)])
+        headed = lasers.copy()
+        headed[:, 2] = np.arctan2(np.sin(lasers[:, 2]), np.cos(lasers[:, 2]))
+        stops = rng.uniform(0.5, 3.0, angles.shape[0])
+        far, _ = scan_and_ray_reaches(lasers, angles, stops, owned)
+        near, _ = scan_and_ray_reaches(headed, angles, stops, owned)
+        assert np.array_equal(far, near)
+        answered += int((near != REACH_SOME).sum())
+    assert answered >= 100, answered
