@@ -72,12 +72,12 @@ class FusionScratch:
     """The working memory of one scan's walk (:func:`mapping.samples_pass.accumulate_scan` or
     :func:`mapping.single_pass.accumulate_single`), grown to the largest window walked in it and reused.
 
-    Per cell of the scratch window the samples pass keeps two bits (plane, listed), a weight sum (8 bytes), a
-    four-float excess record (32 bytes), a list entry (8 bytes) and 16 bits of counts (equal weights), plus a bit of
-    the column-major plane; the one-sample pass keeps 8 bytes and two bits. About 59 bytes a window cell in all:
-    14 MB for the office's 12 m laser at 0.05 m (a window of about 490 x 490 cells), 88 MB for a 30 m laser, 0.99 GB
-    at the largest window a scan may take (mapping.scan_input.MAX_WINDOW_CELLS). A fusion on T > 1 threads keeps T + 1
-    of them.
+    Per cell of the scratch window the samples pass keeps three bits (plane, pair_plane, listed), a weight sum (8
+    bytes), a four-float excess record (32 bytes) and 16 bits of counts (equal weights), plus a bit of the
+    column-major plane: SAMPLES_SCRATCH_BYTES_PER_CELL, about 43 bytes a window cell in all (the one-sample pass
+    keeps 8 bytes and two bits). 11 MB for the office's 12 m laser at 0.05 m (a window of about 490 x 490 cells), 63
+    MB for a 30 m laser, 0.71 GB at the largest window a scan may take (mapping.scan_input.MAX_WINDOW_CELLS). A
+    fusion on T > 1 threads keeps T + 1 of them.
 
     Nothing in it carries from one scan to the next: each pass clears what it set, and the samples pass tells
     the excess records of earlier scans by their stamps (unique per scratch: :meth:`stamps`)."""
@@ -408,6 +408,11 @@ class MonteCarloFusion:
         return Walked(False, args, 0, touched, window_args, tile_args, 0.0, stamp_base, len(ready.lasers))
 
 
+#: bytes a window cell of the samples pass's scratch (:class:`FusionScratch`): three bit planes and a bit of the
+#: column-major plane, the weight sum (float64), the excess record (4 float64) and COUNT_LEVELS bits of counts
+SAMPLES_SCRATCH_BYTES_PER_CELL = 4 / 8 + 8 + 32 + COUNT_LEVELS / 8
+
+
 def _equal_weight_sums(weights: np.ndarray) -> np.ndarray:
     """When all M weights are equal (and M < 2**COUNT_LEVELS), the weight sum of n of them for n = 0..M, added one
     after the other from 0.0 as the per-cell sums add them: the samples pass counts the samples that touch a cell and
@@ -426,7 +431,7 @@ class FusionThreads:
     There is one scratch more than threads: while the calling thread applies a walked scan (its scratch still in
     use), the next scan's walk already waits on the pool, so no core idles during an apply.
 
-    Memory: ``count + 1`` scratches of about 57 bytes a window cell each (:class:`FusionScratch`), on top of each
+    Memory: ``count + 1`` scratches of about 43 bytes a window cell each (:class:`FusionScratch`), on top of each
     fusion's own (for :meth:`MonteCarloFusion.fuse`); the pool's threads start on the first scans fused with
     count > 1. Not thread-safe: one caller at a time."""
 

@@ -16,8 +16,9 @@ from mapping.jit import kernel
 #: how far from 1 the pose weights may sum (schemas.files.WEIGHT_SUM_TOLERANCE is the file contract's: the same
 #: value, which mapping cannot import)
 WEIGHT_SUM_TOLERANCE = 1e-4
-#: the most cells one scan's scratch window may span. The samples pass keeps 56 bytes a cell, so this is about
-#: 0.9 GB; it holds a 100 m laser's reach at 0.05 m cells. Pose samples spread wider than that (a diverged
+#: the most cells one scan's scratch window may span. The samples pass keeps about 43 bytes a cell
+#: (mapping.fusion.SAMPLES_SCRATCH_BYTES_PER_CELL), so this is about 0.71 GB; it holds a 100 m laser's reach at 0.05 m
+#: cells. Pose samples spread wider than that (a diverged
 #: estimate) are refused, not allocated.
 MAX_WINDOW_CELLS = 1 << 24
 #: window cell indices stay within this many cells of the map origin (the kernels take them as int64)

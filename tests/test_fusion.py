@@ -9,7 +9,8 @@ from hypothesis import strategies as st
 
 from mapping.beam_model import BEAM_HIT, BEAM_NO_RETURN, BEAM_SKIP, beam_table
 from mapping.errors import InputError
-from mapping.fusion import MonteCarloFusion, merge_duplicates
+from mapping.fan_runs import FAN_FLOATS, FAN_INTS
+from mapping.fusion import SAMPLES_SCRATCH_BYTES_PER_CELL, FusionScratch, MonteCarloFusion, merge_duplicates
 from mapping.grid import TiledGrid
 from mapping.sensor_model import SensorModel
 from reference import reference_fuse
@@ -474,3 +475,16 @@ def test_whole_and_sharded_maps_agree_on_random_setups(seed):
         np.testing.assert_array_equal(a["observed"], b["observed"])
         np.testing.assert_allclose(a["logodds"], b["logodds"], rtol=0, atol=1e-9)
         np.testing.assert_allclose(a["variance"], b["variance"], rtol=0, atol=1e-9)
+
+
+def test_the_samples_scratch_holds_the_bytes_a_cell_its_docs_give():
+    """Hand-computed: three bit planes and a bit of the column-major plane (0.5 byte), the weight sum (8), the excess
+    record (32) and 16 levels of counts (2): 42.5 bytes a cell; a 512 x 512 window (words whole) adds only the
+    per-line and per-beam scratch (2 x 512 int64, 28 int64 and float64 fan records for each of 361 beams) and the 64
+    words of a 64 x 64 bit block."""
+    assert SAMPLES_SCRATCH_BYTES_PER_CELL == 42.5
+    scratch = FusionScratch()
+    cells = 512 * 512
+    scratch.for_samples(cells, cells, 512, 361)
+    assert FAN_INTS + FAN_FLOATS == 28
+    assert scratch.nbytes == SAMPLES_SCRATCH_BYTES_PER_CELL * cells + 2 * 512 * 8 + 28 * 361 * 8 + 64 * 8

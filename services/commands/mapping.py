@@ -111,8 +111,8 @@ def add_threads_argument(parser: argparse.ArgumentParser | argparse._ArgumentGro
         "--threads",
         default=None,
         metavar="N",
-        help="threads that fuse scans side by side, each with a scratch window of its own (about 57 bytes a cell of "
-        f"a scan's window: 14 MB for a 12 m laser at 0.05 m); the map is the same bit for bit for any N (default: "
+        help="threads that fuse scans side by side, each with a scratch window of its own (about 43 bytes a cell of "
+        f"a scan's window: 11 MB for a 12 m laser at 0.05 m); the map is the same bit for bit for any N (default: "
         f"{default})",
     )
 
