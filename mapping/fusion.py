@@ -26,16 +26,16 @@ pass (:mod:`mapping.single_pass`), which gives the same map for about half the t
 A scan is fused in three stages: :meth:`MonteCarloFusion.prepare` (checks, beam table, window),
 :meth:`~MonteCarloFusion.walk` (the compiled pass into a :class:`FusionScratch`; it reads nothing of the map) and
 :meth:`~MonteCarloFusion.apply` (the only stage that writes the map). :class:`FusionThreads` walks several scans at
-once, each into a scratch of its own, and applies them in scan order (:mod:`mapping.parallel_fusion`), so the map is
-the same bit for bit on any number of threads.
+once, each into a scratch of its own, and applies them in scan order (:mod:`mapping.parallel_fusion`), or one scan's
+samples in parts at once (their per-cell sums are whole numbers of fixed steps, :mod:`mapping.fixed_point`, the same in
+any order), so the map is the same bit for bit on any number of threads.
 """
 
 from __future__ import annotations
 
-import itertools
 import math
-from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from concurrent.futures import Executor, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -45,9 +45,10 @@ from mapping.beam_model import BEAM_SKIP, BeamTable, beam_table, logodds_model
 from mapping.bundling import bundle_samples, check_tolerance
 from mapping.errors import InputError
 from mapping.fan_runs import fan_scratch
+from mapping.fixed_point import WEIGHT_SCALE, moment_scale
 from mapping.grid import TiledGrid
 from mapping.parallel_fusion import in_scan_order
-from mapping.samples_pass import COUNT_LEVELS, STAMP_LIMIT, accumulate_scan, apply_scan, owned_table
+from mapping.samples_pass import COUNT_LEVELS, STAMP_LIMIT, accumulate_scan, apply_scan, merge_scan, owned_table
 from mapping.scan_input import check_scan, check_window, laser_poses, merge_duplicates
 from mapping.sensor_model import SensorModel
 from mapping.single_pass import accumulate_single, apply_single
@@ -89,8 +90,9 @@ class FusionScratch:
         self.lines = np.zeros((2, 0), np.int64)  # a ray's exit and entry cells per grid line (mapping.free_runs)
         self.block = np.zeros(64, np.uint64)  # 64 x 64 bits being folded from the column-major plane
         self.plane = self.pair_plane = self.listed = np.zeros(0, np.uint64)
-        self.weight_sum = np.zeros(0, np.float64)
+        self.weight_sum = np.zeros(0, np.int64)
         self.excess = np.zeros((0, 4), np.float64)
+        self.moments = self.excess.view(np.int64)  # (the records' moments are int64 steps: mapping.fixed_point)
         self.counts = np.zeros((COUNT_LEVELS, 0), np.uint64)
         self.fan_ints, self.fan_floats = fan_scratch(0)
         self.single_blocks = 0
@@ -114,8 +116,9 @@ class FusionScratch:
         self.plane = np.zeros((cells + 63) // 64, np.uint64)
         self.pair_plane = np.zeros((cells + 63) // 64, np.uint64)
         self.listed = np.zeros((cells + 63) // 64, np.uint64)
-        self.weight_sum = np.zeros(cells, np.float64)
+        self.weight_sum = np.zeros(cells, np.int64)
         self.excess = np.zeros((cells, 4), np.float64)
+        self.moments = self.excess.view(np.int64)
         self.counts = np.zeros((COUNT_LEVELS, (cells + 63) // 64), np.uint64)
 
     def for_single(self, blocks: int) -> None:
@@ -130,8 +133,10 @@ class FusionScratch:
 
     @property
     def nbytes(self) -> int:
-        """Bytes its arrays hold now."""
-        return sum(value.nbytes for value in vars(self).values() if isinstance(value, np.ndarray))
+        """Bytes its arrays hold now (views of another of them aside)."""
+        return sum(
+            value.nbytes for value in vars(self).values() if isinstance(value, np.ndarray) and value.base is None
+        )
 
     def stamps(self, count: int) -> int:
         """The first of ``count`` fresh sample stamps of this scratch (the records are cleared when stamps would pass
@@ -222,8 +227,11 @@ class MonteCarloFusion:
         self._owned_windows: dict[tuple[int, int, int, int], tuple[np.ndarray, bool, np.ndarray]] = {}
         self._scratch = FusionScratch()  # :meth:`fuse`'s (empty until a scan is walked in it)
         # what the kernels read of the model, built once: plain tuples (mapping.beam_model.BeamTable says why)
-        self._model_terms = tuple(logodds_model(model))
+        terms = logodds_model(model)
+        self._model_terms = tuple(terms)
         self._levels = (model.l_free, model.l_min, model.l_max)  # (properties: computed)
+        # the steps of the samples pass's excess moments: the model's values exceed l_free by y_peak - l_free at most
+        self._moment_scale = moment_scale(terms.y_peak - model.l_free)
         self._directions = (self._cos_angles, self._sin_angles)
 
     def _owned_mask(self, tx0: int, ty0: int, ntx: int, nty: int) -> tuple[np.ndarray, bool, np.ndarray]:
@@ -270,6 +278,8 @@ class MonteCarloFusion:
         """Fuse ``scans`` ((ranges, samples, weights) each, as :meth:`fuse` takes them) in order on this fusion's
         threads (:meth:`FusionThreads.fuse_iter`), yielding each scan's FuseResult or the InputError that refused it;
         the map is the same bit for bit for any thread count."""
+        if isinstance(scans, Sequence):  # (a sequence of one is walked in parts: FusionThreads.fuse_iter)
+            return self.threads.fuse_iter([(self, scan) for scan in scans])
         return self.threads.fuse_iter((self, scan) for scan in scans)
 
     def fuse_many(self, scans: Iterable[ScanInput]) -> list[FuseResult | InputError]:
@@ -295,39 +305,65 @@ class MonteCarloFusion:
             return None
         return Ready(lasers, weights, beams, window, tiles, owned_sum)
 
-    def walk(self, ready: Ready, scratch: FusionScratch) -> Walked:
+    def walk(self, ready: Ready, scratch: FusionScratch, part: int = 0, parts: int = 1) -> Walked:
         """The second stage of :meth:`fuse`: the scan's compiled pass into ``scratch``, the one-sample pass for one
-        distinct sample, else the samples pass. Reads nothing of the grid: safe on a pool thread, one scan per
-        scratch."""
+        distinct sample, else the samples pass. Reads nothing of the grid: safe on a pool thread, one walk per
+        scratch.
+
+        With parts > 1 (at most :meth:`parts_for`), the samples pass walks only the part-th of ``parts`` runs of the
+        scan's samples (near-equal, in sample order); :meth:`apply_parts` adds up the parts' scratches, and the map is
+        the same bit for bit as from one walk of all the samples (the sums are whole numbers of fixed steps:
+        mapping.fixed_point), so the parts of one scan may run on different threads at once."""
+        if not 0 <= part < parts <= self.parts_for(ready, parts):
+            raise ValueError(f"need 0 <= part < parts <= {self.parts_for(ready, parts)}, got part {part} of {parts}")
         if len(ready.lasers) == 1:
             return self._walk_single(ready, scratch)
-        return self._walk_samples(ready, scratch)
+        return self._walk_samples(ready, scratch, part, parts)
+
+    @staticmethod
+    def parts_for(ready: Ready, threads: int) -> int:
+        """How many parts :meth:`walk` takes a prepared scan in on ``threads`` threads: one for one distinct sample,
+        else up to one per MIN_PART_SAMPLES samples (a part's walk must outweigh the adding up of its scratch)."""
+        return max(1, min(threads, len(ready.lasers) // MIN_PART_SAMPLES))
 
     def apply(self, walked: Walked) -> FuseResult:
         """The last stage of :meth:`fuse`: add a walked scan into the grid (its tiles created as needed, in row
         order) and clear its scratch. Runs on the caller's thread, in scan order."""
-        tx0, ty0 = walked.tile_args[3], walked.tile_args[4]  # (Tiles: owned, all_owned, shift, tx0, ty0)
-        slot_map, changed = self._tile_slots(walked.touched, tx0, ty0)
+        return self.apply_parts([walked])
+
+    def apply_parts(self, walked: Sequence[Walked], pool: Executor | None = None) -> FuseResult:
+        """:meth:`apply` for a scan walked in parts (every part of :meth:`walk`'s ``parts``, each into a scratch of
+        its own): the other parts' scratches added into the first's (:func:`mapping.samples_pass.merge_scan`, which
+        clears them) and the first applied, band by band of the window's rows, the bands on ``pool`` at once when
+        given (each cell's sums and update are its own, so any bands give the same map). Runs on the caller's thread,
+        in scan order; the tiles are created here, in row order, before the bands."""
+        first = walked[0]
+        for other in walked[1:]:
+            first.touched[...] |= other.touched
+        tx0, ty0 = first.tile_args[3], first.tile_args[4]  # (Tiles: owned, all_owned, shift, tx0, ty0)
+        slot_map, changed = self._tile_slots(first.touched, tx0, ty0)
         grid = self.grid  # (its layers after _tile_slots: new tiles may have moved them)
         layers = (grid.logodds, grid.variance, grid.observed)
-        if walked.single:
+        if first.single:
             apply_single(
-                walked.scratch, walked.weight, walked.window_args, walked.tile_args, slot_map, layers, self._levels
+                first.scratch, first.weight, first.window_args, first.tile_args, slot_map, layers, self._levels
             )
-            n_scan = walked.n_scan
+            return FuseResult(first.n_scan, changed, first.samples)
+
+        def band(words: tuple[int, int]) -> int:
+            """Merge and apply the scratch words words[0] .. words[1] - 1; the cells updated."""
+            for other in walked[1:]:
+                merge_scan(first.scratch, other.scratch, first.stamp_base, other.stamp_base, words)
+            args = (first.window_args, first.tile_args, slot_map, layers, self._levels, self._moment_scale, words)
+            return int(apply_scan(first.scratch, first.stamp_base, *args, np.zeros(COUNT_LEVELS, np.uint64)))
+
+        _, _, win_w, win_h = first.window_args
+        words = (win_w * win_h + 63) >> 6
+        if pool is None or len(walked) == 1:
+            n_scan = band((0, words))
         else:
-            n_scan = int(
-                apply_scan(
-                    walked.scratch,
-                    walked.stamp_base,
-                    walked.window_args,
-                    walked.tile_args,
-                    slot_map,
-                    layers,
-                    self._levels,
-                )
-            )
-        return FuseResult(n_scan, changed, walked.samples)
+            n_scan = sum(pool.map(band, _bands(words, len(walked))))
+        return FuseResult(n_scan, changed, sum(part.samples for part in walked))
 
     def _window(self, lasers: np.ndarray, reach: float) -> tuple[Window, Tiles, np.ndarray]:
         """The scratch window over the rays of laser poses (M, 3) that reach ``reach`` m (its origin a multiple of 8
@@ -369,14 +405,15 @@ class MonteCarloFusion:
         n_scan = accumulate_single(ready.lasers[0], *self._ray_args(ready.beams), window_args, tile_args, args)
         return Walked(True, args, int(n_scan), touched, window_args, tile_args, float(ready.weights[0]), 0, 1)
 
-    def _walk_samples(self, ready: Ready, scratch: FusionScratch) -> Walked:
-        """The samples pass (laser poses (M, 3), weights (M,))."""
+    def _walk_samples(self, ready: Ready, scratch: FusionScratch, part: int, parts: int) -> Walked:
+        """The samples pass (laser poses (M, 3), weights (M,)) over the part-th of ``parts`` runs of the samples."""
         window, tiles = ready.window, ready.tiles
+        lasers, weights = (ready.lasers, ready.weights) if parts == 1 else _part(ready, part, parts)
         # the samples pass's scratch rows and columns are whole 64-bit words of its bit planes (mapping.free_runs)
         win_w = -(-window.w // 64) * 64
         col_stride = -(-window.h // 64) * 64
         scratch.for_samples(win_w * window.h, win_w * col_stride, max(win_w, window.h), len(ready.beams.kind))
-        stamp_base = scratch.stamps(len(ready.lasers))
+        stamp_base = scratch.stamps(len(lasers))
         touched = np.zeros(tiles.owned.shape, np.bool_)
         args = (
             scratch.plane,
@@ -389,23 +426,41 @@ class MonteCarloFusion:
             scratch.lines,
             scratch.block,
             scratch.counts,
-            _equal_weight_sums(ready.weights),
+            _equal_weight_sums(ready.weights),  # (all the scan's weights: the parts' counts are added up)
             scratch.fan_ints,
             scratch.fan_floats,
             scratch.pair_plane,
+            scratch.moments,
         )
         window_args, tile_args = (window.ix0, window.iy0, win_w, window.h), tuple(tiles)
         accumulate_scan(
-            ready.lasers,
-            ready.weights,
+            lasers,
+            weights,
             *self._ray_args(ready.beams),
             window_args,
             tile_args,
             ready.owned_sum,
             args,
             stamp_base,
+            self._moment_scale,
         )
-        return Walked(False, args, 0, touched, window_args, tile_args, 0.0, stamp_base, len(ready.lasers))
+        return Walked(False, args, 0, touched, window_args, tile_args, 0.0, stamp_base, len(lasers))
+
+
+#: the fewest samples a part of a scan's walk takes (MonteCarloFusion.parts_for)
+MIN_PART_SAMPLES = 8
+
+
+def _bands(words: int, count: int) -> list[tuple[int, int]]:
+    """``count`` near-equal runs (first, end) of the scratch's ``words`` words."""
+    return [(band * words // count, (band + 1) * words // count) for band in range(count)]
+
+
+def _part(ready: Ready, part: int, parts: int) -> tuple[np.ndarray, np.ndarray]:
+    """The laser poses and weights of the part-th of ``parts`` near-equal runs of a scan's samples, in order."""
+    m = len(ready.lasers)
+    lo, hi = part * m // parts, (part + 1) * m // parts
+    return ready.lasers[lo:hi], ready.weights[lo:hi]
 
 
 #: bytes a window cell of the samples pass's scratch (:class:`FusionScratch`): three bit planes and a bit of the
@@ -414,24 +469,28 @@ SAMPLES_SCRATCH_BYTES_PER_CELL = 4 / 8 + 8 + 32 + COUNT_LEVELS / 8
 
 
 def _equal_weight_sums(weights: np.ndarray) -> np.ndarray:
-    """When all M weights are equal (and M < 2**COUNT_LEVELS), the weight sum of n of them for n = 0..M, added one
-    after the other from 0.0 as the per-cell sums add them: the samples pass counts the samples that touch a cell and
-    reads its weight sum here (mapping.samples_pass). Else an empty array."""
+    """When all M weights are equal (and M < 2**COUNT_LEVELS), the weight sum of n of them for n = 0..M as the
+    per-cell sums give it: n whole steps of mapping.fixed_point.WEIGHT_SCALE (the weight truncated to steps, as the
+    samples pass takes it), rounded once to float64. The samples pass counts the samples that touch a cell and reads
+    its weight sum here (mapping.samples_pass). Else an empty array."""
     if len(weights) >= 2**COUNT_LEVELS or not np.all(weights == weights[0]):
         return np.zeros(0, np.float64)
-    return np.fromiter(itertools.accumulate(weights.tolist(), initial=0.0), np.float64, len(weights) + 1)
+    step = int(weights[0] * WEIGHT_SCALE)  # (truncated, as to_fixed truncates)
+    return (np.arange(len(weights) + 1, dtype=np.int64) * step).astype(np.float64) / WEIGHT_SCALE
 
 
 class FusionThreads:
     """Fuses scans on ``count`` threads (mapping.parallel_fusion): the walks of up to ``count`` scans at once, each on a
     :class:`FusionScratch` of its own, the scans applied in order, so the map is the same bit for bit as fused one by
-    one. One serves any fusions of one grid (a laser whose geometry changes has a fusion per geometry), their scans in
-    one stream. With count 1 each scan is fused by its fusion's :meth:`MonteCarloFusion.fuse`, with no pool.
+    one; a scan handed in alone is walked in parts of its samples on the threads at once (:meth:`fuse_iter`), to the
+    same map. One serves any fusions of one grid (a laser whose geometry changes has a fusion per geometry), their
+    scans in one stream. With count 1 each scan is fused by its fusion's :meth:`MonteCarloFusion.fuse`, with no pool.
 
     There is one scratch more than threads: while the calling thread applies a walked scan (its scratch still in
     use), the next scan's walk already waits on the pool, so no core idles during an apply.
 
-    Memory: ``count + 1`` scratches of about 43 bytes a window cell each (:class:`FusionScratch`), on top of each
+    Memory: ``count + 1`` scratches of about 43 bytes a window cell each (:class:`FusionScratch`; a lone scan's parts
+    use ``count`` of them), on top of each
     fusion's own (for :meth:`MonteCarloFusion.fuse`); the pool's threads start on the first scans fused with
     count > 1. Not thread-safe: one caller at a time."""
 
@@ -456,12 +515,41 @@ class FusionThreads:
         """Fuse each scan ((ranges, samples, weights), as :meth:`MonteCarloFusion.fuse` takes them) with its fusion, in
         order, yielding its FuseResult, or the InputError that refused it (the map unchanged by that scan; the next
         scans go on). Any other error is raised at its scan's turn, the earlier scans fused and none of the later
-        ones, as fusing them one by one would; closing the iterator early waits for the walks in flight."""
+        ones, as fusing them one by one would; closing the iterator early waits for the walks in flight.
+
+        Scans handed in as a sequence of one (a live shard's scan as it comes) are walked in parts on all the threads
+        at once; any other scans are walked side by side, a scan a thread. The map is the same either way."""
         if self.count == 1:
             return _one_by_one(scans)
         if self._pool is None:
             self._pool = ThreadPoolExecutor(self.count, thread_name_prefix="fusion")
+        if isinstance(scans, Sequence) and len(scans) == 1:
+            return self._in_parts(*scans[0])
         return in_scan_order(scans, _prepare, _walk, _apply, self._scratches, self._pool, FuseResult(0, []))
+
+    def _in_parts(self, fusion: MonteCarloFusion, scan: ScanInput) -> Iterator[FuseResult | InputError]:
+        """:meth:`fuse_iter` of a single scan: its samples walked in parts on the threads at once
+        (:meth:`MonteCarloFusion.walk`), each part into a scratch of its own, then added up and applied. The map is
+        the one a single walk gives; a live shard fusing each scan as it comes waits for one scan on all its threads
+        instead of on one."""
+        try:
+            ready = fusion.prepare(scan)
+        except InputError as exc:
+            yield exc
+            return
+        if ready is None:
+            yield FuseResult(0, [])
+            return
+        assert self._pool is not None  # (fuse_iter started it)
+        parts = fusion.parts_for(ready, self.count)
+        jobs = [
+            self._pool.submit(fusion.walk, ready, scratch, part, parts)
+            for part, scratch in enumerate(self._scratches[:parts])
+        ]
+        wait(jobs)  # (every part ends before an error is raised: the scratches are idle again)
+        if any(job.exception() is not None for job in jobs):
+            self._scratches[:parts] = [FusionScratch() for _ in range(parts)]  # (the others' parts are not cleared)
+        yield fusion.apply_parts([job.result() for job in jobs], self._pool)
 
 
 def _one_by_one(scans: Iterable[tuple[MonteCarloFusion, ScanInput]]) -> Iterator[FuseResult | InputError]:

@@ -58,6 +58,7 @@ from mapping.fan_runs import (
     fan_hulls,
     fan_key,
 )
+from mapping.fixed_point import WEIGHT_SCALE, to_fixed
 from mapping.free_runs import fold_block, fold_columns, mark_free_runs, plane_coordinates, run_lines, set_bit
 from mapping.jit import kernel
 from mapping.raytrace import dda_step
@@ -87,16 +88,17 @@ class SamplesScratch(NamedTuple):
 
     plane, listed: one bit per cell (uint64 words), the current sample's touched cells and the cells any sample
     touched in this scan; columns: the column-major plane of :mod:`mapping.free_runs`, columns col_stride bits long;
-    weight_sum: W per cell; excess: (cells, 4) records of :func:`add_sample_value`; tile_touched: (bool, per tile
-    of the window) the tiles of the listed cells; lines: (2, max(w, h))
-    int64, a ray's exit and entry cells per grid line (:mod:`mapping.free_runs`); block: 64 uint64, the 64 x 64
-    bits being folded from the column-major plane (and, in the apply, the counts' levels of one word); counts:
-    (COUNT_LEVELS, words) uint64, bit k of counts[l, i] is bit l of the number of samples that touched cell 64 i + k
-    (equal weights only, zero between scans; level after level, so that the sweep's carries, which seldom pass the
-    first levels, read and write a few dense rows); sums: the table
-    W = sums[n] for n samples of equal weight, empty when the weights differ (then W is summed per cell); fan_ints,
-    fan_floats: the records of a sample's rays for :func:`mapping.fan_runs.fan_hulls` (its ``fan_scratch``);
-    pair_plane: as plane, the touched cells of the second sample of a pair (:func:`accumulate_scan`).
+    weight_sum: W per cell (int64, in steps of 1 / mapping.fixed_point.WEIGHT_SCALE); excess: (cells, 4) float64
+    records of :func:`add_sample_excess`, whose moments (columns 2 and 3) are int64 steps read and written through
+    ``moments``, the same memory viewed as int64; tile_touched: (bool, per tile of the window) the tiles of the listed
+    cells; lines: (2, max(w, h)) int64, a ray's exit and entry cells per grid line (:mod:`mapping.free_runs`);
+    block: 64 uint64, the 64 x 64 bits being folded from the column-major plane; counts: (COUNT_LEVELS, words)
+    uint64, bit k of counts[l, i] is bit l of the number of samples that touched cell 64 i + k (equal weights only,
+    zero between scans; level after level, so that the sweep's carries, which seldom pass the first levels, read and
+    write a few dense rows); sums: the table W = sums[n] for n samples of equal weight, empty when the weights differ
+    (then W is summed per cell); fan_ints, fan_floats: the records of a sample's rays for
+    :func:`mapping.fan_runs.fan_hulls` (its ``fan_scratch``); pair_plane: as plane, the touched cells of the second
+    sample of a pair (:func:`accumulate_scan`); moments: ``excess`` viewed as int64.
     """
 
     plane: np.ndarray
@@ -113,35 +115,59 @@ class SamplesScratch(NamedTuple):
     fan_ints: np.ndarray
     fan_floats: np.ndarray
     pair_plane: np.ndarray
+    moments: np.ndarray
 
 
 class _Marks(NamedTuple):
-    """What the samples pass's visitors write: the sample's plane and the excess records (cell c = (q - q0) * qw +
-    p - p0 for a walk cell (p, q), frame = (p0, q0, qw)), read from the model, for sample stamp sid, weight w."""
+    """What the samples pass's visitors write: the sample's plane and the excess records and their moments (cell c =
+    (q - q0) * qw + p - p0 for a walk cell (p, q), frame = (p0, q0, qw)), read from the model, for sample stamp sid,
+    weight times the moments' scale ws."""
 
     plane: np.ndarray
     excess: np.ndarray
+    moments: np.ndarray
     frame: tuple[int, int, int]
     model: LogOddsModel
     sid: float
-    w: float
+    ws: float
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def add_sample_value(rec, c, sid, w, y):  # pragma: no cover - compiled
-    """Give cell record rec[c] the value y from sample ``sid`` (weight w) under the one-value-per-sample
-    rule: rec[c, 0] the stamp of the last sample that touched the cell, rec[c, 1] that sample's value so
-    far (the max over its beams), rec[c, 2:4] the weighted moments sum_j w_j y_ij and sum_j w_j y_ij^2.
-    When a later beam of the same sample raises the value, the moments are corrected by the difference,
-    so each (sample, cell) contributes exactly once. A record from an earlier scan must be cleared first.
-    Written with selects, not branches: whether a beam of the same sample came first is unpredictable."""
+def raise_sample_value(rec, c, sid, y):  # pragma: no cover - compiled
+    """Give cell record rec[c] the value y from sample ``sid`` under the one-value-per-sample rule: rec[c, 0] the
+    stamp of the last sample that touched the cell, rec[c, 1] that sample's value so far (the max over its beams).
+    Returns (first, old, new): whether y is the sample's first value for the cell, its value before (meaningless when
+    first) and after. Written with selects, not branches: whether a beam of the same sample came first is
+    unpredictable."""
     first = rec[c, 0] != sid
     old = rec[c, 1]
     new = y if first else max(old, y)
     rec[c, 0] = sid
     rec[c, 1] = new
+    return first, old, new
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def add_sample_value(rec, c, sid, w, y):  # pragma: no cover - compiled
+    """:func:`raise_sample_value` with the weighted moments sum_j w_j y_ij and sum_j w_j y_ij^2 in rec[c, 2:4]
+    (float64, summed in sample order). When a later beam of the same sample raises the value, the moments are
+    corrected by the difference, so each (sample, cell) contributes exactly once. A record from an earlier scan must
+    be cleared first."""
+    first, old, new = raise_sample_value(rec, c, sid, y)
     rec[c, 2] += w * y if first else w * (new - old)
     rec[c, 3] += w * y * y if first else w * (new * new - old * old)
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def add_sample_excess(rec, moments, c, sid, ws, d):  # pragma: no cover - compiled
+    """:func:`raise_sample_value` with the excess moments D1 = sum_j w_j d_ij and D2 = sum_j w_j d_ij^2 in
+    moments[c, 2:4], int64 steps of mapping.fixed_point (``moments``: ``rec`` viewed as int64; ``ws``: the sample's
+    weight times the moments' scale). A later beam of the same sample that raises the value swaps the sample's old
+    terms for its new ones, so the sums hold each (sample, cell)'s term exactly once, whatever the order of the beams
+    and the samples. D1 and D2 are zero between scans."""
+    first, old, new = raise_sample_value(rec, c, sid, d)
+    moments[c, 2] += to_fixed(ws * new) - (0 if first else to_fixed(ws * old))
+    moments[c, 3] += to_fixed(ws * new * new) - (0 if first else to_fixed(ws * old * old))
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
@@ -163,7 +189,7 @@ def _mark_near(marks, beam, carry, p, q, r_in, r_out):  # pragma: no cover - com
     c = _cell_index(marks.frame, p, q)
     set_bit(marks.plane, c)
     if d > 0.0:
-        add_sample_value(marks.excess, np.uint64(c), marks.sid, marks.w, d)
+        add_sample_excess(marks.excess, marks.moments, np.uint64(c), marks.sid, marks.ws, d)
     return carry
 
 
@@ -468,9 +494,9 @@ def _fan_lines(laser, heading, directions, beams, res, window, tiles, owned_sum,
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def _walk_sample(laser, sid, w, directions, beams, model, res, window, tiles, owned_sum, scratch):  # pragma: no cover
-    """Walk every beam of one sample (laser pose (x m, y m, yaw rad), stamp sid, weight w) into its plane and the
-    excess records.
+def _walk_sample(laser, sid, ws, directions, beams, model, res, window, tiles, owned_sum, scratch):  # pragma: no cover
+    """Walk every beam of one sample (laser pose (x m, y m, yaw rad), stamp sid, weight times the moments' scale ws)
+    into its plane and the excess records.
 
     The rows (columns) that fans of neighbouring rays share near the laser are marked first, once a fan and row
     (:mod:`mapping.fan_runs`; :func:`_fan_lines` records where the rays cross the lines, and sorts them by the bound,
@@ -482,8 +508,8 @@ def _walk_sample(laser, sid, w, directions, beams, model, res, window, tiles, ow
     as above where the rest of the ray lies in one tile the shard owns, else on the global cells, looking ownership
     up per tile."""
     heading = (math.cos(laser[2]), math.sin(laser[2]))
-    by_index = _Marks(scratch.plane, scratch.excess, (0, 0, 1), model, sid, w)
-    by_cell = _Marks(scratch.plane, scratch.excess, (window.ix0, window.iy0, window.w), model, sid, w)
+    by_index = _Marks(scratch.plane, scratch.excess, scratch.moments, (0, 0, 1), model, sid, ws)
+    by_cell = _Marks(scratch.plane, scratch.excess, scratch.moments, (window.ix0, window.iy0, window.w), model, sid, ws)
     every_tile, some_tiles = ownership_constants(tiles)
     # the rows that fans of neighbouring rays share, marked once a fan (mapping.fan_runs), and each ray's bound
     _fan_lines(laser, heading, directions, beams, res, window, tiles, owned_sum, scratch)
@@ -534,21 +560,24 @@ def _walk_sample(laser, sid, w, directions, beams, model, res, window, tiles, ow
 
 @kernel(nogil=True, error_model="numpy", refcounted=False)
 def accumulate_scan(
-    lasers, weights, directions, beams, model, res, window, tiles, owned_sum, scratch, stamp_base
+    lasers, weights, directions, beams, model, res, window, tiles, owned_sum, scratch, stamp_base, moment_scale
 ):  # pragma: no cover
     """One pass over all (sample, beam, cell) triples into the scratch (:func:`apply_scan` adds it into the tiles).
 
     lasers: (M, 3) laser poses (x m, y m, yaw rad), weights (M,); directions: the beams' (cosines, sines) in the
     laser frame; beams: a :class:`BeamTable`, model a :class:`LogOddsModel`, window a :class:`Window` (w a
     multiple of 64 cells), tiles a :class:`Tiles`, scratch a :class:`SamplesScratch`, all as plain tuples; owned_sum:
-    the tiles' :func:`owned_table`; res: the cell size (m).
+    the tiles' :func:`owned_table`; res: the cell size (m); moment_scale: the steps per unit of the excess moments
+    (:func:`mapping.fixed_point.moment_scale` of the model).
 
     Window cell (gx, gy) is global cell (ix0 + gx, iy0 + gy); its scratch entries are at c = gy * w + gx: bit c
     of plane (the cells the current sample touched) and of listed (the cells any sample touched in this scan),
-    both zero between scans; weight_sum[c] (W; zero between scans), excess[c] (four float64 kept by
-    :func:`add_sample_value` for d: the stamp, the current sample's largest d, D1, D2 (D1 and D2 zero between
-    scans); sample j's stamp is stamp_base + j, so smaller stamps are from earlier scans); tile_touched marks the
-    tiles of the listed cells. See the module docstring.
+    both zero between scans; weight_sum[c] (W in int64 steps; zero between scans), excess[c] (kept by
+    :func:`add_sample_excess` for d: the stamp, the current sample's largest d, D1, D2, the moments in int64 steps,
+    zero between scans; sample j's stamp is stamp_base + j, so smaller stamps are from earlier scans); tile_touched
+    marks the tiles of the listed cells. W, D1 and D2 are sums of whole steps (:mod:`mapping.fixed_point`), the same
+    in any order of the samples: a scan's samples may be walked in parts, each part into a scratch of its own, and
+    the parts' scratches added up (:func:`merge_scan`) before the apply. See the module docstring.
 
     Each ray is walked by :func:`mapping.window_walk.walk_ray` in two phases: the free phase, cells that end before
     the beam's free_until, which take l_free without evaluating the model; then the cells up to the ray's end,
@@ -573,7 +602,7 @@ def accumulate_scan(
         _walk_sample(
             lasers[j],
             float(stamp_base + j),
-            weights[j],
+            weights[j] * moment_scale,
             directions,
             beams,
             model,
@@ -589,7 +618,8 @@ def accumulate_scan(
             _fold_owned(marks, window, tiles, owned_sum)
         if j % 2 == 0 and j + 1 < m:
             continue  # (swept with the next sample)
-        w_first, w_second = (weights[j - 1], weights[j]) if j % 2 == 1 else (weights[j], 0.0)
+        w_first = to_fixed(weights[j - 1 if j % 2 == 1 else j] * WEIGHT_SCALE)
+        w_second = to_fixed(weights[j] * WEIGHT_SCALE) if j % 2 == 1 else np.int64(0)
         if tiles.all_owned:
             _sweep_planes(scratch, w_first, w_second, window, tiles)
         else:
@@ -614,6 +644,7 @@ def _second_of_pair(scratch):  # pragma: no cover - compiled
         scratch.fan_ints,
         scratch.fan_floats,
         scratch.plane,
+        scratch.moments,
     )
 
 
@@ -643,8 +674,9 @@ def _touch_tiles(scratch, i, new, window, tiles):  # pragma: no cover - compiled
 
 @kernel(nogil=True, error_model="numpy", inline="always")
 def _sweep_word(scratch, i, w_first, w_second, window, tiles, counted):  # pragma: no cover - compiled
-    """Add a pair of samples' weights to the weight sum of every cell word i of their planes marks (plane: the first
-    sample's, weight w_first; pair_plane: the second's, clear when there is none), the first's before the second's
+    """Add a pair of samples' weights (int64 steps) to the weight sum of every cell word i of their planes marks
+    (plane: the first sample's, weight w_first; pair_plane: the second's, clear when there is none), the first's
+    before the second's
     (``counted``, equal weights: one or two to their counts, :func:`_count_pair`), and clear the words. A cell new to
     this scan (its bit clear in ``listed``) gets its bit in ``listed`` and its tile marked in tile_touched."""
     first = scratch.plane[i]
@@ -751,8 +783,59 @@ def _count_of(counts, k, levels):  # pragma: no cover - compiled
     return n
 
 
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _count_levels(sums):  # pragma: no cover - compiled
+    """The counts' levels in use: those of the largest count, len(sums) - 1 (0 when the weights are summed)."""
+    levels = 0
+    while sums.shape[0] > 0 and (1 << levels) < sums.shape[0]:
+        levels += 1
+    return levels
+
+
 @kernel(nogil=True, error_model="numpy", refcounted=False)
-def apply_scan(scratch, stamp_base, window, tiles, slot_map, layers, levels):  # pragma: no cover - compiled
+def merge_scan(into, part, into_stamp, part_stamp, words):  # pragma: no cover - compiled
+    """Add a part of a scan's samples, walked by :func:`accumulate_scan` into scratch ``part`` (its first stamp
+    part_stamp), to another part walked into scratch ``into`` (first stamp into_stamp; the same window, beams and
+    weight table): the listed cells, the counts (a bit-sliced add) or weight sums, and the excess moments. All are
+    whole numbers (:mod:`mapping.fixed_point`), so ``into`` then holds what walking both parts' samples into it would
+    have given, whatever the parts; the caller ors the parts' tile_touched. Clears what it read of ``part`` (as
+    :func:`apply_scan` does), word after word of part's listed plane, from word words[0] to words[1] - 1 (64 cells a
+    word: bands of words may be merged on different threads at once)."""
+    into, part = SamplesScratch(*into), SamplesScratch(*part)
+    counted = into.sums.shape[0] > 0
+    count_levels = _count_levels(into.sums)
+    for i in range(words[0], words[1]):
+        bits = part.listed[i]
+        if bits == 0:
+            continue
+        part.listed[i] = 0
+        into.listed[i] |= bits
+        if counted:
+            carry = np.uint64(0)
+            for level in range(count_levels):  # (no count passes len(sums) - 1: no carry out of the top level)
+                mine, theirs = into.counts[level, i], part.counts[level, i]
+                into.counts[level, i] = mine ^ theirs ^ carry
+                carry = (mine & theirs) | (carry & (mine ^ theirs))
+                part.counts[level, i] = 0
+        base = i << 6
+        while bits != 0:
+            c = base + trailing_zeros(bits)
+            bits &= bits - np.uint64(1)
+            if not counted:
+                into.weight_sum[c] += part.weight_sum[c]
+                part.weight_sum[c] = 0
+            if part.excess[c, 0] >= part_stamp:
+                into.moments[c, 2] += part.moments[c, 2]
+                into.moments[c, 3] += part.moments[c, 3]
+                part.moments[c, 2] = 0
+                part.moments[c, 3] = 0
+                into.excess[c, 0] = max(into.excess[c, 0], into_stamp)  # (a stamp of into's scan: the apply reads it)
+
+
+@kernel(nogil=True, error_model="numpy", refcounted=False)
+def apply_scan(
+    scratch, stamp_base, window, tiles, slot_map, layers, levels, moment_scale, words, held
+):  # pragma: no cover - compiled
     """Add the scan's weighted mean to each touched cell (clamped to [l_min, l_max]) and its spread to the variance
     layer, from the moments l_free W + D1 and l_free^2 W + 2 l_free D1 + D2 (W: the cell's weight sum, or with equal
     weights the sums' entry of its count); clear the cells' listed bits and weight sums or counts for the next scan.
@@ -764,18 +847,20 @@ def apply_scan(scratch, stamp_base, window, tiles, slot_map, layers, levels):  #
 
     scratch: the :class:`SamplesScratch` of :func:`accumulate_scan`, window and tiles as there (plain tuples);
     slot_map: the grid slot of each tile of the window; layers: the grid's (logodds, variance, observed); levels:
-    the model's (l_free, l_min, l_max)."""
+    the model's (l_free, l_min, l_max); moment_scale: as for :func:`accumulate_scan`; words: the scratch words
+    (64 cells each) words[0] .. words[1] - 1 to apply (bands of words may be applied on different threads at once:
+    they hold different cells); held: COUNT_LEVELS uint64 of room for a word's counts (one per thread). W, D1 and D2
+    are taken from their int64 steps, each rounded once to float64."""
     scratch, window, tiles = SamplesScratch(*scratch), Window(*window), Tiles(*tiles)
     logodds, variance, observed = layers
     l_free, l_min, l_max = levels
-    weight_sum, excess, sums = scratch.weight_sum, scratch.excess, scratch.sums
+    weight_sum, excess, moments, sums = scratch.weight_sum, scratch.excess, scratch.moments, scratch.sums
+    per_weight_step, per_moment_step = 1.0 / WEIGHT_SCALE, 1.0 / moment_scale  # (powers of two: exact)
     counted = sums.shape[0] > 0
-    count_levels = 0  # the counts' levels in use: those of the largest count, len(sums) - 1
-    while counted and (1 << count_levels) < sums.shape[0]:
-        count_levels += 1
+    count_levels = _count_levels(sums)
     in_tile = (1 << tiles.shift) - 1
     n_scan = 0
-    for i in range((window.w * window.h + 63) >> 6):
+    for i in range(words[0], words[1]):
         bits = scratch.listed[i]
         if bits == 0:
             continue
@@ -784,7 +869,7 @@ def apply_scan(scratch, stamp_base, window, tiles, slot_map, layers, levels):  #
         ty = (iy >> tiles.shift) - tiles.ty0
         ly = iy & in_tile
         base = i << 6
-        held = scratch.block  # the word's counts, read once (and cleared for the next scan), then per cell
+        # (held: the word's counts, read once and cleared for the next scan, then read per cell)
         if counted:
             for level in range(count_levels):
                 held[level] = scratch.counts[level, i]
@@ -799,14 +884,15 @@ def apply_scan(scratch, stamp_base, window, tiles, slot_map, layers, levels):  #
             if counted:
                 moment1 = l_free * sums[_count_of(held, k, count_levels)]
             else:
-                moment1 = l_free * weight_sum[c]
-                weight_sum[c] = 0.0
+                moment1 = l_free * (weight_sum[c] * per_weight_step)
+                weight_sum[c] = 0
             moment2 = l_free * moment1
             if excess[c, 0] >= stamp_base:
-                moment1 += excess[c, 2]
-                moment2 += 2.0 * l_free * excess[c, 2] + excess[c, 3]
-                excess[c, 2] = 0.0
-                excess[c, 3] = 0.0
+                d1 = moments[c, 2] * per_moment_step
+                moment1 += d1
+                moment2 += 2.0 * l_free * d1 + moments[c, 3] * per_moment_step
+                moments[c, 2] = 0
+                moments[c, 3] = 0
             mean = moment1
             spread = moment2 - mean * mean
             if spread < 0.0:

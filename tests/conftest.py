@@ -70,11 +70,12 @@ def fusion_kernels() -> None:
     first. On a fresh clone they take 30-60 s to compile on a busy 2-core machine; a mapper that a test starts would
     spend that before it says it is up, which the tests wait 60 s for, and a mapper stopped mid-compile keeps none of
     it. Compiled here (under mapping.jit's lock, so xdist's workers share the work), every mapper loads them."""
+    from mapping.fusion import FusionThreads
     from mapping.grid import TILE_SIZE
     from mapping.sensor_model import SensorModel
     from services.state.shard import warm_fusion
 
-    warm_fusion(SensorModel(), TILE_SIZE)
+    warm_fusion(SensorModel(), TILE_SIZE, FusionThreads(2))  # (a mapper on threads warms a lone scan in parts too)
 
 
 @pytest.fixture(autouse=True)

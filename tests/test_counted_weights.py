@@ -1,5 +1,5 @@
 """Equal weights counted, not summed (mapping.samples_pass, "Equal weights are counted"): the bit-sliced counters
-against plain per-bit counts, the table of sums against a Python loop, and maps fused through the counters against
+against plain per-bit counts, the table of sums against Python's integers, and maps fused through the counters against
 the same scans through the per-cell sums, bit for bit (the whole window and a shard, samples and Gaussian draws)."""
 
 from __future__ import annotations
@@ -56,14 +56,16 @@ def test_a_pair_of_words_adds_the_number_of_them_with_each_bit_set(pairs):
     assert np.array_equal(counts, one_by_one)
 
 
-def test_the_sums_table_is_the_per_cell_sum_in_sample_order():
+def test_the_sums_table_is_the_per_cell_sum_of_fixed_steps():
+    """n weights of 1/37, each truncated to steps of 2**-60 and summed as integers (by hand, Python's integers),
+    then rounded once to float64: what the per-cell sums of mapping.fixed_point give, in any order."""
     weights = np.full(37, 1.0 / 37)
-    expected, total = [0.0], 0.0
-    for weight in weights.tolist():
-        total += weight
-        expected.append(total)
+    step = int(weights[0] * 2**60)  # (1/37 in steps of 2**-60, truncated)
+    assert abs(step - 2**60 // 37) < 2**8  # (1/37 as a float64 is within 2**-53 of it, relative)
+    expected = [float(n * step) / 2**60 for n in range(38)]
     table = fusion._equal_weight_sums(weights)
-    assert table.tolist() == expected and table[-1] != 1.0  # (37 additions of 1/37 round below 1: the order matters)
+    assert table.tolist() == expected
+    assert table[-1] == 1.0  # (37 float additions of 1/37 round below 1; the integer sum rounds to 1)
     assert fusion._equal_weight_sums(np.array([0.5, 0.25, 0.25])).size == 0
     assert fusion._equal_weight_sums(np.full(2**COUNT_LEVELS, 2.0**-COUNT_LEVELS)).size == 0
 

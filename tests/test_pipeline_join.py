@@ -862,8 +862,11 @@ def test_tile_updates_carry_only_the_changed_window():
         assert update.logodds.shape[0] < shard.grid.tile_size  # a window, not the whole tile
 
 
-def test_warm_up_leaves_the_shard_empty():
-    shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), publish_interval=0.0), RejectCounter(logging.getLogger("t")))
+@pytest.mark.parametrize("threads", (1, 2))
+def test_warm_up_leaves_the_shard_empty(threads):
+    """On two threads the warm-up also fuses a scan in parts on the shard's threads, into its scratch grid."""
+    config = ShardConfig("m", 0, 1, SensorModel(), publish_interval=0.0, threads=threads)
+    shard = MapShard(config, RejectCounter(logging.getLogger("t")))
     shard.warm_up()
     assert shard.tiles() == [] and shard.cells_updated == 0 and sum(shard.fused.values()) == 0
     assert shard.due_updates(now=0.0, flush=True) == ([], None)

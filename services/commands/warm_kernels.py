@@ -29,8 +29,8 @@ def _cli(*argv: str) -> None:
 
 def warm_mapping(folder: Path) -> None:
     """The fusion's kernels: `posegrid fuse` of 30 simulated scans with Gaussian poses (EKF-SLAM) and with particles
-    (FastSLAM 2.0), Monte Carlo on one thread and two and bundled, the most likely pose, the adaptive grid, and
-    the particles once more as a shard of two fuses them."""
+    (FastSLAM 2.0), Monte Carlo on one thread and two and bundled, the most likely pose, the adaptive grid, the
+    particles once more as a shard of two fuses them, and a lone scan in parts on two threads."""
     sim = folder / "office"
     _cli("simulate", str(sim), "--steps", "30")
     runs = {"ekf": [], "fastslam2": ["--particles", "20"]}  # Gaussian poses; particles
@@ -40,11 +40,15 @@ def warm_mapping(folder: Path) -> None:
     for path in posed.values():
         for options in ([], ["--threads", "2"], ["--bundle", "0.1"], ["--mode", "ml"], ["--grid", "adaptive"]):
             _cli("fuse", str(path), "-o", str(folder / "map.npz"), *options)
+    from mapping.fusion import FusionThreads
+    from mapping.sensor_model import SensorModel
     from schemas.files import load_posed_scans
     from services.fusion_runner import fuse_posed_scans
     from services.state.ownership import owns_tile
+    from services.state.shard import warm_fusion
 
     fuse_posed_scans(load_posed_scans(posed["fastslam2"]), owns_tile=owns_tile(0, 2))  # a shard of two
+    warm_fusion(SensorModel(resolution=0.05), 256, FusionThreads(2))  # a lone scan in parts, as a live shard fuses it
 
 
 def warm_slam(folder: Path) -> None:

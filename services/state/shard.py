@@ -90,13 +90,20 @@ def message_bytes(message: object) -> int:
     return sum(value.nbytes for value in vars(message).values() if isinstance(value, np.ndarray))
 
 
-def warm_fusion(model: SensorModel, tile_size: int) -> None:
+def warm_fusion(model: SensorModel, tile_size: int, threads: FusionThreads | None = None) -> None:
     """Fuse a three-beam scan at two poses into a scratch grid of ``tile_size``-cell tiles with ``model``, so that the
     fusion's compiled kernels are loaded, or compiled and cached where they are not yet (mapping.jit). The scratch
-    fusion owns every tile, so every kernel runs (a shard owning none of these tiles would skip the last one)."""
+    fusion owns every tile, so every kernel runs (a shard owning none of these tiles would skip the last one). With
+    ``threads`` of more than one thread, the scan again at 16 poses, alone on them: in parts (its adding up)."""
     scratch = TiledGrid(model.resolution, tile_size)
-    fusion = MonteCarloFusion(scratch, model, np.array([-0.5, 0.0, 0.5]), 0.1, 5.0)
-    fusion.fuse(np.array([1.0, np.inf, 2.0]), np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0]]), np.array([0.5, 0.5]))
+    angles, ranges = np.array([-0.5, 0.0, 0.5]), np.array([1.0, np.inf, 2.0])
+    fusion = MonteCarloFusion(scratch, model, angles, 0.1, 5.0)
+    fusion.fuse(ranges, np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0]]), np.array([0.5, 0.5]))
+    if threads is not None and threads.count > 1:
+        poses = np.column_stack([np.linspace(0.0, 0.15, 16), np.zeros(16), np.zeros(16)])
+        MonteCarloFusion(scratch, model, angles, 0.1, 5.0, threads=threads).fuse_many(
+            [(ranges, poses, np.full(16, 1 / 16))]
+        )
 
 
 class MapShard:
@@ -372,7 +379,7 @@ class MapShard:
         """Load the compiled fusion kernels (:func:`warm_fusion`) before the first real scan arrives; otherwise that
         scan's tile update carries the load (0.4 to 0.5 s in `make bench`). The shard's own grid and counters are
         not touched."""
-        warm_fusion(self.config.model, self.config.tile_size)
+        warm_fusion(self.config.model, self.config.tile_size, self._threads)
 
     def _fusion_for(self, scan: LaserScan) -> MonteCarloFusion:
         geometry = (
@@ -461,7 +468,8 @@ class MapShard:
     def _fuse_drawn(self, drawn: list[tuple[int, LaserScan, np.ndarray, np.ndarray]]) -> list[FuseResult | Exception]:
         """The outcome of fusing each scan of ``drawn`` ((index, scan, samples, weights) each) with the fusion of its
         laser geometry, in order, on the shard's threads: a FuseResult, the InputError that refused it, or the error it
-        failed with (logged; the scans after it are fused all the same)."""
+        failed with (logged; the scans after it are fused all the same). Several scans are walked side by side, a lone
+        scan (a live laser's, fused as it comes) in parts on all the threads (mapping.fusion.FusionThreads)."""
         outcomes: list[FuseResult | Exception] = []
         while len(outcomes) < len(drawn):
             scans = (
@@ -469,7 +477,8 @@ class MapShard:
                 for _, scan, samples, weights in drawn[len(outcomes) :]
             )
             try:
-                for outcome in self._threads.fuse_iter(scans):
+                lone = len(drawn) - len(outcomes) == 1  # a lone scan, as a list: walked in parts on all the threads
+                for outcome in self._threads.fuse_iter(list(scans) if lone else scans):
                     outcomes.append(outcome)
             except Exception as exc:  # noqa: BLE001 - counted and logged with its traceback (_count_outcome)
                 outcomes.append(exc)  # (the scan whose turn it was; an InputError: a geometry no fusion takes)
