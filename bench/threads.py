@@ -10,6 +10,11 @@ and a shard the scans its intake holds. The speed-up is the median over the turn
 other's. Beside it, the process's CPU time per scan (what threading costs in all) and its CPU time over its wall
 time while fusing (how many cores it had: on a shared machine, fewer than its threads when others are busy). The
 maps are checked to be the same bit for bit at the end.
+
+Then the same in turns with each scan fused alone (``fuse_many`` of one scan, figures prefixed ``lone_``), as a live
+shard fuses a scan as it comes: one thread walks it, two or more walk its samples in parts at once. Each scan's wall
+time (median, p99) per thread count, and the median over the turns of one thread's time over the other's: what the
+threads buy a scan's latency. Its maps too are checked against the others, bit for bit.
 """
 
 from __future__ import annotations
@@ -46,23 +51,34 @@ def _fusions(posed: PosedScans, counts: list[int]) -> list[MonteCarloFusion]:
     return fusions
 
 
-def _turns(posed: PosedScans, fusions: list[MonteCarloFusion]) -> tuple[np.ndarray, np.ndarray]:
+def _turns(
+    posed: PosedScans, fusions: list[MonteCarloFusion], lone: bool = False
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Wall seconds and the process's CPU seconds (all its threads) per turn (rows) and thread count (columns), the
-    counts in turns on each turn's scans."""
+    counts in turns on each turn's scans; and each scan's wall seconds (rows) per thread count (columns) when
+    ``lone`` (each scan fused alone, as a live shard fuses a scan as it comes: its samples walked in parts on the
+    threads), else an empty array."""
     samples, weights = posed.poses.weighted_samples()
     scans = [(posed.scan_ranges(t), samples[t], weights[t]) for t in range(len(posed.stamps))]
     wall: list[list[float]] = []
     cpu: list[list[float]] = []
+    per_scan: list[list[float]] = [[] for _ in fusions]
     for first in range(0, len(scans), TURN):
         turn = scans[first : first + TURN]
         wall.append([])
         cpu.append([])
-        for fusion in fusions:
+        for column, fusion in enumerate(fusions):
             start, start_cpu = time.perf_counter(), time.process_time()
-            fusion.fuse_many(turn)
+            if lone:
+                for scan in turn:
+                    scan_start = time.perf_counter()
+                    fusion.fuse_many([scan])
+                    per_scan[column].append(time.perf_counter() - scan_start)
+            else:
+                fusion.fuse_many(turn)
             wall[-1].append(time.perf_counter() - start)
             cpu[-1].append(time.process_time() - start_cpu)
-    return np.array(wall), np.array(cpu)
+    return np.array(wall), np.array(cpu), np.array(per_scan).T if lone else np.zeros(0)
 
 
 def _same_maps(grids: list[TiledGrid]) -> bool:
@@ -92,7 +108,7 @@ def _threads(posed: PosedScans) -> dict:
     cores = available_cores()
     counts = sorted({1, 2, cores})
     fusions = _fusions(posed, counts)
-    seconds, cpu = _turns(posed, fusions)
+    seconds, cpu, _ = _turns(posed, fusions)
     scans = len(posed.stamps)
     samples = posed.poses.weighted_samples()[1].shape[1]
     out: dict = {"scans": scans, "samples": samples, "resolution_m": RESOLUTION, "cores": cores, "turn_scans": TURN}
@@ -105,7 +121,14 @@ def _threads(posed: PosedScans) -> dict:
             out[f"threads_{count}_speedup_min"] = float(np.min(seconds[:, 0] / seconds[:, column]))
             out[f"threads_{count}_speedup_max"] = float(np.max(seconds[:, 0] / seconds[:, column]))
     out["turns"] = len(seconds)
-    out["maps_identical"] = _same_maps([fusion.grid for fusion in fusions])
+    lone = _fusions(posed, counts)
+    lone_seconds, _, per_scan = _turns(posed, lone, lone=True)
+    for column, count in enumerate(counts):
+        out[f"lone_threads_{count}_ms_per_scan_median"] = 1e3 * float(np.median(per_scan[:, column]))
+        out[f"lone_threads_{count}_ms_per_scan_p99"] = 1e3 * float(np.percentile(per_scan[:, column], 99))
+        if count > 1:
+            out[f"lone_threads_{count}_speedup_median"] = float(np.median(lone_seconds[:, 0] / lone_seconds[:, column]))
+    out["maps_identical"] = _same_maps([fusion.grid for fusion in fusions + lone])
     widest = fusions[-1].threads
     out["scratch_mb_each"] = widest.nbytes / widest.scratches / 1e6
     out["scratch_mb_total"] = widest.nbytes / 1e6
