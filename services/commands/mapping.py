@@ -105,15 +105,15 @@ def available_cores() -> int:
 
 
 def add_threads_argument(parser: argparse.ArgumentParser | argparse._ArgumentGroup, default: str) -> None:
-    """--threads N: how many scans the fusion walks side by side (mapping.fusion.FusionThreads); ``default`` says
-    what it is when not given. Read with :func:`threads_from_args`."""
+    """--threads N: how many scans the fusion walks side by side, or parts of a lone scan's samples
+    (mapping.fusion.FusionThreads); ``default`` says what it is when not given. Read with :func:`threads_from_args`."""
     parser.add_argument(
         "--threads",
         default=None,
         metavar="N",
-        help="threads that fuse scans side by side, each with a scratch window of its own (about 43 bytes a cell of "
-        f"a scan's window: 11 MB for a 12 m laser at 0.05 m); the map is the same bit for bit for any N (default: "
-        f"{default})",
+        help="threads that fuse scans side by side, or a scan that comes alone in parts of its pose samples, each "
+        "with a scratch window of its own (about 43 bytes a cell of a scan's window: 11 MB for a 12 m laser at "
+        f"0.05 m); the map is the same bit for bit for any N (default: {default})",
     )
 
 
