@@ -490,9 +490,8 @@ class FusionThreads:
     use), the next scan's walk already waits on the pool, so no core idles during an apply.
 
     Memory: ``count + 1`` scratches of about 43 bytes a window cell each (:class:`FusionScratch`; a lone scan's parts
-    use ``count`` of them), on top of each
-    fusion's own (for :meth:`MonteCarloFusion.fuse`); the pool's threads start on the first scans fused with
-    count > 1. Not thread-safe: one caller at a time."""
+    use ``count`` of them), on top of each fusion's own (for :meth:`MonteCarloFusion.fuse`); the pool's threads start
+    on the first scans fused with count > 1. Not thread-safe: one caller at a time."""
 
     def __init__(self, count: int = 1) -> None:
         if count < 1:
