@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable, Iterator, Sequence
-from concurrent.futures import Executor, ThreadPoolExecutor, wait
+from concurrent.futures import Executor, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -361,8 +361,14 @@ class MonteCarloFusion:
         words = (win_w * win_h + 63) >> 6
         if pool is None or len(walked) == 1:
             n_scan = band((0, words))
-        else:
-            n_scan = sum(pool.map(band, _bands(words, len(walked))))
+        else:  # bands 1.. on the pool, band 0 on this thread
+            mine, *theirs = _bands(words, len(walked))
+            jobs = [pool.submit(band, words) for words in theirs]
+            try:
+                n_scan = band(mine)
+            finally:
+                wait(jobs)
+            n_scan += sum(job.result() for job in jobs)
         return FuseResult(n_scan, changed, sum(part.samples for part in walked))
 
     def _window(self, lasers: np.ndarray, reach: float) -> tuple[Window, Tiles, np.ndarray]:
@@ -541,14 +547,23 @@ class FusionThreads:
             return
         assert self._pool is not None  # (fuse_iter started it)
         parts = fusion.parts_for(ready, self.count)
-        jobs = [
-            self._pool.submit(fusion.walk, ready, scratch, part, parts)
-            for part, scratch in enumerate(self._scratches[:parts])
+        jobs = [  # parts 1.. on the pool, part 0 on this thread (one hand-over less, and no wait to wake from)
+            self._pool.submit(fusion.walk, ready, self._scratches[part], part, parts) for part in range(1, parts)
         ]
-        wait(jobs)  # (every part ends before an error is raised: the scratches are idle again)
-        if any(job.exception() is not None for job in jobs):
-            self._scratches[:parts] = [FusionScratch() for _ in range(parts)]  # (the others' parts are not cleared)
-        yield fusion.apply_parts([job.result() for job in jobs], self._pool)
+        try:
+            first = fusion.walk(ready, self._scratches[0], 0, parts)
+        except BaseException:
+            self._failed_parts(jobs, parts)
+            raise
+        if any(job.exception() is not None for job in jobs):  # (waits for each)
+            self._failed_parts(jobs, parts)
+        yield fusion.apply_parts([first, *(job.result() for job in jobs)], self._pool)
+
+    def _failed_parts(self, jobs: list[Future[Walked]], parts: int) -> None:
+        """After a part's walk failed: wait for the others (their scratches idle before anyone uses them again) and
+        replace the parts' scratches, which hold walks never added up nor cleared."""
+        wait(jobs)
+        self._scratches[:parts] = [FusionScratch() for _ in range(parts)]
 
 
 def _one_by_one(scans: Iterable[tuple[MonteCarloFusion, ScanInput]]) -> Iterator[FuseResult | InputError]:

@@ -102,7 +102,8 @@ def test_a_lone_scan_on_threads_is_walked_in_parts_into_the_serial_map(particles
     assert sizes[threads] == 0  # the spare scratch of side-by-side scans: not used for parts
 
 
-def test_a_part_that_fails_raises_and_leaves_no_trace_in_the_next_scans(particles, monkeypatch):
+@pytest.mark.parametrize("failing", (0, 1))  # (part 0 is walked on the calling thread, part 1 on the pool)
+def test_a_part_that_fails_raises_and_leaves_no_trace_in_the_next_scans(particles, monkeypatch, failing):
     """A part's walk that raises (a fault injected: walks do not fail on any input) is raised for its scan; the other
     part, walked and never added up, must not leak into the next scan: the map is that of the other scans alone."""
     scans = particle_scans(particles)
@@ -110,13 +111,13 @@ def test_a_part_that_fails_raises_and_leaves_no_trace_in_the_next_scans(particle
     fusion = MonteCarloFusion(got, MODEL, *particles.single_geometry(), threads=FusionThreads(2))
     walk = MonteCarloFusion.walk
 
-    def failing(self, ready, scratch, part=0, parts=1):
-        if part == 1:
-            raise RuntimeError("part 1 failed")
+    def walk_or_fail(self, ready, scratch, part=0, parts=1):
+        if part == failing:
+            raise RuntimeError(f"part {part} failed")
         return walk(self, ready, scratch, part, parts)
 
-    monkeypatch.setattr(MonteCarloFusion, "walk", failing)
-    with pytest.raises(RuntimeError, match="part 1 failed"):
+    monkeypatch.setattr(MonteCarloFusion, "walk", walk_or_fail)
+    with pytest.raises(RuntimeError, match=f"part {failing} failed"):
         fusion.fuse_many([scans[0]])
     monkeypatch.undo()
     serial = MonteCarloFusion(expected, MODEL, *particles.single_geometry())
