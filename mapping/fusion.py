@@ -49,7 +49,7 @@ from mapping.fixed_point import WEIGHT_SCALE, moment_scale
 from mapping.grid import TiledGrid
 from mapping.parallel_fusion import in_scan_order
 from mapping.samples_pass import COUNT_LEVELS, STAMP_LIMIT, accumulate_scan, apply_scan, merge_scan, owned_table
-from mapping.scan_input import check_scan, check_window, laser_poses, merge_duplicates
+from mapping.scan_input import MAX_WINDOW_CELLS, check_scan, check_window, laser_poses, merge_duplicates
 from mapping.sensor_model import SensorModel
 from mapping.single_pass import accumulate_single, apply_single
 from mapping.window_walk import Tiles, Window
@@ -78,7 +78,9 @@ class FusionScratch:
     column-major plane: SAMPLES_SCRATCH_BYTES_PER_CELL, about 43 bytes a window cell in all (the one-sample pass
     keeps 8 bytes and two bits). 11 MB for the office's 12 m laser at 0.05 m (a window of about 490 x 490 cells), 63
     MB for a 30 m laser, 0.71 GB at the largest window a scan may take (mapping.scan_input.MAX_WINDOW_CELLS). A
-    fusion on T > 1 threads keeps T + 1 of them.
+    fusion on T > 1 threads keeps T + 1 of them. When it grows, it takes SCRATCH_ROOM more cells than the window asks
+    (up to MAX_WINDOW_CELLS): a window that grows with the samples' spread, scan after scan, then seldom reallocates
+    (each growth faults in the new arrays' pages: about 15 ms a scan for a 30 m laser).
 
     Nothing in it carries from one scan to the next: each pass clears what it set, and the samples pass tells
     the excess records of earlier scans by their stamps (unique per scratch: :meth:`stamps`)."""
@@ -110,7 +112,7 @@ class FusionScratch:
             self.lines = np.zeros((2, lines), np.int64)
         if cells <= self.size:
             return
-        self.size = cells
+        self.size = cells = _with_room(cells)
         # per cell (see accumulate_scan): a bit in the sample's plane and in the listed plane, the weight sum,
         # the excess record
         self.plane = np.zeros((cells + 63) // 64, np.uint64)
@@ -125,7 +127,7 @@ class FusionScratch:
         """Room for the one-sample pass over a window of ``blocks`` 8 x 8 blocks."""
         if blocks <= self.single_blocks:
             return
-        self.single_blocks = blocks
+        self.single_blocks = blocks = _with_room(blocks)
         # per 8 x 8 block and per cell (see accumulate_single): touched and raised bits, the largest excess
         self.touched_bits = np.zeros(blocks, np.int64)
         self.raised_bits = np.zeros(blocks, np.int64)
@@ -451,6 +453,16 @@ class MonteCarloFusion:
             self._moment_scale,
         )
         return Walked(False, args, 0, touched, window_args, tile_args, 0.0, stamp_base, len(lasers))
+
+
+#: the share of cells a scratch takes beyond the window that makes it grow (FusionScratch)
+SCRATCH_ROOM = 1 / 8
+
+
+def _with_room(cells: int) -> int:
+    """The cells a scratch takes when a window of ``cells`` makes it grow: SCRATCH_ROOM more, up to MAX_WINDOW_CELLS
+    (never fewer than ``cells``)."""
+    return max(cells, min(cells + int(cells * SCRATCH_ROOM), MAX_WINDOW_CELLS))
 
 
 #: the fewest samples a part of a scan's walk takes (MonteCarloFusion.parts_for)

@@ -10,8 +10,15 @@ from hypothesis import strategies as st
 from mapping.beam_model import BEAM_HIT, BEAM_NO_RETURN, BEAM_SKIP, beam_table
 from mapping.errors import InputError
 from mapping.fan_runs import FAN_FLOATS, FAN_INTS
-from mapping.fusion import SAMPLES_SCRATCH_BYTES_PER_CELL, FusionScratch, MonteCarloFusion, merge_duplicates
+from mapping.fusion import (
+    SAMPLES_SCRATCH_BYTES_PER_CELL,
+    FusionScratch,
+    MonteCarloFusion,
+    _with_room,
+    merge_duplicates,
+)
 from mapping.grid import TiledGrid
+from mapping.scan_input import MAX_WINDOW_CELLS
 from mapping.sensor_model import SensorModel
 from reference import reference_fuse
 
@@ -487,4 +494,24 @@ def test_the_samples_scratch_holds_the_bytes_a_cell_its_docs_give():
     cells = 512 * 512
     scratch.for_samples(cells, cells, 512, 361)
     assert FAN_INTS + FAN_FLOATS == 28
-    assert scratch.nbytes == SAMPLES_SCRATCH_BYTES_PER_CELL * cells + 2 * 512 * 8 + 28 * 361 * 8 + 64 * 8
+    room = cells + cells // 8  # (a scratch grows by an eighth more than the window asks: the per-cell arrays)
+    per_cell = SAMPLES_SCRATCH_BYTES_PER_CELL - 1 / 8  # (the column-major plane's bit: for the window's columns only)
+    assert scratch.nbytes == per_cell * room + cells / 8 + 2 * 512 * 8 + 28 * 361 * 8 + 64 * 8
+
+
+def test_a_scratch_keeps_an_eighth_more_cells_so_that_a_growing_window_seldom_reallocates():
+    scratch = FusionScratch()
+    scratch.for_samples(8000, 8000, 100, 10)
+    assert scratch.size == 9000 and scratch.excess.shape == (9000, 4) and scratch.weight_sum.shape == (9000,)
+    excess = scratch.excess
+    scratch.for_samples(9000, 8000, 100, 10)  # grown by an eighth: no new arrays
+    assert scratch.excess is excess
+    scratch.for_samples(9001, 8000, 100, 10)
+    assert scratch.size == 9001 + 1125 and scratch.excess is not excess
+    # near the largest window a scan may take, no room beyond it (checked on the rule: those arrays take 0.7 GB)
+    assert (
+        _with_room(MAX_WINDOW_CELLS - 10) == MAX_WINDOW_CELLS
+        and _with_room(MAX_WINDOW_CELLS + 5) == MAX_WINDOW_CELLS + 5
+    )
+    scratch.for_single(800)
+    assert scratch.single_blocks == 900 and scratch.largest.shape == (900 * 64,)
