@@ -36,7 +36,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Executor, Future, ThreadPoolExecutor, wait
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
@@ -52,17 +52,21 @@ from mapping.samples_pass import COUNT_LEVELS, STAMP_LIMIT, accumulate_scan, app
 from mapping.scan_input import MAX_WINDOW_CELLS, check_scan, check_window, laser_poses, merge_duplicates
 from mapping.sensor_model import SensorModel
 from mapping.single_pass import accumulate_single, apply_single
+from mapping.tile_boxes import empty_boxes, tile_windows
 from mapping.window_walk import Tiles, Window
 
 
 @dataclass(frozen=True)
 class FuseResult:
-    """What one scan changed: the number of distinct cells updated and the tiles they lie in; and the pose samples
-    whose rays it walked (after merging identical ones and bundling, mapping.bundling; 0 for a scan not walked)."""
+    """What one scan changed: the number of distinct cells updated and the tiles they lie in; the pose samples whose
+    rays it walked (after merging identical ones and bundling, mapping.bundling; 0 for a scan not walked); and per
+    tile of tiles_changed, the window of it that holds the cells updated: (row0, col0, rows, cols), tile-local
+    cells (mapping.tile_boxes)."""
 
     cells_updated: int
     tiles_changed: list[tuple[int, int]]
     samples_walked: int = 0
+    windows: list[tuple[int, int, int, int]] = field(default_factory=list)
 
 
 #: what :meth:`MonteCarloFusion.fuse_iter` takes per scan: ranges (B,) m, robot pose samples (M, 3), weights (M,)
@@ -166,7 +170,8 @@ class Ready(NamedTuple):
 class Walked(NamedTuple):
     """A walked scan, to apply: the pass's scratch (the kernels' tuple), the cells it touched (one-sample pass; the
     samples pass's apply counts them), the tiles it touched, the window and tiles (tuples), the one sample's weight
-    (one-sample pass) or the first stamp (samples pass), and the number of laser poses walked."""
+    (one-sample pass) or the first stamp (samples pass), the number of laser poses walked, and the boxes of the cells
+    touched per tile of the window."""
 
     single: bool
     scratch: tuple
@@ -177,6 +182,7 @@ class Walked(NamedTuple):
     weight: float
     stamp_base: int
     samples: int  # the laser poses walked
+    boxes: np.ndarray  # per tile of the window, the box of the cells touched (mapping.tile_boxes)
 
 
 class MonteCarloFusion:
@@ -344,13 +350,14 @@ class MonteCarloFusion:
             first.touched[...] |= other.touched
         tx0, ty0 = first.tile_args[3], first.tile_args[4]  # (Tiles: owned, all_owned, shift, tx0, ty0)
         slot_map, changed = self._tile_slots(first.touched, tx0, ty0)
+        windows = tile_windows([part.boxes for part in walked], first.touched)
         grid = self.grid  # (its layers after _tile_slots: new tiles may have moved them)
         layers = (grid.logodds, grid.variance, grid.observed)
         if first.single:
             apply_single(
                 first.scratch, first.weight, first.window_args, first.tile_args, slot_map, layers, self._levels
             )
-            return FuseResult(first.n_scan, changed, first.samples)
+            return FuseResult(first.n_scan, changed, first.samples, windows)
 
         def band(words: tuple[int, int]) -> int:
             """Merge and apply the scratch words words[0] .. words[1] - 1; the cells updated."""
@@ -371,7 +378,7 @@ class MonteCarloFusion:
             finally:
                 wait(jobs)
             n_scan += sum(job.result() for job in jobs)
-        return FuseResult(n_scan, changed, sum(part.samples for part in walked))
+        return FuseResult(n_scan, changed, sum(part.samples for part in walked), windows)
 
     def _window(self, lasers: np.ndarray, reach: float) -> tuple[Window, Tiles, np.ndarray]:
         """The scratch window over the rays of laser poses (M, 3) that reach ``reach`` m (its origin a multiple of 8
@@ -407,11 +414,12 @@ class MonteCarloFusion:
         window, tiles = ready.window, ready.tiles
         blocks_w, blocks_h = -(-window.w // 8), -(-window.h // 8)
         scratch.for_single(blocks_w * blocks_h)
-        touched = np.zeros(tiles.owned.shape, np.bool_)
-        args = (scratch.touched_bits, scratch.raised_bits, scratch.largest, blocks_w, blocks_h, touched)
+        touched, boxes = np.zeros(tiles.owned.shape, np.bool_), empty_boxes(tiles.owned.shape)
+        args = (scratch.touched_bits, scratch.raised_bits, scratch.largest, blocks_w, blocks_h, touched, boxes)
         window_args, tile_args = tuple(window), tuple(tiles)
         n_scan = accumulate_single(ready.lasers[0], *self._ray_args(ready.beams), window_args, tile_args, args)
-        return Walked(True, args, int(n_scan), touched, window_args, tile_args, float(ready.weights[0]), 0, 1)
+        weight = float(ready.weights[0])
+        return Walked(True, args, int(n_scan), touched, window_args, tile_args, weight, 0, 1, boxes)
 
     def _walk_samples(self, ready: Ready, scratch: FusionScratch, part: int, parts: int) -> Walked:
         """The samples pass (laser poses (M, 3), weights (M,)) over the part-th of ``parts`` runs of the samples."""
@@ -422,7 +430,7 @@ class MonteCarloFusion:
         col_stride = -(-window.h // 64) * 64
         scratch.for_samples(win_w * window.h, win_w * col_stride, max(win_w, window.h), len(ready.beams.kind))
         stamp_base = scratch.stamps(len(lasers))
-        touched = np.zeros(tiles.owned.shape, np.bool_)
+        touched, boxes = np.zeros(tiles.owned.shape, np.bool_), empty_boxes(tiles.owned.shape)
         args = (
             scratch.plane,
             scratch.columns,
@@ -439,6 +447,7 @@ class MonteCarloFusion:
             scratch.fan_floats,
             scratch.pair_plane,
             scratch.moments,
+            boxes,
         )
         window_args, tile_args = (window.ix0, window.iy0, win_w, window.h), tuple(tiles)
         accumulate_scan(
@@ -452,7 +461,7 @@ class MonteCarloFusion:
             stamp_base,
             self._moment_scale,
         )
-        return Walked(False, args, 0, touched, window_args, tile_args, 0.0, stamp_base, len(lasers))
+        return Walked(False, args, 0, touched, window_args, tile_args, 0.0, stamp_base, len(lasers), boxes)
 
 
 #: the share of cells a scratch takes beyond the window that makes it grow (FusionScratch)

@@ -29,7 +29,7 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba.cpython.unsafe.numbers import trailing_zeros  # LLVM's cttz: the set bits of a word, one by one
+from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros  # LLVM's ctlz, cttz: a word's set bits
 
 from mapping.beam_model import BeamTable, LogOddsModel, beam_at, segment_logodds
 from mapping.fan_runs import (
@@ -62,6 +62,7 @@ from mapping.fixed_point import WEIGHT_SCALE, to_fixed
 from mapping.free_runs import fold_block, fold_columns, mark_free_runs, plane_coordinates, run_lines, set_bit
 from mapping.jit import kernel
 from mapping.raytrace import dda_step
+from mapping.tile_boxes import widen_box
 from mapping.window_walk import (
     Ray,
     Tiles,
@@ -98,7 +99,8 @@ class SamplesScratch(NamedTuple):
     write a few dense rows); sums: the table W = sums[n] for n samples of equal weight, empty when the weights differ
     (then W is summed per cell); fan_ints, fan_floats: the records of a sample's rays for
     :func:`mapping.fan_runs.fan_hulls` (its ``fan_scratch``); pair_plane: as plane, the touched cells of the second
-    sample of a pair (:func:`accumulate_scan`); moments: ``excess`` viewed as int64.
+    sample of a pair (:func:`accumulate_scan`); moments: ``excess`` viewed as int64; boxes: per tile of the window,
+    the bounding box of its listed cells (:mod:`mapping.tile_boxes`).
     """
 
     plane: np.ndarray
@@ -116,6 +118,7 @@ class SamplesScratch(NamedTuple):
     fan_floats: np.ndarray
     pair_plane: np.ndarray
     moments: np.ndarray
+    boxes: np.ndarray
 
 
 class _Marks(NamedTuple):
@@ -645,6 +648,7 @@ def _second_of_pair(scratch):  # pragma: no cover - compiled
         scratch.fan_floats,
         scratch.plane,
         scratch.moments,
+        scratch.boxes,
     )
 
 
@@ -659,17 +663,22 @@ def _word_origin(i, window):  # pragma: no cover - compiled
 
 @kernel(nogil=True, error_model="numpy", inline="always")
 def _touch_tiles(scratch, i, new, window, tiles):  # pragma: no cover - compiled
-    """Mark in tile_touched the tiles of the cells of word i whose bit is set in ``new``: one step per tile the word
-    meets (a word holds 64 cells of one row)."""
+    """Mark in tile_touched the tiles of the cells of word i whose bit is set in ``new`` (cells new to the scan's
+    listed plane), and widen those tiles' boxes to hold them: one step per tile the word meets (a word holds 64 cells
+    of one row)."""
     ix0, iy = _word_origin(i, window)
+    in_tile = (1 << tiles.shift) - 1
     ty = (iy >> tiles.shift) - tiles.ty0
+    ly = iy & in_tile
     while new != 0:
-        tx = (ix0 + trailing_zeros(new)) >> tiles.shift
+        first = trailing_zeros(new)
+        tx = (ix0 + first) >> tiles.shift
         scratch.tile_touched[ty, tx - tiles.tx0] = True
-        past = ((tx + 1) << tiles.shift) - ix0  # the word's first cell in the next tile
-        if past >= 64:
-            return
-        new &= ~((np.uint64(1) << np.uint64(past)) - np.uint64(1))
+        past = ((tx + 1) << tiles.shift) - ix0  # the word's first cell in the next tile (> first)
+        here = new if past >= 64 else new & ((np.uint64(1) << np.uint64(past)) - np.uint64(1))
+        last = 63 - leading_zeros(here)
+        widen_box(scratch.boxes, ty, tx - tiles.tx0, ly, (ix0 + first) & in_tile, ly, (ix0 + last) & in_tile)
+        new ^= here
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")

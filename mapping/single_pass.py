@@ -17,16 +17,19 @@ import math
 from typing import NamedTuple
 
 import numpy as np
+from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros  # LLVM's ctlz, cttz
 
 from mapping.beam_model import BeamTable, LogOddsModel, beam_at, segment_logodds
 from mapping.jit import kernel
+from mapping.tile_boxes import widen_box
 from mapping.window_walk import Tiles, Window, beam_ray, ownership_constants, walk_ray
 
 
 class SingleScratch(NamedTuple):
     """The one-sample pass's scratch over a scan's window, per 8 x 8 block of cells (see :func:`accumulate_single`):
     touched, raised (int64 bit sets per block), excess (a float64 per cell), the window's blocks_w x blocks_h
-    blocks, and tile_touched (bool, per tile of the window)."""
+    blocks, tile_touched (bool, per tile of the window) and boxes (per tile of the window, the bounding box of its
+    touched cells: :mod:`mapping.tile_boxes`)."""
 
     touched: np.ndarray
     raised: np.ndarray
@@ -34,6 +37,7 @@ class SingleScratch(NamedTuple):
     blocks_w: int
     blocks_h: int
     tile_touched: np.ndarray
+    boxes: np.ndarray
 
 
 class _Blocks(NamedTuple):
@@ -154,8 +158,10 @@ def accumulate_single(laser, directions, beams, model, res, window, tiles, scrat
 
 @kernel(nogil=True, error_model="numpy", inline="always")
 def _count_touched(scratch, window, tiles):  # pragma: no cover - compiled
-    """The number of cells the scan touched; marks their tiles in tile_touched."""
+    """The number of cells the scan touched; marks their tiles in tile_touched and widens the tiles' boxes to hold
+    them (per block: its first and last rows and columns with a touched cell)."""
     shift, tx0, ty0 = tiles.shift, tiles.tx0, tiles.ty0
+    in_tile = (1 << shift) - 1
     n_cells = 0
     for block in range(scratch.blocks_w * scratch.blocks_h):
         bits = scratch.touched[block]
@@ -165,11 +171,24 @@ def _count_touched(scratch, window, tiles):  # pragma: no cover - compiled
         bx = (block % scratch.blocks_w) * 8 + window.ix0
         by = (block // scratch.blocks_w) * 8 + window.iy0
         if shift >= 3:  # the block lies in one tile
-            scratch.tile_touched[(by >> shift) - ty0, (bx >> shift) - tx0] = True
+            ty, tx = (by >> shift) - ty0, (bx >> shift) - tx0
+            scratch.tile_touched[ty, tx] = True
+            word = np.uint64(bits)
+            columns = word | (word >> np.uint64(32))
+            columns |= columns >> np.uint64(16)
+            columns |= columns >> np.uint64(8)
+            columns &= np.uint64(255)  # (bit c: a touched cell in column c)
+            ly, lx = by & in_tile, bx & in_tile
+            rows = (trailing_zeros(word) >> 3, (63 - leading_zeros(word)) >> 3)
+            cols = (trailing_zeros(columns), 63 - leading_zeros(columns))
+            widen_box(scratch.boxes, ty, tx, ly + rows[0], lx + cols[0], ly + rows[1], lx + cols[1])
         else:
             for bit in range(64):
                 if (bits >> bit) & 1:
-                    scratch.tile_touched[((by + (bit >> 3)) >> shift) - ty0, ((bx + (bit & 7)) >> shift) - tx0] = True
+                    iy, ix = by + (bit >> 3), bx + (bit & 7)
+                    ty, tx = (iy >> shift) - ty0, (ix >> shift) - tx0
+                    scratch.tile_touched[ty, tx] = True
+                    widen_box(scratch.boxes, ty, tx, iy & in_tile, ix & in_tile, iy & in_tile, ix & in_tile)
     return n_cells
 
 

@@ -862,6 +862,38 @@ def test_tile_updates_carry_only_the_changed_window():
         assert update.logodds.shape[0] < shard.grid.tile_size  # a window, not the whole tile
 
 
+def test_a_tiles_windows_join_until_it_is_published():
+    """Scans fused while a tile is held back (publish_interval): its next update's window holds every cell that
+    changed since the last update (compared by numpy with a copy of the tile then), and the joined window of two
+    windows is their bounding box (by hand)."""
+    log = logging.getLogger("test-shard")
+    shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), publish_interval=10.0), RejectCounter(log))
+    shard.handle("pg/r/scan", _scan(0).encode())
+    shard.handle("pg/r/pose", _pose(0).encode())
+    first, _ = shard.due_updates(now=0.0)
+    assert [(u.tx, u.ty) for u in first] == [(0, 0)]
+    published = [layer.copy() for layer in shard.grid.tile_arrays((0, 0))]
+    for seq in (1, 2):  # other poses: other cells change
+        shard.handle("pg/r/scan", _scan(seq).encode())
+        pose = _pose(seq)
+        moved = PoseSamples(**{**pose.__dict__, "samples": pose.samples + [0.2 * seq, 0.1, 0.05]})
+        shard.handle("pg/r/pose", moved.encode())
+    held, next_due = shard.due_updates(now=5.0)
+    assert held == [] and next_due == 10.0
+    updates, _ = shard.due_updates(now=10.0)
+    (update,) = [u for u in updates if (u.tx, u.ty) == (0, 0)]
+    changed = np.zeros(published[0].shape, bool)
+    for now, before in zip(shard.grid.tile_arrays((0, 0)), published):
+        changed |= now != before
+    inside = np.zeros_like(changed)
+    rows, cols = update.logodds.shape
+    inside[update.row0 : update.row0 + rows, update.col0 : update.col0 + cols] = True
+    assert changed.any() and not (changed & ~inside).any()
+    shard._changed((5, 5), (2, 3, 4, 5))
+    shard._changed((5, 5), (10, 1, 2, 2))
+    assert shard._dirty[(5, 5)] == (2, 1, 10, 7)  # rows 2..11, columns 1..7
+
+
 @pytest.mark.parametrize("threads", (1, 2))
 def test_warm_up_leaves_the_shard_empty(threads):
     """On two threads the warm-up also fuses a scan in parts on the shard's threads, into its scratch grid."""

@@ -162,10 +162,10 @@ class MapShard:
         self.cells_updated = 0
         self.tile_updates = 0
         self.started = time.monotonic()
-        self._dirty: set[TileKey] = set()
+        # per tile changed since it was last published, the window (row0, col0, rows, cols) that holds the changes
+        self._dirty: dict[TileKey, tuple[int, int, int, int]] = {}
         self._last_sent: dict[TileKey, float] = {}
         self._last_scan: dict[TileKey, tuple[str, int]] = {}
-        self._snapshots: dict[TileKey, tuple[np.ndarray, ...]] = {}  # (logodds, variance, observed) last published
         self.journal: Journal | None = None  # what changed since the last commit, for a shard with a store
 
     # ------------------------------------------------------------------------------- intake
@@ -502,8 +502,8 @@ class MapShard:
             return []
         self.fused[scan.robot] += 1
         self.cells_updated += outcome.cells_updated
-        for tile in outcome.tiles_changed:
-            self._dirty.add(tile)
+        for tile, window in zip(outcome.tiles_changed, outcome.windows):
+            self._changed(tile, window)
             self._last_scan[tile] = (scan.robot, scan.seq)
         return outcome.tiles_changed
 
@@ -580,7 +580,7 @@ class MapShard:
         for tile in state.tiles:
             self.grid.set_tile(tile.key, tile.logodds, tile.variance, tile.observed)
             self._last_scan[tile.key] = (tile.robot, tile.seq)
-            self._dirty.add(tile.key)
+            self._changed(tile.key)
         for entry in state.ledger:
             self._fused_seqs.mark(entry.robot, entry.seq, (entry.scan, entry.pose))
         now = self._clock()
@@ -613,7 +613,7 @@ class MapShard:
         for key in owned:
             self.grid.set_tile(key, *tiles[key])
             self._last_scan[key] = (SEED_ROBOT, 0)
-            self._dirty.add(key)
+            self._changed(key)
         if self.journal is not None and owned:
             self.journal.noted(self._clock(), owned)
         return len(owned)
@@ -648,38 +648,32 @@ class MapShard:
         )
 
     def due_updates(self, now: float, flush: bool = False) -> tuple[list[TileUpdate], float | None]:
-        """Updates for the dirty tiles whose last update is at least publish_interval old (all with ``flush``).
+        """Updates for the changed tiles whose last update is at least publish_interval old (all with ``flush``).
 
-        Each covers the bounding box of the cells changed since the tile was last published. Returns the
-        updates and the monotonic time the next held-back tile falls due (None when none is held back).
-        """
+        Each covers the window of the tile that holds every cell changed since the tile was last published (the
+        fusions' windows of the cells they updated, mapping.tile_boxes, joined; a whole tile set from a store or a
+        seed). Returns the updates and the monotonic time the next held-back tile falls due (None when none is held
+        back)."""
         updates, next_due = [], None
-        for tile in list(self._dirty):
+        for tile, window in list(self._dirty.items()):
             due = self._last_sent.get(tile, -np.inf) + self.config.publish_interval
             if not flush and now < due:
                 next_due = due if next_due is None else min(next_due, due)
                 continue
-            self._dirty.discard(tile)
-            window = self._changed_window(tile)
-            if window is not None:
-                updates.append(self.tile_message(tile, window))
-                self._last_sent[tile] = now
+            del self._dirty[tile]
+            updates.append(self.tile_message(tile, window))
+            self._last_sent[tile] = now
         self.tile_updates += len(updates)
         return updates, next_due
 
-    def _changed_window(self, tile: TileKey) -> tuple[int, int, int, int] | None:
-        """Bounding box of the cells that differ from what was last published, and remember the new values."""
-        current = self.grid.tile_arrays(tile)
-        snapshot = self._snapshots.get(tile)
-        if snapshot is None:
-            snapshot = tuple(np.zeros_like(layer) for layer in current)
-            self._snapshots[tile] = snapshot
-        diff = (current[0] != snapshot[0]) | (current[1] != snapshot[1]) | (current[2] != snapshot[2])
-        rows = np.flatnonzero(diff.any(axis=1))
-        if rows.size == 0:
-            return None
-        cols = np.flatnonzero(diff.any(axis=0))
-        region = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
-        for layer, snap in zip(current, snapshot):
-            snap[region] = layer[region]
-        return int(rows[0]), int(cols[0]), int(rows[-1] + 1 - rows[0]), int(cols[-1] + 1 - cols[0])
+    def _changed(self, tile: TileKey, window: tuple[int, int, int, int] | None = None) -> None:
+        """Note that ``window`` (row0, col0, rows, cols; default the whole tile) of ``tile`` changed: the tile's
+        window due for publication grows to hold it."""
+        size = self.grid.tile_size
+        row0, col0, rows, cols = window or (0, 0, size, size)
+        held = self._dirty.get(tile)
+        if held is not None:
+            row1, col1 = max(row0 + rows, held[0] + held[2]), max(col0 + cols, held[1] + held[3])
+            row0, col0 = min(row0, held[0]), min(col0, held[1])
+            rows, cols = row1 - row0, col1 - col0
+        self._dirty[tile] = (row0, col0, rows, cols)
