@@ -77,10 +77,11 @@ class FusionScratch:
     """The working memory of one scan's walk (:func:`mapping.samples_pass.accumulate_scan` or
     :func:`mapping.single_pass.accumulate_single`), grown to the largest window walked in it and reused.
 
-    Per cell of the scratch window the samples pass keeps three bits (plane, pair_plane, listed), a weight sum (8
-    bytes), a four-float excess record (32 bytes) and 16 bits of counts (equal weights), plus a bit of the
-    column-major plane: SAMPLES_SCRATCH_BYTES_PER_CELL, about 43 bytes a window cell in all (the one-sample pass
-    keeps 8 bytes and two bits). 11 MB for the office's 12 m laser at 0.05 m (a window of about 490 x 490 cells), 63
+    Per cell of the scratch window the samples pass keeps three bits (plane, pair_plane, listed), a four-float excess
+    record (32 bytes) and 16 bits of counts, plus a bit of the column-major plane, and once it has walked a scan whose
+    weights differ a weight sum (8 bytes): SAMPLES_SCRATCH_BYTES_PER_CELL, about 43 bytes a window cell in all (35
+    while every scan's weights were equal, as resampled particles' and Gaussian draws' are; the one-sample pass keeps
+    8 bytes and two bits). 11 MB for the office's 12 m laser at 0.05 m (a window of about 490 x 490 cells), 63
     MB for a 30 m laser, 0.71 GB at the largest window a scan may take (mapping.scan_input.MAX_WINDOW_CELLS). A
     fusion on T > 1 threads keeps T + 1 of them. When it grows, it takes SCRATCH_ROOM more cells than the window asks
     (up to MAX_WINDOW_CELLS): a window that grows with the samples' spread, scan after scan, then seldom reallocates
@@ -105,27 +106,28 @@ class FusionScratch:
         self.touched_bits = self.raised_bits = np.zeros(0, np.int64)
         self.largest = np.zeros(0, np.float64)
 
-    def for_samples(self, cells: int, column_bits: int, lines: int, beams: int) -> None:
+    def for_samples(self, cells: int, column_bits: int, lines: int, beams: int, summed: bool = True) -> None:
         """Room for the samples pass over a window of ``cells`` cells, ``column_bits`` bits of the column-major plane
-        (mapping.free_runs), ``lines`` grid lines a side at most and scans of ``beams`` beams (mapping.fan_runs)."""
+        (mapping.free_runs), ``lines`` grid lines a side at most and scans of ``beams`` beams (mapping.fan_runs); the
+        weight sums only for a scan whose weights are ``summed`` (they differ: equal weights are counted)."""
         if beams > self.fan_ints.shape[1]:
             self.fan_ints, self.fan_floats = fan_scratch(beams)
         if column_bits > self.columns.shape[0] * 64:
             self.columns = np.zeros(column_bits // 64, np.uint64)
         if lines > self.lines.shape[1]:
             self.lines = np.zeros((2, lines), np.int64)
-        if cells <= self.size:
-            return
-        self.size = cells = _with_room(cells)
-        # per cell (see accumulate_scan): a bit in the sample's plane and in the listed plane, the weight sum,
-        # the excess record
-        self.plane = np.zeros((cells + 63) // 64, np.uint64)
-        self.pair_plane = np.zeros((cells + 63) // 64, np.uint64)
-        self.listed = np.zeros((cells + 63) // 64, np.uint64)
-        self.weight_sum = np.zeros(cells, np.int64)
-        self.excess = np.zeros((cells, 4), np.float64)
-        self.moments = self.excess.view(np.int64)
-        self.counts = np.zeros((COUNT_LEVELS, (cells + 63) // 64), np.uint64)
+        if cells > self.size:
+            self.size = cells = _with_room(cells)
+            # per cell (see accumulate_scan): a bit in the sample's plane and in the listed plane, the excess record,
+            # the counts
+            self.plane = np.zeros((cells + 63) // 64, np.uint64)
+            self.pair_plane = np.zeros((cells + 63) // 64, np.uint64)
+            self.listed = np.zeros((cells + 63) // 64, np.uint64)
+            self.excess = np.zeros((cells, 4), np.float64)
+            self.moments = self.excess.view(np.int64)
+            self.counts = np.zeros((COUNT_LEVELS, (cells + 63) // 64), np.uint64)
+        if summed and self.weight_sum.shape[0] < self.size:  # (read only when the weights differ)
+            self.weight_sum = np.zeros(self.size, np.int64)
 
     def for_single(self, blocks: int) -> None:
         """Room for the one-sample pass over a window of ``blocks`` 8 x 8 blocks."""
@@ -428,7 +430,9 @@ class MonteCarloFusion:
         # the samples pass's scratch rows and columns are whole 64-bit words of its bit planes (mapping.free_runs)
         win_w = -(-window.w // 64) * 64
         col_stride = -(-window.h // 64) * 64
-        scratch.for_samples(win_w * window.h, win_w * col_stride, max(win_w, window.h), len(ready.beams.kind))
+        sums = _equal_weight_sums(ready.weights)  # (all the scan's weights: the parts' counts are added up)
+        room = (win_w * window.h, win_w * col_stride, max(win_w, window.h), len(ready.beams.kind))
+        scratch.for_samples(*room, summed=sums.size == 0)
         stamp_base = scratch.stamps(len(lasers))
         touched, boxes = np.zeros(tiles.owned.shape, np.bool_), empty_boxes(tiles.owned.shape)
         args = (
@@ -442,7 +446,7 @@ class MonteCarloFusion:
             scratch.lines,
             scratch.block,
             scratch.counts,
-            _equal_weight_sums(ready.weights),  # (all the scan's weights: the parts' counts are added up)
+            sums,
             scratch.fan_ints,
             scratch.fan_floats,
             scratch.pair_plane,
@@ -491,7 +495,8 @@ def _part(ready: Ready, part: int, parts: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 #: bytes a window cell of the samples pass's scratch (:class:`FusionScratch`): three bit planes and a bit of the
-#: column-major plane, the weight sum (float64), the excess record (4 float64) and COUNT_LEVELS bits of counts
+#: column-major plane, the weight sum (int64; only once a scan's weights differ), the excess record (4 float64) and
+#: COUNT_LEVELS bits of counts
 SAMPLES_SCRATCH_BYTES_PER_CELL = 4 / 8 + 8 + 32 + COUNT_LEVELS / 8
 
 
