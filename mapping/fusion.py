@@ -34,7 +34,7 @@ any order), so the map is the same bit for bit on any number of threads.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Iterator, Sequence
+from collections.abc import Callable, Generator, Iterable, Iterator, Sequence
 from concurrent.futures import Executor, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from typing import NamedTuple
@@ -91,6 +91,11 @@ class FusionScratch:
     the excess records of earlier scans by their stamps (unique per scratch: :meth:`stamps`)."""
 
     def __init__(self) -> None:
+        self.clear()
+
+    def clear(self) -> None:
+        """Drop everything it holds, as a new scratch: after a walk that was never applied (it failed, or its scan's
+        turn never came), whose marks nothing else would clear."""
         self.stamp_next = 1
         self.size = 0  # cells the samples pass's per-cell arrays hold
         self.columns = np.zeros(0, np.uint64)
@@ -556,7 +561,22 @@ class FusionThreads:
             self._pool = ThreadPoolExecutor(self.count, thread_name_prefix="fusion")
         if isinstance(scans, Sequence) and len(scans) == 1:
             return self._in_parts(*scans[0])
-        return in_scan_order(scans, _prepare, _walk, _apply, self._scratches, self._pool, FuseResult(0, []))
+        side_by_side = in_scan_order(scans, _prepare, _walk, _apply, self._scratches, self._pool, FuseResult(0, []))
+        return self._cleared_unless_done(side_by_side)
+
+    def _cleared_unless_done(self, outcomes: Iterator[FuseResult | InputError]) -> Iterator[FuseResult | InputError]:
+        """``outcomes`` as they come; when an error ends them or the caller stops early, the walks still in flight
+        were waited for but never applied, so every scratch is cleared before the threads fuse again."""
+        done = False
+        try:
+            yield from outcomes
+            done = True
+        finally:
+            if not done:
+                if isinstance(outcomes, Generator):
+                    outcomes.close()  # (waits for the walks in flight)
+                for scratch in self._scratches:
+                    scratch.clear()
 
     def _in_parts(self, fusion: MonteCarloFusion, scan: ScanInput) -> Iterator[FuseResult | InputError]:
         """:meth:`fuse_iter` of a single scan: its samples walked in parts on the threads at once
@@ -589,7 +609,8 @@ class FusionThreads:
         """After a part's walk failed: wait for the others (their scratches idle before anyone uses them again) and
         replace the parts' scratches, which hold walks never added up nor cleared."""
         wait(jobs)
-        self._scratches[:parts] = [FusionScratch() for _ in range(parts)]
+        for scratch in self._scratches[:parts]:
+            scratch.clear()
 
 
 def _one_by_one(scans: Iterable[tuple[MonteCarloFusion, ScanInput]]) -> Iterator[FuseResult | InputError]:

@@ -178,6 +178,36 @@ def test_an_error_stops_at_its_scan_with_the_earlier_ones_fused_and_no_later_one
     assert_same_map(got, whole)
 
 
+@pytest.mark.parametrize("threads", (2, 3))
+@pytest.mark.parametrize("stop", ("walk fails", "caller stops"))
+def test_walks_never_applied_leave_nothing_in_the_next_scans(particles, monkeypatch, threads, stop):
+    """Scans walked side by side whose turn never comes (a walk that fails at scan 5, a fault injected: walks do not
+    fail on any input; or a caller that stops after 5 outcomes) hold marks nothing would clear: the threads' next
+    scans must not carry them. The map is that of scans 0-4 and of the scans fused afterwards, as one thread gives."""
+    scans = particle_scans(particles)
+    fusion = MonteCarloFusion(TiledGrid(RES), MODEL, *particles.single_geometry(), threads=threads)
+    if stop == "walk fails":
+        walk = MonteCarloFusion.walk
+
+        def walk_or_fail(self, ready, scratch, part=0, parts=1):
+            if np.array_equal(ready.lasers[:, :2], fusion.prepare(scans[5]).lasers[:, :2]):
+                raise RuntimeError("walk of scan 5 failed")
+            return walk(self, ready, scratch, part, parts)
+
+        monkeypatch.setattr(MonteCarloFusion, "walk", walk_or_fail)
+        with pytest.raises(RuntimeError, match="scan 5"):
+            fusion.fuse_many(scans)
+        monkeypatch.undo()
+    else:
+        outcomes = fusion.fuse_iter(scans)
+        assert [next(outcomes) for _ in range(5)] and len(fusion.grid.keys()) > 0
+        outcomes.close()  # (scans 5, 6, ... were being walked)
+    fusion.fuse_many(scans[20:])
+    expected = TiledGrid(RES)
+    serial(particles, scans[:5] + scans[20:], expected)
+    assert_same_map(fusion.grid, expected)
+
+
 @pytest.mark.parametrize("threads", THREADS)
 def test_two_laser_geometries_interleaved_share_the_threads(particles, threads):
     """An interlaced laser: every other scan has every other beam and a shorter range, each geometry its own
