@@ -2,10 +2,10 @@
 the scans it fused (services.state.shard), with no copy of the tile kept to compare against.
 
 A box is kept as (ly0, lx0, ly1, lx1), tile-local cells, inclusive, in an int64 array of one box per tile of the
-window (:func:`empty_boxes`), widened cell group by cell group by the passes' box kernels
-(:func:`mapping.samples_pass.listed_boxes`, :func:`mapping.single_pass.touched_boxes`) before their apply clears what
-they read. :func:`tile_windows` gives the touched tiles' boxes as the (row0, col0, rows, cols) windows of a tile
-update.
+window (:func:`empty_boxes`), widened by the walks once their cells are marked (the samples pass's
+:func:`mapping.samples_pass.listed_boxes`, the one-sample pass's count of its touched blocks). :func:`tile_windows`
+gives the touched tiles' boxes as the (row0, col0, rows, cols) windows of a tile update, :func:`join_windows` the
+window that holds two.
 """
 
 from __future__ import annotations
@@ -35,9 +35,9 @@ def widen_box(boxes, ty, tx, ly0, lx0, ly1, lx1):  # pragma: no cover - compiled
 
 
 def tile_windows(parts: list[np.ndarray], touched: np.ndarray) -> list[tuple[int, int, int, int]]:
-    """The boxes of the touched tiles (``touched``: bool per tile of the window), in row order (as
-    np.nonzero lists them), joined over ``parts`` (boxes of bands of the same window), each as (row0, col0, rows,
-    cols) tile-local cells."""
+    """The boxes of the touched tiles (``touched``: bool per tile of the window), in row order (as np.nonzero lists
+    them), joined over ``parts`` (the boxes of a scan's parts, walked over the same window), each as (row0, col0,
+    rows, cols) tile-local cells."""
     joined = parts[0].copy()
     for part in parts[1:]:
         np.minimum(joined[..., :2], part[..., :2], out=joined[..., :2])
@@ -46,3 +46,9 @@ def tile_windows(parts: list[np.ndarray], touched: np.ndarray) -> list[tuple[int
         (int(ly0), int(lx0), int(ly1 - ly0 + 1), int(lx1 - lx0 + 1))
         for ly0, lx0, ly1, lx1 in joined[np.nonzero(touched)].tolist()
     ]
+
+
+def join_windows(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> tuple[int, int, int, int]:
+    """The smallest window (row0, col0, rows, cols) that holds windows ``a`` and ``b``."""
+    row0, col0 = min(a[0], b[0]), min(a[1], b[1])
+    return row0, col0, max(a[0] + a[2], b[0] + b[2]) - row0, max(a[1] + a[3], b[1] + b[3]) - col0

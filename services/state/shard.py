@@ -22,6 +22,7 @@ from mapping.errors import InputError
 from mapping.fusion import FuseResult, FusionThreads, MonteCarloFusion
 from mapping.grid import TILE_SIZE, TiledGrid
 from mapping.sensor_model import SensorModel
+from mapping.tile_boxes import join_windows
 from schemas.messages import POSE_TYPES, LaserScan, PoseDistribution, PoseGaussian, ShardStats, StreamEnd, TileUpdate
 from schemas.wire import Message
 from services import keys
@@ -502,7 +503,7 @@ class MapShard:
             return []
         self.fused[scan.robot] += 1
         self.cells_updated += outcome.cells_updated
-        for tile, window in zip(outcome.tiles_changed, outcome.windows):
+        for tile, window in zip(outcome.tiles_changed, outcome.windows, strict=True):
             self._changed(tile, window)
             self._last_scan[tile] = (scan.robot, scan.seq)
         return outcome.tiles_changed
@@ -670,10 +671,6 @@ class MapShard:
         """Note that ``window`` (row0, col0, rows, cols; default the whole tile) of ``tile`` changed: the tile's
         window due for publication grows to hold it."""
         size = self.grid.tile_size
-        row0, col0, rows, cols = window or (0, 0, size, size)
+        window = window or (0, 0, size, size)
         held = self._dirty.get(tile)
-        if held is not None:
-            row1, col1 = max(row0 + rows, held[0] + held[2]), max(col0 + cols, held[1] + held[3])
-            row0, col0 = min(row0, held[0]), min(col0, held[1])
-            rows, cols = row1 - row0, col1 - col0
-        self._dirty[tile] = (row0, col0, rows, cols)
+        self._dirty[tile] = window if held is None else join_windows(held, window)
