@@ -682,7 +682,8 @@ def listed_boxes(listed, window, tiles, boxes):  # pragma: no cover - compiled
     """Widen each window tile's box (:mod:`mapping.tile_boxes`) to hold the cells set in ``listed`` (a walk's listed
     plane, once its samples are swept): a word's cells lie in one row, so one widening per tile the word's set bits
     meet. A pass of its own after the walk: the same widening in the sweep, where cells enter the listed plane, made
-    the warehouse's walk 10 % slower."""
+    the warehouse's walk 10 % slower, and marking the tiles here instead of in the sweep (:func:`_touch_tiles`, one
+    such loop over a word's tiles fewer) made it 3 to 5 % slower."""
     window, tiles = Window(*window), Tiles(*tiles)
     in_tile = (1 << tiles.shift) - 1
     for i in range((window.w * window.h + 63) >> 6):
