@@ -49,6 +49,18 @@ def set_run(plane, c_lo, c_hi):  # pragma: no cover - compiled
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
+def set_short_run(plane, c_lo, c_hi):  # pragma: no cover - compiled
+    """:func:`set_run` for the runs of a ray's own rows, which mostly lie in one word (a few cells a row beyond the
+    fans, :mod:`mapping.fan_runs`): a branch on it, which those runs predict, and then one OR where set_run makes two
+    to the same word, the second waiting on the first's store. The warehouse's walk 36.8-37.7 ms a scan against
+    38.6-41.6 (docs/performance.md); the fans' runs, long and unpredictable, keep set_run."""
+    if c_lo >> 6 == c_hi >> 6:
+        plane[np.uint64(c_lo >> 6)] |= (ALL_BITS << np.uint64(c_lo & 63)) & (ALL_BITS >> np.uint64(63 - (c_hi & 63)))
+    else:
+        set_run(plane, c_lo, c_hi)
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
 def run_lines(line, cell, r_end, res, tol):  # pragma: no cover - compiled
     """Where a ray crosses the lines of constant v, as :func:`_mark_runs` marks its runs: line = (u0, v0, du, dv) (m,
     |du| >= |dv|), from cell = (iu, iv), its first cell of positive length, up to the range r_end (m); tol its corner
@@ -126,29 +138,29 @@ def _mark_runs(plane, stride, win_u0, win_v0, line, cell, r_end, res, tol, lines
             exits[k], entries[k] = line_cells(edge0 + k * edge_step, tol_u, True)
         if n_lines > 0:
             exits[0], _ = line_cells(edge0, tol_u, True)
-            set_run(plane, base + col, base + max(exits[0], col))
+            set_short_run(plane, base + col, base + max(exits[0], col))
             col = entries[skip]
             base += (skip + 1) * base_step
         for k in range(skip + 1, n_lines):
-            set_run(plane, base + col, base + max(exits[k], col))
+            set_short_run(plane, base + col, base + max(exits[k], col))
             col = entries[k]
             base += base_step
         end_col = max(math.ceil(end_u) - 1, col)
-        set_run(plane, base + col, base + end_col)
+        set_short_run(plane, base + col, base + end_col)
     else:
         for k in range(skip, n_lines):
             exits[k], entries[k] = line_cells(edge0 + k * edge_step, tol_u, False)
         if n_lines > 0:
             exits[0], _ = line_cells(edge0, tol_u, False)
-            set_run(plane, base + min(exits[0], col), base + col)
+            set_short_run(plane, base + min(exits[0], col), base + col)
             col = entries[skip]
             base += (skip + 1) * base_step
         for k in range(skip + 1, n_lines):
-            set_run(plane, base + min(exits[k], col), base + col)
+            set_short_run(plane, base + min(exits[k], col), base + col)
             col = entries[k]
             base += base_step
         end_col = min(math.floor(end_u), col)
-        set_run(plane, base + end_col, base + col)
+        set_short_run(plane, base + end_col, base + col)
     return end_col, iv + n_lines * v_step
 
 

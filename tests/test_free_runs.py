@@ -7,7 +7,7 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from mapping.free_runs import fold_columns, mark_free_runs, set_run, transpose64
+from mapping.free_runs import fold_columns, mark_free_runs, set_run, set_short_run, transpose64
 from mapping.raytrace import corner_tol, traverse
 from mapping.window_walk import JUMP_MARGIN, Window
 
@@ -109,10 +109,14 @@ def test_a_ray_through_cell_corners_marks_no_cell_beside_them():
     assert marked == {(k, k) for k in range(5)} and last == (4, 4)
 
 
-@pytest.mark.parametrize(("c_lo", "c_hi"), [(0, 0), (3, 60), (63, 64), (5, 200), (64, 127), (130, 130)])
-def test_set_run_sets_exactly_the_bits_of_the_run(c_lo, c_hi):
+@pytest.mark.parametrize("mark", [set_run, set_short_run])
+@pytest.mark.parametrize(
+    ("c_lo", "c_hi"), [(0, 0), (3, 60), (0, 63), (63, 64), (5, 200), (64, 127), (130, 130), (128, 191)]
+)
+def test_set_run_sets_exactly_the_bits_of_the_run(mark, c_lo, c_hi):
+    """Within a word, across one word's end, over whole words; both ways of marking a run."""
     plane = np.zeros(5, np.uint64)
-    set_run(plane, c_lo, c_hi)
+    mark(plane, c_lo, c_hi)
     bits = np.unpackbits(plane.view(np.uint8), bitorder="little")
     assert np.flatnonzero(bits).tolist() == list(range(c_lo, c_hi + 1))
 
