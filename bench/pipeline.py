@@ -16,7 +16,10 @@ does not keep up with: the backlog, and so the latency, grows over the run).
   as the worst latency among the warm-up scans);
 - bytes per scan: msgpack payloads of the scan and pose messages (in) and of the tile updates (out);
   Zenoh framing and TCP headers are not counted;
-- each mapper shard's peak resident memory (VmHWM, read before it stops) in the throughput runs.
+- each mapper shard's peak resident memory (VmHWM, read before it stops) in the throughput runs;
+- for each configuration of more than one shard, the total CPU of its shards' fusions over one shard's, in process
+  (`bench.warehouse.shards_cpu`, the same scans in turns, every SHARD_CPU_EVERY-th): what the shards' work costs in
+  all, which the shared cores pay.
 
 All processes share this machine's cores, so the figures bound what separate machines would give.
 """
@@ -32,6 +35,7 @@ import numpy as np
 import zenoh
 
 from bench.scenarios import honest_posed_scans, office_run, select_scans, warehouse_run
+from bench.warehouse import shards_cpu
 from mapping.grid import TILE_SIZE
 from schemas.messages import ShardStats, TileUpdate, decode_message
 from services import keys
@@ -58,6 +62,8 @@ CONFIGURATIONS = ((1, TILE_SIZE, 0.0), (2, TILE_SIZE, 0.0), (2, 32, 0.0))
 WAREHOUSE_PARTICLES = 100
 WAREHOUSE_STEPS = 120
 WAREHOUSE_LATENCY_SCANS = 40
+#: the in-process shard CPU figures take every this-many-th scan
+SHARD_CPU_EVERY = 2
 WAREHOUSE_CONFIGURATIONS = ((1, TILE_SIZE, 0.0), (2, TILE_SIZE, 0.0), (1, TILE_SIZE, 0.1), (2, TILE_SIZE, 0.1))
 
 
@@ -246,6 +252,10 @@ def _scenario(posed, configurations, latency_scans: int) -> dict:
         out[f"{name}_ratio_to_in_process"] = out[f"{name}_scans_per_s"] / rate
         for key, value in _latency(posed, shards, tile_size, bundle, latency_scans).items():
             out[f"{name}_{key}_at_{LASER_HZ:g}hz"] = value
+        if shards > 1 and bundle == 0:
+            cpu = shards_cpu(posed, (shards,), SHARD_CPU_EVERY, tile_size)
+            out[f"{name}_in_process_cpu_ratio_to_one"] = cpu[f"shards{shards}_cpu_ratio_to_one"]
+            out[f"{name}_in_process_busiest_ratio_to_one"] = cpu[f"shards{shards}_busiest_ratio_to_one"]
     out["in_process_scans_per_s"] = float(np.median(in_process))  # (exact)
     return out
 

@@ -13,8 +13,9 @@ to 200 samples at 30 m).
   fed.
 - shards: the total CPU time (each fusion's thread time) of fusing the same scans (every SHARD_EVERY-th, 100
   particles) with 1, 2 and 4 in-process shards, each a `MonteCarloFusion` owning the tiles the project's
-  rendezvous rule (services.state.ownership) gives it, in turns; the ratio to one shard's; and whether the 2
-  shards' maps joined equal the one shard's map bit for bit.
+  rendezvous rule (services.state.ownership) gives it, in turns; the ratio to one shard's, the busiest shard's CPU
+  over one shard's (what shards on machines of their own would be held to); and whether the 2 shards' maps joined
+  equal the one shard's map bit for bit (`shards_cpu`, which the pipeline bench uses too).
 - memory: bytes per observed cell of the 100-particle map (the tiles' layers over its observed cells) and of
   OctoMap (its memoryUsage() over its leaf nodes, the tree fed every few scans' first particle: the same area); the
   bytes allocated during a scan (tracemalloc's peak above the level before it, scans that grow the tile storage
@@ -35,7 +36,7 @@ from bench.fusion import _interleaved_seconds, _octomap_steps
 from bench.scenarios import honest_posed_scans, warehouse_run
 from mapping.bundling import RECOMMENDED_TOLERANCE
 from mapping.fusion import MonteCarloFusion
-from mapping.grid import TiledGrid
+from mapping.grid import TILE_SIZE, TiledGrid
 from mapping.sensor_model import SensorModel
 from schemas.files import PosedScans
 from services.fusion_runner import PoseSampling
@@ -59,12 +60,19 @@ Picks = list[tuple[np.ndarray, np.ndarray]]
 
 
 def _fusion(
-    posed: PosedScans, owner: Callable[[int, int], bool] | None = None, bundle: float = 0.0
+    posed: PosedScans,
+    owner: Callable[[int, int], bool] | None = None,
+    bundle: float = 0.0,
+    tile_size: int = TILE_SIZE,
 ) -> MonteCarloFusion:
-    """A fusion of the scans' laser into a fresh grid of RESOLUTION m cells (owning the tiles ``owner`` accepts; its
-    samples bundled with tolerance ``bundle`` m, mapping.bundling)."""
+    """A fusion of the scans' laser into a fresh grid of RESOLUTION m cells in tiles of ``tile_size`` cells (owning
+    the tiles ``owner`` accepts; its samples bundled with tolerance ``bundle`` m, mapping.bundling)."""
     return MonteCarloFusion(
-        TiledGrid(RESOLUTION), SensorModel(resolution=RESOLUTION), *posed.single_geometry(), owner, bundle=bundle
+        TiledGrid(RESOLUTION, tile_size),
+        SensorModel(resolution=RESOLUTION),
+        *posed.single_geometry(),
+        owner,
+        bundle=bundle,
     )
 
 
@@ -156,31 +164,39 @@ def _speed(posed100: PosedScans, posed500: PosedScans, gaussian: PosedScans) -> 
     return out
 
 
-def _shards(posed: PosedScans) -> dict:
-    """Total CPU seconds of 1, 2 and 4 in-process shards on every SHARD_EVERY-th scan, in turns, and their ratios."""
+def shards_cpu(
+    posed: PosedScans, counts: tuple[int, ...] = SHARD_COUNTS, every: int = SHARD_EVERY, tile_size: int = TILE_SIZE
+) -> dict:
+    """Total CPU seconds of 1 in-process shard and of each of ``counts`` shards (tiles of ``tile_size`` cells, owned by
+    the rendezvous rule) on every ``every``-th scan, in turns, and their ratios to one shard's; the busiest shard's
+    share of the total and its CPU over one shard's; whether 2 shards' maps joined equal one shard's (when 2 is among
+    the counts)."""
+    counts = tuple(sorted({1, *counts}))
     picks = _particles(posed)
     fusions = {
-        (count, shard): _fusion(posed, None if count == 1 else owns_tile(shard, count))
-        for count in SHARD_COUNTS
+        (count, shard): _fusion(posed, None if count == 1 else owns_tile(shard, count), tile_size=tile_size)
+        for count in counts
         for shard in range(count)
     }
     cpu = {key: np.zeros(len(picks)) for key in fusions}
     lists = [
         [None if step is None else functools.partial(_cpu_timed, step, cpu[key], t) for t, step in enumerate(steps)]
-        for key, steps in ((key, _steps(fusion, posed, picks, SHARD_EVERY)) for key, fusion in fusions.items())
+        for key, steps in ((key, _steps(fusion, posed, picks, every)) for key, fusion in fusions.items())
     ]
     _interleaved_seconds(*lists, chunk=CHUNK)
-    fed = len(range(0, len(picks), SHARD_EVERY))
+    fed = len(range(0, len(picks), every))
     one = cpu[(1, 0)].sum()
     out: dict = {"shard_scans": fed}
-    for count in SHARD_COUNTS:
+    for count in counts:
         total = sum(cpu[(count, shard)].sum() for shard in range(count))
         out[f"shards{count}_cpu_s"] = total
         out[f"shards{count}_cpu_ratio_to_one"] = total / one
-        out[f"shards{count}_busiest_share"] = max(cpu[(count, shard)].sum() for shard in range(count)) / total
-    whole = fusions[(1, 0)].grid
-    parts = [fusions[(2, shard)].grid for shard in range(2)]
-    out["shards2_joined_equals_one"] = _joined_equals(whole, parts)
+        busiest = max(cpu[(count, shard)].sum() for shard in range(count))
+        out[f"shards{count}_busiest_share"] = busiest / total
+        out[f"shards{count}_busiest_ratio_to_one"] = busiest / one  # (on machines of their own: below 1 divides)
+    if 2 in counts:
+        parts = [fusions[(2, shard)].grid for shard in range(2)]
+        out["shards2_joined_equals_one"] = _joined_equals(fusions[(1, 0)].grid, parts)
     return out
 
 
@@ -265,7 +281,7 @@ def run(steps: int = STEPS) -> dict:
         "path_m": float(np.hypot(*np.diff(sim.true_poses[:, :2], axis=0).T).sum()),
     }
     out.update(_speed(posed100, posed500, gaussian))
-    out.update(_shards(posed100))
+    out.update(shards_cpu(posed100))
     allocations, grid = _allocations(posed100)
     out.update(_memory(posed100, grid))
     out.update(allocations)
