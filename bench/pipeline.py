@@ -54,8 +54,9 @@ WARMUP = 10  # scans published before them, at the same rate
 LASER_HZ = 10.0
 ROBOT = "bench"
 #: (mapper shards, tile side in cells, bundle tolerance m). The office spans about 2 x 2 default tiles, most of its
-#: cells in one of them, so with the default tiles one of two shards does nearly all the work; 32-cell tiles show
-#: the work dividing (docs/architecture.md, "Sharding"). A tolerance > 0: the shards bundle the samples
+#: cells in one of them, so with the default tiles one of two shards does nearly all the work; with 32-cell tiles
+#: both shards' tiles lie under every ray, and each walks most of every scan (docs/architecture.md, "Sharding": the
+#: work does not divide; the configuration shows what that costs). A tolerance > 0: the shards bundle the samples
 #: (`mapper --bundle`, mapping.bundling), and the in-process rate they are compared with does too.
 CONFIGURATIONS = ((1, TILE_SIZE, 0.0), (2, TILE_SIZE, 0.0), (2, 32, 0.0))
 #: the warehouse: particles a scan, scans in the throughput runs and in the 10 Hz latency runs, configurations
