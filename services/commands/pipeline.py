@@ -97,7 +97,13 @@ def _add_mapper(subparsers: argparse._SubParsersAction) -> None:
     _add_map_option(mapper)
     add_fusion_arguments(mapper)
     shard = mapper.add_argument_group("shard")
-    shard.add_argument("--tile-size", type=int, default=256, help="cells per tile side, a power of 2 (default 256)")
+    shard.add_argument(
+        "--tile-size",
+        type=int,
+        default=256,
+        help="cells per tile side, a power of 2 (default 256); smaller tiles mean more, smaller tile updates and do "
+        "not divide a scan's work among shards (docs/architecture.md, Sharding)",
+    )
     shard.add_argument(
         "--publish-interval",
         type=finite_float,
