@@ -52,8 +52,9 @@ def set_run(plane, c_lo, c_hi):  # pragma: no cover - compiled
 def set_short_run(plane, c_lo, c_hi):  # pragma: no cover - compiled
     """:func:`set_run` for the runs of a ray's own rows, which mostly lie in one word (a few cells a row beyond the
     fans, :mod:`mapping.fan_runs`): a branch on it, which those runs predict, and then one OR where set_run makes two
-    to the same word, the second waiting on the first's store. The warehouse's walk 36.8-37.7 ms a scan against
-    38.6-41.6 (docs/performance.md); the fans' runs, long and unpredictable, keep set_run."""
+    to the same word, the second waiting on the first's store: about 5 % of the warehouse's walk (docs/performance.md,
+    "How the fusion pass is built"). The fans' runs, long, keep set_run: whether one ends in its first word does not
+    repeat from run to run."""
     if c_lo >> 6 == c_hi >> 6:
         plane[np.uint64(c_lo >> 6)] |= (ALL_BITS << np.uint64(c_lo & 63)) & (ALL_BITS >> np.uint64(63 - (c_hi & 63)))
     else:
