@@ -487,15 +487,19 @@ def _with_room(cells: int) -> int:
 MIN_PART_SAMPLES = 8
 
 
+def _share(total: int, index: int, count: int) -> tuple[int, int]:
+    """The index-th of ``count`` near-equal runs (first, end) of ``total`` items, in order."""
+    return index * total // count, (index + 1) * total // count
+
+
 def _bands(words: int, count: int) -> list[tuple[int, int]]:
     """``count`` near-equal runs (first, end) of the scratch's ``words`` words."""
-    return [(band * words // count, (band + 1) * words // count) for band in range(count)]
+    return [_share(words, band, count) for band in range(count)]
 
 
 def _part(ready: Ready, part: int, parts: int) -> tuple[np.ndarray, np.ndarray]:
     """The laser poses and weights of the part-th of ``parts`` near-equal runs of a scan's samples, in order."""
-    m = len(ready.lasers)
-    lo, hi = part * m // parts, (part + 1) * m // parts
+    lo, hi = _share(len(ready.lasers), part, parts)
     return ready.lasers[lo:hi], ready.weights[lo:hi]
 
 
