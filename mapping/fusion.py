@@ -607,11 +607,17 @@ class FusionThreads:
             raise
         if any(job.exception() is not None for job in jobs):  # (waits for each)
             self._failed_parts(jobs, parts)
-        yield fusion.apply_parts([first, *(job.result() for job in jobs)], self._pool)
+        try:
+            result = fusion.apply_parts([first, *(job.result() for job in jobs)], self._pool)
+        except BaseException:
+            self._failed_parts([], parts)  # (the adding up or the apply failed: the parts' marks stay)
+            raise
+        yield result
 
     def _failed_parts(self, jobs: list[Future[Walked]], parts: int) -> None:
-        """After a part's walk failed: wait for the others (their scratches idle before anyone uses them again) and
-        replace the parts' scratches, which hold walks never added up nor cleared."""
+        """After a part's walk, or the adding up and apply of the parts, failed: wait for the walks still in flight
+        (their scratches idle before anyone uses them again) and clear the parts' scratches, which hold marks that
+        were never added up nor cleared."""
         wait(jobs)
         for scratch in self._scratches[:parts]:
             scratch.clear()

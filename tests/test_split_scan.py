@@ -12,6 +12,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+import mapping.fusion as fusion_module
 from bench.scenarios import honest_posed_scans, office_run
 from mapping.fixed_point import MAX_FRACTION_BITS, SUM_BITS, moment_scale
 from mapping.fusion import FusionScratch, FusionThreads, MonteCarloFusion
@@ -120,6 +121,30 @@ def test_a_part_that_fails_raises_and_leaves_no_trace_in_the_next_scans(particle
     with pytest.raises(RuntimeError, match=f"part {failing} failed"):
         fusion.fuse_many([scans[0]])
     monkeypatch.undo()
+    serial = MonteCarloFusion(expected, MODEL, *particles.single_geometry())
+    for scan in scans[1:]:
+        serial.fuse(*scan)
+        fusion.fuse_many([scan])
+    assert_same_map(got, expected)
+
+
+def test_parts_whose_adding_up_fails_leave_no_trace_in_the_next_scans(particles, monkeypatch):
+    """The parts walked, then their adding up fails (a fault injected into merge_scan, in every band): the error is
+    raised for the scan, and the parts' marks, never added up nor applied, must not leak into the next scans. The
+    failed scan's tiles were created (empty) before the bands; the expected grid gets them in the same slots."""
+    scans = particle_scans(particles)
+    expected, got = TiledGrid(RES), TiledGrid(RES)
+    fusion = MonteCarloFusion(got, MODEL, *particles.single_geometry(), threads=FusionThreads(2))
+
+    def fail(*args):
+        raise RuntimeError("merge failed")
+
+    monkeypatch.setattr(fusion_module, "merge_scan", fail)
+    with pytest.raises(RuntimeError, match="merge failed"):
+        fusion.fuse_many([scans[0]])
+    monkeypatch.undo()
+    for key in got.keys():  # noqa: SIM118 - a TiledGrid, not a dict
+        expected.slot(key)
     serial = MonteCarloFusion(expected, MODEL, *particles.single_geometry())
     for scan in scans[1:]:
         serial.fuse(*scan)
