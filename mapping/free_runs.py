@@ -113,21 +113,21 @@ def row_run(edge0, edge_step, k, tol_u, forward):  # pragma: no cover - compiled
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def _mark_runs(plane, stride, win_u0, win_v0, line, cell, r_end, res, tol, lines, skip):  # pragma: no cover - compiled
+def _mark_runs(plane, stride, win_u0, win_v0, line, cell, r_end, res, crossings, lines, skip):  # pragma: no cover
     """Mark, one run per line of constant v, the cells a ray crosses from (u0, v0) (m) along the unit direction
     (du, dv), line = (u0, v0, du, dv) with |du| >= |dv|, up to the range r_end (m), in the plane that holds cell
     (u, v) at bit (v - win_v0) * stride + u - win_u0; its rows 1 .. skip are left out (marked elsewhere:
     :mod:`mapping.fan_runs`).
 
-    cell = (iu, iv) is the ray's first cell of positive length; res is the cell size (m); tol is the ray's corner
-    tolerance (m); lines (int64, (2, n)) is scratch for the lines' exit and entry cells (as many as the window has
-    lines). The last cell, returned as (u, v), is the one the ray is in just before the end point. A line the ray
-    crosses holds at least its entry cell (rounding may put the exit before it). Where the lines are crossed:
-    :func:`run_lines`."""
+    cell = (iu, iv) is the ray's first cell of positive length; res is the cell size (m); crossings are where it
+    crosses the lines, :func:`run_lines` of (line, cell, r_end, res, its corner tolerance); lines (int64, (2, n)) is
+    scratch for the lines' exit and entry cells (as many as the window has lines). The last cell, returned as (u,
+    v), is the one the ray is in just before the end point. A line the ray crosses holds at least its entry cell
+    (rounding may put the exit before it)."""
     u0, _, du, _ = line
     iu, iv = cell
     exits, entries = lines[0], lines[1]
-    v_step, tol_u, n_lines, edge0, edge_step = run_lines(line, cell, r_end, res, tol)
+    v_step, tol_u, n_lines, edge0, edge_step = crossings
     end_u = (u0 + r_end * du) * (1.0 / res)
     base = (iv - win_v0) * stride - win_u0
     base_step = v_step * stride
@@ -191,11 +191,31 @@ def mark_free_runs(rows, columns, col_stride, window, line, cell, r_end, res, to
     for n = max(w, window height) values. The ray's rows (columns, for a steep ray) 1 .. skip are left out: marked by
     :mod:`mapping.fan_runs` with its neighbours'.
     """
+    steep, line_uv, cell_uv, crossings = plane_crossings(line, cell, r_end, res, tol)
+    ray_uv = (steep, line_uv, cell_uv)
+    return mark_plane_runs(rows, columns, col_stride, window, ray_uv, r_end, res, crossings, lines, skip)
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def plane_crossings(line, cell, r_end, res, tol):  # pragma: no cover - compiled
+    """(steep, line, cell, crossings) of a ray, line = (x0, y0, dx, dy) from its first cell (ix, iy) to the range
+    r_end (m), tol its corner tolerance (m): its plane and its line and cell in that plane's coordinates
+    (:func:`plane_coordinates`), and where it crosses the plane's lines (:func:`run_lines`)."""
     steep, line_uv, cell_uv = plane_coordinates(line, cell)
+    return steep, line_uv, cell_uv, run_lines(line_uv, cell_uv, r_end, res, tol)
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def mark_plane_runs(rows, columns, col_stride, window, ray_uv, r_end, res, crossings, lines, skip):  # pragma: no cover
+    """:func:`mark_free_runs` for a ray already in its plane's coordinates, ray_uv = (steep, line, cell) as
+    :func:`plane_coordinates` gives them, with its crossings of the plane's lines as :func:`run_lines` gives them
+    (:func:`plane_crossings`; mapping.samples_pass keeps them from its fans' records, so that a ray's divisions are
+    made once). Returns the last cell marked, (ix, iy)."""
+    steep, line, cell = ray_uv
     if not steep:
-        return _mark_runs(rows, window.w, window.ix0, window.iy0, line_uv, cell_uv, r_end, res, tol, lines, skip)
+        return _mark_runs(rows, window.w, window.ix0, window.iy0, line, cell, r_end, res, crossings, lines, skip)
     last_iy, last_ix = _mark_runs(
-        columns, col_stride, window.iy0, window.ix0, line_uv, cell_uv, r_end, res, tol, lines, skip
+        columns, col_stride, window.iy0, window.ix0, line, cell, r_end, res, crossings, lines, skip
     )
     return last_ix, last_iy
 

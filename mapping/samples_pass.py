@@ -59,7 +59,7 @@ from mapping.fan_runs import (
     fan_key,
 )
 from mapping.fixed_point import WEIGHT_SCALE, to_fixed
-from mapping.free_runs import fold_block, fold_columns, mark_free_runs, plane_coordinates, run_lines, set_bit
+from mapping.free_runs import fold_block, fold_columns, mark_plane_runs, plane_crossings, set_bit
 from mapping.jit import kernel
 from mapping.raytrace import dda_step
 from mapping.tile_boxes import widen_box
@@ -197,16 +197,27 @@ def _mark_near(marks, beam, carry, p, q, r_in, r_out):  # pragma: no cover - com
 
 
 @kernel(nogil=True, error_model="numpy", refcounted=False)
-def _scratch_runs(scratch, window, line, first, runs_end, res, tol, skip):  # pragma: no cover - compiled
-    """:func:`mapping.free_runs.mark_free_runs` into the samples pass's planes and line buffer: line = (x0, y0, dx,
-    dy), from cell ``first`` (ix, iy) to just before ``runs_end`` (m), its rows (columns) 1 .. skip left out; returns
-    the runs' last cell.
+def _plane_runs(planes, lines, window, ray_uv, runs_end, res, crossings, skip):  # pragma: no cover - compiled
+    """:func:`mapping.free_runs.mark_plane_runs` into the samples pass's planes = (plane, columns, col_stride) and
+    line buffer: ray_uv = (steep, line, cell) in its plane's coordinates, to just before ``runs_end`` (m), with its
+    crossings of the plane's lines, its rows (columns) 1 .. skip left out; returns the runs' last cell (ix, iy).
 
-    A call, not inlined: the pass reaches it from three places, and numba inlining mark_free_runs into each made
-    accumulate_scan take 80 s to compile (22 s so); LLVM still inlines it, and a scan's fusion costs the same."""
-    return mark_free_runs(
-        scratch.plane, scratch.columns, scratch.col_stride, window, line, first, runs_end, res, tol, scratch.lines, skip
-    )
+    A call, not inlined: the pass reaches it from three places, and numba inlining the runs into each made
+    accumulate_scan take 80 s to compile (22 s so). It takes the arrays it writes, not the whole scratch: numba
+    hands a tuple's arrays over member by member, and with the scratch a call cost the warehouse's walk about a
+    tenth of its time (docs/performance.md, "How the fusion pass is built")."""
+    plane, columns, col_stride = planes
+    return mark_plane_runs(plane, columns, col_stride, window, ray_uv, runs_end, res, crossings, lines, skip)
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _scratch_runs(scratch, window, line, first, runs_end, res, tol, skip):  # pragma: no cover - compiled
+    """:func:`mapping.free_runs.mark_free_runs` into the samples pass's planes and line buffer (:func:`_plane_runs`):
+    line = (x0, y0, dx, dy), from cell ``first`` (ix, iy) to just before ``runs_end`` (m), its rows (columns) 1 ..
+    skip left out; returns the runs' last cell."""
+    steep, line_uv, cell_uv, crossings = plane_crossings(line, first, runs_end, res, tol)
+    planes = (scratch.plane, scratch.columns, scratch.col_stride)
+    return _plane_runs(planes, scratch.lines, window, (steep, line_uv, cell_uv), runs_end, res, crossings, skip)
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
@@ -221,16 +232,26 @@ def _runs_start(ray, free_limit):  # pragma: no cover - compiled
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def _free_runs(x0, y0, dx, dy, ray, free_limit, res, window, scratch, skip):  # pragma: no cover - compiled
-    """Mark a ray's free phase as runs (:func:`mapping.free_runs.mark_free_runs`) up to just before free_limit (m),
-    its rows (columns) 1 .. skip left out (marked by its fans, :func:`mapping.fan_runs.fan_hulls`), and return (ray,
+def _free_runs(x0, y0, dx, dy, ray, free_limit, res, window, scratch, k):  # pragma: no cover - compiled
+    """Mark ray k's free phase as runs (:func:`mapping.free_runs.mark_free_runs`) up to just before free_limit (m),
+    its rows (columns) 1 .. SKIP left out (marked by its fans, :func:`mapping.fan_runs.fan_hulls`), and return (ray,
     r_in): the ray moved to the runs' last cell, the grid lines crossed up to it counted, and the range the walk goes
     on from. Its r_in is taken as the runs' end (:func:`segment_logodds` reads r_in only past the peak, well beyond).
-    Without runs (a short free phase) the ray as it was, from 0."""
-    runs_end, first = _runs_start(ray, free_limit)
-    if runs_end <= 0.0:
+    Without runs (a short free phase) the ray as it was, from 0.
+
+    The ray's first cell and its crossings of its plane's lines are those :func:`_fan_lines` recorded for the fans
+    (the same free limit, so the same runs' end; key 0 where there are no runs): its divisions are made once."""
+    ints, floats = scratch.fan_ints, scratch.fan_floats
+    if ints[KEY, k] == 0:
         return ray, 0.0
-    end = _scratch_runs(scratch, window, (x0, y0, dx, dy), first, runs_end, res, ray.tol, skip)
+    runs_end = just_before(free_limit)
+    key = ints[KEY, k] - 1
+    steep, up = key >= 4, (key & 1) != 0
+    line = (y0, x0, dy, dx) if steep else (x0, y0, dx, dy)
+    crossings = (1 if up else -1, floats[TOL, k], ints[LINES, k], floats[EDGE0, k], floats[EDGE_STEP, k])
+    planes = (scratch.plane, scratch.columns, scratch.col_stride)
+    ray_uv = (steep, line, (ints[IU, k], ints[IV, k]))
+    end = _plane_runs(planes, scratch.lines, window, ray_uv, runs_end, res, crossings, ints[SKIP, k])
     return _ray_moved_to(ray, end), runs_end
 
 
@@ -489,8 +510,8 @@ def _fan_lines(laser, heading, directions, beams, res, window, tiles, owned_sum,
         runs_end, first = _runs_start(ray, min(beam.free_until, beam.r_stop - ray.tol))
         if runs_end <= 0.0:
             continue
-        steep, line, cell = plane_coordinates((laser[0], laser[1], dx, dy), first)
-        _, tol_u, n_lines, edge0, edge_step = run_lines(line, cell, runs_end, res, ray.tol)
+        steep, line, cell, crossings = plane_crossings((laser[0], laser[1], dx, dy), first, runs_end, res, ray.tol)
+        _, tol_u, n_lines, edge0, edge_step = crossings
         ints[KEY, k] = fan_key(steep, line[2], line[3])
         ints[IU, k], ints[IV, k], ints[LINES, k] = cell[0], cell[1], n_lines
         floats[EDGE0, k], floats[EDGE_STEP, k], floats[TOL, k] = edge0, edge_step, tol_u
@@ -534,9 +555,7 @@ def _walk_sample(laser, sid, ws, directions, beams, model, res, window, tiles, o
             continue  # a skipped beam
         free_limit = min(beam.free_until, beam.r_stop - ray.tol)
         if reach == REACH_ALL:
-            ray, r_in = _free_runs(
-                laser[0], laser[1], dx, dy, ray, free_limit, res, window, scratch, scratch.fan_ints[SKIP, k]
-            )
+            ray, r_in = _free_runs(laser[0], laser[1], dx, dy, ray, free_limit, res, window, scratch, k)
             tile_end = beam.r_stop  # (the rest of the ray lies in the shard's tiles)
         else:
             ray, r_in, tile_end = _owned_free_runs(
