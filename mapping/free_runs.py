@@ -133,32 +133,34 @@ def _mark_runs(plane, stride, win_u0, win_v0, line, cell, r_end, res, crossings,
     base_step = v_step * stride
     col = iu
     # first the cells at the exit edges needed (line 0 and lines skip .. n_lines - 1: a loop with no branch and no
-    # carried state, it vectorises), then the runs, each from the cell the line is entered at to its exit cell
+    # carried state, it vectorises; its indices unsigned, since numba tests a signed one for a negative value, and
+    # with skip not a constant that test kept the loop scalar), then the runs, each from the cell the line is entered
+    # at to its exit cell
     if du > 0.0:
         for k in range(skip, n_lines):
-            exits[k], entries[k] = line_cells(edge0 + k * edge_step, tol_u, True)
+            exits[np.uint64(k)], entries[np.uint64(k)] = line_cells(edge0 + k * edge_step, tol_u, True)
         if n_lines > 0:
             exits[0], _ = line_cells(edge0, tol_u, True)
             set_short_run(plane, base + col, base + max(exits[0], col))
-            col = entries[skip]
+            col = entries[np.uint64(skip)]
             base += (skip + 1) * base_step
         for k in range(skip + 1, n_lines):
-            set_short_run(plane, base + col, base + max(exits[k], col))
-            col = entries[k]
+            set_short_run(plane, base + col, base + max(exits[np.uint64(k)], col))
+            col = entries[np.uint64(k)]
             base += base_step
         end_col = max(math.ceil(end_u) - 1, col)
         set_short_run(plane, base + col, base + end_col)
     else:
         for k in range(skip, n_lines):
-            exits[k], entries[k] = line_cells(edge0 + k * edge_step, tol_u, False)
+            exits[np.uint64(k)], entries[np.uint64(k)] = line_cells(edge0 + k * edge_step, tol_u, False)
         if n_lines > 0:
             exits[0], _ = line_cells(edge0, tol_u, False)
             set_short_run(plane, base + min(exits[0], col), base + col)
-            col = entries[skip]
+            col = entries[np.uint64(skip)]
             base += (skip + 1) * base_step
         for k in range(skip + 1, n_lines):
-            set_short_run(plane, base + min(exits[k], col), base + col)
-            col = entries[k]
+            set_short_run(plane, base + min(exits[np.uint64(k)], col), base + col)
+            col = entries[np.uint64(k)]
             base += base_step
         end_col = min(math.floor(end_u), col)
         set_short_run(plane, base + end_col, base + col)
