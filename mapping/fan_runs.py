@@ -73,6 +73,23 @@ def fan_key(steep, du, dv):  # pragma: no cover - compiled
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
+def key_parts(key):  # pragma: no cover - compiled
+    """(steep, forward, up) of a ray's key (> 0, :func:`fan_key`): its runs go into the column plane, along
+    increasing u, along increasing v."""
+    bits = key - 1
+    return bits >= 4, (bits & 2) != 0, (bits & 1) != 0
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def recorded_crossings(ints, floats, k):  # pragma: no cover - compiled
+    """Ray k's plane, first cell and crossings of the plane's lines as its records hold them (KEY > 0): (steep, (iu,
+    iv), crossings), crossings as :func:`mapping.free_runs.run_lines` returns them."""
+    steep, _, up = key_parts(ints[KEY, k])
+    crossings = (1 if up else -1, floats[TOL, k], ints[LINES, k], floats[EDGE0, k], floats[EDGE_STEP, k])
+    return steep, (ints[IU, k], ints[IV, k]), crossings
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
 def _link_rows(ints, floats, a, b):  # pragma: no cover - compiled
     """The last row (>= 1; 0: none) up to which the runs of rays a and b join (module docstring)."""
     if ints[KEY, a] == 0 or ints[KEY, a] != ints[KEY, b] or ints[IU, a] != ints[IU, b] or ints[IV, a] != ints[IV, b]:
@@ -93,8 +110,7 @@ def _link_rows(ints, floats, a, b):  # pragma: no cover - compiled
 @kernel(nogil=True, error_model="numpy", inline="always")
 def _mark_fan(planes, window, ints, floats, a, c, row):  # pragma: no cover - compiled
     """Mark in its plane the run the rays a .. c (a fan: each joined to the next) mark together in their row ``row``."""
-    key = ints[KEY, a] - 1
-    steep, forward, up = key >= 4, (key & 2) != 0, (key & 1) != 0
+    steep, forward, up = key_parts(ints[KEY, a])
     if steep:
         plane, stride, win_u0, win_v0 = planes[1], planes[2], window.iy0, window.ix0
     else:

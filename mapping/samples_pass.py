@@ -57,6 +57,7 @@ from mapping.fan_runs import (
     TOL,
     fan_hulls,
     fan_key,
+    recorded_crossings,
 )
 from mapping.fixed_point import WEIGHT_SCALE, to_fixed
 from mapping.free_runs import fold_block, fold_columns, mark_plane_runs, plane_crossings, set_bit
@@ -202,8 +203,9 @@ def _plane_runs(planes, lines, window, ray_uv, runs_end, res, crossings, skip): 
     line buffer: ray_uv = (steep, line, cell) in its plane's coordinates, to just before ``runs_end`` (m), with its
     crossings of the plane's lines, its rows (columns) 1 .. skip left out; returns the runs' last cell (ix, iy).
 
-    A call, not inlined: the pass reaches it from three places, and numba inlining the runs into each made
-    accumulate_scan take 80 s to compile (22 s so). It takes the arrays it writes, not the whole scratch: numba
+    A call, not inlined: the pass reaches it from three places, and inlining the runs once more took accumulate_scan's
+    compile from 38.6 to 51.7 s and 0.64 to 1.4 GB, with no gain. It takes the arrays it writes, not the whole
+    scratch: numba
     hands a tuple's arrays over member by member, and with the scratch a call cost the warehouse's walk about a
     tenth of its time (docs/performance.md, "How the fusion pass is built")."""
     plane, columns, col_stride = planes
@@ -245,13 +247,10 @@ def _free_runs(x0, y0, dx, dy, ray, free_limit, res, window, scratch, k):  # pra
     if ints[KEY, k] == 0:
         return ray, 0.0
     runs_end = just_before(free_limit)
-    key = ints[KEY, k] - 1
-    steep, up = key >= 4, (key & 1) != 0
+    steep, cell, crossings = recorded_crossings(ints, floats, k)
     line = (y0, x0, dy, dx) if steep else (x0, y0, dx, dy)
-    crossings = (1 if up else -1, floats[TOL, k], ints[LINES, k], floats[EDGE0, k], floats[EDGE_STEP, k])
     planes = (scratch.plane, scratch.columns, scratch.col_stride)
-    ray_uv = (steep, line, (ints[IU, k], ints[IV, k]))
-    end = _plane_runs(planes, scratch.lines, window, ray_uv, runs_end, res, crossings, ints[SKIP, k])
+    end = _plane_runs(planes, scratch.lines, window, (steep, line, cell), runs_end, res, crossings, ints[SKIP, k])
     return _ray_moved_to(ray, end), runs_end
 
 
