@@ -81,9 +81,20 @@ def key_parts(key):  # pragma: no cover - compiled
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
+def record_crossings(ints, floats, k, steep, line, cell, crossings):  # pragma: no cover - compiled
+    """Record ray k's plane (steep), its line and first cell in that plane's coordinates and its crossings of the
+    plane's lines (:func:`mapping.free_runs.plane_crossings`) for the fans, and for the ray's own runs
+    (:func:`recorded_crossings`)."""
+    _, tol_u, n_lines, edge0, edge_step = crossings
+    ints[KEY, k] = fan_key(steep, line[2], line[3])
+    ints[IU, k], ints[IV, k], ints[LINES, k] = cell[0], cell[1], n_lines
+    floats[EDGE0, k], floats[EDGE_STEP, k], floats[TOL, k] = edge0, edge_step, tol_u
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
 def recorded_crossings(ints, floats, k):  # pragma: no cover - compiled
-    """Ray k's plane, first cell and crossings of the plane's lines as its records hold them (KEY > 0): (steep, (iu,
-    iv), crossings), crossings as :func:`mapping.free_runs.run_lines` returns them."""
+    """Ray k's plane, first cell and crossings of the plane's lines as :func:`record_crossings` kept them (KEY > 0):
+    (steep, (iu, iv), crossings), crossings as :func:`mapping.free_runs.run_lines` returns them."""
     steep, _, up = key_parts(ints[KEY, k])
     crossings = (1 if up else -1, floats[TOL, k], ints[LINES, k], floats[EDGE0, k], floats[EDGE_STEP, k])
     return steep, (ints[IU, k], ints[IV, k]), crossings

@@ -33,12 +33,7 @@ from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros  # LLVM's
 
 from mapping.beam_model import BeamTable, LogOddsModel, beam_at, segment_logodds
 from mapping.fan_runs import (
-    EDGE0,
-    EDGE_STEP,
-    IU,
-    IV,
     KEY,
-    LINES,
     RAY_DX,
     RAY_DY,
     RAY_IX,
@@ -54,9 +49,8 @@ from mapping.fan_runs import (
     SCAN_REACH,
     SKIP,
     STARTED,
-    TOL,
     fan_hulls,
-    fan_key,
+    record_crossings,
     recorded_crossings,
 )
 from mapping.fixed_point import WEIGHT_SCALE, to_fixed
@@ -205,11 +199,17 @@ def _plane_runs(planes, lines, window, ray_uv, runs_end, res, crossings, skip): 
 
     A call, not inlined: the pass reaches it from three places, and inlining the runs once more took accumulate_scan's
     compile from 38.6 to 51.7 s and 0.64 to 1.4 GB, with no gain. It takes the arrays it writes, not the whole
-    scratch: numba
-    hands a tuple's arrays over member by member, and with the scratch a call cost the warehouse's walk about a
-    tenth of its time (docs/performance.md, "How the fusion pass is built")."""
+    scratch: numba hands a tuple's arrays over member by member, and with the scratch a call cost the warehouse's walk
+    about a tenth of its time (docs/performance.md, "How the fusion pass is built")."""
     plane, columns, col_stride = planes
     return mark_plane_runs(plane, columns, col_stride, window, ray_uv, runs_end, res, crossings, lines, skip)
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _scratch_plane_runs(scratch, window, ray_uv, runs_end, res, crossings, skip):  # pragma: no cover - compiled
+    """:func:`_plane_runs` into the scratch's planes and line buffer."""
+    planes = (scratch.plane, scratch.columns, scratch.col_stride)
+    return _plane_runs(planes, scratch.lines, window, ray_uv, runs_end, res, crossings, skip)
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
@@ -218,8 +218,7 @@ def _scratch_runs(scratch, window, line, first, runs_end, res, tol, skip):  # pr
     line = (x0, y0, dx, dy), from cell ``first`` (ix, iy) to just before ``runs_end`` (m), its rows (columns) 1 ..
     skip left out; returns the runs' last cell."""
     steep, line_uv, cell_uv, crossings = plane_crossings(line, first, runs_end, res, tol)
-    planes = (scratch.plane, scratch.columns, scratch.col_stride)
-    return _plane_runs(planes, scratch.lines, window, (steep, line_uv, cell_uv), runs_end, res, crossings, skip)
+    return _scratch_plane_runs(scratch, window, (steep, line_uv, cell_uv), runs_end, res, crossings, skip)
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
@@ -249,8 +248,7 @@ def _free_runs(x0, y0, dx, dy, ray, free_limit, res, window, scratch, k):  # pra
     runs_end = just_before(free_limit)
     steep, cell, crossings = recorded_crossings(ints, floats, k)
     line = (y0, x0, dy, dx) if steep else (x0, y0, dx, dy)
-    planes = (scratch.plane, scratch.columns, scratch.col_stride)
-    end = _plane_runs(planes, scratch.lines, window, (steep, line, cell), runs_end, res, crossings, ints[SKIP, k])
+    end = _scratch_plane_runs(scratch, window, (steep, line, cell), runs_end, res, crossings, ints[SKIP, k])
     return _ray_moved_to(ray, end), runs_end
 
 
@@ -510,10 +508,7 @@ def _fan_lines(laser, heading, directions, beams, res, window, tiles, owned_sum,
         if runs_end <= 0.0:
             continue
         steep, line, cell, crossings = plane_crossings((laser[0], laser[1], dx, dy), first, runs_end, res, ray.tol)
-        _, tol_u, n_lines, edge0, edge_step = crossings
-        ints[KEY, k] = fan_key(steep, line[2], line[3])
-        ints[IU, k], ints[IV, k], ints[LINES, k] = cell[0], cell[1], n_lines
-        floats[EDGE0, k], floats[EDGE_STEP, k], floats[TOL, k] = edge0, edge_step, tol_u
+        record_crossings(ints, floats, k, steep, line, cell, crossings)
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
