@@ -22,7 +22,9 @@ a last one, :func:`_link_rows`, taken FAN_MARGIN short (the edges' rounding is f
 either ray's full rows (rows 1 .. n_lines - 1: the last row ends at the free phase's end, not at a line). Two
 neighbouring beams joined that way are a link; a run of links is a fan, and in each row the rays' runs are ordered
 by their edges, so the fan's run is spanned by its two outermost rays' runs (:func:`mapping.free_runs.row_run`, the
-same arithmetic as the rays' own).
+same arithmetic as the rays' own). Its outermost rays are its end rays while its beams turn one way (every scan of
+angle_min + i * angle_increment); a link whose beams turn the other way from the link before it is not made
+(:func:`_link_turn`: beam angles in any order, or repeated, give the rays' own cells).
 
 Nearer than about res / dtheta (11 m for 0.25 deg beams and 0.05 m cells, less for rays along a diagonal) the
 neighbouring beams that reach past a row are joined in it; a shorter beam between them breaks the fan there, and
@@ -119,6 +121,15 @@ def _link_rows(ints, floats, a, b):  # pragma: no cover - compiled
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
+def _link_turn(floats, k):  # pragma: no cover - compiled
+    """Which way ray k + 1 lies from ray k of a link (1, -1; 0 for the same direction): the sign of their edges'
+    difference in every row, their edge steps' (rays from one point with the same first cell: edge0 = u0 + d * step
+    and the k-th edge edge0 + k * step, for the same d)."""
+    step = floats[EDGE_STEP, k + 1] - floats[EDGE_STEP, k]
+    return 1 if step > 0.0 else (-1 if step < 0.0 else 0)
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
 def _mark_fan(planes, window, ints, floats, a, c, row):  # pragma: no cover - compiled
     """Mark in its plane the run the rays a .. c (a fan: each joined to the next) mark together in their row ``row``."""
     steep, forward, up = key_parts(ints[KEY, a])
@@ -143,10 +154,17 @@ def fan_hulls(planes, window, ints, floats, count, heads):  # pragma: no cover -
     join the runs beside them (their ends kept at each other's), and each row marks the fans it has: work in
     proportion to the links and the fans' rows."""
     top = 0
+    turn = 0  # the way the last link kept turns (_link_turn)
     for k in range(count):
-        ints[LINK, k] = _link_rows(ints, floats, k, k + 1) if k + 1 < count else 0
+        link = _link_rows(ints, floats, k, k + 1) if k + 1 < count else 0
+        if link > 0:
+            way = _link_turn(floats, k)
+            if k > 0 and ints[LINK, k - 1] > 0 and way != turn:
+                link = 0  # (the beams turn back: a fan's outermost rays would not be its ends)
+            turn = way
+        ints[LINK, k] = link
         ints[RUN_LEFT, k] = -1  # (not joined yet)
-        top = max(top, ints[LINK, k])
+        top = max(top, link)
     for k in range(count):
         ints[SKIP, k] = max(ints[LINK, k], ints[LINK, k - 1] if k > 0 else 0)
     for row in range(top + 1):

@@ -81,3 +81,37 @@ def test_fans_mark_the_cells_two_shards_walk_for_a_modern_lidar(seed):
     a, b = whole.rasterize(), joined.rasterize()
     np.testing.assert_array_equal(a["observed"], b["observed"])
     np.testing.assert_allclose(a["logodds"], b["logodds"], rtol=0, atol=1e-9)
+
+
+def _turning_back(rng: np.random.Generator, n_beams: int) -> np.ndarray:
+    """Beam angles that turn back: random directions, each beam after the first either a new one or one of the two
+    before it again (so that a beam between two of the same direction points elsewhere)."""
+    angles = [rng.uniform(-math.pi, math.pi)]
+    for _ in range(n_beams - 1):
+        angles.append(angles[-2] if len(angles) > 1 and rng.random() < 0.5 else rng.uniform(-math.pi, math.pi))
+    return np.array(angles)
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_fans_of_beams_whose_angles_turn_back_give_the_slow_references_cells(seed):
+    """The library takes beam angles in any order (a scan message's are angle_min + i * angle_increment, in order; a
+    caller of MonteCarloFusion may pass two lasers' beams merged, or repeated directions). A fan is spanned by its end
+    rays only while its beams turn one way: beams that point away and come back give the slow reference's cells and
+    values, and no fewer. (Found by a fuzz: three beams, the first and last the same direction, the middle one 0.5 rad
+    off and joined to both near the laser; its cells in those rows were left out.)"""
+    rng = np.random.default_rng(seed)
+    model = SensorModel(resolution=0.1, sigma="linear", sigma0=0.1, sigma_slope=0.01)
+    n_beams = int(rng.integers(3, 9))
+    angles = _turning_back(rng, n_beams)
+    ranges = rng.uniform(0.5, 4.5, n_beams)
+    ranges[rng.random(n_beams) < 0.3] = np.nan  # (no return: free to range_max beside shorter beams)
+    samples = np.column_stack([rng.normal(0, 0.2, 2), rng.normal(0, 0.2, 2), rng.normal(0, 1.0, 2)])
+    weights = np.array([0.4, 0.6])
+    grid = TiledGrid(0.1, tile_size=4)
+    MonteCarloFusion(grid, model, angles, 0.1, 4.0).fuse(ranges, samples, weights)
+    mean, spread = reference_fuse(model, angles, 0.1, 4.0, ranges, samples, weights)
+    got = fused_cells(grid)
+    assert set(got) == set(mean)
+    for cell, (lo, var) in got.items():
+        assert lo == pytest.approx(min(max(mean[cell], model.l_min), model.l_max), abs=3e-4), cell
+        assert var == pytest.approx(max(spread[cell], 0.0), abs=3e-4), cell
