@@ -269,7 +269,8 @@ def _owned_free_runs(x0, y0, dx, dy, ray, free_limit, res, window, tiles, scratc
     tiles the shard owns; it jumps over the other shards' tiles (:func:`jump_over_tile`) and marks nothing there,
     so the work a ray's free phase costs divides among the shards by the tiles each owns. One stretch of runs per
     stretch of owned tiles along the ray: from the cell the ray enters the first in to just before it leaves the
-    last (:func:`_close_stretch`).
+    last (:func:`_close_stretch`), or to a tile corner it passes with another shard's tile beside it
+    (:func:`_past_other_corner`).
 
     Returns (ray, r_in, tile_end) for the walk to go on from: when the free phase ends in an owned tile, the ray at
     the runs' last cell and r_in the runs' end, as :func:`_free_runs` gives them (the same arithmetic, so the cells
@@ -303,10 +304,27 @@ def _owned_free_runs(x0, y0, dx, dy, ray, free_limit, res, window, tiles, scratc
         r_in = min(t_max_x, t_max_y)
         last = (ix, iy)
         ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol)
+        if mine and _past_other_corner(last, (ix, iy), tiles):
+            _close_stretch((x0, y0, dx, dy), stretch, last, r_in, res, tol, window, scratch)
+            mine = False
     if mine:
         end = _scratch_runs(scratch, window, (x0, y0, dx, dy), stretch, runs_end, res, tol, 0)
         return _ray_moved_to(ray, end), runs_end, t_exit
     return Ray(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol), r_in, 0.0
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _past_other_corner(last, cell, tiles):  # pragma: no cover - compiled
+    """Whether a step from cell ``last`` to ``cell`` (ix, iy) goes diagonally through a tile's corner with a tile
+    the shard does not own beside it. The step is the traversal's (a corner crossed within the ray's tolerance:
+    :func:`mapping.raytrace.dda_step`), but a stretch's runs follow the ray's line, and within that tolerance they may
+    take a sliver of either cell beside the corner: a stretch of owned tiles ends at such a corner (its runs stop
+    short of it) and the next starts beyond it, so that a shard marks its own tiles' cells only."""
+    shift = tiles.shift
+    tx0, ty0, tx1, ty1 = last[0] >> shift, last[1] >> shift, cell[0] >> shift, cell[1] >> shift
+    if tx0 == tx1 or ty0 == ty1:
+        return False
+    return not (tiles.owned[ty0 - tiles.ty0, tx1 - tiles.tx0] and tiles.owned[ty1 - tiles.ty0, tx0 - tiles.tx0])
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")

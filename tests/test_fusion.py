@@ -21,6 +21,7 @@ from mapping.grid import TiledGrid
 from mapping.scan_input import MAX_WINDOW_CELLS
 from mapping.sensor_model import SensorModel
 from reference import reference_fuse
+from services.state.ownership import owns_tile
 
 RES = 0.05
 
@@ -300,6 +301,36 @@ def test_shards_partition_the_map():
     a, b = whole.rasterize(), joined.rasterize()
     for key in a:
         np.testing.assert_array_equal(a[key], b[key])
+
+
+def test_a_shard_keeps_only_its_own_tiles_when_rays_pass_tile_corners():
+    """A ray from a laser on a tile's corner (1 km out: its coordinates are not exact in binary), heading along its
+    tile's edge or diagonal within the corner tolerance, steps through the corner diagonally, while its runs, which
+    follow its line, take a sliver of a cell beside the corner. A stretch of a shard's own tiles ends at such a
+    corner: no shard holds a tile it does not own. (Found by a fuzz: shard 1 of 2 wrote a cell of shard 0's tile.)"""
+    model = SensorModel(resolution=0.05, sigma="constant", sigma0=0.01)
+    corner = np.array([996.8, -2001.6])  # (a corner of tiles of 32 cells: 1.6 m)
+    rng = np.random.default_rng(3)
+    angles = np.concatenate([[0.08735365380480542], rng.uniform(-math.pi, math.pi, 40)])
+    found = (  # the fuzz's case, shrunk: one beam, two samples, the first on the corner
+        np.concatenate([[0.2], np.full(40, np.inf)]),
+        np.array([[996.8, -2001.6, -math.pi / 2], [995.1999999999999, -2001.6, -math.pi]]),
+        np.array([0.5, 0.5]),
+    )
+    scans = [found]
+    for offset in ((0.0, 0.0), (-1.6, 0.0), (0.0, 1.6), (1.6, -1.6)):
+        yaws = np.arange(-4, 4) * math.pi / 4 + rng.choice([0.0, 1e-12, -1e-11], 8)
+        samples = np.column_stack([np.full(8, corner[0] + offset[0]), np.full(8, corner[1] + offset[1]), yaws])
+        scans.append((rng.uniform(0.2, 3.0, len(angles)), samples, np.full(8, 1 / 8)))
+    for shard in range(2):
+        owns = owns_tile(shard, 2)
+        grid = TiledGrid(0.05, tile_size=32)
+        fusion = MonteCarloFusion(grid, model, angles, 0.0, 0.5, owns_tile=owns)
+        fusion.fuse(*found)
+        fusion = MonteCarloFusion(grid, model, angles, 0.0, 3.5, owns_tile=owns)
+        for scan in scans[1:]:
+            fusion.fuse(*scan)
+        assert list(grid.keys()) and all(owns(*key) for key in grid.keys()), shard  # noqa: SIM118 (no __iter__)
 
 
 def test_a_shard_owning_no_tile_of_a_scans_window_walks_nothing():
