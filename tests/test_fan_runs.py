@@ -28,6 +28,18 @@ def _poses(rng: np.random.Generator, count: int, res: float, on_grid: bool) -> n
     return poses
 
 
+def _assert_the_references_cells(grid: TiledGrid, args: tuple, scan: tuple) -> None:
+    """The grid holds the cells of the slow reference's map of ``scan`` (ranges, samples, weights) under ``args``
+    (model, angles, range_min, range_max), each value within 3e-4 of the reference's (its erf from scipy)."""
+    model = args[0]
+    mean, spread = reference_fuse(*args, *scan)
+    got = fused_cells(grid)
+    assert set(got) == set(mean)
+    for cell, (lo, var) in got.items():
+        assert lo == pytest.approx(min(max(mean[cell], model.l_min), model.l_max), abs=3e-4), cell
+        assert var == pytest.approx(max(spread[cell], 0.0), abs=3e-4), cell
+
+
 def _skipped_rows(fusion: MonteCarloFusion) -> int:
     """Rows the fans marked for the rays of the last sample walked (their SKIP)."""
     return int(fusion._scratch.fan_ints[SKIP].sum())
@@ -51,12 +63,7 @@ def test_fans_give_the_slow_references_cells(seed, n_beams, n_samples):
     fusion = MonteCarloFusion(grid, model, angles, 0.15, 3.0)
     fusion.fuse(ranges, samples, weights)
     assert _skipped_rows(fusion) > 0  # (the fans were used)
-    mean, spread = reference_fuse(model, angles, 0.15, 3.0, ranges, samples, weights)
-    got = fused_cells(grid)
-    assert set(got) == set(mean)
-    for cell, (lo, var) in got.items():
-        assert lo == pytest.approx(min(max(mean[cell], model.l_min), model.l_max), abs=3e-4), cell
-        assert var == pytest.approx(max(spread[cell], 0.0), abs=3e-4), cell
+    _assert_the_references_cells(grid, (model, angles, 0.15, 3.0), (ranges, samples, weights))
 
 
 @pytest.mark.parametrize("seed", range(3))
@@ -109,9 +116,4 @@ def test_fans_of_beams_whose_angles_turn_back_give_the_slow_references_cells(see
     weights = np.array([0.4, 0.6])
     grid = TiledGrid(0.1, tile_size=4)
     MonteCarloFusion(grid, model, angles, 0.1, 4.0).fuse(ranges, samples, weights)
-    mean, spread = reference_fuse(model, angles, 0.1, 4.0, ranges, samples, weights)
-    got = fused_cells(grid)
-    assert set(got) == set(mean)
-    for cell, (lo, var) in got.items():
-        assert lo == pytest.approx(min(max(mean[cell], model.l_min), model.l_max), abs=3e-4), cell
-        assert var == pytest.approx(max(spread[cell], 0.0), abs=3e-4), cell
+    _assert_the_references_cells(grid, (model, angles, 0.1, 4.0), (ranges, samples, weights))
