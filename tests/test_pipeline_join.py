@@ -968,3 +968,22 @@ def test_seq_ledger_horizon_boundary_and_a_lower_seq_marked_late():
     assert not ledger.done("r", 11)
     ledger.mark("r", 5)  # a late, lower seq does not lower the highest
     assert ledger.done("r", 9) and not ledger.done("r", 12)
+
+
+def test_a_copy_of_a_scan_held_past_a_gap_counts_as_sent_again():
+    """Scan 1 is lost in transit and scan 2 comes twice while the join holds it past the gap: the copy is counted
+    under ``resent`` (as a copy of a half waiting for its partner is), and the held scan is fused with the scan the
+    history gives back for the gap; it was taken for a stray ("jump") and the copy held in its place (a fuzz)."""
+
+    def history(robot: str, stream: str, first: int, last: int) -> list[bytes]:
+        make = _scan if stream == "scan" else _pose
+        return [make(seq).encode() for seq in range(first, last + 1)]
+
+    shard = MapShard(ShardConfig("m", 0, 1, SensorModel()), RejectCounter(logging.getLogger("t")), history=history)
+    arrivals = [("scan", 0), ("pose", 0), ("scan", 2), ("scan", 2), ("pose", 1), ("pose", 2)]
+    arrivals += [(kind, seq) for seq in range(3, 6) for kind in ("scan", "pose")]
+    for kind, seq in arrivals:
+        shard.handle(f"pg/r/{kind}", (_scan if kind == "scan" else _pose)(seq).encode())
+    stats = shard.stats({"intake": 0})
+    assert stats.fused == {"r": 6} and stats.discarded == {}
+    assert stats.rejected == {} and stats.resent == {"pg/r/scan": 1}

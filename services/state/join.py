@@ -160,9 +160,13 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         )
 
     def waiting(self, key: JoinKey, is_scan: bool) -> ScanT | PoseT | None:
-        """The scan (else pose) of ``key`` that waits here for its partner, or None."""
+        """The scan (else pose) of ``key`` that waits here: for its partner, or held past a gap in its stream until
+        the stream's next message confirms the gap; None when none does."""
         entry = self._pending.get(key)
-        return None if entry is None else (entry.scan if is_scan else entry.pose)
+        if entry is not None:
+            return entry.scan if is_scan else entry.pose
+        held = self._held.get((key[0], is_scan))
+        return held[1] if held is not None and held[0] == key[1] else None
 
     def add_scan(
         self, key: JoinKey, scan: ScanT, trusted: bool = False

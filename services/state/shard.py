@@ -318,8 +318,8 @@ class MapShard:
             )
 
     def _count_resent(self, key: str, message: ScanOrPose) -> None:
-        """Count a scan or pose that came again, the same as the copy fused or waiting for its pair; log the first
-        per key."""
+        """Count a scan or pose that came again, the same as the copy fused or waiting (for its pair, or past a gap in
+        its stream); log the first per key."""
         self.resent[key] += 1
         if self.resent[key] == 1:
             self.log.info(
