@@ -154,7 +154,7 @@ def fan_hulls(planes, window, ints, floats, count, heads):  # pragma: no cover -
     join the runs beside them (their ends kept at each other's), and each row marks the fans it has: work in
     proportion to the links and the fans' rows."""
     top = 0
-    turn = 0  # the way the last link kept turns (_link_turn)
+    turn = 0  # the way link k - 1 turns (_link_turn; compared only when that link was kept)
     for k in range(count):
         link = _link_rows(ints, floats, k, k + 1) if k + 1 < count else 0
         if link > 0:
