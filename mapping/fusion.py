@@ -389,8 +389,9 @@ class MonteCarloFusion:
 
     def _window(self, lasers: np.ndarray, reach: float) -> tuple[Window, Tiles, np.ndarray]:
         """The scratch window over the rays of laser poses (M, 3) that reach ``reach`` m (its origin a multiple of 8
-        cells: the one-sample pass's 8 x 8 blocks are the grid's), the tiles over it and their owned tiles'
-        summed-area table."""
+        cells: the one-sample pass's 8 x 8 blocks are the grid's; a shard's a multiple of 64 cells, so that the
+        samples pass's 64 x 64 blocks, which a shard folds and sweeps where they meet its tiles, each lie in one tile
+        of 64 cells or more, not in two shards' tiles), the tiles over it and their owned tiles' summed-area table."""
         res = self.grid.resolution
         if len(lasers) == 1:  # (reductions cost a few microseconds each)
             ((x_lo, y_lo, _),) = lasers.tolist()
@@ -398,8 +399,9 @@ class MonteCarloFusion:
         else:
             (x_lo, y_lo), (x_hi, y_hi) = lasers[:, :2].min(axis=0).tolist(), lasers[:, :2].max(axis=0).tolist()
         check_window(x_lo, y_lo, x_hi, y_hi, reach, res)
-        ix0 = math.floor((x_lo - reach) / res) & ~7
-        iy0 = math.floor((y_lo - reach) / res) & ~7
+        align = ~7 if self.owns_tile is None else ~63
+        ix0 = math.floor((x_lo - reach) / res) & align
+        iy0 = math.floor((y_lo - reach) / res) & align
         w = math.floor((x_hi + reach) / res) - ix0 + 1
         h = math.floor((y_hi + reach) / res) - iy0 + 1
         shift = self.grid.tile_shift
