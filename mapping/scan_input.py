@@ -84,9 +84,10 @@ def check_window(x_lo: float, y_lo: float, x_hi: float, y_hi: float, reach: floa
             f"a scan {farthest:.6g} m from the map origin with rays {reach:.6g} m long reaches beyond "
             f"the {MAX_CELL_INDEX * resolution:.3g} m that {resolution} m cells cover"
         )
-    # + the 8-cell alignment, a cell to spare and the samples pass's padding to whole 64-cell words
-    width = (x_hi - x_lo + 2 * reach) / resolution + 72
-    height = (y_hi - y_lo + 2 * reach) / resolution + 9
+    # + the origin's alignment (8 cells, a shard's 64: mapping.fusion), a cell to spare and the samples pass's padding
+    # to whole 64-cell words
+    width = (x_hi - x_lo + 2 * reach) / resolution + 128
+    height = (y_hi - y_lo + 2 * reach) / resolution + 65
     if width * height > MAX_WINDOW_CELLS:
         raise InputError(
             f"one scan would span about {width:.0f} x {height:.0f} cells of {resolution} m, more than the "
