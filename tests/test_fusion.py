@@ -414,6 +414,29 @@ def test_a_range_limit_no_window_can_hold_is_refused(range_max, message):
     assert grid.keys() == []
 
 
+@settings(max_examples=200, deadline=None)
+@given(
+    reach_cells=st.integers(1_990, 2_060),  # rays about half the side of the largest window (4 096 cells square)
+    origin=st.tuples(st.floats(-50.0, 50.0), st.floats(-50.0, 50.0)),
+    spread=st.tuples(st.floats(0.0, 3.0), st.floats(0.0, 3.0)),
+    sharded=st.booleans(),
+)
+def test_a_window_a_scan_is_given_fits_the_largest_a_scan_may_take(reach_cells, origin, spread, sharded):
+    """check_window lets a scan through before its window is laid out; the window then laid out (its origin on 8
+    cells, a shard's on 64, its rows padded to whole 64-cell words) holds at most MAX_WINDOW_CELLS cells."""
+    owner = (lambda tx, ty: True) if sharded else None
+    fusion = MonteCarloFusion(
+        TiledGrid(RES), SensorModel(resolution=RES), np.array([0.0]), 0.05, reach_cells * RES, owns_tile=owner
+    )
+    samples = np.array([[origin[0], origin[1], 0.0], [origin[0] + spread[0], origin[1] + spread[1], 0.0]])
+    try:
+        ready = fusion.prepare((np.array([np.inf]), samples, np.full(2, 0.5)))
+    except InputError:
+        return  # (refused: too large)
+    assert ready is not None
+    assert -(-ready.window.w // 64) * 64 * ready.window.h <= MAX_WINDOW_CELLS
+
+
 def test_a_map_too_wide_for_one_raster_is_refused_not_allocated():
     """Two scans 2 000 km apart: each fuses, but one raster of both would hold 4e15 cells."""
     grid = TiledGrid(RES, tile_size=16)
