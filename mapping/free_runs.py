@@ -113,6 +113,29 @@ def row_run(edge0, edge_step, k, tol_u, forward):  # pragma: no cover - compiled
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
+def run_end_col(end_u, col, forward):  # pragma: no cover - compiled
+    """The last cell (u) of a ray's runs, its last row entered at ``col`` and the runs' end at u = end_u (grid units):
+    the cell the ray is in just before the end, and at least the row's entry cell; ``forward``: du > 0."""
+    if forward:
+        return max(math.ceil(end_u) - 1, col)
+    return min(math.floor(end_u), col)
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def runs_last_cell(line, cell, r_end, res, tol):  # pragma: no cover - compiled
+    """The last cell (ix, iy) that :func:`mark_free_runs` marks for the ray line = (x0, y0, dx, dy) from its first
+    cell ``cell`` to r_end (m), tol its corner tolerance (m), found with the same arithmetic and nothing marked."""
+    steep, line_uv, cell_uv, crossings = plane_crossings(line, cell, r_end, res, tol)
+    u0, _, du, _ = line_uv
+    v_step, tol_u, n_lines, edge0, edge_step = crossings
+    forward = du > 0.0
+    col = cell_uv[0] if n_lines == 0 else line_cells(edge0 + (n_lines - 1) * edge_step, tol_u, forward)[1]
+    u = run_end_col((u0 + r_end * du) * (1.0 / res), col, forward)
+    v = cell_uv[1] + n_lines * v_step
+    return (v, u) if steep else (u, v)
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
 def _mark_runs(plane, stride, win_u0, win_v0, line, cell, r_end, res, crossings, lines, skip):  # pragma: no cover
     """Mark, one run per line of constant v, the cells a ray crosses from (u0, v0) (m) along the unit direction
     (du, dv), line = (u0, v0, du, dv) with |du| >= |dv|, up to the range r_end (m), in the plane that holds cell
@@ -148,7 +171,7 @@ def _mark_runs(plane, stride, win_u0, win_v0, line, cell, r_end, res, crossings,
             set_short_run(plane, base + col, base + max(exits[np.uint64(k)], col))
             col = entries[np.uint64(k)]
             base += base_step
-        end_col = max(math.ceil(end_u) - 1, col)
+        end_col = run_end_col(end_u, col, True)
         set_short_run(plane, base + col, base + end_col)
     else:
         for k in range(skip, n_lines):
@@ -162,7 +185,7 @@ def _mark_runs(plane, stride, win_u0, win_v0, line, cell, r_end, res, crossings,
             set_short_run(plane, base + min(exits[np.uint64(k)], col), base + col)
             col = entries[np.uint64(k)]
             base += base_step
-        end_col = min(math.floor(end_u), col)
+        end_col = run_end_col(end_u, col, False)
         set_short_run(plane, base + end_col, base + col)
     return end_col, iv + n_lines * v_step
 

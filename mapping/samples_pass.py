@@ -54,7 +54,7 @@ from mapping.fan_runs import (
     recorded_crossings,
 )
 from mapping.fixed_point import WEIGHT_SCALE, to_fixed
-from mapping.free_runs import fold_block, fold_columns, mark_plane_runs, plane_crossings, set_bit
+from mapping.free_runs import fold_block, fold_columns, mark_plane_runs, plane_crossings, runs_last_cell, set_bit
 from mapping.jit import kernel
 from mapping.raytrace import dda_step
 from mapping.tile_boxes import widen_box
@@ -283,6 +283,7 @@ def _owned_free_runs(x0, y0, dx, dy, ray, free_limit, res, window, tiles, scratc
     ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol = ray
     if min(t_max_x, t_max_y) <= 0.0:  # the ray starts on its cell's edge and leaves it at once
         ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol)
+    first = (ix, iy)
     shift = tiles.shift
     r_in = 0.0
     stretch = (ix, iy)  # the cell the current stretch of owned tiles starts in
@@ -307,10 +308,13 @@ def _owned_free_runs(x0, y0, dx, dy, ray, free_limit, res, window, tiles, scratc
         if mine and _past_other_corner(last, (ix, iy), tiles):
             _close_stretch((x0, y0, dx, dy), stretch, last, r_in, res, tol, window, scratch)
             mine = False
+    # the walk goes on from the last cell of the whole ray's runs (those of a stretch from its first cell)
     if mine:
         end = _scratch_runs(scratch, window, (x0, y0, dx, dy), stretch, runs_end, res, tol, 0)
+        if stretch[0] != first[0] or stretch[1] != first[1]:
+            end = runs_last_cell((x0, y0, dx, dy), first, runs_end, res, tol)
         return _ray_moved_to(ray, end), runs_end, t_exit
-    return Ray(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol), r_in, 0.0
+    return _ray_moved_to(ray, runs_last_cell((x0, y0, dx, dy), first, runs_end, res, tol)), runs_end, 0.0
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
@@ -585,10 +589,21 @@ def _walk_sample(laser, sid, ws, directions, beams, model, res, window, tiles, o
                 by_index,
                 (beams, k),
                 0,
+                True,
             )
-        else:
+        else:  # (stepping through the other shards' tiles: its cells are a single shard's bit for bit)
             walk_ray(
-                ray, r_in, beam.free_until, beam.r_stop, some_tiles, _mark_free, _mark_near, by_cell, (beams, k), 0
+                ray,
+                r_in,
+                beam.free_until,
+                beam.r_stop,
+                some_tiles,
+                _mark_free,
+                _mark_near,
+                by_cell,
+                (beams, k),
+                0,
+                False,
             )
 
 

@@ -148,11 +148,21 @@ def accumulate_single(laser, directions, beams, model, res, window, tiles, scrat
         free_until, stop = beam.free_until, beam.r_stop
         if inside and tiles.all_owned:  # (a skipped beam is not inside)
             held_block, held_bits = walk_ray(
-                ray, 0.0, free_until, stop, every_tile, _hold_free, _raise_near, blocks, (beams, k), (0, np.int64(0))
+                ray,
+                0.0,
+                free_until,
+                stop,
+                every_tile,
+                _hold_free,
+                _raise_near,
+                blocks,
+                (beams, k),
+                (0, np.int64(0)),
+                True,
             )
             scratch.touched[np.uint64(held_block)] |= held_bits
         elif inside:
-            walk_ray(ray, 0.0, free_until, stop, some_tiles, _mark_free, _raise_near, blocks, (beams, k), 0)
+            walk_ray(ray, 0.0, free_until, stop, some_tiles, _mark_free, _raise_near, blocks, (beams, k), 0, True)
     return _count_touched(scratch, window, tiles)
 
 

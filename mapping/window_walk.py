@@ -177,7 +177,9 @@ def index_ray(ray, window):  # pragma: no cover - compiled
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def walk_ray(ray, r_in, free_until, stop, tiles, visit_free, visit_near, ctx, beam_ref, carry):  # pragma: no cover
+def walk_ray(
+    ray, r_in, free_until, stop, tiles, visit_free, visit_near, ctx, beam_ref, carry, jumps
+):  # pragma: no cover
     """Walk ``ray`` from the range r_in (m) to its end at ``stop`` (m), visiting each cell of positive length in the
     tiles the shard owns (``tiles``, a :class:`Tiles`); returns the visitors' carry (module docstring).
 
@@ -185,8 +187,11 @@ def walk_ray(ray, r_in, free_until, stop, tiles, visit_free, visit_near, ctx, be
     beam_at(*beam_ref) (beam_ref: a :class:`mapping.beam_model.BeamTable` and the beam's index), read after the
     free phase (in registers for the cells near the return, not across the free phase's loop). A grid line crossed
     within the ray's corner tolerance of stop ends the ray: no sliver of a cell past it. In another shard's tile
-    the walk jumps to just before the tile's exit (:func:`jump_over_tile`); it looks ownership up once per tile
-    entered (:func:`_tile_owner`)."""
+    where the ray ends the walk ends; in one it goes on from, with ``jumps`` (a constant for the compiler) it jumps
+    to just before the tile's exit (:func:`jump_over_tile`), else it steps through the tile's cells, visiting none,
+    so that the cells after it are those of a single shard's walk bit for bit (the jump's ranges are products, the
+    steps' sums, and where a ray runs along cell corners the two can part by more than its corner tolerance). It
+    looks ownership up once per tile entered (:func:`_tile_owner`)."""
     ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol = ray
     ray_end = stop - tol
     free_limit = min(free_until, ray_end)
@@ -198,15 +203,20 @@ def walk_ray(ray, r_in, free_until, stop, tiles, visit_free, visit_near, ctx, be
             break
         owner = _tile_owner(ix, iy, tiles, owner)
         if not owner[2]:
-            jumped_from = r_in
-            ix, iy, t_max_x, t_max_y, r_in, t_exit = jump_over_tile(
-                ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tiles.shift
-            )
-            if t_exit >= ray_end:
-                ray_done = True
-                break
-            if r_in > jumped_from:
-                continue  # look at the cell the jump landed in
+            if not jumps:
+                if tile_exit(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tiles.shift) >= ray_end:
+                    ray_done = True
+                    break
+            else:
+                jumped_from = r_in
+                ix, iy, t_max_x, t_max_y, r_in, t_exit = jump_over_tile(
+                    ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tiles.shift
+                )
+                if t_exit >= ray_end:
+                    ray_done = True
+                    break
+                if r_in > jumped_from:
+                    continue  # look at the cell the jump landed in
         elif r_out > r_in:
             carry = visit_free(ctx, carry, ix, iy)
         r_in = r_out
@@ -216,11 +226,15 @@ def walk_ray(ray, r_in, free_until, stop, tiles, visit_free, visit_near, ctx, be
         owner = _tile_owner(ix, iy, tiles, owner)
         mine = owner[2]
         if not mine:
-            ix, iy, t_max_x, t_max_y, r_in, t_exit = jump_over_tile(
-                ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tiles.shift
-            )
-            if t_exit >= ray_end:
-                break
+            if not jumps:
+                if tile_exit(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tiles.shift) >= ray_end:
+                    break
+            else:
+                ix, iy, t_max_x, t_max_y, r_in, t_exit = jump_over_tile(
+                    ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tiles.shift
+                )
+                if t_exit >= ray_end:
+                    break
         r_out = min(t_max_x, t_max_y, stop)
         if r_out > r_in and mine:
             carry = visit_near(ctx, beam, carry, ix, iy, r_in, r_out)

@@ -35,22 +35,23 @@ def _visit_near(out, beam, carry, ix, iy, r_in, r_out):  # pragma: no cover - co
 
 
 @numba.njit
-def _walk(x0, y0, angle, stop, free_until, window, tiles, beams, out):  # pragma: no cover - compiled
-    """(inside, visits): out[:visits] holds (ix, iy, FREE or NEAR) of each cell the walk hands to a visitor."""
+def _walk(x0, y0, angle, stop, free_until, window, tiles, beams, out, jumps):  # pragma: no cover - compiled
+    """(inside, visits): out[:visits] holds (ix, iy, FREE or NEAR) of each cell the walk hands to a visitor, the walk
+    jumping over the other shards' tiles (jumps) or stepping through them."""
     inside, ray = ray_start(x0, y0, math.cos(angle), math.sin(angle), stop, RES, Window(*window))
     if not inside:
         return False, 0
     visits = walk_ray(
-        ray, 0.0, free_until, stop, Tiles(*tiles), _visit_free, _visit_near, out, (BeamTable(*beams), 0), 0
+        ray, 0.0, free_until, stop, Tiles(*tiles), _visit_free, _visit_near, out, (BeamTable(*beams), 0), 0, jumps
     )
     return True, visits
 
 
-def walked(x0, y0, angle, stop, free_until, owned):
+def walked(x0, y0, angle, stop, free_until, owned, jumps=True):
     """The walk's visits [(ix, iy, phase)], the shard owning the tiles where ``owned`` (16 x 16 bool) is True."""
     out = np.zeros((4096, 3), np.int64)
     tiles = (owned, bool(owned.all()), SHIFT, TX0, TY0)
-    inside, visits = _walk(x0, y0, angle, stop, free_until, tuple(WINDOW), tiles, BEAMS, out)
+    inside, visits = _walk(x0, y0, angle, stop, free_until, tuple(WINDOW), tiles, BEAMS, out, jumps)
     assert inside
     return [tuple(row) for row in out[:visits].tolist()]
 
@@ -81,21 +82,22 @@ def test_every_tile_owned_visits_the_reference_cells_in_order_free_ones_first():
         assert phases == sorted(phases), "the free phase comes first"
 
 
+@pytest.mark.parametrize("jumps", [True, False])
 @pytest.mark.parametrize("pattern", ["checkerboard", "stripes", "random"])
-def test_a_shard_visits_the_cells_of_its_own_tiles_only(pattern):
+def test_a_shard_visits_the_cells_of_its_own_tiles_only(pattern, jumps):
     owned = ownership_pattern(pattern)
     for ray in random_rays(2, 300):
-        assert walked(*ray, owned) == expected(*ray, owned), ray
+        assert walked(*ray, owned, jumps) == expected(*ray, owned), ray
 
 
 def test_no_tile_owned_visits_nothing():
     owned = np.zeros((16, 16), bool)
     for ray in random_rays(3, 50):
-        assert walked(*ray, owned) == []
+        assert walked(*ray, owned) == [] and walked(*ray, owned, False) == []
 
 
 def test_a_ray_leaving_the_window_is_not_walked():
     out = np.zeros((4096, 3), np.int64)
     tiles = (np.ones((16, 16), bool), True, SHIFT, TX0, TY0)
     # from (6.3 m, 0): its start cell 63 is the window's last column, with no cell to spare
-    assert _walk(6.3, 0.0, 0.3, 1.0, 0.5, tuple(WINDOW), tiles, BEAMS, out) == (False, 0)
+    assert _walk(6.3, 0.0, 0.3, 1.0, 0.5, tuple(WINDOW), tiles, BEAMS, out, True) == (False, 0)

@@ -232,7 +232,17 @@ def _scan_evidence(
             run_len[:] = False
             carry = (ray.ix, ray.iy, False, n_touched)
             carry = walk_ray(
-                ray, 0.0, -math.inf, beam.r_stop, every_tile, _no_free_phase, _record_cell, runs, (beams, k), carry
+                ray,
+                0.0,
+                -math.inf,
+                beam.r_stop,
+                every_tile,
+                _no_free_phase,
+                _record_cell,
+                runs,
+                (beams, k),
+                carry,
+                True,
             )
             prev_ix, prev_iy, hit_passed, n_touched = carry
             _close_runs(runs, n_levels, prev_ix, prev_iy, hit_passed)
@@ -258,7 +268,17 @@ def _count_unknowns(lasers, weights, angles, beams, r_count, res, levels, scratc
             if inside:
                 start = (ray.ix, ray.iy)
                 walk_ray(
-                    ray, 0.0, -math.inf, stop, every_tile, _no_free_phase, _count_unknown, unknowns, (beams, k), start
+                    ray,
+                    0.0,
+                    -math.inf,
+                    stop,
+                    every_tile,
+                    _no_free_phase,
+                    _count_unknown,
+                    unknowns,
+                    (beams, k),
+                    start,
+                    True,
                 )
 
 
