@@ -272,11 +272,11 @@ def _owned_free_runs(x0, y0, dx, dy, ray, free_limit, res, window, tiles, scratc
     last (:func:`_close_stretch`), or to a tile corner it passes with another shard's tile beside it
     (:func:`_past_other_corner`).
 
-    Returns (ray, r_in, tile_end) for the walk to go on from: when the free phase ends in an owned tile, the ray at
-    the runs' last cell and r_in the runs' end, as :func:`_free_runs` gives them (the same arithmetic, so the cells
-    near the return get the same values as in the whole window's walk), and tile_end the range (m) at which the ray
-    leaves that tile; else the ray in the first cell of the tile the free phase ends in, r_in the range it enters
-    it at (the walk jumps over that tile) and tile_end 0."""
+    Returns (ray, r_in, tile_end) for the walk to go on from: the ray at the last cell of the whole ray's runs
+    (:func:`mapping.free_runs.runs_last_cell`, wherever the free phase ends) and r_in the runs' end, as
+    :func:`_free_runs` gives them (the same arithmetic, so that the walk, stepping through other shards' tiles, visits
+    the cells near the return with the whole window's values), and tile_end the range (m) at which the ray leaves the
+    tile the free phase ends in when the shard owns it, else 0."""
     runs_end = just_before(free_limit)
     if runs_end <= 0.0:
         return ray, 0.0, 0.0
