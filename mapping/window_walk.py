@@ -203,20 +203,14 @@ def walk_ray(
             break
         owner = _tile_owner(ix, iy, tiles, owner)
         if not owner[2]:
-            if not jumps:
-                if tile_exit(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tiles.shift) >= ray_end:
-                    ray_done = True
-                    break
-            else:
-                jumped_from = r_in
-                ix, iy, t_max_x, t_max_y, r_in, t_exit = jump_over_tile(
-                    ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tiles.shift
-                )
-                if t_exit >= ray_end:
-                    ray_done = True
-                    break
-                if r_in > jumped_from:
-                    continue  # look at the cell the jump landed in
+            jumped_from = r_in
+            ix, iy, t_max_x, t_max_y, r_in, ray_done = _past_other_tile(
+                (ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol), r_in, ray_end, tiles, jumps
+            )
+            if ray_done:
+                break
+            if r_in > jumped_from:
+                continue  # look at the cell the jump landed in
         elif r_out > r_in:
             carry = visit_free(ctx, carry, ix, iy)
         r_in = r_out
@@ -226,15 +220,11 @@ def walk_ray(
         owner = _tile_owner(ix, iy, tiles, owner)
         mine = owner[2]
         if not mine:
-            if not jumps:
-                if tile_exit(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tiles.shift) >= ray_end:
-                    break
-            else:
-                ix, iy, t_max_x, t_max_y, r_in, t_exit = jump_over_tile(
-                    ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tiles.shift
-                )
-                if t_exit >= ray_end:
-                    break
+            ix, iy, t_max_x, t_max_y, r_in, ends = _past_other_tile(
+                (ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol), r_in, ray_end, tiles, jumps
+            )
+            if ends:
+                break
         r_out = min(t_max_x, t_max_y, stop)
         if r_out > r_in and mine:
             carry = visit_near(ctx, beam, carry, ix, iy, r_in, r_out)
@@ -243,6 +233,22 @@ def walk_ray(
         r_in = r_out
         ix, iy, t_max_x, t_max_y = dda_step(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tol)
     return carry
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _past_other_tile(ray, r_in, ray_end, tiles, jumps):  # pragma: no cover - compiled
+    """What the walk does in another shard's tile, the ray in cell (ix, iy) of it with its crossings (``ray``, a
+    :class:`Ray`), entered at r_in (m): (ix, iy, t_max_x, t_max_y, r_in, ends), ends when the ray ends (at ray_end, m)
+    before it leaves the tile. With ``jumps`` the ray moved to just before the tile's exit (:func:`jump_over_tile`),
+    else as it was (the walk steps on through the tile's cells, visiting none)."""
+    ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, _ = ray
+    if not jumps:
+        t_exit = tile_exit(ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, tiles.shift)
+        return ix, iy, t_max_x, t_max_y, r_in, t_exit >= ray_end
+    ix, iy, t_max_x, t_max_y, r_in, t_exit = jump_over_tile(
+        ix, iy, step_x, step_y, t_max_x, t_max_y, t_delta_x, t_delta_y, r_in, tiles.shift
+    )
+    return ix, iy, t_max_x, t_max_y, r_in, t_exit >= ray_end
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
