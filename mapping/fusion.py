@@ -48,7 +48,15 @@ from mapping.fan_runs import fan_scratch
 from mapping.fixed_point import WEIGHT_SCALE, moment_scale
 from mapping.grid import TiledGrid
 from mapping.parallel_fusion import in_scan_order
-from mapping.samples_pass import COUNT_LEVELS, STAMP_LIMIT, accumulate_scan, apply_scan, merge_scan, owned_table
+from mapping.samples_pass import (
+    APPLY_HELD,
+    COUNT_LEVELS,
+    STAMP_LIMIT,
+    accumulate_scan,
+    apply_scan,
+    merge_scan,
+    owned_table,
+)
 from mapping.scan_input import MAX_WINDOW_CELLS, check_scan, check_window, laser_poses, merge_duplicates
 from mapping.sensor_model import SensorModel
 from mapping.single_pass import accumulate_single, apply_single
@@ -371,7 +379,7 @@ class MonteCarloFusion:
             for other in walked[1:]:
                 merge_scan(first.scratch, other.scratch, first.stamp_base, other.stamp_base, words)
             args = (first.window_args, first.tile_args, slot_map, layers, self._levels, self._moment_scale, words)
-            return int(apply_scan(first.scratch, first.stamp_base, *args, np.zeros(COUNT_LEVELS, np.uint64)))
+            return int(apply_scan(first.scratch, first.stamp_base, *args, np.zeros(APPLY_HELD, np.uint64)))
 
         _, _, win_w, win_h = first.window_args
         words = (win_w * win_h + 63) >> 6

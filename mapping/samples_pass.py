@@ -78,6 +78,12 @@ STAMP_LIMIT = 2**52
 #: the bit-sliced counters' levels per 64-cell word: equal weights are counted for up to 2**COUNT_LEVELS - 1 samples
 COUNT_LEVELS = 16
 
+#: bit i of a byte b spread to the lowest bit of byte i: BYTE_SPREAD[b] (the apply reads eight cells' counts of up to
+#: 8 levels at once, one byte a cell: :func:`_counts_in_bytes`)
+BYTE_SPREAD = np.array([sum(((b >> i) & 1) << (8 * i) for i in range(8)) for b in range(256)], np.uint64)
+#: room the apply needs per thread: a word's COUNT_LEVELS levels of counts, then its 64 cells' counts as bytes
+APPLY_HELD = COUNT_LEVELS + 8
+
 
 class SamplesScratch(NamedTuple):
     """The samples pass's scratch over a scan's window (cell c = gy * w + gx; see :func:`accumulate_scan`).
@@ -861,6 +867,27 @@ def _count_of(counts, k, levels):  # pragma: no cover - compiled
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
+def _counts_in_bytes(held, levels, bits):  # pragma: no cover - compiled
+    """The counts of a word's cells (its bit-sliced counts in held[:levels], levels <= 8) as bytes, eight cells a
+    uint64 in held[COUNT_LEVELS + j] for cells 8 j .. 8 j + 7 (cell k's count: :func:`_byte_count`), for the bytes
+    of ``bits`` (the cells to read) that are not clear: a table read a level and byte rather than a level a cell."""
+    for j in range(8):
+        at = np.uint64(8 * j)
+        if (bits >> at) & np.uint64(0xFF) == 0:
+            continue
+        lanes = np.uint64(0)
+        for level in range(levels):
+            lanes |= BYTE_SPREAD[(held[level] >> at) & np.uint64(0xFF)] << np.uint64(level)
+        held[COUNT_LEVELS + j] = lanes
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _byte_count(held, k):  # pragma: no cover - compiled
+    """The count of cell k (0 .. 63) of a word that :func:`_counts_in_bytes` put in bytes."""
+    return (held[COUNT_LEVELS + (k >> 3)] >> np.uint64((k & 7) << 3)) & np.uint64(0xFF)
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
 def _count_levels(sums):  # pragma: no cover - compiled
     """The counts' levels in use: those of the largest count, len(sums) - 1 (0 when the weights are summed)."""
     levels = 0
@@ -926,8 +953,9 @@ def apply_scan(
     slot_map: the grid slot of each tile of the window; layers: the grid's (logodds, variance, observed); levels:
     the model's (l_free, l_min, l_max); moment_scale: as for :func:`accumulate_scan`; words: the scratch words
     (64 cells each) words[0] .. words[1] - 1 to apply (bands of words may be applied on different threads at once:
-    they hold different cells); held: COUNT_LEVELS uint64 of room for a word's counts (one per thread). W, D1 and D2
-    are taken from their int64 steps, each rounded once to float64."""
+    they hold different cells); held: APPLY_HELD uint64 of room for a word's counts (one per thread), read as bytes
+    (:func:`_counts_in_bytes`) when they have at most 8 levels (counts below 256). W, D1 and D2 are taken from their
+    int64 steps, each rounded once to float64."""
     scratch, window, tiles = SamplesScratch(*scratch), Window(*window), Tiles(*tiles)
     logodds, variance, observed = layers
     l_free, l_min, l_max = levels
@@ -935,6 +963,7 @@ def apply_scan(
     per_weight_step, per_moment_step = 1.0 / WEIGHT_SCALE, 1.0 / moment_scale  # (powers of two: exact)
     counted = sums.shape[0] > 0
     count_levels = _count_levels(sums)
+    in_bytes = count_levels <= 8
     in_tile = (1 << tiles.shift) - 1
     n_scan = 0
     for i in range(words[0], words[1]):
@@ -951,6 +980,8 @@ def apply_scan(
             for level in range(count_levels):
                 held[level] = scratch.counts[level, i]
                 scratch.counts[level, i] = 0
+            if in_bytes:
+                _counts_in_bytes(held, count_levels, bits)
         while bits != 0:
             k = trailing_zeros(bits)
             bits &= bits - np.uint64(1)
@@ -959,7 +990,8 @@ def apply_scan(
             slot = slot_map[ty, (ix >> tiles.shift) - tiles.tx0]
             lx = ix & in_tile
             if counted:
-                moment1 = l_free * sums[_count_of(held, k, count_levels)]
+                n = _byte_count(held, k) if in_bytes else _count_of(held, k, count_levels)
+                moment1 = l_free * sums[n]
             else:
                 moment1 = l_free * (weight_sum[c] * per_weight_step)
                 weight_sum[c] = 0

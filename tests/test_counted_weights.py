@@ -13,7 +13,7 @@ import mapping.fusion as fusion
 from bench.scenarios import honest_posed_scans, office_run
 from mapping.fusion import MonteCarloFusion
 from mapping.grid import TiledGrid
-from mapping.samples_pass import COUNT_LEVELS, _count_of, _count_pair
+from mapping.samples_pass import APPLY_HELD, COUNT_LEVELS, _byte_count, _count_of, _count_pair, _counts_in_bytes
 from mapping.sensor_model import SensorModel
 from services.fusion_runner import PoseSampling
 from services.state.ownership import owns_tile
@@ -54,6 +54,25 @@ def test_a_pair_of_words_adds_the_number_of_them_with_each_bit_set(pairs):
     levels = max((2 * len(pairs)).bit_length(), 1)
     assert [int(_count_of(counts[:, 0], k, levels)) for k in range(64)] == expected
     assert np.array_equal(counts, one_by_one)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.integers(1, 8),
+    st.lists(st.integers(0, 2**64 - 1), min_size=COUNT_LEVELS, max_size=COUNT_LEVELS),
+    st.integers(0, 2**64 - 1),
+)
+def test_the_counts_read_as_bytes_are_the_counts_read_a_cell_at_a_time(levels, words, bits):
+    """The apply reads the counts of up to 8 levels eight cells at a time, as bytes: for every cell of ``bits``,
+    the count a cell at a time gives, whatever the levels above ``levels`` hold."""
+    held = np.zeros(APPLY_HELD, np.uint64)
+    held[:COUNT_LEVELS] = words
+    _counts_in_bytes(held, levels, np.uint64(bits))
+    cells = [k for k in range(64) if (bits >> k) & 1]
+    assert [int(_byte_count(held, k)) for k in cells] == [int(_count_of(held, k, levels)) for k in cells]
+    assert [int(_count_of(held, k, levels)) for k in cells] == [
+        sum(((words[level] >> k) & 1) << level for level in range(levels)) for k in cells
+    ]
 
 
 def test_the_sums_table_is_the_per_cell_sum_of_fixed_steps():
@@ -106,6 +125,21 @@ def test_counted_weights_give_the_map_of_the_per_cell_sums_bit_for_bit(office, m
     counted = _fuse(posed, scans, owner)
     monkeypatch.setattr(fusion, "_equal_weight_sums", lambda weights: np.zeros(0))  # every cell's weights summed
     summed = _fuse(posed, scans, owner)
+    assert counted.observed.any()
+    for layer in ("logodds", "variance", "observed"):
+        np.testing.assert_array_equal(getattr(counted, layer), getattr(summed, layer))
+
+
+@pytest.mark.parametrize("particles", [255, 300])
+def test_counts_of_more_than_eight_levels_and_of_exactly_eight_give_the_per_cell_sums_map(
+    office, monkeypatch, particles
+):
+    """255 particles: counts up to 255, the most the apply reads as bytes; 300: nine levels, read a cell at a time."""
+    posed = honest_posed_scans(office_run(steps=4), particles=particles)
+    scans = _scans(posed, "particles")
+    counted = _fuse(posed, scans, None)
+    monkeypatch.setattr(fusion, "_equal_weight_sums", lambda weights: np.zeros(0))
+    summed = _fuse(posed, scans, None)
     assert counted.observed.any()
     for layer in ("logodds", "variance", "observed"):
         np.testing.assert_array_equal(getattr(counted, layer), getattr(summed, layer))
