@@ -987,3 +987,32 @@ def test_a_copy_of_a_scan_held_past_a_gap_counts_as_sent_again():
     stats = shard.stats({"intake": 0})
     assert stats.fused == {"r": 6} and stats.discarded == {}
     assert stats.rejected == {} and stats.resent == {"pg/r/scan": 1}
+
+
+def test_a_copy_of_a_scan_the_join_evicted_counts_as_sent_again_and_another_as_late():
+    """The SLAM node lags: scans 0-5 come before any pose and the join (room for 2) evicts scans 0-3, keeping their
+    seqs to ask the history for them when their poses come. A copy of scan 1 sent again is the scan evicted: counted
+    under ``resent``, not refused as late (it was); a different scan under seq 2 (two publishers) is refused as late.
+    Every pose then comes and every scan is fused, the evicted ones from the history."""
+    asked = []
+
+    def history(robot: str, stream: str, first: int, last: int) -> list[bytes]:
+        asked.append((stream, first, last))
+        return [_scan(seq).encode() for seq in range(first, last + 1)] if stream == "scan" else []
+
+    config = ShardConfig("m", 0, 1, SensorModel(), join_capacity=2)
+    rejects = RejectCounter(logging.getLogger("t"))
+    shard = MapShard(config, rejects, history=history)
+    for seq in range(6):
+        shard.handle("pg/r/scan", _scan(seq).encode())
+    shard.handle("pg/r/scan", _scan(1).encode())
+    other = replace(_scan(2), ranges=_scan(2).ranges * 0.5)
+    shard.handle("pg/r/scan", other.encode())
+    stats = shard.stats({"intake": 0})
+    assert stats.resent == {"pg/r/scan": 1}
+    assert stats.rejected == {"join/r": 1} and rejects.kinds() == {"late": 1}
+    for seq in range(6):
+        shard.handle("pg/r/pose", _pose(seq).encode())
+    stats = shard.stats({"intake": 0})
+    assert stats.fused == {"r": 6} and stats.discarded == {}
+    assert asked == [("scan", 0, 3)]

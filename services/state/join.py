@@ -17,8 +17,8 @@ robot's streams after the source's count of scans; the caller decides when (the 
 the last scans: services.state.shard waits for quiet).
 
 The buffer holds the halves still waiting for their partner, at most ``capacity`` of them; when it is full
-the oldest waiting half is evicted. With ``recover``, an evicted half is only remembered by its seq (at most
-:data:`EVICTED_LIMIT` of them) and asked for again when its partner comes: a SLAM node down for
+the oldest waiting half is evicted. With ``recover``, an evicted half is only remembered by its seq and digest (at
+most :data:`EVICTED_LIMIT` of them) and asked for again when its partner comes: a SLAM node down for
 longer than the buffer lasts then costs no scan, as the source's history still holds them. Without
 ``recover``, or when the history no longer holds it, it is given up. Every half given up on is returned as
 :class:`GivenUp`, so the caller counts it (nothing is dropped silently). :class:`SeqLedger` remembers which
@@ -52,8 +52,8 @@ LATE = "late"  # it came after its own stream had passed its seq (a re-sent mess
 JUMP = "jump"  # it jumped past a gap that its stream's next message did not confirm (a stray): refused
 AHEAD = "ahead"  # it lies more than the window beyond what its stream has shown: held until the stream gets near
 
-#: evicted halves remembered, to be asked for again when their partner comes (only their seqs: about 200 bytes
-#: each); 13.6 min of a 10 Hz robot's scans
+#: evicted halves remembered, to be asked for again when their partner comes (only their seqs and 16-byte digests:
+#: about 250 bytes each); 13.6 min of a 10 Hz robot's scans
 EVICTED_LIMIT = 8192
 #: evicted halves of one stream asked for at once: the partners of the ones after the first come next
 REFETCH_BATCH = 32
@@ -112,13 +112,16 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         max_bytes: int | None = None,
         size: Callable[[ScanT | PoseT], int] = lambda item: 0,
         same: Callable[[ScanT | PoseT, ScanT | PoseT], bool] = lambda a, b: a == b,
+        digest: Callable[[ScanT | PoseT], bytes] | None = None,
     ):
         """``recover(robot, scans, first, last)``: what it can find of the robot's scans (else poses) with seqs
         first..last (inclusive), which its stream skipped, as {seq: scan or pose}. ``window``: seqs beyond its
         stream's last one that a live message may lie (:data:`DEFAULT_SEQ_WINDOW`). ``max_bytes``: bytes (as
         ``size`` measures a half) one robot's waiting halves may hold; beyond, its oldest are evicted as when
         the buffer is full (None: no bound). ``same(a, b)``: whether two halves are the same message (a far run is
-        believed when ``recover`` gives its first message, the same as the one held)."""
+        believed when ``recover`` gives its first message, the same as the one held). ``digest(half)``: a few bytes
+        that stand for a half, kept with an evicted half's seq (:meth:`evicted_digest`) so that a copy of it sent
+        again can be told from another message of that seq."""
         self.capacity = _at_least_one(capacity, "join buffer capacity")
         self.recover = recover
         self.window = _at_least_one(window, "seq window")
@@ -126,6 +129,7 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         self._size = size
         self._largest = 0  # bytes of the largest half offered so far: bounds what the halves waiting here hold
         self._same = same
+        self._digest = digest
         # (robot, scans?) -> {seq: item} beyond the window
         self._far: dict[tuple[str, bool], dict[int, ScanT | PoseT]] = {}
         self._pending: OrderedDict[JoinKey, _Pending[ScanT, PoseT]] = OrderedDict()
@@ -133,7 +137,8 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         # (robot, scans?) -> (seq, item) past a gap
         self._held: dict[tuple[str, bool], tuple[int, ScanT | PoseT]] = {}
         self._ahead: dict[tuple[str, bool], set[int]] = {}  # (robot, scans?) -> seqs recovered before it got there
-        self._evicted: OrderedDict[tuple[str, int, bool], None] = OrderedDict()  # (robot, seq, scan?), oldest first
+        # (robot, seq, scan?) -> the half's digest (None without ``digest``), oldest first
+        self._evicted: OrderedDict[tuple[str, int, bool], bytes | None] = OrderedDict()
         # (robot, scans?) -> evicted halves asked for again ahead of need, by seq (the last batch of that stream)
         self._fetched: dict[tuple[str, bool], dict[int, ScanT | PoseT]] = {}
 
@@ -167,6 +172,11 @@ class JoinBuffer(Generic[ScanT, PoseT]):
             return entry.scan if is_scan else entry.pose
         held = self._held.get((key[0], is_scan))
         return held[1] if held is not None and held[0] == key[1] else None
+
+    def evicted_digest(self, key: JoinKey, is_scan: bool) -> bytes | None:
+        """The digest of the scan (else pose) of ``key`` when it was evicted for room and is remembered, to be asked
+        for again when its partner comes; None otherwise (or without ``digest``)."""
+        return self._evicted.get((key[0], key[1], is_scan))
 
     def add_scan(
         self, key: JoinKey, scan: ScanT, trusted: bool = False
@@ -257,7 +267,7 @@ class JoinBuffer(Generic[ScanT, PoseT]):
             half = entry.scan if entry.scan is not None else entry.pose
             assert half is not None  # an entry waits with one half (:meth:`_place` files it with the other)
             excess -= self._size(half)
-            gone += self._evict(robot, oldest[1], entry.scan is not None)
+            gone += self._evict(robot, oldest[1], entry.scan is not None, half)
         return gone
 
     def settle(self, robot: str, scans: int) -> tuple[list[tuple[ScanT, PoseT]], list[GivenUp]]:
@@ -348,7 +358,9 @@ class JoinBuffer(Generic[ScanT, PoseT]):
                 return [], [GivenUp(robot, seq, 1, is_scan, ORPHANED)]
             while len(self._pending) >= self.capacity:
                 (old_robot, old_seq), old = self._pending.popitem(last=False)
-                gone += self._evict(old_robot, old_seq, old.scan is not None)
+                old_half = old.scan if old.scan is not None else old.pose
+                assert old_half is not None  # (an entry waits with one half)
+                gone += self._evict(old_robot, old_seq, old.scan is not None, old_half)
             entry = self._pending[key] = _Pending()
         if is_scan:
             entry.scan = item
@@ -414,12 +426,13 @@ class JoinBuffer(Generic[ScanT, PoseT]):
             gone += more
         return pairs, gone
 
-    def _evict(self, robot: str, seq: int, is_scan: bool) -> list[GivenUp]:
-        """Make room: the half (robot, seq) leaves the buffer. With ``recover`` only its seq is kept, to ask for it
-        again when its partner comes (the oldest such seq beyond the limit is given up); without, it is given up."""
+    def _evict(self, robot: str, seq: int, is_scan: bool, half: ScanT | PoseT) -> list[GivenUp]:
+        """Make room: ``half``, (robot, seq)'s, leaves the buffer. With ``recover`` only its seq (and digest) is kept,
+        to ask for it again when its partner comes (the oldest such seq beyond the limit is given up); without, it is
+        given up."""
         if self.recover is None:
             return [GivenUp(robot, seq, 1, is_scan, OVERFLOW)]
-        self._evicted[(robot, seq, is_scan)] = None
+        self._evicted[(robot, seq, is_scan)] = None if self._digest is None else self._digest(half)
         if len(self._evicted) <= EVICTED_LIMIT:
             return []
         (old_robot, old_seq, old_is_scan), _ = self._evicted.popitem(last=False)

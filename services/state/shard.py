@@ -144,6 +144,7 @@ class MapShard:
             max_bytes=limits.join_bytes,
             size=message_bytes,
             same=lambda a, b: a.digest() == b.digest(),
+            digest=lambda half: half.digest(),
         )
         # (robot, seq) -> digests of the scan and the pose fused
         self._fused_seqs: SeqLedger[tuple[bytes, bytes]] = SeqLedger(
@@ -278,9 +279,13 @@ class MapShard:
         if message.robot in self.ended:  # (a late pose after the end: settle again once it is quiet)
             self._unsettled.add(message.robot)
         join_key = (message.robot, message.seq)
-        waiting = self._join.waiting(join_key, isinstance(message, LaserScan))
+        is_scan = isinstance(message, LaserScan)
+        waiting = self._join.waiting(join_key, is_scan)
         if waiting is not None and waiting.digest() == message.digest():  # sent again before its pair was fused
             self._count_resent(key, message)
+            return
+        if waiting is None and self._join.evicted_digest(join_key, is_scan) == message.digest():
+            self._count_resent(key, message)  # (sent again after the join evicted it for room: asked for again later)
             return
         if isinstance(message, LaserScan):
             pairs, gone = self._join.add_scan(join_key, message, trusted=from_history)
