@@ -43,6 +43,12 @@ class _Pending(Generic[ScanT, PoseT]):
     scan: ScanT | None = None
     pose: PoseT | None = None
 
+    def half(self) -> ScanT | PoseT:
+        """The one half an entry waits with (:meth:`JoinBuffer._place` files it with the other)."""
+        half = self.scan if self.scan is not None else self.pose
+        assert half is not None
+        return half
+
 
 #: why halves are given up on (:class:`GivenUp`)
 OVERFLOW = "overflow"  # evicted from a full buffer
@@ -264,8 +270,7 @@ class JoinBuffer(Generic[ScanT, PoseT]):
             if oldest is None:
                 break
             entry = self._pending.pop(oldest)
-            half = entry.scan if entry.scan is not None else entry.pose
-            assert half is not None  # an entry waits with one half (:meth:`_place` files it with the other)
+            half = entry.half()
             excess -= self._size(half)
             gone += self._evict(robot, oldest[1], entry.scan is not None, half)
         return gone
@@ -358,9 +363,7 @@ class JoinBuffer(Generic[ScanT, PoseT]):
                 return [], [GivenUp(robot, seq, 1, is_scan, ORPHANED)]
             while len(self._pending) >= self.capacity:
                 (old_robot, old_seq), old = self._pending.popitem(last=False)
-                old_half = old.scan if old.scan is not None else old.pose
-                assert old_half is not None  # (an entry waits with one half)
-                gone += self._evict(old_robot, old_seq, old.scan is not None, old_half)
+                gone += self._evict(old_robot, old_seq, old.scan is not None, old.half())
             entry = self._pending[key] = _Pending()
         if is_scan:
             entry.scan = item
