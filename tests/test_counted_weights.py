@@ -131,9 +131,7 @@ def test_counted_weights_give_the_map_of_the_per_cell_sums_bit_for_bit(office, m
 
 
 @pytest.mark.parametrize("particles", [255, 300])
-def test_counts_of_more_than_eight_levels_and_of_exactly_eight_give_the_per_cell_sums_map(
-    office, monkeypatch, particles
-):
+def test_counts_of_more_than_eight_levels_and_of_exactly_eight_give_the_per_cell_sums_map(monkeypatch, particles):
     """255 particles: counts up to 255, the most the apply reads as bytes; 300: nine levels, read a cell at a time."""
     posed = honest_posed_scans(office_run(steps=4), particles=particles)
     scans = _scans(posed, "particles")

@@ -117,24 +117,23 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         window: int = DEFAULT_SEQ_WINDOW,
         max_bytes: int | None = None,
         size: Callable[[ScanT | PoseT], int] = lambda item: 0,
-        same: Callable[[ScanT | PoseT, ScanT | PoseT], bool] = lambda a, b: a == b,
         digest: Callable[[ScanT | PoseT], bytes] | None = None,
     ):
         """``recover(robot, scans, first, last)``: what it can find of the robot's scans (else poses) with seqs
         first..last (inclusive), which its stream skipped, as {seq: scan or pose}. ``window``: seqs beyond its
         stream's last one that a live message may lie (:data:`DEFAULT_SEQ_WINDOW`). ``max_bytes``: bytes (as
         ``size`` measures a half) one robot's waiting halves may hold; beyond, its oldest are evicted as when
-        the buffer is full (None: no bound). ``same(a, b)``: whether two halves are the same message (a far run is
-        believed when ``recover`` gives its first message, the same as the one held). ``digest(half)``: a few bytes
-        that stand for a half, kept with an evicted half's seq (:meth:`evicted_digest`) so that a copy of it sent
-        again can be told from another message of that seq."""
+        the buffer is full (None: no bound). ``digest(half)``: a few bytes that stand for a half: two halves with
+        the same digest are the same message (a far run is believed when ``recover`` gives its first message, the
+        same as the one held), and an evicted half's digest is kept with its seq (:meth:`evicted_digest`) so that a
+        copy of it sent again can be told from another message of that seq (None: halves compared with ==, and no
+        digest kept)."""
         self.capacity = _at_least_one(capacity, "join buffer capacity")
         self.recover = recover
         self.window = _at_least_one(window, "seq window")
         self.max_bytes = max_bytes
         self._size = size
         self._largest = 0  # bytes of the largest half offered so far: bounds what the halves waiting here hold
-        self._same = same
         self._digest = digest
         # (robot, scans?) -> {seq: item} beyond the window
         self._far: dict[tuple[str, bool], dict[int, ScanT | PoseT]] = {}
@@ -240,6 +239,10 @@ class JoinBuffer(Generic[ScanT, PoseT]):
             return True
         found = self.recover(robot, is_scan, seq, seq).get(seq)
         return found is not None and self._same(found, far[seq])
+
+    def _same(self, a: ScanT | PoseT, b: ScanT | PoseT) -> bool:
+        """Whether two halves are the same message (by ``digest``, else ==)."""
+        return a == b if self._digest is None else self._digest(a) == self._digest(b)
 
     def _reoffer(self, robot: str, is_scan: bool) -> tuple[list[tuple[ScanT, PoseT]], list[GivenUp]]:
         """Take the far messages of the stream that now lie within the window, in seq order."""

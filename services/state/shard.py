@@ -143,7 +143,6 @@ class MapShard:
             window=limits.seq_window,
             max_bytes=limits.join_bytes,
             size=message_bytes,
-            same=lambda a, b: a.digest() == b.digest(),
             digest=lambda half: half.digest(),
         )
         # (robot, seq) -> digests of the scan and the pose fused
@@ -280,12 +279,12 @@ class MapShard:
             self._unsettled.add(message.robot)
         join_key = (message.robot, message.seq)
         is_scan = isinstance(message, LaserScan)
+        # sent again before its pair was fused: the copy waiting for its partner (or past a gap), or one the join
+        # evicted for room and will ask the histories for again
         waiting = self._join.waiting(join_key, is_scan)
-        if waiting is not None and waiting.digest() == message.digest():  # sent again before its pair was fused
+        held = self._join.evicted_digest(join_key, is_scan) if waiting is None else waiting.digest()
+        if held == message.digest():
             self._count_resent(key, message)
-            return
-        if waiting is None and self._join.evicted_digest(join_key, is_scan) == message.digest():
-            self._count_resent(key, message)  # (sent again after the join evicted it for room: asked for again later)
             return
         if isinstance(message, LaserScan):
             pairs, gone = self._join.add_scan(join_key, message, trusted=from_history)
