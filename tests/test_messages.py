@@ -3,6 +3,7 @@ the reason that names it. The expected values are built here by hand, not by the
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -34,6 +35,7 @@ from schemas.messages import (
     decode_message,
 )
 from schemas.wire import MAX_ARRAY_ELEMENTS
+from services.nodes.mapper import sent_payload
 
 SETTINGS = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -210,6 +212,14 @@ def test_round_trip_is_bit_exact(message):
     payload = message.encode()
     assert_same(decode_message(payload), message)
     assert_same(decode_message(payload, type(message)), message)
+
+
+@SETTINGS
+@given(tile_updates(), st.floats(0.0, 4e9))
+def test_a_shard_stamps_a_tile_update_as_it_sends_it(update, now):
+    sent = decode_message(sent_payload(update, clock=lambda: now), TileUpdate)
+    assert sent.published == now
+    assert_same(sent, dataclasses.replace(update, published=now))  # everything else as it was made
 
 
 def test_arrays_travel_as_raw_bytes_not_lists():
