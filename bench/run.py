@@ -9,6 +9,8 @@ import sys
 import time
 from pathlib import Path
 
+from services.commands.mapping import available_cores
+
 RESULTS = Path(__file__).resolve().parent / "results"
 #: benchmark modules, each with run() -> dict of figures
 SUITES = (
@@ -37,6 +39,18 @@ def run_cli(argv: list[str]) -> str:
     return run_in_process(argv)
 
 
+def cpu_model() -> str:
+    """The processor's model name (/proc/cpuinfo on Linux; else what platform says): figures of two runs compare only
+    on the same processor, and a session's machine may change."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
 def main(argv: list[str]) -> int:
     names = [f"bench.{name}" for name in argv] or list(SUITES)
     RESULTS.mkdir(parents=True, exist_ok=True)
@@ -49,6 +63,8 @@ def main(argv: list[str]) -> int:
         record = {
             "suite": name,
             "machine": platform.machine(),
+            "cpu": cpu_model(),
+            "cores": available_cores(),
             "python": platform.python_version(),
             "time": time.strftime("%Y-%m-%dT%H:%M:%S"),
             "figures": figures,

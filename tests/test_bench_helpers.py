@@ -1,12 +1,19 @@
 """Benchmark helpers the figures rest on: the adaptive benchmark's tree oracle (hand-computed cell means on a tiny
-raster), its label-pure quadtree (cells counted by hand), the scan selection every suite cuts its inputs with, and
-the landmark benchmark's figures pooled over robots."""
+raster), its label-pure quadtree (cells counted by hand), the scan selection every suite cuts its inputs with, the
+landmark benchmark's figures pooled over robots, and the record `make bench` writes of each suite."""
 
 from __future__ import annotations
+
+import json
+import os
+import sys
+import types
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+import bench.run
 from bench.adaptive import label_pure_cells, tree_oracle_logodds
 from bench.scenarios import select_scans
 from bench.slam import pooled
@@ -148,3 +155,22 @@ def test_pooled_figures_are_the_mean_inside95_and_the_geometric_mean_ate_ratio_p
     assert got["pooled_all_ekf_ref_inside95"] == pytest.approx(0.80)  # (0.8 + 1 + 0.9 + 0.5) / 4
     assert got["pooled_all_fastslam2_default_ate_ratio"] == pytest.approx(4.0 ** (1 / 4))  # (2 * 0.5 * 4 * 1)^(1/4)
     assert "pooled_all_ekf_ref_ate_ratio" not in got and len(got) == 4 * 2 * 5
+
+
+def test_a_suites_record_names_the_processor_and_the_cores_its_figures_come_from(tmp_path, monkeypatch, capsys):
+    suite = types.ModuleType("bench.tiny_suite")
+    suite.run = lambda: {"scans_per_s": 2.5}  # type: ignore[attr-defined]
+    monkeypatch.setitem(sys.modules, "bench.tiny_suite", suite)
+    monkeypatch.setattr(bench.run, "RESULTS", tmp_path)
+    assert bench.run.main(["tiny_suite"]) == 0
+    record = json.loads((tmp_path / "tiny_suite.json").read_text())
+    assert record["figures"]["scans_per_s"] == 2.5
+    assert record["cores"] == len(os.sched_getaffinity(0))
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.exists():
+        names = [
+            line.split(":", 1)[1].strip() for line in cpuinfo.read_text().splitlines() if line.startswith("model name")
+        ]
+        assert record["cpu"] in names  # (the first processor's model name)
+    assert record["cpu"]
+    assert "tiny_suite.json" in capsys.readouterr().out
