@@ -263,16 +263,24 @@ _TRANSPOSE_MASKS = np.array(
 def transpose64(block):  # pragma: no cover - compiled
     """Transpose a 64 x 64 bit matrix in place: bit b of block[i] becomes bit i of block[b]. Six rounds, each
     swapping the off-diagonal halves of every 2w x 2w sub-block (w = 32, 16, ..., 1) with shifts and masks."""
-    width = 32
-    for round_ in range(6):
-        mask = _TRANSPOSE_MASKS[round_]
-        shift = np.uint64(width)
-        for k in range(64):
-            if k & width == 0:
-                swapped = ((block[k] >> shift) ^ block[k + width]) & mask
-                block[k + width] ^= swapped
-                block[k] ^= swapped << shift
-        width >>= 1
+    _transpose_round(block, 32, np.uint64(0x00000000FFFFFFFF))
+    _transpose_round(block, 16, np.uint64(0x0000FFFF0000FFFF))
+    _transpose_round(block, 8, np.uint64(0x00FF00FF00FF00FF))
+    _transpose_round(block, 4, np.uint64(0x0F0F0F0F0F0F0F0F))
+    _transpose_round(block, 2, np.uint64(0x3333333333333333))
+    _transpose_round(block, 1, np.uint64(0x5555555555555555))
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _transpose_round(block, width, mask):  # pragma: no cover - compiled
+    """One round of :func:`transpose64`: swap the off-diagonal width x width halves of every 2 width x 2 width
+    sub-block (``width`` a constant where it is inlined, so that the inner loop over a group's rows vectorises)."""
+    shift = np.uint64(width)
+    for group in range(0, 64, 2 * width):
+        for k in range(group, group + width):
+            swapped = ((block[k] >> shift) ^ block[k + width]) & mask
+            block[k + width] ^= swapped
+            block[k] ^= swapped << shift
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")

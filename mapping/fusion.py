@@ -51,6 +51,7 @@ from mapping.parallel_fusion import in_scan_order
 from mapping.samples_pass import (
     APPLY_HELD,
     COUNT_LEVELS,
+    GROUP,
     STAMP_LIMIT,
     accumulate_scan,
     apply_scan,
@@ -85,9 +86,10 @@ class FusionScratch:
     """The working memory of one scan's walk (:func:`mapping.samples_pass.accumulate_scan` or
     :func:`mapping.single_pass.accumulate_single`), grown to the largest window walked in it and reused.
 
-    Per cell of the scratch window the samples pass keeps three bits (plane, pair_plane, listed), a four-float excess
-    record (32 bytes) and 16 bits of counts, plus a bit of the column-major plane, and once it has walked a scan whose
-    weights differ a weight sum (8 bytes): SAMPLES_SCRATCH_BYTES_PER_CELL, about 43 bytes a window cell in all (35
+    Per cell of the scratch window the samples pass keeps five bits (plane and the group's other three planes,
+    listed), a four-float excess record (32 bytes) and 16 bits of counts, plus a bit of the column-major plane, and
+    once it has walked a scan whose weights differ a weight sum (8 bytes): SAMPLES_SCRATCH_BYTES_PER_CELL, about 43
+    bytes a window cell in all (35
     while every scan's weights were equal, as resampled particles' and Gaussian draws' are; the one-sample pass keeps
     8 bytes and two bits). 11 MB for the office's 12 m laser at 0.05 m (a window of about 490 x 490 cells), 63
     MB for a 30 m laser, 0.71 GB at the largest window a scan may take (mapping.scan_input.MAX_WINDOW_CELLS). A
@@ -109,7 +111,8 @@ class FusionScratch:
         self.columns = np.zeros(0, np.uint64)
         self.lines = np.zeros((2, 0), np.int64)  # a ray's exit and entry cells per grid line (mapping.free_runs)
         self.block = np.zeros(64, np.uint64)  # 64 x 64 bits being folded from the column-major plane
-        self.plane = self.pair_plane = self.listed = np.zeros(0, np.uint64)
+        self.plane = self.listed = np.zeros(0, np.uint64)
+        self.group_planes = np.zeros((GROUP - 1, 0), np.uint64)
         self.weight_sum = np.zeros(0, np.int64)
         self.excess = np.zeros((0, 4), np.float64)
         self.moments = self.excess.view(np.int64)  # (the records' moments are int64 steps: mapping.fixed_point)
@@ -134,7 +137,7 @@ class FusionScratch:
             # per cell (see accumulate_scan): a bit in the sample's plane and in the listed plane, the excess record,
             # the counts
             self.plane = np.zeros((cells + 63) // 64, np.uint64)
-            self.pair_plane = np.zeros((cells + 63) // 64, np.uint64)
+            self.group_planes = np.zeros((GROUP - 1, (cells + 63) // 64), np.uint64)
             self.listed = np.zeros((cells + 63) // 64, np.uint64)
             self.excess = np.zeros((cells, 4), np.float64)
             self.moments = self.excess.view(np.int64)
@@ -464,7 +467,7 @@ class MonteCarloFusion:
             sums,
             scratch.fan_ints,
             scratch.fan_floats,
-            scratch.pair_plane,
+            scratch.group_planes,
             scratch.moments,
             boxes,
         )
@@ -513,10 +516,10 @@ def _part(ready: Ready, part: int, parts: int) -> tuple[np.ndarray, np.ndarray]:
     return ready.lasers[lo:hi], ready.weights[lo:hi]
 
 
-#: bytes a window cell of the samples pass's scratch (:class:`FusionScratch`): three bit planes and a bit of the
-#: column-major plane, the weight sum (int64; only once a scan's weights differ), the excess record (4 float64) and
-#: COUNT_LEVELS bits of counts
-SAMPLES_SCRATCH_BYTES_PER_CELL = 4 / 8 + 8 + 32 + COUNT_LEVELS / 8
+#: bytes a window cell of the samples pass's scratch (:class:`FusionScratch`): a group's GROUP bit planes, the listed
+#: plane and a bit of the column-major plane, the weight sum (int64; only once a scan's weights differ), the excess
+#: record (4 float64) and COUNT_LEVELS bits of counts
+SAMPLES_SCRATCH_BYTES_PER_CELL = (GROUP + 2) / 8 + 8 + 32 + COUNT_LEVELS / 8
 
 
 def _equal_weight_sums(weights: np.ndarray) -> np.ndarray:

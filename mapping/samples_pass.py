@@ -7,20 +7,22 @@ touch cell i, and with W_i = sum of their weights, D1_i = sum_j w_j d_ij, D2_i =
 
     sum_j w_j y_ij = l_free W_i + D1_i        sum_j w_j y_ij^2 = l_free^2 W_i + 2 l_free D1_i + D2_i
 
-A sample's touched cells are marked in a plane of one bit per window cell (idempotent, so a cell crossed by
-several of the sample's beams is marked once; most of a beam's free stretch is marked as runs per grid row or column,
-:mod:`mapping.free_runs`), and the set bits add the sample's weight to W_i (two samples' planes swept together:
-each sample of a pair marks a plane of its own). The few cells with an excess keep a per-sample record (the largest
-excess of the sample's beams, by stamp) for D1 and D2. A third bit plane marks the cells listed in this scan. The
-rays are walked by :func:`mapping.window_walk.walk_ray`, with this pass's visitors (:func:`_mark_free`,
+A sample's touched cells are marked in a plane of one bit per window cell (idempotent, so a cell crossed by several of
+the sample's beams is marked once; most of a beam's free stretch is marked as runs per grid row or column,
+:mod:`mapping.free_runs`), and the set bits add the sample's weight to W_i (a group of GROUP samples' planes swept
+together: each sample of a group marks a plane of its own). The few cells with an excess keep a per-sample record (the
+largest excess of the sample's beams, by stamp) for D1 and D2. One more bit plane marks the cells listed in this scan.
+The rays are walked by :func:`mapping.window_walk.walk_ray`, with this pass's visitors (:func:`_mark_free`,
 :func:`_mark_near`).
 
 **Equal weights are counted, not summed.** When every sample has the same weight w (particles after resampling,
-Gaussian draws), W_i depends only on how many samples touched cell i: it is the sum w + w + ... taken that many
-times, in sample order. The sweep then adds a pair's plane words into a bit-sliced counter of its 64 cells (a ripple
-carry over COUNT_LEVELS words, which stops at the first level the carry clears: about two levels per word)
-instead of adding w once per set bit, and the apply reads W from the table of those sums (``sums[n]``, summed in
-the same order: the same float64 bit for bit). Other weights take the per-bit sums.
+Gaussian draws), W_i depends only on how many samples touched cell i: it is the sum w + w + ... taken that many times,
+in sample order. The sweep then adds a group's plane words into a bit-sliced counter of its 64 cells: the number of
+the group's words with each bit set, in binary digits from carry-save adders, added level by level with a ripple carry
+over COUNT_LEVELS words that stops at the first level the carry clears (samples that agree, as most do, leave the low
+digits clear, and those levels untouched), instead of adding w once per set bit, and the apply reads W from the table
+of those sums (``sums[n]``, summed in the same order: the same float64 bit for bit). Other weights take the per-bit
+sums.
 """
 
 from __future__ import annotations
@@ -75,6 +77,10 @@ from mapping.window_walk import (
 #: per-sample stamps are stored as float64 (exact below 2**53); the scratch is cleared and stamps restart here
 STAMP_LIMIT = 2**52
 
+#: samples walked into planes of their own before their planes are swept into the weight sums together (the sweep,
+#: :func:`_sweep_word`, and its adders, :func:`_count_group`, are written for four)
+GROUP = 4
+
 #: the bit-sliced counters' levels per 64-cell word: equal weights are counted for up to 2**COUNT_LEVELS - 1 samples
 COUNT_LEVELS = 16
 
@@ -94,14 +100,14 @@ class SamplesScratch(NamedTuple):
     records of :func:`add_sample_excess`, whose moments (columns 2 and 3) are int64 steps read and written through
     ``moments``, the same memory viewed as int64; tile_touched: (bool, per tile of the window) the tiles of the listed
     cells; lines: (2, max(w, h)) int64, a ray's exit and entry cells per grid line (:mod:`mapping.free_runs`);
-    block: 64 uint64, the 64 x 64 bits being folded from the column-major plane; counts: (COUNT_LEVELS, words)
-    uint64, bit k of counts[l, i] is bit l of the number of samples that touched cell 64 i + k (equal weights only,
-    zero between scans; level after level, so that the sweep's carries, which seldom pass the first levels, read and
-    write a few dense rows); sums: the table W = sums[n] for n samples of equal weight, empty when the weights differ
-    (then W is summed per cell); fan_ints, fan_floats: the records of a sample's rays for
-    :func:`mapping.fan_runs.fan_hulls` (its ``fan_scratch``); pair_plane: as plane, the touched cells of the second
-    sample of a pair (:func:`accumulate_scan`); moments: ``excess`` viewed as int64; boxes: per tile of the window,
-    the bounding box of its listed cells (:func:`listed_boxes`, after the samples).
+    block: 64 uint64, the 64 x 64 bits being folded from the column-major plane; counts: (COUNT_LEVELS, words) uint64,
+    bit k of counts[l, i] is bit l of the number of samples that touched cell 64 i + k (equal weights only, zero
+    between scans; level after level, so that the sweep's adds, which seldom pass the first levels, read and write a
+    few dense rows); sums: the table W = sums[n] for n samples of equal weight, empty when the weights differ (then W
+    is summed per cell); fan_ints, fan_floats: the records of a sample's rays for :func:`mapping.fan_runs.fan_hulls`
+    (its ``fan_scratch``); group_planes: (GROUP - 1, words) uint64, as plane, the touched cells of a group's samples
+    after its first (:func:`accumulate_scan`); moments: ``excess`` viewed as int64; boxes: per tile of the window, the
+    bounding box of its listed cells (:func:`listed_boxes`, after the samples).
     """
 
     plane: np.ndarray
@@ -117,7 +123,7 @@ class SamplesScratch(NamedTuple):
     sums: np.ndarray
     fan_ints: np.ndarray
     fan_floats: np.ndarray
-    pair_plane: np.ndarray
+    group_planes: np.ndarray
     moments: np.ndarray
     boxes: np.ndarray
 
@@ -640,20 +646,23 @@ def accumulate_scan(
     ray's go into the column-major plane) up to just before its end (:func:`_free_runs`), by a shard that does not
     own every tile of the window in its own tiles only, skipping the rays that reach none of them and taking those
     that reach no other tile as a shard owning every tile does (:func:`_walk_sample`).
-    After a sample's beams its column plane is folded into its row plane (``plane`` for the first sample of a pair,
-    ``pair_plane`` for the second: :func:`_second_of_pair`), and after each pair (and a last sample alone) both planes
-    are swept into the weight sums, the first sample's weight before the second's (:func:`_sweep_word`): half the
-    sweeps over the window, which are mostly clear words. A shard that does not own every tile of the window folds and
+    After a sample's beams its column plane is folded into its row plane (``plane`` for the first sample of a group of
+    GROUP, ``group_planes`` for the others: :func:`_in_group`), and after each group (and a last group of fewer
+    samples, the planes past them clear) its planes are swept into the weight sums, sample after sample
+    (:func:`_sweep_word`): a sweep over the window, whose words are mostly clear, every GROUP samples. Against pairs of
+    samples (sweeps every two samples) the warehouse's scan took 0.96x the time, the same map bit for bit
+    (docs/performance.md). A shard that does not own every tile of the window folds and
     sweeps only where its tiles lie (:func:`_fold_owned`, :func:`_sweep_owned`).
     """
     beams, model, window, tiles = BeamTable(*beams), LogOddsModel(*model), Window(*window), Tiles(*tiles)
     scratch = SamplesScratch(*scratch)
-    second = _second_of_pair(scratch)
     m = lasers.shape[0]
     if not tiles.all_owned:
         scan_reach(lasers, directions, beams, 1.0 / res, tiles, owned_sum, scratch.fan_ints[SCAN_REACH])
+    w0 = w1 = w2 = w3 = np.int64(0)  # the group's samples' weights in steps (0 past the last group's last sample)
     for j in range(m):
-        marks = scratch if j % 2 == 0 else second  # (the pair's second sample marks pair_plane)
+        slot = j % GROUP
+        marks = _in_group(scratch, slot)
         _walk_sample(
             lasers[j],
             float(stamp_base + j),
@@ -671,22 +680,30 @@ def accumulate_scan(
             fold_columns(marks.columns, marks.col_stride, marks.plane, window.w, window.h, marks.block)
         else:
             _fold_owned(marks, window, tiles, owned_sum)
-        if j % 2 == 0 and j + 1 < m:
-            continue  # (swept with the next sample)
-        w_first = to_fixed(weights[j - 1 if j % 2 == 1 else j] * WEIGHT_SCALE)
-        w_second = to_fixed(weights[j] * WEIGHT_SCALE) if j % 2 == 1 else np.int64(0)
-        if tiles.all_owned:
-            _sweep_planes(scratch, w_first, w_second, window, tiles)
+        w = to_fixed(weights[j] * WEIGHT_SCALE)
+        if slot == 0:
+            w0, w1, w2, w3 = w, np.int64(0), np.int64(0), np.int64(0)
+        elif slot == 1:
+            w1 = w
+        elif slot == 2:
+            w2 = w
         else:
-            _sweep_owned(scratch, w_first, w_second, window, tiles, owned_sum)
+            w3 = w
+        if slot < GROUP - 1 and j + 1 < m:
+            continue  # (swept with the group's next samples)
+        group_weights = (w0, w1, w2, w3)
+        if tiles.all_owned:
+            _sweep_planes(scratch, group_weights, window, tiles)
+        else:
+            _sweep_owned(scratch, group_weights, window, tiles, owned_sum)
     listed_boxes(scratch.listed, window, tiles, scratch.boxes)
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def _second_of_pair(scratch):  # pragma: no cover - compiled
-    """The scratch a pair's second sample walks into: ``scratch`` with plane and pair_plane swapped."""
+def _in_group(scratch, slot):  # pragma: no cover - compiled
+    """The scratch the group's sample ``slot`` walks into: ``scratch`` with its plane that slot's."""
     return SamplesScratch(
-        scratch.pair_plane,
+        scratch.plane if slot == 0 else scratch.group_planes[slot - 1],
         scratch.columns,
         scratch.col_stride,
         scratch.listed,
@@ -699,7 +716,7 @@ def _second_of_pair(scratch):  # pragma: no cover - compiled
         scratch.sums,
         scratch.fan_ints,
         scratch.fan_floats,
-        scratch.plane,
+        scratch.group_planes,
         scratch.moments,
         scratch.boxes,
     )
@@ -756,41 +773,51 @@ def listed_boxes(listed, window, tiles, boxes):  # pragma: no cover - compiled
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def _sweep_word(scratch, i, w_first, w_second, window, tiles, counted):  # pragma: no cover - compiled
-    """Add a pair of samples' weights (int64 steps) to the weight sum of every cell word i of their planes marks
-    (plane: the first sample's, weight w_first; pair_plane: the second's, clear when there is none), the first's
-    before the second's
-    (``counted``, equal weights: one or two to their counts, :func:`_count_pair`), and clear the words. A cell new to
-    this scan (its bit clear in ``listed``) gets its bit in ``listed`` and its tile marked in tile_touched."""
-    first = scratch.plane[i]
-    second = scratch.pair_plane[i]
-    bits = first | second
+def _sweep_word(scratch, i, group_weights, window, tiles, counted):  # pragma: no cover - compiled
+    """Add a group of samples' weights (int64 steps, group_weights[s] sample s's) to the weight sum of every cell
+    word i of their planes marks (plane: sample 0's; group_planes[s - 1]: sample s's, clear past the group's last),
+    sample after sample (``counted``, equal weights: the number of planes with the bit set to its count,
+    :func:`_count_group`), and clear the words. A cell new to this scan (its bit clear in ``listed``) gets its bit in
+    ``listed`` and its tile marked in tile_touched."""
+    a = scratch.plane[i]
+    b = scratch.group_planes[0, i]
+    c = scratch.group_planes[1, i]
+    d = scratch.group_planes[2, i]
+    bits = a | b | c | d
     if bits == 0:
         return
     scratch.plane[i] = 0
-    scratch.pair_plane[i] = 0
+    scratch.group_planes[0, i] = 0
+    scratch.group_planes[1, i] = 0
+    scratch.group_planes[2, i] = 0
     new = bits & ~scratch.listed[i]
     if new != 0:
         scratch.listed[i] |= new
         _touch_tiles(scratch, i, new, window, tiles)
     if counted:
-        _count_pair(scratch.counts, i, first, second)
+        _count_group(scratch.counts, i, a, b, c, d)
         return
     base = i << 6
-    while first != 0:
-        scratch.weight_sum[base + trailing_zeros(first)] += w_first
-        first &= first - np.uint64(1)
-    while second != 0:
-        scratch.weight_sum[base + trailing_zeros(second)] += w_second
-        second &= second - np.uint64(1)
+    _add_weight(scratch.weight_sum, base, a, group_weights[0])
+    _add_weight(scratch.weight_sum, base, b, group_weights[1])
+    _add_weight(scratch.weight_sum, base, c, group_weights[2])
+    _add_weight(scratch.weight_sum, base, d, group_weights[3])
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _add_weight(weight_sum, base, word, w):  # pragma: no cover - compiled
+    """Add w to the weight sums of the cells base + k whose bit k is set in ``word``."""
+    while word != 0:
+        weight_sum[base + trailing_zeros(word)] += w
+        word &= word - np.uint64(1)
 
 
 @kernel(nogil=True, error_model="numpy", refcounted=False)
-def _sweep_planes(scratch, w_first, w_second, window, tiles):  # pragma: no cover - compiled
-    """:func:`_sweep_word` over a pair's whole planes, word after word."""
+def _sweep_planes(scratch, group_weights, window, tiles):  # pragma: no cover - compiled
+    """:func:`_sweep_word` over a group's whole planes, word after word."""
     counted = scratch.sums.shape[0] > 0
     for i in range((window.w * window.h + 63) >> 6):
-        _sweep_word(scratch, i, w_first, w_second, window, tiles, counted)
+        _sweep_word(scratch, i, group_weights, window, tiles, counted)
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
@@ -820,27 +847,47 @@ def _fold_owned(scratch, window, tiles, owned_sum):  # pragma: no cover - compil
 
 
 @kernel(nogil=True, error_model="numpy", refcounted=False)
-def _sweep_owned(scratch, w_first, w_second, window, tiles, owned_sum):  # pragma: no cover - compiled
-    """For a shard that does not own every tile of the window: sweep (:func:`_sweep_word`) a pair's planes in the 64
-    x 64 blocks that meet its tiles only, block after block."""
+def _sweep_owned(scratch, group_weights, window, tiles, owned_sum):  # pragma: no cover - compiled
+    """For a shard that does not own every tile of the window: sweep (:func:`_sweep_word`) a group's planes in the
+    64 x 64 blocks that meet its tiles only, block after block."""
     counted = scratch.sums.shape[0] > 0
     row_words = window.w >> 6
     for k in range(scratch.col_stride >> 6):  # rows 64 k .. 64 k + 63
         for b in range(row_words):  # columns 64 b .. 64 b + 63
             if _block_owned(b, k, window, tiles, owned_sum):
                 for row in range(64 * k, min(64 * k + 64, window.h)):
-                    _sweep_word(scratch, row * row_words + b, w_first, w_second, window, tiles, counted)
+                    _sweep_word(scratch, row * row_words + b, group_weights, window, tiles, counted)
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
-def _count_pair(counts, i, first, second):  # pragma: no cover - compiled
-    """Add to the bit-sliced counts of the cells of word i the number of the words first and second with its bit
-    set (0, 1 or 2): first ^ second at level 0, then one carry from level 1 up (the carry of level 0 and first &
-    second share no bit, so their sum there is their or). A last sample alone is added with ``second`` clear."""
-    low = first ^ second
-    held = counts[0, i]
-    counts[0, i] = held ^ low
-    _carry_from(counts, i, (held & low) | (first & second), 1)
+def _count_group(counts, i, a, b, c, d):  # pragma: no cover - compiled
+    """Add to the bit-sliced counts of the cells of word i the number of the words a, b, c, d with its bit set (0 to
+    4): that number's binary digits per bit (carry-save adders), added level by level from level 0 with a ripple
+    carry; a level whose digit and carry are both clear is left alone (samples that agree leave the low digits
+    clear)."""
+    s1 = a ^ b
+    s2 = c ^ d
+    c1 = a & b
+    c2 = c & d
+    c3 = s1 & s2
+    digit0 = s1 ^ s2
+    digit1 = c1 ^ c2 ^ c3
+    digit2 = c1 & c2  # (c3 needs a ^ b and c ^ d set, so c1 and c2 clear: it carries nothing)
+    carry = np.uint64(0)
+    if digit0 != 0:
+        held = counts[0, i]
+        counts[0, i] = held ^ digit0
+        carry = held & digit0
+    if digit1 | carry != 0:
+        held = counts[1, i]
+        counts[1, i] = held ^ digit1 ^ carry
+        carry = (held & digit1) | (carry & (held ^ digit1))
+    if digit2 | carry != 0:
+        held = counts[2, i]
+        counts[2, i] = held ^ digit2 ^ carry
+        carry = (held & digit2) | (carry & (held ^ digit2))
+    if carry != 0:
+        _carry_from(counts, i, carry, 3)
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")

@@ -13,7 +13,7 @@ import mapping.fusion as fusion
 from bench.scenarios import honest_posed_scans, office_run
 from mapping.fusion import MonteCarloFusion
 from mapping.grid import TiledGrid
-from mapping.samples_pass import APPLY_HELD, COUNT_LEVELS, _byte_count, _count_of, _count_pair, _counts_in_bytes
+from mapping.samples_pass import APPLY_HELD, COUNT_LEVELS, _byte_count, _count_group, _count_of, _counts_in_bytes
 from mapping.sensor_model import SensorModel
 from services.fusion_runner import PoseSampling
 from services.state.ownership import owns_tile
@@ -22,36 +22,47 @@ RES = 0.05
 MODEL = SensorModel(resolution=RES)
 
 
+ZERO = np.uint64(0)
+
+
 @settings(max_examples=100, deadline=None)
 @given(st.lists(st.lists(st.integers(0, 2**64 - 1), min_size=3, max_size=3), min_size=0, max_size=300))
 def test_the_bit_sliced_counts_are_the_number_of_times_each_bit_was_set(planes):
-    """Words added one plane at a time (three words a plane), each as a last sample alone is swept (its pair's second
-    word clear): every cell's count is the number of planes with its bit set, as a plain loop over the bits counts
-    it."""
+    """Words added one plane at a time (three words a plane), each as a last group of one sample is swept (the
+    group's other words clear): every cell's count is the number of planes with its bit set, as a plain loop over the
+    bits counts it."""
     counts = np.zeros((COUNT_LEVELS, 3), np.uint64)
     for plane in planes:
         for i, word in enumerate(plane):
-            _count_pair(counts, i, np.uint64(word), np.uint64(0))
+            _count_group(counts, i, np.uint64(word), ZERO, ZERO, ZERO)
     expected = [[sum((plane[i] >> k) & 1 for plane in planes) for k in range(64)] for i in range(3)]
     levels = max(len(planes).bit_length(), 1)
     got = [[int(_count_of(counts[:, i], k, levels)) for k in range(64)] for i in range(3)]
     assert got == expected
 
 
+words = st.integers(0, 2**64 - 1)
+#: words of samples that mostly agree, as a real filter's do: each a common word with a few bits flipped
+agreeing = st.tuples(words, st.lists(st.integers(0, 63), max_size=3)).map(
+    lambda drawn: drawn[0] ^ sum(1 << bit for bit in set(drawn[1]))
+)
+
+
 @settings(max_examples=100, deadline=None)
-@given(st.lists(st.tuples(st.integers(0, 2**64 - 1), st.integers(0, 2**64 - 1)), min_size=0, max_size=300))
-def test_a_pair_of_words_adds_the_number_of_them_with_each_bit_set(pairs):
-    """Pairs of words added at once (two samples' planes swept together): every cell's count is the number of
-    words of all the pairs with its bit set, as a plain loop over the bits counts it (and as adding the words one by
-    one does)."""
+@given(st.lists(st.tuples(*(st.one_of(words, agreeing, st.just(0)),) * 4), min_size=0, max_size=300))
+def test_a_group_of_four_words_adds_the_number_of_them_with_each_bit_set(groups):
+    """Groups of four words added at once (a group's samples' planes swept together; words that agree, which leave
+    the adders' low digits clear, and clear words, as past a last group's samples): every cell's count is the number
+    of words of all the groups with its bit set, as a plain loop over the bits counts it (and as adding the words one
+    by one does)."""
     counts = np.zeros((COUNT_LEVELS, 1), np.uint64)
     one_by_one = np.zeros((COUNT_LEVELS, 1), np.uint64)
-    for first, second in pairs:
-        _count_pair(counts, 0, np.uint64(first), np.uint64(second))
-        _count_pair(one_by_one, 0, np.uint64(first), np.uint64(0))
-        _count_pair(one_by_one, 0, np.uint64(second), np.uint64(0))
-    expected = [sum(((a >> k) & 1) + ((b >> k) & 1) for a, b in pairs) for k in range(64)]
-    levels = max((2 * len(pairs)).bit_length(), 1)
+    for group in groups:
+        _count_group(counts, 0, *(np.uint64(word) for word in group))
+        for word in group:
+            _count_group(one_by_one, 0, np.uint64(word), ZERO, ZERO, ZERO)
+    expected = [sum((word >> k) & 1 for group in groups for word in group) for k in range(64)]
+    levels = max((4 * len(groups)).bit_length(), 1)
     assert [int(_count_of(counts[:, 0], k, levels)) for k in range(64)] == expected
     assert np.array_equal(counts, one_by_one)
 
