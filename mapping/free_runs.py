@@ -245,20 +245,6 @@ def mark_plane_runs(rows, columns, col_stride, window, ray_uv, r_end, res, cross
     return last_ix, last_iy
 
 
-#: the masks of the 64 x 64 bit transpose's six rounds: the low half of each group of 2 * width bits
-_TRANSPOSE_MASKS = np.array(
-    [
-        0x00000000FFFFFFFF,
-        0x0000FFFF0000FFFF,
-        0x00FF00FF00FF00FF,
-        0x0F0F0F0F0F0F0F0F,
-        0x3333333333333333,
-        0x5555555555555555,
-    ],
-    dtype=np.uint64,
-)
-
-
 @kernel(nogil=True, error_model="numpy", inline="always")
 def transpose64(block):  # pragma: no cover - compiled
     """Transpose a 64 x 64 bit matrix in place: bit b of block[i] becomes bit i of block[b]. Six rounds, each
