@@ -89,13 +89,13 @@ class FusionScratch:
     Per cell of the scratch window the samples pass keeps five bits (plane and the group's other three planes,
     listed), a four-float excess record (32 bytes) and 16 bits of counts, plus a bit of the column-major plane, and
     once it has walked a scan whose weights differ a weight sum (8 bytes): SAMPLES_SCRATCH_BYTES_PER_CELL, about 43
-    bytes a window cell in all (35
-    while every scan's weights were equal, as resampled particles' and Gaussian draws' are; the one-sample pass keeps
-    8 bytes and two bits). 11 MB for the office's 12 m laser at 0.05 m (a window of about 490 x 490 cells), 63
-    MB for a 30 m laser, 0.71 GB at the largest window a scan may take (mapping.scan_input.MAX_WINDOW_CELLS). A
-    fusion on T > 1 threads keeps T + 1 of them. When it grows, it takes SCRATCH_ROOM more cells than the window asks
-    (up to MAX_WINDOW_CELLS): a window that grows with the samples' spread, scan after scan, then seldom reallocates
-    (each growth faults in the new arrays' pages: about 15 ms a scan for a 30 m laser).
+    bytes a window cell in all (35 while every scan's weights were equal, as resampled particles' and Gaussian
+    draws' are; the one-sample pass keeps 8 bytes and two bits). 11 MB for the office's 12 m laser at 0.05 m (a
+    window of about 490 x 490 cells), 63 MB for a 30 m laser, 0.71 GB at the largest window a scan may take
+    (mapping.scan_input.MAX_WINDOW_CELLS). A fusion on T > 1 threads keeps T + 1 of them. When it grows, it takes
+    SCRATCH_ROOM more cells than the window asks (up to MAX_WINDOW_CELLS): a window that grows with the samples'
+    spread, scan after scan, then seldom reallocates (each growth faults in the new arrays' pages: about 15 ms a
+    scan for a 30 m laser).
 
     Nothing in it carries from one scan to the next: each pass clears what it set, and the samples pass tells
     the excess records of earlier scans by their stamps (unique per scratch: :meth:`stamps`)."""

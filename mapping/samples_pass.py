@@ -649,10 +649,9 @@ def accumulate_scan(
     After a sample's beams its column plane is folded into its row plane (``plane`` for the first sample of a group of
     GROUP, ``group_planes`` for the others: :func:`_in_group`), and after each group (and a last group of fewer
     samples, the planes past them clear) its planes are swept into the weight sums, sample after sample
-    (:func:`_sweep_word`): a sweep over the window, whose words are mostly clear, every GROUP samples. Against pairs of
-    samples (sweeps every two samples) the warehouse's scan took 0.96x the time, the same map bit for bit
-    (docs/performance.md). A shard that does not own every tile of the window folds and
-    sweeps only where its tiles lie (:func:`_fold_owned`, :func:`_sweep_owned`).
+    (:func:`_sweep_word`): a sweep over the window, whose words are mostly clear, every GROUP samples. A shard that
+    does not own every tile of the window folds and sweeps only where its tiles lie (:func:`_fold_owned`,
+    :func:`_sweep_owned`).
     """
     beams, model, window, tiles = BeamTable(*beams), LogOddsModel(*model), Window(*window), Tiles(*tiles)
     scratch = SamplesScratch(*scratch)
@@ -873,21 +872,22 @@ def _count_group(counts, i, a, b, c, d):  # pragma: no cover - compiled
     digit0 = s1 ^ s2
     digit1 = c1 ^ c2 ^ c3
     digit2 = c1 & c2  # (c3 needs a ^ b and c ^ d set, so c1 and c2 clear: it carries nothing)
-    carry = np.uint64(0)
-    if digit0 != 0:
-        held = counts[0, i]
-        counts[0, i] = held ^ digit0
-        carry = held & digit0
-    if digit1 | carry != 0:
-        held = counts[1, i]
-        counts[1, i] = held ^ digit1 ^ carry
-        carry = (held & digit1) | (carry & (held ^ digit1))
-    if digit2 | carry != 0:
-        held = counts[2, i]
-        counts[2, i] = held ^ digit2 ^ carry
-        carry = (held & digit2) | (carry & (held ^ digit2))
+    carry = _add_digit(counts, i, 0, digit0, np.uint64(0))
+    carry = _add_digit(counts, i, 1, digit1, carry)
+    carry = _add_digit(counts, i, 2, digit2, carry)
     if carry != 0:
         _carry_from(counts, i, carry, 3)
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _add_digit(counts, i, level, digit, carry):  # pragma: no cover - compiled
+    """Add the bits of ``digit`` and ``carry`` to level ``level`` of word i's bit-sliced counts (a full adder per
+    bit); the carry into the next level. Left alone when both are clear."""
+    if digit | carry == 0:
+        return carry
+    held = counts[level, i]
+    counts[level, i] = held ^ digit ^ carry
+    return (held & digit) | (carry & (held ^ digit))
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
