@@ -86,16 +86,16 @@ class FusionScratch:
     """The working memory of one scan's walk (:func:`mapping.samples_pass.accumulate_scan` or
     :func:`mapping.single_pass.accumulate_single`), grown to the largest window walked in it and reused.
 
-    Per cell of the scratch window the samples pass keeps five bits (plane and the group's other three planes,
-    listed), a four-float excess record (32 bytes) and 16 bits of counts, plus a bit of the column-major plane, and
-    once it has walked a scan whose weights differ a weight sum (8 bytes): SAMPLES_SCRATCH_BYTES_PER_CELL, about 43
-    bytes a window cell in all (35 while every scan's weights were equal, as resampled particles' and Gaussian
-    draws' are; the one-sample pass keeps 8 bytes and two bits). 11 MB for the office's 12 m laser at 0.05 m (a
-    window of about 490 x 490 cells), 63 MB for a 30 m laser, 0.71 GB at the largest window a scan may take
-    (mapping.scan_input.MAX_WINDOW_CELLS). A fusion on T > 1 threads keeps T + 1 of them. When it grows, it takes
-    SCRATCH_ROOM more cells than the window asks (up to MAX_WINDOW_CELLS): a window that grows with the samples'
-    spread, scan after scan, then seldom reallocates (each growth faults in the new arrays' pages: about 15 ms a
-    scan for a 30 m laser).
+    Per cell of the scratch window the samples pass keeps six bits (plane and the group's other three planes,
+    listed, raised), a four-float excess record (32 bytes) and 16 bits of counts, plus a bit of the column-major
+    plane, and once it has walked a scan whose weights differ a weight sum (8 bytes):
+    SAMPLES_SCRATCH_BYTES_PER_CELL, about 43 bytes a window cell in all (35 while every scan's weights were equal,
+    as resampled particles' and Gaussian draws' are; the one-sample pass keeps 8 bytes and two bits). 11 MB for the
+    office's 12 m laser at 0.05 m (a window of about 490 x 490 cells), 63 MB for a 30 m laser, 0.71 GB at the
+    largest window a scan may take (mapping.scan_input.MAX_WINDOW_CELLS). A fusion on T > 1 threads keeps T + 1 of
+    them. When it grows, it takes SCRATCH_ROOM more cells than the window asks (up to MAX_WINDOW_CELLS): a window
+    that grows with the samples' spread, scan after scan, then seldom reallocates (each growth faults in the new
+    arrays' pages: about 15 ms a scan for a 30 m laser).
 
     Nothing in it carries from one scan to the next: each pass clears what it set, and the samples pass tells
     the excess records of earlier scans by their stamps (unique per scratch: :meth:`stamps`)."""
@@ -111,7 +111,7 @@ class FusionScratch:
         self.columns = np.zeros(0, np.uint64)
         self.lines = np.zeros((2, 0), np.int64)  # a ray's exit and entry cells per grid line (mapping.free_runs)
         self.block = np.zeros(64, np.uint64)  # 64 x 64 bits being folded from the column-major plane
-        self.plane = self.listed = np.zeros(0, np.uint64)
+        self.plane = self.listed = self.raised = np.zeros(0, np.uint64)
         self.group_planes = np.zeros((GROUP - 1, 0), np.uint64)
         self.weight_sum = np.zeros(0, np.int64)
         self.excess = np.zeros((0, 4), np.float64)
@@ -134,11 +134,12 @@ class FusionScratch:
             self.lines = np.zeros((2, lines), np.int64)
         if cells > self.size:
             self.size = cells = _with_room(cells)
-            # per cell (see accumulate_scan): a bit in the sample's plane and in the listed plane, the excess record,
-            # the counts
+            # per cell (see accumulate_scan): a bit in the sample's plane, the listed plane and the raised plane, the
+            # excess record, the counts
             self.plane = np.zeros((cells + 63) // 64, np.uint64)
             self.group_planes = np.zeros((GROUP - 1, (cells + 63) // 64), np.uint64)
             self.listed = np.zeros((cells + 63) // 64, np.uint64)
+            self.raised = np.zeros((cells + 63) // 64, np.uint64)
             self.excess = np.zeros((cells, 4), np.float64)
             self.moments = self.excess.view(np.int64)
             self.counts = np.zeros((COUNT_LEVELS, (cells + 63) // 64), np.uint64)
@@ -188,8 +189,7 @@ class Ready(NamedTuple):
 class Walked(NamedTuple):
     """A walked scan, to apply: the pass's scratch (the kernels' tuple), the cells it touched (one-sample pass; the
     samples pass's apply counts them), the tiles it touched, the window and tiles (tuples), the one sample's weight
-    (one-sample pass) or the first stamp (samples pass), the number of laser poses walked, and the boxes of the cells
-    touched per tile of the window."""
+    (one-sample pass), the number of laser poses walked, and the boxes of the cells touched per tile of the window."""
 
     single: bool
     scratch: tuple
@@ -198,7 +198,6 @@ class Walked(NamedTuple):
     window_args: tuple
     tile_args: tuple
     weight: float
-    stamp_base: int
     samples: int  # the laser poses walked
     boxes: np.ndarray  # per tile of the window, the box of the cells touched (mapping.tile_boxes)
 
@@ -380,9 +379,9 @@ class MonteCarloFusion:
         def band(words: tuple[int, int]) -> int:
             """Merge and apply the scratch words words[0] .. words[1] - 1; the cells updated."""
             for other in walked[1:]:
-                merge_scan(first.scratch, other.scratch, first.stamp_base, other.stamp_base, words)
+                merge_scan(first.scratch, other.scratch, words)
             args = (first.window_args, first.tile_args, slot_map, layers, self._levels, self._moment_scale, words)
-            return int(apply_scan(first.scratch, first.stamp_base, *args, np.zeros(APPLY_HELD, np.uint64)))
+            return int(apply_scan(first.scratch, *args, np.zeros(APPLY_HELD, np.uint64)))
 
         _, _, win_w, win_h = first.window_args
         words = (win_w * win_h + 63) >> 6
@@ -439,7 +438,7 @@ class MonteCarloFusion:
         window_args, tile_args = tuple(window), tuple(tiles)
         n_scan = accumulate_single(ready.lasers[0], *self._ray_args(ready.beams), window_args, tile_args, args)
         weight = float(ready.weights[0])
-        return Walked(True, args, int(n_scan), touched, window_args, tile_args, weight, 0, 1, boxes)
+        return Walked(True, args, int(n_scan), touched, window_args, tile_args, weight, 1, boxes)
 
     def _walk_samples(self, ready: Ready, scratch: FusionScratch, part: int, parts: int) -> Walked:
         """The samples pass (laser poses (M, 3), weights (M,)) over the part-th of ``parts`` runs of the samples."""
@@ -470,6 +469,7 @@ class MonteCarloFusion:
             scratch.group_planes,
             scratch.moments,
             boxes,
+            scratch.raised,
         )
         window_args, tile_args = (window.ix0, window.iy0, win_w, window.h), tuple(tiles)
         accumulate_scan(
@@ -483,7 +483,7 @@ class MonteCarloFusion:
             stamp_base,
             self._moment_scale,
         )
-        return Walked(False, args, 0, touched, window_args, tile_args, 0.0, stamp_base, len(lasers), boxes)
+        return Walked(False, args, 0, touched, window_args, tile_args, 0.0, len(lasers), boxes)
 
 
 #: the share of cells a scratch takes beyond the window that makes it grow (FusionScratch)
@@ -517,9 +517,9 @@ def _part(ready: Ready, part: int, parts: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 #: bytes a window cell of the samples pass's scratch (:class:`FusionScratch`): a group's GROUP bit planes, the listed
-#: plane and a bit of the column-major plane, the weight sum (int64; only once a scan's weights differ), the excess
-#: record (4 float64) and COUNT_LEVELS bits of counts
-SAMPLES_SCRATCH_BYTES_PER_CELL = (GROUP + 2) / 8 + 8 + 32 + COUNT_LEVELS / 8
+#: and raised planes and a bit of the column-major plane, the weight sum (int64; only once a scan's weights differ),
+#: the excess record (4 float64) and COUNT_LEVELS bits of counts
+SAMPLES_SCRATCH_BYTES_PER_CELL = (GROUP + 3) / 8 + 8 + 32 + COUNT_LEVELS / 8
 
 
 def _equal_weight_sums(weights: np.ndarray) -> np.ndarray:

@@ -60,6 +60,7 @@ def whole_and_joined(tile_size, fusion_args, scans, shards, shard_of):
                 or scratch.group_planes.any()
                 or scratch.columns.any()
                 or scratch.listed.any()
+                or scratch.raised.any()
                 or scratch.weight_sum.any()
                 or scratch.counts.any()
             )
@@ -565,11 +566,11 @@ def test_whole_and_sharded_maps_agree_on_random_setups(seed):
 
 
 def test_the_samples_scratch_holds_the_bytes_a_cell_its_docs_give():
-    """Hand-computed: five bit planes (a group's four, the listed cells) and a bit of the column-major plane (0.75
-    byte), the weight sum (8), the excess record (32) and 16 levels of counts (2): 42.75 bytes a cell; a 512 x 512
-    window (words whole) adds only the per-line and per-beam scratch (2 x 512 int64, 28 int64 and float64 fan records
-    for each of 361 beams) and the 64 words of a 64 x 64 bit block."""
-    assert SAMPLES_SCRATCH_BYTES_PER_CELL == 42.75
+    """Hand-computed: six bit planes (a group's four, the listed and the raised cells) and a bit of the column-major
+    plane (0.875 byte), the weight sum (8), the excess record (32) and 16 levels of counts (2): 42.875 bytes a cell; a
+    512 x 512 window (words whole) adds only the per-line and per-beam scratch (2 x 512 int64, 28 int64 and float64
+    fan records for each of 361 beams) and the 64 words of a 64 x 64 bit block."""
+    assert SAMPLES_SCRATCH_BYTES_PER_CELL == 42.875
     scratch = FusionScratch()
     cells = 512 * 512
     scratch.for_samples(cells, cells, 512, 361)

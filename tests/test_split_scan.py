@@ -52,8 +52,9 @@ def fused_in_parts(posed, scans, parts: int, grid: TiledGrid, owner=None) -> Non
         ready = fusion.prepare(scan)
         assert ready is not None and fusion.parts_for(ready, parts) == parts
         fusion.apply_parts([fusion.walk(ready, scratches[part], part, parts) for part in reversed(range(parts))])
-        for scratch in scratches[1:]:  # (merged and cleared)
-            assert not (scratch.listed.any() or scratch.counts.any() or scratch.weight_sum.any())
+        for scratch in scratches:  # (the first applied, the others merged into it: all cleared)
+            assert not (scratch.listed.any() or scratch.raised.any() or scratch.counts.any())
+            assert not scratch.weight_sum.any()
             assert not scratch.moments[:, 2:].any()
 
 
