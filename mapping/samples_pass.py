@@ -1015,13 +1015,12 @@ def apply_scan(
     (:func:`_counts_in_bytes`) when they have at most 8 levels (counts below 256). W, D1 and D2 are taken from their
     int64 steps, each rounded once to float64."""
     scratch, window, tiles = SamplesScratch(*scratch), Window(*window), Tiles(*tiles)
-    logodds, variance, observed = layers
-    l_free, l_min, l_max = levels
     weight_sum, moments, sums = scratch.weight_sum, scratch.moments, scratch.sums
-    per_weight_step, per_moment_step = 1.0 / WEIGHT_SCALE, 1.0 / moment_scale  # (powers of two: exact)
+    steps = (1.0 / WEIGHT_SCALE, 1.0 / moment_scale)  # (the steps' sizes, powers of two: exact)
     counted = sums.shape[0] > 0
     count_levels = _count_levels(sums)
     in_bytes = count_levels <= 8
+    counting = (counted, in_bytes, count_levels)
     in_tile = (1 << tiles.shift) - 1
     n_scan = 0
     for i in range(words[0], words[1]):
@@ -1042,37 +1041,63 @@ def apply_scan(
                 scratch.counts[level, i] = 0
             if in_bytes:
                 _counts_in_bytes(held, count_levels, bits)
+        cells = (held, raised, base, weight_sum, moments, sums)
+        if bits == ALL_CELLS and (word_ix >> tiles.shift) == ((word_ix + 63) >> tiles.shift):
+            # (a word whose 64 cells are all listed and lie in one tile, as most are: a plain loop over them)
+            slot = slot_map[ty, (word_ix >> tiles.shift) - tiles.tx0]
+            at = (slot, ly, word_ix & in_tile)
+            for k in range(64):
+                _apply_cell(cells, k, layers, (at[0], at[1], at[2] + k), steps, levels, counting)
+            n_scan += 64
+            continue
         while bits != 0:
             k = trailing_zeros(bits)
             bits &= bits - np.uint64(1)
-            c = base + k
             ix = word_ix + k
             slot = slot_map[ty, (ix >> tiles.shift) - tiles.tx0]
-            lx = ix & in_tile
-            if counted:
-                n = _byte_count(held, k) if in_bytes else _count_of(held, k, count_levels)
-                moment1 = l_free * sums[n]
-            else:
-                moment1 = l_free * (weight_sum[c] * per_weight_step)
-                weight_sum[c] = 0
-            moment2 = l_free * moment1
-            if (raised >> np.uint64(k)) & np.uint64(1):
-                d1 = moments[c, 2] * per_moment_step
-                moment1 += d1
-                moment2 += 2.0 * l_free * d1 + moments[c, 3] * per_moment_step
-                moments[c, 2] = 0
-                moments[c, 3] = 0
-            mean = moment1
-            spread = moment2 - mean * mean
-            if spread < 0.0:
-                spread = 0.0
-            updated = logodds[slot, ly, lx] + mean
-            if updated < l_min:
-                updated = l_min
-            elif updated > l_max:
-                updated = l_max
-            logodds[slot, ly, lx] = updated
-            variance[slot, ly, lx] += spread
-            observed[slot, ly, lx] = True
+            _apply_cell(cells, k, layers, (slot, ly, ix & in_tile), steps, levels, counting)
             n_scan += 1
     return n_scan
+
+
+#: a word of the listed plane whose 64 cells are all listed
+ALL_CELLS = np.uint64(0xFFFFFFFFFFFFFFFF)
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def _apply_cell(cells, k, layers, at, steps, levels, counting):  # pragma: no cover - compiled
+    """:func:`apply_scan`'s update of cell k of a word: its weighted mean added to the tile's log-odds at ``at``
+    (slot, row, column; clamped to [l_min, l_max]), its spread to the variance, and the cell observed; its weight sum,
+    or its count's entry of the sums, and its moments (read and cleared where the word's raised bits say it has
+    some). cells: the word's (held counts, raised bits, first cell, weight_sum, moments, sums); steps: the sizes of
+    the weight and moment steps; levels: the model's (l_free, l_min, l_max); counting: (counted, in_bytes,
+    count_levels) as the apply reads the counts."""
+    held, raised, base, weight_sum, moments, sums = cells
+    logodds, variance, observed = layers
+    l_free, l_min, l_max = levels
+    counted, in_bytes, count_levels = counting
+    c = base + k
+    if counted:
+        n = _byte_count(held, k) if in_bytes else _count_of(held, k, count_levels)
+        moment1 = l_free * sums[n]
+    else:
+        moment1 = l_free * (weight_sum[c] * steps[0])
+        weight_sum[c] = 0
+    moment2 = l_free * moment1
+    if (raised >> np.uint64(k)) & np.uint64(1):
+        d1 = moments[c, 2] * steps[1]
+        moment1 += d1
+        moment2 += 2.0 * l_free * d1 + moments[c, 3] * steps[1]
+        moments[c, 2] = 0
+        moments[c, 3] = 0
+    spread = moment2 - moment1 * moment1
+    if spread < 0.0:
+        spread = 0.0
+    updated = logodds[at] + moment1
+    if updated < l_min:
+        updated = l_min
+    elif updated > l_max:
+        updated = l_max
+    logodds[at] = updated
+    variance[at] += spread
+    observed[at] = True
