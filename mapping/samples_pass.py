@@ -981,17 +981,19 @@ def merge_scan(into, part, words):  # pragma: no cover - compiled
                 carry = (mine & theirs) | (carry & (mine ^ theirs))
                 part.counts[level, i] = 0
         base = i << 6
-        while bits != 0:
-            c = base + trailing_zeros(bits)
-            bits &= bits - np.uint64(1)
-            if not counted:
+        if not counted:
+            while bits != 0:
+                c = base + trailing_zeros(bits)
+                bits &= bits - np.uint64(1)
                 into.weight_sum[c] += part.weight_sum[c]
                 part.weight_sum[c] = 0
-            if (raised >> np.uint64(c - base)) & np.uint64(1):
-                into.moments[c, 2] += part.moments[c, 2]
-                into.moments[c, 3] += part.moments[c, 3]
-                part.moments[c, 2] = 0
-                part.moments[c, 3] = 0
+        while raised != 0:  # (the cells with moments only)
+            c = base + trailing_zeros(raised)
+            raised &= raised - np.uint64(1)
+            into.moments[c, 2] += part.moments[c, 2]
+            into.moments[c, 3] += part.moments[c, 3]
+            part.moments[c, 2] = 0
+            part.moments[c, 3] = 0
 
 
 @kernel(nogil=True, error_model="numpy", refcounted=False)
