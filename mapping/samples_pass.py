@@ -56,7 +56,15 @@ from mapping.fan_runs import (
     recorded_crossings,
 )
 from mapping.fixed_point import WEIGHT_SCALE, to_fixed
-from mapping.free_runs import fold_block, fold_columns, mark_plane_runs, plane_crossings, runs_last_cell, set_bit
+from mapping.free_runs import (
+    ALL_BITS,
+    fold_block,
+    fold_columns,
+    mark_plane_runs,
+    plane_crossings,
+    runs_last_cell,
+    set_bit,
+)
 from mapping.jit import kernel
 from mapping.raytrace import dda_step
 from mapping.tile_boxes import widen_box
@@ -1044,7 +1052,7 @@ def apply_scan(
             if in_bytes:
                 _counts_in_bytes(held, count_levels, bits)
         cells = (held, raised, base, weight_sum, moments, sums)
-        if bits == ALL_CELLS and (word_ix >> tiles.shift) == ((word_ix + 63) >> tiles.shift):
+        if bits == ALL_BITS and (word_ix >> tiles.shift) == ((word_ix + 63) >> tiles.shift):
             # (a word whose 64 cells are all listed and lie in one tile, as most are: a plain loop over them)
             slot = slot_map[ty, (word_ix >> tiles.shift) - tiles.tx0]
             at = (slot, ly, word_ix & in_tile)
@@ -1060,10 +1068,6 @@ def apply_scan(
             _apply_cell(cells, k, layers, (slot, ly, ix & in_tile), steps, levels, counting)
             n_scan += 1
     return n_scan
-
-
-#: a word of the listed plane whose 64 cells are all listed
-ALL_CELLS = np.uint64(0xFFFFFFFFFFFFFFFF)
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
