@@ -962,13 +962,13 @@ def _count_levels(sums):  # pragma: no cover - compiled
 
 @kernel(nogil=True, error_model="numpy", refcounted=False)
 def merge_scan(into, part, words):  # pragma: no cover - compiled
-    """Add a part of a scan's samples, walked by :func:`accumulate_scan` into scratch ``part``, to another part
-    walked into scratch ``into`` (the same window, beams and weight table): the listed cells, the counts (a
-    bit-sliced add) or weight sums, the excess moments and the raised cells. All are
-    whole numbers (:mod:`mapping.fixed_point`), so ``into`` then holds what walking both parts' samples into it would
-    have given, whatever the parts; the caller ors the parts' tile_touched. Clears what it read of ``part`` (as
-    :func:`apply_scan` does), word after word of part's listed plane, from word words[0] to words[1] - 1 (64 cells a
-    word: bands of words may be merged on different threads at once)."""
+    """Add a part of a scan's samples, walked by :func:`accumulate_scan` into scratch ``part``, to another part walked
+    into scratch ``into`` (the same window, beams and weight table): the listed cells, the counts (a bit-sliced add)
+    or weight sums, the excess moments and the raised cells. All are whole numbers (:mod:`mapping.fixed_point`), so
+    ``into`` then holds what walking both parts' samples into it would have given, whatever the parts; the caller ors
+    the parts' tile_touched. Clears what it read of ``part`` (as :func:`apply_scan` does), word after word of part's
+    listed plane, from word words[0] to words[1] - 1 (64 cells a word: bands of words may be merged on different
+    threads at once)."""
     into, part = SamplesScratch(*into), SamplesScratch(*part)
     counted = into.sums.shape[0] > 0
     count_levels = _count_levels(into.sums)
