@@ -117,8 +117,7 @@ class SamplesScratch(NamedTuple):
     after its first (:func:`accumulate_scan`); moments: ``excess`` viewed as int64; boxes: per tile of the window, the
     bounding box of its listed cells (:func:`listed_boxes`, after the samples); raised: one bit per cell, the cells
     with an excess record of this scan (zero between scans), so that the apply and the merge read the records of
-    those cells only (an eighth of a warehouse scan's listed cells, a third of the office's; reading every listed
-    cell's 32-byte record for its stamp took 40 % of the warehouse's apply).
+    those cells only (an eighth of a warehouse scan's listed cells), not every listed cell's stamp.
     """
 
     plane: np.ndarray
@@ -646,15 +645,15 @@ def accumulate_scan(
     the tiles' :func:`owned_table`; res: the cell size (m); moment_scale: the steps per unit of the excess moments
     (:func:`mapping.fixed_point.moment_scale` of the model).
 
-    Window cell (gx, gy) is global cell (ix0 + gx, iy0 + gy); its scratch entries are at c = gy * w + gx: bit c
-    of plane (the cells the current sample touched) and of listed (the cells any sample touched in this scan),
-    both zero between scans; weight_sum[c] (W in int64 steps; zero between scans), excess[c] (kept by
-    :func:`add_sample_excess` for d: the stamp, the current sample's largest d, D1, D2, the moments in int64 steps,
-    zero between scans; sample j's stamp is stamp_base + j, so smaller stamps are from earlier scans) and bit c of
-    raised (the cell has a record of this scan; zero between scans); tile_touched
-    marks the tiles of the listed cells. W, D1 and D2 are sums of whole steps (:mod:`mapping.fixed_point`), the same
-    in any order of the samples: a scan's samples may be walked in parts, each part into a scratch of its own, and
-    the parts' scratches added up (:func:`merge_scan`) before the apply. See the module docstring.
+    Window cell (gx, gy) is global cell (ix0 + gx, iy0 + gy); its scratch entries are at c = gy * w + gx: bit c of
+    plane (the cells the current sample touched) and of listed (the cells any sample touched in this scan), both zero
+    between scans; weight_sum[c] (W in int64 steps; zero between scans), excess[c] (kept by :func:`add_sample_excess`
+    for d: the stamp, the current sample's largest d, D1, D2, the moments in int64 steps, zero between scans; sample
+    j's stamp is stamp_base + j, so smaller stamps are from earlier scans) and bit c of raised (the cell has a record
+    of this scan; zero between scans); tile_touched marks the tiles of the listed cells. W, D1 and D2 are sums of
+    whole steps (:mod:`mapping.fixed_point`), the same in any order of the samples: a scan's samples may be walked in
+    parts, each part into a scratch of its own, and the parts' scratches added up (:func:`merge_scan`) before the
+    apply. See the module docstring.
 
     Each ray is walked by :func:`mapping.window_walk.walk_ray` in two phases: the free phase, cells that end before
     the beam's free_until, which take l_free without evaluating the model; then the cells up to the ray's end,
@@ -984,9 +983,7 @@ def merge_scan(into, part, words):  # pragma: no cover - compiled
         if counted:
             carry = np.uint64(0)
             for level in range(count_levels):  # (no count passes len(sums) - 1: no carry out of the top level)
-                mine, theirs = into.counts[level, i], part.counts[level, i]
-                into.counts[level, i] = mine ^ theirs ^ carry
-                carry = (mine & theirs) | (carry & (mine ^ theirs))
+                carry = _add_digit(into.counts, i, level, part.counts[level, i], carry)
                 part.counts[level, i] = 0
         base = i << 6
         if not counted:
