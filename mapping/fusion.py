@@ -369,7 +369,7 @@ class MonteCarloFusion:
         slot_map, changed = self._tile_slots(first.touched, tx0, ty0)
         windows = tile_windows([part.boxes for part in walked], first.touched)
         grid = self.grid  # (its layers after _tile_slots: new tiles may have moved them)
-        layers = (grid.logodds, grid.variance, grid.observed)
+        layers = (grid.logodds, grid.variance, grid.observed, grid.changed)
         if first.single:
             apply_single(
                 first.scratch, first.weight, first.window_args, first.tile_args, slot_map, layers, self._levels

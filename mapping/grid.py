@@ -8,9 +8,12 @@ Per cell the grid keeps
 - ``logodds`` (float32): the occupancy log-odds, clamped to the sensor model's range; 0 = unknown,
 - ``variance`` (float32): the sum over scans of the per-scan spread of the sample log-odds
   (E_w[y^2] - E_w[y]^2): how much pose uncertainty blurred the cell,
-- ``observed`` (bool): whether any scan touched it.
+- ``observed`` (bool): whether any scan touched it,
+- and in a grid made with ``track_changes`` (a mapper shard's), ``changed`` (bool): whether the fusion has changed
+  any of the cell's values since :meth:`TiledGrid.take_changes` last cleared it, so that a tile update gives only
+  those cells (schemas.messages.TileUpdate).
 
-Tiles live in three stacked arrays (slot, T, T) that grow by doubling, so compiled kernels can write
+Tiles live in stacked arrays (slot, T, T) that grow by doubling, so compiled kernels can write
 into any tile through a slot index; memory follows the observed area.
 """
 
@@ -32,7 +35,7 @@ TileKey = tuple[int, int]
 class TiledGrid:
     """A tiled log-odds map with a variance layer; see the module docstring for frames and layout."""
 
-    def __init__(self, resolution: float = 0.05, tile_size: int = TILE_SIZE) -> None:
+    def __init__(self, resolution: float = 0.05, tile_size: int = TILE_SIZE, track_changes: bool = False) -> None:
         if not resolution > 0:
             raise InputError(f"resolution must be > 0 m, got {resolution}")
         if tile_size < 1 or tile_size & (tile_size - 1):
@@ -44,6 +47,9 @@ class TiledGrid:
         self.logodds = np.zeros((0, tile_size, tile_size), np.float32)
         self.variance = np.zeros((0, tile_size, tile_size), np.float32)
         self.observed = np.zeros((0, tile_size, tile_size), np.bool_)
+        self.track_changes = bool(track_changes)
+        # (untracked: no slots, and the fusion's kernels skip it)
+        self.changed = np.zeros((0, tile_size, tile_size) if track_changes else (0, 1, 1), np.bool_)
 
     # ----------------------------------------------------------------------------------- tiles
     def keys(self) -> list[TileKey]:
@@ -69,6 +75,8 @@ class TiledGrid:
         self.logodds = np.concatenate([self.logodds, np.zeros(shape, np.float32)])
         self.variance = np.concatenate([self.variance, np.zeros(shape, np.float32)])
         self.observed = np.concatenate([self.observed, np.zeros(shape, np.bool_)])
+        if self.track_changes:
+            self.changed = np.concatenate([self.changed, np.zeros(shape, np.bool_)])
 
     def tile_arrays(self, key: TileKey) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(logodds, variance, observed) views of tile ``key``, each (T, T), row = y."""
@@ -78,7 +86,8 @@ class TiledGrid:
         return self.logodds[slot], self.variance[slot], self.observed[slot]
 
     def set_tile(self, key: TileKey, logodds: np.ndarray, variance: np.ndarray, observed: np.ndarray) -> None:
-        """Replace tile ``key``'s layers (used when assembling a map from shards)."""
+        """Replace tile ``key``'s layers (used when assembling a map from shards, and by a shard seeding or restoring
+        a tile); with ``track_changes`` every cell of it is marked changed."""
         shape = (self.tile_size, self.tile_size)
         for name, layer in (("logodds", logodds), ("variance", variance), ("observed", observed)):
             if np.shape(layer) != shape:
@@ -87,6 +96,20 @@ class TiledGrid:
         self.logodds[slot] = logodds
         self.variance[slot] = variance
         self.observed[slot] = observed
+        if self.track_changes:
+            self.changed[slot] = True
+
+    def take_changes(self, key: TileKey, window: tuple[int, int, int, int]) -> np.ndarray:
+        """The cells of tile ``key`` whose values changed since the last call that took them, over ``window``
+        (row0, col0, rows, cols; tile-local cells), as a (rows, cols) bool array, and cleared there. Only in a grid
+        made with ``track_changes``."""
+        if not self.track_changes:
+            raise ValueError("this grid does not track changes: make it with track_changes=True")
+        row0, col0, rows, cols = window
+        region = self.changed[self._slot_of[key], row0 : row0 + rows, col0 : col0 + cols]
+        taken = region.copy()
+        region[...] = False
+        return taken
 
     def tile_origin(self, key: TileKey) -> tuple[float, float]:
         """Map-frame (x, y) in m of the lower-left corner of tile ``key``."""
@@ -97,7 +120,7 @@ class TiledGrid:
     @property
     def nbytes(self) -> int:
         """Bytes held by the tiles that exist (the slot arrays' unused capacity excluded)."""
-        per_tile = self.tile_size * self.tile_size * (4 + 4 + 1)
+        per_tile = self.tile_size * self.tile_size * (4 + 4 + 1 + (1 if self.track_changes else 0))
         return per_tile * len(self._slot_of)
 
     def observed_cells(self) -> int:

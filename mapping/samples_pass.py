@@ -1015,7 +1015,8 @@ def apply_scan(
     cells in the order the samples first touched them made this pass 2.3 times as slow on the warehouse).
 
     scratch: the :class:`SamplesScratch` of :func:`accumulate_scan`, window and tiles as there (plain tuples);
-    slot_map: the grid slot of each tile of the window; layers: the grid's (logodds, variance, observed); levels:
+    slot_map: the grid slot of each tile of the window; layers: the grid's (logodds, variance, observed, changed);
+    levels:
     the model's (l_free, l_min, l_max); moment_scale: as for :func:`accumulate_scan`; words: the scratch words
     (64 cells each) words[0] .. words[1] - 1 to apply (bands of words may be applied on different threads at once:
     they hold different cells); held: APPLY_HELD uint64 of room for a word's counts (one per thread), read as bytes
@@ -1070,13 +1071,14 @@ def apply_scan(
 @kernel(nogil=True, error_model="numpy", inline="always")
 def _apply_cell(cells, k, layers, at, steps, levels, counting):  # pragma: no cover - compiled
     """:func:`apply_scan`'s update of cell k of a word: its weighted mean added to the tile's log-odds at ``at``
-    (slot, row, column; clamped to [l_min, l_max]), its spread to the variance, and the cell observed; its weight sum,
-    or its count's entry of the sums, and its moments (read and cleared where the word's raised bits say it has
-    some). cells: the word's (held counts, raised bits, first cell, weight_sum, moments, sums); steps: the sizes of
-    the weight and moment steps; levels: the model's (l_free, l_min, l_max); counting: (counted, in_bytes,
+    (slot, row, column; clamped to [l_min, l_max]), its spread to the variance, the cell observed and, in a grid that
+    tracks them, marked changed where a value changed (layers: the grid's logodds, variance, observed, changed); its
+    weight sum, or its count's entry of the sums, and its moments (read and cleared where the word's raised bits say
+    it has some). cells: the word's (held counts, raised bits, first cell, weight_sum, moments, sums); steps: the
+    sizes of the weight and moment steps; levels: the model's (l_free, l_min, l_max); counting: (counted, in_bytes,
     count_levels) as the apply reads the counts."""
     held, raised, base, weight_sum, moments, sums = cells
-    logodds, variance, observed = layers
+    logodds, variance, observed, changed = layers
     l_free, l_min, l_max = levels
     counted, in_bytes, count_levels = counting
     c = base + k
@@ -1096,11 +1098,14 @@ def _apply_cell(cells, k, layers, at, steps, levels, counting):  # pragma: no co
     spread = moment2 - moment1 * moment1
     if spread < 0.0:
         spread = 0.0
-    updated = logodds[at] + moment1
+    old, old_spread = logodds[at], variance[at]
+    updated = old + moment1
     if updated < l_min:
         updated = l_min
     elif updated > l_max:
         updated = l_max
     logodds[at] = updated
-    variance[at] += spread
+    variance[at] = old_spread + spread
+    if changed.shape[0] > 0:  # (a grid that tracks its changed cells, mapping.grid)
+        changed[at] |= (logodds[at] != old) | (variance[at] != old_spread) | (not observed[at])
     observed[at] = True

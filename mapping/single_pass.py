@@ -210,7 +210,8 @@ def apply_single(scratch, w, window, tiles, slot_map, layers, levels):  # pragma
     Block by block, so neighbouring cells are written together; clears the blocks' bits for the next scan.
 
     scratch, window, tiles: as for :func:`accumulate_single`; slot_map: the grid slot of each tile of the window;
-    layers: the grid's (logodds, variance, observed); levels: the model's (l_free, l_min, l_max)."""
+    layers: the grid's (logodds, variance, observed, changed: marked where a value changed, in a grid that tracks
+    them); levels: the model's (l_free, l_min, l_max)."""
     scratch, window, tiles = SingleScratch(*scratch), Window(*window), Tiles(*tiles)
     touched, raised, blocks_w = scratch.touched, scratch.raised, scratch.blocks_w
     for block in range(blocks_w * scratch.blocks_h):
@@ -232,7 +233,8 @@ def apply_single(scratch, w, window, tiles, slot_map, layers, levels):  # pragma
 def _apply_block(excess, block, bits, up, bx, by, w, tiles, slot_map, layers, levels):  # pragma: no cover
     """:func:`apply_single` for a block that lies in one tile (cells from global (bx, by); touched bits ``bits``,
     raised bits ``up``): its rows are 8 cells of a tile row, taken without branches."""
-    logodds, _, observed = layers
+    logodds, _, observed, changed = layers
+    track = changed.shape[0] > 0  # (a grid that tracks its changed cells, mapping.grid)
     l_free, l_min, l_max = levels
     in_tile = (1 << tiles.shift) - 1
     base = l_free * w
@@ -250,13 +252,16 @@ def _apply_block(excess, block, bits, up, bx, by, w, tiles, slot_map, layers, le
             old = logodds[slot, ly, lx + col]
             updated = min(max(old + mean, l_min), l_max)
             logodds[slot, ly, lx + col] = updated if on else old
+            if track:
+                was = observed[slot, ly, lx + col]
+                changed[slot, ly, lx + col] |= on & ((logodds[slot, ly, lx + col] != old) | (not was))
             observed[slot, ly, lx + col] |= on
 
 
 @kernel(nogil=True, error_model="numpy", inline="always")
 def _apply_cells(excess, block, bits, up, bx, by, w, tiles, slot_map, layers, levels):  # pragma: no cover
     """:func:`apply_single` for a block over several tiles (tiles smaller than 8 cells), cell by cell."""
-    logodds, _, observed = layers
+    logodds, _, observed, changed = layers
     l_free, l_min, l_max = levels
     in_tile = (1 << tiles.shift) - 1
     base = l_free * w
@@ -273,10 +278,14 @@ def _apply_cells(excess, block, bits, up, bx, by, w, tiles, slot_map, layers, le
             mean = base
             if (up >> bit) & 1:
                 mean = base + w * excess[block * 64 + bit]
-            updated = logodds[slot, iy & in_tile, ix & in_tile] + mean
+            at = (slot, iy & in_tile, ix & in_tile)
+            old = logodds[at]
+            updated = old + mean
             if updated < l_min:
                 updated = l_min
             elif updated > l_max:
                 updated = l_max
-            logodds[slot, iy & in_tile, ix & in_tile] = updated
-            observed[slot, iy & in_tile, ix & in_tile] = True
+            logodds[at] = updated
+            if changed.shape[0] > 0:  # (a grid that tracks its changed cells, mapping.grid)
+                changed[at] |= (logodds[at] != old) | (not observed[at])
+            observed[at] = True

@@ -90,10 +90,25 @@ def _one_pose_at_most(v, fail):
 
 
 def _window(v, fail):
-    rows, cols = v["logodds"].shape
-    size = v["tile_size"]
+    rows, cols, size = v["rows"], v["cols"], v["tile_size"]
     if v["row0"] + rows > size or v["col0"] + cols > size:
         fail("range", f"window at ({v['row0']}, {v['col0']}) of shape ({rows}, {cols}) exceeds the {size}x{size} tile")
+
+
+#: the bits set in each byte value (a table, not unpacked bits: a peer's message is checked in its own size)
+_BITS_SET = np.array([bin(byte).count("1") for byte in range(256)], np.uint8)
+
+
+def _given_cells(v, fail):
+    cells = v["rows"] * v["cols"]
+    given = v["given"]
+    if given.shape[0] != -(-cells // 8):
+        fail("shape", f"'given' has {given.shape[0]} bytes; a window of {cells} cells needs {-(-cells // 8)}")
+    if cells % 8 and given[-1] >> (cells % 8):
+        fail("range", "'given' sets bits past the window's last cell")
+    count = int(_BITS_SET[given].sum(dtype=np.int64))
+    if count != v["logodds"].shape[0]:
+        fail("shape", f"'given' marks {count} cells but the layers hold {v['logodds'].shape[0]} values")
 
 
 def _shard_index(v, fail):
@@ -221,18 +236,28 @@ class StreamEnd(Message):
 
 @dataclass(frozen=True, eq=False)
 class TileUpdate(Message):
-    """A window of one map tile as its owning shard holds it now (absolute values, not increments).
+    """Cells of one map tile as its owning shard holds them now (absolute values, not increments).
 
-    Published on pg/map/<map>/tile/<z>/<tx>/<ty> after fusion (the window covers the cells changed since
-    the tile was last published) and sent as the reply to a tile query (the window is the whole tile).
-    Tile (tx, ty) holds the global cells ix in [tx*T, (tx+1)*T), iy in [ty*T, (ty+1)*T); window row r,
-    column c is the cell iy = ty*T + row0 + r, ix = tx*T + col0 + c, covering
-    x in [ix*resolution, (ix+1)*resolution) of the map frame.
+    Published on pg/map/<map>/tile/<z>/<tx>/<ty> after fusion and sent as the reply to a tile query. The window
+    (row0, col0, rows, cols) bounds the cells given, and ``given`` marks which of its cells the update gives: after
+    fusion the cells whose values changed since the tile was last published (a receiver keeps its earlier values
+    of the others, or none while it has none: log-odds 0, variance 0, unobserved); in a query's reply every cell of
+    the whole tile (:meth:`is_whole`). Tile (tx, ty) holds the global cells ix in [tx*T, (tx+1)*T), iy in [ty*T,
+    (ty+1)*T); window row r, column c is the cell iy = ty*T + row0 + r, ix = tx*T + col0 + c, covering x in
+    [ix*resolution, (ix+1)*resolution) of the map frame. The layers hold the given cells' values in row-major order
+    of the window (:meth:`given_mask`, :meth:`paste`, :meth:`of_window`).
     """
 
     TYPE = "TileUpdate"
-    VERSION = 1
-    RULES = (Rule("range", "row0 + H <= tile_size and col0 + W <= tile_size", _window),)
+    VERSION = 2  # 2: the window's cells given, not every one
+    RULES = (
+        Rule("range", "row0 + rows <= tile_size and col0 + cols <= tile_size", _window),
+        Rule(
+            "shape",
+            "given has ceil(rows * cols / 8) bytes, no bit set past the window's last cell, and as many set as N",
+            _given_cells,
+        ),
+    )
 
     map: str = spec(Name("map name, one key chunk"))
     shard: int = spec(Int("index of the shard that owns the tile", minimum=0))
@@ -243,14 +268,74 @@ class TileUpdate(Message):
     resolution: float = spec(Float("cell side, m", exclusive_minimum=0.0))
     row0: int = spec(Int("first window row inside the tile", minimum=0))
     col0: int = spec(Int("first window column inside the tile", minimum=0))
+    rows: int = spec(Int("window rows", minimum=1))
+    cols: int = spec(Int("window columns", minimum=1))
     robot: str = spec(ROBOT)
     seq: int = spec(Int("seq of the last scan fused into this tile (by robot)", minimum=0, maximum=MAX_SEQ))
     published: float = spec(Float("Unix time the shard sent this update, s"))
-    logodds: np.ndarray = spec(Array("occupancy log-odds per cell", "<f4", ("H", "W")))
-    variance: np.ndarray = spec(
-        Array("spread of the per-sample log-odds that pose uncertainty adds", "<f4", ("H", "W"), minimum=0.0)
+    given: np.ndarray = spec(
+        Array(
+            "the window cells this update gives: bit i (byte i // 8, bit i % 8) for the cell at row i // cols, "
+            "column i % cols of the window",
+            "|u1",
+            ("B",),
+            values="bits",
+        )
     )
-    observed: np.ndarray = spec(Array("whether any beam has touched the cell", "|b1", ("H", "W"), values="any"))
+    logodds: np.ndarray = spec(Array("occupancy log-odds per given cell", "<f4", ("N",)))
+    variance: np.ndarray = spec(
+        Array(
+            "spread of the per-sample log-odds that pose uncertainty adds, per given cell", "<f4", ("N",), minimum=0.0
+        )
+    )
+    observed: np.ndarray = spec(Array("whether any beam has touched the given cell", "|b1", ("N",), values="any"))
+
+    @classmethod
+    def of_window(
+        cls, layers: tuple[np.ndarray, np.ndarray, np.ndarray], given: np.ndarray | None = None, **fields
+    ) -> TileUpdate:
+        """The update of a window's (rows, cols) layers (log-odds, variance, observed) that gives the cells
+        ``given`` marks (bool (rows, cols); default every cell); ``fields``: the others but rows and cols."""
+        logodds, variance, observed = layers
+        rows, cols = np.shape(logodds)
+        if given is None:
+            given = np.ones((rows, cols), np.bool_)
+        return cls(
+            rows=rows,
+            cols=cols,
+            given=np.packbits(given, axis=None, bitorder="little"),
+            logodds=np.asarray(logodds)[given],
+            variance=np.asarray(variance)[given],
+            observed=np.asarray(observed)[given],
+            **fields,
+        )
+
+    def given_mask(self) -> np.ndarray:
+        """The window cells this update gives, bool (rows, cols)."""
+        bits = np.unpackbits(self.given, count=self.rows * self.cols, bitorder="little")
+        return bits.reshape(self.rows, self.cols).view(np.bool_)
+
+    def is_whole(self) -> bool:
+        """Whether this update gives every cell of its tile (as a tile query's reply does)."""
+        return (self.row0, self.col0, self.rows, self.cols) == (0, 0, self.tile_size, self.tile_size) and bool(
+            self.observed.shape[0] == self.rows * self.cols
+        )
+
+    def paste(self, logodds: np.ndarray, variance: np.ndarray, observed: np.ndarray) -> None:
+        """Write the cells this update gives into a tile's layers (each (tile_size, tile_size), row = y)."""
+        region = (slice(self.row0, self.row0 + self.rows), slice(self.col0, self.col0 + self.cols))
+        given = self.given_mask()
+        logodds[region][given] = self.logodds
+        variance[region][given] = self.variance
+        observed[region][given] = self.observed
+
+    def whole_layers(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The tile's (log-odds, variance, observed), each (tile_size, tile_size), of an update that gives every
+        cell of it (:meth:`is_whole`; ValueError otherwise)."""
+        if not self.is_whole():
+            raise ValueError(f"the update of tile ({self.tx}, {self.ty}) does not give every cell of it")
+        shape = (self.tile_size, self.tile_size)
+        return self.logodds.reshape(shape), self.variance.reshape(shape), self.observed.reshape(shape)
 
 
 @dataclass(frozen=True, eq=False)

@@ -218,8 +218,8 @@ class Array(Spec):
     ``shape`` holds an int for a fixed length or a letter for a length that must agree across the
     message's fields (e.g. ``("M", 3)`` for samples and ``("M",)`` for their weights). ``values`` is
     "finite" (every value finite), "ranges" (finite values >= 0, NaN or +inf meaning no return, -inf a reading
-    too close to measure) or "any" (booleans). ``minimum`` bounds the finite values from below, ``magnitude``
-    their absolute values.
+    too close to measure), "any" (booleans) or "bits" (bytes of packed bits, any value). ``minimum`` bounds the
+    finite values from below, ``magnitude`` their absolute values.
     """
 
     dtype: str = "<f8"
@@ -266,7 +266,7 @@ class Array(Spec):
         return array
 
     def _check_values(self, name: str, array: np.ndarray, ctx: _DecodeContext) -> None:
-        if self.values == "any":
+        if self.values in ("any", "bits"):
             return
         finite = np.isfinite(array)
         if self.values == "finite" and not finite.all():
@@ -292,6 +292,7 @@ class Array(Spec):
             "finite": "every value finite",
             "ranges": "finite values >= 0, NaN or +inf for no return, -inf for too close to measure (REP 117)",
             "any": "0 or 1 per byte",
+            "bits": "8 packed bits per byte, the least significant first",
         }[self.values]
         if self.minimum is not None:
             values += f", finite values >= {self.minimum}"

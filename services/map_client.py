@@ -80,7 +80,7 @@ class MapReader:
             raise IncompleteMap(f"the shards map at {tiles[0].resolution} m, not {resolution} m")
         grid = TiledGrid(resolution, tiles[0].tile_size)
         for tile in tiles:
-            if (tile.row0, tile.col0, tile.logodds.shape) != (0, 0, (grid.tile_size, grid.tile_size)):
+            if not tile.is_whole() or tile.tile_size != grid.tile_size:
                 raise IncompleteMap(f"tile ({tile.tx}, {tile.ty}) arrived as a partial window")
-            grid.set_tile((tile.tx, tile.ty), tile.logodds, tile.variance, tile.observed)
+            grid.set_tile((tile.tx, tile.ty), *tile.whole_layers())
         return grid

@@ -393,7 +393,8 @@ def test_bad_zenoh_data_is_counted_by_key_never_trusted(api, session):
     garbage_key = keys.tile_key(MAP, 0, 0, 0)
     put(session, garbage_key, b"\x93not msgpack")
     put(session, keys.robot_key("robot0", keys.POSE), b"\x81\xa4type\xa9PoseNoise")
-    tile = TileUpdate(
+    tile = TileUpdate.of_window(
+        (np.zeros((1, 1), np.float32), np.zeros((1, 1), np.float32), np.ones((1, 1), bool)),
         map=MAP,
         shard=0,
         z=0,
@@ -406,9 +407,6 @@ def test_bad_zenoh_data_is_counted_by_key_never_trusted(api, session):
         robot="robot0",
         seq=0,
         published=0.0,
-        logodds=np.zeros((1, 1), np.float32),
-        variance=np.zeros((1, 1), np.float32),
-        observed=np.ones((1, 1), bool),
     )
     wrong_key = keys.tile_key(MAP, 0, 7, 7)
     put(session, wrong_key, tile.encode())
@@ -546,7 +544,8 @@ def test_tile_updates_no_shard_stands_behind_do_not_break_the_map(api, session):
     the owner's update counts as received, which `settled` would see.)"""
 
     def forged(map_name: str, shard: int) -> bytes:
-        return TileUpdate(
+        return TileUpdate.of_window(
+            (np.full((TILE, TILE), 3.0, np.float32), np.zeros((TILE, TILE), np.float32), np.ones((TILE, TILE), bool)),
             map=map_name,
             shard=shard,
             z=0,
@@ -559,9 +558,6 @@ def test_tile_updates_no_shard_stands_behind_do_not_break_the_map(api, session):
             robot="robot0",
             seq=0,
             published=0.0,
-            logodds=np.full((TILE, TILE), 3.0, np.float32),
-            variance=np.zeros((TILE, TILE), np.float32),
-            observed=np.ones((TILE, TILE), bool),
         ).encode()
 
     httpx.get(f"{api}/maps/{MAP}/stats", timeout=30).raise_for_status()  # the API knows the shard count
@@ -611,7 +607,12 @@ def test_a_stalled_shard_holds_up_only_its_own_tiles(api, stack, session):
         for (tx, ty), shard in (((sx, sy), 1), ((x, y), 0)):  # in this order: one subscriber, one session
             session.put(
                 keys.tile_key(MAP, 0, tx, ty),
-                TileUpdate(
+                TileUpdate.of_window(
+                    (
+                        np.zeros((TILE, TILE), np.float32),
+                        np.zeros((TILE, TILE), np.float32),
+                        np.zeros((TILE, TILE), bool),
+                    ),
                     map=MAP,
                     shard=shard,
                     z=0,
@@ -624,9 +625,6 @@ def test_a_stalled_shard_holds_up_only_its_own_tiles(api, stack, session):
                     robot="robot0",
                     seq=0,
                     published=0.0,
-                    logodds=np.zeros((TILE, TILE), np.float32),
-                    variance=np.zeros((TILE, TILE), np.float32),
-                    observed=np.zeros((TILE, TILE), bool),
                 ).encode(),
                 congestion_control=BLOCK,
             )

@@ -237,7 +237,8 @@ def test_head_stops_a_streaming_response_under_either_asgi_spec(spec_version):
 
 def update(tx: int, ty: int, fill: float) -> TileUpdate:
     """A whole 2 x 2 level-0 tile as a shard sends it."""
-    return TileUpdate(
+    return TileUpdate.of_window(
+        (np.full((2, 2), fill, np.float32), np.ones((2, 2), np.float32), np.ones((2, 2), bool)),
         map="m",
         shard=0,
         z=0,
@@ -250,9 +251,6 @@ def update(tx: int, ty: int, fill: float) -> TileUpdate:
         robot="r",
         seq=0,
         published=0.0,
-        logodds=np.full((2, 2), fill, np.float32),
-        variance=np.ones((2, 2), np.float32),
-        observed=np.ones((2, 2), bool),
     )
 
 

@@ -118,8 +118,15 @@ def landmarks(draw):
 @st.composite
 def tile_updates(draw):
     size = draw(st.integers(1, 32))
-    h, w = draw(st.integers(0, size)), draw(st.integers(0, size))
-    return TileUpdate(
+    h, w = draw(st.integers(1, size)), draw(st.integers(1, size))
+    layers = (
+        draw(hnp.arrays(np.float32, (h, w), elements=st.floats(-20, 20, width=32))),
+        draw(hnp.arrays(np.float32, (h, w), elements=st.floats(0, 50, width=32))),
+        draw(hnp.arrays(np.bool_, (h, w))),
+    )
+    return TileUpdate.of_window(
+        layers,
+        draw(hnp.arrays(np.bool_, (h, w))),
         map=draw(names),
         shard=draw(st.integers(0, 9)),
         z=0,
@@ -132,9 +139,6 @@ def tile_updates(draw):
         robot=draw(names),
         seq=draw(seqs),
         published=draw(finite),
-        logodds=draw(hnp.arrays(np.float32, (h, w), elements=st.floats(-20, 20, width=32))),
-        variance=draw(hnp.arrays(np.float32, (h, w), elements=st.floats(0, 50, width=32))),
-        observed=draw(hnp.arrays(np.bool_, (h, w))),
     )
 
 
@@ -330,7 +334,7 @@ with_arrays = any_message.filter(array_fields)
 def test_wrong_dtype(message, data):
     wire = wire_of(message)
     name = data.draw(st.sampled_from(array_fields(message)))
-    wire[name]["dtype"] = {"<f4": "<f8", "<f8": ">f8", "<i8": "<i4", "|b1": "|u1"}[wire[name]["dtype"]]
+    wire[name]["dtype"] = {"<f4": "<f8", "<f8": ">f8", "<i8": "<i4", "|b1": "|u1", "|u1": "|b1"}[wire[name]["dtype"]]
     assert reason_of(wire) == "dtype"
 
 
@@ -520,7 +524,8 @@ def test_more_samples_than_a_message_may_carry_are_rejected():
 
 
 def test_boolean_bytes_other_than_0_and_1_are_rejected():
-    tile = TileUpdate(
+    tile = TileUpdate.of_window(
+        (np.zeros((2, 2), np.float32), np.zeros((2, 2), np.float32), np.ones((2, 2), bool)),
         map="m",
         shard=0,
         z=0,
@@ -533,9 +538,6 @@ def test_boolean_bytes_other_than_0_and_1_are_rejected():
         robot="r",
         seq=0,
         published=0.0,
-        logodds=np.zeros((2, 2), np.float32),
-        variance=np.zeros((2, 2), np.float32),
-        observed=np.ones((2, 2), bool),
     )
     wire = wire_of(tile)
     wire["observed"]["data"] = bytes([1, 0, 2, 1])
@@ -580,7 +582,8 @@ def test_schema_describes_the_wire_keys_and_constants(message):
             assert len(prop["shape"]["prefixItems"]) == len(value["shape"])
 
 
-def tile(**overrides):
+def tile(given=None, **overrides):
+    """A TileUpdate of a 2 x 2 window of a 4-cell tile giving the cells ``given`` marks (default all)."""
     values = dict(
         map="m",
         shard=0,
@@ -594,12 +597,10 @@ def tile(**overrides):
         robot="r",
         seq=0,
         published=0.0,
-        logodds=np.zeros((2, 2), np.float32),
-        variance=np.zeros((2, 2), np.float32),
-        observed=np.ones((2, 2), bool),
     )
     values.update(overrides)
-    return TileUpdate(**values)
+    layers = (np.arange(4, dtype=np.float32).reshape(2, 2), np.zeros((2, 2), np.float32), np.ones((2, 2), bool))
+    return TileUpdate.of_window(layers, given, **values)
 
 
 def stats(**overrides):
@@ -642,6 +643,46 @@ def test_tile_and_stats_boundary_values_are_out_of_range(message):
 
 def test_a_tile_window_may_end_exactly_at_the_tile_edge():
     assert decode_message(tile(row0=2, col0=2).encode()).col0 == 2
+
+
+def test_a_tile_update_gives_the_marked_cells_in_row_major_order():
+    given = np.array([[False, True], [True, True]])
+    decoded = decode_message(tile(given, row0=1, col0=2).encode())
+    assert decoded.given.tolist() == [0b1110]  # cells 1, 2, 3 of the window, least significant bit first
+    assert decoded.given_mask().tolist() == given.tolist()
+    assert decoded.logodds.tolist() == [1.0, 2.0, 3.0]  # the window's arange(4) at cells 1, 2, 3
+    layers = (np.full((4, 4), -1, np.float32), np.full((4, 4), 7, np.float32), np.zeros((4, 4), bool))
+    decoded.paste(*layers)
+    expected = np.full((4, 4), -1, np.float32)
+    expected[1, 3], expected[2, 2], expected[2, 3] = 1.0, 2.0, 3.0  # window cell (r, c) is tile cell (1 + r, 2 + c)
+    assert layers[0].tolist() == expected.tolist()
+    assert layers[1][1, 2] == 7 and layers[1][2, 3] == 0  # a cell not given keeps its value
+    assert layers[2].sum() == 3
+    assert not decoded.is_whole()
+    with pytest.raises(ValueError):
+        decoded.whole_layers()
+
+
+def test_a_whole_tile_gives_its_layers():
+    whole = decode_message(tile(tile_size=2).encode())
+    assert whole.is_whole()
+    assert whole.whole_layers()[0].tolist() == [[0.0, 1.0], [2.0, 3.0]]
+
+
+@pytest.mark.parametrize(
+    ("given", "reason"),
+    [
+        (b"", "shape"),  # a 2 x 2 window needs one byte of bits
+        (b"\x0f\x00", "shape"),  # and no more
+        (b"\x1f", "range"),  # bit 4 lies past the window's 4 cells
+        (b"\x07", "shape"),  # three cells marked, four values
+    ],
+)
+def test_a_tile_update_whose_given_bits_do_not_fit_is_refused(given, reason):
+    wire = wire_of(tile())
+    wire["given"]["data"] = given
+    wire["given"]["shape"] = [len(given)]
+    assert reason_of(wire) == reason
 
 
 @pytest.mark.parametrize(("field", "value"), [("seq", True), ("stamp", False), ("tile_updates", True)])

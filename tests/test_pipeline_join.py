@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapping.sensor_model import SensorModel
-from schemas.messages import LaserScan, PoseGaussian, PoseSamples, StreamEnd
+from schemas.messages import LaserScan, PoseGaussian, PoseSamples, StreamEnd, TileUpdate, decode_message
 from services.process import RejectCounter
 from services.state.join import (
     CONFIRM_RUN,
@@ -840,7 +840,16 @@ def test_shard_keeps_a_bounded_number_of_laser_geometries():
     assert len(shard._fusions) == FUSIONS_KEPT
 
 
-def test_tile_updates_carry_only_the_changed_window():
+def _given_cells(update) -> np.ndarray:
+    """The tile cells an update gives, bool (T, T)."""
+    cells = np.zeros((update.tile_size, update.tile_size), bool)
+    cells[update.row0 : update.row0 + update.rows, update.col0 : update.col0 + update.cols] = update.given_mask()
+    return cells
+
+
+def test_tile_updates_carry_only_the_changed_cells():
+    """A fresh tile's first update gives exactly its observed cells (each changed from unobserved), with their
+    values, in the smallest window that holds them."""
     log = logging.getLogger("test-shard")
     shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), publish_interval=0.0), RejectCounter(log))
     shard.handle("pg/r/scan", _scan(0).encode())
@@ -850,22 +859,24 @@ def test_tile_updates_carry_only_the_changed_window():
     again, _ = shard.due_updates(now=1.0)
     assert again == []  # nothing changed since
     for update in first:
-        logodds, _variance, observed = shard.grid.tile_arrays((update.tx, update.ty))
-        window = (
-            slice(update.row0, update.row0 + update.logodds.shape[0]),
-            slice(update.col0, update.col0 + update.logodds.shape[1]),
-        )
-        np.testing.assert_array_equal(update.logodds, logodds[window])
-        outside = observed.copy()
-        outside[window] = False
-        assert not outside.any()  # every observed cell of the tile is inside the window
-        assert update.logodds.shape[0] < shard.grid.tile_size  # a window, not the whole tile
+        decoded = decode_message(update.encode(), TileUpdate)
+        logodds, variance, observed = shard.grid.tile_arrays((update.tx, update.ty))
+        sent = _given_cells(decoded)
+        np.testing.assert_array_equal(sent, observed)
+        np.testing.assert_array_equal(decoded.logodds, logodds[sent])
+        np.testing.assert_array_equal(decoded.variance, variance[sent])
+        rows, cols = np.flatnonzero(observed.any(axis=1)), np.flatnonzero(observed.any(axis=0))
+        assert (decoded.row0, decoded.col0) == (rows[0], cols[0])
+        assert (decoded.rows, decoded.cols) == (rows[-1] - rows[0] + 1, cols[-1] - cols[0] + 1)
+        assert decoded.rows < shard.grid.tile_size  # a window, not the whole tile
+    assert shard.tile_message((0, 0)).is_whole()  # a tile query's reply gives every cell
 
 
-def test_a_tiles_windows_join_until_it_is_published():
-    """Scans fused while a tile is held back (publish_interval): its next update's window holds every cell that
-    changed since the last update (compared by numpy with a copy of the tile then), and the joined window of two
-    windows is their bounding box (by hand)."""
+def test_a_tiles_changes_join_until_it_is_published():
+    """Scans fused while a tile is held back (publish_interval): its next update gives exactly the cells whose
+    values changed since the last update (compared by numpy with a copy of the tile then), with their values now;
+    a tile whose cells kept their values is not published; and the joined window of two windows is their bounding
+    box (by hand)."""
     log = logging.getLogger("test-shard")
     shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), publish_interval=10.0), RejectCounter(log))
     shard.handle("pg/r/scan", _scan(0).encode())
@@ -882,13 +893,16 @@ def test_a_tiles_windows_join_until_it_is_published():
     assert held == [] and next_due == 10.0
     updates, _ = shard.due_updates(now=10.0)
     (update,) = [u for u in updates if (u.tx, u.ty) == (0, 0)]
+    now = shard.grid.tile_arrays((0, 0))
     changed = np.zeros(published[0].shape, bool)
-    for now, before in zip(shard.grid.tile_arrays((0, 0)), published):
-        changed |= now != before
-    inside = np.zeros_like(changed)
-    rows, cols = update.logodds.shape
-    inside[update.row0 : update.row0 + rows, update.col0 : update.col0 + cols] = True
-    assert changed.any() and not (changed & ~inside).any()
+    for layer, before in zip(now, published):
+        changed |= layer != before
+    sent = _given_cells(update)
+    assert changed.any() and (sent == changed).all()
+    for layer, values in zip(now, (update.logodds, update.variance, update.observed)):
+        np.testing.assert_array_equal(values, layer[sent])
+    shard._changed((0, 0), (0, 0, 8, 8))  # a window whose cells kept their values
+    assert shard.due_updates(now=20.0)[0] == []
     shard._changed((5, 5), (2, 3, 4, 5))
     shard._changed((5, 5), (10, 1, 2, 2))
     assert shard._dirty[(5, 5)] == (2, 1, 10, 7)  # rows 2..11, columns 1..7

@@ -240,9 +240,20 @@ def test_scans_without_a_transform_or_with_nan_geometry_are_counted_not_taken():
     assert [stream for stream, _ in ingest.ready()] == [keys.PRIOR, keys.SCAN, keys.ODOM]
 
 
-def _tile(tx: int, ty: int, row0: int = 0, col0: int = 0, size: int = 4, shape=(4, 4), seed: int = 0) -> TileUpdate:
+def _tile(
+    tx: int, ty: int, row0: int = 0, col0: int = 0, size: int = 4, shape=(4, 4), seed: int = 0, given=None
+) -> TileUpdate:
+    """A tile update of random values over a window of ``shape`` at (row0, col0), giving the cells ``given``
+    marks (default every one)."""
     rng = np.random.default_rng(seed)
-    return TileUpdate(
+    layers = (
+        rng.normal(0, 2, shape).astype(np.float32),
+        rng.uniform(0, 2, shape).astype(np.float32),
+        rng.uniform(size=shape) < 0.8,
+    )
+    return TileUpdate.of_window(
+        layers,
+        given,
         map="main",
         shard=0,
         z=0,
@@ -255,9 +266,6 @@ def _tile(tx: int, ty: int, row0: int = 0, col0: int = 0, size: int = 4, shape=(
         robot="r1",
         seq=0,
         published=0.0,
-        logodds=rng.normal(0, 2, shape).astype(np.float32),
-        variance=rng.uniform(0, 2, shape).astype(np.float32),
-        observed=rng.uniform(size=shape) < 0.8,
     )
 
 
@@ -268,15 +276,25 @@ def test_the_map_mirror_places_updates_in_the_grid_last_published():
     raster = mirror.raster()
     assert raster is not None and raster.occupancy.shape == (8, 8) and raster.origin == (-2.0, 0.0)
     tile = _tile(0, 0, seed=2)
-    expected = np.rint(100 / (1 + np.exp(-tile.logodds.astype(np.float64)))).astype(np.int8)
+    logodds, spread, observed = (layer.copy() for layer in tile.whole_layers())
     patch = mirror.apply(_tile(0, 0, row0=1, col0=2, shape=(2, 2), seed=3))
     assert patch is not None and (patch.x, patch.y) == (4 + 2, 0 + 1)  # tile (0, 0): column 4, row 0
     mirror.apply(tile)
+    # an update that gives two cells of its 2 x 3 window: the others keep the whole tile's values
+    given = np.array([[True, False, False], [False, False, True]])
+    part = _tile(0, 0, row0=2, col0=1, shape=(2, 3), seed=4, given=given)
+    window = _tile(0, 0, row0=2, col0=1, shape=(2, 3), seed=4)  # (the same values, every cell given)
+    patch = mirror.apply(part)
+    for layer, values in zip((logodds, spread, observed), (window.logodds, window.variance, window.observed)):
+        layer[2:4, 1:4][given] = values.reshape(2, 3)[given]
+    expected = np.rint(100 / (1 + np.exp(-logodds.astype(np.float64)))).astype(np.int8)
+    assert patch is not None and (patch.x, patch.y) == (4 + 1, 0 + 2)
+    np.testing.assert_array_equal(patch.values, np.where(observed, expected, -1)[2:4, 1:4])
     raster = mirror.raster()
     values = raster.occupancy[0:4, 4:8]
-    np.testing.assert_array_equal(values, np.where(tile.observed, expected, -1))
-    variance = np.rint(np.clip(100 * tile.variance.astype(np.float64) / 2.0, 0, 100)).astype(np.int8)
-    np.testing.assert_array_equal(raster.variance[0:4, 4:8], np.where(tile.observed, variance, -1))
+    np.testing.assert_array_equal(values, np.where(observed, expected, -1))
+    variance = np.rint(np.clip(100 * spread.astype(np.float64) / 2.0, 0, 100)).astype(np.int8)
+    np.testing.assert_array_equal(raster.variance[0:4, 4:8], np.where(observed, variance, -1))
     assert (raster.occupancy[4:8, 4:8] == -1).all()  # tile (0, 1) was never seen
     assert mirror.apply(_tile(1, 0)) is None and mirror.grown  # beyond the grid: the next whole grid takes it
     assert "resolution" not in mirror.check(tile) and mirror.check(_tile(0, 0, size=8, shape=(8, 8)))

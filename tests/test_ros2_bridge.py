@@ -138,13 +138,21 @@ def test_a_played_bag_reaches_posegrid_as_the_bag_readers_messages(tmp_path, pro
         )
 
 
+LAYERS = ("logodds", "variance", "observed")
+
+
 def _tiles(stamp_seq: int) -> list[TileUpdate]:
     """Four whole 256-cell tiles around the origin: a 512 x 512 grid, 262 kB, larger than Zenoh's 64 kB batch."""
     rng = np.random.default_rng(9)
     tiles = []
     for tx, ty in ((-1, -1), (0, -1), (-1, 0), (0, 0)):
         tiles.append(
-            TileUpdate(
+            TileUpdate.of_window(
+                (
+                    rng.normal(0, 3, (256, 256)).astype(np.float32),
+                    rng.uniform(0, 1.5, (256, 256)).astype(np.float32),
+                    rng.uniform(size=(256, 256)) < 0.7,
+                ),
                 map="main",
                 shard=0,
                 z=0,
@@ -157,9 +165,6 @@ def _tiles(stamp_seq: int) -> list[TileUpdate]:
                 robot="r1",
                 seq=stamp_seq,
                 published=time.time(),
-                logodds=rng.normal(0, 3, (256, 256)).astype(np.float32),
-                variance=rng.uniform(0, 1.5, (256, 256)).astype(np.float32),
-                observed=rng.uniform(size=(256, 256)) < 0.7,
             )
         )
     return tiles
@@ -171,11 +176,12 @@ def _expected_grid(tiles: list[TileUpdate], layer: str) -> np.ndarray:
     for tile in tiles:
         rows = slice((tile.ty + 1) * 256, (tile.ty + 2) * 256)
         cols = slice((tile.tx + 1) * 256, (tile.tx + 2) * 256)
+        logodds, variance, observed = tile.whole_layers()
         if layer == "occupancy":
-            values = np.rint(100.0 / (1.0 + np.exp(-tile.logodds.astype(np.float64))))
+            values = np.rint(100.0 / (1.0 + np.exp(-logodds.astype(np.float64))))
         else:
-            values = np.rint(np.clip(100.0 * tile.variance.astype(np.float64), 0, 100))
-        grid[rows, cols] = np.where(tile.observed, values, -1)
+            values = np.rint(np.clip(100.0 * variance.astype(np.float64), 0, 100))
+        grid[rows, cols] = np.where(observed, values, -1)
     return grid.astype(np.int8).ravel()
 
 
@@ -246,15 +252,13 @@ def test_the_map_and_poses_go_out_as_ros_messages_cell_for_cell(tmp_path, procs,
         and abs(first.source_timestamp / 1e9 - time.time()) < 600
     )
 
-    window = TileUpdate(
+    window = TileUpdate.of_window(
+        (np.full((3, 5), 4.0, np.float32), np.zeros((3, 5), np.float32), np.ones((3, 5), bool)),
         **{
-            **vars(tiles[3]),
+            **{k: v for k, v in vars(tiles[3]).items() if k not in ("rows", "cols", "given", *LAYERS)},
             "row0": 10,
             "col0": 20,
-            "logodds": np.full((3, 5), 4.0, np.float32),
-            "variance": np.zeros((3, 5), np.float32),
-            "observed": np.ones((3, 5), bool),
-        }
+        },
     )
     session.put("pg/map/main/tile/0/0/0", window.encode(), congestion_control=BLOCK)
     update_type = rt.MessageType(rt.GRID_UPDATE)

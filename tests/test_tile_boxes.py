@@ -74,3 +74,39 @@ def test_every_changed_cell_lies_in_its_tiles_window(particles, parts):
             inside = np.zeros_like(changed)
             inside[row0 : row0 + rows, col0 : col0 + cols] = True
             assert not (changed & ~inside).any(), key
+
+
+@pytest.mark.parametrize("tile_size", (4, 256))
+@pytest.mark.parametrize(("kind", "parts"), (("samples", 1), ("samples", 3), ("one pose", 1)))
+@pytest.mark.parametrize("shard", (None, 0))
+def test_a_grid_that_tracks_changes_marks_exactly_the_changed_cells(particles, tile_size, kind, parts, shard):
+    """Scan after scan (mapping.grid's track_changes, as a shard's grid): the cells take_changes gives are exactly
+    those whose log-odds, variance or observed changed since it was last called (by numpy, against copies), and
+    the map is bit for bit that of a grid that does not track them. Tiles of 4 cells take the one-sample pass's
+    cell-by-cell apply, larger ones its block apply."""
+    owner = None if shard is None else owns_tile(shard, 2)
+    tracked, plain = TiledGrid(RES, tile_size, track_changes=True), TiledGrid(RES, tile_size)
+    fusions = [MonteCarloFusion(grid, MODEL, *particles.single_geometry(), owner) for grid in (tracked, plain)]
+    scratches = [FusionScratch() for _ in range(parts)]
+    unchanged_but_updated = 0  # cells a scan updated that kept their values: marking every updated cell fails
+    for t, scan in enumerate(scans_of(particles, kind)):
+        before = {key: [layer.copy() for layer in tracked.tile_arrays(key)] for key in tracked.keys()}  # noqa: SIM118
+        ready = fusions[0].prepare(scan)
+        result = fusions[0].apply_parts([fusions[0].walk(ready, scratches[p], p, parts) for p in range(parts)])
+        fusions[1].fuse(*scan)
+        changed_cells = 0
+        assert tracked.keys() == plain.keys()
+        for key in tracked.keys():  # noqa: SIM118 - a TiledGrid, not a dict
+            now = tracked.tile_arrays(key)
+            old = before.get(key, [np.zeros_like(layer) for layer in now])
+            changed = np.zeros(now[0].shape, bool)
+            for a, b in zip(now, old):
+                changed |= a != b
+            taken = tracked.take_changes(key, (0, 0, tile_size, tile_size))
+            assert (taken == changed).all(), (t, key)
+            changed_cells += int(changed.sum())
+            for a, b in zip(now, plain.tile_arrays(key)):
+                np.testing.assert_array_equal(a, b)
+        unchanged_but_updated += result.cells_updated - changed_cells
+    assert unchanged_but_updated > 0
+    assert not tracked.changed.any()  # (taken, so cleared)

@@ -267,7 +267,7 @@ class MapperLink:
             problem = self._tile_problem(key, update)
             if not problem and update.map != map_name:
                 problem = f"a tile of map {update.map!r} answered a query about map {map_name!r}"
-            if not problem and (update.row0, update.col0, update.logodds.shape) != (0, 0, (update.tile_size,) * 2):
+            if not problem and not update.is_whole():
                 problem = "a tile query was answered with a partial window"
             if problem:
                 self.rejects.count(key, "key", problem)

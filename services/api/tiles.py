@@ -139,7 +139,7 @@ class TileService:
 
     # ---------------------------------------------------------------------------- level 0
     def _store(self, name: str, tile: TileKey, version: int, update: TileUpdate) -> tuple[TileLayers, TileFacts]:
-        layers = (update.logodds, update.variance, update.observed)
+        layers = update.whole_layers()
         entry = (layers, tile_facts(tile, layers))
         self._layers.put((name, 0, *tile), version, entry, _nbytes(layers))
         return entry
@@ -163,7 +163,7 @@ class TileService:
                 if self.registry.version(name, 0, *tile) != known:
                     continue  # an update arrived meanwhile; it is at least as new as this reply
                 cached = self._layers.get((name, 0, *tile), known) if known else None
-                if cached is not None and _same(cached[0], (update.logodds, update.variance, update.observed)):
+                if cached is not None and _same(cached[0], update.whole_layers()):
                     continue
                 version = self.registry.tile_changed(name, tile, update.resolution, update.tile_size)
                 self._store(name, tile, version, update)

@@ -71,12 +71,9 @@ class MapMirror:
         if self.grid is None:
             self.grid = TiledGrid(tile.resolution, tile.tile_size)
         key = (tile.tx, tile.ty)
-        slot = self.grid.slot(key)
-        rows = slice(tile.row0, tile.row0 + tile.logodds.shape[0])
-        cols = slice(tile.col0, tile.col0 + tile.logodds.shape[1])
-        self.grid.logodds[slot, rows, cols] = tile.logodds
-        self.grid.variance[slot, rows, cols] = tile.variance
-        self.grid.observed[slot, rows, cols] = tile.observed
+        self.grid.slot(key)  # (created, all unknown, when new)
+        layers = self.grid.tile_arrays(key)
+        tile.paste(*layers)
         self.dirty = True
         extent = self.published
         if extent is None or not (extent[0] <= tile.tx <= extent[2] and extent[1] <= tile.ty <= extent[3]):
@@ -85,7 +82,8 @@ class MapMirror:
         size = self.grid.tile_size
         x = (tile.tx - extent[0]) * size + tile.col0
         y = (tile.ty - extent[1]) * size + tile.row0
-        return Patch(x, y, occupancy_values(tile.logodds, tile.observed))
+        region = (slice(tile.row0, tile.row0 + tile.rows), slice(tile.col0, tile.col0 + tile.cols))
+        return Patch(x, y, occupancy_values(layers[0][region], layers[2][region]))
 
     def extent(self) -> Extent | None:
         """The bounding box of the tiles held, None when none is."""

@@ -121,7 +121,7 @@ class MapShard:
         keys.POSE) with seqs first..last that the processes which published them still hold (services.nodes.mapper
         asks pg/<robot>/history/**); the join takes them for messages lost in transit."""
         self.config = config
-        self.grid = TiledGrid(config.model.resolution, config.tile_size)
+        self.grid = TiledGrid(config.model.resolution, config.tile_size, track_changes=True)
         self.owns = owns_tile(config.shard, config.shards)
         self.rejects = rejects
         self.sampling = PoseSampling(
@@ -627,14 +627,19 @@ class MapShard:
     def tiles(self) -> list[TileKey]:
         return self.grid.keys()
 
-    def tile_message(self, tile: TileKey, window: tuple[int, int, int, int] | None = None) -> TileUpdate:
-        """The tile's current values over ``window`` (row0, col0, rows, cols), default the whole tile."""
+    def tile_message(
+        self, tile: TileKey, window: tuple[int, int, int, int] | None = None, given: np.ndarray | None = None
+    ) -> TileUpdate:
+        """The tile's current values over ``window`` (row0, col0, rows, cols), default the whole tile: the cells
+        ``given`` marks (bool (rows, cols)), default every one."""
         size = self.grid.tile_size
         row0, col0, rows, cols = window or (0, 0, size, size)
-        logodds, variance, observed = self.grid.tile_arrays(tile)
         region = (slice(row0, row0 + rows), slice(col0, col0 + cols))
+        logodds, variance, observed = self.grid.tile_arrays(tile)
         robot, seq = self._last_scan[tile]
-        return TileUpdate(
+        return TileUpdate.of_window(
+            (logodds[region], variance[region], observed[region]),
+            given,
             map=self.config.map_name,
             shard=self.config.shard,
             z=0,
@@ -647,18 +652,16 @@ class MapShard:
             robot=robot,
             seq=seq,
             published=time.time(),
-            logodds=logodds[region].copy(),
-            variance=variance[region].copy(),
-            observed=observed[region].copy(),
         )
 
     def due_updates(self, now: float, flush: bool = False) -> tuple[list[TileUpdate], float | None]:
         """Updates for the changed tiles whose last update is at least publish_interval old (all with ``flush``).
 
-        Each covers the window of the tile that holds every cell changed since the tile was last published (the
-        fusions' windows of the cells they updated, mapping.tile_boxes, joined; a whole tile set from a store or a
-        seed). Returns the updates and the monotonic time the next held-back tile falls due (None when none is held
-        back)."""
+        Each gives the cells of the tile whose values changed since it was last published (mapping.grid's changed
+        cells, looked for in the fusions' windows of the cells they updated, mapping.tile_boxes, joined; every cell
+        of a tile set whole from a store or a seed), in the smallest window that holds them; a tile none of whose
+        cells changed is not published. Returns the updates and the monotonic time the next held-back tile falls
+        due (None when none is held back)."""
         updates, next_due = [], None
         for tile, window in list(self._dirty.items()):
             due = self._last_sent.get(tile, -np.inf) + self.config.publish_interval
@@ -666,7 +669,18 @@ class MapShard:
                 next_due = due if next_due is None else min(next_due, due)
                 continue
             del self._dirty[tile]
-            updates.append(self.tile_message(tile, window))
+            given = self.grid.take_changes(tile, window)
+            rows, cols = np.flatnonzero(given.any(axis=1)), np.flatnonzero(given.any(axis=0))
+            if rows.size == 0:
+                continue  # (every cell the fusions updated kept its values: clamped, with no spread)
+            region = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+            tight = (
+                window[0] + int(rows[0]),
+                window[1] + int(cols[0]),
+                int(rows[-1] - rows[0] + 1),
+                int(cols[-1] - cols[0] + 1),
+            )
+            updates.append(self.tile_message(tile, tight, given[region]))
             self._last_sent[tile] = now
         self.tile_updates += len(updates)
         return updates, next_due
