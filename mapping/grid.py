@@ -10,7 +10,7 @@ Per cell the grid keeps
   (E_w[y^2] - E_w[y]^2): how much pose uncertainty blurred the cell,
 - ``observed`` (bool): whether any scan touched it,
 - and in a grid made with ``track_changes`` (a mapper shard's), ``changed`` (bool): whether the fusion has changed
-  any of the cell's values since :meth:`TiledGrid.take_changes` last cleared it, so that a tile update gives only
+  any of the cell's values since :meth:`TiledGrid.take_changes` last took it, so that a tile update gives only
   those cells (schemas.messages.TileUpdate).
 
 Tiles live in stacked arrays (slot, T, T) that grow by doubling, so compiled kernels can write
@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from mapping.errors import InputError
+from mapping.tile_changes import ChangedCells, take_changed_cells
 
 TILE_SIZE = 256
 #: the most cells a raster of the whole map may span before it is cropped (9 bytes a cell while it is built, so
@@ -99,17 +100,16 @@ class TiledGrid:
         if self.track_changes:
             self.changed[slot] = True
 
-    def take_changes(self, key: TileKey, window: tuple[int, int, int, int]) -> np.ndarray:
-        """The cells of tile ``key`` whose values changed since the last call that took them, over ``window``
-        (row0, col0, rows, cols; tile-local cells), as a (rows, cols) bool array, and cleared there. Only in a grid
-        made with ``track_changes``."""
+    def take_changes(self, key: TileKey, window: tuple[int, int, int, int]) -> ChangedCells | None:
+        """The cells of tile ``key`` whose values changed since the last call that took them, looked for in
+        ``window`` (row0, col0, rows, cols; tile-local cells), and their marks there cleared
+        (:func:`mapping.tile_changes.take_changed_cells`); None when none changed. Only in a grid made with
+        ``track_changes``."""
         if not self.track_changes:
             raise ValueError("this grid does not track changes: make it with track_changes=True")
-        row0, col0, rows, cols = window
-        region = self.changed[self._slot_of[key], row0 : row0 + rows, col0 : col0 + cols]
-        taken = region.copy()
-        region[...] = False
-        return taken
+        slot = self._slot_of[key]
+        layers = (self.logodds[slot], self.variance[slot], self.observed[slot], self.changed[slot])
+        return take_changed_cells(layers, window)
 
     def tile_origin(self, key: TileKey) -> tuple[float, float]:
         """Map-frame (x, y) in m of the lower-left corner of tile ``key``."""

@@ -13,7 +13,7 @@ they belong to, and mappers join scans and poses by (robot, seq).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TypeVar, overload
+from typing import Any, TypeVar, overload
 
 import numpy as np
 
@@ -291,24 +291,27 @@ class TileUpdate(Message):
     observed: np.ndarray = spec(Array("whether any beam has touched the given cell", "|b1", ("N",), values="any"))
 
     @classmethod
+    def of_cells(
+        cls, given: np.ndarray, values: tuple[np.ndarray, np.ndarray, np.ndarray], **fields: Any
+    ) -> TileUpdate:
+        """The update that gives the window cells ``given`` marks (bool (rows, cols)), with ``values`` their
+        (log-odds, variance, observed), each (n,) in the window's row-major order; ``fields``: the others but rows,
+        cols and given."""
+        rows, cols = given.shape
+        logodds, variance, observed = values
+        packed = np.packbits(given, axis=None, bitorder="little")
+        return cls(rows=rows, cols=cols, given=packed, logodds=logodds, variance=variance, observed=observed, **fields)
+
+    @classmethod
     def of_window(
-        cls, layers: tuple[np.ndarray, np.ndarray, np.ndarray], given: np.ndarray | None = None, **fields
+        cls, layers: tuple[np.ndarray, np.ndarray, np.ndarray], given: np.ndarray | None = None, **fields: Any
     ) -> TileUpdate:
         """The update of a window's (rows, cols) layers (log-odds, variance, observed) that gives the cells
-        ``given`` marks (bool (rows, cols); default every cell); ``fields``: the others but rows and cols."""
-        logodds, variance, observed = layers
-        rows, cols = np.shape(logodds)
+        ``given`` marks (bool (rows, cols); default every cell); ``fields``: the others but rows, cols and given."""
         if given is None:
-            given = np.ones((rows, cols), np.bool_)
-        return cls(
-            rows=rows,
-            cols=cols,
-            given=np.packbits(given, axis=None, bitorder="little"),
-            logodds=np.asarray(logodds)[given],
-            variance=np.asarray(variance)[given],
-            observed=np.asarray(observed)[given],
-            **fields,
-        )
+            given = np.ones(np.shape(layers[0]), np.bool_)
+        logodds, variance, observed = (np.asarray(layer)[given] for layer in layers)
+        return cls.of_cells(given, (logodds, variance, observed), **fields)
 
     def given_mask(self) -> np.ndarray:
         """The window cells this update gives, bool (rows, cols)."""

@@ -12,6 +12,7 @@ from bench.scenarios import honest_posed_scans, office_run
 from mapping.fusion import FusionScratch, MonteCarloFusion
 from mapping.grid import TiledGrid
 from mapping.sensor_model import SensorModel
+from mapping.tile_changes import take_changed_cells
 from services.state.ownership import owns_tile
 from test_threads import particle_scans
 
@@ -81,8 +82,9 @@ def test_every_changed_cell_lies_in_its_tiles_window(particles, parts):
 @pytest.mark.parametrize("shard", (None, 0))
 def test_a_grid_that_tracks_changes_marks_exactly_the_changed_cells(particles, tile_size, kind, parts, shard):
     """Scan after scan (mapping.grid's track_changes, as a shard's grid): the cells take_changes gives are exactly
-    those whose log-odds, variance or observed changed since it was last called (by numpy, against copies), and
-    the map is bit for bit that of a grid that does not track them. Tiles of 4 cells take the one-sample pass's
+    those whose log-odds, variance or observed changed since it was last called (by numpy, against copies), with
+    their values, in the smallest window that holds them, and the map is bit for bit that of a grid that does not
+    track them. Tiles of 4 cells take the one-sample pass's
     cell-by-cell apply, larger ones its block apply."""
     owner = None if shard is None else owns_tile(shard, 2)
     tracked, plain = TiledGrid(RES, tile_size, track_changes=True), TiledGrid(RES, tile_size)
@@ -102,7 +104,14 @@ def test_a_grid_that_tracks_changes_marks_exactly_the_changed_cells(particles, t
             changed = np.zeros(now[0].shape, bool)
             for a, b in zip(now, old):
                 changed |= a != b
-            taken = tracked.take_changes(key, (0, 0, tile_size, tile_size))
+            cells = tracked.take_changes(key, (0, 0, tile_size, tile_size))
+            taken = np.zeros_like(changed)
+            if cells is not None:
+                row0, col0, rows, cols = cells.window
+                taken[row0 : row0 + rows, col0 : col0 + cols] = cells.given
+                assert cells.given[[0, -1], :].any(axis=1).all() and cells.given[:, [0, -1]].any(axis=0).all()
+                for layer, values in zip(now, cells[2:]):
+                    np.testing.assert_array_equal(values, layer[taken])
             assert (taken == changed).all(), (t, key)
             changed_cells += int(changed.sum())
             for a, b in zip(now, plain.tile_arrays(key)):
@@ -110,3 +119,18 @@ def test_a_grid_that_tracks_changes_marks_exactly_the_changed_cells(particles, t
         unchanged_but_updated += result.cells_updated - changed_cells
     assert unchanged_but_updated > 0
     assert not tracked.changed.any()  # (taken, so cleared)
+
+
+def test_taking_a_tiles_changed_cells_by_hand():
+    """Two marks in a 4 x 4 tile, looked for in its lower 3 x 4 window: the 2 x 2 window that holds them, which of its
+    cells they are, their values in row-major order; the marks cleared, a mark outside the window left."""
+    logodds = np.arange(16, dtype=np.float32).reshape(4, 4)
+    variance, observed, changed = logodds / 2, logodds > 4, np.zeros((4, 4), bool)
+    changed[1, 2] = changed[2, 1] = changed[0, 0] = True
+    cells = take_changed_cells((logodds, variance, observed, changed), (1, 0, 3, 4))
+    assert cells is not None and cells.window == (1, 1, 2, 2)
+    assert cells.given.tolist() == [[False, True], [True, False]]
+    assert cells.logodds.tolist() == [6.0, 9.0] and cells.variance.tolist() == [3.0, 4.5]
+    assert cells.observed.tolist() == [True, True]
+    assert np.flatnonzero(changed).tolist() == [0]
+    assert take_changed_cells((logodds, variance, observed, changed), (1, 0, 3, 4)) is None

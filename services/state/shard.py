@@ -15,6 +15,7 @@ import time
 from collections import Counter, OrderedDict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -92,14 +93,17 @@ def message_bytes(message: object) -> int:
 
 
 def warm_fusion(model: SensorModel, tile_size: int, threads: FusionThreads | None = None) -> None:
-    """Fuse a three-beam scan at two poses into a scratch grid of ``tile_size``-cell tiles with ``model``, so that the
-    fusion's compiled kernels are loaded, or compiled and cached where they are not yet (mapping.jit). The scratch
+    """Fuse a three-beam scan at two poses into a scratch grid of ``tile_size``-cell tiles with ``model`` and take its
+    changed cells, so that the fusion's and the tile updates' compiled kernels are loaded, or compiled and cached where
+    they are not yet (mapping.jit). The scratch
     fusion owns every tile, so every kernel runs (a shard owning none of these tiles would skip the last one). With
     ``threads`` of more than one thread, the scan again at 16 poses, alone on them: in parts (its adding up)."""
-    scratch = TiledGrid(model.resolution, tile_size)
+    scratch = TiledGrid(model.resolution, tile_size, track_changes=True)
     angles, ranges = np.array([-0.5, 0.0, 0.5]), np.array([1.0, np.inf, 2.0])
     fusion = MonteCarloFusion(scratch, model, angles, 0.1, 5.0)
     fusion.fuse(ranges, np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0]]), np.array([0.5, 0.5]))
+    for key in scratch.keys():  # noqa: SIM118 - a TiledGrid, not a dict (the kernels that take a tile's cells)
+        scratch.take_changes(key, (0, 0, tile_size, tile_size))
     if threads is not None and threads.count > 1:
         poses = np.column_stack([np.linspace(0.0, 0.15, 16), np.zeros(16), np.zeros(16)])
         MonteCarloFusion(scratch, model, angles, 0.1, 5.0, threads=threads).fuse_many(
@@ -627,25 +631,20 @@ class MapShard:
     def tiles(self) -> list[TileKey]:
         return self.grid.keys()
 
-    def tile_message(
-        self, tile: TileKey, window: tuple[int, int, int, int] | None = None, given: np.ndarray | None = None
-    ) -> TileUpdate:
-        """The tile's current values over ``window`` (row0, col0, rows, cols), default the whole tile: the cells
-        ``given`` marks (bool (rows, cols)), default every one."""
-        size = self.grid.tile_size
-        row0, col0, rows, cols = window or (0, 0, size, size)
-        region = (slice(row0, row0 + rows), slice(col0, col0 + cols))
-        logodds, variance, observed = self.grid.tile_arrays(tile)
+    def tile_message(self, tile: TileKey) -> TileUpdate:
+        """The whole tile's current values: every cell given (a tile query's reply)."""
+        return TileUpdate.of_window(self.grid.tile_arrays(tile), None, **self._update_fields(tile, 0, 0))
+
+    def _update_fields(self, tile: TileKey, row0: int, col0: int) -> dict[str, Any]:
+        """A TileUpdate's fields but its window's size and cells: its tile, map, shard, window origin and last scan."""
         robot, seq = self._last_scan[tile]
-        return TileUpdate.of_window(
-            (logodds[region], variance[region], observed[region]),
-            given,
+        return dict(
             map=self.config.map_name,
             shard=self.config.shard,
             z=0,
             tx=tile[0],
             ty=tile[1],
-            tile_size=size,
+            tile_size=self.grid.tile_size,
             resolution=self.grid.resolution,
             row0=row0,
             col0=col0,
@@ -669,18 +668,11 @@ class MapShard:
                 next_due = due if next_due is None else min(next_due, due)
                 continue
             del self._dirty[tile]
-            given = self.grid.take_changes(tile, window)
-            rows, cols = np.flatnonzero(given.any(axis=1)), np.flatnonzero(given.any(axis=0))
-            if rows.size == 0:
+            cells = self.grid.take_changes(tile, window)
+            if cells is None:
                 continue  # (every cell the fusions updated kept its values: clamped, with no spread)
-            region = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
-            tight = (
-                window[0] + int(rows[0]),
-                window[1] + int(cols[0]),
-                int(rows[-1] - rows[0] + 1),
-                int(cols[-1] - cols[0] + 1),
-            )
-            updates.append(self.tile_message(tile, tight, given[region]))
+            fields = self._update_fields(tile, cells.window[0], cells.window[1])
+            updates.append(TileUpdate.of_cells(cells.given, (cells.logodds, cells.variance, cells.observed), **fields))
             self._last_sent[tile] = now
         self.tile_updates += len(updates)
         return updates, next_due

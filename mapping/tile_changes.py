@@ -1,0 +1,92 @@
+"""The cells of a tile that a grid tracking its changes marks changed (mapping.grid, ``track_changes``), taken: the
+smallest window that holds them, which of its cells they are and their values, with the marks cleared. What a mapper
+shard publishes of a tile (services.state.shard, schemas.messages.TileUpdate), in two compiled passes over the window
+the fusions reported (one to bound the marks, one to gather them). They take about as long as numpy's bounding box,
+masks and gathers did (2.5 against 2.9 ms a warehouse scan's 22 tiles): the time goes to reading the tiles' layers,
+past a core's L2.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from mapping.jit import kernel
+
+
+class ChangedCells(NamedTuple):
+    """A tile's changed cells: ``window`` (row0, col0, rows, cols; tile-local cells) the smallest that holds them,
+    ``given`` (bool (rows, cols)) which of its cells they are, and their log-odds, variance and observed (each
+    (n,), the window's row-major order)."""
+
+    window: tuple[int, int, int, int]
+    given: np.ndarray
+    logodds: np.ndarray
+    variance: np.ndarray
+    observed: np.ndarray
+
+
+def take_changed_cells(
+    layers: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray], window: tuple[int, int, int, int]
+) -> ChangedCells | None:
+    """The cells marked in ``changed`` inside ``window`` (row0, col0, rows, cols) of one tile's layers = (logodds,
+    variance, observed, changed), each (T, T), with their marks there cleared; None when none is marked."""
+    logodds, variance, observed, changed = layers
+    row0, col0, rows, cols = window
+    r0, c0, r1, c1, count = _marked_box(changed, row0, col0, rows, cols)
+    if count == 0:
+        return None
+    box = (row0 + r0, col0 + c0, r1 - r0 + 1, c1 - c0 + 1)
+    given = np.zeros(box[2:], np.bool_)
+    values = (np.empty(count, np.float32), np.empty(count, np.float32), np.empty(count, np.bool_))
+    _gather_marked((logodds, variance, observed, changed), box[0], box[1], given, values)
+    return ChangedCells((int(box[0]), int(box[1]), int(box[2]), int(box[3])), given, *values)
+
+
+@kernel(nogil=True, error_model="numpy")
+def _marked_box(changed, row0, col0, rows, cols):  # pragma: no cover - compiled
+    """(r0, c0, r1, c1, count): the first and last window row and column (inclusive, relative to (row0, col0)) that
+    hold a mark of ``changed`` (T, T) in the window of rows x cols cells at (row0, col0), and the marks' count. A row's
+    marks are counted without branches; its first and last mark are looked for only outside the columns already
+    found to hold one."""
+    r0, c0, r1, c1, count = rows, cols, -1, -1, 0
+    for r in range(rows):
+        here = 0
+        for c in range(cols):
+            here += changed[row0 + r, col0 + c]
+        if here == 0:
+            continue
+        r0 = min(r0, r)
+        r1 = r
+        count += here
+        c = 0
+        while c < c0 and not changed[row0 + r, col0 + c]:
+            c += 1
+        c0 = min(c0, c)
+        c = cols - 1
+        while c > c1 and not changed[row0 + r, col0 + c]:
+            c -= 1
+        c1 = max(c1, c)
+    return r0, c0, r1, c1, count
+
+
+@kernel(nogil=True, error_model="numpy")
+def _gather_marked(layers, row0, col0, given, values):  # pragma: no cover - compiled
+    """Copy the layers' values of the cells marked in the window at (row0, col0) the shape of ``given`` into
+    ``values`` (in the window's row-major order), set their bits of ``given`` and clear their marks; layers =
+    (logodds, variance, observed, changed), each (T, T); values = (logodds, variance, observed) out, one entry a
+    marked cell. Reads the values of the marked cells only: the layers of a warehouse scan's windows are 5.4 MB,
+    past a core's L2, and a variant without branches that read every cell's was slower."""
+    logodds, variance, observed, changed = layers
+    out_logodds, out_variance, out_observed = values
+    k = 0
+    for r in range(given.shape[0]):
+        for c in range(given.shape[1]):
+            if changed[row0 + r, col0 + c]:
+                changed[row0 + r, col0 + c] = False
+                given[r, c] = True
+                out_logodds[k] = logodds[row0 + r, col0 + c]
+                out_variance[k] = variance[row0 + r, col0 + c]
+                out_observed[k] = observed[row0 + r, col0 + c]
+                k += 1
