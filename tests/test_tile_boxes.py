@@ -31,6 +31,22 @@ def observed_box(observed: np.ndarray) -> tuple[int, int, int, int]:
     return int(rows[0]), int(cols[0]), int(rows[-1] - rows[0] + 1), int(cols[-1] - cols[0] + 1)
 
 
+def layers_now(grid: TiledGrid) -> dict:
+    """A copy of every tile's layers, by tile."""
+    return {key: [layer.copy() for layer in grid.tile_arrays(key)] for key in grid.keys()}  # noqa: SIM118 - a TiledGrid
+
+
+def changed_since(grid: TiledGrid, before: dict, key) -> np.ndarray:
+    """The cells of tile ``key`` whose log-odds, variance or observed differ from ``before`` (:func:`layers_now`; a
+    tile new since then against zeros), bool (T, T)."""
+    now = grid.tile_arrays(key)
+    old = before.get(key, [np.zeros_like(layer) for layer in now])
+    changed = np.zeros(now[0].shape, bool)
+    for a, b in zip(now, old):
+        changed |= a != b
+    return changed
+
+
 def scans_of(posed, kind):
     scans = particle_scans(posed)
     if kind == "one pose":
@@ -59,16 +75,12 @@ def test_every_changed_cell_lies_in_its_tiles_window(particles, parts):
     fusion = MonteCarloFusion(grid, MODEL, *particles.single_geometry())
     scratches = [FusionScratch() for _ in range(parts)]
     for scan in particle_scans(particles):
-        before = {key: [layer.copy() for layer in grid.tile_arrays(key)] for key in grid.keys()}  # noqa: SIM118 - a TiledGrid, not a dict
+        before = layers_now(grid)
         ready = fusion.prepare(scan)
         result = fusion.apply_parts([fusion.walk(ready, scratches[p], p, parts) for p in range(parts)])
         windows = dict(zip(result.tiles_changed, result.windows))
         for key in grid.keys():  # noqa: SIM118 - a TiledGrid, not a dict
-            now = grid.tile_arrays(key)
-            old = before.get(key, [np.zeros_like(layer) for layer in now])
-            changed = np.zeros(now[0].shape, bool)
-            for a, b in zip(now, old):
-                changed |= a != b
+            changed = changed_since(grid, before, key)
             if not changed.any():
                 continue
             row0, col0, rows, cols = windows[key]
@@ -92,7 +104,7 @@ def test_a_grid_that_tracks_changes_marks_exactly_the_changed_cells(particles, t
     scratches = [FusionScratch() for _ in range(parts)]
     unchanged_but_updated = 0  # cells a scan updated that kept their values: marking every updated cell fails
     for t, scan in enumerate(scans_of(particles, kind)):
-        before = {key: [layer.copy() for layer in tracked.tile_arrays(key)] for key in tracked.keys()}  # noqa: SIM118
+        before = layers_now(tracked)
         ready = fusions[0].prepare(scan)
         result = fusions[0].apply_parts([fusions[0].walk(ready, scratches[p], p, parts) for p in range(parts)])
         fusions[1].fuse(*scan)
@@ -100,10 +112,7 @@ def test_a_grid_that_tracks_changes_marks_exactly_the_changed_cells(particles, t
         assert tracked.keys() == plain.keys()
         for key in tracked.keys():  # noqa: SIM118 - a TiledGrid, not a dict
             now = tracked.tile_arrays(key)
-            old = before.get(key, [np.zeros_like(layer) for layer in now])
-            changed = np.zeros(now[0].shape, bool)
-            for a, b in zip(now, old):
-                changed |= a != b
+            changed = changed_since(tracked, before, key)
             cells = tracked.take_changes(key, (0, 0, tile_size, tile_size))
             taken = np.zeros_like(changed)
             if cells is not None:
