@@ -33,6 +33,9 @@ MAX_POSE_SAMPLES = 10_000
 
 #: the largest seq: exact as a JSON number (JavaScript clients read /health's counts as doubles) and in float64
 MAX_SEQ = 2**53 - 1
+#: the most cells a tile's side may have: a tile's three layers of 4096 x 4096 cells take 151 MB, and a receiver
+#: makes a grid of the tile size a peer's update names (a forged size of 2**20 cells asked a bridge for 16 TiB)
+MAX_TILE_SIZE = 4096
 
 ROBOT = Name("robot name, one key chunk", forbidden=RESERVED_ROBOT_NAMES)
 SEQ = Int("index of the scan this message belongs to, 0, 1, 2 ... per robot", minimum=0, maximum=MAX_SEQ)
@@ -91,6 +94,8 @@ def _one_pose_at_most(v, fail):
 
 def _window(v, fail):
     rows, cols, size = v["rows"], v["cols"], v["tile_size"]
+    if size & (size - 1):
+        fail("range", f"'tile_size' = {size} is not a power of two")
     if v["row0"] + rows > size or v["col0"] + cols > size:
         fail("range", f"window at ({v['row0']}, {v['col0']}) of shape ({rows}, {cols}) exceeds the {size}x{size} tile")
 
@@ -251,7 +256,7 @@ class TileUpdate(Message):
     TYPE = "TileUpdate"
     VERSION = 2  # 2: the window's cells given, not every one
     RULES = (
-        Rule("range", "row0 + rows <= tile_size and col0 + cols <= tile_size", _window),
+        Rule("range", "tile_size a power of two; row0 + rows <= tile_size and col0 + cols <= tile_size", _window),
         Rule(
             "shape",
             "given has ceil(rows * cols / 8) bytes, no bit set past the window's last cell, and as many set as N",
@@ -264,7 +269,7 @@ class TileUpdate(Message):
     z: int = spec(Int("zoom level; 0 is the full-resolution grid", minimum=0))
     tx: int = spec(Int("tile column index"))
     ty: int = spec(Int("tile row index"))
-    tile_size: int = spec(Int("cells per tile side", minimum=1))
+    tile_size: int = spec(Int("cells per tile side, a power of two", minimum=1, maximum=MAX_TILE_SIZE))
     resolution: float = spec(Float("cell side, m", exclusive_minimum=0.0))
     row0: int = spec(Int("first window row inside the tile", minimum=0))
     col0: int = spec(Int("first window column inside the tile", minimum=0))

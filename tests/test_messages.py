@@ -20,6 +20,7 @@ from schemas.jsonschema import render_schemas
 from schemas.messages import (
     MAX_POSE_SAMPLES,
     MAX_SEQ,
+    MAX_TILE_SIZE,
     MESSAGE_TYPES,
     POSE_LIMIT,
     LandmarkObservations,
@@ -117,7 +118,7 @@ def landmarks(draw):
 
 @st.composite
 def tile_updates(draw):
-    size = draw(st.integers(1, 32))
+    size = 2 ** draw(st.integers(0, 5))
     h, w = draw(st.integers(1, size)), draw(st.integers(1, size))
     layers = (
         draw(hnp.arrays(np.float32, (h, w), elements=st.floats(-20, 20, width=32))),
@@ -631,6 +632,8 @@ def stats(**overrides):
     [
         tile(resolution=0.0),  # exclusive minimum
         tile(col0=3),  # a 2-wide window from column 3 leaves a 4-wide tile
+        tile(tile_size=3),  # tiles are a power of two cells wide
+        tile(tile_size=2 * MAX_TILE_SIZE),  # a receiver makes a grid of the size an update names
         stats(shard=2, shards=2),  # shard indices are 0 .. shards - 1
         stats(fused={"r": -1}),  # counts are >= 0
     ],

@@ -10,6 +10,7 @@ import argparse
 import sys
 from typing import TYPE_CHECKING
 
+from schemas.messages import MAX_TILE_SIZE
 from services.commands.api import add_http_arguments, api_child_options, check_port_free
 from services.commands.argtypes import (
     checked_output,
@@ -101,8 +102,8 @@ def _add_mapper(subparsers: argparse._SubParsersAction) -> None:
         "--tile-size",
         type=int,
         default=256,
-        help="cells per tile side, a power of 2 (default 256); smaller tiles mean more, smaller tile updates and do "
-        "not divide a scan's work among shards (docs/architecture.md, Sharding)",
+        help=f"cells per tile side, a power of 2 up to {MAX_TILE_SIZE} (default 256); smaller tiles mean more, "
+        "smaller tile updates and do not divide a scan's work among shards (docs/architecture.md, Sharding)",
     )
     shard.add_argument(
         "--publish-interval",
@@ -539,8 +540,8 @@ def run_mapper(args: argparse.Namespace) -> int:
 
     if args.shards < 1 or not 0 <= args.shard < args.shards:
         raise UsageError(f"need --shards >= 1 and 0 <= --shard < --shards, got shard {args.shard} of {args.shards}")
-    if args.tile_size < 1 or args.tile_size & (args.tile_size - 1):
-        raise UsageError(f"--tile-size must be a power of 2, got {args.tile_size}")
+    if args.tile_size < 1 or args.tile_size & (args.tile_size - 1) or args.tile_size > MAX_TILE_SIZE:
+        raise UsageError(f"--tile-size must be a power of 2 up to {MAX_TILE_SIZE}, got {args.tile_size}")
     if args.publish_interval < 0:
         raise UsageError(f"--publish-interval must be >= 0 s, got {args.publish_interval}")
     if args.join_buffer < 1 or args.intake_buffer < 1:

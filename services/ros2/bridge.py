@@ -213,12 +213,17 @@ class Bridge:
     def _handle(self, kind: str, item: Any, size: int) -> None:
         with self.lock:
             self.queued_bytes -= size
-        if kind == "ros":
-            self._take_ros(item)
-        elif kind == "tile":
-            self._take_tile(*item)
-        else:
-            self._take_pose(*item)
+        try:
+            if kind == "ros":
+                self._take_ros(item)
+            elif kind == "tile":
+                self._take_tile(*item)
+            else:
+                self._take_pose(*item)
+        except Exception as exc:  # (one message the checks let through and that still fails must not stop the bridge)
+            key = item.topic if kind == "ros" else item[0]
+            self.log.error("a message on %s could not be taken; the bridge goes on", key, exc_info=exc)
+            self.rejects.count(key, "error", f"{type(exc).__name__}: {exc}")
 
     def _take_ros(self, received: Received) -> None:
         topic = received.topic
