@@ -22,6 +22,7 @@ import queue
 import threading
 import time
 from collections import Counter, OrderedDict, deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -213,15 +214,19 @@ class Bridge:
     def _handle(self, kind: str, item: Any, size: int) -> None:
         with self.lock:
             self.queued_bytes -= size
+        if kind == "ros":
+            self._guarded(item.topic, self._take_ros, item)
+        elif kind == "tile":
+            self._guarded(item[0], self._take_tile, *item)
+        else:
+            self._guarded(item[0], self._take_pose, *item)
+
+    def _guarded(self, key: str, take: Callable[..., object], *args: Any) -> None:
+        """``take(*args)`` for a message on ``key``; an exception it raises (a message the checks let through that
+        still fails) is logged with its traceback and counted (``error``), and the bridge goes on."""
         try:
-            if kind == "ros":
-                self._take_ros(item)
-            elif kind == "tile":
-                self._take_tile(*item)
-            else:
-                self._take_pose(*item)
-        except Exception as exc:  # (one message the checks let through and that still fails must not stop the bridge)
-            key = item.topic if kind == "ros" else item[0]
+            take(*args)
+        except Exception as exc:
             self.log.error("a message on %s could not be taken; the bridge goes on", key, exc_info=exc)
             self.rejects.count(key, "error", f"{type(exc).__name__}: {exc}")
 
@@ -429,7 +434,7 @@ class Bridge:
         """The map's tiles so far, from the shards' tile queries (services.map_client)."""
         for tile in MapReader(self.session, self.options.map_name).tiles(timeout=CATCH_UP_TIMEOUT):
             if not self.mirror.check(tile):
-                self.mirror.apply(tile)
+                self._guarded(keys.tile_key(tile.map, tile.z, tile.tx, tile.ty), self.mirror.apply, tile)
 
     def run(self, stop: threading.Event) -> int:
         """Bridge until ``stop`` is set; returns the exit code (0)."""
