@@ -33,9 +33,16 @@ MAX_POSE_SAMPLES = 10_000
 
 #: the largest seq: exact as a JSON number (JavaScript clients read /health's counts as doubles) and in float64
 MAX_SEQ = 2**53 - 1
-#: the most cells a tile's side may have: a tile's three layers of 4096 x 4096 cells take 151 MB, and a receiver
-#: makes a grid of the tile size a peer's update names (a forged size of 2**20 cells asked a bridge for 16 TiB)
-MAX_TILE_SIZE = 4096
+#: the geometry a map's tiles may have on the wire, where a receiver makes a grid of what a peer's update names (a
+#: forged tile of 2**20 cells asked the ROS 2 bridge for 16 TiB, one at tx = 2**63 + 1 turned its tile indices into
+#: floats, cells of 1e300 m overflowed its OccupancyGrid): a tile side of at most 1024 cells (its three layers 9.4 MB),
+#: tile indices within +-2**40 (cell indices of tiles of 1024 cells stay exact in float64), cells of 1 mm to 1 km
+MAX_TILE_SIZE = 1024
+MAX_TILE_INDEX = 2**40
+CELL_SIZE_RANGE = (1e-3, 1e3)
+#: the most mapper shards a map may have (a shard's stats name the count, and a tile's owner is found by hashing
+#: the tile with every shard's index)
+MAX_SHARDS = 1024
 
 ROBOT = Name("robot name, one key chunk", forbidden=RESERVED_ROBOT_NAMES)
 SEQ = Int("index of the scan this message belongs to, 0, 1, 2 ... per robot", minimum=0, maximum=MAX_SEQ)
@@ -265,12 +272,12 @@ class TileUpdate(Message):
     )
 
     map: str = spec(Name("map name, one key chunk"))
-    shard: int = spec(Int("index of the shard that owns the tile", minimum=0))
+    shard: int = spec(Int("index of the shard that owns the tile", minimum=0, maximum=MAX_SHARDS - 1))
     z: int = spec(Int("zoom level; 0 is the full-resolution grid", minimum=0))
-    tx: int = spec(Int("tile column index"))
-    ty: int = spec(Int("tile row index"))
+    tx: int = spec(Int("tile column index", minimum=-MAX_TILE_INDEX, maximum=MAX_TILE_INDEX))
+    ty: int = spec(Int("tile row index", minimum=-MAX_TILE_INDEX, maximum=MAX_TILE_INDEX))
     tile_size: int = spec(Int("cells per tile side, a power of two", minimum=1, maximum=MAX_TILE_SIZE))
-    resolution: float = spec(Float("cell side, m", exclusive_minimum=0.0))
+    resolution: float = spec(Float("cell side, m", minimum=CELL_SIZE_RANGE[0], maximum=CELL_SIZE_RANGE[1]))
     row0: int = spec(Int("first window row inside the tile", minimum=0))
     col0: int = spec(Int("first window column inside the tile", minimum=0))
     rows: int = spec(Int("window rows", minimum=1))
@@ -356,7 +363,7 @@ class ShardStats(Message):
 
     map: str = spec(Name("map name"))
     shard: int = spec(Int("this shard's index", minimum=0))
-    shards: int = spec(Int("number of shards the tiles are split among", minimum=1))
+    shards: int = spec(Int("number of shards the tiles are split among", minimum=1, maximum=MAX_SHARDS))
     tiles_owned: int = spec(Int("tiles this shard holds", minimum=0))
     cells_updated: int = spec(Int("cell updates fused so far (a cell counts once per scan)", minimum=0))
     tile_updates: int = spec(Int("tile updates published", minimum=0))

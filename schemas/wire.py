@@ -108,10 +108,12 @@ class Int(Spec):
 
 @dataclass(frozen=True)
 class Float(Spec):
-    """A finite float, optionally bounded below (``minimum``, or ``exclusive_minimum`` for > bound)."""
+    """A finite float, optionally bounded below (``minimum``, or ``exclusive_minimum`` for > bound) and above
+    (``maximum``)."""
 
     minimum: float | None = None
     exclusive_minimum: float | None = None
+    maximum: float | None = None
 
     def to_wire(self, value):
         return float(value)
@@ -126,6 +128,8 @@ class Float(Spec):
             ctx.fail("range", f"'{name}' = {value} is below its minimum {self.minimum}")
         if self.exclusive_minimum is not None and value <= self.exclusive_minimum:
             ctx.fail("range", f"'{name}' = {value} must be greater than {self.exclusive_minimum}")
+        if self.maximum is not None and value > self.maximum:
+            ctx.fail("range", f"'{name}' = {value} is above its maximum {self.maximum}")
         return value
 
     def json_schema(self):
@@ -133,6 +137,7 @@ class Float(Spec):
             {"type": "number", "description": self.doc + " (finite)"},
             minimum=self.minimum,
             exclusiveMinimum=self.exclusive_minimum,
+            maximum=self.maximum,
         )
 
 

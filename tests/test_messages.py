@@ -18,8 +18,11 @@ from conftest import ROOT
 from schemas.errors import FormatError
 from schemas.jsonschema import render_schemas
 from schemas.messages import (
+    CELL_SIZE_RANGE,
     MAX_POSE_SAMPLES,
     MAX_SEQ,
+    MAX_SHARDS,
+    MAX_TILE_INDEX,
     MAX_TILE_SIZE,
     MESSAGE_TYPES,
     POSE_LIMIT,
@@ -634,6 +637,11 @@ def stats(**overrides):
         tile(col0=3),  # a 2-wide window from column 3 leaves a 4-wide tile
         tile(tile_size=3),  # tiles are a power of two cells wide
         tile(tile_size=2 * MAX_TILE_SIZE),  # a receiver makes a grid of the size an update names
+        tile(tx=MAX_TILE_INDEX + 1),  # tile indices that stay exact as cells in float64
+        tile(ty=-MAX_TILE_INDEX - 1),
+        tile(resolution=CELL_SIZE_RANGE[1] * 2),  # cells of 1 mm to 1 km
+        tile(resolution=CELL_SIZE_RANGE[0] / 2),
+        stats(shards=MAX_SHARDS + 1),  # every shard's index is hashed with each tile
         stats(shard=2, shards=2),  # shard indices are 0 .. shards - 1
         stats(fused={"r": -1}),  # counts are >= 0
     ],

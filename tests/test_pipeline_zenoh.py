@@ -146,7 +146,10 @@ def test_a_router_port_in_use_names_the_option_to_change():
     [
         (["mapper", "--shard", "2", "--shards", "2"], "--shard"),
         (["mapper", "--shard", "0", "--shards", "1", "--tile-size", "100"], "power of 2"),
-        (["mapper", "--shard", "0", "--shards", "1", "--tile-size", "8192"], "up to 4096"),
+        (["mapper", "--shard", "0", "--shards", "1", "--tile-size", "2048"], "up to 1024"),
+        (["mapper", "--shard", "0", "--shards", "5000"], "--shards <= 1024"),
+        (["mapper", "--shard", "0", "--shards", "1", "--resolution", "0.0001"], "0.001 .. 1000 m"),
+        (["run", "--posed", "x.npz", "--shards", "5000"], "--shards must be 1 .. 1024"),
         (["mapper", "--shard", "0", "--shards", "1", "--map", "a/b"], "--map"),
         (["source", "--posed", "x.npz", "--rate", "fast"], "rate"),
         (["source", "--posed", "x.npz", "--robot", "map"], "--robot"),

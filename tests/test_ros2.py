@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mapping.grid import MAX_RASTER_CELLS
 from schemas.messages import PoseGaussian, PoseSamples, TileUpdate
 from services import keys
 from services.process import RejectCounter
@@ -298,6 +299,9 @@ def test_the_map_mirror_places_updates_in_the_grid_last_published():
     assert (raster.occupancy[4:8, 4:8] == -1).all()  # tile (0, 1) was never seen
     assert mirror.apply(_tile(1, 0)) is None and mirror.grown  # beyond the grid: the next whole grid takes it
     assert "resolution" not in mirror.check(tile) and mirror.check(_tile(0, 0, size=8, shape=(8, 8)))
+    # a tile so far off that the grid could not be published whole is refused, and the grid goes on
+    far = MAX_RASTER_CELLS // 16  # tiles of 4 x 4 cells: the grid would span far + 2 tiles across, 4 down
+    assert "more than" in mirror.check(_tile(far, 0)) and mirror.raster() is not None
 
 
 @pytest.mark.parametrize(

@@ -322,9 +322,9 @@ def test_garbage_on_every_subscribed_key_is_counted_and_the_bridge_goes_on(tmp_p
     nan_scan, lost_scan, good_scan = (scan_type.encode(item[3]) for item in builder.items[:3])
     garbage += [(scan_key, nan_scan, attachment), (scan_key, lost_scan, attachment), (scan_key, good_scan, None)]
     garbage += [("pg/map/main/tile/0/0/0", b"\xc1", None), ("pg/r1/pose", b"not msgpack", None)]
-    forged = msgpack.unpackb(_tiles(0)[0].encode())  # a well-formed tile of a size no grid could hold, and one of 3
-    for size in (2**20, 3):
-        payload = msgpack.packb({**forged, "tile_size": size}, use_bin_type=True)
+    forged = msgpack.unpackb(_tiles(0)[0].encode())  # well-formed tiles of sizes and places no grid could hold
+    for change in ({"tile_size": 2**20}, {"tile_size": 3}, {"tx": 2**63 + 1}, {"resolution": 1e300}):
+        payload = msgpack.packb({**forged, **change}, use_bin_type=True)
         garbage.append(("pg/map/main/tile/0/0/0", payload, None))
     # a put before the router has learnt the bridge's subscriptions is lost (a loaded machine): wait for a match
     keys = {_key("odom", rt.ODOMETRY)} | {key for key, _, _ in garbage if not key.startswith("pg/")}
@@ -340,7 +340,7 @@ def test_garbage_on_every_subscribed_key_is_counted_and_the_bridge_goes_on(tmp_p
     )
     for key, payload, attached in garbage:
         put(session, key, payload, attachment=attached)
-    expected_kinds = {"cdr": 4, "type": 1, "attachment": 1, "geometry": 1, "transform": 1, "malformed": 2, "range": 2}
+    expected_kinds = {"cdr": 4, "type": 1, "attachment": 1, "geometry": 1, "transform": 1, "malformed": 2, "range": 4}
     stats = wait_until(
         lambda: (s := bridge_stats(session))["rejected_kinds"] == expected_kinds and s, what="every garbage counted"
     )
@@ -349,7 +349,7 @@ def test_garbage_on_every_subscribed_key_is_counted_and_the_bridge_goes_on(tmp_p
         f"{NAMESPACE}/odom": 1,
         f"{NAMESPACE}/tf": 1,
         f"{NAMESPACE}/tf_static": 1,
-        "pg/map/main/tile/0/0/0": 3,
+        "pg/map/main/tile/0/0/0": 5,
         "pg/r1/pose": 1,
     }
     assert bridge.process.poll() is None and stats["scans"] == 0

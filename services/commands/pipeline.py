@@ -10,7 +10,7 @@ import argparse
 import sys
 from typing import TYPE_CHECKING
 
-from schemas.messages import MAX_TILE_SIZE
+from schemas.messages import CELL_SIZE_RANGE, MAX_SHARDS, MAX_TILE_SIZE
 from services.commands.api import add_http_arguments, api_child_options, check_port_free
 from services.commands.argtypes import (
     checked_output,
@@ -438,6 +438,15 @@ def _rate(text: str) -> float | None:
         raise UsageError(str(exc)) from None
 
 
+def _check_cell_size(resolution: float) -> None:
+    """A map's cells must be CELL_SIZE_RANGE m, as its tile updates carry them (schemas.messages.TileUpdate)."""
+    from services.errors import UsageError
+
+    low, high = CELL_SIZE_RANGE
+    if not low <= resolution <= high:
+        raise UsageError(f"--resolution must be {low:g} .. {high:g} m for a map served over Zenoh, got {resolution}")
+
+
 def _check_name(value: str, option: str) -> None:
     from schemas.messages import RESERVED_ROBOT_NAMES
     from schemas.wire import is_valid_name
@@ -538,8 +547,11 @@ def run_mapper(args: argparse.Namespace) -> int:
     `posegrid fuse`."""
     from services.errors import UsageError
 
-    if args.shards < 1 or not 0 <= args.shard < args.shards:
-        raise UsageError(f"need --shards >= 1 and 0 <= --shard < --shards, got shard {args.shard} of {args.shards}")
+    if not 1 <= args.shards <= MAX_SHARDS or not 0 <= args.shard < args.shards:
+        raise UsageError(
+            f"need 1 <= --shards <= {MAX_SHARDS} and 0 <= --shard < --shards, got shard {args.shard} of {args.shards}"
+        )
+    _check_cell_size(args.resolution)
     if args.tile_size < 1 or args.tile_size & (args.tile_size - 1) or args.tile_size > MAX_TILE_SIZE:
         raise UsageError(f"--tile-size must be a power of 2 up to {MAX_TILE_SIZE}, got {args.tile_size}")
     if args.publish_interval < 0:
@@ -626,8 +638,9 @@ def run_pipeline(args: argparse.Namespace) -> int:
 
     _check_name(args.robot, "--robot")
     _check_name(args.map, "--map")
-    if args.shards < 1:
-        raise UsageError(f"--shards must be >= 1, got {args.shards}")
+    if not 1 <= args.shards <= MAX_SHARDS:
+        raise UsageError(f"--shards must be 1 .. {MAX_SHARDS}, got {args.shards}")
+    _check_cell_size(args.resolution)
     if args.router_port is not None and not 0 < args.router_port < 65536:
         raise UsageError(f"--router-port must be a TCP port, got {args.router_port}")
     _check_positive(args, "accuracy", "resolution")

@@ -153,6 +153,7 @@ class Bridge:
         self.node: RosNode | None = None
         self.ros_types: dict[str, rt.MessageType] = {}  # fully qualified topic -> the type read on it
         self.lock = threading.Lock()  # guards the counters the stats query reads
+        self._failed: set[str] = set()  # the keys whose failures were logged with a traceback
 
     # ------------------------------------------------------------------------------- callbacks (zenoh threads)
     def _offer(self, kind: str, item: Any, size: int, label: str) -> None:
@@ -223,11 +224,13 @@ class Bridge:
 
     def _guarded(self, key: str, take: Callable[..., object], *args: Any) -> None:
         """``take(*args)`` for a message on ``key``; an exception it raises (a message the checks let through that
-        still fails) is logged with its traceback and counted (``error``), and the bridge goes on."""
+        still fails) is counted (``error``; the first per key logged with its traceback), and the bridge goes on."""
         try:
             take(*args)
         except Exception as exc:
-            self.log.error("a message on %s could not be taken; the bridge goes on", key, exc_info=exc)
+            if key not in self._failed:
+                self._failed.add(key)
+                self.log.error("a message on %s could not be taken; the bridge goes on", key, exc_info=exc)
             self.rejects.count(key, "error", f"{type(exc).__name__}: {exc}")
 
     def _take_ros(self, received: Received) -> None:
@@ -341,8 +344,12 @@ class Bridge:
         now = time.monotonic()
         if not self.mirror.dirty or now - self.last_map < self.options.map_period:
             return
-        raster = self.mirror.raster()
         self.last_map = now
+        self._guarded(keys.tile_key(self.options.map_name, 0, "*", "*"), self._publish_map)
+
+    def _publish_map(self) -> None:
+        """The whole grid on map and map_variance, when the mirror can make it."""
+        raster = self.mirror.raster()
         if raster is None:
             return
         frame, stamp = self.options.frame, self.latest_stamp

@@ -53,16 +53,27 @@ class MapMirror:
         self.grown = False  # holds a tile beyond the grid last published
 
     def check(self, tile: TileUpdate) -> str:
-        """Why ``tile`` cannot be taken, or "": a zoom level other than 0, or a resolution or tile size other than
-        the first tile's (two maps under one name)."""
+        """Why ``tile`` cannot be taken, or "": a zoom level other than 0, a resolution or tile size other than
+        the first tile's (two maps under one name), or a new tile that would take the grid past MAX_RASTER_CELLS
+        cells (the whole grid could no longer be published, and the tiles held are bounded)."""
         if tile.z != 0:
             return f"zoom level {tile.z}; only level 0 is mirrored"
         grid = self.grid
-        if grid is not None and (tile.resolution, tile.tile_size) != (grid.resolution, grid.tile_size):
+        if grid is None:
+            return ""
+        if (tile.resolution, tile.tile_size) != (grid.resolution, grid.tile_size):
             return (
                 f"a tile of {tile.tile_size} cells at {tile.resolution} m, but the map's are "
                 f"{grid.tile_size} cells at {grid.resolution} m"
             )
+        extent = self.extent()
+        if extent is not None and (tile.tx, tile.ty) not in grid:
+            grown = (min(extent[0], tile.tx), min(extent[1], tile.ty), max(extent[2], tile.tx), max(extent[3], tile.ty))
+            if self.cells(grown) > MAX_RASTER_CELLS:
+                return (
+                    f"tile ({tile.tx}, {tile.ty}) would take the grid to {self.cells(grown)} cells, more than the "
+                    f"{MAX_RASTER_CELLS} one grid may hold"
+                )
         return ""
 
     def apply(self, tile: TileUpdate) -> Patch | None:
