@@ -82,5 +82,10 @@ class MapReader:
         for tile in tiles:
             if not tile.is_whole() or tile.tile_size != grid.tile_size:
                 raise IncompleteMap(f"tile ({tile.tx}, {tile.ty}) arrived as a partial window")
+            if (tile.z, tile.resolution) != (0, resolution):
+                raise IncompleteMap(
+                    f"tile ({tile.tx}, {tile.ty}) is of zoom level {tile.z} at {tile.resolution} m, not 0 at "
+                    f"{resolution} m"
+                )
             grid.set_tile((tile.tx, tile.ty), *tile.whole_layers())
         return grid

@@ -1,0 +1,76 @@
+"""services.map_client.MapReader.assemble against a shard the test plays: a real router process and two Zenoh
+sessions, the shard's stats and tile queryables answered from here. Every tile must be a whole level-0 tile of the
+map's cell size, not only the first."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import zenoh
+
+from schemas.messages import TileUpdate
+from services import keys
+from services.map_client import IncompleteMap, MapReader
+from services.nodes.launcher import free_port
+from services.zenoh_config import build_config
+from test_messages import stats
+from test_pipeline import CLI, procs  # noqa: F401 - procs is a fixture
+
+pytestmark = pytest.mark.slow
+
+
+def _tile(tx: int, **changes) -> TileUpdate:
+    """A whole 4-cell tile of map "m" at 0.05 m, its log-odds tx + the cell's index; ``changes``: other fields."""
+    layers = (np.arange(16, dtype=np.float32).reshape(4, 4) + tx, np.zeros((4, 4), np.float32), np.ones((4, 4), bool))
+    fields = dict(map="m", shard=0, z=0, tx=tx, ty=0, tile_size=4, resolution=0.05, row0=0, col0=0, robot="r")
+    return TileUpdate.of_window(layers, None, **{**fields, "seq": 0, "published": 0.0, **changes})
+
+
+@pytest.fixture
+def sessions(procs):  # noqa: F811
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
+    shard, reader = (zenoh.open(build_config("client", connect=[endpoint])) for _ in range(2))
+    yield shard, reader
+    reader.close()
+    shard.close()
+
+
+def _serve(session: zenoh.Session, tiles: list[TileUpdate]) -> list:
+    """Answer map "m"'s stats query as its one shard holding ``tiles``, and its tile query with them."""
+    shard_stats = stats(map="m", shard=0, shards=1, tiles_owned=len(tiles))
+
+    def on_stats(query: zenoh.Query) -> None:
+        query.reply(keys.stats_key("m", 0), shard_stats.encode())
+
+    def on_tiles(query: zenoh.Query) -> None:
+        for tile in tiles:
+            query.reply(keys.tile_key("m", 0, tile.tx, tile.ty), tile.encode())
+
+    return [
+        session.declare_queryable(keys.stats_key("m", 0), on_stats),
+        session.declare_queryable(keys.tile_key("m", 0, "*", "*"), on_tiles),
+    ]
+
+
+@pytest.mark.parametrize(
+    ("second", "refused"),
+    [
+        ({}, None),
+        ({"resolution": 0.1}, "at 0.1 m, not 0 at 0.05 m"),  # a tile of another cell size than the first's
+        ({"z": 3}, "zoom level 3"),
+    ],
+)
+def test_every_tile_of_an_assembled_map_has_the_maps_geometry(sessions, second, refused):
+    shard, reader_session = sessions
+    served = _serve(shard, [_tile(0), _tile(1, **second)])
+    reader = MapReader(reader_session, "m")
+    if refused is None:
+        grid = reader.assemble(1, 0.05, timeout=10.0)
+        assert sorted(grid.keys()) == [(0, 0), (1, 0)]
+        assert grid.tile_arrays((1, 0))[0][3, 3] == 15 + 1
+    else:
+        with pytest.raises(IncompleteMap, match=refused):
+            reader.assemble(1, 0.05, timeout=10.0)
+    for entity in served:
+        entity.undeclare()
