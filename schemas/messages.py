@@ -121,6 +121,11 @@ def _given_cells(v, fail):
     count = int(_BITS_SET[given].sum(dtype=np.int64))
     if count != v["logodds"].shape[0]:
         fail("shape", f"'given' marks {count} cells but the layers hold {v['logodds'].shape[0]} values")
+    observed = v["observed"]
+    if observed.shape[0] != -(-count // 8):
+        fail("shape", f"'observed' has {observed.shape[0]} bytes; {count} given cells need {-(-count // 8)}")
+    if count % 8 and observed[-1] >> (count % 8):
+        fail("range", "'observed' sets bits past the last given cell")
 
 
 def _shard_index(v, fail):
@@ -261,12 +266,13 @@ class TileUpdate(Message):
     """
 
     TYPE = "TileUpdate"
-    VERSION = 2  # 2: the window's cells given, not every one
+    VERSION = 2  # 2: the window's cells given, not every one; observed as bits
     RULES = (
         Rule("range", "tile_size a power of two; row0 + rows <= tile_size and col0 + cols <= tile_size", _window),
         Rule(
             "shape",
-            "given has ceil(rows * cols / 8) bytes, no bit set past the window's last cell, and as many set as N",
+            "given has ceil(rows * cols / 8) bytes, no bit set past the window's last cell, and as many set as N; "
+            "observed has ceil(N / 8) bytes, no bit set past the last given cell",
             _given_cells,
         ),
     )
@@ -300,7 +306,14 @@ class TileUpdate(Message):
             "spread of the per-sample log-odds that pose uncertainty adds, per given cell", "<f4", ("N",), minimum=0.0
         )
     )
-    observed: np.ndarray = spec(Array("whether any beam has touched the given cell", "|b1", ("N",), values="any"))
+    observed: np.ndarray = spec(
+        Array(
+            "whether any beam has touched the given cell: bit j (byte j // 8, bit j % 8) for the j-th given cell",
+            "|u1",
+            ("O",),
+            values="bits",
+        )
+    )
 
     @classmethod
     def of_cells(
@@ -311,8 +324,8 @@ class TileUpdate(Message):
         cols and given."""
         rows, cols = given.shape
         logodds, variance, observed = values
-        packed = np.packbits(given, axis=None, bitorder="little")
-        return cls(rows=rows, cols=cols, given=packed, logodds=logodds, variance=variance, observed=observed, **fields)
+        packed, seen = (np.packbits(bits, axis=None, bitorder="little") for bits in (given, observed))
+        return cls(rows=rows, cols=cols, given=packed, logodds=logodds, variance=variance, observed=seen, **fields)
 
     @classmethod
     def of_window(
@@ -330,10 +343,15 @@ class TileUpdate(Message):
         bits = np.unpackbits(self.given, count=self.rows * self.cols, bitorder="little")
         return bits.reshape(self.rows, self.cols).view(np.bool_)
 
+    def given_observed(self) -> np.ndarray:
+        """Whether each given cell is observed, bool (N,) in the window's row-major order."""
+        bits = np.unpackbits(self.observed, count=self.logodds.shape[0], bitorder="little")
+        return bits.view(np.bool_)
+
     def is_whole(self) -> bool:
         """Whether this update gives every cell of its tile (as a tile query's reply does)."""
         return (self.row0, self.col0, self.rows, self.cols) == (0, 0, self.tile_size, self.tile_size) and bool(
-            self.observed.shape[0] == self.rows * self.cols
+            self.logodds.shape[0] == self.rows * self.cols
         )
 
     def paste(self, logodds: np.ndarray, variance: np.ndarray, observed: np.ndarray) -> None:
@@ -342,7 +360,7 @@ class TileUpdate(Message):
         given = self.given_mask()
         logodds[region][given] = self.logodds
         variance[region][given] = self.variance
-        observed[region][given] = self.observed
+        observed[region][given] = self.given_observed()
 
     def whole_layers(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The tile's (log-odds, variance, observed), each (tile_size, tile_size), of an update that gives every
@@ -350,7 +368,7 @@ class TileUpdate(Message):
         if not self.is_whole():
             raise ValueError(f"the update of tile ({self.tx}, {self.ty}) does not give every cell of it")
         shape = (self.tile_size, self.tile_size)
-        return self.logodds.reshape(shape), self.variance.reshape(shape), self.observed.reshape(shape)
+        return self.logodds.reshape(shape), self.variance.reshape(shape), self.given_observed().reshape(shape)
 
 
 @dataclass(frozen=True, eq=False)

@@ -223,7 +223,7 @@ class Array(Spec):
     ``shape`` holds an int for a fixed length or a letter for a length that must agree across the
     message's fields (e.g. ``("M", 3)`` for samples and ``("M",)`` for their weights). ``values`` is
     "finite" (every value finite), "ranges" (finite values >= 0, NaN or +inf meaning no return, -inf a reading
-    too close to measure), "any" (booleans) or "bits" (bytes of packed bits, any value). ``minimum`` bounds the
+    too close to measure) or "bits" (bytes of packed bits, any value). ``minimum`` bounds the
     finite values from below, ``magnitude`` their absolute values.
     """
 
@@ -264,14 +264,12 @@ class Array(Spec):
             ctx.fail(
                 "size", f"'{name}' data has {len(data)} bytes, shape {shape} of {self.dtype} needs {count * itemsize}"
             )
-        if self.dtype == "|b1" and (np.frombuffer(data, np.uint8) > 1).any():
-            ctx.fail("range", f"'{name}' is boolean but holds bytes other than 0 and 1")
         array = np.frombuffer(data, np.dtype(self.dtype)).reshape(shape).copy()
         self._check_values(name, array, ctx)
         return array
 
     def _check_values(self, name: str, array: np.ndarray, ctx: _DecodeContext) -> None:
-        if self.values in ("any", "bits"):
+        if self.values == "bits":
             return
         finite = np.isfinite(array)
         if self.values == "finite" and not finite.all():
@@ -296,7 +294,6 @@ class Array(Spec):
         values = {
             "finite": "every value finite",
             "ranges": "finite values >= 0, NaN or +inf for no return, -inf for too close to measure (REP 117)",
-            "any": "0 or 1 per byte",
             "bits": "8 packed bits per byte, the least significant first",
         }[self.values]
         if self.minimum is not None:

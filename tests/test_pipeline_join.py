@@ -899,7 +899,7 @@ def test_a_tiles_changes_join_until_it_is_published():
         changed |= layer != before
     sent = _given_cells(update)
     assert changed.any() and (sent == changed).all()
-    for layer, values in zip(now, (update.logodds, update.variance, update.observed)):
+    for layer, values in zip(now, (update.logodds, update.variance, update.given_observed())):
         np.testing.assert_array_equal(values, layer[sent])
     shard._changed((0, 0), (0, 0, 8, 8))  # a window whose cells kept their values
     assert shard.due_updates(now=20.0)[0] == []

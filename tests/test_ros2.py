@@ -286,7 +286,7 @@ def test_the_map_mirror_places_updates_in_the_grid_last_published():
     part = _tile(0, 0, row0=2, col0=1, shape=(2, 3), seed=4, given=given)
     window = _tile(0, 0, row0=2, col0=1, shape=(2, 3), seed=4)  # (the same values, every cell given)
     patch = mirror.apply(part)
-    for layer, values in zip((logodds, spread, observed), (window.logodds, window.variance, window.observed)):
+    for layer, values in zip((logodds, spread, observed), (window.logodds, window.variance, window.given_observed())):
         layer[2:4, 1:4][given] = values.reshape(2, 3)[given]
     expected = np.rint(100 / (1 + np.exp(-logodds.astype(np.float64)))).astype(np.int8)
     assert patch is not None and (patch.x, patch.y) == (4 + 1, 0 + 2)
