@@ -16,6 +16,7 @@ import subprocess
 import sys
 import time
 import urllib.request
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -201,6 +202,22 @@ def test_a_pose_beyond_the_map_bound_is_refused():
     stats = shard.stats({})
     assert stats.fused == {"r": 2} and stats.discarded == {"r": 1} and shard.rejects.kinds() == {"bound": 1}
     assert all(abs(tx) < 5 and abs(ty) < 5 for tx, ty in shard.tiles())
+
+
+def test_a_laser_offset_beyond_the_map_bound_is_refused():
+    """A probe's finding: a scan whose sensor offset put its laser 1e6 to 5e10 m from a pose at (3, 3) was fused
+    into tiles that far away, past the map bound that the pose met. The bound and the extent hold for where the
+    laser may be."""
+    shard = _shard(ShardLimits(map_bound=500.0))
+    far = replace(_scan(0), sensor_offset=np.array([1e6, 0.0, 0.0]))
+    shard.handle("pg/r/scan", far.encode())
+    shard.handle("pg/r/pose", _pose(0).encode())
+    _feed(shard, range(1, 3))
+    stats = shard.stats({})
+    assert stats.fused == {"r": 2} and stats.discarded == {"r": 1} and shard.rejects.kinds() == {"bound": 1}
+    assert all(abs(tx) < 5 and abs(ty) < 5 for tx, ty in shard.tiles())
+    near = ShardLimits(map_bound=500.0).scan_problem(np.array([[3.0, 3.0, 0.0]]), 5, 5.0, 0.05, 256, 0.3)
+    assert near is None  # a laser mounted 0.3 m off the base is no problem
 
 
 def test_reach_cells_counts_the_union_of_the_widened_sample_tiles():

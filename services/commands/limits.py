@@ -23,8 +23,8 @@ _LIMITS = (
         "map_bound",
         float,
         (
-            "m: pose samples must lie within this distance of the map origin in x "
-            "and y; a scan posed beyond is refused (default %(default)s)"
+            "m: pose samples, widened by the length of the scan's sensor offset, must lie within this distance "
+            "of the map origin in x and y; a scan posed beyond is refused (default %(default)s)"
         ),
     ),
     (

@@ -74,10 +74,18 @@ class ShardLimits:
         return 16 * self.max_beams + 2**20
 
     def scan_problem(
-        self, samples: np.ndarray, beams: int, range_max: float, resolution: float, tile_size: int
+        self,
+        samples: np.ndarray,
+        beams: int,
+        range_max: float,
+        resolution: float,
+        tile_size: int,
+        sensor_reach: float = 0.0,
     ) -> tuple[str, str] | None:
         """(kind, one sentence) when fusing a scan of ``beams`` beams to ``range_max`` m from pose ``samples``
-        (M, 3: x m, y m, yaw rad in the map frame) would pass a limit; None when it may be fused."""
+        (M, 3: x m, y m, yaw rad in the map frame) would pass a limit; None when it may be fused. ``sensor_reach``
+        (m): how far from the robot the laser lies (the length of its sensor offset's x, y), so that the bound
+        and the extent hold for the laser's positions and the cells its beams reach, not only the robot's."""
         work = samples.shape[0] * beams * math.ceil(range_max / resolution)
         if work > self.max_work:
             return "work", (
@@ -85,13 +93,13 @@ class ShardLimits:
                 f"to range_max = {work:.3g} ray cells, more than the limit {self.max_work:.3g} "
                 "(--max-work)"
             )
-        far = np.abs(samples[:, :2]).max(initial=0.0)
+        far = np.abs(samples[:, :2]).max(initial=0.0) + sensor_reach
         if not far <= self.map_bound:
             return "bound", (
-                f"a pose sample lies {far:.1f} m from the map origin, beyond the map bound "
+                f"the laser of a pose sample may lie {far:.1f} m from the map origin, beyond the map bound "
                 f"{self.map_bound:g} m (--map-bound)"
             )
-        cells = reach_cells(samples, range_max, resolution, tile_size)
+        cells = reach_cells(samples, range_max + sensor_reach, resolution, tile_size)
         if cells > self.max_scan_cells:
             return "extent", (
                 f"its samples and range reach tiles of {cells:.3g} cells, more than one scan may grow "

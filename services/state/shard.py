@@ -11,6 +11,7 @@ ShardConfig.threads threads and in join order: the same map).
 
 from __future__ import annotations
 
+import math
 import time
 from collections import Counter, OrderedDict
 from collections.abc import Callable, Iterable
@@ -465,8 +466,9 @@ class MapShard:
             self._count_outcome(scan, exc)
             return None
         cfg = self.config
+        sensor_reach = math.hypot(float(scan.sensor_offset[0]), float(scan.sensor_offset[1]))
         refused = cfg.limits.scan_problem(
-            samples, scan.ranges.shape[0], scan.range_max, cfg.model.resolution, cfg.tile_size
+            samples, scan.ranges.shape[0], scan.range_max, cfg.model.resolution, cfg.tile_size, sensor_reach
         )
         if refused is not None:
             self.discarded[scan.robot] += 1
