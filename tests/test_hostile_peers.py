@@ -193,6 +193,18 @@ def test_a_scan_past_the_work_limit_is_refused_and_counted_as_discarded():
     assert stats.fused == {"r": 2} and stats.discarded == {"r": 1} and shard.rejects.kinds() == {"work": 1}
 
 
+def test_a_wide_cloud_of_samples_costs_its_window_and_is_refused():
+    """A probe's finding: 10 000 samples spread over 190 m with one beam made 10^6 ray cells, a thousandth of the
+    work limit, yet took 3.6 s and 1 GB: the fusion folds and sweeps the samples' whole window once a sample. The
+    work counts the window's words: 10^4 x (100 + 4000^2 / 64) = 2.5 x 10^9, past the default 10^9."""
+    shard = _shard(ShardLimits())
+    spread = np.random.default_rng(3).uniform(-95.0, 95.0, (10_000, 3))
+    cloud = PoseSamples(robot="r", seq=0, stamp=0.0, samples=spread, weights=np.full(10_000, 1e-4))
+    shard.handle("pg/r/scan", _scan(0, beams=1).encode())
+    shard.handle("pg/r/pose", cloud.encode())
+    assert shard.stats({}).discarded == {"r": 1} and shard.rejects.kinds() == {"work": 1} and not shard.tiles()
+
+
 def test_a_pose_beyond_the_map_bound_is_refused():
     """Finding 3: a pose at (750 m, 750 m) made each npz export 2.96 GB."""
     shard = _shard(ShardLimits(map_bound=500.0))

@@ -14,7 +14,7 @@ _LIMITS = (
         "max_work",
         int,
         (
-            "ray cells one scan may cost, samples x beams x range_max / resolution; a "
+            "what one scan may cost, samples x (beams x range_max / resolution + its window's cells / 64); a "
             "costlier scan is refused (default %(default)s, about 1 to 2 s of one core)"
         ),
     ),

@@ -6,12 +6,14 @@ poses of thousands of samples far from anything, streams that never pair up. Eac
 counted under its kind in the shard's stats and logged once, never fused in part.
 
 - ``max_beams``: beams in one LaserScan (checked when it arrives, before it is held anywhere).
-- ``max_work``: ray cells one scan may cost, samples x beams x ceil(range_max / resolution): the most cells
-  the fusion passes may visit (one core does about 10^9 in 1 to 2 s).
-- ``map_bound``: every pose sample's x and y must lie within this many metres of the map origin; with the
-  range limit it bounds the map's extent in all.
+- ``max_work``: what one scan may cost, samples x (beams x ceil(range_max / resolution) + the words of 64 cells of
+  its window): the most cells the fusion's rays may visit, with the fold and sweep of its window once a sample
+  (:func:`window_cells`; one core does about 10^9 in 1 to 2 s).
+- ``map_bound``: every pose sample's x and y, widened by the length of the scan's sensor offset, must lie within this
+  many metres of the map origin; with the range limit it bounds the map's extent in all.
 - ``max_scan_cells``: cells (at the map's resolution) of the tiles one scan may reach at most (the tiles of its
-  samples' positions, widened by range_max): the most a single scan can grow the map.
+  samples' positions, widened by range_max and the sensor offset's length): the most a single scan can grow the
+  map.
 - ``join_bytes``: bytes of one robot's scans and poses waiting in the join buffer (with the count bound,
   ``--join-buffer``; the oldest are evicted and asked for again from the histories).
 - ``intake_bytes``: bytes of messages waiting in the intake queue between the network and the fusion thread.
@@ -86,13 +88,6 @@ class ShardLimits:
         (M, 3: x m, y m, yaw rad in the map frame) would pass a limit; None when it may be fused. ``sensor_reach``
         (m): how far from the robot the laser lies (the length of its sensor offset's x, y), so that the bound
         and the extent hold for the laser's positions and the cells its beams reach, not only the robot's."""
-        work = samples.shape[0] * beams * math.ceil(range_max / resolution)
-        if work > self.max_work:
-            return "work", (
-                f"{samples.shape[0]} samples x {beams} beams x {math.ceil(range_max / resolution)} cells "
-                f"to range_max = {work:.3g} ray cells, more than the limit {self.max_work:.3g} "
-                "(--max-work)"
-            )
         far = np.abs(samples[:, :2]).max(initial=0.0) + sensor_reach
         if not far <= self.map_bound:
             return "bound", (
@@ -105,7 +100,27 @@ class ShardLimits:
                 f"its samples and range reach tiles of {cells:.3g} cells, more than one scan may grow "
                 f"the map by ({self.max_scan_cells:.3g}, --max-scan-cells)"
             )
+        ray_cells = beams * math.ceil(range_max / resolution)
+        window_words = math.ceil(window_cells(samples, range_max + sensor_reach, resolution) / 64)
+        work = samples.shape[0] * (ray_cells + window_words)
+        if work > self.max_work:
+            return "work", (
+                f"{samples.shape[0]} samples x ({beams} beams x {math.ceil(range_max / resolution)} cells to "
+                f"range_max + {window_words:.3g} words of the scan's window) = {work:.3g}, more than the limit "
+                f"{self.max_work:.3g} (--max-work)"
+            )
         return None
+
+
+def window_cells(samples: np.ndarray, reach: float, resolution: float) -> int:
+    """The cells of the window a scan's fusion walks: the box of the samples' positions widened by ``reach`` m (the
+    range and the laser's offset) on every side. The fusion folds and sweeps its bit planes over it once a sample, a
+    word of 64 cells at a time, so a cloud of samples spread wide costs that much per sample however few its beams
+    (mapping.fusion's scratch window)."""
+    if samples.shape[0] == 0:
+        return 0
+    span = samples[:, :2].max(axis=0) - samples[:, :2].min(axis=0) + 2.0 * reach
+    return math.ceil(float(span[0]) / resolution) * math.ceil(float(span[1]) / resolution)
 
 
 def reach_cells(samples: np.ndarray, range_max: float, resolution: float, tile_size: int) -> int:
