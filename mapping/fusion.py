@@ -86,19 +86,19 @@ class FusionScratch:
     """The working memory of one scan's walk (:func:`mapping.samples_pass.accumulate_scan` or
     :func:`mapping.single_pass.accumulate_single`), grown to the largest window walked in it and reused.
 
-    Per cell of the scratch window the samples pass keeps six bits (plane and the group's other three planes,
-    listed, raised), a four-float excess record (32 bytes) and 16 bits of counts, plus a bit of the column-major
-    plane, and once it has walked a scan whose weights differ a weight sum (8 bytes):
-    SAMPLES_SCRATCH_BYTES_PER_CELL, about 43 bytes a window cell in all (35 while every scan's weights were equal,
-    as resampled particles' and Gaussian draws' are; the one-sample pass keeps 8 bytes and two bits). 11 MB for the
-    office's 12 m laser at 0.05 m (a window of about 490 x 490 cells), 63 MB for a 30 m laser, 0.71 GB at the
-    largest window a scan may take (mapping.scan_input.MAX_WINDOW_CELLS). A fusion on T > 1 threads keeps T + 1 of
-    them. When it grows, it takes SCRATCH_ROOM more cells than the window asks (up to MAX_WINDOW_CELLS): a window
-    that grows with the samples' spread, scan after scan, then seldom reallocates (each growth faults in the new
-    arrays' pages: about 15 ms a scan for a 30 m laser).
+    Per cell of the scratch window the samples pass keeps six bits (plane and the group's other three planes, listed,
+    raised), a four-float excess record (32 bytes) and 16 bits of counts, plus a bit of the column-major plane, and
+    once it has walked a scan whose weights differ a weight sum (8 bytes): SAMPLES_SCRATCH_BYTES_PER_CELL, about 43
+    bytes a window cell in all (35 while every scan's weights were equal, as resampled particles' and Gaussian draws'
+    are; the one-sample pass keeps 8 bytes and two bits). 11 MB for the office's 12 m laser at 0.05 m (a window of
+    about 490 x 490 cells), 63 MB for a 30 m laser, 0.71 GB at the largest window a scan may take
+    (mapping.scan_input.MAX_WINDOW_CELLS). A :class:`FusionThreads` of T > 1 threads keeps T + 1 of them, and any one
+    keeps one more (``lone``) for its fusions' lone scans. When it grows, it takes SCRATCH_ROOM more cells than the
+    window asks (up to MAX_WINDOW_CELLS): a window that grows with the samples' spread, scan after scan, then seldom
+    reallocates (each growth faults in the new arrays' pages: about 15 ms a scan for a 30 m laser).
 
-    Nothing in it carries from one scan to the next: each pass clears what it set, and the samples pass tells
-    the excess records of earlier scans by their stamps (unique per scratch: :meth:`stamps`)."""
+    Nothing in it carries from one scan to the next: each pass clears what it set, and the samples pass tells the
+    excess records of earlier scans by their stamps (unique per scratch: :meth:`stamps`)."""
 
     def __init__(self) -> None:
         self.clear()
@@ -250,7 +250,6 @@ class MonteCarloFusion:
         self.threads = threads if isinstance(threads, FusionThreads) else FusionThreads(threads)
         self._owned_cache: dict[tuple[int, int], bool] = {}
         self._owned_windows: dict[tuple[int, int, int, int], tuple[np.ndarray, bool, np.ndarray]] = {}
-        self._scratch = FusionScratch()  # :meth:`fuse`'s (empty until a scan is walked in it)
         # what the kernels read of the model, built once: plain tuples (mapping.beam_model.BeamTable says why)
         terms = logodds_model(model)
         self._model_terms = tuple(terms)
@@ -297,7 +296,12 @@ class MonteCarloFusion:
         ready = self.prepare((ranges, samples, weights))
         if ready is None:
             return FuseResult(0, [])
-        return self.apply(self.walk(ready, self._scratch))
+        scratch = self.threads.lone
+        try:
+            return self.apply(self.walk(ready, scratch))
+        except BaseException:
+            scratch.clear()  # (shared by the threads' fusions: none may walk into what this one left)
+            raise
 
     def fuse_iter(self, scans: Iterable[ScanInput]) -> Iterator[FuseResult | InputError]:
         """Fuse ``scans`` ((ranges, samples, weights) each, as :meth:`fuse` takes them) in order on this fusion's
@@ -544,14 +548,17 @@ class FusionThreads:
     use), the next scan's walk already waits on the pool, so no core idles during an apply.
 
     Memory: ``count + 1`` scratches of about 43 bytes a window cell each (:class:`FusionScratch`; a lone scan's parts
-    use ``count`` of them), on top of each fusion's own (for :meth:`MonteCarloFusion.fuse`); the pool's threads start
-    on the first scans fused with count > 1. Not thread-safe: one caller at a time."""
+    use ``count`` of them), and one more, :attr:`lone`, that :meth:`MonteCarloFusion.fuse` walks a scan into, shared
+    by every fusion of these threads (a fusion of each of 8 laser geometries, each with a scratch of its own grown
+    to its widest window, held 3.3 GiB after a peer's six geometries of spread samples); the pool's threads start on
+    the first scans fused with count > 1. Not thread-safe: one caller at a time."""
 
     def __init__(self, count: int = 1) -> None:
         if count < 1:
             raise InputError(f"need threads >= 1, got {count}")
         self.count = count
         self._scratches = [FusionScratch() for _ in range(count + 1)] if count > 1 else []
+        self.lone = FusionScratch()  # (MonteCarloFusion.fuse's, of whichever fusion; empty until a scan is walked)
         self._pool: ThreadPoolExecutor | None = None
 
     @property
@@ -561,7 +568,7 @@ class FusionThreads:
 
     @property
     def nbytes(self) -> int:
-        """Bytes the threads' scratches hold now (the fusions' own, for :meth:`MonteCarloFusion.fuse`, aside)."""
+        """Bytes the threads' scratches hold now (:attr:`lone` aside)."""
         return sum(scratch.nbytes for scratch in self._scratches)
 
     def fuse_iter(self, scans: Iterable[tuple[MonteCarloFusion, ScanInput]]) -> Iterator[FuseResult | InputError]:

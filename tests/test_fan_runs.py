@@ -42,7 +42,7 @@ def _assert_the_references_cells(grid: TiledGrid, args: tuple, scan: tuple) -> N
 
 def _skipped_rows(fusion: MonteCarloFusion) -> int:
     """Rows the fans marked for the rays of the last sample walked (their SKIP)."""
-    return int(fusion._scratch.fan_ints[SKIP].sum())
+    return int(fusion.threads.lone.fan_ints[SKIP].sum())
 
 
 @settings(max_examples=10, deadline=None)

@@ -54,7 +54,7 @@ def whole_and_joined(tile_size, fusion_args, scans, shards, shard_of):
         fusion = MonteCarloFusion(part, *fusion_args, owns_tile=lambda tx, ty, shard=shard: shard_of(tx, ty) == shard)
         for scan in scans:
             fusion.fuse(*scan)
-            scratch = fusion._scratch
+            scratch = fusion.threads.lone
             assert not (
                 scratch.plane.any()
                 or scratch.group_planes.any()
