@@ -68,6 +68,7 @@ from mapping.free_runs import (
 from mapping.jit import kernel
 from mapping.raytrace import dda_step
 from mapping.tile_boxes import widen_box
+from mapping.tile_changes import update_cell
 from mapping.window_walk import (
     Ray,
     Tiles,
@@ -1078,7 +1079,6 @@ def _apply_cell(cells, k, layers, at, steps, levels, counting):  # pragma: no co
     sizes of the weight and moment steps; levels: the model's (l_free, l_min, l_max); counting: (counted, in_bytes,
     count_levels) as the apply reads the counts."""
     held, raised, base, weight_sum, moments, sums = cells
-    logodds, variance, observed, changed = layers
     l_free, l_min, l_max = levels
     counted, in_bytes, count_levels = counting
     c = base + k
@@ -1098,14 +1098,4 @@ def _apply_cell(cells, k, layers, at, steps, levels, counting):  # pragma: no co
     spread = moment2 - moment1 * moment1
     if spread < 0.0:
         spread = 0.0
-    old, old_spread = logodds[at], variance[at]
-    updated = old + moment1
-    if updated < l_min:
-        updated = l_min
-    elif updated > l_max:
-        updated = l_max
-    logodds[at] = updated
-    variance[at] = old_spread + spread
-    if changed.shape[0] > 0:  # (a grid that tracks its changed cells, mapping.grid)
-        changed[at] |= (logodds[at] != old) | (variance[at] != old_spread) | (not observed[at])
-    observed[at] = True
+    update_cell(layers, at, moment1, spread, l_min, l_max)

@@ -22,6 +22,7 @@ from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros  # LLVM's
 from mapping.beam_model import BeamTable, LogOddsModel, beam_at, segment_logodds
 from mapping.jit import kernel
 from mapping.tile_boxes import widen_box
+from mapping.tile_changes import update_cell
 from mapping.window_walk import Tiles, Window, beam_ray, ownership_constants, walk_ray
 
 
@@ -261,7 +262,6 @@ def _apply_block(excess, block, bits, up, bx, by, w, tiles, slot_map, layers, le
 @kernel(nogil=True, error_model="numpy", inline="always")
 def _apply_cells(excess, block, bits, up, bx, by, w, tiles, slot_map, layers, levels):  # pragma: no cover
     """:func:`apply_single` for a block over several tiles (tiles smaller than 8 cells), cell by cell."""
-    logodds, _, observed, changed = layers
     l_free, l_min, l_max = levels
     in_tile = (1 << tiles.shift) - 1
     base = l_free * w
@@ -278,14 +278,4 @@ def _apply_cells(excess, block, bits, up, bx, by, w, tiles, slot_map, layers, le
             mean = base
             if (up >> bit) & 1:
                 mean = base + w * excess[block * 64 + bit]
-            at = (slot, iy & in_tile, ix & in_tile)
-            old = logodds[at]
-            updated = old + mean
-            if updated < l_min:
-                updated = l_min
-            elif updated > l_max:
-                updated = l_max
-            logodds[at] = updated
-            if changed.shape[0] > 0:  # (a grid that tracks its changed cells, mapping.grid)
-                changed[at] |= (logodds[at] != old) | (not observed[at])
-            observed[at] = True
+            update_cell(layers, (slot, iy & in_tile, ix & in_tile), mean, 0.0, l_min, l_max)  # (one pose: no spread)

@@ -1,4 +1,5 @@
-"""The cells of a tile that a grid tracking its changes marks changed (mapping.grid, ``track_changes``), taken: the
+"""A grid's changed cells (mapping.grid, ``track_changes``): a cell's update as the applies make it, marked where its
+values change (:func:`update_cell`), and a tile's marked cells taken (:func:`take_changed_cells`): the
 smallest window that holds them, which of its cells they are and their values, with the marks cleared. What a mapper
 shard publishes of a tile (services.state.shard, schemas.messages.TileUpdate), in two compiled passes over the window
 the fusions reported (one to bound the marks, one to gather them). They take about as long as numpy's bounding box,
@@ -25,6 +26,25 @@ class ChangedCells(NamedTuple):
     logodds: np.ndarray
     variance: np.ndarray
     observed: np.ndarray
+
+
+@kernel(nogil=True, error_model="numpy", inline="always")
+def update_cell(layers, at, mean, spread, l_min, l_max):  # pragma: no cover - compiled
+    """Add ``mean`` to the log-odds of the cell at ``at`` (slot, row, column), clamped to [l_min, l_max], and
+    ``spread`` to its variance; mark it observed and, in a grid that tracks them (``changed`` has slots), changed where
+    one of its values changed. layers: the grid's (logodds, variance, observed, changed)."""
+    logodds, variance, observed, changed = layers
+    old, old_spread = logodds[at], variance[at]
+    updated = old + mean
+    if updated < l_min:
+        updated = l_min
+    elif updated > l_max:
+        updated = l_max
+    logodds[at] = updated
+    variance[at] = old_spread + spread
+    if changed.shape[0] > 0:
+        changed[at] |= (logodds[at] != old) | (variance[at] != old_spread) | (not observed[at])
+    observed[at] = True
 
 
 def take_changed_cells(
