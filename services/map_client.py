@@ -76,16 +76,15 @@ class MapReader:
                 raise IncompleteMap(f"shard {shard} holds {owned} tiles but {count} arrived")
         if not tiles:
             return TiledGrid(resolution)
-        if tiles[0].resolution != resolution:
-            raise IncompleteMap(f"the shards map at {tiles[0].resolution} m, not {resolution} m")
         grid = TiledGrid(resolution, tiles[0].tile_size)
         for tile in tiles:
-            if not tile.is_whole() or tile.tile_size != grid.tile_size:
-                raise IncompleteMap(f"tile ({tile.tx}, {tile.ty}) arrived as a partial window")
-            if (tile.z, tile.resolution) != (0, resolution):
+            if tile.resolution != resolution:
                 raise IncompleteMap(
-                    f"tile ({tile.tx}, {tile.ty}) is of zoom level {tile.z} at {tile.resolution} m, not 0 at "
-                    f"{resolution} m"
+                    f"the shards map at {tile.resolution} m (tile {tile.tx}, {tile.ty}), not {resolution} m"
+                )
+            if tile.z != 0 or not tile.is_whole() or tile.tile_size != grid.tile_size:
+                raise IncompleteMap(
+                    f"tile ({tile.tx}, {tile.ty}) arrived as a partial window or at zoom level {tile.z}"
                 )
             grid.set_tile((tile.tx, tile.ty), *tile.whole_layers())
         return grid

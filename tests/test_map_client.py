@@ -57,8 +57,8 @@ def _serve(session: zenoh.Session, tiles: list[TileUpdate]) -> list:
     ("second", "refused"),
     [
         ({}, None),
-        ({"resolution": 0.1}, "at 0.1 m, not 0 at 0.05 m"),  # a tile of another cell size than the first's
-        ({"z": 3}, "zoom level 3"),
+        ({"resolution": 0.1}, r"at 0.1 m \(tile 1, 0\), not 0.05 m"),  # a tile of another cell size than the first's
+        ({"z": 3}, "at zoom level 3"),
     ],
 )
 def test_every_tile_of_an_assembled_map_has_the_maps_geometry(sessions, second, refused):

@@ -69,9 +69,10 @@ class MapMirror:
         extent = self.extent()
         if extent is not None and (tile.tx, tile.ty) not in grid:
             grown = (min(extent[0], tile.tx), min(extent[1], tile.ty), max(extent[2], tile.tx), max(extent[3], tile.ty))
-            if self.cells(grown) > MAX_RASTER_CELLS:
+            cells = self.cells(grown)
+            if cells > MAX_RASTER_CELLS:
                 return (
-                    f"tile ({tile.tx}, {tile.ty}) would take the grid to {self.cells(grown)} cells, more than the "
+                    f"tile ({tile.tx}, {tile.ty}) would take the grid to {cells} cells, more than the "
                     f"{MAX_RASTER_CELLS} one grid may hold"
                 )
         return ""

@@ -100,12 +100,12 @@ class ShardLimits:
                 f"its samples and range reach tiles of {cells:.3g} cells, more than one scan may grow "
                 f"the map by ({self.max_scan_cells:.3g}, --max-scan-cells)"
             )
-        ray_cells = beams * math.ceil(range_max / resolution)
+        ray_cells = math.ceil(range_max / resolution)
         window_words = math.ceil(window_cells(samples, range_max + sensor_reach, resolution) / 64)
-        work = samples.shape[0] * (ray_cells + window_words)
+        work = samples.shape[0] * (beams * ray_cells + window_words)
         if work > self.max_work:
             return "work", (
-                f"{samples.shape[0]} samples x ({beams} beams x {math.ceil(range_max / resolution)} cells to "
+                f"{samples.shape[0]} samples x ({beams} beams x {ray_cells} cells to "
                 f"range_max + {window_words:.3g} words of the scan's window) = {work:.3g}, more than the limit "
                 f"{self.max_work:.3g} (--max-work)"
             )

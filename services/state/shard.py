@@ -96,9 +96,9 @@ def message_bytes(message: object) -> int:
 def warm_fusion(model: SensorModel, tile_size: int, threads: FusionThreads | None = None) -> None:
     """Fuse a three-beam scan at two poses into a scratch grid of ``tile_size``-cell tiles with ``model`` and take its
     changed cells, so that the fusion's and the tile updates' compiled kernels are loaded, or compiled and cached where
-    they are not yet (mapping.jit). The scratch
-    fusion owns every tile, so every kernel runs (a shard owning none of these tiles would skip the last one). With
-    ``threads`` of more than one thread, the scan again at 16 poses, alone on them: in parts (its adding up)."""
+    they are not yet (mapping.jit). The scratch fusion owns every tile, so every kernel runs (a shard owning none of
+    these tiles would skip the last one). With ``threads`` of more than one thread, the scan again at 16 poses, alone
+    on them: in parts (its adding up)."""
     scratch = TiledGrid(model.resolution, tile_size, track_changes=True)
     angles, ranges = np.array([-0.5, 0.0, 0.5]), np.array([1.0, np.inf, 2.0])
     fusion = MonteCarloFusion(scratch, model, angles, 0.1, 5.0)
