@@ -57,6 +57,11 @@ class TiledGrid:
         """Keys (tx, ty) of the tiles that exist, in creation order."""
         return list(self._slot_of)
 
+    @property
+    def tile_count(self) -> int:
+        """How many tiles exist."""
+        return len(self._slot_of)
+
     def __contains__(self, key: TileKey) -> bool:
         return key in self._slot_of
 

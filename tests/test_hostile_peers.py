@@ -181,6 +181,36 @@ def test_the_join_holds_at_most_its_byte_bound_of_scans_waiting_for_a_pose():
     assert shard._join.held_bytes("r") <= 100_000
 
 
+def test_the_join_bound_holds_for_all_robots_together_and_the_flooding_robot_pays():
+    """A probe's finding: the join's byte bound was per robot, so 64 robots of scans with no pose held 1.87 GB (the
+    limits allowed 4 GiB). The bound is now for every robot together, and the robot holding the most loses its oldest
+    halves: a robot whose scan waits for its pose still gets it fused."""
+    shard = _shard(ShardLimits(join_bytes=100_000))
+    shard.handle("pg/a/scan", _scan(0, robot="a", beams=1000).encode())
+    for robot in ("b", "c", "d"):
+        for seq in range(100):
+            shard.handle(f"pg/{robot}/scan", _scan(seq, robot=robot, beams=1000).encode())  # no pose ever
+        assert shard._join.held_bytes() <= 100_000
+    shard.handle("pg/a/pose", _pose(0, robot="a").encode())
+    shard.fuse_ready()
+    assert shard.stats({}).fused == {"a": 1}
+
+
+def test_a_scan_that_could_grow_the_map_past_its_limit_is_refused():
+    """A probe's finding: 1 025 one-beam scans in distinct tiles, each within --map-bound, took 1.6 GB, and the whole
+    bound would take 19 GB. A shard holds at most --max-map-cells cells of tiles: here 9 tiles of 256 x 256 cells. A
+    scan at (3, 3) m with a 5 m range reaches the 3 x 3 tiles around tile (0, 0) and makes only that one; a scan
+    300 m away could add 9 more (refused), and one back near the first could add only the 8 still missing."""
+    shard = _shard(ShardLimits(max_map_cells=9 * 256 * 256))
+    for seq, xy in enumerate([(3.0, 3.0), (300.0, 3.0), (3.0, 3.0)]):
+        shard.handle("pg/r/scan", _scan(seq).encode())
+        shard.handle("pg/r/pose", _pose(seq, xy=xy).encode())
+    shard.fuse_ready()
+    stats = shard.stats({})
+    assert stats.fused == {"r": 2} and stats.discarded == {"r": 1} and shard.rejects.kinds() == {"map": 1}
+    assert shard.tiles() == [(0, 0)]
+
+
 def test_a_scan_past_the_work_limit_is_refused_and_counted_as_discarded():
     """Finding 3: one 10^6-beam scan with a 1 000-sample pose kept a shard busy for 5 minutes."""
     model = SensorModel()

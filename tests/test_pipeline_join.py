@@ -325,17 +325,22 @@ def test_a_forged_run_of_consecutive_seqs_far_ahead_is_not_believed_when_the_his
     assert {g[4] for g in gone} == {"ahead"} and len(gone) == 4 * CONFIRM_RUN
 
 
-def test_the_join_holds_at_most_its_byte_bound_of_one_robots_halves():
-    """Issue 29, finding 3: scans with no pose grew a shard by a gigabyte. Halves past the robot's byte bound are
-    evicted (as from a full buffer), and the bound holds whatever comes."""
+def test_the_join_holds_at_most_its_byte_bound_of_every_robots_halves():
+    """Issue 29, finding 3: scans with no pose grew a shard by a gigabyte; a probe then found the bound was per robot,
+    so 64 robots held 1.87 GB. Halves past the bound of all robots together are evicted (as from a full buffer),
+    the oldest of the robot holding the most first, and the bound holds whatever comes."""
     buffer = JoinBuffer(capacity=512, max_bytes=10_000, size=len)
     gone = []
     for seq in range(100):
         gone += _given_up(buffer.add_scan(("r", seq), "x" * 1000)[1])
-    assert buffer.held_bytes("r") <= 10_000
+    assert buffer.held_bytes("r") == 10_000
     assert len(gone) == 90 and {g[4] for g in gone} == {"overflow"}
-    assert buffer.add_scan(("q", 0), "y" * 5000) == ([], [])  # another robot has its own bound
-    assert buffer.held_bytes("q") == 5000
+    gone = _given_up(buffer.add_scan(("q", 0), "y" * 3000)[1])  # r holds the most: it loses its 3 oldest
+    assert gone == [("r", seq, 1, "scan", "overflow") for seq in (90, 91, 92)]
+    assert buffer.held_bytes("q") == 3000 and buffer.held_bytes("r") == 7000 and buffer.held_bytes() == 10_000
+    for robot in "abcdefghij":  # ten more robots of 2 000 bytes each: the bound holds for them all
+        buffer.add_scan((robot, 0), "z" * 2000)
+        assert buffer.held_bytes() <= 10_000 and buffer.held_bytes(robot) == 2000
 
 
 def test_join_takes_a_held_message_when_its_stream_goes_past_it_after_another_gap():

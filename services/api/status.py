@@ -36,6 +36,7 @@ DISTRUSTED = {
     "work": "scans whose fusion would cost more than --max-work",
     "bound": "scans posed beyond --map-bound",
     "extent": "scans reaching more cells than --max-scan-cells",
+    "map": "scans that could grow a shard's map past --max-map-cells (raise it, or run more shards)",
 }
 
 

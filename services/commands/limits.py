@@ -37,12 +37,21 @@ _LIMITS = (
         ),
     ),
     (
+        "--max-map-cells",
+        "max_map_cells",
+        int,
+        (
+            "cells of the tiles this shard may hold (about 10 bytes each in memory); a scan that could add tiles "
+            "past it is refused (default %(default)s: 1.3 GB, 336 000 m2 of 0.05 m cells)"
+        ),
+    ),
+    (
         "--join-bytes",
         "join_bytes",
         int,
         (
-            "bytes of one robot's scans and poses that may wait for their partner; the "
-            "oldest are evicted beyond (default %(default)s)"
+            "bytes of the scans and poses of every robot together that may wait for their partner; beyond, "
+            "the oldest of the robot holding the most are evicted (default %(default)s)"
         ),
     ),
     (

@@ -27,7 +27,7 @@ longer than the buffer lasts then costs no scan, as the source's history still h
 
 from __future__ import annotations
 
-from collections import OrderedDict
+from collections import Counter, OrderedDict
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import Generic, TypeVar
@@ -120,14 +120,14 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         digest: Callable[[ScanT | PoseT], bytes] | None = None,
     ):
         """``recover(robot, scans, first, last)``: what it can find of the robot's scans (else poses) with seqs
-        first..last (inclusive), which its stream skipped, as {seq: scan or pose}. ``window``: seqs beyond its
-        stream's last one that a live message may lie (:data:`DEFAULT_SEQ_WINDOW`). ``max_bytes``: bytes (as
-        ``size`` measures a half) one robot's waiting halves may hold; beyond, its oldest are evicted as when
-        the buffer is full (None: no bound). ``digest(half)``: a few bytes that stand for a half: two halves with
-        the same digest are the same message (a far run is believed when ``recover`` gives its first message, the
-        same as the one held), and an evicted half's digest is kept with its seq (:meth:`evicted_digest`) so that a
-        copy of it sent again can be told from another message of that seq (None: halves compared with ==, and no
-        digest kept)."""
+        first..last (inclusive), which its stream skipped, as {seq: scan or pose}. ``window``: seqs beyond its stream's
+        last one that a live message may lie (:data:`DEFAULT_SEQ_WINDOW`). ``max_bytes``: bytes (as ``size`` measures a
+        half) the waiting halves of every robot together may hold; beyond, the oldest of the robot holding the most are
+        evicted as when the buffer is full (None: no bound). ``digest(half)``: a few bytes that stand for a half: two
+        halves with the same digest are the same message (a far run is believed when ``recover`` gives its first
+        message, the same as the one held), and an evicted half's digest is kept with its seq (:meth:`evicted_digest`)
+        so that a copy of it sent again can be told from another message of that seq (None: halves compared with ==, and
+        no digest kept)."""
         self.capacity = _at_least_one(capacity, "join buffer capacity")
         self.recover = recover
         self.window = _at_least_one(window, "seq window")
@@ -154,20 +154,24 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         """How many halves wait here, of every robot (for a partner, past a gap, or beyond the window)."""
         return 2 * len(self._pending) + len(self._held) + sum(len(far) for far in self._far.values())
 
-    def held_bytes(self, robot: str) -> int:
+    def held_bytes(self, robot: str | None = None) -> int:
         """Bytes (as ``size`` measures them) of ``robot``'s halves waiting here (for a partner, past a gap, or
-        beyond the window)."""
-        total = sum(
-            self._size(half)
-            for key, entry in self._pending.items()
-            if key[0] == robot
-            for half in (entry.scan, entry.pose)
-            if half is not None
-        )
-        total += sum(self._size(held[1]) for stream, held in self._held.items() if stream[0] == robot)
-        return total + sum(
-            self._size(item) for stream, far in self._far.items() if stream[0] == robot for item in far.values()
-        )
+        beyond the window); of every robot's with None."""
+        held = self._bytes_by_robot()
+        return held[robot] if robot is not None else sum(held.values())
+
+    def _bytes_by_robot(self) -> Counter[str]:
+        """Bytes of the halves waiting here, by robot."""
+        held: Counter[str] = Counter()
+        for (robot, _), entry in self._pending.items():
+            for half in (entry.scan, entry.pose):
+                if half is not None:
+                    held[robot] += self._size(half)
+        for (robot, _), (_, item) in self._held.items():
+            held[robot] += self._size(item)
+        for (robot, _), far in self._far.items():
+            held[robot] += sum(self._size(item) for item in far.values())
+        return held
 
     def waiting(self, key: JoinKey, is_scan: bool) -> ScanT | PoseT | None:
         """The scan (else pose) of ``key`` that waits here: for its partner, or held past a gap in its stream until
@@ -230,7 +234,7 @@ class JoinBuffer(Generic[ScanT, PoseT]):
                 more_pairs, more = self._add((robot, other), far.pop(other), is_scan, confirmed=True)
                 pairs, gone = pairs + more_pairs, gone + more
         more_pairs, more = self._reoffer(robot, is_scan)
-        return pairs + more_pairs, gone + more + self._within_bytes(robot)
+        return pairs + more_pairs, gone + more + self._within_bytes()
 
     def _vouched(self, robot: str, is_scan: bool, seq: int, far: dict[int, ScanT | PoseT]) -> bool:
         """Whether the far message ``seq`` is vouched for: ``recover`` gives the same message for it (or there is no
@@ -257,26 +261,38 @@ class JoinBuffer(Generic[ScanT, PoseT]):
             pairs, gone = pairs + more_pairs, gone + more
         return pairs, gone
 
-    def _within_bytes(self, robot: str) -> list[GivenUp]:
-        """Evict the robot's oldest waiting halves while they hold more than ``max_bytes``."""
+    def _within_bytes(self) -> list[GivenUp]:
+        """Evict waiting halves while every robot's together hold more than ``max_bytes``: one at a time from the
+        robot that holds the most (so that a robot flooding the buffer loses its own halves, not another's)."""
         gone: list[GivenUp] = []
         if self.max_bytes is None or self._waiting() * self._largest <= self.max_bytes:
             return gone  # (the bound needs no walk over the halves: with laser scans of kilobytes it always holds)
-        excess = self.held_bytes(robot) - self.max_bytes
-        for stream in [(robot, True), (robot, False)]:  # the far messages first: the least likely to be needed
-            far = self._far.get(stream, {})
-            while excess > 0 and far:
-                seq = max(far)
-                excess -= self._size(far.pop(seq))  # (counted as ahead when it came)
-        while excess > 0:
-            oldest = next((key for key in self._pending if key[0] == robot), None)
-            if oldest is None:
-                break
-            entry = self._pending.pop(oldest)
-            half = entry.half()
-            excess -= self._size(half)
-            gone += self._evict(robot, oldest[1], entry.scan is not None, half)
+        held = self._bytes_by_robot()
+        while sum(held.values()) > self.max_bytes:
+            for robot, _ in held.most_common():
+                evicted = self._evict_one(robot)
+                if evicted is not None:
+                    break
+            else:
+                break  # (only halves held past a gap are left: each stream holds one at most)
+            held[robot] -= evicted[0]
+            gone += evicted[1]
         return gone
+
+    def _evict_one(self, robot: str) -> tuple[int, list[GivenUp]] | None:
+        """Evict one of ``robot``'s waiting halves for room: its furthest message beyond the window (the least likely
+        to be needed; counted as ahead when it came), else its oldest half waiting for a partner (:meth:`_evict`).
+        Returns the bytes freed and the halves given up; None when it holds neither."""
+        for stream in ((robot, True), (robot, False)):
+            far = self._far.get(stream)
+            if far:
+                return self._size(far.pop(max(far))), []
+        oldest = next((key for key in self._pending if key[0] == robot), None)
+        if oldest is None:
+            return None
+        entry = self._pending.pop(oldest)
+        half = entry.half()
+        return self._size(half), self._evict(robot, oldest[1], entry.scan is not None, half)
 
     def settle(self, robot: str, scans: int) -> tuple[list[tuple[ScanT, PoseT]], list[GivenUp]]:
         """End the robot's streams after ``scans`` scans (seqs 0 .. scans-1): a held message within them is taken

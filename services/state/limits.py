@@ -14,8 +14,11 @@ counted under its kind in the shard's stats and logged once, never fused in part
 - ``max_scan_cells``: cells (at the map's resolution) of the tiles one scan may reach at most (the tiles of its
   samples' positions, widened by range_max and the sensor offset's length): the most a single scan can grow the
   map.
-- ``join_bytes``: bytes of one robot's scans and poses waiting in the join buffer (with the count bound,
-  ``--join-buffer``; the oldest are evicted and asked for again from the histories).
+- ``max_map_cells``: cells of the tiles one shard holds (about 10 bytes each in memory); a scan that could add
+  tiles past it is refused, so a peer's scans spread over the whole ``map_bound`` cannot take the machine's memory.
+- ``join_bytes``: bytes of the scans and poses of every robot together waiting in the join buffer (with the count
+  bound, ``--join-buffer``; the oldest of the robot holding the most are evicted and asked for again from the
+  histories).
 - ``intake_bytes``: bytes of messages waiting in the intake queue between the network and the fusion thread.
 - ``max_robots``: robots one shard keeps state for; messages of further robot names are refused.
 - ``seq_window``: seqs beyond what a robot's stream has shown that a live message may lie
@@ -36,6 +39,7 @@ DEFAULT_MAX_BEAMS = 32_768
 DEFAULT_MAX_WORK = 1_000_000_000
 DEFAULT_MAP_BOUND = 1_000.0
 DEFAULT_MAX_SCAN_CELLS = 25_000_000
+DEFAULT_MAX_MAP_CELLS = 2**27  # 1.3 GB of a shard's layers; 336 000 m2 of 0.05 m cells
 DEFAULT_JOIN_BYTES = 64 * 2**20
 DEFAULT_INTAKE_BYTES = 256 * 2**20
 DEFAULT_MAX_ROBOTS = 64
@@ -50,6 +54,7 @@ class ShardLimits:
     max_work: int = DEFAULT_MAX_WORK
     map_bound: float = DEFAULT_MAP_BOUND
     max_scan_cells: int = DEFAULT_MAX_SCAN_CELLS
+    max_map_cells: int = DEFAULT_MAX_MAP_CELLS
     join_bytes: int = DEFAULT_JOIN_BYTES
     intake_bytes: int = DEFAULT_INTAKE_BYTES
     max_robots: int = DEFAULT_MAX_ROBOTS
@@ -60,6 +65,7 @@ class ShardLimits:
             "max_beams",
             "max_work",
             "max_scan_cells",
+            "max_map_cells",
             "join_bytes",
             "intake_bytes",
             "max_robots",
@@ -126,19 +132,33 @@ def window_cells(samples: np.ndarray, reach: float, resolution: float) -> int:
 def reach_cells(samples: np.ndarray, range_max: float, resolution: float, tile_size: int) -> int:
     """An upper bound on the cells of the tiles a scan can touch: the tiles of the samples' positions, each widened
     by range_max in every direction, counted without double counting (their union), times cells per tile."""
+    return _reach(samples, range_max, resolution, tile_size, listed=False)[0] * tile_size * tile_size
+
+
+def reach_tiles(samples: np.ndarray, range_max: float, resolution: float, tile_size: int) -> np.ndarray | None:
+    """The tiles (tx, ty) of :func:`reach_cells`' union as an (n, 2) int64 array; None when the union is too large
+    to list (more than 10^6 tiles before their duplicates are dropped)."""
+    return _reach(samples, range_max, resolution, tile_size, listed=True)[1]
+
+
+def _reach(
+    samples: np.ndarray, range_max: float, resolution: float, tile_size: int, listed: bool
+) -> tuple[int, np.ndarray | None]:
+    """(count, tiles) of the union above: the count exact when it can be listed, else an upper bound from the box
+    that holds the samples' tiles; the tiles listed only when ``listed`` and the union can be."""
     side = tile_size * resolution
     reach = math.ceil(range_max / side)
     width = 2 * reach + 1
     tiles = np.floor(samples[:, :2] / side).astype(np.int64)
     if tiles.shape[0] == 0:
-        return 0
-    if (tiles == tiles[0]).all():  # (a scan's samples mostly share a tile: no sort, a tenth of a ms less a scan)
-        return width * width * tile_size * tile_size
-    tiles = np.unique(tiles, axis=0)
+        return 0, np.zeros((0, 2), np.int64)
+    same = bool((tiles == tiles[0]).all())
+    if same and not listed:  # (a scan's samples mostly share a tile: no sort, a tenth of a ms less a scan)
+        return width * width, None
+    tiles = tiles[:1] if same else np.unique(tiles, axis=0)
     if tiles.shape[0] * width * width <= 1_000_000:  # exact union of the widened squares
         offsets = np.stack(np.meshgrid(np.arange(-reach, reach + 1), np.arange(-reach, reach + 1)), -1).reshape(-1, 2)
-        covered = np.unique((tiles[:, None, :] + offsets[None, :, :]).reshape(-1, 2), axis=0).shape[0]
-    else:  # too many to list: the bound from the box that holds them
-        span = tiles.max(axis=0) - tiles.min(axis=0) + width
-        covered = min(int(span[0]) * int(span[1]), tiles.shape[0] * width * width)
-    return covered * tile_size * tile_size
+        union = np.unique((tiles[:, None, :] + offsets[None, :, :]).reshape(-1, 2), axis=0)
+        return union.shape[0], union if listed else None
+    span = tiles.max(axis=0) - tiles.min(axis=0) + width  # too many to list: the box that holds them
+    return min(int(span[0]) * int(span[1]), tiles.shape[0] * width * width), None

@@ -41,7 +41,7 @@ from services.state.join import (
     JoinBuffer,
     SeqLedger,
 )
-from services.state.limits import ShardLimits
+from services.state.limits import ShardLimits, reach_cells, reach_tiles
 from services.state.ownership import owns_tile
 from services.state.store.db import Batch, LedgerEntry, RobotState, StoredState, TileState
 from services.state.store.journal import SEED_ROBOT, Journal
@@ -470,11 +470,36 @@ class MapShard:
         refused = cfg.limits.scan_problem(
             samples, scan.ranges.shape[0], scan.range_max, cfg.model.resolution, cfg.tile_size, sensor_reach
         )
+        refused = refused or self._map_problem(samples, scan.range_max + sensor_reach)
         if refused is not None:
             self.discarded[scan.robot] += 1
             self.rejects.count(f"fuse/{scan.robot}", refused[0], f"scan seq {scan.seq} refused: {refused[1]}")
             return None
         return samples, weights
+
+    def _map_problem(self, samples: np.ndarray, reach: float) -> tuple[str, str] | None:
+        """("map", why) when a scan whose beams reach ``reach`` m from the laser positions ``samples`` (M, 3: x m,
+        y m, yaw rad) could add tiles of this shard's past --max-map-cells; None when it may be fused. The tiles
+        counted are the owned tiles in the scan's reach (:func:`services.state.limits.reach_tiles`) that the grid
+        does not hold yet; they are listed only when the map is near its limit."""
+        cfg = self.config
+        per_tile = cfg.tile_size * cfg.tile_size
+        resolution = cfg.model.resolution
+        limit = cfg.limits.max_map_cells
+        held = self.grid.tile_count
+        if (held * per_tile + reach_cells(samples, reach, resolution, cfg.tile_size)) <= limit:
+            return None
+        listed = reach_tiles(samples, reach, resolution, cfg.tile_size)
+        if listed is None:  # (too many to list: a scan the extent limit refuses with its default)
+            new = reach_cells(samples, reach, resolution, cfg.tile_size) // per_tile
+        else:
+            new = sum(1 for tx, ty in listed.tolist() if (tx, ty) not in self.grid and self.owns(tx, ty))
+        if (held + new) * per_tile <= limit:
+            return None
+        return "map", (
+            f"it may add {new} tile(s) of {per_tile} cells to the {held} this shard holds, past the limit of "
+            f"{limit:.3g} cells (--max-map-cells; raise it, or run more shards)"
+        )
 
     def _fuse_drawn(self, drawn: list[tuple[int, LaserScan, np.ndarray, np.ndarray]]) -> list[FuseResult | Exception]:
         """The outcome of fusing each scan of ``drawn`` ((index, scan, samples, weights) each) with the fusion of its
