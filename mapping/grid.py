@@ -9,9 +9,9 @@ Per cell the grid keeps
 - ``variance`` (float32): the sum over scans of the per-scan spread of the sample log-odds
   (E_w[y^2] - E_w[y]^2): how much pose uncertainty blurred the cell,
 - ``observed`` (bool): whether any scan touched it,
-- and in a grid made with ``track_changes`` (a mapper shard's), ``changed`` (bool): whether the fusion has changed
-  any of the cell's values since :meth:`TiledGrid.take_changes` last took it, so that a tile update gives only
-  those cells (schemas.messages.TileUpdate).
+- and in a grid made with ``track_changes`` (a mapper shard's), ``changed`` (uint8): which of the cell's layers the
+  fusion has changed since :meth:`TiledGrid.take_changes` last took it (a bit each, mapping.tile_changes), so that a
+  tile update gives only those cells, and of them only the values that changed (schemas.messages.TileUpdate).
 
 Tiles live in stacked arrays (slot, T, T) that grow by doubling, so compiled kernels can write
 into any tile through a slot index; memory follows the observed area.
@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from mapping.errors import InputError
-from mapping.tile_changes import ChangedCells, take_changed_cells
+from mapping.tile_changes import ALL_CHANGED, ChangedCells, take_changed_cells
 
 TILE_SIZE = 256
 #: the most cells a raster of the whole map may span before it is cropped (9 bytes a cell while it is built, so
@@ -50,7 +50,7 @@ class TiledGrid:
         self.observed = np.zeros((0, tile_size, tile_size), np.bool_)
         self.track_changes = bool(track_changes)
         # (untracked: no slots, and the fusion's kernels skip it)
-        self.changed = np.zeros((0, tile_size, tile_size) if track_changes else (0, 1, 1), np.bool_)
+        self.changed = np.zeros((0, tile_size, tile_size) if track_changes else (0, 1, 1), np.uint8)
 
     # ----------------------------------------------------------------------------------- tiles
     def keys(self) -> list[TileKey]:
@@ -82,7 +82,7 @@ class TiledGrid:
         self.variance = np.concatenate([self.variance, np.zeros(shape, np.float32)])
         self.observed = np.concatenate([self.observed, np.zeros(shape, np.bool_)])
         if self.track_changes:
-            self.changed = np.concatenate([self.changed, np.zeros(shape, np.bool_)])
+            self.changed = np.concatenate([self.changed, np.zeros(shape, np.uint8)])
 
     def tile_arrays(self, key: TileKey) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(logodds, variance, observed) views of tile ``key``, each (T, T), row = y."""
@@ -93,7 +93,7 @@ class TiledGrid:
 
     def set_tile(self, key: TileKey, logodds: np.ndarray, variance: np.ndarray, observed: np.ndarray) -> None:
         """Replace tile ``key``'s layers (used when assembling a map from shards, and by a shard seeding or restoring
-        a tile); with ``track_changes`` every cell of it is marked changed."""
+        a tile); with ``track_changes`` every layer of every cell of it is marked changed."""
         shape = (self.tile_size, self.tile_size)
         for name, layer in (("logodds", logodds), ("variance", variance), ("observed", observed)):
             if np.shape(layer) != shape:
@@ -103,7 +103,7 @@ class TiledGrid:
         self.variance[slot] = variance
         self.observed[slot] = observed
         if self.track_changes:
-            self.changed[slot] = True
+            self.changed[slot] = ALL_CHANGED
 
     def take_changes(self, key: TileKey, window: tuple[int, int, int, int]) -> ChangedCells | None:
         """The cells of tile ``key`` whose values changed since the last call that took them, looked for in

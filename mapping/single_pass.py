@@ -22,7 +22,7 @@ from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros  # LLVM's
 from mapping.beam_model import BeamTable, LogOddsModel, beam_at, segment_logodds
 from mapping.jit import kernel
 from mapping.tile_boxes import widen_box
-from mapping.tile_changes import update_cell
+from mapping.tile_changes import LOGODDS_CHANGED, OBSERVED_CHANGED, update_cell
 from mapping.window_walk import Tiles, Window, beam_ray, ownership_constants, walk_ray
 
 
@@ -211,8 +211,8 @@ def apply_single(scratch, w, window, tiles, slot_map, layers, levels):  # pragma
     Block by block, so neighbouring cells are written together; clears the blocks' bits for the next scan.
 
     scratch, window, tiles: as for :func:`accumulate_single`; slot_map: the grid slot of each tile of the window;
-    layers: the grid's (logodds, variance, observed, changed: marked where a value changed, in a grid that tracks
-    them); levels: the model's (l_free, l_min, l_max)."""
+    layers: the grid's (logodds, variance, observed, changed: the layers whose value changed marked, in a grid that
+    tracks them); levels: the model's (l_free, l_min, l_max)."""
     scratch, window, tiles = SingleScratch(*scratch), Window(*window), Tiles(*tiles)
     touched, raised, blocks_w = scratch.touched, scratch.raised, scratch.blocks_w
     for block in range(blocks_w * scratch.blocks_h):
@@ -255,7 +255,9 @@ def _apply_block(excess, block, bits, up, bx, by, w, tiles, slot_map, layers, le
             logodds[slot, ly, lx + col] = updated if on else old
             if track:
                 was = observed[slot, ly, lx + col]
-                changed[slot, ly, lx + col] |= on & ((logodds[slot, ly, lx + col] != old) | (not was))
+                changed[slot, ly, lx + col] |= (on & (logodds[slot, ly, lx + col] != old)) * LOGODDS_CHANGED | (
+                    on & (not was)
+                ) * OBSERVED_CHANGED
             observed[slot, ly, lx + col] |= on
 
 

@@ -1,6 +1,8 @@
-"""A grid's changed cells (mapping.grid, ``track_changes``): a cell's update as the applies make it, marked where its
-values change (:func:`update_cell`), and a tile's marked cells taken (:func:`take_changed_cells`): the
-smallest window that holds them, which of its cells they are and their values, with the marks cleared. What a mapper
+"""A grid's changed cells (mapping.grid, ``track_changes``): a cell's update as the applies make it, marked with the
+layers whose values changed (:func:`update_cell`: a bit each, :data:`LOGODDS_CHANGED`, :data:`VARIANCE_CHANGED`,
+:data:`OBSERVED_CHANGED`), and a tile's marked cells taken (:func:`take_changed_cells`): the smallest window that
+holds them, which of its cells they are, which of those changed their log-odds and which their variance, and the
+changed values, with the marks cleared. What a mapper
 shard publishes of a tile (services.state.shard, schemas.messages.TileUpdate), in two compiled passes over the window
 the fusions reported (one to bound the marks, one to gather them). They take about as long as numpy's bounding box,
 masks and gathers did (2.5 against 2.9 ms a warehouse scan's 22 tiles): the time goes to reading the tiles' layers,
@@ -15,15 +17,23 @@ import numpy as np
 
 from mapping.jit import kernel
 
+#: the bits of a grid's ``changed`` layer: which of a cell's layers changed since its changes were last taken
+LOGODDS_CHANGED, VARIANCE_CHANGED, OBSERVED_CHANGED = 1, 2, 4
+#: a cell every layer of which is to be given (a tile set whole)
+ALL_CHANGED = LOGODDS_CHANGED | VARIANCE_CHANGED | OBSERVED_CHANGED
+
 
 class ChangedCells(NamedTuple):
     """A tile's changed cells: ``window`` (row0, col0, rows, cols; tile-local cells) the smallest that holds them,
-    ``given`` (bool (rows, cols)) which of its cells they are, and their log-odds, variance and observed (each
-    (n,), the window's row-major order)."""
+    ``given`` (bool (rows, cols)) which of its cells they are; of those n cells, in the window's row-major order,
+    ``logodds_cells`` and ``variance_cells`` (bool (n,)) which changed their log-odds and which their variance, the
+    new values of those (``logodds`` and ``variance``, one a marked cell), and every one's ``observed`` (bool (n,))."""
 
     window: tuple[int, int, int, int]
     given: np.ndarray
+    logodds_cells: np.ndarray
     logodds: np.ndarray
+    variance_cells: np.ndarray
     variance: np.ndarray
     observed: np.ndarray
 
@@ -31,8 +41,8 @@ class ChangedCells(NamedTuple):
 @kernel(nogil=True, error_model="numpy", inline="always")
 def update_cell(layers, at, mean, spread, l_min, l_max):  # pragma: no cover - compiled
     """Add ``mean`` to the log-odds of the cell at ``at`` (slot, row, column), clamped to [l_min, l_max], and
-    ``spread`` to its variance; mark it observed and, in a grid that tracks them (``changed`` has slots), changed where
-    one of its values changed. layers: the grid's (logodds, variance, observed, changed)."""
+    ``spread`` to its variance; mark it observed and, in a grid that tracks them (``changed`` has slots), mark in
+    ``changed`` the layers whose value changed. layers: the grid's (logodds, variance, observed, changed)."""
     logodds, variance, observed, changed = layers
     old, old_spread = logodds[at], variance[at]
     updated = old + mean
@@ -43,7 +53,11 @@ def update_cell(layers, at, mean, spread, l_min, l_max):  # pragma: no cover - c
     logodds[at] = updated
     variance[at] = old_spread + spread
     if changed.shape[0] > 0:
-        changed[at] |= (logodds[at] != old) | (variance[at] != old_spread) | (not observed[at])
+        changed[at] |= (
+            (logodds[at] != old) * LOGODDS_CHANGED
+            | (variance[at] != old_spread) * VARIANCE_CHANGED
+            | (not observed[at]) * OBSERVED_CHANGED
+        )
     observed[at] = True
 
 
@@ -59,9 +73,11 @@ def take_changed_cells(
         return None
     box = (row0 + r0, col0 + c0, r1 - r0 + 1, c1 - c0 + 1)
     given = np.zeros(box[2:], np.bool_)
-    values = (np.empty(count, np.float32), np.empty(count, np.float32), np.empty(count, np.bool_))
-    _gather_marked((logodds, variance, observed, changed), box[0], box[1], given, values)
-    return ChangedCells((int(box[0]), int(box[1]), int(box[2]), int(box[3])), given, *values)
+    cells = (np.empty(count, np.bool_), np.empty(count, np.bool_), np.empty(count, np.bool_))
+    values = (np.empty(count, np.float32), np.empty(count, np.float32))
+    n_logodds, n_variance = _gather_marked((logodds, variance, observed, changed), box[0], box[1], given, cells, values)
+    window = (int(box[0]), int(box[1]), int(box[2]), int(box[3]))
+    return ChangedCells(window, given, cells[0], values[0][:n_logodds], cells[1], values[1][:n_variance], cells[2])
 
 
 @kernel(nogil=True, error_model="numpy")
@@ -74,7 +90,7 @@ def _marked_box(changed, row0, col0, rows, cols):  # pragma: no cover - compiled
     for r in range(rows):
         here = 0
         for c in range(cols):
-            here += changed[row0 + r, col0 + c]
+            here += changed[row0 + r, col0 + c] != 0
         if here == 0:
             continue
         r0 = min(r0, r)
@@ -92,21 +108,29 @@ def _marked_box(changed, row0, col0, rows, cols):  # pragma: no cover - compiled
 
 
 @kernel(nogil=True, error_model="numpy")
-def _gather_marked(layers, row0, col0, given, values):  # pragma: no cover - compiled
-    """Copy the layers' values of the cells marked in the window at (row0, col0) the shape of ``given`` into
-    ``values`` (in the window's row-major order), set their bits of ``given`` and clear their marks; layers =
-    (logodds, variance, observed, changed), each (T, T); values = (logodds, variance, observed) out, one entry a
-    marked cell. Reads the values of the marked cells only: the layers of a warehouse scan's windows are 5.4 MB,
-    past a core's L2, and a variant without branches that read every cell's was slower."""
+def _gather_marked(layers, row0, col0, given, cells, values):  # pragma: no cover - compiled
+    """Take the cells marked in the window at (row0, col0) the shape of ``given``, in the window's row-major order: set
+    their bits of ``given``, their entries of ``cells`` = (log-odds changed, variance changed, observed), each (n,),
+    and the changed values into ``values`` = (logodds, variance), one entry a cell whose layer changed; clear their
+    marks. Returns how many log-odds and how many variances it gave. layers = (logodds, variance, observed,
+    changed), each (T, T). Reads the values of the marked cells only: the layers of a warehouse scan's windows are
+    5.4 MB, past a core's L2, and a variant without branches that read every cell's was slower."""
     logodds, variance, observed, changed = layers
-    out_logodds, out_variance, out_observed = values
-    k = 0
+    logodds_cells, variance_cells, out_observed = cells
+    out_logodds, out_variance = values
+    k = n_logodds = n_variance = 0
     for r in range(given.shape[0]):
         for c in range(given.shape[1]):
-            if changed[row0 + r, col0 + c]:
-                changed[row0 + r, col0 + c] = False
+            mark = changed[row0 + r, col0 + c]
+            if mark:
+                changed[row0 + r, col0 + c] = 0
                 given[r, c] = True
-                out_logodds[k] = logodds[row0 + r, col0 + c]
-                out_variance[k] = variance[row0 + r, col0 + c]
+                logodds_cells[k] = mark & LOGODDS_CHANGED != 0
+                variance_cells[k] = mark & VARIANCE_CHANGED != 0
                 out_observed[k] = observed[row0 + r, col0 + c]
+                out_logodds[n_logodds] = logodds[row0 + r, col0 + c]
+                out_variance[n_variance] = variance[row0 + r, col0 + c]
+                n_logodds += logodds_cells[k]
+                n_variance += variance_cells[k]
                 k += 1
+    return n_logodds, n_variance

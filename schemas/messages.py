@@ -112,20 +112,23 @@ _BITS_SET = np.array([bin(byte).count("1") for byte in range(256)], np.uint8)
 
 
 def _given_cells(v, fail):
-    cells = v["rows"] * v["cols"]
-    given = v["given"]
-    if given.shape[0] != -(-cells // 8):
-        fail("shape", f"'given' has {given.shape[0]} bytes; a window of {cells} cells needs {-(-cells // 8)}")
-    if cells % 8 and given[-1] >> (cells % 8):
-        fail("range", "'given' sets bits past the window's last cell")
-    count = int(_BITS_SET[given].sum(dtype=np.int64))
-    if count != v["logodds"].shape[0]:
-        fail("shape", f"'given' marks {count} cells but the layers hold {v['logodds'].shape[0]} values")
-    observed = v["observed"]
-    if observed.shape[0] != -(-count // 8):
-        fail("shape", f"'observed' has {observed.shape[0]} bytes; {count} given cells need {-(-count // 8)}")
-    if count % 8 and observed[-1] >> (count % 8):
-        fail("range", "'observed' sets bits past the last given cell")
+    given = _bits_count(v, "given", v["rows"] * v["cols"], "the window's cells", fail)
+    _bits_count(v, "observed", given, "the given cells", fail)
+    for name in ("logodds", "variance"):
+        count = _bits_count(v, f"{name}_cells", given, "the given cells", fail)
+        if count != v[name].shape[0]:
+            fail("shape", f"'{name}_cells' marks {count} cells but '{name}' holds {v[name].shape[0]} values")
+
+
+def _bits_count(v, name: str, count: int, what: str, fail) -> int:
+    """How many bits field ``name`` sets, after checking it has one bit for each of ``count`` ``what`` (whole bytes,
+    no bit set past the last)."""
+    bits = v[name]
+    if bits.shape[0] != -(-count // 8):
+        fail("shape", f"'{name}' has {bits.shape[0]} bytes; {count} of {what} need {-(-count // 8)}")
+    if count % 8 and bits[-1] >> (count % 8):
+        fail("range", f"'{name}' sets bits past the last of {what}")
+    return int(_BITS_SET[bits].sum(dtype=np.int64))
 
 
 def _shard_index(v, fail):
@@ -257,22 +260,24 @@ class TileUpdate(Message):
 
     Published on pg/map/<map>/tile/<z>/<tx>/<ty> after fusion and sent as the reply to a tile query. The window
     (row0, col0, rows, cols) bounds the cells given, and ``given`` marks which of its cells the update gives: after
-    fusion the cells whose values changed since the tile was last published (a receiver keeps its earlier values
-    of the others, or none while it has none: log-odds 0, variance 0, unobserved); in a query's reply every cell of
-    the whole tile (:meth:`is_whole`). Tile (tx, ty) holds the global cells ix in [tx*T, (tx+1)*T), iy in [ty*T,
+    fusion the cells one of whose values changed since the tile was last published, and of each only the values that
+    changed (``logodds_cells``, ``variance_cells``; ``observed`` always); a receiver keeps its earlier values of the
+    rest, or none while it has none: log-odds 0, variance 0, unobserved. In a query's reply every value of every cell
+    of the whole tile (:meth:`is_whole`). Tile (tx, ty) holds the global cells ix in [tx*T, (tx+1)*T), iy in [ty*T,
     (ty+1)*T); window row r, column c is the cell iy = ty*T + row0 + r, ix = tx*T + col0 + c, covering x in
-    [ix*resolution, (ix+1)*resolution) of the map frame. The layers hold the given cells' values in row-major order
-    of the window (:meth:`given_mask`, :meth:`paste`, :meth:`of_window`).
+    [ix*resolution, (ix+1)*resolution) of the map frame. The given cells are taken in row-major order of the window
+    (:meth:`given_mask`, :meth:`paste`, :meth:`of_window`).
     """
 
     TYPE = "TileUpdate"
-    VERSION = 2  # 2: the window's cells given, not every one; observed as bits
+    VERSION = 3  # 2: the window's cells given, not every one; observed as bits; 3: each layer's changed values only
     RULES = (
         Rule("range", "tile_size a power of two; row0 + rows <= tile_size and col0 + cols <= tile_size", _window),
         Rule(
             "shape",
-            "given has ceil(rows * cols / 8) bytes, no bit set past the window's last cell, and as many set as N; "
-            "observed has ceil(N / 8) bytes, no bit set past the last given cell",
+            "given has ceil(rows * cols / 8) bytes and N bits set, none past the window's last cell; observed, "
+            "logodds_cells and variance_cells have ceil(N / 8) bytes, no bit set past the last given cell; logodds "
+            "and variance hold as many values as their cells' bits set",
             _given_cells,
         ),
     )
@@ -300,12 +305,6 @@ class TileUpdate(Message):
             values="bits",
         )
     )
-    logodds: np.ndarray = spec(Array("occupancy log-odds per given cell", "<f4", ("N",)))
-    variance: np.ndarray = spec(
-        Array(
-            "spread of the per-sample log-odds that pose uncertainty adds, per given cell", "<f4", ("N",), minimum=0.0
-        )
-    )
     observed: np.ndarray = spec(
         Array(
             "whether any beam has touched the given cell: bit j (byte j // 8, bit j % 8) for the j-th given cell",
@@ -314,61 +313,121 @@ class TileUpdate(Message):
             values="bits",
         )
     )
+    logodds_cells: np.ndarray = spec(
+        Array(
+            "the given cells whose log-odds this update gives: bit j for the j-th given cell",
+            "|u1",
+            ("O",),
+            values="bits",
+        )
+    )
+    logodds: np.ndarray = spec(Array("occupancy log-odds of each cell logodds_cells marks", "<f4", ("L",)))
+    variance_cells: np.ndarray = spec(
+        Array(
+            "the given cells whose variance this update gives: bit j for the j-th given cell",
+            "|u1",
+            ("O",),
+            values="bits",
+        )
+    )
+    variance: np.ndarray = spec(
+        Array(
+            "spread of the per-sample log-odds that pose uncertainty adds, of each cell variance_cells marks",
+            "<f4",
+            ("V",),
+            minimum=0.0,
+        )
+    )
 
     @classmethod
     def of_cells(
-        cls, given: np.ndarray, values: tuple[np.ndarray, np.ndarray, np.ndarray], **fields: Any
+        cls,
+        given: np.ndarray,
+        observed: np.ndarray,
+        logodds: tuple[np.ndarray, np.ndarray],
+        variance: tuple[np.ndarray, np.ndarray],
+        **fields: Any,
     ) -> TileUpdate:
-        """The update that gives the window cells ``given`` marks (bool (rows, cols)), with ``values`` their
-        (log-odds, variance, observed), each (n,) in the window's row-major order; ``fields``: the others but rows,
-        cols and given."""
+        """The update that gives the window cells ``given`` marks (bool (rows, cols)): of those n cells, in the
+        window's row-major order, ``observed`` (bool (n,)); ``logodds`` = (cells, values): which of them (bool (n,))
+        it gives a log-odds for, and those values; ``variance`` likewise. ``fields``: the others but rows, cols and
+        the cells' fields."""
         rows, cols = given.shape
-        logodds, variance, observed = values
-        packed, seen = (np.packbits(bits, axis=None, bitorder="little") for bits in (given, observed))
-        return cls(rows=rows, cols=cols, given=packed, logodds=logodds, variance=variance, observed=seen, **fields)
+        return cls(
+            rows=rows,
+            cols=cols,
+            given=_bits(given),
+            observed=_bits(observed),
+            logodds_cells=_bits(logodds[0]),
+            logodds=logodds[1],
+            variance_cells=_bits(variance[0]),
+            variance=variance[1],
+            **fields,
+        )
 
     @classmethod
     def of_window(
         cls, layers: tuple[np.ndarray, np.ndarray, np.ndarray], given: np.ndarray | None = None, **fields: Any
     ) -> TileUpdate:
-        """The update of a window's (rows, cols) layers (log-odds, variance, observed) that gives the cells
-        ``given`` marks (bool (rows, cols); default every cell); ``fields``: the others but rows, cols and given."""
+        """The update of a window's (rows, cols) layers (log-odds, variance, observed) that gives every value of the
+        cells ``given`` marks (bool (rows, cols); default every cell); ``fields``: as :meth:`of_cells`'."""
         if given is None:
             given = np.ones(np.shape(layers[0]), np.bool_)
         logodds, variance, observed = (np.asarray(layer)[given] for layer in layers)
-        return cls.of_cells(given, (logodds, variance, observed), **fields)
+        every = np.ones(observed.shape[0], np.bool_)
+        return cls.of_cells(given, observed, (every, logodds), (every, variance), **fields)
 
     def given_mask(self) -> np.ndarray:
         """The window cells this update gives, bool (rows, cols)."""
-        bits = np.unpackbits(self.given, count=self.rows * self.cols, bitorder="little")
-        return bits.reshape(self.rows, self.cols).view(np.bool_)
+        return _unbits(self.given, self.rows * self.cols).reshape(self.rows, self.cols)
+
+    def given_count(self) -> int:
+        """How many cells this update gives (N)."""
+        return int(_BITS_SET[self.given].sum(dtype=np.int64))
 
     def given_observed(self) -> np.ndarray:
         """Whether each given cell is observed, bool (N,) in the window's row-major order."""
-        bits = np.unpackbits(self.observed, count=self.logodds.shape[0], bitorder="little")
-        return bits.view(np.bool_)
+        return _unbits(self.observed, self.given_count())
+
+    def layer_cells(self) -> tuple[np.ndarray, np.ndarray]:
+        """Which given cells this update gives a log-odds for and which a variance for, bool (N,) each."""
+        count = self.given_count()
+        return _unbits(self.logodds_cells, count), _unbits(self.variance_cells, count)
 
     def is_whole(self) -> bool:
-        """Whether this update gives every cell of its tile (as a tile query's reply does)."""
+        """Whether this update gives every value of every cell of its tile (as a tile query's reply does)."""
+        cells = self.tile_size * self.tile_size
         return (self.row0, self.col0, self.rows, self.cols) == (0, 0, self.tile_size, self.tile_size) and bool(
-            self.logodds.shape[0] == self.rows * self.cols
+            self.logodds.shape[0] == self.variance.shape[0] == cells
         )
 
     def paste(self, logodds: np.ndarray, variance: np.ndarray, observed: np.ndarray) -> None:
-        """Write the cells this update gives into a tile's layers (each (tile_size, tile_size), row = y)."""
-        region = (slice(self.row0, self.row0 + self.rows), slice(self.col0, self.col0 + self.cols))
-        given = self.given_mask()
-        logodds[region][given] = self.logodds
-        variance[region][given] = self.variance
-        observed[region][given] = self.given_observed()
+        """Write the values this update gives into a tile's layers (each (tile_size, tile_size), row = y)."""
+        rows, cols = np.nonzero(self.given_mask())  # (row-major: the given cells' order)
+        rows += self.row0
+        cols += self.col0
+        logodds_cells, variance_cells = self.layer_cells()
+        logodds[rows[logodds_cells], cols[logodds_cells]] = self.logodds
+        variance[rows[variance_cells], cols[variance_cells]] = self.variance
+        observed[rows, cols] = self.given_observed()
 
     def whole_layers(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The tile's (log-odds, variance, observed), each (tile_size, tile_size), of an update that gives every
-        cell of it (:meth:`is_whole`; ValueError otherwise)."""
+        value of every cell of it (:meth:`is_whole`; ValueError otherwise)."""
         if not self.is_whole():
-            raise ValueError(f"the update of tile ({self.tx}, {self.ty}) does not give every cell of it")
+            raise ValueError(f"the update of tile ({self.tx}, {self.ty}) does not give every value of every cell")
         shape = (self.tile_size, self.tile_size)
         return self.logodds.reshape(shape), self.variance.reshape(shape), self.given_observed().reshape(shape)
+
+
+def _bits(cells: np.ndarray) -> np.ndarray:
+    """One bit a cell of ``cells`` (bool, row-major), least significant bit first, as bytes (|u1)."""
+    return np.packbits(cells, axis=None, bitorder="little")
+
+
+def _unbits(bits: np.ndarray, count: int) -> np.ndarray:
+    """The first ``count`` bits of ``bits`` (:func:`_bits`' bytes), bool (count,)."""
+    return np.unpackbits(bits, count=count, bitorder="little").view(np.bool_)
 
 
 @dataclass(frozen=True, eq=False)

@@ -684,7 +684,7 @@ def test_a_whole_tile_gives_its_layers():
         (b"", "shape"),  # a 2 x 2 window needs one byte of bits
         (b"\x0f\x00", "shape"),  # and no more
         (b"\x1f", "range"),  # bit 4 lies past the window's 4 cells
-        (b"\x07", "shape"),  # three cells marked, four values
+        (b"\x07", "range"),  # three cells marked: the fourth bit of observed lies past them
     ],
 )
 def test_a_tile_update_whose_given_bits_do_not_fit_is_refused(given, reason):
@@ -702,11 +702,45 @@ def test_a_tile_update_whose_given_bits_do_not_fit_is_refused(given, reason):
         (b"\x1f", "range"),  # bit 4 lies past the four given cells
     ],
 )
-def test_a_tile_update_whose_observed_bits_do_not_fit_is_refused(observed, reason):
+@pytest.mark.parametrize("field", ["observed", "logodds_cells", "variance_cells"])
+def test_a_tile_update_whose_bits_of_given_cells_do_not_fit_is_refused(observed, reason, field):
     wire = wire_of(tile())
-    wire["observed"]["data"] = observed
-    wire["observed"]["shape"] = [len(observed)]
+    wire[field]["data"] = observed
+    wire[field]["shape"] = [len(observed)]
     assert reason_of(wire) == reason
+
+
+@pytest.mark.parametrize("field", ["logodds", "variance"])
+def test_a_tile_update_with_more_values_than_its_cells_bits_is_refused(field):
+    wire = wire_of(tile())
+    wire[f"{field}_cells"]["data"] = b"\x07"  # three of the four given cells
+    assert reason_of(wire) == "shape"
+
+
+def test_a_tile_update_gives_each_layers_changed_values_only():
+    """Cells 1, 2 and 3 of a 2 x 2 window at (1, 2) of a 4 x 4 tile given: the log-odds of cell 2 only, the variances
+    of cells 1 and 3; pasted, the other values stay as they were (by hand)."""
+    fields = dict(map="m", shard=0, z=0, tx=0, ty=0, tile_size=4, resolution=0.1, row0=1, col0=2, robot="r", seq=0)
+    given = np.array([[False, True], [True, True]])
+    update = TileUpdate.of_cells(
+        given,
+        np.array([True, False, True]),
+        (np.array([False, True, False]), np.array([2.5], np.float32)),
+        (np.array([True, False, True]), np.array([0.25, 0.75], np.float32)),
+        published=0.0,
+        **fields,
+    )
+    decoded = decode_message(update.encode())
+    assert decoded.logodds_cells.tolist() == [0b010] and decoded.variance_cells.tolist() == [0b101]
+    layers = (np.full((4, 4), -1, np.float32), np.full((4, 4), 7, np.float32), np.ones((4, 4), bool))
+    decoded.paste(*layers)
+    logodds, variance, observed = np.full((4, 4), -1.0), np.full((4, 4), 7.0), np.ones((4, 4), bool)
+    logodds[2, 2] = 2.5  # given cell 2 is window cell (1, 0): tile cell (2, 2)
+    variance[1, 3], variance[2, 3] = 0.25, 0.75  # given cells 1 and 3: window cells (0, 1) and (1, 1)
+    observed[2, 2] = False
+    assert layers[0].tolist() == logodds.tolist() and layers[1].tolist() == variance.tolist()
+    assert layers[2].tolist() == observed.tolist()
+    assert not decoded.is_whole()
 
 
 @pytest.mark.parametrize(("field", "value"), [("seq", True), ("stamp", False), ("tile_updates", True)])

@@ -845,16 +845,36 @@ def test_shard_keeps_a_bounded_number_of_laser_geometries():
     assert len(shard._fusions) == FUSIONS_KEPT
 
 
-def _given_cells(update) -> np.ndarray:
-    """The tile cells an update gives, bool (T, T)."""
-    cells = np.zeros((update.tile_size, update.tile_size), bool)
-    cells[update.row0 : update.row0 + update.rows, update.col0 : update.col0 + update.cols] = update.given_mask()
-    return cells
+def _sent_cells(update) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The tile cells an update gives, those it gives a log-odds for and those it gives a variance for, bool (T, T)
+    each (the given cells in the window's row-major order are the tile's row-major order of them)."""
+    given = np.zeros((update.tile_size, update.tile_size), bool)
+    given[update.row0 : update.row0 + update.rows, update.col0 : update.col0 + update.cols] = update.given_mask()
+    logodds, variance = np.zeros_like(given), np.zeros_like(given)
+    logodds[given], variance[given] = update.layer_cells()
+    return given, logodds, variance
+
+
+def _check_sent(update: TileUpdate, before: list[np.ndarray], now: tuple[np.ndarray, ...]) -> None:
+    """``update`` gives exactly the cells one of whose layers differs between ``before`` and ``now`` (each tile's
+    (log-odds, variance, observed)), with each layer's values only where that layer differs, and pasted over
+    ``before`` it gives ``now``."""
+    given, logodds_cells, variance_cells = _sent_cells(update)
+    differs = [layer != old for layer, old in zip(now, before)]
+    assert given.any() and (given == (differs[0] | differs[1] | differs[2])).all()
+    assert (logodds_cells == differs[0]).all() and (variance_cells == differs[1]).all()
+    np.testing.assert_array_equal(update.logodds, now[0][logodds_cells])
+    np.testing.assert_array_equal(update.variance, now[1][variance_cells])
+    np.testing.assert_array_equal(update.given_observed(), now[2][given])
+    pasted = [layer.copy() for layer in before]
+    update.paste(*pasted)
+    for layer, expected in zip(pasted, now):
+        np.testing.assert_array_equal(layer, expected)
 
 
 def test_tile_updates_carry_only_the_changed_cells():
-    """A fresh tile's first update gives exactly its observed cells (each changed from unobserved), with their
-    values, in the smallest window that holds them."""
+    """A fresh tile's first update gives exactly its observed cells (each changed from unobserved), and of them the
+    log-odds and variances that are not 0 (changed from a new tile's), in the smallest window that holds them."""
     log = logging.getLogger("test-shard")
     shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), publish_interval=0.0), RejectCounter(log))
     shard.handle("pg/r/scan", _scan(0).encode())
@@ -865,11 +885,9 @@ def test_tile_updates_carry_only_the_changed_cells():
     assert again == []  # nothing changed since
     for update in first:
         decoded = decode_message(update.encode(), TileUpdate)
-        logodds, variance, observed = shard.grid.tile_arrays((update.tx, update.ty))
-        sent = _given_cells(decoded)
-        np.testing.assert_array_equal(sent, observed)
-        np.testing.assert_array_equal(decoded.logodds, logodds[sent])
-        np.testing.assert_array_equal(decoded.variance, variance[sent])
+        now = shard.grid.tile_arrays((update.tx, update.ty))
+        _check_sent(decoded, [np.zeros_like(layer) for layer in now], now)
+        observed = now[2]
         rows, cols = np.flatnonzero(observed.any(axis=1)), np.flatnonzero(observed.any(axis=0))
         assert (decoded.row0, decoded.col0) == (rows[0], cols[0])
         assert (decoded.rows, decoded.cols) == (rows[-1] - rows[0] + 1, cols[-1] - cols[0] + 1)
@@ -879,9 +897,9 @@ def test_tile_updates_carry_only_the_changed_cells():
 
 def test_a_tiles_changes_join_until_it_is_published():
     """Scans fused while a tile is held back (publish_interval): its next update gives exactly the cells whose
-    values changed since the last update (compared by numpy with a copy of the tile then), with their values now;
-    a tile whose cells kept their values is not published; and the joined window of two windows is their bounding
-    box (by hand)."""
+    values changed since the last update, and of each the layers that changed (compared by numpy with a copy of the
+    tile then), with their values now; a tile whose cells kept their values is not published; and the joined window
+    of two windows is their bounding box (by hand)."""
     log = logging.getLogger("test-shard")
     shard = MapShard(ShardConfig("m", 0, 1, SensorModel(), publish_interval=10.0), RejectCounter(log))
     shard.handle("pg/r/scan", _scan(0).encode())
@@ -889,23 +907,19 @@ def test_a_tiles_changes_join_until_it_is_published():
     first, _ = shard.due_updates(now=0.0)
     assert [(u.tx, u.ty) for u in first] == [(0, 0)]
     published = [layer.copy() for layer in shard.grid.tile_arrays((0, 0))]
-    for seq in (1, 2):  # other poses: other cells change
+    for seq in (1, 2):  # other poses, two samples each: other cells change, and some cells' spread
         shard.handle("pg/r/scan", _scan(seq).encode())
         pose = _pose(seq)
-        moved = PoseSamples(**{**pose.__dict__, "samples": pose.samples + [0.2 * seq, 0.1, 0.05]})
+        samples = pose.samples + [[0.2 * seq, 0.1, 0.05], [0.2 * seq + 0.3, 0.1, 0.0]]
+        moved = PoseSamples(**{**pose.__dict__, "samples": samples, "weights": np.full(2, 0.5)})
         shard.handle("pg/r/pose", moved.encode())
     held, next_due = shard.due_updates(now=5.0)
     assert held == [] and next_due == 10.0
     updates, _ = shard.due_updates(now=10.0)
     (update,) = [u for u in updates if (u.tx, u.ty) == (0, 0)]
-    now = shard.grid.tile_arrays((0, 0))
-    changed = np.zeros(published[0].shape, bool)
-    for layer, before in zip(now, published):
-        changed |= layer != before
-    sent = _given_cells(update)
-    assert changed.any() and (sent == changed).all()
-    for layer, values in zip(now, (update.logodds, update.variance, update.given_observed())):
-        np.testing.assert_array_equal(values, layer[sent])
+    _check_sent(decode_message(update.encode(), TileUpdate), published, shard.grid.tile_arrays((0, 0)))
+    logodds_cells, variance_cells = update.layer_cells()
+    assert logodds_cells.any() and 0 < variance_cells.mean() < 1  # (the cells seen by one sample kept their spread)
     shard._changed((0, 0), (0, 0, 8, 8))  # a window whose cells kept their values
     assert shard.due_updates(now=20.0)[0] == []
     shard._changed((5, 5), (2, 3, 4, 5))

@@ -139,7 +139,8 @@ def test_a_played_bag_reaches_posegrid_as_the_bag_readers_messages(tmp_path, pro
         )
 
 
-LAYERS = ("logodds", "variance", "observed")
+#: TileUpdate's fields that of_window makes of a window's layers
+CELL_FIELDS = ("logodds", "variance", "observed", "logodds_cells", "variance_cells")
 
 
 def _tiles(stamp_seq: int) -> list[TileUpdate]:
@@ -256,7 +257,7 @@ def test_the_map_and_poses_go_out_as_ros_messages_cell_for_cell(tmp_path, procs,
     window = TileUpdate.of_window(
         (np.full((3, 5), 4.0, np.float32), np.zeros((3, 5), np.float32), np.ones((3, 5), bool)),
         **{
-            **{k: v for k, v in vars(tiles[3]).items() if k not in ("rows", "cols", "given", *LAYERS)},
+            **{k: v for k, v in vars(tiles[3]).items() if k not in ("rows", "cols", "given", *CELL_FIELDS)},
             "row0": 10,
             "col0": 20,
         },

@@ -12,7 +12,7 @@ from bench.scenarios import honest_posed_scans, office_run
 from mapping.fusion import FusionScratch, MonteCarloFusion
 from mapping.grid import TiledGrid
 from mapping.sensor_model import SensorModel
-from mapping.tile_changes import take_changed_cells
+from mapping.tile_changes import ALL_CHANGED, LOGODDS_CHANGED, OBSERVED_CHANGED, VARIANCE_CHANGED, take_changed_cells
 from services.state.ownership import owns_tile
 from test_threads import particle_scans
 
@@ -36,15 +36,12 @@ def layers_now(grid: TiledGrid) -> dict:
     return {key: [layer.copy() for layer in grid.tile_arrays(key)] for key in grid.keys()}  # noqa: SIM118 - a TiledGrid
 
 
-def changed_since(grid: TiledGrid, before: dict, key) -> np.ndarray:
-    """The cells of tile ``key`` whose log-odds, variance or observed differ from ``before`` (:func:`layers_now`; a
-    tile new since then against zeros), bool (T, T)."""
+def changed_since(grid: TiledGrid, before: dict, key) -> list[np.ndarray]:
+    """Of each layer (log-odds, variance, observed) of tile ``key``, the cells that differ from ``before``
+    (:func:`layers_now`; a tile new since then against zeros), bool (T, T) each."""
     now = grid.tile_arrays(key)
     old = before.get(key, [np.zeros_like(layer) for layer in now])
-    changed = np.zeros(now[0].shape, bool)
-    for a, b in zip(now, old):
-        changed |= a != b
-    return changed
+    return [a != b for a, b in zip(now, old)]
 
 
 def scans_of(posed, kind):
@@ -80,7 +77,7 @@ def test_every_changed_cell_lies_in_its_tiles_window(particles, parts):
         result = fusion.apply_parts([fusion.walk(ready, scratches[p], p, parts) for p in range(parts)])
         windows = dict(zip(result.tiles_changed, result.windows))
         for key in grid.keys():  # noqa: SIM118 - a TiledGrid, not a dict
-            changed = changed_since(grid, before, key)
+            changed = np.logical_or.reduce(changed_since(grid, before, key))
             if not changed.any():
                 continue
             row0, col0, rows, cols = windows[key]
@@ -111,6 +108,7 @@ def test_a_grid_that_tracks_changes_marks_exactly_the_changed_cells(particles, t
     fusions = [MonteCarloFusion(grid, MODEL, *particles.single_geometry(), owner) for grid in (tracked, plain)]
     scratches = [FusionScratch() for _ in range(parts)]
     unchanged_but_updated = 0  # cells a scan updated that kept their values: marking every updated cell fails
+    layer_only = 0  # given cells of which a layer kept its value: giving every layer of a given cell fails
     for t, scan in enumerate(scans_of(particles, kind)):
         before = layers_now(tracked)
         ready = fusions[0].prepare(scan)
@@ -120,34 +118,44 @@ def test_a_grid_that_tracks_changes_marks_exactly_the_changed_cells(particles, t
         assert tracked.keys() == plain.keys()
         for key in tracked.keys():  # noqa: SIM118 - a TiledGrid, not a dict
             now = tracked.tile_arrays(key)
-            changed = changed_since(tracked, before, key)
+            differs = changed_since(tracked, before, key)
+            changed = differs[0] | differs[1] | differs[2]
             cells = tracked.take_changes(key, (0, 0, tile_size, tile_size))
             taken = np.zeros_like(changed)
             if cells is not None:
                 row0, col0, rows, cols = cells.window
                 taken[row0 : row0 + rows, col0 : col0 + cols] = cells.given
                 assert cells.given[[0, -1], :].any(axis=1).all() and cells.given[:, [0, -1]].any(axis=0).all()
-                for layer, values in zip(now, cells[2:]):
-                    np.testing.assert_array_equal(values, layer[taken])
+                for layer, layer_cells, values, differ in zip(
+                    now, (cells.logodds_cells, cells.variance_cells), (cells.logodds, cells.variance), differs
+                ):
+                    np.testing.assert_array_equal(layer_cells, differ[taken])
+                    np.testing.assert_array_equal(values, layer[taken][layer_cells])
+                np.testing.assert_array_equal(cells.observed, now[2][taken])
+                layer_only += int((~cells.logodds_cells).sum() + (~cells.variance_cells).sum())
             assert (taken == changed).all(), (t, key)
             changed_cells += int(changed.sum())
             for a, b in zip(now, plain.tile_arrays(key)):
                 np.testing.assert_array_equal(a, b)
         unchanged_but_updated += result.cells_updated - changed_cells
-    assert unchanged_but_updated > 0
+    assert unchanged_but_updated > 0 and layer_only > 0
     assert not tracked.changed.any()  # (taken, so cleared)
 
 
 def test_taking_a_tiles_changed_cells_by_hand():
-    """Two marks in a 4 x 4 tile, looked for in its lower 3 x 4 window: the 2 x 2 window that holds them, which of its
-    cells they are, their values in row-major order; the marks cleared, a mark outside the window left."""
+    """Three marks in a 4 x 4 tile, looked for in its lower 3 x 4 window: the 2 x 2 window that holds two of them,
+    which of its cells they are, which changed their log-odds (cell (1, 2)) and which their variance (cell (2, 1)),
+    those values and both cells' observed, in row-major order; the marks cleared, the mark outside the window left."""
     logodds = np.arange(16, dtype=np.float32).reshape(4, 4)
-    variance, observed, changed = logodds / 2, logodds > 4, np.zeros((4, 4), bool)
-    changed[1, 2] = changed[2, 1] = changed[0, 0] = True
+    variance, observed, changed = logodds / 2, logodds > 4, np.zeros((4, 4), np.uint8)
+    changed[1, 2] = LOGODDS_CHANGED | OBSERVED_CHANGED
+    changed[2, 1] = VARIANCE_CHANGED
+    changed[0, 0] = ALL_CHANGED
     cells = take_changed_cells((logodds, variance, observed, changed), (1, 0, 3, 4))
     assert cells is not None and cells.window == (1, 1, 2, 2)
     assert cells.given.tolist() == [[False, True], [True, False]]
-    assert cells.logodds.tolist() == [6.0, 9.0] and cells.variance.tolist() == [3.0, 4.5]
+    assert cells.logodds_cells.tolist() == [True, False] and cells.logodds.tolist() == [6.0]
+    assert cells.variance_cells.tolist() == [False, True] and cells.variance.tolist() == [4.5]
     assert cells.observed.tolist() == [True, True]
     assert np.flatnonzero(changed).tolist() == [0]
     assert take_changed_cells((logodds, variance, observed, changed), (1, 0, 3, 4)) is None

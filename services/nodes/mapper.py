@@ -352,13 +352,17 @@ class Mapper:
                     self.persister.step(self.shard)
                 self._refresh_stats()
                 flush = self.shard.caught_up() and self.intake.empty()
-                updates, next_due = self.shard.due_updates(time.monotonic(), flush=flush)
-            for update in updates:
-                self.session.put(
-                    keys.tile_key(cfg.map_name, 0, update.tx, update.ty),
-                    sent_payload(update),
-                    congestion_control=zenoh.CongestionControl.BLOCK,
-                )
+                now = time.monotonic()
+                due, next_due = self.shard.due_tiles(now, flush=flush)
+            for tile, window in due:  # each sent as soon as it is made: the next made while zenoh carries it
+                with self.lock:
+                    update = self.shard.take_update(tile, window, now)
+                if update is not None:
+                    self.session.put(
+                        keys.tile_key(cfg.map_name, 0, update.tx, update.ty),
+                        sent_payload(update),
+                        congestion_control=zenoh.CongestionControl.BLOCK,
+                    )
 
     def _undeclare(self) -> None:
         for entity in reversed(self._declared):
@@ -366,9 +370,9 @@ class Mapper:
 
 
 def sent_payload(update: TileUpdate, clock: Callable[[], float] = time.time) -> bytes:
-    """``update`` encoded as it is sent, its ``published`` the Unix time now (s, ``clock``): the updates due after a
-    scan are made together under the shard's lock, and a warehouse scan's 22 take 10 to 15 ms to encode and put one
-    after the other (docs/performance.md, "Over Zenoh"), so the time they were made is not when they were sent."""
+    """``update`` encoded as it is sent, its ``published`` the Unix time now (s, ``clock``): a warehouse scan's 22
+    updates take 10 to 15 ms to make, encode and put one after the other (docs/performance.md, "Over Zenoh"), so
+    the time the shard fused their scan is not when they were sent."""
     return replace(update, published=clock()).encode()
 
 

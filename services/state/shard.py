@@ -48,6 +48,7 @@ from services.state.store.journal import SEED_ROBOT, Journal
 from services.state.store.writer import NO_STORE, PersistReport
 
 TileKey = tuple[int, int]
+TileWindow = tuple[int, int, int, int]  # (row0, col0, rows, cols): tile-local cells
 
 #: a fused seq more than this many times the join capacity (and twice the evicted halves the join may still ask
 #: the histories for: services.state.join.EVICTED_LIMIT) below a robot's highest counts as done
@@ -169,7 +170,7 @@ class MapShard:
         self.tile_updates = 0
         self.started = time.monotonic()
         # per tile changed since it was last published, the window (row0, col0, rows, cols) that holds the changes
-        self._dirty: dict[TileKey, tuple[int, int, int, int]] = {}
+        self._dirty: dict[TileKey, TileWindow] = {}
         self._last_sent: dict[TileKey, float] = {}
         self._last_scan: dict[TileKey, tuple[str, int]] = {}
         self.journal: Journal | None = None  # what changed since the last commit, for a shard with a store
@@ -681,28 +682,42 @@ class MapShard:
         )
 
     def due_updates(self, now: float, flush: bool = False) -> tuple[list[TileUpdate], float | None]:
-        """Updates for the changed tiles whose last update is at least publish_interval old (all with ``flush``).
+        """The updates of the tiles :meth:`due_tiles` gives (:meth:`take_update`), and when the next held-back tile
+        falls due."""
+        due, next_due = self.due_tiles(now, flush)
+        updates = [self.take_update(tile, window, now) for tile, window in due]
+        return [update for update in updates if update is not None], next_due
 
-        Each gives the cells of the tile whose values changed since it was last published (mapping.grid's changed
-        cells, looked for in the fusions' windows of the cells they updated, mapping.tile_boxes, joined; every cell
-        of a tile set whole from a store or a seed), in the smallest window that holds them; a tile none of whose
-        cells changed is not published. Returns the updates and the monotonic time the next held-back tile falls
-        due (None when none is held back)."""
-        updates, next_due = [], None
+    def due_tiles(self, now: float, flush: bool = False) -> tuple[list[tuple[TileKey, TileWindow]], float | None]:
+        """The changed tiles whose last update is at least publish_interval old (all with ``flush``), each with the
+        window that holds its changes (row0, col0, rows, cols: the fusions' windows of the cells they updated,
+        mapping.tile_boxes, joined; the whole tile for one set whole from a store or a seed), no longer held as
+        changed; and the monotonic time the next held-back tile falls due (None when none is held back). Their
+        updates are made by :meth:`take_update`, one by one, so that a caller can send each while it makes the
+        next."""
+        due, next_due = [], None
         for tile, window in list(self._dirty.items()):
-            due = self._last_sent.get(tile, -np.inf) + self.config.publish_interval
-            if not flush and now < due:
-                next_due = due if next_due is None else min(next_due, due)
+            at = self._last_sent.get(tile, -np.inf) + self.config.publish_interval
+            if not flush and now < at:
+                next_due = at if next_due is None else min(next_due, at)
                 continue
             del self._dirty[tile]
-            cells = self.grid.take_changes(tile, window)
-            if cells is None:
-                continue  # (every cell the fusions updated kept its values: clamped, with no spread)
-            fields = self._update_fields(tile, cells.window[0], cells.window[1])
-            updates.append(TileUpdate.of_cells(cells.given, (cells.logodds, cells.variance, cells.observed), **fields))
-            self._last_sent[tile] = now
-        self.tile_updates += len(updates)
-        return updates, next_due
+            due.append((tile, window))
+        return due, next_due
+
+    def take_update(self, tile: TileKey, window: TileWindow, now: float) -> TileUpdate | None:
+        """The update of a due ``tile`` (:meth:`due_tiles`): the cells one of whose values changed since it was last
+        published, and of each the values that changed (mapping.grid's changed cells, looked for in ``window``), in
+        the smallest window that holds them; None when none of its cells changed (it is not published). ``now``:
+        the monotonic time it is sent, s."""
+        cells = self.grid.take_changes(tile, window)
+        if cells is None:
+            return None  # (every cell the fusions updated kept its values: clamped, with no spread)
+        fields = self._update_fields(tile, cells.window[0], cells.window[1])
+        logodds, variance = (cells.logodds_cells, cells.logodds), (cells.variance_cells, cells.variance)
+        self._last_sent[tile] = now
+        self.tile_updates += 1
+        return TileUpdate.of_cells(cells.given, cells.observed, logodds, variance, **fields)
 
     def _changed(self, tile: TileKey, window: tuple[int, int, int, int] | None = None) -> None:
         """Note that ``window`` (row0, col0, rows, cols; default the whole tile) of ``tile`` changed: the tile's
