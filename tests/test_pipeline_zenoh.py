@@ -155,6 +155,7 @@ def test_a_router_port_in_use_names_the_option_to_change():
         (["source", "--posed", "x.npz", "--robot", "map"], "--robot"),
         (["run", "--posed", "/nonexistent.npz"], "no such file"),
         (["run", "--posed", "x.npz", "--shards", "0"], "--shards"),
+        (["run", "--posed", "x.npz", "--max-map-cells", "0"], "--max-map-cells: max_map_cells must be >= 1, got 0"),
         (["run", "--mrclam", "/tmp"], "no laser"),
         (["run", "--carmen", "x.clf", "--algo", "ekf"], "gridslam"),
         (["run", "--bag", "x.bag", "--algo", "fastslam2"], "a ROS bag has no landmarks"),

@@ -645,6 +645,7 @@ def run_pipeline(args: argparse.Namespace) -> int:
         raise UsageError(f"--router-port must be a TCP port, got {args.router_port}")
     _check_positive(args, "accuracy", "resolution")
     refuse_bundle_with_ml(args)
+    limits_from_args(args)  # (a limit out of range refused here, before any process starts)
     _check_log_options(args)
     threads = threads_from_args(args, default=max(1, available_cores() // args.shards))
     restarts = restart_policy(args)
