@@ -300,3 +300,29 @@ def test_a_sync_that_finds_the_cached_tile_unchanged_keeps_its_version():
     service.sync("m")  # now it differs: a new version and one event
     assert registry.version("m", 0, 0, 0) > version
     assert changes == [("m", (0, 0), registry.version("m", 0, 0, 0))]
+
+
+def _whole_tile(tx: int, ty: int, tile_size: int, resolution: float) -> TileUpdate:
+    layers = (
+        np.full((tile_size, tile_size), 1.0, np.float32),
+        np.zeros((tile_size, tile_size), np.float32),
+        np.ones((tile_size, tile_size), bool),
+    )
+    fields = dict(map="m", shard=0, z=0, tx=tx, ty=ty, row0=0, col0=0, robot="r", seq=0, published=0.0)
+    return TileUpdate.of_window(layers, None, tile_size=tile_size, resolution=resolution, **fields)
+
+
+def test_a_tile_querys_reply_of_another_geometry_than_the_maps_is_refused():
+    """A probe's finding: the whole tiles that answer the API's tile queries were checked for their key and map only,
+    so a reply with 4-cell tiles to a map of 2-cell tiles was served at level 0 as it came, and the level-1 tile made
+    of it failed (HTTP 500). The reply is refused as published updates are, and counted; the right one is taken."""
+    from services.api.mappers import MapperLink
+    from services.keys import tile_key
+
+    registry = MapRegistry()
+    registry.tile_changed("m", (0, 0), 0.05, 2)  # (a published update: the map's tiles are 2 cells of 0.05 m)
+    link = MapperLink(None, registry, None, None)  # type: ignore[arg-type]  # (no session: no query is sent)
+    replies = [(tile_key("m", 0, 1, 0), _whole_tile(1, 0, *geometry).encode()) for geometry in ((4, 0.1), (2, 0.05))]
+    taken = link._whole_tiles("m", replies)
+    assert [(tile.tile_size, tile.resolution) for tile in taken] == [(2, 0.05)]
+    assert link.rejects.kinds() == {"key": 1}

@@ -343,6 +343,16 @@ def test_the_join_holds_at_most_its_byte_bound_of_every_robots_halves():
         assert buffer.held_bytes() <= 10_000 and buffer.held_bytes(robot) == 2000
 
 
+def test_messages_held_beyond_the_seq_window_count_in_the_byte_bound():
+    """A probe's finding: a message beyond the seq window that confirmed no run returned before the byte bound was
+    checked, so 16 robots' far messages held 441 MiB against a bound of 16. Seqs 2 apart confirm no run."""
+    buffer = JoinBuffer(capacity=512, max_bytes=10_000, size=len)
+    for robot in "abc":
+        for q in range(64):
+            buffer.add_scan((robot, 5000 + 2 * q), "x" * 1000)
+            assert buffer.held_bytes() <= 10_000
+
+
 def test_join_takes_a_held_message_when_its_stream_goes_past_it_after_another_gap():
     """Losses on both sides of a held message (scans 0 and 2 lost): the stream went past it, so it was real."""
     buffer = JoinBuffer(capacity=16)

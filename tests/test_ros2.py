@@ -337,3 +337,18 @@ def test_play_refuses_a_missing_bag_and_a_ros1_bag(tmp_path, capsys):
     path = ros1.write(tmp_path / "a.bag")
     assert main(["ros2", "play", str(path), "--connect", "tcp/127.0.0.1:1"]) == 2
     assert "a ROS 1 bag; `posegrid ros2 play` replays ROS 2 bags" in capsys.readouterr().err
+
+
+def test_the_map_mirror_holds_at_most_its_tile_bound(monkeypatch):
+    """A probe's finding: with 1-cell tiles the raster bound let a mirror hold 2**28 tiles, and its whole grid is made
+    tile by tile (60 000 took 0.7 s a grid). A new tile past MAX_MIRROR_TILES is refused; the tiles held still
+    update, and the mirror's extent follows the tiles taken."""
+    from services.ros2 import mapout
+
+    monkeypatch.setattr(mapout, "MAX_MIRROR_TILES", 3)
+    mirror = MapMirror()
+    for tx in range(3):
+        assert mirror.check(_tile(tx, -tx)) == ""
+        mirror.apply(_tile(tx, -tx))
+    assert "past 3 tiles" in mirror.check(_tile(5, 0))
+    assert mirror.check(_tile(1, -1, seed=2)) == "" and mirror.extent() == (0, -2, 2, 0)

@@ -191,10 +191,8 @@ class MapperLink:
         except MessageError as exc:
             self.rejects.count(key, exc.reason, str(exc))
             return
-        problem = (
-            self._tile_problem(key, update)
-            or self.registry.check_sender(update.map, update.shard, (update.tx, update.ty))
-            or self.registry.check_geometry(update.map, update.resolution, update.tile_size)
+        problem = self._foreign_tile(key, update) or self.registry.check_sender(
+            update.map, update.shard, (update.tx, update.ty)
         )
         if problem:
             self.rejects.count(key, "key", problem)
@@ -224,13 +222,14 @@ class MapperLink:
             return
         self.hub.pose(summary)
 
-    @staticmethod
-    def _tile_problem(key: str, update: TileUpdate) -> str | None:
-        """Why ``update`` does not belong on ``key`` (None when it does)."""
+    def _foreign_tile(self, key: str, update: TileUpdate) -> str | None:
+        """Why ``update`` does not belong on ``key`` or to its map (None when it does): another tile's key, a zoom
+        level other than 0, or a tile size or resolution other than the map's (a tile query's reply of another
+        geometry was served as it came, and the coarser levels made of it failed)."""
         expected = keys.tile_key(update.map, update.z, update.tx, update.ty)
         if key != expected or update.z != 0:
             return f"a TileUpdate for {expected} arrived on {key}"
-        return None
+        return self.registry.check_geometry(update.map, update.resolution, update.tile_size)
 
     # ---------------------------------------------------------------------------- queries
     def _get(self, selector: str, timeout: float | None = None):
@@ -264,7 +263,7 @@ class MapperLink:
             except MessageError as exc:
                 self.rejects.count(key, exc.reason, str(exc))
                 continue
-            problem = self._tile_problem(key, update)
+            problem = self._foreign_tile(key, update)
             if not problem and update.map != map_name:
                 problem = f"a tile of map {update.map!r} answered a query about map {map_name!r}"
             if not problem and not update.is_whole():

@@ -21,6 +21,10 @@ from services.ros2.convert import occupancy_values, variance_values
 #: (tx0, ty0, tx1, ty1): the tiles a published grid spans, inclusive
 Extent = tuple[int, int, int, int]
 
+#: the most tiles a mirror holds: the whole grid is made tile by tile, and a map of 1-cell tiles within
+#: MAX_RASTER_CELLS would be 2**28 of them (a map of 256-cell tiles reaches MAX_RASTER_CELLS with 4 096)
+MAX_MIRROR_TILES = 1 << 16
+
 
 @dataclass(frozen=True)
 class Raster:
@@ -51,11 +55,13 @@ class MapMirror:
         self.published: Extent | None = None  # the tiles of the grid last published
         self.dirty = False  # changed since the whole grid was last published
         self.grown = False  # holds a tile beyond the grid last published
+        self._extent: Extent | None = None  # the bounding box of the tiles held
 
     def check(self, tile: TileUpdate) -> str:
         """Why ``tile`` cannot be taken, or "": a zoom level other than 0, a resolution or tile size other than
         the first tile's (two maps under one name), or a new tile that would take the grid past MAX_RASTER_CELLS
-        cells (the whole grid could no longer be published, and the tiles held are bounded)."""
+        cells (the whole grid could no longer be published, and the tiles held are bounded) or the mirror past
+        MAX_MIRROR_TILES tiles."""
         if tile.z != 0:
             return f"zoom level {tile.z}; only level 0 is mirrored"
         grid = self.grid
@@ -66,9 +72,11 @@ class MapMirror:
                 f"a tile of {tile.tile_size} cells at {tile.resolution} m, but the map's are "
                 f"{grid.tile_size} cells at {grid.resolution} m"
             )
-        extent = self.extent()
+        extent = self._extent
         if extent is not None and (tile.tx, tile.ty) not in grid:
-            grown = (min(extent[0], tile.tx), min(extent[1], tile.ty), max(extent[2], tile.tx), max(extent[3], tile.ty))
+            if grid.tile_count >= MAX_MIRROR_TILES:
+                return f"tile ({tile.tx}, {tile.ty}) would take the mirror past {MAX_MIRROR_TILES} tiles"
+            grown = _grown(extent, (tile.tx, tile.ty))
             cells = self.cells(grown)
             if cells > MAX_RASTER_CELLS:
                 return (
@@ -83,6 +91,8 @@ class MapMirror:
         if self.grid is None:
             self.grid = TiledGrid(tile.resolution, tile.tile_size)
         key = (tile.tx, tile.ty)
+        if key not in self.grid:
+            self._extent = (*key, *key) if self._extent is None else _grown(self._extent, key)
         self.grid.slot(key)  # (created, all unknown, when new)
         layers = self.grid.tile_arrays(key)
         tile.paste(*layers)
@@ -99,10 +109,7 @@ class MapMirror:
 
     def extent(self) -> Extent | None:
         """The bounding box of the tiles held, None when none is."""
-        if self.grid is None or not self.grid.keys():
-            return None
-        keys = np.array(self.grid.keys())
-        return (int(keys[:, 0].min()), int(keys[:, 1].min()), int(keys[:, 0].max()), int(keys[:, 1].max()))
+        return self._extent
 
     def cells(self, extent: Extent) -> int:
         """Cells of a grid spanning ``extent``."""
@@ -132,3 +139,8 @@ class MapMirror:
         self.published, self.dirty, self.grown = extent, False, False
         span = size * grid.resolution
         return Raster(occupancy, variance, (extent[0] * span, extent[1] * span), grid.resolution, extent)
+
+
+def _grown(extent: Extent, tile: tuple[int, int]) -> Extent:
+    """``extent`` widened to hold ``tile`` (tx, ty)."""
+    return (min(extent[0], tile[0]), min(extent[1], tile[1]), max(extent[2], tile[0]), max(extent[3], tile[1]))

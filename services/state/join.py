@@ -229,7 +229,7 @@ class JoinBuffer(Generic[ScanT, PoseT]):
             pairs, gone = [], [GivenUp(robot, seq, 1, is_scan, AHEAD)]
             run = _run_through(far, seq) if seq in far else []
             if len(run) < CONFIRM_RUN or len(run) % CONFIRM_RUN or not self._vouched(robot, is_scan, run[0], far):
-                return pairs, gone
+                return pairs, gone + self._within_bytes()  # (held far messages count in the bound too)
             for other in run:  # the stream goes on in order from the far side: its jump is real
                 more_pairs, more = self._add((robot, other), far.pop(other), is_scan, confirmed=True)
                 pairs, gone = pairs + more_pairs, gone + more

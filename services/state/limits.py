@@ -90,10 +90,11 @@ class ShardLimits:
         tile_size: int,
         sensor_reach: float = 0.0,
     ) -> tuple[str, str] | None:
-        """(kind, one sentence) when fusing a scan of ``beams`` beams to ``range_max`` m from pose ``samples``
-        (M, 3: x m, y m, yaw rad in the map frame) would pass a limit; None when it may be fused. ``sensor_reach``
-        (m): how far from the robot the laser lies (the length of its sensor offset's x, y), so that the bound
-        and the extent hold for the laser's positions and the cells its beams reach, not only the robot's."""
+        """(kind, one sentence) when fusing a scan of ``beams`` beams whose walk reaches ``range_max`` m from the laser
+        (the sensor model's reach for the scan's range_max, mapping.sensor_model.SensorModel.beam_reach) from pose
+        ``samples`` (M, 3: x m, y m, yaw rad in the map frame) would pass a limit; None when it may be fused.
+        ``sensor_reach`` (m): how far from the robot the laser lies (the length of its sensor offset's x, y), so that
+        the bound and the extent hold for the laser's positions and the cells its beams reach, not only the robot's."""
         far = np.abs(samples[:, :2]).max(initial=0.0) + sensor_reach
         if not far <= self.map_bound:
             return "bound", (

@@ -450,17 +450,21 @@ class MapShard:
     def _fuse_pairs(self, pairs: list[tuple[LaserScan, PoseDistribution]]) -> list[list[TileKey]]:
         """Fuse ``pairs`` into the owned tiles, in order; the tiles each changed (none for one refused)."""
         tiles: list[list[TileKey]] = [[] for _ in pairs]
-        drawn = []  # (index, scan, samples, weights) of the pairs to fuse
+        drawn, reaches = [], []  # (index, scan, samples, weights) of the pairs to fuse; how far each reaches, m
         for index, (scan, pose) in enumerate(pairs):
-            samples = self._draw(scan, pose)
-            if samples is not None:
-                drawn.append((index, scan, *samples))
+            got = self._draw(scan, pose)
+            if got is not None:
+                drawn.append((index, scan, got[0], got[1]))
+                reaches.append(got[2])
+        drawn = self._within_map_limit(drawn, reaches)
         for (index, scan, _, _), outcome in zip(drawn, self._fuse_drawn(drawn)):
             tiles[index] = self._count_outcome(scan, outcome)
         return tiles
 
-    def _draw(self, scan: LaserScan, pose: PoseDistribution) -> tuple[np.ndarray, np.ndarray] | None:
-        """The pose samples and weights to fuse ``scan`` with; None after counting why it is refused."""
+    def _draw(self, scan: LaserScan, pose: PoseDistribution) -> tuple[np.ndarray, np.ndarray, float] | None:
+        """The pose samples and weights to fuse ``scan`` with, and how far from the samples its beams may reach (m:
+        the sensor model's reach for range_max, mapping.sensor_model.SensorModel.beam_reach, and the length of the
+        sensor offset); None after counting why it is refused."""
         try:
             samples, weights = self.pose_samples(scan, pose)
         except Exception as exc:  # noqa: BLE001 - counted and logged with its traceback (_count_outcome)
@@ -468,39 +472,65 @@ class MapShard:
             return None
         cfg = self.config
         sensor_reach = math.hypot(float(scan.sensor_offset[0]), float(scan.sensor_offset[1]))
+        reach = cfg.model.beam_reach(scan.range_max)
         refused = cfg.limits.scan_problem(
-            samples, scan.ranges.shape[0], scan.range_max, cfg.model.resolution, cfg.tile_size, sensor_reach
+            samples, scan.ranges.shape[0], reach, cfg.model.resolution, cfg.tile_size, sensor_reach
         )
-        refused = refused or self._map_problem(samples, scan.range_max + sensor_reach)
         if refused is not None:
-            self.discarded[scan.robot] += 1
-            self.rejects.count(f"fuse/{scan.robot}", refused[0], f"scan seq {scan.seq} refused: {refused[1]}")
+            self._refuse(scan, *refused)
             return None
-        return samples, weights
+        return samples, weights, reach + sensor_reach
 
-    def _map_problem(self, samples: np.ndarray, reach: float) -> tuple[str, str] | None:
-        """("map", why) when a scan whose beams reach ``reach`` m from the laser positions ``samples`` (M, 3: x m,
-        y m, yaw rad) could add tiles of this shard's past --max-map-cells; None when it may be fused. The tiles
-        counted are the owned tiles in the scan's reach (:func:`services.state.limits.reach_tiles`) that the grid
-        does not hold yet; they are listed only when the map is near its limit."""
+    def _refuse(self, scan: LaserScan, kind: str, why: str) -> None:
+        """Count ``scan`` as given up, refused by a limit (``kind``; ``why``, one sentence)."""
+        self.discarded[scan.robot] += 1
+        self.rejects.count(f"fuse/{scan.robot}", kind, f"scan seq {scan.seq} refused: {why}")
+
+    def _within_map_limit(
+        self, drawn: list[tuple[int, LaserScan, np.ndarray, np.ndarray]], reaches: list[float]
+    ) -> list[tuple[int, LaserScan, np.ndarray, np.ndarray]]:
+        """The scans of ``drawn`` ((index, scan, samples, weights) each, in fusion order; ``reaches``: how far each
+        scan's beams reach from its samples, m) that --max-map-cells lets this shard fuse; the others are counted as
+        refused ("map"). A batch's scans are all checked before any is fused, so the tiles its earlier scans may add
+        count for the later ones. When the tiles within reach of every scan (their count, an upper bound) fit, all
+        may be fused; else each scan's new tiles are listed, the owned tiles within its reach that neither the grid
+        nor an earlier scan of the batch holds (:func:`services.state.limits.reach_tiles`)."""
         cfg = self.config
         per_tile = cfg.tile_size * cfg.tile_size
         resolution = cfg.model.resolution
-        limit = cfg.limits.max_map_cells
-        held = self.grid.tile_count
-        if (held * per_tile + reach_cells(samples, reach, resolution, cfg.tile_size)) <= limit:
-            return None
-        listed = reach_tiles(samples, reach, resolution, cfg.tile_size)
-        if listed is None:  # (too many to list: a scan the extent limit refuses with its default)
-            new = reach_cells(samples, reach, resolution, cfg.tile_size) // per_tile
-        else:
-            new = sum(1 for tx, ty in listed.tolist() if (tx, ty) not in self.grid and self.owns(tx, ty))
-        if (held + new) * per_tile <= limit:
-            return None
-        return "map", (
-            f"it may add {new} tile(s) of {per_tile} cells to the {held} this shard holds, past the limit of "
-            f"{limit:.3g} cells (--max-map-cells; raise it, or run more shards)"
-        )
+        limit = cfg.limits.max_map_cells // per_tile  # (tiles)
+        counts = [
+            reach_cells(samples, reach, resolution, cfg.tile_size) // per_tile
+            for (_, _, samples, _), reach in zip(drawn, reaches)
+        ]
+        if self.grid.tile_count + sum(counts) <= limit:
+            return drawn
+        kept = []
+        adding: set[TileKey] = set()
+        unlisted = 0  # tiles of the kept scans too wide to list, counted
+        for item, reach, count in zip(drawn, reaches, counts):
+            listed = reach_tiles(item[2], reach, resolution, cfg.tile_size)
+            new = None
+            if listed is not None:
+                new = {(tx, ty) for tx, ty in listed.tolist() if (tx, ty) not in self.grid and self.owns(tx, ty)}
+                new -= adding
+            more = count if new is None else len(new)
+            held = self.grid.tile_count + len(adding) + unlisted
+            if held + more > limit:
+                self._refuse(
+                    item[1],
+                    "map",
+                    f"it may add {more} tile(s) of {per_tile} cells to the {held} this shard holds or is adding, past "
+                    f"the limit of {cfg.limits.max_map_cells:.3g} cells (--max-map-cells; raise it, or run more "
+                    "shards)",
+                )
+                continue
+            kept.append(item)
+            if new is None:
+                unlisted += count
+            else:
+                adding |= new
+        return kept
 
     def _fuse_drawn(self, drawn: list[tuple[int, LaserScan, np.ndarray, np.ndarray]]) -> list[FuseResult | Exception]:
         """The outcome of fusing each scan of ``drawn`` ((index, scan, samples, weights) each) with the fusion of its
