@@ -75,6 +75,9 @@ FAR_KEPT = 64
 #: believed on the run alone. A peer forging a run of seqs is never in the real publisher's history
 CONFIRM_RUN = 16
 
+#: the share of ``max_bytes`` the join evicts down to once its halves pass it
+BYTES_AFTER_EVICTION = 0.9
+
 #: what each reason means, for the logs
 GIVEN_UP_BECAUSE = {
     OVERFLOW: "the join buffer was full, and it was past what the buffer remembers to ask the histories for again "
@@ -133,7 +136,8 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         self.window = _at_least_one(window, "seq window")
         self.max_bytes = max_bytes
         self._size = size
-        self._largest = 0  # bytes of the largest half offered so far: bounds what the halves waiting here hold
+        # at least the bytes of the halves waiting here: their count when last counted, and every half offered since
+        self._bound = 0
         self._digest = digest
         # (robot, scans?) -> {seq: item} beyond the window
         self._far: dict[tuple[str, bool], dict[int, ScanT | PoseT]] = {}
@@ -218,7 +222,7 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         robot, seq = key
         stream = (robot, is_scan)
         if self.max_bytes is not None:
-            self._largest = max(self._largest, self._size(item))
+            self._bound += self._size(item)
         if trusted or not self.beyond_window(robot, is_scan, seq):
             pairs, gone = self._add(key, item, is_scan)
         else:
@@ -263,20 +267,25 @@ class JoinBuffer(Generic[ScanT, PoseT]):
 
     def _within_bytes(self) -> list[GivenUp]:
         """Evict waiting halves while every robot's together hold more than ``max_bytes``: one at a time from the
-        robot that holds the most (so that a robot flooding the buffer loses its own halves, not another's)."""
+        robot that holds the most (so that a robot flooding the buffer loses its own halves, not another's), down to
+        :data:`BYTES_AFTER_EVICTION` of the bound, so that the halves are counted again only after that much more
+        has come (a count walks every half waiting: 7.8 ms with 9 216 of them)."""
         gone: list[GivenUp] = []
-        if self.max_bytes is None or self._waiting() * self._largest <= self.max_bytes:
-            return gone  # (the bound needs no walk over the halves: with laser scans of kilobytes it always holds)
+        if self.max_bytes is None or self._bound <= self.max_bytes:
+            return gone
         held = self._bytes_by_robot()
-        while sum(held.values()) > self.max_bytes:
-            for robot, _ in held.most_common():
-                evicted = self._evict_one(robot)
-                if evicted is not None:
-                    break
-            else:
-                break  # (only halves held past a gap are left: each stream holds one at most)
-            held[robot] -= evicted[0]
-            gone += evicted[1]
+        if sum(held.values()) > self.max_bytes:
+            target = int(self.max_bytes * BYTES_AFTER_EVICTION)
+            while sum(held.values()) > target:
+                for robot, _ in held.most_common():
+                    evicted = self._evict_one(robot)
+                    if evicted is not None:
+                        break
+                else:
+                    break  # (only halves held past a gap are left: each stream holds one at most)
+                held[robot] -= evicted[0]
+                gone += evicted[1]
+        self._bound = sum(held.values())
         return gone
 
     def _evict_one(self, robot: str) -> tuple[int, list[GivenUp]] | None:
