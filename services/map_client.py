@@ -57,11 +57,17 @@ class MapReader:
     def assemble(self, shards: int, resolution: float, timeout: float = 60.0) -> TiledGrid:
         """The whole map as one grid of cells ``resolution`` m, checked against the shards' own tile counts.
 
-        Raises :class:`IncompleteMap` when a shard does not answer or a tile is missing or duplicated.
+        Raises :class:`IncompleteMap` when a shard does not answer or says the map has another number of shards, or a
+        tile is missing or duplicated.
         """
         stats = self.stats()
         if sorted(stats) != list(range(shards)):
             raise IncompleteMap(f"expected shards 0..{shards - 1} of map {self.map_name!r}, got {sorted(stats)}")
+        for shard, shard_stats in stats.items():
+            if shard_stats.shards != shards:
+                raise IncompleteMap(
+                    f"shard {shard} says map {self.map_name!r} has {shard_stats.shards} shard(s), not {shards}"
+                )
         tiles = self.tiles(timeout)
         per_shard = dict.fromkeys(range(shards), 0)
         seen = set()

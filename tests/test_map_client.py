@@ -36,9 +36,10 @@ def sessions(procs):  # noqa: F811
     shard.close()
 
 
-def _serve(session: zenoh.Session, tiles: list[TileUpdate]) -> list:
-    """Answer map "m"'s stats query as its one shard holding ``tiles``, and its tile query with them."""
-    shard_stats = stats(map="m", shard=0, shards=1, tiles_owned=len(tiles))
+def _serve(session: zenoh.Session, tiles: list[TileUpdate], shards: int = 1) -> list:
+    """Answer map "m"'s stats query as its shard 0 (of ``shards``, by its stats) holding ``tiles``, and its tile query
+    with them."""
+    shard_stats = stats(map="m", shard=0, shards=shards, tiles_owned=len(tiles))
 
     def on_stats(query: zenoh.Query) -> None:
         query.reply(keys.stats_key("m", 0), shard_stats.encode())
@@ -72,5 +73,16 @@ def test_every_tile_of_an_assembled_map_has_the_maps_geometry(sessions, second, 
     else:
         with pytest.raises(IncompleteMap, match=refused):
             reader.assemble(1, 0.05, timeout=10.0)
+    for entity in served:
+        entity.undeclare()
+
+
+def test_a_map_whose_shards_say_there_are_more_of_them_is_incomplete(sessions):
+    """A probe's finding: assemble checked that shards 0 .. n-1 answered for the n its caller gave, not that they
+    said n: shard 0 of 3 answering a caller who asked for one gave a map without the other shards' tiles."""
+    shard, reader_session = sessions
+    served = _serve(shard, [_tile(0)], shards=3)
+    with pytest.raises(IncompleteMap, match="has 3 shard"):
+        MapReader(reader_session, "m").assemble(1, 0.05, timeout=10.0)
     for entity in served:
         entity.undeclare()
