@@ -4,6 +4,8 @@ map's cell size, not only the first."""
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 import zenoh
@@ -54,6 +56,20 @@ def _serve(session: zenoh.Session, tiles: list[TileUpdate], shards: int = 1) -> 
     ]
 
 
+def _until_served(reader: zenoh.Session) -> None:
+    """Wait until the queryables _serve declared reach ``reader`` through the router (on a busy machine that took
+    longer than the reader's first query: "expected shards 0..0, got []"), at most 20 s."""
+    deadline = time.monotonic() + 20.0
+    while time.monotonic() < deadline:
+        for key in (keys.stats_key("m", 0), keys.tile_key("m", 0, "*", "*")):
+            if not any(reply.ok is not None for reply in reader.get(key, timeout=2.0)):
+                break
+        else:
+            return
+        time.sleep(0.05)
+    raise AssertionError("the played shard's queryables did not reach the reader in 20 s")
+
+
 @pytest.mark.parametrize(
     ("second", "refused"),
     [
@@ -65,6 +81,7 @@ def _serve(session: zenoh.Session, tiles: list[TileUpdate], shards: int = 1) -> 
 def test_every_tile_of_an_assembled_map_has_the_maps_geometry(sessions, second, refused):
     shard, reader_session = sessions
     served = _serve(shard, [_tile(0), _tile(1, **second)])
+    _until_served(reader_session)
     reader = MapReader(reader_session, "m")
     if refused is None:
         grid = reader.assemble(1, 0.05, timeout=10.0)
@@ -82,6 +99,7 @@ def test_a_map_whose_shards_say_there_are_more_of_them_is_incomplete(sessions):
     said n: shard 0 of 3 answering a caller who asked for one gave a map without the other shards' tiles."""
     shard, reader_session = sessions
     served = _serve(shard, [_tile(0)], shards=3)
+    _until_served(reader_session)
     with pytest.raises(IncompleteMap, match="has 3 shard"):
         MapReader(reader_session, "m").assemble(1, 0.05, timeout=10.0)
     for entity in served:
