@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import json
 import logging
+import math
 import signal
 import subprocess
 import sys
@@ -327,6 +328,33 @@ def test_reach_cells_counts_the_union_of_the_widened_sample_tiles():
     assert reach_cells(cloud, 5.0, 0.05, 256) == 9 * 256 * 256
     assert reach_cells(cloud, 30.0, 0.05, 256) == 49 * 256 * 256  # 30 m: three tiles a side, 7 x 7
     assert reach_cells(np.zeros((0, 3)), 5.0, 0.05, 256) == 0
+
+
+def test_reach_tiles_are_the_slow_references_union_of_squares():
+    """Random clouds (1 to 40 samples spread 1 cm to 300 m, tiles of 1 to 256 cells, reach up to 12 tiles): the tiles
+    listed are exactly the union of each sample's tile widened by ceil(reach / tile side) tiles, built here one tile
+    at a time, and reach_cells counts them; where the box is too large to list, the count is at least the union."""
+    rng = np.random.default_rng(3)
+    for _ in range(150):
+        count, tile_size = int(rng.integers(1, 40)), int(2 ** rng.integers(0, 9))
+        side = tile_size * 0.05
+        reach, spread = float(rng.uniform(0.01, 12 * side)), float(rng.choice([0.01, 1.0, 30.0, 300.0]))
+        samples = np.column_stack(
+            [rng.normal(0, spread, count) + rng.uniform(-500, 500), rng.normal(0, spread, count), np.zeros(count)]
+        )
+        widen = math.ceil(reach / side)
+        union = {
+            (math.floor(x / side) + dx, math.floor(y / side) + dy)
+            for x, y, _ in samples
+            for dx in range(-widen, widen + 1)
+            for dy in range(-widen, widen + 1)
+        }
+        listed = reach_tiles(samples, reach, 0.05, tile_size)
+        cells = reach_cells(samples, reach, 0.05, tile_size)
+        if listed is None:
+            assert cells >= len(union) * tile_size**2
+        else:
+            assert {(tx, ty) for tx, ty in listed.tolist()} == union and cells == len(union) * tile_size**2
 
 
 def test_a_pose_cloud_spread_over_a_large_area_is_refused_by_the_extent_limit():

@@ -154,10 +154,6 @@ class JoinBuffer(Generic[ScanT, PoseT]):
     def __len__(self) -> int:
         return len(self._pending) + len(self._held)
 
-    def _waiting(self) -> int:
-        """How many halves wait here, of every robot (for a partner, past a gap, or beyond the window)."""
-        return 2 * len(self._pending) + len(self._held) + sum(len(far) for far in self._far.values())
-
     def held_bytes(self, robot: str | None = None) -> int:
         """Bytes (as ``size`` measures them) of ``robot``'s halves waiting here (for a partner, past a gap, or
         beyond the window); of every robot's with None."""

@@ -41,7 +41,7 @@ from services.state.join import (
     JoinBuffer,
     SeqLedger,
 )
-from services.state.limits import ShardLimits, reach_cells, reach_tiles
+from services.state.limits import ShardLimits, reach_tiles
 from services.state.ownership import owns_tile
 from services.state.store.db import Batch, LedgerEntry, RobotState, StoredState, TileState
 from services.state.store.journal import SEED_ROBOT, Journal
@@ -450,7 +450,7 @@ class MapShard:
     def _fuse_pairs(self, pairs: list[tuple[LaserScan, PoseDistribution]]) -> list[list[TileKey]]:
         """Fuse ``pairs`` into the owned tiles, in order; the tiles each changed (none for one refused)."""
         tiles: list[list[TileKey]] = [[] for _ in pairs]
-        drawn, reaches = [], []  # (index, scan, samples, weights) of the pairs to fuse; how far each reaches, m
+        drawn, reaches = [], []  # (index, scan, samples, weights) of the pairs to fuse; (m, cells) each reaches
         for index, (scan, pose) in enumerate(pairs):
             got = self._draw(scan, pose)
             if got is not None:
@@ -461,10 +461,11 @@ class MapShard:
             tiles[index] = self._count_outcome(scan, outcome)
         return tiles
 
-    def _draw(self, scan: LaserScan, pose: PoseDistribution) -> tuple[np.ndarray, np.ndarray, float] | None:
-        """The pose samples and weights to fuse ``scan`` with, and how far from the samples its beams may reach (m:
-        the sensor model's reach for range_max, mapping.sensor_model.SensorModel.beam_reach, and the length of the
-        sensor offset); None after counting why it is refused."""
+    def _draw(self, scan: LaserScan, pose: PoseDistribution) -> tuple[np.ndarray, np.ndarray, tuple[float, int]] | None:
+        """The pose samples and weights to fuse ``scan`` with, and how far from the samples its beams may reach: m
+        (the sensor model's reach for range_max, mapping.sensor_model.SensorModel.beam_reach, and the length of the
+        sensor offset) and the cells of the tiles within that reach (services.state.limits.reach_cells); None after
+        counting why it is refused."""
         try:
             samples, weights = self.pose_samples(scan, pose)
         except Exception as exc:  # noqa: BLE001 - counted and logged with its traceback (_count_outcome)
@@ -473,13 +474,13 @@ class MapShard:
         cfg = self.config
         sensor_reach = math.hypot(float(scan.sensor_offset[0]), float(scan.sensor_offset[1]))
         reach = cfg.model.beam_reach(scan.range_max)
-        refused = cfg.limits.scan_problem(
+        refused, cells = cfg.limits.check_scan(
             samples, scan.ranges.shape[0], reach, cfg.model.resolution, cfg.tile_size, sensor_reach
         )
         if refused is not None:
             self._refuse(scan, *refused)
             return None
-        return samples, weights, reach + sensor_reach
+        return samples, weights, (reach + sensor_reach, cells)
 
     def _refuse(self, scan: LaserScan, kind: str, why: str) -> None:
         """Count ``scan`` as given up, refused by a limit (``kind``; ``why``, one sentence)."""
@@ -487,10 +488,11 @@ class MapShard:
         self.rejects.count(f"fuse/{scan.robot}", kind, f"scan seq {scan.seq} refused: {why}")
 
     def _within_map_limit(
-        self, drawn: list[tuple[int, LaserScan, np.ndarray, np.ndarray]], reaches: list[float]
+        self, drawn: list[tuple[int, LaserScan, np.ndarray, np.ndarray]], reaches: list[tuple[float, int]]
     ) -> list[tuple[int, LaserScan, np.ndarray, np.ndarray]]:
         """The scans of ``drawn`` ((index, scan, samples, weights) each, in fusion order; ``reaches``: how far each
-        scan's beams reach from its samples, m) that --max-map-cells lets this shard fuse; the others are counted as
+        scan's beams reach from its samples, m, and the cells of the tiles within that reach, :meth:`_draw`) that
+        --max-map-cells lets this shard fuse; the others are counted as
         refused ("map"). A batch's scans are all checked before any is fused, so the tiles its earlier scans may add
         count for the later ones. When the tiles within reach of every scan (their count, an upper bound) fit, all
         may be fused; else each scan's new tiles are listed, the owned tiles within its reach that neither the grid
@@ -499,16 +501,13 @@ class MapShard:
         per_tile = cfg.tile_size * cfg.tile_size
         resolution = cfg.model.resolution
         limit = cfg.limits.max_map_cells // per_tile  # (tiles)
-        counts = [
-            reach_cells(samples, reach, resolution, cfg.tile_size) // per_tile
-            for (_, _, samples, _), reach in zip(drawn, reaches)
-        ]
+        counts = [cells // per_tile for _, cells in reaches]
         if self.grid.tile_count + sum(counts) <= limit:
             return drawn
         kept = []
         adding: set[TileKey] = set()
         unlisted = 0  # tiles of the kept scans too wide to list, counted
-        for item, reach, count in zip(drawn, reaches, counts):
+        for item, (reach, _), count in zip(drawn, reaches, counts):
             listed = reach_tiles(item[2], reach, resolution, cfg.tile_size)
             new = None
             if listed is not None:
@@ -749,7 +748,7 @@ class MapShard:
         self.tile_updates += 1
         return TileUpdate.of_cells(cells.given, cells.observed, logodds, variance, **fields)
 
-    def _changed(self, tile: TileKey, window: tuple[int, int, int, int] | None = None) -> None:
+    def _changed(self, tile: TileKey, window: TileWindow | None = None) -> None:
         """Note that ``window`` (row0, col0, rows, cols; default the whole tile) of ``tile`` changed: the tile's
         window due for publication grows to hold it."""
         size = self.grid.tile_size
