@@ -312,7 +312,7 @@ def test_a_laser_offset_beyond_the_map_bound_is_refused():
     stats = shard.stats({})
     assert stats.fused == {"r": 2} and stats.discarded == {"r": 1} and shard.rejects.kinds() == {"bound": 1}
     assert all(abs(tx) < 5 and abs(ty) < 5 for tx, ty in shard.tiles())
-    near = ShardLimits(map_bound=500.0).scan_problem(np.array([[3.0, 3.0, 0.0]]), 5, 5.0, 0.05, 256, 0.3)
+    near, _ = ShardLimits(map_bound=500.0).check_scan(np.array([[3.0, 3.0, 0.0]]), 5, 5.0, 0.05, 256, 0.3)
     assert near is None  # a laser mounted 0.3 m off the base is no problem
 
 

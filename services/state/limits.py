@@ -84,19 +84,6 @@ class ShardLimits:
         with room for intensities and the envelope) or a pose of the most samples a message may carry."""
         return 16 * self.max_beams + 2**20
 
-    def scan_problem(
-        self,
-        samples: np.ndarray,
-        beams: int,
-        range_max: float,
-        resolution: float,
-        tile_size: int,
-        sensor_reach: float = 0.0,
-    ) -> tuple[str, str] | None:
-        """(kind, one sentence) when fusing a scan would pass a limit; None when it may be fused
-        (:meth:`check_scan`'s first item)."""
-        return self.check_scan(samples, beams, range_max, resolution, tile_size, sensor_reach)[0]
-
     def check_scan(
         self,
         samples: np.ndarray,
