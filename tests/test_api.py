@@ -33,6 +33,8 @@ from services.map_client import MapReader
 from services.state.ownership import tile_owner
 from services.zenoh_config import build_config, open_session
 
+STATIC = ROOT / "services" / "api" / "static"  # the viewer's files
+
 pytestmark = pytest.mark.slow
 
 MAP, SHARDS, RESOLUTION, TILE, SCANS = "lab", 2, 0.02, 32, 20
@@ -517,6 +519,12 @@ def test_viewer_page_and_assets_are_served(api):
         response = httpx.get(f"{api}/{asset}", timeout=30)
         assert response.status_code == 200 and kind in response.headers["content-type"]
         assert "https://" not in response.text and "http://" not in response.text, f"{asset} loads an outside asset"
+        # a Range is ignored, whatever its unit or form (HTTP lets a server ignore it; a unit it does not know it
+        # must): the whole file, 200, where Starlette answered a plain-text 400 to the malformed ones
+        whole = (STATIC / (asset.removeprefix("static/") or "index.html")).read_bytes()
+        for ranges in ("bytes=0-5", "items=0-5", "bytes=-1,0-0,5-2", "bytes=abc", "bytes=99999999-"):
+            ranged = httpx.get(f"{api}/{asset}", headers={"Range": ranges}, timeout=30)
+            assert (ranged.status_code, ranged.content) == (200, whole), (asset, ranges, ranged.text[:200])
 
 
 def test_api_command_rejects_a_taken_port():

@@ -486,6 +486,10 @@ def test_an_export_beyond_the_cell_limit_is_413_before_it_is_built_and_a_window_
     assert "x_min < x_max" in problem(
         httpx.get(f"{api}/maps/{MAP}/export", params={"format": "npz", **window, "x_max": 1.0}, timeout=30), 422
     )
+    # edges whose cell index overflows a float (1e308 m over 0.05 m cells) are edges far away, not a 500
+    for far in ({"x_min": 1e300, "x_max": 1e308}, {"y_min": -1e308, "y_max": -1e300}):
+        response = httpx.get(f"{api}/maps/{MAP}/export", params={"format": "png", **window, **far}, timeout=30)
+        assert "observed" in problem(response, 409), far
 
 
 def test_export_layers_follow_the_openapi_schema(api, session):

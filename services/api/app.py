@@ -13,23 +13,21 @@ from __future__ import annotations
 import asyncio
 import contextlib
 from collections.abc import AsyncIterator
-from pathlib import Path as FilePath
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import FileResponse, JSONResponse
-from fastapi.staticfiles import StaticFiles
+from fastapi.responses import JSONResponse
+from starlette.routing import Route
 
 from services.api.backend import Backend
 from services.api.limits import HttpLimits
 from services.api.routes import ROUTERS
 from services.api.routes.common import Api
 from services.api.tiles import TileUnavailable
+from services.api.viewer_files import viewer_assets, viewer_page
 from services.map_client import IncompleteMap
 
 __all__ = ["Backend", "create_app"]
-
-STATIC = FilePath(__file__).resolve().parent / "static"
 
 DESCRIPTION = """\
 Occupancy maps built by posegrid's mapper shards, read over Zenoh: map summaries, tiles at every zoom level,
@@ -62,11 +60,6 @@ async def unavailable(request: Request, exc: Exception) -> JSONResponse:
     return JSONResponse({"detail": str(exc)}, status_code=503)
 
 
-async def viewer() -> FileResponse:
-    """The browser viewer (services/api/static/)."""
-    return FileResponse(STATIC / "index.html")
-
-
 def create_app(backend: Backend, limits: HttpLimits | None = None) -> FastAPI:
     """The FastAPI application over ``backend``, within ``limits`` (None: the defaults of HttpLimits)."""
 
@@ -87,6 +80,6 @@ def create_app(backend: Backend, limits: HttpLimits | None = None) -> FastAPI:
     app.state.api = Api(backend, limits or HttpLimits())
     for router in ROUTERS:
         app.include_router(router)
-    app.add_api_route("/", viewer, methods=["GET"], include_in_schema=False)
-    app.mount("/static", StaticFiles(directory=STATIC), name="static")
+    app.router.routes.append(Route("/", viewer_page(), methods=["GET"], include_in_schema=False))
+    app.mount("/static", viewer_assets(), name="static")
     return app

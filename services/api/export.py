@@ -10,7 +10,7 @@ inside it, cropped to them.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,6 +18,16 @@ import numpy as np
 from mapping.grid import TiledGrid
 
 TileKey = tuple[int, int]
+
+# A window edge's cell index is held within +-2^62 cells: an edge past that (1e308 m over 0.05 m cells is inf
+# cells) holds no tile a map can have, and its index as an int is still what the overlap tests compare.
+CELL_INDEX_LIMIT = 2.0**62
+
+
+def _cell_edge(edge: float, resolution: float, rounding: Callable[[float], int]) -> int:
+    """``rounding`` (math.floor or math.ceil) of ``edge`` / ``resolution`` (m over m/cell), held within
+    :data:`CELL_INDEX_LIMIT` so that a finite edge whose quotient overflows to inf gives a cell index too."""
+    return int(rounding(min(CELL_INDEX_LIMIT, max(-CELL_INDEX_LIMIT, edge / resolution))))
 
 
 @dataclass(frozen=True)
@@ -33,10 +43,10 @@ class Window:
     def of(cls, x_min: float, y_min: float, x_max: float, y_max: float, resolution: float) -> Window:
         """The cells of ``resolution`` m that overlap [x_min, x_max) x [y_min, y_max) m."""
         return cls(
-            math.floor(x_min / resolution),
-            math.floor(y_min / resolution),
-            math.ceil(x_max / resolution),
-            math.ceil(y_max / resolution),
+            _cell_edge(x_min, resolution, math.floor),
+            _cell_edge(y_min, resolution, math.floor),
+            _cell_edge(x_max, resolution, math.ceil),
+            _cell_edge(y_max, resolution, math.ceil),
         )
 
     def overlaps(self, tile: TileKey, tile_size: int) -> bool:

@@ -1,0 +1,52 @@
+"""The browser viewer's files (services/api/static/), served whole whatever a request's Range header asks.
+
+Starlette's FileResponse answers byte ranges, and a Range it cannot parse (a unit other than bytes, a range that
+ends before it starts) with a plain-text 400, where HTTP says a server must ignore a unit it does not know (RFC
+9110, section 14.2) and the API's errors are JSON. The viewer's files are a few KB, so the server takes HTTP's other
+choice: it ignores Range (and If-Range) on them and answers 200 with the whole file.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Awaitable, Callable, MutableMapping
+from pathlib import Path
+from typing import Any
+
+from fastapi.responses import FileResponse
+from fastapi.staticfiles import StaticFiles
+
+Scope = MutableMapping[str, Any]
+Receive = Callable[[], Awaitable[MutableMapping[str, Any]]]
+Send = Callable[[MutableMapping[str, Any]], Awaitable[None]]
+AsgiApp = Callable[[Scope, Receive, Send], Awaitable[None]]
+
+RANGE_HEADERS = (b"range", b"if-range")
+
+FOLDER = Path(__file__).resolve().parent / "static"
+
+
+class WholeFiles:
+    """The ASGI app ``app`` with a request's Range and If-Range headers dropped before it sees them."""
+
+    def __init__(self, app: AsgiApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "http":
+            headers = [(key, value) for key, value in scope["headers"] if key.lower() not in RANGE_HEADERS]
+            scope = {**scope, "headers": headers}
+        await self.app(scope, receive, send)
+
+
+async def _index(scope: Scope, receive: Receive, send: Send) -> None:
+    await FileResponse(FOLDER / "index.html")(scope, receive, send)
+
+
+def viewer_page() -> WholeFiles:
+    """The viewer's page (index.html), for the route ``/``."""
+    return WholeFiles(_index)
+
+
+def viewer_assets() -> WholeFiles:
+    """The viewer's scripts and styles, for the mount ``/static``."""
+    return WholeFiles(StaticFiles(directory=FOLDER))
