@@ -231,7 +231,7 @@ def read_npz(path: str | Path, what: str) -> dict[str, np.ndarray]:
     sentence when the file is missing, not a .npz archive (a bare .npy array, say) or damaged."""
     path = Path(path)
     if not path.is_file():
-        raise FormatError(f"{path}: no such file (expected a {what} .npz)")
+        raise FormatError(f"{path}: {_not_a_file(path)} (expected a {what} .npz)")
     with open(path, "rb") as handle:
         magic = handle.read(6)
     if magic[:2] != b"PK" and magic != b"\x93NUMPY":  # numpy would call anything else pickled data
@@ -606,8 +606,14 @@ def load_map(path: str | Path) -> MapFile:
     )
 
 
+#: cells a truth raster may hold (2^25: 290 m x 290 m of 0.05 m cells). Scoring takes about 80 bytes a visible
+#: cell (their indices, the map's probability over them, the sort for the AUC), so this bounds it near 2.7 GB; a
+#: 778 KB file of 20 000 x 20 000 cells took past 19 GB before it was bounded.
+MAX_TRUTH_CELLS = 2**25
+
+
 def load_truth(path: str | Path) -> TruthRaster:
-    """Read and validate a truth raster."""
+    """Read and validate a truth raster (at most :data:`MAX_TRUTH_CELLS` cells)."""
     what = "truth raster"
     data = read_npz(path, what)
     occupied = _flags(_require(data, "occupied", path, what), "occupied", path)
@@ -615,6 +621,12 @@ def load_truth(path: str | Path) -> TruthRaster:
     if occupied.ndim != 2 or visible.shape != occupied.shape:
         raise FormatError(
             f"{path}: 'occupied' and 'visible' must be 2-D of one shape, got {occupied.shape} and {visible.shape}"
+        )
+    if occupied.size > MAX_TRUTH_CELLS:
+        rows, columns = occupied.shape
+        raise FormatError(
+            f"{path}: {rows} x {columns} cells, more than the {MAX_TRUTH_CELLS} a truth raster may hold (scoring "
+            "takes about 80 bytes a cell); crop it to the mapped area or give it coarser cells"
         )
     origin, resolution = _raster_frame(data, path, what)
     return TruthRaster(occupied, visible, origin, resolution)
@@ -630,6 +642,18 @@ _SPECIAL_KINDS = (
     (stat.S_ISFIFO, "a FIFO"),
     (stat.S_ISSOCK, "a socket"),
 )
+
+
+def _not_a_file(path: Path) -> str:
+    """What ``path``, no regular file, is instead: missing, a folder, a device, a FIFO or a socket."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return "no such file"
+    if stat.S_ISDIR(mode):
+        return "is a folder, not a file"
+    kind = next((name for test, name in _SPECIAL_KINDS if test(mode)), "not a regular file")
+    return f"is {kind}, not a regular file"
 
 
 def output_path_problem(path: str | Path) -> str | None:

@@ -29,6 +29,10 @@ MIN_TRANSLATION = 1e-6
 #: accepted (low, high) of every motion-noise alpha: a variance of 1000 times the squared motion (per 0.1 s)
 #: already makes the motion uninformative, and far larger ones overflow into NaN poses
 ALPHA_LIMITS = (0.0, 1e3)
+#: the largest |forward velocity| (m/s) and |angular velocity| (rad/s) a velocity command may hold: no ground robot
+#: comes near 1000 m/s or 1000 rad/s, and commands near 1e6 made the EKF's covariance lose its positive
+#: semi-definiteness (commands of 1e300 overflowed)
+VELOCITY_LIMIT = 1e3
 
 
 def _sinc(a: np.ndarray) -> np.ndarray:

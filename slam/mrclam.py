@@ -14,6 +14,7 @@ slam.calibration; profile ``mrclam7`` is dataset 7's).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,6 +22,7 @@ import numpy as np
 
 from slam.calibration import Calibration
 from slam.errors import LogFormatError, refuse_special_file
+from slam.motion import VELOCITY_LIMIT
 from slam.range_bearing import BEARING_LIMIT
 from slam.sequence import SlamSequence
 
@@ -36,12 +38,14 @@ _COLUMNS = {
 }
 
 
-def read_table(path: str | Path, kind: str, timed: bool = True) -> np.ndarray:
+def read_table(
+    path: str | Path, kind: str, timed: bool = True, bound: tuple[int, ...] = (), limit: float = math.inf
+) -> np.ndarray:
     """Rows of one MRCLAM text file as float64 (R, C); C from ``kind`` (a key of the column table).
 
     Lines starting with '#' and blank lines are skipped. A line with the wrong number of fields, a field that is
-    not a finite number or (``timed``) a time earlier than the line before raises LogFormatError naming the
-    file and the line number.
+    not a finite number, a field of the columns ``bound`` beyond +-``limit`` or (``timed``) a time earlier than
+    the line before raises LogFormatError naming the file and the line number.
     """
     path = Path(path)
     columns = _COLUMNS[kind]
@@ -74,6 +78,12 @@ def read_table(path: str | Path, kind: str, timed: bool = True) -> np.ndarray:
             ) from None
         if not all(np.isfinite(values)):
             raise LogFormatError(f"{path.name} line {number}: a value is NaN or inf")
+        for column in bound:
+            if abs(values[column]) > limit:
+                name, unit = columns.split(", ")[column].rsplit(" ", 1)
+                raise LogFormatError(
+                    f"{path.name} line {number}: {name} {values[column]:g} {unit} is beyond +-{limit:g} {unit}"
+                )
         if timed and rows and values[0] < rows[-1][0]:
             raise LogFormatError(f"{path.name} line {number}: time {values[0]} s is earlier than the line before")
         rows.append(values)
@@ -123,7 +133,7 @@ def read_mrclam(folder: str | Path, robot: int) -> MrclamRobot:
     subject_of = {int(barcode): int(subject) for subject, barcode in barcodes}
     raw = read_table(folder / f"Robot{robot}_Measurement.dat", "Measurement")
     subjects = np.array([subject_of.get(int(b), -1) for b in raw[:, 1]], dtype=np.int64)
-    odometry = read_table(folder / f"Robot{robot}_Odometry.dat", "Odometry")
+    odometry = read_table(folder / f"Robot{robot}_Odometry.dat", "Odometry", bound=(1, 2), limit=VELOCITY_LIMIT)
     is_landmark = subjects > ROBOT_SUBJECTS
     inside = (raw[:, 0] >= odometry[0, 0]) & (raw[:, 0] <= odometry[-1, 0])
     valid = (raw[:, 2] > 0.0) & (np.abs(raw[:, 3]) <= BEARING_LIMIT)

@@ -13,8 +13,8 @@ landmark positions in m (for scoring only).
 
 Frames and ordering follow slam.sequence: measurements are sorted by step. The loader refuses values the
 filters cannot use: alphas outside slam.motion.ALPHA_LIMITS, noise outside slam.range_bearing's limits,
-``velocity_dt_ref`` outside :data:`DT_REF_LIMITS`, negative ranges, and poses, commands or positions beyond
-+-POSE_LIMIT (1e7 m; slam.laserlog).
+``velocity_dt_ref`` outside :data:`DT_REF_LIMITS`, negative ranges, commands beyond slam.motion.VELOCITY_LIMIT,
+and poses or positions beyond +-POSE_LIMIT (1e7 m; slam.laserlog).
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ import numpy as np
 
 from slam.errors import LogFormatError
 from slam.laserlog import POSE_LIMIT
-from slam.motion import ALPHA_LIMITS, OdometryMotionModel, VelocityMotionModel, odometry_controls
+from slam.motion import ALPHA_LIMITS, VELOCITY_LIMIT, OdometryMotionModel, VelocityMotionModel, odometry_controls
 from slam.range_bearing import BEARING_LIMIT, SIGMA_BEARING_LIMITS, SIGMA_RANGE_LIMITS, RangeBearingModel
 from slam.sequence import SlamSequence
 
@@ -188,7 +188,7 @@ def load_sim_log(folder: str | Path) -> SimLog:
         folder / CONTROLS_FILE,
         c,
         {
-            "commands": pose_range,
+            "commands": (-VELOCITY_LIMIT, VELOCITY_LIMIT),  # (v m/s, w rad/s)
             "odometry": pose_range,
             "initial_pose": pose_range,
             "velocity_alphas": ALPHA_LIMITS,

@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import os
 import subprocess
 import sys
 import warnings
@@ -76,6 +77,10 @@ def test_fuse_says_when_the_sensor_model_draws_walls_behind_the_returns(posed_fi
         "fuse", str(posed_file), "-o", str(tmp_path / "b.npz"), "--sigma-model", "stereo", "--baseline-focal", "50"
     )
     assert noisy.returncode == 0 and "behind its return" in noisy.stderr and "--peak-width" in noisy.stderr
+    # l already wider than sigma (1 m against 0.03): the offset (0.6 mm) shows only in cells finer than it, and the
+    # remedy is coarser cells, not a peak width "raised towards sigma"
+    fine = posegrid("fuse", str(posed_file), "-o", str(tmp_path / "c.npz"), "--resolution", "1e-4", "--peak-width", "1")
+    assert "behind its return" in fine.stderr and "--resolution" in fine.stderr and "towards sigma" not in fine.stderr
 
 
 def test_fuse_is_reproducible_byte_for_byte(posed_file, tmp_path):
@@ -174,7 +179,15 @@ def test_malformed_posed_files_exit_2_with_one_line(tmp_path, arrays, phrase):
 def test_not_an_npz_and_missing_file(tmp_path, run):
     junk = tmp_path / "junk.npz"
     junk.write_text("hello")
-    for path, phrase in ((junk, "not a .npz archive"), (tmp_path / "absent.npz", "no such file")):
+    fifo = tmp_path / "fifo.npz"
+    os.mkfifo(fifo)
+    for path, phrase in (
+        (junk, "not a .npz archive"),
+        (tmp_path / "absent.npz", "no such file"),
+        (tmp_path, "is a folder"),  # these three were "no such file"
+        (fifo, "is a FIFO"),
+        (Path("/dev/null"), "is a character device"),
+    ):
         result = run("fuse", str(path), "-o", str(tmp_path / "m.npz"))
         assert result.returncode == 2 and len(result.stderr.strip().splitlines()) == 1 and phrase in result.stderr
 
@@ -190,6 +203,11 @@ def test_fuse_then_export_as_processes(posed_file, tmp_path):
 def test_bad_option_value_exit_2(posed_file, tmp_path):
     result = posegrid("fuse", str(posed_file), "-o", str(tmp_path / "m.npz"), "--sigma0", "-1")
     assert result.returncode == 2 and "sigma0" in result.stderr
+    # cells no map file may hold: fuse wrote a map of 2 km cells that export and eval then refused
+    for resolution in ("2000", "5e-7"):
+        result = posegrid("fuse", str(posed_file), "-o", str(tmp_path / "m.npz"), "--resolution", resolution)
+        _one_line_exit_2(result, "--resolution must be in [1e-06, 1000] m")
+    assert not (tmp_path / "m.npz").exists()
 
 
 @pytest.mark.parametrize(
@@ -309,6 +327,10 @@ def test_truth_of_one_class_scores_auc_null_and_a_nan_origin_is_one_line(tmp_pat
     assert 0 < scores["brier"] < 1 and "one class only" in one_class.stderr
     np.savez(tmp_path / "nan.npz", occupied=walls, visible=walls, origin=np.array([np.nan, 0.0]), resolution=0.05)
     _one_line_exit_2(posegrid("eval", str(map_path), str(tmp_path / "nan.npz")), "'origin' must be 2 finite")
+    # a cell past 2^25: a 778 KB file of 20 000 x 20 000 visible cells took eval past 19 GB
+    huge = np.zeros((2**12, 2**13 + 1), bool)
+    np.savez_compressed(tmp_path / "huge.npz", occupied=huge, visible=~huge, origin=np.zeros(2), resolution=0.05)
+    _one_line_exit_2(posegrid("eval", str(map_path), str(tmp_path / "huge.npz")), "4096 x 8193 cells, more than")
 
 
 def test_export_names_must_fit_the_format(posed_file, tmp_path):

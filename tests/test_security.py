@@ -190,7 +190,10 @@ def test_secure_init_writes_the_material_and_refuses_to_overwrite(tmp_path, caps
         assert "--days must be 1 to 36500" in err and "\n" not in err and "Traceback" not in err, err
 
 
-@pytest.mark.parametrize("host", ["a\nb", "a b", "-router", "router-", "a..b", "x" * 64, "tls/router", "[::1]", ""])
+@pytest.mark.parametrize(
+    "host",
+    ["a\nb", "a b", "-router", "router-", "a..b", "x" * 64, "tls/router", "[::1]", "", "256.0.0.1", "1.2.3.4.5"],
+)
 def test_secure_init_refuses_what_is_no_host_name(tmp_path, capsys, host):
     """The name goes into the router's certificate and every client's endpoint; 'a\\nb' wrote configs that
     connect to no router."""
@@ -199,9 +202,19 @@ def test_secure_init_refuses_what_is_no_host_name(tmp_path, capsys, host):
     assert "--host takes a bare DNS name" in err and "Traceback" not in err and not (tmp_path / "s").exists()
 
 
-@pytest.mark.parametrize("host", ["router", "robot-1.lab.example", "posegrid_router", "10.0.0.2", "fe80::1"])
+@pytest.mark.parametrize("host", ["router", "robot-1.lab.example", "posegrid_router", "10.0.0.2", "fe80::1", "1a.b2"])
 def test_secure_init_takes_names_and_addresses(tmp_path, host):
     assert main(["secure-init", str(tmp_path / "s"), "--host", host]) == 0
+
+
+def test_secure_init_and_simulate_make_no_missing_parent(tmp_path, capsys):
+    """As every output path: a folder in a missing folder is refused, not made with its parents (mode 755, where
+    DIR is 0700)."""
+    for argv in (["secure-init", str(tmp_path / "absent" / "s")], ["simulate", str(tmp_path / "absent" / "sim")]):
+        assert main([*argv, *(["--steps", "5"] if argv[0] == "simulate" else [])]) == 2
+        err = capsys.readouterr().err.strip()
+        assert f"folder {tmp_path / 'absent'} does not exist" in err and "\n" not in err, err
+        assert not (tmp_path / "absent").exists()
 
 
 @pytest.mark.parametrize(

@@ -239,6 +239,17 @@ def test_noise_options_at_their_limits_give_finite_poses(simdir, tmp_path):
     assert (np.linalg.eigvalsh(poses.cov) >= 0).all()
 
 
+def test_an_outlier_gate_of_inf_turns_the_gate_off(simdir, tmp_path):
+    """--outlier-gate's help says 'inf' turns the gate off; the option refused 'inf' as not a finite number."""
+    means = {}
+    for name, gate in (("inf", "inf"), ("huge", "1e300"), ("tight", "1e-3")):
+        out = tmp_path / f"{name}.npz"
+        assert main(["slam", "--algo", "ekf", str(simdir), "-o", str(out), "--outlier-gate", gate]) == 0
+        means[name] = load_posed_scans(out).poses.mean
+    np.testing.assert_array_equal(means["inf"], means["huge"])  # no measurement is gated either way
+    assert not np.array_equal(means["tight"], means["inf"])  # and the gate is read: a tight one changes the poses
+
+
 def test_mrclam_period_and_initial_pose_are_bounded(tmp_path, capsys):
     _mrclam_sample(tmp_path)
     out = tmp_path / "x.npz"
@@ -396,6 +407,7 @@ def _altered_copy(simdir: Path, folder: Path, name: str, **arrays) -> Path:
         ("controls.npz", "odometry_alphas", [0, 0, 2e3, 0], "'odometry_alphas' must lie in [0, 1000]"),
         ("controls.npz", "velocity_dt_ref", 0.0, "'velocity_dt_ref' must lie in [0.001, 1000]"),
         ("controls.npz", "odometry", "1e300", "'odometry' must lie in [-1e+07, 1e+07]"),
+        ("controls.npz", "commands", "1e4", "'commands' must lie in [-1000, 1000]"),  # 1e6 gave a non-PSD cov
         ("landmarks.npz", "range", "-1", "'range' must lie in [0, 1e+07]"),
         ("landmarks.npz", "bearing", "1e20", "'bearing' must lie in [-6.28319, 6.28319]"),
         ("landmarks.npz", "sigma_bearing", 1e-300, "'sigma_bearing' must lie in [0.001, 3.14159]"),

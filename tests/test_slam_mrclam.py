@@ -161,6 +161,9 @@ def test_reading_gives_the_data_as_logged_and_the_profile_corrects_them(sample):
         ("100.5 \t abc \t 0.1\r\n", "line 8: expected 3 numbers"),
         ("100.5 \t nan \t 0.1\r\n", "line 8: a value is NaN or inf"),
         ("99.0 \t 0.1 \t 0.1\r\n", "line 8: time 99.0 s is earlier"),
+        # velocities no robot has: 1e300 overflowed the filters into NaN poses blamed on the output file
+        ("100.5 \t 1e300 \t 0.1\r\n", r"line 8: forward velocity 1e\+300 m/s is beyond \+-1000 m/s"),
+        ("100.5 \t 0.1 \t -2e3\r\n", r"line 8: angular velocity -2000 rad/s is beyond \+-1000 rad/s"),
     ],
 )
 def test_bad_lines_name_file_and_line(sample, line, message):

@@ -5,6 +5,7 @@ and several laser geometries behave as they do scan by scan; `posegrid fuse`, th
 from __future__ import annotations
 
 import logging
+import os
 
 import numpy as np
 import pytest
@@ -307,12 +308,16 @@ def test_posegrid_fuse_writes_the_same_file_on_two_threads_as_on_one(particles, 
     posed = tmp_path / "office.npz"
     save_posed_scans(posed, particles)
     outputs = []
-    for threads in ("1", "2"):
+    for threads in ("1", "2", "1000"):
         output = tmp_path / f"map{threads}.npz"
         result = posegrid("fuse", str(posed), "-o", str(output), "--threads", threads)
         assert result.returncode == 0, result.stderr
         outputs.append(output.read_bytes())
-    assert outputs[0] == outputs[1]
+    assert outputs[0] == outputs[1] == outputs[2]
+    # more threads than cores fuse on the cores (each thread's scratch window took memory for nothing: 64 threads
+    # were accepted on 2 cores), and say so
+    cores = len(os.sched_getaffinity(0))
+    assert f"--threads 1000 is more than the {cores} core(s) this process may use; fusing on {cores}" in result.stderr
 
 
 @pytest.mark.parametrize(

@@ -22,6 +22,17 @@ def finite_float(text: str) -> float:
     return value
 
 
+def finite_or_inf(text: str) -> float:
+    """A finite number or 'inf' (a bound that 'inf' turns off, such as --outlier-gate); NaN and -inf are refused."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not (math.isfinite(value) or value == math.inf):
+        raise argparse.ArgumentTypeError(f"must be a finite number or inf, got {text!r}")
+    return value
+
+
 def path_argument(text: str) -> Path:
     """A path given on the command line; an empty one is refused (``Path("")`` would quietly mean the current
     folder)."""

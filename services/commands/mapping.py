@@ -118,8 +118,9 @@ def add_threads_argument(parser: argparse.ArgumentParser | argparse._ArgumentGro
 
 
 def threads_from_args(args: argparse.Namespace, default: int | None = None) -> int:
-    """--threads as given, an integer >= 1; when not given ``default``, or every core this process may use
-    (:func:`available_cores`). UsageError (one sentence) for any other value."""
+    """--threads as given, an integer >= 1, at most the cores this process may use (:func:`available_cores`; a
+    larger count is lowered to them, with a note); when not given ``default``, or every core this process may use.
+    UsageError (one sentence) for any other value."""
     from services.errors import UsageError
 
     if args.threads is None:
@@ -130,6 +131,15 @@ def threads_from_args(args: argparse.Namespace, default: int | None = None) -> i
         threads = 0
     if threads < 1:
         raise UsageError(f"--threads must be a whole number of threads >= 1, got {args.threads!r}")
+    cores = available_cores()
+    if threads > cores:  # the map is the same for any count; more threads than cores only take more memory
+        print(
+            f"posegrid: note: --threads {threads} is more than the {cores} core(s) this process may use; fusing on "
+            f"{cores} (more threads fuse no faster, and each takes a scratch window of its own)",
+            file=sys.stderr,
+            flush=True,
+        )
+        return cores
     return threads
 
 
@@ -137,6 +147,7 @@ def sensor_model_from_args(args: argparse.Namespace):
     """The sensor model the options describe; a sigma option that the chosen --sigma-model does not read is
     refused rather than ignored."""
     from mapping.sensor_model import SensorModel
+    from schemas.files import RASTER_RESOLUTION_LIMITS
     from services.errors import UsageError
 
     unread = {"constant": ("sigma_slope", "baseline_focal"), "linear": ("baseline_focal",), "stereo": ("sigma_slope",)}[
@@ -148,6 +159,9 @@ def sensor_model_from_args(args: argparse.Namespace):
                 f"--{name.replace('_', '-')} does nothing with --sigma-model {args.sigma_model}; drop it "
                 "or choose the model that reads it"
             )
+    low, high = RASTER_RESOLUTION_LIMITS  # a map of other cells could be written but never read back
+    if not low <= args.resolution <= high:
+        raise UsageError(f"--resolution must be in [{low:g}, {high:g}] m (a map file's cells), got {args.resolution:g}")
 
     return SensorModel(**{field: getattr(args, dest(option)) for option, field in SENSOR_MODEL_OPTIONS.items()})
 
@@ -267,11 +281,16 @@ def _note_peak_behind_returns(model, posed) -> None:
     sigma = float(model.sigma_at(z))
     behind = min(float(model.peak_range(np.array([z]))[0]) - z, TAIL_SIGMAS * sigma)  # beams stop at z + 3 sigma
     if behind > model.resolution / 2:
+        remedy = (
+            "raise --peak-width towards sigma"
+            if model.l < sigma  # the offset sigma^2 ln 2 / l is sigma ln 2 or more
+            else f"cells of {model.resolution:.3g} m are far finer than the range noise: use cells nearer sigma "
+            "(--resolution)"
+        )
         print(
             f"posegrid fuse: note: at {z:.3g} m the range noise sigma is {sigma:.3g} m against a peak width l of "
             f"{model.l:.3g} m, so the strongest occupied evidence of a beam lies {behind:.3g} m behind its return, "
-            "and walls are drawn behind the surfaces; raise --peak-width towards sigma (docs/sensor_model.md, "
-            "section 1)",
+            f"and walls are drawn behind the surfaces; {remedy} (docs/sensor_model.md, section 1)",
             file=sys.stderr,
             flush=True,
         )

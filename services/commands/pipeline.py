@@ -15,6 +15,7 @@ from services.commands.api import add_http_arguments, api_child_options, check_p
 from services.commands.argtypes import (
     checked_output,
     finite_float,
+    finite_or_inf,
     odom_delay_seconds,
     path_argument,
     pose_sample_count,
@@ -399,7 +400,7 @@ def add_slam_arguments(parser: argparse.ArgumentParser, particles: int | None = 
     )
     group.add_argument(
         "--outlier-gate",
-        type=finite_float,
+        type=finite_or_inf,
         default=None,
         metavar="D2",
         help="known ids: ignore a measurement beyond this squared Mahalanobis distance",

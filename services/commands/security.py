@@ -61,15 +61,16 @@ _DNS_LABEL = re.compile(r"[A-Za-z0-9_]([A-Za-z0-9_-]{0,61}[A-Za-z0-9_])?")
 
 
 def _is_host(text: str) -> bool:
-    """Whether ``text`` is an IP address or a DNS name (at most 253 characters of dot-separated labels), the
-    forms a certificate's subject alternative name and a Zenoh endpoint both take."""
+    """Whether ``text`` is an IP address or a DNS name (at most 253 characters of dot-separated labels, the last not
+    all digits), the forms a certificate's subject alternative name and a Zenoh endpoint both take."""
     try:
         ipaddress.ip_address(text)
         return True
     except ValueError:
         pass
     labels = text.split(".")
-    return 0 < len(text) <= 253 and all(_DNS_LABEL.fullmatch(label) for label in labels)
+    # a last label of digits only is no DNS name (RFC 3696, section 2): 256.0.0.1 or 1.2.3.4.5 is a mistyped address
+    return 0 < len(text) <= 253 and all(_DNS_LABEL.fullmatch(label) for label in labels) and not labels[-1].isdigit()
 
 
 def _endpoint_host(host: str) -> str:
@@ -80,13 +81,13 @@ def _endpoint_host(host: str) -> str:
 def run_secure_init(args: argparse.Namespace) -> int:
     """write a CA, TLS certificates, passwords and per-role Zenoh configs (docs/security.md)
 
-    Write into DIR (created with mode 0700; every file 0600) what a deployment secured with Zenoh's own mechanisms
-    needs: a certificate authority (ca.pem; its key is not kept), the router's certificate for localhost,
-    127.0.0.1 and every --host, one client certificate and password per role, the router's config (router.json5:
-    TLS with client certificates, the password dictionary, access control that denies by default) and one client
-    config per role (ROLE.json5). Roles: source-ROBOT and slam-ROBOT per robot, mapper-MAP per map, api, launcher.
-    Start each process with --zenoh-config DIR/ROLE.json5; run it again (with --force) to replace the material,
-    e.g. for a new robot or before the certificates expire."""
+    Write into DIR (created with mode 0700 in a folder that exists; every file 0600) what a deployment secured with
+    Zenoh's own mechanisms needs: a certificate authority (ca.pem; its key is not kept), the router's certificate
+    for localhost, 127.0.0.1 and every --host, one client certificate and password per role, the router's config
+    (router.json5: TLS with client certificates, the password dictionary, access control that denies by default) and
+    one client config per role (ROLE.json5). Roles: source-ROBOT and slam-ROBOT per robot, mapper-MAP per map, api,
+    launcher. Start each process with --zenoh-config DIR/ROLE.json5; run it again (with --force) to replace the
+    material, e.g. for a new robot or before the certificates expire."""
     from services.commands.pipeline import DEFAULT_MAP, DEFAULT_ROBOT, _check_name
     from services.errors import UsageError
     from services.security import DEFAULT_VALID_DAYS, MAX_VALID_DAYS, write_material
@@ -110,6 +111,8 @@ def run_secure_init(args: argparse.Namespace) -> int:
     listen = f"tls/{_endpoint_host(args.listen_address)}:{args.port}"
     if args.folder.exists() and not args.folder.is_dir():
         raise UsageError(f"{args.folder} exists and is not a folder")
+    if not args.folder.absolute().parent.is_dir():  # as every output path: a mistyped parent is not made
+        raise UsageError(f"{args.folder}: folder {args.folder.absolute().parent} does not exist; create it first")
     if args.folder.is_dir() and any(args.folder.iterdir()) and not args.force:
         raise UsageError(f"{args.folder} is not empty; pass --force to replace its material")
     hosts = args.host or [args.listen_address if args.listen_address not in ("0.0.0.0", "::") else "127.0.0.1"]

@@ -18,6 +18,7 @@ from services.commands.argtypes import (
     check_outputs,
     checked_output,
     finite_float,
+    finite_or_inf,
     path_argument,
     pose_sample_count,
     random_seed,
@@ -199,7 +200,7 @@ def _add_noise_options(slam: argparse.ArgumentParser) -> None:
     )
     noise.add_argument(
         "--outlier-gate",
-        type=finite_float,
+        type=finite_or_inf,
         default=None,
         metavar="D2",
         help="known ids: ignore a measurement whose squared Mahalanobis distance exceeds D2 "
@@ -238,8 +239,8 @@ def _add_eval_traj(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _simulation_folder(text: str) -> Path:
-    """OUTDIR of `posegrid simulate`, created if missing, after checking that it can hold every one of
-    :data:`slam.simlog.SIMULATION_FILES` (UsageError otherwise, naming the path and what to do)."""
+    """OUTDIR of `posegrid simulate`, created if missing (its parent must exist), after checking that it can hold
+    every one of :data:`slam.simlog.SIMULATION_FILES` (UsageError otherwise, naming the path and what to do)."""
     from services.errors import UsageError
     from slam.simlog import SIMULATION_FILES
 
@@ -248,8 +249,11 @@ def _simulation_folder(text: str) -> Path:
     folder = Path(text)
     if folder.exists() and not folder.is_dir():
         raise UsageError(f"OUTDIR {folder}: not a folder; give a folder to write the simulation into")
+    parent = folder.absolute().parent
+    if not parent.is_dir():  # as every output path: a mistyped parent is not made
+        raise UsageError(f"OUTDIR {folder}: folder {parent} does not exist; create it first or give another OUTDIR")
     try:
-        folder.mkdir(parents=True, exist_ok=True)
+        folder.mkdir(exist_ok=True)
     except OSError as exc:
         raise UsageError(f"OUTDIR {folder}: cannot be created ({exc.strerror}); give a folder that can") from None
     for name in SIMULATION_FILES:
