@@ -29,7 +29,11 @@ from services.state.limits import ShardLimits
 from services.state.shard import SHARD_STREAMS, MapShard, ShardConfig
 from services.state.slam import NodeConfig, SlamState
 from slam.dead_reckoning import DeadReckoning
-from slam.motion import OdometryMotionModel
+from slam.ekf import EKFSLAM
+from slam.motion import OdometryMotionModel, VelocityMotionModel
+from slam.range_bearing import RangeBearingModel
+
+SENSOR = RangeBearingModel(0.1, 0.05)  # a landmark sensor's range (m) and bearing (rad) sd
 
 
 def _rejects(name: str) -> RejectCounter:
@@ -190,6 +194,55 @@ def test_a_slam_node_stopping_while_it_takes_the_history_stops_taking_it():
     replies = [(f"pg/r/{s}", m) for seq in range(50) for s, m in (("odom", _odometry(seq)), ("landmarks", _seen(seq)))]
     state.take_history([(key, message.encode()) for key, message in replies], stop)
     assert [decode_message(p, PoseGaussian).seq for p in published] == [0, 1, 2]
+
+
+def test_a_far_seq_on_a_stream_the_filter_does_not_use_is_counted_and_leaves_the_order_alone():
+    """A scan forged at seq 2^53 - 101 for a landmark node (which takes no scans) became the highest seq of
+    pg/r/scan, so every real scan after it was counted out of order. It is counted as ahead, as on the streams
+    the filter uses, and the real scans are in order."""
+    published: list[bytes] = []
+    rejects = _rejects("slam-far-unused")
+    state = _dead_reckoning_state(rejects, published.append, history=lambda *_: [])
+    state.handle("pg/r/scan", _scan(2**53 - 101).encode())
+    for seq in range(10):
+        for key, message in (("pg/r/scan", _scan(seq)), ("pg/r/odom", _odometry(seq)), ("pg/r/landmarks", _seen(seq))):
+            state.handle(key, message.encode())
+    assert [decode_message(p, PoseGaussian).seq for p in published] == list(range(10))
+    assert state.stats().out_of_order == {} and rejects.kinds().get("ahead") == 1
+
+
+def test_landmark_steps_of_values_no_robot_gives_are_counted_and_skipped():
+    """Valid on the wire, hostile in intent: a command of 10^6 m/s (the EKF then published poses 10^6 m away),
+    ranges of 10^30 (FastSLAM divided by zero, with a traceback), 5 000 new landmark ids (three such messages took
+    a node past 5.8 GB). Each step is counted and skipped, and the real steps around them are taken."""
+    published: list[bytes] = []
+    rejects = _rejects("slam-hostile-values")
+    config = NodeConfig(
+        robot="r",
+        algorithm="ekf",
+        make_filter=lambda start: EKFSLAM(VelocityMotionModel((0.1, 0.01, 0.01, 0.1, 0.0, 0.0)), SENSOR, start),
+        initial=np.zeros(3),
+    )
+    state = SlamState(config, rejects, publish=published.append)
+    walk = np.array([[0.5, 0.0, 0.1]])  # 0.5 m/s for 0.1 s a step
+    hostile = {
+        3: (np.array([[1e6, 0.0, 0.1]]), [7], [1.0], [0.1]),
+        4: (walk, [7], [1e30], [0.1]),
+        5: (walk, list(range(100, 5100)), [1.0] * 5000, [0.1] * 5000),
+        6: (walk, [7], [1.0], [7.0]),  # a bearing beyond 2 pi
+    }
+    for seq in range(10):
+        commands, ids, ranges, bearings = hostile.get(seq, (walk, [7], [2.0 - 0.05 * seq], [0.1]))
+        odometry = Odometry(robot="r", seq=seq, stamp=0.1 * seq, pose=np.zeros((0, 3)), commands=commands)
+        seen = LandmarkObservations(
+            robot="r", seq=seq, stamp=0.1 * seq, ids=np.array(ids), ranges=np.array(ranges), bearings=np.array(bearings)
+        )
+        state.handle("pg/r/odom", odometry.encode())
+        state.handle("pg/r/landmarks", seen.encode())
+    poses = [decode_message(payload, PoseGaussian) for payload in published]
+    assert [pose.seq for pose in poses] == [0, 1, 2, 7, 8, 9] and rejects.kinds().get("step") == 4
+    assert all(np.hypot(*pose.mean[:2]) < 1.0 for pose in poses)  # 6 steps of 5 cm, not 10^5 m
+    assert state.driver is not None and state.driver.filter.n_landmarks == 1
 
 
 def test_a_history_reply_on_a_stream_no_step_has_is_counted_not_fatal():

@@ -471,6 +471,23 @@ def test_forged_steps_far_ahead_do_not_make_the_assembler_skip_the_real_ones():
     assert released == list(range(100)) and ahead == 40
 
 
+def test_a_flood_of_incomplete_steps_within_the_window_does_not_evict_the_real_ones():
+    """Parts for 800 seqs within the window, none complete, filled the 256 steps held; the oldest went first, so
+    every real step's first part was evicted as it came and the node published no pose. The farthest go first."""
+    steps = StepAssembler({"odom", "scan"}, capacity=256, reorder=16, window=1024)
+    evicted = 0
+    for seq in range(200, 1000):
+        evicted += steps.add("odom", seq, "forged").evicted
+    released = []
+    for seq in range(50):
+        for part in ("odom", "scan"):
+            out = steps.add(part, seq, f"{part}{seq}")
+            released += out.steps
+            evicted += out.evicted
+    assert released == [(seq, {"odom": f"odom{seq}", "scan": f"scan{seq}"}) for seq in range(50)]
+    assert evicted == 800 - 256 + 1  # the first real part took the place of the farthest forged step
+
+
 def test_a_forged_run_of_consecutive_steps_is_not_taken_when_the_history_lacks_it():
     real = {seq: {"odom": f"odom{seq}", "scan": f"scan{seq}"} for seq in range(100)}
     steps = StepAssembler(

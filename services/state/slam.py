@@ -41,7 +41,9 @@ from services.state.steps import OutOfOrder, Released, StepAssembler
 from slam.calibration import Calibration
 from slam.gridslam import GridSlamConfig
 from slam.gridslam.health import ScanHealth
-from slam.motion import OdometryMotionModel, odometry_controls, split_odometry_motion
+from slam.laserlog import POSE_LIMIT
+from slam.motion import VELOCITY_LIMIT, OdometryMotionModel, odometry_controls, split_odometry_motion
+from slam.range_bearing import BEARING_LIMIT
 
 if TYPE_CHECKING:
     from slam.gridslam.filter import GridFastSLAM
@@ -70,6 +72,36 @@ POSE_HISTORY_BYTES = 64 * 2**20
 
 class StepError(ValueError):
     """A step the filter cannot take (e.g. odometry motion without an odometry pose)."""
+
+
+#: the distinct landmark ids a landmark filter may hold: each costs every particle its mean and covariance (about
+#: 25 KB a landmark for FastSLAM 2.0's default particles), and three messages of 20 000 new ids took a node past
+#: 5.8 GB and slowed every later step to seconds
+MAX_LANDMARKS = 4096
+
+
+def check_landmark_step(odom: Odometry, seen: LandmarkObservations, ids_held: set[int], known: bool) -> None:
+    """StepError for a step of values no robot gives (valid on the wire, but they drove the filters to overflow,
+    a division by zero or poses 10^6 m away): a velocity command beyond slam.motion.VELOCITY_LIMIT, a landmark
+    range not in (0, POSE_LIMIT] m or a bearing beyond BEARING_LIMIT rad (as the offline readers refuse them),
+    or, with known ids, ids that would take the filter past :data:`MAX_LANDMARKS` (``ids_held``: those it holds)."""
+    if odom.commands.size and np.abs(odom.commands[:, :2]).max() > VELOCITY_LIMIT:
+        raise StepError(
+            f"seq {odom.seq}: a velocity command beyond +-{VELOCITY_LIMIT:g} m/s or rad/s (no robot's); its "
+            f"largest is {np.abs(odom.commands[:, :2]).max():g}"
+        )
+    ranges, bearings = seen.ranges, seen.bearings
+    if ranges.size and not ((ranges > 0).all() and (ranges <= POSE_LIMIT).all()):
+        raise StepError(f"seq {seen.seq}: a landmark range not in (0, {POSE_LIMIT:g}] m")
+    if bearings.size and not (np.abs(bearings) <= BEARING_LIMIT).all():
+        raise StepError(f"seq {seen.seq}: a landmark bearing beyond +-{BEARING_LIMIT:g} rad")
+    if known:
+        new = set(seen.ids.tolist()) - ids_held
+        if len(ids_held) + len(new) > MAX_LANDMARKS:
+            raise StepError(
+                f"seq {seen.seq}: {len(new)} new landmark ids would make {len(ids_held) + len(new)}, more than the "
+                f"{MAX_LANDMARKS} a filter holds"
+            )
 
 
 @dataclass(frozen=True)
@@ -131,11 +163,16 @@ class LandmarkDriver:
         self.corrector = None if calibration is None or calibration.is_identity() else calibration.step_corrector()
         self._last_pose: np.ndarray | None = None  # odometry pose of the last step taken (None: it had none)
         self._last_seq: int | None = None
+        self._ids: set[int] = set()  # the landmark ids the filter has been given (known ids)
         self.last_gap: Gap | None = None
 
     def step(self, parts: dict) -> tuple[np.ndarray, np.ndarray]:
         odom: Odometry = parts[keys.ODOM]
         seen: LandmarkObservations = parts[keys.LANDMARKS]
+        known = bool(getattr(self.filter, "known", False))
+        check_landmark_step(odom, seen, self._ids, known)
+        if known:
+            self._ids.update(seen.ids.tolist())
         pose = odom.pose[0] if odom.pose.shape[0] else None
         gap = None if self._last_seq is None or odom.seq == self._last_seq + 1 else (self._last_seq + 1, odom.seq - 1)
         model = None
@@ -170,12 +207,12 @@ class LandmarkDriver:
 
     def save(self) -> object:
         """The filter's state before a step (a copy: a landmark filter's arrays are small)."""
-        return copy.deepcopy((self.filter, self._last_pose, self._last_seq, self.corrector))
+        return copy.deepcopy((self.filter, self._last_pose, self._last_seq, self.corrector, self._ids))
 
     def restore(self, saved: object) -> None:
         """Go back to the state :meth:`save` returned, undoing a step whose pose could not be published."""
-        assert isinstance(saved, tuple)  # (filter, odometry pose, seq, corrector), as :meth:`save` made it
-        self.filter, self._last_pose, self._last_seq, self.corrector = saved
+        assert isinstance(saved, tuple)  # (filter, odometry pose, seq, corrector, ids), as :meth:`save` made it
+        self.filter, self._last_pose, self._last_seq, self.corrector, self._ids = saved
         self.last_gap = None
 
 
@@ -302,20 +339,23 @@ class SlamState:
 
     def _take_part(self, key: str, stream: str, message: StepPart, from_history: bool) -> None:
         """File a scan, odometry or landmarks message that :meth:`handle` decoded on ``key`` with its step, unless the
-        source's history gave it already; one beyond the seq window is counted and held."""
+        source's history gave it already; one beyond the seq window is counted, and held when the filter uses its
+        stream (so that it sets no stream's order)."""
         if stream in self.steps.needs and from_history:
             self._history_high[stream] = max(self._history_high.get(stream, -1), message.seq)
         elif stream in self.steps.needs and message.seq <= self._history_high.get(stream, -1):
             return
-        if stream in self.steps.needs and not from_history and self.steps.beyond_window(message.seq):
+        if not from_history and self.steps.beyond_window(message.seq):
+            used = stream in self.steps.needs  # a far seq of a stream the filter does not use is only counted
             self.rejects.count(
                 key,
                 "ahead",
                 f"a {message.TYPE} for seq {message.seq}, more than the seq window "
-                f"({self.steps.window}) beyond the next step {self.steps.next_seq} (a forged or "
-                "stray seq?): held, and used only if the stream gets near it or goes on from it",
+                f"({self.steps.window}) beyond the next step {self.steps.next_seq} (a forged or stray seq?): "
+                + ("held, and used only if the stream gets near it or goes on from it" if used else "dropped"),
             )
-            self._file(self.steps.add(stream, message.seq, message))
+            if used:
+                self._file(self.steps.add(stream, message.seq, message))
         else:
             self._add_part(key, stream, message, from_history)
 

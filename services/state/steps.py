@@ -7,7 +7,8 @@ the stream has ended; before that, the assembler's ``recover`` (if given) may su
 node asks the source's history for them), and at the end it is asked for every step from the first not yet
 released (the last steps may have been lost, e.g. while the router was down). A part whose seq was already
 released or skipped arrives *out of order*: it is reported and dropped. At most ``capacity`` incomplete steps
-are held; the oldest is evicted beyond that.
+are held; beyond that the one of the highest seq is evicted (the next steps are those the stream needs first:
+parts forged for seqs ahead within the window evicted every real step when the oldest went).
 
 A live part more than ``window`` seqs beyond the next step to release is not believed on its own word (a peer
 forging a step far ahead would make the assembler skip every real step up to it): it is held apart, at most
@@ -88,9 +89,8 @@ class StepAssembler(Generic[PartT]):
                 return released
         else:
             self._pending.setdefault(seq, {})[part] = message
-        while len(self._pending) > self.capacity:
-            oldest = min(self._pending)
-            del self._pending[oldest]
+        while len(self._pending) > self.capacity:  # the farthest step goes first: the next ones are the stream's
+            del self._pending[max(self._pending)]  # (a flood of parts for later seqs evicted every real step)
             released.evicted += 1
         self._release(released, flush=False)
         return released
