@@ -16,6 +16,7 @@ from services.cli import main
 from services.fusion_runner import fuse_posed_scans
 from slam.angles import wrap_angle
 from slam.carmen import read_carmen, write_carmen, write_carmen_scans
+from slam.errors import LogFormatError
 from slam.gridslam import GridFastSLAM, GridSlamConfig, run_gridslam
 from slam.gridslam.filter import proposal_stencil
 from slam.gridslam.kernels import log_likelihoods, match_and_propose
@@ -68,6 +69,19 @@ def test_one_beam_marks_free_cells_then_the_end_cell():
     insert(maps2, [[0.025, 0.025, 0.0]], np.array([0.0]), np.array([np.inf]), max_range=0.3)
     raster, _ = maps2.raster(0)
     assert np.count_nonzero(raster) == 7 and raster[raster != 0].max() < 0  # x 0.025 .. 0.325: cells 0..6
+
+
+def test_tile_tables_past_their_bound_are_refused_and_left_as_they_were():
+    """30 particles' tables over 3 km x 3 km of 1.6 m tiles are 2^27 entries: a box past that (an odometry jump of
+    5 km) is one line, not gigabytes, and the table is left as it was (the step can be refused)."""
+    maps = TileMaps(30, 0.05, tile_cells=32)
+    maps.cover(0.0, 0.0, 10.0, 10.0)
+    before = maps.table.shape
+    side = 0.05 * 32 * (2**27 / 30) ** 0.5  # m: the square whose tables hold 2^27 entries, margins aside
+    maps.cover(0.0, 0.0, side - 20.0, side - 20.0)  # within it (the 4-tile margins take 6.4 m a side)
+    with pytest.raises(LogFormatError, match=r"more than the 134217728 grid FastSLAM holds"):
+        maps.cover(0.0, 0.0, 5000.0, 5000.0)
+    assert maps.table.shape[0] == 30 and maps.table.shape != before and maps.table.size <= 2**27
 
 
 def test_copy_on_write_keeps_maps_apart_and_resampling_shares_tiles():

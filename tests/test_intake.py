@@ -30,10 +30,13 @@ from services.state.shard import SHARD_STREAMS, MapShard, ShardConfig
 from services.state.slam import NodeConfig, SlamState
 from slam.dead_reckoning import DeadReckoning
 from slam.ekf import EKFSLAM
+from slam.gridslam import GridSlamConfig
+from slam.gridslam.simlogs import sim_log
 from slam.motion import OdometryMotionModel, VelocityMotionModel
 from slam.range_bearing import RangeBearingModel
 
 SENSOR = RangeBearingModel(0.1, 0.05)  # a landmark sensor's range (m) and bearing (rad) sd
+NO_COMMANDS = np.zeros((0, 3))  # an Odometry message's commands: none (the grid filter reads the pose)
 
 
 def _rejects(name: str) -> RejectCounter:
@@ -243,6 +246,46 @@ def test_landmark_steps_of_values_no_robot_gives_are_counted_and_skipped():
     assert [pose.seq for pose in poses] == [0, 1, 2, 7, 8, 9] and rejects.kinds().get("step") == 4
     assert all(np.hypot(*pose.mean[:2]) < 1.0 for pose in poses)  # 6 steps of 5 cm, not 10^5 m
     assert state.driver is not None and state.driver.filter.n_landmarks == 1
+
+
+def test_a_grid_node_refuses_an_odometry_jump_and_takes_a_reset_after_three_steps():
+    """One odometry message moved 3 km took a grid FastSLAM node to 13 GB (every particle's tile table spans the
+    particles' box) and its poses 3 km away. The jump is counted and skipped, and the steps after it are taken as
+    before; an odometry that stays moved (a reset of the robot's odometry) is its new frame from the third step."""
+    log = sim_log("room", seed=1)
+    published: list[bytes] = []
+    rejects = _rejects("slam-grid-jump")
+    config = NodeConfig(
+        robot="r", algorithm="gridslam", make_filter=None, initial=log.odometry[0], grid_config=GridSlamConfig()
+    )
+    state = SlamState(config, rejects, publish=published.append)
+    reset = np.array([-500.0, 200.0, 0.0])  # from step 30 on, the odometry reads this much off
+    for seq in range(40):
+        odometry = log.odometry[seq] + (reset if seq >= 30 else 0.0)
+        if seq == 10:
+            odometry = odometry + np.array([3000.0, 3000.0, 0.0])
+        scan = LaserScan(
+            robot="r",
+            seq=seq,
+            stamp=float(log.stamps[seq]),
+            angle_min=log.angle_min,
+            angle_increment=log.angle_increment,
+            range_min=0.0,
+            range_max=log.range_max,
+            sensor_offset=np.asarray(log.sensor_offset, np.float64),
+            ranges=np.asarray(log.ranges[seq], np.float32),
+        )
+        state.handle("pg/r/scan", scan.encode())
+        pose = Odometry(
+            robot="r", seq=seq, stamp=float(log.stamps[seq]), pose=odometry[None], commands=np.zeros((0, 3))
+        )
+        state.handle("pg/r/odom", pose.encode())
+    poses = {p.seq: p for p in (decode_message(payload, PoseSamples) for payload in published)}
+    assert sorted(poses) == [s for s in range(40) if s not in (10, 30, 31)] and rejects.kinds().get("step") == 3
+    assert state.driver.filter.maps.table.shape[1] < 200  # tiles of 1.6 m: a few hundred m at most, not 3 km
+    for seq, pose in poses.items():  # each step's best particle within 0.5 m of the truth, before and after
+        best = pose.samples[int(np.argmax(pose.weights))]
+        assert np.hypot(*(best[:2] - log.true_poses[seq][:2])) < 0.5, (seq, best, log.true_poses[seq])
 
 
 def test_a_history_reply_on_a_stream_no_step_has_is_counted_not_fatal():

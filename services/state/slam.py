@@ -216,10 +216,20 @@ class LandmarkDriver:
         self.last_gap = None
 
 
+#: the farthest the odometry may move from one step to the next, m (a scan every 5 s at 10 m/s): one odometry
+#: message moved 3 km took a grid FastSLAM node to 13 GB, as every particle's tile table spans the particles' box
+MAX_ODOMETRY_STEP = 50.0
+#: consecutive steps that agree with each other but not with the odometry before them after which grid FastSLAM
+#: takes them as the odometry's new frame (a reset of the robot's odometry), not as a jump
+REBASE_STEPS = 3
+
+
 class GridDriver:
     """Feeds grid FastSLAM one scan at a time: integrate when due, else follow the odometry. A failed step is
     not undone (:meth:`save` keeps nothing): a copy of every particle's map per scan would cost more than the
-    step. Odometry beyond the wire's pose limit never reaches it."""
+    step. Odometry beyond the wire's pose limit never reaches it; a step whose odometry moved more than
+    :data:`MAX_ODOMETRY_STEP` is refused before the filter sees it, unless :data:`REBASE_STEPS` such steps in a row
+    agree with each other: then the odometry was reset, and the filter takes the new frame without moving."""
 
     needs = frozenset({keys.SCAN, keys.ODOM})
 
@@ -237,6 +247,8 @@ class GridDriver:
         self.last_health: ScanHealth | None = None  # of the last integrated scan
         self.scans = 0  # integrated scans
         self.failed = 0  # of them, whose best match failed
+        self._last_odometry: np.ndarray | None = None  # the odometry pose (3,) of the last step taken
+        self._jumped: list[np.ndarray] = []  # the odometry poses of the steps refused since, each near the one before
 
     def health(self) -> dict:
         """NodeStats' health: the last integrated scan's (slam.gridslam.health.ScanHealth; flags as 0 or 1, values
@@ -264,6 +276,7 @@ class GridDriver:
         angles = scan.angle_min + scan.angle_increment * np.arange(scan.ranges.shape[0])
         if self.filter is None:  # as slam.gridslam.run_gridslam sets it up
             self.filter = GridFastSLAM(self.config, angles, scan.sensor_offset, scan.range_min, self.initial, self.seed)
+        self._check_jump(odom.seq, odom.pose[0], self.filter)
         if self.filter.due(odom.pose[0]):  # each scan with its own laser geometry
             laser = Laser.of(self.config, angles, scan.sensor_offset, scan.range_min, scan.range_max)
             poses, weights, _, report = self.filter.integrate(odom.pose[0], scan.ranges, laser)
@@ -272,6 +285,23 @@ class GridDriver:
             self.failed += int(report.health.failed)
             return poses, weights
         return self.filter.follow(odom.pose[0]), self.filter.weights
+
+    def _check_jump(self, seq: int, pose: np.ndarray, grid_filter: GridFastSLAM) -> None:
+        """StepError for odometry ``pose`` (3,) more than MAX_ODOMETRY_STEP from the last step's, unless it is the
+        REBASE_STEPS-th such in a row, each near the one before: then the filter's odometry reference becomes it."""
+        last = self._last_odometry
+        if last is not None and float(np.hypot(*(pose[:2] - last[:2]))) > MAX_ODOMETRY_STEP:
+            near_run = bool(self._jumped) and float(np.hypot(*(pose[:2] - self._jumped[-1][:2]))) <= MAX_ODOMETRY_STEP
+            self._jumped = [*self._jumped, pose] if near_run else [pose]
+            if len(self._jumped) < REBASE_STEPS:
+                raise StepError(
+                    f"seq {seq}: the odometry moved {np.hypot(*(pose[:2] - last[:2])):.3g} m since the last step, more "
+                    f"than the {MAX_ODOMETRY_STEP:g} m a step may (taken as a reset of the odometry after "
+                    f"{REBASE_STEPS} such steps in a row)"
+                )
+            grid_filter.odometry_ref = None if grid_filter.odometry_ref is None else pose.copy()
+        self._jumped = []
+        self._last_odometry = pose.copy()
 
 
 class SlamState:

@@ -22,11 +22,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from slam.errors import LogFormatError
 from slam.gridslam.kernels import insert_scan
 
 #: channels of a cell (the pool's last axis)
 LOGODDS, SUM_X, SUM_Y, HITS = 0, 1, 2, 3
 CHANNELS = 4
+#: entries of the particles' tile tables together (2^27: 512 MiB of int32, 30 particles over 3.4 km x 3.4 km of
+#: 1.6 m tiles): a box past it is refused (an odometry jump of 3 km took a run to 13 GB)
+MAX_TABLE_ENTRIES = 2**27
 
 
 class TileMaps:
@@ -71,6 +75,16 @@ class TileMaps:
             tx_lo, ty_lo = min(tx_lo, self.tx0), min(ty_lo, self.ty0)
             tx_hi, ty_hi = max(tx_hi, self.tx0 + nx - 1), max(ty_hi, self.ty0 + ny - 1)
         tx_lo, ty_lo, tx_hi, ty_hi = tx_lo - margin, ty_lo - margin, tx_hi + margin, ty_hi + margin
+        entries = self.particles * int(ty_hi - ty_lo + 1) * int(tx_hi - tx_lo + 1)
+        if entries > MAX_TABLE_ENTRIES:
+            width, height = (
+                self.resolution * self.tile_cells * (hi - lo + 1) for lo, hi in ((tx_lo, tx_hi), (ty_lo, ty_hi))
+            )
+            raise LogFormatError(
+                f"the particles' maps would span {width:.4g} m x {height:.4g} m "
+                f"({entries} tile entries for {self.particles} particles), more than the {MAX_TABLE_ENTRIES} grid "
+                "FastSLAM holds: does the odometry jump?"
+            )
         table = np.full((self.particles, ty_hi - ty_lo + 1, tx_hi - tx_lo + 1), -1, np.int32)
         if nx:
             u0, v0 = self.tx0 - tx_lo, self.ty0 - ty_lo
