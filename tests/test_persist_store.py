@@ -19,6 +19,7 @@ import logging
 import os
 import re
 import sqlite3
+import zlib
 from dataclasses import replace
 from pathlib import Path
 
@@ -36,7 +37,7 @@ from services.commands import persist_options
 from services.nodes.launcher import free_port
 from services.nodes.mapper import Durable, PersistOptions
 from services.process import RejectCounter
-from services.state.ownership import owns_tile
+from services.state.ownership import owns_tile, tile_owner
 from services.state.shard import MapShard, ShardConfig
 from services.state.store import writer
 from services.state.store.db import DB_NAME, ShardStore, StoreError, StoreIdentity, decode_layers, encode_layers
@@ -272,10 +273,42 @@ def _scribbled(path: Path) -> None:
     path.write_bytes(bytes(data))
 
 
+FIRST_TILE = "rowid = (SELECT min(rowid) FROM tiles)"  # a WHERE clause: one tile (two at one key are refused)
+
+
+def _sql(statement: str):
+    """A damage: ``statement`` run on the store (rows of values no shard writes, as a hand or a tool may leave)."""
+
+    def damage(path: Path) -> None:
+        with sqlite3.connect(path) as db:
+            db.execute(statement)
+
+    return damage
+
+
+def _inflating(path: Path) -> None:
+    """A tile's layers that inflate to 16 MB (a 64-cell tile's window holds at most 33 KB): a 2 MB blob of this kind
+    took the shard to 4 GB while it inflated all of it before refusing it."""
+    with sqlite3.connect(path) as db:
+        head = np.array([0, 0, 64, 64], "<u4").tobytes()
+        db.execute("UPDATE tiles SET layers = ?", (head + zlib.compress(bytes(2**24), 9),))
+
+
 @pytest.mark.parametrize(
     "damage, message",
     [
         (_foreign, "is a SQLite database but no posegrid shard store"),
+        # rows no shard writes: tracebacks (and the launcher's restarts) or a refusal that named no store
+        (_sql("UPDATE meta SET value = 'abc' WHERE key = 'cells_updated'"), "holds a meta value no shard writes"),
+        (_sql("UPDATE meta SET value = 'abc' WHERE key = 'committed_at'"), "holds a meta value no shard writes"),
+        (_sql("UPDATE robots SET fused = 'x'"), "with counts ('x'"),
+        (_sql("UPDATE robots SET robot = 'a/b*'"), "holds robot 'a/b*'"),
+        (_sql("UPDATE robots SET ended = -3"), "with counts"),
+        (_sql("UPDATE ledger SET robot = 'a/b*'"), "a ledger entry of robot 'a/b*'"),
+        (_sql("UPDATE tiles SET seq = -5"), "or seq -5 no shard writes"),
+        (_sql(f"UPDATE tiles SET tx = 'abc' WHERE {FIRST_TILE}"), "has an index no map holds"),
+        (_sql(f"UPDATE tiles SET tx = 4611686018427387904 WHERE {FIRST_TILE}"), "has an index no map holds"),
+        (_inflating, "hold more than 33280 bytes, not the 33280 of a 64x64 window"),  # 64 x 64 x 8 + 64 x 64 / 8
         (_version_2, "has schema version 2; this build reads version 1"),
         (_truncated, "database disk image is malformed"),
         (_scribbled, "is damaged"),
@@ -292,6 +325,23 @@ def test_a_foreign_damaged_or_truncated_store_is_refused_with_one_sentence(tmp_p
     damage(path)
     err = _refused(_mapper(tmp_path / "state"), capsys)
     assert message in err and str(path) in err
+
+
+def test_a_tile_of_another_shard_copied_into_a_store_is_refused(tmp_path, pairs, capsys):
+    """Shard 0 of 2 resumed a tile that the rule gives shard 1 (copied in from its store), and both shards then
+    served it: the export failed with "came from two shards", naming no store."""
+    path = _committed_store(tmp_path, pairs[:10], _config(0, 2))
+    with sqlite3.connect(path) as db:
+        keys = {(tx, ty) for tx, ty in db.execute("SELECT tx, ty FROM tiles")}
+        theirs = next(
+            (x, y)
+            for x in range(-8, 8)
+            for y in range(-8, 8)
+            if tile_owner((x, y), range(2)) == 1 and (x, y) not in keys
+        )
+        db.execute(f"INSERT INTO tiles SELECT ?, ?, robot, seq, layers FROM tiles WHERE {FIRST_TILE}", theirs)
+    err = _refused(_mapper(tmp_path, "--shards", "2"), capsys)
+    assert f"tile {theirs} of the store {path} is another shard's" in err
 
 
 def test_a_store_whose_database_is_gone_but_its_log_is_there_is_refused(tmp_path, pairs, capsys):

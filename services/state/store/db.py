@@ -31,8 +31,10 @@ from typing import Any
 
 import numpy as np
 
+from schemas.messages import MAX_SEQ, MAX_TILE_INDEX
 from schemas.wire import is_valid_name
 from services.errors import UsageError
+from services.state.ownership import owns_tile
 
 #: what the ``meta`` table's ``format`` says: the file is a posegrid shard's store
 FORMAT = "posegrid-shard-store"
@@ -189,13 +191,16 @@ def decode_layers(blob: bytes, tile_size: int) -> tuple[np.ndarray, np.ndarray, 
     row0, col0, rows, cols = (int(v) for v in np.frombuffer(blob, _WINDOW, 4))
     if row0 + rows > tile_size or col0 + cols > tile_size:
         raise ValueError(f"its window ({row0}, {col0}, {rows}, {cols}) exceeds a {tile_size}x{tile_size} tile")
-    try:
-        raw = zlib.decompress(blob[head:])
+    cells = rows * cols
+    size = 8 * cells + (cells + 7) // 8  # the window's log-odds and variance (float32) and observed bits
+    try:  # inflated to one byte past the window's size at most: a 2 MB blob of zeros inflated to 2 GB before
+        inflater = zlib.decompressobj()
+        raw = inflater.decompress(blob[head:], size + 1)
     except zlib.error as exc:
         raise ValueError(f"its layers do not decompress ({exc})") from None
-    cells = rows * cols
-    if len(raw) != 8 * cells + (cells + 7) // 8:
-        raise ValueError(f"its layers hold {len(raw)} bytes, not those of a {rows}x{cols} window")
+    if len(raw) != size or not inflater.eof:
+        held = f"more than {size}" if len(raw) > size else str(len(raw))
+        raise ValueError(f"its layers hold {held} bytes, not the {size} of a {rows}x{cols} window")
     shape, inside = (tile_size, tile_size), (slice(row0, row0 + rows), slice(col0, col0 + cols))
     logodds, variance, observed = np.zeros(shape, np.float32), np.zeros(shape, np.float32), np.zeros(shape, bool)
     logodds[inside] = np.frombuffer(raw, "<f4", cells).reshape(rows, cols)
@@ -211,13 +216,16 @@ class ShardStore:
     state directory is locked (flock on shard.lock) while it is open, so two shard processes never write one store.
     Not thread-safe: one thread at a time (services.state.store.writer hands it to its thread)."""
 
-    def __init__(self, directory: Path, connection: sqlite3.Connection, lock: int, session: str, tile_size: int):
+    def __init__(
+        self, directory: Path, connection: sqlite3.Connection, lock: int, session: str, identity: StoreIdentity
+    ):
         self.directory = directory
         self.path = directory / DB_NAME
         self._db = connection
         self._lock = lock
         self.session = session
-        self._tile_size = tile_size
+        self._tile_size = identity.tile_size
+        self._owns = owns_tile(identity.shard, identity.shards)
 
     # ------------------------------------------------------------------------------------------ opening
     @classmethod
@@ -251,7 +259,7 @@ class ShardStore:
                     leftover.unlink(missing_ok=True)
             os.close(lock)
             raise
-        return cls(directory, connection, lock, chosen, identity.tile_size)
+        return cls(directory, connection, lock, chosen, identity)
 
     # ------------------------------------------------------------------------------------------ reading
     def load(self) -> StoredState:
@@ -272,19 +280,54 @@ class ShardStore:
                 )
             ]
             meta = dict(db.execute("SELECT key, value FROM meta WHERE key IN ('cells_updated', 'committed_at')"))
-        except sqlite3.DatabaseError as exc:
+        except (sqlite3.DatabaseError, UnicodeDecodeError) as exc:
             raise StoreError(f"the store {self.path} cannot be read ({exc}): it is damaged") from None
-        return StoredState(
-            self.session, tiles, robots, ledger, int(meta.get("cells_updated") or 0), meta.get("committed_at")
-        )
+        for state in robots.values():
+            self._check_robot(state)
+        for entry in ledger:
+            name: object = entry.robot
+            if not (isinstance(name, str) and is_valid_name(name) and _whole(entry.seq, 0, MAX_SEQ)):
+                raise StoreError(
+                    f"the store {self.path} holds a ledger entry of robot {name!r}, seq {entry.seq!r}, which no shard "
+                    "writes: it is damaged"
+                )
+        cells_updated, committed_at = meta.get("cells_updated") or 0, meta.get("committed_at")
+        if not _whole(cells_updated, 0) or not (committed_at is None or isinstance(committed_at, (int, float))):
+            raise StoreError(
+                f"the store {self.path} holds a meta value no shard writes (cells_updated {cells_updated!r}, "
+                f"committed_at {committed_at!r}): it is damaged"
+            )
+        return StoredState(self.session, tiles, robots, ledger, cells_updated, committed_at)
 
     def _tile(self, row: tuple) -> TileState:
         tx, ty, robot, seq, blob = row
+        where = f"tile ({tx!r}, {ty!r}) of the store {self.path}"
+        if not (_whole(tx, -MAX_TILE_INDEX, MAX_TILE_INDEX) and _whole(ty, -MAX_TILE_INDEX, MAX_TILE_INDEX)):
+            raise StoreError(f"{where} has an index no map holds: it is damaged")
+        if not (
+            isinstance(robot, str) and is_valid_name(robot) and _whole(seq, 0, MAX_SEQ) and isinstance(blob, bytes)
+        ):
+            raise StoreError(f"{where} has a robot {robot!r} or seq {seq!r} no shard writes: it is damaged")
+        if not self._owns(tx, ty):
+            raise StoreError(
+                f"{where} is another shard's (tiles go to shards by services.state.ownership): it was copied in; "
+                "remove the tile or restore the store"
+            )
         try:
             logodds, variance, observed = decode_layers(blob, self._tile_size)
         except ValueError as exc:
-            raise StoreError(f"tile ({tx}, {ty}) of the store {self.path} is damaged: {exc}") from None
+            raise StoreError(f"{where} is damaged: {exc}") from None
         return TileState((tx, ty), logodds, variance, observed, robot, seq)
+
+    def _check_robot(self, state: RobotState) -> None:
+        """StoreError for a robots row of values no shard writes."""
+        counts = (state.fused, state.discarded, state.next_seq) + (() if state.ended is None else (state.ended,))
+        robot: object = state.robot  # (as the row held it: the dataclass does not check its types)
+        if not (isinstance(robot, str) and is_valid_name(robot)) or not all(_whole(c, 0, MAX_SEQ + 1) for c in counts):
+            raise StoreError(
+                f"the store {self.path} holds robot {state.robot!r} with counts {counts!r}, which no shard writes: "
+                "it is damaged"
+            )
 
     def sessions(self) -> list[str]:
         """The ids of the sessions that have written to this store, oldest first."""
@@ -337,6 +380,11 @@ class ShardStore:
             self._db.close()
         finally:
             os.close(self._lock)
+
+
+def _whole(value: object, low: int, high: int | None = None) -> bool:
+    """Whether ``value`` (a row's) is an integer (no bool) in [low, high] (high None: no bound)."""
+    return isinstance(value, int) and not isinstance(value, bool) and value >= low and (high is None or value <= high)
 
 
 # ---------------------------------------------------------------------------------------------- opening steps
@@ -400,8 +448,13 @@ def _connect(path: Path, max_bytes: int | None) -> sqlite3.Connection:
         if max_bytes is not None:
             page = db.execute("PRAGMA page_size").fetchone()[0]
             db.execute(f"PRAGMA max_page_count = {max(1, max_bytes // page)}")
-    except sqlite3.DatabaseError as exc:
-        db.close()
+    except (sqlite3.DatabaseError, UnicodeDecodeError) as exc:  # (SQLite's message about a damaged page may
+        db.close()  # itself be no UTF-8)
+        if isinstance(exc, sqlite3.OperationalError) and "unable to open" in str(exc):  # (its log cannot be made)
+            raise StoreError(
+                f"the store {path} cannot be opened for writing ({exc}): its folder or file cannot be written "
+                "(permissions, a read-only or immutable folder, a read-only file system)"
+            ) from None
         raise StoreError(f"the store {path} cannot be opened ({exc}): it is damaged or not a database") from None
     if mode != "wal":
         db.close()
@@ -410,10 +463,11 @@ def _connect(path: Path, max_bytes: int | None) -> sqlite3.Connection:
 
 
 def _check_integrity(db: sqlite3.Connection, path: Path) -> None:
-    """SQLite's own check of every page and index (PRAGMA quick_check); StoreError when it finds a problem."""
+    """SQLite's own check of every page, and of every index against its table (PRAGMA integrity_check: a bit
+    flipped in a tile's key moved or dropped the tile past quick_check); StoreError when it finds a problem."""
     try:
-        rows = db.execute("PRAGMA quick_check").fetchall()
-    except sqlite3.DatabaseError as exc:
+        rows = db.execute("PRAGMA integrity_check").fetchall()
+    except (sqlite3.DatabaseError, UnicodeDecodeError) as exc:
         raise StoreError(f"the store {path} fails SQLite's integrity check ({exc}): it is damaged") from None
     if rows != [("ok",)]:
         first = " ".join(str(rows[0][0]).replace("*** in database main ***", "").split()) if rows else "no answer"
@@ -425,10 +479,14 @@ def _check_meta(db: sqlite3.Connection, path: Path, identity: StoreIdentity) -> 
     meta: dict[str, Any]
     try:
         meta = dict(db.execute("SELECT key, value FROM meta"))
-    except sqlite3.DatabaseError:
+    except (sqlite3.DatabaseError, UnicodeDecodeError):
         meta = {}
     if meta.get("format") != FORMAT:
-        raise StoreError(f"the store {path} is a SQLite database but no posegrid shard store")
+        lost_log = not meta and not Path(f"{path}-wal").exists()  # (a store's first commits live in its log)
+        raise StoreError(
+            f"the store {path} is a SQLite database but no posegrid shard store"
+            + (f" (if it was one, its write-ahead log {path}-wal, which held its tables, is gone)" if lost_log else "")
+        )
     if meta.get("schema_version") != SCHEMA_VERSION:
         raise StoreError(
             f"the store {path} has schema version {meta.get('schema_version')!r}; this build reads version "
