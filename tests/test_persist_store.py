@@ -397,11 +397,18 @@ def test_the_commit_defaults_of_the_options_are_the_writers():
 
 def test_a_run_directory_is_new_or_resumed_with_its_own_map_and_shards(tmp_path):
     first = prepare_run(tmp_path / "run", False, False, "m", 2, 0.05)
-    assert first.shard_argv(1) == ["--state-dir", str(tmp_path / "run" / "shard-1"), "--session", first.session]
+    assert first.shard_argv(1) == [
+        "--state-dir",
+        str(tmp_path / "run" / "shard-1"),
+        "--session",
+        first.session,
+        "--run-id",
+        first.run_id,
+    ]
     with pytest.raises(StoreError, match=re.escape("holds a run already: continue it with --resume")):
         prepare_run(tmp_path / "run", False, False, "m", 2, 0.05)
     again = prepare_run(tmp_path / "run", True, True, "m", 2, 0.05)
-    assert again.session == first.session and again.resumed
+    assert again.session == first.session and again.resumed and again.run_id == first.run_id
     other = prepare_run(tmp_path / "run", True, False, "m", 2, 0.05)
     assert other.session != first.session
     with pytest.raises(StoreError, match=re.escape("holds a run with --shards 2, not 3: give --shards 2")):
@@ -410,6 +417,18 @@ def test_a_run_directory_is_new_or_resumed_with_its_own_map_and_shards(tmp_path)
         prepare_run(tmp_path / "run", True, False, "m", 2, 0.1)
     with pytest.raises(StoreError, match=re.escape("holds no run.json, so no posegrid run")):
         prepare_run(tmp_path, True, False, "m", 2, 0.05)
+
+
+def test_a_store_of_another_run_put_in_a_shards_folder_is_refused(tmp_path, pairs, capsys):
+    """Another run's shard-0 folder (same map, shards, tiles and cells) copied over this run's was resumed, and the
+    run's scans fused on top of the other run's map without a word. A store records its run's id; a store of none
+    (a mapper's own, or older) takes the first it is given."""
+    ours, theirs = (prepare_run(tmp_path / name, False, False, "m", 1, 0.05) for name in ("ours", "theirs"))
+    _committed_store(theirs.shard_dir(0), pairs[:5])  # a store of no run yet
+    ShardStore.open(theirs.shard_dir(0), _identity(_config()), theirs.session, run_id=theirs.run_id).close()
+    ShardStore.open(theirs.shard_dir(0), _identity(_config()), theirs.session, run_id=theirs.run_id).close()  # its own
+    err = _refused(_mapper(theirs.shard_dir(0), "--session", ours.session, "--run-id", ours.run_id), capsys)
+    assert f"belongs to run {theirs.run_id!r}, not to this run ({ours.run_id!r})" in err
 
 
 def test_an_exported_map_seeds_each_shard_with_the_tiles_it_owns(pairs):

@@ -54,6 +54,13 @@ def add_persist_options(parser: argparse.ArgumentParser) -> None:
         "disk (default: the store's latest session, or a new one)",
     )
     group.add_argument(
+        "--run-id",
+        default=None,
+        metavar="ID",
+        help="--state-dir: the posegrid run the store belongs to (posegrid run gives it): a store of another run "
+        "is refused, one of none takes it (default: not checked)",
+    )
+    group.add_argument(
         "--load",
         type=path_argument,
         default=None,
@@ -87,7 +94,11 @@ def persist_from_args(args: argparse.Namespace) -> PersistOptions:
 
     _check_commit_options(args)
     if args.state_dir is None:
-        for option, value in (("--session", args.session), ("--state-limit-mb", args.state_limit_mb)):
+        for option, value in (
+            ("--session", args.session),
+            ("--state-limit-mb", args.state_limit_mb),
+            ("--run-id", args.run_id),
+        ):
             if value is not None:
                 raise UsageError(f"{option} is an option of the state directory: give it with --state-dir")
     limit = args.state_limit_mb
@@ -96,6 +107,7 @@ def persist_from_args(args: argparse.Namespace) -> PersistOptions:
     return PersistOptions(
         state_dir=args.state_dir,
         session=args.session,
+        run_id=args.run_id,
         commit_scans=args.commit_scans,
         commit_interval=args.commit_interval,
         max_bytes=None if limit is None else math.floor(limit * 2**20),

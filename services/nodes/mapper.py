@@ -67,6 +67,7 @@ class PersistOptions:
     commit_interval: float = DEFAULT_COMMIT_INTERVAL
     max_bytes: int | None = None
     load: Path | None = None
+    run_id: str | None = None  # the `posegrid run` the store belongs to (None: not checked)
 
 
 @dataclass
@@ -86,7 +87,7 @@ class Durable:
             identity = StoreIdentity(
                 config.map_name, config.shard, config.shards, config.tile_size, config.model.resolution
             )
-            store = ShardStore.open(options.state_dir, identity, options.session, options.max_bytes)
+            store = ShardStore.open(options.state_dir, identity, options.session, options.max_bytes, options.run_id)
             try:
                 stored = store.load()
             except BaseException:

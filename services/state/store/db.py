@@ -230,14 +230,21 @@ class ShardStore:
     # ------------------------------------------------------------------------------------------ opening
     @classmethod
     def open(
-        cls, directory: Path, identity: StoreIdentity, session: str | None = None, max_bytes: int | None = None
+        cls,
+        directory: Path,
+        identity: StoreIdentity,
+        session: str | None = None,
+        max_bytes: int | None = None,
+        run_id: str | None = None,
     ) -> ShardStore:
         """Open (or create) the store in ``directory`` for ``identity``; ``session``: the session this shard writes
         (None: the store's latest, or a new one); ``max_bytes``: the most the database file may grow to (None: no
-        limit). Raises :class:`StoreError` when the directory cannot be written or the store is damaged, truncated,
-        foreign or another shard's."""
-        if session is not None and not is_valid_name(session):
-            raise StoreError(f"--session {session!r} is not a valid name (letters, digits, '_', '.', '-', at most 64)")
+        limit); ``run_id``: the `posegrid run` the store belongs to (recorded in a store that has none; None: not
+        checked). Raises :class:`StoreError` when the directory cannot be written or the store is damaged,
+        truncated, foreign, another shard's or another run's."""
+        for option, name in (("--session", session), ("--run-id", run_id)):
+            if name is not None and not is_valid_name(name):
+                raise StoreError(f"{option} {name!r} is not a valid name (letters, digits, '_', '.', '-', at most 64)")
         lock = _lock_directory(directory)
         path, created = directory / DB_NAME, False
         try:
@@ -249,6 +256,8 @@ class ShardStore:
                 else:
                     _check_integrity(connection, path)
                     _check_meta(connection, path, identity)
+                if run_id is not None:
+                    _check_run(connection, path, run_id)
                 chosen = _register_session(connection, path, session)
             except BaseException:
                 connection.close()
@@ -502,6 +511,22 @@ def _check_meta(db: sqlite3.Connection, path: Path, identity: StoreIdentity) -> 
         raise StoreError(
             f"the store {path} holds {stored.describe()}, not {identity.describe()}: another map's or another "
             "shard's state; give this shard its own --state-dir"
+        )
+
+
+def _check_run(db: sqlite3.Connection, path: Path, run_id: str) -> None:
+    """StoreError when the store belongs to another `posegrid run` than ``run_id``; a store of none (made by a shard
+    on its own, or before runs had ids) is given this one."""
+    try:
+        row = db.execute("SELECT value FROM meta WHERE key = 'run'").fetchone()
+        if row is None:
+            db.execute("INSERT INTO meta VALUES ('run', ?)", (run_id,))
+    except sqlite3.Error as exc:
+        raise StoreError(f"cannot write the store {path}: {exc}") from None
+    if row is not None and row[0] != run_id:
+        raise StoreError(
+            f"the store {path} belongs to run {row[0]!r}, not to this run ({run_id!r}): another run's state was "
+            "put in its folder; restore this run's, or start the run anew"
         )
 
 

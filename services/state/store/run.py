@@ -1,5 +1,6 @@
-"""The state directory of a `posegrid run` (:func:`prepare_run`): run.json (the map, shard count, resolution and the
-sessions that wrote to it) and one state directory per shard, shard-<I>/ (services.state.store.db)."""
+"""The state directory of a `posegrid run` (:func:`prepare_run`): run.json (the map, shard count, resolution, the
+run's id and the sessions that wrote to it) and one state directory per shard, shard-<I>/ (services.state.store.db),
+whose store records the run's id and refuses another run's."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from schemas.wire import is_valid_name
 from services.state.store.db import StoreError, new_session_id
 
 RUN_FILE = "run.json"
@@ -25,13 +27,16 @@ class RunState:
     directory: Path
     session: str
     resumed: bool  # the directory held a run before this one
+    run_id: str = ""  # the run's own id, given to its shards' stores ("": none, a run.json written before it)
 
     def shard_dir(self, shard: int) -> Path:
         return self.directory / f"shard-{shard}"
 
     def shard_argv(self, shard: int) -> list[str]:
         """The `posegrid mapper` options of shard ``shard``."""
-        return ["--state-dir", str(self.shard_dir(shard)), "--session", self.session]
+        return ["--state-dir", str(self.shard_dir(shard)), "--session", self.session] + (
+            ["--run-id", self.run_id] if self.run_id else []
+        )
 
     def describe(self) -> str:
         return f"{self.directory} (session {self.session}{', resumed' if self.resumed else ''})"
@@ -59,7 +64,7 @@ def prepare_run(
         if directory.is_dir() and any(directory.iterdir()):
             raise StoreError(f"the state directory {directory} is not empty and holds no run")
         record = {"format": RUN_FORMAT, "version": RUN_VERSION, "map": map_name, "shards": shards}
-        record |= {"resolution": resolution, "sessions": []}
+        record |= {"resolution": resolution, "sessions": [], "id": new_session_id()}
     else:
         record = _read_run(path, directory)
         for option, key, value in (("--map", "map", map_name), ("--shards", "shards", shards)):
@@ -72,6 +77,7 @@ def prepare_run(
                 f"{directory} holds a map of {record['resolution']!r} m cells, not {resolution!r}: give "
                 f"--resolution {record['resolution']!r}"
             )
+    record.setdefault("id", new_session_id())  # (a run.json written before runs had ids gets one)
     sessions = record["sessions"]
     if continue_session and not sessions:
         raise StoreError(f"{directory} holds no session to continue")
@@ -79,7 +85,8 @@ def prepare_run(
     if not continue_session:
         sessions.append({"id": session, "started": time.time()})
     _write_run(path, directory, record)
-    return RunState(directory, session, resume)
+    run_id = record.get("id")
+    return RunState(directory, session, resume, run_id if isinstance(run_id, str) and is_valid_name(run_id) else "")
 
 
 def _read_run(path: Path, directory: Path) -> dict[str, Any]:
