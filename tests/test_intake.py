@@ -248,6 +248,36 @@ def test_landmark_steps_of_values_no_robot_gives_are_counted_and_skipped():
     assert state.driver is not None and state.driver.filter.n_landmarks == 1
 
 
+def test_a_step_that_could_start_too_many_unknown_landmarks_is_skipped():
+    """With unknown ids each measurement may start a landmark: a step of 5 000 would pass the 1 024 an EKF holds
+    (its joint covariance grows with their square)."""
+    published: list[bytes] = []
+    rejects = _rejects("slam-unknown-flood")
+    config = NodeConfig(
+        robot="r",
+        algorithm="ekf",
+        make_filter=lambda start: EKFSLAM(
+            VelocityMotionModel((0.1, 0.01, 0.01, 0.1, 0.0, 0.0)), SENSOR, start, known_correspondences=False
+        ),
+        initial=np.zeros(3),
+    )
+    state = SlamState(config, rejects, publish=published.append)
+    for seq, count in enumerate((1, 5000, 1)):
+        rng = np.random.default_rng(seq)
+        odometry = Odometry(robot="r", seq=seq, stamp=0.1 * seq, pose=np.zeros((0, 3)), commands=NO_COMMANDS)
+        seen = LandmarkObservations(
+            robot="r",
+            seq=seq,
+            stamp=0.1 * seq,
+            ids=np.full(count, -1),
+            ranges=rng.uniform(1.0, 9.0, count),
+            bearings=rng.uniform(-3.0, 3.0, count),
+        )
+        state.handle("pg/r/odom", odometry.encode())
+        state.handle("pg/r/landmarks", seen.encode())
+    assert [decode_message(p, PoseGaussian).seq for p in published] == [0, 2] and rejects.kinds().get("step") == 1
+
+
 def test_a_grid_node_refuses_an_odometry_jump_and_takes_a_reset_after_three_steps():
     """One odometry message moved 3 km took a grid FastSLAM node to 13 GB (every particle's tile table spans the
     particles' box) and its poses 3 km away. The jump is counted and skipped, and the steps after it are taken as

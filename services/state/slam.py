@@ -39,6 +39,7 @@ from services.process import RejectCounter, get_logger
 from services.state.checks import SeqMessage, decode_of_robot, history_reply, robot_stream
 from services.state.steps import OutOfOrder, Released, StepAssembler
 from slam.calibration import Calibration
+from slam.ekf import EKFSLAM
 from slam.gridslam import GridSlamConfig
 from slam.gridslam.health import ScanHealth
 from slam.laserlog import POSE_LIMIT
@@ -78,13 +79,25 @@ class StepError(ValueError):
 #: 25 KB a landmark for FastSLAM 2.0's default particles), and three messages of 20 000 new ids took a node past
 #: 5.8 GB and slowed every later step to seconds
 MAX_LANDMARKS = 4096
+#: the same for EKF-SLAM, whose joint covariance grows with the square of its landmarks (1 024: 34 MB, and each step
+#: updates all of it)
+MAX_EKF_LANDMARKS = 1024
 
 
-def check_landmark_step(odom: Odometry, seen: LandmarkObservations, ids_held: set[int], known: bool) -> None:
+def check_landmark_step(
+    odom: Odometry,
+    seen: LandmarkObservations,
+    ids_held: set[int],
+    known: bool,
+    held: int = 0,
+    limit: int = MAX_LANDMARKS,
+) -> None:
     """StepError for a step of values no robot gives (valid on the wire, but they drove the filters to overflow,
     a division by zero or poses 10^6 m away): a velocity command beyond slam.motion.VELOCITY_LIMIT, a landmark
     range not in (0, POSE_LIMIT] m or a bearing beyond BEARING_LIMIT rad (as the offline readers refuse them),
-    or, with known ids, ids that would take the filter past :data:`MAX_LANDMARKS` (``ids_held``: those it holds)."""
+    or landmarks that could take the filter past ``limit`` (:data:`MAX_LANDMARKS`, or :data:`MAX_EKF_LANDMARKS`):
+    with known ids, its new ids (``ids_held``: those it holds), else its measurements, each of which may start a
+    landmark (``held``: the most a particle holds)."""
     if odom.commands.size and np.abs(odom.commands[:, :2]).max() > VELOCITY_LIMIT:
         raise StepError(
             f"seq {odom.seq}: a velocity command beyond +-{VELOCITY_LIMIT:g} m/s or rad/s (no robot's); its "
@@ -97,11 +110,24 @@ def check_landmark_step(odom: Odometry, seen: LandmarkObservations, ids_held: se
         raise StepError(f"seq {seen.seq}: a landmark bearing beyond +-{BEARING_LIMIT:g} rad")
     if known:
         new = set(seen.ids.tolist()) - ids_held
-        if len(ids_held) + len(new) > MAX_LANDMARKS:
+        if len(ids_held) + len(new) > limit:
             raise StepError(
                 f"seq {seen.seq}: {len(new)} new landmark ids would make {len(ids_held) + len(new)}, more than the "
-                f"{MAX_LANDMARKS} a filter holds"
+                f"{limit} the filter holds"
             )
+    elif held + ranges.size > limit:
+        raise StepError(
+            f"seq {seen.seq}: {ranges.size} measurements of unknown landmarks could take the filter from {held} "
+            f"landmarks past the {limit} it holds"
+        )
+
+
+def landmarks_held(slam_filter: object) -> int:
+    """The most landmarks a particle of ``slam_filter`` holds (FastSLAM's ``count``), or the EKF's; 0 for none."""
+    count = getattr(slam_filter, "count", None)
+    if isinstance(count, np.ndarray):
+        return int(count.max()) if count.size else 0
+    return int(getattr(slam_filter, "n_landmarks", 0))
 
 
 @dataclass(frozen=True)
@@ -170,7 +196,8 @@ class LandmarkDriver:
         odom: Odometry = parts[keys.ODOM]
         seen: LandmarkObservations = parts[keys.LANDMARKS]
         known = bool(getattr(self.filter, "known", False))
-        check_landmark_step(odom, seen, self._ids, known)
+        limit = MAX_EKF_LANDMARKS if isinstance(self.filter, EKFSLAM) else MAX_LANDMARKS
+        check_landmark_step(odom, seen, self._ids, known, 0 if known else landmarks_held(self.filter), limit)
         if known:
             self._ids.update(seen.ids.tolist())
         pose = odom.pose[0] if odom.pose.shape[0] else None
