@@ -52,7 +52,8 @@ def build_config(
     if config_file is not None:
         path = Path(config_file)
         if not path.is_file():
-            raise UsageError(f"zenoh config file {path} does not exist")
+            what = "is a folder" if path.is_dir() else "is no regular file" if path.exists() else "does not exist"
+            raise UsageError(f"zenoh config file {path} {what}")
         try:
             config = zenoh.Config.from_file(str(path))
         except zenoh.ZError as exc:

@@ -42,7 +42,7 @@ from services.state.shard import MapShard, ShardConfig
 from services.state.store import writer
 from services.state.store.db import DB_NAME, ShardStore, StoreError, StoreIdentity, decode_layers, encode_layers
 from services.state.store.journal import Journal, tiles_of_map
-from services.state.store.run import prepare_run
+from services.state.store.run import default_run_dir, prepare_run
 from services.streams import posed_stream
 from test_api_status import shard
 from test_pipeline import make_posed
@@ -535,6 +535,10 @@ def test_run_keeps_its_state_by_default_in_a_new_folder_under_xdg_state_home(tmp
     assert json.loads((directory / "run.json").read_text())["shards"] == 2
     assert plan.state.shard_argv(1)[:2] == ["--state-dir", str(directory / "shard-1")]
     assert "--commit-scans" in plan.mapper_argv
+    # a relative $XDG_STATE_HOME is ignored, as the XDG specification says (it wrote under the working folder)
+    monkeypatch.setenv("XDG_STATE_HOME", "relative")
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    assert default_run_dir("m").parent == tmp_path / "home" / ".local" / "state" / "posegrid" / "runs"
     # --no-state: the map in memory only, nothing written
     monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "other"))
     assert _planned_state(["--no-state"]).state is None and not (tmp_path / "other").exists()

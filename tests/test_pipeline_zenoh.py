@@ -152,6 +152,17 @@ def test_a_router_port_in_use_names_the_option_to_change():
         (["run", "--posed", "x.npz", "--shards", "5000"], "--shards must be 1 .. 1024"),
         (["mapper", "--shard", "0", "--shards", "1", "--map", "a/b"], "--map"),
         (["source", "--posed", "x.npz", "--rate", "fast"], "rate"),
+        # past the platform's time_t: a traceback, and under run a crash loop of the source
+        (["source", "--posed", "x.npz", "--rate", "1e-308"], "a factor of real time in [0.001, 1e+06]"),
+        (["run", "--posed", "x.npz", "--rate", "5e-324"], "a factor of real time in [0.001, 1e+06]"),
+        (["api", "--cache-mb", "1e308"], "--cache-mb must be > 0 and at most 1048576"),  # tracebacks, as these three
+        (["api", "--query-timeout", "1e308"], "--query-timeout must be > 0 and at most 86400 s"),
+        (["mapper", "--shard", "0", "--shards", "1", "--state-dir", "st", "--state-limit-mb", "1e308"], "1 PiB"),
+        (["api", "--host", ""], "--host '' would listen on every interface"),
+        (["source", "--sim", "--steps", "1000000000"], "--steps must be 1 .. 277008"),  # memory for minutes
+        (["run", "--sim", "--steps", "1000000000"], "--steps must be 1 .. 277008"),
+        (["router", "--zenoh-config", "/dev/null"], "zenoh config file /dev/null is no regular file"),
+        (["router", "--zenoh-config", "/tmp"], "zenoh config file /tmp is a folder"),  # both said "does not exist"
         (["source", "--posed", "x.npz", "--robot", "map"], "--robot"),
         (["run", "--posed", "/nonexistent.npz"], "no such file"),
         (["run", "--posed", "x.npz", "--shards", "0"], "--shards"),
@@ -174,6 +185,27 @@ def test_bad_arguments_exit_2_with_one_sentence(argv, message, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err and err.count("\n") == 1, err
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        (["--sigma0", "-1"], "sigma0 must be > 0 m"),
+        (["--peak-width", "0"], "peak_width must be > 0 m"),
+        (["--outlier-gate", "0"], "--outlier-gate must be > 0 (or inf)"),
+        (["--resample-threshold", "2"], "--resample-threshold must be in [0, 1]"),
+        (["--algo", "gridslam", "--widen", "0"], "grid FastSLAM option out of range"),
+        (["--drive-angle-sd", "1"], "--drive-angle-sd must be in [0, 0.5]"),
+    ],
+)
+def test_run_refuses_its_childrens_options_before_it_starts_anything(tmp_path, monkeypatch, capsys, options, message):
+    """`run --sigma0 -1` started a router and a shard, which refused the option, then exited 1 with the launcher's
+    lines and left a run directory behind; the shards' and the SLAM node's options are checked first."""
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path))
+    assert main(["run", "--sim", "--no-api", *options]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1 and "Traceback" not in err, err
+    assert list(tmp_path.iterdir()) == []  # no run directory
 
 
 @pytest.mark.parametrize(

@@ -13,6 +13,9 @@ from services.commands.argtypes import finite_float, positive_int, positive_seco
 from services.commands.options import add_command
 
 DEFAULT_PORT = 8000
+#: the largest --cache-mb (MiB) and --query-timeout (s): 1 TiB, a day (1e308 overflowed into tracebacks)
+MAX_CACHE_MB = 2**20
+MAX_QUERY_TIMEOUT = 86400.0
 
 
 def access_token(text: str) -> str:
@@ -259,8 +262,12 @@ def run_api(args: argparse.Namespace) -> int:
 
     if not 0 < args.port < 65536:
         raise UsageError(f"--port must be a TCP port (1..65535), got {args.port}")
-    if not args.cache_mb > 0 or not args.query_timeout > 0:
-        raise UsageError("--cache-mb and --query-timeout must be > 0")
+    if not 0 < args.cache_mb <= MAX_CACHE_MB:
+        raise UsageError(f"--cache-mb must be > 0 and at most {MAX_CACHE_MB} (1 TiB), got {args.cache_mb:g}")
+    if not 0 < args.query_timeout <= MAX_QUERY_TIMEOUT:
+        raise UsageError(f"--query-timeout must be > 0 and at most {MAX_QUERY_TIMEOUT:g} s, got {args.query_timeout:g}")
+    if not args.host:
+        raise UsageError("--host '' would listen on every interface: give an address (127.0.0.1, or 0.0.0.0 for all)")
     token = token_of(args)
     check_port_free(args.host, args.port)
     from services.api.server import ServeOptions, serve

@@ -102,8 +102,8 @@ def persist_from_args(args: argparse.Namespace) -> PersistOptions:
             if value is not None:
                 raise UsageError(f"{option} is an option of the state directory: give it with --state-dir")
     limit = args.state_limit_mb
-    if limit is not None and not limit > 0:
-        raise UsageError(f"--state-limit-mb must be > 0, got {limit}")
+    if limit is not None and not 0 < limit <= 2**30:  # (1 PiB; 1e308 overflowed into a traceback)
+        raise UsageError(f"--state-limit-mb must be > 0 and at most {2**30} (1 PiB), got {limit:g}")
     return PersistOptions(
         state_dir=args.state_dir,
         session=args.session,

@@ -439,6 +439,19 @@ def _rate(text: str) -> float | None:
         raise UsageError(str(exc)) from None
 
 
+#: the most steps --sim simulates (each scan's 361 beams are kept: 1e8 ranges, as `posegrid simulate` allows; 10^9
+#: steps grew a source's memory for minutes before it published anything)
+MAX_SIM_STEPS = 10**8 // 361
+
+
+def _check_sim_steps(steps: int) -> None:
+    """UsageError unless --steps is 1 .. MAX_SIM_STEPS."""
+    from services.errors import UsageError
+
+    if not 1 <= steps <= MAX_SIM_STEPS:
+        raise UsageError(f"--steps must be 1 .. {MAX_SIM_STEPS} (7.7 hours of 0.1 s steps), got {steps}")
+
+
 def _check_cell_size(resolution: float) -> None:
     """A map's cells must be CELL_SIZE_RANGE m, as its tile updates carry them (schemas.messages.TileUpdate)."""
     from services.errors import UsageError
@@ -546,6 +559,18 @@ def run_mapper(args: argparse.Namespace) -> int:
     updates on pg/map/MAP/tile/0/TX/TY at most every --publish-interval s per tile, answers tile and stats
     queries, and declares the liveliness token pg/map/MAP/alive/I. Fusion options mean what they mean for
     `posegrid fuse`."""
+    from services.commands.zenoh_options import config_from_args
+    from services.nodes.mapper import run_mapper as serve
+    from services.process import install_stop_event
+
+    config = shard_config(args)
+    zenoh_config = config_from_args(args, "client")
+    return serve(config, zenoh_config, install_stop_event(), args.intake_buffer, persist_from_args(args))
+
+
+def shard_config(args: argparse.Namespace):
+    """The services.state.shard.ShardConfig of `posegrid mapper`'s options; UsageError (one sentence) for a bad one.
+    `posegrid run` calls it on the argv it gives its shards before it starts any process."""
     from services.errors import UsageError
 
     if not 1 <= args.shards <= MAX_SHARDS or not 0 <= args.shard < args.shards:
@@ -564,12 +589,9 @@ def run_mapper(args: argparse.Namespace) -> int:
     _check_name(args.map, "--map")
     threads = threads_from_args(args)
     from services.commands.mapping import sensor_model_from_args
-    from services.commands.zenoh_options import config_from_args
-    from services.nodes.mapper import run_mapper as serve
-    from services.process import install_stop_event
     from services.state.shard import ShardConfig
 
-    config = ShardConfig(
+    return ShardConfig(
         map_name=args.map,
         shard=args.shard,
         shards=args.shards,
@@ -585,8 +607,6 @@ def run_mapper(args: argparse.Namespace) -> int:
         threads=threads,
         bundle=args.bundle,
     )
-    zenoh_config = config_from_args(args, "client")
-    return serve(config, zenoh_config, install_stop_event(), args.intake_buffer, persist_from_args(args))
 
 
 def run_source(args: argparse.Namespace) -> int:
@@ -602,8 +622,7 @@ def run_source(args: argparse.Namespace) -> int:
     _check_name(args.map, "--map")
     if args.wait_mappers < 0 or args.window < 1:
         raise UsageError("--wait-mappers must be >= 0 and --window >= 1")
-    if args.steps < 1:
-        raise UsageError(f"--steps must be >= 1, got {args.steps}")
+    _check_sim_steps(args.steps)
     rate = _rate(args.rate)
     from services.commands.zenoh_options import config_from_args
     from services.nodes.source import Source, SourceOptions, SourceStalled
@@ -674,10 +693,24 @@ def run_pipeline(args: argparse.Namespace) -> int:
         api_argv=[] if args.no_api else api_child_options(args),
     )
     _plan_input(args, plan)
+    _check_children(plan)
     plan.restart = restarts
     plan.secure = args.secure
     plan_state(args, plan)
     return launch(plan, install_stop_event())
+
+
+def _check_children(plan) -> None:
+    """Parse and check the options `run` gives its shards and its SLAM node as those commands will (UsageError, one
+    sentence, before any process starts or any state is written): `run --sigma0 -1` started a router and a shard,
+    which refused it, and exited 1 with the launcher's lines."""
+    from services.cli import build_parser
+
+    parser = build_parser()
+    mapper = ["mapper", "--shard", "0", "--shards", str(plan.shards), "--map", plan.map_name, *plan.mapper_argv]
+    shard_config(parser.parse_args(mapper))
+    if plan.slam_argv is not None:
+        node_config(parser.parse_args(["slam-node", "--robot", plan.robot, *plan.slam_argv]))
 
 
 def _plan_input(args: argparse.Namespace, plan: Plan) -> None:
@@ -732,8 +765,7 @@ def _plan_input(args: argparse.Namespace, plan: Plan) -> None:
             f"replaying {args.sim_dir} through {args.algo or DEFAULT_ALGORITHM} into {args.shards} shard(s)"
         )
     else:
-        if args.steps < 1:
-            raise UsageError(f"--steps must be >= 1, got {args.steps}")
+        _check_sim_steps(args.steps)
         plan.scans = args.steps
         plan.source_argv += ["--sim", "--seed", str(args.seed), "--steps", str(args.steps)]
         plan.slam_argv = slam_argv(args, "sim")
@@ -804,6 +836,17 @@ def run_slam_node(args: argparse.Namespace) -> int:
     (grid FastSLAM), take the steps in seq order (a message for a seq already processed is reported as out of
     order), and publish per scan the pose distribution on pg/ROBOT/pose: mean and covariance, or particles and
     weights. The filter starts at --initial or at the prior the source publishes. Stats on pg/ROBOT/slam/stats."""
+    from services.commands.zenoh_options import config_from_args
+    from services.nodes.slam_node import run_slam_node as serve
+    from services.process import install_stop_event
+
+    return serve(node_config(args), config_from_args(args, "client"), install_stop_event())
+
+
+def node_config(args: argparse.Namespace):
+    """The services.state.slam.NodeConfig of `posegrid slam-node`'s options, its landmark filter built once at the
+    origin to check them; UsageError (one sentence) for a bad one. `posegrid run` calls it on the argv it gives its
+    SLAM node before it starts any process."""
     from services.errors import UsageError
 
     _check_name(args.robot, "--robot")
@@ -821,9 +864,6 @@ def run_slam_node(args: argparse.Namespace) -> int:
     grid_config = gridslam_config(args) if algo == "gridslam" else None
     import numpy as np
 
-    from services.commands.zenoh_options import config_from_args
-    from services.nodes.slam_node import run_slam_node as serve
-    from services.process import install_stop_event
     from services.state.slam import NodeConfig
 
     config = NodeConfig(
@@ -846,4 +886,9 @@ def run_slam_node(args: argparse.Namespace) -> int:
         seed=args.seed,
         calibration=calibration,
     )
-    return serve(config, config_from_args(args, "client"), install_stop_event())
+    if config.make_filter is not None and algo != "gridslam":
+        try:
+            config.make_filter(np.zeros(3) if initial is None else np.array(initial))
+        except ValueError as exc:
+            raise UsageError(f"a SLAM filter option is out of range: {exc}") from None
+    return config

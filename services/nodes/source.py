@@ -54,8 +54,13 @@ class SourceOptions:
     window: int = 32
 
 
+#: the factors of real time a source may replay at: 1e-3 (a step of 0.1 s every 100 s) to 1e6 (beyond it, 'max');
+#: a factor of 1e-308 made a wait past the platform's time_t, a traceback
+RATE_RANGE = (1e-3, 1e6)
+
+
 def parse_rate(text: str) -> float | None:
-    """ "max" -> None (as fast as subscribers take), "realtime" -> 1.0, a positive number -> that factor."""
+    """ "max" -> None (as fast as subscribers take), "realtime" -> 1.0, a number in RATE_RANGE -> that factor."""
     if text == "max":
         return None
     if text == "realtime":
@@ -64,8 +69,11 @@ def parse_rate(text: str) -> float | None:
         factor = float(text)
     except ValueError:
         factor = math.nan
-    if not factor > 0 or math.isinf(factor):
-        raise ValueError(f"rate must be 'max', 'realtime' or a positive factor of real time, got {text!r}")
+    low, high = RATE_RANGE
+    if not low <= factor <= high:
+        raise ValueError(
+            f"rate must be 'max', 'realtime' or a factor of real time in [{low:g}, {high:g}], got {text!r}"
+        )
     return factor
 
 

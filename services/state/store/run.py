@@ -44,8 +44,10 @@ class RunState:
 
 def default_run_dir(map_name: str) -> Path:
     """Where `posegrid run` keeps a run's state when no --state-dir, --resume or --no-state is given: a new folder
-    ``posegrid/runs/<map>-<UTC date>-<time>-<pid>`` under ``$XDG_STATE_HOME`` (default ``~/.local/state``)."""
-    base = Path(os.environ.get("XDG_STATE_HOME") or Path.home() / ".local" / "state")
+    ``posegrid/runs/<map>-<UTC date>-<time>-<pid>`` under ``$XDG_STATE_HOME`` (default ``~/.local/state``, also for
+    a relative $XDG_STATE_HOME, which the XDG base directory specification says to ignore)."""
+    given = os.environ.get("XDG_STATE_HOME") or ""
+    base = Path(given) if os.path.isabs(given) else Path.home() / ".local" / "state"
     stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
     return base / "posegrid" / "runs" / f"{map_name}-{stamp}-{os.getpid()}"
 
