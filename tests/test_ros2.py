@@ -316,6 +316,12 @@ def test_the_map_mirror_places_updates_in_the_grid_last_published():
         (["run", "--ros2", "--export", "m.npz", "--no-api"], "leave out --export"),
         (["run", "--ros2", "--secure", "--no-api"], "--ros2 does not run with --secure"),
         (["run", "--ros2", "--algo", "ekf", "--no-api"], "--algo must be gridslam"),
+        # frame ids and pose inputs the bridge started with (a probe's): tf2 refuses a leading '/' or an empty id
+        (["ros2", "--frame", "", "--connect", "tcp/127.0.0.1:1"], "--frame '' is no frame id"),
+        (["ros2", "--base-frame", "/base", "--connect", "tcp/127.0.0.1:1"], "--base-frame '/base' is no frame id"),
+        (["ros2", "--frame", "a b", "--connect", "tcp/127.0.0.1:1"], "--frame 'a b' is no frame id"),
+        (["ros2", "--pose-topic", "amcl_pose", "--particles-topic", "p", "--connect", "tcp/127.0.0.1:1"], "give one"),
+        (["ros2", "--particles-type", "PoseArray", "--connect", "tcp/127.0.0.1:1"], "give that topic too"),
     ],
 )
 def test_bad_ros2_options_are_one_line_and_exit_2(argv, message, capsys):
@@ -324,6 +330,16 @@ def test_bad_ros2_options_are_one_line_and_exit_2(argv, message, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0] and "Traceback" not in err[0], err
+
+
+def test_the_variance_scale_is_refused_in_its_own_unit(capsys):
+    """--variance-scale is log-odds squared; a negative one said "must be > 0 s"."""
+    from services.cli import main
+
+    with pytest.raises(SystemExit) as exited:
+        main(["ros2", "--variance-scale", "-1", "--connect", "tcp/127.0.0.1:1"])
+    err = capsys.readouterr().err
+    assert exited.value.code == 2 and "--variance-scale: must be > 0, got '-1'" in err, err
 
 
 def test_play_refuses_a_missing_bag_and_a_ros1_bag(tmp_path, capsys):

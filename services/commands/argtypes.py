@@ -75,6 +75,14 @@ def bundle_metres(text: str) -> float:
         raise argparse.ArgumentTypeError(f"{exc} (0: every sample walks its rays)") from None
 
 
+def positive_number(text: str) -> float:
+    """A finite number > 0 (of the unit its option names)."""
+    value = finite_float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text!r}")
+    return value
+
+
 def positive_seconds(text: str) -> float:
     """A finite number of seconds > 0."""
     value = finite_float(text)

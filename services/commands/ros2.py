@@ -7,9 +7,10 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 from typing import TYPE_CHECKING
 
-from services.commands.argtypes import finite_float, path_argument, positive_seconds
+from services.commands.argtypes import finite_float, path_argument, positive_number, positive_seconds
 from services.commands.options import OptionRow, add_group
 
 if TYPE_CHECKING:
@@ -89,6 +90,10 @@ def add_graph_arguments(parser: argparse.ArgumentParser, node: str = "posegrid")
     add_group(parser, "ROS 2 graph", None, [("mode", mode), *ROBOT_GRAPH, node_row])
 
 
+#: a tf2 frame id as posegrid takes one: no leading '/', no spaces, no empty part (tf2 refuses a leading '/')
+_FRAME = re.compile(r"(?=.{1,256}$)[A-Za-z0-9_.\-]+(/[A-Za-z0-9_.\-]+)*")
+
+
 def _bridge_table() -> list[tuple[str, str, dict]]:
     """(group, option name without --, argparse keywords) of every option of the bridge's topics and behaviour:
     `posegrid ros2` takes them as they are, `posegrid run --ros2` with the prefix ``ros2-`` and passes them on."""
@@ -141,7 +146,7 @@ def _bridge_table() -> list[tuple[str, str, dict]]:
         ("pose-tolerance", 0.05, "SECONDS", "how far a pose's stamp may lie from its scan's, s"),
     ):
         keywords = {
-            "type": positive_seconds,
+            "type": positive_seconds if unit == "SECONDS" else positive_number,
             "default": default,
             "metavar": unit,
             "help": f"{what} (default {default})",
@@ -232,6 +237,18 @@ def bridge_options(args: argparse.Namespace, prefix: str = ""):
                 names.resolve(topic, namespace)
             except names.RosNameError as exc:
                 raise UsageError(str(exc)) from None
+    if topics.pose_in is not None and topics.particles_in is not None:
+        raise UsageError(
+            f"--{prefix}pose-topic and --{prefix}particles-topic are two sources of the robot's pose: give one"
+        )
+    if topics.particles_in is None and value("particles_type") != "ParticleCloud":
+        raise UsageError(f"--{prefix}particles-type says what --{prefix}particles-topic carries: give that topic too")
+    for option, frame in (("frame", value("frame")), ("base-frame", value("base_frame"))):
+        if frame is not None and not _FRAME.fullmatch(frame):
+            raise UsageError(
+                f"--{prefix}{option} {frame!r} is no frame id: 1 to 256 letters, digits, '_', '-', '.' and inner "
+                "'/' (tf2 frame ids have no leading '/')"
+            )
     takes_poses = topics.pose_in is not None or topics.particles_in is not None
     ingest = IngestConfig(
         args.robot,
