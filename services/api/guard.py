@@ -100,7 +100,7 @@ class Guard:
             return _problem(
                 400,
                 f"this API does not answer to the Host {text[:100]!r}; start it with --allowed-host "
-                f"{host} to accept that name",
+                f"{host} (`posegrid run`: --api-allowed-host) to accept that name",
             )
         return None
 

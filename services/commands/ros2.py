@@ -125,9 +125,22 @@ def _bridge_table() -> list[tuple[str, str, dict]]:
         (
             topics,
             "particles-topic",
-            {"default": None, "help": "take the robot's own particles (--particles-type) instead of odometry"},
+            {
+                "default": None,
+                "help": "take the robot's own particles (of the message type the particles-type option names) instead "
+                "of odometry",
+            },
         ),
-        (topics, "particles-type", {"choices": sorted(PARTICLE_TYPES), "default": "ParticleCloud"}),
+        (
+            topics,
+            "particles-type",
+            {
+                "choices": sorted(PARTICLE_TYPES),
+                "default": "ParticleCloud",
+                "help": "the particles topic's message type: nav2_msgs/ParticleCloud or geometry_msgs/PoseArray "
+                "(default ParticleCloud)",
+            },
+        ),
         ("bridge", "frame", {"default": "map", "help": "frame_id of the map and poses (default map)"}),
         (
             "bridge",

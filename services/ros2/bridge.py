@@ -468,5 +468,10 @@ class Bridge:
                 self.node.close()
             for entity in reversed(self._declared):
                 entity.undeclare()
-        self.log.info("stopped after %d scans; %s", self.ingest.seq, json.dumps(self.stats()["rejected_kinds"]))
+        rejected = self.stats()["rejected_kinds"]
+        self.log.info(
+            "stopped after %d scans; %s",
+            self.ingest.seq,
+            f"refused {json.dumps(rejected)}" if rejected else "none refused",
+        )
         return 0
