@@ -77,10 +77,22 @@ def build_config(
         _default(config, "connect/endpoints", [], [DEFAULT_ROUTER_ENDPOINT])
         _default(config, "connect/timeout_ms", None, CLIENT_CONNECT_TIMEOUT_MS)
     if listen:
+        _check_ports(listen, "--listen", 0)
         _insert(config, "listen/endpoints", list(listen))
     if connect:
+        _check_ports(connect, "--connect", 1)
         _insert(config, "connect/endpoints", list(connect))
     return config
+
+
+def _check_ports(endpoints, option: str, lowest: int) -> None:
+    """UsageError for an endpoint (proto/address:port[?...][#...]) whose port is digits outside lowest..65535: zenoh
+    takes tcp/127.0.0.1:99999 to connect to and times out, or says its port is invalid with a hint about another
+    process listening; other forms are left to zenoh."""
+    for endpoint in endpoints:
+        port = str(endpoint).split("#", 1)[0].split("?", 1)[0].rsplit(":", 1)[-1]
+        if port.isdigit() and not lowest <= int(port) <= 65535:
+            raise UsageError(f"{option} {endpoint}: port {port} is no TCP/UDP port ({lowest}..65535)")
 
 
 def _default(config: zenoh.Config, key: str, unset_value, value) -> None:

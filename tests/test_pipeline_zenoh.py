@@ -163,6 +163,9 @@ def test_a_router_port_in_use_names_the_option_to_change():
         (["run", "--sim", "--steps", "1000000000"], "--steps must be 1 .. 277008"),
         (["router", "--zenoh-config", "/dev/null"], "zenoh config file /dev/null is no regular file"),
         (["router", "--zenoh-config", "/tmp"], "zenoh config file /tmp is a folder"),  # both said "does not exist"
+        # a port past 65535: a connect timed out after 10 s, a listen blamed another process
+        (["router", "--connect", "tcp/127.0.0.1:99999"], "--connect tcp/127.0.0.1:99999: port 99999 is no TCP/UDP"),
+        (["router", "--listen", "tcp/127.0.0.1:65536"], "port 65536 is no TCP/UDP port (0..65535)"),
         (["source", "--posed", "x.npz", "--robot", "map"], "--robot"),
         (["run", "--posed", "/nonexistent.npz"], "no such file"),
         (["run", "--posed", "x.npz", "--shards", "0"], "--shards"),
