@@ -45,6 +45,10 @@ from services.zenoh_config import open_session
 DEFAULT_INTAKE_CAPACITY = DEFAULT_CAPACITY
 #: s to wait for the histories of scans and poses that never reached the shard (it waits meanwhile)
 HISTORY_TIMEOUT = 5.0
+#: how long a robot's histories are not asked again after a question that no one answered before HISTORY_TIMEOUT
+#: (s): the question waits on the shard's main thread, and a peer that declares a history and never answers (a
+#: stranger robot's gaps, one per 2 scans) held every robot's fusion for 5 s a gap
+HISTORY_QUIET = 30.0
 #: s to wait at startup for the histories of every robot's run so far
 CATCH_UP_TIMEOUT = 60.0
 #: s to wait for the liveliness tokens of the robots' processes (which robots a resumed shard asks the histories of)
@@ -140,6 +144,7 @@ class Mapper:
         self._declared: list = []  # what declare() declared, undeclared in reverse order
         self._stats_lock = threading.Lock()  # guards _stats_payload only
         self._stats_payload = b""
+        self._history_quiet: dict[str, float] = {}  # robot -> time.monotonic() until which it is not asked
 
     def _start_from(self, durable: Durable) -> Persister | None:
         """Resume the shard from its store and seed it from --load; the persister of the store (None without one)."""
@@ -220,7 +225,18 @@ class Mapper:
         """The robot's ``stream`` messages first..last from the histories (services.history): the source's for
         scans (and poses of a posed-scan file), the SLAM node's for poses."""
         asked = {"streams": stream, "from": str(first), "to": str(last + 1)}
+        if time.monotonic() < self._history_quiet.get(robot, 0.0):
+            self.rejects.count(
+                keys.history_key(robot),
+                "history",
+                f"seqs {first}-{last} of {stream} not asked for: the robot's histories did not answer in "
+                f"{HISTORY_TIMEOUT:g} s, so they are left alone for {HISTORY_QUIET:g} s",
+            )
+            return []
+        began = time.monotonic()
         messages = history.ask_counted(self.session, robot, asked, HISTORY_TIMEOUT, self.rejects, self._ours, self.stop)
+        if not messages and time.monotonic() - began >= 0.9 * HISTORY_TIMEOUT:  # (asked, and no one answered)
+            self._history_quiet[robot] = time.monotonic() + HISTORY_QUIET
         return [payload for _, got, payload in messages if got == stream]  # (history.ask checks the reply keys)
 
     def catch_up(self) -> None:
