@@ -85,11 +85,15 @@ def started():
             process.wait()
 
 
-def test_router_process_routes_between_two_clients_and_stops_on_sigint(started):
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    router = subprocess.Popen([*CLI, "router", "--listen", endpoint], stderr=subprocess.PIPE, text=True)
+@pytest.mark.parametrize("port", ["free", "0"])
+def test_router_process_routes_between_two_clients_and_stops_on_sigint(started, port):
+    """With port 0 the router says the port it listens on (it said :0, which no client can connect to)."""
+    given = f"tcp/127.0.0.1:{free_port() if port == 'free' else 0}"
+    router = subprocess.Popen([*CLI, "router", "--listen", given], stderr=subprocess.PIPE, text=True)
     started.append(router)
-    assert "routing; listening on " + endpoint in router.stderr.readline()
+    said = router.stderr.readline()
+    endpoint = said.split("routing; listening on ", 1)[1].strip()
+    assert endpoint == given if port == "free" else endpoint != given and endpoint.startswith("tcp/127.0.0.1:")
     config = build_config("client", connect=[endpoint])
     received = []
     with zenoh.open(config) as a, zenoh.open(config) as b:

@@ -547,8 +547,17 @@ def run_router(args: argparse.Namespace) -> int:
     from services.nodes.router import run_router as route
     from services.process import install_stop_event
 
+    args.listen = [_port_chosen(endpoint) for endpoint in args.listen or []]
     config = config_from_args(args, "router")
     return route(config, install_stop_event())
+
+
+def _port_chosen(endpoint: str) -> str:
+    """``endpoint`` with a port of 0 on loopback (tcp/127.0.0.1:0) replaced by a free port, so that the router says
+    the port clients connect to (zenoh does not tell which it took); other endpoints as given."""
+    from services.nodes.launcher import free_port
+
+    return f"tcp/127.0.0.1:{free_port()}" if endpoint == "tcp/127.0.0.1:0" else endpoint
 
 
 def run_mapper(args: argparse.Namespace) -> int:
