@@ -231,7 +231,7 @@ def read_npz(path: str | Path, what: str) -> dict[str, np.ndarray]:
     sentence when the file is missing, not a .npz archive (a bare .npy array, say) or damaged."""
     path = Path(path)
     if not path.is_file():
-        raise FormatError(f"{path}: {_not_a_file(path)} (expected a {what} .npz)")
+        raise FormatError(f"{path}: {not_a_file(path)} (expected a {what} .npz)")
     with open(path, "rb") as handle:
         magic = handle.read(6)
     if magic[:2] != b"PK" and magic != b"\x93NUMPY":  # numpy would call anything else pickled data
@@ -644,7 +644,7 @@ _SPECIAL_KINDS = (
 )
 
 
-def _not_a_file(path: Path) -> str:
+def not_a_file(path: Path) -> str:
     """What ``path``, no regular file, is instead: missing, a folder, a device, a FIFO or a socket."""
     try:
         mode = os.stat(path).st_mode

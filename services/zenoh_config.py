@@ -51,9 +51,10 @@ def build_config(
         raise UsageError(f"zenoh mode must be one of {', '.join(MODES)}, got {mode!r}")
     if config_file is not None:
         path = Path(config_file)
-        if not path.is_file():
-            what = "is a folder" if path.is_dir() else "is no regular file" if path.exists() else "does not exist"
-            raise UsageError(f"zenoh config file {path} {what}")
+        if not path.is_file():  # (zenoh would say only that it cannot read it)
+            from schemas.files import not_a_file  # (numpy's import, for this message only: 70 ms a process start)
+
+            raise UsageError(f"zenoh config file {path}: {not_a_file(path)}")
         try:
             config = zenoh.Config.from_file(str(path))
         except zenoh.ZError as exc:

@@ -42,6 +42,7 @@ from slam.calibration import Calibration
 from slam.ekf import EKFSLAM
 from slam.gridslam import GridSlamConfig
 from slam.gridslam.health import ScanHealth
+from slam.landmark_filter import LandmarkFilter
 from slam.laserlog import POSE_LIMIT
 from slam.motion import VELOCITY_LIMIT, OdometryMotionModel, odometry_controls, split_odometry_motion
 from slam.range_bearing import BEARING_LIMIT
@@ -94,7 +95,8 @@ def check_landmark_step(
 ) -> None:
     """StepError for a step of values no robot gives (valid on the wire, but they drove the filters to overflow,
     a division by zero or poses 10^6 m away): a velocity command beyond slam.motion.VELOCITY_LIMIT, a landmark
-    range not in (0, POSE_LIMIT] m or a bearing beyond BEARING_LIMIT rad (as the offline readers refuse them),
+    range not in (0, POSE_LIMIT] m or a bearing beyond BEARING_LIMIT rad (the offline readers keep these out of a
+    filter: an MRCLAM log's are skipped, a simulator folder's refused),
     or landmarks that could take the filter past ``limit`` (:data:`MAX_LANDMARKS`, or :data:`MAX_EKF_LANDMARKS`):
     with known ids, its new ids (``ids_held``: those it holds), else its measurements, each of which may start a
     landmark (``held``: the most a particle holds)."""
@@ -195,7 +197,7 @@ class LandmarkDriver:
     def step(self, parts: dict) -> tuple[np.ndarray, np.ndarray]:
         odom: Odometry = parts[keys.ODOM]
         seen: LandmarkObservations = parts[keys.LANDMARKS]
-        known = bool(getattr(self.filter, "known", False))
+        known = isinstance(self.filter, LandmarkFilter) and self.filter.known  # (dead reckoning has no landmarks)
         limit = MAX_EKF_LANDMARKS if isinstance(self.filter, EKFSLAM) else MAX_LANDMARKS
         check_landmark_step(odom, seen, self._ids, known, 0 if known else landmarks_held(self.filter), limit)
         if known:
@@ -303,7 +305,7 @@ class GridDriver:
         angles = scan.angle_min + scan.angle_increment * np.arange(scan.ranges.shape[0])
         if self.filter is None:  # as slam.gridslam.run_gridslam sets it up
             self.filter = GridFastSLAM(self.config, angles, scan.sensor_offset, scan.range_min, self.initial, self.seed)
-        self._check_jump(odom.seq, odom.pose[0], self.filter)
+        self._check_jump(odom.seq, odom.pose[0])
         if self.filter.due(odom.pose[0]):  # each scan with its own laser geometry
             laser = Laser.of(self.config, angles, scan.sensor_offset, scan.range_min, scan.range_max)
             poses, weights, _, report = self.filter.integrate(odom.pose[0], scan.ranges, laser)
@@ -313,7 +315,7 @@ class GridDriver:
             return poses, weights
         return self.filter.follow(odom.pose[0]), self.filter.weights
 
-    def _check_jump(self, seq: int, pose: np.ndarray, grid_filter: GridFastSLAM) -> None:
+    def _check_jump(self, seq: int, pose: np.ndarray) -> None:
         """StepError for odometry ``pose`` (3,) more than MAX_ODOMETRY_STEP from the last step's, unless it is the
         REBASE_STEPS-th such in a row, each near the one before: then the filter's odometry reference becomes it."""
         last = self._last_odometry
@@ -326,7 +328,8 @@ class GridDriver:
                     f"than the {MAX_ODOMETRY_STEP:g} m a step may (taken as a reset of the odometry after "
                     f"{REBASE_STEPS} such steps in a row)"
                 )
-            grid_filter.odometry_ref = None if grid_filter.odometry_ref is None else pose.copy()
+            assert self.filter is not None  # (made before the first step is checked)
+            self.filter.odometry_ref = None if self.filter.odometry_ref is None else pose.copy()
         self._jumped = []
         self._last_odometry = pose.copy()
 
