@@ -689,6 +689,31 @@ def output_path_problem(path: str | Path) -> str | None:
             f"folder {folder} cannot be written (its permissions or a read-only file system); give a path in a "
             "writable folder"
         )
+    refusal = _trial_file_refused(folder)
+    if refusal is not None:
+        return f"folder {folder} takes no new file ({refusal}); give a path in a folder of a disk's file system"
+    return None
+
+
+def _trial_file_refused(folder: str) -> str | None:
+    """Why ``folder`` refuses a new file (the error's text), or None when it takes one: permissions pass for root
+    in /sys or /proc, whose file systems create no file. The trial is a file with no name (O_TMPFILE), which
+    nothing can leave behind; where the file system has none (EOPNOTSUPP), a named one made with O_EXCL and
+    removed at once."""
+    unnamed = getattr(os, "O_TMPFILE", 0)  # (Linux only)
+    if unnamed:
+        try:
+            os.close(os.open(folder, unnamed | os.O_WRONLY, 0o600))
+            return None
+        except OSError as exc:
+            if exc.errno not in (errno.EOPNOTSUPP, errno.EISDIR, errno.EINVAL):
+                return exc.strerror or str(exc)
+    trial = os.path.join(folder, f".posegrid-trial.{os.getpid()}.{secrets.token_hex(4)}")
+    try:
+        os.close(os.open(trial, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+    except OSError as exc:
+        return exc.strerror or str(exc)
+    _discard(trial)
     return None
 
 

@@ -45,6 +45,8 @@ def bad_outputs(tmp_path) -> dict[str, tuple[str, str]]:
         "empty": ("", "an empty path names no file"),
         "missing folder": (str(tmp_path / "absent" / "out.png"), f"folder {tmp_path / 'absent'} does not exist"),
         "link to a fifo": (str(tmp_path / "to-fifo.png"), f"links to {fifo}, which is a FIFO"),
+        # /proc takes no new file; its permissions pass for root (then the trial file says so), not for others
+        "kernel file system": ("/proc/posegrid-out.png", "folder /proc"),
     }
 
 
@@ -115,7 +117,7 @@ COMMANDS = {
 
 
 @pytest.mark.parametrize("command", COMMANDS)
-@pytest.mark.parametrize("kind", ["fifo", "folder", "empty", "missing folder", "link to a fifo"])
+@pytest.mark.parametrize("kind", ["fifo", "folder", "empty", "missing folder", "link to a fifo", "kernel file system"])
 def test_every_output_is_checked_before_any_work(tmp_path, bad_outputs, capsys, command, kind):
     path, phrase = bad_outputs[kind]
     err = one_line_exit_2(COMMANDS[command](tmp_path, path), capsys, phrase)
@@ -243,6 +245,21 @@ def test_an_unwritable_folder_is_refused(tmp_path):
         assert "cannot be written" in output_path_problem(folder / "out.npz")
     finally:
         folder.chmod(0o700)
+
+
+@pytest.mark.parametrize("unnamed", [True, False], ids=["O_TMPFILE", "named trial"])
+def test_the_folder_is_tried_with_a_file_that_leaves_nothing(tmp_path, monkeypatch, unnamed):
+    """A folder whose permissions pass but whose file system makes no file (/proc; /sys for root) is refused up
+    front; a disk's folder is tried with a file that leaves nothing behind, unnamed where the system has
+    O_TMPFILE, else named and removed."""
+    if not unnamed:
+        monkeypatch.delattr(os, "O_TMPFILE", raising=False)
+    assert output_path_problem(tmp_path / "out.npz") is None
+    assert list(tmp_path.iterdir()) == []
+    problem = output_path_problem("/proc/posegrid-out.npz")
+    assert problem is not None and problem.startswith("folder /proc ")
+    if os.geteuid() == 0:  # root passes the permissions: the trial file is what refuses
+        assert "takes no new file" in problem
 
 
 def unusable_ranges(tmp_path: Path, scans: slice, value: float = -1.0) -> Path:
