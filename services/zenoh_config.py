@@ -1,4 +1,5 @@
-"""The one place that builds Zenoh configurations for every posegrid process.
+"""The one place that builds Zenoh configurations for every posegrid process, opens their sessions and releases
+what they declared on them (:func:`undeclare_all`).
 
 Defaults (DESIGN.md): multicast scouting and the shared-memory transport off; a router listens on
 tcp/127.0.0.1:7447; every other process is a Zenoh *client* that connects to that router and listens nowhere,
@@ -168,3 +169,19 @@ def open_session(config: zenoh.Config, what: str, stop: threading.Event | None =
                 else ""
             )
         ) from None
+
+
+def undeclare_all(entities: list) -> None:
+    """Undeclare what a process declared on its session (publishers, subscribers, liveliness tokens, queryables),
+    the newest first, and empty the list; its queryables are left to the session's close.
+
+    Why: zenoh's router (1.10) keeps routing wildcard queries to a queryable that was undeclared while another
+    session still declares the same key expression, and waits for that queryable's final answer until the query's
+    timeout. Every shard declares pg/map/<map>/tile/**, and a source and a SLAM node pg/<robot>/history/**: once a
+    source that had ended undeclared its history, each question to the SLAM node's history of poses (a shard's
+    gaps, a restarted shard's catch-up) took its whole timeout. A closed session's queryables the router drops as it
+    should (tests/test_pipeline.py, ``test_a_history_left_behind_answers_at_once``)."""
+    for entity in reversed(entities):
+        if not isinstance(entity, zenoh.Queryable):
+            entity.undeclare()
+    entities.clear()

@@ -909,6 +909,47 @@ def _replay(procs, sim: Path, endpoint: str, rate: str):
     )
 
 
+def test_a_history_left_behind_answers_at_once(tmp_path, procs):
+    """Once the source has ended, the SLAM node's history of poses answers at once, and once one of two shards has
+    stopped, the other's tiles do. zenoh's router (1.10) went on routing wildcard queries to a queryable undeclared
+    while another session declared the same key expression (pg/<robot>/history/**: the source and the node;
+    pg/map/<map>/tile/**: every shard), and each query waited its whole timeout for that queryable's last answer:
+    every question to the node's history after the source had ended took its whole timeout (a shard's 5 s; the
+    router-loss test's question 30 s). Processes now leave their queryables to the session's close
+    (services.zenoh_config.undeclare_all)."""
+    sim = tmp_path / "sim"
+    assert main(["simulate", str(sim), "--steps", "40", "--beams", "31", "--seed", "3"]) == 0
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
+    node = procs(
+        [*CLI, "slam-node", "--robot", "r1", "--algo", "fastslam2", "--particles", "20", "--connect", endpoint]
+    )
+    shards = [
+        procs([*CLI, "mapper", "--shard", str(k), "--shards", "2", "--map", "m", "--connect", endpoint]) for k in (0, 1)
+    ]
+    node.wait_for("up for robot")
+    for shard in shards:
+        shard.wait_for("up; tiles on")
+    source = procs(
+        [*CLI, "source", "--sim-dir", str(sim), "--robot", "r1", "--map", "m", "--wait-mappers", "2"]
+        + ["--connect", endpoint]
+    )
+    session = zenoh.open(build_config("client", connect=[endpoint]))
+    try:
+        source.wait_for("publishing")  # (the router's routes are made by a first question, while all are up)
+        history.ask(session, "r1", {"streams": keys.POSE, "from": "0", "to": "1"}, 10.0)
+        list(session.get(keys.tiles_key("m"), timeout=10.0))
+        assert source.process.wait(120) == 0, source.output()
+        shards[1].process.send_signal(signal.SIGINT)
+        assert shards[1].process.wait(30) == 0, shards[1].output()
+        poses, problems = history.ask(session, "r1", {"streams": keys.POSE, "from": "0", "to": "10"}, 10.0)
+        tiles = list(session.get(keys.tiles_key("m"), timeout=10.0))
+    finally:
+        session.close()
+    assert len(poses) == 10 and problems == [], problems  # "Timeout" before
+    assert tiles and all(reply.ok is not None for reply in tiles), [r.err.payload.to_bytes() for r in tiles if r.err]
+
+
 def test_a_restarted_slam_node_takes_the_run_from_the_sources_history(tmp_path, procs):
     """A SLAM node killed mid-run and started again takes what the source published before it was up from the
     source's history (pg/<robot>/history/**) and goes on as if it had never stopped: every pose either node

@@ -38,6 +38,7 @@ from services.api.registry import MapRegistry, TileKey
 from services.api.robots import RobotTracker
 from services.map_client import MapReader
 from services.process import RejectCounter, get_logger
+from services.zenoh_config import undeclare_all
 
 #: s to wait for the shards' stats: a shard answers them from its Zenoh thread in milliseconds, and /health, which
 #: asks for them, must answer while a stalled shard is still alive to the router (up to its Zenoh lease)
@@ -104,9 +105,7 @@ class MapperLink:
         self._wake.set()
         if self._verifier is not None:
             self._verifier.join()
-        for entity in reversed(self._declared):
-            entity.undeclare()
-        self._declared.clear()
+        undeclare_all(self._declared)
 
     def _verify_loop(self) -> None:
         """Ask the pending shards for their stats when a token appears and every VERIFY_INTERVAL s while some

@@ -23,7 +23,7 @@ from services import history, keys
 from services.intake import Intake
 from services.process import RejectCounter, Stopped, get_logger
 from services.state.slam import EXPECTED, NodeConfig, SlamState
-from services.zenoh_config import open_session
+from services.zenoh_config import open_session, undeclare_all
 
 #: s to wait for the source's history of the run (what it published before this node was up)
 HISTORY_TIMEOUT = 60.0
@@ -133,8 +133,7 @@ class SlamNode:
                     self.state.handle(key, payload)
         except Stopped as exc:
             self.log.info("%s", exc)
-        for entity in reversed(self._declared):
-            entity.undeclare()
+        undeclare_all(self._declared)
         self.log.info("stopped after publishing %d poses", self.state.published)
         return 0
 

@@ -29,6 +29,7 @@ from services import history, keys
 from services.map_client import MapReader
 from services.process import get_logger
 from services.streams import Stream
+from services.zenoh_config import undeclare_all
 
 #: the replay logs its progress this many times (at every tenth of its steps)
 PROGRESS_PARTS = 10
@@ -312,7 +313,4 @@ class Source:
                 return self._stopped()
             return 0
         finally:
-            for publisher in self._publishers.values():
-                publisher.undeclare()
-            answers.undeclare()
-            token.undeclare()
+            undeclare_all([token, answers, *reversed(self._publishers.values())])

@@ -38,6 +38,7 @@ from services.ros2 import types as rt
 from services.ros2.endpoint import Received, RosNode, RosPublisher
 from services.ros2.ingest import Ingest, IngestConfig
 from services.ros2.mapout import MapMirror
+from services.zenoh_config import undeclare_all
 
 #: the largest sample the bridge takes from a ROS topic, bytes (a LaserScan of a million beams is 4 MB)
 MAX_INPUT_BYTES = 8 << 20
@@ -466,8 +467,7 @@ class Bridge:
         finally:
             if self.node is not None:
                 self.node.close()
-            for entity in reversed(self._declared):
-                entity.undeclare()
+            undeclare_all(self._declared)
         rejected = self.stats()["rejected_kinds"]
         self.log.info(
             "stopped after %d scans; %s",
