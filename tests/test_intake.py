@@ -7,6 +7,7 @@ from __future__ import annotations
 import logging
 import queue
 import threading
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -23,6 +24,7 @@ from schemas.messages import (
     decode_message,
 )
 from services import keys
+from services.errors import UsageError
 from services.intake import Intake
 from services.process import RejectCounter
 from services.state.limits import ShardLimits
@@ -316,6 +318,69 @@ def test_a_grid_node_refuses_an_odometry_jump_and_takes_a_reset_after_three_step
     for seq, pose in poses.items():  # each step's best particle within 0.5 m of the truth, before and after
         best = pose.samples[int(np.argmax(pose.weights))]
         assert np.hypot(*(best[:2] - log.true_poses[seq][:2])) < 0.5, (seq, best, log.true_poses[seq])
+
+
+def test_the_landmark_limit_is_the_nodes_option():
+    """`slam-node --max-landmarks N` bounds the landmarks a filter holds (the default, 1 024 for EKF-SLAM, would
+    refuse a map of more): with 3, a step bringing a fourth id is refused and counted, one of the ids held is taken."""
+    from services.cli import build_parser
+    from services.commands.pipeline import node_config
+
+    parse = build_parser().parse_args
+    config = node_config(parse(["slam-node", "--robot", "r", "--algo", "ekf", "--max-landmarks", "3"]))
+    published: list[bytes] = []
+    rejects = _rejects("slam-landmark-option")
+    state = SlamState(replace(config, initial=np.zeros(3)), rejects, publish=published.append)
+    for seq, ids in enumerate(([1, 2], [3], [4], [2])):
+        odometry = Odometry(robot="r", seq=seq, stamp=0.1 * seq, pose=np.zeros((0, 3)), commands=NO_COMMANDS)
+        n = len(ids)
+        seen = LandmarkObservations(
+            robot="r", seq=seq, stamp=0.1 * seq, ids=np.array(ids), ranges=np.full(n, 2.0), bearings=np.zeros(n)
+        )
+        state.handle("pg/r/odom", odometry.encode())
+        state.handle("pg/r/landmarks", seen.encode())
+    assert [decode_message(p, PoseGaussian).seq for p in published] == [0, 1, 3] and rejects.kinds() == {"step": 1}
+    assert node_config(parse(["slam-node", "--robot", "r", "--algo", "ekf"])).max_landmarks is None  # (the default)
+    for argv in (["--algo", "gridslam", "--max-landmarks", "3"], ["--algo", "ekf", "--max-odometry-step", "9"]):
+        with pytest.raises(UsageError, match="bounds"):
+            node_config(parse(["slam-node", "--robot", "r", *argv]))
+
+
+@pytest.mark.parametrize("limit", [None, 1.0])
+def test_the_odometry_step_limit_is_the_nodes_option(limit):
+    """`slam-node --max-odometry-step M`: grid FastSLAM refuses a step whose odometry moved more than M (1 m; 2 m
+    here, between scans a few cm apart), and takes it under the default of 50 m."""
+    from services.cli import build_parser
+    from services.commands.pipeline import node_config
+
+    argv = ["slam-node", "--robot", "r", "--algo", "gridslam"] + ([] if limit is None else ["--max-odometry-step", "1"])
+    config = node_config(build_parser().parse_args(argv))
+    log = sim_log("room", seed=1)
+    published: list[bytes] = []
+    rejects = _rejects(f"slam-odometry-option-{limit}")
+    state = SlamState(replace(config, initial=log.odometry[0]), rejects, publish=published.append)
+    for seq in range(5):  # the odometry 2 m off from seq 2 on: a reset, taken as one at its third step
+        odometry = log.odometry[seq] + (np.array([2.0, 0.0, 0.0]) if seq >= 2 else 0.0)
+        scan = LaserScan(
+            robot="r",
+            seq=seq,
+            stamp=float(log.stamps[seq]),
+            angle_min=log.angle_min,
+            angle_increment=log.angle_increment,
+            range_min=0.0,
+            range_max=log.range_max,
+            sensor_offset=np.asarray(log.sensor_offset, np.float64),
+            ranges=np.asarray(log.ranges[seq], np.float32),
+        )
+        state.handle("pg/r/scan", scan.encode())
+        state.handle(
+            "pg/r/odom",
+            Odometry(
+                robot="r", seq=seq, stamp=float(log.stamps[seq]), pose=odometry[None], commands=NO_COMMANDS
+            ).encode(),
+        )
+    taken = [decode_message(p, PoseSamples).seq for p in published]
+    assert taken == ([0, 1, 2, 3, 4] if limit is None else [0, 1, 4]), (taken, rejects.kinds())
 
 
 def test_a_history_reply_on_a_stream_no_step_has_is_counted_not_fatal():

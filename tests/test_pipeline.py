@@ -1215,6 +1215,21 @@ def test_run_hands_the_resampling_choice_to_the_slam_node():
         assert node.plain_resampling is expected
 
 
+def test_run_hands_the_node_limits_to_the_slam_node():
+    """`posegrid run --max-landmarks` and `--max-odometry-step` reach its SLAM node's NodeConfig."""
+    from services.cli import build_parser
+    from services.commands.pipeline import node_config, slam_argv
+
+    parser = build_parser()
+    for flags, field, value in (
+        (["--algo", "ekf", "--max-landmarks", "7"], "max_landmarks", 7),
+        (["--algo", "gridslam", "--max-odometry-step", "2.5"], "max_odometry_step", 2.5),
+    ):
+        argv = slam_argv(parser.parse_args(["run", *flags]), "sim")
+        config = node_config(parser.parse_args(["slam-node", "--robot", "r", *argv]))
+        assert getattr(config, field) == value, argv
+
+
 @pytest.mark.parametrize("calibrated", [False, True], ids=["generic", "drive-angle"])
 def test_slam_node_on_real_mrclam_data_publishes_what_offline_slam_writes(tmp_path, procs, data_dir, calibrated):
     """Real data: source --mrclam -> slam-node (EKF) over zenoh gives `posegrid slam`'s poses: bit for bit with the

@@ -19,6 +19,8 @@ from services.commands.argtypes import (
     odom_delay_seconds,
     path_argument,
     pose_sample_count,
+    positive_int,
+    positive_number,
     random_seed,
 )
 from services.commands.gridslam import DEFAULT_GRID_PARTICLES, FILTER_OPTIONS, add_filter_options, reject_filter_options
@@ -71,6 +73,8 @@ SLAM_NODE_OPTIONS = (
     "--drive-angle-sd",
     "--profile",
     "--calibration",
+    "--max-landmarks",
+    "--max-odometry-step",
     *(option for option, _ in FILTER_OPTIONS),
 )
 
@@ -164,7 +168,29 @@ def _add_slam_node(subparsers: argparse._SubParsersAction) -> None:
     add_slam_arguments(node)
     node.add_argument("--seed", type=random_seed, default=0, help="seed of the particle filter (default 0)")
     add_initial_option(node, "start pose in m, m, rad (default: the prior the source publishes)")
+    _add_node_limits(node)
     add_zenoh_arguments(node)
+
+
+def _add_node_limits(parser: argparse.ArgumentParser) -> None:
+    """The SLAM node's bounds on what a peer's steps may ask of its filter (services.state.slam); each step refused
+    is counted in its stats and logged."""
+    group = parser.add_argument_group("SLAM node limits on what peers may send (docs/security.md)")
+    group.add_argument(
+        "--max-landmarks",
+        type=positive_int,
+        default=None,
+        help="landmarks a landmark filter may hold; a step whose new ids (or, with unknown ids, its measurements) "
+        "could take it past is refused (default 4096; EKF-SLAM 1024, its covariance growing with their square)",
+    )
+    group.add_argument(
+        "--max-odometry-step",
+        type=positive_number,
+        default=None,
+        metavar="M",
+        help="m: the farthest grid FastSLAM's odometry may move from one step to the next; a farther step is "
+        "refused, unless 3 in a row agree with each other (an odometry reset) (default 50)",
+    )
 
 
 def _add_run(subparsers: argparse._SubParsersAction) -> None:
@@ -198,6 +224,7 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:
     add_fusion_arguments(run)
     add_threads_argument(run, "each of the N shards gets the cores this process may use divided by N, at least 1")
     add_limit_arguments(run)
+    _add_node_limits(run)
     add_slam_arguments(run, particles=RUN_PARTICLES)
     from services.commands.ros2 import add_ros2_run_arguments
 
@@ -867,6 +894,10 @@ def node_config(args: argparse.Namespace):
     algo = args.algo or DEFAULT_ALGORITHM
     args.algo = algo
     reject_filter_options(args, algo)
+    if args.max_landmarks is not None and algo in ("gridslam", "odometry"):
+        raise UsageError(f"--max-landmarks bounds the landmark filters (ekf, fastslam1, fastslam2), not {algo}")
+    if args.max_odometry_step is not None and algo != "gridslam":
+        raise UsageError(f"--max-odometry-step bounds grid FastSLAM (--algo gridslam), not {algo}")
     motion, sensor, gate, calibration, scale_sd, drive_angle_sd = _slam_models(args)
     drive_angle = calibration.drive_angle if calibration is not None else 0.0
     initial = initial_pose(args.initial) if args.initial is not None else None
@@ -894,6 +925,8 @@ def node_config(args: argparse.Namespace):
         grid_config=grid_config,
         seed=args.seed,
         calibration=calibration,
+        max_landmarks=args.max_landmarks,
+        **({} if args.max_odometry_step is None else {"max_odometry_step": args.max_odometry_step}),
     )
     if config.make_filter is not None and algo != "gridslam":
         try:

@@ -84,6 +84,10 @@ MAX_LANDMARKS = 4096
 #: updates all of it)
 MAX_EKF_LANDMARKS = 1024
 
+#: the farthest the odometry may move from one step to the next, m (a scan every 5 s at 10 m/s): one odometry
+#: message moved 3 km took a grid FastSLAM node to 13 GB, as every particle's tile table spans the particles' box
+MAX_ODOMETRY_STEP = 50.0
+
 
 def check_landmark_step(
     odom: Odometry,
@@ -141,7 +145,9 @@ class NodeConfig:
     intake_capacity: bounded queue size; bridge: the odometry motion model that moves a velocity-motion filter
     over steps that never arrived, by the odometry poses around them (:class:`LandmarkDriver`); calibration: the
     corrections the landmark filters apply to the commands and measurements as they arrive (slam.calibration; None:
-    as they come)."""
+    as they come); max_landmarks: the landmarks a landmark filter may hold (None: :data:`MAX_LANDMARKS`,
+    :data:`MAX_EKF_LANDMARKS` for EKF-SLAM); max_odometry_step: the farthest grid FastSLAM's odometry may move from
+    one step to the next (m, :class:`GridDriver`)."""
 
     robot: str
     algorithm: str
@@ -153,6 +159,8 @@ class NodeConfig:
     intake_capacity: int = 4096
     bridge: OdometryMotionModel | None = DEFAULT_BRIDGE
     calibration: Calibration | None = None
+    max_landmarks: int | None = None
+    max_odometry_step: float = MAX_ODOMETRY_STEP
 
 
 @dataclass(frozen=True)
@@ -184,8 +192,10 @@ class LandmarkDriver:
         motion: str,
         bridge: OdometryMotionModel | None = None,
         calibration: Calibration | None = None,
+        max_landmarks: int | None = None,
     ):
         self.filter = slam_filter
+        self.max_landmarks = max_landmarks  # (None: the filter's kind's default)
         self.motion = motion
         self.bridge = bridge
         self.corrector = None if calibration is None or calibration.is_identity() else calibration.step_corrector()
@@ -198,7 +208,7 @@ class LandmarkDriver:
         odom: Odometry = parts[keys.ODOM]
         seen: LandmarkObservations = parts[keys.LANDMARKS]
         known = isinstance(self.filter, LandmarkFilter) and self.filter.known  # (dead reckoning has no landmarks)
-        limit = MAX_EKF_LANDMARKS if isinstance(self.filter, EKFSLAM) else MAX_LANDMARKS
+        limit = self.max_landmarks or (MAX_EKF_LANDMARKS if isinstance(self.filter, EKFSLAM) else MAX_LANDMARKS)
         check_landmark_step(odom, seen, self._ids, known, 0 if known else landmarks_held(self.filter), limit)
         if known:
             self._ids.update(seen.ids.tolist())
@@ -245,9 +255,6 @@ class LandmarkDriver:
         self.last_gap = None
 
 
-#: the farthest the odometry may move from one step to the next, m (a scan every 5 s at 10 m/s): one odometry
-#: message moved 3 km took a grid FastSLAM node to 13 GB, as every particle's tile table spans the particles' box
-MAX_ODOMETRY_STEP = 50.0
 #: consecutive steps that agree with each other but not with the odometry before them after which grid FastSLAM
 #: takes them as the odometry's new frame (a reset of the robot's odometry), not as a jump
 REBASE_STEPS = 3
@@ -257,8 +264,9 @@ class GridDriver:
     """Feeds grid FastSLAM one scan at a time: integrate when due, else follow the odometry. A failed step is
     not undone (:meth:`save` keeps nothing): a copy of every particle's map per scan would cost more than the
     step. Odometry beyond the wire's pose limit never reaches it; a step whose odometry moved more than
-    :data:`MAX_ODOMETRY_STEP` is refused before the filter sees it, unless :data:`REBASE_STEPS` such steps in a row
-    agree with each other: then the odometry was reset, and the filter takes the new frame without moving."""
+    ``max_odometry_step`` (m, :data:`MAX_ODOMETRY_STEP` unless given) is refused before the filter sees it, unless
+    :data:`REBASE_STEPS` such steps in a row agree with each other: then the odometry was reset, and the filter
+    takes the new frame without moving."""
 
     needs = frozenset({keys.SCAN, keys.ODOM})
 
@@ -268,10 +276,13 @@ class GridDriver:
     def restore(self, saved: object) -> None:
         pass
 
-    def __init__(self, initial: np.ndarray, config: GridSlamConfig, seed: int):
+    def __init__(
+        self, initial: np.ndarray, config: GridSlamConfig, seed: int, max_odometry_step: float = MAX_ODOMETRY_STEP
+    ):
         self.initial = initial
         self.config = config
         self.seed = seed
+        self.max_odometry_step = max_odometry_step  # m
         self.filter: GridFastSLAM | None = None  # made at the first scan, which gives the laser's geometry
         self.last_health: ScanHealth | None = None  # of the last integrated scan
         self.scans = 0  # integrated scans
@@ -316,16 +327,16 @@ class GridDriver:
         return self.filter.follow(odom.pose[0]), self.filter.weights
 
     def _check_jump(self, seq: int, pose: np.ndarray) -> None:
-        """StepError for odometry ``pose`` (3,) more than MAX_ODOMETRY_STEP from the last step's, unless it is the
+        """StepError for odometry ``pose`` (3,) more than max_odometry_step from the last step's, unless it is the
         REBASE_STEPS-th such in a row, each near the one before: then the filter's odometry reference becomes it."""
-        last = self._last_odometry
-        if last is not None and float(np.hypot(*(pose[:2] - last[:2]))) > MAX_ODOMETRY_STEP:
-            near_run = bool(self._jumped) and float(np.hypot(*(pose[:2] - self._jumped[-1][:2]))) <= MAX_ODOMETRY_STEP
+        last, limit = self._last_odometry, self.max_odometry_step
+        if last is not None and float(np.hypot(*(pose[:2] - last[:2]))) > limit:
+            near_run = bool(self._jumped) and float(np.hypot(*(pose[:2] - self._jumped[-1][:2]))) <= limit
             self._jumped = [*self._jumped, pose] if near_run else [pose]
             if len(self._jumped) < REBASE_STEPS:
                 raise StepError(
                     f"seq {seq}: the odometry moved {np.hypot(*(pose[:2] - last[:2])):.3g} m since the last step, more "
-                    f"than the {MAX_ODOMETRY_STEP:g} m a step may (taken as a reset of the odometry after "
+                    f"than the {limit:g} m a step may (taken as a reset of the odometry after "
                     f"{REBASE_STEPS} such steps in a row)"
                 )
             assert self.filter is not None  # (made before the first step is checked)
@@ -495,9 +506,9 @@ class SlamState:
         initial = np.asarray(self.initial, np.float64)
         if cfg.algorithm == "gridslam":
             assert cfg.grid_config is not None  # NodeConfig: grid FastSLAM's settings come with it
-            return GridDriver(initial, cfg.grid_config, cfg.seed)
+            return GridDriver(initial, cfg.grid_config, cfg.seed, cfg.max_odometry_step)
         assert cfg.make_filter is not None  # NodeConfig: None for gridslam only
-        return LandmarkDriver(cfg.make_filter(initial), cfg.motion, cfg.bridge, cfg.calibration)
+        return LandmarkDriver(cfg.make_filter(initial), cfg.motion, cfg.bridge, cfg.calibration, cfg.max_landmarks)
 
     def _take(self, seq: int, parts: dict) -> None:
         """Take step ``seq`` through the filter and publish its pose; a step the filter cannot take is undone,
