@@ -280,6 +280,25 @@ def test_a_step_that_could_start_too_many_unknown_landmarks_is_skipped():
     assert [decode_message(p, PoseGaussian).seq for p in published] == [0, 2] and rejects.kinds().get("step") == 1
 
 
+def _grid_step(state: SlamState, log, seq: int, odometry: np.ndarray) -> None:
+    """Hand ``state`` step ``seq`` of a simulated laser log (slam.gridslam.simlogs): its scan, and ``odometry`` (3,)
+    as the step's odometry pose."""
+    scan = LaserScan(
+        robot="r",
+        seq=seq,
+        stamp=float(log.stamps[seq]),
+        angle_min=log.angle_min,
+        angle_increment=log.angle_increment,
+        range_min=0.0,
+        range_max=log.range_max,
+        sensor_offset=np.asarray(log.sensor_offset, np.float64),
+        ranges=np.asarray(log.ranges[seq], np.float32),
+    )
+    state.handle("pg/r/scan", scan.encode())
+    pose = Odometry(robot="r", seq=seq, stamp=float(log.stamps[seq]), pose=odometry[None], commands=NO_COMMANDS)
+    state.handle("pg/r/odom", pose.encode())
+
+
 def test_a_grid_node_refuses_an_odometry_jump_and_takes_a_reset_after_three_steps():
     """One odometry message moved 3 km took a grid FastSLAM node to 13 GB (every particle's tile table spans the
     particles' box) and its poses 3 km away. The jump is counted and skipped, and the steps after it are taken as
@@ -296,22 +315,7 @@ def test_a_grid_node_refuses_an_odometry_jump_and_takes_a_reset_after_three_step
         odometry = log.odometry[seq] + (reset if seq >= 30 else 0.0)
         if seq == 10:
             odometry = odometry + np.array([3000.0, 3000.0, 0.0])
-        scan = LaserScan(
-            robot="r",
-            seq=seq,
-            stamp=float(log.stamps[seq]),
-            angle_min=log.angle_min,
-            angle_increment=log.angle_increment,
-            range_min=0.0,
-            range_max=log.range_max,
-            sensor_offset=np.asarray(log.sensor_offset, np.float64),
-            ranges=np.asarray(log.ranges[seq], np.float32),
-        )
-        state.handle("pg/r/scan", scan.encode())
-        pose = Odometry(
-            robot="r", seq=seq, stamp=float(log.stamps[seq]), pose=odometry[None], commands=np.zeros((0, 3))
-        )
-        state.handle("pg/r/odom", pose.encode())
+        _grid_step(state, log, seq, odometry)
     poses = {p.seq: p for p in (decode_message(payload, PoseSamples) for payload in published)}
     assert sorted(poses) == [s for s in range(40) if s not in (10, 30, 31)] and rejects.kinds().get("step") == 3
     assert state.driver.filter.maps.table.shape[1] < 200  # tiles of 1.6 m: a few hundred m at most, not 3 km
@@ -361,24 +365,7 @@ def test_the_odometry_step_limit_is_the_nodes_option(limit):
     state = SlamState(replace(config, initial=log.odometry[0]), rejects, publish=published.append)
     for seq in range(5):  # the odometry 2 m off from seq 2 on: a reset, taken as one at its third step
         odometry = log.odometry[seq] + (np.array([2.0, 0.0, 0.0]) if seq >= 2 else 0.0)
-        scan = LaserScan(
-            robot="r",
-            seq=seq,
-            stamp=float(log.stamps[seq]),
-            angle_min=log.angle_min,
-            angle_increment=log.angle_increment,
-            range_min=0.0,
-            range_max=log.range_max,
-            sensor_offset=np.asarray(log.sensor_offset, np.float64),
-            ranges=np.asarray(log.ranges[seq], np.float32),
-        )
-        state.handle("pg/r/scan", scan.encode())
-        state.handle(
-            "pg/r/odom",
-            Odometry(
-                robot="r", seq=seq, stamp=float(log.stamps[seq]), pose=odometry[None], commands=NO_COMMANDS
-            ).encode(),
-        )
+        _grid_step(state, log, seq, odometry)
     taken = [decode_message(p, PoseSamples).seq for p in published]
     assert taken == ([0, 1, 2, 3, 4] if limit is None else [0, 1, 4]), (taken, rejects.kinds())
 
