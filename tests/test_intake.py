@@ -88,6 +88,38 @@ def test_the_intake_bounds_what_waits_by_bytes_and_by_count_and_counts_each_over
         intake.next(0.01)
 
 
+def test_robots_take_turns_and_each_keeps_its_order():
+    """A flood of one robot's messages (h) delays another robot's (r) by one of the flood's each, not by all of it:
+    the robots with messages waiting take turns, each robot's messages in the order they came."""
+    intake = Intake(SHARD_STREAMS, _rejects("turns"))
+    for seq in range(50):
+        assert intake.offer("pg/h/scan", b"h%d" % seq)
+    for seq in range(3):
+        assert intake.offer("pg/r/scan", b"r%d" % seq)
+    taken = [intake.next(1.0)[1] for _ in range(53)]
+    assert taken[:7] == [b"h0", b"r0", b"h1", b"r1", b"h2", b"r2", b"h3"]
+    assert taken[6:] == [b"h%d" % seq for seq in range(3, 50)] and intake.empty() and intake.bytes == 0
+
+
+@pytest.mark.parametrize("bound", ["count", "bytes"])
+def test_a_full_intake_takes_a_robot_holding_less_by_evicting_the_floods_newest(bound):
+    """A flood that fills the intake (by count or by bytes) no longer shuts another robot out: that robot's message
+    evicts the flood's newest (counted as the flood's overflow), and the flood's own next message is refused."""
+    rejects = _rejects(f"fair-{bound}")
+    limits = ShardLimits(intake_bytes=100) if bound == "bytes" else ShardLimits()
+    intake = Intake(SHARD_STREAMS, rejects, limits, capacity=10 if bound == "count" else 1000)
+    flood = [intake.offer("pg/h/scan", b"h%02d" % seq + b"." * 7) for seq in range(12)]  # 10 bytes each
+    assert flood == [True] * 10 + [False] * 2 and intake.overflow == 2
+    assert intake.offer("pg/r/scan", b"r" * (10 if bound == "count" else 25))  # evicts 1 of h's (count), 3 (bytes)
+    evicted = 1 if bound == "count" else 3
+    assert not intake.offer("pg/h/scan", b"h99" + b"." * 7)  # h holds the most: its own message is refused
+    assert intake.overflow == 3 + evicted and rejects.snapshot() == {"pg/h/scan": 3 + evicted}
+    taken = [intake.next(1.0)[1][:3] for _ in range(11 - evicted)]
+    assert taken[:3] == [b"h00", b"rrr", b"h01"]  # (the turns)
+    assert [t for t in taken if t.startswith(b"h")] == [b"h%02d" % seq for seq in range(10 - evicted)]
+    assert intake.empty() and intake.bytes == 0
+
+
 # ------------------------------------------------------------------------------------------------ history replies
 
 
