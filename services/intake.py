@@ -7,21 +7,20 @@ its key is no robot stream the process reads (kind "key", under keys.INVALID_KEY
 :func:`services.state.checks.robot_stream`), when it is larger than any message the process takes (kind "size"),
 or when the queue is full, by count or by bytes (kind "overflow", also counted in :attr:`Intake.overflow`).
 
-**Fair to each robot.** The robots with messages waiting take turns, one message each (round robin), so a peer that
-floods one robot's streams (scans at the limits cost about 1 s of a core each) delays another robot's next message
-by one of its own, not by all it has queued; and when the queue is full, a message of a robot holding fewer bytes
-than another makes room by evicting that other robot's newest messages (counted as its "overflow"): a flood fills
-the queue with its own messages and then only displaces its own.
+**Fair to each robot** (:class:`services.fair_queue.FairQueue`, each robot an owner): the robots with messages
+waiting take turns, one message each, so a peer that floods one robot's streams (scans at the limits cost about 1 s
+of a core each) delays another robot's next message by one of its own, not by all it has queued; and when the queue
+is full, a message of a robot holding fewer bytes than another makes room by evicting that other robot's newest
+messages (counted as its "overflow"): a flood fills the queue with its own messages and then only displaces its own.
 """
 
 from __future__ import annotations
 
-import queue
 import threading
-from collections import deque
 from collections.abc import Iterable
 from typing import TYPE_CHECKING
 
+from services.fair_queue import FairQueue
 from services.process import RejectCounter
 from services.state.checks import robot_stream
 from services.state.limits import ShardLimits
@@ -56,12 +55,14 @@ class Intake:
         self.limits = limits
         self.robot = robot
         self.capacity = capacity
-        self._waiting: dict[str, _Waiting] = {}  # robot -> its messages waiting, oldest first
-        self._turns: deque[str] = deque()  # the robots with messages waiting, the next to take one first
-        self._count = 0  # messages waiting
-        self._changed = threading.Condition()  # guards all the above, bytes and overflow; notified on a message
-        self.bytes = 0  # bytes of the payloads waiting
+        self._queue: FairQueue[tuple[str, bytes]] = FairQueue(capacity, limits.intake_bytes)
         self.overflow = 0  # publications refused, or evicted, because the queue was full
+        self._overflow_lock = threading.Lock()  # (callbacks of several Zenoh threads add to it)
+
+    @property
+    def bytes_waiting(self) -> int:
+        """Bytes of the payloads waiting."""
+        return self._queue.bytes
 
     def on_sample(self, sample: zenoh.Sample) -> None:
         """A Zenoh subscriber's callback: :meth:`offer` the sample's key and payload."""
@@ -83,74 +84,23 @@ class Intake:
                 f"{limits.max_beams} beams may take ({limits.message_bytes()} bytes)",
             )
             return False
-        robot = parsed[0]
-        data = payload if isinstance(payload, bytes) else payload.to_bytes()
-        with self._changed:
-            evicted = self._make_room(robot, size)
-            queued = self._count < self.capacity and self.bytes + size <= limits.intake_bytes
-            if queued:
-                waiting = self._waiting.get(robot)
-                if waiting is None:
-                    waiting = self._waiting[robot] = _Waiting()
-                    self._turns.append(robot)
-                waiting.messages.append((key, data))
-                waiting.bytes += size
-                self._count += 1
-                self.bytes += size
-                self._changed.notify()
+        queued, evicted = self._queue.offer(
+            parsed[0], (key, payload if isinstance(payload, bytes) else payload.to_bytes()), size
+        )
+        with self._overflow_lock:
             self.overflow += len(evicted) + (not queued)
         full = f"the intake queue ({self.capacity} messages, {limits.intake_bytes} bytes) was full"
-        for evicted_key in evicted:
+        for evicted_key, _ in evicted:
             self.rejects.count(evicted_key, "overflow", f"{full}: evicted for a robot holding fewer bytes")
         if not queued:
             self.rejects.count(key, "overflow", full)
         return queued
 
-    def _make_room(self, robot: str, size: int) -> list[str]:
-        """While the queue has no room for ``size`` more bytes of ``robot``'s, evict the newest message of the robot
-        holding the most bytes, when that is another robot holding more than ``robot`` would with this message;
-        the keys of those evicted (called holding the lock)."""
-        evicted: list[str] = []
-        while self._count >= self.capacity or self.bytes + size > self.limits.intake_bytes:
-            mine = self._waiting.get(robot)
-            held = (0 if mine is None else mine.bytes) + size
-            largest = max(self._waiting, key=lambda other: self._waiting[other].bytes, default=None)
-            if largest is None or largest == robot or self._waiting[largest].bytes <= held:
-                break
-            evicted.append(self._take(largest, newest=True)[0])
-        return evicted
-
-    def _take(self, robot: str, newest: bool = False) -> tuple[str, bytes]:
-        """Remove ``robot``'s oldest (or newest) waiting message and return it (called holding the lock)."""
-        waiting = self._waiting[robot]
-        key, payload = waiting.messages.pop() if newest else waiting.messages.popleft()
-        waiting.bytes -= len(payload)
-        self._count -= 1
-        self.bytes -= len(payload)
-        if not waiting.messages:
-            del self._waiting[robot]
-            self._turns.remove(robot)
-        return key, payload
-
     def next(self, timeout: float) -> tuple[str, bytes]:
-        """The next waiting (key, payload): the oldest of the robot whose turn it is, its bytes released; raises
-        queue.Empty after ``timeout`` s."""
-        with self._changed:
-            if not self._changed.wait_for(lambda: self._count > 0, timeout):
-                raise queue.Empty
-            robot = self._turns[0]
-            self._turns.rotate(-1)  # (the robot's next message after every other robot's)
-            return self._take(robot)
+        """The next waiting (key, payload): the oldest of the robot whose turn it is; raises queue.Empty after
+        ``timeout`` s."""
+        return self._queue.take(timeout)
 
     def empty(self) -> bool:
         """Whether nothing waits."""
-        with self._changed:
-            return self._count == 0
-
-
-class _Waiting:
-    """One robot's messages waiting in an :class:`Intake` ((key, payload), oldest first) and their bytes."""
-
-    def __init__(self) -> None:
-        self.messages: deque[tuple[str, bytes]] = deque()
-        self.bytes = 0
+        return self._queue.empty()

@@ -77,13 +77,15 @@ def test_the_intake_bounds_what_waits_by_bytes_and_by_count_and_counts_each_over
     rejects = _rejects("overflow")
     intake = Intake(SHARD_STREAMS, rejects, ShardLimits(intake_bytes=100), capacity=3)
     assert intake.offer("pg/r/scan", b"a" * 60) and not intake.offer("pg/r/pose", b"b" * 41)  # 101 bytes > 100
-    assert intake.offer("pg/r/pose", b"c" * 40) and intake.bytes == 100
-    assert intake.next(1.0) == ("pg/r/scan", b"a" * 60) and intake.bytes == 40  # taken out: its bytes are free again
+    assert intake.offer("pg/r/pose", b"c" * 40) and intake.bytes_waiting == 100
+    assert (
+        intake.next(1.0) == ("pg/r/scan", b"a" * 60) and intake.bytes_waiting == 40
+    )  # taken out: its bytes are free again
     assert intake.offer("pg/r/end", b"d") and intake.offer("pg/r/end", b"e")
     assert not intake.offer("pg/r/end", b"f")  # 3 messages wait already
     assert intake.overflow == 2 and rejects.kinds() == {"overflow": 2}
-    assert rejects.snapshot() == {"pg/r/pose": 1, "pg/r/end": 1} and intake.bytes == 42
-    assert [intake.next(1.0)[1] for _ in range(3)] == [b"c" * 40, b"d", b"e"] and intake.bytes == 0
+    assert rejects.snapshot() == {"pg/r/pose": 1, "pg/r/end": 1} and intake.bytes_waiting == 42
+    assert [intake.next(1.0)[1] for _ in range(3)] == [b"c" * 40, b"d", b"e"] and intake.bytes_waiting == 0
     with pytest.raises(queue.Empty):
         intake.next(0.01)
 
@@ -98,7 +100,7 @@ def test_robots_take_turns_and_each_keeps_its_order():
         assert intake.offer("pg/r/scan", b"r%d" % seq)
     taken = [intake.next(1.0)[1] for _ in range(53)]
     assert taken[:7] == [b"h0", b"r0", b"h1", b"r1", b"h2", b"r2", b"h3"]
-    assert taken[6:] == [b"h%d" % seq for seq in range(3, 50)] and intake.empty() and intake.bytes == 0
+    assert taken[6:] == [b"h%d" % seq for seq in range(3, 50)] and intake.empty() and intake.bytes_waiting == 0
 
 
 @pytest.mark.parametrize("bound", ["count", "bytes"])
@@ -117,7 +119,7 @@ def test_a_full_intake_takes_a_robot_holding_less_by_evicting_the_floods_newest(
     taken = [intake.next(1.0)[1][:3] for _ in range(11 - evicted)]
     assert taken[:3] == [b"h00", b"rrr", b"h01"]  # (the turns)
     assert [t for t in taken if t.startswith(b"h")] == [b"h%02d" % seq for seq in range(10 - evicted)]
-    assert intake.empty() and intake.bytes == 0
+    assert intake.empty() and intake.bytes_waiting == 0
 
 
 # ------------------------------------------------------------------------------------------------ history replies

@@ -17,7 +17,7 @@ from services import keys
 from services.process import RejectCounter
 from services.ros2 import convert, names
 from services.ros2 import types as rt
-from services.ros2.ingest import Ingest, IngestConfig, OdometryTrack
+from services.ros2.ingest import MAX_STATIC_FRAMES, MAX_TF_FRAMES, Ingest, IngestConfig, OdometryTrack
 from services.ros2.mapout import MapMirror
 from slam.laserlog import interpolate_poses
 
@@ -156,6 +156,23 @@ def _tf(stamp: float, parent: str, child: str, x: float, yaw: float):
     return rt.MessageType(rt.TF_MESSAGE).cls()(transforms=[stamped])
 
 
+def _ros_odometry(stamp: float, x: float = 0.0):
+    """A decoded ``nav_msgs/Odometry`` of base_link at (x, 0, 0) stamped ``stamp`` s."""
+    odom_type = rt.MessageType(rt.ODOMETRY)
+    vector = rt.field_class("geometry_msgs/msg/Vector3")(x=0.0, y=0.0, z=0.0)
+    message = odom_type.cls()(
+        header=convert.header(stamp, "odom"),
+        child_frame_id="base_link",
+        pose=rt.field_class("geometry_msgs/msg/PoseWithCovariance")(
+            pose=convert.ros_pose(x, 0, 0), covariance=np.zeros(36)
+        ),
+        twist=rt.field_class("geometry_msgs/msg/TwistWithCovariance")(
+            twist=rt.field_class("geometry_msgs/msg/Twist")(linear=vector, angular=vector), covariance=np.zeros(36)
+        ),
+    )
+    return odom_type.decode(odom_type.encode(message))
+
+
 class Clock:
     def __init__(self):
         self.now = 0.0
@@ -211,26 +228,7 @@ def test_scans_without_a_transform_or_with_nan_geometry_are_counted_not_taken():
     rejects = RejectCounter(logging.getLogger("test"))
     clock = Clock()
     ingest = Ingest(IngestConfig("r1", wait=1.0), rejects, clock)
-    odom_type = rt.MessageType(rt.ODOMETRY)
-    odometry = odom_type.decode(
-        odom_type.encode(
-            odom_type.cls()(
-                header=convert.header(1.0, "odom"),
-                child_frame_id="base_link",
-                pose=rt.field_class("geometry_msgs/msg/PoseWithCovariance")(
-                    pose=convert.ros_pose(0, 0, 0), covariance=np.zeros(36)
-                ),
-                twist=rt.field_class("geometry_msgs/msg/TwistWithCovariance")(
-                    twist=rt.field_class("geometry_msgs/msg/Twist")(
-                        linear=rt.field_class("geometry_msgs/msg/Vector3")(x=0.0, y=0.0, z=0.0),
-                        angular=rt.field_class("geometry_msgs/msg/Vector3")(x=0.0, y=0.0, z=0.0),
-                    ),
-                    covariance=np.zeros(36),
-                ),
-            )
-        )
-    )
-    ingest.on_odometry("/odom", odometry)
+    ingest.on_odometry("/odom", _ros_odometry(1.0))
     ingest.on_scan("/scan", _ros_scan(1.0, increment=math.nan))
     ingest.on_scan("/scan", _ros_scan(1.0, frame="nowhere"))
     assert ingest.ready() == []  # waits for a transform that may still come
@@ -239,6 +237,65 @@ def test_scans_without_a_transform_or_with_nan_geometry_are_counted_not_taken():
     assert rejects.kinds() == {"geometry": 1, "transform": 1} and rejects.snapshot() == {"/scan": 2}
     ingest.on_scan("/scan", _ros_scan(1.0, frame="base_link"))  # the laser at the base: no transform needed
     assert [stream for stream, _ in ingest.ready()] == [keys.PRIOR, keys.SCAN, keys.ODOM]
+
+
+def test_a_stamp_past_what_a_ros_time_holds_is_clamped_in_what_goes_out():
+    """A scan stamped 2147483647.999999999 s (2^31 as a float) stamped the map with 2^31 s, which a ROS Time's int32
+    cannot hold: every later map message failed to encode. Out-of-range stamps are clamped to the range's ends."""
+    grid = rt.MessageType(rt.GRID_UPDATE)
+    for stamp, expected in ((2.0**31, (2**31 - 1, 999_999_999)), (-1e12, (-(2**31), 0)), (12.5, (12, 500_000_000))):
+        update = convert.grid_update(np.zeros((1, 1), np.int8), 0, 0, stamp, "map")
+        decoded = grid.decode(grid.encode(update))
+        assert (decoded.header.stamp.sec, decoded.header.stamp.nanosec) == expected
+
+
+def test_odometry_whose_clock_went_back_starts_the_track_over():
+    """One odometry message stamped in 2033 (or a robot's clock set back) made every later one "order" and every
+    later scan "odometry", for good. Three records in a row behind the last, each in order, start the track over
+    from them (counted as "clock"); one late record among newer ones does not."""
+    track = OdometryTrack()
+    for stamp in (1.0, 2.0, 3.0):
+        assert track.add(stamp, (stamp, 0.0, 0.0))
+    assert not track.add(2.5, (0.0, 0.0, 0.0)) and track.add(4.0, (4.0, 0.0, 0.0))  # one late record: refused
+    assert track.add(2.0e9, (9.0, 0.0, 0.0))  # stamped far ahead
+    assert [track.add(stamp, (stamp, 0.0, 0.0)) for stamp in (5.0, 6.0, 7.0)] == [False, False, True]
+    assert track.restarts == 1 and track.arrays()[0].tolist() == [5.0, 6.0, 7.0]
+    np.testing.assert_allclose(track.pose_at(6.5), [6.5, 0.0, 0.0])
+    rejects = RejectCounter(logging.getLogger("test"))
+    clock = Clock()
+    ingest = Ingest(IngestConfig("r1", wait=1.0), rejects, clock)
+    for stamp in (1.0, 2.0e9, 2.0, 3.0, 4.0):
+        ingest.on_odometry("/odom", _ros_odometry(stamp, x=min(stamp, 9.0)))
+    ingest.on_scan("/scan", _ros_scan(3.5, frame="base_link"))
+    out = ingest.ready()
+    assert [stream for stream, _ in out] == [keys.PRIOR, keys.SCAN, keys.ODOM] and out[2][1].pose[0, 0] == 3.5
+    assert rejects.kinds() == {"order": 2, "clock": 1}
+
+
+def test_made_up_frames_neither_grow_the_transforms_nor_push_out_the_base_frame():
+    """/tf_static kept every frame a peer made up (40 000 a message: 100 MB and on); it keeps 1 024. On /tf, 70
+    made-up frames before the robot's own locked its base frame out for good (64 tracked, the rest refused): a new
+    frame now replaces the one updated longest ago that no scan took as its base."""
+    rejects = RejectCounter(logging.getLogger("test"))
+    ingest = Ingest(IngestConfig("r1", wait=1.0), rejects, Clock())
+    made_up = rt.MessageType(rt.TF_MESSAGE).cls()(
+        transforms=[_tf(1.0, "base_link", f"x{i}", 0.0, 0.0).transforms[0] for i in range(MAX_STATIC_FRAMES + 5)]
+    )
+    ingest.on_transforms("/tf_static", made_up, static=True)
+    assert len(ingest.static) == MAX_STATIC_FRAMES and rejects.kinds() == {"overflow": 5}
+    ingest.static.clear()
+    ingest.on_transforms("/tf_static", _tf(0.0, "base5", "laser5", 0.2, 0.0), static=True)
+    for i in range(70):
+        ingest.on_transforms("/tf", _tf(1.0, "odom", f"bogus{i}", 0.0, 0.0), static=False)
+    assert len(ingest.tf_tracks) == MAX_TF_FRAMES
+    for stamp in (20.0, 21.0):
+        ingest.on_transforms("/tf", _tf(stamp, "odom", "base5", stamp, 0.0), static=False)
+    ingest.on_scan("/scan", _ros_scan(20.5, frame="laser5"))
+    out = ingest.ready()
+    assert [stream for stream, _ in out] == [keys.PRIOR, keys.SCAN, keys.ODOM] and out[2][1].pose[0, 0] == 20.5
+    for i in range(70, 200):  # a base a scan took is never the one replaced
+        ingest.on_transforms("/tf", _tf(1.0, "odom", f"bogus{i}", 0.0, 0.0), static=False)
+    assert "base5" in ingest.tf_tracks and len(ingest.tf_tracks) == MAX_TF_FRAMES
 
 
 def _tile(

@@ -358,6 +358,12 @@ def test_garbage_on_every_subscribed_key_is_counted_and_the_bridge_goes_on(tmp_p
     wait_until(lambda: bridge_stats(session)["scans"] == 1, what="the good scan")
     logged = [line for line in bridge.lines if "further ones of this kind are only counted" in line]
     assert len(logged) == 11  # once per topic and kind
+    for i in range(1, 41):  # tiles on keys of their own: counted under the subscription, not a counter a key
+        put(session, f"pg/map/main/tile/0/{i}/{7 * i}", b"\xc1")
+    stats = wait_until(
+        lambda: (s := bridge_stats(session))["rejected_kinds"]["malformed"] == 42 and s, what="40 more tiles counted"
+    )
+    assert {key: n for key, n in stats["received"].items() if "/tile/" in key} == {"pg/map/main/tile/0/*/*": 45}
 
 
 def test_run_ros2_gives_the_map_run_bag_gives(tmp_path, procs):  # noqa: F811

@@ -31,6 +31,7 @@ import zenoh
 from schemas.messages import MessageError, PoseGaussian, PoseSamples, TileUpdate, decode_message
 from schemas.wire import Message
 from services import history, keys
+from services.fair_queue import FairQueue
 from services.map_client import MapReader
 from services.process import RejectCounter, get_logger
 from services.ros2 import convert, names
@@ -140,13 +141,15 @@ class Bridge:
         self.ingest = Ingest(ingest, self.rejects)
         self.mirror = MapMirror(options.variance_scale)
         self.history = History()
-        self.queue: queue.Queue[tuple[str, Any, int]] = queue.Queue(QUEUE_CAPACITY)  # (kind, item, payload bytes)
-        self.queued_bytes = 0
+        # (kind, item, label): the ROS side's samples and posegrid's tiles and poses take turns (a flood of either
+        # side's, legal or not, delays the other's by one of its own)
+        self.queue: FairQueue[tuple[str, Any, str]] = FairQueue(QUEUE_CAPACITY, QUEUE_BYTES)
         self.received: Counter[str] = Counter()
         self.published: Counter[str] = Counter()
         self.bytes_out: Counter[str] = Counter()
         self.stamps: OrderedDict[int, float] = OrderedDict()  # seq -> stamp of the scans published
-        self.latest_stamp = 0.0  # s: the stamp of the latest scan fused into the map
+        self.latest_stamp = 0.0  # s: the stamp of the latest scan (by seq) fused into the map
+        self._latest_seq = -1  # that scan's seq
         self.last_map = -float("inf")  # time.monotonic() of the last whole map published
         self._pg: dict[str, zenoh.Publisher] = {}
         self._ros: dict[str, RosPublisher] = {}
@@ -158,22 +161,15 @@ class Bridge:
 
     # ------------------------------------------------------------------------------- callbacks (zenoh threads)
     def _offer(self, kind: str, item: Any, size: int, label: str) -> None:
-        """Queue ``item`` (``size`` bytes of payload) for the working thread, unless QUEUE_CAPACITY items or
-        QUEUE_BYTES bytes wait already (counted as "overflow" under ``label``)."""
-        with self.lock:
-            room = self.queued_bytes + size <= QUEUE_BYTES
-            if room:
-                self.queued_bytes += size
-        if room:
-            try:
-                self.queue.put_nowait((kind, item, size))
-                return
-            except queue.Full:
-                with self.lock:
-                    self.queued_bytes -= size
-        self.rejects.count(
-            label, "overflow", f"more than {QUEUE_CAPACITY} samples or {QUEUE_BYTES} bytes waited for the bridge"
-        )
+        """Queue ``item`` (``size`` bytes of payload) for the working thread, the ROS side's and posegrid's taking
+        turns (services.fair_queue), unless QUEUE_CAPACITY items or QUEUE_BYTES bytes wait already; what is refused,
+        or evicted for the other side, is counted as "overflow" under its ``label``."""
+        queued, evicted = self.queue.offer("ros" if kind == "ros" else "posegrid", (kind, item, label), size)
+        full = f"more than {QUEUE_CAPACITY} samples or {QUEUE_BYTES} bytes waited for the bridge"
+        for _, _, evicted_label in evicted:
+            self.rejects.count(evicted_label, "overflow", f"{full}: evicted for the other side's")
+        if not queued:
+            self.rejects.count(label, "overflow", full)
 
     def _on_ros(self, received: Received) -> None:
         self._offer("ros", received, len(received.payload), received.topic)
@@ -213,9 +209,7 @@ class Bridge:
             }
 
     # ------------------------------------------------------------------------------- the work (one thread)
-    def _handle(self, kind: str, item: Any, size: int) -> None:
-        with self.lock:
-            self.queued_bytes -= size
+    def _handle(self, kind: str, item: Any, label: str) -> None:
         if kind == "ros":
             self._guarded(item.topic, self._take_ros, item)
         elif kind == "tile":
@@ -288,8 +282,8 @@ class Bridge:
             )
 
     def _take_tile(self, key: str, payload: bytes) -> None:
-        with self.lock:
-            self.received[key] += 1
+        with self.lock:  # (counted under the subscription's key: a peer making up tile keys makes no new counters)
+            self.received[keys.tile_key(self.options.map_name, 0, "*", "*")] += 1
         try:
             tile = decode_message(payload, TileUpdate)
         except MessageError as exc:
@@ -299,8 +293,8 @@ class Bridge:
         if problem:
             self.rejects.count(key, "tile", problem)
             return
-        if tile.robot == self.options.robot and tile.seq in self.stamps:
-            self.latest_stamp = max(self.latest_stamp, self.stamps[tile.seq])
+        if tile.robot == self.options.robot and tile.seq in self.stamps and tile.seq > self._latest_seq:
+            self.latest_stamp, self._latest_seq = self.stamps[tile.seq], tile.seq  # (the robot's clock may go back)
         patch = self.mirror.apply(tile)
         if patch is not None:
             update = convert.grid_update(patch.values, patch.x, patch.y, self.latest_stamp, self.options.frame)
@@ -364,14 +358,14 @@ class Bridge:
     def step(self, timeout: float) -> None:
         """Take what waits (up to ``timeout`` s for the first), publish what is ready."""
         try:
-            waiting = self.queue.get(timeout=timeout)
+            waiting = self.queue.take(timeout)
         except queue.Empty:
             pass
         else:
             self._handle(*waiting)
             for _ in range(256):  # what else waits, before the map goes out
                 try:
-                    waiting = self.queue.get_nowait()
+                    waiting = self.queue.take(0.0)
                 except queue.Empty:
                     break
                 self._handle(*waiting)

@@ -137,8 +137,18 @@ def to_samples(msg: Any, robot: str, seq: int, weighted: bool) -> PoseSamples:
 # --------------------------------------------------------------------------------------------- out
 
 
+#: the seconds a builtin_interfaces/Time holds (int32)
+TIME_SECONDS = (-(2**31), 2**31 - 1)
+
+
 def header(stamp: float, frame: str) -> Any:
-    """A ``std_msgs/Header`` at ``stamp`` s in ``frame``."""
+    """A ``std_msgs/Header`` at ``stamp`` s in ``frame``, clamped to the times a ROS Time holds (int32 seconds): a
+    scan stamped 2147483647.999999999 s, which rounds to 2^31 as a float, stamps the map with the last nanosecond
+    of that range instead of failing every later message of the map."""
+    if not TIME_SECONDS[0] <= stamp < TIME_SECONDS[1] + 1:
+        sec, nanosec = (TIME_SECONDS[1], NS - 1) if stamp > 0 else (TIME_SECONDS[0], 0)
+        time = types.field_class("builtin_interfaces/msg/Time")(sec=sec, nanosec=nanosec)
+        return types.field_class("std_msgs/msg/Header")(stamp=time, frame_id=frame)
     sec = math.floor(stamp)
     nanosec = min(round((stamp - sec) * NS), NS - 1)
     time = types.field_class("builtin_interfaces/msg/Time")(sec=int(sec), nanosec=int(nanosec))

@@ -30,7 +30,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections import deque
+from collections import OrderedDict, deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
@@ -56,8 +56,17 @@ from slam.rosbag_reader import static_chain
 
 #: odometry records a track keeps (the newest): about 80 s of odometry at 50 Hz
 TRACK_RECORDS = 4096
-#: child frames of /tf whose transforms are tracked (odometry from /tf): a peer making up frames gets no more
+#: child frames of /tf whose transforms are tracked (odometry from /tf): past it, a new frame replaces the one updated
+#: longest ago that no scan has taken as its base (a peer making up frames gets no more memory, and cannot push out
+#: the robot's base frame, which its scans name and which moves at the odometry's rate)
 MAX_TF_FRAMES = 64
+#: child frames of /tf_static kept (a robot_state_publisher's fixed joints): a peer making up frames gets no more
+MAX_STATIC_FRAMES = 1024
+#: base frames remembered as the scans' (the newest), whose /tf tracks are never replaced
+MAX_BASE_FRAMES = 8
+#: odometry records in a row, each at or after the one before, that a track takes as a clock that went back (a
+#: robot's clock set back, or one record stamped far ahead), starting over from them instead of refusing them all
+RESTART_RECORDS = 3
 
 Pose = tuple[float, float, float]
 
@@ -89,6 +98,8 @@ class OdometryTrack:
         self._raw_yaw = 0.0  # the last record's yaw as it came
         self._correction = 0.0  # the running sum of np.unwrap's corrections
         self._arrays: tuple[np.ndarray, np.ndarray] | None = None
+        self._behind: list[tuple[float, Pose]] = []  # the records refused since the last taken, each in order
+        self.restarts = 0  # times the track started over (RESTART_RECORDS)
 
     def __len__(self) -> int:
         return len(self._stamps)
@@ -98,9 +109,28 @@ class OdometryTrack:
         return self._stamps[-1] if self._stamps else -math.inf
 
     def add(self, stamp: float, pose: Pose) -> bool:
-        """Append a record; False (nothing appended) when ``stamp`` (s) is before the last one's."""
+        """Append a record; False (nothing appended) when ``stamp`` (s) is before the last one's, unless it is the
+        RESTART_RECORDS-th such record in a row, each at or after the one before: then the clock went back (or the
+        last record was stamped ahead), and the track starts over from those records (:attr:`restarts`)."""
         if self._stamps and stamp < self._stamps[-1]:
-            return False
+            in_order = bool(self._behind) and stamp >= self._behind[-1][0]
+            self._behind = [*self._behind, (stamp, pose)] if in_order else [(stamp, pose)]
+            if len(self._behind) < RESTART_RECORDS:
+                return False
+            behind, self._behind = self._behind, []
+            self._stamps.clear()
+            self._poses.clear()
+            self._correction = 0.0
+            self.restarts += 1
+            for record in behind:
+                self._append(*record)
+            return True
+        self._behind = []
+        self._append(stamp, pose)
+        return True
+
+    def _append(self, stamp: float, pose: Pose) -> None:
+        """Append a record at or after the last (the first of a track as np.unwrap starts a stream)."""
         yaw = pose[2]
         if self._stamps:
             self._correction += _unwrap_correction(yaw - self._raw_yaw)
@@ -111,7 +141,6 @@ class OdometryTrack:
         self._stamps.append(stamp)
         self._poses.append((pose[0], pose[1], unwrapped))
         self._arrays = None
-        return True
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray]:
         """(stamps (K,) s, poses (K, 3) with unwrapped yaw)."""
@@ -168,7 +197,8 @@ class Ingest:
         self.static: dict[str, tuple[str, Pose]] = {}  # child frame -> (parent frame, pose in the parent)
         self.odom = OdometryTrack()
         self.odom_child: str | None = None  # the child frame of the Odometry messages: the robot's base
-        self.tf_tracks: dict[str, OdometryTrack] = {}  # /tf transforms by child frame
+        self.tf_tracks: OrderedDict[str, OdometryTrack] = OrderedDict()  # /tf transforms by child, updated last last
+        self.bases: OrderedDict[str, None] = OrderedDict()  # the base frames scans took, the newest last
         self.scans: deque[_Waiting] = deque()
         self.poses: deque[_PoseWaiting] = deque()
         self.seq = 0  # the next scan's seq
@@ -194,8 +224,7 @@ class Ingest:
         if not (plausible_pose(pose) and math.isfinite(stamp)):
             self.rejects.count(topic, "pose", "an odometry pose or stamp that is not finite or beyond the pose limit")
             return
-        if not self.odom.add(stamp, pose):
-            self.rejects.count(topic, "order", f"odometry at {stamp:.6f} s came after later odometry")
+        if not self._add(self.odom, topic, "odometry", stamp, pose):
             return
         if self.odom_child is None:
             self.odom_child = str(msg.child_frame_id)
@@ -207,15 +236,46 @@ class Ingest:
             if not plausible_pose(pose):
                 self.rejects.count(topic, "pose", f"transform to {child} not finite or beyond the pose limit")
             elif static:
+                if child not in self.static and len(self.static) >= MAX_STATIC_FRAMES:
+                    self.rejects.count(topic, "overflow", f"more than {MAX_STATIC_FRAMES} frames on /tf_static")
+                    continue
                 self.static[child] = (str(tf.header.frame_id), pose)
             else:
-                track = self.tf_tracks.get(child)
-                if track is None and len(self.tf_tracks) >= MAX_TF_FRAMES:
-                    self.rejects.count(topic, "overflow", f"more than {MAX_TF_FRAMES} frames on /tf")
-                    continue
-                track = self.tf_tracks.setdefault(child, OdometryTrack())
-                if not track.add(stamp_of(tf.header), pose):
-                    self.rejects.count(topic, "order", f"a transform to {child} came after a later one")
+                track = self._tf_track(topic, child)
+                if track is not None:
+                    self._add(track, topic, f"the transform to {child}", stamp_of(tf.header), pose)
+
+    def _tf_track(self, topic: str, child: str) -> OdometryTrack | None:
+        """The /tf track of ``child``, made when new: past MAX_TF_FRAMES it replaces the track updated longest ago
+        that is no scan's base (counted as "overflow"); None, counted, when every track is a base's."""
+        track = self.tf_tracks.get(child)
+        if track is not None:
+            self.tf_tracks.move_to_end(child)
+            return track
+        if len(self.tf_tracks) >= MAX_TF_FRAMES:
+            unused = next((frame for frame in self.tf_tracks if frame not in self.bases), None)
+            if unused is None:
+                self.rejects.count(topic, "overflow", f"more than {MAX_TF_FRAMES} frames on /tf, each a base's")
+                return None
+            del self.tf_tracks[unused]
+            self.rejects.count(topic, "overflow", f"more than {MAX_TF_FRAMES} frames on /tf: {unused!r} dropped")
+        track = self.tf_tracks[child] = OdometryTrack()
+        return track
+
+    def _add(self, track: OdometryTrack, topic: str, what: str, stamp: float, pose: Pose) -> bool:
+        """``track.add`` with what it refuses counted as "order", and a restart as "clock"; whether it took it."""
+        restarts = track.restarts
+        if not track.add(stamp, pose):
+            self.rejects.count(topic, "order", f"{what} at {stamp:.6f} s came after a later one")
+            return False
+        if track.restarts > restarts:
+            self.rejects.count(
+                topic,
+                "clock",
+                f"{what}'s stamps went back ({RESTART_RECORDS} in a row before the last taken): its track started "
+                "over from them",
+            )
+        return True
 
     def on_pose(self, topic: str, pose: PoseGaussian | PoseSamples) -> None:
         """The robot's own pose distribution (converted, seq 0), to be joined with a scan by stamp."""
@@ -261,6 +321,10 @@ class Ingest:
             base = self.config.base_frame or self.odom_child or self._root(frame)
             return self.odom, base
         base = self.config.base_frame or self._root(frame)
+        self.bases[base] = None  # (its /tf track is kept)
+        self.bases.move_to_end(base)
+        if len(self.bases) > MAX_BASE_FRAMES:
+            self.bases.popitem(last=False)
         track = self.tf_tracks.get(base)
         return (track, base) if track is not None and len(track) else None
 

@@ -1,0 +1,103 @@
+"""A bounded queue shared fairly among its owners (a shard's robots; a ROS 2 bridge's two sides), between the
+threads that offer items (Zenoh callbacks) and the one thread that takes them.
+
+Each owner's items wait in arrival order, and the owners with items waiting take turns, one item each (round robin):
+an owner that floods the queue delays another owner's next item by one of its own, not by all it has queued. The
+queue holds at most ``capacity`` items and ``max_bytes`` bytes (each item's size as offered); when it is full, an
+item of an owner holding fewer bytes than another makes room by evicting that other owner's newest items, so a flood
+that fills the queue then displaces only its own. The caller counts what is refused and what is evicted.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+from collections import deque
+from typing import Generic, TypeVar
+
+T = TypeVar("T")
+
+
+class FairQueue(Generic[T]):
+    """The queue (module docstring). Thread-safe: any thread may :meth:`offer`, one thread :meth:`take`."""
+
+    def __init__(self, capacity: int, max_bytes: int):
+        self.capacity = capacity
+        self.max_bytes = max_bytes
+        self._waiting: dict[str, _Owned[T]] = {}  # owner -> its items waiting, oldest first
+        self._turns: deque[str] = deque()  # the owners with items waiting, the next to take one first
+        self._count = 0  # items waiting
+        self._bytes = 0  # their bytes
+        self._changed = threading.Condition()  # guards all the above; notified when an item comes
+
+    @property
+    def bytes(self) -> int:
+        """Bytes of the items waiting."""
+        return self._bytes
+
+    def offer(self, owner: str, item: T, size: int) -> tuple[bool, list[T]]:
+        """Queue ``item`` (``size`` bytes) of ``owner`` unless the queue is full after making what room it may
+        (module docstring): (whether it was queued, the items evicted for it, newest first)."""
+        with self._changed:
+            evicted = self._make_room(owner, size)
+            queued = self._count < self.capacity and self._bytes + size <= self.max_bytes
+            if queued:
+                owned = self._waiting.get(owner)
+                if owned is None:
+                    owned = self._waiting[owner] = _Owned()
+                    self._turns.append(owner)
+                owned.items.append((item, size))
+                owned.bytes += size
+                self._count += 1
+                self._bytes += size
+                self._changed.notify()
+        return queued, evicted
+
+    def _make_room(self, owner: str, size: int) -> list[T]:
+        """While there is no room for ``size`` more bytes of ``owner``'s, evict the newest item of the owner holding
+        the most bytes, when that is another owner holding more than ``owner`` would with this item (called holding
+        the lock)."""
+        evicted: list[T] = []
+        while self._count >= self.capacity or self._bytes + size > self.max_bytes:
+            mine = self._waiting.get(owner)
+            held = (0 if mine is None else mine.bytes) + size
+            largest = max(self._waiting, key=lambda other: self._waiting[other].bytes, default=None)
+            if largest is None or largest == owner or self._waiting[largest].bytes <= held:
+                break
+            evicted.append(self._remove(largest, newest=True))
+        return evicted
+
+    def _remove(self, owner: str, newest: bool = False) -> T:
+        """Remove ``owner``'s oldest (or newest) item and return it (called holding the lock)."""
+        owned = self._waiting[owner]
+        item, size = owned.items.pop() if newest else owned.items.popleft()
+        owned.bytes -= size
+        self._count -= 1
+        self._bytes -= size
+        if not owned.items:
+            del self._waiting[owner]
+            self._turns.remove(owner)
+        return item
+
+    def take(self, timeout: float) -> T:
+        """The next item: the oldest of the owner whose turn it is; raises queue.Empty after ``timeout`` s (0: at
+        once)."""
+        with self._changed:
+            if not self._changed.wait_for(lambda: self._count > 0, timeout):
+                raise queue.Empty
+            owner = self._turns[0]
+            self._turns.rotate(-1)  # (the owner's next item after every other owner's)
+            return self._remove(owner)
+
+    def empty(self) -> bool:
+        """Whether nothing waits."""
+        with self._changed:
+            return self._count == 0
+
+
+class _Owned(Generic[T]):
+    """One owner's items waiting ((item, size), oldest first) and their bytes."""
+
+    def __init__(self) -> None:
+        self.items: deque[tuple[T, int]] = deque()
+        self.bytes = 0
