@@ -379,6 +379,11 @@ def test_the_map_mirror_places_updates_in_the_grid_last_published():
         (["ros2", "--frame", "a b", "--connect", "tcp/127.0.0.1:1"], "--frame 'a b' is no frame id"),
         (["ros2", "--pose-topic", "amcl_pose", "--particles-topic", "p", "--connect", "tcp/127.0.0.1:1"], "give one"),
         (["ros2", "--particles-type", "PoseArray", "--connect", "tcp/127.0.0.1:1"], "give that topic too"),
+        # an output on an input's topic (the bridge read its own maps as scans), waits that never end (a probe's)
+        (["ros2", "--map-topic", "scan", "--connect", "tcp/127.0.0.1:1"], "--scan-topic and --map-topic name one"),
+        (["ros2", "--odom-wait", "1e308", "--connect", "tcp/127.0.0.1:1"], "--odom-wait must be at most 3600 s"),
+        # `run --ros2` checks its bridge's options before it starts anything (it started four children first)
+        (["run", "--ros2", "--ros2-pose-out-topic", "odom", "--no-api"], "--ros2-odom-topic and --ros2-pose-out-t"),
     ],
 )
 def test_bad_ros2_options_are_one_line_and_exit_2(argv, message, capsys):

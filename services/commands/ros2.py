@@ -216,6 +216,24 @@ def _graph(args: argparse.Namespace) -> tuple[str, int, str]:
     return (names.RMW if args.mode == "rmw_zenoh" else names.BRIDGE), _domain(args.domain), namespace
 
 
+#: the longest a bridge's waits and periods may be, s (1e308 s: scans that never time out)
+MAX_SECONDS = 3600.0
+#: the option that names each of services.ros2.bridge.Topics' topics
+_TOPIC_OPTIONS = {
+    "scan": "scan-topic",
+    "odom": "odom-topic",
+    "tf": "tf-topic",
+    "tf_static": "tf-static-topic",
+    "pose_in": "pose-topic",
+    "particles_in": "particles-topic",
+    "map": "map-topic",
+    "map_updates": "map-updates-topic",
+    "map_variance": "map-variance-topic",
+    "particle_cloud": "particle-cloud-topic",
+    "pose": "pose-out-topic",
+}
+
+
 def bridge_options(args: argparse.Namespace, prefix: str = ""):
     """The services.ros2.bridge.BridgeOptions of the parsed options; UsageError for a bad name."""
     from services.commands.pipeline import _check_name
@@ -244,12 +262,24 @@ def bridge_options(args: argparse.Namespace, prefix: str = ""):
         particle_cloud=value("particle_cloud_topic"),
         pose=value("pose_out_topic"),
     )
+    resolved: dict[str, list[str]] = {}  # fully qualified topic -> the options naming it
     for field, topic in vars(topics).items():
         if topic is not None and field != "particles_type":
             try:
-                names.resolve(topic, namespace)
+                full = names.resolve(topic, namespace)
             except names.RosNameError as exc:
                 raise UsageError(str(exc)) from None
+            resolved.setdefault(full, []).append(f"--{prefix}{_TOPIC_OPTIONS[field]}")
+    shared = next(((topic, options) for topic, options in resolved.items() if len(options) > 1), None)
+    if shared is not None:
+        raise UsageError(
+            f"{' and '.join(shared[1])} name one topic, {shared[0]}: the bridge would read what it publishes "
+            "there, or publish two things on it; give each its own topic"
+        )
+    for name in ("odom_wait", "pose_tolerance", "map_period"):
+        if value(name) > MAX_SECONDS:
+            option = f"--{prefix}{name.replace('_', '-')}"
+            raise UsageError(f"{option} must be at most {MAX_SECONDS:g} s, got {value(name):g}")
     if topics.pose_in is not None and topics.particles_in is not None:
         raise UsageError(
             f"--{prefix}pose-topic and --{prefix}particles-topic are two sources of the robot's pose: give one"
@@ -381,6 +411,7 @@ def plan_ros2(args: argparse.Namespace, plan: Plan) -> None:
         raise UsageError("--ros2 does not run with --secure: the roles' access rules know no ROS 2 keys")
     graph = argparse.Namespace(mode=args.ros2_mode, domain=args.domain, namespace=args.namespace, node=args.ros2_node)
     mode, domain, namespace = _graph(graph)
+    bridge_options(argparse.Namespace(**{**vars(args), **vars(graph)}), "ros2-")  # (checked before anything starts)
     bridge = bridge_argv(args, "ros2-")
     plan.source_command = "ros2"
     plan.source_argv = [f"--mode={args.ros2_mode}", f"--domain={domain}", f"--namespace={namespace}"]
