@@ -28,7 +28,7 @@ from services.state.join import (
     SeqLedger,
 )
 from services.state.limits import ShardLimits
-from services.state.shard import FUSIONS_KEPT, SETTLE_AFTER, MapShard, ShardConfig
+from services.state.shard import FUSIONS_KEPT, SETTLE_AFTER, TAIL_AFTER, MapShard, ShardConfig
 from services.state.steps import OutOfOrder, StepAssembler
 
 
@@ -736,6 +736,39 @@ def test_what_the_histories_hold_of_lost_messages_is_fused_and_nothing_counts_tw
     assert all(0 <= first <= last < n + 1000 for _, first, last in asked)
     if everything and patient:
         assert shard.fused["r"] == n
+
+
+def test_the_tail_an_end_announces_comes_from_the_histories_once_the_streams_are_quiet():
+    """A router restart lost scans 5-9 and the end came after (the poses, from a SLAM node that caught up, all came):
+    the shard waited SETTLE_AFTER (15 s) before it asked the histories for the scans the end announced. It asks once
+    the robot's streams have been quiet TAIL_AFTER s, and gives up nothing then; what no history holds is given up
+    at SETTLE_AFTER, as before."""
+    asked = []
+
+    def history(robot: str, stream: str, first: int, last: int) -> list[bytes]:
+        asked.append((stream, first, last))
+        return [_scan(seq).encode() for seq in range(first, last + 1) if stream == "scan" and seq < 9]
+
+    now = [0.0]
+    shard = MapShard(
+        ShardConfig("m", 0, 1, SensorModel()),
+        RejectCounter(logging.getLogger("test-shard-tail")),
+        clock=lambda: now[0],
+        history=history,
+    )
+    for seq in range(10):
+        if seq < 5:
+            shard.handle("pg/r/scan", _scan(seq).encode())
+        shard.handle("pg/r/pose", _pose(seq).encode())
+    shard.handle("pg/r/end", StreamEnd(robot="r", scans=10).encode())
+    shard.settle()
+    assert shard.fused["r"] == 5 and asked == []  # (the end may overtake the last scans by milliseconds)
+    now[0] += TAIL_AFTER + 0.1
+    shard.settle()
+    assert shard.fused["r"] == 9 and not shard.discarded["r"] and asked == [("scan", 5, 9)]
+    now[0] += SETTLE_AFTER
+    shard.settle()
+    assert shard.fused["r"] == 9 and shard.discarded["r"] == 1 and shard.caught_up()  # scan 9: no history held it
 
 
 def test_a_gap_larger_than_the_join_buffer_comes_back_from_the_histories_whole():

@@ -206,10 +206,14 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         for is_scan in (True, False):
             self._last[(robot, is_scan)] = max(self._last.get((robot, is_scan), -1), seq)
 
+    def passed(self, robot: str, is_scan: bool) -> int:
+        """The last seq the robot's scan (else pose) stream has passed (-1: none)."""
+        return self._last.get((robot, is_scan), -1)
+
     def beyond_window(self, robot: str, is_scan: bool, seq: int) -> bool:
         """Whether ``seq`` lies more than the window beyond the last seq the robot's scan (else pose) stream has
         passed."""
-        return seq > self._last.get((robot, is_scan), -1) + self.window
+        return seq > self.passed(robot, is_scan) + self.window
 
     def _offer(self, key: JoinKey, item, is_scan: bool, trusted: bool):
         """:meth:`_add`, unless a live ``item`` lies beyond the seq window: then it is held with the stream's other

@@ -56,6 +56,10 @@ SEQ_HORIZON_JOINS = 8
 #: s after an ended robot's last taken scan or pose at which its streams are settled: what is still missing or
 #: waiting is given up (:meth:`MapShard.settle`)
 SETTLE_AFTER = 15.0
+#: s after an ended robot's last taken scan or pose at which the scans and poses between the last each stream passed
+#: and the end are asked of the histories (a router restart lost them, and the end came after): nothing is given up
+#: then, and the end may overtake the last scans on the way in only by milliseconds
+TAIL_AFTER = 1.0
 
 
 @dataclass(frozen=True)
@@ -165,6 +169,7 @@ class MapShard:
         self._clock = clock
         self._heard: dict[str, float] = {}  # robot -> when its last scan or pose was taken, or its end came (clock s)
         self._unsettled: set[str] = set()  # robots whose stream has ended and that have had news since
+        self._tails_asked: set[str] = set()  # of those, the robots whose tails were asked since their last news
         self.join_overflow = 0
         self.cells_updated = 0
         self.tile_updates = 0
@@ -283,6 +288,8 @@ class MapShard:
         self._heard[message.robot] = self._clock()
         if message.robot in self.ended:  # (a late pose after the end: settle again once it is quiet)
             self._unsettled.add(message.robot)
+            if not from_history:
+                self._tails_asked.discard(message.robot)
         join_key = (message.robot, message.seq)
         is_scan = isinstance(message, LaserScan)
         # sent again before its pair was fused: the copy waiting for its partner (or past a gap), or one the join
@@ -582,12 +589,35 @@ class MapShard:
         are given up. Counted as discarded, so the shard catches up. (The end of a stream can overtake its last
         scans on the way in, so it is not taken as proof that they are lost.)"""
         now = self._clock()
+        quiet = [r for r in self._unsettled if r not in self._tails_asked and now - self._heard[r] > TAIL_AFTER]
+        for robot in quiet:
+            self._tails_asked.add(robot)
+            self._take_tails(robot)
         for robot in [r for r in self._unsettled if now - self._heard[r] > SETTLE_AFTER]:
             self._unsettled.discard(robot)
+            self._tails_asked.discard(robot)
             pairs, gone = self._join.settle(robot, self.ended[robot])
             self._give_up(gone)
             self._ready_to_fuse(pairs)
         self.fuse_ready()
+
+    def _take_tails(self, robot: str) -> None:
+        """Take the ended robot's scans and poses after the last seq each stream has passed, up to its end, from the
+        histories, as if they had come (a router restart lost them and the end came after: without this they waited
+        for :meth:`settle` SETTLE_AFTER s later); nothing is given up here."""
+        if self._history is None:
+            return
+        found: list[tuple[str, ScanOrPose]] = []
+        for is_scan, stream in ((True, keys.SCAN), (False, keys.POSE)):
+            first, last = self._join.passed(robot, is_scan) + 1, self.ended[robot] - 1
+            if first <= last:
+                found += [
+                    (keys.robot_key(robot, stream), m) for m in self._recover(robot, is_scan, first, last).values()
+                ]
+        heard = self._heard[robot]
+        for key, message in sorted(found, key=lambda item: item[1].seq):  # (a seq's scan and pose together)
+            self.take(key, message, from_history=True, defer=True)
+        self._heard[robot] = heard  # (what the histories gave is no news: the streams settle when they would have)
 
     def caught_up(self) -> bool:
         """Whether every ended stream has all its scans fused or discarded."""
