@@ -99,7 +99,7 @@ def reply(query: zenoh.Query, answerer: Answerer, robot: str, stream: str, paylo
     query.reply(keys.history_key(robot, stream), payload, attachment=answerer.encode())
 
 
-def _reachable(session: zenoh.Session) -> bool:
+def reachable(session: zenoh.Session) -> bool:
     """Whether the session is connected to a router or a peer: a question can reach a history."""
     return bool(list(session.info.routers_zid())) or bool(list(session.info.peers_zid()))
 
@@ -135,7 +135,7 @@ def _answers(
     deadline = time.monotonic() + RECONNECT_WAIT
     grace_until = None  # set once the session had to wait for its connection
     while True:
-        while not _reachable(session) and time.monotonic() < deadline:
+        while not reachable(session) and time.monotonic() < deadline:
             if stop.wait(STOP_POLL):
                 raise Stopped(f"stopped while waiting for the router to ask the histories of {robot!r}")
             grace_until = time.monotonic() + RECONNECT_GRACE
@@ -143,7 +143,7 @@ def _answers(
         now = time.monotonic()
         if replies or now >= deadline:
             return replies
-        if _reachable(session):
+        if reachable(session):
             if grace_until is None or now >= grace_until:
                 return replies
             if stop.wait(RETRY_PERIOD):

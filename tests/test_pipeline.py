@@ -887,26 +887,10 @@ class _Poses:
         self._subscriber.undeclare()
 
 
-def _replay(procs, sim: Path, endpoint: str, rate: str):
-    """Replay the simulated run ``sim`` as robot r1 into map m at ``rate``, waiting for one mapper shard."""
-    return procs(
-        [
-            *CLI,
-            "source",
-            "--sim-dir",
-            str(sim),
-            "--robot",
-            "r1",
-            "--rate",
-            rate,
-            "--map",
-            "m",
-            "--wait-mappers",
-            "1",
-            "--connect",
-            endpoint,
-        ]
-    )
+def _replay(procs, sim: Path, endpoint: str, rate: str, wait_mappers: int = 1):
+    """Replay the simulated run ``sim`` as robot r1 into map m at ``rate``, waiting for ``wait_mappers`` shards."""
+    argv = ["source", "--sim-dir", str(sim), "--robot", "r1", "--rate", rate, "--map", "m"]
+    return procs([*CLI, *argv, "--wait-mappers", str(wait_mappers), "--connect", endpoint])
 
 
 def test_a_history_left_behind_answers_at_once(tmp_path, procs):
@@ -1128,13 +1112,17 @@ def test_a_shard_stopped_while_it_fuses_the_histories_stops_between_chunks(procs
     assert 0 < taken < offered == 2 * pairs
 
 
-def test_what_the_router_loses_is_taken_from_the_histories(tmp_path, procs):
+@pytest.mark.parametrize("wait_mappers", [1, 0], ids=["waits", "live"])
+def test_what_the_router_loses_is_taken_from_the_histories(tmp_path, procs, wait_mappers):
     """The router dies mid-run and comes back on its port: what the source published meanwhile never reaches the
     SLAM node or the mapper shard. The node takes those steps from the source's history instead of skipping
     them, so every step gets its pose, and each is offline `posegrid slam`'s for that step, same seed, bit for
     bit; the shard takes the scans from it too, and fuses every scan of the run. More steps are lost (the router
     stays down until the source has published 360 of the 400) than the node's step buffer holds (256): a node used
-    to keep only the newest 256 of those it took back, and bridged the rest."""
+    to keep only the newest 256 of those it took back, and bridged the rest. A source that waits for no shard
+    ("live", `--wait-mappers 0`) used to exit at its end with the end mark lost too: the shard fused the 40 steps
+    before the outage and nothing said the rest was missing; having published while no router was reachable, it
+    now stays and answers its history until the shard has taken every scan."""
     sim, node_args, expected = _simulated_run_and_offline_poses(tmp_path, 400)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     router = procs([*CLI, "router", "--listen", endpoint])
@@ -1148,7 +1136,7 @@ def test_what_the_router_loses_is_taken_from_the_histories(tmp_path, procs):
         # the router dies once the source is a tenth of the way in: at 5x real time (50 steps/s) the test may react
         # a second late on a loaded machine and still see 300 or more steps lost (waiting for the node's poses
         # instead let a lagging node run the source to step 157 first)
-        source = _replay(procs, sim, endpoint, "5")
+        source = _replay(procs, sim, endpoint, "5", wait_mappers)
         source.wait_for("published 40 of 400 steps", timeout=120)
         router.process.kill()
         router.process.wait(10)

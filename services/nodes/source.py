@@ -37,6 +37,11 @@ PROGRESS_PARTS = 10
 WAIT_TIMEOUT = 60.0
 #: s between two publications of the end of the stream while a shard has not acknowledged it
 END_REPEAT = 1.0
+#: s a source that published while no router was reachable (those messages went nowhere) waits, at its end, for the
+#: shards that answer to make progress on the scans before it exits anyway (:meth:`Source._linger`)
+LINGER = 30.0
+#: s between two looks at whether the session reaches a router, while publishing
+REACH_CHECK = 0.1
 
 
 class SourceStalled(RuntimeError):
@@ -92,6 +97,8 @@ class Source:
         self._reader = MapReader(session, options.map_name)
         self._end_sent = 0.0  # time.monotonic() of the last StreamEnd published
         self._warned_beyond = False  # whether a shard holding more scans than this run published was reported
+        self._unreached = 0  # steps published while the session reached no router (they went nowhere)
+        self._reach_seen = (-1.0, True)  # (time.monotonic() of the last look, whether it reached a router then)
         self._prior_out = False  # whether the prior is out (what the history may answer with, with ...)
         self._steps_published = 0  # ... the steps whose messages are all out
         self._end_out = False  # whether the end of the stream is out
@@ -246,14 +253,50 @@ class Source:
                 robot,
                 scans,
             )
-        if len(stats) >= self.options.wait_mappers and all(
-            s.ended.get(robot) == scans and s.fused.get(robot, 0) + s.discarded.get(robot, 0) >= scans for s in stats
-        ):  # every scan accounted for: a shard that restarted may still ask the history
-            return True
+        if len(stats) >= self.options.wait_mappers and _accounted(stats, end):
+            return True  # (every scan accounted for: a shard that restarted may still ask the history)
+        self._repeat_end(end)
+        return False
+
+    def _repeat_end(self, end: StreamEnd) -> None:
+        """Publish the end of the stream again when END_REPEAT s have passed since it last went out."""
         if time.monotonic() - self._end_sent >= END_REPEAT:
             self._publish(end)
             self._end_sent = time.monotonic()
-        return False
+
+    def _note_reach(self) -> None:
+        """Count a step just published while the session reached no router (looked at every REACH_CHECK s)."""
+        now = time.monotonic()
+        if now - self._reach_seen[0] >= REACH_CHECK:
+            self._reach_seen = (now, history.reachable(self.session))
+        self._unreached += not self._reach_seen[1]
+
+    def _linger(self, end: StreamEnd, stop: threading.Event) -> None:
+        """After a run of which some steps went out while no router was reachable (lost on the way: a router
+        restart), stay for the shards that answer the map's stats, as --wait-mappers does: answer the history and
+        publish the end again until they have taken or given up every scan, or made no progress for LINGER s
+        (none answering among them), so that what went nowhere is taken from the history or counted, not lost
+        silently with the end of the stream. Returns at once when ``stop`` is set."""
+        self.log.warning(
+            "%d step(s) went out while no router was reachable; answering the history until the shards of map %r "
+            "have taken every scan (at most %g s without progress)",
+            self._unreached,
+            self.options.map_name,
+            LINGER,
+        )
+        robot, best, since = end.robot, -1, time.monotonic()
+        while not stop.wait(0.2):
+            stats = self._shard_stats() if history.reachable(self.session) else []
+            if stats and _accounted(stats, end):
+                return
+            done = min((s.fused.get(robot, 0) + s.discarded.get(robot, 0) for s in stats), default=-1)
+            if done > best:
+                best, since = done, time.monotonic()
+            elif time.monotonic() - since > LINGER:
+                self.log.warning("the shards made no progress for %g s; ending with %d scans accounted", LINGER, best)
+                return
+            if stats or history.reachable(self.session):
+                self._repeat_end(end)
 
     # ------------------------------------------------------------------------------- run
     def _stopped(self) -> int:
@@ -297,6 +340,7 @@ class Source:
                     scans_sent += isinstance(message, LaserScan)
                 with self._history_lock:
                     self._steps_published = steps_sent + 1
+                self._note_reach()
                 self._report_progress(steps_sent + 1, len(stream.steps))
             end = StreamEnd(robot=stream.robot, scans=scans_sent)
             self._publish(end)
@@ -311,6 +355,16 @@ class Source:
                 "every shard to acknowledge the end of the stream", lambda: self._ended_everywhere(end), stop
             ):
                 return self._stopped()
+            if not opts.wait_mappers and self._unreached:
+                self._linger(end, stop)
             return 0
         finally:
             undeclare_all([token, answers, *reversed(self._publishers.values())])
+
+
+def _accounted(stats: list[ShardStats], end: StreamEnd) -> bool:
+    """Whether every shard of ``stats`` has the end of the stream and has fused or given up on each of its scans."""
+    robot, scans = end.robot, end.scans
+    return all(
+        s.ended.get(robot) == scans and s.fused.get(robot, 0) + s.discarded.get(robot, 0) >= scans for s in stats
+    )
