@@ -1130,6 +1130,7 @@ def test_what_the_router_loses_is_taken_from_the_histories(tmp_path, procs, wait
     node = procs([*CLI, "slam-node", "--robot", "r1", *node_args, "--connect", endpoint])
     mapper = procs([*CLI, "mapper", "--shard", "0", "--shards", "1", "--map", "m", "--connect", endpoint])
     node.wait_for("up for robot")
+    mapper.wait_for("up; tiles on")  # (a live source waits for no shard: one up late takes the run from the histories)
     session = zenoh.open(build_config("client", connect=[endpoint]))
     try:
         poses = _Poses(session)
