@@ -4,8 +4,9 @@ threads that offer items (Zenoh callbacks) and the one thread that takes them.
 Each owner's items wait in arrival order, and the owners with items waiting take turns, one item each (round robin):
 an owner that floods the queue delays another owner's next item by one of its own, not by all it has queued. The
 queue holds at most ``capacity`` items and ``max_bytes`` bytes (each item's size as offered); when it is full, an
-item of an owner holding fewer bytes than another makes room by evicting that other owner's newest items, so a flood
-that fills the queue then displaces only its own. The caller counts what is refused and what is evicted.
+item of an owner holding a smaller share of it than another (of its count or its bytes, whichever is larger) makes
+room by evicting that other owner's newest items, so a flood that fills the queue then displaces only its own. The
+caller counts what is refused and what is evicted.
 """
 
 from __future__ import annotations
@@ -53,16 +54,22 @@ class FairQueue(Generic[T]):
                 self._changed.notify()
         return queued, evicted
 
+    def _share(self, items: int, size: int) -> float:
+        """The part of the queue ``items`` items of ``size`` bytes in all take: of its count or of its bytes,
+        whichever is larger (a flood of small items fills the count, one of large ones the bytes)."""
+        return max(items / self.capacity, size / self.max_bytes)
+
     def _make_room(self, owner: str, size: int) -> list[T]:
-        """While there is no room for ``size`` more bytes of ``owner``'s, evict the newest item of the owner holding
-        the most bytes, when that is another owner holding more than ``owner`` would with this item (called holding
-        the lock)."""
+        """While there is no room for an item of ``size`` bytes, evict the newest item of the owner holding the
+        largest share (:meth:`_share`), when that is another owner holding a larger share than ``owner`` would with
+        this item (called holding the lock)."""
         evicted: list[T] = []
         while self._count >= self.capacity or self._bytes + size > self.max_bytes:
             mine = self._waiting.get(owner)
-            held = (0 if mine is None else mine.bytes) + size
-            largest = max(self._waiting, key=lambda other: self._waiting[other].bytes, default=None)
-            if largest is None or largest == owner or self._waiting[largest].bytes <= held:
+            held = self._share(1, size) if mine is None else self._share(len(mine.items) + 1, mine.bytes + size)
+            shares = {other: self._share(len(o.items), o.bytes) for other, o in self._waiting.items()}
+            largest = max(shares, key=shares.__getitem__, default=None)
+            if largest is None or largest == owner or shares[largest] <= held:
                 break
             evicted.append(self._remove(largest, newest=True))
         return evicted

@@ -10,8 +10,9 @@ or when the queue is full, by count or by bytes (kind "overflow", also counted i
 **Fair to each robot** (:class:`services.fair_queue.FairQueue`, each robot an owner): the robots with messages
 waiting take turns, one message each, so a peer that floods one robot's streams (scans at the limits cost about 1 s
 of a core each) delays another robot's next message by one of its own, not by all it has queued; and when the queue
-is full, a message of a robot holding fewer bytes than another makes room by evicting that other robot's newest
-messages (counted as its "overflow"): a flood fills the queue with its own messages and then only displaces its own.
+is full, a message of a robot holding a smaller share of it (of its count or its bytes) than another makes room by
+evicting that other robot's newest messages (counted as its "overflow"): a flood fills the queue with its own
+messages and then only displaces its own.
 """
 
 from __future__ import annotations
@@ -91,7 +92,7 @@ class Intake:
             self.overflow += len(evicted) + (not queued)
         full = f"the intake queue ({self.capacity} messages, {limits.intake_bytes} bytes) was full"
         for evicted_key, _ in evicted:
-            self.rejects.count(evicted_key, "overflow", f"{full}: evicted for a robot holding fewer bytes")
+            self.rejects.count(evicted_key, "overflow", f"{full}: evicted for a robot holding a smaller share")
         if not queued:
             self.rejects.count(key, "overflow", full)
         return queued

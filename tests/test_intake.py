@@ -122,6 +122,18 @@ def test_a_full_intake_takes_a_robot_holding_less_by_evicting_the_floods_newest(
     assert intake.empty() and intake.bytes_waiting == 0
 
 
+def test_a_flood_of_small_messages_does_not_displace_a_robot_of_large_ones():
+    """Fairness by share, not by bytes alone: a flood of tiny messages that fills the intake's count (its bytes few)
+    holds the larger share; the real robot's scan evicts one of them, not one of its own."""
+    rejects = _rejects("fair-share")
+    intake = Intake(SHARD_STREAMS, rejects, ShardLimits(intake_bytes=10_000), capacity=10)
+    assert intake.offer("pg/r/scan", b"r" * 2000) and intake.offer("pg/r/scan", b"s" * 2000)  # 2 of 10, 40 %
+    assert all(intake.offer("pg/h/scan", b"h%d" % seq) for seq in range(8))  # 8 of 10 by count: 80 %, 16 bytes
+    assert intake.offer("pg/r/scan", b"t" * 2000) and rejects.snapshot() == {"pg/h/scan": 1}
+    taken = [intake.next(1.0)[1][:2] for _ in range(10)]
+    assert [t for t in taken if t[:1] in b"rst"] == [b"rr", b"ss", b"tt"] and b"h7" not in taken
+
+
 # ------------------------------------------------------------------------------------------------ history replies
 
 
