@@ -18,7 +18,7 @@ from services.process import RejectCounter
 from services.ros2 import convert, names
 from services.ros2 import types as rt
 from services.ros2.ingest import MAX_STATIC_FRAMES, MAX_TF_FRAMES, Ingest, IngestConfig, OdometryTrack
-from services.ros2.mapout import MapMirror
+from services.ros2.mapout import MapMirror, MapStamp
 from slam.laserlog import interpolate_poses
 
 DOC = (Path(__file__).resolve().parents[1] / "docs" / "ros2.md").read_text()
@@ -325,6 +325,22 @@ def _tile(
         seq=0,
         published=0.0,
     )
+
+
+def test_the_map_is_stamped_with_the_latest_scan_by_seq_not_the_largest_stamp():
+    """One scan stamped far ahead (2^31 s) stamped every later map with it, as the map took the largest stamp of the
+    scans fused; it takes the latest scan's by seq, so a robot's clock set back stamps the maps that follow."""
+    stamp = MapStamp(kept=3)
+    for seq, when in enumerate((10.0, 2.0**31, 11.0, 12.0)):
+        stamp.published(seq, when)
+    stamp.fused(1)
+    assert stamp.stamp == 2.0**31
+    stamp.fused(3)
+    assert stamp.stamp == 12.0
+    stamp.fused(2)  # (an older scan's tile, updated late: the map is as new as scan 3)
+    assert stamp.stamp == 12.0
+    stamp.fused(0)  # (forgotten: the newest 3 are kept)
+    assert stamp.stamp == 12.0
 
 
 def test_the_map_mirror_places_updates_in_the_grid_last_published():

@@ -21,7 +21,7 @@ import json
 import queue
 import threading
 import time
-from collections import Counter, OrderedDict, deque
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -38,7 +38,7 @@ from services.ros2 import convert, names
 from services.ros2 import types as rt
 from services.ros2.endpoint import Received, RosNode, RosPublisher
 from services.ros2.ingest import Ingest, IngestConfig
-from services.ros2.mapout import MapMirror
+from services.ros2.mapout import MapMirror, MapStamp
 from services.zenoh_config import undeclare_all
 
 #: the largest sample the bridge takes from a ROS topic, bytes (a LaserScan of a million beams is 4 MB)
@@ -147,9 +147,7 @@ class Bridge:
         self.received: Counter[str] = Counter()
         self.published: Counter[str] = Counter()
         self.bytes_out: Counter[str] = Counter()
-        self.stamps: OrderedDict[int, float] = OrderedDict()  # seq -> stamp of the scans published
-        self.latest_stamp = 0.0  # s: the stamp of the latest scan (by seq) fused into the map
-        self._latest_seq = -1  # that scan's seq
+        self.map_stamp = MapStamp(STAMPS_KEPT)  # the stamp of the latest scan (by seq) fused into the map
         self.last_map = -float("inf")  # time.monotonic() of the last whole map published
         self._pg: dict[str, zenoh.Publisher] = {}
         self._ros: dict[str, RosPublisher] = {}
@@ -293,11 +291,11 @@ class Bridge:
         if problem:
             self.rejects.count(key, "tile", problem)
             return
-        if tile.robot == self.options.robot and tile.seq in self.stamps and tile.seq > self._latest_seq:
-            self.latest_stamp, self._latest_seq = self.stamps[tile.seq], tile.seq  # (the robot's clock may go back)
+        if tile.robot == self.options.robot:
+            self.map_stamp.fused(tile.seq)
         patch = self.mirror.apply(tile)
         if patch is not None:
-            update = convert.grid_update(patch.values, patch.x, patch.y, self.latest_stamp, self.options.frame)
+            update = convert.grid_update(patch.values, patch.x, patch.y, self.map_stamp.stamp, self.options.frame)
             self._publish_ros("map_updates", update)
 
     def _take_pose(self, key: str, payload: bytes) -> None:
@@ -327,9 +325,7 @@ class Bridge:
                 keys.robot_key(self.options.robot, stream), congestion_control=zenoh.CongestionControl.BLOCK
             )
         if stream == keys.SCAN:
-            self.stamps[message.seq] = message.stamp  # type: ignore[attr-defined]
-            while len(self.stamps) > STAMPS_KEPT:
-                self.stamps.popitem(last=False)
+            self.map_stamp.published(message.seq, message.stamp)  # type: ignore[attr-defined]
         self.history.add(stream, message, payload)
         self._pg[stream].put(payload)
         with self.lock:
@@ -347,7 +343,7 @@ class Bridge:
         raster = self.mirror.raster()
         if raster is None:
             return
-        frame, stamp = self.options.frame, self.latest_stamp
+        frame, stamp = self.options.frame, self.map_stamp.stamp
         self._publish_ros(
             "map", convert.occupancy_grid(raster.occupancy, raster.origin, raster.resolution, stamp, frame)
         )

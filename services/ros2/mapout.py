@@ -10,6 +10,7 @@ it appears. A tile update inside the box last published becomes an OccupancyGrid
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -144,3 +145,27 @@ class MapMirror:
 def _grown(extent: Extent, tile: tuple[int, int]) -> Extent:
     """``extent`` widened to hold ``tile`` (tx, ty)."""
     return (min(extent[0], tile[0]), min(extent[1], tile[1]), max(extent[2], tile[0]), max(extent[3], tile[1]))
+
+
+class MapStamp:
+    """The stamp (s) the map goes out with: that of the latest scan, by seq, fused into it. The stamps of the newest
+    ``kept`` scans the bridge published are remembered by seq (:meth:`published`), and a tile update naming a seq
+    past the latest makes it the latest (:meth:`fused`). By seq, not the largest stamp seen: a robot's clock set
+    back, or one scan stamped far ahead, would have stamped every later map with that stamp."""
+
+    def __init__(self, kept: int):
+        self.kept = kept
+        self._stamps: OrderedDict[int, float] = OrderedDict()  # seq -> stamp of the scans published, oldest first
+        self._latest_seq = -1
+        self.stamp = 0.0
+
+    def published(self, seq: int, stamp: float) -> None:
+        """Scan ``seq`` went out stamped ``stamp`` s."""
+        self._stamps[seq] = stamp
+        while len(self._stamps) > self.kept:
+            self._stamps.popitem(last=False)
+
+    def fused(self, seq: int) -> None:
+        """A tile update says scan ``seq`` (of this bridge's robot) is fused into the map."""
+        if seq > self._latest_seq and seq in self._stamps:
+            self.stamp, self._latest_seq = self._stamps[seq], seq
