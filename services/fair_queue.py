@@ -14,17 +14,31 @@ from __future__ import annotations
 import queue
 import threading
 from collections import deque
+from dataclasses import dataclass
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
 
 
-class FairQueue(Generic[T]):
-    """The queue (module docstring). Thread-safe: any thread may :meth:`offer`, one thread :meth:`take`."""
+@dataclass(frozen=True)
+class Offered(Generic[T]):
+    """What :meth:`FairQueue.offer` did: whether the item was queued, the items evicted for it (newest first), and
+    whether it was refused because ``max_owners`` owners have items waiting already."""
 
-    def __init__(self, capacity: int, max_bytes: int):
+    queued: bool
+    evicted: list[T]
+    owners_full: bool = False
+
+
+class FairQueue(Generic[T]):
+    """The queue (module docstring). Thread-safe: any thread may :meth:`offer`, one thread :meth:`take`.
+    ``max_owners``: how many owners may have items waiting at once (None: any); it bounds the work of making room,
+    which weighs every owner's share (a flood of 4 096 made-up robot names took 0.9 ms an offer)."""
+
+    def __init__(self, capacity: int, max_bytes: int, max_owners: int | None = None):
         self.capacity = capacity
         self.max_bytes = max_bytes
+        self.max_owners = max_owners
         self._waiting: dict[str, _Owned[T]] = {}  # owner -> its items waiting, oldest first
         self._turns: deque[str] = deque()  # the owners with items waiting, the next to take one first
         self._count = 0  # items waiting
@@ -36,10 +50,12 @@ class FairQueue(Generic[T]):
         """Bytes of the items waiting."""
         return self._bytes
 
-    def offer(self, owner: str, item: T, size: int) -> tuple[bool, list[T]]:
+    def offer(self, owner: str, item: T, size: int) -> Offered[T]:
         """Queue ``item`` (``size`` bytes) of ``owner`` unless the queue is full after making what room it may
-        (module docstring): (whether it was queued, the items evicted for it, newest first)."""
+        (module docstring), or ``owner`` is new and ``max_owners`` owners have items waiting."""
         with self._changed:
+            if owner not in self._waiting and self.max_owners is not None and len(self._waiting) >= self.max_owners:
+                return Offered(False, [], owners_full=True)
             evicted = self._make_room(owner, size)
             queued = self._count < self.capacity and self._bytes + size <= self.max_bytes
             if queued:
@@ -52,7 +68,7 @@ class FairQueue(Generic[T]):
                 self._count += 1
                 self._bytes += size
                 self._changed.notify()
-        return queued, evicted
+        return Offered(queued, evicted)
 
     def _share(self, items: int, size: int) -> float:
         """The part of the queue ``items`` items of ``size`` bytes in all take: of its count or of its bytes,

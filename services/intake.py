@@ -5,7 +5,8 @@ thread takes them out robot by robot in turn, each robot's in arrival order.
 A publication is refused, counted by the process's :class:`services.process.RejectCounter` and never queued, when
 its key is no robot stream the process reads (kind "key", under keys.INVALID_KEY:
 :func:`services.state.checks.robot_stream`), when it is larger than any message the process takes (kind "size"),
-or when the queue is full, by count or by bytes (kind "overflow", also counted in :attr:`Intake.overflow`).
+or when the queue is full, by count or by bytes (kind "overflow", also counted in :attr:`Intake.overflow`), or
+its robot is new when ``--max-robots`` robots have messages waiting (kind "robots").
 
 **Fair to each robot** (:class:`services.fair_queue.FairQueue`, each robot an owner): the robots with messages
 waiting take turns, one message each, so a peer that floods one robot's streams (scans at the limits cost about 1 s
@@ -56,7 +57,7 @@ class Intake:
         self.limits = limits
         self.robot = robot
         self.capacity = capacity
-        self._queue: FairQueue[tuple[str, bytes]] = FairQueue(capacity, limits.intake_bytes)
+        self._queue: FairQueue[tuple[str, bytes]] = FairQueue(capacity, limits.intake_bytes, limits.max_robots)
         self.overflow = 0  # publications refused, or evicted, because the queue was full
         self._overflow_lock = threading.Lock()  # (callbacks of several Zenoh threads add to it)
 
@@ -85,9 +86,13 @@ class Intake:
                 f"{limits.max_beams} beams may take ({limits.message_bytes()} bytes)",
             )
             return False
-        queued, evicted = self._queue.offer(
+        offered = self._queue.offer(
             parsed[0], (key, payload if isinstance(payload, bytes) else payload.to_bytes()), size
         )
+        if offered.owners_full:
+            self.rejects.count(key, "robots", f"more than --max-robots {limits.max_robots} robots' messages waited")
+            return False
+        queued, evicted = offered.queued, offered.evicted
         with self._overflow_lock:
             self.overflow += len(evicted) + (not queued)
         full = f"the intake queue ({self.capacity} messages, {limits.intake_bytes} bytes) was full"

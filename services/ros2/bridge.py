@@ -162,11 +162,11 @@ class Bridge:
         """Queue ``item`` (``size`` bytes of payload) for the working thread, the ROS side's and posegrid's taking
         turns (services.fair_queue), unless QUEUE_CAPACITY items or QUEUE_BYTES bytes wait already; what is refused,
         or evicted for the other side, is counted as "overflow" under its ``label``."""
-        queued, evicted = self.queue.offer("ros" if kind == "ros" else "posegrid", (kind, item, label), size)
+        offered = self.queue.offer("ros" if kind == "ros" else "posegrid", (kind, item, label), size)
         full = f"more than {QUEUE_CAPACITY} samples or {QUEUE_BYTES} bytes waited for the bridge"
-        for _, _, evicted_label in evicted:
+        for _, _, evicted_label in offered.evicted:
             self.rejects.count(evicted_label, "overflow", f"{full}: evicted for the other side's")
-        if not queued:
+        if not offered.queued:
             self.rejects.count(label, "overflow", full)
 
     def _on_ros(self, received: Received) -> None:
