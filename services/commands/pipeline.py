@@ -904,7 +904,7 @@ def node_config(args: argparse.Namespace):
     grid_config = gridslam_config(args) if algo == "gridslam" else None
     import numpy as np
 
-    from services.state.slam import NodeConfig
+    from services.state.slam import MAX_ODOMETRY_STEP, NodeConfig
 
     config = NodeConfig(
         robot=args.robot,
@@ -926,7 +926,7 @@ def node_config(args: argparse.Namespace):
         seed=args.seed,
         calibration=calibration,
         max_landmarks=args.max_landmarks,
-        **({} if args.max_odometry_step is None else {"max_odometry_step": args.max_odometry_step}),
+        max_odometry_step=args.max_odometry_step or MAX_ODOMETRY_STEP,
     )
     if config.make_filter is not None and algo != "gridslam":
         try:

@@ -217,11 +217,6 @@ class Mapper:
         finally:
             self.shard.fuse_ready()
 
-    def _routed(self) -> bool:
-        """Whether the session reaches a router now: a question asked while it does not went nowhere, and says
-        nothing of the histories (a router restart must not leave them alone)."""
-        return any(True for _ in self.session.info.routers_zid())
-
     def _ours(self, answerer: history.Answerer) -> bool:
         """Whether a history's answerer publishes for this shard's map (a SLAM node publishes for any)."""
         return answerer.map in (None, self.config.map_name)
@@ -240,8 +235,10 @@ class Mapper:
             return []
         began = time.monotonic()
         messages = history.ask_counted(self.session, robot, asked, HISTORY_TIMEOUT, self.rejects, self._ours, self.stop)
-        if not messages and time.monotonic() - began >= 0.9 * HISTORY_TIMEOUT and self._routed():
-            self._history_quiet[robot] = time.monotonic() + HISTORY_QUIET  # (asked through a router; no one answered)
+        # a question asked while the session reached no router or peer went nowhere, and says nothing of the
+        # histories (a router restart must not leave them alone)
+        if not messages and time.monotonic() - began >= 0.9 * HISTORY_TIMEOUT and history.reachable(self.session):
+            self._history_quiet[robot] = time.monotonic() + HISTORY_QUIET  # (asked, reached; no one answered)
         return [payload for _, got, payload in messages if got == stream]  # (history.ask checks the reply keys)
 
     def catch_up(self) -> None:

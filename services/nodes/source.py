@@ -286,7 +286,8 @@ class Source:
         )
         robot, best, since = end.robot, -1, time.monotonic()
         while not stop.wait(0.2):
-            stats = self._shard_stats() if history.reachable(self.session) else []
+            reached = history.reachable(self.session)
+            stats = self._shard_stats() if reached else []
             if stats and _accounted(stats, end):
                 return
             done = min((s.fused.get(robot, 0) + s.discarded.get(robot, 0) for s in stats), default=-1)
@@ -295,7 +296,7 @@ class Source:
             elif time.monotonic() - since > LINGER:
                 self.log.warning("the shards made no progress for %g s; ending with %d scans accounted", LINGER, best)
                 return
-            if stats or history.reachable(self.session):
+            if reached:
                 self._repeat_end(end)
 
     # ------------------------------------------------------------------------------- run

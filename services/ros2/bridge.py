@@ -207,7 +207,7 @@ class Bridge:
             }
 
     # ------------------------------------------------------------------------------- the work (one thread)
-    def _handle(self, kind: str, item: Any, label: str) -> None:
+    def _handle(self, kind: str, item: Any, _label: str) -> None:  # (the label counts what the queue refuses)
         if kind == "ros":
             self._guarded(item.topic, self._take_ros, item)
         elif kind == "tile":
