@@ -1,5 +1,5 @@
 """The one place that builds Zenoh configurations for every posegrid process, opens their sessions and releases
-what they declared on them (:func:`undeclare_all`).
+what they declared on them (:func:`undeclare_all`), and closes them (:func:`close_session`).
 
 Defaults (DESIGN.md): multicast scouting and the shared-memory transport off; a router listens on
 tcp/127.0.0.1:7447; every other process is a Zenoh *client* that connects to that router and listens nowhere,
@@ -169,6 +169,17 @@ def open_session(config: zenoh.Config, what: str, stop: threading.Event | None =
                 else ""
             )
         ) from None
+
+
+def close_session(session: zenoh.Session, what: str) -> None:
+    """Close ``what``'s session. A close that fails (zenoh gives up after its timeout when the router or the machine
+    stalls, "close operation timed out") is said in one line on stderr, not raised: the process is ending either way,
+    and its declarations go with it."""
+    try:
+        session.close()
+    except zenoh.ZError as exc:
+        note = f"posegrid: {what}'s zenoh session did not close cleanly ({_first_line(exc)})"
+        print(note, file=sys.stderr, flush=True)
 
 
 def undeclare_all(entities: list) -> None:

@@ -13,9 +13,11 @@ import pytest
 import zenoh
 
 from services.cli import main
+from services.commands.mapping import available_memory
+from services.commands.pipeline import check_shards_fit
 from services.errors import UsageError
 from services.nodes.launcher import free_port
-from services.zenoh_config import build_config, read_key
+from services.zenoh_config import build_config, close_session, read_key
 
 CLI = [sys.executable, "-m", "services"]
 
@@ -53,6 +55,24 @@ def test_command_line_endpoints_override_the_file(tmp_path):
     assert read_key(config, "connect/endpoints") == ["tcp/127.0.0.1:2222"]
     assert read_key(config, "listen/endpoints") == ["tcp/127.0.0.1:0"]
     assert read_key(config, "scouting/multicast/enabled") is False
+
+
+def test_a_session_that_fails_to_close_is_one_line_not_a_traceback(capsys):
+    """zenoh gives up closing a session when the router or the machine stalls ("close operation timed out"): the
+    process says so in one line and ends as it would (a stand-in session: a real close cannot be made to time out
+    on demand). A session that closes is closed."""
+
+    class StalledSession:
+        def close(self) -> None:
+            raise zenoh.ZError("close operation timed out! at zenoh/src/api/builders/close.rs:135.")
+
+    close_session(StalledSession(), "the router")  # type: ignore[arg-type]
+    assert capsys.readouterr().err == (
+        "posegrid: the router's zenoh session did not close cleanly (close operation timed out!)\n"
+    )
+    session = zenoh.open(build_config("peer", listen=[]))
+    close_session(session, "a peer")
+    assert session.is_closed() and capsys.readouterr().err == ""
 
 
 @pytest.mark.parametrize(
@@ -192,6 +212,27 @@ def test_bad_arguments_exit_2_with_one_sentence(argv, message, capsys):
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert message in err and "Traceback" not in err and err.count("\n") == 1, err
+
+
+def test_run_refuses_more_shards_than_the_machines_memory_holds(tmp_path, monkeypatch, capsys):
+    """`run --shards 1000` on a 2-core machine with 23 GB started mapper after mapper until the kernel killed
+    processes. Each process is reckoned at 200 MiB: 6 GiB holds 25 shards beside the 5 other processes, not 26."""
+    gib = 2**30
+    check_shards_fit(25, 6 * gib)
+    with pytest.raises(
+        UsageError, match=r"--shards 26 would start 26 mapper processes .* about 6\.1 GiB .* 6\.0 GiB is"
+    ):
+        check_shards_fit(26, 6 * gib)
+    check_shards_fit(1024, None)  # (memory not known: not checked)
+    available = available_memory()
+    assert available is not None and available > 0  # (Linux)
+    if available >= (1024 + 5) * 200 * 2**20:
+        pytest.skip("this machine holds 1 024 shards")
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path))
+    assert main(["run", "--sim", "--no-api", "--shards", "1024"]) == 2
+    err = capsys.readouterr().err
+    assert "--shards 1024 would start 1024 mapper processes" in err and err.count("\n") == 1, err
+    assert list(tmp_path.iterdir()) == []
 
 
 @pytest.mark.parametrize(

@@ -30,7 +30,7 @@ from services.api.limits import (
 )
 from services.api.protocol import timed_protocol
 from services.process import get_logger, install_stop_event
-from services.zenoh_config import open_session
+from services.zenoh_config import close_session, open_session
 
 #: seconds open connections (event streams) get to finish when the server stops
 GRACEFUL_SHUTDOWN = 2.0
@@ -123,4 +123,4 @@ def serve(host: str, port: int, zenoh_config: zenoh.Config, options: ServeOption
         finally:
             backend.close()
     finally:
-        session.close()
+        close_session(session, "the API")

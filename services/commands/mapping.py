@@ -104,6 +104,19 @@ def available_cores() -> int:
         return os.cpu_count() or 1
 
 
+def available_memory() -> int | None:
+    """The memory this machine can give new processes without swapping (/proc/meminfo's MemAvailable), bytes; None
+    where that cannot be read (not Linux)."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as meminfo:
+            for line in meminfo:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
 def add_threads_argument(parser: argparse.ArgumentParser | argparse._ArgumentGroup, default: str) -> None:
     """--threads N: how many scans the fusion walks side by side, or parts of a lone scan's samples
     (mapping.fusion.FusionThreads); ``default`` says what it is when not given. Read with :func:`threads_from_args`."""

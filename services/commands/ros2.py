@@ -322,7 +322,7 @@ def run_bridge(args: argparse.Namespace) -> int:
     from services.errors import UsageError
     from services.process import install_stop_event
     from services.ros2.bridge import Bridge
-    from services.zenoh_config import open_session
+    from services.zenoh_config import close_session, open_session
 
     if args.wait_mappers < 0:
         raise UsageError(f"--wait-mappers must be >= 0, got {args.wait_mappers}")
@@ -332,7 +332,7 @@ def run_bridge(args: argparse.Namespace) -> int:
     try:
         return Bridge(session, options).run(stop)
     finally:
-        session.close()
+        close_session(session, "the ROS 2 bridge")
 
 
 def run_play(args: argparse.Namespace) -> int:
@@ -340,7 +340,7 @@ def run_play(args: argparse.Namespace) -> int:
     from services.commands.zenoh_options import config_from_args
     from services.process import install_stop_event
     from services.ros2.play import Player, PlayOptions
-    from services.zenoh_config import open_session
+    from services.zenoh_config import close_session, open_session
 
     mode, domain, namespace = _graph(args)
     options = PlayOptions(
@@ -359,7 +359,7 @@ def run_play(args: argparse.Namespace) -> int:
     try:
         return player.run(stop)
     finally:
-        session.close()
+        close_session(session, "the bag player")
 
 
 # ------------------------------------------------------------------------------------------ posegrid run --ros2

@@ -38,7 +38,7 @@ from services.map_client import IncompleteMap, MapReader
 from services.process import PARENT_PID_ENV, Stopped, get_logger, until_stopped
 from services.security import Role, remove_material, run_material, zenoh_argv
 from services.state.store.run import RunState
-from services.zenoh_config import build_config, open_session
+from services.zenoh_config import build_config, close_session, open_session
 
 #: seconds a child gets to stop after SIGTERM before it is killed
 STOP_GRACE = 15.0
@@ -333,7 +333,7 @@ def run_pipeline(plan: Plan, stop: threading.Event) -> int:
             _banner(plan, endpoint, children)
             code = _supervise(session, plan, children, stop, log)
         finally:
-            session.close()
+            close_session(session, "the launcher")
     finally:
         codes = children.stop_all()
         remove_material(material)

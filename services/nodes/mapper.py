@@ -39,7 +39,7 @@ from services.state.shard import SHARD_STREAMS, MapShard, ShardConfig
 from services.state.store.db import ShardStore, StoredState, StoreError, StoreIdentity
 from services.state.store.journal import Journal, tiles_of_map
 from services.state.store.writer import DEFAULT_COMMIT_INTERVAL, DEFAULT_COMMIT_SCANS, NO_STORE, Persister
-from services.zenoh_config import open_session, undeclare_all
+from services.zenoh_config import close_session, open_session, undeclare_all
 
 #: messages that may wait in the intake queue between the network and the fusion thread
 DEFAULT_INTAKE_CAPACITY = DEFAULT_CAPACITY
@@ -413,4 +413,4 @@ def run_mapper(
     try:
         return Mapper(config, session, stop, intake_capacity, durable).run()
     finally:
-        session.close()
+        close_session(session, f"mapper shard {config.shard}")

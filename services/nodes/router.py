@@ -14,7 +14,7 @@ import threading
 import zenoh
 
 from services.process import get_logger
-from services.zenoh_config import open_session, read_key
+from services.zenoh_config import close_session, open_session, read_key
 
 
 def run_router(config: zenoh.Config, stop: threading.Event) -> int:
@@ -28,6 +28,6 @@ def run_router(config: zenoh.Config, stop: threading.Event) -> int:
         while not stop.wait(0.5):
             pass
     finally:
-        session.close()
+        close_session(session, "the router")
     log.info("stopped")
     return 0

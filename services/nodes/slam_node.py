@@ -23,7 +23,7 @@ from services import history, keys
 from services.intake import Intake
 from services.process import RejectCounter, Stopped, get_logger
 from services.state.slam import EXPECTED, NodeConfig, SlamState
-from services.zenoh_config import open_session, undeclare_all
+from services.zenoh_config import close_session, open_session, undeclare_all
 
 #: s to wait for the source's history of the run (what it published before this node was up)
 HISTORY_TIMEOUT = 60.0
@@ -144,4 +144,4 @@ def run_slam_node(config: NodeConfig, zenoh_config: zenoh.Config, stop: threadin
     try:
         return SlamNode(config, session, stop).run()
     finally:
-        session.close()
+        close_session(session, f"the SLAM node of robot {config.robot}")
