@@ -27,6 +27,7 @@ from api_stack import POSEGRID, ROOT, Stack, free_port, wait_until, write_room
 from schemas.messages import PoseSamples, ShardStats
 from services import keys
 from services.api.guard import allowed_hosts
+from services.api.status import STRANDED_AFTER
 from services.map_client import MapReader
 from services.zenoh_config import build_config, open_session
 
@@ -118,8 +119,9 @@ class FakeShard:
     valid ShardStats (no tiles). With :attr:`hold` set, it keeps the stats queries it gets unanswered (the query
     stays open until :meth:`release`) and sets :attr:`held`."""
 
-    def __init__(self, session, name: str) -> None:
+    def __init__(self, session, name: str, fused: dict[str, int] | None = None) -> None:
         self.name = name
+        self.fused = {} if fused is None else fused  # scans fused by robot, as its stats say (the test may change it)
         self.hold = False
         self.held = threading.Event()
         self._kept: list = []
@@ -131,7 +133,7 @@ class FakeShard:
             self._kept.append(query)
             self.held.set()
             return
-        given = {"map": self.name, "shard": 0, "shards": 1, "uptime": 1.0, "persist": "off"}  # the rest: 0, none by key
+        given = {"map": self.name, "shard": 0, "shards": 1, "uptime": 1.0, "persist": "off", "fused": dict(self.fused)}
         stats = ShardStats(
             **{f.name: given.get(f.name, {} if f.type in ("dict", dict) else 0) for f in dataclasses.fields(ShardStats)}
         )
@@ -153,8 +155,8 @@ def fake_shards(session):
     /health degraded for the tests after)."""
     made: list[FakeShard] = []
 
-    def make(name: str) -> FakeShard:
-        made.append(FakeShard(session, name))
+    def make(name: str, fused: dict[str, int] | None = None) -> FakeShard:
+        made.append(FakeShard(session, name, fused))
         return made[-1]
 
     yield make
@@ -221,6 +223,63 @@ def test_a_token_for_a_shard_beyond_the_maps_shard_count_is_no_shard(api, sessio
         wait_until(forgotten, VERIFY_WINDOW + 60, "the token of shard 5 to be counted as unproved")
     finally:
         token.undeclare()
+
+
+def test_a_second_process_answering_as_a_shard_degrades_health_until_it_goes(api, session):
+    """A shard started twice (a second process with the same --shard and no state directory of its own) went
+    unnoticed, and the stats flipped between the two from one ask to the next (fused 20 / 0, uptime too); the
+    flips kept /health "ok". Now the shard is listed as duplicated, /health is degraded, and the stats kept are
+    those of the process up longer (the real shard, not this one of 1 s)."""
+    stats_key = keys.stats_key(MAP, 0)
+    given = {"map": MAP, "shard": 0, "shards": 1, "uptime": 1.0, "persist": "off"}
+    young = ShardStats(
+        **{f.name: given.get(f.name, {} if f.type in ("dict", dict) else 0) for f in dataclasses.fields(ShardStats)}
+    )
+    twin = session.declare_queryable(stats_key, lambda query: query.reply(stats_key, young.encode()))
+    try:
+
+        def noticed() -> bool:
+            health = get_json(f"{api}/health")
+            return health["status"] == "degraded" and health["maps"][MAP]["duplicated_shards"] == [0]
+
+        wait_until(noticed, 30, "the second shard 0 to be noticed")
+        for _ in range(3):  # the same process's stats every time
+            stats = get_json(f"{api}/maps/{MAP}/stats")
+            assert stats["duplicated_shards"] == [0]
+            assert stats["per_shard"][0]["scans_fused"] == {"robot0": SCANS} and stats["per_shard"][0]["uptime_s"] > 1.0
+        assert get_json(f"{api}/health")["rejected"].get(stats_key, 0) >= 1
+    finally:
+        twin.undeclare()
+
+    def alone() -> bool:
+        health = get_json(f"{api}/health")
+        return health["status"] == "ok" and health["maps"][MAP]["duplicated_shards"] == []
+
+    wait_until(alone, 30, "/health to be ok once the second shard 0 is gone")
+
+
+def test_a_lag_that_began_before_anyone_asked_is_stranded_at_the_first_health(api, session, fake_shards):
+    """/health's clock of no progress started at its first call, so a monitor asking less often than every 5 s saw
+    "ok" at its first ask however long a robot's scans had been stranded. The API looks at the maps every second
+    itself now. Robot lagbot: vouched for by its SLAM node's token (no source), scan 0 fused by map lagmap's shard,
+    pose 9 seen: 9 scans lag and cannot come."""
+    fake = fake_shards("lagmap", fused={"lagbot": 1})
+    token = session.liveliness().declare_token(keys.robot_alive_key("lagbot", "slam"))
+    try:
+        wait_until(lambda: "lagmap" in map_names(api), 30, "map lagmap to be listed")
+
+        def seen() -> bool:
+            session.put(keys.robot_key("lagbot", keys.POSE), pose("lagbot", 9))
+            return "lagbot" in [r["robot"] for r in get_json(f"{api}/robots")]
+
+        wait_until(seen, 30, "lagbot's pose to arrive")
+        time.sleep(STRANDED_AFTER + 2.0)  # (no /health asked meanwhile)
+        health = get_json(f"{api}/health")
+        assert health["status"] == "degraded" and health["maps"]["lagmap"]["lag_scans"]["lagbot"] == 9, health
+    finally:
+        fake.fused["lagbot"] = 10  # (caught up: the map is healthy again for the tests after)
+        token.undeclare()
+    wait_until(lambda: get_json(f"{api}/health")["status"] == "ok", 30, "/health to be ok once lagbot caught up")
 
 
 def test_made_up_maps_are_capped_and_forgotten_when_their_tokens_go(api, session, fake_shards):

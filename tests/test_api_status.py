@@ -70,6 +70,30 @@ def test_map_stats_fuse_min_discard_max_and_lag_max_over_the_shards():
     assert s.shards == 2 and s.shards_alive == [0, 1] and shards_healthy(s)
 
 
+def test_lag_counts_the_scans_the_shards_know_of_when_the_api_saw_no_pose():
+    """An API restarted after the source ended has seen no pose of robot r1 (its SLAM node vouches for it): shard 1
+    fused 300 and was announced the end at 300, shard 0 (restarted) fused 256, so shard 0 lags 44. The API said
+    lag {} and ok. A robot no token vouched for gets no lag from the shards' counts (stray poses make none either)."""
+    stats = {
+        0: shard(0, fused={"r1": 256, "r9": 3}),
+        1: shard(1, fused={"r1": 290, "r9": 5}, discarded={"r1": 10}, ended={"r1": 300}),
+    }
+    s = map_stats(info(), stats, latest={}, api_rejected={}, now=0.0, vouched={"r1", "r2"})
+    assert [p.lag_scans for p in s.per_shard] == [{"r1": 44}, {"r1": 0}]  # r2: counted by no shard
+    assert s.lag_scans == {"r1": 44}
+    announced = map_stats(info(), {0: shard(0, ended={"r1": 50})}, latest={"r1": 9}, api_rejected={}, now=0.0)
+    assert announced.lag_scans == {"r1": 50}  # max(latest 9 + 1, the end 50): the source said 50 scans
+    ahead = map_stats(info(), {0: shard(0, fused={"r1": 5})}, latest={"r1": 20}, api_rejected={}, now=0.0)
+    assert ahead.lag_scans == {"r1": 16}  # max(latest 20 + 1, 5) - 5
+
+
+def test_a_shard_two_processes_answer_for_is_unhealthy():
+    s = map_stats(info(duplicated={1}), two_shards(), latest={}, api_rejected={}, now=0.0)
+    assert s.duplicated_shards == [1] and not shards_healthy(s)
+    report = health_report({"m": s}, ["r1/source"], Progress(), 0.0, **SYSTEM)
+    assert report.status == "degraded" and report.maps["m"].duplicated_shards == [1]
+
+
 def test_lag_is_never_negative_and_counts_robots_no_shard_has_fused():
     s = map_stats(
         info(shards=1), {0: shard(0, shards=1, fused={"r1": 5})}, latest={"r1": 2, "r3": 0}, api_rejected={}, now=0.0
@@ -168,12 +192,25 @@ def test_no_robot_is_stranded_while_its_source_lives_or_no_shard_counted_its_sca
     stranded("m", s, set(), progress, now=0.0)
     assert stranded("m", s, {"r1"}, progress, now=100.0) == []
     assert health_report({"m": s}, ["r1/source"], progress, 100.0, **SYSTEM).status == "ok"
+    fresh = Progress()
     uncounted = lagging(fused=0)  # lag 20, but no shard fused, gave up on or was announced a scan of r1
-    stranded("m", uncounted, set(), progress, now=0.0)
-    assert stranded("m", uncounted, set(), progress, now=100.0) == []
+    stranded("m", uncounted, set(), fresh, now=0.0)
+    assert stranded("m", uncounted, set(), fresh, now=100.0) == []
     announced = lagging(fused=0, ended={"r1": 20})  # the source's end counted on the shard
-    stranded("m", announced, set(), progress, now=0.0)
-    assert stranded("m", announced, set(), progress, now=100.0) == ["r1"]
+    stranded("m", announced, set(), fresh, now=0.0)
+    assert stranded("m", announced, set(), fresh, now=100.0) == ["r1"]
+
+
+def test_a_robot_counted_once_stays_counted_when_a_shard_restarted_in_memory_counts_nothing():
+    """A lone in-memory shard killed after the source ended came back with nothing fused and no history to take
+    the scans from: lag 300, fused 0, and /health said ok for good (no shard had counted the robot)."""
+    progress = Progress()
+    stranded("m", lagging(fused=10), {"r1"}, progress, now=0.0)  # counted while its source ran
+    restarted = lagging(fused=0)
+    assert stranded("m", restarted, set(), progress, now=1.0) == []
+    assert stranded("m", restarted, set(), progress, now=6.0) == ["r1"]
+    assert stranded("n", restarted, set(), progress, now=6.0) == []  # (counted on map m, not n)
+    assert stranded("n", restarted, set(), progress, now=60.0) == []
 
 
 def test_progress_is_kept_per_map():

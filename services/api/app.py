@@ -23,6 +23,7 @@ from services.api.backend import Backend
 from services.api.limits import HttpLimits
 from services.api.routes import ROUTERS
 from services.api.routes.common import Api
+from services.api.routes.status import watch
 from services.api.tiles import TileUnavailable
 from services.api.viewer_files import viewer_assets, viewer_page
 from services.map_client import IncompleteMap
@@ -66,7 +67,9 @@ def create_app(backend: Backend, limits: HttpLimits | None = None) -> FastAPI:
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         flusher = asyncio.create_task(backend.hub.run())
+        watcher = asyncio.create_task(watch(app.state.api))
         yield
+        watcher.cancel()
         backend.hub.close()
         flusher.cancel()
 

@@ -322,6 +322,7 @@ class MapperLink:
         out: dict[str, dict[int, ShardStats]] = {}
         for name, selector, handler in handlers:
             stats: dict[int, ShardStats] = {}
+            duplicated: set[int] = set()
             out[name] = stats
             for key, payload in self._replies(selector, handler):
                 try:
@@ -332,8 +333,15 @@ class MapperLink:
                 if key != keys.stats_key(message.map, message.shard) or message.map != name:
                     self.rejects.count(key, "key", f"stats of shard {message.shard} of map {message.map!r} on {key}")
                     continue
+                if message.shard in stats:  # (the one up longer is kept: the stats do not flip from ask to ask)
+                    duplicated.add(message.shard)
+                    self.rejects.count(
+                        key, "duplicate", f"two processes answer as shard {message.shard} of map {name!r}"
+                    )
+                    if message.uptime < stats[message.shard].uptime:
+                        continue
                 stats[message.shard] = message
-            self.registry.record_stats(name, stats)
+            self.registry.record_stats(name, stats, duplicated)
         return out
 
     def assemble(self, map_name: str, shards: int, resolution: float) -> TiledGrid:

@@ -101,8 +101,9 @@ class ShardStatus(BaseModel):
     )
     lag_scans: dict[str, int] | None = Field(
         default=None,
-        description="by robot: the latest pose seq the API has seen + 1, minus the scans the shard fused or gave "
-        "up on (how far the shard is behind SLAM)",
+        description="by robot: the scans known to exist (the latest pose seq the API has seen + 1, the most scans "
+        "a shard fused or gave up on, the source's announced end: the largest) minus the scans the shard fused or "
+        "gave up on (how far the shard is behind)",
     )
     tile_updates_received: int = Field(
         description="tile updates of this shard the API has received (equal to tile_updates when none is in flight)"
@@ -151,6 +152,11 @@ class MapStats(BaseModel):
         "refused or gave up (ShardStats.refused: key, ahead, size, work, bound, extent, "
         "robots, malformed, ...)",
     )
+    duplicated_shards: list[int] = Field(
+        default_factory=list,
+        description="shard indices that more than one process answered for in the last stats query (a shard "
+        "started twice: its stats and tiles cannot be trusted until one of them stops)",
+    )
     per_shard: list[ShardStatus]
 
 
@@ -160,6 +166,9 @@ class MapHealth(BaseModel):
     scans_fused: dict[str, int] = Field(description="by robot, the minimum over the shards")
     scans_discarded: dict[str, int] = Field(description="by robot, the maximum over the shards: scans the map lacks")
     lag_scans: dict[str, int] = Field(description="by robot, the maximum over the shards")
+    duplicated_shards: list[int] = Field(
+        default_factory=list, description="shard indices more than one process answers for (see MapStats)"
+    )
     distrust: list[str] = Field(
         default_factory=list,
         description="one sentence per kind of message the shards "
@@ -176,8 +185,8 @@ class Health(BaseModel):
     """The whole system at a glance."""
 
     status: Literal["ok", "degraded"] = Field(
-        description="ok: every shard of every map is alive and answers, none reports persist failing and no robot is "
-        "stranded; degraded otherwise"
+        description="ok: every shard of every map is alive and answers, none reports persist failing or answers "
+        "from two processes, and no robot is stranded; degraded otherwise"
     )
     uptime_s: float = Field(description="s since the API started")
     maps: dict[str, MapHealth]

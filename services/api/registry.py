@@ -41,6 +41,7 @@ class MapInfo:
     x_range: tuple[int, int] | None = None  # level-0 tile columns spanned (inclusive)
     y_range: tuple[int, int] | None = None
     synced: bool = False  # whether the tiles the shards hold have been asked for since they came up
+    duplicated: set[int] = field(default_factory=set)  # shards two processes answered for in the last stats query
 
     @property
     def tiles(self) -> dict[TileKey, int]:
@@ -121,16 +122,17 @@ class MapRegistry:
         with self.lock:
             return sorted(name for name, info in self._maps.items() if info.pending)
 
-    def record_stats(self, name: str, stats: dict) -> None:
+    def record_stats(self, name: str, stats: dict, duplicated: set[int] | None = None) -> None:
         """Take the valid stats (services.api.mappers.MapperLink.stats: shard index -> ShardStats of this map,
-        each with shard < shards) that answered a query: record the shard count and make every pending shard that
-        answered alive."""
+        each with shard < shards) that answered a query, and the shards more than one process answered for: record
+        the shard count and the duplicates and make every pending shard that answered alive."""
         if not stats:
             return
         with self.lock:
             info = self._maps.get(name)
             if info is None:
                 return
+            info.duplicated = set(duplicated or ())
             info.shards = max(s.shards for s in stats.values())
             for shard in [s for s in info.pending if s in stats]:
                 del info.pending[shard]

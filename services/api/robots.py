@@ -144,6 +144,11 @@ class RobotTracker:
             self._vouched.add(robot)
             return True
 
+    def vouched(self) -> set[str]:
+        """The robots a process liveliness token vouched for."""
+        with self._lock:
+            return set(self._vouched)
+
     def expire(self) -> None:
         """Forget the stray robots whose last pose is more than ``stray_ttl`` s old."""
         with self._lock:

@@ -4,19 +4,25 @@ routes (services.api.routes.status) gather the data and these functions combine 
 
 Over a map's shards: scans fused = the minimum over the answering shards (every shard has fused at least
 that many), scans discarded and lag = the maximum (the scans some part of the map lacks). Lag of a shard for a
-robot = the latest pose seq + 1 minus the scans the shard fused or gave up on.
+robot = the scans known to exist (:func:`expected_scans`: the latest pose seq + 1, the most scans one shard has
+done, the end the source announced; the largest) minus the scans the shard fused or gave up on. So a lag shows
+from the shards' own counts too: after the API restarts (it has seen no pose yet) and when a restarted shard has
+counted nothing yet.
 
-A map is healthy when its shard count is known and every shard is alive, answers and, when it keeps a state
-directory, commits to it (its ``persist`` is not "failing"). A robot is *stranded* on
-a map when its scans lag, its source process is gone, a shard has counted scans of it and the shards' scans
-done for it (fused + discarded) have not changed for :data:`STRANDED_AFTER` s: those scans cannot come any
-more (a shard restarted after the source ended finds no history to take them from), and nothing else would
-say so. /health is "ok" when there is a map, every map is healthy and no robot is stranded.
+A map is healthy when its shard count is known and every shard is alive, answers from one process only and, when
+it keeps a state directory, commits to it (its ``persist`` is not "failing"). A robot is *stranded* on
+a map when its scans lag, its source process is gone, a shard has counted scans of it (while this API ran) and the
+shards' scans done for it (fused + discarded) have not changed for :data:`STRANDED_AFTER` s: those scans cannot
+come any more (a shard restarted after the source ended finds no history to take them from), and nothing else
+would say so. /health is "ok" when there is a map, every map is healthy and no robot is stranded. The API looks
+at the maps every :data:`WATCH_INTERVAL` s whether or not anyone asks (services.api.routes.status), so the
+progress clock runs from when a lag began, not from the first /health call.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+import threading
+from collections.abc import Collection, Iterable, Mapping
 from typing import Any
 
 from schemas.messages import ShardStats
@@ -25,6 +31,8 @@ from services.api.registry import MapInfo
 
 #: s without progress on a robot's lagging scans, its source gone, before /health calls them stranded
 STRANDED_AFTER = 5.0
+#: s between the API's own looks at the maps' progress (services.api.routes.status.watch)
+WATCH_INTERVAL = 1.0
 
 #: the kinds of refusal (ShardStats.refused) that say a peer sends what it should not, and what each means
 DISTRUSTED = {
@@ -55,16 +63,36 @@ def summed(counts: Iterable[Mapping[str, int]]) -> dict[str, int]:
     return total
 
 
-def shard_lag(s: ShardStats, latest: Mapping[str, int]) -> dict[str, int]:
-    """By robot of ``latest`` (robot -> latest pose seq): scans the shard is behind, never negative."""
-    return {r: max(0, seq + 1 - s.fused.get(r, 0) - s.discarded.get(r, 0)) for r, seq in latest.items()}
+def done(s: ShardStats, robot: str) -> int:
+    """The robot's scans the shard has fused or given up on."""
+    return s.fused.get(robot, 0) + s.discarded.get(robot, 0)
+
+
+def expected_scans(
+    answered: Collection[ShardStats], latest: Mapping[str, int], vouched: Collection[str]
+) -> dict[str, int]:
+    """By robot whose lag counts (those of ``latest``: robot -> latest pose seq, and the ``vouched`` robots an
+    answering shard has counted), the scans known to exist: the latest pose seq + 1, the most scans one shard has
+    fused or given up on, the stream's end a shard was announced (ShardStats.ended), whichever is largest."""
+    counted = {r for s in answered for counts in (s.fused, s.discarded, s.ended) for r, n in counts.items() if n}
+    return {
+        r: max([latest.get(r, -1) + 1, *(max(done(s, r), s.ended.get(r, 0)) for s in answered)])
+        for r in set(latest) | (counted & set(vouched))
+    }
+
+
+def shard_lag(s: ShardStats, expected: Mapping[str, int]) -> dict[str, int]:
+    """By robot of ``expected`` (robot -> scans known to exist, :func:`expected_scans`): scans the shard is behind,
+    never negative."""
+    return {r: max(0, n - done(s, r)) for r, n in expected.items()}
 
 
 def shard_status(
-    shard: int, info: MapInfo, s: ShardStats | None, latest: Mapping[str, int], now: float
+    shard: int, info: MapInfo, s: ShardStats | None, expected: Mapping[str, int], now: float
 ) -> models.ShardStatus:
     """One shard of map ``info``: its liveliness and tile updates as the API saw them, and its stats ``s`` (None:
-    it did not answer); ``latest``: robot -> latest pose seq; ``now``: time.monotonic(), s."""
+    it did not answer); ``expected``: robot -> scans known to exist (:func:`expected_scans`); ``now``:
+    time.monotonic(), s."""
     age = info.last_update.get(shard)
     fields: dict[str, Any] = (
         {}
@@ -82,7 +110,7 @@ def shard_status(
             resent=s.resent,
             rejected=s.rejected,
             overflow=s.overflow,
-            lag_scans=shard_lag(s, latest),
+            lag_scans=shard_lag(s, expected),
             persist=s.persist if s.persist in ("off", "ok", "failing") else None,
             committed_scans=s.committed,
             last_commit_age_s=None if s.commit_age < 0 else s.commit_age,
@@ -104,24 +132,28 @@ def map_stats(
     latest: Mapping[str, int],
     api_rejected: Mapping[str, int],
     now: float,
+    vouched: Collection[str] = (),
 ) -> models.MapStats:
     """Map ``info``'s shards and what they did: ``stats`` by shard (those that answered), ``latest`` the latest
     pose seq by robot (those whose lag counts), ``api_rejected`` the API's own rejected messages by key, ``now``
-    time.monotonic() in s. The shards listed: 0..shards-1, those alive and those that answered."""
+    time.monotonic() in s, ``vouched`` the robots a process token vouched for (their lag counts from the shards'
+    counts too: :func:`expected_scans`). The shards listed: 0..shards-1, those alive and those that answered."""
     shard_ids = sorted(set(range(info.shards or 0)) | info.alive | set(stats))
     answered = list(stats.values())
-    lags = [shard_lag(s, latest) for s in answered]
-    robots_seen = sorted({r for s in answered for r in s.fused} | set(latest)) if answered else []
+    expected = expected_scans(answered, latest, vouched)
+    lags = [shard_lag(s, expected) for s in answered]
+    robots_seen = sorted({r for s in answered for r in s.fused} | set(expected)) if answered else []
     return models.MapStats(
         map=info.name,
         shards=info.shards,
         shards_alive=sorted(info.alive),
         scans_fused={r: min(s.fused.get(r, 0) for s in answered) for r in robots_seen},
         scans_discarded={r: max(s.discarded.get(r, 0) for s in answered) for r in robots_seen},
-        lag_scans={r: max(lag.get(r, 0) for lag in lags) for r in robots_seen if r in latest},
+        lag_scans={r: max(lag.get(r, 0) for lag in lags) for r in robots_seen if r in expected},
         rejected=summed([api_rejected, *(s.rejected for s in answered)]),
         refused=summed(s.refused for s in answered),
-        per_shard=[shard_status(shard, info, stats.get(shard), latest, now) for shard in shard_ids],
+        duplicated_shards=sorted(info.duplicated),
+        per_shard=[shard_status(shard, info, stats.get(shard), expected, now) for shard in shard_ids],
     )
 
 
@@ -133,6 +165,7 @@ def map_health(s: models.MapStats) -> models.MapHealth:
         scans_fused=s.scans_fused,
         scans_discarded=s.scans_discarded,
         lag_scans=s.lag_scans,
+        duplicated_shards=s.duplicated_shards,
         distrust=distrust(s.refused),
         commits=[
             models.ShardCommit(
@@ -148,10 +181,11 @@ def map_health(s: models.MapStats) -> models.MapHealth:
 
 
 def shards_healthy(s: models.MapStats) -> bool:
-    """Whether the map's shard count is known and each of its shards is alive, answered and, with a state directory,
-    commits."""
+    """Whether the map's shard count is known and each of its shards is alive, answered from one process and, with a
+    state directory, commits."""
     return (
         s.shards is not None
+        and not s.duplicated_shards
         and len(s.per_shard) >= s.shards
         and all(p.alive and p.answered and p.persist != "failing" for p in s.per_shard)
     )
@@ -174,27 +208,38 @@ def counted_robots(s: models.MapStats) -> set[str]:
 
 
 class Progress:
-    """When the scans done (fused + discarded) for each robot on each map last changed, as /health saw them."""
+    """When the scans done (fused + discarded) for each robot on each map last changed, as the API saw them, and the
+    robots some shard of each map has counted scans of while the API ran (a shard restarted in memory counts
+    nothing: its robots stay counted)."""
 
     def __init__(self) -> None:
         self._seen: dict[tuple[str, str], tuple[int, float]] = {}  # (map, robot) -> (scans done, since when, s)
+        self._counted: set[tuple[str, str]] = set()  # (map, robot)
+        self._lock = threading.Lock()  # (/health's threads and the API's watch record at once)
+
+    def counted(self, map_name: str, robots: Iterable[str]) -> set[str]:
+        """Record ``robots`` as counted on the map; every robot counted on it so far."""
+        with self._lock:
+            self._counted.update((map_name, robot) for robot in robots)
+            return {robot for name, robot in self._counted if name == map_name}
 
     def stalled(self, map_name: str, robot: str, done: int, now: float) -> float:
         """Record ``done`` scans at time ``now`` (s); the s since the count last changed (0 when it just did)."""
-        seen = self._seen.get((map_name, robot))
-        if seen is None or seen[0] != done:
-            self._seen[(map_name, robot)] = seen = (done, now)
-        return now - seen[1]
+        with self._lock:
+            seen = self._seen.get((map_name, robot))
+            if seen is None or seen[0] != done:
+                self._seen[(map_name, robot)] = seen = (done, now)
+            return now - seen[1]
 
 
 def stranded(map_name: str, s: models.MapStats, sources: set[str], progress: Progress, now: float) -> list[str]:
     """The robots stranded on the map (module docstring), sorted; records the progress of every robot that has a
     lag, so call it at every /health. ``sources``: robots whose source is alive; ``now``: time.monotonic(), s."""
-    counted = counted_robots(s)
+    counted = progress.counted(map_name, counted_robots(s))
     out = []
     for robot, lag in sorted(s.lag_scans.items()):
-        done = s.scans_fused.get(robot, 0) + s.scans_discarded.get(robot, 0)
-        still = progress.stalled(map_name, robot, done, now)  # a source that did not wait for the shards exits
+        scans_done = s.scans_fused.get(robot, 0) + s.scans_discarded.get(robot, 0)
+        still = progress.stalled(map_name, robot, scans_done, now)  # a source that did not wait for the shards exits
         if lag > 0 and robot in counted and robot not in sources and still >= STRANDED_AFTER:  # while they catch up
             out.append(robot)
     return out

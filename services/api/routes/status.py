@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import time
 
 from fastapi import APIRouter
@@ -9,7 +10,8 @@ from fastapi import APIRouter
 from services.api import models
 from services.api.registry import MapInfo
 from services.api.routes.common import Api, ApiDep, MapName, errors, known_map
-from services.api.status import health_report, map_stats
+from services.api.status import WATCH_INTERVAL, health_report, map_stats
+from services.process import get_logger
 
 router = APIRouter()
 
@@ -19,7 +21,8 @@ def stats_now(api: Api, info: MapInfo) -> models.MapStats:
     backend = api.backend
     stats = backend.link.stats(info.name)
     latest = backend.robots.latest_seqs(vouched_only=True)  # stray poses make no lag (services.api.robots)
-    return map_stats(info, stats, latest, backend.link.rejects.snapshot(), time.monotonic())
+    now = time.monotonic()
+    return map_stats(info, stats, latest, backend.link.rejects.snapshot(), now, backend.robots.vouched())
 
 
 @router.get("/maps/{map}/stats", response_model=models.MapStats, tags=["status"], responses=errors(404, 422))
@@ -52,3 +55,15 @@ def health(api: ApiDep) -> models.Health:
         refused=backend.link.refused.snapshot(),
         limits=api.limit_values(),
     )
+
+
+async def watch(api: Api) -> None:
+    """Look at every map every WATCH_INTERVAL s as /health does (its answer dropped), so that the API knows when a
+    robot's scans stopped making progress before anyone asks (services.api.status). Runs until cancelled."""
+    log = get_logger("api")
+    while True:
+        await asyncio.sleep(WATCH_INTERVAL)
+        try:
+            await asyncio.to_thread(health, api)
+        except Exception:  # the watch must outlive any one look (logged, not swallowed)
+            log.exception("looking at the maps' progress failed; trying again")
