@@ -2,7 +2,8 @@
 (docs/keys.md, "The histories"). The source answers with its steps, the SLAM node with the poses it published.
 
 A query names ``streams`` (comma-separated key chunks, default every one the answering process knows), ``from``
-(the first seq, default 0) and ``to`` (the seq after the last, default everything published); each message
+(the first seq, default 0), ``to`` (the seq after the last, default everything published) and ``seqs`` (at most
+MAX_SEQS comma-separated seqs: only those of the range, default all of it); each message
 comes back as one reply on pg/<robot>/history/<its stream>, in the order it was published, so a query must ask
 for no consolidation.
 """
@@ -23,6 +24,8 @@ from services.process import RejectCounter, Stopped
 
 #: a seq in a query's parameters
 _SEQ = re.compile(r"[0-9]{1,18}")
+#: seqs one query's ``seqs`` may name
+MAX_SEQS = 64
 
 #: the streams a history holds (docs/keys.md): the source answers for all but the poses of a SLAM node
 STREAMS = frozenset({keys.PRIOR, keys.ODOM, keys.LANDMARKS, keys.SCAN, keys.POSE})
@@ -39,14 +42,16 @@ STOP_POLL = 0.1
 
 @dataclass(frozen=True)
 class HistoryRequest:
-    """What a history query asks for: streams (key chunks), seqs first .. stop - 1 (stop None: no end)."""
+    """What a history query asks for: streams (key chunks), seqs first .. stop - 1 (stop None: no end), of them only
+    ``seqs`` when given."""
 
     streams: frozenset[str]
     first: int
     stop: int | None
+    seqs: frozenset[int] | None = None
 
     def wants(self, seq: int) -> bool:
-        return self.first <= seq and (self.stop is None or seq < self.stop)
+        return self.first <= seq and (self.stop is None or seq < self.stop) and (self.seqs is None or seq in self.seqs)
 
 
 def parse_request(query: zenoh.Query, robot: str) -> HistoryRequest | None:
@@ -57,6 +62,8 @@ def parse_request(query: zenoh.Query, robot: str) -> HistoryRequest | None:
     streams = set(STREAMS) if asked is None else set(asked.split(","))
     asked_first, stop = query.parameters.get("from"), query.parameters.get("to")
     first = "0" if asked_first is None else asked_first
+    listed = query.parameters.get("seqs")
+    seqs = None if listed is None else listed.split(",")
     problem = (
         f"unknown stream(s) {sorted(streams - STREAMS)}; known: {sorted(STREAMS)}"
         if streams - STREAMS
@@ -64,11 +71,19 @@ def parse_request(query: zenoh.Query, robot: str) -> HistoryRequest | None:
         if _SEQ.fullmatch(first) and (stop is None or _SEQ.fullmatch(stop))
         else f"'from' and 'to' must be seqs 0 .. 10^18 in ASCII digits, got {first!r} and {stop!r}"
     )
+    if problem is None and seqs is not None and (len(seqs) > MAX_SEQS or not all(_SEQ.fullmatch(q) for q in seqs)):
+        shown = str(listed)[:100]
+        problem = f"'seqs' must be at most {MAX_SEQS} comma-separated seqs 0 .. 10^18 in ASCII digits, got {shown!r}"
     if problem:
         query.reply_err(f"history query {query.selector}: {problem}".encode())
         return None
     streams = {stream for stream in streams if query.key_expr.intersects(keys.history_key(robot, stream))}
-    return HistoryRequest(frozenset(streams), int(first), None if stop is None else int(stop))
+    return HistoryRequest(
+        frozenset(streams),
+        int(first),
+        None if stop is None else int(stop),
+        None if seqs is None else frozenset(map(int, seqs)),
+    )
 
 
 @dataclass(frozen=True)
@@ -161,9 +176,12 @@ def ask(
     """Ask the histories of ``robot`` ("*": every robot): ((robot, stream, payload) of each message in the order
     sent, problems). Only answerers that ``accept`` takes count (a shard takes its own map's sources; a SLAM node
     catching up, sources still publishing). When two of them answer for one robot's stream (a robot name that
-    two runs use at once), neither is taken: that stream's messages are left out and a problem says so, since the
-    live stream cannot say which run it belongs to. A session cut off from the router waits for it to come back
-    (:func:`_answers`); Stopped when ``stop`` is set while it waits."""
+    two runs use at once, or a peer answering as a history), neither is taken: that stream's messages are left out
+    and a problem says so, since the live stream cannot say which run it belongs to. An answerer is known by the
+    Zenoh session that sent the reply (its ``replier_id``, which zenoh sets): a reply whose attachment names
+    another session is not taken, so a peer cannot pose as the real history to slip past that rule. A session cut
+    off from the router waits for it to come back (:func:`_answers`); Stopped when ``stop`` is set while it
+    waits."""
     messages: list[tuple[str, str, bytes]] = []
     problems: list[str] = []
     answerers: dict[tuple[str, str], set[str]] = {}  # (robot, stream) -> ids of the processes answering for it
@@ -183,6 +201,11 @@ def ask(
             )
         elif answerer is None:
             problems.append(f"a reply on {answer.ok.key_expr} does not say who answers it; not taken")
+        elif answer.replier_id is not None and answerer.id != str(answer.replier_id.zid):
+            problems.append(
+                f"a reply on {answer.ok.key_expr} says it comes from process {answerer.id[:40]!r} but came from "
+                f"{answer.replier_id.zid} (a peer posing as a history); not taken"
+            )
         elif accept(answerer):
             answerers.setdefault(parsed, set()).add(answerer.id)
             messages.append((*parsed, answer.ok.payload.to_bytes()))

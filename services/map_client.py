@@ -1,20 +1,96 @@
 """Reading a sharded map over Zenoh: the shards' stats, their tiles, and the map assembled from them.
 
-Used by the launcher (progress, export), the source (flow control) and the benchmark. Replies that do
+Used by the launcher (progress, export), the source (flow control), the API and the benchmark. Replies that do
 not decode are skipped and counted in :attr:`MapReader.rejected`, never trusted.
+
+Who answers (:func:`sort_answers`): any peer may declare a queryable on a shard's keys, so a reply is taken for a
+shard only when the shard's liveliness token is up, and each reply is known by the Zenoh session that sent it
+(zenoh sets a reply's ``replier_id``; a peer cannot give another session's). A round in which two sessions answer
+as one shard, or the shards disagree on their count, is not trusted: the reader says why
+(:attr:`ShardAnswers.problems`) and goes on as if no shard had answered, rather than act on forged counts. A tile is
+taken only from the session whose stats answered for the shard that owns it by the ownership rule
+(services.state.ownership). Without access control a peer that declares a shard's token *and* answers for it
+while the real shard is down is that shard as far as anyone can tell (docs/security.md).
 """
 
 from __future__ import annotations
+
+from collections.abc import Collection, Iterable
+from dataclasses import dataclass, field
 
 import zenoh
 
 from mapping.grid import TiledGrid
 from schemas.messages import MessageError, ShardStats, TileUpdate, decode_message
 from services import keys
+from services.state.ownership import owns_tile
 
 
 class IncompleteMap(RuntimeError):
     """The tiles received do not add up to what the shards say they hold."""
+
+
+@dataclass(frozen=True)
+class ShardAnswers:
+    """One round of a map's shards' stats (:func:`sort_answers`): ``stats`` and ``answerers`` (the Zenoh session id
+    whose stats were kept) by shard index, of the shards whose token is up; ``problems``: why the round cannot be
+    trusted (two sessions answering as one shard, shards disagreeing on their count), empty when it can;
+    ``untokened``: replies for shard indices with no liveliness token up, left out; ``rejected``: replies whose key
+    or map does not match their stats; ``duplicated``: the shards two sessions answered for."""
+
+    stats: dict[int, ShardStats] = field(default_factory=dict)
+    answerers: dict[int, str] = field(default_factory=dict)
+    problems: list[str] = field(default_factory=list)
+    untokened: int = 0
+    rejected: int = 0
+    duplicated: frozenset[int] = frozenset()  # the shards two sessions answered for
+
+    @property
+    def trusted(self) -> dict[int, ShardStats]:
+        """The stats when the round can be trusted, else none (as if no shard had answered)."""
+        return {} if self.problems else self.stats
+
+
+def replier(reply: zenoh.Reply) -> str:
+    """The Zenoh session id of a reply's sender ("?" when zenoh gives none)."""
+    source = reply.replier_id
+    return "?" if source is None else str(source.zid)
+
+
+def sort_answers(
+    map_name: str, replies: Iterable[tuple[str, str, ShardStats]], tokens: Collection[int]
+) -> ShardAnswers:
+    """The stats replies (key, sender's session id, stats) of map ``map_name``'s shards, sorted (module docstring):
+    only shards in ``tokens`` (the shard indices whose liveliness token is up) are kept; of a shard that two
+    sessions answer for, the stats of the one up longer."""
+    stats: dict[int, ShardStats] = {}
+    answerers: dict[int, str] = {}
+    senders: dict[int, set[str]] = {}
+    untokened = rejected = 0
+    for key, sender, message in replies:
+        if message.map != map_name or key != keys.stats_key(map_name, message.shard):
+            rejected += 1
+            continue
+        if message.shard not in tokens:
+            untokened += 1
+            continue
+        senders.setdefault(message.shard, set()).add(sender)
+        if message.shard not in stats or message.uptime > stats[message.shard].uptime:
+            stats[message.shard], answerers[message.shard] = message, sender
+    problems = [
+        f"{len(sessions)} processes answer as shard {shard} of map {map_name!r} (a shard started twice, or a peer "
+        "forging its stats: docs/security.md)"
+        for shard, sessions in sorted(senders.items())
+        if len(sessions) > 1
+    ]
+    counts = sorted({s.shards for s in stats.values()})
+    if len(counts) > 1:
+        problems.append(
+            f"the shards of map {map_name!r} disagree on their count ({', '.join(map(str, counts))}: shards of two "
+            "runs, or a peer forging stats: docs/security.md)"
+        )
+    duplicated = frozenset(shard for shard, sessions in senders.items() if len(sessions) > 1)
+    return ShardAnswers(stats, answerers, problems, untokened, rejected, duplicated)
 
 
 class MapReader:
@@ -26,6 +102,7 @@ class MapReader:
         self.rejected = 0
 
     def _replies(self, selector: str, expected, timeout: float) -> list:
+        """(key, sender's session id, message) of each reply that decodes as ``expected``."""
         messages = []
         handler = self.session.get(
             selector,
@@ -39,28 +116,67 @@ class MapReader:
                 self.rejected += 1
                 continue
             try:
-                messages.append(decode_message(reply.ok.payload.to_bytes(), expected))
+                message = decode_message(reply.ok.payload.to_bytes(), expected)
             except MessageError:
                 self.rejected += 1
+                continue
+            messages.append((str(reply.ok.key_expr), replier(reply), message))
         return messages
 
-    def stats(self, timeout: float = 5.0) -> dict[int, ShardStats]:
-        """Every reachable shard's stats, by shard index."""
+    def tokens(self, timeout: float = 5.0) -> set[int]:
+        """The shard indices of the map whose liveliness token is up."""
+        return self._tokens(self._ask_tokens(timeout))
+
+    def _ask_tokens(self, timeout: float):
+        return self.session.liveliness().get(keys.shard_alive_key(self.map_name, "*"), timeout=timeout)
+
+    def _tokens(self, handler) -> set[int]:
+        """The shard indices of the tokens a liveliness query's ``handler`` gives (iterating it waits)."""
+        prefix = keys.shard_alive_key(self.map_name, "")
+        up = set()
+        for reply in handler:
+            if reply.ok is not None and str(reply.ok.key_expr).startswith(prefix):
+                index = str(reply.ok.key_expr)[len(prefix) :]
+                if index.isdigit():
+                    up.add(int(index))
+        return up
+
+    def answers(self, timeout: float = 5.0, tokens: Collection[int] | None = None) -> ShardAnswers:
+        """One round of the shards' stats, sorted (:func:`sort_answers`) against ``tokens`` (the shards whose
+        liveliness token is up; None: asked now, alongside the stats, within the same ``timeout`` s); what is left
+        out is counted in :attr:`rejected`."""
+        asked = None if tokens is not None else self._ask_tokens(timeout)
         replies = self._replies(keys.stats_key(self.map_name, "*"), ShardStats, timeout)
-        return {s.shard: s for s in replies if s.map == self.map_name}
+        answers = sort_answers(self.map_name, replies, self._tokens(asked) if tokens is None else tokens)
+        self.rejected += answers.rejected + answers.untokened
+        return answers
+
+    def stats(self, timeout: float = 5.0) -> dict[int, ShardStats]:
+        """Every reachable shard's stats, by shard index, when the round can be trusted (else none:
+        :meth:`answers` says why)."""
+        return self.answers(timeout).trusted
 
     def tiles(self, timeout: float = 60.0) -> list[TileUpdate]:
-        """Every tile of zoom level 0 from every shard (whole tiles)."""
-        replies = self._replies(keys.tile_key(self.map_name, 0, "*", "*"), TileUpdate, timeout)
-        return [t for t in replies if t.map == self.map_name]
+        """Every tile of zoom level 0 from every shard (whole tiles), whoever sent it."""
+        return [t for _, _, t in self._tiles(timeout)]
 
-    def assemble(self, shards: int, resolution: float, timeout: float = 60.0) -> TiledGrid:
-        """The whole map as one grid of cells ``resolution`` m, checked against the shards' own tile counts.
+    def _tiles(self, timeout: float) -> list[tuple[str, str, TileUpdate]]:
+        replies = self._replies(keys.tile_key(self.map_name, 0, "*", "*"), TileUpdate, timeout)
+        return [(key, sender, t) for key, sender, t in replies if t.map == self.map_name]
+
+    def assemble(
+        self, shards: int, resolution: float, timeout: float = 60.0, tokens: Collection[int] | None = None
+    ) -> TiledGrid:
+        """The whole map as one grid of cells ``resolution`` m, checked against the shards' own tile counts; its
+        stats sorted against ``tokens`` (:meth:`answers`).
 
         Raises :class:`IncompleteMap` when a shard does not answer or says the map has another number of shards, or a
         tile is missing (fewer of a shard's arrive than its stats held; more may, made since) or duplicated.
         """
-        stats = self.stats()
+        answers = self.answers(tokens=tokens)
+        if answers.problems:
+            raise IncompleteMap(answers.problems[0])
+        stats = answers.stats
         if sorted(stats) != list(range(shards)):
             raise IncompleteMap(f"expected shards 0..{shards - 1} of map {self.map_name!r}, got {sorted(stats)}")
         for shard, shard_stats in stats.items():
@@ -68,7 +184,7 @@ class MapReader:
                 raise IncompleteMap(
                     f"shard {shard} says map {self.map_name!r} has {shard_stats.shards} shard(s), not {shards}"
                 )
-        tiles = self.tiles(timeout)
+        tiles = self._owners_tiles(self._tiles(timeout), answers.answerers, shards)
         per_shard = dict.fromkeys(range(shards), 0)
         seen = set()
         for tile in tiles:
@@ -94,3 +210,20 @@ class MapReader:
                 )
             grid.set_tile((tile.tx, tile.ty), *tile.whole_layers())
         return grid
+
+    def _owners_tiles(
+        self, replies: list[tuple[str, str, TileUpdate]], answerers: dict[int, str], shards: int
+    ) -> list[TileUpdate]:
+        """The tiles that their owner sent: the shard the ownership rule gives the tile, from the session that
+        answered for that shard's stats; the others are counted in :attr:`rejected` (a peer answering the tile
+        query with tiles of its own)."""
+        owned = [
+            tile
+            for key, sender, tile in replies
+            if 0 <= tile.shard < shards
+            and key == keys.tile_key(self.map_name, 0, tile.tx, tile.ty)
+            and answerers.get(tile.shard) == sender
+            and owns_tile(tile.shard, shards)(tile.tx, tile.ty)
+        ]
+        self.rejected += len(replies) - len(owned)
+        return owned

@@ -258,6 +258,26 @@ def test_a_second_process_answering_as_a_shard_degrades_health_until_it_goes(api
     wait_until(alone, 30, "/health to be ok once the second shard 0 is gone")
 
 
+def test_stats_of_a_shard_with_no_token_change_nothing(api, session):
+    """A hostile-peer probe's finding: a queryable on pg/map/main/stats/1023 answering "shard 1023 of 1024", with no
+    liveliness token, made the API take the map for 1024 shards and refuse every real tile update as another
+    shard's (the map froze). Stats count only for shards whose token is up; the rest are counted."""
+    key = keys.stats_key(MAP, 1023)
+    given = {"map": MAP, "shard": 1023, "shards": 1024, "uptime": 1.0, "persist": "off"}
+    forged = ShardStats(
+        **{f.name: given.get(f.name, {} if f.type in ("dict", dict) else 0) for f in dataclasses.fields(ShardStats)}
+    )
+    ghost = session.declare_queryable(key, lambda query: query.reply(key, forged.encode()))
+    try:
+        wait_until(lambda: get_json(f"{api}/health")["rejected"].get(key, 0) >= 1, 30, "the forged stats to be counted")
+        assert get_json(f"{api}/maps/{MAP}")["shards"] == 1
+        stats = get_json(f"{api}/maps/{MAP}/stats")
+        assert stats["shards"] == 1 and [s["shard"] for s in stats["per_shard"]] == [0]
+        assert get_json(f"{api}/health")["status"] == "ok"
+    finally:
+        ghost.undeclare()
+
+
 def test_a_lag_that_began_before_anyone_asked_is_stranded_at_the_first_health(api, session, fake_shards):
     """/health's clock of no progress started at its first call, so a monitor asking less often than every 5 s saw
     "ok" at its first ask however long a robot's scans had been stranded. The API looks at the maps every second

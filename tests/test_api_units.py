@@ -18,7 +18,9 @@ from services.api.registry import MapRegistry
 from services.api.render import LOGODDS_RANGE
 from services.api.robots import RobotTracker, reduce_samples, summarize, weighted_mean_cov
 from services.api.tiles import TileService, render_key, tile_facts, variance_scale
+from services.map_client import ShardAnswers
 from services.state.ownership import tile_owner
+from test_messages import stats
 
 
 def test_versions_propagate_to_every_level_and_only_grow():
@@ -320,9 +322,16 @@ def test_a_tile_querys_reply_of_another_geometry_than_the_maps_is_refused():
     from services.keys import tile_key
 
     registry = MapRegistry()
+    registry.token_up("m", 0)
+    registry.record_stats("m", ShardAnswers({0: stats(map="m", shard=0, shards=1)}, {0: "zid-a"}))
     registry.tile_changed("m", (0, 0), 0.05, 2)  # (a published update: the map's tiles are 2 cells of 0.05 m)
     link = MapperLink(None, registry, None, None)  # type: ignore[arg-type]  # (no session: no query is sent)
-    replies = [(tile_key("m", 0, 1, 0), _whole_tile(1, 0, *geometry).encode()) for geometry in ((4, 0.1), (2, 0.05))]
+    replies = [
+        (tile_key("m", 0, 1, 0), _whole_tile(1, 0, *geometry).encode(), "zid-a") for geometry in ((4, 0.1), (2, 0.05))
+    ]
     taken = link._whole_tiles("m", replies)
     assert [(tile.tile_size, tile.resolution) for tile in taken] == [(2, 0.05)]
     assert link.rejects.kinds() == {"key": 1}
+    # the same tile from a process that did not answer as shard 0 (a peer's queryable on the tile keys) is refused
+    assert link._whole_tiles("m", [(tile_key("m", 0, 1, 0), _whole_tile(1, 0, 2, 0.05).encode(), "zid-b")]) == []
+    assert link.rejects.kinds() == {"key": 2}

@@ -29,10 +29,15 @@ def _tile(tx: int, **changes) -> TileUpdate:
 
 
 @pytest.fixture
-def sessions(procs):  # noqa: F811
+def router_endpoint(procs):  # noqa: F811
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
-    shard, reader = (zenoh.open(build_config("client", connect=[endpoint])) for _ in range(2))
+    return endpoint
+
+
+@pytest.fixture
+def sessions(router_endpoint):
+    shard, reader = (zenoh.open(build_config("client", connect=[router_endpoint])) for _ in range(2))
     yield shard, reader
     reader.close()
     shard.close()
@@ -53,6 +58,7 @@ def _serve(session: zenoh.Session, tiles: list[TileUpdate], shards: int = 1, own
     return [
         session.declare_queryable(keys.stats_key("m", 0), on_stats),
         session.declare_queryable(keys.tile_key("m", 0, "*", "*"), on_tiles),
+        session.liveliness().declare_token(keys.shard_alive_key("m", 0)),
     ]
 
 
@@ -61,6 +67,9 @@ def _until_served(reader: zenoh.Session) -> None:
     longer than the reader's first query: "expected shards 0..0, got []"), at most 20 s."""
     deadline = time.monotonic() + 20.0
     while time.monotonic() < deadline:
+        if MapReader(reader, "m").tokens() != {0}:
+            time.sleep(0.05)
+            continue
         for key in (keys.stats_key("m", 0), keys.tile_key("m", 0, "*", "*")):
             if not any(reply.ok is not None for reply in reader.get(key, timeout=2.0)):
                 break
@@ -122,3 +131,74 @@ def test_a_shard_that_grew_between_its_stats_and_its_tiles_gives_a_whole_map(ses
             reader.assemble(1, 0.05, timeout=10.0)
     for entity in served:
         entity.undeclare()
+
+
+def _until_answers(reader: zenoh.Session, count: int) -> None:
+    """Wait until ``count`` stats replies for map "m" reach ``reader`` (queryables of two sessions), at most 20 s."""
+    deadline = time.monotonic() + 20.0
+    every = dict(target=zenoh.QueryTarget.ALL, consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE))
+    while sum(reply.ok is not None for reply in reader.get(keys.stats_key("m", "*"), timeout=2.0, **every)) < count:
+        assert time.monotonic() < deadline, f"fewer than {count} stats replies in 20 s"
+        time.sleep(0.05)
+
+
+def test_a_second_session_answering_as_the_shard_makes_the_stats_untrusted(sessions, router_endpoint):
+    """A hostile-peer probe's finding: a peer answering pg/map/main/stats/0 after the real shard, with fused =
+    ended = 600, made `posegrid run --export` stop and export a map missing 97 % of its scans, exit 0 (the last
+    reply won). Two sessions answering as one shard make the round untrusted: the launcher and the source wait,
+    assemble refuses."""
+    shard, reader_session = sessions
+    served = _serve(shard, [_tile(0)])
+    forger = zenoh.open(build_config("client", connect=[router_endpoint]))
+    try:
+        forged = stats(map="m", shard=0, shards=1, tiles_owned=1, fused={"r": 600}, ended={"r": 600}, uptime=99.0)
+        kept = forger.declare_queryable(  # noqa: F841 - (a queryable no one holds is undeclared)
+            keys.stats_key("m", 0), lambda q: q.reply(keys.stats_key("m", 0), forged.encode())
+        )
+        _until_served(reader_session)
+        _until_answers(reader_session, 2)
+        reader = MapReader(reader_session, "m")
+        answers = reader.answers(timeout=5.0)
+        assert answers.trusted == {} and reader.stats(timeout=5.0) == {}
+        twice = "2 processes answer as shard 0 of map 'm' (a shard started twice, or a peer forging its stats: "
+        assert answers.problems == [twice + "docs/security.md)"]
+        with pytest.raises(IncompleteMap, match="2 processes answer as shard 0"):
+            reader.assemble(1, 0.05, timeout=10.0)
+    finally:
+        forger.close()
+        for entity in served:
+            entity.undeclare()
+
+
+def test_tiles_from_a_session_that_is_not_their_shard_are_left_out(sessions, router_endpoint):
+    """The probe's other finding: a peer answering the tile query with a whole tile of its own (log-odds 5.0 at tile
+    (20, 20), claiming shard 0) put it into `posegrid run --export`'s map, exit 0. A tile is taken only from the
+    session that answered the stats of the shard owning it; a stats reply for a shard with no liveliness token
+    (shard 5 of 6 here: it stalled the source) is left out."""
+    shard, reader_session = sessions
+    served = _serve(shard, [_tile(0)])
+    forger = zenoh.open(build_config("client", connect=[router_endpoint]))
+    try:
+        fake_tile = _tile(20, ty=20)
+        ghost = stats(map="m", shard=5, shards=6)
+
+        def on_tiles(query: zenoh.Query) -> None:
+            query.reply(keys.tile_key("m", 0, 20, 20), fake_tile.encode())
+
+        kept = [  # noqa: F841 - (a queryable no one holds is undeclared)
+            forger.declare_queryable(keys.tile_key("m", 0, "*", "*"), on_tiles),
+            forger.declare_queryable(keys.stats_key("m", 5), lambda q: q.reply(keys.stats_key("m", 5), ghost.encode())),
+        ]
+        _until_served(reader_session)
+        _until_answers(reader_session, 2)
+        reader = MapReader(reader_session, "m")
+        answers = reader.answers(timeout=5.0)
+        assert sorted(answers.trusted) == [0] and answers.untokened == 1 and answers.problems == []
+        assert (20, 20) in {(t.tx, t.ty) for t in reader.tiles(timeout=10.0)}  # (it does arrive)
+        before = reader.rejected
+        grid = reader.assemble(1, 0.05, timeout=10.0)
+        assert sorted(grid.keys()) == [(0, 0)] and reader.rejected - before >= 2  # the tile and shard 5's stats
+    finally:
+        forger.close()
+        for entity in served:
+            entity.undeclare()

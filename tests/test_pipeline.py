@@ -997,7 +997,7 @@ def test_a_history_question_asked_while_the_router_restarts_waits_for_it(procs):
     first.wait_for("routing")
     answerer, asker = (zenoh.open(build_config("client", connect=[endpoint])) for _ in range(2))
     try:
-        who = history.Answerer("a source", "m", False)
+        who = history.Answerer(str(answerer.info.zid()), "m", False)
         answerer.declare_queryable(
             keys.history_key("r"), lambda query: history.reply(query, who, "r", keys.SCAN, b"scan 7")
         )
@@ -1090,13 +1090,13 @@ def test_a_shard_stopped_while_it_fuses_the_histories_stops_between_chunks(procs
     for seq in range(pairs):
         pose = PoseSamples(robot="r1", seq=seq, stamp=0.1 * seq, samples=samples, weights=np.full(30, 1 / 30))
         history_messages += [(keys.SCAN, _scan(seq).encode()), (keys.POSE, pose.encode())]
-    who = history.Answerer("a source", "m", False)
-
-    def answer(query: zenoh.Query) -> None:
-        for stream, payload in history_messages:
-            history.reply(query, who, "r1", stream, payload)
-
     with zenoh.open(build_config("client", connect=[endpoint])) as session:
+        who = history.Answerer(str(session.info.zid()), "m", False)
+
+        def answer(query: zenoh.Query) -> None:
+            for stream, payload in history_messages:
+                history.reply(query, who, "r1", stream, payload)
+
         session.declare_queryable(keys.history_key("r1"), answer)
         shard = procs([*CLI, "mapper", "--shard", "0", "--shards", "1", "--map", "m", "--connect", endpoint])
         shard.wait_for("up")

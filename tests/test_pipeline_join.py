@@ -283,9 +283,9 @@ def test_a_real_gap_wider_than_the_window_is_believed_from_a_run_and_taken_from_
     history = {seq: f"s{seq}" for seq in range(5000 + CONFIRM_RUN)}  # the publishers' histories hold the far side
     poses = {seq: f"p{seq}" for seq in range(5000 + CONFIRM_RUN)}
 
-    def recover(robot, is_scan, first, last):
+    def recover(robot, is_scan, first, last, seqs=None):
         source = history if is_scan else poses
-        return {seq: source[seq] for seq in range(first, last + 1) if seq in source}
+        return {seq: source[seq] for seq in seqs or range(first, last + 1) if seq in source}
 
     buffer = JoinBuffer(capacity=8192, recover=recover, window=1024)
     pairs, gone = buffer.add_scan(("r", 0), "s0")[0] + buffer.add_pose(("r", 0), "p0")[0], []
@@ -304,8 +304,8 @@ def test_a_forged_run_of_consecutive_seqs_far_ahead_is_not_believed_when_the_his
     up 100 000 seqs as missing and refused the real scans."""
     real = {seq: (f"s{seq}", f"p{seq}") for seq in range(300)}
 
-    def recover(robot, is_scan, first, last):
-        return {seq: real[seq][0 if is_scan else 1] for seq in range(first, last + 1) if seq in real}
+    def recover(robot, is_scan, first, last, seqs=None):
+        return {seq: real[seq][0 if is_scan else 1] for seq in seqs or range(first, last + 1) if seq in real}
 
     buffer = JoinBuffer(capacity=64, recover=recover, window=1024)
     pairs, gone = [], []
@@ -720,10 +720,10 @@ def test_what_the_histories_hold_of_lost_messages_is_fused_and_nothing_counts_tw
     }
     asked = []
 
-    def history(robot: str, stream: str, first: int, last: int) -> list[bytes]:
+    def history(robot: str, stream: str, first: int, last: int, seqs=None) -> list[bytes]:
         asked.append((stream, first, last))
         make = _scan if stream == "scan" else _pose
-        return [make(seq).encode() for seq in range(first, last + 1) if seq in held[stream]]
+        return [make(seq).encode() for seq in seqs or range(first, last + 1) if seq in held[stream]]
 
     now = [0.0]
     shard = MapShard(

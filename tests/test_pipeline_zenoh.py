@@ -433,7 +433,7 @@ def test_two_processes_answering_one_robots_history_are_both_refused(started):
             def answer(query):
                 request = history.parse_request(query, "r1")
                 for stream in sorted(streams & (request.streams if request else set())):
-                    for seq in range(request.first, 3 if request.stop is None else min(request.stop, 3)):
+                    for seq in filter(request.wants, range(3)):
                         history.reply(
                             query,
                             history.Answerer(str(session.info.zid()), "m", False),
@@ -454,5 +454,23 @@ def test_two_processes_answering_one_robots_history_are_both_refused(started):
         assert all("'from' and 'to' must be seqs 0 .. 10^18 in ASCII digits" in problem for problem in problems)
         messages, _ = history.ask(reader, "r1", {"streams": "pose", "from": "1", "to": "2"}, timeout=10)
         assert messages == [("r1", "pose", b"new1")]
+        messages, _ = history.ask(reader, "r1", {"streams": "pose", "from": "0", "to": "3", "seqs": "2,0"}, timeout=10)
+        assert messages == [("r1", "pose", b"new0"), ("r1", "pose", b"new2")]  # (only those seqs, in order)
+        messages, problems = history.ask(reader, "r1", {"streams": "pose", "seqs": ",".join(["1"] * 65)}, timeout=10)
+        assert messages == [] and problems and all("'seqs' must be at most 64" in problem for problem in problems)
         for queryable in queryables:
             queryable.undeclare()
+        # a peer posing as the real history (its replies name the real session): not taken, said, and the real
+        # history's stream is left out as for two answerers (a hostile-peer probe: a forged far run was believed)
+        real = answering(new, b"new", {"scan"})
+        poser = old.declare_queryable(
+            "pg/r1/history/**",
+            lambda query: history.reply(query, history.Answerer(str(new.info.zid()), "m", False), "r1", "scan", b"x"),
+        )
+        time.sleep(0.5)
+        messages, problems = history.ask(reader, "r1", {"streams": "scan"}, timeout=10)
+        assert messages == [("r1", "scan", b"new0"), ("r1", "scan", b"new1"), ("r1", "scan", b"new2")]
+        posing = f"a reply on pg/r1/history/scan says it comes from process {str(new.info.zid())!r} but came from "
+        assert problems == [posing + f"{old.info.zid()} (a peer posing as a history); not taken"]
+        poser.undeclare()
+        real.undeclare()

@@ -36,7 +36,7 @@ from services.api.events import EventHub
 from services.api.limits import MAX_PROCESSES, VERIFY_WINDOW, Tally
 from services.api.registry import MapRegistry, TileKey
 from services.api.robots import RobotTracker
-from services.map_client import MapReader
+from services.map_client import MapReader, replier, sort_answers
 from services.process import RejectCounter, get_logger
 from services.zenoh_config import undeclare_all
 
@@ -242,21 +242,22 @@ class MapperLink:
             timeout=self.query_timeout if timeout is None else timeout,
         )
 
-    def _query(self, selector: str, timeout: float | None = None) -> list[tuple[str, bytes]]:
+    def _query(self, selector: str, timeout: float | None = None) -> list[tuple[str, bytes, str]]:
         return list(self._replies(selector, self._get(selector, timeout)))
 
-    def _replies(self, selector: str, handler) -> Iterator[tuple[str, bytes]]:
-        """(key, payload) of each good reply as it arrives; the handler ends when every queryable has answered
-        or the query timed out."""
+    def _replies(self, selector: str, handler) -> Iterator[tuple[str, bytes, str]]:
+        """(key, payload, the sender's Zenoh session id) of each good reply as it arrives; the handler ends when
+        every queryable has answered or the query timed out."""
         for reply in handler:
             if reply.ok is None:
                 self.rejects.count(selector, "error_reply", "a queryable answered with an error")
             else:
-                yield str(reply.ok.key_expr), reply.ok.payload.to_bytes()
+                yield str(reply.ok.key_expr), reply.ok.payload.to_bytes(), replier(reply)
 
-    def _whole_tiles(self, map_name: str, replies: list[tuple[str, bytes]]) -> list[TileUpdate]:
+    def _whole_tiles(self, map_name: str, replies: list[tuple[str, bytes, str]]) -> list[TileUpdate]:
+        """The replies that are whole level-0 tiles of the map, from the process that answers as their shard."""
         tiles = []
-        for key, payload in replies:
+        for key, payload, sender in replies:
             try:
                 update = decode_message(payload, TileUpdate)
             except MessageError as exc:
@@ -267,6 +268,10 @@ class MapperLink:
                 problem = f"a tile of map {update.map!r} answered a query about map {map_name!r}"
             if not problem and not update.is_whole():
                 problem = "a tile query was answered with a partial window"
+            if not problem:
+                problem = self.registry.check_sender(
+                    map_name, update.shard, (update.tx, update.ty)
+                ) or self.registry.check_answerer(map_name, update.shard, sender)
             if problem:
                 self.rejects.count(key, "key", problem)
                 continue
@@ -321,10 +326,8 @@ class MapperLink:
         handlers = [(name, selector, self._get(selector, timeout)) for name, selector in selectors]
         out: dict[str, dict[int, ShardStats]] = {}
         for name, selector, handler in handlers:
-            stats: dict[int, ShardStats] = {}
-            duplicated: set[int] = set()
-            out[name] = stats
-            for key, payload in self._replies(selector, handler):
+            replies, tokens = [], self.registry.tokens(name)
+            for key, payload, sender in self._replies(selector, handler):
                 try:
                     message = decode_message(payload, ShardStats)
                 except MessageError as exc:
@@ -333,15 +336,17 @@ class MapperLink:
                 if key != keys.stats_key(message.map, message.shard) or message.map != name:
                     self.rejects.count(key, "key", f"stats of shard {message.shard} of map {message.map!r} on {key}")
                     continue
-                if message.shard in stats:  # (the one up longer is kept: the stats do not flip from ask to ask)
-                    duplicated.add(message.shard)
-                    self.rejects.count(
-                        key, "duplicate", f"two processes answer as shard {message.shard} of map {name!r}"
-                    )
-                    if message.uptime < stats[message.shard].uptime:
-                        continue
-                stats[message.shard] = message
-            self.registry.record_stats(name, stats, duplicated)
+                if message.shard not in tokens:
+                    self.rejects.count(key, "unverified", f"stats of shard {message.shard}, whose token is not up")
+                    continue
+                replies.append((key, sender, message))
+            answers = sort_answers(name, replies, tokens)  # (of two for one shard: the one up longer's)
+            for shard in sorted(answers.duplicated):
+                self.rejects.count(
+                    keys.stats_key(name, shard), "duplicate", f"two processes answer as shard {shard} of map {name!r}"
+                )
+            out[name] = answers.stats
+            self.registry.record_stats(name, answers)
         return out
 
     def assemble(self, map_name: str, shards: int, resolution: float) -> TiledGrid:
@@ -349,7 +354,9 @@ class MapperLink:
         raises services.map_client.IncompleteMap when a shard is missing or a tile is missing or doubled."""
         reader = MapReader(self.session, map_name)
         try:
-            return reader.assemble(shards, resolution, timeout=self.query_timeout)
+            return reader.assemble(
+                shards, resolution, timeout=self.query_timeout, tokens=self.registry.tokens(map_name)
+            )
         finally:
             for _ in range(reader.rejected):
                 self.rejects.count(

@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 from mapping.pyramid import children_of, tile_range, top_level
 from services.api.limits import MAX_MAPS, MAX_PENDING
+from services.map_client import ShardAnswers
 from services.state.ownership import tile_owner
 
 TileKey = tuple[int, int]
@@ -42,6 +43,7 @@ class MapInfo:
     y_range: tuple[int, int] | None = None
     synced: bool = False  # whether the tiles the shards hold have been asked for since they came up
     duplicated: set[int] = field(default_factory=set)  # shards two processes answered for in the last stats query
+    answerers: dict[int, str] = field(default_factory=dict)  # shard -> the Zenoh session id whose stats were taken
 
     @property
     def tiles(self) -> dict[TileKey, int]:
@@ -122,17 +124,25 @@ class MapRegistry:
         with self.lock:
             return sorted(name for name, info in self._maps.items() if info.pending)
 
-    def record_stats(self, name: str, stats: dict, duplicated: set[int] | None = None) -> None:
-        """Take the valid stats (services.api.mappers.MapperLink.stats: shard index -> ShardStats of this map,
-        each with shard < shards) that answered a query, and the shards more than one process answered for: record
-        the shard count and the duplicates and make every pending shard that answered alive."""
+    def tokens(self, name: str) -> set[int]:
+        """The shards of map ``name`` whose liveliness token is up (alive or pending)."""
+        with self.lock:
+            info = self._maps.get(name)
+            return set() if info is None else info.alive | set(info.pending)
+
+    def record_stats(self, name: str, answers: ShardAnswers) -> None:
+        """Take a round of the map's shards' stats (services.map_client.sort_answers: of the shards whose token is
+        up), and the shards more than one process answered for: record the shard count, the duplicates and who
+        answered for each shard, and make every pending shard that answered alive."""
+        stats = answers.stats
         if not stats:
             return
         with self.lock:
             info = self._maps.get(name)
             if info is None:
                 return
-            info.duplicated = set(duplicated or ())
+            info.duplicated = set(answers.duplicated)
+            info.answerers.update(answers.answerers)
             info.shards = max(s.shards for s in stats.values())
             for shard in [s for s in info.pending if s in stats]:
                 del info.pending[shard]
@@ -205,6 +215,16 @@ class MapRegistry:
             owner = tile_owner(tile, range(shards))
             if owner != shard:
                 return f"tile {tile} of map {name!r} belongs to shard {owner}, not to shard {shard}"
+        return None
+
+    def check_answerer(self, name: str, shard: int, sender: str) -> str | None:
+        """Why a tile that Zenoh session ``sender`` sent in reply for ``shard`` of map ``name`` is not to be trusted
+        (None when it is): another session answered that shard's stats."""
+        with self.lock:
+            info = self._maps.get(name)
+            answerer = None if info is None else info.answerers.get(shard)
+        if answerer != sender:
+            return f"a tile of shard {shard} of map {name!r} from a process that does not answer as that shard"
         return None
 
     def check_geometry(self, name: str, resolution: float, tile_size: int) -> str | None:

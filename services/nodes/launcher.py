@@ -432,6 +432,7 @@ def _supervise(session, plan: Plan, children: Children, stop: threading.Event, l
     """Show progress until every shard has all scans; then export (and return) or serve until stopped. Restarts
     the children that end meanwhile (:meth:`Children.tend`); returns 1 when one fails past the restart cap."""
     reader = MapReader(session, plan.map_name)
+    distrusted: set[str] = set()  # the problems with the shards' stats said so far
     finished = False
     with tqdm(
         total=plan.scans, desc="fused (slowest shard)", unit="scan", file=sys.stderr, disable=None, mininterval=0.5
@@ -441,7 +442,12 @@ def _supervise(session, plan: Plan, children: Children, stop: threading.Event, l
                 return 1
             if finished:
                 continue
-            stats = reader.stats(timeout=2.0)
+            answers = reader.answers(timeout=2.0)
+            for problem in answers.problems:
+                if problem not in distrusted:
+                    distrusted.add(problem)
+                    log.warning("not trusting the shards' stats (waiting until they agree): %s", problem)
+            stats = answers.trusted
             if len(stats) < plan.shards:
                 continue
             done = min(s.fused.get(plan.robot, 0) for s in stats.values())

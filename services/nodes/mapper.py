@@ -221,10 +221,14 @@ class Mapper:
         """Whether a history's answerer publishes for this shard's map (a SLAM node publishes for any)."""
         return answerer.map in (None, self.config.map_name)
 
-    def _history(self, robot: str, stream: str, first: int, last: int) -> list[bytes]:
-        """The robot's ``stream`` messages first..last from the histories (services.history): the source's for
-        scans (and poses of a posed-scan file), the SLAM node's for poses."""
+    def _history(
+        self, robot: str, stream: str, first: int, last: int, seqs: tuple[int, ...] | None = None
+    ) -> list[bytes]:
+        """The robot's ``stream`` messages first..last (of them only ``seqs`` when given) from the histories
+        (services.history): the source's for scans (and poses of a posed-scan file), the SLAM node's for poses."""
         asked = {"streams": stream, "from": str(first), "to": str(last + 1)}
+        if seqs is not None:
+            asked["seqs"] = ",".join(map(str, seqs))
         if time.monotonic() < self._history_quiet.get(robot, 0.0):
             self.rejects.count(
                 keys.history_key(robot),

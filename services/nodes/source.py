@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections.abc import Collection
 from dataclasses import dataclass
 
 import zenoh
@@ -95,6 +96,7 @@ class Source:
         self._scans_done = 0  # scans every waited-for shard has fused or given up on
         self._steps_done = 0  # steps the SLAM node has taken or given up on
         self._reader = MapReader(session, options.map_name)
+        self._distrusted: set[str] = set()  # the problems with the shards' stats said so far
         self._end_sent = 0.0  # time.monotonic() of the last StreamEnd published
         self._warned_beyond = False  # whether a shard holding more scans than this run published was reported
         self._unreached = 0  # steps published while the session reached no router (they went nowhere)
@@ -120,18 +122,22 @@ class Source:
         self._publisher(stream or keys.STREAM_OF[type(message)]).put(message.encode())
 
     # ------------------------------------------------------------------------------- history
-    def history(self, streams: set[str], first: int, stop: int | None = None) -> list[tuple[str, bytes]]:
+    def history(
+        self, streams: set[str], first: int, stop: int | None = None, seqs: Collection[int] | None = None
+    ) -> list[tuple[str, bytes]]:
         """(stream, encoded message) of what was published on ``streams`` (key chunks; PRIOR for the prior), in
         the order it went out: the prior, then the messages of steps ``first`` .. ``stop`` - 1 (default: up to
-        the last step published)."""
+        the last step published), of them only ``seqs`` when given."""
         with self._history_lock:
             prior_out, published = self._prior_out, self._steps_published
         out = []
         if keys.PRIOR in streams and prior_out:
             assert self.stream.prior is not None  # it is out only when there is one
             out.append((keys.PRIOR, self.stream.prior.encode()))
-        for step in self.stream.steps[first : published if stop is None else min(stop, published)]:
-            out += [(keys.STREAM_OF[type(m)], m.encode()) for m in step.messages if keys.STREAM_OF[type(m)] in streams]
+        end = published if stop is None else min(stop, published)
+        for seq in range(first, end) if seqs is None else sorted(q for q in seqs if first <= q < end):
+            messages = self.stream.steps[seq].messages
+            out += [(keys.STREAM_OF[type(m)], m.encode()) for m in messages if keys.STREAM_OF[type(m)] in streams]
         return out
 
     def _on_history_query(self, query: zenoh.Query) -> None:
@@ -142,12 +148,19 @@ class Source:
         with self._history_lock:
             ended = self._end_out
         answerer = history.Answerer(str(self.session.info.zid()), self.options.map_name, ended)
-        for stream, payload in self.history(set(request.streams), request.first, request.stop):
+        for stream, payload in self.history(set(request.streams), request.first, request.stop, request.seqs):
             history.reply(query, answerer, self.stream.robot, stream, payload)
 
     # ------------------------------------------------------------------------------- waiting
     def _shard_stats(self) -> list[ShardStats]:
-        return list(self._reader.stats().values())
+        """The stats of the map's shards, none while they cannot be trusted (services.map_client.sort_answers:
+        the source then waits, as for shards that do not answer, and says why once)."""
+        answers = self._reader.answers()
+        for problem in answers.problems:
+            if problem not in self._distrusted:
+                self._distrusted.add(problem)
+                self.log.warning("not trusting the shards' stats: %s", problem)
+        return list(answers.trusted.values())
 
     def _wait_for(self, what: str, ready, stop: threading.Event) -> bool:
         """Poll ``ready()`` until it is true (returns True) or ``stop`` is set (False); raise after WAIT_TIMEOUT."""

@@ -72,7 +72,8 @@ FAR_KEPT = 64
 #: consecutive seqs beyond the window after which a jump is checked: believed when ``recover`` (the histories)
 #: holds the first of them, the same as the one held (a stream that really skipped more than the window, e.g. a
 #: shard cut off for minutes, goes on from the far side, and its publisher's history has it); without ``recover``,
-#: believed on the run alone. A peer forging a run of seqs is never in the real publisher's history
+#: believed on the run alone. A peer forging a run of seqs is never in the real publisher's history, and a peer
+#: answering as a history of its own is caught with it (:meth:`JoinBuffer._vouched`)
 CONFIRM_RUN = 16
 
 #: the share of ``max_bytes`` the join evicts down to once its halves pass it
@@ -116,7 +117,7 @@ class JoinBuffer(Generic[ScanT, PoseT]):
     def __init__(
         self,
         capacity: int,
-        recover: Callable[[str, bool, int, int], Mapping[int, ScanT | PoseT]] | None = None,
+        recover: Callable[..., Mapping[int, ScanT | PoseT]] | None = None,
         window: int = DEFAULT_SEQ_WINDOW,
         max_bytes: int | None = None,
         size: Callable[[ScanT | PoseT], int] = lambda item: 0,
@@ -242,10 +243,15 @@ class JoinBuffer(Generic[ScanT, PoseT]):
 
     def _vouched(self, robot: str, is_scan: bool, seq: int, far: dict[int, ScanT | PoseT]) -> bool:
         """Whether the far message ``seq`` is vouched for: ``recover`` gives the same message for it (or there is no
-        ``recover`` to ask)."""
+        ``recover`` to ask), asked in one question with the last seq the stream has passed. So the real history,
+        which holds that one, answers the question too: where a peer answers the far seq as a history of its own,
+        two answer for the stream and neither is taken (services.history.ask), and the jump is not believed (a
+        hostile-peer probe: a forged run at seq 100 000 vouched for by a peer's queryable made a shard give up 99 832
+        real scans). A real publisher whose history no longer holds the passed seq answers the far one alone."""
         if self.recover is None:
             return True
-        found = self.recover(robot, is_scan, seq, seq).get(seq)
+        passed = max(self.passed(robot, is_scan), 0)
+        found = self.recover(robot, is_scan, passed, seq, (passed, seq)).get(seq)
         return found is not None and self._same(found, far[seq])
 
     def _same(self, a: ScanT | PoseT, b: ScanT | PoseT) -> bool:

@@ -125,9 +125,9 @@ class MapShard:
         config: ShardConfig,
         rejects: RejectCounter,
         clock: Callable[[], float] = time.monotonic,
-        history: Callable[[str, str, int, int], list[bytes]] | None = None,
+        history: Callable[..., list[bytes]] | None = None,
     ):
-        """``history(robot, stream, first, last)``: the encoded messages of the robot's ``stream`` (keys.SCAN or
+        """``history(robot, stream, first, last[, seqs])``: the encoded messages of the robot's ``stream`` (keys.SCAN or
         keys.POSE) with seqs first..last that the processes which published them still hold (services.nodes.mapper
         asks pg/<robot>/history/**); the join takes them for messages lost in transit."""
         self.config = config
@@ -348,14 +348,22 @@ class MapShard:
                 key,
             )
 
-    def _recover(self, robot: str, is_scan: bool, first: int, last: int) -> dict[int, ScanOrPose]:
-        """Scans (else poses) first..last of ``robot`` that its stream skipped, from the history; each checked as
-        a received message is, and for its seq (a bad one counted under the history's key)."""
+    def _recover(
+        self, robot: str, is_scan: bool, first: int, last: int, seqs: tuple[int, ...] | None = None
+    ) -> dict[int, ScanOrPose]:
+        """Scans (else poses) first..last (of them only ``seqs`` when given) of ``robot`` that its stream skipped,
+        from the history; each checked as a received message is, and for its seq (a bad one counted under the
+        history's key)."""
         assert self._history is not None  # the join is given this method only with a history
         stream = keys.SCAN if is_scan else keys.POSE
         key = keys.history_key(robot, stream)
         found: dict[int, ScanOrPose] = {}
-        for payload in self._history(robot, stream, first, last):
+        asked = (
+            self._history(robot, stream, first, last)
+            if seqs is None
+            else self._history(robot, stream, first, last, seqs)
+        )
+        for payload in asked:
             message = history_reply(key, robot, payload, JOINED_STREAMS[stream], first, last, self.rejects)
             if (
                 message is not None
