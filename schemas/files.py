@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import io
+import math
 import os
 import secrets
 import stat
@@ -369,8 +370,28 @@ def _raster_frame(data: dict, path, what: str) -> tuple[np.ndarray, float]:
     return origin, resolution
 
 
+#: the largest |yaw| a pose file may hold, rad: a full turn (headings wrapped to [-pi, pi) or [0, 2 pi) lie within)
+YAW_LIMIT = 2.0 * math.pi
+
+
+def check_yaw(yaw: np.ndarray, where: str, key: str) -> None:
+    """Refuse yaws beyond a full turn (YAW_LIMIT): radians are expected, and a heading in degrees (90, 180, ...)
+    would be taken as radians silently (a probe's yaws in degrees gave a map of AUC 0.61 against 0.94, exit 0).
+    ``yaw``: (T, ...) rad, one row per step."""
+    beyond = np.abs(yaw) > YAW_LIMIT
+    if beyond.any():
+        step = int(np.argmax(beyond.reshape(len(yaw), -1).any(axis=1)))
+        value = float(np.asarray(yaw[step]).flat[int(np.argmax(np.abs(np.asarray(yaw[step]).ravel())))])
+        raise FormatError(
+            f"{where}: '{key}' holds a yaw of {value:.6g} rad at step {step}, more than a full turn: yaws are radians "
+            "wrapped to [-pi, pi] or [0, 2 pi) (headings in degrees: numpy.radians; unwrapped ones: "
+            "numpy.angle(numpy.exp(1j * yaw)))"
+        )
+
+
 def validate_pose_set(poses: PoseSet, steps: int, where: str) -> None:
-    """Check shapes, finiteness, weight sums and covariance symmetry of ``poses`` for ``steps`` steps."""
+    """Check shapes, finiteness, yaws within a turn, weight sums and covariance symmetry of ``poses`` for ``steps``
+    steps."""
     if poses.is_gaussian:
         mean, cov = poses.gaussian()
         if mean.shape != (steps, 3):
@@ -381,6 +402,7 @@ def validate_pose_set(poses: PoseSet, steps: int, where: str) -> None:
             bad = ~np.isfinite(arr).all(axis=tuple(range(1, arr.ndim)))
             if bad.any():
                 raise FormatError(f"{where}: '{key}' has NaN or inf at step {int(np.argmax(bad))}")
+        check_yaw(mean[:, 2], where, "mean")
         asym = np.abs(cov - cov.transpose(0, 2, 1)).max(axis=(1, 2)) > 1e-9 * (1 + np.abs(cov).max())
         if asym.any():
             raise FormatError(f"{where}: 'cov' is not symmetric at step {int(np.argmax(asym))}")
@@ -400,6 +422,7 @@ def validate_pose_set(poses: PoseSet, steps: int, where: str) -> None:
     bad = ~np.isfinite(samples).all(axis=(1, 2))
     if bad.any():
         raise FormatError(f"{where}: 'samples' has NaN or inf at step {int(np.argmax(bad))}")
+    check_yaw(samples[:, :, 2], where, "samples")
     bad = ~np.isfinite(weights).all(axis=1) | (weights < 0).any(axis=1)
     if bad.any():
         raise FormatError(f"{where}: 'weights' has a negative, NaN or inf value at step {int(np.argmax(bad))}")

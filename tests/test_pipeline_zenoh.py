@@ -203,6 +203,7 @@ def test_a_router_port_in_use_names_the_option_to_change():
         (["run", "--bag", "/nonexistent.bag", "--no-api"], "/nonexistent.bag"),  # before anything is started
         (["run", "--posed", "x.npz", "--odom-delay", "0.1"], "give it with --carmen or --bag"),
         (["slam-node", "--initial", "1,2"], "--initial"),
+        (["slam-node", "--initial", "1,2,90"], "--initial's yaw 90 is more than a full turn: give it in rad"),
         (["simulate", "out", "--resolution", "1e-5"], "--resolution must be in [0.005, 1]"),  # a 2.8 TiB raster
         (["simulate", "out", "--dt", "1e6"], "--dt must be in [0.001, 1]"),
         (["simulate", "out", "--steps", "100000", "--beams", "100000"], "--steps x --beams is 10000000000"),

@@ -404,12 +404,19 @@ def chosen_calibration(args: argparse.Namespace):
 
 def initial_pose(text: str) -> list[float]:
     """--initial X,Y,YAW (m, m, rad), each within +-POSE_LIMIT (the bound every pose message keeps to)."""
+    import math
+
+    from schemas.files import YAW_LIMIT
     from schemas.messages import POSE_LIMIT
     from services.errors import UsageError
 
     pose = _floats(text, (3,), "--initial")
     if max(abs(v) for v in pose) > POSE_LIMIT:
         raise UsageError(f"--initial takes a pose within +-{POSE_LIMIT:g} m (rad), got '{text}'")
+    if abs(pose[2]) > YAW_LIMIT:
+        raise UsageError(
+            f"--initial's yaw {pose[2]:g} is more than a full turn: give it in rad (90 deg is {math.radians(90):.4f})"
+        )
     return pose
 
 
