@@ -419,6 +419,25 @@ def test_a_run_directory_is_new_or_resumed_with_its_own_map_and_shards(tmp_path)
         prepare_run(tmp_path, True, False, "m", 2, 0.05)
 
 
+def test_a_damaged_store_stops_run_resume_before_anything_starts(tmp_path, pairs, monkeypatch, capsys):
+    """A new user's probe: `run --resume` of a run whose shard store was truncated started the router and the other
+    shards, then stopped with the mapper's sentence and the launcher's lines, exit 1, and a new session recorded in
+    run.json. Every shard's store is checked first: exit 2, one sentence, nothing started, run.json as it was."""
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "xdg"))
+    run = prepare_run(tmp_path / "run", False, False, "main", 1, 0.05)
+    _committed_store(run.shard_dir(0), pairs[:5])
+    store = run.shard_dir(0) / DB_NAME
+    before = (tmp_path / "run" / "run.json").read_text()
+    for name in os.listdir(run.shard_dir(0)):  # (the write-ahead log folded in, as after a clean stop)
+        assert not name.endswith("-wal") or os.path.getsize(run.shard_dir(0) / name) == 0
+    os.truncate(store, os.path.getsize(store) // 2)
+    assert main(["run", "--sim", "--no-api", "--resume", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and str(store) in err and "Traceback" not in err, err
+    assert (tmp_path / "run" / "run.json").read_text() == before
+    assert not (tmp_path / "xdg").exists()
+
+
 def test_a_store_of_another_run_put_in_a_shards_folder_is_refused(tmp_path, pairs, capsys):
     """Another run's shard-0 folder (same map, shards, tiles and cells) copied over this run's was resumed, and the
     run's scans fused on top of the other run's map without a word. A store records its run's id; a store of none

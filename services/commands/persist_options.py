@@ -162,6 +162,12 @@ def plan_state(args: argparse.Namespace, plan: Plan) -> None:
     if directory is None:
         directory = default_run_dir(plan.map_name)
     _check_commit_options(args)
+    if args.resume is not None:  # (every shard's store checked before the run's record gets a new session)
+        from services.state.store.db import check_store
+        from services.state.store.run import shard_dir
+
+        for shard in range(plan.shards):
+            check_store(shard_dir(directory, shard))
     plan.state = prepare_run(
         directory, args.resume is not None, args.continue_session, plan.map_name, plan.shards, plan.resolution
     )

@@ -399,6 +399,27 @@ def _whole(value: object, low: int, high: int | None = None) -> bool:
 # ---------------------------------------------------------------------------------------------- opening steps
 
 
+def check_store(directory: Path) -> None:
+    """Check the store in ``directory`` as :meth:`ShardStore.open` does before it reads it (its file, SQLite's check
+    of every page, and that no other process holds the directory), without opening it for a shard; nothing to check
+    when there is no store yet. StoreError says what is wrong: `posegrid run --resume` checks every shard's store
+    before it starts any process (a damaged store stopped the run after the router and the other shards had
+    started, exit 1 with their lines)."""
+    if not (directory / DB_NAME).exists() and not Path(f"{directory / DB_NAME}-wal").exists():
+        return
+    lock = _lock_directory(directory)
+    try:
+        path = directory / DB_NAME
+        if _check_file(path):
+            connection = _connect(path, None)
+            try:
+                _check_integrity(connection, path)
+            finally:
+                connection.close()
+    finally:
+        os.close(lock)
+
+
 def _lock_directory(directory: Path) -> int:
     """Create ``directory`` if needed and lock it for this process (the lock's fd); StoreError when it cannot be
     created or written, or another process holds it."""

@@ -30,7 +30,7 @@ class RunState:
     run_id: str = ""  # the run's own id, given to its shards' stores ("": none, a run.json written before it)
 
     def shard_dir(self, shard: int) -> Path:
-        return self.directory / f"shard-{shard}"
+        return shard_dir(self.directory, shard)
 
     def shard_argv(self, shard: int) -> list[str]:
         """The `posegrid mapper` options of shard ``shard``."""
@@ -50,6 +50,11 @@ def default_run_dir(map_name: str) -> Path:
     base = Path(given) if os.path.isabs(given) else Path.home() / ".local" / "state"
     stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
     return base / "posegrid" / "runs" / f"{map_name}-{stamp}-{os.getpid()}"
+
+
+def shard_dir(directory: Path, shard: int) -> Path:
+    """The state directory of shard ``shard`` in the run directory ``directory``."""
+    return directory / f"shard-{shard}"
 
 
 def prepare_run(
