@@ -83,6 +83,17 @@ def test_fuse_says_when_the_sensor_model_draws_walls_behind_the_returns(posed_fi
     assert "behind its return" in fine.stderr and "--resolution" in fine.stderr and "towards sigma" not in fine.stderr
 
 
+def test_fuse_says_when_the_accuracy_asked_passes_the_sample_cap(posed_file, tmp_path):
+    """A new user's probe: --accuracy 1e-6 and 0.001 gave the same map byte for byte (the scans' sample counts are
+    capped at 200) without a word. A micrometre asks for more than 200 on every scan with any spread; 10 m on
+    none."""
+    fine = posegrid("fuse", str(posed_file), "-o", str(tmp_path / "a.npz"), "--accuracy", "1e-6")
+    assert fine.returncode == 0 and "asks for more than 200 pose samples on" in fine.stderr, fine.stderr
+    assert "of 10 scans; they are fused with 200" in fine.stderr
+    coarse = posegrid("fuse", str(posed_file), "-o", str(tmp_path / "b.npz"), "--accuracy", "10")
+    assert coarse.returncode == 0 and "pose samples on" not in coarse.stderr, coarse.stderr
+
+
 def test_fuse_is_reproducible_byte_for_byte(posed_file, tmp_path):
     outputs = []
     for name in ("a.npz", "b.npz"):

@@ -207,7 +207,7 @@ def _add_fuse(subparsers: argparse._SubParsersAction) -> None:
         fuse,
         samples="pose samples drawn per scan for Gaussian poses (default: derived from the covariance and --accuracy)",
         accuracy="required accuracy in m of the Monte Carlo mean beam end point, for the derived sample "
-        "count (default: one cell)",
+        "count, at most 200 a scan (default: one cell)",
         seed="seed of the Gaussian pose sampling (default 0)",
     )
     add_choice(
@@ -276,6 +276,30 @@ def _add_export(subparsers: argparse._SubParsersAction) -> None:
         help="m: cut the map to its occupied cells plus MARGIN on every side (rays with no return "
         "clear space far beyond the walls; default: the whole map)",
     )
+
+
+def _note_capped_samples(args: argparse.Namespace, posed) -> None:
+    """Say so when --accuracy asks for more Gaussian pose samples than a scan takes (mapping.poses,
+    DEFAULT_MAX_SAMPLES) on some scans: those are fused with that many, and their beam ends' Monte Carlo error is
+    larger than asked (--accuracy 1e-6 and 0.001 gave the same map, without a word)."""
+    from mapping.poses import DEFAULT_MAX_SAMPLES, samples_for_accuracy
+
+    if args.mode != "mc" or args.accuracy is None or args.samples is not None or not posed.poses.is_gaussian:
+        return  # (the default, one cell, takes the cap as docs/sensor_model.md says)
+    accuracy = args.accuracy
+    _, cov = posed.poses.gaussian()
+    ranges = posed.range_max
+    capped = sum(
+        samples_for_accuracy(cov[t], float(ranges[t]), accuracy, DEFAULT_MAX_SAMPLES + 1) > DEFAULT_MAX_SAMPLES
+        for t in range(len(cov))
+    )
+    if capped:
+        print(
+            f"posegrid fuse: note: --accuracy {accuracy:g} m asks for more than {DEFAULT_MAX_SAMPLES} pose samples on "
+            f"{capped} of {len(cov)} scans; they are fused with {DEFAULT_MAX_SAMPLES}, so their beam ends' error is "
+            f"larger than asked (--samples N draws N for every scan)",
+            file=sys.stderr,
+        )
 
 
 def _note_peak_behind_returns(model, posed) -> None:
@@ -406,6 +430,7 @@ def run_fuse(args: argparse.Namespace) -> int:
             f"{args.posed} holds pose samples, which are fused as they are; --samples and --accuracy "
             "set how many to draw from Gaussian poses"
         )
+    _note_capped_samples(args, posed)
     options: FusionOptions = {
         "mode": args.mode,
         "model": model,
