@@ -360,6 +360,15 @@ def test_robots_are_capped_and_refusals_counted(api, session):
 # ------------------------------------------------------------------------------------------ HTTP access
 
 
+def test_a_name_no_map_or_robot_could_have_is_422_without_echoing_it(api):
+    """A new user's probe: a 20 000-character map name came back in its 404 body (20 045 bytes). Names are checked
+    as the wire checks them (letters, digits, '_', '.', '-', at most 64): 422, and the body does not repeat it."""
+    for path in (f"/maps/{'m' * 20_000}", f"/maps/{'m' * 65}/stats", "/maps/a%20b", f"/robots/{'r' * 20_000}/pose"):
+        response = httpx.get(f"{api}{path}", timeout=30)
+        assert response.status_code == 422 and len(response.content) < 300, (path, response.text[:300])
+    assert httpx.get(f"{api}/maps/{'m' * 64}", timeout=30).status_code == 404  # (a name, of no map)
+
+
 def test_host_header_must_name_the_api(api):
     detail = problem(httpx.get(f"{api}/health", headers={"Host": "evil.example"}, timeout=30), 400)
     assert "evil.example" in detail and "--allowed-host" in detail

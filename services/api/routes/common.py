@@ -11,6 +11,7 @@ from typing import Annotated
 import anyio
 from fastapi import Depends, HTTPException, Path, Request
 
+from schemas.wire import NAME_PATTERN
 from services.api import models
 from services.api.backend import Backend
 from services.api.limits import RETRY_AFTER, TILE_THREADS, HttpLimits, Slots
@@ -32,7 +33,13 @@ def errors(*codes: int) -> dict:
     return {code: {"model": models.Problem, "description": ERRORS[code]} for code in codes}
 
 
-MapName = Annotated[str, Path(description="map name, e.g. main (GET /maps lists them)")]
+MapName = Annotated[
+    str,
+    Path(
+        description="map name, e.g. main (GET /maps lists them): letters, digits, '_', '.' and '-', at most 64",
+        pattern=NAME_PATTERN,
+    ),
+]
 
 
 @dataclass

@@ -7,13 +7,20 @@ from typing import Annotated
 
 from fastapi import APIRouter, HTTPException, Path, Query
 
+from schemas.wire import NAME_PATTERN
 from services.api import models
 from services.api.robots import PoseSummary, RobotTracker, reduce_samples
 from services.api.routes.common import ApiDep, errors
 
 router = APIRouter()
 
-Robot = Annotated[str, Path(description="robot name, e.g. robot0 (GET /robots lists them)")]
+Robot = Annotated[
+    str,
+    Path(
+        description="robot name, e.g. robot0 (GET /robots lists them): letters, digits, '_', '.' and '-', at most 64",
+        pattern=NAME_PATTERN,
+    ),
+]
 
 
 def known_robot(robots: RobotTracker, robot: str) -> PoseSummary:
