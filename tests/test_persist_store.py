@@ -40,7 +40,15 @@ from services.process import RejectCounter
 from services.state.ownership import owns_tile, tile_owner
 from services.state.shard import MapShard, ShardConfig
 from services.state.store import writer
-from services.state.store.db import DB_NAME, ShardStore, StoreError, StoreIdentity, decode_layers, encode_layers
+from services.state.store.db import (
+    DB_NAME,
+    ShardStore,
+    StoreError,
+    StoreIdentity,
+    decode_layers,
+    encode_layers,
+    sessions_with_scans,
+)
 from services.state.store.journal import Journal, tiles_of_map
 from services.state.store.run import default_run_dir, prepare_run
 from services.streams import posed_stream
@@ -436,6 +444,27 @@ def test_a_damaged_store_stops_run_resume_before_anything_starts(tmp_path, pairs
     assert err.count("\n") == 1 and str(store) in err and "Traceback" not in err, err
     assert (tmp_path / "run" / "run.json").read_text() == before
     assert not (tmp_path / "xdg").exists()
+
+
+def test_continue_session_goes_on_with_the_latest_session_that_fused_scans(tmp_path, pairs, capsys):
+    """A restart probe: a resumed run (a new session) stopped 1.5 s in, before its shards fused anything; then
+    `--resume --continue-session` continued that empty session and fused the whole replay over the interrupted one's
+    103 scans (7 650 cells from the uninterrupted map). It goes on with the latest session the stores hold scans of,
+    and says so; with no such session, the latest."""
+    first = prepare_run(tmp_path / "run", False, False, "m", 1, 0.05)
+    aborted = prepare_run(tmp_path / "run", True, False, "m", 1, 0.05)
+    again = prepare_run(tmp_path / "run", True, True, "m", 1, 0.05, {first.session, "another"})
+    assert again.session == first.session
+    assert f"goes on with session {first.session}, the latest whose shards fused scans" in capsys.readouterr().err
+    assert prepare_run(tmp_path / "run", True, True, "m", 1, 0.05, set()).session == aborted.session
+    assert prepare_run(tmp_path / "run", True, True, "m", 1, 0.05).session == aborted.session
+    assert capsys.readouterr().err == ""
+    assert sessions_with_scans(tmp_path / "none") == set()
+    _committed_store(tmp_path / "s", pairs[:5])
+    (written,) = sessions_with_scans(tmp_path / "s")
+    store = ShardStore.open(tmp_path / "s", _identity(_config()))  # (its latest session: the one that wrote)
+    assert store.session == written
+    store.close()
 
 
 def test_a_store_of_another_run_put_in_a_shards_folder_is_refused(tmp_path, pairs, capsys):

@@ -162,13 +162,22 @@ def plan_state(args: argparse.Namespace, plan: Plan) -> None:
     if directory is None:
         directory = default_run_dir(plan.map_name)
     _check_commit_options(args)
+    with_scans: set[str] | None = None
     if args.resume is not None:  # (every shard's store checked before the run's record gets a new session)
-        from services.state.store.db import check_store
+        from services.state.store.db import check_store, sessions_with_scans
         from services.state.store.run import shard_dir
 
+        with_scans = set()
         for shard in range(plan.shards):
             check_store(shard_dir(directory, shard))
+            with_scans |= sessions_with_scans(shard_dir(directory, shard))
     plan.state = prepare_run(
-        directory, args.resume is not None, args.continue_session, plan.map_name, plan.shards, plan.resolution
+        directory,
+        args.resume is not None,
+        args.continue_session,
+        plan.map_name,
+        plan.shards,
+        plan.resolution,
+        with_scans,
     )
     plan.mapper_argv += ["--commit-scans", str(args.commit_scans), "--commit-interval", repr(args.commit_interval)]

@@ -420,6 +420,23 @@ def check_store(directory: Path) -> None:
         os.close(lock)
 
 
+def sessions_with_scans(directory: Path) -> set[str]:
+    """The sessions the store in ``directory`` holds fused or given-up scans of (none when there is no store); for a
+    store :func:`check_store` has checked. StoreError when it cannot be read."""
+    path = directory / DB_NAME
+    if not path.exists():
+        return set()
+    try:
+        db = sqlite3.connect(path, timeout=10.0)
+        try:
+            rows = db.execute("SELECT DISTINCT session FROM robots WHERE fused + discarded > 0").fetchall()
+        finally:
+            db.close()
+    except sqlite3.Error as exc:
+        raise StoreError(f"the store {path} cannot be read ({exc}): it is damaged") from None
+    return {row[0] for row in rows if isinstance(row[0], str)}
+
+
 def _lock_directory(directory: Path) -> int:
     """Create ``directory`` if needed and lock it for this process (the lock's fd); StoreError when it cannot be
     created or written, or another process holds it."""

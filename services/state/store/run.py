@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import time
+from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -58,10 +60,17 @@ def shard_dir(directory: Path, shard: int) -> Path:
 
 
 def prepare_run(
-    directory: Path, resume: bool, continue_session: bool, map_name: str, shards: int, resolution: float
+    directory: Path,
+    resume: bool,
+    continue_session: bool,
+    map_name: str,
+    shards: int,
+    resolution: float,
+    with_scans: Collection[str] | None = None,
 ) -> RunState:
     """The state of a run in ``directory``: a new one (``resume`` False: the directory must be new or empty), or the
-    run it holds (``resume``), with a new session or, with ``continue_session``, its latest one. Raises StoreError
+    run it holds (``resume``), with a new session or, with ``continue_session``, its latest one that holds scans
+    (``with_scans``: the sessions the shards' stores hold scans of; None: the latest one). Raises StoreError
     (exit 2) for a directory that cannot be used, or a run of another map, shard count or resolution."""
     path = directory / RUN_FILE
     record: dict[str, Any]
@@ -88,12 +97,30 @@ def prepare_run(
     sessions = record["sessions"]
     if continue_session and not sessions:
         raise StoreError(f"{directory} holds no session to continue")
-    session = sessions[-1]["id"] if continue_session else new_session_id()
+    session = _session_to_continue(sessions, with_scans) if continue_session else new_session_id()
     if not continue_session:
         sessions.append({"id": session, "started": time.time()})
     _write_run(path, directory, record)
     run_id = record.get("id")
     return RunState(directory, session, resume, run_id if isinstance(run_id, str) and is_valid_name(run_id) else "")
+
+
+def _session_to_continue(sessions: list[dict[str, Any]], with_scans: Collection[str] | None) -> str:
+    """The latest of ``sessions`` that holds scans (of ``with_scans``; None: the latest). A resumed run stopped before
+    its shards fused anything leaves a session that holds none: continuing it would lay the interrupted replay's
+    scans once more over the map (a probe: 7 650 cells from the uninterrupted map, by up to 1.74 in log-odds)."""
+    if with_scans is not None:
+        for record in reversed(sessions):
+            if record["id"] in with_scans:
+                if record is not sessions[-1]:
+                    print(
+                        f"posegrid run: note: --continue-session goes on with session {record['id']}, the latest "
+                        f"whose shards fused scans (the {len(sessions) - 1 - sessions.index(record)} after it fused "
+                        "none)",
+                        file=sys.stderr,
+                    )
+                return str(record["id"])
+    return str(sessions[-1]["id"])
 
 
 def _read_run(path: Path, directory: Path) -> dict[str, Any]:
