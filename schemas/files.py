@@ -704,6 +704,12 @@ def output_path_problem(path: str | Path) -> str | None:
     kind = next((name for test, name in _SPECIAL_KINDS if test(mode)), None) if mode is not None else None
     if kind is not None:
         return f"{subject} {kind}, not a regular file; give the path of a regular file"
+    special = _through_system_folder(text)
+    if special is not None:
+        return (
+            f"{special[0]} lies in {special[1]}, which holds devices and process entries, not files (standard "
+            "output cannot take a binary file); give the path of a file"
+        )
     folder = os.path.dirname(target)
     if not os.path.isdir(folder):
         return f"folder {folder} does not exist; create it first or give a path in an existing folder"
@@ -715,6 +721,29 @@ def output_path_problem(path: str | Path) -> str | None:
     refusal = _trial_file_refused(folder)
     if refusal is not None:
         return f"folder {folder} takes no new file ({refusal}); give a path in a folder of a disk's file system"
+    return None
+
+
+#: folders of devices and process entries: a link into them (or one that passes through one, as /dev/stdout ->
+#: /proc/self/fd/1 does) names no file to write a map into, even where it ends at one (standard output redirected
+#: to a file: the map went into the terminal's log, or a pipe's "pipe:[N]" read as a missing folder)
+SYSTEM_FOLDERS = ("/dev", "/proc", "/sys")
+
+
+def _through_system_folder(text: str) -> tuple[str, str] | None:
+    """(path, folder): for a ``text`` that is a link, the first of it and the links it passes through (then each
+    target, at most 40) that lies in one of SYSTEM_FOLDERS, and that folder; None when none does, or ``text`` is no
+    link (a device or a /proc path itself is refused as what it is: output_path_problem)."""
+    path = os.path.abspath(text)
+    if not os.path.islink(path):
+        return None
+    for _ in range(40):
+        for folder in SYSTEM_FOLDERS:
+            if path == folder or path.startswith(folder + os.sep):
+                return path, folder
+        if not os.path.islink(path):
+            return None
+        path = os.path.abspath(os.path.join(os.path.dirname(path), os.readlink(path)))
     return None
 
 

@@ -186,6 +186,31 @@ def test_dev_full_is_refused_up_front_and_stays_a_device(posed_file, tmp_path, c
     assert stat.S_ISCHR(os.stat(DEV_FULL).st_mode)
 
 
+@pytest.mark.parametrize("stdout_to", ["a file", "a pipe"])
+def test_standard_output_is_no_output_path(posed_file, tmp_path, stdout_to):
+    """A new user's probe: `fuse -o /dev/stdout` with standard output on a pipe said "folder /proc/PID/fd takes no
+    new file"; with it redirected to a file, the map went into that file, the terminal's log. A link that passes
+    through /dev or /proc (/dev/stdout, /proc/self/fd/1, a link of one's own to them) names no file to write:
+    refused in one sentence, nothing written."""
+    link = tmp_path / "out.npz"
+    link.symlink_to("/dev/stdout")
+    for path in ("/dev/stdout", "/proc/self/fd/1", str(link)):
+        command = [sys.executable, "-m", "services.cli", "fuse", str(posed_file), "-o", path]
+        if stdout_to == "a file":
+            with open(tmp_path / "stdout", "wb") as out:
+                result = subprocess.run(
+                    command, stdout=out, stderr=subprocess.PIPE, text=True, timeout=120, check=False
+                )
+            written = (tmp_path / "stdout").read_bytes()
+        else:
+            result = subprocess.run(command, capture_output=True, text=True, timeout=120, check=False)
+            written = result.stdout.encode()
+        assert result.returncode == 2 and written == b"", (path, result.stderr)
+        assert "which holds devices and process entries, not files" in result.stderr, result.stderr
+        assert result.stderr.count("\n") == 1
+    assert os.path.islink(link)
+
+
 def test_a_symlink_is_written_through_and_stays_a_link(posed_file, tmp_path, capsys):
     target = tmp_path / "maps" / "real.npz"
     target.parent.mkdir()
