@@ -54,6 +54,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def command_parser(parser: argparse.ArgumentParser, command: str | None) -> argparse.ArgumentParser:
+    """The parser of subcommand ``command`` of ``parser`` (``parser`` itself for none)."""
+    for action in parser._actions:  # (argparse keeps its subcommands' parsers in its subparsers action)
+        if isinstance(action, argparse._SubParsersAction) and command in action.choices:
+            return action.choices[command]
+    return parser
+
+
 def main(argv: list[str] | None = None) -> int:
     if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         # inherited by a background job of a script: a SIGINT before a service installs its stop handlers (which
@@ -61,7 +69,9 @@ def main(argv: list[str] | None = None) -> int:
         signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         parser = build_parser()  # (imports every command module: a SIGINT may well arrive here)
-        args = parser.parse_args(argv)
+        args, extras = parser.parse_known_args(argv)
+        if extras:  # (said with the command's own usage: the top-level parser's named no option of it)
+            command_parser(parser, getattr(args, "command", None)).error(f"unrecognized arguments: {' '.join(extras)}")
     except KeyboardInterrupt:
         print("posegrid: interrupted", file=sys.stderr)
         return 130

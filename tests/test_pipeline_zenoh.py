@@ -215,6 +215,17 @@ def test_bad_arguments_exit_2_with_one_sentence(argv, message, capsys):
     assert message in err and "Traceback" not in err and err.count("\n") == 1, err
 
 
+def test_an_option_a_command_does_not_know_is_said_with_that_commands_usage(capsys):
+    """A new user's probe: `posegrid mapper ... --no-state` (an option of `run`) printed posegrid's own usage,
+    "posegrid [-h] COMMAND ...", which names no option of the mapper."""
+    with pytest.raises(SystemExit) as exit_info:
+        main(["mapper", "--shard", "0", "--shards", "1", "--no-state"])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("usage: posegrid mapper ") and "--state-dir DIR" in err
+    assert err.endswith("posegrid mapper: error: unrecognized arguments: --no-state\n")
+
+
 def test_run_refuses_more_shards_than_the_machines_memory_holds(tmp_path, monkeypatch, capsys):
     """`run --shards 1000` on a 2-core machine with 23 GB started mapper after mapper until the kernel killed
     processes. Each process is reckoned at 200 MiB: 6 GiB holds 25 shards beside the 5 other processes, not 26."""
