@@ -821,7 +821,13 @@ def _truth_at(path: Path, stamps):
             "RobotK_Groundtruth.dat)"
         )
     if path.is_dir():
-        path = path / "groundtruth.npz"
+        folder, path = path, path / "groundtruth.npz"
+        if not path.exists():
+            dat = sorted(p.name for p in folder.glob("Robot*_Groundtruth.dat"))
+            raise UsageError(
+                f"{folder} is a folder without a simulator's groundtruth.npz"
+                + (f"; for an MRCLAM folder give one robot's ground truth, e.g. {folder / dat[0]}" if dat else "")
+            )
     if path.suffix.lower() == ".npz":
         dist = load_pose_distribution(path)
         poses = dist.poses
