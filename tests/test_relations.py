@@ -137,7 +137,7 @@ def test_clock_alignment_by_shared_scans():
 def test_cli_eval_relations_on_a_pose_file_and_a_log(tmp_path, capsys):
     rel = write(tmp_path, "r.relations", RELATION_LINES)
     # a particle file: the best particle follows TRAJ, a light one is far off
-    samples = np.stack([TRAJ.poses, TRAJ.poses + 5.0], axis=1)
+    samples = np.stack([TRAJ.poses, TRAJ.poses + [5.0, 5.0, 0.5]], axis=1)  # (yaws within a turn)
     weights = np.tile([0.7, 0.3], (3, 1))
     npz = tmp_path / "poses.npz"
     save_pose_distribution(npz, PoseDistributionFile(TRAJ.stamps, PoseSet(samples=samples, weights=weights)))
