@@ -26,6 +26,9 @@ from services.process import RejectCounter, Stopped
 _SEQ = re.compile(r"[0-9]{1,18}")
 #: seqs one query's ``seqs`` may name
 MAX_SEQS = 64
+#: bytes of one reply a question takes (a scan of 32 768 beams with intensities is 0.5 MB; larger replies are
+#: dropped as they come, and said: a peer's twenty 100 MB replies took a shard to 4.3 GB)
+MAX_REPLY_BYTES = 8 << 20
 
 #: the streams a history holds (docs/keys.md): the source answers for all but the poses of a SLAM node
 STREAMS = frozenset({keys.PRIOR, keys.ODOM, keys.LANDMARKS, keys.SCAN, keys.POSE})
@@ -120,15 +123,30 @@ def reachable(session: zenoh.Session) -> bool:
 
 
 def _asked(
-    session: zenoh.Session, robot: str, parameters: dict[str, str], timeout: float, stop: threading.Event
+    session: zenoh.Session,
+    robot: str,
+    parameters: dict[str, str],
+    timeout: float,
+    stop: threading.Event,
+    dropped: list[str],
 ) -> list[zenoh.Reply]:
     """The replies to one question in the order they came, once it is answered or ``timeout`` s have passed
-    (Stopped when ``stop`` is set first)."""
+    (Stopped when ``stop`` is set first); a reply of more than MAX_REPLY_BYTES is dropped as it comes, and said in
+    ``dropped``."""
     replies: list[zenoh.Reply] = []
     done = threading.Event()
+
+    def keep(reply: zenoh.Reply) -> None:
+        sample = reply.ok  # (None: an error reply, kept: ask says it)
+        if sample is None or len(sample.payload) <= MAX_REPLY_BYTES:
+            replies.append(reply)
+        else:
+            size = len(sample.payload)
+            dropped.append(f"a reply of {size} bytes on {sample.key_expr}, more than {MAX_REPLY_BYTES}; not taken")
+
     session.get(
         zenoh.Selector(keys.history_key(robot), parameters),
-        handler=zenoh.handlers.Callback(replies.append, done.set),  # done: after the last reply's callback
+        handler=zenoh.handlers.Callback(keep, done.set),  # done: after the last reply's callback
         timeout=timeout,
         consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE),
         congestion_control=zenoh.CongestionControl.BLOCK,
@@ -140,7 +158,12 @@ def _asked(
 
 
 def _answers(
-    session: zenoh.Session, robot: str, parameters: dict[str, str], timeout: float, stop: threading.Event
+    session: zenoh.Session,
+    robot: str,
+    parameters: dict[str, str],
+    timeout: float,
+    stop: threading.Event,
+    dropped: list[str],
 ) -> list[zenoh.Reply]:
     """The replies to one question, asked once the session reaches a router or peer. While it reaches none (the
     router restarting), a question would come back empty at once, and what it asked for would be given up as lost
@@ -154,7 +177,7 @@ def _answers(
             if stop.wait(STOP_POLL):
                 raise Stopped(f"stopped while waiting for the router to ask the histories of {robot!r}")
             grace_until = time.monotonic() + RECONNECT_GRACE
-        replies = _asked(session, robot, parameters, timeout, stop)
+        replies = _asked(session, robot, parameters, timeout, stop, dropped)
         now = time.monotonic()
         if replies or now >= deadline:
             return replies
@@ -185,7 +208,7 @@ def ask(
     messages: list[tuple[str, str, bytes]] = []
     problems: list[str] = []
     answerers: dict[tuple[str, str], set[str]] = {}  # (robot, stream) -> ids of the processes answering for it
-    for answer in _answers(session, robot, parameters, timeout, stop or threading.Event()):
+    for answer in _answers(session, robot, parameters, timeout, stop or threading.Event(), problems):
         if answer.ok is None:
             error = answer.err
             assert error is not None  # a reply holds either a sample or an error

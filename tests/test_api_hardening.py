@@ -250,6 +250,19 @@ def test_a_second_process_answering_as_a_shard_degrades_health_until_it_goes(api
         assert get_json(f"{api}/health")["rejected"].get(stats_key, 0) >= 1
     finally:
         twin.undeclare()
+    # a re-probe: a twin up "longer" that says the map has 64 shards had its count taken (every real tile then
+    # belonged to a shard that never answers) and would have had its tiles served: an untrusted round changes
+    # neither the count nor who answers for a tile
+    given = {**given, "uptime": 1e6, "shards": 64}
+    old = ShardStats(
+        **{f.name: given.get(f.name, {} if f.type in ("dict", dict) else 0) for f in dataclasses.fields(ShardStats)}
+    )
+    twin = session.declare_queryable(stats_key, lambda query: query.reply(stats_key, old.encode()))
+    try:
+        wait_until(lambda: get_json(f"{api}/health")["maps"][MAP]["duplicated_shards"] == [0], 30, "the old twin")
+        assert get_json(f"{api}/maps/{MAP}")["shards"] == 1
+    finally:
+        twin.undeclare()
 
     def alone() -> bool:
         health = get_json(f"{api}/health")

@@ -83,6 +83,11 @@ def test_lag_counts_the_scans_the_shards_know_of_when_the_api_saw_no_pose():
     assert s.lag_scans == {"r1": 44}
     announced = map_stats(info(), {0: shard(0, ended={"r1": 50})}, latest={"r1": 9}, api_rejected={}, now=0.0)
     assert announced.lag_scans == {"r1": 50}  # max(latest 9 + 1, the end 50): the source said 50 scans
+    # a posed-scan replay (no SLAM node) ended, then the API restarted: no token vouches for r1, but shard 1 was
+    # announced its end (a re-probe found the new API "ok" with no lag); a stray robot with no end stays out
+    replay = {0: shard(0, fused={"r9": 2}), 1: shard(1, fused={"r1": 300, "r9": 2}, ended={"r1": 300})}
+    restarted = map_stats(info(), replay, latest={}, api_rejected={}, now=0.0)
+    assert restarted.lag_scans == {"r1": 300} and [p.lag_scans for p in restarted.per_shard] == [{"r1": 300}, {"r1": 0}]
     ahead = map_stats(info(), {0: shard(0, fused={"r1": 5})}, latest={"r1": 20}, api_rejected={}, now=0.0)
     assert ahead.lag_scans == {"r1": 16}  # max(latest 20 + 1, 5) - 5
 

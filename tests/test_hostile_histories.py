@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import time
 
+import pytest
 import zenoh
 
 from peers import put
@@ -15,12 +16,12 @@ from test_hostile_peers import _pose, _scan
 from test_pipeline import CLI, procs  # noqa: F401 - procs is a fixture
 
 
-def _history_of(session: zenoh.Session, robot: str, held: dict[tuple[str, int], bytes]):
+def _history_of(session: zenoh.Session, robot: str, held: dict[tuple[str, int], bytes], map_name: str = "m"):
     """A history queryable of ``robot`` on ``session`` answering from ``held`` ((stream, seq) -> payload), as its
     own process (services.history)."""
     from services import history
 
-    who = history.Answerer(str(session.info.zid()), "m", False)
+    who = history.Answerer(str(session.info.zid()), map_name, False)
 
     def answer(query: zenoh.Query) -> None:
         request = history.parse_request(query, robot)
@@ -33,12 +34,15 @@ def _history_of(session: zenoh.Session, robot: str, held: dict[tuple[str, int], 
     return session.declare_queryable(keys.history_key(robot), answer)
 
 
-def test_a_forged_far_run_that_a_peers_own_history_vouches_for_is_not_believed(procs):  # noqa: F811
+@pytest.mark.parametrize("shard_map", ["m", "other"])
+def test_a_forged_far_run_that_a_peers_own_history_vouches_for_is_not_believed(procs, shard_map):  # noqa: F811
     """A hostile-peer probe's finding: a peer declared a history of robot r's and published 32 scans and poses at
     seqs 100 000 and up; the shard asked the histories for seq 100 000 alone, only the peer's answered, and the jump
     was believed: 99 832 real scans given up, every later real one refused as old. The shard now asks for the far
     seq with the last one its stream has passed: the real history answers too, two answer for the stream, and
-    neither is taken. The real stream is fused whole."""
+    neither is taken. The real stream is fused whole. Also for a shard of another map than the real source's (every
+    shard fuses every robot): a re-probe found its vouching question took only its own map's answerers, so the peer,
+    answering as that map, was alone."""
     from services.map_client import MapReader
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -55,9 +59,9 @@ def test_a_forged_far_run_that_a_peers_own_history_vouches_for_is_not_believed(p
             )
         }
         kept = [_history_of(real, "r", published)]  # (a queryable no one holds is undeclared)
-        shard = procs([*CLI, "mapper", "--shard", "0", "--shards", "1", "--map", "m", "--connect", endpoint])
+        shard = procs([*CLI, "mapper", "--shard", "0", "--shards", "1", "--map", shard_map, "--connect", endpoint])
         shard.wait_for("up")
-        reader = MapReader(real, "m")
+        reader = MapReader(real, shard_map)
 
         def publish(seqs) -> None:
             for seq in seqs:
@@ -73,7 +77,9 @@ def test_a_forged_far_run_that_a_peers_own_history_vouches_for_is_not_believed(p
         while not fused(60):
             assert time.monotonic() < deadline, "the shard did not fuse the first 60 real scans"
             time.sleep(0.1)
-        kept.append(_history_of(peer, "r", forged))  # (declared once the shard has caught up: see docs/security.md)
+        kept.append(
+            _history_of(peer, "r", forged, shard_map)
+        )  # (declared once the shard has caught up: see docs/security.md)
         time.sleep(0.5)
         for (stream, _seq), payload in sorted(forged.items(), key=lambda item: item[0][1]):
             put(peer, keys.robot_key("r", stream), payload)
@@ -86,3 +92,107 @@ def test_a_forged_far_run_that_a_peers_own_history_vouches_for_is_not_believed(p
         (stats,) = reader.stats(timeout=2.0).values()
         assert stats.fused == {"r": 120} and stats.discarded.get("r", 0) == 0
         assert stats.refused.get("ahead", 0) >= 2 * 32
+
+
+def _node_stats(steps_done: int) -> bytes:
+    from schemas.messages import NodeStats
+
+    return NodeStats(
+        robot="r",
+        algorithm="ekf",
+        poses_published=steps_done,
+        steps_done=steps_done,
+        uptime=1.0,
+        received={},
+        rejected={},
+        out_of_order={},
+        noise_scale=1.0,
+        consistency={},
+        health={},
+    ).encode()
+
+
+def test_a_peer_answering_as_the_slam_node_neither_stalls_nor_speeds_the_source(procs):  # noqa: F811
+    """A re-probe: a peer answering pg/<robot>/slam/stats with steps_done = 0 (its queryable declared complete, so
+    the router gave it the source's question) stalled `posegrid run` at 32 of 400 scans for good. The source asks
+    every answerer: one (the node) is taken; two make it say so once and wait for the shards alone."""
+    from services.nodes.source import Source, SourceOptions
+    from services.streams import Stream
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
+    config = build_config("client", connect=[endpoint])
+    key = keys.slam_stats_key("r")
+    with zenoh.open(config) as node, zenoh.open(config) as peer, zenoh.open(config) as own:
+        source = Source(own, Stream("r", [], None, True), SourceOptions(wait_slam=True))
+        source._steps_published = 9
+        kept = [node.declare_queryable(key, lambda query: query.reply(key, _node_stats(7)))]
+        deadline = time.monotonic() + 20
+        while source._slam_done() != 7:
+            assert time.monotonic() < deadline, "the node's stats never came"
+            time.sleep(0.1)
+        kept.append(peer.declare_queryable(key, lambda query: query.reply(key, _node_stats(0)), complete=True))
+        deadline = time.monotonic() + 20
+        while source._slam_done() != 9:  # (as if done: the steps published)
+            assert time.monotonic() < deadline, "the peer's answer was not noticed"
+            time.sleep(0.1)
+        assert "2 processes answer as the SLAM node of robot 'r'" in source._distrusted  # (said once, in the log)
+        del kept
+
+
+def test_oversized_replies_are_dropped_as_they_come(procs):  # noqa: F811
+    """A re-probe: a peer answering a shard's history question with twenty replies of 100 MB took the shard to 4.3 GB,
+    and thirty to the API's tile query took the API to 3.5 GB: every reply was kept until the question ended. A
+    history reply past services.history.MAX_REPLY_BYTES, or a tile reply past the API's, is dropped and said."""
+    from services import history
+    from services.api.mappers import MAX_REPLY_BYTES, MapperLink
+    from services.api.registry import MapRegistry
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
+    config = build_config("client", connect=[endpoint])
+    with zenoh.open(config) as peer, zenoh.open(config) as asker:
+        who = history.Answerer(str(peer.info.zid()), "m", False)
+        big, small = b"x" * (history.MAX_REPLY_BYTES + 1), b"scan 3"
+
+        def answer(query: zenoh.Query) -> None:
+            history.reply(query, who, "r", keys.SCAN, big)
+            history.reply(query, who, "r", keys.SCAN, small)
+
+        def tiles(query: zenoh.Query) -> None:
+            query.reply(keys.tile_key("m", 0, 0, 0), b"y" * (MAX_REPLY_BYTES + 1))
+
+        kept = [  # noqa: F841 - (a queryable no one holds is undeclared)
+            peer.declare_queryable(keys.history_key("r"), answer),
+            peer.declare_queryable(keys.tile_key("m", 0, "*", "*"), tiles),
+        ]
+        deadline = time.monotonic() + 20
+        while True:
+            messages, problems = history.ask(asker, "r", {}, timeout=10)
+            if messages:
+                break
+            assert time.monotonic() < deadline, "the peer's history never answered"
+            time.sleep(0.1)
+        assert messages == [("r", keys.SCAN, small)]
+        too_big = f"a reply of {history.MAX_REPLY_BYTES + 1} bytes on pg/r/history/scan, more than "
+        assert problems == [too_big + f"{history.MAX_REPLY_BYTES}; not taken"]
+        link = MapperLink(asker, MapRegistry(), None, None)  # type: ignore[arg-type]  # (queries only)
+        assert link._query(keys.tile_key("m", 0, "*", "*"), timeout=10) == []
+        assert link.rejects.kinds() == {"size": 1}
+
+
+def test_a_source_stays_until_the_shards_that_keep_a_store_have_committed_its_scans():
+    """A re-probe: a state-directory shard killed as the source left lost the ~85 scans fused since its last commit
+    (every 2 s or 256 scans): the source had left when they were fused, taking its history with it. A shard with
+    `persist` on must also hold them in its store; one without a store, fused is enough."""
+    from schemas.messages import StreamEnd
+    from services.nodes.source import _accounted
+    from test_api_status import shard
+
+    end = StreamEnd(robot="r", scans=300)
+    fused = dict(fused={"r": 290}, discarded={"r": 10}, ended={"r": 300})
+    assert _accounted([shard(0, **fused)], end)  # (persist off)
+    assert not _accounted([shard(0, persist="ok", committed={"r": 215}, **fused)], end)
+    assert not _accounted([shard(0, persist="failing", committed={"r": 215}, **fused)], end)
+    assert _accounted([shard(0, persist="ok", committed={"r": 300}, **fused), shard(1, **fused)], end)
+    assert not _accounted([shard(0, persist="ok", committed={"r": 300}, fused={"r": 290}, ended={"r": 300})], end)

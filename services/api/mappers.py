@@ -47,6 +47,10 @@ STATS_TIMEOUT = 2.0
 VERIFY_INTERVAL = 1.0
 
 
+#: bytes of one reply the API takes: a whole tile of the largest size (1 024 x 1 024 cells, 9 bytes a cell) with room
+MAX_REPLY_BYTES = 16 << 20
+
+
 def _parse_int(text: str) -> int | None:
     try:
         return int(text)
@@ -251,6 +255,11 @@ class MapperLink:
         for reply in handler:
             if reply.ok is None:
                 self.rejects.count(selector, "error_reply", "a queryable answered with an error")
+            elif len(reply.ok.payload) > MAX_REPLY_BYTES:  # (dropped as it comes: a peer's 30 x 100 MB took 3.5 GB)
+                size = len(reply.ok.payload)
+                self.rejects.count(
+                    selector, "size", f"a reply of {size} bytes, more than the {MAX_REPLY_BYTES} a tile takes"
+                )
             else:
                 yield str(reply.ok.key_expr), reply.ok.payload.to_bytes(), replier(reply)
 

@@ -132,8 +132,11 @@ class MapRegistry:
 
     def record_stats(self, name: str, answers: ShardAnswers) -> None:
         """Take a round of the map's shards' stats (services.map_client.sort_answers: of the shards whose token is
-        up), and the shards more than one process answered for: record the shard count, the duplicates and who
-        answered for each shard, and make every pending shard that answered alive."""
+        up), and the shards more than one process answered for: record the duplicates, and, from a round that can be
+        trusted (no duplicate, one shard count), the shard count and who answers for each shard; a duplicated
+        shard answers for no tile until one process is left (a peer answering as a live shard with a longer uptime
+        had its tiles served, and its made-up count of 64 shards taken). Every pending shard that answered becomes
+        alive."""
         stats = answers.stats
         if not stats:
             return
@@ -142,8 +145,11 @@ class MapRegistry:
             if info is None:
                 return
             info.duplicated = set(answers.duplicated)
-            info.answerers.update(answers.answerers)
-            info.shards = max(s.shards for s in stats.values())
+            for shard in answers.duplicated:
+                info.answerers.pop(shard, None)
+            if not answers.problems:
+                info.answerers.update(answers.answerers)
+                info.shards = max(s.shards for s in stats.values())
             for shard in [s for s in info.pending if s in stats]:
                 del info.pending[shard]
                 info.alive.add(shard)

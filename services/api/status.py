@@ -71,13 +71,16 @@ def done(s: ShardStats, robot: str) -> int:
 def expected_scans(
     answered: Collection[ShardStats], latest: Mapping[str, int], vouched: Collection[str]
 ) -> dict[str, int]:
-    """By robot whose lag counts (those of ``latest``: robot -> latest pose seq, and the ``vouched`` robots an
-    answering shard has counted), the scans known to exist: the latest pose seq + 1, the most scans one shard has
-    fused or given up on, the stream's end a shard was announced (ShardStats.ended), whichever is largest."""
+    """By robot whose lag counts (those of ``latest``: robot -> latest pose seq, the ``vouched`` robots an answering
+    shard has counted, and those whose end of stream a shard was announced: a source sent it, and it outlives the
+    source's token, as after a posed-scan replay an API restarted), the scans known to exist: the latest pose seq +
+    1, the most scans one shard has fused or given up on, the stream's end a shard was announced (ShardStats.ended),
+    whichever is largest."""
     counted = {r for s in answered for counts in (s.fused, s.discarded, s.ended) for r, n in counts.items() if n}
+    announced = {r for s in answered for r, n in s.ended.items() if n}
     return {
         r: max([latest.get(r, -1) + 1, *(max(done(s, r), s.ended.get(r, 0)) for s in answered)])
-        for r in set(latest) | (counted & set(vouched))
+        for r in set(latest) | (counted & set(vouched)) | announced
     }
 
 
