@@ -45,6 +45,7 @@ from services.state.store.db import (
     ShardStore,
     StoreError,
     StoreIdentity,
+    check_store,
     decode_layers,
     encode_layers,
     sessions_with_scans,
@@ -444,6 +445,33 @@ def test_a_damaged_store_stops_run_resume_before_anything_starts(tmp_path, pairs
     assert err.count("\n") == 1 and str(store) in err and "Traceback" not in err, err
     assert (tmp_path / "run" / "run.json").read_text() == before
     assert not (tmp_path / "xdg").exists()
+
+
+def test_check_store_refuses_what_the_shard_would_and_writes_nothing(tmp_path, pairs):
+    """A re-probe: `run --resume` still started processes for a store with a damaged tile blob (SQLite's own check
+    passes it), the shard folders swapped, or another run's id: the shard then refused it (exit 1, a new session in
+    run.json). check_store reads it as the shard would, before anything starts."""
+    good = tmp_path / "good"
+    _committed_store(good, pairs[:8])
+    ShardStore.open(good, _identity(_config()), run_id="run-a").close()  # (the run the store belongs to)
+    before = sqlite3.connect(good / DB_NAME).execute("SELECT count(*) FROM sessions").fetchone()
+    check_store(good, _identity(_config()), "run-a")
+    assert sqlite3.connect(good / DB_NAME).execute("SELECT count(*) FROM sessions").fetchone() == before
+    with pytest.raises(StoreError, match="belongs to run 'run-a', not to this run"):
+        check_store(good, _identity(_config()), "run-b")
+    with pytest.raises(StoreError, match="shard 1 of 2"):  # (shard 0's store in shard 1's folder)
+        check_store(good, _identity(_config(shard=1, shards=2)), None)
+    db = sqlite3.connect(good / DB_NAME)
+    tx, ty, blob = db.execute("SELECT tx, ty, layers FROM tiles LIMIT 1").fetchone()
+    db.execute(
+        "UPDATE tiles SET layers = ? WHERE tx = ? AND ty = ?",
+        (blob[:20] + bytes([blob[20] ^ 0xFF]) + blob[21:], tx, ty),
+    )
+    db.commit()
+    db.close()
+    with pytest.raises(StoreError, match=rf"tile \({tx}, {ty}\) of the store .* is damaged"):
+        check_store(good, _identity(_config()), "run-a")
+    check_store(tmp_path / "none", _identity(_config()), None)  # (no store yet: nothing to check)
 
 
 def test_continue_session_goes_on_with_the_latest_session_that_fused_scans(tmp_path, pairs, capsys):

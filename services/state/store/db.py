@@ -399,25 +399,41 @@ def _whole(value: object, low: int, high: int | None = None) -> bool:
 # ---------------------------------------------------------------------------------------------- opening steps
 
 
-def check_store(directory: Path) -> None:
-    """Check the store in ``directory`` as :meth:`ShardStore.open` does before it reads it (its file, SQLite's check
-    of every page, and that no other process holds the directory), without opening it for a shard; nothing to check
-    when there is no store yet. StoreError says what is wrong: `posegrid run --resume` checks every shard's store
-    before it starts any process (a damaged store stopped the run after the router and the other shards had
-    started, exit 1 with their lines)."""
-    if not (directory / DB_NAME).exists() and not Path(f"{directory / DB_NAME}-wal").exists():
+def check_store(directory: Path, identity: StoreIdentity, run_id: str | None) -> None:
+    """Check the store in ``directory`` as a shard of ``identity`` in run ``run_id`` would before it fuses (its
+    file, SQLite's check of every page, that it is that shard's and that run's store, every tile readable and its
+    own, no other process holding the directory), writing nothing; nothing to check when there is no store yet.
+    StoreError says what is wrong: `posegrid run --resume` checks every shard's store before it starts any process
+    (a damaged store, another shard's folder or another run's stopped the run after the router and the other
+    shards had started, exit 1 with their lines and a new session in run.json)."""
+    path = directory / DB_NAME
+    if not path.exists() and not Path(f"{path}-wal").exists():
         return
     lock = _lock_directory(directory)
-    try:
-        path = directory / DB_NAME
-        if _check_file(path):
-            connection = _connect(path, None)
-            try:
-                _check_integrity(connection, path)
-            finally:
-                connection.close()
-    finally:
+    if not _check_file(path):
         os.close(lock)
+        return
+    try:
+        connection = _connect(path, None)
+    except BaseException:
+        os.close(lock)
+        raise
+    store = ShardStore(directory, connection, lock, "", identity)  # (only read: no session registered)
+    try:
+        _check_integrity(connection, path)
+        _check_meta(connection, path, identity)
+        row = connection.execute("SELECT value FROM meta WHERE key = 'run'").fetchone()
+        if run_id is not None and row is not None and row[0] != run_id:
+            raise StoreError(
+                f"the store {path} belongs to run {row[0]!r}, not to this run ({run_id!r}): another run's state was "
+                "put in its folder; restore this run's, or start the run anew"
+            )
+        for tile in connection.execute("SELECT tx, ty, robot, seq, layers FROM tiles"):
+            store._tile(tile)
+    except sqlite3.DatabaseError as exc:
+        raise StoreError(f"the store {path} cannot be read ({exc}): it is damaged") from None
+    finally:
+        store.close()
 
 
 def sessions_with_scans(directory: Path) -> set[str]:

@@ -123,6 +123,16 @@ def _session_to_continue(sessions: list[dict[str, Any]], with_scans: Collection[
     return str(sessions[-1]["id"])
 
 
+def run_id_of(directory: Path) -> str | None:
+    """The id of the run ``directory`` holds (None: it holds none readable, or a run of before ids: prepare_run
+    says what is wrong with it)."""
+    try:
+        run_id = _read_run(directory / RUN_FILE, directory).get("id")
+    except StoreError:
+        return None
+    return run_id if isinstance(run_id, str) else None
+
+
 def _read_run(path: Path, directory: Path) -> dict[str, Any]:
     """run.json of ``directory``, checked; StoreError when it is missing or no run's."""
     try:
