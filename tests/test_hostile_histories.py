@@ -72,6 +72,13 @@ def test_a_forged_far_run_that_a_peers_own_history_vouches_for_is_not_believed(p
         def fused(count: int) -> bool:
             return any(s.fused.get("r", 0) >= count for s in reader.stats(timeout=2.0).values())
 
+        deadline = time.monotonic() + 60
+        while not any(s.received.get("pg/probe/scan") for s in reader.stats(timeout=2.0).values()):
+            # (the shard's subscription reaches the publisher through the router some time after it says "up": a
+            # scan lost before then is no history's of its map in the "other" case, and would be given up)
+            assert time.monotonic() < deadline, "the shard never received a scan"
+            put(real, keys.robot_key("probe", keys.SCAN), _scan(0, "probe").encode())
+            time.sleep(0.2)
         publish(range(60))
         deadline = time.monotonic() + 60
         while not fused(60):
