@@ -211,10 +211,42 @@ def test_standard_output_is_no_output_path(posed_file, tmp_path, stdout_to):
     assert os.path.islink(link)
 
 
+def test_a_file_of_another_kind_is_not_replaced(posed_file, tmp_path, capsys):
+    """A new user's probe: `fuse -o keep.png` turned a PNG into a map, `calibrate -o map.npz` a map into JSON, exit 0
+    (`export` refused a name of the other format). An output that would replace a file of another kind than it
+    writes is refused; a file of its kind, or an empty one, is replaced."""
+    from services.commands.argtypes import refuse_another_kind
+    from services.errors import UsageError
+
+    png = tmp_path / "keep.png"
+    png.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(32))
+    one_line_exit_2(["fuse", str(posed_file), "-o", str(png)], capsys, "the file there is not a .npz archive")
+    assert png.read_bytes().startswith(b"\x89PNG")
+    assert main(["fuse", str(posed_file), "-o", str(tmp_path / "a.npz")]) == 0
+    assert main(["fuse", str(posed_file), "-o", str(tmp_path / "a.npz")]) == 0  # (a map replaces a map)
+    (tmp_path / "empty").write_bytes(b"")
+    assert main(["fuse", str(posed_file), "-o", str(tmp_path / "empty")]) == 0
+    with pytest.raises(UsageError, match="is not a JSON object"):
+        refuse_another_kind(tmp_path / "a.npz", "json", "-o")
+    (tmp_path / "c.json").write_text(' {"a": 1}')
+    refuse_another_kind(tmp_path / "c.json", "json", "-o")
+
+
+def _an_old_archive() -> bytes:
+    """The bytes of a small .npz archive (an earlier output of the kind the writers replace)."""
+    import io
+
+    import numpy as np
+
+    buffer = io.BytesIO()
+    np.savez(buffer, old=np.zeros(3))
+    return buffer.getvalue()
+
+
 def test_a_symlink_is_written_through_and_stays_a_link(posed_file, tmp_path, capsys):
     target = tmp_path / "maps" / "real.npz"
     target.parent.mkdir()
-    target.write_bytes(b"an old map")
+    target.write_bytes(_an_old_archive())
     os.chmod(target, 0o640)
     link = tmp_path / "map.npz"
     link.symlink_to(target)
@@ -232,7 +264,7 @@ def test_a_symlink_is_written_through_and_stays_a_link(posed_file, tmp_path, cap
 
 def test_a_failed_write_is_an_error_not_wrote_and_keeps_the_old_file(posed_file, tmp_path, capsys, monkeypatch):
     out = tmp_path / "map.npz"
-    out.write_bytes(b"the previous map")
+    out.write_bytes(previous := _an_old_archive())
 
     def failing_fsync(descriptor: int) -> None:
         raise OSError(errno.EIO, os.strerror(errno.EIO))
@@ -243,7 +275,7 @@ def test_a_failed_write_is_an_error_not_wrote_and_keeps_the_old_file(posed_file,
     last = captured.err.strip().splitlines()[-1]  # after the progress bar
     assert last == f"posegrid fuse: error: {os.strerror(errno.EIO)} ({out})", captured.err
     assert "wrote" not in captured.out + captured.err and "Traceback" not in captured.err
-    assert out.read_bytes() == b"the previous map"
+    assert out.read_bytes() == previous
     assert sorted(p.name for p in tmp_path.iterdir()) == ["map.npz"]  # no temporary file left
 
 

@@ -142,14 +142,38 @@ def checked_output(value: str | Path | None, option: str) -> Path | None:
 INPUT_FOLDER_FILES = ("*.dat", "*.db3", "*.mcap", "metadata.yaml")
 
 
-def check_outputs(args: argparse.Namespace, inputs: tuple[Path, ...] = (), **options: str) -> None:
+#: the first bytes of a file of each kind an output may replace: a zip archive (.npz) and a JSON object
+KIND_HEADS = {"npz": (b"PK\x03\x04", b"PK\x05\x06"), "json": (b"{",)}
+KIND_NAMES = {"npz": "a .npz archive", "json": "a JSON object"}
+
+
+def refuse_another_kind(path: Path | None, kind: str, option: str) -> None:
+    """UsageError when ``path`` holds a file that is not of ``kind`` (KIND_HEADS: "npz" or "json"), which writing the
+    output would replace: a new user's probe had `fuse -o keep.png` turn a PNG into a map and `calibrate -o map.npz`
+    replace a map with JSON, exit 0. An empty file, or none, is taken."""
+    from services.errors import UsageError
+
+    if path is None or not path.is_file():
+        return
+    with path.open("rb") as file:
+        head = file.read(64).lstrip()
+    if head and not head.startswith(KIND_HEADS[kind]):
+        raise UsageError(
+            f"{option} {path}: the file there is not {KIND_NAMES[kind]}, which this command writes, and would be "
+            "replaced: remove it first, or give another path"
+        )
+
+
+def check_outputs(
+    args: argparse.Namespace, inputs: tuple[Path, ...] = (), kinds: dict[str, str] | None = None, **options: str
+) -> None:
     """Check every output path of ``args`` (its attribute name = the option that gives it, e.g. output="-o")
     with :func:`checked_output` and put the Path in its place. Output options take the text as given (no
     ``type=Path``, which would read an empty path as "."), so this must run before the command uses them.
 
     ``inputs``: what the command reads (files, or folders of :data:`INPUT_FOLDER_FILES` and the simulator's files);
     an output that is one of them, or one of such a folder's files, through links too, is refused: writing it would
-    replace the data."""
+    replace the data. ``kinds``: by attribute name, the kind of file the output is (:func:`refuse_another_kind`)."""
     from services.errors import UsageError
     from slam.simlog import SIMULATION_FILES
 
@@ -164,4 +188,6 @@ def check_outputs(args: argparse.Namespace, inputs: tuple[Path, ...] = (), **opt
                 f"{option} {path}: is a file this command reads (its input); writing it would replace the data: "
                 "give another path"
             )
+        if kinds is not None and name in kinds:
+            refuse_another_kind(path, kinds[name], option)
         setattr(args, name, path)

@@ -74,7 +74,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     from slam.selfcal import DELAY_GRID, NotEnoughData, self_calibrate
     from slam.simlog import CONTROLS_FILE
 
-    check_outputs(args, inputs=(args.input,), output="-o")
+    check_outputs(args, inputs=(args.input,), kinds={"output": "json"}, output="-o")
     if not 0.0 < args.fraction <= 1.0:
         raise UsageError(f"--fraction must be in (0, 1], got {args.fraction:g}")
     stated_drive_angle_sd(args, 0.0)  # a bad --drive-angle-sd is refused before the fit

@@ -13,7 +13,13 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
-from services.commands.argtypes import check_outputs, checked_output, finite_float, odom_delay_seconds
+from services.commands.argtypes import (
+    check_outputs,
+    checked_output,
+    finite_float,
+    odom_delay_seconds,
+    refuse_another_kind,
+)
 
 #: grid FastSLAM particles when --particles is not given: the least KLD-sampling keeps (GridSlamConfig.particle_cap
 #: the most)
@@ -211,6 +217,7 @@ def _output_paths(args: argparse.Namespace) -> tuple[Path, Path]:
     check_outputs(
         args,
         inputs=(args.input,),
+        kinds={"output": "npz", "best_output": "npz", "poses_output": "npz"},
         output="-o",
         best_output="--best-output",
         poses_output="--poses-output",
@@ -218,6 +225,8 @@ def _output_paths(args: argparse.Namespace) -> tuple[Path, Path]:
     )
     best = args.best_output or checked_output(args.output.with_suffix(".best.npz"), "--best-output's default")
     poses = args.poses_output or checked_output(args.output.with_suffix(".poses.npz"), "--poses-output's default")
+    refuse_another_kind(best, "npz", "--best-output")
+    refuse_another_kind(poses, "npz", "--poses-output")
     named = [
         ("-o", args.output),
         ("--best-output" if args.best_output else "--best-output's default", best),

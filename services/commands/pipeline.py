@@ -22,6 +22,7 @@ from services.commands.argtypes import (
     positive_int,
     positive_number,
     random_seed,
+    refuse_another_kind,
 )
 from services.commands.gridslam import DEFAULT_GRID_PARTICLES, FILTER_OPTIONS, add_filter_options, reject_filter_options
 from services.commands.limits import add_limit_arguments, limit_argv, limits_from_args
@@ -741,6 +742,7 @@ def run_pipeline(args: argparse.Namespace) -> int:
     rate_text = args.rate or ("max" if args.export is not None else "realtime")
     _rate(rate_text)
     args.export = checked_output(args.export, "--export")
+    refuse_another_kind(args.export, "npz", "--export")
     if not args.no_api:
         if not 0 < args.api_port < 65536:
             raise UsageError(f"--api-port must be a TCP port (1..65535), got {args.api_port}")
