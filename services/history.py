@@ -21,6 +21,7 @@ import zenoh
 
 from services import keys
 from services.process import RejectCounter, Stopped
+from services.zenoh_config import replier
 
 #: a seq in a query's parameters
 _SEQ = re.compile(r"[0-9]{1,18}")
@@ -224,10 +225,10 @@ def ask(
             )
         elif answerer is None:
             problems.append(f"a reply on {answer.ok.key_expr} does not say who answers it; not taken")
-        elif answer.replier_id is not None and answerer.id != str(answer.replier_id.zid):
+        elif answer.replier_id is not None and answerer.id != replier(answer):
             problems.append(
                 f"a reply on {answer.ok.key_expr} says it comes from process {answerer.id[:40]!r} but came from "
-                f"{answer.replier_id.zid} (a peer posing as a history); not taken"
+                f"{replier(answer)} (a peer posing as a history); not taken"
             )
         elif accept(answerer):
             answerers.setdefault(parsed, set()).add(answerer.id)

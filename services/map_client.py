@@ -24,6 +24,7 @@ from mapping.grid import TiledGrid
 from schemas.messages import MessageError, ShardStats, TileUpdate, decode_message
 from services import keys
 from services.state.ownership import owns_tile
+from services.zenoh_config import replier
 
 
 class IncompleteMap(RuntimeError):
@@ -33,28 +34,26 @@ class IncompleteMap(RuntimeError):
 @dataclass(frozen=True)
 class ShardAnswers:
     """One round of a map's shards' stats (:func:`sort_answers`): ``stats`` and ``answerers`` (the Zenoh session id
-    whose stats were kept) by shard index, of the shards whose token is up; ``problems``: why the round cannot be
-    trusted (two sessions answering as one shard, shards disagreeing on their count), empty when it can;
-    ``untokened``: replies for shard indices with no liveliness token up, left out; ``rejected``: replies whose key
-    or map does not match their stats; ``duplicated``: the shards two sessions answered for."""
+    whose stats were kept) by shard index, of the shards whose token is up; ``duplicated``: the shards two sessions
+    answered for; ``problems``: why the round cannot be trusted (two sessions answering as one shard, shards
+    disagreeing on their count), empty when it can; ``left_out``: (key, kind, why) of each reply not taken, kind
+    "key" (its key or map is not its stats') or "unverified" (no liveliness token is up for its shard)."""
 
     stats: dict[int, ShardStats] = field(default_factory=dict)
     answerers: dict[int, str] = field(default_factory=dict)
+    duplicated: frozenset[int] = frozenset()
     problems: list[str] = field(default_factory=list)
-    untokened: int = 0
-    rejected: int = 0
-    duplicated: frozenset[int] = frozenset()  # the shards two sessions answered for
+    left_out: list[tuple[str, str, str]] = field(default_factory=list)
 
     @property
     def trusted(self) -> dict[int, ShardStats]:
         """The stats when the round can be trusted, else none (as if no shard had answered)."""
         return {} if self.problems else self.stats
 
-
-def replier(reply: zenoh.Reply) -> str:
-    """The Zenoh session id of a reply's sender ("?" when zenoh gives none)."""
-    source = reply.replier_id
-    return "?" if source is None else str(source.zid)
+    @property
+    def untokened(self) -> int:
+        """Replies left out for a shard with no liveliness token up."""
+        return sum(kind == "unverified" for _, kind, _ in self.left_out)
 
 
 def sort_answers(
@@ -66,22 +65,21 @@ def sort_answers(
     stats: dict[int, ShardStats] = {}
     answerers: dict[int, str] = {}
     senders: dict[int, set[str]] = {}
-    untokened = rejected = 0
+    left_out: list[tuple[str, str, str]] = []
     for key, sender, message in replies:
         if message.map != map_name or key != keys.stats_key(map_name, message.shard):
-            rejected += 1
-            continue
-        if message.shard not in tokens:
-            untokened += 1
-            continue
-        senders.setdefault(message.shard, set()).add(sender)
-        if message.shard not in stats or message.uptime > stats[message.shard].uptime:
-            stats[message.shard], answerers[message.shard] = message, sender
+            left_out.append((key, "key", f"stats of shard {message.shard} of map {message.map!r} on {key}"))
+        elif message.shard not in tokens:
+            left_out.append((key, "unverified", f"stats of shard {message.shard}, whose token is not up"))
+        else:
+            senders.setdefault(message.shard, set()).add(sender)
+            if message.shard not in stats or message.uptime > stats[message.shard].uptime:
+                stats[message.shard], answerers[message.shard] = message, sender
+    duplicated = frozenset(shard for shard, sessions in senders.items() if len(sessions) > 1)
     problems = [
-        f"{len(sessions)} processes answer as shard {shard} of map {map_name!r} (a shard started twice, or a peer "
-        "forging its stats: docs/security.md)"
-        for shard, sessions in sorted(senders.items())
-        if len(sessions) > 1
+        f"{len(senders[shard])} processes answer as shard {shard} of map {map_name!r} (a shard started twice, or a "
+        "peer forging its stats: docs/security.md)"
+        for shard in sorted(duplicated)
     ]
     counts = sorted({s.shards for s in stats.values()})
     if len(counts) > 1:
@@ -89,8 +87,7 @@ def sort_answers(
             f"the shards of map {map_name!r} disagree on their count ({', '.join(map(str, counts))}: shards of two "
             "runs, or a peer forging stats: docs/security.md)"
         )
-    duplicated = frozenset(shard for shard, sessions in senders.items() if len(sessions) > 1)
-    return ShardAnswers(stats, answerers, problems, untokened, rejected, duplicated)
+    return ShardAnswers(stats, answerers, duplicated, problems, left_out)
 
 
 class MapReader:
@@ -148,7 +145,7 @@ class MapReader:
         asked = None if tokens is not None else self._ask_tokens(timeout)
         replies = self._replies(keys.stats_key(self.map_name, "*"), ShardStats, timeout)
         answers = sort_answers(self.map_name, replies, self._tokens(asked) if tokens is None else tokens)
-        self.rejected += answers.rejected + answers.untokened
+        self.rejected += len(answers.left_out)
         return answers
 
     def stats(self, timeout: float = 5.0) -> dict[int, ShardStats]:

@@ -97,6 +97,19 @@ MAX_REJECT_KEYS = 256
 OTHER_KEYS = "<other keys>"
 
 
+class WarnOnce:
+    """Logs each distinct warning once (a process that looks at the same problem every loop says it once)."""
+
+    def __init__(self, logger: logging.Logger):
+        self._logger = logger
+        self.said: set[str] = set()
+
+    def __call__(self, text: str) -> None:
+        if text not in self.said:
+            self.said.add(text)
+            self._logger.warning("%s", text)
+
+
 class RejectCounter:
     """Counts dropped messages by key and kind, and logs the first one of each (key, kind).
 

@@ -171,6 +171,13 @@ def open_session(config: zenoh.Config, what: str, stop: threading.Event | None =
         ) from None
 
 
+def replier(reply: zenoh.Reply) -> str:
+    """The id of the Zenoh session that sent ``reply`` ("?" when zenoh gives none): zenoh sets it, so a peer cannot
+    give another session's (services.map_client.sort_answers, services.history.ask)."""
+    source = reply.replier_id
+    return "?" if source is None else str(source.zid)
+
+
 def close_session(session: zenoh.Session, what: str) -> None:
     """Close ``what``'s session. A close that fails (zenoh gives up after its timeout when the router or the machine
     stalls, "close operation timed out") is said in one line on stderr, not raised: the process is ending either way,

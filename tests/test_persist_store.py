@@ -48,7 +48,6 @@ from services.state.store.db import (
     check_store,
     decode_layers,
     encode_layers,
-    sessions_with_scans,
 )
 from services.state.store.journal import Journal, tiles_of_map
 from services.state.store.run import default_run_dir, prepare_run
@@ -487,9 +486,9 @@ def test_continue_session_goes_on_with_the_latest_session_that_fused_scans(tmp_p
     assert prepare_run(tmp_path / "run", True, True, "m", 1, 0.05, set()).session == aborted.session
     assert prepare_run(tmp_path / "run", True, True, "m", 1, 0.05).session == aborted.session
     assert capsys.readouterr().err == ""
-    assert sessions_with_scans(tmp_path / "none") == set()
+    assert check_store(tmp_path / "none", _identity(_config()), None) == set()
     _committed_store(tmp_path / "s", pairs[:5])
-    (written,) = sessions_with_scans(tmp_path / "s")
+    (written,) = check_store(tmp_path / "s", _identity(_config()), None)  # (the sessions with scans)
     store = ShardStore.open(tmp_path / "s", _identity(_config()))  # (its latest session: the one that wrote)
     assert store.session == written
     store.close()

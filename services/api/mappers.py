@@ -36,9 +36,9 @@ from services.api.events import EventHub
 from services.api.limits import MAX_PROCESSES, VERIFY_WINDOW, Tally
 from services.api.registry import MapRegistry, TileKey
 from services.api.robots import RobotTracker
-from services.map_client import MapReader, replier, sort_answers
+from services.map_client import MapReader, sort_answers
 from services.process import RejectCounter, get_logger
-from services.zenoh_config import undeclare_all
+from services.zenoh_config import replier, undeclare_all
 
 #: s to wait for the shards' stats: a shard answers them from its Zenoh thread in milliseconds, and /health, which
 #: asks for them, must answer while a stalled shard is still alive to the router (up to its Zenoh lease)
@@ -335,21 +335,15 @@ class MapperLink:
         handlers = [(name, selector, self._get(selector, timeout)) for name, selector in selectors]
         out: dict[str, dict[int, ShardStats]] = {}
         for name, selector, handler in handlers:
-            replies, tokens = [], self.registry.tokens(name)
+            replies = []
             for key, payload, sender in self._replies(selector, handler):
                 try:
-                    message = decode_message(payload, ShardStats)
+                    replies.append((key, sender, decode_message(payload, ShardStats)))
                 except MessageError as exc:
                     self.rejects.count(key, exc.reason, str(exc))
-                    continue
-                if key != keys.stats_key(message.map, message.shard) or message.map != name:
-                    self.rejects.count(key, "key", f"stats of shard {message.shard} of map {message.map!r} on {key}")
-                    continue
-                if message.shard not in tokens:
-                    self.rejects.count(key, "unverified", f"stats of shard {message.shard}, whose token is not up")
-                    continue
-                replies.append((key, sender, message))
-            answers = sort_answers(name, replies, tokens)  # (of two for one shard: the one up longer's)
+            answers = sort_answers(name, replies, self.registry.tokens(name))  # (of two for one shard: the elder's)
+            for key, kind, why in answers.left_out:
+                self.rejects.count(key, kind, why)
             for shard in sorted(answers.duplicated):
                 self.rejects.count(
                     keys.stats_key(name, shard), "duplicate", f"two processes answer as shard {shard} of map {name!r}"

@@ -226,12 +226,12 @@ class Progress:
             self._counted.update((map_name, robot) for robot in robots)
             return {robot for name, robot in self._counted if name == map_name}
 
-    def stalled(self, map_name: str, robot: str, done: int, now: float) -> float:
-        """Record ``done`` scans at time ``now`` (s); the s since the count last changed (0 when it just did)."""
+    def stalled(self, map_name: str, robot: str, scans_done: int, now: float) -> float:
+        """Record ``scans_done`` scans at time ``now`` (s); the s since the count last changed (0 when it just did)."""
         with self._lock:
             seen = self._seen.get((map_name, robot))
-            if seen is None or seen[0] != done:
-                self._seen[(map_name, robot)] = seen = (done, now)
+            if seen is None or seen[0] != scans_done:
+                self._seen[(map_name, robot)] = seen = (scans_done, now)
             return now - seen[1]
 
 

@@ -165,15 +165,14 @@ def plan_state(args: argparse.Namespace, plan: Plan) -> None:
     with_scans: set[str] | None = None
     if args.resume is not None:  # (every shard's store checked before the run's record gets a new session)
         from mapping.grid import TILE_SIZE
-        from services.state.store.db import StoreIdentity, check_store, sessions_with_scans
+        from services.state.store.db import StoreIdentity, check_store
         from services.state.store.run import run_id_of, shard_dir
 
         with_scans = set()
         run_id = run_id_of(directory)
         for shard in range(plan.shards):
             identity = StoreIdentity(plan.map_name, shard, plan.shards, TILE_SIZE, plan.resolution)
-            check_store(shard_dir(directory, shard), identity, run_id)
-            with_scans |= sessions_with_scans(shard_dir(directory, shard))
+            with_scans |= check_store(shard_dir(directory, shard), identity, run_id)
     plan.state = prepare_run(
         directory,
         args.resume is not None,

@@ -35,7 +35,7 @@ from schemas.files import MapFile, save_map
 from services import keys
 from services.api.guard import TOKEN_ENV
 from services.map_client import IncompleteMap, MapReader
-from services.process import PARENT_PID_ENV, Stopped, get_logger, until_stopped
+from services.process import PARENT_PID_ENV, Stopped, WarnOnce, get_logger, until_stopped
 from services.security import Role, remove_material, run_material, zenoh_argv
 from services.state.store.run import RunState
 from services.zenoh_config import build_config, close_session, open_session
@@ -432,7 +432,7 @@ def _supervise(session, plan: Plan, children: Children, stop: threading.Event, l
     """Show progress until every shard has all scans; then export (and return) or serve until stopped. Restarts
     the children that end meanwhile (:meth:`Children.tend`); returns 1 when one fails past the restart cap."""
     reader = MapReader(session, plan.map_name)
-    distrusted: set[str] = set()  # the problems with the shards' stats said so far
+    warn_once = WarnOnce(log)  # (the problems with the shards' stats, said once)
     finished = False
     with tqdm(
         total=plan.scans, desc="fused (slowest shard)", unit="scan", file=sys.stderr, disable=None, mininterval=0.5
@@ -444,9 +444,7 @@ def _supervise(session, plan: Plan, children: Children, stop: threading.Event, l
                 continue
             answers = reader.answers(timeout=2.0)
             for problem in answers.problems:
-                if problem not in distrusted:
-                    distrusted.add(problem)
-                    log.warning("not trusting the shards' stats (waiting until they agree): %s", problem)
+                warn_once(f"not trusting the shards' stats (waiting until they agree): {problem}")
             stats = answers.trusted
             if len(stats) < plan.shards:
                 continue

@@ -27,10 +27,10 @@ import zenoh
 
 from schemas.messages import LaserScan, MessageError, NodeStats, ShardStats, StreamEnd, decode_message
 from services import history, keys
-from services.map_client import MapReader, replier
-from services.process import get_logger
+from services.map_client import MapReader
+from services.process import WarnOnce, get_logger
 from services.streams import Stream
-from services.zenoh_config import undeclare_all
+from services.zenoh_config import replier, undeclare_all
 
 #: the replay logs its progress this many times (at every tenth of its steps)
 PROGRESS_PARTS = 10
@@ -96,7 +96,7 @@ class Source:
         self._scans_done = 0  # scans every waited-for shard has fused or given up on
         self._steps_done = 0  # steps the SLAM node has taken or given up on
         self._reader = MapReader(session, options.map_name)
-        self._distrusted: set[str] = set()  # the problems with the shards' stats said so far
+        self._warn_once = WarnOnce(self.log)  # (the shards' and the SLAM node's stats' problems, said once)
         self._end_sent = 0.0  # time.monotonic() of the last StreamEnd published
         self._warned_beyond = False  # whether a shard holding more scans than this run published was reported
         self._unreached = 0  # steps published while the session reached no router (they went nowhere)
@@ -157,9 +157,7 @@ class Source:
         the source then waits, as for shards that do not answer, and says why once)."""
         answers = self._reader.answers()
         for problem in answers.problems:
-            if problem not in self._distrusted:
-                self._distrusted.add(problem)
-                self.log.warning("not trusting the shards' stats: %s", problem)
+            self._warn_once(f"not trusting the shards' stats: {problem}")
         return list(answers.trusted.values())
 
     def _wait_for(self, what: str, ready, stop: threading.Event) -> bool:
@@ -220,10 +218,11 @@ class Source:
                 except MessageError as exc:
                     self.log.warning("ignored a bad SLAM node stats reply: %s", exc)
         if len(done) > 1:
-            problem = f"{len(done)} processes answer as the SLAM node of robot {self.stream.robot!r}"
-            if problem not in self._distrusted:
-                self._distrusted.add(problem)
-                self.log.warning("not waiting for the SLAM node: %s (docs/security.md)", problem)
+            robot = self.stream.robot
+            self._warn_once(
+                f"not waiting for the SLAM node: {len(done)} processes answer as the SLAM node of robot {robot!r} "
+                "(docs/security.md)"
+            )
             return self._steps_published  # (as if done: the shards hold the source back)
         return next(iter(done.values()), self._steps_done)
 

@@ -399,20 +399,20 @@ def _whole(value: object, low: int, high: int | None = None) -> bool:
 # ---------------------------------------------------------------------------------------------- opening steps
 
 
-def check_store(directory: Path, identity: StoreIdentity, run_id: str | None) -> None:
+def check_store(directory: Path, identity: StoreIdentity, run_id: str | None) -> set[str]:
     """Check the store in ``directory`` as a shard of ``identity`` in run ``run_id`` would before it fuses (its
     file, SQLite's check of every page, that it is that shard's and that run's store, every tile readable and its
-    own, no other process holding the directory), writing nothing; nothing to check when there is no store yet.
-    StoreError says what is wrong: `posegrid run --resume` checks every shard's store before it starts any process
-    (a damaged store, another shard's folder or another run's stopped the run after the router and the other
-    shards had started, exit 1 with their lines and a new session in run.json)."""
+    own, no other process holding the directory), writing nothing; the sessions it holds fused or given-up scans of
+    (none when there is no store yet). StoreError says what is wrong: `posegrid run --resume` checks every shard's
+    store before it starts any process (a damaged store, another shard's folder or another run's stopped the run
+    after the router and the other shards had started, exit 1 with their lines and a new session in run.json)."""
     path = directory / DB_NAME
     if not path.exists() and not Path(f"{path}-wal").exists():
-        return
+        return set()
     lock = _lock_directory(directory)
     if not _check_file(path):
         os.close(lock)
-        return
+        return set()
     try:
         connection = _connect(path, None)
     except BaseException:
@@ -422,34 +422,15 @@ def check_store(directory: Path, identity: StoreIdentity, run_id: str | None) ->
     try:
         _check_integrity(connection, path)
         _check_meta(connection, path, identity)
-        row = connection.execute("SELECT value FROM meta WHERE key = 'run'").fetchone()
-        if run_id is not None and row is not None and row[0] != run_id:
-            raise StoreError(
-                f"the store {path} belongs to run {row[0]!r}, not to this run ({run_id!r}): another run's state was "
-                "put in its folder; restore this run's, or start the run anew"
-            )
+        if run_id is not None:
+            _refuse_another_run(path, _run_of(connection), run_id)
         for tile in connection.execute("SELECT tx, ty, robot, seq, layers FROM tiles"):
             store._tile(tile)
+        rows = connection.execute("SELECT DISTINCT session FROM robots WHERE fused + discarded > 0").fetchall()
     except sqlite3.DatabaseError as exc:
         raise StoreError(f"the store {path} cannot be read ({exc}): it is damaged") from None
     finally:
         store.close()
-
-
-def sessions_with_scans(directory: Path) -> set[str]:
-    """The sessions the store in ``directory`` holds fused or given-up scans of (none when there is no store); for a
-    store :func:`check_store` has checked. StoreError when it cannot be read."""
-    path = directory / DB_NAME
-    if not path.exists():
-        return set()
-    try:
-        db = sqlite3.connect(path, timeout=10.0)
-        try:
-            rows = db.execute("SELECT DISTINCT session FROM robots WHERE fused + discarded > 0").fetchall()
-        finally:
-            db.close()
-    except sqlite3.Error as exc:
-        raise StoreError(f"the store {path} cannot be read ({exc}): it is damaged") from None
     return {row[0] for row in rows if isinstance(row[0], str)}
 
 
@@ -568,20 +549,31 @@ def _check_meta(db: sqlite3.Connection, path: Path, identity: StoreIdentity) -> 
         )
 
 
+def _run_of(db: sqlite3.Connection) -> str | None:
+    """The `posegrid run` the store records (None: none yet)."""
+    row = db.execute("SELECT value FROM meta WHERE key = 'run'").fetchone()
+    return None if row is None else row[0]
+
+
+def _refuse_another_run(path: Path, stored: str | None, run_id: str) -> None:
+    """StoreError when the store records a run (``stored``) other than ``run_id``."""
+    if stored is not None and stored != run_id:
+        raise StoreError(
+            f"the store {path} belongs to run {stored!r}, not to this run ({run_id!r}): another run's state was "
+            "put in its folder; restore this run's, or start the run anew"
+        )
+
+
 def _check_run(db: sqlite3.Connection, path: Path, run_id: str) -> None:
     """StoreError when the store belongs to another `posegrid run` than ``run_id``; a store of none (made by a shard
     on its own, or before runs had ids) is given this one."""
     try:
-        row = db.execute("SELECT value FROM meta WHERE key = 'run'").fetchone()
-        if row is None:
+        stored = _run_of(db)
+        if stored is None:
             db.execute("INSERT INTO meta VALUES ('run', ?)", (run_id,))
     except sqlite3.Error as exc:
         raise StoreError(f"cannot write the store {path}: {exc}") from None
-    if row is not None and row[0] != run_id:
-        raise StoreError(
-            f"the store {path} belongs to run {row[0]!r}, not to this run ({run_id!r}): another run's state was "
-            "put in its folder; restore this run's, or start the run anew"
-        )
+    _refuse_another_run(path, stored, run_id)
 
 
 def _create(db: sqlite3.Connection, path: Path, identity: StoreIdentity) -> None:
