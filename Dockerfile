@@ -13,7 +13,10 @@ COPY mapping ./mapping
 COPY slam ./slam
 COPY schemas ./schemas
 COPY services ./services
-RUN pip install . && useradd --create-home posegrid
+# /var/lib/posegrid: where the mapper shards' stores go (docker-compose.yml mounts a volume there; a new volume
+# takes this folder's owner, so the shards, running as posegrid, can write it)
+RUN pip install . && useradd --create-home posegrid \
+    && mkdir -p /var/lib/posegrid && chown posegrid:posegrid /var/lib/posegrid
 USER posegrid
 
 ENTRYPOINT ["posegrid"]

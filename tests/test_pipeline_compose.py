@@ -70,3 +70,29 @@ def test_every_command_is_accepted_by_the_cli(compose, service):
         pytest.skip(f"`posegrid {command[0]}` is not part of this build yet (the {service} service needs it)")
     args = build_parser().parse_args(command)
     assert args.func is not None
+
+
+def test_each_mapper_keeps_its_store_on_a_volume_of_its_own(compose):
+    """A shard's container restarted (or the stack taken down and up) comes back with its map: its --state-dir lies
+    on a named volume that no other service mounts, in a folder the image makes for the user it runs as."""
+    services = compose["services"]
+    declared = set(compose.get("volumes") or {})
+    dockerfile = (ROOT / "Dockerfile").read_text()
+    user = re.search(r"^USER (\S+)$", dockerfile, re.M)
+    assert user is not None
+    volumes_used = []
+    for name in ("mapper0", "mapper1"):
+        command = services[name]["command"]
+        assert "--state-dir" in command, f"{name} keeps its map in memory only"
+        state_dir = command[command.index("--state-dir") + 1]
+        mounts = [m.split(":") for m in services[name].get("volumes", [])]
+        holding = [(volume, target) for volume, target, *_ in mounts if state_dir.startswith(target.rstrip("/") + "/")]
+        assert len(holding) == 1, f"{name}'s --state-dir {state_dir} is on no volume"
+        volume, target = holding[0]
+        assert volume in declared, f"{name} mounts {volume}, which is no named volume"
+        volumes_used.append(volume)
+        assert re.search(rf"mkdir -p {re.escape(target)}\b.*chown {user.group(1)}", dockerfile, re.S), target
+    assert len(set(volumes_used)) == len(volumes_used), "two shards share a volume"
+    for name, service in services.items():
+        if name not in ("mapper0", "mapper1"):
+            assert not set(m.split(":")[0] for m in service.get("volumes", [])) & set(volumes_used), name
