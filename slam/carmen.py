@@ -8,9 +8,11 @@ Record types read (one record per line, fields separated by white space, ``#`` s
 ``ROBOTLASER1|ROBOTLASER2 laser_type start_angle fov angular_resolution max_range accuracy remission_mode
 n r_1..r_n m e_1..e_m laser_x laser_y laser_theta robot_x robot_y robot_theta tv rv forward_safety
 side_safety turn_axis ipc_ts host logger_ts``
+``RAWLASER1|RAWLASER2 laser_type start_angle fov angular_resolution max_range accuracy remission_mode
+n r_1..r_n m e_1..e_m ipc_ts host logger_ts``
 
 Units are metres, radians and seconds. The stamp of a record is its ``ipc_ts`` field. Other record types
-(NEFF, TRUEPOS, SYNC, RAWLASER ...) are valid CARMEN and are passed over without comment.
+(NEFF, TRUEPOS, SYNC, RAWLASER3 ...) are valid CARMEN and are passed over without comment.
 
 Conventions this reader fixes (the old FLASER/RLASER lines carry no laser geometry):
 - a FLASER/RLASER scan spans the PARAM ``laser_<front|rear>_laser_fov`` (degrees, default 180) starting at
@@ -22,11 +24,16 @@ Conventions this reader fixes (the old FLASER/RLASER lines carry no laser geomet
 - readings at or beyond the maximum range (81.91 in many logs) mean "no return" and become ``+inf``;
 - FLASER ``x y theta`` is the pose the log states (raw logs: odometry, corrected logs: the SLAM pose) and
   ``odom_*`` the odometry; ROBOTLASER lines carry the robot pose, used as both, and the laser pose, from
-  which the sensor offset follows (median over the scans).
+  which the sensor offset follows (median over the scans);
+- RAWLASER lines carry their geometry but no pose: each scan's odometry is interpolated from the ODOM lines at its
+  stamp (linear, as a bag's; slam.laserlog), a scan without ODOM lines close around it is skipped, and the laser
+  sits where the PARAMs say, as a FLASER line's (with ``robot_<front|rear>laser_side_offset`` and
+  ``..._angular_offset`` when given).
 
-One laser is read (``laser="front"``: ROBOTLASER1 lines when the log has any, else FLASER; ``"rear"``:
-ROBOTLASER2, else RLASER). Every scan keeps its own beam count and geometry (slam.laserlog): a ROBOTLASER
-line's are its own fields, so an interlaced laser or one whose beam count changes is read in full; a
+One laser is read (``laser="front"``: ROBOTLASER1 lines when the log has any, else FLASER, else RAWLASER1;
+``"rear"``: ROBOTLASER2, else RLASER, else RAWLASER2). Every scan keeps its own beam count and geometry
+(slam.laserlog): a ROBOTLASER or RAWLASER line's are its own fields, so an interlaced laser or one whose beam count
+changes is read in full; a
 FLASER/RLASER line carries only its beam count, and its geometry follows from that count by the rules above
 (an interlaced laser's shifted starts cannot be told from such a line: its scans share one geometry). The
 laser's offset on the robot is one for the whole log (ROBOTLASER: the median over the scans, as the lines
@@ -43,7 +50,7 @@ from __future__ import annotations
 import gzip
 import math
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -51,7 +58,17 @@ import numpy as np
 
 from slam.angles import wrap_angle
 from slam.errors import LogFormatError, refuse_special_file
-from slam.laserlog import PADDING, POSE_LIMIT, LaserLog, Skipped, geometry_problem, per_scan, plausible_pose
+from slam.laserlog import (
+    PADDING,
+    POSE_LIMIT,
+    LaserLog,
+    Skipped,
+    geometry_problem,
+    interpolate_poses,
+    odometry_problem,
+    per_scan,
+    plausible_pose,
+)
 from slam.motion import compose
 
 #: maximum range assumed for FLASER/RLASER lines when no PARAM gives one (m)
@@ -59,8 +76,8 @@ DEFAULT_RANGE_MAX = 80.0
 #: field of view assumed for FLASER/RLASER lines when no PARAM gives one (deg)
 DEFAULT_FOV_DEG = 180.0
 
-_FRONT = {"old": "FLASER", "new": "ROBOTLASER1", "param": "front"}
-_REAR = {"old": "RLASER", "new": "ROBOTLASER2", "param": "rear"}
+_FRONT = {"old": "FLASER", "new": "ROBOTLASER1", "raw": "RAWLASER1", "param": "front"}
+_REAR = {"old": "RLASER", "new": "ROBOTLASER2", "raw": "RAWLASER2", "param": "rear"}
 
 
 @dataclass
@@ -68,9 +85,9 @@ class _Scan:
     line: int
     stamp: float
     ranges: list[float]
-    pose: tuple[float, float, float]
+    pose: tuple[float, float, float]  # RAWLASER: from the ODOM lines, once they are read
     odometry: tuple[float, float, float]
-    geometry: tuple[float, ...]  # ROBOTLASER: (start_angle, angular_resolution, max_range); FLASER: ()
+    geometry: tuple[float, ...]  # ROBOTLASER, RAWLASER: (start_angle, angular_resolution, max_range); FLASER: ()
     laser_pose: tuple[float, float, float] | None  # ROBOTLASER only
 
 
@@ -146,9 +163,11 @@ def _parse_flaser(tokens: list[str], line: int) -> _Scan:
     )
 
 
-def _parse_robotlaser(tokens: list[str], line: int) -> _Scan:
+def _laser_header(tokens: list[str], fields: int) -> tuple[tuple[float, float, float], int, int]:
+    """A ROBOTLASER or RAWLASER line's geometry (start_angle rad, angular_resolution rad, max_range m), its beam count
+    n and its remission count m (the line has ``fields`` fields besides the beams and remissions)."""
     if len(tokens) < 10:
-        raise _BadLine(f"has {len(tokens)} fields, a ROBOTLASER line needs at least 24")
+        raise _BadLine(f"has {len(tokens)} fields, a {tokens[0]} line needs at least {fields}")
     header = _floats(tokens[2:8], "laser parameter")
     start_angle, resolution, max_range = header[0], header[2], header[3]  # header[1], the fov, follows from n
     if not all(math.isfinite(v) for v in header[:4]) or max_range <= 0:
@@ -157,11 +176,22 @@ def _parse_robotlaser(tokens: list[str], line: int) -> _Scan:
     problem = geometry_problem(n, start_angle, resolution, 0.0, max_range)
     if problem:
         raise _BadLine(f"laser parameters unusable: {problem}")
-    if len(tokens) < n + 24:
-        raise _BadLine(f"declares {n} beams so needs at least {n + 24} fields, has {len(tokens)}")
+    if len(tokens) < n + fields:
+        raise _BadLine(f"declares {n} beams so needs at least {n + fields} fields, has {len(tokens)}")
     m = _count(tokens[9 + n], "remission count", minimum=0)
-    if len(tokens) != n + m + 24:
-        raise _BadLine(f"declares {n} beams and {m} remissions so needs {n + m + 24} fields, has {len(tokens)}")
+    if len(tokens) != n + m + fields:
+        raise _BadLine(f"declares {n} beams and {m} remissions so needs {n + m + fields} fields, has {len(tokens)}")
+    return (start_angle, resolution, max_range), n, m
+
+
+def _parse_rawlaser(tokens: list[str], line: int) -> _Scan:
+    geometry, n, m = _laser_header(tokens, 13)
+    nowhere = (math.nan, math.nan, math.nan)  # (placed by the ODOM lines: _placed_raw_scans)
+    return _Scan(line, _stamp(tokens[10 + n + m]), _ranges(tokens[9 : 9 + n]), nowhere, nowhere, geometry, None)
+
+
+def _parse_robotlaser(tokens: list[str], line: int) -> _Scan:
+    geometry, n, m = _laser_header(tokens, 24)
     at = 10 + n + m
     numbers = _floats(tokens[at : at + 6], "pose")
     robot = _pose(numbers[3:6], "robot pose")
@@ -171,7 +201,7 @@ def _parse_robotlaser(tokens: list[str], line: int) -> _Scan:
         ranges=_ranges(tokens[9 : 9 + n]),
         pose=robot,
         odometry=robot,
-        geometry=(start_angle, resolution, max_range),
+        geometry=geometry,
         laser_pose=_pose(numbers[0:3], "laser pose"),
     )
 
@@ -182,17 +212,45 @@ def _parse_odom(tokens: list[str]) -> tuple[float, tuple[float, float, float]]:
     return _stamp(tokens[7]), _pose(_floats(tokens[1:4], "pose"), "pose")
 
 
+#: the first bytes of the compressed formats a log may come in that this reader does not unpack, and how to
+#: unpack each (gzip, b"\x1f\x8b", is read as it is)
+COMPRESSED = {
+    b"BZh": ("bzip2", "bunzip2"),
+    b"\xfd7zXZ\x00": ("xz", "unxz"),
+    b"PK\x03\x04": ("zip", "unzip"),
+    b"\x28\xb5\x2f\xfd": ("zstd", "unzstd"),
+    b"7z\xbc\xaf\x27\x1c": ("7-Zip", "7z x"),
+    b"\x1f\x8b": ("gzip twice", "gunzip"),
+}
+
+
 def _open_text(path: Path):
+    """The log as text, gunzipped when it is gzip; LogFormatError when its first bytes are another compression's
+    or hold a NUL byte (not a text file)."""
     with path.open("rb") as probe:
         magic = probe.read(2)
+    try:
+        with gzip.open(path, "rb") if magic == b"\x1f\x8b" else path.open("rb") as opened:
+            head = opened.read(4096)
+    except (EOFError, zlib.error, gzip.BadGzipFile):
+        head = b""  # (a gzip that breaks off at once: the read below records it as the truncated stream)
+    for start, (what, tool) in COMPRESSED.items():
+        if head.startswith(start):
+            raise LogFormatError(f"{path}: compressed with {what}, and only gzip is read: unpack it first ({tool})")
+    if head.startswith((b"\xff\xfe", b"\xfe\xff")):
+        raise LogFormatError(f"{path}: UTF-16 text, and a CARMEN log is ASCII: save it as ASCII or UTF-8")
+    if b"\x00" in head:
+        raise LogFormatError(f"{path}: not a text file (a NUL byte in its first {len(head)} bytes), so no CARMEN log")
     if magic == b"\x1f\x8b":
         return gzip.open(path, "rt", encoding="ascii", errors="replace")
     return path.open("rt", encoding="ascii", errors="replace")
 
 
 def _scan_lines(path: Path, kinds: dict[str, str]):
-    """Parse the file; return (scans by record type, odometry records, params, skipped records)."""
-    scans: dict[str, list[_Scan]] = {kinds["old"]: [], kinds["new"]: []}
+    """Parse the file; return (scans by record type, odometry records, params, skipped records, and the count of
+    each other laser record type's lines, read as another laser's or not at all)."""
+    scans: dict[str, list[_Scan]] = {kinds["old"]: [], kinds["new"]: [], kinds["raw"]: []}
+    other_lasers: dict[str, int] = {}
     odom: list[tuple[float, tuple[float, float, float]]] = []
     params: dict[str, str] = {}
     skipped: list[Skipped] = []
@@ -209,19 +267,23 @@ def _scan_lines(path: Path, kinds: dict[str, str]):
                         scans[kind].append(_parse_flaser(tokens, line_no))
                     elif kind == kinds["new"]:
                         scans[kind].append(_parse_robotlaser(tokens, line_no))
+                    elif kind == kinds["raw"]:
+                        scans[kind].append(_parse_rawlaser(tokens, line_no))
                     elif kind == "ODOM":
                         odom.append(_parse_odom(tokens))
                     elif kind == "PARAM":
                         if len(tokens) < 3:
                             raise _BadLine("a PARAM line needs a name and a value")
                         params[tokens[1]] = tokens[2]
+                    elif "LASER" in kind:
+                        other_lasers[kind] = other_lasers.get(kind, 0) + 1
                 except _BadLine as exc:
                     skipped.append(Skipped(line_no, f"{kind}: {exc}"))
     except (EOFError, OSError, zlib.error) as exc:
         if isinstance(exc, FileNotFoundError | IsADirectoryError | PermissionError):
             raise LogFormatError(f"{path}: cannot open the log ({exc.strerror})") from None
         skipped.append(Skipped(line_no + 1, f"the compressed stream is truncated or corrupt ({exc}); reading stopped"))
-    return scans, odom, params, skipped
+    return scans, odom, params, skipped, other_lasers
 
 
 def _param_float(params: dict[str, str], name: str, default: float, path: Path) -> float:
@@ -246,8 +308,41 @@ def _flaser_geometry(params: dict[str, str], side: str, beams: int, path: Path) 
         raise LogFormatError(f"{path}: the {side} laser's resolution and maximum range must be positive")
     problem = geometry_problem(beams, -0.5 * fov, step, 0.0, range_max)
     if problem:
-        raise LogFormatError(f"{path}: the {side} laser's PARAMs give scans of {beams} beams that {problem}")
+        raise LogFormatError(f"{path}: the {side} laser's PARAMs give scans of {beams} beams, unusable: {problem}")
     return -0.5 * fov, step, range_max
+
+
+def _param_offset(params: dict[str, str], side: str, path: Path) -> np.ndarray:
+    """The laser's pose on the robot (x m, y m, yaw rad) from the PARAMs: ``robot_<side>laser_offset`` ahead,
+    ``..._side_offset`` to the left, ``..._angular_offset`` turned (0 when not given); the rear laser faces back."""
+    forward = _param_float(params, f"robot_{side}laser_offset", 0.0, path)
+    left = _param_float(params, f"robot_{side}laser_side_offset", 0.0, path)
+    turn = _param_float(params, f"robot_{side}laser_angular_offset", 0.0, path)
+    yaw = turn + (0.0 if side == "front" else math.pi)
+    return np.array([forward, left, yaw if abs(yaw) <= math.pi else wrap_angle(yaw)])
+
+
+def _placed_raw_scans(
+    scans: list[_Scan], odom: list[tuple[float, tuple[float, float, float]]], kind: str, skipped: list, path: Path
+) -> list[_Scan]:
+    """RAWLASER scans with the odometry pose interpolated from the ODOM lines at each one's stamp; a scan the
+    ODOM lines do not hold closely enough (slam.laserlog.odometry_problem) is added to ``skipped``."""
+    if not odom:
+        raise LogFormatError(
+            f"{path}: its {len(scans)} {kind} lines carry no pose, and it has no ODOM line to place them by"
+        )
+    ordered = sorted(odom, key=lambda o: o[0])
+    stamps = np.array([o[0] for o in ordered])
+    poses = np.array([o[1] for o in ordered], dtype=np.float64)
+    placed = []
+    for scan in scans:
+        problem = odometry_problem(stamps, scan.stamp)
+        if problem:
+            skipped.append(Skipped(scan.line, f"{kind}: {problem}"))
+            continue
+        pose = tuple(interpolate_poses(stamps, poses, np.array([scan.stamp]))[0].tolist())
+        placed.append(replace(scan, pose=pose, odometry=pose))
+    return placed
 
 
 def _robot_to_laser_offsets(scans: list[_Scan]) -> np.ndarray:
@@ -273,23 +368,28 @@ def read_carmen(path: str | Path, laser: str = "front") -> LaserLog:
     if not path.is_file():
         raise LogFormatError(f"{path}: no such file (expected a CARMEN log)")
     kinds = _FRONT if laser == "front" else _REAR
-    scans_by_kind, odom, params, skipped = _scan_lines(path, kinds)
-    kind = kinds["new"] if scans_by_kind[kinds["new"]] else kinds["old"]
+    scans_by_kind, odom, params, skipped, other_lasers = _scan_lines(path, kinds)
+    kind = next((kinds[k] for k in ("new", "old", "raw") if scans_by_kind[kinds[k]]), kinds["new"])
     scans = scans_by_kind[kind]
+    if kind == kinds["raw"]:
+        scans = _placed_raw_scans(scans, odom, kind, skipped, path)
     if not scans:
+        others = ", ".join(f"{count} {other} lines" for other, count in sorted(other_lasers.items()))
         raise LogFormatError(
-            f"{path}: holds no usable {laser} laser scan ({kinds['old']} or {kinds['new']} line)"
+            f"{path}: holds no usable {laser} laser scan ({kinds['new']}, {kinds['old']} or {kinds['raw']} line)"
             + (f"; first problem at line {skipped[0].where}: {skipped[0].reason}" if skipped else "")
+            + (f"; it has {others}, not read as the {laser} laser's" if others else "")
         )
     side = kinds["param"]
+    if scans[0].laser_pose is not None:
+        offset = np.median(_robot_to_laser_offsets(scans), axis=0)
+    else:
+        offset = _param_offset(params, side, path)
     if scans[0].geometry:
         geometry = np.array([s.geometry for s in scans], dtype=np.float64)
-        offset = np.median(_robot_to_laser_offsets(scans), axis=0)
     else:
         by_count = {n: _flaser_geometry(params, side, n, path) for n in {len(s.ranges) for s in scans}}
         geometry = np.array([by_count[len(s.ranges)] for s in scans], dtype=np.float64)
-        forward = _param_float(params, f"robot_{side}laser_offset", 0.0, path)
-        offset = np.array([forward, 0.0, 0.0 if side == "front" else math.pi])
     beams = np.array([len(s.ranges) for s in scans], dtype=np.int64)
     ranges = np.full((len(scans), int(beams.max())), PADDING, dtype=np.float32)
     for row, scan in zip(ranges, scans):

@@ -57,7 +57,9 @@ GeometryKey = tuple[int, float, float, float, float, float, float, float]
 def geometry_problem(beams: int, angle_min: float, angle_increment: float, range_min: float, range_max: float) -> str:
     """Why a scan of ``beams`` beams with this geometry (rad, m) is unusable in itself, or "": a value that is not
     finite, range limits outside 0 <= range_min < range_max, no beam, an increment of 0 for several beams (every
-    beam would point one way), or an angle beyond a full turn (the beams' directions lose their precision)."""
+    beam would point one way), an angle beyond a full turn (the beams' directions lose their precision), or beams
+    that sweep more than a full turn (the wire and the posed-scan files refuse them: the map would see walls twice;
+    a fan of exactly a turn, as some 360 deg scanners give, passes)."""
     values = (angle_min, angle_increment, range_min, range_max)
     if not all(math.isfinite(v) for v in values):
         return "its angle_min, angle_increment, range_min or range_max is not finite"
@@ -69,6 +71,12 @@ def geometry_problem(beams: int, angle_min: float, angle_increment: float, range
         return f"angle_increment is 0 for {beams} beams"
     if max(abs(angle_min), abs(angle_increment)) > 2 * math.pi:
         return "angle_min or angle_increment beyond a full turn"
+    span = (beams - 1) * abs(angle_increment)
+    if span > 2 * math.pi + 0.5 * abs(angle_increment):  # schemas.files.fan_past_a_turn's rule (slam cannot import it)
+        return (
+            f"{beams} beams {angle_increment:g} rad apart sweep {span:.6g} rad, more than a full turn (beams would "
+            "repeat directions)"
+        )
     return ""
 
 
@@ -105,6 +113,7 @@ class LaserLog:
     odom_poses: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # (K, 3)
     params: dict[str, str] = field(default_factory=dict)
     skipped: tuple[Skipped, ...] = ()
+    notes: tuple[str, ...] = ()  # what the reader took for granted where the log is silent, one sentence each
     unit: str = "line"  # what `where` counts: "line" or "message"
     beams: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # int64 (T,); empty: whole rows
 
@@ -173,6 +182,11 @@ class LaserLog:
     def first(self, count: int) -> LaserLog:
         """The log's first ``count`` scans (the odometry stream, parameters and skipped records kept)."""
         return self.select(slice(0, count))
+
+    def remarks(self) -> list[str]:
+        """What a command says of the log before it uses it: each note, then what was skipped (nothing when
+        nothing was)."""
+        return [f"{self.source}: {note}" for note in self.notes] + ([self.skipped_summary()] if self.skipped else [])
 
     def skipped_summary(self, limit: int = 5) -> str:
         """One sentence naming how many records were skipped, the first few places and their reasons."""

@@ -179,7 +179,9 @@ def mrclam_sequence(
     """
     if initial_pose is None:
         if run.groundtruth is None:
-            raise LogFormatError(f"robot {run.robot}: no ground truth to start from; give an initial pose (x,y,yaw)")
+            raise LogFormatError(
+                f"robot {run.robot}: no ground truth to start from; give an initial pose (--initial X,Y,YAW: m, m, rad)"
+            )
         start, initial = run.groundtruth[0, 0], run.groundtruth[0, 1:4]
     else:
         start = run.odometry[0, 0]

@@ -6,10 +6,16 @@ What is read:
   an interlaced laser, a beam count that changes and two lasers publishing on one topic are read in full;
 - odometry: ``nav_msgs/Odometry`` on the odometry topic (default: the only Odometry topic, or ``/odom``);
   without one, the ``tf2_msgs/TFMessage`` transforms on ``/tf`` whose child is the robot's base frame;
-- the laser's pose on the robot, per laser frame: the chain of ``/tf_static`` transforms from the scan's frame
-  up to the base frame (the Odometry child frame, else the root of the chain of the frame most scans have),
-  projected to (x, y, yaw). When that chain is missing for the frame most scans have, the bag is refused; a
-  scan of another frame without one is skipped.
+- the laser's pose on the robot, per laser frame: the chain of transforms from the scan's frame up to the base
+  frame, projected to (x, y, yaw). A link of the chain comes from ``/tf_static``, or from ``/tf`` when it holds
+  one pose all through the bag (ROS 1 bags, and the static publishers of old, put the mount on ``/tf``). The base
+  frame is the Odometry child frame; without an Odometry topic (or with an empty child frame) it is the child of
+  the first link up the chain that moves (the odometry's own, ``odom`` -> ``base_link``), else of the chain's
+  topmost ``/tf`` link, else the chain's root. Frame names are taken as tf2 takes them, without ROS 1's leading
+  slash. When the chain of the frame most scans have does not reach the base frame, or moves on its way there (a
+  laser on a moving joint), the bag is refused; a scan of another frame without one is skipped. A laser frame that
+  no transform names at all is taken as the base frame itself (at the robot's origin, facing forwards), and the
+  log's notes say so.
 
 Each scan's odometry pose is interpolated at the scan's header stamp between the two odometry poses around
 it (linear in x, y and unwrapped yaw; real bags publish odometry irregularly, the Intel lab's with gaps of
@@ -50,6 +56,8 @@ from slam.laserlog import (
 
 #: the file suffixes rosbags reads a bag file by: ROS 1, and ROS 2's two storage formats
 BAG_SUFFIXES = (".bag", ".mcap", ".db3")
+#: the file that makes a folder a ROS 2 bag: given itself, its folder is read
+BAG_METADATA = "metadata.yaml"
 
 #: the least range_min (m) a bag's laser gets: invalid readings are stored as 0, which must lie below it
 MIN_RANGE_FLOOR = 1e-3
@@ -74,6 +82,11 @@ def _compose(a: tuple[float, float, float], b: tuple[float, float, float]) -> tu
     return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], yaw)
 
 
+def frame_name(name: str) -> str:
+    """A tf frame's name as tf2 takes it: without the leading slash of ROS 1's names ('/laser' is 'laser')."""
+    return name.lstrip("/")
+
+
 def _pick_topic(connections, msgtype: str, wanted: str | None, usual: str, path: Path, what: str) -> str | None:
     topics = sorted({c.topic for c in connections if c.msgtype == msgtype})
     if wanted is not None:
@@ -85,7 +98,8 @@ def _pick_topic(connections, msgtype: str, wanted: str | None, usual: str, path:
     if usual in topics:
         return usual
     if topics:
-        raise LogFormatError(f"{path}: has several {what} topics {topics}; name one")
+        option = "with --scan-topic" if msgtype == LASER_SCAN else f"or publish it as {usual}"
+        raise LogFormatError(f"{path}: has several {what} topics {topics}; name one ({option})")
     return None
 
 
@@ -93,9 +107,11 @@ def open_bag(path: Path):
     from rosbags.highlevel import AnyReader, AnyReaderError
     from rosbags.typesys import Stores, get_typestore
 
+    if path.name == BAG_METADATA and path.is_file():
+        path = path.parent
     if not path.exists():
         raise LogFormatError(f"{path}: no such file or bag folder (expected a ROS 1 .bag or a ROS 2 bag)")
-    if path.is_dir() and not (path / "metadata.yaml").exists():
+    if path.is_dir() and not (path / BAG_METADATA).exists():
         raise LogFormatError(
             f"{path}: a folder without metadata.yaml, so not a ROS 2 bag (expected a ROS 1 .bag "
             "file or a ROS 2 bag folder)"
@@ -166,6 +182,7 @@ class _Decoded:
     tf_dynamic: list[tuple[float, str, str, tuple[float, float, float]]] = field(default_factory=list)
     tf_static: dict[str, tuple[str, tuple[float, float, float]]] = field(default_factory=dict)  # child: parent, pose
     skipped: list[Skipped] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
 
 
 def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hold) -> LaserLog:
@@ -176,7 +193,7 @@ def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hol
         refused = [s.reason for s in got.skipped if s.reason.startswith(f"{scan_topic}:")]
         why = f" (the first: {refused[0]})" if refused else ""
         raise LogFormatError(f"{path}: no usable scan on {scan_topic}{why}")
-    mounts, base_frame = _laser_mounts(got, got.odom[0][2] if got.odom else None, path)
+    mounts, base_frame = _laser_mounts(got, (got.odom[0][2] or None) if got.odom else None, path)
     odom_stamps, odom_poses = _odometry(got, odom_topic, base_frame, path)
     kept = _kept_scans(got, mounts, odom_stamps, scan_topic, max_odom_gap, max_odom_hold)
     if not kept:
@@ -184,7 +201,7 @@ def _read(reader, path: Path, scan_topic, odom_topic, max_odom_gap, max_odom_hol
             f"{path}: no scan on {scan_topic} has odometry around its stamp ({got.skipped[-1].reason})"
         )
     got.skipped.sort(key=lambda s: s.where)
-    return _laser_log(path, kept, mounts, odom_stamps, odom_poses, got.skipped)
+    return _laser_log(path, kept, mounts, odom_stamps, odom_poses, got.skipped, got.notes)
 
 
 def _select(connections, path: Path, scan_topic: str | None, odom_topic: str | None) -> tuple[str, str | None, list]:
@@ -194,7 +211,7 @@ def _select(connections, path: Path, scan_topic: str | None, odom_topic: str | N
         raise LogFormatError(f"{path}: has no sensor_msgs/LaserScan topic")
     odom_topic = _pick_topic(connections, ODOMETRY, odom_topic, "/odom", path, "Odometry")
     tf_topics = {c.topic for c in connections if c.msgtype == TF_MESSAGE}
-    wanted = {scan_topic, odom_topic, "/tf_static"} | ({"/tf"} if odom_topic is None else set())
+    wanted = {scan_topic, odom_topic, "/tf_static", "/tf"}  # (/tf: the odometry without a topic, or a mount)
     selected = [c for c in connections if c.topic in wanted and (c.topic not in tf_topics or c.msgtype == TF_MESSAGE)]
     if odom_topic is None and "/tf" not in tf_topics:
         raise LogFormatError(f"{path}: has neither a nav_msgs/Odometry topic nor /tf transforms for odometry")
@@ -234,7 +251,7 @@ def _add_scan(got: _Decoded, number: int, msg, topic: str) -> None:
     if problem:
         got.skipped.append(Skipped(number, f"{topic}: {problem}"))
         return
-    got.scans.append((number, stamp, ranges, (*geometry, msg.header.frame_id)))
+    got.scans.append((number, stamp, ranges, (*geometry, frame_name(msg.header.frame_id))))
 
 
 def _add_odometry(got: _Decoded, number: int, msg, topic: str) -> None:
@@ -246,7 +263,7 @@ def _add_odometry(got: _Decoded, number: int, msg, topic: str) -> None:
         reason = f"{topic}: non-finite stamp, or a pose not finite or beyond +-{POSE_LIMIT:g} m"
         got.skipped.append(Skipped(number, reason))
         return
-    got.odom.append((stamp, pose, msg.child_frame_id))
+    got.odom.append((stamp, pose, frame_name(msg.child_frame_id)))
 
 
 def _add_transforms(got: _Decoded, number: int, msg, topic: str) -> None:
@@ -254,13 +271,14 @@ def _add_transforms(got: _Decoded, number: int, msg, topic: str) -> None:
     for tf in msg.transforms:
         t, q = tf.transform.translation, tf.transform.rotation
         pose = (float(t.x), float(t.y), quaternion_yaw(q))
+        parent, child = frame_name(tf.header.frame_id), frame_name(tf.child_frame_id)
         if not plausible_pose(pose):
-            link = f"{tf.header.frame_id}->{tf.child_frame_id}"
+            link = f"{parent}->{child}"
             got.skipped.append(Skipped(number, f"{topic}: transform {link} not finite or beyond +-{POSE_LIMIT:g} m"))
         elif topic == "/tf_static":
-            got.tf_static[tf.child_frame_id] = (tf.header.frame_id, pose)
+            got.tf_static[child] = (parent, pose)
         else:
-            got.tf_dynamic.append((header_stamp(tf.header), tf.header.frame_id, tf.child_frame_id, pose))
+            got.tf_dynamic.append((header_stamp(tf.header), parent, child, pose))
 
 
 def _laser_mounts(
@@ -274,17 +292,94 @@ def _laser_mounts(
     for scan in got.scans:
         counts[scan[3][4]] = counts.get(scan[3][4], 0) + 1
     frames = sorted(counts, key=lambda frame: -counts[frame])  # (a stable sort: ties keep their first sighting)
+    links = frame_links(got.tf_static, got.tf_dynamic)
     try:
-        main, base_frame = static_chain(got.tf_static, frames[0], base_frame)
+        main, base_frame = mount_chain(links, frames[0], base_frame)
     except LogFormatError as exc:
         raise LogFormatError(f"{path}: {exc}") from None
     mounts: dict[str, tuple[float, float, float] | str] = {frames[0]: main}
     for frame in frames[1:]:
         try:
-            mounts[frame] = static_chain(got.tf_static, frame, base_frame)[0]
+            mounts[frame] = mount_chain(links, frame, base_frame)[0]
         except LogFormatError as exc:
             mounts[frame] = str(exc)
+    for frame in frames:
+        if frame != base_frame and frame not in links and not isinstance(mounts[frame], str):
+            got.notes.append(
+                f"no transform names the laser frame '{frame}' (on /tf_static or /tf): its scans are taken as "
+                f"seen from the origin of the robot's base frame '{base_frame}', facing forwards"
+            )
     return mounts, base_frame
+
+
+#: a /tf link whose poses all lie this close to its first (m, and rad for the yaw) is a fixed mount
+FIXED_LINK = 1e-6
+
+#: what a frame's link to its parent is: from /tf_static, fixed on /tf (one pose all through), or moving on /tf
+STATIC, FIXED, MOVING = "static", "fixed", "moving"
+
+#: a frame's link: (parent, pose (x m, y m, yaw rad) of the child in the parent, kind)
+Link = tuple[str, tuple[float, float, float], str]
+
+
+def frame_links(tf_static: dict, tf_dynamic: list) -> dict[str, Link]:
+    """Each child frame's link to its parent (:data:`Link`): from /tf_static (``tf_static``: child -> (parent,
+    pose)), else from /tf (``tf_dynamic``: (stamp, parent, child, pose) records), the child's parent seen most
+    often there, FIXED when all those poses lie within FIXED_LINK of the first, else MOVING."""
+    records: dict[tuple[str, str], list[tuple[float, float, float]]] = {}
+    for _stamp, parent, child, pose in tf_dynamic:
+        records.setdefault((child, parent), []).append(pose)
+    links: dict[str, Link] = {}
+    for (child, parent), poses in sorted(records.items(), key=lambda item: -len(item[1])):
+        if child in links:
+            continue  # (a frame has one parent in tf: its most frequent one is kept)
+        spread = np.abs(np.array(poses) - np.array(poses[0]))
+        spread[:, 2] = np.abs((spread[:, 2] + math.pi) % (2.0 * math.pi) - math.pi)
+        links[child] = (parent, poses[0], MOVING if spread.max() > FIXED_LINK else FIXED)
+    for child, (parent, pose) in tf_static.items():
+        links[child] = (parent, pose, STATIC)
+    return links
+
+
+def mount_chain(
+    links: dict[str, Link], laser_frame: str, base_frame: str | None
+) -> tuple[tuple[float, float, float], str]:
+    """The laser's pose (x m, y m, yaw rad) in the base frame, composed from the links (:func:`frame_links`) up
+    from ``laser_frame``, and the base frame's name: ``base_frame``, or when that is None the child of the first
+    MOVING link up the chain (the odometry's), else of its topmost FIXED link, else the chain's root.
+
+    Raises :class:`LogFormatError` when the chain does not reach ``base_frame`` or has a MOVING link below it. A
+    laser frame with no link at all is taken to be the base frame itself (zero offset)."""
+    chain: list[tuple[str, Link]] = []  # (child, its link) up from the laser
+    frame, seen = laser_frame, {laser_frame}
+    while frame != base_frame and frame in links:
+        chain.append((frame, links[frame]))
+        frame = links[frame][0]
+        if frame in seen:
+            break
+        seen.add(frame)
+    if base_frame is None:
+        kinds = [link[2] for _child, link in chain]
+        on_tf = [i for i, kind in enumerate(kinds) if kind != STATIC]
+        top = kinds.index(MOVING) if MOVING in kinds else (on_tf[-1] if on_tf else len(chain))
+        base_frame = chain[top][0] if top < len(chain) else frame
+        chain = chain[:top]
+    elif frame != base_frame:
+        if not chain:
+            return (0.0, 0.0, 0.0), base_frame
+        raise LogFormatError(
+            f"no chain of transforms (/tf_static, or fixed on /tf) links the laser frame '{laser_frame}' to the "
+            f"odometry frame '{base_frame}'"
+        )
+    pose = (0.0, 0.0, 0.0)
+    for child, (parent, link, kind) in chain:
+        if kind == MOVING:
+            raise LogFormatError(
+                f"the transform from '{parent}' to '{child}' on /tf, between the laser frame '{laser_frame}' and the "
+                f"odometry frame '{base_frame}', moves during the bag: a laser on a moving joint is not read"
+            )
+        pose = _compose(link, pose)
+    return pose, base_frame
 
 
 def _odometry(got: _Decoded, odom_topic: str | None, base_frame: str, path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -327,10 +422,11 @@ def _laser_log(
     odom_stamps: np.ndarray,
     odom_poses: np.ndarray,
     skipped: list[Skipped],
+    notes: list[str],
 ) -> LaserLog:
     """The LaserLog of the kept scans, each with its own geometry (angle_min, angle_increment, range_min,
     range_max, frame) and its frame's pose on the robot (``mounts``); ranges cleaned as the module docstring
-    says."""
+    says; ``notes``: what the reader took for granted."""
     beams = np.array([k[2].size for k in kept], dtype=np.int64)
     ranges = np.full((len(kept), int(beams.max())), PADDING, dtype=np.float32)
     for row, scan in zip(ranges, kept):
@@ -356,6 +452,7 @@ def _laser_log(
         odom_stamps=odom_stamps,
         odom_poses=odom_poses,
         skipped=tuple(skipped),
+        notes=tuple(notes),
         unit="message",
         beams=beams,
     )
@@ -383,25 +480,7 @@ def wire_scan_problem(
 
 
 def static_chain(tf_static: dict, laser_frame: str, base_frame: str | None) -> tuple[tuple[float, float, float], str]:
-    """The laser's pose in the base frame from the static transforms, and the base frame's name.
-
-    Walks parent links from ``laser_frame`` until ``base_frame`` (or, when that is None, the chain's root).
-    A laser frame with no static parent is taken to be the base frame itself (zero offset).
-    """
-    pose = (0.0, 0.0, 0.0)
-    if laser_frame not in tf_static:
-        return pose, laser_frame if base_frame is None else base_frame
-    frame = laser_frame
-    seen = {frame}
-    while frame != base_frame and frame in tf_static:
-        parent, link = tf_static[frame]
-        pose = _compose(link, pose)
-        frame = parent
-        if frame in seen:
-            break
-        seen.add(frame)
-    if base_frame is not None and frame != base_frame:
-        raise LogFormatError(
-            f"no /tf_static chain links the laser frame '{laser_frame}' to the odometry frame '{base_frame}'"
-        )
-    return pose, frame
+    """The laser's pose in the base frame from the static transforms alone (``tf_static``: child -> (parent,
+    pose)), and the base frame's name (when ``base_frame`` is None, the chain's root): :func:`mount_chain`. A laser
+    frame with no static parent is taken to be the base frame itself (zero offset)."""
+    return mount_chain(frame_links(tf_static, []), laser_frame, base_frame)

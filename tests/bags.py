@@ -54,7 +54,7 @@ class BagBuilder:
         )
         self.items.append((topic, "sensor_msgs/msg/LaserScan", stamp, msg))
 
-    def odom(self, stamp, x, y, yaw, topic="/odom"):
+    def odom(self, stamp, x, y, yaw, topic="/odom", child="base_link"):
         t = self._t
         pose = t("geometry_msgs/msg/Pose")(
             position=t("geometry_msgs/msg/Point")(x=x, y=y, z=0.0), orientation=self.quat(yaw)
@@ -62,7 +62,7 @@ class BagBuilder:
         zero3 = t("geometry_msgs/msg/Vector3")(x=0.0, y=0.0, z=0.0)
         msg = t("nav_msgs/msg/Odometry")(
             header=self.header(stamp, "odom"),
-            child_frame_id="base_link",
+            child_frame_id=child,
             pose=t("geometry_msgs/msg/PoseWithCovariance")(pose=pose, covariance=np.zeros(36)),
             twist=t("geometry_msgs/msg/TwistWithCovariance")(
                 twist=t("geometry_msgs/msg/Twist")(linear=zero3, angular=zero3), covariance=np.zeros(36)

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import bz2
 import gzip
+import lzma
 import math
 from pathlib import Path
 
@@ -197,6 +199,25 @@ def test_unusable_inputs_raise_log_format_error(tmp_path):
         read_carmen(tmp_path / "binary.clf")
 
 
+@pytest.mark.parametrize(
+    ("pack", "said"),
+    [
+        (bz2.compress, r"compressed with bzip2, and only gzip is read: unpack it first \(bunzip2\)"),
+        (lzma.compress, r"compressed with xz, .* \(unxz\)"),
+        (lambda data: gzip.compress(gzip.compress(data)), r"compressed with gzip twice, .* \(gunzip\)"),
+        (lambda data: data.decode().encode("utf-16"), "UTF-16 text, and a CARMEN log is ASCII"),
+        (lambda data: data[:40] + bytes(range(256)), r"not a text file \(a NUL byte in its first 296 bytes\)"),
+    ],
+)
+def test_a_log_in_a_form_not_read_says_what_it_is(tmp_path, pack, said):
+    """A log compressed with another tool than gzip, compressed twice, in UTF-16 or not text at all is named as
+    what it is (with how to unpack it), not as a log without laser lines."""
+    path = tmp_path / "log.clf"
+    path.write_bytes(pack((GOOD_FLASER + "\n").encode()))
+    with pytest.raises(LogFormatError, match=f"^{path}: {said}"):
+        read_carmen(path)
+
+
 def test_odom_stream_kept_in_file_order(tmp_path):
     lines = ["ODOM 1 2 0.5 0 0 0 10.0 h 10.0", GOOD_FLASER, "ODOM 3 4 0.6 0 0 0 0 h 0"]
     log = read_carmen(write(tmp_path, lines))
@@ -339,3 +360,36 @@ def test_a_scan_with_a_non_finite_stamp_is_skipped(tmp_path):
     log = read_carmen(write(tmp_path, lines))
     assert log.where.tolist() == [1]
     assert [(s.where, "timestamp is not finite" in s.reason) for s in log.skipped] == [(2, True), (3, True)]
+
+
+def test_rawlaser_lines_are_placed_by_the_odom_lines(tmp_path):
+    """A log of RAWLASER1 and ODOM lines only (the laser and the base logged apart): each scan keeps its own geometry,
+    takes the odometry interpolated at its stamp, and the laser sits where the PARAMs put it; a scan beyond the
+    odometry's span is skipped with the reason."""
+    raw = "RAWLASER1 0 -1.5 3.0 0.5 20.0 0.01 0 {n} {ranges} 0 {stamp} host {stamp}"
+    lines = [
+        "PARAM robot_frontlaser_offset 0.25 0 host 0",
+        "PARAM robot_frontlaser_side_offset -0.05 0 host 0",
+        *(f"ODOM {t} 0 {0.1 * t} 0 0 0 {t} host {t}" for t in range(4)),
+        raw.format(n=7, ranges=" ".join(["2.0"] * 7), stamp=0.5),
+        raw.format(n=7, ranges="1 2 3 4 5 6 25", stamp=1.25),
+        raw.replace("-1.5 3.0", "-1.25 2.5").format(n=6, ranges=" ".join(["3.0"] * 6), stamp=2.5),
+        raw.format(n=7, ranges=" ".join(["2.0"] * 7), stamp=9.0),
+    ]
+    log = read_carmen(write(tmp_path, lines))
+    assert log.where.tolist() == [7, 8, 9]
+    np.testing.assert_allclose(log.odometry, [[0.5, 0, 0.05], [1.25, 0, 0.125], [2.5, 0, 0.25]], atol=1e-12)
+    np.testing.assert_allclose(log.poses, log.odometry)
+    np.testing.assert_allclose(log.sensor_offset, [[0.25, -0.05, 0.0]] * 3)
+    assert log.beams.tolist() == [7, 7, 6] and log.angle_min.tolist() == [-1.5, -1.5, -1.25]
+    assert log.ranges[1, 6] == np.inf  # (beyond the 20 m maximum: no return)
+    ((where, reason),) = [(s.where, s.reason) for s in log.skipped]
+    assert where == 10 and "RAWLASER1: 6 s outside the odometry's time span" in reason
+    with pytest.raises(LogFormatError, match="its 1 RAWLASER1 lines carry no pose, and it has no ODOM line"):
+        read_carmen(write(tmp_path, [raw.format(n=1, ranges="2.0", stamp=0.5)], name="noodom.clf"))
+
+
+def test_a_log_of_another_lasers_lines_only_says_which_it_has(tmp_path):
+    lines = ["RLASER 3 1.0 2.0 3.0 0.1 0.2 0.3 1.1 1.2 1.3 100.5 host 0.5"] * 2
+    with pytest.raises(LogFormatError, match=r"no usable front laser scan .*; it has 2 RLASER lines, not read as the"):
+        read_carmen(write(tmp_path, lines))

@@ -503,6 +503,19 @@ def test_odometry_stamps_in_bursts_are_read_as_they_are_by_default_and_refused_f
     assert "scans come in bursts" in capsys.readouterr().err
 
 
+def test_an_odometry_stream_that_goes_back_in_time_is_said_when_the_delay_is_left_at_0(simulated_log, tmp_path, capsys):
+    path, _run = simulated_log
+    log = read_carmen(path).first(40)
+    backwards = tmp_path / "back.clf"
+    write_carmen_scans(backwards, log)
+    with backwards.open("a") as out:
+        for t, (x, y, yaw) in zip(log.stamps[::-1], log.odometry[::-1]):
+            out.write(f"ODOM {x:.6f} {y:.6f} {yaw:.6f} 0 0 0 {t:.6f} sim {t:.6f}\n")
+    argv = ["slam", "--algo", "gridslam", str(backwards), "-o", str(tmp_path / "o.npz"), "--particles", "2"]
+    assert main(argv + ["--particle-cap", "2"]) == 0
+    assert "odometry delay 0 s (not estimated: " in capsys.readouterr().err
+
+
 def test_a_scan_without_usable_beams_inserts_nothing():
     # every beam unused (NaN: shorter than the minimum range) once crashed the kernel sizing its ray buffer
     maps = TileMaps(1, RES, tile_cells=8)

@@ -95,4 +95,4 @@ def test_each_mapper_keeps_its_store_on_a_volume_of_its_own(compose):
     assert len(set(volumes_used)) == len(volumes_used), "two shards share a volume"
     for name, service in services.items():
         if name not in ("mapper0", "mapper1"):
-            assert not set(m.split(":")[0] for m in service.get("volumes", [])) & set(volumes_used), name
+            assert not {m.split(":")[0] for m in service.get("volumes", [])} & set(volumes_used), name

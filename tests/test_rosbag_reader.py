@@ -120,8 +120,77 @@ def test_a_laser_frame_not_linked_to_the_odometry_is_an_error_naming_the_bag(tmp
     bag.odom(1.0, 1.0, 0.0, 0.0)
     bag.scan(0.5, [1.0, 2.0, 3.0])
     path = bag.write(tmp_path / "a.bag")
-    with pytest.raises(LogFormatError, match=f"^{path}: no /tf_static chain links the laser frame 'laser'"):
+    with pytest.raises(LogFormatError, match=f"^{path}: no chain of transforms .* links the laser frame 'laser'"):
         read_rosbag(path)
+
+
+REAR = (0.3, 0.0, math.pi)  # a laser 0.3 m ahead of the base, facing backwards
+
+
+def moving_robot(bag: BagBuilder, odometry_on_tf: bool = False, child: str = "base_link") -> None:
+    """Odometry at t = 0 .. 3 s, 1 m/s along x, and scans at 0.5, 1.5, 2.5 s in frame 'laser'."""
+    for t in range(4):
+        if odometry_on_tf:
+            bag.tf(float(t), "odom", child, float(t), 0.0, 0.0)
+        else:
+            bag.odom(float(t), float(t), 0.0, 0.0, child=child)
+    for t in (0.5, 1.5, 2.5):
+        bag.scan(t, [1.0, 2.0, 3.0])
+
+
+def check_rear_mount(log, notes=()):
+    np.testing.assert_allclose(log.odometry, [[0.5, 0.0, 0.0], [1.5, 0.0, 0.0], [2.5, 0.0, 0.0]], atol=1e-12)
+    np.testing.assert_allclose(np.abs(log.sensor_offset), [np.abs(REAR)] * 3, atol=1e-12)
+    assert log.notes == notes
+
+
+@pytest.mark.parametrize("odometry_on_tf", [False, True])
+def test_a_mount_published_fixed_on_tf_is_the_lasers_pose(tmp_path, odometry_on_tf):
+    """ROS 1 bags (static_transform_publisher of old) carry the mount on /tf, again and again, with no /tf_static:
+    that fixed link is the laser's pose on the robot, whether the odometry comes from a topic or from /tf itself
+    (the moving odom -> base_link link; the mount's child is not the robot's base)."""
+    bag = BagBuilder()
+    moving_robot(bag, odometry_on_tf)
+    for t in (0.2, 1.2, 2.2):
+        bag.tf(t, "base_link", "laser", *REAR)
+    check_rear_mount(read_rosbag(bag.write(tmp_path / "a.bag")))
+
+
+def test_frame_names_with_ros1s_leading_slash_are_tf2s_names(tmp_path):
+    bag = BagBuilder()
+    bag.tf(0.0, "/base_link", "laser", *REAR, topic="/tf_static")
+    for t in range(4):
+        bag.odom(float(t), float(t), 0.0, 0.0, child="/base_link")
+    for t in (0.5, 1.5, 2.5):
+        bag.scan(t, [1.0, 2.0, 3.0], frame="/laser")
+    check_rear_mount(read_rosbag(bag.write(tmp_path / "a.bag")))
+
+
+def test_odometry_with_no_child_frame_takes_the_root_of_the_lasers_chain(tmp_path):
+    bag = BagBuilder()
+    bag.tf(0.0, "base_link", "laser", *REAR, topic="/tf_static")
+    moving_robot(bag, child="")
+    check_rear_mount(read_rosbag(bag.write(tmp_path / "a.bag")))
+
+
+def test_a_laser_on_a_moving_joint_is_refused(tmp_path):
+    bag = BagBuilder()
+    moving_robot(bag)
+    for i, t in enumerate((0.2, 1.2, 2.2)):
+        bag.tf(t, "base_link", "laser", 0.3, 0.0, 0.1 * i)  # a pan unit
+    path = bag.write(tmp_path / "a.bag")
+    with pytest.raises(LogFormatError, match=r"from 'base_link' to 'laser' on /tf, .* moves during the bag"):
+        read_rosbag(path)
+
+
+def test_a_laser_frame_no_transform_names_is_taken_at_the_base_and_noted(tmp_path):
+    bag = BagBuilder()
+    moving_robot(bag)
+    log = read_rosbag(bag.write(tmp_path / "a.bag"))
+    assert log.sensor_offset.tolist() == [[0.0, 0.0, 0.0]] * 3
+    (note,) = log.notes
+    assert "no transform names the laser frame 'laser'" in note and "'base_link'" in note
+    assert log.remarks() == [f"{log.source}: {note}"]
 
 
 @pytest.mark.parametrize("name", ["a.BAG", "a", "a.bag.active"])
@@ -135,6 +204,17 @@ def test_a_ros2_storage_file_alone_is_read(tmp_path):
     folder = standard_bag(ros2=True).write(tmp_path / "bag2")
     (storage,) = [p for p in folder.iterdir() if p.suffix in (".db3", ".mcap")]
     check_standard(read_rosbag(storage))
+
+
+def test_the_commands_read_a_ros2_storage_file_or_metadata_yaml_as_the_bag(tmp_path):
+    """`posegrid slam`, `eval-relations` and the replay read a log through read_log: a ROS 2 storage file (.db3,
+    .mcap) or the bag's metadata.yaml given alone is the bag, not a CARMEN log without laser lines."""
+    from services.commands.logs import read_log
+
+    folder = standard_bag(ros2=True).write(tmp_path / "bag2")
+    (storage,) = [p for p in folder.iterdir() if p.suffix in (".db3", ".mcap")]
+    check_standard(read_log(storage))
+    check_standard(read_log(folder / "metadata.yaml"))
 
 
 def test_a_bag_whose_scans_are_all_refused_says_why(tmp_path):

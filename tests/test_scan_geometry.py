@@ -10,13 +10,15 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from bags import BagBuilder
 from mapping.fusion import MonteCarloFusion
 from mapping.grid import TiledGrid
 from mapping.sensor_model import SensorModel
 from schemas.errors import FormatError
-from schemas.files import PosedScans, PoseSet, load_map, load_posed_scans, save_posed_scans
+from schemas.files import PosedScans, PoseSet, fan_past_a_turn, load_map, load_posed_scans, save_posed_scans
 from schemas.messages import LaserScan, PoseSamples, decode_message
 from services.cli import main
 from services.process import RejectCounter
@@ -24,8 +26,9 @@ from services.state.shard import MapShard, ShardConfig
 from services.streams import laser_log_stream, posed_stream
 from slam.angles import wrap_angle
 from slam.carmen import read_carmen, write_carmen
+from slam.errors import LogFormatError
 from slam.gridslam import GridSlamConfig, run_gridslam
-from slam.laserlog import LaserLog
+from slam.laserlog import LaserLog, geometry_problem
 from slam.raycast import cast_rays
 from slam.rosbag_reader import read_rosbag
 from slam.simulator import simulate_office
@@ -121,7 +124,7 @@ def test_a_beam_count_that_changes_mid_bag_loses_no_scan(tmp_path):
 def test_two_lasers_on_one_topic_are_read_in_full_each_with_its_mount(tmp_path):
     """A front laser (181 beams, 30 m) and a rear one facing backwards (360 beams, 10 m) publish on /scan in turn:
     every scan is read, with its own geometry and its own frame's pose on the robot. A third frame that no
-    /tf_static chain places on the robot cannot be used: its scans are skipped, with the reason."""
+    chain of transforms places on the robot cannot be used: its scans are skipped, with the reason."""
     bag = BagBuilder()
     bag.tf(0.0, "base_link", "front", 0.2, 0.0, 0.0, topic="/tf_static")
     bag.tf(0.0, "base_link", "rear", -0.2, 0.05, math.pi, topic="/tf_static")
@@ -151,7 +154,10 @@ def test_two_lasers_on_one_topic_are_read_in_full_each_with_its_mount(tmp_path):
     bag.scan(0.2, scan_values(0, 3), frame="mast")  # message-wise between the first two scans
     log = read_rosbag(bag.write(tmp_path / "two.bag"))
     assert len(log) == 20
-    unlinked = "/scan: no /tf_static chain links the laser frame 'mast' to the odometry frame 'base_link'"
+    unlinked = (
+        "/scan: no chain of transforms (/tf_static, or fixed on /tf) links the laser frame 'mast' to the odometry "
+        "frame 'base_link'"
+    )
     assert [s.reason for s in log.skipped] == [unlinked]
     front, rear = log.beams[::2], log.beams[1::2]
     assert front.tolist() == [181] * 10 and rear.tolist() == [360] * 10
@@ -179,6 +185,50 @@ def test_a_scan_unusable_in_itself_is_skipped_and_counted_with_its_reason(tmp_pa
     assert "non-finite stamp or geometry" in reasons[5]
     assert "beyond a full turn" in reasons[7]
     assert "skipped 3 messages" in log.skipped_summary()
+
+
+def test_beams_that_sweep_past_a_turn_are_skipped_by_the_readers_as_the_wire_refuses_them(tmp_path):
+    """A scan whose beams sweep more than a full turn is refused by the wire and the posed-scan files: a reader that
+    kept it would stop a replay in the middle (the source could not publish it) and write files `fuse` refuses. The
+    bag reader skips it with its reason, a ROBOTLASER line is skipped, and FLASER PARAMs that give such scans are
+    refused; every scan kept encodes."""
+    bag = BagBuilder()
+    for k in range(4):
+        bag.odom(float(k), float(k), 0.0, 0.0)
+    bag.scan(0.5, np.ones(400), angle_min=-3.0, increment=0.01)  # message 2: 3.99 rad
+    bag.scan(1.5, np.ones(400), angle_min=-3.0, increment=0.02)  # message 4: 7.98 rad
+    bag.scan(2.5, np.ones(361), angle_min=-math.pi, increment=2 * math.pi / 360)  # message 6: exactly a turn
+    log = read_rosbag(bag.write(tmp_path / "a.bag"))
+    assert log.where.tolist() == [2, 6]
+    ((where, reason),) = [(s.where, s.reason) for s in log.skipped]
+    assert where == 4 and "400 beams 0.02 rad apart sweep 7.98 rad, more than a full turn" in reason
+    for step in laser_log_stream(log, "r").steps:
+        for message in step.messages:
+            message.encode()
+    clf = tmp_path / "fan.clf"
+    clf.write_text(
+        "ROBOTLASER1 0 -3 7.98 0.02 30 0.01 0 400 "
+        + "1 " * 400
+        + "0 0 0 0 0 0 0 0 0 0 0 0 1.5 host 1.5\n"
+        + "ROBOTLASER1 0 -1 2 1 30 0.01 0 3 1 1 1 0 0 0 0 0 0 0 0 0 0 0 0 2.5 host 2.5\n"
+    )
+    carmen = read_carmen(clf)
+    assert carmen.where.tolist() == [2] and "sweep 7.98 rad, more than a full turn" in carmen.skipped[0].reason
+    clf.write_text("PARAM laser_front_laser_resolution 1.5 nohost 0\nFLASER 361 " + "1 " * 361 + "0 0 0 0 0 0 1 h 1\n")
+    with pytest.raises(LogFormatError, match=r"PARAMs give scans of 361 beams, unusable: .* sweep 9\.42478 rad"):
+        read_carmen(clf)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    beams=st.integers(1, 5000),
+    increment=st.floats(-2 * math.pi, 2 * math.pi, allow_nan=False).filter(lambda v: v != 0.0),
+)
+def test_the_readers_fan_rule_is_the_files_and_the_wires(beams, increment):
+    """slam cannot import schemas, so slam.laserlog states schemas.files.fan_past_a_turn's rule again: the same
+    verdict for any beam count and increment."""
+    refused = "more than a full turn" in geometry_problem(beams, 0.0, increment, 0.0, 10.0)
+    assert refused == bool(fan_past_a_turn(beams, increment))
 
 
 # ------------------------------------------------------------------------------------------------ files

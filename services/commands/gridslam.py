@@ -297,8 +297,8 @@ def _untimeable(log) -> tuple[str, bool]:
 
     try:
         check_odometry_stream(log)
-    except LogFormatError as exc:
-        return str(exc), False
+    except LogFormatError as exc:  # (a stream that goes back in time is said; none at all needs no saying)
+        return str(exc), len(log.odom_stamps) > 0
     problem = bursty_stamps(log.stamps, log.odom_stamps)
     return (f"{log.source}: {problem}" if problem else ""), True
 
@@ -416,8 +416,8 @@ def _prepared_log(args: argparse.Namespace, config):
         log = log.first(args.scans)
     _check_log(log, config)
     log, delay = _apply_odometry_delay(args, log, config)
-    if log.skipped:  # (after the delay, which skips the scans it leaves without odometry)
-        print(f"posegrid slam: note: {log.skipped_summary()}", file=sys.stderr)
+    for remark in log.remarks():  # (after the delay, which skips the scans it leaves without odometry)
+        print(f"posegrid slam: note: {remark}", file=sys.stderr)
     _check_log(log, config)
     return log, delay
 

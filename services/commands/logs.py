@@ -12,8 +12,8 @@ import numpy as np
 from services.commands.argtypes import check_outputs, finite_float, path_argument
 from services.commands.options import add_choice, add_command
 
-#: file suffixes (in any case) read as pose .npz files; a .bag file or a folder is a ROS bag; anything else a
-#: CARMEN log
+#: file suffixes (in any case) read as pose .npz files; a bag file (.bag, .mcap, .db3), a folder or a
+#: metadata.yaml is a ROS bag; anything else a CARMEN log
 NPZ_SUFFIXES = (".npz",)
 
 
@@ -53,16 +53,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def read_log(path: Path, scan_topic: str | None = None):
-    """A laser log from a ROS bag (a .bag file or a bag folder; ``scan_topic``: its LaserScan topic, default
-    the only one or /scan) or a CARMEN log (anything else but a .npz file); suffixes in any case."""
+    """A laser log from a ROS bag (a .bag file, a bag folder, its metadata.yaml or a ROS 2 storage file, .mcap or
+    .db3; ``scan_topic``: its LaserScan topic, default the only one or /scan) or a CARMEN log (anything else but a
+    .npz file); suffixes in any case."""
     from slam.carmen import read_carmen
     from slam.errors import LogFormatError
-    from slam.rosbag_reader import read_rosbag
+    from slam.rosbag_reader import BAG_METADATA, BAG_SUFFIXES, read_rosbag
 
     suffix = path.suffix.lower()
     if suffix in NPZ_SUFFIXES:
         raise LogFormatError(f"{path}: a .npz file, not a laser log (expected a CARMEN log .clf/.log/.gz or a ROS bag)")
-    if path.is_dir() or suffix == ".bag":
+    if path.is_dir() or suffix in BAG_SUFFIXES or path.name == BAG_METADATA:
         return read_rosbag(path, scan_topic=scan_topic)
     if scan_topic is not None:
         raise LogFormatError(f"--scan-topic names a topic of a ROS bag, but {path} is read as a CARMEN log")
@@ -135,8 +136,8 @@ def run_eval_relations(args: argparse.Namespace) -> int:
         trajectory = _pose_file_trajectory(args.poses, args.estimate)
     else:
         log = read_log(args.poses)
-        if log.skipped:
-            _note(log.skipped_summary())
+        for remark in log.remarks():
+            _note(remark)
         trajectory = trajectory_from_log(log)
         if args.align_to is not None:
             reference = read_log(args.align_to)

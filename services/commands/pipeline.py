@@ -542,8 +542,8 @@ def _laser_log(args: argparse.Namespace, command: str):
         log = with_odometry_delay(log, args.odom_delay)
     except LogFormatError as exc:
         raise UsageError(f"--odom-delay: {exc}") from None
-    if log.skipped:
-        print(f"posegrid {command}: note: {log.skipped_summary()}", file=sys.stderr, flush=True)
+    for remark in log.remarks():
+        print(f"posegrid {command}: note: {remark}", file=sys.stderr, flush=True)
     check_scan_order(log)
     return log
 
