@@ -218,6 +218,7 @@ COMPRESSED = {
     b"BZh": ("bzip2", "bunzip2"),
     b"\xfd7zXZ\x00": ("xz", "unxz"),
     b"PK\x03\x04": ("zip", "unzip"),
+    b"PK\x05\x06": ("zip (an empty archive)", "unzip"),
     b"\x28\xb5\x2f\xfd": ("zstd", "unzstd"),
     b"7z\xbc\xaf\x27\x1c": ("7-Zip", "7z x"),
     b"\x1f\x8b": ("gzip twice", "gunzip"),
@@ -233,17 +234,36 @@ def _open_text(path: Path):
         with gzip.open(path, "rb") if magic == b"\x1f\x8b" else path.open("rb") as opened:
             head = opened.read(4096)
     except (EOFError, zlib.error, gzip.BadGzipFile):
-        head = b""  # (a gzip that breaks off at once: the read below records it as the truncated stream)
+        head = None  # (a gzip that breaks off at once: the read below records it as the truncated stream)
+    if head is None:
+        return gzip.open(path, "rt", encoding="ascii", errors="replace")
+    gzipped = magic == b"\x1f\x8b"
     for start, (what, tool) in COMPRESSED.items():
         if head.startswith(start):
-            raise LogFormatError(f"{path}: compressed with {what}, and only gzip is read: unpack it first ({tool})")
-    if head.startswith((b"\xff\xfe", b"\xfe\xff")):
+            how = f"gunzip, then {tool}" if gzipped and tool != "gunzip" else tool
+            inside = "gzip around " if gzipped and tool != "gunzip" else ""
+            raise LogFormatError(
+                f"{path}: compressed with {inside}{what}, and only gzip is read: unpack it first ({how})"
+            )
+    if head.startswith((b"\xff\xfe", b"\xfe\xff")) or _utf16_without_mark(head):
         raise LogFormatError(f"{path}: UTF-16 text, and a CARMEN log is ASCII: save it as ASCII or UTF-8")
     if b"\x00" in head:
         raise LogFormatError(f"{path}: not a text file (a NUL byte in its first {len(head)} bytes), so no CARMEN log")
-    if magic == b"\x1f\x8b":
-        return gzip.open(path, "rt", encoding="ascii", errors="replace")
-    return path.open("rt", encoding="ascii", errors="replace")
+    if not head:
+        raise LogFormatError(f"{path}: empty{' once gunzipped' if gzipped else ''}, so no CARMEN log")
+    # (a UTF-8 byte order mark, as some editors write, is dropped: it would hide the first line's record type)
+    encoding = "utf-8-sig" if head.startswith(b"\xef\xbb\xbf") else "ascii"
+    if gzipped:
+        return gzip.open(path, "rt", encoding=encoding, errors="replace")
+    return path.open("rt", encoding=encoding, errors="replace")
+
+
+def _utf16_without_mark(head: bytes) -> bool:
+    """Whether ``head`` reads as ASCII text in UTF-16 with no byte order mark: every other byte NUL."""
+    pairs = len(head) // 2
+    if pairs < 4:
+        return False
+    return head[1 : 2 * pairs : 2].count(0) == pairs or head[0 : 2 * pairs : 2].count(0) == pairs
 
 
 def _scan_lines(path: Path, kinds: dict[str, str]):
@@ -314,11 +334,11 @@ def _flaser_geometry(params: dict[str, str], side: str, beams: int, path: Path) 
 
 def _param_offset(params: dict[str, str], side: str, path: Path) -> np.ndarray:
     """The laser's pose on the robot (x m, y m, yaw rad) from the PARAMs: ``robot_<side>laser_offset`` ahead,
-    ``..._side_offset`` to the left, ``..._angular_offset`` turned (0 when not given); the rear laser faces back."""
+    ``..._side_offset`` to the left, ``..._angular_offset`` its heading on the robot, as CARMEN's robot module takes
+    them (0 when not given, pi for the rear laser, which faces back)."""
     forward = _param_float(params, f"robot_{side}laser_offset", 0.0, path)
     left = _param_float(params, f"robot_{side}laser_side_offset", 0.0, path)
-    turn = _param_float(params, f"robot_{side}laser_angular_offset", 0.0, path)
-    yaw = turn + (0.0 if side == "front" else math.pi)
+    yaw = _param_float(params, f"robot_{side}laser_angular_offset", 0.0 if side == "front" else math.pi, path)
     return np.array([forward, left, yaw if abs(yaw) <= math.pi else wrap_angle(yaw)])
 
 

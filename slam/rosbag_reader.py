@@ -10,12 +10,13 @@ What is read:
   frame, projected to (x, y, yaw). A link of the chain comes from ``/tf_static``, or from ``/tf`` when it holds
   one pose all through the bag (ROS 1 bags, and the static publishers of old, put the mount on ``/tf``). The base
   frame is the Odometry child frame; without an Odometry topic (or with an empty child frame) it is the child of
-  the first link up the chain that moves (the odometry's own, ``odom`` -> ``base_link``), else of the chain's
-  topmost ``/tf`` link, else the chain's root. Frame names are taken as tf2 takes them, without ROS 1's leading
-  slash. When the chain of the frame most scans have does not reach the base frame, or moves on its way there (a
-  laser on a moving joint), the bag is refused; a scan of another frame without one is skipped. A laser frame that
-  no transform names at all is taken as the base frame itself (at the robot's origin, facing forwards), and the
-  log's notes say so.
+  the ``/tf`` link nearest the tree's root (moving, or fixed for a robot standing still) whose parent is no REP 105
+  global frame (``map``, ``world``, ``earth``: amcl's ``map`` -> ``odom`` corrects the odometry), so ``odom`` ->
+  ``base_link``; else the chain's root. Frame names are taken as tf2 takes them, without ROS 1's leading slash;
+  transforms that form a cycle are refused. When the chain of the frame most scans have does not reach the base
+  frame, or moves on its way there (a laser on a moving joint), the bag is refused; a scan of another frame without
+  one is skipped. A laser frame that no transform names at all is taken as the base frame itself (at the robot's
+  origin, facing forwards), and the log's notes say so.
 
 Each scan's odometry pose is interpolated at the scan's header stamp between the two odometry poses around
 it (linear in x, y and unwrapped yaw; real bags publish odometry irregularly, the Intel lab's with gaps of
@@ -284,17 +285,17 @@ def _add_transforms(got: _Decoded, number: int, msg, topic: str) -> None:
 def _laser_mounts(
     got: _Decoded, base_frame: str | None, path: Path
 ) -> tuple[dict[str, tuple[float, float, float] | str], str]:
-    """Per laser frame of the scans, its pose (x m, y m, yaw rad) on the robot from the /tf_static chain up to
-    ``base_frame`` (None: the root of the chain of the frame most scans have; a tie: the frame seen first), or,
-    for a frame no chain links to it, the reason; and the base frame. Raises :class:`LogFormatError` when the
-    frame most scans have is not linked."""
+    """Per laser frame of the scans, its pose (x m, y m, yaw rad) on the robot from the chain of transforms up to
+    ``base_frame`` (None: :func:`odometry_base`, else the root of the chain of the frame most scans have; a tie: the
+    frame seen first), or, for a frame no chain links to it, the reason; and the base frame. Raises
+    :class:`LogFormatError` when the frame most scans have is not linked."""
     counts: dict[str, int] = {}
     for scan in got.scans:
         counts[scan[3][4]] = counts.get(scan[3][4], 0) + 1
     frames = sorted(counts, key=lambda frame: -counts[frame])  # (a stable sort: ties keep their first sighting)
     links = frame_links(got.tf_static, got.tf_dynamic)
     try:
-        main, base_frame = mount_chain(links, frames[0], base_frame)
+        main, base_frame = mount_chain(links, frames[0], base_frame or odometry_base(links))
     except LogFormatError as exc:
         raise LogFormatError(f"{path}: {exc}") from None
     mounts: dict[str, tuple[float, float, float] | str] = {frames[0]: main}
@@ -312,8 +313,9 @@ def _laser_mounts(
     return mounts, base_frame
 
 
-#: a /tf link whose poses all lie this close to its first (m, and rad for the yaw) is a fixed mount
-FIXED_LINK = 1e-6
+#: a /tf link whose poses all lie this close to its first (m, and rad for the yaw) is fixed: a mount published again
+#: and again, or a robot standing still (0.1 mm, 0.1 mrad: above a float32 round trip's noise, below any joint)
+FIXED_LINK = 1e-4
 
 #: what a frame's link to its parent is: from /tf_static, fixed on /tf (one pose all through), or moving on /tf
 STATIC, FIXED, MOVING = "static", "fixed", "moving"
@@ -341,32 +343,53 @@ def frame_links(tf_static: dict, tf_dynamic: list) -> dict[str, Link]:
     return links
 
 
+#: REP 105's frames above the odometry's: a /tf link from one of them (amcl's map -> odom) corrects the odometry, it
+#: is not the odometry
+GLOBAL_FRAMES = frozenset({"map", "world", "earth"})
+
+
+def odometry_base(links: dict[str, Link]) -> str | None:
+    """The robot's base frame as /tf gives it, for a bag whose odometry topic does not name it: the child of the /tf
+    link nearest the tree's root (fewest links above it; of two, the one that moves, then by name) among those whose
+    parent is no REP 105 global frame (:data:`GLOBAL_FRAMES`). So odom -> base_link, whether the robot moved or stood
+    still, and not a laser's mount below it (fixed or wobbling) nor amcl's map -> odom above it. None when /tf has
+    no such link. Raises :class:`LogFormatError` when the links form a cycle."""
+    children = [
+        child for child, (parent, _pose, kind) in links.items() if kind != STATIC and parent not in GLOBAL_FRAMES
+    ]
+    if not children:
+        return None
+    return min(children, key=lambda child: (len(_up_from(links, child)), links[child][2] != MOVING, child))
+
+
+def _up_from(links: dict[str, Link], frame: str) -> list[tuple[str, Link]]:
+    """The links up from ``frame`` to its tree's root, (child, link) each; LogFormatError on a cycle."""
+    chain: list[tuple[str, Link]] = []
+    seen = {frame}
+    while frame in links:
+        chain.append((frame, links[frame]))
+        frame = links[frame][0]
+        if frame in seen:
+            raise LogFormatError(f"the transforms form a cycle through the frame '{frame}'")
+        seen.add(frame)
+    return chain
+
+
 def mount_chain(
     links: dict[str, Link], laser_frame: str, base_frame: str | None
 ) -> tuple[tuple[float, float, float], str]:
     """The laser's pose (x m, y m, yaw rad) in the base frame, composed from the links (:func:`frame_links`) up
-    from ``laser_frame``, and the base frame's name: ``base_frame``, or when that is None the child of the first
-    MOVING link up the chain (the odometry's), else of its topmost FIXED link, else the chain's root.
+    from ``laser_frame``, and the base frame's name: ``base_frame``, or when that is None the chain's root.
 
-    Raises :class:`LogFormatError` when the chain does not reach ``base_frame`` or has a MOVING link below it. A
-    laser frame with no link at all is taken to be the base frame itself (zero offset)."""
-    chain: list[tuple[str, Link]] = []  # (child, its link) up from the laser
-    frame, seen = laser_frame, {laser_frame}
-    while frame != base_frame and frame in links:
-        chain.append((frame, links[frame]))
-        frame = links[frame][0]
-        if frame in seen:
-            break
-        seen.add(frame)
+    Raises :class:`LogFormatError` when the chain does not reach ``base_frame``, has a MOVING link below it or runs
+    in a cycle. A laser frame with no link at all is taken to be the base frame itself (zero offset)."""
+    chain = _up_from(links, laser_frame)
+    frames = [laser_frame] + [link[0] for _child, link in chain]  # the laser's frame, then each parent up
     if base_frame is None:
-        kinds = [link[2] for _child, link in chain]
-        on_tf = [i for i, kind in enumerate(kinds) if kind != STATIC]
-        top = kinds.index(MOVING) if MOVING in kinds else (on_tf[-1] if on_tf else len(chain))
-        base_frame = chain[top][0] if top < len(chain) else frame
-        chain = chain[:top]
-    elif frame != base_frame:
-        if not chain:
-            return (0.0, 0.0, 0.0), base_frame
+        base_frame = frames[-1]
+    if base_frame in frames:
+        chain = chain[: frames.index(base_frame)]
+    elif chain:
         raise LogFormatError(
             f"no chain of transforms (/tf_static, or fixed on /tf) links the laser frame '{laser_frame}' to the "
             f"odometry frame '{base_frame}'"

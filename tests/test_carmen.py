@@ -206,6 +206,13 @@ def test_unusable_inputs_raise_log_format_error(tmp_path):
         (lzma.compress, r"compressed with xz, .* \(unxz\)"),
         (lambda data: gzip.compress(gzip.compress(data)), r"compressed with gzip twice, .* \(gunzip\)"),
         (lambda data: data.decode().encode("utf-16"), "UTF-16 text, and a CARMEN log is ASCII"),
+        (lambda data: data.decode().encode("utf-16-le"), "UTF-16 text, and a CARMEN log is ASCII"),
+        (
+            lambda data: gzip.compress(bz2.compress(data)),
+            r"compressed with gzip around bzip2, .* \(gunzip, then bunzip2\)",
+        ),
+        (lambda data: b"", "empty, so no CARMEN log"),
+        (lambda data: gzip.compress(b""), "empty once gunzipped, so no CARMEN log"),
         (lambda data: data[:40] + bytes(range(256)), r"not a text file \(a NUL byte in its first 296 bytes\)"),
     ],
 )
@@ -393,3 +400,22 @@ def test_a_log_of_another_lasers_lines_only_says_which_it_has(tmp_path):
     lines = ["RLASER 3 1.0 2.0 3.0 0.1 0.2 0.3 1.1 1.2 1.3 100.5 host 0.5"] * 2
     with pytest.raises(LogFormatError, match=r"no usable front laser scan .*; it has 2 RLASER lines, not read as the"):
         read_carmen(write(tmp_path, lines))
+
+
+def test_a_utf8_byte_order_mark_hides_no_line(tmp_path):
+    """Some editors start a UTF-8 file with a byte order mark: the first line (here the PARAM that places the laser)
+    is read as it is, not passed over as an unknown record."""
+    path = tmp_path / "bom.clf"
+    path.write_bytes(b"\xef\xbb\xbfPARAM robot_frontlaser_offset 0.2 0 host 0\n" + (GOOD_FLASER + "\n").encode())
+    log = read_carmen(path)
+    assert log.params == {"robot_frontlaser_offset": "0.2"} and log.sensor_offset.tolist() == [[0.2, 0.0, 0.0]]
+
+
+def test_a_rear_lasers_angular_offset_param_is_its_heading_as_carmen_takes_it(tmp_path):
+    raw = "RAWLASER2 0 -1.5 3.0 0.5 20.0 0.01 0 7 2 2 2 2 2 2 2 0 {stamp} host {stamp}"
+    lines = ["PARAM robot_rearlaser_offset -0.2 0 host 0", "PARAM robot_rearlaser_angular_offset 3.1 0 host 0"]
+    lines += [f"ODOM {t} 0 0 0 0 0 {t} host {t}" for t in range(3)] + [raw.format(stamp=0.5), raw.format(stamp=1.5)]
+    np.testing.assert_allclose(read_carmen(write(tmp_path, lines), laser="rear").sensor_offset, [[-0.2, 0, 3.1]] * 2)
+    np.testing.assert_allclose(
+        read_carmen(write(tmp_path, lines[:1] + lines[2:]), laser="rear").sensor_offset[0], [-0.2, 0, math.pi]
+    )

@@ -156,6 +156,55 @@ def test_a_mount_published_fixed_on_tf_is_the_lasers_pose(tmp_path, odometry_on_
     check_rear_mount(read_rosbag(bag.write(tmp_path / "a.bag")))
 
 
+def test_the_odometry_on_tf_is_the_link_nearest_the_root_below_amcls_map(tmp_path):
+    """Odometry only on /tf, with amcl's map -> odom above it and the mount fixed on /tf below it: the base frame is
+    odom -> base_link's child, whether the robot moves or stands still (then every link is fixed)."""
+    for moving in (True, False):
+        bag = BagBuilder()
+        for t in range(4):
+            bag.tf(float(t), "map", "odom", 1.0, 2.0, 0.3)
+            bag.tf(float(t), "odom", "base_link", float(t) if moving else 5.0, 0.0, 0.0)
+        for t in (0.2, 1.2, 2.2):
+            bag.tf(t, "base_link", "laser", *REAR)
+        for t in (0.5, 1.5, 2.5):
+            bag.scan(t, [1.0, 2.0, 3.0])
+        log = read_rosbag(bag.write(tmp_path / f"{moving}.bag"))
+        np.testing.assert_allclose(np.abs(log.sensor_offset), [np.abs(REAR)] * 3, atol=1e-12)
+        expected = [0.5, 1.5, 2.5] if moving else [5.0] * 3
+        np.testing.assert_allclose(log.odometry[:, 0], expected, atol=1e-12)
+
+
+def test_a_mount_that_wobbles_on_tf_is_refused_even_when_the_robot_stands_still(tmp_path):
+    for moving in (True, False):
+        bag = BagBuilder()
+        for t in range(4):
+            bag.tf(float(t), "odom", "base_link", float(t) if moving else 0.0, 0.0, 0.0)
+        for i, t in enumerate((0.2, 1.2, 2.2)):
+            bag.tf(t, "base_link", "laser", 0.3 + 1e-3 * i, 0.0, 0.0)
+        bag.scan(0.5, [1.0, 2.0, 3.0])
+        path = bag.write(tmp_path / f"{moving}.bag")
+        with pytest.raises(LogFormatError, match=r"from 'base_link' to 'laser' on /tf, .* moves during the bag"):
+            read_rosbag(path)
+
+
+def test_a_laser_frame_no_transform_names_with_odometry_on_tf_is_taken_at_the_base(tmp_path):
+    bag = BagBuilder()
+    moving_robot(bag, odometry_on_tf=True)
+    log = read_rosbag(bag.write(tmp_path / "a.bag"))
+    assert log.sensor_offset.tolist() == [[0.0, 0.0, 0.0]] * 3 and len(log.notes) == 1
+    np.testing.assert_allclose(log.odometry[:, 0], [0.5, 1.5, 2.5])
+
+
+def test_transforms_in_a_cycle_are_refused_as_one(tmp_path):
+    bag = BagBuilder()
+    bag.tf(0.0, "base_link", "laser", 0.1, 0.0, 0.0, topic="/tf_static")
+    bag.tf(0.0, "laser", "plate", 0.1, 0.0, 0.0, topic="/tf_static")
+    bag.tf(0.0, "plate", "base_link", 0.1, 0.0, 0.0, topic="/tf_static")
+    moving_robot(bag)
+    with pytest.raises(LogFormatError, match="the transforms form a cycle through the frame"):
+        read_rosbag(bag.write(tmp_path / "a.bag"))
+
+
 def test_frame_names_with_ros1s_leading_slash_are_tf2s_names(tmp_path):
     bag = BagBuilder()
     bag.tf(0.0, "/base_link", "laser", *REAR, topic="/tf_static")
