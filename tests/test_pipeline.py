@@ -555,7 +555,8 @@ def test_garbage_on_every_key_is_counted_and_processes_keep_working(tmp_path, pr
     }, node_stats[0].rejected
     assert node_stats[0].steps_done == 2 and node_stats[0].poses_published == 1
     assert node_pose is not None and node_pose.seq == 1
-    np.testing.assert_allclose(node_pose.mean, [0.05, 0.0, 0.0], atol=1e-9)  # 0.5 m/s for 0.1 s from the start
+    # 0.5 m/s for 0.1 s from the start (the mean given out is the heading's turn's, slam.turn_moments: 3e-7 m off)
+    np.testing.assert_allclose(node_pose.mean, [0.05, 0.0, 0.0], atol=1e-6)
     assert router.process.poll() is None and node.process.poll() is None
     assert all(m.process.poll() is None for m in mappers)
     for mapper in mappers:

@@ -512,3 +512,12 @@ def test_a_drive_angle_sd_covers_a_robot_that_crabs(tmp_path, capsys):
     assert scores[0]["ate_rmse_m"] == scores[1]["ate_rmse_m"]
     assert scores[0]["inside95"] < 0.85 and scores[1]["inside95"] >= 0.9
     assert stated["inside95"] >= 0.95 and stated["ate_rmse_m"] <= 1.1 * scores[0]["ate_rmse_m"]  # 0.988; 0.086 m
+
+
+def test_a_run_too_short_to_calibrate_says_the_generic_noise_may_be_overconfident(tmp_path, capsys):
+    """Under 40 s of motion `posegrid slam` falls back to the generic noise, chosen on slow robots with no heading
+    noise that grows with speed: it says so, and how to get a calibration, rather than only that it fell back."""
+    folder = write_mrclam_folder(tmp_path / "robot", simulate_mrclam_robot(TRUTH, seed=1, duration=20.0))
+    assert main(["slam", str(folder), "--robot", "1", "--algo", "ekf", "-o", str(tmp_path / "o.npz")]) == 0
+    said = capsys.readouterr().out
+    assert "not self-calibrated" in said and "may get overconfident poses" in said and "--calibration FILE" in said

@@ -521,7 +521,13 @@ def test_a_stated_drive_angle_sd_turns_only_the_positions_given_out(simdir, tmp_
         runs[name] = load_pose_distribution(out).poses
     np.testing.assert_array_equal(runs["plain"].mean, runs["stated"].mean)
     added = runs["stated"].cov - runs["plain"].cov
-    lever = runs["plain"].mean[:, :2] - runs["plain"].mean[0, :2]  # the filter starts at the first pose, certain
+    # (the filter's position: the mean given out, pulled towards the heading's turn by (1 - exp(-s^2 / 2)) L, L the
+    # lever J^-1 Cov(p, theta) / s^2; slam.turn_moments. The filter starts at the first pose, certain)
+    cov = runs["plain"].cov
+    s2 = np.maximum(cov[:, 2, 2], 1e-300)
+    pull = (1.0 - np.exp(-0.5 * s2))[:, None] * np.column_stack([cov[:, 1, 2], -cov[:, 0, 2]]) / s2[:, None]
+    position = runs["plain"].mean[:, :2] + pull
+    lever = position - position[0]
     across = np.column_stack([-lever[:, 1], lever[:, 0]])
     expected = np.zeros_like(added)
     expected[:, :2, :2] = 0.02**2 * across[:, :, None] * across[:, None, :]
