@@ -154,6 +154,25 @@ def test_cli_eval_relations_on_a_pose_file_and_a_log(tmp_path, capsys):
     assert json.loads(out.read_text())["rot_mean_rad"] == pytest.approx(0.125, abs=1e-5)
 
 
+def test_cli_eval_relations_reads_a_bag_of_two_scan_topics_with_scan_topic(tmp_path, capsys):
+    """A bag with two LaserScan topics: its odometry is scored once --scan-topic names one (the reader's refusal
+    names the option, which eval-relations has as slam, run and source have it)."""
+    from bags import BagBuilder
+
+    bag = BagBuilder()
+    for stamp, (x, y, yaw) in zip(TRAJ.stamps, TRAJ.poses):
+        bag.odom(float(stamp), float(x), float(y), float(yaw))
+    for topic in ("/front", "/rear"):
+        for stamp in TRAJ.stamps:
+            bag.scan(float(stamp) + 1e-4, [1.0, 2.0, 3.0], topic=topic)
+    path = bag.write(tmp_path / "two.bag")
+    rel = write(tmp_path, "r.relations", RELATION_LINES)
+    assert main(["eval-relations", str(path), str(rel)]) == 2
+    assert "name one (with --scan-topic)" in capsys.readouterr().err
+    assert main(["eval-relations", str(path), str(rel), "--scan-topic", "/front"]) == 0
+    assert "relations matched" in capsys.readouterr().out
+
+
 def test_cli_eval_relations_bad_input(tmp_path, capsys):
     rel = write(tmp_path, "r.relations", RELATION_LINES)
     assert main(["eval-relations", str(tmp_path / "nope.npz"), str(rel)]) == 2

@@ -20,6 +20,7 @@ from services.commands.argtypes import (
     odom_delay_seconds,
     refuse_another_kind,
 )
+from services.commands.options import add_scan_topic
 
 #: grid FastSLAM particles when --particles is not given: the least KLD-sampling keeps (GridSlamConfig.particle_cap
 #: the most)
@@ -168,9 +169,7 @@ def add_gridslam_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="N",
         help="use only the log's first N scans, e.g. to try options quickly on a long log (default: all)",
     )
-    group.add_argument(
-        "--scan-topic", type=str, default=None, help="ROS bag: the LaserScan topic (default: the only one, or /scan)"
-    )
+    add_scan_topic(group)
     group.add_argument(
         "--stats", default=None, metavar="OUT.json", help="write timing and effective-sample-size figures as JSON"
     )

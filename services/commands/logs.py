@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from services.commands.argtypes import check_outputs, finite_float, path_argument
-from services.commands.options import add_choice, add_command
+from services.commands.options import add_choice, add_command, add_scan_topic
 
 #: file suffixes (in any case) read as pose .npz files; a bag file (.bag, .mcap, .db3), a folder or a
 #: metadata.yaml is a ROS bag; anything else a CARMEN log
@@ -49,6 +49,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         help="s: interpolate only between poses at most this far apart (default 5)",
     )
+    add_scan_topic(evaluate, "a ROS bag as POSES or --align-to")
     evaluate.add_argument("--json", default=None, metavar="OUT", help="also write the scores as JSON")
 
 
@@ -135,12 +136,12 @@ def run_eval_relations(args: argparse.Namespace) -> int:
             raise UsageError("--align-to needs a log (with scans) as POSES, not a pose .npz")
         trajectory = _pose_file_trajectory(args.poses, args.estimate)
     else:
-        log = read_log(args.poses)
+        log = read_log(args.poses, scan_topic=args.scan_topic)
         for remark in log.remarks():
             _note(remark)
         trajectory = trajectory_from_log(log)
         if args.align_to is not None:
-            reference = read_log(args.align_to)
+            reference = read_log(args.align_to, scan_topic=args.scan_topic)
             stamps, offsets = time_map(log, reference)
             _note(
                 f"aligned {args.poses} to {args.align_to} by {len(stamps)} shared scans "

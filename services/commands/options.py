@@ -43,6 +43,18 @@ def add_choice(
     parser.add_argument(option, choices=choices, default=choices[0] if default is FIRST else default, help=help)
 
 
+def add_scan_topic(parser: argparse.ArgumentParser | argparse._ArgumentGroup, applies_to: str = "ROS bag") -> None:
+    """``--scan-topic TOPIC``: which LaserScan topic of a ROS bag to read (the bag reader's default: the only one, or
+    /scan), for every command that reads a bag's scans or odometry; ``applies_to`` opens its help."""
+    parser.add_argument(
+        "--scan-topic",
+        type=str,
+        default=None,
+        metavar="TOPIC",
+        help=f"{applies_to}: the LaserScan topic (default: the only one, or /scan)",
+    )
+
+
 def add_group(
     parser: argparse.ArgumentParser,
     title: str,

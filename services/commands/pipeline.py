@@ -36,7 +36,7 @@ from services.commands.mapping import (
     sensor_model_argv,
     threads_from_args,
 )
-from services.commands.options import add_choice, add_command, add_group, option_argv
+from services.commands.options import add_choice, add_command, add_group, add_scan_topic, option_argv
 from services.commands.persist_options import (
     add_persist_options,
     add_run_persist_options,
@@ -354,13 +354,7 @@ def add_input_arguments(parser: argparse.ArgumentParser, default_sim: bool) -> N
     group.add_argument(
         "--mrclam-robot", type=int, default=1, metavar="K", help=mrclam_help("MRCLAM robot number (default 1)")
     )
-    group.add_argument(
-        "--scan-topic",
-        type=str,
-        default=None,
-        metavar="TOPIC",
-        help="--bag: the LaserScan topic (default: the only one, or /scan)",
-    )
+    add_scan_topic(group, "--bag")
     group.add_argument(
         "--odom-delay",
         type=odom_delay_seconds,
