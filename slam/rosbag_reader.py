@@ -9,14 +9,15 @@ What is read:
 - the laser's pose on the robot, per laser frame: the chain of transforms from the scan's frame up to the base
   frame, projected to (x, y, yaw). A link of the chain comes from ``/tf_static``, or from ``/tf`` when it holds
   one pose all through the bag (ROS 1 bags, and the static publishers of old, put the mount on ``/tf``). The base
-  frame is the Odometry child frame; without an Odometry topic (or with an empty child frame) it is the child of
-  the ``/tf`` link nearest the tree's root (moving, or fixed for a robot standing still) whose parent is no REP 105
-  global frame (``map``, ``world``, ``earth``: amcl's ``map`` -> ``odom`` corrects the odometry), so ``odom`` ->
-  ``base_link``; else the chain's root. Frame names are taken as tf2 takes them, without ROS 1's leading slash;
-  transforms that form a cycle are refused. When the chain of the frame most scans have does not reach the base
-  frame, or moves on its way there (a laser on a moving joint), the bag is refused; a scan of another frame without
-  one is skipped. A laser frame that no transform names at all is taken as the base frame itself (at the robot's
-  origin, facing forwards), and the log's notes say so.
+  frame is the Odometry child frame (with an empty one, the laser's chain's frame below its first moving link,
+  else its root); without an Odometry topic it is the child of the ``/tf`` link nearest the tree's root (moving,
+  or fixed for a robot standing still) whose parent is no REP 105 global frame (``map``, ``world``, ``earth``:
+  amcl's ``map`` -> ``odom`` corrects the odometry), so ``odom`` -> ``base_link``; else the chain's root. Frame
+  names are taken as tf2 takes them, without ROS 1's leading slash; transforms that form a cycle are refused. When
+  the chain of the frame most scans have does not reach the base frame, or moves on its way there (a laser on a
+  moving joint), the bag is refused; a scan of another frame without one is skipped. A laser frame that no
+  transform names at all is taken as the base frame itself (at the robot's origin, facing forwards), and the
+  log's notes say so.
 
 Each scan's odometry pose is interpolated at the scan's header stamp between the two odometry poses around
 it (linear in x, y and unwrapped yaw; real bags publish odometry irregularly, the Intel lab's with gaps of
@@ -286,16 +287,19 @@ def _laser_mounts(
     got: _Decoded, base_frame: str | None, path: Path
 ) -> tuple[dict[str, tuple[float, float, float] | str], str]:
     """Per laser frame of the scans, its pose (x m, y m, yaw rad) on the robot from the chain of transforms up to
-    ``base_frame`` (None: :func:`odometry_base`, else the root of the chain of the frame most scans have; a tie: the
-    frame seen first), or, for a frame no chain links to it, the reason; and the base frame. Raises
-    :class:`LogFormatError` when the frame most scans have is not linked."""
+    ``base_frame`` (None: with the odometry from /tf :func:`odometry_base`, from an Odometry topic whose child frame
+    is empty, or when /tf names none, the root of the chain of the frame most scans have; a tie: the frame seen
+    first), or, for a frame no chain links to it, the reason; and the base frame. Raises :class:`LogFormatError` when
+    the frame most scans have is not linked."""
     counts: dict[str, int] = {}
     for scan in got.scans:
         counts[scan[3][4]] = counts.get(scan[3][4], 0) + 1
     frames = sorted(counts, key=lambda frame: -counts[frame])  # (a stable sort: ties keep their first sighting)
     links = frame_links(got.tf_static, got.tf_dynamic)
     try:
-        main, base_frame = mount_chain(links, frames[0], base_frame or odometry_base(links))
+        if base_frame is None and not got.odom:  # (odometry from /tf: its own link names the base)
+            base_frame = odometry_base(links)
+        main, base_frame = mount_chain(links, frames[0], base_frame)
     except LogFormatError as exc:
         raise LogFormatError(f"{path}: {exc}") from None
     mounts: dict[str, tuple[float, float, float] | str] = {frames[0]: main}
@@ -379,14 +383,16 @@ def mount_chain(
     links: dict[str, Link], laser_frame: str, base_frame: str | None
 ) -> tuple[tuple[float, float, float], str]:
     """The laser's pose (x m, y m, yaw rad) in the base frame, composed from the links (:func:`frame_links`) up
-    from ``laser_frame``, and the base frame's name: ``base_frame``, or when that is None the chain's root.
+    from ``laser_frame``, and the base frame's name: ``base_frame``, or when that is None the child of the chain's
+    first MOVING link (the odometry's, on /tf), else the chain's root.
 
     Raises :class:`LogFormatError` when the chain does not reach ``base_frame``, has a MOVING link below it or runs
     in a cycle. A laser frame with no link at all is taken to be the base frame itself (zero offset)."""
     chain = _up_from(links, laser_frame)
     frames = [laser_frame] + [link[0] for _child, link in chain]  # the laser's frame, then each parent up
-    if base_frame is None:
-        base_frame = frames[-1]
+    if base_frame is None:  # (below the first link that moves, the odometry's if any, else the root)
+        moving = [child for child, link in chain if link[2] == MOVING]
+        base_frame = moving[0] if moving else frames[-1]
     if base_frame in frames:
         chain = chain[: frames.index(base_frame)]
     elif chain:

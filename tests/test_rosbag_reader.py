@@ -216,10 +216,18 @@ def test_frame_names_with_ros1s_leading_slash_are_tf2s_names(tmp_path):
 
 
 def test_odometry_with_no_child_frame_takes_the_root_of_the_lasers_chain(tmp_path):
-    bag = BagBuilder()
-    bag.tf(0.0, "base_link", "laser", *REAR, topic="/tf_static")
-    moving_robot(bag, child="")
-    check_rear_mount(read_rosbag(bag.write(tmp_path / "a.bag")))
+    """An Odometry topic with an empty child frame: the base is the laser's chain's frame below its first link that
+    moves (odom -> base_link, recorded on /tf as well), else its root; a pan unit elsewhere on /tf, moving, is not
+    taken for the odometry."""
+    for odometry_on_tf in (False, True):
+        bag = BagBuilder()
+        bag.tf(0.0, "base_link", "laser", *REAR, topic="/tf_static")
+        moving_robot(bag, child="")
+        for i, t in enumerate((0.2, 1.2, 2.2)):
+            bag.tf(t, "base_link", "camera", 0.1, 0.0, 0.2 * i)
+            if odometry_on_tf:
+                bag.tf(t, "odom", "base_link", t, 0.0, 0.0)
+        check_rear_mount(read_rosbag(bag.write(tmp_path / f"{odometry_on_tf}.bag")))
 
 
 def test_a_laser_on_a_moving_joint_is_refused(tmp_path):
