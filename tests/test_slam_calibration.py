@@ -326,7 +326,7 @@ def test_the_likelihood_only_raises_the_turn_noise(tmp_path, capsys):
     fitted = tmp_path / "fitted.json"
     assert main(["calibrate", str(folder), "--robot", "1", "-o", str(fitted)]) == 0
     windows = json.loads(fitted.read_text())["diagnostics"]["iterations"][-1]["a4"]
-    assert load_calibration(fitted).motion.alphas[3] >= windows > 0.01
+    assert load_calibration(fitted).motion.alphas[3] >= windows - 5e-7 and windows > 0.01  # (diagnostics: 6 decimals)
     assert _ekf_score(folder, ["--calibration", str(fitted)], tmp_path, capsys)["inside95"] >= 0.85
 
 
@@ -521,3 +521,18 @@ def test_a_run_too_short_to_calibrate_says_the_generic_noise_may_be_overconfiden
     assert main(["slam", str(folder), "--robot", "1", "--algo", "ekf", "-o", str(tmp_path / "o.npz")]) == 0
     said = capsys.readouterr().out
     assert "not self-calibrated" in said and "may get overconfident poses" in said and "--calibration FILE" in said
+
+
+def test_the_generic_noise_keeps_a_faster_robot_honest(tmp_path, capsys):
+    """The generic noise's a3 (heading noise that grows with speed): the simulated office's robot (about 1 m/s) under
+    the generic calibration had EKF-SLAM's inside95 at 0.86, 0.38 and 0.10 over seeds 4-6 with a3 = 0, and 0.98,
+    0.96, 0.89 with the generic 0.003, chosen on seeds 1-3 (seed 4 here is held out)."""
+    folder = tmp_path / "office"
+    assert main(["simulate", str(folder), "--seed", "4", "--beams", "31"]) == 0
+    generic = tmp_path / "generic.json"
+    save_calibration(generic, GENERIC)
+    out = tmp_path / "ekf.npz"
+    assert main(["slam", str(folder), "--algo", "ekf", "--calibration", str(generic), "-o", str(out)]) == 0
+    capsys.readouterr()
+    assert main(["eval-traj", str(out), str(folder)]) == 0
+    assert json.loads(capsys.readouterr().out)["inside95"] >= 0.9

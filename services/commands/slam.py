@@ -513,10 +513,9 @@ def _self_calibrated(args: argparse.Namespace, sequence_at, delays):
         ).calibration
     except NotEnoughData as exc:
         return GENERIC, (
-            f"not self-calibrated ({exc}): generic noise, the data as logged. It was chosen on robots of about "
-            "0.15 m/s (a1 up to 0.3, a4 up to 0.2) and has no heading noise that grows with speed: a faster or noisier "
-            "robot may get overconfident poses; calibrate on a longer run of it (posegrid calibrate) and give "
-            "--calibration FILE"
+            f"not self-calibrated ({exc}): generic noise, the data as logged. It was chosen on simulated robots of "
+            "0.15 to 2 m/s (a1 up to 0.3, a4 up to 0.2): a noisier robot may get overconfident poses; calibrate on a "
+            "longer run of it (posegrid calibrate) and give --calibration FILE"
         )
     return calibration, f"self-calibrated in {time.perf_counter() - started:.1f} s: {calibration.summary()}"
 
