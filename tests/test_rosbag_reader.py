@@ -406,3 +406,20 @@ def test_odometry_and_transforms_beyond_the_pose_limit_are_skipped(tmp_path):
     assert "beyond +-1e+07 m" in reasons[5] and "beyond +-1e+07 m" in reasons[8]
     assert np.abs(log.odometry[:, :2]).max() <= 2.0
     np.testing.assert_allclose(log.sensor_offset, [[0.1, 0.0, math.pi / 2]] * len(log), atol=1e-12)
+
+
+def test_run_leaves_the_logs_notes_to_its_source_which_says_them_once(tmp_path, capsys):
+    """`posegrid run --bag` reads the log to check it before it starts anything, and its source child reads it again:
+    only the source says what the reader took for granted (run said each note a second time)."""
+    import argparse
+
+    from services.commands.pipeline import _laser_log
+
+    bag = BagBuilder()
+    moving_robot(bag)  # a laser frame no transform names: a note
+    args = argparse.Namespace(carmen=None, bag=bag.write(tmp_path / "a.bag"), scan_topic=None, odom_delay=0.0)
+    _laser_log(args, None)
+    assert capsys.readouterr().err == ""
+    _laser_log(args, "source")
+    said = capsys.readouterr().err.splitlines()
+    assert len(said) == 1 and said[0].startswith("posegrid source: note: ") and "no transform names" in said[0]

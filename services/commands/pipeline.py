@@ -521,10 +521,11 @@ def _check_log_options(args: argparse.Namespace) -> None:
         raise UsageError("--odom-delay shifts a laser log's odometry: give it with --carmen or --bag")
 
 
-def _laser_log(args: argparse.Namespace, command: str):
+def _laser_log(args: argparse.Namespace, command: str | None):
     """The laser log of --carmen or --bag (read by that format's reader, whatever the file's suffix), with its
-    odometry read at --odom-delay; what the reader skipped is noted on stderr. Raises LogFormatError (exit 2)
-    for a log that cannot be replayed."""
+    odometry read at --odom-delay; what the reader took for granted or skipped is noted on stderr as ``posegrid
+    COMMAND`` (None: not noted, as `run`, whose source child reads the log again and notes it). Raises LogFormatError
+    (exit 2) for a log that cannot be replayed."""
     from services.errors import UsageError
     from slam.carmen import read_carmen
     from slam.errors import LogFormatError
@@ -536,7 +537,7 @@ def _laser_log(args: argparse.Namespace, command: str):
         log = with_odometry_delay(log, args.odom_delay)
     except LogFormatError as exc:
         raise UsageError(f"--odom-delay: {exc}") from None
-    for remark in log.remarks():
+    for remark in log.remarks() if command is not None else ():
         print(f"posegrid {command}: note: {remark}", file=sys.stderr, flush=True)
     check_scan_order(log)
     return log
@@ -806,7 +807,7 @@ def _plan_input(args: argparse.Namespace, plan: Plan) -> None:
                 "node must be --algo gridslam"
             )
         args.algo = "gridslam"
-        plan.scans = len(_laser_log(args, "run"))  # read here too: a log that cannot be replayed stops run at once
+        plan.scans = len(_laser_log(args, None))  # read here too: a log that cannot be replayed stops run at once
         plan.source_argv += [f"{option}={log}"]  # (with "=": a file named "-x.bag" is no option)
         if args.scan_topic is not None:
             plan.source_argv += [f"--scan-topic={args.scan_topic}"]
