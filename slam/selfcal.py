@@ -532,6 +532,9 @@ def _em_step(data: FitData, calibration: Calibration, delay: float) -> tuple[Cal
     )
     values.update(fit_sensor(data, trajectory, calibration))
     floor = 1e-8  # keeps every motion variance positive (a zero would make the linearised filters certain)
+    if values["a2"] == 0.0 and values["floor_v"] == 0.0:
+        # (no position noise at all on a turn on the spot is what the fit cannot tell from a little: the generic a2)
+        values["a2"] = GENERIC.motion.alphas[1]
     white = RangeBearingModel(
         max(values["sigma_range"], 1e-3), max(values["sigma_bearing"], 1e-3), values["range_fraction"]
     )

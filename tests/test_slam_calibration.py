@@ -536,3 +536,22 @@ def test_the_generic_noise_keeps_a_faster_robot_honest(tmp_path, capsys):
     capsys.readouterr()
     assert main(["eval-traj", str(out), str(folder)]) == 0
     assert json.loads(capsys.readouterr().out)["inside95"] >= 0.9
+
+
+def test_a_fit_with_no_position_noise_on_a_turn_takes_the_generic_a2(tmp_path, capsys):
+    """A robot with three times the generic motion noise (seed 4): the fit found a2 = 0 and floor_v = 0, so a turn
+    on the spot moved no position at all in the filter while the true one slipped 3-6 cm, and the mean NEES was 7.9
+    (up to 4 500 at a step). Nothing in the fit tells such a zero from a little: a2 then takes the generic's."""
+    truth = Calibration(
+        motion=VelocityMotionModel((0.9, 0.09, 0.0, 0.9, 0.0, 0.0), floor=(9e-4, 9e-3)),
+        sensor=RangeBearingModel(0.1, 0.03),
+        scale_sd=0.0,
+        source="test: 3 x generic",
+    )
+    folder = write_mrclam_folder(tmp_path / "robot", simulate_mrclam_robot(truth, seed=4, duration=180.0))
+    fitted = tmp_path / "fitted.json"
+    assert main(["calibrate", str(folder), "--robot", "1", "-o", str(fitted)]) == 0
+    motion = load_calibration(fitted).motion
+    assert motion.alphas[1] == GENERIC.motion.alphas[1] and motion.floor[0] <= 1e-8  # (the case this is about)
+    score = _ekf_score(folder, ["--calibration", str(fitted)], tmp_path, capsys)
+    assert score["nees_mean"] < 4.0 and score["inside95"] >= 0.9
