@@ -60,7 +60,7 @@ DEFAULT_OUTLIER_GATE = 18.4207
 #: gives 0.941 (NEES 3.55) at the held-out seeds 4-6, against 0.44 with 0; MRCLAM-format robots of 0.15 m/s barely
 #: feel it (0.901 -> 0.905 over 51 runs)
 GENERIC_MOTION = VelocityMotionModel(alphas=(0.1, 0.01, 0.003, 0.1, 0.0, 0.0), floor=(1e-4, 1e-3))
-#: landmark noise the filters assume for a robot without a calibration (docs/slam.md, "Generic defaults")
+#: landmark noise the filters assume for a robot without a calibration (docs/slam.md, "Calibration")
 GENERIC_SENSOR = RangeBearingModel(sigma_range=0.1, sigma_bearing=0.03, range_fraction=0.0)
 #: relative sd of the map's scale when no ground truth fixed it: the data give only the ratio of the speeds to
 #: the ranges, so the ranges are taken as exact in scale (c0 = 1), and an uncalibrated ranging sensor (a camera

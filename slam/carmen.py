@@ -212,8 +212,10 @@ def _parse_odom(tokens: list[str]) -> tuple[float, tuple[float, float, float]]:
     return _stamp(tokens[7]), _pose(_floats(tokens[1:4], "pose"), "pose")
 
 
-#: the first bytes of the compressed formats a log may come in that this reader does not unpack, and how to
-#: unpack each (gzip, b"\x1f\x8b", is read as it is)
+#: a gzip file's first bytes: such a log is read gunzipped
+GZIP_MAGIC = b"\x1f\x8b"
+#: the first bytes of the compressed formats a log may come in that this reader does not unpack (gzip's inside
+#: gzip among them), and how to unpack each
 COMPRESSED = {
     b"BZh": ("bzip2", "bunzip2"),
     b"\xfd7zXZ\x00": ("xz", "unxz"),
@@ -221,7 +223,7 @@ COMPRESSED = {
     b"PK\x05\x06": ("zip (an empty archive)", "unzip"),
     b"\x28\xb5\x2f\xfd": ("zstd", "unzstd"),
     b"7z\xbc\xaf\x27\x1c": ("7-Zip", "7z x"),
-    b"\x1f\x8b": ("gzip twice", "gunzip"),
+    GZIP_MAGIC: ("gzip twice", "gunzip"),
 }
 
 
@@ -229,19 +231,19 @@ def _open_text(path: Path):
     """The log as text, gunzipped when it is gzip; LogFormatError when its first bytes are another compression's
     or hold a NUL byte (not a text file)."""
     with path.open("rb") as probe:
-        magic = probe.read(2)
+        gzipped = probe.read(2) == GZIP_MAGIC
     try:
-        with gzip.open(path, "rb") if magic == b"\x1f\x8b" else path.open("rb") as opened:
+        with gzip.open(path, "rb") if gzipped else path.open("rb") as opened:
             head = opened.read(4096)
     except (EOFError, zlib.error, gzip.BadGzipFile):
         head = None  # (a gzip that breaks off at once: the read below records it as the truncated stream)
     if head is None:
         return gzip.open(path, "rt", encoding="ascii", errors="replace")
-    gzipped = magic == b"\x1f\x8b"
     for start, (what, tool) in COMPRESSED.items():
         if head.startswith(start):
-            how = f"gunzip, then {tool}" if gzipped and tool != "gunzip" else tool
-            inside = "gzip around " if gzipped and tool != "gunzip" else ""
+            around = gzipped and start != GZIP_MAGIC  # (another compression inside gzip: two steps to unpack)
+            how = f"gunzip, then {tool}" if around else tool
+            inside = "gzip around " if around else ""
             raise LogFormatError(
                 f"{path}: compressed with {inside}{what}, and only gzip is read: unpack it first ({how})"
             )
@@ -354,15 +356,15 @@ def _placed_raw_scans(
     ordered = sorted(odom, key=lambda o: o[0])
     stamps = np.array([o[0] for o in ordered])
     poses = np.array([o[1] for o in ordered], dtype=np.float64)
-    placed = []
+    kept = []
     for scan in scans:
         problem = odometry_problem(stamps, scan.stamp)
         if problem:
             skipped.append(Skipped(scan.line, f"{kind}: {problem}"))
-            continue
-        pose = tuple(interpolate_poses(stamps, poses, np.array([scan.stamp]))[0].tolist())
-        placed.append(replace(scan, pose=pose, odometry=pose))
-    return placed
+        else:
+            kept.append(scan)
+    at = interpolate_poses(stamps, poses, np.array([scan.stamp for scan in kept])).tolist()
+    return [replace(scan, pose=tuple(pose), odometry=tuple(pose)) for scan, pose in zip(kept, at)]
 
 
 def _robot_to_laser_offsets(scans: list[_Scan]) -> np.ndarray:

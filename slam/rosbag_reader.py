@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
+from slam.angles import wrap_angle
 from slam.errors import LogFormatError
 from slam.laserlog import (
     MAX_ODOM_GAP,
@@ -340,7 +341,7 @@ def frame_links(tf_static: dict, tf_dynamic: list) -> dict[str, Link]:
         if child in links:
             continue  # (a frame has one parent in tf: its most frequent one is kept)
         spread = np.abs(np.array(poses) - np.array(poses[0]))
-        spread[:, 2] = np.abs((spread[:, 2] + math.pi) % (2.0 * math.pi) - math.pi)
+        spread[:, 2] = np.abs(wrap_angle(spread[:, 2]))
         links[child] = (parent, poses[0], MOVING if spread.max() > FIXED_LINK else FIXED)
     for child, (parent, pose) in tf_static.items():
         links[child] = (parent, pose, STATIC)
