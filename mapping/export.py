@@ -56,6 +56,16 @@ def _yaml_quoted(text: str) -> str:
     return '"' + "".join(escaped) + '"'
 
 
+def _yaml_float(value: float) -> str:
+    """``value`` (finite) as a YAML float that reads back as the same double: Python's shortest round-trip form,
+    with a '.' in the mantissa, since YAML 1.1 parsers (PyYAML) read '1e-06' as a string."""
+    text = repr(float(value))
+    mantissa, sep, exponent = text.partition("e")
+    if sep and "." not in mantissa:
+        return f"{mantissa}.0e{exponent}"
+    return text
+
+
 def render_pgm(map_arrays: dict, image_name: str = "map.pgm") -> tuple[bytes, str]:
     """A binary PGM (P5) and its map_server YAML; the YAML names the image file ``image_name``."""
     pixels = np.flipud(occupancy_pixels(np.asarray(map_arrays["probability"]), np.asarray(map_arrays["observed"])))
@@ -66,8 +76,8 @@ def render_pgm(map_arrays: dict, image_name: str = "map.pgm") -> tuple[bytes, st
     ox, oy = (float(v) for v in map_arrays["origin"])
     yaml = (
         f"image: {_yaml_quoted(image_name)}\n"
-        f"resolution: {float(map_arrays['resolution']):.6f}\n"
-        f"origin: [{ox:.6f}, {oy:.6f}, 0.0]\n"
+        f"resolution: {_yaml_float(map_arrays['resolution'])}\n"
+        f"origin: [{_yaml_float(ox)}, {_yaml_float(oy)}, 0.0]\n"
         "negate: 0\n"
         f"occupied_thresh: {OCCUPIED_THRESH}\n"
         f"free_thresh: {FREE_THRESH}\n"

@@ -5,6 +5,8 @@ import io
 import numpy as np
 import pytest
 import yaml
+from hypothesis import example, given
+from hypothesis import strategies as st
 from PIL import Image
 
 from mapping.errors import InputError
@@ -60,7 +62,25 @@ def test_pgm_is_flipped_trinary_and_yaml_has_origin():
     assert header == b"P5\n3 2\n255\n"
     # the top image row is the raster's last row (north up): unknown, unknown(0.5), free
     assert pixels.tolist() == [[205, 205, 254], [0, 254, 205]]
-    assert 'image: "m.pgm"' in yaml and "origin: [-1.000000, 2.000000, 0.0]" in yaml and "resolution: 0.500000" in yaml
+    assert 'image: "m.pgm"' in yaml and "origin: [-1.0, 2.0, 0.0]" in yaml and "resolution: 0.5" in yaml
+
+
+@given(
+    resolution=st.floats(1e-6, 1000.0),
+    ox=st.floats(-1e7, 1e7, allow_subnormal=True),
+    oy=st.floats(-1e-300, 1e-300),
+)
+@example(resolution=1.5e-6, ox=-12.3456789, oy=1e-7)
+@example(resolution=1 / 30, ox=1e20 / 1e13, oy=0.0)
+def test_yaml_gives_resolution_and_origin_exactly(resolution, ox, oy):
+    """Written to six decimals, a resolution of 1.5e-6 m read back as 2e-6 (map_server drew the map a third too
+    big) and 1/30 m as 0.033333. Read back by a YAML 1.1 parser (PyYAML; map_server's yaml-cpp reads YAML 1.2, which
+    takes these forms too), the floats are the map's doubles exactly."""
+    arrays = dict(small_map(), resolution=resolution, origin=np.array([ox, oy]))
+    _, text = render_pgm(arrays)
+    loaded = yaml.safe_load(text)
+    assert type(loaded["resolution"]) is float and loaded["resolution"] == resolution
+    assert loaded["origin"] == [ox, oy, 0.0]
 
 
 def test_png_layers():
