@@ -499,8 +499,14 @@ def test_openapi_describes_every_parameter_and_error(api):
         "/robots/{robot}/trajectory",
         "/events",
     } <= set(spec["paths"])
+    assert "security" not in spec and "securitySchemes" not in spec.get("components", {})  # no token here
     for path, operations in spec["paths"].items():
         for method, operation in operations.items():
+            # the guard's answers, on every route: a Host it does not answer to, a missing or wrong token
+            assert {"400", "401"} <= set(operation["responses"]), f"{method} {path}"
+            assert "WWW-Authenticate" in operation["responses"]["401"]["headers"], f"{method} {path}"
+            if "503" in operation["responses"]:
+                assert "Retry-After" in operation["responses"]["503"]["headers"], f"{method} {path}"
             for parameter in operation.get("parameters", []):
                 assert parameter.get("description"), f"{method} {path}: {parameter['name']} has no description"
             if "{" in path:
@@ -525,6 +531,8 @@ def test_viewer_page_and_assets_are_served(api):
         for ranges in ("bytes=0-5", "items=0-5", "bytes=-1,0-0,5-2", "bytes=abc", "bytes=99999999-"):
             ranged = httpx.get(f"{api}/{asset}", headers={"Range": ranges}, timeout=30)
             assert (ranged.status_code, ranged.content) == (200, whole), (asset, ranges, ranged.text[:200])
+        # and not offered: Starlette's FileResponse said Accept-Ranges: bytes, which these files are not served in
+        assert "accept-ranges" not in response.headers, asset
 
 
 def test_api_command_rejects_a_taken_port():

@@ -415,6 +415,13 @@ def test_the_access_token_guards_every_route(stack):
         assert "wrong" in problem(httpx.get(f"{url}/health", headers={"Authorization": "Bearer nope"}, timeout=30), 401)
         assert httpx.get(f"{url}/health", headers={"Authorization": f"Bearer {TOKEN}"}, timeout=30).status_code == 200
         assert httpx.get(f"{url}/health", params={"token": TOKEN}, timeout=30).status_code == 200
+        # the OpenAPI document says how to give the token (the one without a token asks for none: test_api)
+        spec = httpx.get(f"{url}/openapi.json", params={"token": TOKEN}, timeout=30).json()
+        schemes = spec["components"]["securitySchemes"]
+        assert schemes["bearer"] == {"type": "http", "scheme": "bearer", "description": "Authorization: Bearer TOKEN"}
+        assert (schemes["query"]["in"], schemes["query"]["name"]) == ("query", "token")
+        assert (schemes["cookie"]["in"], schemes["cookie"]["name"]) == ("cookie", "posegrid_token")
+        assert spec["security"] == [{"bearer": []}, {"query": []}, {"cookie": []}]
         # the viewer: /?token= sets the cookie and drops the token from the address; the viewer's requests
         # (static files, the event stream, the API) then carry the cookie
         opened = httpx.get(f"{url}/", params={"token": TOKEN, "map": MAP}, timeout=30)

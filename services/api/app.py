@@ -12,15 +12,19 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
+from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
+from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
 from starlette.routing import Route
 
 from services.api.backend import Backend
+from services.api.guard import COOKIE
 from services.api.limits import HttpLimits
+from services.api.models import Problem
 from services.api.routes import ROUTERS
 from services.api.routes.common import Api
 from services.api.routes.status import watch
@@ -61,8 +65,48 @@ async def unavailable(request: Request, exc: Exception) -> JSONResponse:
     return JSONResponse({"detail": str(exc)}, status_code=503)
 
 
-def create_app(backend: Backend, limits: HttpLimits | None = None) -> FastAPI:
-    """The FastAPI application over ``backend``, within ``limits`` (None: the defaults of HttpLimits)."""
+#: the errors services.api.guard answers before any route, on every route (OpenAPI ``responses``)
+GUARD_ERRORS = {
+    400: {"model": Problem, "description": "the Host header names a host the API does not answer to (--allowed-host)"},
+    401: {
+        "model": Problem,
+        "description": "the API has an access token and the request carries none or a wrong one",
+        "headers": {"WWW-Authenticate": {"description": "Bearer", "schema": {"type": "string"}}},
+    },
+}
+
+#: how a request gives the access token (services.api.guard), as OpenAPI security schemes
+TOKEN_SCHEMES = {
+    "bearer": {"type": "http", "scheme": "bearer", "description": "Authorization: Bearer TOKEN"},
+    "query": {"type": "apiKey", "in": "query", "name": "token", "description": "?token=TOKEN (EventSource)"},
+    "cookie": {"type": "apiKey", "in": "cookie", "name": COOKIE, "description": "set by opening /?token=TOKEN"},
+}
+
+
+def _with_guard(app: FastAPI, token: bool) -> Callable[[], dict[str, Any]]:
+    """``app``'s OpenAPI generator with the guard's schemes: every route may answer 400 and 401 (GUARD_ERRORS, given
+    to FastAPI), and with ``token`` the document asks for the token in any of TOKEN_SCHEMES."""
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            schema = get_openapi(
+                title=app.title,
+                version=app.version,
+                description=app.description,
+                routes=app.routes,
+            )
+            if token:
+                schema.setdefault("components", {})["securitySchemes"] = TOKEN_SCHEMES
+                schema["security"] = [{name: []} for name in TOKEN_SCHEMES]
+            app.openapi_schema = schema
+        return app.openapi_schema
+
+    return openapi
+
+
+def create_app(backend: Backend, limits: HttpLimits | None = None, token: bool = False) -> FastAPI:
+    """The FastAPI application over ``backend``, within ``limits`` (None: the defaults of HttpLimits); ``token``:
+    whether the guard in front of it asks for an access token (its OpenAPI document then says how to give it)."""
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -79,7 +123,9 @@ def create_app(backend: Backend, limits: HttpLimits | None = None) -> FastAPI:
         description=DESCRIPTION,
         lifespan=lifespan,
         exception_handlers={RequestValidationError: invalid, TileUnavailable: unavailable, IncompleteMap: unavailable},
+        responses=GUARD_ERRORS,  # type: ignore[arg-type]  # FastAPI annotates dict[int | str, dict[str, Any]]
     )
+    app.openapi = _with_guard(app, token)  # type: ignore[method-assign]  # FastAPI's documented way to extend it
     app.state.api = Api(backend, limits or HttpLimits())
     for router in ROUTERS:
         app.include_router(router)

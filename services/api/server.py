@@ -83,7 +83,9 @@ def serve(host: str, port: int, zenoh_config: zenoh.Config, options: ServeOption
         )
         try:
             app = Guard(
-                HeadAsGet(CachedTiles(create_app(backend, options.limits), backend.tiles)),
+                HeadAsGet(
+                    CachedTiles(create_app(backend, options.limits, token=options.token is not None), backend.tiles)
+                ),
                 allowed_hosts(host, list(options.allowed_hosts)),
                 options.token,
             )

@@ -21,21 +21,31 @@ Send = Callable[[MutableMapping[str, Any]], Awaitable[None]]
 AsgiApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
 RANGE_HEADERS = (b"range", b"if-range")
+ACCEPT_RANGES = b"accept-ranges"
 
 FOLDER = Path(__file__).resolve().parent / "static"
 
 
 class WholeFiles:
-    """The ASGI app ``app`` with a request's Range and If-Range headers dropped before it sees them."""
+    """The ASGI app ``app`` with a request's Range and If-Range headers dropped before it sees them, and its
+    answer's Accept-Ranges header too (FileResponse offers ranges the files are not served in)."""
 
     def __init__(self, app: AsgiApp) -> None:
         self.app = app
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] == "http":
-            headers = [(key, value) for key, value in scope["headers"] if key.lower() not in RANGE_HEADERS]
-            scope = {**scope, "headers": headers}
-        await self.app(scope, receive, send)
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        headers = [(key, value) for key, value in scope["headers"] if key.lower() not in RANGE_HEADERS]
+
+        async def send_whole(message: MutableMapping[str, Any]) -> None:
+            if message["type"] == "http.response.start":
+                kept = [(key, value) for key, value in message.get("headers", []) if key.lower() != ACCEPT_RANGES]
+                message = {**message, "headers": kept}
+            await send(message)
+
+        await self.app({**scope, "headers": headers}, receive, send_whole)
 
 
 async def _index(scope: Scope, receive: Receive, send: Send) -> None:

@@ -23,14 +23,24 @@ ERRORS = {
     409: "the map (or the window) has nothing to export yet",
     413: "the export's raster would span more cells than the API's --max-export-cells; export a window "
     "(x_min, y_min, x_max, y_max)",
-    422: "a parameter is malformed or out of its range (layer, format, z < 0, vmax <= 0, ...)",
+    422: "a parameter is malformed or out of its range (layer, format, z outside 0..32, vmax <= 0, ...)",
     503: "a shard holding the data did not answer, or every export slot is taken (see Retry-After)",
 }
 
 
 def errors(*codes: int) -> dict:
     """The OpenAPI ``responses`` entries of these error status codes (body: models.Problem)."""
-    return {code: {"model": models.Problem, "description": ERRORS[code]} for code in codes}
+    return {code: error_response(code, ERRORS[code]) for code in codes}
+
+
+def error_response(code: int, description: str) -> dict:
+    """One OpenAPI ``responses`` entry: body models.Problem; a 503 says it may carry Retry-After."""
+    entry: dict = {"model": models.Problem, "description": description}
+    if code == 503:
+        entry["headers"] = {
+            "Retry-After": {"description": "s to wait, when every slot is taken", "schema": {"type": "integer"}}
+        }
+    return entry
 
 
 MapName = Annotated[

@@ -6,9 +6,8 @@ from __future__ import annotations
 from fastapi import APIRouter
 from fastapi.responses import StreamingResponse
 
-from services.api import models
 from services.api.limits import Slots
-from services.api.routes.common import ApiDep, busy
+from services.api.routes.common import ApiDep, busy, error_response
 
 router = APIRouter()
 
@@ -38,10 +37,7 @@ class SlotStream(StreamingResponse):
             "tiles that changed), pose ({robot, seq, stamp, mean, covariance, samples, weights}), resync",
             "content": {"text/event-stream": {}},
         },
-        503: {
-            "model": models.Problem,
-            "description": "every event-stream slot is taken (--max-event-clients); retry after Retry-After s",
-        },
+        503: error_response(503, "every event-stream slot is taken (--max-event-clients); retry after Retry-After s"),
     },
 )
 async def events(api: ApiDep) -> StreamingResponse:
