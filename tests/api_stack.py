@@ -124,6 +124,16 @@ class Stack:
                 log = (self.logs / f"{name}.log").read_text(errors="replace")[-3000:]
                 raise AssertionError(f"{name} exited {process.returncode}:\n{log}")
 
+    def end(self, name: str) -> None:
+        """End process ``name`` (SIGTERM, then SIGKILL after 30 s) and forget it."""
+        process = self.processes.pop(name)
+        process.terminate()
+        try:
+            process.wait(30)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
+
     def stop(self) -> None:
         for process in reversed(list(self.processes.values())):
             if process.poll() is None:

@@ -436,9 +436,7 @@ def test_the_access_token_guards_every_route(stack):
                 assert events.status_code == 200
                 assert "event: hello" in next(events.iter_text())
     finally:
-        process = stack.processes.pop("api-token")
-        process.terminate()
-        process.wait(30)
+        stack.end("api-token")
 
 
 def test_a_bad_token_is_a_usage_error():
@@ -598,6 +596,21 @@ def test_an_export_beyond_the_cell_limit_is_413_before_it_is_built_and_a_window_
     for far in ({"x_min": 1e300, "x_max": 1e308}, {"y_min": -1e308, "y_max": -1e300}):
         response = httpx.get(f"{api}/maps/{MAP}/export", params={"format": "png", **window, **far}, timeout=30)
         assert "observed" in problem(response, 409), far
+
+
+def test_an_api_started_after_the_tiles_exports_them_at_its_first_request(stack, session):
+    """An API started after the shard had published its tiles has seen no tile update, so it knew the map (from the
+    shard's token) but not its cells' size: its first export was a 409 'no tiles yet' for a map of several tiles."""
+    url = start_api(stack, "api-late", *API_OPTIONS)
+    try:
+        wait_until(lambda: MAP in httpx.get(f"{url}/health", timeout=30).json()["maps"], 60, "the map to be known")
+        window = dict(zip(("x_min", "y_min", "x_max", "y_max"), WINDOW))
+        response = httpx.get(f"{url}/maps/{MAP}/export", params={"format": "npz", **window}, timeout=60)
+        assert response.status_code == 200, response.text
+        with np.load(io.BytesIO(response.content)) as data:
+            np.testing.assert_array_equal(data["logodds"], windowed_reference(session, WINDOW)["logodds"])
+    finally:
+        stack.end("api-late")
 
 
 def test_export_layers_follow_the_openapi_schema(api, session):

@@ -90,10 +90,12 @@ def build_export(api: Api, name: str, fmt: str, layer: str | None, edges: Edges 
     backend = api.backend
     info = known_map(api, name)
     shards = shard_count(api, name)
+    # the tiles the registry lists, and the map's geometry, which an API that has seen no tile update since it
+    # started learns only here: the size is checked before any tile is fetched
+    backend.tiles.sync(name)
     if info.resolution is None or info.tile_size is None:
         raise HTTPException(409, f"map {name!r} has no tiles yet")
     window = None if edges is None else Window.of(*edges, info.resolution)
-    backend.tiles.sync(name)  # the tiles the registry lists: the size is checked before any tile is fetched
     check_export_size(
         api,
         name,
