@@ -26,7 +26,7 @@ from typing import overload
 
 import numpy as np
 
-from slam.motion import MotionModel, OdometryMotionModel, VelocityMotionModel
+from slam.motion import MotionModel, OdometryMotionModel, OmniOdometryMotionModel, VelocityMotionModel
 from slam.range_bearing import RangeBearingModel
 
 #: median of chi-square(2): 2 ln 2
@@ -124,9 +124,11 @@ def scaled_motion(motion: VelocityMotionModel, scale: float) -> VelocityMotionMo
 @overload
 def scaled_motion(motion: OdometryMotionModel, scale: float) -> OdometryMotionModel: ...
 @overload
+def scaled_motion(motion: OmniOdometryMotionModel, scale: float) -> OmniOdometryMotionModel: ...
+@overload
 def scaled_motion(motion: MotionModel, scale: float) -> MotionModel: ...
 def scaled_motion(motion: MotionModel, scale: float) -> MotionModel:
-    """``motion`` with every noise variance multiplied by ``scale`` (both models' variances are linear in their
+    """``motion`` with every noise variance multiplied by ``scale`` (every model's variances are linear in its
     alphas and floor)."""
     if scale == 1.0:
         return motion

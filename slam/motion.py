@@ -164,6 +164,62 @@ def odometry_controls(odometry: np.ndarray) -> np.ndarray:
     return np.stack([rot1, trans, rot2], axis=1)
 
 
+#: a travel more than this far off the heading's axis (rad; forwards or backwards) is sideways
+SIDEWAYS_BEARING = math.pi / 4
+#: odometry that travels sideways for more than this share of its distance is a holonomic base's (or its robot
+#: frame's x axis is not the driving direction): a differential drive's travels along its heading but for slips
+#: and turns on the spot (0 to 3.4 % on the shared laser logs, their corrected poses included)
+HOLONOMIC_SHARE = 0.5
+
+
+#: a live filter decides on the odometry model once its odometry has travelled this far (m)
+SIDEWAYS_DECIDE_DISTANCE = 2.0
+
+
+def sideways_steps(odometry: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For consecutive odometry readings (T, 3) (x, y, theta in its frame; m, rad): the distance (T-1,) m each step
+    travels and whether its direction lies more than SIDEWAYS_BEARING off the heading's axis (T-1,)."""
+    odometry = np.asarray(odometry, dtype=np.float64)
+    dxy = np.diff(odometry[:, :2], axis=0)
+    bearing = np.arctan2(dxy[:, 1], dxy[:, 0]) - odometry[:-1, 2]
+    return np.hypot(dxy[:, 0], dxy[:, 1]), np.abs(np.sin(bearing)) > math.sin(SIDEWAYS_BEARING)
+
+
+def sideways_share(odometry: np.ndarray) -> float:
+    """The share of the distance odometry readings (T, 3) travel that is travelled sideways (:func:`sideways_steps`);
+    0 for no travel."""
+    trans, sideways = sideways_steps(odometry)
+    total = float(trans.sum())
+    return float(trans[sideways].sum()) / total if total > 0.0 else 0.0
+
+
+class SidewaysWatch:
+    """:func:`sideways_share` of odometry readings that come one by one (a live filter's), decided once they have
+    travelled SIDEWAYS_DECIDE_DISTANCE."""
+
+    def __init__(self) -> None:
+        self.travelled = 0.0  # m
+        self.sideways = 0.0  # m
+        self._last: np.ndarray | None = None
+
+    def add(self, pose: np.ndarray) -> bool | None:
+        """Take the next reading (3,); whether the odometry travels sideways for more than HOLONOMIC_SHARE of its
+        distance, None until it has travelled SIDEWAYS_DECIDE_DISTANCE."""
+        pose = np.asarray(pose, dtype=np.float64)
+        if self._last is not None:
+            trans, sideways = sideways_steps(np.stack([self._last, pose]))
+            self.travelled += float(trans[0])
+            self.sideways += float(trans[0]) if sideways[0] else 0.0
+        self._last = pose
+        if self.travelled < SIDEWAYS_DECIDE_DISTANCE:
+            return None
+        return self.sideways > HOLONOMIC_SHARE * self.travelled
+
+    def restart(self) -> None:
+        """Forget the last reading (an odometry reset: the jump to the next is no travel)."""
+        self._last = None
+
+
 def split_odometry_motion(control: np.ndarray, pieces: int) -> np.ndarray:
     """The relative motion ``control`` (rot1 rad, trans m, rot2 rad) as ``pieces`` motions along the same straight
     line (pieces, 3): (rot1, trans / pieces, 0), (0, trans / pieces, 0), ..., (0, trans / pieces, rot2); one piece
@@ -247,8 +303,62 @@ class OdometryMotionModel:
         return self.predict(poses, control), jac_g, q
 
 
-#: either motion model; both offer predict, sample and linearize over poses (N, 3) and one control (3,)
-MotionModel = VelocityMotionModel | OdometryMotionModel
+@dataclass(frozen=True)
+class OmniOdometryMotionModel:
+    """The odometry model for a base that may move in any direction (holonomic, or a robot frame whose x axis is
+    not the direction the robot drives): the same relative motion (rot1, trans, rot2), whose rot1 is then only the
+    bearing of the travel, not a turn the robot made, with the noise of the turn it made, rot = rot1 + rot2.
+
+    Errors along the travel (e_t), across it (e_s) and of the heading (e_r), with variances
+    t: a3 trans^2 + a4 rot^2; s: the same (no direction is preferred); r: a1 rot^2 + a2 trans^2,
+    so a move sideways is as certain as a move forwards. :class:`OdometryMotionModel` gives rot1 and rot2 the
+    noise of turns: a1 (pi/2)^2 each for a move sideways, 0.35 rad standard deviation apiece at alphas 0.05.
+    """
+
+    alphas: tuple[float, float, float, float] = (0.005, 0.005, 0.005, 0.005)
+
+    moves = staticmethod(OdometryMotionModel.moves)
+
+    def predict(self, poses: np.ndarray, control: np.ndarray) -> np.ndarray:
+        """Noise-free motion of poses (N, 3) by the relative motion control (rot1, trans, rot2)."""
+        return OdometryMotionModel(self.alphas).predict(poses, control)
+
+    def travel_variances(self, control: np.ndarray) -> np.ndarray:
+        """Variances (3,) of the errors along the travel (m^2), across it (m^2) and of the heading (rad^2)."""
+        rot1, trans, rot2 = (float(c) for c in control)
+        a, rot = self.alphas, rot1 + rot2
+        along = a[2] * trans**2 + a[3] * rot**2
+        return np.array([along, along, a[0] * rot**2 + a[1] * trans**2])
+
+    @staticmethod
+    def _travel_jacobian(poses: np.ndarray, rot1: float) -> np.ndarray:
+        """d pose / d (e_t, e_s, e_r) (N, 3, 3) at the travel's bearing theta + rot1."""
+        heading = poses[:, 2] + rot1
+        cos_h, sin_h = np.cos(heading), np.sin(heading)
+        jac = np.zeros((len(poses), 3, 3))
+        jac[:, 0, 0], jac[:, 1, 0] = cos_h, sin_h
+        jac[:, 0, 1], jac[:, 1, 1] = -sin_h, cos_h
+        jac[:, 2, 2] = 1.0
+        return jac
+
+    def sample(self, poses: np.ndarray, control: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """One noisy motion per pose: the noise-free motion plus (e_t, e_s) along and across the travel and e_r."""
+        errors = rng.standard_normal((len(poses), 3)) * np.sqrt(self.travel_variances(control))
+        moved = self.predict(poses, control) + np.einsum("nij,nj->ni", self._travel_jacobian(poses, control[0]), errors)
+        moved[:, 2] = wrap_angle(moved[:, 2])
+        return moved
+
+    def linearize(self, poses: np.ndarray, control: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Noise-free motion (N, 3), G = dg/dpose (N, 3, 3) (as :class:`OdometryMotionModel`'s) and Q = V M V^T
+        (N, 3, 3) with V = d pose / d (e_t, e_s, e_r), M their variances."""
+        mean, jac_g, _ = OdometryMotionModel(self.alphas).linearize(poses, control)
+        jac_v = self._travel_jacobian(poses, control[0])
+        q = np.einsum("nij,j,nkj->nik", jac_v, self.travel_variances(control), jac_v)
+        return mean, jac_g, q
+
+
+#: any motion model; each offers predict, sample and linearize over poses (N, 3) and one control (3,)
+MotionModel = VelocityMotionModel | OdometryMotionModel | OmniOdometryMotionModel
 
 
 def compose(poses: np.ndarray, delta: np.ndarray) -> np.ndarray:

@@ -13,11 +13,13 @@ from hypothesis import strategies as st
 from slam.angles import wrap_angle
 from slam.motion import (
     OdometryMotionModel,
+    OmniOdometryMotionModel,
     VelocityMotionModel,
     compose,
     local_motion,
     odometry_controls,
     rotate_covariance,
+    sideways_share,
     split_odometry_motion,
 )
 from slam.range_bearing import RangeBearingModel, inverse_measurement, predict_measurement
@@ -203,6 +205,68 @@ def test_odometry_process_noise_matches_samples():
     residual = draws - mean
     residual[:, 2] = wrap_angle(residual[:, 2])
     np.testing.assert_allclose(residual.T @ residual / len(residual), q[0], atol=0.05 * np.abs(q[0]).max())
+
+
+def test_omni_odometry_process_noise_matches_samples_and_hand_variances():
+    model = OmniOdometryMotionModel(alphas=(0.02, 0.01, 0.03, 0.04))
+    pose = np.array([[1.0, 2.0, -0.4]])
+    control = np.array([1.2, 0.5, -0.2])  # a travel 1.2 rad off the heading, a turn of 1.0 rad
+    # along and across the travel: a3 0.5^2 + a4 1.0^2; the heading: a1 1.0^2 + a2 0.5^2
+    np.testing.assert_allclose(model.travel_variances(control), [0.0475, 0.0475, 0.0225])
+    mean, _, q = model.linearize(pose, control)
+    np.testing.assert_allclose(mean, OdometryMotionModel().predict(pose, control))
+    draws = model.sample(np.repeat(pose, 40_000, axis=0), control, np.random.default_rng(2))
+    residual = draws - mean
+    residual[:, 2] = wrap_angle(residual[:, 2])
+    np.testing.assert_allclose(residual.T @ residual / len(residual), q[0], atol=0.05 * np.abs(q[0]).max())
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    x=coords,
+    y=coords,
+    theta=angles,
+    travel=st.floats(0.001, 2.0),
+    bearing=angles,
+    turn=st.floats(-1.5, 1.5),
+    frame=angles,
+)
+def test_omni_odometry_noise_does_not_depend_on_where_the_robot_frame_points(x, y, theta, travel, bearing, turn, frame):
+    """The same motion in the world (a travel of ``travel`` m at world bearing ``bearing``, a turn of ``turn``),
+    logged by a robot frame turned ``frame`` rad (a holonomic base, or x not the driving direction): the omni model
+    gives the same pose noise in the world, which the differential drive's model (rot1 a turn) does not."""
+    start = np.array([x, y, theta])
+    end = np.array([x + travel * math.cos(bearing), y + travel * math.sin(bearing), theta + turn])
+    shifted = start + [0.0, 0.0, frame], end + [0.0, 0.0, frame]
+    model = OmniOdometryMotionModel(alphas=(0.02, 0.01, 0.03, 0.04))
+    _, _, q = model.linearize(start[None], odometry_controls(np.stack([start, end]))[0])
+    _, _, q_turned = model.linearize(shifted[0][None], odometry_controls(np.stack(shifted))[0])
+    np.testing.assert_allclose(q_turned, q, rtol=1e-9, atol=1e-12)
+
+
+def test_the_differential_drive_model_makes_a_move_sideways_a_turn():
+    """What the omni model is for: a 0.5 m move sideways, at alphas 0.05, is given 0.52 rad of heading noise by the
+    differential drive's model (rot1 = pi/2 and rot2 = -pi/2, each a turn) and 0.11 by the omni model."""
+    control = odometry_controls(np.array([[0.0, 0.0, 0.0], [0.0, 0.5, 0.0]]))[0]
+    pose = np.zeros((1, 3))
+    heading_sd = {
+        name: math.sqrt(model.linearize(pose, control)[2][0, 2, 2])
+        for name, model in (
+            ("diff", OdometryMotionModel((0.05,) * 4)),
+            ("omni", OmniOdometryMotionModel((0.05,) * 4)),
+        )
+    }
+    assert heading_sd["diff"] == pytest.approx(math.sqrt(2 * (0.05 * (math.pi / 2) ** 2 + 0.05 * 0.25)))
+    assert heading_sd["omni"] == pytest.approx(math.sqrt(0.05 * 0.25))
+
+
+def test_sideways_share_by_hand():
+    # heading 0 throughout: 1 m forwards, 1 m to the left, 2 m backwards, then 3 m forwards at 30 deg off the heading
+    odometry = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [-1, 1, 0], [-1 + 1.5 * math.sqrt(3), 2.5, 0]], float)
+    assert sideways_share(odometry) == pytest.approx(1 / 7)
+    turned = odometry + [0.0, 0.0, math.pi / 2]  # the same travel logged by a frame turned 90 deg
+    assert sideways_share(turned) == pytest.approx(6 / 7)
+    assert sideways_share(np.zeros((3, 3))) == 0.0
 
 
 # ------------------------------------------------------------------------------------------- composition

@@ -21,6 +21,7 @@ from services.commands.argtypes import (
     refuse_another_kind,
 )
 from services.commands.options import add_scan_topic
+from slam.motion import HOLONOMIC_SHARE, sideways_share
 
 #: grid FastSLAM particles when --particles is not given: the least KLD-sampling keeps (GridSlamConfig.particle_cap
 #: the most)
@@ -168,6 +169,15 @@ def add_gridslam_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         metavar="N",
         help="use only the log's first N scans, e.g. to try options quickly on a long log (default: all)",
+    )
+    group.add_argument(
+        "--odometry-model",
+        choices=("auto", "diff", "omni"),
+        default="auto",
+        help="the odometry's noise: 'diff' turns, drives and turns (a differential drive's), 'omni' travels in any "
+        "direction with the noise of the turn made (a holonomic base's, or a robot frame whose x axis is not the "
+        "driving direction); 'auto' (default): omni where the odometry travels sideways (more than 45 deg off its "
+        f"heading) for more than {HOLONOMIC_SHARE:.0%} of its distance, else diff (docs/gridslam.md)",
     )
     add_scan_topic(group)
     group.add_argument(
@@ -349,7 +359,7 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
     config = gridslam_config(args)
     best_path, poses_path = _output_paths(args)
     before = time.process_time()
-    log, delay = _prepared_log(args, config)
+    log, config, delay = _prepared_log(args, config)
     reading_cpu = time.process_time() - before  # (reading the log, and estimating the delay where it is)
     started = time.perf_counter()
     cpu_started = time.process_time()
@@ -404,7 +414,8 @@ def _report_health(stats: dict) -> None:
 
 def _prepared_log(args: argparse.Namespace, config):
     """The laser log of args.input (its first --scans scans) with its odometry read at --odom-delay, checked by
-    :func:`_check_log` before and after the delay, and the delay in s."""
+    :func:`_check_log` before and after the delay, ``config`` with its odometry model (--odometry-model), and the
+    delay in s."""
     from services.commands.logs import read_log
     from services.errors import UsageError
 
@@ -414,11 +425,29 @@ def _prepared_log(args: argparse.Namespace, config):
     if args.scans is not None:
         log = log.first(args.scans)
     _check_log(log, config)
+    config = _odometry_model(args.odometry_model, log, config)
     log, delay = _apply_odometry_delay(args, log, config)
     for remark in log.remarks():  # (after the delay, which skips the scans it leaves without odometry)
         print(f"posegrid slam: note: {remark}", file=sys.stderr)
     _check_log(log, config)
-    return log, delay
+    return log, config, delay
+
+
+def _odometry_model(choice: str, log, config):
+    """``config`` with the odometry model ``choice`` (auto: :func:`slam.motion.sideways_share` of the log's
+    odometry against HOLONOMIC_SHARE; said on stderr when it is omni)."""
+    from dataclasses import replace
+
+    share = sideways_share(log.odometry)
+    holonomic = choice == "omni" or (choice == "auto" and share > HOLONOMIC_SHARE)
+    if choice == "auto" and holonomic:
+        print(
+            f"posegrid slam: note: the odometry travels sideways for {share:.0%} of its distance: a holonomic base, "
+            "or a robot frame whose x axis is not the driving direction; using the omni odometry model "
+            "(--odometry-model diff to refuse it)",
+            file=sys.stderr,
+        )
+    return replace(config, holonomic=holonomic)
 
 
 def _run_filter(log, config, seed: int):
@@ -471,7 +500,8 @@ def _save_outputs(output: Path, best_path: Path, poses_path: Path, log, config, 
 def _run_stats(log, config, result, delay: float, elapsed: float, cpu: float) -> dict:
     """The figures --stats writes: times (s) of ``elapsed`` wall and ``cpu`` time (the filter's run; the caller adds
     ``cpu_seconds_reading``, reading the log and estimating its odometry delay), effective sample sizes,
-    resamplings, tiles, the odometry ``delay`` (s), the loop closer's counts, the health of every integrated scan
+    resamplings, tiles, the odometry ``delay`` (s), the odometry model and the share of the odometry's distance
+    travelled sideways, the loop closer's counts, the health of every integrated scan
     (columns, one value per integrated scan) and its summary, and the errors against the poses the log states where
     it states others than its odometry."""
     duration = float(log.stamps[-1] - log.stamps[0])
@@ -493,6 +523,8 @@ def _run_stats(log, config, result, delay: float, elapsed: float, cpu: float) ->
         "tiles_in_use": result.maps.tiles_in_use,
         "tiles_copied": result.maps.copies,
         "odometry_delay_s": delay,
+        "odometry_model": "omni" if config.holonomic else "diff",
+        "odometry_sideways_share": sideways_share(log.odometry),
         "final_particles": len(result.weights),
         "loop_closure": result.loops,
         "health_summary": summary,

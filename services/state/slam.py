@@ -16,6 +16,7 @@ which a live node cannot do).
 from __future__ import annotations
 
 import copy
+import logging
 import threading
 import time
 from collections import Counter, OrderedDict
@@ -44,7 +45,14 @@ from slam.gridslam import GridSlamConfig
 from slam.gridslam.health import ScanHealth
 from slam.landmark_filter import LandmarkFilter
 from slam.laserlog import POSE_LIMIT
-from slam.motion import VELOCITY_LIMIT, OdometryMotionModel, odometry_controls, split_odometry_motion
+from slam.motion import (
+    SIDEWAYS_DECIDE_DISTANCE,
+    VELOCITY_LIMIT,
+    OdometryMotionModel,
+    SidewaysWatch,
+    odometry_controls,
+    split_odometry_motion,
+)
 from slam.range_bearing import BEARING_LIMIT
 
 if TYPE_CHECKING:
@@ -277,7 +285,12 @@ class GridDriver:
         pass
 
     def __init__(
-        self, initial: np.ndarray, config: GridSlamConfig, seed: int, max_odometry_step: float = MAX_ODOMETRY_STEP
+        self,
+        initial: np.ndarray,
+        config: GridSlamConfig,
+        seed: int,
+        max_odometry_step: float = MAX_ODOMETRY_STEP,
+        log: logging.Logger | None = None,
     ):
         self.initial = initial
         self.config = config
@@ -289,6 +302,8 @@ class GridDriver:
         self.failed = 0  # of them, whose best match failed
         self._last_odometry: np.ndarray | None = None  # the odometry pose (3,) of the last step taken
         self._jumped: list[np.ndarray] = []  # the odometry poses of the steps refused since, each near the one before
+        self._sideways: SidewaysWatch | None = SidewaysWatch()  # None once the odometry model is chosen
+        self.log = get_logger("slam-node") if log is None else log
 
     def health(self) -> dict:
         """NodeStats' health: the last integrated scan's (slam.gridslam.health.ScanHealth; flags as 0 or 1, values
@@ -317,6 +332,7 @@ class GridDriver:
         if self.filter is None:  # as slam.gridslam.run_gridslam sets it up
             self.filter = GridFastSLAM(self.config, angles, scan.sensor_offset, scan.range_min, self.initial, self.seed)
         self._check_jump(odom.seq, odom.pose[0])
+        self._choose_odometry_model(odom.pose[0])
         if self.filter.due(odom.pose[0]):  # each scan with its own laser geometry
             laser = Laser.of(self.config, angles, scan.sensor_offset, scan.range_min, scan.range_max)
             poses, weights, _, report = self.filter.integrate(odom.pose[0], scan.ranges, laser)
@@ -325,6 +341,27 @@ class GridDriver:
             self.failed += int(report.health.failed)
             return poses, weights
         return self.filter.follow(odom.pose[0]), self.filter.weights
+
+    def _choose_odometry_model(self, pose: np.ndarray) -> None:
+        """Once the odometry has travelled slam.motion.SIDEWAYS_DECIDE_DISTANCE, give the filter the omni odometry
+        model if it travelled sideways for most of it (as `posegrid slam` decides on a whole log; a filter given
+        the omni model keeps it)."""
+        if self._sideways is None:
+            return
+        verdict = self._sideways.add(pose)
+        if verdict is None:
+            return
+        self._sideways = None
+        if verdict:
+            from slam.motion import OmniOdometryMotionModel
+
+            assert self.filter is not None  # (made before the first step is watched)
+            self.filter.motion = OmniOdometryMotionModel(self.config.motion_alphas)
+            self.log.info(
+                "the odometry travels sideways for most of its first %g m: a holonomic base, or a robot frame "
+                "whose x axis is not the driving direction; using the omni odometry model",
+                SIDEWAYS_DECIDE_DISTANCE,
+            )
 
     def _check_jump(self, seq: int, pose: np.ndarray) -> None:
         """StepError for odometry ``pose`` (3,) more than max_odometry_step from the last step's, unless it is the
@@ -341,6 +378,8 @@ class GridDriver:
                 )
             assert self.filter is not None  # (made before the first step is checked)
             self.filter.odometry_ref = None if self.filter.odometry_ref is None else pose.copy()
+            if self._sideways is not None:
+                self._sideways.restart()
         self._jumped = []
         self._last_odometry = pose.copy()
 
@@ -506,7 +545,7 @@ class SlamState:
         initial = np.asarray(self.initial, np.float64)
         if cfg.algorithm == "gridslam":
             assert cfg.grid_config is not None  # NodeConfig: grid FastSLAM's settings come with it
-            return GridDriver(initial, cfg.grid_config, cfg.seed, cfg.max_odometry_step)
+            return GridDriver(initial, cfg.grid_config, cfg.seed, cfg.max_odometry_step, self.log)
         assert cfg.make_filter is not None  # NodeConfig: None for gridslam only
         return LandmarkDriver(cfg.make_filter(initial), cfg.motion, cfg.bridge, cfg.calibration, cfg.max_landmarks)
 

@@ -35,6 +35,7 @@ class GridSlamConfig:
     proposal_floor_xy: float = 0.005  # m, std added to the proposal Gaussian
     proposal_floor_yaw: float = 0.002  # rad
     motion_alphas: tuple[float, float, float, float] = (0.05, 0.05, 0.05, 0.05)  # slam.motion odometry model
+    holonomic: bool = False  # the odometry's noise along, across its travel and of its turn (OmniOdometryMotionModel)
     motion_floor_xy: float = 0.01  # m, std added to the motion model's covariance
     motion_floor_yaw: float = 0.005  # rad
     l_occ: float = 0.85  # log-odds added at a beam's end

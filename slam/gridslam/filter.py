@@ -56,7 +56,7 @@ from slam.gridslam.honesty import (
 from slam.gridslam.kernels import log_likelihoods, match_and_propose
 from slam.gridslam.loops import LoopCloser
 from slam.gridslam.tiles import TileMaps
-from slam.motion import OdometryMotionModel, odometry_controls, rotate_covariance
+from slam.motion import OdometryMotionModel, OmniOdometryMotionModel, odometry_controls, rotate_covariance
 from slam.posegraph import apply_transform
 from slam.resampling import effective_sample_size, normalize_log_weights
 from slam.stats import sample_gaussian
@@ -146,7 +146,8 @@ class GridFastSLAM:
         self.poses = np.tile(np.asarray(initial_pose, np.float64), (m, 1))
         self.log_w = np.zeros(m)
         self.maps = TileMaps(m, config.resolution, config.tile_cells)
-        self.motion = OdometryMotionModel(alphas=config.motion_alphas)
+        model = OmniOdometryMotionModel if config.holonomic else OdometryMotionModel
+        self.motion = model(alphas=config.motion_alphas)
         self.stencil, self.fit = proposal_stencil(config.stencil_xy, config.stencil_yaw)
         self.odometry_ref: np.ndarray | None = None  # odometry at the last integrated scan
         self.drift = np.zeros((m, 3, 3))  # per particle: the covariance kept beyond the set's spread (honesty)
