@@ -158,6 +158,38 @@ def test_a_resumed_shard_drops_a_replay_of_what_it_fused_as_resent(tmp_path, pai
     persister.abandon()
 
 
+def test_a_resumed_shard_counts_a_replay_of_what_the_histories_gave_it(tmp_path, pairs):
+    """A shard restarted from its store takes what it missed from the histories; then the SLAM node restarts and
+    publishes the run's poses again. The poses up to the last seq the histories gave were dropped uncounted (a soak:
+    6 845 of them on the restarted shard, 0 on the other): each is counted, as resent where it is the copy the shard
+    fused or holds, else refused (a different pose for a seq it fused: duplicate; for a scan it holds: taken)."""
+    config = _config()
+    shard, persister = _open(config, tmp_path, every_scans=5)
+    _feed(shard, pairs, range(30), persister)
+    assert persister.finish(shard)
+    shard, persister = _open(config, tmp_path, every_scans=5)
+    _feed(shard, pairs, range(30, 40), persister, from_history=True)  # (what it missed, from the histories)
+    for seq in range(40, 45):  # ... and scans whose poses the SLAM node has not published yet
+        scan, _ = pairs[seq]
+        shard.take(keys.robot_key(scan.robot, keys.SCAN), scan, from_history=True)
+    for seq in range(40):  # the restarted SLAM node's poses, again
+        _, pose = pairs[seq]
+        shard.take(keys.robot_key(pose.robot, keys.POSE), pose)
+    assert shard.resent == {"pg/r1/pose": 40} and shard.fused == {"r1": 40}
+    scan, pose = pairs[42]
+    shard.take("pg/r1/scan", scan)  # the source's live copy of a scan the histories gave: the same
+    assert shard.resent == {"pg/r1/pose": 40, "pg/r1/scan": 1}
+    shard.take("pg/r1/scan", replace(scan, stamp=scan.stamp + 1.0))  # another scan for that seq
+    shard.take("pg/r1/pose", replace(pairs[3][1], stamp=pairs[3][1].stamp + 1.0))  # another pose for a fused seq
+    assert shard.rejects.by_kind == {"taken": 1, "duplicate": 1}
+    for seq in range(40, 45):  # the rest comes; the map is the reference's
+        _, pose = pairs[seq]
+        shard.take(keys.robot_key(pose.robot, keys.POSE), pose)
+    assert shard.fused == {"r1": 45}
+    _same_grid(shard, _reference(pairs[:45], config))
+    persister.abandon()
+
+
 def test_a_new_session_fuses_the_robots_seqs_again_on_top_of_the_map(tmp_path, pairs):
     config = _config()
     shard, persister = _open(config, tmp_path, every_scans=8, session="first")

@@ -280,22 +280,23 @@ class MapShard:
         caught_up_to = self._history_high.get((message.robot, stream), -1)
         if from_history:
             self._history_high[(message.robot, stream)] = max(caught_up_to, message.seq)
-        elif message.seq <= caught_up_to:
-            return
         if self._fused_seqs.done(message.robot, message.seq):
             self._refuse_fused(key, stream, message)
+            return
+        join_key = (message.robot, message.seq)
+        is_scan = isinstance(message, LaserScan)
+        held = self._held_digest(join_key, is_scan)
+        if not from_history and message.seq <= caught_up_to:  # (the histories' copy was taken)
+            if held == message.digest():
+                self._count_resent(key, message)
+            else:
+                self._refuse_taken(key, message, held is not None)
             return
         self._heard[message.robot] = self._clock()
         if message.robot in self.ended:  # (a late pose after the end: settle again once it is quiet)
             self._unsettled.add(message.robot)
             if not from_history:
                 self._tails_asked.discard(message.robot)
-        join_key = (message.robot, message.seq)
-        is_scan = isinstance(message, LaserScan)
-        # sent again before its pair was fused: the copy waiting for its partner (or past a gap), or one the join
-        # evicted for room and will ask the histories for again
-        waiting = self._join.waiting(join_key, is_scan)
-        held = self._join.evicted_digest(join_key, is_scan) if waiting is None else waiting.digest()
         if held == message.digest():
             self._count_resent(key, message)
             return
@@ -333,6 +334,24 @@ class MapShard:
                 "which this shard has fused already, differs from the one fused (two publishers for "
                 "one robot, or a stale run under its name); the first one stands",
             )
+
+    def _held_digest(self, join_key: tuple[str, int], is_scan: bool) -> bytes | None:
+        """The digest of the copy of a scan (or pose) the join holds for ``join_key`` (robot, seq): waiting for its
+        partner (or past a gap), or evicted for room and to be asked of the histories again; None for none."""
+        waiting = self._join.waiting(join_key, is_scan)
+        return self._join.evicted_digest(join_key, is_scan) if waiting is None else waiting.digest()
+
+    def _refuse_taken(self, key: str, message: ScanOrPose, differs: bool) -> None:
+        """Refuse a live scan or pose of a seq that the histories gave this shard already (their copy was taken:
+        fused, waiting, or given up with its partner), and that is not the same as a copy it holds (``differs``:
+        it holds one, and this is another; else it holds none to compare with): ``taken``."""
+        held = "differs from the copy it holds" if differs else "cannot be compared with it"
+        self.rejects.count(
+            key,
+            "taken",
+            f"a {message.TYPE} of robot {message.robot!r} for seq {message.seq}, which the histories gave this shard "
+            f"already (their copy was taken); this one {held}",
+        )
 
     def _count_resent(self, key: str, message: ScanOrPose) -> None:
         """Count a scan or pose that came again, the same as the copy fused or waiting (for its pair, or past a gap in
