@@ -326,7 +326,7 @@ class OmniOdometryMotionModel:
     def travel_variances(self, control: np.ndarray) -> np.ndarray:
         """Variances (3,) of the errors along the travel (m^2), across it (m^2) and of the heading (rad^2)."""
         rot1, trans, rot2 = (float(c) for c in control)
-        a, rot = self.alphas, rot1 + rot2
+        a, rot = self.alphas, float(wrap_angle(rot1 + rot2))  # (the turn made, within a half turn either way)
         along = a[2] * trans**2 + a[3] * rot**2
         return np.array([along, along, a[0] * rot**2 + a[1] * trans**2])
 
