@@ -47,6 +47,8 @@ REASONS = (
 
 #: names that become key-expression chunks (robot, map): no '/', '*', '$', '?', '#'
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$"
+#: NAME_PATTERN in words, for the errors and docs that state it
+NAME_RULE = "letters, digits, '_', '.' and '-', starting with a letter or digit, at most 64"
 
 #: the largest array a message may carry, in elements (bounds memory on hostile input)
 MAX_ARRAY_ELEMENTS = 1 << 26
@@ -158,8 +160,7 @@ class Name(Spec):
         if not is_valid_name(value) or value in self.forbidden:
             ctx.fail(
                 "range",
-                f"'{name}' = {value!r} is not a valid name (letters, digits, '_', '.', '-'; "
-                f"at most 64; not {', '.join(self.forbidden) or 'empty'})",
+                f"'{name}' = {value!r} is not a valid name ({NAME_RULE}; not {', '.join(self.forbidden) or 'empty'})",
             )
         return value
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -16,7 +17,7 @@ from services.api.events import EventHub
 from services.api.fastpath import etag_matches
 from services.api.registry import MapRegistry
 from services.api.render import LOGODDS_RANGE
-from services.api.robots import RobotTracker, reduce_samples, summarize, weighted_mean_cov
+from services.api.robots import PoseRefused, RobotTracker, reduce_samples, summarize, weighted_mean_cov
 from services.api.tiles import TileService, render_key, tile_facts, variance_scale
 from services.map_client import ShardAnswers
 from services.state.ownership import tile_owner
@@ -139,6 +140,29 @@ def test_tracker_keeps_latest_and_trajectory():
     assert tracker.robots() == ["r"] and tracker.latest("r").seq == 2 and tracker.latest_seqs() == {"r": 2}
     np.testing.assert_allclose(tracker.trajectory("r")[:, [0, 2]], [[0, 0], [1, 1], [2, 2]])
     assert tracker.trajectory("nobody").shape == (0, 5)
+
+
+def test_tracker_keeps_each_seq_once_in_order_and_refuses_stale_poses():
+    """A restarted SLAM node publishes the run's poses again from seq 0, and a second node under the robot's name
+    publishes its own: the trajectory went back to seq 0 and held seqs twice (1 071 entries for 900 steps), and the
+    latest pose fell back. A pose not after the robot's latest is refused (stale); a new robot beyond the cap too."""
+
+    def pose(seq: int, x: float) -> PoseSamples:
+        return PoseSamples(robot="r", seq=seq, stamp=seq * 0.1, samples=np.array([[x, 0.0, 0.0]]), weights=np.ones(1))
+
+    tracker = RobotTracker(max_robots=1)
+    for seq in (0, 1, 2, 5):
+        tracker.update(pose(seq, float(seq)))
+    for seq, x in ((0, 0.0), (2, 99.0), (5, 99.0), (4, 4.0)):  # again, another node's, and one that came late
+        with pytest.raises(PoseRefused) as refused:
+            tracker.update(pose(seq, x))
+        assert refused.value.kind == "stale" and f"seq {seq}, not after its latest, seq 5" in str(refused.value)
+    tracker.update(pose(6, 6.0))
+    np.testing.assert_allclose(tracker.trajectory("r")[:, [0, 2]], [[0, 0], [1, 1], [2, 2], [5, 5], [6, 6]])
+    assert tracker.latest("r").seq == 6
+    with pytest.raises(PoseRefused) as refused:
+        tracker.update(replace(pose(0, 0.0), robot="s"))
+    assert refused.value.kind == "capacity"
 
 
 def test_event_hub_batches_changes_per_flush():

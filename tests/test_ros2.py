@@ -384,6 +384,12 @@ def test_the_map_mirror_places_updates_in_the_grid_last_published():
         (["ros2", "--domain", "300", "--connect", "tcp/127.0.0.1:1"], "the ROS domain id must be 0 .. 232"),
         (["ros2", "--scan-topic", "a//b", "--connect", "tcp/127.0.0.1:1"], "topic 'a//b' is not a ROS 2 name"),
         (["ros2", "--robot", "map", "--connect", "tcp/127.0.0.1:1"], "--robot 'map' is not a valid name"),
+        # the rule said letters, digits, '_', '.', '-' and refused '.' (a probe's): it starts with a letter or digit
+        (
+            ["ros2", "--robot", ".", "--connect", "tcp/127.0.0.1:1"],
+            "'.' is not a valid name (letters, digits, '_', '.' "
+            "and '-', starting with a letter or digit, at most 64; not map)",
+        ),
         (["ros2", "play", "/nonexistent/bag", "--rate", "2x"], "rate must be 'max'"),
         (["run", "--ros2", "--posed", "x.npz", "--no-api"], "--ros2 maps a live robot: it takes no input (--posed)"),
         (["run", "--ros2", "--export", "m.npz", "--no-api"], "leave out --export"),

@@ -35,7 +35,7 @@ from services import keys
 from services.api.events import EventHub
 from services.api.limits import MAX_PROCESSES, VERIFY_WINDOW, Tally
 from services.api.registry import MapRegistry, TileKey
-from services.api.robots import RobotTracker
+from services.api.robots import PoseRefused, RobotTracker
 from services.map_client import MapReader, sort_answers
 from services.process import RejectCounter, get_logger
 from services.zenoh_config import replier, undeclare_all
@@ -218,10 +218,12 @@ class MapperLink:
                 key if parsed else keys.INVALID_KEY, "robot", f"a pose of robot {message.robot!r} arrived on {key}"
             )
             return
-        summary = self.robots.update(message)
-        if summary is None:
-            self.refused.add("robots")
-            self.rejects.count(key, "capacity", f"{self.robots.max_robots} robots are tracked already (--max-robots)")
+        try:
+            summary = self.robots.update(message)
+        except PoseRefused as refused:
+            if refused.kind == "capacity":
+                self.refused.add("robots")
+            self.rejects.count(key, refused.kind, str(refused))
             return
         self.hub.pose(summary)
 

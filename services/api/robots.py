@@ -95,6 +95,14 @@ def summarize(message: PoseSamples | PoseGaussian, received: float) -> PoseSumma
     )
 
 
+class PoseRefused(Exception):
+    """A pose :meth:`RobotTracker.update` did not take: ``kind`` (the rejection counter's) and why."""
+
+    def __init__(self, kind: str, detail: str) -> None:
+        super().__init__(detail)
+        self.kind = kind
+
+
 class RobotTracker:
     """Thread-safe: Zenoh callbacks call :meth:`update` and :meth:`vouch`, HTTP handlers read.
 
@@ -117,23 +125,38 @@ class RobotTracker:
         self.max_robots = max_robots
         self.stray_ttl = stray_ttl
 
-    def update(self, message: PoseSamples | PoseGaussian) -> PoseSummary | None:
-        """Take a new pose message; returns its summary, or None when it is refused: a robot not tracked yet
-        while ``max_robots`` are."""
+    def update(self, message: PoseSamples | PoseGaussian) -> PoseSummary:
+        """Take a new pose message; returns its summary. Raises PoseRefused for a robot not tracked yet while
+        ``max_robots`` are (``capacity``), and for a pose whose seq is not above the robot's latest (``stale``: a
+        restarted SLAM node publishing the run again, or a second node under the robot's name), so that the latest
+        pose never goes back and the trajectory holds each seq once, in order, as the first publisher gave it."""
         now = time.monotonic()
         with self._lock:
-            if message.robot not in self._latest:
-                self._expire(now)
-                if len(self._latest) >= self.max_robots:
-                    return None
+            self._check(message, now)
         summary = summarize(message, time.time())
         with self._lock:
+            self._check(message, now)  # (another callback may have taken a pose of the robot meanwhile)
             self._latest[summary.robot] = summary
             self._heard[summary.robot] = now
             track = self._trajectory.setdefault(summary.robot, deque(maxlen=self._length))
             x, y, yaw = (float(v) for v in summary.mean)  # mean: (3,)
             track.append((summary.seq, summary.stamp, x, y, yaw))
         return summary
+
+    def _check(self, message: PoseSamples | PoseGaussian, now: float) -> None:
+        """:meth:`update`'s refusals, holding the lock."""
+        latest = self._latest.get(message.robot)
+        if latest is None:
+            self._expire(now)
+            if len(self._latest) >= self.max_robots:
+                raise PoseRefused("capacity", f"{self.max_robots} robots are tracked already (--max-robots)")
+        elif message.seq <= latest.seq:
+            raise PoseRefused(
+                "stale",
+                f"a pose of robot {message.robot!r} for seq {message.seq}, not after its latest, seq {latest.seq} (a "
+                "restarted SLAM node publishing the run again, or a second SLAM node under the robot's name): the "
+                "latest pose and the trajectory keep the poses they have",
+            )
 
     def vouch(self, robot: str) -> bool:
         """Record that a process of ``robot`` declared its liveliness token; False when refused (``max_robots``

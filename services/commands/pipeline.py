@@ -492,13 +492,12 @@ def _check_cell_size(resolution: float) -> None:
 
 def _check_name(value: str, option: str) -> None:
     from schemas.messages import RESERVED_ROBOT_NAMES
-    from schemas.wire import is_valid_name
+    from schemas.wire import NAME_RULE, is_valid_name
     from services.errors import UsageError
 
     if not is_valid_name(value) or (option == "--robot" and value in RESERVED_ROBOT_NAMES):
         raise UsageError(
-            f"{option} {value!r} is not a valid name (letters, digits, '_', '.', '-', at most 64"
-            f"{'; not map' if option == '--robot' else ''})"
+            f"{option} {value!r} is not a valid name ({NAME_RULE}{'; not map' if option == '--robot' else ''})"
         )
 
 

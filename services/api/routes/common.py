@@ -11,7 +11,7 @@ from typing import Annotated
 import anyio
 from fastapi import Depends, HTTPException, Path, Request
 
-from schemas.wire import NAME_PATTERN
+from schemas.wire import NAME_PATTERN, NAME_RULE
 from services.api import models
 from services.api.backend import Backend
 from services.api.limits import RETRY_AFTER, TILE_THREADS, HttpLimits, Slots
@@ -46,7 +46,7 @@ def error_response(code: int, description: str) -> dict:
 MapName = Annotated[
     str,
     Path(
-        description="map name, e.g. main (GET /maps lists them): letters, digits, '_', '.' and '-', at most 64",
+        description=f"map name, e.g. main (GET /maps lists them): {NAME_RULE}",
         pattern=NAME_PATTERN,
     ),
 ]

@@ -7,7 +7,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, HTTPException, Path, Query
 
-from schemas.wire import NAME_PATTERN
+from schemas.wire import NAME_PATTERN, NAME_RULE
 from services.api import models
 from services.api.robots import PoseSummary, RobotTracker, reduce_samples
 from services.api.routes.common import ApiDep, errors
@@ -17,7 +17,7 @@ router = APIRouter()
 Robot = Annotated[
     str,
     Path(
-        description="robot name, e.g. robot0 (GET /robots lists them): letters, digits, '_', '.' and '-', at most 64",
+        description=f"robot name, e.g. robot0 (GET /robots lists them): {NAME_RULE}",
         pattern=NAME_PATTERN,
     ),
 ]

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from schemas.messages import MAX_SEQ, MAX_TILE_INDEX
-from schemas.wire import is_valid_name
+from schemas.wire import NAME_RULE, is_valid_name
 from services.errors import UsageError
 from services.state.ownership import owns_tile
 
@@ -244,7 +244,7 @@ class ShardStore:
         truncated, foreign, another shard's or another run's."""
         for option, name in (("--session", session), ("--run-id", run_id)):
             if name is not None and not is_valid_name(name):
-                raise StoreError(f"{option} {name!r} is not a valid name (letters, digits, '_', '.', '-', at most 64)")
+                raise StoreError(f"{option} {name!r} is not a valid name ({NAME_RULE})")
         lock = _lock_directory(directory)
         path, created = directory / DB_NAME, False
         try:
