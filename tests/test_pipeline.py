@@ -375,6 +375,31 @@ def test_a_shard_cut_off_mid_stream_takes_what_it_missed_from_the_history(tmp_pa
     mapper.wait_for(r"took \d+ scan\(s\) of robot 'robot0' in seqs \d+-\d+ from the history \(lost in transit")
 
 
+def test_a_second_run_under_a_robot_name_the_shard_holds_exits_2_and_says_so(tmp_path, procs):
+    """A run under the name of a robot whose run the shard has fused: its first seqs are refused as duplicates and
+    its scans past the first run's end were fused into that robot's map; the source exited 0 and said nothing (a
+    probe, 500 + 60 scans). It now says so, and exits 2 (a launcher does not restart it). The first run, repeated
+    exactly (a restarted source replaying its input), exits 0: its scans come back as resent, not duplicates."""
+    first, second = (
+        make_posed(tmp_path / "a.npz", "samples", steps=20),
+        make_posed(tmp_path / "b.npz", "samples", steps=25, seed=9),
+    )
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
+    procs([*CLI, "mapper", "--shard", "0", "--shards", "1", "--map", "m", "--connect", endpoint]).wait_for(
+        "up; tiles on"
+    )
+
+    def source(posed: Path):
+        argv = ["source", "--posed", str(posed), "--map", "m", "--robot", "beta", "--wait-mappers", "1"]
+        return procs([*CLI, *argv, "--rate", "max", "--connect", endpoint])
+
+    for posed, code in ((first, 0), (first, 0), (second, 2)):
+        run = source(posed)
+        assert run.process.wait(120) == code, run.output()
+    assert "refused scans of this run as duplicates" in run.output() and "use another --robot" in run.output()
+
+
 def test_a_mapper_restarted_while_the_source_holds_back_takes_the_run_from_the_histories(tmp_path, procs):
     """With --rate max the source holds back until the shards take what it sent, so a restarted mapper sees no
     live message and no gap to recover from: the source gave up after 60 s and the map was empty. Now the

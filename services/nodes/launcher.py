@@ -34,6 +34,7 @@ from tqdm import tqdm
 from schemas.files import MapFile, save_map
 from services import keys
 from services.api.guard import TOKEN_ENV
+from services.errors import USAGE_EXIT
 from services.map_client import IncompleteMap, MapReader
 from services.process import PARENT_PID_ENV, Stopped, WarnOnce, get_logger, until_stopped
 from services.security import Role, remove_material, run_material, zenoh_argv
@@ -48,8 +49,6 @@ STOP_GRACE = 15.0
 #: child still starting would turn a SIGINT into a KeyboardInterrupt inside an import (numpy's gives an
 #: ImportError and a traceback) or inside the interpreter's own start-up (a fatal error, exit 1)
 CLEAN_EXITS = (0, 130, -signal.SIGTERM)
-#: the exit code of a process that refused its input or options (services.errors.UsageError): never restarted
-USAGE_EXIT = 2
 #: seconds the launcher waits for the shards to come up (their kernels already compiled: _load_fusion_kernels)
 START_TIMEOUT = 60.0
 #: seconds into loading the fusion kernels after which the launcher says it is compiling them

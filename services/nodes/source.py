@@ -27,6 +27,7 @@ import zenoh
 
 from schemas.messages import LaserScan, MessageError, NodeStats, ShardStats, StreamEnd, decode_message
 from services import history, keys
+from services.errors import USAGE_EXIT
 from services.map_client import MapReader
 from services.process import WarnOnce, get_logger
 from services.streams import Stream
@@ -99,6 +100,7 @@ class Source:
         self._warn_once = WarnOnce(self.log)  # (the shards' and the SLAM node's stats' problems, said once)
         self._end_sent = 0.0  # time.monotonic() of the last StreamEnd published
         self._warned_beyond = False  # whether a shard holding more scans than this run published was reported
+        self._clashes_before: dict[int, tuple[int, int]] = {}  # shard -> its clash counts (_clash_counts) at the start
         self._unreached = 0  # steps published while the session reached no router (they went nowhere)
         self._reach_seen = (-1.0, True)  # (time.monotonic() of the last look, whether it reached a router then)
         self._prior_out = False  # whether the prior is out (what the history may answer with, with ...)
@@ -285,6 +287,23 @@ class Source:
         self._repeat_end(end)
         return False
 
+    def _clash_counts(self) -> dict[int, tuple[int, int]]:
+        """Per shard answering: (its rejections on this robot's scan key, its duplicate rejections of any key)."""
+        scan_key = keys.robot_key(self.stream.robot, keys.SCAN)
+        return {s.shard: (s.rejected.get(scan_key, 0), s.refused.get("duplicate", 0)) for s in self._shard_stats()}
+
+    def _clashed(self) -> list[int]:
+        """The shards that refused scans on this robot's key as duplicates since the run started: scans of its seqs
+        that differ from the ones they fused, another run's under this robot name (or another publisher's)."""
+        now = self._clash_counts()
+        return sorted(
+            shard
+            for shard, (rejected, duplicates) in now.items()
+            if shard in self._clashes_before
+            and rejected > self._clashes_before[shard][0]
+            and duplicates > self._clashes_before[shard][1]
+        )
+
     def _repeat_end(self, end: StreamEnd) -> None:
         """Publish the end of the stream again when END_REPEAT s have passed since it last went out."""
         if time.monotonic() - self._end_sent >= END_REPEAT:
@@ -332,13 +351,16 @@ class Source:
         return 0
 
     def run(self, stop: threading.Event) -> int:
-        """Publish every step, then the StreamEnd, unless ``stop`` is set first; returns the exit code (0)."""
+        """Publish every step, then the StreamEnd, unless ``stop`` is set first; returns the exit code: 0, or
+        USAGE_EXIT when the shards waited for refused scans of this run as duplicates (its robot name is taken)."""
         opts, stream = self.options, self.stream
         token = self.session.liveliness().declare_token(keys.robot_alive_key(stream.robot, "source"))
         answers = self.session.declare_queryable(keys.history_key(stream.robot), self._on_history_query)
         try:
             if not self._wait_for_subscribers(stop):
                 return self._stopped()
+            if opts.wait_mappers:
+                self._clashes_before = self._clash_counts()
             if stream.prior is not None:
                 self._publish(stream.prior, keys.PRIOR)
                 with self._history_lock:
@@ -383,6 +405,18 @@ class Source:
                 "every shard to acknowledge the end of the stream", lambda: self._ended_everywhere(end), stop
             ):
                 return self._stopped()
+            clashed = self._clashed() if opts.wait_mappers else []
+            if clashed:
+                self.log.error(
+                    "shard(s) %s of map %r refused scans of this run as duplicates: they hold other scans under "
+                    "robot %r at those seqs (another run under this robot name, or another process publishing on "
+                    "its keys), so this run is not the robot's map there; use another --robot (or a new session: "
+                    "docs/persistence.md)",
+                    ", ".join(map(str, clashed)),
+                    opts.map_name,
+                    stream.robot,
+                )
+                return USAGE_EXIT
             if not opts.wait_mappers and self._unreached:
                 self._linger(end, stop)
             return 0
