@@ -6,18 +6,19 @@ What is read:
   an interlaced laser, a beam count that changes and two lasers publishing on one topic are read in full;
 - odometry: ``nav_msgs/Odometry`` on the odometry topic (default: the only Odometry topic, or ``/odom``);
   without one, the ``tf2_msgs/TFMessage`` transforms on ``/tf`` whose child is the robot's base frame;
-- the laser's pose on the robot, per laser frame: the chain of transforms from the scan's frame up to the base
-  frame, projected to (x, y, yaw). A link of the chain comes from ``/tf_static``, or from ``/tf`` when it holds
-  one pose all through the bag (ROS 1 bags, and the static publishers of old, put the mount on ``/tf``). The base
-  frame is the Odometry child frame (with an empty one, the laser's chain's frame below its first moving link,
-  else its root); without an Odometry topic it is the child of the ``/tf`` link nearest the tree's root (moving,
-  or fixed for a robot standing still) whose parent is no REP 105 global frame (``map``, ``world``, ``earth``:
-  amcl's ``map`` -> ``odom`` corrects the odometry), so ``odom`` -> ``base_link``; else the chain's root. Frame
-  names are taken as tf2 takes them, without ROS 1's leading slash; transforms that form a cycle are refused. When
-  the chain of the frame most scans have does not reach the base frame, or moves on its way there (a laser on a
-  moving joint), the bag is refused; a scan of another frame without one is skipped. A laser frame that no
-  transform names at all is taken as the base frame itself (at the robot's origin, facing forwards), and the
-  log's notes say so.
+- the laser's pose on the robot, per laser frame: the chain of transforms from the scan's frame up to the base frame,
+  projected to (x, y, yaw) (:class:`Mount`: a laser upside down, its z axis within TILT_LIMIT of straight down, has its
+  beams mirrored; a link that tilts it farther from the floor's plane is refused). A link of the chain comes from
+  ``/tf_static``, or from ``/tf`` when it holds one pose all through the bag (ROS 1 bags, and the static publishers of
+  old, put the mount on ``/tf``). The base frame is the Odometry child frame (with an empty one, the laser's chain's
+  frame below its first moving link, else its root); without an Odometry topic it is the child of the ``/tf`` link
+  nearest the tree's root (moving, or fixed for a robot standing still) whose parent is no REP 105 global frame
+  (``map``, ``world``, ``earth``: amcl's ``map`` -> ``odom`` corrects the odometry), so ``odom`` -> ``base_link``; else
+  the chain's root. Frame names are taken as tf2 takes them, without ROS 1's leading slash; transforms that form a cycle
+  are refused. When the chain of the frame most scans have does not reach the base frame, or moves on its way there (a
+  laser on a moving joint), the bag is refused; a scan of another frame without one is skipped. A laser frame that no
+  transform names at all is taken as the base frame itself (at the robot's origin, facing forwards), and the log's notes
+  say so.
 
 Each scan's odometry pose is interpolated at the scan's header stamp between the two odometry poses around
 it (linear in x, y and unwrapped yaw; real bags publish odometry irregularly, the Intel lab's with gaps of
@@ -39,6 +40,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -75,14 +77,39 @@ def header_stamp(header) -> float:
 
 
 def quaternion_yaw(q) -> float:
-    """Yaw (rad) of a quaternion: rotation about z of its projection onto the plane."""
+    """Yaw (rad) of a quaternion: the heading of its x axis projected onto the plane (the rotation about z of a
+    level frame; of one upside down, ``Rz(yaw) Rx(pi)``, too)."""
     return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
 
 
-def _compose(a: tuple[float, float, float], b: tuple[float, float, float]) -> tuple[float, float, float]:
+#: a frame whose z axis lies within this of the vertical (rad), up or down, scans the floor's plane: level (+1) or
+#: upside down (-1); one tilted farther (0) scans another plane, which a 2D map cannot take
+TILT_LIMIT = math.radians(30.0)
+
+#: a link's attitude: its child's z axis up (LEVEL), down (UPSIDE_DOWN: a laser mounted upside down, whose beams
+#: turn the other way), or tilted past TILT_LIMIT (TILTED)
+LEVEL, UPSIDE_DOWN, TILTED = 1, -1, 0
+
+
+def quaternion_attitude(q) -> int:
+    """LEVEL, UPSIDE_DOWN or TILTED: where a quaternion's rotation takes the z axis (the z component of R e_z,
+    1 - 2 (x^2 + y^2) for a unit quaternion; normalised first, a zero quaternion taken as the identity)."""
+    norm = q.w * q.w + q.x * q.x + q.y * q.y + q.z * q.z
+    up = 1.0 - 2.0 * (q.x * q.x + q.y * q.y) / norm if norm > 0.0 else 1.0
+    if up >= math.cos(TILT_LIMIT):
+        return LEVEL
+    return UPSIDE_DOWN if up <= -math.cos(TILT_LIMIT) else TILTED
+
+
+def _compose(
+    a: tuple[float, float, float], a_attitude: int, b: tuple[float, float, float]
+) -> tuple[float, float, float]:
+    """Pose ``b`` (x m, y m, yaw rad) given in frame ``a`` (a pose of that attitude, LEVEL or UPSIDE_DOWN) in a's
+    parent: an upside-down frame mirrors y and the turn (its rotation is Rz(yaw_a) Rx(pi))."""
     c, s = math.cos(a[2]), math.sin(a[2])
-    yaw = (a[2] + b[2] + math.pi) % (2.0 * math.pi) - math.pi
-    return (a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1], yaw)
+    x, y = b[0], a_attitude * b[1]
+    yaw = (a[2] + a_attitude * b[2] + math.pi) % (2.0 * math.pi) - math.pi
+    return (a[0] + c * x - s * y, a[1] + s * x + c * y, yaw)
 
 
 def frame_name(name: str) -> str:
@@ -182,8 +209,10 @@ class _Decoded:
 
     scans: list[_DecodedScan] = field(default_factory=list)
     odom: list[tuple[float, tuple[float, float, float], str]] = field(default_factory=list)  # stamp, pose, child
-    tf_dynamic: list[tuple[float, str, str, tuple[float, float, float]]] = field(default_factory=list)
-    tf_static: dict[str, tuple[str, tuple[float, float, float]]] = field(default_factory=dict)  # child: parent, pose
+    # stamp, parent, child, pose, attitude (quaternion_attitude)
+    tf_dynamic: list[tuple[float, str, str, tuple[float, float, float], int]] = field(default_factory=list)
+    # child: parent, pose, attitude
+    tf_static: dict[str, tuple[str, tuple[float, float, float], int]] = field(default_factory=dict)
     skipped: list[Skipped] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
 
@@ -279,15 +308,13 @@ def _add_transforms(got: _Decoded, number: int, msg, topic: str) -> None:
             link = f"{parent}->{child}"
             got.skipped.append(Skipped(number, f"{topic}: transform {link} not finite or beyond +-{POSE_LIMIT:g} m"))
         elif topic == "/tf_static":
-            got.tf_static[child] = (parent, pose)
+            got.tf_static[child] = (parent, pose, quaternion_attitude(q))
         else:
-            got.tf_dynamic.append((header_stamp(tf.header), parent, child, pose))
+            got.tf_dynamic.append((header_stamp(tf.header), parent, child, pose, quaternion_attitude(q)))
 
 
-def _laser_mounts(
-    got: _Decoded, base_frame: str | None, path: Path
-) -> tuple[dict[str, tuple[float, float, float] | str], str]:
-    """Per laser frame of the scans, its pose (x m, y m, yaw rad) on the robot from the chain of transforms up to
+def _laser_mounts(got: _Decoded, base_frame: str | None, path: Path) -> tuple[dict[str, Mount | str], str]:
+    """Per laser frame of the scans, its :class:`Mount` on the robot from the chain of transforms up to
     ``base_frame`` (None: with the odometry from /tf :func:`odometry_base`, from an Odometry topic whose child frame
     is empty, or when /tf names none, the root of the chain of the frame most scans have; a tie: the frame seen
     first), or, for a frame no chain links to it, the reason; and the base frame. Raises :class:`LogFormatError` when
@@ -303,7 +330,7 @@ def _laser_mounts(
         main, base_frame = mount_chain(links, frames[0], base_frame)
     except LogFormatError as exc:
         raise LogFormatError(f"{path}: {exc}") from None
-    mounts: dict[str, tuple[float, float, float] | str] = {frames[0]: main}
+    mounts: dict[str, Mount | str] = {frames[0]: main}
     for frame in frames[1:]:
         try:
             mounts[frame] = mount_chain(links, frame, base_frame)[0]
@@ -325,26 +352,29 @@ FIXED_LINK = 1e-4
 #: what a frame's link to its parent is: from /tf_static, fixed on /tf (one pose all through), or moving on /tf
 STATIC, FIXED, MOVING = "static", "fixed", "moving"
 
-#: a frame's link: (parent, pose (x m, y m, yaw rad) of the child in the parent, kind)
-Link = tuple[str, tuple[float, float, float], str]
+#: a frame's link: (parent, pose (x m, y m, yaw rad) of the child in the parent, kind, attitude)
+Link = tuple[str, tuple[float, float, float], str, int]
 
 
 def frame_links(tf_static: dict, tf_dynamic: list) -> dict[str, Link]:
     """Each child frame's link to its parent (:data:`Link`): from /tf_static (``tf_static``: child -> (parent,
-    pose)), else from /tf (``tf_dynamic``: (stamp, parent, child, pose) records), the child's parent seen most
-    often there, FIXED when all those poses lie within FIXED_LINK of the first, else MOVING."""
-    records: dict[tuple[str, str], list[tuple[float, float, float]]] = {}
-    for _stamp, parent, child, pose in tf_dynamic:
-        records.setdefault((child, parent), []).append(pose)
+    pose, attitude)), else from /tf (``tf_dynamic``: (stamp, parent, child, pose, attitude) records), the child's
+    parent seen most often there, FIXED when all those poses lie within FIXED_LINK of the first and keep its
+    attitude, else MOVING."""
+    records: dict[tuple[str, str], list[tuple[tuple[float, float, float], int]]] = {}
+    for _stamp, parent, child, pose, attitude in tf_dynamic:
+        records.setdefault((child, parent), []).append((pose, attitude))
     links: dict[str, Link] = {}
-    for (child, parent), poses in sorted(records.items(), key=lambda item: -len(item[1])):
+    for (child, parent), seen in sorted(records.items(), key=lambda item: -len(item[1])):
         if child in links:
             continue  # (a frame has one parent in tf: its most frequent one is kept)
-        spread = np.abs(np.array(poses) - np.array(poses[0]))
+        poses = np.array([pose for pose, _ in seen])
+        spread = np.abs(poses - poses[0])
         spread[:, 2] = np.abs(wrap_angle(spread[:, 2]))
-        links[child] = (parent, poses[0], MOVING if spread.max() > FIXED_LINK else FIXED)
-    for child, (parent, pose) in tf_static.items():
-        links[child] = (parent, pose, STATIC)
+        fixed = spread.max() <= FIXED_LINK and all(attitude == seen[0][1] for _, attitude in seen)
+        links[child] = (parent, seen[0][0], FIXED if fixed else MOVING, seen[0][1])
+    for child, (parent, pose, attitude) in tf_static.items():
+        links[child] = (parent, pose, STATIC, attitude)
     return links
 
 
@@ -360,7 +390,9 @@ def odometry_base(links: dict[str, Link]) -> str | None:
     still, and not a laser's mount below it (fixed or wobbling) nor amcl's map -> odom above it. None when /tf has
     no such link. Raises :class:`LogFormatError` when the links form a cycle."""
     children = [
-        child for child, (parent, _pose, kind) in links.items() if kind != STATIC and parent not in GLOBAL_FRAMES
+        child
+        for child, (parent, _pose, kind, _attitude) in links.items()
+        if kind != STATIC and parent not in GLOBAL_FRAMES
     ]
     if not children:
         return None
@@ -380,15 +412,31 @@ def _up_from(links: dict[str, Link], frame: str) -> list[tuple[str, Link]]:
     return chain
 
 
-def mount_chain(
-    links: dict[str, Link], laser_frame: str, base_frame: str | None
-) -> tuple[tuple[float, float, float], str]:
-    """The laser's pose (x m, y m, yaw rad) in the base frame, composed from the links (:func:`frame_links`) up
-    from ``laser_frame``, and the base frame's name: ``base_frame``, or when that is None the child of the chain's
-    first MOVING link (the odometry's, on /tf), else the chain's root.
+class Mount(NamedTuple):
+    """A laser's mount on the robot: its frame's pose (x m, y m, yaw rad) in the base frame, projected onto the
+    plane, and whether it is upside down (its z axis down: a beam at angle a in the laser's frame points at yaw - a
+    in the base frame, where a level laser's points at yaw + a)."""
 
-    Raises :class:`LogFormatError` when the chain does not reach ``base_frame``, has a MOVING link below it or runs
-    in a cycle. A laser frame with no link at all is taken to be the base frame itself (zero offset)."""
+    pose: tuple[float, float, float]
+    upside_down: bool = False
+
+    def beam_angles(self, angle_min: float, angle_increment: float) -> tuple[float, float]:
+        """A scan's (angle_min, angle_increment) (rad) as a level laser at ``pose`` would give its beams."""
+        return (-angle_min, -angle_increment) if self.upside_down else (angle_min, angle_increment)
+
+
+#: the mount of a laser frame that is the base frame itself
+AT_BASE = Mount((0.0, 0.0, 0.0))
+
+
+def mount_chain(links: dict[str, Link], laser_frame: str, base_frame: str | None) -> tuple[Mount, str]:
+    """The laser's :class:`Mount` in the base frame, composed from the links (:func:`frame_links`) up from
+    ``laser_frame``, and the base frame's name: ``base_frame``, or when that is None the child of the chain's first
+    MOVING link (the odometry's, on /tf), else the chain's root.
+
+    Raises :class:`LogFormatError` when the chain does not reach ``base_frame``, has a MOVING link below it, tilts
+    the laser's plane past TILT_LIMIT or runs in a cycle. A laser frame with no link at all is taken to be the base
+    frame itself (zero offset)."""
     chain = _up_from(links, laser_frame)
     frames = [laser_frame] + [link[0] for _child, link in chain]  # the laser's frame, then each parent up
     if base_frame is None:  # (below the first link that moves, the odometry's if any, else the root)
@@ -401,15 +449,22 @@ def mount_chain(
             f"no chain of transforms (/tf_static, or fixed on /tf) links the laser frame '{laser_frame}' to the "
             f"odometry frame '{base_frame}'"
         )
-    pose = (0.0, 0.0, 0.0)
-    for child, (parent, link, kind) in chain:
+    pose, attitude = (0.0, 0.0, 0.0), LEVEL
+    for child, (parent, link, kind, link_attitude) in chain:
         if kind == MOVING:
             raise LogFormatError(
                 f"the transform from '{parent}' to '{child}' on /tf, between the laser frame '{laser_frame}' and the "
                 f"odometry frame '{base_frame}', moves during the bag: a laser on a moving joint is not read"
             )
-        pose = _compose(link, pose)
-    return pose, base_frame
+        if link_attitude == TILTED:
+            raise LogFormatError(
+                f"the transform from '{parent}' to '{child}', between the laser frame '{laser_frame}' and the "
+                f"odometry frame '{base_frame}', tilts the laser's scan plane more than "
+                f"{math.degrees(TILT_LIMIT):.0f} deg from the floor's: a 2D map cannot take its scans (a laser "
+                "upside down is read, its beams mirrored)"
+            )
+        pose, attitude = _compose(link, link_attitude, pose), link_attitude * attitude
+    return Mount(pose, attitude == UPSIDE_DOWN), base_frame
 
 
 def _odometry(got: _Decoded, odom_topic: str | None, base_frame: str, path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -417,7 +472,7 @@ def _odometry(got: _Decoded, odom_topic: str | None, base_frame: str, path: Path
     transforms whose child is ``base_frame``."""
     odom = got.odom
     if odom_topic is None:
-        odom = [(s, pose, child) for s, _parent, child, pose in got.tf_dynamic if child == base_frame]
+        odom = [(s, pose, child) for s, _parent, child, pose, _attitude in got.tf_dynamic if child == base_frame]
         if not odom:
             raise LogFormatError(f"{path}: /tf holds no transform to the base frame '{base_frame}'")
     odom = sorted(odom, key=lambda o: o[0])
@@ -462,6 +517,8 @@ def _laser_log(
     for row, scan in zip(ranges, kept):
         row[: scan[2].size] = scan[2]
     geometry = np.array([k[3][:4] for k in kept], dtype=np.float64)  # (T, 4)
+    for row, scan in zip(geometry, kept):  # (a laser upside down: its beams as a level one's)
+        row[:2] = mounts[scan[3][4]].beam_angles(row[0], row[1])
     padding = np.arange(ranges.shape[1]) >= beams[:, None]
     ranges[ranges >= geometry[:, 3:4]] = np.inf
     ranges[(np.isnan(ranges) | np.isneginf(ranges)) & ~padding] = 0.0  # invalid, or too close: below range_min
@@ -475,7 +532,7 @@ def _laser_log(
         angle_increment=geometry[:, 1],
         range_min=np.maximum(geometry[:, 2], MIN_RANGE_FLOOR),
         range_max=geometry[:, 3],
-        sensor_offset=np.array([mounts[k[3][4]] for k in kept], dtype=np.float64),
+        sensor_offset=np.array([mounts[k[3][4]].pose for k in kept], dtype=np.float64),
         odometry=odometry,
         poses=odometry.copy(),
         where=np.array([k[0] for k in kept], dtype=np.int64),
@@ -509,8 +566,8 @@ def wire_scan_problem(
     return ""
 
 
-def static_chain(tf_static: dict, laser_frame: str, base_frame: str | None) -> tuple[tuple[float, float, float], str]:
-    """The laser's pose in the base frame from the static transforms alone (``tf_static``: child -> (parent,
-    pose)), and the base frame's name (when ``base_frame`` is None, the chain's root): :func:`mount_chain`. A laser
-    frame with no static parent is taken to be the base frame itself (zero offset)."""
+def static_chain(tf_static: dict, laser_frame: str, base_frame: str | None) -> tuple[Mount, str]:
+    """The laser's :class:`Mount` in the base frame from the static transforms alone (``tf_static``: child ->
+    (parent, pose, attitude)), and the base frame's name (when ``base_frame`` is None, the chain's root):
+    :func:`mount_chain`. A laser frame with no static parent is taken to be the base frame itself (zero offset)."""
     return mount_chain(frame_links(tf_static, []), laser_frame, base_frame)

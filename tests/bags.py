@@ -33,8 +33,17 @@ class BagBuilder:
             return self._t("std_msgs/msg/Header")(stamp=time, frame_id=frame)
         return self._t("std_msgs/msg/Header")(seq=0, stamp=time, frame_id=frame)
 
-    def quat(self, yaw: float):
-        return self._t("geometry_msgs/msg/Quaternion")(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
+    def quat(self, yaw: float, pitch: float = 0.0, roll: float = 0.0):
+        """The quaternion of Rz(yaw) Ry(pitch) Rx(roll) (ROS's fixed-axis roll, pitch, yaw)."""
+        cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+        cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+        cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+        return self._t("geometry_msgs/msg/Quaternion")(
+            w=cy * cp * cr + sy * sp * sr,
+            x=cy * cp * sr - sy * sp * cr,
+            y=cy * sp * cr + sy * cp * sr,
+            z=sy * cp * cr - cy * sp * sr,
+        )
 
     def scan(
         self, stamp, ranges, topic="/scan", angle_min=-1.0, increment=0.5, range_max=10.0, frame="laser", range_min=0.1
@@ -70,10 +79,10 @@ class BagBuilder:
         )
         self.items.append((topic, "nav_msgs/msg/Odometry", stamp, msg))
 
-    def tf(self, stamp, parent, child, x, y, yaw, topic="/tf"):
+    def tf(self, stamp, parent, child, x, y, yaw, topic="/tf", pitch=0.0, roll=0.0):
         t = self._t
         transform = t("geometry_msgs/msg/Transform")(
-            translation=t("geometry_msgs/msg/Vector3")(x=x, y=y, z=0.0), rotation=self.quat(yaw)
+            translation=t("geometry_msgs/msg/Vector3")(x=x, y=y, z=0.0), rotation=self.quat(yaw, pitch, roll)
         )
         stamped = t("geometry_msgs/msg/TransformStamped")(
             header=self.header(stamp, parent), child_frame_id=child, transform=transform

@@ -239,6 +239,36 @@ def test_scans_without_a_transform_or_with_nan_geometry_are_counted_not_taken():
     assert [stream for stream, _ in ingest.ready()] == [keys.PRIOR, keys.SCAN, keys.ODOM]
 
 
+def _tf_rolled(parent: str, child: str, x: float, yaw: float, roll: float):
+    """``_tf`` of a child turned ``yaw`` and rolled ``roll`` (rad): the quaternion of Rz(yaw) Rx(roll)."""
+    message = _tf(0.0, parent, child, x, yaw)
+    rotation = message.transforms[0].transform.rotation
+    cy, sy, cr, sr = math.cos(yaw / 2), math.sin(yaw / 2), math.cos(roll / 2), math.sin(roll / 2)
+    rotation.w, rotation.x, rotation.y, rotation.z = cy * cr, cy * sr, sy * sr, sy * cr
+    return message
+
+
+def test_a_laser_upside_down_goes_out_with_its_beams_mirrored_and_a_tilted_one_is_counted(caplog):
+    """The bridge read a mount rolled by pi as level, and every scan went out mirrored (a probe: the map silently
+    wrong). Its scans now go out as a level laser's at the same place would give them; a laser tilted 60 deg off
+    the floor's plane is refused as ``transform``, saying so."""
+    rejects = RejectCounter(logging.getLogger("test"))
+    clock = Clock()
+    ingest = Ingest(IngestConfig("r1", wait=1.0), rejects, clock)
+    ingest.on_transforms("/tf_static", _tf_rolled("base_link", "laser", 0.2, 0.7, math.pi), static=True)
+    ingest.on_transforms("/tf_static", _tf_rolled("base_link", "tilted", 0.2, 0.7, math.radians(60)), static=True)
+    ingest.on_odometry("/odom", _ros_odometry(1.0))
+    ingest.on_scan("/scan", _ros_scan(1.0))
+    ingest.on_scan("/scan", _ros_scan(1.0, frame="tilted"))
+    clock.now = 2.0
+    scans = [message for stream, message in ingest.ready() if stream == keys.SCAN]
+    assert len(scans) == 1
+    np.testing.assert_allclose(scans[0].sensor_offset, [0.2, 0.0, 0.7], atol=1e-12)
+    assert (scans[0].angle_min, scans[0].angle_increment) == pytest.approx((1.0, -0.5))  # beams at 0.7 - a
+    assert rejects.kinds() == {"transform": 1}
+    assert any("tilts the laser's scan plane" in record.getMessage() for record in caplog.records)
+
+
 def test_a_stamp_past_what_a_ros_time_holds_is_clamped_in_what_goes_out():
     """A scan stamped 2147483647.999999999 s (2^31 as a float) stamped the map with 2^31 s, which a ROS Time's int32
     cannot hold: every later map message failed to encode. Out-of-range stamps are clamped to the range's ends."""
@@ -387,8 +417,7 @@ def test_the_map_mirror_places_updates_in_the_grid_last_published():
         # the rule said letters, digits, '_', '.', '-' and refused '.' (a probe's): it starts with a letter or digit
         (
             ["ros2", "--robot", ".", "--connect", "tcp/127.0.0.1:1"],
-            "'.' is not a valid name (letters, digits, '_', '.' "
-            "and '-', starting with a letter or digit, at most 64; not map)",
+            "'.' is not a valid name (letters, digits, '_', '.' and '-', starting with a letter or digit, at most 64;",
         ),
         (["ros2", "play", "/nonexistent/bag", "--rate", "2x"], "rate must be 'max'"),
         (["run", "--ros2", "--posed", "x.npz", "--no-api"], "--ros2 maps a live robot: it takes no input (--posed)"),

@@ -50,6 +50,63 @@ def check_standard(log):
     assert log.scan_ranges(2).tolist() == [4.0, 5.0] and np.isnan(log.ranges[2, 2])  # the padding stays NaN
 
 
+def beam_ends(log) -> np.ndarray:
+    """Each scan's beam ends (T, B, 2) in the odometry frame, by hand: odometry pose, then the laser's pose on the
+    robot, then the beam at angle_min + i angle_increment in the laser's frame (as every consumer reads them)."""
+    ends = np.zeros((len(log), log.ranges.shape[1], 2))
+    for t in range(len(log)):
+        x, y, yaw = log.odometry[t]
+        ox, oy, oyaw = log.sensor_offset[t]
+        lx, ly, lyaw = (
+            x + math.cos(yaw) * ox - math.sin(yaw) * oy,
+            y + math.sin(yaw) * ox + math.cos(yaw) * oy,
+            yaw + oyaw,
+        )
+        angles = lyaw + log.angle_min[t] + log.angle_increment[t] * np.arange(log.ranges.shape[1])
+        ends[t] = np.column_stack([lx + log.ranges[t] * np.cos(angles), ly + log.ranges[t] * np.sin(angles)])
+    return ends
+
+
+@pytest.mark.parametrize("ros2", [False, True])
+def test_a_laser_mounted_upside_down_is_read_with_its_beams_mirrored(tmp_path, ros2):
+    """A laser rolled by pi on its mount (under a table-top robot) lists its beams the other way round: read with
+    the mount's yaw alone, every scan was mirrored, the map silently wrong (a ROS 2 probe: 9 of 825 occupied cells
+    where the upright run had its walls). Its beams end where a level laser's at the same place would, in a chain
+    whose upside-down link lies between the laser and the base too; a mount tilted 60 deg is refused."""
+    ranges = [1.0, 2.0, 3.0, 4.0, 5.0]
+
+    def bag(name, mounts, scan_min, scan_ranges):
+        builder = BagBuilder(ros2)
+        for parent, child, pose, roll in mounts:
+            builder.tf(0.0, parent, child, *pose, topic="/tf_static", roll=roll)
+        builder.odom(0.0, 1.0, 2.0, 0.4)
+        builder.odom(1.0, 1.5, 2.5, 0.9)
+        builder.scan(0.5, scan_ranges, angle_min=scan_min, increment=0.25)
+        return read_rosbag(builder.write(tmp_path / (name if ros2 else f"{name}.bag")))
+
+    level = bag("level", [("base_link", "laser", (0.1, 0.2, 0.7), 0.0)], -0.5, ranges)
+    # upside down: the beam at base-frame angle 0.7 + a is the laser's -a; listed from the smallest angle up
+    flipped = bag("flipped", [("base_link", "laser", (0.1, 0.2, 0.7), math.pi)], -0.5, ranges[::-1])
+    np.testing.assert_allclose(beam_ends(flipped)[0, ::-1], beam_ends(level)[0], atol=1e-9)
+    # a plate mounted upside down at (0.2, 0.1) with no turn, the laser on it at (0.05, 0.03) turned 0.3 rad
+    # (in the plate's frame) and level on it: in the base frame at (0.25, 0.07), facing -0.3, upside down
+    plate = bag(
+        "plate",
+        [("base_link", "plate", (0.2, 0.1, 0.0), math.pi), ("plate", "laser", (0.05, 0.03, 0.3), 0.0)],
+        -0.5,
+        ranges,
+    )
+    np.testing.assert_allclose(plate.sensor_offset[0], [0.25, 0.07, -0.3], atol=1e-12)
+    assert (plate.angle_min[0], plate.angle_increment[0]) == pytest.approx((0.5, -0.25))
+    with pytest.raises(LogFormatError, match="tilts the laser's scan plane more than 30 deg"):
+        builder = BagBuilder(ros2)
+        builder.tf(0.0, "base_link", "laser", 0.1, 0.2, 0.7, topic="/tf_static", pitch=math.radians(60))
+        builder.odom(0.0, 1.0, 2.0, 0.4)
+        builder.odom(1.0, 1.5, 2.5, 0.9)
+        builder.scan(0.5, ranges)
+        read_rosbag(builder.write(tmp_path / ("tilted" if ros2 else "tilted.bag")))
+
+
 def test_ros1_bag_with_odometry(tmp_path):
     check_standard(read_rosbag(standard_bag().write(tmp_path / "a.bag")))
 

@@ -25,7 +25,7 @@ from schemas.messages import LaserScan, PoseGaussian, PoseSamples
 from schemas.wire import Message, MessageError
 from services.ros2 import types
 from slam.laserlog import plausible_pose
-from slam.rosbag_reader import MIN_RANGE_FLOOR, header_stamp, quaternion_yaw, wire_scan_problem
+from slam.rosbag_reader import MIN_RANGE_FLOOR, Mount, header_stamp, quaternion_yaw, wire_scan_problem
 from slam.scoring import fit_gaussian
 
 #: indices of x, y and yaw in a ROS 6 x 6 pose covariance (x, y, z, roll, pitch, yaw), row major
@@ -78,22 +78,23 @@ def encoded(message: Message, kind: str) -> bytes:
         raise ConversionError(kind, str(exc)) from None
 
 
-def to_laser_scan(msg: Any, robot: str, seq: int, mount: tuple[float, float, float]) -> LaserScan:
-    """posegrid's LaserScan of a ROS LaserScan ``msg`` that :func:`scan_problem` passes, the laser at ``mount``
-    (x m, y m, yaw rad) on the robot (not validated yet: :func:`encoded`)."""
+def to_laser_scan(msg: Any, robot: str, seq: int, mount: Mount) -> LaserScan:
+    """posegrid's LaserScan of a ROS LaserScan ``msg`` that :func:`scan_problem` passes, the laser at ``mount`` on the
+    robot (its beams as a level laser's: slam.rosbag_reader.Mount; not validated yet: :func:`encoded`)."""
     range_max = float(msg.range_max)
     ranges = np.array(msg.ranges, dtype=np.float32)
     ranges[ranges >= range_max] = np.inf
     ranges[np.isnan(ranges) | np.isneginf(ranges)] = 0.0  # invalid, or too close: below range_min, skipped
+    angle_min, angle_increment = mount.beam_angles(float(msg.angle_min), float(msg.angle_increment))
     return LaserScan(
         robot=robot,
         seq=seq,
         stamp=stamp_of(msg.header),
-        angle_min=float(msg.angle_min),
-        angle_increment=float(msg.angle_increment),
+        angle_min=angle_min,
+        angle_increment=angle_increment,
         range_min=max(float(msg.range_min), MIN_RANGE_FLOOR),
         range_max=range_max,
-        sensor_offset=np.array(mount, dtype=np.float64),
+        sensor_offset=np.array(mount.pose, dtype=np.float64),
         ranges=ranges,
     )
 

@@ -52,7 +52,7 @@ from services.ros2.convert import (
 )
 from slam.errors import LogFormatError
 from slam.laserlog import MAX_ODOM_GAP, MAX_ODOM_HOLD, interpolate_poses, odometry_problem, plausible_pose
-from slam.rosbag_reader import static_chain
+from slam.rosbag_reader import AT_BASE, Mount, quaternion_attitude, static_chain
 
 #: odometry records a track keeps (the newest): about 80 s of odometry at 50 Hz
 TRACK_RECORDS = 4096
@@ -194,7 +194,8 @@ class Ingest:
         self.config = config
         self.rejects = rejects
         self.clock = clock
-        self.static: dict[str, tuple[str, Pose]] = {}  # child frame -> (parent frame, pose in the parent)
+        # child frame -> (parent frame, pose in the parent, attitude: slam.rosbag_reader.quaternion_attitude)
+        self.static: dict[str, tuple[str, Pose, int]] = {}
         self.odom = OdometryTrack()
         self.odom_child: str | None = None  # the child frame of the Odometry messages: the robot's base
         self.tf_tracks: OrderedDict[str, OdometryTrack] = OrderedDict()  # /tf transforms by child, updated last last
@@ -239,7 +240,7 @@ class Ingest:
                 if child not in self.static and len(self.static) >= MAX_STATIC_FRAMES:
                     self.rejects.count(topic, "overflow", f"more than {MAX_STATIC_FRAMES} frames on /tf_static")
                     continue
-                self.static[child] = (str(tf.header.frame_id), pose)
+                self.static[child] = (str(tf.header.frame_id), pose, quaternion_attitude(tf.transform.rotation))
             else:
                 track = self._tf_track(topic, child)
                 if track is not None:
@@ -302,17 +303,17 @@ class Ingest:
         except LogFormatError:  # (a cycle: unreachable with base None)
             return frame
 
-    def _mount(self, frame: str, base: str) -> Pose | None:
-        """The laser frame's pose in ``base`` from the static transforms; None while no chain links them."""
+    def _mount(self, frame: str, base: str) -> Mount | str:
+        """The laser frame's mount on ``base`` from the static transforms, or why there is none (while no chain
+        links them, or one that tilts the laser's scan plane)."""
         if frame == base:
-            return (0.0, 0.0, 0.0)
+            return AT_BASE
         if frame not in self.static:
-            return None
+            return f"no /tf_static chain links the laser frame {frame!r} to {base!r}"
         try:
-            pose, _ = static_chain(self.static, frame, base)
-        except LogFormatError:
-            return None
-        return pose
+            return static_chain(self.static, frame, base)[0]
+        except LogFormatError as exc:
+            return str(exc)
 
     def _track(self, frame: str) -> tuple[OdometryTrack, str] | None:
         """The odometry a scan from laser ``frame`` takes and the base frame: the Odometry topic's, else /tf's
@@ -343,13 +344,11 @@ class Ingest:
                     continue
             track, base = found
             mount = self._mount(head.frame, base)
-            if mount is None:
+            if isinstance(mount, str):
                 if not late:
                     return
                 self.scans.popleft()
-                self.rejects.count(
-                    head.topic, "transform", f"no /tf_static chain links the laser frame {head.frame!r} to {base!r}"
-                )
+                self.rejects.count(head.topic, "transform", mount)
                 continue
             self.scans.popleft()
             problem = track.problem(head.stamp, config.max_odom_gap, config.max_odom_hold)
@@ -358,7 +357,7 @@ class Ingest:
                 continue
             self._emit_odometry(head, mount, track.pose_at(head.stamp))
 
-    def _emit_odometry(self, head: _Waiting, mount: Pose, pose: np.ndarray) -> None:
+    def _emit_odometry(self, head: _Waiting, mount: Mount, pose: np.ndarray) -> None:
         robot, seq = self.config.robot, self.seq
         try:
             scan = to_laser_scan(head.msg, robot, seq, mount)
@@ -392,24 +391,22 @@ class Ingest:
             scan = self.scans[best]
             base = config.base_frame or self._root(scan.frame)
             mount = self._mount(scan.frame, base)
-            if mount is None and now - scan.since <= config.wait:
+            if isinstance(mount, str) and now - scan.since <= config.wait:
                 break
             self.poses.popleft()
             for _ in range(best):
                 self.scans.popleft()
                 self.unposed += 1
             self.scans.popleft()
-            if mount is None:
-                self.rejects.count(
-                    scan.topic, "transform", f"no /tf_static chain links the laser frame {scan.frame!r} to {base!r}"
-                )
+            if isinstance(mount, str):
+                self.rejects.count(scan.topic, "transform", mount)
                 continue
             self._emit_posed(scan, mount, waiting.pose)
         while self.scans and now - self.scans[0].since > config.wait:
             self.scans.popleft()
             self.unposed += 1
 
-    def _emit_posed(self, head: _Waiting, mount: Pose, pose: PoseGaussian | PoseSamples) -> None:
+    def _emit_posed(self, head: _Waiting, mount: Mount, pose: PoseGaussian | PoseSamples) -> None:
         seq = self.seq
         try:
             scan = to_laser_scan(head.msg, self.config.robot, seq, mount)
