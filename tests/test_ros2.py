@@ -423,6 +423,8 @@ def test_the_map_mirror_places_updates_in_the_grid_last_published():
         (["run", "--ros2", "--posed", "x.npz", "--no-api"], "--ros2 maps a live robot: it takes no input (--posed)"),
         (["run", "--ros2", "--export", "m.npz", "--no-api"], "leave out --export"),
         (["run", "--ros2", "--secure", "--no-api"], "--ros2 does not run with --secure"),
+        # an endpoint the router would refuse, after the run had started its children (a probe's)
+        (["run", "--ros2", "--ros2-connect", "foo", "--no-api"], "--ros2-connect: zenoh rejects connect/endpoints"),
         (["run", "--ros2", "--algo", "ekf", "--no-api"], "--algo must be gridslam"),
         # frame ids and pose inputs the bridge started with (a probe's): tf2 refuses a leading '/' or an empty id
         (["ros2", "--frame", "", "--connect", "tcp/127.0.0.1:1"], "--frame '' is no frame id"),

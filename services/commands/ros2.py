@@ -401,6 +401,7 @@ def plan_ros2(args: argparse.Namespace, plan: Plan) -> None:
     robot's own poses are taken; UsageError for options that do not go with --ros2."""
     from services.commands.pipeline import slam_argv
     from services.errors import UsageError
+    from services.zenoh_config import build_config
 
     given = [f"--{n.replace('_', '-')}" for n in ("posed", "sim_dir", "mrclam", "carmen", "bag") if getattr(args, n)]
     if given or args.sim:
@@ -416,6 +417,10 @@ def plan_ros2(args: argparse.Namespace, plan: Plan) -> None:
     plan.source_command = "ros2"
     plan.source_argv = [f"--mode={args.ros2_mode}", f"--domain={domain}", f"--namespace={namespace}"]
     plan.source_argv += [f"--node={args.ros2_node}", *bridge]
+    try:  # (the router would refuse them after the run had started its children)
+        build_config("router", connect=list(args.ros2_connect))
+    except UsageError as exc:
+        raise UsageError(f"--ros2-connect: {exc}") from None
     plan.router_argv = [f"--connect={endpoint}" for endpoint in args.ros2_connect]
     plan.scans = None
     robot_poses = args.ros2_pose_topic is not None or args.ros2_particles_topic is not None
