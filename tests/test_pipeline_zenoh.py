@@ -3,6 +3,7 @@ pipeline commands' command-line behaviour."""
 
 from __future__ import annotations
 
+import argparse
 import json
 import signal
 import subprocess
@@ -12,7 +13,7 @@ import time
 import pytest
 import zenoh
 
-from services.cli import main
+from services.cli import build_parser, main
 from services.commands.mapping import available_memory
 from services.commands.pipeline import check_shards_fit
 from services.errors import UsageError
@@ -292,11 +293,23 @@ def test_bad_values_stop_at_parsing_with_the_option_named(argv, message, capsys)
     assert stop.value.code == 2 and message in err.splitlines()[-1] and "Traceback" not in err, err
 
 
-@pytest.mark.parametrize("command", ["router", "mapper", "source", "run", "slam-node"])
-def test_every_process_has_help(command, capsys):
+def _every_command(parser: argparse.ArgumentParser, prefix: tuple[str, ...] = ()) -> list[tuple[str, ...]]:
+    """Every command and subcommand of ``parser`` (as argv prefixes), found in the parser itself."""
+    found = []
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                found += [(*prefix, name), *_every_command(sub, (*prefix, name))]
+    return found
+
+
+@pytest.mark.parametrize("command", _every_command(build_parser()), ids=" ".join)
+def test_every_command_has_help(command, capsys):
+    """Every command's --help prints its usage and exits 0 (a help text with a bare '%' made argparse raise a
+    TypeError: `posegrid slam --help` gave a traceback)."""
     with pytest.raises(SystemExit) as info:
-        main([command, "--help"])
-    assert info.value.code == 0 and "usage: posegrid " + command in capsys.readouterr().out
+        main([*command, "--help"])
+    assert info.value.code == 0 and "usage: posegrid " + " ".join(command) in capsys.readouterr().out
 
 
 def test_the_parser_loads_no_fit_compiler_or_web_library():

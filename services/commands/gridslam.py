@@ -177,7 +177,7 @@ def add_gridslam_arguments(parser: argparse.ArgumentParser) -> None:
         help="the odometry's noise: 'diff' turns, drives and turns (a differential drive's), 'omni' travels in any "
         "direction with the noise of the turn made (a holonomic base's, or a robot frame whose x axis is not the "
         "driving direction); 'auto' (default): omni where the odometry travels sideways (more than 45 deg off its "
-        f"heading) for more than {HOLONOMIC_SHARE:.0%} of its distance, else diff (docs/gridslam.md)",
+        f"heading) for more than {100 * HOLONOMIC_SHARE:.0f} %% of its distance, else diff (docs/gridslam.md)",
     )
     add_scan_topic(group)
     group.add_argument(
