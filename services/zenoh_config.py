@@ -11,6 +11,7 @@ override both.
 from __future__ import annotations
 
 import json
+import os
 import re
 import sys
 import threading
@@ -135,6 +136,63 @@ def _say_waiting(config: zenoh.Config, what: str) -> None:
     )
 
 
+#: what zenoh's error says when a listening endpoint's address is taken or not this machine's (the port hint's cue)
+ADDRESS_TROUBLE = ("Address already in use", "Cannot assign requested address", "Permission denied")
+
+#: the config keys of a session's own TLS files: (key, what the file is)
+TLS_FILES = (
+    ("transport/link/tls/root_ca_certificate", "CA certificate"),
+    ("transport/link/tls/listen_certificate", "certificate"),
+    ("transport/link/tls/listen_private_key", "private key"),
+    ("transport/link/tls/connect_certificate", "certificate"),
+    ("transport/link/tls/connect_private_key", "private key"),
+)
+
+
+def check_local_files(config: zenoh.Config, what: str) -> None:
+    """UsageError naming a file of ``config`` that the session could not use: a TLS file that is missing, not
+    readable or not PEM that Python's ssl loads (a certificate with its key, a CA), or an empty user/password
+    dictionary (zenoh then asks no password: docs/security.md). zenoh would say only that no router answered, or,
+    for the dictionary, nothing."""
+    import ssl
+
+    files = {key: read_key(config, key) for key, _ in TLS_FILES}
+    for key, kind in TLS_FILES:
+        path = files[key]
+        if path is not None and not os.access(path, os.R_OK):
+            raise UsageError(f"{what}: its TLS {kind} {path} ({key}) is missing or not readable")
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+    pairs = [
+        (files[f"transport/link/tls/{side}_certificate"], files[f"transport/link/tls/{side}_private_key"])
+        for side in ("listen", "connect")
+    ]
+    try:
+        if files["transport/link/tls/root_ca_certificate"] is not None:
+            context.load_verify_locations(cafile=files["transport/link/tls/root_ca_certificate"])
+        for certificate, key in pairs:
+            if certificate is not None and key is not None:
+                context.load_cert_chain(certificate, key)
+    except ssl.SSLError as exc:
+        raise UsageError(
+            f"{what}: its TLS files {', '.join(str(f) for f in files.values() if f)} do not load "
+            f"({exc.reason or exc}): a certificate that is not PEM, or a key that is not its certificate's "
+            "(posegrid secure-init --force)"
+        ) from None
+    dictionary = read_key(config, "transport/auth/usrpwd/dictionary_file")
+    if dictionary is not None:
+        try:
+            users = [line for line in Path(dictionary).read_text().splitlines() if line.strip()]
+        except OSError as exc:
+            raise UsageError(
+                f"{what}: its user/password dictionary {dictionary} cannot be read ({exc.strerror})"
+            ) from None
+        if not users:
+            raise UsageError(
+                f"{what}: its user/password dictionary {dictionary} is empty, and zenoh would then ask no client for a "
+                "password; write one user:password per line (posegrid secure-init)"
+            )
+
+
 def open_session(config: zenoh.Config, what: str, stop: threading.Event | None = None) -> zenoh.Session:
     """Open a Zenoh session; an unreachable router becomes a one-sentence :class:`UsageError`. With ``stop``, a stop
     while it waits for the router (up to the connect timeout) raises services.process.Stopped at once, and a wait
@@ -149,16 +207,19 @@ def open_session(config: zenoh.Config, what: str, stop: threading.Event | None =
             return until_stopped(lambda: open_session(config, what), stop, "waiting for the router")
         finally:
             note.cancel()
+    check_local_files(config, what)
     try:
         return zenoh.open(config)
     except zenoh.ZError as exc:
         connect = read_key(config, "connect/endpoints")
         if not connect or "listener" in _first_line(exc):  # its own listening endpoint is what failed
-            raise UsageError(
-                f"{what} could not open its zenoh session ({_first_line(exc)}); is another process "
-                f"listening on {json.dumps(read_key(config, 'listen/endpoints'))}? pick another "
+            hint = (
+                f"; is another process listening on {json.dumps(read_key(config, 'listen/endpoints'))}? pick another "
                 "--listen (`posegrid run`: --router-port)"
-            ) from None
+                if any(words in str(exc) for words in ADDRESS_TROUBLE)
+                else ""
+            )
+            raise UsageError(f"{what} could not open its zenoh session ({_first_line(exc)}){hint}") from None
         secured = any(str(endpoint).startswith("tls/") for endpoint in connect)
         raise UsageError(
             f"{what} could not open its zenoh session ({_first_line(exc)}); is `posegrid router` "

@@ -20,6 +20,7 @@ import os
 import queue
 import re
 import signal
+import socket
 import stat
 import subprocess
 import sys
@@ -34,6 +35,7 @@ from peers import BLOCK, put
 from services.cli import main
 from services.nodes.launcher import free_port
 from services.security import Material, write_material
+from services.zenoh_config import build_config
 
 CLI = [sys.executable, "-m", "services"]
 #: how long a refused client keeps trying before zenoh.open gives up, ms
@@ -294,6 +296,55 @@ def test_clients_without_tls_or_credentials_are_refused(tmp_path, material, rout
     refused = _refused_configs(material, other)
     assert len(refused) == 5
     assert _connected(sessions, refused) == []
+
+
+@pytest.mark.parametrize(
+    ("broken", "message"),
+    [
+        ("empty dictionary", "users.txt is empty, and zenoh would then ask no client for a password"),
+        ("no client key", "its TLS private key"),
+        ("junk certificate", "do not load"),
+        ("another role's key", "do not load"),
+    ],
+)
+def test_a_broken_local_file_is_named_before_the_session_opens(material, broken, message):
+    """A probe (an operator's folder after a bad copy): an empty users.txt let the router run asking no client for
+    a password; a client whose own key or certificate was missing or junk waited 10 s and blamed the router. Each
+    is refused at once, naming the file (services.zenoh_config.check_local_files)."""
+    from services.errors import UsageError
+    from services.zenoh_config import check_local_files
+
+    folder = material.folder
+    if broken == "empty dictionary":
+        material.dictionary.write_text("")
+        config = build_config("router", config_file=material.router_config)
+    else:
+        if broken == "no client key":
+            (folder / "api.key").unlink()
+        elif broken == "junk certificate":
+            (folder / "api.pem").write_text("junk")
+        else:
+            (folder / "api.key").write_bytes((folder / "launcher.key").read_bytes())
+        config = build_config("client", config_file=material.clients["api"])
+    with pytest.raises(UsageError, match=message):
+        check_local_files(config, "the test")
+
+
+def test_a_router_that_cannot_listen_is_hinted_at_its_port_only_when_the_port_is_the_trouble(material, capsys):
+    """Every failure to start a router ended with "is another process listening ...? pick another --listen", even a
+    protocol its TLS config does not take (a probe)."""
+    code = main(["router", "--zenoh-config", str(material.router_config), "--listen", f"tcp/127.0.0.1:{free_port()}"])
+    err = capsys.readouterr().err
+    assert code == 2 and "Unsupported protocol: tcp" in err and "pick another" not in err, err
+    taken = socket.socket()
+    taken.bind(("127.0.0.1", 0))
+    taken.listen()
+    try:
+        code = main(["router", "--listen", f"tcp/127.0.0.1:{taken.getsockname()[1]}"])
+    finally:
+        taken.close()
+    err = capsys.readouterr().err
+    assert code == 2 and "Address already in use" in err and "pick another --listen" in err, err
 
 
 def test_a_wrong_password_is_refused(material, router, sessions):
