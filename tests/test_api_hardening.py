@@ -454,6 +454,18 @@ def test_a_bad_token_is_a_usage_error():
         assert "16 to 256" in result.stderr and "Traceback" not in result.stderr
 
 
+def test_run_checks_the_token_in_its_environment_before_it_starts_anything(monkeypatch):
+    """`POSEGRID_API_TOKEN='bad token!' posegrid run` started the router and the mapper, then its API refused the
+    token and the run stopped with exit 1 (a probe); --api-token was checked up front. The variable is too."""
+    from services.cli import build_parser
+    from services.commands.api import TOKEN_ENV, api_child_options
+    from services.errors import UsageError
+
+    monkeypatch.setenv(TOKEN_ENV, "bad token!!!!!!!!!!!")
+    with pytest.raises(UsageError, match="16 to 256"):
+        api_child_options(build_parser().parse_args(["run", "--sim"]))
+
+
 def test_posegrid_run_passes_the_http_options_on(monkeypatch):
     from services.cli import build_parser
     from services.commands.api import TOKEN_ENV, api_child_options

@@ -187,6 +187,8 @@ def api_child_options(args: argparse.Namespace, prefix: str = "api-") -> list[st
         if option.name == "token":
             if value is not None:
                 os.environ[TOKEN_ENV] = value
+            else:
+                env_token()  # (checked before a run starts its children, as --api-token is)
         elif option.name == "allowed-host":
             for host in value:
                 argv += [f"--{option.name}", host]
@@ -241,10 +243,13 @@ def check_port_free(host: str, port: int) -> None:
 
 def token_of(args: argparse.Namespace) -> str | None:
     """--token, else the TOKEN_ENV environment variable (checked like --token), else None."""
+    return args.token if args.token is not None else env_token()
+
+
+def env_token() -> str | None:
+    """The TOKEN_ENV environment variable, checked like --token (UsageError), or None when it is unset or empty."""
     from services.errors import UsageError
 
-    if args.token is not None:
-        return args.token
     value = os.environ.get(TOKEN_ENV) or None
     if value is not None and not TOKEN_PATTERN.match(value):
         raise UsageError(f"${TOKEN_ENV} must be 16 to 256 of A-Z a-z 0-9 - _ . ~")
