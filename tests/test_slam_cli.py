@@ -350,6 +350,10 @@ def test_eval_traj_refuses_ground_truth_from_another_time_base(simdir, tmp_path,
         ),
         ("fastslam2", ["--scan-topic", "/scan"], "--scan-topic does not apply to --algo fastslam2"),
         ("gridslam", ["--drive-angle-sd", "0.02"], "--drive-angle-sd does not apply to --algo gridslam"),
+        # a value of 0 is given too (0 == False: --seed 0 on ekf passed for not given, a probe's)
+        ("ekf", ["--seed", "0"], "--seed does not apply to --algo ekf"),
+        ("ekf", ["--resample-threshold", "0"], "--resample-threshold does not apply to --algo ekf"),
+        ("gridslam", ["--drive-angle-sd", "0"], "--drive-angle-sd does not apply to --algo gridslam"),
         ("ekf", ["--drive-angle-sd", "0.6"], "--drive-angle-sd must be in [0, 0.5], got 0.6"),
     ],
 )

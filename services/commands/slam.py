@@ -696,6 +696,12 @@ def make_filter(
     )
 
 
+def _given(value: object) -> bool:
+    """Whether an option's parsed value says it was given: not its default None, nor False for a flag. (By
+    identity: ``0 in (None, False)`` is true, and --seed 0 passed for not given.)"""
+    return value is not None and value is not False
+
+
 def _refuse_ignored_options(args: argparse.Namespace) -> None:
     """Raise UsageError when an option is given to an algorithm that would ignore it (:data:`OPTION_ALGORITHMS`;
     grid FastSLAM's own options: :func:`services.commands.gridslam.reject_filter_options`), then put the
@@ -707,7 +713,7 @@ def _refuse_ignored_options(args: argparse.Namespace) -> None:
     ignored = [
         option
         for option, algorithms in OPTION_ALGORITHMS.items()
-        if args.algo not in algorithms and getattr(args, dest(option)) not in (None, False)
+        if args.algo not in algorithms and _given(getattr(args, dest(option)))
     ]
     if ignored:
         users = sorted({algo for option in ignored for algo in OPTION_ALGORITHMS[option]}, key=ALGORITHMS.index)
