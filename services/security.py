@@ -357,6 +357,49 @@ def prepare_folder(folder: Path) -> Path:
     return folder
 
 
+#: the files of a role's that secure-init writes, by suffix
+ROLE_SUFFIXES = (".pem", ".key", ".json5")
+
+
+def material_files(users: list[str]) -> list[str]:
+    """The names of the files :func:`write_material` writes for ``users``."""
+    leaves = ["router", *users]  # (each with a certificate and a key; the router's config and each user's)
+    return [
+        "ca.pem",
+        "users.txt",
+        "router.json5",
+        *(f"{name}.pem" for name in leaves),
+        *(f"{name}.key" for name in leaves),
+        *(f"{user}.json5" for user in users),
+    ]
+
+
+def _check_targets(folder: Path, names: list[str]) -> None:
+    """UsageError naming a file of ``names`` in ``folder`` that a write would fail on or go through: something there
+    that is not a plain file (a folder, a link). Checked before anything is written, so a failure leaves the old
+    material whole."""
+    from services.errors import UsageError
+
+    for name in names:
+        path = folder / name
+        if os.path.lexists(path) and not (path.is_file() and not path.is_symlink()):
+            raise UsageError(f"{path} is not a plain file (a folder or a link?): remove it, then run secure-init again")
+
+
+def _stale_files(folder: Path, users: list[str]) -> list[Path]:
+    """The role files in ``folder`` of users a previous material had and ``users`` has not (their old passwords)."""
+    prefixes = ("source-", "slam-", "mapper-")
+    return [
+        path
+        for path in sorted(folder.iterdir())
+        if path.suffix in ROLE_SUFFIXES
+        and path.stem.startswith(prefixes)
+        and path.stem not in users
+        and path.is_file()
+        and not path.is_symlink()
+    ]
+
+
 def write_material(
     folder: Path,
     robots: list[str],
@@ -369,9 +412,12 @@ def write_material(
     """Write the CA, certificates, passwords and Zenoh configs of a deployment with ``robots`` and ``maps`` into
     ``folder`` (created 0700; files 0600). The router listens on ``listen``, clients connect to ``connect``; its
     certificate names ``router_names`` besides localhost and 127.0.0.1. Existing files are replaced."""
-    folder = prepare_folder(folder)
     roles = roles_for(robots, maps)
     users = [role.user for role in roles]
+    _check_targets(folder, material_files(users))  # (before anything is written: no half-replaced material)
+    folder = prepare_folder(folder)
+    for stale in _stale_files(folder, users):  # a role the new material drops (--force with fewer robots)
+        stale.unlink()
     names = list(dict.fromkeys([*(router_names or []), *LOOPBACK_NAMES]))
     ca = write_certificates(folder, names, users, days)
     passwords = {user: secrets.token_urlsafe(PASSWORD_BYTES) for user in users}

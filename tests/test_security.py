@@ -192,6 +192,33 @@ def test_secure_init_writes_the_material_and_refuses_to_overwrite(tmp_path, caps
         assert "--days must be 1 to 36500" in err and "\n" not in err and "Traceback" not in err, err
 
 
+def test_secure_init_force_replaces_the_material_whole_or_not_at_all(tmp_path, capsys):
+    """A probe: with a folder planted at launcher.key, `--force` wrote the new CA, router and api certificates and then
+    failed, leaving a mix that no process could connect with; and re-run with fewer robots it left the dropped robot's
+    certificate, key and password behind. A target that is not a plain file is now refused before anything is
+    written, and a dropped role's files go."""
+    folder = tmp_path / "deploy"
+    assert main(["secure-init", str(folder), "--robot", "a", "--robot", "b"]) == 0
+    before = {path.name: path.read_bytes() for path in folder.iterdir()}
+    (folder / "launcher.key").unlink()
+    (folder / "launcher.key").mkdir()
+    (folder / "api.key").unlink()
+    (folder / "api.key").symlink_to(folder / "users.txt")
+    capsys.readouterr()
+    assert main(["secure-init", str(folder), "--force"]) == 2
+    err = capsys.readouterr().err
+    assert "is not a plain file" in err and "Traceback" not in err, err
+    after = {path.name: path.read_bytes() for path in folder.iterdir() if path.is_file() and not path.is_symlink()}
+    assert after == {name: data for name, data in before.items() if name not in ("launcher.key", "api.key")}
+    (folder / "launcher.key").rmdir()
+    (folder / "api.key").unlink()
+    (folder / "notes.txt").write_text("mine")  # not the material's: left alone
+    assert main(["secure-init", str(folder), "--force", "--robot", "a"]) == 0
+    names = {path.name for path in folder.iterdir()}
+    assert not any(name.startswith(("source-b.", "slam-b.")) for name in names) and "notes.txt" in names
+    assert {"source-a.json5", "slam-a.key", "launcher.key", "api.key"} <= names
+
+
 @pytest.mark.parametrize(
     "host",
     ["a\nb", "a b", "-router", "router-", "a..b", "x" * 64, "tls/router", "[::1]", "", "256.0.0.1", "1.2.3.4.5"],
