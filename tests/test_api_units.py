@@ -160,6 +160,15 @@ def test_tracker_keeps_each_seq_once_in_order_and_refuses_stale_poses():
     tracker.update(pose(6, 6.0))
     np.testing.assert_allclose(tracker.trajectory("r")[:, [0, 2]], [[0, 0], [1, 1], [2, 2], [5, 5], [6, 6]])
     assert tracker.latest("r").seq == 6
+    # a forged seq far ahead would make every later pose stale: refused, unless the next pose follows it (a gap)
+    with pytest.raises(PoseRefused) as refused:
+        tracker.update(pose(10**9, 99.0))
+    assert refused.value.kind == "ahead"
+    tracker.update(pose(7, 7.0))
+    with pytest.raises(PoseRefused):
+        tracker.update(pose(5000, 50.0))  # (the API cut off for 5 000 poses: the first after it is held back)
+    tracker.update(pose(5001, 50.1))
+    assert tracker.latest("r").seq == 5001
     with pytest.raises(PoseRefused) as refused:
         tracker.update(replace(pose(0, 0.0), robot="s"))
     assert refused.value.kind == "capacity"

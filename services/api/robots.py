@@ -19,6 +19,7 @@ import numpy as np
 
 from schemas.messages import PoseGaussian, PoseSamples
 from services.api.limits import MAX_ROBOTS, STRAY_TTL
+from services.state.join import DEFAULT_SEQ_WINDOW
 from slam.angles import wrap_angle
 
 #: samples drawn from a Gaussian pose for display
@@ -114,28 +115,34 @@ class RobotTracker:
     """
 
     def __init__(
-        self, trajectory_length: int = TRAJECTORY_LENGTH, max_robots: int = MAX_ROBOTS, stray_ttl: float = STRAY_TTL
+        self,
+        trajectory_length: int = TRAJECTORY_LENGTH,
+        max_robots: int = MAX_ROBOTS,
+        stray_ttl: float = STRAY_TTL,
+        seq_window: int = DEFAULT_SEQ_WINDOW,
     ) -> None:
         self._lock = threading.Lock()
         self._latest: dict[str, PoseSummary] = {}
         self._trajectory: dict[str, deque[tuple[int, float, float, float, float]]] = {}
         self._heard: dict[str, float] = {}  # robot -> time.monotonic() of its latest pose
         self._vouched: set[str] = set()
+        self._ahead: dict[str, int] = {}  # robot -> the last pose seq refused as too far ahead (a gap, if followed)
+        self.seq_window = seq_window
         self._length = trajectory_length
         self.max_robots = max_robots
         self.stray_ttl = stray_ttl
 
     def update(self, message: PoseSamples | PoseGaussian) -> PoseSummary:
         """Take a new pose message; returns its summary. Raises PoseRefused for a robot not tracked yet while
-        ``max_robots`` are (``capacity``), and for a pose whose seq is not above the robot's latest (``stale``: a
+        ``max_robots`` are (``capacity``), for a pose whose seq is not above the robot's latest (``stale``: a
         restarted SLAM node publishing the run again, or a second node under the robot's name), so that the latest
-        pose never goes back and the trajectory holds each seq once, in order, as the first publisher gave it."""
+        pose never goes back and the trajectory holds each seq once, in order, as the first publisher gave it; and
+        for one more than ``seq_window`` beyond the latest (``ahead``), unless it follows such a pose within the
+        window (a real gap: the API cut off), as the shards believe a gap (docs/keys.md)."""
         now = time.monotonic()
+        summary = summarize(message, time.time())  # (outside the lock; one check and take under it)
         with self._lock:
             self._check(message, now)
-        summary = summarize(message, time.time())
-        with self._lock:
-            self._check(message, now)  # (another callback may have taken a pose of the robot meanwhile)
             self._latest[summary.robot] = summary
             self._heard[summary.robot] = now
             track = self._trajectory.setdefault(summary.robot, deque(maxlen=self._length))
@@ -157,6 +164,17 @@ class RobotTracker:
                 "restarted SLAM node publishing the run again, or a second SLAM node under the robot's name): the "
                 "latest pose and the trajectory keep the poses they have",
             )
+        elif message.seq > latest.seq + self.seq_window:
+            held = self._ahead.get(message.robot)
+            self._ahead[message.robot] = message.seq
+            if held is None or not 0 < message.seq - held <= self.seq_window:
+                raise PoseRefused(
+                    "ahead",
+                    f"a pose of robot {message.robot!r} for seq {message.seq}, more than {self.seq_window} beyond its "
+                    f"latest, seq {latest.seq} (a stray or forged seq, which would make every later pose stale; taken "
+                    "once the next pose follows it: a real gap)",
+                )
+        self._ahead.pop(message.robot, None)
 
     def vouch(self, robot: str) -> bool:
         """Record that a process of ``robot`` declared its liveliness token; False when refused (``max_robots``
