@@ -151,24 +151,27 @@ def test_tracker_keeps_each_seq_once_in_order_and_refuses_stale_poses():
         return PoseSamples(robot="r", seq=seq, stamp=seq * 0.1, samples=np.array([[x, 0.0, 0.0]]), weights=np.ones(1))
 
     tracker = RobotTracker(max_robots=1)
-    for seq in (0, 1, 2, 5):
+    for seq in (0, 1, 2, 3):
         tracker.update(pose(seq, float(seq)))
-    for seq, x in ((0, 0.0), (2, 99.0), (5, 99.0), (4, 4.0)):  # again, another node's, and one that came late
+    for seq, x in ((0, 0.0), (2, 99.0), (3, 99.0)):  # again, another node's
         with pytest.raises(PoseRefused) as refused:
             tracker.update(pose(seq, x))
-        assert refused.value.kind == "stale" and f"seq {seq}, not after its latest, seq 5" in str(refused.value)
-    tracker.update(pose(6, 6.0))
-    np.testing.assert_allclose(tracker.trajectory("r")[:, [0, 2]], [[0, 0], [1, 1], [2, 2], [5, 5], [6, 6]])
-    assert tracker.latest("r").seq == 6
-    # a forged seq far ahead would make every later pose stale: refused, unless the next pose follows it (a gap)
-    with pytest.raises(PoseRefused) as refused:
-        tracker.update(pose(10**9, 99.0))
-    assert refused.value.kind == "ahead"
-    tracker.update(pose(7, 7.0))
+        assert refused.value.kind == "stale" and f"seq {seq}, not after its latest, seq 3" in str(refused.value)
+    tracker.update(pose(4, 4.0))
+    np.testing.assert_allclose(tracker.trajectory("r")[:, [0, 2]], [[0, 0], [1, 1], [2, 2], [3, 3], [4, 4]])
+    assert tracker.latest("r").seq == 4
+    # a forged seq ahead would make every later pose stale: refused, far or near, unless the next pose follows it
+    for ahead in (10**9, 1024, 5):
+        with pytest.raises(PoseRefused) as refused:
+            tracker.update(pose(tracker.latest("r").seq + ahead, 99.0))
+        assert refused.value.kind == "ahead"
+        tracker.update(pose(tracker.latest("r").seq + 1, 0.0))  # the real next pose is taken
+    assert tracker.latest("r").seq == 7 and 99.0 not in tracker.trajectory("r")[:, 2]
     with pytest.raises(PoseRefused):
         tracker.update(pose(5000, 50.0))  # (the API cut off for 5 000 poses: the first after it is held back)
-    tracker.update(pose(5001, 50.1))
-    assert tracker.latest("r").seq == 5001
+    tracker.update(pose(5003, 50.3))  # (two lost between)
+    tracker.update(pose(5007, 50.7))  # (three lost: a gap of up to four is taken at once)
+    assert tracker.latest("r").seq == 5007
     with pytest.raises(PoseRefused) as refused:
         tracker.update(replace(pose(0, 0.0), robot="s"))
     assert refused.value.kind == "capacity"

@@ -19,13 +19,18 @@ import numpy as np
 
 from schemas.messages import PoseGaussian, PoseSamples
 from services.api.limits import MAX_ROBOTS, STRAY_TTL
-from services.state.join import DEFAULT_SEQ_WINDOW
 from slam.angles import wrap_angle
 
 #: samples drawn from a Gaussian pose for display
 DRAWN_SAMPLES = 100
 #: mean poses kept per robot
 TRAJECTORY_LENGTH = 100_000
+#: a pose at most this many seqs after a robot's latest is taken (a pose or a failed step lost between): a forged
+#: one there holds the real ones back for that many seqs at most
+GAP_TAKE = 4
+#: a pose further on is taken when it follows the pose that opened the gap by at most this many seqs (a real gap is
+#: followed by the next poses; a forged seq alone is not); the pose that opened it is not taken
+GAP_FOLLOW = 8
 
 
 @dataclass(frozen=True)
@@ -119,7 +124,7 @@ class RobotTracker:
         trajectory_length: int = TRAJECTORY_LENGTH,
         max_robots: int = MAX_ROBOTS,
         stray_ttl: float = STRAY_TTL,
-        seq_window: int = DEFAULT_SEQ_WINDOW,
+        gap_follow: int = GAP_FOLLOW,
     ) -> None:
         self._lock = threading.Lock()
         self._latest: dict[str, PoseSummary] = {}
@@ -127,7 +132,7 @@ class RobotTracker:
         self._heard: dict[str, float] = {}  # robot -> time.monotonic() of its latest pose
         self._vouched: set[str] = set()
         self._ahead: dict[str, int] = {}  # robot -> the last pose seq refused as too far ahead (a gap, if followed)
-        self.seq_window = seq_window
+        self.gap_follow = gap_follow
         self._length = trajectory_length
         self.max_robots = max_robots
         self.stray_ttl = stray_ttl
@@ -137,8 +142,9 @@ class RobotTracker:
         ``max_robots`` are (``capacity``), for a pose whose seq is not above the robot's latest (``stale``: a
         restarted SLAM node publishing the run again, or a second node under the robot's name), so that the latest
         pose never goes back and the trajectory holds each seq once, in order, as the first publisher gave it; and
-        for one more than ``seq_window`` beyond the latest (``ahead``), unless it follows such a pose within the
-        window (a real gap: the API cut off), as the shards believe a gap (docs/keys.md)."""
+        for one more than GAP_TAKE after the latest (``ahead``), unless it follows such a pose within ``gap_follow``
+        seqs (a real gap is followed by the next poses; a forged seq alone is not), so that one forged pose ahead
+        cannot make the real ones stale for more than GAP_TAKE seqs."""
         now = time.monotonic()
         summary = summarize(message, time.time())  # (outside the lock; one check and take under it)
         with self._lock:
@@ -164,15 +170,15 @@ class RobotTracker:
                 "restarted SLAM node publishing the run again, or a second SLAM node under the robot's name): the "
                 "latest pose and the trajectory keep the poses they have",
             )
-        elif message.seq > latest.seq + self.seq_window:
+        elif message.seq > latest.seq + GAP_TAKE:
             held = self._ahead.get(message.robot)
             self._ahead[message.robot] = message.seq
-            if held is None or not 0 < message.seq - held <= self.seq_window:
+            if held is None or not 0 < message.seq - held <= self.gap_follow:
                 raise PoseRefused(
                     "ahead",
-                    f"a pose of robot {message.robot!r} for seq {message.seq}, more than {self.seq_window} beyond its "
-                    f"latest, seq {latest.seq} (a stray or forged seq, which would make every later pose stale; taken "
-                    "once the next pose follows it: a real gap)",
+                    f"a pose of robot {message.robot!r} for seq {message.seq}, past its latest, seq {latest.seq}, with "
+                    "a gap (lost poses, or a stray or forged seq, which would make the real poses stale): taken once "
+                    f"the next pose follows it within {self.gap_follow} seqs",
                 )
         self._ahead.pop(message.robot, None)
 
