@@ -375,11 +375,12 @@ def test_a_shard_cut_off_mid_stream_takes_what_it_missed_from_the_history(tmp_pa
     mapper.wait_for(r"took \d+ scan\(s\) of robot 'robot0' in seqs \d+-\d+ from the history \(lost in transit")
 
 
-def test_a_second_run_under_a_robot_name_the_shard_holds_exits_2_and_says_so(tmp_path, procs):
+def test_a_second_run_under_a_robot_name_the_shard_holds_says_so(tmp_path, procs):
     """A run under the name of a robot whose run the shard has fused: its first seqs are refused as duplicates and
-    its scans past the first run's end were fused into that robot's map; the source exited 0 and said nothing (a
-    probe, 500 + 60 scans). It now says so, and exits 2 (a launcher does not restart it). The first run, repeated
-    exactly (a restarted source replaying its input), exits 0: its scans come back as resent, not duplicates."""
+    its scans past the first run's end were fused into that robot's map; the source said nothing (a probe, 500 + 60
+    scans). It now warns. (Not an exit 2: the shards count rejections by key and by kind apart, so another robot's
+    clash on the map with any refusal on this robot's key looks the same, a re-probe.) The first run, repeated exactly
+    (a restarted source replaying its input), says nothing: its scans come back as resent, not duplicates."""
     first, second = (
         make_posed(tmp_path / "a.npz", "samples", steps=20),
         make_posed(tmp_path / "b.npz", "samples", steps=25, seed=9),
@@ -394,10 +395,10 @@ def test_a_second_run_under_a_robot_name_the_shard_holds_exits_2_and_says_so(tmp
         argv = ["source", "--posed", str(posed), "--map", "m", "--robot", "beta", "--wait-mappers", "1"]
         return procs([*CLI, *argv, "--rate", "max", "--connect", endpoint])
 
-    for posed, code in ((first, 0), (first, 0), (second, 2)):
+    for posed, clash in ((first, False), (first, False), (second, True)):
         run = source(posed)
-        assert run.process.wait(120) == code, run.output()
-    assert "refused scans of this run as duplicates" in run.output() and "use another --robot" in run.output()
+        assert run.process.wait(120) == 0, run.output()
+        assert ("may hold some of its seqs" in run.output()) == clash, run.output()
 
 
 def test_a_mapper_restarted_while_the_source_holds_back_takes_the_run_from_the_histories(tmp_path, procs):

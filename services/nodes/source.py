@@ -27,7 +27,6 @@ import zenoh
 
 from schemas.messages import LaserScan, MessageError, NodeStats, ShardStats, StreamEnd, decode_message
 from services import history, keys
-from services.errors import USAGE_EXIT
 from services.map_client import MapReader
 from services.process import WarnOnce, get_logger
 from services.streams import Stream
@@ -351,8 +350,8 @@ class Source:
         return 0
 
     def run(self, stop: threading.Event) -> int:
-        """Publish every step, then the StreamEnd, unless ``stop`` is set first; returns the exit code: 0, or
-        USAGE_EXIT when the shards waited for refused scans of this run as duplicates (its robot name is taken)."""
+        """Publish every step, then the StreamEnd, unless ``stop`` is set first; returns the exit code (0). When the
+        shards waited for refused messages on its scan key and counted duplicates meanwhile, it says so."""
         opts, stream = self.options, self.stream
         token = self.session.liveliness().declare_token(keys.robot_alive_key(stream.robot, "source"))
         answers = self.session.declare_queryable(keys.history_key(stream.robot), self._on_history_query)
@@ -406,17 +405,16 @@ class Source:
             ):
                 return self._stopped()
             clashed = self._clashed() if opts.wait_mappers else []
-            if clashed:
-                self.log.error(
-                    "shard(s) %s of map %r refused scans of this run as duplicates: they hold other scans under "
-                    "robot %r at those seqs (another run under this robot name, or another process publishing on "
-                    "its keys), so this run is not the robot's map there; use another --robot (or a new session: "
-                    "docs/persistence.md)",
+            if clashed:  # (a warning: the counts are by key and by kind apart, so this may be another robot's clash)
+                self.log.warning(
+                    "shard(s) %s of map %r refused messages on robot %r's scan key during this run while they counted "
+                    "duplicates: another run under this robot name (or another process on its keys) may hold some "
+                    "of its seqs, and the map is then not this run's there; see the shards' stats and logs, and use "
+                    "another --robot (or a new session: docs/persistence.md) if so",
                     ", ".join(map(str, clashed)),
                     opts.map_name,
                     stream.robot,
                 )
-                return USAGE_EXIT
             if not opts.wait_mappers and self._unreached:
                 self._linger(end, stop)
             return 0
