@@ -168,56 +168,72 @@ def odometry_controls(odometry: np.ndarray) -> np.ndarray:
 SIDEWAYS_BEARING = math.pi / 4
 #: odometry that travels sideways for more than this share of its distance is a holonomic base's (or its robot
 #: frame's x axis is not the driving direction): a differential drive's travels along its heading but for slips
-#: and turns on the spot (0 to 3.4 % on the shared laser logs, their corrected poses included)
+#: and turns on the spot (0.03 to 9.8 % on the shared laser logs, their corrected poses included)
 HOLONOMIC_SHARE = 0.5
 
 
-#: a live filter decides on the odometry model once its odometry has travelled this far (m)
+#: a filter decides on the odometry model once its odometry has travelled this far (m)
 SIDEWAYS_DECIDE_DISTANCE = 2.0
-
-
-def sideways_steps(odometry: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For consecutive odometry readings (T, 3) (x, y, theta in its frame; m, rad): the distance (T-1,) m each step
-    travels and whether its direction lies more than SIDEWAYS_BEARING off the heading's axis (T-1,)."""
-    odometry = np.asarray(odometry, dtype=np.float64)
-    dxy = np.diff(odometry[:, :2], axis=0)
-    bearing = np.arctan2(dxy[:, 1], dxy[:, 0]) - odometry[:-1, 2]
-    return np.hypot(dxy[:, 0], dxy[:, 1]), np.abs(np.sin(bearing)) > math.sin(SIDEWAYS_BEARING)
-
-
-def sideways_share(odometry: np.ndarray) -> float:
-    """The share of the distance odometry readings (T, 3) travel that is travelled sideways (:func:`sideways_steps`);
-    0 for no travel."""
-    trans, sideways = sideways_steps(odometry)
-    total = float(trans.sum())
-    return float(trans[sideways].sum()) / total if total > 0.0 else 0.0
+#: the odometry's travel is classified stretch by stretch, each from where the last ended to where the odometry is
+#: this far (m) from there: a robot standing still, whose odometry jitters by millimetres in any direction, adds
+#: no travel for minutes
+SIDEWAYS_STRETCH = 0.1
+#: a step between two readings longer than this (m) is an odometry reset, not travel
+SIDEWAYS_RESET = 5.0
 
 
 class SidewaysWatch:
-    """:func:`sideways_share` of odometry readings that come one by one (a live filter's), decided once they have
-    travelled SIDEWAYS_DECIDE_DISTANCE."""
+    """How much of the distance odometry readings (x m, y m, theta rad in the odometry frame), taken one by one,
+    travel sideways: stretch by stretch (SIDEWAYS_STRETCH), a stretch whose direction lies more than
+    SIDEWAYS_BEARING off the heading's axis at its start (forwards or backwards) is sideways; decided once they
+    have travelled SIDEWAYS_DECIDE_DISTANCE."""
 
     def __init__(self) -> None:
         self.travelled = 0.0  # m
         self.sideways = 0.0  # m
+        self._start: np.ndarray | None = None  # the pose the current stretch started at
         self._last: np.ndarray | None = None
 
     def add(self, pose: np.ndarray) -> bool | None:
-        """Take the next reading (3,); whether the odometry travels sideways for more than HOLONOMIC_SHARE of its
-        distance, None until it has travelled SIDEWAYS_DECIDE_DISTANCE."""
+        """Take the next reading (3,); :meth:`verdict` after it."""
         pose = np.asarray(pose, dtype=np.float64)
-        if self._last is not None:
-            trans, sideways = sideways_steps(np.stack([self._last, pose]))
-            self.travelled += float(trans[0])
-            self.sideways += float(trans[0]) if sideways[0] else 0.0
+        if self._last is not None and math.hypot(*(pose[:2] - self._last[:2])) > SIDEWAYS_RESET:
+            self._start = None  # (a reset: the jump is no travel)
         self._last = pose
+        if self._start is None:
+            self._start = pose
+            return self.verdict()
+        dx, dy = pose[:2] - self._start[:2]
+        trans = math.hypot(dx, dy)
+        if trans >= SIDEWAYS_STRETCH:
+            bearing = math.atan2(dy, dx) - self._start[2]
+            self.travelled += trans
+            self.sideways += trans if abs(math.sin(bearing)) > math.sin(SIDEWAYS_BEARING) else 0.0
+            self._start = pose
+        return self.verdict()
+
+    def restart(self) -> None:
+        """Forget the current stretch (an odometry reset: the jump to the next reading is no travel)."""
+        self._start = self._last = None
+
+    def share(self) -> float:
+        """The share of the distance travelled so far that was travelled sideways; 0 for none."""
+        return self.sideways / self.travelled if self.travelled > 0.0 else 0.0
+
+    def verdict(self) -> bool | None:
+        """Whether the odometry travels sideways for more than HOLONOMIC_SHARE of its distance; None until it has
+        travelled SIDEWAYS_DECIDE_DISTANCE."""
         if self.travelled < SIDEWAYS_DECIDE_DISTANCE:
             return None
         return self.sideways > HOLONOMIC_SHARE * self.travelled
 
-    def restart(self) -> None:
-        """Forget the last reading (an odometry reset: the jump to the next is no travel)."""
-        self._last = None
+
+def sideways_watch(odometry: np.ndarray) -> SidewaysWatch:
+    """A :class:`SidewaysWatch` that has taken every reading of ``odometry`` (T, 3), in order."""
+    watch = SidewaysWatch()
+    for pose in np.asarray(odometry, dtype=np.float64):
+        watch.add(pose)
+    return watch
 
 
 def split_odometry_motion(control: np.ndarray, pieces: int) -> np.ndarray:

@@ -21,7 +21,7 @@ from services.commands.argtypes import (
     refuse_another_kind,
 )
 from services.commands.options import add_scan_topic
-from slam.motion import HOLONOMIC_SHARE, sideways_share
+from slam.motion import HOLONOMIC_SHARE, sideways_watch
 
 #: grid FastSLAM particles when --particles is not given: the least KLD-sampling keeps (GridSlamConfig.particle_cap
 #: the most)
@@ -434,12 +434,13 @@ def _prepared_log(args: argparse.Namespace, config):
 
 
 def _odometry_model(choice: str, log, config):
-    """``config`` with the odometry model ``choice`` (auto: :func:`slam.motion.sideways_share` of the log's
-    odometry against HOLONOMIC_SHARE; said on stderr when it is omni)."""
+    """``config`` with the odometry model ``choice`` (auto: :class:`slam.motion.SidewaysWatch`'s verdict on the log's
+    odometry; said on stderr when it is omni)."""
     from dataclasses import replace
 
-    share = sideways_share(log.odometry)
-    holonomic = choice == "omni" or (choice == "auto" and share > HOLONOMIC_SHARE)
+    watch = sideways_watch(log.odometry)
+    share = watch.share()
+    holonomic = choice == "omni" or (choice == "auto" and watch.verdict() is True)
     if choice == "auto" and holonomic:
         print(
             f"posegrid slam: note: the odometry travels sideways for {share:.0%} of its distance: a holonomic base, "
@@ -524,7 +525,7 @@ def _run_stats(log, config, result, delay: float, elapsed: float, cpu: float) ->
         "tiles_copied": result.maps.copies,
         "odometry_delay_s": delay,
         "odometry_model": "omni" if config.holonomic else "diff",
-        "odometry_sideways_share": sideways_share(log.odometry),
+        "odometry_sideways_share": sideways_watch(log.odometry).share(),
         "final_particles": len(result.weights),
         "loop_closure": result.loops,
         "health_summary": summary,
