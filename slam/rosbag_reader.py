@@ -76,10 +76,17 @@ def header_stamp(header) -> float:
     return header.stamp.sec + 1e-9 * header.stamp.nanosec
 
 
+#: a quaternion whose squared norm is off 1 by more than this is normalised before its yaw is read
+UNIT_TOLERANCE = 1e-6
+
+
 def quaternion_yaw(q) -> float:
     """Yaw (rad) of a quaternion: the heading of its x axis projected onto the plane (the rotation about z of a
-    level frame; of one upside down, ``Rz(yaw) Rx(pi)``, too)."""
-    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+    level frame; of one upside down, ``Rz(yaw) Rx(pi)``, too). One that is not of unit norm is normalised first
+    (a quaternion scaled by 0.5 read a yaw of pi/2 as 18 deg); a zero one reads 0."""
+    norm = q.w * q.w + q.x * q.x + q.y * q.y + q.z * q.z
+    scale = 1.0 if abs(norm - 1.0) <= UNIT_TOLERANCE or norm == 0.0 else 1.0 / norm
+    return math.atan2(2.0 * scale * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * scale * (q.y * q.y + q.z * q.z))
 
 
 #: a frame whose z axis lies within this of the vertical (rad), up or down, scans the floor's plane: level (+1) or

@@ -107,6 +107,18 @@ def test_a_laser_mounted_upside_down_is_read_with_its_beams_mirrored(tmp_path, r
         read_rosbag(builder.write(tmp_path / ("tilted" if ros2 else "tilted.bag")))
 
 
+def test_a_quaternion_not_of_unit_norm_reads_its_yaw():
+    """A quaternion scaled by 0.5 read a yaw of pi/2 as 18.4 deg, by 2 as 126.9 deg (a re-probe)."""
+    from types import SimpleNamespace
+
+    from slam.rosbag_reader import quaternion_yaw
+
+    for scale in (0.5, 1.0, 2.0, 1e-3):
+        q = SimpleNamespace(w=scale * math.cos(math.pi / 4), x=0.0, y=0.0, z=scale * math.sin(math.pi / 4))
+        assert quaternion_yaw(q) == pytest.approx(math.pi / 2, abs=1e-12)
+    assert quaternion_yaw(SimpleNamespace(w=0.0, x=0.0, y=0.0, z=0.0)) == 0.0
+
+
 def test_ros1_bag_with_odometry(tmp_path):
     check_standard(read_rosbag(standard_bag().write(tmp_path / "a.bag")))
 
