@@ -149,6 +149,11 @@ TLS_FILES = (
 )
 
 
+def _no_passphrase() -> bytes:
+    """ssl's password callback for a key with a passphrase: none (zenoh reads no passphrase; ssl would prompt)."""
+    return b""
+
+
 def check_local_files(config: zenoh.Config, what: str) -> None:
     """UsageError naming a file of ``config`` that the session could not use: a TLS file that is missing, not
     readable or not PEM that Python's ssl loads (a certificate with its key, a CA), or an empty user/password
@@ -159,8 +164,8 @@ def check_local_files(config: zenoh.Config, what: str) -> None:
     files = {key: read_key(config, key) for key, _ in TLS_FILES}
     for key, kind in TLS_FILES:
         path = files[key]
-        if path is not None and not os.access(path, os.R_OK):
-            raise UsageError(f"{what}: its TLS {kind} {path} ({key}) is missing or not readable")
+        if path is not None and not (os.path.isfile(path) and os.access(path, os.R_OK)):
+            raise UsageError(f"{what}: its TLS {kind} {path} ({key}) is missing, not a file or not readable")
     context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
     pairs = [
         (files[f"transport/link/tls/{side}_certificate"], files[f"transport/link/tls/{side}_private_key"])
@@ -170,13 +175,13 @@ def check_local_files(config: zenoh.Config, what: str) -> None:
         if files["transport/link/tls/root_ca_certificate"] is not None:
             context.load_verify_locations(cafile=files["transport/link/tls/root_ca_certificate"])
         for certificate, key in pairs:
-            if certificate is not None and key is not None:
-                context.load_cert_chain(certificate, key)
-    except ssl.SSLError as exc:
+            if certificate is not None and key is not None:  # (a key with a passphrase: refused, not prompted for)
+                context.load_cert_chain(certificate, key, password=_no_passphrase)
+    except (ssl.SSLError, OSError) as exc:
         raise UsageError(
             f"{what}: its TLS files {', '.join(str(f) for f in files.values() if f)} do not load "
-            f"({exc.reason or exc}): a certificate that is not PEM, or a key that is not its certificate's "
-            "(posegrid secure-init --force)"
+            f"({getattr(exc, 'reason', None) or exc}): a certificate that is not PEM, a key that is not its "
+            "certificate's, or a key with a passphrase, which zenoh cannot take (posegrid secure-init --force)"
         ) from None
     dictionary = read_key(config, "transport/auth/usrpwd/dictionary_file")
     if dictionary is not None:

@@ -332,6 +332,8 @@ def test_clients_without_tls_or_credentials_are_refused(tmp_path, material, rout
         ("no client key", "its TLS private key"),
         ("junk certificate", "do not load"),
         ("another role's key", "do not load"),
+        ("a folder for the key", "is missing, not a file or not readable"),
+        ("a key with a passphrase", "a key with a passphrase"),
     ],
 )
 def test_a_broken_local_file_is_named_before_the_session_opens(material, broken, message):
@@ -350,6 +352,20 @@ def test_a_broken_local_file_is_named_before_the_session_opens(material, broken,
             (folder / "api.key").unlink()
         elif broken == "junk certificate":
             (folder / "api.pem").write_text("junk")
+        elif broken == "a folder for the key":
+            (folder / "api.key").unlink()
+            (folder / "api.key").mkdir()
+        elif broken == "a key with a passphrase":  # (ssl prompted for it on the terminal, and waited)
+            from cryptography.hazmat.primitives import serialization
+
+            key = serialization.load_pem_private_key((folder / "api.key").read_bytes(), password=None)
+            (folder / "api.key").write_bytes(
+                key.private_bytes(
+                    serialization.Encoding.PEM,
+                    serialization.PrivateFormat.PKCS8,
+                    serialization.BestAvailableEncryption(b"secret"),
+                )
+            )
         else:
             (folder / "api.key").write_bytes((folder / "launcher.key").read_bytes())
         config = build_config("client", config_file=material.clients["api"])
