@@ -359,7 +359,7 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
     config = gridslam_config(args)
     best_path, poses_path = _output_paths(args)
     before = time.process_time()
-    log, config, delay = _prepared_log(args, config)
+    log, config, delay, sideways = _prepared_log(args, config)
     reading_cpu = time.process_time() - before  # (reading the log, and estimating the delay where it is)
     started = time.perf_counter()
     cpu_started = time.process_time()
@@ -368,6 +368,7 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
     cpu = time.process_time() - cpu_started
     _save_outputs(args.output, best_path, poses_path, log, config, result)
     stats = _run_stats(log, config, result, delay, elapsed, cpu)
+    stats["odometry_sideways_share"] = sideways
     stats["cpu_seconds_reading"] = reading_cpu
     _report_health(stats)
     if args.stats is not None:
@@ -414,8 +415,8 @@ def _report_health(stats: dict) -> None:
 
 def _prepared_log(args: argparse.Namespace, config):
     """The laser log of args.input (its first --scans scans) with its odometry read at --odom-delay, checked by
-    :func:`_check_log` before and after the delay, ``config`` with its odometry model (--odometry-model), and the
-    delay in s."""
+    :func:`_check_log` before and after the delay, ``config`` with its odometry model (--odometry-model), the
+    delay in s and the share of the odometry's distance travelled sideways."""
     from services.commands.logs import read_log
     from services.errors import UsageError
 
@@ -425,17 +426,17 @@ def _prepared_log(args: argparse.Namespace, config):
     if args.scans is not None:
         log = log.first(args.scans)
     _check_log(log, config)
-    config = _odometry_model(args.odometry_model, log, config)
+    config, sideways = _odometry_model(args.odometry_model, log, config)
     log, delay = _apply_odometry_delay(args, log, config)
     for remark in log.remarks():  # (after the delay, which skips the scans it leaves without odometry)
         print(f"posegrid slam: note: {remark}", file=sys.stderr)
     _check_log(log, config)
-    return log, config, delay
+    return log, config, delay, sideways
 
 
 def _odometry_model(choice: str, log, config):
     """``config`` with the odometry model ``choice`` (auto: :class:`slam.motion.SidewaysWatch`'s verdict on the log's
-    odometry; said on stderr when it is omni)."""
+    odometry; said on stderr when it is omni), and the share of the odometry's distance travelled sideways."""
     from dataclasses import replace
 
     watch = sideways_watch(log.odometry)
@@ -448,7 +449,7 @@ def _odometry_model(choice: str, log, config):
             "(--odometry-model diff to refuse it)",
             file=sys.stderr,
         )
-    return replace(config, holonomic=holonomic)
+    return replace(config, holonomic=holonomic), share
 
 
 def _run_filter(log, config, seed: int):
@@ -501,8 +502,8 @@ def _save_outputs(output: Path, best_path: Path, poses_path: Path, log, config, 
 def _run_stats(log, config, result, delay: float, elapsed: float, cpu: float) -> dict:
     """The figures --stats writes: times (s) of ``elapsed`` wall and ``cpu`` time (the filter's run; the caller adds
     ``cpu_seconds_reading``, reading the log and estimating its odometry delay), effective sample sizes,
-    resamplings, tiles, the odometry ``delay`` (s), the odometry model and the share of the odometry's distance
-    travelled sideways, the loop closer's counts, the health of every integrated scan
+    resamplings, tiles, the odometry ``delay`` (s), the odometry model (the caller adds the share of the odometry's
+    distance travelled sideways), the loop closer's counts, the health of every integrated scan
     (columns, one value per integrated scan) and its summary, and the errors against the poses the log states where
     it states others than its odometry."""
     duration = float(log.stamps[-1] - log.stamps[0])
@@ -525,7 +526,6 @@ def _run_stats(log, config, result, delay: float, elapsed: float, cpu: float) ->
         "tiles_copied": result.maps.copies,
         "odometry_delay_s": delay,
         "odometry_model": "omni" if config.holonomic else "diff",
-        "odometry_sideways_share": sideways_watch(log.odometry).share(),
         "final_particles": len(result.weights),
         "loop_closure": result.loops,
         "health_summary": summary,

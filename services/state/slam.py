@@ -49,6 +49,7 @@ from slam.motion import (
     SIDEWAYS_DECIDE_DISTANCE,
     VELOCITY_LIMIT,
     OdometryMotionModel,
+    OmniOdometryMotionModel,
     SidewaysWatch,
     odometry_controls,
     split_odometry_motion,
@@ -353,8 +354,6 @@ class GridDriver:
             return
         self._sideways = None
         if verdict:
-            from slam.motion import OmniOdometryMotionModel
-
             assert self.filter is not None  # (made before the first step is watched)
             self.filter.motion = OmniOdometryMotionModel(self.config.motion_alphas)
             self.log.info(
