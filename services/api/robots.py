@@ -146,9 +146,12 @@ class RobotTracker:
         seqs (a real gap is followed by the next poses; a forged seq alone is not), so that one forged pose ahead
         cannot make the real ones stale for more than GAP_TAKE seqs."""
         now = time.monotonic()
-        summary = summarize(message, time.time())  # (outside the lock; one check and take under it)
         with self._lock:
-            self._check(message, now)
+            self._check_known(message, now)  # (before the summary's work: a refused flood costs little)
+        summary = summarize(message, time.time())
+        with self._lock:
+            self._check_known(message, now)  # (again: another callback may have taken a pose of the robot meanwhile)
+            self._check_gap(message)
             self._latest[summary.robot] = summary
             self._heard[summary.robot] = now
             track = self._trajectory.setdefault(summary.robot, deque(maxlen=self._length))
@@ -156,8 +159,8 @@ class RobotTracker:
             track.append((summary.seq, summary.stamp, x, y, yaw))
         return summary
 
-    def _check(self, message: PoseSamples | PoseGaussian, now: float) -> None:
-        """:meth:`update`'s refusals, holding the lock."""
+    def _check_known(self, message: PoseSamples | PoseGaussian, now: float) -> None:
+        """:meth:`update`'s refusals that change nothing (capacity, stale), holding the lock."""
         latest = self._latest.get(message.robot)
         if latest is None:
             self._expire(now)
@@ -170,7 +173,12 @@ class RobotTracker:
                 "restarted SLAM node publishing the run again, or a second SLAM node under the robot's name): the "
                 "latest pose and the trajectory keep the poses they have",
             )
-        elif message.seq > latest.seq + GAP_TAKE:
+
+    def _check_gap(self, message: PoseSamples | PoseGaussian) -> None:
+        """:meth:`update`'s refusal of a pose past a gap (ahead), holding the lock, after :meth:`_check_known`: it
+        notes the seq that opened a gap, so it runs once a pose."""
+        latest = self._latest.get(message.robot)
+        if latest is not None and message.seq > latest.seq + GAP_TAKE:
             held = self._ahead.get(message.robot)
             self._ahead[message.robot] = message.seq
             if held is None or not 0 < message.seq - held <= self.gap_follow:
