@@ -58,12 +58,16 @@ _TOKEN, _LIVE_SUB, _LIVE_QUERY = "liveliness_token", "declare_liveliness_subscri
 class Role:
     """One Zenoh identity: a user name (also its certificate's common name) and the ACL rules it gets."""
 
-    kind: str  # "source", "slam", "mapper", "api" or "launcher"
+    kind: str  # one of SCOPED_KINDS, "api" or "launcher"
     scope: str | None = None  # the robot (source, slam) or the map (mapper)
 
     @property
     def user(self) -> str:
         return self.kind if self.scope is None else f"{self.kind}-{self.scope}"
+
+
+#: the role kinds with a scope (the robot of a source or SLAM node, the map of a mapper): users "<kind>-<scope>"
+SCOPED_KINDS = ("source", "slam", "mapper")
 
 
 @dataclass
@@ -388,7 +392,7 @@ def _check_targets(folder: Path, names: list[str]) -> None:
 
 def _stale_files(folder: Path, users: list[str]) -> list[Path]:
     """The role files in ``folder`` of users a previous material had and ``users`` has not (their old passwords)."""
-    prefixes = ("source-", "slam-", "mapper-")
+    prefixes = tuple(f"{kind}-" for kind in SCOPED_KINDS)
     return [
         path
         for path in sorted(folder.iterdir())

@@ -80,11 +80,16 @@ def header_stamp(header) -> float:
 UNIT_TOLERANCE = 1e-6
 
 
+def _squared_norm(q) -> float:
+    """w^2 + x^2 + y^2 + z^2 of a quaternion (1 for a rotation as ROS writes it)."""
+    return q.w * q.w + q.x * q.x + q.y * q.y + q.z * q.z
+
+
 def quaternion_yaw(q) -> float:
     """Yaw (rad) of a quaternion: the heading of its x axis projected onto the plane (the rotation about z of a
     level frame; of one upside down, ``Rz(yaw) Rx(pi)``, too). One that is not of unit norm is normalised first
     (a quaternion scaled by 0.5 read a yaw of pi/2 as 18 deg); a zero one reads 0."""
-    norm = q.w * q.w + q.x * q.x + q.y * q.y + q.z * q.z
+    norm = _squared_norm(q)
     scale = 1.0 if abs(norm - 1.0) <= UNIT_TOLERANCE or norm == 0.0 else 1.0 / norm
     return math.atan2(2.0 * scale * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * scale * (q.y * q.y + q.z * q.z))
 
@@ -101,7 +106,7 @@ LEVEL, UPSIDE_DOWN, TILTED = 1, -1, 0
 def quaternion_attitude(q) -> int:
     """LEVEL, UPSIDE_DOWN or TILTED: where a quaternion's rotation takes the z axis (the z component of R e_z,
     1 - 2 (x^2 + y^2) for a unit quaternion; normalised first, a zero quaternion taken as the identity)."""
-    norm = q.w * q.w + q.x * q.x + q.y * q.y + q.z * q.z
+    norm = _squared_norm(q)
     up = 1.0 - 2.0 * (q.x * q.x + q.y * q.y) / norm if norm > 0.0 else 1.0
     if up >= math.cos(TILT_LIMIT):
         return LEVEL
