@@ -111,6 +111,24 @@ def fake_children():
     return children, clock, spawned
 
 
+def test_only_a_router_killed_at_the_stop_is_forgiven(fake_children):
+    """After the stop, a child outside CLEAN_EXITS fails the run, except the router killed after the grace: it holds
+    no state. A router that ended -9 on its own (not killed by the stop) still counts."""
+    children, _, _ = fake_children
+    for name in ("router", "mapper[0]", "source"):
+        children.start(name, [name])
+    router, mapper, source = (child.process for child in children.children)
+    router.end(-signal.SIGKILL)
+    mapper.end(0)
+    source.end(-signal.SIGTERM)
+    assert children.stopped_badly() == ["router"]
+    children.killed.add("router")
+    assert children.stopped_badly() == []
+    mapper.end(-signal.SIGKILL)
+    children.killed.add("mapper[0]")
+    assert children.stopped_badly() == ["mapper[0]"]
+
+
 def test_a_child_that_ends_is_started_again_with_its_argv_after_the_backoff(fake_children, capsys):
     children, clock, spawned = fake_children
     mapper = children.start("mapper[1]", ["mapper", "--shard", "1"])
