@@ -18,6 +18,7 @@ from scipy import sparse
 from scipy.stats import rankdata
 
 from mapping.errors import InputError
+from mapping.map_arrays import check_raster
 
 #: probabilities are clipped to [EPS, 1 - EPS] for the NLL so a confident mistake costs a finite amount
 NLL_EPS = 1e-6
@@ -119,6 +120,7 @@ def score_probabilities(p: np.ndarray, occupied: np.ndarray) -> dict[str, float]
 
 def score_map(map_arrays: dict, truth_arrays: dict) -> dict[str, float]:
     """Score a map (map-file keys) against a truth raster (truth keys); see the module docstring."""
+    check_raster(map_arrays)
     visible = np.asarray(truth_arrays["visible"], bool)
     if not visible.any():
         raise InputError("the truth raster has no visible cells to score")

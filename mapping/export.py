@@ -13,6 +13,7 @@ import numpy as np
 from PIL import Image
 
 from mapping.errors import InputError
+from mapping.map_arrays import check_raster
 
 LAYERS = ("probability", "variance")
 
@@ -68,6 +69,7 @@ def _yaml_float(value: float) -> str:
 
 def render_pgm(map_arrays: dict, image_name: str = "map.pgm") -> tuple[bytes, str]:
     """A binary PGM (P5) and its map_server YAML; the YAML names the image file ``image_name``."""
+    check_raster(map_arrays)
     pixels = np.flipud(occupancy_pixels(np.asarray(map_arrays["probability"]), np.asarray(map_arrays["observed"])))
     if pixels.size == 0:
         raise InputError("the map is empty (no cells); a 0 x 0 image is no map for map_server")
@@ -90,8 +92,9 @@ def crop_to_occupied(map_arrays: dict, margin: float) -> dict:
     """The map cut to the bounding box of its occupied cells (observed, p >= OCCUPIED_THRESH) grown by
     ``margin`` m on every side, origin moved to match; every (H, W) layer is cut alike. Rays that found no
     return clear space far beyond any wall; this keeps an image to the mapped structure."""
-    if margin < 0:
+    if not margin >= 0:  # (also NaN)
         raise InputError(f"the crop margin must be >= 0 m, got {margin}")
+    check_raster(map_arrays)
     occupied = np.asarray(map_arrays["observed"], bool) & (np.asarray(map_arrays["probability"]) >= OCCUPIED_THRESH)
     if not occupied.any():
         raise InputError("the map has no occupied cells to crop to")
@@ -127,13 +130,16 @@ def render_rgb(map_arrays: dict, layer: str = "probability", variance_scale: flo
     """
     if layer not in LAYERS:
         raise InputError(f"layer must be one of {', '.join(LAYERS)}, got {layer!r}")
+    if layer == "variance" and map_arrays.get("variance") is None:
+        raise InputError("this map has no variance layer")
+    check_raster(map_arrays, layer, frame=False)
+    if variance_scale is not None and not (np.isfinite(variance_scale) and variance_scale >= 0):
+        raise InputError(f"the variance scale must be finite and >= 0, got {variance_scale}")
     observed = np.asarray(map_arrays["observed"], bool)
     if layer == "probability":
         grey = np.round(255 * (1.0 - np.asarray(map_arrays["probability"], float))).astype(np.uint8)
         rgb = np.repeat(grey[..., None], 3, axis=2)
     else:
-        if map_arrays.get("variance") is None:
-            raise InputError("this map has no variance layer")
         variance = np.asarray(map_arrays["variance"], float)
         if variance_scale is None:
             seen = variance[observed]

@@ -34,6 +34,7 @@ any order), so the map is the same bit for bit on any number of threads.
 from __future__ import annotations
 
 import math
+import operator
 from collections.abc import Callable, Generator, Iterable, Iterator, Sequence
 from concurrent.futures import Executor, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
@@ -58,7 +59,14 @@ from mapping.samples_pass import (
     merge_scan,
     owned_table,
 )
-from mapping.scan_input import MAX_WINDOW_CELLS, check_scan, check_window, laser_poses, merge_duplicates
+from mapping.scan_input import (
+    MAX_WINDOW_CELLS,
+    check_laser,
+    check_scan,
+    check_window,
+    laser_poses,
+    merge_duplicates,
+)
 from mapping.sensor_model import SensorModel
 from mapping.single_pass import accumulate_single, apply_single
 from mapping.tile_boxes import empty_boxes, tile_windows
@@ -232,19 +240,18 @@ class MonteCarloFusion:
             raise InputError(
                 f"grid resolution {grid.resolution} m differs from the sensor model's {model.resolution} m"
             )
-        if not 0 <= range_min < range_max or not np.isfinite(range_max):
-            raise InputError(f"need 0 <= range_min < range_max < inf, got {range_min} and {range_max}")
+        angles, offset = check_laser(beam_angles, range_min, range_max, sensor_offset)
         try:
             self.bundle = check_tolerance(bundle)
         except ValueError as exc:
             raise InputError(str(exc)) from None
         self.grid = grid
         self.model = model
-        self.angles = np.ascontiguousarray(beam_angles, dtype=np.float64)
+        self.angles = angles
         self._cos_angles, self._sin_angles = np.cos(self.angles), np.sin(self.angles)  # (the kernels' beam directions)
         self.range_min = float(range_min)
         self.range_max = float(range_max)
-        self.sensor_offset = np.asarray(sensor_offset, dtype=np.float64)
+        self.sensor_offset = offset
         self.owns_tile = owns_tile
         self.merge_identical = merge_identical
         self.threads = threads if isinstance(threads, FusionThreads) else FusionThreads(threads)
@@ -554,8 +561,12 @@ class FusionThreads:
     the first scans fused with count > 1. Not thread-safe: one caller at a time."""
 
     def __init__(self, count: int = 1) -> None:
+        try:
+            count = operator.index(count)  # (a whole number: 1.5 threads is a mistake, not 1)
+        except TypeError:
+            raise InputError(f"need a whole number of threads >= 1, got {count!r}") from None
         if count < 1:
-            raise InputError(f"need threads >= 1, got {count}")
+            raise InputError(f"need a whole number of threads >= 1, got {count!r}")
         self.count = count
         self._scratches = [FusionScratch() for _ in range(count + 1)] if count > 1 else []
         self.lone = FusionScratch()  # (MonteCarloFusion.fuse's, of whichever fusion; empty until a scan is walked)

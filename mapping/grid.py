@@ -19,12 +19,16 @@ into any tile through a slot index; memory follows the observed area.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from mapping.errors import InputError
 from mapping.tile_changes import ALL_CHANGED, ChangedCells, take_changed_cells
 
 TILE_SIZE = 256
+#: the largest tile side, cells: a tile's three layers take 9 bytes a cell (150 MB at 4096)
+MAX_TILE_SIZE = 4096
 #: the most cells a raster of the whole map may span before it is cropped (9 bytes a cell while it is built, so
 #: about 2.4 GB): 16 384 x 16 384 cells, 819 m square at 0.05 m. A map whose tiles lie farther apart than that
 #: is refused, not allocated.
@@ -37,10 +41,11 @@ class TiledGrid:
     """A tiled log-odds map with a variance layer; see the module docstring for frames and layout."""
 
     def __init__(self, resolution: float = 0.05, tile_size: int = TILE_SIZE, track_changes: bool = False) -> None:
-        if not resolution > 0:
-            raise InputError(f"resolution must be > 0 m, got {resolution}")
-        if tile_size < 1 or tile_size & (tile_size - 1):
-            raise InputError(f"tile_size must be a power of two (cells), got {tile_size}")
+        if not 0 < resolution < math.inf:
+            raise InputError(f"resolution must be > 0 m and finite, got {resolution}")
+        whole = isinstance(tile_size, int | np.integer)
+        if not whole or not 1 <= tile_size <= MAX_TILE_SIZE or tile_size & (tile_size - 1):
+            raise InputError(f"tile_size must be a power of two up to {MAX_TILE_SIZE} (cells), got {tile_size!r}")
         self.resolution = float(resolution)
         self.tile_size = int(tile_size)
         self.tile_shift = self.tile_size.bit_length() - 1  # tile_size == 1 << tile_shift

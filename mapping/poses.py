@@ -17,7 +17,7 @@ import math
 import numpy as np
 
 from mapping.errors import InputError
-from mapping.scan_input import merge_duplicates
+from mapping.scan_input import check_samples, merge_duplicates
 
 MODES = ("mc", "ml")
 Z95 = 1.959963984540054  # two-sided 95 % standard-normal quantile
@@ -39,10 +39,38 @@ def samples_for_accuracy(
     return max(math.ceil(needed), 1)
 
 
-def gaussian_samples(mean: np.ndarray, cov: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
-    """n samples (n, 3) of N(mean, cov) through a Cholesky factor (eigen-factor when cov is only semi-definite)."""
+#: how far from symmetric a pose covariance may be, relative to its largest entry (schemas.files' test for files)
+SYMMETRY_TOLERANCE = 1e-9
+#: how far below zero a pose covariance's smallest eigenvalue may be (rounding), m^2 or rad^2
+EIGEN_TOLERANCE = 1e-12
+
+
+def check_gaussian(mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Validate a Gaussian pose: mean (3,) (x m, y m, yaw rad) and cov (3, 3), finite, symmetric and positive
+    semi-definite. Returns them as float64 arrays."""
     mean = np.asarray(mean, dtype=float)
     cov = np.asarray(cov, dtype=float)
+    if mean.shape != (3,) or cov.shape != (3, 3):
+        raise InputError(f"a Gaussian pose needs mean (3,) and cov (3, 3), got {mean.shape} and {cov.shape}")
+    if not (np.isfinite(mean).all() and np.isfinite(cov).all()):
+        raise InputError("the Gaussian pose's mean and cov must be finite")
+    if np.abs(cov - cov.T).max() > SYMMETRY_TOLERANCE * (1.0 + np.abs(cov).max()):
+        raise InputError("the pose covariance is not symmetric")
+    smallest = float(np.linalg.eigvalsh(cov).min())
+    if smallest < -EIGEN_TOLERANCE:
+        raise InputError(f"the pose covariance is not positive semi-definite (smallest eigenvalue {smallest:.3g})")
+    return mean, cov
+
+
+def gaussian_samples(mean: np.ndarray, cov: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """n samples (n, 3) of N(mean, cov) through a Cholesky factor (eigen-factor when cov is only semi-definite).
+    Refuses a mean or cov that :func:`check_gaussian` does."""
+    mean, cov = check_gaussian(mean, cov)
+    return _draw(mean, cov, n, rng)
+
+
+def _draw(mean: np.ndarray, cov: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """:func:`gaussian_samples` of a mean and cov already checked."""
     try:
         factor = np.linalg.cholesky(cov)
     except np.linalg.LinAlgError:
@@ -76,18 +104,17 @@ def scan_samples(
     if mean is not None:
         if cov is None:
             raise InputError("a Gaussian pose needs both mean and cov")
-        mean = np.asarray(mean, dtype=float)
+        mean, cov = check_gaussian(mean, cov)
         if mode == "ml":
             return mean.reshape(1, 3), np.ones(1)
         n = n_samples if n_samples is not None else samples_for_accuracy(cov, range_max, accuracy)
         if n < 1:
             raise InputError(f"n_samples must be >= 1, got {n}")
         rng = np.random.default_rng([int(seed), int(seq)])
-        return gaussian_samples(mean, cov, n, rng), np.full(n, 1.0 / n)
+        return _draw(mean, cov, n, rng), np.full(n, 1.0 / n)
     if samples is None or weights is None:
         raise InputError("a pose distribution needs samples and weights, or mean and cov")
-    samples = np.asarray(samples, dtype=float).reshape(-1, 3)
-    weights = np.asarray(weights, dtype=float).reshape(-1)
+    samples, weights = check_samples(samples, weights)
     if mode == "ml":
         best = int(np.argmax(weights))
         return samples[best : best + 1], np.ones(1)

@@ -1,6 +1,7 @@
 """What both grids (the regular :class:`mapping.fusion.MonteCarloFusion` and the adaptive
-:class:`mapping.adaptive.fusion.AdaptiveFusion`) check and prepare before they fuse a scan, written once: the scan
-and its pose samples checked (:func:`check_scan`), the laser's poses in the map frame (:func:`laser_poses`),
+:class:`mapping.adaptive.fusion.AdaptiveFusion`) check and prepare before they fuse a scan, written once: the laser's
+geometry checked when a fusion is made (:func:`check_laser`), the scan and its pose samples checked
+(:func:`check_scan`, the samples alone :func:`check_samples`), the laser's poses in the map frame (:func:`laser_poses`),
 identical samples merged (:func:`merge_duplicates`) and the scratch window bounded (:func:`check_window`).
 """
 
@@ -40,24 +41,55 @@ def _finite_weighted(samples, weights):  # pragma: no cover - compiled
     return True, total
 
 
-def check_scan(
-    ranges: np.ndarray, samples: np.ndarray, weights: np.ndarray, beams: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Validate one scan's inputs and return them as arrays: ranges (B,), samples (M, 3), weights (M,)."""
-    ranges = np.asarray(ranges)
+def check_laser(
+    beam_angles: np.ndarray, range_min: float, range_max: float, sensor_offset: np.ndarray | tuple[float, float, float]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Validate a laser's geometry and return its beam angles (B,) (rad, laser frame; contiguous float64) and its
+    offset (x m, y m, yaw rad) in the robot frame (3,). Refuses a range limit that is not 0 <= range_min < range_max <
+    inf, beam angles that are not one finite value per beam, and an offset that is not three finite values."""
+    if not 0 <= range_min < range_max or not np.isfinite(range_max):
+        raise InputError(f"need 0 <= range_min < range_max < inf, got {range_min} and {range_max}")
+    angles = np.ascontiguousarray(beam_angles, dtype=np.float64)
+    if angles.ndim != 1:
+        raise InputError(f"beam angles must be one value per beam, shape (B,), got shape {angles.shape}")
+    if not np.isfinite(angles).all():
+        raise InputError(f"beam angle {int(np.argmax(~np.isfinite(angles)))} is NaN or inf; give every beam's angle")
+    offset = np.asarray(sensor_offset, dtype=np.float64)
+    if offset.shape != (3,) or not np.isfinite(offset).all():
+        raise InputError(
+            "the sensor offset must be the laser's finite (x m, y m, yaw rad) in the robot frame, got "
+            f"{offset.tolist()}"
+        )
+    return angles, offset
+
+
+def check_samples(samples: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Validate one scan's pose samples (M, 3) (x m, y m, yaw rad; a single pose (3,) is taken as M = 1) and their
+    weights (M,): finite, weights non-negative and summing to 1. Returns them as float64 arrays."""
     samples = np.asarray(samples, dtype=np.float64)
-    weights = np.asarray(weights, dtype=np.float64).reshape(-1)
-    if ranges.shape != (beams,):
-        raise InputError(f"scan has {ranges.shape} ranges but the laser has {beams} beams")
+    weights = np.asarray(weights, dtype=np.float64)
     if samples.shape == (3,):  # one pose
         samples = samples[None]
-    if samples.ndim != 2 or samples.shape[1] != 3 or samples.shape[0] == 0 or weights.shape[0] != samples.shape[0]:
+    if weights.ndim == 0:
+        weights = weights.reshape(1)
+    if samples.ndim != 2 or samples.shape[1] != 3 or samples.shape[0] == 0 or weights.shape != samples.shape[:1]:
         raise InputError(f"need M >= 1 samples (M, 3) and weights (M,), got {samples.shape} and {weights.shape}")
     finite, total = _finite_weighted(samples, weights)
     if not finite:
         raise InputError("pose samples and weights must be finite and the weights non-negative")
     if abs(total - 1.0) > WEIGHT_SUM_TOLERANCE:
         raise InputError(f"weights must sum to 1, got {total:.6g}")
+    return samples, weights
+
+
+def check_scan(
+    ranges: np.ndarray, samples: np.ndarray, weights: np.ndarray, beams: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Validate one scan's inputs and return them as arrays: ranges (B,), samples (M, 3), weights (M,)."""
+    ranges = np.asarray(ranges)
+    if ranges.shape != (beams,):
+        raise InputError(f"scan has {ranges.shape} ranges but the laser has {beams} beams")
+    samples, weights = check_samples(samples, weights)
     return ranges, samples, weights
 
 

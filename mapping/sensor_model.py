@@ -118,8 +118,8 @@ class SensorModel:
     p_max: float = 0.97
 
     def __post_init__(self) -> None:
-        if not self.resolution > 0:
-            raise InputError(f"resolution must be > 0 m, got {self.resolution}")
+        if not 0 < self.resolution < math.inf:
+            raise InputError(f"resolution must be > 0 m and finite, got {self.resolution}")
         if self.sigma not in SIGMA_KINDS:
             raise InputError(f"sigma must be one of {', '.join(SIGMA_KINDS)}, got {self.sigma!r}")
         if self.sigma == "stereo" and not self.baseline_focal >= MIN_BASELINE_FOCAL:

@@ -476,8 +476,12 @@ def _read_stamps(data: dict, path, what: str, steps: int | None = None) -> np.nd
 def load_posed_scans(path: str | Path) -> PosedScans:
     """Read and validate a posed-scan file (contract in docs/formats.md): its geometry keys as scalars shared
     by every scan or one value per scan, and the optional per-scan beam counts."""
+    return _posed_scans_from(read_npz(path, "posed-scan file"), path)
+
+
+def _posed_scans_from(data: dict, path) -> PosedScans:
+    """:func:`load_posed_scans` of the file's arrays ``data``; ``path`` names it in errors."""
     what = "posed-scan file"
-    data = read_npz(path, what)
     ranges = _numeric(_require(data, "ranges", path, what), "ranges", path)
     if ranges.ndim != 2 or ranges.shape[1] < 1:
         raise FormatError(f"{path}: 'ranges' must have shape (T, B) with B >= 1, got {ranges.shape}")
@@ -594,8 +598,12 @@ def load_pose_distribution(path: str | Path) -> PoseDistributionFile:
 
 def load_map(path: str | Path) -> MapFile:
     """Read and validate a map file."""
+    return _map_from(read_npz(path, "map file"), path)
+
+
+def _map_from(data: dict, path) -> MapFile:
+    """:func:`load_map` of the file's arrays ``data``; ``path`` names it in errors."""
     what = "map file"
-    data = read_npz(path, what)
     logodds = _within(_require(data, "logodds", path, what), "logodds", path, -np.inf, np.inf)
     if logodds.ndim != 2:
         raise FormatError(f"{path}: 'logodds' must be 2-D (H, W), got shape {logodds.shape}")
@@ -637,8 +645,12 @@ MAX_TRUTH_CELLS = 2**25
 
 def load_truth(path: str | Path) -> TruthRaster:
     """Read and validate a truth raster (at most :data:`MAX_TRUTH_CELLS` cells)."""
+    return _truth_from(read_npz(path, "truth raster"), path)
+
+
+def _truth_from(data: dict, path) -> TruthRaster:
+    """:func:`load_truth` of the file's arrays ``data``; ``path`` names it in errors."""
     what = "truth raster"
-    data = read_npz(path, what)
     occupied = _flags(_require(data, "occupied", path, what), "occupied", path)
     visible = _flags(_require(data, "visible", path, what), "visible", path)
     if occupied.ndim != 2 or visible.shape != occupied.shape:
@@ -832,7 +844,8 @@ def _discard(partial: str) -> None:
 
 
 def save_posed_scans(path: str | Path, scans: PosedScans) -> None:
-    """Write a posed-scan file with exactly the contract's keys; refuses poses its loader would refuse."""
+    """Write a posed-scan file with exactly the contract's keys; refuses (FormatError) what its loader would refuse,
+    so that no file is written that cannot be read back."""
     validate_pose_set(scans.poses, len(scans.stamps), f"the poses to write to {path}")
     # Any: np.savez_compressed's stubs give its ** keywords the type of its own allow_pickle (bool)
     arrays: dict[str, Any] = {
@@ -840,6 +853,7 @@ def save_posed_scans(path: str | Path, scans: PosedScans) -> None:
         "stamps": np.asarray(scans.stamps, np.float64),
         **{k: np.asarray(v, np.float64) for k, v in scans.poses.arrays().items()},
     }
+    _posed_scans_from(arrays, f"the scans to write to {path}")
     write_atomically(path, lambda handle: np.savez_compressed(handle, **arrays))
 
 
@@ -893,18 +907,24 @@ def write_npz_deterministic(path: str | Path | BinaryIO, arrays: dict[str, np.nd
 
 
 def save_map(path: str | Path | BinaryIO, map_file: MapFile) -> None:
-    """Write a map file. Deterministic: the same map gives the same bytes."""
+    """Write a map file. Deterministic: the same map gives the same bytes. Refuses (FormatError) what its loader
+    would refuse, so that no file is written that cannot be read back."""
+    where = f"the map to write to {path}" if isinstance(path, (str, Path)) else "the map to write"
     arrays = {
         "logodds": np.asarray(map_file.logodds, np.float32),
         "probability": np.asarray(map_file.probability, np.float32),
-        "observed": np.asarray(map_file.observed, bool),
+        "observed": np.asarray(map_file.observed),
         "origin": np.asarray(map_file.origin, np.float64),
         "resolution": np.float64(map_file.resolution),
     }
     if map_file.variance is not None:
         arrays["variance"] = np.asarray(map_file.variance, np.float32)
     if map_file.level is not None:
-        arrays["level"] = np.asarray(map_file.level, np.int8)
+        arrays["level"] = np.asarray(map_file.level)  # (checked within int8's range before it is cast)
+    _map_from(arrays, where)
+    arrays["observed"] = arrays["observed"].astype(bool)
+    if map_file.level is not None:
+        arrays["level"] = arrays["level"].astype(np.int8)
     if isinstance(path, (str, Path)):
         write_atomically(path, lambda handle: write_npz_deterministic(handle, arrays))
     else:  # an open binary file (the API writes into a buffer)
@@ -912,14 +932,14 @@ def save_map(path: str | Path | BinaryIO, map_file: MapFile) -> None:
 
 
 def save_truth(path: str | Path, truth: TruthRaster) -> None:
-    """Write a truth raster."""
-    write_atomically(
-        path,
-        lambda handle: np.savez_compressed(
-            handle,
-            occupied=np.asarray(truth.occupied, bool),
-            visible=np.asarray(truth.visible, bool),
-            origin=np.asarray(truth.origin, np.float64),
-            resolution=np.float64(truth.resolution),
-        ),
-    )
+    """Write a truth raster; refuses (FormatError) what its loader would refuse."""
+    arrays = {
+        "occupied": np.asarray(truth.occupied),
+        "visible": np.asarray(truth.visible),
+        "origin": np.asarray(truth.origin, np.float64),
+        "resolution": np.float64(truth.resolution),
+    }
+    _truth_from(arrays, f"the truth raster to write to {path}")
+    arrays["occupied"] = arrays["occupied"].astype(bool)
+    arrays["visible"] = arrays["visible"].astype(bool)
+    write_atomically(path, lambda handle: np.savez_compressed(handle, **arrays))

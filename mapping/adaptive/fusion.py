@@ -40,7 +40,7 @@ from mapping.adaptive.splitting import SplitTest
 from mapping.adaptive.tree import AdaptiveGrid, children, unique_cells
 from mapping.beam_model import BEAM_HIT, BEAM_SKIP, BeamTable, beam_table, logodds_model
 from mapping.errors import InputError
-from mapping.scan_input import check_scan, laser_poses, merge_duplicates
+from mapping.scan_input import check_laser, check_scan, laser_poses, merge_duplicates
 from mapping.sensor_model import SensorModel
 
 
@@ -110,8 +110,7 @@ class AdaptiveFusion:
             raise InputError(
                 f"grid resolution {grid.resolution} m differs from the sensor model's {model.resolution} m"
             )
-        if not 0 <= range_min < range_max or not np.isfinite(range_max):
-            raise InputError(f"need 0 <= range_min < range_max < inf, got {range_min} and {range_max}")
+        angles, offset = check_laser(beam_angles, range_min, range_max, sensor_offset)
         max_level = grid.max_level if params.max_level is None else params.max_level
         if not 0 <= params.start_level <= max_level <= grid.max_level:
             raise InputError(
@@ -124,10 +123,10 @@ class AdaptiveFusion:
         self.model = model
         self.params = params
         self.max_level = max_level
-        self.angles = np.ascontiguousarray(beam_angles, dtype=np.float64)
+        self.angles = angles
         self.range_min = float(range_min)
         self.range_max = float(range_max)
-        self.sensor_offset = np.asarray(sensor_offset, dtype=np.float64)
+        self.sensor_offset = offset
         sigma = params.sigma if params.sigma is not None else float(model.sigma_at(range_max / 2))
         self.test = SplitTest(model.resolution, sigma, params.significance, params.unknowns, params.floor)
         self.scanner = EvidenceScanner(max_level + 1, params.unknowns)
