@@ -920,6 +920,37 @@ def _replay(procs, sim: Path, endpoint: str, rate: str, wait_mappers: int = 1):
     return procs([*CLI, *argv, "--wait-mappers", str(wait_mappers), "--connect", endpoint])
 
 
+def test_replay_offsets_keep_gaps_cut_long_pauses_and_send_steps_that_go_back_at_once():
+    from services.nodes.source import MAX_STEP_GAP, replay_offsets
+
+    offsets, notes = replay_offsets([5.0, 5.1, 5.3, 5.2, 5.4, 5.4 + 1e300, 0.0], rate=2.0)
+    # gaps 0.1, 0.2, back 0.1 (0), 0.2, 1e300 (cut to MAX_STEP_GAP), back (0); each over the rate of 2
+    expected = np.cumsum([0.0, 0.05, 0.1, 0.0, 0.1, MAX_STEP_GAP / 2, 0.0])
+    np.testing.assert_allclose(offsets, expected, rtol=0, atol=1e-12)
+    assert len(notes) == 2  # one of each kind, the first
+    assert notes[0].startswith("stamps go back 0.1 s from step 2 to 3")
+    assert notes[1].startswith("stamps jump 1e+300 s from step 4 to 5")
+    assert replay_offsets([0.0, 1.0, 2.0], rate=1.0) == ([0.0, 1.0, 2.0], [])
+
+
+def test_a_source_replays_stamps_that_jump_or_go_back_and_says_so(tmp_path, procs):
+    """A posed-scan file's stamps are finite floats, nothing more: one of 1e300 s ended the source with a traceback
+    (a wait past the platform's time_t, the run's other scans never sent and no end published), one of 1e6 s slept
+    for 11 days without a word, and stamps that went back were sent at once, unsaid."""
+    posed = make_posed(tmp_path / "posed.npz", "gaussian", steps=8)
+    scans = load_posed_scans(posed)
+    stamps = np.array([0.0, 0.1, 1e300, 1e300, 1e300, 5.0, 5.1, 5.2])
+    save_posed_scans(posed, replace(scans, stamps=stamps))
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
+    source = procs([*CLI, "source", "--posed", str(posed), "--robot", "r1", "--rate", "100", "--connect", endpoint])
+    assert source.process.wait(60) == 0, source.output()
+    output = source.output()
+    assert "stamps jump 1e+300 s from step 1 to 2" in output and "replayed as 10 s" in output
+    assert "stamps go back 1e+300 s from step 4 to 5" in output
+    assert "Traceback" not in output
+
+
 def test_a_history_left_behind_answers_at_once(tmp_path, procs):
     """Once the source has ended, the SLAM node's history of poses answers at once, and once one of two shards has
     stopped, the other's tiles do. zenoh's router (1.10) went on routing wildcard queries to a queryable undeclared

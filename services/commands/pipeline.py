@@ -375,7 +375,8 @@ def add_rate_argument(parser: argparse.ArgumentParser, default: str | None) -> N
         "--rate",
         default=default,
         help="'realtime', a factor of real time (e.g. 2) or 'max' (as fast as the shards take); "
-        "default " + (default or "max with --export, else realtime"),
+        "default " + (default or "max with --export, else realtime") + ". Paced by the stamps: a pause in them "
+        "past 10 s is replayed as 10 s, and steps whose stamps go back go out at once (both said)",
     )
 
 

@@ -45,6 +45,37 @@ LINGER = 30.0
 REACH_CHECK = 0.1
 
 
+#: the longest pause between two steps a replay at a factor of real time keeps, s of the stamps: a longer gap (a log
+#: that paused, or stamps that jump: 1e6 s slept 11 days without a word, 1e300 s ended the source with a traceback, a
+#: wait past the platform's time_t) is cut to it, and said
+MAX_STEP_GAP = 10.0
+
+
+def replay_offsets(stamps: list[float], rate: float) -> tuple[list[float], list[str]]:
+    """When each step of a replay at ``rate`` x real time goes out, s after the first, from the steps' ``stamps``
+    (s): each gap from the step before over the rate, a gap past MAX_STEP_GAP cut to it, and one that goes back
+    (stamps out of order) taken as 0, so that step goes out at once. Also the notes to say (the first gap of each
+    kind, with its steps)."""
+    offsets: list[float] = []
+    notes: list[str] = []
+    due = 0.0
+    for index, stamp in enumerate(stamps):
+        gap = stamp - stamps[index - 1] if index else 0.0
+        if gap < 0 and not any(note.startswith("stamps go back") for note in notes):
+            notes.append(
+                f"stamps go back {-gap:.6g} s from step {index - 1} to {index}: steps whose stamps go back are "
+                "published at once, without pacing"
+            )
+        if gap > MAX_STEP_GAP and not any(note.startswith("stamps jump") for note in notes):
+            notes.append(
+                f"stamps jump {gap:.6g} s from step {index - 1} to {index}: pauses longer than {MAX_STEP_GAP:g} s "
+                f"are replayed as {MAX_STEP_GAP:g} s"
+            )
+        due += min(max(gap, 0.0), MAX_STEP_GAP) / rate
+        offsets.append(due)
+    return offsets, notes
+
+
 class SourceStalled(RuntimeError):
     """The subscribers the source waits for did not appear, or stopped making progress."""
 
@@ -372,12 +403,14 @@ class Source:
                 "as fast as the subscribers take" if opts.rate is None else f"at {opts.rate:g}x real time",
             )
             started = time.monotonic()
-            t0 = stream.steps[0].stamp if stream.steps else 0.0
+            offsets, notes = replay_offsets([step.stamp for step in stream.steps], opts.rate or 1.0)
+            for note in notes if opts.rate is not None else ():
+                self.log.warning("%s", note)
             scans_sent = 0
             flow_control = opts.rate is None and (opts.wait_mappers > 0 or opts.wait_slam)
             for steps_sent, step in enumerate(stream.steps):
                 if opts.rate is not None:
-                    delay = started + (step.stamp - t0) / opts.rate - time.monotonic()
+                    delay = started + offsets[steps_sent] - time.monotonic()
                     if delay > 0 and stop.wait(delay):
                         return self._stopped()
                 elif flow_control and not self._wait_for_window(scans_sent, steps_sent, stop):
