@@ -23,6 +23,8 @@ from services.state.join import (
     ORPHANED,
     OVERFLOW,
     REFETCH_BATCH,
+    STRAY,
+    STRAYS_KEPT,
     GivenUp,
     JoinBuffer,
     SeqLedger,
@@ -1025,6 +1027,53 @@ def test_settle_refuses_a_held_scan_at_the_announced_count():
     assert pairs == []
     assert sorted(gone, key=lambda g: g.first) == [GivenUp("r", 1, 1, True, MISSING), GivenUp("r", 2, 1, True, JUMP)]
     assert len(buf) == 0
+
+
+def test_scans_refused_as_jumps_are_given_up_as_strays_not_missing_when_their_stream_passes():
+    """Scans 5, 4, 3, 2, 1, 0 in that order: each of 5..1 is held past a gap and refused as a jump when a lower one
+    comes. When the stream then passes 1..5 (at the end of 6 scans), they are given up as strays (they came, and
+    were refused), not as missing (lost in transit): the shard counted each once already."""
+    buf = JoinBuffer(capacity=8)
+    jumps = []
+    for seq in (5, 4, 3, 2, 1, 0):
+        jumps += buf.add_scan(("r", seq), f"s{seq}")[1]
+    assert jumps == [GivenUp("r", seq, 1, True, JUMP) for seq in (5, 4, 3, 2, 1)]
+    assert buf.add_pose(("r", 0), "p0") == ([("s0", "p0")], [])
+    pairs, gone = buf.settle("r", 8)
+    assert pairs == []
+    assert sorted(gone, key=lambda g: g.first) == [GivenUp("r", 1, 5, True, STRAY), GivenUp("r", 6, 2, True, MISSING)]
+
+
+def test_only_the_newest_strays_are_remembered():
+    buf = JoinBuffer(capacity=8, window=4 * STRAYS_KEPT)  # (every seq within the window: held past a gap, not far)
+    for seq in range(STRAYS_KEPT + 3, 0, -1):  # STRAYS_KEPT + 2 jumps (seqs 2 .. STRAYS_KEPT + 3), then seq 1 held
+        buf.add_scan(("r", seq), seq)
+    buf.add_scan(("r", 0), 0)  # (seq 1 refused too: the newest)
+    _, gone = buf.settle("r", STRAYS_KEPT + 4)
+    kinds = {g.reason: (g.first, g.count) for g in gone if g.scans}
+    assert kinds == {STRAY: (1, STRAYS_KEPT), MISSING: (STRAYS_KEPT + 1, 3), ORPHANED: (0, 1)}  # (0: no pose came)
+
+
+def test_a_shard_counts_scans_sent_in_reverse_once_each_and_says_why():
+    """Reordered seqs (59..0 in the probe, here 9..0): the shard refused each of 9..1 as a jump and then, when the
+    stream ended, counted them again under join/<robot> as scans that "never reached this shard (lost in transit)"."""
+    records: list[str] = []
+    log = logging.getLogger("test-shard-reverse")
+    log.addHandler(handler := logging.Handler())
+    handler.emit = lambda record: records.append(record.getMessage())
+    rejects = RejectCounter(log)
+    now = [0.0]
+    shard = MapShard(ShardConfig("m", 0, 1, SensorModel()), rejects, clock=lambda: now[0])
+    for seq in range(9, -1, -1):
+        shard.handle("pg/r/scan", _scan(seq).encode())
+        shard.handle("pg/r/pose", _pose(seq).encode())
+    shard.handle("pg/r/end", StreamEnd(robot="r", scans=10).encode())
+    now[0] += SETTLE_AFTER + 1.0
+    shard.settle()
+    stats = shard.stats({"intake": 0})
+    assert stats.fused == {"r": 1} and stats.discarded == {"r": 9} and shard.caught_up()
+    assert stats.rejected == {"join/r": 18} and rejects.kinds() == {"jump": 18}  # nine scans and nine poses, once
+    assert not any("never reached this shard" in message for message in records)
 
 
 def test_a_half_whose_partner_was_evicted_without_a_history_is_orphaned_at_once():

@@ -57,6 +57,7 @@ ORPHANED = "orphaned"  # its partner never comes: the partner's stream went past
 LATE = "late"  # it came after its own stream had passed its seq (a re-sent message not fused yet): refused
 JUMP = "jump"  # it jumped past a gap that its stream's next message did not confirm (a stray): refused
 AHEAD = "ahead"  # it lies more than the window beyond what its stream has shown: held until the stream gets near
+STRAY = "stray"  # a scan refused as a jump whose seq its stream then passed: the map lacks it (counted as refused)
 
 #: evicted halves remembered, to be asked for again when their partner comes (only their seqs and 16-byte digests:
 #: about 250 bytes each); 13.6 min of a 10 Hz robot's scans
@@ -76,6 +77,11 @@ FAR_KEPT = 64
 #: answering as a history of its own is caught with it (:meth:`JoinBuffer._vouched`)
 CONFIRM_RUN = 16
 
+#: seqs of scans refused as a jump remembered per stream, the newest kept, so that when the stream passes them they
+#: are told apart from scans that never came (:data:`STRAY`, not :data:`MISSING`); beyond it, older ones are counted
+#: as missing too
+STRAYS_KEPT = 1024
+
 #: the share of ``max_bytes`` the join evicts down to once its halves pass it
 BYTES_AFTER_EVICTION = 0.9
 
@@ -90,6 +96,7 @@ GIVEN_UP_BECAUSE = {
     JUMP: "jumped past a gap that the next message of its stream did not confirm (a stray message); refused",
     AHEAD: "lies beyond the seq window of what its stream has shown (a forged or stray seq?); held, and taken only "
     "if the stream gets within the window of it or goes on in order from it",
+    STRAY: "refused as a jump (counted there), and its stream has now passed its seq: the map lacks it",
 }
 
 
@@ -151,6 +158,8 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         self._evicted: OrderedDict[tuple[str, int, bool], bytes | None] = OrderedDict()
         # (robot, scans?) -> evicted halves asked for again ahead of need, by seq (the last batch of that stream)
         self._fetched: dict[tuple[str, bool], dict[int, ScanT | PoseT]] = {}
+        # robot -> seqs of its scans refused as a jump and not yet passed, in the order refused (STRAYS_KEPT at most)
+        self._strays: dict[str, OrderedDict[int, None]] = {}
 
     def __len__(self) -> int:
         return len(self._pending) + len(self._held)
@@ -353,7 +362,7 @@ class JoinBuffer(Generic[ScanT, PoseT]):
             more_pairs, more = self._take(robot, seq, item, is_scan)
             return pairs + more_pairs, gone + more
         if seq == last + 1:  # the stream goes on: a message held past a gap was a stray
-            stray = [] if held is None else [GivenUp(robot, held[0], 1, is_scan, JUMP)]
+            stray = [] if held is None else [self._jumped(robot, held[0], is_scan)]
             pairs, gone = self._take(robot, seq, item, is_scan)
             return pairs, stray + gone
         pairs, gone = [], []
@@ -363,9 +372,19 @@ class JoinBuffer(Generic[ScanT, PoseT]):
                 more_pairs, more = self._take(robot, seq, item, is_scan)
                 return pairs + more_pairs, gone + more
         elif held is not None:  # below the held message: the stream never went there, the held one was a stray
-            gone = [GivenUp(robot, held[0], 1, is_scan, JUMP)]
+            gone = [self._jumped(robot, held[0], is_scan)]
         self._held[stream] = (seq, item)  # past a gap (another one): wait for the next message to confirm it
         return pairs, gone
+
+    def _jumped(self, robot: str, seq: int, is_scan: bool) -> GivenUp:
+        """Refuse the half held past a gap at ``seq`` as a jump; a scan's seq is remembered (:data:`STRAYS_KEPT`), so
+        that when its stream passes it, it is given up as a stray, not as missing."""
+        if is_scan:
+            strays = self._strays.setdefault(robot, OrderedDict())
+            strays[seq] = None
+            while len(strays) > STRAYS_KEPT:
+                strays.popitem(last=False)
+        return GivenUp(robot, seq, 1, is_scan, JUMP)
 
     def _take(self, robot: str, seq: int, item, is_scan: bool):
         """Accept ``item`` as its stream's next message, after any gap since the stream's last seq."""
@@ -420,14 +439,17 @@ class JoinBuffer(Generic[ScanT, PoseT]):
         taken = {seq for seq in ahead if seq < skipped_to}  # recovered with their partners already
         ahead -= taken
         found = self._recovered(robot, is_scan, skipped_from, skipped_to, taken)
-        gone = (
-            [
+        gone: list[GivenUp] = []
+        if is_scan:
+            strays = self._strays.get(robot, OrderedDict())
+            passed = {seq for seq in strays if skipped_from <= seq < skipped_to and seq not in found}
+            for seq in [seq for seq in strays if seq < skipped_to]:
+                del strays[seq]
+            gone += [GivenUp(robot, first, count, True, STRAY) for first, count in _present_runs(passed)]
+            gone += [
                 GivenUp(robot, first, count, True, MISSING)
-                for first, count in _absent_runs(skipped_from, skipped_to, found.keys() | taken)
+                for first, count in _absent_runs(skipped_from, skipped_to, found.keys() | taken | passed)
             ]
-            if is_scan
-            else []
-        )
         for key in [
             k for k in self._pending if k[0] == robot and skipped_from <= k[1] < skipped_to and k[1] not in found
         ]:
@@ -526,6 +548,17 @@ def _run_through(seqs: Mapping[int, object], seq: int) -> list[int]:
     while last + 1 in seqs:
         last += 1
     return list(range(first, last + 1))
+
+
+def _present_runs(seqs: Iterable[int]) -> list[tuple[int, int]]:
+    """``seqs`` as runs (first, count) of consecutive ones, lowest first."""
+    runs: list[tuple[int, int]] = []
+    for seq in sorted(seqs):
+        if runs and runs[-1][0] + runs[-1][1] == seq:
+            runs[-1] = (runs[-1][0], runs[-1][1] + 1)
+        else:
+            runs.append((seq, 1))
+    return runs
 
 
 def _absent_runs(first: int, stop: int, present: Iterable[int]) -> list[tuple[int, int]]:

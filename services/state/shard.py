@@ -37,6 +37,7 @@ from services.state.join import (
     MISSING,
     ORPHANED,
     OVERFLOW,
+    STRAY,
     GivenUp,
     JoinBuffer,
     SeqLedger,
@@ -406,10 +407,12 @@ class MapShard:
         """Count the halves the join gave up on (services.state.join): scans that never came or whose pose never
         comes are discarded scans; every half is counted under join/<robot> by reason, the first logged."""
         for half in gone:
-            if half.scans and half.reason in (OVERFLOW, MISSING, ORPHANED):
+            if half.scans and half.reason in (OVERFLOW, MISSING, ORPHANED, STRAY):
                 self.discarded[half.robot] += half.count
                 if self.journal is not None:
                     self.journal.gave_up(half.robot, half.first + half.count - 1, half.count, self._clock())
+            if half.reason == STRAY:  # (refused as a jump when it came, and counted then)
+                continue
             if half.reason == OVERFLOW:
                 self.join_overflow += half.count
             self.rejects.count(
