@@ -309,6 +309,39 @@ def test_landmark_steps_of_values_no_robot_gives_are_counted_and_skipped():
     assert state.driver is not None and state.driver.filter.n_landmarks == 1
 
 
+def test_a_gap_over_steps_the_filter_refused_is_said_as_skipped_not_as_lost():
+    """The step after refused ones moves over them as over a gap; its line said their commands "never arrived"
+    (lost in transit) though they came and were refused, which the node had just said and counted."""
+    records: list[str] = []
+    handler = logging.Handler()
+    handler.emit = lambda record: records.append(record.getMessage())
+    config = NodeConfig(
+        robot="gap-cause",
+        algorithm="ekf",
+        make_filter=lambda start: EKFSLAM(VelocityMotionModel((0.1, 0.01, 0.01, 0.1, 0.0, 0.0)), SENSOR, start),
+        initial=np.zeros(3),
+    )
+    published: list[bytes] = []
+    state = SlamState(config, _rejects("slam-gap-cause"), publish=published.append)
+    state.log.addHandler(handler)
+    try:
+        for seq in range(6):
+            speed = 1e6 if seq in (2, 3) else 0.5  # (refused: past what one step may move)
+            commands = np.array([[speed, 0.0, 0.1]])
+            odometry = Odometry(robot="gap-cause", seq=seq, stamp=0.1 * seq, pose=np.zeros((0, 3)), commands=commands)
+            seen = LandmarkObservations(
+                robot="gap-cause", seq=seq, stamp=0.1 * seq, ids=np.array([7]), ranges=[2.0], bearings=[0.1]
+            )
+            state.handle("pg/gap-cause/odom", odometry.encode())
+            state.handle("pg/gap-cause/landmarks", seen.encode())
+    finally:
+        state.log.removeHandler(handler)
+    assert [decode_message(p, PoseGaussian).seq for p in published] == [0, 1, 4, 5]
+    said = [r for r in records if r.startswith("seq 4:")]
+    assert len(said) == 1 and "seq 2-3, which were skipped (the filter could not take them" in said[0], records
+    assert not any("never arrived" in r for r in records)
+
+
 def test_a_step_that_could_start_too_many_unknown_landmarks_is_skipped():
     """With unknown ids each measurement may start a landmark: a step of 5 000 would pass the 1 024 an EKF holds
     (its joint covariance grows with their square)."""

@@ -264,6 +264,9 @@ class LandmarkDriver:
         self.last_gap = None
 
 
+#: seqs of steps the filter refused that a SLAM node remembers until it publishes again (for what it says of a gap)
+REFUSED_KEPT = 1024
+
 #: consecutive steps that agree with each other but not with the odometry before them after which grid FastSLAM
 #: takes them as the odometry's new frame (a reset of the robot's odometry), not as a jump
 REBASE_STEPS = 3
@@ -408,6 +411,9 @@ class SlamState:
         self.out_of_order: Counter[str] = Counter()
         self.published = 0
         self.steps_done = 0  # seqs taken, failed or skipped
+        # seqs of steps the filter could not take since the last one published (REFUSED_KEPT at most, newest kept),
+        # so that a gap over them is said as skipped, not as lost in transit
+        self._refused: OrderedDict[int, None] = OrderedDict()
         self.started = time.monotonic()
         self.initial = config.initial
         self.driver: LandmarkDriver | GridDriver | None = None
@@ -569,10 +575,12 @@ class SlamState:
             # valid messages the filter still cannot use (e.g. an unknown landmark id), or a pose outside what a
             # PoseSamples/PoseGaussian may carry: skip the step, as if it had not come, and go on
             self.driver.restore(saved)
+            self._note_refused(seq)
             self.rejects.count(keys.robot_key(cfg.robot, "steps"), "step", f"seq {seq} skipped: {exc}")
             return
         except Exception as exc:
             self.driver.restore(saved)
+            self._note_refused(seq)
             self.log.exception("seq %d failed; the node goes on", seq)
             self.rejects.count(keys.robot_key(cfg.robot, "steps"), "error", f"seq {seq} failed: {type(exc).__name__}")
             return
@@ -580,23 +588,41 @@ class SlamState:
         self.published += 1
         self._keep_pose(seq, payload)
         self._report_gap(seq, getattr(self.driver, "last_gap", None))
+        self._refused.clear()
+
+    def _note_refused(self, seq: int) -> None:
+        self._refused[seq] = None
+        while len(self._refused) > REFUSED_KEPT:
+            self._refused.popitem(last=False)
+
+    def _gap_cause(self, gap: Gap) -> str:
+        """Why the steps of ``gap`` were not taken: they never arrived, the filter refused them (counted under
+        pg/<robot>/steps when they came), or some of each."""
+        refused = sum(1 for seq in self._refused if gap.first <= seq <= gap.last)
+        if refused == 0:
+            return "never arrived"
+        if refused == gap.last - gap.first + 1:
+            return "were skipped (the filter could not take them: counted and said above)"
+        return "never arrived or were skipped (the filter could not take some: counted and said above)"
 
     def _report_gap(self, seq: int, gap: Gap | None) -> None:
         """Log how step ``seq`` moved over the steps before it that never arrived, if any."""
         if gap is not None and gap.bridged:
             self.log.info(
-                "seq %d: moved over seq %d-%d, which never arrived, by the odometry poses around them",
+                "seq %d: moved over seq %d-%d, which %s, by the odometry poses around them",
                 seq,
                 gap.first,
                 gap.last,
+                self._gap_cause(gap),
             )
         elif gap is not None:
             self.log.warning(
-                "seq %d: the velocity commands of seq %d-%d never arrived and the odometry messages "
+                "seq %d: the velocity commands of seq %d-%d, which %s, are not used and the odometry messages "
                 "carry no pose to bridge them; the poses from here on miss that motion",
                 seq,
                 gap.first,
                 gap.last,
+                self._gap_cause(gap),
             )
 
     def _recover(self, first: int, last: int | None) -> dict[int, dict[str, SeqMessage]]:
