@@ -39,7 +39,7 @@ import numpy as np
 
 from slam.angles import wrap_angle
 from slam.errors import LogFormatError, refuse_special_file
-from slam.motion import ALPHA_LIMITS, VelocityMotionModel
+from slam.motion import ALPHA_LIMITS, DT_REF_LIMITS, VelocityMotionModel
 from slam.range_bearing import (
     RANGE_FRACTION_LIMITS,
     SIGMA_BEARING_LIMITS,
@@ -341,7 +341,7 @@ def calibration_from_json(document: Any, name: str = "calibration") -> Calibrati
         drive_angle=read.optional("drive_angle_rad", DRIVE_ANGLE_LIMITS, 0.0),
         motion=VelocityMotionModel(
             alphas=(alphas[0], alphas[1], alphas[2], alphas[3], alphas[4], alphas[5]),
-            dt_ref=read.number("motion.dt_ref_s", (1e-3, 1e3)),
+            dt_ref=read.number("motion.dt_ref_s", DT_REF_LIMITS),
             floor=(floor[0], floor[1]),
         ),
         sensor=RangeBearingModel(

@@ -43,7 +43,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from slam.angles import wrap_angle
-from slam.landmark_filter import LandmarkFilter, LandmarkOptions
+from slam.landmark_filter import LandmarkFilter, LandmarkOptions, check_gate
 from slam.motion import MotionModel, compose, local_motion, rotate_covariance
 from slam.range_bearing import RangeBearingModel, inverse_measurement, predict_measurement
 from slam.turn_moments import turned_moments
@@ -86,6 +86,8 @@ class EKFSLAM(LandmarkFilter):
         **options: Unpack[LandmarkOptions],
     ) -> None:
         super().__init__(motion, sensor, initial_pose, **options)
+        check_gate("association_gate", association_gate)
+        check_gate("new_landmark_gate", new_landmark_gate)
         self.association_gate = association_gate
         self.new_landmark_gate = new_landmark_gate
         self.mu = self.start.copy()
@@ -239,10 +241,12 @@ class EKFSLAM(LandmarkFilter):
     def step(
         self, controls: np.ndarray, measurements: np.ndarray, landmark_ids: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Predict through controls (K, 3), fuse measurements (O, 2); return pose mean (3,) and cov (3, 3)."""
+        """Predict through controls (K, 3), fuse measurements (O, 2) of landmarks ``landmark_ids`` (O,); return pose
+        mean (3,) and cov (3, 3). InputError for inputs :meth:`checked_step` refuses, before any state changes."""
+        controls, measurements, landmark_ids = self.checked_step(controls, measurements, landmark_ids)
         self.predict(controls)
         taken: set[int] = set()
-        for z, landmark_id in zip(measurements, landmark_ids):
+        for z, landmark_id in zip(measurements, landmark_ids, strict=True):
             self.update(np.asarray(z, dtype=np.float64), int(landmark_id), taken)
         mean = self.mu[:3].copy()
         mean[2] = self.body_heading(mean[2])

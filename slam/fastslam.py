@@ -48,6 +48,7 @@ import numpy as np
 
 from slam.angles import wrap_angle
 from slam.consistency import scaled_motion
+from slam.errors import InputError, check_count, check_within
 from slam.gauge import map_gauges, regauge_points, turn_covariances
 from slam.kernels import _mixture_nis, _predict_particles, fastslam_known_update
 from slam.landmark_filter import LandmarkFilter, LandmarkOptions
@@ -89,9 +90,11 @@ class FastSLAM(LandmarkFilter):
         **options: Unpack[LandmarkOptions],
     ) -> None:
         if version not in (1, 2):
-            raise ValueError(f"FastSLAM version must be 1 or 2, got {version}")
-        if n_particles < 1:
-            raise ValueError(f"need at least one particle, got {n_particles}")
+            raise InputError(f"FastSLAM version must be 1 or 2, got {version}")
+        check_count("n_particles", n_particles)
+        check_within("resample_threshold (a share of the particles)", resample_threshold, (0.0, 1.0))
+        if new_landmark_loglik is not None:
+            check_within("new_landmark_loglik", new_landmark_loglik, (-np.inf, np.inf))
         super().__init__(motion, sensor, initial_pose, **options)
         self.version = version
         self.rng = np.random.default_rng(seed)
@@ -326,7 +329,9 @@ class FastSLAM(LandmarkFilter):
     def step(
         self, controls: np.ndarray, measurements: np.ndarray, landmark_ids: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        """Predict through controls (K, 3), update with measurements (O, 2); return poses (N, 3) and weights (N,)."""
+        """Predict through controls (K, 3), update with measurements (O, 2) of landmarks ``landmark_ids`` (O,); return
+        poses (N, 3) and weights (N,). InputError for inputs :meth:`checked_step` refuses, before any state changes."""
+        controls, measurements, landmark_ids = self.checked_step(controls, measurements, landmark_ids)
         self.predict(controls)
         self.moved = self.moved or any(self.motion.moves(control) for control in controls)
         if len(measurements) and not (self.moved or self.update_while_stationary):

@@ -9,9 +9,25 @@ from typing import TypedDict
 import numpy as np
 
 from slam.angles import wrap_angle
+from slam.calibration import DRIVE_ANGLE_LIMITS, DRIVE_ANGLE_SD_LIMITS, SCALE_SD_LIMITS
 from slam.consistency import ConsistencyMonitor
-from slam.motion import MotionModel
-from slam.range_bearing import RangeBearingModel
+from slam.errors import InputError, check_within, finite_array
+from slam.laserlog import POSE_LIMIT
+from slam.motion import VELOCITY_LIMIT, MotionModel, VelocityMotionModel, check_motion_limits
+from slam.range_bearing import BEARING_LIMIT, RangeBearingModel, check_sensor_limits
+
+#: the largest |landmark id|: ids are names, and beyond 2^53 a float id no longer names one integer
+MAX_LANDMARK_ID = 2**53
+
+
+def check_gate(name: str, gate: float) -> None:
+    """InputError unless ``gate`` (a squared Mahalanobis distance) is a number > 0; inf is no gate."""
+    try:
+        ok = float(gate) > 0.0  # NaN fails
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise InputError(f"{name} must be a squared Mahalanobis distance > 0 (inf: no gate), got {gate!r}")
 
 
 class LandmarkOptions(TypedDict, total=False):
@@ -34,7 +50,11 @@ class LandmarkFilter:
     A filter runs in the drive's frame (its bearings are corrected by the drive angle too, slam.calibration): it
     starts at :attr:`start`, ``initial_pose`` turned by the drive angle, and gives out its heading less it
     (:meth:`body_heading`). An error e in the drive angle turns the path about its start by e, which no data show:
-    :meth:`turn_covariance` is that turn's covariance of the positions given out."""
+    :meth:`turn_covariance` is that turn's covariance of the positions given out.
+
+    The constructor refuses (InputError) models outside the limits the file readers apply
+    (slam.motion.check_motion_limits, slam.range_bearing.check_sensor_limits), a non-finite ``initial_pose`` and options
+    outside slam.calibration's limits; :meth:`checked_step` checks what a filter's ``step`` is given."""
 
     def __init__(
         self,
@@ -49,6 +69,14 @@ class LandmarkFilter:
         drive_angle: float = 0.0,
         drive_angle_sd: float = 0.0,
     ) -> None:
+        check_motion_limits(motion)
+        check_sensor_limits(sensor)
+        initial_pose = finite_array("initial_pose", initial_pose, (3,), " (x m, y m, yaw rad in the map frame)")
+        check_within("scale_sd", scale_sd, SCALE_SD_LIMITS)
+        check_within("drive_angle", drive_angle, DRIVE_ANGLE_LIMITS, "rad")
+        check_within("drive_angle_sd", drive_angle_sd, DRIVE_ANGLE_SD_LIMITS, "rad")
+        if outlier_gate is not None:
+            check_gate("outlier_gate", outlier_gate)
         self.motion, self.sensor = motion, sensor
         self.known, self.outlier_gate = known_correspondences, outlier_gate
         self.scale_sd, self.drive_angle, self.drive_angle_sd = scale_sd, drive_angle, drive_angle_sd
@@ -56,6 +84,48 @@ class LandmarkFilter:
         self.start = np.asarray(initial_pose, dtype=np.float64).copy()
         self.start[2] = wrap_angle(self.start[2] + drive_angle)
         self.monitor = ConsistencyMonitor(adaptive=adaptive)  # NIS watch and noise scale (slam.consistency)
+
+    def checked_step(
+        self, controls: np.ndarray, measurements: np.ndarray, landmark_ids: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A step's inputs as float64 controls (K, 3), measurements (O, 2) and int64 landmark ids (O,), or InputError
+        saying what is wrong: a value that is not finite, controls not of the current motion model's kind (velocity:
+        (v m/s, w rad/s, dt s) with |v|, |w| <= VELOCITY_LIMIT and dt >= 0), ranges (m) outside [0, POSE_LIMIT],
+        bearings (rad) beyond a full turn, ids that are not whole numbers or not one per measurement (with unknown
+        correspondences ids are ignored and may be left empty). One control (3,) is a step of one control. O(K + O),
+        vectorised."""
+        controls = np.asarray(controls, dtype=np.float64)
+        controls = controls.reshape(-1, 3) if controls.size == 0 or controls.shape == (3,) else controls
+        controls = finite_array("controls", controls, (None, 3), " (one row per control)")
+        if isinstance(self.motion, VelocityMotionModel) and len(controls):
+            check_within("control velocity (v m/s, w rad/s)", controls[:, :2], (-VELOCITY_LIMIT, VELOCITY_LIMIT))
+            check_within(
+                "control dt (the time a command is held; a step cannot go back in time)",
+                controls[:, 2],
+                (0.0, np.inf),
+                "s",
+            )
+        measurements = np.asarray(measurements, dtype=np.float64)
+        measurements = measurements.reshape(-1, 2) if measurements.size == 0 else measurements
+        measurements = finite_array("measurements", measurements, (None, 2), " (rows of range m, bearing rad)")
+        if len(measurements):
+            check_within("measured range", measurements[:, 0], (0.0, POSE_LIMIT), "m")
+            check_within("measured bearing", measurements[:, 1], (-BEARING_LIMIT, BEARING_LIMIT), "rad")
+        ids = np.asarray(landmark_ids)
+        count = len(measurements)
+        if not self.known and ids.size == 0:
+            return controls, measurements, np.full(count, -1, dtype=np.int64)
+        if ids.shape != (count,):
+            raise InputError(
+                f"landmark_ids must hold one id per measurement, ({count},), got shape {ids.shape}"
+                + ("" if self.known else " (unknown correspondences ignore them: pass none)")
+            )
+        if ids.dtype.kind not in "iuf" or (
+            ids.dtype.kind == "f" and not np.all((ids == np.round(ids)) & (np.abs(ids) <= MAX_LANDMARK_ID))
+        ):
+            bad = ids if ids.dtype.kind not in "iuf" else ids[ids != np.round(ids)]
+            raise InputError(f"landmark_ids must be whole numbers (ids name landmarks), got {bad[:3].tolist()}")
+        return controls, measurements, ids.astype(np.int64)
 
     def body_heading(self, heading: np.ndarray) -> np.ndarray:
         """Headings (rad) of the drive's frame as given out: less the drive angle."""

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slam.angles import wrap_angle
+from slam.errors import InputError, check_within
 
 #: below this odometry translation (m) a motion counts as a turn on the spot and delta_rot1 is taken as 0
 MIN_TRANSLATION = 1e-6
@@ -33,6 +34,21 @@ ALPHA_LIMITS = (0.0, 1e3)
 #: comes near 1000 m/s or 1000 rad/s, and commands near 1e6 made the EKF's covariance lose its positive
 #: semi-definiteness (commands of 1e300 overflowed)
 VELOCITY_LIMIT = 1e3
+#: accepted dt_ref (s) of :class:`VelocityMotionModel`: the time its noise is stated for (the simulator's: 0.1 s)
+DT_REF_LIMITS = (1e-3, 1e3)
+
+
+def _check_noise(model: str, name: str, values: tuple[float, ...], count: int) -> None:
+    """InputError unless ``values`` are ``count`` finite, non-negative numbers (noise variances or their factors).
+    Plain Python on a handful of numbers: models are built per step by the consistency watch (scaled_motion)."""
+    try:
+        ok = len(values) == count and all(math.isfinite(v) and v >= 0.0 for v in values)
+    except TypeError:
+        ok = False
+    if not ok:
+        raise InputError(
+            f"{model}: {name} must be {count} finite numbers >= 0 (noise variance factors), got {values!r}"
+        )
 
 
 def _sinc(a: np.ndarray) -> np.ndarray:
@@ -65,6 +81,18 @@ class VelocityMotionModel:
     alphas: tuple[float, float, float, float, float, float] = (0.01, 0.0025, 0.01, 0.01, 0.001, 0.001)
     dt_ref: float = 0.1
     floor: tuple[float, float] = (0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        """InputError for a negative or non-finite alpha or floor, or a dt_ref that is not a positive finite number
+        (the limits a filter needs on top: :func:`check_motion_limits`)."""
+        _check_noise("VelocityMotionModel", "alphas", self.alphas, 6)
+        _check_noise("VelocityMotionModel", "floor", self.floor, 2)
+        try:
+            ok = math.isfinite(self.dt_ref) and self.dt_ref > 0.0
+        except TypeError:
+            ok = False
+        if not ok:
+            raise InputError(f"VelocityMotionModel: dt_ref must be a finite number of seconds > 0, got {self.dt_ref!r}")
 
     @staticmethod
     def moves(control: np.ndarray) -> bool:
@@ -261,6 +289,10 @@ class OdometryMotionModel:
 
     alphas: tuple[float, float, float, float] = (0.005, 0.005, 0.005, 0.005)
 
+    def __post_init__(self) -> None:
+        """InputError for a negative or non-finite alpha (limits a filter needs: :func:`check_motion_limits`)."""
+        _check_noise("OdometryMotionModel", "alphas", self.alphas, 4)
+
     @staticmethod
     def moves(control: np.ndarray) -> bool:
         """Whether the relative motion (rot1, trans, rot2) is not zero."""
@@ -335,6 +367,10 @@ class OmniOdometryMotionModel:
 
     moves = staticmethod(OdometryMotionModel.moves)
 
+    def __post_init__(self) -> None:
+        """InputError for a negative or non-finite alpha (limits a filter needs: :func:`check_motion_limits`)."""
+        _check_noise("OmniOdometryMotionModel", "alphas", self.alphas, 4)
+
     def predict(self, poses: np.ndarray, control: np.ndarray) -> np.ndarray:
         """Noise-free motion of poses (N, 3) by the relative motion control (rot1, trans, rot2)."""
         return OdometryMotionModel(self.alphas).predict(poses, control)
@@ -375,6 +411,19 @@ class OmniOdometryMotionModel:
 
 #: any motion model; each offers predict, sample and linearize over poses (N, 3) and one control (3,)
 MotionModel = VelocityMotionModel | OdometryMotionModel | OmniOdometryMotionModel
+
+
+def check_motion_limits(motion: MotionModel) -> None:
+    """InputError unless ``motion`` is a motion model whose alphas (and floor) lie in :data:`ALPHA_LIMITS` and
+    dt_ref (s) in :data:`DT_REF_LIMITS`: the noise a filter can use (the file readers refuse the same). The models'
+    constructors refuse only negative or non-finite values, as the consistency watch scales them past these."""
+    if not isinstance(motion, (VelocityMotionModel, OdometryMotionModel, OmniOdometryMotionModel)):
+        raise InputError(f"motion must be a slam.motion model (velocity or odometry), got {type(motion).__name__}")
+    name = type(motion).__name__
+    check_within(f"{name}.alphas", motion.alphas, ALPHA_LIMITS)
+    if isinstance(motion, VelocityMotionModel):
+        check_within(f"{name}.floor", motion.floor, ALPHA_LIMITS)
+        check_within(f"{name}.dt_ref", motion.dt_ref, DT_REF_LIMITS, "s")
 
 
 def compose(poses: np.ndarray, delta: np.ndarray) -> np.ndarray:

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slam.angles import wrap_angle
+from slam.errors import InputError, check_within
 
 #: accepted (low, high) of :class:`RangeBearingModel`'s parameters. Below 1 mm / 1 mrad (better than any
 #: landmark sensor) the EKF's covariance stops being positive definite in double precision; above 1 km / pi rad
@@ -35,10 +36,35 @@ class RangeBearingModel:
     sigma_bearing: float = 0.035
     range_fraction: float = 0.0
 
+    def __post_init__(self) -> None:
+        """InputError for a negative or non-finite noise (0 is a noise-free simulated sensor; what a filter needs on
+        top: :func:`check_sensor_limits`)."""
+        values = (self.sigma_range, self.sigma_bearing, self.range_fraction)
+        try:
+            ok = all(math.isfinite(v) and v >= 0.0 for v in values)
+        except TypeError:
+            ok = False
+        if not ok:
+            raise InputError(
+                "RangeBearingModel: sigma_range (m), sigma_bearing (rad) and range_fraction must be finite numbers "
+                f">= 0, got {values!r}"
+            )
+
     def covariance(self, z: np.ndarray) -> np.ndarray:
         """Measurement-noise covariance R (2, 2) of one measurement z = (range m, bearing rad)."""
         sigma_r = self.sigma_range + self.range_fraction * float(z[0])
         return np.diag([sigma_r**2, self.sigma_bearing**2])
+
+
+def check_sensor_limits(sensor: RangeBearingModel) -> None:
+    """InputError unless ``sensor`` is a :class:`RangeBearingModel` within :data:`SIGMA_RANGE_LIMITS`,
+    :data:`SIGMA_BEARING_LIMITS` and :data:`RANGE_FRACTION_LIMITS`: the noise a filter can use (the file readers
+    refuse the same; a zero noise makes FastSLAM's likelihoods NaN)."""
+    if not isinstance(sensor, RangeBearingModel):
+        raise InputError(f"sensor must be a slam.range_bearing.RangeBearingModel, got {type(sensor).__name__}")
+    check_within("RangeBearingModel.sigma_range", sensor.sigma_range, SIGMA_RANGE_LIMITS, "m")
+    check_within("RangeBearingModel.sigma_bearing", sensor.sigma_bearing, SIGMA_BEARING_LIMITS, "rad")
+    check_within("RangeBearingModel.range_fraction", sensor.range_fraction, RANGE_FRACTION_LIMITS, "m per m")
 
 
 def predict_measurement(poses: np.ndarray, landmarks: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -11,6 +11,11 @@ import math
 import numpy as np
 
 from mapping.jit import kernel
+from slam.errors import InputError
+
+#: cells a truth raster may hold: schemas.files.MAX_TRUTH_CELLS (load_truth refuses more), stated again here because
+#: slam/ does not import schemas/ (tests/test_layers.py); tests/test_slam_inputs.py checks that the two agree
+MAX_TRUTH_CELLS = 2**25
 
 
 @kernel(inline="always")
@@ -79,6 +84,24 @@ def raster_frame(segments: np.ndarray, resolution: float, margin: float = 1.0) -
     high = np.maximum(segments[:, :2], segments[:, 2:]).max(axis=0) + margin
     width, height = np.ceil((high - low) / resolution).astype(int) + 1
     return low, (int(height), int(width))
+
+
+def check_raster_resolution(segments: np.ndarray, resolution: float) -> None:
+    """InputError unless ``resolution`` (m) is finite and > 0 and the raster :func:`raster_frame` makes over the
+    segments (S, 4) holds at most :data:`MAX_TRUTH_CELLS` cells (what load_truth reads back). Counted in floating
+    point, so a tiny resolution does not overflow the count."""
+    if not (math.isfinite(resolution) and resolution > 0.0):
+        raise InputError(f"truth_resolution must be a finite number of metres > 0, got {resolution!r}")
+    low = np.minimum(segments[:, :2], segments[:, 2:]).min(axis=0) - 1.0 - resolution / 2.0
+    high = np.maximum(segments[:, :2], segments[:, 2:]).max(axis=0) + 1.0
+    with np.errstate(over="ignore"):
+        cells = float(np.prod(np.ceil((high - low) / resolution) + 1.0))
+    if cells > MAX_TRUTH_CELLS:
+        coarsest = float(np.sqrt(np.prod(high - low) / MAX_TRUTH_CELLS))
+        raise InputError(
+            f"truth_resolution {resolution:g} m makes a truth raster of {cells:.3g} cells, more than the "
+            f"{MAX_TRUTH_CELLS} a truth raster may hold; use cells of at least about {coarsest:.3g} m"
+        )
 
 
 def truth_raster(

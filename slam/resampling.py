@@ -4,6 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from slam.errors import InputError
+
+#: weights whose sum lies this close to 1 are taken as normalised and used as they are (as before unnormalised
+#: weights were accepted: results for normalised weights stay bit for bit the same); others are divided by their sum
+NORMALISED_TOLERANCE = 1e-9
+
 
 def normalize_log_weights(log_weights: np.ndarray) -> np.ndarray:
     """Weights (N,) summing to 1 from unnormalised log weights (N,), without overflow."""
@@ -11,19 +17,45 @@ def normalize_log_weights(log_weights: np.ndarray) -> np.ndarray:
     return shifted / shifted.sum()
 
 
+def checked_weights(weights: np.ndarray) -> tuple[np.ndarray, float]:
+    """Importance weights (N,) as float64 and their sum; InputError unless they are a non-empty 1-D array of finite,
+    non-negative numbers with a positive sum (any scale: they need not sum to 1). O(N), vectorised."""
+    w = np.asarray(weights, dtype=np.float64)
+    if w.ndim != 1 or len(w) == 0:
+        raise InputError(f"weights must be a non-empty 1-D array (one per particle), got shape {w.shape}")
+    bad = np.flatnonzero(~(np.isfinite(w) & (w >= 0.0)))
+    if len(bad):
+        raise InputError(
+            f"weights must be finite and non-negative, got {w[bad[0]]} at particle {bad[0]}; from log weights use "
+            "normalize_log_weights"
+        )
+    total = float(w.sum())
+    if not total > 0.0 or not np.isfinite(total):
+        raise InputError(f"weights must have a positive, finite sum, got {total} (every particle has weight 0?)")
+    return w, total
+
+
 def effective_sample_size(weights: np.ndarray) -> float:
-    """N_eff = 1 / sum(w^2) of normalised weights (N,); N for uniform weights, 1 for a single survivor."""
-    return float(1.0 / np.sum(weights * weights))
+    """N_eff = (sum w)^2 / sum(w^2) of importance weights (N,) of any positive scale (1 / sum(w^2) when they sum to
+    1): N for equal weights, 1 for a single survivor. InputError for empty, negative, non-finite or all-zero weights."""
+    w, total = checked_weights(weights)
+    if abs(total - 1.0) > NORMALISED_TOLERANCE:
+        w = w / total
+    return float(1.0 / np.sum(w * w))
 
 
 def low_variance_resample(weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Indices (N,) of the particles kept by low-variance (systematic) resampling, PR table 4.4.
 
-    One uniform offset r in [0, 1/N) and the N pointers r + k/N walk the cumulative weights, so a particle
-    of weight w is copied floor(N w) or ceil(N w) times.
+    One uniform offset r in [0, 1/N) and the N pointers r + k/N walk the cumulative weights (divided by their sum
+    when it is not 1), so a particle of weight w is copied floor(N w) or ceil(N w) times. InputError for empty,
+    negative, non-finite or all-zero weights.
     """
-    n = len(weights)
+    w, total = checked_weights(weights)
+    n = len(w)
     pointers = rng.uniform(0.0, 1.0 / n) + np.arange(n) / n
-    cumulative = np.cumsum(weights)
+    cumulative = np.cumsum(w)
+    if abs(total - 1.0) > NORMALISED_TOLERANCE:
+        cumulative /= cumulative[-1]
     cumulative[-1] = 1.0
     return np.minimum(np.searchsorted(cumulative, pointers, side="right"), n - 1)

@@ -14,12 +14,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from slam.angles import wrap_angle
+from slam.errors import InputError, finite_array
 
 #: chi-square(3) 95% quantile: the true pose is inside the 95% region when its NEES is below this
 CHI2_3_95 = 7.8147
 #: added to every covariance's diagonal (m^2, m^2, rad^2) before inversion, so a zero covariance (the known
 #: start, or a single particle) gives a finite NEES: 0 for a zero error, enormous otherwise
 COVARIANCE_JITTER = 1e-6
+#: relative tolerance of a covariance's symmetry and of its negative eigenvalues (rounding), of its largest entry
+COVARIANCE_RTOL = 1e-9
 
 
 @dataclass(frozen=True)
@@ -49,8 +52,41 @@ def fit_gaussian(samples: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, 
     return mean, cov
 
 
+def check_covariances(cov: np.ndarray, name: str = "cov") -> None:
+    """InputError unless every covariance of the stack (T, 3, 3) is symmetric and positive semi-definite, both to
+    :data:`COVARIANCE_RTOL` of its largest entry (rounding); the message names the first bad step. O(T), vectorised.
+    A singular one (the known start, a single particle) passes: :data:`COVARIANCE_JITTER` makes it invertible."""
+    scale = np.abs(cov).max(axis=(1, 2))
+    tolerance = COVARIANCE_RTOL * scale
+    asymmetry = np.abs(cov - np.swapaxes(cov, 1, 2)).max(axis=(1, 2))
+    bad = np.flatnonzero(asymmetry > tolerance)
+    if len(bad):
+        t = int(bad[0])
+        raise InputError(
+            f"{name}[{t}] is not symmetric (|C - C^T| up to {asymmetry[t]:.3g}): give covariances (T, 3, 3) of "
+            "(x m, y m, yaw rad); if it is an information matrix or a square root, convert it first"
+        )
+    lowest = np.linalg.eigvalsh(0.5 * (cov + np.swapaxes(cov, 1, 2)))[:, 0]
+    bad = np.flatnonzero(lowest < -tolerance)
+    if len(bad):
+        t = int(bad[0])
+        raise InputError(
+            f"{name}[{t}] is not positive semi-definite (eigenvalue {lowest[t]:.3g}): a covariance has no negative "
+            "variance; check how it was computed"
+        )
+
+
 def score_trajectory(mean: np.ndarray, cov: np.ndarray, truth: np.ndarray) -> TrajectoryScore:
-    """Score estimates mean (T, 3), cov (T, 3, 3) against true poses truth (T, 3), all in the map frame."""
+    """Score estimates mean (T, 3), cov (T, 3, 3) against true poses truth (T, 3), all in the map frame (x m, y m,
+    yaw rad; cov in m^2, m rad, rad^2). InputError unless T >= 1 is the same for all three, every value is finite and
+    every covariance symmetric positive semi-definite (:func:`check_covariances`)."""
+    mean = finite_array("mean", mean, (None, 3), " (estimated poses x m, y m, yaw rad)")
+    steps = len(mean)
+    if steps == 0:
+        raise InputError("mean, cov and truth hold no step: give at least one pose to score")
+    cov = finite_array("cov", cov, (steps, 3, 3), f" (one (3, 3) covariance per pose of mean: {steps})")
+    truth = finite_array("truth", truth, (steps, 3), f" (one true pose per pose of mean: {steps})")
+    check_covariances(cov)
     error = truth - mean
     error[:, 2] = wrap_angle(error[:, 2])
     regularised = cov + COVARIANCE_JITTER * np.eye(3)
@@ -66,7 +102,21 @@ def score_trajectory(mean: np.ndarray, cov: np.ndarray, truth: np.ndarray) -> Tr
 
 def interpolate_poses(stamps: np.ndarray, truth_stamps: np.ndarray, truth_poses: np.ndarray) -> np.ndarray:
     """Ground truth (G, 3) at truth_stamps (G,) interpolated linearly to ``stamps`` (T,) (yaw unwrapped first,
-    so it turns the short way); stamps outside the ground truth's span take its first or last pose."""
+    so it turns the short way); stamps outside the ground truth's span take its first or last pose. Stamps in s,
+    poses (x m, y m, yaw rad). InputError unless truth_stamps are strictly increasing (they are not sorted here: an
+    unsorted ground truth is more likely a mistake than an order to fix) and everything is finite."""
+    truth_stamps = finite_array("truth_stamps", truth_stamps, (None,))
+    if len(truth_stamps) == 0:
+        raise InputError("truth_stamps is empty: give at least one ground-truth pose")
+    truth_poses = finite_array("truth_poses", truth_poses, (len(truth_stamps), 3), " (one pose per truth stamp)")
+    stamps = finite_array("stamps", stamps, (None,))
+    bad = np.flatnonzero(np.diff(truth_stamps) <= 0.0)
+    if len(bad):
+        k = int(bad[0])
+        raise InputError(
+            f"truth_stamps must be strictly increasing, but [{k}] = {float(truth_stamps[k])!r} s and [{k + 1}] = "
+            f"{float(truth_stamps[k + 1])!r} s: sort the ground truth by time and keep one pose per stamp"
+        )
     yaw = np.unwrap(truth_poses[:, 2])
     return np.column_stack(
         [

@@ -28,7 +28,14 @@ import numpy as np
 
 from slam.errors import LogFormatError
 from slam.laserlog import POSE_LIMIT
-from slam.motion import ALPHA_LIMITS, VELOCITY_LIMIT, OdometryMotionModel, VelocityMotionModel, odometry_controls
+from slam.motion import (
+    ALPHA_LIMITS,
+    DT_REF_LIMITS,
+    VELOCITY_LIMIT,
+    OdometryMotionModel,
+    VelocityMotionModel,
+    odometry_controls,
+)
 from slam.range_bearing import BEARING_LIMIT, SIGMA_BEARING_LIMITS, SIGMA_RANGE_LIMITS, RangeBearingModel
 from slam.sequence import SlamSequence
 
@@ -36,8 +43,6 @@ CONTROLS_FILE = "controls.npz"
 LANDMARKS_FILE = "landmarks.npz"
 #: the files `posegrid simulate` writes into its folder
 SIMULATION_FILES = ("scans.npz", "truth.npz", "groundtruth.npz", CONTROLS_FILE, LANDMARKS_FILE)
-#: accepted velocity_dt_ref (s): the time the velocity model's noise is stated for (the simulator's: 0.1 s)
-DT_REF_LIMITS = (1e-3, 1e3)
 
 
 @dataclass(frozen=True)

@@ -17,9 +17,11 @@ from typing import Any
 import numpy as np
 
 from slam.angles import wrap_angle
-from slam.motion import OdometryMotionModel, VelocityMotionModel, odometry_controls
+from slam.errors import InputError, check_count, check_within
+from slam.laserlog import geometry_problem
+from slam.motion import VELOCITY_LIMIT, OdometryMotionModel, VelocityMotionModel, odometry_controls
 from slam.range_bearing import RangeBearingModel
-from slam.raster import truth_raster
+from slam.raster import check_raster_resolution, truth_raster
 from slam.raycast import CHUNK_RAYS, cast_rays, segments_block
 from slam.simlog import SimLog
 from slam.world import WAYPOINTS, office_landmarks, office_segments
@@ -177,6 +179,53 @@ def _segments_within(segments: np.ndarray, points: np.ndarray, reach: float) -> 
     return segments[np.hypot(gap[:, 0], gap[:, 1]) <= reach]
 
 
+def _check_options(
+    world: World,
+    steps: int,
+    n_beams: int,
+    range_max: float,
+    fov: float,
+    laser_sigma: float,
+    dt: float,
+    truth_resolution: float,
+    max_speed: float,
+    landmark_range_max: float,
+    landmark_fov: float,
+    velocity_model: VelocityMotionModel,
+    odometry_model: OdometryMotionModel,
+    sensor: RangeBearingModel,
+) -> tuple[float, float]:
+    """InputError (a ValueError) naming the first option of :func:`simulate_world` it cannot use, before any work;
+    else the laser's angle_increment and angle_min (rad). The laser's geometry is held to the rules the scan files
+    are (slam.laserlog.geometry_problem: a fan of at most a full turn), the truth raster to load_truth's cell cap."""
+    check_count("steps", steps)
+    check_count("n_beams", n_beams)
+    for name, value in (("dt (s between steps)", dt), ("fov (the laser's field of view, rad)", fov)):
+        if not (math.isfinite(value) and value > 0.0):
+            raise InputError(f"{name} must be a finite number > 0, got {value!r}")
+    check_within("laser_sigma (the laser's range noise)", laser_sigma, (0.0, np.inf), "m")
+    check_within("max_speed", max_speed, (0.0, VELOCITY_LIMIT), "m/s")
+    check_within("landmark_range_max", landmark_range_max, (0.0, np.inf), "m")
+    check_within("landmark_fov", landmark_fov, (0.0, 2.0 * math.pi), "rad")
+    angle_increment = fov / (n_beams - 1) if n_beams > 1 else 0.0
+    angle_min = -fov / 2.0 if n_beams > 1 else 0.0
+    problem = geometry_problem(int(n_beams), angle_min, angle_increment, LASER_RANGE_MIN, range_max)
+    if problem:
+        raise InputError(
+            f"the laser (n_beams {n_beams}, fov {fov!r} rad, range_max {range_max!r} m; range_min is "
+            f"{LASER_RANGE_MIN} m) is unusable: {problem}"
+        )
+    for name, model, kind in (
+        ("velocity_model", velocity_model, VelocityMotionModel),
+        ("odometry_model", odometry_model, OdometryMotionModel),
+        ("sensor", sensor, RangeBearingModel),
+    ):
+        if not isinstance(model, kind):
+            raise InputError(f"{name} must be a {kind.__name__}, got {type(model).__name__}")
+    check_raster_resolution(np.asarray(world.segments, dtype=np.float64), truth_resolution)
+    return angle_increment, angle_min
+
+
 def simulate_office(seed: int = 0, steps: int = 400, **options: Any) -> SimRun:
     """Simulate ``steps`` steps in the office; ``options`` as for :func:`simulate_world` (its defaults: 361 beams
     over 180 degrees, 12 m range, 0.1 s steps). The same arguments give the same run."""
@@ -210,9 +259,25 @@ def simulate_world(
     ``landmark_range_max`` m, field of view ``landmark_fov`` rad. The truth raster has cells of
     ``truth_resolution`` m. Noise models: ``velocity_model`` (true motion around the commands) and
     ``odometry_model`` (odometry readings around the true motion).
+
+    InputError (a ValueError) for an option it cannot use, before any work (:func:`_check_options`).
     """
-    if steps < 1 or n_beams < 1 or dt <= 0 or range_max <= LASER_RANGE_MIN or truth_resolution <= 0:
-        raise ValueError("need steps >= 1, n_beams >= 1, dt > 0, range_max > 0.05 m and truth_resolution > 0")
+    angle_increment, angle_min = _check_options(
+        world,
+        steps,
+        n_beams,
+        range_max,
+        fov,
+        laser_sigma,
+        dt,
+        truth_resolution,
+        max_speed,
+        landmark_range_max,
+        landmark_fov,
+        velocity_model,
+        odometry_model,
+        sensor,
+    )
     motion_rng, odometry_rng, landmark_rng, laser_rng = (
         np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(4)
     )
@@ -224,8 +289,6 @@ def simulate_world(
     )
 
     offset = np.array(LASER_OFFSET)
-    angle_increment = fov / (n_beams - 1) if n_beams > 1 else 0.0
-    angle_min = -fov / 2.0 if n_beams > 1 else 0.0
     beam_angles = angle_min + angle_increment * np.arange(n_beams)
     origins, exact, endpoints = _laser_rays(true_poses, offset, beam_angles, segments, range_max)
     noisy = np.where(
