@@ -391,6 +391,49 @@ def test_a_store_whose_database_is_gone_but_its_log_is_there_is_refused(tmp_path
     assert "is missing but its write-ahead log" in _refused(_mapper(tmp_path), capsys)
 
 
+def _copy_log(source: Path, target: Path) -> None:
+    """Put the write-ahead log (and its index) of the database ``source`` beside the database ``target``."""
+    for suffix in ("-wal", "-shm"):
+        Path(f"{target}{suffix}").write_bytes(Path(f"{source}{suffix}").read_bytes())
+
+
+@pytest.mark.parametrize("other", ["another run's store", "another database"])
+def test_another_databases_log_put_beside_a_store_is_refused_and_the_store_left_as_it_was(tmp_path, pairs, other):
+    """SQLite cannot tell a write-ahead log put beside a database from its own, and a connection that may write
+    merges it into the file when it closes: the check that refused another run's log (or an unrelated database's)
+    replaced the store with that run's (that database's) before refusing, so "restore this run's" was no longer
+    possible. The store is now read with the log applied in memory only, and refused untouched."""
+    ours = tmp_path / "ours"
+    path = _committed_store(ours, pairs[:5])
+    ShardStore.open(ours, _identity(_config()), run_id="run-a").close()  # (the run it belongs to, in its file)
+    if other == "another run's store":
+        theirs = ShardStore.open(tmp_path / "theirs", _identity(_config()), run_id="run-b")  # (its log not yet merged)
+        _copy_log(tmp_path / "theirs" / DB_NAME, path)
+        theirs.close()
+        changed = "run change ('run-a' -> 'run-b')"
+    else:
+        unrelated = sqlite3.connect(tmp_path / "other.db", isolation_level=None)
+        unrelated.execute("PRAGMA journal_mode = WAL")
+        unrelated.execute("PRAGMA wal_autocheckpoint = 0")
+        unrelated.execute("CREATE TABLE t (x)")
+        unrelated.execute("INSERT INTO t VALUES (1)")
+        _copy_log(tmp_path / "other.db", path)
+        unrelated.close()
+        changed = "format, map, shard, shards, tile_size, resolution, run change"
+    before = path.read_bytes(), Path(f"{path}-wal").read_bytes()
+    for attempt in (
+        lambda: check_store(ours, _identity(_config()), "run-a"),
+        lambda: ShardStore.open(ours, _identity(_config()), run_id="run-a"),
+    ):
+        with pytest.raises(StoreError, match="is not the log of the store") as refused:
+            attempt()
+        assert changed in str(refused.value) and "Nothing was changed" in str(refused.value)
+        assert (path.read_bytes(), Path(f"{path}-wal").read_bytes()) == before
+    Path(f"{path}-wal").unlink()  # as the message says: the store as it was last written to its file
+    Path(f"{path}-shm").unlink()
+    assert len(check_store(ours, _identity(_config()), "run-a")) == 1  # (its session of fused scans, readable)
+
+
 def test_a_state_directory_in_use_or_that_cannot_be_written_is_refused(tmp_path, capsys):
     held = ShardStore.open(tmp_path / "busy", _identity(_config()))
     try:

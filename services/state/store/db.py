@@ -249,6 +249,8 @@ class ShardStore:
         path, created = directory / DB_NAME, False
         try:
             created = not _check_file(path)
+            if not created:
+                _refuse_a_foreign_log(path)
             connection = _connect(path, max_bytes)
             try:
                 if created:
@@ -414,6 +416,7 @@ def check_store(directory: Path, identity: StoreIdentity, run_id: str | None) ->
         os.close(lock)
         return set()
     try:
+        _refuse_a_foreign_log(path)
         connection = _connect(path, None)
     except BaseException:
         os.close(lock)
@@ -477,6 +480,50 @@ def _check_file(path: Path) -> bool:
     if not header.startswith(SQLITE_HEADER):
         raise StoreError(f"the store {path} is not a SQLite database")
     return True
+
+
+#: the meta rows that say whose store a file is: a write-ahead log that changes any of them is another database's
+_WHOSE = ("format", "map", "shard", "shards", "tile_size", "resolution", "run")
+
+
+def _meta_seen(path: Path, options: str) -> dict[str, Any] | None:
+    """The store's identity rows (:data:`_WHOSE`) read through a connection opened with the URI ``options``, which
+    writes nothing to the database or its log; None when they cannot be read."""
+    try:
+        db = sqlite3.connect(f"{path.resolve().as_uri()}?{options}", uri=True, timeout=10.0)
+    except sqlite3.Error:
+        return None
+    try:
+        marks = ", ".join("?" * len(_WHOSE))
+        return dict(db.execute(f"SELECT key, value FROM meta WHERE key IN ({marks})", _WHOSE))
+    except (sqlite3.DatabaseError, UnicodeDecodeError):
+        return None
+    finally:
+        db.close()
+
+
+def _refuse_a_foreign_log(path: Path) -> None:
+    """StoreError, with nothing written, when the store's write-ahead log is another database's: the store read from
+    its file alone (SQLite's ``immutable``) is a posegrid store, and read through the log (``mode=ro``: the log is
+    applied in memory only) it is another store, another run's or no store. SQLite cannot tell a log put beside a
+    database from its own, and a connection that may write merges the log into the file when it closes: the check
+    of a foreign log used to replace the store it refused. A store whose file holds no identity yet (its first commits
+    still in its log) cannot be told apart, and passes."""
+    log = Path(f"{path}-wal")
+    if not log.exists() or log.stat().st_size == 0:
+        return
+    alone = _meta_seen(path, "immutable=1")
+    if alone is None or alone.get("format") != FORMAT:
+        return
+    through = _meta_seen(path, "mode=ro") or {}
+    changed = [key for key in _WHOSE if key in alone and through.get(key) != alone[key]]
+    if changed:
+        raise StoreError(
+            f"the write-ahead log {log} is not the log of the store {path}: read through it, the store's "
+            f"{', '.join(changed)} change ({', '.join(f'{alone[k]!r} -> {through.get(k)!r}' for k in changed)}), so "
+            f"another database's log was put beside it. Nothing was changed: move {log} (and {path}-shm) away to "
+            "keep the store as it was last written to its file, or restore the folder from a copy"
+        )
 
 
 def _connect(path: Path, max_bytes: int | None) -> sqlite3.Connection:
