@@ -19,6 +19,8 @@ import logging
 import os
 import re
 import sqlite3
+import subprocess
+import sys
 import zlib
 from dataclasses import replace
 from pathlib import Path
@@ -468,6 +470,40 @@ def test_run_refuses_a_state_directory_it_cannot_start_or_resume_with_one_senten
     err = _refused([*base, "--state-dir", str(tmp_path / "run")], capsys)
     assert f"holds a run already: continue it with --resume {tmp_path / 'run'}" in err
     assert "give --shards 1" in _refused([*base, "--resume", str(tmp_path / "run"), "--shards", "2"], capsys)
+
+
+#: a process that holds a run directory as `posegrid run` does, says so, and waits for its stdin to close
+_HOLDER = """
+import sys
+from pathlib import Path
+from services.state.store.run import hold_run_directory
+hold_run_directory(Path(sys.argv[1]), create=True)
+print("held", flush=True)
+sys.stdin.read()
+"""
+
+
+@pytest.mark.parametrize("how", ["--state-dir", "--resume"])
+def test_a_run_directory_another_run_holds_is_refused_before_anything_is_written(tmp_path, capsys, how):
+    """Two `posegrid run --state-dir NEW` at once both found no run.json and both wrote one: the loser's id and
+    session stood in run.json, the winner's in the stores, and every later --resume was refused."""
+    directory = tmp_path / "run"
+    if how == "--resume":
+        prepare_run(directory, False, False, "main", 1, 0.05)
+    before = sorted(p.name for p in directory.iterdir()) if directory.exists() else []
+    holder = subprocess.Popen(
+        [sys.executable, "-c", _HOLDER, str(directory)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert holder.stdout is not None and holder.stdout.readline() == "held\n"
+        # (--export: were the directory not refused, the run would end, exit 0, and fail the test, not run on)
+        err = _refused(
+            ["run", "--no-api", "--steps", "5", "--export", str(tmp_path / "m.npz"), how, str(directory)], capsys
+        )
+        assert f"the state directory {directory} is in use by another posegrid run" in err
+        assert sorted(p.name for p in directory.iterdir()) == before
+    finally:
+        holder.communicate("", timeout=30)
 
 
 def test_the_commit_defaults_of_the_options_are_the_writers():

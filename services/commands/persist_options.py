@@ -156,12 +156,13 @@ def plan_state(args: argparse.Namespace, plan: Plan) -> None:
         raise UsageError("--continue-session goes on with a resumed run's session: give it with --resume DIR")
     if args.no_state:
         return
-    from services.state.store.run import default_run_dir, prepare_run
+    from services.state.store.run import default_run_dir, hold_run_directory, prepare_run
 
     directory = args.resume if args.resume is not None else args.state_dir
     if directory is None:
         directory = default_run_dir(plan.map_name)
     _check_commit_options(args)
+    hold_run_directory(directory, create=args.resume is None)  # (for the rest of the run: one run a directory)
     with_scans: set[str] | None = None
     if args.resume is not None:  # (every shard's store checked before the run's record gets a new session)
         from mapping.grid import TILE_SIZE

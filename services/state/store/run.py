@@ -4,6 +4,7 @@ whose store records the run's id and refuses another run's."""
 
 from __future__ import annotations
 
+import fcntl
 import json
 import os
 import sys
@@ -52,6 +53,37 @@ def default_run_dir(map_name: str) -> Path:
     base = Path(given) if os.path.isabs(given) else Path.home() / ".local" / "state"
     stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
     return base / "posegrid" / "runs" / f"{map_name}-{stamp}-{os.getpid()}"
+
+
+#: the run directories this process holds locked (resolved path -> the directory's open fd), until it exits
+_HELD: dict[Path, int] = {}
+
+
+def hold_run_directory(directory: Path, create: bool) -> None:
+    """Lock ``directory`` (made first when ``create``) for the rest of this process, the launcher's life: another
+    `posegrid run` on it is refused at once. Two new runs on one directory raced to write run.json (one then wrote
+    the id and session, the other's shards the stores, which then refused every resume); two resumes both added a
+    session. Held again by this process, it is a no-op. StoreError when it cannot be made or another holds it."""
+    key = directory.resolve()
+    if key in _HELD:
+        return
+    if directory.exists() and not directory.is_dir():
+        raise StoreError(f"the state directory {directory} is not a directory")
+    if not create and not directory.exists():
+        return  # (prepare_run says what is wrong)
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+        held = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
+    except OSError as exc:
+        raise StoreError(f"cannot use the state directory {directory}: {exc.strerror or exc}") from None
+    try:
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(held)
+        raise StoreError(
+            f"the state directory {directory} is in use by another posegrid run; give each run its own --state-dir"
+        ) from None
+    _HELD[key] = held
 
 
 def shard_dir(directory: Path, shard: int) -> Path:
