@@ -222,3 +222,28 @@ def test_a_killed_pipeline_resumes_and_a_second_robots_session_adds_to_the_map(t
         served = _wait_stats(reader, lambda s: len(s) == 2, "both shards' stats", timeout=30)
         assert all(s.fused == {"r2": 50} and s.committed == {"r2": 50} and s.persist == "ok" for s in served.values())
         _raster_equal(reader.assemble(2, 0.05).rasterize(), expected.rasterize())
+
+
+def test_a_source_does_not_wait_for_a_shard_whose_commits_fail(tmp_path, procs):  # noqa: F811
+    """A shard whose store cannot be written (here past --state-limit-mb; a full or immutable disk in the probe) goes
+    on fusing from memory, persist: failing. The source waited for its commits, gave up after 60 s with exit 1, and
+    `posegrid run` restarted it, which replayed the run, for ever (11 minutes in the probe). It now ends once every
+    scan is fused, and says why it did not wait; the shard's clean stop, whose last commit fails, exits 1."""
+    posed = make_posed(tmp_path / "posed.npz", "samples", steps=36)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
+    shard = procs(
+        [*CLI, "mapper", "--shard", "0", "--shards", "1", "--map", "m", "--state-dir", str(tmp_path / "state")]
+        + ["--state-limit-mb", "0.06", "--commit-scans", "4", "--connect", endpoint]
+    )
+    shard.wait_for("up; tiles on")
+    source = procs(
+        [*CLI, "source", "--posed", str(posed), "--robot", "r1", "--map", "m", "--wait-mappers", "1"]
+        + ["--rate", "max", "--connect", endpoint]
+    )
+    assert source.process.wait(50) == 0, source.output()  # (it gave up after 60 s, exit 1)
+    assert "shard(s) 0 of map 'm' cannot commit to their state directory (persist: failing)" in source.output()
+    assert "persist: failing" in shard.output()
+    shard.process.send_signal(signal.SIGINT)
+    assert shard.process.wait(30) == 1, shard.output()
+    assert "the last changes could not be committed" in shard.output()

@@ -312,6 +312,13 @@ class Source:
                 robot,
                 scans,
             )
+        failing = [s.shard for s in stats if s.persist == "failing"]
+        if failing:
+            self._warn_once(
+                f"shard(s) {', '.join(map(str, sorted(failing)))} of map {self.options.map_name!r} cannot commit to "
+                "their state directory (persist: failing): they serve the map from memory, and the source does not "
+                "wait for those commits"
+            )
         if len(stats) >= self.options.wait_mappers and _accounted(stats, end):
             return True  # (every scan accounted for: a shard that restarted may still ask the history)
         self._repeat_end(end)
@@ -458,11 +465,13 @@ class Source:
 def _accounted(stats: list[ShardStats], end: StreamEnd) -> bool:
     """Whether every shard of ``stats`` has the end of the stream and has fused or given up on each of its scans,
     and, a shard that keeps a state directory, committed them: until then its history is what a shard killed now
-    would take them from (a re-probe: a shard killed as the source left lost the ~85 scans since its last commit)."""
+    would take them from (a re-probe: a shard killed as the source left lost the ~85 scans since its last commit).
+    A shard whose commits fail (persist: failing) is not waited for: its commits may never succeed again, and the
+    source waiting on them gave up after WAIT_TIMEOUT, exit 1, was restarted and replayed the run, for ever."""
     robot, scans = end.robot, end.scans
     return all(
         s.ended.get(robot) == scans
         and s.fused.get(robot, 0) + s.discarded.get(robot, 0) >= scans
-        and (s.persist == "off" or s.committed.get(robot, 0) >= scans)
+        and (s.persist in ("off", "failing") or s.committed.get(robot, 0) >= scans)
         for s in stats
     )
