@@ -506,6 +506,45 @@ def test_a_run_directory_another_run_holds_is_refused_before_anything_is_written
         holder.communicate("", timeout=30)
 
 
+@pytest.mark.parametrize(
+    "given, message",
+    [
+        (["--resolution", "0.050000001"], "holds a map of 0.05 m cells, not 0.050000001: give --resolution 0.05"),
+        (["--shards", "2"], "holds a run with --shards 1, not 2: give --shards 1"),
+        (["--map", "other"], "holds a run with --map main, not other: give --map main"),
+    ],
+)
+def test_a_resume_with_other_run_options_names_the_option_even_with_stores(tmp_path, pairs, capsys, given, message):
+    """With the shards' stores there, the store's refusal came first ("give this shard its own --state-dir", no
+    option of `posegrid run`; near-equal resolutions printed as two equal numbers). run.json is checked first."""
+    state = prepare_run(tmp_path / "run", False, False, "main", 1, 0.05)
+    ShardStore.open(state.shard_dir(0), StoreIdentity("main", 0, 1, 256, 0.05), run_id=state.run_id).close()
+    export = ["--export", str(tmp_path / "m.npz")]  # (were it not refused, the run would end, not run on)
+    err = _refused(["run", "--no-api", "--steps", "5", *export, "--resume", str(tmp_path / "run"), *given], capsys)
+    assert message in err
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        ({"shards": 0}, "its shard count 0 is not in [1, 1024]"),
+        ({"shards": 1000000}, "its shard count 1000000 is not in [1, 1024]"),
+        ({"resolution": float("nan")}, "its resolution nan m is not in"),
+        ({"id": 5}, "its id 5 is not a valid name"),
+        ({"map": "../x"}, "its map name '../x' is not valid"),
+    ],
+)
+def test_a_hand_edited_run_record_is_refused_unchanged(tmp_path, capsys, change, message):
+    """run.json with "shards": 0 advised "give --shards 0", and "id": 5 skipped the check of the stores' run."""
+    prepare_run(tmp_path / "run", False, False, "main", 1, 0.05)
+    path = tmp_path / "run" / "run.json"
+    path.write_text(json.dumps({**json.loads(path.read_text()), **change}))
+    before = path.read_text()
+    export = ["--export", str(tmp_path / "m.npz")]  # (were it not refused, the run would end, not run on)
+    err = _refused(["run", "--no-api", "--steps", "5", *export, "--resume", str(tmp_path / "run")], capsys)
+    assert f"{path} is damaged: {message}" in err and path.read_text() == before
+
+
 def test_the_commit_defaults_of_the_options_are_the_writers():
     assert persist_options.COMMIT_SCANS == writer.DEFAULT_COMMIT_SCANS
     assert persist_options.COMMIT_INTERVAL == writer.DEFAULT_COMMIT_INTERVAL
@@ -591,18 +630,40 @@ def test_continue_session_goes_on_with_the_latest_session_that_fused_scans(tmp_p
     and says so; with no such session, the latest."""
     first = prepare_run(tmp_path / "run", False, False, "m", 1, 0.05)
     aborted = prepare_run(tmp_path / "run", True, False, "m", 1, 0.05)
-    again = prepare_run(tmp_path / "run", True, True, "m", 1, 0.05, {first.session, "another"})
+    again = prepare_run(tmp_path / "run", True, True, "m", 1, 0.05, {first.session: {"r1"}, "another": {"r1"}})
     assert again.session == first.session
     assert f"goes on with session {first.session}, the latest whose shards fused scans" in capsys.readouterr().err
-    assert prepare_run(tmp_path / "run", True, True, "m", 1, 0.05, set()).session == aborted.session
+    assert prepare_run(tmp_path / "run", True, True, "m", 1, 0.05, {}).session == aborted.session
     assert prepare_run(tmp_path / "run", True, True, "m", 1, 0.05).session == aborted.session
     assert capsys.readouterr().err == ""
-    assert check_store(tmp_path / "none", _identity(_config()), None) == set()
+    assert check_store(tmp_path / "none", _identity(_config()), None) == {}
     _committed_store(tmp_path / "s", pairs[:5])
     (written,) = check_store(tmp_path / "s", _identity(_config()), None)  # (the sessions with scans)
     store = ShardStore.open(tmp_path / "s", _identity(_config()))  # (its latest session: the one that wrote)
     assert store.session == written
     store.close()
+
+
+def test_continuing_a_session_under_another_robot_name_is_refused(tmp_path, pairs, capsys):
+    """`--resume --continue-session --robot r2` over a session of robot0's scans fused the same replay a second time
+    under the new name (log-odds off by up to 1.74, exit 0). The robots of the session's scans are checked first;
+    the same robot goes on, and a new session (no --continue-session) may fuse another robot on top of the map."""
+    first = prepare_run(tmp_path / "run", False, False, "m", 1, 0.05)
+    before = (tmp_path / "run" / "run.json").read_text()
+    scans = {first.session: {"robot0"}}
+    with pytest.raises(StoreError, match=r"holds scans of robot robot0, not of 'r2'.* Give --robot robot0"):
+        prepare_run(tmp_path / "run", True, True, "m", 1, 0.05, scans, "r2")
+    assert (tmp_path / "run" / "run.json").read_text() == before
+    assert prepare_run(tmp_path / "run", True, True, "m", 1, 0.05, scans, "robot0").session == first.session
+    assert prepare_run(tmp_path / "run", True, False, "m", 1, 0.05, scans, "r2").session != first.session
+    # end to end: the store's robots as the shards wrote them (the posed file's robot "r1")
+    run = tmp_path / "e2e"
+    posed = make_posed(tmp_path / "posed.npz", "samples", steps=6)
+    common = ["run", "--posed", str(posed), "--no-api", "--export", str(tmp_path / "m.npz"), "--robot"]
+    assert main([*common, "r1", "--state-dir", str(run)]) == 0
+    capsys.readouterr()
+    err = _refused([*common, "r2", "--resume", str(run), "--continue-session"], capsys)
+    assert "holds scans of robot r1, not of 'r2'" in err
 
 
 def test_a_store_of_another_run_put_in_a_shards_folder_is_refused(tmp_path, pairs, capsys):

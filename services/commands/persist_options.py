@@ -163,17 +163,20 @@ def plan_state(args: argparse.Namespace, plan: Plan) -> None:
         directory = default_run_dir(plan.map_name)
     _check_commit_options(args)
     hold_run_directory(directory, create=args.resume is None)  # (for the rest of the run: one run a directory)
-    with_scans: set[str] | None = None
+    with_scans: dict[str, set[str]] | None = None  # (sessions of the shards' stores -> the robots of their scans)
     if args.resume is not None:  # (every shard's store checked before the run's record gets a new session)
         from mapping.grid import TILE_SIZE
         from services.state.store.db import StoreIdentity, check_store
-        from services.state.store.run import run_id_of, shard_dir
+        from services.state.store.run import check_run_options, run_id_of, shard_dir
 
-        with_scans = set()
+        # (the run's options before the stores: it names the option to give, a store another map's state)
+        check_run_options(directory, plan.map_name, plan.shards, plan.resolution)
+        with_scans = {}
         run_id = run_id_of(directory)
         for shard in range(plan.shards):
             identity = StoreIdentity(plan.map_name, shard, plan.shards, TILE_SIZE, plan.resolution)
-            with_scans |= check_store(shard_dir(directory, shard), identity, run_id)
+            for session, robots in check_store(shard_dir(directory, shard), identity, run_id).items():
+                with_scans.setdefault(session, set()).update(robots)
     plan.state = prepare_run(
         directory,
         args.resume is not None,
@@ -182,5 +185,6 @@ def plan_state(args: argparse.Namespace, plan: Plan) -> None:
         plan.shards,
         plan.resolution,
         with_scans,
+        plan.robot,
     )
     plan.mapper_argv += ["--commit-scans", str(args.commit_scans), "--commit-interval", repr(args.commit_interval)]

@@ -401,20 +401,21 @@ def _whole(value: object, low: int, high: int | None = None) -> bool:
 # ---------------------------------------------------------------------------------------------- opening steps
 
 
-def check_store(directory: Path, identity: StoreIdentity, run_id: str | None) -> set[str]:
+def check_store(directory: Path, identity: StoreIdentity, run_id: str | None) -> dict[str, set[str]]:
     """Check the store in ``directory`` as a shard of ``identity`` in run ``run_id`` would before it fuses (its
     file, SQLite's check of every page, that it is that shard's and that run's store, every tile readable and its
-    own, no other process holding the directory), writing nothing; the sessions it holds fused or given-up scans of
-    (none when there is no store yet). StoreError says what is wrong: `posegrid run --resume` checks every shard's
-    store before it starts any process (a damaged store, another shard's folder or another run's stopped the run
-    after the router and the other shards had started, exit 1 with their lines and a new session in run.json)."""
+    own, no other process holding the directory), writing nothing; the sessions it holds fused or given-up scans of,
+    each with the robots whose scans they are (none when there is no store yet). StoreError says what is wrong:
+    `posegrid run --resume` checks every shard's store before it starts any process (a damaged store, another
+    shard's folder or another run's stopped the run after the router and the other shards had started, exit 1 with
+    their lines and a new session in run.json)."""
     path = directory / DB_NAME
     if not path.exists() and not Path(f"{path}-wal").exists():
-        return set()
+        return {}
     lock = _lock_directory(directory)
     if not _check_file(path):
         os.close(lock)
-        return set()
+        return {}
     try:
         _refuse_a_foreign_log(path)
         connection = _connect(path, None)
@@ -429,12 +430,16 @@ def check_store(directory: Path, identity: StoreIdentity, run_id: str | None) ->
             _refuse_another_run(path, _run_of(connection), run_id)
         for tile in connection.execute("SELECT tx, ty, robot, seq, layers FROM tiles"):
             store._tile(tile)
-        rows = connection.execute("SELECT DISTINCT session FROM robots WHERE fused + discarded > 0").fetchall()
+        rows = connection.execute("SELECT session, robot FROM robots WHERE fused + discarded > 0").fetchall()
     except sqlite3.DatabaseError as exc:
         raise StoreError(f"the store {path} cannot be read ({exc}): it is damaged") from None
     finally:
         store.close()
-    return {row[0] for row in rows if isinstance(row[0], str)}
+    sessions: dict[str, set[str]] = {}
+    for session, robot in rows:
+        if isinstance(session, str) and isinstance(robot, str):
+            sessions.setdefault(session, set()).add(robot)
+    return sessions
 
 
 def _lock_directory(directory: Path) -> int:

@@ -9,12 +9,14 @@ import json
 import os
 import sys
 import time
-from collections.abc import Collection
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from schemas.wire import is_valid_name
+from schemas.files import RASTER_RESOLUTION_LIMITS
+from schemas.messages import MAX_SHARDS
+from schemas.wire import NAME_RULE, is_valid_name
 from services.state.store.db import StoreError, new_session_id
 
 RUN_FILE = "run.json"
@@ -98,12 +100,14 @@ def prepare_run(
     map_name: str,
     shards: int,
     resolution: float,
-    with_scans: Collection[str] | None = None,
+    with_scans: Mapping[str, Collection[str]] | None = None,
+    robot: str | None = None,
 ) -> RunState:
     """The state of a run in ``directory``: a new one (``resume`` False: the directory must be new or empty), or the
     run it holds (``resume``), with a new session or, with ``continue_session``, its latest one that holds scans
-    (``with_scans``: the sessions the shards' stores hold scans of; None: the latest one). Raises StoreError
-    (exit 2) for a directory that cannot be used, or a run of another map, shard count or resolution."""
+    (``with_scans``: the sessions the shards' stores hold scans of, each with the robots of those scans; None: the
+    latest one). Raises StoreError (exit 2) for a directory that cannot be used, a run of another map, shard count or
+    resolution, or a session to continue whose scans are of robots other than ``robot`` (the run's)."""
     path = directory / RUN_FILE
     record: dict[str, Any]
     if not resume:
@@ -114,27 +118,42 @@ def prepare_run(
         record = {"format": RUN_FORMAT, "version": RUN_VERSION, "map": map_name, "shards": shards}
         record |= {"resolution": resolution, "sessions": [], "id": new_session_id()}
     else:
-        record = _read_run(path, directory)
-        for option, key, value in (("--map", "map", map_name), ("--shards", "shards", shards)):
-            if record[key] != value:
-                raise StoreError(
-                    f"{directory} holds a run with {option} {record[key]}, not {value}: give {option} {record[key]}"
-                )
-        if record["resolution"] != resolution:
-            raise StoreError(
-                f"{directory} holds a map of {record['resolution']!r} m cells, not {resolution!r}: give "
-                f"--resolution {record['resolution']!r}"
-            )
+        record = check_run_options(directory, map_name, shards, resolution)
     record.setdefault("id", new_session_id())  # (a run.json written before runs had ids gets one)
     sessions = record["sessions"]
     if continue_session and not sessions:
         raise StoreError(f"{directory} holds no session to continue")
     session = _session_to_continue(sessions, with_scans) if continue_session else new_session_id()
+    robots = sorted((with_scans or {}).get(session, ()))
+    if continue_session and robot is not None and robots and robot not in robots:
+        raise StoreError(
+            f"--continue-session: session {session} of {directory} holds scans of robot {', '.join(robots)}, not of "
+            f"{robot!r}: its replay under another name would be fused a second time. Give --robot {robots[0]}, or "
+            "leave out --continue-session to fuse this robot in a new session on top of the map"
+        )
     if not continue_session:
         sessions.append({"id": session, "started": time.time()})
     _write_run(path, directory, record)
     run_id = record.get("id")
     return RunState(directory, session, resume, run_id if isinstance(run_id, str) and is_valid_name(run_id) else "")
+
+
+def check_run_options(directory: Path, map_name: str, shards: int, resolution: float) -> dict[str, Any]:
+    """The run record of ``directory`` (a run to resume), if its map, shard count and resolution (m) are the ones
+    given; else StoreError naming the option to give. Checked before the shards' stores, whose own refusal of
+    another map's state names no option of `posegrid run`."""
+    record = _read_run(directory / RUN_FILE, directory)
+    for option, key, value in (("--map", "map", map_name), ("--shards", "shards", shards)):
+        if record[key] != value:
+            raise StoreError(
+                f"{directory} holds a run with {option} {record[key]}, not {value}: give {option} {record[key]}"
+            )
+    if record["resolution"] != resolution:
+        raise StoreError(
+            f"{directory} holds a map of {record['resolution']!r} m cells, not {resolution!r}: give "
+            f"--resolution {record['resolution']!r}"
+        )
+    return record
 
 
 def _session_to_continue(sessions: list[dict[str, Any]], with_scans: Collection[str] | None) -> str:
@@ -184,6 +203,20 @@ def _read_run(path: Path, directory: Path) -> dict[str, Any]:
     )
     if not ok:
         raise StoreError(f"{path} is no posegrid run record")
+    low, high = RASTER_RESOLUTION_LIMITS
+    problem = (
+        f"its map name {record['map']!r} is not valid ({NAME_RULE})"
+        if not is_valid_name(record["map"])
+        else f"its shard count {record['shards']} is not in [1, {MAX_SHARDS}]"
+        if not 1 <= record["shards"] <= MAX_SHARDS
+        else f"its resolution {record['resolution']!r} m is not in [{low:g}, {high:g}]"
+        if not low <= record["resolution"] <= high  # (also NaN)
+        else f"its id {record['id']!r} is not a valid name ({NAME_RULE})"
+        if "id" in record and not (isinstance(record["id"], str) and is_valid_name(record["id"]))
+        else None
+    )
+    if problem:
+        raise StoreError(f"{path} is damaged: {problem}; restore it from a copy (it was not changed)")
     if record.get("version") != RUN_VERSION:
         raise StoreError(f"{path} has version {record.get('version')!r}; this build reads version {RUN_VERSION}")
     return record
