@@ -89,6 +89,8 @@ def check_scan(
     ranges = np.asarray(ranges)
     if ranges.shape != (beams,):
         raise InputError(f"scan has {ranges.shape} ranges but the laser has {beams} beams")
+    if ranges.dtype.kind not in "iuf":  # (True and "1.0" read as 1 m, None as no return, complex lost its part)
+        raise InputError(f"ranges must be real numbers (m; NaN or inf: no return), got dtype {ranges.dtype}")
     samples, weights = check_samples(samples, weights)
     return ranges, samples, weights
 

@@ -12,8 +12,16 @@ NORMALISED_TOLERANCE = 1e-9
 
 
 def normalize_log_weights(log_weights: np.ndarray) -> np.ndarray:
-    """Weights (N,) summing to 1 from unnormalised log weights (N,), without overflow."""
-    shifted = np.exp(log_weights - np.max(log_weights))
+    """Weights (N,) summing to 1 from unnormalised log weights (N,), without overflow. InputError when the largest
+    log weight is not finite (every particle at -inf, one at +inf, or NaN): there is no distribution to give, where
+    the weights came out NaN."""
+    top = np.max(log_weights)
+    if not np.isfinite(top) or np.isnan(log_weights).any():
+        raise InputError(
+            f"the log weights give no distribution (largest {top}, {int(np.isnan(log_weights).sum())} NaN): every "
+            "particle ruled out, or a likelihood that is not finite"
+        )
+    shifted = np.exp(log_weights - top)
     return shifted / shifted.sum()
 
 

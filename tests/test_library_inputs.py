@@ -96,6 +96,18 @@ def test_a_laser_that_cannot_be_fused_is_refused_when_the_fusion_is_made(kwargs,
         _fusion(**kwargs)
 
 
+@pytest.mark.parametrize(
+    "ranges",
+    [np.array([True] * 5), np.array(["1.0"] * 5), np.array([None] * 5), np.full(5, 2.0 + 1.0j)],
+    ids=["bool", "str", "none", "complex"],
+)
+def test_ranges_that_are_not_real_numbers_are_refused(ranges):
+    """True and "1.0" were taken as a 1 m return, None as none, and a complex range lost its imaginary part."""
+    with pytest.raises(InputError, match="ranges must be real numbers"):
+        _fusion().fuse(ranges, np.zeros((1, 3)), np.ones(1))
+    assert _fusion().fuse(np.full(5, 2), np.zeros((1, 3)), np.ones(1)) is not None  # (integer metres are numbers)
+
+
 def test_the_grid_and_model_refuse_an_infinite_cell_or_a_tile_past_its_bound():
     with pytest.raises(InputError, match="> 0 m and finite"):
         TiledGrid(np.inf)

@@ -537,3 +537,22 @@ def test_a_stated_drive_angle_sd_turns_only_the_positions_given_out(simdir, tmp_
     expected[:, :2, :2] = 0.02**2 * across[:, :, None] * across[:, None, :]
     assert np.abs(expected).max() > 1e-4  # the robot moved a metre or more: the test can fail
     np.testing.assert_allclose(added, expected, rtol=0.0, atol=1e-12)
+
+
+def test_a_covariance_the_file_check_passes_but_scoring_refuses_is_one_line_not_a_traceback(tmp_path, capsys):
+    """The file contract allows eigenvalues down to -1e-12 (rounding); scoring measures against the covariance's own
+    scale. A cov of 1e-13 m^2 entries with a -1e-13 eigenvalue passes the first and not the second, whose error
+    (slam.errors.InputError) the command line did not know: a traceback."""
+    from schemas.files import PoseDistributionFile, PoseSet
+
+    steps = 4
+    mean = np.zeros((steps, 3))
+    mean[:, 0] = np.arange(steps)
+    stamps = 0.1 * np.arange(steps)
+    bent = np.tile(np.diag([1e-14, -1e-13, 1e-14]), (steps, 1, 1))
+    honest = np.tile(np.eye(3) * 1e-4, (steps, 1, 1))
+    save_pose_distribution(tmp_path / "est.npz", PoseDistributionFile(stamps, PoseSet(mean=mean, cov=bent)))
+    save_pose_distribution(tmp_path / "truth.npz", PoseDistributionFile(stamps, PoseSet(mean=mean, cov=honest)))
+    assert main(["eval-traj", str(tmp_path / "est.npz"), str(tmp_path / "truth.npz")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "cov[0] is not positive semi-definite" in err, err

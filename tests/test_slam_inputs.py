@@ -264,3 +264,15 @@ def test_simulator_takes_a_fan_of_exactly_a_full_turn():
 
 def test_the_truth_cell_cap_is_the_one_load_truth_applies():
     assert MAX_TRUTH_CELLS == SCHEMAS_MAX_TRUTH_CELLS
+
+
+@pytest.mark.parametrize(
+    "log_weights", [[-np.inf, -np.inf], [0.0, np.inf], [0.0, np.nan]], ids=["all-minf", "inf", "nan"]
+)
+def test_log_weights_that_give_no_distribution_are_refused(log_weights):
+    """All -inf gave NaN weights (0 / 0) that went on into the filter without a word."""
+    from slam.resampling import normalize_log_weights
+
+    with pytest.raises(InputError, match="the log weights give no distribution"):
+        normalize_log_weights(np.array(log_weights))
+    np.testing.assert_allclose(normalize_log_weights(np.array([0.0, -np.inf, np.log(3.0)])), [0.25, 0.0, 0.75])
