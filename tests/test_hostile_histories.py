@@ -193,13 +193,18 @@ def test_a_source_stays_until_the_shards_that_keep_a_store_have_committed_its_sc
     (every 2 s or 256 scans): the source had left when they were fused, taking its history with it. A shard with
     `persist` on must also hold them in its store; one without a store, fused is enough."""
     from schemas.messages import StreamEnd
-    from services.nodes.source import _accounted
+    from services.nodes.source import FAILING_GRACE, _accounted
     from test_api_status import shard
 
     end = StreamEnd(robot="r", scans=300)
     fused = dict(fused={"r": 290}, discarded={"r": 10}, ended={"r": 300})
     assert _accounted([shard(0, **fused)], end)  # (persist off)
     assert not _accounted([shard(0, persist="ok", committed={"r": 215}, **fused)], end)
-    assert not _accounted([shard(0, persist="failing", committed={"r": 215}, **fused)], end)
+    # commits failing for a few seconds may be a passing fault: waited for; for more than FAILING_GRACE: not
+    assert not _accounted([shard(0, persist="failing", committed={"r": 215}, commit_age=3.0, **fused)], end)
+    assert _accounted([shard(0, persist="failing", committed={"r": 215}, commit_age=FAILING_GRACE + 1, **fused)], end)
+    for uptime, waited in ((FAILING_GRACE + 1, False), (FAILING_GRACE - 1, True)):  # (no commit yet: since it started)
+        stuck = shard(0, persist="failing", commit_age=-1.0, uptime=uptime, **fused)
+        assert _accounted([stuck], end) is not waited
     assert _accounted([shard(0, persist="ok", committed={"r": 300}, **fused), shard(1, **fused)], end)
     assert not _accounted([shard(0, persist="ok", committed={"r": 300}, fused={"r": 290}, ended={"r": 300})], end)

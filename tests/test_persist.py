@@ -242,7 +242,9 @@ def test_a_source_does_not_wait_for_a_shard_whose_commits_fail(tmp_path, procs):
         + ["--rate", "max", "--connect", endpoint]
     )
     assert source.process.wait(50) == 0, source.output()  # (it gave up after 60 s, exit 1)
-    assert "shard(s) 0 of map 'm' cannot commit to their state directory (persist: failing)" in source.output()
+    assert "shard(s) 0 of map 'm' cannot commit to their state directory (persist: failing for more than 10 s)" in (
+        source.output()
+    )
     assert "persist: failing" in shard.output()
     shard.process.send_signal(signal.SIGINT)
     assert shard.process.wait(30) == 1, shard.output()

@@ -312,12 +312,12 @@ class Source:
                 robot,
                 scans,
             )
-        failing = [s.shard for s in stats if s.persist == "failing"]
-        if failing:
+        stuck = [s.shard for s in stats if commits_stuck(s)]
+        if stuck:
             self._warn_once(
-                f"shard(s) {', '.join(map(str, sorted(failing)))} of map {self.options.map_name!r} cannot commit to "
-                "their state directory (persist: failing): they serve the map from memory, and the source does not "
-                "wait for those commits"
+                f"shard(s) {', '.join(map(str, sorted(stuck)))} of map {self.options.map_name!r} cannot commit to "
+                f"their state directory (persist: failing for more than {FAILING_GRACE:g} s): they serve the map "
+                "from memory, and the source does not wait for those commits"
             )
         if len(stats) >= self.options.wait_mappers and _accounted(stats, end):
             return True  # (every scan accounted for: a shard that restarted may still ask the history)
@@ -466,12 +466,25 @@ def _accounted(stats: list[ShardStats], end: StreamEnd) -> bool:
     """Whether every shard of ``stats`` has the end of the stream and has fused or given up on each of its scans,
     and, a shard that keeps a state directory, committed them: until then its history is what a shard killed now
     would take them from (a re-probe: a shard killed as the source left lost the ~85 scans since its last commit).
-    A shard whose commits fail (persist: failing) is not waited for: its commits may never succeed again, and the
-    source waiting on them gave up after WAIT_TIMEOUT, exit 1, was restarted and replayed the run, for ever."""
+    A shard whose commits have failed for more than FAILING_GRACE s (:func:`commits_stuck`) is not waited for: its
+    commits may never succeed again, and the source waiting on them gave up after WAIT_TIMEOUT, exit 1, was
+    restarted and replayed the run, for ever. One that failed for less may be retrying past a passing fault."""
     robot, scans = end.robot, end.scans
     return all(
         s.ended.get(robot) == scans
         and s.fused.get(robot, 0) + s.discarded.get(robot, 0) >= scans
-        and (s.persist in ("off", "failing") or s.committed.get(robot, 0) >= scans)
+        and (s.persist == "off" or commits_stuck(s) or s.committed.get(robot, 0) >= scans)
         for s in stats
     )
+
+
+#: s a shard's commits must have been failing (since its last commit, else since it started) before a source stops
+#: waiting for them: five retries at the default --commit-interval of 2 s
+FAILING_GRACE = 10.0
+
+
+def commits_stuck(stats: ShardStats) -> bool:
+    """Whether the shard's commits fail (persist: failing) and have for more than FAILING_GRACE s: since its last
+    commit (commit_age), or since it started when it has made none."""
+    since = stats.commit_age if stats.commit_age >= 0 else stats.uptime
+    return stats.persist == "failing" and since > FAILING_GRACE
