@@ -13,7 +13,7 @@ from slam.calibration import DRIVE_ANGLE_LIMITS, DRIVE_ANGLE_SD_LIMITS, SCALE_SD
 from slam.consistency import ConsistencyMonitor
 from slam.errors import InputError, check_within, finite_array
 from slam.laserlog import POSE_LIMIT
-from slam.motion import VELOCITY_LIMIT, MotionModel, VelocityMotionModel, check_motion_limits
+from slam.motion import MotionModel, check_controls, check_motion_limits
 from slam.range_bearing import BEARING_LIMIT, RangeBearingModel, check_sensor_limits
 
 #: the largest |landmark id|: ids are names, and beyond 2^53 a float id no longer names one integer
@@ -94,17 +94,7 @@ class LandmarkFilter:
         bearings (rad) beyond a full turn, ids that are not whole numbers or not one per measurement (with unknown
         correspondences ids are ignored and may be left empty). One control (3,) is a step of one control. O(K + O),
         vectorised."""
-        controls = np.asarray(controls, dtype=np.float64)
-        controls = controls.reshape(-1, 3) if controls.size == 0 or controls.shape == (3,) else controls
-        controls = finite_array("controls", controls, (None, 3), " (one row per control)")
-        if isinstance(self.motion, VelocityMotionModel) and len(controls):
-            check_within("control velocity (v m/s, w rad/s)", controls[:, :2], (-VELOCITY_LIMIT, VELOCITY_LIMIT))
-            check_within(
-                "control dt (the time a command is held; a step cannot go back in time)",
-                controls[:, 2],
-                (0.0, np.inf),
-                "s",
-            )
+        controls = check_controls(controls, self.motion)
         measurements = np.asarray(measurements, dtype=np.float64)
         measurements = measurements.reshape(-1, 2) if measurements.size == 0 else measurements
         measurements = finite_array("measurements", measurements, (None, 2), " (rows of range m, bearing rad)")

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from slam.angles import wrap_angle
-from slam.errors import InputError, check_within
+from slam.errors import InputError, check_within, finite_array
 
 #: below this odometry translation (m) a motion counts as a turn on the spot and delta_rot1 is taken as 0
 MIN_TRANSLATION = 1e-6
@@ -424,6 +424,21 @@ def check_motion_limits(motion: MotionModel) -> None:
     if isinstance(motion, VelocityMotionModel):
         check_within(f"{name}.floor", motion.floor, ALPHA_LIMITS)
         check_within(f"{name}.dt_ref", motion.dt_ref, DT_REF_LIMITS, "s")
+
+
+def check_controls(controls: np.ndarray, motion: MotionModel) -> np.ndarray:
+    """A step's controls as float64 (K, 3) (one control (3,) is a step of one; none: (0, 3)), or InputError saying
+    what is wrong: a value that is not finite, or for a velocity model (v m/s, w rad/s, dt s) |v|, |w| beyond
+    VELOCITY_LIMIT or dt < 0 (a step cannot go back in time). O(K), vectorised."""
+    controls = np.asarray(controls, dtype=np.float64)
+    controls = controls.reshape(-1, 3) if controls.size == 0 or controls.shape == (3,) else controls
+    controls = finite_array("controls", controls, (None, 3), " (one row per control)")
+    if isinstance(motion, VelocityMotionModel) and len(controls):
+        check_within("control velocity (v m/s, w rad/s)", controls[:, :2], (-VELOCITY_LIMIT, VELOCITY_LIMIT))
+        check_within(
+            "control dt (the time a command is held; a step cannot go back in time)", controls[:, 2], (0.0, np.inf), "s"
+        )
+    return controls
 
 
 def compose(poses: np.ndarray, delta: np.ndarray) -> np.ndarray:

@@ -276,3 +276,22 @@ def test_log_weights_that_give_no_distribution_are_refused(log_weights):
     with pytest.raises(InputError, match="the log weights give no distribution"):
         normalize_log_weights(np.array(log_weights))
     np.testing.assert_allclose(normalize_log_weights(np.array([0.0, -np.inf, np.log(3.0)])), [0.25, 0.0, 0.75])
+
+
+def test_dead_reckoning_refuses_what_the_landmark_filters_refuse():
+    """The baseline filter took NaN controls, a negative dt (no motion) and a NaN start without a word."""
+    from slam.dead_reckoning import DeadReckoning
+    from slam.motion import VelocityMotionModel
+
+    model = VelocityMotionModel((0.1, 0.01, 0.01, 0.1, 0.0, 0.0))
+    with pytest.raises(InputError, match="initial_pose must be finite"):
+        DeadReckoning(model, np.array([0.0, np.nan, 0.0]))
+    with pytest.raises(InputError, match="drive_angle"):
+        DeadReckoning(model, np.zeros(3), drive_angle=np.nan)
+    robot = DeadReckoning(model, np.zeros(3))
+    for controls, message in (([[np.nan, 0.0, 0.1]], "controls must be finite"), ([[0.5, 0.0, -0.1]], "control dt")):
+        with pytest.raises(InputError, match=message):
+            robot.step(np.array(controls), np.zeros((0, 2)), np.zeros(0))
+    mean, cov = robot.step(np.array([[0.5, 0.0, 0.1]]), np.zeros((0, 2)), np.zeros(0))  # (the pose was not moved)
+    np.testing.assert_allclose(mean, [0.05, 0.0, 0.0], atol=1e-12)
+    assert np.all(np.isfinite(cov)) and cov[0, 0] > 0
