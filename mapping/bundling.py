@@ -30,6 +30,7 @@ import math
 
 import numpy as np
 
+from mapping.errors import InputError
 from mapping.jit import kernel
 
 #: tolerance (m) the benches use: two cells at 0.05 m, chosen on the simulated office (60 samples, 400 scans), where
@@ -71,13 +72,22 @@ def bundle_samples(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The bundles' leaders (K, 3) (laser poses, map frame, m and rad) and summed weights (K,) of laser poses
     ``lasers`` (M, 3) with ``weights`` (M,): every sample within ``tolerance`` m (|dp| + ``reach`` |dyaw|, reach in
-    m) of its leader (module docstring). A tolerance of 0 bundles only identical poses."""
+    m) of its leader (module docstring). A tolerance of 0 bundles only identical poses. InputError for arrays of
+    other shapes (the compiled search read past the shorter one: garbage, or a crash), values that are not finite, or
+    a reach (m) that is not finite and >= 0."""
+    lasers = np.asarray(lasers, np.float64)
+    weights = np.asarray(weights, np.float64)
+    if lasers.ndim != 2 or lasers.shape[1] != 3 or weights.shape != lasers.shape[:1]:
+        raise InputError(f"need laser poses (M, 3) and weights (M,), got {lasers.shape} and {weights.shape}")
+    if not (np.isfinite(lasers).all() and np.isfinite(weights).all()):
+        raise InputError("the laser poses and weights must be finite")
+    if not (math.isfinite(reach) and reach >= 0.0):
+        raise InputError(f"the reach must be a finite number of metres >= 0, got {reach}")
+    tolerance = check_tolerance(tolerance)
     if len(weights) < 2:
         return lasers, weights
-    order = np.argsort(-np.asarray(weights, np.float64), kind="stable")
-    leaders, summed = _leaders(
-        np.ascontiguousarray(lasers, np.float64), order, np.asarray(weights, np.float64), float(tolerance), float(reach)
-    )
+    order = np.argsort(-weights, kind="stable")
+    leaders, summed = _leaders(np.ascontiguousarray(lasers), order, weights, tolerance, float(reach))
     return lasers[leaders], summed
 
 

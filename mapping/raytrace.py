@@ -17,6 +17,7 @@ import math
 
 import numpy as np
 
+from mapping.errors import InputError
 from mapping.jit import kernel
 
 #: crossings of the two grid-line families closer than this (relative, m) are one corner crossing
@@ -24,6 +25,11 @@ CORNER_EPS = 1e-12
 
 #: stands for "never" in the stepping arithmetic (inf would give 0 * inf = NaN in the branch-free steps)
 FAR = 1e300
+
+
+#: cell indices stay within this many cells of the map origin (the kernels take them as int64, and a ray's ranges
+#: keep their precision: from a point 1e20 m out a ray's steps no longer moved it, and its walk never ended)
+MAX_CELL_INDEX = 1 << 40
 
 
 def max_cells(r_stop: float, resolution: float) -> int:
@@ -101,8 +107,18 @@ def trace_ray(x0, y0, dx, dy, r_stop, res, out_ix, out_iy, out_rin, out_rout):  
 def traverse(x0: float, y0: float, angle: float, r_stop: float, resolution: float) -> tuple[np.ndarray, ...]:
     """The cells a ray crosses: (ix, iy, r_in, r_out) arrays, in order from the origin.
 
-    x0, y0: origin in m (map frame); angle: direction in rad from +x; r_stop: length in m.
+    x0, y0: origin in m (map frame); angle: direction in rad from +x; r_stop: length in m. InputError for values that
+    are not finite, a resolution (m) not > 0, or a ray reaching past MAX_CELL_INDEX cells from the origin.
     """
+    if not (math.isfinite(resolution) and resolution > 0.0):
+        raise InputError(f"resolution must be a finite number of metres > 0, got {resolution}")
+    if not (math.isfinite(angle) and 0.0 <= r_stop < math.inf):
+        raise InputError(f"need a finite angle (rad) and a length 0 <= r_stop < inf (m), got {angle} and {r_stop}")
+    if not (max(abs(x0), abs(y0)) + r_stop) / resolution <= MAX_CELL_INDEX:  # (also NaN)
+        raise InputError(
+            f"a ray from ({x0}, {y0}) m, {r_stop} m long, reaches beyond the {MAX_CELL_INDEX * resolution:.3g} m "
+            f"that {resolution} m cells cover"
+        )
     size = max_cells(r_stop, resolution)
     ix = np.empty(size, np.int64)
     iy = np.empty(size, np.int64)

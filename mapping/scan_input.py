@@ -13,6 +13,7 @@ import numpy as np
 
 from mapping.errors import InputError
 from mapping.jit import kernel
+from mapping.raytrace import MAX_CELL_INDEX
 
 #: how far from 1 the pose weights may sum (schemas.files.WEIGHT_SUM_TOLERANCE is the file contract's: the same
 #: value, which mapping cannot import)
@@ -22,8 +23,6 @@ WEIGHT_SUM_TOLERANCE = 1e-4
 #: cells. Pose samples spread wider than that (a diverged
 #: estimate) are refused, not allocated.
 MAX_WINDOW_CELLS = 1 << 24
-#: window cell indices stay within this many cells of the map origin (the kernels take them as int64)
-MAX_CELL_INDEX = 1 << 40
 
 
 @kernel(nogil=True)
@@ -66,6 +65,9 @@ def check_laser(
 def check_samples(samples: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Validate one scan's pose samples (M, 3) (x m, y m, yaw rad; a single pose (3,) is taken as M = 1) and their
     weights (M,): finite, weights non-negative and summing to 1. Returns them as float64 arrays."""
+    for name, values in (("pose samples", samples), ("weights", weights)):
+        if np.asarray(values).dtype.kind not in "iuf":  # ("1.0" was read as 1, a complex value lost its part)
+            raise InputError(f"{name} must be real numbers, got dtype {np.asarray(values).dtype}")
     samples = np.asarray(samples, dtype=np.float64)
     weights = np.asarray(weights, dtype=np.float64)
     if samples.shape == (3,):  # one pose
@@ -86,6 +88,8 @@ def check_scan(
     ranges: np.ndarray, samples: np.ndarray, weights: np.ndarray, beams: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Validate one scan's inputs and return them as arrays: ranges (B,), samples (M, 3), weights (M,)."""
+    if np.ma.isMaskedArray(ranges) and np.ma.getmaskarray(ranges).any():  # (np.asarray drops the mask)
+        raise InputError("ranges is a masked array with masked beams: give NaN (no return) for them instead")
     ranges = np.asarray(ranges)
     if ranges.shape != (beams,):
         raise InputError(f"scan has {ranges.shape} ranges but the laser has {beams} beams")

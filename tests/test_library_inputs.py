@@ -12,7 +12,7 @@ import pytest
 from mapping.errors import InputError
 from mapping.evaluation import score_map
 from mapping.export import crop_to_occupied, render_pgm, render_rgb
-from mapping.fusion import FusionThreads, MonteCarloFusion
+from mapping.fusion import MonteCarloFusion
 from mapping.grid import TiledGrid
 from mapping.poses import gaussian_samples, scan_samples
 from mapping.sensor_model import SensorModel
@@ -76,7 +76,10 @@ def test_a_singular_covariance_still_draws_along_its_free_axes():
 # ------------------------------------------------------------------------------------------------ the fusion
 
 
-def _fusion(angles=np.linspace(-1.0, 1.0, 5), offset=(0.0, 0.0, 0.0), threads=1) -> MonteCarloFusion:
+BEAMS = np.linspace(-1.0, 1.0, 5)
+
+
+def _fusion(angles=BEAMS, offset=(0.0, 0.0, 0.0), threads=1) -> MonteCarloFusion:
     return MonteCarloFusion(TiledGrid(0.05), SensorModel(resolution=0.05), angles, 0.0, 8.0, offset, threads=threads)
 
 
@@ -106,6 +109,57 @@ def test_ranges_that_are_not_real_numbers_are_refused(ranges):
     with pytest.raises(InputError, match="ranges must be real numbers"):
         _fusion().fuse(ranges, np.zeros((1, 3)), np.ones(1))
     assert _fusion().fuse(np.full(5, 2), np.zeros((1, 3)), np.ones(1)) is not None  # (integer metres are numbers)
+
+
+@pytest.mark.parametrize(
+    "samples, weights, message",
+    [
+        (np.array([["0", "0", "0"]]), np.ones(1), "pose samples must be real numbers"),
+        (np.zeros((1, 3)), np.array(["1.0"]), "weights must be real numbers"),
+        (np.zeros((1, 3)) + 1j, np.ones(1), "pose samples must be real numbers"),
+    ],
+    ids=["str-samples", "str-weights", "complex-samples"],
+)
+def test_samples_and_weights_that_are_not_real_numbers_are_refused(samples, weights, message):
+    with pytest.raises(InputError, match=message):
+        _fusion().fuse(np.full(5, 2.0), samples, weights)
+
+
+def test_a_masked_scan_is_refused_not_fused_as_if_unmasked():
+    """np.asarray drops a mask: a scan whose every beam was masked was fused as five 2 m returns."""
+    masked = np.ma.masked_array(np.full(5, 2.0), mask=[True, False, False, False, True])
+    with pytest.raises(InputError, match="masked array"):
+        _fusion().fuse(masked, np.zeros((1, 3)), np.ones(1))
+    assert _fusion().fuse(np.ma.masked_array(np.full(5, 2.0)), np.zeros((1, 3)), np.ones(1)) is not None
+
+
+def test_bundling_refuses_poses_and_weights_of_two_lengths():
+    """The compiled leader search read past the shorter array: one bundle of four poses weighing 1, bundle weights
+    summing to 0.4, and with a million weights against two poses a crash of the interpreter."""
+    from mapping.bundling import bundle_samples
+
+    for lasers, weights in ((np.zeros((4, 2)), np.full(4, 0.25)), (np.zeros((2, 3)), np.full(5, 0.2))):
+        with pytest.raises(InputError, match=r"need laser poses \(M, 3\) and weights \(M,\)"):
+            bundle_samples(lasers, weights, 0.1, 1.0)
+    with pytest.raises(InputError, match="finite"):
+        bundle_samples(np.array([[0.0, 0.0, np.nan], [0.0, 0.0, 0.0]]), np.full(2, 0.5), 0.1, 1.0)
+    leaders, summed = bundle_samples(np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0]]), np.array([0.4, 0.6]), 0.1, 1.0)
+    np.testing.assert_array_equal(leaders, [[0.01, 0.0, 0.0]])  # (the heavier leads, with both weights)
+    np.testing.assert_allclose(summed, [1.0])
+
+
+@pytest.mark.parametrize(
+    "x0, angle, r_stop, resolution", [(np.nan, 0.3, 1.0, 0.05), (1e20, 0.3, 1.0, 0.05), (0.0, np.inf, 1.0, 0.05),
+                                      (0.0, 0.3, np.inf, 0.05), (0.0, 0.3, 1.0, 0.0)],
+)  # fmt: skip
+def test_a_ray_that_cannot_be_walked_is_refused_not_walked_for_ever(x0, angle, r_stop, resolution):
+    """From x0 = NaN, inf or 1e20 m the walk never ended (in compiled code, past Ctrl-C)."""
+    from mapping.raytrace import traverse
+
+    with pytest.raises(InputError):
+        traverse(x0, 0.0, angle, r_stop, resolution)
+    ix, iy, _, r_out = traverse(0.01, 0.01, 0.0, 0.12, 0.05)
+    assert ix.tolist() == [0, 1, 2] and iy.tolist() == [0, 0, 0] and r_out[-1] == pytest.approx(0.12)
 
 
 def test_the_grid_and_model_refuse_an_infinite_cell_or_a_tile_past_its_bound():

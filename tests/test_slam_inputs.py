@@ -295,3 +295,50 @@ def test_dead_reckoning_refuses_what_the_landmark_filters_refuse():
     mean, cov = robot.step(np.array([[0.5, 0.0, 0.1]]), np.zeros((0, 2)), np.zeros(0))  # (the pose was not moved)
     np.testing.assert_allclose(mean, [0.05, 0.0, 0.0], atol=1e-12)
     assert np.all(np.isfinite(cov)) and cov[0, 0] > 0
+
+
+def _grid_filter(**given):
+    from slam.gridslam import GridSlamConfig
+    from slam.gridslam.filter import GridFastSLAM
+
+    args = {
+        "beam_angles": np.linspace(-1.5, 1.5, 90),
+        "sensor_offset": np.zeros(3),
+        "range_min": 0.05,
+        "initial_pose": np.zeros(3),
+    }
+    args.update(given)
+    config = GridSlamConfig(particles=5, particle_cap=5, loop_closure=False)
+    return GridFastSLAM(config, args["beam_angles"], args["sensor_offset"], args["range_min"], args["initial_pose"], 0)
+
+
+@pytest.mark.parametrize(
+    "given, message",
+    [
+        ({"initial_pose": np.array([np.nan, 0.0, 0.0])}, "initial_pose must be finite"),
+        ({"initial_pose": np.array([1e300, 0.0, 0.0])}, "initial_pose x and y must be"),
+        ({"beam_angles": np.zeros((3, 3))}, r"beam_angles must have shape \(N,\)"),
+        ({"beam_angles": np.array([0.0, np.nan, 0.1])}, "beam_angles must be finite"),
+        ({"sensor_offset": np.zeros(2)}, r"sensor_offset must have shape \(3,\)"),
+    ],
+    ids=["nan-start", "far-start", "2d-angles", "nan-angle", "short-offset"],
+)
+def test_grid_fastslam_refuses_a_start_or_laser_it_cannot_use(given, message):
+    """A NaN start pose made the grid's insertion loop for ever (compiled, past Ctrl-C); 2-D angles gave a numba
+    typing error; a NaN angle was taken."""
+    with pytest.raises(InputError, match=message):
+        _grid_filter(**given)
+
+
+def test_grid_fastslam_refuses_odometry_or_ranges_it_cannot_use():
+    """NaN odometry was said as a jump of -1.5e19 m; string ranges were read as numbers."""
+    grid = _grid_filter()
+    for odometry, ranges, message in (
+        (np.array([np.nan, 0.0, 0.0]), np.full(90, 3.0), "odometry must be finite"),
+        (np.zeros(3), np.array(["3"] * 90), "ranges must be one real number"),
+        (np.zeros(3), np.full(89, 3.0), "ranges must be one real number"),
+    ):
+        with pytest.raises(InputError, match=message):
+            grid.integrate(odometry, ranges)
+    poses, weights, _, _ = grid.integrate(np.zeros(3), np.full(90, 3.0))
+    assert poses.shape == (5, 3) and np.isclose(weights.sum(), 1.0)

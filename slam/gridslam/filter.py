@@ -43,6 +43,7 @@ import numpy as np
 
 from slam.angles import wrap_angle
 from slam.consistency import scaled_motion
+from slam.errors import InputError, check_within, finite_array
 from slam.gridslam.config import GridSlamConfig
 from slam.gridslam.health import HealthWatch, ScanHealth, kld_count, spreads, systematic_resample
 from slam.gridslam.honesty import (
@@ -56,6 +57,7 @@ from slam.gridslam.honesty import (
 from slam.gridslam.kernels import log_likelihoods, match_and_propose
 from slam.gridslam.loops import LoopCloser
 from slam.gridslam.tiles import TileMaps
+from slam.laserlog import POSE_LIMIT
 from slam.motion import OdometryMotionModel, OmniOdometryMotionModel, odometry_controls, rotate_covariance
 from slam.posegraph import apply_transform
 from slam.resampling import effective_sample_size, normalize_log_weights
@@ -106,8 +108,11 @@ class Laser:
         range_max: float = math.inf,
     ) -> Laser:
         """A scan's laser (beam angles (B,) rad, offset (3,), the sensor's range limits m) within the config's
-        min_range and max_range."""
-        angles = np.asarray(beam_angles, np.float64)
+        min_range and max_range. InputError for angles that are not one finite value per beam, an offset that is not
+        three finite values, or a range_min (m) that is not finite and >= 0."""
+        angles = finite_array("beam_angles", beam_angles, (None,), " (one angle per beam, rad in the laser frame)")
+        sensor_offset = finite_array("sensor_offset", sensor_offset, (3,), " (x m, y m, yaw rad on the robot)")
+        check_within("range_min", range_min, (0.0, math.inf), "m")
         return cls(
             np.cos(angles),
             np.sin(angles),
@@ -121,6 +126,14 @@ class Laser:
     def reach(self) -> float:
         """How far (m) from the robot a beam of this laser reaches at most."""
         return self.max_range + float(np.hypot(self.offset[0], self.offset[1]))
+
+
+def _checked_pose(name: str, pose: np.ndarray) -> np.ndarray:
+    """``pose`` (x m, y m, yaw rad) as float64 (3,), finite and within POSE_LIMIT m of the origin; InputError else
+    (a NaN start pose made the grid's insertion loop for ever, in compiled code past Ctrl-C)."""
+    pose = finite_array(name, pose, (3,), " (x m, y m, yaw rad)")
+    check_within(f"{name} x and y", pose[:2], (-POSE_LIMIT, POSE_LIMIT), "m")
+    return pose
 
 
 class GridFastSLAM:
@@ -143,7 +156,7 @@ class GridFastSLAM:
         self.rng = np.random.default_rng(seed)
         self.use_laser(Laser.of(config, beam_angles, sensor_offset, range_min))
         m = config.particles
-        self.poses = np.tile(np.asarray(initial_pose, np.float64), (m, 1))
+        self.poses = np.tile(_checked_pose("initial_pose", initial_pose), (m, 1))
         self.log_w = np.zeros(m)
         self.maps = TileMaps(m, config.resolution, config.tile_cells)
         model = OmniOdometryMotionModel if config.holonomic else OdometryMotionModel
@@ -281,8 +294,13 @@ class GridFastSLAM:
         """
         if laser is not None:
             self.use_laser(laser)
+        odometry = _checked_pose("odometry", odometry)
+        ranges = np.asarray(ranges)
+        if ranges.dtype.kind not in "iuf" or ranges.shape != self.cos_b.shape:
+            raise InputError(
+                f"ranges must be one real number (m) per beam, {self.cos_b.shape}, got {ranges.dtype} {ranges.shape}"
+            )
         r_stop, hit, idx = self._beams(ranges)
-        odometry = np.asarray(odometry, np.float64)
         fallbacks, matched, widened, failed = 0, math.nan, self.widen, False
         moves = np.zeros((len(self.poses), 3, 3))  # each move's covariance (for the loop closer's graph)
         if self.odometry_ref is not None:
