@@ -15,6 +15,7 @@ while the real shard is down is that shard as far as anyone can tell (docs/secur
 
 from __future__ import annotations
 
+import math
 from collections.abc import Collection, Iterable
 from dataclasses import dataclass, field
 
@@ -22,7 +23,9 @@ import zenoh
 
 from mapping.grid import TiledGrid
 from schemas.messages import MessageError, ShardStats, TileUpdate, decode_message
+from schemas.wire import NAME_RULE, is_valid_name
 from services import keys
+from services.errors import UsageError
 from services.state.ownership import owns_tile
 from services.zenoh_config import replier
 
@@ -90,16 +93,27 @@ def sort_answers(
     return ShardAnswers(stats, answerers, duplicated, problems, left_out)
 
 
+def _check_timeout(timeout: float) -> None:
+    """UsageError unless ``timeout`` (s) is a finite number >= 0 (NaN or inf: zenoh's "negative timeout")."""
+    if not (math.isfinite(timeout) and timeout >= 0):  # (also NaN)
+        raise UsageError(f"a timeout must be a finite number of seconds >= 0, got {timeout!r}")
+
+
 class MapReader:
     """Queries the shards of map ``map_name`` on an open session."""
 
     def __init__(self, session: zenoh.Session, map_name: str):
+        """UsageError for a map name no key may hold (NAME_RULE): "*" or "a?b" made a query of other keys, or of
+        every map, and "main/" raised zenoh's own error, which quotes its Rust sources."""
+        if not is_valid_name(map_name):
+            raise UsageError(f"the map name {map_name!r} is not valid ({NAME_RULE})")
         self.session = session
         self.map_name = map_name
         self.rejected = 0
 
     def _replies(self, selector: str, expected, timeout: float) -> list:
         """(key, sender's session id, message) of each reply that decodes as ``expected``."""
+        _check_timeout(timeout)
         messages = []
         handler = self.session.get(
             selector,
@@ -125,6 +139,7 @@ class MapReader:
         return self._tokens(self._ask_tokens(timeout))
 
     def _ask_tokens(self, timeout: float):
+        _check_timeout(timeout)
         return self.session.liveliness().get(keys.shard_alive_key(self.map_name, "*"), timeout=timeout)
 
     def _tokens(self, handler) -> set[int]:

@@ -202,3 +202,23 @@ def test_tiles_from_a_session_that_is_not_their_shard_are_left_out(sessions, rou
         forger.close()
         for entity in served:
             entity.undeclare()
+
+
+@pytest.mark.parametrize("name", ["", "main/", "/main", "*", "**", "ma*", "a?b", "a#b", "main/extra", None])
+def test_a_map_name_no_key_may_hold_is_refused_before_any_query(name):
+    """ "*" and "main/extra" quietly queried other keys (and answered {}), "a?b" asked pg/map/a, and "main/" raised
+    zenoh's own error quoting its Rust sources. Refused before the session is used (here: none)."""
+    from services.errors import UsageError
+
+    with pytest.raises(UsageError, match="is not valid"):
+        MapReader(None, name)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("timeout", [float("nan"), float("inf"), -1.0])
+def test_a_timeout_that_is_not_a_finite_number_of_seconds_is_refused(timeout):
+    from services.errors import UsageError
+
+    reader = MapReader(None, "main")  # type: ignore[arg-type]  (refused before the session is used)
+    for ask in (reader.stats, reader.tiles, reader.tokens):
+        with pytest.raises(UsageError, match="a timeout must be a finite number of seconds >= 0"):
+            ask(timeout=timeout)
