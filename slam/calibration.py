@@ -38,13 +38,14 @@ from typing import Any
 import numpy as np
 
 from slam.angles import wrap_angle
-from slam.errors import LogFormatError, refuse_special_file
-from slam.motion import ALPHA_LIMITS, DT_REF_LIMITS, VelocityMotionModel
+from slam.errors import InputError, LogFormatError, check_within, finite_array, refuse_special_file
+from slam.motion import ALPHA_LIMITS, DT_REF_LIMITS, VelocityMotionModel, check_motion_limits
 from slam.range_bearing import (
     RANGE_FRACTION_LIMITS,
     SIGMA_BEARING_LIMITS,
     SIGMA_RANGE_LIMITS,
     RangeBearingModel,
+    check_sensor_limits,
 )
 from slam.sequence import SlamSequence
 
@@ -80,6 +81,8 @@ VELOCITY_BIAS_LIMITS = (-1.0, 1.0)
 BEARING_BIAS_LIMITS = (-0.5, 0.5)
 RANGE_C0_LIMITS = (0.1, 10.0)
 RANGE_C2_LIMITS = (-2.0, 2.0)
+#: accepted known-ids outlier gate (squared Mahalanobis distance); None is no gate
+OUTLIER_GATE_LIMITS = (1e-3, 1e6)
 #: the units of every field of a calibration file, written into it
 UNITS = {
     "command_delay_s": "s",
@@ -117,6 +120,11 @@ class Calibration:
     drive_angle_sd: float = DEFAULT_DRIVE_ANGLE_SD
     source: str = "generic defaults"
     diagnostics: dict[str, Any] = field(default_factory=dict, compare=False)
+
+    def __post_init__(self) -> None:
+        """InputError unless every field is within the limits :func:`load_calibration` applies
+        (:func:`check_calibration`): a calibration that could not be written and read back is refused here."""
+        check_calibration(self)
 
     def correct_commands(self, controls: np.ndarray) -> np.ndarray:
         """Velocity controls (K, 3) (v m/s, w rad/s, dt s) as executed: scaled, and biased where they move."""
@@ -176,6 +184,44 @@ class Calibration:
     def step_corrector(self) -> StepCorrector:
         """A :class:`StepCorrector` applying these corrections, the command delay included, to a live stream."""
         return StepCorrector(self)
+
+
+def _check_pair(name: str, value: object, limits: tuple[tuple[float, float], tuple[float, float]], unit: str) -> None:
+    """InputError unless ``value`` is two finite numbers, the k-th within ``limits[k]`` (in ``unit``)."""
+    pair = finite_array(name, value, (2,))
+    for k in (0, 1):
+        check_within(f"{name}[{k}]", pair[k], limits[k], unit)
+
+
+def check_calibration(calibration: Calibration) -> None:
+    """InputError naming the field unless ``calibration`` holds what a calibration file may: the corrections, the
+    noise models and the priors within the limits :func:`calibration_from_json` applies (this module's
+    ``*_LIMITS``, slam.motion's and slam.range_bearing's). O(1); run by :class:`Calibration` itself."""
+    c = calibration
+    try:
+        check_within("Calibration.command_delay", c.command_delay, DELAY_LIMITS, "s")
+        _check_pair("Calibration.velocity_scale", c.velocity_scale, (SCALE_LIMITS, SCALE_LIMITS), "")
+        _check_pair(
+            "Calibration.velocity_bias", c.velocity_bias, (VELOCITY_BIAS_LIMITS, VELOCITY_BIAS_LIMITS), "(m/s, rad/s)"
+        )
+        _check_pair("Calibration.range_calibration", c.range_calibration, (RANGE_C0_LIMITS, RANGE_C2_LIMITS), "")
+        check_within("Calibration.bearing_bias", c.bearing_bias, BEARING_BIAS_LIMITS, "rad")
+        check_within("Calibration.drive_angle", c.drive_angle, DRIVE_ANGLE_LIMITS, "rad")
+        if not isinstance(c.motion, VelocityMotionModel):
+            raise InputError(f"Calibration.motion must be a VelocityMotionModel, got {type(c.motion).__name__}")
+        check_motion_limits(c.motion)
+        check_sensor_limits(c.sensor)
+        if c.outlier_gate is not None:
+            check_within("Calibration.outlier_gate", c.outlier_gate, OUTLIER_GATE_LIMITS)
+        check_within("Calibration.scale_sd", c.scale_sd, SCALE_SD_LIMITS)
+        check_within("Calibration.drive_angle_sd", c.drive_angle_sd, DRIVE_ANGLE_SD_LIMITS, "rad")
+    except InputError as exc:
+        raise InputError(
+            f"{exc}: a Calibration holds only what a calibration file may (the limits load_calibration applies); "
+            "give a value within them"
+        ) from None
+    except (TypeError, ValueError) as exc:  # a field that is no number at all
+        raise InputError(f"Calibration: every correction and sd must be a number ({exc})") from None
 
 
 class StepCorrector:
@@ -265,8 +311,15 @@ def calibration_to_json(calibration: Calibration) -> dict[str, Any]:
 
 
 def save_calibration(path: str | Path, calibration: Calibration) -> None:
-    """Write ``calibration`` as a JSON calibration file."""
-    Path(path).write_text(json.dumps(calibration_to_json(calibration), indent=2) + "\n", encoding="utf-8")
+    """Write ``calibration`` as a JSON calibration file; InputError, and nothing written, when the file would not
+    read back (:func:`load_calibration`): a field out of its limits, diagnostics that are no JSON."""
+    check_calibration(calibration)
+    try:
+        text = json.dumps(calibration_to_json(calibration), indent=2) + "\n"
+        calibration_from_json(json.loads(text), str(path))
+    except (TypeError, ValueError) as exc:  # json's TypeError for an object it cannot write; LogFormatError
+        raise InputError(f"{path}: not written, the calibration would not read back: {exc}") from None
+    Path(path).write_text(text, encoding="utf-8")
 
 
 #: :meth:`_Reader.number`: read the value from the document
@@ -349,7 +402,7 @@ def calibration_from_json(document: Any, name: str = "calibration") -> Calibrati
             sigma_bearing=read.number("sensor.sigma_bearing_rad", SIGMA_BEARING_LIMITS),
             range_fraction=read.number("sensor.range_fraction", RANGE_FRACTION_LIMITS),
         ),
-        outlier_gate=None if gate is None else read.number("outlier_gate", (1e-3, 1e6)),
+        outlier_gate=None if gate is None else read.number("outlier_gate", OUTLIER_GATE_LIMITS),
         scale_sd=read.number("scale_sd", SCALE_SD_LIMITS),
         drive_angle_sd=read.optional("drive_angle_sd_rad", DRIVE_ANGLE_SD_LIMITS, DEFAULT_DRIVE_ANGLE_SD),
         source=source if isinstance(source, str) else str(source),

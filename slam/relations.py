@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from slam.angles import wrap_angle
-from slam.errors import LogFormatError, refuse_special_file
+from slam.errors import InputError, LogFormatError, finite_array, refuse_special_file
 from slam.laserlog import LaserLog, Skipped
 
 #: a relation stamp and a trajectory stamp closer than this (s) are the same instant
@@ -45,6 +45,17 @@ class Relations:
     lines: np.ndarray  # int64 (N,): 1-based line number of each relation
     skipped: tuple[Skipped, ...] = ()
 
+    def __post_init__(self) -> None:
+        """InputError unless t1, t2 (N,) s and delta (N, 3) are finite and lines (N,) matches them: a NaN stamp
+        would match no pose and leave its relation silently unscored. O(N)."""
+        count = len(finite_array("Relations.t1", self.t1, (None,), " (s)"))
+        finite_array("Relations.t2", self.t2, (count,), " (s; one per t1)")
+        finite_array("Relations.delta", self.delta, (count, 3), " (dx m, dy m, dyaw rad; one row per t1)")
+        if np.shape(self.lines) != (count,):
+            raise InputError(
+                f"Relations.lines must have shape ({count},) (one line number per t1), got {np.shape(self.lines)}"
+            )
+
     def __len__(self) -> int:
         return len(self.t1)
 
@@ -56,11 +67,43 @@ class Trajectory:
     stamps: np.ndarray  # float64 (K,)
     poses: np.ndarray  # float64 (K, 3)
 
+    def __post_init__(self) -> None:
+        """InputError unless the stamps (K,) s and poses (K, 3) are finite, one pose per stamp, and the stamps in
+        order (:meth:`sorted` sorts records): a NaN pose would make every score NaN. O(K)."""
+        stamps = _checked_records(self.stamps, self.poses)
+        if np.any(np.diff(stamps) < 0.0):
+            at = int(np.argmax(np.diff(stamps) < 0.0)) + 1
+            raise InputError(
+                f"Trajectory.stamps must be in order: stamp {at} ({stamps[at]:.6f} s) is earlier than stamp {at - 1} "
+                f"({stamps[at - 1]:.6f} s); build it with Trajectory.sorted"
+            )
+
     @staticmethod
     def sorted(stamps: np.ndarray, poses: np.ndarray) -> Trajectory:
-        """A trajectory from unsorted records (a stable sort, so equal stamps keep their order)."""
+        """A trajectory from unsorted records: stamps (K,) s, poses (K, 3) (x m, y m, yaw rad), finite, one pose
+        per stamp (else InputError); a stable sort, so equal stamps keep their order."""
+        _checked_records(stamps, poses)
         order = np.argsort(stamps, kind="stable")
         return Trajectory(np.asarray(stamps, np.float64)[order], np.asarray(poses, np.float64)[order])
+
+
+def _checked_records(stamps: np.ndarray, poses: np.ndarray) -> np.ndarray:
+    """``stamps`` as float64 (K,), InputError unless they and ``poses`` (K, 3) are finite and as many."""
+    stamps = finite_array("Trajectory.stamps", stamps, (None,), " (s)")
+    finite_array(
+        "Trajectory.poses", poses, (len(stamps), 3), f" (x m, y m, yaw rad: one row per stamp, {len(stamps)} stamps)"
+    )
+    return stamps
+
+
+def _check_seconds(name: str, value: float) -> None:
+    """InputError unless ``value`` is a number of seconds >= 0 (inf: no bound)."""
+    try:
+        ok = float(value) >= 0.0  # NaN fails
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise InputError(f"{name} must be a number of seconds >= 0 (inf: no bound), got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -156,10 +199,15 @@ def poses_at(
     """Poses (Q, 3) of ``trajectory`` at the ``query`` stamps (s) and a mask (Q,) of those it has.
 
     A stamp within ``tolerance`` of a trajectory stamp takes that pose (the nearest); one between two
-    trajectory stamps at most ``max_gap`` apart takes the linear interpolation; others are not had.
+    trajectory stamps at most ``max_gap`` apart takes the linear interpolation; others are not had. InputError for
+    an empty trajectory, a query stamp that is not finite, or a tolerance or max_gap (s) that is NaN or negative.
     """
     stamps = trajectory.stamps
-    query = np.asarray(query, dtype=np.float64)
+    if len(stamps) == 0:
+        raise InputError("the trajectory has no poses: give one with at least one timed pose")
+    _check_seconds("tolerance", tolerance)
+    _check_seconds("max_gap", max_gap)
+    query = finite_array("query stamps", query, (None,), " (s)")
     right = (
         np.clip(np.searchsorted(stamps, query), 1, len(stamps) - 1) if len(stamps) > 1 else np.zeros(len(query), int)
     )
@@ -194,8 +242,11 @@ def score_relations(
 ) -> RelationScore:
     """Translational (m) and rotational (rad) error of every relation the trajectory can be matched to.
 
-    Raises :class:`LogFormatError` when no relation matches (usually: the stamps are in another time base).
+    Raises :class:`LogFormatError` when no relation matches (usually: the stamps are in another time base),
+    InputError for no relations, an empty trajectory or a tolerance or max_gap (s) that is NaN or negative.
     """
+    if len(relations) == 0:
+        raise InputError("relations: there are none to score; give at least one relation")
     p1, ok1 = poses_at(trajectory, relations.t1, tolerance, max_gap)
     p2, ok2 = poses_at(trajectory, relations.t2, tolerance, max_gap)
     used = ok1 & ok2

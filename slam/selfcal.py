@@ -38,11 +38,19 @@ import numpy as np
 from scipy.optimize import nnls
 
 from slam.angles import wrap_angle
-from slam.calibration import GENERIC, Calibration
+from slam.calibration import (
+    BEARING_BIAS_LIMITS,
+    GENERIC,
+    RANGE_C2_LIMITS,
+    SCALE_LIMITS,
+    VELOCITY_BIAS_LIMITS,
+    Calibration,
+)
 from slam.consistency import scaled_motion
+from slam.errors import InputError, LogFormatError, check_within, finite_array
 from slam.heading_frames import HEADING_FRAMES
 from slam.kernels import ekf_likelihood_pass, smooth_localisation, window_commands
-from slam.motion import VelocityMotionModel
+from slam.motion import ALPHA_LIMITS, VelocityMotionModel, check_controls
 from slam.range_bearing import RangeBearingModel
 from slam.sequence import SlamSequence
 
@@ -91,6 +99,8 @@ MAX_LAG_S = 30
 #: Chosen among 0.25, 0.5 and 1 on the simulated robots of bench/slam.py at seeds 3-6, which the benchmark does
 #: not score (docs/slam.md, "Self-calibration")
 CORRELATION_POWER = 0.5
+#: what :meth:`FitData.of` calls the sequence in its errors
+FIT_SOURCE = "self-calibration input"
 
 
 @dataclass(frozen=True)
@@ -110,8 +120,18 @@ class FitData:
 
     @classmethod
     def of(cls, sequence: SlamSequence) -> FitData:
+        """The fit's view of ``sequence``, checked before any compiled pass reads it: ValueError for odometry
+        motion, LogFormatError when its arrays do not fit together (shapes, pointers: :meth:`SlamSequence.validate`),
+        hold NaN or inf, or hold a command no filter takes (slam.motion.check_controls: |v| m/s, |w| rad/s beyond
+        slam.motion.VELOCITY_LIMIT, dt < 0 s). O(T + K + O), vectorised."""
         if sequence.motion != "velocity":
             raise ValueError("self-calibration needs velocity commands (the odometry motion model has no speed scale)")
+        _check_layout(sequence)
+        sequence.validate(FIT_SOURCE)
+        try:
+            check_controls(sequence.controls, GENERIC.motion)
+        except InputError as exc:
+            raise LogFormatError(f"{FIT_SOURCE}: {exc}") from None
         ids, slot = np.unique(sequence.landmark_ids, return_inverse=True)
         step = np.repeat(np.arange(len(sequence)), np.diff(sequence.measurement_ptr))
         return cls(
@@ -125,6 +145,28 @@ class FitData:
             n_slots=len(ids),
             measurement_time=sequence.stamps[step],
         )
+
+
+def _check_layout(sequence: SlamSequence) -> None:
+    """LogFormatError unless ``sequence``'s arrays have the shapes of slam.sequence's module docstring, finite values
+    (the first bad one named) and integer pointers: what :meth:`SlamSequence.validate` takes for granted."""
+    for name, array, shape in (
+        ("stamps", sequence.stamps, (None,)),
+        ("controls", sequence.controls, (None, 3)),
+        ("control_ptr", sequence.control_ptr, (None,)),
+        ("measurements", sequence.measurements, (None, 2)),
+        ("landmark_ids", sequence.landmark_ids, (None,)),
+        ("measurement_ptr", sequence.measurement_ptr, (None,)),
+        ("initial_pose", sequence.initial_pose, (3,)),
+    ):
+        try:
+            finite_array(name, array, shape)
+        except InputError as exc:
+            raise LogFormatError(f"{FIT_SOURCE}: {exc}") from None
+    for name, ptr in (("control_ptr", sequence.control_ptr), ("measurement_ptr", sequence.measurement_ptr)):
+        kind = np.asarray(ptr).dtype
+        if not np.issubdtype(kind, np.integer):
+            raise LogFormatError(f"{FIT_SOURCE}: {name} must hold whole numbers (row indices), got {kind}")
 
 
 @dataclass(frozen=True)
@@ -531,6 +573,7 @@ def _em_step(data: FitData, calibration: Calibration, delay: float) -> tuple[Cal
         calibration.motion.dt_ref,
     )
     values.update(fit_sensor(data, trajectory, calibration))
+    check_fitted(values)
     floor = 1e-8  # keeps every motion variance positive (a zero would make the linearised filters certain)
     if values["a2"] == 0.0 and values["floor_v"] == 0.0:
         # (no position noise at all on a turn on the spot is what the fit cannot tell from a little: the generic a2)
@@ -645,6 +688,41 @@ class NotEnoughData(ValueError):
     """The data are too short or hold too few measurements or too little motion for a fit."""
 
 
+class UndeterminedParameter(NotEnoughData):
+    """A fitted parameter lands outside what a calibration may hold (slam.calibration's limits, those
+    load_calibration applies): the data cannot determine it. A :class:`NotEnoughData`, so that callers which fall
+    back on too little data do so here too."""
+
+
+#: the fitted values :func:`_em_step` checks, by its key: the calibration field named in the error, its limits, units
+FITTED_LIMITS: dict[str, tuple[str, tuple[float, float], str]] = {
+    "k_v": ("velocity_scale k_v (the speed scale)", SCALE_LIMITS, ""),
+    "k_w": ("velocity_scale k_w (the yaw-rate scale)", SCALE_LIMITS, ""),
+    "b_w": ("velocity_bias b_w (the yaw-rate bias)", VELOCITY_BIAS_LIMITS, "rad/s"),
+    "c2": ("range_calibration c2 (the range's bearing term)", RANGE_C2_LIMITS, "rad^-2"),
+    "bearing_bias": ("bearing_bias", BEARING_BIAS_LIMITS, "rad"),
+    **{key: (f"motion noise {key}", ALPHA_LIMITS, "") for key in ("a1", "a2", "a4", "floor_v", "floor_w")},
+}
+#: how :class:`UndeterminedParameter` ends: why, and what to do
+UNDETERMINED_ADVICE = (
+    "the data cannot determine it (commands that never vary, landmarks seen from too few places): calibrate on a "
+    "run that drives and turns at varied speeds past several landmarks, or give a calibration file"
+)
+
+
+def check_fitted(values: dict[str, float]) -> None:
+    """:class:`UndeterminedParameter` naming the first of ``values`` (the rounds' fitted values, by the keys of
+    :data:`FITTED_LIMITS`) that is not finite or lies outside its calibration limits."""
+    for key, (field_name, limits, unit) in FITTED_LIMITS.items():
+        try:
+            check_within(key, values[key], limits, unit)
+        except InputError:
+            raise UndeterminedParameter(
+                f"self-calibration: the fit gives {field_name} = {values[key]:g}{' ' + unit if unit else ''}, "
+                f"outside [{limits[0]:g}, {limits[1]:g}]: {UNDETERMINED_ADVICE}"
+            ) from None
+
+
 def check_enough(data: FitData) -> None:
     """Raise :class:`NotEnoughData`, naming what falls short, unless ``data`` holds :data:`MIN_MEASUREMENTS`
     measurements of landmarks seen more than once and :data:`MIN_WINDOWS` short windows of motion (s with a
@@ -692,7 +770,12 @@ def self_calibrate(
     and the yaw-rate floor of the best EKF likelihood on :data:`YAW_FLOOR_GRID`. Last, the bearing bias and then
     the floor, then a4 and the floor again (both raised only), of the best likelihood
     (:func:`_likeliest_bias_and_yaw_noise`). That bias, the camera's and the drive's disagreement, is then split
-    between them as ``heading_frame`` says (a key of :data:`HEADING_FRAMES`: half each when unknown)."""
+    between them as ``heading_frame`` says (a key of :data:`HEADING_FRAMES`: half each when unknown).
+
+    Raises LogFormatError when a sequence's arrays do not fit together or hold NaN or inf (:meth:`FitData.of`,
+    before any compiled pass), :class:`NotEnoughData` for too little data, and :class:`UndeterminedParameter` (a
+    NotEnoughData) when a fitted parameter lands outside what a calibration may hold, rather than a calibration
+    that could not be used or saved."""
     if iterations < 1:
         raise ValueError(f"iterations must be at least 1, not {iterations}")
     if heading_frame not in HEADING_FRAMES:
@@ -709,11 +792,14 @@ def self_calibrate(
         start, command_delay=0.0, bearing_bias=start.bearing_bias + start.drive_angle, drive_angle=0.0
     )
     history: list[dict[str, float]] = []
-    for _ in range(iterations):
-        delay = likeliest(delays, partial(_pass_at, data_at, calibration))
-        calibration, _, values = _em_step(data_at(delay), calibration, delay)
-        history.append(values)
-    calibration = _likeliest_bias_and_yaw_noise(data_at(calibration.command_delay), calibration)
+    try:  # a Calibration refuses what its limits do not hold (the fitted noise inflated, say): the data's fault
+        for _ in range(iterations):
+            delay = likeliest(delays, partial(_pass_at, data_at, calibration))
+            calibration, _, values = _em_step(data_at(delay), calibration, delay)
+            history.append(values)
+        calibration = _likeliest_bias_and_yaw_noise(data_at(calibration.command_delay), calibration)
+    except InputError as exc:
+        raise UndeterminedParameter(f"self-calibration: the fit gives {exc}; {UNDETERMINED_ADVICE}") from None
     disagreement = calibration.bearing_bias
     calibration = split_drive_and_camera(calibration, HEADING_FRAMES[heading_frame])
     diagnostics = {
