@@ -951,6 +951,39 @@ def test_a_source_replays_stamps_that_jump_or_go_back_and_says_so(tmp_path, proc
     assert "Traceback" not in output
 
 
+def test_a_shard_started_late_takes_another_maps_robot_from_its_live_source(tmp_path, procs):
+    """Every map fuses every robot's live scans, but a shard that started late (or restarted) took the histories of
+    its own map's sources only: another map's robot, still driving, had its first scans given up as lost ("no history
+    holds them"; map A lacked 22 of 60 in the probe). A source that has not ended is taken, whatever its map."""
+    from services.map_client import MapReader
+
+    posed = make_posed(tmp_path / "posed.npz", "samples", steps=36)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
+    source = procs(
+        [*CLI, "source", "--posed", str(posed), "--robot", "r10", "--map", "B", "--rate", "0.5", "--connect", endpoint]
+    )
+    source.wait_for(r"published ([7-9]|[1-3]\d) of 36 steps")  # (its first scans went out before map A had a shard)
+    shard = procs([*CLI, "mapper", "--shard", "0", "--shards", "1", "--map", "A", "--connect", endpoint])
+    shard.wait_for("up; tiles on")
+    assert source.process.wait(60) == 0, source.output()
+    session = zenoh.open(build_config("client", connect=[endpoint]))
+    try:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            stats = MapReader(session, "A").stats(timeout=2.0)
+            if (
+                stats
+                and stats[0].ended.get("r10") == 36
+                and stats[0].fused.get("r10", 0) + stats[0].discarded.get("r10", 0) >= 36
+            ):
+                break
+            time.sleep(0.2)
+    finally:
+        session.close()
+    assert stats[0].fused == {"r10": 36} and stats[0].discarded == {}, (stats, shard.output())
+
+
 def test_a_history_left_behind_answers_at_once(tmp_path, procs):
     """Once the source has ended, the SLAM node's history of poses answers at once, and once one of two shards has
     stopped, the other's tiles do. zenoh's router (1.10) went on routing wildcard queries to a queryable undeclared

@@ -218,8 +218,12 @@ class Mapper:
             self.shard.fuse_ready()
 
     def _ours(self, answerer: history.Answerer) -> bool:
-        """Whether a history's answerer publishes for this shard's map (a SLAM node publishes for any)."""
-        return answerer.map in (None, self.config.map_name)
+        """Whether to take a history's answers: its answerer publishes for this shard's map (a SLAM node publishes
+        for any), or it is a source of another map that is still publishing. Every map fuses every robot's live
+        scans, so a shard that restarted while another map's robot drove refused that robot's history and gave its
+        scans up as lost (the map lacked 22 of 60); a source that has ended (an earlier run's, waiting for its own
+        shards) is still not taken."""
+        return answerer.map in (None, self.config.map_name) or not answerer.ended
 
     def _history(
         self, robot: str, stream: str, first: int, last: int, seqs: tuple[int, ...] | None = None
