@@ -550,6 +550,38 @@ def test_api_command_rejects_a_taken_port():
     assert result.returncode == 2 and "--port" in result.stderr
 
 
+def test_two_apis_started_on_one_port_at_once_one_serves_and_the_other_says_so_in_one_line():
+    """Both passed a check that bound the port and let it go again; the loser then said "serving on ..." and failed
+    in uvicorn (its raw message, exit 3; `posegrid run` took that for a crash and restarted it). The socket is now
+    bound before anything says it serves: one serves, the other exits 2 with one line."""
+    router_port, port = free_port(), free_port()
+    router = subprocess.Popen(
+        [*POSEGRID, "router", "--listen", f"tcp/127.0.0.1:{router_port}"], cwd=ROOT, stderr=subprocess.PIPE, text=True
+    )
+    argv = [*POSEGRID, "api", "--port", str(port), "--connect", f"tcp/127.0.0.1:{router_port}"]
+    apis = []
+    try:
+        assert router.stderr is not None and "routing" in router.stderr.readline()
+        apis = [subprocess.Popen(argv, cwd=ROOT, stderr=subprocess.PIPE, text=True) for _ in range(2)]
+        wait_until(lambda: any(api.poll() is not None for api in apis), 60, "one of the two APIs to end")
+        (loser,) = [api for api in apis if api.poll() is not None]
+        (winner,) = [api for api in apis if api is not loser]
+        said = loser.stderr.read() if loser.stderr is not None else ""
+        assert loser.returncode == 2 and said.count("\n") == 1 and "pick another --port" in said, said
+        assert "serving on" not in said
+        assert httpx.get(f"http://127.0.0.1:{port}/health", timeout=30).status_code in (200, 503)
+        assert winner.poll() is None
+    finally:
+        for process in [*apis, router]:
+            if process.poll() is None:
+                process.send_signal(signal.SIGINT)
+                try:
+                    process.wait(20)
+                except subprocess.TimeoutExpired:
+                    process.kill()
+                    process.wait()
+
+
 # ------------------------------------------------------------------------------------------ last: a shard stops
 
 

@@ -7,6 +7,7 @@ request deadline of services.api.protocol, the keep-alive timeout and a cap on o
 
 from __future__ import annotations
 
+import socket
 import threading
 from dataclasses import dataclass, field
 
@@ -66,8 +67,15 @@ class _Server(uvicorn.Server):
         super().handle_exit(sig, frame)
 
 
-def serve(host: str, port: int, zenoh_config: zenoh.Config, options: ServeOptions = ServeOptions()) -> int:
-    """Serve the API and the viewer on http://host:port/ until stopped; returns the exit code."""
+def serve(
+    host: str,
+    port: int,
+    zenoh_config: zenoh.Config,
+    options: ServeOptions = ServeOptions(),
+    listener: socket.socket | None = None,
+) -> int:
+    """Serve the API and the viewer on http://host:port/ until stopped; returns the exit code. ``listener``: the socket
+    already bound to host:port and listening (services.commands.api.listen_on), served on; None: uvicorn binds."""
     log = get_logger("api")
     stop = install_stop_event()  # uvicorn takes over SIGINT/SIGTERM while it runs; this keeps the parent watch
     session = open_session(zenoh_config, "the API", stop)
@@ -120,7 +128,7 @@ def serve(host: str, port: int, zenoh_config: zenoh.Config, options: ServeOption
                 port,
                 ", ".join(backend.registry.names()) or "none yet",
             )
-            server.run()
+            server.run(sockets=None if listener is None else [listener])
             return 0 if server.started else 1
         finally:
             backend.close()

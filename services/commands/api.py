@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import socket
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -227,18 +228,31 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def check_port_free(host: str, port: int) -> None:
     """Raise UsageError when nothing can listen on host:port (taken, or not an address of this machine)."""
-    import socket
+    listen_on(host, port).close()
 
+
+def listen_on(host: str, port: int) -> socket.socket:
+    """A TCP socket bound to host:port and listening, for the API to serve on; UsageError when it cannot be (taken,
+    or not an address of this machine). Bound before the API says it serves: two APIs started on one port at once
+    both passed a check that let the port go again, and the loser said "serving on ..." and then failed in uvicorn
+    (its raw message, exit 3)."""
     from services.errors import UsageError
 
-    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as probe:
-        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        try:
-            probe.bind((host, port))
-        except OSError as exc:
-            raise UsageError(
-                f"cannot listen on {host}:{port} ({exc.strerror}); pick another --port (`posegrid run`: --api-port)"
-            ) from None
+    listener = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM)
+    try:
+        listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        listener.bind((host, port))
+        listener.listen(LISTEN_BACKLOG)
+    except OSError as exc:
+        listener.close()
+        raise UsageError(
+            f"cannot listen on {host}:{port} ({exc.strerror}); pick another --port (`posegrid run`: --api-port)"
+        ) from None
+    return listener
+
+
+#: connections the API's socket queues before they are accepted (uvicorn's own default)
+LISTEN_BACKLOG = 2048
 
 
 def token_of(args: argparse.Namespace) -> str | None:
@@ -274,7 +288,7 @@ def run_api(args: argparse.Namespace) -> int:
     if not args.host:
         raise UsageError("--host '' would listen on every interface: give an address (127.0.0.1, or 0.0.0.0 for all)")
     token = token_of(args)
-    check_port_free(args.host, args.port)
+    listener = listen_on(args.host, args.port)
     from services.api.server import ServeOptions, serve
     from services.commands.zenoh_options import config_from_args
 
@@ -292,4 +306,4 @@ def run_api(args: argparse.Namespace) -> int:
         stray_ttl=args.stray_robot_ttl,
         verify_window=args.verify_window,
     )
-    return serve(args.host, args.port, config_from_args(args, "client"), options)
+    return serve(args.host, args.port, config_from_args(args, "client"), options, listener)
