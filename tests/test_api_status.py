@@ -6,7 +6,7 @@ import dataclasses
 
 from schemas.messages import ShardStats
 from services.api.models import MapStats
-from services.api.registry import MapInfo
+from services.api.registry import MapInfo, MapRegistry
 from services.api.status import STRANDED_AFTER, Progress, distrust, health_report, map_stats, shards_healthy, stranded
 
 #: the Health fields about the API itself, passed through health_report unchanged
@@ -155,7 +155,45 @@ def test_health_is_ok_with_every_shard_up_and_degraded_without_maps():
         "5 messages with seqs or ends beyond the seq window (forged or stray seqs; held, never fused)",
         "2 messages on keys that are no posegrid key (wildcards, made-up streams)",
     ]
-    assert health_report({}, [], Progress(), 0.0, **SYSTEM).status == "degraded"
+    assert report.reasons == []
+    empty = health_report({}, [], Progress(), 0.0, **SYSTEM)
+    assert empty.status == "degraded" and empty.reasons == [
+        "no map is known yet: no mapper shard has announced itself to the API"
+    ]
+
+
+def test_a_degraded_health_says_why_map_by_map():
+    """/health said "degraded" with no reason: an operator had to read every map's shards to find which was down."""
+    down = map_stats(info(shards=3, alive={0, 2}), {0: shard(0, shards=3)}, latest={}, api_rejected={}, now=0.0)
+    twice = map_stats(info(duplicated={1}), two_shards(), latest={}, api_rejected={}, now=0.0)
+    report = health_report({"a": down, "b": twice}, [], Progress(), 0.0, **SYSTEM)
+    assert report.status == "degraded" and report.reasons == [
+        "map 'a': shard(s) 1, 2 not alive or not answering",
+        "map 'b': shard(s) 1 answered by two processes each",
+    ]
+
+
+def test_shards_of_two_geometries_or_past_the_count_are_a_conflict_and_degrade_health():
+    """A map whose shards were started with two --resolution showed whichever shard's tiles the API met first (a
+    partial map) while /health said ok; a shard 2 of a 2-shard map was listed alive. Both are the map's conflict."""
+    registry = MapRegistry()
+    registry.tile_changed("m", (0, 0), 0.05, 256)
+    assert registry.check_geometry("m", 0.05, 256) is None
+    assert registry.check_geometry("m", 0.1, 256) == "map 'm' has 256-cell tiles of 0.05 m cells, not 256 of 0.1 m"
+    mixed = registry.get("m")
+    assert mixed is not None and mixed.conflict is not None
+    mixed.shards, mixed.alive = 2, {0, 1}
+    s = map_stats(mixed, two_shards(), latest={}, api_rejected={}, now=0.0)
+    assert s.conflict == "its shards publish tiles of two geometries: " + (
+        "map 'm' has 256-cell tiles of 0.05 m cells, not 256 of 0.1 m"
+    )
+    assert not shards_healthy(s)
+    report = health_report({"m": s}, [], Progress(), 0.0, **SYSTEM)
+    assert report.status == "degraded" and report.maps["m"].conflict == s.conflict
+    assert report.reasons == [f"map 'm': {s.conflict}"]
+    extra = map_stats(info(alive={0, 1, 2}), {**two_shards(), 2: shard(2, shards=3)}, {}, {}, 0.0)
+    assert extra.conflict == "shard(s) 2 answer though the map has 2 shards: a shard started with another --shards"
+    assert health_report({"m": extra}, [], Progress(), 0.0, **SYSTEM).status == "degraded"
 
 
 def test_distrust_follows_the_table_order_and_skips_zero_and_unnamed_kinds():

@@ -158,6 +158,12 @@ class MapStats(BaseModel):
         "started twice: its stats and tiles cannot be trusted until one of them stops)",
     )
     per_shard: list[ShardStatus]
+    conflict: str | None = Field(
+        default=None,
+        description="why the map's shards cannot be one map (tiles of two cell or tile sizes: shards started with "
+        "another --resolution or --tile-size; a shard index at or past the shard count); its tiles and summary then "
+        "show only part of it; null when none",
+    )
 
 
 class MapHealth(BaseModel):
@@ -179,6 +185,7 @@ class MapHealth(BaseModel):
     commits: list[ShardCommit] = Field(
         default_factory=list, description="each answering shard's last commit to its state directory"
     )
+    conflict: str | None = Field(default=None, description="as in MapStats: why its shards cannot be one map")
 
 
 class Health(BaseModel):
@@ -204,6 +211,9 @@ class Health(BaseModel):
         "(--max-exports)"
     )
     limits: dict[str, int] = Field(description="the limits: maps, robots, event_clients, exports, export_cells")
+    reasons: list[str] = Field(
+        default_factory=list, description="why the status is degraded, one sentence each (empty when ok)"
+    )
 
 
 class Pose(BaseModel):

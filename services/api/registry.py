@@ -44,6 +44,7 @@ class MapInfo:
     synced: bool = False  # whether the tiles the shards hold have been asked for since they came up
     duplicated: set[int] = field(default_factory=set)  # shards two processes answered for in the last stats query
     answerers: dict[int, str] = field(default_factory=dict)  # shard -> the Zenoh session id whose stats were taken
+    conflict: str | None = None  # the first tile whose geometry is not the map's: its shards are no one map
 
     @property
     def tiles(self) -> dict[TileKey, int]:
@@ -235,14 +236,18 @@ class MapRegistry:
 
     def check_geometry(self, name: str, resolution: float, tile_size: int) -> str | None:
         """Why a tile of this geometry does not belong to map ``name`` (None when it does)."""
-        info = self._maps.get(name)
-        if info is None or info.resolution is None:
-            return None
-        if (info.resolution, info.tile_size) != (resolution, tile_size):
-            return (
-                f"map {name!r} has {info.tile_size}-cell tiles of {info.resolution} m cells, "
-                f"not {tile_size} of {resolution} m"
-            )
+        with self.lock:
+            info = self._maps.get(name)
+            if info is None or info.resolution is None:
+                return None
+            if (info.resolution, info.tile_size) != (resolution, tile_size):
+                why = (
+                    f"map {name!r} has {info.tile_size}-cell tiles of {info.resolution} m cells, "
+                    f"not {tile_size} of {resolution} m"
+                )
+                if info.conflict is None:  # (kept: its shards were started with other --resolution or --tile-size)
+                    info.conflict = f"its shards publish tiles of two geometries: {why}"
+                return why
         return None
 
     def tile_changed(self, name: str, tile: TileKey, resolution: float, tile_size: int) -> int:

@@ -157,6 +157,21 @@ def map_stats(
         refused=summed(s.refused for s in answered),
         duplicated_shards=sorted(info.duplicated),
         per_shard=[shard_status(shard, info, stats.get(shard), expected, now) for shard in shard_ids],
+        conflict=info.conflict or beyond_count(info, stats),
+    )
+
+
+def beyond_count(info: MapInfo, stats: Mapping[int, ShardStats]) -> str | None:
+    """Why shards of indices at or past the map's shard count answer (a shard started with another --shards), or
+    None."""
+    if info.shards is None:
+        return None
+    beyond = sorted(shard for shard in info.alive | set(stats) if shard >= info.shards)
+    if not beyond:
+        return None
+    return (
+        f"shard(s) {', '.join(map(str, beyond))} answer though the map has {info.shards} shards: a shard started "
+        "with another --shards"
     )
 
 
@@ -169,6 +184,7 @@ def map_health(s: models.MapStats) -> models.MapHealth:
         scans_discarded=s.scans_discarded,
         lag_scans=s.lag_scans,
         duplicated_shards=s.duplicated_shards,
+        conflict=s.conflict,
         distrust=distrust(s.refused),
         commits=[
             models.ShardCommit(
@@ -186,12 +202,24 @@ def map_health(s: models.MapStats) -> models.MapHealth:
 def shards_healthy(s: models.MapStats) -> bool:
     """Whether the map's shard count is known and each of its shards is alive, answered from one process and, with a
     state directory, commits."""
-    return (
-        s.shards is not None
-        and not s.duplicated_shards
-        and len(s.per_shard) >= s.shards
-        and all(p.alive and p.answered and p.persist != "failing" for p in s.per_shard)
-    )
+    return not map_problems(s)
+
+
+def map_problems(s: models.MapStats) -> list[str]:
+    """Why the map's shards are not healthy (:func:`shards_healthy`), one sentence each."""
+    if s.shards is None:
+        return ["no shard has answered with the map's shard count (or its shards disagree on it)"]
+    problems = [] if s.conflict is None else [s.conflict]
+    if s.duplicated_shards:
+        problems.append(f"shard(s) {', '.join(map(str, s.duplicated_shards))} answered by two processes each")
+    known = {p.shard for p in s.per_shard}
+    down = sorted({p.shard for p in s.per_shard if not (p.alive and p.answered)} | (set(range(s.shards)) - known))
+    if down:
+        problems.append(f"shard(s) {', '.join(map(str, down))} not alive or not answering")
+    failing = [p.shard for p in s.per_shard if p.persist == "failing"]
+    if failing:
+        problems.append(f"shard(s) {', '.join(map(str, failing))} cannot commit to their state directory")
+    return problems
 
 
 def sources_alive(processes: Iterable[str]) -> set[str]:
@@ -257,9 +285,17 @@ def health_report(
     processes = sorted(processes)
     sources = sources_alive(processes)
     stuck = {name: stranded(name, s, sources, progress, now) for name, s in maps.items()}
-    ok = bool(maps) and all(shards_healthy(s) and not stuck[name] for name, s in maps.items())
+    reasons = [] if maps else ["no map is known yet: no mapper shard has announced itself to the API"]
+    for name, s in maps.items():
+        reasons += [f"map {name!r}: {problem}" for problem in map_problems(s)]
+        if stuck[name]:
+            reasons.append(
+                f"map {name!r}: robot(s) {', '.join(stuck[name])} stranded: their source is gone and the shards make "
+                "no progress on the scans they lag"
+            )
     return models.Health(
-        status="ok" if ok else "degraded",
+        status="degraded" if reasons else "ok",
+        reasons=reasons,
         maps={name: map_health(s) for name, s in maps.items()},
         processes_alive=processes,
         **system,
