@@ -1369,3 +1369,18 @@ def test_slam_node_on_real_mrclam_data_publishes_what_offline_slam_writes(tmp_pa
     tolerance = 1e-6 if calibrated else 0.0
     np.testing.assert_allclose([got[t].mean for t in sorted(got)], expected["mean"], rtol=0, atol=tolerance)
     np.testing.assert_allclose([got[t].cov for t in sorted(got)], expected["cov"], rtol=0, atol=tolerance)
+
+
+def test_a_stalled_sources_message_names_only_what_it_waited_for_and_why_it_counted_nothing():
+    """It said "SLAM node: 0 of 32 steps" with no --wait-slam, and "shards: 0 of 32 scans" when every shard had fused
+    the 32 but their stats were not trusted (a shard started with another --shards)."""
+    from services.nodes.source import stall_message
+
+    said = stall_message((0, 32), None, "shards of map 'C' disagree on their count")
+    assert said == (
+        "the subscribers took nothing for 60 s (shards: 0 of 32 scans); the shards' stats were not trusted, so their "
+        "progress was not counted: shards of map 'C' disagree on their count"
+    )
+    assert stall_message((3, 32), (5, 40), None) == (
+        "the subscribers took nothing for 60 s (shards: 3 of 32 scans, SLAM node: 5 of 40 steps)"
+    )

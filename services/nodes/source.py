@@ -76,6 +76,16 @@ def replay_offsets(stamps: list[float], rate: float) -> tuple[list[float], list[
     return offsets, notes
 
 
+def stall_message(shards: tuple[int, int] | None, slam: tuple[int, int] | None, distrust: str | None) -> str:
+    """Why a source gave up: what the subscribers it waits for took ((done, sent) of the shards' scans and of the SLAM
+    node's steps; None: not waited for), and why the shards' stats were not believed, if they were not (a count of
+    0 then says nothing of what the shards fused)."""
+    parts = [f"shards: {shards[0]} of {shards[1]} scans"] if shards is not None else []
+    parts += [f"SLAM node: {slam[0]} of {slam[1]} steps"] if slam is not None else []
+    why = f"; the shards' stats were not trusted, so their progress was not counted: {distrust}" if distrust else ""
+    return f"the subscribers took nothing for {WAIT_TIMEOUT:.0f} s ({', '.join(parts)}){why}"
+
+
 class SourceStalled(RuntimeError):
     """The subscribers the source waits for did not appear, or stopped making progress."""
 
@@ -128,6 +138,7 @@ class Source:
         self._steps_done = 0  # steps the SLAM node has taken or given up on
         self._reader = MapReader(session, options.map_name)
         self._warn_once = WarnOnce(self.log)  # (the shards' and the SLAM node's stats' problems, said once)
+        self._distrust: str | None = None  # why the shards' last stats were not trusted (None: they were)
         self._end_sent = 0.0  # time.monotonic() of the last StreamEnd published
         self._warned_beyond = False  # whether a shard holding more scans than this run published was reported
         self._clashes_before: dict[int, tuple[int, int]] = {}  # shard -> its clash counts (_clash_counts) at the start
@@ -190,6 +201,7 @@ class Source:
         answers = self._reader.answers()
         for problem in answers.problems:
             self._warn_once(f"not trusting the shards' stats: {problem}")
+        self._distrust = answers.problems[0] if answers.problems else None
         return list(answers.trusted.values())
 
     def _wait_for(self, what: str, ready, stop: threading.Event) -> bool:
@@ -290,8 +302,11 @@ class Source:
                 return False
             if time.monotonic() > deadline:
                 raise SourceStalled(
-                    f"the subscribers took nothing for {WAIT_TIMEOUT:.0f} s (shards: {self._scans_done} "
-                    f"of {scans_sent} scans, SLAM node: {self._steps_done} of {steps_sent} steps)"
+                    stall_message(
+                        (self._scans_done, scans_sent) if self.options.wait_mappers else None,
+                        (self._steps_done, steps_sent) if self.options.wait_slam else None,
+                        self._distrust,
+                    )
                 )
 
     def _ended_everywhere(self, end: StreamEnd) -> bool:
