@@ -20,6 +20,7 @@ into any tile through a slot index; memory follows the observed area.
 from __future__ import annotations
 
 import math
+import operator
 
 import numpy as np
 
@@ -99,10 +100,19 @@ class TiledGrid:
     def set_tile(self, key: TileKey, logodds: np.ndarray, variance: np.ndarray, observed: np.ndarray) -> None:
         """Replace tile ``key``'s layers (used when assembling a map from shards, and by a shard seeding or restoring
         a tile); with ``track_changes`` every layer of every cell of it is marked changed."""
+        try:
+            key = (operator.index(key[0]), operator.index(key[1]))
+        except (TypeError, IndexError):
+            raise InputError(f"a tile key must be two whole numbers (tx, ty), got {key!r}") from None
         shape = (self.tile_size, self.tile_size)
         for name, layer in (("logodds", logodds), ("variance", variance), ("observed", observed)):
             if np.shape(layer) != shape:
                 raise InputError(f"tile {key}: '{name}' must have shape {shape}, got {np.shape(layer)}")
+        observed = np.asarray(observed)
+        if not (np.isfinite(logodds).all() and np.isfinite(variance).all() and (np.asarray(variance) >= 0).all()):
+            raise InputError(f"tile {key}: 'logodds' must be finite and 'variance' finite and >= 0")
+        if observed.dtype != np.bool_ and not np.isin(observed, (0, 1)).all():
+            raise InputError(f"tile {key}: 'observed' must be booleans (or 0 and 1), got dtype {observed.dtype}")
         slot = self.slot(key)
         self.logodds[slot] = logodds
         self.variance[slot] = variance

@@ -308,3 +308,22 @@ def test_save_truth_refuses_a_resolution_of_zero_and_layers_of_two_shapes(tmp_pa
     with pytest.raises(FormatError, match="of one shape"):
         save_truth(path, TruthRaster(np.zeros((3, 3), bool), np.ones((3, 4), bool), origin, 0.05))
     assert not path.exists()
+
+
+def test_set_tile_refuses_layers_no_map_holds():
+    """NaN log-odds, a variance of -1 and `observed` of 7.0 were stored: the map rasterized to NaN probabilities over
+    65 536 "observed" cells; a key of (0.5, "a") failed later in rasterize."""
+    grid = TiledGrid(0.05, tile_size=8)
+    zeros, ones = np.zeros((8, 8), np.float32), np.ones((8, 8), bool)
+    for logodds, variance, observed, message in (
+        (np.full((8, 8), np.nan, np.float32), zeros, ones, "'logodds' must be finite"),
+        (zeros, np.full((8, 8), -1.0, np.float32), ones, "'variance' finite and >= 0"),
+        (zeros, zeros, np.full((8, 8), 7.0), "'observed' must be booleans"),
+    ):
+        with pytest.raises(InputError, match=message):
+            grid.set_tile((0, 0), logodds, variance, observed)
+    with pytest.raises(InputError, match="a tile key must be two whole numbers"):
+        grid.set_tile((0.5, "a"), zeros, zeros, ones)  # type: ignore[arg-type]
+    assert grid.tile_count == 0
+    grid.set_tile((0, 1), zeros, zeros, np.ones((8, 8), np.uint8))  # (0 and 1 as integers are booleans)
+    assert grid.tile_count == 1 and grid.rasterize()["observed"].sum() == 64
