@@ -327,3 +327,27 @@ def test_set_tile_refuses_layers_no_map_holds():
     assert grid.tile_count == 0
     grid.set_tile((0, 1), zeros, zeros, np.ones((8, 8), np.uint8))  # (0 and 1 as integers are booleans)
     assert grid.tile_count == 1 and grid.rasterize()["observed"].sum() == 64
+
+
+def test_the_adaptive_grid_refuses_parameters_it_cannot_use():
+    """sigma=inf was taken (no cell ever split), start_level=1.5 and tile_size=64.0 raised numpy or operator errors,
+    merge=None an AttributeError once a scan came, and level_for_cell_size(0.4, 0.0) divided by zero."""
+    from mapping.adaptive.fusion import AdaptiveFusion, AdaptiveParams, level_for_cell_size
+    from mapping.adaptive.tree import AdaptiveGrid
+
+    for given, message in (
+        ({"sigma": np.inf}, "sigma must be a finite number"),
+        ({"start_level": 1.5}, "start_level must be a whole number"),
+        ({"merge": None}, "merge must be MergeRules"),
+    ):
+        with pytest.raises(InputError, match=message):
+            AdaptiveParams(**given)
+    with pytest.raises(InputError, match="params must be AdaptiveParams"):
+        AdaptiveFusion(AdaptiveGrid(0.05), SensorModel(resolution=0.05), BEAMS, 0.0, 8.0, params={})  # type: ignore[arg-type]
+    for resolution, tile_size in ((np.inf, 256), (0.05, 64.0)):
+        with pytest.raises(InputError):
+            AdaptiveGrid(resolution, tile_size)  # type: ignore[arg-type]
+    for sizes in ((0.4, 0.0), (-0.4, -0.05), (0.4, np.nan)):
+        with pytest.raises(InputError, match="the finest resolution must be finite and > 0"):
+            level_for_cell_size(*sizes)
+    assert level_for_cell_size(0.4, 0.05) == 3

@@ -66,6 +66,17 @@ class AdaptiveParams:
     floor: float = 0.01
     merge: MergeRules = field(default_factory=MergeRules)
 
+    def __post_init__(self) -> None:
+        """InputError for levels that are not whole numbers, a sigma (m) that is not finite and > 0 (inf: no cell
+        ever split), or merge rules that are not MergeRules; the rest SplitTest and AdaptiveFusion check."""
+        for name, level in (("start_level", self.start_level), ("max_level", self.max_level)):
+            if level is not None and (isinstance(level, bool) or not isinstance(level, int | np.integer)):
+                raise InputError(f"{name} must be a whole number, got {level!r}")
+        if self.sigma is not None and not 0 < self.sigma < np.inf:
+            raise InputError(f"sigma must be a finite number of metres > 0 (or None), got {self.sigma}")
+        if not isinstance(self.merge, MergeRules):
+            raise InputError(f"merge must be MergeRules, got {type(self.merge).__name__}")
+
 
 @dataclass(frozen=True)
 class AdaptiveFuseResult:
@@ -78,7 +89,10 @@ class AdaptiveFuseResult:
 
 
 def level_for_cell_size(cell_size: float, resolution: float) -> int:
-    """The level k with resolution * 2^k == cell_size (m), k at most 62; InputError if there is none."""
+    """The level k with resolution * 2^k == cell_size (m), k at most 62; InputError if there is none, or if the
+    resolution is not finite and > 0 (0 divided by zero; -0.4 over -0.05 gave level 3)."""
+    if not 0 < resolution < np.inf:
+        raise InputError(f"the finest resolution must be finite and > 0 m, got {resolution}")
     ratio = cell_size / resolution
     level = int(round(np.log2(ratio))) if 0 < ratio < np.inf else -1
     if not 0 <= level <= 62 or not np.isclose(resolution * (1 << level), cell_size, rtol=1e-9):
@@ -105,7 +119,9 @@ class AdaptiveFusion:
         sensor_offset: tuple[float, float, float] | np.ndarray = (0.0, 0.0, 0.0),
         params: AdaptiveParams | None = None,
     ) -> None:
-        params = params or AdaptiveParams()
+        params = AdaptiveParams() if params is None else params
+        if not isinstance(params, AdaptiveParams):
+            raise InputError(f"params must be AdaptiveParams, got {type(params).__name__}")
         if not np.isclose(grid.resolution, model.resolution):
             raise InputError(
                 f"grid resolution {grid.resolution} m differs from the sensor model's {model.resolution} m"

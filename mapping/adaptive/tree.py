@@ -104,9 +104,10 @@ class AdaptiveGrid:
     misses: np.ndarray  # float32
 
     def __init__(self, resolution: float = 0.05, tile_size: int = TILE_SIZE) -> None:
-        if not resolution > 0:
-            raise InputError(f"resolution must be > 0 m, got {resolution}")
-        if tile_size < 1 or tile_size & (tile_size - 1) or tile_size > 1 << MAX_TILE_SHIFT:
+        if not 0 < resolution < math.inf:
+            raise InputError(f"resolution must be > 0 m and finite, got {resolution}")
+        whole = isinstance(tile_size, int | np.integer)  # (64.0 failed later: "unsupported operand &")
+        if not whole or tile_size < 1 or tile_size & (tile_size - 1) or tile_size > 1 << MAX_TILE_SHIFT:
             raise InputError(f"tile_size must be a power of two up to {1 << MAX_TILE_SHIFT} cells, got {tile_size}")
         self.resolution = float(resolution)
         self.tile_size = int(tile_size)
