@@ -984,6 +984,48 @@ def test_a_shard_started_late_takes_another_maps_robot_from_its_live_source(tmp_
     assert stats[0].fused == {"r10": 36} and stats[0].discarded == {}, (stats, shard.output())
 
 
+def test_a_stale_runs_stalled_source_of_another_map_does_not_leak_into_a_new_map(tmp_path, procs):
+    """A re-probe of the rule above: an earlier run's source of robot r1 for map A, stalled mid-stream waiting for a
+    frozen shard (so not ended), answered a new map B's shard catching up at its start; B took its 4 scans, and the new
+    run's own seqs 0-3 were then refused as duplicates, exit 0, the map partly the other run's. Catching up takes only
+    the shard's own map's sources; only a gap in a live stream takes another map's live source."""
+    from services.map_client import MapReader
+
+    stale = make_posed(tmp_path / "stale.npz", "samples", steps=20, seed=5)
+    fresh = make_posed(tmp_path / "fresh.npz", "samples", steps=20, seed=6)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
+    old_shards = [
+        procs([*CLI, "mapper", "--shard", str(k), "--shards", "2", "--map", "A", "--connect", endpoint]) for k in (0, 1)
+    ]
+    for shard in old_shards:
+        shard.wait_for("up; tiles on")
+    frozen = old_shards[1].process
+    frozen.send_signal(signal.SIGSTOP)  # (the old run's source waits for it, mid-stream)
+    try:
+        old = procs(
+            [*CLI, "source", "--posed", str(stale), "--robot", "r1", "--map", "A", "--rate", "max"]
+            + ["--wait-mappers", "2", "--window", "4", "--connect", endpoint]
+        )
+        old.wait_for("published 4 of 20 steps")
+        shard = procs([*CLI, "mapper", "--shard", "0", "--shards", "1", "--map", "B", "--connect", endpoint])
+        shard.wait_for("up; tiles on")
+        new = procs(
+            [*CLI, "source", "--posed", str(fresh), "--robot", "r1", "--map", "B", "--rate", "max"]
+            + ["--wait-mappers", "1", "--connect", endpoint]
+        )
+        assert new.process.wait(60) == 0, new.output()
+        session = zenoh.open(build_config("client", connect=[endpoint]))
+        try:
+            (stats,) = MapReader(session, "B").stats(timeout=5.0).values()
+        finally:
+            session.close()
+    finally:
+        frozen.send_signal(signal.SIGCONT)
+    assert stats.fused == {"r1": 20} and "duplicate" not in stats.refused, (stats, shard.output())
+    assert "from the histories" not in shard.output()
+
+
 def test_a_history_left_behind_answers_at_once(tmp_path, procs):
     """Once the source has ended, the SLAM node's history of poses answers at once, and once one of two shards has
     stopped, the other's tiles do. zenoh's router (1.10) went on routing wildcard queries to a queryable undeclared

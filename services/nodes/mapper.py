@@ -218,12 +218,18 @@ class Mapper:
             self.shard.fuse_ready()
 
     def _ours(self, answerer: history.Answerer) -> bool:
-        """Whether to take a history's answers: its answerer publishes for this shard's map (a SLAM node publishes
-        for any), or it is a source of another map that is still publishing. Every map fuses every robot's live
-        scans, so a shard that restarted while another map's robot drove refused that robot's history and gave its
-        scans up as lost (the map lacked 22 of 60); a source that has ended (an earlier run's, waiting for its own
-        shards) is still not taken."""
-        return answerer.map in (None, self.config.map_name) or not answerer.ended
+        """Whether a history's answerer publishes for this shard's map (a SLAM node publishes for any): the only
+        answers a shard takes when it catches up at its start, when it cannot tell a run going on from a stale one (an
+        earlier run's source under the robot's name, stalled waiting for a shard it lost, gave a new map its scans)."""
+        return answerer.map in (None, self.config.map_name)
+
+    def _ours_or_live(self, answerer: history.Answerer) -> bool:
+        """Whether to take a history's answers for a gap in a robot's live stream: :meth:`_ours`, or a source of
+        another map that is still publishing. Every map fuses every robot's live scans, so a shard that restarted
+        while another map's robot drove gave that robot's first scans up as lost (the map lacked 22 of 60); the
+        robot's live scans show it is this run's, and two sources answering for it (a stale one beside the real one)
+        are both refused (services.history)."""
+        return self._ours(answerer) or not answerer.ended
 
     def _history(
         self, robot: str, stream: str, first: int, last: int, seqs: tuple[int, ...] | None = None
@@ -245,7 +251,7 @@ class Mapper:
         # a far run's vouching question (seqs given, services.state.join) counts every answerer, of any map: the real
         # source of another map answers its passed seq too, so a peer answering as this map's is not alone (a
         # re-probe: a second map's shard gave up 99 892 scans)
-        accept = self._ours if seqs is None else (lambda answerer: True)
+        accept = self._ours_or_live if seqs is None else (lambda answerer: True)
         messages = history.ask_counted(self.session, robot, asked, HISTORY_TIMEOUT, self.rejects, accept, self.stop)
         # a question asked while the session reached no router or peer went nowhere, and says nothing of the
         # histories (a router restart must not leave them alone)
