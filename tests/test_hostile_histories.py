@@ -202,7 +202,10 @@ def test_a_source_stays_until_the_shards_that_keep_a_store_have_committed_its_sc
     assert not _accounted([shard(0, persist="ok", committed={"r": 215}, **fused)], end)
     # commits failing for a few seconds may be a passing fault: waited for; for more than FAILING_GRACE: not
     assert not _accounted([shard(0, persist="failing", committed={"r": 215}, commit_age=3.0, **fused)], end)
-    assert _accounted([shard(0, persist="failing", committed={"r": 215}, commit_age=FAILING_GRACE + 1, **fused)], end)
+    stuck = shard(0, persist="failing", committed={"r": 215}, commit_age=FAILING_GRACE + 1, uptime=60.0, **fused)
+    assert _accounted([stuck], end)
+    resumed = shard(0, persist="failing", commit_age=60.0, uptime=2.0, **fused)  # (its last commit: a process before)
+    assert not _accounted([resumed], end)
     for uptime, waited in ((FAILING_GRACE + 1, False), (FAILING_GRACE - 1, True)):  # (no commit yet: since it started)
         stuck = shard(0, persist="failing", commit_age=-1.0, uptime=uptime, **fused)
         assert _accounted([stuck], end) is not waited

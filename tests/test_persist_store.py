@@ -436,6 +436,22 @@ def test_another_databases_log_put_beside_a_store_is_refused_and_the_store_left_
     assert len(check_store(ours, _identity(_config()), "run-a")) == 1  # (its session of fused scans, readable)
 
 
+def test_a_stores_own_log_it_cannot_read_through_is_not_called_another_databases(tmp_path, pairs, monkeypatch):
+    """A store killed with its commits in its log, resumed in a folder that cannot be written (chattr +i in the probe:
+    no portable way here, so the read-only look through the log is made to fail as it did there): that failure was
+    taken as "every identity row changes", the store refused as another database's, with advice to move the log
+    away, which would throw its commits away. Unreadable through its log, it is not judged; the open says why."""
+    from services.state.store import db
+
+    path = _committed_store(tmp_path, pairs[:5])
+    live = ShardStore.open(tmp_path, _identity(_config()), run_id="run-a")  # (the run's row in its log)
+    seen = db._meta_seen
+    monkeypatch.setattr(db, "_meta_seen", lambda at, options: None if options == "mode=ro" else seen(at, options))
+    assert Path(f"{path}-wal").stat().st_size > 0
+    db._refuse_a_foreign_log(path)  # (no StoreError: it cannot tell)
+    live.close()
+
+
 def test_a_state_directory_in_use_or_that_cannot_be_written_is_refused(tmp_path, capsys):
     held = ShardStore.open(tmp_path / "busy", _identity(_config()))
     try:

@@ -500,6 +500,7 @@ FAILING_GRACE = 10.0
 
 def commits_stuck(stats: ShardStats) -> bool:
     """Whether the shard's commits fail (persist: failing) and have for more than FAILING_GRACE s: since its last
-    commit (commit_age), or since it started when it has made none."""
-    since = stats.commit_age if stats.commit_age >= 0 else stats.uptime
+    commit (commit_age), or since it started when it has made none or made the last one before it started (a resumed
+    store's commit_age counts from the commit of the process before it: the grace was not kept)."""
+    since = min(stats.commit_age, stats.uptime) if stats.commit_age >= 0 else stats.uptime
     return stats.persist == "failing" and since > FAILING_GRACE

@@ -493,7 +493,9 @@ _WHOSE = ("format", "map", "shard", "shards", "tile_size", "resolution", "run")
 
 def _meta_seen(path: Path, options: str) -> dict[str, Any] | None:
     """The store's identity rows (:data:`_WHOSE`) read through a connection opened with the URI ``options``, which
-    writes nothing to the database or its log; None when they cannot be read."""
+    writes nothing to the database or its log; {} when the database read that way has no such rows (another
+    database); None when it cannot be read at all (a folder that cannot be written: a read-only connection could not
+    make the log's index there), which says nothing of whose the log is."""
     try:
         db = sqlite3.connect(f"{path.resolve().as_uri()}?{options}", uri=True, timeout=10.0)
     except sqlite3.Error:
@@ -501,8 +503,10 @@ def _meta_seen(path: Path, options: str) -> dict[str, Any] | None:
     try:
         marks = ", ".join("?" * len(_WHOSE))
         return dict(db.execute(f"SELECT key, value FROM meta WHERE key IN ({marks})", _WHOSE))
+    except sqlite3.OperationalError as exc:
+        return {} if "no such table" in str(exc) else None
     except (sqlite3.DatabaseError, UnicodeDecodeError):
-        return None
+        return {}
     finally:
         db.close()
 
@@ -520,7 +524,9 @@ def _refuse_a_foreign_log(path: Path) -> None:
     alone = _meta_seen(path, "immutable=1")
     if alone is None or alone.get("format") != FORMAT:
         return
-    through = _meta_seen(path, "mode=ro") or {}
+    through = _meta_seen(path, "mode=ro")
+    if through is None:  # (unreadable through its log: the open that follows says why, say a read-only folder)
+        return
     changed = [key for key in _WHOSE if key in alone and through.get(key) != alone[key]]
     if changed:
         raise StoreError(
