@@ -436,6 +436,27 @@ def test_another_databases_log_put_beside_a_store_is_refused_and_the_store_left_
     assert len(check_store(ours, _identity(_config()), "run-a")) == 1  # (its session of fused scans, readable)
 
 
+def test_an_earlier_copy_of_a_stores_own_log_put_back_is_refused_not_merged(tmp_path, pairs):
+    """A re-probe: a log saved from a killed session, put back after the session had been completed and merged,
+    passed the foreign-log check (same map, shard and run) and was merged: the store went back from 40 scans fused
+    and ended to 21, exit 0, the map 2.08 log-odds off. A store counts its commits; a log holding fewer is refused."""
+    shard, persister = _open(_config(), tmp_path, every_scans=4)
+    _feed(shard, pairs, range(8), persister)  # (two commits, in the log)
+    path = tmp_path / DB_NAME
+    saved = {suffix: Path(f"{path}{suffix}").read_bytes() for suffix in ("-wal", "-shm")}
+    _feed(shard, pairs, range(8, 20), persister)
+    assert persister.finish(shard)  # (which closes the store: the log merged into the file)
+    for suffix, data in saved.items():
+        Path(f"{path}{suffix}").write_bytes(data)
+    before = path.read_bytes()
+    with pytest.raises(StoreError, match="is older than the store .* goes back from commit"):
+        check_store(tmp_path, _identity(_config()), None)
+    assert path.read_bytes() == before
+    Path(f"{path}-wal").unlink()
+    Path(f"{path}-shm").unlink()
+    assert len(check_store(tmp_path, _identity(_config()), None)) == 1
+
+
 def test_a_stores_own_log_it_cannot_read_through_is_not_called_another_databases(tmp_path, pairs, monkeypatch):
     """A store killed with its commits in its log, resumed in a folder that cannot be written (chattr +i in the probe:
     no portable way here, so the read-only look through the log is made to fail as it did there): that failure was

@@ -376,6 +376,8 @@ class ShardStore:
                     "INSERT OR REPLACE INTO meta VALUES (?, ?)",
                     (("cells_updated", batch.cells_updated), ("committed_at", now)),
                 )
+                # (counted up at every commit: a log older than the file holds fewer; _refuse_a_foreign_log)
+                db.execute("INSERT INTO meta VALUES ('commits', 1) ON CONFLICT (key) DO UPDATE SET value = value + 1")
                 db.execute("COMMIT")
             except BaseException:
                 with contextlib.suppress(sqlite3.Error):
@@ -487,8 +489,9 @@ def _check_file(path: Path) -> bool:
     return True
 
 
-#: the meta rows that say whose store a file is: a write-ahead log that changes any of them is another database's
-_WHOSE = ("format", "map", "shard", "shards", "tile_size", "resolution", "run")
+#: the meta rows that say whose store a file is (a write-ahead log that changes any of them is another database's),
+#: and how many commits it holds (a log that holds fewer than the file is an earlier copy of the store's own)
+_WHOSE = ("format", "map", "shard", "shards", "tile_size", "resolution", "run", "commits")
 
 
 def _meta_seen(path: Path, options: str) -> dict[str, Any] | None:
@@ -527,7 +530,15 @@ def _refuse_a_foreign_log(path: Path) -> None:
     through = _meta_seen(path, "mode=ro")
     if through is None:  # (unreadable through its log: the open that follows says why, say a read-only folder)
         return
-    changed = [key for key in _WHOSE if key in alone and through.get(key) != alone[key]]
+    behind = isinstance(alone.get("commits"), int) and not through.get("commits", -1) >= alone["commits"]
+    if behind and not [key for key in _WHOSE if key != "commits" and through.get(key) != alone.get(key)]:
+        raise StoreError(
+            f"the write-ahead log {log} is older than the store {path}: read through it, the store goes back from "
+            f"commit {alone['commits']} to {through.get('commits')} (a copy of an earlier log put back beside it). "
+            f"Nothing was changed: move {log} (and {path}-shm) away to keep the store as it is, or restore the folder "
+            "from a copy"
+        )
+    changed = [key for key in _WHOSE if key in alone and key != "commits" and through.get(key) != alone[key]]
     if changed:
         raise StoreError(
             f"the write-ahead log {log} is not the log of the store {path}: read through it, the store's "
