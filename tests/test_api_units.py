@@ -340,6 +340,23 @@ def test_a_sync_that_finds_the_cached_tile_unchanged_keeps_its_version():
     assert changes == [("m", (0, 0), registry.version("m", 0, 0, 0))]
 
 
+def test_a_maps_conflict_clears_once_every_shard_answers_with_its_geometry():
+    """A re-probe: the shard of another --resolution was replaced by one of the map's, and /health still said the
+    shards publish two geometries 30 s later: the conflict was kept for as long as the API ran."""
+    registry = MapRegistry()
+    registry.shard_alive("m", 0, True)
+    registry.tile_changed("m", (0, 0), 0.05, 2)
+    source = Source({(0, 0): update(0, 0, 1.0), (1, 0): replace(update(1, 0, 1.0), resolution=0.1)})
+    service = TileService(registry, source, "e", 1 << 20, on_change=lambda name, tile, v: None)
+    service.sync("m")
+    info = registry.get("m")
+    assert info is not None and info.conflict is not None and "0.1 m" in info.conflict
+    del source.tiles[(1, 0)]  # (that shard replaced by one of the map's geometry)
+    registry.request_sync("m")
+    service.sync("m")
+    assert info.conflict is None
+
+
 def _whole_tile(tx: int, ty: int, tile_size: int, resolution: float) -> TileUpdate:
     layers = (
         np.full((tile_size, tile_size), 1.0, np.float32),

@@ -250,6 +250,14 @@ class MapRegistry:
                 return why
         return None
 
+    def clear_conflict(self, name: str) -> None:
+        """Forget map ``name``'s conflict: a fetch of every shard's tiles found one geometry only (the shard of
+        another --resolution was replaced)."""
+        with self.lock:
+            info = self._maps.get(name)
+            if info is not None:
+                info.conflict = None
+
     def tile_changed(self, name: str, tile: TileKey, resolution: float, tile_size: int) -> int:
         """Record a change (or the discovery) of level-0 tile ``tile`` of map ``name``; returns its new version."""
         with self.lock:

@@ -120,11 +120,12 @@ def serve(
                 server.should_exit = True
 
             threading.Thread(target=exit_when_stopped, daemon=True, name="api-stop").start()
+            at = f"[{host}]" if ":" in host else host  # (an IPv6 address in a URL is bracketed)
             log.info(
                 "serving on http://%s:%d/ (viewer), http://%s:%d/openapi.json (OpenAPI); maps known: %s",
-                host,
+                at,
                 port,
-                host,
+                at,
                 port,
                 ", ".join(backend.registry.names()) or "none yet",
             )

@@ -155,9 +155,11 @@ class TileService:
             self.registry.mark_synced(name)  # a shard appearing during the fetch asks for another sync
             before = self.registry.tiles(name)
             updates, complete = self.source.fetch_all(name)
+            mixed = False
             for update in updates:
                 tile = (update.tx, update.ty)
                 if self.registry.check_geometry(name, update.resolution, update.tile_size) is not None:
+                    mixed = True
                     continue
                 known = before.get(tile, 0)
                 if self.registry.version(name, 0, *tile) != known:
@@ -168,6 +170,8 @@ class TileService:
                 version = self.registry.tile_changed(name, tile, update.resolution, update.tile_size)
                 self._store(name, tile, version, update)
                 self.on_change(name, tile, version)
+            if complete and not mixed:  # every shard answered with the map's geometry: a conflict seen before is over
+                self.registry.clear_conflict(name)
             if complete:  # tiles listed before the sync that no shard holds: lost with a restarted shard, or bogus
                 held = {(update.tx, update.ty) for update in updates}
                 gone = {
