@@ -449,7 +449,7 @@ def test_an_earlier_copy_of_a_stores_own_log_put_back_is_refused_not_merged(tmp_
     for suffix, data in saved.items():
         Path(f"{path}{suffix}").write_bytes(data)
     before = path.read_bytes()
-    with pytest.raises(StoreError, match="is older than the store .* goes back from commit"):
+    with pytest.raises(StoreError, match=r"is older than the store .* goes back from commit"):
         check_store(tmp_path, _identity(_config()), None)
     assert path.read_bytes() == before
     Path(f"{path}-wal").unlink()
