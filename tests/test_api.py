@@ -32,6 +32,7 @@ from services import keys
 from services.map_client import MapReader
 from services.state.ownership import tile_owner
 from services.zenoh_config import build_config, open_session
+from test_pipeline import procs  # noqa: F401  (the fixture: processes ended by PID)
 
 STATIC = ROOT / "services" / "api" / "static"  # the viewer's files
 
@@ -550,36 +551,22 @@ def test_api_command_rejects_a_taken_port():
     assert result.returncode == 2 and "--port" in result.stderr
 
 
-def test_two_apis_started_on_one_port_at_once_one_serves_and_the_other_says_so_in_one_line():
+def test_two_apis_started_on_one_port_at_once_one_serves_and_the_other_says_so_in_one_line(procs):  # noqa: F811
     """Both passed a check that bound the port and let it go again; the loser then said "serving on ..." and failed
     in uvicorn (its raw message, exit 3; `posegrid run` took that for a crash and restarted it). The socket is now
     bound before anything says it serves: one serves, the other exits 2 with one line."""
     router_port, port = free_port(), free_port()
-    router = subprocess.Popen(
-        [*POSEGRID, "router", "--listen", f"tcp/127.0.0.1:{router_port}"], cwd=ROOT, stderr=subprocess.PIPE, text=True
-    )
+    procs([*POSEGRID, "router", "--listen", f"tcp/127.0.0.1:{router_port}"], cwd=ROOT).wait_for("routing")
     argv = [*POSEGRID, "api", "--port", str(port), "--connect", f"tcp/127.0.0.1:{router_port}"]
-    apis = []
-    try:
-        assert router.stderr is not None and "routing" in router.stderr.readline()
-        apis = [subprocess.Popen(argv, cwd=ROOT, stderr=subprocess.PIPE, text=True) for _ in range(2)]
-        wait_until(lambda: any(api.poll() is not None for api in apis), 60, "one of the two APIs to end")
-        (loser,) = [api for api in apis if api.poll() is not None]
-        (winner,) = [api for api in apis if api is not loser]
-        said = loser.stderr.read() if loser.stderr is not None else ""
-        assert loser.returncode == 2 and said.count("\n") == 1 and "pick another --port" in said, said
-        assert "serving on" not in said
-        assert httpx.get(f"http://127.0.0.1:{port}/health", timeout=30).status_code in (200, 503)
-        assert winner.poll() is None
-    finally:
-        for process in [*apis, router]:
-            if process.poll() is None:
-                process.send_signal(signal.SIGINT)
-                try:
-                    process.wait(20)
-                except subprocess.TimeoutExpired:
-                    process.kill()
-                    process.wait()
+    apis = [procs(argv, cwd=ROOT) for _ in range(2)]
+    wait_until(lambda: any(api.process.poll() is not None for api in apis), 60, "one of the two APIs to end")
+    (loser,) = [api for api in apis if api.process.poll() is not None]
+    (winner,) = [api for api in apis if api is not loser]
+    loser.wait_for("pick another --port")  # (its output is read on a thread: all of it, once this line is in)
+    assert loser.process.returncode == 2 and len(loser.lines) == 1, loser.output()
+    assert "serving on" not in loser.output()
+    assert httpx.get(f"http://127.0.0.1:{port}/health", timeout=30).status_code in (200, 503)
+    assert winner.process.poll() is None
 
 
 # ------------------------------------------------------------------------------------------ last: a shard stops
