@@ -16,6 +16,7 @@ import math
 
 import numpy as np
 
+from mapping.covariance import check_covariances
 from mapping.errors import InputError
 from mapping.scan_input import check_samples, merge_duplicates
 
@@ -39,12 +40,6 @@ def samples_for_accuracy(
     return max(math.ceil(needed), 1)
 
 
-#: how far from symmetric a pose covariance may be, relative to its largest entry (schemas.files' test for files)
-SYMMETRY_TOLERANCE = 1e-9
-#: how far below zero a pose covariance's smallest eigenvalue may be (rounding), m^2 or rad^2
-EIGEN_TOLERANCE = 1e-12
-
-
 def check_gaussian(mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Validate a Gaussian pose: mean (3,) (x m, y m, yaw rad) and cov (3, 3), finite, symmetric and positive
     semi-definite. Returns them as float64 arrays."""
@@ -54,11 +49,7 @@ def check_gaussian(mean: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.nd
         raise InputError(f"a Gaussian pose needs mean (3,) and cov (3, 3), got {mean.shape} and {cov.shape}")
     if not (np.isfinite(mean).all() and np.isfinite(cov).all()):
         raise InputError("the Gaussian pose's mean and cov must be finite")
-    if np.abs(cov - cov.T).max() > SYMMETRY_TOLERANCE * (1.0 + np.abs(cov).max()):
-        raise InputError("the pose covariance is not symmetric")
-    smallest = float(np.linalg.eigvalsh(cov).min())
-    if smallest < -EIGEN_TOLERANCE:
-        raise InputError(f"the pose covariance is not positive semi-definite (smallest eigenvalue {smallest:.3g})")
+    check_covariances(cov[None], "the pose covariance")
     return mean, cov
 
 

@@ -37,10 +37,9 @@ def input_errors() -> tuple[type[BaseException], ...]:
     """Exception types that mean 'the user's input is wrong' rather than 'posegrid has a bug'."""
     from mapping.errors import InputError
     from schemas.errors import FormatError
-    from slam.errors import InputError as SlamInputError
     from slam.errors import LogFormatError
 
-    return (UsageError, FormatError, InputError, LogFormatError, SlamInputError)
+    return (UsageError, FormatError, InputError, LogFormatError)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -10,6 +10,10 @@ from pathlib import Path
 
 import numpy as np
 
+# an argument of a library call (a model's parameter, a filter's step, a scoring input) that cannot be used: the
+# numerics layers' one error for it (a ValueError), which the command line says in one line
+from mapping.errors import InputError
+
 
 class LogFormatError(ValueError):
     """A dataset or log cannot be read or is not of the expected kind; the message says which file and why."""
@@ -26,11 +30,6 @@ def refuse_special_file(path: Path, what: str) -> None:
     if not stat.S_ISREG(mode):
         kind = "a folder" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode) else "a device or socket"
         raise LogFormatError(f"{path}: is {kind}, not a regular file; give the path of the {what}")
-
-
-class InputError(ValueError):
-    """An argument of a slam library call (a model's parameter, a filter's step, a scoring input) cannot be used;
-    the message names it, says what was wrong and how to fix it. A ValueError, as the calls raised before."""
 
 
 def finite_array(name: str, value: object, shape: tuple[int | None, ...], hint: str = "") -> np.ndarray:

@@ -21,11 +21,11 @@ import scipy.sparse
 import scipy.sparse.csgraph
 import scipy.sparse.linalg
 
+from mapping.covariance import check_covariances
 from slam.angles import wrap_angle
 from slam.errors import InputError, check_count, check_within, finite_array
 from slam.motion import compose
 from slam.relations import relative_motion
-from slam.scoring import check_covariances
 
 #: information that holds the first pose in place (a gauge: without it the graph could drift as a whole)
 ANCHOR_INFORMATION = 1e9
@@ -52,7 +52,7 @@ def apply_transform(transform: np.ndarray, poses: np.ndarray) -> np.ndarray:
 
 def _information(covariance: np.ndarray) -> np.ndarray:
     """The inverse (3, 3) of an edge's covariance (3, 3), InputError unless that is symmetric and positive
-    definite (slam.scoring.check_covariances, and no eigenvalue <= 0) with a finite inverse."""
+    definite (mapping.covariance.check_covariances, and no eigenvalue <= 0) with a finite inverse."""
     check_covariances(covariance[None], "covariance")
     lowest = float(np.linalg.eigvalsh(0.5 * (covariance + covariance.T))[0])
     information = np.linalg.inv(covariance) if lowest > 0.0 else np.full((3, 3), np.nan)

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mapping.covariance import check_covariances
 from slam.angles import wrap_angle
 from slam.errors import InputError, finite_array
 
@@ -21,8 +22,6 @@ CHI2_3_95 = 7.8147
 #: added to every covariance's diagonal (m^2, m^2, rad^2) before inversion, so a zero covariance (the known
 #: start, or a single particle) gives a finite NEES: 0 for a zero error, enormous otherwise
 COVARIANCE_JITTER = 1e-6
-#: relative tolerance of a covariance's symmetry and of its negative eigenvalues (rounding), of its largest entry
-COVARIANCE_RTOL = 1e-9
 
 
 @dataclass(frozen=True)
@@ -50,30 +49,6 @@ def fit_gaussian(samples: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, 
     residual[..., 2] = wrap_angle(residual[..., 2])
     cov = np.einsum("tn,tni,tnj->tij", weights, residual, residual)
     return mean, cov
-
-
-def check_covariances(cov: np.ndarray, name: str = "cov") -> None:
-    """InputError unless every covariance of the stack (T, 3, 3) is symmetric and positive semi-definite, both to
-    :data:`COVARIANCE_RTOL` of its largest entry (rounding); the message names the first bad step. O(T), vectorised.
-    A singular one (the known start, a single particle) passes: :data:`COVARIANCE_JITTER` makes it invertible."""
-    scale = np.abs(cov).max(axis=(1, 2))
-    tolerance = COVARIANCE_RTOL * scale
-    asymmetry = np.abs(cov - np.swapaxes(cov, 1, 2)).max(axis=(1, 2))
-    bad = np.flatnonzero(asymmetry > tolerance)
-    if len(bad):
-        t = int(bad[0])
-        raise InputError(
-            f"{name}[{t}] is not symmetric (|C - C^T| up to {asymmetry[t]:.3g}): give covariances (T, 3, 3) of "
-            "(x m, y m, yaw rad); if it is an information matrix or a square root, convert it first"
-        )
-    lowest = np.linalg.eigvalsh(0.5 * (cov + np.swapaxes(cov, 1, 2)))[:, 0]
-    bad = np.flatnonzero(lowest < -tolerance)
-    if len(bad):
-        t = int(bad[0])
-        raise InputError(
-            f"{name}[{t}] is not positive semi-definite (eigenvalue {lowest[t]:.3g}): a covariance has no negative "
-            "variance; check how it was computed"
-        )
 
 
 def score_trajectory(mean: np.ndarray, cov: np.ndarray, truth: np.ndarray) -> TrajectoryScore:
