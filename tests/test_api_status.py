@@ -179,7 +179,9 @@ def test_shards_of_two_geometries_or_past_the_count_are_a_conflict_and_degrade_h
     registry = MapRegistry()
     registry.tile_changed("m", (0, 0), 0.05, 256)
     assert registry.check_geometry("m", 0.05, 256) is None
-    assert registry.check_geometry("m", 0.1, 256) == "map 'm' has 256-cell tiles of 0.05 m cells, not 256 of 0.1 m"
+    why = registry.check_geometry("m", 0.1, 256)
+    assert why == "map 'm' has 256-cell tiles of 0.05 m cells, not 256 of 0.1 m"
+    registry.note_conflict("m", why)  # (as the API does for a tile its shard sent: services.api.mappers)
     mixed = registry.get("m")
     assert mixed is not None and mixed.conflict is not None
     mixed.shards, mixed.alive = 2, {0, 1}

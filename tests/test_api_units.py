@@ -388,3 +388,10 @@ def test_a_tile_querys_reply_of_another_geometry_than_the_maps_is_refused():
     # the same tile from a process that did not answer as shard 0 (a peer's queryable on the tile keys) is refused
     assert link._whole_tiles("m", [(tile_key("m", 0, 1, 0), _whole_tile(1, 0, 2, 0.05).encode(), "zid-b")]) == []
     assert link.rejects.kinds() == {"key": 2}
+    # the shard's own reply of another geometry is the map's conflict; a peer's forged one must not be (a review: one
+    # forged tile of 0.1 m cells put /health at degraded until the next complete fetch)
+    info = registry.get("m")
+    assert info is not None and info.conflict is not None and "not 4 of 0.1 m" in info.conflict
+    registry.clear_conflict("m")
+    forged = [(tile_key("m", 0, 1, 0), _whole_tile(1, 0, 4, 0.1).encode(), "zid-b")]
+    assert link._whole_tiles("m", forged) == [] and info.conflict is None

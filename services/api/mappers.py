@@ -194,8 +194,10 @@ class MapperLink:
         except MessageError as exc:
             self.rejects.count(key, exc.reason, str(exc))
             return
-        problem = self._foreign_tile(key, update) or self.registry.check_sender(
-            update.map, update.shard, (update.tx, update.ty)
+        problem = (
+            self._foreign_tile(key, update)
+            or self.registry.check_sender(update.map, update.shard, (update.tx, update.ty))
+            or self._geometry_problem(update)
         )
         if problem:
             self.rejects.count(key, "key", problem)
@@ -228,13 +230,22 @@ class MapperLink:
         self.hub.pose(summary)
 
     def _foreign_tile(self, key: str, update: TileUpdate) -> str | None:
-        """Why ``update`` does not belong on ``key`` or to its map (None when it does): another tile's key, a zoom
-        level other than 0, or a tile size or resolution other than the map's (a tile query's reply of another
-        geometry was served as it came, and the coarser levels made of it failed)."""
+        """Why ``update`` does not belong on ``key`` (None when it does): another tile's key, or a zoom level other
+        than 0."""
         expected = keys.tile_key(update.map, update.z, update.tx, update.ty)
         if key != expected or update.z != 0:
             return f"a TileUpdate for {expected} arrived on {key}"
-        return self.registry.check_geometry(update.map, update.resolution, update.tile_size)
+        return None
+
+    def _geometry_problem(self, update: TileUpdate) -> str | None:
+        """Why a tile from the process that answers as its shard does not fit its map (None when it does): a tile
+        size or resolution other than the map's (a tile query's reply of another geometry was served as it came, and
+        the coarser levels made of it failed). Kept as the map's conflict: its shards disagree. Checked only after
+        the sender, so that a peer's forged tile is refused without touching the map's health."""
+        why = self.registry.check_geometry(update.map, update.resolution, update.tile_size)
+        if why is not None:
+            self.registry.note_conflict(update.map, why)
+        return why
 
     # ---------------------------------------------------------------------------- queries
     def _get(self, selector: str, timeout: float | None = None):
@@ -280,9 +291,11 @@ class MapperLink:
             if not problem and not update.is_whole():
                 problem = "a tile query was answered with a partial window"
             if not problem:
-                problem = self.registry.check_sender(
-                    map_name, update.shard, (update.tx, update.ty)
-                ) or self.registry.check_answerer(map_name, update.shard, sender)
+                problem = (
+                    self.registry.check_sender(map_name, update.shard, (update.tx, update.ty))
+                    or self.registry.check_answerer(map_name, update.shard, sender)
+                    or self._geometry_problem(update)
+                )
             if problem:
                 self.rejects.count(key, "key", problem)
                 continue

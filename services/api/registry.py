@@ -236,19 +236,23 @@ class MapRegistry:
 
     def check_geometry(self, name: str, resolution: float, tile_size: int) -> str | None:
         """Why a tile of this geometry does not belong to map ``name`` (None when it does)."""
+        info = self._maps.get(name)
+        if info is None or info.resolution is None:
+            return None
+        if (info.resolution, info.tile_size) != (resolution, tile_size):
+            return (
+                f"map {name!r} has {info.tile_size}-cell tiles of {info.resolution} m cells, "
+                f"not {tile_size} of {resolution} m"
+            )
+        return None
+
+    def note_conflict(self, name: str, why: str) -> None:
+        """Keep ``why`` (a tile of another geometry, from the process that answers as its shard: never a peer's
+        forgery, which must not degrade /health) as map ``name``'s conflict, until :meth:`clear_conflict`."""
         with self.lock:
             info = self._maps.get(name)
-            if info is None or info.resolution is None:
-                return None
-            if (info.resolution, info.tile_size) != (resolution, tile_size):
-                why = (
-                    f"map {name!r} has {info.tile_size}-cell tiles of {info.resolution} m cells, "
-                    f"not {tile_size} of {resolution} m"
-                )
-                if info.conflict is None:  # (kept: its shards were started with other --resolution or --tile-size)
-                    info.conflict = f"its shards publish tiles of two geometries: {why}"
-                return why
-        return None
+            if info is not None and info.conflict is None:
+                info.conflict = f"its shards publish tiles of two geometries: {why}"
 
     def clear_conflict(self, name: str) -> None:
         """Forget map ``name``'s conflict: a fetch of every shard's tiles found one geometry only (the shard of

@@ -158,7 +158,9 @@ class TileService:
             mixed = False
             for update in updates:
                 tile = (update.tx, update.ty)
-                if self.registry.check_geometry(name, update.resolution, update.tile_size) is not None:
+                why = self.registry.check_geometry(name, update.resolution, update.tile_size)
+                if why is not None:  # (the source's tiles come from their shards: TileSource)
+                    self.registry.note_conflict(name, why)
                     mixed = True
                     continue
                 known = before.get(tile, 0)
