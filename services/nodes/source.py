@@ -45,6 +45,10 @@ LINGER = 30.0
 REACH_CHECK = 0.1
 
 
+#: s a shard's commits must have been failing (since its last commit, else since it started) before a source stops
+#: waiting for them: five retries at the default --commit-interval of 2 s
+FAILING_GRACE = 10.0
+
 #: the longest pause between two steps a replay at a factor of real time keeps, s of the stamps: a longer gap (a log
 #: that paused, or stamps that jump: 1e6 s slept 11 days without a word, 1e300 s ended the source with a traceback, a
 #: wait past the platform's time_t) is cut to it, and said
@@ -57,23 +61,23 @@ def replay_offsets(stamps: list[float], rate: float) -> tuple[list[float], list[
     (stamps out of order) taken as 0, so that step goes out at once. Also the notes to say (the first gap of each
     kind, with its steps)."""
     offsets: list[float] = []
-    notes: list[str] = []
+    back = jump = ""  # (the first of each kind)
     due = 0.0
     for index, stamp in enumerate(stamps):
         gap = stamp - stamps[index - 1] if index else 0.0
-        if gap < 0 and not any(note.startswith("stamps go back") for note in notes):
-            notes.append(
+        if gap < 0 and not back:
+            back = (
                 f"stamps go back {-gap:.6g} s from step {index - 1} to {index}: steps whose stamps go back are "
                 "published at once, without pacing"
             )
-        if gap > MAX_STEP_GAP and not any(note.startswith("stamps jump") for note in notes):
-            notes.append(
+        if gap > MAX_STEP_GAP and not jump:
+            jump = (
                 f"stamps jump {gap:.6g} s from step {index - 1} to {index}: pauses longer than {MAX_STEP_GAP:g} s "
                 f"are replayed as {MAX_STEP_GAP:g} s"
             )
         due += min(max(gap, 0.0), MAX_STEP_GAP) / rate
         offsets.append(due)
-    return offsets, notes
+    return offsets, [note for note in (back, jump) if note]
 
 
 def stall_message(shards: tuple[int, int] | None, slam: tuple[int, int] | None, distrust: str | None) -> str:
@@ -491,11 +495,6 @@ def _accounted(stats: list[ShardStats], end: StreamEnd) -> bool:
         and (s.persist == "off" or commits_stuck(s) or s.committed.get(robot, 0) >= scans)
         for s in stats
     )
-
-
-#: s a shard's commits must have been failing (since its last commit, else since it started) before a source stops
-#: waiting for them: five retries at the default --commit-interval of 2 s
-FAILING_GRACE = 10.0
 
 
 def commits_stuck(stats: ShardStats) -> bool:
