@@ -224,6 +224,30 @@ def test_a_killed_pipeline_resumes_and_a_second_robots_session_adds_to_the_map(t
         _raster_equal(reader.assemble(2, 0.05).rasterize(), expected.rasterize())
 
 
+def test_continuing_a_session_with_another_input_fails_and_keeps_the_map(tmp_path, procs):  # noqa: F811
+    """--continue-session with an input other than the session's: every scan and pose differs from the one fused
+    for its seq, the shards refuse them all, and the run says so and exits 1 (it used to say "fused 30", exit 0)."""
+    first = make_posed(tmp_path / "a.npz", "samples", steps=30)
+    other = make_posed(tmp_path / "b.npz", "samples", steps=30, seed=11)
+    state = tmp_path / "state"
+    made = _run(tmp_path, procs, first, "r1", "--state-dir", str(state), "--export", str(tmp_path / "first.npz"))
+    assert made.process.wait(120) == 0, made.output()
+
+    exported = tmp_path / "again.npz"
+    again = _run(tmp_path, procs, other, "r1", "--resume", str(state), "--continue-session", "--export", str(exported))
+    assert again.process.wait(120) == 1, again.output()
+    errors = [line for line in again.lines if "posegrid run: error:" in line]
+    assert len(errors) == 1 and "the input is not the one this session was fused from" in errors[0], again.output()
+    # (every scan and pose of the 30 differs: 60 refusals by the shard that owns tiles of all of them, or fewer)
+    assert re.search(r"refused ([1-9]\d*) scan\(s\) or pose\(s\)", errors[0]), errors[0]
+    _raster_equal(exported, tmp_path / "first.npz")  # the map is the session's own input's, untouched
+
+    same = _run(tmp_path, procs, first, "r1", "--resume", str(state), "--continue-session", "--export", str(exported))
+    assert same.process.wait(120) == 0, same.output()  # the same input again: resent, not refused
+    assert "posegrid run: error" not in same.output()
+    _raster_equal(exported, tmp_path / "first.npz")
+
+
 def test_a_source_does_not_wait_for_a_shard_whose_commits_fail(tmp_path, procs):  # noqa: F811
     """A shard whose store cannot be written (here past --state-limit-mb; a full or immutable disk in the probe) goes
     on fusing from memory, persist: failing. The source waited for its commits, gave up after 60 s with exit 1, and

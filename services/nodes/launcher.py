@@ -477,10 +477,29 @@ def _supervise(session, plan: Plan, children: Children, stop: threading.Event, l
                 + (f", gave up on up to {discarded}" if discarded else ""),
                 flush=True,
             )
+            clashes = max(s.refused.get("duplicate", 0) for s in stats.values())
+            if clashes:
+                print(clash_message(clashes, plan), file=sys.stderr, flush=True)
             if plan.export is not None:
-                return _export(reader, plan, discarded)
+                rc = _export(reader, plan, discarded)
+                return 1 if clashes else rc
             print("posegrid run: serving the finished map until Ctrl-C", flush=True)
     return 0
+
+
+def clash_message(clashes: int, plan: Plan) -> str:
+    """The error a run ends with when its shards refused ``clashes`` of its scans or poses (the most of one shard)
+    because each differs from the one of the same robot and seq that they had fused: the map holds those others."""
+    cause = (
+        "the input is not the one this session was fused from (--continue-session goes on with an interrupted replay "
+        "of the same input; leave it out to add this input to the map as a new session)"
+        if plan.state is not None and plan.state.continued
+        else f"another run or process publishes under robot {plan.robot!r} (give this run another --robot)"
+    )
+    return (
+        f"posegrid run: error: the shards refused {clashes} scan(s) or pose(s) of this run that differ from the ones "
+        f"of the same seq they had fused: {cause}; the map holds the others there"
+    )
 
 
 def _export(reader: MapReader, plan: Plan, discarded: int) -> int:

@@ -33,6 +33,7 @@ class RunState:
     session: str
     resumed: bool  # the directory held a run before this one
     run_id: str = ""  # the run's own id, given to its shards' stores ("": none, a run.json written before it)
+    continued: bool = False  # the session is the resumed run's latest (--continue-session), not a new one
 
     def shard_dir(self, shard: int) -> Path:
         return shard_dir(self.directory, shard)
@@ -135,7 +136,8 @@ def prepare_run(
         sessions.append({"id": session, "started": time.time()})
     _write_run(path, directory, record)
     run_id = record.get("id")
-    return RunState(directory, session, resume, run_id if isinstance(run_id, str) and is_valid_name(run_id) else "")
+    run_id = run_id if isinstance(run_id, str) and is_valid_name(run_id) else ""
+    return RunState(directory, session, resume, run_id, continue_session)
 
 
 def check_run_options(directory: Path, map_name: str, shards: int, resolution: float) -> dict[str, Any]:
