@@ -76,22 +76,36 @@ def header_stamp(header) -> float:
     return header.stamp.sec + 1e-9 * header.stamp.nanosec
 
 
-#: a quaternion whose squared norm is off 1 by more than this is normalised before its yaw is read
+#: a quaternion whose squared norm is off 1 by more than this is normalised before it is read
 UNIT_TOLERANCE = 1e-6
 
 
-def _squared_norm(q) -> float:
-    """w^2 + x^2 + y^2 + z^2 of a quaternion (1 for a rotation as ROS writes it)."""
-    return q.w * q.w + q.x * q.x + q.y * q.y + q.z * q.z
+def _unit_quaternion(q) -> tuple[float, float, float, float] | None:
+    """(w, x, y, z) of quaternion ``q`` scaled to unit norm (its largest component taken out first, so that no square
+    overflows or underflows: a quaternion scaled by 0.5 read a yaw of pi/2 as 18 deg); the identity for a zero one;
+    None for one with a component that is not finite."""
+    parts = (float(q.w), float(q.x), float(q.y), float(q.z))
+    if not all(math.isfinite(p) for p in parts):
+        return None
+    if abs(sum(p * p for p in parts) - 1.0) <= UNIT_TOLERANCE:
+        return parts  # (as ROS writes a rotation: taken as it is)
+    largest = max(abs(p) for p in parts)
+    if largest == 0.0:
+        return (1.0, 0.0, 0.0, 0.0)
+    w, x, y, z = (p / largest for p in parts)
+    norm = math.sqrt(w * w + x * x + y * y + z * z)
+    return (w / norm, x / norm, y / norm, z / norm)
 
 
 def quaternion_yaw(q) -> float:
     """Yaw (rad) of a quaternion: the heading of its x axis projected onto the plane (the rotation about z of a
-    level frame; of one upside down, ``Rz(yaw) Rx(pi)``, too). One that is not of unit norm is normalised first
-    (a quaternion scaled by 0.5 read a yaw of pi/2 as 18 deg); a zero one reads 0."""
-    norm = _squared_norm(q)
-    scale = 1.0 if abs(norm - 1.0) <= UNIT_TOLERANCE or norm == 0.0 else 1.0 / norm
-    return math.atan2(2.0 * scale * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * scale * (q.y * q.y + q.z * q.z))
+    level frame; of one upside down, ``Rz(yaw) Rx(pi)``, too). One not of unit norm is normalised first; a zero one
+    reads 0; one with a component that is not finite reads NaN, which the callers refuse as a pose."""
+    unit = _unit_quaternion(q)
+    if unit is None:
+        return math.nan
+    w, x, y, z = unit
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
 #: a frame whose z axis lies within this of the vertical (rad), up or down, scans the floor's plane: level (+1) or
@@ -105,9 +119,13 @@ LEVEL, UPSIDE_DOWN, TILTED = 1, -1, 0
 
 def quaternion_attitude(q) -> int:
     """LEVEL, UPSIDE_DOWN or TILTED: where a quaternion's rotation takes the z axis (the z component of R e_z,
-    1 - 2 (x^2 + y^2) for a unit quaternion; normalised first, a zero quaternion taken as the identity)."""
-    norm = _squared_norm(q)
-    up = 1.0 - 2.0 * (q.x * q.x + q.y * q.y) / norm if norm > 0.0 else 1.0
+    1 - 2 (x^2 + y^2) for a unit quaternion; normalised first, a zero quaternion taken as the identity). One with a
+    component that is not finite says nothing of where the laser points: TILTED, which a mount refuses."""
+    unit = _unit_quaternion(q)
+    if unit is None:
+        return TILTED
+    _, x, y, _ = unit
+    up = 1.0 - 2.0 * (x * x + y * y)
     if up >= math.cos(TILT_LIMIT):
         return LEVEL
     return UPSIDE_DOWN if up <= -math.cos(TILT_LIMIT) else TILTED

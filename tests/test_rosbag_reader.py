@@ -117,6 +117,27 @@ def test_a_quaternion_not_of_unit_norm_reads_its_yaw():
         q = SimpleNamespace(w=scale * math.cos(math.pi / 4), x=0.0, y=0.0, z=scale * math.sin(math.pi / 4))
         assert quaternion_yaw(q) == pytest.approx(math.pi / 2, abs=1e-12)
     assert quaternion_yaw(SimpleNamespace(w=0.0, x=0.0, y=0.0, z=0.0)) == 0.0
+    # components whose squares overflow or underflow: a yaw of pi/2 all the same
+    for scale in (1e200, 1e-200):
+        q = SimpleNamespace(w=scale, x=0.0, y=0.0, z=scale)
+        assert quaternion_yaw(q) == pytest.approx(math.pi / 2, abs=1e-12)
+
+
+def test_a_quaternion_that_is_not_finite_is_no_yaw_and_no_level_mount():
+    """A NaN or infinite component read as a level mount (a zero norm's identity) before: now NaN, TILTED."""
+    from types import SimpleNamespace
+
+    from slam.rosbag_reader import LEVEL, TILTED, UPSIDE_DOWN, quaternion_attitude, quaternion_yaw
+
+    for bad in (math.nan, math.inf, -math.inf):
+        for field in "wxyz":
+            parts = {"w": 1.0, "x": 0.0, "y": 0.0, "z": 0.0, field: bad}
+            q = SimpleNamespace(**parts)
+            assert math.isnan(quaternion_yaw(q)), parts
+            assert quaternion_attitude(q) == TILTED, parts
+    assert quaternion_attitude(SimpleNamespace(w=2.0, x=0.0, y=0.0, z=0.0)) == LEVEL
+    assert quaternion_attitude(SimpleNamespace(w=0.0, x=3.0, y=0.0, z=0.0)) == UPSIDE_DOWN  # pi about x
+    assert quaternion_attitude(SimpleNamespace(w=1e-200, x=1e-200, y=0.0, z=0.0)) == TILTED  # pi/2 about x
 
 
 def test_ros1_bag_with_odometry(tmp_path):
