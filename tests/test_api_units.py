@@ -357,6 +357,34 @@ def test_a_maps_conflict_clears_once_every_shard_answers_with_its_geometry():
     assert info.conflict is None
 
 
+def test_a_map_whose_shards_all_hold_another_geometry_takes_it_and_drops_the_old_tiles():
+    """A new run under a map's name with another --resolution, and an API that ran on: the API kept the first run's
+    geometry for as long as it ran and refused every tile of the new run as a conflict. A complete fetch that finds
+    one geometry only, another, gives the map that geometry; the old tiles, which no shard holds, go."""
+    registry = MapRegistry()
+    registry.shard_alive("m", 0, True)
+    registry.tile_changed("m", (0, 0), 0.05, 2)
+    registry.tile_changed("m", (5, 5), 0.05, 2)
+    source = Source({(1, 0): replace(update(1, 0, 3.0), resolution=0.1)})
+    service = TileService(registry, source, "e", 1 << 20, on_change=lambda name, tile, v: None)
+    service.sync("m")
+    info = registry.get("m")
+    assert info is not None and (info.resolution, info.tile_size) == (0.1, 2) and info.conflict is None
+    assert set(info.tiles) == {(1, 0)} and info.x_range == (1, 1) and info.y_range == (0, 0)
+    assert service.layers("m", 0, 1, 0)[0][0, 0] == 3.0
+    # two geometries among the shards: a conflict, the map's geometry kept
+    source.tiles[(2, 0)] = update(2, 0, 1.0)
+    registry.request_sync("m")
+    service.sync("m")
+    assert (info.resolution, info.tile_size) == (0.1, 2) and info.conflict is not None
+    # an incomplete fetch (a shard did not answer) never moves the geometry
+    source.tiles = {(2, 0): update(2, 0, 1.0)}
+    source.fetch_all = lambda map_name: (list(source.tiles.values()), False)  # type: ignore[method-assign]
+    registry.request_sync("m")
+    service.sync("m")
+    assert (info.resolution, info.tile_size) == (0.1, 2)
+
+
 def _whole_tile(tx: int, ty: int, tile_size: int, resolution: float) -> TileUpdate:
     layers = (
         np.full((tile_size, tile_size), 1.0, np.float32),
@@ -382,8 +410,11 @@ def test_a_tile_querys_reply_of_another_geometry_than_the_maps_is_refused():
     replies = [
         (tile_key("m", 0, 1, 0), _whole_tile(1, 0, *geometry).encode(), "zid-a") for geometry in ((4, 0.1), (2, 0.05))
     ]
+    registry.mark_synced("m")
     taken = link._whole_tiles("m", replies)
     assert [(tile.tile_size, tile.resolution) for tile in taken] == [(2, 0.05)]
+    # the shard's tile of another geometry asks for a fetch of every shard's tiles (which may find a new run's)
+    assert registry.get("m").synced is False  # type: ignore[union-attr]
     assert link.rejects.kinds() == {"key": 1}
     # the same tile from a process that did not answer as shard 0 (a peer's queryable on the tile keys) is refused
     assert link._whole_tiles("m", [(tile_key("m", 0, 1, 0), _whole_tile(1, 0, 2, 0.05).encode(), "zid-b")]) == []

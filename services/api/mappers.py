@@ -245,6 +245,7 @@ class MapperLink:
         why = self.registry.check_geometry(update.map, update.resolution, update.tile_size)
         if why is not None:
             self.registry.note_conflict(update.map, why)
+            self.registry.request_sync(update.map)  # (every shard's tiles of the new geometry: the map takes it)
         return why
 
     # ---------------------------------------------------------------------------- queries

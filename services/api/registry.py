@@ -262,6 +262,19 @@ class MapRegistry:
             if info is not None:
                 info.conflict = None
 
+    def repin_geometry(self, name: str, resolution: float, tile_size: int) -> None:
+        """Give map ``name`` a new geometry (m per cell, cells per tile side) and forget its tiles, every level: every
+        shard of the map now holds tiles of that geometry only (a new run under the map's name, with another
+        --resolution), so none of the tiles of the old one is held any more. The conflict goes with them."""
+        with self.lock:
+            info = self._maps.get(name)
+            if info is None:
+                return
+            info.resolution, info.tile_size = resolution, tile_size
+            info.levels = [{} for _ in range(MAX_LEVEL + 1)]
+            info.x_range = info.y_range = None
+            info.conflict = None
+
     def tile_changed(self, name: str, tile: TileKey, resolution: float, tile_size: int) -> int:
         """Record a change (or the discovery) of level-0 tile ``tile`` of map ``name``; returns its new version."""
         with self.lock:

@@ -155,6 +155,8 @@ class TileService:
             self.registry.mark_synced(name)  # a shard appearing during the fetch asks for another sync
             before = self.registry.tiles(name)
             updates, complete = self.source.fetch_all(name)
+            if complete and self._repinned(name, updates):
+                before = {}
             mixed = False
             for update in updates:
                 tile = (update.tx, update.ty)
@@ -190,6 +192,31 @@ class TileService:
                     )
                     self.registry.forget_tiles(name, gone)
                     self._content.pop(name, None)
+
+    def _repinned(self, name: str, updates: list[TileUpdate]) -> bool:
+        """Whether every shard of map ``name`` answered a complete fetch with ``updates`` of one geometry other than
+        the map's, which the map then takes, dropping the tiles of the old one (none of which any shard holds): a new
+        run under the map's name with another --resolution. Else the API kept the first geometry for as long as it
+        ran and refused every tile of the new run as a conflict."""
+        geometries = {(update.resolution, update.tile_size) for update in updates}
+        if len(geometries) != 1:
+            return False
+        (resolution, tile_size), *_ = geometries
+        info = self.registry.get(name)
+        if info is None or self.registry.check_geometry(name, resolution, tile_size) is None:
+            return False
+        self.log.warning(
+            "map %r: every shard now holds %d-cell tiles of %s m cells, not %s of %s m: a new run under the map's "
+            "name; the old run's tiles are dropped",
+            name,
+            tile_size,
+            resolution,
+            info.tile_size,
+            info.resolution,
+        )
+        self.registry.repin_geometry(name, resolution, tile_size)
+        self._content.pop(name, None)
+        return True
 
     def _fetch(self, name: str, wanted: dict[TileKey, int]) -> dict[TileKey, tuple[TileLayers, TileFacts]]:
         """Fetch level-0 tiles ``wanted`` (key -> the version read before asking), cache and return them."""
