@@ -29,7 +29,7 @@ from services.intake import Intake
 from services.process import RejectCounter
 from services.state.limits import ShardLimits
 from services.state.shard import SHARD_STREAMS, MapShard, ShardConfig
-from services.state.slam import NodeConfig, SlamState
+from services.state.slam import PRIOR_RETRY, NodeConfig, SlamState
 from slam.dead_reckoning import DeadReckoning
 from slam.ekf import EKFSLAM
 from slam.gridslam import GridSlamConfig
@@ -241,6 +241,37 @@ def _dead_reckoning_state(rejects, publish, history) -> SlamState:
         make_filter=lambda start: DeadReckoning(OdometryMotionModel(), start),
     )
     return SlamState(config, rejects, publish=publish, history=history)
+
+
+def test_a_slam_node_that_missed_the_prior_asks_the_history_for_it():
+    """A probe: a node paused (SIGSTOP) as it started missed the prior, which the source publishes once; it never
+    asked for it again, took no step and the shards gave up on every scan of the run. Steps waiting with no start
+    pose now ask the source's history for its prior, at most once a second (none given: the steps wait)."""
+    published: list[bytes] = []
+    asked: list[tuple[frozenset, int, int | None]] = []
+    prior = PoseGaussian(robot="r", seq=0, stamp=0.0, mean=np.array([2.0, 1.0, 0.0]), cov=np.eye(3) * 1e-4)
+    answers: list[tuple[str, bytes]] = []
+
+    def history(streams, first, last):
+        asked.append((streams, first, last))
+        return [(key, payload) for key, payload in answers if key.rsplit("/", 1)[-1] in streams]
+
+    config = replace(_dead_reckoning_state(_rejects("x"), published.append, history).config, initial=None)
+    state = SlamState(config, _rejects("slam-prior"), publish=published.append, history=history)
+    for seq in range(3):  # the history does not answer (a source not up yet, or gone): asked once, steps wait
+        state.handle("pg/r/odom", _odometry(seq).encode())
+        state.handle("pg/r/landmarks", _seen(seq).encode())
+    assert asked == [(frozenset({keys.PRIOR}), 0, 0)] and published == []
+    answers.append(("pg/r/prior", prior.encode()))
+    state._prior_asked -= PRIOR_RETRY  # (a second later)
+    for seq in range(3, 6):
+        state.handle("pg/r/odom", _odometry(seq).encode())
+        state.handle("pg/r/landmarks", _seen(seq).encode())
+    assert len(asked) == 2 and [decode_message(p, PoseGaussian).seq for p in published] == list(range(6))
+    np.testing.assert_allclose(decode_message(published[0], PoseGaussian).mean, [2.0, 1.0, 0.0])  # from the prior
+    state.handle("pg/r/odom", _odometry(6).encode())
+    state.handle("pg/r/landmarks", _seen(6).encode())
+    assert len(asked) == 2 and len(published) == 7  # started: no more questions
 
 
 def test_a_slam_node_stopping_while_it_takes_the_history_stops_taking_it():

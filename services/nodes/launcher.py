@@ -514,11 +514,12 @@ def _export(reader: MapReader, plan: Plan, discarded: int) -> int:
         return 1
     raster = grid.rasterize()
     if not raster["observed"].any():
-        print(
-            f"posegrid run: error: the map is empty (no scan had a usable beam, so no cell was observed); nothing "
-            f"written to {plan.export}",
-            file=sys.stderr,
+        why = (
+            f"the shards gave up on {discarded} scan(s), whose poses or scans never came (the lines above say why)"
+            if discarded
+            else "no scan had a usable beam, so no cell was observed"
         )
+        print(f"posegrid run: error: the map is empty ({why}); nothing written to {plan.export}", file=sys.stderr)
         return 1
     try:
         map_file = MapFile.from_raster(raster)

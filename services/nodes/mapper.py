@@ -157,11 +157,13 @@ class Mapper:
             persister = Persister(durable.store, options.commit_scans, options.commit_interval, self.log)
             persister.resumed(stored)
             scans = sum(r.fused + r.discarded for r in stored.robots.values())
+            given_up = sum(r.discarded for r in stored.robots.values())
             self.log.info(
                 "state in %s, session %s: %s",
                 durable.store.path,
                 stored.session,
                 f"resumed {len(stored.tiles)} tile(s) and {scans} scan(s) of {len(stored.robots)} robot(s)"
+                + (f", of those scans {given_up} given up (not in the map)" if given_up else "")
                 if stored.tiles or stored.robots
                 else "a new map",
             )

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import math
 import threading
 import time
 from collections import Counter, OrderedDict
@@ -264,6 +265,9 @@ class LandmarkDriver:
         self.last_gap = None
 
 
+#: s between two questions to the source's history for a prior that never arrived (steps waiting for it)
+PRIOR_RETRY = 1.0
+
 #: seqs of steps the filter refused that a SLAM node remembers until it publishes again (for what it says of a gap)
 REFUSED_KEPT = 1024
 
@@ -425,6 +429,7 @@ class SlamState:
         self._highest_seq: dict[str, int] = {}
         self._history_high: dict[str, int] = {}  # per stream, the highest seq the source's history gave
         self._poses_sent: OrderedDict[int, bytes] = OrderedDict()  # seq -> published pose, for the history
+        self._prior_asked = -math.inf  # time.monotonic() the source's history was last asked for a missed prior
         self._poses_bytes = 0
 
     # ---------------------------------------------------------------------------- messages
@@ -528,6 +533,8 @@ class SlamState:
             self.steps_done += sum(count for _, count in released.skipped)
         lost = released.evicted
         self._ready.extend(released.steps)
+        if self.initial is None and self._ready:
+            self._ask_prior()
         while self.initial is None and len(self._ready) > self.steps.capacity:  # no start pose yet: the newest
             self._ready.pop(0)
             self.steps_done += 1
@@ -537,6 +544,19 @@ class SlamState:
                 keys.robot_key(self.config.robot, "steps"), "overflow", f"dropped {lost} step(s) to bound the buffers"
             )
         self._take_ready()
+
+    def _ask_prior(self) -> None:
+        """Steps wait and no start pose came: the source publishes its prior once, before its first step, so a node
+        that missed it (paused or cut off then) would wait for ever, every step given up. Ask the source's history
+        for it, at most once every PRIOR_RETRY s (its answer, when it has one, starts the filter)."""
+        now = time.monotonic()
+        if self._history is None or now - self._prior_asked < PRIOR_RETRY:
+            return
+        self._prior_asked = now
+        self.log.warning("steps are waiting and no start pose came: asking the source's history for its prior")
+        for key, payload in self._history(frozenset({keys.PRIOR}), 0, 0):
+            if key.rsplit("/", 1)[-1] == keys.PRIOR:
+                self.handle(key, payload, from_history=True)
 
     def _take_ready(self) -> None:
         if self.initial is None:
