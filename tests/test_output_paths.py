@@ -422,8 +422,19 @@ def sim_folder(tmp_path_factory) -> Path:
         (lambda sim, posed: ["slam", str(sim), "--algo", "ekf", "-o", "link"], "sim/truth.npz"),
         (lambda sim, posed: ["fuse", str(posed), "-o", str(posed)], "room.npz"),
         (lambda sim, posed: ["fuse", str(posed), "-o", "link"], "room.npz"),
+        # (a probe: `run --export` replaced the run's own input and exited 0)
+        (lambda sim, posed: ["run", "--posed", str(posed), "--no-api", "--export", str(posed)], "room.npz"),
+        (lambda sim, posed: ["run", "--sim-dir", str(sim), "--no-api", "--export", "link"], "sim/scans.npz"),
     ],
-    ids=["calibrate, a file of its folder", "slam, a file of its folder", "slam, a link to one", "fuse", "fuse, link"],
+    ids=[
+        "calibrate, a file of its folder",
+        "slam, a file of its folder",
+        "slam, a link to one",
+        "fuse",
+        "fuse, link",
+        "run --posed",
+        "run --sim-dir, link",
+    ],
 )
 def test_an_output_that_would_replace_the_input_is_refused(
     tmp_path, monkeypatch, capsys, sim_folder, posed_file, command, replaced

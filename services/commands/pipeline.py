@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 from schemas.messages import CELL_SIZE_RANGE, MAX_SHARDS, MAX_TILE_SIZE
 from services.commands.api import add_http_arguments, api_child_options, check_port_free
 from services.commands.argtypes import (
-    checked_output,
+    check_outputs,
     finite_float,
     finite_or_inf,
     odom_delay_seconds,
@@ -22,7 +23,6 @@ from services.commands.argtypes import (
     positive_int,
     positive_number,
     random_seed,
-    refuse_another_kind,
 )
 from services.commands.gridslam import DEFAULT_GRID_PARTICLES, FILTER_OPTIONS, add_filter_options, reject_filter_options
 from services.commands.limits import add_limit_arguments, limit_argv, limits_from_args
@@ -736,8 +736,8 @@ def run_pipeline(args: argparse.Namespace) -> int:
     restarts = restart_policy(args)
     rate_text = args.rate or ("max" if args.export is not None else "realtime")
     _rate(rate_text)
-    args.export = checked_output(args.export, "--export")
-    refuse_another_kind(args.export, "npz", "--export")
+    read = (args.posed, args.sim_dir, args.carmen, args.bag, getattr(args, "calibration", None))
+    check_outputs(args, tuple(Path(p) for p in read if p is not None), {"export": "npz"}, export="--export")
     if not args.no_api:
         if not 0 < args.api_port < 65536:
             raise UsageError(f"--api-port must be a TCP port (1..65535), got {args.api_port}")
