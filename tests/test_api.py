@@ -551,6 +551,27 @@ def test_api_command_rejects_a_taken_port():
     assert result.returncode == 2 and "--port" in result.stderr
 
 
+def test_a_taken_router_port_is_refused_before_anything_starts_and_a_foreign_host_is_named(tmp_path, capsys):
+    """A probe: `posegrid run --router-port P` with P held by another run's router started its children anyway;
+    its router failed, its launcher found the other run's shard 0 of 'main' through P and started its SLAM node and
+    source on that run's router. And `api --host 256.1.1.1` said "pick another --port"."""
+    from services.cli import main
+    from services.commands.api import listen_on
+    from services.errors import UsageError
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        export = tmp_path / "map.npz"
+        assert main(["run", "--router-port", str(port), "--no-api", "--export", str(export)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.endswith(f"127.0.0.1:{port} (Address already in use); pick another --router-port"), err
+        assert not export.exists()
+    with pytest.raises(UsageError, match=r"; give --host an address of this machine \(e\.g\. 127\.0\.0\.1\)$"):
+        listen_on("192.0.2.1", 0)  # (TEST-NET-1: no address of this machine, and no name to look up)
+
+
 def test_two_apis_started_on_one_port_at_once_one_serves_and_the_other_says_so_in_one_line(procs):  # noqa: F811
     """Both passed a check that bound the port and let it go again; the loser then said "serving on ..." and failed
     in uvicorn (its raw message, exit 3; `posegrid run` took that for a crash and restarted it). The socket is now

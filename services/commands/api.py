@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import os
 import socket
 from collections.abc import Callable
@@ -226,28 +227,33 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_zenoh_arguments(api)
 
 
-def check_port_free(host: str, port: int) -> None:
-    """Raise UsageError when nothing can listen on host:port (taken, or not an address of this machine)."""
-    listen_on(host, port).close()
+def check_port_free(host: str, port: int, port_option: str = "--port") -> None:
+    """Raise UsageError when nothing can listen on host:port (taken, or not an address of this machine); its message
+    names ``port_option`` as the option to change when the port is taken."""
+    listen_on(host, port, port_option).close()
 
 
-def listen_on(host: str, port: int) -> socket.socket:
-    """A TCP socket bound to host:port and listening, for the API to serve on; UsageError when it cannot be (taken,
-    or not an address of this machine). Bound before the API says it serves: two APIs started on one port at once
-    both passed a check that let the port go again, and the loser said "serving on ..." and then failed in uvicorn
-    (its raw message, exit 3)."""
+def listen_on(host: str, port: int, port_option: str = "--port") -> socket.socket:
+    """A TCP socket bound to host:port and listening, for the API to serve on; UsageError when it cannot be (taken:
+    pick another ``port_option``; or ``host`` no address of this machine: another --host). Bound before the API says
+    it serves: two APIs started on one port at once both passed a check that let the port go again, and the loser
+    said "serving on ..." and then failed in uvicorn (its raw message, exit 3)."""
     from services.errors import UsageError
 
-    listener = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM)
+    try:
+        listener = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM)
+    except OSError as exc:  # (an IPv6 --host on a machine without IPv6)
+        why = f"cannot listen on {host}:{port} ({exc.strerror})"
+        raise UsageError(f"{why}; give --host an address of this machine") from None
     try:
         listener.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         listener.bind((host, port))
         listener.listen(LISTEN_BACKLOG)
     except OSError as exc:
         listener.close()
-        raise UsageError(
-            f"cannot listen on {host}:{port} ({exc.strerror}); pick another --port (`posegrid run`: --api-port)"
-        ) from None
+        not_here = isinstance(exc, socket.gaierror) or exc.errno == errno.EADDRNOTAVAIL
+        hint = "give --host an address of this machine (e.g. 127.0.0.1)" if not_here else f"pick another {port_option}"
+        raise UsageError(f"cannot listen on {host}:{port} ({exc.strerror}); {hint}") from None
     return listener
 
 

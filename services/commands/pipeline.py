@@ -741,7 +741,9 @@ def run_pipeline(args: argparse.Namespace) -> int:
     if not args.no_api:
         if not 0 < args.api_port < 65536:
             raise UsageError(f"--api-port must be a TCP port (1..65535), got {args.api_port}")
-        check_port_free("127.0.0.1", args.api_port)
+        check_port_free("127.0.0.1", args.api_port, "--api-port")
+    if args.router_port is not None:  # (taken by another run's router, this run's children joined that run)
+        check_port_free("127.0.0.1", args.router_port, "--router-port")
     from services.nodes.launcher import Plan
     from services.nodes.launcher import run_pipeline as launch
     from services.process import install_stop_event
