@@ -370,6 +370,8 @@ def test_robot_pose_and_trajectory(api, stack):
     assert "robot9" in problem(httpx.get(f"{api}/robots/robot9/pose", timeout=30), 404)
     assert "robot9" in problem(httpx.get(f"{api}/robots/robot9/trajectory", timeout=30), 404)
     problem(httpx.get(f"{api}/robots/robot0/pose", params={"max_samples": 0}, timeout=30), 422)
+    for route in ("pose", "trajectory"):  # (a name no robot may have: 404 before, as if it could)
+        assert "reserved" in problem(httpx.get(f"{api}/robots/map/{route}", timeout=30), 422)
 
 
 # ------------------------------------------------------------------------------------------ stats, health

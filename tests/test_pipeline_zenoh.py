@@ -203,6 +203,8 @@ def test_a_router_port_in_use_names_the_option_to_change():
         (["source", "--bag", "/nonexistent.bag"], "/nonexistent.bag"),
         (["run", "--bag", "/nonexistent.bag", "--no-api"], "/nonexistent.bag"),  # before anything is started
         (["run", "--posed", "x.npz", "--odom-delay", "0.1"], "give it with --carmen or --bag"),
+        (["run", "--posed", "x.npz", "--steps", "10"], "--posed replays its input whole"),  # (it did, silently)
+        (["source", "--carmen", "x.clf", "--steps", "10"], "--carmen replays its input whole"),
         (["slam-node", "--initial", "1,2"], "--initial"),
         (["slam-node", "--initial", "1,2,90"], "--initial's yaw 90 is more than a full turn: give it in rad"),
         (["simulate", "out", "--resolution", "1e-5"], "--resolution must be in [0.005, 1]"),  # a 2.8 TiB raster

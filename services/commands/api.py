@@ -74,7 +74,8 @@ HTTP_OPTIONS = (
         [],
         "NAME",
         "also answer requests whose Host header is NAME (repeatable; localhost, 127.0.0.1 and [::1] always "
-        "are, and the --host address; '*': any, behind a proxy that checks it). Others are 400 (DNS rebinding)",
+        "are, and the address it listens on; '*': any, behind a proxy that checks it). Others are 400 (DNS "
+        "rebinding)",
         action="append",
     ),
     HttpOption(

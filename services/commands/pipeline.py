@@ -365,7 +365,9 @@ def add_input_arguments(parser: argparse.ArgumentParser, default_sim: bool) -> N
         "the odometry's (Freiburg 079's bag: -0.10; `posegrid slam --algo gridslam LOG --odom-delay "
         "auto` estimates it; default 0)",
     )
-    group.add_argument("--steps", type=int, default=400, help="--sim: steps of 0.1 s to simulate (default 400)")
+    group.add_argument(
+        "--steps", type=int, default=None, help=f"--sim: steps of 0.1 s to simulate (default {DEFAULT_SIM_STEPS})"
+    )
     if not default_sim:  # `run` has --seed among its fusion options and passes it on
         group.add_argument("--seed", type=random_seed, default=0, help="--sim: seed of the simulated world (default 0)")
 
@@ -474,6 +476,15 @@ def _rate(text: str) -> float | None:
 MAX_SIM_STEPS = 10**8 // 361
 
 
+#: steps of 0.1 s the built-in simulation runs when --steps is not given
+DEFAULT_SIM_STEPS = 400
+
+
+def sim_steps(args: argparse.Namespace) -> int:
+    """The simulation's steps: --steps, else DEFAULT_SIM_STEPS."""
+    return DEFAULT_SIM_STEPS if args.steps is None else args.steps
+
+
 def _check_sim_steps(steps: int) -> None:
     """UsageError unless --steps is 1 .. MAX_SIM_STEPS."""
     from services.errors import UsageError
@@ -517,6 +528,10 @@ def _check_log_options(args: argparse.Namespace) -> None:
 
     if args.scan_topic is not None and args.bag is None:
         raise UsageError("--scan-topic names a topic of a ROS bag: give it with --bag")
+    inputs = ("--posed", "--sim-dir", "--mrclam", "--carmen", "--bag")
+    given = [option for option in inputs if getattr(args, option[2:].replace("-", "_"), None) is not None]
+    if args.steps is not None and given:  # (it replayed the whole input, saying nothing)
+        raise UsageError(f"--steps sets how long the built-in simulation runs; {given[0]} replays its input whole")
     if args.odom_delay != 0.0 and args.carmen is None and args.bag is None:
         raise UsageError("--odom-delay shifts a laser log's odometry: give it with --carmen or --bag")
 
@@ -561,8 +576,9 @@ def _stream(args: argparse.Namespace):
         return streams.laser_log_stream(_laser_log(args, "source"), args.robot)
     from slam.simulator import simulate_office
 
-    print(f"posegrid source[{args.robot}]: simulating {args.steps} steps of the office", file=sys.stderr, flush=True)
-    return streams.sim_stream(simulate_office(seed=args.seed, steps=args.steps), args.robot)
+    steps = sim_steps(args)
+    print(f"posegrid source[{args.robot}]: simulating {steps} steps of the office", file=sys.stderr, flush=True)
+    return streams.sim_stream(simulate_office(seed=args.seed, steps=steps), args.robot)
 
 
 # ------------------------------------------------------------------------------------------ handlers
@@ -661,7 +677,7 @@ def run_source(args: argparse.Namespace) -> int:
     _check_name(args.map, "--map")
     if args.wait_mappers < 0 or args.window < 1:
         raise UsageError("--wait-mappers must be >= 0 and --window >= 1")
-    _check_sim_steps(args.steps)
+    _check_sim_steps(sim_steps(args))
     rate = _rate(args.rate)
     from services.commands.zenoh_options import config_from_args
     from services.nodes.source import Source, SourceOptions, SourceStalled
@@ -833,12 +849,13 @@ def _plan_input(args: argparse.Namespace, plan: Plan) -> None:
             f"replaying {args.sim_dir} through {args.algo or DEFAULT_ALGORITHM} into {args.shards} shard(s)"
         )
     else:
-        _check_sim_steps(args.steps)
-        plan.scans = args.steps
-        plan.source_argv += ["--sim", "--seed", str(args.seed), "--steps", str(args.steps)]
+        steps = sim_steps(args)
+        _check_sim_steps(steps)
+        plan.scans = steps
+        plan.source_argv += ["--sim", "--seed", str(args.seed), "--steps", str(steps)]
         plan.slam_argv = slam_argv(args, "sim")
         plan.description = (
-            f"simulating the office world (seed {args.seed}, {args.steps} steps of 0.1 s) through "
+            f"simulating the office world (seed {args.seed}, {steps} steps of 0.1 s) through "
             f"{args.algo or DEFAULT_ALGORITHM} into {args.shards} shard(s)"
         )
 

@@ -7,6 +7,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, HTTPException, Path, Query
 
+from schemas.messages import RESERVED_ROBOT_NAMES
 from schemas.wire import NAME_PATTERN, NAME_RULE
 from services.api import models
 from services.api.robots import PoseSummary, RobotTracker, reduce_samples
@@ -24,7 +25,11 @@ Robot = Annotated[
 
 
 def known_robot(robots: RobotTracker, robot: str) -> PoseSummary:
-    """The robot's latest pose; 404 naming the known robots when none has arrived."""
+    """The robot's latest pose; 422 for a name no robot may have (reserved: schemas.messages.RESERVED_ROBOT_NAMES,
+    which the path's pattern lets through), 404 naming the known robots when none has arrived."""
+    if robot in RESERVED_ROBOT_NAMES:
+        reserved = ", ".join(RESERVED_ROBOT_NAMES)
+        raise HTTPException(422, f"{robot!r} is no robot name: it is reserved (reserved names: {reserved})")
     summary = robots.latest(robot)
     if summary is None:
         raise HTTPException(

@@ -191,6 +191,8 @@ def _read_run(path: Path, directory: Path) -> dict[str, Any]:
     try:
         record = json.loads(path.read_text())
     except FileNotFoundError:
+        if not directory.is_dir():
+            raise StoreError(f"--resume {directory}: no such folder (the state directory of an earlier run)") from None
         raise StoreError(f"--resume {directory}: it holds no {RUN_FILE}, so no posegrid run") from None
     except (OSError, UnicodeDecodeError, ValueError) as exc:
         raise StoreError(f"{path} cannot be read: {exc}") from None
