@@ -1000,6 +1000,14 @@ def test_a_stale_runs_stalled_source_of_another_map_does_not_leak_into_a_new_map
     ]
     for shard in old_shards:
         shard.wait_for("up; tiles on")
+    session = zenoh.open(build_config("client", connect=[endpoint]))
+    try:  # (both tokens and answers through the router before one shard freezes: under load the frozen one's token
+        # had not reached the router, and the old source waited for a second shard without publishing a step)
+        deadline = time.monotonic() + 60
+        while len(MapReader(session, "A").stats(timeout=2.0)) < 2:
+            assert time.monotonic() < deadline, "map A's two shards did not answer"
+    finally:
+        session.close()
     frozen = old_shards[1].process
     frozen.send_signal(signal.SIGSTOP)  # (the old run's source waits for it, mid-stream)
     try:
