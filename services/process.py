@@ -17,8 +17,9 @@ from typing import TypeVar
 PARENT_PID_ENV = "POSEGRID_PARENT_PID"
 
 
-def install_stop_event() -> threading.Event:
-    """An event set on SIGINT or SIGTERM, or when the launcher named in $POSEGRID_PARENT_PID goes away.
+def install_stop_event(name: str | None = None) -> threading.Event:
+    """An event set on SIGINT or SIGTERM, or when the launcher named in $POSEGRID_PARENT_PID goes away (said on the
+    log of ``name``, the process's own, e.g. "mapper[0]": a launcher killed leaves each child saying so).
 
     Installs handlers explicitly, so a child started with SIGINT ignored (a background job) still stops.
     Call from the main thread.
@@ -32,7 +33,8 @@ def install_stop_event() -> threading.Event:
     signal.signal(signal.SIGTERM, handler)
     parent = os.environ.get(PARENT_PID_ENV)
     if parent and parent.isdigit():
-        threading.Thread(target=_watch_parent, args=(int(parent), stop), daemon=True, name="parent-watch").start()
+        watch = (int(parent), stop, name)
+        threading.Thread(target=_watch_parent, args=watch, daemon=True, name="parent-watch").start()
     return stop
 
 
@@ -72,10 +74,11 @@ def until_stopped(work: Callable[[], T], stop: threading.Event, what: str) -> T:
     return results[0]
 
 
-def _watch_parent(parent_pid: int, stop: threading.Event) -> None:
+def _watch_parent(parent_pid: int, stop: threading.Event, name: str | None) -> None:
     while not stop.wait(0.5):
         if os.getppid() != parent_pid:
-            logging.getLogger("posegrid").warning("the launcher (pid %d) is gone; stopping", parent_pid)
+            log = logging.getLogger("posegrid") if name is None else get_logger(name)
+            log.warning("the launcher (pid %d) is gone; stopping", parent_pid)
             stop.set()
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -354,6 +355,23 @@ def test_an_interrupt_while_the_commands_load_is_one_line_and_exit_130(monkeypat
     assert code == 130
     captured = capsys.readouterr()
     assert captured.err == "posegrid: interrupted\n" and captured.out == ""
+
+
+def test_a_child_whose_launcher_is_gone_says_so_under_its_own_name():
+    """A probe: after the launcher was SIGKILLed every child said "the launcher (pid N) is gone; stopping" with no
+    name before it, so the lines did not say which process stopped. A process that is not its launcher's child any
+    more (here: the pid it is told is not its parent's) sets its stop flag and says so as itself."""
+    code = (
+        "from services.process import install_stop_event\n"
+        "stop = install_stop_event('mapper[3]')\n"
+        "assert stop.wait(20), 'the parent watch did not fire'\n"
+    )
+    gone = 2**22 + 7  # (no parent of this child: its parent is the test)
+    env = {**os.environ, "POSEGRID_PARENT_PID": str(gone)}
+    argv = [sys.executable, "-c", code]
+    result = subprocess.run(argv, env=env, capture_output=True, text=True, timeout=60, check=False)
+    assert result.returncode == 0, result.stderr
+    assert result.stderr.strip() == f"posegrid mapper[3]: the launcher (pid {gone}) is gone; stopping"
 
 
 def test_work_until_stopped_gives_its_result_its_error_or_stopped():

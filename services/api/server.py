@@ -77,7 +77,7 @@ def serve(
     """Serve the API and the viewer on http://host:port/ until stopped; returns the exit code. ``listener``: the socket
     already bound to host:port and listening (services.commands.api.listen_on), served on; None: uvicorn binds."""
     log = get_logger("api")
-    stop = install_stop_event()  # uvicorn takes over SIGINT/SIGTERM while it runs; this keeps the parent watch
+    stop = install_stop_event("api")  # uvicorn takes over SIGINT/SIGTERM while it runs; this keeps the parent watch
     session = open_session(zenoh_config, "the API", stop)
     try:
         backend = Backend.open(

@@ -595,7 +595,7 @@ def run_router(args: argparse.Namespace) -> int:
 
     args.listen = [_port_chosen(endpoint) for endpoint in args.listen or []]
     config = config_from_args(args, "router")
-    return route(config, install_stop_event())
+    return route(config, install_stop_event("router"))
 
 
 def _port_chosen(endpoint: str) -> str:
@@ -620,7 +620,8 @@ def run_mapper(args: argparse.Namespace) -> int:
 
     config = shard_config(args)
     zenoh_config = config_from_args(args, "client")
-    return serve(config, zenoh_config, install_stop_event(), args.intake_buffer, persist_from_args(args))
+    stop = install_stop_event(f"mapper[{config.shard}]")
+    return serve(config, zenoh_config, stop, args.intake_buffer, persist_from_args(args))
 
 
 def shard_config(args: argparse.Namespace):
@@ -684,7 +685,7 @@ def run_source(args: argparse.Namespace) -> int:
     from services.process import install_stop_event, until_stopped
     from services.zenoh_config import close_session, open_session
 
-    stop = install_stop_event()
+    stop = install_stop_event(f"source[{args.robot}]")
     zenoh_config = config_from_args(args, "client")
     stream = until_stopped(lambda: _stream(args), stop, "reading its input")  # (a long simulation or log: Stopped)
     options = SourceOptions(
@@ -925,7 +926,8 @@ def run_slam_node(args: argparse.Namespace) -> int:
     from services.nodes.slam_node import run_slam_node as serve
     from services.process import install_stop_event
 
-    return serve(node_config(args), config_from_args(args, "client"), install_stop_event())
+    config = node_config(args)
+    return serve(config, config_from_args(args, "client"), install_stop_event(f"slam-node[{config.robot}]"))
 
 
 def node_config(args: argparse.Namespace):

@@ -327,7 +327,7 @@ def run_bridge(args: argparse.Namespace) -> int:
     if args.wait_mappers < 0:
         raise UsageError(f"--wait-mappers must be >= 0, got {args.wait_mappers}")
     options = bridge_options(args)
-    stop = install_stop_event()
+    stop = install_stop_event("ros2")
     session = open_session(config_from_args(args, "client"), "the ROS 2 bridge")
     try:
         return Bridge(session, options).run(stop)
@@ -354,7 +354,7 @@ def run_play(args: argparse.Namespace) -> int:
     )
     player = Player(None, args.bag, options)
     player.check()  # a bag that cannot be played is said before the session is opened
-    stop = install_stop_event()
+    stop = install_stop_event("ros2 play")
     session = player.session = open_session(config_from_args(args, "client"), "the bag player")
     try:
         return player.run(stop)
