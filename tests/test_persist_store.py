@@ -503,7 +503,8 @@ def test_bad_state_options_exit_2_with_one_sentence(argv, message, capsys):
 def test_run_refuses_a_state_directory_it_cannot_start_or_resume_with_one_sentence(tmp_path, capsys):
     base = ["run", "--no-api", "--steps", "5"]
     assert "holds no run.json, so no posegrid run" in _refused([*base, "--resume", str(tmp_path)], capsys)
-    assert f"--resume {tmp_path / 'gone'}: no such folder" in _refused([*base, "--resume", str(tmp_path / "gone")], capsys)
+    gone = tmp_path / "gone"
+    assert f"--resume {gone}: no such folder" in _refused([*base, "--resume", str(gone)], capsys)
     prepare_run(tmp_path / "run", False, False, "main", 1, 0.05)
     err = _refused([*base, "--state-dir", str(tmp_path / "run")], capsys)
     assert f"holds a run already: continue it with --resume {tmp_path / 'run'}" in err
