@@ -399,7 +399,7 @@ def test_a_tile_querys_reply_of_another_geometry_than_the_maps_is_refused():
     """A probe's finding: the whole tiles that answer the API's tile queries were checked for their key and map only,
     so a reply with 4-cell tiles to a map of 2-cell tiles was served at level 0 as it came, and the level-1 tile made
     of it failed (HTTP 500). The reply is refused as published updates are, and counted; the right one is taken."""
-    from services.api.mappers import MapperLink
+    from services.api.mappers import CONFLICT_RESYNC_INTERVAL, MapperLink
     from services.keys import tile_key
 
     registry = MapRegistry()
@@ -413,12 +413,18 @@ def test_a_tile_querys_reply_of_another_geometry_than_the_maps_is_refused():
     registry.mark_synced("m")
     taken = link._whole_tiles("m", replies)
     assert [(tile.tile_size, tile.resolution) for tile in taken] == [(2, 0.05)]
-    # the shard's tile of another geometry asks for a fetch of every shard's tiles (which may find a new run's)
+    # the shard's tile of another geometry asks for a fetch of every shard's tiles (which may find a new run's), at
+    # most once in CONFLICT_RESYNC_INTERVAL s (a shard left on another geometry would have every request fetch all)
     assert registry.get("m").synced is False  # type: ignore[union-attr]
-    assert link.rejects.kinds() == {"key": 1}
+    registry.mark_synced("m")
+    assert link._whole_tiles("m", replies[:1]) == [] and registry.get("m").synced is True  # type: ignore[union-attr]
+    link._conflict_synced["m"] -= CONFLICT_RESYNC_INTERVAL
+    assert link._whole_tiles("m", replies[:1]) == [] and registry.get("m").synced is False  # type: ignore[union-attr]
+    registry.mark_synced("m")
+    assert link.rejects.kinds() == {"key": 3}
     # the same tile from a process that did not answer as shard 0 (a peer's queryable on the tile keys) is refused
     assert link._whole_tiles("m", [(tile_key("m", 0, 1, 0), _whole_tile(1, 0, 2, 0.05).encode(), "zid-b")]) == []
-    assert link.rejects.kinds() == {"key": 2}
+    assert link.rejects.kinds() == {"key": 4}
     # the shard's own reply of another geometry is the map's conflict; a peer's forged one must not be (a review: one
     # forged tile of 0.1 m cells put /health at degraded until the next complete fetch)
     info = registry.get("m")

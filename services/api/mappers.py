@@ -22,7 +22,9 @@ contents contradict its key, is dropped and counted by key in :attr:`MapperLink.
 
 from __future__ import annotations
 
+import math
 import threading
+import time
 from collections import Counter
 from collections.abc import Iterator
 
@@ -45,6 +47,9 @@ from services.zenoh_config import replier, undeclare_all
 STATS_TIMEOUT = 2.0
 #: s between two rounds of asking the pending shards for their stats
 VERIFY_INTERVAL = 1.0
+#: s between two fetches of every shard's tiles that a shard's tile of another geometry asks for (a shard left on
+#: another --resolution keeps publishing: each of its updates would otherwise make the next request fetch the map)
+CONFLICT_RESYNC_INTERVAL = 10.0
 
 
 #: bytes of one reply the API takes: a whole tile of the largest size (1 024 x 1 024 cells, 9 bytes a cell) with room
@@ -83,6 +88,7 @@ class MapperLink:
         self._declared: list = []
         self._wake, self._stopping = threading.Event(), threading.Event()
         self._verifier: threading.Thread | None = None
+        self._conflict_synced: dict[str, float] = {}  # map -> time.monotonic() a conflict last asked for a fetch
 
     # ---------------------------------------------------------------------------- subscriptions
     def start(self) -> None:
@@ -245,7 +251,10 @@ class MapperLink:
         why = self.registry.check_geometry(update.map, update.resolution, update.tile_size)
         if why is not None:
             self.registry.note_conflict(update.map, why)
-            self.registry.request_sync(update.map)  # (every shard's tiles of the new geometry: the map takes it)
+            now = time.monotonic()  # (every shard's tiles of the new geometry: the map takes it; at most so often)
+            if now - self._conflict_synced.get(update.map, -math.inf) >= CONFLICT_RESYNC_INTERVAL:
+                self._conflict_synced[update.map] = now
+                self.registry.request_sync(update.map)
         return why
 
     # ---------------------------------------------------------------------------- queries
