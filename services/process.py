@@ -18,8 +18,8 @@ PARENT_PID_ENV = "POSEGRID_PARENT_PID"
 
 
 def install_stop_event(name: str | None = None) -> threading.Event:
-    """An event set on SIGINT or SIGTERM, or when the launcher named in $POSEGRID_PARENT_PID goes away (said on the
-    log of ``name``, the process's own, e.g. "mapper[0]": a launcher killed leaves each child saying so).
+    """An event set on SIGINT, SIGTERM or SIGHUP, or when the launcher named in $POSEGRID_PARENT_PID goes away (said on
+    the log of ``name``, the process's own, e.g. "mapper[0]": a launcher killed leaves each child saying so).
 
     Installs handlers explicitly, so a child started with SIGINT ignored (a background job) still stops.
     Call from the main thread.
@@ -31,6 +31,7 @@ def install_stop_event(name: str | None = None) -> threading.Event:
 
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
+    signal.signal(signal.SIGHUP, handler)  # (the terminal closed: `posegrid run --secure` left its keys behind)
     parent = os.environ.get(PARENT_PID_ENV)
     if parent and parent.isdigit():
         watch = (int(parent), stop, name)

@@ -432,3 +432,34 @@ def test_a_tile_querys_reply_of_another_geometry_than_the_maps_is_refused():
     registry.clear_conflict("m")
     forged = [(tile_key("m", 0, 1, 0), _whole_tile(1, 0, 4, 0.1).encode(), "zid-b")]
     assert link._whole_tiles("m", forged) == [] and info.conflict is None
+
+
+def test_a_shard_that_does_not_answer_in_time_is_no_rejected_message():
+    """A probe: a stalled shard's stats query ended in zenoh's own error reply ("Timeout"), which the API counted
+    as a message refused (3 a stall, in /health's `rejected`, for as long as it ran). A queryable's own error reply
+    is still counted. Real zenoh sessions, peer to peer on loopback."""
+    import threading
+    import time
+
+    import zenoh
+
+    from services.api.mappers import MapperLink
+    from services.nodes.launcher import free_port
+    from services.zenoh_config import build_config
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    release = threading.Event()
+    with (
+        zenoh.open(build_config("peer", listen=[endpoint])) as shards,
+        zenoh.open(build_config("peer", connect=[endpoint])) as api,
+    ):
+        stalled = shards.declare_queryable("pg/map/m/stats/0", lambda query: release.wait(10))
+        broken = shards.declare_queryable("pg/map/m/stats/1", lambda query: query.reply_err(b"no stats"))
+        link = MapperLink(api, MapRegistry(), None, None)  # type: ignore[arg-type]
+        deadline = time.monotonic() + 10
+        while not link.rejects.kinds() and time.monotonic() < deadline:  # (until the peers see each other)
+            assert link._query("pg/map/m/stats/*", timeout=1.0) == []
+        release.set()
+        assert link.rejects.kinds() == {"error_reply": 1}  # the broken one's; none for the one that timed out
+        stalled.undeclare()
+        broken.undeclare()

@@ -36,6 +36,7 @@ from services.cli import main
 from services.nodes.launcher import free_port
 from services.security import Material, write_material
 from services.zenoh_config import build_config
+from test_pipeline import procs  # noqa: F401  (the fixture: processes ended by PID)
 
 CLI = [sys.executable, "-m", "services"]
 #: how long a refused client keeps trying before zenoh.open gives up, ms
@@ -498,3 +499,17 @@ def test_run_secure_simulates_and_exports(tmp_path):
     ), output
     assert exported.is_file()
     assert not folder.exists(), "the run's keys and passwords are removed when it ends"
+
+
+@pytest.mark.slow
+def test_run_secure_hung_up_stops_and_removes_its_keys(tmp_path, procs):  # noqa: F811
+    """A probe: SIGHUP (the terminal closed) killed `posegrid run --secure` without its cleanup, and the folder of its
+    CA, private keys and passwords stayed in /tmp. SIGHUP now stops a posegrid process as SIGINT and SIGTERM do."""
+    run = procs([*CLI, "run", "--secure", "--steps", "20", "--no-api", "--no-state", "--router-port", str(free_port())])
+    folder = Path(run.wait_for(r"secure: .*; CA (\S+)/ca\.pem", timeout=120).group(1))
+    run.wait_for("running: ", timeout=120)
+    assert folder.is_dir()
+    run.process.send_signal(signal.SIGHUP)
+    assert run.process.wait(60) == 0, run.output()
+    assert not folder.exists(), "the run's keys and passwords are removed when it ends"
+    assert "posegrid run: stopped: router exited 0" in run.output()

@@ -56,6 +56,18 @@ CONFLICT_RESYNC_INTERVAL = 10.0
 MAX_REPLY_BYTES = 16 << 20
 
 
+def _is_timeout(reply: zenoh.Reply) -> bool:
+    """Whether an error reply is zenoh's own for a queryable that did not answer before the query's timeout (its
+    payload "Timeout"), which is no message refused: a shard stalled (SIGSTOP, swapped out) was counted as a
+    rejection, three a stall, for as long as the API ran."""
+    error = reply.err
+    return error is not None and error.payload.to_bytes() == ZENOH_TIMEOUT_REPLY
+
+
+#: the payload of the error reply zenoh makes for a queryable that did not answer in time (zenoh 1.x)
+ZENOH_TIMEOUT_REPLY = b"Timeout"
+
+
 def _parse_int(text: str) -> int | None:
     try:
         return int(text)
@@ -277,6 +289,8 @@ class MapperLink:
         every queryable has answered or the query timed out."""
         for reply in handler:
             if reply.ok is None:
+                if _is_timeout(reply):  # (zenoh's own: a stalled shard did not answer in time; /health says so)
+                    continue
                 self.rejects.count(selector, "error_reply", "a queryable answered with an error")
             elif len(reply.ok.payload) > MAX_REPLY_BYTES:  # (dropped as it comes: a peer's 30 x 100 MB took 3.5 GB)
                 size = len(reply.ok.payload)

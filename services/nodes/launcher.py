@@ -280,11 +280,15 @@ def run_pipeline(plan: Plan, stop: threading.Event) -> int:
     endpoint = f"{'tls' if plan.secure else 'tcp'}/127.0.0.1:{port}"
     material = run_material(plan.robot, plan.map_name, endpoint) if plan.secure else None
     if material is not None:
-        print(
-            f"posegrid run: secure: TLS, passwords and ACL; CA {material.ca}; a read-only client connects with "
-            f"--zenoh-config {material.config_for(Role('api'))} (removed when the run ends)",
-            flush=True,
-        )
+        try:
+            print(
+                f"posegrid run: secure: TLS, passwords and ACL; CA {material.ca}; a read-only client connects with "
+                f"--zenoh-config {material.config_for(Role('api'))} (removed when the run ends)",
+                flush=True,
+            )
+        except BaseException:  # (stdout a full disk or a closed pipe: the keys go before the error does)
+            remove_material(material)
+            raise
 
     def role_zenoh(kind: str, scope: str | None = None) -> list[str]:
         """A child's --connect, and with --secure the config of its role."""
