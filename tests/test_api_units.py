@@ -463,3 +463,34 @@ def test_a_shard_that_does_not_answer_in_time_is_no_rejected_message():
         assert link.rejects.kinds() == {"error_reply": 1}  # the broken one's; none for the one that timed out
         stalled.undeclare()
         broken.undeclare()
+
+
+def test_the_variance_scale_of_a_png_does_not_wait_on_a_shard_that_cannot_answer():
+    """A probe: a variance PNG without vmax takes its scale from every level-0 tile of the map, so with one shard
+    stalled every such PNG, of any shard's tile, failed (503 after the query's timeout). The scale is now made of the
+    tiles that can be had, a stalled shard's at their last version fetched; the map's content (GET /maps/{map})
+    still says when a tile cannot be had."""
+    from services.api.tiles import TileUnavailable
+
+    registry = MapRegistry()
+    registry.token_up("m", 0)
+    registry.record_stats("m", ShardAnswers({0: stats(map="m", shard=0, shards=2)}, {0: "zid-a"}))
+    mine = next((x, 0) for x in range(50) if tile_owner((x, 0), range(2)) == 0)
+    theirs = next((x, 0) for x in range(50) if tile_owner((x, 0), range(2)) == 1)  # (shard 1: not alive)
+    layers = (np.full((2, 2), 1.0, np.float32), np.full((2, 2), 4.0, np.float32), np.ones((2, 2), bool))
+    fields = dict(map="m", shard=1, z=0, tx=theirs[0], ty=theirs[1], tile_size=2, resolution=0.05, row0=0, col0=0)
+    wide = TileUpdate.of_window(layers, robot="r", seq=0, published=0.0, **fields)
+    source = Source({mine: update(*mine, 1.0), theirs: wide})
+    service = TileService(registry, source, "e", 1 << 20, on_change=lambda name, tile, v: None)
+    for tile in (mine, theirs):
+        registry.tile_changed("m", tile, 0.05, 2)
+    both = service.content("m")  # (every tile fetched: shard 1's too, before it stalled)
+    assert both.variance_scale == variance_scale(4.0)
+    del source.tiles[theirs]  # shard 1 stalls, and its tile changes
+    registry.tile_changed("m", theirs, 0.05, 2)
+    with pytest.raises(TileUnavailable, match=str(theirs)):
+        service.content("m")
+    assert service.content("m", best_effort=True).variance_scale == variance_scale(4.0)  # its last version's
+    never = next((x, 1) for x in range(50) if tile_owner((x, 1), range(2)) == 1)
+    registry.tile_changed("m", never, 0.05, 2)  # a tile of shard 1's never fetched: not in the scale, no failure
+    assert service.content("m", best_effort=True).observed == both.observed

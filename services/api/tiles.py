@@ -134,6 +134,8 @@ class TileService:
         self._layers: ByteLRU[tuple[TileLayers, TileFacts | None]] = ByteLRU(cache_bytes * 3 // 4)
         self._rendered: ByteLRU[Rendered] = ByteLRU(cache_bytes // 4)
         self._content: dict[str, tuple[int, MapContent]] = {}
+        # map -> level-0 tile -> the facts of its last version fetched (content(best_effort=True) when it cannot be)
+        self._last_facts: dict[str, dict[TileKey, TileFacts]] = {}
         self._sync_lock = threading.Lock()
         self.log = get_logger("api")
 
@@ -142,6 +144,7 @@ class TileService:
         layers = update.whole_layers()
         entry = (layers, tile_facts(tile, layers))
         self._layers.put((name, 0, *tile), version, entry, _nbytes(layers))
+        self._last_facts.setdefault(name, {})[tile] = entry[1]
         return entry
 
     def sync(self, name: str) -> None:
@@ -192,6 +195,8 @@ class TileService:
                     )
                     self.registry.forget_tiles(name, gone)
                     self._content.pop(name, None)
+                    for tile in gone:
+                        self._last_facts.get(name, {}).pop(tile, None)
 
     def _repinned(self, name: str, updates: list[TileUpdate]) -> bool:
         """Whether every shard of map ``name`` answered a complete fetch with ``updates`` of one geometry other than
@@ -216,6 +221,7 @@ class TileService:
         )
         self.registry.repin_geometry(name, resolution, tile_size)
         self._content.pop(name, None)
+        self._last_facts.pop(name, None)
         return True
 
     def _fetch(self, name: str, wanted: dict[TileKey, int]) -> dict[TileKey, tuple[TileLayers, TileFacts]]:
@@ -274,9 +280,11 @@ class TileService:
         self._layers.put((name, z, x, y), version, (layers, None), _nbytes(layers))
         return layers
 
-    def content(self, name: str) -> MapContent:
+    def content(self, name: str, best_effort: bool = False) -> MapContent:
         """Observed cells, default variance scale and observed bounds of the whole map (fetches every
-        level-0 tile not cached at its current version)."""
+        level-0 tile not cached at its current version). ``best_effort`` (the variance scale of a PNG, which must not
+        hang on one shard): a tile that cannot be fetched (its shard stalled or gone) counts with the facts of its
+        last version fetched, or not at all, and the result is not kept; else TileUnavailable."""
         tiles = self.registry.tiles(name)
         latest = max(tiles.values(), default=0)
         known = self._content.get(name)
@@ -291,7 +299,18 @@ class TileService:
                 stale[tile] = version
             else:
                 by_tile[tile] = known_facts
-        if stale:
+        partial = False
+        if stale and best_effort:
+            reachable = {tile: version for tile, version in stale.items() if self.registry.owner_alive(name, tile)}
+            try:
+                fetched = self._fetch(name, reachable) if reachable else {}
+            except TileUnavailable:
+                fetched = {}
+            by_tile.update((tile, entry[1]) for tile, entry in fetched.items())
+            older = self._last_facts.get(name, {})
+            by_tile.update((tile, older[tile]) for tile in stale.keys() - fetched.keys() if tile in older)
+            partial = len(fetched) < len(stale)
+        elif stale:
             by_tile.update((tile, entry[1]) for tile, entry in self._fetch(name, stale).items())
         facts = list(by_tile.values())
         boxes = np.array([f.bounds for f in facts if f.bounds is not None]).reshape(-1, 4)
@@ -302,7 +321,8 @@ class TileService:
         result = MapContent(
             sum(f.observed for f in facts), variance_scale(max((f.variance_p99 for f in facts), default=0.0)), bounds
         )
-        self._content[name] = (latest, result)
+        if not partial:
+            self._content[name] = (latest, result)
         return result
 
     # ---------------------------------------------------------------------------- encoded tiles
