@@ -522,16 +522,26 @@ def _check_positive(args: argparse.Namespace, *names: str) -> None:
             raise UsageError(f"--{name.replace('_', '-')} must be > 0, got {value}")
 
 
+#: the options of a recorded input (the built-in simulation when none is given)
+RECORDED_INPUTS = ("--posed", "--sim-dir", "--mrclam", "--carmen", "--bag")
+
+
+def recorded_inputs(args: argparse.Namespace) -> dict[str, Path]:
+    """The recorded inputs given (:data:`RECORDED_INPUTS`: option -> file or folder); empty for the simulation."""
+    given = {option: getattr(args, option[2:].replace("-", "_"), None) for option in RECORDED_INPUTS}
+    return {option: Path(path) for option, path in given.items() if path is not None}
+
+
 def _check_log_options(args: argparse.Namespace) -> None:
-    """--scan-topic is for a bag, --odom-delay for a laser log."""
+    """--scan-topic is for a bag, --odom-delay for a laser log, --steps for the simulation."""
     from services.errors import UsageError
 
     if args.scan_topic is not None and args.bag is None:
         raise UsageError("--scan-topic names a topic of a ROS bag: give it with --bag")
-    inputs = ("--posed", "--sim-dir", "--mrclam", "--carmen", "--bag")
-    given = [option for option in inputs if getattr(args, option[2:].replace("-", "_"), None) is not None]
+    given = recorded_inputs(args)
     if args.steps is not None and given:  # (it replayed the whole input, saying nothing)
-        raise UsageError(f"--steps sets how long the built-in simulation runs; {given[0]} replays its input whole")
+        option = next(iter(given))
+        raise UsageError(f"--steps sets how long the built-in simulation runs; {option} replays its input whole")
     if args.odom_delay != 0.0 and args.carmen is None and args.bag is None:
         raise UsageError("--odom-delay shifts a laser log's odometry: give it with --carmen or --bag")
 
@@ -753,8 +763,8 @@ def run_pipeline(args: argparse.Namespace) -> int:
     restarts = restart_policy(args)
     rate_text = args.rate or ("max" if args.export is not None else "realtime")
     _rate(rate_text)
-    read = (args.posed, args.sim_dir, args.carmen, args.bag, getattr(args, "calibration", None))
-    check_outputs(args, tuple(Path(p) for p in read if p is not None), {"export": "npz"}, export="--export")
+    read = [*recorded_inputs(args).values(), *([Path(args.calibration)] if args.calibration else [])]
+    check_outputs(args, tuple(read), {"export": "npz"}, export="--export")
     if not args.no_api:
         if not 0 < args.api_port < 65536:
             raise UsageError(f"--api-port must be a TCP port (1..65535), got {args.api_port}")
