@@ -258,6 +258,10 @@ def test_a_slam_node_that_missed_the_prior_asks_the_history_for_it():
 
     config = replace(_dead_reckoning_state(_rejects("x"), published.append, history).config, initial=None)
     state = SlamState(config, _rejects("slam-prior"), publish=published.append, history=history)
+    said: list[str] = []
+    handler = logging.Handler()
+    handler.emit = lambda record: said.append(record.getMessage())
+    state.log.addHandler(handler)
     for seq in range(3):  # the history does not answer (a source not up yet, or gone): asked once, steps wait
         state.handle("pg/r/odom", _odometry(seq).encode())
         state.handle("pg/r/landmarks", _seen(seq).encode())
@@ -272,6 +276,8 @@ def test_a_slam_node_that_missed_the_prior_asks_the_history_for_it():
     state.handle("pg/r/odom", _odometry(6).encode())
     state.handle("pg/r/landmarks", _seen(6).encode())
     assert len(asked) == 2 and len(published) == 7  # started: no more questions
+    state.log.removeHandler(handler)
+    assert sum("asking the source's history for its prior" in line for line in said) == 1  # said once, asked twice
 
 
 def test_a_slam_node_stopping_while_it_takes_the_history_stops_taking_it():

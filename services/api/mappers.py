@@ -56,16 +56,16 @@ CONFLICT_RESYNC_INTERVAL = 10.0
 MAX_REPLY_BYTES = 16 << 20
 
 
+#: the payload of the error reply zenoh makes for a queryable that did not answer in time (zenoh 1.x)
+ZENOH_TIMEOUT_REPLY = b"Timeout"
+
+
 def _is_timeout(reply: zenoh.Reply) -> bool:
     """Whether an error reply is zenoh's own for a queryable that did not answer before the query's timeout (its
     payload "Timeout"), which is no message refused: a shard stalled (SIGSTOP, swapped out) was counted as a
     rejection, three a stall, for as long as the API ran."""
     error = reply.err
     return error is not None and error.payload.to_bytes() == ZENOH_TIMEOUT_REPLY
-
-
-#: the payload of the error reply zenoh makes for a queryable that did not answer in time (zenoh 1.x)
-ZENOH_TIMEOUT_REPLY = b"Timeout"
 
 
 def _parse_int(text: str) -> int | None:

@@ -552,8 +552,9 @@ class SlamState:
         now = time.monotonic()
         if self._history is None or now - self._prior_asked < PRIOR_RETRY:
             return
+        if self._prior_asked == -math.inf:  # (said once: a source that has no prior would have it said every second)
+            self.log.warning("steps are waiting and no start pose came: asking the source's history for its prior")
         self._prior_asked = now
-        self.log.warning("steps are waiting and no start pose came: asking the source's history for its prior")
         for key, payload in self._history(frozenset({keys.PRIOR}), 0, 0):
             if key.rsplit("/", 1)[-1] == keys.PRIOR:
                 self.handle(key, payload, from_history=True)
