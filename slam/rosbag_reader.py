@@ -163,19 +163,22 @@ def _pick_topic(connections, msgtype: str, wanted: str | None, usual: str, path:
     return None
 
 
-def open_bag(path: Path):
+#: what :func:`open_bag` says it expected, by default
+ANY_BAG = "a ROS 1 .bag file or a ROS 2 bag folder"
+
+
+def open_bag(path: Path, expected: str = ANY_BAG):
+    """An open rosbags reader of the bag at ``path`` (a ROS 1 .bag, a ROS 2 bag folder, its metadata.yaml or its
+    storage file); LogFormatError naming ``expected`` when there is none."""
     from rosbags.highlevel import AnyReader, AnyReaderError
     from rosbags.typesys import Stores, get_typestore
 
     if path.name == BAG_METADATA and path.is_file():
         path = path.parent
     if not path.exists():
-        raise LogFormatError(f"{path}: no such file or bag folder (expected a ROS 1 .bag or a ROS 2 bag)")
+        raise LogFormatError(f"{path}: no such file or bag folder (expected {expected})")
     if path.is_dir() and not (path / BAG_METADATA).exists():
-        raise LogFormatError(
-            f"{path}: a folder without metadata.yaml, so not a ROS 2 bag (expected a ROS 1 .bag "
-            "file or a ROS 2 bag folder)"
-        )
+        raise LogFormatError(f"{path}: a folder without metadata.yaml, so not a ROS 2 bag (expected {expected})")
     if path.is_file() and path.suffix not in BAG_SUFFIXES:  # rosbags tells the formats apart by the suffix alone
         raise LogFormatError(
             f"{path}: not named as a bag: rosbags reads a ROS 1 bag named *.bag and a ROS 2 storage "

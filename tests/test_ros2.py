@@ -462,7 +462,9 @@ def test_play_refuses_a_missing_bag_and_a_ros1_bag(tmp_path, capsys):
     from services.cli import main
 
     assert main(["ros2", "play", str(tmp_path / "none"), "--connect", "tcp/127.0.0.1:1"]) == 2
-    assert "no such file or bag folder" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "no such file or bag folder (expected a ROS 2 bag: its folder with metadata.yaml" in err, err
+    assert "ROS 1" not in err, err  # (play replays ROS 2 bags only: a missing bag's message says so)
     ros1 = BagBuilder()
     ros1.scan(0.0, [1.0])
     path = ros1.write(tmp_path / "a.bag")

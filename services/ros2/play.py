@@ -26,6 +26,9 @@ from services.ros2.types import MessageType, typestore
 from slam.laserlog import Skipped
 from slam.rosbag_reader import bag_records, open_bag
 
+#: what ``posegrid ros2 play`` says it expected when given no bag
+ROS2_BAG = "a ROS 2 bag: its folder with metadata.yaml, or its .mcap or .db3 file"
+
 #: ns per s
 NS = 1_000_000_000
 
@@ -93,7 +96,7 @@ class Player:
     def check(self) -> None:
         """Raise UsageError or slam.errors.LogFormatError (exit 2) when the bag cannot be played; call before the
         session is opened, so that a wrong bag is said at once."""
-        reader = open_bag(self.path)
+        reader = open_bag(self.path, ROS2_BAG)
         try:
             self._connections(reader, quiet=True)
         finally:
@@ -117,7 +120,7 @@ class Player:
         opts, session = self.options, self.session
         if session is None:
             raise RuntimeError("the player needs an open session to run")
-        reader = open_bag(self.path)
+        reader = open_bag(self.path, ROS2_BAG)
         node = RosNode(session, opts.mode, opts.domain, opts.namespace, opts.node)
         try:
             connections = self._connections(reader)
