@@ -18,10 +18,12 @@ from services.commands.argtypes import (
     checked_output,
     finite_float,
     odom_delay_seconds,
+    positive_number,
     refuse_another_kind,
 )
 from services.commands.options import add_scan_topic
 from slam.motion import HOLONOMIC_SHARE, sideways_watch
+from slam.odometry_jumps import MAX_ODOMETRY_STEP, REBASE_STEPS, joined_odometry
 
 #: grid FastSLAM particles when --particles is not given: the least KLD-sampling keeps (GridSlamConfig.particle_cap
 #: the most)
@@ -130,6 +132,19 @@ def add_filter_options(group: argparse._ArgumentGroup, label: str = "") -> None:
         )
 
 
+def add_max_odometry_step(group: argparse._ArgumentGroup) -> None:
+    """--max-odometry-step (slam.odometry_jumps), for `posegrid slam --algo gridslam`, `slam-node` and `run`."""
+    group.add_argument(
+        "--max-odometry-step",
+        type=positive_number,
+        default=None,
+        metavar="M",
+        help="m: the farthest grid FastSLAM's odometry may move from one scan to the next; a farther step is "
+        f"left out, unless {REBASE_STEPS} in a row agree with each other: an odometry reset, joined to the odometry "
+        f"before as if the robot had not moved across it (default {MAX_ODOMETRY_STEP:g})",
+    )
+
+
 def add_gridslam_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of --algo gridslam (INPUT is then a CARMEN log .clf/.log/.gz or a ROS 1/2 bag)."""
     group = parser.add_argument_group(
@@ -179,6 +194,7 @@ def add_gridslam_arguments(parser: argparse.ArgumentParser) -> None:
         "driving direction); 'auto' (default): omni where the odometry travels sideways (more than 45 deg off its "
         f"heading) for more than {100 * HOLONOMIC_SHARE:.0f} %% of its distance, else diff (docs/gridslam.md)",
     )
+    add_max_odometry_step(group)
     add_scan_topic(group)
     group.add_argument(
         "--stats", default=None, metavar="OUT.json", help="write timing and effective-sample-size figures as JSON"
@@ -428,6 +444,7 @@ def _prepared_log(args: argparse.Namespace, config):
     _check_log(log, config)
     config, sideways = _odometry_model(args.odometry_model, log, config)
     log, delay = _apply_odometry_delay(args, log, config)
+    log = joined_odometry(log, args.max_odometry_step or MAX_ODOMETRY_STEP)
     for remark in log.remarks():  # (after the delay, which skips the scans it leaves without odometry)
         print(f"posegrid slam: note: {remark}", file=sys.stderr)
     _check_log(log, config)

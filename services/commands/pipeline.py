@@ -21,10 +21,15 @@ from services.commands.argtypes import (
     path_argument,
     pose_sample_count,
     positive_int,
-    positive_number,
     random_seed,
 )
-from services.commands.gridslam import DEFAULT_GRID_PARTICLES, FILTER_OPTIONS, add_filter_options, reject_filter_options
+from services.commands.gridslam import (
+    DEFAULT_GRID_PARTICLES,
+    FILTER_OPTIONS,
+    add_filter_options,
+    add_max_odometry_step,
+    reject_filter_options,
+)
 from services.commands.limits import add_limit_arguments, limit_argv, limits_from_args
 from services.commands.mapping import (
     add_sampling_arguments,
@@ -185,14 +190,7 @@ def _add_node_limits(parser: argparse.ArgumentParser) -> None:
         help="landmarks a landmark filter may hold; a step whose new ids (or, with unknown ids, its measurements) "
         "could take it past is refused (default 4096; EKF-SLAM 1024, its covariance growing with their square)",
     )
-    group.add_argument(
-        "--max-odometry-step",
-        type=positive_number,
-        default=None,
-        metavar="M",
-        help="m: the farthest grid FastSLAM's odometry may move from one step to the next; a farther step is "
-        "refused, unless 3 in a row agree with each other (an odometry reset) (default 50)",
-    )
+    add_max_odometry_step(group)
 
 
 def _add_run(subparsers: argparse._SubParsersAction) -> None:
@@ -965,7 +963,8 @@ def node_config(args: argparse.Namespace):
     grid_config = gridslam_config(args) if algo == "gridslam" else None
     import numpy as np
 
-    from services.state.slam import MAX_ODOMETRY_STEP, NodeConfig
+    from services.state.slam import NodeConfig
+    from slam.odometry_jumps import MAX_ODOMETRY_STEP
 
     config = NodeConfig(
         robot=args.robot,

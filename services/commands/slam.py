@@ -89,7 +89,8 @@ OPTION_ALGORITHMS = {
         ("odometry",) + _LANDMARK_FILTERS,
     ),
     **dict.fromkeys(  # (a delay of 0, the default, counts as not given)
-        ("--stats", "--scan-topic", "--best-output", "--poses-output", "--odom-delay"), ("gridslam",)
+        ("--stats", "--scan-topic", "--best-output", "--poses-output", "--odom-delay", "--max-odometry-step"),
+        ("gridslam",),
     ),
 }
 

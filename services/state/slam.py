@@ -55,6 +55,7 @@ from slam.motion import (
     odometry_controls,
     split_odometry_motion,
 )
+from slam.odometry_jumps import MAX_ODOMETRY_STEP, OdometryJumps, Verdict
 from slam.range_bearing import BEARING_LIMIT
 
 if TYPE_CHECKING:
@@ -93,10 +94,6 @@ MAX_LANDMARKS = 4096
 #: the same for EKF-SLAM, whose joint covariance grows with the square of its landmarks (1 024: 34 MB, and each step
 #: updates all of it)
 MAX_EKF_LANDMARKS = 1024
-
-#: the farthest the odometry may move from one step to the next, m (a scan every 5 s at 10 m/s): one odometry
-#: message moved 3 km took a grid FastSLAM node to 13 GB, as every particle's tile table spans the particles' box
-MAX_ODOMETRY_STEP = 50.0
 
 
 def check_landmark_step(
@@ -271,18 +268,14 @@ PRIOR_RETRY = 1.0
 #: seqs of steps the filter refused that a SLAM node remembers until it publishes again (for what it says of a gap)
 REFUSED_KEPT = 1024
 
-#: consecutive steps that agree with each other but not with the odometry before them after which grid FastSLAM
-#: takes them as the odometry's new frame (a reset of the robot's odometry), not as a jump
-REBASE_STEPS = 3
-
 
 class GridDriver:
     """Feeds grid FastSLAM one scan at a time: integrate when due, else follow the odometry. A failed step is
     not undone (:meth:`save` keeps nothing): a copy of every particle's map per scan would cost more than the
     step. Odometry beyond the wire's pose limit never reaches it; a step whose odometry moved more than
     ``max_odometry_step`` (m, :data:`MAX_ODOMETRY_STEP` unless given) is refused before the filter sees it, unless
-    :data:`REBASE_STEPS` such steps in a row agree with each other: then the odometry was reset, and the filter
-    takes the new frame without moving."""
+    REBASE_STEPS such steps in a row agree with each other (slam.odometry_jumps): then the odometry was reset, and
+    the filter takes the new frame without moving."""
 
     needs = frozenset({keys.SCAN, keys.ODOM})
 
@@ -308,8 +301,7 @@ class GridDriver:
         self.last_health: ScanHealth | None = None  # of the last integrated scan
         self.scans = 0  # integrated scans
         self.failed = 0  # of them, whose best match failed
-        self._last_odometry: np.ndarray | None = None  # the odometry pose (3,) of the last step taken
-        self._jumped: list[np.ndarray] = []  # the odometry poses of the steps refused since, each near the one before
+        self._jumps = OdometryJumps(max_odometry_step)
         self._sideways: SidewaysWatch | None = SidewaysWatch()  # None once the odometry model is chosen
         self.log = get_logger("slam-node") if log is None else log
 
@@ -370,24 +362,16 @@ class GridDriver:
             )
 
     def _check_jump(self, seq: int, pose: np.ndarray) -> None:
-        """StepError for odometry ``pose`` (3,) more than max_odometry_step from the last step's, unless it is the
-        REBASE_STEPS-th such in a row, each near the one before: then the filter's odometry reference becomes it."""
-        last, limit = self._last_odometry, self.max_odometry_step
-        if last is not None and float(np.hypot(*(pose[:2] - last[:2]))) > limit:
-            near_run = bool(self._jumped) and float(np.hypot(*(pose[:2] - self._jumped[-1][:2]))) <= limit
-            self._jumped = [*self._jumped, pose] if near_run else [pose]
-            if len(self._jumped) < REBASE_STEPS:
-                raise StepError(
-                    f"seq {seq}: the odometry moved {np.hypot(*(pose[:2] - last[:2])):.3g} m since the last step, more "
-                    f"than the {limit:g} m a step may (taken as a reset of the odometry after "
-                    f"{REBASE_STEPS} such steps in a row)"
-                )
+        """StepError for odometry ``pose`` (3,) that jumped (slam.odometry_jumps); at a reset of the odometry the
+        filter's odometry reference becomes ``pose``."""
+        verdict = self._jumps.check(pose)
+        if verdict is Verdict.REFUSED:
+            raise StepError(f"seq {seq}: {self._jumps.reason}")
+        if verdict is Verdict.REBASE:
             assert self.filter is not None  # (made before the first step is checked)
-            self.filter.odometry_ref = None if self.filter.odometry_ref is None else pose.copy()
+            self.filter.odometry_ref = None if self.filter.odometry_ref is None else np.array(pose, np.float64)
             if self._sideways is not None:
                 self._sideways.restart()
-        self._jumped = []
-        self._last_odometry = pose.copy()
 
 
 class SlamState:
