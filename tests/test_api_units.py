@@ -302,7 +302,7 @@ class Source:
         return {key: self.tiles[key] for key in tiles if key in self.tiles}
 
     def fetch_all(self, map_name):
-        return list(self.tiles.values()), True
+        return list(self.tiles.values()), None
 
 
 def test_tile_facts_hand_computed():
@@ -494,3 +494,65 @@ def test_the_variance_scale_of_a_png_does_not_wait_on_a_shard_that_cannot_answer
     never = next((x, 1) for x in range(50) if tile_owner((x, 1), range(2)) == 1)
     registry.tile_changed("m", never, 0.05, 2)  # a tile of shard 1's never fetched: not in the scale, no failure
     assert service.content("m", best_effort=True).observed == both.observed
+
+
+def test_a_fetch_of_every_tile_that_falls_short_is_asked_again_and_said_in_health(monkeypatch):
+    """A probe: with --query-timeout 0.01 (or a shard holding 45 000 one-cell tiles) the API's first fetch of every
+    tile came back short, the map was marked synced all the same and never asked again: /maps showed 0 of 4 tiles,
+    every tile 404 and /health "ok" for as long as the API ran. Now a short fetch is said in the map's stats (so
+    /health is degraded) and asked again, at most every RESYNC_SHORT s, until it is whole."""
+    import services.api.tiles as tiles_module
+    from services.api.status import map_problems, map_stats
+
+    class ShortFirst(Source):
+        calls = 0
+
+        def fetch_all(self, map_name):
+            self.calls += 1
+            if self.calls == 1:
+                return [self.tiles[(0, 0)]], "shard 0 sent 1 of its 2 tiles"
+            return list(self.tiles.values()), None
+
+    clock = [100.0]
+    monkeypatch.setattr(tiles_module.time, "monotonic", lambda: clock[0])
+    registry = MapRegistry()
+    registry.shard_alive("m", 0, True)
+    registry.set_shards("m", 1)
+    source = ShortFirst({(0, 0): update(0, 0, 1.0), (1, 0): update(1, 0, 2.0)})
+    service = TileService(registry, source, "e", 1 << 20, on_change=lambda name, tile, v: None)
+    service.sync("m")
+    info = registry.get("m")
+    assert info is not None and sorted(registry.tiles("m")) == [(0, 0)] and not info.synced
+    assert info.incomplete == "shard 0 sent 1 of its 2 tiles"
+    assert "shard 0 sent 1 of its 2 tiles" in map_problems(map_stats(info, {0: stats(shards=1)}, {}, {}, 0.0))
+    clock[0] += tiles_module.RESYNC_SHORT / 2
+    service.sync("m")  # (soon after: what it has is served, the shards not asked again)
+    assert source.calls == 1
+    clock[0] += tiles_module.RESYNC_SHORT / 2
+    service.sync("m")
+    assert source.calls == 2 and sorted(registry.tiles("m")) == [(0, 0), (1, 0)]
+    assert info.synced and info.incomplete is None
+    assert map_problems(map_stats(info, {0: stats(shards=1)}, {}, {}, 0.0)) == []
+    service.sync("m")
+    assert source.calls == 2  # (whole: not asked again until a shard comes up)
+
+
+def test_a_fetch_of_every_tile_says_which_shard_fell_short(monkeypatch):
+    from services.api.mappers import MapperLink
+
+    link = MapperLink(None, MapRegistry(), None, None, query_timeout=0.01)  # type: ignore[arg-type]
+    answered = {0: stats(shards=3, tiles_owned=2), 2: stats(shard=2, shards=3, tiles_owned=1)}
+    monkeypatch.setattr(link, "stats", lambda name: answered)
+    monkeypatch.setattr(link, "_query", lambda selector: [])
+    sent = [update(0, 0, 1.0), update(2, 0, 1.0), replace(update(1, 0, 1.0), shard=2)]
+    monkeypatch.setattr(link, "_whole_tiles", lambda name, replies: sent)
+    tiles, shortfall = link.fetch_all("m")
+    assert tiles == sent and shortfall is not None
+    assert "shard(s) 1 did not answer" in shortfall and "shard 0 sent 2 of its 2" not in shortfall, shortfall
+    assert "--query-timeout 0.01 s" in shortfall, shortfall
+    answered[1] = stats(shard=1, shards=3, tiles_owned=0)
+    assert link.fetch_all("m")[1] is None
+    answered[1] = stats(shard=1, shards=3, tiles_owned=5)
+    assert "shard 1 sent 0 of its 5 tiles" in (link.fetch_all("m")[1] or "")
+    monkeypatch.setattr(link, "stats", lambda name: {})
+    assert "no shard's stats" in (link.fetch_all("m")[1] or "")

@@ -346,21 +346,29 @@ class MapperLink:
                     break
         return found
 
-    def fetch_all(self, map_name: str) -> tuple[list[TileUpdate], bool]:
-        """Every whole level-0 tile of the map, from every shard, and whether they are all the map has: every
-        shard answered its stats and sent as many tiles as its stats count. Only then is a tile that did not
-        come back one that no shard holds."""
+    def fetch_all(self, map_name: str) -> tuple[list[TileUpdate], str | None]:
+        """Every whole level-0 tile of the map, from every shard, and why that is not known to be all the map has
+        (None when it is): every shard answered its stats and sent as many tiles as its stats count. Only then is a
+        tile that did not come back one that no shard holds."""
         stats = self.stats(map_name)
         tiles = self._whole_tiles(map_name, self._query(keys.tile_key(map_name, 0, "*", "*")))
         shards = max((s.shards for s in stats.values()), default=0)
         sent = Counter(tile.shard for tile in tiles)
-        complete = (
-            bool(stats)
-            and sorted(stats) == list(range(shards))
-            and all(sent[shard] == s.tiles_owned for shard, s in stats.items())
-            and set(sent) <= set(stats)
+        if not stats:
+            return tiles, "the API's fetch of its tiles had no shard's stats in time"
+        silent = sorted(set(range(shards)) - set(stats))
+        short = {shard: (sent[shard], s.tiles_owned) for shard, s in stats.items() if sent[shard] != s.tiles_owned}
+        strangers = sorted(set(sent) - set(stats))
+        if not (silent or short or strangers):
+            return tiles, None
+        parts = [f"shard(s) {', '.join(map(str, silent))} did not answer"] if silent else []
+        parts += [f"shard {shard} sent {got} of its {held} tiles" for shard, (got, held) in sorted(short.items())[:4]]
+        if strangers:
+            parts.append(f"tiles came from shard(s) {', '.join(map(str, strangers))}, which sent no stats")
+        return tiles, (
+            f"the API's last fetch of its tiles fell short ({'; '.join(parts)}; --query-timeout "
+            f"{self.query_timeout:g} s): it serves part of the map and asks again"
         )
-        return tiles, complete
 
     def stats(self, map_name: str) -> dict[int, ShardStats]:
         """The stats of every shard of the map that answers within STATS_TIMEOUT, by shard index (records the

@@ -164,6 +164,12 @@ class MapStats(BaseModel):
         "another --resolution or --tile-size; a shard index at or past the shard count); its tiles and summary then "
         "show only part of it; null when none",
     )
+    tiles_incomplete: str | None = Field(
+        default=None,
+        description="why the API's last fetch of every tile of the map fell short (a shard that did not answer in "
+        "--query-timeout, or sent fewer tiles than it holds): the API then serves part of the map and asks again, "
+        "at most every few seconds, at the next request; null when it did not",
+    )
 
 
 class MapHealth(BaseModel):
@@ -186,6 +192,9 @@ class MapHealth(BaseModel):
         default_factory=list, description="each answering shard's last commit to its state directory"
     )
     conflict: str | None = Field(default=None, description="as in MapStats: why its shards cannot be one map")
+    tiles_incomplete: str | None = Field(
+        default=None, description="as in MapStats: why the API holds only part of the map's tiles"
+    )
 
 
 class Health(BaseModel):

@@ -45,6 +45,7 @@ class MapInfo:
     duplicated: set[int] = field(default_factory=set)  # shards two processes answered for in the last stats query
     answerers: dict[int, str] = field(default_factory=dict)  # shard -> the Zenoh session id whose stats were taken
     conflict: str | None = None  # the first tile whose geometry is not the map's: its shards are no one map
+    incomplete: str | None = None  # why the API's last fetch of every tile of the map fell short; None when it did not
 
     @property
     def tiles(self) -> dict[TileKey, int]:
@@ -315,6 +316,16 @@ class MapRegistry:
                 info.x_range, info.y_range = (min(columns), max(columns)), (min(rows), max(rows))
             else:
                 info.x_range = info.y_range = None
+
+    def sync_done(self, name: str, incomplete: str | None) -> None:
+        """Record how the last fetch of every tile of map ``name`` went: ``incomplete`` says why it fell short (the
+        tiles are then asked again before they are next served), None when it was complete."""
+        with self.lock:
+            info = self._maps.get(name)
+            if info is not None:
+                info.incomplete = incomplete
+                if incomplete is not None:
+                    info.synced = False
 
     def request_sync(self, name: str) -> None:
         """Have the tiles of map ``name`` asked from its shards again before they are next served."""

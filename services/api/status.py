@@ -158,6 +158,7 @@ def map_stats(
         duplicated_shards=sorted(info.duplicated),
         per_shard=[shard_status(shard, info, stats.get(shard), expected, now) for shard in shard_ids],
         conflict=info.conflict or beyond_count(info, stats),
+        tiles_incomplete=info.incomplete,
     )
 
 
@@ -185,6 +186,7 @@ def map_health(s: models.MapStats) -> models.MapHealth:
         lag_scans=s.lag_scans,
         duplicated_shards=s.duplicated_shards,
         conflict=s.conflict,
+        tiles_incomplete=s.tiles_incomplete,
         distrust=distrust(s.refused),
         commits=[
             models.ShardCommit(
@@ -210,6 +212,8 @@ def map_problems(s: models.MapStats) -> list[str]:
     if s.shards is None:
         return ["no shard has answered with the map's shard count (or its shards disagree on it)"]
     problems = [] if s.conflict is None else [s.conflict]
+    if s.tiles_incomplete is not None:
+        problems.append(s.tiles_incomplete)
     if s.duplicated_shards:
         problems.append(f"shard(s) {', '.join(map(str, s.duplicated_shards))} answered by two processes each")
     known = {p.shard for p in s.per_shard}

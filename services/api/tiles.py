@@ -18,6 +18,7 @@ from __future__ import annotations
 import hashlib
 import math
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
@@ -32,6 +33,9 @@ from services.api.render import empty_layers, npz_bytes, png_bytes
 from services.process import get_logger
 
 MEDIA_TYPES = {"png": "image/png", "npz": "application/octet-stream"}
+#: s between two fetches of every tile of a map while they fall short (a shard slow to answer, or holding more tiles
+#: than come back in --query-timeout): each fetch asks the whole map again
+RESYNC_SHORT = 2.0
 
 #: (map, z, x, y, format, layer or None, vmax or None): what identifies one encoded tile
 RenderKey = tuple[str, int, int, int, str, "str | None", "float | None"]
@@ -47,8 +51,9 @@ class TileSource(Protocol):
     def fetch_tiles(self, map_name: str, tiles: list[TileKey]) -> dict[TileKey, TileUpdate]:
         """Whole level-0 tiles, by key; a tile that did not come back is absent."""
 
-    def fetch_all(self, map_name: str) -> tuple[list[TileUpdate], bool]:
-        """Every whole level-0 tile every shard of the map holds, and whether that is known to be all of them."""
+    def fetch_all(self, map_name: str) -> tuple[list[TileUpdate], str | None]:
+        """Every whole level-0 tile every shard of the map holds, and why that is not known to be all of them (None
+        when it is)."""
 
 
 @dataclass(frozen=True)
@@ -137,6 +142,7 @@ class TileService:
         # map -> level-0 tile -> the facts of its last version fetched (content(best_effort=True) when it cannot be)
         self._last_facts: dict[str, dict[TileKey, TileFacts]] = {}
         self._sync_lock = threading.Lock()
+        self._short_at: dict[str, float] = {}  # map -> time.monotonic() of its last fetch of every tile that fell short
         self.log = get_logger("api")
 
     # ---------------------------------------------------------------------------- level 0
@@ -155,9 +161,17 @@ class TileService:
             info = self.registry.get(name)
             if info is None or info.synced:
                 return
+            if info.incomplete is not None and time.monotonic() - self._short_at.get(name, -math.inf) < RESYNC_SHORT:
+                return  # (a fetch that fell short: what it gave is served, and asked again at most so often)
             self.registry.mark_synced(name)  # a shard appearing during the fetch asks for another sync
             before = self.registry.tiles(name)
-            updates, complete = self.source.fetch_all(name)
+            updates, shortfall = self.source.fetch_all(name)
+            complete = shortfall is None
+            self.registry.sync_done(name, shortfall)
+            if shortfall is not None:
+                self._short_at[name] = time.monotonic()
+                if shortfall != info.incomplete:  # (said once, not at every try)
+                    self.log.warning("map %r: %s", name, shortfall)
             if complete and self._repinned(name, updates):
                 before = {}
             mixed = False
