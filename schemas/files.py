@@ -20,7 +20,8 @@ import secrets
 import stat
 import zipfile
 import zlib
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
+from contextvars import ContextVar
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, BinaryIO, NamedTuple
@@ -803,6 +804,10 @@ def write_atomically(path: str | Path, write: Callable[[BinaryIO], object]) -> N
             handle.flush()
             os.fsync(handle.fileno())
         _keep_permissions(target, partial)
+        deferred = _DEFERRED.get()
+        if deferred is not None:  # (inside written_together: moved there with the others)
+            deferred.append((partial, target, os.fspath(path)))
+            return
         os.replace(partial, target)
         _sync_folder(os.path.dirname(target))
     except OSError as exc:
@@ -811,6 +816,40 @@ def write_atomically(path: str | Path, write: Callable[[BinaryIO], object]) -> N
     except BaseException:
         _discard(partial)
         raise
+
+
+#: inside :func:`written_together`: the files written so far, (partial, target, path as given)
+_DEFERRED: ContextVar[list[tuple[str, str, str]] | None] = ContextVar("_DEFERRED", default=None)
+
+
+@contextlib.contextmanager
+def written_together() -> Iterator[None]:
+    """A block whose files are one output: inside it :func:`write_atomically` (and every saver here) writes each file
+    beside its place and moves none there; at the block's clean end all are moved into place, one after the other.
+    A failed write or an error in the block leaves every old file as it was and no partial one, so an output of
+    several files (a PGM and its YAML, a simulator's folder) is never half new and half old. (Not across a crash in
+    the moves themselves, which take microseconds.) Not nested."""
+    if _DEFERRED.get() is not None:
+        raise RuntimeError("written_together blocks do not nest")
+    moves: list[tuple[str, str, str]] = []
+    token = _DEFERRED.set(moves)
+    try:
+        yield
+    except BaseException:
+        for partial, _, _ in moves:
+            _discard(partial)
+        raise
+    finally:
+        _DEFERRED.reset(token)
+    for done, (partial, target, path) in enumerate(moves):
+        try:
+            os.replace(partial, target)
+        except OSError as exc:
+            for left, _, _ in moves[done:]:
+                _discard(left)
+            raise OSError(exc.errno, exc.strerror or str(exc), path) from None
+    for folder in sorted({os.path.dirname(target) for _, target, _ in moves}):
+        _sync_folder(folder)
 
 
 def _keep_permissions(target: str, partial: str) -> None:
@@ -929,6 +968,12 @@ def save_map(path: str | Path | BinaryIO, map_file: MapFile) -> None:
         write_atomically(path, lambda handle: write_npz_deterministic(handle, arrays))
     else:  # an open binary file (the API writes into a buffer)
         write_npz_deterministic(path, arrays)
+
+
+def save_arrays(path: str | Path, arrays: Mapping[str, Any]) -> None:
+    """``arrays`` as a compressed .npz at ``path``, written atomically: files whose contents another package defines
+    and reads (the simulator's controls.npz and landmarks.npz, slam.simlog)."""
+    write_atomically(path, lambda handle: np.savez_compressed(handle, **arrays))
 
 
 def save_truth(path: str | Path, truth: TruthRaster) -> None:

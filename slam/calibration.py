@@ -310,16 +310,24 @@ def calibration_to_json(calibration: Calibration) -> dict[str, Any]:
     }
 
 
-def save_calibration(path: str | Path, calibration: Calibration) -> None:
-    """Write ``calibration`` as a JSON calibration file; InputError, and nothing written, when the file would not
-    read back (:func:`load_calibration`): a field out of its limits, diagnostics that are no JSON."""
+def calibration_text(calibration: Calibration, path: str | Path) -> str:
+    """``calibration`` as the text of a JSON calibration file to be written at ``path`` (named in errors);
+    InputError when the file would not read back (:func:`load_calibration`): a field out of its limits, diagnostics
+    that are no JSON."""
     check_calibration(calibration)
     try:
         text = json.dumps(calibration_to_json(calibration), indent=2) + "\n"
         calibration_from_json(json.loads(text), str(path))
     except (TypeError, ValueError) as exc:  # json's TypeError for an object it cannot write; LogFormatError
         raise InputError(f"{path}: not written, the calibration would not read back: {exc}") from None
-    Path(path).write_text(text, encoding="utf-8")
+    return text
+
+
+def save_calibration(path: str | Path, calibration: Calibration) -> None:
+    """Write ``calibration`` as a JSON calibration file (:func:`calibration_text`; nothing written when it would
+    not read back). A plain write: `posegrid calibrate` writes the same text through a temporary file
+    (schemas.files.write_atomically), so that a failed write leaves the old file."""
+    Path(path).write_text(calibration_text(calibration, path), encoding="utf-8")
 
 
 #: :meth:`_Reader.number`: read the value from the document

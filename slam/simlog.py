@@ -83,11 +83,10 @@ class SimLog:
         )
 
 
-def save_sim_log(folder: str | Path, log: SimLog) -> None:
-    """Write ``controls.npz`` and ``landmarks.npz`` into ``folder`` (which must exist)."""
-    folder = Path(folder)
-    np.savez_compressed(
-        folder / CONTROLS_FILE,
+def sim_log_arrays(log: SimLog) -> dict[str, dict[str, np.ndarray]]:
+    """The arrays of ``controls.npz`` and ``landmarks.npz`` (by file name) that :func:`load_sim_log` reads back;
+    `posegrid simulate` writes them (schemas.files.save_arrays) with the folder's other files."""
+    controls = dict(
         stamps=log.stamps,
         commands=log.commands,
         odometry=log.odometry,
@@ -96,8 +95,7 @@ def save_sim_log(folder: str | Path, log: SimLog) -> None:
         velocity_dt_ref=np.float64(log.velocity_model.dt_ref),
         odometry_alphas=np.array(log.odometry_model.alphas),
     )
-    np.savez_compressed(
-        folder / LANDMARKS_FILE,
+    landmarks = dict(
         step=log.landmark_step,
         id=log.landmark_id,
         range=log.landmark_z[:, 0],
@@ -106,6 +104,7 @@ def save_sim_log(folder: str | Path, log: SimLog) -> None:
         sigma_bearing=np.float64(log.sensor.sigma_bearing),
         truth=log.landmark_truth,
     )
+    return {CONTROLS_FILE: controls, LANDMARKS_FILE: landmarks}
 
 
 def _load(path: Path, shapes: dict[str, tuple]) -> dict[str, np.ndarray]:

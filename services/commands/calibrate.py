@@ -67,10 +67,11 @@ def run_calibrate(args: argparse.Namespace) -> int:
     `posegrid slam`, `slam-node` and `run` (--calibration FILE) and prints what it found."""
     from dataclasses import replace
 
+    from schemas.files import write_atomically
     from services.commands.slam import mrclam_input, refuse_input, sim_folder_input, stated_drive_angle_sd
     from services.errors import UsageError
     from slam import mrclam
-    from slam.calibration import save_calibration
+    from slam.calibration import calibration_text
     from slam.selfcal import DELAY_GRID, NotEnoughData, self_calibrate
     from slam.simlog import CONTROLS_FILE
 
@@ -98,6 +99,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     except NotEnoughData as exc:
         raise UsageError(f"{what}: too little to calibrate from: {exc}") from None
     calibration = replace(fit.calibration, drive_angle_sd=stated_drive_angle_sd(args, fit.calibration.drive_angle_sd))
-    save_calibration(args.output, calibration)
+    text = calibration_text(calibration, args.output).encode()
+    write_atomically(args.output, lambda handle: handle.write(text))
     print(f"wrote {args.output} in {time.perf_counter() - started:.1f} s: {calibration.summary()}")
     return 0

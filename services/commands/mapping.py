@@ -476,7 +476,7 @@ def run_export(args: argparse.Namespace) -> int:
     (grey level 1 - p: free light, occupied black; unobserved pale blue), or the variance layer with --layer
     variance."""
     from mapping.export import crop_to_occupied, render_pgm, render_png
-    from schemas.files import load_map, write_atomically
+    from schemas.files import load_map, write_atomically, written_together
     from services.errors import UsageError
 
     check_outputs(args, inputs=(args.map,), output="-o")
@@ -498,8 +498,9 @@ def run_export(args: argparse.Namespace) -> int:
         arrays = crop_to_occupied(arrays, args.crop)
     if yaml_path is not None:  # a pgm
         pgm, yaml = render_pgm(arrays, image_name=args.output.name)
-        write_atomically(args.output, lambda handle: handle.write(pgm))
-        write_atomically(yaml_path, lambda handle: handle.write(yaml.encode()))
+        with written_together():  # (an image beside another map's YAML would load at the wrong scale)
+            write_atomically(args.output, lambda handle: handle.write(pgm))
+            write_atomically(yaml_path, lambda handle: handle.write(yaml.encode()))
         print(f"wrote {args.output} and {yaml_path}")
     else:
         png = render_png(arrays, layer=args.layer)

@@ -286,11 +286,13 @@ def run_simulate(args: argparse.Namespace) -> int:
         PosedScans,
         PoseSet,
         TruthRaster,
+        save_arrays,
         save_pose_distribution,
         save_posed_scans,
         save_truth,
+        written_together,
     )
-    from slam.simlog import save_sim_log
+    from slam.simlog import sim_log_arrays
     from slam.simulator import simulate_office
 
     args.outdir = _simulation_folder(args.outdir)
@@ -298,13 +300,17 @@ def run_simulate(args: argparse.Namespace) -> int:
         seed=args.seed, **{name: getattr(args, dest(option)) for option, (name, _, _) in SIMULATION_OPTIONS.items()}
     )
     truth_poses = PoseSet(samples=run.true_poses[:, None, :], weights=np.ones((len(run.stamps), 1)))
-    save_posed_scans(args.outdir / "scans.npz", PosedScans.from_scans(run, truth_poses))
-    save_truth(
-        args.outdir / "truth.npz",
-        TruthRaster(run.truth_occupied, run.truth_visible, run.truth_origin, run.truth_resolution),
-    )
-    save_pose_distribution(args.outdir / "groundtruth.npz", PoseDistributionFile(stamps=run.stamps, poses=truth_poses))
-    save_sim_log(args.outdir, run.log())
+    with written_together():  # (the five files are one run: a failed write leaves the folder's old run whole)
+        save_posed_scans(args.outdir / "scans.npz", PosedScans.from_scans(run, truth_poses))
+        save_truth(
+            args.outdir / "truth.npz",
+            TruthRaster(run.truth_occupied, run.truth_visible, run.truth_origin, run.truth_resolution),
+        )
+        save_pose_distribution(
+            args.outdir / "groundtruth.npz", PoseDistributionFile(stamps=run.stamps, poses=truth_poses)
+        )
+        for name, arrays in sim_log_arrays(run.log()).items():
+            save_arrays(args.outdir / name, arrays)
     print(
         f"wrote {args.outdir}: {len(run.stamps)} steps of {args.dt} s, {run.ranges.shape[1]} beams, "
         f"{len(run.landmarks)} landmarks, {len(run.landmark_step)} landmark measurements, "
