@@ -236,6 +236,30 @@ def test_a_failed_commit_keeps_the_shard_serving_and_the_next_one_holds_everythi
     persister.abandon()
 
 
+@pytest.mark.parametrize("how", ["removed", "replaced"])
+def test_a_store_removed_or_replaced_while_the_shard_runs_fails_its_commits(tmp_path, pairs, how):
+    """A probe removed a run's state directory while it ran: SQLite went on committing to the removed file, the
+    shard said "stopped with 200 scan(s) committed" and the run exited 0, and --resume then started an empty map.
+    The store now checks at each commit that its path still names the file it opened: the persister fails, as on a
+    full disk (/health degraded, the clean stop exit 1), naming why."""
+    import shutil
+
+    directory = tmp_path / "shard-0"
+    directory.mkdir()
+    shard, persister = _open(_config(), directory, every_scans=4)
+    _feed(shard, pairs, range(20), persister)
+    if how == "removed":
+        shutil.rmtree(directory)
+    else:
+        (directory / DB_NAME).rename(tmp_path / "moved.sqlite")
+        (directory / DB_NAME).write_bytes(b"")
+    _feed(shard, pairs, range(20, 40), persister)
+    assert not persister.finish(shard)
+    why = {"removed": "the file was removed while the shard ran", "replaced": "another file took its place"}[how]
+    assert persister.failing is not None and why in persister.failing and str(directory / DB_NAME) in persister.failing
+    assert persister.report().state == "failing"
+
+
 # ------------------------------------------------------------------------------------------------ refusals
 
 

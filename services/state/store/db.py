@@ -226,6 +226,7 @@ class ShardStore:
         self.session = session
         self._tile_size = identity.tile_size
         self._owns = owns_tile(identity.shard, identity.shards)
+        self._file = _file_identity(self.path)  # (what commit checks the path still names)
 
     # ------------------------------------------------------------------------------------------ opening
     @classmethod
@@ -350,6 +351,9 @@ class ShardStore:
         (after rolling back) when SQLite or the disk refuses it."""
         session, db = self.session, self._db
         now = time.time()
+        gone = self._gone()
+        if gone:
+            raise StoreWriteError(f"a commit to {self.path} failed: {gone}")
         try:
             db.execute("BEGIN IMMEDIATE")
             try:
@@ -387,12 +391,31 @@ class ShardStore:
             raise StoreWriteError(f"a commit to {self.path} failed: {exc}") from None
         return now
 
+    def _gone(self) -> str:
+        """Why the database file this store wrote is no longer at its path ("" when it is): SQLite goes on writing to
+        a file removed while it is open, and what it writes there is lost with the last handle."""
+        now = _file_identity(self.path)
+        if now == self._file:
+            return ""
+        if now is None:
+            return "the file was removed while the shard ran (its state directory deleted?); what it held is lost"
+        return "another file took its place while the shard ran; this shard's commits would not be in it"
+
     def close(self) -> None:
         """Close the database (SQLite checkpoints the write-ahead log into it) and release the directory's lock."""
         try:
             self._db.close()
         finally:
             os.close(self._lock)
+
+
+def _file_identity(path: Path) -> tuple[int, int] | None:
+    """(device, inode) of the file at ``path``, None when there is none."""
+    try:
+        st = os.stat(path)
+    except (FileNotFoundError, NotADirectoryError):
+        return None
+    return st.st_dev, st.st_ino
 
 
 def _whole(value: object, low: int, high: int | None = None) -> bool:
