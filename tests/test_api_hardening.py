@@ -691,3 +691,62 @@ def test_a_request_that_never_finishes_arriving_is_cut_off(api):
         assert "event: hello" in next(reader)
         time.sleep(2 * REQUEST_TIMEOUT + 1)
         assert get_json(f"{api}/health")["event_clients"] >= 1
+
+
+@pytest.mark.parametrize(
+    "soft, hard, expected, warned",
+    [(100, 100, 36, True), (60, 60, 15, True), (100, 4096, 256, False), (4096, 4096, 256, False)],
+)
+def test_the_connection_limit_fits_the_files_the_process_may_open(soft, hard, expected, warned):
+    """A probe under `ulimit -n 64`: the API kept --max-connections 256, and past its open-file limit answered with
+    200s cut off half sent, 500s and connection resets, and printed a traceback a request. It now raises its soft
+    limit to what the connections need where the hard limit lets it, else serves fewer connections and says so.
+    (A process of its own: the limits are the process's.)"""
+    import sys
+
+    script = (
+        "import logging, resource, sys\n"
+        "from services.api.limits import fit_connections\n"
+        "logging.basicConfig(stream=sys.stderr, format='%(message)s')\n"
+        "print(fit_connections(256, logging.getLogger('api')), resource.getrlimit(resource.RLIMIT_NOFILE)[0])\n"
+    )
+
+    def limit() -> None:
+        import resource
+
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
+
+    done = subprocess.run(
+        [sys.executable, "-c", script],
+        cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+        capture_output=True,
+        text=True,
+        timeout=60,
+        preexec_fn=limit,
+        check=True,
+    )
+    fitted, now_soft = map(int, done.stdout.split())
+    assert fitted == expected and now_soft == max(soft, min(hard, 256 + 64)), done
+    assert ("serving at most" in done.stderr) == warned, done
+    assert not warned or f"at most {expected} connections at once, not --max-connections 256" in done.stderr, done
+
+
+def test_connections_beyond_the_limit_are_503_counted_in_health_and_said_once(stack):
+    """The same probe: uvicorn printed "Exceeded concurrency limit." for every connection answered 503 at
+    --max-connections (20 000 lines on the run's console in 12 s). They are counted in /health (refused
+    connections) and said in one line."""
+    url = start_api(stack, "api-connections", "--max-connections", "2")
+    port = int(url.rsplit(":", 1)[1])
+    held = [socket.create_connection(("127.0.0.1", port), timeout=10) for _ in range(2)]
+    statuses: list[int] = []
+    try:
+        deadline = time.monotonic() + 30  # (until the server has taken the two held ones: then every other is 503)
+        while statuses.count(503) < 3 and time.monotonic() < deadline:
+            statuses.append(httpx.get(f"{url}/health", timeout=10).status_code)
+    finally:
+        for connection in held:
+            connection.close()
+    assert statuses.count(503) == 3 and set(statuses) <= {200, 503}, statuses
+    wait_until(lambda: get_json(f"{url}/health")["refused"].get("connections") == 3, 10, "the refusals counted")
+    log = (stack.logs / "api-connections.log").read_text()
+    assert "Exceeded concurrency limit" not in log and log.count("more than 2 connections at once") == 1, log

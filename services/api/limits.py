@@ -7,6 +7,8 @@ or a thread while it runs), and the cells of one export's raster (allocated whol
 
 from __future__ import annotations
 
+import logging
+import resource
 import threading
 from collections import Counter
 from dataclasses import dataclass
@@ -27,6 +29,9 @@ RETRY_AFTER = 5
 TILE_THREADS = 16
 #: connections open at once before requests get 503 (`--max-connections`)
 MAX_CONNECTIONS = 256
+#: file descriptors the API process holds besides its connections (it holds about 30 idle: its Zenoh session, the
+#: event streams' pipes, files read at a request), kept free of --max-connections (:func:`fit_connections`)
+FD_RESERVE = 64
 #: s an idle keep-alive connection stays open (`--keep-alive-timeout`)
 KEEP_ALIVE = 5.0
 #: s a request may take to arrive whole (`--request-timeout`; services.api.protocol)
@@ -94,3 +99,33 @@ class Slots:
     @property
     def taken(self) -> int:
         return self._taken
+
+
+def fit_connections(wanted: int, log: logging.Logger) -> int:
+    """The connections the API may keep open at once: ``wanted`` (--max-connections) when the process may open that
+    many files and FD_RESERVE more, after raising its soft limit (RLIMIT_NOFILE, `ulimit -n`) up to the hard one
+    where it is lower; else fewer, said in a warning. Beyond its open-file limit a connection is reset, a request
+    fails half sent or with a 500 (a module or file it opens), and uvicorn prints a traceback a request, where
+    --max-connections promises a 503."""
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    need = wanted + FD_RESERVE
+    if soft != resource.RLIM_INFINITY and soft < need:
+        raised = need if hard == resource.RLIM_INFINITY else min(need, hard)
+        try:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (raised, hard))
+            soft = raised
+        except (ValueError, OSError):
+            pass
+    if soft == resource.RLIM_INFINITY or soft >= need:
+        return wanted
+    fitted = max(1, soft - FD_RESERVE, soft // 4)
+    log.warning(
+        "this process may open %d files (ulimit -n; hard limit %s): serving at most %d connections at once, not "
+        "--max-connections %d (%d files are kept for the rest); raise the limit to serve more",
+        soft,
+        "none" if hard == resource.RLIM_INFINITY else hard,
+        fitted,
+        wanted,
+        FD_RESERVE,
+    )
+    return fitted

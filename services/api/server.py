@@ -7,6 +7,7 @@ request deadline of services.api.protocol, the keep-alive timeout and a cap on o
 
 from __future__ import annotations
 
+import logging
 import socket
 import threading
 from dataclasses import dataclass, field
@@ -28,6 +29,8 @@ from services.api.limits import (
     STRAY_TTL,
     VERIFY_WINDOW,
     HttpLimits,
+    Tally,
+    fit_connections,
 )
 from services.api.protocol import timed_protocol
 from services.process import get_logger, install_stop_event
@@ -67,6 +70,33 @@ class _Server(uvicorn.Server):
         super().handle_exit(sig, frame)
 
 
+#: what uvicorn logs (logger "uvicorn.error") for every connection it answers 503 at --max-connections
+OVER_LIMIT = "Exceeded concurrency limit."
+
+
+class CountOverLimit(logging.Filter):
+    """Counts uvicorn's line for a connection refused at --max-connections in ``refused`` ("connections", /health)
+    and says it once, instead of a warning a connection (20 000 lines in 12 s of a probe's load)."""
+
+    def __init__(self, refused: Tally, log: logging.Logger, limit: int) -> None:
+        super().__init__()
+        self.refused, self.log, self.limit = refused, log, limit
+        self._said = False
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.getMessage() != OVER_LIMIT:
+            return True
+        self.refused.add("connections")
+        if not self._said:
+            self._said = True
+            self.log.warning(
+                "more than %d connections at once: the others are answered 503 (counted in /health, refused "
+                "connections; --max-connections)",
+                self.limit,
+            )
+        return False
+
+
 def serve(
     host: str,
     port: int,
@@ -89,6 +119,9 @@ def serve(
             options.stray_ttl,
             options.verify_window,
         )
+        connections = fit_connections(options.max_connections, log)
+        over_limit = CountOverLimit(backend.link.refused, log, connections)
+        logging.getLogger("uvicorn.error").addFilter(over_limit)
         try:
             app = Guard(
                 HeadAsGet(
@@ -110,7 +143,7 @@ def serve(
                 http=timed_protocol(options.request_timeout),
                 timeout_keep_alive=options.keep_alive,  # type: ignore[arg-type]  # float s: see above
                 # uvicorn refuses when the open connections, this one included, reach the limit
-                limit_concurrency=options.max_connections + 1,
+                limit_concurrency=connections + 1,
             )
             server = _Server(config, backend)
 
@@ -132,6 +165,7 @@ def serve(
             server.run(sockets=None if listener is None else [listener])
             return 0 if server.started else 1
         finally:
+            logging.getLogger("uvicorn.error").removeFilter(over_limit)
             backend.close()
     finally:
         close_session(session, "the API")

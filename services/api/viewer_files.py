@@ -12,7 +12,7 @@ from collections.abc import Awaitable, Callable, MutableMapping
 from pathlib import Path
 from typing import Any
 
-from fastapi.responses import FileResponse
+from fastapi.responses import Response
 from fastapi.staticfiles import StaticFiles
 
 Scope = MutableMapping[str, Any]
@@ -48,8 +48,13 @@ class WholeFiles:
         await self.app({**scope, "headers": headers}, receive, send_whole)
 
 
+#: the viewer's page, read once: a FileResponse sent its headers and then opened the file, so where the process had
+#: no file descriptor left a 200 went out with its body cut off
+INDEX = (FOLDER / "index.html").read_bytes()
+
+
 async def _index(scope: Scope, receive: Receive, send: Send) -> None:
-    await FileResponse(FOLDER / "index.html")(scope, receive, send)
+    await Response(INDEX, media_type="text/html; charset=utf-8")(scope, receive, send)
 
 
 def viewer_page() -> WholeFiles:
