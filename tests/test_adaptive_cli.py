@@ -66,7 +66,18 @@ def test_adaptive_map_file_holds_levels_and_works_with_the_tools(posed_file, tmp
 def test_bad_adaptive_options_are_usage_errors(posed_file, tmp_path, capsys):
     out = str(tmp_path / "m.npz")
     assert main(["fuse", str(posed_file), "-o", out, "--grid", "adaptive", "--coarse-cell", "0.3"]) == 2
-    assert "power of two" in capsys.readouterr().err
+    assert (
+        "--coarse-cell 0.3 m must be --resolution 0.05 m times a power of two, at most 12.8 m"
+        in capsys.readouterr().err
+    )
+    # (a probe: a coarse cell past a tile said "need 0 <= start_level <= max_level <= 8 (a tile), got 13 and 8", and
+    # a --resolution the default coarse cell is no multiple of blamed a 0.8 m cell the user never gave)
+    assert main(["fuse", str(posed_file), "-o", out, "--grid", "adaptive", "--coarse-cell", "409.6"]) == 2
+    assert (
+        "--coarse-cell 409.6 m is coarser than a tile: at most 12.8 m at --resolution 0.05 m" in capsys.readouterr().err
+    )
+    assert main(["fuse", str(posed_file), "-o", out, "--grid", "adaptive", "--resolution", "10"]) == 2
+    assert "--coarse-cell (default) 0.8 m must be --resolution 10 m times a power of two" in capsys.readouterr().err
     assert main(["fuse", str(posed_file), "-o", out, "--grid", "adaptive", "--significance", "2"]) == 2
     assert "significance" in capsys.readouterr().err
     for option in (["--no-unknowns"], ["--coarse-cell", "0.4"], ["--significance", "0.1"], ["--unknown-range", "1"]):

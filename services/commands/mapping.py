@@ -393,6 +393,8 @@ def refuse_bundle_with_ml(args: argparse.Namespace) -> None:
 def _adaptive_params(args: argparse.Namespace) -> AdaptiveParams:
     """The mapping.adaptive.AdaptiveParams of the adaptive-grid options (theirs where left unset)."""
     from mapping.adaptive import AdaptiveParams, level_for_cell_size
+    from mapping.errors import InputError
+    from mapping.grid import TILE_SIZE
     from services.errors import UsageError
 
     defaults = AdaptiveParams()
@@ -400,8 +402,23 @@ def _adaptive_params(args: argparse.Namespace) -> AdaptiveParams:
     if args.unknown_range is not None and not unknowns:
         raise UsageError("--unknown-range limits the unknowns that --no-unknowns turns off; drop one of them")
     coarse_cell = args.coarse_cell if args.coarse_cell is not None else DEFAULT_COARSE_CELL
+    given = "--coarse-cell" if args.coarse_cell is not None else "--coarse-cell (default)"
+    levels = int(TILE_SIZE).bit_length() - 1  # (the coarsest cell is a whole tile of the adaptive grid)
+    largest = args.resolution * (1 << levels)
+    try:
+        start_level = level_for_cell_size(coarse_cell, args.resolution)
+    except InputError:
+        raise UsageError(
+            f"{given} {coarse_cell:g} m must be --resolution {args.resolution:g} m times a power of two, at most "
+            f"{largest:g} m (a tile of {TILE_SIZE} cells); give one, or another --resolution"
+        ) from None
+    if start_level > levels:
+        raise UsageError(
+            f"{given} {coarse_cell:g} m is coarser than a tile: at most {largest:g} m at --resolution "
+            f"{args.resolution:g} m (tiles of {TILE_SIZE} cells)"
+        )
     return AdaptiveParams(
-        start_level=level_for_cell_size(coarse_cell, args.resolution),
+        start_level=start_level,
         unknowns=unknowns,
         significance=defaults.significance if args.significance is None else args.significance,
         unknown_range=args.unknown_range,
