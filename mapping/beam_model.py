@@ -93,7 +93,7 @@ def _constant_sigma_beams(ranges, range_min, range_max, sigma0, half, peak_offse
     for k in range(n):
         r = ranges[k]
         no_return = r != r or r > range_max  # NaN, +inf or beyond; -inf (too close) is below range_min
-        hit = not no_return and r >= range_min
+        hit = not no_return and r >= range_min and r > 0.0  # (0: no reading, whatever range_min)
         kind[k] = BEAM_HIT if hit else (BEAM_NO_RETURN if no_return else BEAM_SKIP)
         z = r if hit else 0.0
         sigma = sigma0 if hit else 1.0
@@ -114,7 +114,8 @@ def beam_table(ranges: np.ndarray, model: SensorModel, range_min: float, range_m
 
     A range that is NaN, +inf or > range_max is "no return": free space up to range_max, no hit.
     A range below range_min is not trusted and the beam is skipped; so is -inf, a reading too close to measure
-    (REP 117), which says nothing of the space along the beam.
+    (REP 117), which says nothing of the space along the beam, and 0 with a range_min of 0 (no laser sees an obstacle
+    at its own window; drivers and CARMEN logs write 0 for no reading, which was fused as a hit in the laser's cell).
     """
     ranges = np.asarray(ranges, dtype=np.float64)
     half = model.l / 2
@@ -124,7 +125,7 @@ def beam_table(ranges: np.ndarray, model: SensorModel, range_min: float, range_m
         )
         return BeamTable(kind, *fields)
     no_return = np.isnan(ranges) | (ranges > range_max)
-    hit = ~no_return & (ranges >= range_min)
+    hit = ~no_return & (ranges >= range_min) & (ranges > 0.0)
     kind = np.where(hit, BEAM_HIT, np.where(no_return, BEAM_NO_RETURN, BEAM_SKIP)).astype(np.int8)
     z = np.where(hit, ranges, 0.0)
     z_safe = np.where(hit, z, 1.0)

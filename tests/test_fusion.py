@@ -127,6 +127,24 @@ def test_too_short_ranges_are_skipped(too_close, samples):
     assert result.cells_updated == 0 and grid.keys() == []
 
 
+@pytest.mark.parametrize("sigma", ["constant", "linear"])
+def test_a_range_of_zero_is_no_reading_even_with_a_range_min_of_zero(sigma):
+    """A probe: `posegrid run --carmen` (CARMEN logs carry no range_min: 0) fused a reading of 0, what a laser writes
+    for no reading, as a hit in the laser's own cell along the robot's path. 0 is skipped like -inf; the beam beside
+    it, a hit at 1 m, is fused as on its own."""
+    model = SensorModel(resolution=RES, sigma=sigma)
+    table = beam_table(np.array([0.0, 1.0, -0.0]), model, 0.0, 5.0)
+    assert table.kind.tolist() == [BEAM_SKIP, BEAM_HIT, BEAM_SKIP]
+    maps = []
+    for ranges in (np.array([0.0, 1.0]), np.array([-np.inf, 1.0])):
+        grid = TiledGrid(RES)
+        fusion = MonteCarloFusion(grid, model, np.array([0.0, 0.5]), 0.0, 5.0)
+        fusion.fuse(ranges, np.array([[0.025, 0.025, 0.0]]), np.array([1.0]))
+        maps.append(fused_cells(grid))
+    assert maps[0] == maps[1] and (0, 0) in maps[0]  # (the 1 m beam starts in the laser's cell: free there)
+    assert maps[0][(0, 0)][0] < 0
+
+
 def test_occupied_wins_within_one_sample():
     """A beam ending in a cell beats another beam passing through it in the same scan and sample."""
     model = SensorModel(resolution=RES)
