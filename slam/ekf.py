@@ -8,8 +8,12 @@ xi = (xi_p (2), xi_theta, xi_m1 (2), ...):
 
     theta^ = theta + xi_theta,   p^ = Rot(xi_theta) p + xi_p,   m^_i = Rot(xi_theta) m_i + xi_mi,
 
-so xi_theta rotates robot and map together about the map origin and a common xi_p = xi_mi shifts them
-together: exactly the motions that landmarks cannot observe. In these coordinates
+so xi_theta rotates robot and map together about a fixed point and a common xi_p = xi_mi shifts them together:
+exactly the motions that landmarks cannot observe. The point is the start position (the filter's ``origin``), with
+every position taken relative to it: the map origin would do in exact arithmetic (a change of the fixed point maps
+the errors linearly, and the estimates are the same), but with a start in UTM coordinates, 5e6 m from it, the
+covariance held terms of 1e13 whose differences were the pose's 1e-4 m^2, and the filter failed within a run
+(a covariance no longer positive semi-definite). In these coordinates
 
 * a motion given in the robot frame (both motion models) leaves xi unchanged (F = I); its noise, given as a
   pose covariance q in plain coordinates by the motion model, enters as B q B^T where the heading noise
@@ -56,10 +60,11 @@ CHI2_2_99 = 9.2103
 CHI2_2_9999 = 18.4207
 
 
-def invariant_to_plain(pose: np.ndarray) -> np.ndarray:
+def invariant_to_plain(pose: np.ndarray, about: np.ndarray) -> np.ndarray:
     """A (3, 3) with (dx, dy, dtheta) = A (xi_px, xi_py, xi_theta) to first order at ``pose`` (x, y, theta):
-    a rotation xi_theta about the map origin moves the position by xi_theta J p = xi_theta (-y, x)."""
-    return np.array([[1.0, 0.0, -pose[1]], [0.0, 1.0, pose[0]], [0.0, 0.0, 1.0]])
+    a rotation xi_theta about the point ``about`` (2,) moves the position by xi_theta J (p - about)."""
+    x, y = pose[0] - about[0], pose[1] - about[1]
+    return np.array([[1.0, 0.0, -y], [0.0, 1.0, x], [0.0, 0.0, 1.0]])
 
 
 def _rotation_left_jacobian(angle: float) -> np.ndarray:
@@ -109,15 +114,16 @@ class EKFSLAM(LandmarkFilter):
         uncertainty ``scale_sd`` added: scaling map and path about the start by 1 + e moves the position by
         e (p - start), which no measurement or motion shows (slam.calibration, ``scale_sd``); and the drive angle's:
         an error e in it turns the path about the start by e (slam.landmark_filter, ``turn_covariance``)."""
-        a = invariant_to_plain(self.mu[:3])
+        a = invariant_to_plain(self.mu[:3], self.origin)
         cov = a @ self.sigma[:3, :3] @ a.T
         lever = self.mu[:2] - self.origin
         cov[:2, :2] += self.scale_sd**2 * np.outer(lever, lever) + self.turn_covariance(self.mu[:2])
         return cov
 
     def _points(self) -> np.ndarray:
-        """Robot position and landmarks as rows (1 + L, 2), the points the error's rotation moves."""
-        return np.concatenate([self.mu[None, :2], self.mu[3:].reshape(-1, 2)])
+        """Robot position and landmarks as rows (1 + L, 2) relative to ``origin``, the point about which the error's
+        rotation moves them."""
+        return np.concatenate([self.mu[None, :2], self.mu[3:].reshape(-1, 2)]) - self.origin
 
     def predict(self, controls: np.ndarray) -> None:
         """Move the mean through one step's controls (K, 3); xi is unchanged (F = I) and gains the step's motion
@@ -155,12 +161,13 @@ class EKFSLAM(LandmarkFilter):
         self.sigma = 0.5 * (self.sigma + self.sigma.T)
 
     def _retract(self, xi: np.ndarray) -> None:
-        """X^ <- exp(-xi) X^: rotate robot and landmarks about the origin by -xi_theta, then shift each by
+        """X^ <- exp(-xi) X^: rotate robot and landmarks about ``origin`` by -xi_theta, then shift each by
         -V(-xi_theta) xi_p or -V xi_mi."""
         angle = -float(xi[2])
         c, s = np.cos(angle), np.sin(angle)
         shifts = np.concatenate([xi[None, :2], xi[3:].reshape(-1, 2)])
         moved = self._points() @ np.array([[c, s], [-s, c]]) - shifts @ _rotation_left_jacobian(angle).T
+        moved += self.origin
         self.mu[:2] = moved[0]
         self.mu[3:] = moved[1:].ravel()
         self.mu[2] = wrap_angle(self.mu[2] + angle)

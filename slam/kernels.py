@@ -282,7 +282,10 @@ def ekf_likelihood_pass(
     continuous in the parameters)."""
     n = 3 + 2 * n_slots
     mu = np.zeros(n)
-    mu[:3] = initial_pose
+    # (positions relative to the start, as slam.ekf.EKFSLAM rotates its error about it: the same filter, without
+    # the 1e13 terms a start 5e6 m from the map origin would put in sigma)
+    ox, oy = initial_pose[0], initial_pose[1]
+    mu[2] = initial_pose[2]
     sigma = np.zeros((n, n))
     seen = np.zeros(n_slots, dtype=np.bool_)
     delta = np.zeros(3)
@@ -310,10 +313,10 @@ def ekf_likelihood_pass(
                 continue
             d2, logdet, nu0, nu1 = _ekf_update(mu, sigma, seen, j, r_meas, phi, r00, r11, huber, h_sigma, gain)
             out_d2[k], out_logdet[k], out_nu[k, 0], out_nu[k, 1] = d2, logdet, nu0, nu1
-        out_pose[t, :] = mu[:3]
+        out_pose[t, 0], out_pose[t, 1], out_pose[t, 2] = mu[0] + ox, mu[1] + oy, mu[2]
     for j in range(n_slots):
-        out_map[j, 0] = mu[3 + 2 * j] if seen[j] else np.nan
-        out_map[j, 1] = mu[4 + 2 * j] if seen[j] else np.nan
+        out_map[j, 0] = mu[3 + 2 * j] + ox if seen[j] else np.nan
+        out_map[j, 1] = mu[4 + 2 * j] + oy if seen[j] else np.nan
 
 
 # ---------------------------------------------------------------------------------------- FastSLAM

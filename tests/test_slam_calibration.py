@@ -149,6 +149,18 @@ def test_the_likelihood_pass_is_the_ekf(robot):
     np.testing.assert_allclose(result.d2[np.isfinite(result.d2)], seen, rtol=1e-8)
 
 
+def test_the_likelihood_pass_in_utm_coordinates_is_the_pass_at_the_origin_shifted(robot):
+    """The compiled pass rotated its invariant error about the map origin as slam.ekf did (a probe: EKF-SLAM in UTM
+    coordinates failed); it runs relative to the start now, so a start 5.4e6 m away changes nothing but the shift."""
+    sequence = TRUTH.apply(mrclam_sequence(read_mrclam(robot, 1), command_delay=TRUTH.command_delay))
+    shift = np.array([4.5e5, 5.4e6, 0.0])
+    near = likelihood_pass(FitData.of(sequence), TRUTH)
+    far = likelihood_pass(FitData.of(replace(sequence, initial_pose=sequence.initial_pose + shift)), TRUTH)
+    np.testing.assert_allclose(far.d2, near.d2, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(far.poses[:, :2] - shift[:2], near.poses[:, :2], atol=1e-6)
+    np.testing.assert_allclose(far.landmarks - shift[:2], near.landmarks, atol=1e-6)
+
+
 def test_self_calibration_recovers_the_robots_corrections_and_noise(robot):
     """Without ground truth, within these tolerances (docs/slam.md, "Self-calibration", over seeds 1-5): the delay
     to one step of its 0.05 s grid, speed scale 3 %, turn-rate scale 5 %, yaw-rate bias 0.004 rad/s, c2 0.1, the
