@@ -16,6 +16,29 @@ def test_auc_by_hand():
     assert roc_auc(np.array([0.5, 0.5]), np.array([1, 0])) == pytest.approx(0.5)
 
 
+def test_scores_a_rounding_apart_are_ties():
+    # 0.3 and 0.1 + 0.2 (0.30000000000000004) are the same evidence: a tie, one half
+    assert roc_auc(np.array([0.3, 0.1 + 0.2]), np.array([1, 0])) == 0.5
+    assert roc_auc(np.array([0.3, 0.3 + 2e-9]), np.array([1, 0])) == 0.0  # (beyond the tie decimals: ranked)
+
+
+def test_the_same_map_and_truth_moved_far_away_score_the_same():
+    """A probe: the same map and truth moved by (4.5e5, 5.4e6) m (and a part of a cell) scored AUC 0.8081 against
+    0.8021 at the origin, Brier within 1e-10: cells that held the same value at the origin came out of the area
+    averaging a rounding apart, and ranked in the order rounding gave them."""
+    rng = np.random.default_rng(3)
+    probability = np.where(rng.random((60, 80)) < 0.7, 0.12, rng.random((60, 80))).astype(np.float32)  # clamped
+    occupied = rng.random((29, 39)) < 0.2
+    scores = []
+    for shift in (np.zeros(2), np.array([4.5e5, 5.4e6]), np.array([-3e6, -2e6])):
+        origin = shift + np.array([0.01234567, 0.03712345])
+        truth = {"occupied": occupied, "visible": np.ones_like(occupied), "origin": origin + 0.0137, "resolution": 0.1}
+        scores.append(score_map({"probability": probability, "origin": origin, "resolution": 0.05}, truth))
+    for moved in scores[1:]:
+        assert moved["auc"] == pytest.approx(scores[0]["auc"], abs=1e-9)
+        assert moved["brier"] == pytest.approx(scores[0]["brier"], rel=1e-9)
+
+
 def test_brier_and_nll_by_hand():
     scores = score_probabilities(np.array([0.8, 0.5]), np.array([True, False]))
     assert scores["brier"] == pytest.approx((0.2**2 + 0.5**2) / 2)
