@@ -417,3 +417,25 @@ def test_a_scan_refused_midway_ends_the_progress_bar_before_the_error(tmp_path):
     assert result.returncode == 2 and last.startswith("posegrid fuse: error:") and "reaches beyond" in last, (
         result.stderr
     )
+
+
+@pytest.mark.parametrize("gaussian", [False, True])
+def test_a_run_too_wide_for_one_map_is_refused_before_it_is_fused(tmp_path, gaussian):
+    """A probe: a run that crossed 5 km diagonally was fused whole, every scan, before `fuse` said the map's tiles
+    spanned more cells than one raster may hold. The robot's positions alone say so up front."""
+    posed = tmp_path / "far.npz"
+    far = np.array([[0.0, 0.0, 0.0], [5000.0, 5000.0, 0.0]])
+    poses = (
+        {"mean": far, "cov": np.stack([np.eye(3) * 1e-4] * 2)}
+        if gaussian
+        else {"samples": far[:, None, :], "weights": np.ones((2, 1))}
+    )
+    np.savez(posed, ranges=np.ones((2, 3), np.float32), angle_min=0.0, angle_increment=0.1, range_min=0.1,
+             range_max=5.0, stamps=np.arange(2.0), **poses)  # fmt: skip
+    done = posegrid("fuse", str(posed), "-o", str(tmp_path / "map.npz"))
+    assert done.returncode == 2 and "the robot's positions alone span more than" in done.stderr, done.stderr
+    assert "nothing fused" in done.stderr and not (tmp_path / "map.npz").exists()
+    near = far * [0.01, 0.01, 1.0]  # (50 m: fused)
+    np.savez(posed, ranges=np.ones((2, 3), np.float32), angle_min=0.0, angle_increment=0.1, range_min=0.1,
+             range_max=5.0, stamps=np.arange(2.0), samples=near[:, None, :], weights=np.ones((2, 1)))  # fmt: skip
+    assert posegrid("fuse", str(posed), "-o", str(tmp_path / "map.npz")).returncode == 0

@@ -356,6 +356,28 @@ def _refuse_an_empty_map(args: argparse.Namespace, posed, empty_scans: int) -> N
         )
 
 
+def _refuse_a_map_too_wide(args: argparse.Namespace, posed, resolution: float) -> None:
+    """UsageError before any fusion when the robot's positions alone span more tiles than one raster may hold
+    (mapping.grid.MAX_RASTER_CELLS), which the map then does too (each scan observes the cells its rays start in).
+    Found after every scan was fused, it cost a long run's whole time. A tile is taken off each side for the
+    laser's offset and a sample's spread."""
+    import numpy as np
+
+    from mapping.grid import MAX_RASTER_CELLS, TILE_SIZE
+    from services.errors import UsageError
+
+    positions = posed.poses.mean[:, :2] if posed.poses.is_gaussian else posed.poses.samples[:, :, :2].reshape(-1, 2)
+    tiles = np.floor(positions / (resolution * TILE_SIZE))
+    span = np.maximum(tiles.max(axis=0) - tiles.min(axis=0) - 1, 0) * TILE_SIZE  # cells (x, y)
+    if span[0] * span[1] > MAX_RASTER_CELLS:
+        width, height = (span * resolution).tolist()
+        raise UsageError(
+            f"{args.posed}: the robot's positions alone span more than {width:.6g} m x {height:.6g} m, a map of "
+            f"more than the {MAX_RASTER_CELLS} cells of {resolution:g} m one map file may hold; fuse it in parts "
+            f"(a posed-scan file of each stretch of the run) or with a coarser --resolution; nothing fused"
+        )
+
+
 def _refuse_unread_options(args: argparse.Namespace) -> None:
     """UsageError for options `posegrid fuse` would not read: the adaptive grid's with --grid regular, the
     sample count's with --mode ml."""
@@ -441,6 +463,7 @@ def run_fuse(args: argparse.Namespace) -> int:
     posed = load_posed_scans(args.posed)
     empty_scans = _scans_without_beams(posed, model)
     _refuse_an_empty_map(args, posed, empty_scans)
+    _refuse_a_map_too_wide(args, posed, model.resolution)
     _note_peak_behind_returns(model, posed)
     if not posed.poses.is_gaussian and (args.samples is not None or args.accuracy is not None):
         raise UsageError(
