@@ -110,6 +110,11 @@ def crop_to_occupied(map_arrays: dict, margin: float) -> dict:
     return cropped
 
 
+#: rows of a raster rendered at a time: the colour arithmetic's float64 temporaries take about 130 bytes a cell of a
+#: band, not of the whole map (a variance PNG of a 33 M-cell map peaked at 4.35 GB)
+RENDER_ROWS = 256
+
+
 def _heat(values: np.ndarray) -> np.ndarray:
     """A black-red-yellow-white colour ramp for values in [0, 1] -> uint8 RGB."""
     v = np.clip(values, 0.0, 1.0)[..., None]
@@ -136,15 +141,18 @@ def render_rgb(map_arrays: dict, layer: str = "probability", variance_scale: flo
     if variance_scale is not None and not (np.isfinite(variance_scale) and variance_scale >= 0):
         raise InputError(f"the variance scale must be finite and >= 0, got {variance_scale}")
     observed = np.asarray(map_arrays["observed"], bool)
-    if layer == "probability":
-        grey = np.round(255 * (1.0 - np.asarray(map_arrays["probability"], float))).astype(np.uint8)
-        rgb = np.repeat(grey[..., None], 3, axis=2)
-    else:
-        variance = np.asarray(map_arrays["variance"], float)
-        if variance_scale is None:
-            seen = variance[observed]
-            variance_scale = float(np.percentile(seen, 99)) if seen.size else 1.0
-        rgb = _heat(variance / max(variance_scale, 1e-12))
+    values = np.asarray(map_arrays[layer])
+    if layer == "variance" and variance_scale is None:
+        seen = np.asarray(values[observed], float)
+        variance_scale = float(np.percentile(seen, 99)) if seen.size else 1.0
+    scale = max(variance_scale or 0.0, 1e-12)  # (variance only)
+    rgb = np.empty((*observed.shape, 3), np.uint8)
+    for top in range(0, observed.shape[0], RENDER_ROWS):  # (in bands: a map's float64 copies were 130 bytes a cell)
+        band = np.asarray(values[top : top + RENDER_ROWS], float)
+        if layer == "probability":
+            rgb[top : top + RENDER_ROWS] = np.round(255 * (1.0 - band)).astype(np.uint8)[..., None]
+        else:
+            rgb[top : top + RENDER_ROWS] = _heat(band / scale)
     rgb[~observed] = UNOBSERVED_RGB
     return rgb
 

@@ -168,3 +168,35 @@ def test_variance_colours_follow_the_ramp_and_the_99th_percentile_scale():
 def test_an_all_zero_variance_layer_renders_black_not_garbage():
     rgb = render_rgb(_arrays(np.full((2, 2), 0.5), variance=np.zeros((2, 2))), layer="variance")
     assert rgb.tolist() == [[[0, 0, 0]] * 2] * 2
+
+
+def test_a_tall_map_renders_in_bands_as_whole_and_in_bounded_memory():
+    """A probe: a variance PNG took about 130 bytes a cell (float64 copies of the whole map: 4.35 GB for a 33 M-cell
+    map, 1.2 GB more in the API for one export). Rendered in bands of rows, the same pixels as the ramp applied to the
+    whole map at once, in a fraction of the memory."""
+    import tracemalloc
+
+    from mapping.export import RENDER_ROWS, UNOBSERVED_RGB, _heat, render_rgb
+
+    rng = np.random.default_rng(0)
+    rows, cols = 8 * RENDER_ROWS + 37, 200
+    arrays = {
+        "probability": rng.random((rows, cols)).astype(np.float32),
+        "variance": (rng.random((rows, cols)) ** 3).astype(np.float32),
+        "observed": rng.random((rows, cols)) < 0.8,
+    }
+    scale = float(np.percentile(arrays["variance"][arrays["observed"]].astype(float), 99))
+    expected = {
+        "probability": np.repeat(
+            np.round(255 * (1.0 - arrays["probability"].astype(float))).astype(np.uint8)[..., None], 3, 2
+        ),
+        "variance": _heat(arrays["variance"].astype(float) / scale),
+    }
+    for layer, whole in expected.items():
+        whole[~arrays["observed"]] = UNOBSERVED_RGB
+        np.testing.assert_array_equal(render_rgb(arrays, layer), whole)
+    tracemalloc.start()
+    render_rgb(arrays, "variance")
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak / (rows * cols) < 40  # bytes a cell: the image's 3, the percentile's 8 an observed cell, one band's
