@@ -4,9 +4,10 @@ A robot's odometry moves a few centimetres to a few metres between two scans. A 
 a corrupt message, or the odometry's driver restarting its frame (at zero, or wherever it starts). Grid FastSLAM
 fed such a step moves every particle with it and starts a second copy of the map there. :class:`OdometryJumps`
 decides, step by step, as the live SLAM node (services.state.slam.GridDriver) and ``posegrid slam --algo gridslam``
-(:func:`joined_odometry`) both use it: a step of more than ``max_step`` m from the last step taken is refused, unless
-it is the :data:`REBASE_STEPS`-th such step in a row, each within ``max_step`` of the one before: then the odometry
-was reset, and the step is taken as its new frame, the robot not having moved across the reset.
+(:func:`joined_odometry`) both use it: a step of more than ``max_step`` m from the last step taken, or faster than
+:data:`MAX_ODOMETRY_SPEED` (past :data:`JUMP_FLOOR`), is refused, unless it is the :data:`REBASE_STEPS`-th such step
+in a row, each a move from the one before: then the odometry was reset, and the step is taken as its new frame, the
+robot not having moved across the reset.
 """
 
 from __future__ import annotations
@@ -24,6 +25,11 @@ from slam.laserlog import LaserLog, Skipped
 #: message moved 3 km took a grid FastSLAM node to 13 GB, as every particle's tile table spans the particles' box
 MAX_ODOMETRY_STEP = 50.0
 
+#: the fastest a robot's odometry may move, m/s (180 km/h), and the least a step is allowed whatever its time (stamps
+#: of a log jitter by milliseconds: 0.17 m in 1.7 ms in the Intel lab's bag): a step past both is no move
+MAX_ODOMETRY_SPEED = 50.0
+JUMP_FLOOR = 2.0
+
 #: consecutive steps that agree with each other but not with the odometry before them after which they are taken
 #: as the odometry's new frame (a reset of the robot's odometry), not as a jump
 REBASE_STEPS = 3
@@ -38,39 +44,60 @@ class Verdict(enum.Enum):
 
 
 class OdometryJumps:
-    """The jump rule of the module docstring, fed one odometry pose (x m, y m, yaw rad) a step."""
+    """The jump rule of the module docstring, fed one odometry pose (x m, y m, yaw rad) a step, with its stamp (s).
+
+    A step may move at most ``max_step`` m, and, when it comes ``dt`` s after the last step taken, at most
+    max(:data:`JUMP_FLOOR`, :data:`MAX_ODOMETRY_SPEED` dt) m: a reset of 30 m between two scans 0.1 s apart is no
+    move, though under 50 m. (Stamps that run backwards or are missing give no speed: ``max_step`` alone.)"""
 
     def __init__(self, max_step: float = MAX_ODOMETRY_STEP) -> None:
         if not max_step > 0 or not math.isfinite(max_step):
             raise ValueError(f"max_step must be a finite distance > 0 m, got {max_step}")
         self.max_step = max_step
-        self._last: np.ndarray | None = None  # the odometry pose (3,) of the last step taken
-        self._jumped: list[np.ndarray] = []  # the poses of the steps refused since, each near the one before
+        self._last: tuple[np.ndarray, float] | None = None  # the odometry pose (3,) and stamp of the last step taken
+        self._jumped: list[tuple[np.ndarray, float]] = []  # the steps refused since, each near the one before
         self.reason = ""  # why the last step was refused or rebased ("" for a move)
 
-    def check(self, pose: np.ndarray) -> Verdict:
-        """The verdict on the next step's odometry ``pose`` (3,); :attr:`reason` says why for a jump or a reset."""
+    def limit(self, dt: float) -> float:
+        """The farthest a step ``dt`` s after another may move, m."""
+        if not dt > 0 or not math.isfinite(dt):
+            return self.max_step
+        return min(self.max_step, max(JUMP_FLOOR, MAX_ODOMETRY_SPEED * dt))
+
+    def _jump(self, pose: np.ndarray, stamp: float, since: tuple[np.ndarray, float]) -> str:
+        """Why ``pose`` at ``stamp`` is no move from ``since`` ("" when it is one)."""
+        moved = float(np.hypot(*(pose[:2] - since[0][:2])))
+        dt = stamp - since[1]
+        limit = self.limit(dt)
+        if moved <= limit:
+            return ""
+        if limit == self.max_step:
+            return f"the odometry moved {moved:.3g} m since the last step, more than the {limit:g} m a step may"
+        return (
+            f"the odometry moved {moved:.3g} m in {dt:.3g} s since the last step, more than the {limit:.3g} m a robot "
+            f"moves at {MAX_ODOMETRY_SPEED:g} m/s"
+        )
+
+    def check(self, pose: np.ndarray, stamp: float = math.nan) -> Verdict:
+        """The verdict on the next step's odometry ``pose`` (3,) at ``stamp`` (s; NaN: not known); :attr:`reason`
+        says why for a jump or a reset."""
         pose = np.asarray(pose, np.float64)
-        last, limit = self._last, self.max_step
         verdict = Verdict.STEP
         self.reason = ""
-        if last is not None and float(np.hypot(*(pose[:2] - last[:2]))) > limit:
-            moved = float(np.hypot(*(pose[:2] - last[:2])))
-            near_run = bool(self._jumped) and float(np.hypot(*(pose[:2] - self._jumped[-1][:2]))) <= limit
-            self._jumped = [*self._jumped, pose.copy()] if near_run else [pose.copy()]
+        why = "" if self._last is None else self._jump(pose, stamp, self._last)
+        if why:
+            near_run = bool(self._jumped) and not self._jump(pose, stamp, self._jumped[-1])
+            self._jumped = [*self._jumped, (pose.copy(), stamp)] if near_run else [(pose.copy(), stamp)]
             if len(self._jumped) < REBASE_STEPS:
-                self.reason = (
-                    f"the odometry moved {moved:.3g} m since the last step, more than the {limit:g} m a step may "
-                    f"(taken as a reset of the odometry after {REBASE_STEPS} such steps in a row)"
-                )
+                self.reason = f"{why} (taken as a reset of the odometry after {REBASE_STEPS} such steps in a row)"
                 return Verdict.REFUSED
             self.reason = (
-                f"the odometry moved {moved:.3g} m since the last step taken, and the {REBASE_STEPS} steps from "
-                "there agree: taken as a reset of the odometry, the robot not having moved across it"
+                f"{why.replace('the last step', 'the last step taken')}, and the {REBASE_STEPS} steps from there "
+                "agree: taken as a reset of the odometry, the robot not having moved across it"
             )
             verdict = Verdict.REBASE
         self._jumped = []
-        self._last = pose.copy()
+        self._last = (pose.copy(), stamp)
         return verdict
 
 
@@ -86,7 +113,7 @@ def joined_odometry(log: LaserLog, max_step: float = MAX_ODOMETRY_STEP) -> Laser
     notes: list[str] = []
     last_kept: int | None = None
     for t in range(len(log)):
-        verdict = jumps.check(log.odometry[t])
+        verdict = jumps.check(log.odometry[t], float(log.stamps[t]))
         if verdict is Verdict.REFUSED:
             kept[t] = False
             dropped.append(Skipped(int(log.where[t]), jumps.reason))

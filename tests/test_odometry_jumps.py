@@ -68,13 +68,47 @@ def test_a_jump_is_refused_a_spike_leaves_the_frame_and_a_reset_is_taken_at_its_
         OdometryJumps(float("nan"))
 
 
+def test_a_step_faster_than_a_robot_is_a_jump_though_under_the_step_limit():
+    """A probe: a reset of 30 m between scans 0.1 s apart (300 m/s) passed the 50 m limit, and grid FastSLAM drew a
+    second copy of the map 30 m away. A step's time bounds it too: at most 50 m/s, never less than 2 m (stamps jitter
+    by milliseconds)."""
+    cases = [  # (move m, dt s, verdict)
+        (30.0, 0.1, Verdict.REFUSED),  # 300 m/s
+        (30.0, 1.0, Verdict.STEP),  # 30 m/s
+        (4.0, 0.1, Verdict.STEP),  # 40 m/s
+        (6.0, 0.1, Verdict.REFUSED),  # 60 m/s
+        (1.9, 0.001, Verdict.STEP),  # under the floor: stamps that jitter
+        (2.5, 0.001, Verdict.REFUSED),
+        (30.0, -0.1, Verdict.STEP),  # stamps that run backwards: the step limit alone
+        (30.0, math.nan, Verdict.STEP),
+        (60.0, 5.0, Verdict.REFUSED),  # past the step limit however slow
+    ]
+    for move, dt, verdict in cases:
+        jumps = OdometryJumps(max_step=50.0)
+        jumps.check(np.zeros(3), 10.0)
+        assert jumps.check(np.array([move, 0.0, 0.0]), 10.0 + dt) is verdict, (move, dt, jumps.reason)
+    jumps = OdometryJumps(max_step=50.0)
+    jumps.check(np.zeros(3), 0.0)
+    jumps.check(np.array([30.0, 0.0, 0.0]), 0.1)
+    assert jumps.reason.startswith("the odometry moved 30 m in 0.1 s since the last step, more than the 5 m a robot")
+    # a reset: its steps agree with each other at the robot's speed, and the third is the new frame
+    assert [jumps.check(np.array([30.0 + 0.1 * k, 0.0, 0.0]), 0.1 * (k + 2)) for k in range(2)] == [
+        Verdict.REFUSED,
+        Verdict.REBASE,
+    ]
+
+
 def test_a_reset_is_joined_to_the_odometry_before_and_its_jumped_scans_are_skipped():
     raw = _drive(12)
     raw[6:] = raw[6:] @ np.diag([1.0, -1.0, -1.0]) + np.array([100.0, -40.0, 0.0])  # another frame from scan 6 on
     joined = joined_odometry(_log(raw), max_step=50.0)
     kept = [i for i in range(12) if i not in (6, 7)]  # the reset's first two scans are refused, the third rebases
     assert joined.where.tolist() == [i + 1 for i in kept]
-    assert [s.where for s in joined.skipped] == [7, 8] and "more than the 50 m a step may" in joined.skipped[0].reason
+    assert [s.where for s in joined.skipped] == [7, 8]
+    assert (
+        "moved 108 m in 0.1 s since the last step, more than the 5 m a robot moves at 50 m/s"
+        in joined.skipped[0].reason
+    )
     assert any("line 9:" in note and "reset of the odometry" in note for note in joined.notes)
     np.testing.assert_array_equal(joined.odometry[:6], raw[:6])  # before the reset: as read
     steps = [_relative(joined.odometry[k], joined.odometry[k + 1]) for k in range(len(kept) - 1)]
@@ -112,7 +146,7 @@ def test_posegrid_slam_takes_an_odometry_reset_as_the_live_node_does(tmp_path, c
     argv = ["slam", "--algo", "gridslam", str(path), "-o", str(out), "--particles", "8", "--particle-cap", "8"]
     assert main([*argv, "--odom-delay", "0", "--loop-closure", "off"]) == 0
     err = capsys.readouterr().err
-    assert "taken as a reset of the odometry" in err and "more than the 50 m a step may" in err, err
+    assert "taken as a reset of the odometry" in err and "more than the 5 m a robot moves at 50 m/s" in err, err
     dist = load_pose_distribution(tmp_path / "o.poses.npz")
     assert len(dist.stamps) == steps - (REBASE_STEPS - 1)
     best = dist.poses.samples[-1, int(np.argmax(dist.poses.weights[-1]))]

@@ -23,7 +23,7 @@ from services.commands.argtypes import (
 )
 from services.commands.options import add_scan_topic
 from slam.motion import HOLONOMIC_SHARE, sideways_watch
-from slam.odometry_jumps import MAX_ODOMETRY_STEP, REBASE_STEPS, joined_odometry
+from slam.odometry_jumps import JUMP_FLOOR, MAX_ODOMETRY_SPEED, MAX_ODOMETRY_STEP, REBASE_STEPS, joined_odometry
 
 #: grid FastSLAM particles when --particles is not given: the least KLD-sampling keeps (GridSlamConfig.particle_cap
 #: the most)
@@ -139,9 +139,10 @@ def add_max_odometry_step(group: argparse._ArgumentGroup) -> None:
         type=positive_number,
         default=None,
         metavar="M",
-        help="m: the farthest grid FastSLAM's odometry may move from one scan to the next; a farther step is "
-        f"left out, unless {REBASE_STEPS} in a row agree with each other: an odometry reset, joined to the odometry "
-        f"before as if the robot had not moved across it (default {MAX_ODOMETRY_STEP:g})",
+        help="m: the farthest grid FastSLAM's odometry may move from one scan to the next (and at most "
+        f"{MAX_ODOMETRY_SPEED:g} m/s past {JUMP_FLOOR:g} m); a farther step is left out, unless {REBASE_STEPS} in a "
+        "row agree with each other: an odometry reset, joined to the odometry before as if the robot had not moved "
+        f"across it (default {MAX_ODOMETRY_STEP:g})",
     )
 
 

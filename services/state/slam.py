@@ -331,7 +331,7 @@ class GridDriver:
         angles = scan.angle_min + scan.angle_increment * np.arange(scan.ranges.shape[0])
         if self.filter is None:  # as slam.gridslam.run_gridslam sets it up
             self.filter = GridFastSLAM(self.config, angles, scan.sensor_offset, scan.range_min, self.initial, self.seed)
-        self._check_jump(odom.seq, odom.pose[0])
+        self._check_jump(odom.seq, odom.pose[0], float(odom.stamp))
         self._choose_odometry_model(odom.pose[0])
         if self.filter.due(odom.pose[0]):  # each scan with its own laser geometry
             laser = Laser.of(self.config, angles, scan.sensor_offset, scan.range_min, scan.range_max)
@@ -361,10 +361,10 @@ class GridDriver:
                 SIDEWAYS_DECIDE_DISTANCE,
             )
 
-    def _check_jump(self, seq: int, pose: np.ndarray) -> None:
-        """StepError for odometry ``pose`` (3,) that jumped (slam.odometry_jumps); at a reset of the odometry the
-        filter's odometry reference becomes ``pose``."""
-        verdict = self._jumps.check(pose)
+    def _check_jump(self, seq: int, pose: np.ndarray, stamp: float) -> None:
+        """StepError for odometry ``pose`` (3,) at ``stamp`` (s) that jumped (slam.odometry_jumps); at a reset of the
+        odometry the filter's odometry reference becomes ``pose``."""
+        verdict = self._jumps.check(pose, stamp)
         if verdict is Verdict.REFUSED:
             raise StepError(f"seq {seq}: {self._jumps.reason}")
         if verdict is Verdict.REBASE:
