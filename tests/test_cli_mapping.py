@@ -10,6 +10,7 @@ import os
 import subprocess
 import sys
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -49,8 +50,9 @@ def posegrid(*args: str) -> subprocess.CompletedProcess:
     return subprocess.CompletedProcess(["posegrid", *args], code, out.getvalue(), err.getvalue())
 
 
-def posegrid_process(*args: str) -> subprocess.CompletedProcess:
-    """`posegrid ARGS` as a process of its own, as from a shell."""
+def posegrid_process(*args: str, preexec_fn: Callable[[], None] | None = None) -> subprocess.CompletedProcess:
+    """`posegrid ARGS` as a process of its own, as from a shell (``preexec_fn``: run in the child before it starts,
+    to set its limits)."""
     return subprocess.run(
         [sys.executable, "-m", "services.cli", *args],
         cwd=ROOT,
@@ -58,6 +60,7 @@ def posegrid_process(*args: str) -> subprocess.CompletedProcess:
         text=True,
         timeout=300,
         check=False,
+        preexec_fn=preexec_fn,
     )
 
 

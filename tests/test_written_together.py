@@ -12,14 +12,12 @@ from __future__ import annotations
 import errno
 import resource
 import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
 from schemas.files import write_atomically, written_together
-
-ROOT = Path(__file__).resolve().parents[1]
+from test_cli_mapping import posegrid_process
 
 
 def _posegrid(*args: str, file_limit: int | None = None) -> subprocess.CompletedProcess:
@@ -29,15 +27,7 @@ def _posegrid(*args: str, file_limit: int | None = None) -> subprocess.Completed
         if file_limit is not None:  # (Python ignores SIGXFSZ: a write past the limit fails with EFBIG)
             resource.setrlimit(resource.RLIMIT_FSIZE, (file_limit, file_limit))
 
-    return subprocess.run(
-        [sys.executable, "-m", "services.cli", *args],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=False,
-        preexec_fn=limit,
-    )
+    return posegrid_process(*args, preexec_fn=limit)
 
 
 def _contents(folder: Path) -> dict[str, bytes]:
