@@ -750,3 +750,34 @@ def test_connections_beyond_the_limit_are_503_counted_in_health_and_said_once(st
     wait_until(lambda: get_json(f"{url}/health")["refused"].get("connections") == 3, 10, "the refusals counted")
     log = (stack.logs / "api-connections.log").read_text()
     assert "Exceeded concurrency limit" not in log and log.count("more than 2 connections at once") == 1, log
+
+
+def test_a_new_run_under_the_maps_name_with_another_resolution_is_taken_up(stack):
+    """A probe (the viewer's): a map's shard replaced by one of another --resolution was never taken up, though
+    docs/api.md says the map takes the new cell size once every shard holds it: the fetch of every tile dropped the
+    new run's tiles as of the wrong geometry, so it fell short and the map was never moved (/maps/geo said 1 m for
+    60 s, the new run's tiles 404, the old run's 200). The unit test fed the tiles past that check."""
+    api = stack.api_url
+    mapper = ("mapper", "--shard", "0", "--shards", "1", "--map", "geo", "--tile-size", "32")
+    stack.start("geo-coarse", *mapper, "--resolution", "1.0")
+    stack.source(write_room(stack.logs / "geo.npz", (0.0, 0.0)), "geo", 1, robot="geo1")
+
+    def geometry() -> tuple | None:
+        response = httpx.get(f"{api}/maps/geo", timeout=10)
+        if response.status_code != 200:
+            return None
+        info = response.json()
+        return (info["resolution"], info["tiles"]) if info["tiles"] else None
+
+    assert wait_until(geometry, 120, "the 1 m run's tiles")[0] == 1.0
+    stack.end("geo-coarse")
+    stack.start("geo-fine", *mapper, "--resolution", "0.05")
+    stack.source(write_room(stack.logs / "geo2.npz", (0.0, 0.0)), "geo", 1, robot="geo2")
+
+    def fine() -> tuple | None:
+        got = geometry()
+        return got if got is not None and got[0] == 0.05 else None
+
+    _, tiles = wait_until(fine, 120, "the map to take the 0.05 m run's cells")
+    assert tiles >= 4  # (the 4 m x 3 m room in 1.6 m tiles)
+    assert httpx.get(f"{api}/maps/geo/tiles/0/0/0.npz", timeout=30).status_code == 200

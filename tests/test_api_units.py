@@ -545,7 +545,7 @@ def test_a_fetch_of_every_tile_says_which_shard_fell_short(monkeypatch):
     monkeypatch.setattr(link, "stats", lambda name: answered)
     monkeypatch.setattr(link, "_query", lambda selector: [])
     sent = [update(0, 0, 1.0), update(2, 0, 1.0), replace(update(1, 0, 1.0), shard=2)]
-    monkeypatch.setattr(link, "_whole_tiles", lambda name, replies: sent)
+    monkeypatch.setattr(link, "_whole_tiles", lambda name, replies, any_geometry=False: sent)
     tiles, shortfall = link.fetch_all("m")
     assert tiles == sent and shortfall is not None
     assert "shard(s) 1 did not answer" in shortfall and "shard 0 sent 2 of its 2" not in shortfall, shortfall

@@ -40,7 +40,7 @@ from services.api.registry import MapRegistry, TileKey
 from services.api.robots import PoseRefused, RobotTracker
 from services.map_client import MapReader, sort_answers
 from services.process import RejectCounter, get_logger
-from services.zenoh_config import replier, undeclare_all
+from services.zenoh_config import is_timeout_reply, replier, undeclare_all
 
 #: s to wait for the shards' stats: a shard answers them from its Zenoh thread in milliseconds, and /health, which
 #: asks for them, must answer while a stalled shard is still alive to the router (up to its Zenoh lease)
@@ -54,18 +54,6 @@ CONFLICT_RESYNC_INTERVAL = 10.0
 
 #: bytes of one reply the API takes: a whole tile of the largest size (1 024 x 1 024 cells, 9 bytes a cell) with room
 MAX_REPLY_BYTES = 16 << 20
-
-
-#: the payload of the error reply zenoh makes for a queryable that did not answer in time (zenoh 1.x)
-ZENOH_TIMEOUT_REPLY = b"Timeout"
-
-
-def _is_timeout(reply: zenoh.Reply) -> bool:
-    """Whether an error reply is zenoh's own for a queryable that did not answer before the query's timeout (its
-    payload "Timeout"), which is no message refused: a shard stalled (SIGSTOP, swapped out) was counted as a
-    rejection, three a stall, for as long as the API ran."""
-    error = reply.err
-    return error is not None and error.payload.to_bytes() == ZENOH_TIMEOUT_REPLY
 
 
 def _parse_int(text: str) -> int | None:
@@ -289,7 +277,7 @@ class MapperLink:
         every queryable has answered or the query timed out."""
         for reply in handler:
             if reply.ok is None:
-                if _is_timeout(reply):  # (zenoh's own: a stalled shard did not answer in time; /health says so)
+                if is_timeout_reply(reply):  # (zenoh's own: a stalled shard did not answer in time; /health says so)
                     continue
                 self.rejects.count(selector, "error_reply", "a queryable answered with an error")
             elif len(reply.ok.payload) > MAX_REPLY_BYTES:  # (dropped as it comes: a peer's 30 x 100 MB took 3.5 GB)
@@ -300,8 +288,12 @@ class MapperLink:
             else:
                 yield str(reply.ok.key_expr), reply.ok.payload.to_bytes(), replier(reply)
 
-    def _whole_tiles(self, map_name: str, replies: list[tuple[str, bytes, str]]) -> list[TileUpdate]:
-        """The replies that are whole level-0 tiles of the map, from the process that answers as their shard."""
+    def _whole_tiles(
+        self, map_name: str, replies: list[tuple[str, bytes, str]], any_geometry: bool = False
+    ) -> list[TileUpdate]:
+        """The replies that are whole level-0 tiles of the map, from the process that answers as their shard; of the
+        map's geometry, unless ``any_geometry`` (a fetch of every tile: services.api.tiles.TileService.sync weighs
+        the geometries it finds, and takes a new one that every shard holds)."""
         tiles = []
         for key, payload, sender in replies:
             try:
@@ -318,7 +310,7 @@ class MapperLink:
                 problem = (
                     self.registry.check_sender(map_name, update.shard, (update.tx, update.ty))
                     or self.registry.check_answerer(map_name, update.shard, sender)
-                    or self._geometry_problem(update)
+                    or (None if any_geometry else self._geometry_problem(update))
                 )
             if problem:
                 self.rejects.count(key, "key", problem)
@@ -351,7 +343,7 @@ class MapperLink:
         (None when it is): every shard answered its stats and sent as many tiles as its stats count. Only then is a
         tile that did not come back one that no shard holds."""
         stats = self.stats(map_name)
-        tiles = self._whole_tiles(map_name, self._query(keys.tile_key(map_name, 0, "*", "*")))
+        tiles = self._whole_tiles(map_name, self._query(keys.tile_key(map_name, 0, "*", "*")), any_geometry=True)
         shards = max((s.shards for s in stats.values()), default=0)
         sent = Counter(tile.shard for tile in tiles)
         if not stats:
