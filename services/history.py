@@ -21,7 +21,7 @@ import zenoh
 
 from services import keys
 from services.process import RejectCounter, Stopped
-from services.zenoh_config import replier
+from services.zenoh_config import is_timeout_reply, replier
 
 #: a seq in a query's parameters
 _SEQ = re.compile(r"[0-9]{1,18}")
@@ -42,6 +42,10 @@ RECONNECT_GRACE = 5.0
 RETRY_PERIOD = 0.5
 #: s between looks at the stop flag while a question waits (for its replies or for the router)
 STOP_POLL = 0.1
+#: times a question some history did not finish answering in its timeout is asked again, the timeout doubled each
+#: time (5 s, then 10 and 20 for a shard's): a source answering 359 scans on a loaded machine took more than 5 s, and
+#: the shard took what had come as all there was and gave up on the rest
+TIMEOUT_RETRIES = 2
 
 
 @dataclass(frozen=True)
@@ -173,12 +177,17 @@ def _answers(
     ends with Stopped when ``stop`` is set: a process asked to stop does not wait for the router."""
     deadline = time.monotonic() + RECONNECT_WAIT
     grace_until = None  # set once the session had to wait for its connection
+    retries = TIMEOUT_RETRIES
     while True:
         while not reachable(session) and time.monotonic() < deadline:
             if stop.wait(STOP_POLL):
                 raise Stopped(f"stopped while waiting for the router to ask the histories of {robot!r}")
             grace_until = time.monotonic() + RECONNECT_GRACE
         replies = _asked(session, robot, parameters, timeout, stop, dropped)
+        if retries and any(is_timeout_reply(reply) for reply in replies):  # (a slow history: all of it, with time)
+            retries -= 1
+            timeout *= 2
+            continue
         now = time.monotonic()
         if replies or now >= deadline:
             return replies
@@ -213,7 +222,13 @@ def ask(
         if answer.ok is None:
             error = answer.err
             assert error is not None  # a reply holds either a sample or an error
-            problems.append(error.payload.to_bytes()[:500].decode("utf-8", "replace"))
+            waited = timeout * 2**TIMEOUT_RETRIES
+            problems.append(
+                f"a history did not finish answering in {waited:g} s (asked {TIMEOUT_RETRIES + 1} times: a slow or "
+                "stalled process); what it did not send is taken as lost"
+                if is_timeout_reply(answer)
+                else error.payload.to_bytes()[:500].decode("utf-8", "replace")
+            )
             continue
         parsed = keys.parse_history_reply_key(str(answer.ok.key_expr))  # (robot, stream) of pg/<robot>/history/<s>
         attachment = answer.ok.attachment

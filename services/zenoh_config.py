@@ -244,6 +244,19 @@ def replier(reply: zenoh.Reply) -> str:
     return "?" if source is None else str(source.zid)
 
 
+#: the payload of the error reply zenoh makes for a queryable that did not answer in time (zenoh 1.x)
+ZENOH_TIMEOUT_REPLY = b"Timeout"
+
+
+def is_timeout_reply(reply: zenoh.Reply) -> bool:
+    """Whether a reply is zenoh's own error for a queryable that did not answer before the query's timeout (its
+    payload "Timeout"): no message refused, and no answer either (a slow or stalled process). The API counted a
+    stalled shard's as a rejection, three a stall; a shard took a slow history's as the histories' whole answer and
+    gave up on 359 scans."""
+    error = reply.err
+    return error is not None and error.payload.to_bytes() == ZENOH_TIMEOUT_REPLY
+
+
 def close_session(session: zenoh.Session, what: str) -> None:
     """Close ``what``'s session. A close that fails (zenoh gives up after its timeout when the router or the machine
     stalls, "close operation timed out") is said in one line on stderr, not raised: the process is ending either way,

@@ -1161,6 +1161,45 @@ def test_a_history_question_asked_while_the_router_restarts_waits_for_it(procs):
     assert answers == [([("r", keys.SCAN, b"scan 7")], [])]
 
 
+def test_a_history_slower_than_the_questions_timeout_is_asked_again_with_more_time(procs):
+    """A suite run on a loaded machine: a restarted shard asked the source's history for 359 scans, the source had
+    not finished answering in the question's 5 s (zenoh's "Timeout" reply), and the shard took what had come as all
+    there was: it gave up on every scan (and counted "Timeout" as a rejected message). A question a history does not
+    finish answering is asked again, its timeout doubled, TIMEOUT_RETRIES times."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
+    answerer, asker = (zenoh.open(build_config("client", connect=[endpoint])) for _ in range(2))
+    asked: list[float] = []
+    try:
+        who = history.Answerer(str(answerer.info.zid()), "m", False)
+
+        def slow(query) -> None:  # (1.5 s to answer: past a 1 s question's timeout, within its first retry's 2 s)
+            asked.append(time.monotonic())
+            time.sleep(1.5)
+            history.reply(query, who, "r", keys.SCAN, b"scan 7")
+
+        answerer.declare_queryable(keys.history_key("r"), slow)
+        deadline = time.monotonic() + 10  # until the queryable's declaration has reached the asker through the router
+        while not answerer.info.routers_zid() or not asker.info.routers_zid():
+            assert time.monotonic() < deadline
+            time.sleep(0.1)
+        time.sleep(1.0)
+        messages, problems = history.ask(asker, "r", {}, 1.0)
+        assert messages == [("r", keys.SCAN, b"scan 7")] and problems == [], problems
+        assert len(asked) == 2  # (the first question's answer came too late, the second's in time)
+        stalled: list = []  # (a history that never answers: the question gives up, and says why)
+        answerer.declare_queryable(keys.history_key("q"), stalled.append)
+        time.sleep(1.0)
+        started = time.monotonic()
+        messages, problems = history.ask(asker, "q", {}, 0.5)
+        waited = time.monotonic() - started
+    finally:
+        answerer.close()
+        asker.close()
+    assert messages == [] and len(problems) == 1 and "did not finish answering in 2 s (asked 3 times" in problems[0]
+    assert waited >= 0.5 + 1.0 + 2.0 - 0.2, waited
+
+
 @pytest.mark.parametrize("node", ["mapper", "slam-node"])
 def test_a_process_stopped_while_its_history_question_waits_stops_at_once(procs, node):
     """A shard (or SLAM node) asks the histories when it starts. Stopped while that question waited (an answerer
