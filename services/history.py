@@ -43,9 +43,19 @@ RETRY_PERIOD = 0.5
 #: s between looks at the stop flag while a question waits (for its replies or for the router)
 STOP_POLL = 0.1
 #: times a question some history did not finish answering in its timeout is asked again, the timeout doubled each
-#: time (5 s, then 10 and 20 for a shard's): a source answering 359 scans on a loaded machine took more than 5 s, and
-#: the shard took what had come as all there was and gave up on the rest
-TIMEOUT_RETRIES = 2
+#: time up to TIMEOUT_CAP s (5 s, then 10 and 20 for a shard's gaps; a 60 s catch-up is asked once): a source
+#: answering 359 scans on a loaded machine took more than 5 s, and the shard took what had come as all there was and
+#: gave up on the rest
+TIMEOUT_RETRIES, TIMEOUT_CAP = 2, 20.0
+
+
+def question_timeouts(timeout: float) -> list[float]:
+    """The timeouts (s) a question asked with ``timeout`` is asked with, one a try, while a history does not finish
+    answering (:data:`TIMEOUT_RETRIES`, :data:`TIMEOUT_CAP`)."""
+    tries = [timeout]
+    while len(tries) <= TIMEOUT_RETRIES and tries[-1] * 2 <= TIMEOUT_CAP:
+        tries.append(tries[-1] * 2)
+    return tries
 
 
 @dataclass(frozen=True)
@@ -177,16 +187,15 @@ def _answers(
     ends with Stopped when ``stop`` is set: a process asked to stop does not wait for the router."""
     deadline = time.monotonic() + RECONNECT_WAIT
     grace_until = None  # set once the session had to wait for its connection
-    retries = TIMEOUT_RETRIES
+    more_time = question_timeouts(timeout)[1:]
     while True:
         while not reachable(session) and time.monotonic() < deadline:
             if stop.wait(STOP_POLL):
                 raise Stopped(f"stopped while waiting for the router to ask the histories of {robot!r}")
             grace_until = time.monotonic() + RECONNECT_GRACE
         replies = _asked(session, robot, parameters, timeout, stop, dropped)
-        if retries and any(is_timeout_reply(reply) for reply in replies):  # (a slow history: all of it, with time)
-            retries -= 1
-            timeout *= 2
+        if more_time and any(is_timeout_reply(reply) for reply in replies):  # (a slow history: all of it, with time)
+            timeout = more_time.pop(0)
             continue
         now = time.monotonic()
         if replies or now >= deadline:
@@ -222,9 +231,9 @@ def ask(
         if answer.ok is None:
             error = answer.err
             assert error is not None  # a reply holds either a sample or an error
-            waited = timeout * 2**TIMEOUT_RETRIES
+            tries = question_timeouts(timeout)
             problems.append(
-                f"a history did not finish answering in {waited:g} s (asked {TIMEOUT_RETRIES + 1} times: a slow or "
+                f"a history did not finish answering in {tries[-1]:g} s (asked {len(tries)} time(s): a slow or "
                 "stalled process); what it did not send is taken as lost"
                 if is_timeout_reply(answer)
                 else error.payload.to_bytes()[:500].decode("utf-8", "replace")
