@@ -140,6 +140,32 @@ def test_the_closure_of_a_fusion_kernel_holds_the_helpers_it_inlines():
     assert all(path.startswith(("mapping/", "slam/")) for path in files), "numpy and numba stay outside"
 
 
+def test_the_closure_does_not_follow_packages_installed_beside_the_project(tmp_path):
+    """A probe installed posegrid with pip: the import root was site-packages, and each kernel module's closure parsed
+    615 files (numba, numpy, setuptools, ...), 12.6 s at every process's start; `posegrid run` then failed to open
+    its sessions on a loaded machine. Only the project's packages (and the kernel's own) are followed."""
+    site = tmp_path / "site-packages"
+    for name, text in {
+        "mapping/__init__.py": "",
+        "mapping/kern.py": "import numbaish\nfrom mapping import helper\nfrom slam import other\n",
+        "mapping/helper.py": "from numbaish.core import deep\n",
+        "slam/__init__.py": "",
+        "slam/other.py": "",
+        "numbaish/__init__.py": "from numbaish import core\n",
+        "numbaish/core.py": "",
+    }.items():
+        (site / name).parent.mkdir(parents=True, exist_ok=True)
+        (site / name).write_text(text)
+    files = closure_files("mapping.kern", site / "mapping" / "kern.py")
+    assert set(files) == {
+        "mapping/__init__.py",
+        "mapping/kern.py",
+        "mapping/helper.py",
+        "slam/__init__.py",
+        "slam/other.py",
+    }, files
+
+
 def numba_cache_calls(path: Path) -> list[int]:
     """Lines of calls with cache=True (numba's own cache) in one source file."""
     return [
