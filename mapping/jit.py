@@ -219,6 +219,18 @@ def _warn_uncached(reason: Exception) -> None:
     )
 
 
+def _warn_no_cache_folder(py_func: Callable[..., Any]) -> None:
+    """A kernel with nowhere to keep its machine code (a read-only install, and no writable ~/.cache or
+    NUMBA_CACHE_DIR): numba raised on the decorator, so importing any fusion module failed with a traceback. It
+    compiles in each process instead, said once."""
+    warnings.warn(
+        f"numba finds no writable folder to cache compiled kernels in (beside {py_func.__code__.co_filename} or in "
+        "the user cache): set NUMBA_CACHE_DIR to a writable folder; kernels compile in each process meanwhile",
+        RuntimeWarning,
+        stacklevel=4,
+    )
+
+
 _CACHE_CLASS = _closure_cache_class()
 
 
@@ -348,6 +360,11 @@ def kernel(*, refcounted: bool = True, **options: Any) -> Callable[[KernelT], Ke
             dispatcher._cache = _CACHE_CLASS(py_func)
         except UnsupportedNumba as exc:
             _warn_uncached(exc)
+            return dispatcher
+        except RuntimeError as exc:  # numba's "cannot cache function ...: no locator available for file ..."
+            if "no locator" not in str(exc):
+                raise
+            _warn_no_cache_folder(py_func)
             return dispatcher
         _compile_under_lock(dispatcher, _lock_path(dispatcher._cache))
         return dispatcher

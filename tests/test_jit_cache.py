@@ -128,6 +128,32 @@ def test_without_numbas_caching_internals_kernels_run_uncached_with_a_warning(tm
     assert not list((tmp_path / "numba_cache").rglob("*.nbi"))
 
 
+def test_a_kernel_with_no_writable_cache_folder_compiles_in_each_process(tmp_path):
+    """A probe: posegrid installed read-only with an unwritable HOME: numba raised "cannot cache function ...: no
+    locator available" on the decorator, and `posegrid fuse` failed with a traceback. The kernel now compiles
+    without a disk cache and says where to put one. (Here: the package's __pycache__ a file, NUMBA_CACHE_DIR and the
+    user cache inside a file: numba's places, none writable, as root.)"""
+    write_package(tmp_path, "kernel")
+    for blocked in (tmp_path / "tinypkg" / "__pycache__", tmp_path / "blocked"):
+        blocked.write_text("a file where numba wants a folder")
+    done = subprocess.run(
+        [sys.executable, "-c", "from tinypkg.kernel import run\nprint(run(2.0))"],
+        cwd=tmp_path,
+        env={
+            **package_env(tmp_path),
+            "NUMBA_CACHE_DIR": str(tmp_path / "blocked" / "cache"),
+            "XDG_CACHE_HOME": str(tmp_path / "blocked" / "user"),  # (numba's user-wide cache)
+        },
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert done.returncode == 0 and float(done.stdout) == FIRST, done.stderr
+    assert "numba finds no writable folder to cache compiled kernels in" in done.stderr, done.stderr
+    assert "NUMBA_CACHE_DIR" in done.stderr and "Traceback" not in done.stderr, done.stderr
+
+
 def test_the_closure_of_a_fusion_kernel_holds_the_helpers_it_inlines():
     files = closure_files("mapping.samples_pass", ROOT / "mapping" / "samples_pass.py")
     assert {
