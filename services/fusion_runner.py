@@ -160,7 +160,8 @@ def _scans(
     arrays = posed.poses.arrays()  # mean and cov, or samples and weights: (T, ...) each
     passes: OrderedDict[tuple, Fusion] = OrderedDict()
     steps = range(len(posed.stamps))
-    with tqdm(total=len(steps), desc="fusing", unit="scan", disable=not progress, mininterval=0.5) as bar:
+    # (disable None: no bar when stderr is no terminal, a log file or a pipe)
+    with tqdm(total=len(steps), desc="fusing", unit="scan", disable=None if progress else True, mininterval=0.5) as bar:
         for t in steps:  # the bar closes (its line ends) when the caller closes this generator, before any error
             range_max = float(posed.range_max[t])
             samples, weights = sampling.draw(t, range_max, **{name: array[t] for name, array in arrays.items()})

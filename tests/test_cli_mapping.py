@@ -442,3 +442,10 @@ def test_a_run_too_wide_for_one_map_is_refused_before_it_is_fused(tmp_path, gaus
     np.savez(posed, ranges=np.ones((2, 3), np.float32), angle_min=0.0, angle_increment=0.1, range_min=0.1,
              range_max=5.0, stamps=np.arange(2.0), samples=near[:, None, :], weights=np.ones((2, 1)))  # fmt: skip
     assert posegrid("fuse", str(posed), "-o", str(tmp_path / "map.npz")).returncode == 0
+
+
+def test_progress_bars_stay_out_of_a_pipe(posed_file, tmp_path):
+    """A probe: `posegrid fuse` (and `posegrid slam --algo gridslam`) wrote its progress bar's carriage-return lines
+    into a log file or pipe, where `posegrid run` and `posegrid slam`'s landmark filters wrote none."""
+    done = posegrid_process("fuse", str(posed_file), "-o", str(tmp_path / "map.npz"))
+    assert done.returncode == 0 and "\r" not in done.stderr and "fusing" not in done.stderr, done.stderr

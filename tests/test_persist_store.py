@@ -510,6 +510,10 @@ def test_a_state_directory_in_use_or_that_cannot_be_written_is_refused(tmp_path,
     if os.access("/sys", os.W_OK) and os.geteuid() != 0:
         pytest.skip("/sys is writable here")
     assert "cannot write to the state directory /sys/posegrid-state" in _refused(_mapper(read_only), capsys)
+    # `posegrid run` says what to give instead (a probe: a read-only HOME, whose default state folder it could not make)
+    err = _refused(["run", "--state-dir", "/sys/posegrid-run", "--no-api"], capsys)
+    assert "cannot use the state directory /sys/posegrid-run" in err and "give --state-dir DIR" in err
+    assert "or --no-state" in err
 
 
 @pytest.mark.parametrize(

@@ -330,3 +330,19 @@ def test_a_child_failing_past_the_cap_stops_the_run(tmp_path, procs):  # noqa: F
     assert not any("replay finished" in line for line in run.lines)
     assert run.wait_for(r"stopped: (.*)").group(1).startswith("router exited 0, mapper[0] exited -9")
     assert not any(_alive(pid) for pid in [*pids.values(), second])
+
+
+def test_the_banners_resume_command_can_be_pasted_into_a_shell(capsys):
+    """A probe: with a state folder whose path holds a space, the banner's "go on later with: posegrid run --resume
+    ..." failed when pasted (unrecognized arguments). The path is quoted for the shell."""
+    import shlex
+
+    from services.nodes.launcher import Children, Plan, _banner
+    from services.process import get_logger
+    from services.state.store.run import RunState
+
+    folder = Path("/tmp/my maps/état")
+    plan = Plan("m", "r", 1, 0.05, [], [], state=RunState(folder, "s1", resumed=False))
+    _banner(plan, "tcp/127.0.0.1:1", Children(get_logger("test")))
+    line = next(line for line in capsys.readouterr().out.splitlines() if "go on later with:" in line)
+    assert shlex.split(line.split("go on later with: ", 1)[1]) == ["posegrid", "run", "--resume", str(folder)]

@@ -344,7 +344,9 @@ def _estimated_delay(args: argparse.Namespace, log, config, asked: bool) -> floa
 
     count = int(np.searchsorted(log.stamps, log.stamps[0] + AUTO_DELAY_SECONDS))
     head = log.first(max(count, 2))
-    with tqdm(total=len(head), desc="odometry delay", unit="scan", file=sys.stderr, mininterval=0.5) as bar:
+    with tqdm(
+        total=len(head), desc="odometry delay", unit="scan", file=sys.stderr, mininterval=0.5, disable=None
+    ) as bar:
         matcher = replace(config, particles=AUTO_DELAY_PARTICLES, particle_cap=AUTO_DELAY_PARTICLES)
         trial = run_gridslam(head, matcher, seed=args.seed, progress=lambda done, ess: bar.update(done))
     try:
@@ -477,7 +479,7 @@ def _run_filter(log, config, seed: int):
 
     from slam.gridslam import run_gridslam
 
-    with tqdm(total=len(log), desc="slam gridslam", unit="scan", file=sys.stderr, mininterval=0.5) as bar:
+    with tqdm(total=len(log), desc="slam gridslam", unit="scan", file=sys.stderr, mininterval=0.5, disable=None) as bar:
 
         def progress(done: int, ess: float) -> None:
             bar.update(done)

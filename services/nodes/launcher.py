@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shlex
 import signal
 import socket
 import subprocess
@@ -435,7 +436,8 @@ def _banner(plan: Plan, endpoint: str, children: Children) -> None:
         + (
             "in memory only (--no-state)"
             if plan.state is None
-            else f"{plan.state.describe()}; go on later with: posegrid run --resume {plan.state.directory}"
+            else f"{plan.state.describe()}; go on later with: posegrid run --resume "
+            + shlex.quote(str(plan.state.directory))
         ),
         "  running: " + ", ".join(f"{c.name} (pid {c.process.pid})" for c in children.children),
         "  Ctrl-C stops everything",

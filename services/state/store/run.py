@@ -78,7 +78,10 @@ def hold_run_directory(directory: Path, create: bool) -> None:
         directory.mkdir(parents=True, exist_ok=True)
         held = os.open(directory, os.O_RDONLY | os.O_DIRECTORY)
     except OSError as exc:
-        raise StoreError(f"cannot use the state directory {directory}: {exc.strerror or exc}") from None
+        raise StoreError(
+            f"cannot use the state directory {directory}: {exc.strerror or exc}; give --state-dir DIR (a folder "
+            "this user may write) or --no-state"
+        ) from None
     try:
         fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError:
