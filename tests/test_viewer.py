@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from api_stack import Stack, wait_until, write_room
+from api_stack import Stack, free_port, wait_until, write_room
 from bench.api import CHROMIUM, CHROMIUM_ARGS  # the browser and its flags, as the benchmark drives it
 
 pytestmark = pytest.mark.slow
@@ -92,3 +92,48 @@ def test_viewer_draws_tiles_live_and_switches_to_variance(playwright_start, pipe
     heat = (flat[:, 0] > 120) & (flat[:, 0] - flat[:, 2] > 80)  # red to yellow: the variance ramp
     assert heat.sum() > 50, "no variance colours on screen"
     assert flat.std(axis=0).mean() > 10
+
+
+def test_viewer_recovers_its_events_fits_a_late_canvas_and_lists_late_maps(playwright_start, tmp_path):
+    """A probe of the viewer: (1) a page whose /events was refused (503: every event slot taken) never asked again,
+    "reconnecting…" for good, its map stale; (2) a canvas of no height when the map came fitted it at a scale of 0
+    (an invisible map, "Infinity m" on the scale bar) until "fit"; (3) the list of maps was read once, so a map that
+    came up later never showed, and ?map=NAME for it showed another map for good."""
+    stack = Stack(tmp_path)
+    try:
+        stack.router()
+        stack.mappers(1, "main")
+        port = free_port()
+        stack.start("api", "api", "--port", str(port), "--max-event-clients", "1")
+        stack.api_url = f"http://127.0.0.1:{port}"
+        wait_until(stack._api_up, 60, "the API")
+        stack.source(write_room(tmp_path / "room.npz", (-1.0, -1.0), steps=40), "main", 1, rate="realtime")
+        with playwright_start() as playwright:
+            browser = playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+            try:
+                first = browser.new_page(viewport={"width": 800, "height": 600})
+                first.goto(stack.api_url + "/")
+                first.wait_for_function("window.pgViewer && window.pgViewer.eventsOpen === true", timeout=60_000)
+                late = browser.new_page(viewport={"width": 800, "height": 60})  # (2): the canvas has no height yet
+                errors: list[str] = []
+                late.on("pageerror", lambda error: errors.append(str(error)))
+                late.goto(stack.api_url + "/?map=later")  # (3): a map not up yet
+                late.wait_for_function("document.querySelector('#message').textContent.includes('later')")
+                assert late.evaluate("window.pgViewer.eventsOpen") is not True  # (1): the one slot is the first's
+                first.close()
+                late.wait_for_function("window.pgViewer.eventsOpen === true", timeout=30_000)  # asked again
+                stack.start("mapper-later", "mapper", "--shard", "0", "--shards", "1", "--map", "later")
+                stack.source(write_room(tmp_path / "later.npz", (3.0, 3.0), steps=10), "later", 1, robot="r2")
+                late.wait_for_function("window.pgViewer.map === 'later' && window.pgViewer.info", timeout=60_000)
+                assert late.evaluate("document.getElementById('view').clientHeight") == 0  # (what the case needs)
+                late.set_viewport_size({"width": 800, "height": 600})
+                late.wait_for_function("window.pgViewer.tilesDrawn > 0", timeout=60_000)
+                scale = late.evaluate("window.pgViewer.view.scale")
+                assert 1 < scale < 2000, scale
+                options = late.eval_on_selector_all("#map option", "options => options.map(o => o.value)")
+                assert sorted(options) == ["later", "main"]
+                assert not errors, errors
+            finally:
+                browser.close()
+    finally:
+        stack.stop()

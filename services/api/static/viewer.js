@@ -17,6 +17,9 @@
   const CACHE_LIMIT = 600;      // tile images kept
   const TRAIL_LIMIT = 20000;    // trajectory points kept per robot
   const ROBOT_COLOURS = ["#e8590c", "#1c7ed6", "#2f9e44", "#ae3ec9", "#f08c00"];
+  const MIN_SCALE = 1e-6, MAX_SCALE = 2000;  // pixels per metre, for the wheel and "fit" alike
+  const EVENTS_RETRY_MS = [1000, 2000, 5000, 10000];  // waits before asking /events again after it was refused
+  const MAPS_REFRESH_MS = 5000;  // how often the list of maps is asked again
 
   // Everything the page knows; exposed for the browser test and for debugging in the console.
   const state = {
@@ -124,7 +127,9 @@
     const span = tileSpan(entry.z);
     const [sx, sy] = toScreen(entry.x * span, (entry.y + 1) * span);
     const size = span * state.view.scale;
-    ctx.drawImage(entry.image, Math.floor(sx), Math.floor(sy), Math.ceil(size) + 1, Math.ceil(size) + 1);
+    // (edges rounded to whole pixels, each tile's right edge the next one's left: no seam, no pixel drawn twice)
+    const x0 = Math.round(sx), y0 = Math.round(sy);
+    ctx.drawImage(entry.image, x0, y0, Math.round(sx + size) - x0, Math.round(sy + size) - y0);
   }
 
   function drawTiles() {
@@ -159,8 +164,16 @@
     return ROBOT_COLOURS[names.indexOf(name) % ROBOT_COLOURS.length];
   }
 
+  // the robots the map's shards count (all of them until its stats are known): a robot of another map, or one
+  // whose scans this map refused, is neither drawn nor followed here
+  function mapRobots() {
+    const stats = state.stats && state.stats.map === state.map ? state.stats : null;
+    const counted = stats ? new Set([...Object.keys(stats.scans_fused), ...Object.keys(stats.lag_scans)]) : null;
+    return [...state.robots].filter(([name]) => counted === null || counted.has(name));
+  }
+
   function drawRobots() {
-    for (const [name, robot] of state.robots) {
+    for (const [name, robot] of mapRobots()) {
       const colour = robotColour(name);
       if (robot.trail.length > 1) {
         ctx.strokeStyle = colour;
@@ -259,18 +272,20 @@
   }
 
   function followRobot() {
-    const first = [...state.robots.values()].find((r) => r.pose);
+    const first = mapRobots().map(([, r]) => r).find((r) => r.pose);
     if (first) { state.view.cx = first.pose.mean[0]; state.view.cy = first.pose.mean[1]; }
   }
 
   function fit() {
     const info = state.info;
     const e = info && (info.observed_extent || info.extent);
-    if (!e) return;
+    // (a canvas of no size yet, a window shown later: fitted at the next resize, not to a scale of 0)
+    if (!e || canvas.clientWidth <= 0 || canvas.clientHeight <= 0) return;
     state.view.cx = (e.x_min + e.x_max) / 2;
     state.view.cy = (e.y_min + e.y_max) / 2;
-    state.view.scale = 0.9 * Math.min(canvas.clientWidth / (e.x_max - e.x_min),
-      canvas.clientHeight / (e.y_max - e.y_min));
+    const scale = 0.9 * Math.min(canvas.clientWidth / Math.max(e.x_max - e.x_min, info.resolution),
+      canvas.clientHeight / Math.max(e.y_max - e.y_min, info.resolution));
+    state.view.scale = Math.min(MAX_SCALE, Math.max(MIN_SCALE, scale));
     state.fitted = true;
     requestDraw();
   }
@@ -278,8 +293,10 @@
   // ---------------------------------------------------------------------------- data
   let infoRefresh = null;
   async function refreshInfo() {
+    const map = state.map;
     try {
-      const info = await getJSON(`maps/${encodeURIComponent(state.map)}`);
+      const info = await getJSON(`maps/${encodeURIComponent(map)}`);
+      if (map !== state.map) return;   // (the answer about a map the page has left since it asked)
       if (info.variance_scale === null && state.info && state.info.name === info.name) {
         info.variance_scale = state.info.variance_scale;  // null while a shard is down: keep the scale known
       }
@@ -289,7 +306,7 @@
       updateLegend();
       requestDraw();
     } catch (error) {
-      showMessage(String(error.message || error));
+      if (map === state.map) showMessage(String(error.message || error));
     }
   }
 
@@ -350,13 +367,28 @@
     requestDraw();
   }
 
+  function resync() { for (const e of state.tiles.values()) e.dirty = true; if (state.map) refreshInfo(); }
+
+  // The browser's EventSource reconnects by itself after a dropped connection, but gives up for good on an answer
+  // that is not 200 (a 503 when every event slot is taken, a proxy's 502 while the API restarts): the page then
+  // asks again itself, waiting longer each time. A stream opened again missed events: every tile is loaded again.
+  let eventsTries = 0, eventsOpened = false;
   function connectEvents() {
     const source = new EventSource("events");
     source.addEventListener("tiles", onTiles);
     source.addEventListener("pose", onPose);
-    source.addEventListener("resync", () => { for (const e of state.tiles.values()) e.dirty = true; refreshInfo(); });
-    source.addEventListener("hello", () => { state.eventsOpen = true; });
-    source.onerror = () => { state.eventsOpen = false; };
+    source.addEventListener("resync", resync);
+    source.addEventListener("hello", () => {
+      if (eventsOpened) resync();
+      state.eventsOpen = true; eventsOpened = true; eventsTries = 0;
+    });
+    source.onerror = () => {
+      state.eventsOpen = false;
+      if (source.readyState !== EventSource.CLOSED) return;   // (the browser tries again itself)
+      const wait = EVENTS_RETRY_MS[Math.min(eventsTries, EVENTS_RETRY_MS.length - 1)];
+      eventsTries += 1;
+      setTimeout(connectEvents, wait);
+    };
   }
 
   async function refreshStatus() {
@@ -425,7 +457,7 @@
     const rect = canvas.getBoundingClientRect();
     const [wx, wy] = toWorld(e.clientX - rect.left, e.clientY - rect.top);
     const factor = Math.exp(-e.deltaY * 0.0015);
-    state.view.scale = Math.min(2000, Math.max(1e-3, state.view.scale * factor));
+    state.view.scale = Math.min(MAX_SCALE, Math.max(MIN_SCALE, state.view.scale * factor));
     const [nx, ny] = toWorld(e.clientX - rect.left, e.clientY - rect.top);
     state.view.cx += wx - nx;
     state.view.cy += wy - ny;
@@ -436,29 +468,52 @@
   }
   document.getElementById("fit").addEventListener("click", () => { state.fitted = false; refreshInfo(); });
   follow.addEventListener("change", requestDraw);
+  let mapChosen = false;   // whether the user picked a map (then a map asked for in the URL no longer takes over)
   mapSelect.addEventListener("change", () => {
-    state.map = mapSelect.value; state.info = null; state.fitted = false; state.tiles.clear();
+    mapChosen = true;
+    state.map = mapSelect.value; state.info = null; state.stats = null; state.fitted = false; state.tiles.clear();
     refreshInfo(); refreshStatus();
   });
-  window.addEventListener("resize", requestDraw);
+  window.addEventListener("resize", () => { if (!state.fitted) fit(); requestDraw(); });
 
   // ---------------------------------------------------------------------------- start
   // Until a map is there (and whenever asking fails) say why on the canvas and try again shortly.
+  // The list of maps is asked again every MAPS_REFRESH_MS: a map that comes up later is listed, and a map the URL
+  // names (?map=NAME) is waited for and shown once it is there, unless the user picks another meanwhile.
   async function chooseMap() {
+    let again = MAPS_REFRESH_MS;
     try {
       const maps = await getJSON("maps");
       if (!maps.length) throw new Error("no map yet: waiting for a mapper shard…");
       const wanted = new URLSearchParams(location.search).get("map");
-      mapSelect.innerHTML = "";
-      for (const m of maps) mapSelect.add(new Option(m.name, m.name));
-      state.map = maps.some((m) => m.name === wanted) ? wanted : maps[0].name;
-      mapSelect.value = state.map;
-      await refreshInfo();
-      refreshStatus();
+      const names = maps.map((m) => m.name);
+      if ([...mapSelect.options].map((o) => o.value).join("\n") !== names.join("\n")) {
+        mapSelect.innerHTML = "";
+        for (const name of names) mapSelect.add(new Option(name, name));
+      }
+      let next = state.map;
+      if (wanted && !mapChosen) {
+        next = names.includes(wanted) ? wanted : null;
+      } else if (next === null || !names.includes(next)) {
+        next = names[0];
+      }
+      if (next === null) {
+        showMessage(`waiting for map ${wanted} (named in the URL), or pick one above…`);
+        mapSelect.selectedIndex = -1;
+        again = 1000;
+      } else {
+        mapSelect.value = next;
+        if (next !== state.map) {
+          state.map = next; state.info = null; state.stats = null; state.fitted = false; state.tiles.clear();
+          await refreshInfo();
+          refreshStatus();
+        }
+      }
     } catch (error) {
       showMessage(String(error.message || error));
-      setTimeout(chooseMap, 500);
+      again = 500;
     }
+    setTimeout(chooseMap, again);
   }
 
   setLayer(new URLSearchParams(location.search).get("layer") === "variance" ? "variance" : "probability");
