@@ -395,7 +395,13 @@ def test_a_second_run_under_a_robot_name_the_shard_holds_says_so(tmp_path, procs
         argv = ["source", "--posed", str(posed), "--map", "m", "--robot", "beta", "--wait-mappers", "1"]
         return procs([*CLI, *argv, "--rate", "max", "--connect", endpoint])
 
-    for posed, clash in ((first, False), (first, False), (second, True)):
+    # a rerun of the first log with other poses: its scans come back as resent, every pose is refused as a duplicate,
+    # and none of it is in the map; the source said nothing (a probe of a fleet in one map)
+    repose = tmp_path / "a-reposed.npz"
+    moved = load_posed_scans(first)
+    shifted = PoseSet(samples=moved.poses.samples + np.array([0.0, 20.0, 0.0]), weights=moved.poses.weights)
+    save_posed_scans(repose, replace(moved, poses=shifted))
+    for posed, clash in ((first, False), (first, False), (repose, True), (second, True)):
         run = source(posed)
         assert run.process.wait(120) == 0, run.output()
         assert ("may hold some of its seqs" in run.output()) == clash, run.output()

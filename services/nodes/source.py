@@ -344,9 +344,16 @@ class Source:
         return False
 
     def _clash_counts(self) -> dict[int, tuple[int, int]]:
-        """Per shard answering: (its rejections on this robot's scan key, its duplicate rejections of any key)."""
-        scan_key = keys.robot_key(self.stream.robot, keys.SCAN)
-        return {s.shard: (s.rejected.get(scan_key, 0), s.refused.get("duplicate", 0)) for s in self._shard_stats()}
+        """Per shard answering: (its rejections on the keys this robot's source publishes to the shards: its scans,
+        and its poses when the input gives them; its duplicate rejections of any key). A rerun of a log with other
+        poses under the robot's name had its scans come back as resent and every pose refused as a duplicate: no
+        warning, and none of the run in the map (a probe)."""
+        published = (keys.SCAN, keys.POSE) if self.stream.has_poses else (keys.SCAN,)
+        ours = [keys.robot_key(self.stream.robot, stream) for stream in published]
+        return {
+            s.shard: (sum(s.rejected.get(key, 0) for key in ours), s.refused.get("duplicate", 0))
+            for s in self._shard_stats()
+        }
 
     def _clashed(self) -> list[int]:
         """The shards that refused scans on this robot's key as duplicates since the run started: scans of its seqs
@@ -466,7 +473,7 @@ class Source:
             clashed = self._clashed() if opts.wait_mappers else []
             if clashed:  # (a warning: the counts are by key and by kind apart, so this may be another robot's clash)
                 self.log.warning(
-                    "shard(s) %s of map %r refused messages on robot %r's scan key during this run while they counted "
+                    "shard(s) %s of map %r refused messages on robot %r's keys during this run while they counted "
                     "duplicates: another run under this robot name (or another process on its keys) may hold some "
                     "of its seqs, and the map is then not this run's there; see the shards' stats and logs, and use "
                     "another --robot (or a new session: docs/persistence.md) if so",
