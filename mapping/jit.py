@@ -222,7 +222,7 @@ def _warn_uncached(reason: Exception) -> None:
 def _warn_no_cache_folder(py_func: Callable[..., Any]) -> None:
     """A kernel with nowhere to keep its machine code (a read-only install, and no writable ~/.cache or
     NUMBA_CACHE_DIR): numba raised on the decorator, so importing any fusion module failed with a traceback. It
-    compiles in each process instead, said once."""
+    compiles in each process instead, said once a source file (the warning names it)."""
     warnings.warn(
         f"numba finds no writable folder to cache compiled kernels in (beside {py_func.__code__.co_filename} or in "
         "the user cache): set NUMBA_CACHE_DIR to a writable folder; kernels compile in each process meanwhile",

@@ -296,7 +296,6 @@ class GridDriver:
         self.initial = initial
         self.config = config
         self.seed = seed
-        self.max_odometry_step = max_odometry_step  # m
         self.filter: GridFastSLAM | None = None  # made at the first scan, which gives the laser's geometry
         self.last_health: ScanHealth | None = None  # of the last integrated scan
         self.scans = 0  # integrated scans
