@@ -279,7 +279,9 @@ def test_launcher_stops_on_sigint_while_it_compiles_the_fusion_kernels(tmp_path,
     run.wait_for("compiling the fusion kernels")
     run.process.send_signal(signal.SIGINT)
     assert run.process.wait(15) == 130, run.output()  # (the compile alone takes longer than that)
-    assert run.wait_for(r"stopped: (.*)").group(1) == "router exited 0"
+    # (a router still starting as the SIGTERM comes dies of it at once: -15, as clean an exit as 0 here; a suite run
+    # on a loaded machine saw it)
+    assert run.wait_for(r"stopped: (.*)").group(1) in ("router exited 0", f"router exited {-signal.SIGTERM}")
     assert "fusion kernels ready" not in run.output()
 
 
@@ -1079,6 +1081,65 @@ def test_a_history_left_behind_answers_at_once(tmp_path, procs):
         session.close()
     assert len(poses) == 10 and problems == [], problems  # "Timeout" before
     assert tiles and all(reply.ok is not None for reply in tiles), [r.err.payload.to_bytes() for r in tiles if r.err]
+
+
+def test_a_slam_node_waiting_on_the_sources_history_answers_for_its_poses_and_stats_at_once(procs):
+    """A suite run on a loaded machine: the source ended, the SLAM node asked its history for the stream's tail
+    (which may wait 5 + 10 + 20 s for a history that does not finish answering) holding the lock its queryables
+    took, and a question for the node's poses got nothing in 30 s. The poses (and the stats) no longer wait for
+    the node's thread. A stand-in source here holds the node's question for the tail unanswered."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
+    held: list[zenoh.Query] = []  # the node's questions for missed steps, kept unanswered and open
+    caught_up = threading.Event()
+
+    def source_history(query: zenoh.Query) -> None:  # answers nothing; holds a question for missed steps
+        if query.parameters.get("from") is not None and query.parameters.get("streams") != keys.POSE:
+            held.append(query)
+        elif query.parameters.get("streams") != keys.POSE:
+            caught_up.set()  # (the node's question as it starts: answered with nothing)
+
+    source = zenoh.open(build_config("client", connect=[endpoint]))
+    try:
+        source.declare_queryable(keys.history_key("r1"), source_history)
+        node = procs(
+            [*CLI, "slam-node", "--robot", "r1", "--algo", "odometry", "--initial", "0,0,0", "--connect", endpoint]
+        )
+        node.wait_for("up for robot")
+        assert caught_up.wait(30), node.output()
+        for seq in range(3):
+            pose = np.array([[0.1 * seq, 0.0, 0.0]])
+            odometry = Odometry(robot="r1", seq=seq, stamp=0.1 * seq, pose=pose, commands=np.zeros((0, 3)))
+            nothing = np.zeros(0)
+            seen = LandmarkObservations(
+                robot="r1", seq=seq, stamp=0.1 * seq, ids=np.zeros(0, np.int64), ranges=nothing, bearings=nothing
+            )
+            source.put(keys.robot_key("r1", keys.ODOM), odometry.encode())
+            source.put(keys.robot_key("r1", keys.LANDMARKS), seen.encode())
+        deadline = time.monotonic() + 30
+        while _node_stats(source, "r1").steps_done < 3:  # (the end mark, put now, could overtake the steps)
+            assert time.monotonic() < deadline, node.output()
+            time.sleep(0.05)
+        source.put(keys.robot_key("r1", keys.END), StreamEnd(robot="r1", scans=3).encode())
+        while not held:  # the node now waits for the tail
+            assert time.monotonic() < deadline, node.output()
+            time.sleep(0.05)
+        asked = time.monotonic()
+        poses, problems = history.ask(source, "r1", {"streams": keys.POSE}, 3.0)
+        stats = _node_stats(source, "r1", timeout=3.0)
+        answered_in = time.monotonic() - asked
+    finally:
+        source.close()
+    assert [decode_message(payload, PoseGaussian).seq for _, _, payload in poses] == [0, 1, 2], problems
+    assert problems == [] and answered_in < 6.0, (problems, answered_in)  # (the node's wait: 35 s)
+    assert stats.steps_done == 3 and stats.poses_published == 3
+
+
+def _node_stats(session: zenoh.Session, robot: str, timeout: float = 5.0) -> NodeStats:
+    """The stats of ``robot``'s SLAM node (one answer)."""
+    replies = [reply.ok for reply in session.get(keys.slam_stats_key(robot), timeout=timeout) if reply.ok is not None]
+    assert len(replies) == 1, f"{len(replies)} answers to a SLAM node's stats question"
+    return decode_message(replies[0].payload.to_bytes(), NodeStats)
 
 
 def test_a_restarted_slam_node_takes_the_run_from_the_sources_history(tmp_path, procs):

@@ -8,7 +8,10 @@ queryables for its stats (pg/<robot>/slam/stats) and for the poses it has publis
 the liveliness token pg/<robot>/alive/slam, and the questions to the source's history.
 
 Threads and bad input as in services.nodes.mapper: callbacks feed a bounded intake queue (services.intake), one
-thread decodes and filters; malformed messages are counted per key in the NodeStats and logged once per kind.
+thread decodes and filters; malformed messages are counted per key in the NodeStats and logged once per kind. The
+queryables never wait for that thread, which may wait itself (a step asks the source's history for what did not
+arrive: up to 35 s): the history of poses is thread-safe (services.state.pose_history), and stats queries are
+answered from a snapshot the thread refreshes after every message and at least every 0.2 s.
 """
 
 from __future__ import annotations
@@ -42,24 +45,30 @@ class SlamNode:
         self.rejects = RejectCounter(self.log)
         self.state = SlamState(config, self.rejects, publish=self._publish_pose, history=self._recover)
         self.intake = Intake(EXPECTED, self.rejects, robot=config.robot, capacity=config.intake_capacity)
-        self.lock = threading.Lock()
+        self._stats_lock = threading.Lock()  # guards _stats_payload only
+        self._stats_payload = self.state.stats().encode()
         self._declared: list = []
         self._pose_publisher: zenoh.Publisher | None = None
 
     # ---------------------------------------------------------------------------- zenoh callbacks
     def _on_stats_query(self, query: zenoh.Query) -> None:
-        with self.lock:
-            stats = self.state.stats()
-        query.reply(keys.slam_stats_key(self.config.robot), stats.encode())
+        with self._stats_lock:
+            payload = self._stats_payload
+        query.reply(keys.slam_stats_key(self.config.robot), payload)
+
+    def _refresh_stats(self) -> None:
+        """Snapshot the node's stats for the stats queries (the node's thread)."""
+        payload = self.state.stats().encode()
+        with self._stats_lock:
+            self._stats_payload = payload
 
     def _on_history_query(self, query: zenoh.Query) -> None:
         """pg/<robot>/history/** (services.history): the poses this node has published, of the seqs asked for
         (the other streams are the source's to answer)."""
         request = history.parse_request(query, self.config.robot)
-        if request is None or keys.POSE not in request.streams:  # before the lock: the node's own history
-            return  # queries, which it makes holding the lock, never ask for poses
-        with self.lock:
-            poses = self.state.poses(request.wants)
+        if request is None or keys.POSE not in request.streams:  # (the node's own questions never ask for poses)
+            return
+        poses = self.state.poses(request.wants)  # (at once: the node's thread may be waiting on the source's history)
         answerer = history.Answerer(str(self.session.info.zid()), None, False)
         for payload in poses:
             history.reply(query, answerer, self.config.robot, keys.POSE, payload)
@@ -84,7 +93,7 @@ class SlamNode:
 
     def _recover(self, streams: frozenset[str], first: int, last: int | None) -> list[tuple[str, bytes]]:
         """The source's history of ``streams``, seqs first..last (None: to the end), for the state's step
-        assembler (called holding ``lock``)."""
+        assembler (on the node's thread)."""
         span = {"from": str(first)} if last is None else {"from": str(first), "to": str(last + 1)}
         return self._history({"streams": ",".join(sorted(streams)), **span}, RECOVER_TIMEOUT)
 
@@ -98,8 +107,8 @@ class SlamNode:
             {"streams": streams}, HISTORY_TIMEOUT, accept=lambda answerer: not answerer.ended
         )  # a run that has ended is not this one
         if replies:
-            with self.lock:
-                self.state.take_history(replies, self.stop)
+            self.state.take_history(replies, self.stop)
+            self._refresh_stats()
 
     # ---------------------------------------------------------------------------- lifecycle
     def declare(self) -> None:
@@ -128,9 +137,10 @@ class SlamNode:
                 try:
                     key, payload = self.intake.next(0.2)
                 except queue.Empty:
-                    continue
-                with self.lock:
+                    pass
+                else:
                     self.state.handle(key, payload)
+                self._refresh_stats()
         except Stopped as exc:
             self.log.info("%s", exc)
         undeclare_all(self._declared)

@@ -39,6 +39,7 @@ from schemas.messages import (
 from services import keys
 from services.process import RejectCounter, get_logger
 from services.state.checks import SeqMessage, decode_of_robot, history_reply, robot_stream
+from services.state.pose_history import PoseHistory
 from services.state.steps import OutOfOrder, Released, StepAssembler
 from slam.calibration import Calibration
 from slam.ekf import EKFSLAM
@@ -376,7 +377,7 @@ class GridDriver:
 class SlamState:
     """One robot's SLAM node without its network: feed it with :meth:`handle` (and :meth:`take_history` at
     startup); it calls ``publish(payload)`` with each encoded pose, in seq order. Not thread-safe: callers serialise
-    access (services.nodes.slam_node).
+    access (services.nodes.slam_node), all but :meth:`poses`, which any thread may call at any time.
 
     ``history(streams, first, last)``: (pg/<robot>/<stream>, payload) of the robot's messages of ``streams`` with
     seqs first..last (last None: every one from ``first``) that the source's history holds, in the order it sent
@@ -411,9 +412,8 @@ class SlamState:
         self._ready: list[tuple[int, dict]] = []
         self._highest_seq: dict[str, int] = {}
         self._history_high: dict[str, int] = {}  # per stream, the highest seq the source's history gave
-        self._poses_sent: OrderedDict[int, bytes] = OrderedDict()  # seq -> published pose, for the history
+        self.pose_history = PoseHistory(POSE_HISTORY_BYTES)  # (thread-safe: the node's queryable reads it)
         self._prior_asked = -math.inf  # time.monotonic() the source's history was last asked for a missed prior
-        self._poses_bytes = 0
 
     # ---------------------------------------------------------------------------- messages
     def handle(self, key: str, payload: bytes, from_history: bool = False) -> None:
@@ -590,7 +590,7 @@ class SlamState:
             return
         self._publish(payload)
         self.published += 1
-        self._keep_pose(seq, payload)
+        self.pose_history.keep(seq, payload)
         self._report_gap(seq, getattr(self.driver, "last_gap", None))
         self._refused.clear()
 
@@ -663,17 +663,10 @@ class SlamState:
         return parts
 
     # ---------------------------------------------------------------------------- what the node serves
-    def _keep_pose(self, seq: int, payload: bytes) -> None:
-        """Keep a published pose for the history, within POSE_HISTORY_BYTES."""
-        old = self._poses_sent.pop(seq, None)
-        self._poses_bytes += len(payload) - (0 if old is None else len(old))
-        self._poses_sent[seq] = payload
-        while self._poses_bytes > POSE_HISTORY_BYTES:
-            self._poses_bytes -= len(self._poses_sent.popitem(last=False)[1])
-
     def poses(self, wants: Callable[[int], bool]) -> list[bytes]:
-        """The encoded poses kept for the history whose seq ``wants`` takes, in the order they were published."""
-        return [payload for seq, payload in self._poses_sent.items() if wants(seq)]
+        """The encoded poses kept for the history whose seq ``wants`` takes, in the order they were published
+        (:class:`services.state.pose_history.PoseHistory`: safe to call while another thread handles a message)."""
+        return self.pose_history.poses(wants)
 
     def stats(self) -> NodeStats:
         """The node's statistics (pg/<robot>/slam/stats)."""
