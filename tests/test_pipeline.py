@@ -676,6 +676,29 @@ def grid_filter_in_process(stream, particles: int, seed: int) -> PosedScans:
     )
 
 
+def test_a_run_whose_slam_node_refused_a_step_says_why_the_map_misses_its_scan(tmp_path, procs):
+    """A probe: a live run of a log whose odometry jumps 80 m for one scan ended with exit 1 and "the map misses up
+    to 1 scans the shards gave up on", which was right but did not say why. The run now asks the SLAM node and says
+    it could not take that step; the rest of the map is written."""
+    from slam.carmen import write_carmen_scans
+    from slam.gridslam.simlogs import sim_log
+
+    log = sim_log("room", seed=1)
+    odometry = log.odometry.copy()
+    odometry[15] += np.array([80.0, 0.0, 0.0])
+    path = tmp_path / "spike.clf"
+    write_carmen_scans(path, log, odometry=odometry)
+    exported = tmp_path / "run.npz"
+    run = procs(
+        [*CLI, "run", "--carmen", str(path), "--particles", "5", "--particle-cap", "5", "--no-api", "--no-state"]
+        + ["--export", str(exported)]
+    )
+    assert run.process.wait(180) == 1, run.output()
+    said = run.wait_for(r"error: the map misses up to (\d+) scans the shards gave up on: (.*)")
+    assert said.group(1) == "1" and said.group(2).startswith("the SLAM node could not take 1 step(s)"), said.group(0)
+    assert "seq 15: the odometry moved 80 m in 0.1 s" in run.output() and load_map(exported).observed.any()
+
+
 @pytest.mark.parametrize("fmt", ["carmen", "bag"])
 def test_grid_fastslam_node_over_zenoh_gives_the_map_of_its_filter_in_process(tmp_path, procs, fmt):
     """run --carmen / --bag (source -> grid FastSLAM slam-node -> shard, over Zenoh) must give the map that the

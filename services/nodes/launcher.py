@@ -30,9 +30,11 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import zenoh
 from tqdm import tqdm
 
 from schemas.files import MapFile, save_map
+from schemas.messages import MessageError, NodeStats, decode_message
 from services import keys
 from services.api.guard import TOKEN_ENV
 from services.errors import USAGE_EXIT
@@ -54,6 +56,8 @@ CLEAN_EXITS = (0, 130, -signal.SIGTERM)
 START_TIMEOUT = 60.0
 #: seconds into loading the fusion kernels after which the launcher says it is compiling them
 COMPILE_NOTE_AFTER = 2.0
+#: seconds the launcher waits for the SLAM node's stats when it says why the shards gave up on scans
+NODE_STATS_TIMEOUT = 5.0
 
 
 def free_port() -> int:
@@ -486,9 +490,12 @@ def _supervise(session, plan: Plan, children: Children, stop: threading.Event, l
             clashes = max(s.refused.get("duplicate", 0) for s in stats.values())
             if clashes:
                 print(clash_message(clashes, plan), file=sys.stderr, flush=True)
+            why = _given_up_because(session, plan) if discarded else ""
             if plan.export is not None:
-                rc = _export(reader, plan, discarded)
+                rc = _export(reader, plan, discarded, why)
                 return 1 if clashes else rc
+            if discarded:
+                print(f"posegrid run: the map misses up to {discarded} scans the shards gave up on: {why}", flush=True)
             print("posegrid run: serving the finished map until Ctrl-C", flush=True)
     return 0
 
@@ -508,10 +515,34 @@ def clash_message(clashes: int, plan: Plan) -> str:
     )
 
 
-def _export(reader: MapReader, plan: Plan, discarded: int) -> int:
+def _given_up_because(session: zenoh.Session, plan: Plan) -> str:
+    """Why the shards gave up on scans, as far as the run's SLAM node says: the steps it could not take (an
+    odometry jump refused, a step the filter refused) have no pose, so their scans are given up; else the poses or
+    scans never came."""
+    lost = "their poses or scans never came (lost in transit, or refused: the lines above say why)"
+    if plan.slam_argv is None:
+        return lost
+    refused = None
+    for reply in session.get(keys.slam_stats_key(plan.robot), timeout=NODE_STATS_TIMEOUT):
+        if reply.ok is not None:
+            try:
+                stats = decode_message(reply.ok.payload.to_bytes(), NodeStats)
+            except MessageError:
+                continue
+            refused = stats.rejected.get(keys.robot_key(plan.robot, "steps"), 0)
+    if not refused:
+        return lost
+    return (
+        f"the SLAM node could not take {refused} step(s) and gave no pose for them (its lines above say why: an "
+        "odometry jump it refused, or a step its filter refused)"
+    )
+
+
+def _export(reader: MapReader, plan: Plan, discarded: int, why: str) -> int:
     """Write the map assembled from every shard to ``plan.export`` (schemas.files.save_map: a temporary file,
     fsynced, renamed onto the path); 1 with one line on stderr when the map is incomplete or empty or the write
-    fails (nothing is written then), else 0 unless the shards gave up on scans."""
+    fails (nothing is written then), else 0 unless the shards gave up on scans (``why``: why they did,
+    :func:`_given_up_because`)."""
     assert plan.export is not None  # called only for a plan with an export path
     try:
         grid = reader.assemble(plan.shards, plan.resolution)
@@ -520,12 +551,12 @@ def _export(reader: MapReader, plan: Plan, discarded: int) -> int:
         return 1
     raster = grid.rasterize()
     if not raster["observed"].any():
-        why = (
-            f"the shards gave up on {discarded} scan(s), whose poses or scans never came (the lines above say why)"
+        empty = (
+            f"the shards gave up on {discarded} scan(s): {why}"
             if discarded
             else "no scan had a usable beam, so no cell was observed"
         )
-        print(f"posegrid run: error: the map is empty ({why}); nothing written to {plan.export}", file=sys.stderr)
+        print(f"posegrid run: error: the map is empty ({empty}); nothing written to {plan.export}", file=sys.stderr)
         return 1
     try:
         map_file = MapFile.from_raster(raster)
@@ -540,6 +571,8 @@ def _export(reader: MapReader, plan: Plan, discarded: int) -> int:
         flush=True,
     )
     if discarded:
-        print(f"posegrid run: error: the map misses up to {discarded} scans the shards gave up on", file=sys.stderr)
+        print(
+            f"posegrid run: error: the map misses up to {discarded} scans the shards gave up on: {why}", file=sys.stderr
+        )
         return 1
     return 0
