@@ -393,7 +393,7 @@ def test_run_export_that_cannot_be_written_is_an_error_not_wrote(posed_file, tmp
     fifo = tmp_path / "map.npz"
     os.mkfifo(fifo)
     plan = Plan(map_name="main", robot="robot0", shards=1, resolution=0.05, mapper_argv=[], source_argv=[], export=fifo)
-    assert _export(AssembledMap(grid), plan, 0) == 1
+    assert _export(AssembledMap(grid), plan, 0, "") == 1
     captured = capsys.readouterr()
     assert (
         captured.err.strip()
@@ -402,7 +402,7 @@ def test_run_export_that_cannot_be_written_is_an_error_not_wrote(posed_file, tmp
     )
     assert stat.S_ISFIFO(os.lstat(fifo).st_mode) and sorted(p.name for p in tmp_path.iterdir()) == ["map.npz"]
     plan.export = tmp_path / "written.npz"
-    assert _export(AssembledMap(grid), plan, 0) == 0
+    assert _export(AssembledMap(grid), plan, 0, "") == 0
     assert f"wrote {plan.export}" in capsys.readouterr().out and load_map(plan.export).observed.any()
 
 
