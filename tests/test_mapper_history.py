@@ -38,13 +38,14 @@ def test_a_history_that_never_answers_is_asked_once_per_quiet_period(router, mon
         time.sleep(0.5)  # (the router hands the queryable to the shard's session)
         shard = Mapper(ShardConfig("m", 0, 1, SensorModel()), session, threading.Event())
         tries = len(history.question_timeouts(0.5))  # (0.5, 1 and 2 s: a slow history is given more time)
-        assert shard._history("q0", "scan", 1, 1) == [] and len(kept) == tries  # asked, and waited for in vain
-        for seq in range(3, 40, 2):  # the stranger's later gaps, and its poses'
-            assert shard._history("q0", "scan", seq, seq) == [] and shard._history("q0", "pose", seq, seq) == []
-        assert len(kept) == tries  # not asked again: one question's waits, not 39
-        counted = shard.rejects.kinds()
-        assert counted.get("history", 0) >= 38, counted
-        assert shard._history("r1", "scan", 5, 5) == [] and len(kept) == 2 * tries  # another robot's are asked
+        with shard.lock:  # (as the main thread asks: from inside the shard's handling of a message)
+            assert shard._history("q0", "scan", 1, 1) == [] and len(kept) == tries  # asked, and waited for in vain
+            for seq in range(3, 40, 2):  # the stranger's later gaps, and its poses'
+                assert shard._history("q0", "scan", seq, seq) == [] and shard._history("q0", "pose", seq, seq) == []
+            assert len(kept) == tries  # not asked again: one question's waits, not 39
+            counted = shard.rejects.kinds()
+            assert counted.get("history", 0) >= 38, counted
+            assert shard._history("r1", "scan", 5, 5) == [] and len(kept) == 2 * tries  # another robot's are asked
         queryable.undeclare()
     finally:
         session.close()

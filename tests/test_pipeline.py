@@ -42,6 +42,7 @@ from schemas.messages import (
     PoseSamples,
     ShardStats,
     StreamEnd,
+    TileUpdate,
     decode_message,
 )
 from services import history, keys
@@ -1156,6 +1157,41 @@ def test_a_slam_node_waiting_on_the_sources_history_answers_for_its_poses_and_st
     assert [decode_message(payload, PoseGaussian).seq for _, _, payload in poses] == [0, 1, 2], problems
     assert problems == [] and answered_in < 6.0, (problems, answered_in)  # (the node's wait: 35 s)
     assert stats.steps_done == 3 and stats.poses_published == 3
+
+
+def test_a_shard_waiting_on_a_history_answers_tile_queries_at_once(procs):
+    """A shard asks the histories from inside its handling of a message, holding the lock its tile queries take; a
+    history that does not finish answering held the tile queries (the HTTP API's map) for up to 5 + 10 + 20 s. The
+    shard now lets the lock go while it waits. Here a robot's stream ends two scans short, the shard asks for those
+    two (its tails, TAIL_AFTER s later), and a stand-in source holds that question unanswered."""
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
+    held: list[zenoh.Query] = []  # the shard's question for the tails, kept unanswered and open
+
+    def source_history(query: zenoh.Query) -> None:  # answers nothing; holds a question for seqs from 2
+        if query.parameters.get("from") == "2":
+            held.append(query)
+
+    source = zenoh.open(build_config("client", connect=[endpoint]))
+    try:
+        source.declare_queryable(keys.history_key("r1"), source_history)
+        shard = procs([*CLI, "mapper", "--shard", "0", "--shards", "1", "--map", "m", "--connect", endpoint])
+        shard.wait_for("up; tiles on")
+        for seq in range(2):
+            put(source, keys.robot_key("r1", keys.SCAN), _scan(seq).encode())
+            put(source, keys.robot_key("r1", keys.POSE), _pose(seq).encode())
+        put(source, keys.robot_key("r1", keys.END), StreamEnd(robot="r1", scans=4).encode())
+        deadline = time.monotonic() + 30
+        while not held:  # the shard now waits for the tails
+            assert time.monotonic() < deadline, shard.output()
+            time.sleep(0.05)
+        asked = time.monotonic()
+        tiles = [reply.ok for reply in source.get(keys.tiles_key("m"), timeout=3.0) if reply.ok is not None]
+        answered_in = time.monotonic() - asked
+    finally:
+        source.close()
+    assert tiles and answered_in < 3.0, (answered_in, shard.output())  # (the shard's wait: 35 s)
+    assert {decode_message(tile.payload.to_bytes(), TileUpdate).seq for tile in tiles} == {1}  # (both scans fused)
 
 
 def _node_stats(session: zenoh.Session, robot: str, timeout: float = 5.0) -> NodeStats:

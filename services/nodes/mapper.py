@@ -14,17 +14,19 @@ the message and counts it, never silently) or answer queries; one main thread de
 ``--threads T`` > 1 the main thread takes up to TAKEN_PER_THREAD * T messages that wait in the queue at once (never
 waiting for more) and fuses the pairs they complete together, their walks on T fusion threads
 (mapping.parallel_fusion); the map is the one the scans give fused one by one. A lock serialises the main thread
-and the tile queries around the shard's state. Stats queries are answered from a snapshot the main thread refreshes
-after every message, or messages taken at once (and at least every 0.2 s), so they never wait for a scan's fusion
-(15 to 20 ms): the source's flow control and the HTTP API poll them.
+and the tile queries around the shard's state; the main thread lets it go while it waits for a history's answer
+(up to 35 s), so tile queries never wait on the network. Stats queries are answered from a snapshot the main
+thread refreshes after every message, or messages taken at once (and at least every 0.2 s), so they never wait for
+a scan's fusion (15 to 20 ms): the source's flow control and the HTTP API poll them.
 """
 
 from __future__ import annotations
 
+import contextlib
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -254,12 +256,28 @@ class Mapper:
         # source of another map answers its passed seq too, so a peer answering as this map's is not alone (a
         # re-probe: a second map's shard gave up 99 892 scans)
         accept = self._ours_or_live if seqs is None else (lambda answerer: True)
-        messages = history.ask_counted(self.session, robot, asked, HISTORY_TIMEOUT, self.rejects, accept, self.stop)
+        with self._lock_released():
+            messages = history.ask_counted(self.session, robot, asked, HISTORY_TIMEOUT, self.rejects, accept, self.stop)
         # a question asked while the session reached no router or peer went nowhere, and says nothing of the
         # histories (a router restart must not leave them alone)
         if not messages and time.monotonic() - began >= 0.9 * HISTORY_TIMEOUT and history.reachable(self.session):
             self._history_quiet[robot] = time.monotonic() + HISTORY_QUIET  # (asked, reached; no one answered)
         return [payload for _, got, payload in messages if got == stream]  # (history.ask checks the reply keys)
+
+    @contextlib.contextmanager
+    def _lock_released(self) -> Iterator[None]:
+        """``lock`` let go while the main thread waits on the network: the shard asks the histories from inside
+        :meth:`MapShard.handle`, ``settle`` and ``take``, which the main thread runs holding it, and a question may
+        wait 5 + 10 + 20 s for a history that does not finish answering; the tile queries, which read the tiles
+        only, are answered meanwhile (nothing of the shard changes while it waits: the fusion runs on the main
+        thread's call, after)."""
+        if not self.lock.locked():
+            raise RuntimeError("the shard asked a history outside the main thread's hold of its lock")
+        self.lock.release()
+        try:
+            yield
+        finally:
+            self.lock.acquire()
 
     def catch_up(self) -> None:
         """Take every robot's scans and poses published before this shard subscribed, from the histories
