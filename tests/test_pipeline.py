@@ -1149,13 +1149,13 @@ def test_a_slam_node_waiting_on_the_sources_history_answers_for_its_poses_and_st
             assert time.monotonic() < deadline, node.output()
             time.sleep(0.05)
         asked = time.monotonic()
-        poses, problems = history.ask(source, "r1", {"streams": keys.POSE}, 3.0)
-        stats = _node_stats(source, "r1", timeout=3.0)
+        poses, problems = history.ask(source, "r1", {"streams": keys.POSE}, 10.0)  # (10 s, then 20: in the wait)
+        stats = _node_stats(source, "r1", timeout=10.0)
         answered_in = time.monotonic() - asked
     finally:
         source.close()
     assert [decode_message(payload, PoseGaussian).seq for _, _, payload in poses] == [0, 1, 2], problems
-    assert problems == [] and answered_in < 6.0, (problems, answered_in)  # (the node's wait: 35 s)
+    assert problems == [] and answered_in < 20.0, (problems, answered_in)  # (the node's wait: 35 s)
     assert stats.steps_done == 3 and stats.poses_published == 3
 
 
@@ -1186,11 +1186,11 @@ def test_a_shard_waiting_on_a_history_answers_tile_queries_at_once(procs):
             assert time.monotonic() < deadline, shard.output()
             time.sleep(0.05)
         asked = time.monotonic()
-        tiles = [reply.ok for reply in source.get(keys.tiles_key("m"), timeout=3.0) if reply.ok is not None]
+        tiles = [reply.ok for reply in source.get(keys.tiles_key("m"), timeout=15.0) if reply.ok is not None]
         answered_in = time.monotonic() - asked
     finally:
         source.close()
-    assert tiles and answered_in < 3.0, (answered_in, shard.output())  # (the shard's wait: 35 s)
+    assert tiles and answered_in < 15.0, (answered_in, shard.output())  # (the shard's wait: 35 s)
     assert {decode_message(tile.payload.to_bytes(), TileUpdate).seq for tile in tiles} == {1}  # (both scans fused)
 
 
