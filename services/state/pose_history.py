@@ -2,7 +2,7 @@
 
 The one part of a node's state that its Zenoh callbacks read while the node's thread works: a question for the
 poses is answered at once, whatever the filter is doing (a step, or a question of its own to the source's history
-that may wait 35 s). A probe of a suite run: the node asked the source's history for the tail of an ended stream
+that may wait 35 s). A CI run of the suite: the node asked the source's history for the tail of an ended stream
 while holding its lock, and a question for its poses, waiting on that lock, got nothing in 30 s.
 """
 
@@ -37,9 +37,3 @@ class PoseHistory:
         with self._lock:
             kept = list(self._poses.items())
         return [payload for seq, payload in kept if wants(seq)]
-
-    @property
-    def bytes(self) -> int:
-        """Bytes of the poses kept."""
-        with self._lock:
-            return self._bytes
