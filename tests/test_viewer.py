@@ -22,6 +22,27 @@ pytestmark = pytest.mark.slow
 BACKGROUND = (180, 190, 205)
 
 
+#: in the page: the canvas's painted pixels in a frame drawn now, then in one drawn at once after the variance scale
+#: changed to one never used (no tile of it loaded yet), and how many tiles of that scale the second frame drew
+REPAINT_AT_A_NEW_SCALE = """() => {
+  const state = window.pgViewer, canvas = document.getElementById("view");
+  const painted = () => {
+    const rgba = canvas.getContext("2d").getImageData(0, 0, canvas.width, canvas.height).data;
+    let count = 0;
+    for (let i = 3; i < rgba.length; i += 4) if (rgba[i] > 0) count += 1;
+    return count;
+  };
+  state.redraw();
+  const before = painted();
+  state.info.variance_scale *= 1024;
+  state.redraw();
+  const result = [before, painted(), state.tilesDrawn];
+  state.info.variance_scale /= 1024;
+  state.redraw();
+  return result;
+}"""
+
+
 def sync_playwright():
     """Playwright's entry point; skips (fails in CI) when it or the system's Chromium is missing."""
     missing = None
@@ -81,6 +102,11 @@ def test_viewer_draws_tiles_live_and_switches_to_variance(playwright_start, pipe
             shot = tmp_path / "viewer.png"
             page.locator("#view").screenshot(path=str(shot))
             assert page.get_attribute("#layer-variance", "aria-pressed") == "true"
+            # the variance scale steps up (by powers of two) as the map grows, and every variance tile's key with it:
+            # the map went blank until the tiles of the new scale loaded (a loaded CI run's screenshot caught that).
+            # The tiles of the old scale now stand in while the new ones load.
+            before, after, drawn = page.evaluate(REPAINT_AT_A_NEW_SCALE)
+            assert before > 0 and after >= 0.9 * before and drawn == 0, (before, after, drawn)
             assert not errors, errors
         finally:
             browser.close()

@@ -26,10 +26,14 @@
     map: null, info: null, layer: "probability",
     view: { cx: 0, cy: 0, scale: 40 },      // centre (m) and pixels per metre
     tiles: new Map(),                          // key -> {z, x, y, layer, image, dirty, loading, lastLoad, missing}
+    // layer/z/x/y -> the tile's last image at any variance scale: drawn while the image of the current scale loads
+    // (the default scale steps up by powers of two as a map grows, and every variance tile's key changes with it)
+    placeholders: new Map(),
     loads: 0, robots: new Map(), stats: null,
     tilesDrawn: 0, drawnLayer: null, framesDrawn: 0, eventsSeen: 0, fitted: false,
   };
   window.pgViewer = state;
+  state.redraw = () => draw();   // (a frame drawn now, for the browser test)
 
   // ---------------------------------------------------------------------------- HTTP
   async function getJSON(path) {
@@ -81,14 +85,26 @@
     const key = tileKey(z, x, y);
     let entry = state.tiles.get(key);
     if (!entry) {
-      entry = { z, x, y, image: null, dirty: true, loading: false, lastLoad: 0, missing: false };
-      state.tiles.set(key, entry);
-      if (state.tiles.size > CACHE_LIMIT) {
-        const oldest = state.tiles.keys().next().value;
-        state.tiles.delete(oldest);
-      }
+      entry = { z, x, y, layer: state.layer, image: null, dirty: true, loading: false, lastLoad: 0, missing: false };
+      keepBounded(state.tiles, key, entry);
     }
     return entry;
+  }
+
+  function placeholderKey(entry) {
+    return `${entry.layer}/${entry.z}/${entry.x}/${entry.y}`;
+  }
+
+  // set key -> value in a Map that keeps at most CACHE_LIMIT entries, the oldest going first
+  function keepBounded(map, key, value) {
+    map.delete(key);
+    map.set(key, value);
+    if (map.size > CACHE_LIMIT) map.delete(map.keys().next().value);
+  }
+
+  function forgetTiles() {
+    state.tiles.clear();
+    state.placeholders.clear();
   }
 
   function load(entry) {
@@ -107,7 +123,12 @@
         if (!response.ok) throw new Error(`${url}: ${response.status}`);
         return response.blob().then((blob) => createImageBitmap(blob));
       })
-      .then((image) => { if (image) { entry.image = image; entry.missing = false; } })
+      .then((image) => {
+        if (!image) return;
+        entry.image = image;
+        entry.missing = false;
+        keepBounded(state.placeholders, placeholderKey(entry), image);
+      })
       .catch(() => { entry.dirty = true; })
       .finally(() => { entry.loading = false; state.loads -= 1; requestDraw(); });
   }
@@ -123,13 +144,13 @@
     };
   }
 
-  function drawTile(entry) {
+  function drawTile(entry, image = entry.image) {
     const span = tileSpan(entry.z);
     const [sx, sy] = toScreen(entry.x * span, (entry.y + 1) * span);
     const size = span * state.view.scale;
     // (edges rounded to whole pixels, each tile's right edge the next one's left: no seam, no pixel drawn twice)
     const x0 = Math.round(sx), y0 = Math.round(sy);
-    ctx.drawImage(entry.image, x0, y0, Math.round(sx + size) - x0, Math.round(sy + size) - y0);
+    ctx.drawImage(image, x0, y0, Math.round(sx + size) - x0, Math.round(sy + size) - y0);
   }
 
   function drawTiles() {
@@ -151,7 +172,9 @@
       for (let y = r.yMin; y <= r.yMax; y++) {
         const entry = tileEntry(z, x, y);
         if (entry.dirty && !entry.missing) load(entry);
-        if (entry.image) { drawTile(entry); drawn += 1; }
+        if (entry.image) { drawTile(entry); drawn += 1; continue; }
+        const earlier = state.placeholders.get(placeholderKey(entry));   // (the same tile at another scale)
+        if (earlier && !entry.missing) drawTile(entry, earlier);
       }
     }
     state.tilesDrawn = drawn;
@@ -471,7 +494,7 @@
   let mapChosen = false;   // whether the user picked a map (then a map asked for in the URL no longer takes over)
   mapSelect.addEventListener("change", () => {
     mapChosen = true;
-    state.map = mapSelect.value; state.info = null; state.stats = null; state.fitted = false; state.tiles.clear();
+    state.map = mapSelect.value; state.info = null; state.stats = null; state.fitted = false; forgetTiles();
     refreshInfo(); refreshStatus();
   });
   window.addEventListener("resize", () => { if (!state.fitted) fit(); requestDraw(); });
@@ -504,7 +527,7 @@
       } else {
         mapSelect.value = next;
         if (next !== state.map) {
-          state.map = next; state.info = null; state.stats = null; state.fitted = false; state.tiles.clear();
+          state.map = next; state.info = null; state.stats = null; state.fitted = false; forgetTiles();
           await refreshInfo();
           refreshStatus();
         }
