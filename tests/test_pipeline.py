@@ -700,6 +700,57 @@ def test_a_run_whose_slam_node_refused_a_step_says_why_the_map_misses_its_scan(t
     assert "seq 15: the odometry moved 80 m in 0.1 s" in run.output() and load_map(exported).observed.any()
 
 
+def test_why_scans_were_given_up_is_not_taken_from_two_processes_answering_as_the_slam_node(procs):
+    """The run's reason comes from the SLAM node's stats; a peer answering as the node too could make it name a
+    cause that is not one (its own count of refused steps): with two answers the run says so instead."""
+    from services.nodes.launcher import Plan, _given_up_because
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
+    plan = Plan(map_name="m", robot="r1", shards=1, resolution=0.05, mapper_argv=[], source_argv=[], slam_argv=[])
+    node, peer, asker = (zenoh.open(build_config("client", connect=[endpoint])) for _ in range(3))
+    try:
+        said = []
+        for answerer, refused in ((node, 4), (peer, 0)):
+            payload = _stats_payload(refused)
+            answerer.declare_queryable(keys.slam_stats_key("r1"), lambda q, p=payload: q.reply(q.key_expr, p))
+            answers = 1 if answerer is node else 2
+            deadline = time.monotonic() + 10
+            while len(_everyones_answers(asker, keys.slam_stats_key("r1"))) < answers:
+                assert time.monotonic() < deadline, "the answerers' queryables never reached the asker"
+                time.sleep(0.1)
+            said.append(_given_up_because(asker, plan))
+    finally:
+        for session in (node, peer, asker):
+            session.close()
+    assert said[0].startswith("the SLAM node could not take 4 step(s)"), said
+    assert said[1].endswith("2 processes answer as the SLAM node of robot 'r1' (docs/security.md)"), said
+    assert "could not take" not in said[1]
+
+
+def _everyones_answers(session: zenoh.Session, key: str) -> list[zenoh.Sample]:
+    """The answers of every queryable on ``key`` (zenoh asks the best match only, by default)."""
+    target, every = zenoh.QueryTarget.ALL, zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE)
+    return [r.ok for r in session.get(key, target=target, consolidation=every, timeout=2.0) if r.ok is not None]
+
+
+def _stats_payload(refused_steps: int) -> bytes:
+    """A SLAM node's stats of robot r1 that count ``refused_steps`` refused steps and nothing else."""
+    return NodeStats(
+        robot="r1",
+        algorithm="gridslam",
+        poses_published=0,
+        steps_done=0,
+        uptime=1.0,
+        received={},
+        rejected={keys.robot_key("r1", "steps"): refused_steps},
+        out_of_order={},
+        noise_scale=1.0,
+        consistency={},
+        health={},
+    ).encode()
+
+
 @pytest.mark.parametrize("fmt", ["carmen", "bag"])
 def test_grid_fastslam_node_over_zenoh_gives_the_map_of_its_filter_in_process(tmp_path, procs, fmt):
     """run --carmen / --bag (source -> grid FastSLAM slam-node -> shard, over Zenoh) must give the map that the

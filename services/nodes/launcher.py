@@ -42,7 +42,7 @@ from services.map_client import IncompleteMap, MapReader
 from services.process import PARENT_PID_ENV, Stopped, WarnOnce, get_logger, until_stopped
 from services.security import Role, remove_material, run_material, zenoh_argv
 from services.state.store.run import RunState
-from services.zenoh_config import build_config, close_session, open_session
+from services.zenoh_config import build_config, close_session, open_session, replier
 
 #: seconds a child gets to stop after SIGTERM before it is killed
 STOP_GRACE = 15.0
@@ -522,18 +522,26 @@ def _given_up_because(session: zenoh.Session, plan: Plan) -> str:
     lost = "their poses or scans never came (lost in transit, or refused: the lines above say why)"
     if plan.slam_argv is None:
         return lost
-    refused = None
-    for reply in session.get(keys.slam_stats_key(plan.robot), timeout=NODE_STATS_TIMEOUT):
+    refused: dict[str, int] = {}  # answering process -> the steps it refused
+    for reply in session.get(
+        keys.slam_stats_key(plan.robot),
+        target=zenoh.QueryTarget.ALL,  # (every answerer, as the source asks: one alone could be a peer)
+        consolidation=zenoh.QueryConsolidation(zenoh.ConsolidationMode.NONE),
+        timeout=NODE_STATS_TIMEOUT,
+    ):
         if reply.ok is not None:
             try:
                 stats = decode_message(reply.ok.payload.to_bytes(), NodeStats)
             except MessageError:
                 continue
-            refused = stats.rejected.get(keys.robot_key(plan.robot, "steps"), 0)
-    if not refused:
+            refused[replier(reply)] = stats.rejected.get(keys.robot_key(plan.robot, "steps"), 0)
+    if len(refused) > 1:  # (a peer answering as the node: its counts are no cause to give)
+        return f"{lost}; {len(refused)} processes answer as the SLAM node of robot {plan.robot!r} (docs/security.md)"
+    if not sum(refused.values()):
         return lost
+    (refused_steps,) = refused.values()
     return (
-        f"the SLAM node could not take {refused} step(s) and gave no pose for them (its lines above say why: an "
+        f"the SLAM node could not take {refused_steps} step(s) and gave no pose for them (its lines above say why: an "
         "odometry jump it refused, or a step its filter refused)"
     )
 
