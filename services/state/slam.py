@@ -412,7 +412,7 @@ class SlamState:
         self._ready: list[tuple[int, dict]] = []
         self._highest_seq: dict[str, int] = {}
         self._history_high: dict[str, int] = {}  # per stream, the highest seq the source's history gave
-        self.pose_history = PoseHistory(POSE_HISTORY_BYTES)  # (thread-safe: the node's queryable reads it)
+        self._pose_history = PoseHistory(POSE_HISTORY_BYTES)  # (thread-safe: the node's queryable reads it)
         self._prior_asked = -math.inf  # time.monotonic() the source's history was last asked for a missed prior
 
     # ---------------------------------------------------------------------------- messages
@@ -590,7 +590,7 @@ class SlamState:
             return
         self._publish(payload)
         self.published += 1
-        self.pose_history.keep(seq, payload)
+        self._pose_history.keep(seq, payload)
         self._report_gap(seq, getattr(self.driver, "last_gap", None))
         self._refused.clear()
 
@@ -666,7 +666,7 @@ class SlamState:
     def poses(self, wants: Callable[[int], bool]) -> list[bytes]:
         """The encoded poses kept for the history whose seq ``wants`` takes, in the order they were published
         (:class:`services.state.pose_history.PoseHistory`: safe to call while another thread handles a message)."""
-        return self.pose_history.poses(wants)
+        return self._pose_history.poses(wants)
 
     def stats(self) -> NodeStats:
         """The node's statistics (pg/<robot>/slam/stats)."""
