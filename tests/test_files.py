@@ -84,10 +84,12 @@ def test_posed_scan_files_that_break_one_rule_are_refused(tmp_path, arrays, phra
 def test_yaws_of_up_to_a_full_turn_either_way_are_taken(tmp_path):
     """Headings wrapped to [-pi, pi) or to [0, 2 pi) are both radians."""
     turn = 2 * np.pi
-    load_posed_scans(_write(tmp_path, gaussian(mean=np.array([[0.0, 0.0, turn], [0.0, 0.0, -turn]]))))
-    load_posed_scans(
+    loaded = load_posed_scans(_write(tmp_path, gaussian(mean=np.array([[0.0, 0.0, turn], [0.0, 0.0, -turn]]))))
+    assert loaded.poses.mean[:, 2].tolist() == [turn, -turn]  # (kept as given: the fusion takes any angle)
+    loaded = load_posed_scans(
         _write(tmp_path, posed(samples=np.array([[[0, 0, 6.28]], [[0, 0, -3.14]]]), weights=np.ones((2, 1))))
     )
+    assert loaded.poses.samples[:, 0, 2].tolist() == [6.28, -3.14]
 
 
 def test_pose_distribution_files_check_the_poses_too(tmp_path):
