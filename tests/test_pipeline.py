@@ -1218,16 +1218,20 @@ def test_a_shard_waiting_on_a_history_answers_tile_queries_at_once(procs):
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
     held: list[zenoh.Query] = []  # the shard's question for the tails, kept unanswered and open
+    caught_up = threading.Event()
 
     def source_history(query: zenoh.Query) -> None:  # answers nothing; holds a question for seqs from 2
         if query.parameters.get("from") == "2":
             held.append(query)
+        elif query.parameters.get("from") is None:
+            caught_up.set()  # (the shard's question as it starts: the router has its subscribers, declared before)
 
     source = zenoh.open(build_config("client", connect=[endpoint]))
     try:
         source.declare_queryable(keys.history_key("r1"), source_history)
         shard = procs([*CLI, "mapper", "--shard", "0", "--shards", "1", "--map", "m", "--connect", endpoint])
         shard.wait_for("up; tiles on")
+        assert caught_up.wait(30), shard.output()
         for seq in range(2):
             put(source, keys.robot_key("r1", keys.SCAN), _scan(seq).encode())
             put(source, keys.robot_key("r1", keys.POSE), _pose(seq).encode())
