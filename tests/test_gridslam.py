@@ -20,11 +20,12 @@ from slam.angles import wrap_angle
 from slam.carmen import read_carmen, write_carmen, write_carmen_scans
 from slam.errors import LogFormatError
 from slam.gridslam import GridFastSLAM, GridSlamConfig, run_gridslam
-from slam.gridslam.filter import proposal_stencil
+from slam.gridslam.config import SPARSE_MOTION_STEP
+from slam.gridslam.filter import motion_steps, proposal_stencil, travelled
 from slam.gridslam.kernels import log_likelihoods, match_and_propose
 from slam.gridslam.simlogs import drifting_odometry
 from slam.gridslam.tiles import TileMaps
-from slam.motion import compose, odometry_controls
+from slam.motion import OdometryMotionModel, compose, odometry_controls
 from slam.raycast import cast_rays
 from slam.simulator import simulate_office
 
@@ -304,6 +305,37 @@ def test_backward_odometry_is_a_negative_translation():
     after = before + [-0.1 * math.cos(0.5), -0.1 * math.sin(0.5), 0.02]
     rot1, trans, rot2 = odometry_controls(np.stack([before, after]))[0]
     assert trans == pytest.approx(-0.1) and rot1 == pytest.approx(0.0, abs=1e-12) and rot2 == pytest.approx(0.02)
+
+
+@pytest.mark.parametrize(
+    ("control", "sub_steps"),
+    [
+        ((0.0, 1.0, 0.0), 10),
+        ((0.1, 0.4, -0.1), 4),
+        ((0.0, 0.05, 0.01), 1),
+        ((0.0, 0.0, 0.6), 1),
+        ((0.3, -0.25, 0.2), 2.5),
+    ],
+)
+def test_a_long_drive_has_the_variance_of_the_short_drives_it_is_made_of(control, sub_steps):
+    """With a motion step (a sparse log's), a drive between two integrated scans has the summed variances of the
+    drives of config.motion_step m it is made of (10 of 0.1 m are 1 m; 2.5 make 0.25 m backwards); a drive shorter
+    than one and a turn on the spot, which no number of scans in between makes less of a turn, keep the model's
+    variances, and so does every drive without a motion step (the default)."""
+    assert motion_steps(1.0, GridSlamConfig()) == 1.0
+    config = GridSlamConfig(motion_step=SPARSE_MOTION_STEP)
+    rot1, trans, rot2 = control
+    before = np.array([2.0, -1.0, 0.3])
+    heading = before[2] + rot1
+    after = before + [trans * math.cos(heading), trans * math.sin(heading), rot1 + rot2]
+    moved, turned = travelled(before, after)
+    assert (moved, turned) == (pytest.approx(abs(trans)), pytest.approx(abs(rot1 + rot2)))
+    steps = motion_steps(moved, config)
+    assert steps == pytest.approx(sub_steps)
+    model = OdometryMotionModel(alphas=config.motion_alphas)
+    whole = model.motion_variances(np.array(control)) / steps
+    parts = sub_steps * model.motion_variances(np.array(control) / sub_steps)
+    assert whole == pytest.approx(parts, rel=1e-12, abs=1e-18)
 
 
 def to_map_frame(start: np.ndarray, poses: np.ndarray) -> np.ndarray:

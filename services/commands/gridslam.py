@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from collections.abc import Callable
@@ -22,6 +23,7 @@ from services.commands.argtypes import (
     refuse_another_kind,
 )
 from services.commands.options import add_scan_topic
+from slam.gridslam.config import SPARSE_LOG_DRIVE, SPARSE_MOTION_STEP
 from slam.motion import HOLONOMIC_SHARE, sideways_watch
 from slam.odometry_jumps import JUMP_FLOOR, MAX_ODOMETRY_SPEED, MAX_ODOMETRY_STEP, REBASE_STEPS, joined_odometry
 
@@ -51,6 +53,19 @@ def _odom_delay(text: str) -> str | float:
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected seconds or 'auto', got {text!r}") from None
     return odom_delay_seconds(text)
+
+
+def _motion_step(text: str) -> str | float:
+    """--motion-step: "auto", "off" or a positive length in m."""
+    if text in ("auto", "off"):
+        return text
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected 'auto', 'off' or metres, got {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a length > 0 in m, got {text!r}")
+    return value
 
 
 #: grid FastSLAM's filter options, shared by `posegrid slam`, `slam-node` and `run`: (option, GridSlamConfig field)
@@ -194,6 +209,16 @@ def add_gridslam_arguments(parser: argparse.ArgumentParser) -> None:
         "direction with the noise of the turn made (a holonomic base's, or a robot frame whose x axis is not the "
         "driving direction); 'auto' (default): omni where the odometry travels sideways (more than 45 deg off its "
         f"heading) for more than {100 * HOLONOMIC_SHARE:.0f} %% of its distance, else diff (docs/gridslam.md)",
+    )
+    group.add_argument(
+        "--motion-step",
+        type=_motion_step,
+        default="auto",
+        metavar="auto|off|METRES",
+        help="the drive the odometry noise describes: with METRES, a longer drive between two integrated scans is as "
+        "many such drives, whose variances add; 'off': each integrated drive gets the model's variances; 'auto' "
+        f"(default): {SPARSE_MOTION_STEP:g} m for a sparse log (a median drive between scans of "
+        f"{SPARSE_LOG_DRIVE:g} m or more), else off (docs/gridslam.md, 'Sparse logs')",
     )
     add_max_odometry_step(group)
     add_scan_topic(group)
@@ -446,6 +471,7 @@ def _prepared_log(args: argparse.Namespace, config):
         log = log.first(args.scans)
     _check_log(log, config)
     config, sideways = _odometry_model(args.odometry_model, log, config)
+    config = _sparse_log(args.motion_step, log, config)
     log, delay = _apply_odometry_delay(args, log, config)
     log = joined_odometry(log, args.max_odometry_step or MAX_ODOMETRY_STEP)
     for remark in log.remarks():  # (after the delay, which skips the scans it leaves without odometry)
@@ -470,6 +496,28 @@ def _odometry_model(choice: str, log, config):
             file=sys.stderr,
         )
     return replace(config, holonomic=holonomic), share
+
+
+def _sparse_log(choice: str | float, log, config):
+    """``config`` with the motion step ``choice`` (--motion-step; auto: the log's, slam.gridslam.filter.
+    sparse_motion_step, said on stderr when the log is sparse)."""
+    from dataclasses import replace
+
+    from slam.gridslam.config import median_scan_drive, sparse_motion_step
+
+    if choice == "off":
+        return replace(config, motion_step=None)
+    if choice != "auto":
+        return replace(config, motion_step=float(choice))
+    step = sparse_motion_step(log.odometry)
+    if step is not None:
+        print(
+            f"posegrid slam: note: a sparse log (its scans lie {median_scan_drive(log.odometry):.2f} m apart, median): "
+            f"a drive between two scans is taken as drives of {step:g} m whose noise adds up (--motion-step off to "
+            "refuse it)",
+            file=sys.stderr,
+        )
+    return replace(config, motion_step=step)
 
 
 def _run_filter(log, config, seed: int):
@@ -546,6 +594,7 @@ def _run_stats(log, config, result, delay: float, elapsed: float, cpu: float) ->
         "tiles_copied": result.maps.copies,
         "odometry_delay_s": delay,
         "odometry_model": "omni" if config.holonomic else "diff",
+        "motion_step_m": config.motion_step,
         "final_particles": len(result.weights),
         "loop_closure": result.loops,
         "health_summary": summary,

@@ -1,10 +1,12 @@
-"""Parameters of grid FastSLAM, apart from the filter so that the command line can show their defaults
-without loading the compiled kernels."""
+"""Parameters of grid FastSLAM, and the motion step a sparse log gets, apart from the filter so that the command line
+can show their defaults without loading the compiled kernels."""
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+
+import numpy as np
 
 
 @dataclass(frozen=True)
@@ -37,6 +39,11 @@ class GridSlamConfig:
     motion_alphas: tuple[float, float, float, float] = (0.05, 0.05, 0.05, 0.05)  # slam.motion odometry model
     holonomic: bool = False  # the odometry's noise along, across its travel and of its turn (OmniOdometryMotionModel)
     motion_floor_xy: float = 0.01  # m, std added to the motion model's covariance
+    # m, or None: the drive motion_alphas describe. With a value, a longer drive between two integrated scans is as
+    # many such drives, whose variances add (slam.gridslam.filter.motion_steps; `posegrid slam` sets it for a sparse
+    # log, slam.gridslam.filter.sparse_motion_step; docs/gridslam.md, "Sparse logs"); None: each integrated drive
+    # gets the model's variances as they are
+    motion_step: float | None = None
     motion_floor_yaw: float = 0.005  # rad
     l_occ: float = 0.85  # log-odds added at a beam's end
     l_free: float = -0.4  # log-odds added along a beam
@@ -97,6 +104,8 @@ class GridSlamConfig:
         ):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.motion_step is not None and not self.motion_step > 0:
+            raise ValueError(f"motion_step must be > 0 or None, got {self.motion_step}")
         if not 0 <= self.loop_min_match <= 1:
             raise ValueError(f"loop_min_match must lie in [0, 1], got {self.loop_min_match}")
         if not (0 < self.kld_delta < 1 and self.widen >= 1 and 0 <= self.fail_match <= 1):
@@ -113,3 +122,28 @@ class GridSlamConfig:
                 f"need 0 <= min_range < max_range and a finite prior_cap >= 0, got min_range "
                 f"{self.min_range}, prior_cap {self.prior_cap}"
             )
+
+
+#: m, the motion_step a sparse log gets: the integration step the defaults were chosen at (linear_update's default)
+SPARSE_MOTION_STEP = 0.1
+#: m: a log whose median drive between two scans (while the robot moves) is at least this is sparse. The defaults were
+#: chosen on logs of up to 0.21 m a scan (MIT CSAIL; the Intel bag 0.06 m, Freiburg 079 0.09); the corrected Intel
+#: log's 0.67 m is one the defaults lose (docs/gridslam.md, "Sparse logs")
+SPARSE_LOG_DRIVE = 0.3
+#: m: consecutive scans closer than this are the robot standing (odometry jitter), not a drive between scans
+STANDING_DRIVE = 0.005
+
+
+def median_scan_drive(odometry: np.ndarray) -> float:
+    """The median distance (m) the odometry (T, 3) drives between two consecutive scans while it moves; 0 for a log
+    that never moves."""
+    drives = np.hypot(*np.diff(np.asarray(odometry, np.float64)[:, :2], axis=0).T)
+    moving = drives[drives > STANDING_DRIVE]
+    return float(np.median(moving)) if len(moving) else 0.0
+
+
+def sparse_motion_step(odometry: np.ndarray) -> float | None:
+    """The config.motion_step for a log with this odometry (T, 3): :data:`SPARSE_MOTION_STEP` where its median drive
+    between scans is at least :data:`SPARSE_LOG_DRIVE`, else None (the model's variances for each integrated drive,
+    as the defaults were chosen)."""
+    return SPARSE_MOTION_STEP if median_scan_drive(odometry) >= SPARSE_LOG_DRIVE else None

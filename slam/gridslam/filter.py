@@ -86,6 +86,29 @@ def proposal_stencil(xy: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
     return d, np.linalg.pinv(design)
 
 
+def travelled(before: np.ndarray, after: np.ndarray) -> tuple[float, float]:
+    """How far odometry pose ``after`` (3,) lies from ``before`` (3,): the distance (m) and the net turn's size
+    (rad, at most pi)."""
+    moved = float(np.hypot(after[0] - before[0], after[1] - before[1]))
+    return moved, abs(float(wrap_angle(after[2] - before[2])))
+
+
+def motion_steps(moved: float, config: GridSlamConfig) -> float:
+    """How many drives of config.motion_step m, which config.motion_alphas then describe, a drive of ``moved`` m
+    between two integrated scans holds: at least 1, and 1 where config.motion_step is None.
+
+    The odometry model's variances grow with the square of a move, so a log that integrates a scan every metre
+    (the corrected Intel log's scans lie 0.7 to 1 m apart) gets ten times the variance per metre of one that
+    integrates every 0.1 m: sd 0.22 m and 0.22 rad for each metre at the default alphas. A drive of k steps is taken
+    as k drives of a step, whose errors are independent: its variances are the model's divided by k. Turns count no
+    steps: a turn's error (wheel slip) grows with the turn whether or not scans come in between. Not for a dense
+    log: the Intel bag's longer drives are its odometry's gaps, where the odometry is read across up to 3 s and
+    errs more than a drive it counted (docs/gridslam.md, "Sparse logs")."""
+    if config.motion_step is None:
+        return 1.0
+    return max(1.0, moved / config.motion_step)
+
+
 @dataclass(frozen=True)
 class Laser:
     """One scan's laser as the filter takes it: the beams' directions (cosines and sines (B,) of their angles in
@@ -198,8 +221,7 @@ class GridFastSLAM:
         """Whether a scan taken at this odometry pose (3,) should be integrated."""
         if self.odometry_ref is None:
             return True
-        moved = float(np.hypot(*(odometry[:2] - self.odometry_ref[:2])))
-        turned = abs(float(wrap_angle(odometry[2] - self.odometry_ref[2])))
+        moved, turned = travelled(self.odometry_ref, odometry)
         return moved >= self.config.linear_update or turned >= self.config.angular_update
 
     def follow(self, odometry: np.ndarray) -> np.ndarray:
@@ -223,14 +245,15 @@ class GridFastSLAM:
         return cloud_covariance(poses, self.weights, self.drift)
 
     def _propose(
-        self, control: np.ndarray, r_stop: np.ndarray, idx: np.ndarray, widen: bool = False
+        self, control: np.ndarray, steps: float, r_stop: np.ndarray, idx: np.ndarray, widen: bool = False
     ) -> tuple[np.ndarray, np.ndarray, int, np.ndarray, np.ndarray]:
         """New poses (M, 3), log weight factors (M,), the number of motion-model fallbacks, the match scores (M,)
-        and the covariances (M, 3, 3) the poses were drawn with (m, rad). ``widen``: the motion model's variances and
-        the yaw search's are config.widen times larger."""
+        and the covariances (M, 3, 3) the poses were drawn with (m, rad). ``steps``: the move's :func:`motion_steps`,
+        which divides the motion model's variances. ``widen``: the motion model's variances and the yaw search's
+        are config.widen times larger."""
         cfg, maps = self.config, self.maps
         scale = cfg.widen if widen else 1.0
-        motion = scaled_motion(self.motion, scale)
+        motion = scaled_motion(self.motion, scale / steps)
         predicted, _, q = motion.linearize(self.poses, control)
         q = q + scale * np.diag([cfg.motion_floor_xy**2, cfg.motion_floor_xy**2, cfg.motion_floor_yaw**2])
         self._cover(predicted)
@@ -305,8 +328,9 @@ class GridFastSLAM:
         moves = np.zeros((len(self.poses), 3, 3))  # each move's covariance (for the loop closer's graph)
         if self.odometry_ref is not None:
             control = odometry_controls(np.stack([self.odometry_ref, odometry]))[0]
+            steps = motion_steps(travelled(self.odometry_ref, odometry)[0], self.config)
             before = self.poses
-            self.poses, log_eta, fallbacks, score, drawn = self._propose(control, r_stop, idx, widened)
+            self.poses, log_eta, fallbacks, score, drawn = self._propose(control, steps, r_stop, idx, widened)
             fractions = score / max(len(idx), 1)
             reach = float(np.mean(r_stop[idx])) if len(idx) else self.max_range
             if self.config.keep_spread:
