@@ -5,6 +5,7 @@ metre, so the scans keep the run close to the truth and its cloud honest; a dens
 from __future__ import annotations
 
 import json
+import logging
 from dataclasses import replace
 from pathlib import Path
 
@@ -15,7 +16,7 @@ from bench.gridslam import write_sim_log
 from services.cli import main
 from slam.carmen import read_carmen
 from slam.gridslam import GridSlamConfig, run_gridslam
-from slam.gridslam.config import SPARSE_MOTION_STEP, median_scan_drive, sparse_motion_step
+from slam.gridslam.config import SPARSE_DECIDE_DRIVES, SPARSE_MOTION_STEP, median_scan_drive, sparse_motion_step
 from slam.gridslam.simlogs import sim_log
 from slam.scoring import fit_gaussian, score_trajectory
 
@@ -85,3 +86,34 @@ def test_posegrid_slam_says_a_log_is_sparse_and_takes_the_motion_step_it_is_give
         assert stopped.value.code == 2
         assert "--motion-step" in capsys.readouterr().err
     assert not (tmp_path / "x.npz").exists()
+
+
+def test_a_slam_node_takes_the_sparse_logs_motion_step_after_its_first_drives(tmp_path, caplog):
+    """The SLAM node's grid FastSLAM (GridDriver) sees one scan at a time: it decides after SPARSE_DECIDE_DRIVES
+    drives between scans, as `posegrid slam` decides on the whole log, and says so; a dense log keeps none."""
+    from schemas.messages import LaserScan, Odometry
+    from services.keys import ODOM, SCAN
+    from services.state.slam import GridDriver
+    from services.streams import laser_log_stream
+
+    caplog.set_level(logging.INFO)
+    steps = {}
+    for thin in (1, THIN):
+        log = read_carmen(_thinned("corridor", 2, tmp_path, thin)[0]).first(SPARSE_DECIDE_DRIVES + 2)
+        stream = laser_log_stream(log, "robot0")
+        log_to = logging.getLogger(f"test.sparse{thin}")  # (propagates to caplog, as the node's own logger does not)
+        driver = GridDriver(stream.prior.mean, GridSlamConfig(particles=2, particle_cap=2), seed=0, log=log_to)
+        seen = []
+        for step in stream.steps:
+            parts = {
+                SCAN if isinstance(m, LaserScan) else ODOM: m
+                for m in step.messages
+                if isinstance(m, (LaserScan, Odometry))
+            }
+            driver.step(parts)
+            assert driver.filter is not None
+            seen.append(driver.filter.config.motion_step)
+        steps[thin] = seen
+    assert steps[1] == [None] * (SPARSE_DECIDE_DRIVES + 2)
+    assert steps[THIN] == [None] * SPARSE_DECIDE_DRIVES + [SPARSE_MOTION_STEP] * 2  # (from the 11th scan's drive on)
+    assert sum("a sparse log (its first 11 scans lie 0.9" in record.getMessage() for record in caplog.records) == 1

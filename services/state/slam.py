@@ -22,7 +22,7 @@ import threading
 import time
 from collections import Counter, OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -44,6 +44,7 @@ from services.state.steps import OutOfOrder, Released, StepAssembler
 from slam.calibration import Calibration
 from slam.ekf import EKFSLAM
 from slam.gridslam import GridSlamConfig
+from slam.gridslam.config import SPARSE_DECIDE_DRIVES, STANDING_DRIVE, motion_step_for
 from slam.gridslam.health import ScanHealth
 from slam.landmark_filter import LandmarkFilter
 from slam.laserlog import POSE_LIMIT
@@ -303,6 +304,8 @@ class GridDriver:
         self.failed = 0  # of them, whose best match failed
         self._jumps = OdometryJumps(max_odometry_step)
         self._sideways: SidewaysWatch | None = SidewaysWatch()  # None once the odometry model is chosen
+        self._drives: list[float] | None = []  # the drives between scans (m) so far; None once the motion step is set
+        self._last_pose: np.ndarray | None = None  # the odometry of the last scan, for the next drive
         self.log = get_logger("slam-node") if log is None else log
 
     def health(self) -> dict:
@@ -333,6 +336,7 @@ class GridDriver:
             self.filter = GridFastSLAM(self.config, angles, scan.sensor_offset, scan.range_min, self.initial, self.seed)
         self._check_jump(odom.seq, odom.pose[0], float(odom.stamp))
         self._choose_odometry_model(odom.pose[0])
+        self._choose_motion_step(odom.pose[0])
         if self.filter.due(odom.pose[0]):  # each scan with its own laser geometry
             laser = Laser.of(self.config, angles, scan.sensor_offset, scan.range_min, scan.range_max)
             poses, weights, _, report = self.filter.integrate(odom.pose[0], scan.ranges, laser)
@@ -361,6 +365,33 @@ class GridDriver:
                 SIDEWAYS_DECIDE_DISTANCE,
             )
 
+    def _choose_motion_step(self, pose: np.ndarray) -> None:
+        """Once SPARSE_DECIDE_DRIVES drives between scans are seen, give the filter a sparse log's motion step if their
+        median says the log is sparse (as `posegrid slam --motion-step auto` decides on a whole log; the scans
+        before it got the model's variances as they are)."""
+        if self._drives is None:
+            return
+        if self._last_pose is not None:
+            drive = math.hypot(pose[0] - self._last_pose[0], pose[1] - self._last_pose[1])
+            if drive > STANDING_DRIVE:
+                self._drives.append(drive)
+        self._last_pose = np.array(pose, np.float64)
+        if len(self._drives) < SPARSE_DECIDE_DRIVES:
+            return
+        step = motion_step_for(np.array(self._drives))
+        median = float(np.median(self._drives))
+        self._drives = None
+        if step is not None:
+            assert self.filter is not None  # (made before the first step is watched)
+            self.filter.config = replace(self.filter.config, motion_step=step)
+            self.log.info(
+                "a sparse log (its first %d scans lie %.2f m apart, median): a drive between two scans is taken as "
+                "drives of %g m whose noise adds up",
+                SPARSE_DECIDE_DRIVES + 1,
+                median,
+                step,
+            )
+
     def _check_jump(self, seq: int, pose: np.ndarray, stamp: float) -> None:
         """StepError for odometry ``pose`` (3,) at ``stamp`` (s) that jumped (slam.odometry_jumps); at a reset of the
         odometry the filter's odometry reference becomes ``pose``."""
@@ -372,6 +403,7 @@ class GridDriver:
             self.filter.odometry_ref = None if self.filter.odometry_ref is None else np.array(pose, np.float64)
             if self._sideways is not None:
                 self._sideways.restart()
+            self._last_pose = None  # (the jump is no drive)
 
 
 class SlamState:

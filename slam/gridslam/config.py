@@ -134,16 +134,30 @@ SPARSE_LOG_DRIVE = 0.3
 STANDING_DRIVE = 0.005
 
 
+#: a SLAM node, which sees one scan at a time, decides after this many drives between scans (of over STANDING_DRIVE)
+SPARSE_DECIDE_DRIVES = 10
+
+
+def scan_drives(odometry: np.ndarray) -> np.ndarray:
+    """The distances (m) the odometry (T, 3) drives between consecutive scans while it moves (over STANDING_DRIVE)."""
+    drives = np.hypot(*np.diff(np.asarray(odometry, np.float64)[:, :2], axis=0).T)
+    return drives[drives > STANDING_DRIVE]
+
+
+def motion_step_for(drives: np.ndarray) -> float | None:
+    """The config.motion_step for a log whose drives between scans (m, as :func:`scan_drives` gives them) are these:
+    :data:`SPARSE_MOTION_STEP` where their median is at least :data:`SPARSE_LOG_DRIVE`, else None (the model's
+    variances for each integrated drive, as the defaults were chosen); None for no drives."""
+    return SPARSE_MOTION_STEP if len(drives) and float(np.median(drives)) >= SPARSE_LOG_DRIVE else None
+
+
 def median_scan_drive(odometry: np.ndarray) -> float:
     """The median distance (m) the odometry (T, 3) drives between two consecutive scans while it moves; 0 for a log
     that never moves."""
-    drives = np.hypot(*np.diff(np.asarray(odometry, np.float64)[:, :2], axis=0).T)
-    moving = drives[drives > STANDING_DRIVE]
-    return float(np.median(moving)) if len(moving) else 0.0
+    drives = scan_drives(odometry)
+    return float(np.median(drives)) if len(drives) else 0.0
 
 
 def sparse_motion_step(odometry: np.ndarray) -> float | None:
-    """The config.motion_step for a log with this odometry (T, 3): :data:`SPARSE_MOTION_STEP` where its median drive
-    between scans is at least :data:`SPARSE_LOG_DRIVE`, else None (the model's variances for each integrated drive,
-    as the defaults were chosen)."""
-    return SPARSE_MOTION_STEP if median_scan_drive(odometry) >= SPARSE_LOG_DRIVE else None
+    """The config.motion_step for a whole log with this odometry (T, 3) (:func:`motion_step_for`)."""
+    return motion_step_for(scan_drives(odometry))
