@@ -44,7 +44,7 @@ from services.state.steps import OutOfOrder, Released, StepAssembler
 from slam.calibration import Calibration
 from slam.ekf import EKFSLAM
 from slam.gridslam import GridSlamConfig
-from slam.gridslam.config import SPARSE_DECIDE_DRIVES, STANDING_DRIVE, motion_step_for
+from slam.gridslam.config import SPARSE_DECIDE_DRIVES, motion_step_for, scan_drives
 from slam.gridslam.health import ScanHealth
 from slam.landmark_filter import LandmarkFilter
 from slam.laserlog import POSE_LIMIT
@@ -371,10 +371,8 @@ class GridDriver:
         before it got the model's variances as they are)."""
         if self._drives is None:
             return
-        if self._last_pose is not None:
-            drive = math.hypot(pose[0] - self._last_pose[0], pose[1] - self._last_pose[1])
-            if drive > STANDING_DRIVE:
-                self._drives.append(drive)
+        if self._last_pose is not None:  # (the drive from the last scan, if it is one: the rule a whole log's takes)
+            self._drives.extend(scan_drives(np.stack([self._last_pose, pose])).tolist())
         self._last_pose = np.array(pose, np.float64)
         if len(self._drives) < SPARSE_DECIDE_DRIVES:
             return
