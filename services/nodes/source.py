@@ -45,6 +45,10 @@ LINGER = 30.0
 REACH_CHECK = 0.1
 
 
+#: s a shard's uptime in its stats may lag (its snapshot is at most 0.2 s old, the query takes its time): a shard
+#: whose uptime is shorter than its uptime at the run's start plus the time since, by more than this, restarted
+UPTIME_SLACK = 2.0
+
 #: s a shard's commits must have been failing (since its last commit, else since it started) before a source stops
 #: waiting for them: five retries at the default --commit-interval of 2 s
 FAILING_GRACE = 10.0
@@ -146,6 +150,8 @@ class Source:
         self._end_sent = 0.0  # time.monotonic() of the last StreamEnd published
         self._warned_beyond = False  # whether a shard holding more scans than this run published was reported
         self._clashes_before: dict[int, tuple[int, int]] = {}  # shard -> its clash counts (_clash_counts) at the start
+        self._ends_before: dict[int, tuple[int, float]] = {}  # shard -> (the ends of this robot it took, its uptime s)
+        self._started = 0.0  # time.monotonic() when those were read
         self._unreached = 0  # steps published while the session reached no router (they went nowhere)
         self._reach_seen = (-1.0, True)  # (time.monotonic() of the last look, whether it reached a router then)
         self._prior_out = False  # whether the prior is out (what the history may answer with, with ...)
@@ -338,21 +344,25 @@ class Source:
                 f"their state directory (persist: failing for more than {FAILING_GRACE:g} s): they serve the map "
                 "from memory, and the source does not wait for those commits"
             )
-        if len(stats) >= self.options.wait_mappers and _accounted(stats, end):
+        if (
+            len(stats) >= self.options.wait_mappers
+            and _accounted(stats, end)
+            and took_end(stats, robot, self._ends_before, time.monotonic() - self._started)
+        ):
             return True  # (every scan accounted for: a shard that restarted may still ask the history)
         self._repeat_end(end)
         return False
 
-    def _clash_counts(self) -> dict[int, tuple[int, int]]:
-        """Per shard answering: (its rejections on the keys this robot's source publishes to the shards: its scans,
-        and its poses when the input gives them; its duplicate rejections of any key). A rerun of a log with other
-        poses under the robot's name had its scans come back as resent and every pose refused as a duplicate: no
-        warning, and none of the run in the map (a probe)."""
+    def _clash_counts(self, stats: list[ShardStats] | None = None) -> dict[int, tuple[int, int]]:
+        """Per shard of ``stats`` (default: those answering now): (its rejections on the keys this robot's source
+        publishes to the shards: its scans, and its poses when the input gives them; its duplicate rejections of any
+        key). A rerun of a log with other poses under the robot's name had its scans come back as resent and every pose
+        refused as a duplicate: no warning, and none of the run in the map (a probe)."""
         published = (keys.SCAN, keys.POSE) if self.stream.has_poses else (keys.SCAN,)
         ours = [keys.robot_key(self.stream.robot, stream) for stream in published]
         return {
             s.shard: (sum(s.rejected.get(key, 0) for key in ours), s.refused.get("duplicate", 0))
-            for s in self._shard_stats()
+            for s in (self._shard_stats() if stats is None else stats)
         }
 
     def _clashed(self) -> list[int]:
@@ -423,7 +433,10 @@ class Source:
             if not self._wait_for_subscribers(stop):
                 return self._stopped()
             if opts.wait_mappers:
-                self._clashes_before = self._clash_counts()
+                before = self._shard_stats()
+                self._clashes_before = self._clash_counts(before)
+                self._ends_before = ends_taken(before, stream.robot)
+                self._started = time.monotonic()
             if stream.prior is not None:
                 self._publish(stream.prior, keys.PRIOR)
                 with self._history_lock:
@@ -502,6 +515,29 @@ def _accounted(stats: list[ShardStats], end: StreamEnd) -> bool:
         and (s.persist == "off" or commits_stuck(s) or s.committed.get(robot, 0) >= scans)
         for s in stats
     )
+
+
+def ends_taken(stats: list[ShardStats], robot: str) -> dict[int, tuple[int, float]]:
+    """Per shard of ``stats``: (the StreamEnd messages of ``robot`` it has taken, its uptime s): :func:`took_end`."""
+    key = keys.robot_key(robot, keys.END)
+    return {s.shard: (s.received.get(key, 0), s.uptime) for s in stats}
+
+
+def took_end(stats: list[ShardStats], robot: str, before: dict[int, tuple[int, float]], elapsed: float) -> bool:
+    """Whether every shard of ``stats`` has taken a StreamEnd of ``robot`` since :func:`ends_taken` gave ``before``,
+    ``elapsed`` s ago: its count of them risen, or at least one taken where it restarted since (its uptime short of
+    the one before plus ``elapsed``, less UPTIME_SLACK) or was not there. A shard takes a robot's messages in the order
+    they came (services.intake), so one that took this run's end has taken every message of the run that reached it.
+    Without this, a run under a robot name whose earlier run of as many scans the shards hold was "accounted for"
+    by that run's counts before the shards had taken any of it: the source left, and said nothing of the clash
+    its messages met (a rerun with other poses; seen once in four runs under load)."""
+    key = keys.robot_key(robot, keys.END)
+    for s in stats:
+        taken, uptime = before.get(s.shard, (0, -math.inf))
+        restarted = s.uptime < uptime + elapsed - UPTIME_SLACK
+        if s.received.get(key, 0) <= (0 if restarted else taken):
+            return False
+    return True
 
 
 def commits_stuck(stats: ShardStats) -> bool:
