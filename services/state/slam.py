@@ -44,7 +44,7 @@ from services.state.steps import OutOfOrder, Released, StepAssembler
 from slam.calibration import Calibration
 from slam.ekf import EKFSLAM
 from slam.gridslam import GridSlamConfig
-from slam.gridslam.config import SPARSE_DECIDE_DRIVES, motion_step_for, scan_drives
+from slam.gridslam.config import SPARSE_LOG_DRIVE, DriveTally, scan_drives
 from slam.gridslam.health import ScanHealth
 from slam.landmark_filter import LandmarkFilter
 from slam.laserlog import POSE_LIMIT
@@ -304,7 +304,7 @@ class GridDriver:
         self.failed = 0  # of them, whose best match failed
         self._jumps = OdometryJumps(max_odometry_step)
         self._sideways: SidewaysWatch | None = SidewaysWatch()  # None once the odometry model is chosen
-        self._drives: list[float] | None = []  # the drives between scans (m) so far; None once the motion step is set
+        self._drives = DriveTally()  # the drives between scans so far, for the motion step
         self._last_pose: np.ndarray | None = None  # the odometry of the last scan, for the next drive
         self.log = get_logger("slam-node") if log is None else log
 
@@ -366,28 +366,35 @@ class GridDriver:
             )
 
     def _choose_motion_step(self, pose: np.ndarray) -> None:
-        """Once SPARSE_DECIDE_DRIVES drives between scans are seen, give the filter a sparse log's motion step if their
-        median says the log is sparse (as `posegrid slam --motion-step auto` decides on a whole log; the scans
-        before it got the model's variances as they are)."""
-        if self._drives is None:
-            return
-        if self._last_pose is not None:  # (the drive from the last scan, if it is one: the rule a whole log's takes)
-            self._drives.extend(scan_drives(np.stack([self._last_pose, pose])).tolist())
+        """Count the drive from the last scan to ``pose`` (if it is one: slam.gridslam.config.scan_drives) and give the
+        filter the motion step the drives so far call for (slam.gridslam.config.DriveTally: a sparse log's once at
+        least half of them are long, as `posegrid slam --motion-step auto` decides on a whole log), logging each
+        change."""
+        if self._last_pose is not None:
+            self._drives.add(scan_drives(np.stack([self._last_pose, pose])))
         self._last_pose = np.array(pose, np.float64)
-        if len(self._drives) < SPARSE_DECIDE_DRIVES:
+        assert self.filter is not None  # (made before the first step is watched)
+        step = self._drives.motion_step
+        if step == self.filter.config.motion_step:
             return
-        step = motion_step_for(np.array(self._drives))
-        median = float(np.median(self._drives))
-        self._drives = None
+        self.filter.config = replace(self.filter.config, motion_step=step)
+        tally = self._drives
         if step is not None:
-            assert self.filter is not None  # (made before the first step is watched)
-            self.filter.config = replace(self.filter.config, motion_step=step)
             self.log.info(
-                "a sparse log (its first %d scans lie %.2f m apart, median): a drive between two scans is taken as "
-                "drives of %g m whose noise adds up",
-                SPARSE_DECIDE_DRIVES + 1,
-                median,
+                "a sparse log so far (%d of its %d drives between scans are %g m or longer): a drive between two "
+                "scans is taken as drives of %g m whose noise adds up",
+                tally.long,
+                tally.drives,
+                SPARSE_LOG_DRIVE,
                 step,
+            )
+        else:
+            self.log.info(
+                "no longer a sparse log (%d of its %d drives between scans are %g m or longer): the model's "
+                "variances for each drive, as they are",
+                tally.long,
+                tally.drives,
+                SPARSE_LOG_DRIVE,
             )
 
     def _check_jump(self, seq: int, pose: np.ndarray, stamp: float) -> None:
