@@ -28,6 +28,7 @@ from slam.gridslam.config import (
 )
 from slam.gridslam.simlogs import sim_log
 from slam.scoring import fit_gaussian, score_trajectory
+from test_gridslam_node import node_run
 
 #: keep every this-many-th scan of a simulated log (0.1 s apart at 0.8 m/s: 0.96 m between the scans kept)
 THIN = 12
@@ -97,30 +98,6 @@ def test_posegrid_slam_says_a_log_is_sparse_and_takes_the_motion_step_it_is_give
     assert not (tmp_path / "x.npz").exists()
 
 
-def _node_run(log, seed: int = 0, config: GridSlamConfig | None = None, log_to: logging.Logger | None = None):
-    """The SLAM node's grid FastSLAM (GridDriver) fed ``log`` one scan at a time: its motion step and its published
-    pose cloud's mean and covariance after each scan."""
-    from schemas.messages import LaserScan, Odometry
-    from services.keys import ODOM, SCAN
-    from services.state.slam import GridDriver
-    from services.streams import laser_log_stream
-
-    stream = laser_log_stream(log, "robot0")
-    driver = GridDriver(stream.prior.mean, config or GridSlamConfig(), seed=seed, log=log_to)
-    steps, means, covs = [], [], []
-    for step in stream.steps:
-        parts = {
-            SCAN if isinstance(m, LaserScan) else ODOM: m for m in step.messages if isinstance(m, (LaserScan, Odometry))
-        }
-        poses, weights = driver.step(parts)
-        assert driver.filter is not None
-        steps.append(driver.filter.config.motion_step)
-        mean, cov = fit_gaussian(poses[None], weights[None])
-        means.append(mean[0])
-        covs.append(cov[0])
-    return steps, np.array(means), np.array(covs)
-
-
 def test_a_slam_node_takes_the_sparse_logs_motion_step_from_its_first_drive(tmp_path, caplog):
     """The SLAM node sees one scan at a time: it counts the drives between scans as they come and takes the motion
     step while at least half of them are long (DriveTally), from the first drive of a sparse log on, and says so
@@ -131,7 +108,7 @@ def test_a_slam_node_takes_the_sparse_logs_motion_step_from_its_first_drive(tmp_
     for thin in (1, THIN):
         log = read_carmen(_thinned("corridor", 2, tmp_path, thin)[0]).first(12)
         log_to = logging.getLogger(f"test.sparse{thin}")  # (propagates to caplog, as the node's own logger does not)
-        steps[thin] = _node_run(log, config=GridSlamConfig(particles=2, particle_cap=2), log_to=log_to)[0]
+        steps[thin] = node_run(log, config=GridSlamConfig(particles=2, particle_cap=2), log_to=log_to)[0]
     assert steps[1] == [None] * 12
     assert steps[THIN] == [None] + [SPARSE_MOTION_STEP] * 11  # (the first scan has no drive before it)
     notes = [r.getMessage() for r in caplog.records if "sparse log" in r.getMessage()]
@@ -148,7 +125,7 @@ def test_a_slam_node_on_a_corridor_scanned_once_a_metre_stays_near_the_truth(see
     ATE 0.05 to 0.27 m in seeds 1 to 4 against the odometry's 0.93 m. Deciding after its first 10 drives, the wide
     priors of those scans had already lost the run: ATE 0.87 to 1.49 m, ending 1.5 to 2.7 m off."""
     path, truth, odometry = _thinned("corridor", seed, tmp_path)
-    _, mean, cov = _node_run(read_carmen(path))
+    _, mean, cov = node_run(read_carmen(path))
     score = score_trajectory(mean, cov, truth[: len(mean)])
     odometry_ate = float(np.sqrt(np.mean(np.sum((odometry[:, :2] - truth[:, :2]) ** 2, axis=1))))
     assert score.ate_rmse_m < 0.5 * odometry_ate, (score, odometry_ate)

@@ -306,6 +306,7 @@ class GridDriver:
         self._sideways: SidewaysWatch | None = SidewaysWatch()  # None once the odometry model is chosen
         self._drives = DriveTally()  # the drives between scans so far, for the motion step
         self._last_pose: np.ndarray | None = None  # the odometry of the last scan, for the next drive
+        self._spread_rng = np.random.default_rng([seed, 1])  # the published samples' spread (as slam.gridslam.run's)
         self.log = get_logger("slam-node") if log is None else log
 
     def health(self) -> dict:
@@ -343,8 +344,24 @@ class GridDriver:
             self.last_health = report.health
             self.scans += 1
             self.failed += int(report.health.failed)
+            return self._published(poses, weights, self.filter.last_covariance)
+        poses = self.filter.follow(odom.pose[0])
+        return self._published(poses, self.filter.weights, self.filter.covariance(poses))
+
+    def _published(
+        self, poses: np.ndarray, weights: np.ndarray, covariance: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The pose samples (M, 3) and weights (M,) the node publishes for particles ``poses`` (M, 3) of ``weights``:
+        each moved so that their weighted covariance is the filter's ``covariance`` (3, 3) (m, rad), the spread that
+        resampling lost kept (slam.gridslam.honesty), as `posegrid slam` writes its trajectories; the best particle
+        unmoved. The particles alone agree to a centimetre where the filter is unsure by decimetres: published bare,
+        the simulated office's true pose lay in their 95 % region at 56 and 83 % of the scans (seeds 1 and 2)."""
+        if not self.config.keep_spread:
             return poses, weights
-        return self.filter.follow(odom.pose[0]), self.filter.weights
+        from slam.gridslam.honesty import spread_trajectories
+
+        best = int(np.argmax(weights))
+        return spread_trajectories(poses[None], weights, covariance[None], best, self._spread_rng)[0], weights
 
     def _choose_odometry_model(self, pose: np.ndarray) -> None:
         """Once the odometry has travelled slam.motion.SIDEWAYS_DECIDE_DISTANCE, give the filter the omni odometry
