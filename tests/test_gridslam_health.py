@@ -21,6 +21,7 @@ from slam.gridslam import GridSlamConfig, run_gridslam
 from slam.gridslam.health import HealthWatch, kld_bound, kld_count, systematic_resample
 from slam.gridslam.honesty import (
     cloud_covariance,
+    cloud_samples,
     resampled_drift,
     spread_trajectories,
     trajectory_draws,
@@ -28,6 +29,7 @@ from slam.gridslam.honesty import (
     weighted_covariance,
 )
 from slam.gridslam.simlogs import drifting_odometry, sim_log
+from slam.scoring import fit_gaussian
 
 # ---------------------------------------------------------------------------------------------- the kept spread
 
@@ -74,6 +76,36 @@ def test_spread_trajectories_carry_the_covariance_and_keep_the_best():
         np.testing.assert_allclose(weighted_covariance(out[t], weights), cov[t], atol=1e-10)
     np.testing.assert_array_equal(out[:, 0], samples[:, 0])
     assert np.all(np.abs(out[..., 2]) <= math.pi)  # 3.1 rad plus a spread stays wrapped
+
+
+def test_cloud_samples_carry_the_filters_covariance_and_stay_near_their_particles_whatever_the_weights():
+    """One scan's cloud as the SLAM node publishes it: equal-weight draws whose covariance is the filter's, about
+    the particles' weighted mean. With one particle of weight 0.92 the draws still lie within a few sd of the
+    particles they came from; spread_trajectories, which spares the best, sends the others 3.5 times as far."""
+    rng = np.random.default_rng(7)
+    m = 4000
+    poses = rng.normal([5.0, -2.0, 3.1], [0.02, 0.01, 0.002], size=(m, 3))
+    weights = rng.random(m)
+    target = np.diag([0.3, 0.1, 0.01]) ** 2
+    cov = cloud_covariance(poses, weights, np.broadcast_to(target, (m, 3, 3)))
+    out = cloud_samples(poses, weights, cov, np.random.default_rng(1))
+    assert out.shape == (m, 3) and np.all(np.abs(out[:, 2]) <= math.pi)  # (3.1 rad plus a spread: wrapped)
+    scale = 1.0 / np.sqrt(np.diag(cov))  # (each entry in units of its sds: sampling error about 0.02 at 4 000 draws)
+    np.testing.assert_allclose(
+        scale[:, None] * weighted_covariance(out, np.ones(m)) * scale, scale[:, None] * cov * scale, atol=0.08
+    )
+    mean = fit_gaussian(poses[None], weights[None])[0][0]
+    np.testing.assert_allclose(fit_gaussian(out[None], np.ones((1, m)))[0][0], mean, atol=0.01)
+    # one heavy particle: whitening over the others' 8 % scales their offsets by 1 / sqrt(0.08)
+    few = rng.normal([0.0, 0.0, 0.0], [0.01, 0.01, 0.001], size=(30, 3))
+    heavy = np.full(30, 0.08 / 29)
+    heavy[4] = 0.92
+    wide = np.diag([1.4, 3.5, 0.1]) ** 2
+    sd = np.sqrt(np.diag(wide))
+    drawn = cloud_samples(few, heavy, wide, np.random.default_rng(2))
+    assert np.all(np.abs(drawn[:, :2]) < 4.5 * sd[:2])
+    spread = spread_trajectories(few[None], heavy, wide[None], 4, np.random.default_rng(2))[0]
+    assert np.abs(spread[:, :2]).max(axis=0).max() > 4.5 * sd[1]
 
 
 # ---------------------------------------------------------------------------------------------- KLD-sampling

@@ -351,17 +351,17 @@ class GridDriver:
     def _published(
         self, poses: np.ndarray, weights: np.ndarray, covariance: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
-        """The pose samples (M, 3) and weights (M,) the node publishes for particles ``poses`` (M, 3) of ``weights``:
-        each moved so that their weighted covariance is the filter's ``covariance`` (3, 3) (m, rad), the spread that
-        resampling lost kept (slam.gridslam.honesty), as `posegrid slam` writes its trajectories; the best particle
-        unmoved. The particles alone agree to a centimetre where the filter is unsure by decimetres: published bare,
-        the simulated office's true pose lay in their 95 % region at 56 and 83 % of the scans (seeds 1 and 2)."""
+        """The pose samples (M, 3) and weights (M,) the node publishes for particles ``poses`` (M, 3) of ``weights``
+        whose spread should be the filter's ``covariance`` (3, 3) (m, rad), the spread that resampling lost kept
+        (slam.gridslam.honesty): equal-weight draws of that cloud (slam.gridslam.honesty.cloud_samples), from the
+        node's seed. The particles alone agree to a centimetre where the filter is unsure by decimetres: published
+        bare, the simulated office's true pose lay in their 95 % region at 56 and 83 % of the scans (seeds 1 and 2)."""
         if not self.config.keep_spread:
             return poses, weights
-        from slam.gridslam.honesty import spread_trajectories
+        from slam.gridslam.honesty import cloud_samples
 
-        best = int(np.argmax(weights))
-        return spread_trajectories(poses[None], weights, covariance[None], best, self._spread_rng)[0], weights
+        samples = cloud_samples(poses, weights, covariance, self._spread_rng)
+        return samples, np.full(len(samples), 1.0 / len(samples))
 
     def _choose_odometry_model(self, pose: np.ndarray) -> None:
         """Once the odometry has travelled slam.motion.SIDEWAYS_DECIDE_DISTANCE, give the filter the omni odometry
