@@ -197,6 +197,34 @@ class LaserLog:
         return f"{self.source}: read {len(self)} scans, skipped {len(self.skipped)} {self.unit}s ({shown}{more})"
 
 
+#: a log whose stated range is more than this many times its farthest return gets :func:`no_return_note`
+NO_RETURN_NOTE_RATIO = 1.5
+
+
+def no_return_note(log: LaserLog) -> str | None:
+    """A sentence for a log whose beams with no return (+inf) would clear free space far past anything its laser
+    returned: its stated range_max more than NO_RETURN_NOTE_RATIO times its farthest return. The mapper takes a
+    beam with no return as free space out to range_max (DESIGN.md); the shared logs state 80 m, return at most 26
+    to 42 m, and 2 to 3 % of their beams have none, many of them at walls other beams hit, so their maps carry free
+    space far out through the walls (docs/sensor_model.md, section 3). None when the log has no such beams, no
+    return, or a range that its returns come near."""
+    ranges = np.asarray(log.ranges, np.float64)
+    stated = np.asarray(log.range_max, np.float64)[:, None]
+    no_return = np.isposinf(ranges) | (np.isfinite(ranges) & (ranges > stated))
+    returns = np.isfinite(ranges) & (ranges > 0.0) & (ranges <= stated)
+    if not no_return.any() or not returns.any():
+        return None
+    farthest, largest = float(ranges[returns].max()), float(stated.max())
+    if largest <= NO_RETURN_NOTE_RATIO * farthest:
+        return None
+    share = 100.0 * np.count_nonzero(no_return) / np.count_nonzero(~np.isnan(ranges))
+    return (
+        f"{log.source}: its laser states a range of up to {largest:g} m but returned at most {farthest:.1f} m, and "
+        f"{share:.1f} % of its beams have no return: the mapper takes each of those as free space out to the stated "
+        "range, through whatever the beam met (docs/sensor_model.md, section 3)"
+    )
+
+
 def interpolate_poses(stamps: np.ndarray, poses: np.ndarray, query: np.ndarray) -> np.ndarray:
     """Poses (Q, 3) at the ``query`` stamps (s), linear in x, y and in unwrapped yaw between neighbours.
 

@@ -421,3 +421,47 @@ def test_a_rear_lasers_angular_offset_param_is_its_heading_as_carmen_takes_it(tm
     np.testing.assert_allclose(
         read_carmen(write(tmp_path, lines[:1] + lines[2:]), laser="rear").sensor_offset[0], [-0.2, 0, math.pi]
     )
+
+
+def test_a_log_whose_stated_range_is_far_past_its_returns_is_noted(tmp_path):
+    """Beams with no return are free space out to range_max in the mapper: a log that states 80 m and returns at
+    most a few metres gets a note saying so, with its figures; one whose returns come near its range does not, nor
+    one with no beam lacking a return."""
+    import dataclasses
+
+    from bench.gridslam import write_sim_log
+    from slam.gridslam.simlogs import sim_log
+    from slam.laserlog import no_return_note
+
+    write_sim_log(sim_log("room", 1), tmp_path / "room.clf")
+    log = read_carmen(tmp_path / "room.clf")
+    ranges = log.ranges.copy()
+    ranges[:, ::10] = np.inf  # every 10th beam: no return
+    farthest = float(ranges[np.isfinite(ranges)].max())
+    near = dataclasses.replace(log, ranges=ranges, range_max=np.full(len(log), 1.2 * farthest))
+    assert no_return_note(near) is None
+    far = dataclasses.replace(near, range_max=np.full(len(log), 80.0))
+    share = 100.0 * np.isinf(ranges).sum() / ranges.size
+    said = no_return_note(far)
+    assert said is not None and f"up to 80 m but returned at most {farthest:.1f} m" in said and f"{share:.1f} %" in said
+    assert no_return_note(dataclasses.replace(far, ranges=np.minimum(log.ranges, 0.9 * farthest))) is None
+
+
+def test_posegrid_source_notes_the_real_logs_far_clearing_beams(capsys):
+    """The corrected Intel log states 80 m (the reader's default: no PARAM gives it), returns at most 25.4 m, and
+    2.6 % of its beams have no return: the source says so before it publishes (`posegrid run` through its source)."""
+    import argparse
+
+    from services.commands.pipeline import _laser_log
+
+    args = argparse.Namespace(
+        carmen=shared_file("intel-lab", "intel-corrected.log.gz"), bag=None, scan_topic=None, odom_delay=0.0
+    )
+    _laser_log(args, "source")
+    said = [line for line in capsys.readouterr().err.splitlines() if "no return" in line]
+    expected = (
+        f"posegrid source: note: {args.carmen}: its laser states a range of up to 80 m but returned at most 25.4 m, "
+        "and 2.6 % of its beams have no return: the mapper takes each of those as free space out to the stated range, "
+        "through whatever the beam met (docs/sensor_model.md, section 3)"
+    )
+    assert said == [expected]

@@ -552,7 +552,7 @@ def _laser_log(args: argparse.Namespace, command: str | None):
     from services.errors import UsageError
     from slam.carmen import read_carmen
     from slam.errors import LogFormatError
-    from slam.laserlog import check_scan_order, with_odometry_delay
+    from slam.laserlog import check_scan_order, no_return_note, with_odometry_delay
     from slam.rosbag_reader import read_rosbag
 
     log = read_carmen(args.carmen) if args.carmen is not None else read_rosbag(args.bag, scan_topic=args.scan_topic)
@@ -560,7 +560,8 @@ def _laser_log(args: argparse.Namespace, command: str | None):
         log = with_odometry_delay(log, args.odom_delay)
     except LogFormatError as exc:
         raise UsageError(f"--odom-delay: {exc}") from None
-    for remark in log.remarks() if command is not None else ():
+    clearing = no_return_note(log)
+    for remark in [*log.remarks(), *([clearing] if clearing else [])] if command is not None else ():
         print(f"posegrid {command}: note: {remark}", file=sys.stderr, flush=True)
     check_scan_order(log)
     return log
