@@ -132,7 +132,7 @@ def test_a_slam_node_on_a_corridor_scanned_once_a_metre_stays_near_the_truth(see
     assert score.inside95 >= 0.9, score
 
 
-def test_the_drives_counted_one_by_one_decide_as_the_whole_logs_median(tmp_path):
+def test_the_drives_counted_one_by_one_decide_as_the_whole_logs_median():
     """DriveTally's rule is motion_step_for's on the drives so far; for an odd count, the median's. A log whose first
     drives are short and the rest long (as the corrected Intel log leaves its start) turns sparse once half are long,
     and back while short ones are most."""
