@@ -38,6 +38,7 @@ from services.ros2.bridge import stats_key
 from services.ros2.ingest import Ingest, IngestConfig
 from services.ros2.play import Player, PlayOptions
 from services.streams import laser_log_stream
+from slam.laserlog import NO_RETURN_RANGE
 from slam.rosbag_reader import read_rosbag
 from slam.simulator import SimRun
 
@@ -181,7 +182,7 @@ def _bridge(cluster: Cluster, *options: str) -> None:
 
 
 def _rate_without_bridge(bag: Path) -> float:
-    stream = laser_log_stream(read_rosbag(bag), ROBOT)
+    stream = laser_log_stream(read_rosbag(bag), ROBOT, NO_RETURN_RANGE)
     with Cluster(1, "rosbag") as cluster:
         _slam_node(cluster)
         options = SourceOptions(rate=None, wait_mappers=1, map_name=cluster.map_name, wait_slam=True)
@@ -192,7 +193,7 @@ def _rate_without_bridge(bag: Path) -> float:
 
 
 def _rate_with_bridge(bag: Path) -> float:
-    scans = len(laser_log_stream(read_rosbag(bag), ROBOT).steps)
+    scans = len(laser_log_stream(read_rosbag(bag), ROBOT, NO_RETURN_RANGE).steps)
     with Cluster(1, "ros2") as cluster:
         _slam_node(cluster)
         _bridge(cluster)

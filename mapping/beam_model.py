@@ -63,7 +63,7 @@ class BeamTable(NamedTuple):
 
     kind: np.ndarray  # int8 (B,): BEAM_SKIP, BEAM_HIT or BEAM_NO_RETURN
     z: np.ndarray  # float64 (B,): the return's range (hits), 0 otherwise
-    r_stop: np.ndarray  # float64 (B,): where the traversal ends: z + 3 sigma for hits, range_max otherwise
+    r_stop: np.ndarray  # float64 (B,): where the traversal ends: z + 3 sigma for hits, the no-return range otherwise
     r_peak: np.ndarray  # float64 (B,): r*, where the model is largest
     a: np.ndarray  # float64 (B,): start of the occupied peak, z - l/2
     b: np.ndarray  # float64 (B,): end of the occupied peak, z + l/2
@@ -84,9 +84,10 @@ def _constant_sigma_peak(model: SensorModel) -> tuple[float, float]:
 
 
 @kernel(nogil=True, error_model="numpy")
-def _constant_sigma_beams(ranges, range_min, range_max, sigma0, half, peak_offset, peak):  # pragma: no cover
+def _constant_sigma_beams(ranges, range_min, range_max, clear, sigma0, half, peak_offset, peak):  # pragma: no cover
     """The fields of :class:`BeamTable` for a constant-sigma model, one pass over the beams (the same
-    arithmetic as :func:`beam_table`'s array expressions, so the same bits)."""
+    arithmetic as :func:`beam_table`'s array expressions, so the same bits); ``clear``: how far a beam with no
+    return clears (m; 0: it is skipped)."""
     n = ranges.shape[0]
     kind = np.empty(n, np.int8)
     fields = np.empty((8, n))  # z, r_stop, r_peak, a, b, s, g_peak, free_until
@@ -94,10 +95,11 @@ def _constant_sigma_beams(ranges, range_min, range_max, sigma0, half, peak_offse
         r = ranges[k]
         no_return = r != r or r > range_max  # NaN, +inf or beyond; -inf (too close) is below range_min
         hit = not no_return and r >= range_min and r > 0.0  # (0: no reading, whatever range_min)
-        kind[k] = BEAM_HIT if hit else (BEAM_NO_RETURN if no_return else BEAM_SKIP)
+        clears = no_return and clear > 0.0
+        kind[k] = BEAM_HIT if hit else (BEAM_NO_RETURN if clears else BEAM_SKIP)
         z = r if hit else 0.0
         sigma = sigma0 if hit else 1.0
-        r_stop = z + TAIL_SIGMAS * sigma if hit else (range_max if no_return else 0.0)
+        r_stop = z + TAIL_SIGMAS * sigma if hit else (clear if clears else 0.0)
         fields[0, k] = z
         fields[1, k] = r_stop
         fields[2, k] = z + peak_offset if hit else 0.0
@@ -109,30 +111,36 @@ def _constant_sigma_beams(ranges, range_min, range_max, sigma0, half, peak_offse
     return kind, fields
 
 
-def beam_table(ranges: np.ndarray, model: SensorModel, range_min: float, range_max: float) -> BeamTable:
+def beam_table(
+    ranges: np.ndarray, model: SensorModel, range_min: float, range_max: float, no_return_range: float | None = None
+) -> BeamTable:
     """Classify the beams of one scan and precompute their model parameters.
 
-    A range that is NaN, +inf or > range_max is "no return": free space up to range_max, no hit.
+    A range that is NaN, +inf or > range_max is "no return": free space up to ``no_return_range`` (m, at most
+    range_max; None: range_max), no hit; with a no_return_range of 0 such a beam is skipped (it says nothing: a real
+    laser's missing echo may come from a dark or glancing surface near it, docs/sensor_model.md).
     A range below range_min is not trusted and the beam is skipped; so is -inf, a reading too close to measure
     (REP 117), which says nothing of the space along the beam, and 0 with a range_min of 0 (no laser sees an obstacle
     at its own window; drivers and CARMEN logs write 0 for no reading, which was fused as a hit in the laser's cell).
     """
     ranges = np.asarray(ranges, dtype=np.float64)
     half = model.l / 2
+    clear = float(range_max if no_return_range is None else no_return_range)
     if model.sigma == "constant":  # the same sigma, peak offset and peak value for every beam: one compiled pass
         kind, fields = _constant_sigma_beams(
-            ranges, float(range_min), float(range_max), float(model.sigma0), half, *_constant_sigma_peak(model)
+            ranges, float(range_min), float(range_max), clear, float(model.sigma0), half, *_constant_sigma_peak(model)
         )
         return BeamTable(kind, *fields)
     no_return = np.isnan(ranges) | (ranges > range_max)
     hit = ~no_return & (ranges >= range_min) & (ranges > 0.0)
+    no_return &= clear > 0.0
     kind = np.where(hit, BEAM_HIT, np.where(no_return, BEAM_NO_RETURN, BEAM_SKIP)).astype(np.int8)
     z = np.where(hit, ranges, 0.0)
     z_safe = np.where(hit, z, 1.0)
     sigma = np.where(hit, model.sigma_at(z_safe), 1.0)
     r_peak = np.where(hit, model.peak_range(z_safe), 0.0)
     g_peak = np.where(hit, model.peak(z_safe), 1.0)
-    r_stop = np.where(hit, z + TAIL_SIGMAS * sigma, np.where(no_return, range_max, 0.0))
+    r_stop = np.where(hit, z + TAIL_SIGMAS * sigma, np.where(no_return, clear, 0.0))
     free_until = np.where(hit, z - half - FREE_SHORTCUT_SIGMAS * sigma, r_stop)
     return BeamTable(kind, z, r_stop, r_peak, z - half, z + half, SQRT2 * sigma, g_peak, free_until)
 

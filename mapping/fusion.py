@@ -62,6 +62,7 @@ from mapping.samples_pass import (
 from mapping.scan_input import (
     MAX_WINDOW_CELLS,
     check_laser,
+    check_no_return_range,
     check_scan,
     check_window,
     laser_poses,
@@ -214,8 +215,10 @@ class MonteCarloFusion:
     """Fuses scans of one laser into a :class:`TiledGrid`, one compiled pass per scan.
 
     beam_angles: (B,) rad in the laser frame; range_min, range_max: m; sensor_offset: the laser's
-    (x m, y m, yaw rad) in the robot frame; owns_tile: optional (tx, ty) -> bool, for a shard that fuses
-    only its own tiles (the cells of other tiles are skipped); merge_identical: merge identical pose
+    (x m, y m, yaw rad) in the robot frame; no_return_range: how far (m) a beam with no return clears free space, at
+    most range_max (None, the default: range_max, as REP 117 reads +inf; 0: such beams are skipped, as for a real
+    laser whose missing echoes come from dark or glancing surfaces too); owns_tile: optional (tx, ty) -> bool, for a
+    shard that fuses only its own tiles (the cells of other tiles are skipped); merge_identical: merge identical pose
     samples before ray casting (on by default; off only to measure what merging saves); bundle: the tolerance (m) of
     :mod:`mapping.bundling` (0, the default: every distinct sample walks its rays; > 0: the samples of a scan are
     bundled and only the bundles' leaders walk, an approximation within that bound); threads: how many scans
@@ -235,6 +238,7 @@ class MonteCarloFusion:
         merge_identical: bool = True,
         threads: int | FusionThreads = 1,
         bundle: float = 0.0,
+        no_return_range: float | None = None,
     ) -> None:
         if not np.isclose(grid.resolution, model.resolution):
             raise InputError(
@@ -251,6 +255,7 @@ class MonteCarloFusion:
         self._cos_angles, self._sin_angles = np.cos(self.angles), np.sin(self.angles)  # (the kernels' beam directions)
         self.range_min = float(range_min)
         self.range_max = float(range_max)
+        self.no_return_range = check_no_return_range(no_return_range, self.range_max)
         self.sensor_offset = offset
         self.owns_tile = owns_tile
         self.merge_identical = merge_identical
@@ -329,7 +334,7 @@ class MonteCarloFusion:
         ranges, samples, weights = check_scan(*scan, self.angles.shape[0])
         if self.merge_identical:
             samples, weights = merge_duplicates(samples, weights)
-        beams = beam_table(ranges, self.model, self.range_min, self.range_max)
+        beams = beam_table(ranges, self.model, self.range_min, self.range_max, self.no_return_range)
         used = beams.kind != BEAM_SKIP
         if not used.any():
             return None

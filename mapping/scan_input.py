@@ -62,6 +62,20 @@ def check_laser(
     return angles, offset
 
 
+def check_no_return_range(no_return_range: float | None, range_max: float) -> float:
+    """How far (m) a beam with no return clears free space: ``no_return_range`` checked to lie in [0, range_max]
+    (0: such beams are skipped), or range_max for None. InputError otherwise."""
+    if no_return_range is None:
+        return float(range_max)
+    value = float(no_return_range)
+    if not 0.0 <= value <= range_max:
+        raise InputError(
+            f"the no-return range {no_return_range!r} m must lie in [0, range_max = {range_max:g} m] (how far a beam "
+            "with no return clears free space; 0: such beams say nothing)"
+        )
+    return value
+
+
 def check_samples(samples: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Validate one scan's pose samples (M, 3) (x m, y m, yaw rad; a single pose (3,) is taken as M = 1) and their
     weights (M,): finite, weights non-negative and summing to 1. Returns them as float64 arrays."""

@@ -57,6 +57,11 @@ def _range_limits(v, fail):
         fail("range", f"need 0 <= range_min < range_max, got {v['range_min']} and {v['range_max']}")
 
 
+def _no_return_range(v, fail):
+    if not 0.0 <= v["no_return_range"] <= v["range_max"]:
+        fail("range", f"need 0 <= no_return_range <= range_max, got {v['no_return_range']} and {v['range_max']}")
+
+
 def _beams(v, fail):
     if v["ranges"].shape[0] < 1:
         fail("shape", "'ranges' needs at least one beam")
@@ -148,12 +153,17 @@ class ScanMessage(Message):
 
 @dataclass(frozen=True, eq=False)
 class LaserScan(ScanMessage):
-    """One 2D laser scan. Published on pg/<robot>/scan."""
+    """One 2D laser scan. Published on pg/<robot>/scan.
+
+    Version 2 added no_return_range: the sender says how far its laser's beams with no return clear free space
+    (a real laser's missing echo may come from a dark or glancing surface close by: 0, they say nothing; a simulated
+    laser's means nothing within range_max)."""
 
     TYPE = "LaserScan"
-    VERSION = 1
+    VERSION = 2
     RULES = (
         Rule("range", "0 <= range_min < range_max", _range_limits),
+        Rule("range", "0 <= no_return_range <= range_max", _no_return_range),
         Rule(
             "range",
             "at least one beam; angle_increment != 0 when there are several; |angle_min| and |angle_increment| <= 2 pi;"
@@ -168,6 +178,12 @@ class LaserScan(ScanMessage):
     range_max: float = spec(Float("longest range; longer readings mean no return, m", exclusive_minimum=0.0))
     sensor_offset: np.ndarray = spec(Array("laser (x m, y m, yaw rad) in the robot frame", "<f8", (3,)))
     ranges: np.ndarray = spec(Array("range per beam, m", "<f4", ("B",), values="ranges", minimum=0.0))
+    no_return_range: float = spec(
+        Float(
+            "how far a beam with no return (inf or above range_max) clears free space, m; 0: such beams say nothing",
+            minimum=0.0,
+        )
+    )
 
 
 @dataclass(frozen=True, eq=False)

@@ -17,6 +17,7 @@ import numpy as np
 from schemas.files import PosedScans
 from schemas.messages import LandmarkObservations, LaserScan, Odometry, PoseGaussian, PoseSamples
 from schemas.wire import Message
+from slam.laserlog import NO_RETURN_RANGE
 
 if TYPE_CHECKING:
     from slam.sequence import SlamSequence
@@ -44,10 +45,12 @@ class Stream:
         return sum(isinstance(m, LaserScan) for step in self.steps for m in step.messages)
 
 
-def _scan(robot: str, seq: int, stamp: float, scans: Scans, t: int) -> LaserScan:
-    """Row t of ``scans`` as the LaserScan of ``seq``, with the scan's own beam count and geometry."""
+def _scan(robot: str, seq: int, stamp: float, scans: Scans, t: int, no_return_range: float | None) -> LaserScan:
+    """Row t of ``scans`` as the LaserScan of ``seq``, with the scan's own beam count and geometry; its beams with no
+    return clear free space up to ``no_return_range`` m (at most the scan's range_max; None: range_max)."""
     beams = getattr(scans, "beams", None)
     offset = np.asarray(scans.sensor_offset, np.float64)
+    range_max = _of_scan(scans.range_max, t)
     return LaserScan(
         robot=robot,
         seq=seq,
@@ -56,8 +59,9 @@ def _scan(robot: str, seq: int, stamp: float, scans: Scans, t: int) -> LaserScan
         angle_min=_of_scan(scans.angle_min, t),
         angle_increment=_of_scan(scans.angle_increment, t),
         range_min=_of_scan(scans.range_min, t),
-        range_max=_of_scan(scans.range_max, t),
+        range_max=range_max,
         sensor_offset=offset if offset.ndim == 1 else offset[t],
+        no_return_range=range_max if no_return_range is None else min(float(no_return_range), range_max),
     )
 
 
@@ -116,7 +120,9 @@ def _landmarks(robot: str, seq: int, stamp: float, sequence: SlamSequence | None
 
 
 def posed_stream(posed: PosedScans, robot: str) -> Stream:
-    """A posed-scan file: per row a LaserScan (with the scan's own geometry) and its pose distribution."""
+    """A posed-scan file: per row a LaserScan (with the scan's own geometry) and its pose distribution. A beam with
+    no return clears free space up to range_max, as the file format says (docs/formats.md; a writer that means it to
+    say nothing writes 0, no reading)."""
     poses = posed.poses
     steps = []
     for t, stamp in enumerate(posed.stamps.tolist()):
@@ -127,7 +133,7 @@ def posed_stream(posed: PosedScans, robot: str) -> Stream:
         else:
             samples, weights = poses.weighted_samples()
             pose = PoseSamples(robot=robot, seq=t, stamp=stamp, samples=samples[t], weights=weights[t])
-        steps.append(Step(stamp, (_scan(robot, t, stamp, posed, t), pose)))
+        steps.append(Step(stamp, (_scan(robot, t, stamp, posed, t, None), pose)))
     return Stream(robot, steps, prior=None, has_poses=True)
 
 
@@ -139,10 +145,12 @@ def slam_input_stream(
     odometry: np.ndarray | None,
     sequence: SlamSequence | None,
     initial_pose: np.ndarray,
+    no_return_range: float | None = None,
 ) -> Stream:
-    """What a SLAM node needs at each of the T ``stamps`` (s): the scan (when there are ``scans``), the odometry
-    pose reading (when there is ``odometry``, (T, 3)), and the velocity commands and landmark measurements of the
-    step in ``sequence`` (none without one). The SLAM prior is ``initial_pose``."""
+    """What a SLAM node needs at each of the T ``stamps`` (s): the scan (when there are ``scans``; its beams with no
+    return clearing free space up to ``no_return_range`` m, None: range_max), the odometry pose reading (when there
+    is ``odometry``, (T, 3)), and the velocity commands and landmark measurements of the step in ``sequence`` (none
+    without one). The SLAM prior is ``initial_pose``."""
     steps = []
     for t, stamp in enumerate(np.asarray(stamps, np.float64).tolist()):
         pose = odometry[t : t + 1] if odometry is not None else np.zeros((0, 3))
@@ -151,14 +159,15 @@ def slam_input_stream(
             _landmarks(robot, t, stamp, sequence),
         ]
         if scans is not None:
-            messages.insert(0, _scan(robot, t, stamp, scans, t))
+            messages.insert(0, _scan(robot, t, stamp, scans, t, no_return_range))
         steps.append(Step(stamp, tuple(messages)))
     return Stream(robot, steps, prior=_prior(robot, stamps[0], initial_pose), has_poses=False)
 
 
 def sim_stream(run, robot: str) -> Stream:
     """A simulated run (slam.simulator.SimRun or a simulator folder's pieces): scans, odometry readings,
-    velocity commands and landmark measurements; the SLAM prior is the true first pose."""
+    velocity commands and landmark measurements; the SLAM prior is the true first pose. The simulated laser misses
+    nothing within range_max, so its beams with no return clear free space up to it."""
     return slam_input_stream(
         robot,
         run.stamps,
@@ -171,7 +180,8 @@ def sim_stream(run, robot: str) -> Stream:
 
 def sim_folder_stream(folder: Path, robot: str) -> Stream:
     """A folder written by `posegrid simulate`: scans.npz (its poses, the true ones, are not sent),
-    controls.npz and landmarks.npz."""
+    controls.npz and landmarks.npz; the beams with no return clear free space up to range_max, as
+    :func:`sim_stream`'s."""
     from schemas.files import load_posed_scans
     from slam.simlog import load_sim_log
 
@@ -199,10 +209,17 @@ def mrclam_stream(folder: Path, robot_number: int, robot: str, period: float = 0
     )
 
 
-def laser_log_stream(log, robot: str) -> Stream:
+def laser_log_stream(log, robot: str, no_return_range: float = NO_RETURN_RANGE) -> Stream:
     """A laser log (slam.laserlog.LaserLog, read from a CARMEN log or a ROS bag): scans with the odometry pose at
     each scan (for grid FastSLAM); no landmarks. The prior is the first odometry pose (the map frame is the
-    odometry frame)."""
+    odometry frame). A real laser's beams with no return clear free space up to ``no_return_range`` m (at most a
+    scan's range_max; by default 0, :data:`slam.laserlog.NO_RETURN_RANGE`: they say nothing)."""
     return slam_input_stream(
-        robot, log.stamps, scans=log, odometry=log.odometry, sequence=None, initial_pose=log.odometry[0]
+        robot,
+        log.stamps,
+        scans=log,
+        odometry=log.odometry,
+        sequence=None,
+        initial_pose=log.odometry[0],
+        no_return_range=no_return_range,
     )

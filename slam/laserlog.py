@@ -197,31 +197,44 @@ class LaserLog:
         return f"{self.source}: read {len(self)} scans, skipped {len(self.skipped)} {self.unit}s ({shown}{more})"
 
 
-#: a log whose stated range is more than this many times its farthest return gets :func:`no_return_note`
+#: how far (m) a real laser's beams with no return clear free space unless the user says otherwise: nothing. A laser
+#: gives no echo from dark or glancing surfaces close by as well as from empty space: on the shared logs 2 to 3 % of
+#: the beams have none, many of them pointing at walls their neighbours hit, and cleared out to the stated 80 m they
+#: wiped those walls and drew free space through the building's walls (docs/sensor_model.md, section 3). 0 holds on
+#: any laser; the simulated laser, which misses nothing within its range, clears up to range_max.
+NO_RETURN_RANGE = 0.0
+
+#: a no-return range more than this many times a log's farthest return gets a warning from :func:`no_return_note`
 NO_RETURN_NOTE_RATIO = 1.5
 
 
-def no_return_note(log: LaserLog) -> str | None:
-    """A sentence for a log whose beams with no return (+inf) would clear free space far past anything its laser
-    returned: its stated range_max more than NO_RETURN_NOTE_RATIO times its farthest return. The mapper takes a
-    beam with no return as free space out to range_max (DESIGN.md); the shared logs state 80 m, return at most 26
-    to 42 m, and 2 to 3 % of their beams have none, many of them at walls other beams hit, so their maps carry free
-    space far out through the walls (docs/sensor_model.md, section 3). None when the log has no such beams, no
-    return, or a range that its returns come near."""
+def no_return_note(log: LaserLog, no_return_range: float) -> str | None:
+    """A sentence on a log's beams with no return (+inf, or above the scan's range_max) when they are mapped with a
+    ``no_return_range`` (m) of 0 (they say nothing: how many there are, and how to let them clear) or of more than
+    NO_RETURN_NOTE_RATIO times the farthest return the log has (they clear free space far past anything its laser
+    returned, through whatever they met). None when the log has no such beams, or no return, or the range lies
+    within reach of its returns."""
     ranges = np.asarray(log.ranges, np.float64)
     stated = np.asarray(log.range_max, np.float64)[:, None]
     no_return = np.isposinf(ranges) | (np.isfinite(ranges) & (ranges > stated))
     returns = np.isfinite(ranges) & (ranges > 0.0) & (ranges <= stated)
     if not no_return.any() or not returns.any():
         return None
-    farthest, largest = float(ranges[returns].max()), float(stated.max())
-    if largest <= NO_RETURN_NOTE_RATIO * farthest:
-        return None
+    farthest = float(ranges[returns].max())
+    clears = float(min(no_return_range, float(stated.max())))
     share = 100.0 * np.count_nonzero(no_return) / np.count_nonzero(~np.isnan(ranges))
+    if clears == 0.0:
+        return (
+            f"{log.source}: {share:.1f} % of its beams have no return; they clear no free space (a laser misses dark "
+            f"and glancing surfaces close by too), and --no-return-range METRES lets them clear up to METRES (its "
+            f"farthest return is {farthest:.1f} m)"
+        )
+    if clears <= NO_RETURN_NOTE_RATIO * farthest:
+        return None
     return (
-        f"{log.source}: its laser states a range of up to {largest:g} m but returned at most {farthest:.1f} m, and "
-        f"{share:.1f} % of its beams have no return: the mapper takes each of those as free space out to the stated "
-        "range, through whatever the beam met (docs/sensor_model.md, section 3)"
+        f"{log.source}: its laser returned at most {farthest:.1f} m, and {share:.1f} % of its beams have no return: "
+        f"with --no-return-range {no_return_range:g} each of those clears free space out to {clears:g} m, through "
+        "whatever the beam met (docs/sensor_model.md, section 3)"
     )
 
 

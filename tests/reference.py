@@ -55,8 +55,11 @@ def reference_fuse(
     samples: np.ndarray,
     weights: np.ndarray,
     offset=(0.0, 0.0, 0.0),
+    no_return_range: float | None = None,
 ) -> tuple[dict, dict]:
-    """One scan's per-cell weighted mean and spread {(ix, iy): value}, by brute force."""
+    """One scan's per-cell weighted mean and spread {(ix, iy): value}, by brute force; a beam with no return is free
+    space up to ``no_return_range`` m (None: range_max; 0: it is left out)."""
+    clear = range_max if no_return_range is None else no_return_range
     per_sample = []
     for x, y, yaw in samples:
         lx = x + math.cos(yaw) * offset[0] - math.sin(yaw) * offset[1]
@@ -64,9 +67,9 @@ def reference_fuse(
         values: dict[tuple[int, int], float] = {}
         for angle, z in zip(angles, ranges):
             no_return = np.isnan(z) or z > range_max  # -inf (too close) falls below range_min
-            if not no_return and z < range_min:
+            if (not no_return and z < range_min) or (no_return and clear == 0.0):
                 continue
-            length = range_max if no_return else z + TAIL_SIGMAS * float(model.sigma_at(z))
+            length = clear if no_return else z + TAIL_SIGMAS * float(model.sigma_at(z))
             for ix, iy, r_in, r_out in cells_on_ray(lx, ly, yaw + offset[2] + angle, length, model.resolution):
                 y_cell = model.l_free if no_return else reference_cell_logodds(model, r_in, r_out, float(z))
                 values[(ix, iy)] = max(values.get((ix, iy), -np.inf), y_cell)

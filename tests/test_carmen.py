@@ -423,10 +423,11 @@ def test_a_rear_lasers_angular_offset_param_is_its_heading_as_carmen_takes_it(tm
     )
 
 
-def test_a_log_whose_stated_range_is_far_past_its_returns_is_noted(tmp_path):
-    """Beams with no return are free space out to range_max in the mapper: a log that states 80 m and returns at
-    most a few metres gets a note saying so, with its figures; one whose returns come near its range does not, nor
-    one with no beam lacking a return."""
+def test_a_logs_beams_with_no_return_are_noted_by_what_they_clear(tmp_path):
+    """A real log's beams with no return say nothing by default: the note gives their share and the farthest return,
+    and how to let them clear. Let clear (--no-return-range) more than 1.5 times the farthest return, they get a
+    warning that they clear through whatever they met; within that, nothing is said, nor for a log whose every beam
+    returned."""
     import dataclasses
 
     from bench.gridslam import write_sim_log
@@ -438,30 +439,45 @@ def test_a_log_whose_stated_range_is_far_past_its_returns_is_noted(tmp_path):
     ranges = log.ranges.copy()
     ranges[:, ::10] = np.inf  # every 10th beam: no return
     farthest = float(ranges[np.isfinite(ranges)].max())
-    near = dataclasses.replace(log, ranges=ranges, range_max=np.full(len(log), 1.2 * farthest))
-    assert no_return_note(near) is None
-    far = dataclasses.replace(near, range_max=np.full(len(log), 80.0))
+    stated = dataclasses.replace(log, ranges=ranges, range_max=np.full(len(log), 80.0))
     share = 100.0 * np.isinf(ranges).sum() / ranges.size
-    said = no_return_note(far)
-    assert said is not None and f"up to 80 m but returned at most {farthest:.1f} m" in said and f"{share:.1f} %" in said
-    assert no_return_note(dataclasses.replace(far, ranges=np.minimum(log.ranges, 0.9 * farthest))) is None
+    said = no_return_note(stated, 0.0)
+    assert said is not None
+    assert f"{share:.1f} % of its beams have no return; they clear no free space" in said
+    assert f"its farthest return is {farthest:.1f} m" in said and "--no-return-range METRES" in said
+    assert no_return_note(stated, 1.5 * farthest) is None
+    said = no_return_note(stated, 1.6 * farthest)
+    assert said is not None and f"clears free space out to {1.6 * farthest:g} m" in said
+    said = no_return_note(stated, 500.0)  # (the laser's stated range bounds it)
+    assert said is not None and "out to 80 m" in said and f"returned at most {farthest:.1f} m" in said
+    assert no_return_note(dataclasses.replace(stated, ranges=np.minimum(log.ranges, 0.9 * farthest)), 0.0) is None
 
 
-def test_posegrid_source_notes_the_real_logs_far_clearing_beams(capsys):
+@pytest.mark.parametrize("clears", [None, 80.0])
+def test_posegrid_source_notes_the_real_logs_beams_with_no_return(capsys, clears):
     """The corrected Intel log states 80 m (the reader's default: no PARAM gives it), returns at most 25.4 m, and
-    2.6 % of its beams have no return: the source says so before it publishes (`posegrid run` through its source)."""
+    2.6 % of its beams have no return: the source says so before it publishes (`posegrid run` through its source),
+    and warns when they are let clear to 80 m."""
     import argparse
 
     from services.commands.pipeline import _laser_log
 
     args = argparse.Namespace(
-        carmen=shared_file("intel-lab", "intel-corrected.log.gz"), bag=None, scan_topic=None, odom_delay=0.0
+        carmen=shared_file("intel-lab", "intel-corrected.log.gz"),
+        bag=None,
+        scan_topic=None,
+        odom_delay=0.0,
+        no_return_range=clears,
     )
     _laser_log(args, "source")
     said = [line for line in capsys.readouterr().err.splitlines() if "no return" in line]
     expected = (
-        f"posegrid source: note: {args.carmen}: its laser states a range of up to 80 m but returned at most 25.4 m, "
-        "and 2.6 % of its beams have no return: the mapper takes each of those as free space out to the stated range, "
-        "through whatever the beam met (docs/sensor_model.md, section 3)"
+        f"posegrid source: note: {args.carmen}: 2.6 % of its beams have no return; they clear no free space (a laser "
+        "misses dark and glancing surfaces close by too), and --no-return-range METRES lets them clear up to METRES "
+        "(its farthest return is 25.4 m)"
+        if clears is None
+        else f"posegrid source: note: {args.carmen}: its laser returned at most 25.4 m, and 2.6 % of its beams have "
+        "no return: with --no-return-range 80 each of those clears free space out to 80 m, through whatever the "
+        "beam met (docs/sensor_model.md, section 3)"
     )
     assert said == [expected]

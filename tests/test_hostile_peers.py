@@ -50,6 +50,7 @@ def _scan(seq: int, robot: str = "r", beams: int = 5, range_max: float = 5.0) ->
         range_max=range_max,
         sensor_offset=np.zeros(3),
         ranges=ranges,
+        no_return_range=range_max,
     )
 
 

@@ -162,6 +162,7 @@ def _scan(seq: int, beams: int = 5) -> LaserScan:
         range_max=5.0,
         sensor_offset=np.zeros(3),
         ranges=ranges,
+        no_return_range=5.0,
     )
 
 
@@ -422,6 +423,7 @@ def _grid_step(state: SlamState, log, seq: int, odometry: np.ndarray) -> None:
         range_max=log.range_max,
         sensor_offset=np.asarray(log.sensor_offset, np.float64),
         ranges=np.asarray(log.ranges[seq], np.float32),
+        no_return_range=log.range_max,
     )
     state.handle("pg/r/scan", scan.encode())
     pose = Odometry(robot="r", seq=seq, stamp=float(log.stamps[seq]), pose=odometry[None], commands=NO_COMMANDS)

@@ -64,6 +64,7 @@ def laser_scans(draw):
         )
     )
     range_min = draw(st.floats(0, 1))
+    range_max = range_min + draw(st.floats(0.5, 80))
     return LaserScan(
         robot=draw(names),
         seq=draw(seqs),
@@ -71,9 +72,10 @@ def laser_scans(draw):
         angle_min=draw(st.floats(-6.28, 6.28)),
         angle_increment=draw(st.floats(0.001, 0.1)),
         range_min=range_min,
-        range_max=range_min + draw(st.floats(0.5, 80)),
+        range_max=range_max,
         sensor_offset=draw(f64(3)),
         ranges=ranges,
+        no_return_range=draw(st.sampled_from([0.0, range_max, 0.5 * range_max])),
     )
 
 
@@ -242,6 +244,7 @@ def test_arrays_travel_as_raw_bytes_not_lists():
         range_max=40.0,
         sensor_offset=np.zeros(3),
         ranges=ranges,
+        no_return_range=0.0,
     )
     wire = msgpack.unpackb(scan.encode())
     assert wire["ranges"] == {"dtype": "<f4", "shape": [360], "data": ranges.tobytes()}
@@ -393,6 +396,7 @@ def scan(**overrides):
         range_max=5.0,
         sensor_offset=np.zeros(3),
         ranges=np.array([1.0, 2.0, 3.0], np.float32),
+        no_return_range=5.0,
     )
     values.update(overrides)
     return LaserScan(**values)
@@ -425,6 +429,8 @@ def test_ranges_may_say_no_return_or_too_close():
         {"angle_min": 1e30},  # every beam on one ray, once the angles are rounded
         {"angle_increment": -7.0},
         {"range_min": 2.0, "range_max": 2.0},  # range_min < range_max, strictly
+        {"no_return_range": 5.5},  # a beam with no return clears at most up to range_max (5 m)
+        {"no_return_range": -0.5},
         {"angle_increment": 0.0, "ranges": np.array([1.0, 2.0], np.float32)},  # two beams on one ray
         {"angle_increment": 0.5, "ranges": np.ones(15, np.float32)},  # 7 rad: the last beams repeat the first's
         {"angle_increment": -0.5, "ranges": np.ones(15, np.float32)},
@@ -434,6 +440,19 @@ def test_out_of_range_values(overrides):
     with pytest.raises(MessageError) as info:
         scan(**overrides).encode()
     assert info.value.reason == "range"
+
+
+def test_a_peer_sending_a_no_return_range_past_range_max_is_refused_on_decode():
+    """A peer's scan whose beams with no return would clear past its laser's range is checked as it is decoded; a
+    version 1 scan (no no_return_range) is refused as a version this build does not read."""
+    wire = wire_of(scan(no_return_range=5.0))
+    wire["no_return_range"] = 5.0001
+    assert reason_of(wire, LaserScan) == "range"
+    wire = wire_of(scan())
+    del wire["no_return_range"]
+    wire["v"] = 1
+    assert reason_of(wire, LaserScan) == "version"
+    assert decode_message(msgpack.packb(wire_of(scan(no_return_range=0.0))), LaserScan).no_return_range == 0.0
 
 
 def test_a_peer_sending_a_fan_past_a_turn_is_refused_on_decode():

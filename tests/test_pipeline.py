@@ -316,6 +316,7 @@ def _scan(seq: int, robot: str = "r1") -> LaserScan:
         range_max=RANGE_MAX,
         sensor_offset=np.zeros(3),
         ranges=ranges,
+        no_return_range=RANGE_MAX,
     )
 
 
@@ -705,7 +706,9 @@ def _write_log(sim, path: Path, fmt: str) -> Path:
 
 def grid_filter_in_process(stream, particles: int, seed: int) -> PosedScans:
     """The posed scans the SLAM node's grid FastSLAM driver gives, in this process, for a source ``stream``
-    (services.streams): every scan with the particles it was integrated at (resample threshold 0.5)."""
+    (services.streams): every scan with the particles it was integrated at (resample threshold 0.5), its beams with
+    no return clearing as far as its message says (a posed-scan file's way: `posegrid slam`'s)."""
+    from services.commands.gridslam import posed_no_returns
     from services.keys import ODOM, SCAN
     from services.state.slam import GridDriver
     from slam.gridslam import GridSlamConfig
@@ -722,12 +725,15 @@ def grid_filter_in_process(stream, particles: int, seed: int) -> PosedScans:
         samples.append(poses)
         weights.append(w)
     first = scans[0]
+    range_max = np.full(len(scans), first.range_max)
+    (clears,) = {m.no_return_range for m in scans}
+    ranges, range_max = posed_no_returns(np.array([m.ranges for m in scans]), range_max, range_max, clears)
     return PosedScans(
-        ranges=np.array([m.ranges for m in scans]),
+        ranges=ranges,
         angle_min=first.angle_min,
         angle_increment=first.angle_increment,
         range_min=first.range_min,
-        range_max=first.range_max,
+        range_max=range_max,
         stamps=np.array([m.stamp for m in scans]),
         sensor_offset=first.sensor_offset,
         poses=PoseSet(samples=np.array(samples), weights=np.array(weights)),
@@ -808,25 +814,29 @@ def _stats_payload(refused_steps: int) -> bytes:
     ).encode()
 
 
-@pytest.mark.parametrize("fmt", ["carmen", "bag"])
-def test_grid_fastslam_node_over_zenoh_gives_the_map_of_its_filter_in_process(tmp_path, procs, fmt):
+@pytest.mark.parametrize(("fmt", "clears"), [("carmen", None), ("bag", None), ("carmen", 8.0)])
+def test_grid_fastslam_node_over_zenoh_gives_the_map_of_its_filter_in_process(tmp_path, procs, fmt, clears):
     """run --carmen / --bag (source -> grid FastSLAM slam-node -> shard, over Zenoh) must give the map that the
     same filter, fed the same scans in this process, and `posegrid fuse` give. The bag's odometry is read
-    0.04 s after each scan (--odom-delay), between its odometry messages."""
+    0.04 s after each scan (--odom-delay), between its odometry messages. The log's beams with no return say
+    nothing by default; with --no-return-range 8 they clear up to 8 m (its range_max), and the map holds more."""
     from services.commands.logs import read_log
     from services.fusion_runner import fuse_posed_scans
     from services.streams import laser_log_stream
-    from slam.laserlog import with_odometry_delay
+    from slam.laserlog import NO_RETURN_RANGE, with_odometry_delay
     from slam.simulator import simulate_office
 
     sim = simulate_office(seed=4, steps=60, n_beams=91, range_max=8.0)
     log = _write_log(sim, tmp_path / ("office.clf" if fmt == "carmen" else "office.bag"), fmt)
     delay = 0.0 if fmt == "carmen" else 0.04
-    stream = laser_log_stream(with_odometry_delay(read_log(log), delay), "robot0")
+    stream = laser_log_stream(with_odometry_delay(read_log(log), delay), "robot0", clears or NO_RETURN_RANGE)
     assert len(stream.steps) == 60
     posed = grid_filter_in_process(stream, particles=5, seed=7)
     expected = fuse_posed_scans(posed).rasterize()
     assert len({tuple(np.round(s[:, :2].ravel(), 9)) for s in posed.poses.samples}) > 1  # the particles do spread
+    if clears is not None:
+        nothing = fuse_posed_scans(replace(posed, ranges=np.where(np.isinf(posed.ranges), 0.0, posed.ranges)))
+        assert expected["observed"].sum() > nothing.rasterize()["observed"].sum()
 
     exported = tmp_path / "run.npz"
     run = procs(
@@ -848,6 +858,7 @@ def test_grid_fastslam_node_over_zenoh_gives_the_map_of_its_filter_in_process(tm
             "--no-api",
             "--export",
             str(exported),
+            *([] if clears is None else ["--no-return-range", str(clears)]),
         ]
     )
     assert run.process.wait(180) == 0, run.output()

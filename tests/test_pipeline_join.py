@@ -568,6 +568,7 @@ def _scan(seq: int, robot: str = "r") -> LaserScan:
         range_max=5.0,
         sensor_offset=np.zeros(3),
         ranges=np.array([1.0, 2.0, np.inf, 1.5, 3.0], np.float32),
+        no_return_range=5.0,
     )
 
 

@@ -189,7 +189,7 @@ def test_scans_the_wire_refuses_are_skipped_by_the_reader(tmp_path):
 def test_invalid_and_too_close_readings_clear_no_free_space(tmp_path):
     """REP 117: NaN is an invalid reading and -inf one too close to measure; neither says the beam went far. They
     become 0, below range_min (raised to 1 mm from a bag's 0), so the fusion skips those beams, as grid FastSLAM
-    does; +inf and readings at range_max are no return (free space up to range_max)."""
+    does; +inf and readings at range_max are no return (free space up to the laser's no-return range)."""
     from mapping.beam_model import BEAM_HIT, BEAM_NO_RETURN, BEAM_SKIP, beam_table
     from mapping.sensor_model import SensorModel
 
@@ -507,7 +507,9 @@ def test_run_leaves_the_logs_notes_to_its_source_which_says_them_once(tmp_path, 
 
     bag = BagBuilder()
     moving_robot(bag)  # a laser frame no transform names: a note
-    args = argparse.Namespace(carmen=None, bag=bag.write(tmp_path / "a.bag"), scan_topic=None, odom_delay=0.0)
+    args = argparse.Namespace(
+        carmen=None, bag=bag.write(tmp_path / "a.bag"), scan_topic=None, odom_delay=0.0, no_return_range=None
+    )
     _laser_log(args, None)
     assert capsys.readouterr().err == ""
     _laser_log(args, "source")

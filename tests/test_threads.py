@@ -275,6 +275,7 @@ def _messages(posed: PosedScans) -> list[tuple[str, bytes]]:
             range_max=angles.range_max,
             sensor_offset=angles.sensor_offset,
             ranges=posed.scan_ranges(t)[::step].astype(np.float32),
+            no_return_range=angles.range_max,
         )
         pose = PoseSamples(robot="r", seq=t, stamp=float(posed.stamps[t]), samples=samples[t], weights=weights[t])
         messages += [("pg/r/scan", scan.encode()), ("pg/r/pose", pose.encode())]

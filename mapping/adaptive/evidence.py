@@ -12,7 +12,7 @@ Each ray under each pose sample is walked at the finest resolution by the ray wa
   ray's return lies before the cell (the cell is behind an obstacle along that beam). The finest cells a
   ray crosses form, at level k, consecutive *runs* inside one level-k cell (a ray crosses a square once);
   each run of a ray of sample j adds w_j to one of the three counts of its cell. A beam without a return is
-  a miss everywhere up to range_max.
+  a miss everywhere up to its laser's no-return range (range_max unless the fusion is told otherwise).
 
 Unknowns are counted only where the split test reads them: at levels >= 1 (the finest cells are never
 split) and in cells that the scan also gives hits or misses (a cell is tested only when the scan sees it).

@@ -40,7 +40,7 @@ from mapping.adaptive.splitting import SplitTest
 from mapping.adaptive.tree import AdaptiveGrid, children, unique_cells
 from mapping.beam_model import BEAM_HIT, BEAM_SKIP, BeamTable, beam_table, logodds_model
 from mapping.errors import InputError
-from mapping.scan_input import check_laser, check_scan, laser_poses, merge_duplicates
+from mapping.scan_input import check_laser, check_no_return_range, check_scan, laser_poses, merge_duplicates
 from mapping.sensor_model import SensorModel
 
 
@@ -106,7 +106,8 @@ class AdaptiveFusion:
     """Fuses scans of one laser into an :class:`AdaptiveGrid`, one compiled pass per scan.
 
     beam_angles: (B,) rad in the laser frame; range_min, range_max: m; sensor_offset: the laser's
-    (x m, y m, yaw rad) in the robot frame; params: see :class:`AdaptiveParams`.
+    (x m, y m, yaw rad) in the robot frame; params: see :class:`AdaptiveParams`; no_return_range: how far (m) a
+    beam with no return clears free space, as :class:`mapping.fusion.MonteCarloFusion` takes it.
     """
 
     def __init__(
@@ -118,6 +119,7 @@ class AdaptiveFusion:
         range_max: float,
         sensor_offset: tuple[float, float, float] | np.ndarray = (0.0, 0.0, 0.0),
         params: AdaptiveParams | None = None,
+        no_return_range: float | None = None,
     ) -> None:
         params = AdaptiveParams() if params is None else params
         if not isinstance(params, AdaptiveParams):
@@ -142,6 +144,7 @@ class AdaptiveFusion:
         self.angles = angles
         self.range_min = float(range_min)
         self.range_max = float(range_max)
+        self.no_return_range = check_no_return_range(no_return_range, self.range_max)
         self.sensor_offset = offset
         sigma = params.sigma if params.sigma is not None else float(model.sigma_at(range_max / 2))
         self.test = SplitTest(model.resolution, sigma, params.significance, params.unknowns, params.floor)
@@ -153,7 +156,7 @@ class AdaptiveFusion:
         """Fuse one scan: ranges (B,) m, robot pose samples (M, 3) map frame, weights (M,) summing to 1."""
         ranges, samples, weights = check_scan(ranges, samples, weights, self.angles.shape[0])
         samples, weights = merge_duplicates(samples, weights)
-        beams = beam_table(ranges, self.model, self.range_min, self.range_max)
+        beams = beam_table(ranges, self.model, self.range_min, self.range_max, self.no_return_range)
         if not (beams.kind != BEAM_SKIP).any():
             return AdaptiveFuseResult(0, 0, 0, 0)
         evidence = self.scanner.scan(

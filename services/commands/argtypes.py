@@ -117,6 +117,21 @@ def odom_delay_seconds(text: str) -> float:
     return value
 
 
+#: the longest no-return range (m) --no-return-range accepts; a scan's own range_max bounds it further
+MAX_NO_RETURN_RANGE = 1e4
+
+
+def no_return_metres(text: str) -> float:
+    """--no-return-range in metres: a finite number in [0, MAX_NO_RETURN_RANGE]."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected metres, got {text!r}") from None
+    if not 0.0 <= value <= MAX_NO_RETURN_RANGE:
+        raise argparse.ArgumentTypeError(f"expected metres in [0, {MAX_NO_RETURN_RANGE:g}], got {text}")
+    return value
+
+
 @overload
 def checked_output(value: str | Path, option: str) -> Path: ...
 @overload

@@ -13,6 +13,7 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from services.commands.argtypes import (
     check_outputs,
@@ -22,10 +23,13 @@ from services.commands.argtypes import (
     positive_number,
     refuse_another_kind,
 )
-from services.commands.options import add_scan_topic
+from services.commands.options import add_scan_topic, dest, no_return_range, no_return_range_keywords
 from slam.gridslam.config import SPARSE_LOG_DRIVE, SPARSE_MOTION_STEP
 from slam.motion import HOLONOMIC_SHARE, sideways_watch
 from slam.odometry_jumps import JUMP_FLOOR, MAX_ODOMETRY_SPEED, MAX_ODOMETRY_STEP, REBASE_STEPS, joined_odometry
+
+if TYPE_CHECKING:
+    import numpy as np
 
 #: grid FastSLAM particles when --particles is not given: the least KLD-sampling keeps (GridSlamConfig.particle_cap
 #: the most)
@@ -99,7 +103,7 @@ def reject_filter_options(args: argparse.Namespace, algo: str) -> None:
     from services.errors import UsageError
 
     given = [option for option, _, value in filter_option_values(args) if value is not None]
-    given += ["--scans"] if getattr(args, "scans", None) is not None else []
+    given += [option for option in ("--scans", "--no-return-range") if getattr(args, dest(option), None) is not None]
     if given and algo != "gridslam":
         raise UsageError(
             f"{', '.join(given)} only apply to grid FastSLAM, but the SLAM algorithm is {algo}; add "
@@ -222,6 +226,12 @@ def add_gridslam_arguments(parser: argparse.ArgumentParser) -> None:
     )
     add_max_odometry_step(group)
     add_scan_topic(group)
+    group.add_argument(
+        "--no-return-range",
+        **no_return_range_keywords(
+            "the posed scans written (OUTPUT, BEST.npz; the filter's own map clears up to --max-range): "
+        ),
+    )
     group.add_argument(
         "--stats", default=None, metavar="OUT.json", help="write timing and effective-sample-size figures as JSON"
     )
@@ -410,7 +420,7 @@ def run_gridslam_command(args: argparse.Namespace) -> int:
     result = _run_filter(log, config, args.seed)
     elapsed = time.perf_counter() - started
     cpu = time.process_time() - cpu_started
-    _save_outputs(args.output, best_path, poses_path, log, config, result)
+    _save_outputs(args.output, best_path, poses_path, log, config, result, no_return_range(args))
     stats = _run_stats(log, config, result, delay, elapsed, cpu)
     stats["odometry_sideways_share"] = sideways
     stats["cpu_seconds_reading"] = reading_cpu
@@ -463,6 +473,7 @@ def _prepared_log(args: argparse.Namespace, config):
     delay in s and the share of the odometry's distance travelled sideways."""
     from services.commands.logs import read_log
     from services.errors import UsageError
+    from slam.laserlog import no_return_note
 
     if args.scans is not None and args.scans < 2:
         raise UsageError(f"--scans must be >= 2 (a scan to start from and one to integrate), got {args.scans}")
@@ -474,7 +485,8 @@ def _prepared_log(args: argparse.Namespace, config):
     config = _sparse_log(args.motion_step, log, config)
     log, delay = _apply_odometry_delay(args, log, config)
     log = joined_odometry(log, args.max_odometry_step or MAX_ODOMETRY_STEP)
-    for remark in log.remarks():  # (after the delay, which skips the scans it leaves without odometry)
+    clearing = no_return_note(log, no_return_range(args))
+    for remark in [*log.remarks(), *([clearing] if clearing else [])]:  # (after the delay, which skips scans)
         print(f"posegrid slam: note: {remark}", file=sys.stderr)
     _check_log(log, config)
     return log, config, delay, sideways
@@ -536,22 +548,44 @@ def _run_filter(log, config, seed: int):
         return run_gridslam(log, config, seed=seed, progress=progress)
 
 
-def _save_outputs(output: Path, best_path: Path, poses_path: Path, log, config, result) -> None:
-    """Write the three files of :func:`run_gridslam_command` from the filter's ``result``."""
+def posed_no_returns(
+    ranges: np.ndarray, range_max: np.ndarray, limit: np.ndarray, no_return_range: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """(ranges (T, B) m, range_max (T,) m) for a posed-scan file of scans whose laser states ``range_max`` (T,) m,
+    mapped up to ``limit`` (T,) m, whose beams with no return clear up to ``no_return_range`` m. The format clears a
+    beam with no return up to the file's range_max, so with a no-return range of 0 those beams become 0 (no reading,
+    which says nothing) and with one below ``limit`` the file's range_max becomes it (a return beyond then clears up
+    to it too, as GMapping's maxUrange)."""
+    import numpy as np
+
+    ranges = np.array(ranges, dtype=np.float32)
+    no_return = np.isposinf(ranges) | (ranges > range_max[:, None])  # (NaN, the beams past a row's count, stays)
+    if no_return_range == 0.0:
+        ranges[no_return] = 0.0
+        return ranges, np.asarray(limit, np.float64)
+    return ranges, np.minimum(limit, no_return_range)
+
+
+def _save_outputs(output: Path, best_path: Path, poses_path: Path, log, config, result, no_return_range: float) -> None:
+    """Write the three files of :func:`run_gridslam_command` from the filter's ``result``, the posed scans' beams
+    with no return clearing up to ``no_return_range`` m (:func:`posed_no_returns`)."""
     import numpy as np
 
     from schemas.files import PoseDistributionFile, PosedScans, PoseSet, save_pose_distribution, save_posed_scans
 
     chosen = result.integrated
     scans = log.select(chosen)  # each with its own geometry, the range limits the filter used
+    ranges, range_max = posed_no_returns(
+        scans.ranges, scans.range_max, np.minimum(scans.range_max, config.max_range), no_return_range
+    )
 
     def posed(samples, weights) -> PosedScans:
         return PosedScans(
-            ranges=scans.ranges,
+            ranges=ranges,
             angle_min=scans.angle_min,
             angle_increment=scans.angle_increment,
             range_min=np.maximum(scans.range_min, config.min_range),
-            range_max=np.minimum(scans.range_max, config.max_range),
+            range_max=range_max,
             stamps=scans.stamps,
             sensor_offset=scans.sensor_offset,
             poses=PoseSet(samples=samples, weights=weights),

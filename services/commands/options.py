@@ -55,6 +55,30 @@ def add_scan_topic(parser: argparse.ArgumentParser | argparse._ArgumentGroup, ap
     )
 
 
+def no_return_range_keywords(applies_to: str, default: float | None = None) -> dict[str, Any]:
+    """The ``add_argument`` keywords of ``--no-return-range METRES``: how far a real laser's beams with no return
+    clear free space, for every command that maps a laser log's or a live laser's scans; ``applies_to`` opens its
+    help. ``default`` None: unset, and slam.laserlog.NO_RETURN_RANGE applies (shown in the help)."""
+    from services.commands.argtypes import no_return_metres
+    from slam.laserlog import NO_RETURN_RANGE
+
+    return {
+        "type": no_return_metres,
+        "default": default,
+        "metavar": "METRES",
+        "help": f"{applies_to}how far a beam with no return (inf, or at or past the laser's range_max) clears free "
+        f"space in the map, at most the laser's range_max (default {NO_RETURN_RANGE:g}: such beams say nothing, for "
+        "a real laser misses dark and glancing surfaces close by too; docs/sensor_model.md, section 3)",
+    }
+
+
+def no_return_range(args: argparse.Namespace) -> float:
+    """--no-return-range in m, or slam.laserlog.NO_RETURN_RANGE where it was not given."""
+    from slam.laserlog import NO_RETURN_RANGE
+
+    return NO_RETURN_RANGE if args.no_return_range is None else float(args.no_return_range)
+
+
 def add_group(
     parser: argparse.ArgumentParser,
     title: str,

@@ -41,7 +41,15 @@ from services.commands.mapping import (
     sensor_model_argv,
     threads_from_args,
 )
-from services.commands.options import add_choice, add_command, add_group, add_scan_topic, option_argv
+from services.commands.options import (
+    add_choice,
+    add_command,
+    add_group,
+    add_scan_topic,
+    no_return_range,
+    no_return_range_keywords,
+    option_argv,
+)
 from services.commands.persist_options import (
     add_persist_options,
     add_run_persist_options,
@@ -363,6 +371,7 @@ def add_input_arguments(parser: argparse.ArgumentParser, default_sim: bool) -> N
         "the odometry's (Freiburg 079's bag: -0.10; `posegrid slam --algo gridslam LOG --odom-delay "
         "auto` estimates it; default 0)",
     )
+    group.add_argument("--no-return-range", **no_return_range_keywords("--carmen, --bag: "))
     group.add_argument(
         "--steps", type=int, default=None, help=f"--sim: steps of 0.1 s to simulate (default {DEFAULT_SIM_STEPS})"
     )
@@ -542,6 +551,11 @@ def _check_log_options(args: argparse.Namespace) -> None:
         raise UsageError(f"--steps sets how long the built-in simulation runs; {option} replays its input whole")
     if args.odom_delay != 0.0 and args.carmen is None and args.bag is None:
         raise UsageError("--odom-delay shifts a laser log's odometry: give it with --carmen or --bag")
+    if args.no_return_range is not None and args.carmen is None and args.bag is None:
+        raise UsageError(
+            "--no-return-range says how far a real laser's beams with no return clear: give it with --carmen or "
+            "--bag (a simulated laser's clear up to its range_max; a posed-scan file's, as its format says)"
+        )
 
 
 def _laser_log(args: argparse.Namespace, command: str | None):
@@ -560,7 +574,7 @@ def _laser_log(args: argparse.Namespace, command: str | None):
         log = with_odometry_delay(log, args.odom_delay)
     except LogFormatError as exc:
         raise UsageError(f"--odom-delay: {exc}") from None
-    clearing = no_return_note(log)
+    clearing = no_return_note(log, no_return_range(args))
     for remark in [*log.remarks(), *([clearing] if clearing else [])] if command is not None else ():
         print(f"posegrid {command}: note: {remark}", file=sys.stderr, flush=True)
     check_scan_order(log)
@@ -582,7 +596,7 @@ def _stream(args: argparse.Namespace):
     if args.mrclam is not None:
         return streams.mrclam_stream(args.mrclam, args.mrclam_robot, args.robot)
     if args.carmen is not None or args.bag is not None:
-        return streams.laser_log_stream(_laser_log(args, "source"), args.robot)
+        return streams.laser_log_stream(_laser_log(args, "source"), args.robot, no_return_range(args))
     from slam.simulator import simulate_office
 
     steps = sim_steps(args)
@@ -841,6 +855,8 @@ def _plan_input(args: argparse.Namespace, plan: Plan) -> None:
             plan.source_argv += [f"--scan-topic={args.scan_topic}"]
         if args.odom_delay != 0.0:
             plan.source_argv += ["--odom-delay", repr(args.odom_delay)]
+        if args.no_return_range is not None:
+            plan.source_argv += ["--no-return-range", repr(args.no_return_range)]
         plan.slam_argv = slam_argv(args, "sim")
         plan.description = f"replaying {log} through grid FastSLAM into {args.shards} shard(s)"
     elif args.sim_dir is not None:

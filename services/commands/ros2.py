@@ -11,7 +11,8 @@ import re
 from typing import TYPE_CHECKING
 
 from services.commands.argtypes import finite_float, path_argument, positive_number, positive_seconds
-from services.commands.options import OptionRow, add_group
+from services.commands.options import OptionRow, add_group, no_return_range_keywords
+from slam.laserlog import NO_RETURN_RANGE
 
 if TYPE_CHECKING:
     from services.nodes.launcher import Plan
@@ -142,6 +143,7 @@ def _bridge_table() -> list[tuple[str, str, dict]]:
             },
         ),
         ("bridge", "frame", {"default": "map", "help": "frame_id of the map and poses (default map)"}),
+        ("bridge", "no-return-range", no_return_range_keywords("the laser's scans: ", NO_RETURN_RANGE)),
         (
             "bridge",
             "base-frame",
@@ -295,6 +297,7 @@ def bridge_options(args: argparse.Namespace, prefix: str = ""):
     takes_poses = topics.pose_in is not None or topics.particles_in is not None
     ingest = IngestConfig(
         args.robot,
+        no_return_range=value("no_return_range"),
         base_frame=value("base_frame"),
         wait=value("odom_wait"),
         poses=takes_poses,

@@ -78,9 +78,10 @@ def encoded(message: Message, kind: str) -> bytes:
         raise ConversionError(kind, str(exc)) from None
 
 
-def to_laser_scan(msg: Any, robot: str, seq: int, mount: Mount) -> LaserScan:
+def to_laser_scan(msg: Any, robot: str, seq: int, mount: Mount, no_return_range: float) -> LaserScan:
     """posegrid's LaserScan of a ROS LaserScan ``msg`` that :func:`scan_problem` passes, the laser at ``mount`` on the
-    robot (its beams as a level laser's: slam.rosbag_reader.Mount; not validated yet: :func:`encoded`)."""
+    robot (its beams as a level laser's: slam.rosbag_reader.Mount; not validated yet: :func:`encoded`), its beams
+    with no return clearing free space up to ``no_return_range`` m (at most its range_max)."""
     range_max = float(msg.range_max)
     ranges = np.array(msg.ranges, dtype=np.float32)
     ranges[ranges >= range_max] = np.inf
@@ -96,6 +97,7 @@ def to_laser_scan(msg: Any, robot: str, seq: int, mount: Mount) -> LaserScan:
         range_max=range_max,
         sensor_offset=np.array(mount.pose, dtype=np.float64),
         ranges=ranges,
+        no_return_range=min(float(no_return_range), range_max),
     )
 
 

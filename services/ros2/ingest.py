@@ -51,7 +51,14 @@ from services.ros2.convert import (
     transform_pose,
 )
 from slam.errors import LogFormatError
-from slam.laserlog import MAX_ODOM_GAP, MAX_ODOM_HOLD, interpolate_poses, odometry_problem, plausible_pose
+from slam.laserlog import (
+    MAX_ODOM_GAP,
+    MAX_ODOM_HOLD,
+    NO_RETURN_RANGE,
+    interpolate_poses,
+    odometry_problem,
+    plausible_pose,
+)
 from slam.rosbag_reader import AT_BASE, Mount, quaternion_attitude, static_chain
 
 #: odometry records a track keeps (the newest): about 80 s of odometry at 50 Hz
@@ -73,11 +80,13 @@ Pose = tuple[float, float, float]
 
 @dataclass(frozen=True)
 class IngestConfig:
-    """robot: posegrid's robot name; base_frame: the robot's base frame (None: see the module); max_odom_gap,
+    """robot: posegrid's robot name; no_return_range: how far (m) the laser's beams with no return clear free space
+    (slam.laserlog.NO_RETURN_RANGE); base_frame: the robot's base frame (None: see the module); max_odom_gap,
     max_odom_hold, wait, pose_tolerance: s; poses: join the robot's own poses instead of odometry; capacity: scans
     (and poses) that may wait."""
 
     robot: str
+    no_return_range: float = NO_RETURN_RANGE
     base_frame: str | None = None
     max_odom_gap: float = MAX_ODOM_GAP
     max_odom_hold: float = MAX_ODOM_HOLD
@@ -360,7 +369,7 @@ class Ingest:
     def _emit_odometry(self, head: _Waiting, mount: Mount, pose: np.ndarray) -> None:
         robot, seq = self.config.robot, self.seq
         try:
-            scan = to_laser_scan(head.msg, robot, seq, mount)
+            scan = to_laser_scan(head.msg, robot, seq, mount, self.config.no_return_range)
             encoded(scan, "geometry")
         except ConversionError as exc:
             self.rejects.count(head.topic, exc.kind, str(exc))
@@ -409,7 +418,7 @@ class Ingest:
     def _emit_posed(self, head: _Waiting, mount: Mount, pose: PoseGaussian | PoseSamples) -> None:
         seq = self.seq
         try:
-            scan = to_laser_scan(head.msg, self.config.robot, seq, mount)
+            scan = to_laser_scan(head.msg, self.config.robot, seq, mount, self.config.no_return_range)
             encoded(scan, "geometry")
         except ConversionError as exc:
             self.rejects.count(head.topic, exc.kind, str(exc))

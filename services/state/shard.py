@@ -437,6 +437,7 @@ class MapShard:
             scan.range_min,
             scan.range_max,
             tuple(scan.sensor_offset.tolist()),
+            scan.no_return_range,
         )
         fusion = self._fusions.get(geometry)
         if fusion is None:
@@ -451,6 +452,7 @@ class MapShard:
                 self.owns,
                 threads=self._threads,
                 bundle=self.config.bundle,
+                no_return_range=scan.no_return_range,
             )
             self._fusions[geometry] = fusion
             while len(self._fusions) > FUSIONS_KEPT:
