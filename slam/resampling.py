@@ -52,16 +52,20 @@ def effective_sample_size(weights: np.ndarray) -> float:
     return float(1.0 / np.sum(w * w))
 
 
-def low_variance_resample(weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Indices (N,) of the particles kept by low-variance (systematic) resampling, PR table 4.4.
+def low_variance_resample(weights: np.ndarray, rng: np.random.Generator, count: int | None = None) -> np.ndarray:
+    """Indices (count,) of the particles kept by low-variance (systematic) resampling of weights (N,), PR table 4.4
+    (``count`` None: N).
 
-    One uniform offset r in [0, 1/N) and the N pointers r + k/N walk the cumulative weights (divided by their sum
-    when it is not 1), so a particle of weight w is copied floor(N w) or ceil(N w) times. InputError for empty,
-    negative, non-finite or all-zero weights.
+    One uniform offset r in [0, 1/count) and the pointers r + k/count walk the cumulative weights (divided by their
+    sum when it is not 1), so a particle of weight w is copied floor(count w) or ceil(count w) times. InputError for
+    empty, negative, non-finite or all-zero weights, or a count below 1.
     """
     w, total = checked_weights(weights)
     n = len(w)
-    pointers = rng.uniform(0.0, 1.0 / n) + np.arange(n) / n
+    count = n if count is None else int(count)
+    if count < 1:
+        raise InputError(f"resampling needs a count of at least 1 particle, got {count}")
+    pointers = rng.uniform(0.0, 1.0 / count) + np.arange(count) / count
     cumulative = np.cumsum(w)
     if abs(total - 1.0) > NORMALISED_TOLERANCE:
         cumulative /= cumulative[-1]

@@ -18,7 +18,7 @@ from bench.gridslam import write_sim_log
 from services.cli import main
 from slam.carmen import read_carmen
 from slam.gridslam import GridSlamConfig, run_gridslam
-from slam.gridslam.health import HealthWatch, kld_bound, kld_count, systematic_resample
+from slam.gridslam.health import HealthWatch, kld_bound, kld_count
 from slam.gridslam.honesty import (
     cloud_covariance,
     cloud_samples,
@@ -29,6 +29,7 @@ from slam.gridslam.honesty import (
     weighted_covariance,
 )
 from slam.gridslam.simlogs import drifting_odometry, sim_log
+from slam.resampling import low_variance_resample
 from slam.scoring import fit_gaussian
 
 # ---------------------------------------------------------------------------------------------- the kept spread
@@ -127,7 +128,7 @@ def test_kld_count_stays_at_the_minimum_for_a_tight_cloud_and_grows_for_a_wide_o
     assert kld_count(tight, np.ones(30), np.random.default_rng(0), *args) == 20
     assert kld_count(wide, np.ones(30), np.random.default_rng(0), *args) > 40
     assert kld_count(wide, np.ones(30), np.random.default_rng(0), (20, 30), *args[1:]) == 30  # the cap
-    parents = systematic_resample(np.array([0.5, 0.25, 0.25]), 8, np.random.default_rng(0))
+    parents = low_variance_resample(np.array([0.5, 0.25, 0.25]), np.random.default_rng(0), 8)
     assert np.bincount(parents, minlength=3).tolist() == [4, 2, 2]
 
 

@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from schemas.files import MAX_TRUTH_CELLS as SCHEMAS_MAX_TRUTH_CELLS
 from slam.ekf import EKFSLAM
@@ -37,6 +39,29 @@ def test_low_variance_resample_normalises_weights_by_their_sum():
         got = low_variance_resample(half, np.random.default_rng(seed))
         assert got.tolist() == low_variance_resample(2 * half, np.random.default_rng(seed)).tolist()
         assert np.bincount(got, minlength=4).tolist() == [2, 1, 1, 0]
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    raw=st.lists(st.floats(0.0, 1.0), min_size=1, max_size=30).filter(lambda w: sum(w) > 1e-3),
+    count=st.integers(1, 90),
+    seed=st.integers(0, 2**30),
+)
+def test_resampling_to_another_count_copies_each_particle_floor_or_ceil_of_its_share(raw, count, seed):
+    """To ``count`` particles (grid FastSLAM's KLD-sampling grows or shrinks its cloud), a particle of weight w is
+    copied floor(count w) or ceil(count w) times, and the draw is the count-N one's for count = N."""
+    weights = np.array(raw) / sum(raw)
+    got = low_variance_resample(weights, np.random.default_rng(seed), count)
+    copies = np.bincount(got, minlength=len(weights))
+    assert len(got) == count and (np.diff(got) >= 0).all()
+    assert (copies >= np.floor(count * weights - 1e-9)).all() and (copies <= np.ceil(count * weights + 1e-9)).all()
+    same = low_variance_resample(weights, np.random.default_rng(seed), len(weights))
+    np.testing.assert_array_equal(same, low_variance_resample(weights, np.random.default_rng(seed)))
+
+
+def test_resampling_to_no_particle_is_refused():
+    with pytest.raises(InputError, match="count of at least 1"):
+        low_variance_resample(np.ones(3), np.random.default_rng(0), 0)
 
 
 def test_normalised_weights_resample_and_count_bit_for_bit_as_before():

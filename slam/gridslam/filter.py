@@ -45,7 +45,7 @@ from slam.angles import wrap_angle
 from slam.consistency import scaled_motion
 from slam.errors import InputError, check_within, finite_array
 from slam.gridslam.config import GridSlamConfig
-from slam.gridslam.health import HealthWatch, ScanHealth, kld_count, spreads, systematic_resample
+from slam.gridslam.health import HealthWatch, ScanHealth, kld_count, spreads
 from slam.gridslam.honesty import (
     Revisits,
     cloud_covariance,
@@ -60,7 +60,7 @@ from slam.gridslam.tiles import TileMaps
 from slam.laserlog import POSE_LIMIT
 from slam.motion import OdometryMotionModel, OmniOdometryMotionModel, odometry_controls, rotate_covariance
 from slam.posegraph import apply_transform
-from slam.resampling import effective_sample_size, normalize_log_weights
+from slam.resampling import effective_sample_size, low_variance_resample, normalize_log_weights
 from slam.stats import sample_gaussian
 
 
@@ -442,12 +442,12 @@ class GridFastSLAM:
         if not (resample or count > m):
             return None, False
         if resample:
-            parents = systematic_resample(weights, count, self.rng)
+            parents = low_variance_resample(weights, self.rng, count)
             lost = resampled_drift(self.drift, self.poses, weights, parents) if cfg.keep_spread else None
             self.drift = self.drift[parents] if lost is None else lost
             self.log_w = np.zeros(count)
         else:
-            parents = np.concatenate([np.arange(m), systematic_resample(weights, count - m, self.rng)])
+            parents = np.concatenate([np.arange(m), low_variance_resample(weights, self.rng, count - m)])
             self.log_w = (self.log_w - np.log(np.bincount(parents, minlength=m)))[parents]
             self.drift = self.drift[parents]
         self.maps.resample(parents)

@@ -120,16 +120,6 @@ def kld_count(
     return int(n[np.argmax(ok)]) if ok.any() else cap
 
 
-def systematic_resample(weights: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
-    """Indices (count,) of low-variance (systematic) resampling of weights (M,) to ``count`` particles: one
-    uniform offset r in [0, 1/count) and the pointers r + k/count walk the cumulative weights."""
-    w = np.asarray(weights, np.float64) / np.sum(weights)
-    cumulative = np.cumsum(w)
-    cumulative[-1] = 1.0
-    pointers = rng.uniform(0.0, 1.0 / count) + np.arange(count) / count
-    return np.minimum(np.searchsorted(cumulative, pointers, side="right"), len(w) - 1)
-
-
 @dataclass(frozen=True)
 class HealthSummary:
     """A run's health over its integrated scans: ``failed`` scans whose best match failed, ``poor`` scans that
