@@ -154,6 +154,34 @@ def test_cli_eval_relations_on_a_pose_file_and_a_log(tmp_path, capsys):
     assert json.loads(out.read_text())["rot_mean_rad"] == pytest.approx(0.125, abs=1e-5)
 
 
+def test_cli_eval_relations_scores_a_pose_file_of_a_restamped_log_on_the_raw_logs_clock(tmp_path, capsys):
+    """`posegrid slam` of a corrected log stamps its poses with that log's clock (the Intel one runs 976052857 s
+    from its bag's): --stamped-by names that log, whose scans --align-to matches with the raw log's, and the poses
+    score as they would on the raw clock. Either option alone is refused, saying what the other is for."""
+    rel = write(tmp_path, "r.relations", RELATION_LINES)
+    samples = np.stack([TRAJ.poses, TRAJ.poses + [5.0, 5.0, 0.5]], axis=1)
+    weights = np.tile([0.7, 0.3], (3, 1))
+    ranges = np.arange(1.0, 16.0).reshape(3, 5)  # three distinct scans, shared by both logs
+    restamped = TRAJ.stamps + 1000.0
+    corrected, raw = tmp_path / "corrected.clf", tmp_path / "raw.clf"
+    write_carmen(corrected, restamped, ranges, TRAJ.poses, -1.0, 0.5, 20.0)
+    write_carmen(raw, TRAJ.stamps, ranges, TRAJ.poses, -1.0, 0.5, 20.0)
+    npz = tmp_path / "corrected.poses.npz"
+    save_pose_distribution(npz, PoseDistributionFile(restamped, PoseSet(samples=samples, weights=weights)))
+    out = tmp_path / "score.json"
+    assert main(["eval-relations", str(npz), str(rel)]) == 2  # (no relation lies on its clock)
+    assert "same time base" in capsys.readouterr().err
+    argv = ["eval-relations", str(npz), str(rel), "--align-to", str(raw), "--stamped-by", str(corrected)]
+    assert main([*argv, "--json", str(out)]) == 0
+    result = json.loads(out.read_text())
+    assert result["relations_used"] == 4 and result["trans_mean_m"] == pytest.approx(0.15)
+    assert f"(stamped by {corrected}) to {raw} by 3 shared scans" in capsys.readouterr().err
+    assert main(argv[:5]) == 2
+    assert "name the log its stamps come from with --stamped-by LOG" in capsys.readouterr().err
+    assert main([*argv[:3], *argv[5:]]) == 2
+    assert "give both" in capsys.readouterr().err
+
+
 def test_cli_eval_relations_reads_a_bag_of_two_scan_topics_with_scan_topic(tmp_path, capsys):
     """A bag with two LaserScan topics: its odometry is scored once --scan-topic names one (the reader's refusal
     names the option, which eval-relations has as slam, run and source have it)."""

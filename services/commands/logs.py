@@ -31,6 +31,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="put a log's stamps on RAWLOG's clock first, by the scans both hold (for "
         "re-stamped corrected logs such as freiburg-079-corrected.log.gz)",
     )
+    evaluate.add_argument(
+        "--stamped-by",
+        type=path_argument,
+        default=None,
+        metavar="LOG",
+        help="a pose .npz as POSES: the log whose clock its stamps are on (the one `posegrid slam` ran on), whose "
+        "scans --align-to matches with RAWLOG's (for a run of a corrected log, scored against the raw log's "
+        "relations)",
+    )
     add_choice(
         evaluate,
         "--estimate",
@@ -106,7 +115,9 @@ def run_eval_relations(args: argparse.Namespace) -> int:
     pose-distribution .npz (per stamp the highest-weight sample, or the weighted mean with --estimate mean, or the
     Gaussian mean), a CARMEN log (its laser lines' poses plus its timed ODOM lines: odometry for raw logs, the
     corrected poses for corrected logs) or a ROS bag (its odometry). Stamps match within --tolerance; between poses
-    at most --max-gap apart the pose is interpolated; unmatched relations are skipped and counted."""
+    at most --max-gap apart the pose is interpolated; unmatched relations are skipped and counted. A log re-stamped
+    on another clock (a corrected log) is put on RAWLOG's by --align-to; a pose .npz of a run of such a log names the
+    log with --stamped-by."""
     from schemas.files import write_atomically
     from services.errors import UsageError
     from slam.relations import (
@@ -131,23 +142,31 @@ def run_eval_relations(args: argparse.Namespace) -> int:
             f"{args.relations}: skipped {len(relations.skipped)} malformed lines (lines {shown}"
             f"{' ...' if len(relations.skipped) > 10 else ''})"
         )
-    if args.poses.suffix.lower() in NPZ_SUFFIXES:
-        if args.align_to is not None:
-            raise UsageError("--align-to needs a log (with scans) as POSES, not a pose .npz")
+    pose_file = args.poses.suffix.lower() in NPZ_SUFFIXES
+    if pose_file and args.align_to is not None and args.stamped_by is None:
+        raise UsageError(
+            "--align-to matches the scans of two logs: with a pose .npz as POSES, name the log its stamps come from "
+            "with --stamped-by LOG"
+        )
+    if args.stamped_by is not None and not (pose_file and args.align_to is not None):
+        raise UsageError("--stamped-by names the log of a pose .npz given as POSES, for --align-to: give both")
+    if pose_file:
         trajectory = _pose_file_trajectory(args.poses, args.estimate)
+        log = read_log(args.stamped_by, scan_topic=args.scan_topic) if args.stamped_by is not None else None
     else:
         log = read_log(args.poses, scan_topic=args.scan_topic)
         for remark in log.remarks():
             _note(remark)
         trajectory = trajectory_from_log(log)
-        if args.align_to is not None:
-            reference = read_log(args.align_to, scan_topic=args.scan_topic)
-            stamps, offsets = time_map(log, reference)
-            _note(
-                f"aligned {args.poses} to {args.align_to} by {len(stamps)} shared scans "
-                f"(offset {offsets.min():.6f} .. {offsets.max():.6f} s)"
-            )
-            trajectory = Trajectory.sorted(to_reference_time(trajectory.stamps, stamps, offsets), trajectory.poses)
+    if args.align_to is not None and log is not None:  # (a pose .npz is aligned by its --stamped-by log)
+        reference = read_log(args.align_to, scan_topic=args.scan_topic)
+        stamps, offsets = time_map(log, reference)
+        stamped = f" (stamped by {args.stamped_by})" if pose_file else ""
+        _note(
+            f"aligned {args.poses}{stamped} to {args.align_to} by {len(stamps)} shared scans "
+            f"(offset {offsets.min():.6f} .. {offsets.max():.6f} s)"
+        )
+        trajectory = Trajectory.sorted(to_reference_time(trajectory.stamps, stamps, offsets), trajectory.poses)
     score = score_relations(trajectory, relations, tolerance, max_gap)
     summary = score.summary()
     if args.json is not None:  # first: a file that cannot be written stops the command before it reports
