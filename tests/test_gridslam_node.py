@@ -100,3 +100,35 @@ def test_a_slam_node_publishes_the_same_clouds_for_the_same_seed(tmp_path):
         )
         ratios.append(published / own)
     assert min(ratios) > 0.9 and np.median(ratios[-20:]) > 1.5, ratios
+
+
+def test_a_slam_nodes_most_likely_sample_is_its_filters_best_particle(tmp_path):
+    """`--mode ml` fuses each scan's most likely sample, the first of equal weights. The node's published samples
+    are equal-weight draws of the filter's cloud, and the first was a random draw, as far from the filter's best
+    particle as the filter is unsure (decimetres here, metres on a long loop): the map of "the most likely pose"
+    silently was not. The first sample is now the heaviest particle itself, unmoved, at every scan."""
+    from schemas.messages import LaserScan, Odometry
+    from services.fusion_runner import PoseSampling
+    from services.keys import ODOM, SCAN
+    from services.state.slam import GridDriver
+    from services.streams import laser_log_stream
+
+    class Bare(GridDriver):
+        def _published(self, poses, weights, covariance):
+            return poses, weights
+
+    path = tmp_path / "office.clf"
+    write_sim_log(sim_log("office", 2), path)
+    stream = laser_log_stream(read_carmen(path).first(60), "robot0")
+    node, bare = GridDriver(stream.prior.mean, GridSlamConfig(), seed=4), Bare(stream.prior.mean, GridSlamConfig(), 4)
+    apart = []
+    for seq, step in enumerate(stream.steps):
+        parts = {
+            SCAN if isinstance(m, LaserScan) else ODOM: m for m in step.messages if isinstance(m, (LaserScan, Odometry))
+        }
+        (samples, weights), (particles, particle_weights) = node.step(parts), bare.step(parts)
+        best = particles[np.argmax(particle_weights)]
+        most_likely, _ = PoseSampling(mode="ml").draw(seq, 10.0, samples=samples, weights=weights)
+        np.testing.assert_array_equal(most_likely[0], best)
+        apart.append(float(np.hypot(*(samples[1:, :2] - best[:2]).T).max()))
+    assert max(apart) > 0.05  # (the others do spread: the first is not where they all are)

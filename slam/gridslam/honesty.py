@@ -27,6 +27,8 @@ stays exactly what the filter tracked (the best map and the relation error use i
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from slam.angles import wrap_angle
@@ -109,17 +111,25 @@ def cloud_samples(
 ) -> np.ndarray:
     """Equal-weight pose samples (M, 3) (m, rad) for one scan's particles poses (M, 3) of weights (M,) whose spread
     should be ``covariance`` (3, 3), the filter's there (:func:`cloud_covariance`): the particles resampled by weight
-    (low-variance: each kept floor(M w) or ceil(M w) times), each copy moved by L e_i, L L^T the positive part of
-    ``covariance`` less the particles' weighted spread and e (M, 3) standard normal draws less their mean; yaw
-    wrapped. Their covariance is about ``covariance`` and their mean about the particles' weighted mean, and no sample
-    lies farther from its particle than L e_i, whatever the weights: :func:`spread_trajectories`' whitening, which
-    keeps the best trajectory where it is, puts the spread on the others, so a particle of weight 0.92 sent the rest
-    3.5 times as far (63 m across where the filter's sd was 3.5 m, MIT CSAIL through the SLAM node)."""
-    kept = poses[low_variance_resample(weights, rng)]
+    (low-variance: each kept floor(M w) or ceil(M w) times, so the heaviest at least once), each copy moved by L e_i,
+    L L^T the positive part of ``covariance`` less the particles' weighted spread and e (M, 3) standard normal draws
+    less their mean, scaled by sqrt(M / (M - 1)); yaw wrapped. One copy of the heaviest particle stays where it is and
+    comes first (e = 0): the filter's most likely pose, which a fusion of the most likely sample (the first of equal
+    weights, `--mode ml`) takes. Their covariance is about ``covariance`` and their mean about the particles' weighted
+    mean, and no sample lies farther from its particle than L e_i, whatever the weights: :func:`spread_trajectories`'
+    whitening, which keeps the best trajectory where it is, puts the spread on the others, so a particle of weight
+    0.92 sent the rest 3.5 times as far (63 m across where the filter's sd was 3.5 m, MIT CSAIL through the node)."""
+    kept_index = low_variance_resample(weights, rng)
+    first = int(np.argmax(kept_index == int(np.argmax(weights))))  # (a copy of the heaviest: there is one)
+    order = np.r_[first, np.delete(np.arange(len(kept_index)), first)]
+    kept = poses[kept_index[order]]
     root = psd_cholesky(psd_part(covariance - weighted_covariance(poses, weights)))
     draws = rng.standard_normal(kept.shape)
-    out = kept + (draws - draws.mean(axis=0)) @ root.T
-    out[:, 2] = wrap_angle(out[:, 2])
+    out = kept.copy()
+    if len(kept) > 1:
+        moved = (draws[1:] - draws[1:].mean(axis=0)) * math.sqrt(len(kept) / (len(kept) - 1))  # (the first's share)
+        out[1:] += moved @ root.T
+        out[1:, 2] = wrap_angle(out[1:, 2])  # (the first as the filter holds it, bit for bit)
     return out
 
 
