@@ -224,6 +224,32 @@ def test_the_robots_own_poses_are_joined_with_the_scans_nearest_their_stamps():
     assert ingest.ready() == [] and rejects.kinds() == {"join": 1}
 
 
+def test_a_cloud_of_equal_weights_comes_with_the_pose_nearest_its_mean_first():
+    """A mapper's --mode ml fuses the first of equal weights; the first pose of a PoseArray (or of a ParticleCloud
+    just resampled) is any particle, here one 3 m off the rest. The bridge puts the pose nearest the cloud's mean
+    first, the others in their order; weighted clouds keep their order (ml takes the heaviest)."""
+    poses = [(4.0, 1.0, 0.0), (1.1, 1.0, 0.02), (0.9, 1.02, -0.01), (1.0, 1.1, 0.0), (1.0, 0.95, 0.01)]
+    array = rt.MessageType(rt.POSE_ARRAY).cls()(
+        header=convert.header(0.3, "map"), poses=[convert.ros_pose(*pose) for pose in poses]
+    )
+    samples = convert.to_samples(array, "r1", 0, weighted=False)
+    p = np.array(poses)  # (yaws near 0: the plain mean and covariance are the circular ones)
+    offset = p - p.mean(axis=0)
+    distance = np.einsum("mi,ij,mj->m", offset, np.linalg.inv(np.cov(p.T, bias=True)), offset)
+    first = int(np.argmin(distance))
+    assert first != 0  # (the pose 3 m off is not the one nearest the mean)
+    np.testing.assert_allclose(samples.samples, p[[first, *(i for i in range(5) if i != first)]], atol=1e-12)
+    np.testing.assert_allclose(samples.weights, 0.2)
+    cloud = rt.MessageType(rt.PARTICLE_CLOUD).cls()(
+        header=convert.header(0.3, "map"),
+        particles=[
+            rt.field_class("nav2_msgs/msg/Particle")(pose=convert.ros_pose(*pose), weight=w)
+            for pose, w in zip(poses, (5.0, 1.0, 1.0, 1.0, 1.0))
+        ],
+    )
+    assert convert.to_samples(cloud, "r1", 0, weighted=True).samples[0, 0] == pytest.approx(4.0)
+
+
 def test_scans_without_a_transform_or_with_nan_geometry_are_counted_not_taken():
     rejects = RejectCounter(logging.getLogger("test"))
     clock = Clock()

@@ -117,7 +117,9 @@ def to_gaussian(msg: Any, robot: str, seq: int) -> PoseGaussian:
 def to_samples(msg: Any, robot: str, seq: int, weighted: bool) -> PoseSamples:
     """PoseSamples of a ``PoseArray`` (``weighted`` False: equal weights) or a ``nav2_msgs/ParticleCloud``
     (``weighted``: its weights, normalised); raises :class:`ConversionError` ("pose") when the poses or weights are
-    unusable (none, not finite, negative, summing to 0, too many)."""
+    unusable (none, not finite, negative, summing to 0, too many). When every pose weighs the same (a PoseArray, a
+    cloud just resampled) the one nearest their mean comes first (:func:`central_first`): a mapper's ``--mode ml``
+    takes the first of equal weights, and the first of an AMCL cloud is any particle."""
     poses = [particle.pose for particle in msg.particles] if weighted else list(msg.poses)
     if not poses:
         raise ConversionError("pose", "no poses")
@@ -132,9 +134,25 @@ def to_samples(msg: Any, robot: str, seq: int, weighted: bool) -> PoseSamples:
         weights = np.full(len(poses), 1.0 / len(poses))
     if not np.isfinite(samples).all():
         raise ConversionError("pose", "poses that are not finite")
+    if np.all(weights == weights[0]):
+        samples = central_first(samples)
     message = PoseSamples(robot=robot, seq=seq, stamp=stamp_of(msg.header), samples=samples, weights=weights)
     encoded(message, "pose")
     return message
+
+
+def central_first(samples: np.ndarray) -> np.ndarray:
+    """Equal-weight pose samples (M, 3) (m, rad) reordered so that the one nearest their mean (Mahalanobis under
+    their fitted Gaussian, yaw circular; slam.scoring.fit_gaussian) comes first, the others in their order; a map of
+    them all is the same, and the first stands for the most likely pose."""
+    if len(samples) < 2:
+        return samples
+    mean, cov = fit_gaussian(samples[None], np.ones((1, len(samples))))
+    offset = samples - mean[0]
+    offset[:, 2] = np.angle(np.exp(1j * offset[:, 2]))  # (yaw differences wrapped)
+    distance = np.einsum("mi,ij,mj->m", offset, np.linalg.pinv(cov[0], hermitian=True), offset)
+    first = int(np.argmin(distance))
+    return np.concatenate([samples[first : first + 1], np.delete(samples, first, axis=0)])
 
 
 # --------------------------------------------------------------------------------------------- out
