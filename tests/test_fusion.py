@@ -170,23 +170,27 @@ def random_scan(rng, n_beams, n_samples, spread):
     return angles, ranges, samples, weights / weights.sum()
 
 
-@settings(max_examples=12, deadline=None)
+@settings(max_examples=16, deadline=None)
 @given(
     seed=st.integers(0, 10_000),
     n_beams=st.integers(1, 12),
     n_samples=st.integers(1, 5),
     sigma_kind=st.sampled_from(["constant", "linear"]),
+    clears=st.sampled_from([None, 0.0, 0.37, 1.0]),
 )
-def test_compiled_fusion_matches_slow_reference(seed, n_beams, n_samples, sigma_kind):
+def test_compiled_fusion_matches_slow_reference(seed, n_beams, n_samples, sigma_kind, clears):
+    """Both passes (one pose, and several) against the slow reference's cells and values, with beams that have no
+    return cleared up to the no-return range ``clears`` (None: range_max, 1 m; 0: left out; between)."""
     rng = np.random.default_rng(seed)
     model = SensorModel(
         resolution=0.1, sigma=sigma_kind, sigma0=0.04, sigma_slope=0.02 if sigma_kind == "linear" else 0.0
     )
     angles, ranges, samples, weights = random_scan(rng, n_beams, n_samples, 0.08)
+    ranges[rng.integers(n_beams)] = np.inf  # at least one beam with no return
     offset = (0.1, -0.05, 0.2)
     grid = TiledGrid(0.1, tile_size=8)  # small tiles: scans cross tile borders
-    MonteCarloFusion(grid, model, angles, 0.15, 1.0, offset).fuse(ranges, samples, weights)
-    mean, spread = reference_fuse(model, angles, 0.15, 1.0, ranges, samples, weights, offset)
+    MonteCarloFusion(grid, model, angles, 0.15, 1.0, offset, no_return_range=clears).fuse(ranges, samples, weights)
+    mean, spread = reference_fuse(model, angles, 0.15, 1.0, ranges, samples, weights, offset, no_return_range=clears)
     got = fused_cells(grid)
     assert set(got) == set(mean)
     for cell, (lo, var) in got.items():

@@ -14,11 +14,30 @@ from slam.gridslam.simlogs import sim_log
 from slam.scoring import fit_gaussian, score_trajectory
 
 
+def step_parts(step) -> dict:
+    """A source step's scan and odometry, keyed as the SLAM node's driver takes them."""
+    from schemas.messages import LaserScan, Odometry
+    from services.keys import ODOM, SCAN
+
+    return {
+        SCAN if isinstance(m, LaserScan) else ODOM: m for m in step.messages if isinstance(m, (LaserScan, Odometry))
+    }
+
+
+def bare_driver(*args, **kwargs):
+    """A GridDriver that publishes the filter's particles and weights as they are (no kept spread)."""
+    from services.state.slam import GridDriver
+
+    class Bare(GridDriver):
+        def _published(self, poses, weights, covariance):
+            return poses, weights
+
+    return Bare(*args, **kwargs)
+
+
 def node_run(log, seed: int = 0, config: GridSlamConfig | None = None, log_to: logging.Logger | None = None):
     """The SLAM node's grid FastSLAM (GridDriver) fed ``log`` one scan at a time: its motion step and its published
     pose cloud's mean and covariance after each scan."""
-    from schemas.messages import LaserScan, Odometry
-    from services.keys import ODOM, SCAN
     from services.state.slam import GridDriver
     from services.streams import laser_log_stream
 
@@ -26,10 +45,7 @@ def node_run(log, seed: int = 0, config: GridSlamConfig | None = None, log_to: l
     driver = GridDriver(stream.prior.mean, config or GridSlamConfig(), seed=seed, log=log_to)
     steps, means, covs = [], [], []
     for step in stream.steps:
-        parts = {
-            SCAN if isinstance(m, LaserScan) else ODOM: m for m in step.messages if isinstance(m, (LaserScan, Odometry))
-        }
-        poses, weights = driver.step(parts)
+        poses, weights = driver.step(step_parts(step))
         assert driver.filter is not None
         steps.append(driver.filter.config.motion_step)
         mean, cov = fit_gaussian(poses[None], weights[None])
@@ -58,30 +74,16 @@ def test_a_slam_node_publishes_the_same_clouds_for_the_same_seed(tmp_path):
     """The clouds are drawn from the node's seed: the same log and seed give the same published samples, of equal
     weights, wider than the particles' own (the particles as the filter gives them: a driver that publishes them
     bare) and about their weighted mean."""
-    from schemas.messages import LaserScan, Odometry
-    from services.keys import ODOM, SCAN
     from services.state.slam import GridDriver
     from services.streams import laser_log_stream
-
-    class Bare(GridDriver):
-        def _published(self, poses, weights, covariance):
-            return poses, weights
 
     path = tmp_path / "room.clf"
     write_sim_log(sim_log("room", 1), path)
     stream = laser_log_stream(read_carmen(path).first(40), "robot0")
     published = []
-    for kind in (GridDriver, GridDriver, Bare):
-        driver = kind(stream.prior.mean, GridSlamConfig(), seed=5)
-        runs = []
-        for step in stream.steps:
-            parts = {
-                SCAN if isinstance(m, LaserScan) else ODOM: m
-                for m in step.messages
-                if isinstance(m, (LaserScan, Odometry))
-            }
-            runs.append(driver.step(parts))
-        published.append(runs)
+    for make in (GridDriver, GridDriver, bare_driver):
+        driver = make(stream.prior.mean, GridSlamConfig(), seed=5)
+        published.append([driver.step(step_parts(step)) for step in stream.steps])
     spread, again, bare = published
     for (samples, weights), (repeat, _), (particles, bare_weights) in zip(spread, again, bare, strict=True):
         np.testing.assert_array_equal(samples, repeat)
@@ -107,25 +109,18 @@ def test_a_slam_nodes_most_likely_sample_is_its_filters_best_particle(tmp_path):
     are equal-weight draws of the filter's cloud, and the first was a random draw, as far from the filter's best
     particle as the filter is unsure (decimetres here, metres on a long loop): the map of "the most likely pose"
     silently was not. The first sample is now the heaviest particle itself, unmoved, at every scan."""
-    from schemas.messages import LaserScan, Odometry
     from services.fusion_runner import PoseSampling
-    from services.keys import ODOM, SCAN
     from services.state.slam import GridDriver
     from services.streams import laser_log_stream
-
-    class Bare(GridDriver):
-        def _published(self, poses, weights, covariance):
-            return poses, weights
 
     path = tmp_path / "office.clf"
     write_sim_log(sim_log("office", 2), path)
     stream = laser_log_stream(read_carmen(path).first(60), "robot0")
-    node, bare = GridDriver(stream.prior.mean, GridSlamConfig(), seed=4), Bare(stream.prior.mean, GridSlamConfig(), 4)
+    node = GridDriver(stream.prior.mean, GridSlamConfig(), seed=4)
+    bare = bare_driver(stream.prior.mean, GridSlamConfig(), seed=4)
     apart = []
     for seq, step in enumerate(stream.steps):
-        parts = {
-            SCAN if isinstance(m, LaserScan) else ODOM: m for m in step.messages if isinstance(m, (LaserScan, Odometry))
-        }
+        parts = step_parts(step)
         (samples, weights), (particles, particle_weights) = node.step(parts), bare.step(parts)
         best = particles[np.argmax(particle_weights)]
         most_likely, _ = PoseSampling(mode="ml").draw(seq, 10.0, samples=samples, weights=weights)

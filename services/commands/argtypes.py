@@ -122,11 +122,8 @@ MAX_NO_RETURN_RANGE = 1e4
 
 
 def no_return_metres(text: str) -> float:
-    """--no-return-range in metres: a finite number in [0, MAX_NO_RETURN_RANGE]."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected metres, got {text!r}") from None
+    """--no-return-range in metres: a finite number (:func:`finite_float`) in [0, MAX_NO_RETURN_RANGE]."""
+    value = finite_float(text)
     if not 0.0 <= value <= MAX_NO_RETURN_RANGE:
         raise argparse.ArgumentTypeError(f"expected metres in [0, {MAX_NO_RETURN_RANGE:g}], got {text}")
     return value
