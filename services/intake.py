@@ -14,6 +14,13 @@ of a core each) delays another robot's next message by one of its own, not by al
 is full, a message of a robot holding a smaller share of it (of its count or its bytes) than another makes room by
 evicting that other robot's newest messages (counted as its "overflow"): a flood fills the queue with its own
 messages and then only displaces its own.
+
+**In the order published**: a process reads its robots' streams through one subscriber on pg/<robot>/* (or pg/*/*,
+:meth:`Intake.subscribe`), never one per stream. zenoh-python runs each subscriber's callbacks on a thread of its own,
+so a robot's messages on several keys reached the queue out of the order they went out in (a probe: three
+subscribers, 50 bursts of 20 scans, 20 poses and a StreamEnd; the end came before some of its burst in 28 of them),
+and a shard that had taken a run's end had not yet taken the whole run (services.nodes.source.took_end relies on it).
+One subscriber's callbacks run on one thread, in the order the messages came off the link.
 """
 
 from __future__ import annotations
@@ -22,6 +29,7 @@ import threading
 from collections.abc import Iterable
 from typing import TYPE_CHECKING
 
+from services import keys
 from services.fair_queue import FairQueue
 from services.process import RejectCounter
 from services.state.checks import robot_stream
@@ -66,9 +74,20 @@ class Intake:
         """Bytes of the payloads waiting."""
         return self._queue.bytes
 
+    def subscribe(self, session: zenoh.Session) -> zenoh.Subscriber:
+        """Declare the one subscriber that feeds this queue (see the module): on pg/<robot>/*, every robot's when the
+        intake takes any (pg/*/*)."""
+        return session.declare_subscriber(keys.robot_key(self.robot or "*", "*"), self.on_sample)
+
     def on_sample(self, sample: zenoh.Sample) -> None:
-        """A Zenoh subscriber's callback: :meth:`offer` the sample's key and payload."""
-        self.offer(str(sample.key_expr), sample.payload)
+        """A Zenoh subscriber's callback: :meth:`offer` the sample's key and payload, except a publication on a robot
+        stream this process does not read (a robot's odometry at a shard, which the subscriber on pg/<robot>/* gets
+        too): another process's, passed over without a count."""
+        key = str(sample.key_expr)
+        parsed = keys.parse_robot_key(key)
+        if parsed is not None and parsed[1] not in self.streams:
+            return
+        self.offer(key, sample.payload)
 
     def offer(self, key: str, payload: zenoh.ZBytes | bytes) -> bool:
         """Queue a copy of ``payload``, received on ``key``, unless it is refused (counted, see the module);

@@ -122,19 +122,19 @@ def role_permissions(role: Role) -> list[tuple[str, list[str], list[str]]]:
             ("egress", [_QUERY], [keys.history_key(any_robot)]),
             ("egress", [_REPLY], [keys.stats_key(any_map, "*"), keys.slam_stats_key(r)]),
             ("egress", [_TOKEN], [keys.shard_alive_key(any_map, "*"), keys.robot_alive_key(r, "slam")]),
-            ("egress", [_SUB], _streams(any_robot, SOURCE_STREAMS)),
+            ("egress", [_SUB], [*_streams(any_robot, SOURCE_STREAMS), keys.robot_key(any_robot, "*")]),
         ]
     if role.kind == "slam":
         return [
             ("ingress", [_PUT], [keys.robot_key(r, keys.POSE)]),
-            ("ingress", [_SUB], _streams(r, SLAM_INPUTS)),
+            ("ingress", [_SUB], [keys.robot_key(r, "*")]),
             ("ingress", [_QUERYABLE, _REPLY], [keys.slam_stats_key(r), keys.history_key(r)]),
             ("ingress", [_QUERY], [keys.history_key(r)]),
             ("ingress", [_TOKEN], [keys.robot_alive_key(r, "slam")]),
             ("egress", [_PUT], _streams(r, SLAM_INPUTS)),
             ("egress", [_QUERY], [keys.slam_stats_key(r), keys.history_key(any_robot)]),
             ("egress", [_REPLY], [keys.history_key(r)]),
-            ("egress", [_SUB], _streams(any_robot, [keys.POSE])),
+            ("egress", [_SUB], [keys.robot_key(any_robot, keys.POSE), keys.robot_key(any_robot, "*")]),
         ]
     if role.kind == "mapper":
         m = role.scope or ""
@@ -142,7 +142,7 @@ def role_permissions(role: Role) -> list[tuple[str, list[str], list[str]]]:
         return [
             ("ingress", [_PUT, _QUERYABLE, _REPLY], [own]),
             ("ingress", [_TOKEN], [keys.shard_alive_key(m, "*")]),
-            ("ingress", [_SUB], _streams(any_robot, MAPPER_INPUTS)),
+            ("ingress", [_SUB], [keys.robot_key(any_robot, "*")]),
             ("ingress", [_QUERY], [keys.history_key(any_robot)]),
             ("egress", [_PUT], _streams(any_robot, MAPPER_INPUTS)),
             ("egress", [_QUERY], [own]),

@@ -32,6 +32,7 @@ import pytest
 import zenoh
 
 from peers import BLOCK, put
+from services import keys
 from services.cli import main
 from services.nodes.launcher import free_port
 from services.security import Material, write_material
@@ -410,14 +411,20 @@ def test_a_wrong_password_is_refused(material, router, sessions):
 
 
 def test_a_source_put_reaches_a_mapper_subscriber(material, router, sessions):
+    """The shard reads every robot stream through one subscriber on pg/*/* (services.intake: in the order they were
+    published); the router hands it the robots' scans, and not their odometry."""
     mapper = sessions(role_config(material, "mapper-m"))
     inbox = Inbox()
-    mapper.declare_subscriber("pg/*/scan", inbox)
+    mapper.declare_subscriber(keys.robot_key("*", "*"), inbox)
     source = sessions(role_config(material, "source-r"))
+    odometry = source.declare_publisher("pg/r/odom", congestion_control=BLOCK)
     publisher = source.declare_publisher("pg/r/scan", congestion_control=BLOCK)
     wait_until(lambda: publisher.matching_status.matching)  # the router tells the source someone listens
+    odometry.put(b"odom 0")
     publisher.put(b"scan 0")
     assert inbox.wait_for(b"scan 0")
+    time.sleep(ABSENCE_WAIT)
+    assert inbox.payloads == [b"scan 0"]
 
 
 def _mixed_credentials(material: Material) -> dict:

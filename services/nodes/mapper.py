@@ -350,8 +350,7 @@ class Mapper:
         """Subscribers and queryables first, the liveliness token last: once a source sees the token,
         this shard already receives what it publishes."""
         session, name = self.session, self.config.map_name
-        for stream in (keys.SCAN, keys.POSE, keys.END):
-            self._declared.append(session.declare_subscriber(keys.robot_key("*", stream), self.intake.on_sample))
+        self._declared.append(self.intake.subscribe(session))  # (one for every stream: services.intake)
         self._declared.append(session.declare_queryable(keys.tiles_key(name), self._on_tile_query))
         self._declared.append(session.declare_queryable(keys.stats_key(name, self.config.shard), self._on_stats_query))
         self._declared.append(session.liveliness().declare_token(keys.shard_alive_key(name, self.config.shard)))

@@ -128,8 +128,7 @@ class SlamNode:
             keys.robot_key(robot, keys.POSE), congestion_control=zenoh.CongestionControl.BLOCK
         )
         self._declared.append(self._pose_publisher)
-        for stream in EXPECTED:
-            self._declared.append(session.declare_subscriber(keys.robot_key(robot, stream), self.intake.on_sample))
+        self._declared.append(self.intake.subscribe(session))  # (one for every stream: services.intake)
         self._declared.append(session.declare_queryable(keys.slam_stats_key(robot), self._on_stats_query))
         self._declared.append(session.declare_queryable(keys.history_key(robot), self._on_history_query))
         self._declared.append(session.liveliness().declare_token(keys.robot_alive_key(robot, "slam")))

@@ -249,8 +249,8 @@ class MapShard:
         the pairs for :meth:`fuse_ready` (which the caller calls before anyone else looks at the shard), so that the
         pairs of several messages are fused together on the shard's threads."""
         stream = key.rsplit("/", 1)[-1]
-        if isinstance(message, StreamEnd):  # (it may overtake the last scans: each key has its own callback thread)
-            self.fuse_ready()  # (the end is checked against the scans fused so far)
+        if isinstance(message, StreamEnd):
+            self.fuse_ready()  # (the end is checked against the scans fused so far, the deferred pairs too)
             accounted = self.fused[message.robot] + self.discarded[message.robot]
             if message.scans < accounted:
                 self.rejects.count(
