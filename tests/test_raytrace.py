@@ -2,7 +2,7 @@
 
 import math
 
-from hypothesis import assume, given, settings
+from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 
 from mapping.raytrace import traverse
@@ -31,6 +31,7 @@ def test_diagonal_through_corners_visits_no_point_contact_cells():
     length=st.floats(0.01, 6),
     res=st.sampled_from([0.05, 0.1, 0.25]),
 )
+@example(x0=1e-09, y0=0.0, angle=0.0, length=1.0, res=0.1)
 def test_traversal_matches_reference(x0, y0, angle, length, res):
     # a ray within 1e-9 rad of a grid line's direction but not on it is numerically ambiguous: skip those
     for component in (math.cos(angle), math.sin(angle)):
@@ -41,11 +42,12 @@ def test_traversal_matches_reference(x0, y0, angle, length, res):
     # consecutive, covering [0, length] without gaps
     assert r_in[0] == 0.0 and abs(r_out[-1] - length) < 1e-9
     assert all(abs(a - b) < 1e-9 for a, b in zip(r_out[:-1], r_in[1:]))
-    ref = cells_on_ray(x0, y0, angle, length, res)
-    long_enough = 1e-9
-    ref_cells = [(c[0], c[1]) for c in ref if c[3] - c[2] > long_enough]
-    got_cells = [c for c, a, b in zip(got, r_in, r_out) if b - a > long_enough]
-    assert got_cells == ref_cells
+    # a cell crossed for less than 1e-8 m (in either walk) is a rounding of its edge: left out of both; a cutoff
+    # applied to each alone fell between 1.0000001e-9 and 0.9999999e-9 m for the ray's last cell (the example)
+    ref = [((c[0], c[1]), c[3] - c[2]) for c in cells_on_ray(x0, y0, angle, length, res)]
+    mine = [(cell, b - a) for cell, a, b in zip(got, r_in, r_out)]
+    short = {cell for cell, crossed in ref + mine if crossed < 1e-8}
+    assert [cell for cell, _ in mine if cell not in short] == [cell for cell, _ in ref if cell not in short]
 
 
 def test_an_origin_within_rounding_of_a_grid_line_starts_at_r_0():
