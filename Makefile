@@ -22,15 +22,15 @@ install: $(STAMP)
 run: $(STAMP)
 	$(VENV)/bin/posegrid run $(RUN_ARGS)
 
-## make test: the test suite on every core (pytest-xdist, one worker more than the cores: many tests wait on the
-## processes they start, and a third worker on 2 cores fills those waits, 343 s against 366 s on a fresh clone; a
-## worker that runs out of tests takes some of another's, --dist worksteal, so they finish together; pytest's exit
-## 5, "no tests collected", fails the target and says so).
+## make test: the test suite on every core (pytest-xdist, two workers more than the cores: many tests wait on the
+## processes they start, and the extra workers fill those waits: on 2 cores 4 workers took 307-334 s where 3 took
+## 368-402 s in the same hours, the CPUs then 85 % busy; a worker that runs out of tests takes some of another's,
+## --dist worksteal, so they finish together; pytest's exit 5, "no tests collected", fails the target and says so).
 ## One file alone: .venv/bin/python -m pytest tests/test_x.py. Bytecode is cached (in the checkout's __pycache__
 ## folders, even where PYTHONDONTWRITEBYTECODE is set): the suite starts a few hundred processes, and each would
 ## compile the project's sources again (0.3 CPU s a service, 6 s for a worker's collection)
 test: $(STAMP)
-	@env -u PYTHONDONTWRITEBYTECODE $(PY) -m pytest -q -n $$(( $$(nproc) + 1 )) --dist worksteal; rc=$$?; \
+	@env -u PYTHONDONTWRITEBYTECODE $(PY) -m pytest -q -n $$(( $$(nproc) + 2 )) --dist worksteal; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "make test: pytest collected no tests (exit 5): that is a failure" >&2; fi; \
 	exit $$rc
 

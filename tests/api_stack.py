@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -15,18 +14,13 @@ import httpx
 import numpy as np
 
 from schemas.files import PosedScans, PoseSet, save_posed_scans
+from services.ports import free_port
 from worlds import room_posed_scans
 
 ROOT = Path(__file__).resolve().parents[1]
 #: the `posegrid` console script, independent of where pip put it (``-m services.cli`` would run cli.py as
 #: __main__, whose UsageError is not the class the commands raise)
 POSEGRID = [sys.executable, "-c", "import sys; from services.cli import main; sys.exit(main())"]
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def wait_until(predicate, timeout: float, what: str, interval: float = 0.1):

@@ -444,7 +444,7 @@ def test_a_shard_that_does_not_answer_in_time_is_no_rejected_message():
     import zenoh
 
     from services.api.mappers import MapperLink
-    from services.nodes.launcher import free_port
+    from services.ports import free_port
     from services.zenoh_config import build_config
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"

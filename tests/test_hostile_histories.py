@@ -10,7 +10,7 @@ import zenoh
 
 from peers import put
 from services import keys
-from services.nodes.launcher import free_port
+from services.ports import free_port
 from services.zenoh_config import build_config
 from test_hostile_peers import _pose, _scan
 from test_pipeline import CLI, procs  # noqa: F401 - procs is a fixture

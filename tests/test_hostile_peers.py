@@ -29,7 +29,7 @@ from mapping.sensor_model import SensorModel
 from peers import put
 from schemas.messages import MAX_SEQ, LaserScan, PoseSamples, ShardStats, StreamEnd, decode_message
 from services import keys
-from services.nodes.launcher import free_port
+from services.ports import free_port
 from services.process import MAX_REJECT_KEYS, OTHER_KEYS, RejectCounter
 from services.state.limits import ShardLimits, reach_cells, reach_tiles
 from services.state.shard import MapShard, ShardConfig

@@ -66,7 +66,7 @@ def test_the_intake_takes_a_robots_messages_on_all_its_keys_in_the_order_they_we
     a robot's scans, poses and odometry and its end come out of the queue exactly in the order they were put; the
     odometry, a stream a shard does not read, is passed over without a count, and a put on the wildcard pg/r/* is
     counted once (it reached each of the three subscribers before)."""
-    from services.nodes.launcher import free_port
+    from services.ports import free_port
     from services.zenoh_config import build_config
 
     endpoint, rejects = f"tcp/127.0.0.1:{free_port()}", _rejects("order")

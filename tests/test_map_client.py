@@ -13,7 +13,7 @@ import zenoh
 from schemas.messages import TileUpdate
 from services import keys
 from services.map_client import IncompleteMap, MapReader
-from services.nodes.launcher import free_port
+from services.ports import free_port
 from services.zenoh_config import build_config
 from test_messages import stats
 from test_pipeline import CLI, procs  # noqa: F401 - procs is a fixture

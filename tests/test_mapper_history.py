@@ -14,8 +14,8 @@ import zenoh
 from mapping.sensor_model import SensorModel
 from services import history
 from services.nodes import mapper as mapper_module
-from services.nodes.launcher import free_port
 from services.nodes.mapper import Mapper
+from services.ports import free_port
 from services.state.shard import ShardConfig
 from services.zenoh_config import build_config
 from test_pipeline import CLI, procs  # noqa: F401 - procs is a fixture

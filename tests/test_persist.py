@@ -27,7 +27,7 @@ from schemas.files import load_map, load_posed_scans
 from services.cli import main
 from services.fusion_runner import fuse_posed_scans
 from services.map_client import MapReader
-from services.nodes.launcher import free_port
+from services.ports import free_port
 from services.zenoh_config import build_config
 from test_pipeline import CLI, Proc, _alive, make_posed, procs  # noqa: F401  (procs: the fixture)
 

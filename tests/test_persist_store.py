@@ -36,8 +36,8 @@ from services.api import models, status
 from services.api.registry import MapInfo
 from services.cli import main
 from services.commands import persist_options
-from services.nodes.launcher import free_port
 from services.nodes.mapper import Durable, PersistOptions
+from services.ports import free_port
 from services.process import RejectCounter
 from services.state.ownership import owns_tile, tile_owner
 from services.state.shard import MapShard, ShardConfig

@@ -47,7 +47,7 @@ from schemas.messages import (
 )
 from services import history, keys
 from services.cli import main
-from services.nodes.launcher import free_port
+from services.ports import free_port
 from services.state.ownership import tile_owner
 from services.zenoh_config import build_config
 

@@ -18,7 +18,7 @@ from services.cli import build_parser, main
 from services.commands.mapping import available_memory
 from services.commands.pipeline import check_shards_fit
 from services.errors import UsageError
-from services.nodes.launcher import free_port
+from services.ports import free_port
 from services.zenoh_config import build_config, close_session, read_key
 
 CLI = [sys.executable, "-m", "services"]

@@ -27,7 +27,7 @@ import zenoh.ext
 from bags import BagBuilder
 from peers import put
 from schemas.messages import PoseSamples, TileUpdate, decode_message
-from services.nodes.launcher import free_port
+from services.ports import free_port
 from services.ros2 import names
 from services.ros2 import types as rt
 from services.ros2.bridge import stats_key

@@ -34,7 +34,7 @@ import zenoh
 from peers import BLOCK, put
 from services import keys
 from services.cli import main
-from services.nodes.launcher import free_port
+from services.ports import free_port
 from services.security import Material, write_material
 from services.zenoh_config import build_config
 from test_pipeline import procs  # noqa: F401  (the fixture: processes ended by PID)

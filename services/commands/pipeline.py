@@ -624,7 +624,7 @@ def run_router(args: argparse.Namespace) -> int:
 def _port_chosen(endpoint: str) -> str:
     """``endpoint`` with a port of 0 on loopback (tcp/127.0.0.1:0) replaced by a free port, so that the router says
     the port clients connect to (zenoh does not tell which it took); other endpoints as given."""
-    from services.nodes.launcher import free_port
+    from services.ports import free_port
 
     return f"tcp/127.0.0.1:{free_port()}" if endpoint == "tcp/127.0.0.1:0" else endpoint
 

@@ -21,7 +21,6 @@ import contextlib
 import os
 import shlex
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -39,6 +38,7 @@ from services import keys
 from services.api.guard import TOKEN_ENV
 from services.errors import USAGE_EXIT
 from services.map_client import IncompleteMap, MapReader
+from services.ports import free_port
 from services.process import PARENT_PID_ENV, Stopped, WarnOnce, get_logger, until_stopped
 from services.security import Role, remove_material, run_material, zenoh_argv
 from services.state.store.run import RunState
@@ -58,13 +58,6 @@ START_TIMEOUT = 60.0
 COMPILE_NOTE_AFTER = 2.0
 #: seconds the launcher waits for the SLAM node's stats when it says why the shards gave up on scans
 NODE_STATS_TIMEOUT = 5.0
-
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that nothing listens on right now."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 @dataclass(frozen=True)
