@@ -611,7 +611,7 @@ def test_garbage_on_every_key_is_counted_and_processes_keep_working(tmp_path, pr
             ]
             if (
                 len(stats) == 1 and stats[0].fused.get("r3") == 1 and stats[0].ended.get("r3") == 1
-            ) or time.monotonic() > deadline:  # (the end has its own callback thread: it may come last)
+            ) or time.monotonic() > deadline:
                 break
             time.sleep(0.1)
         tiles = [r.ok for r in session.get("pg/map/m/tile/0/*/*", timeout=10) if r.ok is not None]
@@ -1260,7 +1260,7 @@ def test_a_slam_node_waiting_on_the_sources_history_answers_for_its_poses_and_st
             source.put(keys.robot_key("r1", keys.ODOM), odometry.encode())
             source.put(keys.robot_key("r1", keys.LANDMARKS), seen.encode())
         deadline = time.monotonic() + 30
-        while _node_stats(source, "r1").steps_done < 3:  # (the end mark, put now, could overtake the steps)
+        while _node_stats(source, "r1").steps_done < 3:  # (the three steps taken before the end is put)
             assert time.monotonic() < deadline, node.output()
             time.sleep(0.05)
         source.put(keys.robot_key("r1", keys.END), StreamEnd(robot="r1", scans=3).encode())
