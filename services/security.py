@@ -177,6 +177,40 @@ def acl_config(roles: list[Role]) -> dict:
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
 
 
+def role_of_user(user: str) -> Role | None:
+    """The role whose user name is ``user`` (``mapper-main``, ``api``), None for a name no role has."""
+    if user in ("api", "launcher"):
+        return Role(user)
+    kind, _, scope = user.partition("-")
+    return Role(kind, scope) if kind in SCOPED_KINDS and scope else None
+
+
+#: the fields of a rule :func:`acl_config` writes (zenoh's copy of a config adds others)
+_RULE_FIELDS = ("id", "permission", "flows", "messages", "key_exprs")
+
+
+def stale_roles(block: object) -> list[str]:
+    """The user names in a router's ``access_control`` block whose allow rules (as :func:`acl_config` names them) are
+    not the ones this posegrid writes for their role: material made by an older posegrid. Its router denies, silently,
+    what the processes now declare (a mapper's one subscriber on pg/*/*: services.intake), and they wait for messages
+    that never come. Users that are no posegrid role, and rules of other names, are not looked at."""
+    if not isinstance(block, dict) or not block.get("enabled"):
+        return []
+    rules = {rule.get("id"): rule for rule in block.get("rules") or [] if isinstance(rule, dict)}
+    stale = []
+    for subject in block.get("subjects") or []:
+        user = subject.get("id") if isinstance(subject, dict) else None
+        role = role_of_user(user) if isinstance(user, str) else None
+        if role is None:
+            continue
+        for expected in acl_config([role])["rules"]:
+            held = rules.get(expected["id"])
+            if held is None or any(held.get(name) != expected[name] for name in _RULE_FIELDS):
+                stale.append(role.user)
+                break
+    return stale
+
+
 # --------------------------------------------------------------------------------------------- certificates
 
 

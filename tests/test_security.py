@@ -35,8 +35,8 @@ from peers import BLOCK, put
 from services import keys
 from services.cli import main
 from services.ports import free_port
-from services.security import Material, write_material
-from services.zenoh_config import build_config
+from services.security import Material, stale_roles, write_material
+from services.zenoh_config import build_config, read_key
 from test_pipeline import procs  # noqa: F401  (the fixture: processes ended by PID)
 
 CLI = [sys.executable, "-m", "services"]
@@ -76,6 +76,7 @@ def router(material):
                 seen.append(lines.get(timeout=max(0.0, deadline - time.monotonic())))
             except queue.Empty:
                 pytest.fail("the secure router did not start:\n" + "".join(seen))
+        assert not any("not the ones this posegrid writes" in line for line in seen), seen  # (fresh material)
         yield process
     finally:
         if process.poll() is None:
@@ -136,6 +137,43 @@ def wait_until(predicate, timeout: float = EVENT_TIMEOUT):
 
 
 # ------------------------------------------------------------------------------------------ material
+
+
+def _with_old_mapper_rules(block: dict) -> dict:
+    """``block`` (a router's access_control) with the mapper role's subscribe rule as posegrid wrote it before a shard
+    read every robot stream through one subscriber (pg/*/{scan,pose,end}, not pg/*/*)."""
+    block = copy.deepcopy(block)
+    for rule in block["rules"]:
+        if rule["id"].startswith("mapper-") and rule["messages"] == ["declare_subscriber"]:
+            rule["key_exprs"] = ["pg/*/scan", "pg/*/pose", "pg/*/end"]
+    return block
+
+
+def test_stale_roles_names_the_roles_whose_rules_this_posegrid_would_not_write(material):
+    """Material made by an older posegrid: its router denies, silently, the one subscriber a shard now declares, and the
+    shard waits for scans that never come. The router's check names such roles; zenoh's own copy of fresh material
+    (with the fields it adds) names none, nor do users that are no posegrid role or a block that is off."""
+    fresh = read_key(zenoh.Config.from_file(str(material.router_config)), "access_control")
+    assert stale_roles(fresh) == []
+    assert stale_roles(_with_old_mapper_rules(fresh)) == ["mapper-m"]
+    mine = copy.deepcopy(fresh)
+    mine["subjects"].append({"id": "alice", "usernames": ["alice"]})
+    mine["rules"].append(
+        {"id": "alice/0", "permission": "allow", "flows": ["ingress"], "messages": ["put"], "key_exprs": ["pg/**"]}
+    )
+    assert stale_roles(mine) == []
+    assert stale_roles({**_with_old_mapper_rules(fresh), "enabled": False}) == []
+    assert stale_roles(None) == [] and stale_roles({"enabled": True, "subjects": [7, {"id": None}]}) == []
+
+
+def test_a_router_on_material_of_an_older_posegrid_says_what_to_do(material, procs):  # noqa: F811
+    config = json.loads(material.router_config.read_text())
+    config["access_control"] = _with_old_mapper_rules(config["access_control"])
+    old = material.router_config.with_name("old-router.json5")
+    old.write_text(json.dumps(config))
+    router = procs([*CLI, "router", "--zenoh-config", str(old)])
+    router.wait_for("routing; listening on tls/127.0.0.1")
+    assert re.search(r"access rules of mapper-m .*`posegrid secure-init --force`", router.output()), router.output()
 
 
 def test_material_is_private_and_chains_to_its_ca(material):

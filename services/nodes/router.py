@@ -20,6 +20,7 @@ import threading
 import zenoh
 
 from services.process import get_logger
+from services.security import stale_roles
 from services.zenoh_config import close_session, open_session, read_key
 
 #: seconds the router waits for its zenoh session to close on a stop before it ends without waiting further
@@ -31,6 +32,15 @@ def run_router(config: zenoh.Config, stop: threading.Event) -> int:
     log = get_logger("router")
     if os.environ.get("RUST_LOG"):
         zenoh.try_init_log_from_env()
+    stale = stale_roles(read_key(config, "access_control"))
+    if stale:
+        log.warning(
+            "the access rules of %s in this router's config are not the ones this posegrid writes (material made by "
+            "an older posegrid?): the router would deny what their processes declare now, and they would wait for "
+            "messages that never come; make the material again with `posegrid secure-init --force` "
+            "(docs/security.md)",
+            ", ".join(stale),
+        )
     session = open_session(config, "the router")
     log.info("routing; listening on %s", ", ".join(read_key(config, "listen/endpoints") or []))
     try:
