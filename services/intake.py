@@ -17,10 +17,10 @@ messages and then only displaces its own.
 
 **In the order published**: a process reads its robots' streams through one subscriber on pg/<robot>/* (or pg/*/*,
 :meth:`Intake.subscribe`), never one per stream. zenoh-python runs each subscriber's callbacks on a thread of its own,
-so a robot's messages on several keys reached the queue out of the order they went out in (a probe: three
-subscribers, 50 bursts of 20 scans, 20 poses and a StreamEnd; the end came before some of its burst in 28 of them),
-and a shard that had taken a run's end had not yet taken the whole run (services.nodes.source.took_end relies on it).
-One subscriber's callbacks run on one thread, in the order the messages came off the link.
+so messages taken by several subscribers reach the queue out of the order they went out in (three subscribers, 50
+bursts of 20 scans, 20 poses and a StreamEnd: the end comes before some of its burst in 28 of them); one subscriber's
+callbacks run on one thread, in the order the messages came off the link. services.nodes.source.took_end relies on
+it: a shard that has taken a run's end has taken the whole run.
 """
 
 from __future__ import annotations
