@@ -441,17 +441,43 @@ def test_a_rerun_sent_while_the_shard_is_busy_with_another_robot_still_hears_of_
     assert other.process.wait(120) == 0, other.output()
 
 
+def test_a_rerun_at_max_rate_is_held_to_its_window_as_a_first_run_is(tmp_path, procs):
+    """A run sent again under its robot name, --rate max --window 4, into a shard whose intake holds 12 messages
+    (--intake-buffer): each run holds at most 4 scans and their poses in flight, so neither overflows the intake.
+    When the source counted the first run's fused scans as the rerun's, the rerun's 200 steps went out at once and
+    the intake overflowed."""
+    posed = make_posed(tmp_path / "a.npz", "samples", steps=200)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
+    mapper = ["mapper", "--shard", "0", "--shards", "1", "--map", "m", "--intake-buffer", "12", "--connect", endpoint]
+    procs([*CLI, *mapper]).wait_for("up; tiles on")
+    argv = ["source", "--posed", str(posed), "--map", "m", "--robot", "r", "--wait-mappers", "1", "--window", "4"]
+    for _ in range(2):
+        run = procs([*CLI, *argv, "--rate", "max", "--connect", endpoint])
+        assert run.process.wait(120) == 0, run.output()
+    session = zenoh.open(build_config("client", connect=[endpoint]))
+    try:
+        from services.map_client import MapReader
+
+        stats = MapReader(session, "m").stats(timeout=5.0)[0]
+    finally:
+        session.close()
+    scan, pose = keys.robot_key("r", keys.SCAN), keys.robot_key("r", keys.POSE)
+    assert stats.fused == {"r": 200} and stats.resent == {scan: 200, pose: 200}, stats
+    assert not stats.refused.get("overflow") and not any(stats.overflow.values()), stats
+
+
 def test_a_source_counts_its_run_accounted_for_only_once_every_shard_took_its_end():
     """A rerun under a robot name whose run of as many scans a shard holds: that run's counts (its end, its scans
     fused) accounted for the new run before the shard had taken any of it, so the source left at once and missed
     the duplicates its messages then met (the test above failed once in four runs under load). The shard takes a
     robot's messages in order, so the new run's end taken says it has taken the run."""
-    from services.nodes.source import UPTIME_SLACK, ends_taken, took_end
+    from services.nodes.source import UPTIME_SLACK, baselines, took_end
     from test_api_status import shard
 
     end_key = keys.robot_key("r", keys.END)
-    before = ends_taken([shard(0, received={end_key: 1}, uptime=50.0), shard(1, uptime=50.0)], "r")
-    assert before == {0: (1, 50.0), 1: (0, 50.0)}
+    before = baselines([shard(0, received={end_key: 1}, uptime=50.0), shard(1, uptime=50.0)], "r")
+    assert before == {0: (1, 0, 50.0), 1: (0, 0, 50.0)}
     same = [shard(0, received={end_key: 1}, uptime=53.0), shard(1, received={end_key: 1}, uptime=53.0)]
     assert not took_end(same, "r", before, elapsed=3.0)  # shard 0 has not taken this run's end yet
     taken = [shard(0, received={end_key: 2}, uptime=53.0), shard(1, received={end_key: 1}, uptime=53.0)]
@@ -466,6 +492,33 @@ def test_a_source_counts_its_run_accounted_for_only_once_every_shard_took_its_en
     assert not took_end([shard(0, received={end_key: 1}, uptime=53.0 - UPTIME_SLACK / 2), taken[1]], "r", before, 3.0)
     assert took_end([*taken, shard(2, received={end_key: 1}, uptime=2.0)], "r", before, elapsed=3.0)
     assert not took_end([*taken, shard(2, uptime=2.0)], "r", before, elapsed=3.0)
+
+
+def test_a_sources_window_counts_the_scans_each_shard_dealt_with_since_the_run_began():
+    """What a source at --rate max counts as taken by the shards (services.nodes.source.scans_taken), against counts
+    worked by hand: a scan fused, given up, dropped as a copy (resent) or refused on the robot's scan key, less what
+    the shard had dealt with when the run began. Counted whole, a rerun under a robot name whose earlier run of 100
+    scans the shard had fused was "taken" before it began, and went out unthrottled."""
+    from services.nodes.source import OTHER_KEYS, UPTIME_SLACK, baselines, scans_taken
+    from test_api_status import shard
+
+    scan, pose = keys.robot_key("r", keys.SCAN), keys.robot_key("r", keys.POSE)
+    earlier = shard(0, fused={"r": 98, "q": 7}, discarded={"r": 2}, uptime=50.0)
+    before = baselines([earlier, shard(1, uptime=50.0)], "r")
+    assert before[0].scans == 100 and before[1].scans == 0
+    # the rerun's first 30 scans: 25 copies of the ones fused and 5 that differ (refused as duplicates), poses apart
+    now = shard(
+        0, fused={"r": 98, "q": 9}, discarded={"r": 2}, resent={scan: 25, pose: 30}, rejected={scan: 5, pose: 1}
+    )
+    other = shard(1, fused={"r": 27}, discarded={"r": 1}, uptime=53.0)
+    assert scans_taken([replace(now, uptime=53.0), other], "r", before, elapsed=3.0) == 28  # (shard 1: 27 + 1)
+    assert scans_taken([replace(now, uptime=53.0)], "r", before, elapsed=3.0) == 30
+    # refusals a shard could no longer count by key (a peer filled its table) are counted as this robot's
+    assert scans_taken([replace(now, uptime=53.0, rejected={OTHER_KEYS: 4})], "r", before, elapsed=3.0) == 29
+    # a shard restarted since the run began (or not there then) counts from 0: its copies and refusals count anew
+    assert scans_taken([replace(now, uptime=1.0)], "r", before, elapsed=3.0) == 130
+    assert scans_taken([replace(now, uptime=53.0 - UPTIME_SLACK / 2)], "r", before, elapsed=3.0) == 30
+    assert scans_taken([shard(2, fused={"r": 3}, uptime=2.0)], "r", before, elapsed=3.0) == 3
 
 
 def test_a_mapper_restarted_while_the_source_holds_back_takes_the_run_from_the_histories(tmp_path, procs):

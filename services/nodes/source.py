@@ -22,13 +22,14 @@ import threading
 import time
 from collections.abc import Collection
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import zenoh
 
 from schemas.messages import LaserScan, MessageError, NodeStats, ShardStats, StreamEnd, decode_message
 from services import history, keys
 from services.map_client import MapReader
-from services.process import WarnOnce, get_logger
+from services.process import OTHER_KEYS, WarnOnce, get_logger
 from services.streams import Stream
 from services.zenoh_config import replier, undeclare_all
 
@@ -142,7 +143,7 @@ class Source:
         self.options = options
         self.log = get_logger(f"source[{stream.robot}]")
         self._publishers: dict[str, zenoh.Publisher] = {}
-        self._scans_done = 0  # scans every waited-for shard has fused or given up on
+        self._scans_done = 0  # scans of this run every waited-for shard has dealt with (:func:`scans_taken`)
         self._steps_done = 0  # steps the SLAM node has taken or given up on
         self._reader = MapReader(session, options.map_name)
         self._warn_once = WarnOnce(self.log)  # (the shards' and the SLAM node's stats' problems, said once)
@@ -150,7 +151,7 @@ class Source:
         self._end_sent = 0.0  # time.monotonic() of the last StreamEnd published
         self._warned_beyond = False  # whether a shard holding more scans than this run published was reported
         self._clashes_before: dict[int, tuple[int, int]] = {}  # shard -> its clash counts (_clash_counts) at the start
-        self._ends_before: dict[int, tuple[int, float]] = {}  # shard -> (the ends of this robot it took, its uptime s)
+        self._before: dict[int, ShardBaseline] = {}  # shard -> what it had taken of this robot at the start
         self._started = 0.0  # time.monotonic() when those were read
         self._unreached = 0  # steps published while the session reached no router (they went nowhere)
         self._reach_seen = (-1.0, True)  # (time.monotonic() of the last look, whether it reached a router then)
@@ -247,12 +248,11 @@ class Source:
         return True
 
     def _shards_done(self) -> int:
-        """Scans the slowest of the waited-for shards has fused or given up on."""
+        """Scans of this run the slowest of the waited-for shards has dealt with (:func:`scans_taken`)."""
         stats = self._shard_stats()
         if len(stats) < self.options.wait_mappers:
             return self._scans_done
-        robot = self.stream.robot
-        return min(s.fused.get(robot, 0) + s.discarded.get(robot, 0) for s in stats)
+        return scans_taken(stats, self.stream.robot, self._before, time.monotonic() - self._started)
 
     def _slam_done(self) -> int:
         """Steps the robot's SLAM node has taken or given up on. Every answer is asked for and known by its sender
@@ -347,7 +347,7 @@ class Source:
         if (
             len(stats) >= self.options.wait_mappers
             and _accounted(stats, end)
-            and took_end(stats, robot, self._ends_before, time.monotonic() - self._started)
+            and took_end(stats, robot, self._before, time.monotonic() - self._started)
         ):
             return True  # (every scan accounted for: a shard that restarted may still ask the history)
         self._repeat_end(end)
@@ -435,7 +435,7 @@ class Source:
             if opts.wait_mappers:
                 before = self._shard_stats()
                 self._clashes_before = self._clash_counts(before)
-                self._ends_before = ends_taken(before, stream.robot)
+                self._before = baselines(before, stream.robot)
                 self._started = time.monotonic()
             if stream.prior is not None:
                 self._publish(stream.prior, keys.PRIOR)
@@ -517,27 +517,65 @@ def _accounted(stats: list[ShardStats], end: StreamEnd) -> bool:
     )
 
 
-def ends_taken(stats: list[ShardStats], robot: str) -> dict[int, tuple[int, float]]:
-    """Per shard of ``stats``: (the StreamEnd messages of ``robot`` it has taken, its uptime s): :func:`took_end`."""
-    key = keys.robot_key(robot, keys.END)
-    return {s.shard: (s.received.get(key, 0), s.uptime) for s in stats}
+class ShardBaseline(NamedTuple):
+    """What a shard had taken of a robot's messages when a run began (:func:`baselines`), and its uptime then."""
+
+    ends: int  # StreamEnd messages of the robot it had taken
+    scans: int  # scans of the robot it had dealt with (:func:`dealt_with`)
+    uptime: float  # s
 
 
-def took_end(stats: list[ShardStats], robot: str, before: dict[int, tuple[int, float]], elapsed: float) -> bool:
-    """Whether every shard of ``stats`` has taken a StreamEnd of ``robot`` since :func:`ends_taken` gave ``before``,
-    ``elapsed`` s ago: its count of them risen, or at least one taken where it restarted since (its uptime short of
-    the one before plus ``elapsed``, less UPTIME_SLACK) or was not there. A shard takes a robot's messages in the order
-    they came (services.intake), so one that took this run's end has taken every message of the run that reached it.
-    Without this, a run under a robot name whose earlier run of as many scans the shards hold was "accounted for"
-    by that run's counts before the shards had taken any of it: the source left, and said nothing of the clash
-    its messages met (a rerun with other poses; seen once in four runs under load)."""
+def baselines(stats: list[ShardStats], robot: str) -> dict[int, ShardBaseline]:
+    """Per shard of ``stats``: what it has taken of ``robot`` now (:func:`took_end`, :func:`scans_taken`)."""
+    end_key = keys.robot_key(robot, keys.END)
+    return {s.shard: ShardBaseline(s.received.get(end_key, 0), dealt_with(s, robot), s.uptime) for s in stats}
+
+
+def dealt_with(stats: ShardStats, robot: str) -> int:
+    """The scans of ``robot`` the shard has dealt with since it started (or, for those it fused or gave up on, since
+    its store began): fused, given up on, dropped as copies of a scan it has (resent), or refused (as a duplicate of
+    another run's, malformed, past a limit...). Refusals it counts under no key (:data:`OTHER_KEYS`, when a peer has
+    filled its table of keys) count as this robot's, so that the count cannot stall while the shard takes scans."""
+    key = keys.robot_key(robot, keys.SCAN)
+    done = stats.fused.get(robot, 0) + stats.discarded.get(robot, 0)
+    return done + stats.resent.get(key, 0) + stats.rejected.get(key, 0) + stats.rejected.get(OTHER_KEYS, 0)
+
+
+#: the baseline of a shard that was not there when a run began, or restarted since: its counts begin at 0
+FROM_ZERO = ShardBaseline(0, 0, 0.0)
+
+
+def baseline_of(stats: ShardStats, before: dict[int, ShardBaseline], elapsed: float) -> ShardBaseline:
+    """What the shard of ``stats`` had taken when :func:`baselines` gave ``before``, ``elapsed`` s ago; FROM_ZERO when
+    it was not there or is another process now: its uptime short of the one then plus ``elapsed`` by more than
+    UPTIME_SLACK (it restarted)."""
+    base = before.get(stats.shard)
+    if base is None or stats.uptime < base.uptime + elapsed - UPTIME_SLACK:
+        return FROM_ZERO
+    return base
+
+
+def took_end(stats: list[ShardStats], robot: str, before: dict[int, ShardBaseline], elapsed: float) -> bool:
+    """Whether every shard of ``stats`` has taken a StreamEnd of ``robot`` since :func:`baselines` gave ``before``,
+    ``elapsed`` s ago: its count of them risen, or at least one taken where it restarted since or was not there
+    (:func:`baseline_of`). A shard takes a robot's messages in the order they came (services.intake), so one that took
+    this run's end has taken every message of the run that reached it. Without this, a run under a robot name whose
+    earlier run of as many scans the shards hold was "accounted for" by that run's counts before the shards had
+    taken any of it: the source left, and said nothing of the clash its messages met (a rerun with other poses; seen
+    once in four runs under load)."""
     key = keys.robot_key(robot, keys.END)
-    for s in stats:
-        taken, uptime = before.get(s.shard, (0, -math.inf))
-        restarted = s.uptime < uptime + elapsed - UPTIME_SLACK
-        if s.received.get(key, 0) <= (0 if restarted else taken):
-            return False
-    return True
+    return all(s.received.get(key, 0) > baseline_of(s, before, elapsed).ends for s in stats)
+
+
+def scans_taken(stats: list[ShardStats], robot: str, before: dict[int, ShardBaseline], elapsed: float) -> int:
+    """The scans of a run of ``robot`` that the slowest shard of ``stats`` has dealt with (:func:`dealt_with`) since
+    :func:`baselines` gave ``before``, ``elapsed`` s ago: what a source running ahead of the shards by a window
+    counts. Counted from the run's start, so that a rerun under a robot name is held back as a first run is: counted
+    whole, an earlier run's scans that the shards fused would make the rerun's look taken, and it would go out
+    unthrottled. A shard that restarted since (:func:`baseline_of`) counts whole: its counts of copies and refusals
+    began again, and counted from the run's start it would hold the source back until it had taken as many scans
+    again, which it may never be sent (a rerun that a shard with a store restarted during goes on unthrottled)."""
+    return min((dealt_with(s, robot) - baseline_of(s, before, elapsed).scans for s in stats), default=0)
 
 
 def commits_stuck(stats: ShardStats) -> bool:
