@@ -15,9 +15,11 @@ the message and counts it, never silently) or answer queries; one main thread de
 waiting for more) and fuses the pairs they complete together, their walks on T fusion threads
 (mapping.parallel_fusion); the map is the one the scans give fused one by one. A lock serialises the main thread
 and the tile queries around the shard's state; the main thread lets it go while it waits for a history's answer
-(up to 35 s), so tile queries never wait on the network. Stats queries are answered from a snapshot the main
-thread refreshes after every message, or messages taken at once (and at least every 0.2 s), so they never wait for
-a scan's fusion (15 to 20 ms): the source's flow control and the HTTP API poll them.
+(up to 35 s), so tile queries never wait on the network, and hands it to the tile queries waiting for it after
+each scan of a batch (services.handoff_lock), so a query waits for one scan's fusion, not the batch's. Stats queries
+are answered from a snapshot the main thread refreshes after every message, or messages taken at once (and at least
+every 0.2 s), so they never wait for a scan's fusion (15 to 20 ms): the source's flow control and the HTTP API poll
+them.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ import zenoh
 from schemas.messages import TileUpdate
 from schemas.wire import is_valid_name
 from services import history, keys
+from services.handoff_lock import HandoffLock
 from services.intake import DEFAULT_CAPACITY, Intake
 from services.process import RejectCounter, Stopped, get_logger, until_stopped
 from services.state.shard import SHARD_STREAMS, MapShard, ShardConfig
@@ -59,7 +62,7 @@ ROBOTS_TIMEOUT = 2.0
 #: eight scans a thread to walk). A batch ends with its last walks and applies while a thread idles, then the tile
 #: updates with every thread idle: on the warehouse (1081 beams, 100 particles) one shard of two threads fused 1.24 to
 #: 1.35x the in-process rate taking two scans a thread, 1.45 to 1.56x taking eight (docs/performance.md, "Threads"),
-#: so a backlog drains faster; a tile query waits for the batch under way (the lock: about 0.25 s such a batch)
+#: so a backlog drains faster; a tile query waits for the scan under way (the lock is handed to it between scans)
 TAKEN_PER_THREAD = 16
 
 
@@ -144,7 +147,8 @@ class Mapper:
         self.rejects = RejectCounter(self.log)
         self.shard = MapShard(config, self.rejects, history=self._history)
         self.persister = None if durable is None else self._start_from(durable)
-        self.lock = threading.Lock()
+        self.lock = HandoffLock()  # (the main thread's over a batch; a tile query's at the batch's next scan)
+        self.shard.between_scans = self.lock.hand_off
         self.intake = Intake(SHARD_STREAMS, self.rejects, config.limits, capacity=intake_capacity)
         self._declared: list = []  # what declare() declared, undeclared in reverse order
         self._stats_lock = threading.Lock()  # guards _stats_payload only
@@ -182,7 +186,7 @@ class Mapper:
     # ---------------------------------------------------------------------------- zenoh callbacks
     def _on_tile_query(self, query: zenoh.Query) -> None:
         wanted = query.key_expr
-        with self.lock:
+        with self.lock.waiter():  # (let in between two scans of a batch: HandoffLock)
             messages = [
                 self.shard.tile_message(tile)
                 for tile in self.shard.tiles()

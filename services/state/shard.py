@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 import time
 from collections import Counter, OrderedDict
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -180,6 +180,9 @@ class MapShard:
         self._last_sent: dict[TileKey, float] = {}
         self._last_scan: dict[TileKey, tuple[str, int]] = {}
         self.journal: Journal | None = None  # what changed since the last commit, for a shard with a store
+        # called after each scan of a batch is fused, the map whole (services.nodes.mapper hands its lock to the tile
+        # queries waiting for it there)
+        self.between_scans: Callable[[], None] = lambda: None
 
     # ------------------------------------------------------------------------------- intake
     def handle(self, key: str, payload: bytes, defer: bool = False) -> None:
@@ -498,6 +501,7 @@ class MapShard:
         drawn = self._within_map_limit(drawn, reaches)
         for (index, scan, _, _), outcome in zip(drawn, self._fuse_drawn(drawn)):
             tiles[index] = self._count_outcome(scan, outcome)
+            self.between_scans()  # (the map and its tiles' last scans whole)
         return tiles
 
     def _draw(self, scan: LaserScan, pose: PoseDistribution) -> tuple[np.ndarray, np.ndarray, tuple[float, int]] | None:
@@ -570,24 +574,31 @@ class MapShard:
                 adding |= new
         return kept
 
-    def _fuse_drawn(self, drawn: list[tuple[int, LaserScan, np.ndarray, np.ndarray]]) -> list[FuseResult | Exception]:
+    def _fuse_drawn(
+        self, drawn: list[tuple[int, LaserScan, np.ndarray, np.ndarray]]
+    ) -> Iterator[FuseResult | Exception]:
         """The outcome of fusing each scan of ``drawn`` ((index, scan, samples, weights) each) with the fusion of its
-        laser geometry, in order, on the shard's threads: a FuseResult, the InputError that refused it, or the error it
-        failed with (logged; the scans after it are fused all the same). Several scans are walked side by side, a lone
-        scan (a live laser's, fused as it comes) in parts on all the threads (mapping.fusion.FusionThreads)."""
-        outcomes: list[FuseResult | Exception] = []
-        while len(outcomes) < len(drawn):
+        laser geometry, in order, on the shard's threads, each as soon as its scan is in the map: a FuseResult, the
+        InputError that refused it, or the error it failed with (logged; the scans after it are fused all the same).
+        Several scans are walked side by side, a lone scan (a live laser's, fused as it comes) in parts on all the
+        threads (mapping.fusion.FusionThreads)."""
+        outcomes = 0
+        while outcomes < len(drawn):
             scans = (
                 (self._fusion_for(scan), (scan.ranges, samples, weights))
-                for _, scan, samples, weights in drawn[len(outcomes) :]
+                for _, scan, samples, weights in drawn[outcomes:]
             )
+            failed: Exception | None = None
             try:
-                lone = len(drawn) - len(outcomes) == 1  # a lone scan, as a list: walked in parts on all the threads
+                lone = len(drawn) - outcomes == 1  # a lone scan, as a list: walked in parts on all the threads
                 for outcome in self._threads.fuse_iter(list(scans) if lone else scans):
-                    outcomes.append(outcome)
+                    outcomes += 1
+                    yield outcome
             except Exception as exc:  # noqa: BLE001 - counted and logged with its traceback (_count_outcome)
-                outcomes.append(exc)  # (the scan whose turn it was; an InputError: a geometry no fusion takes)
-        return outcomes
+                failed = exc  # (the scan whose turn it was; an InputError: a geometry no fusion takes)
+            if failed is not None:
+                outcomes += 1
+                yield failed
 
     def _count_outcome(self, scan: LaserScan, outcome: FuseResult | Exception) -> list[TileKey]:
         """Count how fusing ``scan`` went (fused; refused, an InputError; failed, another error, logged with its
