@@ -552,6 +552,8 @@ def test_a_fetch_of_every_tile_says_which_shard_fell_short(monkeypatch):
     assert "--query-timeout 0.01 s" in shortfall, shortfall
     answered[1] = stats(shard=1, shards=3, tiles_owned=0)
     assert link.fetch_all("m")[1] is None
+    answered[0] = stats(shards=3, tiles_owned=1)  # (a tile made after its stats: a batch's scan fused between them)
+    assert link.fetch_all("m")[1] is None
     answered[1] = stats(shard=1, shards=3, tiles_owned=5)
     assert "shard 1 sent 0 of its 5 tiles" in (link.fetch_all("m")[1] or "")
     monkeypatch.setattr(link, "stats", lambda name: {})

@@ -340,8 +340,8 @@ class MapperLink:
 
     def fetch_all(self, map_name: str) -> tuple[list[TileUpdate], str | None]:
         """Every whole level-0 tile of the map, from every shard, and why that is not known to be all the map has
-        (None when it is): every shard answered its stats and sent as many tiles as its stats count. Only then is a
-        tile that did not come back one that no shard holds."""
+        (None when it is): every shard answered its stats and sent at least as many tiles as its stats count. Only then
+        is a tile that did not come back one that no shard holds."""
         stats = self.stats(map_name)
         tiles = self._whole_tiles(map_name, self._query(keys.tile_key(map_name, 0, "*", "*")), any_geometry=True)
         shards = max((s.shards for s in stats.values()), default=0)
@@ -349,7 +349,8 @@ class MapperLink:
         if not stats:
             return tiles, "the API's fetch of its tiles had no shard's stats in time"
         silent = sorted(set(range(shards)) - set(stats))
-        short = {shard: (sent[shard], s.tiles_owned) for shard, s in stats.items() if sent[shard] != s.tiles_owned}
+        # (fewer than its stats held: more may come, made since the stats, as a query is let in between two scans)
+        short = {shard: (sent[shard], s.tiles_owned) for shard, s in stats.items() if sent[shard] < s.tiles_owned}
         strangers = sorted(set(sent) - set(stats))
         if not (silent or short or strangers):
             return tiles, None
