@@ -12,11 +12,15 @@ from __future__ import annotations
 
 import contextlib
 import threading
+import time
 from collections.abc import Iterator
 
 #: s between two looks, while the working thread waits for the waiters to take the lock, at whether they all did (a
 #: waiter notifies as it takes it; this bounds the wait should a notification come before the wait begins)
 WAIT_STEP = 0.05
+#: s the working thread waits at most at one hand-off for the waiters to have had the lock: a waiter that has not taken
+#: it by then takes it after (it waits for the lock as any thread does), and the working thread goes on meanwhile
+HANDOFF_LIMIT = 1.0
 
 
 class HandoffLock:
@@ -70,9 +74,9 @@ class HandoffLock:
             self.release()
 
     def hand_off(self) -> None:
-        """Let the waiters waiting now take the lock, each in turn, and take it back after them (the holder's thread,
-        holding it; RuntimeError from another thread: it would let go of a lock it does not hold); nothing when none
-        waits."""
+        """Let the waiters waiting now take the lock, each in turn, and take it back after them, or after HANDOFF_LIMIT
+        s (the holder's thread, holding it; RuntimeError from another thread: it would let go of a lock it does not
+        hold); nothing when none waits."""
         if self._holder != threading.get_ident():
             raise RuntimeError("HandoffLock.hand_off from a thread that does not hold the lock")
         with self._counts:
@@ -81,8 +85,9 @@ class HandoffLock:
                 return
         self.release()
         try:
+            deadline = time.monotonic() + HANDOFF_LIMIT
             with self._counts:
-                while self._entered < due:
+                while self._entered < due and time.monotonic() < deadline:
                     self._counts.wait(WAIT_STEP)
         finally:
             self.acquire()

@@ -69,6 +69,19 @@ def test_a_hand_off_with_no_waiter_keeps_the_lock_and_a_later_waiter_waits_for_t
     assert events == ["holder", "late"]
 
 
+def test_a_hand_off_waits_for_the_waiters_at_most_its_limit(monkeypatch):
+    """A waiter counted that has not taken the lock by HANDOFF_LIMIT s (made here by counting one that never asks)
+    holds the holder up no longer: the hand-off returns holding the lock."""
+    from services import handoff_lock
+
+    monkeypatch.setattr(handoff_lock, "HANDOFF_LIMIT", 0.2)
+    lock = HandoffLock()
+    with lock:
+        lock._arrived += 1  # (a waiter that never takes the lock)
+        lock.hand_off()
+        assert lock.locked() and lock.waiting == 1
+
+
 def test_only_the_holder_may_hand_off():
     lock = HandoffLock()
     with pytest.raises(RuntimeError, match="does not hold"):
