@@ -40,7 +40,7 @@ from services import history, keys
 from services.handoff_lock import HandoffLock
 from services.intake import DEFAULT_CAPACITY, Intake
 from services.process import RejectCounter, Stopped, get_logger, until_stopped
-from services.state.shard import SHARD_STREAMS, MapShard, ShardConfig
+from services.state.shard import SHARD_STREAMS, MapShard, ShardConfig, whole_tile
 from services.state.store.db import ShardStore, StoredState, StoreError, StoreIdentity
 from services.state.store.journal import Journal, tiles_of_map
 from services.state.store.writer import DEFAULT_COMMIT_INTERVAL, DEFAULT_COMMIT_SCANS, NO_STORE, Persister
@@ -62,7 +62,7 @@ ROBOTS_TIMEOUT = 2.0
 #: eight scans a thread to walk). A batch ends with its last walks and applies while a thread idles, then the tile
 #: updates with every thread idle: on the warehouse (1081 beams, 100 particles) one shard of two threads fused 1.24 to
 #: 1.35x the in-process rate taking two scans a thread, 1.45 to 1.56x taking eight (docs/performance.md, "Threads"),
-#: so a backlog drains faster; a tile query waits for the scan under way (the lock is handed to it between scans)
+#: so a backlog drains faster; a tile query waits for the scan under way, not the batch (services.handoff_lock)
 TAKEN_PER_THREAD = 16
 
 
@@ -147,7 +147,7 @@ class Mapper:
         self.rejects = RejectCounter(self.log)
         self.shard = MapShard(config, self.rejects, history=self._history)
         self.persister = None if durable is None else self._start_from(durable)
-        self.lock = HandoffLock()  # (the main thread's over a batch; a tile query's at the batch's next scan)
+        self.lock = HandoffLock()  # (the main thread's over a batch; a tile query's between two scans)
         self.shard.between_scans = self.lock.hand_off
         self.intake = Intake(SHARD_STREAMS, self.rejects, config.limits, capacity=intake_capacity)
         self._declared: list = []  # what declare() declared, undeclared in reverse order
@@ -186,13 +186,13 @@ class Mapper:
     # ---------------------------------------------------------------------------- zenoh callbacks
     def _on_tile_query(self, query: zenoh.Query) -> None:
         wanted = query.key_expr
-        with self.lock.waiter():  # (let in between two scans of a batch: HandoffLock)
-            messages = [
-                self.shard.tile_message(tile)
+        with self.lock.waiter():  # (let in between two scans of a batch: HandoffLock; copies only, the replies after)
+            snapshots = [
+                self.shard.tile_snapshot(tile)
                 for tile in self.shard.tiles()
                 if wanted.intersects(keys.tile_key(self.config.map_name, 0, *tile))
             ]
-        for message in messages:
+        for message in map(whole_tile, snapshots):
             query.reply(keys.tile_key(self.config.map_name, 0, message.tx, message.ty), message.encode())
 
     def _on_stats_query(self, query: zenoh.Query) -> None:

@@ -16,7 +16,7 @@ import time
 from collections import Counter, OrderedDict
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -116,6 +116,18 @@ def warm_fusion(model: SensorModel, tile_size: int, threads: FusionThreads | Non
         MonteCarloFusion(scratch, model, angles, 0.1, 5.0, threads=threads).fuse_many(
             [(ranges, poses, np.full(16, 1 / 16))]
         )
+
+
+class TileSnapshot(NamedTuple):
+    """A copy of one tile's layers (log-odds, variance, observed; each (T, T), row = y) and its reply's fields."""
+
+    layers: tuple[np.ndarray, np.ndarray, np.ndarray]
+    fields: dict[str, Any]
+
+
+def whole_tile(snapshot: TileSnapshot) -> TileUpdate:
+    """The reply to a tile query for ``snapshot``'s tile: every value of every cell."""
+    return TileUpdate.of_window(snapshot.layers, None, **snapshot.fields)
 
 
 class MapShard:
@@ -763,7 +775,14 @@ class MapShard:
 
     def tile_message(self, tile: TileKey) -> TileUpdate:
         """The whole tile's current values: every cell given (a tile query's reply)."""
-        return TileUpdate.of_window(self.grid.tile_arrays(tile), None, **self._update_fields(tile, 0, 0))
+        return whole_tile(self.tile_snapshot(tile))
+
+    def tile_snapshot(self, tile: TileKey) -> TileSnapshot:
+        """A copy of the whole tile's layers and the fields of its reply (:func:`whole_tile` makes the reply): taken
+        while the shard's lock is held, about 0.04 ms a 256-cell tile, where making the reply takes 0.3 (and encoding
+        it 0.5, done after either way)."""
+        logodds, variance, observed = (np.array(layer) for layer in self.grid.tile_arrays(tile))
+        return TileSnapshot((logodds, variance, observed), self._update_fields(tile, 0, 0))
 
     def _update_fields(self, tile: TileKey, row0: int, col0: int) -> dict[str, Any]:
         """A TileUpdate's fields but its window's size and cells: its tile, map, shard, window origin and last scan."""
