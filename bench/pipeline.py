@@ -14,6 +14,9 @@ does not keep up with: the backlog, and so the latency, grows over the run).
   median and p99 over the scans after the first WARMUP ones, which a mapper takes while it loads its
   compiled kernels and creates its first tiles (a laser streams for hours; start-up is reported apart,
   as the worst latency among the warm-up scans);
+- tile query while a shard drains a backlog (the warehouse, one shard): a client asks one tile again and again,
+  QUERY_GAP s after each reply, while the shard fuses the scans the source sends as fast as it takes them: the
+  replies' time, median, p90 and max (a query waits for the scan under way: services.handoff_lock);
 - bytes per scan: msgpack payloads of the scan and pose messages (in) and of the tile updates (out);
   Zenoh framing and TCP headers are not counted;
 - each mapper shard's peak resident memory (VmHWM, read before it stops) in the throughput runs;
@@ -65,6 +68,9 @@ WAREHOUSE_STEPS = 120
 WAREHOUSE_LATENCY_SCANS = 40
 #: the in-process shard CPU figures take every this-many-th scan
 SHARD_CPU_EVERY = 2
+#: the tile query figures: s between a reply and the next query, and the scans fused before the first query
+QUERY_GAP = 0.02
+QUERY_AFTER = 20
 WAREHOUSE_CONFIGURATIONS = ((1, TILE_SIZE, 0.0), (2, TILE_SIZE, 0.0), (1, TILE_SIZE, 0.1), (2, TILE_SIZE, 0.1))
 
 
@@ -234,6 +240,49 @@ def _latency(posed, shards: int, tile_size: int, bundle: float, scans: int = LAT
     }
 
 
+def _tile_queries(posed) -> dict:
+    """How long a query of one tile takes while one shard fuses ``posed`` from a source at --rate max (ms: median,
+    p90, max), from its QUERY_AFTER-th scan fused to the source's end."""
+    stream = posed_stream(posed, ROBOT)
+    with Cluster(1, "query") as cluster:
+        source = Source(cluster.session, stream, SourceOptions(rate=None, wait_mappers=1, map_name=cluster.map_name))
+        done = threading.Event()
+
+        def send() -> None:
+            try:
+                source.run(threading.Event())
+            finally:
+                done.set()
+
+        sending = threading.Thread(target=send)
+        sending.start()
+        try:
+            while cluster.fused() < QUERY_AFTER and not done.is_set():
+                time.sleep(0.05)
+            every_tile = cluster.session.get(keys.tile_key(cluster.map_name, 0, "*", "*"), timeout=10.0)
+            tiles = [reply.ok.key_expr for reply in every_tile if reply.ok is not None]
+            if not tiles:
+                raise RuntimeError("the bench's shard had no tile to ask for")
+            key = str(tiles[0])  # (one of its tiles)
+            took = []
+            while not done.is_set():
+                began = time.perf_counter()
+                if not any(reply.ok is not None for reply in cluster.session.get(key, timeout=10.0)):
+                    raise RuntimeError(f"the bench's shard did not answer the query of {key}")
+                took.append(1e3 * (time.perf_counter() - began))
+                time.sleep(QUERY_GAP)
+        finally:
+            sending.join()
+    if not took:
+        raise RuntimeError("the source ended before the bench asked for a tile")
+    return {
+        "tile_query_ms_median": float(np.median(took)),
+        "tile_query_ms_p90": float(np.percentile(took, 90)),
+        "tile_query_ms_max": float(max(took)),
+        "tile_queries": len(took),
+    }
+
+
 def _scenario(posed, configurations, latency_scans: int) -> dict:
     """The throughput and latency figures of ``posed`` in each (shards, tile size, bundle tolerance) configuration."""
     out: dict = {}
@@ -268,5 +317,6 @@ def run() -> dict:
     warehouse = honest_posed_scans(warehouse_run(seed=0, steps=WAREHOUSE_STEPS), seed=1, particles=WAREHOUSE_PARTICLES)
     out.update({"warehouse_particles": WAREHOUSE_PARTICLES, "warehouse_scans": WAREHOUSE_STEPS})
     figures = _scenario(warehouse, WAREHOUSE_CONFIGURATIONS, WAREHOUSE_LATENCY_SCANS)
+    figures.update(_tile_queries(warehouse))
     out.update({f"warehouse_{key}": value for key, value in figures.items()})
     return out
