@@ -55,9 +55,8 @@ class HandoffLock:
 
     @property
     def waiting(self) -> int:
-        """Waiters that wait for the lock now."""
-        with self._counts:
-            return self._arrived - self._entered
+        """Waiters that wait for the lock now (read without a lock: a hint, which :meth:`hand_off` checks again)."""
+        return self._arrived - self._entered
 
     @contextlib.contextmanager
     def waiter(self) -> Iterator[None]:

@@ -114,10 +114,10 @@ def _same(got: dict, expected: dict) -> bool:
 
 
 def test_a_tile_query_during_a_batch_is_answered_between_two_scans_with_the_map_so_far(particles):
-    """A shard on two threads fuses 8 scans together (the mapper's batch); a tile query that waits for the lock from
-    the first scan on is answered at the hand-off after it, with exactly the map of that scan alone (its tiles, each
-    cell's log-odds, variance and observed, bit for bit, as a one-thread shard fused with that scan only gives them),
-    and the batch's map is that of the 8 scans fused one by one."""
+    """A shard on two threads fuses 8 scans together (the mapper's batch, holding the lock) while a tile query waits
+    for the lock: it is answered at the first hand-off, after the first scan, with exactly the map of that scan alone
+    (its tiles, each cell's log-odds, variance and observed, bit for bit, as a one-thread shard fused with that scan
+    only gives them); the shard's counts hold that scan then; the batch's map is that of the 8 scans one by one."""
     messages = _messages(particles)[:16]  # (8 scans, each followed by its pose)
     alone, whole = _shard(1), _shard(1)
     for key, payload in messages[:2]:
@@ -126,26 +126,22 @@ def test_a_tile_query_during_a_batch_is_answered_between_two_scans_with_the_map_
         whole.handle(key, payload)
 
     lock, shard, seen = HandoffLock(), _shard(2), {}
-    scans_handed = []
+    shard.handoff = lock
 
     def query() -> None:
         with lock.waiter():
             seen.update(_tiles(shard))
+            seen["fused"] = dict(shard.fused)
 
-    def between_scans() -> None:
-        scans_handed.append(len(scans_handed) + 1)
-        if len(scans_handed) == 1:  # a query comes while the first scan is fused
-            thread = threading.Thread(target=query, daemon=True)
-            thread.start()
-            _wait_until(lambda: lock.waiting == 1, "the query to wait for the lock")
-        lock.hand_off()
-
-    shard.between_scans = between_scans
     with lock:
         for key, payload in messages:
             shard.handle(key, payload, defer=True)
+        thread = threading.Thread(target=query, daemon=True)
+        thread.start()
+        _wait_until(lambda: lock.waiting == 1, "the query to wait for the lock")
         shard.fuse_ready()
-    assert scans_handed == list(range(1, 9))
-    assert seen and _same(seen, _tiles(alone)), "the query did not see the map of the first scan alone"
+    thread.join(10)
+    assert seen.pop("fused", None) == {"r": 1}, "the query did not come in after the first scan"
+    assert _same(seen, _tiles(alone)), "the query did not see the map of the first scan alone"
     assert not _same(seen, _tiles(whole))
     assert _same(_tiles(shard), _tiles(whole)) and shard.fused == whole.fused == {"r": 8}

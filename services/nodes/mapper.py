@@ -148,7 +148,7 @@ class Mapper:
         self.shard = MapShard(config, self.rejects, history=self._history)
         self.persister = None if durable is None else self._start_from(durable)
         self.lock = HandoffLock()  # (the main thread's over a batch; a tile query's between two scans)
-        self.shard.between_scans = self.lock.hand_off
+        self.shard.handoff = self.lock
         self.intake = Intake(SHARD_STREAMS, self.rejects, config.limits, capacity=intake_capacity)
         self._declared: list = []  # what declare() declared, undeclared in reverse order
         self._stats_lock = threading.Lock()  # guards _stats_payload only

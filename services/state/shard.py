@@ -29,6 +29,7 @@ from schemas.messages import POSE_TYPES, LaserScan, PoseDistribution, PoseGaussi
 from schemas.wire import Message
 from services import keys
 from services.fusion_runner import FUSIONS_KEPT, PoseSampling
+from services.handoff_lock import HandoffLock
 from services.process import RejectCounter, get_logger
 from services.state.checks import decode_of_robot, history_reply, robot_stream
 from services.state.join import (
@@ -192,9 +193,9 @@ class MapShard:
         self._last_sent: dict[TileKey, float] = {}
         self._last_scan: dict[TileKey, tuple[str, int]] = {}
         self.journal: Journal | None = None  # what changed since the last commit, for a shard with a store
-        # called after each scan of a batch is fused, the map whole (services.nodes.mapper hands its lock to the tile
-        # queries waiting for it there)
-        self.between_scans: Callable[[], None] = lambda: None
+        # the lock the mapper's main thread holds while this shard fuses (None: no one else reads the shard): between
+        # two scans of a batch it is handed to the tile queries waiting for it
+        self.handoff: HandoffLock | None = None
 
     # ------------------------------------------------------------------------------- intake
     def handle(self, key: str, payload: bytes, defer: bool = False) -> None:
@@ -511,10 +512,30 @@ class MapShard:
                 drawn.append((index, scan, got[0], got[1]))
                 reaches.append(got[2])
         drawn = self._within_map_limit(drawn, reaches)
-        for (index, scan, _, _), outcome in zip(drawn, self._fuse_drawn(drawn)):
-            tiles[index] = self._count_outcome(scan, outcome)
-            self.between_scans()  # (the map and its tiles' last scans whole)
+        outcomes: list[FuseResult | Exception] = []
+        counted = 0
+        for outcome in self._fuse_drawn(drawn):
+            outcomes.append(outcome)
+            if self.handoff is not None and self.handoff.waiting:  # (a tile query: the map whole, its tiles tagged)
+                counted = self._count_outcomes(drawn, outcomes, counted, tiles)
+                self.handoff.hand_off()
+        self._count_outcomes(drawn, outcomes, counted, tiles)
         return tiles
+
+    def _count_outcomes(
+        self,
+        drawn: list[tuple[int, LaserScan, np.ndarray, np.ndarray]],
+        outcomes: list[FuseResult | Exception],
+        counted: int,
+        tiles: list[list[TileKey]],
+    ) -> int:
+        """Count the outcomes of the scans of ``drawn`` from ``counted`` on (``outcomes`` has theirs) and note in
+        ``tiles`` the tiles each changed; how many are counted now. Taken after the batch, or before a hand-off, not
+        scan by scan: counting between two of the fusion's scans made the office's batches 9 % slower on two threads
+        (0.383 against 0.352 s for 200 scans, in one process in turns; the count itself takes 5 us a scan)."""
+        for (index, scan, _, _), outcome in zip(drawn[counted:], outcomes[counted:]):
+            tiles[index] = self._count_outcome(scan, outcome)
+        return len(outcomes)
 
     def _draw(self, scan: LaserScan, pose: PoseDistribution) -> tuple[np.ndarray, np.ndarray, tuple[float, int]] | None:
         """The pose samples and weights to fuse ``scan`` with, and how far from the samples its beams may reach: m
