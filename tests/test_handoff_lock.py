@@ -11,7 +11,7 @@ import pytest
 
 from bench.scenarios import honest_posed_scans, office_run
 from services.handoff_lock import HandoffLock
-from services.state.shard import MapShard
+from services.state.shard import MapShard, whole_tile
 from test_threads import _messages, _shard
 
 
@@ -103,7 +103,7 @@ def test_only_the_holder_may_hand_off():
 
 def _tiles(shard: MapShard) -> dict:
     """Each tile's whole values as a tile query's reply gives them."""
-    replies = {tile: shard.tile_message(tile) for tile in shard.tiles()}
+    replies = {tile: whole_tile(shard.tile_snapshot(tile)) for tile in shard.tiles()}
     return {tile: message.whole_layers() for tile, message in replies.items()}
 
 

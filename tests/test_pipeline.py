@@ -499,7 +499,8 @@ def test_a_sources_window_counts_the_scans_each_shard_dealt_with_since_the_run_b
     worked by hand: a scan fused, given up, dropped as a copy (resent) or refused on the robot's scan key, less what
     the shard had dealt with when the run began. Counted whole, a rerun under a robot name whose earlier run of 100
     scans the shard had fused was "taken" before it began, and went out unthrottled."""
-    from services.nodes.source import OTHER_KEYS, UPTIME_SLACK, baselines, scans_taken
+    from services.nodes.source import UPTIME_SLACK, baselines, scans_taken
+    from services.process import OTHER_KEYS
     from test_api_status import shard
 
     scan, pose = keys.robot_key("r", keys.SCAN), keys.robot_key("r", keys.POSE)

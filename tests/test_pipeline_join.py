@@ -30,7 +30,7 @@ from services.state.join import (
     SeqLedger,
 )
 from services.state.limits import ShardLimits
-from services.state.shard import FUSIONS_KEPT, SETTLE_AFTER, TAIL_AFTER, MapShard, ShardConfig
+from services.state.shard import FUSIONS_KEPT, SETTLE_AFTER, TAIL_AFTER, MapShard, ShardConfig, whole_tile
 from services.state.steps import OutOfOrder, StepAssembler
 
 
@@ -973,7 +973,7 @@ def test_tile_updates_carry_only_the_changed_cells():
         assert (decoded.row0, decoded.col0) == (rows[0], cols[0])
         assert (decoded.rows, decoded.cols) == (rows[-1] - rows[0] + 1, cols[-1] - cols[0] + 1)
         assert decoded.rows < shard.grid.tile_size  # a window, not the whole tile
-    assert shard.tile_message((0, 0)).is_whole()  # a tile query's reply gives every cell
+    assert whole_tile(shard.tile_snapshot((0, 0))).is_whole()  # a tile query's reply gives every cell
 
 
 def test_a_tiles_changes_join_until_it_is_published():

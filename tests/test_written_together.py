@@ -9,6 +9,7 @@ replaced a good calibration by a truncated one. The commands here run as process
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import resource
 import subprocess
@@ -59,8 +60,9 @@ def test_files_written_together_move_into_place_only_when_all_are_written(tmp_pa
         write_atomically(first, lambda handle: handle.write(b"new image"))
         write_atomically(second, lambda handle: handle.write(b"new yaml"))
     assert _contents(tmp_path) == {"a.pgm": b"new image", "a.yaml": b"new yaml"}
-    with pytest.raises(RuntimeError, match="do not nest"), written_together(), written_together():
-        pass
+    with pytest.raises(RuntimeError, match="do not nest"), contextlib.ExitStack() as stack:
+        stack.enter_context(written_together())
+        stack.enter_context(written_together())
 
 
 def test_simulate_on_a_full_disk_leaves_the_folders_old_run_whole(tmp_path):

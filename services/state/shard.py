@@ -615,22 +615,21 @@ class MapShard:
         InputError that refused it, or the error it failed with (logged; the scans after it are fused all the same).
         Several scans are walked side by side, a lone scan (a live laser's, fused as it comes) in parts on all the
         threads (mapping.fusion.FusionThreads)."""
-        outcomes = 0
-        while outcomes < len(drawn):
+        given = 0  # outcomes yielded
+        while given < len(drawn):
             scans = (
-                (self._fusion_for(scan), (scan.ranges, samples, weights))
-                for _, scan, samples, weights in drawn[outcomes:]
+                (self._fusion_for(scan), (scan.ranges, samples, weights)) for _, scan, samples, weights in drawn[given:]
             )
             failed: Exception | None = None
             try:
-                lone = len(drawn) - outcomes == 1  # a lone scan, as a list: walked in parts on all the threads
+                lone = len(drawn) - given == 1  # a lone scan, as a list: walked in parts on all the threads
                 for outcome in self._threads.fuse_iter(list(scans) if lone else scans):
-                    outcomes += 1
+                    given += 1
                     yield outcome
             except Exception as exc:  # noqa: BLE001 - counted and logged with its traceback (_count_outcome)
                 failed = exc  # (the scan whose turn it was; an InputError: a geometry no fusion takes)
             if failed is not None:
-                outcomes += 1
+                given += 1
                 yield failed
 
     def _count_outcome(self, scan: LaserScan, outcome: FuseResult | Exception) -> list[TileKey]:
@@ -794,14 +793,10 @@ class MapShard:
     def tiles(self) -> list[TileKey]:
         return self.grid.keys()
 
-    def tile_message(self, tile: TileKey) -> TileUpdate:
-        """The whole tile's current values: every cell given (a tile query's reply)."""
-        return whole_tile(self.tile_snapshot(tile))
-
     def tile_snapshot(self, tile: TileKey) -> TileSnapshot:
-        """A copy of the whole tile's layers and the fields of its reply (:func:`whole_tile` makes the reply): taken
-        while the shard's lock is held, about 0.04 ms a 256-cell tile, where making the reply takes 0.3 (and encoding
-        it 0.5, done after either way)."""
+        """A copy of the whole tile's layers and the fields of its reply (:func:`whole_tile` makes the reply, a tile
+        query's): taken while the shard's lock is held, about 0.04 ms a 256-cell tile, where making the reply takes 0.3
+        (and encoding it 0.5, done after either way)."""
         logodds, variance, observed = (np.array(layer) for layer in self.grid.tile_arrays(tile))
         return TileSnapshot((logodds, variance, observed), self._update_fields(tile, 0, 0))
 
