@@ -156,8 +156,9 @@ class SensorModel:
     def beam_reach(self, range_max: float) -> float:
         """How far from the laser a scan's fusion may walk a beam, m: a return just within ``range_max`` and its tail,
         TAIL_SIGMAS sigma past it, with half the peak width besides (sigma grows with the range in every model, so
-        it is largest there)."""
-        return float(range_max + TAIL_SIGMAS * float(self.sigma_at(range_max)) + self.l / 2)
+        it is largest there); inf where the sigma overflows (a range no laser gives)."""
+        with np.errstate(over="ignore"):
+            return float(range_max + TAIL_SIGMAS * float(self.sigma_at(range_max)) + self.l / 2)
 
     def sigma_at(self, z: float | np.ndarray) -> float | np.ndarray:
         """Range noise sigma(z) in m."""

@@ -164,6 +164,27 @@ def test_a_forged_end_far_ahead_cannot_make_the_counters_absurd():
     assert stats.rejected == {"pg/r/end": 1} and shard.rejects.kinds() == {"ahead": 1}
 
 
+def test_scans_past_an_end_taken_on_its_word_are_fused_and_said_once():
+    """A probe's finding: an end forged inside the seq window (announcing 12 scans while the run went on) was taken
+    without a word, and the shard then reported more scans fused than its stream's end announced. The scans that
+    follow are fused as before, and the contradiction is logged once (not once a scan)."""
+    shard = _shard()
+    _feed(shard, range(10))
+    shard.handle("pg/r/end", StreamEnd(robot="r", scans=12).encode())
+    records: list[str] = []
+    handler = logging.Handler()
+    handler.emit = lambda record: records.append(record.getMessage())
+    shard.log.addHandler(handler)
+    try:
+        _feed(shard, range(10, 20))
+    finally:
+        shard.log.removeHandler(handler)
+    stats = shard.stats({})
+    assert stats.fused == {"r": 20} and stats.ended == {"r": 12} and stats.discarded == {}
+    said = [r for r in records if "past the end" in r]
+    assert len(said) == 1 and "seq 12 came past the end of robot 'r'" in said[0] and "(12 scans" in said[0], said
+
+
 # ------------------------------------------------------------------------------------------------ resources
 
 
@@ -372,6 +393,60 @@ def test_a_pose_cloud_spread_over_a_large_area_is_refused_by_the_extent_limit():
     assert shard.stats({}).discarded == {"r": 1} and shard.rejects.kinds() == {"extent": 1} and not shard.tiles()
 
 
+@pytest.mark.parametrize(
+    ("model", "range_max"),
+    [(SensorModel(), 1e300), (SensorModel(), 1e7), (SensorModel(sigma="stereo", baseline_focal=100.0), 1e200)],
+    ids=["1e300 m", "1e7 m", "a reach of inf m"],
+)
+def test_a_scan_whose_range_reaches_absurdly_far_is_refused_and_the_shard_goes_on(model, range_max):
+    """A probe's finding: one scan with range_max 1e300 m (valid on the wire: finite and positive) crashed every
+    shard with an OverflowError, as the count of the tiles within its reach (about 1e604 cells) was written into the
+    refusal with :.3g; six such scans in a minute used up `posegrid run`'s restarts and stopped the run. With the
+    stereo model's sigma (z**2 / b f) the reach itself is inf. Refused as "extent", counted, and the next scans fuse."""
+    shard = MapShard(ShardConfig("m", 0, 1, model), RejectCounter(logging.getLogger("hostile")))
+    shard.handle("pg/r/scan", _scan(0, range_max=range_max).encode())
+    shard.handle("pg/r/pose", _pose(0).encode())
+    _feed(shard, range(1, 3))
+    stats = shard.stats({})
+    assert stats.fused == {"r": 2} and stats.discarded == {"r": 1} and shard.rejects.kinds() == {"extent": 1}
+    assert all(abs(tx) < 5 and abs(ty) < 5 for tx, ty in shard.tiles())
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    reach=st.floats(0.01, 2000.0),
+    tile_size=st.sampled_from([1, 4, 64, 256]),
+    max_scan_cells=st.integers(1, 10**9),
+    spread=st.sampled_from([0.0, 1.0, 40.0]),
+)
+def test_the_extent_limit_refuses_exactly_the_scans_whose_reach_holds_too_many_cells(
+    reach, tile_size, max_scan_cells, spread
+):
+    """The refusal of a reach too far to count (before reach_cells) never refuses a scan that the count of its
+    tiles would let through: "extent" exactly when reach_cells, the reference, passes the limit."""
+    samples = np.array([[3.0, 3.0, 0.0], [3.0 + spread, 3.0 - spread, 0.5]])
+    limits = ShardLimits(max_scan_cells=max_scan_cells, max_work=10**18, map_bound=1e4)
+    refused, _ = limits.check_scan(samples, 5, reach, 0.05, tile_size)
+    too_many = reach_cells(samples, reach, 0.05, tile_size) > max_scan_cells
+    assert (refused is not None and refused[0] == "extent") == too_many
+
+
+def test_a_check_that_fails_on_a_scan_is_counted_as_its_error_and_the_shard_goes_on():
+    """Whatever goes wrong while a scan is checked (a value the checks were not written for) is the scan's failure,
+    counted and logged with its traceback, not the shard's: nothing of that scan reaches the map."""
+
+    class Brittle(ShardLimits):
+        def check_scan(self, samples, beams, range_max, resolution, tile_size, sensor_reach=0.0):
+            if samples[0, 2] == 0.0:  # the pose of seq 0 (_pose's yaw is 0.01 seq)
+                raise OverflowError("a value the checks were not written for")
+            return super().check_scan(samples, beams, range_max, resolution, tile_size, sensor_reach)
+
+    shard = _shard(Brittle())
+    _feed(shard, range(3))
+    stats = shard.stats({})
+    assert stats.fused == {"r": 2} and stats.discarded == {"r": 1} and shard.rejects.kinds() == {"error": 1}
+
+
 def test_limits_refuse_nonsense_values():
     for bad in ({"max_beams": 0}, {"map_bound": float("nan")}, {"map_bound": -1.0}, {"seq_window": 0}):
         with pytest.raises(ValueError):
@@ -473,16 +548,18 @@ def test_after_the_hostile_keys_every_process_still_answers_and_fuses(pipeline):
     session, procs, api_port = pipeline
     put(session, "pg/robot0/*", b"")  # the finding's own put
     put(session, "pg/**", b"\x00")
+    put(session, "pg/r8/scan", _scan(0, "r8", range_max=1e300).encode())  # (crashed the shard: an OverflowError)
+    put(session, "pg/r8/pose", _pose(0, "r8").encode())
     put(session, "pg/r9/pose", _pose(0, "r9").encode())
     put(session, "pg/r9/scan", _scan(0, "r9").encode())
     deadline, stats = time.monotonic() + 60, None
     while time.monotonic() < deadline:
         replies = [r.ok for r in session.get("pg/map/m/stats/0", timeout=5) if r.ok is not None]
         stats = decode_message(replies[0].payload.to_bytes(), ShardStats) if replies else None
-        if stats is not None and stats.fused.get("r9") == 1:
+        if stats is not None and stats.fused.get("r9") == 1 and stats.discarded.get("r8") == 1:
             break
         time.sleep(0.2)
-    assert stats is not None and stats.fused.get("r9") == 1, stats
+    assert stats is not None and stats.fused.get("r9") == 1 and stats.discarded.get("r8") == 1, stats
     assert stats.rejected.get(keys.INVALID_KEY, 0) >= 2
     assert [r.ok for r in session.get("pg/robot0/slam/stats", timeout=5) if r.ok is not None]
     put(session, "pg/r9/scan", _scan(100_000, "r9").encode())

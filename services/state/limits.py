@@ -108,6 +108,15 @@ class ShardLimits:
                 f"{self.map_bound:g} m (--map-bound)"
             )
             return ("bound", why), 0
+        side = tile_size * resolution
+        if not (range_max + sensor_reach) / side < math.isqrt(self.max_scan_cells) / tile_size:  # (inf and nan too)
+            # the square of tiles within that reach alone holds more cells than the limit (so reach_cells would
+            # refuse it), and its count may be too large for a float: refused before it is counted
+            why = (
+                f"its beams may reach {range_max:.3g} m from the laser, and the tiles within that reach hold more "
+                f"cells than one scan may grow the map by ({self.max_scan_cells:.3g}, --max-scan-cells)"
+            )
+            return ("extent", why), 0
         cells = reach_cells(samples, range_max + sensor_reach, resolution, tile_size)
         if cells > self.max_scan_cells:
             why = (

@@ -184,6 +184,7 @@ class MapShard:
         self._heard: dict[str, float] = {}  # robot -> when its last scan or pose was taken, or its end came (clock s)
         self._unsettled: set[str] = set()  # robots whose stream has ended and that have had news since
         self._tails_asked: set[str] = set()  # of those, the robots whose tails were asked since their last news
+        self._past_end_said: dict[str, int] = {}  # robot -> the end a scan or pose came past, said once (_past_end)
         self.join_overflow = 0
         self.cells_updated = 0
         self.tile_updates = 0
@@ -310,6 +311,7 @@ class MapShard:
                 self._refuse_taken(key, message, held is not None)
             return
         self._heard[message.robot] = self._clock()
+        self._past_end(key, message)
         if message.robot in self.ended:  # (a late pose after the end: settle again once it is quiet)
             self._unsettled.add(message.robot)
             if not from_history:
@@ -325,6 +327,25 @@ class MapShard:
         self._ready_to_fuse(pairs)
         if not defer:
             self.fuse_ready()
+
+    def _past_end(self, key: str, message: ScanOrPose) -> None:
+        """Say, once per robot and end, a scan or pose of a seq at or past the end of its stream that this shard took
+        (an end inside the seq window is taken on its word): the end or the message was forged or stray. Both are
+        kept: raising the end to the message would let one forged scan hold back the source that waits for its
+        shards to account for its end, and the message is fused or given up as any other."""
+        end = self.ended.get(message.robot)
+        if end is None or message.seq < end or self._past_end_said.get(message.robot) == end:
+            return
+        self._past_end_said[message.robot] = end
+        self.log.warning(
+            "%s seq %d came past the end of robot %r's stream announced earlier (%d scans, seqs 0-%d): that end, or "
+            "this message, was forged or stray (two runs under one robot name?); both kept, said once per end",
+            key,
+            message.seq,
+            message.robot,
+            end,
+            end - 1,
+        )
 
     def _refuse_fused(self, key: str, stream: str, message: ScanOrPose) -> None:
         """Drop a scan or pose of a seq this shard has fused. One identical to the message fused is sent again (a
@@ -541,18 +562,19 @@ class MapShard:
         """The pose samples and weights to fuse ``scan`` with, and how far from the samples its beams may reach: m
         (the sensor model's reach for range_max, mapping.sensor_model.SensorModel.beam_reach, and the length of the
         sensor offset) and the cells of the tiles within that reach (services.state.limits.reach_cells); None after
-        counting why it is refused."""
+        counting why it is refused. A failure of the checks themselves (a value they were not written for) is
+        counted and logged as a failed fusion is: nothing of the scan reached the map, and the shard goes on."""
+        cfg = self.config
         try:
             samples, weights = self.pose_samples(scan, pose)
+            sensor_reach = math.hypot(float(scan.sensor_offset[0]), float(scan.sensor_offset[1]))
+            reach = cfg.model.beam_reach(scan.range_max)
+            refused, cells = cfg.limits.check_scan(
+                samples, scan.ranges.shape[0], reach, cfg.model.resolution, cfg.tile_size, sensor_reach
+            )
         except Exception as exc:  # noqa: BLE001 - counted and logged with its traceback (_count_outcome)
             self._count_outcome(scan, exc)
             return None
-        cfg = self.config
-        sensor_reach = math.hypot(float(scan.sensor_offset[0]), float(scan.sensor_offset[1]))
-        reach = cfg.model.beam_reach(scan.range_max)
-        refused, cells = cfg.limits.check_scan(
-            samples, scan.ranges.shape[0], reach, cfg.model.resolution, cfg.tile_size, sensor_reach
-        )
         if refused is not None:
             self._refuse(scan, *refused)
             return None
