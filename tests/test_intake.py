@@ -364,7 +364,8 @@ def test_a_far_seq_on_a_stream_the_filter_does_not_use_is_counted_and_leaves_the
 def test_landmark_steps_of_values_no_robot_gives_are_counted_and_skipped():
     """Valid on the wire, hostile in intent: a command of 10^6 m/s (the EKF then published poses 10^6 m away),
     ranges of 10^30 (FastSLAM divided by zero, with a traceback), 5 000 new landmark ids (three such messages took
-    a node past 5.8 GB). Each step is counted and skipped, and the real steps around them are taken."""
+    a node past 5.8 GB), a command of 0.5 m/s held for 2e4 s (the EKF 10^4 m away for good). Each step is counted
+    and skipped, and the real steps around them are taken."""
     published: list[bytes] = []
     rejects = _rejects("slam-hostile-values")
     config = NodeConfig(
@@ -380,8 +381,10 @@ def test_landmark_steps_of_values_no_robot_gives_are_counted_and_skipped():
         4: (walk, [7], [1e30], [0.1]),
         5: (walk, list(range(100, 5100)), [1.0] * 5000, [0.1] * 5000),
         6: (walk, [7], [1.0], [7.0]),  # a bearing beyond 2 pi
+        7: (np.array([[0.5, 0.0, 2e4]]), [7], [1.0], [0.1]),  # a slow command held 2e4 s (took the EKF 10^4 m away)
+        8: (np.tile([0.5, 0.0, 1.0], (120, 1)), [7], [1.0], [0.1]),  # 60 m in one step, in 120 commands
     }
-    for seq in range(10):
+    for seq in range(11):
         commands, ids, ranges, bearings = hostile.get(seq, (walk, [7], [2.0 - 0.05 * seq], [0.1]))
         odometry = Odometry(robot="r", seq=seq, stamp=0.1 * seq, pose=np.zeros((0, 3)), commands=commands)
         seen = LandmarkObservations(
@@ -390,8 +393,8 @@ def test_landmark_steps_of_values_no_robot_gives_are_counted_and_skipped():
         state.handle("pg/r/odom", odometry.encode())
         state.handle("pg/r/landmarks", seen.encode())
     poses = [decode_message(payload, PoseGaussian) for payload in published]
-    assert [pose.seq for pose in poses] == [0, 1, 2, 7, 8, 9] and rejects.kinds().get("step") == 4
-    assert all(np.hypot(*pose.mean[:2]) < 1.0 for pose in poses)  # 6 steps of 5 cm, not 10^5 m
+    assert [pose.seq for pose in poses] == [0, 1, 2, 9, 10] and rejects.kinds().get("step") == 6
+    assert all(np.hypot(*pose.mean[:2]) < 1.0 for pose in poses)  # 5 steps of 5 cm, not 10^5 m
     assert state.driver is not None and state.driver.filter.n_landmarks == 1
 
 

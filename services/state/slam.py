@@ -107,7 +107,9 @@ def check_landmark_step(
     limit: int = MAX_LANDMARKS,
 ) -> None:
     """StepError for a step of values no robot gives (valid on the wire, but they drove the filters to overflow,
-    a division by zero or poses 10^6 m away): a velocity command beyond slam.motion.VELOCITY_LIMIT, a landmark
+    a division by zero or poses 10^6 m away): a velocity command beyond slam.motion.VELOCITY_LIMIT, commands that
+    drive farther than slam.odometry_jumps.MAX_ODOMETRY_STEP in one step (0.5 m/s held for 2e4 s took a filter 10^4
+    m away for good), a landmark
     range not in (0, POSE_LIMIT] m or a bearing beyond BEARING_LIMIT rad (the offline readers keep these out of a
     filter: an MRCLAM log's are skipped, a simulator folder's refused),
     or landmarks that could take the filter past ``limit`` (:data:`MAX_LANDMARKS`, or :data:`MAX_EKF_LANDMARKS`):
@@ -117,6 +119,12 @@ def check_landmark_step(
         raise StepError(
             f"seq {odom.seq}: a velocity command beyond +-{VELOCITY_LIMIT:g} m/s or rad/s (no robot's); its "
             f"largest is {np.abs(odom.commands[:, :2]).max():g}"
+        )
+    travel = float(np.abs(odom.commands[:, 0]) @ odom.commands[:, 2]) if odom.commands.size else 0.0
+    if not travel <= MAX_ODOMETRY_STEP:
+        raise StepError(
+            f"seq {odom.seq}: its velocity commands drive {travel:.3g} m in one step (speed times dt, summed), more "
+            f"than the {MAX_ODOMETRY_STEP:g} m a step may move (slam.odometry_jumps.MAX_ODOMETRY_STEP)"
         )
     ranges, bearings = seen.ranges, seen.bearings
     if ranges.size and not ((ranges > 0).all() and (ranges <= POSE_LIMIT).all()):
