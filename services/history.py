@@ -72,10 +72,10 @@ class HistoryRequest:
         return self.first <= seq and (self.stop is None or seq < self.stop) and (self.seqs is None or seq in self.seqs)
 
 
-def parse_request(query: zenoh.Query, robot: str) -> HistoryRequest | None:
+def parse_request(query: zenoh.Query, robot: str, rejects: RejectCounter) -> HistoryRequest | None:
     """The request of ``query`` to ``robot``'s history: the streams asked for, narrowed to those whose
     pg/<robot>/history/<stream> key its key expression takes in; None after answering it with an error reply that
-    says what was wrong."""
+    says what was wrong, counted by ``rejects`` under pg/<robot>/history/** (kind "query", logged once)."""
     asked = query.parameters.get("streams")
     streams = set(STREAMS) if asked is None else set(asked.split(","))
     asked_first, stop = query.parameters.get("from"), query.parameters.get("to")
@@ -93,7 +93,9 @@ def parse_request(query: zenoh.Query, robot: str) -> HistoryRequest | None:
         shown = str(listed)[:100]
         problem = f"'seqs' must be at most {MAX_SEQS} comma-separated seqs 0 .. 10^18 in ASCII digits, got {shown!r}"
     if problem:
-        query.reply_err(f"history query {query.selector}: {problem}".encode())
+        said = f"history query {query.selector}: {problem}"
+        rejects.count(keys.history_key(robot), "query", said)
+        query.reply_err(said.encode())
         return None
     streams = {stream for stream in streams if query.key_expr.intersects(keys.history_key(robot, stream))}
     return HistoryRequest(

@@ -3,6 +3,7 @@ processes (a router and a shard) and Zenoh sessions played by the test: the real
 
 from __future__ import annotations
 
+import logging
 import time
 
 import pytest
@@ -11,6 +12,7 @@ import zenoh
 from peers import put
 from services import keys
 from services.ports import free_port
+from services.process import RejectCounter
 from services.zenoh_config import build_config
 from test_hostile_peers import _pose, _scan
 from test_pipeline import CLI, procs  # noqa: F401 - procs is a fixture
@@ -24,7 +26,7 @@ def _history_of(session: zenoh.Session, robot: str, held: dict[tuple[str, int], 
     who = history.Answerer(str(session.info.zid()), map_name, False)
 
     def answer(query: zenoh.Query) -> None:
-        request = history.parse_request(query, robot)
+        request = history.parse_request(query, robot, RejectCounter(logging.getLogger("history")))
         if request is None:
             return
         for (stream, seq), payload in sorted(held.items(), key=lambda item: item[0][1]):

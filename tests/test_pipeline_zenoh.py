@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import signal
 import subprocess
@@ -19,6 +20,7 @@ from services.commands.mapping import available_memory
 from services.commands.pipeline import check_shards_fit
 from services.errors import UsageError
 from services.ports import free_port
+from services.process import RejectCounter
 from services.zenoh_config import build_config, close_session, read_key
 
 CLI = [sys.executable, "-m", "services"]
@@ -507,7 +509,7 @@ def test_two_processes_answering_one_robots_history_are_both_refused(started):
 
         def answering(session, run: bytes, streams: set[str]):
             def answer(query):
-                request = history.parse_request(query, "r1")
+                request = history.parse_request(query, "r1", RejectCounter(logging.getLogger("history")))
                 for stream in sorted(streams & (request.streams if request else set())):
                     for seq in filter(request.wants, range(3)):
                         history.reply(

@@ -75,7 +75,7 @@ class SlamNode:
     def _on_history_query(self, query: zenoh.Query) -> None:
         """pg/<robot>/history/** (services.history): the poses this node has published, of the seqs asked for
         (the other streams are the source's to answer)."""
-        request = history.parse_request(query, self.config.robot)
+        request = history.parse_request(query, self.config.robot, self.rejects)
         if request is None or keys.POSE not in request.streams:  # (the node's own questions never ask for poses)
             return
         poses = self.state.poses(request.wants)  # (at once: the node's thread may be waiting on the source's history)

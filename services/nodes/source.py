@@ -29,7 +29,7 @@ import zenoh
 from schemas.messages import LaserScan, MessageError, NodeStats, ShardStats, StreamEnd, decode_message
 from services import history, keys
 from services.map_client import MapReader
-from services.process import OTHER_KEYS, WarnOnce, get_logger
+from services.process import OTHER_KEYS, RejectCounter, WarnOnce, get_logger
 from services.streams import Stream
 from services.zenoh_config import replier, undeclare_all
 
@@ -147,6 +147,7 @@ class Source:
         self._steps_done = 0  # steps the SLAM node has taken or given up on
         self._reader = MapReader(session, options.map_name)
         self._warn_once = WarnOnce(self.log)  # (the shards' and the SLAM node's stats' problems, said once)
+        self.rejects = RejectCounter(self.log)  # the history queries refused (logged once a kind)
         self._distrust: str | None = None  # why the shards' last stats were not trusted (None: they were)
         self._end_sent = 0.0  # time.monotonic() of the last StreamEnd published
         self._warned_beyond = False  # whether a shard holding more scans than this run published was reported
@@ -196,7 +197,7 @@ class Source:
 
     def _on_history_query(self, query: zenoh.Query) -> None:
         """pg/<robot>/history/** (services.history): the prior and the messages of the steps asked for."""
-        request = history.parse_request(query, self.stream.robot)
+        request = history.parse_request(query, self.stream.robot, self.rejects)
         if request is None:
             return
         with self._history_lock:

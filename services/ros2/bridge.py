@@ -184,7 +184,7 @@ class Bridge:
         query.reply(stats_key(self.options.robot), json.dumps(self.stats()).encode())
 
     def _on_history(self, query: zenoh.Query) -> None:
-        request = history.parse_request(query, self.options.robot)
+        request = history.parse_request(query, self.options.robot, self.rejects)
         if request is None:
             return
         answerer = history.Answerer(str(self.session.info.zid()), self.options.map_name, False)
