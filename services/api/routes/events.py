@@ -12,18 +12,40 @@ from services.api.routes.common import ApiDep, busy, error_response
 router = APIRouter()
 
 
+class ClientGone(Exception):
+    """The server could not write the stream's next event: its client has gone."""
+
+
 class SlotStream(StreamingResponse):
-    """A streaming response that gives its slot back when it ends, however it ends (a client gone before the
-    first event included)."""
+    """A streaming response that gives its slot back and closes its events' generator when it ends, however it
+    ends (a client gone before the first event included).
+
+    A client that leaves with another request queued behind the stream on its connection is not seen to go (the
+    server reads no more of that connection while the stream runs): the stream's next write (an event or the
+    keep-alive) raises RuntimeError from the closed transport (uvloop's), which is that client gone, not an error of
+    the API's. Ended by it, Starlette leaves the generator suspended, and with it its event-hub client, until the
+    garbage collector (a probe counted 39 such clients after 140 streams, with a queue each), so it is closed
+    here."""
 
     def __init__(self, content, slots: Slots, **kwargs) -> None:
         super().__init__(content, **kwargs)
         self.slots = slots
 
     async def __call__(self, scope, receive, send) -> None:
+        async def send_or_gone(message) -> None:
+            try:
+                await send(message)
+            except RuntimeError as exc:
+                raise ClientGone from exc
+
         try:
-            await super().__call__(scope, receive, send)
+            await super().__call__(scope, receive, send_or_gone)
+        except ClientGone:
+            pass  # nothing to answer, no one to answer it to
         finally:
+            close = getattr(self.body_iterator, "aclose", None)
+            if close is not None:
+                await close()
             self.slots.give_back()
 
 
