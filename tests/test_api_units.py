@@ -8,12 +8,15 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from mapping.pyramid import TileLayers
 from mapping.sensor_model import SensorModel, logit
 from schemas.messages import PoseGaussian, PoseSamples, TileUpdate
 from services.api.cache import ByteLRU
 from services.api.events import EventHub
+from services.api.export import Window
 from services.api.fastpath import etag_matches
 from services.api.registry import MapRegistry
 from services.api.render import LOGODDS_RANGE
@@ -558,3 +561,21 @@ def test_a_fetch_of_every_tile_says_which_shard_fell_short(monkeypatch):
     assert "shard 1 sent 0 of its 5 tiles" in (link.fetch_all("m")[1] or "")
     monkeypatch.setattr(link, "stats", lambda name: {})
     assert "no shard's stats" in (link.fetch_all("m")[1] or "")
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    first=st.integers(-(10**6), 10**6),
+    width=st.integers(1, 1000),
+    resolution=st.sampled_from([0.01, 0.025, 0.03, 0.05, 0.1, 0.2, 0.3, 1.0]),
+    inside=st.floats(0.001, 0.999),
+)
+def test_an_export_window_on_cell_edges_holds_exactly_the_cells_between_them(first, width, resolution, inside):
+    """A probe's finding: x_min = 5.05 m over 0.05 m cells (100.99999999999999 cells in floats) took in the cell
+    [5.00, 5.05) m, outside the window: one cell asked for gave 2 x 2. Edges written as cell edges (i * resolution)
+    give exactly the cells between them; edges inside cells take in the cells they cut."""
+    low, high = first * resolution, (first + width) * resolution
+    assert Window.of(low, low, high, high, resolution) == Window(first, first, first + width, first + width)
+    cut = Window.of(low + inside * resolution, low, high - inside * resolution, high, resolution)
+    assert (cut.ix0, cut.ix1) == (first, first + width)  # (the cells cut are in)
+    assert Window.of(5.05, 5.05, 5.1, 5.1, 0.05) == Window(101, 101, 102, 102)

@@ -24,10 +24,20 @@ TileKey = tuple[int, int]
 CELL_INDEX_LIMIT = 2.0**62
 
 
+# A window edge within this many cells (relative to its index) of a cell boundary lies on it: 5.05 m / 0.05 m is
+# 100.99999999999999 in floats, and floored it took in the cell [5.00, 5.05) m, wholly outside the window.
+ON_BOUNDARY = 1e-12
+
+
 def _cell_edge(edge: float, resolution: float, rounding: Callable[[float], int]) -> int:
-    """``rounding`` (math.floor or math.ceil) of ``edge`` / ``resolution`` (m over m/cell), held within
-    :data:`CELL_INDEX_LIMIT` so that a finite edge whose quotient overflows to inf gives a cell index too."""
-    return int(rounding(min(CELL_INDEX_LIMIT, max(-CELL_INDEX_LIMIT, edge / resolution))))
+    """``rounding`` (math.floor or math.ceil) of ``edge`` / ``resolution`` (m over m/cell), an edge within
+    :data:`ON_BOUNDARY` of a cell boundary taken as on it, held within :data:`CELL_INDEX_LIMIT` so that a finite
+    edge whose quotient overflows to inf gives a cell index too."""
+    cells = min(CELL_INDEX_LIMIT, max(-CELL_INDEX_LIMIT, edge / resolution))
+    boundary = round(cells)
+    if abs(cells - boundary) <= ON_BOUNDARY * max(1.0, abs(cells)):
+        return int(boundary)
+    return int(rounding(cells))
 
 
 @dataclass(frozen=True)
