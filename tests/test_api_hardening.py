@@ -382,6 +382,35 @@ def test_a_name_no_map_or_robot_could_have_is_422_without_echoing_it(api):
     assert httpx.get(f"{api}/maps/{'m' * 64}", timeout=30).status_code == 404  # (a name, of no map)
 
 
+def test_a_path_with_a_control_character_is_no_route(api):
+    """A probe's finding: every route also answered its path with a newline after it (the routes' patterns end in
+    $, which matches before a final newline): /health%0A was 200, /events%0A opened a stream."""
+    get_json(f"{api}/maps/{MAP}/stats")  # (the tile below is then cached: the fast path's pattern is checked too)
+    httpx.get(f"{api}/maps/{MAP}/tiles/0/0/0.png", timeout=30)
+    for path in ("/health%0A", f"/maps/{MAP}/stats%0A", f"/maps/{MAP}/tiles/0/0/0.png%0A", "/events%0A", "/maps%7F"):
+        with httpx.stream("GET", f"{api}{path}", timeout=30) as response:
+            response.read()
+            assert "control character" in problem(response, 404), path
+    assert httpx.get(f"{api}/health", timeout=30).status_code == 200
+
+
+def test_numbers_written_as_int_and_float_take_them_but_a_map_reader_would_not_are_422(api):
+    """A probe's finding: tile x "1_0" was tile 10, "+1" and " 1" tile 1, vmax=1_0 and x_min=1_0 were 10 (Python's
+    int() and float() take them). A parameter is ASCII digits as written in a URL: -1, 2.5, 1e3."""
+    for path in ("/tiles/0/1_0/0.png", "/tiles/0/%2B1/0.png", "/tiles/0/%201/0.png", "/tiles/0_0/0/0.png"):
+        assert "ASCII digits" in problem(httpx.get(f"{api}/maps/{MAP}{path}", timeout=30), 422), path
+    for params in ({"vmax": "1_0"}, {"vmax": " 1"}):
+        detail = problem(httpx.get(f"{api}/maps/{MAP}/tiles/0/0/0.png", params={"layer": "variance", **params}), 422)
+        assert "ASCII digits" in detail, params
+    window = {"x_min": "1_0", "y_min": "0", "x_max": "20", "y_max": "20"}
+    assert "ASCII digits" in problem(httpx.get(f"{api}/maps/{MAP}/export", params={"format": "npz", **window}), 422)
+    assert "ASCII digits" in problem(httpx.get(f"{api}/robots/robot0/pose", params={"max_samples": "1_0"}), 422)
+    assert "its row y" in problem(httpx.get(f"{api}/maps/{MAP}/tiles/0/0/.png", timeout=30), 404)  # (said "not .png")
+    assert "not 'a.gif'" in problem(httpx.get(f"{api}/maps/{MAP}/tiles/0/0/a.gif", timeout=30), 404)
+    for path in ("/tiles/0/-1/0.png", "/tiles/0/0/0.png?layer=variance&vmax=1e-3", "/tiles/0/0/0.png?vmax=.5"):
+        assert httpx.get(f"{api}/maps/{MAP}{path}", timeout=30).status_code in (200, 404), path
+
+
 def test_host_header_must_name_the_api(api):
     detail = problem(httpx.get(f"{api}/health", headers={"Host": "evil.example"}, timeout=30), 400)
     assert "evil.example" in detail and "--allowed-host" in detail
@@ -517,6 +546,34 @@ def test_event_streams_beyond_the_limit_are_503(api):
                 return again.status_code == 200
 
         wait_until(admitted, 30, "an event-stream slot to be free again")
+
+
+def test_an_event_stream_left_with_a_request_queued_behind_it_is_closed_at_its_next_write(stack):
+    """A probe's finding: a client that sent GET /events and another request on the same connection, then left,
+    left a traceback in the API's log (the write to the closed connection raised RuntimeError, as the queued
+    request keeps the server from reading the close) and, for most such streams, an event-hub client that was
+    never let go (/health's event_clients 39 after 140, a queue each that fills while a map changes). The stream
+    is closed at its next write (the keep-alive, 15 s), its client let go, without a traceback."""
+
+    api = start_api(stack, "api-events", "--max-event-clients", "16")
+
+    def clients() -> int:
+        return int(get_json(f"{api}/health")["event_clients"])
+
+    host = api.split("//")[1]
+    for _ in range(6):
+        with socket.create_connection((host.split(":")[0], int(host.split(":")[1])), timeout=10) as raw:
+            raw.sendall(
+                b"GET /events HTTP/1.1\r\nHost: localhost\r\n\r\nGET /health HTTP/1.1\r\nHost: localhost\r\n\r\n"
+            )
+            got = b""
+            while b"event: hello" not in got:
+                chunk = raw.recv(4096)
+                assert chunk, got
+                got += chunk
+    assert clients() == 6
+    wait_until(lambda: clients() == 0, 60, "the abandoned event streams to be let go")
+    assert "Traceback" not in (stack.logs / "api-events.log").read_text(errors="replace")
 
 
 def test_exports_beyond_the_limit_are_503(api, fake_shards):

@@ -51,7 +51,7 @@ class CachedTiles:
         self.tiles = tiles
 
     def _lookup(self, scope) -> Rendered | None:
-        match = TILE_PATH.match(scope["path"])
+        match = TILE_PATH.fullmatch(scope["path"])
         if match is None:
             return None
         name, z, x, y, fmt = match.groups()
@@ -65,7 +65,7 @@ class CachedTiles:
             return None
         vmax = None
         if "vmax" in params:
-            if PLAIN_NUMBER.match(params["vmax"]) is None:
+            if PLAIN_NUMBER.fullmatch(params["vmax"]) is None:
                 return None
             vmax = float(params["vmax"])
             if not (math.isfinite(vmax) and vmax > 0):

@@ -1,4 +1,5 @@
-"""Who may talk to the API: the Host header it answers to, and the access token, checked before anything else.
+"""Who may talk to the API: the Host header it answers to, and the access token, checked before anything else
+(and before them, that the path holds no control character: a 404).
 
 Host (DNS rebinding: a page from evil.example whose name is made to resolve to this machine would otherwise read
 the API as its own origin): the API answers only requests whose Host names it. Always: localhost, 127.0.0.1
@@ -68,6 +69,15 @@ def host_of(header: str | None) -> str | None:
     if port is not None and not 0 < int(port[1:]) < 65536:
         return None
     return match.group(1).lower().strip("[]")
+
+
+def _path_problem(path: str) -> tuple[int, list, bytes] | None:
+    """The 404 for a path that holds a control character (no route's does), else None. The routes' patterns end in
+    ``$``, which also matches before a final newline: /health%0A was answered as /health."""
+    bad = next((char for char in path if ord(char) < 0x20 or ord(char) == 0x7F), None)
+    if bad is None:
+        return None
+    return _problem(404, f"no path of this API holds a control character; this one holds {bad!r}")
 
 
 def _problem(status: int, detail: str, headers: Sequence[tuple[bytes, bytes]] = ()) -> tuple[int, list, bytes]:
@@ -144,7 +154,7 @@ class Guard:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        answer = self._host_problem(scope)
+        answer = _path_problem(scope["path"]) or self._host_problem(scope)
         if answer is None and self.token is not None:
             answer = self._token_answer(scope, dict(scope["headers"]))
         if answer is None:

@@ -5,11 +5,13 @@ map look-ups that answer 404 for an unknown map.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass, field
 from typing import Annotated
 
 import anyio
 from fastapi import Depends, HTTPException, Path, Request
+from pydantic import BeforeValidator
 
 from schemas.wire import NAME_PATTERN, NAME_RULE
 from services.api import models
@@ -42,6 +44,26 @@ def error_response(code: int, description: str) -> dict:
         }
     return entry
 
+
+#: an integer parameter as written: ASCII digits after an optional minus (int() also takes "1_0", " 1" and "+1":
+#: a probe's tile x of "1_0" was served as tile 10)
+PLAIN_INTEGER = re.compile(r"-?[0-9]{1,18}")
+#: a number parameter as written: a decimal or exponent form without "_" or spaces (float() takes "1_0" as 10)
+PLAIN_REAL = re.compile(r"[+-]?([0-9]+(\.[0-9]*)?|\.[0-9]+)([eE][+-]?[0-9]{1,3})?")
+
+
+def _plain(pattern: re.Pattern[str], what: str) -> BeforeValidator:
+    def check(value: object) -> object:
+        if isinstance(value, str) and pattern.fullmatch(value) is None:
+            raise ValueError(f"must be {what}")
+        return value
+
+    return BeforeValidator(check)
+
+
+#: the validators of an integer and a number parameter written as above (FastAPI's 422 when not)
+PlainInteger = _plain(PLAIN_INTEGER, "an integer in ASCII digits (an optional minus, then digits)")
+PlainReal = _plain(PLAIN_REAL, "a number in ASCII digits, as 2, -0.5 or 1e3")
 
 MapName = Annotated[
     str,

@@ -16,12 +16,13 @@ from mapping.errors import InputError
 from services.api.export import Window, covered, raster_shape, windowed
 from services.api.limits import EXPORT_BYTES_PER_CELL
 from services.api.render import export_body
-from services.api.routes.common import Api, ApiDep, MapName, busy, errors, known_map
+from services.api.routes.common import Api, ApiDep, MapName, PlainReal, busy, errors, known_map
 
 router = APIRouter()
 
 WindowEdge = Annotated[
     float | None,
+    PlainReal,
     Query(
         allow_inf_nan=False,
         description="export window edge, m in the map frame; give all four of x_min, y_min, x_max, y_max or none",

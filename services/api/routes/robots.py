@@ -11,7 +11,7 @@ from schemas.messages import RESERVED_ROBOT_NAMES
 from schemas.wire import NAME_PATTERN, NAME_RULE
 from services.api import models
 from services.api.robots import PoseSummary, RobotTracker, reduce_samples
-from services.api.routes.common import ApiDep, errors
+from services.api.routes.common import ApiDep, PlainInteger, errors
 
 router = APIRouter()
 
@@ -66,6 +66,7 @@ async def pose(
     robot: Robot,
     max_samples: Annotated[
         int | None,
+        PlainInteger,
         Query(
             ge=1,
             description="return at most this many samples, reduced by systematic resampling "

@@ -16,13 +16,14 @@ from fastapi.responses import Response
 
 from services.api.fastpath import tile_response
 from services.api.registry import MAX_LEVEL, MapInfo
-from services.api.routes.common import Api, ApiDep, MapName, errors, known_map
+from services.api.routes.common import Api, ApiDep, MapName, PlainInteger, PlainReal, errors, known_map
 from services.api.tiles import render_key
 
 router = APIRouter()
 
 Z = Annotated[
     int,
+    PlainInteger,
     Path(
         ge=0,
         le=MAX_LEVEL,
@@ -32,16 +33,20 @@ Z = Annotated[
 ]
 TileX = Annotated[
     int,
+    PlainInteger,
     Path(
         description="tile column at level z: map-frame x in [x*T*2^z*r, (x+1)*T*2^z*r) m "
         "(T = tile_size, r = resolution); may be negative"
     ),
 ]
 TileY = Annotated[
-    int, Path(description="tile row at level z: map-frame y in [y*T*2^z*r, (y+1)*T*2^z*r) m; may be negative")
+    int,
+    PlainInteger,
+    Path(description="tile row at level z: map-frame y in [y*T*2^z*r, (y+1)*T*2^z*r) m; may be negative"),
 ]
 Vmax = Annotated[
     float | None,
+    PlainReal,
     Query(
         gt=0,
         allow_inf_nan=False,
@@ -175,5 +180,8 @@ async def tile_npz(
 
 @router.get("/maps/{map}/tiles/{z}/{x}/{name}", include_in_schema=False)
 def tile_bad_format(map: str, z: str, x: str, name: str) -> None:
-    """404 for a tile of any other format."""
+    """404 for a tile of any other format, or a tile's file name without its row y."""
+    _, dot, suffix = name.rpartition(".")
+    if dot and suffix in ("png", "npz"):
+        raise HTTPException(404, f"a tile's file name is its row y, then .png or .npz (as 0.png, -3.npz), not {name!r}")
     raise HTTPException(404, f"tiles are served as .png or .npz, not {name!r}")
