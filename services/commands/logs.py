@@ -81,11 +81,12 @@ def read_log(path: Path, scan_topic: str | None = None):
 
 
 def _pose_file_trajectory(path: Path, estimate: str):
-    from schemas.files import load_pose_distribution
+    from schemas.files import load_pose_distribution, require_time_order
     from slam.angles import wrap_angle
     from slam.relations import Trajectory
 
     dist = load_pose_distribution(path)
+    require_time_order(dist.stamps, path, "POSES")
     poses = dist.poses
     if poses.is_gaussian:
         return Trajectory.sorted(dist.stamps, poses.gaussian()[0])

@@ -827,7 +827,7 @@ def _truth_at(path: Path, stamps):
     ground truth covers no stamp or holds two poses at one time."""
     import numpy as np
 
-    from schemas.files import load_pose_distribution
+    from schemas.files import load_pose_distribution, require_time_order
     from services.errors import UsageError
     from slam.mrclam import read_groundtruth
     from slam.scoring import fit_gaussian, interpolate_poses
@@ -861,14 +861,14 @@ def _truth_at(path: Path, stamps):
             f"{TRUTH_MARGIN:g} s of the time span of {path} ({first:.6f} .. {last:.6f} s); are they in "
             "the same time base?"
         )
-    order = truth_stamps.argsort(kind="stable")
-    repeated = np.flatnonzero(np.diff(truth_stamps[order]) <= 0.0)
+    require_time_order(truth_stamps, path, "the ground truth")
+    repeated = np.flatnonzero(np.diff(truth_stamps) <= 0.0)
     if len(repeated):
         raise UsageError(
-            f"{path}: holds two poses at {truth_stamps[order][repeated[0]]:.6f} s; ground truth needs one pose per "
+            f"{path}: holds two poses at {truth_stamps[repeated[0]]:.6f} s; ground truth needs one pose per "
             "time to be interpolated"
         )
-    return interpolate_poses(stamps, truth_stamps[order], mean[order]), covered
+    return interpolate_poses(stamps, truth_stamps, mean), covered
 
 
 def run_eval_traj(args: argparse.Namespace) -> int:
@@ -883,11 +883,12 @@ def run_eval_traj(args: argparse.Namespace) -> int:
     particles via a fitted Gaussian; about 0.95 when honest) and steps."""
     import numpy as np
 
-    from schemas.files import load_pose_distribution
+    from schemas.files import load_pose_distribution, require_time_order
     from services.errors import UsageError
     from slam.scoring import fit_gaussian, score_trajectory
 
     dist = load_pose_distribution(args.poses)
+    require_time_order(dist.stamps, args.poses, "the estimate")
     poses = dist.poses
     mean, cov = poses.gaussian() if poses.is_gaussian else fit_gaussian(*poses.weighted_samples())
     truth, covered = _truth_at(args.groundtruth, dist.stamps)
