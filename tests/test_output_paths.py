@@ -19,6 +19,8 @@ import pytest
 
 from schemas.files import load_map, output_path_problem, save_posed_scans, write_atomically
 from services.cli import main
+from services.commands.argtypes import refuse_another_kind
+from services.errors import UsageError
 from worlds import room_posed_scans
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -215,12 +217,9 @@ def test_a_file_of_another_kind_is_not_replaced(posed_file, tmp_path, capsys):
     """A new user's probe: `fuse -o keep.png` turned a PNG into a map, `calibrate -o map.npz` a map into JSON, exit 0
     (`export` refused a name of the other format). An output that would replace a file of another kind than it
     writes is refused; a file of its kind, or an empty one, is replaced."""
-    from services.commands.argtypes import refuse_another_kind
-    from services.errors import UsageError
-
     png = tmp_path / "keep.png"
     png.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(32))
-    one_line_exit_2(["fuse", str(posed_file), "-o", str(png)], capsys, "the file there is not a .npz archive")
+    one_line_exit_2(["fuse", str(posed_file), "-o", str(png)], capsys, "the file there is not a map")
     assert png.read_bytes().startswith(b"\x89PNG")
     assert main(["fuse", str(posed_file), "-o", str(tmp_path / "a.npz")]) == 0
     assert main(["fuse", str(posed_file), "-o", str(tmp_path / "a.npz")]) == 0  # (a map replaces a map)
@@ -232,14 +231,36 @@ def test_a_file_of_another_kind_is_not_replaced(posed_file, tmp_path, capsys):
     refuse_another_kind(tmp_path / "c.json", "json", "-o")
 
 
+def test_an_archive_of_another_kind_is_not_replaced(posed_file, tmp_path, capsys):
+    """A new user's probe: `fuse -o sim/truth.npz` replaced the simulator's truth raster with a map, exit 0 (any
+    .npz was taken as replaceable). A map replaces a map and poses replace poses; a truth raster, a posed-scan file
+    under a map, a map under poses or another program's archive is refused and kept."""
+    import numpy as np
+
+    truth, foreign, poses = tmp_path / "truth.npz", tmp_path / "foreign.npz", tmp_path / "poses.npz"
+    np.savez(truth, occupied=np.zeros((2, 2), bool), visible=np.ones((2, 2), bool))
+    np.savez(foreign, data=np.arange(3))
+    poses.write_bytes(posed_file.read_bytes())
+    for path in (truth, foreign, poses):
+        kept = path.read_bytes()
+        one_line_exit_2(["fuse", str(posed_file), "-o", str(path)], capsys, "the file there is not a map")
+        assert path.read_bytes() == kept
+    assert main(["fuse", str(posed_file), "-o", str(tmp_path / "map.npz")]) == 0
+    with pytest.raises(UsageError, match="not a posed-scan or pose-distribution file"):
+        refuse_another_kind(tmp_path / "map.npz", "poses", "-o")
+    refuse_another_kind(poses, "poses", "-o")  # (poses replace poses)
+    np.savez(tmp_path / "none.npz")  # an empty archive
+    refuse_another_kind(tmp_path / "none.npz", "map", "-o")
+
+
 def _an_old_archive() -> bytes:
-    """The bytes of a small .npz archive (an earlier output of the kind the writers replace)."""
+    """The bytes of a small .npz archive of an earlier map (an output of the kind `fuse` replaces)."""
     import io
 
     import numpy as np
 
     buffer = io.BytesIO()
-    np.savez(buffer, old=np.zeros(3))
+    np.savez(buffer, logodds=np.zeros(3))
     return buffer.getvalue()
 
 

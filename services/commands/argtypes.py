@@ -154,22 +154,41 @@ def checked_output(value: str | Path | None, option: str) -> Path | None:
 INPUT_FOLDER_FILES = ("*.dat", "*.db3", "*.mcap", "metadata.yaml")
 
 
-#: the first bytes of a file of each kind an output may replace: a zip archive (.npz) and a JSON object
-KIND_HEADS = {"npz": (b"PK\x03\x04", b"PK\x05\x06"), "json": (b"{",)}
-KIND_NAMES = {"npz": "a .npz archive", "json": "a JSON object"}
+#: the first bytes of a file of each kind an output may replace: a zip archive (.npz: a map, or poses) and a JSON
+#: object
+KIND_HEADS = {"map": (b"PK\x03\x04", b"PK\x05\x06"), "poses": (b"PK\x03\x04", b"PK\x05\x06"), "json": (b"{",)}
+#: the member a .npz archive of each kind holds (schemas.files: a map's logodds; a posed-scan or pose-distribution
+#: file's stamps), which one of another kind does not: a truth raster, a map where poses go
+KIND_MEMBERS = {"map": "logodds.npy", "poses": "stamps.npy"}
+KIND_NAMES = {
+    "map": "a map (.npz with logodds)",
+    "poses": "a posed-scan or pose-distribution file (.npz with stamps)",
+    "json": "a JSON object",
+}
 
 
 def refuse_another_kind(path: Path | None, kind: str, option: str) -> None:
-    """UsageError when ``path`` holds a file that is not of ``kind`` (KIND_HEADS: "npz" or "json"), which writing the
-    output would replace: a new user's probe had `fuse -o keep.png` turn a PNG into a map and `calibrate -o map.npz`
-    replace a map with JSON, exit 0. An empty file, or none, is taken."""
+    """UsageError when ``path`` holds a file that is not of ``kind`` (KIND_HEADS: "map", "poses" or "json"), which
+    writing the output would replace: a new user's probe had `fuse -o keep.png` turn a PNG into a map,
+    `calibrate -o map.npz` replace a map with JSON and `fuse -o sim/truth.npz` a truth raster with a map, exit 0.
+    An empty file or archive, or none, is taken."""
+    import zipfile
+
     from services.errors import UsageError
 
     if path is None or not path.is_file():
         return
     with path.open("rb") as file:
         head = file.read(64).lstrip()
-    if head and not head.startswith(KIND_HEADS[kind]):
+    same = not head or head.startswith(KIND_HEADS[kind])
+    if same and head and kind in KIND_MEMBERS:
+        try:
+            with zipfile.ZipFile(path) as archive:  # (its directory only: nothing is inflated)
+                members = archive.namelist()
+        except (zipfile.BadZipFile, OSError):
+            members = None
+        same = members is not None and (not members or KIND_MEMBERS[kind] in members)
+    if not same:
         raise UsageError(
             f"{option} {path}: the file there is not {KIND_NAMES[kind]}, which this command writes, and would be "
             "replaced: remove it first, or give another path"

@@ -278,7 +278,7 @@ def _output_paths(args: argparse.Namespace) -> tuple[Path, Path]:
     check_outputs(
         args,
         inputs=(args.input,),
-        kinds={"output": "npz", "best_output": "npz", "poses_output": "npz"},
+        kinds={"output": "poses", "best_output": "poses", "poses_output": "poses"},
         output="-o",
         best_output="--best-output",
         poses_output="--poses-output",
@@ -286,8 +286,8 @@ def _output_paths(args: argparse.Namespace) -> tuple[Path, Path]:
     )
     best = args.best_output or checked_output(args.output.with_suffix(".best.npz"), "--best-output's default")
     poses = args.poses_output or checked_output(args.output.with_suffix(".poses.npz"), "--poses-output's default")
-    refuse_another_kind(best, "npz", "--best-output")
-    refuse_another_kind(poses, "npz", "--poses-output")
+    refuse_another_kind(best, "poses", "--best-output")
+    refuse_another_kind(poses, "poses", "--poses-output")
     named = [
         ("-o", args.output),
         ("--best-output" if args.best_output else "--best-output's default", best),

@@ -456,7 +456,7 @@ def run_fuse(args: argparse.Namespace) -> int:
     from schemas.files import MapFile, load_posed_scans, save_map
     from services.errors import UsageError
 
-    check_outputs(args, inputs=(args.posed,), kinds={"output": "npz"}, output="-o")
+    check_outputs(args, inputs=(args.posed,), kinds={"output": "map"}, output="-o")
     _refuse_unread_options(args)
     threads = threads_from_args(args)
     model = sensor_model_from_args(args)

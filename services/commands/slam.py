@@ -744,7 +744,7 @@ def run_slam(args: argparse.Namespace) -> int:
     particles and their weights before resampling. The filter starts at the true first pose (simulator; MRCLAM
     ground truth) or at --initial. Landmark positions are estimated, never read from the input's truth."""
     _refuse_ignored_options(args)
-    check_outputs(args, inputs=(args.input,), kinds={"output": "npz"}, output="-o")
+    check_outputs(args, inputs=(args.input,), kinds={"output": "poses"}, output="-o")
     if args.algo == "gridslam":  # laser logs: services/commands/gridslam.py
         from services.commands.gridslam import run_gridslam_command
 
