@@ -161,6 +161,21 @@ def test_simulate_checks_its_folder_and_files_before_simulating(tmp_path, capsys
     one_line_exit_2(["simulate", ""], capsys, "an empty path names no folder")
 
 
+def test_simulate_refuses_a_folder_of_another_dataset(tmp_path, capsys):
+    """A new user's probe: `simulate` into a copy of an MRCLAM folder wrote its files beside the tables, and `slam`
+    then read the folder as the simulation (the MRCLAM data no longer reachable through it). A folder holding a
+    dataset's files (MRCLAM tables, a ROS 2 bag) is refused and left as it was."""
+    for name in ("Robot1_Odometry.dat", "metadata.yaml"):
+        folder = tmp_path / name.split(".")[0]
+        folder.mkdir()
+        (folder / name).write_text("1 2 3\n")
+        one_line_exit_2(["simulate", str(folder), "--steps", "5"], capsys, "holds another dataset's files", name)
+        assert [p.name for p in folder.iterdir()] == [name]
+    (tmp_path / "notes").mkdir()
+    (tmp_path / "notes" / "README.txt").write_text("mine")
+    assert main(["simulate", str(tmp_path / "notes"), "--steps", "5", "--beams", "5"]) == 0  # (other files: taken)
+
+
 def test_dev_full_is_refused_up_front_and_stays_a_device(posed_file, tmp_path, capsys):
     """/dev/full is only stat-ed and reached through a link in tmp_path (a writer that renamed onto its output
     would replace the link, not the device), and named directly only once the writer is shown to refuse every

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, NoReturn
 
 from services.commands.argtypes import (
+    INPUT_FOLDER_FILES,
     check_outputs,
     checked_output,
     finite_float,
@@ -253,6 +254,13 @@ def _simulation_folder(text: str) -> Path:
     parent = folder.absolute().parent
     if not parent.is_dir():  # as every output path: a mistyped parent is not made
         raise UsageError(f"OUTDIR {folder}: folder {parent} does not exist; create it first or give another OUTDIR")
+    held = sorted(p.name for pattern in INPUT_FOLDER_FILES for p in folder.glob(pattern)) if folder.is_dir() else []
+    if held:  # (a simulation written beside an MRCLAM folder's tables is what `slam` then reads: theirs are lost)
+        shown = ", ".join(held[:3]) + (", ..." if len(held) > 3 else "")
+        raise UsageError(
+            f"OUTDIR {folder}: holds another dataset's files ({shown}); a simulation goes in a folder of its own: "
+            "give a new or empty one"
+        )
     try:
         folder.mkdir(exist_ok=True)
     except OSError as exc:
