@@ -14,6 +14,7 @@ import argparse
 import contextlib
 import importlib
 import io
+import os
 import signal
 import sys
 
@@ -89,8 +90,14 @@ def main(argv: list[str] | None = None) -> int:
     except input_errors() as exc:
         print(f"posegrid {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # (the program reading its output stopped: as `head` does)
+        devnull = os.open(os.devnull, os.O_WRONLY)  # (else the flush at exit says it again, with a traceback)
+        os.dup2(devnull, sys.stdout.fileno())
+        print(f"posegrid {args.command}: error: its output's reader stopped reading (broken pipe)", file=sys.stderr)
+        return 2
     except OSError as exc:
-        print(f"posegrid {args.command}: error: {exc.strerror or exc} ({exc.filename or ''})", file=sys.stderr)
+        where = f" ({exc.filename})" if exc.filename else ""
+        print(f"posegrid {args.command}: error: {exc.strerror or exc}{where}", file=sys.stderr)
         return 2
     except MemoryError as exc:  # numpy's names the size it could not allocate
         print(

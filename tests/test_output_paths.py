@@ -506,3 +506,24 @@ def test_a_pgm_export_whose_yaml_would_replace_the_map_is_refused(tmp_path, pose
         "is a file this command reads",
     )
     assert map_path.read_bytes() == before and not (tmp_path / "m.pgm").exists()
+
+
+def test_a_reader_that_stopped_reading_is_one_line_without_empty_brackets(sim_folder, tmp_path):
+    """A new user's probe: `posegrid eval ... | true` said "error: Broken pipe ()" (and a standard output on a full
+    disk "No space left on device ()": an error that names no file now names none). A pipe whose reader has gone,
+    as from a shell, gives one line and exit 2."""
+    read_end, write_end = os.pipe()
+    os.close(read_end)  # (the reader gone before anything is written)
+    try:
+        result = subprocess.run(
+            [sys.executable, "-m", "services", "eval-traj", str(sim_folder / "groundtruth.npz"), str(sim_folder)],
+            stdout=write_end,
+            stderr=subprocess.PIPE,
+            text=True,
+            timeout=120,
+            check=False,
+        )
+    finally:
+        os.close(write_end)
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip() == "posegrid eval-traj: error: its output's reader stopped reading (broken pipe)"
