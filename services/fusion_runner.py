@@ -3,6 +3,9 @@ same way, so a sharded map equals the in-process one cell for cell)."""
 
 from __future__ import annotations
 
+import sys
+import threading
+import time
 from collections import OrderedDict
 from collections.abc import Callable, Generator
 from contextlib import closing
@@ -142,6 +145,39 @@ FUSIONS_KEPT = 8
 #: a fusion pass (mapping.fusion.MonteCarloFusion, mapping.adaptive.AdaptiveFusion)
 Fusion = TypeVar("Fusion")
 
+#: s one scan of `posegrid fuse` may take before it says why (a scan takes milliseconds; one that needs a kernel
+#: not yet compiled, where their cache is cold, waits for the compiler: up to a minute on 2 cores, said by nothing)
+SLOW_SCAN = 5.0
+SLOW_SCAN_NOTE = (
+    "posegrid fuse: the fusion kernels are compiling (once after an install or a change of posegrid, up to a "
+    "minute or two on 2 cores; `make install` compiles them ahead)..."
+)
+
+
+class SlowScanWatch:
+    """Says :data:`SLOW_SCAN_NOTE` on standard error, once, when no scan has finished for ``seconds`` (a thread
+    that looks twice a second; :meth:`beat` after each scan, a float written)."""
+
+    def __init__(self, seconds: float) -> None:
+        self.seconds = seconds
+        self.last = time.monotonic()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._watch, name="slow-scan-watch", daemon=True)
+        self._thread.start()
+
+    def beat(self) -> None:
+        self.last = time.monotonic()
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def _watch(self) -> None:
+        while not self._stop.wait(min(0.5, self.seconds)):
+            if time.monotonic() - self.last > self.seconds:
+                print(SLOW_SCAN_NOTE, file=sys.stderr, flush=True)
+                return
+
 
 def _scans(
     posed: PosedScans, make: Callable[[ScanGeometry], Fusion], model: SensorModel, options: FusionOptions
@@ -161,12 +197,19 @@ def _scans(
     passes: OrderedDict[tuple, Fusion] = OrderedDict()
     steps = range(len(posed.stamps))
     # (disable None: no bar when stderr is no terminal, a log file or a pipe)
+    watch = SlowScanWatch(SLOW_SCAN) if progress else None
     with tqdm(total=len(steps), desc="fusing", unit="scan", disable=None if progress else True, mininterval=0.5) as bar:
-        for t in steps:  # the bar closes (its line ends) when the caller closes this generator, before any error
-            range_max = float(posed.range_max[t])
-            samples, weights = sampling.draw(t, range_max, **{name: array[t] for name, array in arrays.items()})
-            yield _pass_for(passes, posed, t, make), (posed.scan_ranges(t), samples, weights)
-            bar.update()
+        try:
+            for t in steps:  # the bar closes (its line ends) when the caller closes this generator, before any error
+                range_max = float(posed.range_max[t])
+                samples, weights = sampling.draw(t, range_max, **{name: array[t] for name, array in arrays.items()})
+                yield _pass_for(passes, posed, t, make), (posed.scan_ranges(t), samples, weights)
+                bar.update()
+                if watch is not None:
+                    watch.beat()
+        finally:
+            if watch is not None:
+                watch.close()
 
 
 def _pass_for(

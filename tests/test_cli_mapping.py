@@ -9,6 +9,7 @@ import json
 import os
 import subprocess
 import sys
+import time
 import warnings
 from collections.abc import Callable
 from pathlib import Path
@@ -95,6 +96,29 @@ def test_fuse_says_when_the_accuracy_asked_passes_the_sample_cap(posed_file, tmp
     assert "of 10 scans; they are fused with 200" in fine.stderr
     coarse = posegrid("fuse", str(posed_file), "-o", str(tmp_path / "b.npz"), "--accuracy", "10")
     assert coarse.returncode == 0 and "pose samples on" not in coarse.stderr, coarse.stderr
+
+
+def test_fuse_says_why_a_scan_is_slow_and_only_then(posed_file, tmp_path, capsys, monkeypatch):
+    """A new user's probe: with a cold kernel cache `posegrid fuse` printed nothing for 65 s (its bar is off
+    without a terminal). A scan slower than SLOW_SCAN (here the third, as a kernel its poses first need compiles)
+    says, once, that the kernels are compiling; fast ones say nothing."""
+    import services.fusion_runner as runner
+
+    assert main(["fuse", str(posed_file), "-o", str(tmp_path / "fast.npz")]) == 0
+    assert "kernels are compiling" not in capsys.readouterr().err  # (warm: a scan takes ms)
+    calls = [0]
+    pass_for = runner._pass_for
+
+    def slow_third(*args):
+        calls[0] += 1
+        if calls[0] in (3, 5):
+            time.sleep(1.0)  # (as a compile)
+        return pass_for(*args)
+
+    monkeypatch.setattr(runner, "_pass_for", slow_third)
+    monkeypatch.setattr(runner, "SLOW_SCAN", 0.2)
+    assert main(["fuse", str(posed_file), "-o", str(tmp_path / "slow.npz")]) == 0
+    assert capsys.readouterr().err.count(runner.SLOW_SCAN_NOTE) == 1
 
 
 def test_fuse_is_reproducible_byte_for_byte(posed_file, tmp_path):
