@@ -594,10 +594,18 @@ def _read_offset(data: dict, steps: int, path) -> np.ndarray:
     if "sensor_offset" not in data:
         return np.zeros(3)
     offset = _numeric(data["sensor_offset"], "sensor_offset", path).astype(np.float64)
-    if offset.shape not in ((3,), (steps, 3)) or not np.isfinite(offset).all():
+    if offset.shape not in ((3,), (steps, 3)):
         raise FormatError(
             f"{path}: 'sensor_offset' must be 3 finite numbers (x m, y m, yaw rad), or ({steps}, 3) of them (one "
             f"row per scan), got shape {offset.shape}"
+        )
+    if not np.isfinite(offset).all():
+        raise FormatError(f"{path}: 'sensor_offset' holds NaN or inf; it is (x m, y m, yaw rad), finite numbers")
+    yaw = offset[..., 2]
+    if np.abs(yaw).max() > 2.0 * np.pi:  # (a mount of 90 deg fused every scan turned a quarter)
+        raise FormatError(
+            f"{path}: 'sensor_offset' yaw {float(yaw.flat[np.argmax(np.abs(yaw))]):g} is more than a full turn: give "
+            f"it in rad (90 deg is {np.radians(90):.4f})"
         )
     return offset
 

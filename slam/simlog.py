@@ -19,6 +19,7 @@ and poses or positions beyond +-POSE_LIMIT (1e7 m; slam.laserlog).
 
 from __future__ import annotations
 
+import math
 import zipfile
 import zlib
 from dataclasses import dataclass
@@ -211,6 +212,11 @@ def load_sim_log(folder: str | Path) -> SimLog:
             "truth": pose_range,
         },
     )
+    if not abs(float(c["initial_pose"][2])) <= 2.0 * math.pi:  # (a heading of 90 deg drove every filter off)
+        raise LogFormatError(
+            f"{folder / CONTROLS_FILE}: 'initial_pose' yaw {float(c['initial_pose'][2]):g} is more than a full turn: "
+            f"give it in rad (90 deg is {math.radians(90):.4f})"
+        )
     a1, a2, a3, a4, a5, a6 = (float(a) for a in c["velocity_alphas"])  # (6,), as _load checked
     o1, o2, o3, o4 = (float(a) for a in c["odometry_alphas"])  # (4,), as _load checked
     return SimLog(

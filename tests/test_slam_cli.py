@@ -421,6 +421,7 @@ def _altered_copy(simdir: Path, folder: Path, name: str, **arrays) -> Path:
         ("landmarks.npz", "bearing", "1e20", "'bearing' must lie in [-6.28319, 6.28319]"),
         ("landmarks.npz", "sigma_bearing", 1e-300, "'sigma_bearing' must lie in [0.001, 3.14159]"),
         ("landmarks.npz", "id", "0.5", "'id' must hold whole numbers"),
+        ("controls.npz", "initial_pose", [1.5, 6.0, 90.0], "'initial_pose' yaw 90 is more than a full turn"),  # (deg)
     ],
 )
 def test_simulator_folder_values_the_filters_cannot_use_exit_2(simdir, tmp_path, capsys, name, key, value, message):
