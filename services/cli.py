@@ -63,6 +63,30 @@ def command_parser(parser: argparse.ArgumentParser, command: str | None) -> argp
     return parser
 
 
+#: options whose value is a comma-separated list that may start with a minus (argparse takes "-1,2,0.5" for an
+#: option, not a negative number, and said "--initial: expected one argument")
+SIGNED_LISTS = ("--initial",)
+
+
+def joined_signed_lists(argv: list[str]) -> list[str]:
+    """``argv`` with each ``OPTION VALUE`` of :data:`SIGNED_LISTS` whose value starts with a minus and a digit
+    written ``OPTION=VALUE``, as argparse takes it."""
+    joined: list[str] = []
+    tokens = iter(argv)
+    for token in tokens:
+        if token in SIGNED_LISTS:
+            value = next(tokens, None)
+            if value is not None and len(value) > 1 and value[0] == "-" and (value[1].isdigit() or value[1] == "."):
+                joined.append(f"{token}={value}")
+                continue
+            joined.append(token)
+            if value is not None:
+                joined.append(value)
+            continue
+        joined.append(token)
+    return joined
+
+
 def main(argv: list[str] | None = None) -> int:
     if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         # inherited by a background job of a script: a SIGINT before a service installs its stop handlers (which
@@ -70,7 +94,7 @@ def main(argv: list[str] | None = None) -> int:
         signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         parser = build_parser()  # (imports every command module: a SIGINT may well arrive here)
-        args, extras = parser.parse_known_args(argv)
+        args, extras = parser.parse_known_args(joined_signed_lists(sys.argv[1:] if argv is None else argv))
         if extras:  # (said with the command's own usage: the top-level parser's named no option of it)
             command_parser(parser, getattr(args, "command", None)).error(f"unrecognized arguments: {' '.join(extras)}")
     except KeyboardInterrupt:

@@ -272,6 +272,23 @@ def test_mrclam_period_and_initial_pose_are_bounded(tmp_path, capsys):
     assert not out.exists()
 
 
+def test_an_initial_pose_with_a_negative_x_is_taken_as_written(tmp_path, capsys):
+    """A new user's probe: `--initial -1,2,0.5`, as the help writes a pose, said "--initial: expected one argument"
+    (argparse took -1,2,0.5 for an option); only --initial=-1,2,0.5 worked. Both forms start the filter there."""
+    from services.cli import joined_signed_lists
+
+    _mrclam_sample(tmp_path)
+    starts = []
+    for form in (["--initial", "-1,2,0.5"], ["--initial=-1,2,0.5"], ["--initial", "-.5,-2,-0.5"]):
+        out = tmp_path / "x.npz"
+        argv = ["slam", "--algo", "ekf", str(tmp_path), "--robot", "1", "--calibration", "none", "-o", str(out), *form]
+        assert main(argv) == 0, capsys.readouterr().err
+        starts.append(load_pose_distribution(out).poses.mean[0])
+    np.testing.assert_array_equal(starts[0], starts[1])
+    assert np.abs(starts[0] - [-1.0, 2.0, 0.5]).max() < 0.5 and np.abs(starts[2] - [-0.5, -2.0, -0.5]).max() < 0.5
+    assert joined_signed_lists(["--initial", "-x", "--initial"]) == ["--initial", "-x", "--initial"]  # (not a number)
+
+
 def test_mrclam_measurements_after_the_odometry_are_skipped_and_counted(tmp_path, capsys):
     # odometry 10.0-12.9 s; a measurement at 400 s used to stretch the run to 400 s of made-up zero commands
     _mrclam_sample(tmp_path)
