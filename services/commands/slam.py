@@ -455,6 +455,14 @@ def mrclam_input(args: argparse.Namespace):
         )
     initial = np.array(initial_pose(args.initial)) if args.initial is not None else None
     run = mrclam.read_mrclam(args.input, args.robot)
+    usable = len(run.measurements)
+    if getattr(args, "algo", None) != "odometry" and run.skipped_invalid > usable:
+        raise UsageError(  # (negated ranges or bearings in degrees ran as dead reckoning, exit 0)
+            f"{args.input} robot {args.robot}: {run.skipped_invalid} of its "
+            f"{run.skipped_invalid + usable} landmark measurements have a range <= 0 m or a bearing beyond a full "
+            f"turn, more than the {usable} usable: is its Measurement file in m and rad? (--algo odometry does "
+            "without them)"
+        )
 
     def sequence_at(delay: float):
         return mrclam.mrclam_sequence(run, initial_pose=initial, period=period, command_delay=delay)
