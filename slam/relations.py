@@ -139,7 +139,8 @@ def read_relations(path: str | Path) -> Relations:
 
     Blank and ``#`` lines are passed over; a line with another field count, a field that is not a finite
     number, t1 == t2, or a displacement beyond :data:`MAX_DISPLACEMENT` is skipped and recorded with its line
-    number. Raises :class:`LogFormatError` when the file cannot be read or holds no relation.
+    number. Raises :class:`LogFormatError` when the file cannot be read, holds no relation, or an angle of more than a
+    full turn (a file in degrees: a probe's scored with exit 0, its rotational error 91.9 deg).
     """
     path = Path(path)
     refuse_special_file(path, "relation file")
@@ -165,6 +166,11 @@ def read_relations(path: str | Path) -> Relations:
                 skipped.append(Skipped(number, "t1 equals t2"))
             elif max(abs(v) for v in values[2:5]) > MAX_DISPLACEMENT:
                 skipped.append(Skipped(number, f"a displacement beyond {MAX_DISPLACEMENT:g} m"))
+            elif max(abs(v) for v in values[5:8]) > 2.0 * math.pi:  # (a file in degrees: not one line's fault)
+                raise LogFormatError(
+                    f"{path}:{number}: an angle of {max(values[5:8], key=abs):g} is more than a full turn: a relation "
+                    "file's roll, pitch and yaw are in rad"
+                )
             else:
                 rows.append(values)
                 lines.append(number)

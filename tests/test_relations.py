@@ -85,6 +85,11 @@ def test_relation_file_bad_lines(tmp_path):
         read_relations(write(tmp_path, "empty", ["# nothing"]))
     with pytest.raises(LogFormatError, match="no relation matches"):
         score_relations(Trajectory(np.array([100.0, 101.0]), np.zeros((2, 3))), relations)
+    # a file in degrees (a probe's: scored at exit 0, 91.9 deg of rotational error) is refused, not half skipped
+    degrees = ["1 2 0.5 0 0 0 0 0.5", "3 4 0.5 0 0 0 0 -45.0", "5 6 0.5 0 0 0 0 2.0"]
+    with pytest.raises(LogFormatError, match=r"r-deg:2: an angle of -45 is more than a full turn.*in rad"):
+        read_relations(write(tmp_path, "r-deg", degrees))
+    assert read_relations(write(tmp_path, "r-rad", ["1 2 0.5 0 0 0 0 -6.28", "3 4 0 0 0 0 0 3.14"])).lines.size == 2
 
 
 def small_log(stamps, ranges, poses=None, odom_stamps=(), odom_poses=()) -> LaserLog:
