@@ -709,6 +709,7 @@ def test_unusable_laser_logs_exit_2_without_output(tmp_path, capsys, log_kwargs,
         ("--grid-resolution", "5", "--grid-resolution must be in [0.01, 1] m"),
         ("--linear-update", "-0.1", "--linear-update and --angular-update must be >= 0"),
         ("--angular-update", "-0.1", "--linear-update and --angular-update must be >= 0"),
+        ("--angular-update", "30", "--angular-update 30 is more than a full turn: give it in rad"),
         ("--particles", "1001", "--particles for grid FastSLAM must be at most 1000"),  # 10 000 asked for 32 GiB
         ("--widen", "0.5", "widen >= 1"),
     ],

@@ -266,6 +266,11 @@ def gridslam_config(args: argparse.Namespace):
         raise UsageError(f"grid FastSLAM option out of range: {exc}") from None
     if config.linear_update < 0 or config.angular_update < 0:
         raise UsageError("--linear-update and --angular-update must be >= 0")
+    if config.angular_update > 2.0 * math.pi:  # (30 was taken: almost five turns, never reached)
+        raise UsageError(
+            f"--angular-update {config.angular_update:g} is more than a full turn: give it in rad (30 deg is "
+            f"{math.radians(30):.4f})"
+        )
     return config
 
 
