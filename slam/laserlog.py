@@ -208,12 +208,13 @@ NO_RETURN_RANGE = 0.0
 NO_RETURN_NOTE_RATIO = 1.5
 
 
-def no_return_note(log: LaserLog, no_return_range: float) -> str | None:
+def no_return_note(log: LaserLog, no_return_range: float, reach: float = math.inf) -> str | None:
     """A sentence on a log's beams with no return (+inf, or above the scan's range_max) when they are mapped with a
     ``no_return_range`` (m) of 0 (they say nothing: how many there are, and how to let them clear) or of more than
     NO_RETURN_NOTE_RATIO times the farthest return the log has (they clear free space far past anything its laser
-    returned, through whatever they met). None when the log has no such beams, or no return, or the range lies
-    within reach of its returns."""
+    returned, through whatever they met). ``reach`` (m): how far the map takes any beam (grid FastSLAM's
+    --max-range), which caps the clearing said as the laser's range_max does. None when the log has no such beams,
+    or no return, or the range lies within reach of its returns."""
     ranges = np.asarray(log.ranges, np.float64)
     stated = np.asarray(log.range_max, np.float64)[:, None]
     no_return = np.isposinf(ranges) | (np.isfinite(ranges) & (ranges > stated))
@@ -221,7 +222,7 @@ def no_return_note(log: LaserLog, no_return_range: float) -> str | None:
     if not no_return.any() or not returns.any():
         return None
     farthest = float(ranges[returns].max())
-    clears = float(min(no_return_range, float(stated.max())))
+    clears = float(min(no_return_range, float(stated.max()), reach))
     share = 100.0 * np.count_nonzero(no_return) / np.count_nonzero(~np.isnan(ranges))
     if clears == 0.0:
         return (
@@ -233,8 +234,9 @@ def no_return_note(log: LaserLog, no_return_range: float) -> str | None:
         return None
     return (
         f"{log.source}: its laser returned at most {farthest:.1f} m, and {share:.1f} % of its beams have no return: "
-        f"with --no-return-range {no_return_range:g} each of those clears free space out to {clears:g} m, through "
-        "whatever the beam met (docs/sensor_model.md, section 3)"
+        f"with --no-return-range {no_return_range:g} each of those clears free space out to {clears:g} m"
+        + (" (--max-range)" if clears == reach < min(no_return_range, float(stated.max())) else "")
+        + ", through whatever the beam met (docs/sensor_model.md, section 3)"
     )
 
 

@@ -450,6 +450,9 @@ def test_a_logs_beams_with_no_return_are_noted_by_what_they_clear(tmp_path):
     assert said is not None and f"clears free space out to {1.6 * farthest:g} m" in said
     said = no_return_note(stated, 500.0)  # (the laser's stated range bounds it)
     assert said is not None and "out to 80 m" in said and f"returned at most {farthest:.1f} m" in said
+    said = no_return_note(stated, 50.0, 30.0)  # (and grid FastSLAM's --max-range: a probe was told 50 m for 30)
+    assert said is not None and "out to 30 m (--max-range)" in said
+    assert "(--max-range)" not in (no_return_note(stated, 25.0, 30.0) or "")
     assert no_return_note(dataclasses.replace(stated, ranges=np.minimum(log.ranges, 0.9 * farthest)), 0.0) is None
 
 

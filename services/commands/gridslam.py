@@ -490,7 +490,7 @@ def _prepared_log(args: argparse.Namespace, config):
     config = _sparse_log(args.motion_step, log, config)
     log, delay = _apply_odometry_delay(args, log, config)
     log = joined_odometry(log, args.max_odometry_step or MAX_ODOMETRY_STEP)
-    clearing = no_return_note(log, no_return_range(args))
+    clearing = no_return_note(log, no_return_range(args), config.max_range)
     for remark in [*log.remarks(), *([clearing] if clearing else [])]:  # (after the delay, which skips scans)
         print(f"posegrid slam: note: {remark}", file=sys.stderr)
     _check_log(log, config)

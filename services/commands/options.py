@@ -67,7 +67,8 @@ def no_return_range_keywords(applies_to: str, default: float | None = None) -> d
         "default": default,
         "metavar": "METRES",
         "help": f"{applies_to}how far a beam with no return (inf, or at or past the laser's range_max) clears free "
-        f"space in the map, at most the laser's range_max (default {NO_RETURN_RANGE:g}: such beams say nothing, for "
+        f"space in the map, at most the laser's range_max (and grid FastSLAM's --max-range) (default "
+        f"{NO_RETURN_RANGE:g}: such beams say nothing, for "
         "a real laser misses dark and glancing surfaces close by too; docs/sensor_model.md, section 3)",
     }
 
