@@ -185,6 +185,12 @@ def test_cli_eval_relations_scores_a_pose_file_of_a_restamped_log_on_the_raw_log
     assert "name the log its stamps come from with --stamped-by LOG" in capsys.readouterr().err
     assert main([*argv[:3], *argv[5:]]) == 2
     assert "give both" in capsys.readouterr().err
+    # a log as POSES with --stamped-by said "give both" though both were given (a probe's): it says POSES is a log
+    assert main(["eval-relations", str(raw), str(rel), "--align-to", str(raw), "--stamped-by", str(corrected)]) == 2
+    assert f"but POSES {raw} is a log: drop --stamped-by" in capsys.readouterr().err
+    # --scan-topic with a pose .npz and no log to read was ignored, exit 0 (a probe's): it is refused
+    assert main(["eval-relations", str(npz), str(rel), "--scan-topic", "/x"]) == 2
+    assert "no log is read here" in capsys.readouterr().err
 
 
 def test_cli_eval_relations_reads_a_bag_of_two_scan_topics_with_scan_topic(tmp_path, capsys):

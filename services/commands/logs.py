@@ -149,8 +149,18 @@ def run_eval_relations(args: argparse.Namespace) -> int:
             "--align-to matches the scans of two logs: with a pose .npz as POSES, name the log its stamps come from "
             "with --stamped-by LOG"
         )
-    if args.stamped_by is not None and not (pose_file and args.align_to is not None):
+    if args.stamped_by is not None and not pose_file:
+        raise UsageError(
+            f"--stamped-by names the log a pose .npz given as POSES was stamped by, but POSES {args.poses} is a log: "
+            "drop --stamped-by (--align-to aligns a log by its own scans)"
+        )
+    if args.stamped_by is not None and args.align_to is None:
         raise UsageError("--stamped-by names the log of a pose .npz given as POSES, for --align-to: give both")
+    if pose_file and args.stamped_by is None and args.scan_topic is not None:
+        raise UsageError(
+            f"--scan-topic names the scans' topic of a ROS bag read as a log, but no log is read here (POSES "
+            f"{args.poses} is a pose .npz, and no --stamped-by or --align-to): drop it"
+        )
     if pose_file:
         trajectory = _pose_file_trajectory(args.poses, args.estimate)
         log = read_log(args.stamped_by, scan_topic=args.scan_topic) if args.stamped_by is not None else None
