@@ -294,6 +294,22 @@ def test_an_mrclam_robot_whose_landmark_measurements_are_mostly_unusable_is_refu
     assert main(["slam", "--algo", "odometry", str(tmp_path), "--robot", "1", "-o", str(out)]) == 0
 
 
+def test_a_calibration_that_makes_ranges_negative_is_refused_naming_it(simdir, tmp_path, capsys):
+    """A new user's probe gave a simulator folder --profile mrclam7: its range correction (1.033 - 0.46 bearing^2)
+    passes 0 past 1.5 rad, and slam failed with "measured range must be finite and within [0, 1e+07] m, got
+    -56.18", naming no file, option or cause. The calibration is named, with what it did and what to give."""
+    out = tmp_path / "x.npz"
+    err = _one_line_exit_2(
+        ["slam", "--algo", "ekf", str(simdir), "--profile", "mrclam7", "-o", str(out)],
+        capsys,
+        "the calibration turns",
+        "measured ranges to <= 0 m",
+        "+ -0.46 bearing^2",
+        "--profile or --calibration",
+    )
+    assert "-56.18" not in err and not out.exists()
+
+
 def test_an_initial_pose_with_a_negative_x_is_taken_as_written(tmp_path, capsys):
     """A new user's probe: `--initial -1,2,0.5`, as the help writes a pose, said "--initial: expected one argument"
     (argparse took -1,2,0.5 for an option); only --initial=-1,2,0.5 worked. Both forms start the filter there."""

@@ -589,7 +589,24 @@ def _load_input(args: argparse.Namespace) -> SlamInput:
 
 
 def _calibrated(sequence, calibration, scans: Path | None, notes: list[str]) -> SlamInput:
-    """The :class:`SlamInput` of a corrected ``sequence`` with ``calibration``'s models."""
+    """The :class:`SlamInput` of a corrected ``sequence`` with ``calibration``'s models; UsageError when the
+    corrections made a measured range no range (the readers take only ranges > 0 m: a calibration fitted to
+    another robot's sensor, whose range correction c0 + c2 bearing^2 passes 0 at its bearings, failed deep in the
+    filter with "measured range must be finite and within ...")."""
+    import numpy as np
+
+    from services.errors import UsageError
+
+    ranges = sequence.measurements[:, 0]
+    bad = ~(np.isfinite(ranges) & (ranges > 0.0))
+    if bad.any():
+        c0, c2 = calibration.range_calibration
+        raise UsageError(
+            f"the calibration turns {int(bad.sum())} of the {len(ranges)} measured ranges to <= 0 m or not finite "
+            f"(its range correction {c0:g} + {c2:g} bearing^2, at bearings up to "
+            f"{float(np.abs(sequence.measurements[:, 1]).max()):.2f} rad): it was fitted to another sensor; give "
+            "another --profile or --calibration (auto fits one to this input, none leaves it as logged)"
+        )
     return SlamInput(
         sequence,
         calibration.motion,
