@@ -523,7 +523,10 @@ def _read_beams(data: dict, shape: tuple[int, ...], path) -> np.ndarray:
         return np.full(steps, width, np.int64)
     beams = np.asarray(data["beams"])
     if beams.dtype.kind not in "iu" or beams.shape != (steps,):
-        raise FormatError(f"{path}: 'beams' must be ({steps},) integers, one beam count per scan, got {beams.shape}")
+        raise FormatError(
+            f"{path}: 'beams' must be ({steps},) integers, one beam count per scan, got shape {beams.shape} of "
+            f"{beams.dtype}"
+        )
     bad = np.flatnonzero((beams < 1) | (beams > width))
     if bad.size:
         raise FormatError(f"{path}: 'beams' is {beams[bad[0]]} at scan {bad[0]}; each must be in [1, {width}]")
