@@ -8,7 +8,7 @@ import argparse
 import math
 import os
 from pathlib import Path
-from typing import overload
+from typing import Literal, overload
 
 
 def finite_float(text: str) -> float:
@@ -154,6 +154,9 @@ def checked_output(value: str | Path | None, option: str) -> Path | None:
 INPUT_FOLDER_FILES = ("*.dat", "*.db3", "*.mcap", "metadata.yaml")
 
 
+#: the kinds of file an output is (:func:`refuse_another_kind`)
+OutputKind = Literal["map", "poses", "json"]
+
 #: the first bytes of a file of each kind an output may replace: a zip archive (.npz: a map, or poses) and a JSON
 #: object
 KIND_HEADS = {"map": (b"PK\x03\x04", b"PK\x05\x06"), "poses": (b"PK\x03\x04", b"PK\x05\x06"), "json": (b"{",)}
@@ -167,7 +170,7 @@ KIND_NAMES = {
 }
 
 
-def refuse_another_kind(path: Path | None, kind: str, option: str) -> None:
+def refuse_another_kind(path: Path | None, kind: OutputKind, option: str) -> None:
     """UsageError when ``path`` holds a file that is not of ``kind`` (KIND_HEADS: "map", "poses" or "json"), which
     writing the output would replace: a new user's probe had `fuse -o keep.png` turn a PNG into a map,
     `calibrate -o map.npz` replace a map with JSON and `fuse -o sim/truth.npz` a truth raster with a map, exit 0.
@@ -196,7 +199,7 @@ def refuse_another_kind(path: Path | None, kind: str, option: str) -> None:
 
 
 def check_outputs(
-    args: argparse.Namespace, inputs: tuple[Path, ...] = (), kinds: dict[str, str] | None = None, **options: str
+    args: argparse.Namespace, inputs: tuple[Path, ...] = (), kinds: dict[str, OutputKind] | None = None, **options: str
 ) -> None:
     """Check every output path of ``args`` (its attribute name = the option that gives it, e.g. output="-o")
     with :func:`checked_output` and put the Path in its place. Output options take the text as given (no

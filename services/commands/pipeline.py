@@ -777,7 +777,7 @@ def run_pipeline(args: argparse.Namespace) -> int:
     rate_text = args.rate or ("max" if args.export is not None else "realtime")
     _rate(rate_text)
     read = [*recorded_inputs(args).values(), *([Path(args.calibration)] if args.calibration else [])]
-    check_outputs(args, tuple(read), {"export": "npz"}, export="--export")
+    check_outputs(args, tuple(read), {"export": "map"}, export="--export")
     if not args.no_api:
         if not 0 < args.api_port < 65536:
             raise UsageError(f"--api-port must be a TCP port (1..65535), got {args.api_port}")
