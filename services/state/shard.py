@@ -583,7 +583,7 @@ class MapShard:
     def _refuse(self, scan: LaserScan, kind: str, why: str) -> None:
         """Count ``scan`` as given up, refused by a limit (``kind``; ``why``, one sentence)."""
         self.discarded[scan.robot] += 1
-        self.rejects.count(f"fuse/{scan.robot}", kind, f"scan seq {scan.seq} refused: {why}")
+        self.rejects.count(f"fuse/{scan.robot}", kind, f"scan seq {scan.seq} of robot {scan.robot!r} refused: {why}")
 
     def _within_map_limit(
         self, drawn: list[tuple[int, LaserScan, np.ndarray, np.ndarray]], reaches: list[tuple[float, int]]
