@@ -292,6 +292,31 @@ def _dead_reckoning_state(rejects, publish, history) -> SlamState:
     return SlamState(config, rejects, publish=publish, history=history)
 
 
+def test_an_odometry_pose_that_jumps_is_skipped_and_three_that_agree_are_a_reset():
+    """A forged odometry pose 5 km off moved a landmark filter's odometry motion there and back (its covariance then
+    km wide): as grid FastSLAM's node does (slam.odometry_jumps), a step that jumps is counted and skipped, and three
+    in a row that agree are a reset of the odometry, across which the robot did not move."""
+    published: list[bytes] = []
+    rejects = _rejects("slam-odometry-jumps")
+    state = _dead_reckoning_state(rejects, published.append, lambda *args: [])
+    frame = {seq: (0.1 * seq, 0.0) for seq in range(12)}
+    frame[4] = (5000.0, 0.0)  # forged: one pose far off
+    for seq in range(7, 12):  # the odometry reset: a new frame 300 m away from seq 7 on
+        frame[seq] = (300.0 + 0.1 * (seq - 7), 40.0)
+    for seq in range(12):
+        x, y = frame[seq]
+        odometry = Odometry(
+            robot="r", seq=seq, stamp=0.1 * seq, pose=np.array([[x, y, 0.0]]), commands=np.zeros((0, 3))
+        )
+        state.handle("pg/r/odom", odometry.encode())
+        state.handle("pg/r/landmarks", _seen(seq).encode())
+    poses = {p.seq: p for p in (decode_message(payload, PoseGaussian) for payload in published)}
+    assert sorted(poses) == [0, 1, 2, 3, 5, 6, 9, 10, 11] and rejects.kinds() == {"step": 3}
+    assert poses[6].mean[0] == pytest.approx(0.6, abs=1e-9)  # (seq 5 moved from seq 3, as over a gap)
+    assert poses[9].mean[0] == pytest.approx(0.6, abs=1e-9)  # (the reset: no drive across it)
+    assert poses[11].mean[0] == pytest.approx(0.8, abs=1e-9) and abs(poses[11].mean[1]) < 1e-9
+
+
 def test_a_slam_node_that_missed_the_prior_asks_the_history_for_it():
     """A probe: a node paused (SIGSTOP) as it started missed the prior, which the source publishes once; it never
     asked for it again, took no step and the shards gave up on every scan of the run. Steps waiting with no start

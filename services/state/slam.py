@@ -220,6 +220,9 @@ class LandmarkDriver:
         self._last_seq: int | None = None
         self._ids: set[int] = set()  # the landmark ids the filter has been given (known ids)
         self.last_gap: Gap | None = None
+        # the odometry poses' jump rule (as grid FastSLAM's): not saved and restored with a step, so that the steps
+        # it refused count towards a reset of the odometry
+        self._jumps = OdometryJumps()
 
     def step(self, parts: dict) -> tuple[np.ndarray, np.ndarray]:
         odom: Odometry = parts[keys.ODOM]
@@ -230,6 +233,12 @@ class LandmarkDriver:
         if known:
             self._ids.update(seen.ids.tolist())
         pose = odom.pose[0] if odom.pose.shape[0] else None
+        if pose is not None:  # (a forged pose 10 km off moved the filter out and back, its covariance km wide)
+            verdict = self._jumps.check(pose, odom.stamp)
+            if verdict is Verdict.REFUSED:
+                raise StepError(f"seq {odom.seq}: {self._jumps.reason}")
+            if verdict is Verdict.REBASE:
+                self._last_pose = None  # (the jump is no drive)
         gap = None if self._last_seq is None or odom.seq == self._last_seq + 1 else (self._last_seq + 1, odom.seq - 1)
         model = None
         if self.motion == "odometry":
