@@ -663,6 +663,36 @@ def test_a_damaged_store_stops_run_resume_before_anything_starts(tmp_path, pairs
     assert not (tmp_path / "xdg").exists()
 
 
+def test_a_resume_with_a_shards_store_gone_is_refused_while_another_holds_the_run(tmp_path, pairs, monkeypatch, capsys):
+    """A crash-and-restart probe deleted one shard's folder (or its database file) and resumed: the shard made a new,
+    empty map, the run exported half of it, exit 0. With another shard's store holding the run's scans, a missing
+    store is refused before anything starts, naming it; run.json as it was. (A run stopped before any shard had
+    fused, whose stores are all missing or empty, resumes as before.)"""
+    from mapping.grid import TILE_SIZE
+
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "xdg"))
+    run = prepare_run(tmp_path / "run", False, False, "m", 2, RESOLUTION)
+    _committed_store(run.shard_dir(0), pairs[:5], _config(0, 2, TILE_SIZE))
+    before = (tmp_path / "run" / "run.json").read_text()
+    argv = ["run", "--sim", "--no-api", "--map", "m", "--shards", "2", "--resolution", str(RESOLUTION)]
+    err = _refused([*argv, "--resume", str(tmp_path / "run")], capsys)
+    assert f"the store of shard 1 ({run.shard_dir(1)}) is gone while shard 0's holds the run's scans" in err
+    assert (tmp_path / "run" / "run.json").read_text() == before
+
+
+def test_a_store_that_cannot_be_written_stops_run_resume_before_anything_starts(tmp_path, pairs, monkeypatch, capsys):
+    """A probe made a shard's database file immutable: `run --resume` started the router and the shards, then
+    stopped with the mapper's sentence, exit 1, and a new session in run.json. It is refused first, exit 2."""
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "xdg"))
+    run = prepare_run(tmp_path / "run", False, False, "main", 1, 0.05)
+    store = _committed_store(run.shard_dir(0), pairs[:5])
+    before = (tmp_path / "run" / "run.json").read_text()
+    monkeypatch.setattr(os, "access", lambda path, mode: not (Path(path) == store and mode == os.W_OK))  # (root)
+    err = _refused(["run", "--sim", "--no-api", "--resume", str(tmp_path / "run")], capsys)
+    assert f"the store {store} cannot be written" in err
+    assert (tmp_path / "run" / "run.json").read_text() == before
+
+
 def test_check_store_refuses_what_the_shard_would_and_writes_nothing(tmp_path, pairs):
     """A re-probe: `run --resume` still started processes for a store with a damaged tile blob (SQLite's own check
     passes it), the shard folders swapped, or another run's id: the shard then refused it (exit 1, a new session in

@@ -166,17 +166,27 @@ def plan_state(args: argparse.Namespace, plan: Plan) -> None:
     with_scans: dict[str, set[str]] | None = None  # (sessions of the shards' stores -> the robots of their scans)
     if args.resume is not None:  # (every shard's store checked before the run's record gets a new session)
         from mapping.grid import TILE_SIZE
-        from services.state.store.db import StoreIdentity, check_store
+        from services.state.store.db import StoreIdentity, check_store, store_exists
         from services.state.store.run import check_run_options, run_id_of, shard_dir
 
         # (the run's options before the stores: it names the option to give, a store another map's state)
         check_run_options(directory, plan.map_name, plan.shards, plan.resolution)
         with_scans = {}
         run_id = run_id_of(directory)
+        holding = []  # (the shards whose stores hold scans of the run)
         for shard in range(plan.shards):
             identity = StoreIdentity(plan.map_name, shard, plan.shards, TILE_SIZE, plan.resolution)
-            for session, robots in check_store(shard_dir(directory, shard), identity, run_id).items():
+            held = check_store(shard_dir(directory, shard), identity, run_id)
+            holding += [shard] if held else []
+            for session, robots in held.items():
                 with_scans.setdefault(session, set()).update(robots)
+        missing = [shard for shard in range(plan.shards) if not store_exists(shard_dir(directory, shard))]
+        if missing and holding:  # (a shard's store deleted: resumed as a new, empty map, exit 0, half the map gone)
+            raise UsageError(
+                f"{directory}: the store of shard {missing[0]} ({shard_dir(directory, missing[0])}) is gone while "
+                f"shard {holding[0]}'s holds the run's scans: resumed, that shard's tiles would be lost; put its "
+                "folder back, or start a new run (--state-dir NEW)"
+            )
     plan.state = prepare_run(
         directory,
         args.resume is not None,

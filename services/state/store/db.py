@@ -426,6 +426,12 @@ def _whole(value: object, low: int, high: int | None = None) -> bool:
 # ---------------------------------------------------------------------------------------------- opening steps
 
 
+def store_exists(directory: Path) -> bool:
+    """Whether the shard folder ``directory`` holds a store (its database file, or its write-ahead log alone)."""
+    path = directory / DB_NAME
+    return path.exists() or Path(f"{path}-wal").exists()
+
+
 def check_store(directory: Path, identity: StoreIdentity, run_id: str | None) -> dict[str, set[str]]:
     """Check the store in ``directory`` as a shard of ``identity`` in run ``run_id`` would before it fuses (its
     file, SQLite's check of every page, that it is that shard's and that run's store, every tile readable and its
@@ -435,8 +441,13 @@ def check_store(directory: Path, identity: StoreIdentity, run_id: str | None) ->
     shard's folder or another run's stopped the run after the router and the other shards had started, exit 1 with
     their lines and a new session in run.json)."""
     path = directory / DB_NAME
-    if not path.exists() and not Path(f"{path}-wal").exists():
+    if not store_exists(directory):
         return {}
+    if (path.exists() and not os.access(path, os.W_OK)) or not os.access(directory, os.W_OK):
+        raise StoreError(  # (found only once the network was up: the shard's sentence, exit 1, a stray session)
+            f"the store {path} cannot be written (its file or folder is read-only, or immutable): make both "
+            "writable, or resume a copy of the run's folder"
+        )
     lock = _lock_directory(directory)
     if not _check_file(path):
         os.close(lock)
