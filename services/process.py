@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import os
+import queue
 import signal
 import sys
 import threading
@@ -25,9 +26,20 @@ def install_stop_event(name: str | None = None) -> threading.Event:
     Call from the main thread.
     """
     stop = threading.Event()
+    # A signal handler runs in the main thread between two of its bytecodes, maybe while that thread holds the
+    # event's lock (inside stop.wait, or inside an earlier handler's stop.set when signals come in quick succession:
+    # repeated Ctrl-C hung `posegrid run` for good, its children running on). Event.set takes that lock, so the
+    # handler only puts on a SimpleQueue (whose put is reentrant, made for signal handlers) and a thread sets it.
+    signals: queue.SimpleQueue[int] = queue.SimpleQueue()
+
+    def set_on_signal() -> None:
+        signals.get()
+        stop.set()
+
+    threading.Thread(target=set_on_signal, daemon=True, name="stop-on-signal").start()
 
     def handler(signum, frame):
-        stop.set()
+        signals.put(signum)
 
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
