@@ -202,3 +202,21 @@ def test_the_bridges_ingest_takes_the_no_return_range_given(argv, clears):
 
     args = build_parser().parse_args(["ros2", "--connect", "tcp/127.0.0.1:1", *argv])
     assert bridge_options(args).ingest.no_return_range == clears
+
+
+@pytest.mark.parametrize(
+    ("options", "clears"), [([], "30.0"), (["--max-range", "12"], "12.0"), (["--max-range", "90"], "50.0")]
+)
+def test_run_clears_a_logs_beams_with_no_return_at_most_to_grid_fastslams_max_range(office_log, options, clears):
+    """A real-log probe: `run --carmen LOG --no-return-range 50` cleared up to 50 m where `posegrid slam --algo
+    gridslam` (whose --max-range, 30 m by default, caps every beam it writes) cleared up to 30, so the live map and
+    the offline map of the same log and options differed (IoU 0.38). The run hands its source the capped range."""
+    from services.cli import build_parser
+    from services.commands.pipeline import _plan_input
+    from services.nodes.launcher import Plan
+
+    args = build_parser().parse_args(["run", "--carmen", str(office_log), "--no-return-range", "50", *options])
+    plan = Plan(map_name="main", robot="robot0", shards=1, resolution=0.05, mapper_argv=[], source_argv=[])
+    _plan_input(args, plan)
+    at = plan.source_argv.index("--no-return-range")
+    assert plan.source_argv[at + 1] == clears

@@ -855,8 +855,11 @@ def _plan_input(args: argparse.Namespace, plan: Plan) -> None:
             plan.source_argv += [f"--scan-topic={args.scan_topic}"]
         if args.odom_delay != 0.0:
             plan.source_argv += ["--odom-delay", repr(args.odom_delay)]
-        if args.no_return_range is not None:
-            plan.source_argv += ["--no-return-range", repr(args.no_return_range)]
+        if args.no_return_range is not None:  # (at most grid FastSLAM's --max-range, as `posegrid slam` writes it:
+            from services.commands.gridslam import gridslam_config  # past it the live map cleared 50 m for 30)
+
+            reach = min(args.no_return_range, gridslam_config(args).max_range)
+            plan.source_argv += ["--no-return-range", repr(reach)]
         plan.slam_argv = slam_argv(args, "sim")
         plan.description = f"replaying {log} through grid FastSLAM into {args.shards} shard(s)"
     elif args.sim_dir is not None:
