@@ -272,6 +272,21 @@ def test_launcher_stops_every_child_on_sigint_mid_replay(tmp_path, procs):
     assert not any(_alive(pid) for pid in pids.values())
 
 
+def test_a_run_stopped_before_its_export_says_so_and_exits_130(tmp_path, procs):
+    """A real-log probe: `run --export m.npz` stopped by Ctrl-C mid-replay exited 0 and wrote no file, without a
+    word: `posegrid run --export m.npz && use m.npz` went on with no map. It says no map was written, exit 130."""
+    posed = make_posed(tmp_path / "posed.npz", "samples", steps=300)
+    exported = tmp_path / "m.npz"
+    run = procs([*CLI, "run", "--posed", str(posed), "--rate", "realtime", "--no-api", "--no-state", "--export",
+                 str(exported)])  # fmt: skip
+    run.wait_for(r"publishing 300 steps")
+    run.process.send_signal(signal.SIGINT)
+    assert run.process.wait(60) == 130, run.output()
+    said = run.wait_for(r"stopped before the replay ended \((\d+) of 300 scans fused by every shard\): (.*)")
+    assert int(said.group(1)) < 300 and said.group(2) == f"no map written to {exported}"
+    assert not exported.exists()
+
+
 def test_launcher_stops_on_sigint_while_it_compiles_the_fusion_kernels(tmp_path, procs):
     """On a fresh install `posegrid run` compiles the fusion kernels before it starts the shards (40 s here); a
     Ctrl-C then took effect only after the compile. Now it stops at once (an empty kernel cache makes the compile

@@ -490,6 +490,15 @@ def _supervise(session, plan: Plan, children: Children, stop: threading.Event, l
             if discarded:
                 print(f"posegrid run: the map misses up to {discarded} scans the shards gave up on: {why}", flush=True)
             print("posegrid run: serving the finished map until Ctrl-C", flush=True)
+        fused = bar.n
+    if plan.export is not None and not finished:  # (it exited 0 without the file: `run --export m.npz && use m.npz`)
+        print(
+            f"posegrid run: stopped before the replay ended ({fused} of {plan.scans} scans fused by every shard): "
+            f"no map written to {plan.export}",
+            file=sys.stderr,
+            flush=True,
+        )
+        return 130
     return 0
 
 
