@@ -215,7 +215,7 @@ def _add_run(subparsers: argparse._SubParsersAction) -> None:
         "--export",
         default=None,
         metavar="MAP.npz",
-        help="write the map when the replay ends, then stop everything and exit",
+        help="write the map when the replay ends, then stop everything and exit (stopped before: no map, exit 130)",
     )
     _add_map_option(run)
     _add_robot_option(run)
