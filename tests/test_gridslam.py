@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import re
 from dataclasses import replace
 from pathlib import Path
 
@@ -700,6 +701,15 @@ def test_unusable_laser_logs_exit_2_without_output(tmp_path, capsys, log_kwargs,
     err = capsys.readouterr().err.strip()
     assert "bad.clf" in err and message in err and "\n" not in err and "Traceback" not in err
     assert not out.exists()
+
+
+def test_slam_without_a_terminal_says_its_progress_at_every_tenth(tmp_path, capsys):
+    """A real-log probe: with stderr in a log file, `posegrid slam --algo gridslam` printed nothing until it ended
+    (its bar is off without a terminal): minutes on a whole log. It says how far it is at every tenth."""
+    out = tmp_path / "o.npz"
+    assert main(["slam", "--algo", "gridslam", str(small_log(tmp_path / "ok.clf", scans=20)), "-o", str(out)]) == 0
+    said = re.findall(r"posegrid slam: (\d+) of 20 scans \(effective sample size [0-9.]+\)", capsys.readouterr().err)
+    assert [int(n) for n in said] == list(range(2, 20, 2))
 
 
 @pytest.mark.parametrize(

@@ -544,11 +544,17 @@ def _run_filter(log, config, seed: int):
 
     from slam.gridslam import run_gridslam
 
-    with tqdm(total=len(log), desc="slam gridslam", unit="scan", file=sys.stderr, mininterval=0.5, disable=None) as bar:
+    total, taken, said = len(log), [0], [0]
+    lines = not sys.stderr.isatty()  # (the bar is off: a line at every tenth instead, for a log file or CI)
+    with tqdm(total=total, desc="slam gridslam", unit="scan", file=sys.stderr, mininterval=0.5, disable=None) as bar:
 
         def progress(done: int, ess: float) -> None:
             bar.update(done)
             bar.set_postfix(ess=f"{ess:.1f}", refresh=False)
+            taken[0] += done
+            if lines and taken[0] < total and taken[0] * 10 // total > said[0]:
+                said[0] = taken[0] * 10 // total
+                print(f"posegrid slam: {taken[0]} of {total} scans (effective sample size {ess:.1f})", file=sys.stderr)
 
         return run_gridslam(log, config, seed=seed, progress=progress)
 
