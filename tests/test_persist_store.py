@@ -417,6 +417,21 @@ def test_a_store_whose_database_is_gone_but_its_log_is_there_is_refused(tmp_path
     assert "is missing but its write-ahead log" in _refused(_mapper(tmp_path), capsys)
 
 
+def test_a_store_whose_making_was_cut_short_is_refused_with_the_way_out(tmp_path, pairs, capsys):
+    """A crash-and-restart probe left a store as a shard killed between its journal mode and its first commit
+    leaves it (a database of one page and no tables): every start was refused as "no posegrid shard store", with no
+    way out said. It says the store holds no scans and what to remove; removed, the shard makes it anew."""
+    path = tmp_path / DB_NAME
+    with sqlite3.connect(path) as db:
+        db.execute("PRAGMA journal_mode = WAL")
+    err = _refused(_mapper(tmp_path), capsys)
+    assert "it holds no tables, so no scans" in err and f"remove {path} and its -wal and -shm files" in err
+    path.unlink()
+    for suffix in ("-wal", "-shm"):
+        Path(f"{path}{suffix}").unlink(missing_ok=True)
+    _committed_store(tmp_path, pairs[:3])  # (made anew)
+
+
 def _copy_log(source: Path, target: Path) -> None:
     """Put the write-ahead log (and its index) of the database ``source`` beside the database ``target``."""
     for suffix in ("-wal", "-shm"):

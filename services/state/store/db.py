@@ -629,10 +629,20 @@ def _check_meta(db: sqlite3.Connection, path: Path, identity: StoreIdentity) -> 
     except (sqlite3.DatabaseError, UnicodeDecodeError):
         meta = {}
     if meta.get("format") != FORMAT:
-        lost_log = not meta and not Path(f"{path}-wal").exists()  # (a store's first commits live in its log)
+        try:
+            tables = db.execute("SELECT count(*) FROM sqlite_master").fetchone()[0]
+        except sqlite3.DatabaseError:
+            tables = None
         raise StoreError(
             f"the store {path} is a SQLite database but no posegrid shard store"
-            + (f" (if it was one, its write-ahead log {path}-wal, which held its tables, is gone)" if lost_log else "")
+            + (
+                # (a store's first commit makes its tables: a crash before it, or its write-ahead log, which held
+                # them, removed, leaves none; a probe found no way out said)
+                f": it holds no tables, so no scans (a shard stopped as it made it, or its write-ahead log removed): "
+                f"remove {path} and its -wal and -shm files, and the shard makes it anew"
+                if tables == 0
+                else ""
+            )
         )
     if meta.get("schema_version") != SCHEMA_VERSION:
         raise StoreError(
