@@ -60,7 +60,7 @@ def build_config(
         try:
             config = zenoh.Config.from_file(str(path))
         except zenoh.ZError as exc:
-            raise UsageError(f"zenoh config file {path} is not valid: {_first_line(exc)}") from None
+            raise UsageError(f"zenoh config file {path} is not valid: {_parse_problem(exc)}") from None
     else:
         config = zenoh.Config()
     _default(config, "mode", None, mode)
@@ -114,6 +114,17 @@ def _insert(config: zenoh.Config, key: str, value) -> None:
         config.insert_json5(key, json.dumps(value))
     except zenoh.ZError as exc:
         raise UsageError(f"zenoh rejects {key} = {json.dumps(value)}: {_first_line(exc)}") from None
+
+
+def _parse_problem(exc: BaseException) -> str:
+    """A JSON5 parse error of zenoh's in one line: "line L, column C: expected ..." from its " --> L:C" position and
+    "= expected ..." reason (the first line alone, " --> 22:2", said where but not what); else the first line."""
+    text = str(exc)
+    where = re.search(r"-->\s*(\d+):(\d+)", text)
+    what = re.search(r"=\s*(.+?)(?:\s+at \S+\.rs:\d+)?\.?\s*$", text, re.MULTILINE)
+    if where is None or what is None:
+        return _first_line(exc)
+    return f"line {where.group(1)}, column {where.group(2)}: {what.group(1).rstrip('. ')}"
 
 
 def _first_line(exc: BaseException) -> str:

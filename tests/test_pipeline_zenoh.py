@@ -138,6 +138,13 @@ def test_mapper_without_a_router_says_so_in_one_sentence(tmp_path, capsys):
     assert main([*base, "--zenoh-config", str(tmp_path / "none.json5")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "none.json5: no such file" in err
+    # a config cut short (a secure-mode probe's): it said "is not valid: --> 3:25", where but not what
+    cut = tmp_path / "cut.json5"
+    cut.write_text('{\n  mode: "client",\n  connect: { endpoints: ["tcp/127.0.0.1:1"] ')
+    assert main([*base, "--zenoh-config", str(cut)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "cut.json5 is not valid: line 3, column " in err and ": expected " in err, err
+    assert ".rs:" not in err
     base = [*CLI, *base]
     quick = tmp_path / "quick.json5"
     quick.write_text(json.dumps({"connect": {"timeout_ms": 500}}))  # do not wait 10 s for a router

@@ -116,6 +116,12 @@ def run_secure_init(args: argparse.Namespace) -> int:
     if args.folder.is_dir() and any(args.folder.iterdir()) and not args.force:
         raise UsageError(f"{args.folder} is not empty; pass --force to replace its material")
     hosts = args.host or [args.listen_address if args.listen_address not in ("0.0.0.0", "::") else "127.0.0.1"]
+    if ":" in hosts[0]:  # (material for ::1 was written, and no client could ever connect: "invalid dns name")
+        raise UsageError(
+            f"the clients would connect to the router at the IPv6 address {hosts[0]}, and Zenoh's TLS cannot check a "
+            "certificate against an IPv6 address: give --host localhost (or another DNS name of the router's host) "
+            "first"
+        )
     connect = f"tls/{_endpoint_host(hosts[0])}:{args.port}"
     material = write_material(args.folder, robots, maps, listen, connect, router_names=hosts, days=days)
     print(f"posegrid secure-init: wrote {material.folder} (certificates valid {days} days)")
