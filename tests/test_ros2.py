@@ -511,3 +511,21 @@ def test_the_map_mirror_holds_at_most_its_tile_bound(monkeypatch):
         mirror.apply(_tile(tx, -tx))
     assert "past 3 tiles" in mirror.check(_tile(5, 0))
     assert mirror.check(_tile(1, -1, seed=2)) == "" and mirror.extent() == (0, -2, 2, 0)
+
+
+def test_a_pose_array_or_particle_cloud_past_the_pose_limit_is_refused_before_it_is_decoded():
+    """A probe's 100 000-pose PoseArray (5.6 MB, under the bridge's 8 MB input limit) was decoded and converted (0.66
+    s) before the 10 000-pose limit refused it, holding the robot's scans back 0.7 s each. Its size alone refuses it
+    now, as the payload's length says how many poses it can hold (56 CDR bytes a pose, 64 a particle), before any
+    decoding (the check never reaches the bridge's ROS node: none is made here)."""
+    from types import SimpleNamespace
+
+    from schemas.messages import MAX_POSE_SAMPLES
+    from services.ros2.bridge import CDR_HEADROOM, Bridge
+    from services.ros2.endpoint import Received
+
+    for type_name, per_pose in ((rt.POSE_ARRAY, 56), (rt.PARTICLE_CLOUD, 64)):
+        size = MAX_POSE_SAMPLES * per_pose + CDR_HEADROOM + 1
+        received = Received("/robot1/particles_in", "0/robot1/particles_in", b"", None, size)
+        problem = Bridge._sample_problem(SimpleNamespace(), received, rt.MessageType(type_name))  # type: ignore[arg-type]
+        assert problem is not None and problem[0] == "pose" and f"more than {MAX_POSE_SAMPLES} poses" in problem[1]

@@ -28,7 +28,7 @@ from typing import Any
 
 import zenoh
 
-from schemas.messages import MessageError, PoseGaussian, PoseSamples, TileUpdate, decode_message
+from schemas.messages import MAX_POSE_SAMPLES, MessageError, PoseGaussian, PoseSamples, TileUpdate, decode_message
 from schemas.wire import Message
 from services import history, keys
 from services.fair_queue import FairQueue
@@ -57,6 +57,13 @@ CATCH_UP_TIMEOUT = 10.0
 def stats_key(robot: str) -> str:
     """pg/<robot>/ros2/stats: the bridge's counts (JSON)."""
     return f"{keys.ROOT}/{robot}/ros2/stats"
+
+
+#: bytes a pose takes in CDR (position, then orientation: seven float64), and a particle (a pose and its weight), and
+#: what a PoseArray's or ParticleCloud's header may add: a message past these holds more than MAX_POSE_SAMPLES poses,
+#: refused before it is decoded
+CDR_POSE_BYTES = {rt.POSE_ARRAY: 56, rt.PARTICLE_CLOUD: 64}
+CDR_HEADROOM = 4096
 
 
 @dataclass(frozen=True)
@@ -251,6 +258,12 @@ class Bridge:
         """(kind, detail) of why a sample is refused before decoding: its size, key, type or attachment."""
         if received.size > MAX_INPUT_BYTES:
             return "size", f"{received.size} bytes, more than the {MAX_INPUT_BYTES} the bridge takes"
+        per_pose = CDR_POSE_BYTES.get(message_type.name)
+        if per_pose is not None and received.size > MAX_POSE_SAMPLES * per_pose + CDR_HEADROOM:
+            return "pose", (  # (decoded and converted first, 100 000 poses held the robot's scans 0.7 s each)
+                f"{received.size} bytes, more than {MAX_POSE_SAMPLES} poses of {per_pose} bytes take: more than "
+                "the poses a message may carry"
+            )
         node = self.node
         assert node is not None
         parsed = names.parse_topic_key(received.key, node.graph, received.topic)
@@ -305,6 +318,11 @@ class Bridge:
             pose = decode_message(payload, PoseSamples, PoseGaussian)
         except MessageError as exc:
             self.rejects.count(key, exc.reason, str(exc))
+            return
+        if pose.seq >= self.ingest.seq:  # (a flood of forged 10 000-sample poses held ROS's map updates for 45 s)
+            self.rejects.count(
+                key, "ahead", f"pose seq {pose.seq}: this bridge has sent scans of seqs below {self.ingest.seq} only"
+            )
             return
         frame = self.options.frame
         if isinstance(pose, PoseSamples):
