@@ -604,12 +604,7 @@ def _read_offset(data: dict, steps: int, path) -> np.ndarray:
         )
     if not np.isfinite(offset).all():
         raise FormatError(f"{path}: 'sensor_offset' holds NaN or inf; it is (x m, y m, yaw rad), finite numbers")
-    yaw = offset[..., 2]
-    if np.abs(yaw).max() > 2.0 * np.pi:  # (a mount of 90 deg fused every scan turned a quarter)
-        raise FormatError(
-            f"{path}: 'sensor_offset' yaw {float(yaw.flat[np.argmax(np.abs(yaw))]):g} is more than a full turn: give "
-            f"it in rad (90 deg is {np.radians(90):.4f})"
-        )
+    check_yaw(offset.reshape(-1, 3)[:, 2], str(path), "sensor_offset")  # (a mount of 90 deg turned every scan)
     return offset
 
 

@@ -59,7 +59,10 @@ def _write(tmp_path, arrays):
         (posed(range_max=np.inf), "'range_max' must be finite"),
         (posed(sensor_offset=np.array([0.0, np.nan, 0.0])), "'sensor_offset' holds NaN or inf"),  # (said "shape")
         (posed(sensor_offset=np.zeros(2)), "'sensor_offset' must be 3 finite numbers"),
-        (posed(sensor_offset=np.array([0.1, 0.0, 90.0])), "'sensor_offset' yaw 90 is more than a full turn"),
+        (
+            posed(sensor_offset=np.array([0.1, 0.0, 90.0])),
+            "'sensor_offset' holds a yaw of 90 rad at step 0, more than a full turn",
+        ),
         (posed(samples=np.zeros((3, 1, 3)), weights=np.ones((3, 1))), "'samples' must have shape (2, M, 3)"),
         (posed(weights=np.ones((2, 2)) * 0.5, samples=np.zeros((2, 1, 3))), "'weights' must have shape (2, 1)"),
         (posed(weights=np.array([[1.5, -0.5], [0.5, 0.5]]), samples=np.zeros((2, 2, 3))), "negative, NaN or inf"),
