@@ -155,8 +155,24 @@ def read_mrclam(folder: str | Path, robot: int) -> MrclamRobot:
     )
 
 
+def table_kind(path: str | Path) -> str | None:
+    """The kind of MRCLAM table (a key of the column table) a file's name says it is: RobotK_KIND.dat or KIND.dat;
+    None for a name of no table."""
+    name = Path(path).name
+    if not name.endswith(".dat"):
+        return None
+    stem = name[: -len(".dat")]
+    robot, _, rest = stem.partition("_")
+    kind = rest if robot.startswith("Robot") and robot[len("Robot") :].isdigit() else stem
+    return kind if kind in _COLUMNS else None
+
+
 def read_groundtruth(path: str | Path) -> np.ndarray:
-    """A RobotK_Groundtruth.dat file as (G, 4): time s, x m, y m, yaw rad (map frame)."""
+    """A RobotK_Groundtruth.dat file as (G, 4): time s, x m, y m, yaw rad (map frame). LogFormatError for a file
+    named as another MRCLAM table (a Measurement.dat read as ground truth said it "holds two poses at ... s")."""
+    kind = table_kind(path)
+    if kind is not None and kind != "Groundtruth":
+        raise LogFormatError(f"{path}: an MRCLAM {kind} table, not a robot's ground truth (RobotK_Groundtruth.dat)")
     return read_table(path, "Groundtruth")
 
 

@@ -113,7 +113,7 @@ def test_slam_and_eval_on_an_mrclam_folder(tmp_path, capsys):
     assert json.loads(capsys.readouterr().out)["steps"] == len(dist.stamps)
     # another table as the ground truth said "holds two poses at ... s" (a probe's): it says which kind it is
     _one_line_exit_2(
-        ["eval-traj", str(out), str(tmp_path / "Robot1_Measurement.dat")], capsys, "an MRCLAM table of another kind"
+        ["eval-traj", str(out), str(tmp_path / "Robot1_Measurement.dat")], capsys, "an MRCLAM Measurement table, not"
     )
     # the folder itself (a new user's probe got "groundtruth.npz: no such file"): the file to give is named
     assert main(["eval-traj", str(out), str(tmp_path)]) == 2

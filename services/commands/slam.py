@@ -8,7 +8,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import re
 import sys
 import time
 from dataclasses import dataclass
@@ -885,12 +884,6 @@ def _truth_at(path: Path, stamps):
         mean = poses.gaussian()[0] if poses.is_gaussian else fit_gaussian(*poses.weighted_samples())[0]
         truth_stamps = dist.stamps
     else:
-        other = re.fullmatch(r"Robot\d+_(Measurement|Odometry)\.dat|Barcodes\.dat|Landmark_Groundtruth\.dat", path.name)
-        if other:  # (a Measurement.dat read as ground truth said "holds two poses at ... s")
-            raise UsageError(
-                f"{path}: an MRCLAM table of another kind than ground truth (GROUNDTRUTH is a pose .npz, a simulator "
-                "folder or an MRCLAM robot's RobotK_Groundtruth.dat)"
-            )
         table = read_groundtruth(path)
         truth_stamps, mean = table[:, 0], table[:, 1:4]
     first, last = truth_stamps.min(), truth_stamps.max()
