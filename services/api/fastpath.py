@@ -23,8 +23,9 @@ from services.api.tiles import Rendered, TileService, render_key
 TILE_PATH = re.compile(
     r"^/maps/([A-Za-z0-9][A-Za-z0-9_.-]{0,63})/tiles/([0-9]{1,2})/(-?[0-9]{1,12})/(-?[0-9]{1,12})\.(png|npz)$"
 )
-#: the plain decimal numbers the fast path reads as ``vmax`` (others go to FastAPI, which decides)
-PLAIN_NUMBER = re.compile(r"^([0-9]+(\.[0-9]*)?|\.[0-9]+)([eE][+-]?[0-9]{1,3})?$")
+#: a number parameter as written in a URL: a decimal or exponent form in ASCII digits, no "_" or spaces (float() takes
+#: "1_0" as 10); the fast path reads ``vmax`` so (others go to FastAPI, whose routes refuse them: routes.common)
+PLAIN_REAL = re.compile(r"[+-]?([0-9]+(\.[0-9]*)?|\.[0-9]+)([eE][+-]?[0-9]{1,3})?")
 
 
 def etag_matches(if_none_match: str | None, etag: str) -> bool:
@@ -65,7 +66,7 @@ class CachedTiles:
             return None
         vmax = None
         if "vmax" in params:
-            if PLAIN_NUMBER.fullmatch(params["vmax"]) is None:
+            if PLAIN_REAL.fullmatch(params["vmax"]) is None:
                 return None
             vmax = float(params["vmax"])
             if not (math.isfinite(vmax) and vmax > 0):

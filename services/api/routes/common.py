@@ -16,6 +16,7 @@ from pydantic import BeforeValidator
 from schemas.wire import NAME_PATTERN, NAME_RULE
 from services.api import models
 from services.api.backend import Backend
+from services.api.fastpath import PLAIN_REAL
 from services.api.limits import RETRY_AFTER, TILE_THREADS, HttpLimits, Slots
 from services.api.registry import MapInfo
 from services.api.status import Progress
@@ -46,10 +47,8 @@ def error_response(code: int, description: str) -> dict:
 
 
 #: an integer parameter as written: ASCII digits after an optional minus (int() also takes "1_0", " 1" and "+1":
-#: a probe's tile x of "1_0" was served as tile 10)
+#: a probe's tile x of "1_0" was served as tile 10); a number's form is services.api.fastpath.PLAIN_REAL
 PLAIN_INTEGER = re.compile(r"-?[0-9]{1,18}")
-#: a number parameter as written: a decimal or exponent form without "_" or spaces (float() takes "1_0" as 10)
-PLAIN_REAL = re.compile(r"[+-]?([0-9]+(\.[0-9]*)?|\.[0-9]+)([eE][+-]?[0-9]{1,3})?")
 
 
 def _plain(pattern: re.Pattern[str], what: str) -> BeforeValidator:
