@@ -189,6 +189,16 @@ def test_bad_inputs_give_one_line_and_exit_2(simdir, tmp_path, capsys):
     mrclam.mkdir()
     _mrclam_sample(mrclam)
     _one_line_exit_2(["slam", "--algo", "ekf", str(mrclam), "-o", out], capsys, "--robot")
+    both = tmp_path / "both"  # a simulator log copied into an MRCLAM folder: which to read would be a guess
+    both.mkdir()
+    _mrclam_sample(both)
+    (both / "controls.npz").write_bytes((simdir / "controls.npz").read_bytes())
+    (both / "landmarks.npz").write_bytes((simdir / "landmarks.npz").read_bytes())
+    for argv in (
+        ["slam", "--algo", "ekf", str(both), "-o", out],
+        ["calibrate", str(both), "-o", str(tmp_path / "c.json")],
+    ):
+        _one_line_exit_2(argv + ["--robot", "1"], capsys, "holds both a simulator log", "MRCLAM")
     with open(mrclam / "Robot1_Odometry.dat", "a", newline="") as handle:
         handle.write("13.5 \t fast \t 0.1 \r\n")
     _one_line_exit_2(

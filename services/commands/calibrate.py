@@ -68,26 +68,22 @@ def run_calibrate(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
     from schemas.files import write_atomically
-    from services.commands.slam import mrclam_input, refuse_input, sim_folder_input, stated_drive_angle_sd
+    from services.commands.slam import landmark_input_kind, mrclam_input, sim_folder_input, stated_drive_angle_sd
     from services.errors import UsageError
-    from slam import mrclam
     from slam.calibration import calibration_text
     from slam.selfcal import DELAY_GRID, NotEnoughData, self_calibrate
-    from slam.simlog import CONTROLS_FILE
 
     check_outputs(args, inputs=(args.input,), kinds={"output": "json"}, output="-o")
     if not 0.0 < args.fraction <= 1.0:
         raise UsageError(f"--fraction must be in (0, 1], got {args.fraction:g}")
     stated_drive_angle_sd(args, 0.0)  # a bad --drive-angle-sd is refused before the fit
     delays: tuple[float, ...]
-    if (args.input / CONTROLS_FILE).is_file():
+    if landmark_input_kind(args.input) == "sim":
         log = sim_folder_input(args)
         sequence_at, delays, what = (lambda delay: log.sequence()), (0.0,), f"{args.input}"
-    elif mrclam.is_mrclam_folder(args.input):
+    else:
         _, sequence_at, _ = mrclam_input(args)
         delays, what = DELAY_GRID, f"{args.input} robot {args.robot}"
-    else:
-        refuse_input(args.input)
     started = time.perf_counter()
     try:
         fit = self_calibrate(

@@ -12,7 +12,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, NoReturn
+from typing import TYPE_CHECKING, Literal
 
 from services.commands.argtypes import (
     INPUT_FOLDER_FILES,
@@ -489,13 +489,26 @@ def sim_folder_input(args: argparse.Namespace):
     return load_sim_log(args.input)
 
 
-def refuse_input(path: Path) -> NoReturn:
-    """UsageError for an INPUT that is neither a simulator nor an MRCLAM folder."""
+def landmark_input_kind(path: Path) -> Literal["sim", "mrclam"]:
+    """Whether INPUT is a simulator folder (it holds controls.npz) or an MRCLAM folder (Barcodes.dat and a
+    RobotK_Odometry.dat); UsageError when it is neither, or both (which files to read would be a guess)."""
     from services.errors import UsageError
+    from slam import mrclam
     from slam.simlog import CONTROLS_FILE
 
     if not path.exists():
         raise UsageError(f"{path}: no such folder")
+    sim = (path / CONTROLS_FILE).is_file()
+    mrclam_folder = mrclam.is_mrclam_folder(path)
+    if sim and mrclam_folder:
+        raise UsageError(
+            f"{path}: holds both a simulator log ({CONTROLS_FILE}) and an MRCLAM dataset (Barcodes.dat, "
+            "RobotK_Odometry.dat); give a folder with one of them"
+        )
+    if sim:
+        return "sim"
+    if mrclam_folder:
+        return "mrclam"
     raise UsageError(
         f"{path}: neither a simulator folder (no {CONTROLS_FILE}) nor an MRCLAM folder "
         "(no Barcodes.dat and RobotK_Odometry.dat)"
@@ -546,9 +559,7 @@ def _self_calibrated(args: argparse.Namespace, sequence_at, delays):
 def _load_input(args: argparse.Namespace) -> SlamInput:
     """The filter input of ``args.input`` with the calibration the options choose (docs/slam.md, "Calibration")."""
     from services.errors import UsageError
-    from slam import mrclam
     from slam.calibration import GENERIC
-    from slam.simlog import CONTROLS_FILE
 
     chosen = chosen_calibration(args)
     if args.heading_frame is not None and (chosen is not None or args.calibration == "none"):
@@ -556,7 +567,7 @@ def _load_input(args: argparse.Namespace) -> SlamInput:
             "--heading-frame applies to the self-calibration (--calibration auto); a calibration file or profile "
             "states its own bearing bias and drive angle"
         )
-    if (args.input / CONTROLS_FILE).is_file():
+    if landmark_input_kind(args.input) == "sim":
         log = sim_folder_input(args)
         scans = args.input / "scans.npz"
         scans_path = scans if scans.is_file() else None
@@ -574,8 +585,6 @@ def _load_input(args: argparse.Namespace) -> SlamInput:
         if chosen.command_delay:
             notes.append(f"a simulator folder's commands take no delay (the calibration's: {chosen.command_delay:g} s)")
         return _calibrated(chosen.apply(log.sequence()), chosen, scans_path, notes)
-    if not mrclam.is_mrclam_folder(args.input):
-        refuse_input(args.input)
     _, sequence_at, skipped = mrclam_input(args)
     notes = [skipped]
     if chosen is None and args.calibration == "none":
