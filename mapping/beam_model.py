@@ -145,6 +145,23 @@ def beam_table(
     return BeamTable(kind, z, r_stop, r_peak, z - half, z + half, SQRT2 * sigma, g_peak, free_until)
 
 
+def farthest_walk(
+    ranges: np.ndarray, range_min: float, range_max: float, no_return_range: float | None = None
+) -> float:
+    """How far (m) from the laser :func:`beam_table` walks a scan's beams before their tails: its longest hit (a
+    range in [range_min, range_max], above 0), and ``no_return_range`` (None: range_max) when a beam has no return
+    (NaN, or beyond range_max) and such beams clear; 0 when no beam is used. ``SensorModel.beam_reach`` of it bounds
+    the cells the scan's fusion may reach (its tails included), however far the laser's range_max lies."""
+    ranges = np.asarray(ranges, dtype=np.float64)
+    clear = float(range_max if no_return_range is None else no_return_range)
+    no_return = np.isnan(ranges) | (ranges > range_max)
+    hit = ~no_return & (ranges >= range_min) & (ranges > 0.0)
+    farthest = float(ranges[hit].max(initial=0.0))
+    if clear > 0.0 and bool(no_return.any()):
+        farthest = max(farthest, clear)
+    return farthest
+
+
 @kernel(nogil=True, error_model="numpy")
 def _model_g(r, a, b, s):  # pragma: no cover - compiled
     return 0.25 + 0.25 * math.erf((b - r) / s) - 0.5 * math.erf((a - r) / s)

@@ -38,6 +38,18 @@ def plausible_pose(pose: tuple[float, float, float]) -> bool:
     return all(math.isfinite(v) and abs(v) <= POSE_LIMIT for v in pose)
 
 
+#: the longest range_max a scan is read with, m: no 2D laser measures a kilometre. A ROS LaserScan may state +inf (the
+#: default of ROS 2's pointcloud_to_laserscan, whose range_max parameter defaults to the largest double, inf as the
+#: message's float32) or a value beyond any laser; its readings up to this are returns, the rest no return.
+RANGE_MAX_CEILING = 1000.0
+
+
+def bounded_range_max(range_max: float) -> float:
+    """A scan's range_max (m) as the readers take it: at most :data:`RANGE_MAX_CEILING` (+inf and any larger value
+    become it; NaN stays NaN, for the geometry checks to refuse)."""
+    return RANGE_MAX_CEILING if range_max > RANGE_MAX_CEILING else range_max
+
+
 @dataclass(frozen=True)
 class Skipped:
     """One input record a reader could not use: where it is (1-based line or message number) and why."""

@@ -26,11 +26,12 @@ up to 3 s). A scan is skipped when those two are more than ``max_odom_gap`` seco
 outside the odometry's time span by more than ``max_odom_hold`` seconds (within that, the end pose is
 held); likewise one that does not decode or is unusable in itself (:func:`wire_scan_problem`). Each skip records the
 scan's 1-based message number (counting all messages of the topics read, in bag order) and the reason.
-Readings at or above the scan's range_max become ``+inf`` (no return). NaN (an invalid reading) and -inf (too
-close to measure) say nothing about free space (REP 117), so they become 0, below range_min, which every consumer
-skips; range_min is raised to MIN_RANGE_FLOOR (1 mm) when the bag gives 0, so that 0 lies below it. (Left as NaN,
-an invalid reading was skipped by grid FastSLAM but, as a beam with no return, cleared free space up to
-range_max through whatever the laser could not measure in the mapper's fusion.)
+Readings at or above the scan's range_max become ``+inf`` (no return); a range_max of +inf (ROS 2's
+pointcloud_to_laserscan states it by default) or beyond RANGE_MAX_CEILING (1 km, slam.laserlog) is read as 1 km. NaN
+(an invalid reading) and -inf (too close to measure) say nothing about free space (REP 117), so they become 0, below
+range_min, which every consumer skips; range_min is raised to MIN_RANGE_FLOOR (1 mm) when the bag gives 0, so that 0
+lies below it. (Left as NaN, an invalid reading was skipped by grid FastSLAM but, as a beam with no return, cleared
+free space up to range_max through whatever the laser could not measure in the mapper's fusion.)
 Odometry poses and transforms that are not finite or lie beyond +-POSE_LIMIT (1e7 m; slam.laserlog) are
 skipped.
 """
@@ -53,6 +54,7 @@ from slam.laserlog import (
     POSE_LIMIT,
     LaserLog,
     Skipped,
+    bounded_range_max,
     geometry_problem,
     interpolate_poses,
     odometry_problem,
@@ -306,7 +308,7 @@ def _decode(reader, selected: list, scan_topic: str, odom_topic: str | None) -> 
 
 def _add_scan(got: _Decoded, number: int, msg, topic: str) -> None:
     """Add LaserScan message ``number`` to ``got.scans``, or a reason to ``got.skipped``."""
-    geometry = (float(msg.angle_min), float(msg.angle_increment), float(msg.range_min), float(msg.range_max))
+    geometry = scan_geometry(msg)
     ranges = np.asarray(msg.ranges, dtype=np.float32)
     stamp = header_stamp(msg.header)
     if not (all(math.isfinite(g) for g in geometry) and math.isfinite(stamp)) or ranges.size == 0:
@@ -576,6 +578,13 @@ def _laser_log(
         unit="message",
         beams=beams,
     )
+
+
+def scan_geometry(msg) -> tuple[float, float, float, float]:
+    """(angle_min rad, angle_increment rad, range_min m, range_max m) of a ROS LaserScan, its range_max at most
+    slam.laserlog.RANGE_MAX_CEILING (a scan stating +inf, as pointcloud_to_laserscan's default does, is read)."""
+    range_max = bounded_range_max(float(msg.range_max))
+    return (float(msg.angle_min), float(msg.angle_increment), float(msg.range_min), range_max)
 
 
 def wire_scan_problem(

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mapping.beam_model import BEAM_HIT, BEAM_NO_RETURN, BEAM_SKIP, beam_table
+from mapping.beam_model import BEAM_HIT, BEAM_NO_RETURN, BEAM_SKIP, beam_table, farthest_walk
 from mapping.errors import InputError
 from mapping.fan_runs import FAN_FLOATS, FAN_INTS
 from mapping.fusion import (
@@ -250,6 +250,32 @@ def test_constant_sigma_beam_table_matches_the_general_one():
         )
     assert constant.r_stop[[5, 6, 8]].tolist() == [12.0] * 3  # no return: free up to range_max
     assert constant.r_stop[7] == 0.0
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    ranges=st.lists(
+        st.one_of(st.floats(0.0, 60.0), st.sampled_from([0.0, np.inf, -np.inf, np.nan, 1e300]), st.floats(-1.0, -1e-9)),
+        min_size=1,
+        max_size=12,
+    ),
+    range_max=st.sampled_from([5.0, 30.0, 1000.0, 1e300]),
+    no_return=st.sampled_from([None, 0.0, 2.5]),
+    sigma=st.sampled_from(["constant", "linear"]),
+)
+def test_the_farthest_walk_bounds_the_beam_tables_reach_from_both_sides(ranges, range_max, no_return, sigma):
+    """farthest_walk (a shard's bound on a scan's reach, whatever its range_max states) against the beam table that
+    the fusion walks: its longest stop lies between the farthest walk and the model's reach for it."""
+    model = SensorModel(resolution=0.05, sigma=sigma, sigma0=0.03, sigma_slope=0.01)
+    ranges = np.array(ranges)
+    clear = None if no_return is None else min(no_return, range_max)
+    with np.errstate(over="ignore"):  # (a linear sigma's peak offset at a return of 1e300 m: inf)
+        table = beam_table(ranges, model, 0.1, range_max, clear)
+    farthest = farthest_walk(ranges, 0.1, range_max, clear)
+    used = table.kind != BEAM_SKIP
+    stop = float(table.r_stop[used].max(initial=0.0))
+    assert farthest <= stop <= model.beam_reach(farthest)
+    assert (farthest == 0.0) == (not used.any())
 
 
 def test_many_samples_match_slow_reference():

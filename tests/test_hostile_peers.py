@@ -412,6 +412,23 @@ def test_a_scan_whose_range_reaches_absurdly_far_is_refused_and_the_shard_goes_o
     assert all(abs(tx) < 5 and abs(ty) < 5 for tx, ty in shard.tiles())
 
 
+def test_a_scan_whose_range_max_is_a_kilometre_but_whose_beams_stop_near_is_fused_as_a_near_one():
+    """A ROS robot whose scans state range_max +inf reaches the shards with range_max 1 km (slam.laserlog's ceiling):
+    the shard bounded its reach by range_max and refused every such scan as "extent". The bound now comes from the
+    farthest its beams are walked (returns, and the no-return range), so the scans fuse, into the same map as the
+    same readings stated with a range_max of 10 m."""
+    maps = []
+    for range_max in (1000.0, 10.0):
+        shard = _shard()
+        for seq in range(3):
+            scan = _scan(seq)
+            shard.handle("pg/r/scan", replace(scan, range_max=range_max, no_return_range=5.0).encode())
+            shard.handle("pg/r/pose", _pose(seq).encode())
+        assert shard.stats({}).fused == {"r": 3} and shard.rejects.kinds() == {}
+        maps.append(_grid_bytes(shard))
+    assert maps[0] == maps[1]
+
+
 @settings(max_examples=300, deadline=None)
 @given(
     reach=st.floats(0.01, 2000.0),

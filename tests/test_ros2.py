@@ -130,7 +130,7 @@ def test_odometry_is_interpolated_as_the_bag_reader_does_bit_for_bit(records):
     assert not track.add(float(stamps[0]), (0.0, 0.0, 0.0))  # older than the last: refused
 
 
-def _ros_scan(stamp: float, frame: str = "laser", increment: float = 0.5):
+def _ros_scan(stamp: float, frame: str = "laser", increment: float = 0.5, range_max: float = 10.0):
     return rt.MessageType(rt.LASER_SCAN).cls()(
         header=convert.header(stamp, frame),
         angle_min=-1.0,
@@ -139,7 +139,7 @@ def _ros_scan(stamp: float, frame: str = "laser", increment: float = 0.5):
         time_increment=0.0,
         scan_time=0.0,
         range_min=0.1,
-        range_max=10.0,
+        range_max=range_max,
         ranges=np.array([1.0, 2.0, 3.0], np.float32),
         intensities=np.zeros(0, np.float32),
     )
@@ -263,6 +263,22 @@ def test_scans_without_a_transform_or_with_nan_geometry_are_counted_not_taken():
     assert rejects.kinds() == {"geometry": 1, "transform": 1} and rejects.snapshot() == {"/scan": 2}
     ingest.on_scan("/scan", _ros_scan(1.0, frame="base_link"))  # the laser at the base: no transform needed
     assert [stream for stream, _ in ingest.ready()] == [keys.PRIOR, keys.SCAN, keys.ODOM]
+
+
+def test_a_scan_stating_an_infinite_range_max_goes_out_with_a_kilometre():
+    """pointcloud_to_laserscan's default range_max is +inf: the bridge refused every scan of such a robot as
+    "geometry". It now sends them with range_max 1 km, its no-return range as configured."""
+    rejects = RejectCounter(logging.getLogger("test"))
+    clock = Clock()
+    ingest = Ingest(IngestConfig("r1", wait=1.0, no_return_range=8.0), rejects, clock)
+    ingest.on_odometry("/odom", _ros_odometry(1.0))
+    ingest.on_scan("/scan", _ros_scan(1.0, frame="base_link", range_max=math.inf))
+    clock.now = 2.0
+    scans = [message for stream, message in ingest.ready() if stream == keys.SCAN]
+    assert rejects.kinds() == {} and len(scans) == 1
+    assert (scans[0].range_max, scans[0].no_return_range) == (1000.0, 8.0)
+    assert scans[0].ranges.tolist() == [1.0, 2.0, 3.0]
+    scans[0].encode()  # the wire takes it
 
 
 def _tf_rolled(parent: str, child: str, x: float, yaw: float, roll: float):

@@ -203,6 +203,21 @@ def test_invalid_and_too_close_readings_clear_no_free_space(tmp_path):
     assert kinds.tolist() == [BEAM_SKIP, BEAM_SKIP, BEAM_NO_RETURN, BEAM_NO_RETURN, BEAM_HIT]
 
 
+def test_a_scan_stating_an_infinite_range_max_is_read_with_a_kilometre(tmp_path):
+    """ROS 2's pointcloud_to_laserscan states range_max +inf by default (its parameter defaults to the largest
+    double) and no return as +inf: every such scan was skipped as "non-finite geometry", so a bag of a robot that
+    makes its scan from a 3D lidar had no scan to map. Its range_max is now read as 1 km (beyond any laser):
+    its finite readings are returns, +inf and readings past 1 km no return."""
+    bag = BagBuilder(ros2=True)
+    bag.odom(0.0, 0.0, 0.0, 0.0)
+    bag.odom(1.0, 1.0, 0.0, 0.0)
+    bag.scan(0.4, [np.inf, 25.0, 2.0], range_max=np.inf, range_min=0.0)
+    bag.scan(0.6, [1e6, 40.0, 3.0], range_max=3.4e38)  # FLT_MAX: finite, but no laser's
+    log = read_rosbag(bag.write(tmp_path / "a"))
+    assert log.skipped == () and log.range_max.tolist() == [1000.0, 1000.0]
+    assert log.ranges.tolist() == [[np.inf, 25.0, 2.0], [np.inf, 40.0, 3.0]]
+
+
 def test_a_laser_frame_not_linked_to_the_odometry_is_an_error_naming_the_bag(tmp_path):
     bag = BagBuilder()
     bag.tf(0.0, "mast", "laser", 0.1, 0.0, 0.0, topic="/tf_static")  # mast -> laser; nothing links mast to base_link

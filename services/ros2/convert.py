@@ -1,11 +1,11 @@
 """ROS 2 messages to and from posegrid's (no networking here).
 
 In: a ``sensor_msgs/LaserScan`` becomes posegrid's LaserScan as the bag reader reads one (slam.rosbag_reader: a
-reading at or beyond range_max is no return, +inf; NaN and -inf say nothing about free space and become 0, below
-range_min, which is raised to 1 mm when the laser gives 0); transforms and odometry become (x m, y m, yaw rad);
-``geometry_msgs/PoseWithCovarianceStamped`` becomes a PoseGaussian (x, y, yaw of the 6 x 6 covariance) and
-``geometry_msgs/PoseArray`` or ``nav2_msgs/ParticleCloud`` a PoseSamples (the array's poses weigh alike; the cloud's
-weights are normalised).
+reading at or beyond range_max is no return, +inf; a range_max of +inf or beyond 1 km is read as 1 km; NaN and -inf
+say nothing about free space and become 0, below range_min, which is raised to 1 mm when the laser gives 0);
+transforms and odometry become (x m, y m, yaw rad); ``geometry_msgs/PoseWithCovarianceStamped`` becomes a
+PoseGaussian (x, y, yaw of the 6 x 6 covariance) and ``geometry_msgs/PoseArray`` or ``nav2_msgs/ParticleCloud`` a
+PoseSamples (the array's poses weigh alike; the cloud's weights are normalised).
 
 Out: map cells become ``nav_msgs/OccupancyGrid`` values, the occupancy probability as 0 .. 100 and -1 where no beam
 has been; the variance layer likewise, as 100 * variance / scale clipped to 0 .. 100; pose samples become a
@@ -25,7 +25,7 @@ from schemas.messages import LaserScan, PoseGaussian, PoseSamples
 from schemas.wire import Message, MessageError
 from services.ros2 import types
 from slam.laserlog import plausible_pose
-from slam.rosbag_reader import MIN_RANGE_FLOOR, Mount, header_stamp, quaternion_yaw, wire_scan_problem
+from slam.rosbag_reader import MIN_RANGE_FLOOR, Mount, header_stamp, quaternion_yaw, scan_geometry, wire_scan_problem
 from slam.scoring import fit_gaussian
 
 #: indices of x, y and yaw in a ROS 6 x 6 pose covariance (x, y, z, roll, pitch, yaw), row major
@@ -62,7 +62,7 @@ def pose_of(pose: Any) -> tuple[float, float, float]:
 def scan_problem(msg: Any) -> str:
     """Why a ROS LaserScan cannot become posegrid's, or "": a non-finite stamp or geometry, no ranges, or what the
     wire's LaserScan refuses (slam.rosbag_reader.wire_scan_problem)."""
-    geometry = (float(msg.angle_min), float(msg.angle_increment), float(msg.range_min), float(msg.range_max))
+    geometry = scan_geometry(msg)
     ranges = np.asarray(msg.ranges, dtype=np.float32)
     if not (all(math.isfinite(g) for g in geometry) and math.isfinite(stamp_of(msg.header))) or ranges.size == 0:
         return "no ranges, or a non-finite stamp or geometry"
@@ -82,7 +82,7 @@ def to_laser_scan(msg: Any, robot: str, seq: int, mount: Mount, no_return_range:
     """posegrid's LaserScan of a ROS LaserScan ``msg`` that :func:`scan_problem` passes, the laser at ``mount`` on the
     robot (its beams as a level laser's: slam.rosbag_reader.Mount; not validated yet: :func:`encoded`), its beams
     with no return clearing free space up to ``no_return_range`` m (at most its range_max)."""
-    range_max = float(msg.range_max)
+    range_max = scan_geometry(msg)[3]
     ranges = np.array(msg.ranges, dtype=np.float32)
     ranges[ranges >= range_max] = np.inf
     ranges[np.isnan(ranges) | np.isneginf(ranges)] = 0.0  # invalid, or too close: below range_min, skipped

@@ -20,6 +20,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from mapping.beam_model import farthest_walk
 from mapping.errors import InputError
 from mapping.fusion import FuseResult, FusionThreads, MonteCarloFusion
 from mapping.grid import TILE_SIZE, TiledGrid
@@ -560,15 +561,17 @@ class MapShard:
 
     def _draw(self, scan: LaserScan, pose: PoseDistribution) -> tuple[np.ndarray, np.ndarray, tuple[float, int]] | None:
         """The pose samples and weights to fuse ``scan`` with, and how far from the samples its beams may reach: m
-        (the sensor model's reach for range_max, mapping.sensor_model.SensorModel.beam_reach, and the length of the
-        sensor offset) and the cells of the tiles within that reach (services.state.limits.reach_cells); None after
+        (the sensor model's reach for the farthest its beams are walked, mapping.beam_model.farthest_walk and
+        mapping.sensor_model.SensorModel.beam_reach, not for its range_max, which may state 1 km; and the length of
+        the sensor offset) and the cells of the tiles within that reach (services.state.limits.reach_cells); None after
         counting why it is refused. A failure of the checks themselves (a value they were not written for) is
         counted and logged as a failed fusion is: nothing of the scan reached the map, and the shard goes on."""
         cfg = self.config
         try:
             samples, weights = self.pose_samples(scan, pose)
             sensor_reach = math.hypot(float(scan.sensor_offset[0]), float(scan.sensor_offset[1]))
-            reach = cfg.model.beam_reach(scan.range_max)
+            walked = farthest_walk(scan.ranges, scan.range_min, scan.range_max, scan.no_return_range)
+            reach = cfg.model.beam_reach(walked)
             refused, cells = cfg.limits.check_scan(
                 samples, scan.ranges.shape[0], reach, cfg.model.resolution, cfg.tile_size, sensor_reach
             )
