@@ -426,10 +426,13 @@ class MonteCarloFusion:
             (x_lo, y_lo), (x_hi, y_hi) = lasers[:, :2].min(axis=0).tolist(), lasers[:, :2].max(axis=0).tolist()
         check_window(x_lo, y_lo, x_hi, y_hi, reach, res)
         align = ~7 if self.owns_tile is None else ~63
-        ix0 = math.floor((x_lo - reach) / res) & align
-        iy0 = math.floor((y_lo - reach) / res) & align
-        w = math.floor((x_hi + reach) / res) - ix0 + 1
-        h = math.floor((y_hi + reach) / res) - iy0 + 1
+        # a cell more on every side than the reach asks: floor((x + reach) / res) may lose one to rounding (from x = 1
+        # m, a reach of 5.05 m gives 6.05 / 0.05 = 120.99999999999999), and ray_start would then find a ray's end cell
+        # without its cell to spare and skip the ray (a beam with no return along an axis, from a laser on a grid line)
+        ix0 = (math.floor((x_lo - reach) / res) - 1) & align
+        iy0 = (math.floor((y_lo - reach) / res) - 1) & align
+        w = math.floor((x_hi + reach) / res) + 1 - ix0 + 1
+        h = math.floor((y_hi + reach) / res) + 1 - iy0 + 1
         shift = self.grid.tile_shift
         tx0, ty0 = ix0 >> shift, iy0 >> shift
         ntx = ((ix0 + w - 1) >> shift) - tx0 + 1

@@ -278,6 +278,25 @@ def test_the_farthest_walk_bounds_the_beam_tables_reach_from_both_sides(ranges, 
     assert (farthest == 0.0) == (not used.any())
 
 
+@pytest.mark.parametrize("reach", [2.0, 5.0, 12.0, 32.0, 50.0])
+@pytest.mark.parametrize("yaw", [0.0, math.pi / 2, math.pi, -math.pi / 2])
+@pytest.mark.parametrize("samples", [1, 2])
+def test_a_beam_with_no_return_along_an_axis_from_a_grid_line_clears_its_whole_reach(reach, yaw, samples):
+    """A probe's finding: a robot at the origin (on grid lines) whose beam with no return pointed along an axis, and
+    cleared to 5 m (or to 32 to 100 m, with 0.05 m cells), marked no cell at all: the scan's window, floor((x + reach)
+    / res), lost a cell to rounding (6.05 / 0.05 = 120.99999999999999), and the ray, its end cell without a cell to
+    spare, was skipped without a word. Each sample's ray now clears reach / res cells (it ends on a grid line, so no
+    sliver of the next cell), as counted by hand; the second sample lies a cell to the side."""
+    res = 0.05
+    heading = np.array([math.cos(yaw), math.sin(yaw)]).round()
+    poses = np.array([[0.0, 0.0, yaw], [1.0 - 3.0 * abs(heading[1]), 3.0 - 3.0 * abs(heading[0]), yaw]])
+    poses[1, :2] += res * heading[::-1]  # a cell aside from the first: its ray crosses other cells
+    grid = TiledGrid(res)
+    fusion = MonteCarloFusion(grid, SensorModel(res), np.array([0.0]), 0.1, reach)
+    result = fusion.fuse(np.array([np.inf]), poses[:samples], np.full(samples, 1.0 / samples))
+    assert result.cells_updated == samples * round(reach / res)
+
+
 def test_many_samples_match_slow_reference():
     """130 samples, more than the 64 bits of a word (the kernel once kept one bit per sample in a cell's mask)."""
     rng = np.random.default_rng(5)
