@@ -82,6 +82,11 @@ def slam_stats_key(robot: str) -> str:
     return f"{ROOT}/{robot}/slam/stats"
 
 
+def ros2_stats_key(robot: str) -> str:
+    """pg/<robot>/ros2/stats: the ROS 2 bridge's counts (JSON)."""
+    return f"{ROOT}/{robot}/ros2/stats"
+
+
 def robot_alive_key(robot: str, process: str) -> str:
     return f"{ROOT}/{robot}/alive/{process}"
 

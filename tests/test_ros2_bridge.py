@@ -28,10 +28,10 @@ import zenoh.ext
 from bags import BagBuilder
 from peers import put
 from schemas.messages import PoseSamples, TileUpdate, decode_message
+from services import keys
 from services.ports import free_port
 from services.ros2 import names
 from services.ros2 import types as rt
-from services.ros2.bridge import stats_key
 from services.streams import laser_log_stream
 from services.zenoh_config import build_config
 from slam.rosbag_reader import read_rosbag
@@ -84,7 +84,7 @@ def play(procs, router: str, bag: Path, *options: str) -> None:  # noqa: F811
 
 
 def bridge_stats(session) -> dict:
-    for reply in session.get(stats_key("r1"), timeout=5.0):
+    for reply in session.get(keys.ros2_stats_key("r1"), timeout=5.0):
         if reply.ok is not None:
             return json.loads(reply.ok.payload.to_bytes())
     raise AssertionError("the bridge did not answer its stats query")

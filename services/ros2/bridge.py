@@ -54,11 +54,6 @@ STAMPS_KEPT = 65536
 CATCH_UP_TIMEOUT = 10.0
 
 
-def stats_key(robot: str) -> str:
-    """pg/<robot>/ros2/stats: the bridge's counts (JSON)."""
-    return f"{keys.ROOT}/{robot}/ros2/stats"
-
-
 #: bytes a pose takes in CDR (position, then orientation: seven float64), and a particle (a pose and its weight), and
 #: what a PoseArray's or ParticleCloud's header may add: a message past these holds more than MAX_POSE_SAMPLES poses,
 #: refused before it is decoded
@@ -188,7 +183,7 @@ class Bridge:
         self._offer(kind, (key, sample.payload.to_bytes()), size, key)
 
     def _on_stats(self, query: zenoh.Query) -> None:
-        query.reply(stats_key(self.options.robot), json.dumps(self.stats()).encode())
+        query.reply(keys.ros2_stats_key(self.options.robot), json.dumps(self.stats()).encode())
 
     def _on_history(self, query: zenoh.Query) -> None:
         request = history.parse_request(query, self.options.robot, self.rejects)
@@ -425,7 +420,7 @@ class Bridge:
     def _declare_posegrid(self) -> None:
         opts, session = self.options, self.session
         self._declared.append(session.declare_queryable(keys.history_key(opts.robot), self._on_history))
-        self._declared.append(session.declare_queryable(stats_key(opts.robot), self._on_stats))
+        self._declared.append(session.declare_queryable(keys.ros2_stats_key(opts.robot), self._on_stats))
         tiles = keys.tile_key(opts.map_name, 0, "*", "*")
         self._declared.append(session.declare_subscriber(tiles, lambda sample: self._on_posegrid("tile", sample)))
         if not opts.takes_poses:
