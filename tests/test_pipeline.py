@@ -14,6 +14,7 @@ import contextlib
 import os
 import queue
 import re
+import shlex
 import signal
 import subprocess
 import sys
@@ -274,14 +275,18 @@ def test_launcher_stops_every_child_on_sigint_mid_replay(tmp_path, procs):
 
 def test_a_run_stopped_before_its_export_says_so_and_exits_130(tmp_path, procs):
     """A real-log probe: `run --export m.npz` stopped by Ctrl-C mid-replay exited 0 and wrote no file, without a
-    word: `posegrid run --export m.npz && use m.npz` went on with no map. It says no map was written, exit 130."""
+    word: `posegrid run --export m.npz && use m.npz` went on with no map. It says no map was written, exit 130.
+    A determinism probe: the banner's `posegrid run --resume DIR` then starts a new session, which fuses the same
+    scans a second time (12 051 cells off the uninterrupted map); the stop now gives the command that goes on."""
     posed = make_posed(tmp_path / "posed.npz", "samples", steps=300)
-    exported = tmp_path / "m.npz"
-    run = procs([*CLI, "run", "--posed", str(posed), "--rate", "realtime", "--no-api", "--no-state", "--export",
-                 str(exported)])  # fmt: skip
+    exported, state = tmp_path / "m.npz", tmp_path / "run state"
+    run = procs([*CLI, "run", "--posed", str(posed), "--rate", "realtime", "--no-api", "--state-dir", str(state),
+                 "--export", str(exported)])  # fmt: skip
     run.wait_for(r"publishing 300 steps")
     run.process.send_signal(signal.SIGINT)
     assert run.process.wait(60) == 130, run.output()
+    hint = run.wait_for(r"to go on with this replay of the same input: (posegrid run --resume .*? --continue-session)")
+    assert hint.group(1) == f"posegrid run --resume {shlex.quote(str(state))} --continue-session"
     said = run.wait_for(r"stopped before the replay ended \((\d+) of 300 scans fused by every shard\): (.*)")
     assert int(said.group(1)) < 300 and said.group(2) == f"no map written to {exported}"
     assert not exported.exists()

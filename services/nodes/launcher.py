@@ -448,6 +448,7 @@ def _supervise(session, plan: Plan, children: Children, stop: threading.Event, l
     reader = MapReader(session, plan.map_name)
     warn_once = WarnOnce(log)  # (the problems with the shards' stats, said once)
     finished = False
+    fused = 0  # scans every shard has fused (kept here: a bar that does not show, with no terminal, counts none)
     with tqdm(
         total=plan.scans, desc="fused (slowest shard)", unit="scan", file=sys.stderr, disable=None, mininterval=0.5
     ) as bar:
@@ -463,7 +464,8 @@ def _supervise(session, plan: Plan, children: Children, stop: threading.Event, l
             if len(stats) < plan.shards:
                 continue
             done = min(s.fused.get(plan.robot, 0) for s in stats.values())
-            bar.update(done - bar.n)
+            bar.update(done - fused)
+            fused = done
             ended = [s.ended.get(plan.robot) for s in stats.values()]
             if (
                 children.running_to_finish()
@@ -490,16 +492,24 @@ def _supervise(session, plan: Plan, children: Children, stop: threading.Event, l
             if discarded:
                 print(f"posegrid run: the map misses up to {discarded} scans the shards gave up on: {why}", flush=True)
             print("posegrid run: serving the finished map until Ctrl-C", flush=True)
-        fused = bar.n
-    if plan.export is not None and not finished:  # (it exited 0 without the file: `run --export m.npz && use m.npz`)
+    if finished:
+        return 0
+    print(
+        f"posegrid run: stopped before the replay ended ({fused} of {plan.scans} scans fused by every shard)"
+        + (f": no map written to {plan.export}" if plan.export is not None else ""),
+        file=sys.stderr,
+        flush=True,
+    )
+    if plan.state is not None:  # (a plain --resume would start a new session and fuse the same scans again)
         print(
-            f"posegrid run: stopped before the replay ended ({fused} of {plan.scans} scans fused by every shard): "
-            f"no map written to {plan.export}",
+            "posegrid run: to go on with this replay of the same input: posegrid run --resume "
+            f"{shlex.quote(str(plan.state.directory))} --continue-session (with the same input options; without "
+            "--continue-session it is fused again, as a new session)",
             file=sys.stderr,
             flush=True,
         )
-        return 130
-    return 0
+    # (--export exited 0 without the file: `run --export m.npz && use m.npz` went on with no map)
+    return 130 if plan.export is not None else 0
 
 
 def clash_message(clashes: int, plan: Plan) -> str:
