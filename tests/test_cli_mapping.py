@@ -252,6 +252,7 @@ def test_bad_option_value_exit_2(posed_file, tmp_path):
     "options, phrase",
     [
         (["--mode", "ml", "--samples", "20"], "ml uses the mean pose only"),
+        (["--mode", "ml", "--seed", "7"], "ml uses the mean pose only"),  # (was taken, and changed nothing)
         (["--sigma-slope", "0.01"], "--sigma-slope does nothing with --sigma-model constant"),
         (
             ["--sigma-model", "linear", "--baseline-focal", "300"],
@@ -348,9 +349,10 @@ def test_an_empty_map_exports_no_image(map_arrays, tmp_path):
 
 
 def test_sample_counts_for_a_file_of_samples_are_refused(tmp_path):
-    """Samples are fused as they are; --samples and --accuracy only size the draws from Gaussian poses."""
+    """Samples are fused as they are; --samples, --accuracy and --seed only draw from Gaussian poses (a --seed
+    given with a file of samples was taken and changed nothing)."""
     path = _bad(tmp_path, "samples.npz", **good_arrays())
-    for option in (["--samples", "5"], ["--accuracy", "0.1"]):
+    for option in (["--samples", "5"], ["--accuracy", "0.1"], ["--seed", "7"]):
         _one_line_exit_2(posegrid("fuse", str(path), "-o", str(tmp_path / "m.npz"), *option), "holds pose samples")
 
 

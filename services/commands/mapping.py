@@ -75,14 +75,19 @@ def add_sensor_model_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def add_sampling_arguments(
-    parser: argparse.ArgumentParser | argparse._ArgumentGroup, samples: str, accuracy: str, seed: str
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup,
+    samples: str,
+    accuracy: str,
+    seed: str,
+    seed_default: int | None = 0,
 ) -> None:
     """--mode, --samples, --accuracy and --seed: how the pose samples each scan is fused with are drawn
-    (services.fusion_runner.PoseSampling); ``samples``, ``accuracy`` and ``seed`` are those options' help."""
+    (services.fusion_runner.PoseSampling); ``samples``, ``accuracy`` and ``seed`` are those options' help;
+    ``seed_default`` None where a command refuses a --seed it would not read (its default is then 0)."""
     add_choice(parser, "--mode", ("mc", "ml"), "mc: all samples (default); ml: most likely")
     parser.add_argument("--samples", type=pose_sample_count, default=None, help=samples)
     parser.add_argument("--accuracy", type=finite_float, default=None, help=accuracy)
-    parser.add_argument("--seed", type=random_seed, default=0, help=seed)
+    parser.add_argument("--seed", type=random_seed, default=seed_default, help=seed)
     parser.add_argument(
         "--bundle",
         type=bundle_metres,
@@ -209,7 +214,8 @@ def _add_fuse(subparsers: argparse._SubParsersAction) -> None:
         samples="pose samples drawn per scan for Gaussian poses (default: derived from the covariance and --accuracy)",
         accuracy="required accuracy in m of the Monte Carlo mean beam end point, for the derived sample "
         "count, at most 200 a scan (default: one cell)",
-        seed="seed of the Gaussian pose sampling (default 0)",
+        seed="seed of the Gaussian pose sampling (default 0; mc with Gaussian poses only)",
+        seed_default=None,
     )
     add_choice(
         fuse,
@@ -397,9 +403,9 @@ def _refuse_unread_options(args: argparse.Namespace) -> None:
         raise UsageError("--threads fuses the regular grid's scans side by side; the adaptive grid fuses on one thread")
     if args.grid == "adaptive" and args.bundle > 0:
         raise UsageError("--bundle walks the regular grid's rays in bundles; the adaptive grid walks every sample's")
-    if args.mode == "ml" and (args.samples is not None or args.accuracy is not None):
+    if args.mode == "ml" and (args.samples is not None or args.accuracy is not None or args.seed is not None):
         raise UsageError(
-            "--samples and --accuracy set how many Gaussian pose samples mc draws; ml uses the mean pose only"
+            "--samples, --accuracy and --seed set how mc draws Gaussian pose samples; ml uses the mean pose only"
         )
     refuse_bundle_with_ml(args)
 
@@ -466,17 +472,17 @@ def run_fuse(args: argparse.Namespace) -> int:
     _refuse_an_empty_map(args, posed, empty_scans)
     _refuse_a_map_too_wide(args, posed, model.resolution)
     _note_peak_behind_returns(model, posed)
-    if not posed.poses.is_gaussian and (args.samples is not None or args.accuracy is not None):
+    if not posed.poses.is_gaussian and (args.samples is not None or args.accuracy is not None or args.seed is not None):
         raise UsageError(
-            f"{args.posed} holds pose samples, which are fused as they are; --samples and --accuracy "
-            "set how many to draw from Gaussian poses"
+            f"{args.posed} holds pose samples, which are fused as they are; --samples, --accuracy and --seed "
+            "set how to draw from Gaussian poses"
         )
     _note_capped_samples(args, posed)
     options: FusionOptions = {
         "mode": args.mode,
         "model": model,
         "n_samples": args.samples,
-        "seed": args.seed,
+        "seed": 0 if args.seed is None else args.seed,
         "accuracy": args.accuracy,
         "progress": True,
         "bundle": args.bundle,
