@@ -21,11 +21,11 @@ ODOMETRY_DELAY_STEP = 0.01
 #: the estimate compares heading changes over windows of this length (s) around each stamp
 ODOMETRY_DELAY_WINDOW = 0.5
 
-#: stamps come in bursts when more than BURST_FRACTION of the scan or odometry intervals are shorter than
-#: BURST_RATIO times the scans' mean interval (the longest 5 % left out: pauses in the log). A log replayed or
-#: converted with coarse timing does that (the Intel bag's scans come two or more within a millisecond, then half a
-#: second apart); its stamps do not say when a scan or an odometry record was taken to the hundredths of a second
-#: an odometry delay is about.
+#: stamps come in bursts when more than BURST_FRACTION of the scan (or odometry) intervals are shorter than
+#: BURST_RATIO times the scans' (or the odometry's) mean interval (the longest 5 % left out: pauses in the log). A
+#: log replayed or converted with coarse timing does that (the Intel bag's scans come two or more within a
+#: millisecond, then half a second apart); its stamps do not say when a scan or an odometry record was taken to the
+#: hundredths of a second an odometry delay is about.
 BURST_RATIO = 0.2
 BURST_FRACTION = 0.05
 
@@ -87,17 +87,18 @@ def to_reference_time(stamps: np.ndarray, map_stamps: np.ndarray, offsets: np.nd
 
 def bursty_stamps(stamps: np.ndarray, odom_stamps: np.ndarray) -> str:
     """Why the scan ``stamps`` (T,) s and the odometry's ``odom_stamps`` (K,) s cannot time an odometry delay
-    (they come in bursts: :data:`BURST_FRACTION`, :data:`BURST_RATIO`), or "" when they can."""
-    intervals = np.diff(np.asarray(stamps, np.float64))
-    if not len(intervals):
-        return ""
-    typical = float(np.sort(intervals)[: max(1, int(0.95 * len(intervals)))].mean())  # (a median is a burst's)
-    for what, gaps in (("scans", intervals), ("odometry records", np.diff(np.asarray(odom_stamps, np.float64)))):
-        short = float(np.mean(gaps < BURST_RATIO * typical)) if len(gaps) else 0.0
+    (they come in bursts: :data:`BURST_FRACTION`, :data:`BURST_RATIO`, each stream against its own mean interval,
+    so that odometry at 100 Hz beside scans at 10 Hz is regular), or "" when they can."""
+    for what, given in (("scans", stamps), ("odometry records", odom_stamps)):
+        gaps = np.diff(np.asarray(given, np.float64))
+        if not len(gaps):
+            continue
+        typical = float(np.sort(gaps)[: max(1, int(0.95 * len(gaps)))].mean())  # (a median is a burst's)
+        short = float(np.mean(gaps < BURST_RATIO * typical))
         if short > BURST_FRACTION:
             return (
                 f"its {what} come in bursts ({100 * short:.0f} % of them less than "
-                f"{1e3 * BURST_RATIO * typical:.0f} ms apart, the scans' mean interval being {1e3 * typical:.0f} ms), "
+                f"{1e3 * BURST_RATIO * typical:.0f} ms apart, their mean interval being {1e3 * typical:.0f} ms), "
                 "so their stamps cannot time a delay"
             )
     return ""
