@@ -37,8 +37,10 @@ changes is read in full; a
 FLASER/RLASER line carries only its beam count, and its geometry follows from that count by the rules above
 (an interlaced laser's shifted starts cannot be told from such a line: its scans share one geometry). The
 laser's offset on the robot is one for the whole log (ROBOTLASER: the median over the scans, as the lines
-print it to 6 decimals). A line that does not parse, declares a beam count its fields do not match, holds a
-range that is NaN, negative or finite beyond POSE_LIMIT (1e7 m; slam.laserlog), a non-finite stamp, a pose not
+print it to 6 decimals). A range that is NaN (an invalid reading) or -inf (too close to measure) is read as 0,
+no reading, which every consumer skips (REP 117, as the bag reader reads it). A line that does not parse, declares a
+beam count its fields do not match, holds a range that is negative or finite beyond POSE_LIMIT (1e7 m;
+slam.laserlog), a non-finite stamp, a pose not
 finite or beyond +-POSE_LIMIT, or a ROBOTLASER geometry that is unusable in itself
 (:func:`slam.laserlog.geometry_problem`: an increment of 0 for several beams, an angle beyond a full turn) is
 skipped and recorded with its line number and reason in :attr:`LaserLog.skipped`; nothing is ever shifted
@@ -137,10 +139,14 @@ def _count(token: str, what: str, minimum: int = 1) -> int:
 
 
 def _ranges(tokens: list[str]) -> list[float]:
+    """A line's ranges (m); NaN (an invalid reading) and -inf (too close to measure) as 0, no reading (REP 117, as
+    the bag reader takes them: such a beam says nothing of the space along it, and the scan's other beams are kept)."""
     values = _floats(tokens, "range")
     for i, value in enumerate(values):
-        if not (0 <= value <= POSE_LIMIT or value == math.inf):
-            raise _BadLine(f"range {i + 1} is {value}, expected a number in [0, {POSE_LIMIT:g}] m or inf")
+        if value != value or value == -math.inf:
+            values[i] = 0.0
+        elif not (0 <= value <= POSE_LIMIT or value == math.inf):
+            raise _BadLine(f"range {i + 1} is {value}, expected a number in [0, {POSE_LIMIT:g}] m, inf or nan")
     return values
 
 
