@@ -77,6 +77,10 @@ from slam.motion import compose
 DEFAULT_RANGE_MAX = 80.0
 #: field of view assumed for FLASER/RLASER lines when no PARAM gives one (deg)
 DEFAULT_FOV_DEG = 180.0
+#: with no PARAM for the maximum range, a log whose most common reading is at least this share of its readings and
+#: at the top of them (the 90th percentile or above) is said to write its no-return readings as that value (a
+#: laser's maximum range, below DEFAULT_RANGE_MAX)
+MAX_READING_SHARE = 0.02
 
 _FRONT = {"old": "FLASER", "new": "ROBOTLASER1", "raw": "RAWLASER1", "param": "front"}
 _REAR = {"old": "RLASER", "new": "ROBOTLASER2", "raw": "RAWLASER2", "param": "rear"}
@@ -440,6 +444,7 @@ def read_carmen(path: str | Path, laser: str = "front") -> LaserLog:
     ranges = np.full((len(scans), int(beams.max())), PADDING, dtype=np.float32)
     for row, scan in zip(ranges, scans):
         row[: len(scan.ranges)] = scan.ranges
+    notes = [] if scans[0].geometry else _assumed_geometry(params, side, sorted(set(beams.tolist())), ranges)
     ranges[ranges >= geometry[:, 2:3]] = np.inf  # (the NaN padding compares false: it stays)
     skipped.sort(key=lambda s: s.where)
     return LaserLog(
@@ -458,9 +463,41 @@ def read_carmen(path: str | Path, laser: str = "front") -> LaserLog:
         odom_poses=np.array([o[1] for o in odom], dtype=np.float64).reshape(-1, 3),
         params=params,
         skipped=tuple(skipped),
+        notes=tuple(notes),
         unit="line",
         beams=beams,
     )
+
+
+def _assumed_geometry(params: dict[str, str], side: str, beams: list[int], ranges: np.ndarray) -> list[str]:
+    """What the reader takes for granted of FLASER/RLASER lines whose PARAMs are silent (one sentence each, with the
+    PARAM line that would say it): the field of view (DEFAULT_FOV_DEG) and the maximum range (DEFAULT_RANGE_MAX),
+    naming a reading that looks like the laser's own maximum (``ranges`` (T, B) m as read, NaN padding)."""
+    notes = []
+    if f"laser_{side}_laser_fov" not in params and f"laser_{side}_laser_resolution" not in params:
+        notes.append(
+            f"its {side} laser's scans ({', '.join(map(str, beams))} beams a line) are taken to sweep "
+            f"{DEFAULT_FOV_DEG:g} deg, as no PARAM laser_{side}_laser_fov says: a laser that sweeps another angle "
+            f"(270 deg, as most of 541 or 1081 beams do) needs a line 'PARAM laser_{side}_laser_fov DEG' in the log"
+        )
+    if f"robot_{side}_laser_max" not in params:
+        note = (
+            f"its {side} laser's maximum range is taken as {DEFAULT_RANGE_MAX:g} m, as no PARAM robot_{side}_laser_max "
+            "says (readings at or beyond it are no return)"
+        )
+        readings = ranges[np.isfinite(ranges) & (ranges > 0)]
+        readings = readings[:: max(1, readings.size // 200_000)]  # (a sample is enough to find the common value)
+        if readings.size:
+            values, counts = np.unique(readings, return_counts=True)
+            common, share = float(values[counts.argmax()]), float(counts.max() / readings.size)
+            if share >= MAX_READING_SHARE and np.quantile(readings, 0.9) <= common < DEFAULT_RANGE_MAX:
+                note += (
+                    f"; {100 * share:.0f} % of its readings are {common:g} m, at the top of its readings: if that is "
+                    f"the laser's maximum range (its reading for no return, taken as a wall here), add 'PARAM "
+                    f"robot_{side}_laser_max {common:g}' to the log"
+                )
+        notes.append(note)
+    return notes
 
 
 def write_carmen(

@@ -63,6 +63,29 @@ def test_params_set_geometry_offset_and_range_max(tmp_path):
     assert log.params["robot_frontlaser_offset"] == "0.25"
 
 
+def test_what_the_reader_assumes_of_silent_flaser_lines_is_noted_with_the_param_that_says_it(tmp_path):
+    """A probe's finding: FLASER lines of a 1081-beam laser in a log with no PARAMs were read as sweeping 180 deg,
+    and a 4 m laser's no-return readings (written as 4.0) as walls under the 80 m default: grid FastSLAM was then
+    confidently wrong (NEES 501 and 223), with no word, though docs/gridslam.md says the readers note what they take
+    for granted. Each assumption is now a note naming the PARAM line that would say otherwise."""
+    rng = np.random.default_rng(3)
+    lines = []
+    for t in range(20):
+        ranges = np.where(rng.random(9) < 0.4, 4.0, rng.uniform(0.5, 4.01, 9))
+        lines.append(f"FLASER 9 {' '.join(f'{r:.3f}' for r in ranges)} 0 0 0 0 0 0 {t}.0 host {t}.0")
+    notes = read_carmen(write(tmp_path, lines)).notes
+    assert len(notes) == 2
+    assert "(9 beams a line) are taken to sweep 180 deg" in notes[0]
+    assert "'PARAM laser_front_laser_fov DEG'" in notes[0]
+    assert "maximum range is taken as 80 m" in notes[1] and "'PARAM robot_front_laser_max 4'" in notes[1]
+    said = read_carmen(write(tmp_path, ["PARAM laser_front_laser_fov 270 1.0 h 1.0", *lines], "fov.clf")).notes
+    assert len(said) == 1 and "taken as 80 m" in said[0]
+    params = ["PARAM laser_front_laser_fov 270 1.0 h 1.0", "PARAM robot_front_laser_max 4.0 1.0 h 1.0"]
+    assert read_carmen(write(tmp_path, [*params, *lines], "both.clf")).notes == ()
+    spread = [GOOD_FLASER.replace("100.5", f"{100.5 + t}") for t in range(5)]  # no reading stands out: no guess
+    assert "to the log" not in read_carmen(write(tmp_path, spread, "spread.clf")).notes[1]
+
+
 def test_broken_lines_are_skipped_with_line_numbers_and_never_shift(tmp_path):
     lines = [
         GOOD_FLASER,  # 1
@@ -474,7 +497,7 @@ def test_posegrid_source_notes_the_real_logs_beams_with_no_return(capsys, clears
         no_return_range=clears,
     )
     _laser_log(args, "source")
-    said = [line for line in capsys.readouterr().err.splitlines() if "no return" in line]
+    said = [line for line in capsys.readouterr().err.splitlines() if "beams have no return" in line]
     expected = (
         f"posegrid source: note: {args.carmen}: 2.6 % of its beams have no return; they clear no free space (a laser "
         "misses dark and glancing surfaces close by too), and --no-return-range METRES lets them clear up to METRES "
