@@ -25,8 +25,11 @@ from services.api.robots import PoseSummary, reduce_samples
 
 #: samples a pose event carries at most
 EVENT_SAMPLES = 200
-#: seconds of silence after which a keep-alive comment is sent
-KEEPALIVE = 15.0
+#: seconds of silence after which a keep-alive comment is sent: so proxies keep the connection open, and so that a
+#: client that left with a request queued behind its stream, which the server does not see go (it reads no more of
+#: that connection), gives its --max-event-clients slot back within that time (at 15 s, 32 such clients locked every
+#: viewer of an idle map out for 15 s)
+KEEPALIVE = 2.0
 
 
 def sse(event: str, data: dict) -> str:

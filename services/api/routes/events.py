@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from contextvars import ContextVar
+
 from fastapi import APIRouter
 from fastapi.responses import StreamingResponse
 
@@ -14,6 +16,12 @@ router = APIRouter()
 
 class ClientGone(Exception):
     """The server could not write the stream's next event: its client has gone."""
+
+
+#: set in a request's context when its event stream ended because its client had gone (:class:`SlotStream`): the
+#: server then says "ASGI callable returned without completing response" of it, which is no error of the API's
+#: (services.api.server.QuietGoneClients drops that line)
+CLIENT_GONE: ContextVar[bool] = ContextVar("client_gone", default=False)
 
 
 class SlotStream(StreamingResponse):
@@ -41,7 +49,7 @@ class SlotStream(StreamingResponse):
         try:
             await super().__call__(scope, receive, send_or_gone)
         except ClientGone:
-            pass  # nothing to answer, no one to answer it to
+            CLIENT_GONE.set(True)  # nothing to answer, no one to answer it to
         finally:
             close = getattr(self.body_iterator, "aclose", None)
             if close is not None:
