@@ -71,7 +71,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     from services.commands.slam import landmark_input_kind, mrclam_input, sim_folder_input, stated_drive_angle_sd
     from services.errors import UsageError
     from slam.calibration import calibration_text
-    from slam.selfcal import DELAY_GRID, NotEnoughData, self_calibrate
+    from slam.selfcal import DELAY_GRID, NotEnoughData, UndeterminedParameter, self_calibrate
 
     check_outputs(args, inputs=(args.input,), kinds={"output": "json"}, output="-o")
     if not 0.0 < args.fraction <= 1.0:
@@ -92,6 +92,8 @@ def run_calibrate(args: argparse.Namespace) -> int:
             source=f"posegrid calibrate {what}, first {args.fraction:g} of its time span",
             heading_frame=args.heading_frame or "unknown",
         )
+    except UndeterminedParameter as exc:
+        raise UsageError(f"{what}: cannot calibrate from it: {exc}") from None
     except NotEnoughData as exc:
         raise UsageError(f"{what}: too little to calibrate from: {exc}") from None
     calibration = replace(fit.calibration, drive_angle_sd=stated_drive_angle_sd(args, fit.calibration.drive_angle_sd))
