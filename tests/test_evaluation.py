@@ -125,6 +125,28 @@ def test_unobserved_map_cells_count_as_unknown():
     assert scores["brier"] == pytest.approx((0.1**2 + 0.5**2) / 2, rel=1e-6) and scores["auc"] == 1.0
 
 
+def test_informed_counts_the_truth_cells_observed_map_cells_cover_whatever_their_probability():
+    """A probe's finding: a map that observed every truth cell at probability 0.5 (log-odds 0) scored "informed": 0
+    and eval warned that it observed none of them (informed counted the cells whose probability is not 0.5). By hand:
+    a 6 x 6 truth at 0.1 m; a map on the same grid, all observed at 0.5: 36. A map of 0.05 m cells over it, observed
+    in its left 5 columns of 12 and in 2 x 2 blocks averaging 0.5: the truth's first 3 columns (the third half
+    covered), 18 cells; and a map without an observed layer: every cell it covers, 36."""
+    truth = {
+        "occupied": np.eye(6, dtype=bool),
+        "visible": np.ones((6, 6), bool),
+        "origin": np.zeros(2),
+        "resolution": 0.1,
+    }
+    flat = {"probability": np.full((6, 6), 0.5, np.float32), "observed": np.ones((6, 6), bool)}
+    assert score_map({**flat, "origin": np.zeros(2), "resolution": 0.1}, truth)["informed"] == 36
+    fine = np.tile(np.array([[0.3, 0.7], [0.7, 0.3]], np.float32), (6, 6))
+    observed = np.zeros((12, 12), bool)
+    observed[:, :5] = True
+    half = {"probability": fine, "observed": observed, "origin": np.zeros(2), "resolution": 0.05}
+    assert score_map(half, truth)["informed"] == 18
+    assert score_map({"probability": fine, "origin": np.zeros(2), "resolution": 0.05}, truth)["informed"] == 36
+
+
 def test_cells_outside_the_map_count_as_unknown():
     truth = {
         "occupied": np.array([[True]]),

@@ -560,8 +560,9 @@ def run_eval(args: argparse.Namespace) -> int:
     """score a map against a truth raster (AUC, Brier, NLL)
 
     Score MAP against TRUTH over the truth's visible cells; prints one JSON line with auc (null when those cells
-    hold one class only), brier, nll (natural log, per cell), n (cells scored) and informed (those of them the map
-    has observed). Each truth cell takes the map's probability averaged over its area; parts the map does not cover
+    hold one class only), brier, nll (natural log, per cell, the probabilities clipped to [1e-6, 1 - 1e-6] so that a
+    certain mistake costs ln 1e6), n (cells scored) and informed (those of them observed map cells cover, in part or
+    whole). Each truth cell takes the map's probability averaged over its area; parts the map does not cover
     or has not observed count as 0.5, so the two rasters may differ in origin, extent and resolution. A map that
     observed none of the scored cells gets a warning: its AUC of 0.5 says only that the two do not overlap."""
     from mapping.evaluation import score_map
