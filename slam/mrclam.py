@@ -169,11 +169,20 @@ def table_kind(path: str | Path) -> str | None:
 
 def read_groundtruth(path: str | Path) -> np.ndarray:
     """A RobotK_Groundtruth.dat file as (G, 4): time s, x m, y m, yaw rad (map frame). LogFormatError for a file
-    named as another MRCLAM table (a Measurement.dat read as ground truth said it "holds two poses at ... s")."""
+    named as another MRCLAM table (a Measurement.dat read as ground truth said it "holds two poses at ... s"), and
+    for a yaw beyond a full turn: radians are expected, as the pose files' (a ground truth in degrees was scored:
+    heading error 2.04 rad and NEES 41 018, exit 0)."""
     kind = table_kind(path)
     if kind is not None and kind != "Groundtruth":
         raise LogFormatError(f"{path}: an MRCLAM {kind} table, not a robot's ground truth (RobotK_Groundtruth.dat)")
-    return read_table(path, "Groundtruth")
+    table = read_table(path, "Groundtruth")
+    beyond = np.flatnonzero(np.abs(table[:, 3]) > math.tau)
+    if beyond.size:
+        raise LogFormatError(
+            f"{Path(path).name}: the pose at {table[beyond[0], 0]:.3f} s has a yaw of {table[beyond[0], 3]:g} rad, "
+            "more than a full turn: yaws are radians (headings in degrees: times pi / 180)"
+        )
+    return table
 
 
 def mrclam_sequence(

@@ -115,6 +115,13 @@ def test_slam_and_eval_on_an_mrclam_folder(tmp_path, capsys):
     _one_line_exit_2(
         ["eval-traj", str(out), str(tmp_path / "Robot1_Measurement.dat")], capsys, "an MRCLAM Measurement table, not"
     )
+    # a ground truth whose yaws are degrees was scored (a metrics probe: heading error 2.04 rad, NEES 41 018, exit 0)
+    degrees = tmp_path / "degrees" / "Robot1_Groundtruth.dat"
+    degrees.parent.mkdir()
+    degrees.write_text("".join(f"{10.0 + 0.05 * k} {0.01 * k} 0.0 90.0\n" for k in range(70)))
+    _one_line_exit_2(
+        ["eval-traj", str(out), str(degrees)], capsys, "10.000 s has a yaw of 90 rad, more than a full turn"
+    )
     # the folder itself (a new user's probe got "groundtruth.npz: no such file"): the file to give is named
     assert main(["eval-traj", str(out), str(tmp_path)]) == 2
     assert f"for an MRCLAM folder give one robot's ground truth, e.g. {tmp_path / 'Robot1_Groundtruth.dat'}" in (
