@@ -87,8 +87,9 @@ def scan_samples(
 
     mode "mc": all particles (identical ones merged) or, for a Gaussian, n_samples draws (or as many as the
     accuracy rule asks for when n_samples is None), from an rng seeded by (seed, seq) so that every process
-    draws the same samples for scan ``seq``. mode "ml": the most likely particle (the first of equal
-    weights) or the Gaussian's mean, with weight 1: the paper's baseline.
+    draws the same samples for scan ``seq``. mode "ml": the most likely particle (identical ones merged,
+    their weights summed, as mc merges them; the first of equal weights) or the Gaussian's mean, with weight 1: the
+    paper's baseline.
     """
     if mode not in MODES:
         raise InputError(f"mode must be 'mc' or 'ml', got {mode!r}")
@@ -105,8 +106,8 @@ def scan_samples(
         return _draw(mean, cov, n, rng), np.full(n, 1.0 / n)
     if samples is None or weights is None:
         raise InputError("a pose distribution needs samples and weights, or mean and cov")
-    samples, weights = check_samples(samples, weights)
-    if mode == "ml":
+    samples, weights = merge_duplicates(*check_samples(samples, weights))
+    if mode == "ml":  # (merged first: a pose's weight is its copies' sum, as mc fuses it)
         best = int(np.argmax(weights))
         return samples[best : best + 1], np.ones(1)
-    return merge_duplicates(samples, weights)
+    return samples, weights

@@ -18,6 +18,7 @@ from mapping.fusion import (
     merge_duplicates,
 )
 from mapping.grid import TiledGrid
+from mapping.poses import scan_samples
 from mapping.scan_input import MAX_WINDOW_CELLS
 from mapping.sensor_model import SensorModel
 from reference import reference_fuse
@@ -338,6 +339,22 @@ def test_all_weight_on_one_sample_equals_ml():
     ra, rb = a.rasterize(), b.rasterize()
     for key in ra:
         np.testing.assert_array_equal(ra[key], rb[key])
+
+
+def test_ml_fuses_the_pose_whose_copies_weigh_most():
+    """A paper probe's finding: ml took the particle of the largest weight before identical ones were merged, so a
+    pose held by three copies of weight 0.25 (0.75 in all) lost to one of 0.25 that came first, and two files of
+    the same distribution gave two ml maps. Merged first, as mc merges them (docs/sensor_model.md, section 4)."""
+    a, b = [0.0, 0.0, 0.1], [0.05, 0.03, 0.0]
+    for poses, weights in (
+        ([b, a, a, a], [0.25] * 4),
+        ([b, a], [0.25, 0.75]),
+        ([b, a, b, a, a], [0.1, 0.3, 0.15, 0.2, 0.25]),  # a 0.75 in three copies, b 0.25 in two; b's 0.15 is no max
+    ):
+        chosen, weight = scan_samples("ml", samples=np.array(poses), weights=np.array(weights))
+        assert chosen.tolist() == [a] and weight.tolist() == [1.0]
+    tie = scan_samples("ml", samples=np.array([b, a, a]), weights=np.array([0.5, 0.25, 0.25]))[0]
+    assert tie.tolist() == [b]  # equal weights once merged: the first
 
 
 def test_clamping():
