@@ -30,11 +30,11 @@ import zenoh
 
 from bench.pipeline import Cluster
 from bench.scenarios import office_run
+from services.keys import ros2_stats_key
 from services.nodes.source import Source, SourceOptions
 from services.process import RejectCounter, get_logger
 from services.ros2 import convert, names
 from services.ros2 import types as rt
-from services.ros2.bridge import stats_key
 from services.ros2.ingest import Ingest, IngestConfig
 from services.ros2.play import Player, PlayOptions
 from services.streams import laser_log_stream
@@ -245,7 +245,7 @@ def _latency_and_bytes(warmup: Path, bag: Path, own_poses: bool) -> dict:
         Player(cluster.session, bag, PlayOptions(rate=1.0)).run(threading.Event())
         cluster.wait_fused(WARMUP + LATENCY_SCANS)
         time.sleep(1.5)  # the last updates, and a whole map after them
-        stats = json.loads(next(iter(cluster.session.get(stats_key(ROBOT), timeout=5.0))).ok.payload.to_bytes())
+        stats = json.loads(next(iter(cluster.session.get(ros2_stats_key(ROBOT), timeout=5.0))).ok.payload.to_bytes())
     ordered = sorted(arrivals)
     latency = [1e3 * (updates[s] - arrivals[s]) for s in ordered[WARMUP:] if s in updates]  # (the measured bag's)
     published, sizes = stats["published"], stats["bytes_published"]
