@@ -312,6 +312,25 @@ class Ingest:
         except LogFormatError:  # (a cycle: unreachable with base None)
             return frame
 
+    def _pose_base(self, frame: str) -> str | None:
+        """The base frame of a scan from laser ``frame`` joined with the robot's own poses (which name no base
+        frame): the root of the laser's static chain when /tf_static gives it a parent; the laser frame itself when
+        the robot names it as a frame of its own (its odometry's child, a frame /tf moves, a parent on /tf_static:
+        a scan made in base_link, as pointcloud_to_laserscan's target_frame gives it); else None (a laser frame no
+        transform names: its mount is unknown, not the base's origin)."""
+        if frame in self.static:
+            return self._root(frame)
+        named = frame == self.odom_child or frame in self.tf_tracks
+        return frame if named or any(parent == frame for parent, _, _ in self.static.values()) else None
+
+    @staticmethod
+    def _unplaced(frame: str) -> str:
+        """Why a scan from laser ``frame``, which no transform names (:meth:`_pose_base`), has no mount."""
+        return (
+            f"no /tf_static chain links the laser frame {frame!r} to the robot, and no transform names it the "
+            f"robot's own: publish its mount on /tf_static, or give --base-frame {frame} if it is the robot's base"
+        )
+
     def _mount(self, frame: str, base: str) -> Mount | str:
         """The laser frame's mount on ``base`` from the static transforms, or why there is none (while no chain
         links them, or one that tilts the laser's scan plane)."""
@@ -398,8 +417,8 @@ class Ingest:
                 continue
             best = min(matches, key=lambda i: abs(self.scans[i].stamp - stamp))
             scan = self.scans[best]
-            base = config.base_frame or self._root(scan.frame)
-            mount = self._mount(scan.frame, base)
+            base = config.base_frame or self._pose_base(scan.frame)
+            mount = self._mount(scan.frame, base) if base is not None else self._unplaced(scan.frame)
             if isinstance(mount, str) and now - scan.since <= config.wait:
                 break
             self.poses.popleft()
