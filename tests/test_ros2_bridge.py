@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import math
 import queue
+import signal
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -432,3 +433,8 @@ def test_run_ros2_gives_the_map_run_bag_gives(tmp_path, procs):  # noqa: F811
     np.testing.assert_array_equal(got["origin"], expected["origin"])
     np.testing.assert_allclose(got["logodds"], expected["logodds"], rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(got["variance"], expected["variance"], rtol=1e-6, atol=1e-6)
+    # a live robot has no replay to end: its stop said "stopped before the replay ended (40 of None scans ...)"
+    run.process.send_signal(signal.SIGINT)
+    assert run.process.wait(60) == 0, run.output()[-4000:]
+    stopped = run.wait_for(r"posegrid run: stopped after (\d+) scans fused by every shard")
+    assert int(stopped.group(1)) <= len(posed.stamps) and "None" not in run.output()

@@ -494,6 +494,9 @@ def _supervise(session, plan: Plan, children: Children, stop: threading.Event, l
             print("posegrid run: serving the finished map until Ctrl-C", flush=True)
     if finished:
         return 0
+    if plan.scans is None:  # a live robot (run --ros2): no replay to end, nothing to go on with but a new session
+        print(f"posegrid run: stopped after {fused} scans fused by every shard", file=sys.stderr, flush=True)
+        return 0
     print(
         f"posegrid run: stopped before the replay ended ({fused} of {plan.scans} scans fused by every shard)"
         + (f": no map written to {plan.export}" if plan.export is not None else ""),
