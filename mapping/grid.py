@@ -38,6 +38,11 @@ MAX_RASTER_CELLS = 1 << 28
 TileKey = tuple[int, int]
 
 
+class RasterTooLarge(InputError):
+    """The map's tiles span more cells than one raster (and so one map file) may hold (MAX_RASTER_CELLS): read it
+    tile by tile, or in windows, instead."""
+
+
 class TiledGrid:
     """A tiled log-odds map with a variance layer; see the module docstring for frames and layout."""
 
@@ -164,10 +169,9 @@ class TiledGrid:
         shape = (int(ty.max() - ty0 + 1) * size, int(tx.max() - tx0 + 1) * size)  # Python ints: no overflow
         if shape[0] * shape[1] > MAX_RASTER_CELLS:
             width_m, height_m = shape[1] * self.resolution, shape[0] * self.resolution
-            raise InputError(
+            raise RasterTooLarge(
                 f"the map's tiles span {shape[1]} x {shape[0]} cells ({width_m:.6g} m x "
-                f"{height_m:.6g} m), more than the {MAX_RASTER_CELLS} cells one raster may hold; read "
-                "it tile by tile instead"
+                f"{height_m:.6g} m), more than the {MAX_RASTER_CELLS} cells one raster may hold"
             )
         logodds = np.zeros(shape, np.float32)
         variance = np.zeros(shape, np.float32)

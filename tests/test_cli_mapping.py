@@ -464,6 +464,15 @@ def test_a_run_too_wide_for_one_map_is_refused_before_it_is_fused(tmp_path, gaus
     done = posegrid("fuse", str(posed), "-o", str(tmp_path / "map.npz"))
     assert done.returncode == 2 and "the robot's positions alone span more than" in done.stderr, done.stderr
     assert "nothing fused" in done.stderr and not (tmp_path / "map.npz").exists()
+    # a scale probe: positions 64 tiles apart (820 m at 0.05 m) pass that check, but their 65 tiles a side do not fit;
+    # found after the fusion, the library's own words ("read it tile by tile") told a fuse user nothing to do
+    edge = np.array([[0.0, 0.0, 0.0], [64 * 12.8 + 1.0, 64 * 12.8 + 1.0, 0.0]])
+    np.savez(posed, ranges=np.ones((2, 3), np.float32), angle_min=0.0, angle_increment=0.1, range_min=0.1,
+             range_max=5.0, stamps=np.arange(2.0), samples=edge[:, None, :], weights=np.ones((2, 1)))  # fmt: skip
+    done = posegrid("fuse", str(posed), "-o", str(tmp_path / "map.npz"))
+    assert done.returncode == 2 and "the map's tiles span 16640 x 16640 cells" in done.stderr, done.stderr
+    assert "fuse it in parts" in done.stderr and f"nothing written to {tmp_path / 'map.npz'}" in done.stderr
+    assert "Traceback" not in done.stderr and not (tmp_path / "map.npz").exists()
     near = far * [0.01, 0.01, 1.0]  # (50 m: fused)
     np.savez(posed, ranges=np.ones((2, 3), np.float32), angle_min=0.0, angle_increment=0.1, range_min=0.1,
              range_max=5.0, stamps=np.arange(2.0), samples=near[:, None, :], weights=np.ones((2, 1)))  # fmt: skip

@@ -292,6 +292,21 @@ def test_a_run_stopped_before_its_export_says_so_and_exits_130(tmp_path, procs):
     assert not exported.exists()
 
 
+def test_a_run_whose_map_is_too_large_for_one_file_says_what_to_do(tmp_path, procs):
+    """A scale probe: a run whose tiles span 65 x 65 tiles of 12.8 m (more than one raster holds) ended its export
+    with the library's "read it tile by tile instead". It now says nothing was written and how to get the map."""
+    posed = tmp_path / "edge.npz"
+    edge = np.array([[0.0, 0.0, 0.0], [64 * 12.8 + 1.0, 64 * 12.8 + 1.0, 0.0]])
+    np.savez(posed, ranges=np.ones((2, 3), np.float32), angle_min=0.0, angle_increment=0.1, range_min=0.1,
+             range_max=5.0, stamps=np.arange(2.0), samples=edge[:, None, :], weights=np.ones((2, 1)))  # fmt: skip
+    exported = tmp_path / "m.npz"
+    run = procs([*CLI, "run", "--posed", str(posed), "--no-api", "--no-state", "--export", str(exported)])
+    assert run.process.wait(300) == 1, run.output()
+    said = run.wait_for(r"posegrid run: error: cannot export the map: (.*)").group(1)
+    assert said.startswith("the map's tiles span 16640 x 16640 cells") and "GET /maps/MAP/export" in said
+    assert f"nothing written to {exported}" in said and not exported.exists()
+
+
 def test_launcher_stops_on_sigint_while_it_compiles_the_fusion_kernels(tmp_path, procs):
     """On a fresh install `posegrid run` compiles the fusion kernels before it starts the shards (40 s here); a
     Ctrl-C then took effect only after the compile. Now it stops at once (an empty kernel cache makes the compile

@@ -500,7 +500,15 @@ def run_fuse(args: argparse.Namespace) -> int:
         options["threads"] = threads
         grid = fuse_posed_scans(posed, **options)
         summary = None
-    raster = grid.rasterize()
+    from mapping.grid import RasterTooLarge
+
+    try:
+        raster = grid.rasterize()
+    except RasterTooLarge as exc:  # (the check before the fusion sees the robot's positions only, not its rays)
+        raise UsageError(
+            f"{args.posed}: {exc}: fuse it in parts (a posed-scan file of each stretch of the run) or with a coarser "
+            f"--resolution; nothing written to {args.output}"
+        ) from None
     if not raster["observed"].any():
         raise UsageError(
             f"{args.posed}: its scans observed no cell, so the map is empty; nothing written to {args.output}"

@@ -32,6 +32,7 @@ from pathlib import Path
 import zenoh
 from tqdm import tqdm
 
+from mapping.grid import RasterTooLarge
 from schemas.files import MapFile, save_map
 from schemas.messages import MessageError, NodeStats, decode_message
 from services import keys
@@ -572,7 +573,16 @@ def _export(reader: MapReader, plan: Plan, discarded: int, why: str) -> int:
     except IncompleteMap as exc:
         print(f"posegrid run: error: cannot export the map: {exc}", file=sys.stderr)
         return 1
-    raster = grid.rasterize()
+    try:
+        raster = grid.rasterize()
+    except RasterTooLarge as exc:
+        print(
+            f"posegrid run: error: cannot export the map: {exc}; nothing written to {plan.export}. The shards hold "
+            "it: leave out --export and take windows of it from the HTTP API (GET /maps/MAP/export?x_min=...), "
+            "or run again with a coarser --resolution",
+            file=sys.stderr,
+        )
+        return 1
     if not raster["observed"].any():
         empty = (
             f"the shards gave up on {discarded} scan(s): {why}"
