@@ -131,8 +131,7 @@ def beam_table(
             ranges, float(range_min), float(range_max), clear, float(model.sigma0), half, *_constant_sigma_peak(model)
         )
         return BeamTable(kind, *fields)
-    no_return = np.isnan(ranges) | (ranges > range_max)
-    hit = ~no_return & (ranges >= range_min) & (ranges > 0.0)
+    hit, no_return = _hits_and_no_returns(ranges, range_min, range_max)
     no_return &= clear > 0.0
     kind = np.where(hit, BEAM_HIT, np.where(no_return, BEAM_NO_RETURN, BEAM_SKIP)).astype(np.int8)
     z = np.where(hit, ranges, 0.0)
@@ -145,6 +144,14 @@ def beam_table(
     return BeamTable(kind, z, r_stop, r_peak, z - half, z + half, SQRT2 * sigma, g_peak, free_until)
 
 
+def _hits_and_no_returns(ranges: np.ndarray, range_min: float, range_max: float) -> tuple[np.ndarray, np.ndarray]:
+    """(hit, no_return) masks of a scan's ranges (m, float64), as :func:`beam_table` classifies them (its compiled
+    constant-sigma pass makes the same test beam by beam): NaN or beyond range_max is no return; a hit lies in
+    [range_min, range_max] and above 0; the rest (below range_min, -inf, 0) is skipped."""
+    no_return = np.isnan(ranges) | (ranges > range_max)
+    return ~no_return & (ranges >= range_min) & (ranges > 0.0), no_return
+
+
 def farthest_walk(
     ranges: np.ndarray, range_min: float, range_max: float, no_return_range: float | None = None
 ) -> float:
@@ -154,8 +161,7 @@ def farthest_walk(
     the cells the scan's fusion may reach (its tails included), however far the laser's range_max lies."""
     ranges = np.asarray(ranges, dtype=np.float64)
     clear = float(range_max if no_return_range is None else no_return_range)
-    no_return = np.isnan(ranges) | (ranges > range_max)
-    hit = ~no_return & (ranges >= range_min) & (ranges > 0.0)
+    hit, no_return = _hits_and_no_returns(ranges, range_min, range_max)
     farthest = float(ranges[hit].max(initial=0.0))
     if clear > 0.0 and bool(no_return.any()):
         farthest = max(farthest, clear)
