@@ -89,11 +89,12 @@ def probability_on_raster(
     taken over the part of the map the raster overlaps only.
     """
     probability = np.asarray(map_arrays["probability"])
+    observed = map_arrays.get("observed")
 
     def deviation(rows: slice, cols: slice) -> np.ndarray:
         values = np.asarray(probability[rows, cols], np.float32) - np.float32(0.5)
-        if "observed" in map_arrays and map_arrays["observed"] is not None:
-            values[~np.asarray(map_arrays["observed"], bool)[rows, cols]] = 0.0
+        if observed is not None:
+            values[~np.asarray(observed, bool)[rows, cols]] = 0.0
         return values
 
     return 0.5 + _averaged(deviation, probability.shape, map_arrays, origin, resolution, shape)
