@@ -175,14 +175,7 @@ def read_groundtruth(path: str | Path) -> np.ndarray:
     kind = table_kind(path)
     if kind is not None and kind != "Groundtruth":
         raise LogFormatError(f"{path}: an MRCLAM {kind} table, not a robot's ground truth (RobotK_Groundtruth.dat)")
-    table = read_table(path, "Groundtruth")
-    beyond = np.flatnonzero(np.abs(table[:, 3]) > math.tau)
-    if beyond.size:
-        raise LogFormatError(
-            f"{Path(path).name}: the pose at {table[beyond[0], 0]:.3f} s has a yaw of {table[beyond[0], 3]:g} rad, "
-            "more than a full turn: yaws are radians (headings in degrees: times pi / 180)"
-        )
-    return table
+    return read_table(path, "Groundtruth", bound=(3,), limit=math.tau)  # (the yaw: a full turn at most)
 
 
 def mrclam_sequence(

@@ -120,7 +120,7 @@ def test_slam_and_eval_on_an_mrclam_folder(tmp_path, capsys):
     degrees.parent.mkdir()
     degrees.write_text("".join(f"{10.0 + 0.05 * k} {0.01 * k} 0.0 90.0\n" for k in range(70)))
     _one_line_exit_2(
-        ["eval-traj", str(out), str(degrees)], capsys, "10.000 s has a yaw of 90 rad, more than a full turn"
+        ["eval-traj", str(out), str(degrees)], capsys, "line 1: orientation 90 rad is beyond +-6.28319 rad"
     )
     # the folder itself (a new user's probe got "groundtruth.npz: no such file"): the file to give is named
     assert main(["eval-traj", str(out), str(tmp_path)]) == 2
