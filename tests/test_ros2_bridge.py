@@ -7,6 +7,7 @@ ended by PID in the procs fixture's finalizer):
   pose what posegrid published, with rmw_zenoh's attachment and liveliness tokens; a subscriber that joins late gets
   the latest map;
 - garbage on every subscribed key is counted per topic and kind, and the bridge goes on;
+- scans no pose came for are said at the bridge's exit;
 - `posegrid run --ros2` fed a replayed bag builds the map `posegrid run --bag` builds from it.
 """
 
@@ -370,6 +371,24 @@ def test_garbage_on_every_subscribed_key_is_counted_and_the_bridge_goes_on(tmp_p
         lambda: (s := bridge_stats(session))["rejected_kinds"]["malformed"] == 42 and s, what="40 more tiles counted"
     )
     assert {key: n for key, n in stats["received"].items() if "/tile/" in key} == {"pg/map/main/tile/0/*/*": 45}
+
+
+def test_scans_no_pose_came_for_are_said_at_the_bridges_exit(procs, router, session):  # noqa: F811
+    """With the robot's own poses, a scan no pose comes for within --odom-wait s is dropped, not refused: the exit
+    line says so instead of "none refused" alone."""
+    bridge = start_bridge(procs, router, "--pose-topic", "amcl_pose", "--odom-wait", "0.3")
+    builder = BagBuilder(ros2=True)
+    builder.scan(1.0, [1.0, 2.0], frame="base_link")
+    scan = rt.MessageType(rt.LASER_SCAN).encode(builder.items[0][3])
+    publisher = session.declare_publisher(_key("scan", rt.LASER_SCAN))
+    wait_until(lambda: publisher.matching_status.matching, what="the bridge to subscribe to the scans")
+    attachment = names.encode_attachment(names.Attachment(1, time.time_ns(), bytes(16)))
+    publisher.put(scan, attachment=attachment)
+    stats = wait_until(lambda: (s := bridge_stats(session))["unposed"] == 1 and s, what="the scan dropped")
+    assert stats["rejected"] == {} and stats["scans"] == 0
+    bridge.process.send_signal(signal.SIGINT)
+    assert bridge.process.wait(20) == 0
+    bridge.wait_for(r"stopped after 0 scans; none refused; 1 scan\(s\) dropped with no pose within --odom-wait s")
 
 
 def test_run_ros2_gives_the_map_run_bag_gives(tmp_path, procs):  # noqa: F811

@@ -471,10 +471,15 @@ class Bridge:
             if self.node is not None:
                 self.node.close()
             undeclare_all(self._declared)
-        rejected = self.stats()["rejected_kinds"]
-        self.log.info(
-            "stopped after %d scans; %s",
-            self.ingest.seq,
-            f"refused {json.dumps(rejected)}" if rejected else "none refused",
-        )
+        self.log.info("stopped after %d scans; %s", self.ingest.seq, self._losses())
         return 0
+
+    def _losses(self) -> str:
+        """The messages the bridge did not pass on, for its exit line: refusals by kind, and the scans dropped for
+        want of a pose (not refusals: the robot's localisation publishes less often than its laser)."""
+        stats = self.stats()
+        rejected, unposed = stats["rejected_kinds"], stats["unposed"]
+        said = f"refused {json.dumps(rejected)}" if rejected else "none refused"
+        if unposed:
+            said += f"; {unposed} scan(s) dropped with no pose within --odom-wait s"
+        return said
