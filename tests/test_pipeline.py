@@ -307,6 +307,25 @@ def test_a_run_whose_map_is_too_large_for_one_file_says_what_to_do(tmp_path, pro
     assert f"nothing written to {exported}" in said and not exported.exists()
 
 
+def test_a_run_whose_shards_refused_a_scan_by_their_limit_says_so(tmp_path, procs):
+    """A probe: a run whose shards refused a scan by --max-map-cells said the map missed it because "their poses or
+    scans never came". Now it says the shards refused to fuse it. Scans at (3, 3) m reach the 3 x 3 tiles of 12.8 m
+    around the origin's, within the limit of 9 tiles; the one 300 m away would add 9 more."""
+    posed = tmp_path / "far.npz"
+    spots = np.array([[3.0, 3.0, 0.0], [300.0, 3.0, 0.0], [3.0, 3.0, 0.0]])
+    np.savez(posed, ranges=np.ones((3, 3), np.float32), angle_min=0.0, angle_increment=0.1, range_min=0.1,
+             range_max=5.0, stamps=np.arange(3.0), samples=spots[:, None, :], weights=np.ones((3, 1)))  # fmt: skip
+    exported = tmp_path / "m.npz"
+    run = procs(
+        [*CLI, "run", "--posed", str(posed), "--no-api", "--no-state", "--export", str(exported)]
+        + ["--max-map-cells", str(9 * 256 * 256)]
+    )
+    assert run.process.wait(300) == 1, run.output()
+    said = run.wait_for(r"error: the map misses up to (\d+) scans the shards gave up on: (.*)")
+    assert said.group(1) == "1" and said.group(2).startswith("the shards refused to fuse 1 of them"), said.group(0)
+    assert "--max-map-cells" in run.output() and load_map(exported).observed.any()
+
+
 def test_launcher_stops_on_sigint_while_it_compiles_the_fusion_kernels(tmp_path, procs):
     """On a fresh install `posegrid run` compiles the fusion kernels before it starts the shards (40 s here); a
     Ctrl-C then took effect only after the compile. Now it stops at once (an empty kernel cache makes the compile

@@ -486,7 +486,8 @@ def _supervise(session, plan: Plan, children: Children, stop: threading.Event, l
             clashes = max(s.refused.get("duplicate", 0) for s in stats.values())
             if clashes:
                 print(clash_message(clashes, plan), file=sys.stderr, flush=True)
-            why = _given_up_because(session, plan) if discarded else ""
+            refused = max(s.rejected.get(f"fuse/{plan.robot}", 0) for s in stats.values())
+            why = _given_up_because(session, plan, discarded, refused) if discarded else ""
             if plan.export is not None:
                 rc = _export(reader, plan, discarded, why)
                 return 1 if clashes else rc
@@ -531,10 +532,16 @@ def clash_message(clashes: int, plan: Plan) -> str:
     )
 
 
-def _given_up_because(session: zenoh.Session, plan: Plan) -> str:
-    """Why the shards gave up on scans, as far as the run's SLAM node says: the steps it could not take (an
-    odometry jump refused, a step the filter refused) have no pose, so their scans are given up; else the poses or
-    scans never came."""
+def _given_up_because(session: zenoh.Session, plan: Plan, discarded: int = 0, shard_refused: int = 0) -> str:
+    """Why the shards gave up on ``discarded`` scans (the most of one shard): the ``shard_refused`` of them that a
+    shard refused to fuse (the most of one shard: by its limits, --max-map-cells and the others, or a scan no fusion
+    takes), and for the rest, as far as the run's SLAM node says, the steps it could not take (an odometry jump
+    refused, a step the filter refused: they have no pose, so their scans are given up); else the poses or scans
+    never came."""
+    if shard_refused:
+        said = f"the shards refused to fuse {shard_refused} of them (a limit, or a scan no fusion takes: the lines "
+        said += "above say why)"
+        return said if shard_refused >= discarded else f"{said}; for the others, {_given_up_because(session, plan)}"
     lost = "their poses or scans never came (lost in transit, or refused: the lines above say why)"
     if plan.slam_argv is None:
         return lost
