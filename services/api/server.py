@@ -157,7 +157,7 @@ def serve(
                 # uvicorn annotates both timeouts int but hands them to asyncio (wait_for, call_later): seconds
                 # as float work, and the options are fractional seconds
                 timeout_graceful_shutdown=GRACEFUL_SHUTDOWN,  # type: ignore[arg-type]  # float s: see above
-                http=timed_protocol(options.request_timeout),
+                http=timed_protocol(options.request_timeout, backend.link.refused),
                 timeout_keep_alive=options.keep_alive,  # type: ignore[arg-type]  # float s: see above
                 # uvicorn refuses when the open connections, this one included, reach the limit
                 limit_concurrency=connections + 1,
