@@ -144,9 +144,12 @@ def role_permissions(role: Role) -> list[tuple[str, list[str], list[str]]]:
             ("ingress", [_TOKEN], [keys.shard_alive_key(m, "*")]),
             ("ingress", [_SUB], [keys.robot_key(any_robot, "*")]),
             ("ingress", [_QUERY], [keys.history_key(any_robot)]),
+            # (a shard resuming from its state asks which robots' sources and SLAM nodes are up: services.nodes.mapper)
+            ("ingress", [_LIVE_QUERY], [keys.robot_alive_key(any_robot, "*")]),
             ("egress", [_PUT], _streams(any_robot, MAPPER_INPUTS)),
             ("egress", [_QUERY], [own]),
             ("egress", [_REPLY], [keys.history_key(any_robot)]),
+            ("egress", [_TOKEN], [keys.robot_alive_key(any_robot, "*")]),
         ]
     everything = f"{keys.ROOT}/**"
     if role.kind == "api":
@@ -156,7 +159,13 @@ def role_permissions(role: Role) -> list[tuple[str, list[str], list[str]]]:
         ]
     if role.kind == "launcher":
         maps = f"{keys.ROOT}/map/**"
-        return [("ingress", [_QUERY, _LIVE_QUERY], [maps]), ("egress", [_REPLY, _TOKEN], [maps])]
+        slam_stats = keys.slam_stats_key(any_robot)  # (why the shards gave up on scans: services.nodes.launcher)
+        return [
+            ("ingress", [_QUERY, _LIVE_QUERY], [maps]),
+            ("ingress", [_QUERY], [slam_stats]),
+            ("egress", [_REPLY, _TOKEN], [maps]),
+            ("egress", [_REPLY], [slam_stats]),
+        ]
     raise ValueError(f"unknown role kind {role.kind!r}")
 
 

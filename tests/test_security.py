@@ -528,6 +528,33 @@ def test_the_api_role_cannot_forge_a_shard_or_a_history(material, router, sessio
         declared.undeclare()
 
 
+def test_the_launcher_reads_the_slam_stats_and_a_mapper_the_robots_tokens(material, router, sessions):
+    """A probe: the launcher asks the SLAM node's stats (why the shards gave up on scans) and a shard resuming from its
+    state asks which robots are up (their liveliness tokens), but the roles allowed neither: `run --secure` named
+    the wrong cause, and a resumed shard asked no robot's history. Both now pass the router; a source role still
+    cannot read the SLAM stats of another robot."""
+    slam = sessions(role_config(material, "slam-r"))
+    stats = slam.declare_queryable(keys.slam_stats_key("r"), lambda query: query.reply(query.key_expr, b"stats"))
+    token = sessions(role_config(material, "source-r")).liveliness().declare_token(keys.robot_alive_key("r", "source"))
+    launcher = sessions(role_config(material, "launcher"))
+    mapper = sessions(role_config(material, "mapper-m"))
+    other = sessions(role_config(material, "source-r2"))
+
+    def answers(session) -> list[bytes]:
+        replies = session.get(keys.slam_stats_key("r"), timeout=5.0)
+        return [r.ok.payload.to_bytes() for r in replies if r.ok is not None]
+
+    def alive() -> list[str]:
+        replies = mapper.liveliness().get(keys.robot_alive_key("*", "*"), timeout=5.0)
+        return [str(r.ok.key_expr) for r in replies if r.ok is not None]
+
+    wait_until(lambda: answers(launcher) == [b"stats"])
+    wait_until(lambda: alive() == ["pg/r/alive/source"])
+    assert answers(other) == []
+    for declared in (stats, token):
+        declared.undeclare()
+
+
 # ------------------------------------------------------------------------------------------ posegrid run --secure
 
 
