@@ -16,7 +16,15 @@ pg/map/<map>/alive/<shard>           liveliness token of a mapper shard
 
 from __future__ import annotations
 
-from schemas.messages import POSE_TYPES, RESERVED_ROBOT_NAMES, LandmarkObservations, LaserScan, Odometry, StreamEnd
+from schemas.messages import (
+    MAX_SHARDS,
+    POSE_TYPES,
+    RESERVED_ROBOT_NAMES,
+    LandmarkObservations,
+    LaserScan,
+    Odometry,
+    StreamEnd,
+)
 from schemas.wire import is_valid_name
 
 ROOT = "pg"
@@ -66,6 +74,39 @@ def parse_history_reply_key(key: str) -> tuple[str, str] | None:
     if len(parts) != 4 or parts[2] != "history":
         return None
     return parse_robot_key(f"{parts[0]}/{parts[1]}/{parts[3]}")
+
+
+def parse_index(text: str) -> int | None:
+    """The shard index a key chunk names, in its one decimal form (ASCII digits, no sign, no leading zero, below
+    MAX_SHARDS); None for anything else: "+0", "00", " 0", "0_0" and other scripts' digits (U+0660, "²") are other
+    keys, not shard 0, though int() reads some of them as 0 (a peer's token under one, gone again, took the real
+    shard 0 down in the API)."""
+    if not (text.isascii() and text.isdigit()) or (len(text) > 1 and text[0] == "0") or len(text) > 4:
+        return None
+    index = int(text)
+    return index if index < MAX_SHARDS else None
+
+
+def parse_shard_alive_key(key: str) -> tuple[str, int] | None:
+    """(map, shard) of a concrete shard liveliness key pg/map/<map>/alive/<shard> (:func:`parse_index`); None for any
+    other key."""
+    parts = key.split("/")
+    if len(parts) != 5 or parts[:2] != [ROOT, "map"] or parts[3] != "alive" or not is_valid_name(parts[2]):
+        return None
+    shard = parse_index(parts[4])
+    return None if shard is None else (parts[2], shard)
+
+
+def parse_process_alive_key(key: str) -> tuple[str, str] | None:
+    """(robot, process) of a concrete process liveliness key pg/<robot>/alive/<process>; None for any other key (a
+    robot chunk that is no robot name or is reserved, ``map``)."""
+    parts = key.split("/")
+    if len(parts) != 4 or parts[0] != ROOT or parts[2] != "alive":
+        return None
+    robot, process = parts[1], parts[3]
+    if not is_valid_name(robot) or robot in RESERVED_ROBOT_NAMES or not is_valid_name(process):
+        return None
+    return robot, process
 
 
 #: the label rejections of a key that is no posegrid key are counted under (the key itself may be anything a peer

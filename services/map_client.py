@@ -144,13 +144,11 @@ class MapReader:
 
     def _tokens(self, handler) -> set[int]:
         """The shard indices of the tokens a liveliness query's ``handler`` gives (iterating it waits)."""
-        prefix = keys.shard_alive_key(self.map_name, "")
         up = set()
         for reply in handler:
-            if reply.ok is not None and str(reply.ok.key_expr).startswith(prefix):
-                index = str(reply.ok.key_expr)[len(prefix) :]
-                if index.isdigit():
-                    up.add(int(index))
+            parsed = keys.parse_shard_alive_key(str(reply.ok.key_expr)) if reply.ok is not None else None
+            if parsed is not None and parsed[0] == self.map_name:
+                up.add(parsed[1])
         return up
 
     def answers(self, timeout: float = 5.0, tokens: Collection[int] | None = None) -> ShardAnswers:

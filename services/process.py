@@ -14,6 +14,8 @@ from collections import Counter
 from collections.abc import Callable
 from typing import TypeVar
 
+from services.keys import INVALID_KEY
+
 #: set by the launcher in its children: the child stops when this process is no longer its parent
 PARENT_PID_ENV = "POSEGRID_PARENT_PID"
 
@@ -111,6 +113,13 @@ def get_logger(name: str) -> logging.Logger:
 #: key after key) are counted under OTHER_KEYS, so the counter's memory stays bounded
 MAX_REJECT_KEYS = 256
 OTHER_KEYS = "<other keys>"
+#: the longest key a :class:`RejectCounter` counts under its own name (posegrid's keys take well under 100
+#: characters); a longer one, or one with a character that is not printable ASCII, is a peer's making and is counted
+#: under services.keys.INVALID_KEY (256 keys of 60 000 characters made every /health answer 15 MB)
+MAX_KEY_LABEL = 200
+#: the most characters of a rejection's detail that are logged (non-printable ones escaped: a key with a newline
+#: wrote a forged line into the log)
+MAX_DETAIL_LOGGED = 500
 
 
 class WarnOnce:
@@ -124,6 +133,13 @@ class WarnOnce:
         if text not in self.said:
             self.said.add(text)
             self._logger.warning("%s", text)
+
+
+def _loggable(text: str) -> str:
+    """``text`` cut to MAX_DETAIL_LOGGED characters, with every character that is not printable ASCII escaped (a
+    newline, a NUL, a right-to-left mark), so that one log line stays one line of what posegrid wrote."""
+    cut = text[:MAX_DETAIL_LOGGED] + ("..." if len(text) > MAX_DETAIL_LOGGED else "")
+    return cut if cut.isascii() and cut.isprintable() else cut.encode("unicode_escape").decode("ascii")
 
 
 class RejectCounter:
@@ -141,7 +157,12 @@ class RejectCounter:
         self.by_kind: Counter[str] = Counter()
 
     def count(self, key: str, kind: str, detail: str, times: int = 1) -> None:
-        """Count ``times`` messages on ``key`` dropped for ``kind``; log ``detail`` the first time per (key, kind)."""
+        """Count ``times`` messages on ``key`` dropped for ``kind``; log ``detail`` the first time per (key, kind).
+        A key past MAX_KEY_LABEL characters or with characters that are not printable ASCII is counted under
+        services.keys.INVALID_KEY; the detail is logged escaped and cut to MAX_DETAIL_LOGGED characters."""
+        if len(key) > MAX_KEY_LABEL or not (key.isascii() and key.isprintable()):
+            detail = f"on {key[:MAX_KEY_LABEL]!r}: {detail}"
+            key = INVALID_KEY
         with self._lock:
             if key not in self.by_key and len(self.by_key) >= MAX_REJECT_KEYS:
                 key = OTHER_KEYS
@@ -151,7 +172,10 @@ class RejectCounter:
             self._logged.add((key, kind))
         if first:
             self._logger.warning(
-                "dropped a message on %s (%s): %s; further ones of this kind are only counted", key, kind, detail
+                "dropped a message on %s (%s): %s; further ones of this kind are only counted",
+                key,
+                kind,
+                _loggable(detail),
             )
 
     def snapshot(self) -> dict[str, int]:

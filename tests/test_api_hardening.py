@@ -25,6 +25,7 @@ import numpy as np
 import pytest
 
 from api_stack import POSEGRID, ROOT, Stack, free_port, wait_until, write_room
+from peers import put
 from schemas.messages import PoseSamples, ShardStats
 from services import keys
 from services.api.guard import allowed_hosts
@@ -224,6 +225,35 @@ def test_a_token_for_a_shard_beyond_the_maps_shard_count_is_no_shard(api, sessio
         wait_until(forgotten, VERIFY_WINDOW + 60, "the token of shard 5 to be counted as unproved")
     finally:
         token.undeclare()
+
+
+def test_look_alike_shard_tokens_and_long_keys_are_refused_under_the_invalid_key(api, session, stack):
+    """Probes: a token pg/map/lab/alive/+0 (or 00, or Arabic-Indic zero), up 3 s and gone, took the live shard 0
+    down in the API for good (int() read its chunk as 0); one on alive/² stopped `posegrid source --wait-mappers`
+    and `posegrid run` with a traceback (MapReader: '²'.isdigit() but int('²') fails); a robot called map was
+    vouched for; and rejections were counted under the key as the peer made it, so 256 keys of 60 000 characters
+    made every /health 15 MB, and a key with a newline wrote a forged line into the API's log. Now those keys are
+    no shard's and no robot's, and rejections on such keys count under pg/<invalid key>."""
+    chunks = ["+0", "00", "\u0660", "\u00b2", "0_0"]
+    tokens = [session.liveliness().declare_token(keys.shard_alive_key(MAP, chunk)) for chunk in chunks]
+    tokens.append(session.liveliness().declare_token(keys.robot_alive_key("map", "source")))
+    long_robot = "a" * 5000
+    for i in range(3):
+        put(session, f"pg/{long_robot}{i}/pose", b"\xc1")
+    put(session, "pg/r1\nposegrid api: FORGED LINE/pose", b"\xc1")
+    reader = MapReader(session, MAP)
+    assert reader.tokens() == {0}
+    log = stack.logs / "api.log"
+    wait_until(lambda: get_json(f"{api}/health")["rejected"].get(keys.INVALID_KEY, 0) >= 10, 30, "the rejections")
+    assert "map/source" not in get_json(f"{api}/health")["processes_alive"]
+    for token in tokens:
+        token.undeclare()
+    time.sleep(2)  # (the tokens' going reaches the API)
+    health = get_json(f"{api}/health")
+    assert health["status"] == "ok" and get_json(f"{api}/maps/{MAP}")["shards_alive"] == [0], health
+    assert all(len(key) <= 200 for key in health["rejected"]), list(health["rejected"])
+    assert len(httpx.get(f"{api}/health", timeout=30).content) < 100_000
+    assert not any(line.startswith("posegrid api: FORGED LINE") for line in log.read_text().splitlines())
 
 
 def test_a_second_process_answering_as_a_shard_degrades_health_until_it_goes(api, session):

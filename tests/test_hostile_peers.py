@@ -27,7 +27,7 @@ from hypothesis import strategies as st
 
 from mapping.sensor_model import SensorModel
 from peers import put
-from schemas.messages import MAX_SEQ, LaserScan, PoseSamples, ShardStats, StreamEnd, decode_message
+from schemas.messages import MAX_SEQ, MAX_SHARDS, LaserScan, PoseSamples, ShardStats, StreamEnd, decode_message
 from services import keys
 from services.ports import free_port
 from services.process import MAX_REJECT_KEYS, OTHER_KEYS, RejectCounter
@@ -110,6 +110,41 @@ def test_parse_robot_key_takes_exactly_the_concrete_keys_of_known_streams():
     assert keys.parse_history_reply_key("pg/r1/history/odom") == ("r1", "odom")
     assert keys.parse_history_reply_key("pg/r1/history/**") is None
     assert keys.parse_history_reply_key("pg/*/history/scan") is None
+
+
+@given(st.text(max_size=6))
+def test_a_shard_index_is_read_only_in_its_one_decimal_form(text):
+    """A peer's token pg/map/<map>/alive/+0 is not shard 0's: int() reads "+0", "00", " 0" and other scripts' digits
+    as numbers, and a look-alike token that came and went took the real shard 0 down in the API."""
+    canonical = text.isascii() and text.isdigit() and str(int(text)) == text and int(text) < MAX_SHARDS
+    assert keys.parse_index(text) == (int(text) if canonical else None)
+    assert keys.parse_shard_alive_key(f"pg/map/m/alive/{text}") == (("m", int(text)) if canonical else None)
+
+
+def test_liveliness_keys_parse_to_their_parts_only():
+    assert keys.parse_shard_alive_key("pg/map/main/alive/12") == ("main", 12)
+    for key in ("pg/map/main/alive/+0", "pg/map/main/alive/00", "pg/map/*/alive/0", "pg/map/main/alive/0/x"):
+        assert keys.parse_shard_alive_key(key) is None, key
+    assert keys.parse_shard_alive_key("pg/map/main/alive/1024") is None  # MAX_SHARDS shards: 0 to 1023
+    assert keys.parse_process_alive_key("pg/r1/alive/source") == ("r1", "source")
+    for key in ("pg/map/alive/source", "pg/*/alive/slam", "pg/r1/alive", "pg/r 1/alive/slam", "xx/r1/alive/slam"):
+        assert keys.parse_process_alive_key(key) is None, key
+
+
+def test_the_reject_counter_counts_a_made_up_key_under_the_invalid_key_and_logs_it_escaped(caplog):
+    """256 keys of 60 000 characters made every /health answer 15 MB, and a key with a newline wrote a forged line
+    into the log. Such keys are counted under pg/<invalid key>; what is logged is escaped and cut."""
+    counter = RejectCounter(logging.getLogger("hostile"))
+    with caplog.at_level(logging.WARNING, logger="hostile"):
+        counter.count("pg/" + "a" * 60_000 + "/pose", "malformed", "x")
+        counter.count("pg/r1\nposegrid api: FORGED/pose", "robot", "a pose of robot 'r1\nFORGED'")
+        counter.count("pg/r1/pose", "malformed", "y" * 10_000)
+    assert counter.snapshot() == {keys.INVALID_KEY: 2, "pg/r1/pose": 1}
+    lines = [record.getMessage() for record in caplog.records]
+    assert len(lines) == 3 and all("\n" not in line and len(line) < 1000 for line in lines), lines
+    assert "\\nposegrid api: FORGED" in lines[1] and lines[2].endswith(
+        "...; further ones of this kind are only counted"
+    )
 
 
 def test_the_reject_counter_keeps_at_most_its_bound_of_keys():

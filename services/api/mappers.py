@@ -32,7 +32,6 @@ import zenoh
 
 from mapping.grid import TiledGrid
 from schemas.messages import POSE_TYPES, MessageError, ShardStats, TileUpdate, decode_message
-from schemas.wire import is_valid_name
 from services import keys
 from services.api.events import EventHub
 from services.api.limits import MAX_PROCESSES, VERIFY_WINDOW, Tally
@@ -54,13 +53,6 @@ CONFLICT_RESYNC_INTERVAL = 10.0
 
 #: bytes of one reply the API takes: a whole tile of the largest size (1 024 x 1 024 cells, 9 bytes a cell) with room
 MAX_REPLY_BYTES = 16 << 20
-
-
-def _parse_int(text: str) -> int | None:
-    try:
-        return int(text)
-    except ValueError:
-        return None
 
 
 class MapperLink:
@@ -158,11 +150,13 @@ class MapperLink:
 
     def _on_shard_token(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
-        _, _, name, _, shard_text = key.split("/")
-        shard = _parse_int(shard_text)
-        if not is_valid_name(name) or shard is None or shard < 0:
-            self.rejects.count(key, "key", "a shard liveliness token whose key is not pg/map/<map>/alive/<shard>")
+        parsed = keys.parse_shard_alive_key(key)
+        if parsed is None:
+            self.rejects.count(
+                keys.INVALID_KEY, "key", f"a shard liveliness token on {key[:200]!r}, not pg/map/<map>/alive/<shard>"
+            )
             return
+        name, shard = parsed
         if sample.kind != zenoh.SampleKind.PUT:
             self.registry.token_down(name, shard)
             return
@@ -175,14 +169,22 @@ class MapperLink:
 
     def _on_process_token(self, sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
-        _, robot, _, process = key.split("/")
+        parsed = keys.parse_process_alive_key(key)
+        if parsed is None:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self.rejects.count(
+                    keys.INVALID_KEY,
+                    "key",
+                    f"a process liveliness token on {key[:200]!r}, not pg/<robot>/alive/<process> (a robot may not "
+                    "be called map)",
+                )
+            return
+        robot, process = parsed
         name = f"{robot}/{process}"
         if sample.kind != zenoh.SampleKind.PUT:
             self.processes.discard(name)
             return
-        if not is_valid_name(robot) or not is_valid_name(process):
-            self.rejects.count(key, "key", "a process liveliness token whose key is not pg/<robot>/alive/<process>")
-        elif len(self.processes) >= MAX_PROCESSES and name not in self.processes:
+        if len(self.processes) >= MAX_PROCESSES and name not in self.processes:
             self.refused.add("processes")
             self.rejects.count(key, "capacity", f"{MAX_PROCESSES} process liveliness tokens are held already")
         elif not self.robots.vouch(robot):

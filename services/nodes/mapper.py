@@ -35,7 +35,6 @@ from pathlib import Path
 import zenoh
 
 from schemas.messages import TileUpdate
-from schemas.wire import is_valid_name
 from services import history, keys
 from services.handoff_lock import HandoffLock
 from services.intake import DEFAULT_CAPACITY, Intake
@@ -343,10 +342,9 @@ class Mapper:
         """The robots whose source or SLAM node holds its liveliness token (pg/<robot>/alive/<process>)."""
         robots = set()
         for reply in self.session.liveliness().get(keys.robot_alive_key("*", "*"), timeout=ROBOTS_TIMEOUT):
-            if reply.ok is not None:
-                robot = str(reply.ok.key_expr).split("/")[1]
-                if is_valid_name(robot):
-                    robots.add(robot)
+            parsed = keys.parse_process_alive_key(str(reply.ok.key_expr)) if reply.ok is not None else None
+            if parsed is not None:
+                robots.add(parsed[0])
         return robots
 
     # ---------------------------------------------------------------------------- lifecycle
