@@ -45,8 +45,11 @@ STOP_POLL = 0.1
 #: times a question some history did not finish answering in its timeout is asked again, the timeout doubled each
 #: time up to TIMEOUT_CAP s (5 s, then 10 and 20 for a shard's gaps; a 60 s catch-up is asked once): a source
 #: answering 359 scans on a loaded machine took more than 5 s, and the shard took what had come as all there was and
-#: gave up on the rest
+#: gave up on the rest. Asked again only when a history was still answering as the time ran out (:func:`cut_off`):
+#: a peer's queryable that never answers, alone or beside the real history, held a shard 5 + 10 + 20 s a question
 TIMEOUT_RETRIES, TIMEOUT_CAP = 2, 20.0
+#: a try's last reply came at most this share of its timeout before the timeout: a history was still answering
+CUT_OFF_SHARE = 0.25
 
 
 def question_timeouts(timeout: float) -> list[float]:
@@ -134,6 +137,14 @@ def reply(query: zenoh.Query, answerer: Answerer, robot: str, stream: str, paylo
     query.reply(keys.history_key(robot, stream), payload, attachment=answerer.encode())
 
 
+def cut_off(reply_times: list[float], started: float, timeout: float) -> bool:
+    """Whether a try of a question asked at ``started`` (time.monotonic(), s) that ran out of its ``timeout`` s cut a
+    history off as it answered: its last reply (their arrival times ``reply_times``) came within CUT_OFF_SHARE of the
+    timeout of the end. A history that sent nothing, or sent all it had long before the end (the wait then was for
+    another answerer that never answers), is not asked again."""
+    return bool(reply_times) and started + timeout - reply_times[-1] <= CUT_OFF_SHARE * timeout
+
+
 def reachable(session: zenoh.Session) -> bool:
     """Whether the session is connected to a router or a peer: a question can reach a history."""
     return bool(list(session.info.routers_zid())) or bool(list(session.info.peers_zid()))
@@ -146,15 +157,19 @@ def _asked(
     timeout: float,
     stop: threading.Event,
     dropped: list[str],
+    reply_times: list[float] | None = None,
 ) -> list[zenoh.Reply]:
     """The replies to one question in the order they came, once it is answered or ``timeout`` s have passed
     (Stopped when ``stop`` is set first); a reply of more than MAX_REPLY_BYTES is dropped as it comes, and said in
-    ``dropped``."""
+    ``dropped``. ``reply_times`` gets the arrival time (time.monotonic()) of each reply with a sample."""
     replies: list[zenoh.Reply] = []
     done = threading.Event()
+    times = reply_times if reply_times is not None else []
 
     def keep(reply: zenoh.Reply) -> None:
         sample = reply.ok  # (None: an error reply, kept: ask says it)
+        if sample is not None:
+            times.append(time.monotonic())
         if sample is None or len(sample.payload) <= MAX_REPLY_BYTES:
             replies.append(reply)
         else:
@@ -181,12 +196,15 @@ def _answers(
     timeout: float,
     stop: threading.Event,
     dropped: list[str],
+    tries: list[float],
 ) -> list[zenoh.Reply]:
-    """The replies to one question, asked once the session reaches a router or peer. While it reaches none (the
-    router restarting), a question would come back empty at once, and what it asked for would be given up as lost
-    though a history holds it: it waits for the connection instead, up to RECONNECT_WAIT s. A question nobody
-    answers is asked again while the connection is down, and for RECONNECT_GRACE s after it came back. Every wait
-    ends with Stopped when ``stop`` is set: a process asked to stop does not wait for the router."""
+    """The replies to one question (the timeout of each try it took appended to ``tries``, s: more time is given
+    while a history was cut off as it answered, :func:`cut_off`), asked once the session reaches a router or peer.
+    While it reaches none (the router restarting), a question would come back empty at once, and what it asked for
+    would be given up as lost though a history holds it: it waits for the connection instead, up to RECONNECT_WAIT
+    s. A question nobody answers is asked again while the connection is down, and for RECONNECT_GRACE s after it
+    came back. Every wait ends with Stopped when ``stop`` is set: a process asked to stop does not wait for the
+    router."""
     deadline = time.monotonic() + RECONNECT_WAIT
     grace_until = None  # set once the session had to wait for its connection
     more_time = question_timeouts(timeout)[1:]
@@ -195,8 +213,12 @@ def _answers(
             if stop.wait(STOP_POLL):
                 raise Stopped(f"stopped while waiting for the router to ask the histories of {robot!r}")
             grace_until = time.monotonic() + RECONNECT_GRACE
-        replies = _asked(session, robot, parameters, timeout, stop, dropped)
-        if more_time and any(is_timeout_reply(reply) for reply in replies):  # (a slow history: all of it, with time)
+        started = time.monotonic()
+        reply_times: list[float] = []
+        tries.append(timeout)
+        replies = _asked(session, robot, parameters, timeout, stop, dropped, reply_times)
+        timed_out = any(is_timeout_reply(reply) for reply in replies)
+        if more_time and timed_out and cut_off(reply_times, started, timeout):  # (a slow history: all of it, in time)
             timeout = more_time.pop(0)
             continue
         now = time.monotonic()
@@ -229,11 +251,11 @@ def ask(
     messages: list[tuple[str, str, bytes]] = []
     problems: list[str] = []
     answerers: dict[tuple[str, str], set[str]] = {}  # (robot, stream) -> ids of the processes answering for it
-    for answer in _answers(session, robot, parameters, timeout, stop or threading.Event(), problems):
+    tries: list[float] = []
+    for answer in _answers(session, robot, parameters, timeout, stop or threading.Event(), problems, tries):
         if answer.ok is None:
             error = answer.err
             assert error is not None  # a reply holds either a sample or an error
-            tries = question_timeouts(timeout)
             problems.append(
                 f"a history did not finish answering in {tries[-1]:g} s (asked {len(tries)} time(s): a slow or "
                 "stalled process); what it did not send is taken as lost"

@@ -28,7 +28,8 @@ import contextlib
 import queue
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -53,6 +54,12 @@ HISTORY_TIMEOUT = 5.0
 #: (s): the question waits on the shard's main thread, and a peer that declares a history and never answers (a
 #: stranger robot's gaps, one per 2 scans) held every robot's fusion for 5 s a gap
 HISTORY_QUIET = 30.0
+#: s: the timeout of a question while the questions no history answered have held the shard HISTORY_TIMEOUT s or
+#: more in the last HISTORY_QUIET s (a peer's silent histories under robot name after robot name held every robot's
+#: fusion for good); robots whose histories have never answered this shard are not asked at all then
+HISTORY_SHORT_TIMEOUT = 1.0
+#: robots a shard remembers as having had their histories answer it
+MAX_ANSWERED_ROBOTS = 4096
 #: s to wait at startup for the histories of every robot's run so far
 CATCH_UP_TIMEOUT = 60.0
 #: s to wait for the liveliness tokens of the robots' processes (which robots a resumed shard asks the histories of)
@@ -153,6 +160,8 @@ class Mapper:
         self._stats_lock = threading.Lock()  # guards _stats_payload only
         self._stats_payload = b""
         self._history_quiet: dict[str, float] = {}  # robot -> time.monotonic() until which it is not asked
+        self._silent: deque[tuple[float, float]] = deque()  # (when, s waited) of questions no history answered
+        self._answered: set[str] = set()  # robots whose histories gave this shard a message
 
     def _start_from(self, durable: Durable) -> Persister | None:
         """Resume the shard from its store and seed it from --load; the persister of the store (None without one)."""
@@ -249,7 +258,8 @@ class Mapper:
         asked = {"streams": stream, "from": str(first), "to": str(last + 1)}
         if seqs is not None:
             asked["seqs"] = ",".join(map(str, seqs))
-        if time.monotonic() < self._history_quiet.get(robot, 0.0):
+        began = time.monotonic()
+        if began < self._history_quiet.get(robot, 0.0):
             self.rejects.count(
                 keys.history_key(robot),
                 "history",
@@ -257,18 +267,43 @@ class Mapper:
                 f"{HISTORY_TIMEOUT:g} s, so they are left alone for {HISTORY_QUIET:g} s",
             )
             return []
-        began = time.monotonic()
+        silent = self._silent_seconds(began)
+        if silent >= HISTORY_TIMEOUT and robot not in self._answered:
+            self.rejects.count(
+                keys.history_key(robot),
+                "history",
+                f"seqs {first}-{last} of {stream} not asked for: histories that did not answer held this shard "
+                f"{silent:.1f} s in the last {HISTORY_QUIET:g} s, and robot {robot!r}'s have never answered it",
+            )
+            return []
+        timeout = HISTORY_SHORT_TIMEOUT if silent >= HISTORY_TIMEOUT else HISTORY_TIMEOUT
         # a far run's vouching question (seqs given, services.state.join) counts every answerer, of any map: the real
         # source of another map answers its passed seq too, so a peer answering as this map's is not alone (a
         # re-probe: a second map's shard gave up 99 892 scans)
         accept = self._ours_or_live if seqs is None else (lambda answerer: True)
         with self._lock_released():
-            messages = history.ask_counted(self.session, robot, asked, HISTORY_TIMEOUT, self.rejects, accept, self.stop)
+            messages = history.ask_counted(self.session, robot, asked, timeout, self.rejects, accept, self.stop)
+        waited = time.monotonic() - began
+        if messages:
+            self._remember_answered([robot])
         # a question asked while the session reached no router or peer went nowhere, and says nothing of the
         # histories (a router restart must not leave them alone)
-        if not messages and time.monotonic() - began >= 0.9 * HISTORY_TIMEOUT and history.reachable(self.session):
+        elif waited >= 0.9 * timeout and history.reachable(self.session):
             self._history_quiet[robot] = time.monotonic() + HISTORY_QUIET  # (asked, reached; no one answered)
+            self._silent.append((time.monotonic(), waited))
         return [payload for _, got, payload in messages if got == stream]  # (history.ask checks the reply keys)
+
+    def _silent_seconds(self, now: float) -> float:
+        """s the questions no history answered have held this shard in the last HISTORY_QUIET s."""
+        while self._silent and now - self._silent[0][0] > HISTORY_QUIET:
+            self._silent.popleft()
+        return sum(waited for _, waited in self._silent)
+
+    def _remember_answered(self, robots: Iterable[str]) -> None:
+        """Note that the histories of ``robots`` gave this shard messages (at most MAX_ANSWERED_ROBOTS robots)."""
+        for robot in robots:
+            if len(self._answered) < MAX_ANSWERED_ROBOTS:
+                self._answered.add(robot)
 
     @contextlib.contextmanager
     def _lock_released(self) -> Iterator[None]:
@@ -300,6 +335,7 @@ class Mapper:
             replies = history.ask_counted(
                 self.session, "*", asked, CATCH_UP_TIMEOUT, self.rejects, self._ours, self.stop
             )
+        self._remember_answered({robot for robot, _, _ in replies})
         with self.lock:
             taken = self.shard.in_seq_order(
                 (keys.robot_key(robot, stream), payload) for robot, stream, payload in replies
