@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from mapping.pyramid import TileLayers
 from mapping.sensor_model import SensorModel, logit
 from schemas.messages import PoseGaussian, PoseSamples, TileUpdate
+from services.api import tiles as tiles_module
 from services.api.cache import ByteLRU
 from services.api.events import EventHub
 from services.api.export import Window
@@ -341,6 +342,37 @@ def test_a_sync_that_finds_the_cached_tile_unchanged_keeps_its_version():
     service.sync("m")  # now it differs: a new version and one event
     assert registry.version("m", 0, 0, 0) > version
     assert changes == [("m", (0, 0), registry.version("m", 0, 0, 0))]
+
+
+def test_a_maps_summary_and_a_coarse_tile_fetch_their_level_0_tiles_part_after_part(monkeypatch):
+    """A probe: one GET /maps after a shard filled its --max-map-cells (2 045 tiles) asked every tile at once and took
+    the API to 2.3 GB, against --cache-mb 256. The tiles are asked FETCH_CELLS cells at a time; the summary and the
+    coarse tile are what they were (every tile counted once, hand-summed)."""
+    monkeypatch.setattr(tiles_module, "FETCH_CELLS", 8)  # two 2 x 2 tiles a part
+    registry = MapRegistry()
+    registry.shard_alive("m", 0, True)
+    tiles = {(tx, ty): update(tx, ty, float(tx + 8 * ty)) for tx in range(8) for ty in range(8)}
+    for tile in tiles:
+        registry.tile_changed("m", tile, 0.05, 2)
+    asked: list[int] = []
+
+    class Counting(Source):
+        def fetch_tiles(self, map_name, wanted):
+            asked.append(len(wanted))
+            return super().fetch_tiles(map_name, wanted)
+
+    service = TileService(registry, Counting(tiles), "e", 1 << 20, on_change=lambda name, tile, v: None)
+    content = service.content("m")
+    assert content.observed == 64 * 4 and content.bounds == (0, 0, 15, 15)  # every cell of the 8 x 8 tiles
+    assert len(asked) == 32 and max(asked) == 2
+    asked.clear()
+    coarse = TileService(registry, Counting(tiles), "e", 1 << 20, on_change=lambda name, tile, v: None)
+    layers = coarse.layers("m", 3, 0, 0)  # level 3: the 8 x 8 level-0 tiles below it, in one 2 x 2 tile
+    assert layers is not None and max(asked) == 2 and sum(asked) == 64
+    # each coarse cell is the mean of the 4 x 4 level-0 tiles' cells it covers (all equal within a tile): hand-computed
+    expected = [[np.mean([tx + 8 * ty for tx in range(4 * i, 4 * i + 4) for ty in range(4 * j, 4 * j + 4)])
+                 for i in range(2)] for j in range(2)]  # fmt: skip
+    assert np.allclose(layers[0], expected)
 
 
 def test_a_maps_conflict_clears_once_every_shard_answers_with_its_geometry():

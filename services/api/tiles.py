@@ -37,6 +37,11 @@ MEDIA_TYPES = {"png": "image/png", "npz": "application/octet-stream"}
 #: than come back in --query-timeout): each fetch asks the whole map again
 RESYNC_SHORT = 2.0
 
+#: cells of level-0 tiles asked from the shards at once (a map's summary and a coarse tile fetch every level-0 tile
+#: they lack, part after part: asked all at once, the 2 045 tiles a shard holds at its --max-map-cells took the API
+#: to 2.3 GB, against --cache-mb 256); 4 M cells, 64 tiles of 256 x 256, about 36 MB of layers
+FETCH_CELLS = 1 << 22
+
 #: (map, z, x, y, format, layer or None, vmax or None): what identifies one encoded tile
 RenderKey = tuple[str, int, int, int, str, "str | None", "float | None"]
 
@@ -256,6 +261,14 @@ class TileService:
             )
         return {tile: self._store(name, tile, wanted[tile], update) for tile, update in got.items()}
 
+    def _parts(self, name: str, wanted: dict[TileKey, int]) -> list[dict[TileKey, int]]:
+        """``wanted`` (level-0 tile -> version) in parts of at most FETCH_CELLS cells, in tile order."""
+        info = self.registry.get(name)
+        size = info.tile_size if info is not None and info.tile_size else 1
+        per_part = max(1, FETCH_CELLS // (size * size))
+        tiles = sorted(wanted.items())
+        return [dict(tiles[start : start + per_part]) for start in range(0, len(tiles), per_part)]
+
     def _stale_below(self, name: str, z: int, x: int, y: int, out: dict[TileKey, int]) -> None:
         version = self.registry.version(name, z, x, y)
         if version == 0 or self._layers.get((name, z, x, y), version) is not None:
@@ -271,8 +284,8 @@ class TileService:
         """Level-z tile (x, y) of map ``name``; None when no level-0 tile below it exists."""
         stale: dict[TileKey, int] = {}
         self._stale_below(name, z, x, y, stale)
-        if stale:
-            self._fetch(name, stale)
+        for part in self._parts(name, stale):  # (into the cache; _build fetches again any it has let go since)
+            self._fetch(name, part)
         info = self.registry.get(name)
         if info is None or info.tile_size is None:  # unknown map, or none of its tiles seen: no tile below
             return None
@@ -316,16 +329,19 @@ class TileService:
         partial = False
         if stale and best_effort:
             reachable = {tile: version for tile, version in stale.items() if self.registry.owner_alive(name, tile)}
-            try:
-                fetched = self._fetch(name, reachable) if reachable else {}
-            except TileUnavailable:
-                fetched = {}
-            by_tile.update((tile, entry[1]) for tile, entry in fetched.items())
+            fetched: dict[TileKey, TileFacts] = {}
+            for part in self._parts(name, reachable):
+                try:
+                    fetched.update((tile, entry[1]) for tile, entry in self._fetch(name, part).items())
+                except TileUnavailable:
+                    continue
+            by_tile.update(fetched)
             older = self._last_facts.get(name, {})
             by_tile.update((tile, older[tile]) for tile in stale.keys() - fetched.keys() if tile in older)
             partial = len(fetched) < len(stale)
-        elif stale:
-            by_tile.update((tile, entry[1]) for tile, entry in self._fetch(name, stale).items())
+        else:
+            for part in self._parts(name, stale):  # (each tile's facts kept, its layers left to the cache)
+                by_tile.update((tile, entry[1]) for tile, entry in self._fetch(name, part).items())
         facts = list(by_tile.values())
         boxes = np.array([f.bounds for f in facts if f.bounds is not None]).reshape(-1, 4)
         bounds: tuple[int, int, int, int] | None = None
