@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import threading
 import time
-from collections import deque
 from dataclasses import dataclass
 from typing import Literal
 
@@ -25,6 +24,10 @@ from slam.angles import wrap_angle
 DRAWN_SAMPLES = 100
 #: mean poses kept per robot
 TRAJECTORY_LENGTH = 100_000
+#: mean poses kept of all robots together (40 bytes each: 80 MB); past it the robot holding the most lets its oldest
+#: go. A peer's poses under 50 robot names took 140 MB in 80 s when each was a tuple of 280 bytes, and the API's
+#: 256 robots could have held 7 GB
+TRAJECTORY_POSES = 2_000_000
 #: a pose at most this many seqs after a robot's latest is taken (a pose or a failed step lost between): a forged
 #: one there holds the real ones back for that many seqs at most
 GAP_TAKE = 4
@@ -109,6 +112,44 @@ class PoseRefused(Exception):
         self.kind = kind
 
 
+class Track:
+    """A robot's mean poses, rows (seq, stamp s, x m, y m, yaw rad), oldest first, in a ring of at most ``length``
+    rows (float64: seqs below 2^53 are exact) that grows as it fills."""
+
+    def __init__(self, length: int) -> None:
+        self.length = length
+        self._rows = np.empty((min(length, 1024), 5))
+        self._start = 0  # the ring's row of the oldest pose
+        self.count = 0
+
+    def append(self, row: tuple[int, float, float, float, float]) -> None:
+        """Add ``row`` as the newest; at ``length`` rows, the oldest goes."""
+        capacity = len(self._rows)
+        if self.count == capacity and capacity < self.length:
+            self._rows = np.concatenate([self.rows(), np.empty((min(capacity, self.length - capacity), 5))])
+            self._start, capacity = 0, len(self._rows)
+        if self.count == capacity:
+            self._rows[self._start] = row
+            self._start = (self._start + 1) % capacity
+        else:
+            self._rows[(self._start + self.count) % capacity] = row
+            self.count += 1
+
+    def drop_oldest(self, count: int) -> int:
+        """Let the ``count`` oldest rows go (at most all of them); how many went."""
+        dropped = min(count, self.count)
+        self._start = (self._start + dropped) % len(self._rows)
+        self.count -= dropped
+        return dropped
+
+    def rows(self) -> np.ndarray:
+        """A copy of the rows, oldest first, (count, 5)."""
+        end = self._start + self.count
+        if end <= len(self._rows):
+            return self._rows[self._start : end].copy()
+        return np.concatenate([self._rows[self._start :], self._rows[: end - len(self._rows)]])
+
+
 class RobotTracker:
     """Thread-safe: Zenoh callbacks call :meth:`update` and :meth:`vouch`, HTTP handlers read.
 
@@ -125,10 +166,13 @@ class RobotTracker:
         max_robots: int = MAX_ROBOTS,
         stray_ttl: float = STRAY_TTL,
         gap_follow: int = GAP_FOLLOW,
+        trajectory_poses: int = TRAJECTORY_POSES,
     ) -> None:
         self._lock = threading.Lock()
         self._latest: dict[str, PoseSummary] = {}
-        self._trajectory: dict[str, deque[tuple[int, float, float, float, float]]] = {}
+        self._trajectory: dict[str, Track] = {}
+        self._poses = 0  # rows of every track
+        self._poses_limit = trajectory_poses
         self._heard: dict[str, float] = {}  # robot -> time.monotonic() of its latest pose
         self._vouched: set[str] = set()
         self._ahead: dict[str, int] = {}  # robot -> the last pose seq refused as too far ahead (a gap, if followed)
@@ -154,10 +198,20 @@ class RobotTracker:
             self._check_gap(message)
             self._latest[summary.robot] = summary
             self._heard[summary.robot] = now
-            track = self._trajectory.setdefault(summary.robot, deque(maxlen=self._length))
+            track = self._trajectory.setdefault(summary.robot, Track(self._length))
             x, y, yaw = (float(v) for v in summary.mean)  # mean: (3,)
+            before = track.count
             track.append((summary.seq, summary.stamp, x, y, yaw))
+            self._poses += track.count - before
+            if self._poses > self._poses_limit:
+                self._let_oldest_go()
         return summary
+
+    def _let_oldest_go(self) -> None:
+        """Past ``trajectory_poses`` rows in all, the robot holding the most lets its oldest go: the excess, and a
+        sixteenth of the limit more (so that the robots are not looked over at every pose), holding the lock."""
+        largest = max(self._trajectory.values(), key=lambda track: track.count)
+        self._poses -= largest.drop_oldest(self._poses - self._poses_limit + self._poses_limit // 16)
 
     def _check_known(self, message: PoseSamples | PoseGaussian, now: float) -> None:
         """:meth:`update`'s refusals that change nothing (capacity, stale), holding the lock."""
@@ -212,6 +266,7 @@ class RobotTracker:
     def _expire(self, now: float) -> None:
         """:meth:`expire` holding the lock."""
         for robot in [r for r, heard in self._heard.items() if r not in self._vouched and now - heard > self.stray_ttl]:
+            self._poses -= self._trajectory[robot].count
             del self._latest[robot], self._trajectory[robot], self._heard[robot]
 
     def robots(self) -> list[str]:
@@ -238,5 +293,5 @@ class RobotTracker:
     def trajectory(self, robot: str) -> np.ndarray:
         """Rows (seq, stamp s, x m, y m, yaw rad) of the robot's mean poses, oldest first; (0, 5) if unknown."""
         with self._lock:
-            rows = list(self._trajectory.get(robot, ()))
-        return np.array(rows, float).reshape(-1, 5)
+            track = self._trajectory.get(robot)
+            return np.empty((0, 5)) if track is None else track.rows()
