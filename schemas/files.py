@@ -756,6 +756,20 @@ def output_path_problem(path: str | Path) -> str | None:
     return None
 
 
+def output_folder_problem(path: str | Path) -> str | None:
+    """Why ``path`` cannot be the folder a command writes into (made when missing, in a folder that exists: a mistyped
+    parent is not made, as no output path's is), in words with what to do; None when it can."""
+    folder = Path(path)
+    if folder.exists() and not folder.is_dir():
+        return "it exists and is not a folder; give a folder"
+    parent = folder.absolute().parent
+    if parent.exists() and not parent.is_dir():
+        return f"{parent} is a file, not a folder; give a path in a folder"
+    if not parent.is_dir():
+        return f"folder {parent} does not exist; create it first"
+    return None
+
+
 #: folders of devices and process entries: a link into them (or one that passes through one, as /dev/stdout ->
 #: /proc/self/fd/1 does) names no file to write a map into, even where it ends at one (standard output redirected
 #: to a file: the map went into the terminal's log, or a pipe's "pipe:[N]" read as a missing folder)

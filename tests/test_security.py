@@ -297,6 +297,11 @@ def test_secure_init_and_simulate_make_no_missing_parent(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert f"folder {tmp_path / 'absent'} does not exist" in err and "\n" not in err, err
         assert not (tmp_path / "absent").exists()
+    (tmp_path / "afile").write_text("")  # (a probe: "folder .../afile does not exist", where it is a file)
+    for argv in (["secure-init", str(tmp_path / "afile" / "s")], ["simulate", str(tmp_path / "afile" / "sim")]):
+        assert main([*argv, *(["--steps", "5"] if argv[0] == "simulate" else [])]) == 2
+        err = capsys.readouterr().err.strip()
+        assert f"{tmp_path / 'afile'} is a file, not a folder" in err and "\n" not in err, err
 
 
 @pytest.mark.parametrize(

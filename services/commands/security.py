@@ -88,6 +88,7 @@ def run_secure_init(args: argparse.Namespace) -> int:
     one client config per role (ROLE.json5). Roles: source-ROBOT and slam-ROBOT per robot, mapper-MAP per map, api,
     launcher. Start each process with --zenoh-config DIR/ROLE.json5; run it again (with --force) to replace the
     material, e.g. for a new robot or before the certificates expire."""
+    from schemas.files import output_folder_problem
     from services.commands.pipeline import DEFAULT_MAP, DEFAULT_ROBOT, _check_name
     from services.errors import UsageError
     from services.security import DEFAULT_VALID_DAYS, MAX_VALID_DAYS, write_material
@@ -109,10 +110,9 @@ def run_secure_init(args: argparse.Namespace) -> int:
                 f"scheme, port or brackets, got {value!r}"
             )
     listen = f"tls/{_endpoint_host(args.listen_address)}:{args.port}"
-    if args.folder.exists() and not args.folder.is_dir():
-        raise UsageError(f"{args.folder} exists and is not a folder")
-    if not args.folder.absolute().parent.is_dir():  # as every output path: a mistyped parent is not made
-        raise UsageError(f"{args.folder}: folder {args.folder.absolute().parent} does not exist; create it first")
+    problem = output_folder_problem(args.folder)
+    if problem is not None:
+        raise UsageError(f"{args.folder}: {problem}")
     if args.folder.is_dir() and any(args.folder.iterdir()) and not args.force:
         raise UsageError(f"{args.folder} is not empty; pass --force to replace its material")
     hosts = args.host or [args.listen_address if args.listen_address not in ("0.0.0.0", "::") else "127.0.0.1"]

@@ -243,17 +243,16 @@ def _add_eval_traj(subparsers: argparse._SubParsersAction) -> None:
 def _simulation_folder(text: str) -> Path:
     """OUTDIR of `posegrid simulate`, created if missing (its parent must exist), after checking that it can hold
     every one of :data:`slam.simlog.SIMULATION_FILES` (UsageError otherwise, naming the path and what to do)."""
+    from schemas.files import output_folder_problem
     from services.errors import UsageError
     from slam.simlog import SIMULATION_FILES
 
     if not text:
         raise UsageError("OUTDIR '': an empty path names no folder; give the folder to write")
     folder = Path(text)
-    if folder.exists() and not folder.is_dir():
-        raise UsageError(f"OUTDIR {folder}: not a folder; give a folder to write the simulation into")
-    parent = folder.absolute().parent
-    if not parent.is_dir():  # as every output path: a mistyped parent is not made
-        raise UsageError(f"OUTDIR {folder}: folder {parent} does not exist; create it first or give another OUTDIR")
+    problem = output_folder_problem(folder)
+    if problem is not None:
+        raise UsageError(f"OUTDIR {folder}: {problem}")
     held = sorted(p.name for pattern in INPUT_FOLDER_FILES for p in folder.glob(pattern)) if folder.is_dir() else []
     if held:  # (a simulation written beside an MRCLAM folder's tables is what `slam` then reads: theirs are lost)
         shown = ", ".join(held[:3]) + (", ..." if len(held) > 3 else "")
