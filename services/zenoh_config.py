@@ -10,6 +10,7 @@ override both.
 
 from __future__ import annotations
 
+import datetime as dt
 import json
 import os
 import re
@@ -165,11 +166,36 @@ def _no_passphrase() -> bytes:
     return b""
 
 
+def _validity_problem(path: str | None, now: dt.datetime | None = None) -> str | None:
+    """Why a certificate of the PEM file ``path`` is not valid at ``now`` (UTC; default: this machine's clock), in
+    words with what to do; None when each is (or there is no file). Zenoh refuses such a certificate on either side
+    of a connection without saying why: a client only times out, and the router logs nothing."""
+    from cryptography import x509
+
+    if path is None:
+        return None
+    now = now or dt.datetime.now(dt.timezone.utc)
+    for certificate in x509.load_pem_x509_certificates(Path(path).read_bytes()):
+        subject = certificate.subject.rfc4514_string()
+        if now > certificate.not_valid_after_utc:
+            return (
+                f"expired on {certificate.not_valid_after_utc:%Y-%m-%d %H:%M} UTC ({subject}; this machine's clock "
+                f"says {now:%Y-%m-%d %H:%M} UTC): make new material (posegrid secure-init --force, --days N)"
+            )
+        if now < certificate.not_valid_before_utc:
+            return (
+                f"is not valid before {certificate.not_valid_before_utc:%Y-%m-%d %H:%M} UTC ({subject}; this "
+                f"machine's clock says {now:%Y-%m-%d %H:%M} UTC): set this machine's clock, or make the material on "
+                "a machine whose clock is right"
+            )
+    return None
+
+
 def check_local_files(config: zenoh.Config, what: str) -> None:
     """UsageError naming a file of ``config`` that the session could not use: a TLS file that is missing, not
     readable or not PEM that Python's ssl loads (a certificate with its key, a CA), or an empty user/password
-    dictionary (zenoh then asks no password: docs/security.md). zenoh would say only that no router answered, or,
-    for the dictionary, nothing."""
+    dictionary (zenoh then asks no password: docs/security.md), or a certificate that is expired or not valid yet at
+    this machine's clock. zenoh would say only that no router answered, or, for the dictionary, nothing."""
     import ssl
 
     files = {key: read_key(config, key) for key, _ in TLS_FILES}
@@ -194,6 +220,10 @@ def check_local_files(config: zenoh.Config, what: str) -> None:
             f"({getattr(exc, 'reason', None) or exc}): a certificate that is not PEM, a key that is not its "
             "certificate's, or a key with a passphrase, which zenoh cannot take (posegrid secure-init --force)"
         ) from None
+    for key, kind in TLS_FILES:
+        problem = _validity_problem(files[key]) if kind.endswith("certificate") else None
+        if problem is not None:
+            raise UsageError(f"{what}: its TLS {kind} {files[key]} ({key}) {problem}")
     dictionary = read_key(config, "transport/auth/usrpwd/dictionary_file")
     if dictionary is not None:
         try:

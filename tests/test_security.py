@@ -431,6 +431,35 @@ def test_a_broken_local_file_is_named_before_the_session_opens(material, broken,
         check_local_files(config, "the test")
 
 
+def test_an_expired_or_not_yet_valid_certificate_is_named_before_the_session_opens(material):
+    """A probe: a client with an expired certificate waited 10 s and blamed the router, and a router on one started
+    and then refused every client without a word. secure-init makes material valid 365 days (run --secure 7), and a
+    machine whose clock is behind sees it as not valid yet. Each certificate is checked against this machine's clock
+    before the session opens, and named with the date and what to do."""
+    import datetime as dt
+
+    from services.errors import UsageError
+    from services.zenoh_config import _validity_problem, check_local_files
+
+    now = dt.datetime.now(dt.timezone.utc)
+    leaf, ca = str(material.folder / "api.pem"), str(material.ca)
+    assert _validity_problem(leaf) is None and _validity_problem(ca) is None  # (days=1: valid now)
+    expired = _validity_problem(leaf, now + dt.timedelta(days=2))
+    assert expired is not None and expired.startswith("expired on ") and "secure-init --force" in expired
+    early = _validity_problem(ca, now - dt.timedelta(days=2))
+    assert early is not None and early.startswith("is not valid before ") and "clock" in early
+    brief = write_material(
+        material.folder.parent / "brief", ["r"], ["m"], "tls/127.0.0.1:1", "tls/127.0.0.1:1", days=3e-6
+    )
+    time.sleep(0.5)  # (valid a quarter of a second)
+    for config in (
+        build_config("router", config_file=brief.router_config),
+        build_config("client", config_file=brief.clients["api"]),
+    ):
+        with pytest.raises(UsageError, match=r"its TLS (CA )?certificate .* expired on "):
+            check_local_files(config, "the test")
+
+
 def test_a_router_that_cannot_listen_is_hinted_at_its_port_only_when_the_port_is_the_trouble(material, capsys):
     """Every failure to start a router ended with "is another process listening ...? pick another --listen", even a
     protocol its TLS config does not take (a probe)."""
