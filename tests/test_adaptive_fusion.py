@@ -458,3 +458,27 @@ def test_any_other_cell_size_is_refused_with_a_reason(cell):
     """Not a power of two times 0.05 m, none at all, or beyond 2^62 (1e308 overflowed the level's integer)."""
     with pytest.raises(InputError, match="times a power of two"):
         level_for_cell_size(cell, 0.05)
+
+
+def test_a_grid_takes_fusions_of_one_start_level_only():
+    """A probe: three scans fused with start level 2, then three with start level 4 into the same grid, put start
+    cells on top of the finer cells already there (a block's start cell was made where its lower-left finest cell was
+    not covered): 320 finest cells were covered twice. A fusion of another start level into the grid is refused; one
+    of the same start level goes on as before, and no finest cell is covered twice."""
+    angles = np.radians(np.arange(-60.0, 61.0, 2.0))
+    ranges = np.full(angles.shape, 3.0)
+    model = SensorModel(resolution=RES)
+    grid = AdaptiveGrid(RES)
+    first = AdaptiveFusion(grid, model, angles, 0.05, 4.0, params=AdaptiveParams(start_level=2))
+    for x in (0.0, 0.3, 0.6):
+        first.fuse(ranges, np.array([[x, 0.1, 0.0]]), np.ones(1))
+    with pytest.raises(InputError, match="fused with start level 2"):
+        AdaptiveFusion(grid, model, angles, 0.05, 4.0, params=AdaptiveParams(start_level=4))
+    again = AdaptiveFusion(grid, model, angles, 0.05, 4.0, params=AdaptiveParams(start_level=2))
+    again.fuse(ranges, np.array([[0.9, -0.2, 0.5]]), np.ones(1))
+    level, ax, ay = grid.cells()
+    span = 1 << level
+    covered = np.zeros((400, 400), int)  # finest cells -200 .. 199 both ways: the scans' reach
+    for k, x, y in zip(span, ax * span, ay * span, strict=True):
+        covered[y + 200 : y + 200 + k, x + 200 : x + 200 + k] += 1
+    assert covered.max() == 1 and covered.sum() == int((4 ** level.astype(np.int64)).sum())

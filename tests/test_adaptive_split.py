@@ -85,6 +85,14 @@ def test_min_chi_square_matches_brute_force(counts, bounds, dominant):
     assert got == pytest.approx(best, rel=2e-2, abs=2e-2)
 
 
+def test_a_tiny_significance_keeps_a_finite_threshold():
+    """A probe: --significance 1e-17 gave an infinite threshold (chi2.ppf(1 - 1e-17): 1 - 1e-17 is 1.0 in floating
+    point), and no cell split (77 active cells against 902). The chi-square distribution with 2 degrees of freedom has
+    the upper tail exp(-x / 2), so its 1e-17 quantile is -2 ln(1e-17) = 78.28 (hand-computed)."""
+    test = SplitTest(resolution=0.05, sigma=0.03, significance=1e-17, unknowns=True, floor=0.01)
+    assert test.threshold == pytest.approx(-2.0 * math.log(1e-17), rel=1e-12)
+
+
 def test_families_and_degrees_of_freedom():
     with_unknowns = SplitTest(resolution=0.05, sigma=0.03, significance=0.05, unknowns=True, floor=0.01)
     without = SplitTest(resolution=0.05, sigma=0.03, significance=0.05, unknowns=False, floor=0.01)

@@ -7,6 +7,7 @@ from hypothesis import strategies as st
 
 from mapping.adaptive.tree import NO_CELL, AdaptiveGrid, children, morton
 from mapping.errors import InputError
+from mapping.grid import RasterTooLarge
 
 
 def build(cells, tile_size=16, resolution=0.5):
@@ -128,6 +129,20 @@ def test_rasterize_at_a_coarser_resolution_samples_cell_centres():
     assert raster["logodds"][4, 4] == 1.0 and raster["level"][4, 4] == 3
     # raster cell (row 5, col 6) is centred on finest (10, 6) -> the level-1 cell (5, 3)
     assert raster["logodds"][5, 6] == 8.0
+
+
+def test_a_raster_larger_than_one_map_file_is_refused_before_it_is_allocated():
+    """A probe: two scans 800 m apart fused on the adaptive grid took `posegrid fuse` to 6.3 GB before numpy ran out
+    of memory, where the regular grid refuses a raster past MAX_RASTER_CELLS at once; an infinite resolution gave a
+    1 x 1 raster. The same bound and a finite resolution now hold here."""
+    far = build([(0, 0, 0, 1.0), (0, 20_000, 20_000, 2.0)], resolution=0.05)  # 20 001 x 20 001 finest cells
+    with pytest.raises(RasterTooLarge, match=r"span 20001 x 20001 cells of 0\.05 m"):
+        far.rasterize()
+    assert far.rasterize(resolution=5.0)["logodds"].shape == (201, 201)  # coarser: 40 401 cells
+    near = build(CELLS)
+    for resolution in (float("inf"), float("nan"), 0.0):
+        with pytest.raises(InputError, match="finite"):
+            near.rasterize(resolution)
 
 
 def test_empty_grid_and_bad_arguments():

@@ -51,9 +51,10 @@ class AdaptiveParams:
     start_level: level of the cells a scan creates where nothing was observed (4: 0.8 m cells over 0.05 m);
     max_level: coarsest level merges may reach (None: a whole tile); unknowns: count unknowns in the split
     test (the paper's rule) or only hits and misses (Einhorn et al.'s); significance: alpha of the split
-    test; unknown_range: how far beyond a return its ray counts unknowns, m (None: up to range_max, the
-    field of view); sigma: range noise in m for the test's expected distributions (None: the sensor model's
-    sigma at half of range_max); floor: share of any outcome a homogeneous cell may show beyond the noise;
+    test; unknown_range: how far beyond a return its ray counts unknowns, m, at least to where its values end
+    (3 sigma past the return: the walk for the values counts them) (None: up to range_max, the field of view);
+    sigma: range noise in m for the test's expected distributions (None: the sensor model's sigma at half of
+    range_max); floor: share of any outcome a homogeneous cell may show beyond the noise;
     merge: the merge rules.
     """
 
@@ -137,6 +138,15 @@ class AdaptiveFusion:
             )
         if params.unknown_range is not None and not params.unknown_range >= 0:
             raise InputError(f"unknown_range must be >= 0 m, got {params.unknown_range}")
+        if grid.start_level is not None and grid.start_level != params.start_level:
+            # (a start cell is made where a block's lower-left finest cell is not covered: with another start level's
+            # cells there, it went on top of them, and active cells overlapped)
+            cell = grid.resolution * 2**grid.start_level
+            raise InputError(
+                f"the grid was fused with start level {grid.start_level} (cells of {cell:g} m), this fusion asks for "
+                f"{params.start_level}: fuse into a grid with one start level (a new grid, or the same --coarse-cell)"
+            )
+        grid.start_level = params.start_level
         self.grid = grid
         self.model = model
         self.params = params

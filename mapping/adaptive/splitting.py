@@ -162,8 +162,9 @@ class SplitTest:
 
     @cached_property
     def threshold(self) -> float:
-        """The chi-square quantile that X^2 must exceed: 2 degrees of freedom with unknowns, 1 without."""
-        return float(chi2.ppf(1.0 - self.significance, 2 if self.unknowns else 1))
+        """The chi-square quantile that X^2 must exceed: 2 degrees of freedom with unknowns, 1 without; the upper tail's
+        (isf): ppf(1 - significance) rounded 1 - 1e-17 to 1 and made it infinite, so that no cell ever split."""
+        return float(chi2.isf(self.significance, 2 if self.unknowns else 1))
 
     @cached_property
     def spills(self) -> np.ndarray:

@@ -27,7 +27,7 @@ import math
 import numpy as np
 
 from mapping.errors import InputError
-from mapping.grid import TILE_SIZE, empty_raster, probability_of
+from mapping.grid import MAX_RASTER_CELLS, TILE_SIZE, RasterTooLarge, empty_raster, probability_of
 
 #: per-cell columns besides the key, with their dtypes
 CELL_COLUMNS = (
@@ -119,6 +119,9 @@ class AdaptiveGrid:
         self.key = np.zeros(0, np.int64)
         for name, dtype in CELL_COLUMNS:
             setattr(self, name, np.zeros(0, dtype))
+        #: the level of the cells a fusion starts where no active cell is (mapping.adaptive.fusion), once one has
+        #: fused into the grid: every fusion into it must start at the same level, so that active cells never overlap
+        self.start_level: int | None = None
 
     # ----------------------------------------------------------------------------------- sizes
     @property
@@ -265,19 +268,25 @@ class AdaptiveGrid:
         the active cell under its centre. The raster spans the active cells' bounding box, which at the
         finest resolution is exactly the crop to the observed cells. ``level`` (int8) is the level of that
         active cell (0 = finest, k = 2^k times wider, -1 = none); at the finest resolution the number of
-        active cells is sum(4.0 ** -level) over the covered cells.
+        active cells is sum(4.0 ** -level) over the covered cells. Raises mapping.grid.RasterTooLarge, before
+        anything is allocated, for a raster of more than MAX_RASTER_CELLS cells.
         """
         out_res = self.resolution if resolution is None else float(resolution)
-        if not out_res > 0:
-            raise InputError(f"raster resolution must be > 0 m, got {resolution}")
+        if not 0 < out_res < math.inf:
+            raise InputError(f"raster resolution must be > 0 m and finite, got {resolution}")
         if self.key.size == 0:
             return empty_raster(out_res, level=np.zeros((0, 0), np.int8))
         level, ax, ay = self.cells()
-        x0, y0 = (ax << level).min(), (ay << level).min()
-        x1, y1 = ((ax + 1) << level).max(), ((ay + 1) << level).max()
+        x0, y0 = int((ax << level).min()), int((ay << level).min())
+        x1, y1 = int(((ax + 1) << level).max()), int(((ay + 1) << level).max())
         origin = np.array([x0 * self.resolution, y0 * self.resolution])
         width = max(1, math.ceil((x1 - x0) * self.resolution / out_res - 1e-9))
         height = max(1, math.ceil((y1 - y0) * self.resolution / out_res - 1e-9))
+        if width * height > MAX_RASTER_CELLS:  # (Python ints: no overflow; checked before anything is allocated)
+            raise RasterTooLarge(
+                f"the map's active cells span {width} x {height} cells of {out_res:g} m ({width * out_res:.6g} m x "
+                f"{height * out_res:.6g} m), more than the {MAX_RASTER_CELLS} cells one raster may hold"
+            )
         centres = (np.arange(max(width, height)) + 0.5) * out_res
         ix = np.floor((origin[0] + centres[:width]) / self.resolution).astype(np.int64)
         iy = np.floor((origin[1] + centres[:height]) / self.resolution).astype(np.int64)

@@ -257,9 +257,9 @@ def _add_adaptive_arguments(fuse: argparse.ArgumentParser) -> None:
         type=finite_float,
         default=None,
         metavar="M",
-        help="count a ray's unknowns only up to M m beyond its return (default: up to the "
-        "range limit, the paper's rule). With a long-range laser among chairs and people, the "
-        "shadow of every small object splits cells out to the range limit; 1.6 keeps the "
+        help="count a ray's unknowns only up to M m beyond its return, or 3 sigma beyond it where its values end "
+        "if that is farther (default: up to the range limit, the paper's rule). With a long-range laser among "
+        "chairs and people, the shadow of every small object splits cells out to the range limit; 1.6 keeps the "
         "splits near the returns (docs/adaptive.md, real data)",
     )
 
