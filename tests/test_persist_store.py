@@ -44,6 +44,7 @@ from services.state.shard import MapShard, ShardConfig
 from services.state.store import writer
 from services.state.store.db import (
     DB_NAME,
+    SEALED,
     ShardStore,
     StoreError,
     StoreIdentity,
@@ -318,9 +319,9 @@ def _foreign(path: Path) -> None:
         db.execute("CREATE TABLE notes (text TEXT)")
 
 
-def _version_2(path: Path) -> None:
+def _version_3(path: Path) -> None:
     with sqlite3.connect(path) as db:
-        db.execute("UPDATE meta SET value = 2 WHERE key = 'schema_version'")
+        db.execute("UPDATE meta SET value = 3 WHERE key = 'schema_version'")
 
 
 def _truncated(path: Path) -> None:
@@ -375,7 +376,7 @@ def _inflating(path: Path) -> None:
         (_sql(f"UPDATE tiles SET tx = 'abc' WHERE {FIRST_TILE}"), "has an index no map holds"),
         (_sql(f"UPDATE tiles SET tx = 4611686018427387904 WHERE {FIRST_TILE}"), "has an index no map holds"),
         (_inflating, "hold more than 33280 bytes, not the 33280 of a 64x64 window"),  # 64 x 64 x 8 + 64 x 64 / 8
-        (_version_2, "has schema version 2; this build reads version 1"),
+        (_version_3, "has schema version 3; this build reads versions 1, 2"),
         (_truncated, "database disk image is malformed"),
         (_scribbled, "is damaged"),
         (lambda path: path.write_bytes(b""), "is truncated (0 bytes, less than a SQLite header)"),
@@ -391,6 +392,84 @@ def test_a_foreign_damaged_or_truncated_store_is_refused_with_one_sentence(tmp_p
     damage(path)
     err = _refused(_mapper(tmp_path / "state"), capsys)
     assert message in err and str(path) in err
+
+
+def _flip_window_bit(path: Path) -> None:
+    """Bit 0 of the first tile's window col0 (the sealed layers: SEALED, CRC-32, then row0, col0, rows, cols)."""
+    with sqlite3.connect(path) as db:
+        blob = bytearray(db.execute(f"SELECT layers FROM tiles WHERE {FIRST_TILE}").fetchone()[0])
+        blob[len(SEALED) + 4 + 4] ^= 1
+        db.execute(f"UPDATE tiles SET layers = ? WHERE {FIRST_TILE}", (bytes(blob),))
+
+
+@pytest.mark.parametrize(
+    "damage, message",
+    [
+        (_flip_window_bit, "does not match its checksum"),
+        (_sql(f"UPDATE tiles SET tx = tx + 7 WHERE {FIRST_TILE}"), "does not match its checksum"),
+        (_sql(f"UPDATE tiles SET seq = seq + 1 WHERE {FIRST_TILE}"), "does not match its checksum"),
+        (_sql("UPDATE robots SET next_seq = next_seq - 1"), "which do not match their checksum"),
+        (_sql("UPDATE robots SET fused = fused + 1"), "which do not match their checksum"),
+    ],
+)
+def test_a_changed_value_in_a_tile_or_robot_row_is_refused_not_read(tmp_path, pairs, capsys, damage, message):
+    """A probe: one bit flipped in a tile's window (outside zlib's check) moved the tile by a cell, and the resumed run
+    served it with /health ok; a tile's index, or a robot's counts, changed alike would move the tile or the seq the
+    stream resumes at. Since schema 2 every tile row and robots row carries a CRC-32 of its values."""
+    path = _committed_store(tmp_path / "state", pairs[:12])
+    damage(path)
+    err = _refused(_mapper(tmp_path / "state"), capsys)
+    assert message in err and str(path) in err
+
+
+def test_a_schema_1_store_is_read_as_written_and_brought_to_schema_2(tmp_path, pairs):
+    """A store written before the checksums (schema 1: the layers unsealed, no robots checksum) resumes the same map,
+    and the shard that opens it brings it to schema 2; its rows are checked once written again."""
+    new = _committed_store(tmp_path / "new", pairs[:12])
+    old = tmp_path / "old" / DB_NAME
+    old.parent.mkdir()
+    with sqlite3.connect(new) as source, sqlite3.connect(old) as db:
+        db.execute("CREATE TABLE meta (key TEXT PRIMARY KEY, value) WITHOUT ROWID")
+        db.execute(
+            "CREATE TABLE sessions (ordinal INTEGER PRIMARY KEY, id TEXT NOT NULL UNIQUE, started REAL NOT NULL)"
+        )
+        db.execute(
+            "CREATE TABLE tiles (tx INTEGER NOT NULL, ty INTEGER NOT NULL, robot TEXT NOT NULL, seq INTEGER NOT NULL, "
+            "layers BLOB NOT NULL, PRIMARY KEY (tx, ty))"
+        )
+        db.execute(
+            "CREATE TABLE robots (session TEXT NOT NULL, robot TEXT NOT NULL, fused INTEGER NOT NULL, discarded "
+            "INTEGER NOT NULL, ended INTEGER, next_seq INTEGER NOT NULL, PRIMARY KEY (session, robot)) WITHOUT ROWID"
+        )
+        db.execute(
+            "CREATE TABLE ledger (session TEXT NOT NULL, robot TEXT NOT NULL, seq INTEGER NOT NULL, scan BLOB NOT "
+            "NULL, pose BLOB NOT NULL, PRIMARY KEY (session, robot, seq)) WITHOUT ROWID"
+        )
+        meta = dict(source.execute("SELECT key, value FROM meta"))
+        db.executemany("INSERT INTO meta VALUES (?, ?)", {**meta, "schema_version": 1}.items())
+        db.executemany("INSERT INTO sessions VALUES (?, ?, ?)", source.execute("SELECT * FROM sessions"))
+        db.executemany(
+            "INSERT INTO tiles VALUES (?, ?, ?, ?, ?)",
+            ((tx, ty, r, q, blob[len(SEALED) + 4 :]) for tx, ty, r, q, blob in source.execute("SELECT * FROM tiles")),
+        )
+        db.executemany(
+            "INSERT INTO robots VALUES (?, ?, ?, ?, ?, ?)",
+            source.execute("SELECT session, robot, fused, discarded, ended, next_seq FROM robots"),
+        )
+        db.executemany("INSERT INTO ledger VALUES (?, ?, ?, ?, ?)", source.execute("SELECT * FROM ledger"))
+    states = []
+    for path in (new, old):
+        store = ShardStore.open(path.parent, _identity(_config()))
+        try:
+            states.append(store.load())
+        finally:
+            store.close()
+    assert [t.key for t in states[0].tiles] == [t.key for t in states[1].tiles] and states[0].robots == states[1].robots
+    for a, b in zip(states[0].tiles, states[1].tiles, strict=True):
+        np.testing.assert_array_equal(a.logodds, b.logodds)
+    with sqlite3.connect(old) as db:
+        assert db.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0] == 2
+        assert db.execute("SELECT checksum FROM robots").fetchall() == [(None,)]
 
 
 def test_a_tile_of_another_shard_copied_into_a_store_is_refused(tmp_path, pairs, capsys):

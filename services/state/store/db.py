@@ -5,10 +5,11 @@ Tables:
   tile size, resolution), the cell updates fused so far and the Unix time of the last commit;
 - ``sessions`` (ordinal, id, started): the sessions that have written to it, oldest first;
 - ``tiles`` (tx, ty, robot, seq, layers): every tile's layers (log-odds float32, variance float32, observed as bits,
-  over the window of its cells a scan touched, zlib-compressed together: :func:`encode_layers`) and the last scan
-  fused into it;
-- ``robots`` (session, robot, fused, discarded, ended, next_seq): per session and robot, the scans fused and given up,
-  the scans the stream's end announced, and the seq below which every scan is fused or given up;
+  over the window of its cells a scan touched, zlib-compressed together: :func:`encode_layers`; sealed with a CRC-32
+  of the whole row: :func:`seal_tile`) and the last scan fused into it;
+- ``robots`` (session, robot, fused, discarded, ended, next_seq, checksum): per session and robot, the scans fused and
+  given up, the scans the stream's end announced, the seq below which every scan is fused or given up, and a CRC-32
+  of those values (:func:`robot_check`; NULL in a row a schema-1 store holds);
 - ``ledger`` (session, robot, seq, scan, pose): the digests of the scan and pose fused for each seq, kept for the
   seqs a shard still compares a re-sent message with (services.state.join.SeqLedger's horizon).
 
@@ -23,6 +24,7 @@ import fcntl
 import os
 import secrets
 import sqlite3
+import struct
 import time
 import zlib
 from dataclasses import dataclass, field
@@ -38,8 +40,16 @@ from services.state.ownership import owns_tile
 
 #: what the ``meta`` table's ``format`` says: the file is a posegrid shard's store
 FORMAT = "posegrid-shard-store"
-#: the layout of the tables; a store of another version is refused, not guessed at
-SCHEMA_VERSION = 1
+#: the layout of the tables; a store of another version is refused, not guessed at. 2: a tile's layers are sealed
+#: with a CRC-32 of its whole row, and a robots row carries one of its values (a bit flipped in a tile's window, which
+#: zlib's own check does not cover, moved the tile by a cell, unsaid); a store of version 1 is brought to 2 when a
+#: shard opens it (its rows are read as they were written, unchecked, until they are written again)
+SCHEMA_VERSION = 2
+#: the versions a shard opens
+READ_VERSIONS = (1, 2)
+#: the first bytes of a tile's sealed layers (:func:`seal_tile`); as a schema-1 window's row0 (uint32) it is far past
+#: any tile, so a tile of either version is told apart, and a flipped bit in it is refused
+SEALED = b"PGT2"
 #: the database file and the lock file in a shard's state directory
 DB_NAME = "shard.sqlite"
 LOCK_NAME = "shard.lock"
@@ -60,7 +70,8 @@ _TABLES = (
     ),
     (
         "CREATE TABLE robots (session TEXT NOT NULL, robot TEXT NOT NULL, fused INTEGER NOT NULL, discarded INTEGER "
-        "NOT NULL, ended INTEGER, next_seq INTEGER NOT NULL, PRIMARY KEY (session, robot)) WITHOUT ROWID"
+        "NOT NULL, ended INTEGER, next_seq INTEGER NOT NULL, checksum INTEGER, PRIMARY KEY (session, robot)) WITHOUT "
+        "ROWID"
     ),
     (
         "CREATE TABLE ledger (session TEXT NOT NULL, robot TEXT NOT NULL, seq INTEGER NOT NULL, scan BLOB NOT NULL, "
@@ -211,6 +222,44 @@ def decode_layers(blob: bytes, tile_size: int) -> tuple[np.ndarray, np.ndarray, 
     return logodds, variance, observed
 
 
+def _tile_check(key: TileKey, robot: str, seq: int, layers: bytes) -> int:
+    """CRC-32 of a tile's row: its index, the last scan fused into it and its layers as :func:`encode_layers` wrote
+    them."""
+    return zlib.crc32(struct.pack("<qq", *key) + robot.encode() + struct.pack("<Bq", 0, seq) + layers)
+
+
+def seal_tile(key: TileKey, robot: str, seq: int, layers: bytes) -> bytes:
+    """A tile's layers as a schema-2 store holds them: SEALED, the CRC-32 of its row (little-endian uint32), the
+    layers."""
+    return SEALED + struct.pack("<I", _tile_check(key, robot, seq, layers)) + layers
+
+
+def unseal_tile(key: TileKey, robot: str, seq: int, blob: bytes) -> bytes:
+    """The layers of a tile's stored ``blob`` (:func:`seal_tile`; a schema-1 blob is the layers themselves);
+    ValueError when its row does not match its check."""
+    if not blob.startswith(SEALED):
+        return blob
+    if len(blob) < len(SEALED) + 4:
+        raise ValueError(f"its layers are {len(blob)} bytes, shorter than their seal")
+    layers = blob[len(SEALED) + 4 :]
+    (stored,) = struct.unpack_from("<I", blob, len(SEALED))
+    if stored != _tile_check(key, robot, seq, layers):
+        raise ValueError("its row does not match its checksum (a changed byte in its index, scan, window or cells)")
+    return layers
+
+
+def _layers_of(tile: TileState) -> bytes:
+    """:func:`encode_layers` of ``tile``'s layers."""
+    return encode_layers(tile.logodds, tile.variance, tile.observed)
+
+
+def robot_check(session: str, state: RobotState) -> int:
+    """CRC-32 of a robots row of ``session``."""
+    ended = -1 if state.ended is None else state.ended
+    counts = struct.pack("<qqqq", state.fused, state.discarded, ended, state.next_seq)
+    return zlib.crc32(session.encode() + b"\0" + state.robot.encode() + b"\0" + counts)
+
+
 class ShardStore:
     """An open store (:meth:`open`): loads the state (:meth:`load`) and commits batches (:meth:`commit`). The
     state directory is locked (flock on shard.lock) while it is open, so two shard processes never write one store.
@@ -259,6 +308,7 @@ class ShardStore:
                 else:
                     _check_integrity(connection, path)
                     _check_meta(connection, path, identity)
+                    _bring_to_current(connection, path)
                 if run_id is not None:
                     _check_run(connection, path, run_id)
                 chosen = _register_session(connection, path, session)
@@ -279,12 +329,10 @@ class ShardStore:
         db = self._db
         try:
             tiles = [self._tile(row) for row in db.execute("SELECT tx, ty, robot, seq, layers FROM tiles")]
-            robots = {
-                row[0]: RobotState(*row)
-                for row in db.execute(
-                    "SELECT robot, fused, discarded, ended, next_seq FROM robots WHERE session = ?", (self.session,)
-                )
-            }
+            rows = db.execute(
+                "SELECT robot, fused, discarded, ended, next_seq, checksum FROM robots WHERE session = ?",
+                (self.session,),
+            ).fetchall()
             ledger = [
                 LedgerEntry(*row)
                 for row in db.execute(
@@ -294,8 +342,7 @@ class ShardStore:
             meta = dict(db.execute("SELECT key, value FROM meta WHERE key IN ('cells_updated', 'committed_at')"))
         except (sqlite3.DatabaseError, UnicodeDecodeError) as exc:
             raise StoreError(f"the store {self.path} cannot be read ({exc}): it is damaged") from None
-        for state in robots.values():
-            self._check_robot(state)
+        robots = {row[0]: self._robot(row) for row in rows}
         for entry in ledger:
             name: object = entry.robot
             if not (isinstance(name, str) and is_valid_name(name) and _whole(entry.seq, 0, MAX_SEQ)):
@@ -326,13 +373,15 @@ class ShardStore:
                 "remove the tile or restore the store"
             )
         try:
-            logodds, variance, observed = decode_layers(blob, self._tile_size)
+            logodds, variance, observed = decode_layers(unseal_tile((tx, ty), robot, seq, blob), self._tile_size)
         except ValueError as exc:
             raise StoreError(f"{where} is damaged: {exc}") from None
         return TileState((tx, ty), logodds, variance, observed, robot, seq)
 
-    def _check_robot(self, state: RobotState) -> None:
-        """StoreError for a robots row of values no shard writes."""
+    def _robot(self, row: tuple) -> RobotState:
+        """The robots row ``row`` (robot, fused, discarded, ended, next_seq, checksum) of this session; StoreError for
+        one of values no shard writes, or whose checksum does not match (None: a row of a schema-1 store)."""
+        state, checksum = RobotState(*row[:5]), row[5]
         counts = (state.fused, state.discarded, state.next_seq) + (() if state.ended is None else (state.ended,))
         robot: object = state.robot  # (as the row held it: the dataclass does not check its types)
         if not (isinstance(robot, str) and is_valid_name(robot)) or not all(_whole(c, 0, MAX_SEQ + 1) for c in counts):
@@ -340,6 +389,12 @@ class ShardStore:
                 f"the store {self.path} holds robot {state.robot!r} with counts {counts!r}, which no shard writes: "
                 "it is damaged"
             )
+        if checksum is not None and checksum != robot_check(self.session, state):
+            raise StoreError(
+                f"the store {self.path} holds robot {state.robot!r} with counts {counts!r}, which do not match their "
+                "checksum: it is damaged"
+            )
+        return state
 
     def sessions(self) -> list[str]:
         """The ids of the sessions that have written to this store, oldest first."""
@@ -359,14 +414,14 @@ class ShardStore:
             try:
                 db.executemany(
                     "INSERT OR REPLACE INTO tiles VALUES (?, ?, ?, ?, ?)",
-                    (
-                        (t.key[0], t.key[1], t.robot, t.seq, encode_layers(t.logodds, t.variance, t.observed))
-                        for t in batch.tiles
-                    ),
+                    ((*t.key, t.robot, t.seq, seal_tile(t.key, t.robot, t.seq, _layers_of(t))) for t in batch.tiles),
                 )
                 db.executemany(
-                    "INSERT OR REPLACE INTO robots VALUES (?, ?, ?, ?, ?, ?)",
-                    ((session, r.robot, r.fused, r.discarded, r.ended, r.next_seq) for r in batch.robots),
+                    "INSERT OR REPLACE INTO robots VALUES (?, ?, ?, ?, ?, ?, ?)",
+                    (
+                        (session, r.robot, r.fused, r.discarded, r.ended, r.next_seq, robot_check(session, r))
+                        for r in batch.robots
+                    ),
                 )
                 db.executemany(
                     "INSERT OR REPLACE INTO ledger VALUES (?, ?, ?, ?, ?)",
@@ -644,10 +699,10 @@ def _check_meta(db: sqlite3.Connection, path: Path, identity: StoreIdentity) -> 
                 else ""
             )
         )
-    if meta.get("schema_version") != SCHEMA_VERSION:
+    if meta.get("schema_version") not in READ_VERSIONS:
         raise StoreError(
-            f"the store {path} has schema version {meta.get('schema_version')!r}; this build reads version "
-            f"{SCHEMA_VERSION}"
+            f"the store {path} has schema version {meta.get('schema_version')!r}; this build reads versions "
+            f"{', '.join(map(str, READ_VERSIONS))}"
         )
     try:
         stored = StoreIdentity(meta["map"], meta["shard"], meta["shards"], meta["tile_size"], meta["resolution"])
@@ -660,6 +715,22 @@ def _check_meta(db: sqlite3.Connection, path: Path, identity: StoreIdentity) -> 
             f"the store {path} holds {stored.describe()}, not {identity.describe()}: another map's or another "
             "shard's state; give this shard its own --state-dir"
         )
+
+
+def _bring_to_current(db: sqlite3.Connection, path: Path) -> None:
+    """Bring a store of schema 1 to SCHEMA_VERSION in one transaction: the robots' checksum column (NULL in the rows
+    written before: read unchecked until they are written again)."""
+    if db.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0] == SCHEMA_VERSION:
+        return
+    try:
+        db.execute("BEGIN IMMEDIATE")
+        db.execute("ALTER TABLE robots ADD COLUMN checksum INTEGER")
+        db.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'", (SCHEMA_VERSION,))
+        db.execute("COMMIT")
+    except sqlite3.Error as exc:
+        with contextlib.suppress(sqlite3.Error):
+            db.execute("ROLLBACK")
+        raise StoreError(f"cannot write the store {path}: {exc}") from None
 
 
 def _run_of(db: sqlite3.Connection) -> str | None:
