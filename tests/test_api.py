@@ -302,6 +302,15 @@ def test_bad_tile_requests_are_4xx_with_a_reason(api):
     assert ".png" in problem(httpx.get(f"{tiles}/0/0/0.jpg", timeout=30), 404)
     assert "'format'" in problem(httpx.get(f"{api}/maps/{MAP}/export", params={"format": "tiff"}, timeout=30), 422)
     assert "'format'" in problem(httpx.get(f"{api}/maps/{MAP}/export", timeout=30), 422)
+    # a fuzz's findings: a parameter given twice was read at its last value (vmax=-1&vmax=2 served,
+    # format=npz&format=png as a PNG); a 19-digit integer was said not to be ASCII digits; a 405 said Allow: GET
+    # where HEAD is answered too
+    repeated = problem(httpx.get(f"{tiles}/0/0/0.png?layer=variance&vmax=-1&vmax=2", timeout=30), 422)
+    assert "'vmax'" in repeated and "more than once" in repeated
+    assert "'format'" in problem(httpx.get(f"{api}/maps/{MAP}/export?format=npz&format=png", timeout=30), 422)
+    assert "at most 18 ASCII digits" in problem(httpx.get(f"{tiles}/0/4611686018427387904/0.png", timeout=30), 422)
+    refused = httpx.post(f"{tiles}/0/0/0.png", timeout=30)
+    assert refused.status_code == 405 and refused.headers["allow"] == "GET, HEAD", refused.headers
 
 
 def test_the_tile_cache_takes_only_what_fastapi_would_answer_alike(api):
@@ -518,6 +527,14 @@ def test_openapi_describes_every_parameter_and_error(api):
                 schema = operation["responses"]["422"]["content"]["application/json"]["schema"]
                 assert schema == {"$ref": "#/components/schemas/Problem"}, f"{method} {path}"
     assert "m" in spec["components"]["schemas"]["Extent"]["properties"]["x_min"]["description"]
+    # the bounds in JSON Schema's words (a probe: pydantic's ge / le / gt, which no client or validator reads)
+    tile = {p["name"]: p["schema"] for p in spec["paths"]["/maps/{map}/tiles/{z}/{x}/{y}.png"]["get"]["parameters"]}
+    assert (tile["z"]["minimum"], tile["z"]["maximum"]) == (0, 32) and "ge" not in tile["z"]
+    vmax = next(s for s in tile["vmax"]["anyOf"] if s.get("type") == "number")
+    assert vmax["exclusiveMinimum"] == 0 and "gt" not in vmax
+    pose = spec["paths"]["/robots/{robot}/pose"]["get"]["parameters"]
+    samples = next(p["schema"] for p in pose if p["name"] == "max_samples")
+    assert next(s for s in samples["anyOf"] if s.get("type") == "integer")["minimum"] == 1
 
 
 def test_viewer_page_and_assets_are_served(api):

@@ -1,5 +1,6 @@
 """Who may talk to the API: the Host header it answers to, and the access token, checked before anything else
-(and before them, that the path holds no control character: a 404).
+(and before them, that the path holds no control character, a 404, and that the query gives no parameter twice, a
+422).
 
 Host (DNS rebinding: a page from evil.example whose name is made to resolve to this machine would otherwise read
 the API as its own origin): the API answers only requests whose Host names it. Always: localhost, 127.0.0.1
@@ -24,6 +25,7 @@ import ipaddress
 import json
 import re
 import secrets
+from collections import Counter
 from collections.abc import Sequence
 from urllib.parse import parse_qsl, urlencode
 
@@ -78,6 +80,18 @@ def _path_problem(path: str) -> tuple[int, list, bytes] | None:
     if bad is None:
         return None
     return _problem(404, f"no path of this API holds a control character; this one holds {bad!r}")
+
+
+def _query_problem(query_string: bytes) -> tuple[int, list, bytes] | None:
+    """The 422 for a query that gives a parameter more than once (no route takes a list), else None: the routes read
+    the last value, so ``vmax=-1&vmax=2`` was served with no word of the bad first one, and ``format=npz&format=png``
+    as a PNG."""
+    names = Counter(key for key, _ in parse_qsl(query_string.decode("latin-1"), keep_blank_values=True))
+    repeated = sorted(name for name, count in names.items() if count > 1)
+    if not repeated:
+        return None
+    shown = ", ".join(repr(name[:40]) for name in repeated[:4])
+    return _problem(422, f"query parameter(s) {shown} given more than once; give each parameter once")
 
 
 def _problem(status: int, detail: str, headers: Sequence[tuple[bytes, bytes]] = ()) -> tuple[int, list, bytes]:
@@ -154,7 +168,9 @@ class Guard:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        answer = _path_problem(scope["path"]) or self._host_problem(scope)
+        answer = (
+            _path_problem(scope["path"]) or _query_problem(scope.get("query_string", b"")) or self._host_problem(scope)
+        )
         if answer is None and self.token is not None:
             answer = self._token_answer(scope, dict(scope["headers"]))
         if answer is None:

@@ -23,8 +23,11 @@ class HeadAsGet:
         self.app = app
 
     async def __call__(self, scope, receive, send) -> None:
-        if scope["type"] != "http" or scope["method"] != "HEAD":
+        if scope["type"] != "http" or scope["method"] == "GET":
             await self.app(scope, receive, send)
+            return
+        if scope["method"] != "HEAD":  # (FastAPI's 405 lists the routes' GET only: RFC 9110 asks for every method)
+            await self.app(scope, receive, _allowing_head(send))
             return
         answered = False
         version = tuple(int(part) for part in scope.get("asgi", {}).get("spec_version", "2.0").split("."))
@@ -49,3 +52,23 @@ class HeadAsGet:
         except (OSError, ClientDisconnect):
             if not answered:
                 raise
+
+
+def _allowing_head(send):
+    """``send`` with HEAD added to a 405's ``Allow`` where it lists GET (this middleware answers HEAD wherever GET
+    is)."""
+
+    async def sending(message) -> None:
+        if message["type"] == "http.response.start" and message["status"] == 405:
+            message = {**message, "headers": [_with_head(name, value) for name, value in message.get("headers", [])]}
+        await send(message)
+
+    return sending
+
+
+def _with_head(name: bytes, value: bytes) -> tuple[bytes, bytes]:
+    """A response header, with HEAD added to an ``Allow`` that lists GET and not HEAD."""
+    methods = [m.strip() for m in value.decode("latin-1").split(",")] if name.lower() == b"allow" else []
+    if "GET" in methods and "HEAD" not in methods:
+        return name, ", ".join([*methods, "HEAD"]).encode("latin-1")
+    return name, value

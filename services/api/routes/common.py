@@ -61,7 +61,7 @@ def _plain(pattern: re.Pattern[str], what: str) -> BeforeValidator:
 
 
 #: the validators of an integer and a number parameter written as above (FastAPI's 422 when not)
-PlainInteger = _plain(PLAIN_INTEGER, "an integer in ASCII digits (an optional minus, then digits)")
+PlainInteger = _plain(PLAIN_INTEGER, "an integer of at most 18 ASCII digits (an optional minus, then digits)")
 PlainReal = _plain(PLAIN_REAL, "a number in ASCII digits, as 2, -0.5 or 1e3")
 
 MapName = Annotated[

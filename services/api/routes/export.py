@@ -22,11 +22,11 @@ router = APIRouter()
 
 WindowEdge = Annotated[
     float | None,
-    PlainReal,
     Query(
         allow_inf_nan=False,
         description="export window edge, m in the map frame; give all four of x_min, y_min, x_max, y_max or none",
     ),
+    PlainReal,
 ]
 
 

@@ -66,12 +66,12 @@ async def pose(
     robot: Robot,
     max_samples: Annotated[
         int | None,
-        PlainInteger,
         Query(
             ge=1,
             description="return at most this many samples, reduced by systematic resampling "
             "(equal weights); default all",
         ),
+        PlainInteger,
     ] = None,
 ) -> models.Pose:
     """The latest pose distribution: samples with weights, and their mean and covariance."""

@@ -23,36 +23,36 @@ router = APIRouter()
 
 Z = Annotated[
     int,
-    PlainInteger,
     Path(
         ge=0,
         le=MAX_LEVEL,
         description="zoom level: 0 = the finest (cells of the map's "
         "resolution); each level doubles the cell side; at most the map's max_zoom",
     ),
+    PlainInteger,
 ]
 TileX = Annotated[
     int,
-    PlainInteger,
     Path(
         description="tile column at level z: map-frame x in [x*T*2^z*r, (x+1)*T*2^z*r) m "
         "(T = tile_size, r = resolution); may be negative"
     ),
+    PlainInteger,
 ]
 TileY = Annotated[
     int,
-    PlainInteger,
     Path(description="tile row at level z: map-frame y in [y*T*2^z*r, (y+1)*T*2^z*r) m; may be negative"),
+    PlainInteger,
 ]
 Vmax = Annotated[
     float | None,
-    PlainReal,
     Query(
         gt=0,
         allow_inf_nan=False,
         description="variance layer: the variance (log-odds squared) drawn at the top "
         "of the colour ramp; default the map's variance_scale",
     ),
+    PlainReal,
 ]
 
 
