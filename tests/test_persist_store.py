@@ -980,3 +980,24 @@ def test_run_keeps_its_state_by_default_in_a_new_folder_under_xdg_state_home(tmp
     # --no-state: the map in memory only, nothing written
     monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "other"))
     assert _planned_state(["--no-state"]).state is None and not (tmp_path / "other").exists()
+
+
+def test_a_new_session_over_a_replay_stopped_before_its_end_is_noted_with_the_way_on(tmp_path, pairs, capsys):
+    """A crash probe: a run killed mid-replay, then started again with the banner's `--resume DIR`, fused the
+    interrupted replay's scans a second time (12 arrays off the clean run's map, /health ok). The stores say which
+    streams did not end (check_store's ``unfinished``), and a new session over such a latest session is noted with
+    the command that goes on with it; one whose stream ended, or --continue-session, gets no note."""
+    unfinished: dict[str, set[str]] = {}
+    _committed_store(tmp_path / "s", pairs[:5])  # robot r1's stream: 5 scans fused, no end
+    (written,) = check_store(tmp_path / "s", _identity(_config()), None, unfinished)
+    assert unfinished == {written: {"r1"}}
+    first = prepare_run(tmp_path / "run", False, False, "m", 1, 0.05)
+    scans = {first.session: {"r1"}}
+    prepare_run(tmp_path / "run", True, False, "m", 1, 0.05, scans, "r1", {first.session: {"r1"}})
+    note = capsys.readouterr().err
+    assert f"session {first.session} of {tmp_path / 'run'} stopped before its replay of robot r1 ended" in note
+    assert "--continue-session" in note and "fused twice" in note
+    prepare_run(tmp_path / "run", True, True, "m", 1, 0.05, scans, "r1", {first.session: {"r1"}})
+    assert "stopped before its replay" not in capsys.readouterr().err  # (the continued session: the way on)
+    prepare_run(tmp_path / "run", True, False, "m", 1, 0.05, scans, "r1", {})  # (every stream ended)
+    assert capsys.readouterr().err == ""

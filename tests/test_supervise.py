@@ -328,13 +328,17 @@ def test_a_child_failing_past_the_cap_stops_the_run(tmp_path, procs):  # noqa: F
     )
     assert reason in run.lines, run.output()
     assert not any("replay finished" in line for line in run.lines)
+    # (a crash probe: this stop gave no way on; the banner's plain --resume fused the replay's scans twice)
+    run.wait_for(r"stopped before the replay ended \(\d+ of 600 scans")
+    run.wait_for(r"to go on with this replay of the same input: posegrid run --resume .* --continue-session")
     assert run.wait_for(r"stopped: (.*)").group(1).startswith("router exited 0, mapper[0] exited -9")
     assert not any(_alive(pid) for pid in [*pids.values(), second])
 
 
 def test_the_banners_resume_command_can_be_pasted_into_a_shell(capsys):
     """A probe: with a state folder whose path holds a space, the banner's "go on later with: posegrid run --resume
-    ..." failed when pasted (unrecognized arguments). The path is quoted for the shell."""
+    ..." failed when pasted (unrecognized arguments). The path is quoted for the shell. Another: after a crash, that
+    plain --resume fused the interrupted replay's scans a second time; the banner gives both commands."""
     import shlex
 
     from services.nodes.launcher import Children, Plan, _banner
@@ -342,7 +346,10 @@ def test_the_banners_resume_command_can_be_pasted_into_a_shell(capsys):
     from services.state.store.run import RunState
 
     folder = Path("/tmp/my maps/état")
-    plan = Plan("m", "r", 1, 0.05, [], [], state=RunState(folder, "s1", resumed=False))
+    plan = Plan("m", "r", 1, 0.05, [], [], state=RunState(folder, "s1", resumed=False), scans=50)
     _banner(plan, "tcp/127.0.0.1:1", Children(get_logger("test")))
-    line = next(line for line in capsys.readouterr().out.splitlines() if "go on later with:" in line)
-    assert shlex.split(line.split("go on later with: ", 1)[1]) == ["posegrid", "run", "--resume", str(folder)]
+    out = capsys.readouterr().out.splitlines()
+    line = next(line for line in out if "add new input to this map later with:" in line)
+    assert shlex.split(line.split("later with: ", 1)[1]) == ["posegrid", "run", "--resume", str(folder)]
+    line = next(line for line in out if "if this replay stops before its end, go on with it with:" in line)
+    assert shlex.split(line.split("with it with: ", 1)[1])[-2:] == [str(folder), "--continue-session"]

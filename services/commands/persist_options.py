@@ -164,6 +164,7 @@ def plan_state(args: argparse.Namespace, plan: Plan) -> None:
     _check_commit_options(args)
     hold_run_directory(directory, create=args.resume is None)  # (for the rest of the run: one run a directory)
     with_scans: dict[str, set[str]] | None = None  # (sessions of the shards' stores -> the robots of their scans)
+    unfinished: dict[str, set[str]] = {}  # (sessions -> the robots whose replay a store holds stopped before its end)
     if args.resume is not None:  # (every shard's store checked before the run's record gets a new session)
         from mapping.grid import TILE_SIZE
         from services.state.store.db import StoreIdentity, check_store, store_exists
@@ -176,7 +177,7 @@ def plan_state(args: argparse.Namespace, plan: Plan) -> None:
         holding = []  # (the shards whose stores hold scans of the run)
         for shard in range(plan.shards):
             identity = StoreIdentity(plan.map_name, shard, plan.shards, TILE_SIZE, plan.resolution)
-            held = check_store(shard_dir(directory, shard), identity, run_id)
+            held = check_store(shard_dir(directory, shard), identity, run_id, unfinished)
             holding += [shard] if held else []
             for session, robots in held.items():
                 with_scans.setdefault(session, set()).update(robots)
@@ -196,5 +197,6 @@ def plan_state(args: argparse.Namespace, plan: Plan) -> None:
         plan.resolution,
         with_scans,
         plan.robot,
+        unfinished if plan.scans is not None else None,  # (a live robot's stream never ends: no replay to go on with)
     )
     plan.mapper_argv += ["--commit-scans", str(args.commit_scans), "--commit-interval", repr(args.commit_interval)]

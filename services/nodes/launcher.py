@@ -430,17 +430,25 @@ def _banner(plan: Plan, endpoint: str, children: Children) -> None:
             if plan.api_port is not None
             else "  HTTP API: not started (--no-api)"
         ),
-        "  state: "
-        + (
-            "in memory only (--no-state)"
-            if plan.state is None
-            else f"{plan.state.describe()}; go on later with: posegrid run --resume "
-            + shlex.quote(str(plan.state.directory))
-        ),
+        "  state: " + ("in memory only (--no-state)" if plan.state is None else plan.state.describe()),
+        *_resume_lines(plan),
         "  running: " + ", ".join(f"{c.name} (pid {c.process.pid})" for c in children.children),
         "  Ctrl-C stops everything",
     ]
     print("\n".join(lines), flush=True)
+
+
+def _resume_lines(plan: Plan) -> list[str]:
+    """The banner's commands that go on from the run's state (none without one): a plain --resume adds new input
+    as a new session, so a replay that stopped before its end goes on with --continue-session (a plain --resume after
+    a crash fused its scans a second time)."""
+    if plan.state is None:
+        return []
+    resume = f"posegrid run --resume {shlex.quote(str(plan.state.directory))}"
+    lines = [f"  add new input to this map later with: {resume}"]
+    if plan.scans is not None:
+        lines.append(f"  if this replay stops before its end, go on with it with: {resume} --continue-session")
+    return lines
 
 
 def _supervise(session, plan: Plan, children: Children, stop: threading.Event, log) -> int:
@@ -455,6 +463,8 @@ def _supervise(session, plan: Plan, children: Children, stop: threading.Event, l
     ) as bar:
         while not stop.wait(0.25):
             if children.tend() is not None:  # (it said which child, and why)
+                if not finished and plan.scans is not None:
+                    _say_unfinished(plan, fused)
                 return 1
             if finished:
                 continue
@@ -499,13 +509,21 @@ def _supervise(session, plan: Plan, children: Children, stop: threading.Event, l
     if plan.scans is None:  # a live robot (run --ros2): no replay to end, nothing to go on with but a new session
         print(f"posegrid run: stopped after {fused} scans fused by every shard", file=sys.stderr, flush=True)
         return 0
+    _say_unfinished(plan, fused)
+    # (--export exited 0 without the file: `run --export m.npz && use m.npz` went on with no map)
+    return 130 if plan.export is not None else 0
+
+
+def _say_unfinished(plan: Plan, fused: int) -> None:
+    """Say that the run stopped before its replay ended (``fused`` scans by every shard) and, when it keeps its state,
+    the command that goes on with it: a plain --resume would start a new session and fuse the same scans again."""
     print(
         f"posegrid run: stopped before the replay ended ({fused} of {plan.scans} scans fused by every shard)"
         + (f": no map written to {plan.export}" if plan.export is not None else ""),
         file=sys.stderr,
         flush=True,
     )
-    if plan.state is not None:  # (a plain --resume would start a new session and fuse the same scans again)
+    if plan.state is not None:
         print(
             "posegrid run: to go on with this replay of the same input: posegrid run --resume "
             f"{shlex.quote(str(plan.state.directory))} --continue-session (with the same input options; without "
@@ -513,8 +531,6 @@ def _supervise(session, plan: Plan, children: Children, stop: threading.Event, l
             file=sys.stderr,
             flush=True,
         )
-    # (--export exited 0 without the file: `run --export m.npz && use m.npz` went on with no map)
-    return 130 if plan.export is not None else 0
 
 
 def clash_message(clashes: int, plan: Plan) -> str:

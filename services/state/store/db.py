@@ -487,14 +487,17 @@ def store_exists(directory: Path) -> bool:
     return path.exists() or Path(f"{path}-wal").exists()
 
 
-def check_store(directory: Path, identity: StoreIdentity, run_id: str | None) -> dict[str, set[str]]:
+def check_store(
+    directory: Path, identity: StoreIdentity, run_id: str | None, unfinished: dict[str, set[str]] | None = None
+) -> dict[str, set[str]]:
     """Check the store in ``directory`` as a shard of ``identity`` in run ``run_id`` would before it fuses (its
     file, SQLite's check of every page, that it is that shard's and that run's store, every tile readable and its
     own, no other process holding the directory), writing nothing; the sessions it holds fused or given-up scans of,
     each with the robots whose scans they are (none when there is no store yet). StoreError says what is wrong:
     `posegrid run --resume` checks every shard's store before it starts any process (a damaged store, another
     shard's folder or another run's stopped the run after the router and the other shards had started, exit 1 with
-    their lines and a new session in run.json)."""
+    their lines and a new session in run.json). ``unfinished`` gets, per session, the robots whose stream this store
+    has not seen end and fused or given up whole (a replay stopped before its end)."""
     path = directory / DB_NAME
     if not store_exists(directory):
         return {}
@@ -522,14 +525,18 @@ def check_store(directory: Path, identity: StoreIdentity, run_id: str | None) ->
         for tile in connection.execute("SELECT tx, ty, robot, seq, layers FROM tiles"):
             store._tile(tile)
         rows = connection.execute("SELECT session, robot FROM robots WHERE fused + discarded > 0").fetchall()
+        open_streams = connection.execute(
+            "SELECT session, robot FROM robots WHERE fused + discarded > 0 AND (ended IS NULL OR next_seq < ended)"
+        ).fetchall()
     except sqlite3.DatabaseError as exc:
         raise StoreError(f"the store {path} cannot be read ({exc}): it is damaged") from None
     finally:
         store.close()
     sessions: dict[str, set[str]] = {}
-    for session, robot in rows:
-        if isinstance(session, str) and isinstance(robot, str):
-            sessions.setdefault(session, set()).add(robot)
+    for found, pairs in ((sessions, rows), (unfinished if unfinished is not None else {}, open_streams)):
+        for session, robot in pairs:
+            if isinstance(session, str) and isinstance(robot, str):
+                found.setdefault(session, set()).add(robot)
     return sessions
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import fcntl
 import json
 import os
+import shlex
 import sys
 import time
 from collections.abc import Collection, Mapping
@@ -106,12 +107,15 @@ def prepare_run(
     resolution: float,
     with_scans: Mapping[str, Collection[str]] | None = None,
     robot: str | None = None,
+    unfinished: Mapping[str, Collection[str]] | None = None,
 ) -> RunState:
     """The state of a run in ``directory``: a new one (``resume`` False: the directory must be new or empty), or the
     run it holds (``resume``), with a new session or, with ``continue_session``, its latest one that holds scans
     (``with_scans``: the sessions the shards' stores hold scans of, each with the robots of those scans; None: the
     latest one). Raises StoreError (exit 2) for a directory that cannot be used, a run of another map, shard count or
-    resolution, or a session to continue whose scans are of robots other than ``robot`` (the run's)."""
+    resolution, or a session to continue whose scans are of robots other than ``robot`` (the run's). A new session on
+    a run whose latest session with scans holds a replay stopped before its end (``unfinished``: sessions -> those
+    robots) is noted on stderr with the command that goes on with it instead: the same input would be fused twice."""
     path = directory / RUN_FILE
     record: dict[str, Any]
     if not resume:
@@ -136,6 +140,8 @@ def prepare_run(
             "leave out --continue-session to fuse this robot in a new session on top of the map"
         )
     if not continue_session:
+        if resume and unfinished:
+            _note_unfinished(directory, sessions, with_scans, unfinished)
         sessions.append({"id": session, "started": time.time()})
     _write_run(path, directory, record)
     run_id = record.get("id")
@@ -177,6 +183,28 @@ def _session_to_continue(sessions: list[dict[str, Any]], with_scans: Collection[
                     )
                 return str(record["id"])
     return str(sessions[-1]["id"])
+
+
+def _note_unfinished(
+    directory: Path,
+    sessions: list[dict[str, Any]],
+    with_scans: Collection[str] | None,
+    unfinished: Mapping[str, Collection[str]],
+) -> None:
+    """Say on stderr that the latest session with scans (of ``with_scans``) holds a replay stopped before its end
+    (``unfinished``), which a new session would fuse again on top if it is the same input."""
+    latest = next((str(r["id"]) for r in reversed(sessions) if with_scans is None or r["id"] in with_scans), None)
+    if latest is None or latest not in unfinished:
+        return
+    robots = ", ".join(sorted(unfinished[latest]))
+    print(
+        f"posegrid run: note: session {latest} of {directory} stopped before its replay of robot {robots} ended; this "
+        "run adds its input to the map as a new session. If it is the same input, stop now (Ctrl-C) and go on with "
+        f"posegrid run --resume {shlex.quote(str(directory))} --continue-session (and the same input options): "
+        "else its scans are fused twice",
+        file=sys.stderr,
+        flush=True,
+    )
 
 
 def run_id_of(directory: Path) -> str | None:
