@@ -1001,3 +1001,21 @@ def test_a_new_session_over_a_replay_stopped_before_its_end_is_noted_with_the_wa
     assert "stopped before its replay" not in capsys.readouterr().err  # (the continued session: the way on)
     prepare_run(tmp_path / "run", True, False, "m", 1, 0.05, scans, "r1", {})  # (every stream ended)
     assert capsys.readouterr().err == ""
+
+
+def test_a_store_left_empty_beside_its_first_journal_is_made_anew(tmp_path, capsys):
+    """A crash probe: a shard killed within a millisecond of making its store left shard.sqlite empty beside the
+    512-byte rollback journal of its first write; it then refused to start ("truncated"), and under `posegrid run`
+    the restart ended the run. Nothing was ever committed there: the store is made anew. An empty file alone may
+    be a store truncated by the disk, and is refused, saying what to do."""
+    state = tmp_path / "state"
+    state.mkdir()
+    (state / DB_NAME).write_bytes(b"")
+    (state / f"{DB_NAME}-journal").write_bytes(bytes(512))
+    ShardStore.open(state, _identity(_config())).close()
+    assert not (state / f"{DB_NAME}-journal").exists() and (state / DB_NAME).stat().st_size > 0
+    alone = tmp_path / "alone"
+    alone.mkdir()
+    (alone / DB_NAME).write_bytes(b"")
+    err = _refused(_mapper(alone), capsys)
+    assert "is truncated (0 bytes" in err and "remove it and the shard makes it anew" in err

@@ -298,7 +298,7 @@ class ShardStore:
         lock = _lock_directory(directory)
         path, created = directory / DB_NAME, False
         try:
-            created = not _check_file(path)
+            created = not _check_file(path, tidy=True)
             if not created:
                 _refuse_a_foreign_log(path)
             connection = _connect(path, max_bytes)
@@ -564,9 +564,11 @@ def _lock_directory(directory: Path) -> int:
     return lock
 
 
-def _check_file(path: Path) -> bool:
+def _check_file(path: Path, tidy: bool = False) -> bool:
     """Whether the store's file exists; StoreError when it exists but is no SQLite database (empty, truncated before
-    its header, another kind of file), or when only its write-ahead log is left."""
+    its header, another kind of file), or when only its write-ahead log is left. An empty file beside the rollback
+    journal of its first write (a shard stopped within a millisecond of making it: nothing was ever committed) is no
+    store: with ``tidy``, both are removed (a probe's shard then refused to start, saying the store was truncated)."""
     if not path.exists():
         if Path(f"{path}-wal").exists():
             raise StoreError(
@@ -578,8 +580,22 @@ def _check_file(path: Path) -> bool:
         raise StoreError(f"the store {path} is not a regular file")
     with path.open("rb") as file:
         header = file.read(100)
+    journal, log = Path(f"{path}-journal"), Path(f"{path}-wal")
+    if not header and journal.exists() and not log.exists():
+        if tidy:
+            for leftover in (path, journal, Path(f"{path}-shm")):
+                leftover.unlink(missing_ok=True)
+        return False
     if len(header) < 100:
-        raise StoreError(f"the store {path} is truncated ({len(header)} bytes, less than a SQLite header)")
+        raise StoreError(
+            f"the store {path} is truncated ({len(header)} bytes, less than a SQLite header)"
+            + (
+                ": if its shard never committed a scan (stopped as it made the store), remove it and the shard makes "
+                "it anew; else restore it from a copy"
+                if not header
+                else ""
+            )
+        )
     if not header.startswith(SQLITE_HEADER):
         raise StoreError(f"the store {path} is not a SQLite database")
     return True
