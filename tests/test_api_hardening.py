@@ -27,7 +27,7 @@ import pytest
 from api_stack import POSEGRID, ROOT, Stack, free_port, wait_until, write_room
 from peers import put
 from schemas.messages import PoseSamples, ShardStats
-from services import keys
+from services import history, keys
 from services.api.guard import allowed_hosts
 from services.api.status import STRANDED_AFTER
 from services.map_client import MapReader
@@ -254,6 +254,40 @@ def test_look_alike_shard_tokens_and_long_keys_are_refused_under_the_invalid_key
     assert all(len(key) <= 200 for key in health["rejected"]), list(health["rejected"])
     assert len(httpx.get(f"{api}/health", timeout=30).content) < 100_000
     assert not any(line.startswith("posegrid api: FORGED LINE") for line in log.read_text().splitlines())
+
+
+def test_a_robots_trajectory_begins_with_the_poses_its_histories_hold(api, session):
+    """A crash probe: an API restarted mid-run served the trajectory from the first pose it heard (seq 178 of 600),
+    though the SLAM node's history holds the poses before it, and nothing said the start was missing. A robot new to
+    the API has the poses before its first one asked from its histories and put first."""
+    who = history.Answerer(str(session.info.zid()), MAP, False)
+    earlier = [
+        PoseSamples(robot="rb", seq=seq, stamp=0.1 * seq, samples=np.array([[seq, 2.0 * seq, 0.1]]), weights=np.ones(1))
+        for seq in range(5)
+    ]
+
+    def answer(query) -> None:  # (the SLAM node's history: every pose it has, whatever the range asked)
+        for message in earlier:
+            history.reply(query, who, "rb", keys.POSE, message.encode())
+
+    queryable = session.declare_queryable(keys.history_key("rb"), answer)
+    try:
+        time.sleep(1.0)  # (the router hands the queryable on)
+        for seq in range(5, 8):
+            pose = PoseSamples(
+                robot="rb", seq=seq, stamp=0.1 * seq, samples=np.array([[seq, 2.0 * seq, 0.1]]), weights=np.ones(1)
+            )
+            put(session, keys.robot_key("rb", keys.POSE), pose.encode())
+
+        def whole():
+            response = httpx.get(f"{api}/robots/rb/trajectory", timeout=30)
+            return response.status_code == 200 and response.json()["seq"] == list(range(8)) and response.json()
+
+        track = wait_until(whole, 30, "the trajectory with its earlier poses")
+    finally:
+        queryable.undeclare()
+    assert track["x"] == pytest.approx([float(seq) for seq in range(8)])
+    assert track["y"] == pytest.approx([2.0 * seq for seq in range(8)])
 
 
 def test_a_second_process_answering_as_a_shard_degrades_health_until_it_goes(api, session):

@@ -166,6 +166,22 @@ def test_a_track_keeps_what_a_bounded_deque_keeps(length, ops):
         np.testing.assert_array_equal(track.rows(), np.array(list(reference), float).reshape(-1, 5))
 
 
+def test_a_tracks_earlier_poses_go_first_as_many_as_its_length_leaves_room_for():
+    track = Track(5)
+    for seq in (10, 11):
+        track.append((seq, 0.0, 0.0, 0.0, 0.0))
+    older = np.array([[seq, 0.0, 0.0, 0.0, 0.0] for seq in range(4, 10)], float)
+    assert track.prepend(older) == 3  # room for 3 of the 6: the newest, 7, 8 and 9
+    assert track.rows()[:, 0].tolist() == [7, 8, 9, 10, 11]
+    track.append((12, 0.0, 0.0, 0.0, 0.0))  # full: the oldest goes
+    assert track.rows()[:, 0].tolist() == [8, 9, 10, 11, 12]
+    tracker = RobotTracker(trajectory_length=10)
+    tracker.update(PoseSamples(robot="r", seq=6, stamp=0.0, samples=np.zeros((1, 3)), weights=np.ones(1)))
+    assert tracker.backfill("r", np.array([[seq, 0.0, 0.0, 0.0, 0.0] for seq in range(8)], float)) == 6
+    assert tracker.trajectory("r")[:, 0].tolist() == [0, 1, 2, 3, 4, 5, 6]  # (7: not before its first pose)
+    assert tracker.backfill("nobody", older) == 0
+
+
 def test_the_trajectories_of_all_robots_together_stay_within_their_bound():
     """A probe: a peer's poses under 50 robot names took the API 140 MB in 80 s (a tuple of 280 bytes a pose, 100 000
     kept per robot: 7 GB for the API's 256 robots), nothing counted. Past the bound on all robots' poses, the robot

@@ -22,23 +22,26 @@ contents contradict its key, is dropped and counted by key in :attr:`MapperLink.
 
 from __future__ import annotations
 
+import contextlib
 import math
+import queue
 import threading
 import time
 from collections import Counter
 from collections.abc import Iterator
 
+import numpy as np
 import zenoh
 
 from mapping.grid import TiledGrid
 from schemas.messages import POSE_TYPES, MessageError, ShardStats, TileUpdate, decode_message
-from services import keys
+from services import history, keys
 from services.api.events import EventHub
 from services.api.limits import MAX_PROCESSES, VERIFY_WINDOW, Tally
 from services.api.registry import MapRegistry, TileKey
-from services.api.robots import PoseRefused, RobotTracker
+from services.api.robots import PoseRefused, RobotTracker, trajectory_row
 from services.map_client import MapReader, sort_answers
-from services.process import RejectCounter, get_logger
+from services.process import RejectCounter, Stopped, get_logger
 from services.zenoh_config import is_timeout_reply, replier, undeclare_all
 
 #: s to wait for the shards' stats: a shard answers them from its Zenoh thread in milliseconds, and /health, which
@@ -51,6 +54,8 @@ VERIFY_INTERVAL = 1.0
 CONFLICT_RESYNC_INTERVAL = 10.0
 
 
+#: robots whose trajectories wait to be filled from their histories (a robot past it is filled by none)
+BACKFILL_QUEUE = 1024
 #: bytes of one reply the API takes: a whole tile of the largest size (1 024 x 1 024 cells, 9 bytes a cell) with room
 MAX_REPLY_BYTES = 16 << 20
 
@@ -81,6 +86,9 @@ class MapperLink:
         self._wake, self._stopping = threading.Event(), threading.Event()
         self._verifier: threading.Thread | None = None
         self._conflict_synced: dict[str, float] = {}  # map -> time.monotonic() a conflict last asked for a fetch
+        # (robot, seq of the first pose taken): trajectories to fill from the histories, on a thread of their own
+        self._backfills: queue.Queue[tuple[str, int]] = queue.Queue(maxsize=BACKFILL_QUEUE)
+        self._backfiller: threading.Thread | None = None
 
     # ---------------------------------------------------------------------------- subscriptions
     def start(self) -> None:
@@ -101,13 +109,52 @@ class MapperLink:
         self.verify_pending()
         self._verifier = threading.Thread(target=self._verify_loop, daemon=True, name="api-verify")
         self._verifier.start()
+        self._backfiller = threading.Thread(target=self._backfill_loop, daemon=True, name="api-backfill")
+        self._backfiller.start()
 
     def close(self) -> None:
         self._stopping.set()
         self._wake.set()
-        if self._verifier is not None:
-            self._verifier.join()
+        with contextlib.suppress(queue.Full):
+            self._backfills.put_nowait(("", 0))  # (wakes the backfiller to see the stop)
+        for thread in (self._verifier, self._backfiller):
+            if thread is not None:
+                thread.join()
         undeclare_all(self._declared)
+
+    def _backfill_loop(self) -> None:
+        """Fill each new robot's trajectory with the poses before its first one this API took, from its histories
+        (the SLAM node's: services.state.pose_history), one robot at a time."""
+        while not self._stopping.is_set():
+            robot, first = self._backfills.get()
+            if self._stopping.is_set():
+                return
+            try:
+                self._backfill(robot, first)
+            except Stopped:
+                return
+            except Exception:  # the thread must outlive any one robot's question (logged, not swallowed)
+                self.log.exception("filling the trajectory of robot %r from its histories failed", robot)
+
+    def _backfill(self, robot: str, first: int) -> None:
+        """Ask the robot's histories for its poses 0 .. first-1 and put them at the start of its trajectory."""
+        asked = {"streams": keys.POSE, "from": "0", "to": str(first)}
+        messages = history.ask_counted(
+            self.session, robot, asked, self.query_timeout, self.rejects, stop=self._stopping
+        )
+        rows = []
+        for _, _, payload in messages:
+            try:
+                message = decode_message(payload, *POSE_TYPES)
+            except MessageError as exc:
+                self.rejects.count(keys.history_key(robot), exc.reason, str(exc))
+                continue
+            if message.robot == robot and message.seq < first:
+                rows.append(trajectory_row(message))
+        rows.sort()
+        taken = self.robots.backfill(robot, np.array(rows, float).reshape(-1, 5))
+        if taken:
+            self.log.info("robot %r: %d earlier pose(s) of its trajectory taken from its histories", robot, taken)
 
     def _verify_loop(self) -> None:
         """Ask the pending shards for their stats when a token appears and every VERIFY_INTERVAL s while some
@@ -228,6 +275,7 @@ class MapperLink:
                 key if parsed else keys.INVALID_KEY, "robot", f"a pose of robot {message.robot!r} arrived on {key}"
             )
             return
+        fresh = self.robots.latest(message.robot) is None
         try:
             summary = self.robots.update(message)
         except PoseRefused as refused:
@@ -236,6 +284,9 @@ class MapperLink:
             self.rejects.count(key, refused.kind, str(refused))
             return
         self.hub.pose(summary)
+        if fresh and message.seq > 0:  # (poses before it: the robot's histories hold them, e.g. for a restarted API)
+            with contextlib.suppress(queue.Full):
+                self._backfills.put_nowait((message.robot, message.seq))
 
     def _foreign_tile(self, key: str, update: TileUpdate) -> str | None:
         """Why ``update`` does not belong on ``key`` (None when it does): another tile's key, or a zoom level other

@@ -104,6 +104,15 @@ def summarize(message: PoseSamples | PoseGaussian, received: float) -> PoseSumma
     )
 
 
+def trajectory_row(message: PoseSamples | PoseGaussian) -> tuple[int, float, float, float, float]:
+    """A pose message's row of the trajectory: (seq, stamp s, mean x m, y m, yaw rad)."""
+    if isinstance(message, PoseGaussian):
+        mean = np.asarray(message.mean, float)
+    else:
+        mean = weighted_mean_cov(message.samples, message.weights)[0]
+    return message.seq, message.stamp, float(mean[0]), float(mean[1]), float(mean[2])
+
+
 class PoseRefused(Exception):
     """A pose :meth:`RobotTracker.update` did not take: ``kind`` (the rejection counter's) and why."""
 
@@ -134,6 +143,16 @@ class Track:
         else:
             self._rows[(self._start + self.count) % capacity] = row
             self.count += 1
+
+    def prepend(self, rows: np.ndarray) -> int:
+        """Put ``rows`` (N, 5), older than every row held, before them, as many as ``length`` leaves room for (the
+        newest of them); how many went in."""
+        room = max(0, self.length - self.count)
+        taken = rows[len(rows) - room :] if room < len(rows) else rows
+        merged = np.concatenate([taken, self.rows()])
+        self._rows = np.concatenate([merged, np.empty((max(0, min(self.length, 1024) - len(merged)), 5))])
+        self._start, self.count = 0, len(merged)
+        return len(taken)
 
     def drop_oldest(self, count: int) -> int:
         """Let the ``count`` oldest rows go (at most all of them); how many went."""
@@ -206,6 +225,22 @@ class RobotTracker:
             if self._poses > self._poses_limit:
                 self._let_oldest_go()
         return summary
+
+    def backfill(self, robot: str, rows: np.ndarray) -> int:
+        """Put the poses ``rows`` (N, 5: seq, stamp, x, y, yaw, in seq order) that came before the robot's first
+        pose this process took (from its histories: a restarted API) at the start of its trajectory; rows not
+        before that first pose are left out. How many went in (0 for a robot not tracked)."""
+        with self._lock:
+            track = self._trajectory.get(robot)
+            if track is None or track.count == 0 or len(rows) == 0:
+                return 0
+            first = track.rows()[0, 0]
+            earlier = rows[rows[:, 0] < first]
+            taken = track.prepend(earlier)
+            self._poses += taken
+            if self._poses > self._poses_limit:
+                self._let_oldest_go()
+            return taken
 
     def _let_oldest_go(self) -> None:
         """Past ``trajectory_poses`` rows in all, the robot holding the most lets its oldest go: the excess, and a
