@@ -4,6 +4,7 @@ processes (a router and a shard) and Zenoh sessions played by the test: the real
 from __future__ import annotations
 
 import logging
+import threading
 import time
 
 import pytest
@@ -213,3 +214,28 @@ def test_a_source_stays_until_the_shards_that_keep_a_store_have_committed_its_sc
         assert _accounted([stuck], end) is not waited
     assert _accounted([shard(0, persist="ok", committed={"r": 300}, **fused), shard(1, **fused)], end)
     assert not _accounted([shard(0, persist="ok", committed={"r": 300}, fused={"r": 290}, ended={"r": 300})], end)
+
+
+def test_the_end_of_a_replay_is_waited_for_while_the_pipeline_makes_progress(procs, monkeypatch):  # noqa: F811
+    """An overload probe: a SLAM node working through a backlog with the source's history (178 steps taken from it)
+    was still at step 1 794 of 3 000 when the source gave up waiting for the end, 60 s after it; restarted, the source
+    answered no history while it simulated, and the node skipped 859 steps. The wait for the end now gives up only
+    after WAIT_TIMEOUT without progress (the shards' counts, the node's steps), as the wait for the window did."""
+    from services.nodes import source as source_module
+    from services.nodes.source import Source, SourceOptions, SourceStalled
+    from services.streams import Stream
+
+    monkeypatch.setattr(source_module, "WAIT_TIMEOUT", 0.5)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
+    with zenoh.open(build_config("client", connect=[endpoint])) as own:
+        source = Source(own, Stream("r", [], None, True), SourceOptions(wait_mappers=1))
+        began = time.monotonic()
+        done = lambda: time.monotonic() - began > 2.0  # noqa: E731 - the pipeline done after 2 s
+        progress = lambda: int((time.monotonic() - began) / 0.2)  # noqa: E731 - a step every 0.2 s
+        assert source._wait_for("the end", done, threading.Event(), progress)  # (2 s, four WAIT_TIMEOUTs)
+        began = time.monotonic()
+        with pytest.raises(SourceStalled, match="gave up after 0 s without progress waiting for the end"):
+            source._wait_for("the end", done, threading.Event(), lambda: 0)  # (no progress)
+        source._end_counts = ((0, 5, 0, 5),)
+        assert source._end_progress() == (((0, 5, 0, 5),), 0)  # (no SLAM node waited for: its steps stay 0)

@@ -151,6 +151,9 @@ class Source:
         self._distrust: str | None = None  # why the shards' last stats were not trusted (None: they were)
         self._end_sent = 0.0  # time.monotonic() of the last StreamEnd published
         self._warned_beyond = False  # whether a shard holding more scans than this run published was reported
+        # (the end's progress, :meth:`_end_progress`: the shards' counts as last read, the SLAM node's steps done)
+        self._end_counts: tuple = ()
+        self._slam_asked, self._slam_seen = -math.inf, 0
         self._clashes_before: dict[int, tuple[int, int]] = {}  # shard -> its clash counts (_clash_counts) at the start
         self._before: dict[int, ShardBaseline] = {}  # shard -> what it had taken of this robot at the start
         self._started = 0.0  # time.monotonic() when those were read
@@ -216,15 +219,36 @@ class Source:
         self._distrust = answers.problems[0] if answers.problems else None
         return list(answers.trusted.values())
 
-    def _wait_for(self, what: str, ready, stop: threading.Event) -> bool:
-        """Poll ``ready()`` until it is true (returns True) or ``stop`` is set (False); raise after WAIT_TIMEOUT."""
+    def _wait_for(self, what: str, ready, stop: threading.Event, progress=None) -> bool:
+        """Poll ``ready()`` until it is true (returns True) or ``stop`` is set (False); raise after WAIT_TIMEOUT, or,
+        given ``progress`` (a callable whose value changes while the subscribers make progress), after WAIT_TIMEOUT
+        without progress: a shard or SLAM node working through a backlog past the end of a replay is waited for (the
+        source gave up 60 s after its end while the SLAM node was still taking steps from its history, exit 1; its
+        restart answered no history while it simulated, and the node skipped 859 steps)."""
         deadline = time.monotonic() + WAIT_TIMEOUT
+        seen = None if progress is None else progress()
         while not ready():
             if stop.wait(0.05):
                 return False
+            now = progress() if progress is not None else None
+            if now != seen:
+                seen, deadline = now, time.monotonic() + WAIT_TIMEOUT
             if time.monotonic() > deadline:
-                raise SourceStalled(f"gave up after {WAIT_TIMEOUT:.0f} s waiting for {what}")
+                raise SourceStalled(
+                    f"gave up after {WAIT_TIMEOUT:.0f} s "
+                    + ("without progress " if progress is not None else "")
+                    + f"waiting for {what}"
+                )
         return True
+
+    def _end_progress(self) -> tuple:
+        """What changes while the pipeline works through the end of a replay: each waited-for shard's scans of the
+        robot fused, given up and committed (as the last stats read said: :meth:`_ended_everywhere`), and the SLAM
+        node's steps done (asked at most every END_REPEAT s)."""
+        if self.options.wait_slam and time.monotonic() - self._slam_asked >= END_REPEAT:
+            self._slam_asked = time.monotonic()
+            self._slam_seen = self._slam_done()
+        return self._end_counts, self._slam_seen
 
     def _tokens(self, key: str) -> int:
         return sum(reply.ok is not None for reply in self.session.liveliness().get(key, timeout=2.0))
@@ -326,6 +350,11 @@ class Source:
         Zenoh session was closed, would wait for it for ever. Until then the source answers its history."""
         stats = self._shard_stats()
         robot, scans = end.robot, end.scans
+        self._end_counts = tuple(
+            sorted(
+                (s.shard, s.fused.get(robot, 0), s.discarded.get(robot, 0), s.committed.get(robot, 0)) for s in stats
+            )
+        )
         beyond = [s.shard for s in stats if s.fused.get(robot, 0) + s.discarded.get(robot, 0) > scans]
         if beyond and not self._warned_beyond:  # (the shards refuse such an end: services.state.shard)
             self._warned_beyond = True
@@ -481,7 +510,10 @@ class Source:
                 "published %d scans in %.2f s (%.1f scans/s)", scans_sent, elapsed, scans_sent / max(elapsed, 1e-9)
             )
             if opts.wait_mappers and not self._wait_for(
-                "every shard to acknowledge the end of the stream", lambda: self._ended_everywhere(end), stop
+                "every shard to acknowledge the end of the stream",
+                lambda: self._ended_everywhere(end),
+                stop,
+                self._end_progress,
             ):
                 return self._stopped()
             clashed = self._clashed() if opts.wait_mappers else []
