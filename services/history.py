@@ -158,18 +158,27 @@ def _asked(
     stop: threading.Event,
     dropped: list[str],
     reply_times: list[float] | None = None,
+    max_bytes: int | None = None,
 ) -> list[zenoh.Reply]:
     """The replies to one question in the order they came, once it is answered or ``timeout`` s have passed
     (Stopped when ``stop`` is set first); a reply of more than MAX_REPLY_BYTES is dropped as it comes, and said in
-    ``dropped``. ``reply_times`` gets the arrival time (time.monotonic()) of each reply with a sample."""
+    ``dropped``. ``reply_times`` gets the arrival time (time.monotonic()) of each reply with a sample. With
+    ``max_bytes``, the replies past that many bytes in all are dropped as they come, and said once."""
     replies: list[zenoh.Reply] = []
     done = threading.Event()
     times = reply_times if reply_times is not None else []
+    held = [0]  # bytes of the replies kept
 
     def keep(reply: zenoh.Reply) -> None:
         sample = reply.ok  # (None: an error reply, kept: ask says it)
         if sample is not None:
             times.append(time.monotonic())
+            if max_bytes is not None and held[0] + len(sample.payload) > max_bytes:
+                if held[0] <= max_bytes:
+                    dropped.append(f"replies past {max_bytes} bytes in all; not taken")
+                    held[0] = max_bytes + 1
+                return
+            held[0] += len(sample.payload)
         if sample is None or len(sample.payload) <= MAX_REPLY_BYTES:
             replies.append(reply)
         else:
@@ -197,6 +206,8 @@ def _answers(
     stop: threading.Event,
     dropped: list[str],
     tries: list[float],
+    retry: bool = True,
+    max_bytes: int | None = None,
 ) -> list[zenoh.Reply]:
     """The replies to one question (the timeout of each try it took appended to ``tries``, s: more time is given
     while a history was cut off as it answered, :func:`cut_off`), asked once the session reaches a router or peer.
@@ -207,7 +218,7 @@ def _answers(
     router."""
     deadline = time.monotonic() + RECONNECT_WAIT
     grace_until = None  # set once the session had to wait for its connection
-    more_time = question_timeouts(timeout)[1:]
+    more_time = question_timeouts(timeout)[1:] if retry else []
     while True:
         while not reachable(session) and time.monotonic() < deadline:
             if stop.wait(STOP_POLL):
@@ -216,7 +227,7 @@ def _answers(
         started = time.monotonic()
         reply_times: list[float] = []
         tries.append(timeout)
-        replies = _asked(session, robot, parameters, timeout, stop, dropped, reply_times)
+        replies = _asked(session, robot, parameters, timeout, stop, dropped, reply_times, max_bytes)
         timed_out = any(is_timeout_reply(reply) for reply in replies)
         if more_time and timed_out and cut_off(reply_times, started, timeout):  # (a slow history: all of it, in time)
             timeout = more_time.pop(0)
@@ -238,6 +249,8 @@ def ask(
     timeout: float,
     accept: Callable[[Answerer], bool] = lambda answerer: True,
     stop: threading.Event | None = None,
+    retry: bool = True,
+    max_bytes: int | None = None,
 ) -> tuple[list[tuple[str, str, bytes]], list[str]]:
     """Ask the histories of ``robot`` ("*": every robot): ((robot, stream, payload) of each message in the order
     sent, problems). Only answerers that ``accept`` takes count (a shard takes its own map's sources; a SLAM node
@@ -247,12 +260,15 @@ def ask(
     Zenoh session that sent the reply (its ``replier_id``, which zenoh sets): a reply whose attachment names
     another session is not taken, so a peer cannot pose as the real history to slip past that rule. A session cut
     off from the router waits for it to come back (:func:`_answers`); Stopped when ``stop`` is set while it
-    waits."""
+    waits. ``retry`` False: a history cut off as it answered is not asked again with more time; ``max_bytes``: the
+    replies past that many bytes in all are not taken (a problem says so)."""
     messages: list[tuple[str, str, bytes]] = []
     problems: list[str] = []
     answerers: dict[tuple[str, str], set[str]] = {}  # (robot, stream) -> ids of the processes answering for it
     tries: list[float] = []
-    for answer in _answers(session, robot, parameters, timeout, stop or threading.Event(), problems, tries):
+    for answer in _answers(
+        session, robot, parameters, timeout, stop or threading.Event(), problems, tries, retry, max_bytes
+    ):
         if answer.ok is None:
             error = answer.err
             assert error is not None  # a reply holds either a sample or an error
@@ -298,10 +314,12 @@ def ask_counted(
     rejects: RejectCounter,
     accept: Callable[[Answerer], bool] = lambda answerer: True,
     stop: threading.Event | None = None,
+    retry: bool = True,
+    max_bytes: int | None = None,
 ) -> list[tuple[str, str, bytes]]:
     """:func:`ask`, each problem counted by ``rejects`` under pg/<robot>/history/** (kind "history", logged once):
     (robot, stream, payload) of each message taken, in the order sent."""
-    messages, problems = ask(session, robot, parameters, timeout, accept, stop)
+    messages, problems = ask(session, robot, parameters, timeout, accept, stop, retry, max_bytes)
     for problem in problems:
         rejects.count(keys.history_key(robot), "history", problem)
     return messages

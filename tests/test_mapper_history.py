@@ -12,6 +12,7 @@ import pytest
 import zenoh
 
 from mapping.sensor_model import SensorModel
+from services import history
 from services.nodes import mapper as mapper_module
 from services.nodes.mapper import Mapper
 from services.ports import free_port
@@ -61,3 +62,37 @@ def test_a_history_that_never_answers_is_asked_once_per_quiet_period(router, mon
     finally:
         session.close()
         silent.close()
+
+
+def test_a_history_that_answers_once_and_stalls_holds_the_shard_once(router, monkeypatch):
+    """A re-probe: a peer's history that sent one reply at once (or late, inside the cut-off window, so that it was
+    asked again with more time) and never finished, under a new robot name every few seconds, still held every
+    robot's fusion for good: a reply made the robot count as answered, so the wait went into no budget. Any question
+    that runs its time out now counts, its robot is left alone, and a robot whose histories never answered in time
+    gets no more time."""
+    monkeypatch.setattr(mapper_module, "HISTORY_TIMEOUT", 0.5)
+    monkeypatch.setattr(mapper_module, "HISTORY_QUIET", 30.0)
+    kept: list[zenoh.Query] = []
+    peer = zenoh.open(build_config("client", connect=[router]))
+    session = zenoh.open(build_config("client", connect=[router]))
+    who = history.Answerer(str(peer.info.zid()), "m", False)
+
+    def one_reply(query) -> None:  # one reply, then the query held open: its timeout ends it
+        history.reply(query, who, str(query.key_expr).split("/")[1], "scan", b"junk")
+        kept.append(query)
+
+    try:
+        queryable = peer.declare_queryable("pg/*/history/**", one_reply)
+        time.sleep(0.5)
+        shard = Mapper(ShardConfig("m", 0, 1, SensorModel()), session, threading.Event())
+        with shard.lock:
+            started = time.monotonic()
+            shard._history("e0", "scan", 1, 1)  # (the junk reply is refused later, by the shard's checks)
+            assert len(kept) == 1 and time.monotonic() - started < 1.4  # one try: e0 never answered in time
+            for robot in ("e0", "e1", "e2", "e3"):  # e0 left alone; the others never answered: not asked
+                assert shard._history(robot, "scan", 3, 3) == []
+            assert len(kept) == 1 and time.monotonic() - started < 1.4, len(kept)
+        queryable.undeclare()
+    finally:
+        session.close()
+        peer.close()

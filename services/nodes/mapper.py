@@ -263,7 +263,7 @@ class Mapper:
             self.rejects.count(
                 keys.history_key(robot),
                 "history",
-                f"seqs {first}-{last} of {stream} not asked for: the robot's histories did not answer in "
+                f"seqs {first}-{last} of {stream} not asked for: the robot's histories did not finish answering in "
                 f"{HISTORY_TIMEOUT:g} s, so they are left alone for {HISTORY_QUIET:g} s",
             )
             return []
@@ -276,21 +276,29 @@ class Mapper:
                 f"{silent:.1f} s in the last {HISTORY_QUIET:g} s, and robot {robot!r}'s have never answered it",
             )
             return []
-        timeout = HISTORY_SHORT_TIMEOUT if silent >= HISTORY_TIMEOUT else HISTORY_TIMEOUT
+        strained = silent >= HISTORY_TIMEOUT  # (then a short timeout and no more time for a history cut off)
+        timeout = HISTORY_SHORT_TIMEOUT if strained else HISTORY_TIMEOUT
         # a far run's vouching question (seqs given, services.state.join) counts every answerer, of any map: the real
         # source of another map answers its passed seq too, so a peer answering as this map's is not alone (a
         # re-probe: a second map's shard gave up 99 892 scans)
         accept = self._ours_or_live if seqs is None else (lambda answerer: True)
         with self._lock_released():
-            messages = history.ask_counted(self.session, robot, asked, timeout, self.rejects, accept, self.stop)
+            # (more time for a history cut off as it answered only where the robot's histories have answered this
+            # shard in time before: a peer's late reply under a new name bought 5 + 10 + 20 s a question)
+            retry = not strained and robot in self._answered
+            messages = history.ask_counted(
+                self.session, robot, asked, timeout, self.rejects, accept, self.stop, retry=retry
+            )
         waited = time.monotonic() - began
-        if messages:
-            self._remember_answered([robot])
-        # a question asked while the session reached no router or peer went nowhere, and says nothing of the
-        # histories (a router restart must not leave them alone)
-        elif waited >= 0.9 * timeout and history.reachable(self.session):
-            self._history_quiet[robot] = time.monotonic() + HISTORY_QUIET  # (asked, reached; no one answered)
+        # a question that ran its time out held the shard, whatever came (a re-probe: one reply and then nothing,
+        # under a robot name after another, held every robot's fusion for good): the robot's histories are left
+        # alone for HISTORY_QUIET s. One asked while the session reached no router or peer went nowhere, and says
+        # nothing of the histories (a router restart must not leave them alone)
+        if waited >= 0.9 * timeout and history.reachable(self.session):
             self._silent.append((time.monotonic(), waited))
+            self._history_quiet[robot] = time.monotonic() + HISTORY_QUIET
+        elif messages:
+            self._remember_answered([robot])
         return [payload for _, got, payload in messages if got == stream]  # (history.ask checks the reply keys)
 
     def _silent_seconds(self, now: float) -> float:
