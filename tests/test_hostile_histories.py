@@ -239,3 +239,26 @@ def test_the_end_of_a_replay_is_waited_for_while_the_pipeline_makes_progress(pro
             source._wait_for("the end", done, threading.Event(), lambda: 0)  # (no progress)
         source._end_counts = ((0, 5, 0, 5),)
         assert source._end_progress() == (((0, 5, 0, 5),), 0)  # (no SLAM node waited for: its steps stay 0)
+
+
+def test_a_question_takes_at_most_its_bytes_of_replies(procs):  # noqa: F811
+    """A re-probe: the API's fill of a new robot's trajectory took every pose a peer's history sent, 6 000 of 10 000
+    samples each, 3.9 GB. A question given max_bytes keeps the replies up to that many bytes in all, and says so."""
+    from services import history
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
+    config = build_config("client", connect=[endpoint])
+    with zenoh.open(config) as answerer, zenoh.open(config) as asker:
+        who = history.Answerer(str(answerer.info.zid()), "m", False)
+        answerer.declare_queryable(
+            keys.history_key("r"),
+            lambda query: [history.reply(query, who, "r", keys.POSE, bytes([i]) * 1000) for i in range(10)],
+        )
+        deadline = time.monotonic() + 20
+        while not history.ask(asker, "r", {}, 5.0)[0]:
+            assert time.monotonic() < deadline, "the answerer never answered"
+            time.sleep(0.1)
+        messages, problems = history.ask(asker, "r", {}, 5.0, max_bytes=3500)
+    assert [payload for _, _, payload in messages] == [bytes([i]) * 1000 for i in range(3)]
+    assert problems == ["replies past 3500 bytes in all; not taken"]

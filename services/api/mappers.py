@@ -39,7 +39,7 @@ from services import history, keys
 from services.api.events import EventHub
 from services.api.limits import MAX_PROCESSES, VERIFY_WINDOW, Tally
 from services.api.registry import MapRegistry, TileKey
-from services.api.robots import PoseRefused, RobotTracker, trajectory_row
+from services.api.robots import TRAJECTORY_LENGTH, PoseRefused, RobotTracker, trajectory_row
 from services.map_client import MapReader, sort_answers
 from services.process import RejectCounter, Stopped, get_logger
 from services.zenoh_config import is_timeout_reply, replier, undeclare_all
@@ -56,6 +56,8 @@ CONFLICT_RESYNC_INTERVAL = 10.0
 
 #: robots whose trajectories wait to be filled from their histories (a robot past it is filled by none)
 BACKFILL_QUEUE = 1024
+#: bytes of a robot's earlier poses one fill takes from its histories (a SLAM node keeps 64 MiB of them)
+BACKFILL_BYTES = 64 << 20
 #: bytes of one reply the API takes: a whole tile of the largest size (1 024 x 1 024 cells, 9 bytes a cell) with room
 MAX_REPLY_BYTES = 16 << 20
 
@@ -137,22 +139,25 @@ class MapperLink:
                 self.log.exception("filling the trajectory of robot %r from its histories failed", robot)
 
     def _backfill(self, robot: str, first: int) -> None:
-        """Ask the robot's histories for its poses 0 .. first-1 and put them at the start of its trajectory."""
-        asked = {"streams": keys.POSE, "from": "0", "to": str(first)}
+        """Ask the robot's histories for the poses before ``first`` that its trajectory has room for, at most
+        BACKFILL_BYTES of them (a re-probe: 6 000 poses of 10 000 samples each took the API to 3.9 GB), and put them
+        at the start of its trajectory: each seq once, in order (a seq two replies give differently is left out)."""
+        asked = {"streams": keys.POSE, "from": str(max(0, first - TRAJECTORY_LENGTH)), "to": str(first)}
         messages = history.ask_counted(
-            self.session, robot, asked, self.query_timeout, self.rejects, stop=self._stopping
+            self.session, robot, asked, self.query_timeout, self.rejects, stop=self._stopping, max_bytes=BACKFILL_BYTES
         )
-        rows = []
+        rows: dict[int, tuple[int, float, float, float, float] | None] = {}  # seq -> row (None: given two ways)
         for _, _, payload in messages:
             try:
                 message = decode_message(payload, *POSE_TYPES)
             except MessageError as exc:
                 self.rejects.count(keys.history_key(robot), exc.reason, str(exc))
                 continue
-            if message.robot == robot and message.seq < first:
-                rows.append(trajectory_row(message))
-        rows.sort()
-        taken = self.robots.backfill(robot, np.array(rows, float).reshape(-1, 5))
+            if message.robot == robot and first - TRAJECTORY_LENGTH <= message.seq < first:
+                row = trajectory_row(message)
+                rows[message.seq] = row if rows.get(message.seq, row) == row else None
+        kept = [row for _, row in sorted(rows.items()) if row is not None]
+        taken = self.robots.backfill(robot, np.array(kept, float).reshape(-1, 5))
         if taken:
             self.log.info("robot %r: %d earlier pose(s) of its trajectory taken from its histories", robot, taken)
 
