@@ -410,6 +410,8 @@ def _flip_window_bit(path: Path) -> None:
         (_sql(f"UPDATE tiles SET seq = seq + 1 WHERE {FIRST_TILE}"), "does not match its checksum"),
         (_sql("UPDATE robots SET next_seq = next_seq - 1"), "which do not match their checksum"),
         (_sql("UPDATE robots SET fused = fused + 1"), "which do not match their checksum"),
+        # (a re-probe: a robots row whose session changed was out of sight, and the shard wrote its counts anew)
+        (_sql("UPDATE robots SET session = 'x' || substr(session, 2)"), "which it does not record"),
     ],
 )
 def test_a_changed_value_in_a_tile_or_robot_row_is_refused_not_read(tmp_path, pairs, capsys, damage, message):
@@ -1019,3 +1021,22 @@ def test_a_store_left_empty_beside_its_first_journal_is_made_anew(tmp_path, caps
     (alone / DB_NAME).write_bytes(b"")
     err = _refused(_mapper(alone), capsys)
     assert "is truncated (0 bytes" in err and "remove it and the shard makes it anew" in err
+
+
+def test_check_store_refuses_a_changed_robots_row_and_a_refused_store_is_not_migrated(tmp_path, pairs):
+    """A re-probe: `run --resume` started the router and the API before a shard refused a robots row whose counts did
+    not match their checksum (check_store read no robots rows); and a schema-1 store of another run, refused, had
+    been brought to schema 2 first, so the build that made it could no longer read it."""
+    path = _committed_store(tmp_path / "s", pairs[:8])
+    with sqlite3.connect(path) as db:
+        db.execute("UPDATE robots SET next_seq = next_seq - 1")
+    with pytest.raises(StoreError, match="do not match their checksum"):
+        check_store(tmp_path / "s", _identity(_config()), None)
+    old = _committed_store(tmp_path / "old", pairs[:8])
+    with sqlite3.connect(old) as db:
+        db.execute("UPDATE meta SET value = 1 WHERE key = 'schema_version'")
+        db.execute("INSERT OR REPLACE INTO meta VALUES ('run', 'run-a')")
+    with pytest.raises(StoreError, match="belongs to run 'run-a'"):
+        ShardStore.open(tmp_path / "old", _identity(_config()), run_id="run-b")
+    with sqlite3.connect(old) as db:
+        assert db.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()[0] == 1

@@ -27,6 +27,7 @@ import sqlite3
 import struct
 import time
 import zlib
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -308,9 +309,10 @@ class ShardStore:
                 else:
                     _check_integrity(connection, path)
                     _check_meta(connection, path, identity)
-                    _bring_to_current(connection, path)
                 if run_id is not None:
                     _check_run(connection, path, run_id)
+                if not created:  # (after the checks that refuse it as another's: a refused store is left as it was)
+                    _bring_to_current(connection, path)
                 chosen = _register_session(connection, path, session)
             except BaseException:
                 connection.close()
@@ -330,9 +332,9 @@ class ShardStore:
         try:
             tiles = [self._tile(row) for row in db.execute("SELECT tx, ty, robot, seq, layers FROM tiles")]
             rows = db.execute(
-                "SELECT robot, fused, discarded, ended, next_seq, checksum FROM robots WHERE session = ?",
-                (self.session,),
+                "SELECT session, robot, fused, discarded, ended, next_seq, checksum FROM robots"
             ).fetchall()
+            known = {row[0] for row in db.execute("SELECT id FROM sessions")}
             ledger = [
                 LedgerEntry(*row)
                 for row in db.execute(
@@ -342,7 +344,8 @@ class ShardStore:
             meta = dict(db.execute("SELECT key, value FROM meta WHERE key IN ('cells_updated', 'committed_at')"))
         except (sqlite3.DatabaseError, UnicodeDecodeError) as exc:
             raise StoreError(f"the store {self.path} cannot be read ({exc}): it is damaged") from None
-        robots = {row[0]: self._robot(row) for row in rows}
+        states = [(row[0], self._robot(row, known)) for row in rows]  # (every session's: each row checked)
+        robots = {state.robot: state for session, state in states if session == self.session}
         for entry in ledger:
             name: object = entry.robot
             if not (isinstance(name, str) and is_valid_name(name) and _whole(entry.seq, 0, MAX_SEQ)):
@@ -378,10 +381,12 @@ class ShardStore:
             raise StoreError(f"{where} is damaged: {exc}") from None
         return TileState((tx, ty), logodds, variance, observed, robot, seq)
 
-    def _robot(self, row: tuple) -> RobotState:
-        """The robots row ``row`` (robot, fused, discarded, ended, next_seq, checksum) of this session; StoreError for
-        one of values no shard writes, or whose checksum does not match (None: a row of a schema-1 store)."""
-        state, checksum = RobotState(*row[:5]), row[5]
+    def _robot(self, row: tuple, sessions: Collection[object]) -> RobotState:
+        """The robots row ``row`` (session, robot, fused, discarded, ended, next_seq, checksum); StoreError for one of
+        values no shard writes, of a session not in ``sessions`` (the store's), or whose checksum does not match (None:
+        a row of a schema-1 store). Every session's rows are checked: a changed session name moved a row out of
+        sight, and the shard then wrote its robot's counts anew."""
+        session, state, checksum = row[0], RobotState(*row[1:6]), row[6]
         counts = (state.fused, state.discarded, state.next_seq) + (() if state.ended is None else (state.ended,))
         robot: object = state.robot  # (as the row held it: the dataclass does not check its types)
         if not (isinstance(robot, str) and is_valid_name(robot)) or not all(_whole(c, 0, MAX_SEQ + 1) for c in counts):
@@ -389,7 +394,12 @@ class ShardStore:
                 f"the store {self.path} holds robot {state.robot!r} with counts {counts!r}, which no shard writes: "
                 "it is damaged"
             )
-        if checksum is not None and checksum != robot_check(self.session, state):
+        if session not in sessions:
+            raise StoreError(
+                f"the store {self.path} holds robot {state.robot!r} of session {session!r}, which it does not record: "
+                "it is damaged"
+            )
+        if checksum is not None and checksum != robot_check(str(session), state):
             raise StoreError(
                 f"the store {self.path} holds robot {state.robot!r} with counts {counts!r}, which do not match their "
                 "checksum: it is damaged"
@@ -524,6 +534,12 @@ def check_store(
             _refuse_another_run(path, _run_of(connection), run_id)
         for tile in connection.execute("SELECT tx, ty, robot, seq, layers FROM tiles"):
             store._tile(tile)
+        known = {row[0] for row in connection.execute("SELECT id FROM sessions")}
+        checksums = "checksum" if _has_checksums(connection) else "NULL"
+        for row in connection.execute(
+            f"SELECT session, robot, fused, discarded, ended, next_seq, {checksums} FROM robots"
+        ):
+            store._robot(row, known)
         rows = connection.execute("SELECT session, robot FROM robots WHERE fused + discarded > 0").fetchall()
         open_streams = connection.execute(
             "SELECT session, robot FROM robots WHERE fused + discarded > 0 AND (ended IS NULL OR next_seq < ended)"
@@ -738,6 +754,12 @@ def _check_meta(db: sqlite3.Connection, path: Path, identity: StoreIdentity) -> 
             f"the store {path} holds {stored.describe()}, not {identity.describe()}: another map's or another "
             "shard's state; give this shard its own --state-dir"
         )
+
+
+def _has_checksums(db: sqlite3.Connection) -> bool:
+    """Whether the store's robots table has its checksum column (schema 2; a schema-1 store gets it when a shard
+    opens it, not when it is only checked)."""
+    return any(column[1] == "checksum" for column in db.execute("PRAGMA table_info(robots)"))
 
 
 def _bring_to_current(db: sqlite3.Connection, path: Path) -> None:
