@@ -138,6 +138,12 @@ class MapReader:
         """The shard indices of the map whose liveliness token is up."""
         return self._tokens(self._ask_tokens(timeout))
 
+    def shards_up(self, shards: int, timeout: float = 2.0) -> int:
+        """How many of shards 0 .. ``shards``-1 of the map have their liveliness token up: distinct indices, each in
+        its one decimal form (a peer's token on alive/00, or on alive/5 of a map of 2 shards, counts for none; a
+        count of the replies let a source start with no shard up)."""
+        return sum(index < shards for index in self.tokens(timeout))
+
     def _ask_tokens(self, timeout: float):
         _check_timeout(timeout)
         return self.session.liveliness().get(keys.shard_alive_key(self.map_name, "*"), timeout=timeout)

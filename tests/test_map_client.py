@@ -222,3 +222,22 @@ def test_a_timeout_that_is_not_a_finite_number_of_seconds_is_refused(timeout):
     for ask in (reader.stats, reader.tiles, reader.tokens):
         with pytest.raises(UsageError, match="a timeout must be a finite number of seconds >= 0"):
             ask(timeout=timeout)
+
+
+def test_shards_up_counts_each_shard_of_the_map_once_by_its_index(sessions):
+    """A re-probe: `posegrid source --wait-mappers 1` began publishing with no shard up, because a peer held a token
+    on pg/map/main/alive/00; the source, the ROS 2 bridge and the launcher counted the replies to alive/*. They now
+    count the distinct shards 0 .. N-1 whose token is up, each index in its one decimal form."""
+    peer, reader = sessions
+    held = [peer.liveliness().declare_token(keys.shard_alive_key("m", chunk)) for chunk in ("00", "+1", "5")]
+    maps = MapReader(reader, "m")
+    time.sleep(0.5)  # (the router hands the tokens on)
+    assert maps.shards_up(2) == 0
+    held += [peer.liveliness().declare_token(keys.shard_alive_key("m", 1))]
+    deadline = time.monotonic() + 10
+    while maps.shards_up(2) != 1:
+        assert time.monotonic() < deadline, "the token of shard 1 never came"
+        time.sleep(0.1)
+    assert maps.shards_up(6) == 2  # (shard 5 of a map of 6: its token counts)
+    for token in held:
+        token.undeclare()

@@ -393,9 +393,9 @@ def _wait_for_shards(session, plan: Plan, children: Children, stop: threading.Ev
     """Wait until every shard's liveliness token is up, restarting children that end (:meth:`Children.tend`).
     False when ``stop`` is set, a child fails past the restart cap, or START_TIMEOUT s pass after the latest
     start or restart of a child without every shard up."""
-    key = keys.shard_alive_key(plan.map_name, "*")
+    shards = MapReader(session, plan.map_name)
     while not stop.is_set():
-        alive = sum(r.ok is not None for r in session.liveliness().get(key, timeout=2.0))
+        alive = shards.shards_up(plan.shards)
         if alive >= plan.shards:
             return True
         if children.tend() is not None:

@@ -257,7 +257,7 @@ class Source:
         opts = self.options
         if opts.wait_mappers and not self._wait_for(
             f"{opts.wait_mappers} mapper shard(s) of map {opts.map_name!r}",
-            lambda: self._tokens(keys.shard_alive_key(opts.map_name, "*")) >= opts.wait_mappers,
+            lambda: self._reader.shards_up(opts.wait_mappers) >= opts.wait_mappers,
             stop,
         ):
             return False

@@ -432,13 +432,14 @@ class Bridge:
         """Wait for ``wait_mappers`` shards of the map and, with ``wait_slam``, the robot's SLAM node; False when
         ``stop`` is set first."""
         opts = self.options
-        wanted = [(keys.shard_alive_key(opts.map_name, "*"), opts.wait_mappers)]
-        if opts.wait_slam:
-            wanted.append((keys.robot_alive_key(opts.robot, "slam"), 1))
-        for key, count in wanted:
-            while count and sum(r.ok is not None for r in self.session.liveliness().get(key, timeout=2.0)) < count:
-                if stop.wait(0.1):
-                    return False
+        shards = MapReader(self.session, opts.map_name)
+        while opts.wait_mappers and shards.shards_up(opts.wait_mappers) < opts.wait_mappers:
+            if stop.wait(0.1):
+                return False
+        slam = keys.robot_alive_key(opts.robot, "slam")
+        while opts.wait_slam and not any(r.ok is not None for r in self.session.liveliness().get(slam, timeout=2.0)):
+            if stop.wait(0.1):
+                return False
         return True
 
     def _catch_up(self) -> None:
