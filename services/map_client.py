@@ -139,9 +139,10 @@ class MapReader:
         return self._tokens(self._ask_tokens(timeout))
 
     def shards_up(self, shards: int, timeout: float = 2.0) -> int:
-        """How many of shards 0 .. ``shards``-1 of the map have their liveliness token up: distinct indices, each in
-        its one decimal form (a peer's token on alive/00, or on alive/5 of a map of 2 shards, counts for none; a
-        count of the replies let a source start with no shard up)."""
+        """How many of shards 0 .. ``shards``-1 of the map (its shard count: the launcher's) have their liveliness
+        token up: distinct indices, each in its one decimal form (a peer's token on alive/00, or on alive/5 of a map
+        of 2 shards, counts for none; a count of the replies let a source start with no shard up). A process that
+        knows only how many shards to wait for counts :meth:`tokens`."""
         return sum(index < shards for index in self.tokens(timeout))
 
     def _ask_tokens(self, timeout: float):

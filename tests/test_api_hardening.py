@@ -289,6 +289,7 @@ def test_a_robots_trajectory_begins_with_the_poses_its_histories_hold(api, sessi
     finally:
         queryable.undeclare()
     assert track["x"] == pytest.approx([0.0, 1.0, 3.0, 4.0, 5.0, 6.0, 7.0])
+    assert get_json(f"{api}/health")["rejected"].get(keys.history_key("rb"), 0) >= 1  # (seq 2 left out: counted)
     assert track["y"] == pytest.approx([0.0, 2.0, 6.0, 8.0, 10.0, 12.0, 14.0])
 
 

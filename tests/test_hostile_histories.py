@@ -262,3 +262,26 @@ def test_a_question_takes_at_most_its_bytes_of_replies(procs):  # noqa: F811
         messages, problems = history.ask(asker, "r", {}, 5.0, max_bytes=3500)
     assert [payload for _, _, payload in messages] == [bytes([i]) * 1000 for i in range(3)]
     assert problems == ["replies past 3500 bytes in all; not taken"]
+
+
+def test_a_source_waiting_for_n_shards_counts_any_n_of_them_by_their_indices(procs, monkeypatch):  # noqa: F811
+    """A re-probe of the look-alike tokens' fix: `source --wait-mappers 1` with shard 1 of 2 up waited for ever, as it
+    counted shards 0 .. N-1 only, though it knows how many shards to wait for, not their count. It counts any N
+    distinct shard indices; a look-alike token (alive/00) still counts for none."""
+    from services.nodes import source as source_module
+    from services.nodes.source import Source, SourceOptions, SourceStalled
+    from services.streams import Stream
+
+    monkeypatch.setattr(source_module, "WAIT_TIMEOUT", 3.0)
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    procs([*CLI, "router", "--listen", endpoint]).wait_for("routing")
+    config = build_config("client", connect=[endpoint])
+    with zenoh.open(config) as peer, zenoh.open(config) as own:
+        source = Source(own, Stream("r", [], None, True), SourceOptions(wait_mappers=1, map_name="m"))
+        fake = peer.liveliness().declare_token(keys.shard_alive_key("m", "00"))
+        with pytest.raises(SourceStalled):
+            source._wait_for_subscribers(threading.Event())
+        real = peer.liveliness().declare_token(keys.shard_alive_key("m", 1))
+        assert source._wait_for_subscribers(threading.Event())
+        fake.undeclare()
+        real.undeclare()

@@ -96,3 +96,34 @@ def test_a_history_that_answers_once_and_stalls_holds_the_shard_once(router, mon
     finally:
         session.close()
         peer.close()
+
+
+def test_robots_whose_histories_answered_once_cannot_hold_the_shard_either(router, monkeypatch):
+    """A re-probe: 40 robot names whose made-up histories answered a gap each at once, in full, then stalled one
+    after another held the real robot's fusion for good (2 scans in 75 s): while the budget was spent, robots that
+    had answered were still asked, 1 s each. A robot whose question runs out counts as answered no more, and past
+    twice HISTORY_TIMEOUT in the window no question is asked at all."""
+    monkeypatch.setattr(mapper_module, "HISTORY_TIMEOUT", 0.5)
+    monkeypatch.setattr(mapper_module, "HISTORY_SHORT_TIMEOUT", 0.2)
+    monkeypatch.setattr(mapper_module, "HISTORY_QUIET", 30.0)
+    kept: list[zenoh.Query] = []
+    peer = zenoh.open(build_config("client", connect=[router]))
+    session = zenoh.open(build_config("client", connect=[router]))
+    try:
+        queryable = peer.declare_queryable("pg/*/history/**", kept.append)
+        time.sleep(0.5)
+        shard = Mapper(ShardConfig("m", 0, 1, SensorModel()), session, threading.Event())
+        names = [f"e{i}" for i in range(20)]
+        shard._remember_answered(names)  # (each answered in time once)
+        with shard.lock:
+            started = time.monotonic()
+            for name in names:
+                assert shard._history(name, "scan", 1, 1) == []
+            held = time.monotonic() - started
+        assert held < 2 * 0.5 + 0.5 + 0.6, held  # (the cap, the question that passed it, a busy machine's slack)
+        assert len(kept) <= 5, len(kept)  # 0.5 s, then 0.2 s each up to 1 s in all: 4 questions, 16 not asked
+        assert not shard._answered & set(names[: len(kept)])
+        queryable.undeclare()
+    finally:
+        session.close()
+        peer.close()

@@ -156,6 +156,14 @@ class MapperLink:
             if message.robot == robot and first - TRAJECTORY_LENGTH <= message.seq < first:
                 row = trajectory_row(message)
                 rows[message.seq] = row if rows.get(message.seq, row) == row else None
+        twice = sorted(seq for seq, row in rows.items() if row is None)
+        if twice:
+            self.rejects.count(
+                keys.history_key(robot),
+                "history",
+                f"{len(twice)} pose seq(s) of robot {robot!r} (the first {twice[0]}) given two ways by its histories; "
+                "left out of its trajectory",
+            )
         kept = [row for _, row in sorted(rows.items()) if row is not None]
         taken = self.robots.backfill(robot, np.array(kept, float).reshape(-1, 5))
         if taken:

@@ -268,12 +268,13 @@ class Mapper:
             )
             return []
         silent = self._silent_seconds(began)
-        if silent >= HISTORY_TIMEOUT and robot not in self._answered:
+        if silent >= 2 * HISTORY_TIMEOUT or (silent >= HISTORY_TIMEOUT and robot not in self._answered):
             self.rejects.count(
                 keys.history_key(robot),
                 "history",
                 f"seqs {first}-{last} of {stream} not asked for: histories that did not answer held this shard "
-                f"{silent:.1f} s in the last {HISTORY_QUIET:g} s, and robot {robot!r}'s have never answered it",
+                f"{silent:.1f} s in the last {HISTORY_QUIET:g} s (robot {robot!r}'s have not answered it in time, or "
+                f"that is twice {HISTORY_TIMEOUT:g} s)",
             )
             return []
         strained = silent >= HISTORY_TIMEOUT  # (then a short timeout and no more time for a history cut off)
@@ -297,6 +298,7 @@ class Mapper:
         if waited >= 0.9 * timeout and history.reachable(self.session):
             self._silent.append((time.monotonic(), waited))
             self._history_quiet[robot] = time.monotonic() + HISTORY_QUIET
+            self._answered.discard(robot)  # (a re-probe: names that answered once, then stalled one after another)
         elif messages:
             self._remember_answered([robot])
         return [payload for _, got, payload in messages if got == stream]  # (history.ask checks the reply keys)

@@ -257,7 +257,7 @@ class Source:
         opts = self.options
         if opts.wait_mappers and not self._wait_for(
             f"{opts.wait_mappers} mapper shard(s) of map {opts.map_name!r}",
-            lambda: self._reader.shards_up(opts.wait_mappers) >= opts.wait_mappers,
+            lambda: len(self._reader.tokens(timeout=2.0)) >= opts.wait_mappers,
             stop,
         ):
             return False

@@ -433,7 +433,7 @@ class Bridge:
         ``stop`` is set first."""
         opts = self.options
         shards = MapReader(self.session, opts.map_name)
-        while opts.wait_mappers and shards.shards_up(opts.wait_mappers) < opts.wait_mappers:
+        while opts.wait_mappers and len(shards.tokens(timeout=2.0)) < opts.wait_mappers:
             if stop.wait(0.1):
                 return False
         slam = keys.robot_alive_key(opts.robot, "slam")
