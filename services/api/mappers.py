@@ -288,7 +288,7 @@ class MapperLink:
                 key if parsed else keys.INVALID_KEY, "robot", f"a pose of robot {message.robot!r} arrived on {key}"
             )
             return
-        fresh = self.robots.latest(message.robot) is None
+        fresh = not self.robots.tracked(message.robot)
         try:
             summary = self.robots.update(message)
         except PoseRefused as refused:

@@ -310,6 +310,11 @@ class RobotTracker:
             self._expire(time.monotonic())
             return sorted(self._latest)
 
+    def tracked(self, robot: str) -> bool:
+        """Whether ``robot`` has a pose tracked now (no expiry walk: asked once a pose message)."""
+        with self._lock:
+            return robot in self._latest
+
     def latest(self, robot: str) -> PoseSummary | None:
         """The robot's latest pose; None for a robot not tracked (or a stray one whose time is up)."""
         with self._lock:
